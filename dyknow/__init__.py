@@ -1,0 +1,84 @@
+"""dyknow: reconfigurable stream reasoning middleware for robots, on Eclipse Zenoh.
+
+The public API::
+
+    from dyknow import Manager, Unit, Client
+
+    class Doubler(Unit):
+        def on_message(self, port, msg):
+            self.publish("out", msg.payload * 2)
+
+See the README for the concepts: transformation specs, the manager, units and their proxies.
+"""
+
+from __future__ import annotations
+
+from dyknow.client import Client
+from dyknow.errors import (
+    BindingError,
+    ClosedError,
+    DyKnowError,
+    LibraryError,
+    ServiceError,
+    SpecError,
+    SpecIssue,
+    TransportError,
+    UnitError,
+)
+from dyknow.executor import Timer
+from dyknow.library import Library
+from dyknow.manager import Manager, Model, UnitEvent, UnitInfo, default_key
+from dyknow.message import Message, PayloadError
+from dyknow.proxy import UnitState, UnitStatistics
+from dyknow.spec import (
+    Constraint,
+    Param,
+    Port,
+    Tag,
+    Template,
+    TransformationSpec,
+    load_specs,
+    parse_specs,
+)
+from dyknow.stats import LatencySummary, PortStatistics
+from dyknow.transport import DEFAULT_ENDPOINT
+from dyknow.unit import Unit
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "DEFAULT_ENDPOINT",
+    "BindingError",
+    "Client",
+    "ClosedError",
+    "Constraint",
+    "DyKnowError",
+    "LatencySummary",
+    "Library",
+    "LibraryError",
+    "Manager",
+    "Message",
+    "Model",
+    "Param",
+    "PayloadError",
+    "Port",
+    "PortStatistics",
+    "ServiceError",
+    "SpecError",
+    "SpecIssue",
+    "Tag",
+    "Template",
+    "Timer",
+    "TransformationSpec",
+    "TransportError",
+    "Unit",
+    "UnitError",
+    "UnitEvent",
+    "UnitInfo",
+    "UnitState",
+    "UnitStatistics",
+    "__version__",
+    "default_key",
+    "load_specs",
+    "parse_specs",
+]

@@ -1,0 +1,426 @@
+"""The ``dyknow`` command line.
+
+Thin by design: every subcommand is a small function over the public API. ``--json`` gives
+machine-readable output wherever a command prints data. Errors are one line on stderr and a
+non-zero exit, never a traceback (set ``DYKNOW_DEBUG=1`` to see one).
+
+Commands::
+
+    dyknow manager --name NAME [--specs PATH ...] [--listen ENDPOINT] [--zenoh-config FILE]
+    dyknow demo [--duration S]
+    dyknow validate PATH ...                       (offline)
+    dyknow expand PATH ... [--json]                (offline)
+    dyknow spawn LABEL NAME [--protect] [--param K=V ...] [--bind PORT=KEY ...]
+    dyknow destroy NAME
+    dyknow model
+    dyknow config get NAME | dyknow config set NAME PORT=KEY ...
+    dyknow stats NAME
+    dyknow add-spec FILE | dyknow remove-spec LABEL
+    dyknow echo KEYEXPR [--count N]
+
+Client commands reach a manager with ``--connect ENDPOINT`` (default tcp/127.0.0.1:7447) and
+``--manager NAME`` (default ``dyknow``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from dyknow.client import Client
+from dyknow.errors import DyKnowError, SpecError
+from dyknow.message import Message, describe_payload
+from dyknow.spec import load_specs
+from dyknow.transport import DEFAULT_ENDPOINT
+
+__all__ = ["main"]
+
+DEFAULT_MANAGER = "dyknow"
+
+
+class _Usage(Exception):
+    """A command line that parses but makes no sense (exit code 2)."""
+
+
+def _out(data: Any) -> None:
+    sys.stdout.write(json.dumps(data, indent=None, separators=(",", ":")) + "\n")
+    sys.stdout.flush()
+
+
+def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
+    result: dict[str, str] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise _Usage(f"{what}: got {item!r}; expected NAME=VALUE")
+        result[name] = value
+    return result
+
+
+# ---------------------------------------------------------------------- offline commands
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    try:
+        specs = load_specs(args.paths)
+    except SpecError as exc:
+        for issue in exc.issues:
+            print(str(issue), file=sys.stderr)
+        if args.json:
+            _out({"valid": False, "errors": [str(i) for i in exc.issues]})
+        return 1
+    files = len({s.path for s in specs})
+    if args.json:
+        _out({"valid": True, "transformations": len(specs), "files": files})
+    else:
+        print(f"ok: {len(specs)} transformations in {files} file{'s' if files != 1 else ''}")
+    return 0
+
+
+def cmd_expand(args: argparse.Namespace) -> int:
+    specs = load_specs(args.paths)
+    if args.json:
+        _out(
+            [
+                {
+                    "label": s.label,
+                    "source": s.source,
+                    "params": s.param_values(),
+                    "ports": [{"name": p.name, "direction": p.direction} for p in s.ports],
+                    "tags": [{"port": t.port, "tag": t.tag} for t in s.tags],
+                }
+                for s in specs
+            ]
+        )
+        return 0
+    for s in specs:
+        print(f"{s.label}  ({s.source})  {s.location}")
+        for p in s.ports:
+            tags = ", ".join(s.tags_for(p.name))
+            print(f"    {p.direction:>3} {p.name}" + (f"  [{tags}]" if tags else ""))
+        for name, value in s.param_values().items():
+            print(f"    param {name} = {value!r}")
+    return 0
+
+
+# ---------------------------------------------------------------------- the manager
+
+
+def _wait_for_signal() -> None:
+    stop = threading.Event()
+
+    def handler(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    while not stop.wait(0.5):
+        pass
+
+
+def cmd_manager(args: argparse.Namespace) -> int:
+    from dyknow.manager import Manager
+
+    listen = args.listen or ([DEFAULT_ENDPOINT] if args.zenoh_config is None else None)
+    with Manager(args.name, specs=args.specs, listen=listen, connect=args.connect, zenoh_config=args.zenoh_config) as manager:
+        endpoints = manager.endpoints
+        if args.json:
+            _out({"event": "ready", "manager": args.name, "endpoints": endpoints, "specs": len(manager.library)})
+        else:
+            print(
+                f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} "
+                f"with {len(manager.library)} specs; Ctrl-C to stop",
+                flush=True,
+            )
+        _wait_for_signal()
+    if not args.json:
+        print(f"dyknow manager {args.name!r} stopped", flush=True)
+    return 0
+
+
+# ---------------------------------------------------------------------- client commands
+
+
+def _client(args: argparse.Namespace) -> Client:
+    return Client(args.manager, connect=args.connect or [DEFAULT_ENDPOINT], zenoh_config=args.zenoh_config, timeout=args.timeout)
+
+
+def cmd_spawn(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        info = client.spawn(
+            args.label,
+            args.name,
+            protected=args.protect,
+            params=_pairs(args.param, "--param"),
+            bindings=_pairs(args.bind, "--bind"),
+        )
+    if args.json:
+        _out(info)
+    else:
+        state = info["state"]
+        print(f"spawned {info['name']} ({info['label']}): {state}" + (" [protected]" if info["protected"] else ""))
+        if info.get("error"):
+            print(f"  error: {info['error']}")
+    return 1 if info["state"] == "failed" else 0
+
+
+def cmd_destroy(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        client.destroy(args.name)
+    if args.json:
+        _out({"destroyed": args.name})
+    else:
+        print(f"destroyed {args.name}")
+    return 0
+
+
+def cmd_model(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        model = client.get_model()
+    if args.json:
+        _out(model)
+        return 0
+    print(f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs")
+    for unit in model["units"]:
+        flags = " [protected]" if unit["protected"] else ""
+        print(f"  {unit['name']} ({unit['label']}) {unit['state']}{flags}")
+        for port, key in unit["bindings"].items():
+            print(f"      {port} -> {key}")
+        if unit.get("error"):
+            print(f"      error: {unit['error']}")
+    if model["specs"]:
+        print("specs: " + ", ".join(s["label"] for s in model["specs"]))
+    return 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        if args.action == "get":
+            if args.bindings:
+                raise _Usage("config get takes no PORT=KEY pairs; did you mean 'config set'?")
+            config = client.get_config(args.name)
+        else:
+            if not args.bindings:
+                raise _Usage("config set needs at least one PORT=KEY pair")
+            config = client.set_config(args.name, _pairs(args.bindings, "config set"))
+    if args.json:
+        _out(config)
+    else:
+        for port, key in config.items():
+            print(f"{port} -> {key}")
+    return 0
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        stats = client.get_statistics(args.name)
+    if args.json:
+        _out(stats)
+        return 0
+    print(
+        f"{stats['name']} ({stats['label']}) {stats['state']}: up {stats['uptime_s']:.1f} s, "
+        f"{stats['reconfigurations']} reconfigurations, {stats['executor']}"
+    )
+    for port, p in stats["ports"].items():
+        line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B, {p['dropped']} dropped"
+        if p["direction"] == "in" and p["latency"]["count"]:
+            lat, hop = p["latency"], p["hop"]
+            line += f"; latency p50 {lat['p50_us']:.1f} µs p99 {lat['p99_us']:.1f} µs; hop p50 {hop['p50_us']:.1f} µs p99 {hop['p99_us']:.1f} µs"
+        print(line)
+    if stats.get("error"):
+        print(f"  error: {stats['error']}")
+    return 0
+
+
+def cmd_add_spec(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        labels = client.add_transformation(args.file)
+    if args.json:
+        _out({"labels": labels})
+    else:
+        print("added " + ", ".join(labels))
+    return 0
+
+
+def cmd_remove_spec(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        removed = client.remove_transformation(args.label)
+    if args.json:
+        _out({"label": args.label, "removed": removed})
+    else:
+        print(f"removed {args.label}" if removed else f"no spec labelled {args.label!r}; nothing removed")
+    return 0
+
+
+def _payload_json(payload: Any) -> Any:
+    if isinstance(payload, np.ndarray):
+        return {"ndarray": {"dtype": str(payload.dtype), "shape": list(payload.shape)}}
+    if isinstance(payload, (bytes, bytearray)):
+        return {"bytes": len(payload), "base64": base64.b64encode(payload[:4096]).decode()}
+    return payload
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    if args.count is not None and args.count <= 0:
+        raise _Usage(f"--count: got {args.count}; expected a positive number")
+    done = threading.Event()
+    lock = threading.Lock()
+    seen = 0
+
+    def show(msg: Message) -> None:
+        nonlocal seen
+        with lock:
+            if done.is_set():
+                return
+            latency_us = (time.time_ns() - msg.origin_ns) / 1000
+            if args.json:
+                _out(
+                    {
+                        "key": msg.key,
+                        "seq": msg.seq,
+                        "origin_ns": msg.origin_ns,
+                        "send_ns": msg.send_ns,
+                        "latency_us": round(latency_us, 1),
+                        "payload": _payload_json(msg.payload),
+                    }
+                )
+            else:
+                print(f"{msg.key} #{msg.seq} age {latency_us / 1000:.3f} ms: {describe_payload(msg.payload)}", flush=True)
+            seen += 1
+            if args.count is not None and seen >= args.count:
+                done.set()
+
+    with _client(args) as client, client.subscribe(args.keyexpr, show):
+        signal.signal(signal.SIGINT, lambda *_: done.set())
+        signal.signal(signal.SIGTERM, lambda *_: done.set())
+        done.wait(args.timeout_total) if args.timeout_total else done.wait()
+    if args.count is not None and seen < args.count:
+        print(f"dyknow: error: received {seen} of {args.count} messages on {args.keyexpr!r}", file=sys.stderr)
+        return 1
+    return 0
+
+
+# ---------------------------------------------------------------------- demo
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from dyknow.demo import run_demo
+
+    return run_demo(duration_s=args.duration, hops=args.hops, rate_hz=args.rate, as_json=args.json)
+
+
+# ---------------------------------------------------------------------- parser
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dyknow", description="Reconfigurable stream reasoning on Eclipse Zenoh.")
+    parser.add_argument("--version", action="version", version=f"dyknow {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, fn: Callable[[argparse.Namespace], int], help: str, client: bool = False) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help, description=help)
+        p.set_defaults(fn=fn)
+        p.add_argument("--json", action="store_true", help="machine-readable output")
+        if client:
+            p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
+            p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
+            p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
+            p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
+        return p
+
+    p = command("manager", cmd_manager, "run a manager until interrupted")
+    p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
+    p.add_argument("--specs", action="append", default=[], metavar="PATH", help="a spec file or a directory of .xml specs (repeatable)")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file to join a real deployment")
+
+    p = command("demo", cmd_demo, "run the demo: a manager with a chain of units, printing messages and latency")
+    p.add_argument("--duration", type=float, default=6.0, metavar="S", help="how long to run (default 6 s)")
+    p.add_argument("--hops", type=int, default=5, help="relays in the chain (default 5)")
+    p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (default 20 Hz)")
+
+    p = command("validate", cmd_validate, "check spec files; exit 1 with one PATH:LINE: message per error")
+    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+
+    p = command("expand", cmd_expand, "print every transformation after template expansion")
+    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+
+    p = command("spawn", cmd_spawn, "spawn a unit on a manager", client=True)
+    p.add_argument("label")
+    p.add_argument("name")
+    p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
+    p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
+
+    p = command("destroy", cmd_destroy, "destroy a unit", client=True)
+    p.add_argument("name")
+
+    command("model", cmd_model, "show the manager's units and specs", client=True)
+
+    p = command("config", cmd_config, "get or set a unit's port bindings", client=True)
+    p.add_argument("action", choices=["get", "set"])
+    p.add_argument("name")
+    p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
+
+    p = command("stats", cmd_stats, "show a unit's statistics", client=True)
+    p.add_argument("name")
+
+    p = command("add-spec", cmd_add_spec, "add the transformations of a spec file to the manager", client=True)
+    p.add_argument("file")
+
+    p = command("remove-spec", cmd_remove_spec, "remove a transformation from the manager's library", client=True)
+    p.add_argument("label")
+
+    p = command("echo", cmd_echo, "print the messages published on a key expression", client=True)
+    p.add_argument("keyexpr")
+    p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
+    p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
+    return parser
+
+
+def _version() -> str:
+    from dyknow import __version__
+
+    return __version__
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit code."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=os.environ.get("DYKNOW_LOG", "WARNING").upper(), format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.fn(args))
+    except _Usage as exc:
+        parser.error(str(exc))
+    except SpecError as exc:
+        for issue in exc.issues:
+            print(str(issue), file=sys.stderr)
+        return 1
+    except DyKnowError as exc:
+        print(f"dyknow: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:
+        if os.environ.get("DYKNOW_DEBUG"):
+            raise
+        print(f"dyknow: internal error: {type(exc).__name__}: {exc} (set DYKNOW_DEBUG=1 for a traceback, and please report it)", file=sys.stderr)
+        return 70
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,497 @@
+"""The manager: a library of transformation specs and the units spawned from them.
+
+A manager owns one Zenoh session, a :class:`~dyknow.library.Library`, the running units (each
+with its :class:`~dyknow.proxy.Proxy`), the local bus between them and the executor that runs
+them. Its services, as Python methods and as Zenoh services (see :mod:`dyknow.service`):
+
+- ``add_transformation`` / ``remove_transformation``: manage the library (a template adds one
+  spec per substitution; an existing label is replaced);
+- ``spawn(label, name, protected=False)`` / ``destroy(name)``: start and stop units (protected
+  units refuse destroy; a unit may destroy itself);
+- ``get_model()``: every running unit with its label, state, protection and bindings, plus every
+  stored spec;
+- per unit: ``get_config``, ``set_config``, ``get_statistics`` (the proxy services).
+
+Usage::
+
+    with Manager("robot", specs=["specs/"]) as manager:
+        manager.spawn("periodic-source", "src")
+        manager.spawn("relay", "relay1", bindings={"in": "dyknow/robot/src/out"})
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import logging
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from dyknow import service
+from dyknow.bus import LocalBus
+from dyknow.errors import BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
+from dyknow.executor import Executor
+from dyknow.library import Library
+from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
+from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
+from dyknow.transport import Queryable, Session, check_key_expr, make_config
+from dyknow.unit import Unit
+
+__all__ = ["Manager", "Model", "UnitEvent", "UnitInfo", "default_key"]
+
+log = logging.getLogger(__name__)
+
+_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+
+
+def default_key(manager: str, unit: str, port: str) -> str:
+    """Where a port is bound unless told otherwise: ``dyknow/<manager>/<unit>/<port>``."""
+    return f"dyknow/{manager}/{unit}/{port}"
+
+
+def _check_name(name: object, what: str) -> str:
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise UnitError(
+            f"{what} {name!r} is not a valid name; expected letters, digits, '_', '-' or '.', "
+            "not starting with '-' or '.' (it becomes part of Zenoh keys)"
+        )
+    return name
+
+
+@dataclass(frozen=True, slots=True)
+class UnitEvent:
+    """Something happened to a unit: ``kind`` is "spawned", "failed" or "destroyed"."""
+
+    kind: str
+    unit: str
+    label: str
+    time_ns: int
+    error: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class UnitInfo:
+    """One running unit as the model shows it."""
+
+    name: str
+    label: str
+    state: str
+    protected: bool
+    bindings: Mapping[str, str]
+    executor: str
+    error: str | None = None
+    traceback: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "label": self.label,
+            "state": self.state,
+            "protected": self.protected,
+            "bindings": dict(self.bindings),
+            "executor": self.executor,
+            "error": self.error,
+            "traceback": self.traceback,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class Model:
+    """The manager's model: the running units and the stored specs."""
+
+    manager: str
+    units: tuple[UnitInfo, ...]
+    specs: tuple[TransformationSpec, ...] = field(default=())
+
+    def unit(self, name: str) -> UnitInfo:
+        for info in self.units:
+            if info.name == name:
+                return info
+        raise UnitError(f"no unit named {name!r} in the model of manager {self.manager!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "manager": self.manager,
+            "units": [u.to_dict() for u in self.units],
+            "specs": [s.to_dict() for s in self.specs],
+        }
+
+
+class Manager:
+    """Spawns units from transformation specs and serves the DyKnow services. A context manager.
+
+    ``specs``: spec files, directories of ``*.xml`` files, or specs to load at start.
+    ``listen``/``connect``: Zenoh endpoints (default: listen on a free loopback port, connect to
+    nothing); ``zenoh_config``: a json5 Zenoh configuration file to join a real deployment instead.
+    ``serve``: declare the Zenoh services so other processes can call this manager.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        specs: Iterable[str | os.PathLike[str] | TransformationSpec] = (),
+        listen: Sequence[str] | None = None,
+        connect: Sequence[str] = (),
+        zenoh_config: str | os.PathLike[str] | None = None,
+        serve: bool = True,
+        queue_depth: int = DEFAULT_QUEUE_DEPTH,
+        stall_budget_s: float = 0.02,
+        slow_callback_s: float = 0.002,
+    ) -> None:
+        self.name = _check_name(name, "manager name")
+        self.library = Library()
+        spec_objs = [s for s in specs if isinstance(s, TransformationSpec)]
+        paths = [s for s in specs if not isinstance(s, TransformationSpec)]
+        if paths:
+            self.library.add(load_specs(paths))  # bad specs fail before anything starts
+        self.library.add(spec_objs)
+        self._queue_depth = queue_depth
+        self._lock = threading.RLock()
+        self._units: dict[str, Proxy] = {}
+        self._closed = False
+        self._session = Session(make_config(listen=listen, connect=list(connect), config_file=zenoh_config))
+        self._bus = LocalBus()
+        self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
+        self._listeners: list[Callable[[UnitEvent], None]] = []
+        self._services: Queryable | None = None
+        if serve:
+            try:
+                self._services = self._session.declare_queryable(
+                    f"{service.ROOT}/{self.name}/**",
+                    service.dispatcher(self.name, self._manager_handlers(), self._unit_service),
+                )
+            except DyKnowError:
+                self.close()
+                raise
+        log.info("manager %r ready with %d specs", self.name, len(self.library))
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def __enter__(self) -> Manager:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Destroy every unit (protected ones too), stop the threads, close the session. Safe twice."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            if self._services is not None:
+                self._services.undeclare()
+            proxies = list(self._units.values())
+            self._units.clear()
+        per_unit = min(0.5, timeout / max(1, len(proxies)))
+        for proxy in reversed(proxies):
+            proxy.stop(per_unit)
+        self._executor.close(timeout)
+        self._session.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ClosedError(f"manager {self.name!r} is closed; create a new Manager")
+
+    @property
+    def session(self) -> Session:
+        """The manager's Zenoh session (for clients and tools living in the same process)."""
+        return self._session
+
+    @property
+    def endpoints(self) -> list[str]:
+        """The Zenoh locators this manager listens on, e.g. ``['tcp/127.0.0.1:7447']``."""
+        return self._session.endpoints()
+
+    # ------------------------------------------------------------------ library services
+
+    def add_transformation(self, spec: TransformationSpec | Template | str | os.PathLike[str], *, path: str | None = None) -> list[str]:
+        """Store a spec, or every expansion of a template; returns the labels added.
+
+        ``spec`` is a :class:`TransformationSpec`, a :class:`Template`, XML text, or the path of a
+        spec file. An existing label is replaced.
+        """
+        self._check_open()
+        if isinstance(spec, TransformationSpec):
+            specs = [spec]
+        elif isinstance(spec, Template):
+            specs = spec.expand()
+        elif isinstance(spec, os.PathLike) or (isinstance(spec, str) and not spec.lstrip().startswith("<")):
+            specs = load_specs([spec])
+        elif isinstance(spec, str):
+            specs = parse_specs(spec, path or "<add_transformation>")
+        else:
+            raise LibraryError(f"add_transformation: got {type(spec).__name__}; expected a spec, a template, XML text or a path")
+        return self.library.add(specs)
+
+    def remove_transformation(self, label: str) -> bool:
+        """Forget the spec with ``label``; returns whether there was one. Running units stay."""
+        self._check_open()
+        return self.library.remove(label)
+
+    # ------------------------------------------------------------------ units
+
+    def spawn(
+        self,
+        label: str,
+        name: str,
+        *,
+        protected: bool = False,
+        params: Mapping[str, Any] | None = None,
+        bindings: Mapping[str, str] | None = None,
+    ) -> UnitInfo:
+        """Start a unit of transformation ``label`` named ``name``.
+
+        ``params`` override the spec's param values (strings are parsed as the declared type);
+        ``bindings`` bind ports to keys other than the default ``dyknow/<manager>/<name>/<port>``.
+        A source that cannot be imported, or that is not a Unit, raises :class:`UnitError` and
+        changes nothing. An exception in the unit's ``setup()`` leaves it in the model as failed.
+        """
+        with self._lock:
+            self._check_open()
+            _check_name(name, "unit name")
+            if name in self._units:
+                running = self._units[name]
+                raise UnitError(
+                    f"a unit named {name!r} already exists (label {running.label!r}, {running.state.value}); "
+                    "destroy it first or choose another name"
+                )
+            spec = self.library.get(label)
+            values = _param_values(spec, params or {})
+            ports = _bindings(spec, self.name, name, bindings or {})
+            cls = _import_unit(spec)
+            try:
+                unit = cls()
+            except Exception as exc:
+                raise UnitError(f"cannot create unit {name!r}: {spec.source}() raised {type(exc).__name__}: {exc}") from exc
+            unit.name = name
+            unit.label = spec.label
+            unit.params = values
+            unit.log = logging.getLogger(f"dyknow.unit.{name}")
+            proxy = Proxy(
+                name=name,
+                spec=spec,
+                unit=unit,
+                bindings=ports,
+                session=self._session,
+                bus=self._bus,
+                executor=self._executor,
+                protected=protected,
+                queue_depth=self._queue_depth,
+                on_failure=self._unit_failed,
+                on_destroy_request=self._destroy_requested,
+            )
+            unit._proxy = proxy
+            self._units[name] = proxy
+            proxy.start()
+            if proxy.state is not UnitState.FAILED:
+                self._emit("spawned", proxy)
+            return self._info(proxy)
+
+    def destroy(self, name: str) -> None:
+        """Stop unit ``name`` and remove it from the model. Refused for protected units."""
+        with self._lock:
+            self._check_open()
+            proxy = self._proxy(name)
+            if proxy.protected:
+                raise UnitError(f"unit {name!r} is protected; it cannot be destroyed (spawned with protected=True)")
+            del self._units[name]
+        proxy.stop()
+        log.info("unit %r destroyed", name)
+        self._emit("destroyed", proxy)
+
+    def _destroy_requested(self, proxy: Proxy) -> None:
+        with self._lock:
+            if self._closed or self._units.get(proxy.name) is not proxy:
+                return
+            del self._units[proxy.name]
+        proxy.stop()
+        log.info("unit %r destroyed itself", proxy.name)
+        self._emit("destroyed", proxy)
+
+    def _unit_failed(self, proxy: Proxy) -> None:
+        self._emit("failed", proxy)
+
+    def on_unit_event(self, listener: Callable[[UnitEvent], None]) -> Callable[[], None]:
+        """Call ``listener(event)`` whenever a unit is spawned, fails or is destroyed.
+
+        The listener runs on the thread where it happened and must be quick. Returns a function
+        that removes the listener.
+        """
+        self._listeners.append(listener)
+        return lambda: self._listeners.remove(listener) if listener in self._listeners else None
+
+    def _emit(self, kind: str, proxy: Proxy) -> None:
+        event = UnitEvent(kind, proxy.name, proxy.label, time.time_ns(), proxy.error if kind == "failed" else None)
+        for listener in list(self._listeners):
+            try:
+                listener(event)
+            except Exception:
+                log.exception("unit event listener failed on %s", event)
+
+    def unit(self, name: str) -> Unit:
+        """The Python object of running unit ``name`` (for embedding and tests)."""
+        return self._proxy(name).unit
+
+    def _proxy(self, name: str) -> Proxy:
+        proxy = self._units.get(name)
+        if proxy is None:
+            known = list(self._units)
+            listing = ", ".join(repr(k) for k in known) or "none"
+            raise UnitError(f"no unit named {name!r} on manager {self.name!r}; running units: {listing}{did_you_mean(name, known)}")
+        return proxy
+
+    # ------------------------------------------------------------------ model and proxy services
+
+    def get_model(self) -> Model:
+        """All running units (label, state, protection, bindings) and all stored specs."""
+        with self._lock:
+            proxies = list(self._units.values())
+        return Model(self.name, tuple(self._info(p) for p in proxies), self.library.specs())
+
+    def _info(self, proxy: Proxy) -> UnitInfo:
+        return UnitInfo(
+            name=proxy.name,
+            label=proxy.label,
+            state=proxy.state.value,
+            protected=proxy.protected,
+            bindings=proxy.get_config(),
+            executor=proxy.executor_description,
+            error=proxy.error,
+            traceback=proxy.traceback,
+        )
+
+    def get_config(self, name: str) -> dict[str, str]:
+        """Port -> key expression bindings of unit ``name``."""
+        self._check_open()
+        return self._proxy(name).get_config()
+
+    def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
+        """Rebind ports of unit ``name`` atomically at runtime; returns the new bindings."""
+        self._check_open()
+        return self._proxy(name).set_config(bindings)
+
+    def get_statistics(self, name: str) -> UnitStatistics:
+        """Uptime, reconfigurations, per-port messages, bytes, drops and latency of unit ``name``."""
+        self._check_open()
+        return self._proxy(name).get_statistics()
+
+    # ------------------------------------------------------------------ Zenoh services
+
+    def _manager_handlers(self) -> dict[str, service.Handler]:
+        return {
+            "add_transformation": lambda r: {"labels": self.add_transformation(str(r["xml"]), path=str(r.get("path") or "<remote>"))},
+            "remove_transformation": lambda r: {"removed": self.remove_transformation(str(r["label"]))},
+            "spawn": lambda r: self.spawn(
+                str(r["label"]),
+                str(r["name"]),
+                protected=bool(r.get("protected", False)),
+                params=r.get("params") or {},
+                bindings=r.get("bindings") or {},
+            ).to_dict(),
+            "destroy": lambda r: self.destroy(str(r["name"])) or {"destroyed": r["name"]},
+            "get_model": lambda r: self.get_model().to_dict(),
+        }
+
+    def _unit_service(self, name: str, what: str, request: dict[str, Any]) -> Any:
+        if what == "get_config":
+            return self.get_config(name)
+        if what == "set_config":
+            bindings = request.get("bindings")
+            if not isinstance(bindings, dict):
+                raise BindingError(f"set_config of unit {name!r}: got {bindings!r}; expected {{\"bindings\": {{port: key}}}}")
+            return self.set_config(name, bindings)
+        return self.get_statistics(name).to_dict()
+
+
+# ---------------------------------------------------------------------- helpers
+
+
+def _import_unit(spec: TransformationSpec) -> type[Unit]:
+    where = f"transformation {spec.label!r} ({spec.path}:{spec.line})"
+    module_name, sep, class_name = spec.source.partition(":")
+    if not sep or not module_name or not class_name or "/" in spec.source:
+        raise UnitError(f"{where}: source {spec.source!r} is not importable; expected 'package.module:Class'")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        raise UnitError(
+            f"{where}: cannot import module {module_name!r} named in its source: {exc}; "
+            "is the package installed or on PYTHONPATH?"
+        ) from exc
+    except Exception as exc:
+        raise UnitError(f"{where}: importing module {module_name!r} failed: {type(exc).__name__}: {exc}") from exc
+    cls = getattr(module, class_name, None)
+    if cls is None:
+        units = [n for n, v in vars(module).items() if inspect.isclass(v) and issubclass(v, Unit) and v is not Unit]
+        raise UnitError(
+            f"{where}: module {module_name!r} has no {class_name!r}; expected a Unit subclass"
+            + (f" such as {', '.join(repr(u) for u in units)}" if units else "")
+            + did_you_mean(class_name, units)
+        )
+    if not (inspect.isclass(cls) and issubclass(cls, Unit)):
+        raise UnitError(f"{where}: {spec.source!r} is a {type(cls).__name__}, not a unit; expected a subclass of dyknow.Unit")
+    return cls
+
+
+def _param_values(spec: TransformationSpec, overrides: Mapping[str, Any]) -> dict[str, Any]:
+    values = spec.param_values()
+    declared = {p.name: p for p in spec.params}
+    for name, value in overrides.items():
+        param = declared.get(name)
+        if param is None:
+            listing = ", ".join(repr(n) for n in declared) or "none"
+            raise UnitError(
+                f"transformation {spec.label!r} has no param {name!r}; expected one of {listing}{did_you_mean(name, declared)}"
+            )
+        values[name] = _coerce(param.type, value, f"param {name!r} of {spec.label!r}")
+    return values
+
+
+def _coerce(kind: str, value: Any, what: str) -> Any:
+    try:
+        if kind == "string":
+            return str(value)
+        if kind == "bool":
+            if isinstance(value, bool):
+                return value
+            text = str(value).strip().lower()
+            if text in ("true", "1", "yes", "on"):
+                return True
+            if text in ("false", "0", "no", "off"):
+                return False
+            raise ValueError
+        if kind == "int":
+            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+                raise ValueError
+            return int(value) if not isinstance(value, str) else int(value.strip(), 10)
+        if kind == "float":
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+    except (TypeError, ValueError):
+        pass
+    expected = {"bool": "true or false", "int": "a whole number", "float": "a number", "string": "text"}[kind]
+    raise UnitError(f"{what}: got {value!r}; expected {expected} ({kind})")
+
+
+def _bindings(spec: TransformationSpec, manager: str, unit: str, overrides: Mapping[str, str]) -> dict[str, str]:
+    ports = {p.name: p for p in spec.ports}
+    result = {name: default_key(manager, unit, name) for name in ports}
+    for name, key in overrides.items():
+        port = ports.get(name)
+        if port is None:
+            listing = ", ".join(repr(n) for n in ports)
+            raise BindingError(f"transformation {spec.label!r} has no port {name!r}; expected one of {listing}{did_you_mean(name, ports)}")
+        result[name] = check_key_expr(key, what=f"port {name!r} of unit {unit!r}", concrete=port.direction == "out")
+    return result

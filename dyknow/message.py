@@ -1,0 +1,203 @@
+"""Messages: a payload plus a small header, and their wire encoding.
+
+Every message carries a header:
+
+- ``seq``: the sequence number of the output port that published it (1, 2, 3, ...);
+- ``origin_ns``: when the data was captured, taken by the source and propagated unchanged through
+  every hop (unless a unit passes its own ``origin_ns`` when it publishes);
+- ``send_ns``: when the last hop published it.
+
+Times are wall-clock integer nanoseconds (``time.time_ns()``) so that they compare across processes
+on one host.
+
+Payloads are ``bytes``, ``str``, numpy arrays, or JSON-like values (dict, list, numbers, bool,
+None). Between units of one manager a payload travels by reference (no copy, no serialization);
+only messages that leave the process are encoded, by :func:`encode`:
+
+- the Zenoh payload is the raw data: the bytes, the UTF-8 text, the JSON text, or the array's
+  bytes in C order;
+- the Zenoh attachment is the header, ``HEADER`` (little endian: magic ``b"DK"``, version, kind,
+  seq u64, origin_ns i64, send_ns i64), followed for arrays by the dtype string and the shape.
+
+Tools that know nothing of dyknow still see plain bytes, text or JSON on the key, with a matching
+Zenoh encoding. Samples that arrive without a dyknow attachment (from plain Zenoh publishers) are
+accepted too: their header is synthesised at arrival.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Any
+
+import numpy as np
+
+from dyknow.errors import DyKnowError
+
+__all__ = [
+    "ENCODINGS",
+    "HEADER",
+    "Message",
+    "PayloadError",
+    "check_payload",
+    "decode",
+    "describe_payload",
+    "encode",
+    "payload_nbytes",
+]
+
+
+class PayloadError(DyKnowError, TypeError):
+    """A payload cannot be published or decoded."""
+
+
+# kind codes in the attachment
+_BYTES, _TEXT, _JSON, _ARRAY = 0, 1, 2, 3
+_MAGIC = b"DK"
+_VERSION = 1
+HEADER = struct.Struct("<2sBBQqq")
+_ARRAY_META = struct.Struct("<BB")  # ndim, len(dtype string)
+
+#: Zenoh encoding announced for each kind of payload, for tools that know nothing of dyknow.
+ENCODINGS = {
+    _BYTES: "application/octet-stream",
+    _TEXT: "text/plain;charset=utf-8",
+    _JSON: "application/json",
+    _ARRAY: "application/x-dyknow-ndarray",
+}
+
+_JSON_TYPES = (dict, list, tuple, int, float, bool, type(None))
+
+
+class Message:
+    """A payload and its header, as handed to ``Unit.on_message``.
+
+    Treat it as read-only: the same object (and the same payload object) reaches every local
+    receiver of the stream. Numpy payloads are marked read-only when published.
+
+    This is a plain ``__slots__`` class rather than a frozen dataclass because one is created per
+    hop and frozen dataclasses cost several times more to construct.
+    """
+
+    __slots__ = ("key", "nbytes", "origin_ns", "payload", "send_ns", "seq")
+
+    def __init__(self, payload: Any, seq: int, origin_ns: int, send_ns: int, key: str, nbytes: int = 0) -> None:
+        self.payload = payload
+        self.seq = seq
+        self.origin_ns = origin_ns
+        self.send_ns = send_ns
+        self.key = key
+        self.nbytes = nbytes  # payload size where known without encoding (for statistics)
+
+    def __repr__(self) -> str:
+        return (
+            f"Message(key={self.key!r}, seq={self.seq}, origin_ns={self.origin_ns}, "
+            f"send_ns={self.send_ns}, payload={describe_payload(self.payload)})"
+        )
+
+
+def describe_payload(payload: Any) -> str:
+    """A short, printable description of a payload (arrays by dtype and shape)."""
+    if isinstance(payload, np.ndarray):
+        return f"<ndarray {payload.dtype} {payload.shape}>"
+    if isinstance(payload, (bytes, bytearray, memoryview)):
+        return f"<{len(payload)} bytes>"
+    text = repr(payload)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def check_payload(payload: Any) -> None:
+    """Raise :class:`PayloadError` unless ``payload`` is of a type dyknow can carry."""
+    if isinstance(payload, (bytes, bytearray, memoryview, str, np.ndarray, *_JSON_TYPES)):
+        return
+    raise PayloadError(
+        f"cannot publish a payload of type {type(payload).__name__}; expected bytes, str, "
+        "a numpy array, or a JSON-like value (dict, list, number, bool, None)"
+    )
+
+
+def payload_nbytes(payload: Any) -> int:
+    """Size of a payload in bytes where it is known without encoding (0 for JSON-like values)."""
+    if isinstance(payload, (bytes, bytearray)):
+        return len(payload)
+    if isinstance(payload, np.ndarray):
+        return payload.nbytes
+    if isinstance(payload, memoryview):
+        return payload.nbytes
+    if isinstance(payload, str):
+        return len(payload)
+    return 0
+
+
+def encode(msg: Message) -> tuple[bytes | bytearray, bytes, str]:
+    """Encode a message for Zenoh: ``(payload, attachment, encoding)``."""
+    payload = msg.payload
+    extra = b""
+    if isinstance(payload, (bytes, bytearray)):
+        kind, data = _BYTES, payload
+    elif isinstance(payload, memoryview):
+        kind, data = _BYTES, payload.tobytes()
+    elif isinstance(payload, str):
+        kind, data = _TEXT, payload.encode()
+    elif isinstance(payload, np.ndarray):
+        kind = _ARRAY
+        dtype = payload.dtype.str.encode()
+        if payload.ndim > 255 or payload.dtype.hasobject:
+            raise PayloadError(f"cannot send an array of dtype {payload.dtype} with {payload.ndim} dims")
+        extra = (
+            _ARRAY_META.pack(payload.ndim, len(dtype))
+            + dtype
+            + struct.pack(f"<{payload.ndim}Q", *payload.shape)
+        )
+        data = np.ascontiguousarray(payload).tobytes()
+    else:
+        kind = _JSON
+        try:
+            data = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
+        except (TypeError, ValueError) as exc:
+            raise PayloadError(f"cannot encode the payload as JSON: {exc}") from exc
+    header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns)
+    return data, header + extra, ENCODINGS[kind]
+
+
+def decode(data: bytes, attachment: bytes | None, encoding: str, key: str, arrival_ns: int, seq: int) -> Message:
+    """Decode a Zenoh sample into a :class:`Message`.
+
+    Samples without a dyknow attachment come from plain Zenoh publishers: their payload is decoded
+    from the Zenoh ``encoding`` (JSON, text, else bytes) and the header is synthesised from
+    ``arrival_ns`` and the subscriber's own count ``seq``.
+    """
+    if attachment is None or len(attachment) < HEADER.size or attachment[:2] != _MAGIC:
+        return Message(_decode_foreign(data, encoding), seq, arrival_ns, arrival_ns, key, len(data))
+    magic, version, kind, mseq, origin_ns, send_ns = HEADER.unpack_from(attachment)
+    if version != _VERSION:
+        raise PayloadError(f"message on {key!r} has header version {version}; expected {_VERSION}")
+    if kind == _BYTES:
+        payload: Any = data
+    elif kind == _TEXT:
+        payload = data.decode()
+    elif kind == _JSON:
+        payload = json.loads(data)
+    elif kind == _ARRAY:
+        ndim, dlen = _ARRAY_META.unpack_from(attachment, HEADER.size)
+        pos = HEADER.size + _ARRAY_META.size
+        dtype = np.dtype(attachment[pos : pos + dlen].decode())
+        shape = struct.unpack_from(f"<{ndim}Q", attachment, pos + dlen)
+        payload = np.frombuffer(data, dtype=dtype).reshape(shape)
+    else:
+        raise PayloadError(f"message on {key!r} has unknown payload kind {kind}")
+    return Message(payload, mseq, origin_ns, send_ns, key, len(data))
+
+
+def _decode_foreign(data: bytes, encoding: str) -> Any:
+    if encoding.startswith("application/json") or encoding.startswith("text/json"):
+        try:
+            return json.loads(data)
+        except ValueError:
+            return data
+    if encoding.startswith("text/") or encoding.startswith("zenoh/string"):
+        try:
+            return data.decode()
+        except UnicodeDecodeError:
+            return data
+    return data

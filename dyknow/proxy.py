@@ -1,0 +1,566 @@
+"""The proxy of a unit: binds its named ports to Zenoh key expressions and runs its callbacks.
+
+One proxy per running unit. It
+
+- binds every port to a key expression (by default ``dyknow/<manager>/<unit>/<port>``) and can
+  rebind any subset of them atomically while the unit runs (``set_config``), without restarting
+  the unit or touching the other ports;
+- delivers messages: to local input ports through the manager's :class:`~dyknow.bus.LocalBus` by
+  reference (no copy, no serialization), and to and from other processes through Zenoh;
+- queues each input in a bounded queue (keep-last by default, like a Zenoh ring channel; or
+  drop-new) and counts drops, so a slow unit never blocks its upstream;
+- measures every message at every input port (age since origin, time since the previous hop) and
+  counts messages and bytes per port (``get_statistics``);
+- isolates failures: an exception in ``setup``, a callback or ``run`` marks the unit failed, with
+  its error and traceback, and the rest of the manager carries on.
+
+It is also the executor's *job* for the unit (see :mod:`dyknow.executor`).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import threading
+import traceback
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from threading import get_ident
+from time import perf_counter_ns, time_ns
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from dyknow.errors import BindingError, UnitError, did_you_mean
+from dyknow.message import Message, check_payload, payload_nbytes
+from dyknow.stats import PortCounters, PortStatistics
+from dyknow.transport import check_key_expr
+from dyknow.unit import Unit
+
+if TYPE_CHECKING:
+    from dyknow.bus import LocalBus
+    from dyknow.executor import Executor, Lane, Timer, Worker
+    from dyknow.spec import TransformationSpec
+    from dyknow.transport import Publisher, Session, Subscriber
+
+__all__ = ["DEFAULT_QUEUE_DEPTH", "InputPort", "OutputPort", "Proxy", "UnitState", "UnitStatistics"]
+
+log = logging.getLogger(__name__)
+
+#: Messages an input port holds before it drops (the oldest, with the keep-last policy).
+DEFAULT_QUEUE_DEPTH = 8
+
+# How many messages one run of a unit handles before it yields the lane to the others.
+_BATCH = 64
+
+
+class UnitState(str, enum.Enum):
+    """Lifecycle of a unit: starting -> running -> (failed) -> stopped."""
+
+    STARTING = "starting"
+    RUNNING = "running"
+    FAILED = "failed"
+    STOPPED = "stopped"
+
+
+class InputPort:
+    """An input port: its key, its bounded queue, its counters."""
+
+    __slots__ = ("counters", "depth", "job", "keep_last", "key", "name", "queue", "subscriber")
+
+    def __init__(self, job: Proxy, name: str, key: str, depth: int, keep_last: bool) -> None:
+        self.job = job
+        self.name = name
+        self.key = key
+        self.depth = depth
+        self.keep_last = keep_last
+        self.queue: deque[Message] = deque(maxlen=depth)
+        self.counters = PortCounters()
+        self.subscriber: Subscriber | None = None
+
+    def deliver(self, msg: Message) -> None:
+        """Queue ``msg`` and make sure the unit will run. Any thread; never blocks."""
+        q = self.queue
+        if len(q) >= self.depth:
+            self.counters.dropped += 1
+            if not self.keep_last:
+                return  # drop-new: keep what is queued
+            # keep-last: the deque's maxlen drops the oldest on append
+        q.append(msg)
+        job = self.job
+        if not job.scheduled:
+            job.scheduled = True
+            job.lane.put(job)
+
+
+class OutputPort:
+    """An output port: its key, sequence number, local targets and Zenoh publisher."""
+
+    __slots__ = ("counters", "key", "name", "publisher", "seq", "targets")
+
+    def __init__(self, name: str, key: str) -> None:
+        self.name = name
+        self.key = key
+        self.seq = 0
+        self.counters = PortCounters()
+        self.targets: tuple[InputPort, ...] = ()
+        self.publisher: Publisher | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class UnitStatistics:
+    """What ``get_statistics`` returns for one unit."""
+
+    name: str
+    label: str
+    state: str
+    uptime_s: float
+    reconfigurations: int
+    ports: tuple[PortStatistics, ...]
+    executor: str
+    callback_avg_us: float
+    error: str | None = None
+    traceback: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "label": self.label,
+            "state": self.state,
+            "uptime_s": round(self.uptime_s, 3),
+            "reconfigurations": self.reconfigurations,
+            "executor": self.executor,
+            "callback_avg_us": round(self.callback_avg_us, 3),
+            "ports": {p.port: p.to_dict() for p in self.ports},
+            "error": self.error,
+            "traceback": self.traceback,
+        }
+
+
+class Proxy:
+    """Binds one unit's ports to key expressions, delivers its messages and runs its callbacks."""
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        spec: TransformationSpec,
+        unit: Unit,
+        bindings: Mapping[str, str],
+        session: Session,
+        bus: LocalBus,
+        executor: Executor,
+        protected: bool = False,
+        queue_depth: int = DEFAULT_QUEUE_DEPTH,
+        on_failure: Callable[[Proxy], None] | None = None,
+        on_destroy_request: Callable[[Proxy], None] | None = None,
+    ) -> None:
+        self.name = name
+        self.label = spec.label
+        self.spec = spec
+        self.unit = unit
+        self.protected = protected
+        self.state = UnitState.STARTING
+        self.error: str | None = None
+        self.traceback: str | None = None
+        self.reconfigurations = 0
+        self.isolation: str | None = None  # why the unit got a thread of its own, if it did
+        self.started_ns = time_ns()
+        self._session = session
+        self._bus = bus
+        self._executor = executor
+        self._on_failure = on_failure
+        self._on_destroy_request = on_destroy_request
+        # executor job state
+        self.scheduled = False
+        self._lock = threading.Lock()  # held while one of the unit's callbacks runs
+        self._config_lock = threading.Lock()
+        self._calls: deque[Callable[[], None]] = deque()
+        self._current: Message | None = None
+        self._current_thread = 0
+        self._ewma_ns = 0
+        self._destroy_requested = False
+        self._timers: list[Timer] = []
+        self._stop = threading.Event()
+        self._run_thread: threading.Thread | None = None
+        self._setup_done = False
+
+        self._inputs: dict[str, InputPort] = {}
+        self._outputs: dict[str, OutputPort] = {}
+        for port in spec.ports:
+            key = bindings[port.name]
+            if port.direction == "in":
+                self._inputs[port.name] = InputPort(self, port.name, key, queue_depth, keep_last=True)
+            else:
+                self._outputs[port.name] = OutputPort(port.name, key)
+        self._input_seq = tuple(self._inputs.values())
+        self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
+        if type(unit).dedicated_thread:
+            self.isolation = "the unit asks for a thread of its own (dedicated_thread = True)"
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def alive(self) -> bool:
+        return self.state in (UnitState.STARTING, UnitState.RUNNING)
+
+    def start(self) -> None:
+        """Declare the ports, run ``setup()``, then start receiving. Failures mark the unit failed."""
+        try:
+            for out in self._outputs.values():
+                out.publisher = self._session.declare_publisher(out.key)
+            self._bus.attach((), self._outputs.values())
+        except Exception as exc:
+            self._fail(exc, "binding its output ports")
+            return
+        with self._lock:
+            self._current_thread = get_ident()
+            try:
+                self.unit.setup()
+            except (Exception, SystemExit) as exc:
+                self._fail(exc, "setup()")
+                return
+            finally:
+                self._current_thread = 0
+            self._setup_done = True
+        try:
+            for inp in self._input_seq:
+                inp.subscriber = self._session.declare_subscriber(inp.key, inp.deliver, self._on_remote_error)
+            self._bus.attach(self._input_seq, ())
+        except Exception as exc:
+            self._fail(exc, "binding its input ports")
+            return
+        if self.state is UnitState.STARTING:
+            self.state = UnitState.RUNNING
+        if type(self.unit).run is not Unit.run:
+            self._run_thread = threading.Thread(target=self._run_loop, name=f"dyknow-{self.name}-run", daemon=True)
+            self._run_thread.start()
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the unit: no more messages, timers or callbacks; then ``teardown()``. Safe twice."""
+        if self.state is UnitState.STOPPED:
+            return
+        self.state = UnitState.STOPPED
+        self._stop.set()
+        for timer in self._timers:
+            timer.cancel()
+        self._detach_inputs()
+        # Wait for a callback in flight (bounded: a stuck unit must not hang its manager).
+        got = self._lock.acquire(timeout=timeout) if self._current_thread != get_ident() else False
+        try:
+            if self._setup_done:
+                self._setup_done = False
+                try:
+                    self.unit.teardown()
+                except Exception as exc:
+                    log.warning("unit %r: teardown() failed: %s", self.name, exc)
+                    self.error = self.error or f"teardown(): {type(exc).__name__}: {exc}"
+        finally:
+            if got:
+                self._lock.release()
+        self._bus.detach((), self._outputs.values())
+        for out in self._outputs.values():
+            if out.publisher is not None:
+                out.publisher.undeclare()
+        self._executor.release(self)
+        thread = self._run_thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout)
+            if thread.is_alive():
+                log.warning("unit %r: run() did not return within %.1f s after stop was set", self.name, timeout)
+
+    def _detach_inputs(self) -> None:
+        self._bus.detach(self._input_seq, ())
+        for inp in self._input_seq:
+            if inp.subscriber is not None:
+                inp.subscriber.undeclare()
+                inp.subscriber = None
+            inp.queue.clear()
+
+    def _fail(self, exc: BaseException, where: str) -> None:
+        if self.state in (UnitState.FAILED, UnitState.STOPPED):
+            return
+        self.state = UnitState.FAILED
+        self.error = f"{where}: {type(exc).__name__}: {exc}"
+        self.traceback = "".join(traceback.format_exception(exc))
+        log.error("unit %r (%s) failed in %s: %s: %s", self.name, self.label, where, type(exc).__name__, exc)
+        self._stop.set()
+        for timer in self._timers:
+            timer.cancel()
+        self._detach_inputs()
+        if self._on_failure is not None:
+            try:
+                self._on_failure(self)
+            except Exception:
+                log.exception("failure listener of unit %r failed", self.name)
+
+    def _on_remote_error(self, exc: BaseException) -> None:
+        log.warning("unit %r: a message from another process could not be decoded: %s", self.name, exc)
+
+    def on_isolated(self, reason: str) -> None:
+        """Told by the executor that the unit now has a thread of its own, and why."""
+        self.isolation = reason
+
+    def request_destroy(self) -> None:
+        """The unit asks to be destroyed: at once, or after its current callback returns."""
+        if self.protected:
+            raise UnitError(f"unit {self.name!r} is protected; a protected unit cannot be destroyed, not even by itself")
+        if self._current_thread == get_ident():
+            self._destroy_requested = True
+        elif self._on_destroy_request is not None:
+            self._on_destroy_request(self)
+
+    def _run_loop(self) -> None:
+        try:
+            self.unit.run(self._stop)
+        except (Exception, SystemExit) as exc:
+            if not self._stop.is_set():
+                self._fail(exc, "run()")
+
+    # ------------------------------------------------------------------ executor job
+
+    def run(self, worker: Worker) -> None:
+        """Handle what is pending: control calls, then messages (a batch, then yield the lane)."""
+        self.scheduled = False
+        lock = self._lock
+        if not lock.acquire(False):
+            return  # running on another thread right now; it drains before releasing
+        try:
+            while self._calls:
+                self._call(self._calls.popleft(), worker, "on_reconfigure()")
+            if self.state is UnitState.RUNNING:
+                self._drain(worker)
+        finally:
+            lock.release()
+        self._after_callbacks()
+
+    def _drain(self, worker: Worker) -> None:
+        on_message = self.unit.on_message
+        ports = self._input_seq
+        ident = get_ident()
+        budget = _BATCH
+        more = True
+        while more:
+            more = False
+            for port in ports:
+                q = port.queue
+                if not q:
+                    continue
+                msg = q.popleft()
+                now = time_ns()
+                counters = port.counters
+                counters.messages += 1
+                counters.bytes += msg.nbytes
+                counters.record(now - msg.origin_ns, now - msg.send_ns)
+                self._current = msg
+                self._current_thread = ident
+                worker.busy_job = self
+                t0 = perf_counter_ns()
+                worker.busy_since_ns = t0
+                try:
+                    on_message(port.name, msg)
+                except (Exception, SystemExit) as exc:
+                    worker.busy_since_ns = 0
+                    self._current = None
+                    self._fail(exc, f"on_message({port.name!r})")
+                    return
+                worker.busy_since_ns = 0
+                self._current = None
+                self._current_thread = 0
+                self._ewma_ns += (perf_counter_ns() - t0 - self._ewma_ns) >> 3
+                if self.state is not UnitState.RUNNING or self._destroy_requested:
+                    return
+                budget -= 1
+                if q:
+                    more = True
+            if more and budget <= 0:  # let the other units of the lane run, then continue
+                self.scheduled = True
+                self.lane.put(self)
+                return
+
+    def run_timer(self, timer: Timer, worker: Worker) -> None:
+        """Fire one timer tick under the unit's lock."""
+        if not self._lock.acquire(False):
+            return  # the unit is busy on another thread: skip this tick
+        try:
+            if self.state is not UnitState.RUNNING:
+                timer.cancel()
+                return
+            self._call(timer.callback, worker, "a timer callback")
+        finally:
+            self._lock.release()
+        self._after_callbacks()
+
+    def _call(self, fn: Callable[[], None], worker: Worker, where: str) -> None:
+        self._current = None
+        self._current_thread = get_ident()
+        worker.busy_job = self
+        t0 = perf_counter_ns()
+        worker.busy_since_ns = t0
+        try:
+            fn()
+        except (Exception, SystemExit) as exc:
+            self._fail(exc, where)
+        finally:
+            worker.busy_since_ns = 0
+            self._current_thread = 0
+        self._ewma_ns += (perf_counter_ns() - t0 - self._ewma_ns) >> 3
+
+    def _after_callbacks(self) -> None:
+        if self._destroy_requested:
+            self._destroy_requested = False
+            if self._on_destroy_request is not None:
+                self._on_destroy_request(self)
+            return
+        lane = self.lane
+        if lane.shared and self._ewma_ns > self._executor.slow_callback_ns and self.alive:
+            self.isolation = f"its callbacks take {self._ewma_ns / 1e6:.1f} ms on average"
+            log.info("unit %r moves to a thread of its own: %s", self.name, self.isolation)
+            self._executor.isolate(self)
+
+    def _call_soon(self, fn: Callable[[], None]) -> None:
+        self._calls.append(fn)
+        if not self.scheduled:
+            self.scheduled = True
+            self.lane.put(self)
+
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
+        timer = self._executor.add_timer(self, period_s, callback)
+        self._timers.append(timer)
+        return timer
+
+    # ------------------------------------------------------------------ publishing
+
+    def publish(self, port: str, payload: Any, origin_ns: int | None) -> None:
+        """Send ``payload`` from output ``port`` to local inputs (by reference) and to Zenoh."""
+        out = self._outputs.get(port)
+        if out is None:
+            raise BindingError(self._no_port(port, "output", self._outputs))
+        if self.state is UnitState.STOPPED or self.state is UnitState.FAILED:
+            raise UnitError(f"unit {self.name!r} is {self.state.value}; it can no longer publish")
+        now = time_ns()
+        if origin_ns is None:
+            current = self._current
+            if current is not None and self._current_thread == get_ident():
+                origin_ns = current.origin_ns
+            else:
+                origin_ns = now
+        kind = type(payload)
+        if kind is bytes:
+            nbytes = len(payload)
+        elif kind is np.ndarray or isinstance(payload, np.ndarray):
+            payload.flags.writeable = False  # receivers share this very array
+            nbytes = payload.nbytes
+        else:
+            check_payload(payload)
+            nbytes = payload_nbytes(payload)
+        out.seq += 1
+        msg = Message(payload, out.seq, origin_ns, now, out.key, nbytes)
+        counters = out.counters
+        counters.messages += 1
+        counters.bytes += nbytes
+        for target in out.targets:
+            target.deliver(msg)
+        publisher = out.publisher
+        if publisher is not None and publisher.matched:
+            sent = publisher.put(msg)
+            if not nbytes:
+                counters.bytes += sent
+
+    # ------------------------------------------------------------------ proxy services
+
+    def get_config(self) -> dict[str, str]:
+        """Port -> key expression, for every port."""
+        config = {name: p.key for name, p in self._inputs.items()}
+        config.update((name, p.key) for name, p in self._outputs.items())
+        return {p.name: config[p.name] for p in self.spec.ports}
+
+    def set_config(self, changes: Mapping[str, str]) -> dict[str, str]:
+        """Rebind any subset of ports at once, while the unit runs; returns the new config.
+
+        All or nothing: every port and key is checked and every new Zenoh entity declared before
+        anything changes. The unit keeps its state and its other ports are not touched.
+        """
+        with self._config_lock:
+            if not self.alive:
+                raise UnitError(f"unit {self.name!r} is {self.state.value}; only a running unit can be rebound")
+            if not isinstance(changes, Mapping) or not changes:
+                raise BindingError(f"set_config of unit {self.name!r}: got {changes!r}; expected a mapping of port to key expression")
+            for port, key in changes.items():
+                if port in self._inputs:
+                    check_key_expr(key, what=f"unit {self.name!r} input port {port!r}")
+                elif port in self._outputs:
+                    check_key_expr(key, what=f"unit {self.name!r} output port {port!r}", concrete=True)
+                else:
+                    raise BindingError(self._no_port(port, "", {**self._inputs, **self._outputs}))
+            current = self.get_config()
+            effective = {port: key for port, key in changes.items() if current[port] != key}
+            if not effective:
+                return current
+            new_pubs: dict[str, Publisher] = {}
+            new_subs: dict[str, Subscriber] = {}
+            try:
+                for port, key in effective.items():
+                    if port in self._outputs:
+                        new_pubs[port] = self._session.declare_publisher(key)
+                    elif self.state is UnitState.RUNNING:
+                        inp = self._inputs[port]
+                        new_subs[port] = self._session.declare_subscriber(key, inp.deliver, self._on_remote_error)
+            except Exception:
+                for entity in (*new_pubs.values(), *new_subs.values()):
+                    entity.undeclare()
+                raise
+            old: list[Publisher | Subscriber | None] = []
+            for port, pub in new_pubs.items():
+                out = self._outputs[port]
+                old.append(out.publisher)
+                out.publisher = pub
+            moves: list[tuple[Any, str]] = [
+                (self._inputs[p] if p in self._inputs else self._outputs[p], key) for p, key in effective.items()
+            ]
+            self._bus.rebind(moves)
+            for port, sub in new_subs.items():
+                inp = self._inputs[port]
+                old.append(inp.subscriber)
+                inp.subscriber = sub
+            for entity in old:
+                if entity is not None:
+                    entity.undeclare()
+            self.reconfigurations += 1
+            unit = self.unit
+            self._call_soon(lambda: unit.on_reconfigure(dict(effective)))
+            return self.get_config()
+
+    def get_statistics(self) -> UnitStatistics:
+        """Uptime, reconfigurations, and per-port counts, drops and latency percentiles."""
+        ports = [
+            (self._inputs[p.name].counters.snapshot(p.name, "in", self._inputs[p.name].key))
+            if p.direction == "in"
+            else self._outputs[p.name].counters.snapshot(p.name, "out", self._outputs[p.name].key)
+            for p in self.spec.ports
+        ]
+        return UnitStatistics(
+            name=self.name,
+            label=self.label,
+            state=self.state.value,
+            uptime_s=(time_ns() - self.started_ns) / 1e9,
+            reconfigurations=self.reconfigurations,
+            ports=tuple(ports),
+            executor=self.executor_description,
+            callback_avg_us=self._ewma_ns / 1000,
+            error=self.error,
+            traceback=self.traceback,
+        )
+
+    @property
+    def executor_description(self) -> str:
+        # ``isolation`` is set as soon as the move is decided, even while a slow callback still runs
+        if self.isolation:
+            return f"own thread ({self.isolation})"
+        return "shared thread" if self.lane.shared else "own thread"
+
+    def _no_port(self, port: str, direction: str, ports: Mapping[str, object]) -> str:
+        kind = f"{direction} port" if direction else "port"
+        names = ", ".join(repr(p) for p in ports) or "none"
+        return f"unit {self.name!r} has no {kind} {port!r}; expected one of {names}{did_you_mean(port, ports)}"

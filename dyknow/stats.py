@@ -1,0 +1,116 @@
+"""Per-port statistics: message and byte counts, drops, and latency percentiles.
+
+Recording is on the hot path, so it is a few integer operations into preallocated ring buffers;
+percentiles are computed only when someone asks (``snapshot()``), over the last
+:data:`WINDOW` samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["WINDOW", "LatencySummary", "PortCounters", "PortStatistics", "summarize"]
+
+#: How many recent latency samples percentiles are computed over.
+WINDOW = 1024
+_MASK = WINDOW - 1
+
+
+@dataclass(frozen=True, slots=True)
+class LatencySummary:
+    """Latency percentiles in microseconds over the last ``count`` samples (at most WINDOW)."""
+
+    count: int
+    p50_us: float
+    p90_us: float
+    p99_us: float
+    max_us: float
+
+    def to_dict(self) -> dict[str, float]:
+        return {
+            "count": self.count,
+            "p50_us": round(self.p50_us, 3),
+            "p90_us": round(self.p90_us, 3),
+            "p99_us": round(self.p99_us, 3),
+            "max_us": round(self.max_us, 3),
+        }
+
+
+EMPTY = LatencySummary(0, 0.0, 0.0, 0.0, 0.0)
+
+
+def summarize(samples_ns: list[int]) -> LatencySummary:
+    """Percentiles (nearest rank) of latency samples given in nanoseconds."""
+    if not samples_ns:
+        return EMPTY
+    ordered = sorted(samples_ns)
+    n = len(ordered)
+
+    def rank(q: float) -> float:
+        return ordered[min(n - 1, max(0, int(q * n + 0.5) - 1))] / 1000.0
+
+    return LatencySummary(n, rank(0.50), rank(0.90), rank(0.99), ordered[-1] / 1000.0)
+
+
+@dataclass(frozen=True, slots=True)
+class PortStatistics:
+    """A snapshot of one port's statistics.
+
+    For input ports, ``latency`` is arrival at the unit minus the origin timestamp (end-to-end
+    age of the data) and ``hop`` is arrival minus the send timestamp of the previous hop.
+    """
+
+    port: str
+    direction: str
+    key: str
+    messages: int
+    bytes: int
+    dropped: int
+    latency: LatencySummary
+    hop: LatencySummary
+
+    def to_dict(self) -> dict[str, object]:
+        out: dict[str, object] = {
+            "direction": self.direction,
+            "key": self.key,
+            "messages": self.messages,
+            "bytes": self.bytes,
+            "dropped": self.dropped,
+        }
+        if self.direction == "in":
+            out["latency"] = self.latency.to_dict()
+            out["hop"] = self.hop.to_dict()
+        return out
+
+
+class PortCounters:
+    """Mutable counters of one port, updated on the hot path."""
+
+    __slots__ = ("_hop", "_latency", "_n", "bytes", "dropped", "messages")
+
+    def __init__(self) -> None:
+        self.messages = 0
+        self.bytes = 0
+        self.dropped = 0
+        self._latency = [0] * WINDOW
+        self._hop = [0] * WINDOW
+        self._n = 0
+
+    def record(self, latency_ns: int, hop_ns: int) -> None:
+        i = self._n & _MASK
+        self._latency[i] = latency_ns
+        self._hop[i] = hop_ns
+        self._n += 1
+
+    def snapshot(self, port: str, direction: str, key: str) -> PortStatistics:
+        n = min(self._n, WINDOW)
+        return PortStatistics(
+            port,
+            direction,
+            key,
+            self.messages,
+            self.bytes,
+            self.dropped,
+            summarize(self._latency[:n]),
+            summarize(self._hop[:n]),
+        )

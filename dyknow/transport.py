@@ -1,0 +1,484 @@
+"""Zenoh, behind a small surface. The only module of dyknow that imports ``zenoh``.
+
+The default session is a Zenoh *peer* that talks over loopback only: multicast scouting is off,
+it listens on ``tcp/127.0.0.1`` (a given port, or any free one) and connects to the endpoints it is
+given. Gossip scouting stays on so that peers which connect to a manager also find each other and
+exchange data directly. A Zenoh configuration file (json5) replaces these defaults to join a real
+deployment.
+
+Entities mirror Zenoh's: ``declare_*`` returns an object with ``undeclare()`` (safe twice) that is
+also a context manager. Zenoh errors are wrapped in :class:`~dyknow.errors.TransportError` with the
+Rust source location trimmed off.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError
+from dyknow.message import Message, decode, encode
+
+__all__ = [
+    "DEFAULT_ENDPOINT",
+    "LivelinessSubscriber",
+    "LivelinessToken",
+    "Publisher",
+    "Queryable",
+    "Session",
+    "Subscriber",
+    "check_key_expr",
+    "is_wild",
+    "key_exprs_intersect",
+    "make_config",
+]
+
+log = logging.getLogger(__name__)
+
+#: Where ``dyknow manager`` listens and where clients connect when told nothing else.
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+_WILD = re.compile(r"\*|\$\*")
+
+
+def _clean(exc: BaseException) -> str:
+    """Zenoh's message without the Rust source locations it appends."""
+    text = str(exc)
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", text)
+    return text.strip().rstrip(".")
+
+
+# --------------------------------------------------------------------------- key expressions
+
+
+def check_key_expr(key: str, *, what: str = "key expression", concrete: bool = False) -> str:
+    """Return ``key`` if Zenoh accepts it, else raise :class:`BindingError` naming ``what``.
+
+    With ``concrete=True`` wildcards are refused too (a publisher needs one concrete key).
+    """
+    if not isinstance(key, str) or not key:
+        raise BindingError(f"{what}: got {key!r}; expected a non-empty Zenoh key expression like 'robot/camera/image'")
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        raise BindingError(
+            f"{what}: {key!r} is not a valid Zenoh key expression ({_clean(exc)}); "
+            "expected chunks separated by '/', like 'robot/camera/image'"
+        ) from exc
+    if concrete and is_wild(key):
+        raise BindingError(f"{what}: {key!r} has wildcards; expected a concrete key to publish on, like 'robot/camera/image'")
+    return key
+
+
+def is_wild(key: str) -> bool:
+    """Whether ``key`` holds a wildcard (``*``, ``**`` or ``$*``)."""
+    return _WILD.search(key) is not None
+
+
+def key_exprs_intersect(a: str, b: str) -> bool:
+    """Whether some key matches both key expressions."""
+    if not is_wild(a) and not is_wild(b):
+        return a == b
+    return zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b))
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+def make_config(
+    *,
+    listen: Sequence[str] | None = None,
+    connect: Sequence[str] = (),
+    config_file: str | os.PathLike[str] | None = None,
+) -> zenoh.Config:
+    """Build a Zenoh configuration.
+
+    Without ``config_file``: a loopback-only peer (multicast scouting off, gossip on) listening on
+    ``listen`` (default: any free port on 127.0.0.1) and connecting to ``connect``. With
+    ``config_file``: that json5 file, with ``listen``/``connect`` applied on top when given.
+    """
+    try:
+        if config_file is not None:
+            path = Path(config_file)
+            if not path.is_file():
+                raise TransportError(f"{path}: no such Zenoh configuration file; expected a json5 file")
+            try:
+                config = zenoh.Config.from_file(str(path))
+            except zenoh.ZError as exc:
+                raise TransportError(f"{path}: not a valid Zenoh configuration: {_clean(exc)}") from exc
+        else:
+            config = zenoh.Config()
+            config.insert_json5("mode", '"peer"')
+            config.insert_json5("scouting/multicast/enabled", "false")
+            config.insert_json5("scouting/gossip/enabled", "true")
+            config.insert_json5("scouting/delay", "0")
+            # The admin space tells a manager which port it got when asked for port 0.
+            config.insert_json5("adminspace/enabled", "true")
+            if listen is None:
+                listen = ["tcp/127.0.0.1:0"]
+        if listen is not None:
+            config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        if connect or config_file is None:
+            config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    except zenoh.ZError as exc:
+        raise TransportError(f"invalid Zenoh endpoint in listen={listen!r} connect={list(connect)!r}: {_clean(exc)}") from exc
+    return config
+
+
+# --------------------------------------------------------------------------- entities
+
+
+class _Entity:
+    """Something declared on a session: undeclare() is safe twice; a context manager."""
+
+    def __init__(self, handle: Any) -> None:
+        self._handle = handle
+
+    def undeclare(self) -> None:
+        handle, self._handle = self._handle, None
+        if handle is not None:
+            try:
+                handle.undeclare()
+            except zenoh.ZError:  # the session is already closed: nothing left to undeclare
+                pass
+
+    def __enter__(self) -> _Entity:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.undeclare()
+
+
+class Publisher(_Entity):
+    """Publishes dyknow messages on one concrete key, to other sessions only.
+
+    ``matched`` tells whether any remote subscriber matches; callers skip encoding when not.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, on_matching: Callable[[bool], None] | None) -> None:
+        try:
+            pub = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE, express=True)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare a publisher on {key!r}: {_clean(exc)}") from exc
+        super().__init__(pub)
+        self.key = key
+        self.matched = False
+        self._on_matching = on_matching
+
+        def matching(status: zenoh.MatchingStatus) -> None:
+            self.matched = status.matching
+            if self._on_matching is not None:
+                self._on_matching(status.matching)
+
+        self._listener = pub.declare_matching_listener(matching)
+        self.matched = pub.matching_status.matching
+        self._encodings: dict[str, zenoh.Encoding] = {}
+
+    def put(self, msg: Message) -> int:
+        """Encode and send ``msg``; returns the number of payload bytes sent."""
+        handle = self._handle
+        if handle is None:
+            return 0
+        data, attachment, encoding = encode(msg)
+        enc = self._encodings.get(encoding)
+        if enc is None:
+            enc = self._encodings[encoding] = zenoh.Encoding(encoding)
+        try:
+            handle.put(data, attachment=attachment, encoding=enc)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {self.key!r}: {_clean(exc)}") from exc
+        return len(data)
+
+    def undeclare(self) -> None:
+        listener, self._listener = getattr(self, "_listener", None), None
+        if listener is not None:
+            try:
+                listener.undeclare()
+            except zenoh.ZError:
+                pass
+        super().undeclare()
+
+
+class Subscriber(_Entity):
+    """Receives dyknow messages (or plain Zenoh samples) published by other sessions.
+
+    ``on_message`` runs on Zenoh's receiving thread, so it must be quick (dyknow only enqueues);
+    exceptions are passed to ``on_error`` instead of being swallowed by Zenoh.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        on_message: Callable[[Message], None],
+        on_error: Callable[[BaseException], None],
+    ) -> None:
+        self.key = key
+        self._count = 0
+
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                if sample.kind != zenoh.SampleKind.PUT:
+                    return
+                self._count += 1
+                attachment = sample.attachment
+                msg = decode(
+                    sample.payload.to_bytes(),
+                    attachment.to_bytes() if attachment is not None else None,
+                    str(sample.encoding),
+                    str(sample.key_expr),
+                    time.time_ns(),
+                    self._count,
+                )
+                on_message(msg)
+            except Exception as exc:  # Zenoh would only log it; the owner records it
+                on_error(exc)
+
+        try:
+            handler = zenoh.handlers.Callback(callback, indirect=False)
+            sub = session.declare_subscriber(key, handler, allowed_origin=zenoh.Locality.REMOTE)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare a subscriber on {key!r}: {_clean(exc)}") from exc
+        super().__init__(sub)
+
+
+class Queryable(_Entity):
+    """Answers requests on a key expression with ``handler(key, payload) -> (ok, reply_bytes)``.
+
+    The handler runs on a Python thread of its own (one per queryable), so it may take time.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> None:
+        def callback(query: zenoh.Query) -> None:
+            qkey = str(query.key_expr)
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                ok, reply = handler(qkey, payload)
+            except Exception as exc:  # a bug in a handler must still answer the caller
+                log.exception("service handler for %s failed", qkey)
+                ok, reply = False, json.dumps({"error": type(exc).__name__, "message": str(exc)}).encode()
+            try:
+                if ok:
+                    query.reply(query.key_expr, reply)
+                else:
+                    query.reply_err(reply)
+            except zenoh.ZError as exc:
+                log.warning("cannot reply to %s: %s", qkey, _clean(exc))
+
+        try:
+            queryable = session.declare_queryable(key, callback)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
+        super().__init__(queryable)
+        self.key = key
+
+
+class LivelinessToken(_Entity):
+    """Announces that something is alive on a key until undeclared (or the process dies)."""
+
+
+class LivelinessSubscriber(_Entity):
+    """Calls ``on_change(key, alive)`` when liveliness tokens matching a key appear or vanish."""
+
+
+# --------------------------------------------------------------------------- session
+
+
+class Session:
+    """A Zenoh session: the entry point to declare publishers, subscribers and services.
+
+    A context manager; ``close()`` is safe twice and undeclares everything declared on it.
+    """
+
+    def __init__(self, config: zenoh.Config | None = None) -> None:
+        if config is None:
+            config = make_config()
+        try:
+            self._session: zenoh.Session | None = zenoh.open(config)
+        except zenoh.ZError as exc:
+            text = _clean(exc)
+            hint = ""
+            if "Address already in use" in text:
+                hint = "; another process listens there (a manager already running?): choose another port with --listen"
+            raise TransportError(f"cannot open a Zenoh session: {text}{hint}") from exc
+        self._lock = threading.Lock()
+        self._queriers: dict[str, tuple[Any, threading.Event]] = {}
+
+    # -- lifecycle
+
+    @property
+    def closed(self) -> bool:
+        return self._session is None
+
+    def _z(self) -> zenoh.Session:
+        session = self._session
+        if session is None:
+            raise ClosedError("the Zenoh session is closed; open a new one")
+        return session
+
+    def close(self) -> None:
+        """Close the session; safe to call twice."""
+        session, self._session = self._session, None
+        if session is not None:
+            for querier, _ in self._queriers.values():
+                try:
+                    querier.undeclare()
+                except zenoh.ZError:
+                    pass
+            self._queriers.clear()
+            session.close()
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- information
+
+    @property
+    def zid(self) -> str:
+        return str(self._z().zid())
+
+    def endpoints(self) -> list[str]:
+        """The locators this session listens on (actual ports, also when asked for port 0)."""
+        session = self._z()
+        zid = session.zid()
+        for mode in ("peer", "router", "client"):
+            # the key names our own zid, so only this session answers
+            for reply in session.get(f"@/{zid}/{mode}", timeout=2):
+                if reply.ok is not None:
+                    try:
+                        return list(json.loads(reply.ok.payload.to_bytes()).get("locators", []))
+                    except (ValueError, AttributeError):
+                        return []
+        return []
+
+    # -- declarations
+
+    def declare_publisher(self, key: str, on_matching: Callable[[bool], None] | None = None) -> Publisher:
+        return Publisher(self._z(), key, on_matching)
+
+    def declare_subscriber(
+        self,
+        key: str,
+        on_message: Callable[[Message], None],
+        on_error: Callable[[BaseException], None] | None = None,
+    ) -> Subscriber:
+        return Subscriber(self._z(), key, on_message, on_error or (lambda exc: log.warning("on %s: %s", key, exc)))
+
+    def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> Queryable:
+        return Queryable(self._z(), key, handler)
+
+    def declare_liveliness_token(self, key: str) -> LivelinessToken:
+        try:
+            return LivelinessToken(self._z().liveliness().declare_token(key))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare a liveliness token on {key!r}: {_clean(exc)}") from exc
+
+    def declare_liveliness_subscriber(self, key: str, on_change: Callable[[str, bool], None]) -> LivelinessSubscriber:
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+            except Exception:
+                log.exception("liveliness callback for %s failed", key)
+
+        try:
+            sub = self._z().liveliness().declare_subscriber(key, callback, history=True)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot watch liveliness on {key!r}: {_clean(exc)}") from exc
+        return LivelinessSubscriber(sub)
+
+    def put(self, key: str, data: bytes | str, *, encoding: str = "application/json") -> None:
+        """Publish one plain sample (for events and measurements)."""
+        try:
+            self._z().put(key, data, encoding=zenoh.Encoding(encoding))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {key!r}: {_clean(exc)}") from exc
+
+    def subscribe_raw(self, key: str, on_sample: Callable[[str, bytes], None]) -> _Entity:
+        """Receive plain samples from any session, this one included (for events and measurements)."""
+
+        def callback(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                try:
+                    on_sample(str(sample.key_expr), sample.payload.to_bytes())
+                except Exception:
+                    log.exception("callback for %s failed", key)
+
+        try:
+            return _Entity(self._z().declare_subscriber(key, callback))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot subscribe to {key!r}: {_clean(exc)}") from exc
+
+    # -- services
+
+    def call(self, key: str, payload: bytes, *, timeout: float, what: str) -> bytes:
+        """Send a request to the service on ``key`` and return its reply.
+
+        Waits up to ``timeout`` seconds for the service to be reachable, then for its answer.
+        Raises :class:`ServiceError` when nobody answers (``what`` names the service for the
+        message) or with the service's own error when it refuses the request.
+        """
+        deadline = time.monotonic() + timeout
+        querier, reachable = self._querier(key, timeout)
+        if not reachable.wait(max(0.0, deadline - time.monotonic())):
+            raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout:g} s")
+        try:
+            replies = querier.get(payload=payload)
+            for reply in replies:
+                if reply.ok is not None:
+                    return reply.ok.payload.to_bytes()
+                data = reply.err.payload.to_bytes()
+                try:
+                    err = json.loads(data)
+                except ValueError:
+                    raise ServiceError(data.decode(errors="replace")) from None
+                if not isinstance(err, dict):
+                    raise ServiceError(data.decode(errors="replace"))
+                raise ServiceError(str(err.get("message", data)), kind=err.get("error"), details=err)
+        except zenoh.ZError as exc:
+            raise ServiceError(f"request to {what} failed: {_clean(exc)}") from exc
+        raise ServiceError(f"no answer from {what} on {key!r} within {timeout:g} s")
+
+    def _querier(self, key: str, timeout: float) -> tuple[Any, threading.Event]:
+        with self._lock:
+            found = self._queriers.get(key)
+            if found is not None:
+                return found
+            reachable = threading.Event()
+
+            def matching(status: zenoh.MatchingStatus) -> None:
+                if status.matching:
+                    reachable.set()
+                else:
+                    reachable.clear()
+
+            try:
+                querier = self._z().declare_querier(key, timeout=timeout)
+                querier.declare_matching_listener(matching)
+            except zenoh.ZError as exc:
+                raise TransportError(f"cannot declare a querier on {key!r}: {_clean(exc)}") from exc
+            if querier.matching_status.matching:
+                reachable.set()
+            self._queriers[key] = (querier, reachable)
+            return querier, reachable
+
+
+def open_session(
+    *,
+    listen: Sequence[str] | None = None,
+    connect: Iterable[str] = (),
+    config_file: str | os.PathLike[str] | None = None,
+) -> Session:
+    """Open a session with :func:`make_config`'s defaults."""
+    return Session(make_config(listen=listen, connect=list(connect), config_file=config_file))

@@ -1,0 +1,103 @@
+"""Computation units: the base class users subclass.
+
+A unit is a Python class named in a transformation spec's ``<source>`` (``package.module:Class``).
+The manager instantiates it with no arguments, binds its ports, sets a few attributes, and calls
+its hooks. A minimal unit::
+
+    from dyknow import Unit
+
+    class Doubler(Unit):
+        def on_message(self, port, msg):
+            self.publish("out", msg.payload * 2)
+
+Hooks (override the ones you need; all run on the unit's executor thread, never two at once):
+
+- ``setup()``: once, after the ports are bound; acquire resources, create timers. An exception
+  here marks the unit failed.
+- ``on_message(port, msg)``: for each message arriving on an input port.
+- ``on_reconfigure(changes)``: after ports were rebound at runtime, with ``{port: new_key}``.
+- ``teardown()``: once, when the unit is destroyed; release resources.
+- ``run(stop)``: optional blocking loop (a camera read loop, say) on a thread of its own; return
+  when the ``stop`` event is set. Publishing from it is safe.
+
+Attributes set before ``setup()``: ``name`` (the instance name), ``label`` (its spec's label),
+``params`` (typed values from the spec, with spawn-time overrides) and ``log`` (a logger).
+
+Set the class attribute ``dedicated_thread = True`` for units whose callbacks are known to be slow
+(heavy image processing): they get a thread of their own from the start instead of after their
+first slow callbacks.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any, ClassVar
+
+if TYPE_CHECKING:
+    from dyknow.executor import Timer
+    from dyknow.message import Message
+    from dyknow.proxy import Proxy
+
+__all__ = ["Unit"]
+
+
+class Unit:
+    """Base class of computation units. See the module documentation for the hooks."""
+
+    #: Run this unit's callbacks on a thread of its own from the start.
+    dedicated_thread: ClassVar[bool] = False
+
+    name: str
+    label: str
+    params: Mapping[str, Any]
+    log: logging.Logger
+    _proxy: Proxy
+
+    # -- hooks
+
+    def setup(self) -> None:
+        """Called once after the ports are bound. Override to acquire resources and create timers."""
+
+    def on_message(self, port: str, msg: Message) -> None:
+        """Called for each message arriving on input port ``port``. Override it."""
+
+    def on_reconfigure(self, changes: Mapping[str, str]) -> None:
+        """Called after ports were rebound at runtime; ``changes`` maps port to its new key."""
+
+    def teardown(self) -> None:
+        """Called once when the unit is destroyed. Override to release resources."""
+
+    def run(self, stop: threading.Event) -> None:
+        """Optional blocking loop on a thread of its own; return when ``stop`` is set."""
+
+    # -- services for the unit
+
+    def publish(self, port: str, payload: Any, *, origin_ns: int | None = None) -> None:
+        """Publish ``payload`` on output ``port``.
+
+        The origin timestamp is taken from the message being handled (so it propagates through
+        every hop), or is now when the unit publishes outside a callback (a source); pass
+        ``origin_ns`` (``time.time_ns()`` clock) to set it explicitly, e.g. to a capture time.
+
+        Publishing hands the payload over: numpy arrays become read-only, because local receivers
+        get the very same object; copy an array first if you need to keep writing to it.
+        """
+        self._proxy.publish(port, payload, origin_ns)
+
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
+        """Call ``callback`` every ``period_s`` seconds on the unit's thread; returns the timer."""
+        return self._proxy.create_timer(period_s, callback)
+
+    def destroy(self) -> None:
+        """Ask the manager to destroy this unit (after the current callback returns).
+
+        Refused with :class:`~dyknow.errors.UnitError` when the unit is protected.
+        """
+        self._proxy.request_destroy()
+
+    @property
+    def config(self) -> dict[str, str]:
+        """The current port -> key expression bindings."""
+        return self._proxy.get_config()

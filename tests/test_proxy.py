@@ -1,0 +1,206 @@
+"""The proxy: rebinding at runtime, statistics, zero-copy delivery, queues and isolation."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from dyknow import BindingError, Client, Manager, Message, UnitError, default_key
+from tests.units import Counter, Publisher, Sink, Slow
+
+
+def _emit_steadily(src: Publisher, count: int, start: int = 0, period_s: float = 0.001) -> None:
+    for i in range(start, start + count):
+        src.emit({"i": i})
+        time.sleep(period_s)  # pacing the producer, not waiting for a result
+
+
+def test_rebind_input_while_messages_flow(manager: Manager) -> None:
+    manager.spawn("publisher", "pa", bindings={"out": "t/a"})
+    manager.spawn("publisher", "pb", bindings={"out": "t/b"})
+    manager.spawn("publisher", "pc", bindings={"out": "t/c"})
+    manager.spawn("forwarder", "u", bindings={"a": "t/a", "b": "t/b", "out": "t/u"})
+    manager.spawn("sink", "s", bindings={"in": "t/u"})
+    unit_before = manager.unit("u")
+    unit_before.marker = "state survives"  # type: ignore[attr-defined]
+    pa, pb, pc = (manager.unit(n) for n in ("pa", "pb", "pc"))
+    assert isinstance(pa, Publisher) and isinstance(pb, Publisher) and isinstance(pc, Publisher)
+
+    flowing = threading.Thread(target=_emit_steadily, args=(pa, 300))
+    flowing.start()
+    pb.emit({"b": "before"})
+    time.sleep(0.05)  # let the stream on port a run for a while before the change
+    config = manager.set_config("u", {"b": "t/c"})
+    assert config == {"a": "t/a", "b": "t/c", "out": "t/u"}
+    pb.emit({"b": "after, old key"})
+    pc.emit({"c": "after, new key"})
+    flowing.join()
+
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    sink.wait_for(302)
+    payloads = [m.payload for m in sink.messages]
+    a_seen = [p["i"] for p in payloads if "i" in p]
+    assert a_seen == list(range(300)), "the unaffected port lost or duplicated messages"
+    assert {"b": "before"} in payloads and {"c": "after, new key"} in payloads
+    assert {"b": "after, old key"} not in payloads
+    assert manager.unit("u") is unit_before and unit_before.marker == "state survives"  # type: ignore[attr-defined]
+    stats = manager.get_statistics("u")
+    assert stats.reconfigurations == 1
+    assert {p.port: p.dropped for p in stats.ports} == {"a": 0, "b": 0, "out": 0}
+
+
+def test_rebind_output(manager: Manager) -> None:
+    manager.spawn("publisher", "src", bindings={"out": "t/in"})
+    manager.spawn("counter", "c", bindings={"in": "t/in", "out": "t/old"})
+    manager.spawn("sink", "old", bindings={"in": "t/old"})
+    manager.spawn("sink", "new", bindings={"in": "t/new"})
+    src = manager.unit("src")
+    assert isinstance(src, Publisher)
+    src.emit(1)
+    old = manager.unit("old")
+    assert isinstance(old, Sink)
+    old.wait_for(1)
+    manager.set_config("c", {"out": "t/new"})
+    src.emit(2)
+    new = manager.unit("new")
+    assert isinstance(new, Sink)
+    assert [m.payload["count"] for m in new.wait_for(1)] == [2]  # the counter kept its state
+    assert len(old.messages) == 1
+
+
+def test_on_reconfigure_is_called_with_the_changes(manager: Manager) -> None:
+    manager.spawn("counter", "c")
+    counter = manager.unit("c")
+    assert isinstance(counter, Counter)
+    manager.set_config("c", {"in": "somewhere/else"})
+    assert counter.reconfigured_event.wait(5)
+    assert counter.reconfigured == [{"in": "somewhere/else"}]
+
+
+def test_set_config_is_all_or_nothing(manager: Manager) -> None:
+    manager.spawn("forwarder", "u")
+    before = manager.get_config("u")
+    with pytest.raises(BindingError, match="not a valid Zenoh key expression"):
+        manager.set_config("u", {"a": "t/ok", "b": "t//bad"})
+    with pytest.raises(BindingError, match=r"no port 'bb'.*did you mean 'b'"):
+        manager.set_config("u", {"a": "t/ok", "bb": "t/x"})
+    with pytest.raises(BindingError, match="has wildcards"):
+        manager.set_config("u", {"out": "t/*"})
+    assert manager.get_config("u") == before
+    assert manager.get_statistics("u").reconfigurations == 0
+    assert manager.set_config("u", {"a": before["a"]}) == before  # no change, no reconfiguration
+    assert manager.get_statistics("u").reconfigurations == 0
+
+
+def test_set_config_of_a_failed_unit_is_refused(manager: Manager) -> None:
+    manager.spawn("setup-fails", "f")
+    with pytest.raises(UnitError, match="failed; only a running unit can be rebound"):
+        manager.set_config("f", {"in": "t/x"})
+
+
+def test_statistics_count_messages_bytes_and_latency(manager: Manager) -> None:
+    manager.spawn("periodic-source", "src", params={"rate_hz": 500, "count": 20, "payload_size": 100})
+    manager.spawn("relay", "r", bindings={"in": default_key(manager.name, "src", "out")})
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "r", "out")})
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    sink.wait_for(20)
+    stats = manager.get_statistics("r")
+    ports = {p.port: p for p in stats.ports}
+    assert ports["in"].messages == 20 and ports["in"].bytes == 2000 and ports["in"].dropped == 0
+    assert ports["out"].messages == 20 and ports["out"].bytes == 2000
+    assert ports["in"].latency.count == 20 and ports["in"].hop.count == 20
+    assert 0 < ports["in"].hop.p50_us <= ports["in"].hop.p99_us <= ports["in"].hop.max_us
+    assert ports["in"].latency.p50_us >= ports["in"].hop.p50_us
+    assert stats.uptime_s > 0 and stats.state == "running" and stats.reconfigurations == 0
+    assert stats.to_dict()["ports"]["in"]["latency"]["count"] == 20
+    source_stats = manager.get_statistics("src").to_dict()
+    assert source_stats["ports"]["out"] == {"direction": "out", "key": default_key(manager.name, "src", "out"),
+                                              "messages": 20, "bytes": 2000, "dropped": 0}
+
+
+def test_origin_timestamp_propagates_and_sequence_numbers_are_per_port(manager: Manager) -> None:
+    manager.spawn("publisher", "src")
+    manager.spawn("relay", "r", bindings={"in": default_key(manager.name, "src", "out")})
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "r", "out")})
+    src = manager.unit("src")
+    assert isinstance(src, Publisher)
+    src._proxy.publish("out", b"x", 12345)
+    src.emit(b"y")
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    first, second = sink.wait_for(2)
+    assert first.origin_ns == 12345 and first.send_ns > first.origin_ns
+    assert second.origin_ns > 12345 and second.send_ns >= second.origin_ns
+    assert (first.seq, second.seq) == (1, 2)
+    assert first.key == default_key(manager.name, "r", "out")
+
+
+def test_local_delivery_is_zero_copy_and_read_only(manager: Manager) -> None:
+    manager.spawn("publisher", "cam")
+    key = default_key(manager.name, "cam", "out")
+    manager.spawn("sink", "a", bindings={"in": key})
+    manager.spawn("sink", "b", bindings={"in": key})
+    frame = np.zeros((1080, 1920, 3), dtype=np.uint8)
+    cam = manager.unit("cam")
+    assert isinstance(cam, Publisher)
+    cam.emit(frame)
+    for name in ("a", "b"):
+        sink = manager.unit(name)
+        assert isinstance(sink, Sink)
+        assert sink.wait_for(1)[0].payload is frame
+    assert not frame.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        frame[0, 0, 0] = 1
+
+
+def test_same_stream_reaches_another_session_over_zenoh(manager: Manager) -> None:
+    manager.spawn("publisher", "cam")
+    key = default_key(manager.name, "cam", "out")
+    manager.spawn("sink", "local", bindings={"in": key})
+    got: list[Message] = []
+    arrived = threading.Event()
+
+    def remote(msg: Message) -> None:
+        got.append(msg)
+        arrived.set()
+
+    with Client(manager.name, connect=manager.endpoints) as client, client.subscribe(key, remote):
+        cam = manager.unit("cam")
+        assert isinstance(cam, Publisher)
+        frame = np.arange(24, dtype=np.uint16).reshape(2, 3, 4)
+        deadline = time.monotonic() + 5
+        while not arrived.is_set() and time.monotonic() < deadline:  # the link comes up asynchronously
+            cam.emit(frame.copy())
+            arrived.wait(0.05)
+        assert got, "nothing reached the other session"
+        msg = got[0]
+        assert isinstance(msg.payload, np.ndarray) and msg.payload.dtype == np.uint16
+        np.testing.assert_array_equal(msg.payload, frame)
+        assert msg.key == key and msg.seq >= 1
+    local = manager.unit("local")
+    assert isinstance(local, Sink) and local.messages and isinstance(local.messages[0].payload, np.ndarray)
+
+
+def test_slow_unit_does_not_stall_its_upstream(make_manager: object) -> None:
+    manager = make_manager(stall_budget_s=0.02)  # type: ignore[operator]
+    manager.spawn("periodic-source", "src", params={"rate_hz": 200, "count": 40})
+    key = default_key(manager.name, "src", "out")
+    manager.spawn("slow", "slow", params={"delay_s": 3.0}, bindings={"in": key})
+    manager.spawn("sink", "fast", bindings={"in": key})
+    fast = manager.unit("fast")
+    assert isinstance(fast, Sink)
+    slow = manager.unit("slow")
+    assert isinstance(slow, Slow)
+    # All 40 ticks arrive while the slow unit is still inside its first 3-second callback.
+    got = fast.wait_for(40, timeout=2.5)
+    assert slow.handled == 0 and slow.started.is_set()
+    assert [m.seq for m in got] == list(range(1, 41))
+    stats = manager.get_statistics("slow")
+    assert stats.ports[0].dropped > 0  # its own bounded queue overflowed, keep-last
+    assert stats.executor.startswith("own thread")
+    assert manager.get_statistics("fast").ports[0].dropped == 0

@@ -1,0 +1,136 @@
+"""Units used by the tests (their specs are in tests/units.xml)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+from dyknow import Message, Unit
+
+
+class Sink(Unit):
+    """Records every message; tests wait on it instead of sleeping."""
+
+    def setup(self) -> None:
+        self.messages: list[Message] = []
+        self.ports: list[str] = []
+        self._cond = threading.Condition()
+
+    def on_message(self, port: str, msg: Message) -> None:
+        with self._cond:
+            self.messages.append(msg)
+            self.ports.append(port)
+            self._cond.notify_all()
+
+    def wait_for(self, count: int, timeout: float = 5.0) -> list[Message]:
+        """Wait until ``count`` messages arrived; returns them (raises on timeout)."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: len(self.messages) >= count, timeout):
+                raise TimeoutError(f"sink {self.name!r} got {len(self.messages)} of {count} messages within {timeout} s")
+            return list(self.messages)
+
+
+class Counter(Unit):
+    """Keeps state across messages and reconfigurations: publishes a running count."""
+
+    def setup(self) -> None:
+        self.count = 0
+        self.reconfigured: list[dict[str, str]] = []
+        self.reconfigured_event = threading.Event()
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.count += 1
+        self.publish("out", {"count": self.count, "payload_seq": msg.seq})
+
+    def on_reconfigure(self, changes: Any) -> None:
+        self.reconfigured.append(dict(changes))
+        self.reconfigured_event.set()
+
+
+class Failing(Unit):
+    """Raises on the message number given by param fail_at."""
+
+    def setup(self) -> None:
+        self.seen = 0
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.seen += 1
+        if self.seen >= int(self.params.get("fail_at", 1)):
+            raise RuntimeError(f"boom at message {self.seen}")
+        self.publish("out", msg.payload)
+
+
+class SetupFails(Unit):
+    def setup(self) -> None:
+        raise ValueError("cannot open the device")
+
+
+class ConstructorFails(Unit):
+    def __init__(self) -> None:
+        raise RuntimeError("constructor exploded")
+
+
+class Slow(Unit):
+    """Sleeps in every callback (param delay_s)."""
+
+    def setup(self) -> None:
+        self.handled = 0
+        self.started = threading.Event()
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.started.set()
+        time.sleep(float(self.params.get("delay_s", 0.2)))
+        self.handled += 1
+
+
+class SelfDestroying(Unit):
+    """Destroys itself on its first message."""
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.destroy()
+        self.after_destroy_call = True
+
+
+class Forwarder(Unit):
+    """Publishes whatever it receives, from any input, on out."""
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.publish("out", msg.payload)
+
+
+class Publisher(Unit):
+    """Publishes on demand from the test (tests call emit())."""
+
+    def emit(self, payload: Any) -> None:
+        self.publish("out", payload)
+
+
+class Looping(Unit):
+    """A source with a blocking run() loop (like a camera reader)."""
+
+    def setup(self) -> None:
+        self.stopped_cleanly = False
+
+    def run(self, stop: threading.Event) -> None:
+        n = 0
+        while not stop.wait(0.005):
+            n += 1
+            self.publish("out", {"n": n})
+        self.stopped_cleanly = True
+
+
+class TornDown(Unit):
+    """Records teardown in a class attribute the test can read after destroy."""
+
+    torn_down: list[str] = []
+
+    def teardown(self) -> None:
+        TornDown.torn_down.append(self.name)
+
+
+NOT_A_UNIT = 42
+
+
+class NotAUnit:
+    """A class that is not a Unit."""

@@ -1,0 +1,1 @@
+"""Reusable computation units for dyknow, each with a transformation spec in ``specs/``."""
