@@ -75,7 +75,8 @@ class InputPort:
         self.key = key
         self.depth = depth
         self.keep_last = keep_last
-        self.queue: deque[Message] = deque(maxlen=depth)
+        # keep-last: the deque's maxlen drops the oldest; drop-new: deliver() refuses when full
+        self.queue: deque[Message] = deque(maxlen=depth if keep_last else None)
         self.counters = PortCounters()
         self.subscriber: Subscriber | None = None
 
@@ -191,7 +192,9 @@ class Proxy:
         for port in spec.ports:
             key = bindings[port.name]
             if port.direction == "in":
-                self._inputs[port.name] = InputPort(self, port.name, key, queue_depth, keep_last=True)
+                depth = port.queue or queue_depth
+                keep_last = (port.policy or "keep-last") == "keep-last"
+                self._inputs[port.name] = InputPort(self, port.name, key, depth, keep_last)
             else:
                 self._outputs[port.name] = OutputPort(port.name, key)
         self._input_seq = tuple(self._inputs.values())

@@ -17,7 +17,7 @@ instantiate, its parameters, its ports and the semantic tags that describe what 
         </params>
         <ports>
           <port type="out" deadline-ms="500">undist</port>
-          <port type="in">rawcamera</port>
+          <port type="in" queue="1" policy="keep-last">rawcamera</port>
         </ports>
         <tags>
           <tag port="undist">Undistorted(${Cam})</tag>
@@ -73,6 +73,7 @@ __all__ = [
     "PARAM_TYPES",
     "PORT_DIRECTIONS",
     "PathsLike",
+    "QUEUE_POLICIES",
     "TRANSFORMATION_TYPES",
     "Arg",
     "Constraint",
@@ -103,6 +104,10 @@ TRANSFORMATION_TYPES: tuple[str, ...] = ("unit", "nodelet")
 PORT_DIRECTIONS: tuple[str, ...] = ("in", "out")
 """The values allowed in ``<port type="...">``."""
 
+QUEUE_POLICIES: tuple[str, ...] = ("keep-last", "drop-new")
+"""What a full input queue does with a new message (``<port type="in" policy="...">``): keep-last
+drops the oldest queued message (like a Zenoh ring channel), drop-new refuses the new one."""
+
 # Every element and its attributes, in the order messages list them.
 _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "transformations": (),
@@ -115,7 +120,7 @@ _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "params": (),
     "param": ("name", "type"),
     "ports": (),
-    "port": ("type", "deadline-ms"),
+    "port": ("type", "deadline-ms", "queue", "policy"),
     "tags": (),
     "tag": ("port",),
     "priority": (),
@@ -190,11 +195,17 @@ class Param:
 
 @dataclass(frozen=True, slots=True)
 class Port:
-    """A named input or output of a unit; ``deadline_ms`` bounds the time between two outputs."""
+    """A named input or output of a unit.
+
+    ``deadline_ms`` (out ports) bounds the time between two outputs; ``queue`` and ``policy`` (in
+    ports) size the input queue and say what a full queue does; None means the manager's default.
+    """
 
     name: str
     direction: str
     deadline_ms: float | None = None
+    queue: int | None = None
+    policy: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -305,6 +316,10 @@ class TransformationSpec:
             entry: dict[str, object] = {"name": port.name, "direction": port.direction}
             if port.deadline_ms is not None:
                 entry["deadline_ms"] = port.deadline_ms
+            if port.queue is not None:
+                entry["queue"] = port.queue
+            if port.policy is not None:
+                entry["policy"] = port.policy
             ports.append(entry)
         return {
             "label": self.label,
@@ -344,10 +359,14 @@ class TransformationSpec:
             out.append("  </params>")
         out.append("  <ports>")
         for port in self.ports:
-            deadline = ""
+            extra = ""
             if port.deadline_ms is not None:
-                deadline = f' deadline-ms="{_decimal_text(port.deadline_ms)}"'
-            out.append(f'    <port type="{port.direction}"{deadline}>{_xml_text(port.name)}</port>')
+                extra += f' deadline-ms="{_decimal_text(port.deadline_ms)}"'
+            if port.queue is not None:
+                extra += f' queue="{port.queue}"'
+            if port.policy is not None:
+                extra += f' policy="{port.policy}"'
+            out.append(f'    <port type="{port.direction}"{extra}>{_xml_text(port.name)}</port>')
         out.append("  </ports>")
         if self.tags:
             out.append("  <tags>")
@@ -976,10 +995,29 @@ def _read_ports(
                 issues.add(node.line, f"<port> @deadline-ms: {text!r} is not a positive number; expected {expected}")
             else:
                 deadline_ms = float(text)
+        queue = None
+        if "queue" in node.attrs:
+            text = node.attrs["queue"].strip()
+            if direction == "out":
+                issues.add(node.line, '<port> @queue: only allowed on in ports; expected it on a <port type="in">')
+            elif not _INTEGER.fullmatch(text) or int(text) < 1:
+                issues.add(node.line, f"<port> @queue: {text!r} is not a positive whole number; expected a queue size such as 1 or 8")
+            else:
+                queue = int(text)
+        policy = None
+        if "policy" in node.attrs:
+            text = node.attrs["policy"].strip()
+            if direction == "out":
+                issues.add(node.line, '<port> @policy: only allowed on in ports; expected it on a <port type="in">')
+            elif text not in QUEUE_POLICIES:
+                hint = did_you_mean(text, QUEUE_POLICIES)
+                issues.add(node.line, f"<port> @policy: unknown queue policy {text!r}; expected keep-last or drop-new{hint}")
+            else:
+                policy = text
         if not node.text:
             issues.add(node.line, "<port>: empty port name; expected a name such as undist")
         _check_template("<port>", node.text, node.line, declared, issues)
-        ports.append(Port(node.text, direction, deadline_ms))
+        ports.append(Port(node.text, direction, deadline_ms, queue, policy))
     return tuple(ports), tuple(n.line for n in nodes)
 
 

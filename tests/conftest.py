@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import queue
 import signal
@@ -94,9 +95,11 @@ class ManagerProcess:
         for line in self.proc.stdout:
             self.lines.put(line)
 
-    def wait_ready(self, timeout: float = 20.0) -> str:
+    def wait_ready(self, timeout: float = 20.0) -> dict[str, object]:
         try:
-            return self.lines.get(timeout=timeout)
+            ready = json.loads(self.lines.get(timeout=timeout))
+            assert ready["event"] == "ready" and ready["endpoints"] == [self.endpoint], ready
+            return ready
         except queue.Empty:
             self.proc.kill()
             raise AssertionError(f"manager process did not become ready; stderr: {self.proc.stderr.read() if self.proc.stderr else ''}") from None

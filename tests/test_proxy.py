@@ -204,3 +204,42 @@ def test_slow_unit_does_not_stall_its_upstream(make_manager: object) -> None:
     assert stats.ports[0].dropped > 0  # its own bounded queue overflowed, keep-last
     assert stats.executor.startswith("own thread")
     assert manager.get_statistics("fast").ports[0].dropped == 0
+
+
+QUEUED = """<transformations>
+  <transformation><label>slow-keep-last</label><source>tests.units:Slow</source>
+    <params><param name="delay_s" type="float">0.3</param></params>
+    <ports><port type="in" queue="2">in</port></ports></transformation>
+  <transformation><label>slow-drop-new</label><source>tests.units:Slow</source>
+    <params><param name="delay_s" type="float">0.3</param></params>
+    <ports><port type="in" queue="2" policy="drop-new">in</port></ports></transformation>
+</transformations>"""
+
+
+@pytest.mark.parametrize(("label", "expected"), [("slow-keep-last", [1, 9, 10]), ("slow-drop-new", [1, 2, 3])])
+def test_queue_size_and_policy_from_the_spec(manager: Manager, label: str, expected: list[int]) -> None:
+    manager.add_transformation(QUEUED)
+    manager.spawn("publisher", "src")
+    manager.spawn(label, "slow", bindings={"in": default_key(manager.name, "src", "out")})
+    seen: list[int] = []
+    slow = manager.unit("slow")
+    assert isinstance(slow, Slow)
+    original = slow.on_message
+    done = threading.Event()
+
+    def record(port: str, msg: Message) -> None:
+        seen.append(msg.payload)
+        original(port, msg)
+        if len(seen) == 3:
+            done.set()
+
+    slow.on_message = record  # type: ignore[method-assign]
+    src = manager.unit("src")
+    assert isinstance(src, Publisher)
+    src.emit(1)
+    assert slow.started.wait(5)  # message 1 is being handled; 2..10 meet a queue of 2
+    for i in range(2, 11):
+        src.emit(i)
+    assert done.wait(5)
+    assert seen == expected
+    assert manager.get_statistics("slow").ports[0].dropped == 7

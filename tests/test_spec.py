@@ -116,6 +116,9 @@ BROKEN_CASES = [
     ("port_name.xml", 5, "<port>: 'raw camera' is not a valid port name", 1),
     ("no_ports.xml", 4, "<ports>: no <port> elements; expected at least one", 1),
     ("deadline_on_input.xml", 6, "<port> @deadline-ms: only allowed on out ports", 1),
+    ("queue_on_output.xml", 5, "<port> @queue: only allowed on in ports", 1),
+    ("queue_not_positive.xml", 5, "<port> @queue: '0' is not a positive whole number; expected a queue size such as 1 or 8", 1),
+    ("queue_policy.xml", 5, "<port> @policy: unknown queue policy 'keep-latest'; expected keep-last or drop-new (did you mean 'keep-last'?)", 1),
     ("deadline_not_positive.xml", 5, "<port> @deadline-ms: '0' is not a positive number; expected milliseconds such as 500", 1),
     ("tag_templated_port.xml", 7, "<tag> @port: no port named 'image_rear'; expected 'image_front' (did you mean 'image_front'?) (in expansion Cam=rear)", 1),
     ("empty_tag.xml", 6, "<tag>: empty tag", 1),
@@ -156,7 +159,7 @@ def test_all_errors_of_a_file_are_reported() -> None:
     assert [(i.line, i.message) for i in issues] == [
         (2, "<transformation>: missing <source>; expected <source>package.module:Class</source>"),
         (7, "<param> @type: unknown type 'double'; expected one of string, int, float, bool"),
-        (10, "<port> @speed: unknown attribute; expected type, deadline-ms"),
+        (10, "<port> @speed: unknown attribute; expected type, deadline-ms, queue, policy"),
         # The second transformation is structurally fine, so its expansion errors are found too.
         (17, "<tag> @port: no port named 'item'; expected 'items' (did you mean 'items'?)"),
     ]
@@ -313,7 +316,7 @@ def test_two_args_expand_as_a_cartesian_product_in_document_order() -> None:
     assert rear.param_values() == {"camera": "rear", "rate": 10, "threshold": 0.5, "gpu": True}
     assert rear.priority == 1
     assert rear.constraints == (Constraint("battery", ">=", 0.25), Constraint("mode", "!=", "docked"))
-    assert [p.name for p in rear.inputs] == ["image"]
+    assert rear.inputs == (Port("image", "in", queue=1, policy="keep-last"),)
     assert [p.name for p in rear.outputs] == ["objects_rear"]
 
 
@@ -428,7 +431,7 @@ def test_to_dict_is_json_ready() -> None:
         "source": "transformations.vision:Detector",
         "params": {"camera": "rear", "rate": 10, "threshold": 0.5, "gpu": True},
         "ports": [
-            {"name": "image", "direction": "in"},
+            {"name": "image", "direction": "in", "queue": 1, "policy": "keep-last"},
             {"name": "objects_rear", "direction": "out", "deadline_ms": 250.5},
         ],
         "tags": [{"port": "objects_rear", "tag": "Objects(rear)"}, {"port": "image", "tag": "RawRGB(rear)"}],

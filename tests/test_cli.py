@@ -1,0 +1,180 @@
+"""The command line, run as real processes: offline commands, a manager driven over Zenoh."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from dyknow import Manager
+from tests.conftest import REPO, ManagerProcess, free_port, run_cli, subprocess_env
+from tests.units import Sink
+
+SPECS = REPO / "tests" / "specs"
+
+
+def test_validate_accepts_good_specs() -> None:
+    result = run_cli("validate", str(REPO / "specs"), str(SPECS / "listing1_fixed.xml"))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("ok: ")
+
+
+def test_validate_reports_every_error_located() -> None:
+    broken = SPECS / "broken" / "several_errors.xml"
+    result = run_cli("validate", str(SPECS / "listing1.xml"), str(broken))
+    assert result.returncode == 1
+    lines = result.stderr.strip().splitlines()
+    assert lines[0] == (
+        f"{SPECS / 'listing1.xml'}:18: <tag> @port: no port named 'raw-camera'; "
+        "expected one of 'undist', 'rawcamera' (did you mean 'rawcamera'?)"
+    )
+    assert len(lines) > 3 and all(line.startswith(f"{broken}:") for line in lines[1:])
+    assert "Traceback" not in result.stderr and result.stdout == ""
+
+
+def test_validate_missing_path() -> None:
+    result = run_cli("validate", "/nonexistent/specs")
+    assert result.returncode == 1
+    assert result.stderr.strip() == "/nonexistent/specs: no such file or directory; expected a spec file or a directory of *.xml files"
+
+
+def test_expand_json_contract() -> None:
+    result = run_cli("expand", str(SPECS / "listing1_fixed.xml"), "--json")
+    assert result.returncode == 0, result.stderr
+    expanded = json.loads(result.stdout)
+    assert [t["label"] for t in expanded] == ["undistort(cam1)", "undistort(cam2)", "undistort(cam3)"]
+    assert expanded[1] == {
+        "label": "undistort(cam2)",
+        "source": "package/Undistort",
+        "params": {"config-path": "/path/to/configuration/cam2/"},
+        "ports": [{"name": "undist", "direction": "out"}, {"name": "rawcamera", "direction": "in"}],
+        "tags": [{"port": "undist", "tag": "Undistorted(cam2)"}, {"port": "rawcamera", "tag": "RawRGB(cam2)"}],
+    }
+
+
+def test_client_commands_drive_a_manager_process(manager_process: Callable[..., ManagerProcess]) -> None:
+    proc = manager_process()
+    conn = proc.client_args()
+
+    spawned = run_cli("spawn", "periodic-source", "src", "--param", "rate_hz=200", "--json", *conn)
+    assert spawned.returncode == 0, spawned.stderr
+    assert json.loads(spawned.stdout)["state"] == "running"
+    assert run_cli("spawn", "relay", "r1", "--protect", "--bind", f"in=dyknow/{proc.name}/src/out", *conn).returncode == 0
+
+    model = json.loads(run_cli("model", "--json", *conn).stdout)
+    assert [(u["name"], u["protected"]) for u in model["units"]] == [("src", False), ("r1", True)]
+    assert {"periodic-source", "relay", "sink"} <= {s["label"] for s in model["specs"]}
+
+    got = run_cli("config", "get", "r1", "--json", *conn)
+    assert json.loads(got.stdout) == {"in": f"dyknow/{proc.name}/src/out", "out": f"dyknow/{proc.name}/r1/out"}
+    echo = run_cli("echo", f"dyknow/{proc.name}/r1/out", "--count", "5", "--json", *conn)
+    assert echo.returncode == 0, echo.stderr
+    messages = [json.loads(line) for line in echo.stdout.splitlines()]
+    assert len(messages) == 5 and all(m["payload"]["bytes"] == 16 and m["latency_us"] > 0 for m in messages)
+
+    changed = run_cli("config", "set", "r1", "out=demo/elsewhere", "--json", *conn)
+    assert json.loads(changed.stdout)["out"] == "demo/elsewhere"
+    stats = json.loads(run_cli("stats", "r1", "--json", *conn).stdout)
+    assert stats["reconfigurations"] == 1 and stats["ports"]["in"]["messages"] > 0
+    assert stats["ports"]["in"]["latency"]["count"] > 0
+
+    refused = run_cli("destroy", "r1", *conn)
+    assert refused.returncode == 1
+    assert refused.stderr.strip() == "dyknow: error: unit 'r1' is protected; it cannot be destroyed (spawned with protected=True)"
+    assert run_cli("destroy", "src", *conn).returncode == 0
+
+    added = run_cli("add-spec", str(SPECS / "listing1_fixed.xml"), "--json", *conn)
+    assert json.loads(added.stdout)["labels"] == ["undistort(cam1)", "undistort(cam2)", "undistort(cam3)"]
+    bad = run_cli("add-spec", str(SPECS / "listing1.xml"), *conn)
+    assert bad.returncode == 1 and bad.stderr.startswith(f"{SPECS / 'listing1.xml'}:18: <tag> @port")
+    assert json.loads(run_cli("remove-spec", "undistort(cam2)", "--json", *conn).stdout)["removed"] is True
+    failing_import = run_cli("spawn", "undistort(cam1)", "u1", *conn)
+    assert failing_import.returncode == 1
+    assert "source 'package/Undistort' is not importable" in failing_import.stderr
+    assert len(failing_import.stderr.strip().splitlines()) == 1
+
+    assert proc.stop(signal.SIGTERM) == 0
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_manager_shuts_down_cleanly_on_signals(manager_process: Callable[..., ManagerProcess], sig: int) -> None:
+    proc = manager_process()
+    assert run_cli("spawn", "periodic-source", "src", *proc.client_args()).returncode == 0
+    proc.proc.send_signal(sig)
+    assert proc.proc.wait(timeout=5) == 0
+    assert proc.proc.stderr is not None and "Traceback" not in proc.proc.stderr.read()
+
+
+def test_no_manager_is_one_clear_line() -> None:
+    result = run_cli("model", "--connect", f"tcp/127.0.0.1:{free_port()}", "--manager", "ghost", "--timeout", "1")
+    assert result.returncode == 1
+    assert result.stderr.strip().startswith("dyknow: error: no answer from manager 'ghost' at tcp/127.0.0.1:")
+    assert "is it running (dyknow manager --name ghost)?" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_usage_errors_exit_2() -> None:
+    result = run_cli("config", "set", "x", "nonsense", "--timeout", "0.1")
+    assert result.returncode == 2 and "expected NAME=VALUE" in result.stderr
+
+
+def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
+    manager.spawn("sink", "s", bindings={"in": "fleet/ticks"})
+    script = textwrap.dedent(
+        f"""
+        import sys, time
+        from dyknow import Manager
+        with Manager("remote", specs=[{str(REPO / 'specs' / 'generic.xml')!r}], connect={manager.endpoints!r}) as m:
+            m.spawn("periodic-source", "src", params={{"rate_hz": 100, "count": 300}}, bindings={{"out": "fleet/ticks"}})
+            time.sleep(3.5)
+        """
+    )
+    child = subprocess.Popen([sys.executable, "-c", script], env=subprocess_env(), stderr=subprocess.PIPE, text=True)
+    try:
+        sink = manager.unit("s")
+        assert isinstance(sink, Sink)
+        got = sink.wait_for(20, timeout=20)
+    finally:
+        child.kill()
+        child.wait(10)
+        if child.stderr is not None:
+            child.stderr.close()
+    seqs = [m.seq for m in got]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)  # in order, no duplicates
+    assert all(m.key == "fleet/ticks" and m.payload == bytes(16) for m in got)
+    assert all(m.send_ns >= m.origin_ns for m in got)
+    stats = manager.get_statistics("s").ports[0]
+    assert stats.messages >= 20 and stats.hop.p50_us > 0
+
+
+def test_manager_listen_conflict_is_one_clear_line(manager_process: Callable[..., ManagerProcess]) -> None:
+    proc = manager_process()
+    port = proc.endpoint.rsplit(":", 1)[1]
+    result = subprocess.run(
+        [sys.executable, "-m", "dyknow.cli", "manager", "--name", "second", "--listen", proc.endpoint],
+        capture_output=True, text=True, timeout=30, env=subprocess_env(),
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert f"127.0.0.1:{port}" in result.stderr and "Address already in use" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_manager_with_broken_specs_refuses_to_start(tmp_path: Path) -> None:
+    result = run_cli("manager", "--name", "x", "--listen", f"tcp/127.0.0.1:{free_port()}", "--specs", str(SPECS / "listing1.xml"))
+    assert result.returncode == 1
+    assert result.stderr.startswith(f"{SPECS / 'listing1.xml'}:18:")
+
+
+def test_echo_times_out_with_a_clear_message(manager_process: Callable[..., ManagerProcess]) -> None:
+    proc = manager_process()
+    start = time.monotonic()
+    result = run_cli("echo", "nothing/here", "--count", "1", "--timeout-total", "0.5", *proc.client_args())
+    assert result.returncode == 1 and "received 0 of 1 messages on 'nothing/here'" in result.stderr
+    assert time.monotonic() - start < 30

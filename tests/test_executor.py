@@ -1,0 +1,110 @@
+"""The executor: shared lane, isolation of slow units, timers, mutual exclusion."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from dyknow import Manager, Message, Unit, default_key
+from tests.units import Publisher, Sink
+
+
+class Busy(Unit):
+    """Spins for 5 ms per message: slow enough to earn a thread of its own."""
+
+    def on_message(self, port: str, msg: Message) -> None:
+        end = time.perf_counter() + 0.005
+        while time.perf_counter() < end:
+            pass
+        self.publish("out", msg.payload)
+
+
+class Exclusive(Unit):
+    """Checks that its timer and message callbacks never overlap."""
+
+    def setup(self) -> None:
+        self.inside = False
+        self.overlaps = 0
+        self.ticks = 0
+        self.messages = 0
+        self.create_timer(0.001, self.tick)
+
+    def _enter(self) -> None:
+        if self.inside:
+            self.overlaps += 1
+        self.inside = True
+        time.sleep(0.0002)
+        self.inside = False
+
+    def tick(self) -> None:
+        self._enter()
+        self.ticks += 1
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self._enter()
+        self.messages += 1
+
+
+SPECS = """<transformations>
+  <transformation><label>busy</label><source>tests.test_executor:Busy</source>
+    <ports><port type="in">in</port><port type="out">out</port></ports></transformation>
+  <transformation><label>exclusive</label><source>tests.test_executor:Exclusive</source>
+    <ports><port type="in">in</port></ports></transformation>
+</transformations>"""
+
+
+def test_consistently_slow_unit_moves_to_its_own_thread(manager: Manager) -> None:
+    manager.add_transformation(SPECS)
+    manager.spawn("publisher", "src")
+    manager.spawn("busy", "busy", bindings={"in": default_key(manager.name, "src", "out")})
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "busy", "out")})
+    assert manager.get_model().unit("busy").executor == "shared thread"
+    src = manager.unit("src")
+    assert isinstance(src, Publisher)
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    for i in range(20):
+        src.emit(i)
+        sink.wait_for(i + 1)
+    assert manager.get_model().unit("busy").executor.startswith("own thread (its callbacks take")
+    assert manager.get_model().unit("s").executor == "shared thread"
+
+
+def test_timers_and_messages_never_overlap(manager: Manager) -> None:
+    manager.add_transformation(SPECS)
+    manager.spawn("publisher", "src")
+    manager.spawn("exclusive", "x", bindings={"in": default_key(manager.name, "src", "out")})
+    src = manager.unit("src")
+    assert isinstance(src, Publisher)
+    emitter = threading.Thread(target=lambda: [src.emit(i) or time.sleep(0.0005) for i in range(300)])
+    emitter.start()
+    emitter.join()
+    x = manager.unit("x")
+    deadline = time.monotonic() + 5
+    while x.messages < 200 and time.monotonic() < deadline:  # type: ignore[attr-defined]
+        time.sleep(0.01)
+    assert x.overlaps == 0  # type: ignore[attr-defined]
+    assert x.ticks > 10 and x.messages >= 200  # type: ignore[attr-defined]
+
+
+def test_periodic_source_stops_after_count(manager: Manager) -> None:
+    manager.spawn("periodic-source", "src", params={"rate_hz": 1000, "count": 25, "payload_size": 3})
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "src", "out")})
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    got = sink.wait_for(25)
+    assert [m.seq for m in got] == list(range(1, 26)) and got[0].payload == b"\x00\x00\x00"
+    time.sleep(0.05)  # would-be ticks after the count
+    assert len(sink.messages) == 25
+
+
+def test_close_is_bounded_even_with_a_stuck_unit(make_manager: object) -> None:
+    manager = make_manager()  # type: ignore[operator]
+    manager.spawn("publisher", "src")
+    manager.spawn("slow", "stuck", params={"delay_s": 30.0}, bindings={"in": default_key(manager.name, "src", "out")})
+    src = manager.unit("src")
+    src.emit(1)
+    assert manager.unit("stuck").started.wait(5)
+    start = time.monotonic()
+    manager.close(timeout=1.0)
+    assert time.monotonic() - start < 3.0

@@ -1,0 +1,40 @@
+"""The public surface: one sorted __all__, locked here so changes are deliberate."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import dyknow
+
+EXPECTED = [
+    "DEFAULT_ENDPOINT", "BindingError", "Client", "ClosedError", "Constraint", "DyKnowError",
+    "LatencySummary", "Library", "LibraryError", "Manager", "Message", "Model", "Param",
+    "PayloadError", "Port", "PortStatistics", "ServiceError", "SpecError", "SpecIssue", "Tag",
+    "Template", "Timer", "TransformationSpec", "TransportError", "Unit", "UnitError", "UnitEvent",
+    "UnitInfo", "UnitState", "UnitStatistics", "__version__", "default_key", "load_specs",
+    "parse_specs",
+]  # fmt: skip
+
+
+def test_all_is_sorted_and_locked() -> None:
+    def kind(name: str) -> int:  # constants, then classes, then functions (isort's order)
+        return 0 if name.isupper() else 1 if name[0].isupper() else 2
+
+    assert dyknow.__all__ == sorted(dyknow.__all__, key=lambda n: (kind(n), n))
+    assert dyknow.__all__ == EXPECTED
+    for name in dyknow.__all__:
+        assert getattr(dyknow, name) is not None
+
+
+def test_every_error_derives_from_the_root() -> None:
+    for name in dyknow.__all__:
+        obj = getattr(dyknow, name)
+        if isinstance(obj, type) and issubclass(obj, Exception):
+            assert issubclass(obj, dyknow.DyKnowError), name
+
+
+def test_import_does_not_pull_opencv() -> None:
+    code = "import sys, dyknow; print('cv2' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -1,0 +1,104 @@
+"""The Zenoh transport: key expressions, configuration, sessions, plain Zenoh interop."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh  # a plain Zenoh peer stands in for tools that know nothing of dyknow
+
+from dyknow import BindingError, Manager, ServiceError, TransportError
+from dyknow.transport import Session, check_key_expr, key_exprs_intersect, make_config
+from tests.conftest import free_port
+from tests.units import Sink
+
+
+def test_key_expressions_are_checked() -> None:
+    assert check_key_expr("robot/cam/**") == "robot/cam/**"
+    with pytest.raises(BindingError, match="'a//b' is not a valid Zenoh key expression"):
+        check_key_expr("a//b", what="port 'in'")
+    with pytest.raises(BindingError, match="port 'out': 'a/\\*' has wildcards"):
+        check_key_expr("a/*", what="port 'out'", concrete=True)
+    with pytest.raises(BindingError, match="expected a non-empty"):
+        check_key_expr("")
+
+
+@pytest.mark.parametrize(
+    ("a", "b", "expected"),
+    [("a/b", "a/b", True), ("a/b", "a/c", False), ("a/*", "a/b", True), ("a/**", "a/b/c", True), ("a/*/c", "a/b/d", False)],
+)
+def test_intersection(a: str, b: str, expected: bool) -> None:
+    assert key_exprs_intersect(a, b) is expected
+
+
+def test_config_file_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(TransportError, match="no such Zenoh configuration file"):
+        make_config(config_file=tmp_path / "missing.json5")
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ mode: 'peer', nonsense_key: 1 ")
+    with pytest.raises(TransportError, match=f"{bad}: not a valid Zenoh configuration"):
+        make_config(config_file=bad)
+    with pytest.raises(TransportError, match="invalid Zenoh endpoint"):
+        make_config(listen=["bogus"])
+
+
+def test_a_config_file_joins_a_deployment(tmp_path: Path) -> None:
+    port = free_port()
+    conf = tmp_path / "zenoh.json5"
+    conf.write_text(json.dumps({
+        "mode": "peer",
+        "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+        "scouting": {"multicast": {"enabled": False}},
+        "adminspace": {"enabled": True},
+    }))
+    with Session(make_config(config_file=conf)) as session:
+        assert session.endpoints() == [f"tcp/127.0.0.1:{port}"]
+
+
+def test_busy_port_is_a_clear_error() -> None:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen()
+        port = sock.getsockname()[1]
+        with pytest.raises(TransportError, match="Address already in use.*choose another port with --listen"):
+            Session(make_config(listen=[f"tcp/127.0.0.1:{port}"]))
+
+
+def test_session_close_is_idempotent_and_use_after_close_is_clear() -> None:
+    session = Session()
+    assert session.endpoints()[0].startswith("tcp/127.0.0.1:")
+    session.close()
+    session.close()
+    with pytest.raises(Exception, match="closed"):
+        session.declare_publisher("a/b")
+
+
+def test_calling_a_service_nobody_serves_times_out_clearly() -> None:
+    with Session() as session:
+        start = time.monotonic()
+        with pytest.raises(ServiceError, match="nothing serves '@dyknow/nobody/get_model' within 0.3 s"):
+            session.call("@dyknow/nobody/get_model", b"{}", timeout=0.3, what="test")
+        assert time.monotonic() - start < 5
+
+
+def test_plain_zenoh_publisher_feeds_a_unit(manager: Manager) -> None:
+    manager.spawn("sink", "s", bindings={"in": "plain/data"})
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps(manager.endpoints))
+    with zenoh.open(conf) as z:
+        pub = z.declare_publisher("plain/data", encoding=zenoh.Encoding.APPLICATION_JSON)
+        arrived = threading.Event()
+        deadline = time.monotonic() + 5
+        while not sink.messages and time.monotonic() < deadline:  # the link comes up asynchronously
+            pub.put(json.dumps({"speed": 3}))
+            arrived.wait(0.05)
+    msg = sink.messages[0]
+    assert msg.payload == {"speed": 3} and msg.key == "plain/data"
+    assert msg.origin_ns > 0 and msg.seq >= 1
