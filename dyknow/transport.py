@@ -166,7 +166,7 @@ class Publisher(_Entity):
 
     def __init__(self, session: zenoh.Session, key: str, on_matching: Callable[[bool], None] | None) -> None:
         try:
-            pub = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE, express=True)
+            pub = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a publisher on {key!r}: {_clean(exc)}") from exc
         super().__init__(pub)
@@ -211,8 +211,9 @@ class Publisher(_Entity):
 class Subscriber(_Entity):
     """Receives dyknow messages (or plain Zenoh samples) published by other sessions.
 
-    ``on_message`` runs on Zenoh's receiving thread, so it must be quick (dyknow only enqueues);
-    exceptions are passed to ``on_error`` instead of being swallowed by Zenoh.
+    ``on_message`` runs on a Python thread Zenoh keeps for this subscriber (one per subscriber),
+    so it may run a unit's callback right there; exceptions are passed to ``on_error`` instead of
+    being swallowed by Zenoh.
     """
 
     def __init__(
@@ -244,8 +245,7 @@ class Subscriber(_Entity):
                 on_error(exc)
 
         try:
-            handler = zenoh.handlers.Callback(callback, indirect=False)
-            sub = session.declare_subscriber(key, handler, allowed_origin=zenoh.Locality.REMOTE)
+            sub = session.declare_subscriber(key, callback, allowed_origin=zenoh.Locality.REMOTE)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a subscriber on {key!r}: {_clean(exc)}") from exc
         super().__init__(sub)

@@ -1,0 +1,35 @@
+# The two commands of the README's quick start, and what they need.
+#   make demo   sets up .venv and runs the demo
+#   make test   sets up .venv (with test tools) and runs the whole test suite
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+
+.PHONY: demo test bench clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(VENV)/.installed: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e .
+	touch $@
+
+$(VENV)/.installed-test: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $@ $(VENV)/.installed
+
+demo: $(VENV)/.installed
+	$(BIN)/dyknow demo
+
+# pytest exits 5 when it collects no tests: that means the suite is missing, so say so and fail.
+test: $(VENV)/.installed-test
+	@$(BIN)/python -m pytest $(PYTEST_ARGS); rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: the test suite is missing or cannot be imported" >&2; fi; \
+	exit $$rc
+
+bench: $(VENV)/.installed-test
+	$(BIN)/python benchmarks/chain.py --quick --json out/chain.json --plot out/chain.png
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

@@ -1,0 +1,628 @@
+"""Chain latency: the DyKnow paper's experiment (its Fig. 4), on Zenoh.
+
+A source publishes time-stamped messages; each of n units receives and immediately republishes;
+the last receiver records arrival minus origin time. Variants, side by side:
+
+- ``dyknow-inproc``: dyknow units in one manager (the paper's "DyKnow nodelets");
+- ``zenoh-session``: raw Zenoh publishers and subscribers in one session, default callbacks
+  (our "plain nodelets");
+- ``dyknow-process``: dyknow units, each in a manager process of its own (the paper's "nodes");
+- ``zenoh-process``: raw Zenoh, one process per hop;
+- ``python-call``: the floor, a chain of plain Python function calls.
+
+Modes: ``back-to-back`` (one message in flight: the last receiver triggers the next message) and
+``paced`` (a fixed rate). Every variant sends the same number of messages, drops the same warm-up
+messages, and is measured the same way (last-hop latency; per-hop = last-hop / hops). No process
+is pinned to a CPU.
+
+    python benchmarks/chain.py --quick --json out/chain.json --plot out/chain.png
+    python benchmarks/chain.py --paper --hops 1,5,10,25,50 --json out/paper.json
+    python benchmarks/chain.py --smoke --json /tmp/smoke.json      (CI: proves it runs)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import queue
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+if str(ROOT) not in sys.path:  # run from a checkout without installing
+    sys.path.insert(0, str(ROOT))
+
+from dyknow import Manager, Message, TransformationSpec, Unit  # noqa: E402
+from dyknow.spec import Param, Port  # noqa: E402
+
+VARIANTS = ("dyknow-inproc", "zenoh-session", "dyknow-process", "zenoh-process", "python-call")
+PAYLOAD = bytes(16)
+
+# Targets from the performance issue (per hop, median, 50-hop chain), in microseconds.
+TARGETS = {
+    ("dyknow-inproc", "back-to-back"): 5.0,
+    ("dyknow-inproc", "paced"): 10.0,
+}
+PEERS_NOTE = (
+    "peers on this machine (per hop, 50 hops): raw Zenoh one session 22.6 us back-to-back, 36 us at 50 Hz; "
+    "process per hop 115-140 us back-to-back, ~280 us at 5 Hz; function call 0.2 us; DyKnow paper overhead ~4 us/hop"
+)
+
+
+@dataclass(frozen=True, slots=True)
+class Mode:
+    """How messages are sent: ``rate_hz`` None means back-to-back."""
+
+    name: str
+    messages: int
+    warmup: int
+    rate_hz: float | None
+
+    @property
+    def total(self) -> int:
+        return self.messages + self.warmup
+
+
+# ---------------------------------------------------------------------------- python-call
+
+
+def run_python_call(hops: int, mode: Mode) -> list[int]:
+    latencies: list[int] = []
+
+    def make(next_fn: Callable[[bytes, int], None] | None) -> Callable[[bytes, int], None]:
+        if next_fn is None:
+
+            def last(payload: bytes, origin: int) -> None:
+                latencies.append(time.time_ns() - origin)
+
+            return last
+
+        def hop(payload: bytes, origin: int) -> None:
+            time.time_ns()  # each receiver reads the clock, as in every other variant
+            next_fn(payload, origin)
+
+        return hop
+
+    chain = make(None)
+    for _ in range(hops - 1):
+        chain = make(chain)
+    period = 1.0 / mode.rate_hz if mode.rate_hz else 0.0
+    next_at = time.perf_counter()
+    for _ in range(mode.total):
+        if period:
+            next_at += period
+            _sleep_until(next_at)
+        chain(PAYLOAD, time.time_ns())
+    return latencies[mode.warmup :]
+
+
+def _sleep_until(deadline: float) -> None:
+    delay = deadline - time.perf_counter()
+    if delay > 0:
+        time.sleep(delay)
+
+
+# ---------------------------------------------------------------------------- zenoh-session
+
+
+def _zenoh_config(listen: list[str] | None = None, connect: list[str] | None = None) -> Any:
+    from dyknow.transport import make_config
+
+    # the same configuration dyknow's managers use, so both sides are measured alike
+    return make_config(listen=listen or [], connect=connect or [])
+
+
+def run_zenoh_session(hops: int, mode: Mode) -> list[int]:
+    import zenoh
+
+    latencies: list[int] = []
+    done = threading.Event()
+    with zenoh.open(_zenoh_config()) as session:
+        publishers = [session.declare_publisher(f"bench/h{i}") for i in range(hops)]
+        subscribers = []
+        for i in range(hops):
+            if i < hops - 1:
+                out = publishers[i + 1]
+
+                def relay(sample: Any, out: Any = out) -> None:
+                    time.time_ns()
+                    out.put(sample.payload, attachment=sample.attachment)
+
+                subscribers.append(session.declare_subscriber(f"bench/h{i}", relay))
+            else:
+
+                def last(sample: Any) -> None:
+                    origin = int.from_bytes(sample.attachment.to_bytes(), "little")
+                    latencies.append(time.time_ns() - origin)
+                    if len(latencies) >= mode.total:
+                        done.set()
+                    elif not mode.rate_hz:
+                        publish()
+
+                subscribers.append(session.declare_subscriber(f"bench/h{i}", last))
+        first = publishers[0]
+
+        def publish() -> None:
+            first.put(PAYLOAD, attachment=time.time_ns().to_bytes(8, "little"))
+
+        if mode.rate_hz:
+            period = 1.0 / mode.rate_hz
+            next_at = time.perf_counter()
+            for _ in range(mode.total):
+                next_at += period
+                _sleep_until(next_at)
+                publish()
+        else:
+            publish()
+        if not done.wait(60 + mode.total * 0.05):
+            raise RuntimeError(f"zenoh-session chain of {hops}: {len(latencies)} of {mode.total} messages arrived")
+    return latencies[mode.warmup :]
+
+
+# ---------------------------------------------------------------------------- dyknow units
+
+
+PROBE = b"probe"
+
+
+class BenchSource(Unit):
+    """Probes until the chain answers, then publishes on ``out`` at ``rate_hz`` (paced) or each
+    time the sink acks the previous message (back-to-back: one message in flight)."""
+
+    def setup(self) -> None:
+        self.left = int(self.params["messages"])
+        self.rate = float(self.params["rate_hz"])
+        self.started = False
+        self.prober = self.create_timer(0.1, lambda: self.publish("out", PROBE))
+        self.publish("out", PROBE)
+
+    def tick(self) -> None:
+        if self.left <= 0:
+            self.timer.cancel()
+            return
+        self.left -= 1
+        self.publish("out", PAYLOAD)
+
+    def on_message(self, port: str, msg: Message) -> None:  # an ack from the sink
+        if msg.payload == PROBE:
+            if not self.started:  # the whole chain is up: start measuring
+                self.started = True
+                self.prober.cancel()
+                if self.rate > 0:
+                    self.timer = self.create_timer(1.0 / self.rate, self.tick)
+                else:
+                    self.left -= 1
+                    self.publish("out", PAYLOAD, origin_ns=time.time_ns())
+        elif self.left > 0 and self.rate <= 0:
+            self.left -= 1
+            self.publish("out", PAYLOAD, origin_ns=time.time_ns())
+
+
+class BenchSink(Unit):
+    """Records arrival minus origin; acks probes, and each message in back-to-back mode."""
+
+    def setup(self) -> None:
+        self.latencies: list[int] = []
+        self.expected = int(self.params["messages"])
+        self.done = threading.Event()
+        self.ack = not float(self.params["rate_hz"])
+
+    def on_message(self, port: str, msg: Message) -> None:
+        now = time.time_ns()
+        if msg.payload == PROBE:
+            self.publish("ack", PROBE)
+            return
+        self.latencies.append(now - msg.origin_ns)
+        if len(self.latencies) >= self.expected:
+            self.done.set()
+        elif self.ack:
+            self.publish("ack", b"")
+
+
+def bench_specs(messages: int, rate_hz: float) -> list[TransformationSpec]:
+    module = __name__ if __name__ != "__main__" else "__main__"
+    params = (Param("messages", "int", messages), Param("rate_hz", "float", float(rate_hz)))
+    return [
+        TransformationSpec(
+            label="bench-source",
+            source=f"{module}:BenchSource",
+            params=params,
+            ports=(Port("ack", "in"), Port("out", "out")),
+        ),
+        TransformationSpec(label="bench-relay", source="transformations.generic:Relay", ports=(Port("in", "in"), Port("out", "out"))),
+        TransformationSpec(
+            label="bench-sink",
+            source=f"{module}:BenchSink",
+            params=params,
+            ports=(Port("in", "in"), Port("ack", "out")),
+        ),
+    ]
+
+
+def run_dyknow_inproc(hops: int, mode: Mode) -> list[int]:
+    rate = mode.rate_hz or 0.0
+    with Manager("bench", specs=bench_specs(mode.total, rate), listen=[], serve=False) as manager:
+        manager.spawn("bench-sink", "sink", bindings={"in": f"bench/h{hops - 1}", "ack": "bench/ack"})
+        for i in range(hops - 1, 0, -1):
+            manager.spawn("bench-relay", f"r{i}", bindings={"in": f"bench/h{i - 1}", "out": f"bench/h{i}"})
+        manager.spawn("bench-source", "source", bindings={"ack": "bench/ack", "out": "bench/h0"})
+        sink = manager.unit("sink")
+        assert isinstance(sink, BenchSink)
+        if not sink.done.wait(60 + mode.total * 0.05):
+            raise RuntimeError(f"dyknow-inproc chain of {hops}: {len(sink.latencies)} of {mode.total} messages arrived")
+        return sink.latencies[mode.warmup :]
+
+
+# ---------------------------------------------------------------------------- process variants
+
+
+def _free_ports(n: int) -> list[int]:
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.bind(("127.0.0.1", 0))
+        socks.append(s)
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def run_processes(variant: str, hops: int, mode: Mode) -> list[int]:
+    """One process per hop plus the source, linked in a line over loopback TCP."""
+    ports = _free_ports(hops + 1)
+    endpoints = [f"tcp/127.0.0.1:{p}" for p in ports]
+    with tempfile.TemporaryDirectory() as tmp:
+        result = Path(tmp) / "latencies.json"
+        procs = []
+        try:
+            for i in range(hops, -1, -1):  # receivers first, the source last
+                connect = [endpoints[i - 1]] if i > 0 else []
+                if i == hops and hops > 1:
+                    connect.append(endpoints[0])  # the sink acks straight to the source
+                role = "source" if i == 0 else ("sink" if i == hops else "relay")
+                args = [
+                    sys.executable, __file__, "--worker", variant, "--role", role, "--index", str(i), "--hops", str(hops),
+                    "--messages", str(mode.total), "--rate", str(mode.rate_hz or 0), "--listen", endpoints[i],
+                    "--result", str(result),
+                ]  # fmt: skip
+                for c in connect:
+                    args += ["--connect", c]
+                procs.append(subprocess.Popen(args, stdin=subprocess.DEVNULL))
+            deadline = time.monotonic() + 120 + mode.total * (1.0 / mode.rate_hz if mode.rate_hz else 0.05)
+            while not result.exists():
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{variant} chain of {hops} did not finish")
+                if any(p.poll() not in (None, 0) for p in procs):
+                    raise RuntimeError(f"{variant} chain of {hops}: a worker process failed")
+                time.sleep(0.05)
+            time.sleep(0.05)
+            data = json.loads(result.read_text())
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.terminate()
+            for p in procs:
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    return list(data)[mode.warmup :]
+
+
+def worker(args: argparse.Namespace) -> int:
+    """One process of a process-per-hop chain."""
+    if args.worker == "dyknow-process":
+        return _dyknow_worker(args)
+    return _zenoh_worker(args)
+
+
+def _write_result(path: str, latencies: list[int]) -> None:
+    tmp = path + ".tmp"
+    Path(tmp).write_text(json.dumps(latencies))
+    os.replace(tmp, path)
+
+
+def _dyknow_worker(args: argparse.Namespace) -> int:
+    i, hops = args.index, args.hops
+    rate = args.rate
+    with Manager(f"w{i}", specs=bench_specs(args.messages, rate), listen=[args.listen], connect=args.connect, serve=False) as manager:
+        if args.role == "sink":
+            manager.spawn("bench-sink", "sink", bindings={"in": f"bench/h{hops - 1}", "ack": "bench/ack"})
+            sink = manager.unit("sink")
+            assert isinstance(sink, BenchSink)
+            sink.done.wait()
+            _write_result(args.result, sink.latencies)
+        elif args.role == "relay":
+            manager.spawn("bench-relay", f"r{i}", bindings={"in": f"bench/h{i - 1}", "out": f"bench/h{i}"})
+            threading.Event().wait()
+        else:
+            manager.spawn("bench-source", "source", bindings={"ack": "bench/ack", "out": "bench/h0"})
+            threading.Event().wait()
+    return 0
+
+
+def _zenoh_worker(args: argparse.Namespace) -> int:
+    import zenoh
+
+    i, hops = args.index, args.hops
+    with zenoh.open(_zenoh_config([args.listen], args.connect)) as session:
+        if args.role == "sink":
+            latencies: list[int] = []
+            done = threading.Event()
+            ack = session.declare_publisher("bench/ack")
+
+            def last(sample: Any) -> None:
+                now = time.time_ns()
+                if sample.payload.to_bytes() == PROBE:
+                    ack.put(PROBE)
+                    return
+                latencies.append(now - int.from_bytes(sample.attachment.to_bytes(), "little"))
+                if len(latencies) >= args.messages:
+                    done.set()
+                elif not args.rate:
+                    ack.put(b"")
+
+            _sub = session.declare_subscriber(f"bench/h{hops - 1}", last)
+            done.wait()
+            _write_result(args.result, latencies)
+        elif args.role == "relay":
+            out = session.declare_publisher(f"bench/h{i}")
+
+            def relay(sample: Any) -> None:
+                time.time_ns()
+                out.put(sample.payload, attachment=sample.attachment)
+
+            _sub = session.declare_subscriber(f"bench/h{i - 1}", relay)
+            threading.Event().wait()
+        else:
+            first = session.declare_publisher("bench/h0")
+            left = [args.messages]
+            chain_up = threading.Event()
+
+            def publish() -> None:
+                if left[0] > 0:
+                    left[0] -= 1
+                    first.put(PAYLOAD, attachment=time.time_ns().to_bytes(8, "little"))
+
+            def on_ack(sample: Any) -> None:
+                if sample.payload.to_bytes() == PROBE:
+                    if not chain_up.is_set():
+                        chain_up.set()
+                        if not args.rate:
+                            publish()
+                elif not args.rate:
+                    publish()
+
+            _ack = session.declare_subscriber("bench/ack", on_ack)
+            while not chain_up.wait(0.1):  # probe until the whole line answers
+                first.put(PROBE, attachment=time.time_ns().to_bytes(8, "little"))
+            if args.rate:
+                period = 1.0 / args.rate
+                next_at = time.perf_counter()
+                while left[0] > 0:
+                    next_at += period
+                    _sleep_until(next_at)
+                    publish()
+            threading.Event().wait()
+    return 0
+
+
+# ---------------------------------------------------------------------------- summary and output
+
+
+def summarize(latencies_ns: list[int], hops: int) -> dict[str, float]:
+    arr = np.asarray(latencies_ns, dtype=np.float64) / 1000.0
+    per_hop = arr / hops
+
+    def pct(a: np.ndarray, q: float) -> float:
+        return round(float(np.percentile(a, q)), 3)
+
+    return {
+        "last_hop_median_us": pct(arr, 50),
+        "last_hop_p90_us": pct(arr, 90),
+        "last_hop_p99_us": pct(arr, 99),
+        "last_hop_max_us": round(float(arr.max()), 3),
+        "per_hop_median_us": pct(per_hop, 50),
+        "per_hop_p90_us": pct(per_hop, 90),
+        "per_hop_p99_us": pct(per_hop, 99),
+        "per_hop_max_us": round(float(per_hop.max()), 3),
+    }
+
+
+def machine() -> dict[str, Any]:
+    import zenoh  # noqa: F401  (for its version)
+    from importlib.metadata import version
+
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "zenoh": version("eclipse-zenoh"),
+        "dyknow": version("dyknow") if _installed("dyknow") else "checkout",
+        "os": f"{platform.system()} {platform.release()}",
+        "pinned": False,
+    }
+
+
+def _installed(name: str) -> bool:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        version(name)
+        return True
+    except PackageNotFoundError:
+        return False
+
+
+RUNNERS: dict[str, Callable[[int, Mode], list[int]]] = {
+    "python-call": run_python_call,
+    "zenoh-session": run_zenoh_session,
+    "dyknow-inproc": run_dyknow_inproc,
+    "dyknow-process": lambda hops, mode: run_processes("dyknow-process", hops, mode),
+    "zenoh-process": lambda hops, mode: run_processes("zenoh-process", hops, mode),
+}
+
+
+def plot(results: list[dict[str, Any]], info: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    modes = sorted({r["mode"] for r in results}, key=lambda m: m != "paced")
+    fig, axes = plt.subplots(1, len(modes), figsize=(6.5 * len(modes), 4.8), squeeze=False)
+    for ax, mode in zip(axes[0], modes, strict=True):
+        rows = [r for r in results if r["mode"] == mode]
+        rate = rows[0]["rate_hz"]
+        for variant in VARIANTS:
+            pts = sorted((r["hops"], r["last_hop_median_us"]) for r in rows if r["variant"] == variant)
+            if pts:
+                ax.plot([p[0] for p in pts], [p[1] / 1000 for p in pts], marker="o", label=variant)
+        ax.set_xlabel("hops")
+        ax.set_ylabel("median time to arrival at last hop (ms)")
+        ax.set_title(f"{mode}" + (f" at {rate:g} Hz" if rate else " (one message in flight)"))
+        ax.grid(True, alpha=0.3)
+        ax.legend()
+    fig.suptitle("Chain latency (DyKnow paper, Fig. 4), on Zenoh")
+    fig.text(
+        0.5, 0.005,
+        f"{info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info['zenoh']}, not pinned",
+        ha="center", fontsize=8,
+    )  # fmt: skip
+    fig.tight_layout(rect=(0, 0.03, 1, 0.95))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="200 messages at 50 Hz, and back-to-back (the default)")
+    parser.add_argument("--paper", action="store_true", help="the paper's setting: 1,000 messages at 5 Hz (paced only)")
+    parser.add_argument("--smoke", action="store_true", help="a few messages, to prove the benchmark runs (CI)")
+    parser.add_argument("--hops", default=None, help="comma-separated chain lengths (default 1,5,10,25,50)")
+    parser.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated variants")
+    parser.add_argument("--modes", default=None, help="comma-separated modes: back-to-back,paced")
+    parser.add_argument("--messages", type=int, default=None, help="messages per run (overrides the setting)")
+    parser.add_argument("--rate", type=float, default=None, help="paced rate in Hz (overrides the setting)")
+    parser.add_argument("--json", type=Path, help="write the results here")
+    parser.add_argument("--plot", type=Path, help="write a PNG plot here")
+    # worker processes of the process variants
+    parser.add_argument("--worker", choices=("dyknow-process", "zenoh-process"), help=argparse.SUPPRESS)
+    parser.add_argument("--role", help=argparse.SUPPRESS)
+    parser.add_argument("--index", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--listen", help=argparse.SUPPRESS)
+    parser.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
+    parser.add_argument("--result", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        args.hops = int(args.hops)
+        return worker(args)
+
+    if args.paper:
+        modes = [Mode("paced", args.messages or 1000, 20, args.rate or 5.0)]
+    elif args.smoke:
+        modes = [Mode("back-to-back", args.messages or 20, 5, None), Mode("paced", args.messages or 10, 2, args.rate or 200.0)]
+    else:
+        modes = [Mode("back-to-back", args.messages or 2000, 200, None), Mode("paced", args.messages or 200, 20, args.rate or 50.0)]
+    if args.modes:
+        wanted = args.modes.split(",")
+        modes = [m for m in modes if m.name in wanted]
+    hops_list = [int(h) for h in (args.hops or ("1,5" if args.smoke else "1,5,10,25,50")).split(",")]
+    variants = [v for v in args.variants.split(",") if v]
+    for v in variants:
+        if v not in RUNNERS:
+            parser.error(f"unknown variant {v!r}; expected some of {', '.join(VARIANTS)}")
+
+    info = machine()
+    print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info['zenoh']}")
+    print(PEERS_NOTE)
+    results: list[dict[str, Any]] = []
+    for mode in modes:
+        rate = f"{mode.rate_hz:g} Hz" if mode.rate_hz else "one in flight"
+        print(f"\n== {mode.name} ({rate}), {mode.messages} messages after {mode.warmup} warm-up")
+        print(f"{'variant':<15} {'hops':>4} {'per-hop p50':>12} {'per-hop p99':>12} {'last p50':>10} {'last p99':>10}  target")
+        for hops in hops_list:
+            for variant in variants:
+                latencies = RUNNERS[variant](hops, mode)
+                if len(latencies) < mode.messages:
+                    raise RuntimeError(f"{variant} {hops} hops: got {len(latencies)} of {mode.messages} measurements")
+                row = {"variant": variant, "hops": hops, "messages": len(latencies), "mode": mode.name, "rate_hz": mode.rate_hz or 0}
+                row.update(summarize(latencies, hops))
+                results.append(row)
+                target = TARGETS.get((variant, mode.name))
+                note = ""
+                if target is not None and hops == 50:
+                    ok = row["per_hop_median_us"] <= target
+                    note = f"<= {target:g} us per hop: {'met' if ok else 'MISSED'}"
+                print(
+                    f"{variant:<15} {hops:>4} {row['per_hop_median_us']:>9.2f} us {row['per_hop_p99_us']:>9.2f} us "
+                    f"{row['last_hop_median_us']:>7.1f} us {row['last_hop_p99_us']:>7.1f} us  {note}",
+                    flush=True,
+                )
+    _compare(results)
+    out = {"machine": info, "results": results}
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=2))
+        print(f"\nwrote {args.json}")
+    if args.plot:
+        plot(results, info, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _compare(results: list[dict[str, Any]]) -> None:
+    """Print the checks the performance issue asks for, figure beside target."""
+    def find(variant: str, mode: str, hops: int) -> dict[str, Any] | None:
+        for r in results:
+            if (r["variant"], r["mode"], r["hops"]) == (variant, mode, hops):
+                return r
+        return None
+
+    lines = []
+    for mode in ("back-to-back", "paced"):
+        hops = max((r["hops"] for r in results if r["mode"] == mode), default=0)
+        ours, raw = find("dyknow-inproc", mode, hops), find("zenoh-session", mode, hops)
+        if ours and raw:
+            verdict = "met" if ours["per_hop_median_us"] < raw["per_hop_median_us"] else "MISSED"
+            lines.append(
+                f"{mode}, {hops} hops: dyknow-inproc {ours['per_hop_median_us']:.2f} us/hop vs raw Zenoh session "
+                f"{raw['per_hop_median_us']:.2f} us/hop (target: below it): {verdict}"
+            )
+        ours, raw = find("dyknow-process", mode, hops), find("zenoh-process", mode, hops)
+        if ours and raw:
+            overhead = (ours["per_hop_median_us"] / raw["per_hop_median_us"] - 1) * 100
+            verdict = "met" if overhead <= 10 else "MISSED"
+            lines.append(
+                f"{mode}, {hops} hops: dyknow-process {ours['per_hop_median_us']:.1f} us/hop vs zenoh-process "
+                f"{raw['per_hop_median_us']:.1f} us/hop: overhead {overhead:+.1f}% (target: at most +10%): {verdict}"
+            )
+    if lines:
+        print("\n" + "\n".join(lines))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
