@@ -341,7 +341,7 @@ def _parser() -> argparse.ArgumentParser:
 
     p = command("manager", cmd_manager, "run a manager until interrupted")
     p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
-    p.add_argument("--specs", action="append", default=[], metavar="PATH", help="a spec file or a directory of .xml specs (repeatable)")
+    p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file to join a real deployment")

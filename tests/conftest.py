@@ -80,7 +80,7 @@ class ManagerProcess:
         self.endpoint = f"tcp/127.0.0.1:{port}"
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--listen", self.endpoint,
-             "--specs", str(GENERIC_SPECS), "--specs", str(UNIT_SPECS), "--json", *extra],
+             "--specs", str(GENERIC_SPECS), str(UNIT_SPECS), "--json", *extra],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
