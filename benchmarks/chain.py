@@ -527,6 +527,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--modes", default=None, help="comma-separated modes: back-to-back,paced")
     parser.add_argument("--messages", type=int, default=None, help="messages per run (overrides the setting)")
     parser.add_argument("--rate", type=float, default=None, help="paced rate in Hz (overrides the setting)")
+    parser.add_argument("--repeat", type=int, default=1, help="runs per configuration, interleaved across variants; samples are pooled")
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--plot", type=Path, help="write a PNG plot here")
     # worker processes of the process variants
@@ -565,10 +566,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n== {mode.name} ({rate}), {mode.messages} messages after {mode.warmup} warm-up")
         print(f"{'variant':<15} {'hops':>4} {'per-hop p50':>12} {'per-hop p99':>12} {'last p50':>10} {'last p99':>10}  target")
         for hops in hops_list:
+            pooled: dict[str, list[int]] = {v: [] for v in variants}
+            for _ in range(args.repeat):  # interleaved, so slow drifts of the machine hit every variant alike
+                for variant in variants:
+                    latencies = RUNNERS[variant](hops, mode)
+                    if len(latencies) < mode.messages:
+                        raise RuntimeError(f"{variant} {hops} hops: got {len(latencies)} of {mode.messages} measurements")
+                    pooled[variant] += latencies
             for variant in variants:
-                latencies = RUNNERS[variant](hops, mode)
-                if len(latencies) < mode.messages:
-                    raise RuntimeError(f"{variant} {hops} hops: got {len(latencies)} of {mode.messages} measurements")
+                latencies = pooled[variant]
                 row = {"variant": variant, "hops": hops, "messages": len(latencies), "mode": mode.name, "rate_hz": mode.rate_hz or 0}
                 row.update(summarize(latencies, hops))
                 results.append(row)

@@ -43,6 +43,7 @@ log = logging.getLogger(__name__)
 
 _STOP = object()
 _WAKE = object()
+_NEVER = 1 << 62  # next_due_ns of a lane without timers
 
 
 class Job(Protocol):
@@ -87,25 +88,21 @@ class Lane:
         self.put = self.ready.put
         self._timers: list[tuple[int, int, Timer]] = []
         self._timer_lock = threading.Lock()
+        self.next_due_ns = _NEVER  # when the earliest timer is due (monotonic clock)
         self.worker: Worker | None = None
 
     def add_timer(self, timer: Timer) -> None:
         with self._timer_lock:
             heapq.heappush(self._timers, (timer.next_ns, next(_tie), timer))
+            self.next_due_ns = self._timers[0][0]
         self.put(_WAKE)  # the worker recomputes how long it may sleep
-
-    def timeout(self) -> float | None:
-        """Seconds until the next timer is due (None: no timers)."""
-        timers = self._timers
-        if not timers:
-            return None
-        return max(0.0, (timers[0][0] - time.monotonic_ns()) / 1e9)
 
     def fire_due(self, worker: Worker) -> None:
         now = time.monotonic_ns()
         while True:
             with self._timer_lock:
                 if not self._timers or self._timers[0][0] > now:
+                    self.next_due_ns = self._timers[0][0] if self._timers else _NEVER
                     return
                 _, _, timer = heapq.heappop(self._timers)
             if timer.cancelled:
@@ -132,6 +129,7 @@ class Lane:
             if mine:
                 self._timers = [entry for entry in self._timers if entry[2].job is not job]
                 heapq.heapify(self._timers)
+                self.next_due_ns = self._timers[0][0] if self._timers else _NEVER
         return [entry[2] for entry in mine]
 
 
@@ -155,16 +153,25 @@ class Worker:
 
     def _serve(self) -> None:
         lane = self.lane
-        get = lane.ready.get
+        get, get_nowait = lane.ready.get, lane.ready.get_nowait
+        monotonic_ns = time.monotonic_ns
         while True:
-            timeout = lane.timeout()
+            # Work queued: take it at once (the hot path); otherwise sleep until the next timer.
             try:
-                job = get() if timeout is None else get(timeout=timeout)
+                job = get_nowait()
             except queue.Empty:
-                job = None
+                due = lane.next_due_ns
+                try:
+                    if due == _NEVER:
+                        job = get()
+                    else:
+                        wait = (due - monotonic_ns()) / 1e9
+                        job = get(timeout=wait) if wait > 0 else None
+                except queue.Empty:
+                    job = None
             if job is _STOP:
                 return
-            if lane._timers:
+            if lane.next_due_ns <= monotonic_ns():
                 lane.fire_due(self)
             if job is None or job is _WAKE:
                 pass
@@ -178,7 +185,7 @@ class Worker:
                 if own is None:
                     return
                 lane = own
-                get = lane.ready.get
+                get, get_nowait = lane.ready.get, lane.ready.get_nowait
 
 
 class Executor:
@@ -276,7 +283,8 @@ class Executor:
                 continue
             since = worker.busy_since_ns
             job = worker.busy_job
-            if since and job is not None and time.perf_counter_ns() - since > self.stall_budget_ns:
+            # busy_since_ns is wall-clock time (the proxy reads it anyway for latency statistics)
+            if since and job is not None and time.time_ns() - since > self.stall_budget_ns:
                 self._hand_over(worker, job)
 
     def _hand_over(self, stuck: Worker, job: Job) -> None:

@@ -41,8 +41,10 @@ __all__ = [
     "PayloadError",
     "check_payload",
     "decode",
+    "decode_dyknow",
     "describe_payload",
     "encode",
+    "is_dyknow",
     "payload_nbytes",
 ]
 
@@ -79,15 +81,27 @@ class Message:
     hop and frozen dataclasses cost several times more to construct.
     """
 
-    __slots__ = ("key", "nbytes", "origin_ns", "payload", "send_ns", "seq")
+    __slots__ = ("key", "nbytes", "origin_ns", "payload", "send_ns", "seq", "wire")
 
-    def __init__(self, payload: Any, seq: int, origin_ns: int, send_ns: int, key: str, nbytes: int = 0) -> None:
+    def __init__(
+        self,
+        payload: Any,
+        seq: int,
+        origin_ns: int,
+        send_ns: int,
+        key: str,
+        nbytes: int = 0,
+        wire: tuple[Any, int, bytes] | None = None,
+    ) -> None:
         self.payload = payload
         self.seq = seq
         self.origin_ns = origin_ns
         self.send_ns = send_ns
         self.key = key
         self.nbytes = nbytes  # payload size where known without encoding (for statistics)
+        # For an immutable payload received from Zenoh: (transport buffer, kind, header extra), so
+        # a unit that forwards the payload unchanged sends the same bytes without re-encoding.
+        self.wire = wire
 
     def __repr__(self) -> str:
         return (
@@ -129,8 +143,17 @@ def payload_nbytes(payload: Any) -> int:
     return 0
 
 
-def encode(msg: Message) -> tuple[bytes | bytearray, bytes, str]:
-    """Encode a message for Zenoh: ``(payload, attachment, encoding)``."""
+def encode(msg: Message) -> tuple[Any, bytes, str]:
+    """Encode a message for Zenoh: ``(payload, attachment, encoding)``.
+
+    A message that forwards a payload received from Zenoh unchanged reuses its wire form (see
+    ``Message.wire``), so relaying costs no re-encoding and no copy at any size.
+    """
+    wire = msg.wire
+    if wire is not None:
+        data, kind, extra = wire
+        header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns)
+        return data, header + extra if extra else header, ENCODINGS[kind]
     payload = msg.payload
     extra = b""
     if isinstance(payload, (bytes, bytearray)):
@@ -144,11 +167,7 @@ def encode(msg: Message) -> tuple[bytes | bytearray, bytes, str]:
         dtype = payload.dtype.str.encode()
         if payload.ndim > 255 or payload.dtype.hasobject:
             raise PayloadError(f"cannot send an array of dtype {payload.dtype} with {payload.ndim} dims")
-        extra = (
-            _ARRAY_META.pack(payload.ndim, len(dtype))
-            + dtype
-            + struct.pack(f"<{payload.ndim}Q", *payload.shape)
-        )
+        extra = _ARRAY_META.pack(payload.ndim, len(dtype)) + dtype + struct.pack(f"<{payload.ndim}Q", *payload.shape)
         data = np.ascontiguousarray(payload).tobytes()
     else:
         kind = _JSON
@@ -160,33 +179,57 @@ def encode(msg: Message) -> tuple[bytes | bytearray, bytes, str]:
     return data, header + extra, ENCODINGS[kind]
 
 
-def decode(data: bytes, attachment: bytes | None, encoding: str, key: str, arrival_ns: int, seq: int) -> Message:
+def is_dyknow(attachment: bytes | None) -> bool:
+    """Whether a Zenoh attachment is a dyknow header (the sample came from a dyknow unit)."""
+    return attachment is not None and len(attachment) >= HEADER.size and attachment[:2] == _MAGIC
+
+
+def decode(
+    data: Any,
+    attachment: bytes | None,
+    key: str,
+    *,
+    encoding: str = "",
+    arrival_ns: int = 0,
+    seq: int = 0,
+) -> Message:
     """Decode a Zenoh sample into a :class:`Message`.
 
-    Samples without a dyknow attachment come from plain Zenoh publishers: their payload is decoded
-    from the Zenoh ``encoding`` (JSON, text, else bytes) and the header is synthesised from
-    ``arrival_ns`` and the subscriber's own count ``seq``.
+    ``data`` is the payload as bytes or as the transport's own buffer (anything with
+    ``to_bytes()``). Samples without a dyknow attachment come from plain Zenoh publishers: their
+    payload is decoded from the Zenoh ``encoding`` (JSON, text, else bytes) and the header is
+    synthesised from ``arrival_ns`` and the subscriber's own count ``seq``.
     """
-    if attachment is None or len(attachment) < HEADER.size or attachment[:2] != _MAGIC:
-        return Message(_decode_foreign(data, encoding), seq, arrival_ns, arrival_ns, key, len(data))
-    magic, version, kind, mseq, origin_ns, send_ns = HEADER.unpack_from(attachment)
+    if not is_dyknow(attachment):
+        raw = data if isinstance(data, bytes) else data.to_bytes()
+        return Message(_decode_foreign(raw, encoding), seq, arrival_ns, arrival_ns, key, len(raw))
+    assert attachment is not None
+    return decode_dyknow(data, attachment, key)
+
+
+def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
+    """:func:`decode` for a sample known to carry a dyknow header (the transport checked)."""
+    raw = data if type(data) is bytes else data.to_bytes()
+    _, version, kind, mseq, origin_ns, send_ns = HEADER.unpack_from(attachment)
     if version != _VERSION:
         raise PayloadError(f"message on {key!r} has header version {version}; expected {_VERSION}")
+    extra = b""
     if kind == _BYTES:
-        payload: Any = data
+        payload: Any = raw
     elif kind == _TEXT:
-        payload = data.decode()
+        payload = raw.decode()
     elif kind == _JSON:
-        payload = json.loads(data)
+        return Message(json.loads(raw), mseq, origin_ns, send_ns, key, len(raw))  # mutable: no wire reuse
     elif kind == _ARRAY:
         ndim, dlen = _ARRAY_META.unpack_from(attachment, HEADER.size)
         pos = HEADER.size + _ARRAY_META.size
         dtype = np.dtype(attachment[pos : pos + dlen].decode())
         shape = struct.unpack_from(f"<{ndim}Q", attachment, pos + dlen)
-        payload = np.frombuffer(data, dtype=dtype).reshape(shape)
+        payload = np.frombuffer(raw, dtype=dtype).reshape(shape)  # read-only: it views immutable bytes
+        extra = attachment[HEADER.size :]
     else:
         raise PayloadError(f"message on {key!r} has unknown payload kind {kind}")
-    return Message(payload, mseq, origin_ns, send_ns, key, len(data))
+    return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra))
 
 
 def _decode_foreign(data: bytes, encoding: str) -> Any:

@@ -27,7 +27,7 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from threading import get_ident
-from time import perf_counter_ns, time_ns
+from time import time_ns
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -103,13 +103,18 @@ class InputPort:
         message through its queue and lane instead.
         """
         q = self.queue
+        job = self.job
+        # Proxy.inline_ok(), spelled out because this runs for every remote message
+        inline = job.lane.shared and job.isolation is None and job._ewma_ns < _INLINE_BUDGET_NS
+        if not q and inline and job._lock.acquire(False):
+            job.handle_now(self, msg)  # the common case: nothing queued, the unit free and fast
+            return
         if len(q) >= self.depth:
             self.counters.dropped += 1
             if not self.keep_last:
                 return
         q.append(msg)
-        job = self.job
-        if job.inline_ok() and job._lock.acquire(False):
+        if inline and job._lock.acquire(False):
             job.run_locked(_REMOTE_THREAD)
         elif not job.scheduled:
             job.scheduled = True
@@ -208,6 +213,7 @@ class Proxy:
         self._session = session
         self._bus = bus
         self._executor = executor
+        self._slow_ns = executor.slow_callback_ns
         self._on_failure = on_failure
         self._on_destroy_request = on_destroy_request
         # executor job state
@@ -236,6 +242,9 @@ class Proxy:
                 self._outputs[port.name] = OutputPort(port.name, key)
         self._input_seq = tuple(self._inputs.values())
         self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
+        # Bind the unit's publish straight to ours: one call less per message (Unit.publish
+        # documents the same behaviour).
+        unit.publish = self.publish  # type: ignore[method-assign]
         if type(unit).dedicated_thread:
             self.isolation = "the unit asks for a thread of its own (dedicated_thread = True)"
 
@@ -371,6 +380,33 @@ class Proxy:
             return  # running on another thread right now; it drains before releasing
         self.run_locked(worker)
 
+    def handle_now(self, port: InputPort, msg: Message) -> None:
+        """Hand one message to the unit on this thread; the unit's lock is held, and released here.
+
+        The short path for a message from another process when nothing is queued: no queue, no
+        lane, no thread hand-off.
+        """
+        if self.state is not UnitState.RUNNING or self._calls:
+            port.queue.append(msg)  # let the general path sort it out
+            self.run_locked(_REMOTE_THREAD)
+            return
+        now = time_ns()
+        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+        self._current = msg
+        self._current_thread = get_ident()
+        try:
+            self.unit.on_message(port.name, msg)
+        except (Exception, SystemExit) as exc:
+            self._current = None
+            self._fail(exc, f"on_message({port.name!r})")
+        finally:
+            self._current = None
+            self._current_thread = 0
+            self._lock.release()
+        self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
+        if self._destroy_requested or self._ewma_ns > self._slow_ns:
+            self._after_callbacks()
+
     def run_locked(self, worker: Worker | _Bystander) -> None:
         """``run`` once the unit's lock is held; releases it."""
         lock = self._lock
@@ -381,9 +417,10 @@ class Proxy:
                 self._drain(worker)
         finally:
             lock.release()
-        self._after_callbacks()
+        if self._destroy_requested or (self.lane.shared and self._ewma_ns > self._slow_ns):
+            self._after_callbacks()
 
-    def _drain(self, worker: Worker) -> None:
+    def _drain(self, worker: Worker | _Bystander) -> None:
         on_message = self.unit.on_message
         ports = self._input_seq
         ident = get_ident()
@@ -397,15 +434,11 @@ class Proxy:
                     continue
                 msg = q.popleft()
                 now = time_ns()
-                counters = port.counters
-                counters.messages += 1
-                counters.bytes += msg.nbytes
-                counters.record(now - msg.origin_ns, now - msg.send_ns)
+                port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
                 self._current = msg
                 self._current_thread = ident
                 worker.busy_job = self
-                t0 = perf_counter_ns()
-                worker.busy_since_ns = t0
+                worker.busy_since_ns = now
                 try:
                     on_message(port.name, msg)
                 except (Exception, SystemExit) as exc:
@@ -416,7 +449,7 @@ class Proxy:
                 worker.busy_since_ns = 0
                 self._current = None
                 self._current_thread = 0
-                self._ewma_ns += (perf_counter_ns() - t0 - self._ewma_ns) >> 3
+                self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
                 if self.state is not UnitState.RUNNING or self._destroy_requested:
                     return
                 budget -= 1
@@ -444,7 +477,7 @@ class Proxy:
         self._current = None
         self._current_thread = get_ident()
         worker.busy_job = self
-        t0 = perf_counter_ns()
+        t0 = time_ns()
         worker.busy_since_ns = t0
         try:
             fn()
@@ -453,7 +486,7 @@ class Proxy:
         finally:
             worker.busy_since_ns = 0
             self._current_thread = 0
-        self._ewma_ns += (perf_counter_ns() - t0 - self._ewma_ns) >> 3
+        self._ewma_ns += (time_ns() - t0 - self._ewma_ns) >> 3
 
     def _after_callbacks(self) -> None:
         if self._destroy_requested:
@@ -480,7 +513,7 @@ class Proxy:
 
     # ------------------------------------------------------------------ publishing
 
-    def publish(self, port: str, payload: Any, origin_ns: int | None) -> None:
+    def publish(self, port: str, payload: Any, origin_ns: int | None = None) -> None:
         """Send ``payload`` from output ``port`` to local inputs (by reference) and to Zenoh."""
         out = self._outputs.get(port)
         if out is None:
@@ -488,12 +521,15 @@ class Proxy:
         if self.state is UnitState.STOPPED or self.state is UnitState.FAILED:
             raise UnitError(f"unit {self.name!r} is {self.state.value}; it can no longer publish")
         now = time_ns()
-        if origin_ns is None:
-            current = self._current
-            if current is not None and self._current_thread == get_ident():
+        wire = None
+        current = self._current
+        if current is not None and self._current_thread == get_ident():
+            if origin_ns is None:
                 origin_ns = current.origin_ns
-            else:
-                origin_ns = now
+            if payload is current.payload:
+                wire = current.wire  # forwarding a payload received from Zenoh: reuse its encoding
+        elif origin_ns is None:
+            origin_ns = now
         kind = type(payload)
         if kind is bytes:
             nbytes = len(payload)
@@ -504,7 +540,7 @@ class Proxy:
             check_payload(payload)
             nbytes = payload_nbytes(payload)
         out.seq += 1
-        msg = Message(payload, out.seq, origin_ns, now, out.key, nbytes)
+        msg = Message(payload, out.seq, origin_ns, now, out.key, nbytes, wire)
         counters = out.counters
         counters.messages += 1
         counters.bytes += nbytes

@@ -102,6 +102,15 @@ class PortCounters:
         self._hop[i] = hop_ns
         self._n += 1
 
+    def arrived(self, nbytes: int, latency_ns: int, hop_ns: int) -> None:
+        """Count one message handed to a unit (one call on the hot path instead of three)."""
+        self.messages += 1
+        self.bytes += nbytes
+        i = self._n & _MASK
+        self._latency[i] = latency_ns
+        self._hop[i] = hop_ns
+        self._n += 1
+
     def snapshot(self, port: str, direction: str, key: str) -> PortStatistics:
         n = min(self._n, WINDOW)
         return PortStatistics(

@@ -18,7 +18,7 @@ from dyknow.message import HEADER, Message, PayloadError, check_payload, decode,
 def test_round_trip(payload: object) -> None:
     msg = Message(payload, 7, 1000, 2000, "a/b")
     data, attachment, encoding = encode(msg)
-    back = decode(bytes(data), attachment, encoding, "a/b", 3000, 1)
+    back = decode(bytes(data), attachment, "a/b")
     assert (back.payload, back.seq, back.origin_ns, back.send_ns, back.key) == (payload, 7, 1000, 2000, "a/b")
 
 
@@ -27,17 +27,17 @@ def test_arrays_keep_dtype_and_shape(dtype: str) -> None:
     array = np.arange(2 * 3 * 4).astype(dtype).reshape(2, 3, 4)
     data, attachment, encoding = encode(Message(array[:, ::2], 1, 1, 1, "k"))  # non-contiguous view
     assert encoding == "application/x-dyknow-ndarray"
-    back = decode(bytes(data), attachment, encoding, "k", 2, 1).payload
+    back = decode(bytes(data), attachment, "k").payload
     assert back.dtype == np.dtype(dtype) and back.shape == (2, 2, 4)
     np.testing.assert_array_equal(back, array[:, ::2])
 
 
 def test_plain_zenoh_samples_are_accepted() -> None:
-    msg = decode(b'{"speed": 3}', None, "application/json", "car/speed", 555, 9)
-    assert (msg.payload, msg.seq, msg.origin_ns, msg.send_ns) == ({"speed": 3}, 9, 555, 555)
-    assert decode(b"hello", None, "text/plain", "k", 1, 1).payload == "hello"
-    assert decode(b"\xff\xfe", None, "text/plain", "k", 1, 1).payload == b"\xff\xfe"
-    assert decode(b"\x01\x02", b"not ours", "zenoh/bytes", "k", 1, 1).payload == b"\x01\x02"
+    msg = decode(b'{"speed": 3}', None, "car/speed", encoding="application/json", arrival_ns=555, seq=9)
+    assert (msg.payload, msg.seq, msg.origin_ns, msg.send_ns, msg.wire) == ({"speed": 3}, 9, 555, 555, None)
+    assert decode(b"hello", None, "k", encoding="text/plain").payload == "hello"
+    assert decode(b"\xff\xfe", None, "k", encoding="text/plain").payload == b"\xff\xfe"
+    assert decode(b"\x01\x02", b"not ours", "k", encoding="zenoh/bytes").payload == b"\x01\x02"
 
 
 def test_header_layout_is_documented_size() -> None:
@@ -56,5 +56,30 @@ def test_bad_payloads_are_refused_clearly() -> None:
     _, attachment, _ = encode(Message(b"x", 1, 1, 1, "k"))
     bad_version = attachment[:2] + bytes([99]) + attachment[3:]
     with pytest.raises(PayloadError, match="header version 99"):
-        decode(b"x", bad_version, "", "k", 1, 1)
+        decode(b"x", bad_version, "k")
     assert json.loads(encode(Message({"a": 1}, 1, 1, 1, "k"))[0]) == {"a": 1}
+
+
+class Buffer:
+    """Stands in for the transport's own buffer type (anything with to_bytes())."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+def test_forwarded_payloads_reuse_their_wire_form() -> None:
+    array = np.arange(12, dtype=np.float32).reshape(3, 4)
+    data, attachment, _ = encode(Message(array, 1, 10, 20, "k"))
+    buffer = Buffer(bytes(data))
+    received = decode(buffer, attachment, "k")
+    assert not received.payload.flags.writeable
+    forwarded = Message(received.payload, 5, received.origin_ns, 30, "k2", wire=received.wire)
+    data2, attachment2, encoding2 = encode(forwarded)
+    assert data2 is buffer  # the same transport buffer goes out again: no copy, no re-encoding
+    again = decode(bytes(data2.to_bytes()), attachment2, "k2")
+    assert (again.seq, again.origin_ns, again.send_ns) == (5, 10, 30)
+    np.testing.assert_array_equal(again.payload, array)
+    assert decode(Buffer(b'{"a": 1}'), encode(Message({"a": 1}, 1, 1, 1, "k"))[1], "k").wire is None  # JSON is mutable
