@@ -79,7 +79,16 @@ class Mode:
 # ---------------------------------------------------------------------------- python-call
 
 
-def run_python_call(hops: int, mode: Mode) -> list[int]:
+@dataclass(frozen=True, slots=True)
+class Run:
+    """What one run measured: last-hop latencies (warm-up dropped) and CPU seconds per message
+    (process CPU time of every process involved, divided by the messages sent)."""
+
+    latencies: list[int]
+    cpu_s_per_message: float
+
+
+def run_python_call(hops: int, mode: Mode) -> Run:
     latencies: list[int] = []
 
     def make(next_fn: Callable[[bytes, int], None] | None) -> Callable[[bytes, int], None]:
@@ -101,12 +110,13 @@ def run_python_call(hops: int, mode: Mode) -> list[int]:
         chain = make(chain)
     period = 1.0 / mode.rate_hz if mode.rate_hz else 0.0
     next_at = time.perf_counter()
+    cpu0 = time.process_time()
     for _ in range(mode.total):
         if period:
             next_at += period
             _sleep_until(next_at)
         chain(PAYLOAD, time.time_ns())
-    return latencies[mode.warmup :]
+    return Run(latencies[mode.warmup :], (time.process_time() - cpu0) / mode.total)
 
 
 def _sleep_until(deadline: float) -> None:
@@ -125,7 +135,7 @@ def _zenoh_config(listen: list[str] | None = None, connect: list[str] | None = N
     return make_config(listen=listen or [], connect=connect or [])
 
 
-def run_zenoh_session(hops: int, mode: Mode) -> list[int]:
+def run_zenoh_session(hops: int, mode: Mode) -> Run:
     import zenoh
 
     latencies: list[int] = []
@@ -158,6 +168,7 @@ def run_zenoh_session(hops: int, mode: Mode) -> list[int]:
         def publish() -> None:
             first.put(PAYLOAD, attachment=time.time_ns().to_bytes(8, "little"))
 
+        cpu0 = time.process_time()
         if mode.rate_hz:
             period = 1.0 / mode.rate_hz
             next_at = time.perf_counter()
@@ -169,7 +180,8 @@ def run_zenoh_session(hops: int, mode: Mode) -> list[int]:
             publish()
         if not done.wait(60 + mode.total * 0.05):
             raise RuntimeError(f"zenoh-session chain of {hops}: {len(latencies)} of {mode.total} messages arrived")
-    return latencies[mode.warmup :]
+        cpu = time.process_time() - cpu0
+    return Run(latencies[mode.warmup :], cpu / mode.total)
 
 
 # ---------------------------------------------------------------------------- dyknow units
@@ -201,6 +213,8 @@ class BenchSource(Unit):
             if not self.started:  # the whole chain is up: start measuring
                 self.started = True
                 self.prober.cancel()
+                if self.params["up_file"]:
+                    Path(str(self.params["up_file"])).touch()
                 if self.rate > 0:
                     self.timer = self.create_timer(1.0 / self.rate, self.tick)
                 else:
@@ -232,9 +246,9 @@ class BenchSink(Unit):
             self.publish("ack", b"")
 
 
-def bench_specs(messages: int, rate_hz: float) -> list[TransformationSpec]:
+def bench_specs(messages: int, rate_hz: float, up_file: str = "") -> list[TransformationSpec]:
     module = __name__ if __name__ != "__main__" else "__main__"
-    params = (Param("messages", "int", messages), Param("rate_hz", "float", float(rate_hz)))
+    params = (Param("messages", "int", messages), Param("rate_hz", "float", float(rate_hz)), Param("up_file", "string", up_file))
     return [
         TransformationSpec(
             label="bench-source",
@@ -252,18 +266,20 @@ def bench_specs(messages: int, rate_hz: float) -> list[TransformationSpec]:
     ]
 
 
-def run_dyknow_inproc(hops: int, mode: Mode) -> list[int]:
+def run_dyknow_inproc(hops: int, mode: Mode) -> Run:
     rate = mode.rate_hz or 0.0
     with Manager("bench", specs=bench_specs(mode.total, rate), listen=[], serve=False) as manager:
         manager.spawn("bench-sink", "sink", bindings={"in": f"bench/h{hops - 1}", "ack": "bench/ack"})
         for i in range(hops - 1, 0, -1):
             manager.spawn("bench-relay", f"r{i}", bindings={"in": f"bench/h{i - 1}", "out": f"bench/h{i}"})
+        cpu0 = time.process_time()
         manager.spawn("bench-source", "source", bindings={"ack": "bench/ack", "out": "bench/h0"})
         sink = manager.unit("sink")
         assert isinstance(sink, BenchSink)
         if not sink.done.wait(60 + mode.total * 0.05):
             raise RuntimeError(f"dyknow-inproc chain of {hops}: {len(sink.latencies)} of {mode.total} messages arrived")
-        return sink.latencies[mode.warmup :]
+        cpu = time.process_time() - cpu0
+        return Run(sink.latencies[mode.warmup :], cpu / mode.total)
 
 
 # ---------------------------------------------------------------------------- process variants
@@ -281,12 +297,25 @@ def _free_ports(n: int) -> list[int]:
     return ports
 
 
-def run_processes(variant: str, hops: int, mode: Mode) -> list[int]:
+def _cpu_seconds(pids: list[int]) -> float:
+    """User plus system CPU time of the given processes so far (Linux /proc)."""
+    total = 0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])  # utime, stime
+        except (OSError, IndexError, ValueError):
+            pass
+    return total / os.sysconf("SC_CLK_TCK")
+
+
+def run_processes(variant: str, hops: int, mode: Mode) -> Run:
     """One process per hop plus the source, linked in a line over loopback TCP."""
     ports = _free_ports(hops + 1)
     endpoints = [f"tcp/127.0.0.1:{p}" for p in ports]
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "latencies.json"
+        up = Path(tmp) / "up"
         procs = []
         try:
             for i in range(hops, -1, -1):  # receivers first, the source last
@@ -297,19 +326,24 @@ def run_processes(variant: str, hops: int, mode: Mode) -> list[int]:
                 args = [
                     sys.executable, __file__, "--worker", variant, "--role", role, "--index", str(i), "--hops", str(hops),
                     "--messages", str(mode.total), "--rate", str(mode.rate_hz or 0), "--listen", endpoints[i],
-                    "--result", str(result),
+                    "--result", str(result), "--up-file", str(up),
                 ]  # fmt: skip
                 for c in connect:
                     args += ["--connect", c]
                 procs.append(subprocess.Popen(args, stdin=subprocess.DEVNULL))
             deadline = time.monotonic() + 120 + mode.total * (1.0 / mode.rate_hz if mode.rate_hz else 0.05)
+            pids = [p.pid for p in procs]
+            cpu0 = None
             while not result.exists():
+                if cpu0 is None and up.exists():
+                    cpu0 = _cpu_seconds(pids)
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"{variant} chain of {hops} did not finish")
                 if any(p.poll() not in (None, 0) for p in procs):
                     raise RuntimeError(f"{variant} chain of {hops}: a worker process failed")
                 time.sleep(0.05)
-            time.sleep(0.05)
+            # the run may end before we saw it start (a very short smoke run): no CPU figure then
+            cpu = _cpu_seconds(pids) - cpu0 if cpu0 is not None else float("nan")
             data = json.loads(result.read_text())
         finally:
             for p in procs:
@@ -320,7 +354,7 @@ def run_processes(variant: str, hops: int, mode: Mode) -> list[int]:
                     p.wait(10)
                 except subprocess.TimeoutExpired:
                     p.kill()
-    return list(data)[mode.warmup :]
+    return Run(list(data)[mode.warmup :], cpu / mode.total)
 
 
 def worker(args: argparse.Namespace) -> int:
@@ -339,7 +373,8 @@ def _write_result(path: str, latencies: list[int]) -> None:
 def _dyknow_worker(args: argparse.Namespace) -> int:
     i, hops = args.index, args.hops
     rate = args.rate
-    with Manager(f"w{i}", specs=bench_specs(args.messages, rate), listen=[args.listen], connect=args.connect, serve=False) as manager:
+    specs = bench_specs(args.messages, rate, args.up_file if args.role == "source" else "")
+    with Manager(f"w{i}", specs=specs, listen=[args.listen], connect=args.connect, serve=False) as manager:
         if args.role == "sink":
             manager.spawn("bench-sink", "sink", bindings={"in": f"bench/h{hops - 1}", "ack": "bench/ack"})
             sink = manager.unit("sink")
@@ -402,6 +437,7 @@ def _zenoh_worker(args: argparse.Namespace) -> int:
                 if sample.payload.to_bytes() == PROBE:
                     if not chain_up.is_set():
                         chain_up.set()
+                        Path(args.up_file).touch()
                         if not args.rate:
                             publish()
                 elif not args.rate:
@@ -476,7 +512,7 @@ def _installed(name: str) -> bool:
         return False
 
 
-RUNNERS: dict[str, Callable[[int, Mode], list[int]]] = {
+RUNNERS: dict[str, Callable[[int, Mode], Run]] = {
     "python-call": run_python_call,
     "zenoh-session": run_zenoh_session,
     "dyknow-inproc": run_dyknow_inproc,
@@ -537,6 +573,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--listen", help=argparse.SUPPRESS)
     parser.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     parser.add_argument("--result", help=argparse.SUPPRESS)
+    parser.add_argument("--up-file", default="", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         args.hops = int(args.hops)
@@ -564,19 +601,23 @@ def main(argv: list[str] | None = None) -> int:
     for mode in modes:
         rate = f"{mode.rate_hz:g} Hz" if mode.rate_hz else "one in flight"
         print(f"\n== {mode.name} ({rate}), {mode.messages} messages after {mode.warmup} warm-up")
-        print(f"{'variant':<15} {'hops':>4} {'per-hop p50':>12} {'per-hop p99':>12} {'last p50':>10} {'last p99':>10}  target")
+        print(f"{'variant':<15} {'hops':>4} {'per-hop p50':>12} {'per-hop p99':>12} {'last p50':>10} {'last p99':>10} {'CPU/msg':>10}  target")
         for hops in hops_list:
             pooled: dict[str, list[int]] = {v: [] for v in variants}
+            cpu: dict[str, list[float]] = {v: [] for v in variants}
             for _ in range(args.repeat):  # interleaved, so slow drifts of the machine hit every variant alike
                 for variant in variants:
-                    latencies = RUNNERS[variant](hops, mode)
-                    if len(latencies) < mode.messages:
-                        raise RuntimeError(f"{variant} {hops} hops: got {len(latencies)} of {mode.messages} measurements")
-                    pooled[variant] += latencies
+                    run = RUNNERS[variant](hops, mode)
+                    if len(run.latencies) < mode.messages:
+                        raise RuntimeError(f"{variant} {hops} hops: got {len(run.latencies)} of {mode.messages} measurements")
+                    pooled[variant] += run.latencies
+                    cpu[variant].append(run.cpu_s_per_message)
             for variant in variants:
                 latencies = pooled[variant]
                 row = {"variant": variant, "hops": hops, "messages": len(latencies), "mode": mode.name, "rate_hz": mode.rate_hz or 0}
                 row.update(summarize(latencies, hops))
+                measured = [c for c in cpu[variant] if c == c]  # NaN: not measured
+                row["cpu_us_per_message"] = round(statistics.median(measured) * 1e6, 1) if measured else None
                 results.append(row)
                 target = TARGETS.get((variant, mode.name))
                 note = ""
@@ -585,7 +626,8 @@ def main(argv: list[str] | None = None) -> int:
                     note = f"<= {target:g} us per hop: {'met' if ok else 'MISSED'}"
                 print(
                     f"{variant:<15} {hops:>4} {row['per_hop_median_us']:>9.2f} us {row['per_hop_p99_us']:>9.2f} us "
-                    f"{row['last_hop_median_us']:>7.1f} us {row['last_hop_p99_us']:>7.1f} us  {note}",
+                    f"{row['last_hop_median_us']:>7.1f} us {row['last_hop_p99_us']:>7.1f} us "
+                    f"{_fmt(row['cpu_us_per_message']):>7} us  {note}",
                     flush=True,
                 )
     _compare(results)
@@ -598,6 +640,10 @@ def main(argv: list[str] | None = None) -> int:
         plot(results, info, args.plot)
         print(f"wrote {args.plot}")
     return 0
+
+
+def _fmt(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.0f}"
 
 
 def _compare(results: list[dict[str, Any]]) -> None:

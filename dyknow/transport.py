@@ -50,6 +50,46 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 _WILD = re.compile(r"\*|\$\*")
 _ENCODINGS = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
 
+# Payloads at least this large go out through Zenoh shared memory: on this machine a 6 MiB frame
+# crosses processes about 4x faster than through a plain put. Each session reserves a pool lazily.
+SHM_THRESHOLD = 64 * 1024
+SHM_POOL_BYTES = 96 * 1024 * 1024
+
+
+class _SharedMemory:
+    """A session's shared-memory pool for large payloads, created on first use.
+
+    Allocation never blocks: when the pool is full (receivers still hold buffers) the payload
+    goes out the ordinary way. Where Zenoh has no shared memory, it is never used.
+    """
+
+    def __init__(self) -> None:
+        self._provider: Any = None
+        self._lock = threading.Lock()
+        self._broken = False
+
+    def wrap(self, data: bytes) -> Any:
+        """``data`` copied into a shared-memory buffer, or ``data`` itself when that is not possible."""
+        provider = self._provider
+        if provider is None:
+            if self._broken:
+                return data
+            with self._lock:
+                if self._provider is None and not self._broken:
+                    try:
+                        self._provider = zenoh.shm.ShmProvider.default_backend(SHM_POOL_BYTES)
+                    except (zenoh.ZError, AttributeError) as exc:
+                        self._broken = True
+                        log.info("no Zenoh shared memory here (%s); large payloads are copied", _clean(exc))
+                        return data
+                provider = self._provider
+        try:
+            buffer = provider.alloc(len(data), zenoh.shm.GarbageCollect())
+        except zenoh.ZError:
+            return data  # pool full right now
+        buffer[:] = data
+        return buffer
+
 
 def _clean(exc: BaseException) -> str:
     """Zenoh's message without the Rust source locations it appends."""
@@ -165,7 +205,14 @@ class Publisher(_Entity):
     ``matched`` tells whether any remote subscriber matches; callers skip encoding when not.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, on_matching: Callable[[bool], None] | None) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        on_matching: Callable[[bool], None] | None,
+        shm: _SharedMemory | None = None,
+    ) -> None:
+        self._shm = shm
         try:
             pub = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
         except zenoh.ZError as exc:
@@ -189,11 +236,14 @@ class Publisher(_Entity):
         if handle is None:
             return 0
         data, attachment, encoding = encode(msg)
+        size = len(data)
+        if size >= SHM_THRESHOLD and self._shm is not None and type(data) is bytes:
+            data = self._shm.wrap(data)
         try:
             handle.put(data, attachment=attachment, encoding=_ENCODINGS[encoding])
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {self.key!r}: {_clean(exc)}") from exc
-        return len(data)
+        return size
 
     def undeclare(self) -> None:
         listener, self._listener = getattr(self, "_listener", None), None
@@ -316,6 +366,7 @@ class Session:
             raise TransportError(f"cannot open a Zenoh session: {text}{hint}") from exc
         self._lock = threading.Lock()
         self._queriers: dict[str, tuple[Any, threading.Event]] = {}
+        self._shm = _SharedMemory()
 
     # -- lifecycle
 
@@ -370,7 +421,7 @@ class Session:
     # -- declarations
 
     def declare_publisher(self, key: str, on_matching: Callable[[bool], None] | None = None) -> Publisher:
-        return Publisher(self._z(), key, on_matching)
+        return Publisher(self._z(), key, on_matching, self._shm)
 
     def declare_subscriber(
         self,

@@ -29,3 +29,34 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
         assert 0 < row["per_hop_median_us"] <= row["last_hop_median_us"] <= row["last_hop_p99_us"]
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
     assert "per-hop p50" in result.stdout
+
+
+def _run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / script), *args],
+        capture_output=True, text=True, timeout=600, env=subprocess_env(), cwd=REPO,
+    )  # fmt: skip
+
+
+def test_payload_benchmark_smoke(tmp_path: Path) -> None:
+    out, png = tmp_path / "payload.json", tmp_path / "payload.png"
+    result = _run("payload.py", "--smoke", "--json", str(out), "--plot", str(png))
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = json.loads(out.read_text())["results"]
+    assert {r["size"] for r in rows} == {"64 B", "64 KiB", "1 MiB", "6 MiB"}
+    assert {(r["variant"], r["hops"]) for r in rows} == {
+        ("dyknow-inproc", 1), ("dyknow-inproc", 5), ("dyknow-process", 1), ("zenoh-process", 1)
+    }
+    assert all(r["messages_per_s"] > 0 and r["latency_median_us"] > 0 for r in rows)
+    assert "6 MiB through 5 in-process hops" in result.stdout and "6 MiB across processes" in result.stdout
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_runtime_ops_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "ops.json"
+    result = _run("runtime_ops.py", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())["results"]
+    assert {"rebind_inproc", "rebind_service", "spawn", "destroy", "witness"} <= set(data)
+    assert data["rebind_inproc"]["count"] == 10 and data["reconfigurations"] == 20
+    assert data["witness"]["received"] > 0
