@@ -552,6 +552,25 @@ class Proxy:
             if not nbytes:
                 counters.bytes += sent
 
+    def has_subscribers(self, port: str) -> bool:
+        """Whether a local input or a remote subscriber receives output ``port`` now."""
+        out = self._outputs.get(port)
+        if out is None:
+            raise BindingError(self._no_port(port, "output", self._outputs))
+        return bool(out.targets) or (out.publisher is not None and out.publisher.matched)
+
+    def reject(self, port: str, reason: str) -> None:
+        """Count and log an unusable input message; the unit carries on."""
+        inp = self._inputs.get(port)
+        if inp is None:
+            raise BindingError(self._no_port(port, "input", self._inputs))
+        counters = inp.counters
+        counters.rejected += 1
+        counters.last_rejection = reason
+        # log the first few, then every 100th, so a stream of bad frames does not flood the log
+        if counters.rejected <= 3 or counters.rejected % 100 == 0:
+            log.warning("unit %r rejected a message on %r (%d so far): %s", self.name, port, counters.rejected, reason)
+
     # ------------------------------------------------------------------ proxy services
 
     def get_config(self) -> dict[str, str]:

@@ -68,6 +68,8 @@ class PortStatistics:
     dropped: int
     latency: LatencySummary
     hop: LatencySummary
+    rejected: int = 0
+    last_rejection: str | None = None
 
     def to_dict(self) -> dict[str, object]:
         out: dict[str, object] = {
@@ -78,6 +80,8 @@ class PortStatistics:
             "dropped": self.dropped,
         }
         if self.direction == "in":
+            out["rejected"] = self.rejected
+            out["last_rejection"] = self.last_rejection
             out["latency"] = self.latency.to_dict()
             out["hop"] = self.hop.to_dict()
         return out
@@ -86,12 +90,14 @@ class PortStatistics:
 class PortCounters:
     """Mutable counters of one port, updated on the hot path."""
 
-    __slots__ = ("_hop", "_latency", "_n", "bytes", "dropped", "messages")
+    __slots__ = ("_hop", "_latency", "_n", "bytes", "dropped", "last_rejection", "messages", "rejected")
 
     def __init__(self) -> None:
         self.messages = 0
         self.bytes = 0
         self.dropped = 0
+        self.rejected = 0
+        self.last_rejection: str | None = None
         self._latency = [0] * WINDOW
         self._hop = [0] * WINDOW
         self._n = 0
@@ -122,4 +128,6 @@ class PortCounters:
             self.dropped,
             summarize(self._latency[:n]),
             summarize(self._hop[:n]),
+            self.rejected,
+            self.last_rejection,
         )

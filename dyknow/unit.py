@@ -97,6 +97,22 @@ class Unit:
         """
         self._proxy.request_destroy()
 
+    def has_subscribers(self, port: str) -> bool:
+        """Whether anyone (a local unit or another process) receives output ``port`` now.
+
+        Lets a unit skip producing an output nobody consumes (a colour conversion, say).
+        """
+        return self._proxy.has_subscribers(port)
+
+    def reject(self, port: str, reason: str) -> None:
+        """Report that the message just received on ``port`` was unusable, and carry on.
+
+        For bad input that is not the unit's fault (an image of the wrong shape, say): it is
+        counted per port in the statistics (``rejected``, ``last_rejection``) and logged, and the
+        unit keeps running. Raising instead would mark the unit failed.
+        """
+        self._proxy.reject(port, reason)
+
     @property
     def config(self) -> dict[str, str]:
         """The current port -> key expression bindings."""

@@ -243,3 +243,25 @@ def test_queue_size_and_policy_from_the_spec(manager: Manager, label: str, expec
     assert done.wait(5)
     assert seen == expected
     assert manager.get_statistics("slow").ports[0].dropped == 7
+
+
+def test_reject_counts_bad_input_and_keeps_running(manager: Manager) -> None:
+    manager.spawn("publisher", "src")
+    manager.spawn("picky", "p", bindings={"in": default_key(manager.name, "src", "out")})
+    src = manager.unit("src")
+    assert isinstance(src, Publisher)
+    picky = manager.unit("p")
+    assert not picky.has_subscribers("out")  # nobody listens yet
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "p", "out")})
+    assert picky.has_subscribers("out")
+    src.emit({"not": "an image"})
+    src.emit(np.zeros((2, 2)))
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    sink.wait_for(1)
+    stats = manager.get_statistics("p")
+    assert stats.state == "running"
+    port = stats.to_dict()["ports"]["in"]
+    assert port["rejected"] == 1 and port["last_rejection"] == "expected a 2-D array; got dict"
+    with pytest.raises(BindingError, match="no output port 'outt'"):
+        picky.has_subscribers("outt")

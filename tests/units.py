@@ -134,3 +134,19 @@ NOT_A_UNIT = 42
 
 class NotAUnit:
     """A class that is not a Unit."""
+
+
+class Picky(Unit):
+    """Accepts only 2-D arrays; rejects anything else and keeps running."""
+
+    def setup(self) -> None:
+        self.accepted = 0
+
+    def on_message(self, port: str, msg: Message) -> None:
+        payload = msg.payload
+        if not hasattr(payload, "ndim") or payload.ndim != 2:
+            self.reject(port, f"expected a 2-D array; got {type(payload).__name__}")
+            return
+        self.accepted += 1
+        if self.has_subscribers("out"):
+            self.publish("out", payload)
