@@ -13,15 +13,19 @@ See the README for the concepts: transformation specs, the manager, units and th
 
 from __future__ import annotations
 
+from dyknow.adaptation import AdaptationEvent, RequestInfo
 from dyknow.client import Client
 from dyknow.errors import (
     BindingError,
     ClosedError,
     DyKnowError,
     LibraryError,
+    OntologyError,
+    PlanningError,
     ServiceError,
     SpecError,
     SpecIssue,
+    TagError,
     TransportError,
     UnitError,
 )
@@ -29,6 +33,8 @@ from dyknow.executor import Timer
 from dyknow.library import Library
 from dyknow.manager import Manager, Model, UnitEvent, UnitInfo, default_key
 from dyknow.message import Message, PayloadError
+from dyknow.ontology import Ontology
+from dyknow.planner import Plan, Planner, RunningUnit, plan
 from dyknow.proxy import UnitState, UnitStatistics
 from dyknow.spec import (
     Constraint,
@@ -41,6 +47,7 @@ from dyknow.spec import (
     parse_specs,
 )
 from dyknow.stats import LatencySummary, PortStatistics
+from dyknow.tags import Term, parse_term
 from dyknow.transport import DEFAULT_ENDPOINT
 from dyknow.unit import Unit
 
@@ -48,6 +55,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "DEFAULT_ENDPOINT",
+    "AdaptationEvent",
     "BindingError",
     "Client",
     "ClosedError",
@@ -59,15 +67,24 @@ __all__ = [
     "Manager",
     "Message",
     "Model",
+    "Ontology",
+    "OntologyError",
     "Param",
     "PayloadError",
+    "Plan",
+    "Planner",
+    "PlanningError",
     "Port",
     "PortStatistics",
+    "RequestInfo",
+    "RunningUnit",
     "ServiceError",
     "SpecError",
     "SpecIssue",
     "Tag",
+    "TagError",
     "Template",
+    "Term",
     "Timer",
     "TransformationSpec",
     "TransportError",
@@ -81,4 +98,6 @@ __all__ = [
     "default_key",
     "load_specs",
     "parse_specs",
+    "parse_term",
+    "plan",
 ]

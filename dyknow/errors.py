@@ -9,7 +9,10 @@ Every error dyknow raises on purpose derives from :class:`DyKnowError`, with one
     ├── BindingError       a port binding (port -> key expression) is invalid
     ├── TransportError     Zenoh failed (session, endpoint, publish); wraps the Zenoh error
     ├── ServiceError       a remote service call failed (no manager, timeout, refused request)
-    └── ClosedError        an object was used after close()
+    ├── ClosedError        an object was used after close()
+    ├── OntologyError      an ontology cannot be loaded, or a class name is unknown or ambiguous
+    ├── TagError           a tag is not a well-formed term such as ``BallPosition(field)``
+    └── PlanningError      no configuration provides a requested tag (with the explanation)
 
 Messages say what came in, what was expected, and what to do about it.
 """
@@ -19,15 +22,19 @@ from __future__ import annotations
 import difflib
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 __all__ = [
     "BindingError",
     "ClosedError",
     "DyKnowError",
     "LibraryError",
+    "OntologyError",
+    "PlanningError",
     "ServiceError",
     "SpecError",
     "SpecIssue",
+    "TagError",
     "TransportError",
     "UnitError",
     "did_you_mean",
@@ -108,3 +115,30 @@ def did_you_mean(name: str, candidates: Iterable[str]) -> str:
     if not close:
         return ""
     return " (did you mean " + " or ".join(repr(c) for c in close) + "?)"
+
+
+class OntologyError(DyKnowError):
+    """An ontology cannot be loaded (missing file or import, syntax error), or a class name is
+    unknown or ambiguous."""
+
+
+class TagError(DyKnowError):
+    """A tag is not a well-formed term: ``Functor`` or ``Functor(arg, ...)``."""
+
+
+class PlanningError(DyKnowError):
+    """No configuration provides the requested tag.
+
+    ``rejection`` (a :class:`dyknow.planner.Rejection`, or None when the request itself is bad)
+    names the unmet tag and, for each alternative tried, why it was rejected.
+    """
+
+    def __init__(self, request: str, rejection: Any = None, message: str | None = None) -> None:
+        self.request = request
+        self.rejection = rejection
+        if message is None:
+            message = f"cannot plan {request}:\n" + "\n".join(rejection.lines(1)) if rejection is not None else f"cannot plan {request}"
+        super().__init__(message)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"request": self.request, "message": str(self), "rejection": self.rejection.to_dict() if self.rejection is not None else None}

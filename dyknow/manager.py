@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import json
 import logging
 import os
 import re
@@ -33,10 +34,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dyknow import service
+from dyknow.adaptation import DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, RequestInfo
 from dyknow.bus import LocalBus
 from dyknow.errors import BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
 from dyknow.library import Library
+from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
 from dyknow.transport import Queryable, Session, check_key_expr, make_config
@@ -102,11 +105,12 @@ class UnitInfo:
 
 @dataclass(frozen=True, slots=True)
 class Model:
-    """The manager's model: the running units and the stored specs."""
+    """The manager's model: the running units, the stored specs, the active requests."""
 
     manager: str
     units: tuple[UnitInfo, ...]
     specs: tuple[TransformationSpec, ...] = field(default=())
+    requests: tuple[RequestInfo, ...] = field(default=())
 
     def unit(self, name: str) -> UnitInfo:
         for info in self.units:
@@ -119,6 +123,7 @@ class Model:
             "manager": self.manager,
             "units": [u.to_dict() for u in self.units],
             "specs": [s.to_dict() for s in self.specs],
+            "requests": [r.to_dict() for r in self.requests],
         }
 
 
@@ -140,16 +145,24 @@ class Manager:
         connect: Sequence[str] = (),
         zenoh_config: str | os.PathLike[str] | None = None,
         serve: bool = True,
+        ontology: Ontology | Iterable[str | os.PathLike[str]] | None = None,
         queue_depth: int = DEFAULT_QUEUE_DEPTH,
         stall_budget_s: float = 0.02,
         slow_callback_s: float = 0.002,
+        dwell_s: float = DEFAULT_DWELL_S,
     ) -> None:
         self.name = _check_name(name, "manager name")
+        if ontology is None or isinstance(ontology, Ontology):
+            self.ontology: Ontology | None = ontology
+        else:
+            paths_ = list(ontology)
+            self.ontology = Ontology.load(paths_) if paths_ else None  # bad ontologies fail first
         self.library = Library()
         spec_objs = [s for s in specs if isinstance(s, TransformationSpec)]
         paths = [s for s in specs if not isinstance(s, TransformationSpec)]
         if paths:
-            self.library.add(load_specs(paths))  # bad specs fail before anything starts
+            # bad specs fail before anything starts
+            self.library.add(load_specs(paths, individuals=self._individuals if self.ontology is not None else None))
         self.library.add(spec_objs)
         self._queue_depth = queue_depth
         self._lock = threading.RLock()
@@ -160,6 +173,15 @@ class Manager:
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._services: Queryable | None = None
+        self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
+        self.on_unit_event(self._adaptation.unit_event)
+        self._measurement_subs = []
+        try:
+            for pattern in ("dyknow/measurements/*", f"dyknow/{self.name}/measurements/*"):
+                self._measurement_subs.append(self._session.subscribe_raw(pattern, self._measurement_sample))
+        except DyKnowError:
+            self.close()
+            raise
         if serve:
             try:
                 self._services = self._session.declare_queryable(
@@ -187,8 +209,11 @@ class Manager:
             self._closed = True
             if self._services is not None:
                 self._services.undeclare()
+            for sub in self._measurement_subs:
+                sub.undeclare()
             proxies = list(self._units.values())
             self._units.clear()
+        self._adaptation.close(timeout / 2)
         per_unit = min(0.5, timeout / max(1, len(proxies)))
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
@@ -222,22 +247,28 @@ class Manager:
         spec file. An existing label is replaced.
         """
         self._check_open()
+        individuals = self._individuals if self.ontology is not None else None
         if isinstance(spec, TransformationSpec):
             specs = [spec]
         elif isinstance(spec, Template):
-            specs = spec.expand()
+            specs = spec.expand(individuals)
         elif isinstance(spec, os.PathLike) or (isinstance(spec, str) and not spec.lstrip().startswith("<")):
-            specs = load_specs([spec])
+            specs = load_specs([spec], individuals=individuals)
         elif isinstance(spec, str):
-            specs = parse_specs(spec, path or "<add_transformation>")
+            specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals)
         else:
             raise LibraryError(f"add_transformation: got {type(spec).__name__}; expected a spec, a template, XML text or a path")
-        return self.library.add(specs)
+        labels = self.library.add(specs)
+        self._adaptation.library_changed()
+        return labels
 
     def remove_transformation(self, label: str) -> bool:
         """Forget the spec with ``label``; returns whether there was one. Running units stay."""
         self._check_open()
-        return self.library.remove(label)
+        removed = self.library.remove(label)
+        if removed:
+            self._adaptation.library_changed()
+        return removed
 
     # ------------------------------------------------------------------ units
 
@@ -269,34 +300,38 @@ class Manager:
             spec = self.library.get(label)
             values = _param_values(spec, params or {})
             ports = _bindings(spec, self.name, name, bindings or {})
-            cls = _import_unit(spec)
-            try:
-                unit = cls()
-            except Exception as exc:
-                raise UnitError(f"cannot create unit {name!r}: {spec.source}() raised {type(exc).__name__}: {exc}") from exc
-            unit.name = name
-            unit.label = spec.label
-            unit.params = values
-            unit.log = logging.getLogger(f"dyknow.unit.{name}")
-            proxy = Proxy(
-                name=name,
-                spec=spec,
-                unit=unit,
-                bindings=ports,
-                session=self._session,
-                bus=self._bus,
-                executor=self._executor,
-                protected=protected,
-                queue_depth=self._queue_depth,
-                on_failure=self._unit_failed,
-                on_destroy_request=self._destroy_requested,
-            )
-            unit._proxy = proxy
-            self._units[name] = proxy
-            proxy.start()
-            if proxy.state is not UnitState.FAILED:
-                self._emit("spawned", proxy)
-            return self._info(proxy)
+            return self._start(spec, name, protected=protected, values=values, ports=ports)
+
+    def _start(self, spec: TransformationSpec, name: str, *, protected: bool, values: dict[str, Any], ports: dict[str, str]) -> UnitInfo:
+        """Import, create and start a unit (the manager lock is held)."""
+        cls = _import_unit(spec)
+        try:
+            unit = cls()
+        except Exception as exc:
+            raise UnitError(f"cannot create unit {name!r}: {spec.source}() raised {type(exc).__name__}: {exc}") from exc
+        unit.name = name
+        unit.label = spec.label
+        unit.params = values
+        unit.log = logging.getLogger(f"dyknow.unit.{name}")
+        proxy = Proxy(
+            name=name,
+            spec=spec,
+            unit=unit,
+            bindings=ports,
+            session=self._session,
+            bus=self._bus,
+            executor=self._executor,
+            protected=protected,
+            queue_depth=self._queue_depth,
+            on_failure=self._unit_failed,
+            on_destroy_request=self._destroy_requested,
+        )
+        unit._proxy = proxy
+        self._units[name] = proxy
+        proxy.start()
+        if proxy.state is not UnitState.FAILED:
+            self._emit("spawned", proxy)
+        return self._info(proxy)
 
     def destroy(self, name: str) -> None:
         """Stop unit ``name`` and remove it from the model. Refused for protected units."""
@@ -351,13 +386,99 @@ class Manager:
             raise UnitError(f"no unit named {name!r} on manager {self.name!r}; running units: {listing}{did_you_mean(name, known)}")
         return proxy
 
+    def _individuals(self, class_ref: str) -> list[str]:
+        if self.ontology is None:
+            raise LibraryError(f"template arg class {class_ref!r} needs an ontology; pass ontology=[...] (--ontology FILE)")
+        return self.ontology.individuals(class_ref)
+
+    def _spawn_spec(self, spec: TransformationSpec, name: str, *, bindings: Mapping[str, str]) -> UnitInfo:
+        """Spawn a unit from a spec that is not in the library (the request anchors)."""
+        with self._lock:
+            self._check_open()
+            if name in self._units:
+                raise UnitError(f"a unit named {name!r} already exists")
+            return self._start(spec, name, protected=False, values=spec.param_values(), ports=_bindings(spec, self.name, name, bindings))
+
+    def _proxies(self) -> list[Proxy]:
+        with self._lock:
+            return list(self._units.values())
+
+    def _has(self, name: str) -> bool:
+        return name in self._units
+
+    def _deadline_ports(self) -> list[tuple[str, str, str, int, int, int]]:
+        """``(unit, label, port, deadline_ns, messages so far, started_ns)`` of live units' deadline ports."""
+        out = []
+        for proxy in self._proxies():
+            if not proxy.alive:
+                continue
+            for port in proxy.spec.outputs:
+                if port.deadline_ms:
+                    count = proxy._outputs[port.name].counters.messages
+                    out.append((proxy.name, proxy.label, port.name, int(port.deadline_ms * 1e6), count, proxy.started_ns))
+        return out
+
+    # ------------------------------------------------------------------ requests (self-adaptation)
+
+    def request(self, tag: str) -> str:
+        """Provide a stream of ``tag`` (e.g. ``"BallPosition(field)"``); returns its key.
+
+        The planner chooses the transformations, reusing what already runs; they are spawned and
+        wired, and the stream is relayed onto a key that stays the same while the configuration
+        adapts to failures, stalls and measurements. Requesting the same tag again shares it.
+        Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when nothing fits.
+        """
+        self._check_open()
+        return self._adaptation.request(tag)
+
+    def release(self, key: str) -> None:
+        """Give back a request; its units are destroyed when no other request uses them."""
+        self._check_open()
+        self._adaptation.release(key)
+
+    def requests(self) -> list[RequestInfo]:
+        """The active requests: tag, key, state ("active" or "degraded"), units."""
+        return self._adaptation.requests()
+
+    def measure(self, name: str, value: float | str) -> None:
+        """Record the latest value of a measure (battery, say); constraints are checked against it."""
+        self._check_open()
+        if not isinstance(name, str) or not name or "/" in name:
+            raise LibraryError(f"measure name {name!r}: expected a non-empty name without '/', like 'battery'")
+        self._adaptation.measure(name, value)
+
+    @property
+    def measurements(self) -> dict[str, float | str]:
+        return dict(self._adaptation.knowledge.measurements)
+
+    def adaptations(self) -> list[AdaptationEvent]:
+        """Every adaptation so far (each with its recovery time once the stream recovered)."""
+        return self._adaptation.history()
+
+    def on_adaptation(self, listener: Callable[[AdaptationEvent], None]) -> Callable[[], None]:
+        """Call ``listener(event)`` for every adaptation event; returns a function that removes it."""
+        return self._adaptation.on_event(listener)
+
+    def _measurement_sample(self, key: str, payload: bytes) -> None:
+        name = key.rsplit("/", 1)[-1]
+        try:
+            value = json.loads(payload)
+            if isinstance(value, dict):
+                value = value["value"]
+            if not isinstance(value, (int, float, str)) or isinstance(value, bool):
+                raise ValueError(f"got {value!r}")
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("measurement on %s ignored: %s; expected a JSON number or {\"value\": x}", key, exc)
+            return
+        self._adaptation.measure(name, value)
+
     # ------------------------------------------------------------------ model and proxy services
 
     def get_model(self) -> Model:
         """All running units (label, state, protection, bindings) and all stored specs."""
         with self._lock:
             proxies = list(self._units.values())
-        return Model(self.name, tuple(self._info(p) for p in proxies), self.library.specs())
+        return Model(self.name, tuple(self._info(p) for p in proxies), self.library.specs(), tuple(self.requests()))
 
     def _info(self, proxy: Proxy) -> UnitInfo:
         return UnitInfo(
@@ -401,6 +522,10 @@ class Manager:
             ).to_dict(),
             "destroy": lambda r: self.destroy(str(r["name"])) or {"destroyed": r["name"]},
             "get_model": lambda r: self.get_model().to_dict(),
+            "request": lambda r: {"key": self.request(str(r["tag"]))},
+            "release": lambda r: self.release(str(r["key"])) or {"released": r["key"]},
+            "measure": lambda r: self.measure(str(r["name"]), r["value"]) or {"measured": r["name"]},
+            "get_adaptations": lambda r: [e.to_dict() for e in self.adaptations()],
         }
 
     def _unit_service(self, name: str, what: str, request: dict[str, Any]) -> Any:

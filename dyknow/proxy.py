@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from dyknow.bus import LocalBus
     from dyknow.executor import Executor, Lane, Timer, Worker
     from dyknow.spec import TransformationSpec
-    from dyknow.transport import Publisher, Session, Subscriber
+    from dyknow.transport import LivelinessSubscriber, LivelinessToken, Publisher, Session, Subscriber
 
 __all__ = ["DEFAULT_QUEUE_DEPTH", "InputPort", "OutputPort", "Proxy", "UnitState", "UnitStatistics"]
 
@@ -140,7 +140,7 @@ _INLINE_BUDGET_NS = 200_000
 class OutputPort:
     """An output port: its key, sequence number, local targets and Zenoh publisher."""
 
-    __slots__ = ("counters", "key", "name", "publisher", "seq", "targets")
+    __slots__ = ("counters", "key", "name", "publisher", "seq", "targets", "token")
 
     def __init__(self, name: str, key: str) -> None:
         self.name = name
@@ -149,6 +149,8 @@ class OutputPort:
         self.counters = PortCounters()
         self.targets: tuple[InputPort, ...] = ()
         self.publisher: Publisher | None = None
+        # announces on the port's key that its producer lives (others watch it to notice a crash)
+        self.token: LivelinessToken | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,6 +231,7 @@ class Proxy:
         self._stop = threading.Event()
         self._run_thread: threading.Thread | None = None
         self._setup_done = False
+        self._watches: list[LivelinessSubscriber] = []
 
         self._inputs: dict[str, InputPort] = {}
         self._outputs: dict[str, OutputPort] = {}
@@ -259,6 +262,7 @@ class Proxy:
         try:
             for out in self._outputs.values():
                 out.publisher = self._session.declare_publisher(out.key)
+                out.token = self._session.declare_liveliness_token(out.key)
             self._bus.attach((), self._outputs.values())
         except Exception as exc:
             self._fail(exc, "binding its output ports")
@@ -310,8 +314,11 @@ class Proxy:
                 self._lock.release()
         self._bus.detach((), self._outputs.values())
         for out in self._outputs.values():
-            if out.publisher is not None:
-                out.publisher.undeclare()
+            for entity in (out.publisher, out.token):
+                if entity is not None:
+                    entity.undeclare()
+        for watch in self._watches:
+            watch.undeclare()
         self._executor.release(self)
         thread = self._run_thread
         if thread is not None and thread is not threading.current_thread():
@@ -552,6 +559,15 @@ class Proxy:
             if not nbytes:
                 counters.bytes += sent
 
+    def fail(self, reason: str) -> None:
+        """The unit declares itself failed (from any thread): it stops, the manager is told."""
+        self._fail(UnitError(reason), "reported by the unit")
+
+    def watch_liveliness(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
+        """Call ``on_change(key, alive)`` as producers on ``key_expr`` appear and vanish (until stop)."""
+        check_key_expr(key_expr, what=f"liveliness watch of unit {self.name!r}")
+        self._watches.append(self._session.declare_liveliness_subscriber(key_expr, on_change))
+
     def has_subscribers(self, port: str) -> bool:
         """Whether a local input or a remote subscriber receives output ``port`` now."""
         out = self._outputs.get(port)
@@ -602,23 +618,26 @@ class Proxy:
             if not effective:
                 return current
             new_pubs: dict[str, Publisher] = {}
+            new_tokens: dict[str, LivelinessToken] = {}
             new_subs: dict[str, Subscriber] = {}
             try:
                 for port, key in effective.items():
                     if port in self._outputs:
                         new_pubs[port] = self._session.declare_publisher(key)
+                        new_tokens[port] = self._session.declare_liveliness_token(key)
                     elif self.state is UnitState.RUNNING:
                         inp = self._inputs[port]
                         new_subs[port] = self._session.declare_subscriber(key, inp.deliver_remote, self._on_remote_error)
             except Exception:
-                for entity in (*new_pubs.values(), *new_subs.values()):
+                for entity in (*new_pubs.values(), *new_tokens.values(), *new_subs.values()):
                     entity.undeclare()
                 raise
-            old: list[Publisher | Subscriber | None] = []
+            old: list[Publisher | Subscriber | LivelinessToken | None] = []
             for port, pub in new_pubs.items():
                 out = self._outputs[port]
-                old.append(out.publisher)
+                old += [out.publisher, out.token]
                 out.publisher = pub
+                out.token = new_tokens[port]
             moves: list[tuple[Any, str]] = [
                 (self._inputs[p] if p in self._inputs else self._outputs[p], key) for p, key in effective.items()
             ]

@@ -7,7 +7,8 @@ Keys (``@dyknow`` is a verbatim chunk, so data subscriptions like ``**`` never m
 - ``@dyknow/<manager>/<service>`` for the manager's services: ``add_transformation``
   ``{"xml": "...", "path": "name used in errors"}``, ``remove_transformation`` ``{"label"}``,
   ``spawn`` ``{"label", "name", "protected", "params", "bindings"}``, ``destroy`` ``{"name"}``,
-  ``get_model`` ``{}``;
+  ``get_model`` ``{}``; ``request`` ``{"tag"}`` -> ``{"key"}``; ``release`` ``{"key"}``;
+  ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``;
 - ``@dyknow/<manager>/unit/<unit>/<service>`` for a unit's proxy: ``get_config`` ``{}``,
   ``set_config`` ``{"bindings": {port: key}}``, ``get_statistics`` ``{}``.
 
@@ -24,7 +25,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from dyknow import errors
-from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue
+from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
 
 __all__ = [
     "MANAGER_SERVICES",
@@ -40,7 +41,17 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 ROOT = "@dyknow"
-MANAGER_SERVICES = ("add_transformation", "remove_transformation", "spawn", "destroy", "get_model")
+MANAGER_SERVICES = (
+    "add_transformation",
+    "remove_transformation",
+    "spawn",
+    "destroy",
+    "get_model",
+    "request",
+    "release",
+    "measure",
+    "get_adaptations",
+)
 UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 
 Handler = Callable[[dict[str, Any]], Any]
@@ -56,6 +67,8 @@ def unit_key(manager: str, unit: str, service: str) -> str:
 
 def _error_reply(exc: BaseException) -> bytes:
     body: dict[str, Any] = {"error": type(exc).__name__, "message": str(exc)}
+    if isinstance(exc, PlanningError):
+        body["request"] = exc.request
     if isinstance(exc, SpecError):
         body["issues"] = [{"path": i.path, "line": i.line, "message": i.message} for i in exc.issues]
     return json.dumps(body).encode()
@@ -108,6 +121,8 @@ def raise_remote(exc: ServiceError) -> DyKnowError:
         except (KeyError, TypeError, ValueError):
             pass
         return SpecError(issues or [SpecIssue("<remote>", 0, str(exc))])
+    if kind == "PlanningError":
+        return PlanningError(str(exc.details.get("request", "")), None, str(exc))
     if isinstance(cls, type) and issubclass(cls, DyKnowError) and cls not in (DyKnowError, SpecError, ServiceError):
         return cls(str(exc))
     return exc

@@ -113,6 +113,25 @@ class Unit:
         """
         self._proxy.reject(port, reason)
 
+    def rebind(self, bindings: Mapping[str, str]) -> dict[str, str]:
+        """Rebind some of this unit's own ports (``{port: key}``); returns the new bindings.
+
+        Works from ``setup()`` too, e.g. to subscribe to a key given as a param.
+        """
+        return self._proxy.set_config(bindings)
+
+    def fail(self, reason: str) -> None:
+        """Declare this unit failed (from any thread): it stops and the manager adapts around it."""
+        self._proxy.fail(reason)
+
+    def watch_liveliness(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
+        """Call ``on_change(key, alive)`` when producers on ``key_expr`` appear or vanish.
+
+        Every dyknow output port announces itself on its key, so this notices another process
+        crashing within milliseconds. ``on_change`` runs on a Zenoh thread: keep it short.
+        """
+        self._proxy.watch_liveliness(key_expr, on_change)
+
     @property
     def config(self) -> dict[str, str]:
         """The current port -> key expression bindings."""

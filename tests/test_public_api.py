@@ -8,12 +8,13 @@ import sys
 import dyknow
 
 EXPECTED = [
-    "DEFAULT_ENDPOINT", "BindingError", "Client", "ClosedError", "Constraint", "DyKnowError",
-    "LatencySummary", "Library", "LibraryError", "Manager", "Message", "Model", "Param",
-    "PayloadError", "Port", "PortStatistics", "ServiceError", "SpecError", "SpecIssue", "Tag",
-    "Template", "Timer", "TransformationSpec", "TransportError", "Unit", "UnitError", "UnitEvent",
-    "UnitInfo", "UnitState", "UnitStatistics", "__version__", "default_key", "load_specs",
-    "parse_specs",
+    "DEFAULT_ENDPOINT", "AdaptationEvent", "BindingError", "Client", "ClosedError", "Constraint",
+    "DyKnowError", "LatencySummary", "Library", "LibraryError", "Manager", "Message", "Model",
+    "Ontology", "OntologyError", "Param", "PayloadError", "Plan", "Planner", "PlanningError",
+    "Port", "PortStatistics", "RequestInfo", "RunningUnit", "ServiceError", "SpecError",
+    "SpecIssue", "Tag", "TagError", "Template", "Term", "Timer", "TransformationSpec",
+    "TransportError", "Unit", "UnitError", "UnitEvent", "UnitInfo", "UnitState", "UnitStatistics",
+    "__version__", "default_key", "load_specs", "parse_specs", "parse_term", "plan",
 ]  # fmt: skip
 
 

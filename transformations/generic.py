@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import threading
+
 from dyknow import Message, Unit
 
-__all__ = ["PeriodicSource", "Relay"]
+__all__ = ["PeriodicSource", "Relay", "RemoteStream"]
 
 
 class PeriodicSource(Unit):
@@ -35,6 +37,42 @@ class PeriodicSource(Unit):
 
 class Relay(Unit):
     """Republishes every message from ``in`` on ``out`` unchanged (its origin time included)."""
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.publish("out", msg.payload)
+
+
+class RemoteStream(Unit):
+    """Brings a stream published by another process within the planner's reach.
+
+    Its input follows the ``key`` param (a key expression published elsewhere); its output carries
+    the tags its spec gives. It watches the producers' liveliness on that key: when the last one
+    vanishes (the process crashed or was killed), or none shows up within ``grace_s`` seconds of
+    start, the unit fails, so a manager adapting a request around it switches to an alternative.
+    """
+
+    def setup(self) -> None:
+        key = str(self.params["key"])
+        self.rebind({"in": key})
+        self._alive = 0
+        self._seen = threading.Event()
+        self.watch_liveliness(key, self._liveliness)
+        grace = float(self.params.get("grace_s", 1.0))
+        self._grace = self.create_timer(grace, self._check_seen)
+
+    def _liveliness(self, key: str, alive: bool) -> None:
+        if alive:
+            self._alive += 1
+            self._seen.set()
+        else:
+            self._alive = max(0, self._alive - 1)
+            if self._alive == 0:
+                self.fail(f"the producer of {self.params['key']!r} is gone ({key} vanished)")
+
+    def _check_seen(self) -> None:
+        self._grace.cancel()
+        if not self._seen.is_set():
+            self.fail(f"no producer of {self.params['key']!r} within {self.params.get('grace_s', 1.0)} s")
 
     def on_message(self, port: str, msg: Message) -> None:
         self.publish("out", msg.payload)

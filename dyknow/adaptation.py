@@ -1,0 +1,751 @@
+"""Self-adaptation: keep requested streams flowing when resources fail (a MAPE-K loop).
+
+A client asks for information by meaning: ``manager.request("BallPosition(field)")`` returns a key.
+Behind the key sits an *anchor*, a relay unit owned by the request whose output is the key; the
+planner's configuration feeds the anchor's input. Adapting means wiring a new configuration and
+rebinding the anchor's input, so **the requested key never changes** and consumers keep receiving
+without resubscribing.
+
+The loop is built from explicit parts, after MAPE-K (Kephart & Chess; RoCS), with the three layers
+of Sykes et al.: requests are the goals, this module manages change, the manager and proxies
+control the components.
+
+- :class:`Knowledge`: the requests, the latest measurements, failed transformations and their
+  back-off, stalled units, and the history of adaptations.
+- :class:`Monitor`: turns what happens into :class:`Symptom` s: a unit failed (an exception, or a
+  remote producer's liveliness token vanished), a unit was destroyed, an output port with a
+  ``deadline-ms`` fell silent (stalled) or spoke again, a measurement arrived, a back-off ended.
+- :class:`Analyzer`: which requests a symptom affects, and whether it is a *fault* (the current
+  configuration is broken: adapt now) or an *opportunity* (a preferred configuration may be
+  available again: adapt, but not more often than the dwell time allows).
+- :class:`Reconfigurer` (plan and execute): re-plans with failed and unavailable transformations
+  excluded and the request's own units set aside so that preferences decide, then changes as little
+  as possible: units of the new configuration that already run for the request are kept (with
+  their state) and only rebound where their upstream changed; new ones are spawned, consumers
+  before producers; the anchor is rebound; units nothing uses any more are destroyed last.
+
+Flapping is prevented by a dwell time (an opportunity never switches a request twice within it)
+and by exponential back-off for failed transformations (retried after 1 s, 2 s, 4 s ... up to
+60 s). When no configuration exists the request is *degraded*, and recovered later when possible.
+
+Every adaptation is an :class:`AdaptationEvent` (cause, old and new configuration, adaptation time
+from the fault to the new configuration wired and running) published as JSON on
+``dyknow/<manager>/events/adaptation`` and handed to listeners; a second event with the same id
+follows with the recovery time, from the fault to the first message on the requested key after it.
+
+Measurements arrive through :meth:`Manager.measure` or as JSON (a number, or ``{"value": x}``) on
+``dyknow/measurements/<name>`` or ``dyknow/<manager>/measurements/<name>``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
+
+from dyknow.errors import DyKnowError, UnitError
+from dyknow.message import Message
+from dyknow.errors import PlanningError
+from dyknow.planner import Plan, Planner, RunningUnit
+from dyknow.spec import Port, TransformationSpec
+from dyknow.tags import parse_term
+from dyknow.unit import Unit
+
+if TYPE_CHECKING:
+    from dyknow.manager import Manager, UnitEvent
+
+__all__ = [
+    "ANCHOR_LABEL",
+    "AdaptationEvent",
+    "AdaptationLoop",
+    "Analyzer",
+    "Knowledge",
+    "Monitor",
+    "Reconfigurer",
+    "RequestAnchor",
+    "RequestInfo",
+    "Symptom",
+    "request_key",
+]
+
+log = logging.getLogger(__name__)
+
+ANCHOR_LABEL = "dyknow-request-anchor"
+DEFAULT_DWELL_S = 2.0
+BACKOFF_FIRST_S = 1.0
+BACKOFF_MAX_S = 60.0
+_TICK_S = 0.02  # deadlines, back-offs and deferred opportunities are checked this often
+
+
+def request_key(manager: str, tag: str) -> str:
+    """The stable key of a request: ``dyknow/<manager>/requests/<tag>`` (unsafe characters as ``_``)."""
+    chunk = "".join(c if c not in "/*$?#@ " else "_" for c in tag) or "_"
+    return f"dyknow/{manager}/requests/{chunk}"
+
+
+# ---------------------------------------------------------------------------- events and state
+
+
+@dataclass(frozen=True, slots=True)
+class AdaptationEvent:
+    """One adaptation of one request (``kind``: "adapted", "degraded" or "recovered")."""
+
+    id: int
+    kind: str
+    request: str
+    key: str
+    cause: str
+    old: tuple[str, ...]  # labels of the units of the configuration before
+    new: tuple[str, ...]  # and after (empty when degraded)
+    fault_ns: int
+    adaptation_ms: float | None = None
+    recovery_ms: float | None = None
+    detail: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "kind": self.kind,
+            "request": self.request,
+            "key": self.key,
+            "cause": self.cause,
+            "old": list(self.old),
+            "new": list(self.new),
+            "fault_ns": self.fault_ns,
+            "adaptation_ms": self.adaptation_ms,
+            "recovery_ms": self.recovery_ms,
+            "detail": self.detail,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class RequestInfo:
+    """A request as the model shows it."""
+
+    tag: str
+    key: str
+    state: str  # "active" or "degraded"
+    references: int
+    units: tuple[str, ...]
+    labels: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "tag": self.tag,
+            "key": self.key,
+            "state": self.state,
+            "references": self.references,
+            "units": list(self.units),
+            "labels": list(self.labels),
+        }
+
+
+@dataclass(slots=True)
+class _Request:
+    tag: str
+    key: str
+    anchor: str
+    references: int = 1
+    state: str = "active"
+    plan: Plan | None = None
+    units: dict[str, str] = field(default_factory=dict)  # unit name -> label, the configuration
+    output_key: str | None = None
+    last_change_ns: int = 0
+    reason: str | None = None  # why it is degraded
+
+    def info(self) -> RequestInfo:
+        return RequestInfo(self.tag, self.key, self.state, self.references, tuple(self.units), tuple(sorted(set(self.units.values()))))
+
+
+@dataclass(frozen=True, slots=True)
+class Symptom:
+    """Something the monitor saw. ``fault`` symptoms break configurations; others are opportunities."""
+
+    kind: str  # "failed", "destroyed", "stalled", "resumed", "measurement", "retry", "library"
+    time_ns: int
+    unit: str | None = None
+    label: str | None = None
+    measure: str | None = None
+    detail: str = ""
+
+
+class Knowledge:
+    """What the loop knows: requests, measurements, failures and their back-off, stalls, history."""
+
+    def __init__(self) -> None:
+        self.requests: dict[str, _Request] = {}  # by key
+        self.measurements: dict[str, float | str] = {}
+        # label -> [retry at (ns), current back-off (s), retry announced]
+        self.backoff: dict[str, list[Any]] = {}
+        self.stalled: set[str] = set()  # unit names
+        self.managed: set[str] = set()  # units the loop spawned (it never destroys the others)
+        self.history: list[AdaptationEvent] = []
+
+    def unavailable(self, now_ns: int) -> set[str]:
+        """Labels in back-off right now."""
+        return {label for label, (until, _, _) in self.backoff.items() if until > now_ns}
+
+    def fail(self, label: str, now_ns: int) -> None:
+        """A transformation failed: exclude it, for twice as long as last time (1 s, 2 s, ... 60 s)."""
+        previous = self.backoff[label][1] if label in self.backoff else BACKOFF_FIRST_S / 2
+        delay = min(BACKOFF_MAX_S, previous * 2)
+        self.backoff[label] = [now_ns + int(delay * 1e9), delay, False]
+
+    def users(self, unit: str) -> list[_Request]:
+        return [r for r in self.requests.values() if unit in r.units]
+
+
+# ---------------------------------------------------------------------------- the anchor unit
+
+
+class RequestAnchor(Unit):
+    """Relays a request's configuration onto the request's stable key; reports recoveries.
+
+    After an adaptation the loop tells the anchor which key the new configuration publishes on;
+    the first message from that key closes the adaptation with its recovery time.
+    """
+
+    def setup(self) -> None:
+        self._waiting: tuple[str, Callable[[int], None]] | None = None
+
+    def expect(self, key: str, on_first: Callable[[int], None]) -> None:
+        """Call ``on_first(arrival_ns)`` for the next message arriving from ``key``."""
+        self._waiting = (key, on_first)
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.publish("out", msg.payload)
+        waiting = self._waiting
+        if waiting is not None and msg.key == waiting[0]:
+            self._waiting = None
+            waiting[1](time.time_ns())
+
+
+ANCHOR_SPEC = TransformationSpec(
+    label=ANCHOR_LABEL,
+    source="dyknow.adaptation:RequestAnchor",
+    ports=(Port("in", "in", queue=64), Port("out", "out")),
+    description="Relays a request's stream onto its stable key (internal to request()).",
+)
+
+
+# ---------------------------------------------------------------------------- monitor
+
+
+class Monitor:
+    """Turns unit events, deadlines, measurements and timers into symptoms for the loop."""
+
+    def __init__(self, manager: Manager, knowledge: Knowledge, report: Callable[[Symptom], None]) -> None:
+        self._manager = manager
+        self._knowledge = knowledge
+        self._report = report
+        self._seen: dict[tuple[str, str], tuple[int, int]] = {}  # (unit, port) -> (count, changed at ns)
+
+    def unit_event(self, event: UnitEvent) -> None:
+        if event.kind in ("failed", "destroyed"):
+            self._report(Symptom(event.kind, event.time_ns, unit=event.unit, label=event.label, detail=event.error or ""))
+
+    def measurement(self, name: str, value: float | str, now_ns: int) -> None:
+        self._knowledge.measurements[name] = value
+        self._report(Symptom("measurement", now_ns, measure=name, detail=f"{name} = {value!r}"))
+
+    def tick(self, now_ns: int) -> None:
+        """Check deadlines and back-offs (called every few milliseconds by the loop)."""
+        knowledge = self._knowledge
+        for label, entry in knowledge.backoff.items():
+            if entry[0] <= now_ns and not entry[2]:
+                entry[2] = True  # announce each retry once; the back-off doubles if it fails again
+                self._report(Symptom("retry", now_ns, label=label, detail=f"back-off of {label} ended"))
+        for name, label, port, deadline_ns, count, started_ns in self._manager._deadline_ports():
+            seen = self._seen.get((name, port))
+            if seen is None or count != seen[0]:
+                self._seen[(name, port)] = (count, now_ns if seen is not None else max(now_ns, started_ns))
+                if name in knowledge.stalled and seen is not None:
+                    knowledge.stalled.discard(name)
+                    self._report(Symptom("resumed", now_ns, unit=name, label=label, detail=f"{name}.{port} publishes again"))
+                continue
+            if name not in knowledge.stalled and now_ns - seen[1] > deadline_ns:
+                knowledge.stalled.add(name)
+                silent_ms = (now_ns - seen[1]) / 1e6
+                self._report(
+                    Symptom("stalled", now_ns, unit=name, label=label, detail=f"{name}.{port} silent for {silent_ms:.0f} ms (deadline {deadline_ns / 1e6:g} ms)")
+                )
+        live = {(n, p) for n, _, p, _, _, _ in self._manager._deadline_ports()}
+        for gone in [k for k in self._seen if k not in live]:
+            del self._seen[gone]
+
+
+# ---------------------------------------------------------------------------- analyzer
+
+
+class Analyzer:
+    """Which requests a symptom affects, and whether they must adapt now (fault) or may (opportunity)."""
+
+    def __init__(self, manager: Manager, knowledge: Knowledge) -> None:
+        self._manager = manager
+        self._knowledge = knowledge
+
+    def affected(self, symptom: Symptom) -> list[tuple[_Request, bool]]:
+        """``(request, is_fault)`` pairs, in a stable order."""
+        knowledge = self._knowledge
+        requests = sorted(knowledge.requests.values(), key=lambda r: r.key)
+        if symptom.kind in ("failed", "destroyed", "stalled"):
+            return [(r, True) for r in requests if symptom.unit in r.units or symptom.unit == r.anchor]
+        if symptom.kind == "measurement":
+            out = []
+            for r in requests:
+                broken = any(
+                    c.measure == symptom.measure and not c.holds(knowledge.measurements[c.measure])
+                    for label in r.units.values()
+                    for c in self._constraints(label)
+                )
+                out.append((r, broken))
+            return out
+        return [(r, False) for r in requests]  # resumed, retry, library: maybe better now
+
+    def _constraints(self, label: str) -> tuple[Any, ...]:
+        if label not in self._manager.library:
+            return ()
+        return self._manager.library.get(label).constraints
+
+
+# ---------------------------------------------------------------------------- plan and execute
+
+
+class Reconfigurer:
+    """Plans a request's configuration and moves the running system to it, changing little."""
+
+    def __init__(self, manager: Manager, knowledge: Knowledge) -> None:
+        self._manager = manager
+        self._knowledge = knowledge
+        self._planner: Planner | None = None
+        self._planner_version: tuple[int, int] = (-1, -1)
+
+    def planner(self) -> Planner:
+        manager = self._manager
+        version = (manager.library.version, id(manager.ontology))
+        if self._planner is None or self._planner_version != version:
+            self._planner = Planner(manager.library.specs(), manager.ontology, manager=manager.name)
+            self._planner_version = version
+        return self._planner
+
+    def running_model(self, request: _Request | None) -> tuple[list[RunningUnit], set[str]]:
+        """Units the plan may reuse (the request's own set aside) and every name in use."""
+        manager = self._manager
+        knowledge = self._knowledge
+        own = set()
+        if request is not None:
+            own = {u for u in request.units if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
+        running: list[RunningUnit] = []
+        names: set[str] = set()
+        for proxy in manager._proxies():
+            names.add(proxy.name)
+            if proxy.name in own or proxy.label == ANCHOR_LABEL:
+                continue
+            outputs = {p.name: key for p, key in ((p, proxy.get_config()[p.name]) for p in proxy.spec.outputs)}
+            tags = {p.name: proxy.spec.tags_for(p.name) for p in proxy.spec.outputs}
+            healthy = proxy.alive and proxy.name not in knowledge.stalled
+            running.append(RunningUnit(proxy.name, proxy.label, outputs, tags, healthy))
+        return running, names
+
+    def plan(self, request: _Request, now_ns: int) -> Plan:
+        running, names = self.running_model(request)
+        unavailable = self._knowledge.unavailable(now_ns)
+        stalled_labels = {self._manager._proxy(n).label for n in self._knowledge.stalled if self._manager._has(n)}
+        return self.planner().plan(
+            request.tag, running, unavailable | stalled_labels, self._knowledge.measurements, reserved_names=names
+        )
+
+    def apply(self, request: _Request, plan: Plan, before_switch: Callable[[str], None] | None = None) -> list[str]:
+        """Make ``plan`` run for ``request``; returns units to destroy once the switch is done.
+
+        ``before_switch(output_key)`` runs right before the anchor is rebound to the new output.
+        """
+        manager = self._manager
+        knowledge = self._knowledge
+        # keep the request's own healthy units that the new configuration needs (same label)
+        own_by_label: dict[str, str] = {}
+        for name, label in request.units.items():
+            if name in knowledge.managed and manager._has(name) and manager._proxy(name).alive and name not in knowledge.stalled:
+                own_by_label.setdefault(label, name)
+        rename: dict[str, str] = {}
+        for unit in plan.new_units:
+            if unit.label in own_by_label:
+                rename[unit.name] = own_by_label.pop(unit.label)
+
+        def key(k: str) -> str:
+            # keys of planned units that are kept: the kept unit's actual output key
+            for planned, actual in rename.items():
+                prefix = f"dyknow/{manager.name}/{planned}/"
+                if k.startswith(prefix):
+                    return manager.get_config(actual)[k[len(prefix) :]]
+            return k
+
+        new_units: dict[str, str] = {}
+        spawned: list[str] = []
+        try:
+            for unit in reversed(plan.new_units):  # consumers first: nothing a producer sends is lost
+                if unit.name in rename:
+                    actual = rename[unit.name]
+                    spec = manager.library.get(unit.label)
+                    wanted = {p.name: key(unit.bindings[p.name]) for p in spec.inputs if spec.tags_for(p.name)}
+                    current = manager.get_config(actual)
+                    changed = {p: k for p, k in wanted.items() if current[p] != k}
+                    if changed:
+                        manager.set_config(actual, changed)
+                    new_units[actual] = unit.label
+                else:
+                    bindings = {p: key(k) for p, k in unit.bindings.items()}
+                    info = manager.spawn(unit.label, unit.name, bindings=bindings)
+                    spawned.append(unit.name)
+                    knowledge.managed.add(unit.name)
+                    if info.state == "failed":
+                        raise UnitError(f"unit {unit.name!r} ({unit.label}) failed at start: {info.error}")
+                    new_units[unit.name] = unit.label
+            for unit in plan.units:
+                if not unit.new:
+                    new_units[unit.name] = unit.label
+            new_units.update(self._upstream(u.name for u in plan.units if not u.new))
+            output_key = key(plan.output_key)
+            if before_switch is not None:
+                before_switch(output_key)
+            if manager.get_config(request.anchor)["in"] != output_key:
+                manager.set_config(request.anchor, {"in": output_key})
+        except DyKnowError:
+            for name in spawned:  # leave nothing half-built behind
+                if manager._has(name):
+                    manager.destroy(name)
+                knowledge.managed.discard(name)
+            raise
+        old = request.units
+        request.units = new_units
+        request.plan = plan
+        request.output_key = output_key
+        request.state = "active"
+        request.reason = None
+        return [n for n in old if n not in new_units and n in knowledge.managed and not knowledge.users(n)]
+
+    def _upstream(self, names: Iterable[str]) -> dict[str, str]:
+        """Every running unit that feeds the given ones, transitively: a reused unit needs them."""
+        proxies = {p.name: p for p in self._manager._proxies()}
+        producers: dict[str, list[str]] = {}
+        for proxy in proxies.values():
+            config = proxy.get_config()
+            for port in proxy.spec.outputs:
+                producers.setdefault(config[port.name], []).append(proxy.name)
+        found: dict[str, str] = {}
+        todo = [n for n in names if n in proxies]
+        while todo:
+            proxy = proxies[todo.pop()]
+            config = proxy.get_config()
+            for port in proxy.spec.inputs:
+                for producer in producers.get(config[port.name], ()):
+                    if producer not in found and proxies[producer].label != ANCHOR_LABEL:
+                        found[producer] = proxies[producer].label
+                        todo.append(producer)
+        return found
+
+    def cleanup(self, names: Iterable[str]) -> None:
+        for name in names:
+            if self._manager._has(name):
+                try:
+                    self._manager.destroy(name)
+                except DyKnowError as exc:
+                    log.warning("could not destroy unit %r after an adaptation: %s", name, exc)
+            self._knowledge.managed.discard(name)
+            self._knowledge.stalled.discard(name)
+
+
+# ---------------------------------------------------------------------------- the loop
+
+
+class AdaptationLoop:
+    """Runs monitor, analyzer and reconfigurer on a thread of its own, one symptom at a time."""
+
+    def __init__(self, manager: Manager, *, dwell_s: float = DEFAULT_DWELL_S) -> None:
+        self._manager = manager
+        self.knowledge = Knowledge()
+        self.monitor = Monitor(manager, self.knowledge, self._report)
+        self.analyzer = Analyzer(manager, self.knowledge)
+        self.reconfigurer = Reconfigurer(manager, self.knowledge)
+        self.dwell_ns = int(dwell_s * 1e9)
+        self._lock = threading.RLock()
+        self._symptoms: queue.SimpleQueue[Symptom | None] = queue.SimpleQueue()
+        self._listeners: list[Callable[[AdaptationEvent], None]] = []
+        self._next_id = 1
+        self._deferred: dict[str, tuple[int, Symptom]] = {}  # request key -> (when, the opportunity)
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"dyknow-{manager.name}-adaptation", daemon=True)
+        self._thread.start()
+
+    # -- requests
+
+    def request(self, tag: str) -> str:
+        """Plan and wire a configuration providing ``tag``; returns its stable key."""
+        manager = self._manager
+        canonical = str(parse_term(tag))
+        key = request_key(manager.name, canonical)
+        with self._lock:
+            existing = self.knowledge.requests.get(key)
+            if existing is not None:
+                existing.references += 1
+                return key
+            now = time.time_ns()
+            request = _Request(canonical, key, anchor=self._anchor_name(canonical))
+            plan = self.reconfigurer.plan(request, now)  # PlanningError: nothing fits, nothing changes
+            manager._spawn_spec(ANCHOR_SPEC, request.anchor, bindings={"in": plan.output_key, "out": key})
+            self.knowledge.managed.add(request.anchor)
+            self.knowledge.requests[key] = request
+            try:
+                self.reconfigurer.apply(request, plan)
+            except DyKnowError:
+                del self.knowledge.requests[key]
+                self.reconfigurer.cleanup([request.anchor])
+                raise
+            request.last_change_ns = time.time_ns()
+            log.info("request %s on %s: %s", canonical, key, ", ".join(sorted(set(request.units.values()))))
+            return key
+
+    def release(self, key: str) -> None:
+        """Drop one reference to a request; the last one tears down what only it used."""
+        with self._lock:
+            request = self.knowledge.requests.get(key)
+            if request is None:
+                known = ", ".join(sorted(self.knowledge.requests)) or "none"
+                raise UnitError(f"no request on key {key!r}; active requests: {known}")
+            request.references -= 1
+            if request.references > 0:
+                return
+            del self.knowledge.requests[key]
+            self._deferred.pop(key, None)
+            orphans = [n for n in request.units if n in self.knowledge.managed and not self.knowledge.users(n)]
+            self.reconfigurer.cleanup([request.anchor, *orphans])
+
+    def requests(self) -> list[RequestInfo]:
+        with self._lock:
+            return [r.info() for r in sorted(self.knowledge.requests.values(), key=lambda r: r.key)]
+
+    def _anchor_name(self, tag: str) -> str:
+        base = "request-" + "".join(c if c.isalnum() or c in "_-." else "-" for c in tag).strip("-")
+        name, n = base, 1
+        while self._manager._has(name):
+            n += 1
+            name = f"{base}-{n}"
+        return name
+
+    # -- measurements and events
+
+    def measure(self, name: str, value: float | str) -> None:
+        self.monitor.measurement(name, value, time.time_ns())
+
+    def library_changed(self) -> None:
+        """New or removed specs may offer better configurations (or a way out of degradation)."""
+        self._report(Symptom("library", time.time_ns(), detail="the library changed"))
+
+    def on_event(self, listener: Callable[[AdaptationEvent], None]) -> Callable[[], None]:
+        self._listeners.append(listener)
+        return lambda: self._listeners.remove(listener) if listener in self._listeners else None
+
+    def history(self) -> list[AdaptationEvent]:
+        with self._lock:
+            return list(self.knowledge.history)
+
+    def _emit(self, event: AdaptationEvent) -> None:
+        history = self.knowledge.history
+        for i in range(len(history) - 1, -1, -1):  # a recovery completes its adaptation's entry
+            if history[i].id == event.id:
+                history[i] = event
+                break
+        else:
+            history.append(event)
+        try:
+            self._manager.session.put(f"dyknow/{self._manager.name}/events/adaptation", json.dumps(event.to_dict()))
+        except DyKnowError as exc:
+            log.warning("could not publish adaptation event: %s", exc)
+        for listener in list(self._listeners):
+            try:
+                listener(event)
+            except Exception:
+                log.exception("adaptation listener failed")
+
+    # -- the loop
+
+    def _report(self, symptom: Symptom) -> None:
+        if not self._closed:
+            self._symptoms.put(symptom)
+
+    def unit_event(self, event: UnitEvent) -> None:
+        if event.unit in self.knowledge.managed or any(event.unit in r.units for r in self.knowledge.requests.values()):
+            self.monitor.unit_event(event)
+
+    def close(self, timeout: float = 2.0) -> None:
+        self._closed = True
+        self._symptoms.put(None)
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while True:
+            try:
+                symptom = self._symptoms.get(timeout=_TICK_S)
+            except queue.Empty:
+                symptom = None
+                if self._closed:
+                    return
+            if self._closed:
+                return
+            try:
+                with self._lock:
+                    now = time.time_ns()
+                    if symptom is not None:
+                        self._handle(symptom)
+                    self.monitor.tick(now)
+                    for key, (due, opportunity) in list(self._deferred.items()):
+                        if due <= now:
+                            del self._deferred[key]
+                            request = self.knowledge.requests.get(key)
+                            if request is not None:  # timed from now: the wait was our choice, not the fault's
+                                waited = replace(opportunity, time_ns=now, detail=f"{opportunity.detail}, after the dwell time")
+                                self._adapt(request, waited, fault=False)
+            except Exception:
+                log.exception("adaptation loop error (it keeps running)")
+
+    def _handle(self, symptom: Symptom) -> None:
+        knowledge = self.knowledge
+        if symptom.kind in ("failed", "stalled") and symptom.label and symptom.label != ANCHOR_LABEL:
+            knowledge.fail(symptom.label, symptom.time_ns)
+        for request, fault in self.analyzer.affected(symptom):
+            if symptom.unit is not None and symptom.unit == request.anchor:
+                self._reanchor(request, symptom)
+                continue
+            self._adapt(request, symptom, fault)
+
+    def _reanchor(self, request: _Request, symptom: Symptom) -> None:
+        """The anchor itself went: put a new one on the same key."""
+        self.reconfigurer.cleanup([request.anchor])
+        request.anchor = self._anchor_name(request.tag)
+        self._manager._spawn_spec(ANCHOR_SPEC, request.anchor, bindings={"in": request.output_key or f"{request.key}/none", "out": request.key})
+        self.knowledge.managed.add(request.anchor)
+
+    def _adapt(self, request: _Request, symptom: Symptom, fault: bool) -> None:
+        now = time.time_ns()
+        if not fault and request.state == "active" and now - request.last_change_ns < self.dwell_ns:
+            # flapping guard: take the opportunity when the dwell time is over (the latest one wins)
+            self._deferred[request.key] = (request.last_change_ns + self.dwell_ns, symptom)
+            return
+        old_labels = tuple(sorted(set(request.units.values())))
+        cause = _cause(symptom)
+        try:
+            plan = self.reconfigurer.plan(request, now)
+        except PlanningError as exc:
+            if fault or request.state == "degraded":
+                self._degrade(request, symptom, old_labels, str(exc))
+            return
+        if not fault and request.state == "active" and _same(request, plan):
+            return  # already the preferred configuration
+        recovery = _Recovery(self)
+        try:
+            orphans = self.reconfigurer.apply(request, plan, recovery.arm(request))
+        except DyKnowError as exc:
+            log.warning("adaptation of %s failed: %s", request.tag, exc)
+            self._degrade(request, symptom, old_labels, f"could not wire the new configuration: {exc}")
+            return
+        wired = time.time_ns()
+        request.last_change_ns = wired
+        event = AdaptationEvent(
+            self._next_id,
+            "adapted",
+            request.tag,
+            request.key,
+            cause,
+            old_labels,
+            tuple(sorted(set(request.units.values()))),
+            symptom.time_ns,
+            round((wired - symptom.time_ns) / 1e6, 3),
+        )
+        self._next_id += 1
+        self._emit(event)
+        recovery.adapted(event)
+        log.info("adapted %s (%s): %s -> %s in %.1f ms", request.tag, cause, ", ".join(old_labels), ", ".join(event.new), event.adaptation_ms)
+        self.reconfigurer.cleanup(orphans)
+
+    def _degrade(self, request: _Request, symptom: Symptom, old: tuple[str, ...], why: str) -> None:
+        was = request.state
+        request.state = "degraded"
+        request.reason = why
+        if was != "degraded":
+            event = AdaptationEvent(self._next_id, "degraded", request.tag, request.key, _cause(symptom), old, (), symptom.time_ns, detail=why)
+            self._next_id += 1
+            self._emit(event)
+            log.warning("request %s is degraded: %s", request.tag, why)
+
+
+class _Recovery:
+    """Waits for the first message of a new configuration on the request's key.
+
+    Armed before the anchor switches (so that first message cannot slip by); the adaptation event
+    may be created before or after that message arrives.
+    """
+
+    def __init__(self, loop: AdaptationLoop) -> None:
+        self._loop = loop
+        self._lock = threading.Lock()
+        self._arrival_ns: int | None = None
+        self._event: AdaptationEvent | None = None
+
+    def arm(self, request: _Request) -> Callable[[str], None]:
+        def before_switch(output_key: str) -> None:
+            anchor = self._loop._manager._proxy(request.anchor).unit
+            if isinstance(anchor, RequestAnchor):
+                anchor.expect(output_key, self._arrived)
+
+        return before_switch
+
+    def _arrived(self, arrival_ns: int) -> None:  # on the anchor's thread
+        with self._lock:
+            self._arrival_ns = arrival_ns
+            event = self._event
+        if event is not None:
+            self._finish(event, arrival_ns)
+
+    def adapted(self, event: AdaptationEvent) -> None:
+        with self._lock:
+            self._event = event
+            arrival = self._arrival_ns
+        if arrival is not None:
+            self._finish(event, arrival)
+
+    def _finish(self, event: AdaptationEvent, arrival_ns: int) -> None:
+        done = replace(event, kind="recovered", recovery_ms=round((arrival_ns - event.fault_ns) / 1e6, 3))
+
+        def emit() -> None:  # not on the anchor's thread: listeners and Zenoh may take a moment
+            with self._loop._lock:
+                self._loop._emit(done)
+
+        threading.Thread(target=emit, name="dyknow-recovery", daemon=True).start()
+
+
+def _same(request: _Request, plan: Plan) -> bool:
+    """Whether the request already runs this configuration (same labels and reused units)."""
+    current = sorted(request.units.values())
+    return current == sorted(u.label for u in plan.units)
+
+
+def _cause(symptom: Symptom) -> str:
+    if symptom.kind == "failed":
+        return f"unit {symptom.unit!r} failed: {symptom.detail}"
+    if symptom.kind == "destroyed":
+        return f"unit {symptom.unit!r} was destroyed"
+    if symptom.kind == "stalled":
+        return f"unit {symptom.unit!r} stalled: {symptom.detail}"
+    if symptom.kind == "measurement":
+        return f"measurement {symptom.detail}"
+    if symptom.kind == "retry":
+        return f"retry: {symptom.detail}"
+    if symptom.kind == "resumed":
+        return f"unit {symptom.unit!r} resumed"
+    return symptom.detail or symptom.kind

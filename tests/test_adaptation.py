@@ -1,0 +1,249 @@
+"""Requests and self-adaptation: the paper's scenario with real units, over real Zenoh sessions."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+import threading
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from dyknow import Client, Manager
+from dyknow.adaptation import AdaptationEvent
+from dyknow.errors import PlanningError
+from tests.conftest import REPO, subprocess_env
+from tests.scenario import SPECS, Camera, Consumer, Tracker
+
+ONTOLOGY = REPO / "specs" / "dyknow.ttl"
+BOTTOM, CEILING = Camera.CAMERA_IDS["bottom"], Camera.CAMERA_IDS["ceiling"]
+
+
+class Events:
+    """Collects adaptation events; tests wait on them instead of sleeping."""
+
+    def __init__(self, manager: Manager) -> None:
+        self.events: list[AdaptationEvent] = []
+        self._cond = threading.Condition()
+        manager.on_adaptation(self._add)
+
+    def _add(self, event: AdaptationEvent) -> None:
+        with self._cond:
+            self.events.append(event)
+            self._cond.notify_all()
+
+    def wait(self, kind: str, count: int = 1, timeout: float = 10.0) -> AdaptationEvent:
+        with self._cond:
+            ok = self._cond.wait_for(lambda: len([e for e in self.events if e.kind == kind]) >= count, timeout)
+            assert ok, f"no {count} {kind!r} events within {timeout} s: {[e.to_dict() for e in self.events]}"
+            return [e for e in self.events if e.kind == kind][count - 1]
+
+
+@pytest.fixture
+def robot(make_manager: Callable[..., Manager]) -> Iterator[Manager]:
+    yield make_manager(specs=[SPECS, REPO / "specs" / "generic.xml"], ontology=[ONTOLOGY], dwell_s=0.3)
+
+
+def consume(manager: Manager, key: str, name: str = "consumer") -> Consumer:
+    manager.spawn("consumer", name, bindings={"in": key})
+    consumer = manager.unit(name)
+    assert isinstance(consumer, Consumer)
+    return consumer
+
+
+def camera_of(manager: Manager, label: str) -> Camera:
+    names = [u.name for u in manager.get_model().units if u.label == label]
+    assert names, f"no running {label}"
+    cam = manager.unit(names[0])
+    assert isinstance(cam, Camera)
+    return cam
+
+
+def labels(manager: Manager, key: str) -> set[str]:
+    return {r for info in manager.requests() if info.key == key for r in info.labels}
+
+
+def test_request_wires_the_chain_and_streams_on_its_key(robot: Manager) -> None:
+    key = robot.request("BallPosition(field)")
+    assert key == f"dyknow/{robot.name}/requests/BallPosition(field)"
+    consumer = consume(robot, key)
+    msg = consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    assert msg.payload["x"] == 1.0 and msg.key == key and msg.origin_ns < msg.send_ns
+    assert labels(robot, key) == {"robot-camera", "subsampler(bottom)", "ball-detector(bottom)", "localization(bottom)", "tracker"}
+    (info,) = robot.get_model().requests
+    assert info.state == "active" and info.references == 1 and info.tag == "BallPosition(field)"
+
+
+def test_requests_share_units_and_release_tears_down(robot: Manager) -> None:
+    key = robot.request("BallPosition(field)")
+    assert robot.request("BallPosition( field )") == key  # the same request, shared
+    other = robot.request("WorldObject(bottom)")  # reuses the running detector, spawns nothing new
+    units = {u.name for u in robot.get_model().units}
+    assert len([u for u in units if u.startswith("request-")]) == 2
+    assert "ball-detector-bottom" in units and "ball-detector-bottom-2" not in units
+    robot.release(key)
+    assert robot.requests()[0].references == 1  # still referenced once
+    robot.release(key)
+    remaining = {u.name for u in robot.get_model().units}
+    assert "tracker" not in remaining and "localization-bottom" not in remaining
+    assert {"robot-camera", "subsampler-bottom", "ball-detector-bottom"} <= remaining  # the other request needs them
+    robot.release(other)
+    assert robot.get_model().units == ()
+    with pytest.raises(Exception, match="no request on key"):
+        robot.release(other)
+
+
+def test_nothing_fits_is_an_explained_error_and_changes_nothing(robot: Manager) -> None:
+    with pytest.raises(PlanningError, match="nothing provides Teleport"):
+        robot.request("Teleport(field)")
+    assert robot.get_model().units == () and robot.requests() == []
+
+
+def test_battery_drop_switches_to_the_ceiling_camera_and_back(robot: Manager) -> None:
+    events = Events(robot)
+    key = robot.request("BallPosition(field)")
+    consumer = consume(robot, key)
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    tracker = robot.unit("tracker")
+    assert isinstance(tracker, Tracker)
+
+    robot.measure("battery", 0.1)  # below the robot camera's constraint (>= 0.25)
+    msg = consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+    assert msg.key == key  # the same key: consumers never resubscribe
+    adapted = events.wait("adapted")
+    assert adapted.cause == "measurement battery = 0.1"
+    assert "robot-camera" in adapted.old and "ceiling-camera" in adapted.new and "tracker" in adapted.new
+    recovered = events.wait("recovered")
+    assert recovered.id == adapted.id and recovered.recovery_ms is not None and recovered.adaptation_ms is not None
+    assert 0 < recovered.adaptation_ms <= recovered.recovery_ms
+    assert robot.unit("tracker") is tracker  # healthy units keep running, with their state
+    assert "robot-camera" not in {u.label for u in robot.get_model().units}  # nothing left behind
+
+    robot.measure("battery", 0.9)
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    back = events.wait("adapted", 2)
+    assert "robot-camera" in back.new and back.cause.startswith("measurement battery = 0.9")
+    assert robot.unit("tracker") is tracker and tracker.count > 2
+
+
+def test_camera_exception_switches_and_the_preferred_camera_returns_after_back_off(robot: Manager) -> None:
+    events = Events(robot)
+    key = robot.request("BallPosition(field)")
+    consumer = consume(robot, key)
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    camera_of(robot, "robot-camera").explode()
+    consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+    first = events.wait("adapted")
+    assert first.cause.startswith("unit 'robot-camera' failed") and "lost its connection" in first.cause
+    # after the back-off (1 s) the robot camera is tried again and preferred
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM, timeout=10)
+    assert events.wait("adapted", 2).cause.startswith("retry: back-off of robot-camera ended")
+
+
+def test_destroyed_unit_is_replaced(robot: Manager) -> None:
+    events = Events(robot)
+    key = robot.request("BallPosition(field)")
+    consumer = consume(robot, key)
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    robot.destroy("subsampler-bottom")
+    event = events.wait("adapted")
+    assert event.cause == "unit 'subsampler-bottom' was destroyed"
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)  # a fresh subsampler, same chain
+    assert "subsampler-bottom" in {u.name for u in robot.get_model().units}
+
+
+def test_stalled_stream_switches(robot: Manager) -> None:
+    events = Events(robot)
+    key = robot.request("BallPosition(field)")
+    consumer = consume(robot, key)
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    camera_of(robot, "robot-camera").freeze()  # silent beyond its 100 ms deadline
+    consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+    event = events.wait("adapted")
+    assert event.cause.startswith("unit 'robot-camera' stalled") and "deadline 100 ms" in event.cause
+
+
+def test_degraded_then_recovered(robot: Manager) -> None:
+    events = Events(robot)
+    robot.remove_transformation("ceiling-camera")
+    key = robot.request("BallPosition(field)")
+    consumer = consume(robot, key)
+    robot.measure("battery", 0.05)
+    degraded = events.wait("degraded")
+    assert "constraint violated: battery = 0.05" in (degraded.detail or "")
+    assert robot.requests()[0].state == "degraded"
+    robot.measure("battery", 0.8)
+    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    assert robot.requests()[0].state == "active"
+
+
+def test_events_measurements_and_requests_over_zenoh(robot: Manager) -> None:
+    seen: list[dict[str, object]] = []
+    got = threading.Event()
+
+    def on_event(key: str, payload: bytes) -> None:
+        seen.append(json.loads(payload))
+        got.set()
+
+    with Client(robot.name, connect=robot.endpoints) as client:
+        sub = client.session.subscribe_raw(f"dyknow/{robot.name}/events/adaptation", on_event)
+        key = client.get_model() and robot.request("BallPosition(field)")
+        consumer = consume(robot, key)
+        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+        client.session.put("dyknow/measurements/battery", json.dumps({"value": 0.1}))  # a battery monitor elsewhere
+        consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+        assert got.wait(5)
+        sub.undeclare()
+    assert robot.measurements == {"battery": 0.1}
+    assert seen[0]["kind"] in ("adapted", "recovered") and seen[0]["key"] == key
+
+
+def test_request_service_for_other_processes(robot: Manager) -> None:
+    with Client(robot.name, connect=robot.endpoints) as client:
+        reply = client._call(f"@dyknow/{robot.name}/request", {"tag": "BallPosition(field)"}, "request")
+        assert reply["key"] == f"dyknow/{robot.name}/requests/BallPosition(field)"
+        with pytest.raises(PlanningError, match="nothing provides Teleport"):
+            client._call(f"@dyknow/{robot.name}/request", {"tag": "Teleport(x)"}, "request")
+
+
+REMOTE_SPECS = """<transformations>
+  <transformation><label>remote-camera</label><source>transformations.generic:RemoteStream</source>
+    <params><param name="key">fleet/{name}/camera</param><param name="grace_s" type="float">5</param></params>
+    <ports><port type="in">in</port><port type="out">out</port></ports>
+    <tags><tag port="out">RawImage(bottom)</tag></tags><priority>0</priority></transformation>
+</transformations>"""
+
+
+def test_remote_source_process_killed(robot: Manager) -> None:
+    """A camera in another process is preferred; killing that process switches to the local one."""
+    events = Events(robot)
+    robot.add_transformation(REMOTE_SPECS.replace("{name}", robot.name))
+    script = textwrap.dedent(
+        f"""
+        import threading
+        from dyknow import Manager
+        with Manager("remotecam", specs=[{str(SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={robot.endpoints!r}) as m:
+            m.spawn("robot-camera", "cam", bindings={{"out": "fleet/{robot.name}/camera"}})
+            print("ready", flush=True)
+            threading.Event().wait()
+        """
+    )
+    child = subprocess.Popen([sys.executable, "-c", script], env=subprocess_env(), stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == "ready"
+        key = robot.request("BallPosition(field)")
+        assert "remote-camera" in labels(robot, key)
+        consumer = consume(robot, key)
+        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM and m.payload["frame"] > 3)
+        child.kill()
+        event = events.wait("adapted")
+        assert "the producer of 'fleet/" in event.cause and "is gone" in event.cause
+        assert "robot-camera" in event.new and "remote-camera" in event.old
+        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM and m.payload["frame"] < 5)  # the local camera, new count
+    finally:
+        child.kill()
+        child.wait(10)
+        if child.stdout is not None:
+            child.stdout.close()

@@ -1,0 +1,210 @@
+"""The planner: subclass matching, ontology template args, priorities, reuse, cycles, explanations."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from dyknow.ontology import Ontology
+from dyknow.errors import PlanningError
+from dyknow.planner import Planner, RunningUnit, plan, unit_name_for
+from dyknow.spec import TransformationSpec, load_specs, parse_specs
+from tests.conftest import REPO
+from tests.scenario import SPECS as SCENARIO
+
+ONTOLOGY = REPO / "specs" / "dyknow.ttl"
+
+
+@pytest.fixture(scope="module")
+def ontology() -> Ontology:
+    return Ontology.load([ONTOLOGY])
+
+
+@pytest.fixture(scope="module")
+def scenario(ontology: Ontology) -> list[TransformationSpec]:
+    return load_specs([SCENARIO], individuals=ontology.individuals)
+
+
+def labels(p: object) -> list[str]:
+    return [u.label for u in p.units]  # type: ignore[attr-defined]
+
+
+def specs(xml: str) -> list[TransformationSpec]:
+    return parse_specs(f"<transformations>{xml}</transformations>", "test.xml")
+
+
+def t(label: str, ins: dict[str, str], outs: dict[str, str], priority: int = 100, extra: str = "") -> str:
+    ports = "".join(f'<port type="in">{p}</port>' for p in ins) + "".join(f'<port type="out">{p}</port>' for p in outs)
+    tags = "".join(f'<tag port="{p}">{tag}</tag>' for p, tag in {**ins, **outs}.items())
+    return (
+        f"<transformation><label>{label}</label><source>m:C</source><ports>{ports}</ports>"
+        f"<tags>{tags}</tags><priority>{priority}</priority>{extra}</transformation>"
+    )
+
+
+def test_the_papers_example_chain(scenario: list[TransformationSpec], ontology: Ontology) -> None:
+    result = plan("BallPosition(field)", scenario, ontology, manager="robot")
+    assert labels(result) == ["robot-camera", "subsampler(bottom)", "ball-detector(bottom)", "localization(bottom)", "tracker"]
+    assert result.to_dict() == {
+        "request": "BallPosition(field)",
+        "output": {"unit": "tracker", "port": "out", "key": "dyknow/robot/tracker/out"},
+        "units": [
+            {"name": "robot-camera", "label": "robot-camera", "new": True},
+            {"name": "subsampler-bottom", "label": "subsampler(bottom)", "new": True},
+            {"name": "ball-detector-bottom", "label": "ball-detector(bottom)", "new": True},
+            {"name": "localization-bottom", "label": "localization(bottom)", "new": True},
+            {"name": "tracker", "label": "tracker", "new": True},
+        ],
+        "connections": [
+            {"from": "robot-camera.out", "to": "subsampler-bottom.in", "key": "dyknow/robot/robot-camera/out"},
+            {"from": "subsampler-bottom.hsv", "to": "ball-detector-bottom.in", "key": "dyknow/robot/subsampler-bottom/hsv"},
+            {"from": "ball-detector-bottom.out", "to": "localization-bottom.in", "key": "dyknow/robot/ball-detector-bottom/out"},
+            {"from": "localization-bottom.out", "to": "tracker.in", "key": "dyknow/robot/localization-bottom/out"},
+        ],
+    }
+    tracker = result.units[-1]
+    assert tracker.bindings == {"in": "dyknow/robot/localization-bottom/out", "out": "dyknow/robot/tracker/out"}
+
+
+def test_subclass_matching_is_one_way(ontology: Ontology) -> None:
+    library = specs(
+        t("detector", {}, {"out": "BallObject(rel)"})
+        + t("localization", {"in": "WorldObject(rel)"}, {"out": "Located(field)"})
+        + t("needs-ball", {"in": "BallObject(rel)"}, {"out": "Kicked(field)"})
+        + t("generic-source", {}, {"out": "WorldObject(other)"})
+    )
+    assert labels(plan("Located(field)", library, ontology)) == ["detector", "localization"]
+    with pytest.raises(PlanningError):
+        plan("BallObject(other)", library, ontology)  # a WorldObject is not a BallObject
+    with pytest.raises(PlanningError, match="nothing provides BallObject"):
+        plan("Kicked(field)", specs(t("needs-ball", {"in": "BallObject(rel)"}, {"out": "Kicked(field)"}) + t("g", {}, {"out": "WorldObject(rel)"})), ontology)
+
+
+def test_args_compare_by_local_name(ontology: Ontology) -> None:
+    library = specs(t("src", {}, {"out": "BallObject(dk:rel)"}))
+    assert labels(plan("WorldObject(rel)", library, ontology)) == ["src"]
+    assert labels(plan("<https://dyknow.dev/ontology#WorldObject>(<https://dyknow.dev/ontology#rel>)", library, ontology)) == ["src"]
+    with pytest.raises(PlanningError):
+        plan("WorldObject(field)", library, ontology)
+
+
+def test_functors_in_no_ontology_match_only_themselves() -> None:
+    library = specs(t("a", {}, {"out": "Foo(x)"}) + t("b", {}, {"out": "Bar(x)"}))
+    assert labels(plan("Foo(x)", library)) == ["a"]
+    with pytest.raises(PlanningError, match="nothing provides Baz"):
+        plan("Baz(x)", library)
+
+
+def test_ontology_template_args_expand_over_individuals(scenario: list[TransformationSpec]) -> None:
+    detectors = sorted(s.label for s in scenario if s.label.startswith("ball-detector"))
+    assert detectors == ["ball-detector(bottom)", "ball-detector(ceiling)", "ball-detector(top)"]
+
+
+def test_priority_ranks_alternatives_with_equal_cost() -> None:
+    library = specs(t("cam-b", {}, {"out": "Image"}, priority=5) + t("cam-a", {}, {"out": "Image"}, priority=7))
+    assert labels(plan("Image", library)) == ["cam-b"]
+    library = specs(t("cam-b", {}, {"out": "Image"}) + t("cam-a", {}, {"out": "Image"}))
+    assert labels(plan("Image", library)) == ["cam-a"]  # then by label
+
+
+def test_fewest_new_units_beats_priority() -> None:
+    library = specs(
+        t("long-src", {}, {"out": "Raw"}, priority=1)
+        + t("long-proc", {"in": "Raw"}, {"out": "Image"}, priority=1)
+        + t("direct", {}, {"out": "Image"}, priority=50)
+    )
+    assert labels(plan("Image", library)) == ["direct"]
+
+
+def test_reuses_running_units(scenario: list[TransformationSpec], ontology: Ontology) -> None:
+    running = [
+        RunningUnit("cam", "robot-camera", {"out": "robot/cam"}, {"out": ("RawImage(bottom)",)}),
+        RunningUnit("sub", "subsampler(bottom)", {"hsv": "robot/hsv"}, {"hsv": ("HSVImage(bottom)",)}),
+    ]
+    result = plan("BallPosition(field)", scenario, ontology, running)
+    assert [(u.name, u.new) for u in result.units] == [
+        ("sub", False),
+        ("ball-detector-bottom", True),
+        ("localization-bottom", True),
+        ("tracker", True),
+    ]
+    assert result.units[1].bindings["in"] == "robot/hsv"
+    assert result.cost[0] == 3
+
+
+def test_failed_running_units_are_not_reused(scenario: list[TransformationSpec], ontology: Ontology) -> None:
+    running = [RunningUnit("sub", "subsampler(bottom)", {"hsv": "robot/hsv"}, {"hsv": ("HSVImage(bottom)",)}, healthy=False)]
+    result = plan("BallPosition(field)", scenario, ontology, running)
+    assert "sub" not in [u.name for u in result.units]
+    assert ("subsampler(bottom)", True) in [(u.label, u.new) for u in result.units]
+
+
+def test_unavailable_and_constraints_switch_to_the_alternative(scenario: list[TransformationSpec], ontology: Ontology) -> None:
+    assert "ceiling-camera" in labels(plan("BallPosition(field)", scenario, ontology, unavailable={"robot-camera"}))
+    assert "ceiling-camera" in labels(plan("BallPosition(field)", scenario, ontology, measurements={"battery": 0.2}))
+    assert "robot-camera" in labels(plan("BallPosition(field)", scenario, ontology, measurements={"battery": 0.25}))
+
+
+def test_explanation_names_the_unmet_tag_and_every_reason(scenario: list[TransformationSpec], ontology: Ontology) -> None:
+    with pytest.raises(PlanningError) as info:
+        plan("BallPosition(field)", scenario, ontology, unavailable={"ceiling-camera"}, measurements={"battery": 0.1})
+    text = str(info.value)
+    assert text.startswith("cannot plan BallPosition(field):")
+    assert "robot-camera (port out): constraint violated: battery = 0.1, needs >= 0.25" in text
+    assert "ceiling-camera (port out): unavailable" in text
+    assert "nothing provides RawImage(top)" in text
+    tree = info.value.to_dict()["rejection"]
+    assert tree["tag"] == "BallPosition(field)"
+    assert tree["alternatives"][0]["provider"] == "tracker"
+
+
+def test_cycles_are_detected_and_escaped() -> None:
+    looping = specs(t("a", {"in": "Y"}, {"out": "X"}) + t("b", {"in": "X"}, {"out": "Y"}))
+    with pytest.raises(PlanningError, match="cycle: a -> b -> a"):
+        plan("X", looping)
+    escapable = specs(t("a", {"in": "Y"}, {"out": "X"}) + t("b", {"in": "X"}, {"out": "Y"}) + t("seed", {}, {"out": "Y"}))
+    assert labels(plan("X", escapable)) == ["seed", "a"]
+
+
+def test_depth_limit() -> None:
+    chain = "".join(t(f"s{i:02d}", {"in": f"T{i + 1}"}, {"out": f"T{i}"}) for i in range(10)) + t("root", {}, {"out": "T10"})
+    assert len(plan("T0", specs(chain)).units) == 11
+    with pytest.raises(PlanningError, match=r"depth limit \(5 transformations deep\)"):
+        plan("T0", specs(chain), max_depth=5)
+
+
+def test_shared_inputs_spawn_one_unit() -> None:
+    library = specs(t("cam", {}, {"out": "Image"}) + t("fuse", {"a": "Image", "b": "Image"}, {"out": "Fused"}))
+    result = plan("Fused", library)
+    assert labels(result) == ["cam", "fuse"]
+    assert sorted(c.target for c in result.connections) == ["fuse.a", "fuse.b"]
+
+
+def test_untagged_inputs_are_not_wired() -> None:
+    library = specs(t("src", {}, {"out": "X"}) + '<transformation><label>user</label><source>m:C</source>'
+                    '<ports><port type="in">cfg</port><port type="out">out</port></ports>'
+                    '<tags><tag port="out">Y</tag></tags></transformation>')  # fmt: skip
+    result = plan("Y", library, manager="m")
+    assert labels(result) == ["user"] and result.units[0].bindings["cfg"] == "dyknow/m/user/cfg"
+
+
+def test_names_avoid_collisions_and_are_valid() -> None:
+    library = specs(t("cam(left)", {}, {"out": "Image"}))
+    planner = Planner(library)
+    assert planner.plan("Image").units[0].name == "cam-left"
+    assert planner.plan("Image", reserved_names={"cam-left"}).units[0].name == "cam-left-2"
+    assert unit_name_for("<http://x>(a b)") == "http-x-a-b"
+
+
+def test_deterministic_whatever_the_library_order(scenario: list[TransformationSpec], ontology: Ontology) -> None:
+    first = plan("BallPosition(field)", scenario, ontology, measurements={"battery": 0.1})
+    for seed in range(5):
+        shuffled = list(scenario)
+        random.Random(seed).shuffle(shuffled)
+        assert plan("BallPosition(field)", shuffled, ontology, measurements={"battery": 0.1}) == first
+
+
+def test_bad_request_is_a_clear_error() -> None:
+    with pytest.raises(PlanningError, match="cannot plan 'Foo\\(': "):
+        plan("Foo(", [])
