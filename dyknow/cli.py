@@ -8,8 +8,10 @@ Commands::
 
     dyknow manager --name NAME [--specs PATH ...] [--listen ENDPOINT] [--zenoh-config FILE]
     dyknow demo [--duration S]
-    dyknow validate PATH ...                       (offline)
+    dyknow validate PATH ... [--ontology FILE ...]  (offline)
     dyknow expand PATH ... [--json]                (offline)
+    dyknow plan --specs PATH ... [--ontology FILE ...] --request TAG [--unavailable LABEL ...]
+                [--measure NAME=VALUE ...] --json  (offline)
     dyknow spawn LABEL NAME [--protect] [--param K=V ...] [--bind PORT=KEY ...]
     dyknow destroy NAME
     dyknow model
@@ -17,6 +19,7 @@ Commands::
     dyknow stats NAME
     dyknow add-spec FILE | dyknow remove-spec LABEL
     dyknow echo KEYEXPR [--count N]
+    dyknow request TAG | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
 
 Client commands reach a manager with ``--connect ENDPOINT`` (default tcp/127.0.0.1:7447) and
 ``--manager NAME`` (default ``dyknow``).
@@ -71,9 +74,27 @@ def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
 # ---------------------------------------------------------------------- offline commands
 
 
+def _ontology(paths: Sequence[str]) -> Any:
+    from dyknow.ontology import Ontology
+
+    return Ontology.load(paths) if paths else None
+
+
+def _load(args: argparse.Namespace) -> list[Any]:
+    ontology = _ontology(getattr(args, "ontology", []))
+    return load_specs(args.paths, individuals=ontology.individuals if ontology is not None else None)
+
+
+def _value(text: str) -> float | str:
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def cmd_validate(args: argparse.Namespace) -> int:
     try:
-        specs = load_specs(args.paths)
+        specs = _load(args)
     except SpecError as exc:
         for issue in exc.issues:
             print(str(issue), file=sys.stderr)
@@ -89,7 +110,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_expand(args: argparse.Namespace) -> int:
-    specs = load_specs(args.paths)
+    specs = _load(args)
     if args.json:
         _out(
             [
@@ -114,6 +135,31 @@ def cmd_expand(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_plan(args: argparse.Namespace) -> int:
+    from dyknow.errors import PlanningError
+    from dyknow.planner import plan
+
+    ontology = _ontology(args.ontology)
+    specs = load_specs(args.specs, individuals=ontology.individuals if ontology is not None else None)
+    measurements = {k: _value(v) for k, v in _pairs(args.measure, "--measure").items()}
+    try:
+        result = plan(args.request, specs, ontology, (), set(args.unavailable), measurements, manager=args.manager)
+    except PlanningError as exc:
+        if args.json:
+            _out({"request": args.request, "error": str(exc), "rejection": exc.rejection.to_dict() if exc.rejection else None})
+        print(str(exc), file=sys.stderr)
+        return 1
+    if args.json:
+        _out(result.to_dict())
+        return 0
+    print(f"{result.request}: {len(result.units)} units, output {result.output_unit}.{result.output_port} on {result.output_key}")
+    for unit in result.units:
+        print(f"  {'new ' if unit.new else 'reuse'} {unit.name} ({unit.label})")
+    for c in result.connections:
+        print(f"  {c.source} -> {c.target}  ({c.key})")
+    return 0
+
+
 # ---------------------------------------------------------------------- the manager
 
 
@@ -133,7 +179,9 @@ def cmd_manager(args: argparse.Namespace) -> int:
     from dyknow.manager import Manager
 
     listen = args.listen or ([DEFAULT_ENDPOINT] if args.zenoh_config is None else None)
-    with Manager(args.name, specs=args.specs, listen=listen, connect=args.connect, zenoh_config=args.zenoh_config) as manager:
+    with Manager(
+        args.name, specs=args.specs, ontology=args.ontology, listen=listen, connect=args.connect, zenoh_config=args.zenoh_config
+    ) as manager:
         endpoints = manager.endpoints
         if args.json:
             _out({"event": "ready", "manager": args.name, "endpoints": endpoints, "specs": len(manager.library)})
@@ -263,6 +311,52 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_request(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        key = client.request(args.tag)
+    if args.json:
+        _out({"request": args.tag, "key": key})
+    else:
+        print(key)
+    return 0
+
+
+def cmd_release(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        client.release(args.key)
+    if args.json:
+        _out({"released": args.key})
+    else:
+        print(f"released {args.key}")
+    return 0
+
+
+def cmd_measure(args: argparse.Namespace) -> int:
+    values = {k: _value(v) for k, v in _pairs(args.values, "measure").items()}
+    if not values:
+        raise _Usage("measure needs at least one NAME=VALUE, e.g. battery=0.2")
+    with _client(args) as client:
+        for name, value in values.items():
+            client.measure(name, value)
+    if args.json:
+        _out({"measured": values})
+    return 0
+
+
+def cmd_adaptations(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        events = client.get_adaptations()
+    if args.json:
+        _out(events)
+        return 0
+    for e in events:
+        times = f"adapted in {e['adaptation_ms']} ms" if e["adaptation_ms"] is not None else ""
+        if e["recovery_ms"] is not None:
+            times += f", recovered in {e['recovery_ms']} ms"
+        print(f"#{e['id']} {e['kind']} {e['request']}: {e['cause']}; {', '.join(e['old'])} -> {', '.join(e['new']) or '(none)'} {times}")
+    return 0
+
+
 def _payload_json(payload: Any) -> Any:
     if isinstance(payload, np.ndarray):
         return {"ndarray": {"dtype": str(payload.dtype), "shape": list(payload.shape)}}
@@ -342,6 +436,7 @@ def _parser() -> argparse.ArgumentParser:
     p = command("manager", cmd_manager, "run a manager until interrupted")
     p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
     p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file to join a real deployment")
@@ -353,9 +448,19 @@ def _parser() -> argparse.ArgumentParser:
 
     p = command("validate", cmd_validate, "check spec files; exit 1 with one PATH:LINE: message per error")
     p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
 
     p = command("expand", cmd_expand, "print every transformation after template expansion")
     p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+
+    p = command("plan", cmd_plan, "plan a configuration for a tag, offline; exit 1 with the explanation when none exists")
+    p.add_argument("--specs", action="extend", nargs="+", required=True, metavar="PATH", help="spec files or directories")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files")
+    p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")
+    p.add_argument("--unavailable", action="extend", nargs="+", default=[], metavar="LABEL", help="transformations not to use")
+    p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
+    p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
 
     p = command("spawn", cmd_spawn, "spawn a unit on a manager", client=True)
     p.add_argument("label")
@@ -382,6 +487,17 @@ def _parser() -> argparse.ArgumentParser:
 
     p = command("remove-spec", cmd_remove_spec, "remove a transformation from the manager's library", client=True)
     p.add_argument("label")
+
+    p = command("request", cmd_request, "ask a manager for a stream by tag; prints its key", client=True)
+    p.add_argument("tag")
+
+    p = command("release", cmd_release, "give back a requested stream", client=True)
+    p.add_argument("key")
+
+    p = command("measure", cmd_measure, "record measurements on a manager, e.g. battery=0.2", client=True)
+    p.add_argument("values", nargs="+", metavar="NAME=VALUE")
+
+    command("adaptations", cmd_adaptations, "list a manager's adaptations", client=True)
 
     p = command("echo", cmd_echo, "print the messages published on a key expression", client=True)
     p.add_argument("keyexpr")

@@ -118,6 +118,20 @@ class Client:
     def get_statistics(self, name: str) -> dict[str, Any]:
         return dict(self._call(service.unit_key(self.manager, name, "get_statistics"), {}, "get_statistics"))
 
+    def request(self, tag: str) -> str:
+        """Ask the manager for a stream of ``tag``; returns its key (PlanningError when nothing fits)."""
+        return str(self._call(service.manager_key(self.manager, "request"), {"tag": tag}, "request")["key"])
+
+    def release(self, key: str) -> None:
+        self._call(service.manager_key(self.manager, "release"), {"key": key}, "release")
+
+    def measure(self, name: str, value: float | str) -> None:
+        """Record a measurement on the manager (constraints are checked against it)."""
+        self._call(service.manager_key(self.manager, "measure"), {"name": name, "value": value}, "measure")
+
+    def get_adaptations(self) -> list[dict[str, Any]]:
+        return list(self._call(service.manager_key(self.manager, "get_adaptations"), {}, "get_adaptations"))
+
     # ------------------------------------------------------------------ streams
 
     def subscribe(self, key_expr: str, callback: Callable[[Message], None]) -> Subscriber:

@@ -178,3 +178,53 @@ def test_echo_times_out_with_a_clear_message(manager_process: Callable[..., Mana
     result = run_cli("echo", "nothing/here", "--count", "1", "--timeout-total", "0.5", *proc.client_args())
     assert result.returncode == 1 and "received 0 of 1 messages on 'nothing/here'" in result.stderr
     assert time.monotonic() - start < 30
+
+
+SCENARIO = REPO / "tests" / "scenario" / "scenario.xml"
+ONTOLOGY = REPO / "specs" / "dyknow.ttl"
+
+
+def test_plan_json_contract() -> None:
+    result = run_cli("plan", "--specs", str(SCENARIO), "--ontology", str(ONTOLOGY), "--request", "BallPosition(field)",
+                     "--measure", "battery=0.1", "--json")  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    planned = json.loads(result.stdout)
+    assert planned["request"] == "BallPosition(field)"
+    assert planned["output"] == {"unit": "tracker", "port": "out", "key": "dyknow/dyknow/tracker/out"}
+    assert [u["label"] for u in planned["units"]] == [
+        "ceiling-camera", "subsampler(ceiling)", "ball-detector(ceiling)", "localization(ceiling)", "tracker",
+    ]  # fmt: skip
+    assert all(u["new"] for u in planned["units"]) and set(planned["units"][0]) == {"name", "label", "new"}
+    assert planned["connections"][0] == {"from": "ceiling-camera.out", "to": "subsampler-ceiling.in", "key": "dyknow/dyknow/ceiling-camera/out"}
+
+
+def test_plan_failure_explains_and_exits_1() -> None:
+    result = run_cli("plan", "--specs", str(SCENARIO), "--ontology", str(ONTOLOGY), "--request", "BallPosition(field)",
+                     "--measure", "battery=0.1", "--unavailable", "ceiling-camera")  # fmt: skip
+    assert result.returncode == 1 and result.stdout == ""
+    assert result.stderr.startswith("cannot plan BallPosition(field):")
+    assert "robot-camera (port out): constraint violated: battery = 0.1, needs >= 0.25" in result.stderr
+    assert "ceiling-camera (port out): unavailable" in result.stderr
+    missing = run_cli("plan", "--specs", str(SCENARIO), "--request", "BallPosition(field)")
+    assert missing.returncode == 1 and "no ontology is loaded; expected --ontology FILE" in missing.stderr
+
+
+def test_request_measure_release_over_the_cli(manager_process: Callable[..., ManagerProcess]) -> None:
+    proc = manager_process("--specs", str(SCENARIO), "--ontology", str(ONTOLOGY))
+    conn = proc.client_args()
+    requested = run_cli("request", "BallPosition(field)", "--json", *conn)
+    assert requested.returncode == 0, requested.stderr
+    key = json.loads(requested.stdout)["key"]
+    assert key == f"dyknow/{proc.name}/requests/BallPosition(field)"
+    echo = run_cli("echo", key, "--count", "3", "--json", *conn)
+    assert echo.returncode == 0 and [json.loads(x)["payload"]["camera"] for x in echo.stdout.splitlines()] == [1, 1, 1]
+    assert run_cli("measure", "battery=0.1", *conn).returncode == 0
+    echo = run_cli("echo", key, "--count", "40", "--json", *conn)
+    assert json.loads(echo.stdout.splitlines()[-1])["payload"]["camera"] == 3  # the ceiling camera now
+    history = json.loads(run_cli("adaptations", "--json", *conn).stdout)
+    assert history[0]["cause"] == "measurement battery = 0.1" and history[0]["adaptation_ms"] > 0
+    impossible = run_cli("request", "Teleport(x)", *conn)
+    assert impossible.returncode == 1 and "nothing provides Teleport(x)" in impossible.stderr
+    assert run_cli("release", key, *conn).returncode == 0
+    model = json.loads(run_cli("model", "--json", *conn).stdout)
+    assert model["units"] == [] and model["requests"] == []
