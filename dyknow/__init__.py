@@ -22,6 +22,7 @@ from dyknow.errors import (
     LibraryError,
     OntologyError,
     PlanningError,
+    RecordingError,
     ServiceError,
     SpecError,
     SpecIssue,
@@ -36,6 +37,8 @@ from dyknow.message import Message, PayloadError
 from dyknow.ontology import Ontology
 from dyknow.planner import Plan, Planner, RunningUnit, plan
 from dyknow.proxy import UnitState, UnitStatistics
+from dyknow.recording import Recorder
+from dyknow.replay import ChannelInfo, Player, RecordedMessage, Recording, RecordingInfo
 from dyknow.spec import (
     Constraint,
     Param,
@@ -57,6 +60,7 @@ __all__ = [
     "DEFAULT_ENDPOINT",
     "AdaptationEvent",
     "BindingError",
+    "ChannelInfo",
     "Client",
     "ClosedError",
     "Constraint",
@@ -74,8 +78,14 @@ __all__ = [
     "Plan",
     "Planner",
     "PlanningError",
+    "Player",
     "Port",
     "PortStatistics",
+    "RecordedMessage",
+    "Recorder",
+    "Recording",
+    "RecordingError",
+    "RecordingInfo",
     "RequestInfo",
     "RunningUnit",
     "ServiceError",

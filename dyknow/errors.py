@@ -12,7 +12,8 @@ Every error dyknow raises on purpose derives from :class:`DyKnowError`, with one
     ├── ClosedError        an object was used after close()
     ├── OntologyError      an ontology cannot be loaded, or a class name is unknown or ambiguous
     ├── TagError           a tag is not a well-formed term such as ``BallPosition(field)``
-    └── PlanningError      no configuration provides a requested tag (with the explanation)
+    ├── PlanningError      no configuration provides a requested tag (with the explanation)
+    └── RecordingError     an MCAP recording cannot be written or read (file, offset, what is wrong)
 
 Messages say what came in, what was expected, and what to do about it.
 """
@@ -31,6 +32,7 @@ __all__ = [
     "LibraryError",
     "OntologyError",
     "PlanningError",
+    "RecordingError",
     "ServiceError",
     "SpecError",
     "SpecIssue",
@@ -142,3 +144,8 @@ class PlanningError(DyKnowError):
 
     def to_dict(self) -> dict[str, Any]:
         return {"request": self.request, "message": str(self), "rejection": self.rejection.to_dict() if self.rejection is not None else None}
+
+
+class RecordingError(DyKnowError):
+    """An MCAP recording cannot be written (unwritable path, full disk) or read (not MCAP,
+    truncated, corrupt). The message names the file and, for a damaged file, the offset."""

@@ -299,6 +299,12 @@ class Proxy:
         for timer in self._timers:
             timer.cancel()
         self._detach_inputs()
+        # run() must be out of the way before teardown() frees what it uses (a video capture, say)
+        thread = self._run_thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout)
+            if thread.is_alive():
+                log.warning("unit %r: run() did not return within %.1f s after stop was set", self.name, timeout)
         # Wait for a callback in flight (bounded: a stuck unit must not hang its manager).
         got = self._lock.acquire(timeout=timeout) if self._current_thread != get_ident() else False
         try:
@@ -320,11 +326,6 @@ class Proxy:
         for watch in self._watches:
             watch.undeclare()
         self._executor.release(self)
-        thread = self._run_thread
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout)
-            if thread.is_alive():
-                log.warning("unit %r: run() did not return within %.1f s after stop was set", self.name, timeout)
 
     def _detach_inputs(self) -> None:
         self._bus.detach(self._input_seq, ())

@@ -211,10 +211,14 @@ class Publisher(_Entity):
         key: str,
         on_matching: Callable[[bool], None] | None,
         shm: _SharedMemory | None = None,
+        reliable: bool = False,
     ) -> None:
         self._shm = shm
+        # Streams drop rather than stall their producer when the network queue is full (Zenoh's
+        # default); a reliable publisher (a replay, say) blocks instead so nothing is lost.
+        congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
         try:
-            pub = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
+            pub = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE, congestion_control=congestion)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a publisher on {key!r}: {_clean(exc)}") from exc
         super().__init__(pub)
@@ -420,8 +424,9 @@ class Session:
 
     # -- declarations
 
-    def declare_publisher(self, key: str, on_matching: Callable[[bool], None] | None = None) -> Publisher:
-        return Publisher(self._z(), key, on_matching, self._shm)
+    def declare_publisher(self, key: str, on_matching: Callable[[bool], None] | None = None, *, reliable: bool = False) -> Publisher:
+        """A publisher on ``key``; ``reliable`` blocks when the network queue is full instead of dropping."""
+        return Publisher(self._z(), key, on_matching, self._shm, reliable)
 
     def declare_subscriber(
         self,

@@ -21,7 +21,9 @@ Hooks (override the ones you need; all run on the unit's executor thread, never 
   when the ``stop`` event is set. Publishing from it is safe.
 
 Attributes set before ``setup()``: ``name`` (the instance name), ``label`` (its spec's label),
-``params`` (typed values from the spec, with spawn-time overrides) and ``log`` (a logger).
+``params`` (typed values from the spec, with spawn-time overrides) and ``log`` (a logger). Those
+names and the methods below are the unit's interface with dyknow; other attribute names are
+free for the unit's own state.
 
 Set the class attribute ``dedicated_thread = True`` for units whose callbacks are known to be slow
 (heavy image processing): they get a thread of their own from the start instead of after their
@@ -132,7 +134,6 @@ class Unit:
         """
         self._proxy.watch_liveliness(key_expr, on_change)
 
-    @property
-    def config(self) -> dict[str, str]:
-        """The current port -> key expression bindings."""
+    def get_config(self) -> dict[str, str]:
+        """The current port -> key expression bindings (what the proxy's ``get_config`` serves)."""
         return self._proxy.get_config()

@@ -70,6 +70,7 @@ def test_subclass_is_reflexive_and_transitive(dyknow: Ontology) -> None:
     assert dyknow.is_subclass(DK + "YUVImage", DK + "Image")
     assert dyknow.is_subclass(DK + "RobotCamera", SOSA + "Sensor")
     assert not dyknow.is_subclass(DK + "Image", DK + "YUVImage")
+    assert not dyknow.is_subclass(DK + "YUVImage", DK + "RawImage")  # raw frames are BGR
     assert dyknow.descendants(DK + "Position") == {DK + "Position", DK + "BallPosition", DK + "BallTrack"}
     assert dyknow.descendants(DK + "field") == {DK + "field"}  # an individual is no class
 

@@ -1,0 +1,189 @@
+"""The command-line tools as a user runs them: calibrate.py, eval_ball.py, accuracy.py.
+
+These check real-data behaviour: the calibration against OpenCV's reference, and the ball
+detector's recall and false detections on the shared videos.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.conftest import REPO, subprocess_env
+from transformations.calibration import load_calibration
+
+TOOLS = REPO / "tools"
+
+
+def run_tool(
+    script: str, *args: str | Path, data_dir: Path | None = None, timeout: float = 120
+) -> subprocess.CompletedProcess[str]:
+    env = subprocess_env()
+    if data_dir is not None:
+        env["DYKNOW_DATA"] = str(data_dir)
+    return subprocess.run(
+        [sys.executable, str(TOOLS / script), *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+        cwd=REPO,
+        check=False,
+    )
+
+
+def json_of(proc: subprocess.CompletedProcess[str]) -> Any:
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+# ---------------------------------------------------------------------------------- calibrate.py
+
+
+def test_calibrate_matches_the_reference_calibration(data_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "left.yml"
+    result = json_of(
+        run_tool("calibrate.py", data_dir / "images" / "chessboard", "--pattern", "9x6", "--square", "0.025", "-o", out, "--json")
+    )
+    assert list(result) == ["images", "boards_found", "rms_px", "camera_matrix", "dist_coeffs"]
+    assert (result["images"], result["boards_found"]) == (13, 13)
+    assert result["rms_px"] == pytest.approx(0.41, abs=0.03)
+    k = np.array(result["camera_matrix"])
+    assert k.shape == (3, 3) and len(result["dist_coeffs"]) == 5
+    reference = load_calibration(data_dir / "calibration" / "left_intrinsics.yml").camera_matrix
+    for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)):
+        assert k[i, j] == pytest.approx(reference[i, j], rel=0.02)
+    # the file is a regular OpenCV calibration file, and says what the JSON says
+    storage = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)
+    assert np.allclose(storage.getNode("camera_matrix").mat(), k)
+    assert storage.getNode("distortion_coefficients").mat().reshape(-1).tolist() == pytest.approx(result["dist_coeffs"])
+    assert (storage.getNode("image_width").real(), storage.getNode("image_height").real()) == (640, 480)
+    assert storage.getNode("rms").real() == pytest.approx(result["rms_px"])
+    storage.release()
+    assert load_calibration(out).image_size == (640, 480)
+
+
+def test_calibrate_prints_a_summary_without_json(data_dir: Path, tmp_path: Path) -> None:
+    proc = run_tool("calibrate.py", data_dir / "images" / "chessboard", "--pattern", "9x6", "-o", tmp_path / "left.xml")
+    assert proc.returncode == 0, proc.stderr
+    assert "boards found: 13/13" in proc.stdout and "written:" in proc.stdout
+    assert load_calibration(tmp_path / "left.xml").camera_matrix[0, 0] == pytest.approx(536, rel=0.02)
+
+
+def _folder(tmp_path: Path, data_dir: Path, *names: str) -> Path:
+    folder = tmp_path / "shots"
+    folder.mkdir()
+    for name in names:
+        shutil.copy(next(data_dir.glob(f"images/*/{name}")), folder / name)
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("setup", "message"),
+    [
+        (lambda t, d: t / "missing", "no such folder"),
+        (lambda t, d: _folder(t, d), "has no images"),
+        (lambda t, d: _folder(t, d, "basketball1.png", "basketball2.png"), "no 9x6 chessboard found in any of the 2 images"),
+        (lambda t, d: _folder(t, d, "left01.jpg"), None),  # filled with a corrupt image below
+    ],
+    ids=["missing-folder", "no-images", "no-board", "corrupt-image"],
+)
+def test_calibrate_errors_are_one_clear_line(
+    tmp_path: Path, data_dir: Path, setup: Callable[[Path, Path], Path], message: str | None
+) -> None:
+    folder = setup(tmp_path, data_dir)
+    if message is None:
+        (folder / "left02.jpg").write_bytes(b"garbage, not a jpeg" * 10)
+        message = f"{folder / 'left02.jpg'}: cannot decode the image"
+    proc = run_tool("calibrate.py", folder, "--pattern", "9x6", "-o", tmp_path / "out.yml", "--json")
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.startswith("calibrate.py: error: ") and message in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_calibrate_refuses_a_bad_pattern(tmp_path: Path, data_dir: Path) -> None:
+    proc = run_tool("calibrate.py", data_dir / "images" / "chessboard", "--pattern", "nine", "-o", tmp_path / "o.yml")
+    assert proc.returncode == 2 and "expected inner corners as COLSxROWS, such as 9x6" in proc.stderr
+
+
+# ---------------------------------------------------------------------------------- eval_ball.py
+
+
+def _check_contract(result: dict[str, Any], frames: int) -> list[dict[str, float]]:
+    assert list(result) == ["frames", "detections"]
+    assert result["frames"] == frames and len(result["detections"]) == frames
+    hits = []
+    for i, d in enumerate(result["detections"]):
+        if d is not None:
+            assert list(d) == ["frame", "x", "y", "radius"] and d["frame"] == i
+            hits.append(d)
+    return hits
+
+
+def test_eval_ball_finds_the_ball_in_sim1(data_dir: Path) -> None:
+    hits = _check_contract(json_of(run_tool("eval_ball.py", data_dir / "video" / "sim1.mp4", "--json")), 243)
+    assert len(hits) / 243 >= 0.95
+    assert all(13 <= d["radius"] <= 17 for d in hits)  # the same ball throughout (radius about 15 px)
+
+
+def test_eval_ball_sees_no_ball_in_vtest(data_dir: Path) -> None:
+    hits = _check_contract(json_of(run_tool("eval_ball.py", data_dir / "video" / "vtest.avi", "--json")), 795)
+    assert len(hits) / 795 <= 0.01
+
+
+def test_eval_ball_takes_param_overrides_and_spec_labels(data_dir: Path) -> None:
+    video = data_dir / "video" / "ball.mp4"
+    default = _check_contract(json_of(run_tool("eval_ball.py", video, "--spec", "ball-detector(ceiling)", "--json")), 60)
+    tuned_args = [
+        "--param",
+        "hsv_lower=25,18,60",
+        "--param",
+        "hsv_upper=45,255,255",
+        "--param",
+        "min_circularity=0.3",
+        "--param",
+        "min_fill=0.3",
+    ]
+    tuned = _check_contract(json_of(run_tool("eval_ball.py", video, *tuned_args, "--json")), 60)
+    assert len(tuned) > 3 * len(default)
+    assert all(15 <= d["frame"] <= 45 for d in tuned[1:-1])  # the throw happens in the middle of the clip
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["video/missing.mp4"], "eval_ball.py: error: no such video file"),
+        (["SOURCES.md"], "OpenCV cannot open it"),
+        (["video/ball.mp4", "--param", "hsv_lowr=1,2,3"], "has no param 'hsv_lowr'"),
+        (["video/ball.mp4", "--param", "min_fill=2"], "param 'min_fill': got 2.0; expected a number >= 0 and <= 1"),
+        (["video/ball.mp4", "--spec", "tracker"], "expected a BallDetector spec"),
+    ],
+    ids=["missing", "not-a-video", "unknown-param", "bad-param", "not-a-detector"],
+)
+def test_eval_ball_errors_are_one_clear_line(data_dir: Path, args: list[str], message: str) -> None:
+    proc = run_tool("eval_ball.py", str(data_dir / args[0]), *args[1:], "--json")
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+# ---------------------------------------------------------------------------------- accuracy.py
+
+
+def test_accuracy_meets_every_target(data_dir: Path) -> None:
+    proc = run_tool("accuracy.py", "--json", data_dir=data_dir, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = json.loads(proc.stdout)
+    assert all(row["met"] is not False for row in rows)
+    by_check = {row["check"]: row for row in rows}
+    assert by_check["sim1.mp4 recall (ball in every frame)"]["recall"] >= 0.95
+    assert by_check["vtest.avi false detections (no ball)"]["rate"] <= 0.01
+    assert sum(row["check"].startswith("synthetic") for row in rows) == 3
