@@ -64,7 +64,8 @@ from typing import NoReturn
 from xml.parsers import expat
 from xml.sax.saxutils import escape, quoteattr
 
-from dyknow.errors import SpecError, SpecIssue, did_you_mean
+from dyknow.errors import SpecError, SpecIssue, TagError, did_you_mean
+from dyknow.tags import parse_term
 
 __all__ = [
     "CONSTRAINT_OPS",
@@ -489,6 +490,11 @@ class Template:
                 names = list(first_line)
                 hint = did_you_mean(tag.port, names)
                 problems.append((line, f"<tag> @port: no port named {tag.port!r}; expected {_one_of(names)}{hint}"))
+            if tag.tag:
+                try:
+                    parse_term(tag.tag)
+                except TagError as exc:
+                    problems.append((line, f"<tag>: {exc}"))
 
         constraints = []
         for constraint, line in zip(self.constraints, self.constraint_lines, strict=True):

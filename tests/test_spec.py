@@ -122,6 +122,7 @@ BROKEN_CASES = [
     ("deadline_not_positive.xml", 5, "<port> @deadline-ms: '0' is not a positive number; expected milliseconds such as 500", 1),
     ("tag_templated_port.xml", 7, "<tag> @port: no port named 'image_rear'; expected 'image_front' (did you mean 'image_front'?) (in expansion Cam=rear)", 1),
     ("empty_tag.xml", 6, "<tag>: empty tag", 1),
+    ("tag_syntax.xml", 6, "<tag>: tag 'Ball(Position(field))': nested terms are not allowed; expected Functor or Functor(arg, ...)", 1),
     ("constraint_op.xml", 6, "<constraint> @op: unknown operator '=>'; expected one of <, <=, >, >=, ==, !=", 1),
     ("constraint_not_number.xml", 6, "<constraint> @value: 'docked' is not a number, so op '>=' cannot compare it; expected a number, or op == or !=", 1),
     ("priority.xml", 5, "<priority>: 'high' is not an integer; expected a whole number such as 1", 1),
