@@ -468,7 +468,7 @@ def test_to_xml_escapes_xml_and_dollar() -> None:
             Param("on", "bool", False),
         ),
         ports=(Port("o", "out", 0.00001), Port("i", "in")),
-        tags=(Tag("o", "T<&>'\"$"),),
+        tags=(Tag("o", "<http://ex.org/a?b=1&c=$2#T>(x)"),),  # & < > need escaping, $ doubling
         priority=-2,
         constraints=(Constraint("mode", "!=", 'a "b" <c>'), Constraint("battery", "<", 0.5)),
         description="line one\nline & two",
