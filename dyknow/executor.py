@@ -63,12 +63,12 @@ class Timer:
 
     __slots__ = ("_executor", "callback", "cancelled", "job", "next_ns", "overruns", "period_ns")
 
-    def __init__(self, executor: Executor, job: Job, period_ns: int, callback: Callable[[], None]) -> None:
+    def __init__(self, executor: Executor, job: Job, period_ns: int, callback: Callable[[], None], first_ns: int | None = None) -> None:
         self._executor = executor
         self.job = job
         self.period_ns = period_ns
         self.callback = callback
-        self.next_ns = time.monotonic_ns() + period_ns
+        self.next_ns = time.monotonic_ns() + (period_ns if first_ns is None else first_ns)
         self.cancelled = False
         self.overruns = 0
 
@@ -292,10 +292,12 @@ class Executor:
             lane.take_timers_of(job)
             lane.put(_STOP)
 
-    def add_timer(self, job: Job, period_s: float, callback: Callable[[], None]) -> Timer:
+    def add_timer(self, job: Job, period_s: float, callback: Callable[[], None], first_s: float | None = None) -> Timer:
         if period_s <= 0:
             raise ValueError(f"timer period must be positive; got {period_s!r} s")
-        timer = Timer(self, job, int(period_s * 1e9), callback)
+        if first_s is not None and first_s < 0:
+            raise ValueError(f"timer first delay must not be negative; got {first_s!r} s")
+        timer = Timer(self, job, int(period_s * 1e9), callback, None if first_s is None else int(first_s * 1e9))
         job.lane.add_timer(timer)
         return timer
 

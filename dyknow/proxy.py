@@ -514,8 +514,8 @@ class Proxy:
             self.scheduled = True
             self.lane.put(self)
 
-    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
-        timer = self._executor.add_timer(self, period_s, callback)
+    def create_timer(self, period_s: float, callback: Callable[[], None], first_s: float | None = None) -> Timer:
+        timer = self._executor.add_timer(self, period_s, callback, first_s)
         self._timers.append(timer)
         return timer
 

@@ -88,9 +88,13 @@ class Unit:
         """
         self._proxy.publish(port, payload, origin_ns)
 
-    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
-        """Call ``callback`` every ``period_s`` seconds on the unit's thread; returns the timer."""
-        return self._proxy.create_timer(period_s, callback)
+    def create_timer(self, period_s: float, callback: Callable[[], None], *, first_s: float | None = None) -> Timer:
+        """Call ``callback`` every ``period_s`` seconds on the unit's thread; returns the timer.
+
+        The first call comes after ``first_s`` seconds (default: one period); a source that should
+        deliver as soon as it starts passes ``first_s=0``.
+        """
+        return self._proxy.create_timer(period_s, callback, first_s)
 
     def destroy(self) -> None:
         """Ask the manager to destroy this unit (after the current callback returns).

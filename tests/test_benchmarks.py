@@ -60,3 +60,24 @@ def test_runtime_ops_benchmark_smoke(tmp_path: Path) -> None:
     assert {"rebind_inproc", "rebind_service", "spawn", "destroy", "witness"} <= set(data)
     assert data["rebind_inproc"]["count"] == 10 and data["reconfigurations"] == 20
     assert data["witness"]["received"] > 0
+
+
+def test_planning_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "planning.json"
+    result = _run("planning.py", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [r["specs"] for r in rows] == [100, 1000]
+    assert all(r["planned"] > 0 and r["cold_median_ms"] > 0 for r in rows)
+    assert "< 10 ms per plan" in result.stdout
+
+
+def test_adaptation_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "adaptation.json"
+    result = _run("adaptation.py", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())["results"]
+    assert set(data) == {"exception", "destroyed", "measurement", "measurement (return)", "remote-kill"}
+    for row in data.values():
+        assert row["faults"] == 3 and 0 < row["adaptation_median_ms"] <= row["recovery_median_ms"]
+    assert "ROSA" in result.stdout

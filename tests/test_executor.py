@@ -5,6 +5,8 @@ from __future__ import annotations
 import threading
 import time
 
+import pytest
+
 from dyknow import Manager, Message, Unit, default_key
 from tests.units import Publisher, Sink
 
@@ -93,8 +95,8 @@ def test_timers_and_messages_never_overlap(manager: Manager) -> None:
 
 
 def test_periodic_source_stops_after_count(manager: Manager) -> None:
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "src", "out")})  # consumers first
     manager.spawn("periodic-source", "src", params={"rate_hz": 1000, "count": 25, "payload_size": 3})
-    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "src", "out")})
     sink = manager.unit("s")
     assert isinstance(sink, Sink)
     got = sink.wait_for(25)
@@ -113,3 +115,29 @@ def test_close_is_bounded_even_with_a_stuck_unit(make_manager: object) -> None:
     start = time.monotonic()
     manager.close(timeout=1.0)
     assert time.monotonic() - start < 3.0
+
+
+class FirstTick(Unit):
+    def setup(self) -> None:
+        self.started_ns = time.monotonic_ns()
+        self.first = threading.Event()
+        self.at_ns = 0
+        self.create_timer(10.0, self.tick, first_s=0)
+
+    def tick(self) -> None:
+        self.at_ns = time.monotonic_ns()
+        self.first.set()
+
+
+def test_a_timer_can_fire_at_once(manager: Manager) -> None:
+    manager.add_transformation(
+        "<transformation><label>first-tick</label><source>tests.test_executor:FirstTick</source>"
+        '<ports><port type="out">out</port></ports></transformation>'
+    )
+    manager.spawn("first-tick", "f")
+    unit = manager.unit("f")
+    assert isinstance(unit, FirstTick)
+    assert unit.first.wait(5)  # a 10 s period, yet the first tick came at once
+    assert unit.at_ns - unit.started_ns < 5e9
+    with pytest.raises(ValueError, match="must not be negative"):
+        manager._executor.add_timer(manager._proxy("f"), 1.0, lambda: None, first_s=-1)

@@ -103,9 +103,9 @@ def test_set_config_of_a_failed_unit_is_refused(manager: Manager) -> None:
 
 
 def test_statistics_count_messages_bytes_and_latency(manager: Manager) -> None:
-    manager.spawn("periodic-source", "src", params={"rate_hz": 500, "count": 20, "payload_size": 100})
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "r", "out")})  # consumers first
     manager.spawn("relay", "r", bindings={"in": default_key(manager.name, "src", "out")})
-    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "r", "out")})
+    manager.spawn("periodic-source", "src", params={"rate_hz": 500, "count": 20, "payload_size": 100})
     sink = manager.unit("s")
     assert isinstance(sink, Sink)
     sink.wait_for(20)
@@ -188,10 +188,10 @@ def test_same_stream_reaches_another_session_over_zenoh(manager: Manager) -> Non
 
 def test_slow_unit_does_not_stall_its_upstream(make_manager: object) -> None:
     manager = make_manager(stall_budget_s=0.02)  # type: ignore[operator]
-    manager.spawn("periodic-source", "src", params={"rate_hz": 200, "count": 40})
     key = default_key(manager.name, "src", "out")
     manager.spawn("slow", "slow", params={"delay_s": 3.0}, bindings={"in": key})
     manager.spawn("sink", "fast", bindings={"in": key})
+    manager.spawn("periodic-source", "src", params={"rate_hz": 200, "count": 40})
     fast = manager.unit("fast")
     assert isinstance(fast, Sink)
     slow = manager.unit("slow")

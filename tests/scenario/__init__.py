@@ -31,7 +31,7 @@ class Camera(Unit):
         self.frames = 0
         self._explode = False
         self._frozen = False
-        self.create_timer(1.0 / float(self.params.get("rate_hz", 100.0)), self.tick)
+        self.create_timer(1.0 / float(self.params.get("rate_hz", 100.0)), self.tick, first_s=0)
 
     def explode(self) -> None:
         self._explode = True
