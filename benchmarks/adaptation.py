@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import subprocess
 import sys
@@ -208,6 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="3 faults of each kind (CI)")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
+    logging.getLogger("dyknow").setLevel(logging.CRITICAL)  # the injected failures are expected
     n = 3 if args.smoke else args.faults
     period_ms = 1000.0 / args.rate
     info = machine()

@@ -507,6 +507,7 @@ class AdaptationLoop:
                 self.reconfigurer.cleanup([request.anchor])
                 raise
             request.last_change_ns = time.time_ns()
+            self._report(Symptom("spawned", request.last_change_ns, unit=request.anchor))  # start ticking
             log.info("request %s on %s: %s", canonical, key, ", ".join(sorted(set(request.units.values()))))
             return key
 
@@ -579,7 +580,9 @@ class AdaptationLoop:
             self._symptoms.put(symptom)
 
     def unit_event(self, event: UnitEvent) -> None:
-        if event.unit in self.knowledge.managed or any(event.unit in r.units for r in self.knowledge.requests.values()):
+        if event.kind == "spawned":
+            self._report(Symptom("spawned", event.time_ns, unit=event.unit))  # may bring deadlines to watch
+        elif event.unit in self.knowledge.managed or any(event.unit in r.units for r in self.knowledge.requests.values()):
             self.monitor.unit_event(event)
 
     def close(self, timeout: float = 2.0) -> None:
@@ -588,10 +591,16 @@ class AdaptationLoop:
         if self._thread is not threading.current_thread():
             self._thread.join(timeout)
 
+    def _busy(self) -> bool:
+        """Whether anything needs the periodic tick: requests, deadlines, back-offs, deferrals."""
+        knowledge = self.knowledge
+        return bool(knowledge.requests or knowledge.backoff or self._deferred or self._manager._deadline_ports())
+
     def _run(self) -> None:
         while True:
             try:
-                symptom = self._symptoms.get(timeout=_TICK_S)
+                # an idle manager sleeps until something happens (a spawn wakes it, see unit_event)
+                symptom = self._symptoms.get(timeout=_TICK_S) if self._busy() else self._symptoms.get()
             except queue.Empty:
                 symptom = None
                 if self._closed:
@@ -615,6 +624,8 @@ class AdaptationLoop:
                 log.exception("adaptation loop error (it keeps running)")
 
     def _handle(self, symptom: Symptom) -> None:
+        if symptom.kind == "spawned":
+            return  # only wakes the loop up
         knowledge = self.knowledge
         if symptom.kind in ("failed", "stalled") and symptom.label and symptom.label != ANCHOR_LABEL:
             knowledge.fail(symptom.label, symptom.time_ns)

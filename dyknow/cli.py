@@ -548,7 +548,21 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     from dyknow.demo import run_demo
 
-    return run_demo(duration_s=args.duration, hops=args.hops, rate_hz=args.rate, as_json=args.json)
+    for video in (args.robot_video, args.ceiling_video):
+        if video is not None and not os.path.isfile(video):
+            raise _Usage(f"{video}: no such video file; expected a video readable by OpenCV")
+    if args.duration is not None and args.duration <= 0:
+        raise _Usage(f"--duration: got {args.duration}; expected a positive number of seconds")
+    return run_demo(
+        chain=args.chain,
+        duration_s=args.duration,
+        robot_video=args.robot_video,
+        ceiling_video=args.ceiling_video,
+        out_dir=args.out,
+        hops=args.hops,
+        rate_hz=args.rate,
+        as_json=args.json,
+    )
 
 
 # ---------------------------------------------------------------------- parser
@@ -578,10 +592,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file to join a real deployment")
 
-    p = command("demo", cmd_demo, "run the demo: a manager with a chain of units, printing messages and latency")
-    p.add_argument("--duration", type=float, default=6.0, metavar="S", help="how long to run (default 6 s)")
-    p.add_argument("--hops", type=int, default=5, help="relays in the chain (default 5)")
-    p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (default 20 Hz)")
+    p = command("demo", cmd_demo, "run the ball-tracking demo (the battery runs low midway; the stream adapts)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="how long to run (default 30 s; 6 s with --chain)")
+    p.add_argument("--robot-video", metavar="PATH", help="a video for the robot camera instead of the synthetic scene")
+    p.add_argument("--ceiling-video", metavar="PATH", help="a video for the ceiling camera instead of the synthetic scene")
+    p.add_argument("--out", default="dyknow-demo-report", metavar="DIR", help="where to write the report (default ./dyknow-demo-report)")
+    p.add_argument("--chain", action="store_true", help="the latency demo instead: a chain of relays, per-hop latency")
+    p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")
+    p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (--chain; default 20 Hz)")
 
     # --- recording (MCAP)
     p = command("record", cmd_record, "record key expressions to an MCAP file until Ctrl-C/SIGTERM (or --duration, --max-messages)")

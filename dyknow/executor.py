@@ -13,8 +13,9 @@ Isolation still holds, by two rules:
    ``stall_budget_s`` and hands the shared lane to a fresh thread at once; when the slow callback
    finally returns, its thread stays with that unit as the unit's own lane.
 
-So a slow unit delays the others (its upstream among them) at most once, by at most the stall
-budget, and never again. Units that declare ``dedicated_thread = True`` get their own lane from
+So a slow unit delays the others (its upstream among them) at most once, by about the stall
+budget (plus up to 0.1 s when it is the first callback after a long idle spell, since an idle
+watchdog polls slowly), and never again. Units that declare ``dedicated_thread = True`` get their own lane from
 the start. A unit's callbacks never run concurrently: each job carries a lock and runs on one
 thread at a time.
 
@@ -29,6 +30,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import os
 import queue
 import threading
 import time
@@ -44,6 +46,7 @@ log = logging.getLogger(__name__)
 _STOP = object()
 _WAKE = object()
 _NEVER = 1 << 62  # next_due_ns of a lane without timers
+_IDLE_POLL_S = 0.1  # the watchdog's slowest poll, while the shared lane stays idle
 
 
 class Job(Protocol):
@@ -214,6 +217,19 @@ class Worker:
                 get, get_nowait = lane.ready.get, lane.ready.get_nowait
 
 
+def _machine_idle_s() -> float:
+    """Idle time of all CPUs since boot, in seconds (Linux /proc/stat).
+
+    Where it cannot be read, the monotonic clock stands in: the machine then always looks idle.
+    """
+    try:
+        with open("/proc/stat", "rb") as stat:
+            fields = stat.readline().split()
+        return (int(fields[4]) + int(fields[5])) / os.sysconf("SC_CLK_TCK")  # idle + iowait
+    except (OSError, IndexError, ValueError):
+        return time.monotonic()
+
+
 class Executor:
     """The lanes and threads of one manager.
 
@@ -308,31 +324,42 @@ class Executor:
 
         "Really": a thread the OS merely preempted (a loaded machine) is not the unit's fault and
         a new thread would not help, so a watchdog tick counts towards the budget only when the
-        stuck thread either used CPU during it or is blocked (sleeping, waiting on I/O). Where
-        the platform cannot tell, every tick counts.
+        stuck thread either used CPU during it or is blocked (sleeping, waiting on I/O). And when
+        the whole machine had no idle moment while the callback ran (overloaded), the budget is
+        five times longer: a blocked thread may then just be waiting for the interpreter lock.
+        Where the platform cannot tell, every tick counts.
         """
         interval_s = max(0.001, self.stall_budget_ns / 4e9)
         interval_ns = int(interval_s * 1e9)
         watched: tuple[int, object] | None = None
         evidence_ns = 0
         cpu_before = 0
-        while not self._stop.wait(interval_s):
+        idle_before = 0.0
+        # While the lane stays idle the watchdog polls less and less often (up to 10 times a
+        # second), so that idle managers cost nothing; the first busy poll brings it back.
+        pause_s = interval_s
+        while not self._stop.wait(pause_s):
             worker = self.shared.worker
             if worker is None:
                 continue
             since, job = worker.busy_since_ns, worker.busy_job
             if not since or job is None:
                 watched = None
+                pause_s = min(_IDLE_POLL_S, pause_s * 2)
                 continue
+            pause_s = interval_s
             cpu_now = worker.cpu_ns()
             if watched != (since, job):  # a new callback: start counting
-                watched, evidence_ns, cpu_before = (since, job), 0, cpu_now
+                watched, evidence_ns, cpu_before, idle_before = (since, job), 0, cpu_now or 0, _machine_idle_s()
                 continue
             working = cpu_now is None or cpu_now - cpu_before > interval_ns // 4 or worker.blocked()
             cpu_before = cpu_now or 0
             if working:
                 evidence_ns += interval_ns
-            if evidence_ns >= self.stall_budget_ns:
+            budget = self.stall_budget_ns
+            if evidence_ns >= budget and _machine_idle_s() <= idle_before:
+                budget *= 5  # no idle moment since the callback began: the machine is overloaded
+            if evidence_ns >= budget:
                 watched = None
                 self._hand_over(worker, job)
 

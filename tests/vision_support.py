@@ -18,6 +18,7 @@ from tests.conftest import GENERIC_SPECS, REPO, UNIT_SPECS
 from tests.units import Sink
 
 VISION_SPECS = REPO / "specs" / "vision.xml"
+SOURCE_SPECS = REPO / "specs" / "sources.xml"
 
 SUPPORT_SPECS = parse_specs(
     """<transformations>
@@ -39,7 +40,7 @@ class StampedPublisher(Unit):
 
 def vision_manager(make_manager: Callable[..., Manager]) -> Manager:
     """A manager with the generic, test and vision specs, plus ``stamped-publisher`` and ``deep-sink``."""
-    return make_manager(specs=[GENERIC_SPECS, UNIT_SPECS, VISION_SPECS, *SUPPORT_SPECS])
+    return make_manager(specs=[GENERIC_SPECS, UNIT_SPECS, VISION_SPECS, SOURCE_SPECS, *SUPPORT_SPECS])
 
 
 def publisher(manager: Manager, name: str = "src") -> StampedPublisher:

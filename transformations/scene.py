@@ -198,6 +198,10 @@ class ImageBall:
     complete: bool
 
 
+_SHARED_BACKGROUNDS: dict[tuple[int, str, int, int], np.ndarray] = {}  # read-only images
+_SHARED_NOISE: dict[tuple[int, int, int, float], list[np.ndarray]] = {}
+
+
 class Scene:
     """The ball's trajectory and the renderer, for one ``seed``.
 
@@ -272,7 +276,12 @@ class Scene:
         key = (camera, width, height)
         background = self._backgrounds.get(key)
         if background is None:
-            background = self._warp_background(camera, width, height)
+            # shared by every scene of this seed in the process: a camera started again (after a
+            # switch back, say) does not warp its background again (about 0.1 s at 640x480)
+            shared = (self.seed, camera, width, height)
+            background = _SHARED_BACKGROUNDS.get(shared)
+            if background is None:
+                background = _SHARED_BACKGROUNDS[shared] = self._warp_background(camera, width, height)
             self._backgrounds[key] = background
         return background
 
@@ -333,8 +342,14 @@ class Scene:
         key = (width, height, sigma)
         bank = self._noise.get(key)
         if bank is None:
-            rng = np.random.default_rng([self.seed, 2])
-            bank = [np.clip(rng.normal(0.0, sigma, (height, width, 3)), -127, 127).astype(np.int16) for _ in range(4)]
+            shared = (self.seed, width, height, sigma)  # like the backgrounds: made once per process
+            bank = _SHARED_NOISE.get(shared)
+            if bank is None:
+                rng = np.random.default_rng([self.seed, 2])
+                bank = [np.clip(rng.normal(0.0, sigma, (height, width, 3)), -127, 127).astype(np.int16) for _ in range(4)]
+                for b in bank:
+                    b.flags.writeable = False
+                _SHARED_NOISE[shared] = bank
             self._noise[key] = bank
         return bank
 

@@ -1,0 +1,394 @@
+"""The main demo: the DyKnow paper's ball-tracking scenario, running for real.
+
+A robot tracks a ball on a field. A manager holds the vision specs (``specs/vision.xml``) and two
+cameras declared the way a robot would declare them: its own camera, preferred but only while the
+battery holds (``battery >= 0.25``), and a ceiling camera as the alternative. The demo asks the
+planner for ``BallTrack(field)``, the tracked ball position in field coordinates; the planner wires
+robot camera -> subsampler -> ball detector -> localization -> tracker and returns a key.
+
+A simulated battery monitor publishes the battery level on ``dyknow/measurements/battery`` from a
+Zenoh session of its own. Midway the battery runs low: the robot camera becomes unavailable and
+the manager switches to the ceiling camera; the track keeps flowing on the same key. Later the
+battery recovers and the manager switches back. The terminal shows, live, the computation graph,
+message rates, per-hop latency, the tracked position beside the ground truth, and every
+adaptation with its adaptation and recovery times. At the end the demo writes a report (JSON, a
+plot of the track with the adaptations marked, an annotated frame) and says where.
+
+It runs on the synthetic scene by default (no files needed), and on real videos with
+``--robot-video PATH --ceiling-video PATH``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from dyknow.adaptation import ANCHOR_LABEL, AdaptationEvent
+from dyknow.client import Client
+from dyknow.manager import Manager
+from dyknow.message import Message
+from dyknow.resources import specs_dir
+from dyknow.spec import Constraint, Param, Port, Tag, TransformationSpec
+from dyknow.unit import Unit
+
+__all__ = ["BallDemo", "Battery", "run_ball_demo"]
+
+REQUEST = "BallTrack(field)"
+LOW_BATTERY = 0.25
+
+
+@dataclass(frozen=True, slots=True)
+class Battery:
+    """The simulated battery: drains, runs low at ``low_at_s``, charges from ``charge_at_s`` on."""
+
+    start: float = 0.6
+    low_at_s: float = 10.0
+    charge_at_s: float = 14.0
+    charge_rate: float = 0.06  # per second
+
+    def level(self, t: float) -> float:
+        drain = (self.start - LOW_BATTERY) / self.low_at_s
+        if t < self.charge_at_s:
+            return max(0.0, self.start - drain * t)
+        bottom = max(0.0, self.start - drain * self.charge_at_s)
+        return min(1.0, bottom + self.charge_rate * (t - self.charge_at_s))
+
+
+class TrackLog(Unit):
+    """Keeps every track message arriving on the requested key (the demo's consumer)."""
+
+    def setup(self) -> None:
+        self.lock = threading.Lock()
+        self.track: list[tuple[int, int, dict[str, Any]]] = []  # (arrival ns, origin ns, payload)
+
+    def on_message(self, port: str, msg: Message) -> None:
+        if isinstance(msg.payload, dict):
+            with self.lock:
+                self.track.append((time.time_ns(), msg.origin_ns, msg.payload))
+
+
+class FrameGrab(Unit):
+    """Keeps the latest frame arriving on its input (for the report's annotated frame)."""
+
+    def setup(self) -> None:
+        self.frame: Any = None
+        self.got = threading.Event()
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.frame = msg.payload
+        self.got.set()
+
+
+def camera_specs(*, robot_video: str | None, ceiling_video: str | None, rate_hz: float, seed: int) -> list[TransformationSpec]:
+    """The robot's two cameras, as a robot integrator would write them."""
+
+    def camera(label: str, cam: str, video: str | None, priority: int, constraints: tuple[Constraint, ...]) -> TransformationSpec:
+        if video is None:
+            source = "transformations.sources:SyntheticScene"
+            params = (
+                Param("camera", "string", cam),
+                Param("rate_hz", "float", rate_hz),
+                Param("seed", "int", seed),
+                Param("width", "int", 640),
+                Param("height", "int", 480),
+            )
+        else:
+            source = "transformations.sources:VideoSource"
+            params = (Param("path", "string", video), Param("rate_hz", "float", -1.0), Param("loop", "bool", True))
+        return TransformationSpec(
+            label=label,
+            source=source,
+            params=params,
+            ports=(Port("out", "out", deadline_ms=1000.0),),
+            tags=(Tag("out", f"RawImage({cam})"),),
+            priority=priority,
+            constraints=constraints,
+            description=f"the {label.replace('-', ' ')}",
+        )
+
+    return [
+        # the robot's top camera looks ahead over the field (the bottom one sees only its feet)
+        camera("robot-camera", "top", robot_video, 1, (Constraint("battery", ">=", LOW_BATTERY),)),
+        camera("ceiling-camera", "ceiling", ceiling_video, 10, ()),
+        TransformationSpec("track-log", "dyknow.demo.ball:TrackLog", ports=(Port("in", "in", queue=256),)),
+        TransformationSpec("frame-grab", "dyknow.demo.ball:FrameGrab", ports=(Port("in", "in", queue=1),)),
+    ]
+
+
+def video_localization(cams: list[str]) -> list[TransformationSpec]:
+    """For real videos the scene geometry is unknown: localize in pixels (1 px = 1 cm on the 'field')."""
+    from dyknow.spec import load_specs
+
+    out = []
+    for spec in load_specs([specs_dir() / "vision.xml"]):
+        if spec.label in {f"localization({c})" for c in cams}:
+            params = tuple(Param(p.name, p.type, "0.01,0,0,0,0.01,0,0,0,1") if p.name == "homography" else p for p in spec.params)
+            out.append(TransformationSpec(**{**{f: getattr(spec, f) for f in spec.__dataclass_fields__}, "params": params}))
+    return out
+
+
+@dataclass(slots=True)
+class _Rates:
+    last: dict[str, tuple[float, int]] = field(default_factory=dict)
+
+    def rate(self, name: str, count: int, now: float) -> float:
+        previous = self.last.get(name)
+        self.last[name] = (now, count)
+        if previous is None or now <= previous[0]:
+            return 0.0
+        return max(0.0, (count - previous[1]) / (now - previous[0]))
+
+
+class BallDemo:
+    """Runs the scenario; ``run()`` returns the report it wrote."""
+
+    def __init__(
+        self,
+        *,
+        duration_s: float = 30.0,
+        robot_video: str | None = None,
+        ceiling_video: str | None = None,
+        rate_hz: float = 20.0,
+        out_dir: Path = Path("dyknow-demo-report"),
+        battery: Battery | None = None,
+        stream: TextIO = sys.stdout,
+        live: bool | None = None,
+        seed: int = 0,
+    ) -> None:
+        if duration_s <= 0:
+            raise ValueError(f"duration must be positive; got {duration_s}")
+        for video in (robot_video, ceiling_video):
+            if video is not None and not Path(video).is_file():
+                raise ValueError(f"{video}: no such video file; expected a video readable by OpenCV")
+        self.duration_s = duration_s
+        self.robot_video, self.ceiling_video = robot_video, ceiling_video
+        self.synthetic = robot_video is None and ceiling_video is None
+        self.rate_hz = rate_hz
+        self.out_dir = Path(out_dir)
+        scale = duration_s / 30.0  # the battery story fits the duration
+        self.battery = battery or Battery(low_at_s=10.0 * scale, charge_at_s=14.0 * scale, charge_rate=0.06 / scale)
+        self.stream = stream
+        self.live = stream.isatty() if live is None else live
+        self.seed = seed
+        self.events: list[AdaptationEvent] = []
+        self._events_lock = threading.Lock()
+        self._printed: set[tuple[int, str]] = set()
+        self._status_lines = 0  # the live status block at the bottom of the terminal
+
+    # ------------------------------------------------------------------ output
+
+    def _clear_status(self) -> None:
+        if self.live and self._status_lines:
+            self.stream.write(f"\x1b[{self._status_lines}F\x1b[J")  # up to the block's start, clear below
+            self._status_lines = 0
+
+    def say(self, text: str = "") -> None:
+        self._clear_status()
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def _on_adaptation(self, event: AdaptationEvent) -> None:
+        with self._events_lock:
+            self.events.append(event)
+
+    def _event_line(self, e: AdaptationEvent) -> str:
+        if e.kind == "degraded":
+            return f">>> request degraded ({e.cause}): {e.detail}"
+        old = " -> ".join(x for x in e.old if "camera" in x) or "?"
+        new = " -> ".join(x for x in e.new if "camera" in x) or "?"
+        times = f"adapted in {e.adaptation_ms:.1f} ms" if e.adaptation_ms is not None else ""
+        if e.recovery_ms is not None:
+            times += f", stream recovered in {e.recovery_ms:.1f} ms"
+        return f">>> adaptation #{e.id}: {e.cause}: {old} => {new}; {times}"
+
+    # ------------------------------------------------------------------ the run
+
+    def run(self) -> dict[str, Any]:
+        from transformations.scene import Scene  # ground truth of the synthetic scene
+
+        specs = [specs_dir() / "vision.xml"]
+        with Manager("demo", specs=specs, ontology=[specs_dir() / "dyknow.ttl"], dwell_s=2.0) as manager:
+            for spec in camera_specs(robot_video=self.robot_video, ceiling_video=self.ceiling_video, rate_hz=self.rate_hz, seed=self.seed):
+                manager.add_transformation(spec)
+            if not self.synthetic:
+                for spec in video_localization(["top", "ceiling"]):
+                    manager.add_transformation(spec)
+            manager.on_adaptation(self._on_adaptation)
+            scene = Scene(seed=self.seed) if self.synthetic else None
+            source = "the synthetic scene" if self.synthetic else f"videos {self.robot_video} / {self.ceiling_video}"
+            self.say(f"dyknow demo: tracking a ball on {source}; manager 'demo' on {', '.join(manager.endpoints)}")
+            self.say(f"requesting {REQUEST} from the planner ...")
+            t0 = time.monotonic()
+            key = manager.request(REQUEST)
+            manager.spawn("track-log", "track-log", bindings={"in": key})
+            log = manager.unit("track-log")
+            assert isinstance(log, TrackLog)
+            info = next(r for r in manager.requests() if r.key == key)
+            self.say(f"planned in {(time.monotonic() - t0) * 1000:.1f} ms: {', '.join(_chain_labels(manager, key))}")
+            self.say(f"the tracked position streams on {key}\n")
+            battery_trace: list[tuple[float, float]] = []
+            self.start_ns = time.time_ns()
+            with Client("demo", connect=manager.endpoints) as monitor:  # the battery monitor, elsewhere
+                start = time.monotonic()
+                rates = _Rates()
+                next_show = 0.0
+                while (t := time.monotonic() - start) < self.duration_s:
+                    level = self.battery.level(t)
+                    monitor.session.put("dyknow/measurements/battery", json.dumps({"value": round(level, 3)}))
+                    battery_trace.append((t, level))
+                    self._print_events()
+                    if t >= next_show:
+                        self._show(manager, key, log, scene, rates, t, level)
+                        next_show += 1.0
+                    time.sleep(0.25)
+            self._print_events()
+            frame = self._annotated_frame(manager, log)
+            report = self._report(manager, key, log, scene, battery_trace, frame, info.tag)
+        return report
+
+    def _print_events(self) -> None:
+        with self._events_lock:
+            events = list(self.events)
+        for e in events:
+            if (e.id, e.kind) in self._printed:
+                continue
+            if e.kind == "adapted":
+                done = [x for x in events if x.id == e.id and x.kind == "recovered"]
+                if not done:
+                    continue  # wait for its recovery time
+                self._printed.add((e.id, "adapted"))
+                self._printed.add((e.id, "recovered"))
+                self.say(self._event_line(done[0]))
+            elif e.kind == "degraded":
+                self._printed.add((e.id, e.kind))
+                self.say(self._event_line(e))
+
+    def _show(self, manager: Manager, key: str, log: TrackLog, scene: Any, rates: _Rates, t: float, level: float) -> None:
+        chain = _chain(manager, key)
+        with log.lock:
+            last = log.track[-1] if log.track else None
+        camera = next((label for _, label in chain if "camera" in label), "none")
+        lines = [f"t={t:5.1f}s  battery {level:4.2f}{' (low)' if level < LOW_BATTERY else ''}  camera: {camera}"]
+        hops = []
+        for name, label in chain:
+            stats = manager.get_statistics(name)
+            ins = [p for p in stats.ports if p.direction == "in"]
+            outs = [p for p in stats.ports if p.direction == "out" and p.messages]
+            count = outs[0].messages if outs else (ins[0].messages if ins else 0)
+            rate = rates.rate(name, count, t)
+            hop = f" hop {ins[0].hop.p50_us / 1000:.1f} ms" if ins and ins[0].hop.count else ""
+            hops.append(f"{label} [{rate:4.1f}/s{hop}]")
+        lines.append("  " + " -> ".join(hops) + f" -> {key}")
+        latency = ""
+        for unit in manager.get_model().units:  # the request's anchor: the stream as consumers get it
+            if unit.label == ANCHOR_LABEL and unit.bindings.get("out") == key:
+                lat = manager.get_statistics(unit.name).ports[0].latency
+                if lat.count:
+                    latency = f"  (camera to key: {lat.p50_us / 1000:.1f} ms p50)"
+        if last is not None:
+            _, origin_ns, p = last
+            position = f"ball x={p.get('x', float('nan')):+.2f} y={p.get('y', float('nan')):+.2f} m"
+            speed = f" v=({p.get('vx', 0):+.2f},{p.get('vy', 0):+.2f}) m/s"
+            truth = ""
+            if scene is not None:
+                g = scene.ball_at(origin_ns)
+                err = math.hypot(p.get("x", 0) - g.x, p.get("y", 0) - g.y) * 100
+                truth = f"  truth x={g.x:+.2f} y={g.y:+.2f}  error {err:4.1f} cm"
+            lines.append(f"  {position}{speed}{truth}{latency}")
+        else:
+            lines.append("  (no track yet)")
+        if self.live:
+            self._clear_status()
+            width = shutil.get_terminal_size((120, 20)).columns
+            self.stream.write("\n".join(line[: width - 1] for line in lines) + "\n")
+            self.stream.flush()
+            self._status_lines = len(lines)
+        else:
+            self.say("\n".join(lines))
+
+    def _annotated_frame(self, manager: Manager, log: TrackLog) -> Any:
+        """Ask the planner for an annotated view of the current camera (it reuses what runs).
+
+        Waits (up to 3 s) for a frame taken while the ball was detected, so the picture shows it.
+        """
+        chain = _chain(manager, next(r.key for r in manager.requests() if r.tag == REQUEST))
+        cam = "top" if any(label == "robot-camera" for _, label in chain) else "ceiling"
+        try:
+            key = manager.request(f"AnnotatedImage({cam})")
+        except Exception as exc:  # a view is a nicety; the demo carries on without it
+            self.say(f"(no annotated frame: {exc})")
+            return None
+        manager.spawn("frame-grab", "frame-grab", bindings={"in": key})
+        grab = manager.unit("frame-grab")
+        assert isinstance(grab, FrameGrab)
+        grab.got.wait(5.0)
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            with log.lock:
+                seen = bool(log.track) and not log.track[-1][2].get("predicted", True)
+            if seen:
+                grab.got.clear()
+                grab.got.wait(1.0)
+                break
+            time.sleep(0.05)
+        return grab.frame
+
+    def _report(self, manager: Manager, key: str, log: TrackLog, scene: Any, battery: list[tuple[float, float]], frame: Any, tag: str) -> dict[str, Any]:
+        from dyknow.demo.report import write_report
+
+        with log.lock:
+            track = list(log.track)
+        return write_report(
+            self.out_dir,
+            start_ns=self.start_ns,
+            request=tag,
+            key=key,
+            track=track,
+            scene=scene,
+            battery=battery,
+            events=list(self.events),
+            frame=frame,
+            statistics={u.name: manager.get_statistics(u.name).to_dict() for u in manager.get_model().units},
+            say=self.say,
+        )
+
+
+def _chain(manager: Manager, key: str) -> list[tuple[str, str]]:
+    """The request's units from source to output, (name, label)."""
+    request = next((r for r in manager.requests() if r.key == key), None)
+    if request is None:
+        return []
+    order = ["camera", "subsampler", "ball-detector", "localization", "tracker"]
+    named = {u.name: u.label for u in manager.get_model().units if u.name in request.units}
+
+    def rank(item: tuple[str, str]) -> int:
+        return next((i for i, word in enumerate(order) if word in item[1]), len(order))
+
+    return sorted(named.items(), key=rank)
+
+
+def _chain_labels(manager: Manager, key: str) -> list[str]:
+    return [label for _, label in _chain(manager, key)]
+
+
+def run_ball_demo(
+    *,
+    duration_s: float = 30.0,
+    robot_video: str | None = None,
+    ceiling_video: str | None = None,
+    out_dir: str = "dyknow-demo-report",
+    as_json: bool = False,
+) -> int:
+    """The ``dyknow demo`` command; returns an exit code."""
+    demo = BallDemo(duration_s=duration_s, robot_video=robot_video, ceiling_video=ceiling_video, out_dir=Path(out_dir))
+    report = demo.run()
+    if as_json:
+        print(json.dumps(report["summary"]))
+    return 0 if report["summary"]["track_messages"] > 0 else 1
