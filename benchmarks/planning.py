@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         rng = random.Random(size)
         cold, warm, ok, failed = [], [], 0, 0
         seen: set[str] = set()
-        for i in range(count):
+        for _ in range(count):
             request = wanted[rng.randrange(len(wanted))]
             unavailable = {f"t{rng.randrange(size):05d}" for _ in range(size // 50)}
             t0 = time.perf_counter()

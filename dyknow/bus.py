@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Iterable, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 from dyknow.transport import key_exprs_intersect
 
@@ -24,7 +24,7 @@ class _In(Protocol):
 
 class _Out(Protocol):
     key: str
-    targets: tuple[_In, ...]
+    targets: tuple[Any, ...]  # the input ports it delivers to
 
 
 class LocalBus:

@@ -520,13 +520,25 @@ class Manager:
                 params=r.get("params") or {},
                 bindings=r.get("bindings") or {},
             ).to_dict(),
-            "destroy": lambda r: self.destroy(str(r["name"])) or {"destroyed": r["name"]},
+            "destroy": self._serve_destroy,
             "get_model": lambda r: self.get_model().to_dict(),
             "request": lambda r: {"key": self.request(str(r["tag"]))},
-            "release": lambda r: self.release(str(r["key"])) or {"released": r["key"]},
-            "measure": lambda r: self.measure(str(r["name"]), r["value"]) or {"measured": r["name"]},
+            "release": self._serve_release,
+            "measure": self._serve_measure,
             "get_adaptations": lambda r: [e.to_dict() for e in self.adaptations()],
         }
+
+    def _serve_destroy(self, request: dict[str, Any]) -> dict[str, Any]:
+        self.destroy(str(request["name"]))
+        return {"destroyed": request["name"]}
+
+    def _serve_release(self, request: dict[str, Any]) -> dict[str, Any]:
+        self.release(str(request["key"]))
+        return {"released": request["key"]}
+
+    def _serve_measure(self, request: dict[str, Any]) -> dict[str, Any]:
+        self.measure(str(request["name"]), request["value"])
+        return {"measured": request["name"]}
 
     def _unit_service(self, name: str, what: str, request: dict[str, Any]) -> Any:
         if what == "get_config":

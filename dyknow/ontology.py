@@ -95,11 +95,15 @@ class Ontology:
     def __init__(
         self, graph: Graph | None = None, *, prefixes: Mapping[str, str] | None = None, files: Sequence[str] = ()
     ) -> None:
-        self._graph = graph if graph is not None else Graph(bind_namespaces="none")
+        graph = graph if graph is not None else Graph(bind_namespaces="none")
         self._prefixes = dict(prefixes or {})
         self._files = tuple(files)
         self._resolved: dict[str, str | None] = {}
-        self._index()
+        self._triples = len(graph)
+        # Everything the queries need is indexed into plain dicts and sets of strings; the rdflib
+        # graph (tens of thousands of small objects for SOSA/SSN) is not kept, so it costs the
+        # garbage collector nothing while a robot runs.
+        self._index(graph)
 
     @classmethod
     def load(
@@ -146,7 +150,7 @@ class Ontology:
 
     def __len__(self) -> int:
         """The number of triples."""
-        return len(self._graph)
+        return self._triples
 
     def __repr__(self) -> str:
         return f"Ontology(files={len(self._files)}, classes={len(self._classes)}, triples={len(self)})"
@@ -182,7 +186,7 @@ class Ontology:
         want = required if isinstance(required, Term) else parse_term(required)
         if len(have.args) != len(want.args):
             return False
-        if have.args != want.args and any(local_name(a) != local_name(b) for a, b in zip(have.args, want.args)):
+        if have.args != want.args and any(local_name(a) != local_name(b) for a, b in zip(have.args, want.args, strict=True)):
             return False
         sub, sup = self.resolve(have.functor), self.resolve(want.functor)
         if sub is None or sup is None:
@@ -205,9 +209,8 @@ class Ontology:
 
     # -- internals --------------------------------------------------------------------------------
 
-    def _index(self) -> None:
-        """Precompute the classes, the transitive closure and the name indexes."""
-        graph = self._graph
+    def _index(self, graph: Graph) -> None:
+        """Precompute the classes, the transitive closure, the name indexes and the labels."""
         parents: dict[object, set[object]] = {}
         classes: set[str] = set()
         for sub, sup in graph.subject_objects(RDFS.subClassOf):
@@ -247,6 +250,8 @@ class Ontology:
         self._classes = frozenset(classes)
         self._terms = frozenset(terms)
         self._members = members
+        individuals = {member for group in members.values() for member in group}
+        self._labels = {iri: self._best_label(graph, iri) for iri in individuals}
         self._ancestors = ancestors
         self._descendants = {c: frozenset(d) for c, d in descendants.items()}
         self._by_local = {name: tuple(iris) for name, iris in by_local.items()}
@@ -291,8 +296,12 @@ class Ontology:
         )
 
     def _label(self, iri: str) -> str:
+        return self._labels.get(iri) or local_name(iri)
+
+    @staticmethod
+    def _best_label(graph: Graph, iri: str) -> str:
         best: tuple[int, str] | None = None
-        for label in self._graph.objects(URIRef(iri), RDFS.label):
+        for label in graph.objects(URIRef(iri), RDFS.label):
             if not isinstance(label, Literal) or not str(label).strip():
                 continue
             lang = (label.language or "").lower()
@@ -450,9 +459,9 @@ def _parse(path: Path) -> _File:
         prefixes = tuple((prefix, str(namespace)) for prefix, namespace in graph.namespaces())
         return _File(path, graph, prefixes, declares, tuple(imports))
     if known:
-        fmt, exc = failures[0]
-        raise OntologyError(f"{_located(path, data, exc)}; expected valid {_FORMAT_NAMES[fmt]}") from exc
-    tried = "; ".join(f"as {_FORMAT_NAMES[fmt]}: {_located(path, data, exc)}" for fmt, exc in failures)
+        fmt, error = failures[0]
+        raise OntologyError(f"{_located(path, data, error)}; expected valid {_FORMAT_NAMES[fmt]}") from error
+    tried = "; ".join(f"as {_FORMAT_NAMES[fmt]}: {_located(path, data, error)}" for fmt, error in failures)
     raise OntologyError(
         f"{path}: neither Turtle nor RDF/XML ({tried}); expected a file ending in {', '.join(FORMATS)}"
     ) from failures[-1][1]

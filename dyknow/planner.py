@@ -351,8 +351,8 @@ class _Graph:
             todo += 1
         self.ids = ids
         self.waiting: list[list[int]] = [[] for _ in self.required]  # required id -> options needing it
-        for o, needs in enumerate(self.needs):
-            for r in set(needs):
+        for o, option_needs in enumerate(self.needs):
+            for r in set(option_needs):
                 self.waiting[r].append(o)
         self.distinct_needs = [len(set(needs)) for needs in self.needs]
 

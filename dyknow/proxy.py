@@ -55,7 +55,7 @@ DEFAULT_QUEUE_DEPTH = 8
 _BATCH = 64
 
 
-class UnitState(str, enum.Enum):
+class UnitState(enum.StrEnum):
     """Lifecycle of a unit: starting -> running -> (failed) -> stopped."""
 
     STARTING = "starting"
@@ -481,7 +481,7 @@ class Proxy:
             self._lock.release()
         self._after_callbacks()
 
-    def _call(self, fn: Callable[[], None], worker: Worker, where: str) -> None:
+    def _call(self, fn: Callable[[], None], worker: Worker | _Bystander, where: str) -> None:
         self._current = None
         self._current_thread = get_ident()
         worker.busy_job = self
@@ -633,7 +633,7 @@ class Proxy:
                 for entity in (*new_pubs.values(), *new_tokens.values(), *new_subs.values()):
                     entity.undeclare()
                 raise
-            old: list[Publisher | Subscriber | LivelinessToken | None] = []
+            old: list[Any] = []  # entities to undeclare once the switch is done
             for port, pub in new_pubs.items():
                 out = self._outputs[port]
                 old += [out.publisher, out.token]

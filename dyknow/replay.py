@@ -1243,7 +1243,10 @@ class Player:
             while not all(p.matched for p in publishers.values()) and time.monotonic() < deadline:
                 if self._wait(min(0.02, max(0.0, deadline - time.monotonic())), stop):
                     return 0
-            return self.play(lambda msg, record: publishers[msg.key].put(msg), stop=stop)
+            def send(msg: Message, record: RecordedMessage) -> None:
+                publishers[msg.key].put(msg)
+
+            return self.play(send, stop=stop)
         finally:
             for publisher in reversed(publishers.values()):
                 publisher.undeclare()

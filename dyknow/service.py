@@ -26,6 +26,7 @@ from typing import Any
 
 from dyknow import errors
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
+import contextlib
 
 __all__ = [
     "MANAGER_SERVICES",
@@ -116,10 +117,9 @@ def raise_remote(exc: ServiceError) -> DyKnowError:
     cls = getattr(errors, kind, None) if kind else None
     if cls is SpecError:
         issues = []
-        try:
-            issues = [SpecIssue(i["path"], int(i["line"]), i["message"]) for i in exc.details.get("issues", [])]
-        except (KeyError, TypeError, ValueError):
-            pass
+        with contextlib.suppress(KeyError, TypeError, ValueError):
+            raw = exc.details.get("issues", [])
+            issues = [SpecIssue(i["path"], int(i["line"]), i["message"]) for i in (raw if isinstance(raw, list) else [])]
         return SpecError(issues or [SpecIssue("<remote>", 0, str(exc))])
     if kind == "PlanningError":
         return PlanningError(str(exc.details.get("request", "")), None, str(exc))

@@ -27,6 +27,7 @@ import zenoh
 
 from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError
 from dyknow.message import ENCODINGS, HEADER, Message, decode, decode_dyknow, encode
+import contextlib
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -187,10 +188,8 @@ class _Entity:
     def undeclare(self) -> None:
         handle, self._handle = self._handle, None
         if handle is not None:
-            try:
+            with contextlib.suppress(zenoh.ZError):  # the session is already closed: nothing left to undeclare
                 handle.undeclare()
-            except zenoh.ZError:  # the session is already closed: nothing left to undeclare
-                pass
 
     def __enter__(self) -> _Entity:
         return self
@@ -231,8 +230,9 @@ class Publisher(_Entity):
             if self._on_matching is not None:
                 self._on_matching(status.matching)
 
-        self._listener = pub.declare_matching_listener(matching)
-        self.matched = pub.matching_status.matching
+        self._listener: Any = pub.declare_matching_listener(matching)
+        # the 1.10 stub says bool, but the property returns a MatchingStatus (always truthy)
+        self.matched = pub.matching_status.matching  # type: ignore[attr-defined]
 
     def put(self, msg: Message) -> int:
         """Encode and send ``msg``; returns the number of payload bytes sent."""
@@ -252,10 +252,8 @@ class Publisher(_Entity):
     def undeclare(self) -> None:
         listener, self._listener = getattr(self, "_listener", None), None
         if listener is not None:
-            try:
+            with contextlib.suppress(zenoh.ZError):
                 listener.undeclare()
-            except zenoh.ZError:
-                pass
         super().undeclare()
 
 
@@ -389,10 +387,8 @@ class Session:
         session, self._session = self._session, None
         if session is not None:
             for querier, _ in self._queriers.values():
-                try:
+                with contextlib.suppress(zenoh.ZError):
                     querier.undeclare()
-                except zenoh.ZError:
-                    pass
             self._queriers.clear()
             session.close()
 
@@ -528,7 +524,7 @@ class Session:
                 querier.declare_matching_listener(matching)
             except zenoh.ZError as exc:
                 raise TransportError(f"cannot declare a querier on {key!r}: {_clean(exc)}") from exc
-            if querier.matching_status.matching:
+            if querier.matching_status.matching:  # type: ignore[attr-defined]  # see Publisher
                 reachable.set()
             self._queriers[key] = (querier, reachable)
             return querier, reachable

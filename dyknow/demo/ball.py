@@ -90,6 +90,7 @@ def camera_specs(*, robot_video: str | None, ceiling_video: str | None, rate_hz:
     """The robot's two cameras, as a robot integrator would write them."""
 
     def camera(label: str, cam: str, video: str | None, priority: int, constraints: tuple[Constraint, ...]) -> TransformationSpec:
+        params: tuple[Param, ...]
         if video is None:
             source = "transformations.sources:SyntheticScene"
             params = (
