@@ -118,6 +118,11 @@ def run_python_call(hops: int, mode: Mode) -> Run:
     return Run(latencies[mode.warmup :], (time.process_time() - cpu0) / mode.total)
 
 
+def _deadline_s(mode: Mode) -> float:
+    """How long a run may take before it is declared stuck."""
+    return 60 + mode.total * (1.0 / mode.rate_hz if mode.rate_hz else 0.05)
+
+
 def _sleep_until(deadline: float) -> None:
     delay = deadline - time.perf_counter()
     if delay > 0:
@@ -177,7 +182,7 @@ def run_zenoh_session(hops: int, mode: Mode) -> Run:
                 publish()
         else:
             publish()
-        if not done.wait(60 + mode.total * 0.05):
+        if not done.wait(_deadline_s(mode)):
             raise RuntimeError(f"zenoh-session chain of {hops}: {len(latencies)} of {mode.total} messages arrived")
         cpu = time.process_time() - cpu0
     return Run(latencies[mode.warmup :], cpu / mode.total)
@@ -296,7 +301,7 @@ def run_dyknow_inproc(hops: int, mode: Mode) -> Run:
         manager.spawn("bench-source", "source", bindings={"ack": "bench/ack", "out": "bench/h0"})
         sink = manager.unit("sink")
         assert isinstance(sink, BenchSink)
-        if not sink.done.wait(60 + mode.total * 0.05):
+        if not sink.done.wait(_deadline_s(mode)):
             raise RuntimeError(f"dyknow-inproc chain of {hops}: {len(sink.latencies)} of {mode.total} messages arrived")
         cpu = time.process_time() - cpu0
         return Run(sink.latencies[mode.warmup :], cpu / mode.total)
