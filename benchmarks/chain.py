@@ -531,8 +531,9 @@ def summarize(latencies_ns: list[int], hops: int) -> dict[str, float]:
 
 
 def machine() -> dict[str, Any]:
-    import zenoh  # noqa: F401  (for its version)
     from importlib.metadata import version
+
+    import zenoh  # noqa: F401  (for its version)
 
     cpu = platform.processor() or "unknown"
     try:

@@ -48,9 +48,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
-from dyknow.errors import DyKnowError, UnitError
+from dyknow.errors import DyKnowError, PlanningError, UnitError
 from dyknow.message import Message
-from dyknow.errors import PlanningError
 from dyknow.planner import Plan, Planner, RunningUnit
 from dyknow.spec import Port, TransformationSpec
 from dyknow.tags import parse_term

@@ -64,6 +64,13 @@ class UnitState(enum.StrEnum):
     STOPPED = "stopped"
 
 
+# Module-level aliases for the hot path: a global lookup is several times cheaper than an enum
+# class attribute in Python 3.11.
+_RUNNING = UnitState.RUNNING
+_STOPPED = UnitState.STOPPED
+_FAILED = UnitState.FAILED
+
+
 class InputPort:
     """An input port: its key, its bounded queue, its counters."""
 
@@ -94,18 +101,18 @@ class InputPort:
             job.scheduled = True
             job.lane.put(job)
 
-
     def deliver_remote(self, msg: Message) -> None:
         """Queue a message from another process and, when the unit is fast and free, run it here.
 
-        This runs on the Python thread Zenoh keeps for the subscriber: handling the message right
-        away saves a thread hand-off (20-40 µs); a unit that is busy, slow or isolated gets the
-        message through its queue and lane instead.
+        This runs on the Python thread Zenoh keeps for the port's subscriber: handling the
+        message right away saves a thread hand-off to the lane (20-40 µs); a unit that is busy,
+        slow or isolated gets the message through its queue and lane instead. (Zenoh could call
+        us on its receiving thread and save another 10 µs per message, but one slow callback
+        there would hold up every stream arriving over the same link.)
         """
         q = self.queue
         job = self.job
-        # Proxy.inline_ok(), spelled out because this runs for every remote message
-        inline = job.lane.shared and job.isolation is None and job._ewma_ns < _INLINE_BUDGET_NS
+        inline = job._ewma_ns < job._inline_ns  # proven quick, on the shared lane
         if not q and inline and job._lock.acquire(False):
             job.handle_now(self, msg)  # the common case: nothing queued, the unit free and fast
             return
@@ -210,7 +217,7 @@ class Proxy:
         self.error: str | None = None
         self.traceback: str | None = None
         self.reconfigurations = 0
-        self.isolation: str | None = None  # why the unit got a thread of its own, if it did
+        self._isolation: str | None = None  # see the isolation property
         self.started_ns = time_ns()
         self._session = session
         self._bus = bus
@@ -225,7 +232,8 @@ class Proxy:
         self._calls: deque[Callable[[], None]] = deque()
         self._current: Message | None = None
         self._current_thread = 0
-        self._ewma_ns = 0
+        self._ewma_ns = 0  # moving average of the unit's callback times
+        self._inline_ns = _INLINE_BUDGET_NS  # on the shared lane, not isolated (yet)
         self._destroy_requested = False
         self._timers: list[Timer] = []
         self._stop = threading.Event()
@@ -252,6 +260,19 @@ class Proxy:
             self.isolation = "the unit asks for a thread of its own (dedicated_thread = True)"
 
     # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def isolation(self) -> str | None:
+        """Why the unit got a thread of its own, if it did (it then never leaves it)."""
+        return self._isolation
+
+    @isolation.setter
+    def isolation(self, reason: str | None) -> None:
+        # Every move off the shared lane sets a reason (the executor tells on_isolated()). A unit
+        # on the shared lane may run on the thread that received its message while its callbacks
+        # average under the budget: deliver_remote() compares the average with _inline_ns.
+        self._isolation = reason
+        self._inline_ns = _INLINE_BUDGET_NS if reason is None else -1
 
     @property
     def alive(self) -> bool:
@@ -377,10 +398,6 @@ class Proxy:
 
     # ------------------------------------------------------------------ executor job
 
-    def inline_ok(self) -> bool:
-        """Whether a message may be handled on the thread that received it."""
-        return self.lane.shared and self.isolation is None and self._ewma_ns < _INLINE_BUDGET_NS
-
     def run(self, worker: Worker) -> None:
         """Handle what is pending: control calls, then messages (a batch, then yield the lane)."""
         self.scheduled = False
@@ -394,12 +411,11 @@ class Proxy:
         The short path for a message from another process when nothing is queued: no queue, no
         lane, no thread hand-off.
         """
-        if self.state is not UnitState.RUNNING or self._calls:
+        if self.state is not _RUNNING or self._calls:
             port.queue.append(msg)  # let the general path sort it out
             self.run_locked(_REMOTE_THREAD)
             return
         now = time_ns()
-        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
         self._current = msg
         self._current_thread = get_ident()
         try:
@@ -411,6 +427,8 @@ class Proxy:
             self._current = None
             self._current_thread = 0
             self._lock.release()
+        # bookkeeping after the callback, off the path of what the unit published
+        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
         self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
         if self._destroy_requested or self._ewma_ns > self._slow_ns:
             self._after_callbacks()
@@ -458,7 +476,7 @@ class Proxy:
                 self._current = None
                 self._current_thread = 0
                 self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
-                if self.state is not UnitState.RUNNING or self._destroy_requested:
+                if self.state is not _RUNNING or self._destroy_requested:
                     return
                 budget -= 1
                 if q:
@@ -526,7 +544,8 @@ class Proxy:
         out = self._outputs.get(port)
         if out is None:
             raise BindingError(self._no_port(port, "output", self._outputs))
-        if self.state is UnitState.STOPPED or self.state is UnitState.FAILED:
+        state = self.state
+        if state is _STOPPED or state is _FAILED:
             raise UnitError(f"unit {self.name!r} is {self.state.value}; it can no longer publish")
         now = time_ns()
         wire = None
@@ -549,16 +568,13 @@ class Proxy:
             nbytes = payload_nbytes(payload)
         out.seq += 1
         msg = Message(payload, out.seq, origin_ns, now, out.key, nbytes, wire)
-        counters = out.counters
-        counters.messages += 1
-        counters.bytes += nbytes
         for target in out.targets:
             target.deliver(msg)
         publisher = out.publisher
-        if publisher is not None and publisher.matched:
-            sent = publisher.put(msg)
-            if not nbytes:
-                counters.bytes += sent
+        sent = publisher.put(msg) if publisher is not None and publisher.matched else 0
+        counters = out.counters  # counted once sent: bookkeeping stays off the message's path
+        counters.messages += 1
+        counters.bytes += nbytes or sent
 
     def fail(self, reason: str) -> None:
         """The unit declares itself failed (from any thread): it stops, the manager is told."""

@@ -19,6 +19,7 @@ class on the caller's side.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 from collections.abc import Callable, Mapping
@@ -26,7 +27,6 @@ from typing import Any
 
 from dyknow import errors
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
-import contextlib
 
 __all__ = [
     "MANAGER_SERVICES",

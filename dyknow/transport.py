@@ -13,6 +13,7 @@ Rust source location trimmed off.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -27,7 +28,6 @@ import zenoh
 
 from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError
 from dyknow.message import ENCODINGS, HEADER, Message, decode, decode_dyknow, encode
-import contextlib
 
 __all__ = [
     "DEFAULT_ENDPOINT",

@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from dyknow.demo.ball import Battery, BallDemo
+from dyknow.demo.ball import BallDemo, Battery
 from tests.conftest import REPO, subprocess_env
 
 

@@ -6,8 +6,8 @@ import random
 
 import pytest
 
-from dyknow.ontology import Ontology
 from dyknow.errors import PlanningError
+from dyknow.ontology import Ontology
 from dyknow.planner import Planner, RunningUnit, plan, unit_name_for
 from dyknow.spec import TransformationSpec, load_specs, parse_specs
 from tests.conftest import REPO

@@ -265,3 +265,32 @@ def test_reject_counts_bad_input_and_keeps_running(manager: Manager) -> None:
     assert port["rejected"] == 1 and port["last_rejection"] == "expected a 2-D array; got dict"
     with pytest.raises(BindingError, match="no output port 'outt'"):
         picky.has_subscribers("outt")
+
+
+def test_slow_unit_does_not_hold_up_streams_from_another_process(make_manager: object) -> None:
+    """Units receiving over Zenoh: a slow one must not stall the link a fast one also receives on."""
+    sender = make_manager()  # type: ignore[operator]
+    receiver = make_manager(connect=sender.endpoints, stall_budget_s=0.02)  # type: ignore[operator]
+    key = "remote/ticks"
+    receiver.spawn("slow", "slow", params={"delay_s": 3.0}, bindings={"in": key})
+    receiver.spawn("sink", "fast", bindings={"in": key})
+    sender.spawn("publisher", "src", bindings={"out": key})
+    publisher = sender.unit("src")
+    assert isinstance(publisher, Publisher)
+    deadline = time.monotonic() + 10
+    while not publisher.has_subscribers("out"):  # the link is up and both subscribers are known
+        assert time.monotonic() < deadline, "the receiving manager never subscribed"
+        time.sleep(0.01)
+    time.sleep(0.2)
+    for i in range(40):
+        publisher.emit(i)
+        time.sleep(0.002)
+    fast = receiver.unit("fast")
+    assert isinstance(fast, Sink)
+    slow = receiver.unit("slow")
+    assert isinstance(slow, Slow)
+    # All 40 arrive while the slow unit is still inside its first 3-second callback.
+    got = fast.wait_for(40, timeout=2.5)
+    assert [m.payload for m in got] == list(range(40))
+    assert slow.started.is_set() and slow.handled == 0
+    assert receiver.get_statistics("fast").ports[0].dropped == 0
