@@ -26,6 +26,7 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from functools import partial
 from threading import get_ident
 from time import time_ns
 from typing import TYPE_CHECKING, Any
@@ -98,32 +99,6 @@ class InputPort:
         q.append(msg)
         job = self.job
         if not job.scheduled:
-            job.scheduled = True
-            job.lane.put(job)
-
-    def deliver_remote(self, msg: Message) -> None:
-        """Queue a message from another process and, when the unit is fast and free, run it here.
-
-        This runs on the Python thread Zenoh keeps for the port's subscriber: handling the
-        message right away saves a thread hand-off to the lane (20-40 µs); a unit that is busy,
-        slow or isolated gets the message through its queue and lane instead. (Zenoh could call
-        us on its receiving thread and save another 10 µs per message, but one slow callback
-        there would hold up every stream arriving over the same link.)
-        """
-        q = self.queue
-        job = self.job
-        inline = job._ewma_ns < job._inline_ns  # proven quick, on the shared lane
-        if not q and inline and job._lock.acquire(False):
-            job.handle_now(self, msg)  # the common case: nothing queued, the unit free and fast
-            return
-        if len(q) >= self.depth:
-            self.counters.dropped += 1
-            if not self.keep_last:
-                return
-        q.append(msg)
-        if inline and job._lock.acquire(False):
-            job.run_locked(_REMOTE_THREAD)
-        elif not job.scheduled:
             job.scheduled = True
             job.lane.put(job)
 
@@ -300,7 +275,7 @@ class Proxy:
             self._setup_done = True
         try:
             for inp in self._input_seq:
-                inp.subscriber = self._session.declare_subscriber(inp.key, inp.deliver_remote, self._on_remote_error)
+                inp.subscriber = self._session.declare_subscriber(inp.key, partial(self.deliver_remote, inp), self._on_remote_error)
             self._bus.attach(self._input_seq, ())
         except Exception as exc:
             self._fail(exc, "binding its input ports")
@@ -405,33 +380,52 @@ class Proxy:
             return  # running on another thread right now; it drains before releasing
         self.run_locked(worker)
 
-    def handle_now(self, port: InputPort, msg: Message) -> None:
-        """Hand one message to the unit on this thread; the unit's lock is held, and released here.
+    def deliver_remote(self, port: InputPort, msg: Message) -> None:
+        """Queue a message from another process and, when the unit is quick and free, run it here.
 
-        The short path for a message from another process when nothing is queued: no queue, no
-        lane, no thread hand-off.
+        This runs on the Python thread Zenoh keeps for the port's subscriber: handling the
+        message right away saves a thread hand-off to the lane (20-40 µs); a unit that is busy,
+        slow or isolated gets the message through its queue and lane instead. (Zenoh could call
+        us on its receiving thread and save another 10 µs per message, but one slow callback
+        there would hold up every stream arriving over the same link.)
         """
-        if self.state is not _RUNNING or self._calls:
-            port.queue.append(msg)  # let the general path sort it out
-            self.run_locked(_REMOTE_THREAD)
+        q = port.queue
+        inline = self._ewma_ns < self._inline_ns  # proven quick, on the shared lane
+        if not q and inline and self._lock.acquire(False):
+            if self.state is not _RUNNING or self._calls:
+                q.append(msg)  # let the general path sort it out
+                self.run_locked(_REMOTE_THREAD)
+                return
+            # the common case, spelled out because it runs for every remote message: nothing
+            # queued, the unit running, free and quick
+            now = time_ns()
+            self._current = msg
+            self._current_thread = get_ident()
+            try:
+                self.unit.on_message(port.name, msg)
+            except (Exception, SystemExit) as exc:
+                self._current = None
+                self._fail(exc, f"on_message({port.name!r})")
+            finally:
+                self._current = None
+                self._current_thread = 0
+                self._lock.release()
+            # bookkeeping after the callback, off the path of what the unit published
+            port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+            self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
+            if self._destroy_requested or self._ewma_ns > self._slow_ns:
+                self._after_callbacks()
             return
-        now = time_ns()
-        self._current = msg
-        self._current_thread = get_ident()
-        try:
-            self.unit.on_message(port.name, msg)
-        except (Exception, SystemExit) as exc:
-            self._current = None
-            self._fail(exc, f"on_message({port.name!r})")
-        finally:
-            self._current = None
-            self._current_thread = 0
-            self._lock.release()
-        # bookkeeping after the callback, off the path of what the unit published
-        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
-        self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
-        if self._destroy_requested or self._ewma_ns > self._slow_ns:
-            self._after_callbacks()
+        if len(q) >= port.depth:
+            port.counters.dropped += 1
+            if not port.keep_last:
+                return
+        q.append(msg)
+        if inline and self._lock.acquire(False):
+            self.run_locked(_REMOTE_THREAD)
+        elif not self.scheduled:
+            self.scheduled = True
+            self.lane.put(self)
 
     def run_locked(self, worker: Worker | _Bystander) -> None:
         """``run`` once the unit's lock is held; releases it."""
@@ -644,7 +638,7 @@ class Proxy:
                         new_tokens[port] = self._session.declare_liveliness_token(key)
                     elif self.state is UnitState.RUNNING:
                         inp = self._inputs[port]
-                        new_subs[port] = self._session.declare_subscriber(key, inp.deliver_remote, self._on_remote_error)
+                        new_subs[port] = self._session.declare_subscriber(key, partial(self.deliver_remote, inp), self._on_remote_error)
             except Exception:
                 for entity in (*new_pubs.values(), *new_tokens.values(), *new_subs.values()):
                     entity.undeclare()
