@@ -31,6 +31,9 @@ def test_demo_tracks_the_ball_through_the_battery_switch(tmp_path: Path) -> None
     assert 0 < to_ceiling["adaptation_ms"] <= to_ceiling["recovery_ms"]
     # real detection, localization and tracking against the synthetic scene's ground truth
     assert summary["error_median_cm"] is not None and summary["error_median_cm"] < 15
+    # where the camera saw the ball the track is within a few cm (predictions drift at the walls)
+    assert summary["measured_error_median_cm"] is not None and summary["measured_error_median_cm"] < 5
+    assert 0 <= summary["predicted_messages"] < summary["track_messages"]
     assert "adaptation #1: measurement battery = 0.2" in text and "stream recovered in" in text
     assert "ceiling-camera [" in text and "robot-camera [" in text  # the live graph, both ways
     assert f"report written to {tmp_path.resolve()} (report.json, track.png, frame.png)" in text

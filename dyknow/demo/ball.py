@@ -61,6 +61,10 @@ class Battery:
         return min(1.0, bottom + self.charge_rate * (t - self.charge_at_s))
 
 
+# A track older than this is reported as lost in the status lines (the tracker sends one per frame).
+_STALE_S = 0.5
+
+
 class TrackLog(Unit):
     """Keeps every track message arriving on the requested key (the demo's consumer)."""
 
@@ -294,7 +298,7 @@ class BallDemo:
                 if lat.count:
                     latency = f"  (camera to key: {lat.p50_us / 1000:.1f} ms p50)"
         if last is not None:
-            _, origin_ns, p = last
+            arrival_ns, origin_ns, p = last
             position = f"ball x={p.get('x', float('nan')):+.2f} y={p.get('y', float('nan')):+.2f} m"
             speed = f" v=({p.get('vx', 0):+.2f},{p.get('vy', 0):+.2f}) m/s"
             truth = ""
@@ -302,7 +306,14 @@ class BallDemo:
                 g = scene.ball_at(origin_ns)
                 err = math.hypot(p.get("x", 0) - g.x, p.get("y", 0) - g.y) * 100
                 truth = f"  truth x={g.x:+.2f} y={g.y:+.2f}  error {err:4.1f} cm"
-            lines.append(f"  {position}{speed}{truth}{latency}")
+            age_s = (time.time_ns() - arrival_ns) / 1e9
+            if age_s > _STALE_S:  # the tracker dropped the track: the camera has not seen the ball
+                state = f"  [track lost {age_s:.1f} s ago: the ball is out of the camera's view]"
+            elif p.get("predicted"):
+                state = "  [predicted: the ball is not seen right now]"
+            else:
+                state = ""
+            lines.append(f"  {position}{speed}{truth}{latency}{state}")
         else:
             lines.append("  (no track yet)")
         if self.live:
