@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import logging
 import signal
 import subprocess
@@ -44,7 +43,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, machine  # noqa: E402
+from chain import ROOT, machine, write_json  # noqa: E402
 
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -255,9 +254,7 @@ def main(argv: list[str] | None = None) -> int:
             )
     print("for comparison, mean reaction times: ROSA 1.24-2.50 s, Metacontrol 0.82-1.55 s, behaviour tree 0.07-1.09 s")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"machine": info, "rate_hz": args.rate, "results": results}, indent=2))
-        print(f"wrote {args.json}")
+        write_json(args.json, {"machine": info, "rate_hz": args.rate, "results": results})
     return 0
 
 

@@ -530,6 +530,13 @@ def summarize(latencies_ns: list[int], hops: int) -> dict[str, float]:
     }
 
 
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write a benchmark's results as JSON (creating the folder) and say where."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2))
+    print(f"wrote {path}")
+
+
 def machine() -> dict[str, Any]:
     from importlib.metadata import version
 
@@ -687,11 +694,9 @@ def main(argv: list[str] | None = None) -> int:
                     flush=True,
                 )
     _compare(results)
-    out = {"machine": info, "results": results}
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2))
-        print(f"\nwrote {args.json}")
+        print()
+        write_json(args.json, {"machine": info, "results": results})
     if args.plot:
         plot(results, info, args.plot)
         print(f"wrote {args.plot}")

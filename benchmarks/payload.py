@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, _free_ports, machine  # noqa: E402
+from chain import ROOT, _free_ports, machine, write_json  # noqa: E402
 
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -323,11 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     checks = _checks(results)
     for line in checks:
         print(line)
-    out = {"machine": info, "results": results, "targets": TARGETS}
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2))
-        print(f"wrote {args.json}")
+        write_json(args.json, {"machine": info, "results": results, "targets": TARGETS})
     if args.plot:
         plot(results, info, args.plot)
         print(f"wrote {args.plot}")

@@ -17,7 +17,6 @@ adapting), beside the target (under 10 ms for 1,000 specs, checked on the cold p
 from __future__ import annotations
 
 import argparse
-import json
 import random
 import sys
 import time
@@ -27,7 +26,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, machine  # noqa: E402
+from chain import ROOT, machine, write_json  # noqa: E402
 
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -129,9 +128,7 @@ def main(argv: list[str] | None = None) -> int:
             flush=True,
         )
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"machine": info, "results": results}, indent=2))
-        print(f"wrote {args.json}")
+        write_json(args.json, {"machine": info, "results": results})
     return 0
 
 

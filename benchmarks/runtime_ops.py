@@ -12,7 +12,6 @@ session), and the messages the witness lost (must be zero).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -21,7 +20,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, machine  # noqa: E402
+from chain import ROOT, machine, write_json  # noqa: E402
 
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
@@ -127,9 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         f"(target: zero lost): {'met' if lost_ok else 'MISSED'}"
     )
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"machine": info, "results": results}, indent=2))
-        print(f"wrote {args.json}")
+        write_json(args.json, {"machine": info, "results": results})
     return 0
 
 
