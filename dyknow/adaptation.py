@@ -242,7 +242,8 @@ class Monitor:
         self._manager = manager
         self._knowledge = knowledge
         self._report = report
-        self._seen: dict[tuple[str, str], tuple[int, int]] = {}  # (unit, port) -> (count, changed at ns)
+        # (unit, port) -> (count, changed at ns, started_ns of the unit instance counted)
+        self._seen: dict[tuple[str, str], tuple[int, int, int]] = {}
 
     def unit_event(self, event: UnitEvent) -> None:
         if event.kind in ("failed", "destroyed"):
@@ -261,8 +262,10 @@ class Monitor:
                 self._report(Symptom("retry", now_ns, label=label, detail=f"back-off of {label} ended"))
         for name, label, port, deadline_ns, count, started_ns in self._manager._deadline_ports():
             seen = self._seen.get((name, port))
+            if seen is not None and seen[2] != started_ns:
+                seen = None  # a new unit under the same name (respawned): its own count and clock
             if seen is None or count != seen[0]:
-                self._seen[(name, port)] = (count, now_ns if seen is not None else max(now_ns, started_ns))
+                self._seen[(name, port)] = (count, now_ns if seen is not None else max(now_ns, started_ns), started_ns)
                 if name in knowledge.stalled and seen is not None:
                     knowledge.stalled.discard(name)
                     self._report(Symptom("resumed", now_ns, unit=name, label=label, detail=f"{name}.{port} publishes again"))

@@ -247,3 +247,34 @@ def test_remote_source_process_killed(robot: Manager) -> None:
         child.wait(10)
         if child.stdout is not None:
             child.stdout.close()
+
+
+class _DeadlinePorts:
+    """Stands in for the manager's list of deadline ports, which the monitor polls."""
+
+    def __init__(self) -> None:
+        self.ports: list[tuple[str, str, str, int, int, int]] = []
+
+    def _deadline_ports(self) -> list[tuple[str, str, str, int, int, int]]:
+        return self.ports
+
+
+def test_a_respawned_unit_gets_its_own_deadline_clock() -> None:
+    """A unit respawned under the same name is not judged by its predecessor's message count."""
+    from dyknow.adaptation import Knowledge, Monitor, Symptom
+
+    ms = 1_000_000
+    ports = _DeadlinePorts()
+    symptoms: list[Symptom] = []
+    monitor = Monitor(ports, Knowledge(), symptoms.append)  # type: ignore[arg-type]
+    ports.ports = [("cam", "camera", "out", 100 * ms, 5, 0)]  # the first camera, 5 messages so far
+    monitor.tick(10 * ms)
+    # Long after, a new "cam" started 20 ms ago and happens to have sent 5 messages too.
+    ports.ports = [("cam", "camera", "out", 100 * ms, 5, 980 * ms)]
+    monitor.tick(1000 * ms)
+    assert [s.kind for s in symptoms] == []
+    # The new camera falls silent: stalled after its own deadline.
+    monitor.tick(1050 * ms)
+    assert [s.kind for s in symptoms] == []
+    monitor.tick(1110 * ms)
+    assert [s.kind for s in symptoms] == ["stalled"] and "silent for 110 ms" in symptoms[0].detail
