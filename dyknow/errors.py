@@ -15,7 +15,14 @@ Every error dyknow raises on purpose derives from :class:`DyKnowError`, with one
     ├── PlanningError      no configuration provides a requested tag (with the explanation)
     └── RecordingError     an MCAP recording cannot be written or read (file, offset, what is wrong)
 
-Messages say what came in, what was expected, and what to do about it.
+Every error carries fields as well as its message, so that the CLI, the services and a user
+interface can show them without parsing prose: ``what`` (the problem), ``where`` (what it
+concerns: a file and line, a manager, a unit, a port, a key; None when nothing in particular) and
+``expected`` (what would have been accepted, with a hint such as close matches; None when there is
+nothing to say). ``str(error)`` is ``"WHERE: WHAT; expected EXPECTED"`` with the missing parts left
+out, and :meth:`DyKnowError.to_dict` gives the fields as JSON (the services send it, and the client
+raises the same class with the same fields). :class:`SpecIssue` has the same fields for one problem
+of a spec file.
 """
 
 from __future__ import annotations
@@ -39,26 +46,75 @@ __all__ = [
     "TagError",
     "TransportError",
     "UnitError",
+    "compose",
     "did_you_mean",
 ]
 
 
+def compose(what: str, where: str | None = None, expected: str | None = None) -> str:
+    """The one-line message of an error: ``"WHERE: WHAT; expected EXPECTED"``, parts left out when None.
+
+    >>> compose("unknown port 'ot'", "unit 'r1'", "one of 'in', 'out' (did you mean 'out'?)")
+    "unit 'r1': unknown port 'ot'; expected one of 'in', 'out' (did you mean 'out'?)"
+    """
+    text = f"{where}: {what}" if where else what
+    return f"{text}; expected {expected}" if expected else text
+
+
 class DyKnowError(Exception):
-    """Root of every error dyknow raises on purpose."""
+    """Root of every error dyknow raises on purpose.
+
+    ``what`` is the problem, ``where`` what it concerns and ``expected`` what would have been
+    accepted (see the module documentation); the message is built from them.
+    """
+
+    def __init__(self, what: str, *, where: str | None = None, expected: str | None = None) -> None:
+        self.what = what
+        self.where = where
+        self.expected = expected
+        super().__init__(compose(what, where, expected))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The error as JSON: its class name, message and fields (what the services reply)."""
+        return {"error": type(self).__name__, "message": str(self), "what": self.what, "where": self.where, "expected": self.expected}
 
 
 @dataclass(frozen=True, slots=True)
 class SpecIssue:
-    """One problem found in a specification file, with its location."""
+    """One problem found in a specification file, located.
+
+    ``element`` names the part of the spec it concerns, such as ``<port> @type`` (empty for the
+    file as a whole); ``what`` is the problem and ``expected`` what would be accepted (may be
+    empty). ``str(issue)`` is ``PATH:LINE: ELEMENT: WHAT; expected EXPECTED``.
+    """
 
     path: str
     line: int
-    message: str
+    what: str
+    element: str = ""
+    expected: str = ""
+
+    @property
+    def where(self) -> str:
+        """``path:line``, or the path alone for a problem with the file as a whole (line 0)."""
+        return f"{self.path}:{self.line}" if self.line > 0 else self.path
+
+    @property
+    def message(self) -> str:
+        """The problem without its location: ``ELEMENT: WHAT; expected EXPECTED``."""
+        return compose(self.what, self.element or None, self.expected or None)
 
     def __str__(self) -> str:
-        if self.line <= 0:  # a problem with the file as a whole (missing, unreadable)
-            return f"{self.path}: {self.message}"
-        return f"{self.path}:{self.line}: {self.message}"
+        return f"{self.where}: {self.message}"
+
+    def to_dict(self) -> dict[str, Any]:
+        """The issue as JSON (what the services send for a refused spec)."""
+        return {"path": self.path, "line": self.line, "element": self.element, "what": self.what, "expected": self.expected, "message": self.message}
+
+    @classmethod
+    def from_dict(cls, data: Any) -> SpecIssue:
+        """The issue back from :meth:`to_dict` (``KeyError``, ``TypeError`` or ``ValueError`` when malformed)."""
+        return cls(str(data["path"]), int(data["line"]), str(data["what"]), str(data.get("element", "")), str(data.get("expected", "")))
 
 
 class SpecError(DyKnowError):
@@ -70,7 +126,14 @@ class SpecError(DyKnowError):
 
     def __init__(self, issues: Iterable[SpecIssue]) -> None:
         self.issues: tuple[SpecIssue, ...] = tuple(issues)
-        super().__init__("\n".join(str(i) for i in self.issues))
+        first = self.issues[0] if self.issues else SpecIssue("<spec>", 0, "invalid spec")
+        more = f" (and {len(self.issues) - 1} more problems)" if len(self.issues) > 1 else ""
+        # the fields summarise the first issue; the message lists them all, one per line
+        self.what, self.where, self.expected = first.message + more, first.where, None
+        Exception.__init__(self, "\n".join(str(i) for i in self.issues))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**DyKnowError.to_dict(self), "issues": [i.to_dict() for i in self.issues]}
 
 
 class LibraryError(DyKnowError):
@@ -97,10 +160,18 @@ class ServiceError(DyKnowError):
     is the manager's whole error reply.
     """
 
-    def __init__(self, message: str, kind: str | None = None, details: dict[str, object] | None = None) -> None:
+    def __init__(
+        self,
+        what: str,
+        kind: str | None = None,
+        details: dict[str, object] | None = None,
+        *,
+        where: str | None = None,
+        expected: str | None = None,
+    ) -> None:
         self.kind = kind
         self.details = details or {}
-        super().__init__(message)
+        super().__init__(what, where=where, expected=expected)
 
 
 class ClosedError(DyKnowError):
@@ -143,7 +214,11 @@ class PlanningError(DyKnowError):
         super().__init__(message)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"request": self.request, "message": str(self), "rejection": self.rejection.to_dict() if self.rejection is not None else None}
+        return {
+            **super().to_dict(),
+            "request": self.request,
+            "rejection": self.rejection.to_dict() if self.rejection is not None else None,
+        }
 
 
 class RecordingError(DyKnowError):

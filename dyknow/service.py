@@ -66,13 +66,8 @@ def unit_key(manager: str, unit: str, service: str) -> str:
     return f"{ROOT}/{manager}/unit/{unit}/{service}"
 
 
-def _error_reply(exc: BaseException) -> bytes:
-    body: dict[str, Any] = {"error": type(exc).__name__, "message": str(exc)}
-    if isinstance(exc, PlanningError):
-        body["request"] = exc.request
-    if isinstance(exc, SpecError):
-        body["issues"] = [{"path": i.path, "line": i.line, "message": i.message} for i in exc.issues]
-    return json.dumps(body).encode()
+def _error_reply(exc: DyKnowError) -> bytes:
+    return json.dumps(exc.to_dict()).encode()
 
 
 def dispatcher(
@@ -112,17 +107,21 @@ def dispatcher(
 
 
 def raise_remote(exc: ServiceError) -> DyKnowError:
-    """The exception a manager raised, rebuilt on the caller's side (same class and message)."""
+    """The exception a manager raised, rebuilt on the caller's side (same class, message and fields)."""
     kind = exc.kind
     cls = getattr(errors, kind, None) if kind else None
+    details = exc.details
     if cls is SpecError:
         issues = []
         with contextlib.suppress(KeyError, TypeError, ValueError):
-            raw = exc.details.get("issues", [])
-            issues = [SpecIssue(i["path"], int(i["line"]), i["message"]) for i in (raw if isinstance(raw, list) else [])]
+            raw = details.get("issues", [])
+            issues = [SpecIssue.from_dict(i) for i in (raw if isinstance(raw, list) else [])]
         return SpecError(issues or [SpecIssue("<remote>", 0, str(exc))])
     if kind == "PlanningError":
-        return PlanningError(str(exc.details.get("request", "")), None, str(exc))
-    if isinstance(cls, type) and issubclass(cls, DyKnowError) and cls not in (DyKnowError, SpecError, ServiceError):
+        return PlanningError(str(details.get("request", "")), None, str(exc))
+    if isinstance(cls, type) and issubclass(cls, DyKnowError) and cls not in (DyKnowError, SpecError, ServiceError, PlanningError):
+        what, where, expected = details.get("what"), details.get("where"), details.get("expected")
+        if isinstance(what, str):
+            return cls(what, where=where if isinstance(where, str) else None, expected=expected if isinstance(expected, str) else None)
         return cls(str(exc))
     return exc
