@@ -13,7 +13,7 @@ See the README for the concepts: transformation specs, the manager, units and th
 
 from __future__ import annotations
 
-from dyknow.adaptation import AdaptationEvent, RequestInfo
+from dyknow.adaptation import AdaptationEvent
 from dyknow.client import Client
 from dyknow.errors import (
     BindingError,
@@ -31,9 +31,11 @@ from dyknow.errors import (
     UnitError,
 )
 from dyknow.executor import Timer
+from dyknow.keys import default_key
 from dyknow.library import Library
-from dyknow.manager import Manager, Model, UnitEvent, UnitInfo, default_key
+from dyknow.manager import Manager
 from dyknow.message import Message, PayloadError
+from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.planner import Plan, Planner, RunningUnit, plan
 from dyknow.proxy import UnitState, UnitStatistics

@@ -35,41 +35,45 @@ follows with the recovery time, from the fault to the first message on the reque
 
 Measurements arrive through :meth:`Manager.measure` or as JSON (a number, or ``{"value": x}``) on
 ``dyknow/measurements/<name>`` or ``dyknow/<manager>/measurements/<name>``.
+
+The loop knows the manager only through :class:`Runtime`, the narrow interface declared here
+(look up units, spawn, destroy, rebind, deadline ports, publish an event), which the manager
+provides publicly; a test can hand the loop a small stand-in instead.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
+from dyknow import keys
 from dyknow.errors import DyKnowError, PlanningError, UnitError
+from dyknow.library import Library
 from dyknow.message import Message
+from dyknow.model import RequestInfo, UnitEvent, UnitInfo
+from dyknow.ontology import Ontology
 from dyknow.planner import Plan, Planner, RunningUnit
 from dyknow.spec import Port, TransformationSpec
 from dyknow.tags import parse_term
 from dyknow.unit import Unit
-
-if TYPE_CHECKING:
-    from dyknow.manager import Manager, UnitEvent
 
 __all__ = [
     "ANCHOR_LABEL",
     "AdaptationEvent",
     "AdaptationLoop",
     "Analyzer",
+    "DeadlinePort",
     "Knowledge",
     "Monitor",
     "Reconfigurer",
     "RequestAnchor",
-    "RequestInfo",
+    "Runtime",
     "Symptom",
-    "request_key",
 ]
 
 log = logging.getLogger(__name__)
@@ -81,10 +85,80 @@ BACKOFF_MAX_S = 60.0
 _TICK_S = 0.02  # deadlines, back-offs and deferred opportunities are checked this often
 
 
-def request_key(manager: str, tag: str) -> str:
-    """The stable key of a request: ``dyknow/<manager>/requests/<tag>`` (unsafe characters as ``_``)."""
-    chunk = "".join(c if c not in "/*$?#@ " else "_" for c in tag) or "_"
-    return f"dyknow/{manager}/requests/{chunk}"
+# ---------------------------------------------------------------------------- what the loop needs
+
+
+@dataclass(frozen=True, slots=True)
+class DeadlinePort:
+    """An output port with a ``deadline-ms`` of a live unit, and how many messages it sent so far.
+
+    ``started_ns`` tells two units spawned under the same name apart.
+    """
+
+    unit: str
+    label: str
+    port: str
+    deadline_ns: int
+    messages: int
+    started_ns: int
+
+
+class Runtime(Protocol):
+    """What the adaptation loop needs of the manager whose requests it keeps flowing.
+
+    :class:`~dyknow.manager.Manager` provides all of it publicly.
+    """
+
+    @property
+    def name(self) -> str:
+        """The manager's name (it appears in keys)."""
+        ...
+
+    @property
+    def library(self) -> Library:
+        """The specs the planner may use."""
+        ...
+
+    @property
+    def ontology(self) -> Ontology | None:
+        """The ontology tags are matched against."""
+        ...
+
+    def units(self) -> list[UnitInfo]:
+        """A snapshot of every running unit."""
+        ...
+
+    def has_unit(self, name: str) -> bool:
+        """Whether a unit called ``name`` runs."""
+        ...
+
+    def unit(self, name: str) -> Unit:
+        """The Python object of running unit ``name``."""
+        ...
+
+    def spawn(self, label: str | TransformationSpec, name: str, *, bindings: Mapping[str, str] | None = None) -> UnitInfo:
+        """Start a unit of a library label, or of a spec given directly."""
+        ...
+
+    def destroy(self, name: str) -> None:
+        """Stop unit ``name``."""
+        ...
+
+    def get_config(self, name: str) -> dict[str, str]:
+        """Port -> key bindings of unit ``name``."""
+        ...
+
+    def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
+        """Rebind ports of unit ``name``."""
+        ...
+
+    def deadline_ports(self) -> list[DeadlinePort]:
+        """The output ports with a deadline, of every live unit."""
+        ...
+
+    def publish_event(self, kind: str, event: Mapping[str, Any]) -> None:
+        """Publish an event of ``kind`` (JSON) on the manager's event key."""
+        ...
 
 
 # ---------------------------------------------------------------------------- events and state
@@ -119,28 +193,6 @@ class AdaptationEvent:
             "adaptation_ms": self.adaptation_ms,
             "recovery_ms": self.recovery_ms,
             "detail": self.detail,
-        }
-
-
-@dataclass(frozen=True, slots=True)
-class RequestInfo:
-    """A request as the model shows it."""
-
-    tag: str
-    key: str
-    state: str  # "active" or "degraded"
-    references: int
-    units: tuple[str, ...]
-    labels: tuple[str, ...]
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "tag": self.tag,
-            "key": self.key,
-            "state": self.state,
-            "references": self.references,
-            "units": list(self.units),
-            "labels": list(self.labels),
         }
 
 
@@ -196,6 +248,7 @@ class Knowledge:
         self.backoff[label] = [now_ns + int(delay * 1e9), delay, False]
 
     def users(self, unit: str) -> list[_Request]:
+        """The requests whose configuration uses ``unit``."""
         return [r for r in self.requests.values() if unit in r.units]
 
 
@@ -236,20 +289,25 @@ ANCHOR_SPEC = TransformationSpec(
 
 
 class Monitor:
-    """Turns unit events, deadlines, measurements and timers into symptoms for the loop."""
+    """Turns unit events, deadlines, measurements and timers into symptoms for the loop.
 
-    def __init__(self, manager: Manager, knowledge: Knowledge, report: Callable[[Symptom], None]) -> None:
-        self._manager = manager
+    ``deadline_ports()`` lists the ports to watch (the runtime's :meth:`Runtime.deadline_ports`).
+    """
+
+    def __init__(self, deadline_ports: Callable[[], list[DeadlinePort]], knowledge: Knowledge, report: Callable[[Symptom], None]) -> None:
+        self._deadline_ports = deadline_ports
         self._knowledge = knowledge
         self._report = report
         # (unit, port) -> (count, changed at ns, started_ns of the unit instance counted)
         self._seen: dict[tuple[str, str], tuple[int, int, int]] = {}
 
     def unit_event(self, event: UnitEvent) -> None:
+        """A unit failed or was destroyed: a symptom."""
         if event.kind in ("failed", "destroyed"):
             self._report(Symptom(event.kind, event.time_ns, unit=event.unit, label=event.label, detail=event.error or ""))
 
     def measurement(self, name: str, value: float | str, now_ns: int) -> None:
+        """A measurement arrived: remember it and report it."""
         self._knowledge.measurements[name] = value
         self._report(Symptom("measurement", now_ns, measure=name, detail=f"{name} = {value!r}"))
 
@@ -260,7 +318,10 @@ class Monitor:
             if entry[0] <= now_ns and not entry[2]:
                 entry[2] = True  # announce each retry once; the back-off doubles if it fails again
                 self._report(Symptom("retry", now_ns, label=label, detail=f"back-off of {label} ended"))
-        for name, label, port, deadline_ns, count, started_ns in self._manager._deadline_ports():
+        ports = self._deadline_ports()
+        for name, label, port, deadline_ns, count, started_ns in (
+            (p.unit, p.label, p.port, p.deadline_ns, p.messages, p.started_ns) for p in ports
+        ):
             seen = self._seen.get((name, port))
             if seen is not None and seen[2] != started_ns:
                 seen = None  # a new unit under the same name (respawned): its own count and clock
@@ -276,7 +337,7 @@ class Monitor:
                 self._report(
                     Symptom("stalled", now_ns, unit=name, label=label, detail=f"{name}.{port} silent for {silent_ms:.0f} ms (deadline {deadline_ns / 1e6:g} ms)")
                 )
-        live = {(n, p) for n, _, p, _, _, _ in self._manager._deadline_ports()}
+        live = {(p.unit, p.port) for p in ports}
         for gone in [k for k in self._seen if k not in live]:
             del self._seen[gone]
 
@@ -287,8 +348,8 @@ class Monitor:
 class Analyzer:
     """Which requests a symptom affects, and whether they must adapt now (fault) or may (opportunity)."""
 
-    def __init__(self, manager: Manager, knowledge: Knowledge) -> None:
-        self._manager = manager
+    def __init__(self, runtime: Runtime, knowledge: Knowledge) -> None:
+        self._runtime = runtime
         self._knowledge = knowledge
 
     def affected(self, symptom: Symptom) -> list[tuple[_Request, bool]]:
@@ -310,9 +371,10 @@ class Analyzer:
         return [(r, False) for r in requests]  # resumed, retry, library: maybe better now
 
     def _constraints(self, label: str) -> tuple[Any, ...]:
-        if label not in self._manager.library:
+        library = self._runtime.library
+        if label not in library:
             return ()
-        return self._manager.library.get(label).constraints
+        return library.get(label).constraints
 
 
 # ---------------------------------------------------------------------------- plan and execute
@@ -321,43 +383,45 @@ class Analyzer:
 class Reconfigurer:
     """Plans a request's configuration and moves the running system to it, changing little."""
 
-    def __init__(self, manager: Manager, knowledge: Knowledge) -> None:
-        self._manager = manager
+    def __init__(self, runtime: Runtime, knowledge: Knowledge) -> None:
+        self._runtime = runtime
         self._knowledge = knowledge
         self._planner: Planner | None = None
         self._planner_version: tuple[int, int] = (-1, -1)
 
     def planner(self) -> Planner:
-        manager = self._manager
-        version = (manager.library.version, id(manager.ontology))
+        """The planner over the current library (rebuilt when the library or ontology changed)."""
+        runtime = self._runtime
+        version = (runtime.library.version, id(runtime.ontology))
         if self._planner is None or self._planner_version != version:
-            self._planner = Planner(manager.library.specs(), manager.ontology, manager=manager.name)
+            self._planner = Planner(runtime.library.specs(), runtime.ontology, manager=runtime.name)
             self._planner_version = version
         return self._planner
 
     def running_model(self, request: _Request | None) -> tuple[list[RunningUnit], set[str]]:
         """Units the plan may reuse (the request's own set aside) and every name in use."""
-        manager = self._manager
         knowledge = self._knowledge
         own = set()
         if request is not None:
             own = {u for u in request.units if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
         running: list[RunningUnit] = []
         names: set[str] = set()
-        for proxy in manager._proxies():
-            names.add(proxy.name)
-            if proxy.name in own or proxy.label == ANCHOR_LABEL:
+        for info in self._runtime.units():
+            names.add(info.name)
+            if info.name in own or info.label == ANCHOR_LABEL or info.spec is None:
                 continue
-            outputs = {p.name: key for p, key in ((p, proxy.get_config()[p.name]) for p in proxy.spec.outputs)}
-            tags = {p.name: proxy.spec.tags_for(p.name) for p in proxy.spec.outputs}
-            healthy = proxy.alive and proxy.name not in knowledge.stalled
-            running.append(RunningUnit(proxy.name, proxy.label, outputs, tags, healthy))
+            outputs = {p.name: info.bindings[p.name] for p in info.spec.outputs}
+            tags = {p.name: info.spec.tags_for(p.name) for p in info.spec.outputs}
+            healthy = info.alive and info.name not in knowledge.stalled
+            running.append(RunningUnit(info.name, info.label, outputs, tags, healthy))
         return running, names
 
     def plan(self, request: _Request, now_ns: int) -> Plan:
+        """The preferred configuration for ``request`` now (:class:`PlanningError` when none)."""
         running, names = self.running_model(request)
         unavailable = self._knowledge.unavailable(now_ns)
-        stalled_labels = {self._manager._proxy(n).label for n in self._knowledge.stalled if self._manager._has(n)}
+        labels = {info.name: info.label for info in self._runtime.units()}
+        stalled_labels = {labels[n] for n in self._knowledge.stalled if n in labels}
         return self.planner().plan(
             request.tag, running, unavailable | stalled_labels, self._knowledge.measurements, reserved_names=names
         )
@@ -367,12 +431,14 @@ class Reconfigurer:
 
         ``before_switch(output_key)`` runs right before the anchor is rebound to the new output.
         """
-        manager = self._manager
+        runtime = self._runtime
         knowledge = self._knowledge
+        running = {info.name: info for info in runtime.units()}
         # keep the request's own healthy units that the new configuration needs (same label)
         own_by_label: dict[str, str] = {}
         for name, label in request.units.items():
-            if name in knowledge.managed and manager._has(name) and manager._proxy(name).alive and name not in knowledge.stalled:
+            info = running.get(name)
+            if name in knowledge.managed and info is not None and info.alive and name not in knowledge.stalled:
                 own_by_label.setdefault(label, name)
         rename: dict[str, str] = {}
         for unit in plan.new_units:
@@ -382,9 +448,9 @@ class Reconfigurer:
         def key(k: str) -> str:
             # keys of planned units that are kept: the kept unit's actual output key
             for planned, actual in rename.items():
-                prefix = f"dyknow/{manager.name}/{planned}/"
+                prefix = keys.unit_prefix(runtime.name, planned)
                 if k.startswith(prefix):
-                    return manager.get_config(actual)[k[len(prefix) :]]
+                    return runtime.get_config(actual)[k[len(prefix) :]]
             return k
 
         new_units: dict[str, str] = {}
@@ -393,16 +459,16 @@ class Reconfigurer:
             for unit in reversed(plan.new_units):  # consumers first: nothing a producer sends is lost
                 if unit.name in rename:
                     actual = rename[unit.name]
-                    spec = manager.library.get(unit.label)
+                    spec = runtime.library.get(unit.label)
                     wanted = {p.name: key(unit.bindings[p.name]) for p in spec.inputs if spec.tags_for(p.name)}
-                    current = manager.get_config(actual)
+                    current = runtime.get_config(actual)
                     changed = {p: k for p, k in wanted.items() if current[p] != k}
                     if changed:
-                        manager.set_config(actual, changed)
+                        runtime.set_config(actual, changed)
                     new_units[actual] = unit.label
                 else:
                     bindings = {p: key(k) for p, k in unit.bindings.items()}
-                    info = manager.spawn(unit.label, unit.name, bindings=bindings)
+                    info = runtime.spawn(unit.label, unit.name, bindings=bindings)
                     spawned.append(unit.name)
                     knowledge.managed.add(unit.name)
                     if info.state == "failed":
@@ -415,12 +481,12 @@ class Reconfigurer:
             output_key = key(plan.output_key)
             if before_switch is not None:
                 before_switch(output_key)
-            if manager.get_config(request.anchor)["in"] != output_key:
-                manager.set_config(request.anchor, {"in": output_key})
+            if runtime.get_config(request.anchor)["in"] != output_key:
+                runtime.set_config(request.anchor, {"in": output_key})
         except DyKnowError:
             for name in spawned:  # leave nothing half-built behind
-                if manager._has(name):
-                    manager.destroy(name)
+                if runtime.has_unit(name):
+                    runtime.destroy(name)
                 knowledge.managed.discard(name)
             raise
         old = request.units
@@ -433,29 +499,30 @@ class Reconfigurer:
 
     def _upstream(self, names: Iterable[str]) -> dict[str, str]:
         """Every running unit that feeds the given ones, transitively: a reused unit needs them."""
-        proxies = {p.name: p for p in self._manager._proxies()}
+        units = {info.name: info for info in self._runtime.units() if info.spec is not None}
         producers: dict[str, list[str]] = {}
-        for proxy in proxies.values():
-            config = proxy.get_config()
-            for port in proxy.spec.outputs:
-                producers.setdefault(config[port.name], []).append(proxy.name)
+        for info in units.values():
+            assert info.spec is not None
+            for port in info.spec.outputs:
+                producers.setdefault(info.bindings[port.name], []).append(info.name)
         found: dict[str, str] = {}
-        todo = [n for n in names if n in proxies]
+        todo = [n for n in names if n in units]
         while todo:
-            proxy = proxies[todo.pop()]
-            config = proxy.get_config()
-            for port in proxy.spec.inputs:
-                for producer in producers.get(config[port.name], ()):
-                    if producer not in found and proxies[producer].label != ANCHOR_LABEL:
-                        found[producer] = proxies[producer].label
+            info = units[todo.pop()]
+            assert info.spec is not None
+            for port in info.spec.inputs:
+                for producer in producers.get(info.bindings[port.name], ()):
+                    if producer not in found and units[producer].label != ANCHOR_LABEL:
+                        found[producer] = units[producer].label
                         todo.append(producer)
         return found
 
     def cleanup(self, names: Iterable[str]) -> None:
+        """Destroy the given units (those the loop spawned) and forget them."""
         for name in names:
-            if self._manager._has(name):
+            if self._runtime.has_unit(name):
                 try:
-                    self._manager.destroy(name)
+                    self._runtime.destroy(name)
                 except DyKnowError as exc:
                     log.warning("could not destroy unit %r after an adaptation: %s", name, exc)
             self._knowledge.managed.discard(name)
@@ -468,12 +535,12 @@ class Reconfigurer:
 class AdaptationLoop:
     """Runs monitor, analyzer and reconfigurer on a thread of its own, one symptom at a time."""
 
-    def __init__(self, manager: Manager, *, dwell_s: float = DEFAULT_DWELL_S) -> None:
-        self._manager = manager
+    def __init__(self, runtime: Runtime, *, dwell_s: float = DEFAULT_DWELL_S) -> None:
+        self.runtime = runtime
         self.knowledge = Knowledge()
-        self.monitor = Monitor(manager, self.knowledge, self._report)
-        self.analyzer = Analyzer(manager, self.knowledge)
-        self.reconfigurer = Reconfigurer(manager, self.knowledge)
+        self.monitor = Monitor(runtime.deadline_ports, self.knowledge, self._report)
+        self.analyzer = Analyzer(runtime, self.knowledge)
+        self.reconfigurer = Reconfigurer(runtime, self.knowledge)
         self.dwell_ns = int(dwell_s * 1e9)
         self._lock = threading.RLock()
         self._symptoms: queue.SimpleQueue[Symptom | None] = queue.SimpleQueue()
@@ -481,16 +548,16 @@ class AdaptationLoop:
         self._next_id = 1
         self._deferred: dict[str, tuple[int, Symptom]] = {}  # request key -> (when, the opportunity)
         self._closed = False
-        self._thread = threading.Thread(target=self._run, name=f"dyknow-{manager.name}-adaptation", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"dyknow-{runtime.name}-adaptation", daemon=True)
         self._thread.start()
 
     # -- requests
 
     def request(self, tag: str) -> str:
         """Plan and wire a configuration providing ``tag``; returns its stable key."""
-        manager = self._manager
+        runtime = self.runtime
         canonical = str(parse_term(tag))
-        key = request_key(manager.name, canonical)
+        key = keys.request_key(runtime.name, canonical)
         with self._lock:
             existing = self.knowledge.requests.get(key)
             if existing is not None:
@@ -499,7 +566,7 @@ class AdaptationLoop:
             now = time.time_ns()
             request = _Request(canonical, key, anchor=self._anchor_name(canonical))
             plan = self.reconfigurer.plan(request, now)  # PlanningError: nothing fits, nothing changes
-            manager._spawn_spec(ANCHOR_SPEC, request.anchor, bindings={"in": plan.output_key, "out": key})
+            runtime.spawn(ANCHOR_SPEC, request.anchor, bindings={"in": plan.output_key, "out": key})
             self.knowledge.managed.add(request.anchor)
             self.knowledge.requests[key] = request
             try:
@@ -529,13 +596,14 @@ class AdaptationLoop:
             self.reconfigurer.cleanup([request.anchor, *orphans])
 
     def requests(self) -> list[RequestInfo]:
+        """The active requests, by key."""
         with self._lock:
             return [r.info() for r in sorted(self.knowledge.requests.values(), key=lambda r: r.key)]
 
     def _anchor_name(self, tag: str) -> str:
         base = "request-" + "".join(c if c.isalnum() or c in "_-." else "-" for c in tag).strip("-")
         name, n = base, 1
-        while self._manager._has(name):
+        while self.runtime.has_unit(name):
             n += 1
             name = f"{base}-{n}"
         return name
@@ -543,6 +611,7 @@ class AdaptationLoop:
     # -- measurements and events
 
     def measure(self, name: str, value: float | str) -> None:
+        """Record the latest value of a measure; requests whose constraints it breaks adapt."""
         self.monitor.measurement(name, value, time.time_ns())
 
     def library_changed(self) -> None:
@@ -550,10 +619,12 @@ class AdaptationLoop:
         self._report(Symptom("library", time.time_ns(), detail="the library changed"))
 
     def on_event(self, listener: Callable[[AdaptationEvent], None]) -> Callable[[], None]:
+        """Call ``listener(event)`` for every adaptation event; returns a function that removes it."""
         self._listeners.append(listener)
         return lambda: self._listeners.remove(listener) if listener in self._listeners else None
 
     def history(self) -> list[AdaptationEvent]:
+        """Every adaptation so far, oldest first (each with its recovery time once recovered)."""
         with self._lock:
             return list(self.knowledge.history)
 
@@ -566,7 +637,7 @@ class AdaptationLoop:
         else:
             history.append(event)
         try:
-            self._manager.session.put(f"dyknow/{self._manager.name}/events/adaptation", json.dumps(event.to_dict()))
+            self.runtime.publish_event("adaptation", event.to_dict())
         except DyKnowError as exc:
             log.warning("could not publish adaptation event: %s", exc)
         for listener in list(self._listeners):
@@ -582,21 +653,23 @@ class AdaptationLoop:
             self._symptoms.put(symptom)
 
     def unit_event(self, event: UnitEvent) -> None:
+        """Told by the manager that a unit was spawned, failed or was destroyed."""
         if event.kind == "spawned":
             self._report(Symptom("spawned", event.time_ns, unit=event.unit))  # may bring deadlines to watch
         elif event.unit in self.knowledge.managed or any(event.unit in r.units for r in self.knowledge.requests.values()):
             self.monitor.unit_event(event)
 
-    def close(self, timeout: float = 2.0) -> None:
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the loop's thread (waiting up to ``timeout_s``); safe twice."""
         self._closed = True
         self._symptoms.put(None)
         if self._thread is not threading.current_thread():
-            self._thread.join(timeout)
+            self._thread.join(timeout_s)
 
     def _busy(self) -> bool:
         """Whether anything needs the periodic tick: requests, deadlines, back-offs, deferrals."""
         knowledge = self.knowledge
-        return bool(knowledge.requests or knowledge.backoff or self._deferred or self._manager._deadline_ports())
+        return bool(knowledge.requests or knowledge.backoff or self._deferred or self.runtime.deadline_ports())
 
     def _run(self) -> None:
         while True:
@@ -641,7 +714,7 @@ class AdaptationLoop:
         """The anchor itself went: put a new one on the same key."""
         self.reconfigurer.cleanup([request.anchor])
         request.anchor = self._anchor_name(request.tag)
-        self._manager._spawn_spec(ANCHOR_SPEC, request.anchor, bindings={"in": request.output_key or f"{request.key}/none", "out": request.key})
+        self.runtime.spawn(ANCHOR_SPEC, request.anchor, bindings={"in": request.output_key or f"{request.key}/none", "out": request.key})
         self.knowledge.managed.add(request.anchor)
 
     def _adapt(self, request: _Request, symptom: Symptom, fault: bool) -> None:
@@ -712,7 +785,7 @@ class _Recovery:
 
     def arm(self, request: _Request) -> Callable[[str], None]:
         def before_switch(output_key: str) -> None:
-            anchor = self._loop._manager._proxy(request.anchor).unit
+            anchor = self._loop.runtime.unit(request.anchor)
             if isinstance(anchor, RequestAnchor):
                 anchor.expect(output_key, self._arrived)
 

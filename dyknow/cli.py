@@ -209,7 +209,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace) -> Client:
-    return Client(args.manager, connect=args.connect or [DEFAULT_ENDPOINT], zenoh_config=args.zenoh_config, timeout=args.timeout)
+    return Client(args.manager, connect=args.connect or [DEFAULT_ENDPOINT], zenoh_config=args.zenoh_config, timeout_s=args.timeout)
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
@@ -403,7 +403,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
             if args.count is not None and seen >= args.count:
                 done.set()
 
-    with _client(args) as client, client.subscribe(args.keyexpr, show):
+    with _client(args) as client, client.declare_subscriber(args.keyexpr, show):
         signal.signal(signal.SIGINT, lambda *_: done.set())
         signal.signal(signal.SIGTERM, lambda *_: done.set())
         done.wait(args.timeout_total) if args.timeout_total else done.wait()

@@ -20,7 +20,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from dyknow import service
+from dyknow import keys, service
 from dyknow.errors import ServiceError, SpecError, SpecIssue
 from dyknow.message import Message
 from dyknow.transport import DEFAULT_ENDPOINT, Session, Subscriber, check_key_expr, make_config
@@ -37,11 +37,11 @@ class Client:
         *,
         connect: Sequence[str] = (DEFAULT_ENDPOINT,),
         zenoh_config: str | os.PathLike[str] | None = None,
-        timeout: float = 5.0,
+        timeout_s: float = 5.0,
         session: Session | None = None,
     ) -> None:
         self.manager = manager
-        self.timeout = timeout
+        self.timeout_s = timeout_s
         self._own_session = session is None
         self._connect = list(connect)
         self._session = session or Session(make_config(connect=self._connect, config_file=zenoh_config))
@@ -53,11 +53,13 @@ class Client:
         self.close()
 
     def close(self) -> None:
+        """Close the client's own session (not one it was given); safe twice."""
         if self._own_session:
             self._session.close()
 
     @property
     def session(self) -> Session:
+        """The Zenoh session the client calls through."""
         return self._session
 
     # ------------------------------------------------------------------ calls
@@ -65,15 +67,21 @@ class Client:
     def _call(self, key: str, request: Mapping[str, Any], what: str) -> Any:
         where = f"manager {self.manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
         try:
-            reply = self._session.call(key, json.dumps(request).encode(), timeout=self.timeout, what=f"{what} of {where}")
+            reply = self._session.call(key, json.dumps(request).encode(), timeout_s=self.timeout_s, what=f"{what} of {where}")
         except ServiceError as exc:
             if exc.kind is None and "nothing serves" in str(exc):
                 raise ServiceError(
-                    f"no answer from {where} within {self.timeout:g} s; is it running "
-                    f"(dyknow manager --name {self.manager})?"
+                    f"no answer from {where} within {self.timeout_s:g} s",
+                    expected=f"a running manager (dyknow manager --name {self.manager})",
                 ) from exc
             raise service.raise_remote(exc) from None
         return json.loads(reply)
+
+    def _manager(self, service_name: str, request: Mapping[str, Any]) -> Any:
+        return self._call(keys.manager_service_key(self.manager, service_name), request, service_name)
+
+    def _unit(self, name: str, service_name: str, request: Mapping[str, Any]) -> Any:
+        return self._call(keys.unit_service_key(self.manager, name, service_name), request, service_name)
 
     def add_transformation(self, xml_or_path: str | os.PathLike[str]) -> list[str]:
         """Send a spec (XML text, or a file's path) to the manager; returns the labels added."""
@@ -86,10 +94,11 @@ class Client:
             except OSError as exc:
                 raise SpecError([SpecIssue(str(file), 0, f"cannot read: {exc.strerror or exc}")]) from exc
             path = str(file)
-        return list(self._call(service.manager_key(self.manager, "add_transformation"), {"xml": text, "path": path}, "add_transformation")["labels"])
+        return list(self._manager("add_transformation", {"xml": text, "path": path})["labels"])
 
     def remove_transformation(self, label: str) -> bool:
-        return bool(self._call(service.manager_key(self.manager, "remove_transformation"), {"label": label}, "remove_transformation")["removed"])
+        """Ask the manager to forget the spec ``label``; returns whether it had one."""
+        return bool(self._manager("remove_transformation", {"label": label})["removed"])
 
     def spawn(
         self,
@@ -100,41 +109,53 @@ class Client:
         params: Mapping[str, Any] | None = None,
         bindings: Mapping[str, str] | None = None,
     ) -> dict[str, Any]:
+        """Start a unit of ``label`` named ``name`` on the manager; returns its model entry."""
         request = {"label": label, "name": name, "protected": protected, "params": dict(params or {}), "bindings": dict(bindings or {})}
-        return dict(self._call(service.manager_key(self.manager, "spawn"), request, "spawn"))
+        return dict(self._manager("spawn", request))
 
     def destroy(self, name: str) -> None:
-        self._call(service.manager_key(self.manager, "destroy"), {"name": name}, "destroy")
+        """Stop unit ``name`` on the manager (refused for protected units)."""
+        self._manager("destroy", {"name": name})
 
     def get_model(self) -> dict[str, Any]:
-        return dict(self._call(service.manager_key(self.manager, "get_model"), {}, "get_model"))
+        """The manager's model: units, specs and requests (the JSON form of :class:`~dyknow.model.Model`)."""
+        return dict(self._manager("get_model", {}))
 
     def get_config(self, name: str) -> dict[str, str]:
-        return dict(self._call(service.unit_key(self.manager, name, "get_config"), {}, "get_config"))
+        """Port -> key bindings of unit ``name``."""
+        return dict(self._unit(name, "get_config", {}))
 
     def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
-        return dict(self._call(service.unit_key(self.manager, name, "set_config"), {"bindings": dict(bindings)}, "set_config"))
+        """Rebind ports of unit ``name`` atomically; returns the new bindings."""
+        return dict(self._unit(name, "set_config", {"bindings": dict(bindings)}))
 
     def get_statistics(self, name: str) -> dict[str, Any]:
-        return dict(self._call(service.unit_key(self.manager, name, "get_statistics"), {}, "get_statistics"))
+        """Uptime, reconfigurations and per-port statistics of unit ``name``."""
+        return dict(self._unit(name, "get_statistics", {}))
 
     def request(self, tag: str) -> str:
         """Ask the manager for a stream of ``tag``; returns its key (PlanningError when nothing fits)."""
-        return str(self._call(service.manager_key(self.manager, "request"), {"tag": tag}, "request")["key"])
+        return str(self._manager("request", {"tag": tag})["key"])
 
     def release(self, key: str) -> None:
-        self._call(service.manager_key(self.manager, "release"), {"key": key}, "release")
+        """Give back a request made with :meth:`request`."""
+        self._manager("release", {"key": key})
 
     def measure(self, name: str, value: float | str) -> None:
         """Record a measurement on the manager (constraints are checked against it)."""
-        self._call(service.manager_key(self.manager, "measure"), {"name": name, "value": value}, "measure")
+        self._manager("measure", {"name": name, "value": value})
 
     def get_adaptations(self) -> list[dict[str, Any]]:
-        return list(self._call(service.manager_key(self.manager, "get_adaptations"), {}, "get_adaptations"))
+        """Every adaptation the manager made so far, oldest first (JSON form of its events)."""
+        return list(self._manager("get_adaptations", {}))
 
     # ------------------------------------------------------------------ streams
 
-    def subscribe(self, key_expr: str, callback: Callable[[Message], None]) -> Subscriber:
-        """Receive the messages published on ``key_expr`` (wildcards allowed) by other sessions."""
+    def declare_subscriber(self, key_expr: str, callback: Callable[[Message], None]) -> Subscriber:
+        """Receive the messages published on ``key_expr`` (wildcards allowed) by other sessions.
+
+        ``callback(msg)`` runs on a Zenoh thread; undeclare the returned subscriber (or use it as
+        a context manager) to stop.
+        """
         check_key_expr(key_expr, what="subscription")
         return self._session.declare_subscriber(key_expr, callback)

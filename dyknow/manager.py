@@ -26,105 +26,27 @@ import inspect
 import json
 import logging
 import os
-import re
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
-from dyknow import service
-from dyknow.adaptation import DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, RequestInfo
+from dyknow import keys, service
+from dyknow.adaptation import DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
 from dyknow.errors import BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
 from dyknow.library import Library
+from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
 from dyknow.transport import Queryable, Session, check_key_expr, make_config
 from dyknow.unit import Unit
 
-__all__ = ["Manager", "Model", "UnitEvent", "UnitInfo", "default_key"]
+__all__ = ["Manager"]
 
 log = logging.getLogger(__name__)
-
-_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
-
-
-def default_key(manager: str, unit: str, port: str) -> str:
-    """Where a port is bound unless told otherwise: ``dyknow/<manager>/<unit>/<port>``."""
-    return f"dyknow/{manager}/{unit}/{port}"
-
-
-def _check_name(name: object, what: str) -> str:
-    if not isinstance(name, str) or not _NAME.match(name):
-        raise UnitError(
-            f"{what} {name!r} is not a valid name; expected letters, digits, '_', '-' or '.', "
-            "not starting with '-' or '.' (it becomes part of Zenoh keys)"
-        )
-    return name
-
-
-@dataclass(frozen=True, slots=True)
-class UnitEvent:
-    """Something happened to a unit: ``kind`` is "spawned", "failed" or "destroyed"."""
-
-    kind: str
-    unit: str
-    label: str
-    time_ns: int
-    error: str | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class UnitInfo:
-    """One running unit as the model shows it."""
-
-    name: str
-    label: str
-    state: str
-    protected: bool
-    bindings: Mapping[str, str]
-    executor: str
-    error: str | None = None
-    traceback: str | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "label": self.label,
-            "state": self.state,
-            "protected": self.protected,
-            "bindings": dict(self.bindings),
-            "executor": self.executor,
-            "error": self.error,
-            "traceback": self.traceback,
-        }
-
-
-@dataclass(frozen=True, slots=True)
-class Model:
-    """The manager's model: the running units, the stored specs, the active requests."""
-
-    manager: str
-    units: tuple[UnitInfo, ...]
-    specs: tuple[TransformationSpec, ...] = field(default=())
-    requests: tuple[RequestInfo, ...] = field(default=())
-
-    def unit(self, name: str) -> UnitInfo:
-        for info in self.units:
-            if info.name == name:
-                return info
-        raise UnitError(f"no unit named {name!r} in the model of manager {self.manager!r}")
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "manager": self.manager,
-            "units": [u.to_dict() for u in self.units],
-            "specs": [s.to_dict() for s in self.specs],
-            "requests": [r.to_dict() for r in self.requests],
-        }
 
 
 class Manager:
@@ -134,6 +56,11 @@ class Manager:
     ``listen``/``connect``: Zenoh endpoints (default: listen on a free loopback port, connect to
     nothing); ``zenoh_config``: a json5 Zenoh configuration file to join a real deployment instead.
     ``serve``: declare the Zenoh services so other processes can call this manager.
+    ``queue_depth``: the input queue size of ports whose spec sets none. ``stall_budget_s`` and
+    ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`).
+    ``dwell_s``: how long a request keeps a configuration before switching for a better one.
+
+    It is the adaptation loop's :class:`~dyknow.adaptation.Runtime`.
     """
 
     def __init__(
@@ -151,7 +78,7 @@ class Manager:
         slow_callback_s: float = 0.002,
         dwell_s: float = DEFAULT_DWELL_S,
     ) -> None:
-        self.name = _check_name(name, "manager name")
+        self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
             self.ontology: Ontology | None = ontology
         else:
@@ -177,15 +104,15 @@ class Manager:
         self.on_unit_event(self._adaptation.unit_event)
         self._measurement_subs = []
         try:
-            for pattern in ("dyknow/measurements/*", f"dyknow/{self.name}/measurements/*"):
-                self._measurement_subs.append(self._session.subscribe_raw(pattern, self._measurement_sample))
+            for pattern in keys.measurement_patterns(self.name):
+                self._measurement_subs.append(self._session.declare_raw_subscriber(pattern, self._measurement_sample))
         except DyKnowError:
             self.close()
             raise
         if serve:
             try:
                 self._services = self._session.declare_queryable(
-                    f"{service.ROOT}/{self.name}/**",
+                    keys.services_pattern(self.name),
                     service.dispatcher(self.name, self._manager_handlers(), self._unit_service),
                 )
             except DyKnowError:
@@ -201,8 +128,11 @@ class Manager:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def close(self, timeout: float = 2.0) -> None:
-        """Destroy every unit (protected ones too), stop the threads, close the session. Safe twice."""
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Destroy every unit (protected ones too), stop the threads, close the session. Safe twice.
+
+        Bounded by about ``timeout_s``: a unit stuck in a callback does not hold it up.
+        """
         with self._lock:
             if self._closed:
                 return
@@ -213,20 +143,21 @@ class Manager:
                 sub.undeclare()
             proxies = list(self._units.values())
             self._units.clear()
-        self._adaptation.close(timeout / 2)
-        per_unit = min(0.5, timeout / max(1, len(proxies)))
+        self._adaptation.close(timeout_s / 2)
+        per_unit = min(0.5, timeout_s / max(1, len(proxies)))
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
-        self._executor.close(timeout)
+        self._executor.close(timeout_s)
         self._session.close()
 
     @property
     def closed(self) -> bool:
+        """Whether :meth:`close` was called."""
         return self._closed
 
     def _check_open(self) -> None:
         if self._closed:
-            raise ClosedError(f"manager {self.name!r} is closed; create a new Manager")
+            raise ClosedError("the manager is closed", where=f"manager {self.name!r}", expected="a new Manager")
 
     @property
     def session(self) -> Session:
@@ -257,7 +188,7 @@ class Manager:
         elif isinstance(spec, str):
             specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals)
         else:
-            raise LibraryError(f"add_transformation: got {type(spec).__name__}; expected a spec, a template, XML text or a path")
+            raise LibraryError(f"add_transformation got a {type(spec).__name__}", expected="a spec, a template, XML text or a path")
         labels = self.library.add(specs)
         self._adaptation.library_changed()
         return labels
@@ -274,7 +205,7 @@ class Manager:
 
     def spawn(
         self,
-        label: str,
+        label: str | TransformationSpec,
         name: str,
         *,
         protected: bool = False,
@@ -283,6 +214,8 @@ class Manager:
     ) -> UnitInfo:
         """Start a unit of transformation ``label`` named ``name``.
 
+        ``label`` names a spec of the library; a :class:`TransformationSpec` that is not in the
+        library may be given directly instead (the request anchors are spawned so).
         ``params`` override the spec's param values (strings are parsed as the declared type);
         ``bindings`` bind ports to keys other than the default ``dyknow/<manager>/<name>/<port>``.
         A source that cannot be imported, or that is not a Unit, raises :class:`UnitError` and
@@ -290,14 +223,15 @@ class Manager:
         """
         with self._lock:
             self._check_open()
-            _check_name(name, "unit name")
+            keys.check_name(name, "unit name")
             if name in self._units:
                 running = self._units[name]
                 raise UnitError(
-                    f"a unit named {name!r} already exists (label {running.label!r}, {running.state.value}); "
-                    "destroy it first or choose another name"
+                    f"a unit named {name!r} already exists (label {running.label!r}, {running.state.value})",
+                    where=f"manager {self.name!r}",
+                    expected="another name, or destroy it first",
                 )
-            spec = self.library.get(label)
+            spec = label if isinstance(label, TransformationSpec) else self.library.get(label)
             values = _param_values(spec, params or {})
             ports = _bindings(spec, self.name, name, bindings or {})
             return self._start(spec, name, protected=protected, values=values, ports=ports)
@@ -308,15 +242,12 @@ class Manager:
         try:
             unit = cls()
         except Exception as exc:
-            raise UnitError(f"cannot create unit {name!r}: {spec.source}() raised {type(exc).__name__}: {exc}") from exc
-        unit.name = name
-        unit.label = spec.label
-        unit.params = values
-        unit.log = logging.getLogger(f"dyknow.unit.{name}")
+            raise UnitError(f"{spec.source}() raised {type(exc).__name__}: {exc}", where=f"cannot create unit {name!r}") from exc
         proxy = Proxy(
             name=name,
             spec=spec,
             unit=unit,
+            params=values,
             bindings=ports,
             session=self._session,
             bus=self._bus,
@@ -326,12 +257,11 @@ class Manager:
             on_failure=self._unit_failed,
             on_destroy_request=self._destroy_requested,
         )
-        unit._proxy = proxy
         self._units[name] = proxy
         proxy.start()
         if proxy.state is not UnitState.FAILED:
             self._emit("spawned", proxy)
-        return self._info(proxy)
+        return _info(proxy)
 
     def destroy(self, name: str) -> None:
         """Stop unit ``name`` and remove it from the model. Refused for protected units."""
@@ -339,7 +269,9 @@ class Manager:
             self._check_open()
             proxy = self._proxy(name)
             if proxy.protected:
-                raise UnitError(f"unit {name!r} is protected; it cannot be destroyed (spawned with protected=True)")
+                raise UnitError(
+                    "the unit is protected (spawned with protected=True), so it cannot be destroyed", where=f"unit {name!r}"
+                )
             del self._units[name]
         proxy.stop()
         log.info("unit %r destroyed", name)
@@ -378,45 +310,46 @@ class Manager:
         """The Python object of running unit ``name`` (for embedding and tests)."""
         return self._proxy(name).unit
 
+    def units(self) -> list[UnitInfo]:
+        """A snapshot of every running unit (the model's ``units``)."""
+        with self._lock:
+            proxies = list(self._units.values())
+        return [_info(p) for p in proxies]
+
+    def has_unit(self, name: str) -> bool:
+        """Whether a unit called ``name`` runs (in any state) on this manager."""
+        return name in self._units
+
+    def deadline_ports(self) -> list[DeadlinePort]:
+        """The output ports with a ``deadline-ms`` of every live unit, with their message counts."""
+        with self._lock:
+            proxies = list(self._units.values())
+        return [
+            DeadlinePort(proxy.name, proxy.label, port.name, int(port.deadline_ms * 1e6), proxy.published(port.name), proxy.started_ns)
+            for proxy in proxies
+            if proxy.alive
+            for port in proxy.spec.outputs
+            if port.deadline_ms
+        ]
+
+    def publish_event(self, kind: str, event: Mapping[str, Any]) -> None:
+        """Publish ``event`` as JSON on ``dyknow/<manager>/events/<kind>`` (adaptations, say)."""
+        self._session.put(keys.event_key(self.name, kind), json.dumps(event))
+
     def _proxy(self, name: str) -> Proxy:
         proxy = self._units.get(name)
         if proxy is None:
             known = list(self._units)
             listing = ", ".join(repr(k) for k in known) or "none"
-            raise UnitError(f"no unit named {name!r} on manager {self.name!r}; running units: {listing}{did_you_mean(name, known)}")
+            raise UnitError(
+                f"no unit named {name!r}", where=f"manager {self.name!r}", expected=f"one of the running units: {listing}{did_you_mean(name, known)}"
+            )
         return proxy
 
     def _individuals(self, class_ref: str) -> list[str]:
         if self.ontology is None:
-            raise LibraryError(f"template arg class {class_ref!r} needs an ontology; pass ontology=[...] (--ontology FILE)")
+            raise LibraryError(f"template arg class {class_ref!r} needs an ontology", expected="ontology=[...] (--ontology FILE)")
         return self.ontology.individuals(class_ref)
-
-    def _spawn_spec(self, spec: TransformationSpec, name: str, *, bindings: Mapping[str, str]) -> UnitInfo:
-        """Spawn a unit from a spec that is not in the library (the request anchors)."""
-        with self._lock:
-            self._check_open()
-            if name in self._units:
-                raise UnitError(f"a unit named {name!r} already exists")
-            return self._start(spec, name, protected=False, values=spec.param_values(), ports=_bindings(spec, self.name, name, bindings))
-
-    def _proxies(self) -> list[Proxy]:
-        with self._lock:
-            return list(self._units.values())
-
-    def _has(self, name: str) -> bool:
-        return name in self._units
-
-    def _deadline_ports(self) -> list[tuple[str, str, str, int, int, int]]:
-        """``(unit, label, port, deadline_ns, messages so far, started_ns)`` of live units' deadline ports."""
-        out = []
-        for proxy in self._proxies():
-            if not proxy.alive:
-                continue
-            for port in proxy.spec.outputs:
-                if port.deadline_ms:
-                    count = proxy._outputs[port.name].counters.messages
-                    out.append((proxy.name, proxy.label, port.name, int(port.deadline_ms * 1e6), count, proxy.started_ns))
-        return out
 
     # ------------------------------------------------------------------ requests (self-adaptation)
 
@@ -444,14 +377,15 @@ class Manager:
         """Record the latest value of a measure (battery, say); constraints are checked against it."""
         self._check_open()
         if not isinstance(name, str) or not name or "/" in name:
-            raise LibraryError(f"measure name {name!r}: expected a non-empty name without '/', like 'battery'")
+            raise LibraryError(f"measure name {name!r} is not a valid name", expected="a non-empty name without '/', like 'battery'")
         self._adaptation.measure(name, value)
 
     @property
     def measurements(self) -> dict[str, float | str]:
+        """The latest value of every measure."""
         return dict(self._adaptation.knowledge.measurements)
 
-    def adaptations(self) -> list[AdaptationEvent]:
+    def get_adaptations(self) -> list[AdaptationEvent]:
         """Every adaptation so far (each with its recovery time once the stream recovered)."""
         return self._adaptation.history()
 
@@ -478,19 +412,7 @@ class Manager:
         """All running units (label, state, protection, bindings) and all stored specs."""
         with self._lock:
             proxies = list(self._units.values())
-        return Model(self.name, tuple(self._info(p) for p in proxies), self.library.specs(), tuple(self.requests()))
-
-    def _info(self, proxy: Proxy) -> UnitInfo:
-        return UnitInfo(
-            name=proxy.name,
-            label=proxy.label,
-            state=proxy.state.value,
-            protected=proxy.protected,
-            bindings=proxy.get_config(),
-            executor=proxy.executor_description,
-            error=proxy.error,
-            traceback=proxy.traceback,
-        )
+        return Model(self.name, tuple(_info(p) for p in proxies), self.library.specs(), tuple(self.requests()))
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
@@ -525,7 +447,7 @@ class Manager:
             "request": lambda r: {"key": self.request(str(r["tag"]))},
             "release": self._serve_release,
             "measure": self._serve_measure,
-            "get_adaptations": lambda r: [e.to_dict() for e in self.adaptations()],
+            "get_adaptations": lambda r: [e.to_dict() for e in self.get_adaptations()],
         }
 
     def _serve_destroy(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -546,7 +468,7 @@ class Manager:
         if what == "set_config":
             bindings = request.get("bindings")
             if not isinstance(bindings, dict):
-                raise BindingError(f"set_config of unit {name!r}: got {bindings!r}; expected {{\"bindings\": {{port: key}}}}")
+                raise BindingError(f"set_config got {bindings!r}", where=f"unit {name!r}", expected='{"bindings": {port: key}}')
             return self.set_config(name, bindings)
         return self.get_statistics(name).to_dict()
 
@@ -554,30 +476,46 @@ class Manager:
 # ---------------------------------------------------------------------- helpers
 
 
+def _info(proxy: Proxy) -> UnitInfo:
+    return UnitInfo(
+        name=proxy.name,
+        label=proxy.label,
+        state=proxy.state.value,
+        protected=proxy.protected,
+        bindings=proxy.get_config(),
+        executor=proxy.executor_description,
+        error=proxy.error,
+        traceback=proxy.traceback,
+        spec=proxy.spec,
+        started_ns=proxy.started_ns,
+    )
+
+
 def _import_unit(spec: TransformationSpec) -> type[Unit]:
     where = f"transformation {spec.label!r} ({spec.path}:{spec.line})"
     module_name, sep, class_name = spec.source.partition(":")
     if not sep or not module_name or not class_name or "/" in spec.source:
-        raise UnitError(f"{where}: source {spec.source!r} is not importable; expected 'package.module:Class'")
+        raise UnitError(f"source {spec.source!r} is not importable", where=where, expected="'package.module:Class'")
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
         raise UnitError(
-            f"{where}: cannot import module {module_name!r} named in its source: {exc}; "
-            "is the package installed or on PYTHONPATH?"
+            f"cannot import module {module_name!r} named in its source: {exc}",
+            where=where,
+            expected="an installed package or one on PYTHONPATH",
         ) from exc
     except Exception as exc:
-        raise UnitError(f"{where}: importing module {module_name!r} failed: {type(exc).__name__}: {exc}") from exc
+        raise UnitError(f"importing module {module_name!r} failed: {type(exc).__name__}: {exc}", where=where) from exc
     cls = getattr(module, class_name, None)
     if cls is None:
         units = [n for n, v in vars(module).items() if inspect.isclass(v) and issubclass(v, Unit) and v is not Unit]
         raise UnitError(
-            f"{where}: module {module_name!r} has no {class_name!r}; expected a Unit subclass"
-            + (f" such as {', '.join(repr(u) for u in units)}" if units else "")
-            + did_you_mean(class_name, units)
+            f"module {module_name!r} has no {class_name!r}",
+            where=where,
+            expected="a Unit subclass" + (f" such as {', '.join(repr(u) for u in units)}" if units else "") + did_you_mean(class_name, units),
         )
     if not (inspect.isclass(cls) and issubclass(cls, Unit)):
-        raise UnitError(f"{where}: {spec.source!r} is a {type(cls).__name__}, not a unit; expected a subclass of dyknow.Unit")
+        raise UnitError(f"{spec.source!r} is a {type(cls).__name__}, not a unit", where=where, expected="a subclass of dyknow.Unit")
     return cls
 
 
@@ -589,7 +527,7 @@ def _param_values(spec: TransformationSpec, overrides: Mapping[str, Any]) -> dic
         if param is None:
             listing = ", ".join(repr(n) for n in declared) or "none"
             raise UnitError(
-                f"transformation {spec.label!r} has no param {name!r}; expected one of {listing}{did_you_mean(name, declared)}"
+                f"no param {name!r}", where=f"transformation {spec.label!r}", expected=f"one of {listing}{did_you_mean(name, declared)}"
             )
         values[name] = _coerce(param.type, value, f"param {name!r} of {spec.label!r}")
     return values
@@ -619,16 +557,16 @@ def _coerce(kind: str, value: Any, what: str) -> Any:
     except (TypeError, ValueError):
         pass
     expected = {"bool": "true or false", "int": "a whole number", "float": "a number", "string": "text"}[kind]
-    raise UnitError(f"{what}: got {value!r}; expected {expected} ({kind})")
+    raise UnitError(f"got {value!r}", where=what, expected=f"{expected} ({kind})")
 
 
 def _bindings(spec: TransformationSpec, manager: str, unit: str, overrides: Mapping[str, str]) -> dict[str, str]:
     ports = {p.name: p for p in spec.ports}
-    result = {name: default_key(manager, unit, name) for name in ports}
+    result = {name: keys.default_key(manager, unit, name) for name in ports}
     for name, key in overrides.items():
         port = ports.get(name)
         if port is None:
             listing = ", ".join(repr(n) for n in ports)
-            raise BindingError(f"transformation {spec.label!r} has no port {name!r}; expected one of {listing}{did_you_mean(name, ports)}")
+            raise BindingError(f"no port {name!r}", where=f"transformation {spec.label!r}", expected=f"one of {listing}{did_you_mean(name, ports)}")
         result[name] = check_key_expr(key, what=f"port {name!r} of unit {unit!r}", concrete=port.direction == "out")
     return result

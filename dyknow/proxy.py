@@ -14,7 +14,9 @@ One proxy per running unit. It
 - isolates failures: an exception in ``setup``, a callback or ``run`` marks the unit failed, with
   its error and traceback, and the rest of the manager carries on.
 
-It is also the executor's *job* for the unit (see :mod:`dyknow.executor`).
+It is also the executor's *job* for the unit (see :mod:`dyknow.executor`) and the unit's
+:class:`~dyknow.unit.UnitRuntime`: the proxy owns the wiring, handing itself to the unit through
+:meth:`Unit.attach_runtime <dyknow.unit.Unit.attach_runtime>` when it is created.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from dyknow import keys
 from dyknow.errors import BindingError, UnitError, did_you_mean
 from dyknow.message import Message, check_payload, payload_nbytes
 from dyknow.stats import PortCounters, PortStatistics
@@ -174,6 +177,7 @@ class Proxy:
         name: str,
         spec: TransformationSpec,
         unit: Unit,
+        params: Mapping[str, Any],
         bindings: Mapping[str, str],
         session: Session,
         bus: LocalBus,
@@ -228,9 +232,7 @@ class Proxy:
                 self._outputs[port.name] = OutputPort(port.name, key)
         self._input_seq = tuple(self._inputs.values())
         self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
-        # Bind the unit's publish straight to ours: one call less per message (Unit.publish
-        # documents the same behaviour).
-        unit.publish = self.publish  # type: ignore[method-assign]
+        unit.attach_runtime(self, name=name, label=spec.label, params=params, log=logging.getLogger(f"dyknow.unit.{name}"))
         if type(unit).dedicated_thread:
             self.isolation = "the unit asks for a thread of its own (dedicated_thread = True)"
 
@@ -258,7 +260,7 @@ class Proxy:
         try:
             for out in self._outputs.values():
                 out.publisher = self._session.declare_publisher(out.key)
-                out.token = self._session.declare_liveliness_token(out.key)
+                out.token = self._session.declare_liveliness_token(keys.port_token(out.key))
             self._bus.attach((), self._outputs.values())
         except Exception as exc:
             self._fail(exc, "binding its output ports")
@@ -286,8 +288,11 @@ class Proxy:
             self._run_thread = threading.Thread(target=self._run_loop, name=f"dyknow-{self.name}-run", daemon=True)
             self._run_thread.start()
 
-    def stop(self, timeout: float = 2.0) -> None:
-        """Stop the unit: no more messages, timers or callbacks; then ``teardown()``. Safe twice."""
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Stop the unit: no more messages, timers or callbacks; then ``teardown()``. Safe twice.
+
+        Waits up to ``timeout_s`` for ``run()`` to return and for a callback in flight.
+        """
         if self.state is UnitState.STOPPED:
             return
         self.state = UnitState.STOPPED
@@ -298,11 +303,11 @@ class Proxy:
         # run() must be out of the way before teardown() frees what it uses (a video capture, say)
         thread = self._run_thread
         if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout)
+            thread.join(timeout_s)
             if thread.is_alive():
-                log.warning("unit %r: run() did not return within %.1f s after stop was set", self.name, timeout)
+                log.warning("unit %r: run() did not return within %.1f s after stop was set", self.name, timeout_s)
         # Wait for a callback in flight (bounded: a stuck unit must not hang its manager).
-        got = self._lock.acquire(timeout=timeout) if self._current_thread != get_ident() else False
+        got = self._lock.acquire(timeout=timeout_s) if self._current_thread != get_ident() else False
         try:
             if self._setup_done:
                 self._setup_done = False
@@ -358,7 +363,7 @@ class Proxy:
     def request_destroy(self) -> None:
         """The unit asks to be destroyed: at once, or after its current callback returns."""
         if self.protected:
-            raise UnitError(f"unit {self.name!r} is protected; a protected unit cannot be destroyed, not even by itself")
+            raise UnitError("the unit is protected: a protected unit cannot be destroyed, not even by itself", where=f"unit {self.name!r}")
         if self._current_thread == get_ident():
             self._destroy_requested = True
         elif self._on_destroy_request is not None:
@@ -537,10 +542,10 @@ class Proxy:
         """Send ``payload`` from output ``port`` to local inputs (by reference) and to Zenoh."""
         out = self._outputs.get(port)
         if out is None:
-            raise BindingError(self._no_port(port, "output", self._outputs))
+            raise self._no_port(port, "output", self._outputs)
         state = self.state
         if state is _STOPPED or state is _FAILED:
-            raise UnitError(f"unit {self.name!r} is {self.state.value}; it can no longer publish")
+            raise UnitError(f"the unit is {self.state.value}, so it can no longer publish", where=f"unit {self.name!r}")
         now = time_ns()
         wire = None
         current = self._current
@@ -583,14 +588,14 @@ class Proxy:
         """Whether a local input or a remote subscriber receives output ``port`` now."""
         out = self._outputs.get(port)
         if out is None:
-            raise BindingError(self._no_port(port, "output", self._outputs))
+            raise self._no_port(port, "output", self._outputs)
         return bool(out.targets) or (out.publisher is not None and out.publisher.matched)
 
     def reject(self, port: str, reason: str) -> None:
         """Count and log an unusable input message; the unit carries on."""
         inp = self._inputs.get(port)
         if inp is None:
-            raise BindingError(self._no_port(port, "input", self._inputs))
+            raise self._no_port(port, "input", self._inputs)
         counters = inp.counters
         counters.rejected += 1
         counters.last_rejection = reason
@@ -599,6 +604,10 @@ class Proxy:
             log.warning("unit %r rejected a message on %r (%d so far): %s", self.name, port, counters.rejected, reason)
 
     # ------------------------------------------------------------------ proxy services
+
+    def published(self, port: str) -> int:
+        """How many messages output ``port`` has published so far."""
+        return self._outputs[port].counters.messages
 
     def get_config(self) -> dict[str, str]:
         """Port -> key expression, for every port."""
@@ -614,16 +623,16 @@ class Proxy:
         """
         with self._config_lock:
             if not self.alive:
-                raise UnitError(f"unit {self.name!r} is {self.state.value}; only a running unit can be rebound")
+                raise UnitError(f"the unit is {self.state.value}, so it cannot be rebound", where=f"unit {self.name!r}", expected="a running unit")
             if not isinstance(changes, Mapping) or not changes:
-                raise BindingError(f"set_config of unit {self.name!r}: got {changes!r}; expected a mapping of port to key expression")
+                raise BindingError(f"set_config got {changes!r}", where=f"unit {self.name!r}", expected="a mapping of port to key expression")
             for port, key in changes.items():
                 if port in self._inputs:
                     check_key_expr(key, what=f"unit {self.name!r} input port {port!r}")
                 elif port in self._outputs:
                     check_key_expr(key, what=f"unit {self.name!r} output port {port!r}", concrete=True)
                 else:
-                    raise BindingError(self._no_port(port, "", {**self._inputs, **self._outputs}))
+                    raise self._no_port(port, "", {**self._inputs, **self._outputs})
             current = self.get_config()
             effective = {port: key for port, key in changes.items() if current[port] != key}
             if not effective:
@@ -635,7 +644,7 @@ class Proxy:
                 for port, key in effective.items():
                     if port in self._outputs:
                         new_pubs[port] = self._session.declare_publisher(key)
-                        new_tokens[port] = self._session.declare_liveliness_token(key)
+                        new_tokens[port] = self._session.declare_liveliness_token(keys.port_token(key))
                     elif self.state is UnitState.RUNNING:
                         inp = self._inputs[port]
                         new_subs[port] = self._session.declare_subscriber(key, partial(self.deliver_remote, inp), self._on_remote_error)
@@ -693,7 +702,7 @@ class Proxy:
             return f"own thread ({self.isolation})"
         return "shared thread" if self.lane.shared else "own thread"
 
-    def _no_port(self, port: str, direction: str, ports: Mapping[str, object]) -> str:
+    def _no_port(self, port: str, direction: str, ports: Mapping[str, object]) -> BindingError:
         kind = f"{direction} port" if direction else "port"
         names = ", ".join(repr(p) for p in ports) or "none"
-        return f"unit {self.name!r} has no {kind} {port!r}; expected one of {names}{did_you_mean(port, ports)}"
+        return BindingError(f"no {kind} {port!r}", where=f"unit {self.name!r}", expected=f"one of {names}{did_you_mean(port, ports)}")

@@ -2,7 +2,8 @@
 
 Services are Zenoh queryables; requests and replies are JSON objects.
 
-Keys (``@dyknow`` is a verbatim chunk, so data subscriptions like ``**`` never match services):
+Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subscriptions like
+``**`` never match services):
 
 - ``@dyknow/<manager>/<service>`` for the manager's services: ``add_transformation``
   ``{"xml": "...", "path": "name used in errors"}``, ``remove_transformation`` ``{"label"}``,
@@ -25,23 +26,19 @@ import logging
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from dyknow import errors
+from dyknow import errors, keys
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
 
 __all__ = [
     "MANAGER_SERVICES",
-    "ROOT",
     "UNIT_SERVICES",
     "Handler",
     "dispatcher",
-    "manager_key",
     "raise_remote",
-    "unit_key",
 ]
 
 log = logging.getLogger(__name__)
 
-ROOT = "@dyknow"
 MANAGER_SERVICES = (
     "add_transformation",
     "remove_transformation",
@@ -58,14 +55,6 @@ UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 Handler = Callable[[dict[str, Any]], Any]
 
 
-def manager_key(manager: str, service: str) -> str:
-    return f"{ROOT}/{manager}/{service}"
-
-
-def unit_key(manager: str, unit: str, service: str) -> str:
-    return f"{ROOT}/{manager}/unit/{unit}/{service}"
-
-
 def _error_reply(exc: DyKnowError) -> bytes:
     return json.dumps(exc.to_dict()).encode()
 
@@ -76,32 +65,29 @@ def dispatcher(
     unit_handler: Callable[[str, str, dict[str, Any]], Any],
 ) -> Callable[[str, bytes], tuple[bool, bytes]]:
     """A queryable handler for ``@dyknow/<manager>/**`` that routes to the given handlers."""
-    prefix = f"{ROOT}/{manager}/"
+    known = ", ".join([*manager_handlers, *(f"unit/<name>/{s}" for s in UNIT_SERVICES)])
 
     def handle(key: str, payload: bytes) -> tuple[bool, bytes]:
         try:
-            if not key.startswith(prefix):
-                raise ServiceError(f"no service at {key!r}")
-            path = key[len(prefix) :].split("/")
             try:
                 request = json.loads(payload) if payload else {}
             except ValueError as exc:
-                raise ServiceError(f"request to {key!r} is not JSON: {exc}; expected a JSON object") from exc
+                raise ServiceError(f"the request is not JSON: {exc}", where=key, expected="a JSON object") from exc
             if not isinstance(request, dict):
-                raise ServiceError(f"request to {key!r}: got {type(request).__name__}; expected a JSON object")
-            if len(path) == 1 and path[0] in manager_handlers:
-                result = manager_handlers[path[0]](request)
-            elif len(path) == 3 and path[0] == "unit" and path[2] in UNIT_SERVICES:
-                result = unit_handler(path[1], path[2], request)
+                raise ServiceError(f"the request is a JSON {type(request).__name__}", where=key, expected="a JSON object")
+            address = keys.parse_service_key(manager, key)
+            if address is not None and address.unit is None and address.service in manager_handlers:
+                result = manager_handlers[address.service](request)
+            elif address is not None and address.unit is not None and address.service in UNIT_SERVICES:
+                result = unit_handler(address.unit, address.service, request)
             else:
-                known = ", ".join([*manager_handlers, *(f"unit/<name>/{s}" for s in UNIT_SERVICES)])
-                raise ServiceError(f"no service {'/'.join(path)!r} on manager {manager!r}; expected one of {known}")
+                raise ServiceError(f"no service at {key!r} on manager {manager!r}", expected=f"one of {known}")
             return True, json.dumps(result).encode()
         except DyKnowError as exc:
             return False, _error_reply(exc)
         except (KeyError, TypeError, ValueError) as exc:
             # a request with missing or mistyped fields
-            return False, _error_reply(ServiceError(f"bad request to {key!r}: {type(exc).__name__}: {exc}"))
+            return False, _error_reply(ServiceError(f"bad request: {type(exc).__name__}: {exc}", where=key))
 
     return handle
 

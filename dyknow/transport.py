@@ -461,7 +461,7 @@ class Session:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {key!r}: {_clean(exc)}") from exc
 
-    def subscribe_raw(self, key: str, on_sample: Callable[[str, bytes], None]) -> _Entity:
+    def declare_raw_subscriber(self, key: str, on_sample: Callable[[str, bytes], None]) -> _Entity:
         """Receive plain samples from any session, this one included (for events and measurements)."""
 
         def callback(sample: zenoh.Sample) -> None:
@@ -478,17 +478,17 @@ class Session:
 
     # -- services
 
-    def call(self, key: str, payload: bytes, *, timeout: float, what: str) -> bytes:
+    def call(self, key: str, payload: bytes, *, timeout_s: float, what: str) -> bytes:
         """Send a request to the service on ``key`` and return its reply.
 
-        Waits up to ``timeout`` seconds for the service to be reachable, then for its answer.
+        Waits up to ``timeout_s`` seconds for the service to be reachable, then for its answer.
         Raises :class:`ServiceError` when nobody answers (``what`` names the service for the
         message) or with the service's own error when it refuses the request.
         """
-        deadline = time.monotonic() + timeout
-        querier, reachable = self._querier(key, timeout)
+        deadline = time.monotonic() + timeout_s
+        querier, reachable = self._querier(key, timeout_s)
         if not reachable.wait(max(0.0, deadline - time.monotonic())):
-            raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout:g} s")
+            raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s")
         try:
             replies = querier.get(payload=payload)
             for reply in replies:
@@ -504,9 +504,9 @@ class Session:
                 raise ServiceError(str(err.get("message", data)), kind=err.get("error"), details=err)
         except zenoh.ZError as exc:
             raise ServiceError(f"request to {what} failed: {_clean(exc)}") from exc
-        raise ServiceError(f"no answer from {what} on {key!r} within {timeout:g} s")
+        raise ServiceError(f"no answer from {what} on {key!r} within {timeout_s:g} s")
 
-    def _querier(self, key: str, timeout: float) -> tuple[Any, threading.Event]:
+    def _querier(self, key: str, timeout_s: float) -> tuple[Any, threading.Event]:
         with self._lock:
             found = self._queriers.get(key)
             if found is not None:
@@ -520,7 +520,7 @@ class Session:
                     reachable.clear()
 
             try:
-                querier = self._z().declare_querier(key, timeout=timeout)
+                querier = self._z().declare_querier(key, timeout=timeout_s)
                 querier.declare_matching_listener(matching)
             except zenoh.ZError as exc:
                 raise TransportError(f"cannot declare a querier on {key!r}: {_clean(exc)}") from exc

@@ -25,6 +25,11 @@ Attributes set before ``setup()``: ``name`` (the instance name), ``label`` (its 
 names and the methods below are the unit's interface with dyknow; other attribute names are
 free for the unit's own state.
 
+How a unit is wired: the unit's proxy (:mod:`dyknow.proxy`) calls :meth:`Unit.attach_runtime`
+once, before ``setup()``, handing over itself as the unit's :class:`UnitRuntime`; every service
+below goes through it. This module knows only that small protocol, not the proxy. To run a unit
+in a test, spawn it in a manager, or use :mod:`dyknow.testing`.
+
 Set the class attribute ``dedicated_thread = True`` for units whose callbacks are known to be slow
 (heavy image processing): they get a thread of their own from the start instead of after their
 first slow callbacks.
@@ -35,14 +40,68 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+from dyknow.errors import UnitError
 
 if TYPE_CHECKING:
     from dyknow.executor import Timer
     from dyknow.message import Message
-    from dyknow.proxy import Proxy
 
-__all__ = ["Unit"]
+__all__ = ["Unit", "UnitRuntime"]
+
+
+class UnitRuntime(Protocol):
+    """What a unit needs of the runtime that runs it; a unit's proxy provides it."""
+
+    def publish(self, port: str, payload: Any, origin_ns: int | None = None) -> None:
+        """Send ``payload`` from output ``port``."""
+        ...
+
+    def create_timer(self, period_s: float, callback: Callable[[], None], first_s: float | None = None) -> Timer:
+        """Call ``callback`` every ``period_s`` seconds on the unit's thread."""
+        ...
+
+    def request_destroy(self) -> None:
+        """Destroy the unit (after the callback running now)."""
+        ...
+
+    def has_subscribers(self, port: str) -> bool:
+        """Whether anyone receives output ``port`` now."""
+        ...
+
+    def reject(self, port: str, reason: str) -> None:
+        """Count and log an unusable input message."""
+        ...
+
+    def get_config(self) -> dict[str, str]:
+        """The port -> key bindings."""
+        ...
+
+    def set_config(self, changes: Mapping[str, str]) -> dict[str, str]:
+        """Rebind some ports; returns the new bindings."""
+        ...
+
+    def fail(self, reason: str) -> None:
+        """Mark the unit failed."""
+        ...
+
+    def watch_liveliness(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
+        """Call ``on_change(key, alive)`` as producers on ``key_expr`` appear and vanish."""
+        ...
+
+
+class _Detached:
+    """The runtime of a unit that no manager runs: every service says how to run the unit."""
+
+    def __getattr__(self, name: str) -> Any:
+        raise UnitError(
+            f"the unit is not running, so it cannot {name.replace('_', ' ')}",
+            expected="a unit spawned by a Manager (or run by dyknow.testing.UnitHarness in a test)",
+        )
+
+
+_DETACHED: Any = _Detached()
 
 
 class Unit:
@@ -55,7 +114,20 @@ class Unit:
     label: str
     params: Mapping[str, Any]
     log: logging.Logger
-    _proxy: Proxy
+    _runtime: UnitRuntime = _DETACHED
+
+    def attach_runtime(self, runtime: UnitRuntime, *, name: str, label: str, params: Mapping[str, Any], log: logging.Logger) -> None:
+        """Called by dyknow once, before ``setup()``: set the unit's attributes and its runtime.
+
+        Not for units to call or override. ``publish`` is bound straight to the runtime's, which
+        saves a call on every message (its documentation above still holds).
+        """
+        self.name = name
+        self.label = label
+        self.params = params
+        self.log = log
+        self._runtime = runtime
+        self.publish = runtime.publish  # type: ignore[method-assign]
 
     # -- hooks
 
@@ -86,7 +158,7 @@ class Unit:
         Publishing hands the payload over: numpy arrays become read-only, because local receivers
         get the very same object; copy an array first if you need to keep writing to it.
         """
-        self._proxy.publish(port, payload, origin_ns)
+        self._runtime.publish(port, payload, origin_ns)
 
     def create_timer(self, period_s: float, callback: Callable[[], None], *, first_s: float | None = None) -> Timer:
         """Call ``callback`` every ``period_s`` seconds on the unit's thread; returns the timer.
@@ -94,21 +166,21 @@ class Unit:
         The first call comes after ``first_s`` seconds (default: one period); a source that should
         deliver as soon as it starts passes ``first_s=0``.
         """
-        return self._proxy.create_timer(period_s, callback, first_s)
+        return self._runtime.create_timer(period_s, callback, first_s)
 
     def destroy(self) -> None:
         """Ask the manager to destroy this unit (after the current callback returns).
 
         Refused with :class:`~dyknow.errors.UnitError` when the unit is protected.
         """
-        self._proxy.request_destroy()
+        self._runtime.request_destroy()
 
     def has_subscribers(self, port: str) -> bool:
         """Whether anyone (a local unit or another process) receives output ``port`` now.
 
         Lets a unit skip producing an output nobody consumes (a colour conversion, say).
         """
-        return self._proxy.has_subscribers(port)
+        return self._runtime.has_subscribers(port)
 
     def reject(self, port: str, reason: str) -> None:
         """Report that the message just received on ``port`` was unusable, and carry on.
@@ -117,18 +189,19 @@ class Unit:
         counted per port in the statistics (``rejected``, ``last_rejection``) and logged, and the
         unit keeps running. Raising instead would mark the unit failed.
         """
-        self._proxy.reject(port, reason)
+        self._runtime.reject(port, reason)
 
-    def rebind(self, bindings: Mapping[str, str]) -> dict[str, str]:
-        """Rebind some of this unit's own ports (``{port: key}``); returns the new bindings.
+    def set_config(self, bindings: Mapping[str, str]) -> dict[str, str]:
+        """Rebind some of this unit's own ports (``{port: key}``) atomically; returns the new bindings.
 
-        Works from ``setup()`` too, e.g. to subscribe to a key given as a param.
+        What the proxy's ``set_config`` service does, from inside the unit. Works from ``setup()``
+        too, e.g. to subscribe to a key given as a param.
         """
-        return self._proxy.set_config(bindings)
+        return self._runtime.set_config(bindings)
 
     def fail(self, reason: str) -> None:
         """Declare this unit failed (from any thread): it stops and the manager adapts around it."""
-        self._proxy.fail(reason)
+        self._runtime.fail(reason)
 
     def watch_liveliness(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
         """Call ``on_change(key, alive)`` when producers on ``key_expr`` appear or vanish.
@@ -136,8 +209,8 @@ class Unit:
         Every dyknow output port announces itself on its key, so this notices another process
         crashing within milliseconds. ``on_change`` runs on a Zenoh thread: keep it short.
         """
-        self._proxy.watch_liveliness(key_expr, on_change)
+        self._runtime.watch_liveliness(key_expr, on_change)
 
     def get_config(self) -> dict[str, str]:
         """The current port -> key expression bindings (what the proxy's ``get_config`` serves)."""
-        return self._proxy.get_config()
+        return self._runtime.get_config()

@@ -7,12 +7,15 @@ import subprocess
 import sys
 import textwrap
 import threading
-from collections.abc import Callable, Iterator
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import replace
+from typing import Any
 
 import pytest
 
-from dyknow import Client, Manager
-from dyknow.adaptation import AdaptationEvent
+from dyknow import Client, Library, Manager, Ontology, Port, Tag, TransformationSpec, Unit, UnitEvent, UnitInfo, default_key
+from dyknow.adaptation import ANCHOR_LABEL, AdaptationEvent, AdaptationLoop, DeadlinePort, Knowledge, Monitor, RequestAnchor, Symptom
 from dyknow.errors import PlanningError
 from tests.conftest import REPO, subprocess_env
 from tests.scenario import SPECS, Camera, Consumer, Tracker
@@ -188,7 +191,7 @@ def test_events_measurements_and_requests_over_zenoh(robot: Manager) -> None:
         got.set()
 
     with Client(robot.name, connect=robot.endpoints) as client:
-        sub = client.session.subscribe_raw(f"dyknow/{robot.name}/events/adaptation", on_event)
+        sub = client.session.declare_raw_subscriber(f"dyknow/{robot.name}/events/adaptation", on_event)
         key = client.get_model() and robot.request("BallPosition(field)")
         consumer = consume(robot, key)
         consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
@@ -249,28 +252,16 @@ def test_remote_source_process_killed(robot: Manager) -> None:
             child.stdout.close()
 
 
-class _DeadlinePorts:
-    """Stands in for the manager's list of deadline ports, which the monitor polls."""
-
-    def __init__(self) -> None:
-        self.ports: list[tuple[str, str, str, int, int, int]] = []
-
-    def _deadline_ports(self) -> list[tuple[str, str, str, int, int, int]]:
-        return self.ports
-
-
 def test_a_respawned_unit_gets_its_own_deadline_clock() -> None:
     """A unit respawned under the same name is not judged by its predecessor's message count."""
-    from dyknow.adaptation import Knowledge, Monitor, Symptom
-
     ms = 1_000_000
-    ports = _DeadlinePorts()
+    ports: list[DeadlinePort] = []
     symptoms: list[Symptom] = []
-    monitor = Monitor(ports, Knowledge(), symptoms.append)  # type: ignore[arg-type]
-    ports.ports = [("cam", "camera", "out", 100 * ms, 5, 0)]  # the first camera, 5 messages so far
+    monitor = Monitor(lambda: ports, Knowledge(), symptoms.append)
+    ports[:] = [DeadlinePort("cam", "camera", "out", 100 * ms, 5, 0)]  # the first camera, 5 messages so far
     monitor.tick(10 * ms)
     # Long after, a new "cam" started 20 ms ago and happens to have sent 5 messages too.
-    ports.ports = [("cam", "camera", "out", 100 * ms, 5, 980 * ms)]
+    ports[:] = [DeadlinePort("cam", "camera", "out", 100 * ms, 5, 980 * ms)]
     monitor.tick(1000 * ms)
     assert [s.kind for s in symptoms] == []
     # The new camera falls silent: stalled after its own deadline.
@@ -278,3 +269,85 @@ def test_a_respawned_unit_gets_its_own_deadline_clock() -> None:
     assert [s.kind for s in symptoms] == []
     monitor.tick(1110 * ms)
     assert [s.kind for s in symptoms] == ["stalled"] and "silent for 110 ms" in symptoms[0].detail
+
+
+class StandInRuntime:
+    """A runtime that only keeps a table of units: the loop's decisions, without Zenoh or threads of units."""
+
+    def __init__(self, specs: list[TransformationSpec]) -> None:
+        self.name = "standin"
+        self.library = Library(specs)
+        self.ontology: Ontology | None = None
+        self.table: dict[str, UnitInfo] = {}
+        self.events: list[tuple[str, dict[str, Any]]] = []
+        self.published = threading.Event()
+        self.anchors: dict[str, RequestAnchor] = {}
+
+    def units(self) -> list[UnitInfo]:
+        return list(self.table.values())
+
+    def has_unit(self, name: str) -> bool:
+        return name in self.table
+
+    def unit(self, name: str) -> Unit:
+        return self.anchors[name]
+
+    def spawn(self, label: str | TransformationSpec, name: str, *, bindings: Mapping[str, str] | None = None) -> UnitInfo:
+        spec = label if isinstance(label, TransformationSpec) else self.library.get(label)
+        ports = {p.name: default_key(self.name, name, p.name) for p in spec.ports} | dict(bindings or {})
+        info = UnitInfo(name, spec.label, "running", False, ports, "none", spec=spec, started_ns=1)
+        self.table[name] = info
+        if spec.label == ANCHOR_LABEL:
+            anchor = RequestAnchor()
+            anchor.setup()
+            self.anchors[name] = anchor
+        return info
+
+    def destroy(self, name: str) -> None:
+        del self.table[name]
+
+    def get_config(self, name: str) -> dict[str, str]:
+        return dict(self.table[name].bindings)
+
+    def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
+        info = self.table[name]
+        self.table[name] = replace(info, bindings={**info.bindings, **bindings})
+        return dict(self.table[name].bindings)
+
+    def deadline_ports(self) -> list[DeadlinePort]:
+        return []
+
+    def publish_event(self, kind: str, event: Mapping[str, Any]) -> None:
+        self.events.append((kind, dict(event)))
+        self.published.set()
+
+    def fail(self, name: str, loop: AdaptationLoop) -> None:
+        info = self.table[name]
+        self.table[name] = replace(info, state="failed")
+        loop.unit_event(UnitEvent("failed", name, info.label, time.time_ns(), "gone"))
+
+
+def _camera(label: str, priority: int) -> TransformationSpec:
+    return TransformationSpec(
+        label=label, source="tests.units:Publisher", ports=(Port("out", "out"),), tags=(Tag("out", "Image"),), priority=priority
+    )
+
+
+def test_the_loop_runs_against_a_small_stand_in_runtime() -> None:
+    """The MAPE-K loop needs only the Runtime protocol: a failure moves the request to the next camera."""
+    runtime = StandInRuntime([_camera("front-camera", 1), _camera("back-camera", 2)])
+    loop = AdaptationLoop(runtime, dwell_s=60)
+    try:
+        key = loop.request("Image")
+        assert key == "dyknow/standin/requests/Image"
+        anchor = next(u for u in runtime.units() if u.label == ANCHOR_LABEL)
+        assert anchor.bindings == {"in": "dyknow/standin/front-camera/out", "out": key}
+        runtime.fail("front-camera", loop)
+        assert runtime.published.wait(10)  # the loop's own thread adapts
+        kind, event = runtime.events[0]
+        assert kind == "adaptation" and event["kind"] == "adapted"
+        assert event["old"] == ["front-camera"] and event["new"] == ["back-camera"]
+        assert runtime.get_config(anchor.name)["in"] == "dyknow/standin/back-camera/out"  # the key stayed, the input moved
+        assert "front-camera" not in runtime.table  # the broken unit was cleaned up
+    finally:
+        loop.close()

@@ -113,7 +113,7 @@ def test_close_is_bounded_even_with_a_stuck_unit(make_manager: object) -> None:
     src.emit(1)
     assert manager.unit("stuck").started.wait(5)
     start = time.monotonic()
-    manager.close(timeout=1.0)
+    manager.close(timeout_s=1.0)
     assert time.monotonic() - start < 3.0
 
 

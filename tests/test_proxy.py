@@ -98,7 +98,7 @@ def test_set_config_is_all_or_nothing(manager: Manager) -> None:
 
 def test_set_config_of_a_failed_unit_is_refused(manager: Manager) -> None:
     manager.spawn("setup-fails", "f")
-    with pytest.raises(UnitError, match="failed; only a running unit can be rebound"):
+    with pytest.raises(UnitError, match="the unit is failed, so it cannot be rebound"):
         manager.set_config("f", {"in": "t/x"})
 
 
@@ -169,7 +169,7 @@ def test_same_stream_reaches_another_session_over_zenoh(manager: Manager) -> Non
         got.append(msg)
         arrived.set()
 
-    with Client(manager.name, connect=manager.endpoints) as client, client.subscribe(key, remote):
+    with Client(manager.name, connect=manager.endpoints) as client, client.declare_subscriber(key, remote):
         cam = manager.unit("cam")
         assert isinstance(cam, Publisher)
         frame = np.arange(24, dtype=np.uint16).reshape(2, 3, 4)

@@ -163,7 +163,7 @@ def test_eval_ball_takes_param_overrides_and_spec_labels(data_dir: Path) -> None
     [
         (["video/missing.mp4"], "eval_ball.py: error: no such video file"),
         (["SOURCES.md"], "OpenCV cannot open it"),
-        (["video/ball.mp4", "--param", "hsv_lowr=1,2,3"], "has no param 'hsv_lowr'"),
+        (["video/ball.mp4", "--param", "hsv_lowr=1,2,3"], ": no param 'hsv_lowr'"),
         (["video/ball.mp4", "--param", "min_fill=2"], "param 'min_fill': got 2.0; expected a number >= 0 and <= 1"),
         (["video/ball.mp4", "--spec", "tracker"], "expected a BallDetector spec"),
     ],

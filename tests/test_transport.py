@@ -81,7 +81,7 @@ def test_calling_a_service_nobody_serves_times_out_clearly() -> None:
     with Session() as session:
         start = time.monotonic()
         with pytest.raises(ServiceError, match="nothing serves '@dyknow/nobody/get_model' within 0.3 s"):
-            session.call("@dyknow/nobody/get_model", b"{}", timeout=0.3, what="test")
+            session.call("@dyknow/nobody/get_model", b"{}", timeout_s=0.3, what="test")
         assert time.monotonic() - start < 5
 
 

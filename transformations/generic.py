@@ -53,7 +53,7 @@ class RemoteStream(Unit):
 
     def setup(self) -> None:
         key = str(self.params["key"])
-        self.rebind({"in": key})
+        self.set_config({"in": key})
         self._alive = 0
         self._seen = threading.Event()
         self.watch_liveliness(key, self._liveliness)

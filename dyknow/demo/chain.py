@@ -13,7 +13,8 @@ import threading
 import time
 
 from dyknow.client import Client
-from dyknow.manager import Manager, default_key
+from dyknow.keys import default_key
+from dyknow.manager import Manager
 from dyknow.message import Message, describe_payload
 from dyknow.resources import specs_dir
 
@@ -48,7 +49,7 @@ def run_demo(*, duration_s: float = 6.0, hops: int = 5, rate_hz: float = 20.0, a
             with lock:
                 received.append((msg, time.time_ns() - msg.origin_ns))
 
-        with Client("demo", connect=endpoints, session=None) as remote, remote.subscribe(upstream, on_message):
+        with Client("demo", connect=endpoints, session=None) as remote, remote.declare_subscriber(upstream, on_message):
             say(f"a second Zenoh session subscribes to {upstream}\n")
             start = time.monotonic()
             shown = 0

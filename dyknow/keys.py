@@ -1,0 +1,141 @@
+"""The key scheme: every Zenoh key dyknow uses, built in one place.
+
+Data (streams, events, measurements) lives under ``dyknow/``; services live under ``@dyknow/``
+(``@dyknow`` is a verbatim chunk, so a data subscription such as ``**`` or ``dyknow/**`` never
+matches a service)::
+
+    dyknow/<manager>/<unit>/<port>            a port's default binding (default_key)
+    dyknow/<manager>/requests/<tag>           the stable key of a request (request_key)
+    dyknow/<manager>/events/<kind>            the manager's events, e.g. adaptation (event_key)
+    dyknow/measurements/<name>                a measurement for every manager (measurement_key)
+    dyknow/<manager>/measurements/<name>      a measurement for one manager
+    @dyknow/<manager>/<service>               a manager's services (manager_service_key)
+    @dyknow/<manager>/unit/<unit>/<service>   a unit's proxy services (unit_service_key)
+
+Liveliness: every output port declares a liveliness token on its own key (:func:`port_token`),
+so whoever consumes a stream can watch its producer with the same key expression.
+
+Manager and unit names become key chunks, so :func:`check_name` admits only letters, digits,
+``_``, ``-`` and ``.`` (not first).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from dyknow.errors import UnitError
+
+__all__ = [
+    "DATA_ROOT",
+    "SERVICE_ROOT",
+    "ServiceAddress",
+    "check_name",
+    "default_key",
+    "event_key",
+    "manager_service_key",
+    "measurement_key",
+    "measurement_patterns",
+    "parse_service_key",
+    "port_token",
+    "request_key",
+    "services_pattern",
+    "unit_prefix",
+    "unit_service_key",
+]
+
+#: The first chunk of every data key.
+DATA_ROOT = "dyknow"
+#: The first chunk of every service key (verbatim: wildcards in data subscriptions never reach it).
+SERVICE_ROOT = "@dyknow"
+
+_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+_UNSAFE_IN_CHUNK = "/*$?#@ "
+
+
+def check_name(name: object, what: str) -> str:
+    """Return ``name`` if it can be a manager or unit name (a key chunk); else raise :class:`UnitError`.
+
+    ``what`` says which name it is, for the message ("unit name", "manager name").
+    """
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise UnitError(
+            f"{what} {name!r} is not a valid name",
+            expected="letters, digits, '_', '-' or '.', not starting with '-' or '.' (it becomes part of Zenoh keys)",
+        )
+    return name
+
+
+def default_key(manager: str, unit: str, port: str) -> str:
+    """Where a port is bound unless told otherwise: ``dyknow/<manager>/<unit>/<port>``."""
+    return f"{DATA_ROOT}/{manager}/{unit}/{port}"
+
+
+def unit_prefix(manager: str, unit: str) -> str:
+    """The prefix of a unit's default port keys: ``dyknow/<manager>/<unit>/``."""
+    return f"{DATA_ROOT}/{manager}/{unit}/"
+
+
+def request_key(manager: str, tag: str) -> str:
+    """The stable key of a request: ``dyknow/<manager>/requests/<tag>`` (unsafe characters as ``_``)."""
+    chunk = "".join(c if c not in _UNSAFE_IN_CHUNK else "_" for c in tag) or "_"
+    return f"{DATA_ROOT}/{manager}/requests/{chunk}"
+
+
+def event_key(manager: str, kind: str) -> str:
+    """Where a manager publishes its events of ``kind``: ``dyknow/<manager>/events/<kind>``."""
+    return f"{DATA_ROOT}/{manager}/events/{kind}"
+
+
+def measurement_key(name: str, manager: str | None = None) -> str:
+    """Where a measurement is published: ``dyknow/measurements/<name>`` for every manager, or
+    ``dyknow/<manager>/measurements/<name>`` for one."""
+    if manager is None:
+        return f"{DATA_ROOT}/measurements/{name}"
+    return f"{DATA_ROOT}/{manager}/measurements/{name}"
+
+
+def measurement_patterns(manager: str) -> tuple[str, str]:
+    """The key expressions a manager takes measurements from (for every manager, and its own)."""
+    return measurement_key("*"), measurement_key("*", manager)
+
+
+def port_token(key: str) -> str:
+    """The liveliness token an output port bound to ``key`` declares: the key itself."""
+    return key
+
+
+def manager_service_key(manager: str, service: str) -> str:
+    """A manager's service: ``@dyknow/<manager>/<service>``."""
+    return f"{SERVICE_ROOT}/{manager}/{service}"
+
+
+def unit_service_key(manager: str, unit: str, service: str) -> str:
+    """A unit's proxy service: ``@dyknow/<manager>/unit/<unit>/<service>``."""
+    return f"{SERVICE_ROOT}/{manager}/unit/{unit}/{service}"
+
+
+def services_pattern(manager: str) -> str:
+    """The key expression that holds every service of a manager: ``@dyknow/<manager>/**``."""
+    return f"{SERVICE_ROOT}/{manager}/**"
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceAddress:
+    """A service key taken apart: the ``service`` name and, for a unit's service, the ``unit``."""
+
+    service: str
+    unit: str | None = None
+
+
+def parse_service_key(manager: str, key: str) -> ServiceAddress | None:
+    """The service a key under ``@dyknow/<manager>/`` addresses, or None if it has the wrong shape."""
+    prefix = f"{SERVICE_ROOT}/{manager}/"
+    if not key.startswith(prefix):
+        return None
+    path = key[len(prefix) :].split("/")
+    if len(path) == 1 and path[0]:
+        return ServiceAddress(path[0])
+    if len(path) == 3 and path[0] == "unit" and path[1] and path[2]:
+        return ServiceAddress(path[2], path[1])
+    return None

@@ -1,0 +1,116 @@
+"""The model: what a manager runs and knows, as plain data (the DyKnow paper's ``get_model``).
+
+:class:`Model` is a snapshot: the running units (:class:`UnitInfo`), the stored specs and the
+active requests (:class:`RequestInfo`). :class:`UnitEvent` tells listeners that a unit was
+spawned, failed or was destroyed. Every type has ``to_dict()``, the JSON form the services send.
+The manager builds them; the adaptation loop, the CLI and clients read them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from dyknow.errors import UnitError
+from dyknow.spec import TransformationSpec
+
+__all__ = ["Model", "RequestInfo", "UnitEvent", "UnitInfo"]
+
+
+@dataclass(frozen=True, slots=True)
+class UnitEvent:
+    """Something happened to a unit: ``kind`` is "spawned", "failed" or "destroyed"."""
+
+    kind: str
+    unit: str
+    label: str
+    time_ns: int
+    error: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class UnitInfo:
+    """One running unit as the model shows it.
+
+    ``spec`` is the transformation it was spawned from (it may since have left the library);
+    ``started_ns`` tells two units spawned under the same name apart. Neither is in ``to_dict()``.
+    """
+
+    name: str
+    label: str
+    state: str
+    protected: bool
+    bindings: Mapping[str, str]
+    executor: str
+    error: str | None = None
+    traceback: str | None = None
+    spec: TransformationSpec | None = field(default=None, compare=False, repr=False)
+    started_ns: int = 0
+
+    @property
+    def alive(self) -> bool:
+        """Whether the unit is starting or running (not failed, not stopped)."""
+        return self.state in ("starting", "running")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (``get_model``'s ``units`` entries)."""
+        return {
+            "name": self.name,
+            "label": self.label,
+            "state": self.state,
+            "protected": self.protected,
+            "bindings": dict(self.bindings),
+            "executor": self.executor,
+            "error": self.error,
+            "traceback": self.traceback,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class RequestInfo:
+    """A request as the model shows it: its tag, stable key, state and the units serving it."""
+
+    tag: str
+    key: str
+    state: str  # "active" or "degraded"
+    references: int
+    units: tuple[str, ...]
+    labels: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (``get_model``'s ``requests`` entries)."""
+        return {
+            "tag": self.tag,
+            "key": self.key,
+            "state": self.state,
+            "references": self.references,
+            "units": list(self.units),
+            "labels": list(self.labels),
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class Model:
+    """The manager's model: the running units, the stored specs, the active requests."""
+
+    manager: str
+    units: tuple[UnitInfo, ...]
+    specs: tuple[TransformationSpec, ...] = field(default=())
+    requests: tuple[RequestInfo, ...] = field(default=())
+
+    def unit(self, name: str) -> UnitInfo:
+        """The running unit ``name``; :class:`UnitError` when the model has none."""
+        for info in self.units:
+            if info.name == name:
+                return info
+        raise UnitError(f"no unit named {name!r} in the model", where=f"manager {self.manager!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form that ``get_model`` serves."""
+        return {
+            "manager": self.manager,
+            "units": [u.to_dict() for u in self.units],
+            "specs": [s.to_dict() for s in self.specs],
+            "requests": [r.to_dict() for r in self.requests],
+        }
