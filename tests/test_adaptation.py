@@ -205,10 +205,9 @@ def test_events_measurements_and_requests_over_zenoh(robot: Manager) -> None:
 
 def test_request_service_for_other_processes(robot: Manager) -> None:
     with Client(robot.name, connect=robot.endpoints) as client:
-        reply = client._call(f"@dyknow/{robot.name}/request", {"tag": "BallPosition(field)"}, "request")
-        assert reply["key"] == f"dyknow/{robot.name}/requests/BallPosition(field)"
+        assert client.request("BallPosition(field)") == f"dyknow/{robot.name}/requests/BallPosition(field)"
         with pytest.raises(PlanningError, match="nothing provides Teleport"):
-            client._call(f"@dyknow/{robot.name}/request", {"tag": "Teleport(x)"}, "request")
+            client.request("Teleport(x)")
 
 
 REMOTE_SPECS = """<transformations>

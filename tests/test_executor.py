@@ -140,4 +140,4 @@ def test_a_timer_can_fire_at_once(manager: Manager) -> None:
     assert unit.first.wait(5)  # a 10 s period, yet the first tick came at once
     assert unit.at_ns - unit.started_ns < 5e9
     with pytest.raises(ValueError, match="must not be negative"):
-        manager._executor.add_timer(manager._proxy("f"), 1.0, lambda: None, first_s=-1)
+        unit.create_timer(1.0, lambda: None, first_s=-1)

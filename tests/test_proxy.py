@@ -129,7 +129,7 @@ def test_origin_timestamp_propagates_and_sequence_numbers_are_per_port(manager: 
     manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "r", "out")})
     src = manager.unit("src")
     assert isinstance(src, Publisher)
-    src._proxy.publish("out", b"x", 12345)
+    src.publish("out", b"x", origin_ns=12345)
     src.emit(b"y")
     sink = manager.unit("s")
     assert isinstance(sink, Sink)
