@@ -42,19 +42,16 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, machine, write_json  # noqa: E402
+from dyknow import AdaptationEvent, Manager, Ontology
+from dyknow.resources import specs_dir
+from dyknow.testing import CAMERA_IDS, SCENARIO_SPECS, Camera, Sink
 
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from harness import machine, write_json
 
-from dyknow import AdaptationEvent, Manager, Ontology  # noqa: E402
-from tests.scenario import SPECS, Camera, Consumer  # noqa: E402
-
-ONTOLOGY = ROOT / "specs" / "dyknow.ttl"
-GENERIC = ROOT / "specs" / "generic.xml"
+ONTOLOGY = specs_dir() / "dyknow.ttl"
+GENERIC = specs_dir() / "generic.xml"
 TARGETS_MS = {"in-process": 10.0, "remote-kill": 50.0}
-BOTTOM, CEILING = Camera.CAMERA_IDS["bottom"], Camera.CAMERA_IDS["ceiling"]
+BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
 
 
 class Watcher:
@@ -82,7 +79,7 @@ _ONTOLOGY: list[Ontology] = []
 
 
 def scenario_manager(rate: float, dwell_s: float, extra: str = "") -> Manager:
-    specs = SPECS.read_text().replace('name="rate_hz" type="float">200<', f'name="rate_hz" type="float">{rate:g}<')
+    specs = SCENARIO_SPECS.read_text().replace('name="rate_hz" type="float">200<', f'name="rate_hz" type="float">{rate:g}<')
     if not _ONTOLOGY:
         _ONTOLOGY.append(Ontology.load([ONTOLOGY]))  # loaded once, shared by every manager
     manager = Manager(f"bench{time.monotonic_ns() % 10**9}", specs=[GENERIC], ontology=_ONTOLOGY[0], dwell_s=dwell_s)
@@ -92,11 +89,11 @@ def scenario_manager(rate: float, dwell_s: float, extra: str = "") -> Manager:
     return manager
 
 
-def start(manager: Manager) -> tuple[str, Consumer]:
+def start(manager: Manager) -> tuple[str, Sink]:
     key = manager.request("BallPosition(field)")
     manager.spawn("consumer", "consumer", bindings={"in": key})
     consumer = manager.unit("consumer")
-    assert isinstance(consumer, Consumer)
+    assert isinstance(consumer, Sink)
     return key, consumer
 
 
@@ -110,7 +107,7 @@ def run_exception(n: int, rate: float) -> list[tuple[float, float]]:
         with scenario_manager(rate, 0.05) as manager:
             watcher = Watcher(manager)
             _, consumer = start(manager)
-            consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+            consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
             cam = manager.unit(camera(manager, "robot-camera"))
             assert isinstance(cam, Camera)
             gc.collect()
@@ -125,7 +122,7 @@ def run_destroyed(n: int, rate: float) -> list[tuple[float, float]]:
     with scenario_manager(rate, 0.05) as manager:
         watcher = Watcher(manager)
         _, consumer = start(manager)
-        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+        consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
         for i in range(1, n + 1):
             gc.collect()
             manager.destroy(camera(manager, "robot-camera"))
@@ -139,7 +136,7 @@ def run_measurement(n: int, rate: float) -> tuple[list[tuple[float, float]], lis
     with scenario_manager(rate, 0.05) as manager:
         watcher = Watcher(manager)
         _, consumer = start(manager)
-        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+        consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
         for i in range(1, n + 1):
             gc.collect()
             manager.measure("battery", 0.1)
@@ -168,18 +165,18 @@ def run_remote_kill(n: int, rate: float) -> list[tuple[float, float, float]]:
                 f"""
                 import threading
                 from dyknow import Manager
-                with Manager("remote", specs=[{str(SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={manager.endpoints!r}) as m:
+                with Manager("remote", specs=[{str(SCENARIO_SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={manager.endpoints!r}) as m:
                     m.spawn("robot-camera", "cam", params={{"rate_hz": {rate}}}, bindings={{"out": {key_remote!r}}})
                     print("ready", flush=True)
                     threading.Event().wait()
                 """
             )
-            child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+            child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
             try:
                 assert child.stdout is not None and child.stdout.readline().strip() == "ready"
                 watcher = Watcher(manager)
                 _, consumer = start(manager)
-                consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM, timeout=10)
+                consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=10)
                 gc.collect()
                 killed_ns = time.time_ns()
                 child.send_signal(signal.SIGKILL)

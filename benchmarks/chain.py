@@ -25,8 +25,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import socket
 import statistics
 import subprocess
 import sys
@@ -40,12 +38,10 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:  # run from a checkout without installing
-    sys.path.insert(0, str(ROOT))
+from dyknow import Manager, Message, TransformationSpec, Unit
+from dyknow.spec import Param, Port
 
-from dyknow import Manager, Message, TransformationSpec, Unit  # noqa: E402
-from dyknow.spec import Param, Port  # noqa: E402
+from harness import cpu_seconds, free_ports, machine, sleep_until, write_json
 
 VARIANTS = ("dyknow-inproc", "zenoh-session", "dyknow-process", "zenoh-process", "python-call")
 PAYLOAD = bytes(16)
@@ -113,7 +109,7 @@ def run_python_call(hops: int, mode: Mode) -> Run:
     for _ in range(mode.total):
         if period:
             next_at += period
-            _sleep_until(next_at)
+            sleep_until(next_at)
         chain(PAYLOAD, time.time_ns())
     return Run(latencies[mode.warmup :], (time.process_time() - cpu0) / mode.total)
 
@@ -121,12 +117,6 @@ def run_python_call(hops: int, mode: Mode) -> Run:
 def _deadline_s(mode: Mode) -> float:
     """How long a run may take before it is declared stuck."""
     return 60 + mode.total * (1.0 / mode.rate_hz if mode.rate_hz else 0.05)
-
-
-def _sleep_until(deadline: float) -> None:
-    delay = deadline - time.perf_counter()
-    if delay > 0:
-        time.sleep(delay)
 
 
 # ---------------------------------------------------------------------------- zenoh-session
@@ -178,7 +168,7 @@ def run_zenoh_session(hops: int, mode: Mode) -> Run:
             next_at = time.perf_counter()
             for _ in range(mode.total):
                 next_at += period
-                _sleep_until(next_at)
+                sleep_until(next_at)
                 publish()
         else:
             publish()
@@ -310,33 +300,9 @@ def run_dyknow_inproc(hops: int, mode: Mode) -> Run:
 # ---------------------------------------------------------------------------- process variants
 
 
-def _free_ports(n: int) -> list[int]:
-    socks = []
-    for _ in range(n):
-        s = socket.socket()
-        s.bind(("127.0.0.1", 0))
-        socks.append(s)
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
-
-
-def _cpu_seconds(pids: list[int]) -> float:
-    """User plus system CPU time of the given processes so far (Linux /proc)."""
-    total = 0
-    for pid in pids:
-        try:
-            fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-            total += int(fields[11]) + int(fields[12])  # utime, stime
-        except (OSError, IndexError, ValueError):
-            pass
-    return total / os.sysconf("SC_CLK_TCK")
-
-
 def run_processes(variant: str, hops: int, mode: Mode) -> Run:
     """One process per hop plus the source, linked in a line over loopback TCP."""
-    ports = _free_ports(hops + 1)
+    ports = free_ports(hops + 1)
     endpoints = [f"tcp/127.0.0.1:{p}" for p in ports]
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "latencies.json"
@@ -361,14 +327,14 @@ def run_processes(variant: str, hops: int, mode: Mode) -> Run:
             cpu0 = None
             while not result.exists():
                 if cpu0 is None and up.exists():
-                    cpu0 = _cpu_seconds(pids)
+                    cpu0 = cpu_seconds(pids)
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"{variant} chain of {hops} did not finish")
                 if any(p.poll() not in (None, 0) for p in procs):
                     raise RuntimeError(f"{variant} chain of {hops}: a worker process failed")
                 time.sleep(0.05)
             # the run may end before we saw it start (a very short smoke run): no CPU figure then
-            cpu = _cpu_seconds(pids) - cpu0 if cpu0 is not None else float("nan")
+            cpu = cpu_seconds(pids) - cpu0 if cpu0 is not None else float("nan")
             data = json.loads(result.read_text())
         finally:
             for p in procs:
@@ -502,7 +468,7 @@ def _zenoh_worker(args: argparse.Namespace) -> int:
                 next_at = time.perf_counter()
                 while left[0] > 0:
                     next_at += period
-                    _sleep_until(next_at)
+                    sleep_until(next_at)
                     publish()
             threading.Event().wait()
     return 0
@@ -528,47 +494,6 @@ def summarize(latencies_ns: list[int], hops: int) -> dict[str, float]:
         "per_hop_p99_us": pct(per_hop, 99),
         "per_hop_max_us": round(float(per_hop.max()), 3),
     }
-
-
-def write_json(path: Path, data: dict[str, Any]) -> None:
-    """Write a benchmark's results as JSON (creating the folder) and say where."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2))
-    print(f"wrote {path}")
-
-
-def machine() -> dict[str, Any]:
-    from importlib.metadata import version
-
-    import zenoh  # noqa: F401  (for its version)
-
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "python": platform.python_version(),
-        "zenoh": version("eclipse-zenoh"),
-        "dyknow": version("dyknow") if _installed("dyknow") else "checkout",
-        "os": f"{platform.system()} {platform.release()}",
-        "pinned": False,
-    }
-
-
-def _installed(name: str) -> bool:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        version(name)
-        return True
-    except PackageNotFoundError:
-        return False
 
 
 RUNNERS: dict[str, Callable[[int, Mode], Run]] = {

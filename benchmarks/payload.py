@@ -29,14 +29,10 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, _free_ports, machine, write_json  # noqa: E402
+from dyknow import Manager, Message, TransformationSpec, Unit
+from dyknow.spec import Param, Port
 
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from dyknow import Manager, Message, TransformationSpec, Unit  # noqa: E402
-from dyknow.spec import Param, Port  # noqa: E402
+from harness import free_ports, machine, write_json
 
 SIZES = {"64 B": (64,), "64 KiB": (65536,), "1 MiB": (1 << 20,), "6 MiB": (1080, 1920, 3)}
 PROBE = b"probe"
@@ -140,7 +136,7 @@ def run_inproc(shape: tuple[int, ...], messages: int, window: int, hops: int) ->
 
 
 def run_process(variant: str, shape: tuple[int, ...], messages: int, window: int) -> tuple[list[int], list[int]]:
-    ports = _free_ports(2)
+    ports = free_ports(2)
     eps = [f"tcp/127.0.0.1:{p}" for p in ports]
     with tempfile.TemporaryDirectory() as tmp:
         result = Path(tmp) / "result.json"

@@ -25,14 +25,11 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, machine, write_json  # noqa: E402
+from dyknow import Ontology, Planner, PlanningError, TransformationSpec
+from dyknow.resources import specs_dir
+from dyknow.spec import Constraint, Port, Tag
 
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from dyknow import Ontology, Planner, PlanningError, TransformationSpec  # noqa: E402
-from dyknow.spec import Constraint, Port, Tag  # noqa: E402
+from harness import machine, write_json
 
 TARGET_MS = {1000: 10.0}
 LAYERS = 8
@@ -80,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     count = 20 if args.smoke else args.requests
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}")
-    ontology = Ontology.load([ROOT / "specs" / "dyknow.ttl"])
+    ontology = Ontology.load([specs_dir() / "dyknow.ttl"])
     results: list[dict[str, Any]] = []
     print(f"{'specs':>6} {'index':>10} {'cold p50':>10} {'cold p99':>10} {'warm p50':>10} {'warm p99':>10} {'ok/fail':>9} target")
     for size in sizes:

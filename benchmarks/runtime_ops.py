@@ -19,14 +19,11 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from chain import ROOT, machine, write_json  # noqa: E402
+from dyknow import Client, Manager, Message, TransformationSpec, Unit
+from dyknow.resources import specs_dir
+from dyknow.spec import Port
 
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from dyknow import Client, Manager, Message, TransformationSpec, Unit  # noqa: E402
-from dyknow.spec import Port  # noqa: E402
+from harness import machine, write_json
 
 TARGET_REBIND_P99_MS = 1.0
 
@@ -70,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     n = 10 if args.smoke else args.iterations
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info['zenoh']}")
-    generic = ROOT / "specs" / "generic.xml"
+    generic = specs_dir() / "generic.xml"
     results: dict[str, Any] = {}
     with Manager("ops", specs=[generic, *specs()], listen=["tcp/127.0.0.1:0"]) as manager:
         manager.spawn("periodic-source", "a", params={"rate_hz": args.rate}, bindings={"out": "ops/a"})

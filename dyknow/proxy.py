@@ -490,9 +490,11 @@ class Proxy:
         if not self._lock.acquire(False):
             return  # the unit is busy on another thread: skip this tick
         try:
-            if self.state is not UnitState.RUNNING:
+            state = self.state
+            if state is _STOPPED or state is _FAILED:
                 timer.cancel()
                 return
+            # STARTING: setup() is done (it ran under this lock), the inputs are being bound: tick
             self._call(timer.callback, worker, "a timer callback")
         finally:
             self._lock.release()

@@ -18,10 +18,10 @@ from dyknow import Client, Library, Manager, Ontology, Port, Tag, Transformation
 from dyknow.adaptation import ANCHOR_LABEL, AdaptationEvent, AdaptationLoop, DeadlinePort, Knowledge, Monitor, RequestAnchor, Symptom
 from dyknow.errors import PlanningError
 from tests.conftest import REPO, subprocess_env
-from tests.scenario import SPECS, Camera, Consumer, Tracker
+from dyknow.testing import CAMERA_IDS, SCENARIO_SPECS, Camera, Sink, Tracker
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
-BOTTOM, CEILING = Camera.CAMERA_IDS["bottom"], Camera.CAMERA_IDS["ceiling"]
+BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
 
 
 class Events:
@@ -46,13 +46,13 @@ class Events:
 
 @pytest.fixture
 def robot(make_manager: Callable[..., Manager]) -> Iterator[Manager]:
-    yield make_manager(specs=[SPECS, REPO / "specs" / "generic.xml"], ontology=[ONTOLOGY], dwell_s=0.3)
+    yield make_manager(specs=[SCENARIO_SPECS, REPO / "specs" / "generic.xml"], ontology=[ONTOLOGY], dwell_s=0.3)
 
 
-def consume(manager: Manager, key: str, name: str = "consumer") -> Consumer:
+def consume(manager: Manager, key: str, name: str = "consumer") -> Sink:
     manager.spawn("consumer", name, bindings={"in": key})
     consumer = manager.unit(name)
-    assert isinstance(consumer, Consumer)
+    assert isinstance(consumer, Sink)
     return consumer
 
 
@@ -72,7 +72,7 @@ def test_request_wires_the_chain_and_streams_on_its_key(robot: Manager) -> None:
     key = robot.request("BallPosition(field)")
     assert key == f"dyknow/{robot.name}/requests/BallPosition(field)"
     consumer = consume(robot, key)
-    msg = consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    msg = consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
     assert msg.payload["x"] == 1.0 and msg.key == key and msg.origin_ns < msg.send_ns
     assert labels(robot, key) == {"robot-camera", "subsampler(bottom)", "ball-detector(bottom)", "localization(bottom)", "tracker"}
     (info,) = robot.get_model().requests
@@ -108,12 +108,12 @@ def test_battery_drop_switches_to_the_ceiling_camera_and_back(robot: Manager) ->
     events = Events(robot)
     key = robot.request("BallPosition(field)")
     consumer = consume(robot, key)
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
     tracker = robot.unit("tracker")
     assert isinstance(tracker, Tracker)
 
     robot.measure("battery", 0.1)  # below the robot camera's constraint (>= 0.25)
-    msg = consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+    msg = consumer.wait_until(lambda m: m.payload["camera"] == CEILING)
     assert msg.key == key  # the same key: consumers never resubscribe
     adapted = events.wait("adapted")
     assert adapted.cause == "measurement battery = 0.1"
@@ -125,7 +125,7 @@ def test_battery_drop_switches_to_the_ceiling_camera_and_back(robot: Manager) ->
     assert "robot-camera" not in {u.label for u in robot.get_model().units}  # nothing left behind
 
     robot.measure("battery", 0.9)
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
     back = events.wait("adapted", 2)
     assert "robot-camera" in back.new and back.cause.startswith("measurement battery = 0.9")
     assert robot.unit("tracker") is tracker and tracker.count > 2
@@ -135,13 +135,13 @@ def test_camera_exception_switches_and_the_preferred_camera_returns_after_back_o
     events = Events(robot)
     key = robot.request("BallPosition(field)")
     consumer = consume(robot, key)
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
     camera_of(robot, "robot-camera").explode()
-    consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+    consumer.wait_until(lambda m: m.payload["camera"] == CEILING)
     first = events.wait("adapted")
     assert first.cause.startswith("unit 'robot-camera' failed") and "lost its connection" in first.cause
     # after the back-off (1 s) the robot camera is tried again and preferred
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM, timeout=10)
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=10)
     assert events.wait("adapted", 2).cause.startswith("retry: back-off of robot-camera ended")
 
 
@@ -149,11 +149,11 @@ def test_destroyed_unit_is_replaced(robot: Manager) -> None:
     events = Events(robot)
     key = robot.request("BallPosition(field)")
     consumer = consume(robot, key)
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
     robot.destroy("subsampler-bottom")
     event = events.wait("adapted")
     assert event.cause == "unit 'subsampler-bottom' was destroyed"
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)  # a fresh subsampler, same chain
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)  # a fresh subsampler, same chain
     assert "subsampler-bottom" in {u.name for u in robot.get_model().units}
 
 
@@ -161,9 +161,9 @@ def test_stalled_stream_switches(robot: Manager) -> None:
     events = Events(robot)
     key = robot.request("BallPosition(field)")
     consumer = consume(robot, key)
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
     camera_of(robot, "robot-camera").freeze()  # silent beyond its 100 ms deadline
-    consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+    consumer.wait_until(lambda m: m.payload["camera"] == CEILING)
     event = events.wait("adapted")
     assert event.cause.startswith("unit 'robot-camera' stalled") and "deadline 100 ms" in event.cause
 
@@ -178,7 +178,7 @@ def test_degraded_then_recovered(robot: Manager) -> None:
     assert "constraint violated: battery = 0.05" in (degraded.detail or "")
     assert robot.requests()[0].state == "degraded"
     robot.measure("battery", 0.8)
-    consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+    consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
     assert robot.requests()[0].state == "active"
 
 
@@ -194,9 +194,9 @@ def test_events_measurements_and_requests_over_zenoh(robot: Manager) -> None:
         sub = client.session.declare_raw_subscriber(f"dyknow/{robot.name}/events/adaptation", on_event)
         key = client.get_model() and robot.request("BallPosition(field)")
         consumer = consume(robot, key)
-        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM)
+        consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
         client.session.put("dyknow/measurements/battery", json.dumps({"value": 0.1}))  # a battery monitor elsewhere
-        consumer.wait_for(lambda m: m.payload["camera"] == CEILING)
+        consumer.wait_until(lambda m: m.payload["camera"] == CEILING)
         assert got.wait(5)
         sub.undeclare()
     assert robot.measurements == {"battery": 0.1}
@@ -226,7 +226,7 @@ def test_remote_source_process_killed(robot: Manager) -> None:
         f"""
         import threading
         from dyknow import Manager
-        with Manager("remotecam", specs=[{str(SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={robot.endpoints!r}) as m:
+        with Manager("remotecam", specs=[{str(SCENARIO_SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={robot.endpoints!r}) as m:
             m.spawn("robot-camera", "cam", bindings={{"out": "fleet/{robot.name}/camera"}})
             print("ready", flush=True)
             threading.Event().wait()
@@ -238,12 +238,12 @@ def test_remote_source_process_killed(robot: Manager) -> None:
         key = robot.request("BallPosition(field)")
         assert "remote-camera" in labels(robot, key)
         consumer = consume(robot, key)
-        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM and m.payload["frame"] > 3)
+        consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM and m.payload["frame"] > 3)
         child.kill()
         event = events.wait("adapted")
         assert "the producer of 'fleet/" in event.cause and "is gone" in event.cause
         assert "robot-camera" in event.new and "remote-camera" in event.old
-        consumer.wait_for(lambda m: m.payload["camera"] == BOTTOM and m.payload["frame"] < 5)  # the local camera, new count
+        consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM and m.payload["frame"] < 5)  # the local camera, new count
     finally:
         child.kill()
         child.wait(10)
@@ -328,7 +328,7 @@ class StandInRuntime:
 
 def _camera(label: str, priority: int) -> TransformationSpec:
     return TransformationSpec(
-        label=label, source="tests.units:Publisher", ports=(Port("out", "out"),), tags=(Tag("out", "Image"),), priority=priority
+        label=label, source="dyknow.testing:Source", ports=(Port("out", "out"),), tags=(Tag("out", "Image"),), priority=priority
     )
 
 

@@ -15,7 +15,7 @@ import pytest
 
 from dyknow import Manager
 from tests.conftest import REPO, ManagerProcess, free_port, run_cli, subprocess_env
-from tests.units import Sink
+from dyknow.testing import SCENARIO_SPECS, Sink
 
 SPECS = REPO / "tests" / "specs"
 
@@ -140,7 +140,7 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
     try:
         sink = manager.unit("s")
         assert isinstance(sink, Sink)
-        got = sink.wait_for(20, timeout=20)
+        got = sink.wait_for(20, timeout_s=20)
     finally:
         child.kill()
         child.wait(10)
@@ -180,7 +180,7 @@ def test_echo_times_out_with_a_clear_message(manager_process: Callable[..., Mana
     assert time.monotonic() - start < 30
 
 
-SCENARIO = REPO / "tests" / "scenario" / "scenario.xml"
+SCENARIO = SCENARIO_SPECS
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 
 

@@ -7,8 +7,8 @@ import time
 
 import pytest
 
-from dyknow import Manager, Message, Unit, default_key
-from tests.units import Publisher, Sink
+from dyknow import Manager, Message, Port, TransformationSpec, Unit, default_key
+from dyknow.testing import Sink, Source
 
 
 class Busy(Unit):
@@ -62,7 +62,7 @@ def test_consistently_slow_unit_moves_to_its_own_thread(manager: Manager) -> Non
     manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "busy", "out")})
     assert manager.get_model().unit("busy").executor == "shared thread"
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     sink = manager.unit("s")
     assert isinstance(sink, Sink)
     for i in range(20):
@@ -77,7 +77,7 @@ def test_timers_and_messages_never_overlap(manager: Manager) -> None:
     manager.spawn("publisher", "src")
     manager.spawn("exclusive", "x", bindings={"in": default_key(manager.name, "src", "out")})
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     emitter = threading.Thread(target=lambda: [src.emit(i) or time.sleep(0.0005) for i in range(300)])
     emitter.start()
     emitter.join()
@@ -141,3 +141,27 @@ def test_a_timer_can_fire_at_once(manager: Manager) -> None:
     assert unit.at_ns - unit.started_ns < 5e9
     with pytest.raises(ValueError, match="must not be negative"):
         unit.create_timer(1.0, lambda: None, first_s=-1)
+
+
+class Ticker(Unit):
+    """Creates a fast timer in setup(); many input ports keep it starting for a while."""
+
+    def setup(self) -> None:
+        self.ticks = 0
+        self.ticked = threading.Event()
+        self.create_timer(0.0005, self.tick, first_s=0)
+
+    def tick(self) -> None:
+        self.ticks += 1
+        if self.ticks >= 5:
+            self.ticked.set()
+
+
+def test_a_timer_that_fires_while_the_unit_starts_keeps_ticking(manager: Manager) -> None:
+    """A timer created in setup() may fire before the inputs are bound; it must not be cancelled then."""
+    spec = TransformationSpec(label="ticker", source="tests.test_executor:Ticker", ports=tuple(Port(f"in{i}", "in") for i in range(40)))
+    for i in range(5):
+        manager.spawn(spec, f"t{i}")
+        ticker = manager.unit(f"t{i}")
+        assert isinstance(ticker, Ticker)
+        assert ticker.ticked.wait(5), f"the timer of t{i} ticked {ticker.ticks} times"

@@ -18,7 +18,8 @@ from dyknow import (
     UnitEvent,
     default_key,
 )
-from tests.units import Counter, Looping, Publisher, Sink, TornDown
+from dyknow.testing import Sink, Source
+from tests.units import Counter, Looping, TornDown
 
 
 def test_spawn_and_destroy(manager: Manager) -> None:
@@ -94,7 +95,7 @@ def test_failing_unit_is_isolated_and_others_keep_flowing(manager: Manager) -> N
     failures: list[tuple[str, str | None]] = []
     manager.on_unit_event(lambda e: failures.append((e.unit, e.error)) if e.kind == "failed" else None)
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     for i in range(6):  # fewer than the queue depth (8): a burst from another thread is not dropped
         src.emit({"i": i})
     good = manager.unit("good")
@@ -133,7 +134,7 @@ def test_unit_destroys_itself(manager: Manager) -> None:
     manager.spawn("self-destroying", "once", bindings={"in": default_key(manager.name, "src", "out")})
     happened, seen = _wait_event(manager, "destroyed", "once")
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     src.emit(b"bye")
     assert happened.wait(5), "the unit did not destroy itself"
     assert all(u.name != "once" for u in manager.get_model().units)
@@ -144,7 +145,7 @@ def test_protected_unit_cannot_destroy_itself(manager: Manager) -> None:
     manager.spawn("self-destroying", "once", protected=True, bindings={"in": default_key(manager.name, "src", "out")})
     happened, seen = _wait_event(manager, "failed", "once")
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     src.emit(b"bye")
     assert happened.wait(5)
     info = manager.get_model().unit("once")
@@ -196,7 +197,7 @@ def test_model_lists_units_and_specs(manager: Manager) -> None:
 
 TEMPLATE = """<transformation>
   <label>cam(${Cam})</label>
-  <source>tests.units:Sink</source>
+  <source>dyknow.testing:Sink</source>
   <args><arg label="Cam">{left; right}</arg></args>
   <ports><port type="in">in</port></ports>
   <tags><tag port="in">Image(${Cam})</tag></tags>
@@ -206,7 +207,7 @@ TEMPLATE = """<transformation>
 def test_add_template_override_and_remove(manager: Manager) -> None:
     assert manager.add_transformation(TEMPLATE) == ["cam(left)", "cam(right)"]
     manager.spawn("cam(left)", "left")
-    override = TEMPLATE.replace("tests.units:Sink", "tests.units:Counter").replace(
+    override = TEMPLATE.replace("dyknow.testing:Sink", "tests.units:Counter").replace(
         '<port type="in">in</port>', '<port type="in">in</port><port type="out">out</port>'
     )
     manager.add_transformation(override)
@@ -272,7 +273,7 @@ def test_counter_keeps_state_between_messages(manager: Manager) -> None:
     manager.spawn("counter", "c", bindings={"in": default_key(manager.name, "src", "out")})
     manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "c", "out")})
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     for _ in range(3):
         src.emit(np.zeros(3))
     sink = manager.unit("s")

@@ -11,7 +11,7 @@ from dyknow.ontology import Ontology
 from dyknow.planner import Planner, RunningUnit, plan, unit_name_for
 from dyknow.spec import TransformationSpec, load_specs, parse_specs
 from tests.conftest import REPO
-from tests.scenario import SPECS as SCENARIO
+from dyknow.testing import SCENARIO_SPECS as SCENARIO
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 

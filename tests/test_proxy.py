@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 from dyknow import BindingError, Client, Manager, Message, UnitError, default_key
-from tests.units import Counter, Publisher, Sink, Slow
+from dyknow.testing import Sink, Source
+from tests.units import Counter, Slow
 
 
-def _emit_steadily(src: Publisher, count: int, start: int = 0, period_s: float = 0.001) -> None:
+def _emit_steadily(src: Source, count: int, start: int = 0, period_s: float = 0.001) -> None:
     for i in range(start, start + count):
         src.emit({"i": i})
         time.sleep(period_s)  # pacing the producer, not waiting for a result
@@ -27,7 +28,7 @@ def test_rebind_input_while_messages_flow(manager: Manager) -> None:
     unit_before = manager.unit("u")
     unit_before.marker = "state survives"  # type: ignore[attr-defined]
     pa, pb, pc = (manager.unit(n) for n in ("pa", "pb", "pc"))
-    assert isinstance(pa, Publisher) and isinstance(pb, Publisher) and isinstance(pc, Publisher)
+    assert isinstance(pa, Source) and isinstance(pb, Source) and isinstance(pc, Source)
 
     flowing = threading.Thread(target=_emit_steadily, args=(pa, 300))
     flowing.start()
@@ -59,7 +60,7 @@ def test_rebind_output(manager: Manager) -> None:
     manager.spawn("sink", "old", bindings={"in": "t/old"})
     manager.spawn("sink", "new", bindings={"in": "t/new"})
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     src.emit(1)
     old = manager.unit("old")
     assert isinstance(old, Sink)
@@ -128,7 +129,7 @@ def test_origin_timestamp_propagates_and_sequence_numbers_are_per_port(manager: 
     manager.spawn("relay", "r", bindings={"in": default_key(manager.name, "src", "out")})
     manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "r", "out")})
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     src.publish("out", b"x", origin_ns=12345)
     src.emit(b"y")
     sink = manager.unit("s")
@@ -147,7 +148,7 @@ def test_local_delivery_is_zero_copy_and_read_only(manager: Manager) -> None:
     manager.spawn("sink", "b", bindings={"in": key})
     frame = np.zeros((1080, 1920, 3), dtype=np.uint8)
     cam = manager.unit("cam")
-    assert isinstance(cam, Publisher)
+    assert isinstance(cam, Source)
     cam.emit(frame)
     for name in ("a", "b"):
         sink = manager.unit(name)
@@ -171,7 +172,7 @@ def test_same_stream_reaches_another_session_over_zenoh(manager: Manager) -> Non
 
     with Client(manager.name, connect=manager.endpoints) as client, client.declare_subscriber(key, remote):
         cam = manager.unit("cam")
-        assert isinstance(cam, Publisher)
+        assert isinstance(cam, Source)
         frame = np.arange(24, dtype=np.uint16).reshape(2, 3, 4)
         deadline = time.monotonic() + 5
         while not arrived.is_set() and time.monotonic() < deadline:  # the link comes up asynchronously
@@ -197,7 +198,7 @@ def test_slow_unit_does_not_stall_its_upstream(make_manager: object) -> None:
     slow = manager.unit("slow")
     assert isinstance(slow, Slow)
     # All 40 ticks arrive while the slow unit is still inside its first 3-second callback.
-    got = fast.wait_for(40, timeout=2.5)
+    got = fast.wait_for(40, timeout_s=2.5)
     assert slow.handled == 0 and slow.started.is_set()
     assert [m.seq for m in got] == list(range(1, 41))
     stats = manager.get_statistics("slow")
@@ -235,7 +236,7 @@ def test_queue_size_and_policy_from_the_spec(manager: Manager, label: str, expec
 
     slow.on_message = record  # type: ignore[method-assign]
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     src.emit(1)
     assert slow.started.wait(5)  # message 1 is being handled; 2..10 meet a queue of 2
     for i in range(2, 11):
@@ -249,7 +250,7 @@ def test_reject_counts_bad_input_and_keeps_running(manager: Manager) -> None:
     manager.spawn("publisher", "src")
     manager.spawn("picky", "p", bindings={"in": default_key(manager.name, "src", "out")})
     src = manager.unit("src")
-    assert isinstance(src, Publisher)
+    assert isinstance(src, Source)
     picky = manager.unit("p")
     assert not picky.has_subscribers("out")  # nobody listens yet
     manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "p", "out")})
@@ -276,7 +277,7 @@ def test_slow_unit_does_not_hold_up_streams_from_another_process(make_manager: o
     receiver.spawn("sink", "fast", bindings={"in": key})
     sender.spawn("publisher", "src", bindings={"out": key})
     publisher = sender.unit("src")
-    assert isinstance(publisher, Publisher)
+    assert isinstance(publisher, Source)
     deadline = time.monotonic() + 10
     while not publisher.has_subscribers("out"):  # the link is up and both subscribers are known
         assert time.monotonic() < deadline, "the receiving manager never subscribed"
@@ -290,7 +291,7 @@ def test_slow_unit_does_not_hold_up_streams_from_another_process(make_manager: o
     slow = receiver.unit("slow")
     assert isinstance(slow, Slow)
     # All 40 arrive while the slow unit is still inside its first 3-second callback.
-    got = fast.wait_for(40, timeout=2.5)
+    got = fast.wait_for(40, timeout_s=2.5)
     assert [m.payload for m in got] == list(range(40))
     assert slow.started.is_set() and slow.handled == 0
     assert receiver.get_statistics("fast").ports[0].dropped == 0

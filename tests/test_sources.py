@@ -51,7 +51,7 @@ def test_video_source_loops(vision: Manager, data_dir: Path) -> None:
     unit, sink = spawn_chain(
         vision, "video-source(top)", "video", params={"path": str(path), "rate_hz": 400, "loop": True}, deep=True
     )
-    messages = sink.wait_for(70, timeout=20)
+    messages = sink.wait_for(70, timeout_s=20)
     assert isinstance(unit, VideoSource) and unit.loops >= 1
     assert np.array_equal(messages[60].payload, messages[0].payload)  # frame 0 again after the end
 

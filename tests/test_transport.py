@@ -14,7 +14,7 @@ import zenoh  # a plain Zenoh peer stands in for tools that know nothing of dykn
 from dyknow import BindingError, Manager, ServiceError, TransportError
 from dyknow.transport import Session, check_key_expr, key_exprs_intersect, make_config
 from tests.conftest import free_port
-from tests.units import Sink
+from dyknow.testing import Sink
 
 
 def test_key_expressions_are_checked() -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dyknow import Manager
-from tests.units import Sink
+from dyknow.testing import Sink
 from tests.vision_support import failure_of, key, port_stats, publisher, read_image, spawn_chain, vision_manager
 from transformations.imaging import Undistort, convert, downscale
 

@@ -28,7 +28,7 @@ def test_the_synthetic_ball_is_tracked_on_the_field(vision: Manager) -> None:
     vision.spawn("localization(ceiling)", "loc", bindings={"in": key(vision, "det", "out")})
     _, tracks = spawn_chain(vision, "tracker", "trk", inputs={"in": "loc/out"}, deep=True)
     _, annotated = spawn_chain(vision, "annotator(ceiling)", "ann", inputs={"image": "cam/out", "detections": "det/out"})
-    messages = tracks.wait_for(20, timeout=20)
+    messages = tracks.wait_for(20, timeout_s=20)
     camera = vision.unit("cam")
     assert isinstance(camera, SyntheticScene)
     scene = camera.scene

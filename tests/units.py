@@ -1,4 +1,4 @@
-"""Units used by the tests (their specs are in tests/units.xml)."""
+"""Units used by the tests (their specs are in tests/units.xml); the generic stand-ins are in dyknow.testing."""
 
 from __future__ import annotations
 
@@ -7,28 +7,6 @@ import time
 from typing import Any
 
 from dyknow import Message, Unit
-
-
-class Sink(Unit):
-    """Records every message; tests wait on it instead of sleeping."""
-
-    def setup(self) -> None:
-        self.messages: list[Message] = []
-        self.ports: list[str] = []
-        self._cond = threading.Condition()
-
-    def on_message(self, port: str, msg: Message) -> None:
-        with self._cond:
-            self.messages.append(msg)
-            self.ports.append(port)
-            self._cond.notify_all()
-
-    def wait_for(self, count: int, timeout: float = 5.0) -> list[Message]:
-        """Wait until ``count`` messages arrived; returns them (raises on timeout)."""
-        with self._cond:
-            if not self._cond.wait_for(lambda: len(self.messages) >= count, timeout):
-                raise TimeoutError(f"sink {self.name!r} got {len(self.messages)} of {count} messages within {timeout} s")
-            return list(self.messages)
 
 
 class Counter(Unit):
@@ -97,13 +75,6 @@ class Forwarder(Unit):
 
     def on_message(self, port: str, msg: Message) -> None:
         self.publish("out", msg.payload)
-
-
-class Publisher(Unit):
-    """Publishes on demand from the test (tests call emit())."""
-
-    def emit(self, payload: Any) -> None:
-        self.publish("out", payload)
 
 
 class Looping(Unit):

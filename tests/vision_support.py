@@ -15,7 +15,7 @@ import numpy as np
 
 from dyknow import Manager, PortStatistics, Unit, UnitEvent, default_key, parse_specs
 from tests.conftest import GENERIC_SPECS, REPO, UNIT_SPECS
-from tests.units import Sink
+from dyknow.testing import Sink
 
 VISION_SPECS = REPO / "specs" / "vision.xml"
 SOURCE_SPECS = REPO / "specs" / "sources.xml"
@@ -24,7 +24,7 @@ SUPPORT_SPECS = parse_specs(
     """<transformations>
       <transformation><label>stamped-publisher</label><source>tests.vision_support:StampedPublisher</source>
         <ports><port type="out">out</port></ports></transformation>
-      <transformation><label>deep-sink</label><source>tests.units:Sink</source>
+      <transformation><label>deep-sink</label><source>dyknow.testing:Sink</source>
         <ports><port type="in" queue="4096">in</port></ports></transformation>
     </transformations>""",
     "vision_support.py",
