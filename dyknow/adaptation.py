@@ -181,6 +181,7 @@ class AdaptationEvent:
     detail: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        """The JSON form (events on ``dyknow/<manager>/events/adaptation`` and ``get_adaptations``)."""
         return {
             "id": self.id,
             "kind": self.kind,
@@ -263,6 +264,7 @@ class RequestAnchor(Unit):
     """
 
     def setup(self) -> None:
+        """Wait for nothing yet."""
         self._waiting: tuple[str, Callable[[int], None]] | None = None
 
     def expect(self, key: str, on_first: Callable[[int], None]) -> None:
@@ -270,6 +272,7 @@ class RequestAnchor(Unit):
         self._waiting = (key, on_first)
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Relay the message onto the request's key; report the first one of a new configuration."""
         self.publish("out", msg.payload)
         waiting = self._waiting
         if waiting is not None and msg.key == waiting[0]:

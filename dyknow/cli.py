@@ -40,7 +40,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -63,6 +63,16 @@ class _Usage(Exception):
 def _out(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=None, separators=(",", ":")) + "\n")
     sys.stdout.flush()
+
+
+def _report(args: argparse.Namespace, data: Any, text: str | Iterable[str] | Callable[[], Iterable[str]]) -> None:
+    """How every command ends: ``data`` as one JSON line with ``--json``, else ``text`` for people."""
+    if args.json:
+        _out(data)
+        return
+    lines = text() if callable(text) else [text] if isinstance(text, str) else text
+    for line in lines:
+        print(line, flush=True)
 
 
 def _pairs(items: Sequence[str], what: str) -> dict[str, str]:
@@ -97,49 +107,49 @@ def _value(text: str) -> float | str:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
+    """check spec files; exit 1 with one PATH:LINE: message per error"""
     try:
         specs = _load(args)
     except SpecError as exc:
         for issue in exc.issues:
             print(str(issue), file=sys.stderr)
         if args.json:
-            _out({"valid": False, "errors": [str(i) for i in exc.issues]})
+            _out({"valid": False, "errors": [str(i) for i in exc.issues], "issues": [i.to_dict() for i in exc.issues]})
         return 1
     files = len({s.path for s in specs})
-    if args.json:
-        _out({"valid": True, "transformations": len(specs), "files": files})
-    else:
-        print(f"ok: {len(specs)} transformations in {files} file{'s' if files != 1 else ''}")
+    _report(args, {"valid": True, "transformations": len(specs), "files": files}, f"ok: {len(specs)} transformations in {files} file{'s' if files != 1 else ''}")
     return 0
 
 
 def cmd_expand(args: argparse.Namespace) -> int:
+    """print every transformation after template expansion"""
     specs = _load(args)
-    if args.json:
-        _out(
-            [
-                {
-                    "label": s.label,
-                    "source": s.source,
-                    "params": s.param_values(),
-                    "ports": [{"name": p.name, "direction": p.direction} for p in s.ports],
-                    "tags": [{"port": t.port, "tag": t.tag} for t in s.tags],
-                }
-                for s in specs
-            ]
-        )
-        return 0
-    for s in specs:
-        print(f"{s.label}  ({s.source})  {s.location}")
-        for p in s.ports:
-            tags = ", ".join(s.tags_for(p.name))
-            print(f"    {p.direction:>3} {p.name}" + (f"  [{tags}]" if tags else ""))
-        for name, value in s.param_values().items():
-            print(f"    param {name} = {value!r}")
+
+    def text() -> Iterable[str]:
+        for s in specs:
+            yield f"{s.label}  ({s.source})  {s.location}"
+            for p in s.ports:
+                tags = ", ".join(s.tags_for(p.name))
+                yield f"    {p.direction:>3} {p.name}" + (f"  [{tags}]" if tags else "")
+            for name, value in s.param_values().items():
+                yield f"    param {name} = {value!r}"
+
+    data = [
+        {
+            "label": s.label,
+            "source": s.source,
+            "params": s.param_values(),
+            "ports": [{"name": p.name, "direction": p.direction} for p in s.ports],
+            "tags": [{"port": t.port, "tag": t.tag} for t in s.tags],
+        }
+        for s in specs
+    ]
+    _report(args, data, text)
     return 0
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
+    """plan a configuration for a tag, offline; exit 1 with the explanation when none exists"""
     from dyknow.errors import PlanningError
     from dyknow.planner import plan
 
@@ -153,14 +163,15 @@ def cmd_plan(args: argparse.Namespace) -> int:
             _out({"request": args.request, "error": str(exc), "rejection": exc.rejection.to_dict() if exc.rejection else None})
         print(str(exc), file=sys.stderr)
         return 1
-    if args.json:
-        _out(result.to_dict())
-        return 0
-    print(f"{result.request}: {len(result.units)} units, output {result.output_unit}.{result.output_port} on {result.output_key}")
-    for unit in result.units:
-        print(f"  {'new ' if unit.new else 'reuse'} {unit.name} ({unit.label})")
-    for c in result.connections:
-        print(f"  {c.source} -> {c.target}  ({c.key})")
+
+    def text() -> Iterable[str]:
+        yield f"{result.request}: {len(result.units)} units, output {result.output_unit}.{result.output_port} on {result.output_key}"
+        for unit in result.units:
+            yield f"  {'new ' if unit.new else 'reuse'} {unit.name} ({unit.label})"
+        for c in result.connections:
+            yield f"  {c.source} -> {c.target}  ({c.key})"
+
+    _report(args, result.to_dict(), text)
     return 0
 
 
@@ -180,6 +191,7 @@ def _wait_for_signal() -> None:
 
 
 def cmd_manager(args: argparse.Namespace) -> int:
+    """run a manager until interrupted"""
     from dyknow.manager import Manager
 
     listen = args.listen or ([DEFAULT_ENDPOINT] if args.zenoh_config is None else None)
@@ -191,14 +203,11 @@ def cmd_manager(args: argparse.Namespace) -> int:
         gc.collect()
         gc.freeze()
         endpoints = manager.endpoints
-        if args.json:
-            _out({"event": "ready", "manager": args.name, "endpoints": endpoints, "specs": len(manager.library)})
-        else:
-            print(
-                f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} "
-                f"with {len(manager.library)} specs; Ctrl-C to stop",
-                flush=True,
-            )
+        _report(
+            args,
+            {"event": "ready", "manager": args.name, "endpoints": endpoints, "specs": len(manager.library)},
+            f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs; Ctrl-C to stop",
+        )
         _wait_for_signal()
     if not args.json:
         print(f"dyknow manager {args.name!r} stopped", flush=True)
@@ -213,6 +222,7 @@ def _client(args: argparse.Namespace) -> Client:
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
+    """spawn a unit on a manager"""
     with _client(args) as client:
         info = client.spawn(
             args.label,
@@ -221,46 +231,46 @@ def cmd_spawn(args: argparse.Namespace) -> int:
             params=_pairs(args.param, "--param"),
             bindings=_pairs(args.bind, "--bind"),
         )
-    if args.json:
-        _out(info)
-    else:
-        state = info["state"]
-        print(f"spawned {info['name']} ({info['label']}): {state}" + (" [protected]" if info["protected"] else ""))
+
+    def text() -> Iterable[str]:
+        yield f"spawned {info['name']} ({info['label']}): {info['state']}" + (" [protected]" if info["protected"] else "")
         if info.get("error"):
-            print(f"  error: {info['error']}")
+            yield f"  error: {info['error']}"
+
+    _report(args, info, text)
     return 1 if info["state"] == "failed" else 0
 
 
 def cmd_destroy(args: argparse.Namespace) -> int:
+    """destroy a unit"""
     with _client(args) as client:
         client.destroy(args.name)
-    if args.json:
-        _out({"destroyed": args.name})
-    else:
-        print(f"destroyed {args.name}")
+    _report(args, {"destroyed": args.name}, f"destroyed {args.name}")
     return 0
 
 
 def cmd_model(args: argparse.Namespace) -> int:
+    """show the manager's units and specs"""
     with _client(args) as client:
         model = client.get_model()
-    if args.json:
-        _out(model)
-        return 0
-    print(f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs")
-    for unit in model["units"]:
-        flags = " [protected]" if unit["protected"] else ""
-        print(f"  {unit['name']} ({unit['label']}) {unit['state']}{flags}")
-        for port, key in unit["bindings"].items():
-            print(f"      {port} -> {key}")
-        if unit.get("error"):
-            print(f"      error: {unit['error']}")
-    if model["specs"]:
-        print("specs: " + ", ".join(s["label"] for s in model["specs"]))
+
+    def text() -> Iterable[str]:
+        yield f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs"
+        for unit in model["units"]:
+            yield f"  {unit['name']} ({unit['label']}) {unit['state']}" + (" [protected]" if unit["protected"] else "")
+            for port, key in unit["bindings"].items():
+                yield f"      {port} -> {key}"
+            if unit.get("error"):
+                yield f"      error: {unit['error']}"
+        if model["specs"]:
+            yield "specs: " + ", ".join(s["label"] for s in model["specs"])
+
+    _report(args, model, text)
     return 0
 
 
 def cmd_config(args: argparse.Namespace) -> int:
+    """get or set a unit's port bindings"""
     with _client(args) as client:
         if args.action == "get":
             if args.bindings:
@@ -270,98 +280,91 @@ def cmd_config(args: argparse.Namespace) -> int:
             if not args.bindings:
                 raise _Usage("config set needs at least one PORT=KEY pair")
             config = client.set_config(args.name, _pairs(args.bindings, "config set"))
-    if args.json:
-        _out(config)
-    else:
-        for port, key in config.items():
-            print(f"{port} -> {key}")
+    _report(args, config, [f"{port} -> {key}" for port, key in config.items()])
     return 0
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
+    """show a unit's statistics"""
     with _client(args) as client:
         stats = client.get_statistics(args.name)
-    if args.json:
-        _out(stats)
-        return 0
-    print(
-        f"{stats['name']} ({stats['label']}) {stats['state']}: up {stats['uptime_s']:.1f} s, "
-        f"{stats['reconfigurations']} reconfigurations, {stats['executor']}"
-    )
-    for port, p in stats["ports"].items():
-        line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B, {p['dropped']} dropped"
-        if p["direction"] == "in" and p["latency"]["count"]:
-            lat, hop = p["latency"], p["hop"]
-            line += f"; latency p50 {lat['p50_us']:.1f} µs p99 {lat['p99_us']:.1f} µs; hop p50 {hop['p50_us']:.1f} µs p99 {hop['p99_us']:.1f} µs"
-        print(line)
-    if stats.get("error"):
-        print(f"  error: {stats['error']}")
+
+    def text() -> Iterable[str]:
+        yield (
+            f"{stats['name']} ({stats['label']}) {stats['state']}: up {stats['uptime_s']:.1f} s, "
+            f"{stats['reconfigurations']} reconfigurations, {stats['executor']}"
+        )
+        for port, p in stats["ports"].items():
+            line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B, {p['dropped']} dropped"
+            if p["direction"] == "in" and p["latency"]["count"]:
+                lat, hop = p["latency"], p["hop"]
+                line += f"; latency p50 {lat['p50_us']:.1f} µs p99 {lat['p99_us']:.1f} µs; hop p50 {hop['p50_us']:.1f} µs p99 {hop['p99_us']:.1f} µs"
+            yield line
+        if stats.get("error"):
+            yield f"  error: {stats['error']}"
+
+    _report(args, stats, text)
     return 0
 
 
 def cmd_add_spec(args: argparse.Namespace) -> int:
+    """add the transformations of a spec file to the manager"""
     with _client(args) as client:
         labels = client.add_transformation(args.file)
-    if args.json:
-        _out({"labels": labels})
-    else:
-        print("added " + ", ".join(labels))
+    _report(args, {"labels": labels}, "added " + ", ".join(labels))
     return 0
 
 
 def cmd_remove_spec(args: argparse.Namespace) -> int:
+    """remove a transformation from the manager's library"""
     with _client(args) as client:
         removed = client.remove_transformation(args.label)
-    if args.json:
-        _out({"label": args.label, "removed": removed})
-    else:
-        print(f"removed {args.label}" if removed else f"no spec labelled {args.label!r}; nothing removed")
+    text = f"removed {args.label}" if removed else f"no spec labelled {args.label!r}; nothing removed"
+    _report(args, {"label": args.label, "removed": removed}, text)
     return 0
 
 
 def cmd_request(args: argparse.Namespace) -> int:
+    """ask a manager for a stream by tag; prints its key"""
     with _client(args) as client:
         key = client.request(args.tag)
-    if args.json:
-        _out({"request": args.tag, "key": key})
-    else:
-        print(key)
+    _report(args, {"request": args.tag, "key": key}, key)
     return 0
 
 
 def cmd_release(args: argparse.Namespace) -> int:
+    """give back a requested stream"""
     with _client(args) as client:
         client.release(args.key)
-    if args.json:
-        _out({"released": args.key})
-    else:
-        print(f"released {args.key}")
+    _report(args, {"released": args.key}, f"released {args.key}")
     return 0
 
 
 def cmd_measure(args: argparse.Namespace) -> int:
+    """record measurements on a manager, e.g. battery=0.2"""
     values = {k: _value(v) for k, v in _pairs(args.values, "measure").items()}
     if not values:
         raise _Usage("measure needs at least one NAME=VALUE, e.g. battery=0.2")
     with _client(args) as client:
         for name, value in values.items():
             client.measure(name, value)
-    if args.json:
-        _out({"measured": values})
+    _report(args, {"measured": values}, ())
     return 0
 
 
 def cmd_adaptations(args: argparse.Namespace) -> int:
+    """list a manager's adaptations"""
     with _client(args) as client:
         events = client.get_adaptations()
-    if args.json:
-        _out(events)
-        return 0
-    for e in events:
-        times = f"adapted in {e['adaptation_ms']} ms" if e["adaptation_ms"] is not None else ""
-        if e["recovery_ms"] is not None:
-            times += f", recovered in {e['recovery_ms']} ms"
-        print(f"#{e['id']} {e['kind']} {e['request']}: {e['cause']}; {', '.join(e['old'])} -> {', '.join(e['new']) or '(none)'} {times}")
+
+    def text() -> Iterable[str]:
+        for e in events:
+            times = f"adapted in {e['adaptation_ms']} ms" if e["adaptation_ms"] is not None else ""
+            if e["recovery_ms"] is not None:
+                times += f", recovered in {e['recovery_ms']} ms"
+            yield f"#{e['id']} {e['kind']} {e['request']}: {e['cause']}; {', '.join(e['old'])} -> {', '.join(e['new']) or '(none)'} {times}"
+
+    _report(args, events, text)
     return 0
 
 
@@ -374,6 +377,7 @@ def _payload_json(payload: Any) -> Any:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
+    """print the messages published on a key expression"""
     if args.count is not None and args.count <= 0:
         raise _Usage(f"--count: got {args.count}; expected a positive number")
     done = threading.Event()
@@ -386,19 +390,15 @@ def cmd_echo(args: argparse.Namespace) -> int:
             if done.is_set():
                 return
             latency_us = (time.time_ns() - msg.origin_ns) / 1000
-            if args.json:
-                _out(
-                    {
-                        "key": msg.key,
-                        "seq": msg.seq,
-                        "origin_ns": msg.origin_ns,
-                        "send_ns": msg.send_ns,
-                        "latency_us": round(latency_us, 1),
-                        "payload": _payload_json(msg.payload),
-                    }
-                )
-            else:
-                print(f"{msg.key} #{msg.seq} age {latency_us / 1000:.3f} ms: {describe_payload(msg.payload)}", flush=True)
+            data = {
+                "key": msg.key,
+                "seq": msg.seq,
+                "origin_ns": msg.origin_ns,
+                "send_ns": msg.send_ns,
+                "latency_us": round(latency_us, 1),
+                "payload": _payload_json(msg.payload),
+            }
+            _report(args, data, f"{msg.key} #{msg.seq} age {latency_us / 1000:.3f} ms: {describe_payload(msg.payload)}")
             seen += 1
             if args.count is not None and seen >= args.count:
                 done.set()
@@ -442,6 +442,7 @@ def _stop_on_signals() -> threading.Event:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
+    """record key expressions to an MCAP file until Ctrl-C/SIGTERM (or --duration, --max-messages)"""
     from dyknow.recording import Recorder
 
     if args.duration is not None and not args.duration > 0:
@@ -461,43 +462,37 @@ def cmd_record(args: argparse.Namespace) -> int:
     )
     with recorder:
         stop = _stop_on_signals()  # from here on, SIGINT/SIGTERM end the recording with a complete file
-        if args.json:
-            _out({"event": "ready", "file": args.output, "key_exprs": args.keyexprs})
-        else:
-            print(f"recording {', '.join(args.keyexprs)} to {args.output}; Ctrl-C to stop", flush=True)
+        _report(args, {"event": "ready", "file": args.output, "key_exprs": args.keyexprs}, f"recording {', '.join(args.keyexprs)} to {args.output}; Ctrl-C to stop")
         deadline = None if args.duration is None else time.monotonic() + args.duration
         while not recorder.wait(0):
             left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
             if left <= 0 or stop.wait(left):
                 break
-    if args.json:
-        _out({"event": "done", "file": args.output, "messages": recorder.count, "topics": recorder.topics, "bytes": recorder.bytes_written})
-    else:
-        keys = len(recorder.topics)
-        print(f"recorded {recorder.count} messages on {keys} key{'s' if keys != 1 else ''} to {args.output} ({recorder.bytes_written} bytes)")
+    keys = len(recorder.topics)
+    _report(
+        args,
+        {"event": "done", "file": args.output, "messages": recorder.count, "topics": recorder.topics, "bytes": recorder.bytes_written},
+        f"recorded {recorder.count} messages on {keys} key{'s' if keys != 1 else ''} to {args.output} ({recorder.bytes_written} bytes)",
+    )
     return 0
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    """replay an MCAP file into Zenoh in log-time order, at the original pace"""
     from dyknow.replay import Player
 
     remap = _pairs(args.remap, "--remap")
     with Player(args.file, rate=args.rate, loop=args.loop, start_s=args.start, end_s=args.end, topics=args.topics, remap=remap, recover=args.recover) as player:
         stop = _stop_on_signals()
-        if args.json:
-            _out({"event": "ready", "file": args.file, "keys": player.keys})
-        else:
-            topics = ", ".join(f"{topic} -> {key}" if key != topic else topic for topic, key in player.keys.items())
-            print(f"replaying {args.file} ({topics}); Ctrl-C to stop", flush=True)
+        topics = ", ".join(f"{topic} -> {key}" if key != topic else topic for topic, key in player.keys.items())
+        _report(args, {"event": "ready", "file": args.file, "keys": player.keys}, f"replaying {args.file} ({topics}); Ctrl-C to stop")
         count = player.publish(connect=_zenoh_connect(args), zenoh_config=args.zenoh_config, stop=stop, wait_s=args.wait)
-    if args.json:
-        _out({"event": "done", "file": args.file, "messages": count})
-    else:
-        print(f"replayed {count} messages from {args.file}")
+    _report(args, {"event": "done", "file": args.file, "messages": count}, f"replayed {count} messages from {args.file}")
     return 0
 
 
 def cmd_mcap_cat(args: argparse.Namespace) -> int:
+    """print the messages in log-time order"""
     from dyknow.replay import Player
 
     with Player(args.file, topics=args.topics, recover=args.recover, decode=False) as player:
@@ -519,31 +514,32 @@ def cmd_mcap_cat(args: argparse.Namespace) -> int:
 
 
 def cmd_mcap_info(args: argparse.Namespace) -> int:
+    """summarise channels, counts and time range"""
     from datetime import UTC, datetime
 
     from dyknow.replay import Recording
 
     with Recording(args.file, recover=args.recover) as recording:
         info = recording.info
-    if args.json:
-        _out(info.to_dict())
-        return 0
 
     def when(ns: int) -> str:
         return datetime.fromtimestamp(ns / 1e9, tz=UTC).isoformat(timespec="milliseconds")
 
-    print(f"file:      {info.path} ({info.size} bytes)" + (f"; DAMAGED: {info.problem}" if info.problem else ""))
-    print(f"library:   {info.library or '-'}   profile: {info.profile or '-'}")
-    print(f"messages:  {info.message_count}")
-    if info.start_ns is not None and info.end_ns is not None:
-        print(f"time:      {when(info.start_ns)} to {when(info.end_ns)} ({info.duration_s:.3f} s; log_time {info.start_ns} to {info.end_ns})")
-    print(f"chunks:    {info.chunk_count} ({', '.join(info.compressions) or 'none'})   indexed: {'yes' if info.indexed else 'no'}")
-    if info.attachment_count or info.metadata_count:
-        print(f"other:     {info.attachment_count} attachments, {info.metadata_count} metadata records")
-    print(f"channels:  {len(info.channels)}")
-    for c in info.channels:
-        schema = f"{c.schema_name} ({c.schema_encoding})" if c.schema_name else "no schema"
-        print(f"  {c.id:>4} {c.topic}  {c.message_count} msgs  {schema}  [{c.message_encoding}]")
+    def text() -> Iterable[str]:
+        yield f"file:      {info.path} ({info.size} bytes)" + (f"; DAMAGED: {info.problem}" if info.problem else "")
+        yield f"library:   {info.library or '-'}   profile: {info.profile or '-'}"
+        yield f"messages:  {info.message_count}"
+        if info.start_ns is not None and info.end_ns is not None:
+            yield f"time:      {when(info.start_ns)} to {when(info.end_ns)} ({info.duration_s:.3f} s; log_time {info.start_ns} to {info.end_ns})"
+        yield f"chunks:    {info.chunk_count} ({', '.join(info.compressions) or 'none'})   indexed: {'yes' if info.indexed else 'no'}"
+        if info.attachment_count or info.metadata_count:
+            yield f"other:     {info.attachment_count} attachments, {info.metadata_count} metadata records"
+        yield f"channels:  {len(info.channels)}"
+        for c in info.channels:
+            schema = f"{c.schema_name} ({c.schema_encoding})" if c.schema_name else "no schema"
+            yield f"  {c.id:>4} {c.topic}  {c.message_count} msgs  {schema}  [{c.message_encoding}]"
+
+    _report(args, info.to_dict(), text)
     return 0
 
 
@@ -551,6 +547,7 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    """run the ball-tracking demo (the battery runs low midway; the stream adapts)"""
     from dyknow.demo import run_demo
 
     for video in (args.robot_video, args.ceiling_video):
@@ -578,26 +575,30 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"dyknow {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def command(name: str, fn: Callable[[argparse.Namespace], int], help: str, client: bool = False) -> argparse.ArgumentParser:
+    def command(name: str, fn: Callable[[argparse.Namespace], int], client: bool = False) -> argparse.ArgumentParser:
+        help = (fn.__doc__ or "").strip()  # each command's docstring is its help
         p = sub.add_parser(name, help=help, description=help)
         p.set_defaults(fn=fn)
         p.add_argument("--json", action="store_true", help="machine-readable output")
         if client:
-            p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
+            zenoh_options(p, connect_help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
             p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
-            p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
             p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
         return p
 
-    p = command("manager", cmd_manager, "run a manager until interrupted")
+    def zenoh_options(p: argparse.ArgumentParser, connect_help: str) -> None:
+        """The options every command that opens a Zenoh session shares."""
+        p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=connect_help)
+        p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
+
+    p = command("manager", cmd_manager)
     p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
     p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
     p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file to join a real deployment")
+    zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
 
-    p = command("demo", cmd_demo, "run the ball-tracking demo (the battery runs low midway; the stream adapts)")
+    p = command("demo", cmd_demo)
     p.add_argument("--duration", type=float, default=None, metavar="S", help="how long to run (default 30 s; 6 s with --chain)")
     p.add_argument("--robot-video", metavar="PATH", help="a video for the robot camera instead of the synthetic scene")
     p.add_argument("--ceiling-video", metavar="PATH", help="a video for the ceiling camera instead of the synthetic scene")
@@ -607,17 +608,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (--chain; default 20 Hz)")
 
     # --- recording (MCAP)
-    p = command("record", cmd_record, "record key expressions to an MCAP file until Ctrl-C/SIGTERM (or --duration, --max-messages)")
+    p = command("record", cmd_record)
     p.add_argument("keyexprs", nargs="+", metavar="KEYEXPR", help="key expressions to record, e.g. 'robot/**'")
     p.add_argument("-o", "--output", required=True, metavar="FILE.mcap", help="the MCAP file to write")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--max-messages", type=int, metavar="N", help="stop after N messages")
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="chunk compression (default zstd)")
     p.add_argument("--chunk-size", type=int, default=1024 * 1024, metavar="BYTES", help="uncompressed chunk size (default 1 MiB)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
+    zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
 
-    p = command("replay", cmd_replay, "replay an MCAP file into Zenoh in log-time order, at the original pace")
+    p = command("replay", cmd_replay)
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--rate", type=_rate, default=1.0, metavar="X", help="pace: 2 is twice as fast, 0.5 half, max as fast as possible (default 1)")
     p.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
@@ -627,32 +627,31 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--remap", action="append", default=[], metavar="FROM=TO", help="replay topic FROM (or a prefix FROM/**) on key TO (repeatable)")
     p.add_argument("--recover", action="store_true", help="replay what is valid in a truncated or corrupt file, with a warning")
     p.add_argument("--wait", type=float, default=1.0, metavar="S", help="first wait up to S seconds for a subscriber on every key (default 1)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
-    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
+    zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
 
     p = sub.add_parser("mcap", help="inspect MCAP files (cat, info)", description="inspect MCAP files, whoever wrote them")
     mcap = p.add_subparsers(dest="mcap_command", required=True, metavar="COMMAND")
-    p = mcap.add_parser("cat", help="print the messages in log-time order", description="print the messages in log-time order")
+    p = mcap.add_parser("cat", help=cmd_mcap_cat.__doc__, description=cmd_mcap_cat.__doc__)
     p.set_defaults(fn=cmd_mcap_cat)
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--topics", nargs="+", action="extend", default=[], metavar="T", help="only these topics (names, keys or key expressions)")
     p.add_argument("--json", action="store_true", help="one JSON object per message and line: topic, sequence, log_time, publish_time, schema, message_encoding, data_b64")
     p.add_argument("--recover", action="store_true", help="print what is valid in a truncated or corrupt file, with a warning")
-    p = mcap.add_parser("info", help="summarise channels, counts and time range", description="summarise channels, counts and time range")
+    p = mcap.add_parser("info", help=cmd_mcap_info.__doc__, description=cmd_mcap_info.__doc__)
     p.set_defaults(fn=cmd_mcap_info)
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--recover", action="store_true", help="summarise what is valid in a truncated or corrupt file")
 
-    p = command("validate", cmd_validate, "check spec files; exit 1 with one PATH:LINE: message per error")
+    p = command("validate", cmd_validate)
     p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
 
-    p = command("expand", cmd_expand, "print every transformation after template expansion")
+    p = command("expand", cmd_expand)
     p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
 
-    p = command("plan", cmd_plan, "plan a configuration for a tag, offline; exit 1 with the explanation when none exists")
+    p = command("plan", cmd_plan)
     p.add_argument("--specs", action="extend", nargs="+", required=True, metavar="PATH", help="spec files or directories")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files")
     p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")
@@ -660,44 +659,44 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
     p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
 
-    p = command("spawn", cmd_spawn, "spawn a unit on a manager", client=True)
+    p = command("spawn", cmd_spawn, client=True)
     p.add_argument("label")
     p.add_argument("name")
     p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
     p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
 
-    p = command("destroy", cmd_destroy, "destroy a unit", client=True)
+    p = command("destroy", cmd_destroy, client=True)
     p.add_argument("name")
 
-    command("model", cmd_model, "show the manager's units and specs", client=True)
+    command("model", cmd_model, client=True)
 
-    p = command("config", cmd_config, "get or set a unit's port bindings", client=True)
+    p = command("config", cmd_config, client=True)
     p.add_argument("action", choices=["get", "set"])
     p.add_argument("name")
     p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
 
-    p = command("stats", cmd_stats, "show a unit's statistics", client=True)
+    p = command("stats", cmd_stats, client=True)
     p.add_argument("name")
 
-    p = command("add-spec", cmd_add_spec, "add the transformations of a spec file to the manager", client=True)
+    p = command("add-spec", cmd_add_spec, client=True)
     p.add_argument("file")
 
-    p = command("remove-spec", cmd_remove_spec, "remove a transformation from the manager's library", client=True)
+    p = command("remove-spec", cmd_remove_spec, client=True)
     p.add_argument("label")
 
-    p = command("request", cmd_request, "ask a manager for a stream by tag; prints its key", client=True)
+    p = command("request", cmd_request, client=True)
     p.add_argument("tag")
 
-    p = command("release", cmd_release, "give back a requested stream", client=True)
+    p = command("release", cmd_release, client=True)
     p.add_argument("key")
 
-    p = command("measure", cmd_measure, "record measurements on a manager, e.g. battery=0.2", client=True)
+    p = command("measure", cmd_measure, client=True)
     p.add_argument("values", nargs="+", metavar="NAME=VALUE")
 
-    command("adaptations", cmd_adaptations, "list a manager's adaptations", client=True)
+    command("adaptations", cmd_adaptations, client=True)
 
-    p = command("echo", cmd_echo, "print the messages published on a key expression", client=True)
+    p = command("echo", cmd_echo, client=True)
     p.add_argument("keyexpr")
     p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
     p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")

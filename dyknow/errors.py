@@ -133,6 +133,7 @@ class SpecError(DyKnowError):
         Exception.__init__(self, "\n".join(str(i) for i in self.issues))
 
     def to_dict(self) -> dict[str, Any]:
+        """The JSON form, with every issue."""
         return {**DyKnowError.to_dict(self), "issues": [i.to_dict() for i in self.issues]}
 
 
@@ -214,6 +215,7 @@ class PlanningError(DyKnowError):
         super().__init__(message)
 
     def to_dict(self) -> dict[str, Any]:
+        """The JSON form, with the request and the explanation of each rejected alternative."""
         return {
             **super().to_dict(),
             "request": self.request,

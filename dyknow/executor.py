@@ -56,9 +56,13 @@ class Job(Protocol):
     scheduled: bool
     name: str
 
-    def run(self, worker: Worker) -> None: ...
+    def run(self, worker: Worker) -> None:
+        """Handle what is pending for the job."""
+        ...
 
-    def run_timer(self, timer: Timer, worker: Worker) -> None: ...
+    def run_timer(self, timer: Timer, worker: Worker) -> None:
+        """Fire one tick of ``timer``."""
+        ...
 
 
 class Timer:
@@ -95,12 +99,14 @@ class Lane:
         self.worker: Worker | None = None
 
     def add_timer(self, timer: Timer) -> None:
+        """Schedule ``timer`` on this lane and wake its worker."""
         with self._timer_lock:
             heapq.heappush(self._timers, (timer.next_ns, next(_tie), timer))
             self.next_due_ns = self._timers[0][0]
         self.put(_WAKE)  # the worker recomputes how long it may sleep
 
     def fire_due(self, worker: Worker) -> None:
+        """Fire every timer that is due (skipping missed ticks rather than bursting)."""
         now = time.monotonic_ns()
         while True:
             with self._timer_lock:
@@ -127,6 +133,7 @@ class Lane:
                 heapq.heappush(self._timers, (timer.next_ns, next(_tie), timer))
 
     def take_timers_of(self, job: Job) -> list[Timer]:
+        """Remove and return the timers of ``job`` (it moves to another lane)."""
         with self._timer_lock:
             mine = [entry for entry in self._timers if entry[2].job is job]
             if mine:
@@ -154,6 +161,7 @@ class Worker:
         lane.worker = self
 
     def start(self) -> None:
+        """Start the worker's thread."""
         self.thread.start()
 
     def cpu_ns(self) -> int | None:
@@ -309,6 +317,7 @@ class Executor:
             lane.put(_STOP)
 
     def add_timer(self, job: Job, period_s: float, callback: Callable[[], None], first_s: float | None = None) -> Timer:
+        """A timer calling ``callback`` every ``period_s`` on the job's lane (first after ``first_s``, default one period)."""
         if period_s <= 0:
             raise ValueError(f"timer period must be positive; got {period_s!r} s")
         if first_s is not None and first_s < 0:

@@ -61,6 +61,7 @@ class Library:
             return tuple(self._specs.values())
 
     def labels(self) -> list[str]:
+        """The labels, in the order the specs were added."""
         with self._lock:
             return list(self._specs)
 

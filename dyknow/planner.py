@@ -104,6 +104,7 @@ class Plan:
 
     @property
     def new_units(self) -> tuple[PlannedUnit, ...]:
+        """The units the plan spawns, producers first."""
         return tuple(u for u in self.units if u.new)
 
     def to_dict(self) -> dict[str, Any]:
@@ -126,6 +127,7 @@ class Alternative:
     unmet: Rejection | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        """The JSON form (``dyknow plan --json``)."""
         out: dict[str, Any] = {"provider": self.provider, "port": self.port, "reason": self.reason}
         if self.unmet is not None:
             out["unmet"] = self.unmet.to_dict()
@@ -140,6 +142,7 @@ class Rejection:
     alternatives: tuple[Alternative, ...]
 
     def to_dict(self) -> dict[str, Any]:
+        """The JSON form: the unmet tag and each alternative's reason."""
         return {"tag": self.tag, "alternatives": [a.to_dict() for a in self.alternatives]}
 
     def lines(self, indent: int = 0, _seen: set[str] | None = None) -> list[str]:

@@ -154,6 +154,7 @@ class UnitStatistics:
     traceback: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
+        """The JSON form that ``get_statistics`` serves."""
         return {
             "name": self.name,
             "label": self.label,
@@ -253,6 +254,7 @@ class Proxy:
 
     @property
     def alive(self) -> bool:
+        """Whether the unit is starting or running."""
         return self.state in (UnitState.STARTING, UnitState.RUNNING)
 
     def start(self) -> None:
@@ -534,6 +536,7 @@ class Proxy:
             self.lane.put(self)
 
     def create_timer(self, period_s: float, callback: Callable[[], None], first_s: float | None = None) -> Timer:
+        """A timer calling ``callback`` on the unit's thread every ``period_s`` (cancelled when the unit stops)."""
         timer = self._executor.add_timer(self, period_s, callback, first_s)
         self._timers.append(timer)
         return timer
@@ -700,6 +703,7 @@ class Proxy:
     @property
     def executor_description(self) -> str:
         # ``isolation`` is set as soon as the move is decided, even while a slow callback still runs
+        """Which thread runs the unit, and why it got one of its own."""
         if self.isolation:
             return f"own thread ({self.isolation})"
         return "shared thread" if self.lane.shared else "own thread"

@@ -27,6 +27,7 @@ class LatencySummary:
     max_us: float
 
     def to_dict(self) -> dict[str, float]:
+        """The JSON form, in microseconds."""
         return {
             "count": self.count,
             "p50_us": round(self.p50_us, 3),
@@ -72,6 +73,7 @@ class PortStatistics:
     last_rejection: str | None = None
 
     def to_dict(self) -> dict[str, object]:
+        """The JSON form (latency and hop only for input ports)."""
         out: dict[str, object] = {
             "direction": self.direction,
             "key": self.key,
@@ -103,6 +105,7 @@ class PortCounters:
         self._n = 0
 
     def record(self, latency_ns: int, hop_ns: int) -> None:
+        """Record one latency sample (age since origin, time since the previous hop)."""
         i = self._n & _MASK
         self._latency[i] = latency_ns
         self._hop[i] = hop_ns
@@ -118,6 +121,7 @@ class PortCounters:
         self._n += 1
 
     def snapshot(self, port: str, direction: str, key: str) -> PortStatistics:
+        """The counters and percentiles of the last samples, as plain data."""
         n = min(self._n, WINDOW)
         return PortStatistics(
             port,

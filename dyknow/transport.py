@@ -250,6 +250,7 @@ class Publisher(_Entity):
         return size
 
     def undeclare(self) -> None:
+        """Stop publishing; safe twice."""
         listener, self._listener = getattr(self, "_listener", None), None
         if listener is not None:
             with contextlib.suppress(zenoh.ZError):
@@ -374,6 +375,7 @@ class Session:
 
     @property
     def closed(self) -> bool:
+        """Whether the session is closed."""
         return self._session is None
 
     def _z(self) -> zenoh.Session:
@@ -402,6 +404,7 @@ class Session:
 
     @property
     def zid(self) -> str:
+        """The session's Zenoh id."""
         return str(self._z().zid())
 
     def endpoints(self) -> list[str]:
@@ -430,18 +433,22 @@ class Session:
         on_message: Callable[[Message], None],
         on_error: Callable[[BaseException], None] | None = None,
     ) -> Subscriber:
+        """Receive dyknow messages (or plain samples) published on ``key`` by other sessions."""
         return Subscriber(self._z(), key, on_message, on_error or (lambda exc: log.warning("on %s: %s", key, exc)))
 
     def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> Queryable:
+        """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``."""
         return Queryable(self._z(), key, handler)
 
     def declare_liveliness_token(self, key: str) -> LivelinessToken:
+        """Announce on ``key`` that something lives, until undeclared or the process ends."""
         try:
             return LivelinessToken(self._z().liveliness().declare_token(key))
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a liveliness token on {key!r}: {_clean(exc)}") from exc
 
     def declare_liveliness_subscriber(self, key: str, on_change: Callable[[str, bool], None]) -> LivelinessSubscriber:
+        """Call ``on_change(key, alive)`` as tokens on ``key`` appear and vanish (existing ones first)."""
         def callback(sample: zenoh.Sample) -> None:
             try:
                 on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)

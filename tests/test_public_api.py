@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import subprocess
 import sys
 
@@ -40,3 +41,32 @@ def test_import_does_not_pull_opencv() -> None:
     code = "import sys, dyknow; print('cv2' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def _public_members(cls: type) -> list[tuple[str, object]]:
+    """Public methods and properties a class of dyknow defines (itself or through dyknow bases)."""
+    found: dict[str, object] = {}
+    for klass in reversed(cls.__mro__):
+        if not klass.__module__.startswith("dyknow"):
+            continue
+        for name, value in vars(klass).items():
+            if name.startswith("_"):
+                continue
+            if isinstance(value, (staticmethod, classmethod)):
+                value = value.__func__
+            if inspect.isfunction(value) or isinstance(value, property):
+                found[name] = value
+    return sorted(found.items())
+
+
+def test_every_public_name_and_method_is_documented() -> None:
+    missing = []
+    for name in dyknow.__all__:
+        obj = getattr(dyknow, name)
+        if not (inspect.isclass(obj) or inspect.isfunction(obj)):
+            continue  # constants and the version string
+        if not inspect.getdoc(obj):
+            missing.append(name)
+        if inspect.isclass(obj):
+            missing += [f"{name}.{member}" for member, value in _public_members(obj) if not (value.__doc__ or "").strip()]
+    assert missing == []

@@ -75,6 +75,7 @@ class Annotator(Unit):
     dedicated_thread = True
 
     def setup(self) -> None:
+        """Read the trail length and how long a detection stays drawn."""
         self.trail_length = params.whole(self.params, "trail", 30, low=0)
         self.max_age_ns = round(params.number(self.params, "max_age_s", 0.5, low=0, low_open=True) * 1e9)
         self._latest: dict[str, Any] | None = None
@@ -82,6 +83,7 @@ class Annotator(Unit):
         self._trail: deque[tuple[float, float, float, float]] = deque(maxlen=max(1, self.trail_length))
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Remember detections; draw them (and the trail) on each image and publish it."""
         if port == "detections":
             self._on_detections(port, msg)
         else:

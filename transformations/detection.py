@@ -127,6 +127,7 @@ class Detection:
     confidence: float
 
     def to_dict(self) -> dict[str, float]:
+        """The detection as JSON: position and radius in pixels, confidence, rounded."""
         return {
             "x": round(self.x, 2),
             "y": round(self.y, 2),
@@ -231,6 +232,7 @@ class BallDetector(Unit):
     dedicated_thread = True
 
     def setup(self) -> None:
+        """Read the camera name and the detector's thresholds from the params."""
         self.camera = params.text(self.params, "camera", "")
         self.detector_config = DetectorConfig.from_params(self.params)
 
@@ -245,6 +247,7 @@ class BallDetector(Unit):
         }
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Detect balls in an HSV frame and publish them (only when someone listens); reject what is no colour frame."""
         problem = frame_problem(msg.payload, "colour")
         if problem is not None:
             self.reject(port, f"{problem} (HSV)")

@@ -17,6 +17,7 @@ class PeriodicSource(Unit):
     """
 
     def setup(self) -> None:
+        """Check the params and start the timer."""
         rate = float(self.params.get("rate_hz", 10.0))
         if rate <= 0:
             raise ValueError(f"param rate_hz must be positive; got {rate}")
@@ -39,6 +40,7 @@ class Relay(Unit):
     """Republishes every message from ``in`` on ``out`` unchanged (its origin time included)."""
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Publish the payload unchanged."""
         self.publish("out", msg.payload)
 
 
@@ -52,6 +54,7 @@ class RemoteStream(Unit):
     """
 
     def setup(self) -> None:
+        """Subscribe to the remote key and watch its producer's liveliness."""
         key = str(self.params["key"])
         self.set_config({"in": key})
         self._alive = 0
@@ -75,4 +78,5 @@ class RemoteStream(Unit):
             self.fail(f"no producer of {self.params['key']!r} within {self.params.get('grace_s', 1.0)} s")
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Publish the remote payload on ``out``."""
         self.publish("out", msg.payload)

@@ -61,11 +61,13 @@ class Subsampler(Unit):
     dedicated_thread = True
 
     def setup(self) -> None:
+        """Read the scale and how many frames to skip."""
         self.scale = params.number(self.params, "scale", 1.0, low=0.0, low_open=True, high=1.0)
         self.every = params.whole(self.params, "every", 1, low=1)
         self.seen = 0
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Convert a BGR frame into the colour spaces someone subscribes to; reject what is no colour frame."""
         frame = msg.payload
         problem = frame_problem(frame, "colour")
         if problem is not None:
@@ -102,6 +104,7 @@ class Undistort(Unit):
     dedicated_thread = True
 
     def setup(self) -> None:
+        """Load the calibration named by the ``calibration`` param."""
         path = params.text(self.params, "calibration", required=True)
         self.calibration: Calibration = load_calibration(path)
         self.alpha = params.number(self.params, "alpha", -1.0, high=1.0)
@@ -124,6 +127,7 @@ class Undistort(Unit):
         return maps
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Undistort a frame with maps computed once per frame size; reject what is no image."""
         frame = msg.payload
         problem = frame_problem(frame, "any")
         if problem is not None:

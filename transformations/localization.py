@@ -86,6 +86,7 @@ class Localization(Unit):
     """
 
     def setup(self) -> None:
+        """Read the camera, the homography and the field bounds from the params."""
         self.camera = params.text(self.params, "camera", "")
         self.min_confidence = params.number(self.params, "min_confidence", 0.0, low=0, high=1)
         self.homography_size = params.size(self.params.get("homography_size", ""), "homography_size")
@@ -164,6 +165,7 @@ class Localization(Unit):
         return xmin <= x <= xmax and ymin <= y <= ymax
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Map the detections to field coordinates and publish them; reject malformed input."""
         payload = msg.payload
         if not isinstance(payload, Mapping):
             self.reject(port, f"got {describe(payload)}; expected a detections dict")

@@ -29,6 +29,7 @@ class RecorderUnit(Unit):
     """
 
     def setup(self) -> None:
+        """Open the recording file named by the ``path`` param."""
         self.recorder = Recorder(
             (),
             str(self.params.get("path", "recording.mcap")),
@@ -37,9 +38,11 @@ class RecorderUnit(Unit):
         )
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Write the message to the file."""
         self.recorder.write(msg)
 
     def teardown(self) -> None:
+        """Finish the file (summary and footer)."""
         self.recorder.close()
 
 
@@ -53,6 +56,7 @@ class ReplaySource(Unit):
     """
 
     def setup(self) -> None:
+        """Open the file and select its topic."""
         topic = str(self.params.get("topic", "")).strip()
         rate = float(self.params.get("rate", 1.0))
         if rate < 0:
@@ -75,6 +79,7 @@ class ReplaySource(Unit):
         self.finished = threading.Event()
 
     def run(self, stop: threading.Event) -> None:
+        """Replay until the file ends or the unit stops."""
         self.player.play(self._deliver, stop=stop)
         self.finished.set()
 
@@ -83,4 +88,5 @@ class ReplaySource(Unit):
         self.replayed += 1
 
     def teardown(self) -> None:
+        """Close the file."""
         self.player.close()

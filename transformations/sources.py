@@ -176,6 +176,7 @@ class VideoSource(_CaptureSource):
     """
 
     def setup(self) -> None:
+        """Open the video and read its frame rate."""
         super().setup()
         self.path = Path(params.text(self.params, "path", required=True)).expanduser()
         self.rate_hz = params.number(self.params, "rate_hz", -1.0)
@@ -237,6 +238,7 @@ class CameraSource(_CaptureSource):
     MAX_FAILURES: Final = 50
 
     def setup(self) -> None:
+        """Open the camera device and set its size and frame rate."""
         super().setup()
         self.device = params.whole(self.params, "device", 0, low=0)
         self.rate_hz = params.number(self.params, "rate_hz", 0.0, low=0)
@@ -291,6 +293,7 @@ class ImageFolderSource(Unit):
     dedicated_thread = True
 
     def setup(self) -> None:
+        """List the images the ``path`` pattern names."""
         pattern = params.text(self.params, "path", required=True)
         self.rate_hz = params.number(self.params, "rate_hz", 10.0, low=0)
         self.loop = params.flag(self.params, "loop", False)
@@ -321,6 +324,7 @@ class ImageFolderSource(Unit):
         self.log.warning("skipping image %s: %s", file, reason)
 
     def run(self, stop: threading.Event) -> None:
+        """Publish the images in order at ``rate_hz``, looping if asked."""
         pacer = Pacer(self.rate_hz)
         try:
             while True:
@@ -364,6 +368,7 @@ class SyntheticScene(Unit):
     dedicated_thread = True
 
     def setup(self) -> None:
+        """Build the scene and the camera's view of it from the params."""
         self.camera = params.choice(self.params, "camera", CAMERAS, "ceiling")
         self.width = params.whole(self.params, "width", 640, low=16, high=8192)
         self.height = params.whole(self.params, "height", 480, low=16, high=8192)
@@ -379,6 +384,7 @@ class SyntheticScene(Unit):
         return self.scene.render(self.camera, t_ns, self.width, self.height, self.noise)
 
     def run(self, stop: threading.Event) -> None:
+        """Render and publish frames at ``rate_hz``, stamped at render time."""
         pacer = Pacer(self.rate_hz)
         while pacer.wait(stop):
             stamp = time.time_ns()

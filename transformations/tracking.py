@@ -56,10 +56,12 @@ class ConstantVelocityKalman:
 
     @property
     def position(self) -> tuple[float, float]:
+        """The estimated position (x, y) in metres."""
         return float(self.state[0]), float(self.state[1])
 
     @property
     def velocity(self) -> tuple[float, float]:
+        """The estimated velocity (vx, vy) in metres per second."""
         return float(self.state[2]), float(self.state[3])
 
 
@@ -83,6 +85,7 @@ class Tracker(Unit):
     """
 
     def setup(self) -> None:
+        """Read the filter's noise, gate and timeout from the params."""
         self.process_noise = params.number(self.params, "process_noise", 2.0, low=0, low_open=True)
         self.measurement_noise = params.number(self.params, "measurement_noise", 0.05, low=0, low_open=True)
         self.timeout_ns = round(params.number(self.params, "timeout_s", 1.0, low=0, low_open=True) * 1e9)
@@ -136,6 +139,7 @@ class Tracker(Unit):
         }
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Update the filter with the closest plausible position and publish the track; reject malformed input."""
         payload = msg.payload
         problem = _objects_problem(payload)
         if problem is not None:

@@ -54,6 +54,7 @@ class Battery:
     charge_rate: float = 0.06  # per second
 
     def level(self, t: float) -> float:
+        """The battery level ``t`` seconds into the demo: it drains, then recharges."""
         drain = (self.start - LOW_BATTERY) / self.low_at_s
         if t < self.charge_at_s:
             return max(0.0, self.start - drain * t)
@@ -69,10 +70,12 @@ class TrackLog(Unit):
     """Keeps every track message arriving on the requested key (the demo's consumer)."""
 
     def setup(self) -> None:
+        """Start with an empty log."""
         self.lock = threading.Lock()
         self.track: list[tuple[int, int, dict[str, Any]]] = []  # (arrival ns, origin ns, payload)
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Log the track with its arrival and origin times."""
         if isinstance(msg.payload, dict):
             with self.lock:
                 self.track.append((time.time_ns(), msg.origin_ns, msg.payload))
@@ -82,10 +85,12 @@ class FrameGrab(Unit):
     """Keeps the latest frame arriving on its input (for the report's annotated frame)."""
 
     def setup(self) -> None:
+        """Start with no frame."""
         self.frame: Any = None
         self.got = threading.Event()
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Keep the latest frame."""
         self.frame = msg.payload
         self.got.set()
 
@@ -195,6 +200,7 @@ class BallDemo:
             self._status_lines = 0
 
     def say(self, text: str = "") -> None:
+        """Print a line (clearing the status line first)."""
         self._clear_status()
         self.stream.write(text + "\n")
         self.stream.flush()
@@ -216,6 +222,7 @@ class BallDemo:
     # ------------------------------------------------------------------ the run
 
     def run(self) -> dict[str, Any]:
+        """Run the demo; returns the report."""
         from transformations.scene import Scene  # ground truth of the synthetic scene
 
         specs = [specs_dir() / "vision.xml"]

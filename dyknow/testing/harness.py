@@ -72,10 +72,10 @@ class UnitHarness:
             inputs = {p.name: f"testing/{name}/in/{p.name}" for p in chosen.inputs}
             outputs = {p.name: f"testing/{name}/out/{p.name}" for p in chosen.outputs}
             self.manager.spawn(chosen.label, name, params=params, bindings={**inputs, **outputs})
-            for port, key in inputs.items():
-                source_name = f"send-{port}"
+            for input_port, key in inputs.items():
+                source_name = f"send-{input_port}"
                 self.manager.spawn(_SOURCE.label, source_name, bindings={"out": key})
-                self._sources[port] = _unit_as(self.manager.unit(source_name), Source)
+                self._sources[input_port] = _unit_as(self.manager.unit(source_name), Source)
         except BaseException:
             self.manager.close()
             raise
