@@ -475,7 +475,7 @@ class Reconfigurer:
                     spawned.append(unit.name)
                     knowledge.managed.add(unit.name)
                     if info.state == "failed":
-                        raise UnitError(f"unit {unit.name!r} ({unit.label}) failed at start: {info.error}")
+                        raise UnitError(f"failed at start: {info.error}", where=f"unit {unit.name!r} ({unit.label})")
                     new_units[unit.name] = unit.label
             for unit in plan.units:
                 if not unit.new:
@@ -589,7 +589,7 @@ class AdaptationLoop:
             request = self.knowledge.requests.get(key)
             if request is None:
                 known = ", ".join(sorted(self.knowledge.requests)) or "none"
-                raise UnitError(f"no request on key {key!r}; active requests: {known}")
+                raise UnitError(f"no request on key {key!r}", where=f"manager {self.runtime.name!r}", expected=f"one of the active requests: {known}")
             request.references -= 1
             if request.references > 0:
                 return

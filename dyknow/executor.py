@@ -264,7 +264,7 @@ class Executor:
     def lane_for(self, job: Job, *, dedicated: bool) -> Lane:
         """The lane a new job starts on: the shared one, or its own."""
         if self._closed:
-            raise ClosedError(f"the executor of manager {self.name!r} is closed")
+            raise ClosedError("the executor is closed", where=f"manager {self.name!r}")
         if not dedicated:
             return self.shared
         with self._lock:

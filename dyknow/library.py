@@ -30,7 +30,7 @@ class Library:
         batch = [specs] if isinstance(specs, TransformationSpec) else list(specs)
         for spec in batch:
             if not isinstance(spec, TransformationSpec):
-                raise LibraryError(f"got {type(spec).__name__}; expected a TransformationSpec")
+                raise LibraryError(f"got {type(spec).__name__}", expected="a TransformationSpec")
         with self._lock:
             for spec in batch:
                 self._specs[spec.label] = spec
@@ -52,7 +52,7 @@ class Library:
         if spec is None:
             known = list(self._specs)
             listing = ", ".join(repr(k) for k in sorted(known)[:12]) or "none (add specs with --specs or add_transformation)"
-            raise LibraryError(f"no transformation labelled {label!r}; known labels: {listing}{did_you_mean(label, known)}")
+            raise LibraryError(f"no transformation labelled {label!r}", expected=f"one of the known labels: {listing}{did_you_mean(label, known)}")
         return spec
 
     def specs(self) -> tuple[TransformationSpec, ...]:

@@ -125,8 +125,8 @@ def check_payload(payload: Any) -> None:
     if isinstance(payload, (bytes, bytearray, memoryview, str, np.ndarray, *_JSON_TYPES)):
         return
     raise PayloadError(
-        f"cannot publish a payload of type {type(payload).__name__}; expected bytes, str, "
-        "a numpy array, or a JSON-like value (dict, list, number, bool, None)"
+        f"cannot publish a payload of type {type(payload).__name__}",
+        expected="bytes, str, a numpy array, or a JSON-like value (dict, list, number, bool, None)",
     )
 
 
@@ -166,7 +166,7 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
         kind = _ARRAY
         dtype = payload.dtype.str.encode()
         if payload.ndim > 255 or payload.dtype.hasobject:
-            raise PayloadError(f"cannot send an array of dtype {payload.dtype} with {payload.ndim} dims")
+            raise PayloadError(f"cannot send an array of dtype {payload.dtype} with {payload.ndim} dims", expected="numbers, at most 255 dims")
         extra = _ARRAY_META.pack(payload.ndim, len(dtype)) + dtype + struct.pack(f"<{payload.ndim}Q", *payload.shape)
         data = np.ascontiguousarray(payload).tobytes()
     else:
@@ -212,7 +212,7 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     raw = data if type(data) is bytes else data.to_bytes()
     _, version, kind, mseq, origin_ns, send_ns = HEADER.unpack_from(attachment)
     if version != _VERSION:
-        raise PayloadError(f"message on {key!r} has header version {version}; expected {_VERSION}")
+        raise PayloadError(f"header version {version}", where=f"message on {key!r}", expected=str(_VERSION))
     extra = b""
     if kind == _BYTES:
         payload: Any = raw
@@ -228,7 +228,7 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
         payload = np.frombuffer(raw, dtype=dtype).reshape(shape)  # read-only: it views immutable bytes
         extra = attachment[HEADER.size :]
     else:
-        raise PayloadError(f"message on {key!r} has unknown payload kind {kind}")
+        raise PayloadError(f"unknown payload kind {kind}", where=f"message on {key!r}", expected="0 to 3 (bytes, text, JSON, array)")
     return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra))
 
 

@@ -203,7 +203,7 @@ class Ontology:
         """
         iri = self.resolve(class_ref)
         if iri is None or iri not in self._classes:
-            raise OntologyError(self._unknown_class(class_ref, iri))
+            raise self._unknown_class(class_ref, iri)
         members = {member for cls in self.descendants(iri) for member in self._members.get(cls, ())}
         return sorted({self._label(member) for member in members})
 
@@ -270,9 +270,8 @@ class Ontology:
         if len(found) > 1:
             spelled = ", ".join(f"<{iri}>" + (f" ({short})" if (short := self._short(iri)) else "") for iri in found)
             raise OntologyError(
-                f"class name {name!r} is ambiguous: {len(found)} classes have the local name "
-                f"{local_name(name)!r} ({spelled}); expected one class: write a prefixed name or a "
-                "full IRI in angle brackets instead"
+                f"class name {name!r} is ambiguous: {len(found)} classes have the local name {local_name(name)!r} ({spelled})",
+                expected="one class: write a prefixed name or a full IRI in angle brackets instead",
             )
         return found[0] if found else None
 
@@ -283,16 +282,17 @@ class Ontology:
                 return f"{prefix}:{iri[len(namespace) :]}"
         return None
 
-    def _unknown_class(self, class_ref: str, iri: str | None) -> str:
+    def _unknown_class(self, class_ref: str, iri: str | None) -> OntologyError:
         if not self._classes:
-            return f"ontology class {class_ref!r}: no ontology with classes is loaded; expected --ontology FILE"
+            return OntologyError("no ontology with classes is loaded", where=f"ontology class {class_ref!r}", expected="--ontology FILE")
         if iri is not None:
-            return f"ontology class {class_ref!r} is <{iri}>, which is no class; expected a class such as dk:Camera"
+            return OntologyError(f"ontology class {class_ref!r} is <{iri}>, which is no class", expected="a class such as dk:Camera")
         names = {local_name(c) for c in self._classes}
         names.update(s for s in map(self._short, self._classes) if s)
-        return (
-            f"unknown ontology class {class_ref!r}; expected one of the {len(self._classes)} classes "
-            f"of the loaded ontology ({', '.join(self._files) or 'in memory'}){did_you_mean(class_ref, names)}"
+        return OntologyError(
+            f"unknown ontology class {class_ref!r}",
+            expected=f"one of the {len(self._classes)} classes of the loaded ontology "
+            f"({', '.join(self._files) or 'in memory'}){did_you_mean(class_ref, names)}",
         )
 
     def _label(self, iri: str) -> str:
@@ -331,9 +331,7 @@ class _Loader:
         self.search_dirs: list[Path] = []
         for folder in map(Path, search_dirs):
             if not folder.is_dir():
-                raise OntologyError(
-                    f"search_dirs: {str(folder)!r} is not a folder; expected folders holding ontology files"
-                )
+                raise OntologyError(f"{str(folder)!r} is not a folder", where="search_dirs", expected="folders holding ontology files")
             self.search_dirs.append(folder.resolve())
         self.imports = {_norm(iri): Path(path) for iri, path in imports.items()}
         self.warn = warn
@@ -413,11 +411,9 @@ class _Loader:
 
 def _existing_file(path: Path, what: str) -> Path:
     if path.is_dir():
-        raise OntologyError(f"{what} {str(path)!r} is a folder; expected a file such as {path / 'ontology.ttl'}")
+        raise OntologyError(f"{what} {str(path)!r} is a folder", expected=f"a file such as {path / 'ontology.ttl'}")
     if not path.is_file():
-        raise OntologyError(
-            f"{what} {str(path)!r} not found; expected an existing Turtle (.ttl) or RDF/XML (.rdf, .owl) file"
-        )
+        raise OntologyError(f"{what} {str(path)!r} not found", expected="an existing Turtle (.ttl) or RDF/XML (.rdf, .owl) file")
     return path
 
 
@@ -444,7 +440,7 @@ def _parse(path: Path) -> _File:
     try:
         data = path.read_bytes()
     except OSError as exc:
-        raise OntologyError(f"{path}: cannot read the ontology file ({exc.strerror or exc})") from exc
+        raise OntologyError(f"cannot read the ontology file ({exc.strerror or exc})", where=str(path)) from exc
     known = FORMATS.get(path.suffix.lower())
     failures: list[tuple[str, Exception]] = []
     for fmt in (known,) if known else _guesses(data):
@@ -460,11 +456,9 @@ def _parse(path: Path) -> _File:
         return _File(path, graph, prefixes, declares, tuple(imports))
     if known:
         fmt, error = failures[0]
-        raise OntologyError(f"{_located(path, data, error)}; expected valid {_FORMAT_NAMES[fmt]}") from error
+        raise OntologyError(_located(path, data, error), expected=f"valid {_FORMAT_NAMES[fmt]}") from error
     tried = "; ".join(f"as {_FORMAT_NAMES[fmt]}: {_located(path, data, error)}" for fmt, error in failures)
-    raise OntologyError(
-        f"{path}: neither Turtle nor RDF/XML ({tried}); expected a file ending in {', '.join(FORMATS)}"
-    ) from failures[-1][1]
+    raise OntologyError(f"neither Turtle nor RDF/XML ({tried})", where=str(path), expected=f"a file ending in {', '.join(FORMATS)}") from failures[-1][1]
 
 
 def _guesses(data: bytes) -> tuple[str, ...]:

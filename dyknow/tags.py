@@ -24,7 +24,7 @@ from dyknow.errors import TagError
 
 __all__ = ["Term", "local_name", "parse_term"]
 
-_EXPECTED = "expected Functor or Functor(arg, ...)"
+_EXPECTED = "Functor or Functor(arg, ...)"
 _LOCAL = r"[A-Za-z_][A-Za-z0-9_.\-]*"
 _NAME = re.compile(rf"<[^<>\"{{}}|^`\\\s]+>|(?:{_LOCAL})?:{_LOCAL}|{_LOCAL}")
 _SPACE = re.compile(r"\s*")
@@ -45,8 +45,8 @@ class Term:
         for name in (self.functor, *self.args):
             if not isinstance(name, str) or not _NAME.fullmatch(name):
                 raise TagError(
-                    f"term name {name!r} is not a name; expected a local name such as BallPosition, "
-                    "a prefixed name such as dk:BallPosition or a full IRI in angle brackets"
+                    f"term name {name!r} is not a name",
+                    expected="a local name such as BallPosition, a prefixed name such as dk:BallPosition or a full IRI in angle brackets",
                 )
 
     def __str__(self) -> str:
@@ -95,7 +95,7 @@ class _Reader:
         self.pos = 0
 
     def fail(self, problem: str, hint: str = "") -> TagError:
-        return TagError(f"tag {self.text!r}: {problem}; {_EXPECTED}{hint}")
+        return TagError(problem, where=f"tag {self.text!r}", expected=f"{_EXPECTED}{hint}")
 
     def skip_space(self) -> None:
         self.pos = _SPACE.match(self.text, self.pos).end()  # type: ignore[union-attr]  # \s* always matches

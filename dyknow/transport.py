@@ -108,16 +108,17 @@ def check_key_expr(key: str, *, what: str = "key expression", concrete: bool = F
     With ``concrete=True`` wildcards are refused too (a publisher needs one concrete key).
     """
     if not isinstance(key, str) or not key:
-        raise BindingError(f"{what}: got {key!r}; expected a non-empty Zenoh key expression like 'robot/camera/image'")
+        raise BindingError(f"got {key!r}", where=what, expected="a non-empty Zenoh key expression like 'robot/camera/image'")
     try:
         zenoh.KeyExpr(key)
     except zenoh.ZError as exc:
         raise BindingError(
-            f"{what}: {key!r} is not a valid Zenoh key expression ({_clean(exc)}); "
-            "expected chunks separated by '/', like 'robot/camera/image'"
+            f"{key!r} is not a valid Zenoh key expression ({_clean(exc)})",
+            where=what,
+            expected="chunks separated by '/', like 'robot/camera/image'",
         ) from exc
     if concrete and is_wild(key):
-        raise BindingError(f"{what}: {key!r} has wildcards; expected a concrete key to publish on, like 'robot/camera/image'")
+        raise BindingError(f"{key!r} has wildcards", where=what, expected="a concrete key to publish on, like 'robot/camera/image'")
     return key
 
 
@@ -152,11 +153,11 @@ def make_config(
         if config_file is not None:
             path = Path(config_file)
             if not path.is_file():
-                raise TransportError(f"{path}: no such Zenoh configuration file; expected a json5 file")
+                raise TransportError("no such Zenoh configuration file", where=str(path), expected="a json5 file")
             try:
                 config = zenoh.Config.from_file(str(path))
             except zenoh.ZError as exc:
-                raise TransportError(f"{path}: not a valid Zenoh configuration: {_clean(exc)}") from exc
+                raise TransportError(f"not a valid Zenoh configuration: {_clean(exc)}", where=str(path)) from exc
         else:
             config = zenoh.Config()
             config.insert_json5("mode", '"peer"')
@@ -172,7 +173,7 @@ def make_config(
         if connect or config_file is None:
             config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     except zenoh.ZError as exc:
-        raise TransportError(f"invalid Zenoh endpoint in listen={listen!r} connect={list(connect)!r}: {_clean(exc)}") from exc
+        raise TransportError(f"invalid Zenoh endpoint: {_clean(exc)}", where=f"listen={listen!r} connect={list(connect)!r}") from exc
     return config
 
 
@@ -363,10 +364,11 @@ class Session:
             self._session: zenoh.Session | None = zenoh.open(config)
         except zenoh.ZError as exc:
             text = _clean(exc)
-            hint = ""
+            expected = None
             if "Address already in use" in text:
-                hint = "; another process listens there (a manager already running?): choose another port with --listen"
-            raise TransportError(f"cannot open a Zenoh session: {text}{hint}") from exc
+                text += "; another process listens there (a manager already running?)"
+                expected = "another port (--listen)"
+            raise TransportError(f"cannot open a Zenoh session: {text}", expected=expected) from exc
         self._lock = threading.Lock()
         self._queriers: dict[str, tuple[Any, threading.Event]] = {}
         self._shm = _SharedMemory()
@@ -381,7 +383,7 @@ class Session:
     def _z(self) -> zenoh.Session:
         session = self._session
         if session is None:
-            raise ClosedError("the Zenoh session is closed; open a new one")
+            raise ClosedError("the Zenoh session is closed", expected="a new session")
         return session
 
     def close(self) -> None:

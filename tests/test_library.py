@@ -24,7 +24,9 @@ def test_add_override_remove_and_versions() -> None:
 
 def test_unknown_label_lists_known_ones_and_suggests() -> None:
     library = Library([spec("relay"), spec("periodic-source")])
-    with pytest.raises(LibraryError, match=r"no transformation labelled 'rely'; known labels: 'periodic-source', 'relay' \(did you mean 'relay'\?\)"):
+    with pytest.raises(LibraryError, match=r"no transformation labelled 'rely'; expected one of the known labels: 'periodic-source', 'relay' \(did you mean 'relay'\?\)") as error:
         library.get("rely")
+    assert error.value.what == "no transformation labelled 'rely'"
+    assert error.value.expected == "one of the known labels: 'periodic-source', 'relay' (did you mean 'relay'?)"
     with pytest.raises(LibraryError, match="expected a TransformationSpec"):
         library.add(["not a spec"])  # type: ignore[list-item]

@@ -64,7 +64,7 @@ def test_busy_port_is_a_clear_error() -> None:
         sock.bind(("127.0.0.1", 0))
         sock.listen()
         port = sock.getsockname()[1]
-        with pytest.raises(TransportError, match="Address already in use.*choose another port with --listen"):
+        with pytest.raises(TransportError, match="Address already in use.*; expected another port \\(--listen\\)"):
             Session(make_config(listen=[f"tcp/127.0.0.1:{port}"]))
 
 
