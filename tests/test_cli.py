@@ -129,11 +129,11 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
     manager.spawn("sink", "s", bindings={"in": "fleet/ticks"})
     script = textwrap.dedent(
         f"""
-        import sys, time
+        import threading
         from dyknow import Manager
         with Manager("remote", specs=[{str(REPO / 'specs' / 'generic.xml')!r}], connect={manager.endpoints!r}) as m:
             m.spawn("periodic-source", "src", params={{"rate_hz": 100, "count": 300}}, bindings={{"out": "fleet/ticks"}})
-            time.sleep(3.5)
+            threading.Event().wait()  # until the test kills it
         """
     )
     child = subprocess.Popen([sys.executable, "-c", script], env=subprocess_env(), stderr=subprocess.PIPE, text=True)

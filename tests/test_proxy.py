@@ -33,15 +33,14 @@ def test_rebind_input_while_messages_flow(manager: Manager) -> None:
     flowing = threading.Thread(target=_emit_steadily, args=(pa, 300))
     flowing.start()
     pb.emit({"b": "before"})
-    time.sleep(0.05)  # let the stream on port a run for a while before the change
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    sink.wait_until(lambda m: m.payload.get("i", 0) >= 30)  # the stream on port a runs before the change
     config = manager.set_config("u", {"b": "t/c"})
     assert config == {"a": "t/a", "b": "t/c", "out": "t/u"}
     pb.emit({"b": "after, old key"})
     pc.emit({"c": "after, new key"})
     flowing.join()
-
-    sink = manager.unit("s")
-    assert isinstance(sink, Sink)
     sink.wait_for(302)
     payloads = [m.payload for m in sink.messages]
     a_seen = [p["i"] for p in payloads if "i" in p]

@@ -1,0 +1,77 @@
+"""The client: a manager's services from another session, with the manager's own errors."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import pytest
+
+from dyknow import BindingError, Client, LibraryError, Manager, Message, SpecError, UnitError
+from tests.conftest import UNIT_SPECS
+
+RELAY = """<transformation><label>my-relay</label><source>transformations.generic:Relay</source>
+  <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
+
+
+def test_the_client_mirrors_the_managers_services(manager: Manager) -> None:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=5) as client:
+        assert client.add_transformation(RELAY) == ["my-relay"]
+        info = client.spawn("my-relay", "r", bindings={"in": "c/in"})
+        assert info["state"] == "running" and info["bindings"] == {"in": "c/in", "out": f"dyknow/{manager.name}/r/out"}
+        assert [u["name"] for u in client.get_model()["units"]] == ["r"]
+        assert client.set_config("r", {"out": "c/out"}) == {"in": "c/in", "out": "c/out"}
+        assert client.get_config("r") == manager.get_config("r")
+        assert client.get_statistics("r")["reconfigurations"] == 1
+        client.measure("battery", 0.5)
+        assert manager.measurements == {"battery": 0.5}
+        assert client.get_adaptations() == []
+        client.destroy("r")
+        assert client.remove_transformation("my-relay") is True
+        assert client.remove_transformation("my-relay") is False
+        assert manager.get_model().units == ()
+
+
+def test_refusals_raise_the_managers_error_class(manager: Manager) -> None:
+    with Client(manager.name, connect=manager.endpoints) as client:
+        with pytest.raises(LibraryError, match="no transformation labelled 'nope'"):
+            client.spawn("nope", "x")
+        client.spawn("sink", "s")
+        with pytest.raises(BindingError, match="no port 'inn'"):
+            client.set_config("s", {"inn": "a/b"})
+        with pytest.raises(UnitError, match="a unit named 's' already exists"):
+            client.spawn("sink", "s")
+        with pytest.raises(SpecError) as bad_spec:
+            client.add_transformation("<transformation><label>x</label></transformation>")
+        assert [i.message.split(":")[0] for i in bad_spec.value.issues] == ["<transformation>", "<transformation>"]
+
+
+def test_a_spec_file_is_read_on_the_clients_side(manager: Manager, tmp_path: Path) -> None:
+    with Client(manager.name, connect=manager.endpoints) as client:
+        assert "sink" in client.add_transformation(UNIT_SPECS)
+        with pytest.raises(SpecError, match=r"missing\.xml: cannot read"):
+            client.add_transformation(tmp_path / "missing.xml")
+
+
+def test_declare_subscriber_receives_a_stream(manager: Manager) -> None:
+    manager.spawn("periodic-source", "src", params={"rate_hz": 200})
+    got: list[Message] = []
+    three = threading.Event()
+
+    def on_message(msg: Message) -> None:
+        got.append(msg)
+        if len(got) >= 3:
+            three.set()
+
+    with Client(manager.name, connect=manager.endpoints) as client, client.declare_subscriber(f"dyknow/{manager.name}/src/**", on_message):
+        assert three.wait(10)
+    assert got[0].key == f"dyknow/{manager.name}/src/out" and got[1].seq > got[0].seq
+
+
+def test_close_is_safe_twice_and_a_given_session_stays_open(manager: Manager) -> None:
+    client = Client(manager.name, connect=manager.endpoints)
+    client.close()
+    client.close()
+    with Client(manager.name, session=manager.session) as borrowed:
+        assert borrowed.get_model()["manager"] == manager.name
+    assert not manager.session.closed

@@ -1,0 +1,76 @@
+"""The key scheme: every key dyknow uses is built by dyknow.keys, and taken apart by it."""
+
+from __future__ import annotations
+
+import pytest
+
+from dyknow import UnitError, keys
+from dyknow.transport import check_key_expr, key_exprs_intersect
+
+LAYOUT = [
+    (keys.default_key("robot", "cam", "out"), "dyknow/robot/cam/out"),
+    (keys.unit_prefix("robot", "cam"), "dyknow/robot/cam/"),
+    (keys.request_key("robot", "BallTrack(field)"), "dyknow/robot/requests/BallTrack(field)"),
+    (keys.request_key("robot", "A(b c)/d*e$f?g#h@i"), "dyknow/robot/requests/A(b_c)_d_e_f_g_h_i"),
+    (keys.event_key("robot", "adaptation"), "dyknow/robot/events/adaptation"),
+    (keys.measurement_key("battery"), "dyknow/measurements/battery"),
+    (keys.measurement_key("battery", "robot"), "dyknow/robot/measurements/battery"),
+    (keys.manager_service_key("robot", "spawn"), "@dyknow/robot/spawn"),
+    (keys.unit_service_key("robot", "cam", "get_config"), "@dyknow/robot/unit/cam/get_config"),
+    (keys.services_pattern("robot"), "@dyknow/robot/**"),
+    (keys.port_token("dyknow/robot/cam/out"), "dyknow/robot/cam/out"),
+]
+
+
+@pytest.mark.parametrize(("built", "expected"), LAYOUT)
+def test_the_layout(built: str, expected: str) -> None:
+    assert built == expected
+
+
+def test_every_built_key_is_a_valid_key_expression() -> None:
+    for built, _ in LAYOUT:
+        check_key_expr(built.rstrip("/"))
+
+
+def test_data_subscriptions_never_reach_services() -> None:
+    for data_pattern in ("**", "dyknow/**", "*/robot/**"):
+        assert not key_exprs_intersect(data_pattern, keys.manager_service_key("robot", "spawn"))
+    assert key_exprs_intersect(keys.services_pattern("robot"), keys.unit_service_key("robot", "cam", "set_config"))
+
+
+def test_a_manager_takes_measurements_for_all_and_for_itself() -> None:
+    every, own = keys.measurement_patterns("robot")
+    assert key_exprs_intersect(every, keys.measurement_key("battery"))
+    assert key_exprs_intersect(own, keys.measurement_key("battery", "robot"))
+    assert not key_exprs_intersect(own, keys.measurement_key("battery", "ground"))
+
+
+@pytest.mark.parametrize(
+    ("key", "service", "unit"),
+    [
+        ("@dyknow/robot/spawn", "spawn", None),
+        ("@dyknow/robot/unit/cam/get_config", "get_config", "cam"),
+        ("@dyknow/robot/unit/cam", None, None),
+        ("@dyknow/robot/", None, None),
+        ("@dyknow/ground/spawn", None, None),
+        ("dyknow/robot/spawn", None, None),
+        ("@dyknow/robot/unit//get_config", None, None),
+    ],
+)
+def test_service_keys_are_taken_apart(key: str, service: str | None, unit: str | None) -> None:
+    address = keys.parse_service_key("robot", key)
+    if service is None:
+        assert address is None
+    else:
+        assert address == keys.ServiceAddress(service, unit)
+
+
+@pytest.mark.parametrize("name", ["robot", "cam_1", "cam-1", "a.b", "0", "_x"])
+def test_valid_names(name: str) -> None:
+    assert keys.check_name(name, "unit name") == name
+
+
+@pytest.mark.parametrize("name", ["", "-a", ".a", "a/b", "a*", "a b", "a$", "a@b", 3, None])
+def test_invalid_names(name: object) -> None:
+    with pytest.raises(UnitError, match="is not a valid name"):
+        keys.check_name(name, "unit name")
