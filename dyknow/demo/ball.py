@@ -26,7 +26,7 @@ import shutil
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -35,7 +35,7 @@ from dyknow.client import Client
 from dyknow.manager import Manager
 from dyknow.message import Message
 from dyknow.resources import specs_dir
-from dyknow.spec import Constraint, Param, Port, Tag, TransformationSpec
+from dyknow.spec import Param, Port, TransformationSpec
 from dyknow.unit import Unit
 
 __all__ = ["BallDemo", "Battery", "run_ball_demo"]
@@ -96,37 +96,23 @@ class FrameGrab(Unit):
 
 
 def camera_specs(*, robot_video: str | None, ceiling_video: str | None, rate_hz: float, seed: int) -> list[TransformationSpec]:
-    """The robot's two cameras, as a robot integrator would write them."""
+    """The robot's two cameras as ``specs/robot.xml`` declares them, with the demo's rate and seed,
+    or reading a video instead of the synthetic scene; and the demo's own two listeners."""
+    from dyknow.spec import load_specs
 
-    def camera(label: str, cam: str, video: str | None, priority: int, constraints: tuple[Constraint, ...]) -> TransformationSpec:
-        params: tuple[Param, ...]
+    videos = {"robot-camera": robot_video, "ceiling-camera": ceiling_video}
+    cameras = []
+    for spec in load_specs([specs_dir() / "robot.xml"]):
+        video = videos.get(spec.label)
         if video is None:
-            source = "transformations.sources:SyntheticScene"
-            params = (
-                Param("camera", "string", cam),
-                Param("rate_hz", "float", rate_hz),
-                Param("seed", "int", seed),
-                Param("width", "int", 640),
-                Param("height", "int", 480),
-            )
+            overrides = {"rate_hz": float(rate_hz), "seed": seed}
+            params = tuple(replace(p, value=overrides.get(p.name, p.value)) for p in spec.params)
+            cameras.append(replace(spec, params=params))
         else:
-            source = "transformations.sources:VideoSource"
             params = (Param("path", "string", video), Param("rate_hz", "float", -1.0), Param("loop", "bool", True))
-        return TransformationSpec(
-            label=label,
-            source=source,
-            params=params,
-            ports=(Port("out", "out", deadline_ms=1000.0),),
-            tags=(Tag("out", f"RawImage({cam})"),),
-            priority=priority,
-            constraints=constraints,
-            description=f"the {label.replace('-', ' ')}",
-        )
-
+            cameras.append(replace(spec, source="transformations.sources:VideoSource", params=params))
     return [
-        # the robot's top camera looks ahead over the field (the bottom one sees only its feet)
-        camera("robot-camera", "top", robot_video, 1, (Constraint("battery", ">=", LOW_BATTERY),)),
-        camera("ceiling-camera", "ceiling", ceiling_video, 10, ()),
+        *cameras,
         TransformationSpec("track-log", "dyknow.demo.ball:TrackLog", ports=(Port("in", "in", queue=256),)),
         TransformationSpec("frame-grab", "dyknow.demo.ball:FrameGrab", ports=(Port("in", "in", queue=1),)),
     ]
