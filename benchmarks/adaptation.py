@@ -68,10 +68,10 @@ class Watcher:
             (self.recovered if event.kind == "recovered" else self.adapted).append(event)
             self._cond.notify_all()
 
-    def wait(self, count: int, timeout: float = 10.0) -> AdaptationEvent:
+    def wait(self, count: int, timeout_s: float = 10.0) -> AdaptationEvent:
         with self._cond:
-            if not self._cond.wait_for(lambda: len(self.recovered) >= count, timeout):
-                raise RuntimeError(f"no recovery #{count} within {timeout} s (adapted: {[e.cause for e in self.adapted]})")
+            if not self._cond.wait_for(lambda: len(self.recovered) >= count, timeout_s):
+                raise RuntimeError(f"no recovery #{count} within {timeout_s} s (adapted: {[e.cause for e in self.adapted]})")
             return self.recovered[count - 1]
 
 

@@ -392,8 +392,8 @@ class Executor:
 
     # -- lifecycle
 
-    def close(self, timeout: float = 2.0) -> None:
-        """Stop every lane and join their threads (bounded by ``timeout``); safe twice."""
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop every lane and join their threads (bounded by ``timeout_s``); safe twice."""
         with self._lock:
             if self._closed:
                 return
@@ -403,11 +403,11 @@ class Executor:
         self._stop.set()
         for lane in lanes:
             lane.put(_STOP)
-        deadline = time.monotonic() + timeout
+        deadline = time.monotonic() + timeout_s
         for lane in lanes:
             worker = lane.worker
             if worker is not None and worker.thread is not threading.current_thread():
                 worker.thread.join(max(0.0, deadline - time.monotonic()))
                 if worker.thread.is_alive():
-                    log.warning("thread %s did not stop within %.1f s; leaving it", worker.thread.name, timeout)
+                    log.warning("thread %s did not stop within %.1f s; leaving it", worker.thread.name, timeout_s)
         self._watchdog.join(max(0.0, deadline - time.monotonic()))

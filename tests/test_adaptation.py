@@ -37,10 +37,10 @@ class Events:
             self.events.append(event)
             self._cond.notify_all()
 
-    def wait(self, kind: str, count: int = 1, timeout: float = 10.0) -> AdaptationEvent:
+    def wait(self, kind: str, count: int = 1, timeout_s: float = 10.0) -> AdaptationEvent:
         with self._cond:
-            ok = self._cond.wait_for(lambda: len([e for e in self.events if e.kind == kind]) >= count, timeout)
-            assert ok, f"no {count} {kind!r} events within {timeout} s: {[e.to_dict() for e in self.events]}"
+            ok = self._cond.wait_for(lambda: len([e for e in self.events if e.kind == kind]) >= count, timeout_s)
+            assert ok, f"no {count} {kind!r} events within {timeout_s} s: {[e.to_dict() for e in self.events]}"
             return [e for e in self.events if e.kind == kind][count - 1]
 
 

@@ -102,8 +102,8 @@ class FailureWatch:
             self.error = event.error
             self.event.set()
 
-    def wait(self, timeout: float = 10.0) -> str:
-        assert self.event.wait(timeout), f"unit {self.name!r} did not fail within {timeout} s"
+    def wait(self, timeout_s: float = 10.0) -> str:
+        assert self.event.wait(timeout_s), f"unit {self.name!r} did not fail within {timeout_s} s"
         self._remove()
         assert self.error is not None
         return self.error
