@@ -37,8 +37,7 @@ from dyknow.message import Message, PayloadError
 from dyknow.ontology import Ontology
 from dyknow.planner import Plan, Planner, RunningUnit, plan
 from dyknow.proxy import UnitState, UnitStatistics
-from dyknow.recording import Recorder
-from dyknow.replay import ChannelInfo, Player, RecordedMessage, Recording, RecordingInfo
+from dyknow.recording import ChannelInfo, Player, RecordedMessage, Recorder, Recording, RecordingInfo
 from dyknow.spec import (
     Constraint,
     Param,
