@@ -14,12 +14,14 @@ is one ``struct.unpack_from`` and one slice rather than a record object built fi
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import struct
 import threading
 import zlib
-from typing import Any
+from collections.abc import Iterator
+from typing import Any, BinaryIO, cast
 
 import lz4.frame
 import zstandard
@@ -30,6 +32,7 @@ from mcap.records import (
     Attachment,
     AttachmentIndex,
     Channel,
+    Chunk,
     ChunkIndex,
     DataEnd,
     Footer,
@@ -66,6 +69,9 @@ PARSERS: dict[int, Any] = {
     Opcode.STATISTICS: Statistics,
     Opcode.SUMMARY_OFFSET: SummaryOffset,
 }
+
+#: What the mcap library's parsers raise on malformed bytes (``EndOfFile`` among the McapErrors).
+LIBRARY_ERRORS = (McapError, struct.error, ValueError, OverflowError)
 
 #: A message as read from a chunk: (channel id, sequence, log time, publish time, data).
 MessageTuple = tuple[int, int, int, int, bytes]
@@ -129,6 +135,15 @@ class RecordFile:
         """Whether :meth:`close` was called."""
         return self._closed
 
+    @contextlib.contextmanager
+    def lend(self) -> Iterator[BinaryIO]:
+        """The open file at offset 0, for one of the mcap library's readers; other reads wait."""
+        with self._lock:
+            if self._closed:
+                raise ClosedError("the recording is closed; open it again", where=self.path)
+            self._file.seek(0)
+            yield cast(BinaryIO, Clamped(self._file, self.size))
+
     def close(self) -> None:
         """Close the file; waits for a read under way to finish."""
         with self._lock:
@@ -162,25 +177,28 @@ class RecordFile:
             raise Damage(offset, f"a {record_name(opcode)} record of {length} bytes runs past offset {limit}")
         return opcode, length
 
-    def record(self, offset: int, limit: int) -> tuple[int, int, Any]:
-        """``(opcode, length, record)`` at ``offset``: the record parsed by the mcap library, or
-        None for a record type it does not know (and for Chunk and MessageIndex records, not
-        parsed here)."""
-        opcode, length = self.record_at(offset, limit)
-        if opcode not in PARSERS and opcode != Opcode.MESSAGE:
-            return opcode, length, None
-        content = self.read(offset + RECORD.size, length, f"a {record_name(opcode)} record")
-        return opcode, length, parse(opcode, content, offset)
+    def record(self, offset: int) -> Any:
+        """The record at ``offset``, parsed from its content alone: a Chunk (see :meth:`chunk_record`),
+        or a record of :data:`PARSERS` or a Message."""
+        opcode, length = self.record_at(offset, self.size)
+        if opcode == Opcode.CHUNK:
+            return self.chunk_record(offset)
+        return parse(opcode, self.read(offset + RECORD.size, length, f"a {record_name(opcode)} record"), offset)
 
-    def chunk(self, offset: int) -> tuple[str, list[Any]]:
-        """The compression (``none`` for none) and the records of the chunk at ``offset``: Schema,
-        Channel and :data:`MessageTuple`, in order."""
+    def chunk(self, offset: int) -> tuple[str, bytes | memoryview]:
+        """The compression (``none`` for none) and the uncompressed, CRC-checked data of the chunk
+        at ``offset`` (:func:`split_chunk` gives its records)."""
+        chunk = self.chunk_record(offset)
+        return chunk.compression or "none", unpack_chunk(offset, chunk.compression, chunk.data, chunk.uncompressed_size, chunk.uncompressed_crc)
+
+    def chunk_record(self, offset: int) -> Chunk:
+        """The Chunk record at ``offset``, its data still compressed."""
         opcode, length = self.record_at(offset, self.size)
         if opcode != Opcode.CHUNK:
             raise Damage(offset, f"expected a Chunk record, found a {record_name(opcode)} record", fatal=False)
         content = memoryview(self.read(offset + RECORD.size, length, "a Chunk record"))
         try:
-            _, _, size, crc, name_length = _CHUNK.unpack_from(content)
+            first, last, size, crc, name_length = _CHUNK.unpack_from(content)
             compression = bytes(content[_CHUNK.size : _CHUNK.size + name_length]).decode()
             (data_length,) = struct.unpack_from("<Q", content, _CHUNK.size + name_length)
         except (struct.error, UnicodeDecodeError) as exc:
@@ -189,7 +207,45 @@ class RecordFile:
         data = content[start : start + data_length]
         if len(data) != data_length:
             raise Damage(offset, f"the Chunk record holds {len(data)} bytes of data; its header says {data_length}", fatal=False)
-        return compression or "none", chunk_records(offset, compression, data, size, crc)
+        return Chunk(
+            compression=compression,
+            data=data,  # type: ignore[arg-type]  # a view of what was read: no copy
+            message_start_time=first,
+            message_end_time=last,
+            uncompressed_crc=crc,
+            uncompressed_size=size,
+        )
+
+
+class Clamped:
+    """A file for the mcap library's readers whose reads never ask for more than the file holds.
+
+    The library reads a length field's worth of bytes in one call, and Python allocates that
+    much before reading: a corrupt length of 2**60 would be a ``MemoryError`` rather than a
+    short read that the checks around the library report as damage.
+    """
+
+    def __init__(self, file: BinaryIO, size: int) -> None:
+        self._file = file
+        self._size = size
+
+    def read(self, size: int = -1) -> bytes:
+        """At most ``size`` bytes (all that is left if negative), never more than the file holds."""
+        if size < 0:
+            return self._file.read()
+        return self._file.read(min(size, max(0, self._size - self._file.tell())))
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        """Move to ``offset`` (from ``whence``), as a file does."""
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        """The current offset."""
+        return self._file.tell()
+
+    def seekable(self) -> bool:
+        """True: the library then reads the summary by seeking."""
+        return True
 
 
 def parse(opcode: int, content: bytes | memoryview, offset: int) -> Any:
@@ -198,17 +254,23 @@ def parse(opcode: int, content: bytes | memoryview, offset: int) -> Any:
         if opcode == Opcode.MESSAGE:
             return McapMessage.read(ReadDataStream(io.BytesIO(content)), len(content))
         return PARSERS[opcode].read(ReadDataStream(io.BytesIO(content)))
-    except (McapError, struct.error, UnicodeDecodeError, ValueError, OverflowError) as exc:
+    except LIBRARY_ERRORS as exc:
         raise Damage(offset, f"malformed {record_name(opcode)} record ({type(exc).__name__}: {exc})", fatal=False) from exc
 
 
-def chunk_records(offset: int, compression: str, data: bytes | memoryview, size: int, crc: int) -> list[Any]:
-    """The records of a chunk's ``data`` (``compression``, ``size`` bytes uncompressed, CRC32 ``crc``
-    or 0), checked: Schema, Channel and :data:`MessageTuple`, in order. ``offset`` is the chunk's,
-    for :class:`Damage`."""
-    raw = memoryview(_decompress(offset, compression, data, size))
+def unpack_chunk(offset: int, compression: str, data: bytes | memoryview, size: int, crc: int) -> bytes | memoryview:
+    """A chunk's ``data`` uncompressed (``compression``; ``size`` bytes uncompressed with CRC32
+    ``crc``, or 0 for none), checked. ``offset`` is the chunk's, for :class:`Damage`."""
+    raw = _decompress(offset, compression, data, size)
     if crc and zlib.crc32(raw) != crc:
         raise Damage(offset, f"the chunk's CRC does not match its data (CRC32 {zlib.crc32(raw)}; expected {crc})", fatal=False)
+    return raw
+
+
+def split_chunk(offset: int, data: bytes | memoryview) -> list[Any]:
+    """The records of a chunk's uncompressed ``data``, checked: Schema, Channel and
+    :data:`MessageTuple`, in order (others are left out). ``offset`` is the chunk's, for :class:`Damage`."""
+    raw = memoryview(data)
     out: list[Any] = []
     pos, end = 0, len(raw)
     while pos < end:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from mcap.opcode import Opcode
 from mcap.records import Channel, Schema
 
-from dyknow.recording.framing import MESSAGE, RECORD, UNCLOSED, Damage, RecordFile, parse
+from dyknow.recording.framing import MESSAGE, RECORD, UNCLOSED, Damage, RecordFile, parse, split_chunk
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,10 +105,10 @@ def scan(file: RecordFile, start: int, end: int, closed: bool) -> tuple[Index, l
 
 
 def _scan_chunk(file: RecordFile, offset: int, index: Index) -> None:
-    compression, records = file.chunk(offset)
+    compression, data = file.chunk(offset)
     index.compressions.add(compression)
     first = last = None
-    for record in records:
+    for record in split_chunk(offset, data):
         if isinstance(record, tuple):
             index.count(record[0], record[2], offset)
             first = record[2] if first is None else min(first, record[2])
