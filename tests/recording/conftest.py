@@ -15,4 +15,3 @@ def listening() -> Iterator[tuple[Session, str]]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Session(make_config(listen=[endpoint])) as session:
         yield session, endpoint
-

@@ -12,25 +12,14 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from dyknow.message import Message
-from dyknow.recording import (
-    Player,
-    RecordedMessage,
-)
+from dyknow.recording import Player, RecordedMessage
 from dyknow.transport import Publisher
 from tests.conftest import REPO
 
 SPECS = REPO / "specs" / "recording.xml"
-
-
 MIXED = REPO / "tests" / "mcap" / "units.xml"
-
-
 FOREIGN = REPO / "tests" / "mcap" / "foxglove-protobuf.mcap"
-
-
-
 INF = float("inf")
-
 
 
 def official(path: Path) -> tuple[Any, list[tuple[Any, Any, Any]]]:
@@ -58,7 +47,6 @@ def same_payload(a: Any, b: Any) -> bool:
     return type(a) is type(b) and a == b
 
 
-
 def real(data_dir: Path, name: str) -> Path:
     return data_dir / "mcap" / "real" / name
 
@@ -83,4 +71,3 @@ def write_mcap(path: Path, topics: dict[str, tuple[str, str, str, bytes]], messa
             writer.add_message(channels[topic], log_time=log_time, data=data, publish_time=log_time, sequence=i)
         writer.finish()
     return path
-

@@ -220,7 +220,6 @@ def test_record_errors_are_one_line(tmp_path: Path) -> None:
         assert one_line_error(full) == "dyknow: error: /dev/full: cannot write the file: No space left on device (the disk is full); nothing was recorded"
 
 
-
 @pytest.mark.parametrize(
     "args",
     [

@@ -165,7 +165,6 @@ def descriptor_fields(descriptor_set: bytes, full_name: str) -> dict[str, tuple[
     raise AssertionError(f"{full_name} is not in the descriptor set")
 
 
-
 # --- MCAP from other writers -> payloads ---------------------------------------------------------
 
 
@@ -296,4 +295,3 @@ def test_image_array_refuses_what_it_cannot_read() -> None:
         image_array(2, 2, "bayer_rggb8", 2, bytes(4))
     with pytest.raises(ValueError, match="are too few"):
         image_array(4, 4, "mono8", 4, bytes(15))
-

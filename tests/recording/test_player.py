@@ -149,7 +149,6 @@ def test_key_for_topic() -> None:
     assert key_for_topic("/") == ""
 
 
-
 # --- the replay unit -----------------------------------------------------------------------------
 
 
@@ -175,7 +174,6 @@ def test_replay_unit_needs_one_topic(data_dir: Path, make_manager: Callable[...,
     info = manager.spawn("replay(Recorded)", "r", params={"file": str(real(data_dir, "talker.mcap"))})
     assert info.state == "failed"
     assert "replays one topic, and 'no topic' selects 3: '/rosout', '/parameter_events', '/topic'; set param topic to one of them" in (info.error or "")
-
 
 
 # --- round trip ----------------------------------------------------------------------------------
@@ -240,4 +238,3 @@ def test_round_trip_live_pipeline_record_replay(tmp_path: Path, make_manager: Ca
         one = [(m.topic, m.sequence, m.log_time_ns, m.channel.schema_name, m.data) for m in first.messages()]
         two = [(m.topic, m.sequence, m.log_time_ns, m.channel.schema_name, m.data) for m in second.messages()]
     assert one == two and len(one) == total
-

@@ -4,19 +4,18 @@ named by file and offset, recovered when asked."""
 from __future__ import annotations
 
 import json
+import logging
 import random
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
 
 from dyknow.errors import RecordingError
 from dyknow.message import Message
-from dyknow.recording import (
-    Player,
-    Recorder,
-    Recording,
-)
+from dyknow.recording import Player, Recorder, Recording
 from tests.recording.support import INF, play_all, real
 
 # --- reading -------------------------------------------------------------------------------------
@@ -29,7 +28,6 @@ def test_json_channels_in_zstd_chunks(data_dir: Path) -> None:
     with Recording(real(data_dir, "example.mcap")) as recording:
         info = recording.info
     assert (info.chunk_count, info.compressions, info.start_ns, info.end_ns) == (2, ("zstd",), 1740566235448000000, 1740566238556000000)
-
 
 
 # --- damaged files -------------------------------------------------------------------------------
@@ -145,3 +143,109 @@ def test_damaged_files_never_hang_nor_raise_anything_else(recorded: Path, tmp_pa
                 outcomes["refused"] += 1
     assert outcomes["read"] > 0 and outcomes["refused"] > 0
 
+
+def records_of(path: Path) -> list[Any]:
+    """The records of a file, read with ``recover``."""
+    with Recording(path, recover=True) as recording:
+        return list(recording.records())
+
+
+def test_records_name_the_damage_and_stop_there_when_recovering(recorded: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The streamed records (read by the mcap library's StreamReader) of a damaged file: an error
+    naming the file and offset, or, recovering, every record before the damage and a warning."""
+    intact = records_of(recorded)
+    offsets = chunk_offsets(recorded)
+    data = bytearray(recorded.read_bytes())
+    data[offsets[2] + 60] ^= 0xFF  # inside the third chunk's compressed data
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt.write_bytes(bytes(data))
+    with Recording(corrupt) as recording, pytest.raises(RecordingError) as info:  # indexed: opens, damage shows when read
+        list(recording.records())
+    assert str(info.value).startswith(f"{corrupt}: corrupt at offset {offsets[2]}: cannot decompress the zstd chunk")
+    with caplog.at_level(logging.WARNING, logger="dyknow.recording.reader"):
+        got = records_of(corrupt)
+    assert 0 < len(got) < len(intact) and got == intact[: len(got)]
+    assert f"corrupt at offset {offsets[2]}: cannot decompress the zstd chunk" in caplog.text and "stopping there" in caplog.text
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recorded.read_bytes()[: offsets[4] + 30])
+    got = records_of(cut)
+    assert 0 < len(got) < len(intact) and got == intact[: len(got)]  # a prefix: nothing made up
+    extra = tmp_path / "extra.mcap"
+    extra.write_bytes(recorded.read_bytes() + b"more")
+    assert records_of(extra) == intact  # the footer is the last record; what follows it is the damage
+    assert "expected the MCAP magic (and nothing else) after the footer" in caplog.text
+
+
+def test_a_corrupt_length_field_is_damage_not_a_memory_error(recorded: Path, tmp_path: Path) -> None:
+    """A chunk claiming 2**60 bytes of data: the mcap library would try to allocate them."""
+    offsets = chunk_offsets(recorded)
+    data = bytearray(recorded.read_bytes())
+    header = offsets[1] + 9 + 8 + 8 + 8 + 4  # start, end, uncompressed size, CRC
+    name_length = int.from_bytes(data[header : header + 4], "little")
+    data[header + 4 + name_length : header + 4 + name_length + 8] = (2**60).to_bytes(8, "little")
+    path = tmp_path / "long.mcap"
+    path.write_bytes(bytes(data))
+    with Recording(path) as recording:
+        for read in (recording.messages, recording.records):
+            with pytest.raises(RecordingError, match=rf"^{path}: corrupt at offset {offsets[1]}: the Chunk record holds \d+ bytes of data; its header says {2**60}"):
+                list(read())
+
+
+def test_a_summary_whose_crc_does_not_match_is_damage(recorded: Path, tmp_path: Path) -> None:
+    data = bytearray(recorded.read_bytes())
+    summary_start = int.from_bytes(data[-8 - 20 : -8 - 12], "little")  # the footer's summary start
+    data[summary_start + 20] ^= 0xFF
+    path = tmp_path / "summary.mcap"
+    path.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match=rf"^{path}: corrupt at offset {summary_start}: the summary's CRC does not match"):
+        Recording(path)
+    with Recording(path, recover=True) as recording:  # the data section is scanned instead
+        assert not recording.info.indexed and recording.info.message_count == 300
+        assert [json.loads(m.data)["i"] for m in recording.messages()] == list(range(300))
+
+
+def test_an_unknown_chunk_compression_is_named_not_read_as_raw(tmp_path: Path) -> None:
+    """The mcap library reads a chunk whose compression it does not know as uncompressed."""
+    path = tmp_path / "plain.mcap"
+    with Recorder((), path, compression="none", chunk_size=1500) as rec:
+        for i in range(100):
+            rec.write(Message({"i": i}, i + 1, i, i, "c/x"))
+    offsets = chunk_offsets(path)
+    data = bytearray(path.read_bytes())
+    name = offsets[1] + 9 + 8 + 8 + 8 + 4  # the compression's length (0: none), then the data's length and the data
+    length = int.from_bytes(data[name + 4 : name + 12], "little")
+    chunk_data = data[name + 12 : name + 12 + length]
+    # "brot" takes the place of the data's first 4 bytes, so that the record keeps its length
+    data[name : name + 12 + length] = (4).to_bytes(4, "little") + b"brot" + (length - 4).to_bytes(8, "little") + chunk_data[4:]
+    path.write_bytes(bytes(data))
+    with Recording(path) as recording, pytest.raises(RecordingError) as info:
+        list(recording.messages())
+    assert str(info.value).startswith(f"{path}: corrupt at offset {offsets[1]}: unknown chunk compression 'brot'; expected zstd, lz4 or none")
+    with Recording(path, recover=True) as recording:
+        got = [json.loads(m.data)["i"] for m in recording.messages()]
+    missing = sorted(set(range(100)) - set(got))
+    assert got == sorted(got) and missing and missing == list(range(missing[0], missing[-1] + 1))  # that chunk only
+
+
+def test_a_corrupt_summary_without_crc_is_damage(tmp_path: Path) -> None:
+    """Nothing vouches for a summary written without a CRC: a Schema in it claiming 1 GiB of data
+    is damage at the summary's offset (the library alone would allocate the GiB first), and a
+    scan reads the data instead."""
+    path = tmp_path / "nocrc.mcap"
+    with open(path, "wb") as file:
+        writer = Writer(file, compression=CompressionType.ZSTD, enable_crcs=False)
+        writer.start(profile="", library="test")
+        channel = writer.register_channel("/t", "json", writer.register_schema("S", "jsonschema", b"{}"))
+        for i in range(10):
+            writer.add_message(channel, log_time=i, data=b"{}", publish_time=i)
+        writer.finish()
+    data = bytearray(path.read_bytes())
+    summary_start = int.from_bytes(data[-8 - 20 : -8 - 12], "little")
+    assert data[summary_start] == 0x03  # the summary starts with the Schema: id, name, encoding, then the data's length
+    length_at = summary_start + 9 + 2 + 4 + 1 + 4 + len("jsonschema")
+    data[length_at : length_at + 4] = (2**30).to_bytes(4, "little")  # a uint32 length field: at most 4 GiB
+    path.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match=rf"^{path}: corrupt at offset {summary_start}: the summary cannot be read \(EndOfFile"):
+        Recording(path)
+    with Recording(path, recover=True) as recording:
+        assert not recording.info.indexed and [m.log_time_ns for m in recording.messages()] == list(range(10))

@@ -116,7 +116,6 @@ def test_files_are_chunked_compressed_and_indexed(tmp_path: Path, compression: s
         assert recording.info.indexed and recording.info.compressions == ((stored or "none"),)
 
 
-
 # --- durability and errors -----------------------------------------------------------------------
 
 
@@ -235,7 +234,6 @@ def test_close_with_a_huge_backlog_is_bounded_and_still_finalizes(tmp_path: Path
         assert recording.info.message_count == rec.count
 
 
-
 # --- the recorder unit ---------------------------------------------------------------------------
 
 
@@ -272,4 +270,3 @@ def test_recorder_unit_with_an_unwritable_path_fails_with_the_reason(make_manage
     info = manager.spawn("recorder", "rec", params={"path": str(tmp_path / "no" / "such" / "dir.mcap")})
     assert info.state == "failed"
     assert "cannot create" in (info.error or "") and "No such file or directory" in (info.error or "")
-
