@@ -231,9 +231,9 @@ class Clamped:
 
     def read(self, size: int = -1) -> bytes:
         """At most ``size`` bytes (all that is left if negative), never more than the file holds."""
-        if size < 0:
-            return self._file.read()
-        return self._file.read(min(size, max(0, self._size - self._file.tell())))
+        if size > 65536:  # the library reads field by field: only a large read needs the position
+            size = min(size, max(0, self._size - self._file.tell()))
+        return self._file.read(size)
 
     def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
         """Move to ``offset`` (from ``whence``), as a file does."""
