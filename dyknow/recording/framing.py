@@ -1,15 +1,17 @@
 """MCAP records read from a file with every bound checked, and the :class:`Damage` found on the way.
 
 The ``mcap`` library parses records (``mcap.records``) and this module uses its parsers, but the
-library's readers trust the framing around them: a record cut off by the end of the file is read
-short without a word (``ReadDataStream.read`` only fails when nothing at all is left), a chunk with
-a compression it does not know is taken as uncompressed, a chunk's sizes are not checked against
-its data, a record running past the end of its chunk is read short, and errors say neither where
-nor what (``EndOfFile()``, ``struct.error``). :class:`RecordFile` reads a record only after
+library trusts the framing around them. ``ReadDataStream.read`` fails only when nothing at all is
+left, so a record cut off inside a chunk is read short without a word, and one cut off by the end
+of the file fails with a bare ``EndOfFile()``. A chunk with a compression it does not know is
+taken as uncompressed, a chunk's sizes are not checked against its data, a corrupt length field
+makes it allocate that many bytes before reading (a ``MemoryError``), and its errors say neither
+where nor what (``EndOfFile()``, ``struct.error``). :class:`RecordFile` reads a record only after
 checking that it lies within the file (or its chunk), and raises :class:`Damage` with the offset
 and a sentence about what is wrong. Chunks are decompressed, checked and split here too, which is
 also three times faster than ``mcap.stream_reader.breakup_chunk`` for small messages: a message
 is one ``struct.unpack_from`` and one slice rather than a record object built field by field.
+:class:`Clamped` is the file to lend the library's readers.
 """
 
 from __future__ import annotations
