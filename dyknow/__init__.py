@@ -39,8 +39,7 @@ from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.planner import Plan, Planner, RunningUnit, plan
 from dyknow.proxy import UnitState, UnitStatistics
-from dyknow.recording import Recorder
-from dyknow.replay import ChannelInfo, Player, RecordedMessage, Recording, RecordingInfo
+from dyknow.recording import ChannelInfo, Player, RecordedMessage, Recorder, Recording, RecordingInfo
 from dyknow.spec import (
     Constraint,
     Param,

@@ -479,7 +479,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """replay an MCAP file into Zenoh in log-time order, at the original pace"""
-    from dyknow.replay import Player
+    from dyknow.recording import Player
 
     remap = _pairs(args.remap, "--remap")
     with Player(args.file, rate=args.rate, loop=args.loop, start_s=args.start, end_s=args.end, topics=args.topics, remap=remap, recover=args.recover) as player:
@@ -493,7 +493,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_mcap_cat(args: argparse.Namespace) -> int:
     """print the messages in log-time order"""
-    from dyknow.replay import Player
+    from dyknow.recording import Player
 
     with Player(args.file, topics=args.topics, recover=args.recover, decode=False) as player:
         try:
@@ -517,7 +517,7 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
     """summarise channels, counts and time range"""
     from datetime import UTC, datetime
 
-    from dyknow.replay import Recording
+    from dyknow.recording import Recording
 
     with Recording(args.file, recover=args.recover) as recording:
         info = recording.info

@@ -13,8 +13,7 @@ import threading
 
 from dyknow import Message, Unit
 from dyknow.errors import RecordingError
-from dyknow.recording import Recorder
-from dyknow.replay import Player, RecordedMessage
+from dyknow.recording import Player, RecordedMessage, Recorder
 
 __all__ = ["RecorderUnit", "ReplaySource"]
 
@@ -51,7 +50,7 @@ class ReplaySource(Unit):
 
     Params: ``file``; ``topic`` (may be left empty when the file has one topic); ``rate`` (1.0
     is the original pace, 0 as fast as possible); ``loop``; ``recover`` (replay what is valid in
-    a damaged file). Payloads are decoded as :class:`dyknow.replay.Player` does: images arrive
+    a damaged file). Payloads are decoded as :class:`dyknow.recording.Player` does: images arrive
     as numpy arrays.
     """
 
@@ -60,7 +59,7 @@ class ReplaySource(Unit):
         topic = str(self.params.get("topic", "")).strip()
         rate = float(self.params.get("rate", 1.0))
         if rate < 0:
-            raise RecordingError(f"param rate of {self.name!r}: got {rate}; expected a positive number, or 0 for as fast as possible")
+            raise RecordingError(f"got {rate}", where=f"param rate of {self.name!r}", expected="a positive number, or 0 for as fast as possible")
         self.player = Player(
             str(self.params["file"]),
             rate=rate or math.inf,
@@ -72,8 +71,9 @@ class ReplaySource(Unit):
             self.player.close()
             topics = ", ".join(repr(c.topic) for c in self.player.channels) or "none"
             raise RecordingError(
-                f"{self.params['file']}: replay unit {self.name!r} replays one topic, and {topic or 'no topic'!r} selects "
-                f"{len(self.player.channels)}: {topics}; set param topic to one of them"
+                f"replay unit {self.name!r} replays one topic, and {topic or 'no topic'!r} selects "
+                f"{len(self.player.channels)}: {topics}; set param topic to one of them",
+                where=str(self.params["file"]),
             )
         self.replayed = 0
         self.finished = threading.Event()

@@ -7,7 +7,7 @@ foxglove-schemas-protobuf 0.4.0, mcap-protobuf-support 0.6.0, mcap 1.6.0)::
 
     python tests/mcap/make_foxglove_protobuf.py tests/mcap/foxglove-protobuf.mcap
 
-Content (tests/test_replay.py rebuilds the expected arrays with the same formulas):
+Content (tests/recording/test_codecs.py rebuilds the expected arrays with the same formulas):
 
 - ``/camera/rgb``: 3 ``foxglove.RawImage`` ``rgb8`` 4x3 images with rows padded to 16 bytes;
   pixel (x, y) of frame i is (R, G, B) = (10 * i + x, 100 + y, 200); log_time 1000 + i.

@@ -22,9 +22,9 @@ from dyknow import Manager
 from dyknow.cli import main
 from dyknow.errors import RecordingError
 from dyknow.message import Message
-from dyknow.replay import Recording
-from dyknow.transport import Publisher, Session, make_config
-from tests.conftest import REPO, UNIT_SPECS, free_port, run_cli, subprocess_env
+from dyknow.recording import Recording
+from dyknow.transport import Publisher, Session
+from tests.conftest import REPO, UNIT_SPECS, run_cli, subprocess_env
 
 TEN = "TenMessages/TenMessages-ch-chx-mx-pad-rch-rsh-st-sum"
 
@@ -78,13 +78,6 @@ def processes() -> Iterator[Callable[..., Process]]:
     yield start
     for proc in started:
         proc.close()
-
-
-@pytest.fixture
-def listening() -> Iterator[tuple[Session, str]]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with Session(make_config(listen=[endpoint])) as session:
-        yield session, endpoint
 
 
 def wait_until(condition: Callable[[], bool], what: str, timeout: float = 20.0) -> None:
@@ -221,11 +214,10 @@ def test_a_killed_recorder_leaves_its_complete_chunks_readable(tmp_path: Path, l
 def test_record_errors_are_one_line(tmp_path: Path) -> None:
     missing = tmp_path / "no" / "such" / "out.mcap"
     result = run_cli("record", "x/**", "-o", str(missing))
-    assert one_line_error(result) == f"dyknow: error: cannot create {missing}: No such file or directory (does the folder exist?)"
+    assert one_line_error(result) == f"dyknow: error: {missing}: cannot create the file: No such file or directory (does the folder exist?)"
     if os.path.exists("/dev/full"):
         full = run_cli("record", "x/**", "-o", "/dev/full")
-        assert one_line_error(full) == "dyknow: error: cannot write /dev/full: No space left on device (the disk is full); nothing was recorded"
-
+        assert one_line_error(full) == "dyknow: error: /dev/full: cannot write the file: No space left on device (the disk is full); nothing was recorded"
 
 
 @pytest.mark.parametrize(
@@ -311,10 +303,10 @@ def test_sigint_ends_a_looping_replay(data_dir: Path, listening: tuple[Session, 
 
 def test_replay_errors_are_one_line(tmp_path: Path, data_dir: Path) -> None:
     missing = run_cli("replay", str(tmp_path / "none.mcap"))
-    assert one_line_error(missing) == f"dyknow: error: cannot read {tmp_path / 'none.mcap'}: No such file or directory"
+    assert one_line_error(missing) == f"dyknow: error: {tmp_path / 'none.mcap'}: cannot read the file: No such file or directory"
     talker = str(data_dir / "mcap" / "real" / "talker.mcap")
     unknown = run_cli("replay", talker, "--topics", "/topik")
-    assert one_line_error(unknown).startswith(f"dyknow: error: {talker}: no topic matches '/topik'; its topics are")
+    assert one_line_error(unknown).startswith(f"dyknow: error: {talker}: no topic matches '/topik'; expected one of its topics")
     assert "(did you mean '/topic'?)" in unknown.stderr
 
 

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from dyknow.message import Message
-from dyknow.replay import Player, RecordedMessage, Recording, key_for_topic
+from dyknow.recording import Player, RecordedMessage, Recording, key_for_topic
 from dyknow.transport import Session, make_config
 from tests.conftest import REPO, free_port
 
