@@ -11,8 +11,10 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -72,15 +74,20 @@ def run_cli(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess[st
     )
 
 
-class ManagerProcess:
-    """A ``dyknow manager`` child process, ready once it printed its ready line."""
+def wait_until(condition: Callable[[], bool], what: str, timeout_s: float = 20.0) -> None:
+    """Wait for state another thread or process changes and that has no event to wait on."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
+        time.sleep(0.005)
 
-    def __init__(self, name: str, port: int, *extra: str) -> None:
-        self.name = name
-        self.endpoint = f"tcp/127.0.0.1:{port}"
+
+class CliProcess:
+    """A ``dyknow`` child process whose stdout lines are read as they come (JSON lines with ``--json``)."""
+
+    def __init__(self, *args: str) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--listen", self.endpoint,
-             "--specs", str(GENERIC_SPECS), str(UNIT_SPECS), "--json", *extra],
+            [sys.executable, "-m", "dyknow.cli", *args],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -95,22 +102,65 @@ class ManagerProcess:
         for line in self.proc.stdout:
             self.lines.put(line)
 
-    def wait_ready(self, timeout: float = 20.0) -> dict[str, object]:
+    def line(self, timeout_s: float = 20.0) -> dict[str, Any]:
+        """The next line of output, as JSON; kills the process and fails when none comes."""
         try:
-            ready = json.loads(self.lines.get(timeout=timeout))
-            assert ready["event"] == "ready" and ready["endpoints"] == [self.endpoint], ready
-            return ready
+            return dict(json.loads(self.lines.get(timeout=timeout_s)))
         except queue.Empty:
             self.proc.kill()
-            raise AssertionError(f"manager process did not become ready; stderr: {self.proc.stderr.read() if self.proc.stderr else ''}") from None
+            stderr = self.proc.stderr.read() if self.proc.stderr else ""
+            raise AssertionError(f"no line from {self.proc.args} within {timeout_s} s; stderr: {stderr}") from None
 
-    def client_args(self) -> list[str]:
-        return ["--connect", self.endpoint, "--manager", self.name]
-
-    def stop(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
+        """Send ``sig`` (unless it ended already) and return the exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
-        return self.proc.wait(timeout)
+        return self.proc.wait(timeout_s)
+
+    def close(self) -> None:
+        """Kill the process if it still runs, and close its pipes."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
+
+
+@pytest.fixture
+def cli_process() -> Iterator[Callable[..., CliProcess]]:
+    """Start ``dyknow ARGS`` child processes; all are killed after the test."""
+    started: list[CliProcess] = []
+
+    def start(*args: str) -> CliProcess:
+        proc = CliProcess(*args)
+        started.append(proc)
+        return proc
+
+    yield start
+    for proc in started:
+        proc.close()
+
+
+class ManagerProcess(CliProcess):
+    """A ``dyknow manager`` child process, ready once it printed its ready line."""
+
+    def __init__(self, name: str, port: int, *extra: str) -> None:
+        self.name = name
+        self.endpoint = f"tcp/127.0.0.1:{port}"
+        super().__init__(
+            "manager", "--name", name, "--listen", self.endpoint, "--specs", str(GENERIC_SPECS), str(UNIT_SPECS), "--json", *extra
+        )
+
+    def wait_ready(self, timeout_s: float = 20.0) -> dict[str, Any]:
+        """The ready line (fails when the manager does not become ready)."""
+        ready = self.line(timeout_s)
+        assert ready["event"] == "ready" and ready["endpoints"] == [self.endpoint], ready
+        return ready
+
+    def client_args(self) -> list[str]:
+        """The options that point a client command at this manager."""
+        return ["--connect", self.endpoint, "--manager", self.name]
 
 
 @pytest.fixture
@@ -126,12 +176,7 @@ def manager_process() -> Iterator[Callable[..., ManagerProcess]]:
 
     yield start
     for proc in started:
-        if proc.proc.poll() is None:
-            proc.proc.kill()
-            proc.proc.wait(10)
-        for stream in (proc.proc.stdout, proc.proc.stderr):
-            if stream is not None:
-                stream.close()
+        proc.close()
 
 
 @pytest.fixture(scope="session")

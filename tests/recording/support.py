@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +12,7 @@ from mcap.writer import CompressionType, Writer
 from dyknow.message import Message
 from dyknow.recording import Player, RecordedMessage
 from dyknow.transport import Publisher
-from tests.conftest import REPO
+from tests.conftest import REPO, wait_until
 
 SPECS = REPO / "specs" / "recording.xml"
 MIXED = REPO / "tests" / "mcap" / "units.xml"
@@ -29,16 +27,9 @@ def official(path: Path) -> tuple[Any, list[tuple[Any, Any, Any]]]:
         return reader.get_summary(), list(reader.iter_messages(log_time_order=False))
 
 
-def wait_until(condition: Callable[[], bool], what: str, timeout: float = 10.0) -> None:
-    """Wait for state another thread or process changes and that has no event of its own."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"{what} within {timeout} s"
-        time.sleep(0.005)
-
-
-def wait_matched(publisher: Publisher, timeout: float = 10.0) -> None:
-    wait_until(lambda: publisher.matched, f"a subscriber for {publisher.key}", timeout)
+def wait_matched(publisher: Publisher, timeout_s: float = 10.0) -> None:
+    """Wait until a subscriber in another session matches ``publisher``."""
+    wait_until(lambda: publisher.matched, f"a subscriber for {publisher.key}", timeout_s)
 
 
 def same_payload(a: Any, b: Any) -> bool:

@@ -5,15 +5,12 @@ from __future__ import annotations
 import base64
 import json
 import os
-import queue
 import signal
 import subprocess
-import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -23,73 +20,11 @@ from dyknow.cli import main
 from dyknow.errors import RecordingError
 from dyknow.message import Message
 from dyknow.recording import Recording
-from dyknow.transport import Publisher, Session
-from tests.conftest import REPO, UNIT_SPECS, run_cli, subprocess_env
+from dyknow.transport import Session
+from tests.conftest import UNIT_SPECS, CliProcess, run_cli, wait_until
+from tests.recording.support import wait_matched
 
 TEN = "TenMessages/TenMessages-ch-chx-mx-pad-rch-rsh-st-sum"
-
-
-class Process:
-    """A ``dyknow`` child process whose stdout lines are read as they come."""
-
-    def __init__(self, *args: str) -> None:
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "dyknow.cli", *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            env=subprocess_env(),
-            cwd=REPO,
-        )
-        self.lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.put(line)
-
-    def line(self, timeout: float = 20.0) -> dict[str, Any]:
-        try:
-            return dict(json.loads(self.lines.get(timeout=timeout)))
-        except queue.Empty:
-            self.proc.kill()
-            stderr = self.proc.stderr.read() if self.proc.stderr else ""
-            raise AssertionError(f"no line from {self.proc.args} within {timeout} s; stderr: {stderr}") from None
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-        for stream in (self.proc.stdout, self.proc.stderr):
-            if stream is not None:
-                stream.close()
-
-
-@pytest.fixture
-def processes() -> Iterator[Callable[..., Process]]:
-    started: list[Process] = []
-
-    def start(*args: str) -> Process:
-        proc = Process(*args)
-        started.append(proc)
-        return proc
-
-    yield start
-    for proc in started:
-        proc.close()
-
-
-def wait_until(condition: Callable[[], bool], what: str, timeout: float = 20.0) -> None:
-    """Wait for state another process changes (a file it writes): there is no event to wait on."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"{what} within {timeout} s"
-        time.sleep(0.02)
-
-
-def wait_matched(publisher: Publisher) -> None:
-    wait_until(lambda: publisher.matched, f"a subscriber for {publisher.key}")
 
 
 def readable(path: Path) -> int:
@@ -113,10 +48,10 @@ def one_line_error(result: subprocess.CompletedProcess[str]) -> str:
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
-def test_record_until_a_signal_finalizes_the_file(tmp_path: Path, listening: tuple[Session, str], processes: Callable[..., Process], sig: int) -> None:
+def test_record_until_a_signal_finalizes_the_file(tmp_path: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess], sig: int) -> None:
     session, endpoint = listening
     path = tmp_path / "signal.mcap"
-    proc = processes("record", "rec/**", "-o", str(path), "--connect", endpoint, "--json")
+    proc = cli_process("record", "rec/**", "-o", str(path), "--connect", endpoint, "--json")
     assert proc.line() == {"event": "ready", "file": str(path), "key_exprs": ["rec/**"]}
     image = np.arange(30 * 40 * 3, dtype=np.uint8).reshape(30, 40, 3)
     with session.declare_publisher("rec/json") as pub, session.declare_publisher("rec/image") as pub_image:
@@ -143,10 +78,10 @@ def test_record_until_a_signal_finalizes_the_file(tmp_path: Path, listening: tup
     assert [line["log_time"] for line in lines] == sorted(line["log_time"] for line in lines)
 
 
-def test_record_stops_by_itself_after_max_messages(tmp_path: Path, listening: tuple[Session, str], processes: Callable[..., Process]) -> None:
+def test_record_stops_by_itself_after_max_messages(tmp_path: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     session, endpoint = listening
     path = tmp_path / "max.mcap"
-    proc = processes("record", "max/**", "-o", str(path), "--connect", endpoint, "--max-messages", "5", "--compression", "lz4", "--json")
+    proc = cli_process("record", "max/**", "-o", str(path), "--connect", endpoint, "--max-messages", "5", "--compression", "lz4", "--json")
     assert proc.line()["event"] == "ready"
     with session.declare_publisher("max/x") as pub:
         wait_matched(pub)
@@ -169,10 +104,10 @@ def test_record_stops_after_its_duration(tmp_path: Path, listening: tuple[Sessio
         assert recording.info.message_count == 0 and recording.problem is None
 
 
-def test_a_killed_recorder_leaves_its_complete_chunks_readable(tmp_path: Path, listening: tuple[Session, str], processes: Callable[..., Process]) -> None:
+def test_a_killed_recorder_leaves_its_complete_chunks_readable(tmp_path: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     session, endpoint = listening
     path = tmp_path / "killed.mcap"
-    proc = processes("record", "kill/**", "-o", str(path), "--connect", endpoint, "--chunk-size", "2048", "--json")
+    proc = cli_process("record", "kill/**", "-o", str(path), "--connect", endpoint, "--chunk-size", "2048", "--json")
     assert proc.line()["event"] == "ready"
     stop = threading.Event()
     with session.declare_publisher("kill/x") as pub:
@@ -274,9 +209,9 @@ def test_replay_feeds_camera_images_to_a_unit(data_dir: Path, make_manager: Call
     assert [(m.seq, m.origin_ns) for m in messages] == stored
 
 
-def test_echo_consumes_a_replayed_ros2_bag(data_dir: Path, listening: tuple[Session, str], processes: Callable[..., Process]) -> None:
+def test_echo_consumes_a_replayed_ros2_bag(data_dir: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     _, endpoint = listening
-    echo = processes("echo", "topic", "--count", "10", "--json", "--connect", endpoint)
+    echo = cli_process("echo", "topic", "--count", "10", "--json", "--connect", endpoint)
     path = data_dir / "mcap" / "real" / "talker.mcap"
     replay = run_cli("replay", str(path), "--topics", "/topic", "--rate", "max", "--wait", "15", "--connect", endpoint)
     assert replay.returncode == 0, replay.stderr
@@ -287,12 +222,12 @@ def test_echo_consumes_a_replayed_ros2_bag(data_dir: Path, listening: tuple[Sess
     assert lines[0]["origin_ns"] == 1585866235112609068 and lines[0]["key"] == "topic"
 
 
-def test_sigint_ends_a_looping_replay(data_dir: Path, listening: tuple[Session, str], processes: Callable[..., Process]) -> None:
+def test_sigint_ends_a_looping_replay(data_dir: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     session, endpoint = listening
     arrived = threading.Event()
     with session.declare_subscriber("mouse", lambda msg: arrived.set()):
         path = data_dir / "mcap" / "real" / "example.mcap"
-        proc = processes("replay", str(path), "--loop", "--wait", "10", "--connect", endpoint, "--json")
+        proc = cli_process("replay", str(path), "--loop", "--wait", "10", "--connect", endpoint, "--json")
         assert proc.line() == {"event": "ready", "file": str(path), "keys": {"mouse": "mouse"}}
         assert arrived.wait(20.0)  # it is replaying (at the original pace: 3 s per pass)
         proc.proc.send_signal(signal.SIGINT)

@@ -161,7 +161,7 @@ def test_replay_unit_stands_in_for_a_live_sensor(data_dir: Path, make_manager: C
     path = real(data_dir, "custom-camera-model.mcap")
     info = manager.spawn("replay(Recorded)", "cam", params={"file": str(path), "topic": "/image/compressed", "rate": 0}, bindings={"out": "camera/image"})
     assert info.state == "running"
-    messages = manager.unit("sink").wait_for(10, timeout=10.0)
+    messages = manager.unit("sink").wait_for(10, timeout_s=10.0)
     with Recording(path) as recording:
         log_times = [m.log_time_ns for m in recording.messages() if m.topic == "/image/compressed"]
     assert [m.origin_ns for m in messages] == log_times

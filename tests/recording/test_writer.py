@@ -29,8 +29,8 @@ from dyknow.recording import (
     Recording,
 )
 from dyknow.transport import Session
-from tests.conftest import REPO, UNIT_SPECS, subprocess_env
-from tests.recording.support import MIXED, SPECS, official, same_payload, wait_matched, wait_until
+from tests.conftest import REPO, UNIT_SPECS, subprocess_env, wait_until
+from tests.recording.support import MIXED, SPECS, official, same_payload, wait_matched
 
 # --- recording from Zenoh ------------------------------------------------------------------------
 
