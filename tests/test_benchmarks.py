@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.conftest import REPO, subprocess_env
+from tests.conftest import REPO, subprocess_env, undocumented
 
 
 def test_chain_benchmark_smoke(tmp_path: Path) -> None:
@@ -81,3 +81,7 @@ def test_adaptation_benchmark_smoke(tmp_path: Path) -> None:
     for row in data.values():
         assert row["faults"] == 3 and 0 < row["adaptation_median_ms"] <= row["recovery_median_ms"]
     assert "ROSA" in result.stdout
+
+
+def test_every_public_name_of_the_benchmarks_is_documented() -> None:
+    assert undocumented(*sorted((REPO / "benchmarks").glob("*.py"))) == []
