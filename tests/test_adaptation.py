@@ -17,8 +17,8 @@ import pytest
 from dyknow import Client, Library, Manager, Ontology, Port, Tag, TransformationSpec, Unit, UnitEvent, UnitInfo, default_key
 from dyknow.adaptation import ANCHOR_LABEL, AdaptationEvent, AdaptationLoop, DeadlinePort, Knowledge, Monitor, RequestAnchor, Symptom
 from dyknow.errors import PlanningError
-from tests.conftest import REPO, subprocess_env
 from dyknow.testing import CAMERA_IDS, SCENARIO_SPECS, Camera, Sink, Tracker
+from tests.conftest import REPO, subprocess_env
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 from dyknow import Manager
-from tests.conftest import REPO, ManagerProcess, free_port, run_cli, subprocess_env
 from dyknow.testing import SCENARIO_SPECS, Sink
+from tests.conftest import REPO, ManagerProcess, free_port, run_cli, subprocess_env
 
 SPECS = REPO / "tests" / "specs"
 

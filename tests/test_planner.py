@@ -10,8 +10,8 @@ from dyknow.errors import PlanningError
 from dyknow.ontology import Ontology
 from dyknow.planner import Planner, RunningUnit, plan, unit_name_for
 from dyknow.spec import TransformationSpec, load_specs, parse_specs
-from tests.conftest import REPO
 from dyknow.testing import SCENARIO_SPECS as SCENARIO
+from tests.conftest import REPO
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 

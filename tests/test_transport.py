@@ -12,9 +12,9 @@ import pytest
 import zenoh  # a plain Zenoh peer stands in for tools that know nothing of dyknow
 
 from dyknow import BindingError, Manager, ServiceError, TransportError
+from dyknow.testing import Sink
 from dyknow.transport import Session, check_key_expr, key_exprs_intersect, make_config
 from tests.conftest import free_port
-from dyknow.testing import Sink
 
 
 def test_key_expressions_are_checked() -> None:

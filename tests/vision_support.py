@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from dyknow import Manager, PortStatistics, Unit, UnitEvent, default_key, parse_specs
-from tests.conftest import GENERIC_SPECS, REPO, UNIT_SPECS
 from dyknow.testing import Sink
+from tests.conftest import GENERIC_SPECS, REPO, UNIT_SPECS
 
 VISION_SPECS = REPO / "specs" / "vision.xml"
 SOURCE_SPECS = REPO / "specs" / "sources.xml"
