@@ -69,6 +69,7 @@ class Watcher:
             self._cond.notify_all()
 
     def wait(self, count: int, timeout_s: float = 10.0) -> AdaptationEvent:
+        """The ``count``-th recovered event (1-based), once it happened; RuntimeError after ``timeout_s`` seconds."""
         with self._cond:
             if not self._cond.wait_for(lambda: len(self.recovered) >= count, timeout_s):
                 raise RuntimeError(f"no recovery #{count} within {timeout_s} s (adapted: {[e.cause for e in self.adapted]})")
@@ -79,6 +80,7 @@ _ONTOLOGY: list[Ontology] = []
 
 
 def scenario_manager(rate: float, dwell_s: float, extra: str = "") -> Manager:
+    """A manager with the paper's scenario, its cameras at ``rate`` Hz, plus the ``extra`` specs (XML)."""
     specs = SCENARIO_SPECS.read_text().replace('name="rate_hz" type="float">200<', f'name="rate_hz" type="float">{rate:g}<')
     if not _ONTOLOGY:
         _ONTOLOGY.append(Ontology.load([ONTOLOGY]))  # loaded once, shared by every manager
@@ -90,6 +92,7 @@ def scenario_manager(rate: float, dwell_s: float, extra: str = "") -> Manager:
 
 
 def start(manager: Manager) -> tuple[str, Sink]:
+    """Request ``BallPosition(field)`` and attach a consumer to it; the key and the consumer."""
     key = manager.request("BallPosition(field)")
     manager.spawn("consumer", "consumer", bindings={"in": key})
     consumer = manager.unit("consumer")
@@ -98,10 +101,12 @@ def start(manager: Manager) -> tuple[str, Sink]:
 
 
 def camera(manager: Manager, label: str) -> str:
+    """The name of the running unit spawned from ``label``."""
     return next(u.name for u in manager.get_model().units if u.label == label)
 
 
 def run_exception(n: int, rate: float) -> list[tuple[float, float]]:
+    """Per fault, (adaptation ms, recovery ms) when the robot camera raises; a fresh manager for each."""
     out = []
     for _ in range(n):
         with scenario_manager(rate, 0.05) as manager:
@@ -118,6 +123,7 @@ def run_exception(n: int, rate: float) -> list[tuple[float, float]]:
 
 
 def run_destroyed(n: int, rate: float) -> list[tuple[float, float]]:
+    """Per fault, (adaptation ms, recovery ms) when the robot camera is destroyed, ``n`` times in one manager."""
     out = []
     with scenario_manager(rate, 0.05) as manager:
         watcher = Watcher(manager)
@@ -132,6 +138,7 @@ def run_destroyed(n: int, rate: float) -> list[tuple[float, float]]:
 
 
 def run_measurement(n: int, rate: float) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """(adaptation ms, recovery ms) per battery drop, and per recovery of the battery (the return to the robot camera)."""
     faults, returns = [], []
     with scenario_manager(rate, 0.05) as manager:
         watcher = Watcher(manager)
@@ -193,6 +200,7 @@ def run_remote_kill(n: int, rate: float) -> list[tuple[float, float, float]]:
 
 
 def summary(pairs: list[tuple[float, ...]], period_ms: float) -> dict[str, Any]:
+    """Medians and 99th percentiles of adaptation and recovery times, and the share recovered within one camera period."""
     adaptation = np.asarray([p[0] for p in pairs])
     recovery = np.asarray([p[1] for p in pairs])
     within = float(np.mean(recovery <= adaptation + period_ms)) if len(pairs) else float("nan")
@@ -212,6 +220,7 @@ def summary(pairs: list[tuple[float, ...]], period_ms: float) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Inject the faults of each kind asked for, print a table of the times (and write them as JSON with ``--json``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--faults", type=int, default=100, help="faults of each kind (default 100)")
     parser.add_argument("--rate", type=float, default=200.0, help="camera rate in Hz (default 200)")

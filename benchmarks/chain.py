@@ -68,6 +68,7 @@ class Mode:
 
     @property
     def total(self) -> int:
+        """Messages sent in all: the measured ones plus the warm-up."""
         return self.messages + self.warmup
 
 
@@ -84,6 +85,7 @@ class Run:
 
 
 def run_python_call(hops: int, mode: Mode) -> Run:
+    """The floor: a chain of ``hops`` plain Python function calls, each reading the clock."""
     latencies: list[int] = []
 
     def make(next_fn: Callable[[bytes, int], None] | None) -> Callable[[bytes, int], None]:
@@ -130,6 +132,7 @@ def _zenoh_config(listen: list[str] | None = None, connect: list[str] | None = N
 
 
 def run_zenoh_session(hops: int, mode: Mode) -> Run:
+    """Raw Zenoh: ``hops`` publisher/subscriber pairs in one session, with the default callbacks."""
     import zenoh
 
     latencies: list[int] = []
@@ -194,6 +197,7 @@ class BenchSource(Unit):
     time the sink acks the previous message (back-to-back: one message in flight)."""
 
     def setup(self) -> None:
+        """Read the params and start probing the chain every 0.1 s."""
         self.left = int(self.params["messages"])
         self.rate = float(self.params["rate_hz"])
         self.started = False
@@ -202,12 +206,14 @@ class BenchSource(Unit):
         self.publish("out", PROBE)
 
     def unstall(self) -> None:
+        """Back-to-back: send the next message when no ack came for ``STALL_S`` (the previous one was lost)."""
         if self.left > 0 and time.monotonic() - self.last_ack > STALL_S:
             self.last_ack = time.monotonic()
             self.left -= 1
             self.publish("out", PAYLOAD, origin_ns=time.time_ns())
 
     def tick(self) -> None:
+        """Paced: send the next message, or stop the timer when all are sent."""
         if self.left <= 0:
             self.timer.cancel()
             return
@@ -215,6 +221,7 @@ class BenchSource(Unit):
         self.publish("out", PAYLOAD)
 
     def on_message(self, port: str, msg: Message) -> None:  # an ack from the sink
+        """An ack: the first probe ack starts the run; back-to-back, a message ack sends the next message."""
         self.last_ack = time.monotonic()
         if msg.payload == PROBE:
             if not self.started:  # the whole chain is up: start measuring
@@ -237,6 +244,7 @@ class BenchSink(Unit):
     """Records arrival minus origin; acks probes, and each message in back-to-back mode."""
 
     def setup(self) -> None:
+        """Read the params and start the idle check (the run ends after ``IDLE_S`` without messages)."""
         self.latencies: list[int] = []
         self.expected = int(self.params["messages"])
         self.done = threading.Event()
@@ -245,10 +253,12 @@ class BenchSink(Unit):
         self.create_timer(0.25, self.check_idle)
 
     def check_idle(self) -> None:
+        """End the run when no message came for ``IDLE_S`` (lost messages never arrive)."""
         if self.last_ns and time.time_ns() - self.last_ns > IDLE_S * 1e9:
             self.done.set()
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Ack a probe; record a message's latency, ending the run at the last one or acking it back-to-back."""
         now = time.time_ns()
         if msg.payload == PROBE:
             self.publish("ack", PROBE)
@@ -262,6 +272,7 @@ class BenchSink(Unit):
 
 
 def bench_specs(messages: int, rate_hz: float, up_file: str = "") -> list[TransformationSpec]:
+    """The specs of the source, relay and sink, with ``messages`` to send at ``rate_hz`` (0: back-to-back)."""
     module = __name__ if __name__ != "__main__" else "__main__"
     params = (Param("messages", "int", messages), Param("rate_hz", "float", float(rate_hz)), Param("up_file", "string", up_file))
     return [
@@ -282,6 +293,7 @@ def bench_specs(messages: int, rate_hz: float, up_file: str = "") -> list[Transf
 
 
 def run_dyknow_inproc(hops: int, mode: Mode) -> Run:
+    """dyknow units in one manager: the sink, ``hops`` - 1 relays, then the source."""
     rate = mode.rate_hz or 0.0
     with Manager("bench", specs=bench_specs(mode.total, rate), listen=[], serve=False) as manager:
         manager.spawn("bench-sink", "sink", bindings={"in": f"bench/h{hops - 1}", "ack": "bench/ack"})
@@ -478,6 +490,7 @@ def _zenoh_worker(args: argparse.Namespace) -> int:
 
 
 def summarize(latencies_ns: list[int], hops: int) -> dict[str, float]:
+    """Percentiles of the last-hop and per-hop latencies, in microseconds."""
     arr = np.asarray(latencies_ns, dtype=np.float64) / 1000.0
     per_hop = arr / hops
 
@@ -506,6 +519,7 @@ RUNNERS: dict[str, Callable[[int, Mode], Run]] = {
 
 
 def plot(results: list[dict[str, Any]], info: dict[str, Any], path: Path) -> None:
+    """Plot the median last-hop latency against the hops, one panel per mode, to a PNG at ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -539,6 +553,7 @@ def plot(results: list[dict[str, Any]], info: dict[str, Any], path: Path) -> Non
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run every variant for each mode and chain length, print a table (and write JSON and a plot if asked)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="200 messages at 50 Hz, and back-to-back (the default)")
     parser.add_argument("--paper", action="store_true", help="the paper's setting: 1,000 messages at 5 Hz (paced only)")

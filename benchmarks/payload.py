@@ -50,6 +50,7 @@ class PayloadSource(Unit):
     """Keeps ``window`` messages of ``shape`` bytes in flight; each ack from the sink sends the next."""
 
     def setup(self) -> None:
+        """Read the params, make the random frame to send and start probing the sink every 0.1 s."""
         self.left = int(self.params["messages"])
         self.window = int(self.params["window"])
         shape = tuple(int(x) for x in str(self.params["shape"]).split("x"))
@@ -60,16 +61,19 @@ class PayloadSource(Unit):
         self.publish("out", PROBE)
 
     def send(self) -> None:
+        """Send the frame, stamped now, unless every message was sent."""
         if self.left > 0:
             self.left -= 1
             self.publish("out", self.frame, origin_ns=time.time_ns())
 
     def unstall(self) -> None:
+        """Send the next frame when no ack came for ``STALL_S`` (one was lost on the way)."""
         if time.monotonic() - self.last_ack > STALL_S:
             self.last_ack = time.monotonic()
             self.send()
 
     def on_message(self, port: str, msg: Message) -> None:
+        """An ack: the first probe ack sends ``window`` frames, every later ack the next one."""
         self.last_ack = time.monotonic()
         if msg.payload == PROBE:
             if not self.started:
@@ -86,6 +90,7 @@ class PayloadSink(Unit):
     """Records arrival minus origin and arrival times; acks every message."""
 
     def setup(self) -> None:
+        """Read the params and start the idle check (the run ends after ``IDLE_S`` without frames)."""
         self.latencies: list[int] = []
         self.arrivals: list[int] = []
         self.expected = int(self.params["messages"])
@@ -93,10 +98,12 @@ class PayloadSink(Unit):
         self.create_timer(0.25, self.check_idle)
 
     def check_idle(self) -> None:
+        """End the run when no frame came for ``IDLE_S`` (lost frames never arrive)."""
         if self.arrivals and time.time_ns() - self.arrivals[-1] > IDLE_S * 1e9:
             self.done.set()
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Ack a probe; record a frame's latency and arrival time, and ack it."""
         now = time.time_ns()
         if isinstance(msg.payload, bytes) and msg.payload == PROBE:
             self.publish("ack", PROBE)
@@ -109,6 +116,7 @@ class PayloadSink(Unit):
 
 
 def specs(shape: tuple[int, ...], messages: int, window: int) -> list[TransformationSpec]:
+    """The specs of the source, a relay and the sink, for ``messages`` of ``shape`` with ``window`` in flight."""
     module = __name__ if __name__ != "__main__" else "__main__"
     params = (
         Param("messages", "int", messages),
@@ -123,6 +131,7 @@ def specs(shape: tuple[int, ...], messages: int, window: int) -> list[Transforma
 
 
 def run_inproc(shape: tuple[int, ...], messages: int, window: int, hops: int) -> tuple[list[int], list[int]]:
+    """Source, ``hops`` - 1 relays and sink in one manager; the latencies and arrival times (ns) at the sink."""
     with Manager("payload", specs=specs(shape, messages, window), listen=[], serve=False) as manager:
         manager.spawn("payload-sink", "sink", bindings={"in": f"p/h{hops - 1}", "ack": "p/ack"})
         for i in range(hops - 1, 0, -1):
@@ -136,6 +145,7 @@ def run_inproc(shape: tuple[int, ...], messages: int, window: int, hops: int) ->
 
 
 def run_process(variant: str, shape: tuple[int, ...], messages: int, window: int) -> tuple[list[int], list[int]]:
+    """Source and sink of ``variant`` in two processes; the latencies and arrival times (ns) at the sink."""
     ports = free_ports(2)
     eps = [f"tcp/127.0.0.1:{p}" for p in ports]
     with tempfile.TemporaryDirectory() as tmp:
@@ -164,6 +174,7 @@ def run_process(variant: str, shape: tuple[int, ...], messages: int, window: int
 
 
 def worker(args: argparse.Namespace) -> int:
+    """One process of a two-process run (``--worker source`` or ``sink``); the sink writes the result file."""
     shape = tuple(int(x) for x in args.shape.split("x"))
     if args.variant == "dyknow-process":
         with Manager(f"w-{args.worker}", specs=specs(shape, args.messages, args.window), listen=[args.listen],
@@ -259,6 +270,7 @@ def _write(path: str, latencies: list[int], arrivals: list[int]) -> None:
 
 
 def summarize(latencies: list[int], arrivals: list[int], nbytes: int, hops: int, warmup: int) -> dict[str, float]:
+    """Latency percentiles, per-hop latency and throughput (messages/s, MB/s) after the warm-up messages."""
     lat = np.asarray(latencies[warmup:], dtype=np.float64) / 1000
     arr = arrivals[warmup:]
     span = (arr[-1] - arr[0]) / 1e9 if len(arr) > 1 else float("nan")
@@ -273,6 +285,7 @@ def summarize(latencies: list[int], arrivals: list[int], nbytes: int, hops: int,
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Measure every size and variant, print a table and the target checks (and write JSON and a plot if asked)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--smoke", action="store_true", help="a few messages per size (CI)")
     parser.add_argument("--messages", type=int, default=None, help="messages per run (default 300)")
@@ -344,6 +357,7 @@ def _checks(results: list[dict[str, Any]]) -> list[str]:
 
 
 def plot(results: list[dict[str, Any]], info: dict[str, Any], path: Path) -> None:
+    """Plot per-hop latency and throughput against the payload size to a PNG at ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -38,6 +38,7 @@ ONTOLOGY_FUNCTORS = ["RawImage", "YUVImage", "HSVImage", "BallObject", "WorldObj
 
 
 def library(size: int, seed: int = 7) -> list[TransformationSpec]:
+    """A seeded random library of ``size`` specs in ``LAYERS`` layers (see the module documentation)."""
     rng = random.Random(seed)
     per_layer = max(2, size // LAYERS)
     tags_per_layer = max(1, per_layer // 3)  # about three providers per tag
@@ -67,6 +68,7 @@ def library(size: int, seed: int = 7) -> list[TransformationSpec]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Time indexing and planning on each library size, print a table (and write JSON with ``--json``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="100,1000,10000")
     parser.add_argument("--requests", type=int, default=200, help="plans per library")

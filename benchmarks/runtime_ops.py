@@ -32,12 +32,14 @@ class Witness(Unit):
     """Counts what arrives and the gaps in the sequence numbers."""
 
     def setup(self) -> None:
+        """Start the counters at zero."""
         self.received = 0
         self.last_seq = 0
         self.gaps = 0
         self.duplicates = 0
 
     def on_message(self, port: str, msg: Message) -> None:
+        """Count the message, and the sequence numbers skipped or repeated since the previous one."""
         self.received += 1
         if self.last_seq and msg.seq != self.last_seq + 1:
             if msg.seq <= self.last_seq:
@@ -48,16 +50,19 @@ class Witness(Unit):
 
 
 def specs() -> list[TransformationSpec]:
+    """The witness's spec."""
     module = __name__ if __name__ != "__main__" else "__main__"
     return [TransformationSpec("witness", f"{module}:Witness", ports=(Port("in", "in"),))]
 
 
 def stats(samples_s: list[float]) -> dict[str, float]:
+    """Median and p99 in milliseconds of durations given in seconds, and their count."""
     ms = np.asarray(samples_s) * 1000
     return {"median_ms": round(float(np.median(ms)), 3), "p99_ms": round(float(np.percentile(ms, 99)), 3), "count": len(ms)}
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Time rebinds (in-process and via the service), spawns and destroys while a stream flows; print them and the witness's losses."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--iterations", type=int, default=200)
     parser.add_argument("--rate", type=float, default=1000.0, help="source rate in Hz while operations run")

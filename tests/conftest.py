@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import itertools
 import json
 import os
@@ -25,6 +26,26 @@ GENERIC_SPECS = REPO / "specs" / "generic.xml"
 UNIT_SPECS = REPO / "tests" / "units.xml"
 
 _names = itertools.count(1)
+
+
+def undocumented(*files: Path) -> list[str]:
+    """``file:line name`` of each public function, class and method in ``files`` without a docstring.
+
+    Functions nested in functions are left out (they are not public).
+    """
+    missing = []
+
+    def walk(file: Path, node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                if not child.name.startswith("_") and ast.get_docstring(child) is None:
+                    missing.append(f"{file.name}:{child.lineno} {prefix}{child.name}")
+                if isinstance(child, ast.ClassDef):
+                    walk(file, child, f"{prefix}{child.name}.")
+
+    for file in files:
+        walk(file, ast.parse(file.read_text(), str(file)), "")
+    return missing
 
 
 def free_port() -> int:

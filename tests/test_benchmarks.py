@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.conftest import REPO, subprocess_env
+from tests.conftest import REPO, subprocess_env, undocumented
 
 
 def test_chain_benchmark_smoke(tmp_path: Path) -> None:
@@ -92,3 +92,7 @@ def test_idle_benchmark_smoke(tmp_path: Path) -> None:
     for row in rows:
         assert row["cpu_percent"] >= 0 and row["wakeups_per_s"] >= 0 and row["threads"] >= 1 and row["rss_mib"] > 10
     assert "wake-ups/s" in result.stdout
+
+
+def test_every_public_name_of_the_benchmarks_is_documented() -> None:
+    assert undocumented(*sorted((REPO / "benchmarks").glob("*.py"))) == []

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, subprocess_env
+from tests.conftest import REPO, subprocess_env, undocumented
 from transformations.calibration import load_calibration
 
 TOOLS = REPO / "tools"
@@ -161,7 +161,7 @@ def test_eval_ball_takes_param_overrides_and_spec_labels(data_dir: Path) -> None
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["video/missing.mp4"], "eval_ball.py: error: no such video file"),
+        (["video/missing.mp4"], "eval_ball.py: error: {data}/video/missing.mp4: no such video file"),
         (["SOURCES.md"], "OpenCV cannot open it"),
         (["video/ball.mp4", "--param", "hsv_lowr=1,2,3"], ": no param 'hsv_lowr'"),
         (["video/ball.mp4", "--param", "min_fill=2"], "param 'min_fill': got 2.0; expected a number >= 0 and <= 1"),
@@ -172,7 +172,7 @@ def test_eval_ball_takes_param_overrides_and_spec_labels(data_dir: Path) -> None
 def test_eval_ball_errors_are_one_clear_line(data_dir: Path, args: list[str], message: str) -> None:
     proc = run_tool("eval_ball.py", str(data_dir / args[0]), *args[1:], "--json")
     assert proc.returncode == 1 and proc.stdout == ""
-    assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert message.format(data=data_dir) in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
 
 
 # ---------------------------------------------------------------------------------- accuracy.py
@@ -187,3 +187,10 @@ def test_accuracy_meets_every_target(data_dir: Path) -> None:
     assert by_check["sim1.mp4 recall (ball in every frame)"]["recall"] >= 0.95
     assert by_check["vtest.avi false detections (no ball)"]["rate"] <= 0.01
     assert sum(row["check"].startswith("synthetic") for row in rows) == 3
+
+
+# ---------------------------------------------------------------------------------- all tools
+
+
+def test_every_public_name_of_the_tools_is_documented() -> None:
+    assert undocumented(*sorted(TOOLS.glob("*.py"))) == []

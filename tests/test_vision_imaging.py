@@ -117,4 +117,4 @@ def test_undistort_names_a_bad_calibration_file(vision: Manager, data_dir: Path,
     assert "calibration.yml: missing key 'camera_matrix'" in error
     error = failure_of(vision, "undistort(top)", "u2", {"calibration": str(tmp_path / "nope.yml")})
     assert "nope.yml: no such calibration file" in error
-    assert "param 'calibration' is empty" in failure_of(vision, "undistort(top)", "u3", {})
+    assert "param 'calibration': is empty" in failure_of(vision, "undistort(top)", "u3", {})

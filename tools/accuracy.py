@@ -39,6 +39,7 @@ import numpy as np
 
 from transformations.calibration import load_calibration
 from transformations.detection import DetectorConfig, detect_balls
+from transformations.errors import VisionError
 from transformations.imaging import convert
 from transformations.localization import to_field
 from transformations.scene import CAMERAS, Scene, image_to_field
@@ -68,20 +69,21 @@ class Row:
     figures: dict[str, Any]
 
 
-class AccuracyError(Exception):
-    """The data is missing or a tool failed; the message says which."""
+class AccuracyError(VisionError):
+    """The data is missing or a tool failed; ``where`` names the data folder or the tool's command line."""
 
 
 def _run_tool(script: str, *args: str) -> dict[str, Any]:
     cmd = [sys.executable, str(TOOLS / script), *args, "--json"]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
     if proc.returncode != 0:
-        raise AccuracyError(f"{script} {' '.join(args)} failed ({proc.returncode}): {proc.stderr.strip()}")
+        raise AccuracyError(f"failed ({proc.returncode}): {proc.stderr.strip()}", where=f"{script} {' '.join(args)}")
     result: dict[str, Any] = json.loads(proc.stdout)
     return result
 
 
 def calibration_row(data: Path) -> Row:
+    """Run ``calibrate.py`` on the chessboard images and compare the result with ``left_intrinsics.yml``."""
     with tempfile.TemporaryDirectory() as tmp:
         result = _run_tool(
             "calibrate.py",
@@ -128,6 +130,7 @@ def _params_text(overrides: dict[str, str]) -> str:
 
 
 def video_rows(data: Path) -> list[Row]:
+    """Run ``eval_ball.py`` on the four videos (defaults, and tuned params for ball.mp4 and ball2.mp4)."""
     video = data / "video"
     runs = {
         "sim1": (video / "sim1.mp4", {}),
@@ -215,6 +218,7 @@ def synthetic_rows(frames: int = 120, width: int = 640, height: int = 480) -> li
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Measure every row and print the table (or JSON); 0 when every target is met, 1 when one is missed, 2 on missing data."""
     parser = argparse.ArgumentParser(prog="accuracy.py", description=__doc__.splitlines()[0])
     default = os.environ.get("DYKNOW_DATA", str(REPO.parent / "shared" / "data"))
     parser.add_argument("--data", default=default, help=f"the shared data folder (default $DYKNOW_DATA or {default})")
@@ -224,7 +228,11 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)  # the figures do not depend on it; the machine stays usable
     try:
         if not (data / "video").is_dir() or not (data / "images" / "chessboard").is_dir():
-            raise AccuracyError(f"no shared data at {data}; set DYKNOW_DATA or pass --data")
+            raise AccuracyError(
+                "no shared data here",
+                where=str(data),
+                expected="the shared data folder, with video/ and images/chessboard/ (set DYKNOW_DATA or pass --data)",
+            )
         rows = [calibration_row(data), *video_rows(data), *synthetic_rows()]
     except AccuracyError as exc:
         print(f"accuracy.py: error: {exc}", file=sys.stderr)

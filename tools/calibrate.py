@@ -31,10 +31,14 @@ from transformations.errors import VisionError
 from transformations.sources import list_images
 
 
+class ArgumentValueError(VisionError, argparse.ArgumentTypeError):
+    """A malformed option value. ``where`` is None: argparse puts the option's name before the message, then exits with 2."""
+
+
 def _pattern(text: str) -> tuple[int, int]:
     match = re.fullmatch(r"\s*(\d+)\s*[xX,]\s*(\d+)\s*", text)
     if match is None or int(match.group(1)) < 2 or int(match.group(2)) < 2:
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected inner corners as COLSxROWS, such as 9x6")
+        raise ArgumentValueError(f"got {text!r}", expected="inner corners as COLSxROWS, such as 9x6")
     return int(match.group(1)), int(match.group(2))
 
 
@@ -44,11 +48,12 @@ def _square(text: str) -> float:
     except ValueError:
         value = -1.0
     if not value > 0:
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected the square size in metres, such as 0.025")
+        raise ArgumentValueError(f"got {text!r}", expected="the square size in metres, such as 0.025")
     return value
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The command line: IMAGE_DIR, ``--pattern``, ``--square``, ``-o`` and ``--json``."""
     parser = argparse.ArgumentParser(prog="calibrate.py", description="Calibrate a camera from chessboard images.")
     parser.add_argument("images", metavar="IMAGE_DIR", help="folder of chessboard images, or a glob such as 'shots/*.png'")
     parser.add_argument("--pattern", type=_pattern, required=True, help="inner corners, COLSxROWS (e.g. 9x6)")
@@ -61,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Calibrate from the images, write the file and print the result; 1 on a vision error (one line on stderr)."""
     args = build_parser().parse_args(argv)
     try:
         images = list_images(args.images)

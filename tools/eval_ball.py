@@ -31,6 +31,7 @@ import cv2
 
 from dyknow import DyKnowError, Manager
 from transformations.detection import BallDetector
+from transformations.errors import VisionError
 from transformations.imaging import convert
 
 REPO = Path(__file__).resolve().parent.parent
@@ -38,18 +39,23 @@ DEFAULT_SPECS = REPO / "specs" / "vision.xml"
 DEFAULT_LABEL = "ball-detector(bottom)"
 
 
-class EvalError(Exception):
-    """A problem with the arguments or the video; the message is printed as is."""
+class EvalError(VisionError):
+    """A problem with the video or the detector spec; the message is printed as is."""
+
+
+class ArgumentValueError(VisionError, argparse.ArgumentTypeError):
+    """A malformed option value. ``where`` is None: argparse puts the option's name before the message, then exits with 2."""
 
 
 def _param(text: str) -> tuple[str, str]:
     name, sep, value = text.partition("=")
     if not sep or not name.strip():
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected NAME=VALUE, such as hsv_lower=40,80,80")
+        raise ArgumentValueError(f"got {text!r}", expected="NAME=VALUE, such as hsv_lower=40,80,80")
     return name.strip(), value
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The command line: VIDEO, ``--spec``, ``--specs``, ``--param`` (repeatable) and ``--json``."""
     parser = argparse.ArgumentParser(prog="eval_ball.py", description="Run the BallDetector unit over every frame of a video.")
     parser.add_argument("video", metavar="VIDEO", help="video file (anything OpenCV's FFmpeg reads)")
     parser.add_argument("--spec", default=DEFAULT_LABEL, metavar="LABEL", help=f"detector spec label (default {DEFAULT_LABEL})")
@@ -71,19 +77,19 @@ def evaluate(video: str, label: str, specs: list[str], overrides: dict[str, str]
     """Run the detector spawned from ``label`` over every frame of ``video``; the JSON result."""
     path = Path(video).expanduser()
     if not path.is_file():
-        raise EvalError(f"no such video file {path}")
+        raise EvalError("no such video file", where=str(path), expected="a video file (e.g. .mp4, .avi)")
     capture = cv2.VideoCapture(str(path))
     try:
         if not capture.isOpened():
-            raise EvalError(f"video {path}: OpenCV cannot open it; expected a video file (e.g. .mp4, .avi)")
+            raise EvalError("OpenCV cannot open it", where=f"video {path}", expected="a video file (e.g. .mp4, .avi)")
         with Manager("eval-ball", specs=specs, serve=False) as manager:
             info = manager.spawn(label, "detector", params=overrides)
             if info.state != "running":
-                raise EvalError(f"the detector {label!r} did not start: {info.error}")
+                raise EvalError(f"did not start: {info.error}", where=f"detector {label!r}")
             unit = manager.unit("detector")
             if not isinstance(unit, BallDetector):
                 raise EvalError(
-                    f"spec {label!r} runs {type(unit).__name__}; expected a BallDetector spec such as {DEFAULT_LABEL}"
+                    f"runs {type(unit).__name__}", where=f"spec {label!r}", expected=f"a BallDetector spec such as {DEFAULT_LABEL}"
                 )
             detections: list[dict[str, float] | None] = []
             while True:
@@ -99,17 +105,18 @@ def evaluate(video: str, label: str, specs: list[str], overrides: dict[str, str]
     finally:
         capture.release()
     if not detections:
-        raise EvalError(f"video {path}: no frame could be decoded; expected a video file OpenCV can read")
+        raise EvalError("no frame could be decoded", where=f"video {path}", expected="a video file OpenCV can read")
     return {"frames": len(detections), "detections": detections}
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Evaluate the video and print the result; 1 on an error of the video, the spec or a param (one line on stderr)."""
     args = build_parser().parse_args(argv)
     # A detector that fails at setup is reported below, in one line; the proxy's log would repeat it.
     logging.getLogger("dyknow.proxy").setLevel(logging.CRITICAL)
     try:
         result = evaluate(args.video, args.spec, args.specs, dict(args.param))
-    except (EvalError, DyKnowError) as exc:
+    except DyKnowError as exc:  # EvalError, and the manager's errors (an unknown spec or param)
         print(f"eval_ball.py: error: {exc}", file=sys.stderr)
         return 1
     if args.json:

@@ -19,7 +19,7 @@ row) and hand-written ones without size fields.
 :func:`load_calibration` reads one, :func:`save_calibration` writes one, and
 :func:`calibrate_chessboard` computes one from images of a chessboard (what
 ``tools/calibrate.py`` runs). Every failure is a :class:`~transformations.errors.CalibrationError`
-that names the file and what was wrong.
+whose ``where`` names the file (or image) and ``what`` what was wrong.
 """
 
 from __future__ import annotations
@@ -78,10 +78,10 @@ class Calibration:
         cal_w, cal_h = self.image_size
         sx, sy = width / cal_w, height / cal_h
         if abs(sx - sy) > 0.01 * max(sx, sy):
-            where = f" of {self.path}" if self.path else ""
             raise CalibrationError(
-                f"frame size {width}x{height} does not match the calibration{where} ({cal_w}x{cal_h}); "
-                "expected frames of the calibrated size or of the same aspect ratio"
+                f"frame size {width}x{height} does not match the calibration ({cal_w}x{cal_h})",
+                where=self.path,
+                expected="frames of the calibrated size or of the same aspect ratio",
             )
         matrix[0, :] *= sx
         matrix[1, :] *= sy
@@ -119,10 +119,10 @@ def _open(path: Path, mode: int) -> cv2.FileStorage:
         # OpenCV's parser reports through a chained cv2.error; keep its last line (the reason).
         reason = str(exc.__cause__ or exc).strip().splitlines()[-1]
         raise CalibrationError(
-            f"{path}: not an OpenCV FileStorage file ({reason}); expected YAML, XML or JSON as cv2.FileStorage writes"
+            f"not an OpenCV FileStorage file ({reason})", where=str(path), expected="YAML, XML or JSON as cv2.FileStorage writes"
         ) from exc
     if not storage.isOpened():
-        raise CalibrationError(f"{path}: cannot open it for {'reading' if mode == cv2.FILE_STORAGE_READ else 'writing'}")
+        raise CalibrationError(f"cannot open it for {'reading' if mode == cv2.FILE_STORAGE_READ else 'writing'}", where=str(path))
     return storage
 
 
@@ -145,7 +145,7 @@ def _matrix(path: Path, key: str, node: cv2.FileNode) -> np.ndarray:
         if all(item.isReal() or item.isInt() for item in items):
             value = np.array([item.real() for item in items], dtype=np.float64)
     if value is None or value.size == 0:
-        raise CalibrationError(f"{path}: key {key!r} is not a matrix; expected an !!opencv-matrix or a list of numbers")
+        raise CalibrationError(f"key {key!r} is not a matrix", where=str(path), expected="an !!opencv-matrix or a list of numbers")
     return np.asarray(value, dtype=np.float64)
 
 
@@ -153,35 +153,37 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
     """Read an OpenCV calibration file (see the module documentation for what it must hold)."""
     file = Path(path).expanduser()
     if not file.exists():
-        raise CalibrationError(f"{file}: no such calibration file")
+        raise CalibrationError("no such calibration file", where=str(file))
     if not file.is_file():
-        raise CalibrationError(f"{file}: is not a file; expected an OpenCV calibration file (.yml, .yaml, .xml, .json)")
+        raise CalibrationError("is not a file", where=str(file), expected="an OpenCV calibration file (.yml, .yaml, .xml, .json)")
     storage = _open(file, cv2.FILE_STORAGE_READ)
     try:
         root = storage.root()
         if not root.isMap():
             raise CalibrationError(
-                f"{file}: the document is not a map of keys; expected camera_matrix and distortion_coefficients"
+                "the document is not a map of keys", where=str(file), expected="camera_matrix and distortion_coefficients"
             )
         keys = ", ".join(root.keys()) or "none"
         found = _find(root, _MATRIX_KEYS)
         if found is None:
-            raise CalibrationError(f"{file}: missing key 'camera_matrix' (keys found: {keys}); expected a 3x3 !!opencv-matrix")
+            raise CalibrationError(
+                f"missing key 'camera_matrix' (keys found: {keys})", where=str(file), expected="a 3x3 !!opencv-matrix"
+            )
         matrix = _matrix(file, *found)
         if matrix.size != 9:
-            raise CalibrationError(f"{file}: {found[0]!r} has shape {matrix.shape}; expected 3x3")
+            raise CalibrationError(f"{found[0]!r} has shape {matrix.shape}", where=str(file), expected="3x3")
         matrix = matrix.reshape(3, 3)
         if not np.all(np.isfinite(matrix)) or matrix[0, 0] <= 0 or matrix[1, 1] <= 0:
-            raise CalibrationError(f"{file}: {found[0]!r} is {matrix.tolist()}; expected positive focal lengths fx, fy")
+            raise CalibrationError(f"{found[0]!r} is {matrix.tolist()}", where=str(file), expected="positive focal lengths fx, fy")
         found = _find(root, _DIST_KEYS)
         if found is None:
             raise CalibrationError(
-                f"{file}: missing key 'distortion_coefficients' (keys found: {keys}); expected a 5x1 or 1x5 !!opencv-matrix"
+                f"missing key 'distortion_coefficients' (keys found: {keys})", where=str(file), expected="a 5x1 or 1x5 !!opencv-matrix"
             )
         dist = _matrix(file, *found)
         if (dist.ndim == 2 and 1 not in dist.shape) or dist.ndim > 2 or dist.size not in _DIST_SIZES:
             raise CalibrationError(
-                f"{file}: {found[0]!r} has shape {dist.shape}; expected a row or column of 4, 5, 8, 12 or 14 values"
+                f"{found[0]!r} has shape {dist.shape}", where=str(file), expected="a row or column of 4, 5, 8, 12 or 14 values"
             )
         dist = dist.reshape(-1)
         size = None
@@ -189,14 +191,14 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         if not width.empty() and not height.empty():
             w, h = round(width.real()), round(height.real())
             if w <= 0 or h <= 0:
-                raise CalibrationError(f"{file}: image_width/image_height are {w}x{h}; expected positive sizes")
+                raise CalibrationError(f"image_width/image_height are {w}x{h}", where=str(file), expected="positive sizes")
             size = (w, h)
         rms = None
         found = _find(root, _RMS_KEYS)
         if found is not None and (found[1].isReal() or found[1].isInt()):
             rms = float(found[1].real())
     except (cv2.error, SystemError) as exc:
-        raise CalibrationError(f"{file}: cannot read it: {str(exc.__cause__ or exc).strip().splitlines()[-1]}") from exc
+        raise CalibrationError(f"cannot read it: {str(exc.__cause__ or exc).strip().splitlines()[-1]}", where=str(file)) from exc
     finally:
         storage.release()
     return Calibration(matrix, dist, size, rms, str(file))
@@ -217,9 +219,11 @@ def save_calibration(
     """
     file = Path(path).expanduser()
     if file.suffix.lower() not in (".yml", ".yaml", ".xml", ".json"):
-        raise CalibrationError(f"{file}: unknown calibration file extension {file.suffix!r}; expected .yml, .yaml, .xml or .json")
+        raise CalibrationError(
+            f"unknown calibration file extension {file.suffix!r}", where=str(file), expected=".yml, .yaml, .xml or .json"
+        )
     if not file.parent.is_dir():
-        raise CalibrationError(f"{file}: folder {file.parent} does not exist")
+        raise CalibrationError(f"folder {file.parent} does not exist", where=str(file))
     storage = _open(file, cv2.FILE_STORAGE_WRITE)
     try:
         storage.write("calibration_time", time.strftime("%Y-%m-%d %H:%M:%S %z"))
@@ -234,7 +238,7 @@ def save_calibration(
         for key, value in (extra or {}).items():
             storage.write(key, value)
     except (cv2.error, SystemError) as exc:
-        raise CalibrationError(f"{file}: cannot write it: {str(exc.__cause__ or exc).strip().splitlines()[-1]}") from exc
+        raise CalibrationError(f"cannot write it: {str(exc.__cause__ or exc).strip().splitlines()[-1]}", where=str(file)) from exc
     finally:
         storage.release()
     return file
@@ -265,12 +269,12 @@ def calibrate_chessboard(
     board is found anywhere.
     """
     if not images:
-        raise CalibrationError("no images given; expected chessboard images")
+        raise CalibrationError("no images given", expected="chessboard images")
     cols, rows = pattern
     if cols < 2 or rows < 2:
-        raise CalibrationError(f"chessboard pattern {cols}x{rows}: expected at least 2x2 inner corners")
+        raise CalibrationError(f"got {cols}x{rows}", where="chessboard pattern", expected="at least 2x2 inner corners")
     if not square_m > 0 or not math.isfinite(square_m):
-        raise CalibrationError(f"square size {square_m}: expected a positive length in metres")
+        raise CalibrationError(f"got {square_m}", where="square size", expected="a positive length in metres")
     board = np.zeros((rows * cols, 3), np.float32)
     board[:, :2] = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * square_m
     object_points: list[np.ndarray] = []
@@ -281,14 +285,15 @@ def calibrate_chessboard(
     for image in images:
         grey = cv2.imread(os.fspath(image), cv2.IMREAD_GRAYSCALE)
         if grey is None:
-            raise CalibrationError(f"{image}: cannot decode the image (corrupt or not an image OpenCV reads)")
+            raise CalibrationError("cannot decode the image (corrupt or not an image OpenCV reads)", where=os.fspath(image))
         this = (grey.shape[1], grey.shape[0])
         if size is None:
             size, first = this, os.fspath(image)
         elif this != size:
             raise CalibrationError(
-                f"{image}: image size {this[0]}x{this[1]} differs from {size[0]}x{size[1]} of {first}; "
-                "expected every image from the same camera at the same resolution"
+                f"image size {this[0]}x{this[1]} differs from {size[0]}x{size[1]} of {first}",
+                where=os.fspath(image),
+                expected="every image from the same camera at the same resolution",
             )
         corners = find_chessboard(grey, pattern)
         found.append(corners is not None)
@@ -297,8 +302,8 @@ def calibrate_chessboard(
             image_points.append(corners)
     if not image_points or size is None:
         raise CalibrationError(
-            f"no {cols}x{rows} chessboard found in any of the {len(images)} images; "
-            "check --pattern (inner corners, columns x rows) and that the whole board is visible"
+            f"no {cols}x{rows} chessboard found in any of the {len(images)} images",
+            expected=f"a whole {cols}x{rows} board in view (check --pattern: inner corners, columns x rows)",
         )
     rms, matrix, dist, _rvecs, _tvecs = cv2.calibrateCamera(object_points, image_points, size, None, None)
     calibration = Calibration(np.asarray(matrix, np.float64), np.asarray(dist, np.float64).reshape(-1), size, float(rms))

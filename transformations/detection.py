@@ -71,19 +71,20 @@ class DetectorConfig:
             value = getattr(self, name)
             limits = (179, 255, 255)
             if len(value) != 3 or any(not 0 <= v <= hi for v, hi in zip(value, limits, strict=True)):
-                raise ParamError(f"param {name!r}: got {value!r}; expected 'h,s,v' with {_HSV_RANGES}")
+                raise ParamError(f"got {value!r}", where=f"param {name!r}", expected=f"'h,s,v' with {_HSV_RANGES}")
         for i, channel in ((1, "saturation"), (2, "value")):
             if self.hsv_lower[i] > self.hsv_upper[i]:
                 raise ParamError(
-                    f"params 'hsv_lower'/'hsv_upper': {channel} {self.hsv_lower[i]} > {self.hsv_upper[i]}; "
-                    "expected lower <= upper (only the hue may wrap around)"
+                    f"{channel} {self.hsv_lower[i]} > {self.hsv_upper[i]}",
+                    where="params 'hsv_lower'/'hsv_upper'",
+                    expected="lower <= upper (only the hue may wrap around)",
                 )
         if self.max_radius and self.max_radius < self.min_radius:
             raise ParamError(
-                f"param 'max_radius': got {self.max_radius:g}; expected 0 (no limit) or >= min_radius {self.min_radius:g}"
+                f"got {self.max_radius:g}", where="param 'max_radius'", expected=f"0 (no limit) or >= min_radius {self.min_radius:g}"
             )
         if self.method not in METHODS:
-            raise ParamError(f"param 'method': got {self.method!r}; expected one of {', '.join(METHODS)}")
+            raise ParamError(f"got {self.method!r}", where="param 'method'", expected=f"one of {', '.join(METHODS)}")
 
     @classmethod
     def from_params(cls, values: Mapping[str, Any]) -> DetectorConfig:
@@ -94,7 +95,7 @@ class DetectorConfig:
             raw = values.get(name, ",".join(str(v) for v in getattr(defaults, name)))
             h, s, v = params.numbers(raw, name, 3, low=0, high=255)
             if not all(float(x).is_integer() for x in (h, s, v)) or h > 179:
-                raise ParamError(f"param {name!r}: got {raw!r}; expected whole numbers 'h,s,v' with {_HSV_RANGES}")
+                raise ParamError(f"got {raw!r}", where=f"param {name!r}", expected=f"whole numbers 'h,s,v' with {_HSV_RANGES}")
             return int(h), int(s), int(v)
 
         return cls(

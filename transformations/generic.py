@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 
 from dyknow import Message, Unit
+from transformations.errors import ParamError
 
 __all__ = ["PeriodicSource", "Relay", "RemoteStream"]
 
@@ -20,10 +21,10 @@ class PeriodicSource(Unit):
         """Check the params and start the timer."""
         rate = float(self.params.get("rate_hz", 10.0))
         if rate <= 0:
-            raise ValueError(f"param rate_hz must be positive; got {rate}")
+            raise ParamError(f"got {rate}", where="param 'rate_hz'", expected="a positive number")
         size = int(self.params.get("payload_size", 16))
         if size < 0:
-            raise ValueError(f"param payload_size must be >= 0; got {size}")
+            raise ParamError(f"got {size}", where="param 'payload_size'", expected="a whole number >= 0")
         self._payload = bytes(size)
         self._left = int(self.params.get("count", 0)) or -1
         self._timer = self.create_timer(1.0 / rate, self._tick)

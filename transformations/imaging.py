@@ -14,7 +14,7 @@ import numpy as np
 from dyknow import Message, Unit
 from transformations import params
 from transformations.calibration import Calibration, load_calibration
-from transformations.errors import CalibrationError
+from transformations.errors import CalibrationError, ParamError
 from transformations.payloads import frame_problem
 
 __all__ = ["COLOUR_SPACES", "Subsampler", "Undistort", "convert", "downscale"]
@@ -35,7 +35,7 @@ def convert(frame: np.ndarray, space: str) -> np.ndarray:
         return frame
     code = _CONVERSIONS.get(space)
     if code is None:
-        raise ValueError(f"unknown colour space {space!r}; expected one of {', '.join(COLOUR_SPACES)}")
+        raise ParamError(f"unknown colour space {space!r}", expected=f"one of {', '.join(COLOUR_SPACES)}")
     return cv2.cvtColor(frame, code)
 
 

@@ -34,7 +34,7 @@ def parse_homography(value: Any, name: str = "homography") -> np.ndarray:
     """
     h = np.array(params.numbers(value, name, 9), dtype=np.float64).reshape(3, 3)
     if abs(np.linalg.det(h)) < 1e-12:
-        raise ParamError(f"param {name!r}: got {value!r}; expected an invertible 3x3 matrix (its determinant is 0)")
+        raise ParamError(f"got {value!r} (its determinant is 0)", where=f"param {name!r}", expected="an invertible 3x3 matrix")
     return h / h[2, 2] if h[2, 2] != 0 else h
 
 
@@ -93,7 +93,9 @@ class Localization(Unit):
         bounds = params.text(self.params, "bounds", "")
         self.bounds = params.numbers(bounds, "bounds", 4) if bounds else None
         if self.bounds is not None and not (self.bounds[0] < self.bounds[2] and self.bounds[1] < self.bounds[3]):
-            raise ParamError(f"param 'bounds': got {bounds!r}; expected 'xmin,ymin,xmax,ymax' with xmin < xmax and ymin < ymax")
+            raise ParamError(
+                f"got {bounds!r}", where="param 'bounds'", expected="'xmin,ymin,xmax,ymax' with xmin < xmax and ymin < ymax"
+            )
         raw = params.text(self.params, "homography", required=True)
         self._scene_camera: str | None = None
         self._fixed: np.ndarray | None = None
@@ -102,7 +104,7 @@ class Localization(Unit):
             camera = raw.partition(":")[2].strip()
             if camera not in CAMERAS:
                 raise ParamError(
-                    f"param 'homography': got {raw!r}; expected scene:<camera> with camera one of {', '.join(CAMERAS)}"
+                    f"got {raw!r}", where="param 'homography'", expected=f"scene:<camera> with camera one of {', '.join(CAMERAS)}"
                 )
             self._scene_camera = camera
         else:

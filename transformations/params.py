@@ -2,8 +2,9 @@
 
 The manager already converts each param to the type its spec declares (string, int, float, bool);
 these helpers add what a spec cannot say: ranges, lists of numbers in a string (``"40,80,80"``)
-and sizes (``"640x480"``). Every failure is a :class:`~transformations.errors.ParamError` that
-names the param, says what came in and what was expected.
+and sizes (``"640x480"``). Every failure is a :class:`~transformations.errors.ParamError` whose
+fields name the param (``where``: ``param 'rate_hz'``), say what came in (``what``: ``got -1``)
+and what was expected (``expected``: ``a number >= 0``).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ _MISSING = object()
 def _get(params: Mapping[str, Any], name: str, default: Any) -> Any:
     value = params.get(name, default)
     if value is _MISSING:
-        raise ParamError(f"param {name!r} is missing; expected it in the spec or at spawn time")
+        raise ParamError("is missing", where=f"param {name!r}", expected="it in the spec or at spawn time")
     return value
 
 
@@ -48,15 +49,15 @@ def number(
             raise TypeError
         result = float(value)
     except (TypeError, ValueError):
-        raise ParamError(f"param {name!r}: got {value!r}; expected {kind}") from None
+        raise ParamError(f"got {value!r}", where=f"param {name!r}", expected=kind) from None
     if not math.isfinite(result) or (integer and not result.is_integer()):
-        raise ParamError(f"param {name!r}: got {value!r}; expected {kind}")
+        raise ParamError(f"got {value!r}", where=f"param {name!r}", expected=kind)
     too_low = low is not None and (result <= low if low_open else result < low)
     too_high = high is not None and result > high
     if too_low or too_high:
         lo = "" if low is None else (f"> {low:g}" if low_open else f">= {low:g}")
         hi = "" if high is None else f"<= {high:g}"
-        raise ParamError(f"param {name!r}: got {value!r}; expected {kind} {' and '.join(p for p in (lo, hi) if p)}")
+        raise ParamError(f"got {value!r}", where=f"param {name!r}", expected=f"{kind} {' and '.join(p for p in (lo, hi) if p)}")
     return result
 
 
@@ -77,14 +78,14 @@ def flag(params: Mapping[str, Any], name: str, default: bool = False) -> bool:
         return True
     if lowered in ("false", "0", "no", "off"):
         return False
-    raise ParamError(f"param {name!r}: got {value!r}; expected true or false")
+    raise ParamError(f"got {value!r}", where=f"param {name!r}", expected="true or false")
 
 
 def text(params: Mapping[str, Any], name: str, default: str | None = None, *, required: bool = False) -> str:
     """Param ``name`` as stripped text; ``required`` refuses an empty value."""
     value = str(_get(params, name, _MISSING if default is None else default)).strip()
     if required and not value:
-        raise ParamError(f"param {name!r} is empty; expected a value")
+        raise ParamError("is empty", where=f"param {name!r}", expected="a value")
     return value
 
 
@@ -93,7 +94,7 @@ def choice(params: Mapping[str, Any], name: str, options: tuple[str, ...], defau
     value = text(params, name, default).lower()
     if value not in options:
         listing = ", ".join(repr(o) for o in options)
-        raise ParamError(f"param {name!r}: got {value!r}; expected one of {listing}")
+        raise ParamError(f"got {value!r}", where=f"param {name!r}", expected=f"one of {listing}")
     return value
 
 
@@ -105,10 +106,14 @@ def numbers(value: Any, name: str, count: int, *, low: float | None = None, high
     except ValueError:
         values = ()
     if len(values) != count or not all(math.isfinite(v) for v in values):
-        raise ParamError(f"param {name!r}: got {value!r}; expected {count} numbers separated by commas")
+        raise ParamError(f"got {value!r}", where=f"param {name!r}", expected=f"{count} numbers separated by commas")
     for v in values:
         if (low is not None and v < low) or (high is not None and v > high):
-            raise ParamError(f"param {name!r}: got {value!r}; expected every number in [{low:g}, {high:g}]")
+            if low is not None and high is not None:
+                bounds = f"in [{low:g}, {high:g}]"
+            else:  # one bound only
+                bounds = f">= {low:g}" if low is not None else f"<= {high:g}"
+            raise ParamError(f"got {value!r}", where=f"param {name!r}", expected=f"every number {bounds}")
     return values
 
 
@@ -119,5 +124,5 @@ def size(value: Any, name: str) -> tuple[int, int] | None:
         return None
     match = re.fullmatch(r"(\d+)\s*[x,X ]\s*(\d+)", raw)
     if match is None or int(match.group(1)) <= 0 or int(match.group(2)) <= 0:
-        raise ParamError(f"param {name!r}: got {value!r}; expected an image size such as '640x480'")
+        raise ParamError(f"got {value!r}", where=f"param {name!r}", expected="an image size such as '640x480'")
     return int(match.group(1)), int(match.group(2))

@@ -59,7 +59,9 @@ class ReplaySource(Unit):
         topic = str(self.params.get("topic", "")).strip()
         rate = float(self.params.get("rate", 1.0))
         if rate < 0:
-            raise RecordingError(f"got {rate}", where=f"param rate of {self.name!r}", expected="a positive number, or 0 for as fast as possible")
+            raise RecordingError(
+                f"got {rate}", where=f"param 'rate' of {self.name!r}", expected="a positive number, or 0 for as fast as possible"
+            )
         self.player = Player(
             str(self.params["file"]),
             rate=rate or math.inf,
@@ -70,6 +72,7 @@ class ReplaySource(Unit):
         if len(self.player.channels) != 1:
             self.player.close()
             topics = ", ".join(repr(c.topic) for c in self.player.channels) or "none"
+            # a hint, not an "expected" value: it stays at the end of ``what``, and the message reads as before
             raise RecordingError(
                 f"replay unit {self.name!r} replays one topic, and {topic or 'no topic'!r} selects "
                 f"{len(self.player.channels)}: {topics}; set param topic to one of them",

@@ -39,6 +39,8 @@ from typing import Final
 import cv2
 import numpy as np
 
+from transformations.errors import ParamError
+
 __all__ = [
     "BALL_BGR",
     "BALL_RADIUS_M",
@@ -123,13 +125,13 @@ CAMERAS: Final = tuple(CAMERA_POSES)
 def _pose(camera: str) -> CameraPose:
     pose = CAMERA_POSES.get(camera)
     if pose is None:
-        raise ValueError(f"unknown camera {camera!r}; expected one of {', '.join(CAMERAS)}")
+        raise ParamError(f"unknown camera {camera!r}", expected=f"one of {', '.join(CAMERAS)}")
     return pose
 
 
 def _check_size(width: int, height: int) -> None:
     if width <= 0 or height <= 0:
-        raise ValueError(f"image size must be positive; got {width}x{height}")
+        raise ParamError(f"got {width}x{height}", where="image size", expected="a positive width and height")
 
 
 def camera_matrix(camera: str, width: int, height: int) -> np.ndarray:
@@ -211,7 +213,7 @@ class Scene:
 
     def __init__(self, seed: int = 0, period_s: float = 20.0) -> None:
         if not period_s > 0:
-            raise ValueError(f"period_s must be positive; got {period_s}")
+            raise ParamError(f"got {period_s}", where="period_s", expected="a positive number of seconds")
         self.seed = int(seed)
         self.period_ns = round(period_s * 1e9)
         rng = np.random.default_rng(self.seed)

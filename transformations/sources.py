@@ -90,15 +90,15 @@ def list_images(pattern: str | os.PathLike[str]) -> list[Path]:
     if path.is_dir():
         files = [p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS]
         if not files:
-            raise MediaError(f"folder {path} has no images; expected files ending in {', '.join(IMAGE_EXTENSIONS)}")
+            raise MediaError("has no images", where=f"folder {path}", expected=f"files ending in {', '.join(IMAGE_EXTENSIONS)}")
     elif glob.has_magic(text):
         files = [Path(p) for p in glob.glob(os.path.expanduser(text)) if Path(p).is_file()]
         if not files:
-            raise MediaError(f"no file matches {text!r}; expected a glob such as 'frames/*.png'")
+            raise MediaError("no file matches it", where=text, expected="a glob such as 'frames/*.png'")
     elif path.exists():
-        raise MediaError(f"{path} is a file; expected a folder of images or a glob such as 'frames/*.png'")
+        raise MediaError("is a file", where=str(path), expected="a folder of images or a glob such as 'frames/*.png'")
     else:
-        raise MediaError(f"no such folder {path}; expected a folder of images or a glob such as 'frames/*.png'")
+        raise MediaError("no such folder", where=str(path), expected="a folder of images or a glob such as 'frames/*.png'")
     return sorted(files, key=lambda p: _natural_key(str(p)))
 
 
@@ -188,21 +188,21 @@ class VideoSource(_CaptureSource):
         first = self._grab()  # a file OpenCV opens but cannot decode fails here, not later
         if first is None:
             self._release()
-            raise MediaError(f"video {self.path}: no frame could be decoded; expected a video file OpenCV can read")
+            raise MediaError("no frame could be decoded", where=f"video {self.path}", expected="a video file OpenCV can read")
         self._pending = first[0]
         if self.rate_hz < 0 and not self.fps > 0:
             self.log.warning("video %s does not state its frame rate; playing at 30 fps", self.path)
 
     def _open(self) -> cv2.VideoCapture:
         if not self.path.exists():
-            raise MediaError(f"param 'path': no such video file {self.path}")
+            raise MediaError(f"no such video file {self.path}", where="param 'path'")
         if not self.path.is_file():
-            raise MediaError(f"param 'path': {self.path} is not a file; expected a video file")
+            raise MediaError(f"{self.path} is not a file", where="param 'path'", expected="a video file")
         capture = cv2.VideoCapture(str(self.path))
         if not capture.isOpened():
             capture.release()
             raise MediaError(
-                f"video {self.path}: OpenCV cannot open it; expected a video file (e.g. .mp4, .avi) of a codec FFmpeg decodes"
+                "OpenCV cannot open it", where=f"video {self.path}", expected="a video file (e.g. .mp4, .avi) of a codec FFmpeg decodes"
             )
         return capture
 
@@ -249,8 +249,9 @@ class CameraSource(_CaptureSource):
         if not capture.isOpened():
             capture.release()
             raise MediaError(
-                f"param 'device': no camera at index {self.device} (cv2.VideoCapture({self.device}) cannot open it); "
-                "expected the index of a connected camera, e.g. 0 for /dev/video0"
+                f"no camera at index {self.device} (cv2.VideoCapture({self.device}) cannot open it)",
+                where="param 'device'",
+                expected="the index of a connected camera, e.g. 0 for /dev/video0",
             )
         for prop, value in ((cv2.CAP_PROP_FRAME_WIDTH, width), (cv2.CAP_PROP_FRAME_HEIGHT, height), (cv2.CAP_PROP_FPS, fps)):
             if value:
@@ -258,7 +259,9 @@ class CameraSource(_CaptureSource):
         self._capture = capture
         if self._grab() is None:  # an old frame by the time run() starts: checked, not published
             self._release()
-            raise MediaError(f"camera {self.device} opened but delivered no frame; is another program using it?")
+            raise MediaError(
+                "opened but delivered no frame", where=f"camera {self.device}", expected="frames (is another program using it?)"
+            )
 
     def _rate(self) -> float:
         return self.rate_hz
@@ -274,7 +277,7 @@ class CameraSource(_CaptureSource):
             with self._capture_lock:
                 if self._capture is None:
                     return None
-        raise MediaError(f"camera {self.device} stopped delivering frames ({self.MAX_FAILURES} failed reads in a row)")
+        raise MediaError(f"stopped delivering frames ({self.MAX_FAILURES} failed reads in a row)", where=f"camera {self.device}")
 
 
 class ImageFolderSource(Unit):
@@ -311,11 +314,12 @@ class ImageFolderSource(Unit):
                 self._skip(file, "no image format recognises its header")
             else:
                 raise MediaError(
-                    f"image {file}: no image format recognises it (corrupt or not an image); "
-                    "remove it or set param skip_corrupt=true"
+                    "no image format recognises it (corrupt or not an image)",
+                    where=f"image {file}",
+                    expected="an image (remove it, or set param skip_corrupt=true to skip it)",
                 )
         if not readable:
-            raise MediaError(f"{pattern}: none of the {len(files)} files is a readable image")
+            raise MediaError(f"none of the {len(files)} files is a readable image", where=pattern)
         self.files = readable
 
     def _skip(self, file: Path, reason: str) -> None:
@@ -339,7 +343,9 @@ class ImageFolderSource(Unit):
                     if frame is None:
                         if not self.skip_corrupt:
                             raise MediaError(
-                                f"image {file}: cannot decode it (corrupt or truncated); remove it or set param skip_corrupt=true"
+                                "cannot decode it (corrupt or truncated)",
+                                where=f"image {file}",
+                                expected="an image (remove it, or set param skip_corrupt=true to skip it)",
                             )
                         self._skip(file, "cannot decode it (corrupt or truncated)")
                         continue
