@@ -1,113 +1,50 @@
-"""Transformation specifications: the XML format, its hardened loader and the template expander.
+"""Reading spec files: the hardened XML parser and the structural checks of the format.
 
-A transformation is a blueprint for a unit (the DyKnow paper's *nodelet*): the Python class to
-instantiate, its parameters, its ports and the semantic tags that describe what the ports carry::
-
-    <transformations>                          <!-- or a single <transformation> as the root -->
-      <transformation type="unit">             <!-- "unit" (default) or "nodelet" -->
-        <label>undistort(${Cam})</label>
-        <source>transformations.vision:Undistort</source>
-        <description>free text</description>
-        <args>
-          <arg label="Cam">{cam1; cam2; cam3}</arg>    <!-- an explicit set of values -->
-          <arg label="Robot" class="ex:Robot"/>        <!-- the individuals of an ontology class -->
-        </args>
-        <params>
-          <param name="config-path" type="string">/path/${Cam}/</param>  <!-- string|int|float|bool -->
-        </params>
-        <ports>
-          <port type="out" deadline-ms="500">undist</port>
-          <port type="in" queue="1" policy="keep-last">rawcamera</port>
-        </ports>
-        <tags>
-          <tag port="undist">Undistorted(${Cam})</tag>
-        </tags>
-        <priority>1</priority>                 <!-- lower is preferred; DEFAULT_PRIORITY when absent -->
-        <constraints>
-          <constraint measure="battery" op="&gt;=" value="0.25"/>
-        </constraints>
-      </transformation>
-    </transformations>
-
-The children of ``<transformation>`` come in any order, each at most once; ``label``, ``source``
-and ``ports`` are required. ``specs/transformation.xsd`` describes the same format for editors.
-
-A ``<transformation>`` with ``<args>`` is a *template*: ``${Name}`` is replaced by each value of
-the arg ``Name`` in the label, source, description, param values, port names, tag texts, tag
-``port`` attributes and constraint values, and ``$$`` stands for a literal ``$``. Several args
-expand as their cartesian product, in document order.
-
-Loading happens in two steps. :func:`parse_templates` checks the structure (elements, attributes,
-required parts, template variables) and returns :class:`Template` objects; :meth:`Template.expand`
-substitutes the args and checks what depends on the substituted text (param values against their
-type, port names, tag ports, constraint values, distinct labels), giving
-:class:`TransformationSpec` objects. :func:`parse_specs` and :func:`load_specs` do both and report
-every problem of every file in one :class:`~dyknow.errors.SpecError`.
+:func:`parse_templates` checks the structure of a document (elements, attributes, required parts,
+template variables) and returns :class:`~dyknow.spec.Template` objects; :func:`parse_specs` and
+:func:`load_specs` also expand them, and report every problem of every file in one
+:class:`~dyknow.errors.SpecError`, each issue located and with its fields (element, what,
+expected).
 
 The XML is parsed with :mod:`xml.parsers.expat` directly and any DTD is refused before it is read,
 so external entities and entity-expansion bombs cannot work.
 """
 
-
 from __future__ import annotations
 
-import itertools
 import os
 import pathlib
 import re
-from collections import Counter
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from decimal import Decimal
 from types import MappingProxyType
 from typing import NoReturn
 from xml.parsers import expat
-from xml.sax.saxutils import escape, quoteattr
 
-from dyknow.errors import SpecError, SpecIssue, TagError, did_you_mean
-from dyknow.tags import parse_term
+from dyknow.errors import SpecError, SpecIssue, did_you_mean
+from dyknow.spec.model import (
+    CONSTRAINT_OPS,
+    DECIMAL,
+    DEFAULT_PRIORITY,
+    INTEGER,
+    PARAM_TYPES,
+    PORT_DIRECTIONS,
+    QUEUE_POLICIES,
+    TRANSFORMATION_TYPES,
+    Arg,
+    Constraint,
+    Individuals,
+    Param,
+    PathsLike,
+    Port,
+    Tag,
+    TransformationSpec,
+    shorten,
+)
+from dyknow.spec.template import DOLLAR, Template
 
-__all__ = [
-    "CONSTRAINT_OPS",
-    "DEFAULT_PRIORITY",
-    "ELEMENTS",
-    "PARAM_TYPES",
-    "PORT_DIRECTIONS",
-    "PathsLike",
-    "QUEUE_POLICIES",
-    "TRANSFORMATION_TYPES",
-    "Arg",
-    "Constraint",
-    "Individuals",
-    "Param",
-    "Port",
-    "Tag",
-    "Template",
-    "TransformationSpec",
-    "load_specs",
-    "parse_specs",
-    "parse_templates",
-    "spec_files",
-]
-
-DEFAULT_PRIORITY: int = 100
-"""The priority of a transformation without ``<priority>``; lower numbers are preferred."""
-
-PARAM_TYPES: tuple[str, ...] = ("string", "int", "float", "bool")
-"""The values allowed in ``<param type="...">``."""
-
-CONSTRAINT_OPS: tuple[str, ...] = ("<", "<=", ">", ">=", "==", "!=")
-"""The operators allowed in ``<constraint op="...">``."""
-
-TRANSFORMATION_TYPES: tuple[str, ...] = ("unit", "nodelet")
-"""The values allowed in ``<transformation type="...">``; "nodelet" is the paper's word for a unit."""
-
-PORT_DIRECTIONS: tuple[str, ...] = ("in", "out")
-"""The values allowed in ``<port type="...">``."""
-
-QUEUE_POLICIES: tuple[str, ...] = ("keep-last", "drop-new")
-"""What a full input queue does with a new message (``<port type="in" policy="...">``): keep-last
-drops the oldest queued message (like a Zenoh ring channel), drop-new refuses the new one."""
+__all__ = ["ELEMENTS", "load_specs", "parse_specs", "parse_templates", "spec_files"]
 
 # Every element and its attributes, in the order messages list them.
 _ATTRIBUTES: dict[str, tuple[str, ...]] = {
@@ -163,379 +100,13 @@ _EMPTY_ELEMENTS = frozenset({"constraint"})  # attributes only, no text
 # Root-only attributes: namespace declarations and the ones editors use to attach the XSD.
 _SCHEMA_LOCATIONS = frozenset({"xsi:noNamespaceSchemaLocation", "xsi:schemaLocation"})
 
+
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
-_PORT_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
-_INTEGER = re.compile(r"[+-]?[0-9]+")  # the lexical space of xs:integer
-_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-_DECIMAL = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)")  # the lexical space of xs:decimal
-# One match per '$': an escaped "$$", a "${Name}" reference, or (empty group) a stray '$'.
-_DOLLAR = re.compile(r"\$(?:(?P<escaped>\$)|\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)\}|(?P<stray>))")
-_BOOLS = {"true": True, "1": True, "false": False, "0": False}
-_VALUE_HINTS = {"int": "a whole number such as 10", "float": "a number such as 0.5", "bool": "true or false"}
 
 _DTD_MESSAGE = (
     "<!DOCTYPE>: DTDs and entity declarations are not allowed in transformation specs (they enable "
     "external entities and entity-expansion bombs); remove the <!DOCTYPE ...> block"
 )
-
-Individuals = Callable[[str], Sequence[str]]
-"""Returns the substitution values for an ontology class reference such as ``ex:Camera``."""
-
-PathsLike = str | os.PathLike[str] | Iterable[str | os.PathLike[str]]
-"""One path or several: what :func:`spec_files` and :func:`load_specs` accept."""
-
-
-@dataclass(frozen=True, slots=True)
-class Param:
-    """A parameter passed to the unit when it is spawned; ``value`` has the Python type of ``type``."""
-
-    name: str
-    type: str
-    value: str | int | float | bool
-
-
-@dataclass(frozen=True, slots=True)
-class Port:
-    """A named input or output of a unit.
-
-    ``deadline_ms`` (out ports) bounds the time between two outputs; ``queue`` and ``policy`` (in
-    ports) size the input queue and say what a full queue does; None means the manager's default.
-    """
-
-    name: str
-    direction: str
-    deadline_ms: float | None = None
-    queue: int | None = None
-    policy: str | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class Tag:
-    """A semantic description of what a port carries, such as ``Undistorted(cam1)``."""
-
-    port: str
-    tag: str
-
-
-@dataclass(frozen=True, slots=True)
-class Constraint:
-    """A condition on a measure (``battery >= 0.25``) that must hold for the transformation to run."""
-
-    measure: str
-    op: str
-    value: float | str
-
-    def holds(self, measured: float | str) -> bool:
-        """Whether ``measured op value`` holds.
-
-        Numbers compare as numbers. A string only supports ``==`` and ``!=`` (a number never
-        equals a string); the ordering operators are false for it.
-        """
-        if self.op == "==":
-            return measured == self.value
-        if self.op == "!=":
-            return measured != self.value
-        if isinstance(measured, str) or isinstance(self.value, str):
-            return False
-        if self.op == "<":
-            return measured < self.value
-        if self.op == "<=":
-            return measured <= self.value
-        if self.op == ">":
-            return measured > self.value
-        if self.op == ">=":
-            return measured >= self.value
-        raise ValueError(f"unknown operator {self.op!r}; expected one of {', '.join(CONSTRAINT_OPS)}")
-
-
-@dataclass(frozen=True, slots=True)
-class Arg:
-    """A template argument: explicit ``values``, or the individuals of ``ontology_class``."""
-
-    label: str
-    values: tuple[str, ...] = ()
-    ontology_class: str | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class TransformationSpec:
-    """One concrete transformation: everything needed to spawn a unit and wire its ports.
-
-    ``args`` is the substitution that produced it from its template, such as
-    ``(("Cam", "cam1"),)``; ``path`` and ``line`` locate its ``<transformation>``.
-    """
-
-    label: str
-    source: str
-    params: tuple[Param, ...] = ()
-    ports: tuple[Port, ...] = ()
-    tags: tuple[Tag, ...] = ()
-    priority: int = DEFAULT_PRIORITY
-    constraints: tuple[Constraint, ...] = ()
-    description: str = ""
-    args: tuple[tuple[str, str], ...] = ()
-    path: str = "<memory>"
-    line: int = 0
-
-    @property
-    def inputs(self) -> tuple[Port, ...]:
-        """The ``in`` ports, in document order."""
-        return tuple(p for p in self.ports if p.direction == "in")
-
-    @property
-    def outputs(self) -> tuple[Port, ...]:
-        """The ``out`` ports, in document order."""
-        return tuple(p for p in self.ports if p.direction == "out")
-
-    @property
-    def location(self) -> str:
-        """Where the spec was written, as ``path:line``."""
-        return f"{self.path}:{self.line}"
-
-    def port(self, name: str) -> Port:
-        """The port called ``name``; raises :class:`KeyError` naming the ports there are."""
-        for port in self.ports:
-            if port.name == name:
-                return port
-        names = [p.name for p in self.ports]
-        raise KeyError(
-            f"{self.label!r} has no port named {name!r}; expected {_one_of(names)}{did_you_mean(name, names)}"
-        )
-
-    def param_values(self) -> dict[str, str | int | float | bool]:
-        """The parameters as a ``name -> value`` dict."""
-        return {p.name: p.value for p in self.params}
-
-    def tags_for(self, port: str) -> tuple[str, ...]:
-        """The tags describing ``port``, in document order."""
-        return tuple(t.tag for t in self.tags if t.port == port)
-
-    def to_dict(self) -> dict[str, object]:
-        """A JSON-ready description of the spec."""
-        ports: list[dict[str, object]] = []
-        for port in self.ports:
-            entry: dict[str, object] = {"name": port.name, "direction": port.direction}
-            if port.deadline_ms is not None:
-                entry["deadline_ms"] = port.deadline_ms
-            if port.queue is not None:
-                entry["queue"] = port.queue
-            if port.policy is not None:
-                entry["policy"] = port.policy
-            ports.append(entry)
-        return {
-            "label": self.label,
-            "source": self.source,
-            "params": self.param_values(),
-            "ports": ports,
-            "tags": [{"port": t.port, "tag": t.tag} for t in self.tags],
-            "priority": self.priority,
-            "constraints": [{"measure": c.measure, "op": c.op, "value": c.value} for c in self.constraints],
-            "description": self.description,
-            "args": dict(self.args),
-            "location": self.location,
-        }
-
-    def to_xml(self) -> str:
-        """A standalone ``<transformation>`` document that :func:`parse_specs` reads back as this spec.
-
-        Args are written as one-value sets so that ``args`` survives the round trip; a value the
-        set syntax cannot hold (an ontology individual containing ``;``) is left out.
-        """
-        out = ['<?xml version="1.0" encoding="UTF-8"?>', "<transformation>"]
-        out.append(f"  <label>{_xml_text(self.label)}</label>")
-        out.append(f"  <source>{_xml_text(self.source)}</source>")
-        if self.description:
-            out.append(f"  <description>{_xml_text(self.description)}</description>")
-        args = [(name, value) for name, value in self.args if _is_set_value(value)]
-        if args:
-            out.append("  <args>")
-            # Arg values are not templates: they need XML escaping but no "$$".
-            out.extend(f"    <arg label={quoteattr(name)}>{{{escape(value)}}}</arg>" for name, value in args)
-            out.append("  </args>")
-        if self.params:
-            out.append("  <params>")
-            for p in self.params:
-                value = _xml_text(_value_text(p.value))
-                out.append(f"    <param name={quoteattr(p.name)} type={quoteattr(p.type)}>{value}</param>")
-            out.append("  </params>")
-        out.append("  <ports>")
-        for port in self.ports:
-            extra = ""
-            if port.deadline_ms is not None:
-                extra += f' deadline-ms="{_decimal_text(port.deadline_ms)}"'
-            if port.queue is not None:
-                extra += f' queue="{port.queue}"'
-            if port.policy is not None:
-                extra += f' policy="{port.policy}"'
-            out.append(f'    <port type="{port.direction}"{extra}>{_xml_text(port.name)}</port>')
-        out.append("  </ports>")
-        if self.tags:
-            out.append("  <tags>")
-            out.extend(f"    <tag port={_xml_attr(t.port)}>{_xml_text(t.tag)}</tag>" for t in self.tags)
-            out.append("  </tags>")
-        if self.priority != DEFAULT_PRIORITY:
-            out.append(f"  <priority>{self.priority}</priority>")
-        if self.constraints:
-            out.append("  <constraints>")
-            for c in self.constraints:
-                value = _xml_attr(_value_text(c.value))
-                attributes = f"measure={quoteattr(c.measure)} op={quoteattr(c.op)} value={value}"
-                out.append(f"    <constraint {attributes}/>")
-            out.append("  </constraints>")
-        out.append("</transformation>")
-        return "\n".join(out) + "\n"
-
-
-@dataclass(frozen=True, slots=True)
-class Template:
-    """One parsed ``<transformation>`` before expansion.
-
-    Text fields are kept as written and may contain ``${Name}``: ``params`` hold their raw text as
-    value, ``constraints`` their raw value text. The ``*_lines`` fields hold the line of each
-    element, parallel to the tuple they describe, so that expansion errors can be located.
-    """
-
-    label: str
-    source: str
-    args: tuple[Arg, ...] = ()
-    path: str = "<memory>"
-    line: int = 0
-    description: str = ""
-    params: tuple[Param, ...] = ()
-    ports: tuple[Port, ...] = ()
-    tags: tuple[Tag, ...] = ()
-    priority: int = DEFAULT_PRIORITY
-    constraints: tuple[Constraint, ...] = ()
-    label_line: int = 0
-    arg_lines: tuple[int, ...] = ()
-    param_lines: tuple[int, ...] = ()
-    port_lines: tuple[int, ...] = ()
-    tag_lines: tuple[int, ...] = ()
-    constraint_lines: tuple[int, ...] = ()
-
-    @property
-    def is_template(self) -> bool:
-        """Whether the transformation has args (and so expands to one spec per combination)."""
-        return bool(self.args)
-
-    def expand(self, individuals: Individuals | None = None) -> list[TransformationSpec]:
-        """One spec per combination of arg values (cartesian product, args in document order).
-
-        ``individuals(class_ref)`` supplies the values of an ``<arg class="...">``. Raises
-        :class:`SpecError` with every problem of this template; a problem that is the same in
-        every expansion is reported once, otherwise it names the expansions it occurs in.
-        """
-        issues: list[SpecIssue] = []
-        value_sets: list[tuple[str, ...]] = []
-        for arg, line in zip(self.args, self.arg_lines, strict=True):
-            arg_values, arg_problem = _arg_values(arg, individuals)
-            if arg_problem:
-                issues.append(SpecIssue(self.path, line, f"<arg> {arg.label!r}: {arg_problem}"))
-            value_sets.append(arg_values)
-        if issues:
-            raise SpecError(issues)
-
-        specs: list[TransformationSpec] = []
-        found: dict[tuple[int, str], list[str]] = {}  # (line, message) -> the expansions it occurs in
-        for combination in itertools.product(*value_sets):
-            values = dict(zip((a.label for a in self.args), combination, strict=True))
-            spec, problems = self._build(values)
-            specs.append(spec)
-            expansion = ", ".join(f"{name}={value}" for name, value in values.items())
-            for problem in dict.fromkeys(problems):
-                found.setdefault(problem, []).append(expansion)
-        for (line, message), expansions in found.items():
-            if len(expansions) == 1 and len(specs) > 1:
-                message += f" (in expansion {expansions[0]})"
-            elif len(expansions) < len(specs):
-                message += f" (in expansions {'; '.join(expansions)})"
-            issues.append(SpecIssue(self.path, line, message))
-        issues.extend(self._label_collisions(specs))
-        if issues:
-            raise SpecError(sorted(issues, key=lambda i: i.line))
-        return specs
-
-    def _build(self, values: Mapping[str, str]) -> tuple[TransformationSpec, list[tuple[int, str]]]:
-        """The spec for one substitution, and the (line, message) problems found in it."""
-        problems: list[tuple[int, str]] = []
-
-        def sub(text: str) -> str:
-            return _substitute(text, values)
-
-        params = []
-        for param, line in zip(self.params, self.param_lines, strict=True):
-            text = sub(str(param.value))
-            try:
-                value = _convert(param.type, text)
-            except ValueError as exc:
-                message = f"<param> {param.name!r}: value {text!r} is not a valid {param.type}; expected {exc}"
-                problems.append((line, message))
-                value = text
-            params.append(Param(param.name, param.type, value))
-
-        ports = [replace(port, name=sub(port.name)) for port in self.ports]
-        first_line: dict[str, int] = {}
-        for port, line in zip(ports, self.port_lines, strict=True):
-            if not _PORT_NAME.fullmatch(port.name):
-                expected = "letters, digits, '_' and '-', starting with a letter or '_'"
-                problems.append((line, f"<port>: {port.name!r} is not a valid port name; expected {expected}"))
-            elif port.name in first_line:
-                where = f"first at line {first_line[port.name]}"
-                problems.append((line, f"<port>: duplicate port {port.name!r} ({where}); expected each port name once"))
-            first_line.setdefault(port.name, line)
-
-        tags = [Tag(sub(tag.port), sub(tag.tag)) for tag in self.tags]
-        for tag, line in zip(tags, self.tag_lines, strict=True):
-            if tag.port not in first_line:
-                names = list(first_line)
-                hint = did_you_mean(tag.port, names)
-                problems.append((line, f"<tag> @port: no port named {tag.port!r}; expected {_one_of(names)}{hint}"))
-            if tag.tag:
-                try:
-                    parse_term(tag.tag)
-                except TagError as exc:
-                    problems.append((line, f"<tag>: {exc}"))
-
-        constraints = []
-        for constraint, line in zip(self.constraints, self.constraint_lines, strict=True):
-            text = sub(str(constraint.value))
-            if _NUMBER.fullmatch(text):
-                constraints.append(replace(constraint, value=float(text)))
-                continue
-            if constraint.op not in ("==", "!="):
-                problem = f"{text!r} is not a number, so op {constraint.op!r} cannot compare it"
-                problems.append((line, f"<constraint> @value: {problem}; expected a number, or op == or !="))
-            constraints.append(replace(constraint, value=text))
-
-        spec = TransformationSpec(
-            label=sub(self.label),
-            source=sub(self.source),
-            params=tuple(params),
-            ports=tuple(ports),
-            tags=tuple(tags),
-            priority=self.priority,
-            constraints=tuple(constraints),
-            description=sub(self.description),
-            args=tuple(values.items()),
-            path=self.path,
-            line=self.line,
-        )
-        return spec, problems
-
-    def _label_collisions(self, specs: Sequence[TransformationSpec]) -> list[SpecIssue]:
-        """An issue when several expansions get the same label (usually an arg missing from it)."""
-        shared = [(label, n) for label, n in Counter(s.label for s in specs).items() if n > 1]
-        if not shared:
-            return []
-        label, n = shared[0]
-        used = {m["name"] for m in _DOLLAR.finditer(self.label)}
-        unused = [f"${{{a.label}}}" for a in self.args if a.label not in used]
-        if unused:
-            hint = f"put {' and '.join(unused)} in the label"
-        else:
-            hint = "make the arg values give distinct labels"
-        message = f"<label>: {n} expansions get the same label {label!r}; expected one label per expansion ({hint})"
-        return [SpecIssue(self.path, self.label_line, message)]
 
 
 def parse_templates(data: str | bytes, path: str = "<string>") -> list[Template]:
@@ -829,7 +400,7 @@ def _check_element(node: _Node, issues: _Issues, is_root: bool = False) -> None:
             expected = "elements only"
         else:
             expected = f"only <{allowed[0]}> elements"
-        issues.add(node.line, f"<{name}>: unexpected text {_shorten(node.text)!r}; expected {expected}")
+        issues.add(node.line, f"<{name}>: unexpected text {shorten(node.text)!r}; expected {expected}")
 
 
 def _read_template(node: _Node, issues: _Issues) -> Template:
@@ -862,7 +433,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
     priority = DEFAULT_PRIORITY
     if "priority" in first:
         element = first["priority"]
-        if _INTEGER.fullmatch(element.text):
+        if INTEGER.fullmatch(element.text):
             priority = int(element.text)
         else:
             expected = "a whole number such as 1 (lower is preferred)"
@@ -928,7 +499,7 @@ def _read_args(container: _Node | None, issues: _Issues) -> tuple[tuple[Arg, ...
             if not ontology_class.strip():
                 issues.add(node.line, "<arg> @class: empty; expected an ontology class such as ex:Camera")
             if node.text:
-                problem = f"has both @class and the values {_shorten(node.text)!r}"
+                problem = f"has both @class and the values {shorten(node.text)!r}"
                 issues.add(node.line, f"<arg> {label!r}: {problem}; expected one or the other")
             args.append(Arg(label, (), ontology_class.strip()))
         lines.append(node.line)
@@ -941,12 +512,12 @@ def _parse_set(text: str) -> tuple[tuple[str, ...], str | None]:
     if inner.startswith("{") and inner.endswith("}"):
         inner = inner[1:-1]
     elif inner.startswith("{") or inner.endswith("}"):
-        return (), f"unbalanced braces in {_shorten(text)!r}; expected a set such as {{cam1; cam2}}"
+        return (), f"unbalanced braces in {shorten(text)!r}; expected a set such as {{cam1; cam2}}"
     if not inner.strip():
         return (), 'empty set; expected values such as {cam1; cam2}, or class="ex:Class"'
     values = tuple(v.strip() for v in inner.split(";"))
     if "" in values:
-        return (), f"empty value in {_shorten(text)!r}; expected non-empty values separated by ';'"
+        return (), f"empty value in {shorten(text)!r}; expected non-empty values separated by ';'"
     for i, value in enumerate(values):
         if value in values[:i]:
             return (), f"duplicate value {value!r}; expected each value once"
@@ -996,7 +567,7 @@ def _read_ports(
             if direction == "in":
                 expected = 'it on a <port type="out">'
                 issues.add(node.line, f"<port> @deadline-ms: only allowed on out ports; expected {expected}")
-            elif not _DECIMAL.fullmatch(text) or Decimal(text) <= 0:
+            elif not DECIMAL.fullmatch(text) or Decimal(text) <= 0:
                 expected = "milliseconds such as 500"
                 issues.add(node.line, f"<port> @deadline-ms: {text!r} is not a positive number; expected {expected}")
             else:
@@ -1006,7 +577,7 @@ def _read_ports(
             text = node.attrs["queue"].strip()
             if direction == "out":
                 issues.add(node.line, '<port> @queue: only allowed on in ports; expected it on a <port type="in">')
-            elif not _INTEGER.fullmatch(text) or int(text) < 1:
+            elif not INTEGER.fullmatch(text) or int(text) < 1:
                 issues.add(node.line, f"<port> @queue: {text!r} is not a positive whole number; expected a queue size such as 1 or 8")
             else:
                 queue = int(text)
@@ -1065,16 +636,14 @@ def _read_constraints(
     return tuple(constraints), tuple(n.line for n in nodes)
 
 
-# --- templates --------------------------------------------------------------------------------
-
 
 def _check_template(where: str, text: str, line: int, declared: Sequence[str], issues: _Issues) -> None:
     """Report each stray '$' and each ``${Name}`` that names no declared arg."""
-    for match in _DOLLAR.finditer(text):
+    for match in DOLLAR.finditer(text):
         name = match["name"]
         if match["stray"] is not None:
             expected = "${Name} to use an arg, or $$ for a literal '$'"
-            issues.add(line, f"{where}: stray '$' in {_shorten(text)!r}; expected {expected}")
+            issues.add(line, f"{where}: stray '$' in {shorten(text)!r}; expected {expected}")
         elif name is not None and name not in declared:
             if declared:
                 expected = f"one of the declared args: {', '.join(declared)}{did_you_mean(name, declared)}"
@@ -1083,91 +652,3 @@ def _check_template(where: str, text: str, line: int, declared: Sequence[str], i
             issues.add(line, f"{where}: undefined template variable ${{{name}}}; expected {expected}")
 
 
-def _substitute(text: str, values: Mapping[str, str]) -> str:
-    def replacement(match: re.Match[str]) -> str:
-        if match["name"] is not None:
-            return values[match["name"]]
-        return "$"  # "$$" (parse_templates refuses any stray '$')
-
-    return _DOLLAR.sub(replacement, text)
-
-
-def _arg_values(arg: Arg, individuals: Individuals | None) -> tuple[tuple[str, ...], str | None]:
-    """The substitution values of an arg, or a problem (for ontology classes)."""
-    if arg.ontology_class is None:
-        return arg.values, None
-    cls = arg.ontology_class
-    if individuals is None:
-        problem = f"takes its values from ontology class {cls!r}, but no ontology is loaded"
-        return (), f"{problem}; expected --ontology FILE"
-    try:
-        found = individuals(cls)
-    except Exception as exc:  # the resolver is the caller's code: any failure becomes a located issue
-        problem = f"cannot get the individuals of ontology class {cls!r} ({type(exc).__name__}: {exc})"
-        return (), f"{problem}; expected a class of the loaded ontology"
-    if isinstance(found, str):  # a str is a Sequence[str] too, of one-letter values
-        problem = f"the individuals of ontology class {cls!r} came back as one string"
-        return (), f"{problem}; expected a sequence of names"
-    values = tuple(found)
-    if not values:
-        return (), f"ontology class {cls!r} has no individuals; expected at least one"
-    for value in values:
-        if not isinstance(value, str) or not value.strip():
-            problem = f"ontology class {cls!r} gave the invalid individual name {value!r}"
-            return (), f"{problem}; expected non-empty strings"
-    # An ontology may list an individual twice (asserted under two classes); that is no error.
-    return tuple(dict.fromkeys(v.strip() for v in values)), None
-
-
-def _convert(type_: str, text: str) -> str | int | float | bool:
-    """``text`` as a value of the param type; the :class:`ValueError` names the expected form."""
-    if type_ == "string":
-        return text
-    if type_ == "int" and _INTEGER.fullmatch(text):
-        return int(text)
-    if type_ == "float" and _NUMBER.fullmatch(text):
-        return float(text)
-    if type_ == "bool" and text.lower() in _BOOLS:
-        return _BOOLS[text.lower()]
-    raise ValueError(_VALUE_HINTS[type_])
-
-
-# --- messages and writing ---------------------------------------------------------------------
-
-
-def _one_of(names: Sequence[str]) -> str:
-    if not names:
-        return "the name of a declared <port>"
-    quoted = ", ".join(map(repr, names))
-    return f"one of {quoted}" if len(names) > 1 else quoted
-
-
-def _shorten(text: str, limit: int = 30) -> str:
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _xml_text(text: str) -> str:
-    """A templated field as element text: '$' doubled, then XML-escaped."""
-    return escape(text.replace("$", "$$"))
-
-
-def _xml_attr(text: str) -> str:
-    """A templated field as a quoted attribute value."""
-    return quoteattr(text.replace("$", "$$"))
-
-
-def _value_text(value: str | int | float | bool) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(value)  # repr() round-trips exactly
-    return str(value)
-
-
-def _decimal_text(value: float) -> str:
-    # repr() may use exponent notation (1e-05), which xs:decimal does not allow.
-    return format(Decimal(repr(value)), "f")
-
-
-def _is_set_value(value: str) -> bool:
-    return bool(value) and value == value.strip() and ";" not in value

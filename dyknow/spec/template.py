@@ -1,0 +1,230 @@
+"""Templates: a ``<transformation>`` with ``<args>``, expanded into one spec per combination.
+
+``${Name}`` is replaced by each value of the arg ``Name`` in the label, source, description, param
+values, port names, tag texts, tag ``port`` attributes and constraint values, and ``$$`` stands for
+a literal ``$``. Several args expand as their cartesian product, in document order.
+:meth:`Template.expand` checks what depends on the substituted text (param values against their
+type, port names, tag ports, constraint values, distinct labels) and reports every problem of the
+template, located.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+from dyknow.errors import SpecError, SpecIssue, TagError, did_you_mean
+from dyknow.spec.model import (
+    DEFAULT_PRIORITY,
+    NUMBER,
+    Arg,
+    Constraint,
+    Individuals,
+    Param,
+    Port,
+    Tag,
+    TransformationSpec,
+    convert_param,
+    one_of,
+)
+from dyknow.tags import parse_term
+
+__all__ = ["DOLLAR", "Template"]
+
+# One match per '$': an escaped "$$", a "${Name}" reference, or (empty group) a stray '$'.
+DOLLAR = re.compile(r"\$(?:(?P<escaped>\$)|\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)\}|(?P<stray>))")
+_PORT_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
+
+
+@dataclass(frozen=True, slots=True)
+class Template:
+    """One parsed ``<transformation>`` before expansion.
+
+    Text fields are kept as written and may contain ``${Name}``: ``params`` hold their raw text as
+    value, ``constraints`` their raw value text. The ``*_lines`` fields hold the line of each
+    element, parallel to the tuple they describe, so that expansion errors can be located.
+    """
+
+    label: str
+    source: str
+    args: tuple[Arg, ...] = ()
+    path: str = "<memory>"
+    line: int = 0
+    description: str = ""
+    params: tuple[Param, ...] = ()
+    ports: tuple[Port, ...] = ()
+    tags: tuple[Tag, ...] = ()
+    priority: int = DEFAULT_PRIORITY
+    constraints: tuple[Constraint, ...] = ()
+    label_line: int = 0
+    arg_lines: tuple[int, ...] = ()
+    param_lines: tuple[int, ...] = ()
+    port_lines: tuple[int, ...] = ()
+    tag_lines: tuple[int, ...] = ()
+    constraint_lines: tuple[int, ...] = ()
+
+    @property
+    def is_template(self) -> bool:
+        """Whether the transformation has args (and so expands to one spec per combination)."""
+        return bool(self.args)
+
+    def expand(self, individuals: Individuals | None = None) -> list[TransformationSpec]:
+        """One spec per combination of arg values (cartesian product, args in document order).
+
+        ``individuals(class_ref)`` supplies the values of an ``<arg class="...">``. Raises
+        :class:`SpecError` with every problem of this template; a problem that is the same in
+        every expansion is reported once, otherwise it names the expansions it occurs in.
+        """
+        issues: list[SpecIssue] = []
+        value_sets: list[tuple[str, ...]] = []
+        for arg, line in zip(self.args, self.arg_lines, strict=True):
+            arg_values, arg_problem = _arg_values(arg, individuals)
+            if arg_problem:
+                issues.append(SpecIssue(self.path, line, f"<arg> {arg.label!r}: {arg_problem}"))
+            value_sets.append(arg_values)
+        if issues:
+            raise SpecError(issues)
+
+        specs: list[TransformationSpec] = []
+        found: dict[tuple[int, str], list[str]] = {}  # (line, message) -> the expansions it occurs in
+        for combination in itertools.product(*value_sets):
+            values = dict(zip((a.label for a in self.args), combination, strict=True))
+            spec, problems = self._build(values)
+            specs.append(spec)
+            expansion = ", ".join(f"{name}={value}" for name, value in values.items())
+            for problem in dict.fromkeys(problems):
+                found.setdefault(problem, []).append(expansion)
+        for (line, message), expansions in found.items():
+            if len(expansions) == 1 and len(specs) > 1:
+                message += f" (in expansion {expansions[0]})"
+            elif len(expansions) < len(specs):
+                message += f" (in expansions {'; '.join(expansions)})"
+            issues.append(SpecIssue(self.path, line, message))
+        issues.extend(self._label_collisions(specs))
+        if issues:
+            raise SpecError(sorted(issues, key=lambda i: i.line))
+        return specs
+
+    def _build(self, values: Mapping[str, str]) -> tuple[TransformationSpec, list[tuple[int, str]]]:
+        """The spec for one substitution, and the (line, message) problems found in it."""
+        problems: list[tuple[int, str]] = []
+
+        def sub(text: str) -> str:
+            return _substitute(text, values)
+
+        params = []
+        for param, line in zip(self.params, self.param_lines, strict=True):
+            text = sub(str(param.value))
+            try:
+                value = convert_param(param.type, text)
+            except ValueError as exc:
+                message = f"<param> {param.name!r}: value {text!r} is not a valid {param.type}; expected {exc}"
+                problems.append((line, message))
+                value = text
+            params.append(Param(param.name, param.type, value))
+
+        ports = [replace(port, name=sub(port.name)) for port in self.ports]
+        first_line: dict[str, int] = {}
+        for port, line in zip(ports, self.port_lines, strict=True):
+            if not _PORT_NAME.fullmatch(port.name):
+                expected = "letters, digits, '_' and '-', starting with a letter or '_'"
+                problems.append((line, f"<port>: {port.name!r} is not a valid port name; expected {expected}"))
+            elif port.name in first_line:
+                where = f"first at line {first_line[port.name]}"
+                problems.append((line, f"<port>: duplicate port {port.name!r} ({where}); expected each port name once"))
+            first_line.setdefault(port.name, line)
+
+        tags = [Tag(sub(tag.port), sub(tag.tag)) for tag in self.tags]
+        for tag, line in zip(tags, self.tag_lines, strict=True):
+            if tag.port not in first_line:
+                names = list(first_line)
+                hint = did_you_mean(tag.port, names)
+                problems.append((line, f"<tag> @port: no port named {tag.port!r}; expected {one_of(names)}{hint}"))
+            if tag.tag:
+                try:
+                    parse_term(tag.tag)
+                except TagError as exc:
+                    problems.append((line, f"<tag>: {exc}"))
+
+        constraints = []
+        for constraint, line in zip(self.constraints, self.constraint_lines, strict=True):
+            text = sub(str(constraint.value))
+            if NUMBER.fullmatch(text):
+                constraints.append(replace(constraint, value=float(text)))
+                continue
+            if constraint.op not in ("==", "!="):
+                problem = f"{text!r} is not a number, so op {constraint.op!r} cannot compare it"
+                problems.append((line, f"<constraint> @value: {problem}; expected a number, or op == or !="))
+            constraints.append(replace(constraint, value=text))
+
+        spec = TransformationSpec(
+            label=sub(self.label),
+            source=sub(self.source),
+            params=tuple(params),
+            ports=tuple(ports),
+            tags=tuple(tags),
+            priority=self.priority,
+            constraints=tuple(constraints),
+            description=sub(self.description),
+            args=tuple(values.items()),
+            path=self.path,
+            line=self.line,
+        )
+        return spec, problems
+
+    def _label_collisions(self, specs: Sequence[TransformationSpec]) -> list[SpecIssue]:
+        """An issue when several expansions get the same label (usually an arg missing from it)."""
+        shared = [(label, n) for label, n in Counter(s.label for s in specs).items() if n > 1]
+        if not shared:
+            return []
+        label, n = shared[0]
+        used = {m["name"] for m in DOLLAR.finditer(self.label)}
+        unused = [f"${{{a.label}}}" for a in self.args if a.label not in used]
+        if unused:
+            hint = f"put {' and '.join(unused)} in the label"
+        else:
+            hint = "make the arg values give distinct labels"
+        message = f"<label>: {n} expansions get the same label {label!r}; expected one label per expansion ({hint})"
+        return [SpecIssue(self.path, self.label_line, message)]
+
+
+
+def _substitute(text: str, values: Mapping[str, str]) -> str:
+    def replacement(match: re.Match[str]) -> str:
+        if match["name"] is not None:
+            return values[match["name"]]
+        return "$"  # "$$" (parse_templates refuses any stray '$')
+
+    return DOLLAR.sub(replacement, text)
+
+
+def _arg_values(arg: Arg, individuals: Individuals | None) -> tuple[tuple[str, ...], str | None]:
+    """The substitution values of an arg, or a problem (for ontology classes)."""
+    if arg.ontology_class is None:
+        return arg.values, None
+    cls = arg.ontology_class
+    if individuals is None:
+        problem = f"takes its values from ontology class {cls!r}, but no ontology is loaded"
+        return (), f"{problem}; expected --ontology FILE"
+    try:
+        found = individuals(cls)
+    except Exception as exc:  # the resolver is the caller's code: any failure becomes a located issue
+        problem = f"cannot get the individuals of ontology class {cls!r} ({type(exc).__name__}: {exc})"
+        return (), f"{problem}; expected a class of the loaded ontology"
+    if isinstance(found, str):  # a str is a Sequence[str] too, of one-letter values
+        problem = f"the individuals of ontology class {cls!r} came back as one string"
+        return (), f"{problem}; expected a sequence of names"
+    values = tuple(found)
+    if not values:
+        return (), f"ontology class {cls!r} has no individuals; expected at least one"
+    for value in values:
+        if not isinstance(value, str) or not value.strip():
+            problem = f"ontology class {cls!r} gave the invalid individual name {value!r}"
+            return (), f"{problem}; expected non-empty strings"
+    # An ontology may list an individual twice (asserted under two classes); that is no error.
+    return tuple(dict.fromkeys(v.strip() for v in values)), None
+
+
