@@ -25,6 +25,7 @@ import importlib
 import inspect
 import json
 import logging
+import math
 import os
 import threading
 import time
@@ -41,6 +42,7 @@ from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
+from dyknow.spec.model import convert_param
 from dyknow.transport import Queryable, Session, check_key_expr, make_config
 from dyknow.unit import Unit
 
@@ -534,27 +536,19 @@ def _param_values(spec: TransformationSpec, overrides: Mapping[str, Any]) -> dic
 
 
 def _coerce(kind: str, value: Any, what: str) -> Any:
+    """A spawn-time param value as its declared type: text is read as the spec format reads it."""
     try:
         if kind == "string":
             return str(value)
-        if kind == "bool":
-            if isinstance(value, bool):
-                return value
-            text = str(value).strip().lower()
-            if text in ("true", "1", "yes", "on"):
-                return True
-            if text in ("false", "0", "no", "off"):
-                return False
-            raise ValueError
-        if kind == "int":
-            if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-                raise ValueError
-            return int(value) if not isinstance(value, str) else int(value.strip(), 10)
-        if kind == "float":
-            if isinstance(value, bool):
-                raise ValueError
+        if isinstance(value, str):
+            return convert_param(kind, value.strip())
+        if kind == "bool" and isinstance(value, bool):
+            return value
+        if kind == "int" and isinstance(value, int | float) and not isinstance(value, bool) and float(value).is_integer():
+            return int(value)
+        if kind == "float" and isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
             return float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         pass
     expected = {"bool": "true or false", "int": "a whole number", "float": "a number", "string": "text"}[kind]
     raise UnitError(f"got {value!r}", where=what, expected=f"{expected} ({kind})")

@@ -281,3 +281,32 @@ def test_counter_keeps_state_between_messages(manager: Manager) -> None:
     assert [m.payload["count"] for m in sink.wait_for(3)] == [1, 2, 3]
     counter = manager.unit("c")
     assert isinstance(counter, Counter) and counter.count == 3
+
+
+TYPED = """<transformation><label>typed</label><source>dyknow.testing:Sink</source>
+  <params><param name="on" type="bool">false</param><param name="n" type="int">1</param><param name="x" type="float">0.5</param></params>
+  <ports><port type="in">in</port></ports></transformation>"""
+
+
+@pytest.mark.parametrize(
+    ("param", "given", "value"),
+    [("on", "TRUE", True), ("on", " 0 ", False), ("on", True, True), ("n", "-12", -12), ("n", 7.0, 7), ("x", "1e3", 1000.0), ("x", 2, 2.0)],
+)
+def test_spawn_time_params_read_as_the_spec_format_reads_them(manager: Manager, param: str, given: object, value: object) -> None:
+    manager.add_transformation(TYPED)
+    manager.spawn("typed", "t", params={param: given})
+    got = manager.unit("t").params[param]
+    assert got == value and type(got) is type(value)
+
+
+@pytest.mark.parametrize(
+    ("param", "given", "expected"),
+    [("on", "yes", "true or false (bool)"), ("on", 1, "true or false (bool)"), ("n", "1_000", "a whole number (int)"),
+     ("n", 1.5, "a whole number (int)"), ("x", "inf", "a number (float)"), ("x", float("nan"), "a number (float)"), ("x", True, "a number (float)")],
+)  # fmt: skip
+def test_spawn_time_params_the_spec_format_would_refuse_are_refused(manager: Manager, param: str, given: object, expected: str) -> None:
+    manager.add_transformation(TYPED)
+    with pytest.raises(UnitError) as refused:
+        manager.spawn("typed", "t", params={param: given})
+    assert refused.value.where == f"param {param!r} of 'typed'" and refused.value.expected == expected
+    assert not manager.has_unit("t")

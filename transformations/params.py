@@ -14,6 +14,7 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
+from dyknow.spec.model import BOOL_WORDS
 from transformations.errors import ParamError
 
 __all__ = ["choice", "flag", "number", "numbers", "size", "text", "whole"]
@@ -69,15 +70,13 @@ def whole(
 
 
 def flag(params: Mapping[str, Any], name: str, default: bool = False) -> bool:
-    """Param ``name`` as a bool (the spec type ``bool``; true/false strings are accepted too)."""
+    """Param ``name`` as a bool: a bool, or text the spec format's ``bool`` accepts (true, false, 1, 0)."""
     value = _get(params, name, default)
     if isinstance(value, bool):
         return value
     lowered = str(value).strip().lower()
-    if lowered in ("true", "1", "yes", "on"):
-        return True
-    if lowered in ("false", "0", "no", "off"):
-        return False
+    if lowered in BOOL_WORDS:
+        return BOOL_WORDS[lowered]
     raise ParamError(f"got {value!r}", where=f"param {name!r}", expected="true or false")
 
 

@@ -103,8 +103,8 @@ _SCHEMA_LOCATIONS = frozenset({"xsi:noNamespaceSchemaLocation", "xsi:schemaLocat
 
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
-_DTD_MESSAGE = (
-    "<!DOCTYPE>: DTDs and entity declarations are not allowed in transformation specs (they enable "
+_DTD_PROBLEM = (
+    "DTDs and entity declarations are not allowed in transformation specs (they enable "
     "external entities and entity-expansion bombs); remove the <!DOCTYPE ...> block"
 )
 
@@ -185,8 +185,7 @@ def _spec_files(paths: PathsLike) -> tuple[list[pathlib.Path], list[SpecIssue]]:
         elif path.exists():
             files.append(path)
         else:
-            message = "no such file or directory; expected a spec file or a directory of *.xml files"
-            issues.append(SpecIssue(str(path), 0, message))
+            issues.append(SpecIssue(str(path), 0, "no such file or directory", expected="a spec file or a directory of *.xml files"))
     # A file named both directly and through its directory must not clash with itself.
     unique: list[pathlib.Path] = []
     seen: set[pathlib.Path] = set()
@@ -218,11 +217,8 @@ def _duplicate_labels(located: Iterable[tuple[TransformationSpec, int]]) -> list
         if spec.label not in first:
             first[spec.label] = f"{spec.path}:{line}"
             continue
-        message = (
-            f"<label>: duplicate label {spec.label!r}, first defined at {first[spec.label]}; "
-            "expected each label once"
-        )
-        issues.append(SpecIssue(spec.path, line, message))
+        what = f"duplicate label {spec.label!r}, first defined at {first[spec.label]}"
+        issues.append(SpecIssue(spec.path, line, what, "<label>", "each label once"))
     return issues
 
 
@@ -287,11 +283,10 @@ def _parse_xml(data: str | bytes, path: str) -> _Node:
     try:
         parser.Parse(data, True)  # pyexpat parses a str as UTF-8, bytes by their XML declaration
     except _Refused as exc:
-        raise SpecError([SpecIssue(path, exc.line, _DTD_MESSAGE)]) from None
+        raise SpecError([SpecIssue(path, exc.line, _DTD_PROBLEM, "<!DOCTYPE>")]) from None
     except expat.ExpatError as exc:
-        problem = f"{expat.ErrorString(exc.code)} at column {exc.offset + 1}"
-        message = f"malformed XML: {problem}; expected well-formed XML"
-        raise SpecError([SpecIssue(path, exc.lineno, message)]) from None
+        what = f"malformed XML: {expat.ErrorString(exc.code)} at column {exc.offset + 1}"
+        raise SpecError([SpecIssue(path, exc.lineno, what, expected="well-formed XML")]) from None
     return roots[0]
 
 
@@ -305,8 +300,8 @@ class _Issues:
         self.path = path
         self.items: list[SpecIssue] = []
 
-    def add(self, line: int, message: str) -> None:
-        self.items.append(SpecIssue(self.path, line, message))
+    def add(self, line: int, element: str, what: str, expected: str = "") -> None:
+        self.items.append(SpecIssue(self.path, line, what, element, expected))
 
 
 def _parse(data: str | bytes, path: str) -> tuple[list[Template], list[SpecIssue]]:
@@ -320,13 +315,13 @@ def _parse(data: str | bytes, path: str) -> tuple[list[Template], list[SpecIssue
         _check_element(root, issues, is_root=True)
         nodes = [c for c in root.children if c.name == "transformation"]
         if not root.children:
-            issues.add(root.line, "<transformations>: no <transformation> inside; expected at least one")
+            issues.add(root.line, "<transformations>", "no <transformation> inside", "at least one")
     elif root.name == "transformation":
         nodes = [root]
     else:
         hint = did_you_mean(root.name, ["transformations", "transformation"])
         expected = "<transformations> or <transformation>"
-        issues.add(root.line, f"<{root.name}>: unknown root element; expected {expected}{hint}")
+        issues.add(root.line, f"<{root.name}>", "unknown root element", f"{expected}{hint}")
         nodes = []
     templates = []
     for node in nodes:
@@ -364,35 +359,34 @@ def _check_element(node: _Node, issues: _Issues, is_root: bool = False) -> None:
             # A default namespace would put every element in it, and the format has none.
             if attr == "xmlns" and value:
                 problem = f"namespace {value!r} is not used by transformation specs"
-                issues.add(node.line, f"<{name}> @xmlns: {problem}; expected no default namespace")
+                issues.add(node.line, f"<{name}> @xmlns", problem, "no default namespace")
             continue
         expected = ", ".join(_ATTRIBUTES[name]) or "no attributes"
         hint = did_you_mean(attr, _ATTRIBUTES[name])
-        issues.add(node.line, f"<{name}> @{attr}: unknown attribute; expected {expected}{hint}")
+        issues.add(node.line, f"<{name}> @{attr}", "unknown attribute", f"{expected}{hint}")
     for attr, example in _REQUIRED_ATTRIBUTES.get(name, {}).items():
         if attr not in node.attrs:
-            issues.add(node.line, f"<{name}>: missing @{attr}; expected {example}")
+            issues.add(node.line, f"<{name}>", f"missing @{attr}", example)
 
     allowed = _allowed_children(name)
     first_line: dict[str, int] = {}
     for child in node.children:
         if not allowed:
             expected = "no content" if name in _EMPTY_ELEMENTS else "text only"
-            issues.add(child.line, f"<{child.name}>: unexpected element in <{name}>; expected {expected}")
+            issues.add(child.line, f"<{child.name}>", f"unexpected element in <{name}>", expected)
         elif child.name not in allowed:
             expected = f"one of {', '.join(allowed)}" if len(allowed) > 1 else f"<{allowed[0]}>"
             hint = did_you_mean(child.name, allowed)
-            issues.add(child.line, f"<{child.name}>: unknown element in <{name}>; expected {expected}{hint}")
+            issues.add(child.line, f"<{child.name}>", f"unknown element in <{name}>", f"{expected}{hint}")
         elif name == "transformation" and child.name in first_line:
             where = f"the first is at line {first_line[child.name]}"
-            message = f"duplicate <{child.name}> in <transformation> ({where}); expected at most one"
-            issues.add(child.line, f"<{child.name}>: {message}")
+            issues.add(child.line, f"<{child.name}>", f"duplicate <{child.name}> in <transformation> ({where})", "at most one")
         first_line.setdefault(child.name, child.line)
 
     if name == "transformation":
         for child_name, example in _REQUIRED_CHILDREN.items():
             if child_name not in first_line:
-                issues.add(node.line, f"<transformation>: missing <{child_name}>; expected {example}")
+                issues.add(node.line, "<transformation>", f"missing <{child_name}>", example)
     if node.text and (allowed or name in _EMPTY_ELEMENTS):
         if name in _EMPTY_ELEMENTS:
             expected = "an empty element"
@@ -400,7 +394,7 @@ def _check_element(node: _Node, issues: _Issues, is_root: bool = False) -> None:
             expected = "elements only"
         else:
             expected = f"only <{allowed[0]}> elements"
-        issues.add(node.line, f"<{name}>: unexpected text {shorten(node.text)!r}; expected {expected}")
+        issues.add(node.line, f"<{name}>", f"unexpected text {shorten(node.text)!r}", expected)
 
 
 def _read_template(node: _Node, issues: _Issues) -> Template:
@@ -412,7 +406,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
     kind = node.attrs.get("type", "unit").strip()
     if kind not in TRANSFORMATION_TYPES:
         hint = did_you_mean(kind, TRANSFORMATION_TYPES)
-        issues.add(node.line, f"<transformation> @type: unknown type {kind!r}; expected unit or nodelet{hint}")
+        issues.add(node.line, "<transformation> @type", f"unknown type {kind!r}", f"unit or nodelet{hint}")
 
     args, arg_lines = _read_args(first.get("args"), issues)
     declared = [a.label for a in args]
@@ -422,7 +416,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
         if element is None:
             return "", 0
         if not element.text and example is not None:
-            issues.add(element.line, f"<{name}>: empty; expected {example}")
+            issues.add(element.line, f"<{name}>", "empty", example)
         _check_template(f"<{name}>", element.text, element.line, declared, issues)
         return element.text, element.line
 
@@ -437,7 +431,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
             priority = int(element.text)
         else:
             expected = "a whole number such as 1 (lower is preferred)"
-            issues.add(element.line, f"<priority>: {element.text!r} is not an integer; expected {expected}")
+            issues.add(element.line, "<priority>", f"{element.text!r} is not an integer", expected)
 
     params, param_lines = _read_params(first.get("params"), declared, issues)
     ports, port_lines = _read_ports(first.get("ports"), declared, issues)
@@ -482,45 +476,44 @@ def _read_args(container: _Node | None, issues: _Issues) -> tuple[tuple[Arg, ...
         label = node.attrs["label"].strip()
         if not _IDENTIFIER.fullmatch(label):
             expected = "letters, digits and '_', starting with a letter or '_' (such as Cam)"
-            issues.add(node.line, f"<arg> @label: {label!r} is not a valid name; expected {expected}")
+            issues.add(node.line, "<arg> @label", f"{label!r} is not a valid name", expected)
             continue
         if label in first_line:
             where = f"first at line {first_line[label]}"
-            issues.add(node.line, f"<arg> @label: duplicate arg {label!r} ({where}); expected each arg once")
+            issues.add(node.line, "<arg> @label", f"duplicate arg {label!r} ({where})", "each arg once")
             continue
         first_line[label] = node.line
         ontology_class = node.attrs.get("class")
         if ontology_class is None:
             values, problem = _parse_set(node.text)
             if problem:
-                issues.add(node.line, f"<arg> {label!r}: {problem}")
+                issues.add(node.line, f"<arg> {label!r}", *problem)
             args.append(Arg(label, values))
         else:
             if not ontology_class.strip():
-                issues.add(node.line, "<arg> @class: empty; expected an ontology class such as ex:Camera")
+                issues.add(node.line, "<arg> @class", "empty", "an ontology class such as ex:Camera")
             if node.text:
-                problem = f"has both @class and the values {shorten(node.text)!r}"
-                issues.add(node.line, f"<arg> {label!r}: {problem}; expected one or the other")
+                issues.add(node.line, f"<arg> {label!r}", f"has both @class and the values {shorten(node.text)!r}", "one or the other")
             args.append(Arg(label, (), ontology_class.strip()))
         lines.append(node.line)
     return tuple(args), tuple(lines)
 
 
-def _parse_set(text: str) -> tuple[tuple[str, ...], str | None]:
-    """The values of ``{a; b; c}`` (braces optional), or a problem."""
+def _parse_set(text: str) -> tuple[tuple[str, ...], tuple[str, str] | None]:
+    """The values of ``{a; b; c}`` (braces optional), or a problem as ``(what, expected)``."""
     inner = text
     if inner.startswith("{") and inner.endswith("}"):
         inner = inner[1:-1]
     elif inner.startswith("{") or inner.endswith("}"):
-        return (), f"unbalanced braces in {shorten(text)!r}; expected a set such as {{cam1; cam2}}"
+        return (), (f"unbalanced braces in {shorten(text)!r}", "a set such as {cam1; cam2}")
     if not inner.strip():
-        return (), 'empty set; expected values such as {cam1; cam2}, or class="ex:Class"'
+        return (), ("empty set", 'values such as {cam1; cam2}, or class="ex:Class"')
     values = tuple(v.strip() for v in inner.split(";"))
     if "" in values:
-        return (), f"empty value in {shorten(text)!r}; expected non-empty values separated by ';'"
+        return (), (f"empty value in {shorten(text)!r}", "non-empty values separated by ';'")
     for i, value in enumerate(values):
         if value in values[:i]:
-            return (), f"duplicate value {value!r}; expected each value once"
+            return (), (f"duplicate value {value!r}", "each value once")
     return values, None
 
 
@@ -534,15 +527,15 @@ def _read_params(
         name = node.attrs["name"].strip()
         type_ = node.attrs.get("type", "string").strip()
         if not name:
-            issues.add(node.line, "<param> @name: empty; expected a name such as config-path")
+            issues.add(node.line, "<param> @name", "empty", "a name such as config-path")
         elif name in first_line:
             where = f"first at line {first_line[name]}"
-            issues.add(node.line, f"<param> @name: duplicate param {name!r} ({where}); expected each name once")
+            issues.add(node.line, "<param> @name", f"duplicate param {name!r} ({where})", "each name once")
         first_line.setdefault(name, node.line)
         if type_ not in PARAM_TYPES:
             hint = did_you_mean(type_, PARAM_TYPES)
             expected = f"one of {', '.join(PARAM_TYPES)}{hint}"
-            issues.add(node.line, f"<param> @type: unknown type {type_!r}; expected {expected}")
+            issues.add(node.line, "<param> @type", f"unknown type {type_!r}", expected)
         _check_template(f"<param> {name!r}", node.text, node.line, declared, issues)
         params.append(Param(name, type_, node.text))
     return tuple(params), tuple(n.line for n in nodes)
@@ -555,44 +548,44 @@ def _read_ports(
     nodes = _children(container)
     if container is not None and not container.children:
         expected = 'at least one <port type="out">name</port>'
-        issues.add(container.line, f"<ports>: no <port> elements; expected {expected}")
+        issues.add(container.line, "<ports>", "no <port> elements", expected)
     for node in nodes:
         direction = node.attrs["type"].strip()
         if direction not in PORT_DIRECTIONS:
             hint = did_you_mean(direction, PORT_DIRECTIONS)
-            issues.add(node.line, f"<port> @type: unknown direction {direction!r}; expected in or out{hint}")
+            issues.add(node.line, "<port> @type", f"unknown direction {direction!r}", f"in or out{hint}")
         deadline_ms = None
         if "deadline-ms" in node.attrs:
             text = node.attrs["deadline-ms"].strip()
             if direction == "in":
                 expected = 'it on a <port type="out">'
-                issues.add(node.line, f"<port> @deadline-ms: only allowed on out ports; expected {expected}")
+                issues.add(node.line, "<port> @deadline-ms", "only allowed on out ports", expected)
             elif not DECIMAL.fullmatch(text) or Decimal(text) <= 0:
                 expected = "milliseconds such as 500"
-                issues.add(node.line, f"<port> @deadline-ms: {text!r} is not a positive number; expected {expected}")
+                issues.add(node.line, "<port> @deadline-ms", f"{text!r} is not a positive number", expected)
             else:
                 deadline_ms = float(text)
         queue = None
         if "queue" in node.attrs:
             text = node.attrs["queue"].strip()
             if direction == "out":
-                issues.add(node.line, '<port> @queue: only allowed on in ports; expected it on a <port type="in">')
+                issues.add(node.line, '<port> @queue', 'only allowed on in ports', 'it on a <port type="in">')
             elif not INTEGER.fullmatch(text) or int(text) < 1:
-                issues.add(node.line, f"<port> @queue: {text!r} is not a positive whole number; expected a queue size such as 1 or 8")
+                issues.add(node.line, "<port> @queue", f"{text!r} is not a positive whole number", "a queue size such as 1 or 8")
             else:
                 queue = int(text)
         policy = None
         if "policy" in node.attrs:
             text = node.attrs["policy"].strip()
             if direction == "out":
-                issues.add(node.line, '<port> @policy: only allowed on in ports; expected it on a <port type="in">')
+                issues.add(node.line, '<port> @policy', 'only allowed on in ports', 'it on a <port type="in">')
             elif text not in QUEUE_POLICIES:
                 hint = did_you_mean(text, QUEUE_POLICIES)
-                issues.add(node.line, f"<port> @policy: unknown queue policy {text!r}; expected keep-last or drop-new{hint}")
+                issues.add(node.line, "<port> @policy", f"unknown queue policy {text!r}", f"keep-last or drop-new{hint}")
             else:
                 policy = text
         if not node.text:
-            issues.add(node.line, "<port>: empty port name; expected a name such as undist")
+            issues.add(node.line, "<port>", "empty port name", "a name such as undist")
         _check_template("<port>", node.text, node.line, declared, issues)
         ports.append(Port(node.text, direction, deadline_ms, queue, policy))
     return tuple(ports), tuple(n.line for n in nodes)
@@ -606,9 +599,9 @@ def _read_tags(
     for node in nodes:
         port = node.attrs["port"].strip()
         if not port:
-            issues.add(node.line, "<tag> @port: empty; expected the name of one of the <ports>")
+            issues.add(node.line, "<tag> @port", "empty", "the name of one of the <ports>")
         if not node.text:
-            issues.add(node.line, "<tag>: empty tag; expected a tag such as Undistorted(${Cam})")
+            issues.add(node.line, "<tag>", "empty tag", "a tag such as Undistorted(${Cam})")
         _check_template("<tag> @port", port, node.line, declared, issues)
         _check_template("<tag>", node.text, node.line, declared, issues)
         tags.append(Tag(port, node.text))
@@ -623,14 +616,14 @@ def _read_constraints(
     for node in nodes:
         measure, op, value = (node.attrs[a].strip() for a in ("measure", "op", "value"))
         if not measure:
-            issues.add(node.line, "<constraint> @measure: empty; expected a measure such as battery")
+            issues.add(node.line, "<constraint> @measure", "empty", "a measure such as battery")
         if op not in CONSTRAINT_OPS:
             hint = did_you_mean(op, CONSTRAINT_OPS)
             expected = f"one of {', '.join(CONSTRAINT_OPS)}{hint}"
-            issues.add(node.line, f"<constraint> @op: unknown operator {op!r}; expected {expected}")
+            issues.add(node.line, "<constraint> @op", f"unknown operator {op!r}", expected)
         if not value:
             expected = "a number such as 0.25 or a word such as docked"
-            issues.add(node.line, f"<constraint> @value: empty; expected {expected}")
+            issues.add(node.line, "<constraint> @value", "empty", expected)
         _check_template("<constraint> @value", value, node.line, declared, issues)
         constraints.append(Constraint(measure, op, value))
     return tuple(constraints), tuple(n.line for n in nodes)
@@ -643,12 +636,12 @@ def _check_template(where: str, text: str, line: int, declared: Sequence[str], i
         name = match["name"]
         if match["stray"] is not None:
             expected = "${Name} to use an arg, or $$ for a literal '$'"
-            issues.add(line, f"{where}: stray '$' in {shorten(text)!r}; expected {expected}")
+            issues.add(line, where, f"stray '$' in {shorten(text)!r}", expected)
         elif name is not None and name not in declared:
             if declared:
                 expected = f"one of the declared args: {', '.join(declared)}{did_you_mean(name, declared)}"
             else:
                 expected = f'it declared as <args><arg label="{name}">{{...}}</arg></args>'
-            issues.add(line, f"{where}: undefined template variable ${{{name}}}; expected {expected}")
+            issues.add(line, where, f"undefined template variable ${{{name}}}", expected)
 
 

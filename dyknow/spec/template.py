@@ -16,7 +16,7 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
-from dyknow.errors import SpecError, SpecIssue, TagError, did_you_mean
+from dyknow.errors import SpecError, SpecIssue, TagError, compose, did_you_mean
 from dyknow.spec.model import (
     DEFAULT_PRIORITY,
     NUMBER,
@@ -37,6 +37,7 @@ __all__ = ["DOLLAR", "Template"]
 # One match per '$': an escaped "$$", a "${Name}" reference, or (empty group) a stray '$'.
 DOLLAR = re.compile(r"\$(?:(?P<escaped>\$)|\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)\}|(?P<stray>))")
 _PORT_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_-]*")
+_Problem = tuple[int, str, str, str]  # line, element, what, expected: one problem of one expansion
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,13 +84,13 @@ class Template:
         for arg, line in zip(self.args, self.arg_lines, strict=True):
             arg_values, arg_problem = _arg_values(arg, individuals)
             if arg_problem:
-                issues.append(SpecIssue(self.path, line, f"<arg> {arg.label!r}: {arg_problem}"))
+                issues.append(SpecIssue(self.path, line, arg_problem[0], f"<arg> {arg.label!r}", arg_problem[1]))
             value_sets.append(arg_values)
         if issues:
             raise SpecError(issues)
 
         specs: list[TransformationSpec] = []
-        found: dict[tuple[int, str], list[str]] = {}  # (line, message) -> the expansions it occurs in
+        found: dict[_Problem, list[str]] = {}  # a problem -> the expansions it occurs in
         for combination in itertools.product(*value_sets):
             values = dict(zip((a.label for a in self.args), combination, strict=True))
             spec, problems = self._build(values)
@@ -97,20 +98,25 @@ class Template:
             expansion = ", ".join(f"{name}={value}" for name, value in values.items())
             for problem in dict.fromkeys(problems):
                 found.setdefault(problem, []).append(expansion)
-        for (line, message), expansions in found.items():
+        for (line, element, what, expected), expansions in found.items():
+            where = ""
             if len(expansions) == 1 and len(specs) > 1:
-                message += f" (in expansion {expansions[0]})"
+                where = f" (in expansion {expansions[0]})"
             elif len(expansions) < len(specs):
-                message += f" (in expansions {'; '.join(expansions)})"
-            issues.append(SpecIssue(self.path, line, message))
+                where = f" (in expansions {'; '.join(expansions)})"
+            if expected:  # the expansion closes the message, after what is expected
+                expected += where
+            else:
+                what += where
+            issues.append(SpecIssue(self.path, line, what, element, expected))
         issues.extend(self._label_collisions(specs))
         if issues:
             raise SpecError(sorted(issues, key=lambda i: i.line))
         return specs
 
-    def _build(self, values: Mapping[str, str]) -> tuple[TransformationSpec, list[tuple[int, str]]]:
-        """The spec for one substitution, and the (line, message) problems found in it."""
-        problems: list[tuple[int, str]] = []
+    def _build(self, values: Mapping[str, str]) -> tuple[TransformationSpec, list[_Problem]]:
+        """The spec for one substitution, and the problems found in it."""
+        problems: list[_Problem] = []
 
         def sub(text: str) -> str:
             return _substitute(text, values)
@@ -121,8 +127,7 @@ class Template:
             try:
                 value = convert_param(param.type, text)
             except ValueError as exc:
-                message = f"<param> {param.name!r}: value {text!r} is not a valid {param.type}; expected {exc}"
-                problems.append((line, message))
+                problems.append((line, f"<param> {param.name!r}", f"value {text!r} is not a valid {param.type}", str(exc)))
                 value = text
             params.append(Param(param.name, param.type, value))
 
@@ -131,10 +136,10 @@ class Template:
         for port, line in zip(ports, self.port_lines, strict=True):
             if not _PORT_NAME.fullmatch(port.name):
                 expected = "letters, digits, '_' and '-', starting with a letter or '_'"
-                problems.append((line, f"<port>: {port.name!r} is not a valid port name; expected {expected}"))
+                problems.append((line, "<port>", f"{port.name!r} is not a valid port name", expected))
             elif port.name in first_line:
                 where = f"first at line {first_line[port.name]}"
-                problems.append((line, f"<port>: duplicate port {port.name!r} ({where}); expected each port name once"))
+                problems.append((line, "<port>", f"duplicate port {port.name!r} ({where})", "each port name once"))
             first_line.setdefault(port.name, line)
 
         tags = [Tag(sub(tag.port), sub(tag.tag)) for tag in self.tags]
@@ -142,12 +147,12 @@ class Template:
             if tag.port not in first_line:
                 names = list(first_line)
                 hint = did_you_mean(tag.port, names)
-                problems.append((line, f"<tag> @port: no port named {tag.port!r}; expected {one_of(names)}{hint}"))
+                problems.append((line, "<tag> @port", f"no port named {tag.port!r}", f"{one_of(names)}{hint}"))
             if tag.tag:
                 try:
                     parse_term(tag.tag)
                 except TagError as exc:
-                    problems.append((line, f"<tag>: {exc}"))
+                    problems.append((line, "<tag>", compose(exc.what, exc.where), exc.expected or ""))
 
         constraints = []
         for constraint, line in zip(self.constraints, self.constraint_lines, strict=True):
@@ -157,7 +162,7 @@ class Template:
                 continue
             if constraint.op not in ("==", "!="):
                 problem = f"{text!r} is not a number, so op {constraint.op!r} cannot compare it"
-                problems.append((line, f"<constraint> @value: {problem}; expected a number, or op == or !="))
+                problems.append((line, "<constraint> @value", problem, "a number, or op == or !="))
             constraints.append(replace(constraint, value=text))
 
         spec = TransformationSpec(
@@ -187,8 +192,8 @@ class Template:
             hint = f"put {' and '.join(unused)} in the label"
         else:
             hint = "make the arg values give distinct labels"
-        message = f"<label>: {n} expansions get the same label {label!r}; expected one label per expansion ({hint})"
-        return [SpecIssue(self.path, self.label_line, message)]
+        what = f"{n} expansions get the same label {label!r}"
+        return [SpecIssue(self.path, self.label_line, what, "<label>", f"one label per expansion ({hint})")]
 
 
 
@@ -201,29 +206,29 @@ def _substitute(text: str, values: Mapping[str, str]) -> str:
     return DOLLAR.sub(replacement, text)
 
 
-def _arg_values(arg: Arg, individuals: Individuals | None) -> tuple[tuple[str, ...], str | None]:
-    """The substitution values of an arg, or a problem (for ontology classes)."""
+def _arg_values(arg: Arg, individuals: Individuals | None) -> tuple[tuple[str, ...], tuple[str, str] | None]:
+    """The substitution values of an arg, or a problem as ``(what, expected)`` (for ontology classes)."""
     if arg.ontology_class is None:
         return arg.values, None
     cls = arg.ontology_class
     if individuals is None:
         problem = f"takes its values from ontology class {cls!r}, but no ontology is loaded"
-        return (), f"{problem}; expected --ontology FILE"
+        return (), (problem, "--ontology FILE")
     try:
         found = individuals(cls)
     except Exception as exc:  # the resolver is the caller's code: any failure becomes a located issue
         problem = f"cannot get the individuals of ontology class {cls!r} ({type(exc).__name__}: {exc})"
-        return (), f"{problem}; expected a class of the loaded ontology"
+        return (), (problem, "a class of the loaded ontology")
     if isinstance(found, str):  # a str is a Sequence[str] too, of one-letter values
         problem = f"the individuals of ontology class {cls!r} came back as one string"
-        return (), f"{problem}; expected a sequence of names"
+        return (), (problem, "a sequence of names")
     values = tuple(found)
     if not values:
-        return (), f"ontology class {cls!r} has no individuals; expected at least one"
+        return (), (f"ontology class {cls!r} has no individuals", "at least one")
     for value in values:
         if not isinstance(value, str) or not value.strip():
             problem = f"ontology class {cls!r} gave the invalid individual name {value!r}"
-            return (), f"{problem}; expected non-empty strings"
+            return (), (problem, "non-empty strings")
     # An ontology may list an individual twice (asserted under two classes); that is no error.
     return tuple(dict.fromkeys(v.strip() for v in values)), None
 
