@@ -78,7 +78,8 @@ def test_every_message_published_under_load_is_in_the_file(tmp_path: Path, liste
     per_key = 3000
     image = np.zeros((120, 160, 3), np.uint8)
     with Recorder(["load/**"], path, connect=[endpoint], chunk_size=256 * 1024, max_messages=per_key * len(keys)) as rec:
-        publishers = [session.declare_publisher(k) for k in keys]
+        # reliable: Zenoh blocks rather than drops when its queue is full, so a loss would be the recorder's
+        publishers = [session.declare_publisher(k, reliable=True) for k in keys]
         for pub in publishers:
             wait_matched(pub)
         for seq in range(1, per_key + 1):  # as fast as the publishers go, three streams interleaved
