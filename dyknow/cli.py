@@ -308,9 +308,12 @@ def cmd_stats(args: argparse.Namespace) -> int:
 
 
 def cmd_add_spec(args: argparse.Namespace) -> int:
-    """add the transformations of a spec file to the manager"""
+    """add the transformations of a spec file (or - for standard input) to the manager"""
+    source = sys.stdin.read() if args.file == "-" else args.file
+    if args.file == "-" and not source.lstrip().startswith("<"):
+        raise _Usage("add-spec -: standard input holds no XML; expected a spec such as <transformation>...")
     with _client(args) as client:
-        labels = client.add_transformation(args.file)
+        labels = client.add_transformation(source)
     _report(args, {"labels": labels}, "added " + ", ".join(labels))
     return 0
 

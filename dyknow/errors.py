@@ -13,7 +13,9 @@ Every error dyknow raises on purpose derives from :class:`DyKnowError`, with one
     ├── OntologyError      an ontology cannot be loaded, or a class name is unknown or ambiguous
     ├── TagError           a tag is not a well-formed term such as ``BallPosition(field)``
     ├── PlanningError      no configuration provides a requested tag (with the explanation)
-    └── RecordingError     an MCAP recording cannot be written or read (file, offset, what is wrong)
+    ├── RecordingError     an MCAP recording cannot be written or read (file, offset, what is wrong)
+    └── AccessError        refused by the manager's security policy: a source that is not allowed,
+                           a file outside the data roots, a request over a limit
 
 Every error carries fields as well as its message, so that the CLI, the services and a user
 interface can show them without parsing prose: ``what`` (the problem), ``where`` (what it
@@ -33,6 +35,7 @@ from dataclasses import dataclass
 from typing import Any
 
 __all__ = [
+    "AccessError",
     "BindingError",
     "ClosedError",
     "DyKnowError",
@@ -226,3 +229,8 @@ class PlanningError(DyKnowError):
 class RecordingError(DyKnowError):
     """An MCAP recording cannot be written (unwritable path, full disk) or read (not MCAP,
     truncated, corrupt). The message names the file and, for a damaged file, the offset."""
+
+
+class AccessError(DyKnowError):
+    """Refused by the manager's security policy: a unit source outside the allow-list, a file
+    outside the data roots, or a request over a limit. ``where`` names the field or param."""

@@ -27,6 +27,7 @@ import json
 import logging
 import math
 import os
+import re
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -35,12 +36,13 @@ from typing import Any
 from dyknow import keys, service
 from dyknow.adaptation import DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
-from dyknow.errors import BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
+from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
 from dyknow.library import Library
 from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
+from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
 from dyknow.spec.model import convert_param
 from dyknow.transport import Queryable, Session, check_key_expr, make_config
@@ -62,6 +64,12 @@ class Manager:
     ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`).
     ``dwell_s``: how long a request keeps a configuration before switching for a better one.
 
+    Security (see :mod:`dyknow.security`): ``allow_sources`` adds unit sources the manager may
+    load (beyond ``dyknow``, ``transformations`` and the modules its specs name);
+    ``data_roots`` are the folders file params may name for remote callers (reads also may name
+    the folders of ``specs``); ``limits`` bound what one request may cost. The Python API is
+    trusted: it may pass any source and any path.
+
     It is the adaptation loop's :class:`~dyknow.adaptation.Runtime`.
     """
 
@@ -79,6 +87,9 @@ class Manager:
         stall_budget_s: float = 0.02,
         slow_callback_s: float = 0.002,
         dwell_s: float = DEFAULT_DWELL_S,
+        allow_sources: Iterable[str] = (),
+        data_roots: Iterable[str | os.PathLike[str]] = (),
+        limits: Limits | None = None,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
@@ -86,13 +97,21 @@ class Manager:
         else:
             paths_ = list(ontology)
             self.ontology = Ontology.load(paths_) if paths_ else None  # bad ontologies fail first
+        self.limits = limits = limits or Limits()
         self.library = Library()
+        self._sources = SourcePolicy([*DEFAULT_SOURCES, *allow_sources])
+        self._remote_labels: set[str] = set()  # added through the service: their params are checked
         spec_objs = [s for s in specs if isinstance(s, TransformationSpec)]
         paths = [s for s in specs if not isinstance(s, TransformationSpec)]
         if paths:
             # bad specs fail before anything starts
-            self.library.add(load_specs(paths, individuals=self._individuals if self.ontology is not None else None))
+            loaded = load_specs(paths, individuals=self._individuals if self.ontology is not None else None, max_expansions=limits.max_expansions)
+            self._trust(loaded)
+            self.library.add(loaded)
+        self._trust(spec_objs)
         self.library.add(spec_objs)
+        spec_dirs = [p if os.path.isdir(p) else os.path.dirname(os.path.abspath(p)) for p in (os.fspath(q) for q in paths)]
+        self._roots = DataRoots(write=data_roots, read=spec_dirs)
         self._queue_depth = queue_depth
         self._lock = threading.RLock()
         self._units: dict[str, Proxy] = {}
@@ -115,7 +134,7 @@ class Manager:
             try:
                 self._services = self._session.declare_queryable(
                     keys.services_pattern(self.name),
-                    service.dispatcher(self.name, self._manager_handlers(), self._unit_service),
+                    service.dispatcher(self.name, self._manager_handlers(), self._unit_service, limits),
                 )
             except DyKnowError:
                 self.close()
@@ -173,24 +192,41 @@ class Manager:
 
     # ------------------------------------------------------------------ library services
 
-    def add_transformation(self, spec: TransformationSpec | Template | str | os.PathLike[str], *, path: str | None = None) -> list[str]:
+    def add_transformation(
+        self, spec: TransformationSpec | Template | str | os.PathLike[str], *, path: str | None = None, remote: bool = False
+    ) -> list[str]:
         """Store a spec, or every expansion of a template; returns the labels added.
 
         ``spec`` is a :class:`TransformationSpec`, a :class:`Template`, XML text, or the path of a
-        spec file. An existing label is replaced.
+        spec file. An existing label is replaced. ``remote``: the spec came through the service,
+        from a caller the manager does not trust: it must be XML text, every source it names
+        must be allowed (:class:`AccessError` otherwise, before anything is imported or added),
+        and the file params of its units are confined to the data roots when they are spawned.
         """
         self._check_open()
         individuals = self._individuals if self.ontology is not None else None
-        if isinstance(spec, TransformationSpec):
+        limit = self.limits.max_expansions
+        if remote:
+            if not isinstance(spec, str) or not spec.lstrip().startswith("<"):
+                raise AccessError("a remote caller may only send XML text", where="field 'xml'", expected="the spec's XML (the client reads files on its side)")
+            specs = parse_specs(spec, path or "<remote>", individuals=individuals, max_expansions=limit)
+            for one in specs:
+                self._sources.check(one.source, where=f"transformation {one.label!r} ({one.location})")
+        elif isinstance(spec, TransformationSpec):
             specs = [spec]
         elif isinstance(spec, Template):
-            specs = spec.expand(individuals)
+            specs = spec.expand(individuals, max_expansions=limit)
         elif isinstance(spec, os.PathLike) or (isinstance(spec, str) and not spec.lstrip().startswith("<")):
-            specs = load_specs([spec], individuals=individuals)
+            specs = load_specs([spec], individuals=individuals, max_expansions=limit)
         elif isinstance(spec, str):
-            specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals)
+            specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals, max_expansions=limit)
         else:
             raise LibraryError(f"add_transformation got a {type(spec).__name__}", expected="a spec, a template, XML text or a path")
+        if remote:
+            self._remote_labels.update(s.label for s in specs)
+        else:
+            self._trust(specs)
+            self._remote_labels.difference_update(s.label for s in specs)
         labels = self.library.add(specs)
         self._adaptation.library_changed()
         return labels
@@ -199,6 +235,7 @@ class Manager:
         """Forget the spec with ``label``; returns whether there was one. Running units stay."""
         self._check_open()
         removed = self.library.remove(label)
+        self._remote_labels.discard(label)
         if removed:
             self._adaptation.library_changed()
         return removed
@@ -213,6 +250,7 @@ class Manager:
         protected: bool = False,
         params: Mapping[str, Any] | None = None,
         bindings: Mapping[str, str] | None = None,
+        remote: bool = False,
     ) -> UnitInfo:
         """Start a unit of transformation ``label`` named ``name``.
 
@@ -222,10 +260,15 @@ class Manager:
         ``bindings`` bind ports to keys other than the default ``dyknow/<manager>/<name>/<port>``.
         A source that cannot be imported, or that is not a Unit, raises :class:`UnitError` and
         changes nothing. An exception in the unit's ``setup()`` leaves it in the model as failed.
+        ``remote``: for a caller the manager does not trust (the service): the file params are
+        confined to the data roots (so are those of specs added remotely, always); a refusal
+        raises :class:`AccessError` and changes nothing.
         """
         with self._lock:
             self._check_open()
             keys.check_name(name, "unit name")
+            if isinstance(label, TransformationSpec) and not remote:
+                self._trust([label])
             if name in self._units:
                 running = self._units[name]
                 raise UnitError(
@@ -236,11 +279,19 @@ class Manager:
             spec = label if isinstance(label, TransformationSpec) else self.library.get(label)
             values = _param_values(spec, params or {})
             ports = _bindings(spec, self.name, name, bindings or {})
-            return self._start(spec, name, protected=protected, values=values, ports=ports)
+            confine = remote or (isinstance(label, str) and label in self._remote_labels)
+            return self._start(spec, name, protected=protected, values=values, ports=ports, confine=confine)
 
-    def _start(self, spec: TransformationSpec, name: str, *, protected: bool, values: dict[str, Any], ports: dict[str, str]) -> UnitInfo:
+    def _start(
+        self, spec: TransformationSpec, name: str, *, protected: bool, values: dict[str, Any], ports: dict[str, str], confine: bool = False
+    ) -> UnitInfo:
         """Import, create and start a unit (the manager lock is held)."""
-        cls = _import_unit(spec)
+        cls = _import_unit(spec, self._sources)
+        if confine:  # file params, as the spec declares them and as the (trusted) class does
+            modes = {p.name: p.mode or "read" for p in spec.params if p.type == "path"} | dict(cls.path_params)
+            for param, mode in modes.items():
+                if param in values:
+                    values[param] = self._roots.resolve(values[param], mode, where=f"param {param!r} of unit {name!r}")
         try:
             unit = cls()
         except Exception as exc:
@@ -348,6 +399,13 @@ class Manager:
             )
         return proxy
 
+    def _trust(self, specs: Iterable[TransformationSpec]) -> None:
+        """Specs from the operator (files at start, the Python API): their modules may be loaded."""
+        for spec in specs:
+            if self._sources.allows(spec.source) or not _SOURCE_SYNTAX.fullmatch(spec.source):
+                continue  # allowed already, or not a source at all (refused with its own message at spawn)
+            self._sources.allow(module_of(spec.source))
+
     def _individuals(self, class_ref: str) -> list[str]:
         if self.ontology is None:
             raise LibraryError(f"template arg class {class_ref!r} needs an ontology", expected="ontology=[...] (--ontology FILE)")
@@ -435,7 +493,7 @@ class Manager:
 
     def _manager_handlers(self) -> dict[str, service.Handler]:
         return {
-            "add_transformation": lambda r: {"labels": self.add_transformation(str(r["xml"]), path=str(r.get("path") or "<remote>"))},
+            "add_transformation": lambda r: {"labels": self.add_transformation(r["xml"], path=r.get("path") or "<remote>", remote=True)},
             "remove_transformation": lambda r: {"removed": self.remove_transformation(str(r["label"]))},
             "spawn": lambda r: self.spawn(
                 str(r["label"]),
@@ -443,6 +501,7 @@ class Manager:
                 protected=bool(r.get("protected", False)),
                 params=r.get("params") or {},
                 bindings=r.get("bindings") or {},
+                remote=True,
             ).to_dict(),
             "destroy": self._serve_destroy,
             "get_model": lambda r: self.get_model().to_dict(),
@@ -493,11 +552,15 @@ def _info(proxy: Proxy) -> UnitInfo:
     )
 
 
-def _import_unit(spec: TransformationSpec) -> type[Unit]:
+_SOURCE_SYNTAX = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*")
+
+
+def _import_unit(spec: TransformationSpec, sources: SourcePolicy) -> type[Unit]:
     where = f"transformation {spec.label!r} ({spec.path}:{spec.line})"
     module_name, sep, class_name = spec.source.partition(":")
-    if not sep or not module_name or not class_name or "/" in spec.source:
+    if not _SOURCE_SYNTAX.fullmatch(spec.source):
         raise UnitError(f"source {spec.source!r} is not importable", where=where, expected="'package.module:Class'")
+    sources.check(spec.source, where)  # before anything is imported
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as exc:

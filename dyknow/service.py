@@ -13,7 +13,9 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
 - ``@dyknow/<manager>/unit/<unit>/<service>`` for a unit's proxy: ``get_config`` ``{}``,
   ``set_config`` ``{"bindings": {port: key}}``, ``get_statistics`` ``{}``.
 
-A refused request is answered with a Zenoh error reply ``{"error": "<DyKnowError subclass>",
+Every request is checked before a handler sees it (:func:`check_request`): its size and JSON
+depth, then each field against :data:`SCHEMAS` (unknown fields, wrong types, over-long names and
+keys are refused, naming the field). A refused request is answered with a Zenoh error reply ``{"error": "<DyKnowError subclass>",
 "message": "...", "issues": [...]}``; :func:`raise_remote` turns it back into the same exception
 class on the caller's side.
 """
@@ -28,11 +30,15 @@ from typing import Any
 
 from dyknow import errors, keys
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
+from dyknow.security import Limits
 
 __all__ = [
     "MANAGER_SERVICES",
+    "SCHEMAS",
     "UNIT_SERVICES",
     "Handler",
+    "check_request",
+    "decode_request",
     "dispatcher",
     "raise_remote",
 ]
@@ -59,35 +65,174 @@ def _error_reply(exc: DyKnowError) -> bytes:
     return json.dumps(exc.to_dict()).encode()
 
 
+# ---------------------------------------------------------------------- what a request may hold
+#
+# Every field of every service, its type and its bounds: a request is checked against this before
+# any handler sees it, and refused naming the field. Names and keys are bounded well below what a
+# Zenoh batch holds (a key declared over about 65 kB made Zenoh's transport panic).
+
+Check = Callable[[Any, str, Limits], Any]
+
+
+def _refuse(field: str, got: Any, expected: str) -> ServiceError:
+    shown = repr(got) if len(repr(got)) <= 80 else f"a {type(got).__name__} of {len(repr(got))} characters"
+    return ServiceError(f"got {shown}", where=f"field {field!r}", expected=expected)
+
+
+def _text(max_bytes: int | None = None) -> Check:
+    def check(value: Any, field: str, limits: Limits) -> str:
+        bound = max_bytes or limits.max_request_bytes
+        if not isinstance(value, str):
+            raise _refuse(field, value, "text")
+        if len(value.encode()) > bound:
+            raise _refuse(field, value, f"at most {bound} bytes of text")
+        return value
+
+    return check
+
+
+def _name(value: Any, field: str, limits: Limits) -> str:
+    if not isinstance(value, str) or len(value.encode()) > limits.max_name_bytes:
+        raise _refuse(field, value, f"a name of at most {limits.max_name_bytes} bytes")
+    return keys.check_name(value, "unit name")
+
+
+def _key(value: Any, field: str, limits: Limits) -> str:
+    if not isinstance(value, str) or not value or len(value.encode()) > limits.max_key_bytes:
+        raise _refuse(field, value, f"a key expression of at most {limits.max_key_bytes} bytes")
+    return value
+
+
+def _flag(value: Any, field: str, limits: Limits) -> bool:
+    if not isinstance(value, bool):
+        raise _refuse(field, value, "true or false")
+    return value
+
+
+def _scalar(value: Any, field: str, limits: Limits) -> Any:
+    if isinstance(value, bool) or value is None:
+        return value
+    if isinstance(value, int | float):
+        if isinstance(value, float) and value != value:
+            raise _refuse(field, value, "a number, text or true/false")
+        return value
+    return _text(4096)(value, field, limits)
+
+
+def _number_or_text(value: Any, field: str, limits: Limits) -> Any:
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return value
+    return _text(256)(value, field, limits)
+
+
+def _mapping(key_check: Check, value_check: Check, max_items: int = 256) -> Check:
+    def check(value: Any, field: str, limits: Limits) -> dict[str, Any]:
+        if not isinstance(value, dict) or len(value) > max_items:
+            raise _refuse(field, value, f"an object of at most {max_items} entries")
+        return {key_check(k, f"{field}.{k}", limits): value_check(v, f"{field}.{k}", limits) for k, v in value.items()}
+
+    return check
+
+
+_PORT = _text(128)
+SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
+    "add_transformation": {"xml": (True, _text()), "path": (False, _text(256))},
+    "remove_transformation": {"label": (True, _text(256))},
+    "spawn": {
+        "label": (True, _text(256)),
+        "name": (True, _name),
+        "protected": (False, _flag),
+        "params": (False, _mapping(_text(128), _scalar)),
+        "bindings": (False, _mapping(_PORT, _key)),
+    },
+    "destroy": {"name": (True, _text(256))},
+    "get_model": {},
+    "request": {"tag": (True, _text(512))},
+    "release": {"key": (True, _key)},
+    "measure": {"name": (True, _text(128)), "value": (True, _number_or_text)},
+    "get_adaptations": {},
+    "get_config": {},
+    "set_config": {"bindings": (True, _mapping(_PORT, _key))},
+    "get_statistics": {},
+}
+"""Every service's fields: ``{field: (required, check)}``. Unknown fields are refused."""
+
+
+def check_request(service: str, request: Any, limits: Limits) -> dict[str, Any]:
+    """``request`` with every field checked against the service's schema; :class:`ServiceError`
+    naming the first field that is missing, unknown, of the wrong type or too large."""
+    if not isinstance(request, dict):
+        raise ServiceError(f"the request is a JSON {type(request).__name__}", expected="a JSON object")
+    schema = SCHEMAS[service]
+    unknown = [name for name in request if name not in schema]
+    if unknown:
+        fields = ", ".join(schema) or "none"
+        raise ServiceError(f"unknown field {str(unknown[0])[:80]!r}", where=f"service {service!r}", expected=f"the fields {fields}")
+    checked: dict[str, Any] = {}
+    for name, (required, check) in schema.items():
+        if name in request:
+            checked[name] = check(request[name], name, limits)
+        elif required:
+            raise ServiceError(f"missing field {name!r}", where=f"service {service!r}", expected=f"the fields {', '.join(schema)}")
+    return checked
+
+
+def _depth(value: Any, limit: int) -> bool:
+    """Whether ``value`` nests no deeper than ``limit`` (walked without recursion)."""
+    todo = [(value, 1)]
+    while todo:
+        item, depth = todo.pop()
+        if isinstance(item, dict | list):
+            if depth > limit:
+                return False
+            todo.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
+    return True
+
+
+def decode_request(payload: bytes, limits: Limits) -> Any:
+    """The JSON of a request, bounded in size and depth before and while it is parsed."""
+    if len(payload) > limits.max_request_bytes:
+        raise ServiceError(
+            f"the request has {len(payload):,} bytes", where="request", expected=f"at most {limits.max_request_bytes:,} (--max-request-bytes)"
+        )
+    try:
+        request = json.loads(payload) if payload else {}
+    except RecursionError:
+        raise ServiceError("the request's JSON nests too deep", where="request", expected=f"at most {limits.max_json_depth} levels") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ServiceError(f"the request is not JSON: {str(exc)[:120]}", where="request", expected="a JSON object") from None
+    if not _depth(request, limits.max_json_depth):
+        raise ServiceError("the request's JSON nests too deep", where="request", expected=f"at most {limits.max_json_depth} levels")
+    return request
+
+
 def dispatcher(
     manager: str,
     manager_handlers: Mapping[str, Handler],
     unit_handler: Callable[[str, str, dict[str, Any]], Any],
+    limits: Limits | None = None,
 ) -> Callable[[str, bytes], tuple[bool, bytes]]:
-    """A queryable handler for ``@dyknow/<manager>/**`` that routes to the given handlers."""
+    """A queryable handler for ``@dyknow/<manager>/**`` that checks each request, then routes it."""
     known = ", ".join([*manager_handlers, *(f"unit/<name>/{s}" for s in UNIT_SERVICES)])
+    bounds = limits or Limits()
 
     def handle(key: str, payload: bytes) -> tuple[bool, bytes]:
         try:
-            try:
-                request = json.loads(payload) if payload else {}
-            except ValueError as exc:
-                raise ServiceError(f"the request is not JSON: {exc}", where=key, expected="a JSON object") from exc
-            if not isinstance(request, dict):
-                raise ServiceError(f"the request is a JSON {type(request).__name__}", where=key, expected="a JSON object")
+            if len(key.encode()) > bounds.max_key_bytes:
+                raise ServiceError(f"a key of {len(key.encode())} bytes", where="key", expected=f"at most {bounds.max_key_bytes}")
             address = keys.parse_service_key(manager, key)
             if address is not None and address.unit is None and address.service in manager_handlers:
-                result = manager_handlers[address.service](request)
+                result = manager_handlers[address.service](check_request(address.service, decode_request(payload, bounds), bounds))
             elif address is not None and address.unit is not None and address.service in UNIT_SERVICES:
+                request = check_request(address.service, decode_request(payload, bounds), bounds)
                 result = unit_handler(address.unit, address.service, request)
             else:
-                raise ServiceError(f"no service at {key!r} on manager {manager!r}", expected=f"one of {known}")
+                raise ServiceError(f"no service at {key[:200]!r} on manager {manager!r}", expected=f"one of {known}")
             return True, json.dumps(result).encode()
         except DyKnowError as exc:
             return False, _error_reply(exc)
-        except (KeyError, TypeError, ValueError) as exc:
-            # a request with missing or mistyped fields
-            return False, _error_reply(ServiceError(f"bad request: {type(exc).__name__}: {exc}", where=key))
+        except (KeyError, TypeError, ValueError) as exc:  # a handler's own check of a field
+            return False, _error_reply(ServiceError(f"bad request: {type(exc).__name__}: {exc}", where=key[:200]))
 
     return handle
 

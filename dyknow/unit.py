@@ -110,6 +110,10 @@ class Unit:
     #: Run this unit's callbacks on a thread of its own from the start.
     dedicated_thread: ClassVar[bool] = False
 
+    #: The params that name files, and what the unit does with them: ``{"path": "write"}``.
+    #: For a remote caller the manager confines them to its data roots, whatever the spec says.
+    path_params: ClassVar[Mapping[str, str]] = {}
+
     name: str
     label: str
     params: Mapping[str, Any]

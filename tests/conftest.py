@@ -83,10 +83,11 @@ def manager(make_manager: Callable[..., Manager]) -> Manager:
     return make_manager()
 
 
-def run_cli(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
-    """Run ``dyknow ARGS`` in a child process and capture its output."""
+def run_cli(*args: str, timeout: float = 30.0, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    """Run ``dyknow ARGS`` in a child process (``stdin`` as its input) and capture its output."""
     return subprocess.run(
         [sys.executable, "-m", "dyknow.cli", *args],
+        input=stdin,
         capture_output=True,
         text=True,
         timeout=timeout,

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from dyknow import BindingError, Client, LibraryError, Manager, Message, SpecError, UnitError
-from tests.conftest import UNIT_SPECS
+from tests.conftest import GENERIC_SPECS
 
 RELAY = """<transformation><label>my-relay</label><source>transformations.generic:Relay</source>
   <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
@@ -48,7 +48,7 @@ def test_refusals_raise_the_managers_error_class(manager: Manager) -> None:
 
 def test_a_spec_file_is_read_on_the_clients_side(manager: Manager, tmp_path: Path) -> None:
     with Client(manager.name, connect=manager.endpoints) as client:
-        assert "sink" in client.add_transformation(UNIT_SPECS)
+        assert "relay" in client.add_transformation(GENERIC_SPECS)
         with pytest.raises(SpecError, match=r"missing\.xml: cannot read"):
             client.add_transformation(tmp_path / "missing.xml")
 

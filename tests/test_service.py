@@ -31,7 +31,9 @@ def test_every_service_answers(manager: Manager) -> None:
         ("unit/s/explode", b"{}", "no service at '@dyknow/{m}/unit/s/explode' on manager '{m}'"),
         ("get_model", b"not json", "the request is not JSON"),
         ("get_model", b"[1, 2]", "the request is a JSON list"),
-        ("spawn", b'{"label": "sink"}', "bad request: KeyError: 'name'"),
+        ("spawn", b'{"label": "sink"}', "missing field 'name'"),
+        ("spawn", b'{"label": "sink", "name": "s", "colour": 1}', "unknown field 'colour'"),
+        ("spawn", b'{"label": "sink", "name": "s", "protected": "yes"}', "got 'yes'"),
     ],
 )
 def test_bad_requests_are_refused_with_a_reason(manager: Manager, path: str, payload: bytes, what: str) -> None:

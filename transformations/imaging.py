@@ -101,6 +101,8 @@ class Undistort(Unit):
       (0: only valid pixels, 1: every source pixel kept).
     """
 
+    path_params = {"calibration": "read"}
+
     dedicated_thread = True
 
     def setup(self) -> None:

@@ -27,6 +27,8 @@ class RecorderUnit(Unit):
     the recorder's error.
     """
 
+    path_params = {"path": "write"}
+
     def setup(self) -> None:
         """Open the recording file named by the ``path`` param."""
         self.recorder = Recorder(
@@ -53,6 +55,8 @@ class ReplaySource(Unit):
     a damaged file). Payloads are decoded as :class:`dyknow.recording.Player` does: images arrive
     as numpy arrays.
     """
+
+    path_params = {"file": "read"}
 
     def setup(self) -> None:
         """Open the file and select its topic."""

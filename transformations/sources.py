@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from dyknow import Unit
+from dyknow.security import bounded_glob
 from transformations import params
 from transformations.errors import MediaError
 from transformations.scene import CAMERAS, Scene
@@ -92,7 +93,7 @@ def list_images(pattern: str | os.PathLike[str]) -> list[Path]:
         if not files:
             raise MediaError("has no images", where=f"folder {path}", expected=f"files ending in {', '.join(IMAGE_EXTENSIONS)}")
     elif glob.has_magic(text):
-        files = [Path(p) for p in glob.glob(os.path.expanduser(text)) if Path(p).is_file()]
+        files = [Path(p) for p in bounded_glob(os.path.expanduser(text)) if Path(p).is_file()]  # bounded: cannot walk the disk
         if not files:
             raise MediaError("no file matches it", where=text, expected="a glob such as 'frames/*.png'")
     elif path.exists():
@@ -174,6 +175,8 @@ class VideoSource(_CaptureSource):
     the container states it), ``frames_published``, ``loops`` (restarts so far) and
     ``finished`` (an event set when the video ended without ``loop``, or the unit stopped).
     """
+
+    path_params = {"path": "read"}
 
     def setup(self) -> None:
         """Open the video and read its frame rate."""
@@ -292,6 +295,8 @@ class ImageFolderSource(Unit):
     header no image format recognises are caught at setup already. Grey and colour images both
     come out as BGR. Attributes: ``files``, ``frames_published``, ``skipped``, ``finished``.
     """
+
+    path_params = {"path": "read"}
 
     dedicated_thread = True
 

@@ -52,8 +52,10 @@ from __future__ import annotations
 
 from dyknow.spec.model import (
     CONSTRAINT_OPS,
+    DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
     PARAM_TYPES,
+    PATH_MODES,
     PORT_DIRECTIONS,
     QUEUE_POLICIES,
     TRANSFORMATION_TYPES,
@@ -71,9 +73,11 @@ from dyknow.spec.template import Template
 
 __all__ = [
     "CONSTRAINT_OPS",
+    "DEFAULT_MAX_EXPANSIONS",
     "DEFAULT_PRIORITY",
     "ELEMENTS",
     "PARAM_TYPES",
+    "PATH_MODES",
     "PORT_DIRECTIONS",
     "QUEUE_POLICIES",
     "TRANSFORMATION_TYPES",

@@ -21,8 +21,10 @@ from dyknow.errors import did_you_mean
 __all__ = [
     "BOOL_WORDS",
     "CONSTRAINT_OPS",
+    "DEFAULT_MAX_EXPANSIONS",
     "DEFAULT_PRIORITY",
     "PARAM_TYPES",
+    "PATH_MODES",
     "PORT_DIRECTIONS",
     "QUEUE_POLICIES",
     "TRANSFORMATION_TYPES",
@@ -42,8 +44,15 @@ __all__ = [
 DEFAULT_PRIORITY: int = 100
 """The priority of a transformation without ``<priority>``; lower numbers are preferred."""
 
-PARAM_TYPES: tuple[str, ...] = ("string", "int", "float", "bool")
-"""The values allowed in ``<param type="...">``."""
+PARAM_TYPES: tuple[str, ...] = ("string", "int", "float", "bool", "path")
+"""The values allowed in ``<param type="...">``. A ``path`` is text naming a file or folder:
+for remote callers the manager confines it to its data roots (see :mod:`dyknow.security`)."""
+
+PATH_MODES: tuple[str, ...] = ("read", "write")
+
+DEFAULT_MAX_EXPANSIONS: int = 10_000
+"""How many specs one template may expand to unless told otherwise (a bigger product is refused)."""
+"""What a ``path`` param is for (``<param type="path" mode="...">``; ``read`` when absent)."""
 
 CONSTRAINT_OPS: tuple[str, ...] = ("<", "<=", ">", ">=", "==", "!=")
 """The operators allowed in ``<constraint op="...">``."""
@@ -77,11 +86,15 @@ PathsLike = str | os.PathLike[str] | Iterable[str | os.PathLike[str]]
 
 @dataclass(frozen=True, slots=True)
 class Param:
-    """A parameter passed to the unit when it is spawned; ``value`` has the Python type of ``type``."""
+    """A parameter passed to the unit when it is spawned; ``value`` has the Python type of ``type``.
+
+    ``mode`` ("read" or "write") is set for ``path`` params only.
+    """
 
     name: str
     type: str
     value: str | int | float | bool
+    mode: str | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -246,7 +259,8 @@ class TransformationSpec:
             out.append("  <params>")
             for p in self.params:
                 value = _xml_text(_value_text(p.value))
-                out.append(f"    <param name={quoteattr(p.name)} type={quoteattr(p.type)}>{value}</param>")
+                mode = f" mode={quoteattr(p.mode)}" if p.mode else ""
+                out.append(f"    <param name={quoteattr(p.name)} type={quoteattr(p.type)}{mode}>{value}</param>")
             out.append("  </params>")
         out.append("  <ports>")
         for port in self.ports:
@@ -278,7 +292,7 @@ class TransformationSpec:
 
 def convert_param(type_: str, text: str) -> str | int | float | bool:
     """``text`` as a value of the param type; the :class:`ValueError` names the expected form."""
-    if type_ == "string":
+    if type_ in ("string", "path"):
         return text
     if type_ == "int" and INTEGER.fullmatch(text):
         return int(text)

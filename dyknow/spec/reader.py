@@ -26,9 +26,11 @@ from dyknow.errors import SpecError, SpecIssue, did_you_mean
 from dyknow.spec.model import (
     CONSTRAINT_OPS,
     DECIMAL,
+    DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
     INTEGER,
     PARAM_TYPES,
+    PATH_MODES,
     PORT_DIRECTIONS,
     QUEUE_POLICIES,
     TRANSFORMATION_TYPES,
@@ -56,7 +58,7 @@ _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "args": (),
     "arg": ("label", "class"),
     "params": (),
-    "param": ("name", "type"),
+    "param": ("name", "type", "mode"),
     "ports": (),
     "port": ("type", "deadline-ms", "queue", "policy"),
     "tags": (),
@@ -121,14 +123,18 @@ def parse_templates(data: str | bytes, path: str = "<string>") -> list[Template]
 
 
 def parse_specs(
-    data: str | bytes, path: str = "<string>", individuals: Individuals | None = None
+    data: str | bytes,
+    path: str = "<string>",
+    individuals: Individuals | None = None,
+    *,
+    max_expansions: int = DEFAULT_MAX_EXPANSIONS,
 ) -> list[TransformationSpec]:
     """Parse and expand a spec document.
 
     Every problem of the document (structure, expansion, labels defined twice) is reported in
     one :class:`SpecError`.
     """
-    located, issues = _load(data, path, individuals)
+    located, issues = _load(data, path, individuals, max_expansions)
     issues.extend(_duplicate_labels(located))
     if issues:
         raise SpecError(sorted(issues, key=lambda i: i.line))
@@ -147,7 +153,9 @@ def spec_files(paths: PathsLike) -> list[pathlib.Path]:
     return files
 
 
-def load_specs(paths: PathsLike, individuals: Individuals | None = None) -> list[TransformationSpec]:
+def load_specs(
+    paths: PathsLike, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS
+) -> list[TransformationSpec]:
     """Load and expand every spec in ``paths`` (see :func:`spec_files`).
 
     Raises one :class:`SpecError` with the problems of every file, including labels defined in
@@ -161,7 +169,7 @@ def load_specs(paths: PathsLike, individuals: Individuals | None = None) -> list
         except OSError as exc:
             issues.append(SpecIssue(str(file), 0, f"cannot read: {exc.strerror or exc}"))
             continue
-        file_located, file_issues = _load(data, str(file), individuals)
+        file_located, file_issues = _load(data, str(file), individuals, max_expansions)
         issues.extend(sorted(file_issues, key=lambda i: i.line))
         located.extend(file_located)
     issues.extend(_duplicate_labels(located))
@@ -197,14 +205,14 @@ def _spec_files(paths: PathsLike) -> tuple[list[pathlib.Path], list[SpecIssue]]:
 
 
 def _load(
-    data: str | bytes, path: str, individuals: Individuals | None
+    data: str | bytes, path: str, individuals: Individuals | None, max_expansions: int
 ) -> tuple[list[tuple[TransformationSpec, int]], list[SpecIssue]]:
     """Parse and expand; (spec, line of its label) pairs and every issue but duplicate labels."""
     templates, issues = _parse(data, path)
     located: list[tuple[TransformationSpec, int]] = []
     for template in templates:
         try:
-            located.extend((spec, template.label_line) for spec in template.expand(individuals))
+            located.extend((spec, template.label_line) for spec in template.expand(individuals, max_expansions=max_expansions))
         except SpecError as exc:
             issues.extend(exc.issues)
     return located, issues
@@ -536,8 +544,17 @@ def _read_params(
             hint = did_you_mean(type_, PARAM_TYPES)
             expected = f"one of {', '.join(PARAM_TYPES)}{hint}"
             issues.add(node.line, "<param> @type", f"unknown type {type_!r}", expected)
+        mode = node.attrs.get("mode")
+        if mode is not None:
+            mode = mode.strip()
+            if type_ != "path":
+                issues.add(node.line, "<param> @mode", "only allowed on path params", 'it on a <param type="path">')
+            elif mode not in PATH_MODES:
+                issues.add(node.line, "<param> @mode", f"unknown mode {mode!r}", f"read or write{did_you_mean(mode, PATH_MODES)}")
+        elif type_ == "path":
+            mode = "read"
         _check_template(f"<param> {name!r}", node.text, node.line, declared, issues)
-        params.append(Param(name, type_, node.text))
+        params.append(Param(name, type_, node.text, mode))
     return tuple(params), tuple(n.line for n in nodes)
 
 

@@ -11,6 +11,7 @@ template, located.
 from __future__ import annotations
 
 import itertools
+import math
 import re
 from collections import Counter
 from collections.abc import Mapping, Sequence
@@ -18,6 +19,7 @@ from dataclasses import dataclass, replace
 
 from dyknow.errors import SpecError, SpecIssue, TagError, compose, did_you_mean
 from dyknow.spec.model import (
+    DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
     NUMBER,
     Arg,
@@ -72,12 +74,13 @@ class Template:
         """Whether the transformation has args (and so expands to one spec per combination)."""
         return bool(self.args)
 
-    def expand(self, individuals: Individuals | None = None) -> list[TransformationSpec]:
+    def expand(self, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS) -> list[TransformationSpec]:
         """One spec per combination of arg values (cartesian product, args in document order).
 
         ``individuals(class_ref)`` supplies the values of an ``<arg class="...">``. Raises
         :class:`SpecError` with every problem of this template; a problem that is the same in
-        every expansion is reported once, otherwise it names the expansions it occurs in.
+        every expansion is reported once, otherwise it names the expansions it occurs in. A
+        template with more than ``max_expansions`` combinations is refused before any is built.
         """
         issues: list[SpecIssue] = []
         value_sets: list[tuple[str, ...]] = []
@@ -88,6 +91,11 @@ class Template:
             value_sets.append(arg_values)
         if issues:
             raise SpecError(issues)
+        total = math.prod(len(v) for v in value_sets)
+        if total > max_expansions:
+            counts = " x ".join(str(len(v)) for v in value_sets)
+            what = f"expands to {total:,} transformations ({counts} arg values)"
+            raise SpecError([SpecIssue(self.path, self.line, what, "<transformation>", f"at most {max_expansions:,}")])
 
         specs: list[TransformationSpec] = []
         found: dict[_Problem, list[str]] = {}  # a problem -> the expansions it occurs in
@@ -129,7 +137,7 @@ class Template:
             except ValueError as exc:
                 problems.append((line, f"<param> {param.name!r}", f"value {text!r} is not a valid {param.type}", str(exc)))
                 value = text
-            params.append(Param(param.name, param.type, value))
+            params.append(Param(param.name, param.type, value, param.mode))
 
         ports = [replace(port, name=sub(port.name)) for port in self.ports]
         first_line: dict[str, int] = {}

@@ -60,7 +60,9 @@ def test_listing1_template_is_structurally_valid() -> None:
 BROKEN_CASES = [
     ("missing_source.xml", 2, "<transformation>: missing <source>; expected <source>package.module:Class</source>", 1),
     ("param_bad_int.xml", 5, "<param> 'rate': value 'fast' is not a valid int; expected a whole number such as 10", 1),
-    ("param_unknown_type.xml", 5, "<param> @type: unknown type 'integer'; expected one of string, int, float, bool (did you mean 'int'?)", 1),
+    ("param_unknown_type.xml", 5, "<param> @type: unknown type 'integer'; expected one of string, int, float, bool, path (did you mean 'int'?)", 1),
+    ("param_mode.xml", 5, "<param> @mode: only allowed on path params; expected it on a <param type=\"path\">", 2),
+    ("param_mode.xml", 6, "<param> @mode: unknown mode 'append'; expected read or write", 2),
     ("param_expansion.xml", 6, "<param> 'rate': value 'two' is not a valid int; expected a whole number such as 10 (in expansion N=two)", 1),
     ("unknown_element.xml", 2, "<lable>: unknown element in <transformation>; expected one of label, source, description, args, params, ports, tags, priority, constraints (did you mean 'label'?)", 2),
     ("unknown_element.xml", 1, "<transformation>: missing <label>", 2),
@@ -126,7 +128,7 @@ def test_all_errors_of_a_file_are_reported() -> None:
     issues = issues_of(path)
     assert [(i.line, i.message) for i in issues] == [
         (2, "<transformation>: missing <source>; expected <source>package.module:Class</source>"),
-        (7, "<param> @type: unknown type 'double'; expected one of string, int, float, bool"),
+        (7, "<param> @type: unknown type 'double'; expected one of string, int, float, bool, path"),
         (10, "<port> @speed: unknown attribute; expected type, deadline-ms, queue, policy"),
         # The second transformation is structurally fine, so its expansion errors are found too.
         (17, "<tag> @port: no port named 'item'; expected 'items' (did you mean 'items'?)"),
@@ -300,3 +302,13 @@ def test_a_duplicate_label_across_files_names_the_first_place() -> None:
     issue = issues_of(SPECS / "dup")[0]
     assert issue.element == "<label>" and issue.expected == "each label once"
     assert issue.what.startswith("duplicate label ") and ", first defined at " in issue.what
+
+
+def test_path_params_read_by_default_and_round_trip() -> None:
+    specs = parse_specs(
+        '<transformation><label>r</label><source>transformations.recording:RecorderUnit</source>'
+        '<params><param name="out" type="path" mode="write">x.mcap</param><param name="in" type="path">y</param></params>'
+        '<ports><port type="in">in</port></ports></transformation>'
+    )
+    assert [(p.name, p.type, p.mode) for p in specs[0].params] == [("out", "path", "write"), ("in", "path", "read")]
+    assert parse_specs(specs[0].to_xml())[0].params == specs[0].params

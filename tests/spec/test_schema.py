@@ -87,6 +87,7 @@ def test_xsd_elements_and_attributes_match_the_loader(schema: xmlschema.XMLSchem
         ("constraintOp", spec.CONSTRAINT_OPS),
         ("portDirection", spec.PORT_DIRECTIONS),
         ("transformationType", spec.TRANSFORMATION_TYPES),
+        ("pathMode", spec.PATH_MODES),
     ],
 )
 def test_xsd_enumerations_match_the_loader(schema: xmlschema.XMLSchema, type_name: str, values: tuple[str, ...]) -> None:

@@ -1,0 +1,219 @@
+"""The manager's security policy: which code it loads, which files callers may name, what it bounds.
+
+A manager's services are reachable by any Zenoh peer that reaches it, so what arrives through
+them is hostile input. Three policies keep it harmless; the local Python API is trusted and
+passes through unchecked (it runs as the operator):
+
+- :class:`SourcePolicy`: the unit sources (``package.module:Class``) the manager may import. The
+  packages ``dyknow`` and ``transformations``, the modules named by the specs the operator gave
+  (at start, or through the Python API) and the operator's ``--allow-source`` patterns. A spec
+  that names any other source is refused when it is added through the service; nothing is
+  imported, and the module name is checked before every import anyway.
+- :class:`DataRoots`: the folders that file params (``type="path"`` in a spec, or declared by the
+  unit class in ``Unit.path_params``) may name when a unit is spawned for a remote caller or from
+  a spec added remotely: writes under ``--data-root`` folders only, reads there and in the
+  folders of the specs loaded at start. ``..``, ``~``, symlinks out of a root, absolute paths
+  elsewhere and globs whose fixed part escapes are refused, naming the param.
+- :class:`Limits`: the size of a request, the depth of its JSON, the length of names and keys
+  (a key over Zenoh's batch size would make its transport panic), the expansions of a template,
+  and the entries and time a glob may take.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import os
+import re
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from dyknow.errors import AccessError
+
+__all__ = ["DEFAULT_SOURCES", "PATH_MODES", "DataRoots", "Limits", "SourcePolicy", "bounded_glob", "module_of"]
+
+#: The packages whose units every manager may load.
+DEFAULT_SOURCES: tuple[str, ...] = ("dyknow", "transformations")
+
+#: What a file param is for: read an existing file, or write one.
+PATH_MODES: tuple[str, ...] = ("read", "write")
+
+_SOURCE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*")
+_PATTERN = re.compile(r"[A-Za-z0-9_.*?\[\]!]+(?::[A-Za-z0-9_*?\[\]!]+)?")
+_GLOB_MAGIC = re.compile(r"[*?\[]")
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """What one request, name, key, template or glob may cost; over it is refused, not attempted."""
+
+    max_request_bytes: int = 1 << 20
+    max_json_depth: int = 32
+    max_name_bytes: int = 128
+    max_key_bytes: int = 1024
+    max_expansions: int = 10_000
+    max_glob_entries: int = 100_000
+    max_glob_s: float = 2.0
+
+
+_DEFAULT = Limits()
+
+
+def module_of(source: str) -> str:
+    """The module part of a source ``package.module:Class``."""
+    return source.partition(":")[0]
+
+
+class SourcePolicy:
+    """The unit sources a manager may import: module prefixes, globs, or exact sources.
+
+    A pattern ``pkg`` allows ``pkg`` and its submodules; ``pkg.units*`` is a glob on the module
+    name; ``pkg.units:Camera`` allows that one class.
+    """
+
+    def __init__(self, patterns: Iterable[str] = DEFAULT_SOURCES) -> None:
+        self._patterns: list[str] = []
+        self.allow(*patterns)
+
+    @property
+    def patterns(self) -> tuple[str, ...]:
+        """The patterns allowed, in the order they were added."""
+        return tuple(self._patterns)
+
+    def allow(self, *patterns: str) -> None:
+        """Allow more sources (an operator's choice: ``--allow-source``, or a spec loaded locally)."""
+        for pattern in patterns:
+            if not isinstance(pattern, str) or not _PATTERN.fullmatch(pattern):
+                raise AccessError(
+                    f"{pattern!r} is not a source pattern",
+                    where="allow_sources",
+                    expected="a module such as mypkg or mypkg.units, a glob such as mypkg.*, or mypkg.units:Class",
+                )
+            if pattern not in self._patterns:
+                self._patterns.append(pattern)
+
+    def allows(self, source: str) -> bool:
+        """Whether ``source`` (``package.module:Class``) may be imported."""
+        if not _SOURCE.fullmatch(source):
+            return False
+        module = module_of(source)
+        for pattern in self._patterns:
+            if ":" in pattern:
+                if fnmatch.fnmatchcase(source, pattern):
+                    return True
+            elif module == pattern or module.startswith(pattern + ".") or fnmatch.fnmatchcase(module, pattern):
+                return True
+        return False
+
+    def check(self, source: str, where: str) -> None:
+        """Raise :class:`AccessError` unless ``source`` may be imported; nothing is imported."""
+        if not _SOURCE.fullmatch(source):
+            raise AccessError(f"source {source!r} is not importable", where=where, expected="'package.module:Class'")
+        if not self.allows(source):
+            raise AccessError(
+                f"source {source!r} is not allowed on this manager",
+                where=where,
+                expected="a unit of " + ", ".join(self._patterns) + " (the operator allows more with --allow-source PATTERN)",
+            )
+
+
+class DataRoots:
+    """The folders file params may name for remote callers: ``read`` and ``write`` roots."""
+
+    def __init__(self, write: Iterable[str | os.PathLike[str]] = (), read: Iterable[str | os.PathLike[str]] = ()) -> None:
+        self.write: tuple[Path, ...] = tuple(dict.fromkeys(Path(os.path.realpath(p)) for p in write))
+        # whatever may be written may be read too
+        self.read: tuple[Path, ...] = tuple(dict.fromkeys([*self.write, *(Path(os.path.realpath(p)) for p in read)]))
+
+    def roots(self, mode: str) -> tuple[Path, ...]:
+        """The roots of ``mode`` ("read" or "write")."""
+        return self.write if mode == "write" else self.read
+
+    def resolve(self, value: object, mode: str, where: str) -> str:
+        """The absolute, symlink-free path ``value`` names, once it is known to lie under a root.
+
+        A relative path is taken relative to the first root of ``mode``. A glob (reads only) is
+        checked through its fixed leading folders. Raises :class:`AccessError` naming ``where``.
+        """
+        roots = self.roots(mode)
+        listing = ", ".join(str(r) for r in roots)
+        if not roots:
+            raise AccessError(
+                f"a remote caller may not name files to {mode}",
+                where=where,
+                expected="a manager started with --data-root DIR" + (" (or a spec folder, for reads)" if mode == "read" else ""),
+            )
+        if not isinstance(value, str) or not value.strip() or "\x00" in value or len(value) > 4096:
+            raise AccessError(f"got {value!r}", where=where, expected=f"a path under {listing}")
+        text = value.strip()
+        parts = Path(text).parts
+        if ".." in parts or text.startswith("~"):
+            raise AccessError(f"{text!r} leaves its folder ('..' or '~')", where=where, expected=f"a path under {listing}")
+        candidate = Path(text) if os.path.isabs(text) else roots[0] / text
+        if _GLOB_MAGIC.search(text):
+            if mode == "write":
+                raise AccessError(f"{text!r} is a glob", where=where, expected="one file to write")
+            fixed = []
+            for part in candidate.parts:
+                if _GLOB_MAGIC.search(part):
+                    break
+                fixed.append(part)
+            self._inside(Path(*fixed), roots, text, where, listing)
+            return str(Path(os.path.realpath(Path(*fixed))).joinpath(*candidate.parts[len(fixed) :]))
+        resolved = Path(os.path.realpath(candidate))
+        self._inside(resolved, roots, text, where, listing)
+        return str(resolved)
+
+    @staticmethod
+    def _inside(path: Path, roots: Sequence[Path], text: str, where: str, listing: str) -> None:
+        real = Path(os.path.realpath(path))
+        if not any(real == root or root in real.parents for root in roots):
+            raise AccessError(f"{text!r} is outside the data roots", where=where, expected=f"a path under {listing}")
+
+
+def bounded_glob(pattern: str, *, max_entries: int = _DEFAULT.max_glob_entries, max_s: float = _DEFAULT.max_glob_s) -> list[str]:
+    """The files a glob pattern matches, visiting at most ``max_entries`` entries within ``max_s``.
+
+    Unlike :func:`glob.glob`, a pattern such as ``/*/*/*/*/*.x`` cannot walk the whole file
+    system: past either bound it raises :class:`AccessError` naming the pattern.
+    """
+    deadline = time.monotonic() + max_s
+    path = Path(pattern)
+    anchor = Path(path.anchor) if path.is_absolute() else Path(".")
+    current = [anchor]
+    visited = 0
+    parts = path.parts[1:] if path.is_absolute() else path.parts
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        found: list[Path] = []
+        for folder in current:
+            if not _GLOB_MAGIC.search(part):
+                candidate = folder / part
+                if candidate.exists():
+                    found.append(candidate)
+                continue
+            try:
+                with os.scandir(folder) as entries:
+                    for entry in entries:
+                        visited += 1
+                        if visited > max_entries or time.monotonic() > deadline:
+                            raise AccessError(
+                                f"the glob {pattern!r} is too costly (over {max_entries} entries or {max_s:g} s)",
+                                expected="a pattern whose folders are named, such as frames/*.png",
+                            )
+                        if entry.name.startswith(".") and not part.startswith("."):
+                            continue
+                        if fnmatch.fnmatchcase(entry.name, part) and (last or _is_dir(entry)):
+                            found.append(Path(entry.path))
+            except OSError:  # an unreadable folder matches nothing
+                continue
+        current = found
+    return sorted(str(p) for p in current)
+
+
+def _is_dir(entry: os.DirEntry[str]) -> bool:
+    try:
+        return entry.is_dir()
+    except OSError:  # unreadable (another user's /proc entry, say): not ours to walk
+        return False
