@@ -13,9 +13,11 @@ See the README for the concepts: transformation specs, the manager, units and th
 
 from __future__ import annotations
 
+from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import AdaptationEvent
 from dyknow.client import Client
 from dyknow.errors import (
+    AccessError,
     BindingError,
     ClosedError,
     DyKnowError,
@@ -50,6 +52,7 @@ from dyknow.spec import (
     load_specs,
     parse_specs,
 )
+from dyknow.security import Limits
 from dyknow.stats import LatencySummary, PortStatistics
 from dyknow.tags import Term, parse_term
 from dyknow.transport import DEFAULT_ENDPOINT
@@ -59,6 +62,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "DEFAULT_ENDPOINT",
+    "AccessControl",
+    "AccessError",
     "AdaptationEvent",
     "BindingError",
     "ChannelInfo",
@@ -69,6 +74,7 @@ __all__ = [
     "LatencySummary",
     "Library",
     "LibraryError",
+    "Limits",
     "Manager",
     "Message",
     "Model",
@@ -97,6 +103,7 @@ __all__ = [
     "Template",
     "Term",
     "Timer",
+    "TlsFiles",
     "TransformationSpec",
     "TransportError",
     "Unit",

@@ -48,7 +48,7 @@ import numpy as np
 from dyknow.client import Client
 from dyknow.errors import DyKnowError, SpecError
 from dyknow.message import Message, describe_payload
-from dyknow.spec import load_specs
+from dyknow.spec import DEFAULT_MAX_EXPANSIONS, load_specs
 from dyknow.transport import DEFAULT_ENDPOINT
 
 __all__ = ["main"]
@@ -96,7 +96,7 @@ def _ontology(paths: Sequence[str]) -> Any:
 
 def _load(args: argparse.Namespace) -> list[Any]:
     ontology = _ontology(getattr(args, "ontology", []))
-    return load_specs(args.paths, individuals=ontology.individuals if ontology is not None else None)
+    return load_specs(args.paths, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
 
 
 def _value(text: str) -> float | str:
@@ -104,6 +104,32 @@ def _value(text: str) -> float | str:
         return float(text)
     except ValueError:
         return text
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected a positive whole number")
+    return value
+
+
+def _names(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected names separated by commas, such as manager,operator")
+    return names
+
+
+def cmd_certs(args: argparse.Namespace) -> int:
+    """write a development CA and certificates signed by it, for TLS with mutual authentication"""
+    from dyknow.certs import write_dev_certs
+
+    written = write_dev_certs(args.dir, args.names, hosts=args.hosts)
+    _report(args, {"written": [str(p) for p in written]}, [f"wrote {p}" for p in written])
+    return 0
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -154,7 +180,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from dyknow.planner import plan
 
     ontology = _ontology(args.ontology)
-    specs = load_specs(args.specs, individuals=ontology.individuals if ontology is not None else None)
+    specs = load_specs(args.specs, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
     measurements = {k: _value(v) for k, v in _pairs(args.measure, "--measure").items()}
     try:
         result = plan(args.request, specs, ontology, (), set(args.unavailable), measurements, manager=args.manager)
@@ -193,11 +219,32 @@ def _wait_for_signal() -> None:
 def cmd_manager(args: argparse.Namespace) -> int:
     """run a manager until interrupted"""
     from dyknow.manager import Manager
+    from dyknow.security import Limits
 
-    listen = args.listen or ([DEFAULT_ENDPOINT] if args.zenoh_config is None else None)
+    tls = _tls(args)
+    listen = args.listen or ([_default_endpoint(tls)] if args.zenoh_config is None else None)
+    limits = Limits(max_request_bytes=args.max_request_bytes, max_expansions=args.max_expansions)
     with Manager(
-        args.name, specs=args.specs, ontology=args.ontology, listen=listen, connect=args.connect, zenoh_config=args.zenoh_config
+        args.name,
+        specs=args.specs,
+        ontology=args.ontology,
+        listen=listen,
+        connect=args.connect,
+        zenoh_config=args.zenoh_config,
+        allow_sources=args.allow_source,
+        data_roots=args.data_root,
+        limits=limits,
+        tls=tls,
+        acl=args.acl,
     ) as manager:
+        exposed = manager.exposed()
+        if exposed:
+            print(
+                f"dyknow: warning: listening beyond this host without TLS ({', '.join(exposed)}): anyone who reaches it may "
+                "call its services; use --tls-ca/--tls-cert/--tls-key and --acl (see the README's Security section)",
+                file=sys.stderr,
+                flush=True,
+            )
         # What start-up built lives as long as the manager: keep it out of the garbage
         # collector's way, so collections stay short while the robot runs.
         gc.collect()
@@ -217,8 +264,20 @@ def cmd_manager(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------- client commands
 
 
+def _tls(args: argparse.Namespace) -> Any:
+    from dyknow.access import TlsFiles
+
+    return TlsFiles.from_options(args.tls_ca, args.tls_cert, args.tls_key)
+
+
+def _default_endpoint(tls: Any) -> str:
+    return DEFAULT_ENDPOINT.replace("tcp/", "tls/", 1) if tls is not None else DEFAULT_ENDPOINT
+
+
 def _client(args: argparse.Namespace) -> Client:
-    return Client(args.manager, connect=args.connect or [DEFAULT_ENDPOINT], zenoh_config=args.zenoh_config, timeout_s=args.timeout)
+    tls = _tls(args)
+    connect = args.connect or ([_default_endpoint(tls)] if args.zenoh_config is None else [])
+    return Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls)
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
@@ -434,7 +493,7 @@ def _rate(text: str) -> float:
 
 
 def _zenoh_connect(args: argparse.Namespace) -> list[str]:
-    return list(args.connect) or ([DEFAULT_ENDPOINT] if args.zenoh_config is None else [])
+    return list(args.connect) or ([_default_endpoint(_tls(args))] if args.zenoh_config is None else [])
 
 
 def _stop_on_signals() -> threading.Event:
@@ -459,6 +518,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         args.output,
         connect=_zenoh_connect(args),
         zenoh_config=args.zenoh_config,
+        tls=_tls(args),
         compression=args.compression,
         chunk_size=args.chunk_size,
         max_messages=args.max_messages,
@@ -489,7 +549,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         stop = _stop_on_signals()
         topics = ", ".join(f"{topic} -> {key}" if key != topic else topic for topic, key in player.keys.items())
         _report(args, {"event": "ready", "file": args.file, "keys": player.keys}, f"replaying {args.file} ({topics}); Ctrl-C to stop")
-        count = player.publish(connect=_zenoh_connect(args), zenoh_config=args.zenoh_config, stop=stop, wait_s=args.wait)
+        count = player.publish(connect=_zenoh_connect(args), zenoh_config=args.zenoh_config, tls=_tls(args), stop=stop, wait_s=args.wait)
     _report(args, {"event": "done", "file": args.file, "messages": count}, f"replayed {count} messages from {args.file}")
     return 0
 
@@ -593,13 +653,33 @@ def _parser() -> argparse.ArgumentParser:
         """The options every command that opens a Zenoh session shares."""
         p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=connect_help)
         p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
+        p.add_argument("--tls-ca", metavar="FILE", help="TLS: the CA certificate that signs every peer's certificate (PEM); with --tls-cert and --tls-key")
+        p.add_argument("--tls-cert", metavar="FILE", help="TLS: this process's certificate (PEM); its common name is its identity for --acl")
+        p.add_argument("--tls-key", metavar="FILE", help="TLS: this process's private key (PEM)")
+
+    def limit_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--max-expansions", type=_positive_int, default=DEFAULT_MAX_EXPANSIONS, metavar="N",
+                       help=f"refuse a template that expands to more specs (default {DEFAULT_MAX_EXPANSIONS})")  # fmt: skip
 
     p = command("manager", cmd_manager)
     p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
     p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
+    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)")
     zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
+                   help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
+    p.add_argument("--data-root", action="append", default=[], metavar="DIR",
+                   help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
+    p.add_argument("--acl", metavar="FILE", help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...] } })")
+    p.add_argument("--max-request-bytes", type=_positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)")
+    limit_options(p)
+
+    p = command("certs", cmd_certs)
+    p.add_argument("dir", metavar="DIR", help="where to write ca.pem, ca.key and NAME.pem, NAME.key (an existing CA there is reused)")
+    p.add_argument("--names", required=True, type=_names, metavar="A,B,C", help="the certificates' common names")
+    p.add_argument("--hosts", type=_names, default=["localhost", "127.0.0.1"], metavar="H,H",
+                   help="host names and addresses the certificates are valid for (default localhost,127.0.0.1)")  # fmt: skip
 
     p = command("demo", cmd_demo)
     p.add_argument("--duration", type=float, default=None, metavar="S", help="how long to run (default 30 s; 6 s with --chain)")
@@ -647,14 +727,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--recover", action="store_true", help="summarise what is valid in a truncated or corrupt file")
 
     p = command("validate", cmd_validate)
+    limit_options(p)
     p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
 
     p = command("expand", cmd_expand)
+    limit_options(p)
     p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
 
     p = command("plan", cmd_plan)
+    limit_options(p)
     p.add_argument("--specs", action="extend", nargs="+", required=True, metavar="PATH", help="spec files or directories")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files")
     p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")

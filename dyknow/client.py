@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from dyknow import keys, service
+from dyknow.access import TlsFiles
 from dyknow.errors import ServiceError, SpecError, SpecIssue
 from dyknow.message import Message
 from dyknow.transport import DEFAULT_ENDPOINT, Session, Subscriber, check_key_expr, make_config
@@ -39,12 +40,14 @@ class Client:
         zenoh_config: str | os.PathLike[str] | None = None,
         timeout_s: float = 5.0,
         session: Session | None = None,
+        tls: TlsFiles | None = None,
     ) -> None:
         self.manager = manager
         self.timeout_s = timeout_s
         self._own_session = session is None
         self._connect = list(connect)
-        self._session = session or Session(make_config(connect=self._connect, config_file=zenoh_config))
+        self._tls = tls
+        self._session = session or Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls))
 
     def __enter__(self) -> Client:
         return self
@@ -70,10 +73,10 @@ class Client:
             reply = self._session.call(key, json.dumps(request).encode(), timeout_s=self.timeout_s, what=f"{what} of {where}")
         except ServiceError as exc:
             if exc.kind is None and "nothing serves" in str(exc):
-                raise ServiceError(
-                    f"no answer from {where} within {self.timeout_s:g} s",
-                    expected=f"a running manager (dyknow manager --name {self.manager})",
-                ) from exc
+                expected = f"a running manager (dyknow manager --name {self.manager})"
+                if self._tls is not None or any(e.startswith("tls/") for e in self._connect):
+                    expected += " whose CA signed this client's certificate (and whose --acl, if any, gives it a role)"
+                raise ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=expected) from exc
             raise service.raise_remote(exc) from None
         return json.loads(reply)
 

@@ -28,6 +28,8 @@ from dyknow.errors import UnitError
 
 __all__ = [
     "DATA_ROOT",
+    "MAX_KEY_BYTES",
+    "MAX_NAME_BYTES",
     "SERVICE_ROOT",
     "ServiceAddress",
     "check_name",
@@ -50,6 +52,12 @@ DATA_ROOT = "dyknow"
 SERVICE_ROOT = "@dyknow"
 
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+
+#: The longest manager or unit name (bytes). Names become key chunks.
+MAX_NAME_BYTES = 128
+#: The longest key expression dyknow declares (bytes). Zenoh's transport cannot send a
+#: declaration larger than one batch (about 65 kB) and panics when asked to, so keys stay small.
+MAX_KEY_BYTES = 1024
 _UNSAFE_IN_CHUNK = "/*$?#@ "
 
 
@@ -58,6 +66,8 @@ def check_name(name: object, what: str) -> str:
 
     ``what`` says which name it is, for the message ("unit name", "manager name").
     """
+    if isinstance(name, str) and len(name.encode()) > MAX_NAME_BYTES:
+        raise UnitError(f"{what} of {len(name.encode())} bytes is too long", expected=f"at most {MAX_NAME_BYTES} bytes")
     if not isinstance(name, str) or not _NAME.match(name):
         raise UnitError(
             f"{what} {name!r} is not a valid name",

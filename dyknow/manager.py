@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import ipaddress
 import json
 import logging
 import math
@@ -34,6 +35,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from dyknow import keys, service
+from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
@@ -68,7 +70,9 @@ class Manager:
     load (beyond ``dyknow``, ``transformations`` and the modules its specs name);
     ``data_roots`` are the folders file params may name for remote callers (reads also may name
     the folders of ``specs``); ``limits`` bound what one request may cost. The Python API is
-    trusted: it may pass any source and any path.
+    trusted: it may pass any source and any path. ``tls``: TLS with mutual authentication
+    (:class:`~dyknow.access.TlsFiles`); ``acl``: roles by certificate common name
+    (:class:`~dyknow.access.AccessControl`, or the path of its JSON5 file), enforced by Zenoh.
 
     It is the adaptation loop's :class:`~dyknow.adaptation.Runtime`.
     """
@@ -90,6 +94,8 @@ class Manager:
         allow_sources: Iterable[str] = (),
         data_roots: Iterable[str | os.PathLike[str]] = (),
         limits: Limits | None = None,
+        tls: TlsFiles | None = None,
+        acl: AccessControl | str | os.PathLike[str] | None = None,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
@@ -116,7 +122,9 @@ class Manager:
         self._lock = threading.RLock()
         self._units: dict[str, Proxy] = {}
         self._closed = False
-        self._session = Session(make_config(listen=listen, connect=list(connect), config_file=zenoh_config))
+        access = acl if isinstance(acl, AccessControl) or acl is None else AccessControl.load(acl)
+        self._tls = tls.check() if tls is not None else None
+        self._session = Session(make_config(listen=listen, connect=list(connect), config_file=zenoh_config, tls=self._tls, access=access))
         self._bus = LocalBus()
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
         self._listeners: list[Callable[[UnitEvent], None]] = []
@@ -139,6 +147,8 @@ class Manager:
             except DyKnowError:
                 self.close()
                 raise
+        if self._tls is None and self.exposed():
+            log.warning("manager %r listens beyond this host without TLS (%s): anyone who reaches it may call its services", self.name, ", ".join(self.exposed()))
         log.info("manager %r ready with %d specs", self.name, len(self.library))
 
     # ------------------------------------------------------------------ lifecycle
@@ -184,6 +194,10 @@ class Manager:
     def session(self) -> Session:
         """The manager's Zenoh session (for clients and tools living in the same process)."""
         return self._session
+
+    def exposed(self) -> list[str]:
+        """The endpoints this manager listens on beyond this host without TLS (a warning sign)."""
+        return [e for e in self.endpoints if not e.startswith("tls/") and not _loopback(e)]
 
     @property
     def endpoints(self) -> list[str]:
@@ -552,6 +566,16 @@ def _info(proxy: Proxy) -> UnitInfo:
     )
 
 
+def _loopback(endpoint: str) -> bool:
+    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%")[0]).is_loopback
+    except ValueError:
+        return False
+
+
 _SOURCE_SYNTAX = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -620,6 +644,8 @@ def _coerce(kind: str, value: Any, what: str) -> Any:
 def _bindings(spec: TransformationSpec, manager: str, unit: str, overrides: Mapping[str, str]) -> dict[str, str]:
     ports = {p.name: p for p in spec.ports}
     result = {name: keys.default_key(manager, unit, name) for name in ports}
+    for name, key in result.items():  # a port name from a remote spec can be long: so can the key
+        check_key_expr(key, what=f"port {name!r} of unit {unit!r}", concrete=ports[name].direction == "out")
     for name, key in overrides.items():
         port = ports.get(name)
         if port is None:

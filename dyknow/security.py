@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dyknow.errors import AccessError
+from dyknow.keys import MAX_KEY_BYTES, MAX_NAME_BYTES
 
 __all__ = ["DEFAULT_SOURCES", "PATH_MODES", "DataRoots", "Limits", "SourcePolicy", "bounded_glob", "module_of"]
 
@@ -50,8 +51,8 @@ class Limits:
 
     max_request_bytes: int = 1 << 20
     max_json_depth: int = 32
-    max_name_bytes: int = 128
-    max_key_bytes: int = 1024
+    max_name_bytes: int = MAX_NAME_BYTES
+    max_key_bytes: int = MAX_KEY_BYTES
     max_expansions: int = 10_000
     max_glob_entries: int = 100_000
     max_glob_s: float = 2.0

@@ -26,7 +26,9 @@ from typing import Any
 
 import zenoh
 
+from dyknow.access import AccessControl, TlsFiles
 from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError
+from dyknow.keys import MAX_KEY_BYTES
 from dyknow.message import ENCODINGS, HEADER, Message, decode, decode_dyknow, encode
 
 __all__ = [
@@ -109,6 +111,8 @@ def check_key_expr(key: str, *, what: str = "key expression", concrete: bool = F
     """
     if not isinstance(key, str) or not key:
         raise BindingError(f"got {key!r}", where=what, expected="a non-empty Zenoh key expression like 'robot/camera/image'")
+    if len(key.encode()) > MAX_KEY_BYTES:
+        raise BindingError(f"a key expression of {len(key.encode())} bytes is too long", where=what, expected=f"at most {MAX_KEY_BYTES} bytes")
     try:
         zenoh.KeyExpr(key)
     except zenoh.ZError as exc:
@@ -142,12 +146,17 @@ def make_config(
     listen: Sequence[str] | None = None,
     connect: Sequence[str] = (),
     config_file: str | os.PathLike[str] | None = None,
+    tls: TlsFiles | None = None,
+    access: AccessControl | None = None,
 ) -> zenoh.Config:
     """Build a Zenoh configuration.
 
     Without ``config_file``: a loopback-only peer (multicast scouting off, gossip on) listening on
     ``listen`` (default: any free port on 127.0.0.1) and connecting to ``connect``. With
     ``config_file``: that json5 file, with ``listen``/``connect`` applied on top when given.
+    ``tls``: TLS with mutual authentication on ``tls/HOST:PORT`` endpoints (this process's
+    certificate for both listening and connecting, the CA to verify the peer's). ``access``: the
+    roles to enforce, as Zenoh access control.
     """
     try:
         if config_file is not None:
@@ -167,11 +176,20 @@ def make_config(
             # The admin space tells a manager which port it got when asked for port 0.
             config.insert_json5("adminspace/enabled", "true")
             if listen is None:
-                listen = ["tcp/127.0.0.1:0"]
+                listen = ["tls/127.0.0.1:0" if tls is not None else "tcp/127.0.0.1:0"]
         if listen is not None:
             config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         if connect or config_file is None:
             config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        if tls is not None:
+            prefix = "transport/link/tls"
+            config.insert_json5(f"{prefix}/root_ca_certificate", json.dumps(tls.ca))
+            for side in ("listen", "connect"):
+                config.insert_json5(f"{prefix}/{side}_certificate", json.dumps(tls.cert))
+                config.insert_json5(f"{prefix}/{side}_private_key", json.dumps(tls.key))
+            config.insert_json5(f"{prefix}/enable_mtls", "true")
+        if access is not None:
+            config.insert_json5("access_control", json.dumps(access.zenoh()))
     except zenoh.ZError as exc:
         raise TransportError(f"invalid Zenoh endpoint: {_clean(exc)}", where=f"listen={listen!r} connect={list(connect)!r}") from exc
     return config
@@ -513,6 +531,11 @@ class Session:
                 raise ServiceError(str(err.get("message", data)), kind=err.get("error"), details=err)
         except zenoh.ZError as exc:
             raise ServiceError(f"request to {what} failed: {_clean(exc)}") from exc
+        if time.monotonic() < deadline - 0.1 * timeout_s:  # it ended early, without a reply: dropped on its way
+            raise ServiceError(
+                f"no answer from {what}: the request to {key!r} was dropped without a reply",
+                expected="a role allowed to call it (the manager's --acl refuses silently)",
+            )
         raise ServiceError(f"no answer from {what} on {key!r} within {timeout_s:g} s")
 
     def _querier(self, key: str, timeout_s: float) -> tuple[Any, threading.Event]:

@@ -9,12 +9,12 @@ import sys
 import dyknow
 
 EXPECTED = [
-    "DEFAULT_ENDPOINT", "AdaptationEvent", "BindingError", "ChannelInfo", "Client", "ClosedError",
-    "Constraint", "DyKnowError", "LatencySummary", "Library", "LibraryError", "Manager", "Message",
+    "DEFAULT_ENDPOINT", "AccessControl", "AccessError", "AdaptationEvent", "BindingError", "ChannelInfo", "Client", "ClosedError",
+    "Constraint", "DyKnowError", "LatencySummary", "Library", "LibraryError", "Limits", "Manager", "Message",
     "Model", "Ontology", "OntologyError", "Param", "PayloadError", "Plan", "Planner",
     "PlanningError", "Player", "Port", "PortStatistics", "RecordedMessage", "Recorder", "Recording",
     "RecordingError", "RecordingInfo", "RequestInfo", "RunningUnit", "ServiceError", "SpecError",
-    "SpecIssue", "Tag", "TagError", "Template", "Term", "Timer", "TransformationSpec",
+    "SpecIssue", "Tag", "TagError", "Template", "Term", "Timer", "TlsFiles", "TransformationSpec",
     "TransportError", "Unit", "UnitError", "UnitEvent", "UnitInfo", "UnitState", "UnitStatistics",
     "__version__", "default_key", "load_specs", "parse_specs", "parse_term", "plan",
 ]  # fmt: skip

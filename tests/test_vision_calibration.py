@@ -42,7 +42,7 @@ def test_a_file_without_the_keys_is_refused_naming_the_file_and_the_key(data_dir
     path = data_dir / "calibration" / "calibration.yml"  # an image list, not a calibration
     with pytest.raises(CalibrationError) as info:
         load_calibration(path)
-    assert str(info.value) == (f"{path}: missing key 'camera_matrix' (keys found: images); expected a 3x3 !!opencv-matrix")
+    assert str(info.value) == (f"{path}: missing key 'camera_matrix'; expected a 3x3 !!opencv-matrix")  # no key names: the file's content
 
 
 def test_a_missing_distortion_key_is_named(tmp_path: Path) -> None:
@@ -51,7 +51,7 @@ def test_a_missing_distortion_key_is_named(tmp_path: Path) -> None:
     storage.write("camera_matrix", np.eye(3) * 500)
     storage.release()
     with pytest.raises(
-        CalibrationError, match=r"k_only.yml: missing key 'distortion_coefficients' \(keys found: camera_matrix\)"
+        CalibrationError, match=r"k_only.yml: missing key 'distortion_coefficients'; expected a 5x1"
     ):
         load_calibration(path)
 

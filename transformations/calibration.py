@@ -163,11 +163,10 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
             raise CalibrationError(
                 "the document is not a map of keys", where=str(file), expected="camera_matrix and distortion_coefficients"
             )
-        keys = ", ".join(root.keys()) or "none"
         found = _find(root, _MATRIX_KEYS)
         if found is None:
             raise CalibrationError(
-                f"missing key 'camera_matrix' (keys found: {keys})", where=str(file), expected="a 3x3 !!opencv-matrix"
+                "missing key 'camera_matrix'", where=str(file), expected="a 3x3 !!opencv-matrix"
             )
         matrix = _matrix(file, *found)
         if matrix.size != 9:
@@ -178,7 +177,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         found = _find(root, _DIST_KEYS)
         if found is None:
             raise CalibrationError(
-                f"missing key 'distortion_coefficients' (keys found: {keys})", where=str(file), expected="a 5x1 or 1x5 !!opencv-matrix"
+                "missing key 'distortion_coefficients'", where=str(file), expected="a 5x1 or 1x5 !!opencv-matrix"
             )
         dist = _matrix(file, *found)
         if (dist.ndim == 2 and 1 not in dist.shape) or dist.ndim > 2 or dist.size not in _DIST_SIZES:

@@ -31,6 +31,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
+from dyknow.access import TlsFiles
 from dyknow.errors import BindingError, ClosedError, RecordingError, did_you_mean
 from dyknow.message import Message
 from dyknow.recording.codecs import Decoders
@@ -278,6 +279,7 @@ class Player:
         *,
         connect: Iterable[str] = (),
         zenoh_config: str | os.PathLike[str] | None = None,
+        tls: TlsFiles | None = None,
         stop: threading.Event | None = None,
         wait_s: float = 0.0,
     ) -> int:
@@ -294,7 +296,7 @@ class Player:
         self._stop.clear()
         own = session is None
         if session is None:
-            session = Session(make_config(connect=list(connect), config_file=zenoh_config))
+            session = Session(make_config(connect=list(connect), config_file=zenoh_config, tls=tls))
         publishers = {}
         try:
             for key in dict.fromkeys(self._keys.values()):

@@ -235,7 +235,8 @@ class Recording:
         if head != MAGIC:
             if MAGIC.startswith(head):
                 raise RecordingError("truncated at offset 0: the file ends inside the MCAP magic; nothing is readable", where=self.path)
-            raise RecordingError(f"not an MCAP file: it begins with {head!r}", where=self.path, expected=f"the MCAP magic {MAGIC!r}")
+            # the file's own bytes are not quoted: the caller may not be allowed to read them
+            raise RecordingError("not an MCAP file: it does not begin with the MCAP magic", where=self.path, expected=f"the MCAP magic {MAGIC!r}")
         try:
             opcode, length = file.record_at(len(MAGIC), file.size)
             if opcode != Opcode.HEADER:

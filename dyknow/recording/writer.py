@@ -39,6 +39,7 @@ from typing import Any
 
 from mcap.writer import CompressionType, IndexType, Writer
 
+from dyknow.access import TlsFiles
 from dyknow.errors import ClosedError, RecordingError
 from dyknow.message import Message
 from dyknow.recording.codecs import PAYLOAD_METADATA, PROTOBUF_SCHEMAS, encode, json_schema
@@ -124,6 +125,7 @@ class Recorder:
         session: Session | None = None,
         connect: Iterable[str] = (),
         zenoh_config: str | os.PathLike[str] | None = None,
+        tls: TlsFiles | None = None,
         compression: str = "zstd",
         chunk_size: int = 1024 * 1024,
         flush_interval_s: float = 1.0,
@@ -189,7 +191,7 @@ class Recorder:
         if keys:
             try:
                 if session is None:
-                    session = Session(make_config(connect=list(connect), config_file=zenoh_config))
+                    session = Session(make_config(connect=list(connect), config_file=zenoh_config, tls=tls))
                     self._own_session = True
                 self._session = session
                 for key in keys:

@@ -101,7 +101,7 @@ def test_a_corrupt_chunk_is_named_and_recovery_skips_only_that_chunk(tmp_path: P
     [
         (b"", "the file is empty (0 bytes); expected an MCAP file"),
         (b"\x89MCA", "truncated at offset 0: the file ends inside the MCAP magic; nothing is readable"),
-        (b"PK\x03\x04 a zip file, not MCAP", "not an MCAP file: it begins with b'PK\\x03\\x04 a z'; expected the MCAP magic b'\\x89MCAP0\\r\\n'"),
+        (b"PK\x03\x04 a zip file, not MCAP", "not an MCAP file: it does not begin with the MCAP magic; expected the MCAP magic b'\\x89MCAP0\\r\\n'"),
         (b"\x89MCAP0\r\n\x02", "truncated at offset 8: the file ends inside a record header (1 of 9 bytes); nothing is readable"),
         (b"\x89MCAP0\r\n\x06" + bytes(8), "corrupt at offset 8: expected the Header record, found a Chunk record; nothing is readable"),
     ],

@@ -1,0 +1,172 @@
+"""TLS with mutual authentication and access control by role, enforced by Zenoh, over real links."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dyknow import AccessError, Client, Manager, Message, PlanningError, ServiceError, UnitError
+from dyknow.access import ROLES, AccessControl, TlsFiles
+from dyknow.certs import write_dev_certs
+from dyknow.testing import Sink
+from dyknow.transport import Session, make_config
+from tests.conftest import free_port
+
+NAMES = ["manager", "viewer", "operator", "admin", "stranger"]
+RELAY = """<transformation><label>extra-relay</label><source>transformations.generic:Relay</source>
+  <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("certs")
+    write_dev_certs(folder, NAMES)
+    return folder
+
+
+def tls(certs: Path, name: str) -> TlsFiles:
+    return TlsFiles(str(certs / "ca.pem"), str(certs / f"{name}.pem"), str(certs / f"{name}.key"))
+
+
+@pytest.fixture
+def secured(certs: Path, make_manager: Callable[..., Manager]) -> Manager:
+    acl = AccessControl.from_dict({"roles": {"viewer": ["viewer"], "operator": ["operator"], "admin": ["admin"]}})
+    manager = make_manager(listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=acl)
+    manager.spawn("sink", "inbox", bindings={"in": "dyknow/ext/in"})
+    manager.spawn("periodic-source", "ticks", params={"rate_hz": 100})
+    return manager
+
+
+@pytest.fixture
+def client(secured: Manager, certs: Path) -> Iterator[Callable[[str], Client]]:
+    opened: list[Client] = []
+
+    def open_as(name: str) -> Client:
+        c = Client(secured.name, connect=secured.endpoints, tls=tls(certs, name), timeout_s=1.5)
+        opened.append(c)
+        return c
+
+    yield open_as
+    for c in opened:
+        c.close()
+
+
+CALLS: list[tuple[str, str, Callable[[Client], Any]]] = [
+    ("viewer", "get_model", lambda c: c.get_model()),
+    ("viewer", "get_adaptations", lambda c: c.get_adaptations()),
+    ("viewer", "get_config", lambda c: c.get_config("inbox")),
+    ("viewer", "get_statistics", lambda c: c.get_statistics("inbox")),
+    ("operator", "spawn", lambda c: c.spawn("relay", "r")),
+    ("operator", "set_config", lambda c: c.set_config("inbox", {"in": "dyknow/ext/other"})),
+    ("operator", "measure", lambda c: c.measure("battery", 0.5)),
+    ("operator", "destroy", lambda c: c.destroy("ticks")),
+    ("admin", "add_transformation", lambda c: c.add_transformation(RELAY)),
+    ("admin", "remove_transformation", lambda c: c.remove_transformation("relay")),
+]
+
+
+@pytest.mark.parametrize("role", ROLES)
+@pytest.mark.parametrize(("needs", "service", "call"), CALLS, ids=[c[1] for c in CALLS])
+def test_each_role_against_each_service(client: Callable[[str], Client], role: str, needs: str, service: str, call: Callable[[Client], Any]) -> None:
+    allowed = ROLES.index(role) >= ROLES.index(needs)
+    c = client(role)
+    if allowed:
+        call(c)
+    else:
+        with pytest.raises(ServiceError, match="was dropped without a reply; expected a role allowed to call it"):
+            call(c)
+
+
+def test_request_and_release_need_an_operator(secured: Manager, client: Callable[[str], Client]) -> None:
+    with pytest.raises(ServiceError, match="dropped without a reply"):
+        client("viewer").request("Anything")
+    with pytest.raises(PlanningError, match="nothing provides Anything"):
+        client("operator").request("Anything")  # reaches the planner: refused for another reason
+    with pytest.raises(ServiceError, match="dropped without a reply"):
+        client("viewer").release("dyknow/x/requests/Anything")
+    with pytest.raises(UnitError, match="no request on key"):
+        client("operator").release("dyknow/x/requests/Anything")
+
+
+@pytest.mark.parametrize("name", ["stranger", None])
+def test_no_role_or_no_certificate_reaches_nothing(secured: Manager, certs: Path, name: str | None) -> None:
+    """A certificate of the CA without a role, or no certificate at all: not even the model."""
+    with Client(secured.name, connect=secured.endpoints, tls=tls(certs, name) if name else None, timeout_s=1.0) as c, pytest.raises(
+        ServiceError, match=r"no answer from manager .* within 1 s; expected a running manager"
+    ):
+        c.get_model()
+
+
+def test_a_certificate_from_another_ca_is_refused(secured: Manager, tmp_path: Path) -> None:
+    write_dev_certs(tmp_path, ["admin"])  # the same name, another CA
+    with Client(secured.name, connect=secured.endpoints, tls=tls(tmp_path, "admin"), timeout_s=1.0) as c, pytest.raises(ServiceError, match="no answer"):
+        c.get_model()
+
+
+def _publisher(certs: Path, name: str, endpoints: list[str]) -> Session:
+    return Session(make_config(connect=endpoints, tls=tls(certs, name)))
+
+
+@pytest.mark.parametrize(("role", "arrives"), [("operator", True), ("admin", True), ("viewer", False), ("stranger", False)])
+def test_publishing_data_needs_an_operator(secured: Manager, certs: Path, role: str, arrives: bool) -> None:
+    inbox = secured.unit("inbox")
+    assert isinstance(inbox, Sink)
+    with _publisher(certs, role, secured.endpoints) as session:
+        publisher = session.declare_publisher("dyknow/ext/in")
+        for i in range(50):
+            publisher.put(Message({"i": i}, i, 0, 0, "dyknow/ext/in"))
+            if inbox.messages:
+                break
+            threading.Event().wait(0.02)
+        if arrives:
+            inbox.wait_for(1)
+        else:
+            assert inbox.messages == []
+
+
+@pytest.mark.parametrize(("role", "receives"), [("viewer", True), ("stranger", False)])
+def test_subscribing_to_data_needs_a_viewer(secured: Manager, client: Callable[[str], Client], certs: Path, role: str, receives: bool) -> None:
+    got = threading.Event()
+    with Client(secured.name, connect=secured.endpoints, tls=tls(certs, role), timeout_s=1.0) as c, c.declare_subscriber(
+        f"dyknow/{secured.name}/ticks/out", lambda msg: got.set()
+    ):
+        assert got.wait(3 if receives else 1) is receives
+
+
+def test_acl_files_are_checked(tmp_path: Path) -> None:
+    good = tmp_path / "acl.json5"
+    good.write_text("{ roles: { viewer: ['a', 'b'], admin: ['c'] } }  // comments are fine")
+    acl = AccessControl.load(good)
+    assert acl.role_of("b") == "viewer" and acl.role_of("c") == "admin" and acl.role_of("z") is None
+    config = acl.zenoh()
+    assert config["default_permission"] == "deny" and [s["id"] for s in config["subjects"]] == ["viewer", "admin"]
+    admin_rules = next(p for p in config["policies"] if p["subjects"] == ["admin"])["rules"]
+    assert "viewer-calls" in admin_rules and "operator-calls" in admin_rules  # each role may what the ones before it may
+    for text, message in [
+        ("{ roles: { guest: ['a'] } }", "unknown role 'guest'; expected one of viewer, operator, admin"),
+        ("{ roles: { viewer: 'a' } }", "roles.viewer: got 'a'; expected a list of certificate common names"),
+        ("{ users: {} }", "the file must hold exactly one field, roles"),
+        ("{ roles: ", "not JSON5"),
+    ]:
+        bad = tmp_path / "bad.json5"
+        bad.write_text(text)
+        with pytest.raises(AccessError, match=message):
+            AccessControl.load(bad)
+
+
+def test_tls_options_come_together(tmp_path: Path, certs: Path) -> None:
+    assert TlsFiles.from_options(None, None, None) is None
+    with pytest.raises(AccessError, match="--tls-key missing"):
+        TlsFiles.from_options(str(certs / "ca.pem"), str(certs / "viewer.pem"), None)
+    with pytest.raises(AccessError, match="--tls-cert: '.*nope.pem' is not a readable file"):
+        TlsFiles.from_options(str(certs / "ca.pem"), str(tmp_path / "nope.pem"), str(certs / "viewer.key"))
+
+
+def test_a_manager_listening_beyond_loopback_without_tls_is_exposed(make_manager: Callable[..., Manager]) -> None:
+    assert make_manager().exposed() == []
+    exposed = make_manager(listen=[f"tcp/0.0.0.0:{free_port()}"]).exposed()
+    assert exposed and all(not e.startswith("tcp/127.") for e in exposed)
