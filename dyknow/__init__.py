@@ -42,6 +42,7 @@ from dyknow.ontology import Ontology
 from dyknow.planner import Plan, Planner, RunningUnit, plan
 from dyknow.proxy import UnitState, UnitStatistics
 from dyknow.recording import ChannelInfo, Player, RecordedMessage, Recorder, Recording, RecordingInfo
+from dyknow.security import Limits
 from dyknow.spec import (
     Constraint,
     Param,
@@ -52,7 +53,6 @@ from dyknow.spec import (
     load_specs,
     parse_specs,
 )
-from dyknow.security import Limits
 from dyknow.stats import LatencySummary, PortStatistics
 from dyknow.tags import Term, parse_term
 from dyknow.transport import DEFAULT_ENDPOINT

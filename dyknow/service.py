@@ -120,9 +120,11 @@ def _scalar(value: Any, field: str, limits: Limits) -> Any:
 
 
 def _number_or_text(value: Any, field: str, limits: Limits) -> Any:
-    if isinstance(value, int | float) and not isinstance(value, bool):
+    if isinstance(value, int | float) and not isinstance(value, bool) and value == value and abs(value) != float("inf"):
         return value
-    return _text(256)(value, field, limits)
+    if isinstance(value, str) and len(value.encode()) <= 256:
+        return value
+    raise _refuse(field, value, "a finite number, or text of at most 256 bytes")
 
 
 def _mapping(key_check: Check, value_check: Check, max_items: int = 256) -> Check:

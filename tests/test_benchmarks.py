@@ -96,3 +96,13 @@ def test_idle_benchmark_smoke(tmp_path: Path) -> None:
 
 def test_every_public_name_of_the_benchmarks_is_documented() -> None:
     assert undocumented(*sorted((REPO / "benchmarks").glob("*.py"))) == []
+
+
+def test_flood_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "flood.json"
+    result = _run("flood.py", "--bad", "40", "--threads", "2", "--calls", "10", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert data["flood"]["refused"] == 40 and data["flood"]["answered"] == 0 and data["exit_code"] == 0
+    assert [r["phase"] for r in data["results"]] == ["no flood", "during 40 bad requests"]
+    assert all(r["calls"] > 0 and 0 < r["p50_ms"] <= r["p99_ms"] for r in data["results"])
