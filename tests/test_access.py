@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -14,7 +15,7 @@ from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
-from tests.conftest import free_port
+from tests.conftest import GENERIC_SPECS, CliProcess, free_port, run_cli
 
 NAMES = ["manager", "viewer", "operator", "admin", "stranger"]
 RELAY = """<transformation><label>extra-relay</label><source>transformations.generic:Relay</source>
@@ -170,3 +171,34 @@ def test_a_manager_listening_beyond_loopback_without_tls_is_exposed(make_manager
     assert make_manager().exposed() == []
     exposed = make_manager(listen=[f"tcp/0.0.0.0:{free_port()}"]).exposed()
     assert exposed and all(not e.startswith("tcp/127.") for e in exposed)
+
+
+def _tls_args(certs: Path, name: str) -> list[str]:
+    return ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / f"{name}.pem"), "--tls-key", str(certs / f"{name}.key")]
+
+
+def test_the_command_line_speaks_tls_and_roles(certs: Path, tmp_path: Path, cli_process: Callable[..., CliProcess]) -> None:
+    acl = tmp_path / "acl.json5"
+    acl.write_text("{ roles: { viewer: ['viewer'], operator: ['operator'] } }")
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    manager = cli_process("manager", "--name", "secure", "--listen", endpoint, "--specs", str(GENERIC_SPECS), "--acl", str(acl), "--json", *_tls_args(certs, "manager"))
+    assert manager.line()["endpoints"] == [endpoint]
+    conn = ["--manager", "secure", "--connect", endpoint, "--timeout", "2"]
+    viewer = run_cli("model", "--json", *conn, *_tls_args(certs, "viewer"))
+    assert viewer.returncode == 0 and json.loads(viewer.stdout)["manager"] == "secure"
+    refused = run_cli("spawn", "relay", "r", *conn, *_tls_args(certs, "viewer"))
+    assert refused.returncode == 1 and "was dropped without a reply; expected a role allowed to call it" in refused.stderr
+    assert run_cli("spawn", "relay", "r", *conn, *_tls_args(certs, "operator")).returncode == 0
+    no_cert = run_cli("model", *conn)
+    assert no_cert.returncode == 1 and "no answer from manager 'secure'" in no_cert.stderr
+    partial = run_cli("model", *conn, "--tls-ca", str(certs / "ca.pem"))
+    assert partial.returncode == 1 and "--tls-cert, --tls-key missing" in partial.stderr
+    assert manager.stop() == 0
+
+
+def test_a_manager_exposed_without_tls_warns(cli_process: Callable[..., CliProcess]) -> None:
+    manager = cli_process("manager", "--name", "open", "--listen", f"tcp/0.0.0.0:{free_port()}", "--specs", str(GENERIC_SPECS), "--json")
+    assert manager.line()["event"] == "ready"
+    assert manager.stop() == 0
+    assert manager.proc.stderr is not None
+    assert "dyknow: warning: listening beyond this host without TLS" in manager.proc.stderr.read()
