@@ -9,11 +9,14 @@ matches a service)::
     dyknow/<manager>/events/<kind>            the manager's events, e.g. adaptation (event_key)
     dyknow/measurements/<name>                a measurement for every manager (measurement_key)
     dyknow/<manager>/measurements/<name>      a measurement for one manager
+    dyknow/<manager>/summary                  what a manager offers, for the others (summary_key)
+    @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
     @dyknow/<manager>/<service>               a manager's services (manager_service_key)
     @dyknow/<manager>/unit/<unit>/<service>   a unit's proxy services (unit_service_key)
 
 Liveliness: every output port declares a liveliness token on its own key (:func:`port_token`),
-so whoever consumes a stream can watch its producer with the same key expression.
+so whoever consumes a stream can watch its producer with the same key expression; every manager
+declares one on ``@dyknow/<manager>`` (:func:`manager_token`), so the others notice it come and go.
 
 Manager and unit names become key chunks, so :func:`check_name` admits only letters, digits,
 ``_``, ``-`` and ``.`` (not first).
@@ -35,13 +38,18 @@ __all__ = [
     "check_name",
     "default_key",
     "event_key",
+    "manager_of_token",
     "manager_service_key",
+    "manager_token",
+    "managers_pattern",
     "measurement_key",
     "measurement_patterns",
     "parse_service_key",
     "port_token",
     "request_key",
     "services_pattern",
+    "summaries_pattern",
+    "summary_key",
     "unit_prefix",
     "unit_service_key",
 ]
@@ -108,6 +116,33 @@ def measurement_key(name: str, manager: str | None = None) -> str:
 def measurement_patterns(manager: str) -> tuple[str, str]:
     """The key expressions a manager takes measurements from (for every manager, and its own)."""
     return measurement_key("*"), measurement_key("*", manager)
+
+
+def summary_key(manager: str) -> str:
+    """Where a manager publishes its summary (library, units, load): ``dyknow/<manager>/summary``."""
+    return f"{DATA_ROOT}/{manager}/summary"
+
+
+def summaries_pattern() -> str:
+    """The key expression of every manager's summary."""
+    return summary_key("*")
+
+
+def manager_token(manager: str) -> str:
+    """The liveliness token that says a manager is alive: ``@dyknow/<manager>``."""
+    return f"{SERVICE_ROOT}/{manager}"
+
+
+def managers_pattern() -> str:
+    """The key expression of every manager's liveliness token."""
+    return manager_token("*")
+
+
+def manager_of_token(key: str) -> str | None:
+    """The manager a liveliness token names, or None for another key."""
+    prefix = f"{SERVICE_ROOT}/"
+    rest = key[len(prefix) :] if key.startswith(prefix) else ""
+    return rest if rest and "/" not in rest else None
 
 
 def port_token(key: str) -> str:

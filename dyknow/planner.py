@@ -17,6 +17,14 @@ unit is named after its label (``ball-detector(bottom)`` becomes ``ball-detector
 ``-2``, ``-3`` ... when the name is taken) and its output ports get the default keys
 ``dyknow/<manager>/<unit>/<port>``.
 
+**Several managers.** Given the libraries of other managers (``peers``) and their running units
+(``RunningUnit.manager``), the planner plans over their union. A transformation runs on the
+manager whose library holds it. When several hold the same label, the cost decides after the
+number of new units and their priority: **the requesting manager first, then one already
+running the unit's inputs, then the least loaded** (``load``: units per manager). Constraints
+are checked against the measurements of the manager that would run the unit. Inside the planner
+a transformation of another manager is known as ``label@manager`` (as are its running units).
+
 The planner is pure: same inputs, same plan. When nothing fits, :class:`PlanningError` names the
 unmet tag and, for each alternative tried, why it was rejected (no provider, unavailable,
 constraint violated, cycle, depth limit, failed). It only reads the library, the ontology and a
@@ -37,6 +45,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dyknow.errors import DyKnowError, PlanningError
+from dyknow.keys import default_key
 from dyknow.ontology import Ontology
 from dyknow.spec import TransformationSpec
 from dyknow.tags import Term, local_name, parse_term
@@ -51,7 +60,9 @@ __all__ = [
     "Rejection",
     "RunningUnit",
     "plan",
+    "qualify",
     "unit_name_for",
+    "unqualify",
 ]
 
 DEFAULT_MAX_DEPTH = 32
@@ -62,23 +73,40 @@ DEFAULT_MAX_DEPTH = 32
 
 @dataclass(frozen=True, slots=True)
 class RunningUnit:
-    """A unit that runs now, as the planner sees it: what its output ports carry and where."""
+    """A unit that runs now, as the planner sees it: what its output ports carry and where.
+
+    ``manager`` is None for a unit of the requesting manager, else the manager that runs it.
+    """
 
     name: str
     label: str
     outputs: Mapping[str, str]  # output port -> key
     tags: Mapping[str, tuple[str, ...]]  # output port -> tags
     healthy: bool = True  # running and not stalled
+    manager: str | None = None
+
+    @property
+    def ref(self) -> str:
+        """How the planner refers to the unit: its name, or ``name@manager`` on another manager."""
+        return self.name if self.manager is None else qualify(self.name, self.manager)
 
 
 @dataclass(frozen=True, slots=True)
 class PlannedUnit:
-    """A unit of a plan: ``new`` ones are to be spawned with ``bindings`` (every port -> key)."""
+    """A unit of a plan: ``new`` ones are to be spawned with ``bindings`` (every port -> key),
+    on ``manager`` (which runs it, or already runs it)."""
 
     name: str
     label: str
     new: bool
     bindings: Mapping[str, str] = field(default_factory=dict)
+    manager: str = ""
+    remote: bool = False  # on a manager other than the requester
+
+    @property
+    def ref(self) -> str:
+        """The unit as a plan's requester refers to it: ``name``, or ``name@manager`` elsewhere."""
+        return qualify(self.name, self.manager) if self.remote else self.name
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,7 +140,7 @@ class Plan:
         return {
             "request": self.request,
             "output": {"unit": self.output_unit, "port": self.output_port, "key": self.output_key},
-            "units": [{"name": u.name, "label": u.label, "new": u.new} for u in self.units],
+            "units": [{"name": u.name, "label": u.label, "new": u.new, "manager": u.manager} for u in self.units],
             "connections": [{"from": c.source, "to": c.target, "key": c.key} for c in self.connections],
         }
 
@@ -190,9 +218,21 @@ class _Config:
 
 @dataclass(frozen=True, slots=True)
 class _Provider:
+    ref: str  # the label, or label@manager
     spec: TransformationSpec
     port: str
     tags: tuple[Term, ...]  # every tag of the port
+
+
+def qualify(name: str, manager: str) -> str:
+    """A unit or label of another manager, as the planner and the requester refer to it: ``name@manager``."""
+    return f"{name}@{manager}"
+
+
+def unqualify(ref: str, local: str) -> tuple[str, str]:
+    """``(name, manager)`` of a reference made by :func:`qualify`; a plain name is ``local``'s."""
+    name, sep, manager = ref.rpartition("@")
+    return (name, manager) if sep else (ref, local)
 
 
 _NAME_CHARS = re.compile(r"[^A-Za-z0-9_.-]+")
@@ -222,18 +262,28 @@ class Planner:
         *,
         manager: str = "dyknow",
         max_depth: int = DEFAULT_MAX_DEPTH,
+        peers: Mapping[str, Iterable[TransformationSpec]] | None = None,
     ) -> None:
         self.ontology = ontology if ontology is not None else Ontology.empty()
         self.manager = manager
         self.max_depth = max_depth
+        # every transformation by the label the planner knows it by: its own, or label@manager
         self._specs = {s.label: s for s in specs}
+        self._placement = dict.fromkeys(self._specs, manager)
+        for peer, peer_specs in sorted((peers or {}).items()):
+            if peer == manager:
+                continue
+            for s in peer_specs:
+                ref = qualify(s.label, peer)
+                self._specs[ref] = s
+                self._placement[ref] = peer
         # (functor key, arg local names) -> providers whose output port carries such a tag
         self._providers: dict[tuple[str, tuple[str, ...]], list[_Provider]] = {}
-        for spec in sorted(self._specs.values(), key=lambda s: s.label):
+        for ref, spec in sorted(self._specs.items()):
             for port in spec.outputs:
                 terms = tuple(parse_term(t) for t in spec.tags_for(port.name))
                 for term in terms:
-                    self._providers.setdefault(self._index_key(term), []).append(_Provider(spec, port.name, terms))
+                    self._providers.setdefault(self._index_key(term), []).append(_Provider(ref, spec, port.name, terms))
         self._options: dict[Required, tuple[_Option, ...]] = {}  # spec options per required tag
         self._graphs: dict[Required, _Graph] = {}  # per request
 
@@ -260,14 +310,14 @@ class Planner:
             args = tuple(local_name(a) for a in required[0].args)
             for key in self._functor_keys(required[0].functor):
                 for provider in self._providers.get((key, args), ()):
-                    candidates.setdefault((provider.spec.label, provider.port), provider)
+                    candidates.setdefault((provider.ref, provider.port), provider)
             result = []
-            for (label, port), provider in sorted(candidates.items()):
+            for (ref, port), provider in sorted(candidates.items()):
                 if not self._satisfies(provider.tags, required):
                     continue
                 spec = provider.spec
                 inputs = tuple((p.name, tuple(parse_term(t) for t in spec.tags_for(p.name))) for p in spec.inputs if spec.tags_for(p.name))
-                result.append(_Option(label, port, True, spec.priority, inputs, spec.constraints))
+                result.append(_Option(ref, port, True, spec.priority, inputs, spec.constraints, self._placement[ref]))
             found = self._options[required] = tuple(result)
         return found
 
@@ -286,24 +336,32 @@ class Planner:
         measurements: Mapping[str, float | str] | None = None,
         *,
         reserved_names: Collection[str] = (),
+        peer_measurements: Mapping[str, Mapping[str, float | str]] | None = None,
+        load: Mapping[str, int] | None = None,
     ) -> Plan:
         """A configuration providing ``request``; :class:`PlanningError` when none exists.
 
-        ``running``: units whose outputs may be reused. ``unavailable``: transformation labels
-        not to use. ``measurements``: the latest value of each measure, checked against the
-        specs' constraints. ``reserved_names``: unit names new units must not take.
+        ``running``: units whose outputs may be reused (those of other managers too).
+        ``unavailable``: transformations not to use (``label``, or ``label@manager``).
+        ``measurements``: the latest value of each measure of the requesting manager, and
+        ``peer_measurements`` those of the others, checked against the constraints of the
+        transformations each would run. ``reserved_names``: unit names new units must not take
+        on the requesting manager. ``load``: units per manager (the least loaded is preferred).
         """
         try:
             wanted = (parse_term(request),)
         except DyKnowError as exc:
             raise PlanningError(request, None, f"cannot plan {request!r}: {exc}") from exc
         running = tuple(running)
-        search = _Search(self, self.graph(wanted), running, frozenset(unavailable), dict(measurements or {}))
+        by_manager = {self.manager: dict(measurements or {}), **{m: dict(v) for m, v in (peer_measurements or {}).items() if m != self.manager}}
+        search = _Search(self, self.graph(wanted), running, frozenset(unavailable), by_manager, dict(load or {}))
         search.settle()
         if not search.settled(0):
             raise PlanningError(str(wanted[0]), search.explain())
-        taken = set(reserved_names) | {u.name for u in running}
-        return _materialize(str(wanted[0]), search.config(), self._specs, {u.name: u for u in running}, taken, self.manager)
+        taken = {self.manager: set(reserved_names)}
+        for u in running:
+            taken.setdefault(u.manager or self.manager, set()).add(u.name)
+        return _materialize(str(wanted[0]), search.config(), self._specs, self._placement, {u.ref: u for u in running}, taken, self.manager)
 
 
 Required = tuple[Term, ...]  # the tags one input port requires (all of them)
@@ -319,6 +377,7 @@ class _Option:
     priority: int = 0
     inputs: tuple[tuple[str, Required], ...] = ()  # (input port, what it requires)
     constraints: tuple[Any, ...] = ()
+    manager: str = ""  # which manager would run (or runs) it
 
 
 class _Graph:
@@ -366,7 +425,10 @@ class _Search:
     From the sources up: an option's cost is its own (one new unit and its priority; nothing for a
     running unit) plus the costs of what its inputs get; a required tag takes its cheapest option
     once all that option's inputs are settled. Every tag and option is handled once, so cyclic
-    specs cannot loop and large libraries plan fast. Ties go to the lower label, then port.
+    specs cannot loop and large libraries plan fast. The cost is (new units, their priority,
+    their placement): placement is 0 on the requesting manager, 1 on a manager that runs one of
+    the unit's inputs, 2 elsewhere. Ties go to the least loaded manager, then the lower label,
+    then port.
     """
 
     def __init__(
@@ -375,15 +437,17 @@ class _Search:
         graph: _Graph,
         running: tuple[RunningUnit, ...],
         unavailable: frozenset[str],
-        measurements: dict[str, Any],
+        measurements: dict[str, dict[str, Any]],
+        load: dict[str, int],
     ) -> None:
         self.planner = planner
         self.graph = graph
         self.unavailable = unavailable
-        self.measurements = measurements
+        self.measurements = measurements  # by manager
+        self.load = load
         self.running = running
         n = len(graph.required)
-        self.best_cost: list[tuple[int, int] | None] = [None] * n
+        self.best_cost: list[tuple[int, int, int] | None] = [None] * n
         self.best_depth = [0] * n
         self.best_option: list[_Option | None] = [None] * n
         self.rejected: dict[int, str] = {}  # spec option id -> why
@@ -394,7 +458,7 @@ class _Search:
     def _match_running(self) -> None:
         planner = self.planner
         by_key: dict[str, list[tuple[RunningUnit, str, tuple[Term, ...]]]] = {}
-        for unit in sorted(self.running, key=lambda u: u.name):
+        for unit in sorted(self.running, key=lambda u: u.ref):
             for port, tags in sorted(unit.tags.items()):
                 terms = tuple(parse_term(t) for t in tags)
                 for term in terms:
@@ -404,21 +468,23 @@ class _Search:
             seen = set()
             for key in sorted(keys & by_key.keys()):
                 for unit, port, terms in by_key[key]:
-                    if (unit.name, port) in seen or not planner._satisfies(terms, required):
+                    if (unit.ref, port) in seen or not planner._satisfies(terms, required):
                         continue
-                    seen.add((unit.name, port))
+                    seen.add((unit.ref, port))
                     reason = None
+                    label = unit.label if unit.manager is None else qualify(unit.label, unit.manager)
                     if not unit.healthy:
                         reason = "failed or stalled"
-                    elif unit.label in self.unavailable:
-                        reason = f"unavailable ({unit.label} is excluded)"
-                    self.running_options[r].append((_Option(unit.name, port, False), reason))
+                    elif label in self.unavailable:
+                        reason = f"unavailable ({label} is excluded)"
+                    self.running_options[r].append((_Option(unit.ref, port, False, manager=unit.manager or planner.manager), reason))
 
     def _why_not(self, option: _Option) -> str | None:
         if option.unit in self.unavailable:
             return "unavailable"
+        measured = self.measurements.get(option.manager, {})
         for c in option.constraints:
-            value = self.measurements.get(c.measure)
+            value = measured.get(c.measure)
             if value is not None and not c.holds(value):
                 return f"constraint violated: {c.measure} = {value!r}, needs {c.op} {c.value!r}"
         return None
@@ -430,20 +496,25 @@ class _Search:
         graph = self.graph
         max_depth = self.planner.max_depth
         best_cost, best_depth, best_option = self.best_cost, self.best_depth, self.best_option
-        heap: list[tuple[tuple[int, int], str, str, int, int, int, _Option]] = []
+        heap: list[tuple[tuple[int, int, int], int, str, str, int, int, int, _Option]] = []
         pending = list(graph.distinct_needs)
         serial = itertools.count()
+        home = self.planner.manager
+        load = self.load
 
         def push(o: int) -> None:
             option = graph.options[o]
-            cost_new, cost_priority, depth = 1, option.priority, 1
+            near = any(best_option[r].manager == option.manager for r in graph.needs[o])  # type: ignore[union-attr]
+            placement = 0 if option.manager == home else (1 if near else 2)
+            cost_new, cost_priority, cost_place, depth = 1, option.priority, placement, 1
             for r in graph.needs[o]:
-                (n, p), d = best_cost[r], best_depth[r]  # type: ignore[misc]
-                cost_new, cost_priority, depth = cost_new + n, cost_priority + p, max(depth, d + 1)
+                (n, p, q), d = best_cost[r], best_depth[r]  # type: ignore[misc]
+                cost_new, cost_priority, cost_place, depth = cost_new + n, cost_priority + p, cost_place + q, max(depth, d + 1)
             if depth > max_depth:
                 self.rejected[o] = f"depth limit ({max_depth} transformations deep)"
                 return
-            heapq.heappush(heap, ((cost_new, cost_priority), option.unit, option.port, next(serial), graph.provides[o], depth, option))
+            cost = (cost_new, cost_priority, cost_place)
+            heapq.heappush(heap, (cost, load.get(option.manager, 0), option.unit, option.port, next(serial), graph.provides[o], depth, option))
 
         for o, option in enumerate(graph.options):
             reason = self._why_not(option)
@@ -454,9 +525,9 @@ class _Search:
         for r, options in enumerate(self.running_options):
             for option, reason in options:
                 if reason is None:
-                    heapq.heappush(heap, ((0, 0), option.unit, option.port, next(serial), r, 0, option))
+                    heapq.heappush(heap, ((0, 0, 0), 0, option.unit, option.port, next(serial), r, 0, option))
         while heap:
-            cost, _, _, _, r, depth, option = heapq.heappop(heap)
+            cost, _, _, _, _, r, depth, option = heapq.heappop(heap)
             if best_cost[r] is not None:
                 continue
             best_cost[r], best_depth[r], best_option[r] = cost, depth, option
@@ -534,8 +605,9 @@ def _materialize(
     request: str,
     config: _Config,
     specs: Mapping[str, TransformationSpec],
+    placement: Mapping[str, str],
     running: Mapping[str, RunningUnit],
-    taken: set[str],
+    taken: dict[str, set[str]],
     manager: str,
 ) -> Plan:
     """Names, keys and connections for a chosen configuration; producers before consumers."""
@@ -555,37 +627,47 @@ def _materialize(
         needed.append(source.unit)
 
     visit(config.output)
-    names: dict[str, str] = {}
-    for label in needed:
-        base = unit_name_for(label)
+    names: dict[str, str] = {}  # ref -> name on its manager
+    for ref in needed:
+        where = placement[ref]
+        base = unit_name_for(specs[ref].label)
         name, n = base, 1
-        while name in taken:
+        used = taken.setdefault(where, set())
+        while name in used:
             n += 1
             name = f"{base}-{n}"
-        taken.add(name)
-        names[label] = name
+        used.add(name)
+        names[ref] = name
 
     def key_of(source: _Source) -> str:
         if source.new:
-            return f"dyknow/{manager}/{names[source.unit]}/{source.port}"
+            return default_key(placement[source.unit], names[source.unit], source.port)
         return running[source.unit].outputs[source.port]
 
     def name_of(source: _Source) -> str:
-        return names[source.unit] if source.new else source.unit
+        if not source.new:
+            return source.unit
+        where = placement[source.unit]
+        return names[source.unit] if where == manager else qualify(names[source.unit], where)
 
-    units: list[PlannedUnit] = [PlannedUnit(name, running[name].label, False, dict(running[name].outputs)) for name in sorted(reused)]
+    units: list[PlannedUnit] = []
+    for ref in sorted(reused):
+        unit = running[ref]
+        where = unit.manager or manager
+        units.append(PlannedUnit(unit.name, unit.label, False, dict(unit.outputs), where, where != manager))
     connections: list[Connection] = []
-    for label in needed:
-        spec = specs[label]
-        name = names[label]
-        bindings = {p.name: f"dyknow/{manager}/{name}/{p.name}" for p in spec.ports}
-        for port, upstream in sorted(config.new[label].items()):
+    for ref in needed:
+        spec = specs[ref]
+        name = names[ref]
+        where = placement[ref]
+        bindings = {p.name: default_key(where, name, p.name) for p in spec.ports}
+        for port, upstream in sorted(config.new[ref].items()):
             bindings[port] = key_of(upstream)
-            connections.append(Connection(f"{name_of(upstream)}.{upstream.port}", f"{name}.{port}", key_of(upstream)))
-        units.append(PlannedUnit(name, label, True, bindings))
+            connections.append(Connection(f"{name_of(upstream)}.{upstream.port}", f"{name_of(_Source(True, ref, port))}.{port}", key_of(upstream)))
+        units.append(PlannedUnit(name, spec.label, True, bindings, where, where != manager))
     out = config.output
     new_labels = tuple(sorted(needed))
-    priority = sum(specs[label].priority for label in needed)
+    priority = sum(specs[ref].priority for ref in needed)
     return Plan(request, name_of(out), out.port, key_of(out), tuple(units), tuple(connections), (len(needed), priority, new_labels))
 
 
@@ -599,8 +681,11 @@ def plan(
     *,
     manager: str = "dyknow",
     max_depth: int = DEFAULT_MAX_DEPTH,
+    peers: Mapping[str, Iterable[TransformationSpec]] | None = None,
+    peer_measurements: Mapping[str, Mapping[str, float | str]] | None = None,
+    load: Mapping[str, int] | None = None,
 ) -> Plan:
-    """Plan once (see :class:`Planner` to plan repeatedly over the same library)."""
-    return Planner(library, ontology, manager=manager, max_depth=max_depth).plan(
-        request_tag, running_model, unavailable, measurements
+    """Plan once (see :class:`Planner` to plan repeatedly over the same libraries)."""
+    return Planner(library, ontology, manager=manager, max_depth=max_depth, peers=peers).plan(
+        request_tag, running_model, unavailable, measurements, peer_measurements=peer_measurements, load=load
     )

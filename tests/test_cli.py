@@ -196,7 +196,7 @@ def test_plan_json_contract() -> None:
     assert [u["label"] for u in planned["units"]] == [
         "ceiling-camera", "subsampler(ceiling)", "ball-detector(ceiling)", "localization(ceiling)", "tracker",
     ]  # fmt: skip
-    assert all(u["new"] for u in planned["units"]) and set(planned["units"][0]) == {"name", "label", "new"}
+    assert all(u["new"] and u["manager"] == "dyknow" for u in planned["units"]) and set(planned["units"][0]) == {"name", "label", "new", "manager"}
     assert planned["connections"][0] == {"from": "ceiling-camera.out", "to": "subsampler-ceiling.in", "key": "dyknow/dyknow/ceiling-camera/out"}
 
 

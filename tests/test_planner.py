@@ -50,11 +50,11 @@ def test_the_papers_example_chain(scenario: list[TransformationSpec], ontology: 
         "request": "BallPosition(field)",
         "output": {"unit": "tracker", "port": "out", "key": "dyknow/robot/tracker/out"},
         "units": [
-            {"name": "robot-camera", "label": "robot-camera", "new": True},
-            {"name": "subsampler-bottom", "label": "subsampler(bottom)", "new": True},
-            {"name": "ball-detector-bottom", "label": "ball-detector(bottom)", "new": True},
-            {"name": "localization-bottom", "label": "localization(bottom)", "new": True},
-            {"name": "tracker", "label": "tracker", "new": True},
+            {"name": "robot-camera", "label": "robot-camera", "new": True, "manager": "robot"},
+            {"name": "subsampler-bottom", "label": "subsampler(bottom)", "new": True, "manager": "robot"},
+            {"name": "ball-detector-bottom", "label": "ball-detector(bottom)", "new": True, "manager": "robot"},
+            {"name": "localization-bottom", "label": "localization(bottom)", "new": True, "manager": "robot"},
+            {"name": "tracker", "label": "tracker", "new": True, "manager": "robot"},
         ],
         "connections": [
             {"from": "robot-camera.out", "to": "subsampler-bottom.in", "key": "dyknow/robot/robot-camera/out"},
@@ -208,3 +208,60 @@ def test_deterministic_whatever_the_library_order(scenario: list[TransformationS
 def test_bad_request_is_a_clear_error() -> None:
     with pytest.raises(PlanningError, match="cannot plan 'Foo\\(': "):
         plan("Foo(", [])
+
+
+# ---------------------------------------------------------------------- several managers
+
+CAMERA = t("camera", {}, {"out": "Raw(cam)"}, priority=1, extra='<constraints><constraint measure="battery" op="&gt;=" value="0.25"/></constraints>')
+DETECT = t("detect", {"in": "Raw(cam)"}, {"out": "Ball(cam)"})
+TRACK = t("track", {"in": "Ball(cam)"}, {"out": "Track(cam)"})
+
+
+def where(p: object) -> dict[str, str]:
+    return {u.label: u.manager for u in p.units}  # type: ignore[attr-defined]
+
+
+def test_a_transformation_runs_where_its_library_holds_it() -> None:
+    result = plan("Track(cam)", specs(DETECT + TRACK), manager="ground", peers={"robot": specs(CAMERA)})
+    assert where(result) == {"camera": "robot", "detect": "ground", "track": "ground"}
+    camera = next(u for u in result.units if u.label == "camera")
+    assert camera.remote and camera.ref == "camera@robot" and camera.bindings == {"out": "dyknow/robot/camera/out"}
+    detect = next(u for u in result.units if u.label == "detect")
+    assert not detect.remote and detect.bindings["in"] == "dyknow/robot/camera/out"  # wired across managers by key
+    assert result.to_dict()["units"][0] == {"name": "camera", "label": "camera", "new": True, "manager": "robot"}
+    assert result.connections[0].source == "camera@robot.out"
+
+
+def test_the_requesting_manager_is_preferred_then_the_one_with_the_inputs_then_the_least_loaded() -> None:
+    # detect is in every library: the requester's copy wins
+    assert where(plan("Ball(cam)", specs(DETECT), manager="ground", peers={"robot": specs(CAMERA + DETECT)}))["detect"] == "ground"
+    # not in the requester's library: the manager that runs its input wins over an idle one
+    peers = {"robot": specs(CAMERA + DETECT), "spare": specs(DETECT)}
+    assert where(plan("Ball(cam)", [], manager="ground", peers=peers, load={"robot": 50, "spare": 0}))["detect"] == "robot"
+    # neither runs the input: the least loaded one
+    peers = {"robot": specs(CAMERA), "a": specs(DETECT), "b": specs(DETECT)}
+    assert where(plan("Ball(cam)", [], manager="ground", peers=peers, load={"a": 7, "b": 3}))["detect"] == "b"
+    assert where(plan("Ball(cam)", [], manager="ground", peers=peers, load={"a": 3, "b": 7}))["detect"] == "a"
+
+
+def test_constraints_are_checked_with_the_measurements_of_the_manager_that_runs_the_unit() -> None:
+    local_low = plan("Raw(cam)", [], manager="ground", peers={"robot": specs(CAMERA)}, measurements={"battery": 0.1})
+    assert where(local_low) == {"camera": "robot"}  # the ground station's battery is not the robot's
+    with pytest.raises(PlanningError, match=r"camera@robot \(port out\): constraint violated: battery = 0.1"):
+        plan("Raw(cam)", [], manager="ground", peers={"robot": specs(CAMERA)}, peer_measurements={"robot": {"battery": 0.1}})
+
+
+def test_units_running_on_other_managers_are_reused_by_key() -> None:
+    running = [RunningUnit("cam1", "camera", {"out": "dyknow/robot/cam1/out"}, {"out": ("Raw(cam)",)}, manager="robot")]
+    result = plan("Ball(cam)", specs(DETECT), running_model=running, manager="ground", peers={"robot": specs(CAMERA)})
+    reused = next(u for u in result.units if not u.new)
+    assert (reused.name, reused.manager, reused.remote, reused.ref) == ("cam1", "robot", True, "cam1@robot")
+    assert next(u for u in result.units if u.new).bindings["in"] == "dyknow/robot/cam1/out"
+    with pytest.raises(PlanningError, match="unavailable"):
+        plan("Raw(cam)", [], unavailable={"camera@robot"}, manager="ground", peers={"robot": specs(CAMERA)})
+
+
+def test_names_are_unique_per_manager() -> None:
+    running = [RunningUnit("detect", "other", {}, {}, manager="robot")]
+    result = plan("Ball(cam)", [], running_model=running, manager="ground", peers={"robot": specs(CAMERA + DETECT)})
+    assert {(u.name, u.manager) for u in result.units} == {("camera", "robot"), ("detect-2", "robot")}
