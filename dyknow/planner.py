@@ -504,8 +504,10 @@ class _Search:
 
         def push(o: int) -> None:
             option = graph.options[o]
-            near = any(best_option[r].manager == option.manager for r in graph.needs[o])  # type: ignore[union-attr]
-            placement = 0 if option.manager == home else (1 if near else 2)
+            if option.manager == home:
+                placement = 0
+            else:  # another manager: better if it runs one of the inputs
+                placement = 1 if any(best_option[r].manager == option.manager for r in graph.needs[o]) else 2  # type: ignore[union-attr]
             cost_new, cost_priority, cost_place, depth = 1, option.priority, placement, 1
             for r in graph.needs[o]:
                 (n, p, q), d = best_cost[r], best_depth[r]  # type: ignore[misc]
