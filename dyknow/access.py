@@ -10,9 +10,10 @@ ones.
 
     { roles: { viewer: ["dashboard"], operator: ["robot-ui"], admin: ["alice"] } }
 
-- **viewer**: read the model, configs, statistics and adaptations; subscribe to data and watch
-  liveliness;
+- **viewer**: read the model, configs, statistics, adaptations and summaries; subscribe to data,
+  watch liveliness and see which managers are up;
 - **operator**: also spawn, destroy, set_config, request, release and measure; publish data;
+  announce itself as a manager (give the other managers of a system this role);
 - **admin**: also add and remove transformations.
 
 It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessControl.zenoh`):
@@ -41,9 +42,11 @@ ROLES: tuple[str, ...] = ("viewer", "operator", "admin")
 
 _DATA = f"{keys.DATA_ROOT}/**"
 _SERVICES = f"{keys.SERVICE_ROOT}/**"
+_MANAGERS = keys.managers_pattern()
+_SUMMARIES = keys.summaries_pattern()
 # The services each role may call, besides those of the roles before it (any manager, any unit).
 _SERVICES_OF = {
-    "viewer": ["get_model", "get_adaptations", "unit/*/get_config", "unit/*/get_statistics"],
+    "viewer": ["get_model", "get_summary", "get_adaptations", "unit/*/get_config", "unit/*/get_statistics"],
     "operator": ["spawn", "destroy", "unit/*/set_config", "request", "release", "measure"],
     "admin": ["add_transformation", "remove_transformation"],
 }
@@ -61,7 +64,9 @@ class TlsFiles:
         """This, once every file is known to be readable; :class:`AccessError` naming the one that is not."""
         for option, path in (("--tls-ca", self.ca), ("--tls-cert", self.cert), ("--tls-key", self.key)):
             if not os.path.isfile(path) or not os.access(path, os.R_OK):
-                raise AccessError(f"{path!r} is not a readable file", where=option, expected="a PEM file (dyknow certs DIR writes development ones)")
+                raise AccessError(
+                    f"{path!r} is not a readable file", where=option, expected="a PEM file (dyknow certs DIR writes development ones)"
+                )
         return self
 
     @classmethod
@@ -91,14 +96,20 @@ class AccessControl:
         except OSError as exc:
             raise AccessError(f"cannot read the ACL file: {exc.strerror or exc}", where=where) from exc
         except ValueError as exc:
-            raise AccessError(f"not JSON5: {exc}", where=where, expected='{ roles: { viewer: ["CN", ...], operator: [...], admin: [...] } }') from exc
+            raise AccessError(
+                f"not JSON5: {exc}", where=where, expected='{ roles: { viewer: ["CN", ...], operator: [...], admin: [...] } }'
+            ) from exc
         return cls.from_dict(data, where)
 
     @classmethod
     def from_dict(cls, data: Any, where: str = "<acl>") -> AccessControl:
         """The ACL from its parsed form; :class:`AccessError` naming the field when malformed."""
         if not isinstance(data, dict) or set(data) != {"roles"} or not isinstance(data["roles"], dict):
-            raise AccessError("the file must hold exactly one field, roles", where=where, expected='{ roles: { viewer: [...], operator: [...], admin: [...] } }')
+            raise AccessError(
+                "the file must hold exactly one field, roles",
+                where=where,
+                expected="{ roles: { viewer: [...], operator: [...], admin: [...] } }",
+            )
         roles: dict[str, tuple[str, ...]] = {}
         for role, names in data["roles"].items():
             if role not in ROLES:
@@ -141,14 +152,19 @@ def _services(role: str) -> list[str]:
 _RULES: dict[str, list[dict[str, Any]]] = {
     "viewer": [
         _rule("viewer-calls", "ingress", ["query"], _services("viewer")),
-        _rule("viewer-subscribes", "ingress", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], [_DATA]),
-        _rule("viewer-receives", "egress", ["put", "delete", "liveliness_token"], [_DATA]),
+        _rule(
+            "viewer-subscribes", "ingress", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], [_DATA, _MANAGERS]
+        ),
+        _rule("viewer-receives", "egress", ["put", "delete", "liveliness_token"], [_DATA, _MANAGERS]),
         _rule("viewer-sees-services", "egress", ["declare_queryable", "reply"], [_SERVICES]),
     ],
     "operator": [
         _rule("operator-calls", "ingress", ["query"], _services("operator")),
         _rule("operator-publishes", "ingress", ["put", "delete", "liveliness_token"], [_DATA]),
-        _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA]),
+        # a peer manager is an operator: it announces itself and publishes its summary
+        _rule("operator-announces", "ingress", ["liveliness_token"], [_MANAGERS]),
+        _rule("operator-publishes-summary", "ingress", ["put"], [_SUMMARIES]),
+        _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA, _SUMMARIES]),
     ],
     "admin": [_rule("admin-calls", "ingress", ["query"], _services("admin"))],
 }

@@ -53,11 +53,12 @@ from typing import Any, Protocol
 
 from dyknow import keys
 from dyknow.errors import DyKnowError, PlanningError, UnitError
+from dyknow.federation import Summary
 from dyknow.library import Library
 from dyknow.message import Message
 from dyknow.model import RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
-from dyknow.planner import Plan, Planner, RunningUnit
+from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unqualify
 from dyknow.spec import Port, TransformationSpec
 from dyknow.tags import parse_term
 from dyknow.unit import Unit
@@ -160,6 +161,26 @@ class Runtime(Protocol):
         """Publish an event of ``kind`` (JSON) on the manager's event key."""
         ...
 
+    def peers(self) -> Mapping[str, Summary]:
+        """The other managers reachable now, with their last summary (empty when alone)."""
+        ...
+
+    def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
+        """Spawn a unit of ``manager``'s library on ``manager``, for a request of this one."""
+        ...
+
+    def destroy_on(self, manager: str, name: str) -> None:
+        """Destroy a unit this manager spawned on ``manager``."""
+        ...
+
+    def set_config_on(self, manager: str, name: str, bindings: Mapping[str, str]) -> None:
+        """Rebind ports of a unit on ``manager``."""
+        ...
+
+    def changed(self) -> None:
+        """Something the other managers see changed (a unit stalled or resumed)."""
+        ...
+
 
 # ---------------------------------------------------------------------------- events and state
 
@@ -205,7 +226,8 @@ class _Request:
     references: int = 1
     state: str = "active"
     plan: Plan | None = None
-    units: dict[str, str] = field(default_factory=dict)  # unit name -> label, the configuration
+    # the configuration: unit -> label; a unit or label of another manager as ``name@manager``
+    units: dict[str, str] = field(default_factory=dict)
     output_key: str | None = None
     last_change_ns: int = 0
     reason: str | None = None  # why it is degraded
@@ -218,12 +240,15 @@ class _Request:
 class Symptom:
     """Something the monitor saw. ``fault`` symptoms break configurations; others are opportunities."""
 
-    kind: str  # "failed", "destroyed", "stalled", "resumed", "measurement", "retry", "library"
+    # "failed", "destroyed", "stalled", "resumed", "measurement", "retry", "library",
+    # "peer-found", "peer-lost", "peer-changed" (another manager came, went or changed)
+    kind: str
     time_ns: int
     unit: str | None = None
     label: str | None = None
     measure: str | None = None
     detail: str = ""
+    manager: str | None = None
 
 
 class Knowledge:
@@ -236,6 +261,8 @@ class Knowledge:
         self.backoff: dict[str, list[Any]] = {}
         self.stalled: set[str] = set()  # unit names
         self.managed: set[str] = set()  # units the loop spawned (it never destroys the others)
+        self.remote: dict[str, dict[str, str]] = {}  # name@manager -> bindings, of those on other managers
+        self.seen: set[str] = set()  # units of other managers the requests use, once in a summary
         self.history: list[AdaptationEvent] = []
 
     def unavailable(self, now_ns: int) -> set[str]:
@@ -338,7 +365,13 @@ class Monitor:
                 knowledge.stalled.add(name)
                 silent_ms = (now_ns - seen[1]) / 1e6
                 self._report(
-                    Symptom("stalled", now_ns, unit=name, label=label, detail=f"{name}.{port} silent for {silent_ms:.0f} ms (deadline {deadline_ns / 1e6:g} ms)")
+                    Symptom(
+                        "stalled",
+                        now_ns,
+                        unit=name,
+                        label=label,
+                        detail=f"{name}.{port} silent for {silent_ms:.0f} ms (deadline {deadline_ns / 1e6:g} ms)",
+                    )
                 )
         live = {(p.unit, p.port) for p in ports}
         for gone in [k for k in self._seen if k not in live]:
@@ -371,12 +404,48 @@ class Analyzer:
                 )
                 out.append((r, broken))
             return out
-        return [(r, False) for r in requests]  # resumed, retry, library: maybe better now
+        if symptom.kind == "peer-lost":
+            return [(r, True) for r in requests if any(_on(ref, symptom.manager) for ref in r.units)]
+        if symptom.kind == "peer-changed" and symptom.manager is not None:
+            return [(r, bool(self.broken_on(r, symptom.manager))) for r in requests]
+        return [(r, False) for r in requests]  # resumed, retry, library, peer-found: maybe better now
+
+    def broken_on(self, request: _Request, manager: str) -> list[tuple[str, str]]:
+        """What breaks ``request`` on another manager, after its summary changed.
+
+        ``(unit, why)`` pairs: a unit it uses there vanished (once seen), is unhealthy, or the
+        manager's measurements break a constraint of its transformation.
+        """
+        summary = self._runtime.peers().get(manager)
+        if summary is None:
+            return [(ref, f"manager {manager!r} was lost") for ref in request.units if _on(ref, manager)]
+        there = {u.name: u for u in summary.units}
+        specs = {s.label: s for s in summary.specs}
+        broken = []
+        for ref, label in request.units.items():
+            if not _on(ref, manager):
+                continue
+            name, _ = unqualify(ref, "")
+            unit = there.get(name)
+            if unit is None:
+                if ref in self._knowledge.seen:
+                    broken.append((ref, f"unit {ref!r} is gone"))
+                continue
+            self._knowledge.seen.add(ref)
+            if not unit.healthy:
+                broken.append((ref, f"unit {ref!r} is unhealthy (failed or stalled)"))
+                continue
+            spec = specs.get(unqualify(label, "")[0])
+            for c in spec.constraints if spec is not None else ():
+                value = summary.measurements.get(c.measure)
+                if value is not None and not c.holds(value):
+                    broken.append((ref, f"unit {ref!r}: measurement {c.measure} = {value!r} on manager {manager!r}"))
+        return broken
 
     def _constraints(self, label: str) -> tuple[Any, ...]:
         library = self._runtime.library
-        if label not in library:
-            return ()
+        if "@" in label or label not in library:
+            return ()  # another manager's measurements check its transformations (broken_on)
         return library.get(label).constraints
 
 
@@ -384,25 +453,36 @@ class Analyzer:
 
 
 class Reconfigurer:
-    """Plans a request's configuration and moves the running system to it, changing little."""
+    """Plans a request's configuration and moves the running system to it, changing little.
+
+    Units of other managers (known from their summaries) are reused by key like local ones; new
+    ones are spawned through their manager's spawn service and tracked as ``name@manager``.
+    """
 
     def __init__(self, runtime: Runtime, knowledge: Knowledge) -> None:
         self._runtime = runtime
         self._knowledge = knowledge
         self._planner: Planner | None = None
-        self._planner_version: tuple[int, int] = (-1, -1)
+        self._planner_version: tuple[Any, ...] = ()
 
     def planner(self) -> Planner:
-        """The planner over the current library (rebuilt when the library or ontology changed)."""
+        """The planner over the current libraries (rebuilt when one of them or the ontology changed)."""
         runtime = self._runtime
-        version = (runtime.library.version, id(runtime.ontology))
+        peers = runtime.peers()
+        version = (runtime.library.version, id(runtime.ontology), tuple(sorted((m, s.library) for m, s in peers.items())))
         if self._planner is None or self._planner_version != version:
-            self._planner = Planner(runtime.library.specs(), runtime.ontology, manager=runtime.name)
+            self._planner = Planner(
+                runtime.library.specs(), runtime.ontology, manager=runtime.name, peers={m: s.specs for m, s in peers.items()}
+            )
             self._planner_version = version
         return self._planner
 
     def running_model(self, request: _Request | None) -> tuple[list[RunningUnit], set[str]]:
-        """Units the plan may reuse (the request's own set aside) and every name in use."""
+        """Units the plan may reuse (the request's own set aside) and every name in use.
+
+        Names of units on other managers are ``name@manager``. Units another manager spawned
+        for its own requests are not reused: that manager takes them down when it likes.
+        """
         knowledge = self._knowledge
         own = set()
         if request is not None:
@@ -417,6 +497,15 @@ class Reconfigurer:
             tags = {p.name: info.spec.tags_for(p.name) for p in info.spec.outputs}
             healthy = info.alive and info.name not in knowledge.stalled
             running.append(RunningUnit(info.name, info.label, outputs, tags, healthy))
+        home = self._runtime.name
+        for manager, summary in sorted(self._runtime.peers().items()):
+            for unit in summary.units:
+                ref = qualify(unit.name, manager)
+                names.add(ref)
+                if ref in own or (unit.owner is not None and unit.owner != home):
+                    continue
+                running.append(unit.running(manager))
+        names.update(r for r in knowledge.remote)  # spawned, maybe not in a summary yet
         return running, names
 
     def plan(self, request: _Request, now_ns: int) -> Plan:
@@ -425,8 +514,16 @@ class Reconfigurer:
         unavailable = self._knowledge.unavailable(now_ns)
         labels = {info.name: info.label for info in self._runtime.units()}
         stalled_labels = {labels[n] for n in self._knowledge.stalled if n in labels}
+        peers = self._runtime.peers()
+        load = {self._runtime.name: len(labels), **{m: s.load for m, s in peers.items()}}
         return self.planner().plan(
-            request.tag, running, unavailable | stalled_labels, self._knowledge.measurements, reserved_names=names
+            request.tag,
+            running,
+            unavailable | stalled_labels,
+            self._knowledge.measurements,
+            reserved_names=names,
+            peer_measurements={m: s.measurements for m, s in peers.items()},
+            load=load,
         )
 
     def apply(self, request: _Request, plan: Plan, before_switch: Callable[[str], None] | None = None) -> list[str]:
@@ -436,61 +533,64 @@ class Reconfigurer:
         """
         runtime = self._runtime
         knowledge = self._knowledge
-        running = {info.name: info for info in runtime.units()}
-        # keep the request's own healthy units that the new configuration needs (same label)
+        home = runtime.name
+        # keep the request's own healthy units that the new configuration needs (same label, same manager)
         own_by_label: dict[str, str] = {}
-        for name, label in request.units.items():
-            info = running.get(name)
-            if name in knowledge.managed and info is not None and info.alive and name not in knowledge.stalled:
-                own_by_label.setdefault(label, name)
-        rename: dict[str, str] = {}
+        for ref, label in request.units.items():
+            if ref in knowledge.managed and self._healthy(ref):
+                own_by_label.setdefault(label, ref)
+        rename: dict[str, str] = {}  # planned unit -> the kept unit (refs)
         for unit in plan.new_units:
-            if unit.label in own_by_label:
-                rename[unit.name] = own_by_label.pop(unit.label)
+            if _label_ref(unit) in own_by_label:
+                rename[unit.ref] = own_by_label.pop(_label_ref(unit))
 
         def key(k: str) -> str:
             # keys of planned units that are kept: the kept unit's actual output key
             for planned, actual in rename.items():
-                prefix = keys.unit_prefix(runtime.name, planned)
+                name, manager = unqualify(planned, home)
+                prefix = keys.unit_prefix(manager, name)
                 if k.startswith(prefix):
-                    return runtime.get_config(actual)[k[len(prefix) :]]
+                    return self._config(actual)[k[len(prefix) :]]
             return k
 
         new_units: dict[str, str] = {}
         spawned: list[str] = []
         try:
             for unit in reversed(plan.new_units):  # consumers first: nothing a producer sends is lost
-                if unit.name in rename:
-                    actual = rename[unit.name]
-                    spec = runtime.library.get(unit.label)
+                if unit.ref in rename:
+                    actual = rename[unit.ref]
+                    spec = self.planner().spec(_label_ref(unit))
                     wanted = {p.name: key(unit.bindings[p.name]) for p in spec.inputs if spec.tags_for(p.name)}
-                    current = runtime.get_config(actual)
+                    current = self._config(actual)
                     changed = {p: k for p, k in wanted.items() if current[p] != k}
                     if changed:
-                        runtime.set_config(actual, changed)
-                    new_units[actual] = unit.label
+                        self._set_config(actual, changed)
+                    new_units[actual] = _label_ref(unit)
                 else:
                     bindings = {p: key(k) for p, k in unit.bindings.items()}
-                    info = runtime.spawn(unit.label, unit.name, bindings=bindings)
-                    spawned.append(unit.name)
-                    knowledge.managed.add(unit.name)
-                    if info.state == "failed":
-                        raise UnitError(f"failed at start: {info.error}", where=f"unit {unit.name!r} ({unit.label})")
-                    new_units[unit.name] = unit.label
+                    if unit.remote:
+                        knowledge.remote[unit.ref] = bindings
+                        knowledge.managed.add(unit.ref)
+                        spawned.append(unit.ref)
+                        runtime.spawn_on(unit.manager, unit.label, unit.name, bindings=bindings)
+                    else:
+                        info = runtime.spawn(unit.label, unit.name, bindings=bindings)
+                        spawned.append(unit.name)
+                        knowledge.managed.add(unit.name)
+                        if info.state == "failed":
+                            raise UnitError(f"failed at start: {info.error}", where=f"unit {unit.name!r} ({unit.label})")
+                    new_units[unit.ref] = _label_ref(unit)
             for unit in plan.units:
                 if not unit.new:
-                    new_units[unit.name] = unit.label
-            new_units.update(self._upstream(u.name for u in plan.units if not u.new))
+                    new_units[unit.ref] = _label_ref(unit)
+            new_units.update(self._upstream(u.name for u in plan.units if not u.new and not u.remote))
             output_key = key(plan.output_key)
             if before_switch is not None:
                 before_switch(output_key)
             if runtime.get_config(request.anchor)["in"] != output_key:
                 runtime.set_config(request.anchor, {"in": output_key})
         except DyKnowError:
-            for name in spawned:  # leave nothing half-built behind
-                if runtime.has_unit(name):
-                    runtime.destroy(name)
-                knowledge.managed.discard(name)
+            self.cleanup(spawned)  # leave nothing half-built behind
             raise
         old = request.units
         request.units = new_units
@@ -499,6 +599,33 @@ class Reconfigurer:
         request.state = "active"
         request.reason = None
         return [n for n in old if n not in new_units and n in knowledge.managed and not knowledge.users(n)]
+
+    def _healthy(self, ref: str) -> bool:
+        name, manager = unqualify(ref, self._runtime.name)
+        if manager == self._runtime.name:
+            info = next((i for i in self._runtime.units() if i.name == name), None)
+            return info is not None and info.alive and name not in self._knowledge.stalled
+        summary = self._runtime.peers().get(manager)
+        if summary is None:
+            return False
+        for unit in summary.units:
+            if unit.name == name:
+                return unit.healthy
+        return ref not in self._knowledge.seen  # spawned and not in a summary yet
+
+    def _config(self, ref: str) -> dict[str, str]:
+        name, manager = unqualify(ref, self._runtime.name)
+        if manager == self._runtime.name:
+            return self._runtime.get_config(name)
+        return dict(self._knowledge.remote[ref])
+
+    def _set_config(self, ref: str, bindings: Mapping[str, str]) -> None:
+        name, manager = unqualify(ref, self._runtime.name)
+        if manager == self._runtime.name:
+            self._runtime.set_config(name, bindings)
+        else:
+            self._runtime.set_config_on(manager, name, bindings)
+            self._knowledge.remote[ref].update(bindings)
 
     def _upstream(self, names: Iterable[str]) -> dict[str, str]:
         """Every running unit that feeds the given ones, transitively: a reused unit needs them."""
@@ -521,15 +648,22 @@ class Reconfigurer:
         return found
 
     def cleanup(self, names: Iterable[str]) -> None:
-        """Destroy the given units (those the loop spawned) and forget them."""
-        for name in names:
-            if self._runtime.has_unit(name):
-                try:
-                    self._runtime.destroy(name)
-                except DyKnowError as exc:
-                    log.warning("could not destroy unit %r after an adaptation: %s", name, exc)
-            self._knowledge.managed.discard(name)
-            self._knowledge.stalled.discard(name)
+        """Destroy the given units (those the loop spawned, here or elsewhere) and forget them."""
+        home = self._runtime.name
+        for ref in names:
+            name, manager = unqualify(ref, home)
+            try:
+                if manager == home:
+                    if self._runtime.has_unit(name):
+                        self._runtime.destroy(name)
+                elif manager in self._runtime.peers():  # a lost manager took its units with it
+                    self._runtime.destroy_on(manager, name)
+            except DyKnowError as exc:
+                log.warning("could not destroy unit %r after an adaptation: %s", ref, exc)
+            self._knowledge.managed.discard(ref)
+            self._knowledge.stalled.discard(ref)
+            self._knowledge.remote.pop(ref, None)
+            self._knowledge.seen.discard(ref)
 
 
 # ---------------------------------------------------------------------------- the loop
@@ -589,7 +723,9 @@ class AdaptationLoop:
             request = self.knowledge.requests.get(key)
             if request is None:
                 known = ", ".join(sorted(self.knowledge.requests)) or "none"
-                raise UnitError(f"no request on key {key!r}", where=f"manager {self.runtime.name!r}", expected=f"one of the active requests: {known}")
+                raise UnitError(
+                    f"no request on key {key!r}", where=f"manager {self.runtime.name!r}", expected=f"one of the active requests: {known}"
+                )
             request.references -= 1
             if request.references > 0:
                 return
@@ -620,6 +756,14 @@ class AdaptationLoop:
     def library_changed(self) -> None:
         """New or removed specs may offer better configurations (or a way out of degradation)."""
         self._report(Symptom("library", time.time_ns(), detail="the library changed"))
+
+    def peer_changed(self, kind: str, manager: str) -> None:
+        """Another manager was "found", "lost" or "changed" its summary: requests may adapt.
+
+        A lost manager is a fault for the requests that used its units; a found or changed one
+        an opportunity (a changed one is a fault when a unit a request uses there went or broke).
+        """
+        self._report(Symptom(f"peer-{kind}", time.time_ns(), manager=manager))
 
     def on_event(self, listener: Callable[[AdaptationEvent], None]) -> Callable[[], None]:
         """Call ``listener(event)`` for every adaptation event; returns a function that removes it."""
@@ -663,11 +807,16 @@ class AdaptationLoop:
             self.monitor.unit_event(event)
 
     def close(self, timeout_s: float = 2.0) -> None:
-        """Stop the loop's thread (waiting up to ``timeout_s``); safe twice."""
+        """Stop the loop's thread (waiting up to ``timeout_s``) and destroy what its requests run
+        on other managers; safe twice."""
+        if self._closed:
+            return
         self._closed = True
         self._symptoms.put(None)
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
+        with self._lock:
+            self.reconfigurer.cleanup(list(self.knowledge.remote))
 
     def _busy(self) -> bool:
         """Whether anything needs the periodic tick: requests, deadlines, back-offs, deferrals."""
@@ -707,11 +856,26 @@ class AdaptationLoop:
         knowledge = self.knowledge
         if symptom.kind in ("failed", "stalled") and symptom.label and symptom.label != ANCHOR_LABEL:
             knowledge.fail(symptom.label, symptom.time_ns)
+        if symptom.kind in ("stalled", "resumed"):
+            self.runtime.changed()  # the other managers see it in this manager's summary
+        if symptom.kind == "peer-changed" and symptom.manager is not None:
+            self._peer_changed(symptom, symptom.manager)
+            return
         for request, fault in self.analyzer.affected(symptom):
             if symptom.unit is not None and symptom.unit == request.anchor:
                 self._reanchor(request, symptom)
                 continue
             self._adapt(request, symptom, fault)
+
+    def _peer_changed(self, symptom: Symptom, manager: str) -> None:
+        """Another manager's summary changed: a fault for requests it broke, else an opportunity."""
+        for request in sorted(self.knowledge.requests.values(), key=lambda r: r.key):
+            broken = self.analyzer.broken_on(request, manager)
+            for ref, why in broken:
+                if "unhealthy" in why:
+                    self.knowledge.fail(request.units[ref], symptom.time_ns)
+            detail = "; ".join(why for _, why in broken)
+            self._adapt(request, replace(symptom, detail=detail) if broken else symptom, bool(broken))
 
     def _reanchor(self, request: _Request, symptom: Symptom) -> None:
         """The anchor itself went: put a new one on the same key."""
@@ -759,7 +923,9 @@ class AdaptationLoop:
         self._next_id += 1
         self._emit(event)
         recovery.adapted(event)
-        log.info("adapted %s (%s): %s -> %s in %.1f ms", request.tag, cause, ", ".join(old_labels), ", ".join(event.new), event.adaptation_ms)
+        log.info(
+            "adapted %s (%s): %s -> %s in %.1f ms", request.tag, cause, ", ".join(old_labels), ", ".join(event.new), event.adaptation_ms
+        )
         self.reconfigurer.cleanup(orphans)
 
     def _degrade(self, request: _Request, symptom: Symptom, old: tuple[str, ...], why: str) -> None:
@@ -767,7 +933,9 @@ class AdaptationLoop:
         request.state = "degraded"
         request.reason = why
         if was != "degraded":
-            event = AdaptationEvent(self._next_id, "degraded", request.tag, request.key, _cause(symptom), old, (), symptom.time_ns, detail=why)
+            event = AdaptationEvent(
+                self._next_id, "degraded", request.tag, request.key, _cause(symptom), old, (), symptom.time_ns, detail=why
+            )
             self._next_id += 1
             self._emit(event)
             log.warning("request %s is degraded: %s", request.tag, why)
@@ -821,7 +989,17 @@ class _Recovery:
 def _same(request: _Request, plan: Plan) -> bool:
     """Whether the request already runs this configuration (same labels and reused units)."""
     current = sorted(request.units.values())
-    return current == sorted(u.label for u in plan.units)
+    return current == sorted(_label_ref(u) for u in plan.units)
+
+
+def _label_ref(unit: PlannedUnit) -> str:
+    """A planned unit's transformation as the request records it: ``label``, or ``label@manager``."""
+    return qualify(unit.label, unit.manager) if unit.remote else unit.label
+
+
+def _on(ref: str, manager: str | None) -> bool:
+    """Whether a unit reference (``name@manager``) is on ``manager``."""
+    return manager is not None and ref.endswith(f"@{manager}")
 
 
 def _cause(symptom: Symptom) -> str:
@@ -837,4 +1015,10 @@ def _cause(symptom: Symptom) -> str:
         return f"retry: {symptom.detail}"
     if symptom.kind == "resumed":
         return f"unit {symptom.unit!r} resumed"
+    if symptom.kind == "peer-lost":
+        return f"manager {symptom.manager!r} was lost"
+    if symptom.kind == "peer-found":
+        return f"manager {symptom.manager!r} was found"
+    if symptom.kind == "peer-changed":
+        return f"manager {symptom.manager!r} changed: {symptom.detail}" if symptom.detail else f"manager {symptom.manager!r} changed"
     return symptom.detail or symptom.kind

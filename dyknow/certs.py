@@ -40,7 +40,9 @@ class CertificateError(DyKnowError):
     """Certificates cannot be written: a bad name, an unreadable CA, a folder that cannot be written."""
 
 
-def write_dev_certs(directory: str | os.PathLike[str], names: Iterable[str], *, hosts: Sequence[str] = DEFAULT_HOSTS, days: int = 825) -> list[Path]:
+def write_dev_certs(
+    directory: str | os.PathLike[str], names: Iterable[str], *, hosts: Sequence[str] = DEFAULT_HOSTS, days: int = 825
+) -> list[Path]:
     """Write a development CA (or reuse the one in ``directory``) and a certificate per name.
 
     Returns the paths written. Raises :class:`CertificateError` naming the problem.
@@ -91,7 +93,9 @@ def _load_ca(folder: Path) -> tuple[ec.EllipticCurvePrivateKey | None, x509.Cert
         cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
     except (OSError, ValueError, TypeError) as exc:
         raise CertificateError(
-            f"the CA there cannot be reused ({type(exc).__name__}: {exc})", where=str(folder), expected="ca.pem and ca.key written by dyknow certs, or neither"
+            f"the CA there cannot be reused ({type(exc).__name__}: {exc})",
+            where=str(folder),
+            expected="ca.pem and ca.key written by dyknow certs, or neither",
         ) from exc
     if not isinstance(key, ec.EllipticCurvePrivateKey):
         raise CertificateError("ca.key is not an elliptic-curve key", where=str(folder), expected="ca.key written by dyknow certs")
@@ -117,8 +121,15 @@ def _ca_certificate(key: ec.EllipticCurvePrivateKey, days: int) -> x509.Certific
         .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
         .add_extension(
             x509.KeyUsage(
-                digital_signature=True, content_commitment=False, key_encipherment=False, data_encipherment=False,
-                key_agreement=False, key_cert_sign=True, crl_sign=True, encipher_only=False, decipher_only=False,
+                digital_signature=True,
+                content_commitment=False,
+                key_encipherment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=True,
+                crl_sign=True,
+                encipher_only=False,
+                decipher_only=False,
             ),
             critical=True,
         )  # fmt: skip
@@ -128,7 +139,12 @@ def _ca_certificate(key: ec.EllipticCurvePrivateKey, days: int) -> x509.Certific
 
 
 def _leaf_certificate(
-    name: str, key: ec.EllipticCurvePrivateKey, ca_key: ec.EllipticCurvePrivateKey, ca_cert: x509.Certificate, hosts: Sequence[str], days: int
+    name: str,
+    key: ec.EllipticCurvePrivateKey,
+    ca_key: ec.EllipticCurvePrivateKey,
+    ca_cert: x509.Certificate,
+    hosts: Sequence[str],
+    days: int,
 ) -> x509.Certificate:
     alt: list[x509.GeneralName] = []
     for host in dict.fromkeys([*(h for h in [name] if _HOST.fullmatch(h) and not _is_ip(h)), *hosts]):

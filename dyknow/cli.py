@@ -143,7 +143,11 @@ def cmd_validate(args: argparse.Namespace) -> int:
             _out({"valid": False, "errors": [str(i) for i in exc.issues], "issues": [i.to_dict() for i in exc.issues]})
         return 1
     files = len({s.path for s in specs})
-    _report(args, {"valid": True, "transformations": len(specs), "files": files}, f"ok: {len(specs)} transformations in {files} file{'s' if files != 1 else ''}")
+    _report(
+        args,
+        {"valid": True, "transformations": len(specs), "files": files},
+        f"ok: {len(specs)} transformations in {files} file{'s' if files != 1 else ''}",
+    )
     return 0
 
 
@@ -525,7 +529,11 @@ def cmd_record(args: argparse.Namespace) -> int:
     )
     with recorder:
         stop = _stop_on_signals()  # from here on, SIGINT/SIGTERM end the recording with a complete file
-        _report(args, {"event": "ready", "file": args.output, "key_exprs": args.keyexprs}, f"recording {', '.join(args.keyexprs)} to {args.output}; Ctrl-C to stop")
+        _report(
+            args,
+            {"event": "ready", "file": args.output, "key_exprs": args.keyexprs},
+            f"recording {', '.join(args.keyexprs)} to {args.output}; Ctrl-C to stop",
+        )
         deadline = None if args.duration is None else time.monotonic() + args.duration
         while not recorder.wait(0):
             left = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
@@ -545,7 +553,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from dyknow.recording import Player
 
     remap = _pairs(args.remap, "--remap")
-    with Player(args.file, rate=args.rate, loop=args.loop, start_s=args.start, end_s=args.end, topics=args.topics, remap=remap, recover=args.recover) as player:
+    with Player(
+        args.file, rate=args.rate, loop=args.loop, start_s=args.start, end_s=args.end, topics=args.topics, remap=remap, recover=args.recover
+    ) as player:
         stop = _stop_on_signals()
         topics = ", ".join(f"{topic} -> {key}" if key != topic else topic for topic, key in player.keys.items())
         _report(args, {"event": "ready", "file": args.file, "keys": player.keys}, f"replaying {args.file} ({topics}); Ctrl-C to stop")
@@ -653,8 +663,14 @@ def _parser() -> argparse.ArgumentParser:
         """The options every command that opens a Zenoh session shares."""
         p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=connect_help)
         p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
-        p.add_argument("--tls-ca", metavar="FILE", help="TLS: the CA certificate that signs every peer's certificate (PEM); with --tls-cert and --tls-key")
-        p.add_argument("--tls-cert", metavar="FILE", help="TLS: this process's certificate (PEM); its common name is its identity for --acl")
+        p.add_argument(
+            "--tls-ca",
+            metavar="FILE",
+            help="TLS: the CA certificate that signs every peer's certificate (PEM); with --tls-cert and --tls-key",
+        )
+        p.add_argument(
+            "--tls-cert", metavar="FILE", help="TLS: this process's certificate (PEM); its common name is its identity for --acl"
+        )
         p.add_argument("--tls-key", metavar="FILE", help="TLS: this process's private key (PEM)")
 
     def limit_options(p: argparse.ArgumentParser) -> None:
@@ -665,14 +681,26 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
     p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
     p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
-    p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)")
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)",
+    )
     zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
                    help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
     p.add_argument("--data-root", action="append", default=[], metavar="DIR",
                    help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
-    p.add_argument("--acl", metavar="FILE", help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...] } })")
-    p.add_argument("--max-request-bytes", type=_positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)")
+    p.add_argument(
+        "--acl",
+        metavar="FILE",
+        help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...] } })",
+    )
+    p.add_argument(
+        "--max-request-bytes", type=_positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
+    )
     limit_options(p)
 
     p = command("certs", cmd_certs)
@@ -702,14 +730,22 @@ def _parser() -> argparse.ArgumentParser:
 
     p = command("replay", cmd_replay)
     p.add_argument("file", metavar="FILE.mcap")
-    p.add_argument("--rate", type=_rate, default=1.0, metavar="X", help="pace: 2 is twice as fast, 0.5 half, max as fast as possible (default 1)")
+    p.add_argument(
+        "--rate", type=_rate, default=1.0, metavar="X", help="pace: 2 is twice as fast, 0.5 half, max as fast as possible (default 1)"
+    )
     p.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
     p.add_argument("--start", type=float, metavar="S", help="begin S seconds after the first message")
     p.add_argument("--end", type=float, metavar="S", help="stop S seconds after the first message")
-    p.add_argument("--topics", nargs="+", action="extend", default=[], metavar="T", help="replay only these topics (names, keys or key expressions)")
-    p.add_argument("--remap", action="append", default=[], metavar="FROM=TO", help="replay topic FROM (or a prefix FROM/**) on key TO (repeatable)")
+    p.add_argument(
+        "--topics", nargs="+", action="extend", default=[], metavar="T", help="replay only these topics (names, keys or key expressions)"
+    )
+    p.add_argument(
+        "--remap", action="append", default=[], metavar="FROM=TO", help="replay topic FROM (or a prefix FROM/**) on key TO (repeatable)"
+    )
     p.add_argument("--recover", action="store_true", help="replay what is valid in a truncated or corrupt file, with a warning")
-    p.add_argument("--wait", type=float, default=1.0, metavar="S", help="first wait up to S seconds for a subscriber on every key (default 1)")
+    p.add_argument(
+        "--wait", type=float, default=1.0, metavar="S", help="first wait up to S seconds for a subscriber on every key (default 1)"
+    )
     zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
 
     p = sub.add_parser("mcap", help="inspect MCAP files (cat, info)", description="inspect MCAP files, whoever wrote them")
@@ -717,8 +753,14 @@ def _parser() -> argparse.ArgumentParser:
     p = mcap.add_parser("cat", help=cmd_mcap_cat.__doc__, description=cmd_mcap_cat.__doc__)
     p.set_defaults(fn=cmd_mcap_cat)
     p.add_argument("file", metavar="FILE.mcap")
-    p.add_argument("--topics", nargs="+", action="extend", default=[], metavar="T", help="only these topics (names, keys or key expressions)")
-    p.add_argument("--json", action="store_true", help="one JSON object per message and line: topic, sequence, log_time, publish_time, schema, message_encoding, data_b64")
+    p.add_argument(
+        "--topics", nargs="+", action="extend", default=[], metavar="T", help="only these topics (names, keys or key expressions)"
+    )
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="one JSON object per message and line: topic, sequence, log_time, publish_time, schema, message_encoding, data_b64",
+    )
     p.add_argument("--recover", action="store_true", help="print what is valid in a truncated or corrupt file, with a warning")
     p = mcap.add_parser("info", help=cmd_mcap_info.__doc__, description=cmd_mcap_info.__doc__)
     p.set_defaults(fn=cmd_mcap_info)
@@ -816,7 +858,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except Exception as exc:
         if os.environ.get("DYKNOW_DEBUG"):
             raise
-        print(f"dyknow: internal error: {type(exc).__name__}: {exc} (set DYKNOW_DEBUG=1 for a traceback, and please report it)", file=sys.stderr)
+        print(
+            f"dyknow: internal error: {type(exc).__name__}: {exc} (set DYKNOW_DEBUG=1 for a traceback, and please report it)",
+            file=sys.stderr,
+        )
         return 70
     return 2
 

@@ -45,7 +45,7 @@ class Client:
         self.manager = manager
         self.timeout_s = timeout_s
         self._own_session = session is None
-        self._connect = list(connect)
+        self._connect = [] if session is not None and tuple(connect) == (DEFAULT_ENDPOINT,) else list(connect)
         self._tls = tls
         self._session = session or Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls))
 
@@ -67,13 +67,14 @@ class Client:
 
     # ------------------------------------------------------------------ calls
 
-    def _call(self, key: str, request: Mapping[str, Any], what: str) -> Any:
-        where = f"manager {self.manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
+    def _call(self, key: str, request: Mapping[str, Any], what: str, manager: str | None = None) -> Any:
+        manager = manager or self.manager
+        where = f"manager {manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
         try:
             reply = self._session.call(key, json.dumps(request).encode(), timeout_s=self.timeout_s, what=f"{what} of {where}")
         except ServiceError as exc:
             if exc.kind is None and "nothing serves" in str(exc):
-                expected = f"a running manager (dyknow manager --name {self.manager})"
+                expected = f"a running manager (dyknow manager --name {manager})"
                 if self._tls is not None or any(e.startswith("tls/") for e in self._connect):
                     expected += " whose CA signed this client's certificate (and whose --acl, if any, gives it a role)"
                 raise ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=expected) from exc
@@ -81,10 +82,18 @@ class Client:
         return json.loads(reply)
 
     def _manager(self, service_name: str, request: Mapping[str, Any]) -> Any:
-        return self._call(keys.manager_service_key(self.manager, service_name), request, service_name)
+        return self.call_manager(self.manager, service_name, request)
 
     def _unit(self, name: str, service_name: str, request: Mapping[str, Any]) -> Any:
-        return self._call(keys.unit_service_key(self.manager, name, service_name), request, service_name)
+        return self.call_unit(self.manager, name, service_name, request)
+
+    def call_manager(self, manager: str, service_name: str, request: Mapping[str, Any]) -> Any:
+        """Call service ``service_name`` of ``manager`` (any manager reachable) with a JSON request."""
+        return self._call(keys.manager_service_key(manager, service_name), request, service_name, manager)
+
+    def call_unit(self, manager: str, unit: str, service_name: str, request: Mapping[str, Any]) -> Any:
+        """Call proxy service ``service_name`` of ``unit`` on ``manager``."""
+        return self._call(keys.unit_service_key(manager, unit, service_name), request, service_name, manager)
 
     def add_transformation(self, xml_or_path: str | os.PathLike[str]) -> list[str]:
         """Send a spec (XML text, or a file's path) to the manager; returns the labels added."""

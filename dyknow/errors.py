@@ -112,7 +112,14 @@ class SpecIssue:
 
     def to_dict(self) -> dict[str, Any]:
         """The issue as JSON (what the services send for a refused spec)."""
-        return {"path": self.path, "line": self.line, "element": self.element, "what": self.what, "expected": self.expected, "message": self.message}
+        return {
+            "path": self.path,
+            "line": self.line,
+            "element": self.element,
+            "what": self.what,
+            "expected": self.expected,
+            "message": self.message,
+        }
 
     @classmethod
     def from_dict(cls, data: Any) -> SpecIssue:

@@ -9,8 +9,8 @@ matches a service)::
     dyknow/<manager>/events/<kind>            the manager's events, e.g. adaptation (event_key)
     dyknow/measurements/<name>                a measurement for every manager (measurement_key)
     dyknow/<manager>/measurements/<name>      a measurement for one manager
-    dyknow/<manager>/summary                  what a manager offers, for the others (summary_key)
     @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
+    @dyknow/<manager>/summary                 what a manager offers the others (summary_key)
     @dyknow/<manager>/<service>               a manager's services (manager_service_key)
     @dyknow/<manager>/unit/<unit>/<service>   a unit's proxy services (unit_service_key)
 
@@ -119,8 +119,11 @@ def measurement_patterns(manager: str) -> tuple[str, str]:
 
 
 def summary_key(manager: str) -> str:
-    """Where a manager publishes its summary (library, units, load): ``dyknow/<manager>/summary``."""
-    return f"{DATA_ROOT}/{manager}/summary"
+    """Where a manager publishes its summary (library, units, load): ``@dyknow/<manager>/summary``.
+
+    Under ``@dyknow``, so recording or subscribing to ``dyknow/**`` takes data only.
+    """
+    return f"{SERVICE_ROOT}/{manager}/summary"
 
 
 def summaries_pattern() -> str:

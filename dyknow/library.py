@@ -52,7 +52,9 @@ class Library:
         if spec is None:
             known = list(self._specs)
             listing = ", ".join(repr(k) for k in sorted(known)[:12]) or "none (add specs with --specs or add_transformation)"
-            raise LibraryError(f"no transformation labelled {label!r}", expected=f"one of the known labels: {listing}{did_you_mean(label, known)}")
+            raise LibraryError(
+                f"no transformation labelled {label!r}", expected=f"one of the known labels: {listing}{did_you_mean(label, known)}"
+            )
         return spec
 
     def specs(self) -> tuple[TransformationSpec, ...]:

@@ -21,6 +21,7 @@ Usage::
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
 import ipaddress
@@ -29,6 +30,7 @@ import logging
 import math
 import os
 import re
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -36,10 +38,12 @@ from typing import Any
 
 from dyknow import keys, service
 from dyknow.access import AccessControl, TlsFiles
-from dyknow.adaptation import DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
+from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
+from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
+from dyknow.federation import Directory, Summary, SummaryUnit
 from dyknow.library import Library
 from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
@@ -74,6 +78,11 @@ class Manager:
     (:class:`~dyknow.access.TlsFiles`); ``acl``: roles by certificate common name
     (:class:`~dyknow.access.AccessControl`, or the path of its JSON5 file), enforced by Zenoh.
 
+    Several managers (see :mod:`dyknow.federation`): ``federate`` (default: when it serves) makes
+    the manager announce itself and its summary and plan over the libraries and units of every
+    manager it reaches. ``host`` names the machine it runs on (default: the host name);
+    ``lease_ms``: how soon a silent link, so a cut-off manager, is given up (Zenoh's lease).
+
     It is the adaptation loop's :class:`~dyknow.adaptation.Runtime`.
     """
 
@@ -96,6 +105,9 @@ class Manager:
         limits: Limits | None = None,
         tls: TlsFiles | None = None,
         acl: AccessControl | str | os.PathLike[str] | None = None,
+        host: str | None = None,
+        lease_ms: int | None = None,
+        federate: bool | None = None,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
@@ -111,7 +123,9 @@ class Manager:
         paths = [s for s in specs if not isinstance(s, TransformationSpec)]
         if paths:
             # bad specs fail before anything starts
-            loaded = load_specs(paths, individuals=self._individuals if self.ontology is not None else None, max_expansions=limits.max_expansions)
+            loaded = load_specs(
+                paths, individuals=self._individuals if self.ontology is not None else None, max_expansions=limits.max_expansions
+            )
             self._trust(loaded)
             self.library.add(loaded)
         self._trust(spec_objs)
@@ -124,7 +138,15 @@ class Manager:
         self._closed = False
         access = acl if isinstance(acl, AccessControl) or acl is None else AccessControl.load(acl)
         self._tls = tls.check() if tls is not None else None
-        self._session = Session(make_config(listen=listen, connect=list(connect), config_file=zenoh_config, tls=self._tls, access=access))
+        self.host = host or socket.gethostname()
+        self._session = Session(
+            make_config(listen=listen, connect=list(connect), config_file=zenoh_config, tls=self._tls, access=access, lease_ms=lease_ms)
+        )
+        self._peers = Client(self.name, session=self._session, timeout_s=3.0)  # calls to the other managers
+        self._owners: dict[str, str] = {}  # unit -> the manager whose request it serves
+        self._version = 0
+        self._started_ns = time.time_ns()
+        self._directory: Directory | None = None
         self._bus = LocalBus()
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
         self._listeners: list[Callable[[UnitEvent], None]] = []
@@ -147,8 +169,20 @@ class Manager:
             except DyKnowError:
                 self.close()
                 raise
+        if federate if federate is not None else serve:
+            try:
+                self._directory = Directory(
+                    self._session, self.name, summarize=self.summary, fetch=self._fetch_summary, on_change=self._peer_changed
+                )
+            except DyKnowError:
+                self.close()
+                raise
         if self._tls is None and self.exposed():
-            log.warning("manager %r listens beyond this host without TLS (%s): anyone who reaches it may call its services", self.name, ", ".join(self.exposed()))
+            log.warning(
+                "manager %r listens beyond this host without TLS (%s): anyone who reaches it may call its services",
+                self.name,
+                ", ".join(self.exposed()),
+            )
         log.info("manager %r ready with %d specs", self.name, len(self.library))
 
     # ------------------------------------------------------------------ lifecycle
@@ -174,7 +208,9 @@ class Manager:
                 sub.undeclare()
             proxies = list(self._units.values())
             self._units.clear()
-        self._adaptation.close(timeout_s / 2)
+        self._adaptation.close(timeout_s / 2)  # releases what its requests run on other managers
+        if self._directory is not None:
+            self._directory.close(timeout_s / 4)
         per_unit = min(0.5, timeout_s / max(1, len(proxies)))
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
@@ -222,7 +258,11 @@ class Manager:
         limit = self.limits.max_expansions
         if remote:
             if not isinstance(spec, str) or not spec.lstrip().startswith("<"):
-                raise AccessError("a remote caller may only send XML text", where="field 'xml'", expected="the spec's XML (the client reads files on its side)")
+                raise AccessError(
+                    "a remote caller may only send XML text",
+                    where="field 'xml'",
+                    expected="the spec's XML (the client reads files on its side)",
+                )
             specs = parse_specs(spec, path or "<remote>", individuals=individuals, max_expansions=limit)
             for one in specs:
                 self._sources.check(one.source, where=f"transformation {one.label!r} ({one.location})")
@@ -243,6 +283,7 @@ class Manager:
             self._remote_labels.difference_update(s.label for s in specs)
         labels = self.library.add(specs)
         self._adaptation.library_changed()
+        self.changed()
         return labels
 
     def remove_transformation(self, label: str) -> bool:
@@ -252,6 +293,7 @@ class Manager:
         self._remote_labels.discard(label)
         if removed:
             self._adaptation.library_changed()
+            self.changed()
         return removed
 
     # ------------------------------------------------------------------ units
@@ -336,9 +378,7 @@ class Manager:
             self._check_open()
             proxy = self._proxy(name)
             if proxy.protected:
-                raise UnitError(
-                    "the unit is protected (spawned with protected=True), so it cannot be destroyed", where=f"unit {name!r}"
-                )
+                raise UnitError("the unit is protected (spawned with protected=True), so it cannot be destroyed", where=f"unit {name!r}")
             del self._units[name]
         proxy.stop()
         log.info("unit %r destroyed", name)
@@ -366,6 +406,9 @@ class Manager:
         return lambda: self._listeners.remove(listener) if listener in self._listeners else None
 
     def _emit(self, kind: str, proxy: Proxy) -> None:
+        if kind == "destroyed":
+            self._owners.pop(proxy.name, None)
+        self.changed()
         event = UnitEvent(kind, proxy.name, proxy.label, time.time_ns(), proxy.error if kind == "failed" else None)
         for listener in list(self._listeners):
             try:
@@ -409,7 +452,9 @@ class Manager:
             known = list(self._units)
             listing = ", ".join(repr(k) for k in known) or "none"
             raise UnitError(
-                f"no unit named {name!r}", where=f"manager {self.name!r}", expected=f"one of the running units: {listing}{did_you_mean(name, known)}"
+                f"no unit named {name!r}",
+                where=f"manager {self.name!r}",
+                expected=f"one of the running units: {listing}{did_you_mean(name, known)}",
             )
         return proxy
 
@@ -453,6 +498,7 @@ class Manager:
         if not isinstance(name, str) or not name or "/" in name:
             raise LibraryError(f"measure name {name!r} is not a valid name", expected="a non-empty name without '/', like 'battery'")
         self._adaptation.measure(name, value)
+        self.changed()
 
     @property
     def measurements(self) -> dict[str, float | str]:
@@ -472,13 +518,17 @@ class Manager:
         try:
             value = json.loads(payload)
             if isinstance(value, dict):
+                host = value.get("host")
+                if host is not None and key.startswith(keys.measurement_key("")) and host != self.host:
+                    return  # a measurement of another machine: its managers take it
                 value = value["value"]
             if not isinstance(value, (int, float, str)) or isinstance(value, bool):
                 raise ValueError(f"got {value!r}")
         except (ValueError, KeyError, TypeError) as exc:
-            log.warning("measurement on %s ignored: %s; expected a JSON number or {\"value\": x}", key, exc)
+            log.warning('measurement on %s ignored: %s; expected a JSON number or {"value": x}', key, exc)
             return
         self._adaptation.measure(name, value)
+        self.changed()
 
     # ------------------------------------------------------------------ model and proxy services
 
@@ -505,25 +555,96 @@ class Manager:
 
     # ------------------------------------------------------------------ Zenoh services
 
+    # ------------------------------------------------------------------ several managers
+
+    def summary(self) -> Summary:
+        """What this manager offers the others: host, library, running units, measurements."""
+        stalled = self._adaptation.knowledge.stalled
+        with self._lock:
+            proxies = list(self._units.values())
+            self._version += 1
+            version = self._version
+        units = tuple(
+            SummaryUnit(
+                p.name,
+                p.label,
+                {port.name: p.get_config()[port.name] for port in p.spec.outputs},
+                {port.name: p.spec.tags_for(port.name) for port in p.spec.outputs},
+                p.alive and p.name not in stalled,
+                self._owners.get(p.name),
+            )
+            for p in proxies
+            if p.label != ANCHOR_LABEL
+        )
+        library = f"{self._started_ns}.{self.library.version}"
+        return Summary(
+            self.name, self.host, version, library, self.library.specs(), units, self.measurements, len(self._adaptation.requests())
+        )
+
+    def peers(self) -> dict[str, Summary]:
+        """The other managers this one reaches, with their last summary (empty when not federated)."""
+        return self._directory.peers() if self._directory is not None else {}
+
+    def changed(self) -> None:
+        """This manager's model changed: the other managers hear of it (a summary, debounced)."""
+        if self._directory is not None:
+            self._directory.changed()
+
+    def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
+        """Spawn a unit on another manager, through its spawn service, for a request of this one."""
+        info = self._peers.call_manager(manager, "spawn", {"label": label, "name": name, "bindings": dict(bindings), "owner": self.name})
+        if info.get("state") == "failed":
+            raise UnitError(f"failed at start: {info.get('error')}", where=f"unit {name!r} on manager {manager!r}")
+
+    def destroy_on(self, manager: str, name: str) -> None:
+        """Destroy a unit this manager spawned on another one."""
+        self._peers.call_manager(manager, "destroy", {"name": name})
+
+    def set_config_on(self, manager: str, name: str, bindings: Mapping[str, str]) -> None:
+        """Rebind ports of a unit on another manager."""
+        self._peers.call_unit(manager, name, "set_config", {"bindings": dict(bindings)})
+
+    def _fetch_summary(self, manager: str) -> bytes:
+        return json.dumps(self._peers.call_manager(manager, "get_summary", {})).encode()
+
+    def _peer_changed(self, kind: str, manager: str) -> None:
+        if kind == "lost":
+            with self._lock:
+                orphans = [unit for unit, owner in self._owners.items() if owner == manager]
+            for unit in orphans:  # units that served the lost manager's requests
+                log.info("unit %r served manager %r, which is gone: destroying it", unit, manager)
+                with contextlib.suppress(DyKnowError):
+                    self.destroy(unit)
+        self._adaptation.peer_changed(kind, manager)
+
     def _manager_handlers(self) -> dict[str, service.Handler]:
         return {
             "add_transformation": lambda r: {"labels": self.add_transformation(r["xml"], path=r.get("path") or "<remote>", remote=True)},
             "remove_transformation": lambda r: {"removed": self.remove_transformation(str(r["label"]))},
-            "spawn": lambda r: self.spawn(
-                str(r["label"]),
-                str(r["name"]),
-                protected=bool(r.get("protected", False)),
-                params=r.get("params") or {},
-                bindings=r.get("bindings") or {},
-                remote=True,
-            ).to_dict(),
+            "spawn": self._serve_spawn,
             "destroy": self._serve_destroy,
             "get_model": lambda r: self.get_model().to_dict(),
             "request": lambda r: {"key": self.request(str(r["tag"]))},
             "release": self._serve_release,
             "measure": self._serve_measure,
             "get_adaptations": lambda r: [e.to_dict() for e in self.get_adaptations()],
+            "get_summary": lambda r: self.summary().to_dict(),
         }
+
+    def _serve_spawn(self, request: dict[str, Any]) -> dict[str, Any]:
+        owner = request.get("owner")
+        info = self.spawn(
+            request["label"],
+            request["name"],
+            protected=bool(request.get("protected", False)),
+            params=request.get("params") or {},
+            bindings=request.get("bindings") or {},
+            remote=True,
+        )
+        if owner:
+            self._owners[info.name] = owner
+            self.changed()
+        return info.to_dict()
 
     def _serve_destroy(self, request: dict[str, Any]) -> dict[str, Any]:
         self.destroy(str(request["name"]))
@@ -601,7 +722,9 @@ def _import_unit(spec: TransformationSpec, sources: SourcePolicy) -> type[Unit]:
         raise UnitError(
             f"module {module_name!r} has no {class_name!r}",
             where=where,
-            expected="a Unit subclass" + (f" such as {', '.join(repr(u) for u in units)}" if units else "") + did_you_mean(class_name, units),
+            expected="a Unit subclass"
+            + (f" such as {', '.join(repr(u) for u in units)}" if units else "")
+            + did_you_mean(class_name, units),
         )
     if not (inspect.isclass(cls) and issubclass(cls, Unit)):
         raise UnitError(f"{spec.source!r} is a {type(cls).__name__}, not a unit", where=where, expected="a subclass of dyknow.Unit")
@@ -650,6 +773,8 @@ def _bindings(spec: TransformationSpec, manager: str, unit: str, overrides: Mapp
         port = ports.get(name)
         if port is None:
             listing = ", ".join(repr(n) for n in ports)
-            raise BindingError(f"no port {name!r}", where=f"transformation {spec.label!r}", expected=f"one of {listing}{did_you_mean(name, ports)}")
+            raise BindingError(
+                f"no port {name!r}", where=f"transformation {spec.label!r}", expected=f"one of {listing}{did_you_mean(name, ports)}"
+            )
         result[name] = check_key_expr(key, what=f"port {name!r} of unit {unit!r}", concrete=port.direction == "out")
     return result

@@ -166,7 +166,9 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
         kind = _ARRAY
         dtype = payload.dtype.str.encode()
         if payload.ndim > 255 or payload.dtype.hasobject:
-            raise PayloadError(f"cannot send an array of dtype {payload.dtype} with {payload.ndim} dims", expected="numbers, at most 255 dims")
+            raise PayloadError(
+                f"cannot send an array of dtype {payload.dtype} with {payload.ndim} dims", expected="numbers, at most 255 dims"
+            )
         extra = _ARRAY_META.pack(payload.ndim, len(dtype)) + dtype + struct.pack(f"<{payload.ndim}Q", *payload.shape)
         data = np.ascontiguousarray(payload).tobytes()
     else:

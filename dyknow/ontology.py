@@ -92,9 +92,7 @@ class Ontology:
     in memory. An ontology does not change once built, so it is safe to share between threads.
     """
 
-    def __init__(
-        self, graph: Graph | None = None, *, prefixes: Mapping[str, str] | None = None, files: Sequence[str] = ()
-    ) -> None:
+    def __init__(self, graph: Graph | None = None, *, prefixes: Mapping[str, str] | None = None, files: Sequence[str] = ()) -> None:
         graph = graph if graph is not None else Graph(bind_namespaces="none")
         self._prefixes = dict(prefixes or {})
         self._files = tuple(files)
@@ -458,7 +456,9 @@ def _parse(path: Path) -> _File:
         fmt, error = failures[0]
         raise OntologyError(_located(path, data, error), expected=f"valid {_FORMAT_NAMES[fmt]}") from error
     tried = "; ".join(f"as {_FORMAT_NAMES[fmt]}: {_located(path, data, error)}" for fmt, error in failures)
-    raise OntologyError(f"neither Turtle nor RDF/XML ({tried})", where=str(path), expected=f"a file ending in {', '.join(FORMATS)}") from failures[-1][1]
+    raise OntologyError(
+        f"neither Turtle nor RDF/XML ({tried})", where=str(path), expected=f"a file ending in {', '.join(FORMATS)}"
+    ) from failures[-1][1]
 
 
 def _guesses(data: bytes) -> tuple[str, ...]:

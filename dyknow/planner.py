@@ -287,6 +287,10 @@ class Planner:
         self._options: dict[Required, tuple[_Option, ...]] = {}  # spec options per required tag
         self._graphs: dict[Required, _Graph] = {}  # per request
 
+    def spec(self, ref: str) -> TransformationSpec:
+        """A transformation by the label the planner knows it by (``label`` or ``label@manager``)."""
+        return self._specs[ref]
+
     def _functor_key(self, functor: str) -> str:
         iri = self.ontology.resolve(functor)
         return iri if iri is not None else "local:" + local_name(functor)
@@ -346,19 +350,25 @@ class Planner:
         ``measurements``: the latest value of each measure of the requesting manager, and
         ``peer_measurements`` those of the others, checked against the constraints of the
         transformations each would run. ``reserved_names``: unit names new units must not take
-        on the requesting manager. ``load``: units per manager (the least loaded is preferred).
+        (``name`` on the requesting manager, ``name@manager`` on another). ``load``: units per manager (the least loaded is preferred).
         """
         try:
             wanted = (parse_term(request),)
         except DyKnowError as exc:
             raise PlanningError(request, None, f"cannot plan {request!r}: {exc}") from exc
         running = tuple(running)
-        by_manager = {self.manager: dict(measurements or {}), **{m: dict(v) for m, v in (peer_measurements or {}).items() if m != self.manager}}
+        by_manager = {
+            self.manager: dict(measurements or {}),
+            **{m: dict(v) for m, v in (peer_measurements or {}).items() if m != self.manager},
+        }
         search = _Search(self, self.graph(wanted), running, frozenset(unavailable), by_manager, dict(load or {}))
         search.settle()
         if not search.settled(0):
             raise PlanningError(str(wanted[0]), search.explain())
-        taken = {self.manager: set(reserved_names)}
+        taken: dict[str, set[str]] = {self.manager: set()}
+        for reserved in reserved_names:
+            name, where = unqualify(reserved, self.manager)
+            taken.setdefault(where, set()).add(name)
         for u in running:
             taken.setdefault(u.manager or self.manager, set()).add(u.name)
         return _materialize(str(wanted[0]), search.config(), self._specs, self._placement, {u.ref: u for u in running}, taken, self.manager)
@@ -516,7 +526,9 @@ class _Search:
                 self.rejected[o] = f"depth limit ({max_depth} transformations deep)"
                 return
             cost = (cost_new, cost_priority, cost_place)
-            heapq.heappush(heap, (cost, load.get(option.manager, 0), option.unit, option.port, next(serial), graph.provides[o], depth, option))
+            heapq.heappush(
+                heap, (cost, load.get(option.manager, 0), option.unit, option.port, next(serial), graph.provides[o], depth, option)
+            )
 
         for o, option in enumerate(graph.options):
             reason = self._why_not(option)
@@ -596,7 +608,9 @@ class _Search:
                             stack.append((r, option.unit))
                             explained[needed] = why(needed)
                             stack.pop()
-                        alternatives.append(Alternative(option.unit, option.port, f"input {port!r} needs {tag_of(needed)}", explained[needed]))
+                        alternatives.append(
+                            Alternative(option.unit, option.port, f"input {port!r} needs {tag_of(needed)}", explained[needed])
+                        )
                     break
             return Rejection(tag_of(r), tuple(alternatives))
 
@@ -665,7 +679,9 @@ def _materialize(
         bindings = {p.name: default_key(where, name, p.name) for p in spec.ports}
         for port, upstream in sorted(config.new[ref].items()):
             bindings[port] = key_of(upstream)
-            connections.append(Connection(f"{name_of(upstream)}.{upstream.port}", f"{name_of(_Source(True, ref, port))}.{port}", key_of(upstream)))
+            connections.append(
+                Connection(f"{name_of(upstream)}.{upstream.port}", f"{name_of(_Source(True, ref, port))}.{port}", key_of(upstream))
+            )
         units.append(PlannedUnit(name, spec.label, True, bindings, where, where != manager))
     out = config.output
     new_labels = tuple(sorted(needed))

@@ -628,9 +628,13 @@ class Proxy:
         """
         with self._config_lock:
             if not self.alive:
-                raise UnitError(f"the unit is {self.state.value}, so it cannot be rebound", where=f"unit {self.name!r}", expected="a running unit")
+                raise UnitError(
+                    f"the unit is {self.state.value}, so it cannot be rebound", where=f"unit {self.name!r}", expected="a running unit"
+                )
             if not isinstance(changes, Mapping) or not changes:
-                raise BindingError(f"set_config got {changes!r}", where=f"unit {self.name!r}", expected="a mapping of port to key expression")
+                raise BindingError(
+                    f"set_config got {changes!r}", where=f"unit {self.name!r}", expected="a mapping of port to key expression"
+                )
             for port, key in changes.items():
                 if port in self._inputs:
                     check_key_expr(key, what=f"unit {self.name!r} input port {port!r}")

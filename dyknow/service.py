@@ -9,7 +9,9 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
   ``{"xml": "...", "path": "name used in errors"}``, ``remove_transformation`` ``{"label"}``,
   ``spawn`` ``{"label", "name", "protected", "params", "bindings"}``, ``destroy`` ``{"name"}``,
   ``get_model`` ``{}``; ``request`` ``{"tag"}`` -> ``{"key"}``; ``release`` ``{"key"}``;
-  ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``;
+  ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_summary`` ``{}`` (for
+  the other managers: see :mod:`dyknow.federation`); a ``spawn`` may name the ``owner``, the
+  manager whose request it serves (its units go when that manager does);
 - ``@dyknow/<manager>/unit/<unit>/<service>`` for a unit's proxy: ``get_config`` ``{}``,
   ``set_config`` ``{"bindings": {port: key}}``, ``get_statistics`` ``{}``.
 
@@ -55,6 +57,7 @@ MANAGER_SERVICES = (
     "release",
     "measure",
     "get_adaptations",
+    "get_summary",
 )
 UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 
@@ -146,6 +149,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
         "protected": (False, _flag),
         "params": (False, _mapping(_text(128), _scalar)),
         "bindings": (False, _mapping(_PORT, _key)),
+        "owner": (False, _name),
     },
     "destroy": {"name": (True, _text(256))},
     "get_model": {},
@@ -153,6 +157,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "release": {"key": (True, _key)},
     "measure": {"name": (True, _text(128)), "value": (True, _number_or_text)},
     "get_adaptations": {},
+    "get_summary": {},
     "get_config": {},
     "set_config": {"bindings": (True, _mapping(_PORT, _key))},
     "get_statistics": {},
@@ -195,12 +200,16 @@ def decode_request(payload: bytes, limits: Limits) -> Any:
     """The JSON of a request, bounded in size and depth before and while it is parsed."""
     if len(payload) > limits.max_request_bytes:
         raise ServiceError(
-            f"the request has {len(payload):,} bytes", where="request", expected=f"at most {limits.max_request_bytes:,} (--max-request-bytes)"
+            f"the request has {len(payload):,} bytes",
+            where="request",
+            expected=f"at most {limits.max_request_bytes:,} (--max-request-bytes)",
         )
     try:
         request = json.loads(payload) if payload else {}
     except RecursionError:
-        raise ServiceError("the request's JSON nests too deep", where="request", expected=f"at most {limits.max_json_depth} levels") from None
+        raise ServiceError(
+            "the request's JSON nests too deep", where="request", expected=f"at most {limits.max_json_depth} levels"
+        ) from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise ServiceError(f"the request is not JSON: {str(exc)[:120]}", where="request", expected="a JSON object") from None
     if not _depth(request, limits.max_json_depth):

@@ -112,7 +112,9 @@ def check_key_expr(key: str, *, what: str = "key expression", concrete: bool = F
     if not isinstance(key, str) or not key:
         raise BindingError(f"got {key!r}", where=what, expected="a non-empty Zenoh key expression like 'robot/camera/image'")
     if len(key.encode()) > MAX_KEY_BYTES:
-        raise BindingError(f"a key expression of {len(key.encode())} bytes is too long", where=what, expected=f"at most {MAX_KEY_BYTES} bytes")
+        raise BindingError(
+            f"a key expression of {len(key.encode())} bytes is too long", where=what, expected=f"at most {MAX_KEY_BYTES} bytes"
+        )
     try:
         zenoh.KeyExpr(key)
     except zenoh.ZError as exc:
@@ -148,6 +150,8 @@ def make_config(
     config_file: str | os.PathLike[str] | None = None,
     tls: TlsFiles | None = None,
     access: AccessControl | None = None,
+    lease_ms: int | None = None,
+    mode: str = "peer",
 ) -> zenoh.Config:
     """Build a Zenoh configuration.
 
@@ -156,7 +160,10 @@ def make_config(
     ``config_file``: that json5 file, with ``listen``/``connect`` applied on top when given.
     ``tls``: TLS with mutual authentication on ``tls/HOST:PORT`` endpoints (this process's
     certificate for both listening and connecting, the CA to verify the peer's). ``access``: the
-    roles to enforce, as Zenoh access control.
+    roles to enforce, as Zenoh access control. ``lease_ms``: how long a silent link lives before
+    Zenoh closes it (default 10,000 ms): what a peer cut off from the network takes to be noticed;
+    shorter detects sooner, at the cost of keep-alive traffic and of false alarms on a slow link.
+    ``mode``: "peer" (default) or "router" (``dyknow router``).
     """
     try:
         if config_file is not None:
@@ -169,7 +176,7 @@ def make_config(
                 raise TransportError(f"not a valid Zenoh configuration: {_clean(exc)}", where=str(path)) from exc
         else:
             config = zenoh.Config()
-            config.insert_json5("mode", '"peer"')
+            config.insert_json5("mode", json.dumps(mode))
             config.insert_json5("scouting/multicast/enabled", "false")
             config.insert_json5("scouting/gossip/enabled", "true")
             config.insert_json5("scouting/delay", "0")
@@ -190,6 +197,10 @@ def make_config(
             config.insert_json5(f"{prefix}/enable_mtls", "true")
         if access is not None:
             config.insert_json5("access_control", json.dumps(access.zenoh()))
+        if lease_ms is not None:
+            if lease_ms < 100:
+                raise TransportError(f"got {lease_ms} ms", where="lease", expected="at least 100 ms")
+            config.insert_json5("transport/link/tx/lease", str(int(lease_ms)))
     except zenoh.ZError as exc:
         raise TransportError(f"invalid Zenoh endpoint: {_clean(exc)}", where=f"listen={listen!r} connect={list(connect)!r}") from exc
     return config
@@ -469,6 +480,7 @@ class Session:
 
     def declare_liveliness_subscriber(self, key: str, on_change: Callable[[str, bool], None]) -> LivelinessSubscriber:
         """Call ``on_change(key, alive)`` as tokens on ``key`` appear and vanish (existing ones first)."""
+
         def callback(sample: zenoh.Sample) -> None:
             try:
                 on_change(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)

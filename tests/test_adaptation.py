@@ -17,8 +17,9 @@ import pytest
 from dyknow import Client, Library, Manager, Ontology, Port, Tag, TransformationSpec, Unit, UnitEvent, UnitInfo, default_key
 from dyknow.adaptation import ANCHOR_LABEL, AdaptationEvent, AdaptationLoop, DeadlinePort, Knowledge, Monitor, RequestAnchor, Symptom
 from dyknow.errors import PlanningError
+from dyknow.federation import Summary, SummaryUnit
 from dyknow.testing import CAMERA_IDS, SCENARIO_SPECS, Camera, Sink, Tracker
-from tests.conftest import REPO, subprocess_env
+from tests.conftest import REPO, subprocess_env, wait_until
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
@@ -219,14 +220,14 @@ REMOTE_SPECS = """<transformations>
 
 
 def test_remote_source_process_killed(robot: Manager) -> None:
-    """A camera in another process is preferred; killing that process switches to the local one."""
+    """A camera in another process (a hand-written RemoteStream, no federation) is preferred; killing that process switches to the local one."""
     events = Events(robot)
     robot.add_transformation(REMOTE_SPECS.replace("{name}", robot.name))
     script = textwrap.dedent(
         f"""
         import threading
         from dyknow import Manager
-        with Manager("remotecam", specs=[{str(SCENARIO_SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={robot.endpoints!r}) as m:
+        with Manager("remotecam", specs=[{str(SCENARIO_SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={robot.endpoints!r}, federate=False) as m:
             m.spawn("robot-camera", "cam", bindings={{"out": "fleet/{robot.name}/camera"}})
             print("ready", flush=True)
             threading.Event().wait()
@@ -281,6 +282,8 @@ class StandInRuntime:
         self.events: list[tuple[str, dict[str, Any]]] = []
         self.published = threading.Event()
         self.anchors: dict[str, RequestAnchor] = {}
+        self.peer_summaries: dict[str, Summary] = {}
+        self.remote_calls: list[tuple[str, str, str]] = []
 
     def units(self) -> list[UnitInfo]:
         return list(self.table.values())
@@ -320,6 +323,30 @@ class StandInRuntime:
         self.events.append((kind, dict(event)))
         self.published.set()
 
+    # -- other managers: summaries kept here, remote calls recorded
+
+    def peers(self) -> dict[str, Summary]:
+        return dict(self.peer_summaries)
+
+    def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
+        summary = self.peer_summaries[manager]
+        spec = next(s for s in summary.specs if s.label == label)
+        outputs = {p.name: bindings[p.name] for p in spec.outputs}
+        unit = SummaryUnit(name, label, outputs, {p.name: spec.tags_for(p.name) for p in spec.outputs}, True, self.name)
+        self.peer_summaries[manager] = replace(summary, version=summary.version + 1, units=(*summary.units, unit))
+        self.remote_calls.append(("spawn", manager, name))
+
+    def destroy_on(self, manager: str, name: str) -> None:
+        summary = self.peer_summaries[manager]
+        self.peer_summaries[manager] = replace(summary, units=tuple(u for u in summary.units if u.name != name))
+        self.remote_calls.append(("destroy", manager, name))
+
+    def set_config_on(self, manager: str, name: str, bindings: Mapping[str, str]) -> None:
+        self.remote_calls.append(("set_config", manager, name))
+
+    def changed(self) -> None:
+        pass
+
     def fail(self, name: str, loop: AdaptationLoop) -> None:
         info = self.table[name]
         self.table[name] = replace(info, state="failed")
@@ -350,3 +377,49 @@ def test_the_loop_runs_against_a_small_stand_in_runtime() -> None:
         assert "front-camera" not in runtime.table  # the broken unit was cleaned up
     finally:
         loop.close()
+
+
+def test_the_loop_plans_over_other_managers_and_fails_over_when_one_is_lost() -> None:
+    """Units of other managers: spawned through them, failed over when their manager goes, back after the dwell."""
+    runtime = StandInRuntime([])
+    runtime.peer_summaries = {
+        "robot": Summary("robot", "robot-host", 1, "r1", (_camera("front-camera", 1),)),
+        "field": Summary("field", "field-host", 1, "f1", (_camera("back-camera", 2),)),
+    }
+    events: list[AdaptationEvent] = []
+    loop = AdaptationLoop(runtime, dwell_s=0.3)
+    loop.on_event(events.append)
+    try:
+        key = loop.request("Image")
+        anchor = next(u for u in runtime.units() if u.label == ANCHOR_LABEL)
+        assert runtime.get_config(anchor.name)["in"] == "dyknow/robot/front-camera/out"  # the preferred camera, on its manager
+        assert runtime.remote_calls == [("spawn", "robot", "front-camera")]
+        assert loop.requests()[0].labels == ("front-camera@robot",)
+
+        robot = runtime.peer_summaries.pop("robot")
+        loop.peer_changed("lost", "robot")
+        wait_until(lambda: any(e.kind == "adapted" for e in events), "the failover")
+        lost = next(e for e in events if e.kind == "adapted")
+        assert lost.cause == "manager 'robot' was lost" and lost.key == key
+        assert lost.old == ("front-camera@robot",) and lost.new == ("back-camera@field",)
+        assert runtime.get_config(anchor.name)["in"] == "dyknow/field/back-camera/out"
+        assert ("destroy", "robot", "front-camera") not in runtime.remote_calls  # it went with its manager
+
+        runtime.peer_summaries["robot"] = replace(robot, library="r2", units=())  # it comes back afresh
+        loop.peer_changed("found", "robot")
+        wait_until(lambda: len([e for e in events if e.kind == "adapted"]) == 2, "the return")
+        back = [e for e in events if e.kind == "adapted"][1]
+        assert back.cause.startswith("manager 'robot' was found") and back.new == ("front-camera@robot",)
+        assert runtime.get_config(anchor.name)["in"] == "dyknow/robot/front-camera/out"
+        assert ("destroy", "field", "back-camera") in runtime.remote_calls  # released where it ran
+
+        unit = runtime.peer_summaries["robot"].units[0]
+        runtime.peer_summaries["robot"] = replace(runtime.peer_summaries["robot"], units=(replace(unit, healthy=False),))
+        loop.peer_changed("changed", "robot")
+        wait_until(lambda: len([e for e in events if e.kind == "adapted"]) == 3, "the move off the broken unit")
+        broken = [e for e in events if e.kind == "adapted"][2]
+        assert "unit 'front-camera@robot' is unhealthy" in broken.cause and broken.new == ("back-camera@field",)
+    finally:
+        loop.close()
+    assert runtime.remote_calls[-1][0] == "destroy"  # closing releases what the loop runs elsewhere
+    assert all(not s.units for s in runtime.peer_summaries.values() if s.manager == "field")

@@ -345,7 +345,9 @@ class BallDemo:
             time.sleep(0.05)
         return grab.frame
 
-    def _report(self, manager: Manager, key: str, log: TrackLog, scene: Any, battery: list[tuple[float, float]], frame: Any, tag: str) -> dict[str, Any]:
+    def _report(
+        self, manager: Manager, key: str, log: TrackLog, scene: Any, battery: list[tuple[float, float]], frame: Any, tag: str
+    ) -> dict[str, Any]:
         from dyknow.demo.report import write_report
 
         with log.lock:

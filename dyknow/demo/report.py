@@ -43,7 +43,11 @@ def write_report(
         }
         if scene is not None and isinstance(p.get("x"), (int, float)):
             truth = scene.ball_at(origin_ns)
-            row.update(truth_x=round(truth.x, 4), truth_y=round(truth.y, 4), error_cm=round(math.hypot(p["x"] - truth.x, p["y"] - truth.y) * 100, 2))
+            row.update(
+                truth_x=round(truth.x, 4),
+                truth_y=round(truth.y, 4),
+                error_cm=round(math.hypot(p["x"] - truth.x, p["y"] - truth.y) * 100, 2),
+            )
         rows.append(row)
     finals = {e.id: e for e in events}  # the recovered version replaces the adapted one
     adaptations = [
@@ -76,7 +80,12 @@ def write_report(
         "predicted_messages": sum(1 for r in rows if r["predicted"]),
         "adaptations": adaptations,
     }
-    report = {"summary": summary, "track": rows, "battery": [{"t_s": round(t, 3), "level": round(b, 3)} for t, b in battery], "statistics": statistics}
+    report = {
+        "summary": summary,
+        "track": rows,
+        "battery": [{"t_s": round(t, 3), "level": round(b, 3)} for t, b in battery],
+        "statistics": statistics,
+    }
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     written = ["report.json"]
     if _plot(out_dir / "track.png", rows, battery, adaptations, scene is not None):
@@ -103,7 +112,9 @@ def write_report(
     return report
 
 
-def _plot(path: Path, rows: list[dict[str, Any]], battery: list[tuple[float, float]], adaptations: list[dict[str, Any]], truth: bool) -> bool:
+def _plot(
+    path: Path, rows: list[dict[str, Any]], battery: list[tuple[float, float]], adaptations: list[dict[str, Any]], truth: bool
+) -> bool:
     try:
         import matplotlib
     except ImportError:
@@ -129,7 +140,15 @@ def _plot(path: Path, rows: list[dict[str, Any]], battery: list[tuple[float, flo
         camera = next((x for x in a["to"] if "camera" in x), "?")
         for ax in (ax_x, ax_y, ax_b):
             ax.axvline(a["t_s"], color="tab:red", linewidth=1)
-        ax_x.annotate(f"-> {camera}", (a["t_s"], 1), xycoords=("data", "axes fraction"), xytext=(3, -12), textcoords="offset points", color="tab:red", fontsize=8)
+        ax_x.annotate(
+            f"-> {camera}",
+            (a["t_s"], 1),
+            xycoords=("data", "axes fraction"),
+            xytext=(3, -12),
+            textcoords="offset points",
+            color="tab:red",
+            fontsize=8,
+        )
     fig.suptitle("dyknow demo: the tracked ball, with the adaptations (red)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -175,7 +175,11 @@ class RecordFile:
             raise Damage(offset, "invalid record opcode 0x00")
         if offset + RECORD.size + length > limit:
             if limit == self.size:
-                raise Damage(offset, f"a {record_name(opcode)} record of {length} bytes runs past the end of the file ({limit} bytes)", truncated=True)
+                raise Damage(
+                    offset,
+                    f"a {record_name(opcode)} record of {length} bytes runs past the end of the file ({limit} bytes)",
+                    truncated=True,
+                )
             raise Damage(offset, f"a {record_name(opcode)} record of {length} bytes runs past offset {limit}")
         return opcode, length
 
@@ -191,7 +195,9 @@ class RecordFile:
         """The compression (``none`` for none) and the uncompressed, CRC-checked data of the chunk
         at ``offset`` (:func:`split_chunk` gives its records)."""
         chunk = self.chunk_record(offset)
-        return chunk.compression or "none", unpack_chunk(offset, chunk.compression, chunk.data, chunk.uncompressed_size, chunk.uncompressed_crc)
+        return chunk.compression or "none", unpack_chunk(
+            offset, chunk.compression, chunk.data, chunk.uncompressed_size, chunk.uncompressed_crc
+        )
 
     def chunk_record(self, offset: int) -> Chunk:
         """The Chunk record at ``offset``, its data still compressed."""

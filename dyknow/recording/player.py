@@ -125,11 +125,15 @@ class Player:
         decode: bool = True,
     ) -> None:
         if not (isinstance(rate, (int, float)) and rate > 0):
-            raise RecordingError(f"got {rate!r}", where="rate", expected="a positive number (2.0 is twice as fast; math.inf as fast as possible)")
+            raise RecordingError(
+                f"got {rate!r}", where="rate", expected="a positive number (2.0 is twice as fast; math.inf as fast as possible)"
+            )
         if start_s is not None and not start_s >= 0:
             raise RecordingError(f"got {start_s!r}", where="start", expected="seconds from the first message, 0 or more")
         if end_s is not None and not end_s >= (start_s or 0.0):
-            raise RecordingError(f"got {end_s!r}", where="end", expected=f"seconds from the first message, not before start ({start_s or 0.0:g})")
+            raise RecordingError(
+                f"got {end_s!r}", where="end", expected=f"seconds from the first message, not before start ({start_s or 0.0:g})"
+            )
         self.rate = float(rate)
         self.loop = loop
         self.decode = decode
@@ -150,13 +154,17 @@ class Player:
         for pattern in topics:
             if not any(_matches(pattern, c.topic) for c in everything):
                 listing = ", ".join(map(repr, names)) or "none"
-                raise RecordingError(f"no topic matches {pattern!r}", where=path, expected=f"one of its topics {listing}{did_you_mean(pattern, names)}")
+                raise RecordingError(
+                    f"no topic matches {pattern!r}", where=path, expected=f"one of its topics {listing}{did_you_mean(pattern, names)}"
+                )
         chosen = [c for c in everything if not topics or any(_matches(p, c.topic) for p in topics)]
         for source, target in remap.items():
             if not any(_remapped({source: target}, c.topic) is not None for c in chosen):
                 listing = ", ".join(repr(c.topic) for c in chosen) or "none"
                 raise RecordingError(
-                    f"no replayed topic of {path} is {source!r}", where=f"remap {source}={target}", expected=f"one of {listing}{did_you_mean(source, names)}"
+                    f"no replayed topic of {path} is {source!r}",
+                    where=f"remap {source}={target}",
+                    expected=f"one of {listing}{did_you_mean(source, names)}",
                 )
         self._keys: dict[int, str] = {}
         self._bad_keys: list[str] = []  # only publish() needs valid keys; reading and play() do not
@@ -305,6 +313,7 @@ class Player:
             while not all(p.matched for p in publishers.values()) and time.monotonic() < deadline:
                 if self._wait(min(0.02, max(0.0, deadline - time.monotonic())), stop):
                     return 0
+
             def send(msg: Message, record: RecordedMessage) -> None:
                 publishers[msg.key].put(msg)
 

@@ -236,7 +236,9 @@ class Recording:
             if MAGIC.startswith(head):
                 raise RecordingError("truncated at offset 0: the file ends inside the MCAP magic; nothing is readable", where=self.path)
             # the file's own bytes are not quoted: the caller may not be allowed to read them
-            raise RecordingError("not an MCAP file: it does not begin with the MCAP magic", where=self.path, expected=f"the MCAP magic {MAGIC!r}")
+            raise RecordingError(
+                "not an MCAP file: it does not begin with the MCAP magic", where=self.path, expected=f"the MCAP magic {MAGIC!r}"
+            )
         try:
             opcode, length = file.record_at(len(MAGIC), file.size)
             if opcode != Opcode.HEADER:
@@ -449,7 +451,9 @@ class Recording:
 
     def _bad(self, damage: Damage) -> None:
         if not self.recover:
-            raise RecordingError(damage.problem, where=self.path, expected=f"{_whole(damage)}; replay the rest with recover=True (dyknow replay --recover)")
+            raise RecordingError(
+                damage.problem, where=self.path, expected=f"{_whole(damage)}; replay the rest with recover=True (dyknow replay --recover)"
+            )
         log.warning("%s: %s; skipped", self.path, damage.problem)
         if self.problem is None:
             self.problem = damage.problem

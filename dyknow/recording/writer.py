@@ -382,7 +382,9 @@ class Recorder:
         if self._thread.is_alive():
             log.error("recorder %s: the writer thread is stuck; the file is left without its summary", self.path)
             self._done.set()
-            raise RecordingError("cannot finish the file: its writer is stuck (a hung disk?); the complete chunks are readable", where=self.path)
+            raise RecordingError(
+                "cannot finish the file: its writer is stuck (a hung disk?); the complete chunks are readable", where=self.path
+            )
         while True:
             try:
                 if self._queue.get_nowait() is not _STOP:

@@ -201,9 +201,7 @@ class TransformationSpec:
             if port.name == name:
                 return port
         names = [p.name for p in self.ports]
-        raise KeyError(
-            f"{self.label!r} has no port named {name!r}; expected {one_of(names)}{did_you_mean(name, names)}"
-        )
+        raise KeyError(f"{self.label!r} has no port named {name!r}; expected {one_of(names)}{did_you_mean(name, names)}")
 
     def param_values(self) -> dict[str, str | int | float | bool]:
         """The parameters as a ``name -> value`` dict."""

@@ -68,9 +68,7 @@ _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "constraint": ("measure", "op", "value"),
 }
 
-ELEMENTS: Mapping[str, frozenset[str]] = MappingProxyType(
-    {name: frozenset(attributes) for name, attributes in _ATTRIBUTES.items()}
-)
+ELEMENTS: Mapping[str, frozenset[str]] = MappingProxyType({name: frozenset(attributes) for name, attributes in _ATTRIBUTES.items()})
 """Every element of the format and the attributes it allows (``specs/transformation.xsd`` agrees)."""
 
 _TRANSFORMATION_CHILDREN = (
@@ -525,9 +523,7 @@ def _parse_set(text: str) -> tuple[tuple[str, ...], tuple[str, str] | None]:
     return values, None
 
 
-def _read_params(
-    container: _Node | None, declared: Sequence[str], issues: _Issues
-) -> tuple[tuple[Param, ...], tuple[int, ...]]:
+def _read_params(container: _Node | None, declared: Sequence[str], issues: _Issues) -> tuple[tuple[Param, ...], tuple[int, ...]]:
     params: list[Param] = []
     first_line: dict[str, int] = {}
     nodes = _children(container)
@@ -558,9 +554,7 @@ def _read_params(
     return tuple(params), tuple(n.line for n in nodes)
 
 
-def _read_ports(
-    container: _Node | None, declared: Sequence[str], issues: _Issues
-) -> tuple[tuple[Port, ...], tuple[int, ...]]:
+def _read_ports(container: _Node | None, declared: Sequence[str], issues: _Issues) -> tuple[tuple[Port, ...], tuple[int, ...]]:
     ports: list[Port] = []
     nodes = _children(container)
     if container is not None and not container.children:
@@ -586,7 +580,7 @@ def _read_ports(
         if "queue" in node.attrs:
             text = node.attrs["queue"].strip()
             if direction == "out":
-                issues.add(node.line, '<port> @queue', 'only allowed on in ports', 'it on a <port type="in">')
+                issues.add(node.line, "<port> @queue", "only allowed on in ports", 'it on a <port type="in">')
             elif not INTEGER.fullmatch(text) or int(text) < 1:
                 issues.add(node.line, "<port> @queue", f"{text!r} is not a positive whole number", "a queue size such as 1 or 8")
             else:
@@ -595,7 +589,7 @@ def _read_ports(
         if "policy" in node.attrs:
             text = node.attrs["policy"].strip()
             if direction == "out":
-                issues.add(node.line, '<port> @policy', 'only allowed on in ports', 'it on a <port type="in">')
+                issues.add(node.line, "<port> @policy", "only allowed on in ports", 'it on a <port type="in">')
             elif text not in QUEUE_POLICIES:
                 hint = did_you_mean(text, QUEUE_POLICIES)
                 issues.add(node.line, "<port> @policy", f"unknown queue policy {text!r}", f"keep-last or drop-new{hint}")
@@ -608,9 +602,7 @@ def _read_ports(
     return tuple(ports), tuple(n.line for n in nodes)
 
 
-def _read_tags(
-    container: _Node | None, declared: Sequence[str], issues: _Issues
-) -> tuple[tuple[Tag, ...], tuple[int, ...]]:
+def _read_tags(container: _Node | None, declared: Sequence[str], issues: _Issues) -> tuple[tuple[Tag, ...], tuple[int, ...]]:
     tags: list[Tag] = []
     nodes = _children(container)
     for node in nodes:
@@ -625,9 +617,7 @@ def _read_tags(
     return tuple(tags), tuple(n.line for n in nodes)
 
 
-def _read_constraints(
-    container: _Node | None, declared: Sequence[str], issues: _Issues
-) -> tuple[tuple[Constraint, ...], tuple[int, ...]]:
+def _read_constraints(container: _Node | None, declared: Sequence[str], issues: _Issues) -> tuple[tuple[Constraint, ...], tuple[int, ...]]:
     constraints: list[Constraint] = []
     nodes = _children(container)
     for node in nodes:
@@ -646,7 +636,6 @@ def _read_constraints(
     return tuple(constraints), tuple(n.line for n in nodes)
 
 
-
 def _check_template(where: str, text: str, line: int, declared: Sequence[str], issues: _Issues) -> None:
     """Report each stray '$' and each ``${Name}`` that names no declared arg."""
     for match in DOLLAR.finditer(text):
@@ -660,5 +649,3 @@ def _check_template(where: str, text: str, line: int, declared: Sequence[str], i
             else:
                 expected = f'it declared as <args><arg label="{name}">{{...}}</arg></args>'
             issues.add(line, where, f"undefined template variable ${{{name}}}", expected)
-
-

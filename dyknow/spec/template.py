@@ -204,7 +204,6 @@ class Template:
         return [SpecIssue(self.path, self.label_line, what, "<label>", f"one label per expansion ({hint})")]
 
 
-
 def _substitute(text: str, values: Mapping[str, str]) -> str:
     def replacement(match: re.Match[str]) -> str:
         if match["name"] is not None:
@@ -239,5 +238,3 @@ def _arg_values(arg: Arg, individuals: Individuals | None) -> tuple[tuple[str, .
             return (), (problem, "non-empty strings")
     # An ontology may list an individual twice (asserted under two classes); that is no error.
     return tuple(dict.fromkeys(v.strip() for v in values)), None
-
-

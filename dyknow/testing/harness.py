@@ -151,7 +151,9 @@ def _choose(spec: TransformationSpec | str | os.PathLike[str], label: str | None
     labels = [s.label for s in specs]
     if label is None:
         if len(specs) != 1:
-            raise LibraryError(f"{len(specs)} transformations to choose from", where=text[:80], expected=f"label= one of {', '.join(map(repr, labels))}")
+            raise LibraryError(
+                f"{len(specs)} transformations to choose from", where=text[:80], expected=f"label= one of {', '.join(map(repr, labels))}"
+            )
         return specs[0]
     for candidate in specs:
         if candidate.label == label:

@@ -1,0 +1,298 @@
+"""Several managers, one system: each knows the others through Zenoh.
+
+Every manager declares a liveliness token on ``@dyknow/<manager>`` and publishes its
+:class:`Summary` (host, library, running units, measurements, load) on
+``dyknow/<manager>/summary`` whenever it changes; a newcomer asks each manager it discovers
+for its summary through the ``get_summary`` service. A :class:`Directory` keeps what the others
+said: a manager that appears is noticed when its token does (at once on a reachable network), one
+that dies or is cut off when its token goes (its links close, or Zenoh's lease expires). There
+is no broker: Zenoh's peers, gossip and routers carry it all.
+
+A summary arrives from the network, so it is hostile input: it is bounded in size, its specs are
+XML read by the hardened spec reader, and nothing in it is ever imported or run here. A
+manager's units are only ever spawned by that manager, through its own services and policy.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from dyknow import keys
+from dyknow.errors import DyKnowError, SpecError
+from dyknow.planner import RunningUnit
+from dyknow.spec import TransformationSpec, parse_specs
+
+__all__ = ["MAX_SUMMARY_BYTES", "Directory", "Summary", "SummaryUnit"]
+
+log = logging.getLogger(__name__)
+
+#: The largest summary a manager takes from another (about 10,000 specs).
+MAX_SUMMARY_BYTES = 16 << 20
+
+_MAX_ITEMS = 20_000
+
+
+@dataclass(frozen=True, slots=True)
+class SummaryUnit:
+    """A running unit as its manager's summary tells: what its outputs carry and where."""
+
+    name: str
+    label: str
+    outputs: Mapping[str, str]
+    tags: Mapping[str, tuple[str, ...]]
+    healthy: bool
+    owner: str | None = None  # the manager whose request spawned it, if another one
+
+    def running(self, manager: str) -> RunningUnit:
+        """The unit as the planner sees it, on ``manager``."""
+        return RunningUnit(self.name, self.label, dict(self.outputs), dict(self.tags), self.healthy, manager)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form."""
+        return {"name": self.name, "label": self.label, "outputs": dict(self.outputs), "tags": {p: list(t) for p, t in self.tags.items()},
+                "healthy": self.healthy, "owner": self.owner}  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class Summary:
+    """What one manager offers the others: its library, its running units, its measurements."""
+
+    manager: str
+    host: str
+    version: int
+    library: str = ""  # changes when the library does (planners cache on it)
+    specs: tuple[TransformationSpec, ...] = ()
+    units: tuple[SummaryUnit, ...] = ()
+    measurements: Mapping[str, float | str] = field(default_factory=dict)
+    requests: int = 0
+
+    @property
+    def load(self) -> int:
+        """How busy the manager is: its running units."""
+        return len(self.units)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form, specs as XML (what ``get_summary`` serves and the summary key carries)."""
+        return {
+            "manager": self.manager,
+            "host": self.host,
+            "version": self.version,
+            "library": self.library,
+            "specs": [s.to_xml() for s in self.specs],
+            "units": [u.to_dict() for u in self.units],
+            "measurements": dict(self.measurements),
+            "requests": self.requests,
+        }
+
+    @classmethod
+    def from_json(cls, data: bytes, manager: str) -> Summary:
+        """A summary received from the network; :class:`DyKnowError` when it is malformed or too big.
+
+        ``manager`` is who it must be about (the key or token it came with).
+        """
+        if len(data) > MAX_SUMMARY_BYTES:
+            raise DyKnowError(f"a summary of {len(data)} bytes", where=f"manager {manager!r}", expected=f"at most {MAX_SUMMARY_BYTES}")
+        try:
+            raw = json.loads(data)
+            if not isinstance(raw, dict) or raw.get("manager") != manager:
+                raise ValueError("not the summary of this manager")
+            specs_xml = raw.get("specs", [])
+            units = raw.get("units", [])
+            if len(specs_xml) > _MAX_ITEMS or len(units) > _MAX_ITEMS:
+                raise ValueError("too many specs or units")
+            specs: list[TransformationSpec] = []
+            for i, xml in enumerate(specs_xml):
+                specs.extend(parse_specs(str(xml), f"<summary of {manager}, spec {i}>", max_expansions=1))
+            measurements = {
+                str(k): v
+                for k, v in dict(raw.get("measurements", {})).items()
+                if isinstance(v, int | float | str) and not isinstance(v, bool)
+            }
+            return cls(
+                manager=manager,
+                host=str(raw.get("host", "")),
+                version=int(raw.get("version", 0)),
+                library=str(raw.get("library", ""))[:128],
+                specs=tuple(specs),
+                units=tuple(_unit(u) for u in units),
+                measurements=measurements,
+                requests=int(raw.get("requests", 0)),
+            )
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError, SpecError) as exc:
+            raise DyKnowError(f"a malformed summary: {str(exc)[:200]}", where=f"manager {manager!r}") from exc
+
+
+def _unit(raw: Any) -> SummaryUnit:
+    outputs = {str(p): str(k) for p, k in dict(raw["outputs"]).items()}
+    tags = {str(p): tuple(str(t) for t in ts) for p, ts in dict(raw["tags"]).items()}
+    owner = raw.get("owner")
+    return SummaryUnit(str(raw["name"]), str(raw["label"]), outputs, tags, bool(raw["healthy"]), str(owner) if owner else None)
+
+
+class Directory:
+    """The other managers a manager can reach, and the last summary each published.
+
+    ``fetch(name)`` asks a manager for its summary (the manager's client call, bytes back);
+    ``on_change(kind, name)`` is told "found", "lost" or "changed", on the directory's thread.
+    ``summarize()`` gives this manager's own summary, published by :meth:`changed` (debounced).
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        name: str,
+        *,
+        summarize: Callable[[], Summary],
+        fetch: Callable[[str], bytes],
+        on_change: Callable[[str, str], None],
+        debounce_s: float = 0.05,
+    ) -> None:
+        self.name = name
+        self._session = session
+        self._summarize = summarize
+        self._fetch = fetch
+        self._on_change = on_change
+        self._debounce_s = debounce_s
+        self._lock = threading.Lock()
+        self._alive: set[str] = set()
+        self._summaries: dict[str, Summary] = {}
+        self._todo: list[tuple[str, str, bytes | None]] = []  # (kind, manager, summary bytes)
+        self._wake = threading.Event()
+        self._dirty = threading.Event()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"dyknow-{name}-directory", daemon=True)
+        self._thread.start()
+        self._token = session.declare_liveliness_token(keys.manager_token(name))
+        self._summary_sub = session.declare_raw_subscriber(keys.summaries_pattern(), self._summary_sample)
+        self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._liveliness)
+        self.changed()
+
+    # -- what is known
+
+    def peers(self) -> dict[str, Summary]:
+        """The reachable managers (this one excluded) whose summary is known, by name."""
+        with self._lock:
+            return {m: s for m, s in self._summaries.items() if m in self._alive}
+
+    def alive(self) -> set[str]:
+        """The names of the managers whose liveliness token is up (this one excluded)."""
+        with self._lock:
+            return set(self._alive)
+
+    def changed(self) -> None:
+        """This manager's summary changed: publish it soon (several changes, one publication)."""
+        self._dirty.set()
+        self._wake.set()
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop watching and withdraw this manager's token; safe twice."""
+        if self._closed:
+            return
+        self._closed = True
+        for entity in (self._watch, self._summary_sub, self._token):
+            entity.undeclare()
+        self._wake.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+
+    # -- Zenoh callbacks (quick: the work happens on the directory's thread)
+
+    def _liveliness(self, key: str, alive: bool) -> None:
+        manager = keys.manager_of_token(key)
+        if manager is None or manager == self.name:
+            return
+        self._queue("found" if alive else "lost", manager, None)
+
+    def _summary_sample(self, key: str, payload: bytes) -> None:
+        manager = key.split("/")[1] if key.count("/") == 2 else None
+        if manager is None or manager == self.name:
+            return
+        self._queue("summary", manager, payload)
+
+    def _queue(self, kind: str, manager: str, data: bytes | None) -> None:
+        with self._lock:
+            self._todo.append((kind, manager, data))
+        self._wake.set()
+
+    # -- the directory's thread
+
+    def _run(self) -> None:
+        while not self._closed:
+            self._wake.wait(1.0)
+            self._wake.clear()
+            if self._closed:
+                return
+            with self._lock:
+                todo, self._todo = self._todo, []
+            for kind, manager, data in todo:
+                try:
+                    self._handle(kind, manager, data)
+                except Exception:
+                    log.exception("directory of %r: cannot handle %s of %r", self.name, kind, manager)
+            if self._dirty.is_set():
+                time.sleep(self._debounce_s)  # let a burst of changes settle into one summary
+                self._dirty.clear()
+                self._publish()
+
+    def _handle(self, kind: str, manager: str, data: bytes | None) -> None:
+        if kind == "lost":
+            with self._lock:
+                known = manager in self._alive
+                self._alive.discard(manager)
+                self._summaries.pop(manager, None)  # a manager that comes back starts afresh
+            if known:
+                self._on_change("lost", manager)
+            return
+        if kind == "found":
+            with self._lock:
+                new = manager not in self._alive
+                self._alive.add(manager)
+            if new:
+                data = self._fetch_summary(manager)
+                if data is None:
+                    return
+            else:
+                return
+        assert data is not None
+        try:
+            summary = Summary.from_json(data, manager)
+        except DyKnowError as exc:
+            log.warning("directory of %r: %s", self.name, exc)
+            return
+        with self._lock:
+            old = self._summaries.get(manager)
+            if old is not None and old.version > summary.version and kind == "summary":
+                return  # an older publication overtaken by a fetch
+            self._summaries[manager] = summary
+            alive = manager in self._alive
+        if alive:
+            self._on_change("found" if kind == "found" else "changed", manager)
+
+    def _fetch_summary(self, manager: str) -> bytes | None:
+        try:
+            return self._fetch(manager)
+        except DyKnowError as exc:
+            log.warning("directory of %r: no summary from %r yet: %s", self.name, manager, exc)
+            return None
+
+    def _publish(self) -> None:
+        try:
+            self._session.put(keys.summary_key(self.name), json.dumps(self._summarize().to_dict()))
+        except DyKnowError as exc:
+            log.warning("directory of %r: cannot publish the summary: %s", self.name, exc)
+
+
+def running_units(peers: Mapping[str, Summary]) -> list[RunningUnit]:
+    """Every unit running on the given managers, as the planner sees them."""
+    return [u.running(m) for m, s in sorted(peers.items()) for u in s.units]
+
+
+def peer_specs(peers: Mapping[str, Summary]) -> dict[str, Sequence[TransformationSpec]]:
+    """Each manager's library, by manager."""
+    return {m: s.specs for m, s in peers.items()}
