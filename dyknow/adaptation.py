@@ -249,6 +249,7 @@ class Symptom:
     measure: str | None = None
     detail: str = ""
     manager: str | None = None
+    deferred: bool = False  # an opportunity taken after the dwell time
 
 
 class Knowledge:
@@ -845,7 +846,7 @@ class AdaptationLoop:
                             del self._deferred[key]
                             request = self.knowledge.requests.get(key)
                             if request is not None:  # timed from now: the wait was our choice, not the fault's
-                                waited = replace(opportunity, time_ns=now, detail=f"{opportunity.detail}, after the dwell time")
+                                waited = replace(opportunity, time_ns=now, deferred=True)
                                 self._adapt(request, waited, fault=False)
             except Exception:
                 log.exception("adaptation loop error (it keeps running)")
@@ -887,8 +888,10 @@ class AdaptationLoop:
     def _adapt(self, request: _Request, symptom: Symptom, fault: bool) -> None:
         now = time.time_ns()
         if not fault and request.state == "active" and now - request.last_change_ns < self.dwell_ns:
-            # flapping guard: take the opportunity when the dwell time is over (the latest one wins)
-            self._deferred[request.key] = (request.last_change_ns + self.dwell_ns, symptom)
+            # flapping guard: take the opportunity when the dwell time is over (the latest one wins,
+            # but another manager's routine summary does not hide the cause already waiting)
+            if not (request.key in self._deferred and symptom.kind == "peer-changed"):
+                self._deferred[request.key] = (request.last_change_ns + self.dwell_ns, symptom)
             return
         old_labels = tuple(sorted(set(request.units.values())))
         cause = _cause(symptom)
@@ -1003,6 +1006,10 @@ def _on(ref: str, manager: str | None) -> bool:
 
 
 def _cause(symptom: Symptom) -> str:
+    return _what(symptom) + (", after the dwell time" if symptom.deferred else "")
+
+
+def _what(symptom: Symptom) -> str:
     if symptom.kind == "failed":
         return f"unit {symptom.unit!r} failed: {symptom.detail}"
     if symptom.kind == "destroyed":

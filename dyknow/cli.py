@@ -186,8 +186,12 @@ def cmd_plan(args: argparse.Namespace) -> int:
     ontology = _ontology(args.ontology)
     specs = load_specs(args.specs, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
     measurements = {k: _value(v) for k, v in _pairs(args.measure, "--measure").items()}
+    individuals = ontology.individuals if ontology is not None else None
+    peers: dict[str, list[Any]] = {}
+    for name, path in ((n, p) for item in args.peer for n, p in _pairs([item], "--peer").items()):
+        peers.setdefault(name, []).extend(load_specs([path], individuals=individuals, max_expansions=args.max_expansions))
     try:
-        result = plan(args.request, specs, ontology, (), set(args.unavailable), measurements, manager=args.manager)
+        result = plan(args.request, specs, ontology, (), set(args.unavailable), measurements, manager=args.manager, peers=peers)
     except PlanningError as exc:
         if args.json:
             _out({"request": args.request, "error": str(exc), "rejection": exc.rejection.to_dict() if exc.rejection else None})
@@ -197,7 +201,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     def text() -> Iterable[str]:
         yield f"{result.request}: {len(result.units)} units, output {result.output_unit}.{result.output_port} on {result.output_key}"
         for unit in result.units:
-            yield f"  {'new ' if unit.new else 'reuse'} {unit.name} ({unit.label})"
+            yield f"  {'new ' if unit.new else 'reuse'} {unit.name} ({unit.label})" + (f" on {unit.manager}" if unit.remote else "")
         for c in result.connections:
             yield f"  {c.source} -> {c.target}  ({c.key})"
 
@@ -240,6 +244,10 @@ def cmd_manager(args: argparse.Namespace) -> int:
         limits=limits,
         tls=tls,
         acl=args.acl,
+        host=args.host,
+        lease_ms=args.lease_ms,
+        federate=not args.alone,
+        **({"dwell_s": args.dwell} if args.dwell is not None else {}),
     ) as manager:
         exposed = manager.exposed()
         if exposed:
@@ -256,7 +264,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         endpoints = manager.endpoints
         _report(
             args,
-            {"event": "ready", "manager": args.name, "endpoints": endpoints, "specs": len(manager.library)},
+            {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library)},
             f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs; Ctrl-C to stop",
         )
         _wait_for_signal()
@@ -313,22 +321,63 @@ def cmd_destroy(args: argparse.Namespace) -> int:
 
 
 def cmd_model(args: argparse.Namespace) -> int:
-    """show the manager's units and specs"""
+    """show the manager's units and specs (--all: of every manager reachable)"""
     with _client(args) as client:
-        model = client.get_model()
+        data = client.get_federated_model() if args.all else client.get_model()
+    models = data["managers"] if args.all else [data]
 
     def text() -> Iterable[str]:
-        yield f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs"
-        for unit in model["units"]:
-            yield f"  {unit['name']} ({unit['label']}) {unit['state']}" + (" [protected]" if unit["protected"] else "")
-            for port, key in unit["bindings"].items():
-                yield f"      {port} -> {key}"
-            if unit.get("error"):
-                yield f"      error: {unit['error']}"
-        if model["specs"]:
-            yield "specs: " + ", ".join(s["label"] for s in model["specs"])
+        if args.all and not models:
+            yield "no manager reachable"
+        for model in models:
+            yield f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs"
+            for unit in model["units"]:
+                yield f"  {unit['name']} ({unit['label']}) {unit['state']}" + (" [protected]" if unit["protected"] else "")
+                for port, key in unit["bindings"].items():
+                    yield f"      {port} -> {key}"
+                if unit.get("error"):
+                    yield f"      error: {unit['error']}"
+            for request in model.get("requests", []):
+                yield f"  request {request['tag']} on {request['key']}: {request['state']}"
+            if model["specs"]:
+                yield "specs: " + ", ".join(s["label"] for s in model["specs"])
 
-    _report(args, model, text)
+    _report(args, data, text)
+    return 0
+
+
+def cmd_managers(args: argparse.Namespace) -> int:
+    """list every manager reachable: host, library size, units, requests"""
+    with _client(args) as client:
+        managers = client.managers(timeout_s=min(args.timeout, 2.0))
+
+    def text() -> Iterable[str]:
+        if not managers:
+            yield "no manager reachable"
+        for m in managers:
+            yield f"{m['manager']:<20} host {m['host']:<20} {m['specs']:>5} specs {m['units']:>5} units {m['requests']:>4} requests"
+
+    _report(args, managers, text)
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """run a Zenoh router: a rendezvous point managers and clients connect to (it runs no units)"""
+    from dyknow.transport import Session, make_config
+
+    tls = _tls(args)
+    listen = args.listen or [_default_endpoint(tls)]
+    config = make_config(listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, mode="router", lease_ms=args.lease_ms)
+    with Session(config) as session:
+        endpoints = session.endpoints()
+        _report(
+            args,
+            {"event": "ready", "router": session.zid, "endpoints": endpoints},
+            f"dyknow router ready on {', '.join(endpoints)}; Ctrl-C to stop",
+        )
+        _wait_for_signal()
+    if not args.json:
+        print("dyknow router stopped", flush=True)
     return 0
 
 
@@ -673,6 +722,11 @@ def _parser() -> argparse.ArgumentParser:
         )
         p.add_argument("--tls-key", metavar="FILE", help="TLS: this process's private key (PEM)")
 
+    def lease_option(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--lease-ms", type=_positive_int, metavar="MS",
+                       help="how long a silent link lives (default Zenoh's 10000): a host cut off is noticed after about this; "
+                            "shorter is sooner, with more keep-alive traffic and false alarms on a slow link")  # fmt: skip
+
     def limit_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--max-expansions", type=_positive_int, default=DEFAULT_MAX_EXPANSIONS, metavar="N",
                        help=f"refuse a template that expands to more specs (default {DEFAULT_MAX_EXPANSIONS})")  # fmt: skip
@@ -702,6 +756,18 @@ def _parser() -> argparse.ArgumentParser:
         "--max-request-bytes", type=_positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
     )
     limit_options(p)
+    p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
+    p.add_argument("--dwell", type=float, metavar="S",
+                   help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
+    p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
+    lease_option(p)
+
+    p = command("router", cmd_router)
+    p.add_argument(
+        "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
+    )
+    zenoh_options(p, connect_help="another router to connect to (repeatable)")
+    lease_option(p)
 
     p = command("certs", cmd_certs)
     p.add_argument("dir", metavar="DIR", help="where to write ca.pem, ca.key and NAME.pem, NAME.key (an existing CA there is reused)")
@@ -786,6 +852,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--unavailable", action="extend", nargs="+", default=[], metavar="LABEL", help="transformations not to use")
     p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
     p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
+    p.add_argument("--peer", action="append", default=[], metavar="NAME=PATH",
+                   help="another manager's library (spec file or directory), to plan across managers; repeatable")  # fmt: skip
 
     p = command("spawn", cmd_spawn, client=True)
     p.add_argument("label")
@@ -797,7 +865,9 @@ def _parser() -> argparse.ArgumentParser:
     p = command("destroy", cmd_destroy, client=True)
     p.add_argument("name")
 
-    command("model", cmd_model, client=True)
+    p = command("model", cmd_model, client=True)
+    p.add_argument("--all", action="store_true", help="the model of every manager reachable: {\"managers\": [...]}")
+    command("managers", cmd_managers, client=True)
 
     p = command("config", cmd_config, client=True)
     p.add_argument("action", choices=["get", "set"])

@@ -161,6 +161,43 @@ class Client:
         """Every adaptation the manager made so far, oldest first (JSON form of its events)."""
         return list(self._manager("get_adaptations", {}))
 
+    # ------------------------------------------------------------------ every manager
+
+    def manager_names(self, timeout_s: float = 1.0) -> list[str]:
+        """The names of the managers reachable now (their liveliness tokens), sorted."""
+        found = (keys.manager_of_token(k) for k in self._session.alive(keys.managers_pattern(), timeout_s=timeout_s))
+        return sorted(m for m in found if m is not None)
+
+    def managers(self, timeout_s: float = 1.0) -> list[dict[str, Any]]:
+        """Every manager reachable: ``{"manager", "host", "specs", "units", "requests"}``, by name.
+
+        A manager that vanishes while asked is left out.
+        """
+        out = []
+        for name in self.manager_names(timeout_s):
+            try:
+                summary = self.call_manager(name, "get_summary", {})
+            except ServiceError:
+                continue
+            out.append({
+                "manager": name,
+                "host": summary.get("host", ""),
+                "specs": len(summary.get("specs", [])),
+                "units": len(summary.get("units", [])),
+                "requests": summary.get("requests", 0),
+            })  # fmt: skip
+        return out
+
+    def get_federated_model(self, timeout_s: float = 1.0) -> dict[str, Any]:
+        """The model of every manager reachable: ``{"managers": [model, ...]}``, each as :meth:`get_model`."""
+        models = []
+        for name in self.manager_names(timeout_s):
+            try:
+                models.append(dict(self.call_manager(name, "get_model", {})))
+            except ServiceError:
+                continue
+        return {"managers": models}
+
     # ------------------------------------------------------------------ streams
 
     def declare_subscriber(self, key_expr: str, callback: Callable[[Message], None]) -> Subscriber:

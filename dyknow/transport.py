@@ -493,6 +493,25 @@ class Session:
             raise TransportError(f"cannot watch liveliness on {key!r}: {_clean(exc)}") from exc
         return LivelinessSubscriber(sub)
 
+    def alive(self, key: str, *, timeout_s: float = 1.0) -> list[str]:
+        """The keys of the liveliness tokens matching ``key`` that are up now, sorted.
+
+        A session just opened learns of the others' tokens over a few milliseconds: it asks
+        until two answers agree (and are not empty), or ``timeout_s`` passes.
+        """
+        deadline = time.monotonic() + timeout_s
+        last: list[str] | None = None
+        while True:
+            try:
+                replies = self._z().liveliness().get(key, timeout=max(0.05, deadline - time.monotonic()))
+                found = sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
+            except zenoh.ZError as exc:
+                raise TransportError(f"cannot ask who is alive on {key!r}: {_clean(exc)}") from exc
+            if (found and found == last) or time.monotonic() >= deadline:
+                return found
+            last = found
+            time.sleep(0.05)
+
     def put(self, key: str, data: bytes | str, *, encoding: str = "application/json") -> None:
         """Publish one plain sample (for events and measurements)."""
         try:

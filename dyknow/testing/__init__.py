@@ -9,7 +9,8 @@ What users need to test their own units (as ``bytewax.testing`` ships with bytew
   manager of your own;
 - :data:`SCENARIO_SPECS` and its units (:class:`Camera`, :class:`Subsampler`, :class:`Detector`,
   :class:`Localization`, :class:`Tracker`): the DyKnow paper's ball-tracking scenario without
-  OpenCV, for tests of planning and self-adaptation.
+  OpenCV, for tests of planning and self-adaptation; :data:`SCENARIO_HOSTS`: the same specs
+  split over three managers (robot, field, station).
 
 Example::
 
@@ -26,11 +27,12 @@ Units here are named in specs as ``dyknow.testing:Sink`` and so on.
 from __future__ import annotations
 
 from dyknow.testing.harness import UnitHarness
-from dyknow.testing.scenario import CAMERA_IDS, SCENARIO_SPECS, Camera, Detector, Localization, Subsampler, Tracker
+from dyknow.testing.scenario import CAMERA_IDS, SCENARIO_HOSTS, SCENARIO_SPECS, Camera, Detector, Localization, Subsampler, Tracker
 from dyknow.testing.units import Sink, Source
 
 __all__ = [
     "CAMERA_IDS",
+    "SCENARIO_HOSTS",
     "SCENARIO_SPECS",
     "Camera",
     "Detector",

@@ -14,6 +14,10 @@ while the planner and the adaptation loop rewire it. :data:`SCENARIO_SPECS` hold
 Labels: ``robot-camera`` (the bottom camera, priority 1, needs ``battery >= 0.25``),
 ``ceiling-camera`` (priority 10), ``subsampler(Cam)``, ``ball-detector(Cam)``,
 ``localization(Cam)``, ``tracker`` and ``consumer`` (a :class:`~dyknow.testing.Sink`).
+
+:data:`SCENARIO_HOSTS` splits the same specs over three managers, for the scenario across hosts
+(``dyknow demo --distributed``): ``robot`` (its camera), ``field`` (the ceiling camera) and
+``station`` (the processing, and the tracker a user requests).
 """
 
 from __future__ import annotations
@@ -25,10 +29,13 @@ import numpy as np
 from dyknow.message import Message
 from dyknow.unit import Unit
 
-__all__ = ["CAMERA_IDS", "SCENARIO_SPECS", "Camera", "Detector", "Localization", "Subsampler", "Tracker"]
+__all__ = ["CAMERA_IDS", "SCENARIO_HOSTS", "SCENARIO_SPECS", "Camera", "Detector", "Localization", "Subsampler", "Tracker"]
 
 #: The scenario's spec file (shipped with the package).
 SCENARIO_SPECS = Path(__file__).with_name("scenario.xml")
+
+#: The scenario's specs split over three managers: manager name -> its library.
+SCENARIO_HOSTS = {name: Path(__file__).with_name(f"scenario-{name}.xml") for name in ("robot", "field", "station")}
 
 #: The id each camera writes into its frames.
 CAMERA_IDS = {"bottom": 1, "top": 2, "ceiling": 3}

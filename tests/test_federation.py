@@ -1,0 +1,297 @@
+"""Several managers, one system: discovery, summaries, planning across managers, failover.
+
+Managers here are real ones on loopback: in this process (each with its own Zenoh session) or
+as ``dyknow manager`` child processes, killed with SIGKILL where the issue asks for it.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from dyknow import Client, Manager, Message
+from dyknow.errors import DyKnowError, TransportError
+from dyknow.federation import MAX_SUMMARY_BYTES, Summary
+from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS, Sink
+from dyknow.transport import Session, make_config
+from tests.conftest import REPO, CliProcess, ManagerProcess, free_port, run_cli, wait_until
+
+ONTOLOGY = REPO / "specs" / "dyknow.ttl"
+BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
+TRACK = "BallTrack(field)"
+
+
+# ---------------------------------------------------------------------------- summaries are hostile input
+
+
+def test_a_summary_round_trips_and_hostile_ones_are_refused() -> None:
+    from dyknow.spec import load_specs
+
+    specs = tuple(load_specs([SCENARIO_HOSTS["robot"]]))
+    summary = Summary("robot", "robot-host", 3, "1.1", specs, measurements={"battery": 0.5})
+    back = Summary.from_json(json.dumps(summary.to_dict()).encode(), "robot")
+    assert [s.to_xml() for s in back.specs] == [s.to_xml() for s in specs] and back.specs[0].constraints[0].measure == "battery"
+    assert back.specs[0].path == "<summary of robot, spec 0>"  # errors name where it came from
+    assert back == Summary("robot", "robot-host", 3, "1.1", back.specs, measurements={"battery": 0.5})
+
+    def refused(data: bytes, manager: str = "robot") -> str:
+        with pytest.raises(DyKnowError) as info:
+            Summary.from_json(data, manager)
+        return str(info.value)
+
+    assert "manager 'robot': a summary of" in refused(b" " * (MAX_SUMMARY_BYTES + 1))
+    assert "not the summary of this manager" in refused(json.dumps(summary.to_dict()).encode(), "field")  # a manager speaking for another
+    assert "malformed" in refused(b"[1, 2]")
+    assert "malformed" in refused(json.dumps({**summary.to_dict(), "units": [{"name": "x"}]}).encode())
+    bomb = '<transformation><label>t${A}${B}</label><source>m:C</source><args><arg label="A">{0;1;2}</arg><arg label="B">{0;1}</arg></args></transformation>'
+    assert "malformed" in refused(json.dumps({**summary.to_dict(), "specs": [bomb]}).encode())  # one spec per entry, no templates that grow
+    assert "malformed" in refused(json.dumps({**summary.to_dict(), "specs": ["<!DOCTYPE x [<!ENTITY a 'b'>]><x/>"]}).encode())
+
+
+# ---------------------------------------------------------------------------- managers in this process
+
+
+@pytest.fixture
+def system(make_manager: Callable[..., Manager]) -> Callable[..., dict[str, Manager]]:
+    """The scenario's three managers on loopback, each its own session: station, robot, field."""
+
+    def start(names: tuple[str, ...] = ("station", "robot", "field"), **kwargs: Any) -> dict[str, Manager]:
+        port = free_port()
+        hub = f"tcp/127.0.0.1:{port}"
+        managers: dict[str, Manager] = {}
+        for i, name in enumerate(names):
+            managers[name] = make_manager(
+                name,
+                specs=[SCENARIO_HOSTS[name]],
+                ontology=[ONTOLOGY],
+                listen=[hub] if i == 0 else ["tcp/127.0.0.1:0"],
+                connect=[] if i == 0 else [hub],
+                host=f"{name}-host",
+                **kwargs,
+            )
+        for manager in managers.values():
+            wait_until(lambda m=manager: len(m.peers()) == len(names) - 1, f"{manager.name} to know the others")  # type: ignore[misc]
+        return managers
+
+    return start
+
+
+def consume(manager: Manager, key: str) -> Sink:
+    manager.spawn("consumer", "consumer", bindings={"in": key})
+    sink = manager.unit("consumer")
+    assert isinstance(sink, Sink)
+    return sink
+
+
+def adapted(manager: Manager, count: int = 1, timeout_s: float = 20.0) -> list[Any]:
+    wait_until(lambda: len([e for e in manager.get_adaptations() if e.kind in ("adapted", "recovered", "degraded")]) >= count, "an adaptation", timeout_s)
+    return manager.get_adaptations()
+
+
+def test_managers_discover_each_other_and_plan_across_them(system: Callable[..., dict[str, Manager]]) -> None:
+    """The camera runs on the robot (its library), the processing on the requester; the stream flows."""
+    m = system()
+    station, robot = m["station"], m["robot"]
+    assert {n: (s.host, len(s.specs)) for n, s in station.peers().items()} == {"robot": ("robot-host", 1), "field": ("field-host", 1)}
+    key = station.request(TRACK)
+    (request,) = station.get_model().requests
+    assert "robot-camera@robot" in request.labels and "tracker" in request.labels
+    assert [u.label for u in robot.units()] == ["robot-camera"]  # spawned there, through its spawn service
+    sink = consume(station, key)
+    sink.wait_until(lambda msg: msg.payload["camera"] == BOTTOM and msg.payload["frame"] > 3)
+    # the robot says whose request its camera serves, the others see it in its summary
+    wait_until(lambda: [u.owner for u in station.peers()["robot"].units] == ["station"], "the robot's summary to name the owner")
+
+    with Client("station", connect=[f"tcp/127.0.0.1:{station.endpoints[0].rsplit(':', 1)[1]}"]) as client:
+        listed = client.managers()
+        assert [(x["manager"], x["host"], x["specs"], x["units"]) for x in listed] == [
+            ("field", "field-host", 1, 0),
+            ("robot", "robot-host", 1, 1),
+            ("station", "station-host", 11, 5),
+        ]
+        models = client.get_federated_model()["managers"]
+        assert [x["manager"] for x in models] == ["field", "robot", "station"]
+        assert models[2]["requests"][0]["key"] == key and models[1]["units"][0]["label"] == "robot-camera"
+
+    station.release(key)
+    wait_until(lambda: not robot.units(), "the release to take down the robot's camera too")
+
+
+def test_a_measurement_applies_to_the_manager_of_its_host(system: Callable[..., dict[str, Manager]]) -> None:
+    """Battery low on the robot's host: the robot's camera (battery >= 0.25) gives way to the field's camera."""
+    m = system(dwell_s=60)
+    station, robot, field = m["station"], m["robot"], m["field"]
+    key = station.request(TRACK)
+    sink = consume(station, key)
+    sink.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
+    with Session(make_config(connect=[station.endpoints[0]])) as session:
+        def field_battery() -> bool:  # a fresh session learns where the subscribers are within a few ms: put until heard
+            session.put("dyknow/measurements/battery", json.dumps({"value": 0.1, "host": "field-host"}))  # another machine's battery
+            time.sleep(0.05)
+            return field.measurements.get("battery") == 0.1
+
+        wait_until(field_battery, "the field to take its host's measurement")
+        assert "battery" not in robot.measurements and "battery" not in station.measurements
+        session.put("dyknow/measurements/battery", json.dumps({"value": 0.1, "host": "robot-host"}))
+    event = adapted(station)[0]
+    assert event.cause == "manager 'robot' changed: unit 'robot-camera@robot': measurement battery = 0.1 on manager 'robot'"
+    assert "ceiling-camera@field" in event.new and event.key == key
+    sink.wait_until(lambda msg: msg.payload["camera"] == CEILING)
+    wait_until(lambda: not robot.units(), "the robot's camera to be released")
+
+
+def test_a_lost_manager_fails_over_on_the_same_key_and_its_return_is_preferred(system: Callable[..., dict[str, Manager]], make_manager: Callable[..., Manager]) -> None:
+    m = system(dwell_s=0.5)
+    station, robot = m["station"], m["robot"]
+    key = station.request(TRACK)
+    sink = consume(station, key)
+    sink.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
+    robot.close()
+    lost = adapted(station)[0]
+    assert lost.cause == "manager 'robot' was lost" and lost.key == key
+    assert "robot-camera@robot" in lost.old and "ceiling-camera@field" in lost.new
+    sink.wait_until(lambda msg: msg.payload["camera"] == CEILING)
+
+    make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=[ONTOLOGY], connect=[station.endpoints[0]], listen=["tcp/127.0.0.1:0"])
+    back = next(e for e in adapted(station, 2) if e.id != lost.id)
+    assert back.cause.startswith("manager 'robot' was found") and "robot-camera@robot" in back.new, station.get_adaptations()
+    sink.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
+    wait_until(lambda: not m["field"].units(), "the field's camera to be released")
+
+
+def test_units_serving_a_lost_manager_are_destroyed(system: Callable[..., dict[str, Manager]]) -> None:
+    m = system()
+    m["station"].request(TRACK)
+    wait_until(lambda: [u.label for u in m["robot"].units()] == ["robot-camera"], "the camera on the robot")
+    m["station"].close()
+    wait_until(lambda: not m["robot"].units(), "the robot to destroy what served the station")
+
+
+def test_a_federated_manager_alone_still_plans_locally(make_manager: Callable[..., Manager]) -> None:
+    lonely = make_manager("lonely", specs=[SCENARIO_HOSTS["station"]], ontology=[ONTOLOGY])
+    assert lonely.peers() == {}
+    with pytest.raises(DyKnowError, match="RawImage"):
+        lonely.request(TRACK)  # the cameras are on managers it cannot reach
+
+
+def test_lease_is_checked() -> None:
+    with pytest.raises(TransportError, match="lease: got 5 ms; expected at least 100 ms"):
+        make_config(lease_ms=5)
+
+
+# ---------------------------------------------------------------------------- separate processes
+
+
+@pytest.fixture
+def processes() -> Iterator[Callable[..., ManagerProcess]]:
+    started: list[ManagerProcess] = []
+
+    def start(name: str, port: int, *extra: str) -> ManagerProcess:
+        proc = ManagerProcess(name, port, "--specs", str(SCENARIO_HOSTS[name]), "--ontology", str(ONTOLOGY), "--host", f"{name}-host", *extra)
+        started.append(proc)
+        proc.wait_ready()
+        return proc
+
+    yield start
+    for proc in started:
+        proc.close()
+
+
+class Stream:
+    """Messages on a key, received by a plain Zenoh session (as any consumer would)."""
+
+    def __init__(self, session: Session, key: str) -> None:
+        self.messages: list[Message] = []
+        self._cond = threading.Condition()
+        self._sub = session.declare_subscriber(key, self._add)
+
+    def _add(self, msg: Message) -> None:
+        with self._cond:
+            self.messages.append(msg)
+            self._cond.notify_all()
+
+    def wait_until(self, predicate: Callable[[Message], bool], timeout_s: float = 20.0) -> Message:
+        start = len(self.messages)
+        with self._cond:
+            found: list[Message] = []
+
+            def seen() -> bool:
+                found[:] = [m for m in self.messages[start:] if predicate(m)]
+                return bool(found)
+
+            assert self._cond.wait_for(seen, timeout_s), f"no such message within {timeout_s} s (last: {self.messages[-1:]})"
+            return found[0]
+
+
+def test_three_processes_keep_the_key_through_a_sigkill(processes: Callable[..., ManagerProcess]) -> None:
+    """Acceptance: a request wired across three manager processes keeps its key through a SIGKILL of
+    the preferred producer's manager; `dyknow managers` and `dyknow model --all` show the whole system."""
+    station = processes("station", free_port(), "--dwell", "0.5")
+    hub = ["--connect", station.endpoint]
+    robot = processes("robot", free_port(), *hub)
+    field = processes("field", free_port(), *hub)
+    wait_until(lambda: len(json.loads(run_cli("managers", "--json", *hub).stdout)) == 3, "all three managers listed")
+    with Client("station", connect=[station.endpoint]) as client:
+        wait_until(lambda: len(client.call_manager("station", "get_summary", {})["units"]) == 0 and _peers_known(client), "discovery")
+        key = client.request(TRACK)
+        stream = Stream(client.session, key)
+        stream.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
+        everything = json.loads(run_cli("model", "--all", "--json", *hub).stdout)
+        assert [(x["manager"], [u["label"] for u in x["units"]]) for x in everything["managers"]][:2] == [("field", []), ("robot", ["robot-camera"])]
+        assert everything["managers"][2]["requests"][0]["key"] == key
+
+        robot.proc.send_signal(signal.SIGKILL)
+        stream.wait_until(lambda msg: msg.payload["camera"] == CEILING)
+        events = client.get_adaptations()
+        assert any(e["cause"] == "manager 'robot' was lost" and e["key"] == key for e in events), events
+        wait_until(lambda: "robot" not in run_cli("managers", *hub).stdout, "the robot to leave the list")
+
+        processes("robot", free_port(), *hub)  # it comes back: the preferred camera returns after the dwell time
+        stream.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
+        assert field.proc.poll() is None
+
+
+def _peers_known(client: Client) -> bool:
+    """Whether the station's planner sees the robot's and the field's libraries."""
+    return len(client.managers()) == 3
+
+
+def test_cli_router_plain_peers_and_offline_plan(cli_process: Callable[..., CliProcess], processes: Callable[..., ManagerProcess]) -> None:
+    """`dyknow router` is a rendezvous: managers that only know the router find each other."""
+    port = free_port()
+    router = cli_process("router", "--listen", f"tcp/127.0.0.1:{port}", "--json", "--lease-ms", "2000")
+    ready = router.line()
+    assert ready["event"] == "ready" and ready["endpoints"] == [f"tcp/127.0.0.1:{port}"]
+    via = ["--connect", f"tcp/127.0.0.1:{port}"]
+    processes("station", free_port(), *via)
+    processes("field", free_port(), *via)
+    wait_until(lambda: [m["manager"] for m in json.loads(run_cli("managers", "--json", *via).stdout)] == ["field", "station"], "both listed")
+    with Client("station", connect=[f"tcp/127.0.0.1:{port}"]) as client:
+        wait_until(lambda: _requestable(client), "the station to plan with the field's camera")
+    assert router.stop() == 0
+
+    offline = run_cli(
+        "plan", "--specs", str(SCENARIO_HOSTS["station"]), "--ontology", str(ONTOLOGY), "--request", TRACK, "--manager", "station",
+        "--peer", f"robot={SCENARIO_HOSTS['robot']}", "--peer", f"field={SCENARIO_HOSTS['field']}", "--json",
+    )  # fmt: skip
+    assert offline.returncode == 0, offline.stderr
+    units = {u["label"]: u["manager"] for u in json.loads(offline.stdout)["units"]}
+    assert units == {"robot-camera": "robot", "subsampler(bottom)": "station", "ball-detector(bottom)": "station", "localization(bottom)": "station", "tracker": "station"}
+    text = run_cli("plan", "--specs", str(SCENARIO_HOSTS["station"]), "--ontology", str(ONTOLOGY), "--request", TRACK, "--manager", "station", "--peer", f"field={SCENARIO_HOSTS['field']}")
+    assert "new  ceiling-camera (ceiling-camera) on field" in text.stdout
+    bad = run_cli("plan", "--specs", str(SCENARIO_HOSTS["station"]), "--ontology", str(ONTOLOGY), "--request", TRACK, "--peer", "robot")
+    assert bad.returncode != 0 and "--peer" in bad.stderr
+
+
+def _requestable(client: Client) -> bool:
+    try:
+        client.release(client.request(TRACK))
+        return True
+    except DyKnowError:
+        return False
