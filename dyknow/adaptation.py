@@ -390,7 +390,13 @@ class Analyzer:
         self._knowledge = knowledge
 
     def affected(self, symptom: Symptom) -> list[tuple[_Request, bool]]:
-        """``(request, is_fault)`` pairs, in a stable order."""
+        """``(request, is_fault)`` pairs, in a stable order; a degraded request is always among them."""
+        found = self._affected(symptom)
+        seen = {id(r) for r, _ in found}
+        degraded = [(r, False) for r in sorted(self._knowledge.requests.values(), key=lambda r: r.key) if r.state == "degraded" and id(r) not in seen]
+        return found + degraded
+
+    def _affected(self, symptom: Symptom) -> list[tuple[_Request, bool]]:
         knowledge = self._knowledge
         requests = sorted(knowledge.requests.values(), key=lambda r: r.key)
         if symptom.kind in ("failed", "destroyed", "stalled"):
@@ -505,6 +511,9 @@ class Reconfigurer:
                 names.add(ref)
                 if ref in own or (unit.owner is not None and unit.owner != home):
                     continue
+                if unit.owner == home and ref not in knowledge.remote:
+                    continue  # ours, but already destroyed (the summary is older) or left by an earlier run
+
                 running.append(unit.running(manager))
         names.update(r for r in knowledge.remote)  # spawned, maybe not in a summary yet
         return running, names
@@ -556,6 +565,7 @@ class Reconfigurer:
 
         new_units: dict[str, str] = {}
         spawned: list[str] = []
+        rebound: list[tuple[str, dict[str, str]]] = []  # (unit, its bindings before), to undo
         try:
             for unit in reversed(plan.new_units):  # consumers first: nothing a producer sends is lost
                 if unit.ref in rename:
@@ -565,6 +575,7 @@ class Reconfigurer:
                     current = self._config(actual)
                     changed = {p: k for p, k in wanted.items() if current[p] != k}
                     if changed:
+                        rebound.append((actual, {p: current[p] for p in changed}))
                         self._set_config(actual, changed)
                     new_units[actual] = _label_ref(unit)
                 else:
@@ -591,7 +602,12 @@ class Reconfigurer:
             if runtime.get_config(request.anchor)["in"] != output_key:
                 runtime.set_config(request.anchor, {"in": output_key})
         except DyKnowError:
-            self.cleanup(spawned)  # leave nothing half-built behind
+            self.cleanup(spawned)  # leave nothing half-built behind, and the kept units as they were
+            for ref, before in reversed(rebound):
+                try:
+                    self._set_config(ref, before)
+                except DyKnowError as exc:
+                    log.warning("could not rebind unit %r back after a failed adaptation: %s", ref, exc)
             raise
         old = request.units
         request.units = new_units

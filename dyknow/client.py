@@ -30,7 +30,11 @@ __all__ = ["Client"]
 
 
 class Client:
-    """A connection to one manager's services. A context manager; ``close()`` is safe twice."""
+    """A connection to one manager's services. A context manager; ``close()`` is safe twice.
+
+    ``lease_ms``: Zenoh's lease for the client's own session; give it the managers' lease (see
+    :func:`~dyknow.transport.make_config`), so that a host cut off is dropped by every process alike.
+    """
 
     def __init__(
         self,
@@ -41,13 +45,14 @@ class Client:
         timeout_s: float = 5.0,
         session: Session | None = None,
         tls: TlsFiles | None = None,
+        lease_ms: int | None = None,
     ) -> None:
         self.manager = manager
         self.timeout_s = timeout_s
         self._own_session = session is None
         self._connect = [] if session is not None and tuple(connect) == (DEFAULT_ENDPOINT,) else list(connect)
         self._tls = tls
-        self._session = session or Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls))
+        self._session = session or Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls, lease_ms=lease_ms))
 
     def __enter__(self) -> Client:
         return self

@@ -241,6 +241,7 @@ class Directory:
                 self._publish()
 
     def _handle(self, kind: str, manager: str, data: bytes | None) -> None:
+        log.info("directory of %r: %s %r", self.name, kind, manager)
         if kind == "lost":
             with self._lock:
                 known = manager in self._alive

@@ -633,6 +633,7 @@ class Manager:
 
     def _serve_spawn(self, request: dict[str, Any]) -> dict[str, Any]:
         owner = request.get("owner")
+        log.info("spawn %s for %s", request.get("name"), owner)
         info = self.spawn(
             request["label"],
             request["name"],

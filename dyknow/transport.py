@@ -565,7 +565,7 @@ class Session:
         if time.monotonic() < deadline - 0.1 * timeout_s:  # it ended early, without a reply: dropped on its way
             raise ServiceError(
                 f"no answer from {what}: the request to {key!r} was dropped without a reply",
-                expected="a role allowed to call it (the manager's --acl refuses silently)",
+                expected="a role allowed to call it (the manager's --acl refuses silently), and a manager that stays up until it answers",
             )
         raise ServiceError(f"no answer from {what} on {key!r} within {timeout_s:g} s")
 
