@@ -686,6 +686,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         hops=args.hops,
         rate_hz=args.rate,
         as_json=args.json,
+        distributed=args.distributed,
     )
 
 
@@ -781,6 +782,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--ceiling-video", metavar="PATH", help="a video for the ceiling camera instead of the synthetic scene")
     p.add_argument("--out", default="dyknow-demo-report", metavar="DIR", help="where to write the report (default ./dyknow-demo-report)")
     p.add_argument("--chain", action="store_true", help="the latency demo instead: a chain of relays, per-hop latency")
+    p.add_argument("--distributed", action="store_true",
+                   help="the scenario across three manager processes (robot, field, station): battery drop, then a manager killed")  # fmt: skip
     p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")
     p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (--chain; default 20 Hz)")
 

@@ -72,3 +72,21 @@ def test_demo_refuses_a_missing_video(tmp_path: Path) -> None:
     assert result.returncode != 0
     assert f"{tmp_path / 'nope.mp4'}: no such video file" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_distributed_demo_across_three_manager_processes() -> None:
+    """The scenario across hosts: battery drop -> ceiling camera on another manager; field killed -> back."""
+    result = subprocess.run(
+        [sys.executable, "-m", "dyknow.cli", "demo", "--distributed", "--json"],
+        capture_output=True, text=True, timeout=120, env=subprocess_env(), cwd=REPO,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
+    report = json.loads(result.stdout.strip().splitlines()[-1])
+    assert report["ok"] and report["key"] == "dyknow/station/requests/BallTrack(field)"
+    assert [p["camera"] for p in report["phases"]] == ["bottom", "ceiling", "ceiling", "bottom"]
+    causes = [e["cause"] for e in report["adaptations"]]
+    assert causes == [
+        "manager 'robot' changed: unit 'robot-camera@robot': measurement battery = 0.1 on manager 'robot'",
+        "manager 'field' was lost",
+    ]
+    assert all(e["kind"] == "recovered" and e["recovery_ms"] is not None for e in report["adaptations"])

@@ -1,4 +1,4 @@
-"""Demos: the ball-tracking scenario (the main one) and a latency chain."""
+"""Demos: the ball-tracking scenario (the main one), the scenario across three managers, a latency chain."""
 
 from __future__ import annotations
 
@@ -15,8 +15,13 @@ def run_demo(
     hops: int = 5,
     rate_hz: float = 20.0,
     as_json: bool = False,
+    distributed: bool = False,
 ) -> int:
     """Run a demo; returns an exit code. Imports OpenCV only for the ball demo."""
+    if distributed:
+        from dyknow.demo.distributed import run_distributed_demo
+
+        return run_distributed_demo(as_json=as_json)
     if chain:
         from dyknow.demo.chain import run_demo as run_chain
 
