@@ -13,7 +13,8 @@ ones.
 - **viewer**: read the model, configs, statistics, adaptations and summaries; subscribe to data,
   watch liveliness and see which managers are up;
 - **operator**: also spawn, destroy, set_config, request, release and measure; publish data;
-  announce itself as a manager (give the other managers of a system this role);
+  announce itself as a manager, publish its summary and serve its services to this one (give the
+  other managers of a system this role);
 - **admin**: also add and remove transformations.
 
 It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessControl.zenoh`):
@@ -153,9 +154,12 @@ _RULES: dict[str, list[dict[str, Any]]] = {
     "viewer": [
         _rule("viewer-calls", "ingress", ["query"], _services("viewer")),
         _rule(
-            "viewer-subscribes", "ingress", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], [_DATA, _MANAGERS]
+            "viewer-subscribes",
+            "ingress",
+            ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+            [_DATA, _MANAGERS, _SUMMARIES],
         ),
-        _rule("viewer-receives", "egress", ["put", "delete", "liveliness_token"], [_DATA, _MANAGERS]),
+        _rule("viewer-receives", "egress", ["put", "delete", "liveliness_token"], [_DATA, _MANAGERS, _SUMMARIES]),
         _rule("viewer-sees-services", "egress", ["declare_queryable", "reply"], [_SERVICES]),
     ],
     "operator": [
@@ -164,7 +168,10 @@ _RULES: dict[str, list[dict[str, Any]]] = {
         # a peer manager is an operator: it announces itself and publishes its summary
         _rule("operator-announces", "ingress", ["liveliness_token"], [_MANAGERS]),
         _rule("operator-publishes-summary", "ingress", ["put"], [_SUMMARIES]),
-        _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA, _SUMMARIES]),
+        _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA, _MANAGERS, _SUMMARIES]),
+        # and it serves: this manager calls its services (get_summary, spawn, ...) and hears the replies
+        _rule("operator-serves", "ingress", ["declare_queryable", "reply"], [_SERVICES]),
+        _rule("operator-is-called", "egress", ["query", "liveliness_query"], [_SERVICES, _MANAGERS]),
     ],
     "admin": [_rule("admin-calls", "ingress", ["query"], _services("admin"))],
 }

@@ -17,7 +17,7 @@ from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import GENERIC_SPECS, CliProcess, free_port, run_cli
 
-NAMES = ["manager", "viewer", "operator", "admin", "stranger"]
+NAMES = ["manager", "viewer", "operator", "admin", "stranger", "station", "robot"]
 RELAY = """<transformation><label>extra-relay</label><source>transformations.generic:Relay</source>
   <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
 
@@ -202,3 +202,34 @@ def test_a_manager_exposed_without_tls_warns(cli_process: Callable[..., CliProce
     assert manager.stop() == 0
     assert manager.proc.stderr is not None
     assert "dyknow: warning: listening beyond this host without TLS" in manager.proc.stderr.read()
+
+
+@pytest.mark.parametrize("station_role", ["operator", "viewer"])
+def test_managers_federate_over_tls_with_the_operator_role(certs: Path, make_manager: Callable[..., Manager], station_role: str) -> None:
+    """Managers of one system give each other the operator role: the station spawns the robot's camera
+    over mutual TLS; as a mere viewer it still sees the robot, but may not spawn there."""
+    from dyknow.errors import DyKnowError
+    from dyknow.testing import SCENARIO_HOSTS
+    from tests.conftest import REPO, wait_until
+
+    ontology = [REPO / "specs" / "dyknow.ttl"]
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    station_acl = AccessControl.from_dict({"roles": {"operator": ["robot"]}})
+    robot_acl = AccessControl.from_dict({"roles": {station_role: ["station"]}})
+    station = make_manager("station", specs=[SCENARIO_HOSTS["station"]], ontology=ontology, listen=[endpoint], tls=tls(certs, "station"), acl=station_acl)
+    robot = make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=ontology, listen=[f"tls/127.0.0.1:{free_port()}"], connect=[endpoint],
+                         tls=tls(certs, "robot"), acl=robot_acl)  # fmt: skip
+    wait_until(lambda: "robot" in station.peers(), "the station to know the robot over TLS")
+    if station_role == "operator":
+        wait_until(lambda: "station" in robot.peers(), "the robot to know the station")
+        key = station.request("BallTrack(field)")
+        assert [u.label for u in robot.units()] == ["robot-camera"]
+        station.spawn("consumer", "consumer", bindings={"in": key})
+        sink = station.unit("consumer")
+        assert isinstance(sink, Sink)
+        sink.wait_for(3)
+    else:
+        assert "station" not in robot.peers()  # a viewer cannot pose as a manager
+        with pytest.raises(DyKnowError, match="spawn of manager 'robot'"):
+            station.request("BallTrack(field)")
+        assert robot.units() == [] and station.get_model().requests == ()

@@ -41,7 +41,9 @@ def test_offline_commands_run_as_written(command: str, comment: str) -> None:
     expected = 1 if "exit 1" in comment and "validate" not in command else 0
     assert result.returncode == expected, result.stderr[-2000:]
     assert "Traceback" not in result.stderr
-    if command.startswith("plan") and expected == 0:
+    if command.startswith("plan") and expected == 0 and "--peer" in command:
+        assert '"label":"robot-camera","new":true,"manager":"robot"' in result.stdout  # the camera runs on the robot
+    elif command.startswith("plan") and expected == 0:
         assert "ceiling-camera" in result.stdout  # the low battery rules out the robot camera
     if expected == 1:
         assert "robot-camera (port out): constraint violated: battery = 0.1, needs >= 0.25" in result.stderr
