@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 MAX_SUMMARY_BYTES = 16 << 20
 
 _MAX_ITEMS = 20_000
+_RETRY_S = 2.0  # how often to ask again a manager whose summary could not be fetched
 
 
 @dataclass(frozen=True, slots=True)
@@ -162,6 +163,7 @@ class Directory:
         self._lock = threading.Lock()
         self._alive: set[str] = set()
         self._summaries: dict[str, Summary] = {}
+        self._retry_at: dict[str, float] = {}  # manager -> when to ask again for its summary
         self._todo: list[tuple[str, str, bytes | None]] = []  # (kind, manager, summary bytes)
         self._wake = threading.Event()
         self._dirty = threading.Event()
@@ -228,8 +230,14 @@ class Directory:
             self._wake.clear()
             if self._closed:
                 return
+            now = time.monotonic()
             with self._lock:
                 todo, self._todo = self._todo, []
+                # alive, but no summary yet (its fetch failed): ask again, every few seconds
+                for m in sorted(self._alive - set(self._summaries)):
+                    if self._retry_at.setdefault(m, now + _RETRY_S) <= now and not any(t[1] == m for t in todo):
+                        self._retry_at[m] = now + _RETRY_S
+                        todo.append(("retry", m, None))
             for kind, manager, data in todo:
                 try:
                     self._handle(kind, manager, data)
@@ -241,25 +249,27 @@ class Directory:
                 self._publish()
 
     def _handle(self, kind: str, manager: str, data: bytes | None) -> None:
-        log.info("directory of %r: %s %r", self.name, kind, manager)
+        if kind != "retry":
+            log.info("directory of %r: %s %r", self.name, kind, manager)
         if kind == "lost":
             with self._lock:
                 known = manager in self._alive
                 self._alive.discard(manager)
                 self._summaries.pop(manager, None)  # a manager that comes back starts afresh
+                self._retry_at.pop(manager, None)
             if known:
                 self._on_change("lost", manager)
             return
-        if kind == "found":
+        if kind in ("found", "retry"):
             with self._lock:
-                new = manager not in self._alive
+                new = manager not in self._alive or (kind == "retry" and manager not in self._summaries)
                 self._alive.add(manager)
-            if new:
-                data = self._fetch_summary(manager)
-                if data is None:
-                    return
-            else:
+            if not new:
                 return
+            data = self._fetch_summary(manager)
+            if data is None:
+                return
+            kind = "found"
         assert data is not None
         try:
             summary = Summary.from_json(data, manager)

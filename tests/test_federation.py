@@ -295,3 +295,29 @@ def _requestable(client: Client) -> bool:
         return True
     except DyKnowError:
         return False
+
+
+def test_a_directory_asks_again_for_a_summary_it_could_not_fetch() -> None:
+    """Two directories on real sessions; the first fetch of the other's summary fails, a later one succeeds."""
+    from dyknow.federation import Directory
+
+    port = free_port()
+    calls: list[str] = []
+    changes: list[tuple[str, str]] = []
+
+    def fetch(manager: str) -> bytes:
+        calls.append(manager)
+        if len(calls) == 1:
+            raise DyKnowError("not reachable yet", where=f"manager {manager!r}")
+        return json.dumps(Summary(manager, "b-host", 1, "x").to_dict()).encode()
+
+    with Session(make_config(listen=[f"tcp/127.0.0.1:{port}"])) as one, Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as two:
+        a = Directory(one, "a", summarize=lambda: Summary("a", "a-host", 1), fetch=fetch, on_change=lambda k, m: changes.append((k, m)))
+        # b publishes its summary only after 30 s: a learns it by asking
+        b = Directory(two, "b", summarize=lambda: Summary("b", "b-host", 1), fetch=lambda m: b"{}", on_change=lambda k, m: None, debounce_s=30)
+        try:
+            wait_until(lambda: "b" in a.peers(), "the summary, asked again", timeout_s=10)
+            assert calls == ["b", "b"] and ("found", "b") in changes and a.peers()["b"].host == "b-host"
+        finally:
+            b.close(timeout_s=0.1)
+            a.close()
