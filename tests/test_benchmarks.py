@@ -106,3 +106,40 @@ def test_flood_benchmark_smoke(tmp_path: Path) -> None:
     assert data["flood"]["refused"] == 40 and data["flood"]["answered"] == 0 and data["exit_code"] == 0
     assert [r["phase"] for r in data["results"]] == ["no flood", "during 40 bad requests"]
     assert all(r["calls"] > 0 and 0 < r["p50_ms"] <= r["p99_ms"] for r in data["results"])
+
+
+def test_failover_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "failover.json"
+    result = _run("failover.py", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert {"cpu", "cores", "python", "zenoh"} <= set(data["machine"])
+    rows = {r["scenario"]: r for r in data["results"]}
+    skipped = data.get("skipped", {})
+    assert "sigkill-loopback" in rows and ("link-cut-1s-lease" in rows) != ("link-cut-1s-lease" in skipped)
+    expected = {"sigkill-loopback": (3, 200.0), "link-cut-1s-lease": (1, 1500.0)}
+    for scenario, row in rows.items():
+        assert (row["runs"], row["target_ms"]) == expected[scenario] and len(row["samples_ms"]) == row["runs"]
+        assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"] and isinstance(row["met"], bool)
+    assert "target p99 <= 200 ms" in result.stdout
+    if "link-cut-1s-lease" in rows:
+        assert "Hosts.shaping" in rows["link-cut-1s-lease"]["links"] and "target p99 <= 1.5 s" in result.stdout
+    else:
+        assert f"skipped: {skipped['link-cut-1s-lease']}" in result.stdout
+
+
+def test_scale_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "scale.json"
+    result = _run("scale.py", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())["results"]
+    assert (data["managers"], data["units_per_manager"], data["producer_managers"]) == (4, 5, 3)
+    assert {"startup_s", "plannable_s", "listed_s"} == set(data["discovery"])
+    assert data["spawn"]["count"] == 20
+    for memory in (data["memory"]["before_units"], data["memory"]["with_units"]):
+        assert len(memory["rss_mib"]) == 4 and 0 < memory["rss_mean_mib"] <= memory["rss_max_mib"]
+    assert data["request_service"]["count"] == 3 and data["request_service"]["remote_managers"] == [["m1", "m2", "m3"]]
+    offline = data["planner_offline"]
+    assert offline["plan_managers"] == ["m0", "m1", "m2", "m3"] and offline["running_units"] == 20
+    assert 0 < offline["warm"]["p50_ms"] <= offline["warm"]["p99_ms"]
+    assert "plannable after" in result.stdout and "planner alone, offline" in result.stdout and "VmRSS mean" in result.stdout
