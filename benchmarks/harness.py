@@ -10,16 +10,20 @@ from __future__ import annotations
 import json
 import os
 import platform
+import queue
 import socket
+import subprocess
+import tempfile
+import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Sequence
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["cpu_seconds", "free_ports", "machine", "percentile", "sleep_until", "write_json"]
+__all__ = ["Proc", "cpu_seconds", "free_ports", "machine", "percentile", "sleep_until", "write_json"]
 
 
 def machine() -> dict[str, Any]:
@@ -93,3 +97,51 @@ def percentile(values: Iterable[float], q: float, digits: int = 3) -> float:
     """The ``q``-th percentile of ``values`` (numpy's linear interpolation), rounded; NaN when empty."""
     array = np.asarray(list(values), dtype=np.float64)
     return round(float(np.percentile(array, q)), digits) if array.size else float("nan")
+
+
+class Proc:
+    """A child process whose stdout lines are read as they come and whose stderr goes to a file."""
+
+    def __init__(self, argv: Sequence[str], popen: Callable[..., subprocess.Popen[str]] = subprocess.Popen, **kwargs: Any) -> None:
+        self.stderr = tempfile.TemporaryFile(mode="w+")
+        self.proc = popen(list(argv), stdout=subprocess.PIPE, stderr=self.stderr, stdin=subprocess.DEVNULL, text=True, **kwargs)
+        self.lines: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.put(line)
+
+    def next_json(self, timeout_s: float, **match: Any) -> dict[str, Any]:
+        """The next JSON line with the given fields (others skipped); RuntimeError with stderr's tail when none comes."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                line = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                raise RuntimeError(
+                    f"no line {match} from {self.proc.args[-12:]} within {timeout_s} s; stderr: {self.error_tail()}"
+                ) from None
+            if line.startswith("{"):
+                data = json.loads(line)
+                if all(data.get(k) == v for k, v in match.items()):
+                    return dict(data)
+
+    def error_tail(self) -> str:
+        """The last 2,000 characters the process wrote on stderr."""
+        self.stderr.seek(0)
+        return self.stderr.read()[-2000:]
+
+    def kill(self) -> None:
+        """Kill the process (SIGKILL) if it still runs and reap it."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(10)
+
+    def close(self) -> None:
+        """Kill the process if it still runs, reap it and close its pipes and files."""
+        self.kill()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+        self.stderr.close()

@@ -28,10 +28,7 @@ client. Measured:
 from __future__ import annotations
 
 import argparse
-import json
-import queue
 import signal
-import subprocess
 import sys
 import tempfile
 import threading
@@ -44,49 +41,9 @@ from dyknow.errors import DyKnowError
 from dyknow.planner import Planner, RunningUnit
 from dyknow.spec import load_specs
 
-from harness import free_ports, machine, percentile, write_json
+from harness import Proc, free_ports, machine, percentile, write_json
 
 PRODUCERS = 5  # managers the joined request spans
-
-
-class Proc:
-    """A ``dyknow manager`` child process: its stdout lines read as they come, its stderr in a file."""
-
-    def __init__(self, argv: list[str]) -> None:
-        self.stderr = tempfile.TemporaryFile(mode="w+")
-        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=self.stderr, stdin=subprocess.DEVNULL, text=True)
-        self.lines: queue.Queue[str] = queue.Queue()
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.put(line)
-
-    def next_json(self, timeout_s: float, **match: Any) -> dict[str, Any]:
-        """The next JSON line with the given fields (others skipped); RuntimeError with stderr's tail when none comes."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                line = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
-                self.stderr.seek(0)
-                raise RuntimeError(
-                    f"no line {match} from {self.proc.args[4:6]} within {timeout_s} s; stderr: {self.stderr.read()[-2000:]}"
-                ) from None
-            if line.startswith("{"):
-                data = json.loads(line)
-                if all(data.get(k) == v for k, v in match.items()):
-                    return dict(data)
-
-    def close(self) -> None:
-        """Kill the process if it still runs, reap it and close its pipe and file."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-        if self.proc.stdout is not None:
-            self.proc.stdout.close()
-        self.stderr.close()
 
 
 def producers(managers: int) -> list[int]:
