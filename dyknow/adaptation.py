@@ -870,6 +870,8 @@ class AdaptationLoop:
     def _handle(self, symptom: Symptom) -> None:
         if symptom.kind == "spawned":
             return  # only wakes the loop up
+        if symptom.kind in ("failed", "destroyed") and symptom.unit is not None and self._later_unit(symptom.unit, symptom.time_ns):
+            return  # about an earlier unit of that name (one the loop replaced since): nothing to do
         knowledge = self.knowledge
         if symptom.kind in ("failed", "stalled") and symptom.label and symptom.label != ANCHOR_LABEL:
             knowledge.fail(symptom.label, symptom.time_ns)
@@ -883,6 +885,10 @@ class AdaptationLoop:
                 self._reanchor(request, symptom)
                 continue
             self._adapt(request, symptom, fault)
+
+    def _later_unit(self, name: str, time_ns: int) -> bool:
+        """Whether the unit now named ``name`` started after ``time_ns``."""
+        return any(info.name == name and info.started_ns > time_ns for info in self.runtime.units())
 
     def _peer_changed(self, symptom: Symptom, manager: str) -> None:
         """Another manager's summary changed: a fault for requests it broke, else an opportunity."""
