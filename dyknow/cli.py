@@ -361,6 +361,21 @@ def cmd_managers(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ui(args: argparse.Namespace) -> int:
+    """serve the interactive tool in the browser: the live graph of every manager and its control panel"""
+    from dyknow.ui import run_ui
+
+    if not 0 <= args.port <= 65535:
+        raise _Usage(f"--port: got {args.port}; expected 0 to 65535")
+
+    def ready(url: str) -> None:
+        _report(args, {"event": "ready", "url": url}, f"dyknow ui: open {url} (Ctrl-C to stop)")
+        sys.stdout.flush()
+
+    with _client(args) as client:
+        return run_ui(client, host=args.host, port=args.port, token=args.token, ready=ready)
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     """run a Zenoh router: a rendezvous point managers and clients connect to (it runs no units)"""
     from dyknow.transport import Session, make_config
@@ -762,6 +777,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
     p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
     lease_option(p)
+
+    p = command("ui", cmd_ui, client=True)
+    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
+    p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
+    p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
 
     p = command("router", cmd_router)
     p.add_argument(

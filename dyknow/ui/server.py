@@ -1,0 +1,196 @@
+"""The web tool's server: the managers' model pushed to the page, the page's actions sent to them.
+
+It is a Zenoh client of the managers like any other (a :class:`~dyknow.client.Client`): it reads
+every reachable manager's model through ``get_model`` and forwards each action of the page to the
+manager's own services, so the managers' access control applies to it as to the command line.
+
+HTTP (aiohttp):
+
+- ``GET /`` the page; ``GET /static/...`` its script, style and the vendored cytoscape.js;
+- ``GET /api/model`` ``{"version", "managers": [model, ...]}``;
+- ``GET /api/events`` server-sent events: the model again each time it changes (checked every
+  ``poll_s``);
+- ``POST /api/call`` ``{"manager", "service", "request", "unit"?}``: one service call; the reply
+  as JSON, or ``{"error", "message"}`` with status 400 (the manager refused) or 502 (no answer).
+
+Bound to loopback it needs nothing else; bound beyond, every request must carry the access token
+(``?token=`` once, then a cookie, or the ``X-Dyknow-Token`` header).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import ipaddress
+import json
+import logging
+import secrets
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from dyknow.client import Client
+from dyknow.errors import DyKnowError, ServiceError
+from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
+
+__all__ = ["MAX_CALL_BYTES", "ModelWatch", "check_bind", "make_app"]
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).with_name("static")
+MAX_CALL_BYTES = 1 << 20  # an imported spec is the largest thing the page sends
+
+
+class ModelWatch:
+    """Keeps the model of every reachable manager, asking them every ``poll_s``; a context manager.
+
+    ``wait_newer(version, timeout_s)`` blocks until the model is newer than ``version``.
+    """
+
+    def __init__(self, client: Client, *, poll_s: float = 0.25) -> None:
+        self.client = client
+        self.poll_s = poll_s
+        self.version = 0
+        self.data: dict[str, Any] = {"version": 0, "managers": []}
+        self._names: list[str] = []
+        self._names_at = 0.0
+        self._changed = threading.Condition()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="dyknow-ui-watch", daemon=True)
+        self._thread.start()
+
+    def __enter__(self) -> ModelWatch:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop asking; safe twice."""
+        self._closed = True
+        with self._changed:
+            self._changed.notify_all()
+        self._thread.join(2.0)
+
+    def refresh(self) -> None:
+        """Ask the managers now (after an action, so the page sees its effect at once)."""
+        models = []
+        now = time.monotonic()
+        if now - self._names_at > 1.0 or not self._names:
+            self._names = self.client.manager_names(timeout_s=0.5)
+            self._names_at = now
+        for name in self._names:
+            try:
+                models.append(self.client.call_manager(name, "get_model", {}))
+            except DyKnowError as exc:
+                log.debug("no model from %r: %s", name, exc)
+        with self._changed:
+            if models != self.data["managers"]:
+                self.version += 1
+                self.data = {"version": self.version, "managers": models}
+                self._changed.notify_all()
+
+    def wait_newer(self, version: int, timeout_s: float) -> dict[str, Any]:
+        """The model once newer than ``version`` (or the current one after ``timeout_s``)."""
+        with self._changed:
+            self._changed.wait_for(lambda: self.version > version or self._closed, timeout_s)
+            return self.data
+
+    def _run(self) -> None:
+        while not self._closed:
+            try:
+                self.refresh()
+            except Exception:
+                log.exception("the model could not be refreshed")
+            time.sleep(self.poll_s)
+
+
+def make_app(client: Client, watch: ModelWatch, *, token: str | None = None) -> web.Application:
+    """The aiohttp application of the tool (``token``: required on every request when given)."""
+
+    @web.middleware
+    async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
+        if token is not None:
+            given = request.query.get("token") or request.headers.get("X-Dyknow-Token") or request.cookies.get("dyknow_token") or ""
+            if not hmac.compare_digest(given.encode(), token.encode()):
+                return web.json_response({"error": "AccessError", "message": "this tool needs its access token: open the URL it printed"}, status=403)
+        response = await handler(request)
+        if token is not None and request.query.get("token"):
+            response.set_cookie("dyknow_token", token, httponly=True, samesite="Strict")
+        response.headers["Cache-Control"] = "no-store"
+        response.headers["X-Content-Type-Options"] = "nosniff"
+        return response
+
+    async def index(request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC / "index.html")
+
+    async def model(request: web.Request) -> web.StreamResponse:
+        return web.json_response(watch.data)
+
+    async def events(request: web.Request) -> web.StreamResponse:
+        response = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-store"})
+        await response.prepare(request)
+        version = -1
+        while True:
+            data = await asyncio.to_thread(watch.wait_newer, version, 15.0)
+            if data["version"] == version:
+                await response.write(b": keep-alive\n\n")
+                continue
+            version = data["version"]
+            await response.write(b"data: " + json.dumps(data).encode() + b"\n\n")
+
+    async def call(request: web.Request) -> web.StreamResponse:
+        if request.content_length is not None and request.content_length > MAX_CALL_BYTES:
+            return _refused("RequestError", f"a request of {request.content_length} bytes; expected at most {MAX_CALL_BYTES}", 413)
+        try:
+            body = json.loads(await request.content.read(MAX_CALL_BYTES + 1))
+            manager, service = str(body["manager"]), str(body["service"])
+            unit = body.get("unit")
+            payload = body.get("request", {})
+            if not isinstance(payload, dict):
+                raise ValueError("'request' must be an object")
+        except (ValueError, KeyError, TypeError) as exc:
+            return _refused("RequestError", f"not a call: {exc}; expected {{\"manager\", \"service\", \"request\", \"unit\"?}}", 400)
+        allowed = UNIT_SERVICES if unit is not None else MANAGER_SERVICES
+        if service not in allowed:
+            return _refused("RequestError", f"no service {service!r}; expected one of {', '.join(allowed)}", 400)
+        try:
+            if unit is not None:
+                reply = await asyncio.to_thread(client.call_unit, manager, str(unit), service, payload)
+            else:
+                reply = await asyncio.to_thread(client.call_manager, manager, service, payload)
+        except ServiceError as exc:
+            return _refused(type(exc).__name__, str(exc), 502)
+        except DyKnowError as exc:
+            return _refused(type(exc).__name__, str(exc), 400)
+        await asyncio.to_thread(watch.refresh)
+        return web.json_response({"reply": reply})
+
+    app = web.Application(middlewares=[guard], client_max_size=MAX_CALL_BYTES + 1024)
+    app.router.add_get("/", index)
+    app.router.add_get("/api/model", model)
+    app.router.add_get("/api/events", events)
+    app.router.add_post("/api/call", call)
+    app.router.add_static("/static/", STATIC)
+    return app
+
+
+def _refused(kind: str, message: str, status: int) -> web.Response:
+    return web.json_response({"error": kind, "message": message}, status=status)
+
+
+def check_bind(host: str, token: str | None) -> str | None:
+    """The token to require: None on loopback without one; a new one beyond loopback when none is given."""
+    if host == "localhost" or _is_loopback(host):
+        return token
+    return token or secrets.token_urlsafe(18)
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

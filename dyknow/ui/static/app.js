@@ -1,0 +1,416 @@
+// dyknow ui: the model of every manager, pushed by the server (server-sent events), drawn as a
+// graph (units as ovals, keys as rectangles) and listed as text; actions go to the managers'
+// services through POST /api/call. Everything from the network is shown with textContent.
+"use strict";
+
+const ANCHOR = "dyknow-request-anchor";
+let model = { version: 0, managers: [] };
+let cy = null;
+const positions = new Map(); // node id -> position, so the layout stays put
+let selected = null; // {manager, unit}
+let userMoved = false; // once the user pans or zooms, the view is theirs
+
+const $ = (id) => document.getElementById(id);
+const el = (tag, text, attrs) => {
+  const node = document.createElement(tag);
+  if (text !== undefined && text !== null) node.textContent = String(text);
+  for (const [k, v] of Object.entries(attrs || {})) node.setAttribute(k, v);
+  return node;
+};
+
+function say(text, ok) {
+  const box = $("message");
+  box.textContent = text || "";
+  box.className = ok ? "ok" : "";
+}
+
+async function call(manager, service, request, unit) {
+  const body = { manager, service, request: request || {} };
+  if (unit) body.unit = unit;
+  const response = await fetch("/api/call", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+  const data = await response.json();
+  if (!response.ok) throw new Error(data.message || data.error || response.statusText);
+  return data.reply;
+}
+
+// ---------------------------------------------------------------- the model as ports and keys
+
+function specOf(manager, label) {
+  return (manager.specs || []).find((s) => s.label === label);
+}
+
+function directions(manager, unit) {
+  // port -> "in" | "out", from the unit's spec (the request anchor is built in: in -> out)
+  const spec = specOf(manager, unit.label);
+  const out = {};
+  for (const port of Object.keys(unit.bindings)) {
+    const declared = spec ? spec.ports.find((p) => p.name === port) : null;
+    out[port] = declared ? declared.direction : (port === "in" ? "in" : "out");
+  }
+  return out;
+}
+
+function unitState(manager, unit) {
+  return unit.state;
+}
+
+function globToRegex(glob) {
+  const escaped = glob.trim().replace(/[.+^${}()|[\]\\]/g, "\\$&").replace(/\*\*/g, "\u0000").replace(/\*/g, "[^/]*").replace(/\u0000/g, ".*");
+  return new RegExp("^" + escaped + "$");
+}
+
+// ---------------------------------------------------------------- graph
+
+function elements() {
+  const filter = $("filter").value.trim().toLowerCase();
+  const hide = $("hide").value.split(",").map((p) => p.trim()).filter(Boolean).map(globToRegex);
+  const group = $("group").checked;
+  const prefix = $("prefix").checked;
+  const nodes = [];
+  const edges = [];
+  const keys = new Map();
+  const requestKeys = new Set();
+  for (const m of model.managers) for (const r of m.requests || []) requestKeys.add(r.key);
+  for (const m of model.managers) {
+    if (group) nodes.push({ data: { id: "manager:" + m.manager, label: m.manager }, classes: "manager" });
+    for (const u of m.units) {
+      const text = (u.name + " " + u.label + " " + Object.values(u.bindings).join(" ")).toLowerCase();
+      if (filter && !text.includes(filter)) continue;
+      const id = "unit:" + m.manager + "/" + u.name;
+      const classes = ["unit", "state-" + u.state];
+      if (u.protected) classes.push("protected");
+      if (u.label === ANCHOR) classes.push("anchor");
+      nodes.push({ data: { id, label: u.name + "\n" + u.label, parent: group ? "manager:" + m.manager : undefined, manager: m.manager, unit: u.name }, classes: classes.join(" ") });
+      const dirs = directions(m, u);
+      for (const [port, key] of Object.entries(u.bindings)) {
+        if (hide.some((re) => re.test(key))) continue;
+        const kid = "key:" + key;
+        if (!keys.has(kid)) keys.set(kid, key);
+        if (dirs[port] === "out") edges.push({ data: { id: id + "->" + key, source: id, target: kid, label: port } });
+        else edges.push({ data: { id: key + "->" + id + "." + port, source: kid, target: id, label: port } });
+      }
+    }
+  }
+  for (const [kid, key] of keys) {
+    const parts = key.split("/");
+    let parent;
+    if (prefix && parts.length > 2) {
+      parent = "prefix:" + parts.slice(0, 2).join("/");
+      if (!nodes.some((n) => n.data.id === parent)) nodes.push({ data: { id: parent, label: parts.slice(0, 2).join("/") + "/" }, classes: "prefix" });
+    }
+    nodes.push({ data: { id: kid, label: key, parent, width: 12 + 6 * key.length }, classes: "key" + (requestKeys.has(key) ? " request" : "") });
+  }
+  return { nodes, edges };
+}
+
+function drawGraph() {
+  const { nodes, edges } = elements();
+  if (!cy) {
+    cy = cytoscape({
+      container: $("graph"),
+      style: [
+        { selector: "node", style: { label: "data(label)", "text-wrap": "wrap", "font-size": 10, "text-valign": "center", "text-halign": "center" } },
+        { selector: ".unit", style: { shape: "ellipse", width: 120, height: 44, "background-color": "#cfe8d5", "border-width": 1, "border-color": "#1a7f37" } },
+        { selector: ".state-failed", style: { "background-color": "#f8c9c4", "border-color": "#c62828", "border-width": 3 } },
+        { selector: ".state-stalled", style: { "background-color": "#ffe2b3", "border-color": "#b26a00", "border-width": 3 } },
+        { selector: ".protected", style: { "border-style": "double", "border-width": 4 } },
+        { selector: ".anchor", style: { "background-color": "#d6e4ff", "border-color": "#2f54eb" } },
+        { selector: ".key", style: { shape: "round-rectangle", width: "data(width)", height: 22, padding: 6, "background-color": "#f4f4f8", "border-width": 1, "border-color": "#889", "font-family": "monospace", "font-size": 9 } },
+        { selector: ".request", style: { "border-color": "#2f54eb", "border-width": 3, "background-color": "#e8efff" } },
+        { selector: ".manager, .prefix", style: { "text-valign": "top", "background-opacity": 0.05, "border-style": "dashed", "font-weight": "bold" } },
+        { selector: "edge", style: { width: 1.5, "curve-style": "bezier", "target-arrow-shape": "triangle", label: "data(label)", "font-size": 8, "text-rotation": "autorotate", "line-color": "#99a", "target-arrow-color": "#99a" } },
+      ],
+    });
+    cy.on("tap", "node.unit", (event) => showUnit(event.target.data("manager"), event.target.data("unit")));
+    cy.on("dragfree", "node", (event) => positions.set(event.target.id(), { ...event.target.position() }));
+    for (const kind of ["wheel", "mousedown", "touchstart"]) $("graph").addEventListener(kind, () => { userMoved = true; }, { passive: true });
+  }
+  const wanted = new Set([...nodes, ...edges].map((e) => e.data.id));
+  cy.batch(() => {
+    cy.elements().filter((e) => !wanted.has(e.id())).remove();
+    for (const n of nodes) {
+      const existing = cy.getElementById(n.data.id);
+      if (existing.nonempty()) {
+        existing.classes(n.classes);
+        existing.data("label", n.data.label);
+        if (existing.data("parent") !== n.data.parent) existing.move({ parent: n.data.parent ?? null });
+      } else {
+        cy.add({ group: "nodes", data: n.data, classes: n.classes, position: positions.get(n.data.id) });
+      }
+    }
+    for (const e of edges) if (cy.getElementById(e.data.id).empty()) cy.add({ group: "edges", data: e.data });
+  });
+  const fresh = cy.nodes().filter((n) => !n.isParent() && !positions.has(n.id()));
+  if (fresh.nonempty()) {
+    const placed = cy.nodes().filter((n) => !n.isParent() && positions.has(n.id()));
+    if (placed.empty()) {
+      layoutLeftToRight(cy.elements(), 0, 0);
+    } else if (fresh.length <= 2) {
+      // one or two new nodes: beside a placed neighbour, or below everything; nothing else moves
+      const box = placed.boundingBox();
+      fresh.forEach((n, i) => {
+        const near = n.neighborhood("node").filter((m) => positions.has(m.id()));
+        const at = near.nonempty() ? near[0].position() : { x: box.x1, y: box.y2 + 60 };
+        n.position({ x: at.x + 170, y: at.y + 50 * (i + 1) });
+      });
+    } else {
+      // a new configuration: laid out on its own, right of what is there
+      const box = placed.boundingBox();
+      layoutLeftToRight(fresh.union(fresh.edgesWith(fresh)), box.x1, box.y2 + 80);
+    }
+    cy.nodes().forEach((n) => { if (!n.isParent()) positions.set(n.id(), { ...n.position() }); });
+    if (!userMoved) cy.fit(undefined, 30);
+  }
+}
+
+function layoutLeftToRight(eles, x0, y0) {
+  // a layered layout with data flowing left to right (breadthfirst is top-down: turn it)
+  eles.layout({ name: "breadthfirst", directed: true, animate: false, fit: false, spacingFactor: 1.0 }).run();
+  const nodes = eles.nodes().filter((n) => !n.isParent());
+  if (nodes.empty()) return;
+  // its levels become columns 190 px apart, its order within a level rows 70 px apart
+  const levels = [...new Set(nodes.map((n) => Math.round(n.position().y)))].sort((a, b) => a - b);
+  const rows = [...new Set(nodes.map((n) => Math.round(n.position().x)))].sort((a, b) => a - b);
+  nodes.forEach((n) => {
+    const p = n.position();
+    n.position({ x: x0 + 190 * levels.indexOf(Math.round(p.y)), y: y0 + 70 * rows.indexOf(Math.round(p.x)) });
+  });
+}
+
+// ---------------------------------------------------------------- panels as text
+
+function drawActive() {
+  const body = $("units").querySelector("tbody");
+  body.replaceChildren();
+  for (const m of model.managers) {
+    const dirsOf = (u) => directions(m, u);
+    for (const u of m.units) {
+      const row = el("tr", undefined, { "data-unit": u.name, "data-manager": m.manager });
+      const name = el("td");
+      const link = el("a", u.name, { href: "#" });
+      link.addEventListener("click", (event) => { event.preventDefault(); showUnit(m.manager, u.name); });
+      name.append(link);
+      row.append(name, el("td", u.label), el("td", m.manager), el("td", u.state + (u.protected ? " (protected)" : ""), { class: "state-" + u.state }));
+      const keys = el("td", undefined, { class: "keys" });
+      const dirs = dirsOf(u);
+      for (const [port, key] of Object.entries(u.bindings)) keys.append(el("div", (dirs[port] === "in" ? "in  " : "out ") + port + " \u2192 " + key));
+      if (u.error) keys.append(el("div", "error: " + u.error, { class: "state-failed" }));
+      row.append(keys);
+      const actions = el("td");
+      if (!u.protected) {
+        const destroy = el("button", "destroy", { "data-action": "destroy" });
+        destroy.addEventListener("click", () => act(() => call(m.manager, "destroy", { name: u.name }), `destroyed ${u.name}`));
+        actions.append(destroy);
+      }
+      row.append(actions);
+      body.append(row);
+    }
+  }
+  if (!body.children.length) {
+    const row = el("tr");
+    row.append(el("td", "no unit runs", { colspan: 6, class: "muted" }));
+    body.append(row);
+  }
+}
+
+function fillManagers() {
+  for (const select of document.querySelectorAll("select.managers")) {
+    const current = select.value;
+    select.replaceChildren(...model.managers.map((m) => el("option", m.manager, { value: m.manager })));
+    if (model.managers.some((m) => m.manager === current)) select.value = current;
+  }
+}
+
+function managerNamed(name) {
+  return model.managers.find((m) => m.manager === name);
+}
+
+function drawLibrary() {
+  const m = managerNamed($("lib-manager").value);
+  const list = $("specs");
+  list.replaceChildren();
+  for (const s of m ? m.specs : []) {
+    const item = el("li", undefined, { "data-label": s.label });
+    item.append(el("strong", s.label), el("span", " ports: " + s.ports.map((p) => p.direction + " " + p.name).join(", ")));
+    if (s.tags.length) item.append(el("div", "tags: " + s.tags.map((t) => t.port + " " + t.tag).join(", ")));
+    const params = Object.entries(s.params || {});
+    if (params.length) item.append(el("div", "params: " + params.map(([k, v]) => k + "=" + v).join(", ")));
+    item.append(el("div", "priority " + s.priority + (s.constraints.length ? "; constraints: " + s.constraints.map((c) => c.measure + " " + c.op + " " + c.value).join(", ") : ""), { class: "muted" }));
+    const remove = el("button", "delete");
+    remove.addEventListener("click", () => act(() => call(m.manager, "remove_transformation", { label: s.label }), `deleted ${s.label}`));
+    item.append(remove);
+    list.append(item);
+  }
+}
+
+function drawCreate() {
+  const m = managerNamed($("create-manager").value);
+  const select = $("create-label");
+  const current = select.value;
+  select.replaceChildren(...(m ? m.specs : []).map((s) => el("option", s.label, { value: s.label })));
+  if (m && m.specs.some((s) => s.label === current)) select.value = current;
+  drawParams();
+}
+
+function drawParams() {
+  const m = managerNamed($("create-manager").value);
+  const spec = m && specOf(m, $("create-label").value);
+  const box = $("create-params");
+  if (box.dataset.label === (spec ? m.manager + "/" + spec.label : "")) return;
+  box.dataset.label = spec ? m.manager + "/" + spec.label : "";
+  box.replaceChildren(el("legend", "Params"));
+  for (const [name, value] of Object.entries(spec ? spec.params : {})) {
+    const label = el("label", name + " ");
+    label.append(el("input", undefined, { "data-param": name, value: value === null ? "" : String(value), "data-type": typeof value }));
+    box.append(label);
+  }
+}
+
+function drawConnect() {
+  const outs = [];
+  const ins = [];
+  for (const m of model.managers) for (const u of m.units) {
+    const dirs = directions(m, u);
+    for (const [port, key] of Object.entries(u.bindings)) {
+      const option = { value: JSON.stringify({ manager: m.manager, unit: u.name, port, key }), text: `${m.manager}/${u.name}.${port} (${key})` };
+      (dirs[port] === "out" ? outs : ins).push(option);
+    }
+  }
+  for (const [id, options, blank] of [["connect-from", outs, "a key typed below"], ["connect-to", ins, null]]) {
+    const select = $(id);
+    const current = select.value;
+    select.replaceChildren(...(blank ? [el("option", blank, { value: "" })] : []), ...options.map((o) => el("option", o.text, { value: o.value })));
+    if ([...select.options].some((o) => o.value === current)) select.value = current;
+  }
+}
+
+async function drawRequests() {
+  const list = $("requests");
+  list.replaceChildren();
+  for (const m of model.managers) for (const r of m.requests || []) {
+    const item = el("li", `${r.tag} on ${r.key} (${m.manager}): ${r.state}; ${r.labels.join(", ")}`, { "data-key": r.key });
+    const release = el("button", "release");
+    release.addEventListener("click", () => act(() => call(m.manager, "release", { key: r.key }), `released ${r.key}`));
+    item.append(" ", release);
+    list.append(item);
+  }
+  const events = [];
+  for (const m of model.managers) {
+    try {
+      for (const e of await call(m.manager, "get_adaptations", {})) events.push([m.manager, e]);
+    } catch (error) { /* a manager that went away */ }
+  }
+  $("adaptations").replaceChildren(...events.map(([manager, e]) => el("li", `${manager}: #${e.id} ${e.kind} ${e.request}: ${e.cause}; adapted in ${e.adaptation_ms} ms, recovered in ${e.recovery_ms ?? "?"} ms`)));
+}
+
+async function showUnit(manager, unit) {
+  selected = { manager, unit };
+  openTab("unit");
+  $("unit-title").textContent = `Unit ${unit} on ${manager}`;
+  const box = $("unit-detail");
+  const m = managerNamed(manager);
+  const info = m && m.units.find((u) => u.name === unit);
+  box.replaceChildren();
+  if (!info) { box.append(el("p", "no such unit any more")); return; }
+  box.append(el("p", `${info.label}: ${info.state}${info.protected ? " (protected)" : ""}`));
+  const table = el("table");
+  for (const [port, key] of Object.entries(info.bindings)) {
+    const row = el("tr");
+    row.append(el("td", port), el("td", key, { class: "keys" }));
+    table.append(row);
+  }
+  box.append(el("h3", "Bindings"), table);
+  if (info.traceback) box.append(el("h3", "Traceback"), el("pre", info.traceback, { class: "errors" }));
+  try {
+    const stats = await call(manager, "get_statistics", {}, unit);
+    box.append(el("h3", "Statistics"), el("pre", JSON.stringify(stats, null, 2)));
+  } catch (error) {
+    box.append(el("p", "no statistics: " + error.message, { class: "errors" }));
+  }
+}
+
+// ---------------------------------------------------------------- actions
+
+async function act(action, done) {
+  try {
+    const result = await action();
+    say(typeof done === "function" ? done(result) : done, true);
+  } catch (error) {
+    say(error.message);
+  }
+}
+
+function openTab(name) {
+  for (const button of document.querySelectorAll("nav button")) button.setAttribute("aria-selected", String(button.dataset.tab === name));
+  for (const panel of document.querySelectorAll("[role=tabpanel]")) panel.hidden = panel.id !== "tab-" + name;
+  if (name === "requests") drawRequests();
+}
+
+function wire() {
+  for (const button of document.querySelectorAll("nav button")) button.addEventListener("click", () => openTab(button.dataset.tab));
+  for (const id of ["filter", "hide", "group", "prefix"]) $(id).addEventListener("input", drawGraph);
+  $("lib-manager").addEventListener("change", drawLibrary);
+  $("create-manager").addEventListener("change", drawCreate);
+  $("create-label").addEventListener("change", drawParams);
+  $("lib-file").addEventListener("change", async () => { const f = $("lib-file").files[0]; if (f) $("lib-xml").value = await f.text(); });
+  $("lib-import").addEventListener("click", async () => {
+    $("lib-errors").textContent = "";
+    const name = $("lib-file").files[0] ? $("lib-file").files[0].name : "pasted.xml";
+    try {
+      const reply = await call($("lib-manager").value, "add_transformation", { xml: $("lib-xml").value, path: name });
+      say("imported " + reply.labels.join(", "), true);
+    } catch (error) {
+      $("lib-errors").textContent = error.message;
+    }
+  });
+  $("create-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const params = {};
+    for (const input of $("create-params").querySelectorAll("input")) {
+      const type = input.dataset.type;
+      params[input.dataset.param] = type === "number" ? Number(input.value) : type === "boolean" ? input.value === "true" : input.value;
+    }
+    const name = $("create-name").value;
+    act(() => call($("create-manager").value, "spawn", { label: $("create-label").value, name, params, protected: $("create-protected").checked }), `created ${name}`);
+  });
+  $("connect-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const target = $("connect-to").value && JSON.parse($("connect-to").value);
+    const source = $("connect-from").value && JSON.parse($("connect-from").value);
+    const key = source ? source.key : $("connect-key").value.trim();
+    if (!target || !key) { say("pick an input port, and an output port or a key"); return; }
+    act(() => call(target.manager, "set_config", { bindings: { [target.port]: key } }, target.unit), `${target.unit}.${target.port} now reads ${key}`);
+  });
+  $("request-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    act(() => call($("request-manager").value, "request", { tag: $("request-tag").value }), (reply) => "requested: key " + reply.key).then(drawRequests);
+  });
+  $("measure-form").addEventListener("submit", (event) => {
+    event.preventDefault();
+    const raw = $("measure-value").value.trim();
+    const value = raw !== "" && !Number.isNaN(Number(raw)) ? Number(raw) : raw;
+    act(() => call($("request-manager").value, "measure", { name: $("measure-name").value, value }), "measured");
+  });
+}
+
+function render() {
+  fillManagers();
+  drawGraph();
+  drawActive();
+  drawLibrary();
+  drawCreate();
+  drawConnect();
+  if (!$("tab-requests").hidden) drawRequests();
+  const units = model.managers.reduce((n, m) => n + m.units.length, 0);
+  $("status").textContent = `${model.managers.length} managers, ${units} units (model ${model.version})`;
+  document.body.dataset.version = String(model.version);
+}
+
+function listen() {
+  const source = new EventSource("/api/events");
+  source.onmessage = (event) => { model = JSON.parse(event.data); render(); };
+  source.onerror = () => { $("status").textContent = "reconnecting…"; };
+}
+
+wire();
+listen();

@@ -1,0 +1,196 @@
+"""The interactive tool in a real browser: Debian's Chromium driven by Selenium (chromedriver).
+
+Each panel's action is checked against the manager itself. Screenshots of the views are saved in
+``$DYKNOW_ARTIFACTS`` (default ``test-artifacts/``). Under ``CI=true`` a missing browser is a
+failure (the set-up installs it with apt when it can); elsewhere the tests skip with the reason.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dyknow import Manager
+from dyknow.testing import SCENARIO_SPECS
+from dyknow.ui.server import check_bind
+from tests.conftest import REPO, CliProcess, wait_until
+
+ARTIFACTS = Path(os.environ.get("DYKNOW_ARTIFACTS", REPO / "test-artifacts"))
+CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def _browser_paths() -> tuple[str, str] | None:
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver = shutil.which("chromedriver")
+    return (browser, driver) if browser and driver else None
+
+
+@pytest.fixture(scope="session")
+def browser_paths() -> tuple[str, str]:
+    found = _browser_paths()
+    if found is None and os.geteuid() == 0 and shutil.which("apt-get"):
+        subprocess.run(["apt-get", "install", "-y", "-q", "chromium", "chromium-driver"], capture_output=True, timeout=900,
+                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+        found = _browser_paths()
+    if found is None:
+        why = "Chromium and chromedriver are not installed (apt-get install chromium chromium-driver)"
+        if CI:
+            pytest.fail(why)
+        pytest.skip(why)
+    return found
+
+
+@pytest.fixture
+def browser(browser_paths: tuple[str, str]) -> Iterator[Any]:
+    from selenium import webdriver
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    options = Options()
+    options.binary_location = browser_paths[0]
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1400,900", "--disable-dev-shm-usage"):
+        options.add_argument(arg)
+    driver = webdriver.Chrome(service=Service(browser_paths[1]), options=options)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+@pytest.fixture
+def ui(make_manager: Callable[..., Manager], cli_process: Callable[..., CliProcess]) -> Callable[..., tuple[Manager, str]]:
+    """A manager of the scenario's specs and `dyknow ui` pointed at it; returns (manager, url)."""
+
+    def start(*extra: str) -> tuple[Manager, str]:
+        manager = make_manager(specs=[SCENARIO_SPECS, REPO / "specs" / "generic.xml"], ontology=[REPO / "specs" / "dyknow.ttl"], listen=["tcp/127.0.0.1:0"])
+        proc = cli_process("ui", "--connect", manager.endpoints[0], "--port", "0", "--json", *extra)
+        return manager, str(proc.line()["url"])
+
+    return start
+
+
+def shot(driver: Any, name: str) -> None:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    driver.save_screenshot(str(ARTIFACTS / f"ui-{name}.png"))
+
+
+def wait_text(driver: Any, element_id: str, text: str, timeout_s: float = 10.0) -> None:
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    WebDriverWait(driver, timeout_s).until(lambda d: text in d.find_element("id", element_id).text, f"{text!r} in #{element_id}")
+
+
+def tab(driver: Any, name: str) -> None:
+    driver.find_element("css selector", f"nav button[data-tab={name}]").click()
+
+
+def test_the_active_panel_lists_units_as_text_and_follows_the_cli(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
+    manager, url = ui()
+    manager.spawn("relay", "r1")
+    browser.get(url)
+    wait_text(browser, "units", "r1")
+    assert f"out → dyknow/{manager.name}/r1/out" in browser.find_element("id", "units").text
+    assert browser.find_element("id", "status").text.startswith("1 managers, 1 units")
+    manager.spawn("relay", "r2")  # spawned elsewhere: pushed to the page, no reload
+    wait_text(browser, "units", "r2")
+    nodes = browser.execute_script("return cy.nodes('.unit').map(n => n.data('unit'))")
+    assert sorted(nodes) == ["r1", "r2"]
+    shot(browser, "graph")
+
+
+def test_create_connect_and_destroy_from_the_page(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
+    from selenium.webdriver.support.ui import Select
+
+    manager, url = ui()
+    manager.spawn("relay", "r1")
+    browser.get(url)
+    wait_text(browser, "units", "r1")
+
+    tab(browser, "create")
+    Select(browser.find_element("id", "create-label")).select_by_value("relay")
+    browser.find_element("id", "create-name").send_keys("made-in-page")
+    browser.find_element("css selector", "#create-form button[type=submit]").click()
+    wait_text(browser, "message", "created made-in-page")
+    assert "made-in-page" in [u.name for u in manager.units()]
+    shot(browser, "create")
+
+    tab(browser, "connect")
+    wait_until(lambda: len(Select(browser.find_element("id", "connect-to")).options) >= 2, "the ports listed")
+    compact = (",", ":")  # as the page's JSON.stringify writes the options' values
+    out = json.dumps({"manager": manager.name, "unit": "r1", "port": "out", "key": f"dyknow/{manager.name}/r1/out"}, separators=compact)
+    into = json.dumps({"manager": manager.name, "unit": "made-in-page", "port": "in", "key": f"dyknow/{manager.name}/made-in-page/in"}, separators=compact)
+    Select(browser.find_element("id", "connect-from")).select_by_value(out)
+    Select(browser.find_element("id", "connect-to")).select_by_value(into)
+    browser.find_element("css selector", "#connect-form button[type=submit]").click()
+    wait_text(browser, "message", "now reads")
+    assert manager.get_config("made-in-page")["in"] == f"dyknow/{manager.name}/r1/out"
+
+    tab(browser, "active")
+    wait_text(browser, "units", f"in → dyknow/{manager.name}/r1/out")
+    browser.find_element("css selector", "tr[data-unit=made-in-page] button[data-action=destroy]").click()
+    wait_text(browser, "message", "destroyed made-in-page")
+    assert "made-in-page" not in [u.name for u in manager.units()]
+
+
+def test_a_broken_spec_shows_its_location_and_changes_nothing(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
+    manager, url = ui()
+    before = manager.library.labels()
+    browser.get(url)
+    wait_text(browser, "status", "1 managers")
+    tab(browser, "library")
+    broken = "<transformation>\n  <label>broken</label>\n  <source>transformations.generic:Relay</source>\n  <ports><port type=\"sideways\">x</port></ports>\n</transformation>"
+    browser.find_element("id", "lib-xml").send_keys(broken)
+    browser.find_element("id", "lib-import").click()
+    wait_text(browser, "lib-errors", "pasted.xml:4")
+    shot(browser, "library-error")
+    after = manager.library.labels()
+    assert after == before and "broken" not in after
+
+
+def test_request_and_release_from_the_page(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
+    manager, url = ui()
+    browser.get(url)
+    wait_text(browser, "status", "1 managers")
+    tab(browser, "requests")
+    browser.find_element("id", "request-tag").send_keys("BallTrack(field)")
+    browser.find_element("css selector", "#request-form button[type=submit]").click()
+    wait_text(browser, "message", f"requested: key dyknow/{manager.name}/requests/BallTrack(field)")
+    assert [r.tag for r in manager.get_model().requests] == ["BallTrack(field)"]
+    wait_text(browser, "requests", "BallTrack(field)")
+    shot(browser, "requests")
+    browser.find_element("css selector", "#requests button").click()
+    wait_text(browser, "message", "released")
+    assert manager.get_model().requests == ()
+
+
+def test_the_token_is_required_when_set_and_made_beyond_loopback(ui: Callable[..., tuple[Manager, str]]) -> None:
+    assert check_bind("127.0.0.1", None) is None and check_bind("::1", None) is None
+    assert len(check_bind("0.0.0.0", None) or "") >= 20  # a new token: never an open tool on the network
+    assert check_bind("10.1.2.3", "given") == "given"
+    _, url = ui("--token", "s3cret")
+    assert url.endswith("/?token=s3cret")
+    base = url.split("?")[0]
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(base + "api/model", timeout=10)
+    assert refused.value.code == 403
+    refused.value.close()
+    def managers() -> list[Any]:
+        with urllib.request.urlopen(urllib.request.Request(base + "api/model", headers={"X-Dyknow-Token": "s3cret"}), timeout=10) as answer:
+            return list(json.loads(answer.read())["managers"])
+
+    wait_until(lambda: len(managers()) == 1, "the manager in the tool's model")
+    assert managers()[0]["units"] == []
+    call = urllib.request.Request(base + "api/call", data=json.dumps({"manager": "x", "service": "shutdown"}).encode(), headers={"X-Dyknow-Token": "s3cret"})
+    with pytest.raises(urllib.error.HTTPError) as bad:
+        urllib.request.urlopen(call, timeout=10)
+    assert bad.value.code == 400 and "no service 'shutdown'" in json.loads(bad.value.read())["message"]
+    bad.value.close()
