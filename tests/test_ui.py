@@ -194,3 +194,41 @@ def test_the_token_is_required_when_set_and_made_beyond_loopback(ui: Callable[..
         urllib.request.urlopen(call, timeout=10)
     assert bad.value.code == 400 and "no service 'shutdown'" in json.loads(bad.value.read())["message"]
     bad.value.close()
+
+
+def test_the_image_view_shows_live_frames_and_the_plot_numeric_fields(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    manager, url = ui()
+    manager.add_transformation(REPO / "specs" / "sources.xml")
+    manager.spawn("synthetic-scene(ceiling)", "scene", params={"rate_hz": 30})
+    browser.get(url)
+    wait_text(browser, "units", "scene")
+    tab(browser, "view")
+    browser.find_element("id", "view-key").send_keys(f"dyknow/{manager.name}/scene/out")
+    browser.find_element("css selector", "#view-form button[type=submit]").click()
+    wait_text(browser, "view-stats", "640x480")
+    assert float(browser.find_element("id", "view-stats").get_attribute("data-rate")) > 0
+
+    def pixels() -> list[int] | None:  # the frame on screen, sampled (None while the next one loads)
+        script = """const img = document.getElementById('view-image'); if (!img.naturalWidth) return null; const c = document.createElement('canvas');
+            c.width = img.naturalWidth; c.height = img.naturalHeight; const g = c.getContext('2d'); g.drawImage(img, 0, 0);
+            const d = g.getImageData(0, 0, c.width, c.height).data; const out = []; for (let i = 0; i < d.length; i += 4099) out.push(d[i]); return out;"""
+        found = browser.execute_script(script)
+        return None if found is None else list(found)
+
+    def shown() -> bool:  # a frame decoded on screen (the next one may be loading now and then)
+        return browser.execute_script("return document.getElementById('view-image').naturalWidth") == 640
+
+    WebDriverWait(browser, 10).until(lambda d: shown(), "a 640x480 frame on screen")
+    first = pixels()
+    WebDriverWait(browser, 10).until(lambda d: pixels() not in (None, first), "the frames to change")
+    shot(browser, "image-view")
+
+    key = manager.request("BallTrack(field)")
+    browser.find_element("id", "view-key").clear()
+    browser.find_element("id", "view-key").send_keys(key)
+    browser.find_element("css selector", "#view-form button[type=submit]").click()
+    wait_text(browser, "view-legend", "frame")
+    assert browser.find_element("id", "view-plot").is_displayed()
+    shot(browser, "plot")

@@ -10,6 +10,9 @@ HTTP (aiohttp):
 - ``GET /api/model`` ``{"version", "managers": [model, ...]}``;
 - ``GET /api/events`` server-sent events: the model again each time it changes (checked every
   ``poll_s``);
+- ``GET /api/stream?key=KEY`` a WebSocket of the messages on ``KEY``: for each, a JSON header
+  (``seq``, ``latency_ms``, ``kind`` "image", "json" or "other", ``dropped``) and, for an image,
+  the frame as JPEG; only the latest message is kept while the page is busy;
 - ``POST /api/call`` ``{"manager", "service", "request", "unit"?}``: one service call; the reply
   as JSON, or ``{"error", "message"}`` with status 400 (the manager refused) or 502 (no answer).
 
@@ -30,11 +33,15 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 from aiohttp import web
 
 from dyknow.client import Client
 from dyknow.errors import DyKnowError, ServiceError
+from dyknow.message import Message, describe_payload
 from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
+from dyknow.transport import check_key_expr
 
 __all__ = ["MAX_CALL_BYTES", "ModelWatch", "check_bind", "make_app"]
 
@@ -42,6 +49,7 @@ log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).with_name("static")
 MAX_CALL_BYTES = 1 << 20  # an imported spec is the largest thing the page sends
+_MAX_JSON_CHARS = 64 << 10  # larger JSON payloads are described, not shown
 
 
 class ModelWatch:
@@ -169,13 +177,84 @@ def make_app(client: Client, watch: ModelWatch, *, token: str | None = None) -> 
         await asyncio.to_thread(watch.refresh)
         return web.json_response({"reply": reply})
 
+    async def stream(request: web.Request) -> web.StreamResponse:
+        key = request.query.get("key", "")
+        try:
+            check_key_expr(key, what="stream")
+        except DyKnowError as exc:
+            return _refused(type(exc).__name__, str(exc), 400)
+        socket = web.WebSocketResponse(heartbeat=20)
+        await socket.prepare(request)
+        latest = _Latest(asyncio.get_running_loop())
+        with client.declare_subscriber(key, latest.put):
+            sender = asyncio.ensure_future(_send_frames(socket, latest))
+            async for _ in socket:  # the page says nothing; this ends when it goes
+                pass
+            sender.cancel()
+        return socket
+
     app = web.Application(middlewares=[guard], client_max_size=MAX_CALL_BYTES + 1024)
+    app.router.add_get("/api/stream", stream)
     app.router.add_get("/", index)
     app.router.add_get("/api/model", model)
     app.router.add_get("/api/events", events)
     app.router.add_post("/api/call", call)
     app.router.add_static("/static/", STATIC)
     return app
+
+
+class _Latest:
+    """The latest message of a stream, handed from Zenoh's thread to the event loop (older ones are
+    dropped: a slow page sees fewer frames, never a growing queue)."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._message: Message | None = None
+        self._ready = asyncio.Event()
+        self.dropped = 0
+
+    def put(self, msg: Message) -> None:
+        if self._message is not None:
+            self.dropped += 1
+        self._message = msg
+        self._loop.call_soon_threadsafe(self._ready.set)
+
+    async def get(self) -> Message:
+        while True:
+            await self._ready.wait()
+            self._ready.clear()
+            msg, self._message = self._message, None
+            if msg is not None:
+                return msg
+
+
+async def _send_frames(socket: web.WebSocketResponse, latest: _Latest) -> None:
+    """Send each message as a JSON header (time, latency, kind) and, for images, a JPEG."""
+    while not socket.closed:
+        msg = await latest.get()
+        header, image = await asyncio.to_thread(_frame, msg)
+        header["dropped"] = latest.dropped
+        await socket.send_str(json.dumps(header))
+        if image is not None:
+            await socket.send_bytes(image)
+
+
+def _frame(msg: Message) -> tuple[dict[str, Any], bytes | None]:
+    """What the page shows of one message: an image as JPEG, JSON as is (bounded), else a description."""
+    header: dict[str, Any] = {"key": msg.key, "seq": msg.seq, "latency_ms": round((time.time_ns() - msg.origin_ns) / 1e6, 3)}
+    payload = msg.payload
+    if isinstance(payload, np.ndarray) and payload.dtype == np.uint8 and (payload.ndim == 2 or (payload.ndim == 3 and payload.shape[2] in (1, 3, 4))):
+        ok, jpeg = cv2.imencode(".jpg", payload, [cv2.IMWRITE_JPEG_QUALITY, 80])
+        if ok:
+            header.update(kind="image", width=int(payload.shape[1]), height=int(payload.shape[0]))
+            return header, jpeg.tobytes()
+    if isinstance(payload, (dict, list, int, float, str)) and not isinstance(payload, bool):
+        text = json.dumps(payload, default=str)
+        if len(text) <= _MAX_JSON_CHARS:
+            header.update(kind="json", payload=payload if isinstance(payload, dict) else {"value": payload})
+            return header, None
+    header.update(kind="other", description=describe_payload(payload))
+    return header, None
 
 
 def _refused(kind: str, message: str, status: int) -> web.Response:

@@ -329,6 +329,87 @@ async function showUnit(manager, unit) {
   }
 }
 
+// ---------------------------------------------------------------- views of the data
+
+let viewSocket = null;
+const series = new Map(); // field -> [[t, value], ...]
+const COLOURS = ["#2f54eb", "#c62828", "#1a7f37", "#b26a00", "#6a1b9a", "#00838f"];
+
+function watch(key) {
+  if (viewSocket) viewSocket.close();
+  series.clear();
+  const stats = $("view-stats");
+  const image = $("view-image");
+  const plot = $("view-plot");
+  let frames = 0;
+  let since = performance.now();
+  let last = null;
+  const socket = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/stream?key=${encodeURIComponent(key)}`);
+  socket.binaryType = "blob";
+  viewSocket = socket;
+  socket.onmessage = (event) => {
+    if (typeof event.data !== "string") {
+      const url = URL.createObjectURL(event.data);
+      image.onload = () => URL.revokeObjectURL(url);
+      image.src = url;
+      image.hidden = false;
+      return;
+    }
+    last = JSON.parse(event.data);
+    frames += 1;
+    if (last.kind === "json") addPoints(last.payload);
+    else if (last.kind === "other") stats.dataset.description = last.description;
+    const now = performance.now();
+    if (now - since >= 1000) {
+      const rate = (frames * 1000) / (now - since);
+      frames = 0;
+      since = now;
+      stats.textContent = `${key}: ${rate.toFixed(1)} messages/s, latency ${last.latency_ms.toFixed(1)} ms, #${last.seq}` +
+        (last.kind === "image" ? `, ${last.width}x${last.height}` : "") + (last.dropped ? `, ${last.dropped} skipped while busy` : "") +
+        (last.kind === "other" ? `: ${last.description}` : "");
+      stats.dataset.rate = rate.toFixed(2);
+    }
+    if (last.kind === "json") drawPlot(plot);
+  };
+  socket.onopen = () => { stats.textContent = `${key}: waiting for messages`; };
+  socket.onclose = () => { if (viewSocket === socket) stats.textContent = "stopped"; };
+}
+
+function addPoints(payload) {
+  const t = performance.now() / 1000;
+  for (const [field, value] of Object.entries(payload)) {
+    if (typeof value !== "number" || !Number.isFinite(value)) continue;
+    if (!series.has(field) && series.size >= COLOURS.length) continue;
+    const points = series.get(field) || [];
+    points.push([t, value]);
+    if (points.length > 300) points.shift();
+    series.set(field, points);
+  }
+}
+
+function drawPlot(canvas) {
+  canvas.hidden = series.size === 0;
+  const g = canvas.getContext("2d");
+  g.clearRect(0, 0, canvas.width, canvas.height);
+  let fields = [...series.keys()];
+  $("view-legend").replaceChildren(...fields.map((f, i) => el("span", `■ ${f}  `, { style: `color:${COLOURS[i]}` })));
+  for (const [i, field] of fields.entries()) {
+    const points = series.get(field);
+    if (points.length < 2) continue;
+    const t0 = points[0][0], t1 = points[points.length - 1][0];
+    const values = points.map((p) => p[1]);
+    const lo = Math.min(...values), hi = Math.max(...values);
+    g.strokeStyle = COLOURS[i];
+    g.beginPath();
+    points.forEach(([t, v], j) => {
+      const x = ((t - t0) / Math.max(1e-9, t1 - t0)) * (canvas.width - 10) + 5;
+      const y = canvas.height - 5 - ((v - lo) / Math.max(1e-9, hi - lo)) * (canvas.height - 10);
+      if (j === 0) g.moveTo(x, y); else g.lineTo(x, y);
+    });
+    g.stroke();
+  }
+}
+
 // ---------------------------------------------------------------- actions
 
 async function act(action, done) {
@@ -381,6 +462,8 @@ function wire() {
     if (!target || !key) { say("pick an input port, and an output port or a key"); return; }
     act(() => call(target.manager, "set_config", { bindings: { [target.port]: key } }, target.unit), `${target.unit}.${target.port} now reads ${key}`);
   });
+  $("view-form").addEventListener("submit", (event) => { event.preventDefault(); watch($("view-key").value.trim()); });
+  $("view-stop").addEventListener("click", () => { if (viewSocket) viewSocket.close(); viewSocket = null; });
   $("request-form").addEventListener("submit", (event) => {
     event.preventDefault();
     act(() => call($("request-manager").value, "request", { tag: $("request-tag").value }), (reply) => "requested: key " + reply.key).then(drawRequests);
@@ -401,6 +484,9 @@ function render() {
   drawCreate();
   drawConnect();
   if (!$("tab-requests").hidden) drawRequests();
+  const keys = new Set();
+  for (const m of model.managers) for (const u of m.units) for (const k of Object.values(u.bindings)) keys.add(k);
+  $("known-keys").replaceChildren(...[...keys].sort().map((k) => el("option", undefined, { value: k })));
   const units = model.managers.reduce((n, m) => n + m.units.length, 0);
   $("status").textContent = `${model.managers.length} managers, ${units} units (model ${model.version})`;
   document.body.dataset.version = String(model.version);
