@@ -209,6 +209,9 @@ def test_the_image_view_shows_live_frames_and_the_plot_numeric_fields(ui: Callab
     browser.find_element("css selector", "#view-form button[type=submit]").click()
     wait_text(browser, "view-stats", "640x480")
     assert float(browser.find_element("id", "view-stats").get_attribute("data-rate")) > 0
+    # the graph's edge and the Active panel carry the live rate
+    WebDriverWait(browser, 10).until(lambda d: any("/s" in label for label in d.execute_script("return cy.edges().map(e => e.data('label'))")))
+    assert "/s)" in browser.find_element("id", "units").get_attribute("textContent")  # (the panel is behind the View tab)
 
     def pixels() -> list[int] | None:  # the frame on screen, sampled (None while the next one loads)
         script = """const img = document.getElementById('view-image'); if (!img.naturalWidth) return null; const c = document.createElement('canvas');

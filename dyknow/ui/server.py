@@ -7,7 +7,8 @@ manager's own services, so the managers' access control applies to it as to the 
 HTTP (aiohttp):
 
 - ``GET /`` the page; ``GET /static/...`` its script, style and the vendored cytoscape.js;
-- ``GET /api/model`` ``{"version", "managers": [model, ...]}``;
+- ``GET /api/model`` ``{"version", "managers": [model, ...], "stats": {"manager/unit": {port: {"rate", "hop_p50_us"}}}}``
+  (statistics asked every ``stats_s``);
 - ``GET /api/events`` server-sent events: the model again each time it changes (checked every
   ``poll_s``);
 - ``GET /api/stream?key=KEY`` a WebSocket of the messages on ``KEY``: for each, a JSON header
@@ -50,6 +51,7 @@ log = logging.getLogger(__name__)
 STATIC = Path(__file__).with_name("static")
 MAX_CALL_BYTES = 1 << 20  # an imported spec is the largest thing the page sends
 _MAX_JSON_CHARS = 64 << 10  # larger JSON payloads are described, not shown
+_MAX_STATS_UNITS = 1000  # units whose statistics are asked each round
 
 
 class ModelWatch:
@@ -58,9 +60,13 @@ class ModelWatch:
     ``wait_newer(version, timeout_s)`` blocks until the model is newer than ``version``.
     """
 
-    def __init__(self, client: Client, *, poll_s: float = 0.25) -> None:
+    def __init__(self, client: Client, *, poll_s: float = 0.25, stats_s: float = 1.0) -> None:
         self.client = client
         self.poll_s = poll_s
+        self.stats_s = stats_s
+        self._stats_at = 0.0
+        self._counts: dict[tuple[str, str, str], tuple[int, float]] = {}  # (manager, unit, port) -> (messages, at)
+        self._stats: dict[str, dict[str, dict[str, float | None]]] = {}
         self.version = 0
         self.data: dict[str, Any] = {"version": 0, "managers": []}
         self._names: list[str] = []
@@ -95,11 +101,45 @@ class ModelWatch:
                 models.append(self.client.call_manager(name, "get_model", {}))
             except DyKnowError as exc:
                 log.debug("no model from %r: %s", name, exc)
+        if now - self._stats_at >= self.stats_s:
+            self._stats_at = now
+            self._stats = self._statistics(models)
         with self._changed:
-            if models != self.data["managers"]:
+            if models != self.data["managers"] or self._stats != self.data.get("stats"):
                 self.version += 1
-                self.data = {"version": self.version, "managers": models}
+                self.data = {"version": self.version, "managers": models, "stats": self._stats}
                 self._changed.notify_all()
+
+    def _statistics(self, models: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float | None]]]:
+        """Per unit ("manager/unit") and port: messages per second since the last look, and the
+        median per-hop latency of input ports (at most ``_MAX_STATS_UNITS`` units a round)."""
+        out: dict[str, dict[str, dict[str, float | None]]] = {}
+        seen: set[tuple[str, str, str]] = set()
+        asked = 0
+        for model in models:
+            for unit in model.get("units", []):
+                if asked >= _MAX_STATS_UNITS:
+                    break
+                asked += 1
+                try:
+                    stats = self.client.call_unit(model["manager"], unit["name"], "get_statistics", {})
+                except DyKnowError:
+                    continue
+                now = time.monotonic()
+                ports: dict[str, dict[str, float | None]] = {}
+                for port, entry in stats.get("ports", {}).items():
+                    ident = (model["manager"], unit["name"], port)
+                    seen.add(ident)
+                    count = int(entry.get("messages", 0))
+                    before = self._counts.get(ident)
+                    self._counts[ident] = (count, now)
+                    rate = round((count - before[0]) / (now - before[1]), 1) if before and now > before[1] and count >= before[0] else None
+                    hop = (entry.get("hop") or {}).get("p50_us")
+                    ports[port] = {"rate": rate, "hop_p50_us": hop}
+                out[f"{model['manager']}/{unit['name']}"] = ports
+        for gone in set(self._counts) - seen:
+            del self._counts[gone]
+        return out
 
     def wait_newer(self, version: int, timeout_s: float) -> dict[str, Any]:
         """The model once newer than ``version`` (or the current one after ``timeout_s``)."""

@@ -86,8 +86,12 @@ function elements() {
         if (hide.some((re) => re.test(key))) continue;
         const kid = "key:" + key;
         if (!keys.has(kid)) keys.set(kid, key);
-        if (dirs[port] === "out") edges.push({ data: { id: id + "->" + key, source: id, target: kid, label: port } });
-        else edges.push({ data: { id: key + "->" + id + "." + port, source: kid, target: id, label: port } });
+        const live = ((model.stats || {})[m.manager + "/" + u.name] || {})[port] || {};
+        let label = port;
+        if (live.rate !== null && live.rate !== undefined) label += ` ${live.rate}/s`;
+        if (dirs[port] !== "out" && live.hop_p50_us) label += ` ${(live.hop_p50_us / 1000).toFixed(2)} ms`;
+        if (dirs[port] === "out") edges.push({ data: { id: id + "->" + key, source: id, target: kid, label } });
+        else edges.push({ data: { id: key + "->" + id + "." + port, source: kid, target: id, label } });
       }
     }
   }
@@ -138,7 +142,11 @@ function drawGraph() {
         cy.add({ group: "nodes", data: n.data, classes: n.classes, position: positions.get(n.data.id) });
       }
     }
-    for (const e of edges) if (cy.getElementById(e.data.id).empty()) cy.add({ group: "edges", data: e.data });
+    for (const e of edges) {
+      const existing = cy.getElementById(e.data.id);
+      if (existing.empty()) cy.add({ group: "edges", data: e.data });
+      else existing.data("label", e.data.label);
+    }
   });
   const fresh = cy.nodes().filter((n) => !n.isParent() && !positions.has(n.id()));
   if (fresh.nonempty()) {
@@ -193,7 +201,11 @@ function drawActive() {
       row.append(name, el("td", u.label), el("td", m.manager), el("td", u.state + (u.protected ? " (protected)" : ""), { class: "state-" + u.state }));
       const keys = el("td", undefined, { class: "keys" });
       const dirs = dirsOf(u);
-      for (const [port, key] of Object.entries(u.bindings)) keys.append(el("div", (dirs[port] === "in" ? "in  " : "out ") + port + " \u2192 " + key));
+      const live = (model.stats || {})[m.manager + "/" + u.name] || {};
+      for (const [port, key] of Object.entries(u.bindings)) {
+        const rate = live[port] && live[port].rate !== null && live[port].rate !== undefined ? `  (${live[port].rate}/s)` : "";
+        keys.append(el("div", (dirs[port] === "in" ? "in  " : "out ") + port + " \u2192 " + key + rate));
+      }
       if (u.error) keys.append(el("div", "error: " + u.error, { class: "state-failed" }));
       row.append(keys);
       const actions = el("td");
