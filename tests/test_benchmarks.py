@@ -143,3 +143,13 @@ def test_scale_benchmark_smoke(tmp_path: Path) -> None:
     assert offline["plan_managers"] == ["m0", "m1", "m2", "m3"] and offline["running_units"] == 20
     assert 0 < offline["warm"]["p50_ms"] <= offline["warm"]["p99_ms"]
     assert "plannable after" in result.stdout and "planner alone, offline" in result.stdout and "VmRSS mean" in result.stdout
+
+
+def test_ui_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "ui.json"
+    result = _run("ui.py", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [r["target"] for r in rows] == ["<= 1500 ms", "<= 1000 ms", ">= 15 frames/s", "rise <= 5 %"]
+    assert rows[0]["value_ms"] > 0 and rows[1]["p50_ms"] > 0 and rows[2]["frames_per_s"] > 0 and rows[3]["closed_ms"] > 0
+    assert "image view:" in result.stdout and "target" in result.stdout

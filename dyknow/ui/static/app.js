@@ -502,6 +502,7 @@ function render() {
   const units = model.managers.reduce((n, m) => n + m.units.length, 0);
   $("status").textContent = `${model.managers.length} managers, ${units} units (model ${model.version})`;
   document.body.dataset.version = String(model.version);
+  if (units && window.dyknowFirstDraw === undefined) window.dyknowFirstDraw = performance.now(); // for benchmarks/ui.py
 }
 
 function listen() {
