@@ -235,3 +235,22 @@ def test_the_image_view_shows_live_frames_and_the_plot_numeric_fields(ui: Callab
     wait_text(browser, "view-legend", "frame")
     assert browser.find_element("id", "view-plot").is_displayed()
     shot(browser, "plot")
+
+
+def test_the_demo_serves_the_tool_beside_it(browser: Any, tmp_path: Path) -> None:
+    """`dyknow demo --ui`: the ball demo's graph, live in the tool while it runs."""
+    import io
+    import threading
+
+    from dyknow.demo.ball import BallDemo
+
+    demo = BallDemo(duration_s=8, out_dir=tmp_path / "report", ui_port=0, stream=io.StringIO())
+    runner = threading.Thread(target=demo.run, daemon=True)
+    runner.start()
+    wait_until(lambda: demo.ui_url is not None, "the tool's URL")
+    browser.get(demo.ui_url)
+    wait_text(browser, "units", "track-log")
+    assert "dyknow/demo/requests/BallTrack(field)" in browser.find_element("id", "units").text
+    shot(browser, "demo")
+    runner.join(30)
+    assert not runner.is_alive()

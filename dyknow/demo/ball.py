@@ -23,9 +23,11 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import subprocess
 import sys
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TextIO
@@ -157,6 +159,7 @@ class BallDemo:
         stream: TextIO = sys.stdout,
         live: bool | None = None,
         seed: int = 0,
+        ui_port: int | None = None,
     ) -> None:
         if duration_s <= 0:
             raise ValueError(f"duration must be positive; got {duration_s}")
@@ -173,6 +176,8 @@ class BallDemo:
         self.stream = stream
         self.live = stream.isatty() if live is None else live
         self.seed = seed
+        self.ui_port = ui_port  # serve `dyknow ui` beside the demo on this port (0: any free one)
+        self.ui_url: str | None = None
         self.events: list[AdaptationEvent] = []
         self._events_lock = threading.Lock()
         self._printed: set[tuple[int, str]] = set()
@@ -222,6 +227,10 @@ class BallDemo:
             scene = Scene(seed=self.seed) if self.synthetic else None
             source = "the synthetic scene" if self.synthetic else f"videos {self.robot_video} / {self.ceiling_video}"
             self.say(f"dyknow demo: tracking a ball on {source}; manager 'demo' on {', '.join(manager.endpoints)}")
+            ui = _UiProcess(manager.endpoints[0], self.ui_port) if self.ui_port is not None else None
+            if ui is not None:
+                self.ui_url = ui.url
+                self.say(f"the interactive tool: open {ui.url} (the View panel shows the cameras)")
             self.say(f"requesting {REQUEST} from the planner ...")
             t0 = time.monotonic()
             key = manager.request(REQUEST)
@@ -249,6 +258,8 @@ class BallDemo:
             self._print_events()
             frame = self._annotated_frame(manager, log)
             report = self._report(manager, key, log, scene, battery_trace, frame, info.tag)
+            if ui is not None:
+                ui.close()
         return report
 
     def _print_events(self) -> None:
@@ -385,6 +396,38 @@ def _chain_labels(manager: Manager, key: str) -> list[str]:
     return [label for _, label in _chain(manager, key)]
 
 
+class _UiProcess:
+    """``dyknow ui`` as a child process beside the demo (killed on close, or when the demo dies)."""
+
+    def __init__(self, endpoint: str, port: int) -> None:
+        argv = [sys.executable, "-m", "dyknow.cli", "ui", "--connect", endpoint, "--port", str(port), "--json"]
+        self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self._finalizer = weakref.finalize(self, _stop, self.proc)
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        try:
+            self.url = str(json.loads(line)["url"])
+        except (ValueError, KeyError) as exc:
+            self.close()
+            raise RuntimeError(f"dyknow ui did not start (exit code {self.proc.poll()}); is port {port} free?") from exc
+
+    def close(self) -> None:
+        """Stop the tool."""
+        self._finalizer()
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+    if proc.stdout is not None:
+        proc.stdout.close()
+
+
 def run_ball_demo(
     *,
     duration_s: float = 30.0,
@@ -392,9 +435,10 @@ def run_ball_demo(
     ceiling_video: str | None = None,
     out_dir: str = "dyknow-demo-report",
     as_json: bool = False,
+    ui_port: int | None = None,
 ) -> int:
     """The ``dyknow demo`` command; returns an exit code."""
-    demo = BallDemo(duration_s=duration_s, robot_video=robot_video, ceiling_video=ceiling_video, out_dir=Path(out_dir))
+    demo = BallDemo(duration_s=duration_s, robot_video=robot_video, ceiling_video=ceiling_video, out_dir=Path(out_dir), ui_port=ui_port)
     report = demo.run()
     if as_json:
         print(json.dumps(report["summary"]))
