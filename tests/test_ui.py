@@ -22,7 +22,7 @@ import pytest
 from dyknow import Manager
 from dyknow.testing import SCENARIO_SPECS
 from dyknow.ui.server import check_bind
-from tests.conftest import REPO, CliProcess, wait_until
+from tests.conftest import REPO, CliProcess, run_cli, wait_until
 
 ARTIFACTS = Path(os.environ.get("DYKNOW_ARTIFACTS", REPO / "test-artifacts"))
 CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
@@ -100,7 +100,8 @@ def test_the_active_panel_lists_units_as_text_and_follows_the_cli(ui: Callable[.
     wait_text(browser, "units", "r1")
     assert f"out → dyknow/{manager.name}/r1/out" in browser.find_element("id", "units").text
     assert browser.find_element("id", "status").text.startswith("1 managers, 1 units")
-    manager.spawn("relay", "r2")  # spawned elsewhere: pushed to the page, no reload
+    spawned = run_cli("spawn", "relay", "r2", "--connect", manager.endpoints[0], "--manager", manager.name)  # from the CLI: pushed, no reload
+    assert spawned.returncode == 0, spawned.stderr
     wait_text(browser, "units", "r2")
     nodes = browser.execute_script("return cy.nodes('.unit').map(n => n.data('unit'))")
     assert sorted(nodes) == ["r1", "r2"]
