@@ -19,6 +19,7 @@ Commands::
     dyknow stats NAME
     dyknow add-spec FILE | dyknow remove-spec LABEL
     dyknow echo KEYEXPR [--count N]
+    dyknow foxglove [KEYEXPR ...] [--host ADDR] [--port N]
     dyknow request TAG | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
     dyknow record KEYEXPR ... -o FILE.mcap [--duration S] [--max-messages N] [--compression zstd|lz4|none]
     dyknow replay FILE.mcap [--rate X] [--loop] [--start S] [--end S] [--topics T ...] [--remap FROM=TO ...]
@@ -374,6 +375,24 @@ def cmd_ui(args: argparse.Namespace) -> int:
 
     with _client(args) as client:
         return run_ui(client, host=args.host, port=args.port, token=args.token, ready=ready)
+
+
+def cmd_foxglove(args: argparse.Namespace) -> int:
+    """serve streams live to Foxglove or Lichtblick over the Foxglove WebSocket protocol (images, JSON)"""
+    from dyknow.foxglove import is_loopback, run_bridge
+
+    if not 0 <= args.port <= 65535:
+        raise _Usage(f"--port: got {args.port}; expected 0 to 65535")
+    if not is_loopback(args.host):
+        print(f"dyknow: warning: serving on {args.host}, beyond this host: the Foxglove WebSocket protocol has no access control, "
+              "so anyone who reaches the port sees every stream served", file=sys.stderr, flush=True)  # fmt: skip
+
+    def ready(url: str) -> None:
+        _report(args, {"event": "ready", "url": url}, f"dyknow foxglove: open {url} in Foxglove or Lichtblick (Ctrl-C to stop)")
+        sys.stdout.flush()
+
+    with _client(args) as client:
+        return run_bridge(client, host=args.host, port=args.port, keyexprs=args.keyexprs, ready=ready)
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -782,6 +801,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
     p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
     p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
+
+    p = command("foxglove", cmd_foxglove, client=True)
+    p.add_argument("keyexprs", nargs="*", metavar="KEYEXPR", help="key expressions to serve (default dyknow/**: every stream)")
+    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; the protocol has no access control)")
+    p.add_argument("--port", type=int, default=8765, help="the port to serve on (default 8765; 0: any free port)")
 
     p = command("router", cmd_router)
     p.add_argument(
