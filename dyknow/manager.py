@@ -34,6 +34,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 from dyknow import keys, service
@@ -533,10 +534,17 @@ class Manager:
     # ------------------------------------------------------------------ model and proxy services
 
     def get_model(self) -> Model:
-        """All running units (label, state, protection, bindings) and all stored specs."""
+        """All running units (label, state, protection, bindings) and all stored specs.
+
+        A running unit whose output fell silent past its ``deadline-ms`` shows the state "stalled".
+        """
         with self._lock:
             proxies = list(self._units.values())
-        return Model(self.name, tuple(_info(p) for p in proxies), self.library.specs(), tuple(self.requests()))
+        stalled = set(self._adaptation.knowledge.stalled)
+        infos = tuple(
+            replace(info, state="stalled") if info.name in stalled and info.state == "running" else info for info in map(_info, proxies)
+        )
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()))
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""

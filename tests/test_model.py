@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 
 import pytest
 
@@ -28,3 +29,23 @@ def test_the_model_is_json_and_finds_units(manager: Manager) -> None:
 def test_a_failed_unit_is_not_alive() -> None:
     info = UnitInfo("u", "l", "failed", False, {}, "shared thread", error="boom")
     assert not info.alive and info.to_dict()["error"] == "boom"
+
+
+def test_a_silent_unit_shows_as_stalled_in_the_model(make_manager: Callable[..., Manager]) -> None:
+    """An output silent past its deadline-ms: the model says "stalled" (the tool colours it), then "running" again."""
+    from dyknow.testing import SCENARIO_SPECS, Camera
+    from tests.conftest import REPO, wait_until
+
+    manager = make_manager(specs=[SCENARIO_SPECS], ontology=[REPO / "specs" / "dyknow.ttl"])
+    manager.spawn("ceiling-camera", "cam")
+    camera = manager.unit("cam")
+    assert isinstance(camera, Camera)
+    state = lambda: manager.get_model().unit("cam").state  # noqa: E731
+    wait_until(lambda: camera.frames > 3, "frames")
+    assert state() == "running"
+    camera.freeze()
+    wait_until(lambda: state() == "stalled", "the stall in the model")
+    camera.resume()
+    wait_until(lambda: state() == "running", "running again")
+    spec = manager.get_model().to_dict()["specs"][0]
+    assert spec["param_types"] == {"camera": "string", "rate_hz": "float"}

@@ -100,11 +100,14 @@ def test_the_active_panel_lists_units_as_text_and_follows_the_cli(ui: Callable[.
     wait_text(browser, "units", "r1")
     assert f"out → dyknow/{manager.name}/r1/out" in browser.find_element("id", "units").text
     assert browser.find_element("id", "status").text.startswith("1 managers, 1 units")
+    where = "return cy.getElementById('unit:' + arguments[0] + '/r1').position()"
+    before = browser.execute_script(where, manager.name)
     spawned = run_cli("spawn", "relay", "r2", "--connect", manager.endpoints[0], "--manager", manager.name)  # from the CLI: pushed, no reload
     assert spawned.returncode == 0, spawned.stderr
     wait_text(browser, "units", "r2")
     nodes = browser.execute_script("return cy.nodes('.unit').map(n => n.data('unit'))")
     assert sorted(nodes) == ["r1", "r2"]
+    assert browser.execute_script(where, manager.name) == before  # the layout stays put when a unit is added
     shot(browser, "graph")
 
 

@@ -227,6 +227,7 @@ class TransformationSpec:
             "label": self.label,
             "source": self.source,
             "params": self.param_values(),
+            "param_types": {p.name: p.type for p in self.params},
             "ports": ports,
             "tags": [{"port": t.port, "tag": t.tag} for t in self.tags],
             "priority": self.priority,

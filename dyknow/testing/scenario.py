@@ -65,6 +65,10 @@ class Camera(Unit):
         """Stop publishing while staying alive, as a camera that hangs."""
         self._frozen = True
 
+    def resume(self) -> None:
+        """Publish again after :meth:`freeze`."""
+        self._frozen = False
+
     def tick(self) -> None:
         """Publish the next frame."""
         if self._explode:

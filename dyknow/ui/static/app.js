@@ -272,8 +272,9 @@ function drawParams() {
   box.dataset.label = spec ? m.manager + "/" + spec.label : "";
   box.replaceChildren(el("legend", "Params"));
   for (const [name, value] of Object.entries(spec ? spec.params : {})) {
-    const label = el("label", name + " ");
-    label.append(el("input", undefined, { "data-param": name, value: value === null ? "" : String(value), "data-type": typeof value }));
+    const type = (spec.param_types || {})[name] || typeof value;
+    const label = el("label", `${name} (${type}) `);
+    label.append(el("input", undefined, { "data-param": name, value: value === null ? "" : String(value), "data-type": type }));
     box.append(label);
   }
 }
@@ -461,7 +462,7 @@ function wire() {
     const params = {};
     for (const input of $("create-params").querySelectorAll("input")) {
       const type = input.dataset.type;
-      params[input.dataset.param] = type === "number" ? Number(input.value) : type === "boolean" ? input.value === "true" : input.value;
+      params[input.dataset.param] = ["int", "float", "number"].includes(type) ? Number(input.value) : ["bool", "boolean"].includes(type) ? input.value === "true" : input.value;
     }
     const name = $("create-name").value;
     act(() => call($("create-manager").value, "spawn", { label: $("create-label").value, name, params, protected: $("create-protected").checked }), `created ${name}`);
