@@ -172,7 +172,7 @@ def run_remote_kill(n: int, rate: float) -> list[tuple[float, float, float]]:
                 f"""
                 import threading
                 from dyknow import Manager
-                with Manager("remote", specs=[{str(SCENARIO_SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={manager.endpoints!r}) as m:
+                with Manager("remote", specs=[{str(SCENARIO_SPECS)!r}], ontology=[{str(ONTOLOGY)!r}], connect={manager.endpoints!r}, federate=False) as m:  # a hand-written RemoteStream, not federation
                     m.spawn("robot-camera", "cam", params={{"rate_hz": {rate}}}, bindings={{"out": {key_remote!r}}})
                     print("ready", flush=True)
                     threading.Event().wait()
