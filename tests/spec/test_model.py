@@ -59,6 +59,7 @@ def test_to_dict_is_json_ready() -> None:
         "label": "detect(rear, yolo)",
         "source": "transformations.vision:Detector",
         "params": {"camera": "rear", "rate": 10, "threshold": 0.5, "gpu": True},
+        "param_types": {"camera": "string", "rate": "int", "threshold": "float", "gpu": "bool"},
         "ports": [
             {"name": "image", "direction": "in", "queue": 1, "policy": "keep-last"},
             {"name": "objects_rear", "direction": "out", "deadline_ms": 250.5},
