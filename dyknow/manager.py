@@ -498,8 +498,23 @@ class Manager:
         self._check_open()
         if not isinstance(name, str) or not name or "/" in name:
             raise LibraryError(f"measure name {name!r} is not a valid name", expected="a non-empty name without '/', like 'battery'")
+        self._check_measurement(name, value)
         self._adaptation.measure(name, value)
         self.changed()
+
+    def _check_measurement(self, name: str, value: object) -> None:
+        """:class:`LibraryError` naming the measurement when constraints could not use ``value``."""
+        where = f"measurement {name!r}"
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise LibraryError(f"got {value!r}", where=where, expected="a finite number, or text")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise LibraryError(f"got {value!r}", where=where, expected="a finite number")
+        if isinstance(value, str):
+            numeric = sorted({s.label for s in self.library.specs() for c in s.constraints if c.measure == name and not isinstance(c.value, str)})
+            if numeric:
+                raise LibraryError(
+                    f"got the text {value[:40]!r}", where=where, expected=f"a number: the constraints of {', '.join(numeric[:3])} compare it with numbers"
+                )
 
     @property
     def measurements(self) -> dict[str, float | str]:
@@ -527,6 +542,11 @@ class Manager:
                 raise ValueError(f"got {value!r}")
         except (ValueError, KeyError, TypeError) as exc:
             log.warning('measurement on %s ignored: %s; expected a JSON number or {"value": x}', key, exc)
+            return
+        try:
+            self._check_measurement(name, value)
+        except LibraryError as exc:
+            log.warning("measurement on %s ignored: %s", key, exc)
             return
         self._adaptation.measure(name, value)
         self.changed()

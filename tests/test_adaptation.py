@@ -423,3 +423,18 @@ def test_the_loop_plans_over_other_managers_and_fails_over_when_one_is_lost() ->
         loop.close()
     assert runtime.remote_calls[-1][0] == "destroy"  # closing releases what the loop runs elsewhere
     assert all(not s.units for s in runtime.peer_summaries.values() if s.manager == "field")
+
+
+def test_a_measurement_the_constraints_cannot_use_is_refused_with_its_name(robot: Manager) -> None:
+    """Text for a measure that constraints compare with numbers, or a non-finite number: refused, named."""
+    from dyknow.errors import LibraryError
+
+    with pytest.raises(LibraryError, match=r"measurement 'battery': got the text 'low'; expected a number: the constraints of robot-camera compare it with numbers"):
+        robot.measure("battery", "low")
+    with pytest.raises(LibraryError, match=r"measurement 'battery': got inf; expected a finite number"):
+        robot.measure("battery", float("inf"))
+    robot.measure("mood", "calm")  # no constraint compares it with numbers: text is fine
+    assert "battery" not in robot.measurements and robot.measurements["mood"] == "calm"
+    with Client(robot.name, connect=robot.endpoints) as client:
+        with pytest.raises(LibraryError, match="measurement 'battery': got the text 'low'"):
+            client.measure("battery", "low")

@@ -9,6 +9,7 @@ defines, for instance, which words a ``bool`` accepts).
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Callable, Iterable, Sequence
@@ -45,6 +46,9 @@ DEFAULT_PRIORITY: int = 100
 """The priority of a transformation without ``<priority>``; lower numbers are preferred."""
 
 PARAM_TYPES: tuple[str, ...] = ("string", "int", "float", "bool", "path")
+MAX_QUEUE = 1_000_000  # the largest input queue a port may ask for
+MAX_DEADLINE_MS = 86_400_000  # a day: the longest output deadline
+INT_RANGE = (-(2**63), 2**63 - 1)  # int params are 64-bit (they reach C libraries such as OpenCV)
 """The values allowed in ``<param type="...">``. A ``path`` is text naming a file or folder:
 for remote callers the manager confines it to its data roots (see :mod:`dyknow.security`)."""
 
@@ -294,9 +298,13 @@ def convert_param(type_: str, text: str) -> str | int | float | bool:
     if type_ in ("string", "path"):
         return text
     if type_ == "int" and INTEGER.fullmatch(text):
-        return int(text)
+        if len(text) <= 20 and INT_RANGE[0] <= int(text) <= INT_RANGE[1]:
+            return int(text)
+        raise ValueError("a whole number from -2**63 to 2**63-1")
     if type_ == "float" and NUMBER.fullmatch(text):
-        return float(text)
+        if math.isfinite(float(text)):
+            return float(text)
+        raise ValueError("a finite number such as 0.5")
     if type_ == "bool" and text.lower() in BOOL_WORDS:
         return BOOL_WORDS[text.lower()]
     raise ValueError(_VALUE_HINTS[type_])

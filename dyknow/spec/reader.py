@@ -29,6 +29,8 @@ from dyknow.spec.model import (
     DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
     INTEGER,
+    MAX_DEADLINE_MS,
+    MAX_QUEUE,
     PARAM_TYPES,
     PATH_MODES,
     PORT_DIRECTIONS,
@@ -293,6 +295,9 @@ def _parse_xml(data: str | bytes, path: str) -> _Node:
     except expat.ExpatError as exc:
         what = f"malformed XML: {expat.ErrorString(exc.code)} at column {exc.offset + 1}"
         raise SpecError([SpecIssue(path, exc.lineno, what, expected="well-formed XML")]) from None
+    except (LookupError, ValueError) as exc:  # an XML declaration naming an encoding Python lacks
+        what = f"the XML declaration names an encoding that cannot be read: {exc}"
+        raise SpecError([SpecIssue(path, 1, what, "<?xml?>", expected='encoding="UTF-8" (or ISO-8859-1, or none)')]) from None
     return roots[0]
 
 
@@ -571,8 +576,8 @@ def _read_ports(container: _Node | None, declared: Sequence[str], issues: _Issue
             if direction == "in":
                 expected = 'it on a <port type="out">'
                 issues.add(node.line, "<port> @deadline-ms", "only allowed on out ports", expected)
-            elif not DECIMAL.fullmatch(text) or Decimal(text) <= 0:
-                expected = "milliseconds such as 500"
+            elif not DECIMAL.fullmatch(text) or not 0 < Decimal(text) <= MAX_DEADLINE_MS:
+                expected = f"milliseconds such as 500 (at most {MAX_DEADLINE_MS:,})"
                 issues.add(node.line, "<port> @deadline-ms", f"{text!r} is not a positive number", expected)
             else:
                 deadline_ms = float(text)
@@ -581,8 +586,10 @@ def _read_ports(container: _Node | None, declared: Sequence[str], issues: _Issue
             text = node.attrs["queue"].strip()
             if direction == "out":
                 issues.add(node.line, "<port> @queue", "only allowed on in ports", 'it on a <port type="in">')
-            elif not INTEGER.fullmatch(text) or int(text) < 1:
-                issues.add(node.line, "<port> @queue", f"{text!r} is not a positive whole number", "a queue size such as 1 or 8")
+            elif not INTEGER.fullmatch(text) or (len(text) <= 12 and int(text) < 1):
+                issues.add(node.line, "<port> @queue", f"{text[:40]!r} is not a positive whole number", "a queue size such as 1 or 8")
+            elif len(text) > 12 or int(text) > MAX_QUEUE:
+                issues.add(node.line, "<port> @queue", f"{text[:40]!r} is too large", f"a queue size of at most {MAX_QUEUE:,}")
             else:
                 queue = int(text)
         policy = None

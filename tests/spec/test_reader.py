@@ -312,3 +312,42 @@ def test_path_params_read_by_default_and_round_trip() -> None:
     )
     assert [(p.name, p.type, p.mode) for p in specs[0].params] == [("out", "path", "write"), ("in", "path", "read")]
     assert parse_specs(specs[0].to_xml())[0].params == specs[0].params
+
+
+RELAY_PORTS = '<ports><port type="in"{queue}>in</port><port type="out"{deadline}>out</port></ports>'
+
+
+@pytest.mark.parametrize(
+    ("declaration", "says"),
+    [
+        ("bogus", "unknown encoding: bogus"),
+        ("rot13", "'rot13' is not a text encoding"),
+        ("utf-32", "multi-byte encodings are not supported"),
+    ],
+)
+def test_an_unknown_xml_encoding_is_a_located_error(tmp_path: pathlib.Path, declaration: str, says: str) -> None:
+    path = tmp_path / "odd.xml"
+    path.write_bytes(f'<?xml version="1.0" encoding="{declaration}"?>\n<transformation><label>x</label><source>m:C</source></transformation>'.encode())
+    with pytest.raises(SpecError) as info:
+        spec.load_specs([path])
+    (issue,) = info.value.issues
+    assert (issue.path, issue.line, issue.element) == (str(path), 1, "<?xml?>") and says in issue.what
+
+
+@pytest.mark.parametrize(
+    ("fragment", "says"),
+    [
+        (RELAY_PORTS.format(queue=' queue="100000000000000000000"', deadline=""), "'100000000000000000000' is too large; expected a queue size of at most 1,000,000"),
+        (RELAY_PORTS.format(queue="", deadline=' deadline-ms="1e309"'), "'1e309' is not a positive number; expected milliseconds such as 500 (at most 86,400,000)"),
+        ('<params><param name="v" type="float">1e309</param></params>', "value '1e309' is not a valid float; expected a finite number such as 0.5"),
+        ('<params><param name="v" type="float">nan</param></params>', "is not a valid float"),
+        ('<params><param name="n" type="int">99999999999999999999999</param></params>', "expected a whole number from -2**63 to 2**63-1"),
+    ],
+)
+def test_out_of_range_numbers_are_refused_where_they_are_written(tmp_path: pathlib.Path, fragment: str, says: str) -> None:
+    path = tmp_path / "numbers.xml"
+    ports = "" if "<ports>" in fragment else RELAY_PORTS.format(queue="", deadline="")
+    path.write_text(f"<transformation>\n<label>x</label><source>m:C</source>\n{fragment}{ports}\n</transformation>\n")
+    with pytest.raises(SpecError) as info:
+        spec.load_specs([path])
+    assert [(i.line, says in str(i)) for i in info.value.issues] == [(3, True)], [str(i) for i in info.value.issues]
