@@ -169,6 +169,22 @@ class UnitStatistics:
         }
 
 
+
+_UNIT_LOG = logging.getLogger("dyknow.unit")
+
+
+class UnitLog(logging.LoggerAdapter):  # type: ignore[type-arg]
+    """A unit's logger: the one ``dyknow.unit`` logger, the unit's name in each record (``unit``)
+    and in front of its message. No logger per name, so a million spawns leave nothing behind."""
+
+    def __init__(self, logger: logging.Logger, unit: str) -> None:
+        super().__init__(logger, {"unit": unit})
+
+    def process(self, msg: Any, kwargs: Any) -> tuple[Any, Any]:
+        """Prefix the message with the unit's name and put the name in the record."""
+        kwargs["extra"] = {**(kwargs.get("extra") or {}), "unit": self.extra["unit"] if self.extra else None}
+        return f"[{kwargs['extra']['unit']}] {msg}", kwargs
+
 class Proxy:
     """Binds one unit's ports to key expressions, delivers its messages and runs its callbacks."""
 
@@ -233,7 +249,7 @@ class Proxy:
                 self._outputs[port.name] = OutputPort(port.name, key)
         self._input_seq = tuple(self._inputs.values())
         self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
-        unit.attach_runtime(self, name=name, label=spec.label, params=params, log=logging.getLogger(f"dyknow.unit.{name}"))
+        unit.attach_runtime(self, name=name, label=spec.label, params=params, log=UnitLog(_UNIT_LOG, name))
         if type(unit).dedicated_thread:
             self.isolation = "the unit asks for a thread of its own (dedicated_thread = True)"
 

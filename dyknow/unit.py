@@ -117,10 +117,12 @@ class Unit:
     name: str
     label: str
     params: Mapping[str, Any]
-    log: logging.Logger
+    log: logging.Logger | logging.LoggerAdapter  # type: ignore[type-arg]
     _runtime: UnitRuntime = _DETACHED
 
-    def attach_runtime(self, runtime: UnitRuntime, *, name: str, label: str, params: Mapping[str, Any], log: logging.Logger) -> None:
+    def attach_runtime(
+        self, runtime: UnitRuntime, *, name: str, label: str, params: Mapping[str, Any], log: logging.Logger | logging.LoggerAdapter  # type: ignore[type-arg]
+    ) -> None:
         """Called by dyknow once, before ``setup()``: set the unit's attributes and its runtime.
 
         Not for units to call or override. ``publish`` is bound straight to the runtime's, which

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
-from dyknow import Message, Unit
+import pytest
+
+from dyknow import Manager, Message, Unit
 from dyknow.testing import UnitHarness
 
 SPEC = """<transformation><label>hooks</label><source>tests.test_unit:Hooks</source>
@@ -19,7 +21,7 @@ class Hooks(Unit):
     calls: list[str] = []
 
     def setup(self) -> None:
-        Hooks.calls = [f"setup {self.name} {self.label} {dict(self.params)} {self.log.name}"]
+        Hooks.calls = [f"setup {self.name} {self.label} {dict(self.params)} {self.log.name} {self.log.extra}"]
         self.reconfigured = threading.Event()
         self.bound_at_setup = self.set_config({"in": str(self.params["listen_on"])})  # a key given as a param
 
@@ -51,7 +53,7 @@ def test_hooks_run_in_order_with_the_attributes_set_before_setup() -> None:
         assert [m.payload for m in harness.wait_for("out", 2)] == ["hello", "again"]
         assert harness.statistics().ports[0].rejected == 1
     assert Hooks.calls == [
-        "setup h hooks {'listen_on': 'elsewhere/in'} dyknow.unit.h",
+        "setup h hooks {'listen_on': 'elsewhere/in'} dyknow.unit {'unit': 'h'}",  # one logger; the unit in the record
         "reconfigure {'in': 'elsewhere/in'}",
         "reconfigure {'in': 'testing/h/in/in'}",
         "message in 'hello' subscribers=True",
@@ -85,3 +87,21 @@ def test_fail_from_another_thread_marks_the_unit_failed() -> None:
         threading.Thread(target=harness.unit.fail, args=("the sensor is gone",)).start()
         assert failed.wait(5)
         assert harness.info.state == "failed" and harness.info.error == "reported by the unit: UnitError: the sensor is gone"
+
+
+def test_spawning_many_names_leaves_no_logger_behind(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
+    """One ``dyknow.unit`` logger for all units, the unit's name in each record: names do not accumulate."""
+    import logging
+
+    manager = make_manager()
+    manager.spawn("relay", "warm-up")
+    before = len(logging.Logger.manager.loggerDict)
+    for i in range(200):
+        manager.spawn("relay", f"short-lived-{i}-" + "x" * 60)
+        manager.destroy(f"short-lived-{i}-" + "x" * 60)
+    assert len(logging.Logger.manager.loggerDict) == before
+    unit = manager.unit("warm-up")
+    with caplog.at_level(logging.INFO, logger="dyknow.unit"):
+        unit.log.info("hello")
+    (record,) = [r for r in caplog.records if r.name == "dyknow.unit"]
+    assert record.getMessage() == "[warm-up] hello" and record.unit == "warm-up"  # type: ignore[attr-defined]
