@@ -21,7 +21,8 @@ Hooks (override the ones you need; all run on the unit's executor thread, never 
   when the ``stop`` event is set. Publishing from it is safe.
 
 Attributes set before ``setup()``: ``name`` (the instance name), ``label`` (its spec's label),
-``params`` (typed values from the spec, with spawn-time overrides) and ``log`` (a logger). Those
+``params`` (typed values from the spec, with spawn-time overrides) and ``log`` (a logger: the
+shared ``dyknow.unit`` logger, the unit's name in front of each message and in ``record.unit``). Those
 names and the methods below are the unit's interface with dyknow; other attribute names are
 free for the unit's own state.
 
