@@ -379,7 +379,8 @@ def cmd_ui(args: argparse.Namespace) -> int:
 
 def cmd_foxglove(args: argparse.Namespace) -> int:
     """serve streams live to Foxglove or Lichtblick over the Foxglove WebSocket protocol (images, JSON)"""
-    from dyknow.foxglove import is_loopback, run_bridge
+    from dyknow.foxglove import run_bridge
+    from dyknow.security import is_loopback
 
     if not 0 <= args.port <= 65535:
         raise _Usage(f"--port: got {args.port}; expected 0 to 65535")

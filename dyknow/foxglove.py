@@ -37,7 +37,6 @@ server binds loopback unless told otherwise.
 
 from __future__ import annotations
 
-import ipaddress
 import itertools
 import json
 import logging
@@ -54,7 +53,7 @@ from dyknow.message import Message
 from dyknow.recording.codecs import PAYLOAD_METADATA, PROTOBUF_SCHEMAS, encode, json_schema
 from dyknow.transport import Subscriber, check_key_expr
 
-__all__ = ["BACKLOG", "DEFAULT_KEYEXPR", "DEFAULT_PORT", "MAX_CHANNELS", "Bridge", "is_loopback", "run_bridge"]
+__all__ = ["BACKLOG", "DEFAULT_KEYEXPR", "DEFAULT_PORT", "MAX_CHANNELS", "Bridge", "run_bridge"]
 
 log = logging.getLogger(__name__)
 
@@ -244,16 +243,6 @@ def _channel(context: foxglove.Context, key: str, signature: _Signature, kind: s
         schema = foxglove.Schema(name=schema_name, encoding="protobuf", data=PROTOBUF_SCHEMAS[schema_name])
         return foxglove.Channel(key, schema=schema, message_encoding="protobuf", context=context, metadata=metadata)
     return foxglove.Channel(key, schema={"title": key, **json_schema(value)}, context=context, metadata=metadata)
-
-
-def is_loopback(host: str) -> bool:
-    """Whether ``host`` is ``localhost`` or a loopback address (only this machine can connect)."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def run_bridge(

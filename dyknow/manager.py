@@ -24,7 +24,6 @@ from __future__ import annotations
 import contextlib
 import importlib
 import inspect
-import ipaddress
 import json
 import logging
 import math
@@ -49,7 +48,7 @@ from dyknow.library import Library
 from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
-from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, module_of
+from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
 from dyknow.spec.model import convert_param
 from dyknow.transport import Queryable, Session, check_key_expr, make_config
@@ -717,13 +716,7 @@ def _info(proxy: Proxy) -> UnitInfo:
 
 
 def _loopback(endpoint: str) -> bool:
-    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.split("%")[0]).is_loopback
-    except ValueError:
-        return False
+    return is_loopback(endpoint.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]"))
 
 
 _SOURCE_SYNTAX = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*")

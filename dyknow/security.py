@@ -22,6 +22,7 @@ passes through unchecked (it runs as the operator):
 from __future__ import annotations
 
 import fnmatch
+import ipaddress
 import os
 import re
 import time
@@ -32,7 +33,7 @@ from pathlib import Path
 from dyknow.errors import AccessError
 from dyknow.keys import MAX_KEY_BYTES, MAX_NAME_BYTES
 
-__all__ = ["DEFAULT_SOURCES", "PATH_MODES", "DataRoots", "Limits", "SourcePolicy", "bounded_glob", "module_of"]
+__all__ = ["DEFAULT_SOURCES", "PATH_MODES", "DataRoots", "Limits", "SourcePolicy", "bounded_glob", "is_loopback", "module_of"]
 
 #: The packages whose units every manager may load.
 DEFAULT_SOURCES: tuple[str, ...] = ("dyknow", "transformations")
@@ -217,4 +218,14 @@ def _is_dir(entry: os.DirEntry[str]) -> bool:
     try:
         return entry.is_dir()
     except OSError:  # unreadable (another user's /proc entry, say): not ours to walk
+        return False
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is ``localhost`` or a loopback address (only this machine can connect)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%")[0]).is_loopback
+    except ValueError:
         return False

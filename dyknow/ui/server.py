@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import asyncio
 import hmac
-import ipaddress
 import json
 import logging
 import secrets
@@ -41,6 +40,7 @@ from aiohttp import web
 from dyknow.client import Client
 from dyknow.errors import DyKnowError, ServiceError
 from dyknow.message import Message, describe_payload
+from dyknow.security import is_loopback
 from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
 from dyknow.transport import check_key_expr
 
@@ -303,13 +303,6 @@ def _refused(kind: str, message: str, status: int) -> web.Response:
 
 def check_bind(host: str, token: str | None) -> str | None:
     """The token to require: None on loopback without one; a new one beyond loopback when none is given."""
-    if host == "localhost" or _is_loopback(host):
+    if is_loopback(host):
         return token
     return token or secrets.token_urlsafe(18)
-
-
-def _is_loopback(host: str) -> bool:
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
