@@ -258,3 +258,26 @@ def test_the_demo_serves_the_tool_beside_it(browser: Any, tmp_path: Path) -> Non
     shot(browser, "demo")
     runner.join(30)
     assert not runner.is_alive()
+
+
+def test_many_open_pages_hold_up_nothing(ui: Callable[..., tuple[Manager, str]]) -> None:
+    """Twenty pages listening for the model (no thread waits per page): a call is still answered."""
+    import http.client
+
+    manager, url = ui()
+    host, port = url.split("//")[1].split("/")[0].split(":")
+    pages = []
+    try:
+        for _ in range(20):
+            page = http.client.HTTPConnection(host, int(port), timeout=10)
+            page.request("GET", "/api/events")
+            answer = page.getresponse()
+            assert answer.status == 200 and answer.readline().startswith(b"data: ")
+            pages.append(page)
+        body = json.dumps({"manager": manager.name, "service": "spawn", "request": {"label": "relay", "name": "still-served"}}).encode()
+        with urllib.request.urlopen(urllib.request.Request(url.split("?")[0] + "api/call", data=body), timeout=10) as reply:
+            assert json.loads(reply.read())["reply"]["name"] == "still-served"
+        assert "still-served" in [u.name for u in manager.units()]
+    finally:
+        for page in pages:
+            page.close()

@@ -24,12 +24,14 @@ Bound to loopback it needs nothing else; bound beyond, every request must carry 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hmac
 import json
 import logging
 import secrets
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,20 +46,21 @@ from dyknow.security import is_loopback
 from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
 from dyknow.transport import check_key_expr
 
-__all__ = ["MAX_CALL_BYTES", "ModelWatch", "check_bind", "make_app"]
+__all__ = ["MAX_CALL_BYTES", "MAX_STREAMS", "ModelWatch", "check_bind", "make_app"]
 
 log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).with_name("static")
 MAX_CALL_BYTES = 1 << 20  # an imported spec is the largest thing the page sends
 _MAX_JSON_CHARS = 64 << 10  # larger JSON payloads are described, not shown
+MAX_STREAMS = 16  # streams watched at once (each is a Zenoh subscriber and JPEG encoding)
 _MAX_STATS_UNITS = 1000  # units whose statistics are asked each round
 
 
 class ModelWatch:
     """Keeps the model of every reachable manager, asking them every ``poll_s``; a context manager.
 
-    ``wait_newer(version, timeout_s)`` blocks until the model is newer than ``version``.
+    ``listen(callback)`` has ``callback()`` called (on the watch's thread) after each change.
     """
 
     def __init__(self, client: Client, *, poll_s: float = 0.25, stats_s: float = 1.0) -> None:
@@ -71,7 +74,8 @@ class ModelWatch:
         self.data: dict[str, Any] = {"version": 0, "managers": []}
         self._names: list[str] = []
         self._names_at = 0.0
-        self._changed = threading.Condition()
+        self._lock = threading.Lock()
+        self._listeners: list[Callable[[], None]] = []
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="dyknow-ui-watch", daemon=True)
         self._thread.start()
@@ -85,8 +89,6 @@ class ModelWatch:
     def close(self) -> None:
         """Stop asking; safe twice."""
         self._closed = True
-        with self._changed:
-            self._changed.notify_all()
         self._thread.join(2.0)
 
     def refresh(self) -> None:
@@ -104,11 +106,14 @@ class ModelWatch:
         if now - self._stats_at >= self.stats_s:
             self._stats_at = now
             self._stats = self._statistics(models)
-        with self._changed:
-            if models != self.data["managers"] or self._stats != self.data.get("stats"):
-                self.version += 1
-                self.data = {"version": self.version, "managers": models, "stats": self._stats}
-                self._changed.notify_all()
+        with self._lock:
+            if models == self.data["managers"] and self._stats == self.data.get("stats"):
+                return
+            self.version += 1
+            self.data = {"version": self.version, "managers": models, "stats": self._stats}
+            listeners = list(self._listeners)
+        for listener in listeners:
+            listener()
 
     def _statistics(self, models: list[dict[str, Any]]) -> dict[str, dict[str, dict[str, float | None]]]:
         """Per unit ("manager/unit") and port: messages per second since the last look, and the
@@ -141,11 +146,17 @@ class ModelWatch:
             del self._counts[gone]
         return out
 
-    def wait_newer(self, version: int, timeout_s: float) -> dict[str, Any]:
-        """The model once newer than ``version`` (or the current one after ``timeout_s``)."""
-        with self._changed:
-            self._changed.wait_for(lambda: self.version > version or self._closed, timeout_s)
-            return self.data
+    def listen(self, callback: Callable[[], None]) -> Callable[[], None]:
+        """Call ``callback()`` after each change; returns a function that stops it."""
+        with self._lock:
+            self._listeners.append(callback)
+
+        def stop() -> None:
+            with self._lock:
+                if callback in self._listeners:
+                    self._listeners.remove(callback)
+
+        return stop
 
     def _run(self) -> None:
         while not self._closed:
@@ -181,14 +192,28 @@ def make_app(client: Client, watch: ModelWatch, *, token: str | None = None) -> 
     async def events(request: web.Request) -> web.StreamResponse:
         response = web.StreamResponse(headers={"Content-Type": "text/event-stream", "Cache-Control": "no-store"})
         await response.prepare(request)
+        loop = asyncio.get_running_loop()
+        changed = asyncio.Event()  # no thread waits per open page: the watch wakes the loop
+
+        def wake() -> None:  # on the watch's thread
+            with contextlib.suppress(RuntimeError):  # the loop has closed: the server is stopping
+                loop.call_soon_threadsafe(changed.set)
+
+        stop = watch.listen(wake)
         version = -1
-        while True:
-            data = await asyncio.to_thread(watch.wait_newer, version, 15.0)
-            if data["version"] == version:
-                await response.write(b": keep-alive\n\n")
-                continue
-            version = data["version"]
-            await response.write(b"data: " + json.dumps(data).encode() + b"\n\n")
+        try:
+            while True:
+                data = watch.data
+                if data["version"] != version:
+                    version = data["version"]
+                    await response.write(b"data: " + json.dumps(data).encode() + b"\n\n")
+                try:
+                    await asyncio.wait_for(changed.wait(), 15.0)
+                except TimeoutError:
+                    await response.write(b": keep-alive\n\n")
+                changed.clear()
+        finally:
+            stop()
 
     async def call(request: web.Request) -> web.StreamResponse:
         if request.content_length is not None and request.content_length > MAX_CALL_BYTES:
@@ -200,8 +225,8 @@ def make_app(client: Client, watch: ModelWatch, *, token: str | None = None) -> 
             payload = body.get("request", {})
             if not isinstance(payload, dict):
                 raise ValueError("'request' must be an object")
-        except (ValueError, KeyError, TypeError) as exc:
-            return _refused("RequestError", f"not a call: {exc}; expected {{\"manager\", \"service\", \"request\", \"unit\"?}}", 400)
+        except (ValueError, KeyError, TypeError, RecursionError) as exc:
+            return _refused("RequestError", f"not a call: {str(exc)[:200]}; expected {{\"manager\", \"service\", \"request\", \"unit\"?}}", 400)
         allowed = UNIT_SERVICES if unit is not None else MANAGER_SERVICES
         if service not in allowed:
             return _refused("RequestError", f"no service {service!r}; expected one of {', '.join(allowed)}", 400)
@@ -217,20 +242,28 @@ def make_app(client: Client, watch: ModelWatch, *, token: str | None = None) -> 
         await asyncio.to_thread(watch.refresh)
         return web.json_response({"reply": reply})
 
+    streams: set[web.WebSocketResponse] = set()
+
     async def stream(request: web.Request) -> web.StreamResponse:
         key = request.query.get("key", "")
         try:
             check_key_expr(key, what="stream")
         except DyKnowError as exc:
             return _refused(type(exc).__name__, str(exc), 400)
+        if len(streams) >= MAX_STREAMS:
+            return _refused("RequestError", f"{len(streams)} streams are watched already; expected at most {MAX_STREAMS}: close a View", 429)
         socket = web.WebSocketResponse(heartbeat=20)
-        await socket.prepare(request)
-        latest = _Latest(asyncio.get_running_loop())
-        with client.declare_subscriber(key, latest.put):
-            sender = asyncio.ensure_future(_send_frames(socket, latest))
-            async for _ in socket:  # the page says nothing; this ends when it goes
-                pass
-            sender.cancel()
+        streams.add(socket)
+        try:
+            await socket.prepare(request)
+            latest = _Latest(asyncio.get_running_loop())
+            with client.declare_subscriber(key, latest.put):
+                sender = asyncio.ensure_future(_send_frames(socket, latest))
+                async for _ in socket:  # the page says nothing; this ends when it goes
+                    pass
+                sender.cancel()
+        finally:
+            streams.discard(socket)
         return socket
 
     app = web.Application(middlewares=[guard], client_max_size=MAX_CALL_BYTES + 1024)
