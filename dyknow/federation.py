@@ -92,10 +92,12 @@ class Summary:
         }
 
     @classmethod
-    def from_json(cls, data: bytes, manager: str) -> Summary:
+    def from_json(cls, data: bytes, manager: str, previous: Summary | None = None) -> Summary:
         """A summary received from the network; :class:`DyKnowError` when it is malformed or too big.
 
-        ``manager`` is who it must be about (the key or token it came with).
+        ``manager`` is who it must be about (the key or token it came with). The specs of
+        ``previous`` (the last summary of that manager) are kept when its library has not changed,
+        so a manager's every unit change does not mean reading its whole library again.
         """
         if len(data) > MAX_SUMMARY_BYTES:
             raise DyKnowError(f"a summary of {len(data)} bytes", where=f"manager {manager!r}", expected=f"at most {MAX_SUMMARY_BYTES}")
@@ -107,9 +109,13 @@ class Summary:
             units = raw.get("units", [])
             if len(specs_xml) > _MAX_ITEMS or len(units) > _MAX_ITEMS:
                 raise ValueError("too many specs or units")
+            library = str(raw.get("library", ""))[:128]
             specs: list[TransformationSpec] = []
-            for i, xml in enumerate(specs_xml):
-                specs.extend(parse_specs(str(xml), f"<summary of {manager}, spec {i}>", max_expansions=1))
+            if previous is not None and library and previous.library == library:
+                specs = list(previous.specs)
+            else:
+                for i, xml in enumerate(specs_xml):
+                    specs.extend(parse_specs(str(xml), f"<summary of {manager}, spec {i}>", max_expansions=1))
             measurements = {
                 str(k): v
                 for k, v in dict(raw.get("measurements", {})).items()
@@ -119,7 +125,7 @@ class Summary:
                 manager=manager,
                 host=str(raw.get("host", "")),
                 version=int(raw.get("version", 0)),
-                library=str(raw.get("library", ""))[:128],
+                library=library,
                 specs=tuple(specs),
                 units=tuple(_unit(u) for u in units),
                 measurements=measurements,
@@ -272,7 +278,9 @@ class Directory:
             kind = "found"
         assert data is not None
         try:
-            summary = Summary.from_json(data, manager)
+            with self._lock:
+                previous = self._summaries.get(manager)
+            summary = Summary.from_json(data, manager, previous)
         except DyKnowError as exc:
             log.warning("directory of %r: %s", self.name, exc)
             return

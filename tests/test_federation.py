@@ -39,6 +39,10 @@ def test_a_summary_round_trips_and_hostile_ones_are_refused() -> None:
     assert [s.to_xml() for s in back.specs] == [s.to_xml() for s in specs] and back.specs[0].constraints[0].measure == "battery"
     assert back.specs[0].path == "<summary of robot, spec 0>"  # errors name where it came from
     assert back == Summary("robot", "robot-host", 3, "1.1", back.specs, measurements={"battery": 0.5})
+    again = Summary.from_json(json.dumps(summary.to_dict()).encode(), "robot", back)
+    assert again.specs[0] is back.specs[0]  # the same library: its specs are not read again
+    changed = Summary.from_json(json.dumps({**summary.to_dict(), "library": "1.2"}).encode(), "robot", back)
+    assert changed.specs[0] is not back.specs[0] and changed.specs[0].to_xml() == back.specs[0].to_xml()
 
     def refused(data: bytes, manager: str = "robot") -> str:
         with pytest.raises(DyKnowError) as info:
