@@ -28,6 +28,7 @@ from dyknow.spec.model import (
     DECIMAL,
     DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
+    INT_RANGE,
     INTEGER,
     MAX_DEADLINE_MS,
     MAX_QUEUE,
@@ -438,11 +439,16 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
     priority = DEFAULT_PRIORITY
     if "priority" in first:
         element = first["priority"]
-        if INTEGER.fullmatch(element.text):
-            priority = int(element.text)
+        text = element.text
+        # the length bounds int() (which refuses over 4,300 digits) before the range does
+        if INTEGER.fullmatch(text) and len(text) <= 20 and INT_RANGE[0] <= int(text) <= INT_RANGE[1]:
+            priority = int(text)
+        elif INTEGER.fullmatch(text):
+            expected = "a whole number from -2**63 to 2**63-1 (lower is preferred)"
+            issues.add(element.line, "<priority>", f"{shorten(text)!r} is out of range", expected)
         else:
             expected = "a whole number such as 1 (lower is preferred)"
-            issues.add(element.line, "<priority>", f"{element.text!r} is not an integer", expected)
+            issues.add(element.line, "<priority>", f"{shorten(text)!r} is not an integer", expected)
 
     params, param_lines = _read_params(first.get("params"), declared, issues)
     ports, port_lines = _read_ports(first.get("ports"), declared, issues)

@@ -31,6 +31,7 @@ from dyknow.spec.model import (
     TransformationSpec,
     convert_param,
     one_of,
+    shorten,
 )
 from dyknow.tags import parse_term
 
@@ -135,7 +136,7 @@ class Template:
             try:
                 value = convert_param(param.type, text)
             except ValueError as exc:
-                problems.append((line, f"<param> {param.name!r}", f"value {text!r} is not a valid {param.type}", str(exc)))
+                problems.append((line, f"<param> {param.name!r}", f"value {shorten(text)!r} is not a valid {param.type}", str(exc)))
                 value = text
             params.append(Param(param.name, param.type, value, param.mode))
 
@@ -166,10 +167,13 @@ class Template:
         for constraint, line in zip(self.constraints, self.constraint_lines, strict=True):
             text = sub(str(constraint.value))
             if NUMBER.fullmatch(text):
-                constraints.append(replace(constraint, value=float(text)))
+                value = float(text)
+                if not math.isfinite(value):  # 1e309: it would compare as infinity and write itself back as 'inf'
+                    problems.append((line, "<constraint> @value", f"{shorten(text)!r} is out of range", "a finite number such as 0.25"))
+                constraints.append(replace(constraint, value=value))
                 continue
             if constraint.op not in ("==", "!="):
-                problem = f"{text!r} is not a number, so op {constraint.op!r} cannot compare it"
+                problem = f"{shorten(text)!r} is not a number, so op {constraint.op!r} cannot compare it"
                 problems.append((line, "<constraint> @value", problem, "a number, or op == or !="))
             constraints.append(replace(constraint, value=text))
 

@@ -342,6 +342,13 @@ def test_an_unknown_xml_encoding_is_a_located_error(tmp_path: pathlib.Path, decl
         ('<params><param name="v" type="float">1e309</param></params>', "value '1e309' is not a valid float; expected a finite number such as 0.5"),
         ('<params><param name="v" type="float">nan</param></params>', "is not a valid float"),
         ('<params><param name="n" type="int">99999999999999999999999</param></params>', "expected a whole number from -2**63 to 2**63-1"),
+        # found by fuzzing: int() refuses over 4,300 digits with a ValueError, which escaped the loader
+        ("<priority>" + "9" * 5000 + "</priority>", "<priority>: '999999999999999999999999999...' is out of range"),
+        ("<priority>9223372036854775808</priority>", "expected a whole number from -2**63 to 2**63-1 (lower is preferred)"),
+        ('<params><param name="n" type="int">' + "9" * 5000 + "</param></params>", "value '999999999999999999999999999...' is not a valid int"),
+        # found by fuzzing: a constraint value of 1e309 compared as infinity and wrote itself back as 'inf'
+        ('<constraints><constraint measure="battery" op="&lt;" value="1e309"/></constraints>', "'1e309' is out of range; expected a finite number"),
+        ('<constraints><constraint measure="battery" op="==" value="' + "9" * 400 + '"/></constraints>', "<constraint> @value: '99999"),
     ],
 )
 def test_out_of_range_numbers_are_refused_where_they_are_written(tmp_path: pathlib.Path, fragment: str, says: str) -> None:
