@@ -256,7 +256,7 @@ class TransformationSpec:
         if args:
             out.append("  <args>")
             # Arg values are not templates: they need XML escaping but no "$$".
-            out.extend(f"    <arg label={quoteattr(name)}>{{{escape(value)}}}</arg>" for name, value in args)
+            out.extend(f"    <arg label={quoteattr(name)}>{{{escape(value, _CARRIAGE_RETURN)}}}</arg>" for name, value in args)
             out.append("  </args>")
         if self.params:
             out.append("  <params>")
@@ -323,9 +323,14 @@ def shorten(text: str, limit: int = 30) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+# A parser turns a carriage return written as such into a newline (XML's line-end rule); only a
+# character reference keeps it.
+_CARRIAGE_RETURN = {"\r": "&#13;"}
+
+
 def _xml_text(text: str) -> str:
     """A templated field as element text: '$' doubled, then XML-escaped."""
-    return escape(text.replace("$", "$$"))
+    return escape(text.replace("$", "$$"), _CARRIAGE_RETURN)
 
 
 def _xml_attr(text: str) -> str:

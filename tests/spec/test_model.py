@@ -108,3 +108,20 @@ def test_to_xml_escapes_xml_and_dollar() -> None:
     assert xmlschema.XMLSchema(XSD).is_valid(s.to_xml())
 
 
+def test_to_xml_keeps_a_carriage_return() -> None:
+    """Found by fuzzing: a '\r' (from '&#13;' in a spec) was written as such, and XML reads a
+    written carriage return as a newline, so the spec came back changed."""
+    s = TransformationSpec(
+        label="a\rb",
+        source="m:C",
+        params=(Param("text", "string", "x\ry"),),
+        ports=(Port("o", "out"),),
+        tags=(Tag("o", "F(\ra)"),),
+        constraints=(Constraint("mode", "==", "p\rq"),),
+        description="one\rtwo\r\nthree",
+        args=(("Cam", "c\rd"),),
+    )
+    (back,) = parse_specs(s.to_xml(), "round.xml")
+    assert without_location(back) == without_location(s)
+
+
