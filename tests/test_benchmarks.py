@@ -153,3 +153,24 @@ def test_ui_benchmark_smoke(tmp_path: Path) -> None:
     assert [r["target"] for r in rows] == ["<= 1500 ms", "<= 1000 ms", ">= 15 frames/s", "rise <= 5 %"]
     assert rows[0]["value_ms"] > 0 and rows[1]["p50_ms"] > 0 and rows[2]["frames_per_s"] > 0 and rows[3]["closed_ms"] > 0
     assert "image view:" in result.stdout and "target" in result.stdout
+
+
+def test_soak_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "soak.json"
+    result = _run("soak.py", "--minutes", "0.1", "--relays", "3", "--rate-hz", "200", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert {"cpu", "cores", "python", "zenoh"} <= set(data["machine"])
+    config = data["config"]
+    assert (config["minutes"], config["relays"], config["rate_hz"], config["payload_bytes"]) == (0.1, 3, 200.0, 16)
+    r = data["results"]
+    assert r["sent"] > 0 and 0 <= r["received"] <= r["sent"] and r["lost"] == r["sent"] - r["received"]
+    assert r["explained"] == sum(c["count"] for c in r["explained_by"])
+    assert r["sent"] == r["received"] + r["explained"] + r["unexplained"]
+    assert isinstance(r["balanced"], bool) and r["units_not_running"] == {}
+    assert r["age_ms"]["count"] == r["received"] + r["duplicates"]
+    assert 0 < r["age_ms"]["p50"] <= r["age_ms"]["p99"] <= r["age_ms"]["max"]
+    rss = r["manager"]["rss"]
+    assert rss["target_mb_per_min"] == 0.5 and "second half" in rss["window"] and isinstance(rss["met"], bool)
+    assert len(r["manager"]["rss_samples"]) >= 2 and r["manager"]["exit_code"] == 0
+    assert "unexplained" in result.stdout and "target < 0.5 MB/min" in result.stdout
