@@ -377,6 +377,16 @@ class Monitor:
         live = {(p.unit, p.port) for p in ports}
         for gone in [k for k in self._seen if k not in live]:
             del self._seen[gone]
+        if knowledge.stalled:  # a stalled unit destroyed meanwhile is forgotten
+            knowledge.stalled.intersection_update(p.unit for p in ports)
+
+    def watched(self) -> int:
+        """How many (unit, port) deadlines the monitor follows."""
+        return len(self._seen)
+
+    def watches(self, unit: str) -> bool:
+        """Whether the monitor follows a deadline of ``unit``."""
+        return any(name == unit for name, _ in list(self._seen))
 
 
 # ---------------------------------------------------------------------------- analyzer
@@ -752,9 +762,10 @@ class AdaptationLoop:
             self.reconfigurer.cleanup([request.anchor, *orphans])
 
     def requests(self) -> list[RequestInfo]:
-        """The active requests, by key."""
-        with self._lock:
-            return [r.info() for r in sorted(self.knowledge.requests.values(), key=lambda r: r.key)]
+        """The active requests, by key. Never waits for a request being planned or adapted (the
+        model's readers call it): ``list()`` of a dict's values is one step for other threads."""
+        requests = list(self.knowledge.requests.values())
+        return [r.info() for r in sorted(requests, key=lambda r: r.key)]
 
     def _anchor_name(self, tag: str) -> str:
         base = "request-" + "".join(c if c.isalnum() or c in "_-." else "-" for c in tag).strip("-")
@@ -788,9 +799,9 @@ class AdaptationLoop:
         return lambda: self._listeners.remove(listener) if listener in self._listeners else None
 
     def history(self) -> list[AdaptationEvent]:
-        """Every adaptation so far, oldest first (each with its recovery time once recovered)."""
-        with self._lock:
-            return list(self.knowledge.history)
+        """Every adaptation so far, oldest first (each with its recovery time once recovered);
+        a copy taken without waiting for an adaptation in progress."""
+        return list(self.knowledge.history)
 
     def _emit(self, event: AdaptationEvent) -> None:
         history = self.knowledge.history
@@ -822,6 +833,8 @@ class AdaptationLoop:
             self._report(Symptom("spawned", event.time_ns, unit=event.unit))  # may bring deadlines to watch
         elif event.unit in self.knowledge.managed or any(event.unit in r.units for r in self.knowledge.requests.values()):
             self.monitor.unit_event(event)
+        elif event.kind == "destroyed" and self.monitor.watches(event.unit):
+            self._report(Symptom("spawned", event.time_ns, unit=event.unit))  # a tick forgets its deadlines
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Stop the loop's thread (waiting up to ``timeout_s``) and destroy what its requests run
@@ -869,7 +882,7 @@ class AdaptationLoop:
 
     def _handle(self, symptom: Symptom) -> None:
         if symptom.kind == "spawned":
-            return  # only wakes the loop up
+            return  # only wakes the loop up (for a tick: deadlines to watch, or to forget)
         if symptom.kind in ("failed", "destroyed") and symptom.unit is not None and self._later_unit(symptom.unit, symptom.time_ns):
             return  # about an earlier unit of that name (one the loop replaced since): nothing to do
         knowledge = self.knowledge

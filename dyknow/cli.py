@@ -213,7 +213,9 @@ def cmd_plan(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------- the manager
 
 
-def _wait_for_signal() -> None:
+def _stop_event() -> threading.Event:
+    """An event SIGINT and SIGTERM set: install it before saying "ready", so that a signal sent
+    as soon as the ready line is read stops the process cleanly instead of killing it."""
     stop = threading.Event()
 
     def handler(signum: int, frame: object) -> None:
@@ -221,6 +223,10 @@ def _wait_for_signal() -> None:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def _wait_for(stop: threading.Event) -> None:
     while not stop.wait(0.5):
         pass
 
@@ -263,12 +269,13 @@ def cmd_manager(args: argparse.Namespace) -> int:
         gc.collect()
         gc.freeze()
         endpoints = manager.endpoints
+        stop = _stop_event()
         _report(
             args,
             {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library)},
             f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs; Ctrl-C to stop",
         )
-        _wait_for_signal()
+        _wait_for(stop)
     if not args.json:
         print(f"dyknow manager {args.name!r} stopped", flush=True)
     return 0
@@ -405,12 +412,13 @@ def cmd_router(args: argparse.Namespace) -> int:
     config = make_config(listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, mode="router", lease_ms=args.lease_ms)
     with Session(config) as session:
         endpoints = session.endpoints()
+        stop = _stop_event()
         _report(
             args,
             {"event": "ready", "router": session.zid, "endpoints": endpoints},
             f"dyknow router ready on {', '.join(endpoints)}; Ctrl-C to stop",
         )
-        _wait_for_signal()
+        _wait_for(stop)
     if not args.json:
         print("dyknow router stopped", flush=True)
     return 0

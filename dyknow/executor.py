@@ -14,8 +14,8 @@ Isolation still holds, by two rules:
    finally returns, its thread stays with that unit as the unit's own lane.
 
 So a slow unit delays the others (its upstream among them) at most once, by about the stall
-budget (plus up to 0.1 s when it is the first callback after a long idle spell, since an idle
-watchdog polls slowly), and never again. Units that declare ``dedicated_thread = True`` get their own lane from
+budget, and never again (an idle watchdog polls slowly; the shared lane wakes it when work
+arrives). Units that declare ``dedicated_thread = True`` get their own lane from
 the start. A unit's callbacks never run concurrently: each job carries a lock and runs on one
 thread at a time.
 
@@ -132,6 +132,11 @@ class Lane:
             with self._timer_lock:
                 heapq.heappush(self._timers, (timer.next_ns, next(_tie), timer))
 
+    def timer_count(self) -> int:
+        """How many timers the lane holds."""
+        with self._timer_lock:
+            return len(self._timers)
+
     def take_timers_of(self, job: Job) -> list[Timer]:
         """Remove and return the timers of ``job`` (it moves to another lane)."""
         with self._timer_lock:
@@ -190,6 +195,7 @@ class Worker:
         except (AttributeError, OSError):
             self._cpu_clock = None
         lane = self.lane
+        executor = lane.executor
         get, get_nowait = lane.ready.get, lane.ready.get_nowait
         monotonic_ns = time.monotonic_ns
         while True:
@@ -215,6 +221,8 @@ class Worker:
             elif job.lane is not lane:  # moved to a lane of its own while queued here
                 job.lane.put(job)
             else:
+                if executor.dozing and lane.shared:  # the watchdog polls slowly: it watches from now
+                    executor.wake_watchdog()
                 job.run(self)
             if self.released:
                 stuck, self.stuck_job, self.released = self.stuck_job, None, False
@@ -256,6 +264,8 @@ class Executor:
         self.shared = Lane(self, f"{name}-shared", shared=True)
         Worker(self.shared).start()
         self._stop = threading.Event()
+        self._poke = threading.Event()  # wakes a dozing watchdog (set by close, too)
+        self.dozing = False  # the watchdog polls slowly: the shared lane was idle
         self._watchdog = threading.Thread(target=self._watch, name=f"dyknow-{name}-watchdog", daemon=True)
         self._watchdog.start()
 
@@ -316,6 +326,17 @@ class Executor:
             lane.take_timers_of(job)
             lane.put(_STOP)
 
+    def lanes(self) -> int:
+        """How many lanes (so threads serving units) there are: the shared one and the units' own."""
+        with self._lock:
+            return 1 + len(self._own)
+
+    def timers(self) -> int:
+        """How many timers are scheduled on all lanes (cancelled ones leave at their next tick)."""
+        with self._lock:
+            lanes = [self.shared, *self._own.values()]
+        return sum(lane.timer_count() for lane in lanes)
+
     def add_timer(self, job: Job, period_s: float, callback: Callable[[], None], first_s: float | None = None) -> Timer:
         """A timer calling ``callback`` every ``period_s`` on the job's lane (first after ``first_s``, default one period)."""
         if period_s <= 0:
@@ -327,6 +348,11 @@ class Executor:
         return timer
 
     # -- watchdog
+
+    def wake_watchdog(self) -> None:
+        """Work starts on the shared lane while the watchdog dozes: it polls at full rate again."""
+        self.dozing = False
+        self._poke.set()
 
     def _watch(self) -> None:
         """Hand the shared lane over when one callback really holds it for the stall budget.
@@ -347,7 +373,12 @@ class Executor:
         # While the lane stays idle the watchdog polls less and less often (up to 10 times a
         # second), so that idle managers cost nothing; the first busy poll brings it back.
         pause_s = interval_s
-        while not self._stop.wait(pause_s):
+        while True:
+            self._poke.wait(pause_s)
+            if self._stop.is_set():
+                return
+            self._poke.clear()
+            self.dozing = False
             worker = self.shared.worker
             if worker is None:
                 continue
@@ -355,6 +386,7 @@ class Executor:
             if not since or job is None:
                 watched = None
                 pause_s = min(_IDLE_POLL_S, pause_s * 2)
+                self.dozing = pause_s > interval_s
                 continue
             pause_s = interval_s
             cpu_now = worker.cpu_ns()
@@ -401,6 +433,7 @@ class Executor:
             lanes = [self.shared, *self._own.values()]
             self._own.clear()
         self._stop.set()
+        self._poke.set()
         for lane in lanes:
             lane.put(_STOP)
         deadline = time.monotonic() + timeout_s

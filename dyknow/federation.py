@@ -166,6 +166,7 @@ class Directory:
         self._fetch = fetch
         self._on_change = on_change
         self._debounce_s = debounce_s
+        self._publish_s = 0.0  # how long building and sending the last summary took
         self._lock = threading.Lock()
         self._alive: set[str] = set()
         self._summaries: dict[str, Summary] = {}
@@ -250,9 +251,13 @@ class Directory:
                 except Exception:
                     log.exception("directory of %r: cannot handle %s of %r", self.name, kind, manager)
             if self._dirty.is_set():
-                time.sleep(self._debounce_s)  # let a burst of changes settle into one summary
+                # let a burst of changes settle into one summary; a big manager's summary costs
+                # more to build, so it is built less often (at most a fifth of the thread's time)
+                time.sleep(max(self._debounce_s, 4 * self._publish_s))
                 self._dirty.clear()
+                started = time.perf_counter()
                 self._publish()
+                self._publish_s = time.perf_counter() - started
 
     def _handle(self, kind: str, manager: str, data: bytes | None) -> None:
         if kind != "retry":

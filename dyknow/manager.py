@@ -30,6 +30,7 @@ import math
 import os
 import re
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -48,6 +49,7 @@ from dyknow.library import Library
 from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
+from dyknow.receiver import Receiver
 from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
 from dyknow.spec.model import convert_param
@@ -135,6 +137,8 @@ class Manager:
         self._queue_depth = queue_depth
         self._lock = threading.RLock()
         self._units: dict[str, Proxy] = {}
+        self._deadlines: dict[str, Proxy] = {}  # the units with deadline-ms outputs (the monitor watches them)
+        self._starting: dict[str, threading.Lock] = {}  # units being spawned: held until spawn returns
         self._closed = False
         access = acl if isinstance(acl, AccessControl) or acl is None else AccessControl.load(acl)
         self._tls = tls.check() if tls is not None else None
@@ -148,9 +152,11 @@ class Manager:
         self._started_ns = time.time_ns()
         self._directory: Directory | None = None
         self._bus = LocalBus()
+        self._receiver = Receiver(self._session, self.name)
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._services: Queryable | None = None
+        self._workers: service.Workers | None = None
         self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
         self.on_unit_event(self._adaptation.unit_event)
         self._measurement_subs = []
@@ -162,9 +168,11 @@ class Manager:
             raise
         if serve:
             try:
+                self._workers = service.Workers(self.name)
                 self._services = self._session.declare_queryable(
                     keys.services_pattern(self.name),
                     service.dispatcher(self.name, self._manager_handlers(), self._unit_service, limits),
+                    self._workers.dispatch,
                 )
             except DyKnowError:
                 self.close()
@@ -208,6 +216,9 @@ class Manager:
                 sub.undeclare()
             proxies = list(self._units.values())
             self._units.clear()
+            self._deadlines.clear()
+        if self._workers is not None:
+            self._workers.close(timeout_s / 4)
         self._adaptation.close(timeout_s / 2)  # releases what its requests run on other managers
         if self._directory is not None:
             self._directory.close(timeout_s / 4)
@@ -215,6 +226,7 @@ class Manager:
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
         self._executor.close(timeout_s)
+        self._receiver.close()
         self._session.close()
 
     @property
@@ -325,10 +337,11 @@ class Manager:
             keys.check_name(name, "unit name")
             if isinstance(label, TransformationSpec) and not remote:
                 self._trust([label])
-            if name in self._units:
-                running = self._units[name]
+            if name in self._units or name in self._starting:
+                running = self._units.get(name)
+                state = f"label {running.label!r}, {running.state.value}" if running is not None else "being spawned"
                 raise UnitError(
-                    f"a unit named {name!r} already exists (label {running.label!r}, {running.state.value})",
+                    f"a unit named {name!r} already exists ({state})",
                     where=f"manager {self.name!r}",
                     expected="another name, or destroy it first",
                 )
@@ -336,12 +349,22 @@ class Manager:
             values = _param_values(spec, params or {})
             ports = _bindings(spec, self.name, name, bindings or {})
             confine = remote or (isinstance(label, str) and label in self._remote_labels)
+            # The name is taken; the rest (import, setup()) runs without the manager's lock, so
+            # other calls go on meanwhile. Calls that change this unit wait for the gate.
+            gate = threading.Lock()
+            gate.acquire()
+            self._starting[name] = gate
+        try:
             return self._start(spec, name, protected=protected, values=values, ports=ports, confine=confine)
+        finally:
+            with self._lock:
+                del self._starting[name]
+            gate.release()
 
     def _start(
         self, spec: TransformationSpec, name: str, *, protected: bool, values: dict[str, Any], ports: dict[str, str], confine: bool = False
     ) -> UnitInfo:
-        """Import, create and start a unit (the manager lock is held)."""
+        """Import, create and start a unit (its name is reserved; the manager lock is not held)."""
         cls = _import_unit(spec, self._sources)
         if confine:  # file params, as the spec declares them and as the (trusted) class does
             modes = {p.name: p.mode or "read" for p in spec.params if p.type == "path"} | dict(cls.path_params)
@@ -360,26 +383,48 @@ class Manager:
             bindings=ports,
             session=self._session,
             bus=self._bus,
+            receiver=self._receiver,
             executor=self._executor,
             protected=protected,
             queue_depth=self._queue_depth,
             on_failure=self._unit_failed,
             on_destroy_request=self._destroy_requested,
         )
-        self._units[name] = proxy
+        with self._lock:
+            self._check_open()
+            self._units[name] = proxy
+            if any(port.deadline_ms for port in spec.outputs):
+                self._deadlines[name] = proxy
         proxy.start()
+        if self._closed:  # closed while it started: close() did not see it
+            proxy.stop(0.5)
+            self._check_open()
         if proxy.state is not UnitState.FAILED:
             self._emit("spawned", proxy)
         return _info(proxy)
 
+    def _settled(self, name: str, timeout_s: float = 60.0) -> None:
+        """Wait until a spawn of ``name`` in flight has returned (calls on one unit stay in order)."""
+        with self._lock:
+            gate = self._starting.get(name)
+        if gate is None:
+            return
+        if not gate.acquire(timeout=timeout_s):
+            raise UnitError(f"still starting after {timeout_s:.0f} s", where=f"unit {name!r}", expected="a unit whose setup() returns")
+        gate.release()
+
     def destroy(self, name: str) -> None:
-        """Stop unit ``name`` and remove it from the model. Refused for protected units."""
+        """Stop unit ``name`` and remove it from the model. Refused for protected units.
+
+        A unit still being spawned is destroyed once its spawn returns."""
+        self._settled(name)
         with self._lock:
             self._check_open()
             proxy = self._proxy(name)
             if proxy.protected:
                 raise UnitError("the unit is protected (spawned with protected=True), so it cannot be destroyed", where=f"unit {name!r}")
             del self._units[name]
+            self._deadlines.pop(name, None)
         proxy.stop()
         log.info("unit %r destroyed", name)
         self._emit("destroyed", proxy)
@@ -389,6 +434,7 @@ class Manager:
             if self._closed or self._units.get(proxy.name) is not proxy:
                 return
             del self._units[proxy.name]
+            self._deadlines.pop(proxy.name, None)
         proxy.stop()
         log.info("unit %r destroyed itself", proxy.name)
         self._emit("destroyed", proxy)
@@ -433,7 +479,7 @@ class Manager:
     def deadline_ports(self) -> list[DeadlinePort]:
         """The output ports with a ``deadline-ms`` of every live unit, with their message counts."""
         with self._lock:
-            proxies = list(self._units.values())
+            proxies = list(self._deadlines.values())
         return [
             DeadlinePort(proxy.name, proxy.label, port.name, int(port.deadline_ms * 1e6), proxy.published(port.name), proxy.started_ns)
             for proxy in proxies
@@ -441,6 +487,24 @@ class Manager:
             for port in proxy.spec.outputs
             if port.deadline_ms
         ]
+
+    def resources(self) -> dict[str, int]:
+        """What the manager holds for its units, by kind: every count returns to its value before
+        a unit was spawned once the unit is destroyed (nothing grows with spawns and destroys)."""
+        with self._lock:
+            counts = {
+                "units": len(self._units),
+                "starting": len(self._starting),
+                "deadline_units": len(self._deadlines),
+                "owners": len(self._owners),
+            }
+        counts["bus_ports"] = len(self._bus)
+        counts["subscribers"] = len(self._receiver)
+        counts["routes"] = self._receiver.routes()
+        counts["lanes"] = self._executor.lanes()
+        counts["timers"] = self._executor.timers()
+        counts["watched_deadlines"] = self._adaptation.monitor.watched()
+        return counts
 
     def publish_event(self, kind: str, event: Mapping[str, Any]) -> None:
         """Publish ``event`` as JSON on ``dyknow/<manager>/events/<kind>`` (adaptations, say)."""
@@ -573,6 +637,7 @@ class Manager:
     def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
         """Rebind ports of unit ``name`` atomically at runtime; returns the new bindings."""
         self._check_open()
+        self._settled(name)
         return self._proxy(name).set_config(bindings)
 
     def get_statistics(self, name: str) -> UnitStatistics:
@@ -729,7 +794,8 @@ def _import_unit(spec: TransformationSpec, sources: SourcePolicy) -> type[Unit]:
         raise UnitError(f"source {spec.source!r} is not importable", where=where, expected="'package.module:Class'")
     sources.check(spec.source, where)  # before anything is imported
     try:
-        module = importlib.import_module(module_name)
+        # imported already: skip the import machinery (it keeps a little for every call)
+        module = sys.modules.get(module_name) or importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
         raise UnitError(
             f"cannot import module {module_name!r} named in its source: {exc}",

@@ -28,7 +28,6 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from functools import partial
 from threading import get_ident
 from time import time_ns
 from typing import TYPE_CHECKING, Any
@@ -45,8 +44,9 @@ from dyknow.unit import Unit
 if TYPE_CHECKING:
     from dyknow.bus import LocalBus
     from dyknow.executor import Executor, Lane, Timer, Worker
+    from dyknow.receiver import Receiver
     from dyknow.spec import TransformationSpec
-    from dyknow.transport import LivelinessSubscriber, LivelinessToken, Publisher, Session, Subscriber
+    from dyknow.transport import LivelinessSubscriber, LivelinessToken, Publisher, Session
 
 __all__ = ["DEFAULT_QUEUE_DEPTH", "InputPort", "OutputPort", "Proxy", "UnitState", "UnitStatistics"]
 
@@ -78,7 +78,7 @@ _FAILED = UnitState.FAILED
 class InputPort:
     """An input port: its key, its bounded queue, its counters."""
 
-    __slots__ = ("counters", "depth", "job", "keep_last", "key", "name", "queue", "subscriber")
+    __slots__ = ("counters", "depth", "job", "keep_last", "key", "name", "queue")
 
     def __init__(self, job: Proxy, name: str, key: str, depth: int, keep_last: bool) -> None:
         self.job = job
@@ -89,10 +89,10 @@ class InputPort:
         # keep-last: the deque's maxlen drops the oldest; drop-new: deliver() refuses when full
         self.queue: deque[Message] = deque(maxlen=depth if keep_last else None)
         self.counters = PortCounters()
-        self.subscriber: Subscriber | None = None
 
     def deliver(self, msg: Message) -> None:
-        """Queue ``msg`` and make sure the unit will run. Any thread; never blocks."""
+        """Queue ``msg`` and make sure the unit will run. Any thread (Zenoh's receiving thread
+        among them); never blocks."""
         q = self.queue
         if len(q) >= self.depth:
             self.counters.dropped += 1
@@ -104,22 +104,6 @@ class InputPort:
         if not job.scheduled:
             job.scheduled = True
             job.lane.put(job)
-
-
-class _Bystander:
-    """Stands in for a lane worker when a Zenoh receiving thread runs a unit (not watched)."""
-
-    __slots__ = ("busy_job", "busy_since_ns")
-
-    def __init__(self) -> None:
-        self.busy_since_ns = 0
-        self.busy_job: Proxy | None = None
-
-
-_REMOTE_THREAD = _Bystander()
-
-# A unit whose callbacks average under this may run on the thread that received its message.
-_INLINE_BUDGET_NS = 200_000
 
 
 class OutputPort:
@@ -198,6 +182,7 @@ class Proxy:
         bindings: Mapping[str, str],
         session: Session,
         bus: LocalBus,
+        receiver: Receiver,
         executor: Executor,
         protected: bool = False,
         queue_depth: int = DEFAULT_QUEUE_DEPTH,
@@ -217,6 +202,7 @@ class Proxy:
         self.started_ns = time_ns()
         self._session = session
         self._bus = bus
+        self._receiver = receiver
         self._executor = executor
         self._slow_ns = executor.slow_callback_ns
         self._on_failure = on_failure
@@ -225,11 +211,10 @@ class Proxy:
         self.scheduled = False
         self._lock = threading.Lock()  # held while one of the unit's callbacks runs
         self._config_lock = threading.Lock()
-        self._calls: deque[Callable[[], None]] = deque()
+        self._calls: deque[tuple[Callable[[], None], str]] = deque()  # control calls for the unit's lane
         self._current: Message | None = None
         self._current_thread = 0
         self._ewma_ns = 0  # moving average of the unit's callback times
-        self._inline_ns = _INLINE_BUDGET_NS  # on the shared lane, not isolated (yet)
         self._destroy_requested = False
         self._timers: list[Timer] = []
         self._stop = threading.Event()
@@ -262,11 +247,8 @@ class Proxy:
 
     @isolation.setter
     def isolation(self, reason: str | None) -> None:
-        # Every move off the shared lane sets a reason (the executor tells on_isolated()). A unit
-        # on the shared lane may run on the thread that received its message while its callbacks
-        # average under the budget: deliver_remote() compares the average with _inline_ns.
+        # Every move off the shared lane sets a reason (the executor tells on_isolated()).
         self._isolation = reason
-        self._inline_ns = _INLINE_BUDGET_NS if reason is None else -1
 
     @property
     def alive(self) -> bool:
@@ -293,9 +275,11 @@ class Proxy:
             finally:
                 self._current_thread = 0
             self._setup_done = True
+        if self._calls and not self.scheduled:  # queued while setup() held the lock (say, a rebinding)
+            self.scheduled = True
+            self.lane.put(self)
         try:
-            for inp in self._input_seq:
-                inp.subscriber = self._session.declare_subscriber(inp.key, partial(self.deliver_remote, inp), self._on_remote_error)
+            self._receiver.attach(self._input_seq)
             self._bus.attach(self._input_seq, ())
         except Exception as exc:
             self._fail(exc, "binding its input ports")
@@ -348,10 +332,8 @@ class Proxy:
 
     def _detach_inputs(self) -> None:
         self._bus.detach(self._input_seq, ())
+        self._receiver.detach(self._input_seq)
         for inp in self._input_seq:
-            if inp.subscriber is not None:
-                inp.subscriber.undeclare()
-                inp.subscriber = None
             inp.queue.clear()
 
     def _fail(self, exc: BaseException, where: str) -> None:
@@ -370,9 +352,6 @@ class Proxy:
                 self._on_failure(self)
             except Exception:
                 log.exception("failure listener of unit %r failed", self.name)
-
-    def _on_remote_error(self, exc: BaseException) -> None:
-        log.warning("unit %r: a message from another process could not be decoded: %s", self.name, exc)
 
     def on_isolated(self, reason: str) -> None:
         """Told by the executor that the unit now has a thread of its own, and why."""
@@ -403,59 +382,13 @@ class Proxy:
             return  # running on another thread right now; it drains before releasing
         self.run_locked(worker)
 
-    def deliver_remote(self, port: InputPort, msg: Message) -> None:
-        """Queue a message from another process and, when the unit is quick and free, run it here.
-
-        This runs on the Python thread Zenoh keeps for the port's subscriber: handling the
-        message right away saves a thread hand-off to the lane (20-40 µs); a unit that is busy,
-        slow or isolated gets the message through its queue and lane instead. (Zenoh could call
-        us on its receiving thread and save another 10 µs per message, but one slow callback
-        there would hold up every stream arriving over the same link.)
-        """
-        q = port.queue
-        inline = self._ewma_ns < self._inline_ns  # proven quick, on the shared lane
-        if not q and inline and self._lock.acquire(False):
-            if self.state is not _RUNNING or self._calls:
-                q.append(msg)  # let the general path sort it out
-                self.run_locked(_REMOTE_THREAD)
-                return
-            # the common case, spelled out because it runs for every remote message: nothing
-            # queued, the unit running, free and quick
-            now = time_ns()
-            self._current = msg
-            self._current_thread = get_ident()
-            try:
-                self.unit.on_message(port.name, msg)
-            except (Exception, SystemExit) as exc:
-                self._current = None
-                self._fail(exc, f"on_message({port.name!r})")
-            finally:
-                self._current = None
-                self._current_thread = 0
-                self._lock.release()
-            # bookkeeping after the callback, off the path of what the unit published
-            port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
-            self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
-            if self._destroy_requested or self._ewma_ns > self._slow_ns:
-                self._after_callbacks()
-            return
-        if len(q) >= port.depth:
-            port.counters.dropped += 1
-            if not port.keep_last:
-                return
-        q.append(msg)
-        if inline and self._lock.acquire(False):
-            self.run_locked(_REMOTE_THREAD)
-        elif not self.scheduled:
-            self.scheduled = True
-            self.lane.put(self)
-
-    def run_locked(self, worker: Worker | _Bystander) -> None:
+    def run_locked(self, worker: Worker) -> None:
         """``run`` once the unit's lock is held; releases it."""
         lock = self._lock
         try:
             while self._calls:
-                self._call(self._calls.popleft(), worker, "on_reconfigure()")
+                fn, where = self._calls.popleft()
+                self._call(fn, worker, where)
             if self.state is UnitState.RUNNING:
                 self._drain(worker)
         finally:
@@ -463,7 +396,7 @@ class Proxy:
         if self._destroy_requested or (self.lane.shared and self._ewma_ns > self._slow_ns):
             self._after_callbacks()
 
-    def _drain(self, worker: Worker | _Bystander) -> None:
+    def _drain(self, worker: Worker) -> None:
         on_message = self.unit.on_message
         ports = self._input_seq
         ident = get_ident()
@@ -518,7 +451,7 @@ class Proxy:
             self._lock.release()
         self._after_callbacks()
 
-    def _call(self, fn: Callable[[], None], worker: Worker | _Bystander, where: str) -> None:
+    def _call(self, fn: Callable[[], None], worker: Worker, where: str) -> None:
         self._current = None
         self._current_thread = get_ident()
         worker.busy_job = self
@@ -545,8 +478,9 @@ class Proxy:
             log.info("unit %r moves to a thread of its own: %s", self.name, self.isolation)
             self._executor.isolate(self)
 
-    def _call_soon(self, fn: Callable[[], None]) -> None:
-        self._calls.append(fn)
+    def _call_soon(self, fn: Callable[[], None], where: str) -> None:
+        """Run ``fn`` on the unit's lane, under its lock, before its next messages (any thread)."""
+        self._calls.append((fn, where))
         if not self.scheduled:
             self.scheduled = True
             self.lane.put(self)
@@ -601,9 +535,15 @@ class Proxy:
         self._fail(UnitError(reason), "reported by the unit")
 
     def watch_liveliness(self, key_expr: str, on_change: Callable[[str, bool], None]) -> None:
-        """Call ``on_change(key, alive)`` as producers on ``key_expr`` appear and vanish (until stop)."""
+        """Call ``on_change(key, alive)`` as producers on ``key_expr`` appear and vanish (until stop),
+        on the unit's lane like its other callbacks."""
         check_key_expr(key_expr, what=f"liveliness watch of unit {self.name!r}")
-        self._watches.append(self._session.declare_liveliness_subscriber(key_expr, on_change))
+
+        def changed(key: str, alive: bool) -> None:  # on Zenoh's thread: hand it to the unit's lane
+            if self.alive:
+                self._call_soon(lambda: on_change(key, alive), "a liveliness callback")
+
+        self._watches.append(self._session.declare_liveliness_subscriber(key_expr, changed, inline=True))
 
     def has_subscribers(self, port: str) -> bool:
         """Whether a local input or a remote subscriber receives output ``port`` now."""
@@ -664,17 +604,15 @@ class Proxy:
                 return current
             new_pubs: dict[str, Publisher] = {}
             new_tokens: dict[str, LivelinessToken] = {}
-            new_subs: dict[str, Subscriber] = {}
             try:
                 for port, key in effective.items():
                     if port in self._outputs:
                         new_pubs[port] = self._session.declare_publisher(key)
                         new_tokens[port] = self._session.declare_liveliness_token(keys.port_token(key))
-                    elif self.state is UnitState.RUNNING:
-                        inp = self._inputs[port]
-                        new_subs[port] = self._session.declare_subscriber(key, partial(self.deliver_remote, inp), self._on_remote_error)
+                if self.state is UnitState.RUNNING:  # its inputs receive from other processes
+                    self._receiver.rebind([(self._inputs[p], key) for p, key in effective.items() if p in self._inputs])
             except Exception:
-                for entity in (*new_pubs.values(), *new_tokens.values(), *new_subs.values()):
+                for entity in (*new_pubs.values(), *new_tokens.values()):
                     entity.undeclare()
                 raise
             old: list[Any] = []  # entities to undeclare once the switch is done
@@ -687,16 +625,12 @@ class Proxy:
                 (self._inputs[p] if p in self._inputs else self._outputs[p], key) for p, key in effective.items()
             ]
             self._bus.rebind(moves)
-            for port, sub in new_subs.items():
-                inp = self._inputs[port]
-                old.append(inp.subscriber)
-                inp.subscriber = sub
             for entity in old:
                 if entity is not None:
                     entity.undeclare()
             self.reconfigurations += 1
             unit = self.unit
-            self._call_soon(lambda: unit.on_reconfigure(dict(effective)))
+            self._call_soon(lambda: unit.on_reconfigure(dict(effective)), "on_reconfigure()")
             return self.get_config()
 
     def get_statistics(self) -> UnitStatistics:

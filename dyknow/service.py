@@ -27,6 +27,8 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import queue
+import threading
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -36,9 +38,11 @@ from dyknow.security import Limits
 
 __all__ = [
     "MANAGER_SERVICES",
+    "READ_ONLY_SERVICES",
     "SCHEMAS",
     "UNIT_SERVICES",
     "Handler",
+    "Workers",
     "check_request",
     "decode_request",
     "dispatcher",
@@ -60,6 +64,8 @@ MANAGER_SERVICES = (
     "get_summary",
 )
 UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
+#: Services that change nothing: they have threads of their own, so they never wait behind a spawn.
+READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_config", "get_statistics"})
 
 Handler = Callable[[dict[str, Any]], Any]
 
@@ -246,6 +252,89 @@ def dispatcher(
             return False, _error_reply(ServiceError(f"bad request: {type(exc).__name__}: {exc}", where=key[:200]))
 
     return handle
+
+
+class Workers:
+    """The threads that answer a manager's service calls, so that calls do not wait on each other.
+
+    Read-only services (:data:`READ_ONLY_SERVICES`) go to ``readers`` threads, everything else
+    to ``writers`` threads: a model query never queues behind a spawn whose unit takes a second
+    to set up, and spawns of different units set up side by side (the manager keeps the calls
+    on one unit in order). At most ``max_backlog`` calls wait; beyond that a call is refused at
+    once with an error reply naming the backlog, rather than queued without bound.
+    A context manager; :meth:`close` stops the threads.
+    """
+
+    def __init__(self, manager: str, *, readers: int = 2, writers: int = 4, max_backlog: int = 1024) -> None:
+        self.manager = manager
+        self.max_backlog = max_backlog
+        self._queues: dict[bool, queue.SimpleQueue[Callable[[], None] | None]] = {True: queue.SimpleQueue(), False: queue.SimpleQueue()}
+        self._waiting = 0  # calls queued or running
+        self._count_lock = threading.Lock()
+        self._closed = False
+        self._threads = {
+            read: [
+                threading.Thread(target=self._serve, args=(self._queues[read],), name=f"dyknow-{manager}-{kind}-{i}", daemon=True)
+                for i in range(count)
+            ]
+            for read, kind, count in ((True, "reader", readers), (False, "writer", writers))
+        }
+        for thread in self._all_threads():
+            thread.start()
+
+    def _all_threads(self) -> list[threading.Thread]:
+        return [*self._threads[True], *self._threads[False]]
+
+    def __enter__(self) -> Workers:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def dispatch(self, key: str, job: Callable[[], None]) -> bytes | None:
+        """Queue ``job`` (one call on ``key``) for its threads; returns an error reply instead
+        when the backlog is full or the workers are closed. Runs on Zenoh's thread: quick."""
+        if self._closed:
+            return _error_reply(ServiceError("the manager is shutting down", where=f"manager {self.manager!r}"))
+        if self._waiting >= self.max_backlog:
+            return _error_reply(
+                ServiceError(
+                    f"{self._waiting} calls are waiting already",
+                    where=f"manager {self.manager!r}",
+                    expected=f"at most {self.max_backlog} calls in flight: retry later",
+                )
+            )
+        address = keys.parse_service_key(self.manager, key)
+        with self._count_lock:
+            self._waiting += 1
+        self._queues[address is not None and address.service in READ_ONLY_SERVICES].put(job)
+        return None
+
+    def _serve(self, jobs: queue.SimpleQueue[Callable[[], None] | None]) -> None:
+        while True:
+            job = jobs.get()
+            if job is None:
+                return
+            try:
+                job()
+            except Exception:  # the job answers its caller itself; never lose the thread
+                log.exception("service call failed")
+            finally:
+                with self._count_lock:
+                    self._waiting -= 1
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Stop the threads once the calls in hand are answered (waits up to ``timeout_s``); safe twice."""
+        if self._closed:
+            return
+        self._closed = True
+        for read, jobs in self._queues.items():
+            for _ in self._threads[read]:
+                jobs.put(None)
+        threads = self._all_threads()
+        for thread in threads:
+            if thread is not threading.current_thread():
+                thread.join(timeout_s / len(threads))
 
 
 def raise_remote(exc: ServiceError) -> DyKnowError:

@@ -260,7 +260,8 @@ class Publisher(_Entity):
             if self._on_matching is not None:
                 self._on_matching(status.matching)
 
-        self._listener: Any = pub.declare_matching_listener(matching)
+        # on Zenoh's thread: it only sets a flag (a thread per publisher would cost a thread per unit)
+        self._listener: Any = pub.declare_matching_listener(zenoh.handlers.Callback(matching, indirect=False))
         # the 1.10 stub says bool, but the property returns a MatchingStatus (always truthy)
         self.matched = pub.matching_status.matching  # type: ignore[attr-defined]
 
@@ -291,9 +292,11 @@ class Publisher(_Entity):
 class Subscriber(_Entity):
     """Receives dyknow messages (or plain Zenoh samples) published by other sessions.
 
-    ``on_message`` runs on a Python thread Zenoh keeps for this subscriber (one per subscriber),
-    so it may run a unit's callback right there; exceptions are passed to ``on_error`` instead of
-    being swallowed by Zenoh.
+    By default ``on_message`` runs on a Python thread Zenoh keeps for this subscriber (one per
+    subscriber), so it may take its time. ``inline``: it runs on Zenoh's own receiving thread
+    instead, which costs no thread at all but holds up every stream arriving over the same link
+    while it runs: only for a quick hand-off (the units' input ports queue the message for their
+    lane). Exceptions are passed to ``on_error`` instead of being swallowed by Zenoh.
     """
 
     def __init__(
@@ -302,6 +305,8 @@ class Subscriber(_Entity):
         key: str,
         on_message: Callable[[Message], None],
         on_error: Callable[[BaseException], None],
+        inline: bool = False,
+        wanted: Callable[[str], object] | None = None,
     ) -> None:
         self.key = key
         self._count = 0
@@ -311,6 +316,8 @@ class Subscriber(_Entity):
         def callback(sample: zenoh.Sample) -> None:
             # Cheapest checks first: this runs once per message from another process.
             try:
+                if wanted is not None and not wanted(str(sample.key_expr)):
+                    return  # nobody reads this key: not worth decoding
                 attachment = sample.attachment
                 header = attachment.to_bytes() if attachment is not None else None
                 if header is not None and header[:2] == b"DK" and len(header) >= HEADER.size:  # is_dyknow(), inlined
@@ -332,7 +339,8 @@ class Subscriber(_Entity):
                 on_error(exc)
 
         try:
-            sub = session.declare_subscriber(key, callback, allowed_origin=zenoh.Locality.REMOTE)
+            handler = zenoh.handlers.Callback(callback, indirect=False) if inline else callback
+            sub = session.declare_subscriber(key, handler, allowed_origin=zenoh.Locality.REMOTE)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a subscriber on {key!r}: {_clean(exc)}") from exc
         super().__init__(sub)
@@ -341,32 +349,55 @@ class Subscriber(_Entity):
 class Queryable(_Entity):
     """Answers requests on a key expression with ``handler(key, payload) -> (ok, reply_bytes)``.
 
-    The handler runs on a Python thread of its own (one per queryable), so it may take time.
+    Without ``dispatch`` the handler runs on a Python thread of its own (one per queryable), one
+    request at a time. With ``dispatch(key, job)``, Zenoh's receiving thread hands each request
+    to it at once (``job()`` runs the handler and replies, on whatever thread ``dispatch``
+    chooses); when ``dispatch`` returns a reply instead of taking the job (too busy, say), that
+    reply is sent as an error at once.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> None:
-        def callback(query: zenoh.Query) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        handler: Callable[[str, bytes], tuple[bool, bytes]],
+        dispatch: Callable[[str, Callable[[], None]], bytes | None] | None = None,
+    ) -> None:
+        def answer(query: zenoh.Query) -> None:
             qkey = str(query.key_expr)
-            payload = query.payload.to_bytes() if query.payload is not None else b""
             try:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
                 ok, reply = handler(qkey, payload)
             except Exception as exc:  # a bug in a handler must still answer the caller
                 log.exception("service handler for %s failed", qkey)
                 ok, reply = False, json.dumps({"error": type(exc).__name__, "message": str(exc)}).encode()
-            try:
-                if ok:
-                    query.reply(query.key_expr, reply)
-                else:
-                    query.reply_err(reply)
-            except zenoh.ZError as exc:
-                log.warning("cannot reply to %s: %s", qkey, _clean(exc))
+            _reply(query, ok, reply)
+
+        def hand_off(query: zenoh.Query) -> None:  # on Zenoh's thread: quick
+            assert dispatch is not None
+            refusal = dispatch(str(query.key_expr), lambda: answer(query))
+            if refusal is not None:
+                _reply(query, False, refusal)
 
         try:
+            callback: Any = answer if dispatch is None else zenoh.handlers.Callback(hand_off, indirect=False)
             queryable = session.declare_queryable(key, callback)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
         super().__init__(queryable)
         self.key = key
+
+
+def _reply(query: zenoh.Query, ok: bool, reply: bytes) -> None:
+    try:
+        if ok:
+            query.reply(query.key_expr, reply)
+        else:
+            query.reply_err(reply)
+    except zenoh.ZError as exc:
+        log.warning("cannot reply to %s: %s", query.key_expr, _clean(exc))
+    finally:
+        query.drop()  # the final answer: the caller stops waiting
 
 
 class LivelinessToken(_Entity):
@@ -463,13 +494,27 @@ class Session:
         key: str,
         on_message: Callable[[Message], None],
         on_error: Callable[[BaseException], None] | None = None,
+        *,
+        inline: bool = False,
+        wanted: Callable[[str], object] | None = None,
     ) -> Subscriber:
-        """Receive dyknow messages (or plain samples) published on ``key`` by other sessions."""
-        return Subscriber(self._z(), key, on_message, on_error or (lambda exc: log.warning("on %s: %s", key, exc)))
+        """Receive dyknow messages (or plain samples) published on ``key`` by other sessions.
 
-    def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> Queryable:
-        """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``."""
-        return Queryable(self._z(), key, handler)
+        ``inline``: call ``on_message`` on Zenoh's receiving thread (no thread of its own; it must
+        return at once, see :class:`Subscriber`). ``wanted(key)``: samples on keys it says no to
+        are dropped before they are decoded."""
+        on_error = on_error or (lambda exc: log.warning("on %s: %s", key, exc))
+        return Subscriber(self._z(), key, on_message, on_error, inline, wanted)
+
+    def declare_queryable(
+        self,
+        key: str,
+        handler: Callable[[str, bytes], tuple[bool, bytes]],
+        dispatch: Callable[[str, Callable[[], None]], bytes | None] | None = None,
+    ) -> Queryable:
+        """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``; ``dispatch``
+        chooses the thread of each request (see :class:`Queryable`)."""
+        return Queryable(self._z(), key, handler, dispatch)
 
     def declare_liveliness_token(self, key: str) -> LivelinessToken:
         """Announce on ``key`` that something lives, until undeclared or the process ends."""
@@ -478,8 +523,12 @@ class Session:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a liveliness token on {key!r}: {_clean(exc)}") from exc
 
-    def declare_liveliness_subscriber(self, key: str, on_change: Callable[[str, bool], None]) -> LivelinessSubscriber:
-        """Call ``on_change(key, alive)`` as tokens on ``key`` appear and vanish (existing ones first)."""
+    def declare_liveliness_subscriber(
+        self, key: str, on_change: Callable[[str, bool], None], *, inline: bool = False
+    ) -> LivelinessSubscriber:
+        """Call ``on_change(key, alive)`` as tokens on ``key`` appear and vanish (existing ones first).
+
+        ``inline``: on Zenoh's thread (no thread of its own; ``on_change`` must return at once)."""
 
         def callback(sample: zenoh.Sample) -> None:
             try:
@@ -488,7 +537,8 @@ class Session:
                 log.exception("liveliness callback for %s failed", key)
 
         try:
-            sub = self._z().liveliness().declare_subscriber(key, callback, history=True)
+            handler = zenoh.handlers.Callback(callback, indirect=False) if inline else callback
+            sub = self._z().liveliness().declare_subscriber(key, handler, history=True)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot watch liveliness on {key!r}: {_clean(exc)}") from exc
         return LivelinessSubscriber(sub)

@@ -214,7 +214,8 @@ class Unit:
         """Call ``on_change(key, alive)`` when producers on ``key_expr`` appear or vanish.
 
         Every dyknow output port announces itself on its key, so this notices another process
-        crashing within milliseconds. ``on_change`` runs on a Zenoh thread: keep it short.
+        crashing within milliseconds. ``on_change`` runs like the unit's other callbacks (on its
+        thread, never at the same time as them); an exception in it fails the unit.
         """
         self._runtime.watch_liveliness(key_expr, on_change)
 

@@ -268,9 +268,13 @@ def test_reject_counts_bad_input_and_keeps_running(manager: Manager) -> None:
 
 
 def test_slow_unit_does_not_hold_up_streams_from_another_process(make_manager: object) -> None:
-    """Units receiving over Zenoh: a slow one must not stall the link a fast one also receives on."""
+    """Units receiving over Zenoh: a slow one must not stall the link a fast one also receives on.
+
+    Both start on the shared lane: the slow one holds it up once, for about the stall budget (the
+    fast one's queue holds what arrives meanwhile), then runs on a thread of its own.
+    """
     sender = make_manager()  # type: ignore[operator]
-    receiver = make_manager(connect=sender.endpoints, stall_budget_s=0.02)  # type: ignore[operator]
+    receiver = make_manager(connect=sender.endpoints, stall_budget_s=0.02, queue_depth=64)  # type: ignore[operator]
     key = "remote/ticks"
     receiver.spawn("slow", "slow", params={"delay_s": 3.0}, bindings={"in": key})
     receiver.spawn("sink", "fast", bindings={"in": key})

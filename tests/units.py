@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 from dyknow import Message, Unit
 
@@ -121,3 +121,20 @@ class Picky(Unit):
         self.accepted += 1
         if self.has_subscribers("out"):
             self.publish("out", payload)
+
+
+class SlowSetup(Unit):
+    """Takes ``setup_s`` seconds to set up (a detector building its model, say); records when."""
+
+    log_lock = threading.Lock()
+    setups: ClassVar[list[tuple[str, str]]] = []  # (unit, "begin" | "end"), in order
+
+    def setup(self) -> None:
+        with SlowSetup.log_lock:
+            SlowSetup.setups.append((self.name, "begin"))
+        time.sleep(float(self.params.get("setup_s", 1.0)))
+        with SlowSetup.log_lock:
+            SlowSetup.setups.append((self.name, "end"))
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.publish("out", msg.payload)

@@ -191,7 +191,9 @@ def test_a_bad_key_expression_is_one_line(tmp_path: Path, capsys: pytest.Capture
 
 def test_replay_feeds_camera_images_to_a_unit(data_dir: Path, make_manager: Callable[..., Manager]) -> None:
     pytest.importorskip("cv2")
-    manager = make_manager(specs=[UNIT_SPECS])
+    # --rate max sends the ten frames in one burst: a queue deeper than the default keep-last 8
+    # holds them all while the sink's lane catches up (with 8, the oldest would be dropped, counted)
+    manager = make_manager(specs=[UNIT_SPECS], queue_depth=16)
     manager.spawn("sink", "sink", bindings={"in": "camera/front"})
     path = data_dir / "mcap" / "real" / "custom-camera-model.mcap"
     result = run_cli(

@@ -1,0 +1,139 @@
+"""Services in parallel: reads never wait behind a spawn, spawns set up side by side, calls on
+one unit stay in order, and spawning and destroying leaves nothing behind."""
+
+from __future__ import annotations
+
+import gc
+import threading
+import tracemalloc
+from collections.abc import Callable
+
+import pytest
+
+from dyknow import Client, Manager, UnitError
+from dyknow.spec import Port, TransformationSpec
+from tests.conftest import wait_until
+from tests.units import SlowSetup
+
+
+def _in_thread(fn: Callable[[], object]) -> tuple[threading.Thread, list[object]]:
+    result: list[object] = []
+
+    def run() -> None:
+        try:
+            result.append(fn())
+        except Exception as exc:  # handed to the test
+            result.append(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    return thread, result
+
+
+@pytest.fixture
+def setups() -> list[tuple[str, str]]:
+    SlowSetup.setups.clear()
+    return SlowSetup.setups
+
+
+def _wait_for_setup(setups: list[tuple[str, str]], unit: str) -> None:
+    for _ in range(500):
+        if (unit, "begin") in setups:
+            return
+        threading.Event().wait(0.01)
+    raise AssertionError(f"{unit}'s setup() never began")
+
+
+def test_reads_and_other_spawns_do_not_wait_behind_a_slow_setup(manager: Manager, setups: list[tuple[str, str]]) -> None:
+    manager.spawn("sink", "other")
+    with Client(manager.name, connect=manager.endpoints, timeout_s=10) as slow_caller, Client(
+        manager.name, connect=manager.endpoints, timeout_s=10
+    ) as client:
+        spawning, spawned = _in_thread(lambda: slow_caller.spawn("slow-setup", "slow", params={"setup_s": 3.0}))
+        _wait_for_setup(setups, "slow")
+        # All of these are answered while the slow unit is still inside setup()
+        model = client.get_model()
+        assert {u["name"] for u in model["units"]} >= {"other"}
+        assert client.get_statistics("other")["state"] == "running"
+        assert client.get_config("other") == manager.get_config("other")
+        client.spawn("sink", "quick")
+        client.destroy("quick")
+        client.measure("battery", 0.5)
+        assert client.get_adaptations() == []
+        assert ("slow", "end") not in setups and spawning.is_alive()
+        spawning.join(10)
+    assert isinstance(spawned[0], dict) and spawned[0]["state"] == "running"
+
+
+def test_spawns_of_different_units_set_up_side_by_side(manager: Manager, setups: list[tuple[str, str]]) -> None:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=10) as a, Client(manager.name, connect=manager.endpoints, timeout_s=10) as b:
+        first, _ = _in_thread(lambda: a.spawn("slow-setup", "one", params={"setup_s": 1.0}))
+        _wait_for_setup(setups, "one")
+        second, _ = _in_thread(lambda: b.spawn("slow-setup", "two", params={"setup_s": 1.0}))
+        first.join(10)
+        second.join(10)
+    # the second setup began before the first ended: they ran at the same time
+    assert setups.index(("two", "begin")) < setups.index(("one", "end"))
+    assert {u.name for u in manager.units()} == {"one", "two"}
+
+
+def test_calls_on_a_unit_being_spawned_wait_for_the_spawn(manager: Manager, setups: list[tuple[str, str]]) -> None:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=10) as a, Client(manager.name, connect=manager.endpoints, timeout_s=10) as b:
+        spawning, _ = _in_thread(lambda: a.spawn("slow-setup", "slow", params={"setup_s": 1.0}))
+        _wait_for_setup(setups, "slow")
+        with pytest.raises(UnitError, match="already exists .*being spawned|already exists .*starting"):
+            b.spawn("sink", "slow")
+        assert b.set_config("slow", {"out": "moved/out"})["out"] == "moved/out"  # after setup() returned
+        assert ("slow", "end") in setups
+        b.destroy("slow")
+        spawning.join(10)
+    assert not manager.has_unit("slow")
+
+
+KINDS = [
+    ("relay", {"in": "dyknow/{m}/src/out"}),  # a local key: routed in the manager's namespace
+    ("relay", {"in": "elsewhere/{i}"}),  # a key of its own: a subscriber of its own
+    ("relay", {"in": "elsewhere/*"}),  # a wildcard
+    ("periodic-source", {}),  # a timer
+    ("deadline-source", {}),  # watched by the monitor
+    ("looping", {}),  # a run() thread
+    ("slow", {"in": "dyknow/{m}/src/out"}),  # isolated once it proves slow
+]
+
+
+def test_spawn_and_destroy_leave_nothing_behind(make_manager: Callable[..., Manager]) -> None:
+    manager = make_manager(slow_callback_s=0.001)
+    manager.add_transformation(
+        TransformationSpec(label="deadline-source", source="dyknow.testing:Source", ports=(Port("out", "out", deadline_ms=50),))
+    )
+    manager.spawn("periodic-source", "src", params={"rate_hz": 500})
+
+    def cycle(i: int) -> None:
+        for k, (label, bindings) in enumerate(KINDS):
+            name = f"u{i}-{k}"
+            params = {"delay_s": 0.003} if label == "slow" else {}
+            manager.spawn(label, name, params=params, bindings={p: key.format(m=manager.name, i=i) for p, key in bindings.items()})
+            if label == "relay":
+                manager.set_config(name, {"in": f"moved/{i}"})
+        threading.Event().wait(0.05)  # messages flow, timers tick, slow units leave the shared lane
+        for k in range(len(KINDS)):
+            manager.destroy(f"u{i}-{k}")
+
+    cycle(0)  # warm-up: imports, first allocations, the namespace's one subscriber
+    wait_until(lambda: manager.resources()["watched_deadlines"] == 0, "the monitor forgets the destroyed deadline unit", 5)
+    before = manager.resources()
+    assert before["units"] == 1 and before["subscribers"] == 1 and before["lanes"] == 1 and before["timers"] == 1
+    tracemalloc.start()
+    try:
+        cycle(1)
+        gc.collect()
+        baseline = tracemalloc.take_snapshot()
+        for i in range(2, 22):
+            cycle(i)
+        gc.collect()  # a unit and its proxy refer to each other: the cyclic collector frees them
+        grown = sum(stat.size_diff for stat in tracemalloc.take_snapshot().compare_to(baseline, "filename"))
+    finally:
+        tracemalloc.stop()
+    wait_until(lambda: manager.resources()["watched_deadlines"] == 0, "the monitor forgets the destroyed deadline units", 5)
+    assert manager.resources() == before, "a per-unit structure outlived its unit"
+    assert grown < 64_000, f"20 cycles of {len(KINDS)} units left {grown} bytes of Python objects behind"
