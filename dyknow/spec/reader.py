@@ -296,7 +296,10 @@ def _parse_xml(data: str | bytes, path: str) -> _Node:
     except expat.ExpatError as exc:
         what = f"malformed XML: {expat.ErrorString(exc.code)} at column {exc.offset + 1}"
         raise SpecError([SpecIssue(path, exc.lineno, what, expected="well-formed XML")]) from None
-    except (LookupError, ValueError) as exc:  # an XML declaration naming an encoding Python lacks
+    except (LookupError, ValueError, Warning) as exc:
+        # An XML declaration naming an encoding Python lacks (LookupError), cannot use for XML
+        # (ValueError), or warns about while decoding: unicode_escape's DeprecationWarning, an
+        # exception where warnings are errors (python -W error, pytest's filterwarnings).
         what = f"the XML declaration names an encoding that cannot be read: {exc}"
         raise SpecError([SpecIssue(path, 1, what, "<?xml?>", expected='encoding="UTF-8" (or ISO-8859-1, or none)')]) from None
     return roots[0]
