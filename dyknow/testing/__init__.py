@@ -10,7 +10,10 @@ What users need to test their own units (as ``bytewax.testing`` ships with bytew
 - :data:`SCENARIO_SPECS` and its units (:class:`Camera`, :class:`Subsampler`, :class:`Detector`,
   :class:`Localization`, :class:`Tracker`): the DyKnow paper's ball-tracking scenario without
   OpenCV, for tests of planning and self-adaptation; :data:`SCENARIO_HOSTS`: the same specs
-  split over three managers (robot, field, station).
+  split over three managers (robot, field, station);
+- :mod:`dyknow.testing.fuzzing` (imported on its own; it needs Hypothesis, a test dependency):
+  strategies for spec documents, tags, service requests and damaged MCAP files, and the
+  properties dyknow keeps for any of them, shared by the fuzz tests and ``tools/fuzz.py``.
 
 Example::
 
