@@ -64,7 +64,7 @@ from dyknow.errors import DyKnowError, RecordingError, ServiceError, SpecError, 
 from dyknow.message import Message
 from dyknow.recording import Player, Recorder, Recording
 from dyknow.security import Limits
-from dyknow.service import SCHEMAS, check_request, decode_request, raise_remote
+from dyknow.service import SCHEMAS, UNIT_SERVICES, check_request, decode_request, raise_remote
 from dyknow.spec import CONSTRAINT_OPS, PARAM_TYPES, TransformationSpec, parse_specs
 from dyknow.tags import Term, parse_term
 
@@ -72,6 +72,7 @@ __all__ = [
     "JSON_PROBES",
     "TARGETS",
     "TEST_PROFILE",
+    "Caller",
     "Mutated",
     "MutatedRecording",
     "Outcome",
@@ -641,15 +642,12 @@ class ServiceCall:
         return f"ServiceCall({self.service!r}, {shown!r}{unit})"
 
 
-_UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
-
-
 def service_calls(units: Sequence[str] = ("sink",)) -> st.SearchStrategy[ServiceCall]:
     """Calls of every service in :data:`~dyknow.service.SCHEMAS`; unit services go to one of
     ``units`` or to a unit that does not exist."""
 
     def one(service: str) -> st.SearchStrategy[ServiceCall]:
-        if service in _UNIT_SERVICES:
+        if service in UNIT_SERVICES:
             unit = st.sampled_from([*units, "ghost"])
             return st.builds(ServiceCall, st.just(service), request_payloads(service), unit)
         return st.builds(ServiceCall, st.just(service), request_payloads(service))
