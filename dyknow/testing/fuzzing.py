@@ -693,7 +693,7 @@ class Caller(Protocol):
 
 
 def check_service_call(caller: Caller, manager: str, call: ServiceCall, timeout_s: float = 10.0) -> None:
-    """The manager replies to ``call`` (JSON), or refuses it with an error reply naming a
+    """The manager replies to ``call`` (strict JSON), or refuses it with an error reply naming a
     DyKnowError class that the client rebuilds; then it still answers ``get_model``."""
     if call.unit is None:
         key = keys.manager_service_key(manager, call.service)
@@ -707,9 +707,18 @@ def check_service_call(caller: Caller, manager: str, call: ServiceCall, timeout_
         assert isinstance(cls, type) and issubclass(cls, DyKnowError), f"the error reply names {exc.kind!r}, not a DyKnowError"
         assert isinstance(raise_remote(exc), cls)
     else:
-        json.loads(reply)
-    model = json.loads(caller.call(keys.manager_service_key(manager, "get_model"), b"{}", timeout_s=timeout_s, what="get_model"))
+        _strict_json(reply)
+    model = _strict_json(caller.call(keys.manager_service_key(manager, "get_model"), b"{}", timeout_s=timeout_s, what="get_model"))
     assert model["manager"] == manager
+
+
+def _refuse_constant(name: str) -> Any:
+    raise AssertionError(f"the reply holds {name}, which JSON does not have (only Python's json reads it)")
+
+
+def _strict_json(data: bytes) -> Any:
+    """``data`` as JSON that any client reads: no NaN or Infinity."""
+    return json.loads(data, parse_constant=_refuse_constant)
 
 
 def service_property(caller: Caller, manager: str, units: Sequence[str] = ("sink",), timeout_s: float = 10.0) -> Property:
