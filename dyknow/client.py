@@ -22,7 +22,7 @@ from typing import Any
 
 from dyknow import keys, service
 from dyknow.access import TlsFiles
-from dyknow.errors import ServiceError, SpecError, SpecIssue
+from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
 from dyknow.message import Message
 from dyknow.transport import DEFAULT_ENDPOINT, Session, Subscriber, check_key_expr, make_config
 
@@ -34,6 +34,13 @@ class Client:
 
     ``lease_ms``: Zenoh's lease for the client's own session; give it the managers' lease (see
     :func:`~dyknow.transport.make_config`), so that a host cut off is dropped by every process alike.
+
+    Its own session (without ``zenoh_config``) only connects: it is a Zenoh *client* of the
+    endpoints it connects to when one answers at once (the process there, a manager or a router,
+    carries its calls and its streams), else a peer without a listener that keeps trying. It
+    never listens, so clients do not mesh with each other: as listening peers, 32 clients on one
+    machine connected to each other and spent 1.4 cores on each other's declarations
+    (``benchmarks/load.py``).
     """
 
     def __init__(
@@ -52,7 +59,29 @@ class Client:
         self._own_session = session is None
         self._connect = [] if session is not None and tuple(connect) == (DEFAULT_ENDPOINT,) else list(connect)
         self._tls = tls
-        self._session = session or Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls, lease_ms=lease_ms))
+        if session is None:
+            if self._connect and zenoh_config is None:
+                session = self._open_leaf(lease_ms)
+            else:
+                session = Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls, lease_ms=lease_ms))
+        self._session = session
+
+    def _open_leaf(self, lease_ms: int | None) -> Session:
+        """A session that only connects: a Zenoh client of the endpoints when one answers now,
+        else a peer without a listener (it keeps trying, so a client may start before its
+        manager: its calls then wait for it, up to ``timeout_s``)."""
+        try:
+            return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[]))
+        except TransportError as exc:
+            if "Unable to connect" not in str(exc):
+                raise
+        return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, listen=[]))
+
+    def _expected(self, manager: str) -> str:
+        expected = f"a running manager (dyknow manager --name {manager})"
+        if self._tls is not None or any(e.startswith("tls/") for e in self._connect):
+            expected += " whose CA signed this client's certificate (and whose --acl, if any, gives it a role)"
+        return expected
 
     def __enter__(self) -> Client:
         return self
@@ -79,10 +108,7 @@ class Client:
             reply = self._session.call(key, json.dumps(request).encode(), timeout_s=self.timeout_s, what=f"{what} of {where}")
         except ServiceError as exc:
             if exc.kind is None and "nothing serves" in str(exc):
-                expected = f"a running manager (dyknow manager --name {manager})"
-                if self._tls is not None or any(e.startswith("tls/") for e in self._connect):
-                    expected += " whose CA signed this client's certificate (and whose --acl, if any, gives it a role)"
-                raise ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=expected) from exc
+                raise ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=self._expected(manager)) from exc
             raise service.raise_remote(exc) from None
         return json.loads(reply)
 

@@ -52,8 +52,8 @@ from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.receiver import Receiver
 from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
-from dyknow.spec.model import convert_param
-from dyknow.transport import Queryable, Session, check_key_expr, make_config
+from dyknow.spec.model import INT_RANGE, convert_param
+from dyknow.transport import Session, check_key_expr, make_config
 from dyknow.unit import Unit
 
 __all__ = ["Manager"]
@@ -155,7 +155,6 @@ class Manager:
         self._receiver = Receiver(self._session, self.name)
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
         self._listeners: list[Callable[[UnitEvent], None]] = []
-        self._services: Queryable | None = None
         self._workers: service.Workers | None = None
         self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
         self.on_unit_event(self._adaptation.unit_event)
@@ -168,11 +167,10 @@ class Manager:
             raise
         if serve:
             try:
-                self._workers = service.Workers(self.name)
-                self._services = self._session.declare_queryable(
-                    keys.services_pattern(self.name),
+                self._workers = service.Workers(
+                    self.name,
+                    self._session.declare_service_channel(keys.services_pattern(self.name)),
                     service.dispatcher(self.name, self._manager_handlers(), self._unit_service, limits),
-                    self._workers.dispatch,
                 )
             except DyKnowError:
                 self.close()
@@ -210,8 +208,6 @@ class Manager:
             if self._closed:
                 return
             self._closed = True
-            if self._services is not None:
-                self._services.undeclare()
             for sub in self._measurement_subs:
                 sub.undeclare()
             proxies = list(self._units.values())
@@ -843,7 +839,11 @@ def _coerce(kind: str, value: Any, what: str) -> Any:
         if kind == "bool" and isinstance(value, bool):
             return value
         if kind == "int" and isinstance(value, int | float) and not isinstance(value, bool) and float(value).is_integer():
-            return int(value)
+            if INT_RANGE[0] <= int(value) <= INT_RANGE[1]:
+                return int(value)
+            raise UnitError(
+                f"got {str(value)[:40]}", where=what, expected="a whole number from -2**63 to 2**63-1 (int params are 64-bit)"
+            )
         if kind == "float" and isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value):
             return float(value)
     except (TypeError, ValueError, OverflowError):

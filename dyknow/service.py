@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import queue
 import threading
 from collections.abc import Callable, Mapping
@@ -35,6 +36,7 @@ from typing import Any
 from dyknow import errors, keys
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
 from dyknow.security import Limits
+from dyknow.transport import ServiceChannel, ServiceRequest
 
 __all__ = [
     "MANAGER_SERVICES",
@@ -103,7 +105,10 @@ def _text(max_bytes: int | None = None) -> Check:
 def _name(value: Any, field: str, limits: Limits) -> str:
     if not isinstance(value, str) or len(value.encode()) > limits.max_name_bytes:
         raise _refuse(field, value, f"a name of at most {limits.max_name_bytes} bytes")
-    return keys.check_name(value, "unit name")
+    try:
+        return keys.check_name(value, "name")
+    except DyKnowError as exc:
+        raise _refuse(field, value, exc.expected or "a valid name") from None
 
 
 def _key(value: Any, field: str, limits: Limits) -> str:
@@ -122,8 +127,8 @@ def _scalar(value: Any, field: str, limits: Limits) -> Any:
     if isinstance(value, bool) or value is None:
         return value
     if isinstance(value, int | float):
-        if isinstance(value, float) and value != value:
-            raise _refuse(field, value, "a number, text or true/false")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise _refuse(field, value, "a finite number, text or true/false")
         return value
     return _text(4096)(value, field, limits)
 
@@ -157,7 +162,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
         "bindings": (False, _mapping(_PORT, _key)),
         "owner": (False, _name),
     },
-    "destroy": {"name": (True, _text(256))},
+    "destroy": {"name": (True, _name)},
     "get_model": {},
     "request": {"tag": (True, _text(512))},
     "release": {"key": (True, _key)},
@@ -257,33 +262,34 @@ def dispatcher(
 class Workers:
     """The threads that answer a manager's service calls, so that calls do not wait on each other.
 
-    Read-only services (:data:`READ_ONLY_SERVICES`) go to ``readers`` threads, everything else
-    to ``writers`` threads: a model query never queues behind a spawn whose unit takes a second
-    to set up, and spawns of different units set up side by side (the manager keeps the calls
-    on one unit in order). At most ``max_backlog`` calls wait; beyond that a call is refused at
-    once with an error reply naming the backlog, rather than queued without bound.
-    A context manager; :meth:`close` stops the threads.
+    ``readers`` threads take calls straight from the :class:`~dyknow.transport.ServiceChannel`:
+    read-only services (:data:`READ_ONLY_SERVICES`) are answered there and then, everything else
+    goes to ``writers`` threads. So a model query never queues behind a spawn whose unit takes a
+    second to set up, and spawns of different units set up side by side (the manager keeps the
+    calls on one unit in order). At most ``max_backlog`` changes wait for a writer; beyond that
+    the readers wait too, and the channel's queue holds the calls back on their links.
+    A context manager; :meth:`close` undeclares the channel and stops the threads.
     """
 
-    def __init__(self, manager: str, *, readers: int = 2, writers: int = 4, max_backlog: int = 1024) -> None:
+    def __init__(
+        self,
+        manager: str,
+        channel: ServiceChannel,
+        handler: Callable[[str, bytes], tuple[bool, bytes]],
+        *,
+        readers: int = 2,
+        writers: int = 2,
+        max_backlog: int = 1024,
+    ) -> None:
         self.manager = manager
-        self.max_backlog = max_backlog
-        self._queues: dict[bool, queue.SimpleQueue[Callable[[], None] | None]] = {True: queue.SimpleQueue(), False: queue.SimpleQueue()}
-        self._waiting = 0  # calls queued or running
-        self._count_lock = threading.Lock()
+        self._channel = channel
+        self._handler = handler
+        self._changes: queue.Queue[ServiceRequest | None] = queue.Queue(max_backlog)
+        self._readers = [threading.Thread(target=self._read, name=f"dyknow-{manager}-reader-{i}", daemon=True) for i in range(readers)]
+        self._writers = [threading.Thread(target=self._write, name=f"dyknow-{manager}-writer-{i}", daemon=True) for i in range(writers)]
         self._closed = False
-        self._threads = {
-            read: [
-                threading.Thread(target=self._serve, args=(self._queues[read],), name=f"dyknow-{manager}-{kind}-{i}", daemon=True)
-                for i in range(count)
-            ]
-            for read, kind, count in ((True, "reader", readers), (False, "writer", writers))
-        }
-        for thread in self._all_threads():
+        for thread in (*self._readers, *self._writers):
             thread.start()
-
-    def _all_threads(self) -> list[threading.Thread]:
-        return [*self._threads[True], *self._threads[False]]
 
     def __enter__(self) -> Workers:
         return self
@@ -291,47 +297,36 @@ class Workers:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def dispatch(self, key: str, job: Callable[[], None]) -> bytes | None:
-        """Queue ``job`` (one call on ``key``) for its threads; returns an error reply instead
-        when the backlog is full or the workers are closed. Runs on Zenoh's thread: quick."""
-        if self._closed:
-            return _error_reply(ServiceError("the manager is shutting down", where=f"manager {self.manager!r}"))
-        if self._waiting >= self.max_backlog:
-            return _error_reply(
-                ServiceError(
-                    f"{self._waiting} calls are waiting already",
-                    where=f"manager {self.manager!r}",
-                    expected=f"at most {self.max_backlog} calls in flight: retry later",
-                )
-            )
-        address = keys.parse_service_key(self.manager, key)
-        with self._count_lock:
-            self._waiting += 1
-        self._queues[address is not None and address.service in READ_ONLY_SERVICES].put(job)
-        return None
+    def _answer(self, request: ServiceRequest) -> None:
+        try:
+            ok, reply = self._handler(request.key, request.payload)
+        except Exception as exc:  # a bug in a handler must still answer the caller
+            log.exception("service handler for %s failed", request.key[:200])
+            ok, reply = False, json.dumps({"error": type(exc).__name__, "message": str(exc)}).encode()
+        request.reply(ok, reply)
 
-    def _serve(self, jobs: queue.SimpleQueue[Callable[[], None] | None]) -> None:
-        while True:
-            job = jobs.get()
-            if job is None:
-                return
-            try:
-                job()
-            except Exception:  # the job answers its caller itself; never lose the thread
-                log.exception("service call failed")
-            finally:
-                with self._count_lock:
-                    self._waiting -= 1
+    def _read(self) -> None:
+        while (request := self._channel.receive()) is not None:
+            address = keys.parse_service_key(self.manager, request.key)
+            if address is not None and address.service in READ_ONLY_SERVICES:
+                self._answer(request)
+            else:
+                self._changes.put(request)
+
+    def _write(self) -> None:
+        while (request := self._changes.get()) is not None:
+            self._answer(request)
 
     def close(self, timeout_s: float = 1.0) -> None:
-        """Stop the threads once the calls in hand are answered (waits up to ``timeout_s``); safe twice."""
+        """Stop receiving, let the threads finish the calls in hand (waits up to ``timeout_s``); safe twice."""
         if self._closed:
             return
         self._closed = True
-        for read, jobs in self._queues.items():
-            for _ in self._threads[read]:
-                jobs.put(None)
-        threads = self._all_threads()
+        self._channel.undeclare()
+        for _ in self._writers:
+            with contextlib.suppress(queue.Full):
+                self._changes.put(None, timeout=timeout_s / 4)
+        threads = [*self._readers, *self._writers]
         for thread in threads:
             if thread is not threading.current_thread():
                 thread.join(timeout_s / len(threads))

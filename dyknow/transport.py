@@ -13,6 +13,7 @@ Rust source location trimmed off.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import logging
@@ -33,10 +34,13 @@ from dyknow.message import ENCODINGS, HEADER, Message, decode, decode_dyknow, en
 
 __all__ = [
     "DEFAULT_ENDPOINT",
+    "MAX_QUERIERS",
     "LivelinessSubscriber",
     "LivelinessToken",
     "Publisher",
     "Queryable",
+    "ServiceChannel",
+    "ServiceRequest",
     "Session",
     "Subscriber",
     "check_key_expr",
@@ -49,6 +53,8 @@ log = logging.getLogger(__name__)
 
 #: Where ``dyknow manager`` listens and where clients connect when told nothing else.
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+#: Service queriers a session keeps for its next calls (the least recently used go first).
+MAX_QUERIERS = 64
 
 _WILD = re.compile(r"\*|\$\*")
 _ENCODINGS = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
@@ -163,7 +169,8 @@ def make_config(
     roles to enforce, as Zenoh access control. ``lease_ms``: how long a silent link lives before
     Zenoh closes it (default 10,000 ms): what a peer cut off from the network takes to be noticed;
     shorter detects sooner, at the cost of keep-alive traffic and of false alarms on a slow link.
-    ``mode``: "peer" (default) or "router" (``dyknow router``).
+    ``mode``: "peer" (default), "router" (``dyknow router``) or "client" (a leaf that only
+    connects: :class:`~dyknow.client.Client` sessions; give it ``listen=[]``).
     """
     try:
         if config_file is not None:
@@ -188,6 +195,9 @@ def make_config(
             config.insert_json5("listen/endpoints", json.dumps(list(listen)))
         if connect or config_file is None:
             config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        if mode == "client" and config_file is None:
+            # like a peer, a client opens before what it connects to is up, and keeps trying
+            config.insert_json5("connect/exit_on_failure", "false")
         if tls is not None:
             prefix = "transport/link/tls"
             config.insert_json5(f"{prefix}/root_ca_certificate", json.dumps(tls.ca))
@@ -349,20 +359,11 @@ class Subscriber(_Entity):
 class Queryable(_Entity):
     """Answers requests on a key expression with ``handler(key, payload) -> (ok, reply_bytes)``.
 
-    Without ``dispatch`` the handler runs on a Python thread of its own (one per queryable), one
-    request at a time. With ``dispatch(key, job)``, Zenoh's receiving thread hands each request
-    to it at once (``job()`` runs the handler and replies, on whatever thread ``dispatch``
-    chooses); when ``dispatch`` returns a reply instead of taking the job (too busy, say), that
-    reply is sent as an error at once.
+    The handler runs on a Python thread of its own (one per queryable), one request at a time.
+    For calls served by several threads, see :class:`ServiceChannel`.
     """
 
-    def __init__(
-        self,
-        session: zenoh.Session,
-        key: str,
-        handler: Callable[[str, bytes], tuple[bool, bytes]],
-        dispatch: Callable[[str, Callable[[], None]], bytes | None] | None = None,
-    ) -> None:
+    def __init__(self, session: zenoh.Session, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> None:
         def answer(query: zenoh.Query) -> None:
             qkey = str(query.key_expr)
             try:
@@ -373,15 +374,8 @@ class Queryable(_Entity):
                 ok, reply = False, json.dumps({"error": type(exc).__name__, "message": str(exc)}).encode()
             _reply(query, ok, reply)
 
-        def hand_off(query: zenoh.Query) -> None:  # on Zenoh's thread: quick
-            assert dispatch is not None
-            refusal = dispatch(str(query.key_expr), lambda: answer(query))
-            if refusal is not None:
-                _reply(query, False, refusal)
-
         try:
-            callback: Any = answer if dispatch is None else zenoh.handlers.Callback(hand_off, indirect=False)
-            queryable = session.declare_queryable(key, callback)
+            queryable = session.declare_queryable(key, answer)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
         super().__init__(queryable)
@@ -398,6 +392,43 @@ def _reply(query: zenoh.Query, ok: bool, reply: bytes) -> None:
         log.warning("cannot reply to %s: %s", query.key_expr, _clean(exc))
     finally:
         query.drop()  # the final answer: the caller stops waiting
+
+
+class ServiceRequest:
+    """One call a :class:`ServiceChannel` received: its key and payload. Answer it once."""
+
+    __slots__ = ("_query", "key", "payload")
+
+    def __init__(self, query: zenoh.Query) -> None:
+        self._query = query
+        self.key = str(query.key_expr)
+        self.payload = query.payload.to_bytes() if query.payload is not None else b""
+
+    def reply(self, ok: bool, data: bytes) -> None:
+        """Send the answer (``ok``) or the error reply; the caller stops waiting."""
+        _reply(self._query, ok, data)
+
+
+class ServiceChannel(_Entity):
+    """Receives the calls on a key expression into a queue of ``capacity`` that several threads
+    take from with :meth:`receive` (so no single thread stands between the calls and their
+    handlers). When the queue is full, Zenoh holds further calls back on the link they came by."""
+
+    def __init__(self, session: zenoh.Session, key: str, capacity: int) -> None:
+        try:
+            queryable = session.declare_queryable(key, zenoh.handlers.FifoChannel(capacity))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
+        super().__init__(queryable)
+        self.key = key
+        self._calls = queryable.handler  # receiving through the queryable itself would block undeclare()
+
+    def receive(self) -> ServiceRequest | None:
+        """The next call, waiting for it; None once the channel is undeclared."""
+        try:
+            return ServiceRequest(self._calls.recv())
+        except zenoh.ZError:
+            return None
 
 
 class LivelinessToken(_Entity):
@@ -430,7 +461,8 @@ class Session:
                 expected = "another port (--listen)"
             raise TransportError(f"cannot open a Zenoh session: {text}", expected=expected) from exc
         self._lock = threading.Lock()
-        self._queriers: dict[str, tuple[Any, threading.Event]] = {}
+        # service key -> [querier, reachable, calls using it now]; the most recently used last
+        self._queriers: collections.OrderedDict[str, list[Any]] = collections.OrderedDict()
         self._shm = _SharedMemory()
 
     # -- lifecycle
@@ -450,7 +482,7 @@ class Session:
         """Close the session; safe to call twice."""
         session, self._session = self._session, None
         if session is not None:
-            for querier, _ in self._queriers.values():
+            for querier, _, _ in self._queriers.values():
                 with contextlib.suppress(zenoh.ZError):
                     querier.undeclare()
             self._queriers.clear()
@@ -506,15 +538,13 @@ class Session:
         on_error = on_error or (lambda exc: log.warning("on %s: %s", key, exc))
         return Subscriber(self._z(), key, on_message, on_error, inline, wanted)
 
-    def declare_queryable(
-        self,
-        key: str,
-        handler: Callable[[str, bytes], tuple[bool, bytes]],
-        dispatch: Callable[[str, Callable[[], None]], bytes | None] | None = None,
-    ) -> Queryable:
-        """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``; ``dispatch``
-        chooses the thread of each request (see :class:`Queryable`)."""
-        return Queryable(self._z(), key, handler, dispatch)
+    def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> Queryable:
+        """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``."""
+        return Queryable(self._z(), key, handler)
+
+    def declare_service_channel(self, key: str, capacity: int = 1024) -> ServiceChannel:
+        """Receive the calls on ``key`` for several threads to answer (see :class:`ServiceChannel`)."""
+        return ServiceChannel(self._z(), key, capacity)
 
     def declare_liveliness_token(self, key: str) -> LivelinessToken:
         """Announce on ``key`` that something lives, until undeclared or the process ends."""
@@ -594,7 +624,14 @@ class Session:
         message) or with the service's own error when it refuses the request.
         """
         deadline = time.monotonic() + timeout_s
-        querier, reachable = self._querier(key, timeout_s)
+        entry = self._querier(key, timeout_s)
+        try:
+            return self._call(entry[0], entry[1], key, payload, deadline, timeout_s, what)
+        finally:
+            with self._lock:
+                entry[2] -= 1
+
+    def _call(self, querier: Any, reachable: threading.Event, key: str, payload: bytes, deadline: float, timeout_s: float, what: str) -> bytes:
         if not reachable.wait(max(0.0, deadline - time.monotonic())):
             raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s")
         try:
@@ -619,14 +656,20 @@ class Session:
             )
         raise ServiceError(f"no answer from {what} on {key!r} within {timeout_s:g} s")
 
-    def _querier(self, key: str, timeout_s: float) -> tuple[Any, threading.Event]:
+    def _querier(self, key: str, timeout_s: float) -> list[Any]:
+        """The querier of ``key`` (declared on first use, kept for the next calls), marked in use.
+
+        At most :data:`MAX_QUERIERS` are kept: a client calling the services of ever new units
+        undeclares the least recently used ones rather than holding them all."""
         with self._lock:
             found = self._queriers.get(key)
             if found is not None:
+                self._queriers.move_to_end(key)
+                found[2] += 1
                 return found
             reachable = threading.Event()
 
-            def matching(status: zenoh.MatchingStatus) -> None:
+            def matching(status: zenoh.MatchingStatus) -> None:  # on Zenoh's thread: only sets the event
                 if status.matching:
                     reachable.set()
                 else:
@@ -634,13 +677,23 @@ class Session:
 
             try:
                 querier = self._z().declare_querier(key, timeout=timeout_s)
-                querier.declare_matching_listener(matching)
+                querier.declare_matching_listener(zenoh.handlers.Callback(matching, indirect=False))
             except zenoh.ZError as exc:
                 raise TransportError(f"cannot declare a querier on {key!r}: {_clean(exc)}") from exc
             if querier.matching_status.matching:  # type: ignore[attr-defined]  # see Publisher
                 reachable.set()
-            self._queriers[key] = (querier, reachable)
-            return querier, reachable
+            entry = [querier, reachable, 1]
+            self._queriers[key] = entry
+            idle = [k for k, e in self._queriers.items() if e[2] == 0]
+            for old in idle[: max(0, len(self._queriers) - MAX_QUERIERS)]:
+                with contextlib.suppress(zenoh.ZError):
+                    self._queriers.pop(old)[0].undeclare()
+            return entry
+
+    def queriers(self) -> int:
+        """How many service queriers the session keeps (at most :data:`MAX_QUERIERS` idle ones)."""
+        with self._lock:
+            return len(self._queriers)
 
 
 def open_session(

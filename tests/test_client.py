@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from dyknow import BindingError, Client, LibraryError, Manager, Message, SpecError, UnitError
+from dyknow.transport import MAX_QUERIERS
 from tests.conftest import GENERIC_SPECS
 
 RELAY = """<transformation><label>my-relay</label><source>transformations.generic:Relay</source>
@@ -75,3 +76,15 @@ def test_close_is_safe_twice_and_a_given_session_stays_open(manager: Manager) ->
     with Client(manager.name, session=manager.session) as borrowed:
         assert borrowed.get_model()["manager"] == manager.name
     assert not manager.session.closed
+
+
+def test_a_client_calling_ever_new_units_keeps_a_bounded_number_of_queriers(manager: Manager) -> None:
+    for i in range(80):
+        manager.spawn("sink", f"s{i}")
+    with Client(manager.name, connect=manager.endpoints) as client:
+        threads = threading.active_count()
+        for i in range(80):
+            assert client.get_config(f"s{i}") == manager.get_config(f"s{i}")
+        assert client.session.queriers() <= MAX_QUERIERS
+        assert threading.active_count() == threads  # no thread per querier
+        assert client.get_statistics("s0")["name"] == "s0"  # an evicted querier is declared again

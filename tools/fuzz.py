@@ -128,14 +128,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not total_s >= 0:
         parser.error(f"--minutes/--seconds: got {total_s:g} s; expected 0 or more")
 
-    logging.disable(logging.CRITICAL - 1)
+    logging.disable(logging.CRITICAL - 1)  # the refusals fuzzing provokes are logged: thousands of lines
     outcomes = []
-    with tempfile.TemporaryDirectory(prefix="dyknow-fuzz-") as workdir:
-        for target in args.targets:
-            with properties(target, args.data, Path(workdir)) as prop:
-                outcome = run_for(prop, total_s / len(args.targets))
-            outcomes.append(outcome)
-            print(json.dumps(outcome.to_dict()) if args.json else describe(outcome), flush=True)
+    try:
+        with tempfile.TemporaryDirectory(prefix="dyknow-fuzz-") as workdir:
+            for target in args.targets:
+                with properties(target, args.data, Path(workdir)) as prop:
+                    outcome = run_for(prop, total_s / len(args.targets))
+                outcomes.append(outcome)
+                print(json.dumps(outcome.to_dict()) if args.json else describe(outcome), flush=True)
+    finally:
+        logging.disable(logging.NOTSET)  # main() may run inside another program (the tests do)
     failed = [outcome.name for outcome in outcomes if not outcome.ok]
     if not args.json:
         print(f"{len(failed)} of {len(outcomes)} targets failed: {', '.join(failed)}" if failed else f"all {len(outcomes)} targets passed")
