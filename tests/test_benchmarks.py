@@ -174,3 +174,34 @@ def test_soak_benchmark_smoke(tmp_path: Path) -> None:
     assert rss["target_mb_per_min"] == 0.5 and "second half" in rss["window"] and isinstance(rss["met"], bool)
     assert len(r["manager"]["rss_samples"]) >= 2 and r["manager"]["exit_code"] == 0
     assert "unexplained" in result.stdout and "target < 0.5 MB/min" in result.stdout
+
+
+def test_load_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "load.json"
+    result = _run("load.py", "--seconds", "2", "--clients", "4", "--processes", "2", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    one, many = data["results"]
+    assert (one["clients"], many["clients"], many["processes"]) == (1, 4, 2)
+    for phase in (one, many):
+        assert phase["errors"] == 0 and phase["consistency"]["consistent"], phase
+        assert phase["calls"] == sum(op["calls"] for op in phase["operations"].values()) > 0
+        assert set(phase["operations"]) == {"spawn", "get_config", "set_config", "get_statistics", "get_model", "destroy"}
+        assert all(0 < op["p50_ms"] <= op["p99_ms"] for op in phase["operations"].values())
+        assert phase["manager_threads"] > 0 and phase["manager_cpu_cores"] >= 0
+    assert set(data["targets"]) == {"throughput", "get_model_p99", "no_errors", "consistent"} and data["exit_code"] == 0
+    assert "target: get_model p99 with 4 clients < 50 ms" in result.stdout
+
+
+def test_units_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "units.json"
+    result = _run("units.py", "--units", "200", "--warmup", "20", "--cycles", "20", "--blocks", "2", "--listen-s", "1", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    churn, many = data["churn"], data["many"]
+    assert len(churn["rss_mb"]) == 3 and churn["resources_before"] == churn["resources_after"]
+    assert many["units"] == 200 and many["spawn_s"] > 0 and many["os_threads"] > 0 and many["messages_at_sink"] > 0
+    assert 0 < many["end_to_end_p50_ms"] <= many["end_to_end_p99_ms"]
+    assert many["resources_after_destroy"]["units"] == 2  # the source and the sink
+    assert set(data["targets"]) == {"churn_growth", "spawn_all", "threads"}
+    assert "target: <= 64 threads" in result.stdout and "target: spawn all within 10 s" in result.stdout
