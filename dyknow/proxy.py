@@ -90,9 +90,14 @@ class InputPort:
         self.queue: deque[Message] = deque(maxlen=depth if keep_last else None)
         self.counters = PortCounters()
 
+    def deliver_remote(self, msg: Message) -> None:
+        """A message from another process, on Zenoh's receiving thread: run a unit proven quick
+        and free right here (no thread hand-off), queue it for the unit's lane otherwise."""
+        if self.queue or not self.job.run_inline(self, msg):
+            self.deliver(msg)
+
     def deliver(self, msg: Message) -> None:
-        """Queue ``msg`` and make sure the unit will run. Any thread (Zenoh's receiving thread
-        among them); never blocks."""
+        """Queue ``msg`` and make sure the unit will run. Any thread; never blocks."""
         q = self.queue
         if len(q) >= self.depth:
             self.counters.dropped += 1
@@ -104,6 +109,12 @@ class InputPort:
         if not job.scheduled:
             job.scheduled = True
             job.lane.put(job)
+
+
+# A unit runs on Zenoh's receiving thread once it has handled this many messages on the port and
+# its callbacks average under _INLINE_BUDGET_NS, on the shared lane (not isolated).
+_PROVEN = 8
+_INLINE_BUDGET_NS = 200_000
 
 
 class OutputPort:
@@ -215,6 +226,7 @@ class Proxy:
         self._current: Message | None = None
         self._current_thread = 0
         self._ewma_ns = 0  # moving average of the unit's callback times
+        self._inline_ns = _INLINE_BUDGET_NS  # -1 once isolated: never on Zenoh's thread again
         self._destroy_requested = False
         self._timers: list[Timer] = []
         self._stop = threading.Event()
@@ -247,8 +259,10 @@ class Proxy:
 
     @isolation.setter
     def isolation(self, reason: str | None) -> None:
-        # Every move off the shared lane sets a reason (the executor tells on_isolated()).
+        # Every move off the shared lane sets a reason (the executor tells on_isolated()); a unit
+        # off the shared lane never runs on Zenoh's receiving thread (see run_inline).
         self._isolation = reason
+        self._inline_ns = _INLINE_BUDGET_NS if reason is None else -1
 
     @property
     def alive(self) -> bool:
@@ -381,6 +395,42 @@ class Proxy:
         if not self._lock.acquire(False):
             return  # running on another thread right now; it drains before releasing
         self.run_locked(worker)
+
+    def run_inline(self, port: InputPort, msg: Message) -> bool:
+        """Handle ``msg`` on the calling thread (Zenoh's receiving thread) when the unit is proven
+        quick (``_PROVEN`` messages on the port, callbacks averaging under ``_INLINE_BUDGET_NS``,
+        on the shared lane), running, free and has nothing pending; False when it is not (the
+        caller queues the message for the lane). This saves a thread hand-off per message from
+        another process (the lane's thread would need the interpreter lock the receiving thread
+        just held). A unit that turns slow here holds that link up once: its average then rules
+        it out, and it moves to a thread of its own. A unit never proven quick (a slow first
+        callback) never runs here.
+        """
+        if self._ewma_ns >= self._inline_ns or port.counters.messages < _PROVEN or self._calls:
+            return False
+        if not self._lock.acquire(False):
+            return False
+        if self.state is not _RUNNING:
+            self._lock.release()
+            return False
+        now = time_ns()
+        self._current = msg
+        self._current_thread = get_ident()
+        try:
+            self.unit.on_message(port.name, msg)
+        except (Exception, SystemExit) as exc:
+            self._current = None
+            self._fail(exc, f"on_message({port.name!r})")
+        finally:
+            self._current = None
+            self._current_thread = 0
+            self._lock.release()
+        # bookkeeping after the callback, off the path of what the unit published
+        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+        self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
+        if self._destroy_requested or self._ewma_ns > self._slow_ns:
+            self._after_callbacks()
+        return True
 
     def run_locked(self, worker: Worker) -> None:
         """``run`` once the unit's lock is held; releases it."""

@@ -11,8 +11,9 @@ the receiver keeps as few subscribers as the ports' keys allow:
 Why: Zenoh's cost of declaring grows with what the session has declared already (about 13 s
 to declare the entities of 10,000 relays one by one on this machine), and a subscriber with a
 plain Python callback costs a thread. Here the subscribers call back on Zenoh's own receiving
-thread, which only queues the message on each reader's port (:meth:`InputPort.deliver
-<dyknow.proxy.InputPort.deliver>`); the units run on their lanes (see :mod:`dyknow.executor`).
+thread, which hands the message to each reader's port (:meth:`InputPort.deliver_remote
+<dyknow.proxy.InputPort.deliver_remote>`): a unit proven quick and free runs right there, any
+other gets it queued for its lane (see :mod:`dyknow.executor`).
 Every subscriber only receives from other sessions: local producers reach their readers
 through the :class:`~dyknow.bus.LocalBus`.
 """
@@ -41,8 +42,8 @@ class Reader(Protocol):
 
     key: str
 
-    def deliver(self, msg: Message) -> None:
-        """Queue ``msg`` for the port's unit; returns at once."""
+    def deliver_remote(self, msg: Message) -> None:
+        """Hand ``msg`` to the port's unit (run now if quick and free, else queued); quick."""
         ...
 
 
@@ -57,7 +58,7 @@ class _Shared:
 
     def deliver(self, msg: Message) -> None:
         for reader in self.readers:
-            reader.deliver(msg)
+            reader.deliver_remote(msg)
 
 
 class Receiver:
@@ -179,7 +180,7 @@ class Receiver:
 
     def _route(self, msg: Message) -> None:
         for reader in self._routes.get(msg.key, ()):
-            reader.deliver(msg)
+            reader.deliver_remote(msg)
 
     def _on_error(self, exc: BaseException) -> None:
         log.warning("a message from another process could not be decoded: %s", exc)

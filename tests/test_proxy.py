@@ -10,6 +10,7 @@ import pytest
 
 from dyknow import BindingError, Client, Manager, Message, UnitError, default_key
 from dyknow.testing import Sink, Source
+from tests.conftest import wait_until
 from tests.units import Counter, Slow
 
 
@@ -298,3 +299,35 @@ def test_slow_unit_does_not_hold_up_streams_from_another_process(make_manager: o
     assert [m.payload for m in got] == list(range(40))
     assert slow.started.is_set() and slow.handled == 0
     assert receiver.get_statistics("fast").ports[0].dropped == 0
+
+
+def test_a_quick_unit_that_turns_slow_holds_a_link_up_once(make_manager: object) -> None:
+    """A unit proven quick runs on Zenoh's receiving thread; when it turns slow there it holds
+    the link up once, then runs on a thread of its own and the others' messages flow again."""
+    sender = make_manager()  # type: ignore[operator]
+    receiver = make_manager(connect=sender.endpoints, queue_depth=256)  # type: ignore[operator]
+    key = "remote/turns"
+    receiver.spawn("turns-slow", "turns", params={"delay_s": 1.0}, bindings={"in": key})
+    receiver.spawn("sink", "fast", bindings={"in": key})
+    sender.spawn("publisher", "src", bindings={"out": key})
+    publisher = sender.unit("src")
+    assert isinstance(publisher, Source)
+    wait_until(lambda: publisher.has_subscribers("out"), "the receiving manager subscribes", 10)
+    time.sleep(0.2)
+    fast = receiver.unit("fast")
+    assert isinstance(fast, Sink)
+    for i in range(20):  # both prove quick
+        publisher.emit(i)
+        time.sleep(0.002)
+    fast.wait_for(20, timeout_s=5)
+    publisher.emit("slow")  # held up once: on the receiving thread, for 1 s
+    fast.wait_for(21, timeout_s=5)
+    wait_until(lambda: receiver.get_statistics("turns").executor.startswith("own thread"), "the slow unit gets a thread", 5)
+    publisher.emit("slow")  # now on its own thread: the link stays free
+    for i in range(40):
+        publisher.emit(100 + i)
+        time.sleep(0.002)
+    got = fast.wait_for(62, timeout_s=0.9)  # well within the second slow callback
+    assert [m.payload for m in got[-40:]] == [100 + i for i in range(40)]
+    turns = receiver.unit("turns")
+    assert turns.handled < 62  # type: ignore[attr-defined]  # still inside its second slow callback

@@ -138,3 +138,15 @@ class SlowSetup(Unit):
 
     def on_message(self, port: str, msg: Message) -> None:
         self.publish("out", msg.payload)
+
+
+class TurnsSlow(Unit):
+    """Quick, except that a message whose payload is "slow" takes ``delay_s`` to handle."""
+
+    def setup(self) -> None:
+        self.handled = 0
+
+    def on_message(self, port: str, msg: Message) -> None:
+        if msg.payload == "slow":
+            time.sleep(float(self.params.get("delay_s", 0.5)))
+        self.handled += 1
