@@ -102,13 +102,16 @@ def _text(max_bytes: int | None = None) -> Check:
     return check
 
 
-def _name(value: Any, field: str, limits: Limits) -> str:
-    if not isinstance(value, str) or len(value.encode()) > limits.max_name_bytes:
-        raise _refuse(field, value, f"a name of at most {limits.max_name_bytes} bytes")
-    try:
-        return keys.check_name(value, "name")
-    except DyKnowError as exc:
-        raise _refuse(field, value, exc.expected or "a valid name") from None
+def _name(what: str) -> Check:
+    """A unit or manager name: the same UnitError the manager raises locally (the client
+    rebuilds it), so a caller sees one error for one mistake, here or over Zenoh."""
+
+    def check(value: Any, field: str, limits: Limits) -> str:
+        if not isinstance(value, str) or len(value.encode()) > limits.max_name_bytes:
+            raise _refuse(field, value, f"a name of at most {limits.max_name_bytes} bytes")
+        return keys.check_name(value, what)
+
+    return check
 
 
 def _key(value: Any, field: str, limits: Limits) -> str:
@@ -156,13 +159,13 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "remove_transformation": {"label": (True, _text(256))},
     "spawn": {
         "label": (True, _text(256)),
-        "name": (True, _name),
+        "name": (True, _name("unit name")),
         "protected": (False, _flag),
         "params": (False, _mapping(_text(128), _scalar)),
         "bindings": (False, _mapping(_PORT, _key)),
-        "owner": (False, _name),
+        "owner": (False, _name("manager name")),
     },
-    "destroy": {"name": (True, _name)},
+    "destroy": {"name": (True, _name("unit name"))},
     "get_model": {},
     "request": {"tag": (True, _text(512))},
     "release": {"key": (True, _key)},
