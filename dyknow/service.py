@@ -30,6 +30,7 @@ import logging
 import math
 import queue
 import threading
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -67,6 +68,7 @@ MANAGER_SERVICES = (
 )
 UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 #: Services that change nothing: they have threads of their own, so they never wait behind a spawn.
+_STUCK_S = 0.05  # writers all inside their calls this long while a change waits: add one
 READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_config", "get_statistics"})
 
 Handler = Callable[[dict[str, Any]], Any]
@@ -269,7 +271,8 @@ class Workers:
     read-only services (:data:`READ_ONLY_SERVICES`) are answered there and then, everything else
     goes to ``writers`` threads. So a model query never queues behind a spawn whose unit takes a
     second to set up, and spawns of different units set up side by side (the manager keeps the
-    calls on one unit in order). At most ``max_backlog`` changes wait for a writer; beyond that
+    calls on one unit in order): when every writer has been inside one call for 50 ms while a
+    change waits, another writer starts, up to ``max_writers``. At most ``max_backlog`` changes wait for a writer; beyond that
     the readers wait too, and the channel's queue holds the calls back on their links.
     A context manager; :meth:`close` undeclares the channel and stops the threads.
     """
@@ -282,6 +285,7 @@ class Workers:
         *,
         readers: int = 2,
         writers: int = 2,
+        max_writers: int = 8,
         max_backlog: int = 1024,
     ) -> None:
         self.manager = manager
@@ -289,10 +293,46 @@ class Workers:
         self._handler = handler
         self._changes: queue.Queue[ServiceRequest | None] = queue.Queue(max_backlog)
         self._readers = [threading.Thread(target=self._read, name=f"dyknow-{manager}-reader-{i}", daemon=True) for i in range(readers)]
-        self._writers = [threading.Thread(target=self._write, name=f"dyknow-{manager}-writer-{i}", daemon=True) for i in range(writers)]
+        self._writers: list[threading.Thread] = []
+        self._busy_since: list[float] = []  # per writer: when its current call began (0: idle)
+        self._max_writers = max(writers, max_writers)
+        self._lock = threading.Lock()
+        self._checking = False  # a check of the writers is scheduled
         self._closed = False
-        for thread in (*self._readers, *self._writers):
+        for thread in self._readers:
             thread.start()
+        for _ in range(writers):
+            self._add_writer()
+
+    def _add_writer(self) -> None:
+        with self._lock:
+            index = len(self._writers)
+            self._busy_since.append(0.0)
+            thread = threading.Thread(target=self._write, args=(index,), name=f"dyknow-{self.manager}-writer-{index}", daemon=True)
+            self._writers.append(thread)
+        thread.start()
+
+    def _check_writers(self) -> None:
+        """A change waits and every writer is busy: in 50 ms, if they all are still inside their
+        calls (a unit's slow setup(), say) and a change still waits, add a writer (up to
+        ``max_writers``). Calls that merely take CPU end sooner and add none."""
+        with self._lock:
+            if self._checking or len(self._writers) >= self._max_writers or not all(self._busy_since):
+                return
+            self._checking = True
+
+        def check() -> None:
+            now = time.monotonic()
+            stuck = all(b and now - b >= _STUCK_S for b in self._busy_since)
+            with self._lock:
+                self._checking = False
+            if stuck and not self._changes.empty() and not self._closed:
+                self._add_writer()
+                self._check_writers()  # the next change may be waiting too
+
+        timer = threading.Timer(_STUCK_S, check)
+        timer.daemon = True
+        timer.start()
 
     def __enter__(self) -> Workers:
         return self
@@ -315,10 +355,15 @@ class Workers:
                 self._answer(request)
             else:
                 self._changes.put(request)
+                self._check_writers()
 
-    def _write(self) -> None:
+    def _write(self, index: int) -> None:
         while (request := self._changes.get()) is not None:
-            self._answer(request)
+            self._busy_since[index] = time.monotonic()
+            try:
+                self._answer(request)
+            finally:
+                self._busy_since[index] = 0.0
 
     def close(self, timeout_s: float = 1.0) -> None:
         """Stop receiving, let the threads finish the calls in hand (waits up to ``timeout_s``); safe twice."""

@@ -66,15 +66,21 @@ def test_reads_and_other_spawns_do_not_wait_behind_a_slow_setup(manager: Manager
 
 
 def test_spawns_of_different_units_set_up_side_by_side(manager: Manager, setups: list[tuple[str, str]]) -> None:
-    with Client(manager.name, connect=manager.endpoints, timeout_s=10) as a, Client(manager.name, connect=manager.endpoints, timeout_s=10) as b:
-        first, _ = _in_thread(lambda: a.spawn("slow-setup", "one", params={"setup_s": 1.0}))
-        _wait_for_setup(setups, "one")
-        second, _ = _in_thread(lambda: b.spawn("slow-setup", "two", params={"setup_s": 1.0}))
-        first.join(10)
-        second.join(10)
-    # the second setup began before the first ended: they ran at the same time
-    assert setups.index(("two", "begin")) < setups.index(("one", "end"))
-    assert {u.name for u in manager.units()} == {"one", "two"}
+    names = ["one", "two", "three", "four"]  # more than the manager's two writer threads
+    clients = [Client(manager.name, connect=manager.endpoints, timeout_s=10) for _ in names]
+    try:
+        threads = []
+        for client, name in zip(clients, names, strict=True):
+            threads.append(_in_thread(lambda c=client, n=name: c.spawn("slow-setup", n, params={"setup_s": 1.5}))[0])
+            _wait_for_setup(setups, name)
+        for thread in threads:
+            thread.join(10)
+    finally:
+        for client in clients:
+            client.close()
+    # every setup began before the first one ended: they ran at the same time
+    assert all(setups.index((name, "begin")) < setups.index(("one", "end")) for name in names)
+    assert {u.name for u in manager.units()} == set(names)
 
 
 def test_calls_on_a_unit_being_spawned_wait_for_the_spawn(manager: Manager, setups: list[tuple[str, str]]) -> None:
