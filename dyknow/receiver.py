@@ -122,11 +122,6 @@ class Receiver:
         """How many keys of the namespace have local readers."""
         return len(self._routes)
 
-    def keys(self) -> list[str]:
-        """The key expressions it subscribes to, sorted (for tests and statistics)."""
-        found = list(self._shared) + ([self._pattern] if self._namespace is not None else [])
-        return sorted(found)
-
     # ------------------------------------------------------------------ under the lock
 
     def _declare(self, wanted: set[str]) -> None:
