@@ -488,6 +488,29 @@ class Session:
             self._queriers.clear()
             session.close()
 
+    def flush(self, timeout_s: float = 5.0) -> int:
+        """Wait until what this session sent so far has reached the Zenoh nodes it is linked to
+        directly; returns how many confirmed.
+
+        Zenoh's ``put`` returns once a message is queued, and closing a session right after
+        can lose what is still queued (a replay that ends and exits, say). This asks each
+        neighbour's admin space a question over the same link and priority as the data: its
+        answer comes after everything sent before. Neighbours without an admin space (a plain
+        Zenoh peer that did not enable it) do not answer, and give no such guarantee; dyknow's
+        managers and Zenoh routers do.
+        """
+        session = self._z()
+        info = session.info
+        neighbours = [str(z) for z in (*info.peers_zid(), *info.routers_zid())]
+        confirmed = 0
+        for zid in neighbours:
+            try:
+                replies = session.get(f"@/{zid}/*", timeout=timeout_s)
+                confirmed += any(r.ok is not None for r in replies)
+            except zenoh.ZError as exc:
+                log.debug("flush: %s did not answer: %s", zid, _clean(exc))
+        return confirmed
+
     def __enter__(self) -> Session:
         return self
 

@@ -317,7 +317,9 @@ class Player:
             def send(msg: Message, record: RecordedMessage) -> None:
                 publishers[msg.key].put(msg)
 
-            return self.play(send, stop=stop)
+            sent = self.play(send, stop=stop)
+            session.flush()  # what is still queued must reach the subscribers before we close
+            return sent
         finally:
             for publisher in reversed(publishers.values()):
                 publisher.undeclare()
