@@ -24,6 +24,21 @@ control the components.
   their state) and only rebound where their upstream changed; new ones are spawned, consumers
   before producers; the anchor is rebound; units nothing uses any more are destroyed last.
 
+**Warm standby** (``request(tag, standby="warm")``, opt-in per request): besides the active
+configuration the request keeps the next-best one running, the configuration the planner would
+choose if the active one could not run (planned again with each transformation of the active
+configuration that has a replacement excluded, and without the active configuration's units or
+anything they feed). Its units run, so their state is built (a tracker has a track), but the anchor
+forwards only the active configuration's output; it keeps the standby's latest message. On a fault
+the switch only rebinds the anchor onto the standby's output and forwards that latest message at
+once, so consumers do not wait up to a frame for the next one (its origin time is older than the
+switch, and may be older than the last message the broken configuration sent). A new standby is
+then planned (reusing the healthy units of the old configuration where it can); when the
+preferred configuration is allowed again the request returns to it as any request does (after the
+dwell time), and the configuration it leaves becomes the standby. Releasing the request tears the
+standby down too. The model lists the standby's units (:class:`~dyknow.model.RequestInfo`), and
+the events of a switch onto the standby say so (``standby``).
+
 Flapping is prevented by a dwell time (an opportunity never switches a request twice within it)
 and by exponential back-off for failed transformations (retried after 1 s, 2 s, 4 s ... up to
 60 s). When no configuration exists the request is *degraded*, and recovered later when possible.
@@ -47,7 +62,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -56,7 +71,7 @@ from dyknow.errors import DyKnowError, PlanningError, UnitError
 from dyknow.federation import Summary
 from dyknow.library import Library
 from dyknow.message import Message
-from dyknow.model import RequestInfo, UnitEvent, UnitInfo
+from dyknow.model import RequestInfo, UnitEvent, UnitInfo, check_standby
 from dyknow.ontology import Ontology
 from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unqualify
 from dyknow.spec import Port, TransformationSpec
@@ -65,6 +80,8 @@ from dyknow.unit import Unit
 
 __all__ = [
     "ANCHOR_LABEL",
+    "ANCHOR_SPEC",
+    "WARM_ANCHOR_SPEC",
     "AdaptationEvent",
     "AdaptationLoop",
     "Analyzer",
@@ -187,7 +204,10 @@ class Runtime(Protocol):
 
 @dataclass(frozen=True, slots=True)
 class AdaptationEvent:
-    """One adaptation of one request (``kind``: "adapted", "degraded" or "recovered")."""
+    """One adaptation of one request (``kind``: "adapted", "degraded" or "recovered").
+
+    ``standby`` is true when the switch only moved the request onto its warm standby.
+    """
 
     id: int
     kind: str
@@ -200,6 +220,7 @@ class AdaptationEvent:
     adaptation_ms: float | None = None
     recovery_ms: float | None = None
     detail: str | None = None
+    standby: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (events on ``dyknow/<manager>/events/adaptation`` and ``get_adaptations``)."""
@@ -215,6 +236,7 @@ class AdaptationEvent:
             "adaptation_ms": self.adaptation_ms,
             "recovery_ms": self.recovery_ms,
             "detail": self.detail,
+            "standby": self.standby,
         }
 
 
@@ -231,9 +253,33 @@ class _Request:
     output_key: str | None = None
     last_change_ns: int = 0
     reason: str | None = None  # why it is degraded
+    standby_mode: str = "none"
+    # the warm standby, like the configuration: unit -> label, its plan and output key
+    standby: dict[str, str] = field(default_factory=dict)
+    standby_plan: Plan | None = None
+    standby_key: str | None = None
+    standby_reason: str | None = None  # why there is none
+    standby_inputs: tuple[Any, ...] | None = None  # what the standby was last planned from
+    # healthy units a switch left behind, kept until the next standby is planned (it may reuse them)
+    spare: dict[str, str] = field(default_factory=dict)
 
     def info(self) -> RequestInfo:
-        return RequestInfo(self.tag, self.key, self.state, self.references, tuple(self.units), tuple(sorted(set(self.units.values()))))
+        return RequestInfo(
+            self.tag,
+            self.key,
+            self.state,
+            self.references,
+            tuple(self.units),
+            tuple(sorted(set(self.units.values()))),
+            self.standby_mode,
+            tuple(self.standby),
+            tuple(sorted(set(self.standby.values()))),
+            self.standby_reason if self.standby_mode == "warm" and not self.standby else None,
+        )
+
+    def held(self) -> list[str]:
+        """Every unit the request holds: its configuration, its standby and spare units."""
+        return [*self.units, *self.standby, *self.spare]
 
 
 @dataclass(frozen=True, slots=True)
@@ -277,8 +323,17 @@ class Knowledge:
         self.backoff[label] = [now_ns + int(delay * 1e9), delay, False]
 
     def users(self, unit: str) -> list[_Request]:
-        """The requests whose configuration uses ``unit``."""
-        return [r for r in self.requests.values() if unit in r.units]
+        """The requests whose configuration, warm standby or spare units hold ``unit``."""
+        return [r for r in self.requests.values() if unit in r.units or unit in r.standby or unit in r.spare]
+
+    def standing_by(self, unit: str) -> bool:
+        """Whether ``unit`` only stands by (a warm standby's or a spare unit): reserved for its request."""
+        held = False
+        for r in self.requests.values():
+            if unit in r.units:
+                return False
+            held = held or unit in r.standby or unit in r.spare
+        return held
 
 
 # ---------------------------------------------------------------------------- the anchor unit
@@ -289,21 +344,49 @@ class RequestAnchor(Unit):
 
     After an adaptation the loop tells the anchor which key the new configuration publishes on;
     the first message from that key closes the adaptation with its recovery time.
+
+    The anchor of a warm request (:data:`WARM_ANCHOR_SPEC`) also reads the standby's output on
+    port ``standby`` and keeps only the latest message, since the port was last rebound. When
+    ``in`` is rebound onto that key (the standby takes over), it forwards that message at once,
+    with its own origin time, unless a newer one from that key was forwarded already.
     """
 
     def setup(self) -> None:
         """Wait for nothing yet."""
         self._waiting: tuple[str, Callable[[int], None]] | None = None
+        self._latest: Message | None = None  # the standby's latest message
 
     def expect(self, key: str, on_first: Callable[[int], None]) -> None:
         """Call ``on_first(arrival_ns)`` for the next message arriving from ``key``."""
         self._waiting = (key, on_first)
 
     def on_message(self, port: str, msg: Message) -> None:
-        """Relay the message onto the request's key; report the first one of a new configuration."""
+        """Relay the message onto the request's key; report the first one of a new configuration.
+
+        A message on ``standby`` is only kept (the latest one), not relayed."""
+        if port == "standby":
+            self._latest = msg
+            return
+        latest = self._latest
+        if latest is not None and latest.key == msg.key:
+            self._latest = None  # its configuration is the active one now: this message is newer
         self.publish("out", msg.payload)
+        self._first(msg.key)
+
+    def on_reconfigure(self, changes: Mapping[str, str]) -> None:
+        """When ``in`` moved onto the standby's key, forward the standby's latest message now."""
+        latest = self._latest
+        if "standby" in changes:
+            self._latest = None  # a new standby (or none): what the old one said is not its
+        key = changes.get("in")
+        if key is not None and latest is not None and latest.key == key:
+            self._latest = None
+            self.publish("out", latest.payload, origin_ns=latest.origin_ns)
+            self._first(key)
+
+    def _first(self, key: str) -> None:
         waiting = self._waiting
-        if waiting is not None and msg.key == waiting[0]:
+        if waiting is not None and key == waiting[0]:
             self._waiting = None
             waiting[1](time.time_ns())
 
@@ -314,6 +397,15 @@ ANCHOR_SPEC = TransformationSpec(
     ports=(Port("in", "in", queue=64), Port("out", "out")),
     description="Relays a request's stream onto its stable key (internal to request()).",
 )
+"""The anchor of a request without a standby."""
+
+WARM_ANCHOR_SPEC = TransformationSpec(
+    label=ANCHOR_LABEL,
+    source="dyknow.adaptation:RequestAnchor",
+    ports=(Port("in", "in", queue=64), Port("standby", "in", queue=1), Port("out", "out")),
+    description="Relays a request's stream onto its stable key, and keeps its warm standby's latest message (internal to request()).",
+)
+"""The anchor of a request with a warm standby: port ``standby`` reads the standby's output."""
 
 
 # ---------------------------------------------------------------------------- monitor
@@ -403,7 +495,11 @@ class Analyzer:
         """``(request, is_fault)`` pairs, in a stable order; a degraded request is always among them."""
         found = self._affected(symptom)
         seen = {id(r) for r, _ in found}
-        degraded = [(r, False) for r in sorted(self._knowledge.requests.values(), key=lambda r: r.key) if r.state == "degraded" and id(r) not in seen]
+        degraded = [
+            (r, False)
+            for r in sorted(self._knowledge.requests.values(), key=lambda r: r.key)
+            if r.state == "degraded" and id(r) not in seen
+        ]
         return found + degraded
 
     def _affected(self, symptom: Symptom) -> list[tuple[_Request, bool]]:
@@ -469,6 +565,16 @@ class Analyzer:
 # ---------------------------------------------------------------------------- plan and execute
 
 
+@dataclass(slots=True)
+class _Built:
+    """What :meth:`Reconfigurer.build` did: the configuration's units, its output key, and what to undo."""
+
+    units: dict[str, str] = field(default_factory=dict)  # unit -> label, as a request records them
+    output_key: str = ""
+    spawned: list[str] = field(default_factory=list)
+    rebound: list[tuple[str, dict[str, str]]] = field(default_factory=list)  # (unit, its bindings before)
+
+
 class Reconfigurer:
     """Plans a request's configuration and moves the running system to it, changing little.
 
@@ -481,6 +587,8 @@ class Reconfigurer:
         self._knowledge = knowledge
         self._planner: Planner | None = None
         self._planner_version: tuple[Any, ...] = ()
+        self._constraints: list[tuple[str, tuple[Any, ...]]] = []
+        self._constraints_version: Any = None
 
     def planner(self) -> Planner:
         """The planner over the current libraries (rebuilt when one of them or the ontology changed)."""
@@ -503,12 +611,12 @@ class Reconfigurer:
         knowledge = self._knowledge
         own = set()
         if request is not None:
-            own = {u for u in request.units if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
+            own = {u for u in request.held() if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
         running: list[RunningUnit] = []
         names: set[str] = set()
         for info in self._runtime.units():
             names.add(info.name)
-            if info.name in own or info.label == ANCHOR_LABEL or info.spec is None:
+            if info.name in own or info.label == ANCHOR_LABEL or info.spec is None or knowledge.standing_by(info.name):
                 continue
             outputs = {p.name: info.bindings[p.name] for p in info.spec.outputs}
             tags = {p.name: info.spec.tags_for(p.name) for p in info.spec.outputs}
@@ -519,7 +627,7 @@ class Reconfigurer:
             for unit in summary.units:
                 ref = qualify(unit.name, manager)
                 names.add(ref)
-                if ref in own or (unit.owner is not None and unit.owner != home):
+                if ref in own or (unit.owner is not None and unit.owner != home) or knowledge.standing_by(ref):
                     continue
                 if unit.owner == home and ref not in knowledge.remote:
                     continue  # ours, but already destroyed (the summary is older) or left by an earlier run
@@ -528,10 +636,16 @@ class Reconfigurer:
         names.update(r for r in knowledge.remote)  # spawned, maybe not in a summary yet
         return running, names
 
-    def plan(self, request: _Request, now_ns: int) -> Plan:
-        """The preferred configuration for ``request`` now (:class:`PlanningError` when none)."""
+    def plan(self, request: _Request, now_ns: int, *, exclude: Collection[str] = (), avoid: Collection[str] = ()) -> Plan:
+        """The preferred configuration for ``request`` now (:class:`PlanningError` when none).
+
+        ``exclude``: transformations not to use besides those in back-off or stalled; ``avoid``:
+        running units not to reuse (besides the request's own, which are always set aside).
+        """
         running, names = self.running_model(request)
-        unavailable = self._knowledge.unavailable(now_ns)
+        if avoid:
+            running = [u for u in running if u.ref not in avoid]
+        unavailable = self._knowledge.unavailable(now_ns) | set(exclude)
         labels = {info.name: info.label for info in self._runtime.units()}
         stalled_labels = {labels[n] for n in self._knowledge.stalled if n in labels}
         peers = self._runtime.peers()
@@ -551,18 +665,41 @@ class Reconfigurer:
 
         ``before_switch(output_key)`` runs right before the anchor is rebound to the new output.
         """
-        runtime = self._runtime
         knowledge = self._knowledge
-        home = runtime.name
         # keep the request's own healthy units that the new configuration needs (same label, same manager)
         own_by_label: dict[str, str] = {}
         for ref, label in request.units.items():
             if ref in knowledge.managed and self._healthy(ref):
                 own_by_label.setdefault(label, ref)
+        built = self.build(plan, own_by_label)
+        try:
+            if before_switch is not None:
+                before_switch(built.output_key)
+            if self._runtime.get_config(request.anchor)["in"] != built.output_key:
+                self._runtime.set_config(request.anchor, {"in": built.output_key})
+        except DyKnowError:
+            self.undo(built)
+            raise
+        old = request.units
+        request.units = built.units
+        request.plan = plan
+        request.output_key = built.output_key
+        request.state = "active"
+        request.reason = None
+        return [n for n in old if n not in built.units and n in knowledge.managed and not knowledge.users(n)]
+
+    def build(self, plan: Plan, pool: Mapping[str, str]) -> _Built:
+        """Spawn and rebind so that ``plan`` runs, keeping units of ``pool`` (label -> unit) for
+        planned units of the same label; consumers are spawned before producers. On a failure
+        what was done is undone and the error raised."""
+        runtime = self._runtime
+        knowledge = self._knowledge
+        home = runtime.name
+        pool = dict(pool)
         rename: dict[str, str] = {}  # planned unit -> the kept unit (refs)
         for unit in plan.new_units:
-            if _label_ref(unit) in own_by_label:
-                rename[unit.ref] = own_by_label.pop(_label_ref(unit))
+            if _label_ref(unit) in pool:
+                rename[unit.ref] = pool.pop(_label_ref(unit))
 
         def key(k: str) -> str:
             # keys of planned units that are kept: the kept unit's actual output key
@@ -573,9 +710,7 @@ class Reconfigurer:
                     return self._config(actual)[k[len(prefix) :]]
             return k
 
-        new_units: dict[str, str] = {}
-        spawned: list[str] = []
-        rebound: list[tuple[str, dict[str, str]]] = []  # (unit, its bindings before), to undo
+        built = _Built()
         try:
             for unit in reversed(plan.new_units):  # consumers first: nothing a producer sends is lost
                 if unit.ref in rename:
@@ -585,47 +720,216 @@ class Reconfigurer:
                     current = self._config(actual)
                     changed = {p: k for p, k in wanted.items() if current[p] != k}
                     if changed:
-                        rebound.append((actual, {p: current[p] for p in changed}))
+                        built.rebound.append((actual, {p: current[p] for p in changed}))
                         self._set_config(actual, changed)
-                    new_units[actual] = _label_ref(unit)
+                    built.units[actual] = _label_ref(unit)
                 else:
                     bindings = {p: key(k) for p, k in unit.bindings.items()}
                     if unit.remote:
                         knowledge.remote[unit.ref] = bindings
                         knowledge.managed.add(unit.ref)
-                        spawned.append(unit.ref)
+                        built.spawned.append(unit.ref)
                         runtime.spawn_on(unit.manager, unit.label, unit.name, bindings=bindings)
                     else:
                         info = runtime.spawn(unit.label, unit.name, bindings=bindings)
-                        spawned.append(unit.name)
+                        built.spawned.append(unit.name)
                         knowledge.managed.add(unit.name)
                         if info.state == "failed":
                             raise UnitError(f"failed at start: {info.error}", where=f"unit {unit.name!r} ({unit.label})")
-                    new_units[unit.ref] = _label_ref(unit)
+                    built.units[unit.ref] = _label_ref(unit)
             for unit in plan.units:
                 if not unit.new:
-                    new_units[unit.ref] = _label_ref(unit)
-            new_units.update(self._upstream(u.name for u in plan.units if not u.new and not u.remote))
-            output_key = key(plan.output_key)
-            if before_switch is not None:
-                before_switch(output_key)
-            if runtime.get_config(request.anchor)["in"] != output_key:
-                runtime.set_config(request.anchor, {"in": output_key})
+                    built.units[unit.ref] = _label_ref(unit)
+            built.units.update(self._upstream(u.name for u in plan.units if not u.new and not u.remote))
+            built.output_key = key(plan.output_key)
         except DyKnowError:
-            self.cleanup(spawned)  # leave nothing half-built behind, and the kept units as they were
-            for ref, before in reversed(rebound):
-                try:
-                    self._set_config(ref, before)
-                except DyKnowError as exc:
-                    log.warning("could not rebind unit %r back after a failed adaptation: %s", ref, exc)
+            self.undo(built)
             raise
+        return built
+
+    def undo(self, built: _Built) -> None:
+        """Take back what :meth:`build` did: destroy what it spawned, rebind the kept units as they were."""
+        self.cleanup(built.spawned)  # leave nothing half-built behind, and the kept units as they were
+        for ref, before in reversed(built.rebound):
+            try:
+                self._set_config(ref, before)
+            except DyKnowError as exc:
+                log.warning("could not rebind unit %r back after a failed adaptation: %s", ref, exc)
+
+    # -- the warm standby
+
+    def standby_ready(self, request: _Request, now_ns: int) -> bool:
+        """Whether the request's warm standby can take over now: all its units healthy, none of its
+        transformations in back-off or against the latest measurements."""
+        if not request.standby or request.standby_key is None:
+            return False
+        unavailable = self._knowledge.unavailable(now_ns)
+        local = {info.name: info for info in self._runtime.units()}
+        for ref, label in request.standby.items():
+            name, manager = unqualify(ref, self._runtime.name)
+            if manager == self._runtime.name:
+                info = local.get(name)
+                if info is None or not info.alive or name in self._knowledge.stalled:
+                    return False
+            elif not self._healthy(ref):
+                return False
+            if label in unavailable or self.violated(label):
+                return False
+        return True
+
+    def violated(self, label: str) -> bool:
+        """Whether the latest measurements break a constraint of transformation ``label``
+        (``label@manager``: that manager's measurements and spec, from its summary)."""
+        name, manager = unqualify(label, self._runtime.name)
+        if manager == self._runtime.name:
+            library = self._runtime.library
+            spec = library.get(name) if name in library else None
+            measurements: Mapping[str, float | str] = self._knowledge.measurements
+        else:
+            summary = self._runtime.peers().get(manager)
+            spec = next((s for s in summary.specs if s.label == name), None) if summary is not None else None
+            measurements = summary.measurements if summary is not None else {}
+        for c in spec.constraints if spec is not None else ():
+            value = measurements.get(c.measure)
+            if value is not None and not c.holds(value):
+                return True
+        return False
+
+    def labels(self, plan: Plan) -> set[str]:
+        """Every transformation a plan runs on: its units' and, for running units it reuses, those
+        that feed them (as a request records its configuration)."""
+        found = {_label_ref(u) for u in plan.units}
+        found.update(self._upstream(u.name for u in plan.units if not u.new and not u.remote).values())
+        return found
+
+    def plan_standby(self, request: _Request, now_ns: int) -> Plan:
+        """The configuration ``request`` would run if its active one could not: planned with each
+        transformation of the active configuration that something else can replace excluded, and
+        none of the active configuration's units (nor anything they feed) reused. When excluding
+        them all leaves nothing, the replacement of one of them that shares the fewest
+        transformations with the active configuration. :class:`PlanningError` when there is none.
+        """
+        avoid = self._downstream(request.units)
+        active = sorted(set(request.units.values()))
+        alone: dict[str, Plan] = {}  # label -> the plan without it
+        for label in active:
+            try:
+                alone[label] = self.plan(request, now_ns, exclude={label}, avoid=avoid)
+            except PlanningError:
+                continue
+        if not alone:
+            raise PlanningError(
+                request.tag, None, f"no standby for {request.tag}: nothing provides it without one of {', '.join(active) or 'its units'}"
+            )
+        try:
+            return self.plan(request, now_ns, exclude=set(alone), avoid=avoid)
+        except PlanningError:
+            shared = set(active)
+            return min(alone.values(), key=lambda p: (len(shared & {_label_ref(u) for u in p.units}), p.cost))
+
+    def wire_standby(self, request: _Request, plan: Plan) -> list[str]:
+        """Make ``plan`` the request's warm standby, keeping its standby's and spare units of the
+        same transformations, and point the anchor's ``standby`` port at it; returns the units
+        nothing holds any more (to destroy)."""
+        knowledge = self._knowledge
+        pool: dict[str, str] = {}
+        for ref, label in [*request.standby.items(), *request.spare.items()]:
+            if ref in knowledge.managed and self._healthy(ref):
+                pool.setdefault(label, ref)
+        built = self.build(plan, pool)
+        try:
+            if self._runtime.get_config(request.anchor).get("standby") != built.output_key:
+                self._runtime.set_config(request.anchor, {"standby": built.output_key})
+        except DyKnowError:
+            self.undo(built)
+            raise
+        old = [*request.standby, *request.spare]
+        request.standby, request.standby_plan, request.standby_key = built.units, plan, built.output_key
+        request.spare = {}
+        return [n for n in old if n not in built.units and n in knowledge.managed and not knowledge.users(n)]
+
+    def drop_standby(self, request: _Request) -> list[str]:
+        """The request stands by with nothing: the anchor's ``standby`` port goes idle; returns
+        the units nothing holds any more (to destroy)."""
+        knowledge = self._knowledge
+        if request.standby and self._runtime.has_unit(request.anchor):
+            try:
+                self._runtime.set_config(request.anchor, {"standby": self.idle_key(request)})
+            except DyKnowError as exc:
+                log.warning("could not unbind the standby of %s: %s", request.tag, exc)
+        old = [*request.standby, *request.spare]
+        request.standby, request.standby_plan, request.standby_key = {}, None, None
+        request.spare = {}
+        return [n for n in old if n in knowledge.managed and not knowledge.users(n)]
+
+    def promote(self, request: _Request, before_switch: Callable[[str], None] | None = None) -> list[str]:
+        """Switch ``request`` onto its warm standby: only the anchor moves (its ``standby`` port
+        goes idle until the next standby). Returns the units of the configuration it left that
+        nothing holds any more."""
+        knowledge = self._knowledge
+        assert request.standby_key is not None
+        if before_switch is not None:
+            before_switch(request.standby_key)
+        self._runtime.set_config(request.anchor, {"in": request.standby_key, "standby": self.idle_key(request)})
         old = request.units
-        request.units = new_units
-        request.plan = plan
-        request.output_key = output_key
+        request.units, request.plan, request.output_key = request.standby, request.standby_plan, request.standby_key
+        request.standby, request.standby_plan, request.standby_key = {}, None, None
         request.state = "active"
         request.reason = None
-        return [n for n in old if n not in new_units and n in knowledge.managed and not knowledge.users(n)]
+        return [n for n in old if n not in request.units and n in knowledge.managed and not knowledge.users(n)]
+
+    def idle_key(self, request: _Request) -> str:
+        """Where an anchor's ``standby`` port listens while there is no standby (nothing publishes there)."""
+        return keys.default_key(self._runtime.name, request.anchor, "standby")
+
+    def standby_inputs(self, request: _Request, now_ns: int) -> tuple[Any, ...]:
+        """What planning the request's standby depends on: the libraries, back-offs and stalls,
+        which constraints hold, the units running and the request's own configurations. The same
+        inputs give the same standby, so it is not planned again."""
+        runtime = self._runtime
+        self.planner()
+        holds = []
+        for label, constraints in self._constrained():
+            for c in constraints:
+                value = self._knowledge.measurements.get(c.measure)
+                holds.append((label, value is None or c.holds(value)))
+        return (
+            self._planner_version,
+            frozenset(self._knowledge.unavailable(now_ns)),
+            frozenset(self._knowledge.stalled),
+            tuple(holds),
+            frozenset((info.name, info.alive) for info in runtime.units()),
+            tuple(sorted((m, s.version, s.library) for m, s in runtime.peers().items())),
+            tuple(sorted(request.units.items())),
+            tuple(sorted(request.standby.items())),
+        )
+
+    def _constrained(self) -> list[tuple[str, tuple[Any, ...]]]:
+        library = self._runtime.library
+        if self._constraints_version != library.version:
+            self._constraints = [(s.label, s.constraints) for s in library.specs() if s.constraints]
+            self._constraints_version = library.version
+        return self._constraints
+
+    def _downstream(self, refs: Iterable[str]) -> set[str]:
+        """The given units and every local unit they feed, transitively (anchors aside)."""
+        units = {info.name: info for info in self._runtime.units() if info.spec is not None and info.label != ANCHOR_LABEL}
+        readers: dict[str, list[str]] = {}
+        for info in units.values():
+            assert info.spec is not None
+            for port in info.spec.inputs:
+                readers.setdefault(info.bindings[port.name], []).append(info.name)
+        found = set(refs)
+        todo = [r for r in found if r in units]
+        while todo:
+            info = units[todo.pop()]
+            assert info.spec is not None
+            for port in info.spec.outputs:
+                for reader in readers.get(info.bindings[port.name], ()):
+                    if reader not in found:
+                        found.add(reader)
+                        todo.append(reader)
+        return found
 
     def _healthy(self, ref: str) -> bool:
         name, manager = unqualify(ref, self._runtime.name)
@@ -717,8 +1021,16 @@ class AdaptationLoop:
 
     # -- requests
 
-    def request(self, tag: str) -> str:
-        """Plan and wire a configuration providing ``tag``; returns its stable key."""
+    def request(self, tag: str, *, standby: str | None = None) -> str:
+        """Plan and wire a configuration providing ``tag``; returns its stable key.
+
+        ``standby="warm"`` keeps the next-best configuration running beside it, so that a fault
+        only moves the anchor (see the module documentation); ``"none"`` (or None, the default)
+        does not. Requesting a tag again shares the request; asking for a warm standby then gives
+        the shared request one, which it keeps until it is released. An unknown ``standby`` is a
+        :class:`UnitError` naming the allowed values, raised before anything changes.
+        """
+        mode = check_standby(standby)
         runtime = self.runtime
         canonical = str(parse_term(tag))
         key = keys.request_key(runtime.name, canonical)
@@ -726,12 +1038,13 @@ class AdaptationLoop:
             existing = self.knowledge.requests.get(key)
             if existing is not None:
                 existing.references += 1
+                if mode == "warm" and existing.standby_mode != "warm":
+                    self._warm_up(existing)
                 return key
             now = time.time_ns()
-            request = _Request(canonical, key, anchor=self._anchor_name(canonical))
+            request = _Request(canonical, key, anchor=self._anchor_name(canonical), standby_mode=mode)
             plan = self.reconfigurer.plan(request, now)  # PlanningError: nothing fits, nothing changes
-            runtime.spawn(ANCHOR_SPEC, request.anchor, bindings={"in": plan.output_key, "out": key})
-            self.knowledge.managed.add(request.anchor)
+            self._spawn_anchor(request, plan.output_key)
             self.knowledge.requests[key] = request
             try:
                 self.reconfigurer.apply(request, plan)
@@ -742,7 +1055,27 @@ class AdaptationLoop:
             request.last_change_ns = time.time_ns()
             self._report(Symptom("spawned", request.last_change_ns, unit=request.anchor))  # start ticking
             log.info("request %s on %s: %s", canonical, key, ", ".join(sorted(set(request.units.values()))))
+            if mode == "warm":
+                self._maintain_standby(request, time.time_ns())
             return key
+
+    def _warm_up(self, request: _Request) -> None:
+        """A shared request asked for a warm standby: a new anchor that can hold one, then the standby."""
+        request.standby_mode = "warm"
+        self.reconfigurer.cleanup([request.anchor])
+        request.anchor = self._anchor_name(request.tag)
+        self._spawn_anchor(request, request.output_key or f"{request.key}/none")
+        self._maintain_standby(request, time.time_ns())
+
+    def _spawn_anchor(self, request: _Request, input_key: str) -> None:
+        bindings = {"in": input_key, "out": request.key}
+        spec = ANCHOR_SPEC
+        if request.standby_mode == "warm":
+            spec = WARM_ANCHOR_SPEC
+            if request.standby_key is not None:
+                bindings["standby"] = request.standby_key
+        self.runtime.spawn(spec, request.anchor, bindings=bindings)
+        self.knowledge.managed.add(request.anchor)
 
     def release(self, key: str) -> None:
         """Drop one reference to a request; the last one tears down what only it used."""
@@ -758,7 +1091,7 @@ class AdaptationLoop:
                 return
             del self.knowledge.requests[key]
             self._deferred.pop(key, None)
-            orphans = [n for n in request.units if n in self.knowledge.managed and not self.knowledge.users(n)]
+            orphans = [n for n in request.held() if n in self.knowledge.managed and not self.knowledge.users(n)]
             self.reconfigurer.cleanup([request.anchor, *orphans])
 
     def requests(self) -> list[RequestInfo]:
@@ -831,7 +1164,7 @@ class AdaptationLoop:
         """Told by the manager that a unit was spawned, failed or was destroyed."""
         if event.kind == "spawned":
             self._report(Symptom("spawned", event.time_ns, unit=event.unit))  # may bring deadlines to watch
-        elif event.unit in self.knowledge.managed or any(event.unit in r.units for r in self.knowledge.requests.values()):
+        elif event.unit in self.knowledge.managed or self.knowledge.users(event.unit):
             self.monitor.unit_event(event)
         elif event.kind == "destroyed" and self.monitor.watches(event.unit):
             self._report(Symptom("spawned", event.time_ns, unit=event.unit))  # a tick forgets its deadlines
@@ -867,16 +1200,22 @@ class AdaptationLoop:
             try:
                 with self._lock:
                     now = time.time_ns()
+                    changed = symptom is not None
                     if symptom is not None:
                         self._handle(symptom)
                     self.monitor.tick(now)
                     for key, (due, opportunity) in list(self._deferred.items()):
                         if due <= now:
                             del self._deferred[key]
+                            changed = True
                             request = self.knowledge.requests.get(key)
                             if request is not None:  # timed from now: the wait was our choice, not the fault's
                                 waited = replace(opportunity, time_ns=now, deferred=True)
                                 self._adapt(request, waited, fault=False)
+                    if changed:  # after the switches: standbys follow what changed
+                        for request in sorted(self.knowledge.requests.values(), key=lambda r: r.key):
+                            if request.standby_mode == "warm":
+                                self._maintain_standby(request, time.time_ns())
             except Exception:
                 log.exception("adaptation loop error (it keeps running)")
 
@@ -917,8 +1256,7 @@ class AdaptationLoop:
         """The anchor itself went: put a new one on the same key."""
         self.reconfigurer.cleanup([request.anchor])
         request.anchor = self._anchor_name(request.tag)
-        self.runtime.spawn(ANCHOR_SPEC, request.anchor, bindings={"in": request.output_key or f"{request.key}/none", "out": request.key})
-        self.knowledge.managed.add(request.anchor)
+        self._spawn_anchor(request, request.output_key or f"{request.key}/none")
 
     def _adapt(self, request: _Request, symptom: Symptom, fault: bool) -> None:
         now = time.time_ns()
@@ -930,6 +1268,10 @@ class AdaptationLoop:
             return
         old_labels = tuple(sorted(set(request.units.values())))
         cause = _cause(symptom)
+        warm = request.standby_mode == "warm"
+        if fault and warm and self.reconfigurer.standby_ready(request, now):
+            self._take_standby(request, symptom, old_labels, fault)  # no planning on the way: the standby is ready
+            return
         try:
             plan = self.reconfigurer.plan(request, now)
         except PlanningError as exc:
@@ -938,6 +1280,9 @@ class AdaptationLoop:
             return
         if not fault and request.state == "active" and _same(request, plan):
             return  # already the preferred configuration
+        if warm and self.reconfigurer.standby_ready(request, now) and self.reconfigurer.labels(plan) == set(request.standby.values()):
+            self._take_standby(request, symptom, old_labels, fault)  # the standby is what the planner prefers now
+            return
         recovery = _Recovery(self)
         try:
             orphans = self.reconfigurer.apply(request, plan, recovery.arm(request))
@@ -964,7 +1309,105 @@ class AdaptationLoop:
         log.info(
             "adapted %s (%s): %s -> %s in %.1f ms", request.tag, cause, ", ".join(old_labels), ", ".join(event.new), event.adaptation_ms
         )
-        self.reconfigurer.cleanup(orphans)
+        self._leave(request, orphans)
+
+    def _take_standby(self, request: _Request, symptom: Symptom, old_labels: tuple[str, ...], fault: bool) -> None:
+        """Switch ``request`` onto its warm standby (only the anchor moves), then, after a fault,
+        come back to the planner's preferred configuration after the dwell time if it differs."""
+        recovery = _Recovery(self)
+        try:
+            orphans = self.reconfigurer.promote(request, recovery.arm(request))
+        except DyKnowError as exc:
+            log.warning("switching %s onto its standby failed: %s", request.tag, exc)
+            self._degrade(request, symptom, old_labels, f"could not switch onto the standby: {exc}")
+            return
+        wired = time.time_ns()
+        request.last_change_ns = wired
+        event = AdaptationEvent(
+            self._next_id,
+            "adapted",
+            request.tag,
+            request.key,
+            _cause(symptom),
+            old_labels,
+            tuple(sorted(set(request.units.values()))),
+            symptom.time_ns,
+            round((wired - symptom.time_ns) / 1e6, 3),
+            standby=True,
+        )
+        self._next_id += 1
+        self._emit(event)
+        recovery.adapted(event)
+        log.info(
+            "adapted %s (%s) onto its warm standby: %s -> %s in %.1f ms",
+            request.tag,
+            event.cause,
+            ", ".join(old_labels),
+            ", ".join(event.new),
+            event.adaptation_ms,
+        )
+        self._leave(request, orphans)
+        if fault:
+            try:
+                preferred = self.reconfigurer.plan(request, time.time_ns())
+            except PlanningError:
+                return
+            if not _same(request, preferred):  # e.g. a destroyed unit that can simply be spawned again
+                self._deferred[request.key] = (
+                    wired + self.dwell_ns,
+                    Symptom("preferred", wired, detail="the preferred configuration can run again"),
+                )
+
+    def _leave(self, request: _Request, orphans: list[str]) -> None:
+        """Units a switch left behind: a warm request keeps the healthy ones for its next standby
+        (planned right after), the others are destroyed."""
+        if request.standby_mode != "warm":
+            self.reconfigurer.cleanup(orphans)
+            return
+        live = {info.name: info.label for info in self.runtime.units() if info.alive}
+        for name in orphans:
+            if name in live and name not in self.knowledge.stalled:
+                request.spare[name] = live[name]  # local units only: remote ones are cheap to ask for again
+        self.reconfigurer.cleanup([n for n in orphans if n not in request.spare])
+
+    def _maintain_standby(self, request: _Request, now: int) -> None:
+        """Keep a warm request's standby what the planner would switch to: plan it when what it
+        depends on changed, rebuild it (reusing what fits) when it differs or broke, drop it
+        when there is none; spare units nothing took are destroyed."""
+        if self.knowledge.requests.get(request.key) is not request:
+            return
+        reconfigurer = self.reconfigurer
+        if request.state != "active":
+            spare, request.spare = list(request.spare), {}
+            reconfigurer.cleanup([n for n in spare if not self.knowledge.users(n)])
+            return
+        inputs = reconfigurer.standby_inputs(request, now)
+        if inputs == request.standby_inputs and not request.spare:
+            return
+        request.standby_inputs = inputs
+        try:
+            plan = reconfigurer.plan_standby(request, now)
+        except PlanningError as exc:
+            if request.standby:
+                log.info("request %s has no standby any more: %s", request.tag, exc)
+            request.standby_reason = str(exc)
+            reconfigurer.cleanup(reconfigurer.drop_standby(request))
+            return
+        if reconfigurer.standby_ready(request, now) and reconfigurer.labels(plan) == set(request.standby.values()):
+            spare, request.spare = list(request.spare), {}
+            reconfigurer.cleanup([n for n in spare if not self.knowledge.users(n)])
+            return
+        try:
+            orphans = reconfigurer.wire_standby(request, plan)
+        except DyKnowError as exc:
+            log.warning("could not wire the standby of %s: %s", request.tag, exc)
+            request.standby_reason = f"could not wire the standby: {exc}"
+            reconfigurer.cleanup(reconfigurer.drop_standby(request))
+            return
+        request.standby_reason = None
+        reconfigurer.cleanup(orphans)
+        request.standby_inputs = reconfigurer.standby_inputs(request, time.time_ns())  # its own spawns are no news
+        log.info("standby of %s: %s", request.tag, ", ".join(sorted(set(request.standby.values()))))
 
     def _degrade(self, request: _Request, symptom: Symptom, old: tuple[str, ...], why: str) -> None:
         was = request.state

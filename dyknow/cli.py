@@ -20,7 +20,7 @@ Commands::
     dyknow add-spec FILE | dyknow remove-spec LABEL
     dyknow echo KEYEXPR [--count N]
     dyknow foxglove [KEYEXPR ...] [--host ADDR] [--port N]
-    dyknow request TAG | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
+    dyknow request TAG [--standby warm] | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
     dyknow record KEYEXPR ... -o FILE.mcap [--duration S] [--max-messages N] [--compression zstd|lz4|none]
     dyknow replay FILE.mcap [--rate X] [--loop] [--start S] [--end S] [--topics T ...] [--remap FROM=TO ...]
     dyknow mcap cat FILE [--topics T ...] [--json] | dyknow mcap info FILE [--json]   (offline)
@@ -49,6 +49,7 @@ import numpy as np
 from dyknow.client import Client
 from dyknow.errors import DyKnowError, SpecError
 from dyknow.message import Message, describe_payload
+from dyknow.model import STANDBY_MODES
 from dyknow.spec import DEFAULT_MAX_EXPANSIONS, load_specs
 from dyknow.transport import DEFAULT_ENDPOINT
 
@@ -486,8 +487,8 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
 def cmd_request(args: argparse.Namespace) -> int:
     """ask a manager for a stream by tag; prints its key"""
     with _client(args) as client:
-        key = client.request(args.tag)
-    _report(args, {"request": args.tag, "key": key}, key)
+        key = client.request(args.tag, standby=args.standby)
+    _report(args, {"request": args.tag, "key": key, "standby": args.standby or "none"}, key)
     return 0
 
 
@@ -521,7 +522,8 @@ def cmd_adaptations(args: argparse.Namespace) -> int:
             times = f"adapted in {e['adaptation_ms']} ms" if e["adaptation_ms"] is not None else ""
             if e["recovery_ms"] is not None:
                 times += f", recovered in {e['recovery_ms']} ms"
-            yield f"#{e['id']} {e['kind']} {e['request']}: {e['cause']}; {', '.join(e['old'])} -> {', '.join(e['new']) or '(none)'} {times}"
+            via = " (onto the warm standby)" if e.get("standby") else ""
+            yield f"#{e['id']} {e['kind']} {e['request']}: {e['cause']}; {', '.join(e['old'])} -> {', '.join(e['new']) or '(none)'}{via} {times}"
 
     _report(args, events, text)
     return 0
@@ -926,7 +928,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("name")
 
     p = command("model", cmd_model, client=True)
-    p.add_argument("--all", action="store_true", help="the model of every manager reachable: {\"managers\": [...]}")
+    p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')
     command("managers", cmd_managers, client=True)
 
     p = command("config", cmd_config, client=True)
@@ -945,6 +947,9 @@ def _parser() -> argparse.ArgumentParser:
 
     p = command("request", cmd_request, client=True)
     p.add_argument("tag")
+    p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
+                   help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
+                        "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
 
     p = command("release", cmd_release, client=True)
     p.add_argument("key")

@@ -24,6 +24,7 @@ from dyknow import keys, service
 from dyknow.access import TlsFiles
 from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
 from dyknow.message import Message
+from dyknow.model import check_standby
 from dyknow.transport import DEFAULT_ENDPOINT, Session, Subscriber, check_key_expr, make_config
 
 __all__ = ["Client"]
@@ -176,9 +177,17 @@ class Client:
         """Uptime, reconfigurations and per-port statistics of unit ``name``."""
         return dict(self._unit(name, "get_statistics", {}))
 
-    def request(self, tag: str) -> str:
-        """Ask the manager for a stream of ``tag``; returns its key (PlanningError when nothing fits)."""
-        return str(self._manager("request", {"tag": tag})["key"])
+    def request(self, tag: str, *, standby: str | None = None) -> str:
+        """Ask the manager for a stream of ``tag``; returns its key (PlanningError when nothing fits).
+
+        ``standby="warm"`` keeps the next-best configuration running beside it (see
+        :meth:`dyknow.manager.Manager.request`); an unknown mode is refused as a UnitError naming the
+        field and the allowed values, before anything is sent.
+        """
+        request: dict[str, Any] = {"tag": tag}
+        if standby is not None:
+            request["standby"] = check_standby(standby)
+        return str(self._manager("request", request)["key"])
 
     def release(self, key: str) -> None:
         """Give back a request made with :meth:`request`."""

@@ -532,16 +532,18 @@ class Manager:
 
     # ------------------------------------------------------------------ requests (self-adaptation)
 
-    def request(self, tag: str) -> str:
+    def request(self, tag: str, *, standby: str | None = None) -> str:
         """Provide a stream of ``tag`` (e.g. ``"BallPosition(field)"``); returns its key.
 
         The planner chooses the transformations, reusing what already runs; they are spawned and
         wired, and the stream is relayed onto a key that stays the same while the configuration
         adapts to failures, stalls and measurements. Requesting the same tag again shares it.
+        ``standby="warm"`` also keeps the next-best configuration running, so that a fault only
+        moves the stream onto it (``"none"``, the default: re-plan and spawn when it breaks).
         Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when nothing fits.
         """
         self._check_open()
-        return self._adaptation.request(tag)
+        return self._adaptation.request(tag, standby=standby)
 
     def release(self, key: str) -> None:
         """Give back a request; its units are destroyed when no other request uses them."""
@@ -712,7 +714,7 @@ class Manager:
             "spawn": self._serve_spawn,
             "destroy": self._serve_destroy,
             "get_model": lambda r: self.get_model().to_dict(),
-            "request": lambda r: {"key": self.request(str(r["tag"]))},
+            "request": lambda r: {"key": self.request(str(r["tag"]), standby=r.get("standby"))},
             "release": self._serve_release,
             "measure": self._serve_measure,
             "get_adaptations": lambda r: [e.to_dict() for e in self.get_adaptations()],

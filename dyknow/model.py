@@ -4,6 +4,10 @@
 active requests (:class:`RequestInfo`). :class:`UnitEvent` tells listeners that a unit was
 spawned, failed or was destroyed. Every type has ``to_dict()``, the JSON form the services send.
 The manager builds them; the adaptation loop, the CLI and clients read them.
+
+:data:`STANDBY_MODES` is the one home of a request's standby modes (``"none"``, ``"warm"``), and
+:func:`standby_problem` the one check of them (:func:`check_standby` raises it for the Python
+API, the services refuse with the same words).
 """
 
 from __future__ import annotations
@@ -12,10 +16,36 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from dyknow.errors import UnitError
+from dyknow.errors import UnitError, did_you_mean
 from dyknow.spec import TransformationSpec
 
-__all__ = ["Model", "RequestInfo", "UnitEvent", "UnitInfo"]
+__all__ = ["STANDBY_MODES", "Model", "RequestInfo", "UnitEvent", "UnitInfo", "check_standby", "standby_problem"]
+
+#: How a request stands by for faults: ``"none"`` (re-plan and spawn when the configuration
+#: breaks) or ``"warm"`` (the next-best configuration runs beside it, and a fault only moves the
+#: request's anchor onto it).
+STANDBY_MODES = ("none", "warm")
+
+
+def standby_problem(value: object) -> tuple[str, str] | None:
+    """Why ``value`` is no standby mode, as ``(got, expected)``; None when it is one."""
+    if isinstance(value, str) and value in STANDBY_MODES:
+        return None
+    shown = repr(value) if len(repr(value)) <= 80 else f"a {type(value).__name__} of {len(repr(value))} characters"
+    hint = did_you_mean(value, STANDBY_MODES) if isinstance(value, str) else ""
+    return f"got {shown}", "one of " + ", ".join(repr(m) for m in STANDBY_MODES) + hint
+
+
+def check_standby(value: object) -> str:
+    """The standby mode ``value`` names (None is ``"none"``); :class:`UnitError` naming the field
+    ``standby`` and the allowed values for anything else."""
+    if value is None:
+        return "none"
+    problem = standby_problem(value)
+    if problem is not None:
+        raise UnitError(problem[0], where="field 'standby'", expected=problem[1])
+    assert isinstance(value, str)
+    return value
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,7 +99,12 @@ class UnitInfo:
 
 @dataclass(frozen=True, slots=True)
 class RequestInfo:
-    """A request as the model shows it: its tag, stable key, state and the units serving it."""
+    """A request as the model shows it: its tag, stable key, state and the units serving it.
+
+    ``standby_mode`` is one of :data:`STANDBY_MODES`; for a ``"warm"`` request, ``standby`` and
+    ``standby_labels`` are the units (and their transformations) of the configuration kept running
+    beside the active one, empty while there is none (``standby_reason`` says why).
+    """
 
     tag: str
     key: str
@@ -77,6 +112,10 @@ class RequestInfo:
     references: int
     units: tuple[str, ...]
     labels: tuple[str, ...]
+    standby_mode: str = "none"
+    standby: tuple[str, ...] = ()
+    standby_labels: tuple[str, ...] = ()
+    standby_reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -87,6 +126,10 @@ class RequestInfo:
             "references": self.references,
             "units": list(self.units),
             "labels": list(self.labels),
+            "standby_mode": self.standby_mode,
+            "standby": list(self.standby),
+            "standby_labels": list(self.standby_labels),
+            "standby_reason": self.standby_reason,
         }
 
 

@@ -8,7 +8,8 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
 - ``@dyknow/<manager>/<service>`` for the manager's services: ``add_transformation``
   ``{"xml": "...", "path": "name used in errors"}``, ``remove_transformation`` ``{"label"}``,
   ``spawn`` ``{"label", "name", "protected", "params", "bindings"}``, ``destroy`` ``{"name"}``,
-  ``get_model`` ``{}``; ``request`` ``{"tag"}`` -> ``{"key"}``; ``release`` ``{"key"}``;
+  ``get_model`` ``{}``; ``request`` ``{"tag", "standby"}`` -> ``{"key"}`` (``standby``: optional,
+  one of :data:`~dyknow.model.STANDBY_MODES`); ``release`` ``{"key"}``;
   ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_summary`` ``{}`` (for
   the other managers: see :mod:`dyknow.federation`); a ``spawn`` may name the ``owner``, the
   manager whose request it serves (its units go when that manager does);
@@ -36,6 +37,7 @@ from typing import Any
 
 from dyknow import errors, keys
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
+from dyknow.model import standby_problem
 from dyknow.security import Limits
 from dyknow.transport import ServiceChannel, ServiceRequest
 
@@ -146,6 +148,15 @@ def _number_or_text(value: Any, field: str, limits: Limits) -> Any:
     raise _refuse(field, value, "a finite number, or text of at most 256 bytes")
 
 
+def _standby(value: Any, field: str, limits: Limits) -> str:
+    """A request's standby mode (in the same words as :func:`~dyknow.model.check_standby`)."""
+    problem = standby_problem(value)
+    if problem is not None:
+        got, expected = problem
+        raise ServiceError(got, where=f"field {field!r}", expected=expected)
+    return str(value)
+
+
 def _mapping(key_check: Check, value_check: Check, max_items: int = 256) -> Check:
     def check(value: Any, field: str, limits: Limits) -> dict[str, Any]:
         if not isinstance(value, dict) or len(value) > max_items:
@@ -169,7 +180,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     },
     "destroy": {"name": (True, _name("unit name"))},
     "get_model": {},
-    "request": {"tag": (True, _text(512))},
+    "request": {"tag": (True, _text(512)), "standby": (False, _standby)},
     "release": {"key": (True, _key)},
     "measure": {"name": (True, _text(128)), "value": (True, _number_or_text)},
     "get_adaptations": {},

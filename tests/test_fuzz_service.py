@@ -53,6 +53,7 @@ VALID: dict[str, Any] = {
     "tag": "BallPosition(field)",
     "key": "dyknow/m1/r1/out",
     "value": 0.5,
+    "standby": "warm",
 }
 # Which of the JSON_PROBES each field takes; every other probe is refused naming the field.
 TEXT = {'"text"'}
@@ -68,6 +69,7 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("spawn", "owner"): TEXT,
     ("destroy", "name"): TEXT,
     ("request", "tag"): TEXT,
+    ("request", "standby"): set(),  # only "none" or "warm", none of the probes
     ("release", "key"): TEXT,
     ("measure", "name"): TEXT,
     ("measure", "value"): {"0", "1.5", "10**30", '"text"'},
