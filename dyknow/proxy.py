@@ -93,7 +93,14 @@ class InputPort:
     def deliver_remote(self, msg: Message) -> None:
         """A message from another process, on Zenoh's receiving thread: run a unit proven quick
         and free right here (no thread hand-off), queue it for the unit's lane otherwise."""
-        if self.queue or not self.job.run_inline(self, msg):
+        if self.queue or not self.job.run_inline(self, msg, None):
+            self.deliver(msg)
+
+    def deliver_local(self, msg: Message, publisher: Proxy) -> None:
+        """A message from a unit of this manager, on the publisher's thread: run a unit proven
+        quick and free right here, depth-first like a function call (no queue, no lane), queue
+        it otherwise or when ``_MAX_DEPTH`` units already run nested on this thread."""
+        if self.queue or publisher.inline_depth >= _MAX_DEPTH or not self.job.run_inline(self, msg, publisher):
             self.deliver(msg)
 
     def deliver(self, msg: Message) -> None:
@@ -115,6 +122,9 @@ class InputPort:
 # its callbacks average under _INLINE_BUDGET_NS, on the shared lane (not isolated).
 _PROVEN = 8
 _INLINE_BUDGET_NS = 200_000
+# At most this many units run nested on one thread (a chain of local units handing on inline);
+# the next one is queued for its lane, which starts over: the stack stays shallow.
+_MAX_DEPTH = 64
 
 
 class OutputPort:
@@ -226,6 +236,9 @@ class Proxy:
         self._current: Message | None = None
         self._current_thread = 0
         self._ewma_ns = 0  # moving average of the unit's callback times
+        # time spent in the current callback by units it ran inline (they count as their own)
+        self._child_ns = 0
+        self.inline_depth = 0  # while it runs inline: how many units run nested on the thread
         self._inline_ns = _INLINE_BUDGET_NS  # -1 once isolated: never on Zenoh's thread again
         self._destroy_requested = False
         self._timers: list[Timer] = []
@@ -396,15 +409,16 @@ class Proxy:
             return  # running on another thread right now; it drains before releasing
         self.run_locked(worker)
 
-    def run_inline(self, port: InputPort, msg: Message) -> bool:
-        """Handle ``msg`` on the calling thread (Zenoh's receiving thread) when the unit is proven
-        quick (``_PROVEN`` messages on the port, callbacks averaging under ``_INLINE_BUDGET_NS``,
-        on the shared lane), running, free and has nothing pending; False when it is not (the
-        caller queues the message for the lane). This saves a thread hand-off per message from
-        another process (the lane's thread would need the interpreter lock the receiving thread
-        just held). A unit that turns slow here holds that link up once: its average then rules
-        it out, and it moves to a thread of its own. A unit never proven quick (a slow first
-        callback) never runs here.
+    def run_inline(self, port: InputPort, msg: Message, publisher: Proxy | None) -> bool:
+        """Handle ``msg`` on the calling thread (Zenoh's receiving thread, or the thread of the
+        local ``publisher`` that sent it) when the unit is proven quick (``_PROVEN`` messages on
+        the port, callbacks averaging under ``_INLINE_BUDGET_NS``, on the shared lane), running,
+        free and has nothing pending; False when it is not (the caller queues the message for the
+        lane). This saves a thread hand-off per message from another process (the lane's thread
+        would need the interpreter lock the receiving thread just held), and a trip through the
+        lane per local hop. A unit that turns slow here holds its caller up once: its average then
+        rules it out, and it moves to a thread of its own. A unit never proven quick (a slow first
+        callback) never runs here. The time it takes is its own, not the publisher's.
         """
         if self._ewma_ns >= self._inline_ns or port.counters.messages < _PROVEN or self._calls:
             return False
@@ -416,6 +430,8 @@ class Proxy:
         now = time_ns()
         self._current = msg
         self._current_thread = get_ident()
+        self._child_ns = 0
+        self.inline_depth = publisher.inline_depth + 1 if publisher is not None else 1
         try:
             self.unit.on_message(port.name, msg)
         except (Exception, SystemExit) as exc:
@@ -424,10 +440,14 @@ class Proxy:
         finally:
             self._current = None
             self._current_thread = 0
+            self.inline_depth = 0
             self._lock.release()
         # bookkeeping after the callback, off the path of what the unit published
         port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
-        self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
+        took = time_ns() - now
+        self._ewma_ns += (took - self._child_ns - self._ewma_ns) >> 3
+        if publisher is not None:
+            publisher._child_ns += took
         if self._destroy_requested or self._ewma_ns > self._slow_ns:
             self._after_callbacks()
         return True
@@ -465,6 +485,7 @@ class Proxy:
                 self._current_thread = ident
                 worker.busy_job = self
                 worker.busy_since_ns = now
+                self._child_ns = 0
                 try:
                     on_message(port.name, msg)
                 except (Exception, SystemExit) as exc:
@@ -475,7 +496,7 @@ class Proxy:
                 worker.busy_since_ns = 0
                 self._current = None
                 self._current_thread = 0
-                self._ewma_ns += (time_ns() - now - self._ewma_ns) >> 3
+                self._ewma_ns += (time_ns() - now - self._child_ns - self._ewma_ns) >> 3
                 if self.state is not _RUNNING or self._destroy_requested:
                     return
                 budget -= 1
@@ -507,6 +528,7 @@ class Proxy:
         worker.busy_job = self
         t0 = time_ns()
         worker.busy_since_ns = t0
+        self._child_ns = 0
         try:
             fn()
         except (Exception, SystemExit) as exc:
@@ -514,7 +536,7 @@ class Proxy:
         finally:
             worker.busy_since_ns = 0
             self._current_thread = 0
-        self._ewma_ns += (time_ns() - t0 - self._ewma_ns) >> 3
+        self._ewma_ns += (time_ns() - t0 - self._child_ns - self._ewma_ns) >> 3
 
     def _after_callbacks(self) -> None:
         if self._destroy_requested:
@@ -573,7 +595,7 @@ class Proxy:
         out.seq += 1
         msg = Message(payload, out.seq, origin_ns, now, out.key, nbytes, wire)
         for target in out.targets:
-            target.deliver(msg)
+            target.deliver_local(msg, self)
         publisher = out.publisher
         sent = publisher.put(msg) if publisher is not None and publisher.matched else 0
         counters = out.counters  # counted once sent: bookkeeping stays off the message's path

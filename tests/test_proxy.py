@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
-from dyknow import BindingError, Client, Manager, Message, UnitError, default_key
+from dyknow import BindingError, Client, Manager, Message, TransformationSpec, Unit, UnitError, default_key
+from dyknow.spec import Param, Port
 from dyknow.testing import Sink, Source
 from tests.conftest import wait_until
 from tests.units import Counter, Slow
@@ -331,3 +333,90 @@ def test_a_quick_unit_that_turns_slow_holds_a_link_up_once(make_manager: object)
     assert [m.payload for m in got[-40:]] == [100 + i for i in range(40)]
     turns = receiver.unit("turns")
     assert turns.handled < 62  # type: ignore[attr-defined]  # still inside its second slow callback
+
+
+# --- local units hand on inline ------------------------------------------------------------------
+
+
+class Where(Unit):
+    """Records the thread each message arrived on, spins ``spin_us`` microseconds, hands it on."""
+
+    def setup(self) -> None:
+        self.threads: list[int] = []
+        self.spin_ns = int(float(self.params.get("spin_us", 0)) * 1000)
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.threads.append(threading.get_ident())
+        end = time.perf_counter_ns() + self.spin_ns
+        while time.perf_counter_ns() < end:
+            pass
+        self.publish("out", msg.payload)
+
+
+def _where_chain(manager: Manager, length: int, spin_us: float = 0.0) -> tuple[Source, Sink]:
+    manager.add_transformation(
+        TransformationSpec(
+            label="where",
+            source="tests.test_proxy:Where",
+            params=(Param("spin_us", "float", spin_us),),
+            ports=(Port("in", "in"), Port("out", "out")),
+        )
+    )
+    manager.spawn("sink", "end", bindings={"in": f"chain/{length}"})
+    for i in range(length, 0, -1):
+        manager.spawn("where", f"w{i}", bindings={"in": f"chain/{i - 1}", "out": f"chain/{i}"})
+    manager.spawn("publisher", "start", bindings={"out": "chain/0"})
+    source, sink = manager.unit("start"), manager.unit("end")
+    assert isinstance(source, Source) and isinstance(sink, Sink)
+    return source, sink
+
+
+def test_quick_local_units_run_on_the_publishers_thread_depth_first(make_manager: Callable[..., Manager]) -> None:
+    """Once proven quick, a chain of local units runs inside the publisher's call, like nested
+    function calls: the message has passed every unit when ``publish`` returns."""
+    manager = make_manager(listen=[])
+    source, sink = _where_chain(manager, 5)
+    for i in range(10):  # each unit proves itself on its lane
+        source.emit(i)
+        sink.wait_for(i + 1)
+    for i in range(10, 20):
+        source.emit(i)
+        assert len(sink.messages) == i + 1, "the message should have reached the sink within emit()"
+    me = threading.get_ident()
+    for i in range(1, 6):
+        unit = manager.unit(f"w{i}")
+        assert isinstance(unit, Where)
+        assert unit.threads[:8].count(me) == 0 and unit.threads[10:] == [me] * 10
+    assert [m.payload for m in sink.messages] == list(range(20))
+
+
+def test_a_long_local_chain_goes_through_the_lanes_past_the_depth_limit(make_manager: Callable[..., Manager]) -> None:
+    """At most 64 units run nested on one thread: a chain of 150 delivers every message, in
+    order, the stack stays shallow."""
+    manager = make_manager(listen=[], queue_depth=64)
+    source, sink = _where_chain(manager, 150)
+    for i in range(40):
+        source.emit(i)
+        if i < 10:
+            sink.wait_for(i + 1)
+    got = sink.wait_for(40)
+    assert [m.payload for m in got] == list(range(40))
+    assert all(p.dropped == 0 for n in ("w1", "w75", "w150") for p in manager.get_statistics(n).ports)
+    me = threading.get_ident()
+    first, past = manager.unit("w64"), manager.unit("w65")
+    assert isinstance(first, Where) and isinstance(past, Where)
+    assert first.threads[-1] == me and past.threads[-1] != me
+
+
+def test_units_run_inline_count_their_own_time_not_the_publishers(make_manager: Callable[..., Manager]) -> None:
+    """Twenty units of 150 us each run inline under one publisher: 3 ms in all, over the 2 ms
+    that moves a unit to a thread of its own. Each counts its own time, so none moves."""
+    manager = make_manager(listen=[], slow_callback_s=0.002)
+    source, sink = _where_chain(manager, 20, spin_us=150)
+    for i in range(40):
+        source.emit(i)
+        sink.wait_for(i + 1)
+    for i in range(1, 21):
+        assert manager.get_statistics(f"w{i}").executor == "shared thread", f"w{i} moved off the shared thread"
+    w1 = manager.unit("w1")
+    assert isinstance(w1, Where) and w1.threads[-1] == threading.get_ident()
