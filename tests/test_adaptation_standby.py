@@ -261,3 +261,51 @@ def test_the_cli_requests_a_warm_standby_from_a_manager_process(manager_process:
     wait_until(switched, "the switch onto the standby, reported")
     text = run_cli("adaptations", *proc.client_args()).stdout
     assert "(onto the warm standby)" in text and "measurement battery = 0.1" in text
+
+
+def test_a_warm_standby_on_other_managers_takes_over_when_the_active_one_is_lost() -> None:
+    """The loop alone, against the stand-in runtime: the standby runs on another manager, spawned
+    there; losing the active configuration's manager only moves the anchor."""
+    from dataclasses import replace
+
+    from dyknow import Port, Tag, TransformationSpec
+    from dyknow.adaptation import AdaptationLoop
+    from dyknow.federation import Summary
+    from tests.test_adaptation import StandInRuntime
+
+    def camera(label: str, priority: int) -> TransformationSpec:
+        return TransformationSpec(
+            label, "dyknow.testing:Source", ports=(Port("out", "out"),), tags=(Tag("out", "Image"),), priority=priority
+        )
+
+    runtime = StandInRuntime([])
+    runtime.peer_summaries = {
+        "robot": Summary("robot", "robot-host", 1, "r1", (camera("front-camera", 1),)),
+        "field": Summary("field", "field-host", 1, "f1", (camera("back-camera", 2),)),
+    }
+    events: list[AdaptationEvent] = []
+    loop = AdaptationLoop(runtime, dwell_s=60)
+    loop.on_event(events.append)
+    try:
+        loop.request("Image", standby="warm")
+        (info,) = loop.requests()
+        assert info.labels == ("front-camera@robot",) and info.standby_labels == ("back-camera@field",)
+        assert ("spawn", "field", "back-camera") in runtime.remote_calls
+        anchor = next(u for u in runtime.units() if u.label == ANCHOR_LABEL)
+        assert runtime.get_config(anchor.name)["standby"] == "dyknow/field/back-camera/out"
+
+        calls = len(runtime.remote_calls)
+        robot = runtime.peer_summaries.pop("robot")
+        loop.peer_changed("lost", "robot")
+        wait_until(lambda: any(e.kind == "adapted" for e in events), "the switch")
+        (switch,) = [e for e in events if e.kind == "adapted"]
+        assert switch.standby and switch.new == ("back-camera@field",)
+        assert runtime.get_config(anchor.name)["in"] == "dyknow/field/back-camera/out"
+        assert not [c for c in runtime.remote_calls[calls:] if c[0] == "spawn"]  # nothing spawned to switch
+        assert loop.requests()[0].standby == ()  # nothing else to stand by with
+
+        runtime.peer_summaries["robot"] = replace(robot, library="r2", units=())  # it comes back: it stands by
+        loop.peer_changed("found", "robot")
+        wait_until(lambda: loop.requests()[0].standby_labels == ("front-camera@robot",), "the robot standing by")
+    finally:
+        loop.close()
