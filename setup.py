@@ -23,9 +23,11 @@ from setuptools import setup
 COMPILED = [
     "dyknow/bus.py",
     "dyknow/executor.py",
+    "dyknow/message.py",
     "dyknow/proxy.py",
     "dyknow/receiver.py",
     "dyknow/stats.py",
+    "dyknow/transport.py",
 ]
 
 
@@ -43,8 +45,9 @@ def ext_modules() -> list:
         return []
     from mypyc.build import mypycify
 
-    # the build environment has none of dyknow's dependencies: mypy takes their types as Any
-    return mypycify(["--ignore-missing-imports", *COMPILED], opt_level="3")
+    # mypy takes the types of dyknow's dependencies as Any, installed or not, so every build
+    # compiles the same checks (the build environment of a plain install has none of them)
+    return mypycify(["--no-site-packages", "--ignore-missing-imports", *COMPILED], opt_level="3")
 
 
 setup(ext_modules=ext_modules())

@@ -41,6 +41,7 @@ __all__ = [
     "DyKnowError",
     "LibraryError",
     "OntologyError",
+    "PayloadError",
     "PlanningError",
     "RecordingError",
     "ServiceError",
@@ -241,3 +242,7 @@ class RecordingError(DyKnowError):
 class AccessError(DyKnowError):
     """Refused by the manager's security policy: a unit source outside the allow-list, a file
     outside the data roots, or a request over a limit. ``where`` names the field or param."""
+
+
+class PayloadError(DyKnowError, TypeError):
+    """A payload cannot be published or decoded."""

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from dyknow.errors import DyKnowError
+from dyknow.errors import PayloadError
 
 __all__ = [
     "ENCODINGS",
@@ -47,10 +47,6 @@ __all__ = [
     "is_dyknow",
     "payload_nbytes",
 ]
-
-
-class PayloadError(DyKnowError, TypeError):
-    """A payload cannot be published or decoded."""
 
 
 # kind codes in the attachment
