@@ -306,7 +306,6 @@ def main(argv: list[str] | None = None) -> int:
     warmup = 2 if args.smoke else 20
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info['zenoh']}")
-    print("reference on this machine: 6 MiB frames across processes reach ~900/s with Zenoh shared memory, ~230/s with to_bytes()")
     print(f"{'variant':<16} {'size':>7} {'hops':>4} {'lat p50':>10} {'lat p99':>10} {'per hop':>10} {'msg/s':>9} {'MB/s':>9}")
     results = []
     for label, shape in SIZES.items():

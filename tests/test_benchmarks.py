@@ -13,14 +13,17 @@ from tests.conftest import REPO, subprocess_env, undocumented
 def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     out, png = tmp_path / "chain.json", tmp_path / "chain.png"
     result = subprocess.run(
-        [sys.executable, str(REPO / "benchmarks" / "chain.py"), "--smoke", "--hops", "1,3", "--json", str(out), "--plot", str(png)],
+        [
+            sys.executable, str(REPO / "benchmarks" / "chain.py"), "--smoke", "--hops", "1,3", "--json", str(out), "--plot", str(png),
+            "--variants", "dyknow-inproc,zenoh-session,zenoh-session-direct,dyknow-process,zenoh-process,python-call",
+        ],
         capture_output=True, text=True, timeout=600, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     data = json.loads(out.read_text())
     assert {"cpu", "cores", "python", "zenoh"} <= set(data["machine"])
     rows = data["results"]
-    variants = {"dyknow-inproc", "zenoh-session", "dyknow-process", "zenoh-process", "python-call"}
+    variants = {"dyknow-inproc", "zenoh-session", "zenoh-session-direct", "dyknow-process", "zenoh-process", "python-call"}
     assert {(r["variant"], r["hops"], r["mode"]) for r in rows} == {
         (v, h, m) for v in variants for h in (1, 3) for m in ("back-to-back", "paced")
     }
@@ -29,6 +32,10 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
         assert 0 < row["per_hop_median_us"] <= row["last_hop_median_us"] <= row["last_hop_p99_us"]
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
     assert "per-hop p50" in result.stdout
+    # the targets this run can check, each with its figure (in-process: the longest chain)
+    checks = {(c["mode"], c["hops"], c["ours"], c["peer"]) for c in data["targets"]}
+    assert checks == {(m, 3, "dyknow-inproc", "zenoh-session-direct") for m in ("back-to-back", "paced")}
+    assert all(isinstance(c["met"], bool) and c["ratio"] > 0 for c in data["targets"])
 
 
 def _run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
@@ -76,10 +83,14 @@ def test_adaptation_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "adaptation.json"
     result = _run("adaptation.py", "--smoke", "--json", str(out))
     assert result.returncode == 0, result.stderr[-3000:]
-    data = json.loads(out.read_text())["results"]
+    report = json.loads(out.read_text())
+    data = report["results"]
     assert set(data) == {"exception", "destroyed", "measurement", "measurement (return)", "remote-kill"}
-    for row in data.values():
-        assert row["faults"] == 3 and 0 < row["adaptation_median_ms"] <= row["recovery_median_ms"]
+    assert "stand-in" in report["units"] and "STAND-IN" in result.stdout
+    for rows in data.values():  # with and without gc.collect() before each fault
+        assert set(rows) == {"gc on", "gc off"}
+        for row in rows.values():
+            assert row["faults"] == 3 and 0 < row["adaptation_median_ms"] <= row["recovery_median_ms"]
     assert "ROSA" in result.stdout
 
 
