@@ -21,9 +21,9 @@ before the put), to:
   reports it: the loop's recovery time, re-based on the publication). With a warm standby that
   message is the standby's latest track, forwarded the moment the anchor moves onto it: its frame
   was taken before the fault (at most a frame period plus the pipeline's latency earlier);
-- **fresh frame**: the first message on the key from a frame captured after the publication, for
-  comparison (with or without a standby it includes waiting for the next frame and the whole
-  pipeline, so it is about half a period plus the latency at best);
+- **fresh frame**: the first message of the new configuration on the key from a frame captured
+  after the publication, for comparison (with or without a standby it includes waiting for the
+  next frame and the whole pipeline, so it is about half a period plus the latency at best);
 - **adaptation**: the new configuration wired (the loop's adaptation time, re-based the same way).
 
 The target is the first message within one frame period: p99 <= 50 ms at 20 Hz. Without a
@@ -118,21 +118,23 @@ def camera_specs(rate_hz: float) -> list[TransformationSpec]:
     return out
 
 
-def first_fresh(consumer: Sink, start: int, after_ns: int, timeout_s: float = 10.0) -> Message:
-    """The first message the consumer got, from index ``start`` on, whose frame was captured at or
-    after ``after_ns`` (waiting for it up to ``timeout_s``)."""
+def first_fresh(consumer: Sink, start: int, first_ns: int, after_ns: int, timeout_s: float = 10.0) -> Message:
+    """The first message, from the new configuration's first one on, whose frame was captured at
+    or after ``after_ns``. The new configuration's first message is the last that left the anchor
+    by ``first_ns`` (when the anchor reported it); an earlier one may come from the old
+    configuration even when its frame is newer than the fault (a switch slower than a frame)."""
     deadline = time.monotonic() + timeout_s
-    seen = start
     while True:
         messages = consumer.messages  # appended to only: a prefix read is consistent
-        for msg in messages[seen:]:
-            if msg.origin_ns >= after_ns:
-                return msg
-        seen = len(messages)
+        later = next((i for i in range(start, len(messages)) if messages[i].send_ns > first_ns), None)
+        if later is not None:
+            for msg in messages[max(start, later - 1) :]:
+                if msg.origin_ns >= after_ns:
+                    return msg
         left = deadline - time.monotonic()
         if left <= 0:
-            raise RuntimeError(f"no message from a frame after the fault within {timeout_s} s")
-        consumer.wait_for(seen + 1, timeout_s=left)
+            raise RuntimeError(f"no message of the new configuration from a frame after the fault within {timeout_s} s")
+        consumer.wait_for(len(messages) + 1, timeout_s=left)
 
 
 def cpu_seconds() -> float:
@@ -172,9 +174,9 @@ class Run:
         start = len(self.consumer.messages)
         published = self.battery(level)
         event = self.watcher.recovered(f"battery = {level!r}", published - 5_000_000)
-        fresh = first_fresh(self.consumer, start, published)
         wired_ns = event.fault_ns + (event.adaptation_ms or 0.0) * 1e6
         first_ns = event.fault_ns + (event.recovery_ms or 0.0) * 1e6
+        fresh = first_fresh(self.consumer, start, int(first_ns), published)
         out: dict[str, float | bool] = {
             "first_message_ms": (first_ns - published) / 1e6,
             "fresh_frame_ms": (fresh.send_ns - published) / 1e6,

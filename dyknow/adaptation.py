@@ -33,9 +33,10 @@ forwards only the active configuration's output; it keeps the standby's latest m
 the switch only rebinds the anchor onto the standby's output and forwards that latest message at
 once, so consumers do not wait up to a frame for the next one (its origin time is older than the
 switch, and may be older than the last message the broken configuration sent). A new standby is
-then planned (reusing the healthy units of the old configuration where it can); when the
-preferred configuration is allowed again the request returns to it as any request does (after the
-dwell time), and the configuration it leaves becomes the standby. Releasing the request tears the
+then planned, once the new configuration's first message is out (building it takes CPU that
+message needs; at most a second later), reusing the healthy units of the old configuration where
+it can. When the preferred configuration is allowed again the request returns to it as any
+request does (after the dwell time), and the configuration it leaves becomes the standby. Releasing the request tears the
 standby down too. The model lists the standby's units (:class:`~dyknow.model.RequestInfo`), and
 the events of a switch onto the standby say so (``standby``).
 
@@ -101,6 +102,7 @@ DEFAULT_DWELL_S = 2.0
 BACKOFF_FIRST_S = 1.0
 BACKOFF_MAX_S = 60.0
 _TICK_S = 0.02  # deadlines, back-offs and deferred opportunities are checked this often
+_STANDBY_WAIT_NS = 1_000_000_000  # after a switch, the next standby waits this long at most for the stream
 
 
 # ---------------------------------------------------------------------------- what the loop needs
@@ -262,6 +264,10 @@ class _Request:
     standby_inputs: tuple[Any, ...] | None = None  # what the standby was last planned from
     # healthy units a switch left behind, kept until the next standby is planned (it may reuse them)
     spare: dict[str, str] = field(default_factory=dict)
+    # after a switch the next standby waits for the new configuration's first message (or this time):
+    # building it takes CPU the first message needs
+    standby_after_ns: int = 0
+    standby_due: bool = False
 
     def info(self) -> RequestInfo:
         return RequestInfo(
@@ -1212,16 +1218,17 @@ class AdaptationLoop:
                             if request is not None:  # timed from now: the wait was our choice, not the fault's
                                 waited = replace(opportunity, time_ns=now, deferred=True)
                                 self._adapt(request, waited, fault=False)
-                    if changed:  # after the switches: standbys follow what changed
-                        for request in sorted(self.knowledge.requests.values(), key=lambda r: r.key):
-                            if request.standby_mode == "warm":
-                                self._maintain_standby(request, time.time_ns())
+                    # after the switches, and once their stream flows again: standbys follow what changed
+                    for request in sorted(self.knowledge.requests.values(), key=lambda r: r.key):
+                        if request.standby_mode == "warm" and (changed or request.standby_due) and request.standby_after_ns <= now:
+                            request.standby_due = False
+                            self._maintain_standby(request, time.time_ns())
             except Exception:
                 log.exception("adaptation loop error (it keeps running)")
 
     def _handle(self, symptom: Symptom) -> None:
-        if symptom.kind == "spawned":
-            return  # only wakes the loop up (for a tick: deadlines to watch, or to forget)
+        if symptom.kind in ("spawned", "recovered"):
+            return  # only wakes the loop up (for a tick: deadlines to watch, or to forget; a standby to build)
         if symptom.kind in ("failed", "destroyed") and symptom.unit is not None and self._later_unit(symptom.unit, symptom.time_ns):
             return  # about an earlier unit of that name (one the loop replaced since): nothing to do
         knowledge = self.knowledge
@@ -1434,8 +1441,14 @@ class _Recovery:
         self._lock = threading.Lock()
         self._arrival_ns: int | None = None
         self._event: AdaptationEvent | None = None
+        self._request: _Request | None = None
 
     def arm(self, request: _Request) -> Callable[[str], None]:
+        self._request = request
+        if request.standby_mode == "warm":  # the next standby: once the stream flows again (at most a second from now)
+            request.standby_due = True
+            request.standby_after_ns = time.time_ns() + _STANDBY_WAIT_NS
+
         def before_switch(output_key: str) -> None:
             anchor = self._loop.runtime.unit(request.anchor)
             if isinstance(anchor, RequestAnchor):
@@ -1447,6 +1460,10 @@ class _Recovery:
         with self._lock:
             self._arrival_ns = arrival_ns
             event = self._event
+        request = self._request
+        if request is not None and request.standby_due:  # the stream flows again: the standby may be built now
+            request.standby_after_ns = 0
+            self._loop._report(Symptom("recovered", arrival_ns, detail=f"{request.tag} flows again"))
         if event is not None:
             self._finish(event, arrival_ns)
 
