@@ -1297,6 +1297,21 @@ class AdaptationLoop:
             log.warning("adaptation of %s failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not wire the new configuration: {exc}")
             return
+        self._adapted(request, symptom, cause, old_labels, orphans, recovery, standby=False)
+
+    def _adapted(
+        self,
+        request: _Request,
+        symptom: Symptom,
+        cause: str,
+        old_labels: tuple[str, ...],
+        orphans: list[str],
+        recovery: _Recovery,
+        *,
+        standby: bool,
+    ) -> int:
+        """The new configuration is wired: record it, tell the listeners, let go of what it left;
+        returns when it was wired (ns)."""
         wired = time.time_ns()
         request.last_change_ns = wired
         event = AdaptationEvent(
@@ -1309,14 +1324,22 @@ class AdaptationLoop:
             tuple(sorted(set(request.units.values()))),
             symptom.time_ns,
             round((wired - symptom.time_ns) / 1e6, 3),
+            standby=standby,
         )
         self._next_id += 1
         self._emit(event)
         recovery.adapted(event)
         log.info(
-            "adapted %s (%s): %s -> %s in %.1f ms", request.tag, cause, ", ".join(old_labels), ", ".join(event.new), event.adaptation_ms
+            "adapted %s (%s)%s: %s -> %s in %.1f ms",
+            request.tag,
+            cause,
+            " onto its warm standby" if standby else "",
+            ", ".join(old_labels),
+            ", ".join(event.new),
+            event.adaptation_ms,
         )
         self._leave(request, orphans)
+        return wired
 
     def _take_standby(self, request: _Request, symptom: Symptom, old_labels: tuple[str, ...], fault: bool) -> None:
         """Switch ``request`` onto its warm standby (only the anchor moves), then, after a fault,
@@ -1328,32 +1351,7 @@ class AdaptationLoop:
             log.warning("switching %s onto its standby failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not switch onto the standby: {exc}")
             return
-        wired = time.time_ns()
-        request.last_change_ns = wired
-        event = AdaptationEvent(
-            self._next_id,
-            "adapted",
-            request.tag,
-            request.key,
-            _cause(symptom),
-            old_labels,
-            tuple(sorted(set(request.units.values()))),
-            symptom.time_ns,
-            round((wired - symptom.time_ns) / 1e6, 3),
-            standby=True,
-        )
-        self._next_id += 1
-        self._emit(event)
-        recovery.adapted(event)
-        log.info(
-            "adapted %s (%s) onto its warm standby: %s -> %s in %.1f ms",
-            request.tag,
-            event.cause,
-            ", ".join(old_labels),
-            ", ".join(event.new),
-            event.adaptation_ms,
-        )
-        self._leave(request, orphans)
+        wired = self._adapted(request, symptom, _cause(symptom), old_labels, orphans, recovery, standby=True)
         if fault:
             try:
                 preferred = self.reconfigurer.plan(request, time.time_ns())
