@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import ctypes
 import json
 import logging
 import os
@@ -98,6 +99,37 @@ class _SharedMemory:
             return data  # pool full right now
         buffer[:] = data
         return buffer
+
+
+# --------------------------------------------------------------------------- Zenoh's threads
+
+# Zenoh runs an inline callback on its own (Rust) threads and takes the GIL through
+# PyGILState_Ensure. On a thread Python does not know, that builds a thread state and frees it
+# again when the callback returns: per message, an mmap and a munmap of the 16 kB frame stack, a
+# gettid, and cold caches (measured with strace: one of each per message on a relay). Taking the
+# GIL once more and never giving it back keeps the thread state for the life of Zenoh's thread
+# (its runtime threads live as long as the process), so later callbacks reuse it.
+_pinned = threading.local()  # set on a thread whose state is kept
+_gil_ensure: Callable[[], int] | None = getattr(getattr(ctypes, "pythonapi", None), "PyGILState_Ensure", None)
+
+
+def _keep_thread_state() -> None:
+    """Keep this thread's Python state past the current callback (see above); once per thread."""
+    if not getattr(_pinned, "kept", False):
+        if _gil_ensure is not None:
+            _gil_ensure()
+        _pinned.kept = True
+
+
+def _inline(callback: Callable[[Any], None]) -> Any:
+    """A Zenoh handler that runs ``callback`` on the thread delivering the sample, keeping that
+    thread's Python state between calls."""
+
+    def run(arg: Any) -> None:
+        _keep_thread_state()
+        callback(arg)
+
+    return zenoh.handlers.Callback(run, indirect=False)
 
 
 def _clean(exc: BaseException) -> str:
@@ -271,7 +303,7 @@ class Publisher(_Entity):
                 self._on_matching(status.matching)
 
         # on Zenoh's thread: it only sets a flag (a thread per publisher would cost a thread per unit)
-        self._listener: Any = pub.declare_matching_listener(zenoh.handlers.Callback(matching, indirect=False))
+        self._listener: Any = pub.declare_matching_listener(_inline(matching))
         # the 1.10 stub says bool, but the property returns a MatchingStatus (always truthy)
         self.matched = pub.matching_status.matching  # type: ignore[attr-defined]
 
@@ -325,6 +357,8 @@ class Subscriber(_Entity):
 
         def callback(sample: zenoh.Sample) -> None:
             # Cheapest checks first: this runs once per message from another process.
+            if inline and not getattr(_pinned, "kept", False):
+                _keep_thread_state()
             try:
                 if wanted is not None and not wanted(str(sample.key_expr)):
                     return  # nobody reads this key: not worth decoding
@@ -590,7 +624,7 @@ class Session:
                 log.exception("liveliness callback for %s failed", key)
 
         try:
-            handler = zenoh.handlers.Callback(callback, indirect=False) if inline else callback
+            handler = _inline(callback) if inline else callback
             sub = self._z().liveliness().declare_subscriber(key, handler, history=True)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot watch liveliness on {key!r}: {_clean(exc)}") from exc
@@ -700,7 +734,7 @@ class Session:
 
             try:
                 querier = self._z().declare_querier(key, timeout=timeout_s)
-                querier.declare_matching_listener(zenoh.handlers.Callback(matching, indirect=False))
+                querier.declare_matching_listener(_inline(matching))
             except zenoh.ZError as exc:
                 raise TransportError(f"cannot declare a querier on {key!r}: {_clean(exc)}") from exc
             if querier.matching_status.matching:  # type: ignore[attr-defined]  # see Publisher

@@ -131,3 +131,38 @@ def test_flush_delivers_what_is_queued_before_the_session_closes() -> None:
 
 def _message(i: int) -> Message:
     return Message(bytes(100_000), i, time.time_ns(), time.time_ns(), "flush/burst", 100_000)
+
+
+def test_inline_callbacks_keep_their_python_thread_state() -> None:
+    """Zenoh calls an inline subscriber on its own threads, which Python does not know. Without
+    care each call builds a Python thread state and frees it on return (an mmap and munmap per
+    message); the transport keeps it, so what a callback leaves in thread-local storage is still
+    there for the next message on that thread."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    local = threading.local()
+    seen: list[tuple[int, int]] = []  # (thread, messages that thread's local storage remembers)
+    enough = threading.Event()
+
+    def on_message(msg: Message) -> None:
+        local.count = getattr(local, "count", 0) + 1
+        seen.append((threading.get_ident(), local.count))
+        if len(seen) >= 40:
+            enough.set()
+
+    with Session(make_config(listen=[endpoint])) as receiver, Session(make_config(connect=[endpoint])) as sender:
+        sub = receiver.declare_subscriber("keep/state", on_message, inline=True)
+        publisher = sender.declare_publisher("keep/state", reliable=True)
+        deadline = time.monotonic() + 10
+        while not publisher.matched and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for i in range(40):
+            publisher.put(Message(b"x", i, time.time_ns(), time.time_ns(), "keep/state", 1))
+            time.sleep(0.002)  # one at a time: each arrives in a callback of its own
+        assert enough.wait(10), f"{len(seen)} of 40 messages arrived"
+        publisher.undeclare()
+        sub.undeclare()
+    assert threading.get_ident() not in {t for t, _ in seen}, "the callback ran on Zenoh's threads"
+    per_thread: dict[int, int] = {}
+    for thread, count in seen:
+        per_thread[thread] = per_thread.get(thread, 0) + 1
+        assert count == per_thread[thread], "a callback found its thread's local storage wiped"
