@@ -273,7 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("dyknow").setLevel(logging.WARNING)
     period_ms = 1000.0 / args.rate
     info = machine()
-    print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info['zenoh']} (other work running on it)")
+    load = os.getloadavg()[0]  # other work competing with the run shows here
+    print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info['zenoh']}; load average {load:.2f} at the start")
     print(f"units: the REAL vision pipeline of the demo (synthetic 640x480 scene cameras at {args.rate:g} Hz, specs/vision.xml), {TAG}")
     print(f"{switches} battery-driven switches each way per standby mode; times in ms from the battery measurement's publication")
     print(f"target: first message p99 <= {TARGET_MS:g} ms (one frame period at 20 Hz; a period here is {period_ms:g} ms)")
@@ -322,6 +323,7 @@ def main(argv: list[str] | None = None) -> int:
             args.json,
             {
                 "machine": info,
+                "load_average_start": load,
                 "units": "the demo's vision pipeline: specs/robot.xml cameras (synthetic scene) and specs/vision.xml",
                 "request": TAG,
                 "rate_hz": args.rate,

@@ -60,8 +60,11 @@ MAX_QUERIERS = 64
 _WILD = re.compile(r"\*|\$\*")
 _ENCODINGS = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
 
-# Payloads at least this large go out through Zenoh shared memory: on this machine a 6 MiB frame
-# crosses processes about 4x faster than through a plain put. Each session reserves a pool lazily.
+# Payloads at least this large go out through Zenoh shared memory (each session reserves a pool
+# lazily). It was chosen when an earlier benchmark measured it 4x faster than a plain put; the
+# fairer one now (benchmarks/payload.py, every copy inside the figure) finds raw Zenoh's plain put
+# faster for a 6 MiB frame with nothing else in flight (1.0 vs 1.5 ms), since the receiver copies a
+# shared-memory sample out too. When to use it is an open question (README, Payload sizes).
 SHM_THRESHOLD = 64 * 1024
 SHM_POOL_BYTES = 96 * 1024 * 1024
 

@@ -52,8 +52,10 @@ def test_payload_benchmark_smoke(tmp_path: Path) -> None:
     rows = json.loads(out.read_text())["results"]
     assert {r["size"] for r in rows} == {"64 B", "64 KiB", "1 MiB", "6 MiB"}
     assert {(r["variant"], r["hops"]) for r in rows} == {
-        ("dyknow-inproc", 1), ("dyknow-inproc", 5), ("dyknow-process", 1), ("zenoh-process", 1)
+        ("dyknow-inproc", 1), ("dyknow-inproc", 5), ("dyknow-process", 1), ("zenoh-process", 1), ("zenoh-shm-process", 1)
     }
+    # the raw shared-memory baseline runs where dyknow uses shared memory: 64 KiB and more
+    assert {r["size"] for r in rows if r["variant"] == "zenoh-shm-process"} == {"64 KiB", "1 MiB", "6 MiB"}
     assert all(r["messages_per_s"] > 0 and r["latency_median_us"] > 0 for r in rows)
     assert "6 MiB through 5 in-process hops" in result.stdout and "6 MiB across processes" in result.stdout
     assert png.read_bytes()[:4] == b"\x89PNG"
