@@ -62,6 +62,7 @@ except ImportError as exc:  # pragma: no cover - depends on the environment
 from dyknow import errors, keys
 from dyknow.errors import DyKnowError, RecordingError, ServiceError, SpecError, TagError
 from dyknow.message import Message
+from dyknow.model import STANDBY_MODES
 from dyknow.recording import Player, Recorder, Recording
 from dyknow.security import Limits
 from dyknow.service import SCHEMAS, UNIT_SERVICES, check_request, decode_request, raise_remote
@@ -604,6 +605,8 @@ def _field_values(field: str) -> st.SearchStrategy[Any]:
         "bindings": st.dictionaries(st.sampled_from(["in", "out", "a"]) | words, words, max_size=3),
         "tag": tag_texts(),
         "value": st.one_of(st.floats(), st.integers(), words),
+        # the valid modes (and None, the default) as often as a near miss
+        "standby": st.sampled_from([*STANDBY_MODES, None]) | st.sampled_from(["Warm", "hot", " warm", ""]),
     }
     return by_field.get(field, words) | json_values(6)
 
