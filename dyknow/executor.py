@@ -35,7 +35,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Final, Protocol
 
 from dyknow.errors import ClosedError
 
@@ -43,9 +43,9 @@ __all__ = ["Executor", "Job", "Lane", "Timer", "Worker"]
 
 log = logging.getLogger(__name__)
 
-_STOP = object()
-_WAKE = object()
-_NEVER = 1 << 62  # next_due_ns of a lane without timers
+_STOP: Final = object()
+_WAKE: Final = object()
+_NEVER: Final = 1 << 62  # next_due_ns of a lane without timers
 _IDLE_POLL_S = 0.1  # the watchdog's slowest poll, while the shared lane stays idle
 
 

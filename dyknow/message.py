@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import struct
-from typing import Any
+from typing import Any, Final
 
 import numpy as np
 
@@ -49,22 +49,28 @@ __all__ = [
 ]
 
 
+# Module constants are Final: compiled (see setup.py), a Final name is a C constant rather than a
+# lookup in the module's dictionary on every message.
+
 # kind codes in the attachment
-_BYTES, _TEXT, _JSON, _ARRAY = 0, 1, 2, 3
-_MAGIC = b"DK"
-_VERSION = 1
-HEADER = struct.Struct("<2sBBQqq")
-_ARRAY_META = struct.Struct("<BB")  # ndim, len(dtype string)
+_BYTES: Final = 0
+_TEXT: Final = 1
+_JSON: Final = 2
+_ARRAY: Final = 3
+_MAGIC: Final = b"DK"
+_VERSION: Final = 1
+HEADER: Final = struct.Struct("<2sBBQqq")
+_ARRAY_META: Final = struct.Struct("<BB")  # ndim, len(dtype string)
 
 #: Zenoh encoding announced for each kind of payload, for tools that know nothing of dyknow.
-ENCODINGS = {
+ENCODINGS: Final = {
     _BYTES: "application/octet-stream",
     _TEXT: "text/plain;charset=utf-8",
     _JSON: "application/json",
     _ARRAY: "application/x-dyknow-ndarray",
 }
 
-_JSON_TYPES = (dict, list, tuple, int, float, bool, type(None))
+_JSON_TYPES: Final = (dict, list, tuple, int, float, bool, type(None))
 
 
 class Message:

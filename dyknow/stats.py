@@ -8,12 +8,13 @@ percentiles are computed only when someone asks (``snapshot()``), over the last
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Final
 
 __all__ = ["WINDOW", "LatencySummary", "PortCounters", "PortStatistics", "summarize"]
 
 #: How many recent latency samples percentiles are computed over.
-WINDOW = 1024
-_MASK = WINDOW - 1
+WINDOW: Final = 1024
+_MASK: Final = WINDOW - 1
 
 
 @dataclass(frozen=True, slots=True)
