@@ -81,7 +81,7 @@ _FAILED: Final = UnitState.FAILED
 class InputPort:
     """An input port: its key, its bounded queue, its counters."""
 
-    __slots__ = ("counters", "depth", "job", "keep_last", "key", "name", "queue")
+    __slots__ = ("counters", "depth", "forward", "job", "keep_last", "key", "name", "queue")
 
     def __init__(self, job: Proxy, name: str, key: str, depth: int, keep_last: bool) -> None:
         self.job = job
@@ -92,18 +92,27 @@ class InputPort:
         # keep-last: the deque's maxlen drops the oldest; drop-new: deliver() refuses when full
         self.queue: deque[Message] = deque(maxlen=depth if keep_last else None)
         self.counters = PortCounters()
+        self.forward: OutputPort | None = None  # the unit's forward_to: dyknow publishes there itself
 
     def deliver_remote(self, msg: Message) -> None:
         """A message from another process, on Zenoh's receiving thread: run a unit proven quick
         and free right here (no thread hand-off), queue it for the unit's lane otherwise."""
-        if self.queue or not self.job.run_inline(self, msg, None):
+        if self.forward is not None:
+            if self.queue or not self.job.forward_now(self, msg, None):
+                self.deliver(msg)
+        elif self.queue or not self.job.run_inline(self, msg, None):
             self.deliver(msg)
 
     def deliver_local(self, msg: Message, publisher: Proxy) -> None:
         """A message from a unit of this manager, on the publisher's thread: run a unit proven
         quick and free right here, depth-first like a function call (no queue, no lane), queue
         it otherwise or when ``_MAX_DEPTH`` units already run nested on this thread."""
-        if self.queue or publisher.inline_depth >= _MAX_DEPTH or not self.job.run_inline(self, msg, publisher):
+        if self.queue or publisher.inline_depth >= _MAX_DEPTH:
+            self.deliver(msg)
+        elif self.forward is not None:
+            if not self.job.forward_now(self, msg, publisher):
+                self.deliver(msg)
+        elif not self.job.run_inline(self, msg, publisher):
             self.deliver(msg)
 
     def deliver(self, msg: Message) -> None:
@@ -261,6 +270,7 @@ class Proxy:
             else:
                 self._outputs[port.name] = OutputPort(port.name, key)
         self._input_seq = tuple(self._inputs.values())
+        self._wire_forwards(type(unit))
         self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
         unit.attach_runtime(self, name=name, label=spec.label, params=params, log=UnitLog(_UNIT_LOG, name))
         if type(unit).dedicated_thread:
@@ -455,6 +465,66 @@ class Proxy:
             self._after_callbacks()
         return True
 
+    def forward_now(self, port: InputPort, msg: Message, publisher: Proxy | None) -> bool:
+        """Publish ``msg`` on the port's ``forward`` output on the calling thread (the unit's
+        ``forward_to``: no callback of the unit runs). Under the unit's lock like a callback, so
+        it never runs beside one; False when the unit is busy, has control calls pending or is
+        not running (the caller queues the message for the lane, which forwards it in turn)."""
+        if self._calls or not self._lock.acquire(False):
+            return False
+        if self.state is not _RUNNING:
+            self._lock.release()
+            return False
+        self.inline_depth = publisher.inline_depth + 1 if publisher is not None else 1
+        now = time_ns()
+        try:
+            self._forward(port, msg, now)
+        except Exception as exc:
+            self._fail(exc, f"forwarding {port.name!r}")
+        finally:
+            self.inline_depth = 0
+            self._lock.release()
+        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+        return True
+
+    def _forward(self, port: InputPort, msg: Message, now: int) -> None:
+        """Send ``msg`` on as it came (payload, origin, wire form) from the port's ``forward`` output."""
+        out = port.forward
+        assert out is not None
+        out.seq += 1
+        sent_msg = Message(msg.payload, out.seq, msg.origin_ns, now, out.key, msg.nbytes, msg.wire)
+        for target in out.targets:
+            target.deliver_local(sent_msg, self)
+        publisher = out.publisher
+        sent = publisher.put(sent_msg) if publisher is not None and publisher.matched else 0
+        counters = out.counters
+        counters.messages += 1
+        counters.bytes += msg.nbytes or sent
+
+    def _wire_forwards(self, cls: type[Unit]) -> None:
+        """Point every input at the ``forward_to`` output of a forwarding unit class (checked here,
+        so a class that cannot forward is refused at spawn)."""
+        target = cls.forward_to
+        if target is None:
+            return
+        where = f"unit {self.name!r} ({cls.__name__}.forward_to = {target!r})"
+        if cls.on_message is not Unit.on_message:
+            raise UnitError(
+                "the class both forwards its inputs and overrides on_message, which would never run",
+                where=where,
+                expected=f"either forward_to = None in {cls.__name__} (on_message handles the inputs) or no on_message",
+            )
+        out = self._outputs.get(target)
+        if out is None:
+            names = ", ".join(repr(p) for p in self._outputs) or "none"
+            raise UnitError(
+                f"its spec {self.label!r} has no output port {target!r}",
+                where=where,
+                expected=f"the spec's outputs ({names}) to include {target!r}{did_you_mean(target, self._outputs)}",
+            )
+        for port in self._input_seq:
+            port.forward = out
+
     def run_locked(self, worker: Worker) -> None:
         """``run`` once the unit's lock is held; releases it."""
         lock = self._lock
@@ -490,11 +560,14 @@ class Proxy:
                 worker.busy_since_ns = now
                 self._child_ns = 0
                 try:
-                    on_message(port.name, msg)
+                    if port.forward is None:
+                        on_message(port.name, msg)
+                    else:
+                        self._forward(port, msg, now)
                 except (Exception, SystemExit) as exc:
                     worker.busy_since_ns = 0
                     self._current = None
-                    self._fail(exc, f"on_message({port.name!r})")
+                    self._fail(exc, f"on_message({port.name!r})" if port.forward is None else f"forwarding {port.name!r}")
                     return
                 worker.busy_since_ns = 0
                 self._current = None

@@ -34,6 +34,12 @@ in a test, spawn it in a manager, or use :mod:`dyknow.testing`.
 Set the class attribute ``dedicated_thread = True`` for units whose callbacks are known to be slow
 (heavy image processing): they get a thread of their own from the start instead of after their
 first slow callbacks.
+
+Set ``forward_to = "out"`` for a unit that passes every message on unchanged (a relay, a bridge
+between keys): dyknow then publishes each message arriving on any input on that output itself,
+origin time and payload as they came, and no Python of the unit runs per message. A payload from
+another process goes on as the bytes it arrived as. Such a unit does not override ``on_message``
+(the manager refuses one that does); it may still publish from timers or ``run``.
 """
 
 from __future__ import annotations
@@ -110,6 +116,10 @@ class Unit:
 
     #: Run this unit's callbacks on a thread of its own from the start.
     dedicated_thread: ClassVar[bool] = False
+
+    #: The output port on which dyknow itself publishes every input message unchanged, instead of
+    #: calling ``on_message`` (see the module documentation); None: ``on_message`` handles them.
+    forward_to: ClassVar[str | None] = None
 
     #: The params that name files, and what the unit does with them: ``{"path": "write"}``.
     #: For a remote caller the manager confines them to its data roots, whatever the spec says.

@@ -15,7 +15,8 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     result = subprocess.run(
         [
             sys.executable, str(REPO / "benchmarks" / "chain.py"), "--smoke", "--hops", "1,3", "--json", str(out), "--plot", str(png),
-            "--variants", "dyknow-inproc,zenoh-session,zenoh-session-direct,dyknow-process,zenoh-process,python-call",
+            "--variants",
+            "dyknow-inproc,dyknow-inproc-python,zenoh-session,zenoh-session-direct,dyknow-process,dyknow-process-python,zenoh-process,python-call",
         ],
         capture_output=True, text=True, timeout=600, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
@@ -23,7 +24,10 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     data = json.loads(out.read_text())
     assert {"cpu", "cores", "python", "zenoh"} <= set(data["machine"])
     rows = data["results"]
-    variants = {"dyknow-inproc", "zenoh-session", "zenoh-session-direct", "dyknow-process", "zenoh-process", "python-call"}
+    variants = {
+        "dyknow-inproc", "dyknow-inproc-python", "zenoh-session", "zenoh-session-direct",
+        "dyknow-process", "dyknow-process-python", "zenoh-process", "python-call",
+    }  # fmt: skip
     assert {(r["variant"], r["hops"], r["mode"]) for r in rows} == {
         (v, h, m) for v in variants for h in (1, 3) for m in ("back-to-back", "paced")
     }
@@ -34,7 +38,7 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     assert "per-hop p50" in result.stdout
     # the targets this run can check, each with its figure (in-process: the longest chain)
     checks = {(c["mode"], c["hops"], c["ours"], c["peer"]) for c in data["targets"]}
-    assert checks == {(m, 3, "dyknow-inproc", "zenoh-session-direct") for m in ("back-to-back", "paced")}
+    assert checks == {(m, 3, ours, "zenoh-session-direct") for m in ("back-to-back", "paced") for ours in ("dyknow-inproc", "dyknow-inproc-python")}
     assert all(isinstance(c["met"], bool) and c["ratio"] > 0 for c in data["targets"])
 
 

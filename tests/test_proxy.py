@@ -420,3 +420,80 @@ def test_units_run_inline_count_their_own_time_not_the_publishers(make_manager: 
         assert manager.get_statistics(f"w{i}").executor == "shared thread", f"w{i} moved off the shared thread"
     w1 = manager.unit("w1")
     assert isinstance(w1, Where) and w1.threads[-1] == threading.get_ident()
+
+
+# ---------------------------------------------------------------------------- forward_to
+
+
+def test_a_forwarding_unit_passes_messages_on_unchanged_without_its_python(manager: Manager) -> None:
+    """Relay sets forward_to: dyknow publishes each input message on "out" itself. Locally the very
+    payload object goes on, with its origin time, a sequence number of the output port and
+    statistics on both ports; the unit's own timer still publishes on the same port."""
+    manager.spawn("publisher", "src")
+    manager.spawn("relay", "r", bindings={"in": default_key(manager.name, "src", "out")})
+    manager.spawn("ticking-relay", "t", bindings={"in": default_key(manager.name, "r", "out")})
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "t", "out")})
+    src = manager.unit("src")
+    sink = manager.unit("s")
+    assert isinstance(src, Source) and isinstance(sink, Sink)
+    frame = np.arange(12, dtype=np.float32).reshape(3, 4)
+    src.publish("out", frame, origin_ns=12345)
+    for i in range(5):  # fewer than the sink's queue holds, so none is dropped before it is proven quick
+        src.emit({"i": i})
+    sink.wait_until(lambda m: isinstance(m.payload, dict) and m.payload.get("i") == 4)
+    data = [m for m in sink.messages if not isinstance(m.payload, str)]
+    assert data[0].payload is frame and data[0].origin_ns == 12345
+    assert [m.payload for m in data[1:]] == [{"i": i} for i in range(5)]
+    assert all(m.origin_ns < m.send_ns for m in data[1:])
+    sink.wait_until(lambda m: m.payload == "tick")  # the forwarding unit's timer publishes too
+    seqs = [m.seq for m in sink.messages]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs), "one sequence for the output port"
+    relay = {p.port: p for p in manager.get_statistics("r").ports}
+    assert relay["in"].messages == 6 and relay["out"].messages == 6
+    assert manager.get_statistics("r").state == "running"
+
+
+def test_a_forwarding_unit_sends_on_what_another_process_sent(make_manager: Callable[..., Manager]) -> None:
+    """Across sessions the payload goes on as the bytes it came as: arrays, text and bytes arrive
+    intact at a third session, with the origin time of the first publisher."""
+    sender = make_manager()
+    relay = make_manager(connect=sender.endpoints)
+    relay.spawn("relay", "r", bindings={"in": "remote/in", "out": "remote/out"})
+    sender.spawn("publisher", "src", bindings={"out": "remote/in"})
+    sender.spawn("sink", "s", bindings={"in": "remote/out"})
+    src = sender.unit("src")
+    sink = sender.unit("s")
+    assert isinstance(src, Source) and isinstance(sink, Sink)
+    wait_until(lambda: src.has_subscribers("out"), "the relay subscribed")
+    wait_until(lambda: relay.unit("r").has_subscribers("out"), "the sink subscribed to the relay")
+    frame = np.arange(24, dtype=np.uint16).reshape(2, 3, 4)
+    payloads = [frame, "text", b"\x00bytes", {"json": [1, 2]}]
+    for i, payload in enumerate(payloads):
+        src.publish("out", payload, origin_ns=1000 + i)
+    got = sink.wait_for(4)
+    np.testing.assert_array_equal(got[0].payload, frame)
+    assert got[0].payload.dtype == np.uint16
+    assert [m.payload for m in got[1:]] == payloads[1:]
+    assert [m.origin_ns for m in got] == [1000, 1001, 1002, 1003]
+    assert [m.key for m in got] == ["remote/out"] * 4
+    assert {p.port: p.messages for p in relay.get_statistics("r").ports} == {"in": 4, "out": 4}
+
+
+def test_a_unit_that_forwards_and_overrides_on_message_is_refused(manager: Manager) -> None:
+    with pytest.raises(UnitError) as refused:
+        manager.spawn("forwards-and-handles", "both")
+    text = str(refused.value)
+    assert "unit 'both' (ForwardsAndHandles.forward_to = 'out')" in text
+    assert "overrides on_message, which would never run" in text
+    assert "forward_to = None in ForwardsAndHandles" in text
+    assert "both" not in {u.name for u in manager.units()}
+    manager.spawn("relay", "fine")  # the manager goes on
+
+
+def test_a_forwarding_unit_whose_spec_lacks_the_output_is_refused(manager: Manager) -> None:
+    with pytest.raises(UnitError) as refused:
+        manager.spawn("relay-without-out", "r")
+    text = str(refused.value)
+    assert "unit 'r' (Relay.forward_to = 'out')" in text and "has no output port 'out'" in text
+    assert "the spec's outputs ('result') to include 'out'" in text
+    assert "r" not in {u.name for u in manager.units()}

@@ -150,3 +150,21 @@ class TurnsSlow(Unit):
         if msg.payload == "slow":
             time.sleep(float(self.params.get("delay_s", 0.5)))
         self.handled += 1
+
+
+class TickingRelay(Unit):
+    """Forwards every input to out (dyknow does it), and publishes "tick" on out from a timer."""
+
+    forward_to = "out"
+
+    def setup(self) -> None:
+        self.create_timer(0.01, lambda: self.publish("out", "tick"))
+
+
+class ForwardsAndHandles(Unit):
+    """Asks dyknow to forward its inputs and also overrides on_message: refused at spawn."""
+
+    forward_to = "out"
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.publish("out", msg.payload)
