@@ -492,14 +492,7 @@ class Proxy:
         out = port.forward
         assert out is not None
         out.seq += 1
-        sent_msg = Message(msg.payload, out.seq, msg.origin_ns, now, out.key, msg.nbytes, msg.wire)
-        for target in out.targets:
-            target.deliver_local(sent_msg, self)
-        publisher = out.publisher
-        sent = publisher.put(sent_msg) if publisher is not None and publisher.matched else 0
-        counters = out.counters
-        counters.messages += 1
-        counters.bytes += msg.nbytes or sent
+        self._send(out, Message(msg.payload, out.seq, msg.origin_ns, now, out.key, msg.nbytes, msg.wire))
 
     def _wire_forwards(self, cls: type[Unit]) -> None:
         """Point every input at the ``forward_to`` output of a forwarding unit class (checked here,
@@ -669,14 +662,17 @@ class Proxy:
             check_payload(payload)
             nbytes = payload_nbytes(payload)
         out.seq += 1
-        msg = Message(payload, out.seq, origin_ns, now, out.key, nbytes, wire)
+        self._send(out, Message(payload, out.seq, origin_ns, now, out.key, nbytes, wire))
+
+    def _send(self, out: OutputPort, msg: Message) -> None:
+        """Hand ``msg`` to the local readers of ``out`` (by reference) and to Zenoh, then count it."""
         for target in out.targets:
             target.deliver_local(msg, self)
         publisher = out.publisher
         sent = publisher.put(msg) if publisher is not None and publisher.matched else 0
         counters = out.counters  # counted once sent: bookkeeping stays off the message's path
         counters.messages += 1
-        counters.bytes += nbytes or sent
+        counters.bytes += msg.nbytes or sent
 
     def fail(self, reason: str) -> None:
         """The unit declares itself failed (from any thread): it stops, the manager is told."""
