@@ -1,9 +1,12 @@
 """What an idle manager costs: CPU time, wake-ups, threads and memory while nothing happens.
 
-Three processes are measured the same way, one after the other, over the same window:
+Four processes are measured the same way, one after the other, over the same window:
 
 - ``zenoh-peer``: a bare Zenoh peer in Python (the same loopback configuration dyknow uses), the
   floor any Zenoh application pays;
+- ``zenoh-peer+client``: the same peer after one Zenoh client session connected to it and left,
+  as the client that spawns the units does in ``manager+units`` (Zenoh 1.10's network thread
+  then wakes about 20 times a second for good);
 - ``manager``: ``dyknow manager`` with the shipped specs and ontology, no units;
 - ``manager+units``: the same manager with ``--units`` idle units (relays whose input nobody
   publishes), spawned through the services before the window starts.
@@ -26,8 +29,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
 from dyknow import Client
 from dyknow.resources import specs_dir
+from dyknow.transport import make_config
 
 from harness import free_ports, machine, write_json
 
@@ -94,7 +100,7 @@ def run(variant: str, window_s: float, settle_s: float, units: int) -> dict[str,
     """Start the process of ``variant``, let it settle, then measure a window."""
     port = free_ports(1)[0]
     endpoint = f"tcp/127.0.0.1:{port}"
-    if variant == "zenoh-peer":
+    if variant.startswith("zenoh-peer"):
         script = textwrap.dedent(
             f"""
             import threading, zenoh
@@ -116,6 +122,9 @@ def run(variant: str, window_s: float, settle_s: float, units: int) -> dict[str,
             with Client("idle", connect=[endpoint]) as client:
                 for i in range(units):
                     client.spawn("relay", f"idle{i}", bindings={"in": f"nobody/publishes/{i}"})
+        elif variant == "zenoh-peer+client":  # the same kind of session as Client's, come and gone
+            with zenoh.open(make_config(connect=[endpoint], mode="client", listen=[])):
+                time.sleep(0.5)
         time.sleep(settle_s)  # start-up work (imports, first collections) is over
         result = measure(proc, window_s)
     finally:
@@ -131,7 +140,7 @@ def run(variant: str, window_s: float, settle_s: float, units: int) -> dict[str,
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Measure the three variants and print them side by side."""
+    """Measure the four variants and print them side by side."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--window", type=float, default=20.0, metavar="S", help="seconds measured per variant (default 20)")
     parser.add_argument("--settle", type=float, default=3.0, metavar="S", help="seconds to wait before measuring (default 3)")
@@ -143,12 +152,12 @@ def main(argv: list[str] | None = None) -> int:
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info['zenoh']}")
     print(f"idle for {args.window:g} s after {args.settle:g} s to settle")
-    print(f"{'variant':<16} {'units':>5} {'CPU % of a core':>16} {'wake-ups/s':>11} {'threads':>8} {'RSS MiB':>8}")
+    print(f"{'variant':<18} {'units':>5} {'CPU % of a core':>16} {'wake-ups/s':>11} {'threads':>8} {'RSS MiB':>8}")
     results = []
-    for variant in ("zenoh-peer", "manager", "manager+units"):
+    for variant in ("zenoh-peer", "zenoh-peer+client", "manager", "manager+units"):
         row = run(variant, args.window, args.settle, args.units)
         results.append(row)
-        print(f"{variant:<16} {row['units']:>5} {row['cpu_percent']:>15.4f}% {row['wakeups_per_s']:>11.1f} {row['threads']:>8} {row['rss_mib']:>8.1f}", flush=True)
+        print(f"{variant:<18} {row['units']:>5} {row['cpu_percent']:>15.4f}% {row['wakeups_per_s']:>11.1f} {row['threads']:>8} {row['rss_mib']:>8.1f}", flush=True)
     if args.json:
         write_json(args.json, {"machine": info, "window_s": args.window, "results": results})
     return 0

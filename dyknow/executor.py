@@ -14,7 +14,7 @@ Isolation still holds, by two rules:
    finally returns, its thread stays with that unit as the unit's own lane.
 
 So a slow unit delays the others (its upstream among them) at most once, by about the stall
-budget, and never again (an idle watchdog polls slowly; the shared lane wakes it when work
+budget, and never again (an idle watchdog polls slowly, then sleeps; the shared lane wakes it when work
 arrives). Units that declare ``dedicated_thread = True`` get their own lane from
 the start. A unit's callbacks never run concurrently: each job carries a lock and runs on one
 thread at a time.
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 _STOP: Final = object()
 _WAKE: Final = object()
 _NEVER: Final = 1 << 62  # next_due_ns of a lane without timers
-_IDLE_POLL_S = 0.1  # the watchdog's slowest poll, while the shared lane stays idle
+_IDLE_POLL_S = 0.1  # the watchdog's slowest poll; past it, it sleeps until the shared lane wakes
 
 
 class Job(Protocol):
@@ -160,6 +160,7 @@ class Worker:
         self.busy_job: Job | None = None
         self.released = False  # set by the watchdog: our lane went to another thread
         self.stuck_job: Job | None = None  # the job whose callback we were stuck in
+        self.active = True  # False while the thread sleeps waiting for work or a timer
         self.thread = threading.Thread(target=self._serve, name=f"dyknow-{lane.name}", daemon=True)
         self._native_id = 0
         self._cpu_clock: int | None = None
@@ -204,6 +205,7 @@ class Worker:
                 job = get_nowait()
             except queue.Empty:
                 due = lane.next_due_ns
+                self.active = False  # about to sleep
                 try:
                     if due == _NEVER:
                         job = get()
@@ -212,6 +214,12 @@ class Worker:
                         job = get(timeout=wait) if wait > 0 else None
                 except queue.Empty:
                     job = None
+                # Awake (work, a timer, or a new timer to wait for). A watchdog asleep until
+                # the shared lane wakes watches from now. ``active`` is set before the check and
+                # the watchdog sets ``sleeping`` before it reads ``active``: one sees the other.
+                self.active = True
+                if executor.sleeping and lane.shared:
+                    executor.wake_watchdog()
             if job is _STOP:
                 return
             if lane.next_due_ns <= monotonic_ns():
@@ -266,6 +274,7 @@ class Executor:
         self._stop = threading.Event()
         self._poke = threading.Event()  # wakes a dozing watchdog (set by close, too)
         self.dozing = False  # the watchdog polls slowly: the shared lane was idle
+        self.sleeping = False  # the watchdog waits to be woken: the shared lane sleeps, without timers
         self._watchdog = threading.Thread(target=self._watch, name=f"dyknow-{name}-watchdog", daemon=True)
         self._watchdog.start()
 
@@ -352,6 +361,7 @@ class Executor:
     def wake_watchdog(self) -> None:
         """Work starts on the shared lane while the watchdog dozes: it polls at full rate again."""
         self.dozing = False
+        self.sleeping = False
         self._poke.set()
 
     def _watch(self) -> None:
@@ -371,13 +381,25 @@ class Executor:
         cpu_before = 0
         idle_before = 0.0
         # While the lane stays idle the watchdog polls less and less often (up to 10 times a
-        # second), so that idle managers cost nothing; the first busy poll brings it back.
+        # second); once the lane's thread sleeps with no timer to fire, the watchdog sleeps too,
+        # until that thread wakes (see Worker._serve). So an idle manager costs nothing.
         pause_s = interval_s
+        shared = self.shared
         while True:
-            self._poke.wait(pause_s)
+            timeout_s: float | None = pause_s
+            if pause_s >= _IDLE_POLL_S:
+                self.sleeping = True  # before reading the worker's state: see Worker._serve
+                worker = shared.worker
+                if worker is not None and not worker.active and shared.next_due_ns == _NEVER:
+                    timeout_s = None
+                else:
+                    self.sleeping = False
+            if self._poke.wait(timeout_s):
+                self._poke.clear()
+                pause_s = interval_s
+            self.sleeping = False
             if self._stop.is_set():
                 return
-            self._poke.clear()
             self.dozing = False
             worker = self.shared.worker
             if worker is None:

@@ -19,6 +19,7 @@ import ctypes
 import json
 import logging
 import os
+import queue
 import re
 import threading
 import time
@@ -458,23 +459,48 @@ class ServiceRequest:
 class ServiceChannel(_Entity):
     """Receives the calls on a key expression into a queue of ``capacity`` that several threads
     take from with :meth:`receive` (so no single thread stands between the calls and their
-    handlers). When the queue is full, Zenoh holds further calls back on the link they came by."""
+    handlers). When the queue is full, Zenoh holds further calls back on the link they came by.
+
+    Calls are queued by an inline callback on Zenoh's thread rather than through Zenoh's own
+    channel, whose blocking receive wakes every reader ten times a second to check for signals:
+    an idle manager's readers then sleep until a call comes.
+    """
 
     def __init__(self, session: zenoh.Session, key: str, capacity: int) -> None:
+        self.key = key
+        self._closed = False
+        self._calls: queue.Queue[ServiceRequest | None] = queue.Queue(capacity)
+
+        def arrived(query: zenoh.Query) -> None:  # on Zenoh's thread
+            request = ServiceRequest(query)
+            while not self._closed:
+                try:
+                    self._calls.put(request, timeout=0.1)  # full: hold the link back, as Zenoh's channel does
+                    return
+                except queue.Full:
+                    continue
+
         try:
-            queryable = session.declare_queryable(key, zenoh.handlers.FifoChannel(capacity))
+            queryable = session.declare_queryable(key, _inline(arrived))
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
         super().__init__(queryable)
-        self.key = key
-        self._calls = queryable.handler  # receiving through the queryable itself would block undeclare()
 
     def receive(self) -> ServiceRequest | None:
         """The next call, waiting for it; None once the channel is undeclared."""
-        try:
-            return ServiceRequest(self._calls.recv())
-        except zenoh.ZError:
+        request = self._calls.get() if not self._closed else None
+        if request is None or self._closed:
+            with contextlib.suppress(queue.Full):
+                self._calls.put_nowait(None)  # wake the next reader too
             return None
+        return request
+
+    def undeclare(self) -> None:
+        """Stop receiving; the readers' :meth:`receive` returns None. Safe twice."""
+        self._closed = True
+        super().undeclare()
+        with contextlib.suppress(queue.Full):
+            self._calls.put_nowait(None)
 
 
 class LivelinessToken(_Entity):

@@ -105,7 +105,7 @@ def test_idle_benchmark_smoke(tmp_path: Path) -> None:
     result = _run("idle.py", "--window", "0.5", "--settle", "0.2", "--units", "3", "--json", str(out))
     assert result.returncode == 0, result.stderr[-3000:]
     rows = json.loads(out.read_text())["results"]
-    assert [(r["variant"], r["units"]) for r in rows] == [("zenoh-peer", 0), ("manager", 0), ("manager+units", 3)]
+    assert [(r["variant"], r["units"]) for r in rows] == [("zenoh-peer", 0), ("zenoh-peer+client", 0), ("manager", 0), ("manager+units", 3)]
     for row in rows:
         assert row["cpu_percent"] >= 0 and row["wakeups_per_s"] >= 0 and row["threads"] >= 1 and row["rss_mib"] > 10
     assert "wake-ups/s" in result.stdout

@@ -9,6 +9,8 @@ import pytest
 
 from dyknow import Manager, Message, Port, TransformationSpec, Unit, default_key
 from dyknow.testing import Sink, Source
+from tests.conftest import wait_until
+from tests.units import Slow
 
 
 class Busy(Unit):
@@ -165,3 +167,75 @@ def test_a_timer_that_fires_while_the_unit_starts_keeps_ticking(manager: Manager
         ticker = manager.unit(f"t{i}")
         assert isinstance(ticker, Ticker)
         assert ticker.ticked.wait(5), f"the timer of t{i} ticked {ticker.ticks} times"
+
+
+# ---------------------------------------------------------------------- the watchdog of an idle lane
+
+
+class StuckTick(Unit):
+    """Its one timer tick (after 0.3 s) blocks until the test releases it."""
+
+    def setup(self) -> None:
+        self.inside = threading.Event()
+        self.release = threading.Event()
+        self.create_timer(60.0, self.tick, first_s=0.3)
+
+    def tick(self) -> None:
+        self.inside.set()
+        self.release.wait(10)
+
+
+def _wakeups(thread_name: str) -> int:
+    """How often the thread named ``thread_name`` has been switched in (its context switches)."""
+    thread = next(t for t in threading.enumerate() if t.name == thread_name)
+    with open(f"/proc/self/task/{thread.native_id}/status") as status:
+        return sum(int(line.split()[1]) for line in status if "ctxt_switches" in line)
+
+
+def _wait_asleep(manager: Manager) -> None:
+    """Wait until the manager's watchdog stops waking, then check that it stays asleep."""
+    name = f"dyknow-{manager.name}-watchdog"
+
+    def settled() -> bool:
+        now = _wakeups(name)
+        time.sleep(0.3)
+        return _wakeups(name) == now
+
+    wait_until(settled, "the idle watchdog to stop polling", timeout_s=10)
+    before = _wakeups(name)
+    time.sleep(1.0)
+    assert _wakeups(name) == before, "the watchdog of an idle manager woke up"
+
+
+def test_an_idle_watchdog_sleeps_yet_catches_a_stuck_callback(make_manager: object) -> None:
+    """An idle manager's watchdog does not poll at all; the first message to the shared lane
+    wakes it, so a callback that then holds the lane is still handed its own thread."""
+    manager = make_manager(stall_budget_s=0.02)  # type: ignore[operator]
+    manager.spawn("publisher", "src")
+    manager.spawn("slow", "stuck", params={"delay_s": 3.0}, bindings={"in": default_key(manager.name, "src", "out")})
+    _wait_asleep(manager)
+    src, stuck = manager.unit("src"), manager.unit("stuck")
+    assert isinstance(src, Source) and isinstance(stuck, Slow)
+    src.emit(1)
+    assert stuck.started.wait(5)
+    wait_until(lambda: manager.get_statistics("stuck").executor.startswith("own thread"), "the stuck unit moved", timeout_s=2)
+    assert stuck.handled == 0  # moved while still inside its 3-second callback
+
+
+def test_an_idle_watchdog_wakes_for_a_new_timer(make_manager: object) -> None:
+    """A timer added while the watchdog sleeps keeps it polling: a stuck tick is caught too."""
+    manager = make_manager(stall_budget_s=0.02)  # type: ignore[operator]
+    manager.add_transformation(
+        "<transformation><label>stuck-tick</label><source>tests.test_executor:StuckTick</source>"
+        '<ports><port type="out">out</port></ports></transformation>'
+    )
+    _wait_asleep(manager)
+    manager.spawn("stuck-tick", "t")
+    unit = manager.unit("t")
+    assert isinstance(unit, StuckTick)
+    try:
+        assert unit.inside.wait(5)
+        wait_until(lambda: manager.get_statistics("t").executor.startswith("own thread"), "the stuck tick moved", timeout_s=2)
+        assert not unit.release.is_set()
+    finally:
+        unit.release.set()

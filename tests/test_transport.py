@@ -166,3 +166,38 @@ def test_inline_callbacks_keep_their_python_thread_state() -> None:
     for thread, count in seen:
         per_thread[thread] = per_thread.get(thread, 0) + 1
         assert count == per_thread[thread], "a callback found its thread's local storage wiped"
+
+
+def test_a_full_service_channel_holds_calls_back_and_loses_none() -> None:
+    """Calls beyond the channel's capacity wait on the link until a reader takes one; once the
+    readers run, every call is answered. Undeclaring wakes every waiting reader with None."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with Session(make_config(listen=[endpoint])) as server, Session(make_config(connect=[endpoint])) as client:
+        channel = server.declare_service_channel("svc/echo/**", capacity=2)
+        answers: dict[int, bytes] = {}
+
+        def call(i: int) -> None:
+            answers[i] = client.call(f"svc/echo/{i}", str(i).encode(), timeout_s=20, what="echo")
+
+        callers = [threading.Thread(target=call, args=(i,)) for i in range(6)]
+        for thread in callers:
+            thread.start()
+        time.sleep(0.5)  # more calls than the channel holds, and nobody reading yet
+        assert not answers
+        for _ in range(6):
+            request = channel.receive()
+            assert request is not None
+            request.reply(True, b"echo " + request.payload)
+        for thread in callers:
+            thread.join(20)
+        assert answers == {i: f"echo {i}".encode() for i in range(6)}
+
+        results: list[object] = []
+        readers = [threading.Thread(target=lambda: results.append(channel.receive())) for _ in range(3)]
+        for thread in readers:
+            thread.start()
+        channel.undeclare()
+        for thread in readers:
+            thread.join(5)
+        assert results == [None, None, None]
+        assert channel.receive() is None
