@@ -46,6 +46,7 @@ __all__ = [
     "encode",
     "is_dyknow",
     "payload_nbytes",
+    "reheader",
 ]
 
 
@@ -70,6 +71,7 @@ ENCODINGS: Final = {
     _ARRAY: "application/x-dyknow-ndarray",
 }
 
+_BYTES_ENCODING: Final = ENCODINGS[_BYTES]
 _JSON_TYPES: Final = (dict, list, tuple, int, float, bool, type(None))
 
 
@@ -234,6 +236,19 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     else:
         raise PayloadError(f"unknown payload kind {kind}", where=f"message on {key!r}", expected="0 to 3 (bytes, text, JSON, array)")
     return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra))
+
+
+def reheader(attachment: bytes, seq: int, send_ns: int) -> tuple[bytes, int, int, str] | None:
+    """The header of a received message of raw bytes made the header of the next hop, for a unit
+    that forwards it as it came (no :class:`Message`, no copy of the payload): the same origin, a
+    new ``seq`` and ``send_ns``. Returns ``(attachment, origin_ns, previous send_ns, encoding)``,
+    or None for any other header: text, JSON and arrays are decoded first (which checks them, so
+    that a relay never passes on what its readers would refuse), and so is a header this version
+    does not write (decoding reports what is wrong with it)."""
+    _, version, kind, _, origin_ns, sent_ns = HEADER.unpack_from(attachment)
+    if kind != _BYTES or version != _VERSION or len(attachment) != HEADER.size:
+        return None
+    return HEADER.pack(_MAGIC, _VERSION, _BYTES, seq, origin_ns, send_ns), origin_ns, sent_ns, _BYTES_ENCODING
 
 
 def _decode_foreign(data: bytes, encoding: str) -> Any:

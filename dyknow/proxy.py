@@ -35,7 +35,7 @@ import numpy as np
 
 from dyknow import keys
 from dyknow.errors import BindingError, UnitError, did_you_mean
-from dyknow.message import Message, check_payload, payload_nbytes
+from dyknow.message import Message, check_payload, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
 from dyknow.transport import check_key_expr
 from dyknow.unit import Unit
@@ -102,6 +102,13 @@ class InputPort:
                 self.deliver(msg)
         elif self.queue or not self.job.run_inline(self, msg, None):
             self.deliver(msg)
+
+    def forward_wire(self, data: Any, header: bytes) -> bool:
+        """A message from another process, before it is decoded: a unit that only forwards
+        passes it on as it came when it is free (True); False hands it to :meth:`deliver_remote`."""
+        if self.forward is None or self.queue:
+            return False
+        return self.job.forward_wire(self, data, header)
 
     def deliver_local(self, msg: Message, publisher: Proxy) -> None:
         """A message from a unit of this manager, on the publisher's thread: run a unit proven
@@ -485,6 +492,39 @@ class Proxy:
             self.inline_depth = 0
             self._lock.release()
         port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+        return True
+
+    def forward_wire(self, port: InputPort, data: Any, header: bytes) -> bool:
+        """:meth:`forward_now` for a message from another process that was not decoded: its
+        payload buffer goes out again under a rewritten header (``data`` and ``header`` as the
+        transport received them). Only raw bytes, only to Zenoh: False when the output has local
+        readers (they need a :class:`Message`), the payload is of another kind (decoding checks
+        it first), or the unit cannot forward right now; the caller then decodes and delivers."""
+        out = port.forward
+        if out is None or out.targets or self._calls or not self._lock.acquire(False):
+            return False
+        try:
+            if self.state is not _RUNNING:
+                return False
+            now = time_ns()
+            wire = reheader(header, out.seq + 1, now)
+            if wire is None:
+                return False
+            attachment, origin_ns, sent_ns, encoding = wire
+            out.seq += 1
+            nbytes = len(data)
+            publisher = out.publisher
+            if publisher is not None and publisher.matched:
+                publisher.put_wire(data, attachment, encoding)
+            counters = out.counters
+            counters.messages += 1
+            counters.bytes += nbytes
+        except Exception as exc:
+            self._fail(exc, f"forwarding {port.name!r}")
+            return True  # taken, and counted as the unit's failure
+        finally:
+            self._lock.release()
+        port.counters.arrived(nbytes, now - origin_ns, now - sent_ns)
         return True
 
     def _forward(self, port: InputPort, msg: Message, now: int) -> None:

@@ -13,7 +13,8 @@ to declare the entities of 10,000 relays one by one on this machine), and a subs
 plain Python callback costs a thread. Here the subscribers call back on Zenoh's own receiving
 thread, which hands the message to each reader's port (:meth:`InputPort.deliver_remote
 <dyknow.proxy.InputPort.deliver_remote>`): a unit proven quick and free runs right there, any
-other gets it queued for its lane (see :mod:`dyknow.executor`).
+other gets it queued for its lane (see :mod:`dyknow.executor`). A key read by one port of a
+unit that only forwards (``Unit.forward_to``) is passed on before it is even decoded.
 Every subscriber only receives from other sessions: local producers reach their readers
 through the :class:`~dyknow.bus.LocalBus`.
 """
@@ -23,7 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from dyknow import keys
 from dyknow.transport import is_wild
@@ -46,6 +47,11 @@ class Reader(Protocol):
         """Hand ``msg`` to the port's unit (run now if quick and free, else queued); quick."""
         ...
 
+    def forward_wire(self, data: Any, header: bytes) -> bool:
+        """Pass a message on as it came, before it is decoded, when the port's unit only forwards
+        (True); False leaves it to :meth:`deliver_remote`."""
+        ...
+
 
 class _Shared:
     """One Zenoh subscriber and the readers it feeds (a tuple, swapped whole)."""
@@ -59,6 +65,11 @@ class _Shared:
     def deliver(self, msg: Message) -> None:
         for reader in self.readers:
             reader.deliver_remote(msg)
+
+    def forward(self, data: Any, header: bytes) -> bool:
+        """A sole reader that only forwards passes the message on undecoded (see Reader)."""
+        readers = self.readers
+        return len(readers) == 1 and readers[0].forward_wire(data, header)
 
 
 class Receiver:
@@ -135,7 +146,7 @@ class Receiver:
             for key in wanted:
                 if not self._local(key) and key not in self._shared:
                     shared = _Shared()
-                    subscriber = self._session.declare_subscriber(key, shared.deliver, self._on_error, inline=True)
+                    subscriber = self._session.declare_subscriber(key, shared.deliver, self._on_error, inline=True, forward=shared.forward)
                     shared.subscriber = subscriber
                     self._shared[key] = shared
                     new.append((key, subscriber))

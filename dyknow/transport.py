@@ -335,6 +335,17 @@ class Publisher(_Entity):
             raise TransportError(f"cannot publish on {self.key!r}: {_clean(exc)}") from exc
         return size
 
+    def put_wire(self, data: Any, attachment: bytes, encoding: str) -> None:
+        """Send a payload as it was received (the transport's own buffer, not copied) under a
+        header made by :func:`~dyknow.message.reheader`."""
+        handle = self._handle
+        if handle is None:
+            return
+        try:
+            handle.put(data, attachment=attachment, encoding=_ENCODINGS[encoding])
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {self.key!r}: {_clean(exc)}") from exc
+
     def undeclare(self) -> None:
         """Stop publishing; safe twice."""
         listener, self._listener = getattr(self, "_listener", None), None
@@ -352,6 +363,11 @@ class Subscriber(_Entity):
     instead, which costs no thread at all but holds up every stream arriving over the same link
     while it runs: only for a quick hand-off (the units' input ports queue the message for their
     lane). Exceptions are passed to ``on_error`` instead of being swallowed by Zenoh.
+
+    ``forward``: offered every dyknow message first, as ``forward(payload, header)`` (the
+    transport's buffer and the header bytes) before anything is decoded; when it returns True it
+    has passed the message on and ``on_message`` is not called (see
+    :meth:`~dyknow.proxy.Proxy.forward_wire`).
     """
 
     def __init__(
@@ -362,6 +378,7 @@ class Subscriber(_Entity):
         on_error: Callable[[BaseException], None],
         inline: bool = False,
         wanted: Callable[[str], object] | None = None,
+        forward: Callable[[Any, bytes], bool] | None = None,
     ) -> None:
         self.key = key
         self._count = 0
@@ -378,6 +395,8 @@ class Subscriber(_Entity):
                 attachment = sample.attachment
                 header = attachment.to_bytes() if attachment is not None else None
                 if header is not None and header[:2] == b"DK" and len(header) >= _HEADER_SIZE:  # is_dyknow(), inlined
+                    if forward is not None and forward(sample.payload, header):
+                        return
                     msg = decode_dyknow(sample.payload, header, fixed_key or str(sample.key_expr))
                 elif sample.kind == put_kind:
                     self._count += 1
@@ -624,14 +643,16 @@ class Session:
         *,
         inline: bool = False,
         wanted: Callable[[str], object] | None = None,
+        forward: Callable[[Any, bytes], bool] | None = None,
     ) -> Subscriber:
         """Receive dyknow messages (or plain samples) published on ``key`` by other sessions.
 
         ``inline``: call ``on_message`` on Zenoh's receiving thread (no thread of its own; it must
         return at once, see :class:`Subscriber`). ``wanted(key)``: samples on keys it says no to
-        are dropped before they are decoded."""
+        are dropped before they are decoded. ``forward``: offered each dyknow message before it
+        is decoded (see :class:`Subscriber`)."""
         on_error = on_error or (lambda exc: log.warning("on %s: %s", key, exc))
-        return Subscriber(self._z(), key, on_message, on_error, inline, wanted)
+        return Subscriber(self._z(), key, on_message, on_error, inline, wanted, forward)
 
     def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> Queryable:
         """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``."""

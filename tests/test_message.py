@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from dyknow.message import HEADER, Message, PayloadError, check_payload, decode, encode
+from dyknow.message import HEADER, Message, PayloadError, check_payload, decode, encode, reheader
 
 
 @pytest.mark.parametrize(
@@ -83,3 +83,22 @@ def test_forwarded_payloads_reuse_their_wire_form() -> None:
     assert (again.seq, again.origin_ns, again.send_ns) == (5, 10, 30)
     np.testing.assert_array_equal(again.payload, array)
     assert decode(Buffer(b'{"a": 1}'), encode(Message({"a": 1}, 1, 1, 1, "k"))[1], "k").wire is None  # JSON is mutable
+
+
+def test_reheader_rewrites_a_bytes_header_for_the_next_hop_and_nothing_else() -> None:
+    """A relay passes raw bytes on under a header with its own seq and send time, the origin
+    kept; any other kind (or version) is left to decoding, which checks it."""
+    raw = Message(b"data", 7, 111, 222, "k", 4)
+    _, header, _ = encode(raw)
+    rewritten = reheader(header, 8, 333)
+    assert rewritten is not None
+    attachment, origin_ns, sent_ns, encoding = rewritten
+    assert (origin_ns, sent_ns, encoding) == (111, 222, "application/octet-stream")
+    msg = decode(b"data", attachment, "k")
+    assert (msg.payload, msg.seq, msg.origin_ns, msg.send_ns) == (b"data", 8, 111, 333)
+    for payload in ("text", {"json": 1}, np.zeros((2, 2), dtype=np.uint8)):
+        _, header, _ = encode(Message(payload, 1, 1, 1, "k"))
+        assert reheader(header, 2, 2) is None, payload
+    assert reheader(HEADER.pack(b"DK", 9, 0, 1, 1, 1), 2, 2) is None
+    assert reheader(header_of_bytes := HEADER.pack(b"DK", 1, 0, 1, 1, 1), 2, 2) is not None
+    assert reheader(header_of_bytes + b"extra", 2, 2) is None

@@ -8,10 +8,13 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+import zenoh  # a plain Zenoh publisher stands in for a sender of a header dyknow does not know
 
 from dyknow import BindingError, Client, Manager, Message, TransformationSpec, Unit, UnitError, default_key
+from dyknow.message import HEADER
 from dyknow.spec import Param, Port
 from dyknow.testing import Sink, Source
+from dyknow.transport import make_config
 from tests.conftest import wait_until
 from tests.units import Counter, Slow
 
@@ -497,3 +500,49 @@ def test_a_forwarding_unit_whose_spec_lacks_the_output_is_refused(manager: Manag
     assert "unit 'r' (Relay.forward_to = 'out')" in text and "has no output port 'out'" in text
     assert "the spec's outputs ('result') to include 'out'" in text
     assert "r" not in {u.name for u in manager.units()}
+
+
+def test_a_forwarding_unit_passes_remote_bytes_on_undecoded_and_keeps_count(make_manager: Callable[..., Manager]) -> None:
+    """Raw bytes from another process go on before they are decoded; text between them takes the
+    decoding path. One sequence on the output, origins kept, bytes and latencies counted on both
+    ports. A reader of the output in the relay's own manager gets every message too, and a header
+    from an unknown version is refused without stopping the relay."""
+    sender = make_manager()
+    relay = make_manager(connect=sender.endpoints)
+    relay.spawn("relay", "r", bindings={"in": "wire/in", "out": "wire/out"})
+    sender.spawn("publisher", "src", bindings={"out": "wire/in"})
+    sender.spawn("sink", "far", bindings={"in": "wire/out"})
+    src, far = sender.unit("src"), sender.unit("far")
+    assert isinstance(src, Source) and isinstance(far, Sink)
+    wait_until(lambda: src.has_subscribers("out"), "the relay subscribed")
+    wait_until(lambda: relay.unit("r").has_subscribers("out"), "the far sink subscribed to the relay")
+    payloads: list[object] = [bytes([i]) * (i + 1) for i in range(6)]
+    payloads[3] = "text in between"
+    for i, payload in enumerate(payloads):
+        src.publish("out", payload, origin_ns=5000 + i)
+    got = far.wait_for(6)
+    assert [m.payload for m in got] == payloads
+    assert [m.origin_ns for m in got] == [5000 + i for i in range(6)]
+    assert [m.seq for m in got] == [1, 2, 3, 4, 5, 6]
+    stats = {p.port: p for p in relay.get_statistics("r").ports}
+    sizes = sum(len(p) for p in payloads)
+    assert (stats["in"].messages, stats["in"].bytes) == (6, sizes)
+    assert (stats["out"].messages, stats["out"].bytes) == (6, sizes)
+    assert stats["in"].latency.count == 6 and stats["in"].hop.count == 6 and stats["in"].hop.p50_us > 0
+
+    # a reader in the relay's manager: the messages are decoded for it, and still reach the far sink
+    relay.spawn("sink", "near", bindings={"in": "wire/out"})
+    near = relay.unit("near")
+    assert isinstance(near, Sink)
+    src.publish("out", b"both")
+    assert near.wait_for(1)[0].payload == b"both" and far.wait_for(7)[6].payload == b"both"
+
+    # a dyknow header of a version this one does not write, from a plain Zenoh publisher
+    with zenoh.open(make_config(connect=sender.endpoints)) as plain:
+        bad = HEADER.pack(b"DK", 9, 0, 1, 1, 1)
+        plain.put("wire/in", b"from the future", attachment=bad)
+        wait_until(lambda: src.has_subscribers("out"), "still subscribed")
+    src.publish("out", b"after")
+    assert far.wait_for(8)[7].payload == b"after"
+    assert [m.payload for m in far.messages].count(b"from the future") == 0
+    assert relay.get_statistics("r").state == "running"
