@@ -490,7 +490,7 @@ class ServiceChannel(_Entity):
         self._closed = False
         self._calls: queue.Queue[ServiceRequest | None] = queue.Queue(capacity)
 
-        def arrived(query: zenoh.Query) -> None:  # on Zenoh's thread
+        def arrived(query: zenoh.Query) -> None:  # on Zenoh's thread, or the caller's in this session
             request = ServiceRequest(query)
             while not self._closed:
                 try:
@@ -500,7 +500,9 @@ class ServiceChannel(_Entity):
                     continue
 
         try:
-            queryable = session.declare_queryable(key, _inline(arrived))
+            # Not _inline: a call from this very session runs the callback on the caller's own
+            # (Python) thread, which must not be pinned (see _keep_thread_state).
+            queryable = session.declare_queryable(key, zenoh.handlers.Callback(arrived, indirect=False))
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
         super().__init__(queryable)
