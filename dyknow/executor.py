@@ -401,7 +401,7 @@ class Executor:
             if self._stop.is_set():
                 return
             self.dozing = False
-            worker = self.shared.worker
+            worker = shared.worker
             if worker is None:
                 continue
             since, job = worker.busy_since_ns, worker.busy_job

@@ -115,22 +115,27 @@ class _SharedMemory:
 # GIL once more and never giving it back keeps the thread state for the life of Zenoh's thread
 # (its runtime threads live as long as the process), so later callbacks reuse it.
 # Every callback checks that its thread is pinned: by its ident in a set, which costs half what a
-# thread-local attribute does on a cold cache (measured on a relay at 50 Hz: 4 vs 8 µs). An ended
-# thread's ident can come back on a new thread, which then passes unpinned: that only brings back
-# the per-message thread state, never a wrong result (Zenoh's threads live as long as the process).
-_pinned: Final = threading.local()  # set on a thread whose state is kept
+# thread-local attribute does on a cold cache (measured on a relay at 50 Hz: 4 vs 8 µs). Only
+# threads Python did not start are pinned: a callback can also run on a Python thread (a call or
+# a declaration from this very session), which has a state of its own and ends some day, and its
+# ident, once back on another thread, would pass that thread as pinned.
+_pinned: Final = threading.local()  # kept: True on a pinned thread, False on a Python thread
 _pinned_idents: Final[set[int]] = set()
 _get_ident: Final = threading.get_ident
 _gil_ensure: Final[Callable[[], int] | None] = getattr(getattr(ctypes, "pythonapi", None), "PyGILState_Ensure", None)
 
 
 def _keep_thread_state() -> None:
-    """Keep this thread's Python state past the current callback (see above); once per thread."""
-    if not getattr(_pinned, "kept", False):
-        if _gil_ensure is not None:
+    """Keep this thread's Python state past the current callback (see above), once per thread,
+    if Python did not start the thread (it then shows as a "dummy" thread to ``threading``)."""
+    kept = getattr(_pinned, "kept", None)
+    if kept is None:
+        kept = type(threading.current_thread()).__name__ == "_DummyThread"
+        if kept and _gil_ensure is not None:
             _gil_ensure()
-        _pinned.kept = True
-    _pinned_idents.add(_get_ident())
+        _pinned.kept = kept
+    if kept:
+        _pinned_idents.add(_get_ident())
 
 
 def _inline(callback: Callable[[Any], None]) -> Any:
@@ -395,9 +400,10 @@ class Subscriber(_Entity):
                 attachment = sample.attachment
                 header = attachment.to_bytes() if attachment is not None else None
                 if header is not None and header[:2] == b"DK" and len(header) >= _HEADER_SIZE:  # is_dyknow(), inlined
-                    if forward is not None and forward(sample.payload, header):
+                    payload = sample.payload  # one call into Zenoh's object, for either path
+                    if forward is not None and forward(payload, header):
                         return
-                    msg = decode_dyknow(sample.payload, header, fixed_key or str(sample.key_expr))
+                    msg = decode_dyknow(payload, header, fixed_key or str(sample.key_expr))
                 elif sample.kind == put_kind:
                     self._count += 1
                     msg = decode(
@@ -480,9 +486,10 @@ class ServiceChannel(_Entity):
     take from with :meth:`receive` (so no single thread stands between the calls and their
     handlers). When the queue is full, Zenoh holds further calls back on the link they came by.
 
-    Calls are queued by an inline callback on Zenoh's thread rather than through Zenoh's own
-    channel, whose blocking receive wakes every reader ten times a second to check for signals:
-    an idle manager's readers then sleep until a call comes.
+    Calls are queued by an inline callback (on Zenoh's thread, or on the caller's for a call from
+    this session) rather than through Zenoh's own channel, whose blocking receive wakes every
+    reader ten times a second to check for signals: an idle manager's readers sleep until a call
+    comes.
     """
 
     def __init__(self, session: zenoh.Session, key: str, capacity: int) -> None:
@@ -500,9 +507,7 @@ class ServiceChannel(_Entity):
                     continue
 
         try:
-            # Not _inline: a call from this very session runs the callback on the caller's own
-            # (Python) thread, which must not be pinned (see _keep_thread_state).
-            queryable = session.declare_queryable(key, zenoh.handlers.Callback(arrived, indirect=False))
+            queryable = session.declare_queryable(key, _inline(arrived))
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
         super().__init__(queryable)
