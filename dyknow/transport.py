@@ -112,30 +112,26 @@ class _SharedMemory:
 # PyGILState_Ensure. On a thread Python does not know, that builds a thread state and frees it
 # again when the callback returns: per message, an mmap and a munmap of the 16 kB frame stack, a
 # gettid, and cold caches (measured with strace: one of each per message on a relay). Taking the
-# GIL once more and never giving it back keeps the thread state for the life of Zenoh's thread
-# (its runtime threads live as long as the process), so later callbacks reuse it.
-# Every callback checks that its thread is pinned: by its ident in a set, which costs half what a
-# thread-local attribute does on a cold cache (measured on a relay at 50 Hz: 4 vs 8 µs). Only
-# threads Python did not start are pinned: a callback can also run on a Python thread (a call or
-# a declaration from this very session), which has a state of its own and ends some day, and its
-# ident, once back on another thread, would pass that thread as pinned.
-_pinned: Final = threading.local()  # kept: True on a pinned thread, False on a Python thread
-_pinned_idents: Final[set[int]] = set()
-_get_ident: Final = threading.get_ident
+# GIL once more and never giving it back keeps the thread state for the life of Zenoh's thread,
+# so later callbacks reuse it.
+# Every callback checks that its thread was seen, in a thread-local attribute: exact, since it
+# lives in the thread's own state. (An earlier check by the thread's ident in a set cost half as
+# much on a cold cache, 4 vs 8 µs on a relay at 50 Hz, but was not exact: once a pinned thread
+# ends, a new thread can get its ident and pass as pinned, and then builds and frees a thread
+# state per message again; the test suite twice caught a Zenoh thread losing its state, most
+# likely that way.) Only threads Python did not start are
+# pinned: a callback can also run on a Python thread (a call or a declaration from this very
+# session), which has a state of its own.
+_pinned: Final = threading.local()  # seen: set once the thread was looked at (and pinned if foreign)
 _gil_ensure: Final[Callable[[], int] | None] = getattr(getattr(ctypes, "pythonapi", None), "PyGILState_Ensure", None)
 
 
 def _keep_thread_state() -> None:
-    """Keep this thread's Python state past the current callback (see above), once per thread,
-    if Python did not start the thread (it then shows as a "dummy" thread to ``threading``)."""
-    kept = getattr(_pinned, "kept", None)
-    if kept is None:
-        kept = type(threading.current_thread()).__name__ == "_DummyThread"
-        if kept and _gil_ensure is not None:
-            _gil_ensure()
-        _pinned.kept = kept
-    if kept:
-        _pinned_idents.add(_get_ident())
+    """Keep this thread's Python state past the current callback (see above) if Python did not
+    start the thread (it then shows as a "dummy" thread to ``threading``); once per thread."""
+    if type(threading.current_thread()).__name__ == "_DummyThread" and _gil_ensure is not None:
+        _gil_ensure()
+    _pinned.seen = True
 
 
 def _inline(callback: Callable[[Any], None]) -> Any:
@@ -143,7 +139,7 @@ def _inline(callback: Callable[[Any], None]) -> Any:
     thread's Python state between calls."""
 
     def run(arg: Any) -> None:
-        if _get_ident() not in _pinned_idents:
+        if not getattr(_pinned, "seen", False):
             _keep_thread_state()
         callback(arg)
 
@@ -392,7 +388,7 @@ class Subscriber(_Entity):
 
         def callback(sample: zenoh.Sample) -> None:
             # Cheapest checks first: this runs once per message from another process.
-            if inline and _get_ident() not in _pinned_idents:
+            if inline and not getattr(_pinned, "seen", False):
                 _keep_thread_state()
             try:
                 if wanted is not None and not wanted(str(sample.key_expr)):
