@@ -74,6 +74,16 @@ def free_ports(n: int) -> list[int]:
     return ports
 
 
+def worker_env(zenoh_runtime: str | None = None) -> dict[str, str]:
+    """The environment for a worker process: this one's without ``ZENOH_RUNTIME`` (a dyknow
+    session in this process sets it, and a raw Zenoh worker must get Zenoh's own runtime threads;
+    a dyknow worker sets its own), or with ``zenoh_runtime`` when given."""
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    if zenoh_runtime is not None:
+        env["ZENOH_RUNTIME"] = zenoh_runtime
+    return env
+
+
 def cpu_seconds(pids: Iterable[int]) -> float:
     """User plus system CPU time of the given processes so far (Linux ``/proc``; 0 for the others)."""
     total = 0

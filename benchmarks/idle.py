@@ -35,7 +35,7 @@ from dyknow import Client
 from dyknow.resources import specs_dir
 from dyknow.transport import make_config
 
-from harness import free_ports, machine, write_json
+from harness import free_ports, machine, worker_env, write_json
 
 
 def _cpu_ns(pid: int) -> int:
@@ -115,7 +115,7 @@ def run(variant: str, window_s: float, settle_s: float, units: int) -> dict[str,
         specs = specs_dir()
         args = [sys.executable, "-m", "dyknow.cli", "manager", "--name", "idle", "--listen", endpoint,
                 "--specs", str(specs), "--ontology", str(specs / "dyknow.ttl")]  # fmt: skip
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=worker_env())
     try:
         _wait_line(proc, variant)
         if variant == "manager+units":

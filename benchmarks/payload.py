@@ -37,7 +37,7 @@ from dyknow import Manager, Message, TransformationSpec, Unit
 from dyknow.spec import Param, Port
 from dyknow.transport import SHM_POOL_BYTES, SHM_THRESHOLD
 
-from harness import free_ports, machine, write_json
+from harness import free_ports, machine, worker_env, write_json
 
 SIZES = {"64 B": (64,), "64 KiB": (65536,), "1 MiB": (1 << 20,), "6 MiB": (1080, 1920, 3)}
 PROBE = b"probe"
@@ -160,8 +160,8 @@ def run_process(variant: str, shape: tuple[int, ...], messages: int, window: int
             "--window", str(window), "--result", str(result),
         ]  # fmt: skip
         procs = [
-            subprocess.Popen([sys.executable, __file__, "--worker", "sink", "--listen", eps[1], "--connect", eps[0], *common]),
-            subprocess.Popen([sys.executable, __file__, "--worker", "source", "--listen", eps[0], *common]),
+            subprocess.Popen([sys.executable, __file__, "--worker", "sink", "--listen", eps[1], "--connect", eps[0], *common], env=worker_env()),
+            subprocess.Popen([sys.executable, __file__, "--worker", "source", "--listen", eps[0], *common], env=worker_env()),
         ]
         try:
             deadline = time.monotonic() + 180

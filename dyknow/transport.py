@@ -37,6 +37,7 @@ from dyknow.message import ENCODINGS, HEADER, Message, decode, decode_dyknow, en
 __all__ = [
     "DEFAULT_ENDPOINT",
     "MAX_QUERIERS",
+    "ZENOH_RUNTIME",
     "LivelinessSubscriber",
     "LivelinessToken",
     "Publisher",
@@ -104,6 +105,45 @@ class _SharedMemory:
             return data  # pool full right now
         buffer[:] = data
         return buffer
+
+
+# --------------------------------------------------------------------------- Zenoh's runtimes
+
+#: How dyknow has Zenoh lay out its network threads, unless the process sets ``ZENOH_RUNTIME``
+#: itself (Zenoh's syntax; ``ZENOH_RUNTIME='()'`` gives Zenoh's own defaults). By default Zenoh
+#: reads sockets on its ``net`` and ``acc`` runtimes' threads and hands every message over to
+#: the ``rx`` runtime, another thread, and tokio then often wakes rx's second worker as well.
+#: Handing ``net`` and ``acc`` over to ``rx`` makes the thread that is woken by the socket the one
+#: that handles the message: a relay at 50 Hz woke 4.5 threads per message, now 2.7 (measured from
+#: /proc's context switches). The ``tx`` runtime stays apart on purpose: a put with congestion
+#: control BLOCK from a receive callback waits for the tx task, which must not need the waiting
+#: thread (Zenoh's source warns that receiving on TX deadlocks). ``rx`` keeps its two workers, so
+#: one slow callback does not stop every link.
+ZENOH_RUNTIME: Final = "(net: (handover: rx), acc: (handover: rx))"
+
+
+def _lay_out_runtimes() -> None:
+    """Set ``ZENOH_RUNTIME`` to :data:`ZENOH_RUNTIME` unless the process chose its own. Zenoh reads
+    it once, when it first starts a runtime: from then on it no longer has any effect."""
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
+
+
+def _panic_error(exc: BaseException) -> TransportError | None:
+    """A clear error for a Zenoh panic while opening a session (it escapes ``except Exception``),
+    else None. The usual cause is a ``ZENOH_RUNTIME`` Zenoh cannot parse; once Zenoh panicked
+    so, every later open in the process panics too ("Once panicked")."""
+    if type(exc).__name__ != "PanicException":
+        return None
+    text = str(exc)[:300]
+    chosen = os.environ.get("ZENOH_RUNTIME")
+    if chosen is None or chosen == ZENOH_RUNTIME:
+        return TransportError(f"Zenoh failed while opening a session: {text}")
+    return TransportError(
+        f"Zenoh cannot start with ZENOH_RUNTIME={chosen!r}: {text}",
+        where="environment variable ZENOH_RUNTIME",
+        expected=f"Zenoh's runtime syntax, e.g. {ZENOH_RUNTIME!r} (dyknow's default) or '()' (Zenoh's own); "
+        "or unset it, and start the process again",
+    )
 
 
 # --------------------------------------------------------------------------- Zenoh's threads
@@ -545,9 +585,15 @@ class Session:
     def __init__(self, config: zenoh.Config | None = None) -> None:
         if config is None:
             config = make_config()
+        _lay_out_runtimes()
         try:
             self._session: zenoh.Session | None = zenoh.open(config)
-        except zenoh.ZError as exc:
+        except BaseException as exc:
+            error = _panic_error(exc)
+            if error is not None:
+                raise error from exc
+            if not isinstance(exc, zenoh.ZError):
+                raise
             text = _clean(exc)
             expected = None
             if "Address already in use" in text:

@@ -16,7 +16,7 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
         [
             sys.executable, str(REPO / "benchmarks" / "chain.py"), "--smoke", "--hops", "1,3", "--json", str(out), "--plot", str(png),
             "--variants",
-            "dyknow-inproc,dyknow-inproc-python,zenoh-session,zenoh-session-direct,dyknow-process,dyknow-process-python,zenoh-process,python-call",
+            "dyknow-inproc,dyknow-inproc-python,zenoh-session,zenoh-session-direct,dyknow-process,dyknow-process-python,zenoh-process,zenoh-process-tuned,python-call",
         ],
         capture_output=True, text=True, timeout=600, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
@@ -26,7 +26,7 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     rows = data["results"]
     variants = {
         "dyknow-inproc", "dyknow-inproc-python", "zenoh-session", "zenoh-session-direct",
-        "dyknow-process", "dyknow-process-python", "zenoh-process", "python-call",
+        "dyknow-process", "dyknow-process-python", "zenoh-process", "zenoh-process-tuned", "python-call",
     }  # fmt: skip
     assert {(r["variant"], r["hops"], r["mode"]) for r in rows} == {
         (v, h, m) for v in variants for h in (1, 3) for m in ("back-to-back", "paced")

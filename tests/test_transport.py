@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -13,7 +16,7 @@ import zenoh  # a plain Zenoh peer stands in for tools that know nothing of dykn
 
 from dyknow import BindingError, Manager, Message, ServiceError, TransportError
 from dyknow.testing import Sink
-from dyknow.transport import Session, check_key_expr, key_exprs_intersect, make_config
+from dyknow.transport import ZENOH_RUNTIME, Session, check_key_expr, key_exprs_intersect, make_config
 from tests.conftest import free_port
 
 
@@ -201,3 +204,50 @@ def test_a_full_service_channel_holds_calls_back_and_loses_none() -> None:
             thread.join(5)
         assert results == [None, None, None]
         assert channel.receive() is None
+
+
+_LAYOUT = """
+import glob, json, os
+from dyknow.transport import Session
+try:
+    with Session() as session:
+        threads = sorted(open(t + "/comm").read().strip() for t in glob.glob("/proc/self/task/*"))
+        print(json.dumps({"env": os.environ.get("ZENOH_RUNTIME"), "threads": threads}))
+except Exception as exc:
+    for _ in range(2):  # Zenoh stays broken for the process: a second open fails alike
+        print(json.dumps({"error": type(exc).__name__, "message": str(exc)}))
+        try:
+            Session()
+        except Exception as again:
+            exc = again
+"""
+
+
+def _layout(runtime: str | None) -> list[dict[str, object]]:
+    """Run a fresh process (Zenoh reads ZENOH_RUNTIME once per process) that opens a dyknow session."""
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    if runtime is not None:
+        env["ZENOH_RUNTIME"] = runtime
+    out = subprocess.run([sys.executable, "-c", _LAYOUT], env=env, capture_output=True, text=True, timeout=60, check=True)
+    return [json.loads(line) for line in out.stdout.splitlines()]
+
+
+def test_a_session_reads_sockets_on_the_thread_that_handles_the_messages() -> None:
+    (mine,) = _layout(None)
+    assert mine["env"] == ZENOH_RUNTIME
+    threads = mine["threads"]
+    assert isinstance(threads, list)
+    assert [t for t in threads if t.startswith("rx-")], threads
+    assert not [t for t in threads if t.startswith(("net-", "acc-"))], threads  # handed over to rx
+
+    (theirs,) = _layout("()")  # the process chose Zenoh's own layout: dyknow leaves it alone
+    assert theirs["env"] == "()"
+    assert {"net-0", "acc-0"} <= set(theirs["threads"])  # type: ignore[arg-type]
+
+
+def test_an_unparsable_zenoh_runtime_is_a_clear_error_every_time() -> None:
+    first, second = _layout("(bogus: ())")
+    for reply in (first, second):
+        assert reply["error"] == "TransportError"
+        assert "ZENOH_RUNTIME='(bogus: ())'" in str(reply["message"])
+        assert "environment variable ZENOH_RUNTIME" in str(reply["message"])
