@@ -207,11 +207,16 @@ def test_a_full_service_channel_holds_calls_back_and_loses_none() -> None:
 
 
 _LAYOUT = """
-import glob, json, os
+import glob, json, os, time
 from dyknow.transport import Session
 try:
     with Session() as session:
-        threads = sorted(open(t + "/comm").read().strip() for t in glob.glob("/proc/self/task/*"))
+        deadline = time.monotonic() + 2  # Zenoh starts some runtimes' threads a moment later
+        while True:
+            threads = sorted(open(t + "/comm").read().strip() for t in glob.glob("/proc/self/task/*"))
+            if time.monotonic() > deadline or any(t.startswith(("net-", "acc-")) for t in threads):
+                break
+            time.sleep(0.05)
         print(json.dumps({"env": os.environ.get("ZENOH_RUNTIME"), "threads": threads}))
 except Exception as exc:
     for _ in range(2):  # Zenoh stays broken for the process: a second open fails alike
@@ -242,7 +247,7 @@ def test_a_session_reads_sockets_on_the_thread_that_handles_the_messages() -> No
 
     (theirs,) = _layout("()")  # the process chose Zenoh's own layout: dyknow leaves it alone
     assert theirs["env"] == "()"
-    assert {"net-0", "acc-0"} <= set(theirs["threads"])  # type: ignore[arg-type]
+    assert [t for t in theirs["threads"] if t.startswith(("net-", "acc-"))], theirs  # type: ignore[attr-defined]
 
 
 def test_an_unparsable_zenoh_runtime_is_a_clear_error_every_time() -> None:
