@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import REPO, subprocess_env, undocumented
 
 
@@ -34,12 +36,15 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     for row in rows:
         assert row["messages"] > 0 and row["rate_hz"] == (0 if row["mode"] == "back-to-back" else 200)
         assert 0 < row["per_hop_median_us"] <= row["last_hop_median_us"] <= row["last_hop_p99_us"]
+        assert len(row["round_per_hop_median_us"]) == 1 and row["round_per_hop_median_us"][0] > 0  # one round (no --repeat)
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
     assert "per-hop p50" in result.stdout
     # the targets this run can check, each with its figure (in-process: the longest chain)
     checks = {(c["mode"], c["hops"], c["ours"], c["peer"]) for c in data["targets"]}
     assert checks == {(m, 3, ours, "zenoh-session-direct") for m in ("back-to-back", "paced") for ours in ("dyknow-inproc", "dyknow-inproc-python")}
     assert all(isinstance(c["met"], bool) and c["ratio"] > 0 for c in data["targets"])
+    # one round: its ratio is the pooled one, so it agrees with the verdict
+    assert all(c["round_ratios"] == [pytest.approx(c["ratio"], rel=1e-3)] and c["settled"] for c in data["targets"])
 
 
 def _run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
@@ -222,3 +227,28 @@ def test_units_benchmark_smoke(tmp_path: Path) -> None:
     assert many["resources_after_destroy"]["units"] == 2  # the source and the sink
     assert set(data["targets"]) == {"churn_growth", "spawn_all", "threads"}
     assert "target: <= 64 threads" in result.stdout and "target: spawn all within 10 s" in result.stdout
+
+
+def test_chain_targets_show_each_rounds_ratio_and_whether_the_rounds_agree() -> None:
+    """The verdict is on the pooled medians; the paired round ratios say whether it is settled."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.syspath_prepend(str(REPO / "benchmarks"))
+        import chain
+    try:
+
+        def row(variant: str, pooled: float, rounds: list[float]) -> dict[str, object]:
+            return {"variant": variant, "mode": "paced", "hops": 10, "per_hop_median_us": pooled, "round_per_hop_median_us": rounds}
+
+        results = [
+            row("dyknow-process", 105.0, [100.0, 125.0, 95.0]),
+            row("zenoh-process", 100.0, [100.0, 100.0, 100.0]),
+            row("dds-process", 200.0, [190.0, 200.0, 210.0]),
+        ]
+        checks = {c["peer"]: c for c in chain.compare(results)}
+        zenoh, dds = checks["zenoh-process"], checks["dds-process"]
+        assert zenoh["met"] and zenoh["ratio"] == 1.05 and zenoh["round_ratios"] == [1.0, 1.25, 0.95]
+        assert not zenoh["settled"]  # one round over 1.1x: the machine's noise decides
+        assert "its 3 rounds 0.95-1.25x" in zenoh["figure"]
+        assert dds["met"] and dds["settled"]
+    finally:
+        sys.modules.pop("chain", None)
