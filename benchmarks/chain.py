@@ -687,7 +687,7 @@ def main(argv: list[str] | None = None) -> int:
                         raise RuntimeError(f"{variant} {hops} hops: no message arrived")
                     lost[variant] += mode.total - mode.warmup - len(run.latencies)
                     pooled[variant] += run.latencies
-                    rounds[variant].append(round(statistics.median(run.latencies) / 1000 / hops, 3))
+                    rounds[variant].append(summarize(run.latencies, hops)["per_hop_median_us"])  # as the pooled figure
                     cpu[variant].append(run.cpu_s_per_message)
             for variant in variants:
                 latencies = pooled[variant]

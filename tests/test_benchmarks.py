@@ -43,8 +43,8 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     checks = {(c["mode"], c["hops"], c["ours"], c["peer"]) for c in data["targets"]}
     assert checks == {(m, 3, ours, "zenoh-session-direct") for m in ("back-to-back", "paced") for ours in ("dyknow-inproc", "dyknow-inproc-python")}
     assert all(isinstance(c["met"], bool) and c["ratio"] > 0 for c in data["targets"])
-    # one round: its ratio is the pooled one, so it agrees with the verdict
-    assert all(c["round_ratios"] == [pytest.approx(c["ratio"], rel=1e-3)] and c["settled"] for c in data["targets"])
+    # one round: its ratio is the pooled one (computed the same way), so it agrees with the verdict
+    assert all(c["round_ratios"] == [c["ratio"]] and c["settled"] for c in data["targets"])
 
 
 def _run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
