@@ -65,9 +65,10 @@ from dyknow.transport import ZENOH_RUNTIME
 from harness import cpu_seconds, free_ports, machine, sleep_until, worker_env, write_json
 
 PEERS = ("dds-process", "dora-process", "zmq-process")
+# one process per hop, run by this script's own workers (``--worker``)
+PROCESS_VARIANTS = ("dyknow-process", "dyknow-process-python", "zenoh-process", "zenoh-process-tuned")
 VARIANTS = (
-    "dyknow-inproc", "dyknow-inproc-python", "zenoh-session", "zenoh-session-direct",
-    "dyknow-process", "dyknow-process-python", "zenoh-process", "zenoh-process-tuned", *PEERS, "python-call",
+    "dyknow-inproc", "dyknow-inproc-python", "zenoh-session", "zenoh-session-direct", *PROCESS_VARIANTS, *PEERS, "python-call",
 )  # fmt: skip
 PAYLOAD = bytes(16)
 
@@ -578,10 +579,7 @@ RUNNERS: dict[str, Callable[[int, Mode], Run]] = {
     "zenoh-session-direct": lambda hops, mode: run_zenoh_session(hops, mode, direct=True),
     "dyknow-inproc": run_dyknow_inproc,
     "dyknow-inproc-python": lambda hops, mode: run_dyknow_inproc(hops, mode, "bench-python-relay"),
-    "dyknow-process": lambda hops, mode: run_processes("dyknow-process", hops, mode),
-    "dyknow-process-python": lambda hops, mode: run_processes("dyknow-process-python", hops, mode),
-    "zenoh-process": lambda hops, mode: run_processes("zenoh-process", hops, mode),
-    "zenoh-process-tuned": lambda hops, mode: run_processes("zenoh-process-tuned", hops, mode),
+    **{v: (lambda hops, mode, v=v: run_processes(v, hops, mode)) for v in PROCESS_VARIANTS},
     **{peer: (lambda hops, mode, peer=peer: run_peer_variant(peer, hops, mode)) for peer in PEERS},
 }
 
@@ -635,7 +633,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--plot", type=Path, help="write a PNG plot here")
     # worker processes of the process variants
-    parser.add_argument("--worker", choices=("dyknow-process", "dyknow-process-python", "zenoh-process", "zenoh-process-tuned"), help=argparse.SUPPRESS)
+    parser.add_argument("--worker", choices=PROCESS_VARIANTS, help=argparse.SUPPRESS)
     parser.add_argument("--role", help=argparse.SUPPRESS)
     parser.add_argument("--index", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--listen", help=argparse.SUPPRESS)
