@@ -350,16 +350,27 @@ class Publisher(_Entity):
         self.key = key
         self.matched = False
         self._on_matching = on_matching
+        # The status read below and the listener's news can cross: Zenoh may report a match on its
+        # thread while this one still reads the (older) status. The read then must not overwrite
+        # the news, or the publisher stays unmatched until the next change.
+        heard = False
+        lock = threading.Lock()
 
         def matching(status: zenoh.MatchingStatus) -> None:
-            self.matched = status.matching
+            nonlocal heard
+            with lock:
+                self.matched = status.matching
+                heard = True
             if self._on_matching is not None:
                 self._on_matching(status.matching)
 
         # on Zenoh's thread: it only sets a flag (a thread per publisher would cost a thread per unit)
         self._listener: Any = pub.declare_matching_listener(_inline(matching))
         # the 1.10 stub says bool, but the property returns a MatchingStatus (always truthy)
-        self.matched = pub.matching_status.matching  # type: ignore[attr-defined]
+        current = pub.matching_status.matching  # type: ignore[attr-defined]
+        with lock:
+            if not heard:
+                self.matched = current
 
     def put(self, msg: Message) -> int:
         """Encode and send ``msg``; returns the number of payload bytes sent."""
