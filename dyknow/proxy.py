@@ -566,8 +566,12 @@ class Proxy:
                 fn, where = self._calls.popleft()
                 self._call(fn, worker, where)
             if self.state is UnitState.RUNNING:
+                # a callback run from the lane is the first unit nested on its thread: what it
+                # publishes runs inline at most _MAX_DEPTH - 1 deeper
+                self.inline_depth = 1
                 self._drain(worker)
         finally:
+            self.inline_depth = 0
             lock.release()
         if self._destroy_requested or (self.lane.shared and self._ewma_ns > self._slow_ns):
             self._after_callbacks()
@@ -638,6 +642,7 @@ class Proxy:
         t0 = time_ns()
         worker.busy_since_ns = t0
         self._child_ns = 0
+        self.inline_depth = 1  # as in run_locked: the first unit nested on the lane's thread
         try:
             fn()
         except (Exception, SystemExit) as exc:
@@ -645,6 +650,7 @@ class Proxy:
         finally:
             worker.busy_since_ns = 0
             self._current_thread = 0
+            self.inline_depth = 0
         self._ewma_ns += (time_ns() - t0 - self._child_ns - self._ewma_ns) >> 3
 
     def _after_callbacks(self) -> None:
