@@ -167,7 +167,8 @@ def test_scale_benchmark_smoke(tmp_path: Path) -> None:
     assert "plannable after" in result.stdout and "planner alone, offline" in result.stdout and "VmRSS mean" in result.stdout
 
 
-def test_ui_benchmark_smoke(tmp_path: Path) -> None:
+def test_ui_benchmark_smoke(tmp_path: Path, browser_paths: tuple[str, str]) -> None:
+    """The UI benchmark drives Debian's Chromium (the fixture installs it on a fresh machine)."""
     out = tmp_path / "ui.json"
     result = _run("ui.py", "--smoke", "--json", str(out))
     assert result.returncode == 0, result.stderr[-3000:]

@@ -1,16 +1,14 @@
 """The interactive tool in a real browser: Debian's Chromium driven by Selenium (chromedriver).
 
 Each panel's action is checked against the manager itself. Screenshots of the views are saved in
-``$DYKNOW_ARTIFACTS`` (default ``test-artifacts/``). Under ``CI=true`` a missing browser is a
-failure (the set-up installs it with apt when it can); elsewhere the tests skip with the reason.
+``$DYKNOW_ARTIFACTS`` (default ``test-artifacts/``). The browser comes from the ``browser_paths``
+fixture (``conftest.py``), which installs it with apt when it can.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
-import subprocess
 import urllib.error
 import urllib.request
 from collections.abc import Callable, Iterator
@@ -25,28 +23,6 @@ from dyknow.ui.server import check_bind
 from tests.conftest import REPO, CliProcess, run_cli, wait_until
 
 ARTIFACTS = Path(os.environ.get("DYKNOW_ARTIFACTS", REPO / "test-artifacts"))
-CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
-def _browser_paths() -> tuple[str, str] | None:
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
-    driver = shutil.which("chromedriver")
-    return (browser, driver) if browser and driver else None
-
-
-@pytest.fixture(scope="session")
-def browser_paths() -> tuple[str, str]:
-    found = _browser_paths()
-    if found is None and os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "-q", "chromium", "chromium-driver"], capture_output=True, timeout=900,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
-        found = _browser_paths()
-    if found is None:
-        why = "Chromium and chromedriver are not installed (apt-get install chromium chromium-driver)"
-        if CI:
-            pytest.fail(why)
-        pytest.skip(why)
-    return found
 
 
 @pytest.fixture
