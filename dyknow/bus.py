@@ -9,26 +9,38 @@ locality options that keep it out of the local path, so no message arrives twice
 Ports are indexed by key: attaching, detaching or rebinding a port with a concrete key costs the
 same with ten units or ten thousand (only wildcard keys are compared with every port of the other
 direction, and they are rare).
+
+Forwarding units (``forward_to``) pass every message on, so forwarding units bound into a cycle
+(``a.in = x/b, a.out = x/a, b.in = x/a, b.out = x/b``, or one relay reading ``dyknow/**``,
+which holds its own output) would circle one message forever. The bus refuses any attach or
+rebind that closes such a cycle, naming its ports (:meth:`LocalBus.forwarding_cycle` tells
+beforehand). A cycle through units that run Python is left alone: a feedback loop may be meant,
+and such a unit decides itself whether to publish.
 """
 
 from __future__ import annotations
 
 import itertools
 import threading
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, Protocol
 
+from dyknow.errors import BindingError
 from dyknow.transport import is_wild, key_exprs_intersect
 
-__all__ = ["LocalBus"]
+__all__ = ["LocalBus", "cycle_error", "describe_cycle"]
 
 
 class _In(Protocol):
     key: str
+    name: str
+    job: Any  # the unit's proxy (its name names the unit in errors)
+    forward: Any  # the output it forwards to (forward_to), or None
 
 
 class _Out(Protocol):
     key: str
+    name: str
     targets: tuple[Any, ...]  # the input ports it delivers to
 
 
@@ -77,8 +89,13 @@ class LocalBus:
         self._next = itertools.count()
 
     def attach(self, inputs: Iterable[_In], outputs: Iterable[_Out]) -> None:
-        """Add a unit's ports and route them."""
+        """Add a unit's ports and route them; :class:`BindingError` (and nothing added) when its
+        inputs would close a cycle of forwarding units."""
+        inputs, outputs = tuple(inputs), tuple(outputs)
         with self._lock:
+            cycle = self._cycle(inputs, {}, inputs)
+            if cycle:
+                raise cycle_error(cycle)
             for inp in inputs:
                 self._order[id(inp)] = next(self._next)
                 self._inputs.add(inp)
@@ -104,8 +121,13 @@ class LocalBus:
                 out.targets = ()
 
     def rebind(self, changes: Sequence[tuple[_In | _Out, str]]) -> None:
-        """Give ports new keys, all at once: no message sees a half-applied change."""
+        """Give ports new keys, all at once: no message sees a half-applied change.
+        :class:`BindingError` (and nothing changed) when the new keys would close a cycle of
+        forwarding units."""
         with self._lock:
+            cycle = self._rebind_cycle(changes)
+            if cycle:
+                raise cycle_error(cycle, {id(port): key for port, key in changes})
             moved_in = [p for p, _ in changes if id(p) in self._inputs.all]
             moved_out: list[Any] = [p for p, _ in changes if id(p) in self._outputs.all]
             affected: dict[int, Any] = {}  # outputs whose targets may change
@@ -130,6 +152,63 @@ class LocalBus:
                 if kept + extra != out.targets:
                     out.targets = kept + extra  # one assignment: publishers see old or new
 
+    def forwarding_cycle(
+        self, *, inputs: Iterable[_In] = (), changes: Sequence[tuple[_In | _Out, str]] = ()
+    ) -> list[tuple[_In, _Out]] | None:
+        """The cycle of forwarding units that attaching ``inputs`` (a new unit's, its outputs
+        already attached or given as the inputs' ``forward``) or applying ``changes`` (as
+        :meth:`rebind` takes them) would close, as (input, the output it forwards to) pairs in
+        the order a message would go round; None when there is none. Nothing changes."""
+        with self._lock:
+            if changes:
+                return self._rebind_cycle(changes)
+            new = tuple(inputs)
+            return self._cycle(new, {}, new)
+
+    def _rebind_cycle(self, changes: Sequence[tuple[_In | _Out, str]]) -> list[tuple[_In, _Out]] | None:
+        keys = {id(port): key for port, key in changes}
+        moved_in: list[Any] = [p for p, _ in changes if id(p) in self._inputs.all]
+        moved_out = {id(p) for p, _ in changes if id(p) in self._outputs.all}
+        # a new cycle goes through a moved input, or through an input forwarding to a moved output
+        starts: list[Any] = [p for p in moved_in if p.forward is not None]
+        if moved_out:
+            starts += [p for p in self._inputs.all.values() if p.forward is not None and id(p.forward) in moved_out and id(p) not in keys]
+        return self._cycle(starts, keys, moved_in)
+
+    def _cycle(self, starts: Sequence[_In], keys: dict[int, str], extra: Sequence[_In]) -> list[tuple[_In, _Out]] | None:
+        """Depth-first from each forwarding input of ``starts`` along forward -> its readers,
+        with ``keys`` overriding ports' keys and the ``extra`` inputs (not indexed yet, or
+        indexed under their old key) read at their key in ``keys`` or their own."""
+        skip = {id(p) for p in extra}
+
+        def readers(out: Any) -> list[Any]:
+            key = keys.get(id(out), out.key)
+            found = [p for p in self._inputs.reaching(key) if id(p) not in skip]
+            found += [p for p in extra if key_exprs_intersect(keys.get(id(p), p.key), key)]
+            return [p for p in found if p.forward is not None]
+
+        for start in starts:
+            if start.forward is None:
+                continue
+            # iterative: a chain of forwarding units may be longer than Python's recursion limit
+            path: list[tuple[Any, Any]] = [(start, start.forward)]
+            pending: list[list[Any]] = [readers(start.forward)]
+            seen = {id(start)}
+            while pending:
+                if not pending[-1]:
+                    pending.pop()
+                    path.pop()
+                    continue
+                nxt = pending[-1].pop()
+                if nxt is start:
+                    return path
+                if id(nxt) in seen:
+                    continue
+                seen.add(id(nxt))
+                path.append((nxt, nxt.forward))
+                pending.append(readers(nxt.forward))
+        return None
+
     def _targets_of(self, out: _Out) -> tuple[Any, ...]:
         order = self._order
         return tuple(sorted(self._inputs.reaching(out.key), key=lambda p: order[id(p)]))
@@ -137,3 +216,26 @@ class LocalBus:
     def __len__(self) -> int:
         """How many ports are attached (inputs and outputs)."""
         return len(self._inputs.all) + len(self._outputs.all)
+
+
+def describe_cycle(cycle: Sequence[tuple[Any, Any]], keys: Mapping[int, str] | None = None) -> str:
+    """``a.in (x/b) -> a.out (x/a) -> b.in (x/a) -> b.out (x/b) -> a.in``: who forwards to whom."""
+    keys = keys or {}
+
+    def shown(port: Any) -> str:
+        return f"{getattr(port.job, 'name', '?')}.{port.name}"
+
+    steps = []
+    for inp, out in cycle:
+        unit = getattr(inp.job, "name", "?")
+        steps.append(f"{unit}.{inp.name} ({keys.get(id(inp), inp.key)}) -> {unit}.{out.name} ({keys.get(id(out), out.key)})")
+    return " -> ".join(steps) + f" -> {shown(cycle[0][0])}"
+
+
+def cycle_error(cycle: Sequence[tuple[Any, Any]], keys: Mapping[int, str] | None = None) -> BindingError:
+    """The error refusing bindings that close ``cycle`` (``keys``: ports' new keys, by id)."""
+    return BindingError(
+        f"these bindings close a cycle of forwarding units, which would pass one message round forever: {describe_cycle(cycle, keys)}",
+        where=f"unit {getattr(cycle[0][0].job, 'name', '?')!r}",
+        expected="bindings under which no forwarding unit reads, directly or through others, what it forwards itself",
+    )

@@ -232,6 +232,30 @@ def _wait_for(stop: threading.Event) -> None:
         pass
 
 
+#: How long a manager may take to stop once asked (SIGINT or SIGTERM); past it, it exits at once.
+STOP_DEADLINE_S = 5.0
+
+
+def _exit_by_deadline(what: str) -> None:
+    """From now on, exit within :data:`STOP_DEADLINE_S` whatever the process is doing.
+
+    The manager closes its units, services and session in a bounded time; this is the backstop
+    for what no timeout reaches (a unit's C code holding the interpreter lock, say). It runs on
+    faulthandler's own C thread, which needs no interpreter lock: it prints every thread's
+    stack to stderr (what was stuck) and exits with status 1. A second signal exits at once.
+    """
+    import faulthandler
+
+    faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
+
+    def again(signum: int, frame: object) -> None:
+        print(f"dyknow: {what} stopped at once (a second signal)", file=sys.stderr, flush=True)
+        os._exit(1)
+
+    signal.signal(signal.SIGINT, again)
+    signal.signal(signal.SIGTERM, again)
+
+
 # How long a thread of a manager process keeps the interpreter lock while others wait for it
 # (Python's default: 5 ms). A manager is a server: a service call or a message from another
 # process waiting 5 ms for each turn adds up (with 32 clients calling at once, get_model's p99
@@ -285,6 +309,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
             f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs; Ctrl-C to stop",
         )
         _wait_for(stop)
+        _exit_by_deadline(f"manager {args.name!r}")
     if not args.json:
         print(f"dyknow manager {args.name!r} stopped", flush=True)
     return 0
@@ -423,6 +448,7 @@ def cmd_router(args: argparse.Namespace) -> int:
             f"dyknow router ready on {', '.join(endpoints)}; Ctrl-C to stop",
         )
         _wait_for(stop)
+        _exit_by_deadline("router")
     if not args.json:
         print("dyknow router stopped", flush=True)
     return 0

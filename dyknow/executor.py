@@ -32,6 +32,7 @@ import itertools
 import logging
 import os
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -199,10 +200,21 @@ class Worker:
         executor = lane.executor
         get, get_nowait = lane.ready.get, lane.ready.get_nowait
         monotonic_ns = time.monotonic_ns
+        yielded_ns = monotonic_ns()  # when this thread last let go of the interpreter lock
+        switch_ns = int(sys.getswitchinterval() * 1e9)
         while True:
             # Work queued: take it at once (the hot path); otherwise sleep until the next timer.
             try:
                 job = get_nowait()
+                # Compiled code never reaches the interpreter's switch points: a lane kept busy
+                # by units that run no Python (forwarding units in a cycle, say) would hold the
+                # lock for good, and the manager's services and signal handler with it. So
+                # after a switch interval of work without a pause, let go of it once: a thread
+                # waiting for it takes it then.
+                now_ns = monotonic_ns()
+                if now_ns - yielded_ns > switch_ns:
+                    time.sleep(0)
+                    yielded_ns = monotonic_ns()
             except queue.Empty:
                 due = lane.next_due_ns
                 self.active = False  # about to sleep
@@ -214,6 +226,7 @@ class Worker:
                         job = get(timeout=wait) if wait > 0 else None
                 except queue.Empty:
                     job = None
+                yielded_ns = monotonic_ns()
                 # Awake (work, a timer, or a new timer to wait for). A watchdog asleep until
                 # the shared lane wakes watches from now. ``active`` is set before the check and
                 # the watchdog sets ``sleeping`` before it reads ``active``: one sees the other.

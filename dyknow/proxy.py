@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any, Final
 import numpy as np
 
 from dyknow import keys
+from dyknow.bus import cycle_error
 from dyknow.errors import BindingError, UnitError, did_you_mean
 from dyknow.message import Message, check_payload, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
@@ -278,6 +279,7 @@ class Proxy:
                 self._outputs[port.name] = OutputPort(port.name, key)
         self._input_seq = tuple(self._inputs.values())
         self._wire_forwards(type(unit))
+        self.check_bindings()  # before anything is declared or started: a refusal changes nothing
         self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
         unit.attach_runtime(self, name=name, label=spec.label, params=params, log=UnitLog(_UNIT_LOG, name))
         if type(unit).dedicated_thread:
@@ -301,6 +303,13 @@ class Proxy:
     def alive(self) -> bool:
         """Whether the unit is starting or running."""
         return self.state in (UnitState.STARTING, UnitState.RUNNING)
+
+    def check_bindings(self) -> None:
+        """:class:`BindingError` if the unit's inputs would close a cycle of forwarding units
+        (checked again when they attach, atomically: see :class:`~dyknow.bus.LocalBus`)."""
+        cycle = self._bus.forwarding_cycle(inputs=self._input_seq)
+        if cycle:
+            raise cycle_error(cycle)
 
     def start(self) -> None:
         """Declare the ports, run ``setup()``, then start receiving. Failures mark the unit failed."""
@@ -792,6 +801,12 @@ class Proxy:
             effective = {port: key for port, key in changes.items() if current[port] != key}
             if not effective:
                 return current
+            moves: list[tuple[Any, str]] = [
+                (self._inputs[p] if p in self._inputs else self._outputs[p], key) for p, key in effective.items()
+            ]
+            cycle = self._bus.forwarding_cycle(changes=moves)
+            if cycle:
+                raise cycle_error(cycle, {id(port): key for port, key in moves})
             new_pubs: dict[str, Publisher] = {}
             new_tokens: dict[str, LivelinessToken] = {}
             try:
@@ -805,16 +820,21 @@ class Proxy:
                 for entity in (*new_pubs.values(), *new_tokens.values()):
                     entity.undeclare()
                 raise
+            try:
+                # checks for a cycle again, atomically: another unit may have been rebound meanwhile
+                self._bus.rebind(moves)
+            except BindingError:
+                if self.state is UnitState.RUNNING:
+                    self._receiver.rebind([(self._inputs[p], current[p]) for p in effective if p in self._inputs])
+                for entity in (*new_pubs.values(), *new_tokens.values()):
+                    entity.undeclare()
+                raise
             old: list[Any] = []  # entities to undeclare once the switch is done
             for port, pub in new_pubs.items():
                 out = self._outputs[port]
                 old += [out.publisher, out.token]
                 out.publisher = pub
                 out.token = new_tokens[port]
-            moves: list[tuple[Any, str]] = [
-                (self._inputs[p] if p in self._inputs else self._outputs[p], key) for p, key in effective.items()
-            ]
-            self._bus.rebind(moves)
             for entity in old:
                 if entity is not None:
                     entity.undeclare()

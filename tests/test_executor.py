@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
 from dyknow import Manager, Message, Port, TransformationSpec, Unit, default_key
 from dyknow.testing import Sink, Source
-from tests.conftest import wait_until
+from tests.conftest import subprocess_env, wait_until
 from tests.units import Slow
 
 
@@ -239,3 +242,44 @@ def test_an_idle_watchdog_wakes_for_a_new_timer(make_manager: object) -> None:
         assert not unit.release.is_set()
     finally:
         unit.release.set()
+
+
+SPINNER = """
+import functools, time
+from dyknow.executor import Executor
+
+executor = Executor("spin")
+
+
+class Job:
+    name = "spinner"
+    scheduled = False
+    lane = executor.shared
+
+
+job = Job()
+job.run = functools.partial(executor.shared.put, job)  # run(worker) queues the job again, in C
+executor.shared.put(job)
+started = time.monotonic()
+for _ in range(20):
+    time.sleep(0.005)
+print(f"the main thread ran beside the lane: 20 sleeps in {time.monotonic() - started:.3f} s", flush=True)
+job.run = lambda worker: None
+executor.close(1.0)
+"""
+
+
+def test_a_lane_busy_with_code_that_never_reaches_python_lets_other_threads_run(tmp_path: Path) -> None:
+    """A job that runs no Python (here: it queues itself again, in C) keeps the lane's compiled
+    loop busy without ever reaching one of the interpreter's switch points. The lane lets go of
+    the interpreter lock once per switch interval, so the main thread still runs. Before, it
+    never got the lock back (a manager with two relays bound into a cycle answered nothing and
+    ignored SIGTERM). In a child process, so a regression ends in a timeout, not a hung suite."""
+    script = tmp_path / "spinner.py"
+    script.write_text(SPINNER)
+    try:
+        result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, env=subprocess_env())
+    except subprocess.TimeoutExpired:
+        pytest.fail("the main thread never ran again while the lane was busy (60 s)")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "the main thread ran beside the lane" in result.stdout

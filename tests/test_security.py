@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from dyknow import AccessError, Client, LibraryError, Manager, ServiceError, SpecError, TransformationSpec
+from dyknow import AccessError, BindingError, Client, LibraryError, Manager, ServiceError, SpecError, TransformationSpec
 from dyknow.security import DataRoots, SourcePolicy, bounded_glob
 from dyknow.transport import Session, make_config
-from tests.conftest import ManagerProcess
+from tests.conftest import ManagerProcess, wait_until
 
 EVIL = '''
 import pathlib
@@ -244,3 +244,67 @@ def test_spec_objects_given_locally_are_trusted(make_manager: Callable[..., Mana
     with pytest.raises(LibraryError, match="no transformation labelled 'x'"):  # not in the library
         manager.spawn("x", "x1")
     assert manager.spawn(spec, "x1").state == "running"
+
+
+# ---------------------------------------------------------------------- units that would freeze a manager
+
+
+def test_forwarding_units_bound_into_a_cycle_are_refused_naming_the_ports(hostile_target: tuple[ManagerProcess, Session]) -> None:
+    """Two relays bound into a cycle, or a relay reading ``dyknow/**`` (its own output among it),
+    would pass one message round forever: the spawn or set_config that closes the cycle is
+    refused, naming the ports, and nothing changes."""
+    proc, session = hostile_target
+    with Client(proc.name, connect=[proc.endpoint], session=session) as client:
+        client.spawn("relay", "a", bindings={"in": "x/b", "out": "x/a"})
+        with pytest.raises(BindingError, match=r"b\.in \(x/a\) -> b\.out \(x/b\) -> a\.in \(x/b\) -> a\.out \(x/a\) -> b\.in"):
+            client.spawn("relay", "b", bindings={"in": "x/a", "out": "x/b"})
+        with pytest.raises(BindingError, match=rf"r\.in \(dyknow/\*\*\) -> r\.out \(dyknow/{proc.name}/r/out\) -> r\.in"):
+            client.spawn("relay", "r", bindings={"in": "dyknow/**"})
+        client.spawn("relay", "b", bindings={"in": "x/a", "out": "x/c"})
+        with pytest.raises(BindingError, match=r"b\.out \(x/b\)"):
+            client.set_config("b", {"out": "x/b"})
+        assert client.get_config("b") == {"in": "x/a", "out": "x/c"}
+        assert sorted(u["name"] for u in client.get_model()["units"]) == ["a", "b"]
+    assert proc.stop(signal.SIGTERM) == 0
+
+
+def test_a_cycle_of_python_units_leaves_the_manager_serving_and_it_stops_on_sigterm(
+    hostile_target: tuple[ManagerProcess, Session],
+) -> None:
+    """Units that run Python may mean a feedback loop, so their cycle is allowed; one message
+    then circles as fast as the units go. Other callers are still answered (each call here
+    gives up after 1 s) and SIGTERM stops the manager within 5 s."""
+    proc, session = hostile_target
+    with Client(proc.name, connect=[proc.endpoint], session=session) as client:
+        client.spawn("forwarder", "f1", bindings={"a": "x/f2", "b": "x/unused", "out": "x/f1"})
+        client.spawn("forwarder", "f2", bindings={"a": "x/f1", "b": "x/unused", "out": "x/f2"})
+        session.put("x/f1", b"round and round")
+        wait_until(lambda: _messages(client, "f1") > 10_000, "the message circles")
+    with Client(proc.name, connect=[proc.endpoint], timeout_s=1.0) as other:
+        for _ in range(5):
+            assert other.get_model()["manager"] == proc.name
+        circled = _messages(other, "f1")
+    assert circled > 10_000
+    started = time.monotonic()
+    assert proc.stop(signal.SIGTERM, timeout_s=5.0) == 0
+    assert time.monotonic() - started < 5.0
+
+
+def _messages(client: Client, unit: str) -> int:
+    return sum(p["messages"] for p in client.get_statistics(unit)["ports"].values() if p["direction"] == "in")
+
+
+def test_sigterm_stops_a_manager_within_its_deadline_even_when_a_unit_never_lets_go(
+    manager_process: Callable[..., ManagerProcess],
+) -> None:
+    """A unit's teardown() that never returns would hold the manager's close() for good: past
+    the 5 s deadline the process exits anyway, with status 1 and every thread's stack on stderr."""
+    proc = manager_process()
+    with Client(proc.name, connect=[proc.endpoint]) as client:
+        client.spawn("stuck-in-teardown", "stuck")
+    started = time.monotonic()
+    code = proc.stop(signal.SIGTERM, timeout_s=15.0)
+    took = time.monotonic() - started
+    assert code == 1 and 4.0 < took < 10.0, (code, took)
+    stderr = proc.proc.stderr.read() if proc.proc.stderr else ""
+    assert "Timeout (0:00:05)!" in stderr and "in teardown" in stderr, stderr[-2000:]

@@ -100,6 +100,13 @@ class TornDown(Unit):
         TornDown.torn_down.append(self.name)
 
 
+class StuckInTeardown(Unit):
+    """Never returns from teardown() (a driver that hangs on close, say)."""
+
+    def teardown(self) -> None:
+        threading.Event().wait()
+
+
 NOT_A_UNIT = 42
 
 
