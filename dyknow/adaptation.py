@@ -103,6 +103,7 @@ BACKOFF_FIRST_S = 1.0
 BACKOFF_MAX_S = 60.0
 _TICK_S = 0.02  # deadlines, back-offs and deferred opportunities are checked this often
 _STANDBY_WAIT_NS = 1_000_000_000  # after a switch, the next standby waits this long at most for the stream
+_RECORD_WAIT_S = 1.0  # how long an anchor holds a new configuration's first message for its adaptation's record
 
 
 # ---------------------------------------------------------------------------- what the loop needs
@@ -376,8 +377,8 @@ class RequestAnchor(Unit):
         latest = self._latest
         if latest is not None and latest.key == msg.key:
             self._latest = None  # its configuration is the active one now: this message is newer
+        self._first(msg.key)  # before relaying it: see _Recovery
         self.publish("out", msg.payload)
-        self._first(msg.key)
 
     def on_reconfigure(self, changes: Mapping[str, str]) -> None:
         """When ``in`` moved onto the standby's key, forward the standby's latest message now."""
@@ -387,8 +388,8 @@ class RequestAnchor(Unit):
         key = changes.get("in")
         if key is not None and latest is not None and latest.key == key:
             self._latest = None
-            self.publish("out", latest.payload, origin_ns=latest.origin_ns)
             self._first(key)
+            self.publish("out", latest.payload, origin_ns=latest.origin_ns)
 
     def _first(self, key: str) -> None:
         waiting = self._waiting
@@ -1430,8 +1431,11 @@ class AdaptationLoop:
 class _Recovery:
     """Waits for the first message of a new configuration on the request's key.
 
-    Armed before the anchor switches (so that first message cannot slip by); the adaptation event
-    may be created before or after that message arrives.
+    Armed before the anchor switches (so that first message cannot slip by). That message may
+    reach the anchor before the loop has recorded the adaptation: the anchor then holds it until
+    the adaptation is in the history (at most :data:`_RECORD_WAIT_S`, in practice microseconds),
+    so whoever sees the stream change finds the adaptation that changed it in
+    ``get_adaptations``.
     """
 
     def __init__(self, loop: AdaptationLoop) -> None:
@@ -1440,6 +1444,7 @@ class _Recovery:
         self._arrival_ns: int | None = None
         self._event: AdaptationEvent | None = None
         self._request: _Request | None = None
+        self._recorded = threading.Event()
 
     def arm(self, request: _Request) -> Callable[[str], None]:
         self._request = request
@@ -1454,7 +1459,8 @@ class _Recovery:
 
         return before_switch
 
-    def _arrived(self, arrival_ns: int) -> None:  # on the anchor's thread
+    def _arrived(self, arrival_ns: int) -> None:  # on the anchor's thread, before it relays the message
+        self._recorded.wait(_RECORD_WAIT_S)
         with self._lock:
             self._arrival_ns = arrival_ns
             event = self._event
@@ -1466,6 +1472,8 @@ class _Recovery:
             self._finish(event, arrival_ns)
 
     def adapted(self, event: AdaptationEvent) -> None:
+        """The adaptation is in the history: the anchor may relay the new configuration."""
+        self._recorded.set()
         with self._lock:
             self._event = event
             arrival = self._arrival_ns

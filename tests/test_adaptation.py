@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 import textwrap
@@ -14,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from dyknow import Client, Library, Manager, Ontology, Port, Tag, TransformationSpec, Unit, UnitEvent, UnitInfo, default_key
+from dyknow import Client, Library, Manager, Message, Ontology, Port, Tag, TransformationSpec, Unit, UnitEvent, UnitInfo, default_key
 from dyknow.adaptation import ANCHOR_LABEL, AdaptationEvent, AdaptationLoop, DeadlinePort, Knowledge, Monitor, RequestAnchor, Symptom
 from dyknow.errors import PlanningError
 from dyknow.federation import Summary, SummaryUnit
@@ -375,6 +376,63 @@ def test_the_loop_runs_against_a_small_stand_in_runtime() -> None:
         assert event["old"] == ["front-camera"] and event["new"] == ["back-camera"]
         assert runtime.get_config(anchor.name)["in"] == "dyknow/standin/back-camera/out"  # the key stayed, the input moved
         assert "front-camera" not in runtime.table  # the broken unit was cleaned up
+    finally:
+        loop.close()
+
+
+class _Relayed:
+    """An anchor's runtime that notes, for each message it relays, how many adaptations the
+    loop had recorded at that moment."""
+
+    def __init__(self) -> None:
+        self.loop: AdaptationLoop | None = None
+        self.relayed: list[tuple[Any, int]] = []
+
+    def publish(self, port: str, payload: Any, origin_ns: int | None = None) -> None:
+        assert self.loop is not None
+        self.relayed.append((payload, len(self.loop.history())))
+
+
+class EagerRuntime(StandInRuntime):
+    """The new configuration's first message reaches the anchor, on another thread, the moment
+    the anchor is rebound; the loop is then held up a moment before it goes on to record the
+    adaptation (a window that, before, let the message through ahead of its record)."""
+
+    def __init__(self, specs: list[TransformationSpec]) -> None:
+        super().__init__(specs)
+        self.relay = _Relayed()
+        self.deliveries: list[threading.Thread] = []
+
+    def spawn(self, label: str | TransformationSpec, name: str, *, bindings: Mapping[str, str] | None = None) -> UnitInfo:
+        info = super().spawn(label, name, bindings=bindings)
+        if name in self.anchors:
+            self.anchors[name].attach_runtime(self.relay, name=name, label=info.label, params={}, log=logging.getLogger(name))  # type: ignore[arg-type]
+        return info
+
+    def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
+        config = super().set_config(name, bindings)
+        if name in self.anchors and "in" in bindings:
+            msg = Message("first of the new configuration", 1, time.time_ns(), time.time_ns(), bindings["in"])
+            delivery = threading.Thread(target=self.anchors[name].on_message, args=("in", msg))
+            delivery.start()
+            self.deliveries.append(delivery)
+            delivery.join(0.2)  # the loop records the adaptation only after this returns
+        return config
+
+
+def test_the_first_message_of_a_new_configuration_is_relayed_after_its_adaptation_is_recorded() -> None:
+    """Whoever sees the stream change finds the adaptation that changed it in the history."""
+    runtime = EagerRuntime([_camera("front-camera", 1), _camera("back-camera", 2)])
+    loop = AdaptationLoop(runtime, dwell_s=60)
+    runtime.relay.loop = loop
+    try:
+        loop.request("Image")
+        runtime.fail("front-camera", loop)
+        assert runtime.published.wait(10)
+        for delivery in runtime.deliveries:
+            delivery.join(10)
+        relayed = [(p, n) for p, n in runtime.relay.relayed if p == "first of the new configuration"]
+        assert relayed and all(recorded >= 1 for _, recorded in relayed), runtime.relay.relayed
     finally:
         loop.close()
 
