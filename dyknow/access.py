@@ -5,22 +5,37 @@ deployment, and this process's certificate and key. With them, Zenoh's TLS trans
 verifies the peer's certificate on every link (mutual TLS); ``dyknow certs`` writes development
 ones.
 
-:class:`AccessControl` maps certificate common names to three roles, read from a JSON5 file
-(``dyknow manager --acl FILE``)::
+:class:`AccessControl` maps certificate common names to roles, read from a JSON5 file
+(``dyknow manager --acl FILE``, and ``dyknow router --acl FILE``)::
 
-    { roles: { viewer: ["dashboard"], operator: ["robot-ui"], admin: ["alice"] } }
+    { roles: { viewer: ["dashboard"], operator: ["robot-ui"], admin: ["alice"],
+               manager: ["robot", "station"], router: ["hub"] } }
+
+People and tools (each role may what the ones before it may):
 
 - **viewer**: read the model, configs, statistics, adaptations and summaries; subscribe to data,
   watch liveliness and see which managers are up;
 - **operator**: also spawn, destroy, set_config, request, release and measure; publish data;
-  announce itself as a manager, publish its summary and serve its services to this one (give the
-  other managers of a system this role);
-- **admin**: also add and remove transformations.
+- **admin**: also add and remove transformations, and destroy protected units.
+
+The processes of the system:
+
+- **manager**: another manager of the system. Its certificate's common name must be its manager
+  name: it may announce itself, publish its summary and serve services *under that name only*
+  (``@dyknow/<name>``, ``@dyknow/<name>/**``), publish data and the liveliness of its ports, and
+  call this manager's services as an operator would (its requests span managers). It also carries
+  the calls of the clients connected to it;
+- **router**: a Zenoh router of the system (``dyknow router``): it carries everyone's traffic, so
+  every message may pass its link, and it enforces the same file at its own links.
 
 It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessControl.zenoh`):
 default deny, one subject per role (by certificate common name), one allow rule per role and
-message kind. So the transport refuses what a role may not do, before any handler sees it: a
-refused query gets no reply. Without an ACL everything is allowed (local use).
+message kind, and for each manager one subject and rules of its own name. So the transport
+refuses what a link may not carry, before any handler sees it: a refused query gets no reply.
+Zenoh judges a message by the link it came by, that is by the neighbour; so a manager with an ACL
+also checks every service call's own signature and its caller's role (:mod:`dyknow.identity`,
+with :meth:`AccessControl.may_call`): a call keeps its caller's rights through routers and
+other managers. Without an ACL everything is allowed (local use).
 """
 
 from __future__ import annotations
@@ -34,12 +49,14 @@ from typing import Any
 import json5
 
 from dyknow import keys
-from dyknow.errors import AccessError
+from dyknow.errors import AccessError, DyKnowError
 
-__all__ = ["ROLES", "AccessControl", "TlsFiles"]
+__all__ = ["PEER_ROLES", "ROLES", "AccessControl", "TlsFiles"]
 
-#: The roles, each allowed what the ones before it are.
+#: The roles of people and tools, each allowed what the ones before it are.
 ROLES: tuple[str, ...] = ("viewer", "operator", "admin")
+#: The roles of the system's own processes (see the module documentation).
+PEER_ROLES: tuple[str, ...] = ("manager", "router")
 
 _DATA = f"{keys.DATA_ROOT}/**"
 _SERVICES = f"{keys.SERVICE_ROOT}/**"
@@ -51,6 +68,8 @@ _SERVICES_OF = {
     "operator": ["spawn", "destroy", "unit/*/set_config", "request", "release", "measure"],
     "admin": ["add_transformation", "remove_transformation"],
 }
+# What a manager may call as itself: what its requests across managers need.
+_MANAGER_CALLS = [*_SERVICES_OF["viewer"], *_SERVICES_OF["operator"]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,28 +124,57 @@ class AccessControl:
     @classmethod
     def from_dict(cls, data: Any, where: str = "<acl>") -> AccessControl:
         """The ACL from its parsed form; :class:`AccessError` naming the field when malformed."""
+        shape = "{ roles: { viewer: [...], operator: [...], admin: [...], manager: [...], router: [...] } }"
         if not isinstance(data, dict) or set(data) != {"roles"} or not isinstance(data["roles"], dict):
-            raise AccessError(
-                "the file must hold exactly one field, roles",
-                where=where,
-                expected="{ roles: { viewer: [...], operator: [...], admin: [...] } }",
-            )
+            raise AccessError("the file must hold exactly one field, roles", where=where, expected=shape)
         roles: dict[str, tuple[str, ...]] = {}
         for role, names in data["roles"].items():
-            if role not in ROLES:
-                raise AccessError(f"unknown role {role!r}", where=f"{where}: roles", expected=f"one of {', '.join(ROLES)}")
+            if role not in ROLES + PEER_ROLES:
+                raise AccessError(
+                    f"unknown role {role!r}", where=f"{where}: roles", expected=f"one of {', '.join(ROLES + PEER_ROLES)}"
+                )
             if not isinstance(names, list) or not all(isinstance(n, str) and n.strip() for n in names):
                 raise AccessError(f"got {names!r}", where=f"{where}: roles.{role}", expected="a list of certificate common names")
             roles[role] = tuple(n.strip() for n in names)
+        for name in roles.get("manager", ()):
+            try:
+                keys.check_name(name, "manager name")
+            except DyKnowError as exc:
+                raise AccessError(
+                    f"{name!r} cannot be a manager's name", where=f"{where}: roles.manager",
+                    expected="the common names of the managers' certificates, each its manager's --name",
+                ) from exc  # fmt: skip
         return cls(roles)
 
     def role_of(self, common_name: str) -> str | None:
-        """The highest role of a certificate's common name, or None."""
-        found = [role for role in ROLES if common_name in self.roles.get(role, ())]
-        return found[-1] if found else None
+        """The role of a certificate's common name: its highest of viewer, operator and admin,
+        else manager or router; None when it has none."""
+        found = [role for role in ROLES + PEER_ROLES if common_name in self.roles.get(role, ())]
+        people = [role for role in found if role in ROLES]
+        if people:
+            return people[-1]
+        return found[0] if found else None
+
+    def may_call(self, common_name: str, service: str, *, unit: bool = False) -> bool:
+        """Whether the holder of ``common_name`` may call ``service`` (a unit's service when
+        ``unit``) on this manager, whichever link the call came by."""
+        wanted = f"unit/*/{service}" if unit else service
+        allowed: set[str] = set()
+        for level, role in enumerate(ROLES):
+            if common_name in self.roles.get(role, ()):
+                allowed.update(s for r in ROLES[: level + 1] for s in _SERVICES_OF[r])
+        if common_name in self.roles.get("manager", ()):
+            allowed.update(_MANAGER_CALLS)
+        return wanted in allowed
+
+    def roles_for_call(self, service: str, *, unit: bool = False) -> list[str]:
+        """The roles that may call ``service`` (for messages that say who may)."""
+        wanted = f"unit/*/{service}" if unit else service
+        found = [role for level, role in enumerate(ROLES) if any(wanted in _SERVICES_OF[r] for r in ROLES[: level + 1])]
+        return found + (["manager"] if wanted in _MANAGER_CALLS else [])
 
     def zenoh(self) -> dict[str, Any]:
-        """The Zenoh ``access_control`` configuration that enforces these roles."""
+        """The Zenoh ``access_control`` configuration that enforces these roles at every link."""
         rules: list[dict[str, Any]] = []
         subjects: list[dict[str, Any]] = []
         policies: list[dict[str, Any]] = []
@@ -139,6 +187,20 @@ class AccessControl:
             policies.append({"id": f"{role}-policy", "rules": granted, "subjects": [role]})
         for role in ROLES:
             rules.extend(_RULES[role])
+        if self.roles.get("router"):
+            rules.extend(_RULES["router"])
+            subjects.append({"id": "router", "cert_common_names": list(self.roles["router"])})
+            policies.append({"id": "router-policy", "rules": _rules_of("router"), "subjects": ["router"]})
+        managers = self.roles.get("manager", ())
+        if managers:
+            rules.extend(_RULES["manager"])
+        for i, name in enumerate(managers):
+            # each manager its own subject: it serves and announces under its own name only
+            subject = f"manager-{i}"
+            own = _own_rules(subject, name)
+            rules.extend(own)
+            subjects.append({"id": subject, "cert_common_names": [name]})
+            policies.append({"id": f"{subject}-policy", "rules": [*_rules_of("manager"), *(r["id"] for r in own)], "subjects": [subject]})
         return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
@@ -149,6 +211,13 @@ def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) ->
 def _services(role: str) -> list[str]:
     return [f"{keys.SERVICE_ROOT}/*/{service}" for service in _SERVICES_OF[role]]
 
+
+# Every key dyknow uses: '**' does not reach verbatim chunks such as @dyknow, so they are named too.
+_EVERYTHING = ["**", _SERVICES]
+_ALL_MESSAGES = [
+    "put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
+]  # fmt: skip
 
 _RULES: dict[str, list[dict[str, Any]]] = {
     "viewer": [
@@ -165,16 +234,36 @@ _RULES: dict[str, list[dict[str, Any]]] = {
     "operator": [
         _rule("operator-calls", "ingress", ["query"], _services("operator")),
         _rule("operator-publishes", "ingress", ["put", "delete", "liveliness_token"], [_DATA]),
-        # a peer manager is an operator: it announces itself and publishes its summary
-        _rule("operator-announces", "ingress", ["liveliness_token"], [_MANAGERS]),
-        _rule("operator-publishes-summary", "ingress", ["put"], [_SUMMARIES]),
-        _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA, _MANAGERS, _SUMMARIES]),
-        # and it serves: this manager calls its services (get_summary, spawn, ...) and hears the replies
-        _rule("operator-serves", "ingress", ["declare_queryable", "reply"], [_SERVICES]),
-        _rule("operator-is-called", "egress", ["query", "liveliness_query"], [_SERVICES, _MANAGERS]),
+        _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA]),
     ],
     "admin": [_rule("admin-calls", "ingress", ["query"], _services("admin"))],
+    # Another manager: it calls services (its own calls, and those of its clients, each signed
+    # by its caller and checked by the manager called), publishes data and its ports'
+    # liveliness, watches the others; this manager sends it everything. What it may serve and
+    # announce is in its own rules (_own_rules), under its own name.
+    "manager": [
+        _rule("manager-calls", "ingress", ["query"], [_SERVICES]),
+        _rule("manager-publishes", "ingress", ["put", "delete", "liveliness_token"], [_DATA]),
+        _rule(
+            "manager-subscribes",
+            "ingress",
+            ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+            [_DATA, _MANAGERS, _SUMMARIES],
+        ),
+        _rule("manager-receives", "egress", _ALL_MESSAGES, _EVERYTHING),
+    ],
+    # A router carries everyone's messages both ways (it enforces the same roles at its own links).
+    "router": [_rule("router-carries", "ingress", _ALL_MESSAGES, _EVERYTHING), _rule("router-delivers", "egress", _ALL_MESSAGES, _EVERYTHING)],
 }
+
+
+def _own_rules(subject: str, manager: str) -> list[dict[str, Any]]:
+    """What only the manager named ``manager`` may do: serve, announce and summarise under its name."""
+    return [
+        _rule(f"{subject}-serves", "ingress", ["declare_queryable", "reply"], [keys.services_pattern(manager)]),
+        _rule(f"{subject}-announces", "ingress", ["liveliness_token"], [keys.manager_token(manager)]),
+        _rule(f"{subject}-summarises", "ingress", ["put"], [keys.summary_key(manager)]),
+    ]
 
 
 def _rules_of(role: str) -> list[str]:

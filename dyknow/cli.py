@@ -271,7 +271,13 @@ def cmd_manager(args: argparse.Namespace) -> int:
 
     tls = _tls(args)
     listen = args.listen or ([_default_endpoint(tls)] if args.zenoh_config is None else None)
-    limits = Limits(max_request_bytes=args.max_request_bytes, max_expansions=args.max_expansions)
+    limits = Limits(
+        max_request_bytes=args.max_request_bytes,
+        max_expansions=args.max_expansions,
+        max_units=args.max_units,
+        max_message_bytes=args.max_message_bytes,
+        max_expansion_bytes=args.max_expansion_bytes,
+    )
     with Manager(
         args.name,
         specs=args.specs,
@@ -352,7 +358,7 @@ def cmd_spawn(args: argparse.Namespace) -> int:
 def cmd_destroy(args: argparse.Namespace) -> int:
     """destroy a unit"""
     with _client(args) as client:
-        client.destroy(args.name)
+        client.destroy(args.name, force=args.force)
     _report(args, {"destroyed": args.name}, f"destroyed {args.name}")
     return 0
 
@@ -437,8 +443,19 @@ def cmd_router(args: argparse.Namespace) -> int:
     from dyknow.transport import Session, make_config
 
     tls = _tls(args)
+    access = None
+    if args.acl is not None:
+        from dyknow.access import AccessControl
+        from dyknow.errors import AccessError
+
+        if tls is None:
+            raise AccessError("roles (--acl) are given by certificate, and the router has none", where="dyknow router",
+                              expected="--tls-ca, --tls-cert and --tls-key with --acl")  # fmt: skip
+        access = AccessControl.load(args.acl)
     listen = args.listen or [_default_endpoint(tls)]
-    config = make_config(listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, mode="router", lease_ms=args.lease_ms)
+    config = make_config(
+        listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms
+    )
     with Session(config) as session:
         endpoints = session.endpoints()
         stop = _stop_event()
@@ -824,11 +841,19 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--acl",
         metavar="FILE",
-        help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...] } })",
+        help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
+        "router: [...] } }); every call must then be signed by its caller (dyknow clients with --tls-* do)",
     )
     p.add_argument(
         "--max-request-bytes", type=_positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
     )
+    p.add_argument(
+        "--max-units", type=_positive_int, default=1000, metavar="N", help="refuse spawns beyond this many units (default 1000)"
+    )
+    p.add_argument("--max-message-bytes", type=_positive_int, default=64 << 20, metavar="N",
+                   help="drop larger messages (data or calls) while they arrive, before they take memory (default 64 MiB)")  # fmt: skip
+    p.add_argument("--max-expansion-bytes", type=_positive_int, default=16 << 20, metavar="N",
+                   help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
     limit_options(p)
     p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
     p.add_argument("--dwell", type=float, metavar="S",
@@ -851,6 +876,7 @@ def _parser() -> argparse.ArgumentParser:
         "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
     )
     zenoh_options(p, connect_help="another router to connect to (repeatable)")
+    p.add_argument("--acl", metavar="FILE", help="enforce these roles at the router's links (the managers' ACL file; see dyknow manager --acl)")
     lease_option(p)
 
     p = command("certs", cmd_certs)
@@ -946,12 +972,13 @@ def _parser() -> argparse.ArgumentParser:
     p = command("spawn", cmd_spawn, client=True)
     p.add_argument("label")
     p.add_argument("name")
-    p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit")
+    p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit, unless forced (by an admin)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
     p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
 
     p = command("destroy", cmd_destroy, client=True)
     p.add_argument("name")
+    p.add_argument("--force", action="store_true", help="destroy a protected unit too (an admin's call, when the manager has roles)")
 
     p = command("model", cmd_model, client=True)
     p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')

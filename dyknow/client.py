@@ -23,11 +23,14 @@ from typing import Any
 from dyknow import keys, service
 from dyknow.access import TlsFiles
 from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
+from dyknow.identity import Signer
 from dyknow.message import Message
 from dyknow.model import check_standby
 from dyknow.transport import DEFAULT_ENDPOINT, Session, Subscriber, check_key_expr, make_config
 
 __all__ = ["Client"]
+
+_MAX_PAGES = 100_000  # of one model: far past any manager's (each page holds at least one entry)
 
 
 class Client:
@@ -60,6 +63,9 @@ class Client:
         self._own_session = session is None
         self._connect = [] if session is not None and tuple(connect) == (DEFAULT_ENDPOINT,) else list(connect)
         self._tls = tls
+        # with a certificate, every call carries its caller's signature (a manager with --acl
+        # checks it, whichever routers or managers carry the call): dyknow.identity
+        self._signer = Signer(tls) if tls is not None else None
         if session is None:
             if self._connect and zenoh_config is None:
                 session = self._open_leaf(lease_ms)
@@ -106,7 +112,13 @@ class Client:
         manager = manager or self.manager
         where = f"manager {manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
         try:
-            reply = self._session.call(key, json.dumps(request).encode(), timeout_s=self.timeout_s, what=f"{what} of {where}")
+            reply = self._session.call(
+                key,
+                json.dumps(request).encode(),
+                timeout_s=self.timeout_s,
+                what=f"{what} of {where}",
+                sign=self._signer.sign if self._signer is not None else None,
+            )
         except ServiceError as exc:
             if exc.kind is None and "nothing serves" in str(exc):
                 raise ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=self._expected(manager)) from exc
@@ -157,13 +169,31 @@ class Client:
         request = {"label": label, "name": name, "protected": protected, "params": dict(params or {}), "bindings": dict(bindings or {})}
         return dict(self._manager("spawn", request))
 
-    def destroy(self, name: str) -> None:
-        """Stop unit ``name`` on the manager (refused for protected units)."""
-        self._manager("destroy", {"name": name})
+    def destroy(self, name: str, *, force: bool = False) -> None:
+        """Stop unit ``name`` on the manager; a protected unit only with ``force`` (an admin's call
+        when the manager has roles)."""
+        self._manager("destroy", {"name": name, "force": True} if force else {"name": name})
 
-    def get_model(self) -> dict[str, Any]:
-        """The manager's model: units, specs and requests (the JSON form of :class:`~dyknow.model.Model`)."""
-        return dict(self._manager("get_model", {}))
+    def get_model(self, manager: str | None = None) -> dict[str, Any]:
+        """The model of the manager (or of ``manager``): units, specs and requests (the JSON form
+        of :class:`~dyknow.model.Model`). A large model comes in pages (each at most the
+        manager's ``max_reply_bytes``); this gathers them."""
+        name = manager or self.manager
+        model = dict(self.call_manager(name, "get_model", {}))
+        for _ in range(_MAX_PAGES):
+            after = model.pop("next", None)
+            if not after:
+                break
+            page = dict(self.call_manager(name, "get_model", {"page": after}))
+            if page.get("next") and not (page["next"]["units"] > after["units"] or page["next"]["specs"] > after["specs"]):
+                raise ServiceError("a model page that does not move on", where=f"manager {name!r}", expected="a manager that pages its model")
+            model["units"] += page["units"]
+            model["specs"] += page["specs"]
+            model["requests"] = page["requests"]
+            model["next"] = page.get("next")
+        model.pop("next", None)
+        model.pop("total", None)
+        return model
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key bindings of unit ``name``."""
@@ -233,7 +263,7 @@ class Client:
         models = []
         for name in self.manager_names(timeout_s):
             try:
-                models.append(dict(self.call_manager(name, "get_model", {})))
+                models.append(self.get_model(name))
             except ServiceError:
                 continue
         return {"managers": models}

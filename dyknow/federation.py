@@ -127,7 +127,7 @@ class Summary:
                 version=int(raw.get("version", 0)),
                 library=library,
                 specs=tuple(specs),
-                units=tuple(_unit(u) for u in units),
+                units=tuple(_unit(u, manager) for u in units),
                 measurements=measurements,
                 requests=int(raw.get("requests", 0)),
             )
@@ -135,11 +135,18 @@ class Summary:
             raise DyKnowError(f"a malformed summary: {str(exc)[:200]}", where=f"manager {manager!r}") from exc
 
 
-def _unit(raw: Any) -> SummaryUnit:
+def _unit(raw: Any, manager: str) -> SummaryUnit:
+    """A unit of ``manager``'s summary. Only its outputs on concrete keys of the manager's own key
+    space (``dyknow/<manager>/...``) are kept: a summary may not offer another's stream, or a
+    wildcard, as its own (a planner would wire whatever publishes there)."""
+    own = keys.manager_prefix(manager)
     outputs = {str(p): str(k) for p, k in dict(raw["outputs"]).items()}
-    tags = {str(p): tuple(str(t) for t in ts) for p, ts in dict(raw["tags"]).items()}
+    kept = {p: k for p, k in outputs.items() if k.startswith(own) and "*" not in k and "@" not in k}  # '*': any wildcard
+    if len(kept) < len(outputs):
+        log.warning("summary of %r: outputs outside its key space %s** ignored: %s", manager, own, sorted(set(outputs) - set(kept))[:5])
+    tags = {str(p): tuple(str(t) for t in ts) for p, ts in dict(raw["tags"]).items() if str(p) in kept}
     owner = raw.get("owner")
-    return SummaryUnit(str(raw["name"]), str(raw["label"]), outputs, tags, bool(raw["healthy"]), str(owner) if owner else None)
+    return SummaryUnit(str(raw["name"]), str(raw["label"]), kept, tags, bool(raw["healthy"]), str(owner) if owner else None)
 
 
 class Directory:

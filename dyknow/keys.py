@@ -18,8 +18,11 @@ Liveliness: every output port declares a liveliness token on its own key (:func:
 so whoever consumes a stream can watch its producer with the same key expression; every manager
 declares one on ``@dyknow/<manager>`` (:func:`manager_token`), so the others notice it come and go.
 
-Manager and unit names become key chunks, so :func:`check_name` admits only letters, digits,
-``_``, ``-`` and ``.`` (not first).
+Manager, unit and measurement names become key chunks, so :func:`check_name` admits only
+letters, digits, ``_``, ``-`` and ``.`` (not first). Transformation labels are shown and typed
+back by people, so :func:`label_problem` admits visible text only: no control or formatting
+characters (a U+202E would show one label as another), no spaces at either end, at most
+:data:`MAX_LABEL_BYTES`. These two are the one validation of names and labels everywhere.
 """
 
 from __future__ import annotations
@@ -27,18 +30,23 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from dyknow.errors import UnitError
+from dyknow.errors import BindingError, LibraryError, UnitError
 
 __all__ = [
     "DATA_ROOT",
+    "MAX_LABEL_BYTES",
     "MAX_KEY_BYTES",
     "MAX_NAME_BYTES",
     "SERVICE_ROOT",
     "ServiceAddress",
+    "check_data_key",
+    "check_label",
     "check_name",
     "default_key",
     "event_key",
+    "label_problem",
     "manager_of_token",
+    "manager_prefix",
     "manager_service_key",
     "manager_token",
     "managers_pattern",
@@ -59,13 +67,15 @@ DATA_ROOT = "dyknow"
 #: The first chunk of every service key (verbatim: wildcards in data subscriptions never reach it).
 SERVICE_ROOT = "@dyknow"
 
-_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")
 
 #: The longest manager or unit name (bytes). Names become key chunks.
 MAX_NAME_BYTES = 128
 #: The longest key expression dyknow declares (bytes). Zenoh's transport cannot send a
 #: declaration larger than one batch (about 65 kB) and panics when asked to, so keys stay small.
 MAX_KEY_BYTES = 1024
+#: The longest transformation label (bytes).
+MAX_LABEL_BYTES = 256
 _UNSAFE_IN_CHUNK = "/*$?#@ "
 
 
@@ -76,7 +86,7 @@ def check_name(name: object, what: str) -> str:
     """
     if isinstance(name, str) and len(name.encode()) > MAX_NAME_BYTES:
         raise UnitError(f"{what} of {len(name.encode())} bytes is too long", expected=f"at most {MAX_NAME_BYTES} bytes")
-    if not isinstance(name, str) or not _NAME.match(name):
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise UnitError(
             f"{what} {name!r} is not a valid name",
             expected="letters, digits, '_', '-' or '.', not starting with '-' or '.' (it becomes part of Zenoh keys)",
@@ -84,9 +94,59 @@ def check_name(name: object, what: str) -> str:
     return name
 
 
+def check_data_key(key: str, what: str) -> str:
+    """Return ``key`` if a port may bind to it; else raise :class:`BindingError` naming ``what``.
+
+    Ports carry data: a key with a verbatim chunk (one starting with ``@``) is dyknow's services,
+    liveliness and summaries (``@dyknow/...``) or Zenoh's admin space (``@/...``), and an output
+    bound there would pose as a manager (its port token would be a manager's token).
+    """
+    if any(chunk.startswith("@") for chunk in key.split("/")):
+        raise BindingError(
+            f"{key[:200]!r} has a chunk starting with '@', which is for services and Zenoh's admin space, not data",
+            where=what,
+            expected="a data key without '@', like 'robot/camera/image'",
+        )
+    return key
+
+
+def label_problem(label: object) -> tuple[str, str] | None:
+    """Why ``label`` cannot be a transformation label, as ``(got, expected)``; None when it can."""
+    expected = (
+        f"visible text of 1 to {MAX_LABEL_BYTES} bytes without spaces at either end, control or formatting "
+        "characters, like 'undistort(robot)'"
+    )
+    if not isinstance(label, str):
+        return f"got a {type(label).__name__}", expected
+    size = len(label.encode(errors="replace"))
+    if size == 0 or size > MAX_LABEL_BYTES:
+        return f"a label of {size} bytes", expected
+    if label != label.strip():
+        return f"{label!r} has spaces at an end", expected
+    bad = next((c for c in label if not c.isprintable()), None)
+    if bad is not None:
+        return f"{label!r} holds the character U+{ord(bad):04X}", expected
+    return None
+
+
+def check_label(label: object, what: str = "label") -> str:
+    """Return ``label`` if it can be a transformation label; else raise :class:`LibraryError` naming ``what``."""
+    problem = label_problem(label)
+    if problem is not None:
+        raise LibraryError(problem[0], where=what, expected=problem[1])
+    assert isinstance(label, str)
+    return label
+
+
 def default_key(manager: str, unit: str, port: str) -> str:
     """Where a port is bound unless told otherwise: ``dyknow/<manager>/<unit>/<port>``."""
     return f"{DATA_ROOT}/{manager}/{unit}/{port}"
+
+
+def manager_prefix(manager: str) -> str:
+    """The prefix of a manager's own data keys: ``dyknow/<manager>/`` (its units' default
+    bindings, its requests, its events: what its summary may offer)."""
+    return f"{DATA_ROOT}/{manager}/"
 
 
 def unit_prefix(manager: str, unit: str) -> str:

@@ -45,6 +45,7 @@ from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
 from dyknow.federation import Directory, Summary, SummaryUnit
+from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
 from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
@@ -142,11 +143,38 @@ class Manager:
         self._closed = False
         access = acl if isinstance(acl, AccessControl) or acl is None else AccessControl.load(acl)
         self._tls = tls.check() if tls is not None else None
+        self._verifier: Verifier | None = None
+        if access is not None:
+            if self._tls is None:
+                raise AccessError(
+                    "roles (--acl) are given by certificate, and the manager has none",
+                    where=f"manager {self.name!r}",
+                    expected="--tls-ca, --tls-cert and --tls-key with --acl (dyknow certs writes development ones)",
+                )
+            self._verifier = Verifier(self._tls.ca, access)
+            own = Signer(self._tls).common_name
+            if own != self.name:
+                log.warning(
+                    "manager %r runs with the certificate of %r: managers whose --acl lists it under manager accept its "
+                    "services, summary and liveliness only from a certificate named after it",
+                    self.name,
+                    own,
+                )
+        self._access = access
         self.host = host or socket.gethostname()
         self._session = Session(
-            make_config(listen=listen, connect=list(connect), config_file=zenoh_config, tls=self._tls, access=access, lease_ms=lease_ms)
+            make_config(
+                listen=listen,
+                connect=list(connect),
+                config_file=zenoh_config,
+                tls=self._tls,
+                access=access,
+                lease_ms=lease_ms,
+                max_message_bytes=limits.max_message_bytes,
+            )
         )
-        self._peers = Client(self.name, session=self._session, timeout_s=3.0)  # calls to the other managers
+        # calls to the other managers, signed with this manager's certificate (dyknow.identity)
+        self._peers = Client(self.name, session=self._session, timeout_s=3.0, tls=self._tls)
         self._owners: dict[str, str] = {}  # unit -> the manager whose request it serves
         self._version = 0
         self._started_ns = time.time_ns()
@@ -170,7 +198,9 @@ class Manager:
                 self._workers = service.Workers(
                     self.name,
                     self._session.declare_service_channel(keys.services_pattern(self.name)),
-                    service.dispatcher(self.name, self._manager_handlers(), self._unit_service, limits),
+                    service.dispatcher(
+                        self.name, self._manager_handlers(), self._unit_service, limits, verifier=self._verifier, access=self._access
+                    ),
                 )
             except DyKnowError:
                 self.close()
@@ -271,7 +301,9 @@ class Manager:
                     where="field 'xml'",
                     expected="the spec's XML (the client reads files on its side)",
                 )
-            specs = parse_specs(spec, path or "<remote>", individuals=individuals, max_expansions=limit)
+            specs = parse_specs(
+                spec, path or "<remote>", individuals=individuals, max_expansions=limit, max_bytes=self.limits.max_expansion_bytes
+            )
             for one in specs:
                 self._sources.check(one.source, where=f"transformation {one.label!r} ({one.location})")
         elif isinstance(spec, TransformationSpec):
@@ -333,6 +365,12 @@ class Manager:
             keys.check_name(name, "unit name")
             if isinstance(label, TransformationSpec) and not remote:
                 self._trust([label])
+            if len(self._units) + len(self._starting) >= self.limits.max_units:
+                raise UnitError(
+                    f"the manager already runs {len(self._units) + len(self._starting)} units, its most",
+                    where=f"manager {self.name!r}",
+                    expected=f"at most {self.limits.max_units} units (--max-units): destroy some first",
+                )
             if name in self._units or name in self._starting:
                 running = self._units.get(name)
                 state = f"label {running.label!r}, {running.state.value}" if running is not None else "being spawned"
@@ -365,8 +403,15 @@ class Manager:
         if confine:  # file params, as the spec declares them and as the (trusted) class does
             modes = {p.name: p.mode or "read" for p in spec.params if p.type == "path"} | dict(cls.path_params)
             for param, mode in modes.items():
-                if param in values:
-                    values[param] = self._roots.resolve(values[param], mode, where=f"param {param!r} of unit {name!r}")
+                where = f"param {param!r} of unit {name!r}"
+                if param not in values:  # the unit would choose a file of its own, wherever it likes
+                    roots = ", ".join(str(r) for r in self._roots.roots(mode)) or "a --data-root folder"
+                    raise AccessError(
+                        "is not given, and a unit spawned for a remote caller may not fall back to a file of its own choosing",
+                        where=where,
+                        expected=f"the param given, in the spawn or in the spec's <params>: a file to {mode} under {roots}",
+                    )
+                values[param] = self._roots.resolve(values[param], mode, where=where)
         try:
             unit = cls()
         except Exception as exc:
@@ -409,16 +454,21 @@ class Manager:
             raise UnitError(f"still starting after {timeout_s:.0f} s", where=f"unit {name!r}", expected="a unit whose setup() returns")
         gate.release()
 
-    def destroy(self, name: str) -> None:
-        """Stop unit ``name`` and remove it from the model. Refused for protected units.
+    def destroy(self, name: str, *, force: bool = False) -> None:
+        """Stop unit ``name`` and remove it from the model. A protected unit only with ``force``
+        (through the service: by an admin, or by anyone when the manager has no roles).
 
         A unit still being spawned is destroyed once its spawn returns."""
         self._settled(name)
         with self._lock:
             self._check_open()
             proxy = self._proxy(name)
-            if proxy.protected:
-                raise UnitError("the unit is protected (spawned with protected=True), so it cannot be destroyed", where=f"unit {name!r}")
+            if proxy.protected and not force:
+                raise UnitError(
+                    "the unit is protected (spawned with protected=True), so it cannot be destroyed without force",
+                    where=f"unit {name!r}",
+                    expected="destroy(name, force=True) (dyknow destroy NAME --force; an admin's, when the manager has roles)",
+                )
             del self._units[name]
             self._deadlines.pop(name, None)
         proxy.stop()
@@ -557,8 +607,7 @@ class Manager:
     def measure(self, name: str, value: float | str) -> None:
         """Record the latest value of a measure (battery, say); constraints are checked against it."""
         self._check_open()
-        if not isinstance(name, str) or not name or "/" in name:
-            raise LibraryError(f"measure name {name!r} is not a valid name", expected="a non-empty name without '/', like 'battery'")
+        keys.check_name(name, "measurement name")
         self._check_measurement(name, value)
         self._adaptation.measure(name, value)
         self.changed()
@@ -592,6 +641,15 @@ class Manager:
 
     def _measurement_sample(self, key: str, payload: bytes) -> None:
         name = key.rsplit("/", 1)[-1]
+        try:
+            # a put on a wildcard key ('dyknow/**/in') reaches this subscription too: only a
+            # concrete key names a measurement
+            keys.check_name(name, "measurement name")
+            if "*" in key or "$" in key:
+                raise UnitError(f"{key[:200]!r} is a key expression with wildcards", expected="a concrete key such as dyknow/measurements/battery")
+        except UnitError as exc:
+            log.warning("measurement on %s ignored: %s", key[:200], exc)
+            return
         try:
             value = json.loads(payload)
             if isinstance(value, dict):
@@ -709,19 +767,23 @@ class Manager:
 
     def _manager_handlers(self) -> dict[str, service.Handler]:
         return {
-            "add_transformation": lambda r: {"labels": self.add_transformation(r["xml"], path=r.get("path") or "<remote>", remote=True)},
-            "remove_transformation": lambda r: {"removed": self.remove_transformation(str(r["label"]))},
+            "add_transformation": lambda r, c: {"labels": self.add_transformation(r["xml"], path=r.get("path") or "<remote>", remote=True)},
+            "remove_transformation": lambda r, c: {"removed": self.remove_transformation(str(r["label"]))},
             "spawn": self._serve_spawn,
             "destroy": self._serve_destroy,
-            "get_model": lambda r: self.get_model().to_dict(),
-            "request": lambda r: {"key": self.request(str(r["tag"]), standby=r.get("standby"))},
+            "get_model": self._serve_model,
+            "request": lambda r, c: {"key": self.request(str(r["tag"]), standby=r.get("standby"))},
             "release": self._serve_release,
             "measure": self._serve_measure,
-            "get_adaptations": lambda r: [e.to_dict() for e in self.get_adaptations()],
-            "get_summary": lambda r: self.summary().to_dict(),
+            "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
+            "get_summary": lambda r, c: self.summary().to_dict(),
         }
 
-    def _serve_spawn(self, request: dict[str, Any]) -> dict[str, Any]:
+    def _serve_model(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
+        page = request.get("page", {})
+        return self.get_model().page(page.get("units", 0), page.get("specs", 0), max_bytes=self.limits.max_reply_bytes)
+
+    def _serve_spawn(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         owner = request.get("owner")
         log.info("spawn %s for %s", request.get("name"), owner)
         info = self.spawn(
@@ -737,19 +799,28 @@ class Manager:
             self.changed()
         return info.to_dict()
 
-    def _serve_destroy(self, request: dict[str, Any]) -> dict[str, Any]:
-        self.destroy(str(request["name"]))
+    def _serve_destroy(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
+        force = bool(request.get("force", False))
+        unit = self._units.get(str(request["name"]))
+        if force and caller is not None and caller.role != "admin" and unit is not None and unit.protected:
+            role = f"the role {caller.role}" if caller.role else "no role"
+            raise AccessError(
+                f"{caller.common_name!r}, with {role}, may not destroy a protected unit",
+                where=f"unit {request['name']!r} on manager {self.name!r}",
+                expected="an admin (force: true is for admins), or destroy without force",
+            )
+        self.destroy(str(request["name"]), force=force)
         return {"destroyed": request["name"]}
 
-    def _serve_release(self, request: dict[str, Any]) -> dict[str, Any]:
+    def _serve_release(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         self.release(str(request["key"]))
         return {"released": request["key"]}
 
-    def _serve_measure(self, request: dict[str, Any]) -> dict[str, Any]:
+    def _serve_measure(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         self.measure(str(request["name"]), request["value"])
         return {"measured": request["name"]}
 
-    def _unit_service(self, name: str, what: str, request: dict[str, Any]) -> Any:
+    def _unit_service(self, name: str, what: str, request: dict[str, Any], caller: Caller | None) -> Any:
         if what == "get_config":
             return self.get_config(name)
         if what == "set_config":
@@ -866,5 +937,6 @@ def _bindings(spec: TransformationSpec, manager: str, unit: str, overrides: Mapp
             raise BindingError(
                 f"no port {name!r}", where=f"transformation {spec.label!r}", expected=f"one of {listing}{did_you_mean(name, ports)}"
             )
-        result[name] = check_key_expr(key, what=f"port {name!r} of unit {unit!r}", concrete=port.direction == "out")
+        what = f"port {name!r} of unit {unit!r}"
+        result[name] = keys.check_data_key(check_key_expr(key, what=what, concrete=port.direction == "out"), what)
     return result

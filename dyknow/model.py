@@ -12,6 +12,7 @@ API, the services refuse with the same words).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -150,10 +151,40 @@ class Model:
         raise UnitError(f"no unit named {name!r} in the model", where=f"manager {self.manager!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON form that ``get_model`` serves."""
+        """The JSON form of the whole model (one ``get_model`` page when it fits)."""
         return {
             "manager": self.manager,
             "units": [u.to_dict() for u in self.units],
             "specs": [s.to_dict() for s in self.specs],
             "requests": [r.to_dict() for r in self.requests],
         }
+
+    def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
+        """One page of the JSON form, as the ``get_model`` service serves it.
+
+        The units from ``units_from`` on, then the specs from ``specs_from`` on, as many as fit in
+        about ``max_bytes`` of JSON (at least one entry, so every page moves on), with every
+        request. ``total`` counts the units and specs of the whole model; ``next`` holds the
+        ``units`` and ``specs`` offsets of the next page, or None on the last.
+        """
+        out: dict[str, Any] = {
+            "manager": self.manager,
+            "units": [],
+            "specs": [],
+            "requests": [r.to_dict() for r in self.requests],
+            "total": {"units": len(self.units), "specs": len(self.specs)},
+        }
+        used = len(json.dumps(out))
+        offsets = {"units": max(0, units_from), "specs": max(0, specs_from)}
+        for kind, entries in (("units", self.units), ("specs", self.specs)):
+            while offsets[kind] < len(entries):
+                entry = entries[offsets[kind]].to_dict()
+                size = len(json.dumps(entry)) + 2
+                if used + size > max_bytes and (out["units"] or out["specs"]):
+                    out["next"] = offsets
+                    return out
+                out[kind].append(entry)
+                used += size
+                offsets[kind] += 1
+        out["next"] = None
+        return out

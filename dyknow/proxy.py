@@ -792,9 +792,11 @@ class Proxy:
                 )
             for port, key in changes.items():
                 if port in self._inputs:
-                    check_key_expr(key, what=f"unit {self.name!r} input port {port!r}")
+                    what = f"unit {self.name!r} input port {port!r}"
+                    keys.check_data_key(check_key_expr(key, what=what), what)
                 elif port in self._outputs:
-                    check_key_expr(key, what=f"unit {self.name!r} output port {port!r}", concrete=True)
+                    what = f"unit {self.name!r} output port {port!r}"
+                    keys.check_data_key(check_key_expr(key, what=what, concrete=True), what)
                 else:
                     raise self._no_port(port, "", {**self._inputs, **self._outputs})
             current = self.get_config()

@@ -13,7 +13,8 @@ passes through unchecked (it runs as the operator):
   unit class in ``Unit.path_params``) may name when a unit is spawned for a remote caller or from
   a spec added remotely: writes under ``--data-root`` folders only, reads there and in the
   folders of the specs loaded at start. ``..``, ``~``, symlinks out of a root, absolute paths
-  elsewhere and globs whose fixed part escapes are refused, naming the param.
+  elsewhere, globs whose fixed part escapes and globs or folders a file of which resolves outside
+  (a symbolic link inside a root) are refused, naming the param and nothing outside the roots.
 - :class:`Limits`: the size of a request, the depth of its JSON, the length of names and keys
   (a key over Zenoh's batch size would make its transport panic), the expansions of a template,
   and the entries and time a glob may take.
@@ -57,6 +58,15 @@ class Limits:
     max_expansions: int = 10_000
     max_glob_entries: int = 100_000
     max_glob_s: float = 2.0
+    #: The most units a manager runs at once (spawned by anyone, requests included).
+    max_units: int = 1000
+    #: The largest message the manager's session takes in (data or call): Zenoh drops a larger
+    #: one while reassembling it, so it never costs more memory than this.
+    max_message_bytes: int = 64 << 20
+    #: What a spec's expansions may cost, in bytes of their text (estimated before expanding).
+    max_expansion_bytes: int = 16 << 20
+    #: The most bytes one ``get_model`` reply holds; a larger model comes in pages.
+    max_reply_bytes: int = 4 << 20
 
 
 _DEFAULT = Limits()
@@ -162,10 +172,27 @@ class DataRoots:
                     break
                 fixed.append(part)
             self._inside(Path(*fixed), roots, text, where, listing)
-            return str(Path(os.path.realpath(Path(*fixed))).joinpath(*candidate.parts[len(fixed) :]))
+            pattern = str(Path(os.path.realpath(Path(*fixed))).joinpath(*candidate.parts[len(fixed) :]))
+            self._matches_inside(bounded_glob(pattern), roots, text, where, listing)
+            return pattern
         resolved = Path(os.path.realpath(candidate))
         self._inside(resolved, roots, text, where, listing)
+        if mode == "read" and resolved.is_dir():  # a folder's files are read too (a folder of images, say)
+            self._matches_inside(_entries(resolved), roots, text, where, listing)
         return str(resolved)
+
+    @staticmethod
+    def _matches_inside(matches: Iterable[str], roots: Sequence[Path], text: str, where: str, listing: str) -> None:
+        """Refuse ``text`` when a file it names resolves outside the roots (through a symbolic
+        link inside them), saying nothing of what lies outside."""
+        for match in matches:
+            real = Path(os.path.realpath(match))
+            if not any(real == root or root in real.parents for root in roots):
+                raise AccessError(
+                    f"{text!r} reaches outside the data roots through a symbolic link",
+                    where=where,
+                    expected=f"files that lie under {listing}",
+                )
 
     @staticmethod
     def _inside(path: Path, roots: Sequence[Path], text: str, where: str, listing: str) -> None:
@@ -212,6 +239,20 @@ def bounded_glob(pattern: str, *, max_entries: int = _DEFAULT.max_glob_entries, 
                 continue
         current = found
     return sorted(str(p) for p in current)
+
+
+def _entries(folder: Path, max_entries: int = _DEFAULT.max_glob_entries) -> list[str]:
+    """The entries of ``folder``; :class:`AccessError` when it has more than ``max_entries``."""
+    found: list[str] = []
+    try:
+        with os.scandir(folder) as entries:
+            for entry in entries:
+                found.append(entry.path)
+                if len(found) > max_entries:
+                    raise AccessError(f"the folder {folder} has over {max_entries} entries", expected="a smaller folder")
+    except OSError:  # unreadable: the unit will say so
+        return []
+    return found
 
 
 def _is_dir(entry: os.DirEntry[str]) -> bool:

@@ -36,7 +36,9 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from dyknow import errors, keys
-from dyknow.errors import DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
+from dyknow.access import AccessControl
+from dyknow.errors import AccessError, DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
+from dyknow.identity import Caller, Verifier
 from dyknow.model import standby_problem
 from dyknow.security import Limits
 from dyknow.transport import ServiceChannel, ServiceRequest
@@ -73,7 +75,8 @@ UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 _STUCK_S = 0.05  # writers all inside their calls this long while a change waits: add one
 READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_config", "get_statistics"})
 
-Handler = Callable[[dict[str, Any]], Any]
+Handler = Callable[[dict[str, Any], Caller | None], Any]
+"""A service's handler: the checked request and its caller (None when the manager has no roles)."""
 
 
 def _error_reply(exc: DyKnowError) -> bytes:
@@ -118,6 +121,14 @@ def _name(what: str) -> Check:
     return check
 
 
+def _label(value: Any, field: str, limits: Limits) -> str:
+    """A transformation label (:func:`~dyknow.keys.label_problem`)."""
+    problem = keys.label_problem(value)
+    if problem is not None:
+        raise ServiceError(problem[0], where=f"field {field!r}", expected=problem[1])
+    return str(value)
+
+
 def _key(value: Any, field: str, limits: Limits) -> str:
     if not isinstance(value, str) or not value or len(value.encode()) > limits.max_key_bytes:
         raise _refuse(field, value, f"a key expression of at most {limits.max_key_bytes} bytes")
@@ -157,6 +168,16 @@ def _standby(value: Any, field: str, limits: Limits) -> str:
     return str(value)
 
 
+def _page(value: Any, field: str, limits: Limits) -> dict[str, int]:
+    """Where a ``get_model`` page starts: ``{"units": i, "specs": j}`` (either may be left out)."""
+    if not isinstance(value, dict) or not set(value) <= {"units", "specs"}:
+        raise _refuse(field, value, 'an object such as {"units": 0, "specs": 120}, the "next" of the previous page')
+    for kind, offset in value.items():
+        if isinstance(offset, bool) or not isinstance(offset, int) or not 0 <= offset <= 1 << 31:
+            raise _refuse(f"{field}.{kind}", offset, "a whole number from 0")
+    return {str(k): int(v) for k, v in value.items()}
+
+
 def _mapping(key_check: Check, value_check: Check, max_items: int = 256) -> Check:
     def check(value: Any, field: str, limits: Limits) -> dict[str, Any]:
         if not isinstance(value, dict) or len(value) > max_items:
@@ -169,20 +190,20 @@ def _mapping(key_check: Check, value_check: Check, max_items: int = 256) -> Chec
 _PORT = _text(128)
 SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "add_transformation": {"xml": (True, _text()), "path": (False, _text(256))},
-    "remove_transformation": {"label": (True, _text(256))},
+    "remove_transformation": {"label": (True, _label)},
     "spawn": {
-        "label": (True, _text(256)),
+        "label": (True, _label),
         "name": (True, _name("unit name")),
         "protected": (False, _flag),
         "params": (False, _mapping(_text(128), _scalar)),
         "bindings": (False, _mapping(_PORT, _key)),
         "owner": (False, _name("manager name")),
     },
-    "destroy": {"name": (True, _name("unit name"))},
-    "get_model": {},
+    "destroy": {"name": (True, _name("unit name")), "force": (False, _flag)},
+    "get_model": {"page": (False, _page)},
     "request": {"tag": (True, _text(512)), "standby": (False, _standby)},
     "release": {"key": (True, _key)},
-    "measure": {"name": (True, _text(128)), "value": (True, _number_or_text)},
+    "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},
     "get_summary": {},
     "get_config": {},
@@ -247,23 +268,38 @@ def decode_request(payload: bytes, limits: Limits) -> Any:
 def dispatcher(
     manager: str,
     manager_handlers: Mapping[str, Handler],
-    unit_handler: Callable[[str, str, dict[str, Any]], Any],
+    unit_handler: Callable[[str, str, dict[str, Any], Caller | None], Any],
     limits: Limits | None = None,
-) -> Callable[[str, bytes], tuple[bool, bytes]]:
-    """A queryable handler for ``@dyknow/<manager>/**`` that checks each request, then routes it."""
+    *,
+    verifier: Verifier | None = None,
+    access: AccessControl | None = None,
+) -> Callable[[str, bytes, bytes | None], tuple[bool, bytes]]:
+    """A queryable handler for ``@dyknow/<manager>/**`` that checks each request, then routes it.
+
+    With a ``verifier`` and the ``access`` roles, every call must be signed by its caller
+    (:mod:`dyknow.identity`) and the caller's role must allow the service, or it is refused
+    before its request is even read; handlers get the :class:`~dyknow.identity.Caller`.
+    """
     known = ", ".join([*manager_handlers, *(f"unit/<name>/{s}" for s in UNIT_SERVICES)])
     bounds = limits or Limits()
 
-    def handle(key: str, payload: bytes) -> tuple[bool, bytes]:
+    def handle(key: str, payload: bytes, attachment: bytes | None = None) -> tuple[bool, bytes]:
         try:
             if len(key.encode()) > bounds.max_key_bytes:
                 raise ServiceError(f"a key of {len(key.encode())} bytes", where="key", expected=f"at most {bounds.max_key_bytes}")
+            if len(payload) > bounds.max_request_bytes:
+                decode_request(payload, bounds)  # refuses it, naming the bound
             address = keys.parse_service_key(manager, key)
+            caller: Caller | None = None
+            if verifier is not None and access is not None:
+                caller = verifier.verify(key, payload, attachment)
+                if address is not None:
+                    _authorize(manager, access, caller, address.service, address.unit is not None)
             if address is not None and address.unit is None and address.service in manager_handlers:
-                result = manager_handlers[address.service](check_request(address.service, decode_request(payload, bounds), bounds))
+                result = manager_handlers[address.service](check_request(address.service, decode_request(payload, bounds), bounds), caller)
             elif address is not None and address.unit is not None and address.service in UNIT_SERVICES:
                 request = check_request(address.service, decode_request(payload, bounds), bounds)
-                result = unit_handler(address.unit, address.service, request)
+                result = unit_handler(address.unit, address.service, request, caller)
             else:
                 raise ServiceError(f"no service at {key[:200]!r} on manager {manager!r}", expected=f"one of {known}")
             return True, json.dumps(result).encode()
@@ -273,6 +309,18 @@ def dispatcher(
             return False, _error_reply(ServiceError(f"bad request: {type(exc).__name__}: {exc}", where=key[:200]))
 
     return handle
+
+
+def _authorize(manager: str, access: AccessControl, caller: Caller, service: str, unit: bool) -> None:
+    if access.may_call(caller.common_name, service, unit=unit):
+        return
+    who = f"{caller.common_name!r} ({caller.role})" if caller.role else f"{caller.common_name!r}, which has no role here,"
+    roles = access.roles_for_call(service, unit=unit)
+    raise AccessError(
+        f"{who} may not call {service}",
+        where=f"manager {manager!r}",
+        expected=f"a caller whose certificate has the role {' or '.join(roles) or 'none'} in this manager's --acl",
+    )
 
 
 class Workers:
@@ -292,7 +340,7 @@ class Workers:
         self,
         manager: str,
         channel: ServiceChannel,
-        handler: Callable[[str, bytes], tuple[bool, bytes]],
+        handler: Callable[[str, bytes, bytes | None], tuple[bool, bytes]],
         *,
         readers: int = 2,
         writers: int = 2,
@@ -353,7 +401,7 @@ class Workers:
 
     def _answer(self, request: ServiceRequest) -> None:
         try:
-            ok, reply = self._handler(request.key, request.payload)
+            ok, reply = self._handler(request.key, request.payload, request.attachment)
         except Exception as exc:  # a bug in a handler must still answer the caller
             log.exception("service handler for %s failed", request.key[:200])
             ok, reply = False, json.dumps({"error": type(exc).__name__, "message": str(exc)}).encode()

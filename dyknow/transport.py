@@ -244,6 +244,7 @@ def make_config(
     access: AccessControl | None = None,
     lease_ms: int | None = None,
     mode: str = "peer",
+    max_message_bytes: int | None = None,
 ) -> zenoh.Config:
     """Build a Zenoh configuration.
 
@@ -257,6 +258,9 @@ def make_config(
     shorter detects sooner, at the cost of keep-alive traffic and of false alarms on a slow link.
     ``mode``: "peer" (default), "router" (``dyknow router``) or "client" (a leaf that only
     connects: :class:`~dyknow.client.Client` sessions; give it ``listen=[]``).
+    ``max_message_bytes``: the largest message this session takes in (Zenoh's
+    ``transport/link/rx/max_message_size``, 1 GiB by default). Zenoh drops a larger one while it
+    reassembles it, fragment by fragment, so an oversized message costs at most this much memory.
     """
     try:
         if config_file is not None:
@@ -297,6 +301,10 @@ def make_config(
             if lease_ms < 100:
                 raise TransportError(f"got {lease_ms} ms", where="lease", expected="at least 100 ms")
             config.insert_json5("transport/link/tx/lease", str(int(lease_ms)))
+        if max_message_bytes is not None:
+            if max_message_bytes < 65536:
+                raise TransportError(f"got {max_message_bytes} bytes", where="max_message_bytes", expected="at least 65,536")
+            config.insert_json5("transport/link/rx/max_message_size", str(int(max_message_bytes)))
     except zenoh.ZError as exc:
         raise TransportError(f"invalid Zenoh endpoint: {_clean(exc)}", where=f"listen={listen!r} connect={list(connect)!r}") from exc
     return config
@@ -514,14 +522,15 @@ def _reply(query: zenoh.Query, ok: bool, reply: bytes) -> None:
 
 
 class ServiceRequest:
-    """One call a :class:`ServiceChannel` received: its key and payload. Answer it once."""
+    """One call a :class:`ServiceChannel` received: its key, payload and attachment. Answer it once."""
 
-    __slots__ = ("_query", "key", "payload")
+    __slots__ = ("_query", "attachment", "key", "payload")
 
     def __init__(self, query: zenoh.Query) -> None:
         self._query = query
         self.key = str(query.key_expr)
         self.payload = query.payload.to_bytes() if query.payload is not None else b""
+        self.attachment = query.attachment.to_bytes() if query.attachment is not None else None  # the caller's signature, if any
 
     def reply(self, ok: bool, data: bytes) -> None:
         """Send the answer (``ok``) or the error reply; the caller stops waiting."""
@@ -792,26 +801,41 @@ class Session:
 
     # -- services
 
-    def call(self, key: str, payload: bytes, *, timeout_s: float, what: str) -> bytes:
+    def call(
+        self, key: str, payload: bytes, *, timeout_s: float, what: str, sign: Callable[[str, bytes], bytes] | None = None
+    ) -> bytes:
         """Send a request to the service on ``key`` and return its reply.
 
         Waits up to ``timeout_s`` seconds for the service to be reachable, then for its answer.
         Raises :class:`ServiceError` when nobody answers (``what`` names the service for the
-        message) or with the service's own error when it refuses the request.
+        message) or with the service's own error when it refuses the request. ``sign(key,
+        payload)`` gives the call's attachment (its caller's signature: see
+        :mod:`dyknow.identity`), made once the service is reachable, so its time is fresh.
         """
         deadline = time.monotonic() + timeout_s
         entry = self._querier(key, timeout_s)
         try:
-            return self._call(entry[0], entry[1], key, payload, deadline, timeout_s, what)
+            return self._call(entry[0], entry[1], key, payload, deadline, timeout_s, what, sign)
         finally:
             with self._lock:
                 entry[2] -= 1
 
-    def _call(self, querier: Any, reachable: threading.Event, key: str, payload: bytes, deadline: float, timeout_s: float, what: str) -> bytes:
+    def _call(
+        self,
+        querier: Any,
+        reachable: threading.Event,
+        key: str,
+        payload: bytes,
+        deadline: float,
+        timeout_s: float,
+        what: str,
+        sign: Callable[[str, bytes], bytes] | None,
+    ) -> bytes:
         if not reachable.wait(max(0.0, deadline - time.monotonic())):
             raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s")
         try:
-            replies = querier.get(payload=payload)
+            attachment = sign(key, payload) if sign is not None else None
+            replies = querier.get(payload=payload, attachment=attachment)
             for reply in replies:
                 if reply.ok is not None:
                     return reply.ok.payload.to_bytes()

@@ -10,14 +10,14 @@ from typing import Any
 
 import pytest
 
-from dyknow import AccessError, Client, Manager, Message, PlanningError, ServiceError, UnitError
+from dyknow import AccessError, BindingError, Client, Manager, Message, PlanningError, ServiceError, UnitError
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import GENERIC_SPECS, CliProcess, free_port, run_cli
 
-NAMES = ["manager", "viewer", "operator", "admin", "stranger", "station", "robot"]
+NAMES = ["manager", "viewer", "operator", "admin", "stranger", "station", "robot", "router"]
 RELAY = """<transformation><label>extra-relay</label><source>transformations.generic:Relay</source>
   <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
 
@@ -204,32 +204,208 @@ def test_a_manager_exposed_without_tls_warns(cli_process: Callable[..., CliProce
     assert "dyknow: warning: listening beyond this host without TLS" in manager.proc.stderr.read()
 
 
-@pytest.mark.parametrize("station_role", ["operator", "viewer"])
-def test_managers_federate_over_tls_with_the_operator_role(certs: Path, make_manager: Callable[..., Manager], station_role: str) -> None:
-    """Managers of one system give each other the operator role: the station spawns the robot's camera
-    over mutual TLS; as a mere viewer it still sees the robot, but may not spawn there."""
+@pytest.mark.parametrize("station_role", ["manager", "operator", "viewer"])
+def test_managers_federate_over_tls_with_the_manager_role(certs: Path, make_manager: Callable[..., Manager], station_role: str) -> None:
+    """Managers of one system give each other the manager role: the station spawns the robot's
+    camera over mutual TLS. As an operator the station may still spawn there, but the robot does
+    not take it for a manager (only the manager role announces, serves and summarises); as a mere
+    viewer it may not spawn either."""
     from dyknow.errors import DyKnowError
     from dyknow.testing import SCENARIO_HOSTS
     from tests.conftest import REPO, wait_until
 
     ontology = [REPO / "specs" / "dyknow.ttl"]
     endpoint = f"tls/127.0.0.1:{free_port()}"
-    station_acl = AccessControl.from_dict({"roles": {"operator": ["robot"]}})
+    station_acl = AccessControl.from_dict({"roles": {"manager": ["robot"]}})
     robot_acl = AccessControl.from_dict({"roles": {station_role: ["station"]}})
     station = make_manager("station", specs=[SCENARIO_HOSTS["station"]], ontology=ontology, listen=[endpoint], tls=tls(certs, "station"), acl=station_acl)
     robot = make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=ontology, listen=[f"tls/127.0.0.1:{free_port()}"], connect=[endpoint],
                          tls=tls(certs, "robot"), acl=robot_acl)  # fmt: skip
     wait_until(lambda: "robot" in station.peers(), "the station to know the robot over TLS")
-    if station_role == "operator":
+    if station_role == "manager":
         wait_until(lambda: "station" in robot.peers(), "the robot to know the station")
-        key = station.request("BallTrack(field)")
-        assert [u.label for u in robot.units()] == ["robot-camera"]
-        station.spawn("consumer", "consumer", bindings={"in": key})
-        sink = station.unit("consumer")
-        assert isinstance(sink, Sink)
-        sink.wait_for(3)
     else:
-        assert "station" not in robot.peers()  # a viewer cannot pose as a manager
+        assert "station" not in robot.peers()  # it cannot pose as a manager there
+    if station_role == "viewer":
         with pytest.raises(DyKnowError, match="spawn of manager 'robot'"):
             station.request("BallTrack(field)")
         assert robot.units() == [] and station.get_model().requests == ()
+        return
+    key = station.request("BallTrack(field)")
+    assert [u.label for u in robot.units()] == ["robot-camera"]
+    station.spawn("consumer", "consumer", bindings={"in": key})
+    sink = station.unit("consumer")
+    assert isinstance(sink, Sink)
+    sink.wait_for(3)
+
+
+# ---------------------------------------------------------------------- a caller's rights, end to end
+
+
+@pytest.fixture
+def pair(certs: Path, make_manager: Callable[..., Manager]) -> tuple[Manager, Manager]:
+    """Two managers with TLS and roles, the robot connected to the station. On the robot,
+    'operator' is an operator and 'viewer' a viewer; on the station, 'viewer' is a viewer,
+    'admin' an admin, and 'operator' has no role."""
+    station_acl = AccessControl.from_dict({"roles": {"viewer": ["viewer"], "admin": ["admin"], "manager": ["robot"]}})
+    robot_acl = AccessControl.from_dict({"roles": {"viewer": ["viewer"], "operator": ["operator"], "admin": ["admin"], "manager": ["station"]}})
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    station = make_manager("station", listen=[endpoint], tls=tls(certs, "station"), acl=station_acl)
+    robot = make_manager("robot", listen=[f"tls/127.0.0.1:{free_port()}"], connect=[endpoint], tls=tls(certs, "robot"), acl=robot_acl)
+    from tests.conftest import wait_until
+
+    wait_until(lambda: "robot" in station.peers() and "station" in robot.peers(), "the two managers to know each other")
+    return station, robot
+
+
+def test_a_call_through_another_manager_keeps_its_callers_rights(pair: tuple[Manager, Manager], certs: Path) -> None:
+    """A client connected only to the robot calls the station: the robot carries the call, and
+    the station judges it by the caller's own signature, not by the robot's certificate (which
+    has the manager role there). An operator of the robot with no role on the station gets
+    nothing there, not even the model; the station's viewer reads but may not spawn; its admin
+    keeps every right of an admin."""
+    station, robot = pair
+    via_robot = {"connect": robot.endpoints, "timeout_s": 3.0}
+    with Client("station", tls=tls(certs, "operator"), **via_robot) as outsider:  # type: ignore[arg-type]
+        assert outsider.call_manager("robot", "get_model", {})["manager"] == "robot"  # its rights on the robot hold
+        with pytest.raises(AccessError, match="manager 'station': 'operator', which has no role here, may not call get_model"):
+            outsider.get_model()
+        with pytest.raises(AccessError, match="may not call spawn; expected a caller whose certificate has the role operator or admin or manager"):
+            outsider.spawn("relay", "planted", protected=True)
+    with Client("station", tls=tls(certs, "viewer"), **via_robot) as viewer:  # type: ignore[arg-type]
+        assert viewer.get_model()["manager"] == "station"
+        with pytest.raises(ServiceError, match="dropped without a reply"):
+            viewer.spawn("relay", "planted")  # a viewer on the robot too: the robot does not even carry it
+    with Client("station", tls=tls(certs, "admin"), **via_robot) as admin:  # type: ignore[arg-type]
+        assert admin.add_transformation(RELAY) == ["extra-relay"]
+        admin.spawn("extra-relay", "kept", protected=True)
+        admin.destroy("kept", force=True)
+    assert station.units() == []
+    with Client("station", connect=robot.endpoints, timeout_s=1.0) as anonymous, pytest.raises(ServiceError, match="no answer"):
+        anonymous.get_model()  # no certificate: the TLS link itself is refused
+
+
+def test_a_call_through_a_router_keeps_its_callers_rights(certs: Path, make_manager: Callable[..., Manager], cli_process: Callable[..., CliProcess], tmp_path: Path) -> None:
+    """Clients and the manager meet at a router: the manager sees every call come by the
+    router's link, and still judges each by its caller's signature against its own roles. The
+    router's file is wider than the station's here ('stranger' is an operator there): the router
+    carries the stranger's calls, and the station refuses them."""
+    router_acl = tmp_path / "router.json5"
+    router_acl.write_text("{ roles: { viewer: ['viewer'], operator: ['operator', 'stranger'], manager: ['station'], router: ['router'] } }")
+    station_acl = AccessControl.from_dict({"roles": {"viewer": ["viewer"], "operator": ["operator"], "router": ["router"]}})
+    port = free_port()
+    router = cli_process("router", "--listen", f"tls/127.0.0.1:{port}", "--acl", str(router_acl), "--json", *_tls_args(certs, "router"))
+    assert router.line()["event"] == "ready"
+    hub = [f"tls/127.0.0.1:{port}"]
+    make_manager("station", listen=[f"tls/127.0.0.1:{free_port()}"], connect=hub, tls=tls(certs, "station"), acl=station_acl)
+    with Client("station", connect=hub, tls=tls(certs, "viewer"), timeout_s=5.0) as viewer:
+        assert viewer.get_model()["manager"] == "station"
+        with pytest.raises(ServiceError, match="dropped without a reply"):
+            viewer.spawn("relay", "r")  # the router itself does not carry a viewer's spawn
+    with Client("station", connect=hub, tls=tls(certs, "operator"), timeout_s=5.0) as operator:
+        assert operator.spawn("relay", "r")["state"] == "running"
+    with Client("station", connect=hub, tls=tls(certs, "stranger"), timeout_s=5.0) as stranger:
+        with pytest.raises(AccessError, match="manager 'station': 'stranger', which has no role here, may not call get_model"):
+            stranger.get_model()
+        with pytest.raises(AccessError, match="'stranger', which has no role here, may not call spawn"):
+            stranger.spawn("relay", "planted")
+    with Client("station", connect=hub, tls=tls(certs, "admin"), timeout_s=1.0) as nobody, pytest.raises(ServiceError, match="no answer"):
+        nobody.get_model()  # no role at the router: it carries nothing of it
+    assert router.stop() == 0
+
+
+def test_unsigned_calls_are_refused_by_a_manager_with_roles(secured: Manager, certs: Path) -> None:
+    """A plain Zenoh caller with an admin's certificate but no signature gets a clear refusal."""
+    with Session(make_config(connect=secured.endpoints, tls=tls(certs, "admin"))) as session, pytest.raises(
+        ServiceError, match="the call is not signed, and this manager checks every caller's identity"
+    ):
+        session.call(f"@dyknow/{secured.name}/get_model", b"{}", timeout_s=5.0, what="get_model")
+
+
+# ---------------------------------------------------------------------- only a manager speaks for itself
+
+
+def test_only_a_manager_serves_announces_and_summarises_under_its_name(pair: tuple[Manager, Manager], certs: Path) -> None:
+    """An operator of the robot declares the station's own services, a liveliness token and a
+    summary for a manager 'ghost', and a summary in the station's name: the robot (the manager
+    of the operator's link) drops them all, so the admin's calls reach the real station (3 of 3),
+    a viewer reads the real model (5 of 5), and no ghost is listed. The robot, a manager, may not
+    serve in the station's name either: the station drops that declaration, so the station's
+    own callers are answered by the station (the robot's own clients trust the robot: see the
+    README on what a compromised manager can do)."""
+    from tests.conftest import wait_until
+
+    station, robot = pair
+    forged = json.dumps({"manager": "station", "units": [], "forged": True}).encode()
+    stolen: dict[str, list[bytes]] = {"operator": [], "robot": []}
+
+    def impostor(who: str) -> Callable[[str, bytes], tuple[bool, bytes]]:
+        def answer(key: str, payload: bytes) -> tuple[bool, bytes]:
+            stolen[who].append(payload)
+            return True, forged if key.endswith(("get_model", "get_adaptations")) else b'{"labels": ["forged"]}'
+
+        return answer
+
+    with Session(make_config(connect=robot.endpoints, tls=tls(certs, "operator"))) as attacker:
+        held = [
+            attacker.declare_queryable("@dyknow/station/get_model", impostor("operator")),
+            attacker.declare_queryable("@dyknow/station/add_transformation", impostor("operator")),
+            attacker.declare_liveliness_token("@dyknow/ghost"),
+            robot.session.declare_queryable("@dyknow/station/get_adaptations", impostor("robot")),
+        ]
+        ghost = {"manager": "ghost", "host": "x", "version": 1, "units": []}
+        for name in ("ghost", "station"):
+            attacker.put(f"@dyknow/{name}/summary", json.dumps({**ghost, "manager": name}))
+        with Client("station", connect=robot.endpoints, tls=tls(certs, "admin"), timeout_s=3.0) as admin:
+            for i in range(3):
+                assert admin.add_transformation(RELAY.replace("extra-relay", f"added-{i}")) == [f"added-{i}"]
+        with Client("station", connect=robot.endpoints, tls=tls(certs, "viewer"), timeout_s=3.0) as viewer:
+            for _ in range(5):
+                assert "forged" not in viewer.get_model()
+        with Client("station", connect=station.endpoints, tls=tls(certs, "viewer"), timeout_s=3.0) as local:
+            for _ in range(5):
+                assert local.get_adaptations() == []
+        for entity in held:
+            entity.undeclare()
+    assert {f"added-{i}" for i in range(3)} <= set(station.library.labels())
+    assert stolen == {"operator": [], "robot": []}
+    wait_until(lambda: "robot" in station.peers(), "the station to list the robot")
+    assert set(station.peers()) == {"robot"} and set(robot.peers()) == {"station"}
+
+
+def test_a_port_may_not_bind_to_a_service_or_admin_key(manager: Manager) -> None:
+    """An output bound to @dyknow/ghost would hold a fake manager's token; @/ is Zenoh's admin
+    space. Refused at spawn and at set_config, locally and through the service, naming the port."""
+    with pytest.raises(BindingError, match=r"port 'out' of unit 'r': '@dyknow/ghost' has a chunk starting with '@'"):
+        manager.spawn("relay", "r", bindings={"out": "@dyknow/ghost"})
+    manager.spawn("relay", "r")
+    with Client(manager.name, connect=manager.endpoints) as client:
+        for port, key in [("out", "@dyknow/ghost"), ("out", "x/@/y"), ("in", "@dyknow/**"), ("in", "@/**")]:
+            with pytest.raises(BindingError, match=f"unit 'r' {'output' if port == 'out' else 'input'} port '{port}'"):
+                client.set_config("r", {port: key})
+    assert manager.get_config("r") == {"in": f"dyknow/{manager.name}/r/in", "out": f"dyknow/{manager.name}/r/out"}
+
+
+def test_a_protected_unit_is_destroyed_only_by_an_admins_force(secured: Manager, client: Callable[[str], Client]) -> None:
+    """A protected unit an operator spawned could be removed by nobody, an admin included, until
+    a restart: an admin's destroy with force removes it; an operator's force is refused, naming
+    the role it needs; without roles (local use) force is anyone's."""
+    operator, admin = client("operator"), client("admin")
+    operator.spawn("relay", "planted", protected=True)
+    with pytest.raises(UnitError, match="the unit is protected .* so it cannot be destroyed without force"):
+        admin.destroy("planted")
+    with pytest.raises(AccessError, match=r"'operator', with the role operator, may not destroy a protected unit; expected an admin"):
+        operator.destroy("planted", force=True)
+    assert secured.has_unit("planted")
+    admin.destroy("planted", force=True)
+    assert not secured.has_unit("planted")
+    operator.destroy("ticks", force=True)  # not protected: force changes nothing for it
+
+
+def test_without_roles_force_destroys_a_protected_unit(manager: Manager) -> None:
+    manager.spawn("relay", "kept", protected=True)
+    with Client(manager.name, connect=manager.endpoints) as anyone:
+        with pytest.raises(UnitError, match="without force"):
+            anyone.destroy("kept")
+        anyone.destroy("kept", force=True)
+    assert not manager.has_unit("kept")

@@ -87,7 +87,10 @@ def test_client_commands_drive_a_manager_process(manager_process: Callable[..., 
 
     refused = run_cli("destroy", "r1", *conn)
     assert refused.returncode == 1
-    assert refused.stderr.strip() == "dyknow: error: unit 'r1': the unit is protected (spawned with protected=True), so it cannot be destroyed"
+    assert refused.stderr.strip() == (
+        "dyknow: error: unit 'r1': the unit is protected (spawned with protected=True), so it cannot be destroyed without force; "
+        "expected destroy(name, force=True) (dyknow destroy NAME --force; an admin's, when the manager has roles)"
+    )
     assert run_cli("destroy", "src", *conn).returncode == 0
 
     # the paper's Listing 1 names a source no manager may import: refused when added, nothing added

@@ -325,3 +325,48 @@ def test_a_directory_asks_again_for_a_summary_it_could_not_fetch() -> None:
         finally:
             b.close(timeout_s=0.1)
             a.close()
+
+
+# ---------------------------------------------------------------------------- a fake manager
+
+
+class Ghost:
+    """A process posing as a manager 'ghost': its liveliness token, its summary published and
+    served. It runs no units; what its summary claims is whatever the test says."""
+
+    def __init__(self, endpoint: str, units: list[dict[str, Any]], name: str = "ghost") -> None:
+        self.session = Session(make_config(connect=[endpoint]))
+        summary = {"manager": name, "host": f"{name}-host", "version": 1, "library": "", "specs": [], "units": units,
+                   "measurements": {}, "requests": 0}  # fmt: skip
+        data = json.dumps(summary).encode()
+        self.entities = [  # kept: an entity no one holds is undeclared
+            self.session.declare_queryable(f"@dyknow/{name}/get_summary", lambda key, payload: (True, data)),
+            self.session.declare_liveliness_token(f"@dyknow/{name}"),
+        ]
+        self.session.put(f"@dyknow/{name}/summary", data)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def test_a_forged_summary_offers_no_stream_outside_its_managers_own_keys(system: Callable[..., dict[str, Manager]]) -> None:
+    """A fake manager claims healthy units that already produce BallTrack(field): on the
+    attacker's own key, on dyknow/** and on the station's request key. A planner would reuse such
+    a unit rather than spawn a camera chain; the station drops every output outside the
+    announcer's key space (dyknow/ghost/...), so the request is wired to the real cameras."""
+    m = system(("station", "robot"))
+    station = m["station"]
+    claims = {"attacker": "attacker/key", "everything": "dyknow/**", "theft": "dyknow/station/requests/BallTrack(field)"}
+    units = [{"name": name, "label": "tracker", "outputs": {"out": key}, "tags": {"out": [TRACK]}, "healthy": True, "owner": None}
+             for name, key in claims.items()]  # fmt: skip
+    ghost = Ghost(station.endpoints[0], units)
+    try:
+        wait_until(lambda: "ghost" in station.peers(), "the station to hear the ghost")
+        assert [u.outputs for u in station.peers()["ghost"].units] == [{}, {}, {}]
+        key = station.request(TRACK)
+        (request,) = station.get_model().requests
+        assert not any("@ghost" in label for label in request.labels), request.labels
+        assert "robot-camera@robot" in request.labels
+        consume(station, key).wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
+    finally:
+        ghost.close()

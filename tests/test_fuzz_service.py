@@ -47,6 +47,7 @@ VALID: dict[str, Any] = {
     "label": "relay",
     "name": "r1",
     "protected": True,
+    "force": True,
     "params": {},
     "bindings": {},
     "owner": "m1",
@@ -54,6 +55,7 @@ VALID: dict[str, Any] = {
     "key": "dyknow/m1/r1/out",
     "value": 0.5,
     "standby": "warm",
+    "page": {},
 }
 # Which of the JSON_PROBES each field takes; every other probe is refused naming the field.
 TEXT = {'"text"'}
@@ -68,12 +70,14 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("spawn", "bindings"): {"{}"},
     ("spawn", "owner"): TEXT,
     ("destroy", "name"): TEXT,
+    ("destroy", "force"): {"true"},
     ("request", "tag"): TEXT,
     ("request", "standby"): set(),  # only "none" or "warm", none of the probes
     ("release", "key"): TEXT,
     ("measure", "name"): TEXT,
     ("measure", "value"): {"0", "1.5", "10**30", '"text"'},
     ("set_config", "bindings"): {"{}"},
+    ("get_model", "page"): {"{}"},
 }
 SWEEP = [(service, field, probe) for service, fields in SCHEMAS.items() for field in fields for probe in JSON_PROBES]
 
@@ -127,9 +131,13 @@ def test_any_call_over_zenoh_is_answered_or_refused_and_the_manager_lives(target
     @example(ServiceCall("destroy", b'{"name": "s"}'))
     def call_and_check(call: ServiceCall) -> None:
         check_service_call(session, manager.name, call)  # get_model answers after each call too
+        if "s" not in {unit.name for unit in manager.units()}:
+            # protected: only a destroy with force removes it (this manager has no roles: anyone may)
+            assert call.service == "destroy" and json.loads(call.payload) == {"name": "s", "force": True}, call
+            manager.spawn("sink", "s", protected=True)
 
     call_and_check()
     with Client(manager.name, session=session) as client:
         model = client.get_model()
     assert model["manager"] == manager.name
-    assert "s" in {unit["name"] for unit in model["units"]}  # protected: no call removed it
+    assert "s" in {unit["name"] for unit in model["units"]}

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from dyknow import AccessError, BindingError, Client, LibraryError, Manager, ServiceError, SpecError, TransformationSpec
+from dyknow import AccessError, BindingError, Client, LibraryError, Manager, ServiceError, SpecError, TransformationSpec, UnitError
 from dyknow.security import DataRoots, SourcePolicy, bounded_glob
 from dyknow.transport import Session, make_config
 from tests.conftest import ManagerProcess, wait_until
@@ -182,7 +182,7 @@ HOSTILE = [
     ("get_model", b"[" * 100_000 + b"]" * 100_000, "request: the request's JSON nests too deep; expected at most 32 levels"),
     ("get_model", b"\xff\xfe not json", "request: the request is not JSON"),
     ("spawn", b'{"label": "relay", "name": "r", "bindings": {"in": 5}}', "field 'bindings.in': got 5; expected a key expression"),
-    ("destroy", b'{"name": "x", "force": true}', "service 'destroy': unknown field 'force'; expected the fields name"),
+    ("destroy", b'{"name": "x", "now": true}', "service 'destroy': unknown field 'now'; expected the fields name, force"),
     ("measure", b'{"name": "battery", "value": {"a": 1}}', "field 'value': got {'a': 1}; expected a finite number, or text of at most 256 bytes"),
     ("add_transformation", b'{"xml": "/etc/passwd"}', "field 'xml': a remote caller may only send XML text"),
 ]
@@ -308,3 +308,220 @@ def test_sigterm_stops_a_manager_within_its_deadline_even_when_a_unit_never_lets
     assert code == 1 and 4.0 < took < 10.0, (code, took)
     stderr = proc.proc.stderr.read() if proc.proc.stderr else ""
     assert "Timeout (0:00:05)!" in stderr and "in teardown" in stderr, stderr[-2000:]
+
+
+# ---------------------------------------------------------------------- the second round's attacks
+
+
+def _image(path: Path) -> None:
+    import cv2
+    import numpy as np
+
+    assert cv2.imwrite(str(path), np.full((8, 8, 3), 128, np.uint8))
+
+
+def test_globs_and_folders_reaching_outside_through_a_symlink_are_refused(rooted: tuple[Manager, Client], data: Path, tmp_path: Path) -> None:
+    """``l*k/*.png`` matched the files of a folder outside the root through a symbolic link
+    inside it (the literal ``link/...`` was refused); a folder inside whose files link outside
+    did the same. Every match is resolved before the unit is spawned, and the refusal says
+    nothing of what lies outside."""
+    manager, client = rooted
+    outside = tmp_path / "outside-secrets"
+    outside.mkdir()
+    _image(outside / "secret.png")
+    (data / "link").symlink_to(outside)
+    (data / "innocent").mkdir()
+    (data / "innocent" / "a.png").symlink_to(outside / "secret.png")
+    _image(data / "frames" / "f1.png")
+    for value in ["l*k/*.png", "*/*.png", "innocent", "innocent/*.png", "link"]:
+        with pytest.raises(AccessError) as refused:
+            client.spawn("image-folder-source(bottom)", "u", params={"path": value})
+        message = str(refused.value)
+        assert refused.value.where == "param 'path' of unit 'u'", message
+        assert "outside" in message and "outside-secrets" not in message and "secret.png" not in message, message
+    assert not manager.has_unit("u")
+    assert client.spawn("image-folder-source(bottom)", "u", params={"path": "frames/*.png"})["state"] == "running"
+    assert client.spawn("image-folder-source(top)", "v", params={"path": "frames"})["state"] == "running"
+
+
+def test_a_remote_spec_may_not_leave_a_file_param_to_the_units_default(
+    rooted: tuple[Manager, Client], data: Path, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """A spec added remotely without ``path`` (recorder) or ``file`` (replay) made the unit fall
+    back to its own default, in the manager's working directory: refused, naming the param."""
+    manager, client = rooted
+    work = tmp_path / "working-directory"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    client.add_transformation(spec_xml("bare-recorder", "transformations.recording:RecorderUnit"))
+    client.add_transformation(spec_xml("bare-replay", "transformations.recording:ReplaySource", ports='<port type="out">out</port>'))
+    for label, param, mode in [("bare-recorder", "path", "write"), ("bare-replay", "file", "read")]:
+        with pytest.raises(AccessError) as refused:
+            client.spawn(label, "bare")
+        assert refused.value.where == f"param {param!r} of unit 'bare'"
+        assert "is not given" in refused.value.what and f"a file to {mode} under" in str(refused.value.expected)
+        with pytest.raises(AccessError, match="is not given"):
+            manager.spawn(label, "bare")  # the planner's spawn of a remotely added spec: confined too
+    assert list(work.iterdir()) == [] and not manager.has_unit("bare")
+    assert client.spawn("recorder", "rec")["state"] == "running"  # the shipped spec names its default: under the root
+    assert manager.unit("rec").params["path"] == str(data.resolve() / "recording.mcap")
+
+
+@pytest.mark.parametrize(
+    ("call", "says"),
+    [
+        (lambda c: c.spawn("relay", "victim\n"), r"unit name 'victim\n' is not a valid name"),
+        (lambda c: c.spawn("relay", "victim\u202e"), "is not a valid name"),
+        (lambda c: c.spawn("rel\u202eay", "r"), r"field 'label': 'rel\u202eay' holds the character U+202E"),
+        (lambda c: c.spawn("x" * 300, "r"), "field 'label': a label of 300 bytes"),
+        (lambda c: c.remove_transformation(" relay"), "has spaces at an end"),
+        (lambda c: c.measure("**", 1.0), "measurement name '**' is not a valid name"),
+        (lambda c: c.measure("bat\ttery", 1.0), "is not a valid name"),
+        (lambda c: c.add_transformation(spec_xml("x" * 1000, "transformations.generic:Relay")), "<client>:1: <label>: a label of 1000 bytes"),
+        (lambda c: c.add_transformation(spec_xml("evil\u202eexe.gpj", "transformations.generic:Relay")), r"<label>: 'evil\u202eexe.gpj' holds the character U+202E"),
+        (lambda c: c.add_transformation(spec_xml("tab\tbed", "transformations.generic:Relay")), "holds the character U+0009"),
+    ],
+)
+def test_names_and_labels_are_checked_one_way_everywhere(manager: Manager, call: Callable[[Client], object], says: str) -> None:
+    """A unit name with a trailing newline was accepted beside the name without it; labels of
+    1,000 characters or with U+202E were accepted that no other service could then name."""
+    before = (sorted(manager.library.labels()), [u.name for u in manager.units()], manager.measurements)
+    with Client(manager.name, connect=manager.endpoints) as client, pytest.raises((ServiceError, SpecError, LibraryError, UnitError)) as refused:
+        call(client)
+    assert says in str(refused.value), str(refused.value)
+    assert (sorted(manager.library.labels()), [u.name for u in manager.units()], manager.measurements) == before
+
+
+def test_the_local_api_checks_names_and_labels_the_same_way(manager: Manager) -> None:
+    with pytest.raises(UnitError, match="is not a valid name"):
+        manager.spawn("relay", "victim\n")
+    with pytest.raises(UnitError, match="measurement name '\\*\\*' is not a valid name"):
+        manager.measure("**", 1.0)
+    with pytest.raises(SpecError, match="holds the character U\\+202E"):
+        manager.add_transformation(spec_xml("a\u202eb", "transformations.generic:Relay"))
+
+
+def test_puts_on_wildcard_keys_are_no_measurements(manager: Manager) -> None:
+    """An operator's put on ``dyknow/**/in`` or ``dyknow/measurements/**`` reached the manager's
+    measurement subscriptions and became measurements named ``in`` and ``**``."""
+    with Session(make_config(connect=manager.endpoints)) as session:
+        session.call(f"@dyknow/{manager.name}/get_model", b"{}", timeout_s=10, what="get_model")  # the link is up
+        for key in ["dyknow/**/in", "dyknow/measurements/**", f"dyknow/{manager.name}/measurements/*", "dyknow/measurements/b$*"]:
+            session.put(key, b"0.5")
+        session.put("dyknow/measurements/battery", b"0.25")  # after them, on the same session: it comes last
+        wait_until(lambda: "battery" in manager.measurements, "the real measurement")
+    assert manager.measurements == {"battery": 0.25}
+
+
+def test_a_template_whose_expansions_hold_too_much_text_is_refused_before_it_expands(hostile_target: tuple[ManagerProcess, Session]) -> None:
+    """A 31 KiB spec expanded to 10,000 transformations of 30 KB each (get_model then returned
+    291 MiB). What the expansions would hold is bounded in bytes before any is built."""
+    proc, session = hostile_target
+    values = "{" + ";".join(f"v{i}" for i in range(100)) + "}"
+    bomb = (
+        f"<transformation><label>t${{A}}${{B}}</label><source>transformations.generic:Relay</source>"
+        f"<description>{'x' * 30_000}</description>"
+        f'<args><arg label="A">{values}</arg><arg label="B">{values}</arg></args>'
+        '<ports><port type="out">out</port></ports></transformation>'
+    )
+    assert 30_000 < len(bomb) < 32 * 1024
+    started = time.monotonic()
+    with Client(proc.name, connect=[proc.endpoint], session=session) as client:
+        with pytest.raises(SpecError) as refused:
+            client.add_transformation(bomb)
+        issue = refused.value.issues[0]
+        assert issue.element == "<transformation>" and issue.what.startswith("expands to 10,000 transformations of up to 30")
+        assert issue.expected == "at most 16,777,216 bytes (--max-expansion-bytes)"
+        assert time.monotonic() - started < 5
+        assert client.get_model()["specs"] == json.loads(_call(session, proc, "get_model", b"{}"))["specs"]
+        assert not any(s["label"].startswith("tv") for s in client.get_model()["specs"])
+    assert proc.stop(signal.SIGTERM) == 0
+
+
+def test_a_large_model_comes_in_pages_of_bounded_size(make_manager: Callable[..., Manager]) -> None:
+    """get_model answers at most max_reply_bytes at a time; Client.get_model gathers the pages
+    into the same model the manager holds."""
+    from dyknow.security import Limits
+
+    manager = make_manager(limits=Limits(max_reply_bytes=64 * 1024))
+    xml = "<transformations>" + "".join(
+        f"<transformation><label>s{i}</label><source>transformations.generic:Relay</source><description>{'d' * 1000}</description>"
+        '<ports><port type="in">in</port><port type="out">out</port></ports></transformation>'
+        for i in range(300)
+    ) + "</transformations>"
+    manager.add_transformation(xml)
+    for i in range(40):
+        manager.spawn("s0", f"u{i}")
+    with Session(make_config(connect=manager.endpoints)) as session, Client(manager.name, session=session) as client:
+        page: dict[str, int] = {}
+        seen = {"units": 0, "specs": 0}
+        pages = 0
+        while True:
+            raw = session.call(f"@dyknow/{manager.name}/get_model", json.dumps({"page": page} if page else {}).encode(), timeout_s=10, what="get_model")
+            assert len(raw) <= 64 * 1024
+            reply = json.loads(raw)
+            assert reply["total"] == {"units": 40, "specs": len(manager.library.labels())}
+            seen["units"] += len(reply["units"])
+            seen["specs"] += len(reply["specs"])
+            pages += 1
+            if reply["next"] is None:
+                break
+            page = reply["next"]
+        assert pages > 3 and seen == {"units": 40, "specs": len(manager.library.labels())}
+        whole = client.get_model()
+        assert whole == manager.get_model().to_dict()
+        with pytest.raises(ServiceError, match="field 'page.units': got -1; expected a whole number from 0"):
+            session.call(f"@dyknow/{manager.name}/get_model", b'{"page": {"units": -1}}', timeout_s=10, what="get_model")
+
+
+def test_a_manager_runs_at_most_max_units(make_manager: Callable[..., Manager]) -> None:
+    """1,000 relays cost 45 MiB and slowed get_model eightfold, with no cap: the cap is a limit
+    of its own (--max-units), for local and remote spawns alike."""
+    from dyknow.security import Limits
+
+    manager = make_manager(limits=Limits(max_units=3))
+    for i in range(3):
+        manager.spawn("relay", f"r{i}")
+    with pytest.raises(UnitError, match=r"the manager already runs 3 units, its most; expected at most 3 units \(--max-units\)"):
+        manager.spawn("relay", "r3")
+    with Client(manager.name, connect=manager.endpoints) as client, pytest.raises(UnitError, match="at most 3 units"):
+        client.spawn("relay", "r3")
+    manager.destroy("r0")
+    manager.spawn("relay", "r3")
+    assert sorted(u.name for u in manager.units()) == ["r1", "r2", "r3"]
+
+
+def _peak_rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmHWM")
+
+
+def test_oversized_messages_are_dropped_as_they_arrive(manager_process: Callable[..., ManagerProcess]) -> None:
+    """Four 400 MiB get_model calls were each refused, but only once in memory (RSS peaked at
+    1.5 GiB); 200 MiB data puts were delivered. Zenoh now drops a message over the manager's
+    --max-message-bytes fragment by fragment while it reassembles it: the manager's peak memory
+    grows by far less than one such message, the calls go unanswered, the data never arrives,
+    a message under the bound does, and others are served meanwhile."""
+    import zenoh
+
+    proc = manager_process("--max-message-bytes", str(8 << 20))
+    big = b"{" + b" " * (256 << 20) + b"}"
+    with Client(proc.name, connect=[proc.endpoint], timeout_s=10) as client, zenoh.open(make_config(connect=[proc.endpoint])) as attacker:
+        client.spawn("sink", "s", bindings={"in": "big/data"})
+        publisher = attacker.declare_publisher("big/data", congestion_control=zenoh.CongestionControl.BLOCK)  # nothing dropped on the way
+        wait_until(lambda: publisher.matching_status.matching, "the sink to match the attacker's publisher")
+        before = _peak_rss_kib(proc.proc.pid)
+        for _ in range(2):
+            replies = list(attacker.get(f"@dyknow/{proc.name}/get_model", payload=big, timeout=3.0))
+            assert all(reply.ok is None for reply in replies)  # dropped on arrival: only the querier's own timeout
+            publisher.put(big)
+            assert client.get_model()["manager"] == proc.name  # others are served
+        publisher.put(b'"' + b"m" * (4 << 20) + b'"')  # under the bound: delivered, after the big ones
+        wait_until(lambda: _messages(client, "s") >= 1, "the message under the bound")
+        assert _messages(client, "s") == 1
+        grew = _peak_rss_kib(proc.proc.pid) - before
+        publisher.undeclare()
+    assert grew < 128 * 1024, f"the manager's peak memory grew by {grew / 1024:.0f} MiB"
+    assert proc.stop(signal.SIGTERM) == 0

@@ -129,13 +129,15 @@ def parse_specs(
     individuals: Individuals | None = None,
     *,
     max_expansions: int = DEFAULT_MAX_EXPANSIONS,
+    max_bytes: int | None = None,
 ) -> list[TransformationSpec]:
     """Parse and expand a spec document.
 
     Every problem of the document (structure, expansion, labels defined twice) is reported in
-    one :class:`SpecError`.
+    one :class:`SpecError`. ``max_expansions`` and ``max_bytes`` bound each template's
+    expansions (see :meth:`Template.expand`).
     """
-    located, issues = _load(data, path, individuals, max_expansions)
+    located, issues = _load(data, path, individuals, max_expansions, max_bytes)
     issues.extend(_duplicate_labels(located))
     if issues:
         raise SpecError(sorted(issues, key=lambda i: i.line))
@@ -155,7 +157,7 @@ def spec_files(paths: PathsLike) -> list[pathlib.Path]:
 
 
 def load_specs(
-    paths: PathsLike, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS
+    paths: PathsLike, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS, max_bytes: int | None = None
 ) -> list[TransformationSpec]:
     """Load and expand every spec in ``paths`` (see :func:`spec_files`).
 
@@ -170,7 +172,7 @@ def load_specs(
         except OSError as exc:
             issues.append(SpecIssue(str(file), 0, f"cannot read: {exc.strerror or exc}"))
             continue
-        file_located, file_issues = _load(data, str(file), individuals, max_expansions)
+        file_located, file_issues = _load(data, str(file), individuals, max_expansions, max_bytes)
         issues.extend(sorted(file_issues, key=lambda i: i.line))
         located.extend(file_located)
     issues.extend(_duplicate_labels(located))
@@ -206,14 +208,14 @@ def _spec_files(paths: PathsLike) -> tuple[list[pathlib.Path], list[SpecIssue]]:
 
 
 def _load(
-    data: str | bytes, path: str, individuals: Individuals | None, max_expansions: int
+    data: str | bytes, path: str, individuals: Individuals | None, max_expansions: int, max_bytes: int | None = None
 ) -> tuple[list[tuple[TransformationSpec, int]], list[SpecIssue]]:
     """Parse and expand; (spec, line of its label) pairs and every issue but duplicate labels."""
     templates, issues = _parse(data, path)
     located: list[tuple[TransformationSpec, int]] = []
     for template in templates:
         try:
-            located.extend((spec, template.label_line) for spec in template.expand(individuals, max_expansions=max_expansions))
+            located.extend((spec, template.label_line) for spec in template.expand(individuals, max_expansions=max_expansions, max_bytes=max_bytes))
         except SpecError as exc:
             issues.extend(exc.issues)
     return located, issues

@@ -18,6 +18,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 from dyknow.errors import SpecError, SpecIssue, TagError, compose, did_you_mean
+from dyknow.keys import label_problem
 from dyknow.spec.model import (
     DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
@@ -75,13 +76,17 @@ class Template:
         """Whether the transformation has args (and so expands to one spec per combination)."""
         return bool(self.args)
 
-    def expand(self, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS) -> list[TransformationSpec]:
+    def expand(
+        self, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS, max_bytes: int | None = None
+    ) -> list[TransformationSpec]:
         """One spec per combination of arg values (cartesian product, args in document order).
 
         ``individuals(class_ref)`` supplies the values of an ``<arg class="...">``. Raises
         :class:`SpecError` with every problem of this template; a problem that is the same in
         every expansion is reported once, otherwise it names the expansions it occurs in. A
-        template with more than ``max_expansions`` combinations is refused before any is built.
+        template with more than ``max_expansions`` combinations, or whose expansions would hold
+        more than ``max_bytes`` bytes of text (:meth:`expansion_bytes`), is refused before any is
+        built.
         """
         issues: list[SpecIssue] = []
         value_sets: list[tuple[str, ...]] = []
@@ -97,6 +102,11 @@ class Template:
             counts = " x ".join(str(len(v)) for v in value_sets)
             what = f"expands to {total:,} transformations ({counts} arg values)"
             raise SpecError([SpecIssue(self.path, self.line, what, "<transformation>", f"at most {max_expansions:,}")])
+        if max_bytes is not None:
+            size = total * self.expansion_bytes(max((len(v.encode()) for vs in value_sets for v in vs), default=0))
+            if size > max_bytes:
+                what = f"expands to {total:,} transformations of up to {size:,} bytes of text in all"
+                raise SpecError([SpecIssue(self.path, self.line, what, "<transformation>", f"at most {max_bytes:,} bytes (--max-expansion-bytes)")])
 
         specs: list[TransformationSpec] = []
         found: dict[_Problem, list[str]] = {}  # a problem -> the expansions it occurs in
@@ -122,6 +132,16 @@ class Template:
         if issues:
             raise SpecError(sorted(issues, key=lambda i: i.line))
         return specs
+
+    def expansion_bytes(self, longest_value: int) -> int:
+        """An upper bound of the text one expansion holds, when no arg value is longer than
+        ``longest_value`` bytes: the template's text with every ``${...}`` taken that long."""
+        texts = [self.label, self.source, self.description]
+        texts += [t for p in self.params for t in (p.name, str(p.value))]
+        texts += [p.name for p in self.ports]
+        texts += [t for tag in self.tags for t in (tag.port, tag.tag)]
+        texts += [t for c in self.constraints for t in (c.measure, c.op, str(c.value))]
+        return sum(len(t.encode()) + t.count("${") * longest_value for t in texts) + 64 * (1 + len(texts))
 
     def _build(self, values: Mapping[str, str]) -> tuple[TransformationSpec, list[_Problem]]:
         """The spec for one substitution, and the problems found in it."""
@@ -177,8 +197,12 @@ class Template:
                 problems.append((line, "<constraint> @value", problem, "a number, or op == or !="))
             constraints.append(replace(constraint, value=text))
 
+        label = sub(self.label)
+        label_issue = label_problem(label) if label else None  # an empty one is reported where it is read
+        if label_issue is not None:
+            problems.append((self.label_line, "<label>", *label_issue))
         spec = TransformationSpec(
-            label=sub(self.label),
+            label=label,
             source=sub(self.source),
             params=tuple(params),
             ports=tuple(ports),

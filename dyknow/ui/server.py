@@ -100,7 +100,7 @@ class ModelWatch:
             self._names_at = now
         for name in self._names:
             try:
-                models.append(self.client.call_manager(name, "get_model", {}))
+                models.append(self.client.get_model(name))
             except DyKnowError as exc:
                 log.debug("no model from %r: %s", name, exc)
         if now - self._stats_at >= self.stats_s:

@@ -112,7 +112,7 @@ def test_to_xml_keeps_a_carriage_return() -> None:
     """Found by fuzzing: a '\r' (from '&#13;' in a spec) was written as such, and XML reads a
     written carriage return as a newline, so the spec came back changed."""
     s = TransformationSpec(
-        label="a\rb",
+        label="ab",  # a label may hold no control character at all
         source="m:C",
         params=(Param("text", "string", "x\ry"),),
         ports=(Port("o", "out"),),
