@@ -17,8 +17,10 @@ which camera each message came from (the tracker's output names it).
   the first ceiling-camera message on the key, seen by a subscriber inside the station's
   namespace. The link is restored and the robot's camera comes back before the next cut.
   Target: p99 <= 1.5 s. Skipped, with the reason, where namespaces cannot be made.
+- ``link-cut-router``: the same, with the three managers connected to a ``dyknow router`` on a
+  fourth host (the README's rendezvous point) instead of to the station. Target: p99 <= 1.5 s.
 
-    python benchmarks/failover.py                       # 30 kills, 10 cuts
+    python benchmarks/failover.py                       # 30 kills, 10 cuts per topology
     python benchmarks/failover.py --kills 5 --cuts 2 --json out/failover.json
     python benchmarks/failover.py --smoke               # 3 kills, 1 cut
 """
@@ -50,7 +52,7 @@ from harness import Proc, free_ports, machine, percentile, write_json
 ONTOLOGY = specs_dir() / "dyknow.ttl"
 TAG = "BallTrack(field)"
 BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
-TARGETS_MS = {"sigkill-loopback": 200.0, "link-cut-1s-lease": 1500.0}
+TARGETS_MS = {"sigkill-loopback": 200.0, "link-cut-1s-lease": 1500.0, "link-cut-router": 1500.0}
 NETNS_PORT = 7447
 LEASE_MS = 1000  # every manager's lease in the link-cut scenario
 DWELL_S = 0.5
@@ -245,25 +247,32 @@ def observe(endpoint: str, lease_ms: int | None) -> int:
     return 0
 
 
-def run_link_cut(cuts: int, observer_lease_ms: int | None) -> tuple[list[float], list[float], str, int]:
+def run_link_cut(cuts: int, observer_lease_ms: int | None, router: bool = False) -> tuple[list[float], list[float], str, int]:
     """Per cut of the robot's link: ms from the cut to the first ceiling-camera message; ms from the restore
-    to the robot's camera on the key again. Also the links' shaping and how many robot restarts were needed."""
+    to the robot's camera on the key again. Also the links' shaping and how many robot restarts were needed.
+
+    ``router``: the managers connect to a ``dyknow router`` on a host of its own (the README's
+    rendezvous point) instead of the robot and the field connecting to the station."""
     from dyknow.testing.hosts import Hosts
 
     procs: dict[str, Proc] = {}
     observer: Proc | None = None
     failover, returns, restarts = [], [], 0
-    with Hosts(["station", "robot", "field"]) as hosts:
+    with Hosts(["station", "robot", "field", *(["hub"] if router else [])]) as hosts:
         station = f"tcp/{hosts.address('station')}:{NETNS_PORT}"
+        hub = f"tcp/{hosts.address('hub')}:{NETNS_PORT}" if router else None
 
         def start(name: str, *extra: str) -> None:
-            argv = manager_argv(
-                name, f"tcp/{hosts.address(name)}:{NETNS_PORT}", None if name == "station" else station, "--lease-ms", str(LEASE_MS), *extra
-            )
+            connect = hub if router else (None if name == "station" else station)
+            argv = manager_argv(name, f"tcp/{hosts.address(name)}:{NETNS_PORT}", connect, "--lease-ms", str(LEASE_MS), *extra)
             procs[name] = Proc(argv, popen=lambda a, **kw: hosts.popen(name, a, **kw))
             procs[name].next_json(30, event="ready")
 
         try:
+            if hub is not None:
+                argv = [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, "--lease-ms", str(LEASE_MS), "--json"]
+                procs["hub"] = Proc(argv, popen=lambda a, **kw: hosts.popen("hub", a, **kw))
+                procs["hub"].next_json(30, event="ready")
             start("station", "--dwell", str(DWELL_S))
             start("robot")
             start("field")
@@ -332,6 +341,8 @@ def main(argv: list[str] | None = None) -> int:
         default=LEASE_MS,
         help=f"link cut: the lease of the measuring client's own Zenoh session (default {LEASE_MS}, the managers'; 0: Zenoh's default, 10 s)",
     )
+    parser.add_argument("--topology", choices=["peers", "router", "both"], default="both",
+                        help="link cut: the managers as peers (robot and field connect to the station), through a router, or both (default)")  # fmt: skip
     parser.add_argument("--observe", metavar="ENDPOINT", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.observe:
@@ -366,24 +377,33 @@ def main(argv: list[str] | None = None) -> int:
     elif cuts > 0:
         netem = netem_probe()
         observer_lease = f"{args.observer_lease_ms} ms" if args.observer_lease_ms else "Zenoh's default (10 s)"
-        print(
-            f"\n(b) link-cut-1s-lease: {cuts} cuts of the robot's link, three network namespaces on a bridge, every manager --lease-ms "
-            f"{LEASE_MS}, the measuring client's session lease {observer_lease}",
-            flush=True,
-        )
-        samples, returns, shaping, restarts = run_link_cut(cuts, args.observer_lease_ms or None)
-        results.append({"scenario": "link-cut-1s-lease", **summary(samples, TARGETS_MS["link-cut-1s-lease"]),
-                        "measured": "from just before the robot's link goes down to the first ceiling-camera message on the requested key "
-                                    "(subscriber in the station's namespace)",
-                        "links": f"Hosts.shaping = {shaping!r}; netem {netem}",
-                        "return_p50_ms": percentile(returns, 50, 1), "return_max_ms": round(max(returns), 1) if returns else None,
-                        "robot_restarts": restarts, "observer_lease_ms": args.observer_lease_ms or None})  # fmt: skip
-        slow = [x for x in samples if x > 2 * LEASE_MS]
-        notes.append(f"link-cut-1s-lease: {len(slow)} of {len(samples)} cuts took more than twice the lease ({2 * LEASE_MS} ms)"
-                     + (f": {', '.join(f'{x:.0f}' for x in slow)} ms" if slow else ""))  # fmt: skip
-        notes.append(f"link-cut-1s-lease: links Hosts.shaping = {shaping!r} (no delay or loss asked; netem {netem})")
-        notes.append(f"link-cut-1s-lease: after the link was restored the robot's camera was back on the key in "
-                     f"p50 {percentile(returns, 50, 0):.0f} ms, max {max(returns):.0f} ms; robot manager restarts needed: {restarts}")  # fmt: skip
+        topologies = {"peers": ["link-cut-1s-lease"], "router": ["link-cut-router"]}.get(args.topology, ["link-cut-1s-lease", "link-cut-router"])
+        for scenario in topologies:
+            router = scenario == "link-cut-router"
+            layout = (
+                "the three managers connect to a dyknow router on a fourth host"
+                if router
+                else "the robot and the field connect to the station"
+            )
+            print(
+                f"\n({'c' if router else 'b'}) {scenario}: {cuts} cuts of the robot's link, network namespaces on a bridge ({layout}), "
+                f"every manager --lease-ms {LEASE_MS}, the measuring client's session lease {observer_lease}",
+                flush=True,
+            )
+            samples, returns, shaping, restarts = run_link_cut(cuts, args.observer_lease_ms or None, router=router)
+            results.append({"scenario": scenario, **summary(samples, TARGETS_MS[scenario]),
+                            "measured": "from just before the robot's link goes down to the first ceiling-camera message on the requested key "
+                                        "(subscriber in the station's namespace)",
+                            "topology": layout,
+                            "links": f"Hosts.shaping = {shaping!r}; netem {netem}",
+                            "return_p50_ms": percentile(returns, 50, 1), "return_max_ms": round(max(returns), 1) if returns else None,
+                            "robot_restarts": restarts, "observer_lease_ms": args.observer_lease_ms or None})  # fmt: skip
+            slow = [x for x in samples if x > 2 * LEASE_MS]
+            notes.append(f"{scenario}: {len(slow)} of {len(samples)} cuts took more than twice the lease ({2 * LEASE_MS} ms)"
+                         + (f": {', '.join(f'{x:.0f}' for x in slow)} ms" if slow else ""))  # fmt: skip
+            notes.append(f"{scenario}: after the link was restored the robot's camera was back on the key in "
+                         f"p50 {percentile(returns, 50, 0):.0f} ms, max {max(returns):.0f} ms; robot manager restarts needed: {restarts}")  # fmt: skip
+        notes.append(f"link cuts: links Hosts.shaping = {shaping!r} (no delay or loss asked; netem {netem})")
 
     print(f"\n{'failover':<20} {'runs':>5} {'p50':>12} {'p99':>12} {'max':>12}")
     for row in results:

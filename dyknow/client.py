@@ -15,7 +15,10 @@ Usage::
 from __future__ import annotations
 
 import json
+import logging
 import os
+import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -26,11 +29,56 @@ from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
 from dyknow.identity import Signer
 from dyknow.message import Message
 from dyknow.model import check_standby
-from dyknow.transport import DEFAULT_ENDPOINT, Session, Subscriber, check_key_expr, make_config
+from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, Session, Subscriber, check_key_expr, make_config
 
 __all__ = ["Client"]
 
+log = logging.getLogger(__name__)
+
 _MAX_PAGES = 100_000  # of one model: far past any manager's (each page holds at least one entry)
+_MAX_GONE = 10_000  # managers remembered as gone (names come from the network: bounded)
+
+
+class _Presence:
+    """Which managers have left: their liveliness tokens went away (stopped, crashed, or cut off
+    past their lease). A call to one of them ends at once, saying so, instead of waiting for its
+    service to come back."""
+
+    def __init__(self, session: Session) -> None:
+        self._lock = threading.Lock()
+        self._gone: dict[str, float] = {}  # manager -> time.monotonic() when its token went
+        self._watch: LivelinessSubscriber | None = None
+        try:
+            self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._change, inline=True)
+        except TransportError as exc:  # a closed session, say: calls just wait as before
+            log.debug("no watch of the managers' liveliness: %s", exc)
+
+    def _change(self, key: str, alive: bool) -> None:
+        name = keys.manager_of_token(key)
+        if name is None:
+            return
+        with self._lock:
+            self._gone.pop(name, None)
+            if not alive:
+                self._gone[name] = time.monotonic()
+                while len(self._gone) > _MAX_GONE:
+                    del self._gone[next(iter(self._gone))]
+
+    def why_gone(self, manager: str) -> str | None:
+        """Why ``manager`` is known to be gone, or None (it is up, or was never seen)."""
+        with self._lock:
+            since = self._gone.get(manager)
+        if since is None:
+            return None
+        return (
+            f"manager {manager!r} is gone: its liveliness token went away {time.monotonic() - since:.1f} s ago "
+            "(it stopped, crashed, or its host was cut off past its lease)"
+        )
+
+    def close(self) -> None:
+        if self._watch is not None:
+            self._watch.undeclare()
+            self._watch = None
 
 
 class Client:
@@ -72,6 +120,7 @@ class Client:
             else:
                 session = Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls, lease_ms=lease_ms))
         self._session = session
+        self._presence = _Presence(session)
 
     def _open_leaf(self, lease_ms: int | None) -> Session:
         """A session that only connects: a Zenoh client of the endpoints when one answers now,
@@ -98,6 +147,7 @@ class Client:
 
     def close(self) -> None:
         """Close the client's own session (not one it was given); safe twice."""
+        self._presence.close()
         if self._own_session:
             self._session.close()
 
@@ -118,6 +168,7 @@ class Client:
                 timeout_s=self.timeout_s,
                 what=f"{what} of {where}",
                 sign=self._signer.sign if self._signer is not None else None,
+                gone=lambda: self._presence.why_gone(manager),
             )
         except ServiceError as exc:
             if exc.kind is None and "nothing serves" in str(exc):

@@ -276,6 +276,11 @@ def make_config(
             config.insert_json5("mode", json.dumps(mode))
             config.insert_json5("scouting/multicast/enabled", "false")
             config.insert_json5("scouting/gossip/enabled", "true")
+            # One link per pair of peers: when both dial each other (two peers that learn of
+            # each other at once), the pair holds two TCP links, and after a silent cut closing
+            # them blocks both of Zenoh's receive threads for up to 10 s (its fixed SO_LINGER),
+            # so nothing is read from the healthy links meanwhile. Only the greater id dials.
+            config.insert_json5("scouting/gossip/autoconnect_strategy", '{ peer: { to_router: "always", to_peer: "greater-zid" } }')
             config.insert_json5("scouting/delay", "0")
             # The admin space tells a manager which port it got when asked for port 0.
             config.insert_json5("adminspace/enabled", "true")
@@ -802,7 +807,14 @@ class Session:
     # -- services
 
     def call(
-        self, key: str, payload: bytes, *, timeout_s: float, what: str, sign: Callable[[str, bytes], bytes] | None = None
+        self,
+        key: str,
+        payload: bytes,
+        *,
+        timeout_s: float,
+        what: str,
+        sign: Callable[[str, bytes], bytes] | None = None,
+        gone: Callable[[], str | None] | None = None,
     ) -> bytes:
         """Send a request to the service on ``key`` and return its reply.
 
@@ -811,11 +823,13 @@ class Session:
         message) or with the service's own error when it refuses the request. ``sign(key,
         payload)`` gives the call's attachment (its caller's signature: see
         :mod:`dyknow.identity`), made once the service is reachable, so its time is fresh.
+        ``gone()``: why the service's owner is known to be gone, or None; while it says so the
+        call ends at once with that reason instead of waiting for the service to come back.
         """
         deadline = time.monotonic() + timeout_s
         entry = self._querier(key, timeout_s)
         try:
-            return self._call(entry[0], entry[1], key, payload, deadline, timeout_s, what, sign)
+            return self._call(entry[0], entry[1], key, payload, deadline, timeout_s, what, sign, gone)
         finally:
             with self._lock:
                 entry[2] -= 1
@@ -830,9 +844,16 @@ class Session:
         timeout_s: float,
         what: str,
         sign: Callable[[str, bytes], bytes] | None,
+        gone: Callable[[], str | None] | None,
     ) -> bytes:
-        if not reachable.wait(max(0.0, deadline - time.monotonic())):
-            raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s")
+        while not reachable.is_set():
+            why = gone() if gone is not None else None
+            if why is not None:
+                raise ServiceError(f"no answer from {what}: {why}")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s")
+            reachable.wait(min(left, 0.05) if gone is not None else left)
         try:
             attachment = sign(key, payload) if sign is not None else None
             replies = querier.get(payload=payload, attachment=attachment)

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import re
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from dyknow import BindingError, Client, LibraryError, Manager, Message, SpecError, UnitError
 from dyknow.transport import MAX_QUERIERS
-from tests.conftest import GENERIC_SPECS
+from tests.conftest import GENERIC_SPECS, ManagerProcess, wait_until
 
 RELAY = """<transformation><label>my-relay</label><source>transformations.generic:Relay</source>
   <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
@@ -88,3 +90,29 @@ def test_a_client_calling_ever_new_units_keeps_a_bounded_number_of_queriers(mana
         assert client.session.queriers() <= MAX_QUERIERS
         assert threading.active_count() == threads  # no thread per querier
         assert client.get_statistics("s0")["name"] == "s0"  # an evicted querier is declared again
+
+
+def test_a_call_to_a_manager_that_is_gone_ends_at_once_saying_so(manager_process: Callable[..., ManagerProcess]) -> None:
+    """Its liveliness token went away (killed here; a host cut off is the same once its lease
+    expires): the call does not wait its whole timeout for the service to come back, it says the
+    manager is gone. A manager never seen is still waited for (it may be starting)."""
+    import signal
+
+    from dyknow import ServiceError
+
+    proc = manager_process()
+    with Client(proc.name, connect=[proc.endpoint], timeout_s=60.0) as client:
+        assert client.get_model()["manager"] == proc.name
+        proc.proc.send_signal(signal.SIGKILL)
+        proc.proc.wait(10)
+        wait_until(lambda: proc.name not in client.manager_names(timeout_s=0.5), "the token to go")
+        said = []
+        for _ in range(50):  # the client's own watch of the tokens may hear of it a moment later
+            with pytest.raises(ServiceError) as refused:
+                client.get_model()
+            said.append(str(refused.value))
+            if "is gone" in said[-1]:
+                break
+        assert re.search(rf"manager {proc.name!r} is gone: its liveliness token went away .* s ago", said[-1]), said
+    with Client("never-seen", connect=[proc.endpoint], timeout_s=0.5) as other, pytest.raises(ServiceError, match="within 0.5 s"):
+        other.get_model()
