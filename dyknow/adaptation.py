@@ -40,9 +40,13 @@ request does (after the dwell time), and the configuration it leaves becomes the
 standby down too. The model lists the standby's units (:class:`~dyknow.model.RequestInfo`), and
 the events of a switch onto the standby say so (``standby``).
 
-Flapping is prevented by a dwell time (an opportunity never switches a request twice within it)
-and by exponential back-off for failed transformations (retried after 1 s, 2 s, 4 s ... up to
-60 s). When no configuration exists the request is *degraded*, and recovered later when possible.
+Flapping is prevented by a dwell time (an opportunity never switches a request twice within it),
+by exponential back-off for failed transformations (retried after 1 s, 2 s, 4 s ... up to
+60 s), and by probation for managers that come back: a manager lost ``n`` times in the last
+:data:`FLAP_WINDOW_S` is trusted again by an opportunity only once it has stayed for the dwell
+time times ``2 ** (n - 1)`` (at most :data:`FLAP_HOLD_MAX_S`); a fault or a degraded request uses
+it at once. So a link that goes down and up every few seconds moves a request off it, and back
+only once it holds. When no configuration exists the request is *degraded*, and recovered later when possible.
 
 Every adaptation is an :class:`AdaptationEvent` (cause, old and new configuration, adaptation time
 from the fault to the new configuration wired and running) published as JSON on
@@ -101,6 +105,10 @@ ANCHOR_LABEL = "dyknow-request-anchor"
 DEFAULT_DWELL_S = 2.0
 BACKOFF_FIRST_S = 1.0
 BACKOFF_MAX_S = 60.0
+#: A manager's losses count towards its probation for this long.
+FLAP_WINDOW_S = 60.0
+#: The longest probation of a manager that comes back.
+FLAP_HOLD_MAX_S = 30.0
 _TICK_S = 0.02  # deadlines, back-offs and deferred opportunities are checked this often
 _STANDBY_WAIT_NS = 1_000_000_000  # after a switch, the next standby waits this long at most for the stream
 _RECORD_WAIT_S = 1.0  # how long an anchor holds a new configuration's first message for its adaptation's record
@@ -294,7 +302,8 @@ class Symptom:
     """Something the monitor saw. ``fault`` symptoms break configurations; others are opportunities."""
 
     # "failed", "destroyed", "stalled", "resumed", "measurement", "retry", "library",
-    # "peer-found", "peer-lost", "peer-changed" (another manager came, went or changed)
+    # "peer-found", "peer-lost", "peer-changed" (another manager came, went or changed),
+    # "peer-trusted" (a manager that came back after losses has held through its probation)
     kind: str
     time_ns: int
     unit: str | None = None
@@ -303,6 +312,7 @@ class Symptom:
     detail: str = ""
     manager: str | None = None
     deferred: bool = False  # an opportunity taken after the dwell time
+    raised_ns: int = 0  # a deferred opportunity: when it arose (time_ns is when it is taken)
 
 
 class Knowledge:
@@ -318,6 +328,8 @@ class Knowledge:
         self.remote: dict[str, dict[str, str]] = {}  # name@manager -> bindings, of those on other managers
         self.seen: set[str] = set()  # units of other managers the requests use, once in a summary
         self.history: list[AdaptationEvent] = []
+        self.losses: dict[str, list[int]] = {}  # manager -> when it was lost (ns), the last FLAP_WINDOW_S
+        self.returned: dict[str, list[int]] = {}  # manager -> [when it came back after a loss (ns), trust announced]
 
     def unavailable(self, now_ns: int) -> set[str]:
         """Labels in back-off right now."""
@@ -328,6 +340,33 @@ class Knowledge:
         previous = self.backoff[label][1] if label in self.backoff else BACKOFF_FIRST_S / 2
         delay = min(BACKOFF_MAX_S, previous * 2)
         self.backoff[label] = [now_ns + int(delay * 1e9), delay, False]
+
+    def lost(self, manager: str, now_ns: int) -> None:
+        """Another manager was lost: one more loss towards its probation."""
+        recent = [t for t in self.losses.get(manager, []) if now_ns - t < FLAP_WINDOW_S * 1e9][-63:]
+        self.losses[manager] = [*recent, now_ns]
+        self.returned.pop(manager, None)
+
+    def found(self, manager: str, now_ns: int) -> None:
+        """Another manager came (back): its probation starts now, if it was lost before."""
+        if manager in self.losses:
+            self.returned[manager] = [now_ns, False]
+
+    def probation(self, manager: str, now_ns: int, dwell_ns: int) -> tuple[int, int]:
+        """Until when (ns) ``manager`` is on probation, and after how many recent losses; (0, 0)
+        when it was not lost lately."""
+        back = self.returned.get(manager)
+        if back is None:
+            return 0, 0
+        losses = sum(1 for t in self.losses.get(manager, []) if back[0] - t < FLAP_WINDOW_S * 1e9)
+        if losses == 0:
+            return 0, 0
+        hold = min(FLAP_HOLD_MAX_S * 1e9, dwell_ns * 2 ** (losses - 1))
+        return back[0] + int(hold), losses
+
+    def on_probation(self, now_ns: int, dwell_ns: int) -> set[str]:
+        """The managers an opportunity may not move a request onto yet."""
+        return {m for m in self.returned if self.probation(m, now_ns, dwell_ns)[0] > now_ns}
 
     def users(self, unit: str) -> list[_Request]:
         """The requests whose configuration, warm standby or spare units hold ``unit``."""
@@ -441,13 +480,20 @@ class Monitor:
         self._knowledge.measurements[name] = value
         self._report(Symptom("measurement", now_ns, measure=name, detail=f"{name} = {value!r}"))
 
-    def tick(self, now_ns: int) -> None:
-        """Check deadlines and back-offs (called every few milliseconds by the loop)."""
+    def tick(self, now_ns: int, dwell_ns: int = int(DEFAULT_DWELL_S * 1e9)) -> None:
+        """Check deadlines, back-offs and probations (called every few milliseconds by the loop)."""
         knowledge = self._knowledge
         for label, entry in knowledge.backoff.items():
             if entry[0] <= now_ns and not entry[2]:
                 entry[2] = True  # announce each retry once; the back-off doubles if it fails again
                 self._report(Symptom("retry", now_ns, label=label, detail=f"back-off of {label} ended"))
+        for manager, back in knowledge.returned.items():
+            until, losses = knowledge.probation(manager, now_ns, dwell_ns)
+            if not back[1] and until <= now_ns:
+                back[1] = True  # announce it once
+                hold = (until - back[0]) / 1e9
+                why = f"back for its probation of {hold:g} s ({losses} loss{'es' if losses > 1 else ''} in the last {FLAP_WINDOW_S:g} s)"
+                self._report(Symptom("peer-trusted", now_ns, manager=manager, detail=why))
         ports = self._deadline_ports()
         for name, label, port, deadline_ns, count, started_ns in (
             (p.unit, p.label, p.port, p.deadline_ns, p.messages, p.started_ns) for p in ports
@@ -643,19 +689,37 @@ class Reconfigurer:
         names.update(r for r in knowledge.remote)  # spawned, maybe not in a summary yet
         return running, names
 
-    def plan(self, request: _Request, now_ns: int, *, exclude: Collection[str] = (), avoid: Collection[str] = ()) -> Plan:
+    def plan(
+        self,
+        request: _Request,
+        now_ns: int,
+        *,
+        exclude: Collection[str] = (),
+        avoid: Collection[str] = (),
+        managers_excluded: Collection[str] = (),
+    ) -> Plan:
         """The preferred configuration for ``request`` now (:class:`PlanningError` when none).
 
         ``exclude``: transformations not to use besides those in back-off or stalled; ``avoid``:
-        running units not to reuse (besides the request's own, which are always set aside).
+        running units not to reuse (besides the request's own, which are always set aside);
+        ``managers_excluded``: other managers none of whose transformations or units to use,
+        except those the request already uses there.
         """
         running, names = self.running_model(request)
+        peers = self._runtime.peers()
+        kept = set(request.units)
         if avoid:
             running = [u for u in running if u.ref not in avoid]
+        if managers_excluded:
+            running = [u for u in running if u.ref in kept or not any(_on(u.ref, m) for m in managers_excluded)]
         unavailable = self._knowledge.unavailable(now_ns) | set(exclude)
+        used = set(request.units.values())
+        for manager in managers_excluded:
+            summary = peers.get(manager)
+            if summary is not None:
+                unavailable |= {qualify(spec.label, manager) for spec in summary.specs} - used
         labels = {info.name: info.label for info in self._runtime.units()}
         stalled_labels = {labels[n] for n in self._knowledge.stalled if n in labels}
-        peers = self._runtime.peers()
         load = {self._runtime.name: len(labels), **{m: s.load for m, s in peers.items()}}
         return self.planner().plan(
             request.tag,
@@ -1210,14 +1274,14 @@ class AdaptationLoop:
                     changed = symptom is not None
                     if symptom is not None:
                         self._handle(symptom)
-                    self.monitor.tick(now)
+                    self.monitor.tick(now, self.dwell_ns)
                     for key, (due, opportunity) in list(self._deferred.items()):
                         if due <= now:
                             del self._deferred[key]
                             changed = True
                             request = self.knowledge.requests.get(key)
                             if request is not None:  # timed from now: the wait was our choice, not the fault's
-                                waited = replace(opportunity, time_ns=now, deferred=True)
+                                waited = replace(opportunity, time_ns=now, deferred=True, raised_ns=opportunity.time_ns)
                                 self._adapt(request, waited, fault=False)
                     # after the switches, and once their stream flows again: standbys follow what changed
                     for request in sorted(self.knowledge.requests.values(), key=lambda r: r.key):
@@ -1237,6 +1301,10 @@ class AdaptationLoop:
             knowledge.fail(symptom.label, symptom.time_ns)
         if symptom.kind in ("stalled", "resumed"):
             self.runtime.changed()  # the other managers see it in this manager's summary
+        if symptom.kind == "peer-lost" and symptom.manager is not None:
+            knowledge.lost(symptom.manager, symptom.time_ns)
+        if symptom.kind == "peer-found" and symptom.manager is not None:
+            knowledge.found(symptom.manager, symptom.time_ns)
         if symptom.kind == "peer-changed" and symptom.manager is not None:
             self._peer_changed(symptom, symptom.manager)
             return
@@ -1280,8 +1348,13 @@ class AdaptationLoop:
         if fault and warm and self.reconfigurer.standby_ready(request, now):
             self._take_standby(request, symptom, old_labels, fault)  # no planning on the way: the standby is ready
             return
+        # an opportunity does not move an active request onto a manager on probation (it came
+        # back from a loss lately); a fault or a degraded request takes what works
+        # (as of when the opportunity arose: a return seen then is not trusted by it, even later)
+        at = min(now, symptom.raised_ns or symptom.time_ns)
+        wary = self.knowledge.on_probation(at, self.dwell_ns) if not fault and request.state == "active" else set()
         try:
-            plan = self.reconfigurer.plan(request, now)
+            plan = self.reconfigurer.plan(request, now, managers_excluded=wary)
         except PlanningError as exc:
             if fault or request.state == "degraded":
                 self._degrade(request, symptom, old_labels, str(exc))
@@ -1527,6 +1600,8 @@ def _what(symptom: Symptom) -> str:
         return f"manager {symptom.manager!r} was lost"
     if symptom.kind == "peer-found":
         return f"manager {symptom.manager!r} was found"
+    if symptom.kind == "peer-trusted":
+        return f"manager {symptom.manager!r} is trusted again: {symptom.detail}"
     if symptom.kind == "peer-changed":
         return f"manager {symptom.manager!r} changed: {symptom.detail}" if symptom.detail else f"manager {symptom.manager!r} changed"
     return symptom.detail or symptom.kind

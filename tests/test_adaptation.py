@@ -467,7 +467,7 @@ def test_the_loop_plans_over_other_managers_and_fails_over_when_one_is_lost() ->
         loop.peer_changed("found", "robot")
         wait_until(lambda: len([e for e in events if e.kind == "adapted"]) == 2, "the return")
         back = [e for e in events if e.kind == "adapted"][1]
-        assert back.cause.startswith("manager 'robot' was found") and back.new == ("front-camera@robot",)
+        assert back.cause == "manager 'robot' is trusted again: back for its probation of 0.3 s (1 loss in the last 60 s)" and back.new == ("front-camera@robot",)
         assert runtime.get_config(anchor.name)["in"] == "dyknow/robot/front-camera/out"
         assert ("destroy", "field", "back-camera") in runtime.remote_calls  # released where it ran
 
@@ -481,6 +481,64 @@ def test_the_loop_plans_over_other_managers_and_fails_over_when_one_is_lost() ->
         loop.close()
     assert runtime.remote_calls[-1][0] == "destroy"  # closing releases what the loop runs elsewhere
     assert all(not s.units for s in runtime.peer_summaries.values() if s.manager == "field")
+
+
+def test_a_manager_that_flaps_is_trusted_again_only_after_a_probation_that_doubles() -> None:
+    """A link that goes down and up every few seconds: each loss moves the request off the
+    manager at once (a fault), but an opportunity moves it back only once the manager has stayed
+    for the dwell time, doubled for every further loss in the last minute. A manager lost again
+    within its probation never gets the request back meanwhile."""
+    from dyknow.adaptation import FLAP_WINDOW_S
+
+    runtime = StandInRuntime([])
+    robot = Summary("robot", "robot-host", 1, "r1", (_camera("front-camera", 1),))
+    runtime.peer_summaries = {"robot": robot, "field": Summary("field", "field-host", 1, "f1", (_camera("back-camera", 2),))}
+    events: list[AdaptationEvent] = []
+    loop = AdaptationLoop(runtime, dwell_s=0.2)
+    loop.on_event(events.append)
+
+    def adapted() -> list[AdaptationEvent]:
+        return [e for e in events if e.kind == "adapted"]
+
+    def lose(count: int) -> None:
+        runtime.peer_summaries.pop("robot")
+        loop.peer_changed("lost", "robot")
+        wait_until(lambda: len(adapted()) == count, "the failover")
+        assert adapted()[-1].cause == "manager 'robot' was lost" and adapted()[-1].new == ("back-camera@field",)
+
+    def find() -> int:
+        runtime.peer_summaries["robot"] = replace(robot, library=f"r{len(events)}", units=())
+        found = time.time_ns()
+        loop.peer_changed("found", "robot")
+        return found
+
+    try:
+        loop.request("Image")
+        lose(1)
+        find()
+        wait_until(lambda: len(adapted()) == 2, "the return after 0.2 s")
+        assert adapted()[1].cause == "manager 'robot' is trusted again: back for its probation of 0.2 s (1 loss in the last 60 s)"
+        lose(3)
+        before = find()
+        wait_until(lambda: "robot" in loop.knowledge.returned, "the loop to take the return in")
+        until, losses = loop.knowledge.probation("robot", before, loop.dwell_ns)
+        assert losses == 2 and 0.4e9 <= until - before <= 0.45e9  # twice the dwell, from its return
+        wait_until(lambda: len(adapted()) == 4, "the return after 0.4 s")
+        assert adapted()[3].cause == "manager 'robot' is trusted again: back for its probation of 0.4 s (2 losses in the last 60 s)"
+        lose(5)
+        find()
+        wait_until(lambda: "robot" in loop.knowledge.returned, "the loop to take the return in")
+        runtime.peer_summaries.pop("robot")  # lost again within its probation (0.8 s): no return meanwhile
+        loop.peer_changed("lost", "robot")
+        wait_until(lambda: "robot" not in loop.knowledge.returned, "the loop to take the loss in")
+        assert len(adapted()) == 5  # the request was on the field's camera: the loss changed nothing
+        find()
+        wait_until(lambda: len(adapted()) == 6, "the return after 1.6 s")
+        assert adapted()[5].cause == "manager 'robot' is trusted again: back for its probation of 1.6 s (4 losses in the last 60 s)"
+        assert [e.new for e in adapted()] == [("back-camera@field",), ("front-camera@robot",)] * 3
+        assert FLAP_WINDOW_S == 60.0
+    finally:
+        loop.close()
 
 
 def test_a_measurement_the_constraints_cannot_use_is_refused_with_its_name(robot: Manager) -> None:
