@@ -3,7 +3,9 @@
 Run as ``python -m tests.netns_observer ENDPOINT MANAGER TAG`` inside a host's namespace (the
 test process cannot reach addresses inside the namespaces). It prints JSON lines: the request's
 ``key``, then a ``camera`` line each time the camera id in the frames changes; on a line
-``adaptations`` or ``managers`` on its standard input it prints that list.
+``adaptations`` or ``managers`` on its standard input it prints that list, and on ``stats`` what
+arrived since the last ``stats`` (messages, rate, the largest gap, the age p99, the camera
+switches and the messages from each camera).
 """
 
 from __future__ import annotations
@@ -26,11 +28,42 @@ def main() -> int:
         with lock:
             print(json.dumps(data), flush=True)
 
+    window: dict[str, list[int]] = {"arrived": [], "ages": [], "cameras": []}  # since the last stats
+    switches = [0]
+    started = [time.time_ns()]
+
     def on_message(msg: Message) -> None:
+        now = time.time_ns()
         camera = int(msg.payload["camera"])  # the tracker says which camera the frames came from
+        with lock:
+            window["arrived"].append(now)
+            window["ages"].append(now - msg.origin_ns)  # one machine's clock: ages are true
+            window["cameras"].append(camera)
         if last != [camera]:
+            if last:
+                switches[0] += 1
             last[:] = [camera]
-            say({"event": "camera", "camera": camera, "t_ns": time.time_ns()})
+            say({"event": "camera", "camera": camera, "t_ns": now})
+
+    def stats() -> dict[str, object]:
+        now = time.time_ns()
+        with lock:
+            arrived, ages, cameras = window["arrived"], sorted(window["ages"]), window["cameras"]
+            window["arrived"], window["ages"], window["cameras"] = [], [], []
+            since, started[0] = started[0], now
+            switched, switches[0] = switches[0], 0
+        times = [since, *arrived, now]
+        return {
+            "event": "stats",
+            "seconds": (now - since) / 1e9,
+            "messages": len(arrived),
+            "rate": len(arrived) / max(1e-9, (now - since) / 1e9),
+            "gap_max_ms": max(b - a for a, b in zip(times, times[1:], strict=False)) / 1e6,
+            "age_p99_ms": ages[min(len(ages) - 1, int(0.99 * len(ages)))] / 1e6 if ages else None,
+            "switches": switched,
+            "by_camera": {str(c): cameras.count(c) for c in sorted(set(cameras))},
+            "camera": last[0] if last else None,
+        }
 
     with Client(manager, connect=[endpoint], timeout_s=10.0, lease_ms=1000) as client:  # the managers' lease: see the cut as soon
         deadline = time.monotonic() + 30
@@ -45,8 +78,11 @@ def main() -> int:
                 time.sleep(0.2)
         say({"event": "key", "key": key})
         with client.declare_subscriber(key, on_message):
+            stats()  # the window starts now
             for line in sys.stdin:
-                if line.strip() == "adaptations":
+                if line.strip() == "stats":
+                    say(stats())
+                elif line.strip() == "adaptations":
                     say({"event": "adaptations", "items": client.get_adaptations()})
                 elif line.strip() == "managers":
                     say({"event": "managers", "items": client.managers()})

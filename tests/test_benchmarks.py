@@ -139,7 +139,8 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
     rows = {r["scenario"]: r for r in data["results"]}
     skipped = data.get("skipped", {})
     assert "sigkill-loopback" in rows and ("link-cut-1s-lease" in rows) != ("link-cut-1s-lease" in skipped)
-    expected = {"sigkill-loopback": (3, 200.0), "link-cut-1s-lease": (1, 1500.0)}
+    assert ("link-cut-router" in rows) == ("link-cut-1s-lease" in rows)
+    expected = {"sigkill-loopback": (3, 200.0), "link-cut-1s-lease": (1, 1500.0), "link-cut-router": (1, 1500.0)}
     for scenario, row in rows.items():
         assert (row["runs"], row["target_ms"]) == expected[scenario] and len(row["samples_ms"]) == row["runs"]
         assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"] and isinstance(row["met"], bool)
@@ -148,6 +149,19 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
         assert "Hosts.shaping" in rows["link-cut-1s-lease"]["links"] and "target p99 <= 1.5 s" in result.stdout
     else:
         assert f"skipped: {skipped['link-cut-1s-lease']}" in result.stdout
+
+
+def test_faults_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "faults.json"
+    result = _run("faults.py", "--smoke", "--seconds", "2", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    rows = {r["scenario"]: r for r in data["results"]}
+    assert list(rows) == ["clean", "loss-5", "loss-30", "slow-1mbit"]
+    for row in rows.values():
+        assert row["seconds"] > 0 and row["rate"] > 0 and set(row["memory_growth_mib"]) == {"station", "robot"}
+    assert "(target 0: no false failover)" in result.stdout
+    assert "(target < 64)" in result.stdout
 
 
 def test_scale_benchmark_smoke(tmp_path: Path) -> None:

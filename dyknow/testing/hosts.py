@@ -2,17 +2,29 @@
 
 :class:`Hosts` makes one network namespace per host and joins them with veth links to a bridge
 in a namespace of its own, like machines on one switch. Each host has its own loopback and an
-address ``10.77.0.<n>`` on ``eth0``; a link can be taken down (:meth:`Hosts.cut`) to cut a host
-off, and shaped with ``tc netem`` delay and loss where the kernel has it. Nothing touches the
-machine's own network: every address lives inside the namespaces, which are deleted on close.
+address ``10.77.0.<n>`` on ``eth0``. Faults on a host's link:
+
+- :meth:`Hosts.cut` takes it down (the host is cut off, its processes keep running) and
+  :meth:`Hosts.restore` brings it back;
+- :meth:`Hosts.loss` drops a share of the packets both ways at random (``nftables``: Debian's
+  ``nft``), on ``eth0`` only, so the host's own loopback is untouched;
+- :meth:`Hosts.bandwidth` limits the link both ways with a token bucket (``tc tbf``);
+- ``tc netem`` delay and loss where the kernel has it (this one may not: :attr:`Hosts.shaping`).
+
+Each process started with :meth:`Hosts.popen` gets a ``/dev/shm`` of its own (a private tmpfs):
+a network namespace does not isolate shared memory, and Zenoh hands large payloads to any peer
+that can open its shared-memory pool, so without it frames would not cross the simulated link
+at all. Nothing touches the machine's own network: every address lives inside the namespaces,
+which are deleted on close.
 
 It needs root (``CAP_NET_ADMIN``) and the ``ip`` tool; :func:`unavailable` says why it cannot
-run here, or None::
+run here, or None (:func:`faults_unavailable`: the same for loss and bandwidth)::
 
     from dyknow.testing.hosts import Hosts
 
     with Hosts(["robot", "station"]) as hosts:
         proc = hosts.popen("robot", ["dyknow", "manager", "--listen", f"tcp/{hosts.address('robot')}:7447"])
+        hosts.loss("robot", 5)  # 5 % of the robot's packets lost, both ways
         hosts.cut("robot")  # the robot's link goes down: the station loses it when the lease expires
 """
 
@@ -25,7 +37,7 @@ import subprocess
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["Hosts", "unavailable"]
+__all__ = ["Hosts", "faults_unavailable", "unavailable"]
 
 _serial = itertools.count(1)
 
@@ -41,6 +53,14 @@ def unavailable() -> str | None:
     if made.returncode != 0:
         return f"cannot create a network namespace: {made.stderr.strip()}"
     subprocess.run(["ip", "netns", "del", probe], capture_output=True)
+    return None
+
+
+def faults_unavailable() -> str | None:
+    """Why :meth:`Hosts.loss` or :meth:`Hosts.bandwidth` cannot work here (no ``nft`` or ``tc``), or None."""
+    missing = [tool for tool, package in (("nft", "nftables"), ("tc", "iproute2")) if shutil.which(tool) is None]
+    if missing:
+        return f"{' and '.join(missing)} not installed (apt-get install nftables iproute2)"
     return None
 
 
@@ -77,9 +97,45 @@ class Hosts:
         """``argv`` run inside host ``name``'s namespace."""
         return ["ip", "netns", "exec", self.namespace(name), *argv]
 
-    def popen(self, name: str, argv: Sequence[str], **kwargs: Any) -> subprocess.Popen[Any]:
-        """Start ``argv`` on host ``name`` (keyword arguments go to :class:`subprocess.Popen`)."""
+    def popen(self, name: str, argv: Sequence[str], *, private_shm: bool = True, **kwargs: Any) -> subprocess.Popen[Any]:
+        """Start ``argv`` on host ``name`` (keyword arguments go to :class:`subprocess.Popen`).
+
+        ``private_shm``: with a ``/dev/shm`` of its own (see the module documentation)."""
+        if private_shm:
+            shell = 'mount -t tmpfs -o size=512m,mode=1777 tmpfs /dev/shm && exec "$0" "$@"'
+            argv = ["unshare", "--mount", "--propagation", "private", "sh", "-c", shell, *argv]
         return subprocess.Popen(self.command(name, argv), **kwargs)
+
+    def loss(self, name: str, percent: float) -> None:
+        """Drop ``percent`` % of the packets of host ``name``'s link, at random, both ways (0: none)."""
+        if not 0 <= percent <= 100:
+            raise ValueError(f"loss: got {percent} %; expected 0 to 100")
+        ns = self.namespace(name)
+        subprocess.run(["ip", "netns", "exec", ns, "nft", "delete", "table", "inet", "dyknow_faults"], capture_output=True)
+        if percent == 0:
+            return
+        share = round(percent * 100)  # in 1/10,000
+        rules = f"""
+            table inet dyknow_faults {{
+                chain incoming {{ type filter hook input priority 0; iifname "eth0" numgen random mod 10000 < {share} drop; }}
+                chain outgoing {{ type filter hook output priority 0; oifname "eth0" numgen random mod 10000 < {share} drop; }}
+            }}
+        """
+        done = subprocess.run(["ip", "netns", "exec", ns, "nft", "-f", "-"], input=rules, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise OSError(f"nft on host {name!r}: {done.stderr.strip() or 'failed'}")
+
+    def bandwidth(self, name: str, rate: str | None) -> None:
+        """Limit host ``name``'s link to ``rate`` both ways (``tc`` units: ``1mbit``, ``500kbit``; None: no limit)."""
+        sides = [(self.namespace(name), "eth0"), (self.lan, self._port(name))]  # out of the host, and into it
+        for ns, dev in sides:
+            subprocess.run(["tc", "-n", ns, "qdisc", "del", "dev", dev, "root"], capture_output=True)
+            if rate is None:
+                continue
+            tbf = ["tc", "-n", ns, "qdisc", "add", "dev", dev, "root", "tbf", "rate", rate, "burst", "32kbit", "latency", "400ms"]
+            done = subprocess.run(tbf, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise OSError(f"tc tbf on host {name!r}: {done.stderr.strip() or 'failed'}")
 
     def cut(self, name: str) -> None:
         """Take host ``name``'s link down: it is cut off from the others (its processes keep running)."""

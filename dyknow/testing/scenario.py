@@ -42,7 +42,8 @@ CAMERA_IDS = {"bottom": 1, "top": 2, "ceiling": 3}
 
 
 class Camera(Unit):
-    """Publishes 4x4 frames at ``rate_hz``: pixel [0, 0] is the frame number, [0, 1] the camera id.
+    """Publishes ``size`` x ``size`` frames (default 4, int64) at ``rate_hz``: pixel [0, 0] is the
+    frame number, [0, 1] the camera id. A larger ``size`` loads a link (64: 32 KiB a frame).
 
     Tests make it misbehave: :meth:`explode` makes the next tick raise (the unit fails);
     :meth:`freeze` stops publishing (the stream stalls).
@@ -53,6 +54,7 @@ class Camera(Unit):
     def setup(self) -> None:
         """Start publishing at once, at ``rate_hz`` (default 100)."""
         self.frames = 0
+        self.size = max(2, int(self.params.get("size", 4)))
         self._explode = False
         self._frozen = False
         self.create_timer(1.0 / float(self.params.get("rate_hz", 100.0)), self.tick, first_s=0)
@@ -76,7 +78,7 @@ class Camera(Unit):
         if self._frozen:
             return
         self.frames += 1
-        frame = np.zeros((4, 4), dtype=np.int64)
+        frame = np.zeros((self.size, self.size), dtype=np.int64)
         frame[0, 0] = self.frames
         frame[0, 1] = CAMERA_IDS[str(self.params["camera"])]
         self.publish("out", frame)
