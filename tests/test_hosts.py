@@ -13,11 +13,11 @@ from __future__ import annotations
 import json
 import os
 import queue
+import shutil
 import signal
 import subprocess
 import sys
 import threading
-import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
