@@ -421,7 +421,7 @@ def cmd_ui(args: argparse.Namespace) -> int:
 
 def cmd_foxglove(args: argparse.Namespace) -> int:
     """serve streams live to Foxglove or Lichtblick over the Foxglove WebSocket protocol (images, JSON)"""
-    from dyknow.foxglove import run_bridge
+    from dyknow.foxglove import FOXGLOVE_ORIGINS, run_bridge
     from dyknow.security import is_loopback
 
     if not 0 <= args.port <= 65535:
@@ -435,7 +435,8 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
         sys.stdout.flush()
 
     with _client(args) as client:
-        return run_bridge(client, host=args.host, port=args.port, keyexprs=args.keyexprs, ready=ready)
+        origins = [*FOXGLOVE_ORIGINS, *args.allow_origin]
+        return run_bridge(client, host=args.host, port=args.port, keyexprs=args.keyexprs, ready=ready, origins=origins)
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -870,6 +871,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("keyexprs", nargs="*", metavar="KEYEXPR", help="key expressions to serve (default dyknow/**: every stream)")
     p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; the protocol has no access control)")
     p.add_argument("--port", type=int, default=8765, help="the port to serve on (default 8765; 0: any free port)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                   help="a web page origin that may connect besides the Foxglove web app (https://app.foxglove.dev), "
+                        "e.g. a self-hosted Lichtblick; repeatable (desktop apps send no origin and are always served)")  # fmt: skip
 
     p = command("router", cmd_router)
     p.add_argument(

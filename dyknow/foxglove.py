@@ -32,7 +32,12 @@ channel; each client has a bounded queue (:data:`BACKLOG`) whose oldest messages
 when it falls behind.
 
 The protocol has no access control: whoever reaches the port sees every stream served. The
-server binds loopback unless told otherwise.
+server binds loopback unless told otherwise, and it is closed to other web pages: the SDK's
+server listens on a loopback port of its own, behind a :class:`~dyknow.webguard.OriginGuard` on
+the port served, which refuses (403) a WebSocket upgrade whose ``Host`` is not a name it serves
+(a DNS-rebound page) or whose ``Origin`` is not allowed: by default none but the Foxglove web app
+(:data:`FOXGLOVE_ORIGINS`); ``--allow-origin URL`` adds one (a self-hosted Lichtblick, say).
+Desktop apps (Foxglove, Lichtblick) send no ``Origin`` and are served.
 """
 
 from __future__ import annotations
@@ -52,11 +57,14 @@ from dyknow.errors import RecordingError, TransportError
 from dyknow.message import Message
 from dyknow.recording.codecs import PAYLOAD_METADATA, PROTOBUF_SCHEMAS, encode, json_schema
 from dyknow.transport import Subscriber, check_key_expr
+from dyknow.webguard import OriginGuard
 
-__all__ = ["BACKLOG", "DEFAULT_KEYEXPR", "DEFAULT_PORT", "MAX_CHANNELS", "Bridge", "run_bridge"]
+__all__ = ["BACKLOG", "DEFAULT_KEYEXPR", "DEFAULT_PORT", "FOXGLOVE_ORIGINS", "MAX_CHANNELS", "Bridge", "run_bridge"]
 
 log = logging.getLogger(__name__)
 
+#: The web pages that may open the bridge besides its own origin: the Foxglove web app.
+FOXGLOVE_ORIGINS: tuple[str, ...] = ("https://app.foxglove.dev",)
 #: What is served unless told otherwise: every dyknow stream.
 DEFAULT_KEYEXPR = "dyknow/**"
 #: Foxglove's usual WebSocket port.
@@ -99,6 +107,7 @@ class Bridge:
         port: int = DEFAULT_PORT,
         max_channels: int = MAX_CHANNELS,
         name: str = "dyknow",
+        origins: Iterable[str] = FOXGLOVE_ORIGINS,
     ) -> None:
         # Each once: a key matched by two subscriptions would arrive twice (so would one matched by
         # two overlapping expressions, such as 'a/**' and 'a/b': give the wider one alone).
@@ -113,15 +122,22 @@ class Bridge:
         self._refusals = itertools.count(1)
         self._subscribers: list[Subscriber] = []
         self._closed = False
+        self._guard: OriginGuard | None = None
         try:
-            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context, message_backlog_size=BACKLOG)
+            # the SDK's server on a loopback port of its own, behind the guard on the port served
+            self._server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=self._context, message_backlog_size=BACKLOG)
         except RuntimeError as exc:  # foxglove's FoxgloveError: "Failed to bind port: ..."
             reason = str(exc).removeprefix("FoxgloveError: ").removeprefix("Failed to bind port: ")
             raise TransportError(
-                f"cannot listen on {host}:{port} ({reason})", where="Foxglove WebSocket server",
-                expected="a free port (--port, 0 for any) on an address of this host (--host)",
+                f"cannot listen on a loopback port ({reason})", where="Foxglove WebSocket server",
+                expected="a free loopback port",
             ) from exc  # fmt: skip
-        self.port = self._server.port
+        try:
+            self._guard = OriginGuard(host, port, self._server.port, origins=list(origins))
+        except TransportError as exc:
+            self._server.stop()
+            raise TransportError(exc.what, where="Foxglove WebSocket server", expected=exc.expected) from exc
+        self.port = self._guard.port
         try:
             for keyexpr in self.keyexprs:
                 self._subscribers.append(client.declare_subscriber(keyexpr, self._on_message))
@@ -166,6 +182,8 @@ class Bridge:
             self._streams.clear()
         for stream in streams:
             stream.channel.close()
+        if getattr(self, "_guard", None) is not None:
+            self._guard.close()  # type: ignore[union-attr]
         if hasattr(self, "_server"):
             self._server.stop()
 
@@ -252,13 +270,14 @@ def run_bridge(
     port: int = DEFAULT_PORT,
     keyexprs: Iterable[str] = (DEFAULT_KEYEXPR,),
     ready: Callable[[str], None] = print,
+    origins: Iterable[str] = FOXGLOVE_ORIGINS,
 ) -> int:
     """Serve ``keyexprs`` until SIGINT or SIGTERM; ``ready(url)`` is told the URL once listening. Returns 0.
 
     Installs signal handlers, so call it from the main thread.
     """
     stop = threading.Event()
-    with Bridge(client, keyexprs, host=host, port=port) as bridge:
+    with Bridge(client, keyexprs, host=host, port=port, origins=origins) as bridge:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
         ready(bridge.url)

@@ -281,6 +281,12 @@ def make_config(
             # them blocks both of Zenoh's receive threads for up to 10 s (its fixed SO_LINGER),
             # so nothing is read from the healthy links meanwhile. Only the greater id dials.
             config.insert_json5("scouting/gossip/autoconnect_strategy", '{ peer: { to_router: "always", to_peer: "greater-zid" } }')
+            # Shared memory only where dyknow asks for it (unit payloads of SHM_THRESHOLD and up, in
+            # a pool made on first use): Zenoh's own transport optimization put every message over
+            # 3 KiB (the managers' summaries among them) in a 16 MiB pool of each session, and
+            # every process mapped every other's, so an idle manager's memory grew with the number
+            # of managers (benchmarks/memory.py).
+            config.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
             config.insert_json5("scouting/delay", "0")
             # The admin space tells a manager which port it got when asked for port 0.
             config.insert_json5("adminspace/enabled", "true")

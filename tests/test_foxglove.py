@@ -271,3 +271,36 @@ def test_bridge_maps_every_payload_kind_and_follows_type_changes(
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("'fox/bytes' are not served: Foxglove cannot show application/octet-stream payloads" in w for w in warnings), warnings
     assert sum(f"{len(shown)} channels already: messages on further keys" in w for w in warnings) == 1, warnings
+
+
+def test_the_bridge_is_closed_to_other_web_pages(make_manager: Callable[..., Manager]) -> None:
+    """A web page cannot open the bridge: a WebSocket upgrade with another page's Origin, or a
+    DNS-rebound Host, is refused with a 403 that says why; the Foxglove web app's origin, the
+    bridge's own and a desktop app (no Origin) are served; --allow-origin adds one."""
+    import http.client
+
+    manager = make_manager()
+
+    def upgrade(port: int, **headers: str) -> tuple[int, str]:
+        connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        try:
+            connection.putrequest("GET", "/", skip_host="Host" in headers)
+            base = {"Upgrade": "websocket", "Connection": "Upgrade", "Sec-WebSocket-Version": "13",
+                    "Sec-WebSocket-Key": base64.b64encode(b"0123456789abcdef").decode(), "Sec-WebSocket-Protocol": SUBPROTOCOL}  # fmt: skip
+            for name, value in {**base, **headers}.items():
+                connection.putheader(name, value)
+            connection.endheaders()
+            answer = connection.getresponse()
+            return answer.status, answer.read(200).decode(errors="replace") if answer.status != 101 else ""
+        finally:
+            connection.close()
+
+    with Client(manager.name, connect=manager.endpoints) as client, Bridge(client, ["dyknow/**"], port=0, origins=["https://app.foxglove.dev", "http://lichtblick.local:8080"]) as bridge:
+        status, text = upgrade(bridge.port, Origin="http://evil.example")
+        assert status == 403 and "Origin 'http://evil.example' is not allowed" in text
+        status, text = upgrade(bridge.port, Host=f"evil.example:{bridge.port}")
+        assert status == 403 and "is not a name this server serves" in text
+        status, _ = upgrade(bridge.port, **{"Sec-Fetch-Site": "cross-site"})
+        assert status == 403
+        for headers in ({}, {"Origin": "https://app.foxglove.dev"}, {"Origin": f"http://127.0.0.1:{bridge.port}"}, {"Origin": "http://lichtblick.local:8080"}):
+            assert upgrade(bridge.port, **headers)[0] == 101, headers

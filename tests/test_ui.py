@@ -169,7 +169,10 @@ def test_the_token_is_required_when_set_and_made_beyond_loopback(ui: Callable[..
 
     wait_until(lambda: len(managers()) == 1, "the manager in the tool's model")
     assert managers()[0]["units"] == []
-    call = urllib.request.Request(base + "api/call", data=json.dumps({"manager": "x", "service": "shutdown"}).encode(), headers={"X-Dyknow-Token": "s3cret"})
+    call = urllib.request.Request(
+        base + "api/call", data=json.dumps({"manager": "x", "service": "shutdown"}).encode(),
+        headers={"X-Dyknow-Token": "s3cret", "Content-Type": "application/json"},
+    )  # fmt: skip
     with pytest.raises(urllib.error.HTTPError) as bad:
         urllib.request.urlopen(call, timeout=10)
     assert bad.value.code == 400 and "no service 'shutdown'" in json.loads(bad.value.read())["message"]
@@ -251,9 +254,134 @@ def test_many_open_pages_hold_up_nothing(ui: Callable[..., tuple[Manager, str]])
             assert answer.status == 200 and answer.readline().startswith(b"data: ")
             pages.append(page)
         body = json.dumps({"manager": manager.name, "service": "spawn", "request": {"label": "relay", "name": "still-served"}}).encode()
-        with urllib.request.urlopen(urllib.request.Request(url.split("?")[0] + "api/call", data=body), timeout=10) as reply:
+        call = urllib.request.Request(url.split("?")[0] + "api/call", data=body, headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(call, timeout=10) as reply:
             assert json.loads(reply.read())["reply"]["name"] == "still-served"
         assert "still-served" in [u.name for u in manager.units()]
     finally:
         for page in pages:
             page.close()
+
+
+# ---------------------------------------------------------------------- closed to other web pages
+
+
+def _http(url: str, method: str = "GET", body: bytes | None = None, **headers: str) -> tuple[int, str]:
+    """Status and body of one raw HTTP request (headers as given, Host included)."""
+    import http.client
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(url)
+    connection = http.client.HTTPConnection(parts.hostname or "", parts.port, timeout=10)
+    try:
+        connection.putrequest(method, parts.path + (f"?{parts.query}" if parts.query else ""), skip_host="Host" in headers)
+        for name, value in {**headers, **({"Content-Length": str(len(body))} if body is not None else {})}.items():
+            connection.putheader(name, value)
+        connection.endheaders(body)
+        answer = connection.getresponse()
+        return answer.status, answer.read().decode(errors="replace")
+    finally:
+        connection.close()
+
+
+def test_other_web_pages_cannot_drive_the_tool(ui: Callable[..., tuple[Manager, str]]) -> None:
+    """The three ways a web page in the operator's browser reached the tool on loopback: a
+    cross-site "simple" POST (an HTML form, text/plain, no preflight) to /api/call; a page on a
+    DNS-rebound name reading /api/model; a cross-site WebSocket to /api/stream. Each is refused
+    with a 4xx that says why; the tool's own page and the command line keep working."""
+    import asyncio
+
+    import aiohttp
+
+    manager, url = ui()
+    base = url.split("?")[0].rstrip("/")
+    own = base  # http://127.0.0.1:PORT, the tool's own origin
+    spawn = json.dumps({"manager": manager.name, "service": "spawn", "request": {"label": "relay", "name": "planted"}}).encode()
+
+    # 1. a form's cross-site POST: text/plain (or form-encoded), with the attacker's Origin, or none
+    for headers in (
+        {"Content-Type": "text/plain", "Origin": "http://evil.example"},
+        {"Content-Type": "text/plain"},
+        {"Content-Type": "application/x-www-form-urlencoded", "Origin": "null"},
+        {"Content-Type": "application/json", "Origin": "http://evil.example"},
+        {"Content-Type": "application/json", "Sec-Fetch-Site": "cross-site"},
+    ):
+        status, text = _http(base + "/api/call", "POST", spawn, **headers)
+        assert status in (403, 415), (headers, status, text)
+        assert ("another web page" in text) or ("expected application/json" in text), text
+    assert manager.units() == []
+
+    # 2. a DNS-rebound name: the browser sends the attacker's host name
+    port = base.rsplit(":", 1)[1]
+    status, text = _http(base + "/api/model", Host=f"evil.example:{port}")
+    assert status == 403 and "is not a name this tool serves" in text and "managers" not in text
+    status, _ = _http(base + "/api/events", Host=f"evil.example:{port}")
+    assert status == 403
+
+    # 3. a cross-site WebSocket (no CORS rule covers it)
+    async def websocket(origin: str) -> int:
+        async with aiohttp.ClientSession() as session:
+            try:
+                async with session.ws_connect(f"{base}/api/stream?key=dyknow/**", headers={"Origin": origin}):
+                    return 101
+            except aiohttp.WSServerHandshakeError as exc:
+                return exc.status
+
+    assert asyncio.run(websocket("http://evil.example")) == 403
+    assert asyncio.run(websocket(own)) == 101  # the tool's own page may
+
+    # the tool's own page (same origin) and the command line (no Origin) still may call
+    status, text = _http(base + "/api/call", "POST", spawn, **{"Content-Type": "application/json", "Origin": own})
+    assert status == 200 and json.loads(text)["reply"]["name"] == "planted", text
+    status, _ = _http(base + "/api/model", Host=f"localhost:{port}")
+    assert status == 200
+
+
+def test_a_page_from_another_origin_in_chromium_gets_nothing(ui: Callable[..., tuple[Manager, str]], browser: Any, tmp_path: Path) -> None:
+    """An attacker's page on another origin (another port of this machine), in Chromium: it
+    submits a form to /api/call, posts JSON with fetch, and opens a WebSocket to /api/stream.
+    Nothing is spawned and the WebSocket never opens."""
+    import http.server
+    import threading
+
+    manager, url = ui()
+    base = url.split("?")[0].rstrip("/")
+    call = json.dumps({"manager": manager.name, "service": "spawn", "request": {"label": "relay", "name": "by-form"}})
+    page = f"""<!doctype html><html><body>
+<form id="f" action="{base}/api/call" method="post" enctype="text/plain" target="sink">
+  <input name='{call[:-1]}, "x": "' value='"}}'></form>
+<iframe name="sink" onload="if (this.dataset.sent) document.getElementById('form').textContent = 'answered'"></iframe>
+<p id="ws">pending</p><p id="fetch">pending</p><p id="form">pending</p>
+<script>
+document.querySelector("iframe").dataset.sent = "1";
+document.getElementById("f").submit();
+fetch("{base}/api/call", {{method: "POST", mode: "no-cors", headers: {{"Content-Type": "text/plain"}},
+      body: JSON.stringify({{manager: "{manager.name}", service: "spawn", request: {{label: "relay", name: "by-fetch"}}}})}})
+  .then(() => document.getElementById("fetch").textContent = "sent", () => document.getElementById("fetch").textContent = "failed");
+const ws = new WebSocket("{base.replace("http", "ws")}/api/stream?key=dyknow/**");
+ws.onopen = () => document.getElementById("ws").textContent = "open";
+ws.onerror = () => document.getElementById("ws").textContent = "refused";
+</script></body></html>"""
+    (tmp_path / "index.html").write_text(page)
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, directory=str(tmp_path), **kwargs)
+
+        def log_message(self, *args: Any) -> None:
+            pass
+
+    attacker = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Quiet)
+    threading.Thread(target=attacker.serve_forever, daemon=True).start()
+    try:
+        browser.get(f"http://127.0.0.1:{attacker.server_address[1]}/index.html")
+        wait_text(browser, "ws", "refused")
+        wait_text(browser, "fetch", "sent")  # no-cors: the page cannot tell, but the tool refused it
+        wait_text(browser, "form", "answered")  # the form's post came back (refused)
+        status, text = _http(base + "/api/model")
+        assert status == 200
+        wait_until(lambda: "planted" not in text, "the model")
+        assert manager.units() == [], [u.name for u in manager.units()]
+    finally:
+        attacker.shutdown()
+        attacker.server_close()

@@ -27,7 +27,7 @@ def run_ui(client: Client, *, host: str = "127.0.0.1", port: int = 8321, token: 
 
     async def main() -> None:
         with ModelWatch(client) as watch:
-            runner = web.AppRunner(make_app(client, watch, token=token), handle_signals=False, shutdown_timeout=1.0)
+            runner = web.AppRunner(make_app(client, watch, token=token, bind=host), handle_signals=False, shutdown_timeout=1.0)
             await runner.setup()
             site = web.TCPSite(runner, host, port)
             await site.start()

@@ -17,8 +17,25 @@ HTTP (aiohttp):
 - ``POST /api/call`` ``{"manager", "service", "request", "unit"?}``: one service call; the reply
   as JSON, or ``{"error", "message"}`` with status 400 (the manager refused) or 502 (no answer).
 
-Bound to loopback it needs nothing else; bound beyond, every request must carry the access token
+Bound to loopback it needs no token; bound beyond, every request must carry the access token
 (``?token=`` once, then a cookie, or the ``X-Dyknow-Token`` header).
+
+Closed to other web pages (as Jupyter and the Docker and Kubernetes dashboards close theirs): a
+page the operator opens in the same browser must not drive the tool. So, whatever the binding:
+
+- ``Host`` must be a name the tool serves (:func:`~dyknow.webguard.served_hosts`: on loopback ``localhost``,
+  ``127.0.0.1``, ``[::1]`` and the address it is bound to; beyond, any, since the token guards it):
+  a page on a DNS-rebound name (``evil.example`` resolving to 127.0.0.1) is refused before it
+  reads anything;
+- every request that changes something (``POST /api/call``) and every WebSocket upgrade
+  (``/api/stream``, which no CORS rule covers) that carries an ``Origin`` must come from the
+  tool's own origin; so must any whose ``Sec-Fetch-Site`` says ``cross-site`` or ``same-site``;
+  a request with neither header (the command line, curl) is not a web page's;
+- ``POST /api/call`` takes ``application/json`` only, which a web page cannot send to another
+  origin without a CORS preflight the tool never answers (an HTML form's ``text/plain`` or
+  ``application/x-www-form-urlencoded`` post is refused).
+
+Each refusal is a 403 (415 for the content type) whose JSON says what was refused and why.
 """
 
 from __future__ import annotations
@@ -45,6 +62,7 @@ from dyknow.message import Message, describe_payload
 from dyknow.security import is_loopback
 from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
 from dyknow.transport import check_key_expr
+from dyknow.webguard import foreign, host_name, served_hosts
 
 __all__ = ["MAX_CALL_BYTES", "MAX_STREAMS", "ModelWatch", "check_bind", "make_app"]
 
@@ -167,11 +185,22 @@ class ModelWatch:
             time.sleep(self.poll_s)
 
 
-def make_app(client: Client, watch: ModelWatch, *, token: str | None = None) -> web.Application:
-    """The aiohttp application of the tool (``token``: required on every request when given)."""
+def make_app(client: Client, watch: ModelWatch, *, token: str | None = None, bind: str = "127.0.0.1") -> web.Application:
+    """The aiohttp application of the tool (``token``: required on every request when given;
+    ``bind``: the address it is served on, which decides the ``Host`` names it answers)."""
+    hosts = served_hosts(bind)
 
     @web.middleware
     async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
+        if hosts is not None and host_name(request.host) not in hosts:
+            why = f"the Host {request.host[:200]!r} is not a name this tool serves (a page on another name resolving here?)"
+            return _refused("AccessError", f"{why}; expected one of {', '.join(sorted(hosts))}", 403)
+        changes = request.method not in ("GET", "HEAD", "OPTIONS") or request.headers.get("Upgrade", "").lower() == "websocket"
+        if changes:
+            own = f"{request.scheme}://{request.host}".lower()
+            page = foreign(request.headers.get("Origin"), request.headers.get("Sec-Fetch-Site"), {own})
+            if page is not None:
+                return _refused("AccessError", f"refused a request from another web page ({page}); expected the tool's own page ({own})", 403)
         if token is not None:
             given = request.query.get("token") or request.headers.get("X-Dyknow-Token") or request.cookies.get("dyknow_token") or ""
             if not hmac.compare_digest(given.encode(), token.encode()):
@@ -216,6 +245,8 @@ def make_app(client: Client, watch: ModelWatch, *, token: str | None = None) -> 
             stop()
 
     async def call(request: web.Request) -> web.StreamResponse:
+        if request.content_type != "application/json":
+            return _refused("RequestError", f"a call of Content-Type {request.content_type!r}; expected application/json", 415)
         if request.content_length is not None and request.content_length > MAX_CALL_BYTES:
             return _refused("RequestError", f"a request of {request.content_length} bytes; expected at most {MAX_CALL_BYTES}", 413)
         try:
