@@ -5,10 +5,15 @@ Every message carries a header:
 - ``seq``: the sequence number of the output port that published it (1, 2, 3, ...);
 - ``origin_ns``: when the data was captured, taken by the source and propagated unchanged through
   every hop (unless a unit passes its own ``origin_ns`` when it publishes);
-- ``send_ns``: when the last hop published it.
+- ``send_ns``: when the last hop published it;
+- ``source``: which output port sent it, a random 32-bit id the port draws when it is bound to its
+  key (again at each rebinding): a reader follows each sender's ``seq`` and counts the gaps as
+  messages lost on the way (Zenoh's publishers drop under congestion rather than block);
+- ``origin_clock`` and ``send_clock``: whose clock took ``origin_ns`` and ``send_ns``, the random
+  32-bit :data:`CLOCK_ID` of that process (0: unknown). An id, not a name: nothing is trusted
+  because of it; it says which clock offset applies to a time from another host.
 
-Times are wall-clock integer nanoseconds (``time.time_ns()``) so that they compare across processes
-on one host.
+Times are wall-clock integer nanoseconds (``time.time_ns()``).
 
 Payloads are ``bytes``, ``str``, numpy arrays, or JSON-like values (dict, list, numbers, bool,
 None). Between units of one manager a payload travels by reference (no copy, no serialization);
@@ -16,8 +21,23 @@ only messages that leave the process are encoded, by :func:`encode`:
 
 - the Zenoh payload is the raw data: the bytes, the UTF-8 text, the JSON text, or the array's
   bytes in C order;
-- the Zenoh attachment is the header, ``HEADER`` (little endian: magic ``b"DK"``, version, kind,
-  seq u64, origin_ns i64, send_ns i64), followed for arrays by the dtype string and the shape.
+- the Zenoh attachment is the header, ``HEADER``, followed for arrays by ``ndim`` u8, the length
+  of the dtype string u8, the dtype string (numpy's, e.g. ``<f4``) and the shape (``ndim`` u64).
+  ``HEADER`` is 40 bytes, little endian::
+
+      offset  size  field
+      0       2     magic, the bytes "DK"
+      2       1     version: 2
+      3       1     kind: 0 bytes, 1 text (UTF-8), 2 JSON, 3 array
+      4       8     seq, u64
+      12      8     origin_ns, i64
+      20      8     send_ns, i64
+      28      4     source, u32
+      32      4     origin_clock, u32
+      36      4     send_clock, u32
+
+  Version 1 (``HEADER_V1``, the first 28 bytes of the same layout, without the last three
+  fields) is still read: its source and clocks are 0.
 
 Tools that know nothing of dyknow still see plain bytes, text or JSON on the key, with a matching
 Zenoh encoding. Samples that arrive without a dyknow attachment (from plain Zenoh publishers) are
@@ -27,6 +47,7 @@ accepted too: their header is synthesised at arrival.
 from __future__ import annotations
 
 import json
+import os
 import struct
 from typing import Any, Final
 
@@ -35,8 +56,10 @@ import numpy as np
 from dyknow.errors import PayloadError
 
 __all__ = [
+    "CLOCK_ID",
     "ENCODINGS",
     "HEADER",
+    "HEADER_V1",
     "Message",
     "PayloadError",
     "check_payload",
@@ -45,6 +68,7 @@ __all__ = [
     "describe_payload",
     "encode",
     "is_dyknow",
+    "new_id",
     "payload_nbytes",
     "reheader",
 ]
@@ -59,8 +83,19 @@ _TEXT: Final = 1
 _JSON: Final = 2
 _ARRAY: Final = 3
 _MAGIC: Final = b"DK"
-_VERSION: Final = 1
-HEADER: Final = struct.Struct("<2sBBQqq")
+_VERSION: Final = 2
+HEADER: Final = struct.Struct("<2sBBQqqIII")
+HEADER_V1: Final = struct.Struct("<2sBBQqq")
+_V1: Final = 1
+
+
+def new_id() -> int:
+    """A random 32-bit id, never 0 (0 means unknown): a port's ``source``, a process's clock id."""
+    return int.from_bytes(os.urandom(4), "little") or 1
+
+
+#: This process's clock id (see the module documentation).
+CLOCK_ID: Final = new_id()
 _ARRAY_META: Final = struct.Struct("<BB")  # ndim, len(dtype string)
 
 #: Zenoh encoding announced for each kind of payload, for tools that know nothing of dyknow.
@@ -85,7 +120,7 @@ class Message:
     hop and frozen dataclasses cost several times more to construct.
     """
 
-    __slots__ = ("key", "nbytes", "origin_ns", "payload", "send_ns", "seq", "wire")
+    __slots__ = ("key", "nbytes", "origin_clock", "origin_ns", "payload", "send_clock", "send_ns", "seq", "source", "wire")
 
     def __init__(
         self,
@@ -96,6 +131,9 @@ class Message:
         key: str,
         nbytes: int = 0,
         wire: tuple[Any, int, bytes] | None = None,
+        source: int = 0,
+        origin_clock: int = CLOCK_ID,
+        send_clock: int = CLOCK_ID,
     ) -> None:
         self.payload = payload
         self.seq = seq
@@ -106,6 +144,9 @@ class Message:
         # For an immutable payload received from Zenoh: (transport buffer, kind, header extra), so
         # a unit that forwards the payload unchanged sends the same bytes without re-encoding.
         self.wire = wire
+        self.source = source  # the sending output port's id (0: unknown)
+        self.origin_clock = origin_clock  # whose clock took origin_ns (CLOCK_ID: this process's)
+        self.send_clock = send_clock  # whose clock took send_ns
 
     def __repr__(self) -> str:
         return (
@@ -156,7 +197,7 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
     wire = msg.wire
     if wire is not None:
         data, kind, extra = wire
-        header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns)
+        header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
         return data, header + extra if extra else header, ENCODINGS[kind]
     payload = msg.payload
     extra = b""
@@ -181,13 +222,13 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
             data = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
         except (TypeError, ValueError) as exc:
             raise PayloadError(f"cannot encode the payload as JSON: {exc}") from exc
-    header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns)
+    header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
     return data, header + extra, ENCODINGS[kind]
 
 
 def is_dyknow(attachment: bytes | None) -> bool:
     """Whether a Zenoh attachment is a dyknow header (the sample came from a dyknow unit)."""
-    return attachment is not None and len(attachment) >= HEADER.size and attachment[:2] == _MAGIC
+    return attachment is not None and len(attachment) >= HEADER_V1.size and attachment[:2] == _MAGIC
 
 
 def decode(
@@ -216,39 +257,50 @@ def decode(
 def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     """:func:`decode` for a sample known to carry a dyknow header (the transport checked)."""
     raw = data if type(data) is bytes else data.to_bytes()
-    _, version, kind, mseq, origin_ns, send_ns = HEADER.unpack_from(attachment)
-    if version != _VERSION:
-        raise PayloadError(f"header version {version}", where=f"message on {key!r}", expected=str(_VERSION))
+    version = attachment[2]
+    if version == _VERSION and len(attachment) >= HEADER.size:
+        _, _, kind, mseq, origin_ns, send_ns, source, origin_clock, send_clock = HEADER.unpack_from(attachment)
+        size = HEADER.size
+    elif version == _V1:
+        _, _, kind, mseq, origin_ns, send_ns = HEADER_V1.unpack_from(attachment)
+        source = origin_clock = send_clock = 0
+        size = HEADER_V1.size
+    else:
+        raise PayloadError(f"header version {version} of {len(attachment)} bytes", where=f"message on {key!r}", expected="version 2 (or 1)")
     extra = b""
     if kind == _BYTES:
         payload: Any = raw
     elif kind == _TEXT:
         payload = raw.decode()
-    elif kind == _JSON:
-        return Message(json.loads(raw), mseq, origin_ns, send_ns, key, len(raw))  # mutable: no wire reuse
+    elif kind == _JSON:  # mutable: no wire reuse
+        return Message(json.loads(raw), mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock)
     elif kind == _ARRAY:
-        ndim, dlen = _ARRAY_META.unpack_from(attachment, HEADER.size)
-        pos = HEADER.size + _ARRAY_META.size
+        ndim, dlen = _ARRAY_META.unpack_from(attachment, size)
+        pos = size + _ARRAY_META.size
         dtype = np.dtype(attachment[pos : pos + dlen].decode())
         shape = struct.unpack_from(f"<{ndim}Q", attachment, pos + dlen)
         payload = np.frombuffer(raw, dtype=dtype).reshape(shape)  # read-only: it views immutable bytes
-        extra = attachment[HEADER.size :]
+        extra = attachment[size:]
     else:
         raise PayloadError(f"unknown payload kind {kind}", where=f"message on {key!r}", expected="0 to 3 (bytes, text, JSON, array)")
-    return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra))
+    return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra), source, origin_clock, send_clock)
 
 
-def reheader(attachment: bytes, seq: int, send_ns: int) -> tuple[bytes, int, int, str] | None:
+def reheader(attachment: bytes, seq: int, send_ns: int, source: int) -> tuple[bytes, int, int, int, int, str] | None:
     """The header of a received message of raw bytes made the header of the next hop, for a unit
-    that forwards it as it came (no :class:`Message`, no copy of the payload): the same origin, a
-    new ``seq`` and ``send_ns``. Returns ``(attachment, origin_ns, previous send_ns, encoding)``,
-    or None for any other header: text, JSON and arrays are decoded first (which checks them, so
-    that a relay never passes on what its readers would refuse), and so is a header this version
-    does not write (decoding reports what is wrong with it)."""
-    _, version, kind, _, origin_ns, sent_ns = HEADER.unpack_from(attachment)
-    if kind != _BYTES or version != _VERSION or len(attachment) != HEADER.size:
+    that forwards it as it came (no :class:`Message`, no copy of the payload): the same origin and
+    origin clock, a new ``seq``, ``send_ns`` and ``source``, this process's send clock. Returns
+    ``(attachment, origin_ns, previous send_ns, previous source, previous seq, encoding)``, or
+    None for any other header: text, JSON and arrays are decoded first (which checks them, so that
+    a relay never passes on what its readers would refuse), and so is a header of another version
+    (decoding reads it, or reports what is wrong with it)."""
+    if len(attachment) != HEADER.size or attachment[2] != _VERSION:
         return None
-    return HEADER.pack(_MAGIC, _VERSION, _BYTES, seq, origin_ns, send_ns), origin_ns, sent_ns, _BYTES_ENCODING
+    _, _, kind, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, _ = HEADER.unpack_from(attachment)
+    if kind != _BYTES:
+        return None
+    header = HEADER.pack(_MAGIC, _VERSION, _BYTES, seq, origin_ns, send_ns, source, origin_clock, CLOCK_ID)
+    return header, origin_ns, sent_ns, prev_source, prev_seq, _BYTES_ENCODING
 
 
 def _decode_foreign(data: bytes, encoding: str) -> Any:

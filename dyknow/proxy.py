@@ -36,7 +36,7 @@ import numpy as np
 from dyknow import keys
 from dyknow.bus import cycle_error
 from dyknow.errors import BindingError, UnitError, did_you_mean
-from dyknow.message import Message, check_payload, payload_nbytes, reheader
+from dyknow.message import CLOCK_ID, Message, check_payload, new_id, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
 from dyknow.transport import check_key_expr
 from dyknow.unit import Unit
@@ -82,7 +82,7 @@ _FAILED: Final = UnitState.FAILED
 class InputPort:
     """An input port: its key, its bounded queue, its counters."""
 
-    __slots__ = ("counters", "depth", "forward", "job", "keep_last", "key", "name", "queue")
+    __slots__ = ("counters", "depth", "forward", "job", "keep_last", "key", "name", "queue", "senders")
 
     def __init__(self, job: Proxy, name: str, key: str, depth: int, keep_last: bool) -> None:
         self.job = job
@@ -94,10 +94,27 @@ class InputPort:
         self.queue: deque[Message] = deque(maxlen=depth if keep_last else None)
         self.counters = PortCounters()
         self.forward: OutputPort | None = None  # the unit's forward_to: dyknow publishes there itself
+        self.senders: dict[int, int] = {}  # source -> the last seq seen from it (messages from other processes)
+
+    def track(self, source: int, seq: int) -> None:
+        """Follow ``source``'s sequence numbers: a gap is messages it sent that never arrived
+        (dropped by its Zenoh publisher under congestion, or on the way), counted as ``lost``.
+        A number at or below the last one is a sender that started over: no gap."""
+        if source == 0:
+            return
+        senders = self.senders
+        last = senders.get(source)
+        if last is None:
+            if len(senders) >= _MAX_SENDERS:
+                senders.clear()  # bounded: senders come and go (a rebinding draws a new source)
+        elif seq > last + 1:
+            self.counters.lost += seq - last - 1
+        senders[source] = seq
 
     def deliver_remote(self, msg: Message) -> None:
         """A message from another process, on Zenoh's receiving thread: run a unit proven quick
         and free right here (no thread hand-off), queue it for the unit's lane otherwise."""
+        self.track(msg.source, msg.seq)
         if self.forward is not None:
             if self.queue or not self.job.forward_now(self, msg, None):
                 self.deliver(msg)
@@ -145,17 +162,20 @@ _INLINE_BUDGET_NS: Final = 200_000
 # At most this many units run nested on one thread (a chain of local units handing on inline);
 # the next one is queued for its lane, which starts over: the stack stays shallow.
 _MAX_DEPTH: Final = 64
+# An input port follows the sequence numbers of at most this many senders at once.
+_MAX_SENDERS: Final = 64
 
 
 class OutputPort:
     """An output port: its key, sequence number, local targets and Zenoh publisher."""
 
-    __slots__ = ("counters", "key", "name", "publisher", "seq", "targets", "token")
+    __slots__ = ("counters", "key", "name", "publisher", "seq", "source", "targets", "token")
 
     def __init__(self, name: str, key: str) -> None:
         self.name = name
         self.key = key
         self.seq = 0
+        self.source = new_id()  # the id readers follow its seq by (drawn again when it is rebound)
         self.counters = PortCounters()
         self.targets: tuple[InputPort, ...] = ()
         self.publisher: Publisher | None = None
@@ -177,6 +197,7 @@ class UnitStatistics:
     callback_avg_us: float
     error: str | None = None
     traceback: str | None = None
+    timer_overruns: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form that ``get_statistics`` serves."""
@@ -188,6 +209,7 @@ class UnitStatistics:
             "reconfigurations": self.reconfigurations,
             "executor": self.executor,
             "callback_avg_us": round(self.callback_avg_us, 3),
+            "timer_overruns": self.timer_overruns,
             "ports": {p.port: p.to_dict() for p in self.ports},
             "error": self.error,
             "traceback": self.traceback,
@@ -516,10 +538,11 @@ class Proxy:
             if self.state is not _RUNNING:
                 return False
             now = time_ns()
-            wire = reheader(header, out.seq + 1, now)
+            wire = reheader(header, out.seq + 1, now, out.source)
             if wire is None:
                 return False
-            attachment, origin_ns, sent_ns, encoding = wire
+            attachment, origin_ns, sent_ns, sender, sender_seq, encoding = wire
+            port.track(sender, sender_seq)
             out.seq += 1
             nbytes = len(data)
             publisher = out.publisher
@@ -541,7 +564,7 @@ class Proxy:
         out = port.forward
         assert out is not None
         out.seq += 1
-        self._send(out, Message(msg.payload, out.seq, msg.origin_ns, now, out.key, msg.nbytes, msg.wire))
+        self._send(out, Message(msg.payload, out.seq, msg.origin_ns, now, out.key, msg.nbytes, msg.wire, out.source, msg.origin_clock, CLOCK_ID))
 
     def _wire_forwards(self, cls: type[Unit]) -> None:
         """Point every input at the ``forward_to`` output of a forwarding unit class (checked here,
@@ -699,10 +722,12 @@ class Proxy:
             raise UnitError(f"the unit is {self.state.value}, so it can no longer publish", where=f"unit {self.name!r}")
         now = time_ns()
         wire = None
+        origin_clock = CLOCK_ID
         current = self._current
         if current is not None and self._current_thread == get_ident():
             if origin_ns is None:
                 origin_ns = current.origin_ns
+                origin_clock = current.origin_clock
             if payload is current.payload:
                 wire = current.wire  # forwarding a payload received from Zenoh: reuse its encoding
         elif origin_ns is None:
@@ -717,7 +742,7 @@ class Proxy:
             check_payload(payload)
             nbytes = payload_nbytes(payload)
         out.seq += 1
-        self._send(out, Message(payload, out.seq, origin_ns, now, out.key, nbytes, wire))
+        self._send(out, Message(payload, out.seq, origin_ns, now, out.key, nbytes, wire, out.source, origin_clock, CLOCK_ID))
 
     def _send(self, out: OutputPort, msg: Message) -> None:
         """Hand ``msg`` to the local readers of ``out`` (by reference) and to Zenoh, then count it."""
@@ -837,6 +862,7 @@ class Proxy:
                 old += [out.publisher, out.token]
                 out.publisher = pub
                 out.token = new_tokens[port]
+                out.source = new_id()  # its seq goes on: readers of the new key must not see a gap
             for entity in old:
                 if entity is not None:
                     entity.undeclare()
@@ -864,6 +890,7 @@ class Proxy:
             callback_avg_us=self._ewma_ns / 1000,
             error=self.error,
             traceback=self.traceback,
+            timer_overruns=sum(timer.overruns for timer in self._timers),
         )
 
     @property

@@ -60,6 +60,9 @@ class PortStatistics:
 
     For input ports, ``latency`` is arrival at the unit minus the origin timestamp (end-to-end
     age of the data) and ``hop`` is arrival minus the send timestamp of the previous hop.
+    ``dropped`` counts what the port itself dropped (its queue was full); for input ports,
+    ``lost`` counts messages another process sent that never arrived (gaps in each sender's
+    sequence numbers: its Zenoh publisher drops rather than blocks under congestion).
     """
 
     port: str
@@ -72,6 +75,7 @@ class PortStatistics:
     hop: LatencySummary
     rejected: int = 0
     last_rejection: str | None = None
+    lost: int = 0
 
     def to_dict(self) -> dict[str, object]:
         """The JSON form (latency and hop only for input ports)."""
@@ -83,6 +87,7 @@ class PortStatistics:
             "dropped": self.dropped,
         }
         if self.direction == "in":
+            out["lost"] = self.lost
             out["rejected"] = self.rejected
             out["last_rejection"] = self.last_rejection
             out["latency"] = self.latency.to_dict()
@@ -93,12 +98,13 @@ class PortStatistics:
 class PortCounters:
     """Mutable counters of one port, updated on the hot path."""
 
-    __slots__ = ("_hop", "_latency", "_n", "bytes", "dropped", "last_rejection", "messages", "rejected")
+    __slots__ = ("_hop", "_latency", "_n", "bytes", "dropped", "last_rejection", "lost", "messages", "rejected")
 
     def __init__(self) -> None:
         self.messages = 0
         self.bytes = 0
         self.dropped = 0
+        self.lost = 0
         self.rejected = 0
         self.last_rejection: str | None = None
         self._latency = [0] * WINDOW
@@ -135,4 +141,5 @@ class PortCounters:
             summarize(self._hop[:n]),
             self.rejected,
             self.last_rejection,
+            self.lost,
         )

@@ -32,7 +32,7 @@ import zenoh
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError
 from dyknow.keys import MAX_KEY_BYTES
-from dyknow.message import ENCODINGS, HEADER, Message, decode, decode_dyknow, encode
+from dyknow.message import ENCODINGS, HEADER_V1, Message, decode, decode_dyknow, encode
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -68,7 +68,7 @@ _ENCODINGS: Final = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
 # faster for a 6 MiB frame with nothing else in flight (1.0 vs 1.5 ms), since the receiver copies a
 # shared-memory sample out too. When to use it is an open question (README, Payload sizes).
 SHM_THRESHOLD: Final = 64 * 1024
-_HEADER_SIZE: Final = HEADER.size
+_HEADER_SIZE: Final = HEADER_V1.size  # the shortest dyknow header (version 1)
 SHM_POOL_BYTES = 96 * 1024 * 1024
 
 

@@ -5,7 +5,8 @@ test process cannot reach addresses inside the namespaces). It prints JSON lines
 ``key``, then a ``camera`` line each time the camera id in the frames changes; on a line
 ``adaptations`` or ``managers`` on its standard input it prints that list, and on ``stats`` what
 arrived since the last ``stats`` (messages, rate, the largest gap, the age p99, the camera
-switches and the messages from each camera).
+switches and the messages from each camera); on ``lost``, the messages lost on the way into each
+unit of the manager (by label).
 """
 
 from __future__ import annotations
@@ -82,6 +83,12 @@ def main() -> int:
             for line in sys.stdin:
                 if line.strip() == "stats":
                     say(stats())
+                elif line.strip() == "lost":  # messages lost on the way into the manager's units, by unit
+                    lost = {}
+                    for unit in client.get_model()["units"]:
+                        ports = client.get_statistics(unit["name"])["ports"].values()
+                        lost[unit["label"]] = sum(int(p.get("lost", 0)) for p in ports if p["direction"] == "in")
+                    say({"event": "lost", "items": sorted(lost.items())})
                 elif line.strip() == "adaptations":
                     say({"event": "adaptations", "items": client.get_adaptations()})
                 elif line.strip() == "managers":

@@ -277,7 +277,8 @@ def test_a_slow_link_carries_what_it_can_and_nothing_grows(faulty: Hosts, tmp_pa
     station loses the robot and fails over to the field's camera, for that cause and no other
     (a saturated link cannot be told from a dead one within the lease). The key keeps flowing,
     nothing in the robot or the station grows, and once the limit is lifted the robot's camera
-    is back at its full rate."""
+    is back at its full rate. The frames the robot's publisher dropped are counted where they
+    were missed, as ``lost`` on the station's input."""
     robot_specs = tmp_path / "robot.xml"
     robot_specs.write_text(
         SCENARIO_HOSTS["robot"].read_text().replace('<param name="rate_hz" type="float">200</param>',
@@ -291,10 +292,11 @@ def test_a_slow_link_carries_what_it_can_and_nothing_grows(faulty: Hosts, tmp_pa
         free = scenario.observer.stats()
         rss = {c: c.rss_mib() for c in (scenario.station, scenario.robot)}
         faulty.bandwidth("robot", "1mbit")
-        limited = []
+        limited, lost = [], []
         for _ in range(3):
             _while(5)
             limited.append(scenario.observer.stats())
+            lost.append(dict(scenario.observer.ask("lost")))  # counted while the unit lives (a failover replaces it)
         grew = {c.host: c.rss_mib() - before for c, before in rss.items()}
         faulty.bandwidth("robot", None)
         print(f"free link: {free}\n1 Mbit/s: {limited}\nmemory growth (MiB): {grew}")
@@ -305,6 +307,8 @@ def test_a_slow_link_carries_what_it_can_and_nothing_grows(faulty: Hosts, tmp_pa
         causes = scenario.causes()
         assert all(cause.startswith(LINK_CAUSES) for cause in causes), causes
         assert all(g < 64 for g in grew.values()), grew
+        print(f"lost on the way, by unit: {lost}")
+        assert max(window.get("subsampler(bottom)", 0) for window in lost) > 0, lost  # the robot's publisher dropped frames: counted
         if scenario.observer.stats()["camera"] != BOTTOM:
             scenario.observer.next("camera", camera=BOTTOM, timeout_s=60)
         _while(2)

@@ -594,10 +594,69 @@ def test_a_forwarding_unit_passes_remote_bytes_on_undecoded_and_keeps_count(make
 
     # a dyknow header of a version this one does not write, from a plain Zenoh publisher
     with zenoh.open(make_config(connect=sender.endpoints)) as plain:
-        bad = HEADER.pack(b"DK", 9, 0, 1, 1, 1)
+        bad = HEADER.pack(b"DK", 9, 0, 1, 1, 1, 1, 1, 1)
         plain.put("wire/in", b"from the future", attachment=bad)
         wait_until(lambda: src.has_subscribers("out"), "still subscribed")
     src.publish("out", b"after")
     assert far.wait_for(8)[7].payload == b"after"
     assert [m.payload for m in far.messages].count(b"from the future") == 0
     assert relay.get_statistics("r").state == "running"
+
+
+# ---------------------------------------------------------------------------- nothing lost silently
+
+
+def _dyknow_header(seq: int, source: int) -> bytes:
+    """A version-2 dyknow header of a bytes payload (as its documentation lays it out)."""
+    return HEADER.pack(b"DK", 2, 0, seq, time.time_ns(), time.time_ns(), source, 7, 7)
+
+
+def test_messages_another_process_sent_that_never_arrived_are_counted_as_lost(make_manager: Callable[..., Manager]) -> None:
+    """Zenoh's publishers drop under congestion rather than block: a reader sees a gap in its
+    sender's sequence numbers and counts it as lost, per sender (two senders interleaved lose
+    nothing), and a sender that starts over is no gap. Sent here by a plain Zenoh publisher with
+    dyknow headers, so the gaps are exactly known (the queue is deep enough that the sink's own
+    queue drops nothing: that would be ``dropped``, not ``lost``)."""
+    manager = make_manager(queue_depth=1000)
+    manager.spawn("sink", "s", bindings={"in": "gaps/in"})
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    sent = [(1, 1), (2, 1), (5, 1), (1, 2), (6, 1), (2, 2), (9, 2), (3, 1), (4, 1), (10, 1)]  # (seq, source)
+    with zenoh.open(make_config(connect=manager.endpoints)) as plain:
+        publisher = plain.declare_publisher("gaps/in", congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_until(lambda: publisher.matching_status.matching, "the manager to subscribe")
+        warm = 0
+        while not sink.messages:  # until the path is up (a put right after matching may not arrive yet)
+            warm += 1
+            publisher.put(b"warm-up", attachment=_dyknow_header(warm, 3))
+            time.sleep(0.05)
+        sink.wait_for(warm)  # the last warm-ups in flight, too
+        for seq, source in sent:
+            publisher.put(f"{source}:{seq}".encode(), attachment=_dyknow_header(seq, source))
+        sink.wait_for(warm + len(sent))
+        publisher.undeclare()
+    assert [m.payload for m in sink.messages[warm:]] == [f"{source}:{seq}".encode() for seq, source in sent]
+    (port,) = [p for p in manager.get_statistics("s").ports if p.port == "in"]
+    # source 1: 1, 2, (3 and 4 lost) 5, 6, then 3 (starts over), 4, (5 to 9 lost) 10; source 2: 1, 2, (3 to 8 lost) 9
+    assert (port.messages, port.lost, port.dropped) == (warm + 10, 2 + 5 + 6, 0)
+    assert manager.get_statistics("s").to_dict()["ports"]["in"]["lost"] == 13
+
+
+def test_skipped_timer_ticks_are_counted(make_manager: Callable[..., Manager]) -> None:
+    """A timer whose callback outlasts its period skips ticks rather than piling them up; the
+    unit's statistics say how many (timer_overruns)."""
+
+    manager = make_manager(listen=[])
+    manager.spawn(TransformationSpec("late", "tests.test_proxy:Late", ports=(Port("out", "out"),)), "late")
+    wait_until(lambda: manager.get_statistics("late").timer_overruns > 20, "skipped ticks to be counted")
+    assert manager.get_statistics("late").to_dict()["timer_overruns"] > 20
+
+
+class Late(Unit):
+    """A timer of 1 ms whose callback takes 20."""
+
+    def setup(self) -> None:
+        self.create_timer(0.001, self.tick)
+
+    def tick(self) -> None:
+        time.sleep(0.02)

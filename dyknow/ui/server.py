@@ -7,7 +7,7 @@ manager's own services, so the managers' access control applies to it as to the 
 HTTP (aiohttp):
 
 - ``GET /`` the page; ``GET /static/...`` its script, style and the vendored cytoscape.js;
-- ``GET /api/model`` ``{"version", "managers": [model, ...], "stats": {"manager/unit": {port: {"rate", "hop_p50_us"}}}}``
+- ``GET /api/model`` ``{"version", "managers": [model, ...], "stats": {"manager/unit": {port: {"rate", "hop_p50_us", "lost", "dropped"}}}}``
   (statistics asked every ``stats_s``);
 - ``GET /api/events`` server-sent events: the model again each time it changes (checked every
   ``poll_s``);
@@ -158,7 +158,7 @@ class ModelWatch:
                     self._counts[ident] = (count, now)
                     rate = round((count - before[0]) / (now - before[1]), 1) if before and now > before[1] and count >= before[0] else None
                     hop = (entry.get("hop") or {}).get("p50_us")
-                    ports[port] = {"rate": rate, "hop_p50_us": hop}
+                    ports[port] = {"rate": rate, "hop_p50_us": hop, "lost": entry.get("lost", 0), "dropped": entry.get("dropped", 0)}
                 out[f"{model['manager']}/{unit['name']}"] = ports
         for gone in set(self._counts) - seen:
             del self._counts[gone]

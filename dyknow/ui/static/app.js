@@ -90,6 +90,9 @@ function elements() {
         let label = port;
         if (live.rate !== null && live.rate !== undefined) label += ` ${live.rate}/s`;
         if (dirs[port] !== "out" && live.hop_p50_us) label += ` ${(live.hop_p50_us / 1000).toFixed(2)} ms`;
+        // what went missing, and why: lost on the way (gaps in the sender's numbers), dropped by the full queue
+        if (live.lost) label += ` ${live.lost} lost`;
+        if (live.dropped) label += ` ${live.dropped} dropped`;
         if (dirs[port] === "out") edges.push({ data: { id: id + "->" + key, source: id, target: kid, label } });
         else edges.push({ data: { id: key + "->" + id + "." + port, source: kid, target: id, label } });
       }
