@@ -402,7 +402,8 @@ def main(argv: list[str] | None = None) -> int:
             notes.append(f"{scenario}: {len(slow)} of {len(samples)} cuts took more than twice the lease ({2 * LEASE_MS} ms)"
                          + (f": {', '.join(f'{x:.0f}' for x in slow)} ms" if slow else ""))  # fmt: skip
             notes.append(f"{scenario}: after the link was restored the robot's camera was back on the key in "
-                         f"p50 {percentile(returns, 50, 0):.0f} ms, max {max(returns):.0f} ms; robot manager restarts needed: {restarts}")  # fmt: skip
+                         f"p50 {percentile(returns, 50, 0):.0f} ms, max {max(returns):.0f} ms (its probation after repeated losses: "
+                         f"the dwell doubled for each loss in the last minute, at most 30 s); robot manager restarts needed: {restarts}")  # fmt: skip
         notes.append(f"link cuts: links Hosts.shaping = {shaping!r} (no delay or loss asked; netem {netem})")
 
     print(f"\n{'failover':<20} {'runs':>5} {'p50':>12} {'p99':>12} {'max':>12}")
