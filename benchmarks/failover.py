@@ -366,7 +366,8 @@ def main(argv: list[str] | None = None) -> int:
                          "measured": "from just before os.kill(robot, SIGKILL) to the first ceiling-camera message on the requested key",
                          "return_p50_ms": percentile(returns, 50, 1), "return_max_ms": round(max(returns), 1) if returns else None})  # fmt: skip
         notes.append(f"sigkill-loopback: after a restart of the robot's manager its camera was back on the key in "
-                     f"p50 {percentile(returns, 50, 0):.0f} ms, max {max(returns):.0f} ms (from launching it to 20 messages in a row from its camera: start-up, discovery, dwell {DWELL_S} s)")  # fmt: skip
+                     f"p50 {percentile(returns, 50, 0):.0f} ms, max {max(returns):.0f} ms (from launching it to 20 messages in a row from its camera: start-up, discovery, and its "
+                     f"probation: the dwell {DWELL_S} s doubled for each loss in the last minute, at most 30 s; a kill every few seconds)")  # fmt: skip
 
     from dyknow.testing.hosts import unavailable
 
