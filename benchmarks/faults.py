@@ -186,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=None, help="how long each fault lasts (default 20; flapping 32)")
     parser.add_argument("--smoke", action="store_true", help="a quick run: 4 s per fault, no flapping")
+    parser.add_argument("--scenarios", help="comma-separated, of clean, loss-5, loss-30, slow-1mbit, flapping (default all; --smoke: no flapping)")
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--observe", nargs=2, metavar=("ENDPOINT", "WINDOW_S"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -201,6 +202,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     seconds = args.seconds or (4.0 if args.smoke else 20.0)
     scenarios = ["clean", "loss-5", "loss-30", "slow-1mbit"] + ([] if args.smoke else ["flapping"])
+    if args.scenarios:
+        scenarios = [s.strip() for s in args.scenarios.split(",") if s.strip()]
+        unknown = set(scenarios) - {"clean", "loss-5", "loss-30", "slow-1mbit", "flapping"}
+        if unknown:
+            parser.error(f"--scenarios: unknown {', '.join(sorted(unknown))}")
     print(f"scenario: {TAG} on the station, robot-camera 200 Hz on the robot, ceiling-camera on the field; "
           f"lease {LEASE_MS} ms, dwell {DWELL_S} s; each fault on the robot's link for {seconds:g} s (flapping: 32 s)\n", flush=True)  # fmt: skip
     rows = []

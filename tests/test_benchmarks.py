@@ -153,11 +153,11 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
 
 def test_faults_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "faults.json"
-    result = _run("faults.py", "--smoke", "--seconds", "2", "--json", str(out))
+    result = _run("faults.py", "--scenarios", "clean,loss-5", "--seconds", "2", "--json", str(out))
     assert result.returncode == 0, result.stderr[-3000:]
     data = json.loads(out.read_text())
     rows = {r["scenario"]: r for r in data["results"]}
-    assert list(rows) == ["clean", "loss-5", "loss-30", "slow-1mbit"]
+    assert list(rows) == ["clean", "loss-5"]
     for row in rows.values():
         assert row["seconds"] > 0 and row["rate"] > 0 and set(row["memory_growth_mib"]) == {"station", "robot"}
     assert "(target 0: no false failover)" in result.stdout

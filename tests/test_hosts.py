@@ -139,9 +139,11 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
         observer.next("camera", camera=BOTTOM, timeout_s=60)
 
         robot.proc.send_signal(signal.SIGKILL)  # a killed manager on a reachable host: its links close at once
-        observer.next("camera", camera=CEILING)
-        causes = [e["cause"] for e in observer.ask("adaptations")]
-        assert causes.count("manager 'robot' was lost") >= 2, causes
+        deadline = time.monotonic() + 30  # (a camera line may be a late frame of the switch before: ask the loop)
+        while len(lost := [e for e in observer.ask("adaptations") if e["cause"] == "manager 'robot' was lost"]) < 2:
+            assert time.monotonic() < deadline, lost
+            time.sleep(0.1)
+        assert "ceiling-camera@field" in lost[-1]["new"], lost[-1]
         print(f"links: {hosts.shaping}")
     finally:
         for child in reversed(children):
@@ -218,7 +220,7 @@ def test_packet_loss_keeps_the_stream_on_its_key_and_nothing_grows(faulty: Hosts
         rss = {c: c.rss_mib() for c in (scenario.station, scenario.robot)}
         scenario.observer.stats()
         faulty.loss("robot", 5)
-        _while(8)
+        _while(6)
         light = scenario.observer.stats()
         print(f"5 % loss: {light}")
         assert light["switches"] == 0 and light["camera"] == BOTTOM, light
@@ -228,7 +230,7 @@ def test_packet_loss_keeps_the_stream_on_its_key_and_nothing_grows(faulty: Hosts
         faulty.loss("robot", 30)
         heavy = []
         for _ in range(3):
-            _while(5)
+            _while(3)
             heavy.append(scenario.observer.stats())
         print(f"30 % loss: {heavy}")
         assert all(window["messages"] > 0 for window in heavy), heavy  # the key kept flowing, whichever camera fed it
@@ -246,14 +248,14 @@ def test_packet_loss_keeps_the_stream_on_its_key_and_nothing_grows(faulty: Hosts
 
 
 def test_a_flapping_link_moves_the_request_a_few_times_not_with_every_flap(faulty: Hosts) -> None:
-    """The robot's link goes down and up every 2 s for 30 s: each loss moves the request off the
+    """The robot's link goes down and up every 2 s for 24 s: each loss moves the request off the
     robot (a fault), but a robot lost again and again must stay longer each time before it is
-    trusted with the request again (probation). Before it, the request followed every flap
-    (14-15 switches in such a run); once the link holds, the robot's camera comes back."""
-    scenario = Scenario(faulty)
+    trusted with the request again (probation). Without it the request followed every flap
+    (16 switches in 32 s); once the link holds, the robot's camera comes back."""
+    scenario = Scenario(faulty, dwell_s=0.5)  # the return after its last probation: 0.5 s x 2**5 = 16 s
     try:
         scenario.observer.stats()
-        for _ in range(8):
+        for _ in range(6):
             faulty.cut("robot")
             _while(2)
             faulty.restore("robot")
@@ -294,7 +296,7 @@ def test_a_slow_link_carries_what_it_can_and_nothing_grows(faulty: Hosts, tmp_pa
         faulty.bandwidth("robot", "1mbit")
         limited, lost = [], []
         for _ in range(3):
-            _while(5)
+            _while(4)
             limited.append(scenario.observer.stats())
             lost.append(dict(scenario.observer.ask("lost")))  # counted while the unit lives (a failover replaces it)
         grew = {c.host: c.rss_mib() - before for c, before in rss.items()}
@@ -303,7 +305,7 @@ def test_a_slow_link_carries_what_it_can_and_nothing_grows(faulty: Hosts, tmp_pa
         assert free["by_camera"] == {str(BOTTOM): free["messages"]} and free["rate"] > 20, free
         assert all(w["messages"] > 0 for w in limited), limited  # the key kept flowing, whichever camera fed it
         robot_frames = sum(w["by_camera"].get(str(BOTTOM), 0) for w in limited[1:])  # the first window drains what was on its way
-        assert robot_frames < 10 * 10, limited  # 1 Mbit/s carries about 4 such frames a second
+        assert robot_frames < 10 * 8, limited  # 1 Mbit/s carries about 4 such frames a second
         causes = scenario.causes()
         assert all(cause.startswith(LINK_CAUSES) for cause in causes), causes
         assert all(g < 64 for g in grew.values()), grew
