@@ -64,7 +64,7 @@ _MANAGERS = keys.managers_pattern()
 _SUMMARIES = keys.summaries_pattern()
 # The services each role may call, besides those of the roles before it (any manager, any unit).
 _SERVICES_OF = {
-    "viewer": ["get_model", "get_summary", "get_adaptations", "unit/*/get_config", "unit/*/get_statistics"],
+    "viewer": ["get_model", "get_summary", "get_adaptations", "clock", "unit/*/get_config", "unit/*/get_statistics"],
     "operator": ["spawn", "destroy", "unit/*/set_config", "request", "release", "measure"],
     "admin": ["add_transformation", "remove_transformation"],
 }

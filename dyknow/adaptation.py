@@ -1320,12 +1320,17 @@ class AdaptationLoop:
 
     def _peer_changed(self, symptom: Symptom, manager: str) -> None:
         """Another manager's summary changed: a fault for requests it broke, else an opportunity."""
+        if manager not in self.runtime.peers():
+            # gone by the time the change is handled (its last summary, then its loss): the loss it is
+            symptom = replace(symptom, kind="peer-lost")
         for request in sorted(self.knowledge.requests.values(), key=lambda r: r.key):
             broken = self.analyzer.broken_on(request, manager)
             for ref, why in broken:
                 if "unhealthy" in why:
                     self.knowledge.fail(request.units[ref], symptom.time_ns)
             detail = "; ".join(why for _, why in broken)
+            if symptom.kind == "peer-lost":
+                detail = ""  # the cause says it: "manager X was lost"
             self._adapt(request, replace(symptom, detail=detail) if broken else symptom, bool(broken))
 
     def _reanchor(self, request: _Request, symptom: Symptom) -> None:

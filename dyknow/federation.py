@@ -72,6 +72,7 @@ class Summary:
     units: tuple[SummaryUnit, ...] = ()
     measurements: Mapping[str, float | str] = field(default_factory=dict)
     requests: int = 0
+    clock: int = 0  # the manager's clock id (dyknow.message.CLOCK_ID of its process; 0: unknown)
 
     @property
     def load(self) -> int:
@@ -89,6 +90,7 @@ class Summary:
             "units": [u.to_dict() for u in self.units],
             "measurements": dict(self.measurements),
             "requests": self.requests,
+            "clock": self.clock,
         }
 
     @classmethod
@@ -130,9 +132,17 @@ class Summary:
                 units=tuple(_unit(u, manager) for u in units),
                 measurements=measurements,
                 requests=int(raw.get("requests", 0)),
+                clock=_clock(raw.get("clock", 0)),
             )
         except (ValueError, TypeError, KeyError, AttributeError, RecursionError, SpecError) as exc:
             raise DyKnowError(f"a malformed summary: {str(exc)[:200]}", where=f"manager {manager!r}") from exc
+
+
+def _clock(raw: Any) -> int:
+    """A clock id from a summary: a 32-bit unsigned integer."""
+    if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw < 1 << 32:
+        raise ValueError(f"clock {str(raw)[:40]!r} is not a 32-bit id")
+    return raw
 
 
 def _unit(raw: Any, manager: str) -> SummaryUnit:
@@ -181,6 +191,7 @@ class Directory:
         self._todo: list[tuple[str, str, bytes | None]] = []  # (kind, manager, summary bytes)
         self._wake = threading.Event()
         self._dirty = threading.Event()
+        self._settle = threading.Event()  # set only to cut a wait short at close (a timed wait, not time.sleep)
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"dyknow-{name}-directory", daemon=True)
         self._thread.start()
@@ -211,6 +222,7 @@ class Directory:
         if self._closed:
             return
         self._closed = True
+        self._settle.set()
         for entity in (self._watch, self._summary_sub, self._token):
             entity.undeclare()
         self._wake.set()
@@ -260,7 +272,7 @@ class Directory:
             if self._dirty.is_set():
                 # let a burst of changes settle into one summary; a big manager's summary costs
                 # more to build, so it is built less often (at most a fifth of the thread's time)
-                time.sleep(max(self._debounce_s, 4 * self._publish_s))
+                self._settle.wait(max(self._debounce_s, 4 * self._publish_s))
                 self._dirty.clear()
                 started = time.perf_counter()
                 self._publish()

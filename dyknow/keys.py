@@ -11,6 +11,7 @@ matches a service)::
     dyknow/<manager>/measurements/<name>      a measurement for one manager
     @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
     @dyknow/<manager>/summary                 what a manager offers the others (summary_key)
+    @dyknow/<manager>/clock                   a manager's clock exchanges (clock_key; dyknow.clocks)
     @dyknow/<manager>/<service>               a manager's services (manager_service_key)
     @dyknow/<manager>/unit/<unit>/<service>   a unit's proxy services (unit_service_key)
 
@@ -42,6 +43,7 @@ __all__ = [
     "check_data_key",
     "check_label",
     "check_name",
+    "clock_key",
     "default_key",
     "event_key",
     "label_problem",
@@ -136,6 +138,11 @@ def check_label(label: object, what: str = "label") -> str:
         raise LibraryError(problem[0], where=what, expected=problem[1])
     assert isinstance(label, str)
     return label
+
+
+def clock_key(manager: str) -> str:
+    """Where a manager answers clock exchanges: ``@dyknow/<manager>/clock`` (see :mod:`dyknow.clocks`)."""
+    return f"{SERVICE_ROOT}/{manager}/clock"
 
 
 def default_key(manager: str, unit: str, port: str) -> str:

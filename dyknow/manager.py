@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
-from dyknow import keys, service
+from dyknow import clocks, keys, service
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
@@ -47,6 +47,7 @@ from dyknow.executor import Executor
 from dyknow.federation import Directory, Summary, SummaryUnit
 from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
+from dyknow.message import CLOCK_ID
 from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
@@ -179,6 +180,7 @@ class Manager:
         self._version = 0
         self._started_ns = time.time_ns()
         self._directory: Directory | None = None
+        self._clocks: clocks.ClockTracker | None = None  # the peers' clock offsets (dyknow.clocks)
         self._bus = LocalBus()
         self._receiver = Receiver(self._session, self.name)
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
@@ -197,7 +199,8 @@ class Manager:
             try:
                 self._workers = service.Workers(
                     self.name,
-                    self._session.declare_service_channel(keys.services_pattern(self.name)),
+                    # clock exchanges are answered on Zenoh's thread, where their times are taken
+                    self._session.declare_service_channel(keys.services_pattern(self.name), at_once={keys.clock_key(self.name): clocks.answer}),
                     service.dispatcher(
                         self.name, self._manager_handlers(), self._unit_service, limits, verifier=self._verifier, access=self._access
                     ),
@@ -207,6 +210,7 @@ class Manager:
                 raise
         if federate if federate is not None else serve:
             try:
+                self._clocks = clocks.ClockTracker(self._session)
                 self._directory = Directory(
                     self._session, self.name, summarize=self.summary, fetch=self._fetch_summary, on_change=self._peer_changed
                 )
@@ -248,6 +252,8 @@ class Manager:
         self._adaptation.close(timeout_s / 2)  # releases what its requests run on other managers
         if self._directory is not None:
             self._directory.close(timeout_s / 4)
+        if self._clocks is not None:
+            self._clocks.close()
         per_unit = min(0.5, timeout_s / max(1, len(proxies)))
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
@@ -683,7 +689,9 @@ class Manager:
         infos = tuple(
             replace(info, state="stalled") if info.name in stalled and info.state == "running" else info for info in map(_info, proxies)
         )
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()))
+        estimates = self._clocks.estimates() if self._clocks is not None else {}
+        clock_view = {"clock": f"{CLOCK_ID:08x}", **{name: e.to_dict() for name, e in sorted(estimates.items())}}
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view)
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
@@ -726,7 +734,7 @@ class Manager:
         )
         library = f"{self._started_ns}.{self.library.version}"
         return Summary(
-            self.name, self.host, version, library, self.library.specs(), units, self.measurements, len(self._adaptation.requests())
+            self.name, self.host, version, library, self.library.specs(), units, self.measurements, len(self._adaptation.requests()), CLOCK_ID
         )
 
     def peers(self) -> dict[str, Summary]:
@@ -756,6 +764,12 @@ class Manager:
         return json.dumps(self._peers.call_manager(manager, "get_summary", {})).encode()
 
     def _peer_changed(self, kind: str, manager: str) -> None:
+        if self._clocks is not None:
+            summary = self.peers().get(manager) if kind != "lost" else None
+            if kind == "lost":
+                self._clocks.untrack(manager)
+            elif summary is not None and summary.clock and summary.clock != CLOCK_ID:  # one process, one clock: nothing to estimate
+                self._clocks.track(manager, keys.clock_key(manager))
         if kind == "lost":
             with self._lock:
                 orphans = [unit for unit, owner in self._owners.items() if owner == manager]

@@ -286,21 +286,22 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra), source, origin_clock, send_clock)
 
 
-def reheader(attachment: bytes, seq: int, send_ns: int, source: int) -> tuple[bytes, int, int, int, int, str] | None:
+def reheader(attachment: bytes, seq: int, send_ns: int, source: int) -> tuple[bytes, int, int, int, int, int, int, str] | None:
     """The header of a received message of raw bytes made the header of the next hop, for a unit
     that forwards it as it came (no :class:`Message`, no copy of the payload): the same origin and
     origin clock, a new ``seq``, ``send_ns`` and ``source``, this process's send clock. Returns
-    ``(attachment, origin_ns, previous send_ns, previous source, previous seq, encoding)``, or
-    None for any other header: text, JSON and arrays are decoded first (which checks them, so that
-    a relay never passes on what its readers would refuse), and so is a header of another version
-    (decoding reads it, or reports what is wrong with it)."""
+    ``(attachment, origin_ns, origin_clock, previous send_ns, previous send_clock, previous
+    source, previous seq, encoding)``, or None for any other header: text, JSON and arrays are
+    decoded first (which checks them, so that a relay never passes on what its readers would
+    refuse), and so is a header of another version (decoding reads it, or reports what is wrong
+    with it)."""
     if len(attachment) != HEADER.size or attachment[2] != _VERSION:
         return None
-    _, _, kind, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, _ = HEADER.unpack_from(attachment)
+    _, _, kind, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, sent_clock = HEADER.unpack_from(attachment)
     if kind != _BYTES:
         return None
     header = HEADER.pack(_MAGIC, _VERSION, _BYTES, seq, origin_ns, send_ns, source, origin_clock, CLOCK_ID)
-    return header, origin_ns, sent_ns, prev_source, prev_seq, _BYTES_ENCODING
+    return header, origin_ns, origin_clock, sent_ns, sent_clock, prev_source, prev_seq, _BYTES_ENCODING
 
 
 def _decode_foreign(data: bytes, encoding: str) -> Any:

@@ -142,6 +142,9 @@ class Model:
     units: tuple[UnitInfo, ...]
     specs: tuple[TransformationSpec, ...] = field(default=())
     requests: tuple[RequestInfo, ...] = field(default=())
+    #: The other managers' clocks as this one estimates them: name -> ``Estimate.to_dict()``
+    #: (offset, uncertainty, drift; see :mod:`dyknow.clocks`), and its own under ``"clock"``.
+    clocks: Mapping[str, Any] = field(default_factory=dict)
 
     def unit(self, name: str) -> UnitInfo:
         """The running unit ``name``; :class:`UnitError` when the model has none."""
@@ -157,6 +160,7 @@ class Model:
             "units": [u.to_dict() for u in self.units],
             "specs": [s.to_dict() for s in self.specs],
             "requests": [r.to_dict() for r in self.requests],
+            "clocks": dict(self.clocks),
         }
 
     def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
@@ -172,6 +176,7 @@ class Model:
             "units": [],
             "specs": [],
             "requests": [r.to_dict() for r in self.requests],
+            "clocks": dict(self.clocks),
             "total": {"units": len(self.units), "specs": len(self.specs)},
         }
         used = len(json.dumps(out))

@@ -35,6 +35,7 @@ import numpy as np
 
 from dyknow import keys
 from dyknow.bus import cycle_error
+from dyknow.clocks import CLOCKS
 from dyknow.errors import BindingError, UnitError, did_you_mean
 from dyknow.message import CLOCK_ID, Message, check_payload, new_id, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
@@ -164,6 +165,31 @@ _INLINE_BUDGET_NS: Final = 200_000
 _MAX_DEPTH: Final = 64
 # An input port follows the sequence numbers of at most this many senders at once.
 _MAX_SENDERS: Final = 64
+
+
+def _arrived(counters: PortCounters, nbytes: int, now: int, origin_ns: int, origin_clock: int, send_ns: int, send_clock: int) -> None:
+    """Count one message handed to a unit, its age and hop in this process's clock: times of
+    another clock corrected by its offset (dyknow.clocks), or left out when it is not known."""
+    if origin_clock == CLOCK_ID and send_clock == CLOCK_ID:
+        counters.arrived(nbytes, now - origin_ns, now - send_ns)
+        return
+    current = CLOCKS.current
+    origin_offset = current.get(origin_clock)
+    send_offset = current.get(send_clock)
+    if origin_offset is None or send_offset is None:
+        counters.arrived_unknown(nbytes)
+        return
+    counters.clocks = (origin_clock, send_clock)
+    counters.arrived(nbytes, now - origin_ns + origin_offset, now - send_ns + send_offset)
+
+
+def _uncertainty_us(clocks: tuple[int, int]) -> float:
+    """How far the offsets of ``clocks`` may be off now (µs; 0 for this process's own)."""
+    worst = 0
+    for clock in clocks:
+        if clock != 0 and clock != CLOCK_ID:
+            worst = max(worst, CLOCKS.uncertainty(clock) or 0)
+    return round(worst / 1000, 1)
 
 
 class OutputPort:
@@ -494,7 +520,7 @@ class Proxy:
             self.inline_depth = 0
             self._lock.release()
         # bookkeeping after the callback, off the path of what the unit published
-        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+        _arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
         took = time_ns() - now
         self._ewma_ns += (took - self._child_ns - self._ewma_ns) >> 3
         if publisher is not None:
@@ -522,7 +548,7 @@ class Proxy:
         finally:
             self.inline_depth = 0
             self._lock.release()
-        port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+        _arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
         return True
 
     def forward_wire(self, port: InputPort, data: Any, header: bytes) -> bool:
@@ -541,7 +567,7 @@ class Proxy:
             wire = reheader(header, out.seq + 1, now, out.source)
             if wire is None:
                 return False
-            attachment, origin_ns, sent_ns, sender, sender_seq, encoding = wire
+            attachment, origin_ns, origin_clock, sent_ns, sent_clock, sender, sender_seq, encoding = wire
             port.track(sender, sender_seq)
             out.seq += 1
             nbytes = len(data)
@@ -556,7 +582,7 @@ class Proxy:
             return True  # taken, and counted as the unit's failure
         finally:
             self._lock.release()
-        port.counters.arrived(nbytes, now - origin_ns, now - sent_ns)
+        _arrived(port.counters, nbytes, now, origin_ns, origin_clock, sent_ns, sent_clock)
         return True
 
     def _forward(self, port: InputPort, msg: Message, now: int) -> None:
@@ -622,7 +648,7 @@ class Proxy:
                     continue
                 msg = q.popleft()
                 now = time_ns()
-                port.counters.arrived(msg.nbytes, now - msg.origin_ns, now - msg.send_ns)
+                _arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
                 self._current = msg
                 self._current_thread = ident
                 worker.busy_job = self
@@ -874,7 +900,11 @@ class Proxy:
     def get_statistics(self) -> UnitStatistics:
         """Uptime, reconfigurations, and per-port counts, drops and latency percentiles."""
         ports = [
-            (self._inputs[p.name].counters.snapshot(p.name, "in", self._inputs[p.name].key))
+            (
+                self._inputs[p.name].counters.snapshot(
+                    p.name, "in", self._inputs[p.name].key, _uncertainty_us(self._inputs[p.name].counters.clocks)
+                )
+            )
             if p.direction == "in"
             else self._outputs[p.name].counters.snapshot(p.name, "out", self._outputs[p.name].key)
             for p in self.spec.ports

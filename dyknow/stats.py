@@ -63,6 +63,12 @@ class PortStatistics:
     ``dropped`` counts what the port itself dropped (its queue was full); for input ports,
     ``lost`` counts messages another process sent that never arrived (gaps in each sender's
     sequence numbers: its Zenoh publisher drops rather than blocks under congestion).
+
+    Times from another host's clock are corrected by that clock's estimated offset
+    (:mod:`dyknow.clocks`) before they count in ``latency`` and ``hop``; ``uncertainty_us`` is
+    how far the latest one may be off for it (0 when both times were this process's). A message
+    stamped by a clock whose offset is not known yet is counted in ``unknown_clock`` and left out
+    of both figures: never shown as if it were true.
     """
 
     port: str
@@ -76,6 +82,8 @@ class PortStatistics:
     rejected: int = 0
     last_rejection: str | None = None
     lost: int = 0
+    unknown_clock: int = 0
+    uncertainty_us: float = 0.0
 
     def to_dict(self) -> dict[str, object]:
         """The JSON form (latency and hop only for input ports)."""
@@ -88,6 +96,7 @@ class PortStatistics:
         }
         if self.direction == "in":
             out["lost"] = self.lost
+            out["clock"] = {"unknown": self.unknown_clock, "uncertainty_us": self.uncertainty_us}
             out["rejected"] = self.rejected
             out["last_rejection"] = self.last_rejection
             out["latency"] = self.latency.to_dict()
@@ -98,13 +107,15 @@ class PortStatistics:
 class PortCounters:
     """Mutable counters of one port, updated on the hot path."""
 
-    __slots__ = ("_hop", "_latency", "_n", "bytes", "dropped", "last_rejection", "lost", "messages", "rejected")
+    __slots__ = ("_hop", "_latency", "_n", "bytes", "clocks", "dropped", "last_rejection", "lost", "messages", "rejected", "unknown_clock")
 
     def __init__(self) -> None:
         self.messages = 0
         self.bytes = 0
         self.dropped = 0
         self.lost = 0
+        self.unknown_clock = 0
+        self.clocks = (0, 0)  # the clocks of the latest corrected sample (origin, send); (0, 0): this process's
         self.rejected = 0
         self.last_rejection: str | None = None
         self._latency = [0] * WINDOW
@@ -127,8 +138,15 @@ class PortCounters:
         self._hop[i] = hop_ns
         self._n += 1
 
-    def snapshot(self, port: str, direction: str, key: str) -> PortStatistics:
-        """The counters and percentiles of the last samples, as plain data."""
+    def arrived_unknown(self, nbytes: int) -> None:
+        """Count one message handed to a unit whose times come from a clock of unknown offset."""
+        self.messages += 1
+        self.bytes += nbytes
+        self.unknown_clock += 1
+
+    def snapshot(self, port: str, direction: str, key: str, uncertainty_us: float = 0.0) -> PortStatistics:
+        """The counters and percentiles of the last samples, as plain data (``uncertainty_us``:
+        what the caller knows of the offsets of :attr:`clocks`)."""
         n = min(self._n, WINDOW)
         return PortStatistics(
             port,
@@ -142,4 +160,6 @@ class PortCounters:
             self.rejected,
             self.last_rejection,
             self.lost,
+            self.unknown_clock,
+            uncertainty_us,
         )

@@ -23,7 +23,7 @@ import queue
 import re
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
@@ -501,7 +501,7 @@ class Queryable(_Entity):
     For calls served by several threads, see :class:`ServiceChannel`.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> None:
+    def __init__(self, session: zenoh.Session, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]], inline: bool = False) -> None:
         def answer(query: zenoh.Query) -> None:
             qkey = str(query.key_expr)
             try:
@@ -513,7 +513,7 @@ class Queryable(_Entity):
             _reply(query, ok, reply)
 
         try:
-            queryable = session.declare_queryable(key, answer)
+            queryable = session.declare_queryable(key, _inline(answer) if inline else answer)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a service on {key!r}: {_clean(exc)}") from exc
         super().__init__(queryable)
@@ -559,12 +559,22 @@ class ServiceChannel(_Entity):
     comes.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, capacity: int) -> None:
+    def __init__(
+        self, session: zenoh.Session, key: str, capacity: int, at_once: Mapping[str, Callable[[bytes, int], tuple[bool, bytes]]] | None = None
+    ) -> None:
         self.key = key
         self._closed = False
         self._calls: queue.Queue[ServiceRequest | None] = queue.Queue(capacity)
+        quick = dict(at_once or {})
 
         def arrived(query: zenoh.Query) -> None:  # on Zenoh's thread, or the caller's in this session
+            if quick:
+                handler = quick.get(str(query.key_expr))
+                if handler is not None:  # answered right here: handler(payload, arrival ns)
+                    now = time.time_ns()
+                    payload = query.payload.to_bytes() if query.payload is not None else b""
+                    _reply(query, *handler(payload, now))
+                    return
             request = ServiceRequest(query)
             while not self._closed:
                 try:
@@ -734,13 +744,48 @@ class Session:
         on_error = on_error or (lambda exc: log.warning("on %s: %s", key, exc))
         return Subscriber(self._z(), key, on_message, on_error, inline, wanted, forward)
 
-    def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]]) -> Queryable:
-        """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``."""
-        return Queryable(self._z(), key, handler)
+    def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]], *, inline: bool = False) -> Queryable:
+        """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``; ``inline``: on
+        Zenoh's receiving thread (the handler must return at once), not a thread of its own."""
+        return Queryable(self._z(), key, handler, inline)
 
-    def declare_service_channel(self, key: str, capacity: int = 1024) -> ServiceChannel:
-        """Receive the calls on ``key`` for several threads to answer (see :class:`ServiceChannel`)."""
-        return ServiceChannel(self._z(), key, capacity)
+    def exchange(self, key: str, payload: bytes, *, timeout_s: float) -> tuple[bytes, int, int, int] | None:
+        """One timed request to the queryable on ``key``: ``(first reply, t_sent_ns, t_received_ns,
+        replies)``, the times of this process's wall clock taken once Zenoh took the request and
+        on Zenoh's thread as the reply arrived; None when no reply came within ``timeout_s``. For
+        clock exchanges (:mod:`dyknow.clocks`): no thread hand-off inside either time. (A reply
+        may arrive before ``t_sent_ns`` is taken: the caller then uses its own earlier time.)"""
+        done = threading.Event()
+        got: list[tuple[bytes, int]] = []
+        count = [0]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            arrived = time.time_ns()
+            count[0] += 1
+            if reply.ok is not None and not got:
+                got.append((reply.ok.payload.to_bytes(), arrived))
+                done.set()
+
+        try:
+            self._z().get(key, _inline(on_reply), payload=payload, timeout=timeout_s)
+            # taken once Zenoh has the query: before it, the Python call's own cost counted on the
+            # request's leg alone and tilted every offset by tens of µs (measured in namespaces)
+            sent = time.time_ns()
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot query {key!r}: {_clean(exc)}") from exc
+        if not done.wait(timeout_s):
+            return None
+        return got[0][0], sent, got[0][1], count[0]
+
+    def declare_service_channel(
+        self, key: str, capacity: int = 1024, *, at_once: Mapping[str, Callable[[bytes, int], tuple[bool, bytes]]] | None = None
+    ) -> ServiceChannel:
+        """Receive the calls on ``key`` for several threads to answer (see :class:`ServiceChannel`).
+
+        ``at_once``: calls on these concrete keys are answered on the thread that receives them,
+        by ``handler(payload, arrival_ns) -> (ok, reply)``, which must return at once (a clock
+        exchange: :mod:`dyknow.clocks`)."""
+        return ServiceChannel(self._z(), key, capacity, at_once)
 
     def declare_liveliness_token(self, key: str) -> LivelinessToken:
         """Announce on ``key`` that something lives, until undeclared or the process ends."""
@@ -786,7 +831,7 @@ class Session:
             if (found and found == last) or time.monotonic() >= deadline:
                 return found
             last = found
-            time.sleep(0.05)
+            threading.Event().wait(0.05)  # (time.sleep fails under a faked clock: libfaketime's clock_nanosleep)
 
     def put(self, key: str, data: bytes | str, *, encoding: str = "application/json") -> None:
         """Publish one plain sample (for events and measurements)."""

@@ -133,8 +133,8 @@ def test_reheader_rewrites_a_bytes_header_for_the_next_hop_and_nothing_else() ->
     _, header, _ = encode(raw)
     rewritten = reheader(header, 8, 333, 42)
     assert rewritten is not None
-    attachment, origin_ns, sent_ns, source, seq, encoding = rewritten
-    assert (origin_ns, sent_ns, source, seq, encoding) == (111, 222, 41, 7, "application/octet-stream")
+    attachment, origin_ns, origin_clock, sent_ns, sent_clock, source, seq, encoding = rewritten
+    assert (origin_ns, origin_clock, sent_ns, sent_clock, source, seq, encoding) == (111, 5, 222, 6, 41, 7, "application/octet-stream")
     msg = decode(b"data", attachment, "k")
     assert (msg.payload, msg.seq, msg.origin_ns, msg.send_ns) == (b"data", 8, 111, 333)
     assert (msg.source, msg.origin_clock, msg.send_clock) == (42, 5, CLOCK_ID)  # the origin's clock goes on; the send is ours
