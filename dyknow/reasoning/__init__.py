@@ -1,0 +1,9 @@
+"""Temporal reasoning over streams: formulas, their exact semantics and incremental monitors.
+"""
+
+from __future__ import annotations
+
+from dyknow.errors import FormulaError
+from dyknow.reasoning.syntax import Formula, parse
+
+__all__ = ["Formula", "FormulaError", "parse"]
