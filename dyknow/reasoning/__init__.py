@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from dyknow.errors import FormulaError
+from dyknow.reasoning.semantics import evaluate, evaluate_ns
 from dyknow.reasoning.syntax import Formula, parse
 
-__all__ = ["Formula", "FormulaError", "parse"]
+__all__ = ["Formula", "FormulaError", "evaluate", "evaluate_ns", "parse"]

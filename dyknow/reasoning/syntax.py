@@ -72,6 +72,7 @@ __all__ = [
     "Or",
     "Since",
     "Until",
+    "children",
     "parse",
 ]
 
@@ -292,7 +293,8 @@ def _number_text(number: float | None) -> str:
     return str(int(number)) if number.is_integer() and abs(number) < 1e15 else repr(number)
 
 
-def _children(node: Node) -> tuple[Node, ...]:
+def children(node: Node) -> tuple[Node, ...]:
+    """A node's operands, left to right (none for atoms and constants)."""
     if isinstance(node, Atom | Const):
         return ()
     if isinstance(node, And | Or | Implies | Until | Since):
@@ -307,7 +309,7 @@ def _walk(root: Node) -> list[Node]:
     while stack:
         node = stack.pop()
         out.append(node)
-        stack.extend(reversed(_children(node)))
+        stack.extend(reversed(children(node)))
     return out
 
 
@@ -355,7 +357,7 @@ class Formula:
 def _future_horizon(root: Node) -> int:
     memo: dict[int, int] = {}
     for node in reversed(_walk(root)):  # children before parents
-        below = max((memo[id(child)] for child in _children(node)), default=0)
+        below = max((memo[id(child)] for child in children(node)), default=0)
         own = 0
         if isinstance(node, _FUTURE):
             own = node.interval.hi_ns or 0
