@@ -9,6 +9,7 @@ definitions literally (every window enumerated, every AND and OR over explicit l
 from __future__ import annotations
 
 import math
+import random
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -173,55 +174,81 @@ def intervals(*, future: bool) -> st.SearchStrategy[Interval]:
     return st.builds(build, st.integers(0, 4), st.integers(0, 5), st.booleans())
 
 
-def formulas(terms: Sequence[Term] = TERMS, *, past: bool = True, future: bool = True, max_leaves: int = 6) -> st.SearchStrategy[Formula]:
-    """Random formulas over ``terms`` with every connective and the operators asked for, nested."""
+def _trees(terms: Sequence[Term], depth: int, *, past: bool, future: bool) -> st.SearchStrategy[Node]:
+    """Trees exactly ``depth`` deep along their leftmost deepest path; the other operands shallower."""
     leaves = st.one_of(atoms(terms), atoms(terms), atoms(terms), st.builds(Const, st.booleans()))
-
-    def extend(inner: st.SearchStrategy[Node]) -> st.SearchStrategy[Node]:
-        options: list[st.SearchStrategy[Node]] = [
-            st.builds(Not, inner),
-            st.builds(And, inner, inner),
-            st.builds(Or, inner, inner),
-            st.builds(Implies, inner, inner),
+    if depth == 0:
+        return leaves
+    deep = _trees(terms, depth - 1, past=past, future=future)
+    any_ = st.one_of(leaves, deep) if depth == 1 else st.one_of(leaves, _trees(terms, depth - 2, past=past, future=future), deep)
+    options: list[st.SearchStrategy[Node]] = [
+        st.builds(Not, deep),
+        st.builds(And, deep, any_),
+        st.builds(Or, any_, deep),
+        st.builds(Implies, deep, any_),
+    ]
+    if future:
+        options += [
+            st.builds(Always, intervals(future=True), deep),
+            st.builds(Eventually, intervals(future=True), deep),
+            st.builds(Until, deep, any_, intervals(future=True)),
+            st.builds(Until, any_, deep, intervals(future=True)),
         ]
-        if future:
-            options += [
-                st.builds(Always, intervals(future=True), inner),
-                st.builds(Eventually, intervals(future=True), inner),
-                st.builds(Until, inner, inner, intervals(future=True)),
-            ]
-        if past:
-            options += [
-                st.builds(Historically, intervals(future=False), inner),
-                st.builds(Once, intervals(future=False), inner),
-                st.builds(Since, inner, inner, intervals(future=False)),
-            ]
-        return st.one_of(*options)
+    if past:
+        options += [
+            st.builds(Historically, intervals(future=False), deep),
+            st.builds(Once, intervals(future=False), deep),
+            st.builds(Since, deep, any_, intervals(future=False)),
+            st.builds(Since, any_, deep, intervals(future=False)),
+        ]
+    return st.one_of(*options)
 
-    return st.recursive(leaves, extend, max_leaves=max_leaves).map(Formula.of)
+
+def formulas(terms: Sequence[Term] = TERMS, *, past: bool = True, future: bool = True, max_depth: int = 4) -> st.SearchStrategy[Formula]:
+    """Random formulas over ``terms``, 0 to ``max_depth`` operators deep, with every connective and
+    the temporal operators asked for, nested in any order."""
+    by_depth = [_trees(terms, depth, past=past, future=future) for depth in range(max_depth + 1)]
+    return st.integers(0, max_depth).flatmap(lambda depth: by_depth[depth]).map(Formula.of)
 
 
 VALUES: st.SearchStrategy[Any] = st.one_of(
     st.sampled_from([0, 1, 2, 3, 2.5, 1.0]),
     st.sampled_from([0, 1, 2, 3]),
     st.booleans(),
+    st.booleans(),
     st.builds(lambda v: {"v": v}, st.one_of(st.sampled_from([0, 1, 2, 3]), st.booleans())),
-    st.sampled_from([None, "x", {"w": 1}, float("nan")]),
+    st.sampled_from([None, "x", {"w": 1}, float("nan")]),  # unknown for every atom
 )
 
 
 @st.composite
-def traces(draw: st.DrawFn, terms: Sequence[Term], *, max_samples: int = 14) -> dict[Term, list[tuple[int, Any]]]:
+def traces(draw: st.DrawFn, terms: Sequence[Term], *, max_samples: int = 30) -> dict[Term, list[tuple[int, Any]]]:
     """Irregular samples (ns, value) per term: gaps of 0 to 4 ms, shared times across streams,
     now and then two samples of one stream at one time."""
     out: dict[Term, list[tuple[int, Any]]] = {}
     for term in terms:
         t = draw(st.integers(0, 3))
         samples = []
-        for _ in range(draw(st.integers(1, max_samples))):
+        for _ in range(draw(st.integers(4, max_samples))):
             samples.append((t * MS, draw(VALUES)))
-            t += draw(st.sampled_from([0, 1, 1, 1, 2, 3, 4])) if samples else 0
+            t += draw(st.sampled_from([0, 1, 1, 1, 1, 2, 3, 4]))
         out[term] = samples
+    return out
+
+
+def long_trace(terms: Sequence[Term], seed: int, samples: int = 400) -> dict[Term, list[tuple[int, Any]]]:
+    """A long irregular trace from a seed (drawing hundreds of samples through Hypothesis is slow):
+    long enough that the monitor drops old states many times over."""
+    rng = random.Random(seed)
+    pool = [0, 1, 2, 3, 2.5, True, False, {"v": 1}, {"v": 3}, {"v": True}, None]
+    out: dict[Term, list[tuple[int, Any]]] = {}
+    for term in terms:
+        t = rng.randrange(4)
+        trace = []
+        for _ in range(samples):
+            trace.append((t * MS, rng.choice(pool)))
+            t += rng.choice([0, 1, 1, 1, 2, 3])
+        out[term] = trace
     return out
 
 

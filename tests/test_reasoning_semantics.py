@@ -60,7 +60,7 @@ def test_future_formulas_agree_with_the_naive_evaluator(formula: Formula, data: 
 
 
 @cases(1000)
-@given(formula=formulas(max_leaves=8), data=st.data())
+@given(formula=formulas(max_depth=5), data=st.data())
 def test_mixed_formulas_agree_with_the_naive_evaluator(formula: Formula, data: st.DataObject) -> None:
     _check_against_naive(data, formula)
 
