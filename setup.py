@@ -25,6 +25,8 @@ COMPILED = [
     "dyknow/executor.py",
     "dyknow/message.py",
     "dyknow/proxy.py",
+    "dyknow/reasoning/progression.py",
+    "dyknow/reasoning/semantics.py",
     "dyknow/receiver.py",
     "dyknow/stats.py",
     "dyknow/transport.py",

@@ -21,7 +21,9 @@ from tests.reasoning_support import MS, formulas, long_trace, traces
 
 def cases(count: int) -> settings:
     """Reproducible Hypothesis settings: ``count`` examples, derandomized, no deadline."""
-    return settings(max_examples=count, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    return settings(
+        max_examples=count, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large]
+    )
 
 
 def _in_time_order(trace: Mapping[Term, Sequence[tuple[int, Any]]], rng: random.Random) -> list[tuple[Term, int, Any]]:
@@ -201,7 +203,14 @@ def test_unknown_verdicts_are_never_returned() -> None:
 
 def test_verdicts_as_json() -> None:
     verdict = Verdict(3, 1_500_000_000, True, 2_000_000_000)
-    assert verdict.to_json() == {"t": 1.5, "verdict": True, "decided_t": 2.0, "t_ns": 1_500_000_000, "decided_ns": 2_000_000_000, "state": 3}
+    assert verdict.to_json() == {
+        "t": 1.5,
+        "verdict": True,
+        "decided_t": 2.0,
+        "t_ns": 1_500_000_000,
+        "decided_ns": 2_000_000_000,
+        "state": 3,
+    }
 
 
 def test_misuse_is_explained() -> None:

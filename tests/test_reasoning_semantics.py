@@ -32,11 +32,11 @@ from dyknow.reasoning.syntax import Formula
 from tests.reasoning_support import TERMS, formulas, naive_evaluate_ns, seconds, traces
 
 
-
 def cases(count: int) -> settings:
     """Reproducible Hypothesis settings: ``count`` examples, derandomized, no deadline."""
-    return settings(max_examples=count, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-
+    return settings(
+        max_examples=count, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large]
+    )
 
 
 def _check_against_naive(data: st.DataObject, formula: Formula) -> None:
@@ -147,7 +147,10 @@ def test_an_incomplete_future_window_is_one_more_unknown() -> None:
 
 
 def test_until_and_since_windows_and_chains() -> None:
-    streams = {"f": [(0.0, True), (1.0, True), (2.0, False), (3.0, True), (4.0, True)], "g": [(0.0, False), (1.0, False), (2.0, False), (3.0, True), (4.0, False)]}
+    streams = {
+        "f": [(0.0, True), (1.0, True), (2.0, False), (3.0, True), (4.0, True)],
+        "g": [(0.0, False), (1.0, False), (2.0, False), (3.0, True), (4.0, False)],
+    }
     # until at 0: g first true at 3, but f fails at 2 < 3. At 1 and 2 the false f at 2 dooms every
     # later term, but the window [t, t + 4s] is incomplete: its unknown rest is one more term
     assert [v for _, v in evaluate("f until[0, 4s] g", streams)] == [False, None, None, True, None]
@@ -160,7 +163,10 @@ def test_times_are_whole_nanoseconds() -> None:
     streams = {"p": [(0.1, True), (0.2, False), (0.3, False)]}
     # 0.3 - 0.1 is 0.19999999999999998 in floats, but 200 ms here
     assert evaluate("once[200ms, 200ms] p", streams) == [(0.1, False), (0.2, False), (0.3, True)]
-    assert evaluate_ns("once[200ms, 200ms] p", {"p": [(100_000_000, True), (300_000_000, False)]}) == [(100_000_000, False), (300_000_000, True)]
+    assert evaluate_ns("once[200ms, 200ms] p", {"p": [(100_000_000, True), (300_000_000, False)]}) == [
+        (100_000_000, False),
+        (300_000_000, True),
+    ]
 
 
 def test_evaluate_says_what_is_wrong_with_its_streams() -> None:
@@ -213,7 +219,9 @@ def test_reelay_discrete_time_agrees_on_regular_traces(ours: str, theirs: str) -
         ys = [rng.choice([1, 1, 5]) for _ in range(40)]
         monitor = reelay.discrete_timed_monitor(pattern=theirs, condense=False)
         theirs_out = [monitor.update({"x": x, "y": y})["value"] for x, y in zip(xs, ys, strict=True)]
-        mine = [v for _, v in evaluate(ours, {"x": [(float(i), x) for i, x in enumerate(xs)], "y": [(float(i), y) for i, y in enumerate(ys)]})]
+        mine = [
+            v for _, v in evaluate(ours, {"x": [(float(i), x) for i, x in enumerate(xs)], "y": [(float(i), y) for i, y in enumerate(ys)]})
+        ]
         assert mine == theirs_out
 
 
@@ -293,7 +301,10 @@ def test_rtamt_0_4_10_mispastifies_implies_over_a_future_operator() -> None:
     xs, ys = [5, 1, 1, 1, 1, 1, 1, 1, 1, 1], [1] * 10
     spec = _rtamt_monitor(rtamt, "(x >= 3) -> eventually[0:5](y >= 3)", pastify=True)
     robustness = [spec.update(i, [("x", x), ("y", y)]) for i, (x, y) in enumerate(zip(xs, ys, strict=True))]
-    ours = evaluate("x >= 3 implies eventually[0, 5s] y >= 3", {"x": [(float(i), x) for i, x in enumerate(xs)], "y": [(float(i), y) for i, y in enumerate(ys)]})
+    ours = evaluate(
+        "x >= 3 implies eventually[0, 5s] y >= 3",
+        {"x": [(float(i), x) for i, x in enumerate(xs)], "y": [(float(i), y) for i, y in enumerate(ys)]},
+    )
     assert ours[0] == (0.0, False)  # the request at 0 is never granted
     if all(math.isinf(r) and r > 0 for r in robustness):  # the 0.4.10 bug: no violation at all
         return

@@ -1,5 +1,4 @@
-"""Temporal reasoning over streams: formulas, their exact semantics and incremental monitors.
-"""
+"""Temporal reasoning over streams: formulas, their exact semantics and incremental monitors."""
 
 from __future__ import annotations
 

@@ -68,7 +68,7 @@ from __future__ import annotations
 
 import math
 from bisect import bisect_left, bisect_right
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
@@ -92,7 +92,7 @@ from dyknow.reasoning.syntax import (
 )
 from dyknow.tags import Term, parse_term
 
-__all__ = ["FALSE", "TRUE", "UNKNOWN", "atom_test", "evaluate", "evaluate_ns", "synchronize", "verdict_of"]
+__all__ = ["FALSE", "TRUE", "UNKNOWN", "AtomTest", "evaluate", "evaluate_ns", "synchronize", "verdict_of"]
 
 FALSE: int = 0
 """A verdict as an int: false. Kleene's ``and`` is ``min``, ``or`` is ``max``, ``not`` is ``2 - v``."""
@@ -101,64 +101,59 @@ UNKNOWN: int = 1
 TRUE: int = 2
 """A verdict as an int: true."""
 
-_COMPARE: dict[str, Callable[[Any, float], bool]] = {
-    "<": lambda x, y: x < y,
-    "<=": lambda x, y: x <= y,
-    ">": lambda x, y: x > y,
-    ">=": lambda x, y: x >= y,
-    "==": lambda x, y: x == y,
-    "!=": lambda x, y: x != y,
-}
-
 
 def verdict_of(value: int) -> bool | None:
     """The verdict as Python sees it: True, False or None for unknown."""
     return True if value == TRUE else False if value == FALSE else None
 
 
-def atom_test(atom: Atom) -> Callable[[Any], int]:
-    """The function giving an atom's verdict (:data:`TRUE`, :data:`FALSE`, :data:`UNKNOWN`) on a held value.
+_OPS = ("<", "<=", ">", ">=", "==", "!=")
 
-    The one definition of atoms (see the module documentation); the monitor calls it too.
-    """
-    fields = atom.fields
-    op = atom.op
-    if op is None:
 
-        def boolean(value: Any) -> int:
-            for name in fields:
+class AtomTest:
+    """An atom's verdict (:data:`TRUE`, :data:`FALSE`, :data:`UNKNOWN`) on a held value: the one
+    definition of atoms (see the module documentation), which the monitor calls too."""
+
+    def __init__(self, atom: Atom) -> None:
+        self.fields: tuple[str, ...] = atom.fields
+        self.plain = not atom.fields  # the payload itself, no path into it
+        self.comparison = atom.op is not None  # else a boolean stream
+        self.op = _OPS.index(atom.op) if atom.op is not None else -1
+        self.number = float(atom.number) if atom.number is not None else math.nan
+
+    def verdict(self, value: Any) -> int:
+        """The atom's verdict on ``value``, the payload its stream holds."""
+        if not self.plain:
+            for name in self.fields:
                 if type(value) is not dict:
                     return UNKNOWN
                 value = value.get(name, None)
-            if value is True:
-                return TRUE
-            if value is False:
-                return FALSE
-            return UNKNOWN
-
-        return boolean
-    number = float(atom.number if atom.number is not None else math.nan)
-    compare = _COMPARE[op]
-
-    def comparison(value: Any) -> int:
-        for name in fields:
-            if type(value) is not dict:
-                return UNKNOWN
-            value = value.get(name, None)
+        if not self.comparison:
+            return TRUE if value is True else FALSE if value is False else UNKNOWN
         kind = type(value)
         if kind is not float and kind is not int:
-            if kind is bool or not isinstance(value, int | float):
+            if kind is bool or not isinstance(value, (int, float)):
                 return UNKNOWN
         if value != value:  # NaN
             return UNKNOWN
-        return TRUE if compare(value, number) else FALSE
+        number = self.number
+        op = self.op
+        if op == 0:
+            holds = value < number
+        elif op == 1:
+            holds = value <= number
+        elif op == 2:
+            holds = value > number
+        elif op == 3:
+            holds = value >= number
+        elif op == 4:
+            holds = value == number
+        else:
+            holds = value != number
+        return TRUE if holds else FALSE
 
-    return comparison
 
-
-def synchronize(
-    terms: Sequence[Term], streams: Sequence[Sequence[tuple[int, Any]]]
-) -> tuple[list[int], list[tuple[Any, ...]]]:
+def synchronize(terms: Sequence[Term], streams: Sequence[Sequence[tuple[int, Any]]]) -> tuple[list[int], list[tuple[Any, ...]]]:
     """The states of streams (one per term, samples ``(t_ns, value)`` in time order): their times
     and the values each holds, from the first time every stream has a value."""
     merged = sorted((t, k, i) for k, samples in enumerate(streams) for i, (t, _value) in enumerate(samples))
@@ -233,7 +228,7 @@ def _choose(formula: Formula, streams: Mapping[str, Sequence[tuple[Any, Any]]]) 
     return chosen
 
 
-def _evaluate_ns(formula: Formula, streams: list[Sequence[tuple[int, Any]]], names: list[str]) -> list[tuple[int, bool | None]]:
+def _evaluate_ns(formula: Formula, streams: Sequence[Sequence[tuple[int, Any]]], names: list[str]) -> list[tuple[int, bool | None]]:
     for name, samples in zip(names, streams, strict=True):
         for position in range(1, len(samples)):
             if samples[position][0] < samples[position - 1][0]:
@@ -273,9 +268,9 @@ class _Evaluator:
     def apply(self, node: Node, args: list[list[int]]) -> list[int]:
         n = len(self.times)
         if isinstance(node, Atom):
-            test = atom_test(node)
+            test = AtomTest(node)
             k = self.index[node.term]
-            return [test(state[k]) for state in self.values]
+            return [test.verdict(state[k]) for state in self.values]
         if isinstance(node, Const):
             return [TRUE if node.value else FALSE] * n
         if isinstance(node, Not):

@@ -82,7 +82,7 @@ COMPARISONS: tuple[str, ...] = ("<", "<=", ">", ">=", "==", "!=")
 MAX_FORMULA_CHARS: int = 10_000
 """The longest formula text :func:`parse` reads."""
 
-MAX_DEPTH: int = 200
+MAX_DEPTH: int = 100
 """The deepest nesting of operators and parentheses :func:`parse` reads."""
 
 _NS_PER_S = 1_000_000_000
@@ -450,7 +450,9 @@ class _Parser:
 
     def fail(self, what: str, expected: str, column: int | None = None) -> FormulaError:
         col = (self.pos if column is None else column) + 1
-        return FormulaError(f"{what} in {_quote(self.text)}", where=f"formula column {col}", expected=expected, formula=self.text, column=col)
+        return FormulaError(
+            f"{what} in {_quote(self.text)}", where=f"formula column {col}", expected=expected, formula=self.text, column=col
+        )
 
     def unexpected(self, expected: str) -> FormulaError:
         self.skip()
@@ -570,7 +572,9 @@ class _Parser:
             except InvalidOperation:  # pragma: no cover - the pattern only matches decimals
                 zero = False
             if not zero:
-                raise self.fail(f"the duration {digits} has no unit", f"{digits}s or {digits}ms (only 0 may be written without a unit)", column=at)
+                raise self.fail(
+                    f"the duration {digits} has no unit", f"{digits}s or {digits}ms (only 0 may be written without a unit)", column=at
+                )
         scale = 1_000_000 if unit == "ms" else _NS_PER_S
         ns = Decimal(digits) * scale
         if ns != ns.to_integral_value():
@@ -649,7 +653,9 @@ class _Parser:
             return parse_term(tag)
         except TagError as exc:
             hint = did_you_mean(tag, _KEYWORDS)
-            raise self.fail(f"term {_quote(tag)} is not a tag: {exc.what}", (exc.expected or "a tag such as Battery(robot)") + hint, column=column) from exc
+            raise self.fail(
+                f"term {_quote(tag)} is not a tag: {exc.what}", (exc.expected or "a tag such as Battery(robot)") + hint, column=column
+            ) from exc
 
 
 def _quote(text: str) -> str:
