@@ -28,15 +28,18 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import random
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from dyknow.reasoning import Monitor, parse
+from dyknow import Limits, Manager, Message, Port, TransformationSpec, Unit
+from dyknow.reasoning import Monitor, monitor_spec, parse
 from dyknow.reasoning.syntax import (
     Always,
     And,
@@ -55,7 +58,7 @@ from dyknow.reasoning.syntax import (
     Until,
 )
 
-from harness import machine, write_json
+from harness import cpu_seconds, machine, percentile, sleep_until, write_json
 
 MS = 1_000_000
 
@@ -149,6 +152,7 @@ class Run:
 
     def __init__(self, states: int) -> None:
         self.verdicts: list[bool | None] = [None] * states
+        self.fed = 0  # how many states it was given
 
     def feed(self, lo: int, hi: int) -> None:
         """Hand states ``lo`` to ``hi - 1`` to the monitor."""
@@ -231,13 +235,16 @@ class RtamtRun(Run):
                 out[i - shift] = None if robustness == 0 else robustness > 0
 
 
-def per_state_us(make: Callable[[], Run], window: int, states: int, repeat: int, budget_s: float) -> tuple[float, int]:
+def per_state_us(make: Callable[[], Run], window: int, states: int, repeat: int, budget_s: float) -> tuple[float, int, Run]:
     """The best of ``repeat`` runs, in microseconds per state, timed after the first window of
-    states (the steady state), over at most ``budget_s`` seconds of each run; and how many
-    states that best figure was measured over."""
+    states (the steady state), over at most ``budget_s`` seconds of each run; how many states
+    that figure was measured over; and the first run (its verdicts). A monitor so slow that its
+    first run took ten budgets is run once."""
     best, measured = float("inf"), 0
+    first: Run | None = None
     chunk = 200
     for _ in range(repeat):
+        started = time.perf_counter()
         run = make()
         run.feed(0, window)  # the windows fill: not timed
         lo, elapsed = window, 0.0
@@ -247,9 +254,14 @@ def per_state_us(make: Callable[[], Run], window: int, states: int, repeat: int,
             run.feed(lo, hi)
             elapsed += time.perf_counter() - t0
             lo = hi
+        run.fed = lo
+        first = first or run
         if elapsed / (lo - window) < best:
             best, measured = elapsed / (lo - window), lo - window
-    return best * 1e6, measured
+        if time.perf_counter() - started > 10 * budget_s:
+            break
+    assert first is not None
+    return best * 1e6, measured, first
 
 
 def _agreement(ours: list[bool | None], theirs: list[bool | None]) -> bool:
@@ -274,7 +286,6 @@ def per_state(windows: list[int], states: int, repeat: int, budget_s: float) -> 
     for window in windows:
         n = window + states
         xs, ys = trace(n)
-        check = min(n, 2 * window + 400)
         for name, kind, text in formulas(window):
             formula = parse(text)
             future = kind == "future"
@@ -284,16 +295,15 @@ def per_state(windows: list[int], states: int, repeat: int, budget_s: float) -> 
                 makers["reelay"] = functools.partial(ReelayRun, reelay, formula, xs, ys)
             if rtamt is not None:
                 makers["rtamt"] = functools.partial(RtamtRun, rtamt, formula, xs, ys, future=future)
-            # the same verdicts first, on the trace's start
-            runs = {peer: make() for peer, make in makers.items()}
-            for run in runs.values():
-                run.feed(0, check)
-            row["agree"] = {
-                peer: _agreement(runs["dyknow"].verdicts[:check], run.verdicts[:check]) for peer, run in runs.items() if peer != "dyknow"
-            }
+            runs: dict[str, Run] = {}
             for peer, make in makers.items():
-                us, measured = per_state_us(make, window, n, repeat, budget_s)
+                us, measured, runs[peer] = per_state_us(make, window, n, repeat, budget_s)
                 row[f"{peer}_us"], row[f"{peer}_states"] = round(us, 3), measured
+            # the same verdicts, where both decided, over the states both were given
+            ours = runs["dyknow"]
+            row["agree"] = {
+                peer: _agreement(ours.verdicts[: run.fed], run.verdicts[: run.fed]) for peer, run in runs.items() if peer != "dyknow"
+            }
             theirs = {peer: row[f"{peer}_us"] for peer in makers if peer != "dyknow"}
             if theirs:
                 fastest = min(theirs, key=lambda p: theirs[p])
@@ -311,6 +321,96 @@ def per_state(windows: list[int], states: int, repeat: int, budget_s: float) -> 
     return rows, peers
 
 
+class LatencySink(Unit):
+    """Receives the verdicts; while ``recording`` is set, keeps each one's age since its origin
+    (the time the term's sample was published) at arrival, in nanoseconds."""
+
+    def setup(self) -> None:
+        """Start empty, not recording."""
+        self.latencies_ns: list[int] = []
+        self.count = 0
+        self.recording = False
+
+    def on_message(self, port: str, msg: Message) -> None:
+        """Count the verdict and, while recording, keep its latency."""
+        self.count += 1
+        if self.recording:
+            self.latencies_ns.append(time.time_ns() - msg.origin_ns)
+
+
+MONITORS_FORMULA = "historically[0, 1s] Battery(r{k}) > 0.2"
+
+
+def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: int) -> dict[str, Any]:
+    """``count`` monitors of a past formula, each fed by its own source at ``rate_hz``, in one
+    manager, the whole process on CPU ``core``; the latency from each sample to its verdict."""
+    os.sched_setaffinity(0, {core})  # before any thread starts: Zenoh's, the lanes', the driver's
+    source = TransformationSpec(label="bench-source", source="dyknow.testing:Source", ports=(Port("out", "out"),))
+    sink = TransformationSpec(label="latency-sink", source="reasoning:LatencySink", ports=(Port("in", "in", queue=1 << 20),))
+    monitor = monitor_spec(MONITORS_FORMULA.format(k=0), label="monitor")
+    limits = Limits(max_units=2 * count + 10)
+    with Manager("reasoning-bench", specs=[source, sink, monitor], listen=[], serve=False, limits=limits) as manager:
+        t0 = time.perf_counter()
+        manager.spawn("latency-sink", "sink", bindings={"in": "bench/verdicts/**"})
+        sources = []
+        for k in range(count):
+            formula = MONITORS_FORMULA.format(k=k)
+            manager.spawn(
+                "monitor", f"m{k}", params={"formula": formula}, bindings={"t0": f"bench/term/{k}", "verdicts": f"bench/verdicts/{k}"}
+            )
+            manager.spawn("bench-source", f"s{k}", bindings={"out": f"bench/term/{k}"})
+            sources.append(manager.unit(f"s{k}"))
+        spawn_s = time.perf_counter() - t0
+        receiver: Any = manager.unit("sink")  # a LatencySink of the module "reasoning" (this script runs as __main__)
+        rng = random.Random(3)
+        values = [rng.random() for _ in range(4096)]
+        period = 1.0 / rate_hz
+        stop = threading.Event()
+        sent = [0]
+
+        def drive() -> None:  # every source once per period, spread evenly over it
+            start = time.perf_counter()
+            i = 0
+            while not stop.is_set():
+                cycle, k = divmod(i, count)
+                sleep_until(start + cycle * period + k * period / count)
+                sources[k].emit(values[i % 4096])  # type: ignore[attr-defined]
+                i += 1
+            sent[0] = i
+
+        driver = threading.Thread(target=drive, name="bench-driver", daemon=True)
+        driver.start()
+        time.sleep(warmup_s)
+        receiver.recording = True
+        cpu0, wall0, got0 = cpu_seconds([os.getpid()]), time.perf_counter(), receiver.count
+        time.sleep(seconds)
+        receiver.recording = False
+        cpu1, wall1, got1 = cpu_seconds([os.getpid()]), time.perf_counter(), receiver.count
+        stop.set()
+        driver.join(5)
+        latencies_ms = [ns / 1e6 for ns in receiver.latencies_ns]
+        dropped = sum(p.dropped for name in ["sink", *(f"m{k}" for k in range(count))] for p in manager.get_statistics(name).ports)
+        late = sum(p.rejected for k in range(count) for p in manager.get_statistics(f"m{k}").ports)
+    return {
+        "monitors": count,
+        "rate_hz": rate_hz,
+        "formula": MONITORS_FORMULA,
+        "core": core,
+        "spawn_s": round(spawn_s, 2),
+        "seconds": round(wall1 - wall0, 2),
+        "samples_sent": sent[0],
+        "verdicts_per_s": round((got1 - got0) / (wall1 - wall0), 1),
+        "expected_per_s": count * rate_hz,
+        "cpu_percent": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 1),
+        "latency_p50_ms": percentile(latencies_ms, 50),
+        "latency_p99_ms": percentile(latencies_ms, 99),
+        "latency_max_ms": round(max(latencies_ms), 3) if latencies_ms else float("nan"),
+        "dropped": dropped,
+        "late": late,
+        "target_p99_ms": 1.0,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the per-state comparison (default) or the end-to-end run of many monitors (``--monitors``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -319,10 +419,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=3, help="runs per figure, the best kept (default 3)")
     parser.add_argument("--budget", type=float, default=5.0, metavar="S", help="seconds timed per run at most (RTAMT is slow; default 5)")
     parser.add_argument("--quick", action="store_true", help="a short run: 1,000 states after the window, one run each, 0.5 s budget")
+    parser.add_argument("--monitors", type=int, metavar="N", help="instead: N monitors at --rate-hz in one manager on one core, end to end")
+    parser.add_argument("--rate-hz", type=float, default=20.0, help="samples per second per monitor (default 20)")
+    parser.add_argument("--seconds", type=float, default=10.0, help="how long latencies are recorded with --monitors (default 10)")
+    parser.add_argument("--warmup", type=float, default=3.0, metavar="S", help="seconds before recording with --monitors (default 3)")
+    parser.add_argument("--core", type=int, default=0, help="the CPU the --monitors run is pinned to (default 0)")
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}")
+    if args.monitors:
+        result = monitors(args.monitors, args.rate_hz, args.seconds, args.warmup, args.core)
+        met = result["latency_p99_ms"] <= result["target_p99_ms"]
+        print(
+            f"{result['monitors']} monitors at {result['rate_hz']:g} Hz on core {result['core']}: {result['verdicts_per_s']:.0f} verdicts/s "
+            f"(expected {result['expected_per_s']:.0f}), CPU {result['cpu_percent']:.0f}%, dropped {result['dropped']}, late {result['late']}"
+        )
+        print(
+            f"sample to verdict: p50 {result['latency_p50_ms']:.3f} ms, p99 {result['latency_p99_ms']:.3f} ms (target <= 1 ms: "
+            f"{'met' if met else 'MISSED'}), max {result['latency_max_ms']:.3f} ms"
+        )
+        if args.json:
+            write_json(args.json, {"machine": info, "monitors": {**result, "met": met}})
+        return 0
     windows = [int(w) for w in args.windows.split(",")]
     states, repeat, budget = (1_000, 1, 0.5) if args.quick else (args.states, args.repeat, args.budget)
     rows, peers = per_state(windows, states, repeat, budget)
