@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import os
 import random
 import sys
@@ -58,7 +59,7 @@ from dyknow.reasoning.syntax import (
     Until,
 )
 
-from harness import cpu_seconds, machine, percentile, sleep_until, write_json
+from harness import Proc, cpu_seconds, free_ports, machine, percentile, sleep_until, write_json
 
 MS = 1_000_000
 
@@ -341,74 +342,134 @@ class LatencySink(Unit):
 MONITORS_FORMULA = "historically[0, 1s] Battery(r{k}) > 0.2"
 
 
-def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: int) -> dict[str, Any]:
+def _drive(sources: list[Any], rate_hz: float, stop: threading.Event, sent: list[int]) -> None:
+    """Every source once per period, spread evenly over it, until ``stop``; counts into ``sent``."""
+    rng = random.Random(3)
+    values = [rng.random() for _ in range(4096)]
+    period, count = 1.0 / rate_hz, len(sources)
+    start = time.perf_counter()
+    i = 0
+    while not stop.is_set():
+        cycle, k = divmod(i, count)
+        sleep_until(start + cycle * period + k * period / count)
+        sources[k].emit(values[i % 4096])
+        i += 1
+    sent[0] = i
+
+
+def _feed(manager: Manager, count: int, rate_hz: float, seconds: float, warmup_s: float, on_record: Callable[[bool], None]) -> dict[str, Any]:
+    """Spawn the sources and the latency sink in ``manager``, drive them, record the latencies
+    for ``seconds`` after ``warmup_s`` (``on_record(True/False)`` around the recording)."""
+    manager.spawn("latency-sink", "sink", bindings={"in": "bench/verdicts/**"})
+    sources = []
+    for k in range(count):
+        manager.spawn("bench-source", f"s{k}", bindings={"out": f"bench/term/{k}"})
+        sources.append(manager.unit(f"s{k}"))
+    deadline = time.monotonic() + 60
+    while not all(source.has_subscribers("out") for source in sources):  # every monitor is listening
+        if time.monotonic() > deadline:
+            raise RuntimeError("the monitors did not subscribe within 60 s")
+        time.sleep(0.05)
+    receiver: Any = manager.unit("sink")  # a LatencySink of the module "reasoning" (this script runs as __main__)
+    stop, sent = threading.Event(), [0]
+    driver = threading.Thread(target=_drive, args=(sources, rate_hz, stop, sent), name="bench-driver", daemon=True)
+    driver.start()
+    time.sleep(warmup_s)
+    on_record(True)
+    receiver.recording = True
+    wall0, got0 = time.perf_counter(), receiver.count
+    time.sleep(seconds)
+    receiver.recording = False
+    wall1, got1 = time.perf_counter(), receiver.count
+    on_record(False)
+    stop.set()
+    driver.join(5)
+    latencies_ms = [ns / 1e6 for ns in receiver.latencies_ns]
+    return {
+        "seconds": round(wall1 - wall0, 2),
+        "samples_sent": sent[0],
+        "verdicts_per_s": round((got1 - got0) / (wall1 - wall0), 1),
+        "latency_p50_ms": percentile(latencies_ms, 50),
+        "latency_p99_ms": percentile(latencies_ms, 99),
+        "latency_max_ms": round(max(latencies_ms), 3) if latencies_ms else float("nan"),
+        "sink_dropped": sum(p.dropped for p in manager.get_statistics("sink").ports),
+    }
+
+
+def _specs() -> list[TransformationSpec]:
+    return [
+        TransformationSpec(label="bench-source", source="dyknow.testing:Source", ports=(Port("out", "out"),)),
+        TransformationSpec(label="latency-sink", source="reasoning:LatencySink", ports=(Port("in", "in", queue=1 << 20),)),
+        monitor_spec(MONITORS_FORMULA.format(k=0), label="monitor"),
+    ]
+
+
+def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, remote: bool) -> dict[str, Any]:
     """``count`` monitors of a past formula, each fed by its own source at ``rate_hz``, in one
-    manager, the whole process on CPU ``core``; the latency from each sample to its verdict."""
+    manager whose process runs on CPU ``core``; the latency from each sample to its verdict.
+
+    ``remote``: the sources and the sink run in another process (on another core when there is
+    one), so each sample and each verdict crosses Zenoh over loopback; else all in one process.
+    """
     os.sched_setaffinity(0, {core})  # before any thread starts: Zenoh's, the lanes', the driver's
-    source = TransformationSpec(label="bench-source", source="dyknow.testing:Source", ports=(Port("out", "out"),))
-    sink = TransformationSpec(label="latency-sink", source="reasoning:LatencySink", ports=(Port("in", "in", queue=1 << 20),))
-    monitor = monitor_spec(MONITORS_FORMULA.format(k=0), label="monitor")
     limits = Limits(max_units=2 * count + 10)
-    with Manager("reasoning-bench", specs=[source, sink, monitor], listen=[], serve=False, limits=limits) as manager:
+    listen = [f"tcp/127.0.0.1:{free_ports(1)[0]}"] if remote else []
+    with Manager("reasoning-bench", specs=_specs(), listen=listen, serve=False, limits=limits) as manager:
         t0 = time.perf_counter()
-        manager.spawn("latency-sink", "sink", bindings={"in": "bench/verdicts/**"})
-        sources = []
         for k in range(count):
-            formula = MONITORS_FORMULA.format(k=k)
-            manager.spawn(
-                "monitor", f"m{k}", params={"formula": formula}, bindings={"t0": f"bench/term/{k}", "verdicts": f"bench/verdicts/{k}"}
-            )
-            manager.spawn("bench-source", f"s{k}", bindings={"out": f"bench/term/{k}"})
-            sources.append(manager.unit(f"s{k}"))
+            bindings = {"t0": f"bench/term/{k}", "verdicts": f"bench/verdicts/{k}"}
+            manager.spawn("monitor", f"m{k}", params={"formula": MONITORS_FORMULA.format(k=k)}, bindings=bindings)
         spawn_s = time.perf_counter() - t0
-        receiver: Any = manager.unit("sink")  # a LatencySink of the module "reasoning" (this script runs as __main__)
-        rng = random.Random(3)
-        values = [rng.random() for _ in range(4096)]
-        period = 1.0 / rate_hz
-        stop = threading.Event()
-        sent = [0]
+        cpu: dict[bool, tuple[float, float]] = {}
 
-        def drive() -> None:  # every source once per period, spread evenly over it
-            start = time.perf_counter()
-            i = 0
-            while not stop.is_set():
-                cycle, k = divmod(i, count)
-                sleep_until(start + cycle * period + k * period / count)
-                sources[k].emit(values[i % 4096])  # type: ignore[attr-defined]
-                i += 1
-            sent[0] = i
+        def on_record(start: bool) -> None:
+            cpu[start] = (cpu_seconds([os.getpid()]), time.perf_counter())
 
-        driver = threading.Thread(target=drive, name="bench-driver", daemon=True)
-        driver.start()
-        time.sleep(warmup_s)
-        receiver.recording = True
-        cpu0, wall0, got0 = cpu_seconds([os.getpid()]), time.perf_counter(), receiver.count
-        time.sleep(seconds)
-        receiver.recording = False
-        cpu1, wall1, got1 = cpu_seconds([os.getpid()]), time.perf_counter(), receiver.count
-        stop.set()
-        driver.join(5)
-        latencies_ms = [ns / 1e6 for ns in receiver.latencies_ns]
-        dropped = sum(p.dropped for name in ["sink", *(f"m{k}" for k in range(count))] for p in manager.get_statistics(name).ports)
+        if remote:
+            argv = [sys.executable, __file__, "--feeder", listen[0], "--monitors", str(count), "--rate-hz", str(rate_hz)]
+            argv += ["--seconds", str(seconds), "--warmup", str(warmup_s), "--core", str((core + 1) % (os.cpu_count() or 1))]
+            feeder = Proc(argv)
+            try:
+                feeder.next_json(120, phase="recording")
+                on_record(True)
+                fed = feeder.next_json(seconds + 30, phase="recorded")
+                on_record(False)
+                fed = feeder.next_json(60, phase="done")
+            finally:
+                feeder.close()
+        else:
+            fed = _feed(manager, count, rate_hz, seconds, warmup_s, on_record)
+        dropped = sum(p.dropped for k in range(count) for p in manager.get_statistics(f"m{k}").ports)
         late = sum(p.rejected for k in range(count) for p in manager.get_statistics(f"m{k}").ports)
+    (cpu0, wall0), (cpu1, wall1) = cpu[True], cpu[False]
     return {
         "monitors": count,
         "rate_hz": rate_hz,
         "formula": MONITORS_FORMULA,
+        "remote": remote,
         "core": core,
         "spawn_s": round(spawn_s, 2),
-        "seconds": round(wall1 - wall0, 2),
-        "samples_sent": sent[0],
-        "verdicts_per_s": round((got1 - got0) / (wall1 - wall0), 1),
+        **{k: v for k, v in fed.items() if k != "phase"},
         "expected_per_s": count * rate_hz,
         "cpu_percent": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 1),
-        "latency_p50_ms": percentile(latencies_ms, 50),
-        "latency_p99_ms": percentile(latencies_ms, 99),
-        "latency_max_ms": round(max(latencies_ms), 3) if latencies_ms else float("nan"),
-        "dropped": dropped,
+        "dropped": dropped + fed["sink_dropped"],
         "late": late,
         "target_p99_ms": 1.0,
     }
+
+
+def feeder(endpoint: str, count: int, rate_hz: float, seconds: float, warmup_s: float, core: int) -> int:
+    """The other process of ``--remote``: sources and the sink, connected to the monitors' manager;
+    prints JSON lines as it starts and stops recording, then its figures."""
+    os.sched_setaffinity(0, {core})
+
+    def on_record(start: bool) -> None:
+        print(json.dumps({"phase": "recording" if start else "recorded"}), flush=True)
+
+    with Manager("reasoning-feeder", specs=_specs(), connect=[endpoint], listen=[], serve=False, limits=Limits(max_units=count + 10)) as manager:
+        result = _feed(manager, count, rate_hz, seconds, warmup_s, on_record)
+    print(json.dumps({"phase": "done", **result}), flush=True)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -424,15 +485,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=10.0, help="how long latencies are recorded with --monitors (default 10)")
     parser.add_argument("--warmup", type=float, default=3.0, metavar="S", help="seconds before recording with --monitors (default 3)")
     parser.add_argument("--core", type=int, default=0, help="the CPU the --monitors run is pinned to (default 0)")
+    parser.add_argument("--remote", action="store_true", help="with --monitors: sources and sink in another process, over Zenoh")
+    parser.add_argument("--feeder", metavar="ENDPOINT", help=argparse.SUPPRESS)  # the other process of --remote
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
+    if args.feeder:
+        return feeder(args.feeder, args.monitors, args.rate_hz, args.seconds, args.warmup, args.core)
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}")
     if args.monitors:
-        result = monitors(args.monitors, args.rate_hz, args.seconds, args.warmup, args.core)
+        result = monitors(args.monitors, args.rate_hz, args.seconds, args.warmup, args.core, args.remote)
         met = result["latency_p99_ms"] <= result["target_p99_ms"]
+        where = "sources and sink in another process, over Zenoh" if result["remote"] else "sources and sink in the same process"
         print(
-            f"{result['monitors']} monitors at {result['rate_hz']:g} Hz on core {result['core']}: {result['verdicts_per_s']:.0f} verdicts/s "
+            f"{result['monitors']} monitors at {result['rate_hz']:g} Hz in one manager on core {result['core']} ({where}): {result['verdicts_per_s']:.0f} verdicts/s "
             f"(expected {result['expected_per_s']:.0f}), CPU {result['cpu_percent']:.0f}%, dropped {result['dropped']}, late {result['late']}"
         )
         print(
