@@ -4,8 +4,10 @@ decided ones, each at the first state that decides it; its reorder policy; its b
 from __future__ import annotations
 
 import random
+import re
 import tracemalloc
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -254,3 +256,9 @@ def test_memory_is_bounded_by_the_horizon_over_a_million_states() -> None:
     assert monitor.states == 1_000_000 and decided > 900_000
     assert largest < 1000, largest  # a few hundred states, not a million
     assert traced[2] - traced[1] < 64_000, traced  # 20,000 more states (a leak of one int each: 700 kB), not 64 kB more
+
+
+def test_the_readme_example_runs_as_written() -> None:
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    (block,) = [b for b in re.findall(r"```python\n(.*?)```", readme, re.DOTALL) if "from dyknow.reasoning import" in b]
+    exec(compile(block, "README.md (Temporal reasoning)", "exec"), {})  # its asserts are the test

@@ -61,7 +61,9 @@ of a recording, an atom on a malformed value) is never published by the monitor.
   monitored online only after ``pastify()``, which delays every verdict by the formula's horizon;
   its first outputs (the warm-up, for times before the trace) have no counterpart here. Its
   0.4.10 wheel mis-pastifies a future operator under ``->`` (``(x >= 3) -> eventually[0:5](y >= 3)``
-  gives ``inf`` on every sample, violations included); ``not x or ...`` works.
+  gives ``inf`` on every sample, violations included), and a Boolean combination of operands with
+  different horizons (``(x > 3) or eventually[0:2](y > 3)`` disagrees on some states); the past
+  form written by hand (``once[2:2](x > 3) or once[0:2](y > 3)``) agrees.
 """
 
 from __future__ import annotations
