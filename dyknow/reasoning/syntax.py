@@ -265,7 +265,6 @@ Node = Atom | Const | Not | And | Or | Implies | Always | Eventually | Historica
 """A node of a formula's syntax tree."""
 
 _FUTURE = (Always, Eventually, Until)
-_PAST = (Historically, Once, Since)
 
 # binding strength, loosest first: what a child must reach to be written without parentheses
 _IMPLIES, _OR, _AND, _BINARY, _UNARY = 1, 2, 3, 4, 5
@@ -318,7 +317,8 @@ class Formula:
     """A parsed formula: the text as written, its syntax tree and the terms it mentions.
 
     ``terms`` are the distinct streams' tags in order of first appearance (atoms on different
-    fields of one term share it). ``str(formula)`` is the canonical text.
+    fields of one term share it); :func:`parse` and :meth:`Formula.of` fill them in, so build a
+    formula with one of those. ``str(formula)`` is the canonical text.
     """
 
     text: str
