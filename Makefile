@@ -12,7 +12,7 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 # setup.py compiles these with mypyc, in place: an edit to one of them needs a new install
-COMPILED := $(shell sed -n 's/^    "\(dyknow\/[a-z_]*\.py\)",$$/\1/p' setup.py)
+COMPILED := $(shell sed -n 's/^    "\(dyknow\/[a-z_/]*\.py\)",$$/\1/p' setup.py)
 
 $(VENV)/.installed: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e .

@@ -14,8 +14,10 @@ Every error dyknow raises on purpose derives from :class:`DyKnowError`, with one
     ├── TagError           a tag is not a well-formed term such as ``BallPosition(field)``
     ├── PlanningError      no configuration provides a requested tag (with the explanation)
     ├── RecordingError     an MCAP recording cannot be written or read (file, offset, what is wrong)
-    └── AccessError        refused by the manager's security policy: a source that is not allowed,
-                           a file outside the data roots, a request over a limit
+    ├── AccessError        refused by the manager's security policy: a source that is not allowed,
+    │                      a file outside the data roots, a request over a limit
+    └── FormulaError       a temporal formula does not parse (its column), or it is used with
+                           streams or times it cannot take (a term without samples, time going back)
 
 Every error carries fields as well as its message, so that the CLI, the services and a user
 interface can show them without parsing prose: ``what`` (the problem), ``where`` (what it
@@ -39,6 +41,7 @@ __all__ = [
     "BindingError",
     "ClosedError",
     "DyKnowError",
+    "FormulaError",
     "LibraryError",
     "OntologyError",
     "PayloadError",
@@ -246,3 +249,23 @@ class AccessError(DyKnowError):
 
 class PayloadError(DyKnowError, TypeError):
     """A payload cannot be published or decoded."""
+
+
+class FormulaError(DyKnowError):
+    """A temporal formula (:mod:`dyknow.reasoning`) is malformed, or is used with data it cannot take.
+
+    For a parse error ``where`` is ``formula column N`` (1-based) and ``column`` is N; ``formula``
+    is the text. For misuse (streams missing a term, samples out of time order) ``where`` names
+    the term or argument and ``column`` is None.
+    """
+
+    def __init__(
+        self, what: str, *, where: str | None = None, expected: str | None = None, formula: str | None = None, column: int | None = None
+    ) -> None:
+        self.formula = formula
+        self.column = column
+        super().__init__(what, where=where, expected=expected)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form, with the formula and the column."""
+        return {**super().to_dict(), "formula": self.formula, "column": self.column}

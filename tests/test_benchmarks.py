@@ -267,3 +267,27 @@ def test_chain_targets_show_each_rounds_ratio_and_whether_the_rounds_agree() -> 
         assert dds["met"] and dds["settled"]
     finally:
         sys.modules.pop("chain", None)
+
+
+def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "reasoning.json"
+    result = _run("reasoning.py", "--quick", "--windows", "10", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    rows = data["results"]
+    assert [(r["formula"], r["window"]) for r in rows] == [(f"{n}-{k}", 10) for n in (1, 5, 20) for k in ("past", "future")]
+    assert [r["operators"] for r in rows] == [1, 1, 5, 5, 20, 20]
+    for row in rows:
+        assert row["dyknow_us"] > 0
+        if "target_us" in row:  # RTAMT and reelay are in the bench extra, which the test extra pulls in
+            assert isinstance(row["met"], bool) and row["target_us"] == min(row.get("reelay_us", float("inf")), row.get("rtamt_us", float("inf")))
+        if row["kind"] == "past" and "reelay" in row["agree"]:
+            assert row["agree"]["reelay"], row  # reelay agrees on every past formula here
+    assert "at most the faster peer per state" in result.stdout
+    monitors = tmp_path / "monitors.json"
+    result = _run("reasoning.py", "--monitors", "20", "--seconds", "0.5", "--warmup", "0.2", "--json", str(monitors))
+    assert result.returncode == 0, result.stderr[-3000:]
+    run = json.loads(monitors.read_text())["monitors"]
+    assert run["monitors"] == 20 and run["verdicts_per_s"] > 0 and run["dropped"] == 0 and run["late"] == 0
+    assert 0 < run["latency_p50_ms"] <= run["latency_p99_ms"] and isinstance(run["met"], bool)
+    assert "target <= 1 ms" in result.stdout

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-COMPILED = re.findall(r'^    "(dyknow/\w+\.py)",$', (REPO / "setup.py").read_text(), re.MULTILINE)
+COMPILED = re.findall(r'^    "(dyknow/[\w/]+\.py)",$', (REPO / "setup.py").read_text(), re.MULTILINE)
 
 
 def test_setup_names_the_hot_path_modules() -> None:

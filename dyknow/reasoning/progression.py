@@ -1,0 +1,905 @@
+"""Incremental monitoring: a :class:`Monitor` turns samples into states and publishes each state's
+verdict as soon as it is decided, with memory bounded by the formula's horizon.
+
+The semantics is :mod:`dyknow.reasoning.semantics`'s, exactly: over the same states, the verdicts a
+monitor returns are those :func:`~dyknow.reasoning.evaluate` gives that are true or false (tests
+compare them on random formulas and traces). A verdict is returned at the first state that decides
+it: for a past-only formula at its own state, for a future one at the first state after which no
+continuation of the trace could change it. A verdict that is never decided (its window is still
+incomplete when the input ends, or an atom reads a malformed value) is never returned.
+
+**Samples to states, and late samples.** ``push(term, t_ns, value)`` hands the monitor one sample.
+Samples at one time, from any streams, make one state; a state is *closed* (evaluated) once no
+sample for its time can still come, by the monitor's reorder policy with delay ``reorder_ns``
+(default 0):
+
+- a state at time t is closed once every stream has sent a sample at or after ``t + reorder_ns``,
+  or any stream has sent one after ``t + reorder_ns``;
+- a sample at or before the last closed state's time is **late**: it is counted in :attr:`Monitor.late`
+  and dropped (it cannot join a state already evaluated, and states are never re-evaluated).
+
+So with delay 0 a one-stream monitor closes each state as its sample arrives (a past verdict comes
+out with the sample that decides it), and two streams sampled at one time (outputs of one source,
+which carry its origin time) form one state as soon as both have arrived. Samples may arrive out of
+order across streams, and within a stream, by up to ``reorder_ns`` of sample time without being
+late; the price is that states close ``reorder_ns`` later. A stream sending two samples at one time
+with delay 0 has the second counted late (:func:`~dyknow.reasoning.evaluate` would take the second).
+``flush()`` closes every buffered state (the end of the input).
+
+**How it stays fast and small.** The formula becomes a tree of nodes evaluated bottom-up at each
+state. A node without future operators below it is *synchronous*: its verdict is decided at its
+state. Past operators over synchronous operands keep O(1) summaries (the last state where the
+operand was true, the last where it was not false, the last break of the ``since`` chain, and a
+queue of the states still younger than the interval's lower bound), so ``once[0, inf]`` costs the
+same as ``once[0, 1s]``. Future operators (and anything above them) keep the states whose verdicts
+are pending and sorted lists of where their operands are true, not false, and so on; each newly
+decided operand value resolves exactly the pending states it decides, found by bisection as one
+contiguous range. States older than the formula's horizon are dropped: :meth:`Monitor.retained`
+says how many are kept.
+"""
+
+from __future__ import annotations
+
+import heapq
+from bisect import bisect_left, bisect_right, insort
+from collections.abc import Sequence
+from typing import Any, Final
+
+from dyknow.errors import ClosedError, FormulaError, TagError, did_you_mean
+from dyknow.reasoning.semantics import FALSE, TRUE, UNKNOWN, AtomTest
+from dyknow.reasoning.syntax import (
+    Always,
+    And,
+    Atom,
+    Const,
+    Eventually,
+    Formula,
+    Historically,
+    Implies,
+    Node,
+    Not,
+    Once,
+    Or,
+    Since,
+    Until,
+    children,
+    parse,
+)
+from dyknow.tags import parse_term
+
+__all__ = ["Monitor", "Verdict"]
+
+_NEVER = -(2**62)  # a time before every sample
+_NONE = -(2**62)  # "no such state" for the last-position summaries
+
+
+class Verdict:
+    """A decided verdict: the state ``state`` (0 for the first) at ``t_ns`` is ``verdict``, decided
+    when the state at ``decided_ns`` closed (``decided_ns == t_ns`` for a past-only formula).
+
+    Plain data, compared by value. Not a frozen dataclass, as house style would have it, because
+    one is made per state and a frozen dataclass costs five times more to make (590 ns against
+    115 ns compiled, measured); its attributes are ``Final``, so read-only where mypyc compiles
+    this module (the default install), and to be treated as read-only elsewhere.
+    """
+
+    def __init__(self, state: int, t_ns: int, verdict: bool, decided_ns: int) -> None:
+        self.state: Final = state
+        self.t_ns: Final = t_ns
+        self.verdict: Final = verdict
+        self.decided_ns: Final = decided_ns
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Verdict):
+            return NotImplemented
+        return (self.state, self.t_ns, self.verdict, self.decided_ns) == (other.state, other.t_ns, other.verdict, other.decided_ns)
+
+    def __hash__(self) -> int:
+        return hash((self.state, self.t_ns, self.verdict, self.decided_ns))
+
+    def __repr__(self) -> str:
+        return f"Verdict(state={self.state}, t_ns={self.t_ns}, verdict={self.verdict}, decided_ns={self.decided_ns})"
+
+    def to_json(self) -> dict[str, Any]:
+        """What a monitor unit publishes: ``{"t", "verdict", "decided_t"}`` in seconds, and the
+        exact integer nanoseconds and state index beside them."""
+        return {
+            "t": self.t_ns / 1e9,
+            "verdict": self.verdict,
+            "decided_t": self.decided_ns / 1e9,
+            "t_ns": self.t_ns,
+            "decided_ns": self.decided_ns,
+            "state": self.state,
+        }
+
+
+class _Clock:
+    """The retained states' times, shared by the nodes: ``times[i - base]`` is state i's time."""
+
+    def __init__(self) -> None:
+        self.times: list[int] = []
+        self.base = 0
+
+    def at(self, i: int) -> int:
+        return self.times[i - self.base]
+
+    def first_at_or_after(self, t: int) -> int:
+        """The index of the first retained state at or after ``t``."""
+        return bisect_left(self.times, t) + self.base
+
+    def last_at_or_before(self, t: int) -> int:
+        """The index of the last retained state at or before ``t`` (``base - 1`` if none)."""
+        return bisect_right(self.times, t) - 1 + self.base
+
+
+class _Node:
+    """A node of the monitored formula: its verdict at the newest state (``cur``), at every
+    retained state when the formula has asynchronous nodes (``vals``: ``history``), and for an
+    asynchronous node the states it decided during the current step (``events``)."""
+
+    def __init__(self, clock: _Clock, sync: bool, need_ns: int) -> None:
+        self.clock = clock
+        self.cur = UNKNOWN
+        self.vals: list[int] = []
+        self.history = not sync  # a synchronous node keeps its verdicts only if some node reads them later
+        self.events: list[int] = []
+        self.sync = sync
+        self.need_ns = need_ns  # how far back from the newest state this node reads
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        """Evaluate the new state ``n`` at ``t`` (children have stepped already)."""
+        raise NotImplementedError
+
+    def prune(self, base: int) -> None:
+        """States before ``base`` were dropped from ``vals``' front; drop what refers to them."""
+
+
+class _AtomNode(_Node):
+    def __init__(self, clock: _Clock, term: int, test: AtomTest) -> None:
+        super().__init__(clock, True, 0)
+        self.term = term
+        self.test = test
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        value = self.test.verdict(held[self.term])
+        self.cur = value
+        if self.history:
+            self.vals.append(value)
+
+
+class _ConstNode(_Node):
+    def __init__(self, clock: _Clock, value: int) -> None:
+        super().__init__(clock, True, 0)
+        self.value = value
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        self.cur = self.value
+        if self.history:
+            self.vals.append(self.value)
+
+
+class _NotNode(_Node):
+    def __init__(self, clock: _Clock, arg: _Node) -> None:
+        super().__init__(clock, arg.sync, arg.need_ns)
+        self.arg = arg
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        arg = self.arg
+        value = 2 - arg.cur
+        self.cur = value
+        if self.history:
+            vals = self.vals
+            vals.append(value)
+            if not self.sync:
+                base = self.clock.base
+                arg_vals = arg.vals
+                for j in arg.events:
+                    vals[j - base] = 2 - arg_vals[j - base]
+                self.events = arg.events
+
+
+_AND, _OR, _IMPLIES = 0, 1, 2
+
+
+def _combine(kind: int, x: int, y: int) -> int:
+    if kind == _AND:
+        return x if x < y else y
+    if kind == _OR:
+        return x if x > y else y
+    x = 2 - x
+    return x if x > y else y
+
+
+class _BinaryNode(_Node):
+    """``and``, ``or``, ``implies``: Kleene's min, max and max(not x, y)."""
+
+    def __init__(self, clock: _Clock, kind: int, left: _Node, right: _Node, horizon_ns: int) -> None:
+        sync = left.sync and right.sync
+        super().__init__(clock, sync, 0 if sync else horizon_ns)
+        self.kind = kind
+        self.left = left
+        self.right = right
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        value = _combine(self.kind, self.left.cur, self.right.cur)
+        self.cur = value
+        if not self.history:
+            return
+        vals = self.vals
+        vals.append(value)
+        if self.sync:
+            return
+        left = self.left.vals
+        right = self.right.vals
+        events: list[int] = []
+        if value != UNKNOWN:
+            events.append(n)
+        base = self.clock.base
+        for child in (self.left, self.right):
+            if child.sync:
+                continue
+            for j in child.events:
+                if vals[j - base] == UNKNOWN:
+                    value = _combine(self.kind, left[j - base], right[j - base])
+                    if value != UNKNOWN:
+                        vals[j - base] = value
+                        events.append(j)
+        self.events = events
+
+
+class _SinceSync(_Node):
+    """``left since[a,b] right`` (``once`` without left; ``historically`` with both negations) over
+    synchronous operands, in O(1) per state: the last entered state where right is true and where
+    it is not false, the last state where left is not true and where it is false, and the states
+    younger than ``a`` waiting to enter the window."""
+
+    def __init__(self, clock: _Clock, left: _Node | None, right: _Node, lo_ns: int, hi_ns: int | None, negate: bool) -> None:
+        super().__init__(clock, True, 0)
+        self.left = left
+        self.right = right
+        self.lo_ns = lo_ns
+        self.bounded = hi_ns is not None
+        self.hi_ns = hi_ns if hi_ns is not None else 0
+        self.negate = negate  # historically: not once not
+        self.last_true = _NONE  # index and time of the last entered state where right is true
+        self.last_true_t = _NEVER
+        self.last_nf = _NONE  # ... where right is not false
+        self.last_nf_t = _NEVER
+        self.break_nt = _NONE  # the last state where left is not true / is false
+        self.break_f = _NONE
+        self.waiting: list[tuple[int, int, int]] = []  # (index, time, right) younger than lo_ns
+        self.head = 0
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        psi = self.right.cur
+        if self.negate:
+            psi = 2 - psi
+        left = self.left
+        if left is not None:
+            phi = left.cur
+            if phi != TRUE:
+                self.break_nt = n
+                if phi == FALSE:
+                    self.break_f = n
+        if self.lo_ns == 0:
+            if psi == TRUE:
+                self.last_true = n
+                self.last_true_t = t
+            if psi != FALSE:
+                self.last_nf = n
+                self.last_nf_t = t
+        else:
+            waiting = self.waiting
+            waiting.append((n, t, psi))
+            edge = t - self.lo_ns
+            head = self.head
+            while head < len(waiting) and waiting[head][1] <= edge:
+                j, tj, value = waiting[head]
+                head += 1
+                if value == TRUE:
+                    self.last_true = j
+                    self.last_true_t = tj
+                if value != FALSE:
+                    self.last_nf = j
+                    self.last_nf_t = tj
+            if head > 64 and head * 2 > len(waiting):
+                del waiting[:head]
+                head = 0
+            self.head = head
+        oldest = t - self.hi_ns if self.bounded else _NEVER
+        if self.last_true >= self.break_nt and self.last_true != _NONE and self.last_true_t >= oldest:
+            value = TRUE
+        elif self.last_nf >= self.break_f and self.last_nf != _NONE and self.last_nf_t >= oldest:
+            value = UNKNOWN
+        else:
+            value = FALSE
+        if self.negate:
+            value = 2 - value
+        self.cur = value
+        if self.history:
+            self.vals.append(value)
+
+
+def _pred(positions: list[int], below: int) -> int:
+    """The last position < ``below``, or _NONE."""
+    k = bisect_left(positions, below)
+    return positions[k - 1] if k else _NONE
+
+
+def _succ(positions: list[int], above: int) -> int:
+    """The first position > ``above``, or -1 (none)."""
+    k = bisect_right(positions, above)
+    return positions[k] if k < len(positions) else -1
+
+
+def _remove(positions: list[int], position: int) -> None:
+    k = bisect_left(positions, position)
+    if k < len(positions) and positions[k] == position:
+        del positions[k]
+
+
+def _prune_keep_last(positions: list[int], base: int) -> None:
+    """Drop positions before ``base`` but the last of them (what "the last before" queries need)."""
+    k = bisect_left(positions, base)
+    if k > 1:
+        del positions[: k - 1]
+
+
+class _Temporal(_Node):
+    """What the asynchronous temporal nodes share: their operands (left None: ``eventually`` or
+    ``once``), the negations that make ``always`` and ``historically``, sorted positions of the
+    operands' verdicts, and the sorted pending states."""
+
+    def __init__(
+        self, clock: _Clock, left: _Node | None, right: _Node, lo_ns: int, hi_ns: int, negate: bool, need_ns: int, retire_ns: int
+    ) -> None:
+        super().__init__(clock, False, need_ns)
+        self.completed = -1  # every state up to this one has been checked on completing
+        self.left = left
+        self.right = right
+        self.lo_ns = lo_ns
+        self.hi_ns = hi_ns
+        self.negate = negate
+        self.retire_ns = retire_ns  # a pending state this old can no longer be decided: unknown
+        self.undecided: list[int] = []
+        self.left_nt: list[int] = []  # where left is not true (false or undecided)
+        self.left_f: list[int] = []  # where left is false
+        self.right_t: list[int] = []  # where right (negated for always/historically) is true
+        self.right_nf: list[int] = []  # where it is not false
+
+    def right_at(self, j: int) -> int:
+        value = self.right.vals[j - self.clock.base]
+        return 2 - value if self.negate else value
+
+    def decide(self, i: int, value: int) -> None:
+        self.vals[i - self.clock.base] = 2 - value if self.negate else value
+        self.events.append(i)
+
+    def record_new(self, n: int) -> tuple[int, int]:
+        """Record the operands' verdicts at the new state; returns (left, right)."""
+        left = TRUE if self.left is None else self.left.cur
+        right = self.right.cur
+        if self.negate:
+            right = 2 - right
+        if left != TRUE:
+            self.left_nt.append(n)
+            if left == FALSE:
+                self.left_f.append(n)
+        if right == TRUE:
+            self.right_t.append(n)
+        if right != FALSE:
+            self.right_nf.append(n)
+        return left, right
+
+    def operand_events(self) -> tuple[list[int], list[int], list[int], list[int]]:
+        """The operands' verdicts decided this step at earlier states, recorded; returns the
+        positions where left became true, left false, right true, right false."""
+        base = self.clock.base
+        newest = base + len(self.clock.times) - 1
+        left_t: list[int] = []
+        left_f: list[int] = []
+        right_t: list[int] = []
+        right_f: list[int] = []
+        left = self.left
+        if left is not None and not left.sync:
+            for k in left.events:
+                if k == newest:
+                    continue  # recorded as the new state's
+                if left.vals[k - base] == TRUE:
+                    _remove(self.left_nt, k)
+                    left_t.append(k)
+                else:
+                    insort(self.left_f, k)
+                    left_f.append(k)
+        if not self.right.sync:
+            for j in self.right.events:
+                if j == newest:
+                    continue
+                if self.right_at(j) == TRUE:
+                    insort(self.right_t, j)
+                    right_t.append(j)
+                else:
+                    _remove(self.right_nf, j)
+                    right_f.append(j)
+        return left_t, left_f, right_t, right_f
+
+    def resolve(self, first: int, last: int, value: int) -> None:
+        """Decide every pending state in [first, last] as ``value``."""
+        if first > last:
+            return
+        undecided = self.undecided
+        lo = bisect_left(undecided, first)
+        hi = bisect_right(undecided, last)
+        if lo < hi:
+            for i in undecided[lo:hi]:
+                self.decide(i, value)
+            del undecided[lo:hi]
+
+    def resolve_one(self, i: int, value: int) -> None:
+        _remove(self.undecided, i)
+        self.decide(i, value)
+
+    def retire(self, now: int) -> None:
+        undecided = self.undecided
+        clock = self.clock
+        k = 0
+        while k < len(undecided) and clock.at(undecided[k]) + self.retire_ns <= now:
+            k += 1
+        if k:
+            del undecided[:k]  # unknown for good: every state that could decide them is in
+
+    def prune(self, base: int) -> None:
+        for positions in (self.left_nt, self.left_f, self.right_t, self.right_nf):
+            _prune_keep_last(positions, base)
+
+
+class _UntilNode(_Temporal):
+    """``left until[a,b] right``, ``eventually`` (no left) and ``always`` (negated): states wait in
+    ``undecided`` until a true right with an unbroken left chain decides them true, or their
+    window is complete and every term is false."""
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        self.events = []
+        self.vals.append(UNKNOWN)
+        self.undecided.append(n)
+        _left, right = self.record_new(n)
+        left_t, left_f, right_t, right_f = self.operand_events()
+        if right == TRUE:
+            self.found_true(n)
+        for j in right_t:
+            self.found_true(j)
+        for k in left_t:
+            self.chain_mended(k)
+        for j in right_f:
+            self.right_false(j, t)
+        for k in left_f:
+            self.left_false(k, t)
+        self.complete(t)
+        self.retire(t)
+        self.cur = self.vals[-1]
+
+    def found_true(self, j: int) -> None:
+        """Right is true at j: pending states whose window holds j and whose left chain up to j is
+        unbroken are true."""
+        clock = self.clock
+        tj = clock.at(j)
+        first = clock.first_at_or_after(tj - self.hi_ns)
+        last = min(j, clock.last_at_or_before(tj - self.lo_ns))
+        if self.left is not None:
+            first = max(first, _pred(self.left_nt, j) + 1)
+        self.resolve(first, last, TRUE)
+
+    def chain_mended(self, k: int) -> None:
+        """Left became true at k: states whose chain broke at k may now reach a true right."""
+        clock = self.clock
+        reach = clock.at(k) + self.hi_ns
+        after = _succ(self.left_nt, k)
+        lo = bisect_right(self.right_t, k)
+        while lo < len(self.right_t):
+            j = self.right_t[lo]
+            if (after != -1 and j > after) or clock.at(j) > reach:
+                break
+            self.found_true(j)
+            lo = bisect_right(self.right_t, j)
+
+    def false_if_all_false(self, i: int) -> None:
+        """Decide a complete pending state false if every term of its window is false."""
+        clock = self.clock
+        ti = clock.at(i)
+        lo = clock.first_at_or_after(ti + self.lo_ns)
+        end = clock.last_at_or_before(ti + self.hi_ns)
+        if self.left is not None:
+            k = bisect_left(self.left_f, i)
+            if k < len(self.left_f) and self.left_f[k] < end:
+                end = self.left_f[k]  # terms after the first false left are false
+        k = bisect_left(self.right_nf, lo)
+        if k == len(self.right_nf) or self.right_nf[k] > end:
+            self.resolve_one(i, FALSE)
+
+    def complete(self, t: int) -> None:
+        """Pending states whose window became complete with this state: false if all terms are."""
+        clock = self.clock
+        last = clock.last_at_or_before(t - self.hi_ns)
+        first = max(self.completed + 1, clock.base)
+        if last < first:
+            return
+        self.completed = last
+        undecided = self.undecided
+        for i in undecided[bisect_left(undecided, first) : bisect_right(undecided, last)]:
+            self.false_if_all_false(i)
+
+    def right_false(self, j: int, t: int) -> None:
+        """Right became false at j: complete pending states whose window has no other not-false
+        term (up to the first false left) are false. With p and s the not-false terms around j,
+        they are the states whose first term lies in (p, j] and last in [j, s): one range."""
+        clock = self.clock
+        tj = clock.at(j)
+        first = clock.first_at_or_after(tj - self.hi_ns)  # the window reaches j
+        last = min(clock.last_at_or_before(tj - self.lo_ns), clock.last_at_or_before(t - self.hi_ns))  # starts by j; complete
+        p = _pred(self.right_nf, j)
+        if p >= clock.base:
+            first = max(first, clock.first_at_or_after(clock.at(p) - self.lo_ns + 1))  # starts after p
+        if self.left is not None:
+            first = max(first, _pred(self.left_f, j) + 1)  # no false left before j cuts the window short of it
+        s = _succ(self.right_nf, j)
+        if s != -1:
+            bound = clock.last_at_or_before(clock.at(s) - self.hi_ns - 1)  # the window ends before s ...
+            if self.left is not None:
+                bound = max(bound, _pred(self.left_f, s))  # ... or a false left before s ends its terms
+            last = min(last, bound)
+        self.resolve(first, last, FALSE)
+
+    def left_false(self, k: int, t: int) -> None:
+        """Left became false at k: complete pending states before it may now be all false."""
+        clock = self.clock
+        complete_last = clock.last_at_or_before(t - self.hi_ns)
+        first = _pred(self.left_f, k) + 1 if _pred(self.left_f, k) != _NONE else clock.base
+        undecided = self.undecided
+        for i in undecided[bisect_left(undecided, first) : bisect_right(undecided, min(k, complete_last))]:
+            self.false_if_all_false(i)
+
+
+class _SinceNode(_Temporal):
+    """``left since[a,b] right`` (``once``, ``historically``) over asynchronous operands: a state's
+    window is in the past, so it is complete at once, but operands there may still be pending."""
+
+    def __init__(
+        self, clock: _Clock, left: _Node | None, right: _Node, lo_ns: int, hi_ns: int | None, negate: bool, need_ns: int, retire_ns: int
+    ) -> None:
+        super().__init__(clock, left, right, lo_ns, hi_ns if hi_ns is not None else 0, negate, need_ns, retire_ns)
+        self.bounded = hi_ns is not None
+
+    def window(self, i: int) -> tuple[int, int]:
+        clock = self.clock
+        ti = clock.at(i)
+        first = clock.first_at_or_after(ti - self.hi_ns) if self.bounded else _NONE
+        return first, clock.last_at_or_before(ti - self.lo_ns)
+
+    def check(self, i: int) -> int:
+        """The verdict at i from what is known now (UNKNOWN: not decided)."""
+        first, last = self.window(i)
+        k = bisect_right(self.right_t, last)
+        if k:
+            j = self.right_t[k - 1]
+            chain = _pred(self.left_nt, i + 1) if self.left is not None else _NONE
+            if j >= first and j >= chain:
+                return TRUE
+        k = bisect_right(self.right_nf, last)
+        cut = _pred(self.left_f, i + 1) if self.left is not None else _NONE
+        if k == 0 or self.right_nf[k - 1] < max(first, cut):
+            return FALSE
+        return UNKNOWN
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        self.events = []
+        self.vals.append(UNKNOWN)
+        self.record_new(n)
+        value = self.check(n)
+        if value != UNKNOWN:
+            self.decide(n, value)
+        else:
+            self.undecided.append(n)
+        left_t, left_f, right_t, right_f = self.operand_events()
+        if left_t or left_f or right_t or right_f:
+            # an operand decided at k can only change verdicts at k and after (windows and
+            # chains end at their state): check those still pending
+            first = min(left_t + left_f + right_t + right_f)
+            undecided = self.undecided
+            for i in undecided[bisect_left(undecided, first) :]:
+                value = self.check(i)
+                if value != UNKNOWN:
+                    self.resolve_one(i, value)
+        self.retire(t)
+        self.cur = self.vals[-1]
+
+
+def _negated(node: Node) -> bool:
+    return isinstance(node, Always | Historically)
+
+
+class Monitor:
+    """Monitors one formula over streams of samples, incrementally (see the module documentation).
+
+    ``formula`` is text or a parsed :class:`~dyknow.reasoning.Formula`; ``reorder_ns`` is how much
+    later (in sample time) a sample may come than a newer one and still count. ``push`` a sample,
+    get the verdicts it decided; :meth:`flush` at the end of the input. Not thread-safe: one
+    caller at a time (a unit's callbacks are).
+    """
+
+    def __init__(self, formula: str | Formula, *, reorder_ns: int = 0) -> None:
+        self.formula = parse(formula) if isinstance(formula, str) else formula
+        if reorder_ns < 0:
+            raise FormulaError(f"reorder_ns is {reorder_ns}", where="Monitor(reorder_ns=...)", expected="0 or more nanoseconds")
+        self.reorder_ns = int(reorder_ns)
+        #: the terms as the formula writes them, in order of first appearance (push's ``term``)
+        self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
+        self._index = {term: k for k, term in enumerate(self.terms)}
+        self._clock = _Clock()
+        self._nodes: list[_Node] = []
+        self._root = self._build(self.formula.root)
+        self._span_ns = max([node.need_ns for node in self._nodes] + [self.formula.horizon_ns])
+        # with a future operator somewhere, nodes read their operands' verdicts at older states
+        self._history = not all(node.sync for node in self._nodes)
+        for node in self._nodes:
+            node.history = self._history
+        self._single = len(self.terms) == 1
+        self._immediate = self._single and self.reorder_ns == 0
+        self._held: list[Any] = [None] * len(self.terms)
+        self._seen = [False] * len(self.terms)
+        self._missing = len(self.terms)
+        self._newest = [_NEVER] * len(self.terms)
+        self._max_t = _NEVER
+        self._buffer: list[tuple[int, int, int, Any]] = []  # (t, arrival, term, value)
+        self._arrivals = 0
+        self._states = 0
+        self._closed_t = _NEVER
+        self._closed = False
+        self._trim_from = 0
+        #: samples dropped because they came at or before the last closed state's time
+        self.late = 0
+
+    # -- building
+
+    def _build(self, node: Node) -> _Node:
+        # iterative post-order: formulas may nest deeper than Python's recursion allows
+        built: dict[int, _Node] = {}
+        horizons: dict[int, int] = {}
+        stack: list[tuple[Node, bool]] = [(node, False)]
+        while stack:
+            current, expanded = stack.pop()
+            kids = children(current)
+            if not expanded and kids:
+                stack.append((current, True))
+                stack.extend((kid, False) for kid in kids)
+                continue
+            args = [built[id(kid)] for kid in kids]
+            below = max((horizons[id(kid)] for kid in kids), default=0)
+            own = current.interval.hi_ns or 0 if isinstance(current, Always | Eventually | Until) else 0
+            horizons[id(current)] = below + own
+            made = self._make(current, args, below, below + own)
+            self._nodes.append(made)
+            built[id(current)] = made
+        return built[id(node)]
+
+    def _make(self, node: Node, args: list[_Node], below: int, horizon: int) -> _Node:
+        clock = self._clock
+        if isinstance(node, Atom):
+            return _AtomNode(clock, self._index[str(node.term)], AtomTest(node))
+        if isinstance(node, Const):
+            return _ConstNode(clock, TRUE if node.value else FALSE)
+        if isinstance(node, Not):
+            return _NotNode(clock, args[0])
+        if isinstance(node, And | Or | Implies):
+            kind = _AND if isinstance(node, And) else _OR if isinstance(node, Or) else _IMPLIES
+            return _BinaryNode(clock, kind, args[0], args[1], horizon)
+        if isinstance(node, Eventually | Always | Until):
+            left, right = (args[0], args[1]) if isinstance(node, Until) else (None, args[0])
+            hi = node.interval.hi_ns
+            assert hi is not None
+            return _UntilNode(clock, left, right, node.interval.lo_ns, hi, _negated(node), horizon, horizon)
+        assert isinstance(node, Once | Historically | Since)
+        left, right = (args[0], args[1]) if isinstance(node, Since) else (None, args[0])
+        hi = node.interval.hi_ns
+        if all(arg.sync for arg in args):
+            return _SinceSync(clock, left, right, node.interval.lo_ns, hi, _negated(node))
+        # it reads back to the window's start (or, unbounded, its end: older states count as one)
+        reach = hi if hi is not None else node.interval.lo_ns
+        return _SinceNode(clock, left, right, node.interval.lo_ns, hi, _negated(node), below + reach, below)
+
+    # -- input
+
+    def push(self, term: str, t_ns: int, value: Any) -> list[Verdict]:
+        """Hand over one sample of ``term`` (as the formula writes it) at ``t_ns``; returns the
+        verdicts decided by the states it closed (often none, or the one of its own state)."""
+        k = self._index.get(term)
+        if k is None:
+            k = self._term_index(term)
+        return self.push_index(k, t_ns, value)
+
+    def _term_index(self, term: str) -> int:
+        try:
+            k = self._index.get(str(parse_term(term)))
+        except TagError:
+            k = None
+        if k is None:
+            raise FormulaError(
+                f"the formula does not mention the term {term!r}",
+                where=f"monitor of {str(self.formula)!r}",
+                expected="one of " + ", ".join(repr(t) for t in self.terms) + did_you_mean(term, self.terms),
+            )
+        self._index[term] = k
+        return k
+
+    def push_index(self, k: int, t_ns: int, value: Any) -> list[Verdict]:
+        """:meth:`push` with the term given by its position in :attr:`terms` (saves a lookup)."""
+        if self._closed:
+            raise ClosedError("the monitor is closed", where=f"monitor of {str(self.formula)!r}", expected="push before close()")
+        if t_ns <= self._closed_t:
+            self.late += 1
+            return []
+        out: list[Verdict] = []
+        if self._immediate:  # one stream, no delay: every sample on time closes its state at once
+            self._closed_t = t_ns
+            self._max_t = t_ns
+            self._held[0] = value
+            if self._missing:
+                self._seen[0] = True
+                self._missing = 0
+            self._state(t_ns, out)
+            return out
+        if t_ns > self._newest[k]:
+            self._newest[k] = t_ns
+        if t_ns > self._max_t:
+            self._max_t = t_ns
+        buffer = self._buffer
+        if not buffer and self._ready(t_ns):  # the common case: in order, nothing to wait for
+            self._closed_t = t_ns
+            self._hold(k, value)
+            if not self._missing:
+                self._state(t_ns, out)
+            return out
+        self._arrivals += 1
+        heapq.heappush(buffer, (t_ns, self._arrivals, k, value))
+        while buffer and self._ready(buffer[0][0]):
+            self._close_first(out)
+        return out
+
+    def push_all(self, t_ns: int, values: Sequence[Any]) -> list[Verdict]:
+        """One sample of every term at ``t_ns`` (``values`` in :attr:`terms` order): a synchronized
+        record, such as a row of a log; the same as pushing them one by one, in one call."""
+        if len(values) != len(self.terms):
+            raise FormulaError(
+                f"{len(values)} values for {len(self.terms)} terms",
+                where="Monitor.push_all",
+                expected="one value per term: " + ", ".join(self.terms),
+            )
+        if self._closed:
+            raise ClosedError("the monitor is closed", where=f"monitor of {str(self.formula)!r}", expected="push before close()")
+        if t_ns <= self._closed_t:
+            self.late += len(values)
+            return []
+        newest = self._newest
+        for k in range(len(newest)):
+            if t_ns > newest[k]:
+                newest[k] = t_ns
+        if t_ns > self._max_t:
+            self._max_t = t_ns
+        out: list[Verdict] = []
+        buffer = self._buffer
+        if not buffer and self._ready(t_ns):
+            self._closed_t = t_ns
+            for k, value in enumerate(values):
+                self._hold(k, value)
+            if not self._missing:
+                self._state(t_ns, out)
+            return out
+        for k, value in enumerate(values):
+            self._arrivals += 1
+            heapq.heappush(buffer, (t_ns, self._arrivals, k, value))
+        while buffer and self._ready(buffer[0][0]):
+            self._close_first(out)
+        return out
+
+    def flush(self) -> list[Verdict]:
+        """Close every buffered state now (the input ended, or its delay is known to have passed);
+        returns the verdicts that decided. Samples at or before the newest time are late after it."""
+        out: list[Verdict] = []
+        while self._buffer:
+            self._close_first(out)
+        return out
+
+    def close(self) -> list[Verdict]:
+        """:meth:`flush`, then refuse further samples; safe twice (the second returns nothing)."""
+        if self._closed:
+            return []
+        out = self.flush()
+        self._closed = True
+        return out
+
+    def _ready(self, t: int) -> bool:
+        """Whether no sample at ``t`` can still come, by the reorder policy."""
+        delay = self.reorder_ns
+        if self._max_t - delay > t:
+            return True
+        if self._single:
+            return self._newest[0] - delay >= t
+        return min(self._newest) - delay >= t
+
+    def _close_first(self, out: list[Verdict]) -> None:
+        """Close the earliest buffered state: hold its samples' values (in arrival order), evaluate it."""
+        buffer = self._buffer
+        t = buffer[0][0]
+        self._closed_t = t
+        while buffer and buffer[0][0] == t:
+            _t, _arrival, k, value = heapq.heappop(buffer)
+            self._hold(k, value)
+        if not self._missing:  # states start when every stream has a value
+            self._state(t, out)
+
+    def _hold(self, k: int, value: Any) -> None:
+        self._held[k] = value
+        if not self._seen[k]:
+            self._seen[k] = True
+            self._missing -= 1
+
+    def _state(self, t: int, out: list[Verdict]) -> None:
+        """Evaluate the state at ``t``: every node bottom-up; collect the root's decided verdicts."""
+        n = self._states
+        self._states = n + 1
+        held = self._held
+        history = self._history
+        if history:
+            self._clock.times.append(t)
+        for node in self._nodes:
+            node.step(n, t, held)
+        root = self._root
+        if root.sync:
+            value = root.cur
+            if value != UNKNOWN:
+                out.append(Verdict(n, t, value == TRUE, t))
+        if history:
+            events = root.events
+            if events and not root.sync:
+                clock = self._clock
+                base = clock.base
+                if len(events) > 1:
+                    events = sorted(events)
+                for i in events:
+                    out.append(Verdict(i, clock.times[i - base], root.vals[i - base] == TRUE, t))
+            self._trim(t)
+
+    def _trim(self, t: int) -> None:
+        """Drop states older than the formula needs (in batches, so it costs O(1) per state)."""
+        clock = self._clock
+        times = clock.times
+        edge = t - self._span_ns
+        k = self._trim_from
+        while k < len(times) - 1 and times[k] < edge:
+            k += 1
+        self._trim_from = k
+        if k >= 64 and k * 2 >= len(times):
+            del times[:k]
+            for node in self._nodes:
+                del node.vals[:k]
+            clock.base += k
+            self._trim_from = 0
+            for node in self._nodes:
+                node.prune(clock.base)
+
+    # -- introspection
+
+    @property
+    def states(self) -> int:
+        """How many states have been closed and evaluated."""
+        return self._states
+
+    @property
+    def closed_ns(self) -> int | None:
+        """The time of the last closed state (samples at or before it are late), or None."""
+        return None if self._closed_t == _NEVER else self._closed_t
+
+    def retained(self) -> int:
+        """How many states (and buffered samples) the monitor keeps: bounded by the formula's
+        horizon whatever the length of the input (every node keeps at most a few entries per
+        retained state, plus a constant). States are dropped in batches of at least 64."""
+        return len(self._clock.times) + len(self._buffer)

@@ -1,0 +1,152 @@
+"""The monitor as a dyknow unit: :class:`FormulaMonitor`, and :func:`monitor_spec`, which builds
+its transformation spec for a formula.
+
+A monitor unit has one input port per term of its formula (``t0``, ``t1``, ... in the order the
+formula first mentions them, each tagged with its term, so a planner can wire it by meaning) and
+one output port, ``verdicts``. Each message's origin time is its sample time; each verdict is
+published as soon as it is decided (:mod:`dyknow.reasoning.progression`), as JSON::
+
+    {"t": 12.5, "verdict": false, "decided_t": 12.5, "t_ns": 12500000000, "decided_ns": 12500000000, "state": 41}
+
+``t`` and ``decided_t`` are seconds (``t_ns``/``decided_ns`` the exact origin times of the state
+and of the state that decided it), ``state`` the state's index since the unit started. A verdict
+never decided (still unknown when the unit is destroyed) is never published. Params:
+
+- ``formula`` (string): the formula (:mod:`dyknow.reasoning.syntax`);
+- ``reorder_ms`` (float, default 0): the reorder delay, in sample time; a sample later than the
+  policy allows is counted as a rejection of its port (``late: ...``) and dropped;
+- ``flush_ms`` (float, default 0: never): close the buffered states after this much wall time
+  without a sample (the end of a replay, a stream that stopped), so their verdicts come out.
+
+Example::
+
+    from dyknow.reasoning import monitor_spec, term_ports
+
+    spec = monitor_spec("historically[0, 2s] Battery(robot) > 0.2")
+    manager.add_transformation(spec)
+    ports = term_ports(spec)                         # {"Battery(robot)": "t0"}
+    manager.spawn(spec.label, "battery-ok", bindings={ports["Battery(robot)"]: "robot/battery"})
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+from dyknow.errors import FormulaError
+from dyknow.reasoning.progression import Monitor
+from dyknow.reasoning.syntax import Formula, parse
+from dyknow.spec import Param, Port, Tag, TransformationSpec
+from dyknow.unit import Unit
+
+if TYPE_CHECKING:
+    from dyknow.message import Message
+
+__all__ = ["DEFAULT_QUEUE", "VERDICTS_PORT", "FormulaMonitor", "monitor_spec", "term_ports"]
+
+VERDICTS_PORT: str = "verdicts"
+"""The output port on which a monitor unit publishes its verdicts."""
+
+DEFAULT_QUEUE: int = 1024
+"""The input queue of a monitor's ports: a burst of samples waits instead of being dropped."""
+
+_SOURCE = "dyknow.reasoning.unit:FormulaMonitor"
+
+
+def term_ports(formula: str | Formula | TransformationSpec) -> dict[str, str]:
+    """Which input port of a monitor takes which term: ``{"Battery(robot)": "t0", ...}``.
+
+    ``formula`` is the formula, or a spec made by :func:`monitor_spec` (its ``formula`` param).
+    """
+    if isinstance(formula, TransformationSpec):
+        text = formula.param_values().get("formula")
+        if not isinstance(text, str):
+            raise FormulaError(
+                f"transformation {formula.label!r} has no formula param", where="term_ports()", expected="a spec from monitor_spec()"
+            )
+        formula = text
+    parsed = parse(formula) if isinstance(formula, str) else formula
+    return {str(term): f"t{k}" for k, term in enumerate(parsed.terms)}
+
+
+def monitor_spec(
+    formula: str | Formula,
+    *,
+    label: str = "formula-monitor",
+    reorder_ms: float = 0.0,
+    flush_ms: float = 0.0,
+    queue: int = DEFAULT_QUEUE,
+) -> TransformationSpec:
+    """The transformation spec of a monitor of ``formula``: its params, a port per term, ``verdicts``.
+
+    Raises :class:`~dyknow.errors.FormulaError` when the formula does not parse or mentions no term.
+    """
+    parsed = parse(formula) if isinstance(formula, str) else formula
+    if not parsed.terms:
+        raise FormulaError(
+            "the formula mentions no stream, so it has no states to monitor",
+            where=f"monitor_spec({parsed.text!r})",
+            expected="a formula over at least one term, such as Battery(robot) > 0.2",
+        )
+    ports = term_ports(parsed)
+    return TransformationSpec(
+        label=label,
+        source=_SOURCE,
+        params=(
+            Param("formula", "string", parsed.text),
+            Param("reorder_ms", "float", float(reorder_ms)),
+            Param("flush_ms", "float", float(flush_ms)),
+        ),
+        ports=(*(Port(port, "in", queue=queue) for port in ports.values()), Port(VERDICTS_PORT, "out")),
+        tags=tuple(Tag(port, term) for term, port in ports.items()),
+        description=f"Monitors {parsed}: publishes each state's verdict on {VERDICTS_PORT} as soon as it is decided.",
+    )
+
+
+class FormulaMonitor(Unit):
+    """A :class:`~dyknow.reasoning.Monitor` as a unit (see the module documentation).
+
+    ``monitor`` is the monitor (its ``late`` count, ``states``, ``retained()``).
+    """
+
+    monitor: Monitor
+
+    def setup(self) -> None:
+        """Parse the formula, check there is a port per term, start the idle flush if asked for."""
+        reorder_ms = float(self.params.get("reorder_ms", 0.0))
+        if not reorder_ms >= 0:
+            raise FormulaError(f"reorder_ms is {reorder_ms}", where=f"unit {self.name!r}", expected="0 or more milliseconds")
+        self.monitor = Monitor(str(self.params["formula"]), reorder_ns=round(reorder_ms * 1_000_000))
+        self._ports = {f"t{k}": k for k in range(len(self.monitor.terms))}
+        bound = self.get_config()
+        missing = [f"{port} for {self.monitor.terms[k]}" for port, k in self._ports.items() if port not in bound]
+        if missing or VERDICTS_PORT not in bound:
+            raise FormulaError(
+                f"the unit lacks ports: {', '.join(missing) or VERDICTS_PORT}",
+                where=f"unit {self.name!r}",
+                expected="the spec monitor_spec(formula) builds: one input per term and the output 'verdicts'",
+            )
+        self._last_sample = time.monotonic()
+        flush_ms = float(self.params.get("flush_ms", 0.0))
+        self._flush_s = flush_ms / 1000
+        if flush_ms > 0:
+            self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
+
+    def on_message(self, port: str, msg: Message) -> None:
+        """Push the sample (its origin time, its payload); publish the verdicts it decided."""
+        monitor = self.monitor
+        late = monitor.late
+        verdicts = monitor.push_index(self._ports[port], msg.origin_ns, msg.payload)
+        if monitor.late != late:
+            self.reject(
+                port,
+                f"late: a sample at {msg.origin_ns} ns, at or before the last state closed ({monitor.closed_ns} ns; reorder delay {monitor.reorder_ns / 1e6:g} ms)",
+            )
+        self._last_sample = time.monotonic()
+        for verdict in verdicts:
+            self.publish(VERDICTS_PORT, verdict.to_json())
+
+    def _flush_if_idle(self) -> None:
+        if time.monotonic() - self._last_sample >= self._flush_s:
+            for verdict in self.monitor.flush():
+                self.publish(VERDICTS_PORT, verdict.to_json(), origin_ns=verdict.decided_ns)

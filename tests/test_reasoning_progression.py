@@ -1,0 +1,264 @@
+"""The incremental monitor (dyknow.reasoning.progression): the verdicts it returns are evaluate()'s
+decided ones, each at the first state that decides it; its reorder policy; its bounded memory."""
+
+from __future__ import annotations
+
+import random
+import re
+import tracemalloc
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dyknow.errors import ClosedError, FormulaError
+from dyknow.reasoning import Monitor, Verdict, evaluate_ns, parse
+from dyknow.reasoning.syntax import Formula
+from dyknow.tags import Term
+from tests.reasoning_support import MS, formulas, long_trace, traces
+
+
+def cases(count: int) -> settings:
+    """Reproducible Hypothesis settings: ``count`` examples, derandomized, no deadline."""
+    return settings(
+        max_examples=count, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large]
+    )
+
+
+def _in_time_order(trace: Mapping[Term, Sequence[tuple[int, Any]]], rng: random.Random) -> list[tuple[Term, int, Any]]:
+    """The samples of all streams merged by time; streams interleaved at random at equal times."""
+    merged = [(t, rng.random(), k, term, value) for term, samples in trace.items() for k, (t, value) in enumerate(samples)]
+    merged.sort(key=lambda s: (s[0], s[1]))
+    # within one stream, equal times keep their order (the later sample is the value)
+    by_term: dict[Term, list[tuple[int, Any]]] = {term: list(samples) for term, samples in trace.items()}
+    out = []
+    cursor = dict.fromkeys(by_term, 0)
+    for t, _r, _k, term, _value in merged:
+        out.append((term, t, by_term[term][cursor[term]][1]))
+        cursor[term] += 1
+    return out
+
+
+def _run(monitor: Monitor, samples: list[tuple[Term, int, Any]]) -> tuple[list[Verdict], dict[Term, list[tuple[int, Any]]]]:
+    """Push every sample; returns the verdicts and the samples the monitor took (the late ones left out)."""
+    verdicts: list[Verdict] = []
+    accepted: dict[Term, list[tuple[int, Any]]] = {}
+    for term, t, value in samples:
+        closed = monitor.closed_ns
+        late = monitor.late
+        verdicts += monitor.push(str(term), t, value)
+        if closed is not None and t <= closed:
+            assert monitor.late == late + 1
+        else:
+            assert monitor.late == late
+            accepted.setdefault(term, []).append((t, value))
+    verdicts += monitor.flush()
+    return verdicts, accepted
+
+
+def _decided(formula: Formula, accepted: Mapping[Term, list[tuple[int, Any]]]) -> dict[int, tuple[int, bool]]:
+    """evaluate()'s decided verdicts over the accepted samples: state index -> (t_ns, verdict)."""
+    streams = {str(term): sorted(accepted.get(term, []), key=lambda s: s[0]) for term in formula.terms}
+    return {i: (t, v) for i, (t, v) in enumerate(evaluate_ns(formula, streams)) if v is not None}
+
+
+def _check(formula: Formula, trace: Mapping[Term, Sequence[tuple[int, Any]]], seed: int) -> int:
+    rng = random.Random(seed)
+    samples = _in_time_order(trace, rng)
+    monitor = Monitor(formula)
+    verdicts, accepted = _run(monitor, samples)
+    expected = _decided(formula, accepted)
+    got = {v.state: (v.t_ns, v.verdict) for v in verdicts}
+    assert len(got) == len(verdicts), "a state's verdict was returned twice"
+    assert got == expected, str(formula)
+    # each at the first state that decides it: evaluate() over the prefix up to that state decides
+    # it, over the prefix before it does not
+    streams = {str(term): sorted(accepted.get(term, []), key=lambda s: s[0]) for term in formula.terms}
+    times = [t for t, _ in evaluate_ns(formula, streams)]
+    prefix_verdicts: dict[int, list[bool | None]] = {}
+
+    def on_prefix(end: int) -> list[bool | None]:
+        if end not in prefix_verdicts:
+            cut = times[end]
+            prefix_verdicts[end] = [v for _, v in evaluate_ns(formula, {k: [s for s in v if s[0] <= cut] for k, v in streams.items()})]
+        return prefix_verdicts[end]
+
+    for verdict in verdicts:
+        decider = times.index(verdict.decided_ns)
+        assert decider >= verdict.state
+        assert on_prefix(decider)[verdict.state] is verdict.verdict, (str(formula), verdict)
+        if decider > verdict.state:
+            assert on_prefix(decider - 1)[verdict.state] is None, (str(formula), verdict, "decided late")
+        if formula.past_only:
+            assert verdict.decided_ns == verdict.t_ns
+    return len(verdicts)
+
+
+@cases(600)
+@given(formula=formulas(past=True, future=False), data=st.data(), seed=st.integers(0, 1000))
+def test_past_monitors_return_evaluates_verdicts_at_their_state(formula: Formula, data: st.DataObject, seed: int) -> None:
+    _check(formula, data.draw(traces(formula.terms)), seed)
+
+
+@cases(600)
+@given(formula=formulas(past=False, future=True), data=st.data(), seed=st.integers(0, 1000))
+def test_future_monitors_return_evaluates_verdicts_at_the_first_deciding_state(formula: Formula, data: st.DataObject, seed: int) -> None:
+    _check(formula, data.draw(traces(formula.terms)), seed)
+
+
+@cases(600)
+@given(formula=formulas(max_depth=5), data=st.data(), seed=st.integers(0, 1000))
+def test_mixed_monitors_return_evaluates_verdicts_at_the_first_deciding_state(formula: Formula, data: st.DataObject, seed: int) -> None:
+    _check(formula, data.draw(traces(formula.terms)), seed)
+
+
+@cases(80)
+@given(formula=formulas(max_depth=5), seed=st.integers(0, 10**6))
+def test_long_traces_agree_while_old_states_are_dropped(formula: Formula, seed: int) -> None:
+    trace = long_trace(formula.terms, seed, samples=800)
+    monitor = Monitor(formula)
+    verdicts, accepted = _run(monitor, _in_time_order(trace, random.Random(seed)))
+    got = {v.state: (v.t_ns, v.verdict) for v in verdicts}
+    assert len(got) == len(verdicts)
+    assert got == _decided(formula, accepted), str(formula)
+    if formula.terms:  # horizons here are at most 5 * 9 ms: old states were dropped, many times
+        assert monitor.retained() < monitor.states // 2, (monitor.retained(), monitor.states)
+
+
+@cases(300)
+@given(formula=formulas(max_depth=4), data=st.data(), seed=st.integers(0, 1000), delay=st.integers(1, 4))
+def test_samples_out_of_order_within_the_reorder_delay_change_nothing(formula: Formula, data: st.DataObject, seed: int, delay: int) -> None:
+    trace = data.draw(traces(formula.terms))
+    rng = random.Random(seed)
+    # each sample arrives as if it were up to (not quite) `delay` ms late: never late by the policy
+    arrivals = [
+        (t + rng.random() * delay * MS, term, position, t, value)
+        for term, samples in trace.items()
+        for position, (t, value) in enumerate(samples)
+    ]
+    arrivals.sort(key=lambda a: a[0])
+    # a stream's samples at one time keep their order (the later one is the value): swap them back
+    slots: dict[tuple[Term, int], list[int]] = {}
+    for k, (_arrival, term, _position, t, _value) in enumerate(arrivals):
+        slots.setdefault((term, t), []).append(k)
+    ordered = list(arrivals)
+    for ks in slots.values():
+        for k, item in zip(ks, sorted((arrivals[k] for k in ks), key=lambda a: a[2]), strict=True):
+            ordered[k] = item
+    monitor = Monitor(formula, reorder_ns=delay * MS)
+    verdicts = []
+    for _arrival, term, _position, t, value in ordered:
+        verdicts += monitor.push(str(term), t, value)
+    verdicts += monitor.flush()
+    assert monitor.late == 0
+    assert {v.state: (v.t_ns, v.verdict) for v in verdicts} == _decided(formula, trace)
+
+
+# -- the reorder policy, by hand
+
+
+def test_late_samples_are_counted_and_dropped() -> None:
+    monitor = Monitor("once[0, 5ms] p > 0", reorder_ns=2 * MS)
+    assert monitor.push("p", 10 * MS, 1) == []  # 10 may still be joined by another sample at 10
+    assert [v.t_ns for v in monitor.push("p", 20 * MS, 0)] == [10 * MS]  # 20 > 10 + 2: 10 closes
+    assert monitor.closed_ns == 10 * MS
+    assert monitor.push("p", 5 * MS, 1) == [] and monitor.late == 1  # before the closed state: late
+    assert monitor.push("p", 10 * MS, 1) == [] and monitor.late == 2  # at it: late too
+    assert [(v.t_ns, v.verdict) for v in monitor.push("p", 15 * MS, 0)] == [(15 * MS, True)]  # 20 - 2 > 15: closes at once
+    assert [(v.t_ns, v.verdict) for v in monitor.flush()] == [(20 * MS, False)]
+    assert monitor.states == 3 and monitor.late == 2
+
+
+def test_equal_times_from_different_streams_make_one_state() -> None:
+    monitor = Monitor("p > 0 and q > 0")
+    assert monitor.push("p", 1 * MS, 1) == []  # q has no value yet: no state
+    assert monitor.push("q", 1 * MS, 1) == [Verdict(0, 1 * MS, True, 1 * MS)]  # both at 1: one state, closed now
+    assert monitor.push("p", 2 * MS, 0) == []  # q may still send a sample at 2
+    assert monitor.push("q", 2 * MS, 1) == [Verdict(1, 2 * MS, False, 2 * MS)]
+    assert monitor.push("q", 3 * MS, 1) == []  # p may still send at 3 ...
+    assert monitor.push("q", 4 * MS, 1) == [Verdict(2, 3 * MS, False, 3 * MS)]  # ... not once q is past 3
+    assert monitor.push("p", 3 * MS, 1) == [] and monitor.late == 1
+    assert monitor.states == 3
+
+
+def test_with_no_delay_one_stream_closes_each_state_at_once_and_a_repeated_time_is_late() -> None:
+    monitor = Monitor("historically[0, 10ms] Battery(robot) > 0.2")
+    assert monitor.push("Battery(robot)", 0, 0.9) == [Verdict(0, 0, True, 0)]
+    assert monitor.push("Battery( robot )", 1 * MS, 0.1) == [Verdict(1, 1 * MS, False, 1 * MS)]
+    assert monitor.push("Battery(robot)", 1 * MS, 0.9) == [] and monitor.late == 1
+    assert monitor.flush() == []
+
+
+def test_unknown_verdicts_are_never_returned() -> None:
+    monitor = Monitor("eventually[0, 10ms] x > 1")
+    verdicts = [v for t in range(5) for v in monitor.push("x", t * MS, "not a number")]
+    verdicts += monitor.push("x", 20 * MS, 5)  # completes the first windows: all unknown terms
+    verdicts += monitor.flush()
+    assert [(v.state, v.verdict) for v in verdicts] == [(5, True)]
+
+
+# -- the interface
+
+
+def test_verdicts_as_json() -> None:
+    verdict = Verdict(3, 1_500_000_000, True, 2_000_000_000)
+    assert verdict.to_json() == {
+        "t": 1.5,
+        "verdict": True,
+        "decided_t": 2.0,
+        "t_ns": 1_500_000_000,
+        "decided_ns": 2_000_000_000,
+        "state": 3,
+    }
+
+
+def test_misuse_is_explained() -> None:
+    monitor = Monitor(parse("Battery(robot) > 0.2 or Speed(robot) < 1"))
+    assert monitor.terms == ("Battery(robot)", "Speed(robot)")
+    with pytest.raises(FormulaError) as unknown:
+        monitor.push("Battery(robto)", 0, 1.0)
+    assert unknown.value.what == "the formula does not mention the term 'Battery(robto)'"
+    assert "did you mean 'Battery(robot)'" in (unknown.value.expected or "")
+    with pytest.raises(FormulaError):
+        Monitor("p", reorder_ns=-1)
+    with pytest.raises(FormulaError) as syntax:
+        Monitor("p and")
+    assert syntax.value.where == "formula column 6"
+    assert monitor.close() == [] and monitor.close() == []
+    with pytest.raises(ClosedError):
+        monitor.push("Speed(robot)", 0, 1.0)
+
+
+# -- memory
+
+
+def test_memory_is_bounded_by_the_horizon_over_a_million_states() -> None:
+    formula = "always[0, 50ms] (p > 0.1 implies eventually[0, 20ms] p > 0.5) and p > 0.3 since[0, inf] once[10ms, 30ms] p > 0.9"
+    monitor = Monitor(formula)
+    rng = random.Random(7)
+    values = [rng.random() for _ in range(1000)]
+    largest = 0
+    decided = 0
+    traced: list[int] = []
+    for n in range(1_000_000):  # one state per ms: the horizon spans 70 states
+        decided += len(monitor.push_index(0, n * MS, values[n % 1000]))
+        if n % 1000 == 999:
+            largest = max(largest, monitor.retained())
+        if n in (600_000, 620_000, 640_000):  # and nothing else grows: what it allocates stays put
+            if not traced:
+                tracemalloc.start()
+            traced.append(tracemalloc.get_traced_memory()[0])
+            if len(traced) == 3:
+                tracemalloc.stop()
+    assert monitor.states == 1_000_000 and decided > 900_000
+    assert largest < 1000, largest  # a few hundred states, not a million
+    assert traced[2] - traced[1] < 64_000, traced  # 20,000 more states (a leak of one int each: 700 kB), not 64 kB more
+
+
+def test_the_readme_example_runs_as_written() -> None:
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    (block,) = [b for b in re.findall(r"```python\n(.*?)```", readme, re.DOTALL) if "from dyknow.reasoning import" in b]
+    exec(compile(block, "README.md (Temporal reasoning)", "exec"), {})  # its asserts are the test

@@ -1,0 +1,160 @@
+"""The formula language (dyknow.reasoning.syntax): what parses to what, what is refused and how
+the error says so (column, what was expected), and that the written form parses back."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+
+from dyknow.errors import DyKnowError, FormulaError
+from dyknow.reasoning import Formula, parse
+from dyknow.reasoning.syntax import (
+    MAX_DEPTH,
+    MAX_FORMULA_CHARS,
+    Always,
+    And,
+    Atom,
+    Const,
+    Eventually,
+    Historically,
+    Implies,
+    Interval,
+    Not,
+    Once,
+    Or,
+    Since,
+    Until,
+)
+from dyknow.tags import Term
+from tests.reasoning_support import formulas
+
+S = 1_000_000_000
+MS = 1_000_000
+P, Q, R = Term("p"), Term("q"), Term("r")
+BATTERY = Term("Battery", ("robot",))
+
+
+@pytest.mark.parametrize(
+    ("text", "root"),
+    [
+        ("Battery(robot) > 0.2", Atom(BATTERY, (), ">", 0.2)),
+        ("Battery( robot )>=-1e-3", Atom(BATTERY, (), ">=", -0.001)),
+        ("BallTrack(field).speed < 3", Atom(Term("BallTrack", ("field",)), ("speed",), "<", 3.0)),
+        ("Pose(robot).position.x != 0", Atom(Term("Pose", ("robot",)), ("position", "x"), "!=", 0.0)),
+        ("Stalled(robot)", Atom(Term("Stalled", ("robot",)))),
+        ("Door(hall).open", Atom(Term("Door", ("hall",)), ("open",))),
+        ("Ticks.count == 2", Atom(Term("Ticks"), ("count",), "==", 2.0)),  # the name ends at the first dot
+        ("`cam.left`.exposure <= 3", Atom(Term("cam.left"), ("exposure",), "<=", 3.0)),  # a tag with a dot
+        ("`once` and p", And(Atom(Term("once")), Atom(P))),  # a tag spelled like a keyword
+        ("dk:Battery(robot) < 1", Atom(Term("dk:Battery", ("robot",)), (), "<", 1.0)),
+        ("<http://x.org/B>(r) < 1", Atom(Term("<http://x.org/B>", ("r",)), (), "<", 1.0)),
+        ("true or false", Or(Const(True), Const(False))),
+        ("not not p", Not(Not(Atom(P)))),
+        ("p and q or r", Or(And(Atom(P), Atom(Q)), Atom(R))),
+        ("p or q and r", Or(Atom(P), And(Atom(Q), Atom(R)))),
+        ("p implies q implies r", Implies(Atom(P), Implies(Atom(Q), Atom(R)))),  # right-associative
+        ("p and q implies r or p", Implies(And(Atom(P), Atom(Q)), Or(Atom(R), Atom(P)))),
+        ("always[0, 1s] p and q", And(Always(Interval(0, S), Atom(P)), Atom(Q))),  # unary binds tightest
+        ("eventually[500ms, 2s] (p and q)", Eventually(Interval(500 * MS, 2 * S), And(Atom(P), Atom(Q)))),
+        ("historically[0,0] p", Historically(Interval(0, 0), Atom(P))),
+        ("once[1.5s, inf] p", Once(Interval(1500 * MS, None), Atom(P))),
+        ("p until[0, 10ms] q and r", And(Until(Atom(P), Atom(Q), Interval(0, 10 * MS)), Atom(R))),
+        ("not p since[0, inf] q", Since(Not(Atom(P)), Atom(Q), Interval(0, None))),
+        ("(p until[0, 1s] q) until[0, 1s] r", Until(Until(Atom(P), Atom(Q), Interval(0, S)), Atom(R), Interval(0, S))),
+        ("once[0, 0.000000001s] p", Once(Interval(0, 1), Atom(P))),
+    ],
+)
+def test_what_parses_to_what(text: str, root: object) -> None:
+    formula = parse(text)
+    assert formula.root == root
+    assert formula.text == text
+    assert parse(str(formula)).root == root  # the canonical text reads back the same
+
+
+def test_terms_past_horizon_and_operators() -> None:
+    formula = parse(
+        "Battery(robot).level > 0.2 since[0, inf] (eventually[0, 2s] p and always[1s, 3s] eventually[0, 500ms] Battery(robot).ok)"
+    )
+    assert formula.terms == (BATTERY, P)  # distinct, in order of first appearance
+    assert not formula.past_only
+    assert formula.horizon_ns == 3 * S + 500 * MS  # always[1s, 3s] eventually[0, 500ms]: the longest path
+    assert formula.operators == 5  # since, eventually, and, always, eventually
+    assert parse("historically[0, 1s] p since[0, inf] q").past_only
+    assert parse("p").horizon_ns == 0 and parse("p").operators == 0
+    assert Formula.of(And(Atom(P), Atom(Q))).text == "p and q"
+
+
+ERRORS = [
+    # (text, column, what starts with, expected contains)
+    ("", 1, "unexpected end of formula", "a formula: an atom"),
+    ("always p", 8, "unexpected 'p'", "'[' after 'always'"),
+    ("always[0, 1s]", 14, "unexpected end of formula", "a formula"),
+    ("x >", 4, "unexpected end of formula", "a number after '>'"),
+    ("x > y", 5, "unexpected 'y'", "a number after '>'"),
+    ("x > 3s", 5, "unexpected '3s'", "a number after '>'"),
+    ("3 > x", 1, "the number 3 where a stream should be", "a stream first"),
+    ("x = 3", 3, "unexpected '='", "=="),
+    ("x => 3", 3, "unexpected '='", "=="),
+    ("always[0, inf] p", 11, "'inf' as the upper bound of the future operator 'always'", "only past operators"),
+    ("p until[0, inf] q", 12, "'inf' as the upper bound of the future operator 'until'", "finite upper bound"),
+    ("once[inf, inf] p", 6, "'inf' as a lower bound", "finite lower bound"),
+    ("once[1s, 0] p", 6, "the interval's lower bound 1s is above its upper bound 0", "a <= b"),
+    ("once[1, 2s] p", 6, "the duration 1 has no unit", "1s or 1ms"),
+    ("once[0 2s] p", 8, "unexpected '2s'", "','"),
+    ("once[0, 2s p", 12, "unexpected 'p'", "']'"),
+    ("once[0, 0.0000000001s] p", 9, "the duration 0.0000000001s is finer than a nanosecond", "whole number of nanoseconds"),
+    ("a until[0,1s] b until[0,1s] c", 17, "'until' right after 'until'", "parentheses"),
+    ("(a and b", 9, "unexpected end of formula", "')'"),
+    ("a b", 3, "unexpected 'b'", "the end of the formula"),
+    ("p untill[0, 1s] q", 3, "unexpected 'untill'", "did you mean 'until'"),
+    ("evenutally[0, 1s] p", 1, "'evenutally' is not a temporal operator", "did you mean 'eventually'"),
+    ("Always[0, 1s] p", 1, "'Always' is not a temporal operator", "did you mean 'always'"),
+    ("and x", 1, "unexpected keyword 'and'", "a formula"),
+    ("p and", 6, "unexpected end of formula", "a formula"),
+    ("once[0, 1s] p)", 14, "unexpected ')'", "the end of the formula"),
+    ("x.", 3, "unexpected end of formula", "a field name after '.'"),
+    ("Battery(robot", 8, "unbalanced parenthesis", "')'"),
+    ("Bat(a b) > 1", 1, "term 'Bat(a b)' is not a tag", "Functor or Functor(arg, ...)"),
+    ("`cam.left > 1", 1, "'`' is never closed", "backquotes"),
+    ("<http://x", 1, "'<' opens an IRI that is never closed", "a term such as"),
+    ("<http://x y>(r) > 1", 1, "term '<http://x y>(r)' is not a tag", "without spaces"),
+]
+
+
+@pytest.mark.parametrize(("text", "column", "what", "expected"), ERRORS, ids=[e[0] or "empty" for e in ERRORS])
+def test_parse_errors_name_the_column_and_what_was_expected(text: str, column: int, what: str, expected: str) -> None:
+    with pytest.raises(FormulaError) as caught:
+        parse(text)
+    error = caught.value
+    assert isinstance(error, DyKnowError)
+    assert (error.where, error.column, error.formula) == (f"formula column {column}", column, text)
+    assert error.what.startswith(what), error.what
+    assert expected in (error.expected or ""), error.expected
+    assert str(error).startswith(f"formula column {column}: ")
+    assert error.to_dict()["column"] == column
+
+
+def test_untrusted_formulas_are_bounded() -> None:
+    with pytest.raises(FormulaError) as long:
+        parse("p or " * (MAX_FORMULA_CHARS // 5) + "p")
+    assert long.value.what.startswith("the formula has") and long.value.expected == f"at most {MAX_FORMULA_CHARS}"
+    with pytest.raises(FormulaError) as deep:
+        parse("(" * (MAX_DEPTH + 5) + "p" + ")" * (MAX_DEPTH + 5))
+    assert "nests deeper than" in deep.value.what
+    with pytest.raises(FormulaError) as nots:
+        parse("not " * (MAX_DEPTH + 5) + "p")
+    assert "nests deeper than" in nots.value.what
+    with pytest.raises(FormulaError) as wrong_type:
+        parse(42)  # type: ignore[arg-type]
+    assert wrong_type.value.what == "a formula is text, got int"
+    assert parse("not " * (MAX_DEPTH - 5) + "p").operators == MAX_DEPTH - 5  # deep but allowed
+
+
+@settings(max_examples=500, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(formula=formulas(max_depth=6))
+def test_every_formula_written_out_parses_back_to_itself(formula: Formula) -> None:
+    text = str(formula)
+    again = parse(text)
+    assert again.root == formula.root, text
+    assert again.terms == formula.terms
+    assert str(again) == text

@@ -1,0 +1,201 @@
+"""The monitor as a unit (dyknow.reasoning.unit): its spec, the verdicts it publishes over live
+Zenoh streams and over a replayed recording (equal to evaluate() over the same samples), late
+samples counted as rejections, and setup errors."""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dyknow import Manager, Message, Player, Recorder, parse_specs
+from dyknow.errors import FormulaError
+from dyknow.reasoning import FormulaMonitor, evaluate_ns, monitor_spec, term_ports
+from dyknow.reasoning.unit import VERDICTS_PORT
+from dyknow.testing import Sink, Source, UnitHarness
+
+MS = 1_000_000
+T0 = 1_700_000_000 * 1_000_000_000  # sample times like a source's clock
+
+
+def test_a_monitor_unit_in_ten_lines() -> None:
+    spec = monitor_spec("historically[0, 20ms] Battery(robot) > 0.2")
+    with UnitHarness(spec, name="battery-ok") as harness:
+        for k, level in enumerate([0.9, 0.5, 0.1, 0.8]):
+            harness.send("t0", level, origin_ns=T0 + k * 10 * MS)
+        got = [m.payload for m in harness.wait_for(VERDICTS_PORT, 4)]
+    assert [(v["t_ns"], v["verdict"]) for v in got] == [(T0, True), (T0 + 10 * MS, True), (T0 + 20 * MS, False), (T0 + 30 * MS, False)]
+    assert got[2] == {
+        "t": (T0 + 20 * MS) / 1e9,
+        "verdict": False,
+        "decided_t": (T0 + 20 * MS) / 1e9,
+        "t_ns": T0 + 20 * MS,
+        "decided_ns": T0 + 20 * MS,
+        "state": 2,
+    }
+
+
+def test_the_spec_has_a_port_per_term_tagged_with_it_and_survives_xml() -> None:
+    spec = monitor_spec("BallTrack(field).speed < 3 since[0, inf] not Stalled(robot) or BallTrack(field).seen", reorder_ms=5, flush_ms=100)
+    assert [(p.name, p.direction) for p in spec.ports] == [("t0", "in"), ("t1", "in"), ("verdicts", "out")]
+    assert [(t.port, t.tag) for t in spec.tags] == [("t0", "BallTrack(field)"), ("t1", "Stalled(robot)")]
+    assert spec.param_values() == {
+        "formula": "BallTrack(field).speed < 3 since[0, inf] not Stalled(robot) or BallTrack(field).seen",
+        "reorder_ms": 5.0,
+        "flush_ms": 100.0,
+    }
+    assert term_ports(spec) == term_ports(spec.param_values()["formula"]) == {"BallTrack(field)": "t0", "Stalled(robot)": "t1"}
+    (again,) = parse_specs(spec.to_xml())  # so it can be sent to a remote manager as XML
+    assert (again.ports, again.tags, again.params, again.source) == (spec.ports, spec.tags, spec.params, spec.source)
+    with pytest.raises(FormulaError) as no_terms:
+        monitor_spec("true or false")
+    assert no_terms.value.what == "the formula mentions no stream, so it has no states to monitor"
+    with pytest.raises(FormulaError):
+        monitor_spec("p and")
+
+
+def test_late_samples_are_rejections_of_their_port() -> None:
+    with UnitHarness(monitor_spec("once[0, 1s] p > 0"), name="m") as harness:
+        harness.send("t0", 1, origin_ns=T0 + 10 * MS)
+        harness.wait_for(VERDICTS_PORT, 1)
+        harness.send("t0", 1, origin_ns=T0 + 5 * MS)  # before the state already closed
+        harness.send("t0", 0, origin_ns=T0 + 20 * MS)
+        harness.wait_for(VERDICTS_PORT, 2)
+        port = harness.statistics().to_dict()["ports"]["t0"]
+        unit = harness.unit
+        assert isinstance(unit, FormulaMonitor)
+        assert unit.monitor.late == 1 and port["rejected"] == 1
+        assert port["last_rejection"].startswith(
+            f"late: a sample at {T0 + 5 * MS} ns, at or before the last state closed ({T0 + 10 * MS} ns"
+        )
+
+
+@pytest.mark.parametrize(
+    ("params", "error"),
+    [
+        ({"formula": "p and"}, "formula column 6: unexpected end of formula"),
+        ({"formula": "p", "reorder_ms": -1.0}, "reorder_ms is -1.0"),
+    ],
+)
+def test_a_bad_formula_fails_the_unit_at_setup(params: dict[str, Any], error: str) -> None:
+    with UnitHarness(monitor_spec("p"), params=params, name="m") as harness:
+        assert harness.info.state == "failed" and error in (harness.info.error or "")
+
+
+def test_a_spec_without_the_ports_of_its_formula_fails_the_unit() -> None:
+    spec = monitor_spec("p and q")
+    with UnitHarness(spec, params={"formula": "p and q and r"}, name="m") as harness:  # r has no port
+        assert harness.info.state == "failed"
+        assert "the unit lacks ports: t2 for r" in (harness.info.error or "")
+
+
+# -- over Zenoh: live streams, and a recording
+
+
+FORMULA = "historically[0, 20ms] Battery(robot) > 0.2 or eventually[0, 10ms] Speed(robot).v < 1"
+
+
+def _samples(seed: int, count: int = 150) -> dict[str, list[tuple[int, Any]]]:
+    """Irregular samples of the two streams, a few at the same times."""
+    rng = random.Random(seed)
+    out: dict[str, list[tuple[int, Any]]] = {"Battery(robot)": [], "Speed(robot)": []}
+    t = T0
+    for _ in range(count):
+        t += rng.choice([0, 1, 1, 2, 3]) * MS
+        if rng.random() < 0.6:
+            out["Battery(robot)"].append((t, rng.choice([0.1, 0.5, 0.9])))
+        if rng.random() < 0.6 or not out["Speed(robot)"]:
+            out["Speed(robot)"].append((t, {"v": rng.choice([0.5, 2.0, 3.0])}))
+    for samples in out.values():  # one sample per stream and time
+        seen: dict[int, Any] = dict(samples)
+        samples[:] = sorted(seen.items())
+    return out
+
+
+def _expected(samples: dict[str, list[tuple[int, Any]]]) -> dict[int, bool]:
+    return {t: v for t, v in evaluate_ns(FORMULA, samples) if v is not None}
+
+
+def _published(sink: Sink, count: int) -> dict[int, bool]:
+    got = [m.payload for m in sink.wait_for(count, timeout_s=20)]
+    verdicts = {v["t_ns"]: v["verdict"] for v in got}
+    assert len(verdicts) == len(got), "a state's verdict was published twice"
+    return verdicts
+
+
+def _receiver(make_manager: Callable[..., Manager], **kwargs: Any) -> tuple[Manager, Sink]:
+    """A manager running the monitor (inputs on robot/battery and robot/speed) and a sink of its verdicts."""
+    manager = make_manager(queue_depth=4096, **kwargs)  # the sink keeps a burst of verdicts (a flush)
+    spec = monitor_spec(FORMULA, reorder_ms=50, flush_ms=300)  # a state closes 50 ms of sample time late, or 300 ms after the last sample
+    manager.add_transformation(spec)
+    ports = term_ports(spec)
+    manager.spawn("sink", "verdicts", bindings={"in": "robot/verdicts"})
+    manager.spawn(
+        spec.label,
+        "monitor",
+        bindings={ports["Battery(robot)"]: "robot/battery", ports["Speed(robot)"]: "robot/speed", "verdicts": "robot/verdicts"},
+    )
+    sink = manager.unit("verdicts")
+    assert isinstance(sink, Sink)
+    return manager, sink
+
+
+def _wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.01)
+
+
+def test_verdicts_over_live_streams_from_another_manager_equal_evaluate(make_manager: Callable[..., Manager]) -> None:
+    sender = make_manager()
+    receiver, sink = _receiver(make_manager, connect=sender.endpoints)
+    sender.spawn("publisher", "battery", bindings={"out": "robot/battery"})
+    sender.spawn("publisher", "speed", bindings={"out": "robot/speed"})
+    sources = {"Battery(robot)": sender.unit("battery"), "Speed(robot)": sender.unit("speed")}
+    for source in sources.values():
+        assert isinstance(source, Source)
+        _wait_until(lambda s=source: s.has_subscribers("out"), "the monitor to subscribe")
+    samples = _samples(seed=26)
+    # the two streams interleaved in time order, as two sources would send them
+    merged = sorted((t, term, value) for term, stream in samples.items() for t, value in stream)
+    for t, term, value in merged:
+        source = sources[term]
+        assert isinstance(source, Source)
+        source.emit(value, origin_ns=t)
+    expected = _expected(samples)
+    assert len(expected) > 100
+    assert _published(sink, len(expected)) == expected
+    stats = receiver.get_statistics("monitor").to_dict()["ports"]
+    assert stats["t0"]["rejected"] == stats["t1"]["rejected"] == 0
+    assert stats["t0"]["dropped"] == stats["t1"]["dropped"] == 0
+    assert receiver.get_statistics("verdicts").ports[0].dropped == 0
+
+
+def test_verdicts_over_a_replayed_recording_equal_evaluate(make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    samples = _samples(seed=7)
+    path = tmp_path / "robot.mcap"
+    keys = {"Battery(robot)": "robot/battery", "Speed(robot)": "robot/speed"}
+    with Recorder((), path) as recorder:
+        merged = sorted((t, term, value) for term, stream in samples.items() for t, value in stream)
+        for seq, (t, term, value) in enumerate(merged):
+            recorder.write(Message(value, seq, t, t, keys[term]))
+    # what the recording holds, read back: the samples evaluate() is given
+    recorded: dict[str, list[tuple[int, Any]]] = {term: [] for term in keys}
+    with Player(path) as player:
+        by_key = {key: term for term, key in keys.items()}
+        for record in player.messages():
+            recorded[by_key[record.channel.topic]].append((record.log_time_ns, player.payload(record)))
+    assert recorded == samples
+    receiver, sink = _receiver(make_manager)
+    with Player(path, rate=float("inf")) as player:
+        sent = player.publish(connect=receiver.endpoints, wait_s=10)
+    assert sent == sum(len(s) for s in samples.values())
+    expected = _expected(recorded)
+    assert _published(sink, len(expected)) == expected
+    unit = receiver.unit("monitor")
+    assert isinstance(unit, FormulaMonitor) and unit.monitor.late == 0
