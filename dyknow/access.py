@@ -65,7 +65,7 @@ _SUMMARIES = keys.summaries_pattern()
 # The services each role may call, besides those of the roles before it (any manager, any unit).
 _SERVICES_OF = {
     "viewer": ["get_model", "get_summary", "get_adaptations", "clock", "unit/*/get_config", "unit/*/get_statistics"],
-    "operator": ["spawn", "destroy", "unit/*/set_config", "request", "release", "measure"],
+    "operator": ["spawn", "destroy", "unit/*/set_config", "request", "release", "measure", "monitor"],
     "admin": ["add_transformation", "remove_transformation"],
 }
 # What a manager may call as itself: what its requests across managers need.

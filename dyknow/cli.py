@@ -618,6 +618,61 @@ def cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_monitor(args: argparse.Namespace) -> int:
+    """monitor a temporal formula: its verdicts as they are decided (or over a recording, with --mcap)"""
+    if args.mcap is not None:
+        return _monitor_recording(args)
+    if args.bind:
+        raise _Usage("--bind: only with --mcap (live, the manager finds each term's stream by its meaning)")
+    if args.duration is not None and args.duration <= 0:
+        raise _Usage(f"--duration: got {args.duration}; expected a positive number of seconds")
+    done = threading.Event()
+    lock = threading.Lock()
+
+    def show(msg: Message) -> None:
+        verdict = msg.payload if isinstance(msg.payload, dict) else {}
+        with lock:
+            if done.is_set():
+                return
+            gap = verdict.get("gap")
+            said = "true " if verdict.get("verdict") is True else "false"
+            text = f"{msg.key}  t={verdict.get('t', 0):.3f} s  {said}" + (
+                f"  (after a gap: {gap.get('term')} re-planned: {gap.get('cause')})" if isinstance(gap, dict) else ""
+            )
+            _report(args, {"key": msg.key, **verdict}, text)
+
+    with _client(args) as client:
+        key = client.monitor(args.formula, reorder_ms=args.reorder_ms)
+        if not args.json:
+            print(f"monitoring {args.formula} on {key} (Ctrl-C to stop)", flush=True)
+        try:
+            with client.declare_subscriber(key, show):
+                signal.signal(signal.SIGINT, lambda *_: done.set())
+                signal.signal(signal.SIGTERM, lambda *_: done.set())
+                done.wait(args.duration) if args.duration else done.wait()
+                done.set()
+        finally:
+            client.release(key)
+    return 0
+
+
+def _monitor_recording(args: argparse.Namespace) -> int:
+    from dyknow.reasoning.offline import evaluate_recording
+
+    bindings = _pairs(args.bind, "--bind")
+    results = evaluate_recording(args.formula, args.mcap, bindings)
+    if args.json:
+        for t_ns, verdict in results:
+            _out({"t": t_ns / 1e9, "t_ns": t_ns, "verdict": verdict})
+        return 0
+    counts = {True: 0, False: 0, None: 0}
+    for t_ns, verdict in results:
+        counts[verdict] += 1
+        print(f"t={t_ns / 1e9:.3f} s  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
+    print(f"{len(results)} states: {counts[True]} true, {counts[False]} false, {counts[None]} unknown", flush=True)
+    return 0
+
+
 # --- recording (MCAP)
 
 
@@ -1015,6 +1070,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("values", nargs="+", metavar="NAME=VALUE")
 
     command("adaptations", cmd_adaptations, client=True)
+
+    p = command("monitor", cmd_monitor, client=True)
+    p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
+    p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
+    p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
+    p.add_argument("--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)")
 
     p = command("echo", cmd_echo, client=True)
     p.add_argument("keyexpr")

@@ -225,6 +225,11 @@ class Client:
         when the manager has roles)."""
         self._manager("destroy", {"name": name, "force": True} if force else {"name": name})
 
+    def monitor(self, formula: str, *, reorder_ms: float = 0.0) -> str:
+        """Ask the manager to monitor a temporal formula; the key of its verdicts (see
+        :meth:`dyknow.manager.Manager.monitor`). :meth:`release` of the key takes it down."""
+        return str(self._manager("monitor", {"formula": formula, "reorder_ms": reorder_ms})["key"])
+
     def get_model(self, manager: str | None = None) -> dict[str, Any]:
         """The model of the manager (or of ``manager``): units, specs and requests (the JSON form
         of :class:`~dyknow.model.Model`). A large model comes in pages (each at most the

@@ -7,6 +7,7 @@ matches a service)::
     dyknow/<manager>/<unit>/<port>            a port's default binding (default_key)
     dyknow/<manager>/requests/<tag>           the stable key of a request (request_key)
     dyknow/<manager>/events/<kind>            the manager's events, e.g. adaptation (event_key)
+    dyknow/<manager>/monitors/<n>             the verdicts of a monitored formula (monitor_key)
     dyknow/measurements/<name>                a measurement for every manager (measurement_key)
     dyknow/<manager>/measurements/<name>      a measurement for one manager
     @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
@@ -54,6 +55,7 @@ __all__ = [
     "managers_pattern",
     "measurement_key",
     "measurement_patterns",
+    "monitor_key",
     "parse_service_key",
     "port_token",
     "request_key",
@@ -165,6 +167,12 @@ def request_key(manager: str, tag: str) -> str:
     """The stable key of a request: ``dyknow/<manager>/requests/<tag>`` (unsafe characters as ``_``)."""
     chunk = "".join(c if c not in _UNSAFE_IN_CHUNK else "_" for c in tag) or "_"
     return f"{DATA_ROOT}/{manager}/requests/{chunk}"
+
+
+def monitor_key(manager: str, n: int) -> str:
+    """Where the verdicts of the ``n``-th formula a manager monitors are published:
+    ``dyknow/<manager>/monitors/<n>`` (see :mod:`dyknow.reasoning.monitors`)."""
+    return f"{DATA_ROOT}/{manager}/monitors/{n}"
 
 
 def event_key(manager: str, kind: str) -> str:

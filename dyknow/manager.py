@@ -51,6 +51,7 @@ from dyknow.message import CLOCK_ID
 from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
+from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.receiver import Receiver
 from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
@@ -188,6 +189,17 @@ class Manager:
         self._workers: service.Workers | None = None
         self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
         self.on_unit_event(self._adaptation.unit_event)
+        self._monitors = Monitors(
+            self.name,
+            request=self.request,
+            release=self._adaptation.release,
+            spawn=lambda spec, name, bindings: self.spawn(spec, name, bindings=bindings),
+            destroy=self.destroy,
+            unit=self.unit,
+            individuals=self._individuals if self.ontology is not None else None,
+            max_expansions=self.limits.max_expansions,
+        )
+        self._adaptation.on_event(lambda event: self._monitors.adapted(event.key, event.cause) if event.kind == "adapted" else None)
         self._measurement_subs = []
         try:
             for pattern in keys.measurement_patterns(self.name):
@@ -602,9 +614,30 @@ class Manager:
         return self._adaptation.request(tag, standby=standby)
 
     def release(self, key: str) -> None:
-        """Give back a request; its units are destroyed when no other request uses them."""
+        """Give back a request, or a monitor (the key :meth:`monitor` returned); its units are
+        destroyed when no other request uses them."""
         self._check_open()
-        self._adaptation.release(key)
+        if not self._monitors.release(key):
+            self._adaptation.release(key)
+
+    def monitor(self, formula: str, *, reorder_ms: float = 0.0) -> str:
+        """Monitor a temporal formula over the streams its terms name; returns the key of its
+        verdicts (see :mod:`dyknow.reasoning.monitors`; ``forall c in Class: ...`` gives one
+        monitor per individual and a key expression for them all).
+
+        Each term is requested as :meth:`request` does, so the planner finds its stream by
+        meaning and the adaptation loop keeps it flowing; ``reorder_ms`` is the monitor's reorder
+        delay. :meth:`release` of the key takes it down. Raises
+        :class:`~dyknow.errors.FormulaError` or :class:`~dyknow.planner.PlanningError`.
+        """
+        self._check_open()
+        info = self._monitors.add(formula, reorder_ms=reorder_ms)
+        self.changed()
+        return info.key
+
+    def monitors(self) -> list[MonitorInfo]:
+        """The formulas this manager monitors."""
+        return self._monitors.infos()
 
     def requests(self) -> list[RequestInfo]:
         """The active requests: tag, key, state ("active" or "degraded"), units."""
@@ -691,7 +724,8 @@ class Manager:
         )
         estimates = self._clocks.estimates() if self._clocks is not None else {}
         clock_view = {"clock": f"{CLOCK_ID:08x}", **{name: e.to_dict() for name, e in sorted(estimates.items())}}
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view)
+        monitors = tuple(m.to_dict() for m in self._monitors.infos())
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors)
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
@@ -788,6 +822,7 @@ class Manager:
             "get_model": self._serve_model,
             "request": lambda r, c: {"key": self.request(str(r["tag"]), standby=r.get("standby"))},
             "release": self._serve_release,
+            "monitor": lambda r, c: {"key": self.monitor(str(r["formula"]), reorder_ms=float(r.get("reorder_ms", 0.0)))},
             "measure": self._serve_measure,
             "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
             "get_summary": lambda r, c: self.summary().to_dict(),

@@ -145,6 +145,8 @@ class Model:
     #: The other managers' clocks as this one estimates them: name -> ``Estimate.to_dict()``
     #: (offset, uncertainty, drift; see :mod:`dyknow.clocks`), and its own under ``"clock"``.
     clocks: Mapping[str, Any] = field(default_factory=dict)
+    #: The formulas it monitors (``MonitorInfo.to_dict()``, :mod:`dyknow.reasoning.monitors`).
+    monitors: tuple[Mapping[str, Any], ...] = ()
 
     def unit(self, name: str) -> UnitInfo:
         """The running unit ``name``; :class:`UnitError` when the model has none."""
@@ -161,6 +163,7 @@ class Model:
             "specs": [s.to_dict() for s in self.specs],
             "requests": [r.to_dict() for r in self.requests],
             "clocks": dict(self.clocks),
+            "monitors": [dict(m) for m in self.monitors],
         }
 
     def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
@@ -177,6 +180,7 @@ class Model:
             "specs": [],
             "requests": [r.to_dict() for r in self.requests],
             "clocks": dict(self.clocks),
+            "monitors": [dict(m) for m in self.monitors],
             "total": {"units": len(self.units), "specs": len(self.specs)},
         }
         used = len(json.dumps(out))

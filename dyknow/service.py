@@ -40,6 +40,7 @@ from dyknow.access import AccessControl
 from dyknow.errors import AccessError, DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
 from dyknow.identity import Caller, Verifier
 from dyknow.model import standby_problem
+from dyknow.reasoning.syntax import MAX_FORMULA_CHARS
 from dyknow.security import Limits
 from dyknow.transport import ServiceChannel, ServiceRequest
 
@@ -67,6 +68,7 @@ MANAGER_SERVICES = (
     "request",
     "release",
     "measure",
+    "monitor",
     "get_adaptations",
     "get_summary",
 )
@@ -178,6 +180,23 @@ def _page(value: Any, field: str, limits: Limits) -> dict[str, int]:
     return {str(k): int(v) for k, v in value.items()}
 
 
+def _milliseconds(value: Any, field: str, limits: Limits) -> float:
+    """A delay in milliseconds: a number from 0 to an hour."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 <= value <= 3_600_000:
+        raise _refuse(field, value, "a number of milliseconds from 0 to 3,600,000")
+    return float(value)
+
+
+def _formulas(value: Any, field: str, limits: Limits) -> list[str]:
+    """A request's requirements: at most 16 formulas."""
+    if not isinstance(value, list) or len(value) > 16:
+        raise _refuse(field, value, "a list of at most 16 formulas")
+    for v in value:
+        if not isinstance(v, str) or len(v.encode()) > _FORMULA_BYTES:
+            raise _refuse(field, v, f"formulas, each text of at most {_FORMULA_BYTES} bytes")
+    return list(value)
+
+
 def _mapping(key_check: Check, value_check: Check, max_items: int = 256) -> Check:
     def check(value: Any, field: str, limits: Limits) -> dict[str, Any]:
         if not isinstance(value, dict) or len(value) > max_items:
@@ -188,6 +207,7 @@ def _mapping(key_check: Check, value_check: Check, max_items: int = 256) -> Chec
 
 
 _PORT = _text(128)
+_FORMULA_BYTES = 4 * MAX_FORMULA_CHARS  # UTF-8 bytes of the longest formula the parser takes
 SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "add_transformation": {"xml": (True, _text()), "path": (False, _text(256))},
     "remove_transformation": {"label": (True, _label)},
@@ -201,7 +221,8 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     },
     "destroy": {"name": (True, _name("unit name")), "force": (False, _flag)},
     "get_model": {"page": (False, _page)},
-    "request": {"tag": (True, _text(512)), "standby": (False, _standby)},
+    "request": {"tag": (True, _text(512)), "standby": (False, _standby), "require": (False, _formulas)},
+    "monitor": {"formula": (True, _text(_FORMULA_BYTES)), "reorder_ms": (False, _milliseconds)},
     "release": {"key": (True, _key)},
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},

@@ -56,6 +56,9 @@ VALID: dict[str, Any] = {
     "value": 0.5,
     "standby": "warm",
     "page": {},
+    "formula": "A > 1",
+    "reorder_ms": 5,
+    "require": [],
 }
 # Which of the JSON_PROBES each field takes; every other probe is refused naming the field.
 TEXT = {'"text"'}
@@ -78,6 +81,9 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("measure", "value"): {"0", "1.5", "10**30", '"text"'},
     ("set_config", "bindings"): {"{}"},
     ("get_model", "page"): {"{}"},
+    ("monitor", "formula"): TEXT,
+    ("monitor", "reorder_ms"): {"0", "1.5"},
+    ("request", "require"): {"[]"},
 }
 SWEEP = [(service, field, probe) for service, fields in SCHEMAS.items() for field in fields for probe in JSON_PROBES]
 

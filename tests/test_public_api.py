@@ -10,7 +10,7 @@ import dyknow
 
 EXPECTED = [
     "DEFAULT_ENDPOINT", "AccessControl", "AccessError", "AdaptationEvent", "BindingError", "ChannelInfo", "Client", "ClosedError",
-    "Constraint", "DyKnowError", "LatencySummary", "Library", "LibraryError", "Limits", "Manager", "Message",
+    "Constraint", "DyKnowError", "FormulaError", "LatencySummary", "Library", "LibraryError", "Limits", "Manager", "Message",
     "Model", "Ontology", "OntologyError", "Param", "PayloadError", "Plan", "Planner",
     "PlanningError", "Player", "Port", "PortStatistics", "RecordedMessage", "Recorder", "Recording",
     "RecordingError", "RecordingInfo", "RequestInfo", "RunningUnit", "ServiceError", "SpecError",

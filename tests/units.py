@@ -175,3 +175,15 @@ class ForwardsAndHandles(Unit):
 
     def on_message(self, port: str, msg: Message) -> None:
         self.publish("out", msg.payload)
+
+
+class Level(Unit):
+    """Publishes ``{"value": value, "n": n}`` on out at ``rate_hz``: a reading of a sensor."""
+
+    def setup(self) -> None:
+        self.n = 0
+        self.create_timer(1.0 / float(self.params.get("rate_hz", 20.0)), self.tick)
+
+    def tick(self) -> None:
+        self.n += 1
+        self.publish("out", {"value": float(self.params.get("value", 1.0)), "n": self.n})

@@ -3,14 +3,24 @@ its transformation spec for a formula.
 
 A monitor unit has one input port per term of its formula (``t0``, ``t1``, ... in the order the
 formula first mentions them, each tagged with its term, so a planner can wire it by meaning) and
-one output port, ``verdicts``. Each message's origin time is its sample time; each verdict is
-published as soon as it is decided (:mod:`dyknow.reasoning.progression`), as JSON::
+one output port, ``verdicts``. Each message's origin time is its
+sample time, in this process's clock: a time another host's clock took is corrected by that
+clock's estimated offset (:mod:`dyknow.clocks`), so streams from hosts whose clocks differ are
+synchronized as they happened (a sample from a clock not known yet is taken as stamped, and
+counted in :attr:`FormulaMonitor.unknown_clock`). Each verdict is published as soon as it is
+decided (:mod:`dyknow.reasoning.progression`), as JSON::
 
     {"t": 12.5, "verdict": false, "decided_t": 12.5, "t_ns": 12500000000, "decided_ns": 12500000000, "state": 41}
 
 ``t`` and ``decided_t`` are seconds (``t_ns``/``decided_ns`` the exact origin times of the state
 and of the state that decided it), ``state`` the state's index since the unit started. A verdict
-never decided (still unknown when the unit is destroyed) is never published. Params:
+never decided (still unknown when the unit is destroyed) is never published.
+
+Gaps: when the stream of a term was re-planned, the manager that runs the monitor tells it
+(:meth:`FormulaMonitor.adapted`, with the adaptation event), and the next verdict says so:
+``"gap": {"term": "Battery(robot)", "cause": "manager 'robot' was lost"}``.
+
+Params:
 
 - ``formula`` (string): the formula (:mod:`dyknow.reasoning.syntax`);
 - ``reorder_ms`` (float, default 0): the reorder delay, in sample time; a sample later than the
@@ -31,10 +41,13 @@ Example::
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from dyknow.clocks import CLOCKS
 from dyknow.errors import FormulaError
-from dyknow.reasoning.progression import Monitor
+from dyknow.message import CLOCK_ID
+from dyknow.reasoning.progression import Monitor, Verdict
 from dyknow.reasoning.syntax import Formula, parse
 from dyknow.spec import Param, Port, Tag, TransformationSpec
 from dyknow.unit import Unit
@@ -106,7 +119,9 @@ def monitor_spec(
 class FormulaMonitor(Unit):
     """A :class:`~dyknow.reasoning.Monitor` as a unit (see the module documentation).
 
-    ``monitor`` is the monitor (its ``late`` count, ``states``, ``retained()``).
+    ``monitor`` is the monitor (its ``late`` count, ``states``, ``retained()``). In the process
+    that runs it, :meth:`listen` hands each verdict to a callback too (the adaptation loop does,
+    for a request's requirements).
     """
 
     monitor: Monitor
@@ -127,26 +142,56 @@ class FormulaMonitor(Unit):
                 expected="the spec monitor_spec(formula) builds: one input per term and the output 'verdicts'",
             )
         self._last_sample = time.monotonic()
+        self._listeners: list[Callable[[Verdict], None]] = []
+        self._gap: dict[str, str] | None = None
+        self.unknown_clock = 0  # samples stamped by a clock whose offset was not known
         flush_ms = float(self.params.get("flush_ms", 0.0))
         self._flush_s = flush_ms / 1000
         if flush_ms > 0:
             self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
 
+    def listen(self, callback: Callable[[Verdict], None]) -> None:
+        """Call ``callback(verdict)`` for every verdict from now on, on the unit's thread (it must return at once)."""
+        self._listeners.append(callback)
+
     def on_message(self, port: str, msg: Message) -> None:
         """Push the sample (its origin time, its payload); publish the verdicts it decided."""
         monitor = self.monitor
         late = monitor.late
-        verdicts = monitor.push_index(self._ports[port], msg.origin_ns, msg.payload)
+        t_ns = msg.origin_ns
+        if msg.origin_clock != CLOCK_ID:
+            offset = CLOCKS.current.get(msg.origin_clock)
+            if offset is None:
+                self.unknown_clock += 1
+            else:
+                t_ns -= offset
+        verdicts = monitor.push_index(self._ports[port], t_ns, msg.payload)
         if monitor.late != late:
             self.reject(
                 port,
-                f"late: a sample at {msg.origin_ns} ns, at or before the last state closed ({monitor.closed_ns} ns; reorder delay {monitor.reorder_ns / 1e6:g} ms)",
+                f"late: a sample at {t_ns} ns, at or before the last state closed ({monitor.closed_ns} ns; reorder delay {monitor.reorder_ns / 1e6:g} ms)",
             )
         self._last_sample = time.monotonic()
         for verdict in verdicts:
-            self.publish(VERDICTS_PORT, verdict.to_json())
+            self._publish(verdict)
+
+    def _publish(self, verdict: Verdict, origin_ns: int | None = None) -> None:
+        out = verdict.to_json()
+        if self._gap is not None:
+            out["gap"], self._gap = self._gap, None
+        self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
+        for listener in self._listeners:
+            listener(verdict)
+
+    def adapted(self, key: str, cause: str) -> None:
+        """The stream on ``key`` was re-planned for ``cause``: when a term reads it, the next
+        verdict says a gap occurred (any thread may call it: the manager's adaptation loop does)."""
+        bound = self.get_config()
+        for port, k in self._ports.items():
+            if bound.get(port) == key:
+                self._gap = {"term": str(self.monitor.terms[k]), "cause": cause[:500]}
 
     def _flush_if_idle(self) -> None:
         if time.monotonic() - self._last_sample >= self._flush_s:
             for verdict in self.monitor.flush():
-                self.publish(VERDICTS_PORT, verdict.to_json(), origin_ns=verdict.decided_ns)
+                self._publish(verdict, origin_ns=verdict.decided_ns)

@@ -1,0 +1,176 @@
+"""Monitors asked for by meaning: a formula in, the key of its verdicts out (:meth:`Manager.monitor
+<dyknow.manager.Manager.monitor>`).
+
+For every term of the formula the manager is asked for a stream of that term, exactly as
+:meth:`~dyknow.manager.Manager.request` does (the same semantic matching, ontology subsumption,
+priorities and constraints; a term asked for twice shares its stream). A
+:class:`~dyknow.reasoning.unit.FormulaMonitor` is spawned on the manager with one input bound to
+each term's request key and its ``events`` input to the manager's adaptation events, and publishes
+on ``dyknow/<manager>/monitors/<n>`` (:func:`~dyknow.keys.monitor_key`). The adaptation loop keeps
+each term's stream flowing on its key as it keeps any request's: when a term's producer fails,
+the term is re-planned, the monitor keeps its key, and its next verdict says that a gap occurred
+(:meth:`Monitors.adapted`, which the manager calls for each adaptation).
+
+A quantified formula (``forall c in Camera: ...``, :mod:`dyknow.reasoning.quantify`) becomes one
+monitor per individual, publishing on ``dyknow/<manager>/monitors/<n>/<individual>``; the key
+returned is then ``dyknow/<manager>/monitors/<n>/*``, which a subscriber takes them all by.
+Releasing that key (:meth:`Monitors.release`) destroys the monitors and gives their terms back.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from dyknow import keys
+from dyknow.errors import DyKnowError, UnitError
+from dyknow.reasoning.quantify import expand
+from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
+from dyknow.spec import TransformationSpec
+
+__all__ = ["MonitorInfo", "Monitors"]
+
+_UNSAFE = re.compile(r"[^A-Za-z0-9_.-]")
+
+
+@dataclass(frozen=True, slots=True)
+class MonitorInfo:
+    """A monitor a manager was asked for: the key of its verdicts, the formula as asked, and for
+    each expansion (one for a plain formula) the individual, the formula, the unit and its key;
+    ``terms`` maps each term to the key of the stream that feeds it."""
+
+    key: str
+    formula: str
+    expansions: tuple[tuple[str | None, str, str, str], ...]  # (individual, formula, unit, verdict key)
+    terms: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def units(self) -> tuple[str, ...]:
+        """The monitor units."""
+        return tuple(e[2] for e in self.expansions)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (``get_model``'s ``monitors`` entries)."""
+        return {
+            "key": self.key,
+            "formula": self.formula,
+            "terms": dict(self.terms),
+            "monitors": [{"individual": i, "formula": f, "unit": u, "key": k} for i, f, u, k in self.expansions],
+        }
+
+
+class Monitors:
+    """The monitors one manager was asked for. Thread-safe.
+
+    It acts on the manager through the callables it is given: ``request(tag) -> key`` and
+    ``release(key)`` (the manager's requests), ``spawn(spec, name, bindings)``, ``destroy(name)``
+    and ``unit(name)`` (its units), and ``individuals(class_ref)`` (its ontology; None without one).
+    """
+
+    def __init__(
+        self,
+        manager: str,
+        *,
+        request: Callable[[str], str],
+        release: Callable[[str], None],
+        spawn: Callable[[TransformationSpec, str, Mapping[str, str]], Any],
+        destroy: Callable[[str], None],
+        unit: Callable[[str], object],
+        individuals: Callable[[str], Sequence[str]] | None,
+        max_expansions: int,
+    ) -> None:
+        self.manager = manager
+        self._request = request
+        self._release = release
+        self._spawn = spawn
+        self._destroy = destroy
+        self._unit = unit
+        self._individuals = individuals
+        self._max_expansions = max_expansions
+        self._lock = threading.Lock()
+        self._by_key: dict[str, MonitorInfo] = {}
+        self._serial = itertools.count(1)
+
+    def add(self, formula: str, *, reorder_ms: float = 0.0) -> MonitorInfo:
+        """Monitor ``formula`` (see the module documentation); its :class:`MonitorInfo`.
+
+        Raises :class:`~dyknow.errors.FormulaError` when the formula does not read,
+        :class:`~dyknow.planner.PlanningError` when a term has no stream (what was set up for the
+        others is taken down again).
+        """
+        if not isinstance(reorder_ms, int | float) or not reorder_ms >= 0 or reorder_ms > 3_600_000:
+            raise UnitError(f"reorder_ms {reorder_ms!r}", where="monitor", expected="0 to 3,600,000 milliseconds")
+        expansions = expand(formula, self._individuals, max_expansions=self._max_expansions)
+        n = next(self._serial)
+        base = keys.monitor_key(self.manager, n)
+        quantified = expansions[0][0] is not None
+        requested: dict[str, str] = {}
+        spawned: list[str] = []
+        made: list[tuple[str | None, str, str, str]] = []
+        try:
+            for individual, parsed in expansions:
+                for term in parsed.terms:
+                    if str(term) not in requested:
+                        requested[str(term)] = self._request(str(term))
+                chunk = _UNSAFE.sub("_", individual) if individual is not None else None
+                key = f"{base}/{chunk}" if chunk is not None else base
+                name = f"monitor-{n}" + (f"-{chunk}" if chunk is not None else "")
+                spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms)
+                bindings = {port: requested[term] for term, port in term_ports(parsed).items()}
+                bindings[VERDICTS_PORT] = key
+                self._spawn(spec, name, bindings)
+                spawned.append(name)
+                made.append((individual, str(parsed), name, key))
+        except DyKnowError:
+            self._undo(spawned, list(requested.values()))
+            raise
+        info = MonitorInfo(f"{base}/*" if quantified else base, formula, tuple(made), requested)
+        with self._lock:
+            self._by_key[info.key] = info
+        return info
+
+    def release(self, key: str) -> bool:
+        """Destroy the monitor(s) of ``key`` and give their terms back; False when ``key`` is no monitor's."""
+        with self._lock:
+            info = self._by_key.pop(key, None)
+        if info is None:
+            return False
+        self._undo(list(info.units), list(info.terms.values()))
+        return True
+
+    def adapted(self, key: str, cause: str) -> None:
+        """A request's stream on ``key`` was re-planned: the monitors that read it note a gap."""
+        for info in self.infos():
+            if key in info.terms.values():
+                for name in info.units:
+                    try:
+                        unit = self._unit(name)
+                    except DyKnowError:
+                        continue
+                    if isinstance(unit, FormulaMonitor):
+                        unit.adapted(key, cause)
+
+    def __contains__(self, key: object) -> bool:
+        with self._lock:
+            return key in self._by_key
+
+    def infos(self) -> list[MonitorInfo]:
+        """Every monitor, oldest first."""
+        with self._lock:
+            return list(self._by_key.values())
+
+    def _undo(self, units: list[str], requests: list[str]) -> None:
+        for name in reversed(units):
+            try:
+                self._destroy(name)
+            except DyKnowError:
+                pass  # gone already (the manager is closing, say)
+        for key in requests:
+            try:
+                self._release(key)
+            except DyKnowError:
+                pass

@@ -1,0 +1,61 @@
+"""A formula over a recording: yesterday's data, the same semantics (``dyknow monitor FORMULA --mcap FILE``).
+
+:func:`evaluate_recording` replays an MCAP file as fast as it reads (:class:`~dyknow.recording.Player`:
+payloads decoded as live units get them, each message's origin time its sample time), takes the
+samples of the topic each term is bound to, and evaluates the formula over them with
+:func:`~dyknow.reasoning.evaluate`: every state's verdict, unknown ones included (None).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+
+from dyknow.errors import FormulaError, TagError, did_you_mean
+from dyknow.reasoning.semantics import evaluate_ns
+from dyknow.reasoning.syntax import parse
+from dyknow.recording import Player
+from dyknow.tags import parse_term
+
+__all__ = ["evaluate_recording"]
+
+
+def evaluate_recording(formula: str, path: str | os.PathLike[str], bindings: Mapping[str, str]) -> list[tuple[int, bool | None]]:
+    """Every state's ``(t_ns, verdict)`` of ``formula`` over the recording at ``path``, each term
+    read from the topic ``bindings[term]`` names (the topic as written in the file, or its key).
+
+    :class:`~dyknow.errors.FormulaError` when the formula does not read, a term has no binding, a
+    binding names no term or a topic the file does not hold (with the topics it does);
+    :class:`~dyknow.errors.RecordingError` when the file cannot be read.
+    """
+    parsed = parse(formula)
+    terms = [str(t) for t in parsed.terms]
+    try:
+        bindings = {str(parse_term(term)): topic for term, topic in bindings.items()}
+    except TagError as exc:
+        raise FormulaError(f"a binding's term does not read: {exc.what}", where="--bind", expected="TERM=TOPIC, such as Battery(robot)=robot/battery") from exc
+    unbound = [t for t in terms if t not in bindings]
+    if unbound:
+        raise FormulaError(f"no topic for {', '.join(unbound)}", where="--bind", expected="TERM=TOPIC for every term of the formula")
+    extra = [t for t in bindings if t not in terms]
+    if extra:
+        raise FormulaError(f"{extra[0]!r} is no term of the formula", where="--bind", expected=f"one of {', '.join(terms)}{did_you_mean(extra[0], terms)}")
+    with Player(path, rate=math.inf) as player:
+        topics = {c.topic: c.topic for c in player.channels} | {key: topic for topic, key in player.keys.items()}
+        for term, topic in bindings.items():
+            if topic not in topics:
+                raise FormulaError(
+                    f"the recording has no topic {topic!r} (for {term})", where=f"--bind {term}={topic}",
+                    expected=f"one of {', '.join(sorted(c.topic for c in player.channels))}{did_you_mean(topic, list(topics))}",
+                )  # fmt: skip
+        wanted = {topics[topic]: term for term, topic in bindings.items()}
+        samples: dict[str, list[tuple[int, object]]] = {term: [] for term in terms}
+
+        def take(message: object, record: object) -> None:
+            term = wanted.get(getattr(record, "topic", ""))
+            if term is not None:
+                samples[term].append((message.origin_ns, message.payload))  # type: ignore[attr-defined]
+
+        player.play(take)
+    return evaluate_ns(parsed, samples)

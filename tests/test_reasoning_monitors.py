@@ -1,0 +1,177 @@
+"""Formulas asked for by meaning (dyknow.reasoning.monitors): a manager plans a stream for every
+term, keeps them flowing, and publishes the verdicts on a key that outlives failures."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from dyknow import Client, FormulaError, Manager, PlanningError
+from dyknow.reasoning import evaluate
+from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS, Sink
+from tests.conftest import REPO, free_port, wait_until
+
+ONTOLOGY = REPO / "specs" / "dyknow.ttl"
+TRACK = "BallTrack(field)"
+BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
+
+
+@pytest.fixture
+def system(make_manager: Callable[..., Manager]) -> Callable[..., dict[str, Manager]]:
+    """The scenario's three managers on loopback (station, robot, field), deep queues."""
+
+    def start(**kwargs: Any) -> dict[str, Manager]:
+        hub = f"tcp/127.0.0.1:{free_port()}"
+        managers: dict[str, Manager] = {}
+        for i, name in enumerate(("station", "robot", "field")):
+            managers[name] = make_manager(name, specs=[SCENARIO_HOSTS[name]], ontology=[ONTOLOGY], listen=[hub] if i == 0 else ["tcp/127.0.0.1:0"],
+                                          connect=[] if i == 0 else [hub], queue_depth=100_000, **kwargs)  # fmt: skip
+        for manager in managers.values():
+            wait_until(lambda m=manager: len(m.peers()) == 2, f"{manager.name} to know the others")  # type: ignore[misc]
+        return managers
+
+    return start
+
+
+def _sink(manager: Manager, name: str, key: str, label: str = "consumer") -> Sink:
+    manager.spawn(label, name, bindings={"in": key})
+    sink = manager.unit(name)
+    assert isinstance(sink, Sink)
+    return sink
+
+
+def test_a_monitor_asked_by_meaning_keeps_its_key_and_says_where_a_gap_was(system: Callable[..., dict[str, Manager]]) -> None:
+    """'The robot's camera feeds the track': true while it does; the robot's manager goes, the
+    term is re-planned onto the field's camera, the verdicts go on on the same key, the first one
+    after says a gap occurred and why, and they turn false. Every verdict published equals
+    evaluate() over the samples the monitor's stream carried (recorded beside it)."""
+    m = system(dwell_s=0.5)
+    station = m["station"]
+    feed = station.request(TRACK)  # the monitor's term shares this request: a sink sees its samples
+    samples = _sink(station, "samples", feed)
+    formula = f"{TRACK}.camera == {BOTTOM}"
+    key = station.monitor(formula)
+    assert key == "dyknow/station/monitors/1"
+    (info,) = station.monitors()
+    assert info.terms == {TRACK: feed} and info.units == ("monitor-1",)
+    assert station.get_model().to_dict()["monitors"][0]["formula"] == formula
+    verdicts = _sink(station, "verdicts", key)
+    verdicts.wait_until(lambda msg: msg.payload["verdict"] is True, timeout_s=10)
+    m["robot"].close()
+    gap = verdicts.wait_until(lambda msg: "gap" in msg.payload, timeout_s=20)
+    assert gap.payload["gap"] == {"term": TRACK, "cause": "manager 'robot' was lost"}
+    verdicts.wait_until(lambda msg: msg.payload["verdict"] is False, timeout_s=10)
+    station.destroy("monitor-1")  # no more verdicts: compare what was published with the samples
+    published = {msg.payload["t_ns"]: msg.payload["verdict"] for msg in verdicts.messages}
+    expected = dict(evaluate(formula, {TRACK: [(msg.origin_ns / 1e9, msg.payload) for msg in samples.messages]}))
+    assert published and all(expected[t_ns / 1e9] is verdict for t_ns, verdict in published.items())
+    assert True in published.values() and False in published.values()
+
+
+def test_a_monitor_released_takes_its_units_and_requests_down(system: Callable[..., dict[str, Manager]]) -> None:
+    m = system()
+    station = m["station"]
+    with Client("station", connect=station.endpoints) as client:
+        key = client.monitor(f"historically[0, 1s] {TRACK}.tracked > 0", reorder_ms=5)
+        assert key == "dyknow/station/monitors/1" and [u.name for u in station.units() if u.name.startswith("monitor")] == ["monitor-1"]
+        assert station.requests()[0].tag == TRACK
+        client.release(key)
+    assert not any(u.name.startswith("monitor") for u in station.units()) and station.requests() == []
+    wait_until(lambda: m["robot"].units() == [], "the robot's camera to go with the request")
+
+
+def test_a_bad_formula_or_a_term_nothing_provides_is_refused_and_nothing_stays(system: Callable[..., dict[str, Manager]]) -> None:
+    m = system()
+    station = m["station"]
+    with Client("station", connect=station.endpoints) as client:
+        with pytest.raises(FormulaError, match="column"):
+            client.monitor(f"{TRACK}.camera ==")
+        with pytest.raises(PlanningError, match="nothing provides Unheard"):
+            client.monitor(f"{TRACK}.camera == 1 and Unheard(x) > 0")
+        with pytest.raises(Exception, match="reorder_ms"):
+            client.monitor(f"{TRACK}.camera == 1", reorder_ms=-1)
+    assert station.requests() == [] and station.monitors() == [] and not station.units()
+
+
+LEVELS = """<transformation><label>level(${Cam})</label><source>tests.units:Level</source>
+  <args><arg label="Cam" class="dk:Camera"/></args>
+  <params><param name="rate_hz" type="float">20</param><param name="value" type="float">1</param></params>
+  <ports><port type="out">out</port></ports><tags><tag port="out">Fresh(${Cam})</tag></tags></transformation>"""
+
+
+def test_a_quantified_formula_is_one_monitor_per_individual(make_manager: Callable[..., Manager]) -> None:
+    """forall c in Camera: one monitor per camera of the ontology, each on its own key under the
+    returned key expression; an unknown class, or a variable no term takes, is refused."""
+    manager = make_manager(ontology=[ONTOLOGY], specs=[REPO / "tests" / "units.xml", REPO / "specs" / "generic.xml"], queue_depth=10_000)
+    manager.add_transformation(LEVELS)
+    key = manager.monitor("forall c in Camera: always[0, 100ms] Fresh(c).value > 0")
+    assert key == f"dyknow/{manager.name}/monitors/1/*"
+    (info,) = manager.monitors()
+    assert sorted(i for i, _, _, _ in info.expansions) == ["bottom", "ceiling", "top"]
+    assert {f for _, f, _, _ in info.expansions} == {f"always[0, 100ms] Fresh({c}).value > 0" for c in ("bottom", "ceiling", "top")}
+    verdicts = _sink(manager, "verdicts", key, label="sink")
+    wait_until(lambda: {m.key for m in verdicts.messages if m.payload["verdict"]} == {k for _, _, _, k in info.expansions}, "a true verdict per camera")
+    with pytest.raises(FormulaError, match="the variable 'd' is no term's argument"):
+        manager.monitor("forall d in Camera: Fresh(c).value > 0")
+    with pytest.raises(FormulaError, match="forall over 'dk:Nothing': unknown ontology class 'dk:Nothing'"):
+        manager.monitor("forall c in dk:Nothing: Fresh(c).value > 0")
+    with pytest.raises(FormulaError, match="forall VAR in CLASS: FORMULA"):
+        manager.monitor("forall c Camera: Fresh(c).value > 0")
+    manager.release(key)
+    assert manager.monitors() == [] and not any(u.name.startswith("monitor") for u in manager.units())
+
+
+# ---------------------------------------------------------------------------- the command line
+
+
+LEVEL_SPEC = """<transformations><transformation><label>level</label><source>tests.units:Level</source>
+  <params><param name="rate_hz" type="float">50</param><param name="value" type="float">2</param></params>
+  <ports><port type="out">out</port></ports><tags><tag port="out">Fresh(x)</tag></tags></transformation></transformations>"""
+
+
+def test_dyknow_monitor_prints_verdicts_as_they_come_and_releases_the_monitor(manager_process: Callable[..., Any], tmp_path: Any) -> None:
+    import json
+
+    from tests.conftest import run_cli
+
+    (tmp_path / "level.xml").write_text(LEVEL_SPEC)
+    proc = manager_process("--specs", str(tmp_path / "level.xml"))
+    result = run_cli("monitor", "Fresh(x).value > 1 and once[0, 1s] Fresh(x).value > 1.5", "--duration", "2", "--json", *proc.client_args())
+    assert result.returncode == 0, result.stderr
+    lines = [json.loads(line) for line in result.stdout.splitlines()]
+    assert len(lines) > 20 and all(line["verdict"] is True and line["key"] == f"dyknow/{proc.name}/monitors/1" for line in lines)
+    with Client(proc.name, connect=[proc.endpoint]) as client:
+        model = client.get_model()
+    assert model["monitors"] == [] and model["requests"] == []  # released when the command ended
+    refused = run_cli("monitor", "Fresh(x).value >", *proc.client_args())
+    assert refused.returncode == 1 and "formula column 17: unexpected end of formula" in refused.stderr and "Traceback" not in refused.stderr
+
+
+def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: Any) -> None:
+    """The offline check: the same semantics over yesterday's data, state by state."""
+    import json
+
+    from dyknow import Message
+    from dyknow.recording import Recorder
+    from tests.conftest import run_cli
+
+    samples = {"robot/battery": [(1_000_000_000 + i * 100_000_000, {"value": 1.0 - i * 0.07}) for i in range(14)],
+               "robot/speed": [(1_050_000_000 + i * 300_000_000, {"value": float(i % 3)}) for i in range(5)]}  # fmt: skip
+    path = tmp_path / "run.mcap"
+    with Recorder((), path) as recorder:
+        for key, series in samples.items():
+            for seq, (t_ns, payload) in enumerate(series, start=1):
+                recorder.write(Message(payload, seq, t_ns, t_ns, key))
+    formula = "Speed(robot).value > 0 implies historically[0, 300ms] Battery(robot).value > 0.3"
+    result = run_cli("monitor", formula, "--mcap", str(path), "--bind", "Battery(robot)=robot/battery", "--bind", "Speed(robot)=robot/speed", "--json")
+    assert result.returncode == 0, result.stderr
+    got = [(line["t_ns"], line["verdict"]) for line in map(json.loads, result.stdout.splitlines())]
+    streams = {"Battery(robot)": [(t / 1e9, v) for t, v in samples["robot/battery"]], "Speed(robot)": [(t / 1e9, v) for t, v in samples["robot/speed"]]}
+    assert [(round(t * 1e9), v) for t, v in evaluate(formula, streams)] == got
+    assert {v for _, v in got} == {True, False}
+    wrong = run_cli("monitor", formula, "--mcap", str(path), "--bind", "Battery(robot)=robot/batery", "--bind", "Speed(robot)=robot/speed")
+    assert wrong.returncode == 1 and "the recording has no topic 'robot/batery'" in wrong.stderr and "did you mean 'robot/battery'" in wrong.stderr
+    unbound = run_cli("monitor", formula, "--mcap", str(path), "--bind", "Speed(robot)=robot/speed")
+    assert unbound.returncode == 1 and "no topic for Battery(robot)" in unbound.stderr
