@@ -79,6 +79,9 @@ from dyknow.message import Message
 from dyknow.model import RequestInfo, UnitEvent, UnitInfo, check_standby
 from dyknow.ontology import Ontology
 from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unqualify
+from dyknow.reasoning.progression import Verdict
+from dyknow.reasoning.syntax import Formula, parse
+from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
 from dyknow.spec import Port, TransformationSpec
 from dyknow.tags import parse_term
 from dyknow.unit import Unit
@@ -277,6 +280,11 @@ class _Request:
     # building it takes CPU the first message needs
     standby_after_ns: int = 0
     standby_due: bool = False
+    # formulas the stream must satisfy (a false verdict makes it adapt), their monitor units, and
+    # the requests of their other terms
+    requirements: tuple[str, ...] = ()
+    watchers: list[str] = field(default_factory=list)
+    needs: list[str] = field(default_factory=list)
 
     def info(self) -> RequestInfo:
         return RequestInfo(
@@ -290,6 +298,7 @@ class _Request:
             tuple(self.standby),
             tuple(sorted(set(self.standby.values()))),
             self.standby_reason if self.standby_mode == "warm" and not self.standby else None,
+            self.requirements,
         )
 
     def held(self) -> list[str]:
@@ -303,7 +312,8 @@ class Symptom:
 
     # "failed", "destroyed", "stalled", "resumed", "measurement", "retry", "library",
     # "peer-found", "peer-lost", "peer-changed" (another manager came, went or changed),
-    # "peer-trusted" (a manager that came back after losses has held through its probation)
+    # "peer-trusted" (a manager that came back after losses has held through its probation),
+    # "requirement" (a formula a request requires was false)
     kind: str
     time_ns: int
     unit: str | None = None
@@ -313,6 +323,8 @@ class Symptom:
     manager: str | None = None
     deferred: bool = False  # an opportunity taken after the dwell time
     raised_ns: int = 0  # a deferred opportunity: when it arose (time_ns is when it is taken)
+    request: str | None = None  # "requirement": the key of the request whose requirement was false
+    state_ns: int = 0  # "requirement": the time of the state the false verdict is about
 
 
 class Knowledge:
@@ -1092,7 +1104,7 @@ class AdaptationLoop:
 
     # -- requests
 
-    def request(self, tag: str, *, standby: str | None = None) -> str:
+    def request(self, tag: str, *, standby: str | None = None, require: Iterable[str] = ()) -> str:
         """Plan and wire a configuration providing ``tag``; returns its stable key.
 
         ``standby="warm"`` keeps the next-best configuration running beside it, so that a fault
@@ -1100,17 +1112,26 @@ class AdaptationLoop:
         does not. Requesting a tag again shares the request; asking for a warm standby then gives
         the shared request one, which it keeps until it is released. An unknown ``standby`` is a
         :class:`UnitError` naming the allowed values, raised before anything changes.
+
+        ``require``: temporal formulas (:mod:`dyknow.reasoning`) the stream must satisfy; a term
+        that is ``tag`` reads the request's own stream, any other is requested in turn. A state
+        a requirement finds false is a fault: the request moves to the next-best configuration
+        (the cause names the formula), unless the present one has not run for the dwell time
+        yet. A formula that does not read is a :class:`~dyknow.errors.FormulaError`, raised
+        before anything changes.
         """
         mode = check_standby(standby)
         runtime = self.runtime
         canonical = str(parse_term(tag))
         key = keys.request_key(runtime.name, canonical)
+        formulas = [parse(text) for text in require]
         with self._lock:
             existing = self.knowledge.requests.get(key)
             if existing is not None:
                 existing.references += 1
                 if mode == "warm" and existing.standby_mode != "warm":
                     self._warm_up(existing)
+                self._require(existing, [f for f in formulas if str(f) not in existing.requirements])
                 return key
             now = time.time_ns()
             request = _Request(canonical, key, anchor=self._anchor_name(canonical), standby_mode=mode)
@@ -1128,7 +1149,41 @@ class AdaptationLoop:
             log.info("request %s on %s: %s", canonical, key, ", ".join(sorted(set(request.units.values()))))
             if mode == "warm":
                 self._maintain_standby(request, time.time_ns())
+            try:
+                self._require(request, formulas)
+            except DyKnowError:
+                self.release(key)
+                raise
             return key
+
+    def _require(self, request: _Request, formulas: list[Formula]) -> None:
+        """Watch ``formulas`` over ``request``'s stream: a monitor unit each, whose false
+        verdicts become "requirement" symptoms (see :meth:`request`)."""
+        for formula in formulas:
+            bindings: dict[str, str] = {}
+            for term, port in term_ports(formula).items():
+                if term == request.tag:
+                    bindings[port] = request.key
+                else:
+                    needed = self.request(term)
+                    request.needs.append(needed)
+                    bindings[port] = needed
+            n = len(request.requirements)
+            name = f"{request.anchor}-require-{n + 1}"
+            bindings[VERDICTS_PORT] = f"{request.key}/requirements/{n + 1}"
+            self.runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
+            self.knowledge.managed.add(name)
+            request.watchers.append(name)
+            request.requirements = (*request.requirements, str(formula))
+            watcher = self.runtime.unit(name)
+            if isinstance(watcher, FormulaMonitor):
+                text, key = str(formula), request.key
+                watcher.listen(lambda verdict, text=text, key=key: self._verdict(key, text, verdict))  # type: ignore[misc]
+
+    def _verdict(self, key: str, formula: str, verdict: Verdict) -> None:
+        """A requirement's verdict (on its monitor's thread): a false one is a symptom."""
+        if verdict.verdict is False:
+            self._report(Symptom("requirement", time.time_ns(), detail=formula, request=key, state_ns=verdict.t_ns))
 
     def _warm_up(self, request: _Request) -> None:
         """A shared request asked for a warm standby: a new anchor that can hold one, then the standby."""
@@ -1163,7 +1218,10 @@ class AdaptationLoop:
             del self.knowledge.requests[key]
             self._deferred.pop(key, None)
             orphans = [n for n in request.held() if n in self.knowledge.managed and not self.knowledge.users(n)]
-            self.reconfigurer.cleanup([request.anchor, *orphans])
+            self.reconfigurer.cleanup([*request.watchers, request.anchor, *orphans])
+            for needed in request.needs:
+                if needed in self.knowledge.requests:
+                    self.release(needed)
 
     def requests(self) -> list[RequestInfo]:
         """The active requests, by key. Never waits for a request being planned or adapted (the
@@ -1308,11 +1366,40 @@ class AdaptationLoop:
         if symptom.kind == "peer-changed" and symptom.manager is not None:
             self._peer_changed(symptom, symptom.manager)
             return
+        if symptom.kind == "requirement":
+            self._violated(symptom)
+            return
         for request, fault in self.analyzer.affected(symptom):
             if symptom.unit is not None and symptom.unit == request.anchor:
                 self._reanchor(request, symptom)
                 continue
             self._adapt(request, symptom, fault)
+
+    def _violated(self, symptom: Symptom) -> None:
+        """A requirement was false: move the request to the next-best configuration.
+
+        Not when the present configuration has run less than the dwell time (its first states
+        are judged partly on what the one before delivered), nor when it is degraded. The next
+        best is the cheapest plan without one of the present configuration's transformations;
+        that transformation is put in back-off (so the request returns to it later, and leaves it
+        again, for twice as long, if the requirement fails again)."""
+        request = self.knowledge.requests.get(symptom.request or "")
+        if request is None or request.state != "active" or symptom.state_ns < request.last_change_ns + self.dwell_ns:
+            return
+        now = time.time_ns()
+        best: tuple[tuple[Any, ...], str] | None = None
+        for label in sorted(set(request.units.values())):
+            try:
+                plan = self.reconfigurer.plan(request, now, exclude={label})
+            except PlanningError:
+                continue
+            if best is None or plan.cost < best[0]:
+                best = (plan.cost, label)
+        if best is None:
+            log.info("requirement %r of %s is false, and no other configuration provides it", symptom.detail, request.tag)
+            return
+        self.knowledge.fail(best[1], now)
+        self._adapt(request, symptom, fault=True)
 
     def _later_unit(self, name: str, time_ns: int) -> bool:
         """Whether the unit now named ``name`` started after ``time_ns``."""
@@ -1605,6 +1692,8 @@ def _what(symptom: Symptom) -> str:
         return f"manager {symptom.manager!r} was lost"
     if symptom.kind == "peer-found":
         return f"manager {symptom.manager!r} was found"
+    if symptom.kind == "requirement":
+        return f"requirement violated: {symptom.detail}"
     if symptom.kind == "peer-trusted":
         return f"manager {symptom.manager!r} is trusted again: {symptom.detail}"
     if symptom.kind == "peer-changed":

@@ -531,8 +531,8 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
 def cmd_request(args: argparse.Namespace) -> int:
     """ask a manager for a stream by tag; prints its key"""
     with _client(args) as client:
-        key = client.request(args.tag, standby=args.standby)
-    _report(args, {"request": args.tag, "key": key, "standby": args.standby or "none"}, key)
+        key = client.request(args.tag, standby=args.standby, require=args.require)
+    _report(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require}, key)
     return 0
 
 
@@ -1062,6 +1062,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
                    help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
                         "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
+    p.add_argument("--require", action="append", default=[], metavar="FORMULA",
+                   help="a temporal formula the stream must satisfy: a false verdict moves it to the next-best configuration "
+                        "(repeatable; see dyknow monitor)")  # fmt: skip
 
     p = command("release", cmd_release, client=True)
     p.add_argument("key")

@@ -263,14 +263,17 @@ class Client:
         """Uptime, reconfigurations and per-port statistics of unit ``name``."""
         return dict(self._unit(name, "get_statistics", {}))
 
-    def request(self, tag: str, *, standby: str | None = None) -> str:
+    def request(self, tag: str, *, standby: str | None = None, require: Sequence[str] = ()) -> str:
         """Ask the manager for a stream of ``tag``; returns its key (PlanningError when nothing fits).
 
         ``standby="warm"`` keeps the next-best configuration running beside it (see
         :meth:`dyknow.manager.Manager.request`); an unknown mode is refused as a UnitError naming the
-        field and the allowed values, before anything is sent.
+        field and the allowed values, before anything is sent. ``require``: formulas the stream
+        must satisfy (a false verdict makes it adapt).
         """
         request: dict[str, Any] = {"tag": tag}
+        if require:
+            request["require"] = list(require)
         if standby is not None:
             request["standby"] = check_standby(standby)
         return str(self._manager("request", request)["key"])

@@ -600,7 +600,7 @@ class Manager:
 
     # ------------------------------------------------------------------ requests (self-adaptation)
 
-    def request(self, tag: str, *, standby: str | None = None) -> str:
+    def request(self, tag: str, *, standby: str | None = None, require: Sequence[str] = ()) -> str:
         """Provide a stream of ``tag`` (e.g. ``"BallPosition(field)"``); returns its key.
 
         The planner chooses the transformations, reusing what already runs; they are spawned and
@@ -608,10 +608,14 @@ class Manager:
         adapts to failures, stalls and measurements. Requesting the same tag again shares it.
         ``standby="warm"`` also keeps the next-best configuration running, so that a fault only
         moves the stream onto it (``"none"``, the default: re-plan and spawn when it breaks).
+        ``require``: temporal formulas the stream must satisfy (``BallTrack(field).predicted
+        implies eventually[0, 1.5s] not BallTrack(field).predicted``): a false verdict moves the
+        request to its next-best configuration, the formula named as the cause (see
+        :meth:`dyknow.adaptation.AdaptationLoop.request`).
         Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when nothing fits.
         """
         self._check_open()
-        return self._adaptation.request(tag, standby=standby)
+        return self._adaptation.request(tag, standby=standby, require=require)
 
     def release(self, key: str) -> None:
         """Give back a request, or a monitor (the key :meth:`monitor` returned); its units are
@@ -820,7 +824,7 @@ class Manager:
             "spawn": self._serve_spawn,
             "destroy": self._serve_destroy,
             "get_model": self._serve_model,
-            "request": lambda r, c: {"key": self.request(str(r["tag"]), standby=r.get("standby"))},
+            "request": lambda r, c: {"key": self.request(str(r["tag"]), standby=r.get("standby"), require=r.get("require", ()))},
             "release": self._serve_release,
             "monitor": lambda r, c: {"key": self.monitor(str(r["formula"]), reorder_ms=float(r.get("reorder_ms", 0.0)))},
             "measure": self._serve_measure,

@@ -117,6 +117,7 @@ class RequestInfo:
     standby: tuple[str, ...] = ()
     standby_labels: tuple[str, ...] = ()
     standby_reason: str | None = None
+    requirements: tuple[str, ...] = ()  # formulas the stream must satisfy (see Manager.request)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -131,6 +132,7 @@ class RequestInfo:
             "standby": list(self.standby),
             "standby_labels": list(self.standby_labels),
             "standby_reason": self.standby_reason,
+            "requirements": list(self.requirements),
         }
 
 

@@ -175,3 +175,36 @@ def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: 
     assert wrong.returncode == 1 and "the recording has no topic 'robot/batery'" in wrong.stderr and "did you mean 'robot/battery'" in wrong.stderr
     unbound = run_cli("monitor", formula, "--mcap", str(path), "--bind", "Speed(robot)=robot/speed")
     assert unbound.returncode == 1 and "no topic for Battery(robot)" in unbound.stderr
+
+
+# ---------------------------------------------------------------------------- requirements close the loop
+
+
+def test_a_false_requirement_moves_the_request_to_the_next_best_configuration(system: Callable[..., dict[str, Manager]]) -> None:
+    """A request that requires its track to come from the ceiling camera starts on the robot's
+    (the planner's preference): once the dwell time has passed, the requirement's false verdict
+    is a fault, the request moves to the next-best configuration, and the adaptation names the
+    formula as its cause; the verdicts are on a key of their own, the model lists the requirement."""
+    m = system(dwell_s=0.3)
+    station = m["station"]
+    formula = f"{TRACK}.camera == {CEILING}"
+    with Client("station", connect=station.endpoints) as client:
+        key = client.request(TRACK, require=[formula])
+        (info,) = client.get_model()["requests"]
+    assert info["requirements"] == [formula] and "robot-camera@robot" in info["labels"]
+    verdicts = _sink(station, "verdicts", f"{key}/requirements/1")
+    wait_until(lambda: any(e.cause == f"requirement violated: {formula}" for e in station.get_adaptations()), "the requirement to make it adapt")
+    moved = next(e for e in station.get_adaptations() if e.cause == f"requirement violated: {formula}")
+    assert "robot-camera@robot" in moved.old and "ceiling-camera@field" in moved.new
+    verdicts.wait_until(lambda msg: msg.payload["verdict"] is True, timeout_s=10)  # on the ceiling camera it holds
+    assert any(msg.payload["verdict"] is False for msg in verdicts.messages)
+    station.release(key)
+    assert station.requests() == [] and not any("require" in u.name for u in station.units())
+
+
+def test_a_requirement_that_does_not_read_is_refused_before_anything_runs(system: Callable[..., dict[str, Manager]]) -> None:
+    m = system()
+    station = m["station"]
+    with Client("station", connect=station.endpoints) as client, pytest.raises(FormulaError, match="formula column"):
+        client.request(TRACK, require=[f"{TRACK}.camera =="])
+    assert station.requests() == [] and station.units() == []
