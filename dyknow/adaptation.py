@@ -1430,8 +1430,11 @@ class AdaptationLoop:
         now = time.time_ns()
         if not fault and request.state == "active" and now - request.last_change_ns < self.dwell_ns:
             # flapping guard: take the opportunity when the dwell time is over (the latest one wins,
-            # but another manager's routine summary does not hide the cause already waiting)
-            if not (request.key in self._deferred and symptom.kind == "peer-changed"):
+            # but another manager's routine summary does not hide the cause already waiting, nor
+            # does a routine measurement hide an ended back-off or probation)
+            waiting = self._deferred.get(request.key)
+            routine = symptom.kind == "peer-changed" or (symptom.kind == "measurement" and waiting is not None and waiting[1].kind in ("retry", "peer-trusted"))
+            if waiting is None or not routine:
                 self._deferred[request.key] = (request.last_change_ns + self.dwell_ns, symptom)
             return
         old_labels = tuple(sorted(set(request.units.values())))

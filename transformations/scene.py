@@ -208,14 +208,16 @@ class Scene:
     """The ball's trajectory and the renderer, for one ``seed``.
 
     The seed fixes the field texture and where on its path the ball is at a given time; the
-    cameras and the field are the same for every seed.
+    cameras and the field are the same for every seed. ``epoch_ns`` is the time from which laps
+    count (a demo that wants the same story each run starts them when it starts).
     """
 
-    def __init__(self, seed: int = 0, period_s: float = 20.0) -> None:
+    def __init__(self, seed: int = 0, period_s: float = 20.0, epoch_ns: int = 0) -> None:
         if not period_s > 0:
             raise ParamError(f"got {period_s}", where="period_s", expected="a positive number of seconds")
         self.seed = int(seed)
         self.period_ns = round(period_s * 1e9)
+        self.epoch_ns = int(epoch_ns)  # the time the ball's lap starts from (0: the Unix epoch, as before)
         rng = np.random.default_rng(self.seed)
         # A figure of eight: y = 0 at both ends of the x swing, so every period the ball rolls
         # through the view of the robot's bottom camera. The seed sets where on the path the
@@ -232,7 +234,7 @@ class Scene:
     def ball_at(self, t_ns: int) -> BallState:
         """Where the ball is at ``t_ns`` (``time.time_ns()`` clock), and how fast it moves."""
         t_ns = int(t_ns)
-        phase = 2.0 * math.pi * ((t_ns % self.period_ns) / self.period_ns)
+        phase = 2.0 * math.pi * (((t_ns - self.epoch_ns) % self.period_ns) / self.period_ns)
         omega = 2.0 * math.pi / (self.period_ns / 1e9)
         ax, ay, psi = self._amp_x, self._amp_y, phase + self._phase
         return BallState(

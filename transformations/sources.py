@@ -368,7 +368,8 @@ class SyntheticScene(Unit):
 
     Params: ``camera`` (``bottom``, ``top`` or ``ceiling``), ``width``/``height`` (default
     640x480), ``rate_hz`` (default 30; 0: as fast as possible), ``seed`` (default 0), ``noise``
-    (pixel noise standard deviation, default 2), ``period_s`` (the ball's lap time, default 20).
+    (pixel noise standard deviation, default 2), ``period_s`` (the ball's lap time, default 20),
+    ``epoch_ns`` (when the laps start, default 0: the Unix epoch).
 
     Each frame shows the scene at its origin time, so its ground truth is
     ``unit.scene.ball_at(msg.origin_ns)`` (field) or ``unit.scene.ball_in_image(camera,
@@ -386,7 +387,8 @@ class SyntheticScene(Unit):
         self.rate_hz = params.number(self.params, "rate_hz", 30.0, low=0)
         self.noise = params.number(self.params, "noise", 2.0, low=0, high=100)
         period = params.number(self.params, "period_s", 20.0, low=0, low_open=True)
-        self.scene = Scene(seed=params.whole(self.params, "seed", 0), period_s=period)
+        epoch = params.whole(self.params, "epoch_ns", 0, low=0)
+        self.scene = Scene(seed=params.whole(self.params, "seed", 0), period_s=period, epoch_ns=epoch)
         self.frames_published = 0
         self.scene.render(self.camera, 0, self.width, self.height, self.noise)  # build the caches now
 

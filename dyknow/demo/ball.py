@@ -6,6 +6,12 @@ battery holds (``battery >= 0.25``), and a ceiling camera as the alternative. Th
 planner for ``BallTrack(field)``, the tracked ball position in field coordinates; the planner wires
 robot camera -> subsampler -> ball detector -> localization -> tracker and returns a key.
 
+The request carries a requirement, a temporal formula over its own stream (:data:`REQUIREMENT`):
+the ball must not be merely predicted for half a second. The robot's camera does not see the
+whole field; when the ball stays out of its view, the requirement turns false, and the manager
+moves the request to the next-best configuration, the ceiling camera, naming the formula as the
+cause; it tries the robot's camera again after a back-off.
+
 A simulated battery monitor publishes the battery level on ``dyknow/measurements/battery`` from a
 Zenoh session of its own. Midway the battery runs low: the robot camera becomes unavailable and
 the manager switches to the ceiling camera; the track keeps flowing on the same key. Later the
@@ -40,10 +46,15 @@ from dyknow.resources import specs_dir
 from dyknow.spec import Param, Port, TransformationSpec
 from dyknow.unit import Unit
 
-__all__ = ["BallDemo", "Battery", "run_ball_demo"]
+__all__ = ["REQUIREMENT", "BallDemo", "Battery", "run_ball_demo"]
 
 REQUEST = "BallTrack(field)"
 LOW_BATTERY = 0.25
+#: What the demo requires of its track: never only predicted for half a second (the camera must see the ball).
+REQUIREMENT = "not historically[0, 500ms] BallTrack(field).predicted"
+#: Where on its lap the synthetic ball is when the demo starts (s): the robot's camera loses it
+#: about 4 s in, sees it again from about 6.5 s to 8 s, then from about 10.5 s to 24 s (a lap is 20 s).
+SCENE_START_S = 15.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,6 +94,21 @@ class TrackLog(Unit):
                 self.track.append((time.time_ns(), msg.origin_ns, msg.payload))
 
 
+class VerdictLog(Unit):
+    """Keeps every verdict of the request's requirement: ``(state time ns, verdict)``."""
+
+    def setup(self) -> None:
+        """Start with no verdict."""
+        self.lock = threading.Lock()
+        self.verdicts: list[tuple[int, bool]] = []
+
+    def on_message(self, port: str, msg: Message) -> None:
+        """Log the verdict."""
+        if isinstance(msg.payload, dict) and isinstance(msg.payload.get("verdict"), bool):
+            with self.lock:
+                self.verdicts.append((int(msg.payload["t_ns"]), msg.payload["verdict"]))
+
+
 class FrameGrab(Unit):
     """Keeps the latest frame arriving on its input (for the report's annotated frame)."""
 
@@ -97,9 +123,12 @@ class FrameGrab(Unit):
         self.got.set()
 
 
-def camera_specs(*, robot_video: str | None, ceiling_video: str | None, rate_hz: float, seed: int) -> list[TransformationSpec]:
-    """The robot's two cameras as ``specs/robot.xml`` declares them, with the demo's rate and seed,
-    or reading a video instead of the synthetic scene; and the demo's own two listeners."""
+def camera_specs(
+    *, robot_video: str | None, ceiling_video: str | None, rate_hz: float, seed: int, epoch_ns: int = 0
+) -> list[TransformationSpec]:
+    """The robot's two cameras as ``specs/robot.xml`` declares them, with the demo's rate, seed and
+    scene epoch (when the ball's laps start), or reading a video instead of the synthetic scene;
+    and the demo's own listeners."""
     from dyknow.spec import load_specs
 
     videos = {"robot-camera": robot_video, "ceiling-camera": ceiling_video}
@@ -109,13 +138,14 @@ def camera_specs(*, robot_video: str | None, ceiling_video: str | None, rate_hz:
         if video is None:
             overrides = {"rate_hz": float(rate_hz), "seed": seed}
             params = tuple(replace(p, value=overrides.get(p.name, p.value)) for p in spec.params)
-            cameras.append(replace(spec, params=params))
+            cameras.append(replace(spec, params=(*params, Param("epoch_ns", "int", int(epoch_ns)))))
         else:
             params = (Param("path", "string", video), Param("rate_hz", "float", -1.0), Param("loop", "bool", True))
             cameras.append(replace(spec, source="transformations.sources:VideoSource", params=params))
     return [
         *cameras,
         TransformationSpec("track-log", "dyknow.demo.ball:TrackLog", ports=(Port("in", "in", queue=256),)),
+        TransformationSpec("verdict-log", "dyknow.demo.ball:VerdictLog", ports=(Port("in", "in", queue=256),)),
         TransformationSpec("frame-grab", "dyknow.demo.ball:FrameGrab", ports=(Port("in", "in", queue=1),)),
     ]
 
@@ -160,6 +190,7 @@ class BallDemo:
         live: bool | None = None,
         seed: int = 0,
         ui_port: int | None = None,
+        requirement: str | None = REQUIREMENT,
     ) -> None:
         if duration_s <= 0:
             raise ValueError(f"duration must be positive; got {duration_s}")
@@ -178,6 +209,7 @@ class BallDemo:
         self.seed = seed
         self.ui_port = ui_port  # serve `dyknow ui` beside the demo on this port (0: any free one)
         self.ui_url: str | None = None
+        self.requirement = requirement
         self.events: list[AdaptationEvent] = []
         self._events_lock = threading.Lock()
         self._printed: set[tuple[int, str]] = set()
@@ -217,14 +249,18 @@ class BallDemo:
         from transformations.scene import Scene  # ground truth of the synthetic scene
 
         specs = [specs_dir() / "vision.xml"]
+        epoch_ns = time.time_ns() - round(SCENE_START_S * 1e9)  # the same story every run
         with Manager("demo", specs=specs, ontology=[specs_dir() / "dyknow.ttl"], dwell_s=2.0) as manager:
-            for spec in camera_specs(robot_video=self.robot_video, ceiling_video=self.ceiling_video, rate_hz=self.rate_hz, seed=self.seed):
+            cameras = camera_specs(
+                robot_video=self.robot_video, ceiling_video=self.ceiling_video, rate_hz=self.rate_hz, seed=self.seed, epoch_ns=epoch_ns
+            )
+            for spec in cameras:
                 manager.add_transformation(spec)
             if not self.synthetic:
                 for spec in video_localization(["top", "ceiling"]):
                     manager.add_transformation(spec)
             manager.on_adaptation(self._on_adaptation)
-            scene = Scene(seed=self.seed) if self.synthetic else None
+            scene = Scene(seed=self.seed, epoch_ns=epoch_ns) if self.synthetic else None
             source = "the synthetic scene" if self.synthetic else f"videos {self.robot_video} / {self.ceiling_video}"
             self.say(f"dyknow demo: tracking a ball on {source}; manager 'demo' on {', '.join(manager.endpoints)}")
             ui = _UiProcess(manager.endpoints[0], self.ui_port) if self.ui_port is not None else None
@@ -233,13 +269,22 @@ class BallDemo:
                 self.say(f"the interactive tool: open {ui.url} (the View panel shows the cameras)")
             self.say(f"requesting {REQUEST} from the planner ...")
             t0 = time.monotonic()
-            key = manager.request(REQUEST)
+            key = manager.request(REQUEST, require=[self.requirement] if self.requirement else [])
             manager.spawn("track-log", "track-log", bindings={"in": key})
             log = manager.unit("track-log")
             assert isinstance(log, TrackLog)
+            verdicts: VerdictLog | None = None
+            if self.requirement:
+                manager.spawn("verdict-log", "verdict-log", bindings={"in": f"{key}/requirements/1"})
+                found = manager.unit("verdict-log")
+                assert isinstance(found, VerdictLog)
+                verdicts = found
             info = next(r for r in manager.requests() if r.key == key)
             self.say(f"planned in {(time.monotonic() - t0) * 1000:.1f} ms: {', '.join(_chain_labels(manager, key))}")
-            self.say(f"the tracked position streams on {key}\n")
+            self.say(f"the tracked position streams on {key}")
+            if self.requirement:
+                self.say(f"required of it: {self.requirement} (verdicts on {key}/requirements/1)")
+            self.say()
             battery_trace: list[tuple[float, float]] = []
             self.start_ns = time.time_ns()
             with Client("demo", connect=manager.endpoints) as monitor:  # the battery monitor, elsewhere
@@ -252,12 +297,12 @@ class BallDemo:
                     battery_trace.append((t, level))
                     self._print_events()
                     if t >= next_show:
-                        self._show(manager, key, log, scene, rates, t, level)
+                        self._show(manager, key, log, scene, rates, t, level, verdicts)
                         next_show += 1.0
                     time.sleep(0.25)
             self._print_events()
             frame = self._annotated_frame(manager, log)
-            report = self._report(manager, key, log, scene, battery_trace, frame, info.tag)
+            report = self._report(manager, key, log, scene, battery_trace, frame, info.tag, verdicts)
             if ui is not None:
                 ui.close()
         return report
@@ -279,12 +324,20 @@ class BallDemo:
                 self._printed.add((e.id, e.kind))
                 self.say(self._event_line(e))
 
-    def _show(self, manager: Manager, key: str, log: TrackLog, scene: Any, rates: _Rates, t: float, level: float) -> None:
+    def _show(
+        self, manager: Manager, key: str, log: TrackLog, scene: Any, rates: _Rates, t: float, level: float, verdicts: VerdictLog | None
+    ) -> None:
         chain = _chain(manager, key)
         with log.lock:
             last = log.track[-1] if log.track else None
         camera = next((label for _, label in chain if "camera" in label), "none")
-        lines = [f"t={t:5.1f}s  battery {level:4.2f}{' (low)' if level < LOW_BATTERY else ''}  camera: {camera}"]
+        required = ""
+        if verdicts is not None:
+            with verdicts.lock:
+                held = verdicts.verdicts[-1][1] if verdicts.verdicts else None
+                false = sum(1 for _, v in verdicts.verdicts if not v)
+            required = f"  requirement: {'holds' if held else 'VIOLATED' if held is False else '(no verdict yet)'}, false in {false} states so far"
+        lines = [f"t={t:5.1f}s  battery {level:4.2f}{' (low)' if level < LOW_BATTERY else ''}  camera: {camera}{required}"]
         hops = []
         for name, label in chain:
             stats = manager.get_statistics(name)
@@ -357,12 +410,24 @@ class BallDemo:
         return grab.frame
 
     def _report(
-        self, manager: Manager, key: str, log: TrackLog, scene: Any, battery: list[tuple[float, float]], frame: Any, tag: str
+        self,
+        manager: Manager,
+        key: str,
+        log: TrackLog,
+        scene: Any,
+        battery: list[tuple[float, float]],
+        frame: Any,
+        tag: str,
+        verdicts: VerdictLog | None,
     ) -> dict[str, Any]:
         from dyknow.demo.report import write_report
 
         with log.lock:
             track = list(log.track)
+        judged: list[tuple[int, bool]] = []
+        if verdicts is not None:
+            with verdicts.lock:
+                judged = list(verdicts.verdicts)
         return write_report(
             self.out_dir,
             start_ns=self.start_ns,
@@ -375,6 +440,8 @@ class BallDemo:
             frame=frame,
             statistics={u.name: manager.get_statistics(u.name).to_dict() for u in manager.get_model().units},
             say=self.say,
+            requirement=self.requirement,
+            verdicts=judged,
         )
 
 

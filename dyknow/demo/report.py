@@ -26,8 +26,13 @@ def write_report(
     frame: Any,
     statistics: dict[str, Any],
     say: Callable[[str], None],
+    requirement: str | None = None,
+    verdicts: list[tuple[int, bool]] | None = None,
 ) -> dict[str, Any]:
-    """Write ``report.json``, ``track.png`` and ``frame.png`` into ``out_dir``; returns the report."""
+    """Write ``report.json``, ``track.png`` and ``frame.png`` into ``out_dir``; returns the report.
+
+    ``requirement`` and its ``verdicts`` (state time ns, verdict): the request's requirement,
+    summarised, listed and plotted."""
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = start_ns  # times in the report are seconds since the demo started (when the battery trace starts)
     rows = []
@@ -79,16 +84,21 @@ def write_report(
         "measured_error_p90_cm": measured[int(len(measured) * 0.9)] if measured else None,
         "predicted_messages": sum(1 for r in rows if r["predicted"]),
         "adaptations": adaptations,
+        "requirement": requirement,
+        "requirement_states": len(verdicts or []),
+        "requirement_false_states": sum(1 for _, v in verdicts or [] if not v),
     }
+    judged = [{"t_s": round((t - t0) / 1e9, 3), "verdict": v} for t, v in verdicts or []]
     report = {
         "summary": summary,
         "track": rows,
         "battery": [{"t_s": round(t, 3), "level": round(b, 3)} for t, b in battery],
+        "verdicts": judged,
         "statistics": statistics,
     }
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     written = ["report.json"]
-    if _plot(out_dir / "track.png", rows, battery, adaptations, scene is not None):
+    if _plot(out_dir / "track.png", rows, battery, adaptations, scene is not None, judged):
         written.append("track.png")
     if frame is not None:
         import cv2
@@ -105,6 +115,8 @@ def write_report(
             f"tracking error against the ground truth: median {summary['error_median_cm']} cm, 90% under {summary['error_p90_cm']} cm; "
             f"where the ball was seen: median {summary['measured_error_median_cm']} cm, 90% under {summary['measured_error_p90_cm']} cm"
         )
+    if requirement:
+        say(f"requirement {requirement}: false in {summary['requirement_false_states']} of {summary['requirement_states']} states")
     for a in adaptations:
         if a["kind"] != "degraded":
             say(f"adaptation at {a['t_s']:.1f} s ({a['cause']}): adapted in {a['adaptation_ms']} ms, recovered in {a['recovery_ms']} ms")
@@ -113,7 +125,12 @@ def write_report(
 
 
 def _plot(
-    path: Path, rows: list[dict[str, Any]], battery: list[tuple[float, float]], adaptations: list[dict[str, Any]], truth: bool
+    path: Path,
+    rows: list[dict[str, Any]],
+    battery: list[tuple[float, float]],
+    adaptations: list[dict[str, Any]],
+    truth: bool,
+    verdicts: list[dict[str, Any]] | None = None,
 ) -> bool:
     try:
         import matplotlib
@@ -133,6 +150,11 @@ def _plot(
     ax_b.plot([b[0] for b in battery], [b[1] for b in battery], color="tab:green")
     ax_b.axhline(0.25, color="grey", linestyle=":", linewidth=0.8)
     ax_b.set_ylabel("battery")
+    if verdicts:  # the requirement's verdicts along the bottom: green holds, red violated
+        for value, colour in ((True, "tab:green"), (False, "tab:red")):
+            times = [v["t_s"] for v in verdicts if v["verdict"] is value]
+            ax_b.plot(times, [0.02] * len(times), "|", color=colour, markersize=6, label=f"requirement {'holds' if value else 'false'}")
+        ax_b.legend(loc="upper left", fontsize=7)
     ax_b.set_xlabel("time (s)")
     for a in adaptations:
         if a["kind"] == "degraded":
