@@ -152,6 +152,28 @@ def test_request_and_release_from_the_page(ui: Callable[..., tuple[Manager, str]
     assert manager.get_model().requests == ()
 
 
+def test_the_verdicts_of_monitors_and_requirements_show_as_a_timeline(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
+    """A monitor and a request's requirement: each gets a strip of its latest verdicts under the
+    adaptations, green where true, red where false."""
+    manager, url = ui()
+    monitor = manager.monitor("historically[0, 1s] BallTrack(field).tracked > 0")
+    track = manager.request("BallTrack(field)", require=["BallTrack(field).camera == 3"])  # false while the robot's camera feeds it
+    browser.get(url)
+    wait_text(browser, "status", "1 managers")
+    tab(browser, "requests")
+    wait_text(browser, "verdicts", monitor)
+    wait_text(browser, "verdicts", f"{track}/requirements/1")
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    def cells(css: str) -> int:  # counted in the page at once: the strips are redrawn as verdicts come
+        return int(browser.execute_script(f"return document.querySelectorAll('#verdicts {css}').length"))
+
+    WebDriverWait(browser, 15).until(lambda _: cells(".strip i.holds") > 10 and cells(".strip i.violated") > 0)
+    shot(browser, "verdicts")
+    rows = browser.execute_script("return [...document.querySelectorAll('#verdicts .verdict-row')].map((r) => r.textContent)")
+    assert len(rows) == 2 and all(" verdicts, " in row for row in rows), rows
+
+
 def test_the_token_is_required_when_set_and_made_beyond_loopback(ui: Callable[..., tuple[Manager, str]]) -> None:
     assert check_bind("127.0.0.1", None) is None and check_bind("::1", None) is None
     assert len(check_bind("0.0.0.0", None) or "") >= 20  # a new token: never an open tool on the network

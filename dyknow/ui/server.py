@@ -8,7 +8,8 @@ HTTP (aiohttp):
 
 - ``GET /`` the page; ``GET /static/...`` its script, style and the vendored cytoscape.js;
 - ``GET /api/model`` ``{"version", "managers": [model, ...], "stats": {"manager/unit": {port: {"rate", "hop_p50_us", "lost", "dropped"}}}}``
-  (statistics asked every ``stats_s``);
+  (statistics asked every ``stats_s``), and ``"verdicts": {key: [[t, verdict, gap cause], ...]}``, the
+  latest verdicts of every monitor and requirement the models list;
 - ``GET /api/events`` server-sent events: the model again each time it changes (checked every
   ``poll_s``);
 - ``GET /api/stream?key=KEY`` a WebSocket of the messages on ``KEY``: for each, a JSON header
@@ -48,6 +49,7 @@ import logging
 import secrets
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -64,7 +66,7 @@ from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
 from dyknow.transport import check_key_expr
 from dyknow.webguard import foreign, host_name, served_hosts
 
-__all__ = ["MAX_CALL_BYTES", "MAX_STREAMS", "ModelWatch", "check_bind", "make_app"]
+__all__ = ["MAX_CALL_BYTES", "MAX_STREAMS", "MAX_VERDICT_KEYS", "ModelWatch", "check_bind", "make_app"]
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +75,8 @@ MAX_CALL_BYTES = 1 << 20  # an imported spec is the largest thing the page sends
 _MAX_JSON_CHARS = 64 << 10  # larger JSON payloads are described, not shown
 MAX_STREAMS = 16  # streams watched at once (each is a Zenoh subscriber and JPEG encoding)
 _MAX_STATS_UNITS = 1000  # units whose statistics are asked each round
+MAX_VERDICT_KEYS = 32  # verdict streams followed at once (monitors' and requirements')
+_VERDICTS_KEPT = 300  # the latest verdicts of each, for the page's timeline
 
 
 class ModelWatch:
@@ -94,6 +98,8 @@ class ModelWatch:
         self._names_at = 0.0
         self._lock = threading.Lock()
         self._listeners: list[Callable[[], None]] = []
+        self._verdicts: dict[str, deque[list[Any]]] = {}  # verdict key -> [t, verdict, gap cause or None]
+        self._verdict_subs: dict[str, Any] = {}
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="dyknow-ui-watch", daemon=True)
         self._thread.start()
@@ -108,6 +114,41 @@ class ModelWatch:
         """Stop asking; safe twice."""
         self._closed = True
         self._thread.join(2.0)
+        for sub in self._verdict_subs.values():
+            sub.undeclare()
+        self._verdict_subs.clear()
+
+    def _follow_verdicts(self, models: list[dict[str, Any]]) -> None:
+        """Subscribe to the verdicts of every monitor and requirement the models list (and drop
+        those gone), at most :data:`MAX_VERDICT_KEYS`."""
+        wanted: list[str] = []
+        for model in models:
+            for monitor in model.get("monitors", []):
+                wanted += [str(m["key"]) for m in monitor.get("monitors", [])]
+            for request in model.get("requests", []):
+                wanted += [f"{request['key']}/requirements/{n}" for n in range(1, len(request.get("requirements", [])) + 1)]
+        wanted = list(dict.fromkeys(wanted))[:MAX_VERDICT_KEYS]
+        for key in [k for k in self._verdict_subs if k not in wanted]:
+            self._verdict_subs.pop(key).undeclare()
+            with self._lock:
+                self._verdicts.pop(key, None)
+        for key in wanted:
+            if key not in self._verdict_subs:
+                kept: deque[list[Any]] = deque(maxlen=_VERDICTS_KEPT)
+                with self._lock:
+                    self._verdicts[key] = kept
+
+                def take(msg: Message, kept: deque[list[Any]] = kept) -> None:
+                    p = msg.payload
+                    if isinstance(p, dict) and isinstance(p.get("verdict"), bool):
+                        gap = p.get("gap")
+                        with self._lock:
+                            kept.append([p.get("t"), p["verdict"], gap.get("cause") if isinstance(gap, dict) else None])
+
+                try:
+                    self._verdict_subs[key] = self.client.declare_subscriber(key, take)
+                except DyKnowError as exc:
+                    log.debug("cannot follow the verdicts on %r: %s", key, exc)
 
     def refresh(self) -> None:
         """Ask the managers now (after an action, so the page sees its effect at once)."""
@@ -124,11 +165,13 @@ class ModelWatch:
         if now - self._stats_at >= self.stats_s:
             self._stats_at = now
             self._stats = self._statistics(models)
+        self._follow_verdicts(models)
         with self._lock:
-            if models == self.data["managers"] and self._stats == self.data.get("stats"):
+            verdicts = {key: [list(v) for v in kept] for key, kept in self._verdicts.items()}
+            if models == self.data["managers"] and self._stats == self.data.get("stats") and verdicts == self.data.get("verdicts"):
                 return
             self.version += 1
-            self.data = {"version": self.version, "managers": models, "stats": self._stats}
+            self.data = {"version": self.version, "managers": models, "stats": self._stats, "verdicts": verdicts}
             listeners = list(self._listeners)
         for listener in listeners:
             listener()

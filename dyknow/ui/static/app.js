@@ -492,8 +492,25 @@ function wire() {
   });
 }
 
+function drawVerdicts() {
+  // one strip per monitor or requirement: its latest verdicts, green true, red false, a bar where a gap was
+  const rows = [];
+  for (const [key, verdicts] of Object.entries(model.verdicts || {}).sort()) {
+    const strip = el("span", undefined, { class: "strip" });
+    for (const [t, verdict, gap] of verdicts) {
+      const cell = el("i", undefined, { class: (verdict ? "holds" : "violated") + (gap ? " gap" : ""), title: `t=${Number(t).toFixed(2)} s: ${verdict}${gap ? " (after a gap: " + gap + ")" : ""}` });
+      strip.append(cell);
+    }
+    const falses = verdicts.filter((v) => !v[1]).length;
+    rows.push(el("div", undefined, { class: "verdict-row" }));
+    rows[rows.length - 1].append(el("code", key), strip, el("span", ` ${verdicts.length} verdicts, ${falses} false`));
+  }
+  $("verdicts").replaceChildren(...(rows.length ? rows : [el("p", "no monitor or requirement")]));
+}
+
 function render() {
   fillManagers();
+  drawVerdicts();
   drawGraph();
   drawActive();
   drawLibrary();
