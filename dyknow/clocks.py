@@ -27,8 +27,8 @@ half the width, whatever happened on the way. Request: ``b"DKT1"`` + ``t1`` (i64
 endian); answer: ``b"DKT1"`` + ``t1`` + ``t2`` + ``t3`` (i64) + the peer's clock id (u32).
 
 **The estimate** (:class:`Estimator`), as NTP and chrony do it: of the last
-:data:`SAMPLES` exchanges, only those whose width is at most 1.5 times the smallest plus 30 µs
-count (a long trip may be an uneven one). Once there are six such spread over
+:data:`SAMPLES` exchanges, only the narrower half count, and any whose width is at most 1.5 times
+the smallest plus 30 µs (a long trip may be an uneven one). Once there are six such spread over
 8 s, a least-squares line through them gives the offset now and the drift (a clock running fast
 or slow), which carries the offset forward between exchanges. Each exchange's offset is off by
 at most half its width, and the line is a weighted sum of them, so it is off by at most the sum
@@ -230,8 +230,8 @@ class Estimator:
 
     def _fit(self) -> None:
         samples = list(self._samples)
-        best = min(samples, key=lambda s: s[2])
-        good = [s for s in samples if s[2] <= best[2] * 1.5 + 30_000]
+        widths = sorted(s[2] for s in samples)
+        good = [s for s in samples if s[2] <= max(widths[0] * 1.5 + 30_000, widths[len(widths) // 2])]
         span = good[-1][0] - good[0][0]
         if len(good) >= _FIT_SAMPLES and span >= _FIT_SPAN_NS:
             # a line through the good exchanges: the offset now and the drift, the noise of

@@ -6,7 +6,9 @@ test process cannot reach addresses inside the namespaces). It prints JSON lines
 ``adaptations`` or ``managers`` on its standard input it prints that list, and on ``stats`` what
 arrived since the last ``stats`` (messages, rate, the largest gap, the age p99, the camera
 switches and the messages from each camera); on ``lost``, the messages lost on the way into each
-unit of the manager (by label).
+unit of the manager (by label); on ``ports``, every input port of the manager's units with its
+hop and age (latency) p50 and its clock figures (see :class:`dyknow.stats.PortStatistics`); on
+``model NAME``, the model of manager NAME (as its ``get_model`` gives it).
 """
 
 from __future__ import annotations
@@ -89,6 +91,19 @@ def main() -> int:
                         ports = client.get_statistics(unit["name"])["ports"].values()
                         lost[unit["label"]] = sum(int(p.get("lost", 0)) for p in ports if p["direction"] == "in")
                     say({"event": "lost", "items": sorted(lost.items())})
+                elif line.strip() == "ports":  # each input port's hop and age, corrected where the clock is another's
+                    ports = []
+                    for unit in client.get_model()["units"]:
+                        for port, entry in client.get_statistics(unit["name"])["ports"].items():
+                            if entry["direction"] == "in":
+                                ports.append({
+                                    "unit": unit["label"], "port": port, "messages": entry["messages"],
+                                    "hop_p50_us": entry["hop"]["p50_us"], "latency_p50_us": entry["latency"]["p50_us"], **entry["clock"],
+                                })  # fmt: skip
+                    say({"event": "ports", "items": ports})
+                elif line.strip().startswith("model "):
+                    name = line.split()[1]
+                    say({"event": f"model {name}", "items": [client.get_model(name)]})
                 elif line.strip() == "adaptations":
                     say({"event": "adaptations", "items": client.get_adaptations()})
                 elif line.strip() == "managers":
