@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import threading
 import time
@@ -25,6 +26,7 @@ from typing import Any
 
 from dyknow import keys, service
 from dyknow.access import TlsFiles
+from dyknow.clocks import Estimate
 from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
 from dyknow.identity import Signer
 from dyknow.message import Message
@@ -37,6 +39,20 @@ log = logging.getLogger(__name__)
 
 _MAX_PAGES = 100_000  # of one model: far past any manager's (each page holds at least one entry)
 _MAX_GONE = 10_000  # managers remembered as gone (names come from the network: bounded)
+
+
+def _clock_id(raw: Any) -> int | None:
+    """A clock id as a model shows it (8 hex digits), or None."""
+    if not isinstance(raw, str) or len(raw) != 8:
+        return None
+    try:
+        return int(raw, 16)
+    except ValueError:
+        return None
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and abs(value) < 1e15
 
 
 class _Presence:
@@ -245,6 +261,38 @@ class Client:
         model.pop("next", None)
         model.pop("total", None)
         return model
+
+    def clocks(self, manager: str | None = None) -> dict[str, Estimate]:
+        """Every manager's clock as the manager (or ``manager``) estimates it, from its model:
+        manager name -> :class:`~dyknow.clocks.Estimate`, its offset that clock minus the
+        manager's (ns). The manager itself is there too, with offset and uncertainty 0; a manager
+        whose offset it does not know yet is not. Offsets are from the manager's clock: a client
+        on the manager's host shares it (one host, one clock), so ``origin_ns`` of a message
+        stamped by clock ``c`` reads ``origin_ns - offset`` on this host's clock (see
+        :func:`dyknow.clocks.corrected`); elsewhere, add how far this host's clock is from the
+        manager's host's. Entries that do not parse (a model is another process's word) are left out."""
+        name = manager or self.manager
+        raw = self.get_model(name).get("clocks", {})
+        now = time.time_ns()
+        found: dict[str, Estimate] = {}
+        if not isinstance(raw, dict):
+            return found
+        own = _clock_id(raw.get("clock"))
+        if own is not None:
+            found[name] = Estimate(own, 0, 0, 0.0, 0, now)
+        for peer, entry in raw.items():
+            if peer == "clock" or not isinstance(entry, dict):
+                continue
+            clock = _clock_id(entry.get("clock"))
+            offset, uncertainty = entry.get("offset_us"), entry.get("uncertainty_us")
+            if clock is None or not _finite(offset) or not _finite(uncertainty) or uncertainty < 0:
+                continue
+            drift = entry.get("drift_ppm", 0.0)
+            samples = entry.get("samples", 0)
+            found[str(peer)] = Estimate(
+                clock, round(offset * 1000), round(uncertainty * 1000), float(drift) if _finite(drift) else 0.0, int(samples) if isinstance(samples, int) else 0, now
+            )
+        return found
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key bindings of unit ``name``."""
