@@ -592,6 +592,7 @@ def _payload_json(payload: Any) -> Any:
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
+    from dyknow.clocks import Estimate
     from dyknow.message import CLOCK_ID
 
     if args.count is not None and args.count <= 0:
@@ -599,15 +600,17 @@ def cmd_echo(args: argparse.Namespace) -> int:
     done = threading.Event()
     lock = threading.Lock()
     seen = 0
-    clocks: dict[int, tuple[int, int]] = {CLOCK_ID: (0, 0)}  # clock id -> (offset, uncertainty) ns; swapped whole
+    clocks: dict[int, Estimate] = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0)}  # clock id -> offset from --manager's; swapped whole
 
     def show(msg: Message) -> None:
         nonlocal seen
         with lock:
             if done.is_set():
                 return
-            known = clocks.get(msg.origin_clock)  # (a message of a clock --manager does not know: its age is not shown)
-            age_us = None if known is None else round((time.time_ns() - msg.origin_ns + known[0]) / 1000, 1)
+            now = time.time_ns()
+            estimate = clocks.get(msg.origin_clock)  # (a message of a clock --manager does not know: its age is not shown)
+            known = None if estimate is None else estimate.carried(now)
+            age_us = None if known is None else round((now - msg.origin_ns + known[0]) / 1000, 1)
             data = {
                 "key": msg.key,
                 "seq": msg.seq,
@@ -630,7 +633,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
         nonlocal clocks
         while True:
             try:
-                clocks = {CLOCK_ID: (0, 0), **{e.clock: (e.offset_ns, e.uncertainty_ns) for e in client.clocks().values()}}
+                clocks = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in client.clocks().values()}}
             except DyKnowError as exc:
                 logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
             fetched.set()

@@ -26,7 +26,7 @@ from typing import Any
 
 from dyknow import keys, service
 from dyknow.access import TlsFiles
-from dyknow.clocks import Estimate
+from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
 from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
 from dyknow.identity import Signer
 from dyknow.message import Message
@@ -51,8 +51,11 @@ def _clock_id(raw: Any) -> int | None:
         return None
 
 
-def _finite(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and abs(value) < 1e15
+def _number(value: Any) -> float | None:
+    """A finite number of a model (under 10^15: µs of years), or None."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and abs(value) < 1e15:
+        return float(value)
+    return None
 
 
 class _Presence:
@@ -265,12 +268,13 @@ class Client:
     def clocks(self, manager: str | None = None) -> dict[str, Estimate]:
         """Every manager's clock as the manager (or ``manager``) estimates it, from its model:
         manager name -> :class:`~dyknow.clocks.Estimate`, its offset that clock minus the
-        manager's (ns). The manager itself is there too, with offset and uncertainty 0; a manager
-        whose offset it does not know yet is not. Offsets are from the manager's clock: a client
-        on the manager's host shares it (one host, one clock), so ``origin_ns`` of a message
-        stamped by clock ``c`` reads ``origin_ns - offset`` on this host's clock (see
-        :func:`dyknow.clocks.corrected`); elsewhere, add how far this host's clock is from the
-        manager's host's. Entries that do not parse (a model is another process's word) are left out."""
+        manager's (ns), at ``at_ns`` (when the model was read; :meth:`Estimate.carried` carries it
+        on by its drift). The manager itself is there too, with offset and uncertainty 0; a
+        manager whose offset it does not know yet is not. Offsets are from the manager's clock: a
+        client on the manager's host shares it (one host, one clock), so ``origin_ns`` of a
+        message stamped by the clock of an estimate reads ``origin_ns - offset`` on this host's
+        clock; elsewhere, add how far this host's clock is from the manager's host's. Entries that
+        do not parse (a model is another process's word) are left out."""
         name = manager or self.manager
         raw = self.get_model(name).get("clocks", {})
         now = time.time_ns()
@@ -284,13 +288,19 @@ class Client:
             if peer == "clock" or not isinstance(entry, dict):
                 continue
             clock = _clock_id(entry.get("clock"))
-            offset, uncertainty = entry.get("offset_us"), entry.get("uncertainty_us")
-            if clock is None or not _finite(offset) or not _finite(uncertainty) or uncertainty < 0:
+            offset, uncertainty = _number(entry.get("offset_us")), _number(entry.get("uncertainty_us"))
+            if clock is None or offset is None or uncertainty is None or uncertainty < 0:
                 continue
-            drift = entry.get("drift_ppm", 0.0)
             samples = entry.get("samples", 0)
+            drift, growth = _number(entry.get("drift_ppm")) or 0.0, _number(entry.get("growth_ppm"))
             found[str(peer)] = Estimate(
-                clock, round(offset * 1000), round(uncertainty * 1000), float(drift) if _finite(drift) else 0.0, int(samples) if isinstance(samples, int) else 0, now
+                clock,
+                round(offset * 1000),
+                round(uncertainty * 1000),
+                drift,
+                samples if isinstance(samples, int) else 0,
+                now,
+                abs(growth) if growth is not None else DRIFT_BOUND_PPM + abs(drift),  # (a manager that does not say: the bound)
             )
         return found
 

@@ -141,7 +141,9 @@ def answer(payload: bytes, t2_ns: int) -> tuple[bool, bytes]:
 
 @dataclass(frozen=True, slots=True)
 class Estimate:
-    """A peer clock's offset from this one (peer minus this, ns) at ``at_ns`` of this clock, and how sure."""
+    """A peer clock's offset from this one (peer minus this, ns) at ``at_ns`` of this clock, and how
+    sure; ``growth_ppm``: how fast the uncertainty grows when the offset is carried on by its
+    drift (:meth:`carried`), as a process that holds no estimator of its own does."""
 
     clock: int
     offset_ns: int
@@ -149,6 +151,12 @@ class Estimate:
     drift_ppm: float
     samples: int
     at_ns: int
+    growth_ppm: float = 0.0
+
+    def carried(self, at_ns: int) -> tuple[int, int]:
+        """``(offset, uncertainty)`` at ``at_ns`` of this clock: the offset carried by the drift."""
+        since = at_ns - self.at_ns
+        return self.offset_ns + int(self.drift_ppm * 1e-6 * since), self.uncertainty_ns + int(abs(since) * self.growth_ppm * 1e-6)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (µs), as the model shows it."""
@@ -157,6 +165,7 @@ class Estimate:
             "offset_us": round(self.offset_ns / 1000, 1),
             "uncertainty_us": round(self.uncertainty_ns / 1000, 1),
             "drift_ppm": round(self.drift_ppm, 2),
+            "growth_ppm": round(self.growth_ppm, 2),
             "samples": self.samples,
         }
 
@@ -273,11 +282,14 @@ class Estimator:
         at = time.time_ns() if at_ns is None else at_ns
         base, offset, drift, bound_at, bound, slope_ppm, recent = current
         offset += int(drift * (at - base))
-        # the line's own bound, or any recent exchange's with the drift bound for the time since
-        uncertainty = bound + int(abs(at - bound_at) * slope_ppm * 1e-6)
+        # the line's own bound, or any recent exchange's with the drift bound for the time since;
+        # and how fast the one taken grows (the distance to an exchange grows with the drift)
+        uncertainty, growth = bound + int(abs(at - bound_at) * slope_ppm * 1e-6), slope_ppm
         for t, o, half in recent:
-            uncertainty = min(uncertainty, abs(offset - o) + half + int(abs(at - t) * DRIFT_BOUND_PPM * 1e-6))
-        return Estimate(self.clock, offset, uncertainty, drift * 1e6, len(self._samples), at)
+            bound_t = abs(offset - o) + half + int(abs(at - t) * DRIFT_BOUND_PPM * 1e-6)
+            if bound_t < uncertainty:
+                uncertainty, growth = bound_t, DRIFT_BOUND_PPM + abs(drift) * 1e6
+        return Estimate(self.clock, offset, uncertainty, drift * 1e6, len(self._samples), at, growth)
 
 
 class ClockTable:

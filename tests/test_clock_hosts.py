@@ -6,8 +6,9 @@ the robot's runs under libfaketime with its wall clock 250 ms ahead, 250 ms behi
 monotonic clock, untouched). The station must show the robot's offset within its stated
 uncertainty of the injected one, report no negative hop or age anywhere, and report the
 cross-host hop and the ages of the robot's stream as it reports those of the field's camera
-(whose clock is the station's) once a cut of the robot's link moved the request there; the cut
-and the deadlines must behave as with equal clocks.
+(whose clock is the station's) once a cut of the robot's link moved the request there, and so
+must a client of the station that corrects its ages by the offsets the station gives it
+(``Client.clocks``); the cut and the deadlines must behave as with equal clocks.
 
 The injected offset is known exactly: the robot's manager runs through ``tests.clocked``, which
 first prints its wall clock beside the monotonic clock (the machine's, shared by the
@@ -149,7 +150,9 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
             return dict(clocks)
 
         _until("the station's estimate of the robot's clock", robot_known)
+        observer.stats()  # its window starts now, with the station's offsets (a client's ages: Client.clocks)
         _fill_window()
+        robot_window = observer.stats()
         before = time.time_ns()
         clocks = observer.ask("model station")[0]["clocks"]
         after = time.time_ns()
@@ -177,7 +180,9 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         observer.next("camera", camera=CEILING, timeout_s=60)
         lost = [e for e in observer.ask("adaptations") if e["cause"] == "manager 'robot' was lost"]
         assert lost and lost[0]["key"] == key, lost
+        observer.stats()
         _fill_window()
+        field_window = observer.stats()
         field_ports = {p["unit"]: p for p in observer.ask("ports")}
         print(f"with the field's camera (equal clocks): {field_ports}")
         for stage in ("subsampler", "ball-detector", "localization"):
@@ -186,6 +191,13 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
             bound = skewed["uncertainty_us"] + MARGIN_US
             assert abs(skewed["hop_p50_us"] - equal["hop_p50_us"]) <= bound, (skewed, equal)
             assert abs(skewed["latency_p50_us"] - equal["latency_p50_us"]) <= bound, (skewed, equal)
+        # and the age at a client of the station, corrected by the offsets the station gives it
+        print(f"observer's ages: with the robot's camera {robot_window}, with the field's {field_window}")
+        assert robot_window["age_unknown_clock"] == 0 and robot_window["by_camera"] == {str(BOTTOM): robot_window["messages"]}
+        assert field_window["by_camera"] == {str(CEILING): field_window["messages"]}
+        skewed_age, equal_age = robot_window["age_p50_us_corrected"], field_window["age_p50_us_corrected"]
+        assert skewed_age > 0 and equal_age > 0
+        assert abs(skewed_age - equal_age) <= robot_window["age_uncertainty_us"] + MARGIN_US, (robot_window, field_window)
         assert all(e["cause"] in ("manager 'robot' was lost",) for e in observer.ask("adaptations") if e["kind"] == "adapted")
     finally:
         for child in reversed(children):

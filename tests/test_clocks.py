@@ -197,6 +197,14 @@ def test_a_drifting_clock_is_followed_within_the_stated_uncertainty(ppm: float) 
     late = [c for c in checks if c[0] - T0 > 10 * S]
     assert max(abs(e) for _, e, _ in late) < 30 * US  # the line averages the legs' unevenness out
     assert max(u for _, _, u in late) < 300 * US  # and says so: the shortest round trips here take 200 µs, the bound grows by 15-30 ppm
+    # carried on by its drift, as a client does with a manager's estimate: still within what it says
+    offset = drifting(250 * MS, ppm)
+    for at, _, _ in checks[::5]:
+        found = estimator.estimate(at)
+        assert found is not None
+        for later in (at + S // 2, at + 2 * S, at + 5 * S):
+            carried, uncertainty = found.carried(later)
+            assert abs(carried - offset(later)) <= uncertainty, (at - T0, later - at, found)
 
 
 # ---------------------------------------------------------------------------- what is refused
