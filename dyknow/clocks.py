@@ -82,8 +82,9 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Final
 
+from dyknow import keys
 from dyknow.message import CLOCK_ID
-from dyknow.transport import Session
+from dyknow.transport import LivelinessSubscriber, Session
 
 __all__ = [
     "CLOCKS",
@@ -386,6 +387,7 @@ class ClockTracker:
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._results: queue.SimpleQueue[tuple[str, _Peer, int, tuple[bytes, int, int, int] | None]] = queue.SimpleQueue()
+        self._watch: LivelinessSubscriber | None = None
         self._thread = threading.Thread(target=self._run, name="dyknow-clocks", daemon=True)
         self._thread.start()
 
@@ -404,6 +406,21 @@ class ClockTracker:
         if known is not None:
             self._table.forget(known.estimator)
         self._wake.set()
+
+    def follow(self) -> None:
+        """Track every manager whose liveliness token appears, and untrack it when its token goes:
+        for a process that is no manager (a recorder, a tool). Safe twice."""
+        if self._watch is None:
+            self._watch = self._session.declare_liveliness_subscriber(keys.managers_pattern(), self._token, inline=True)
+
+    def _token(self, key: str, alive: bool) -> None:
+        name = keys.manager_of_token(key)
+        if name is None:
+            return
+        if alive:
+            self.track(name, keys.clock_key(name))
+        else:
+            self.untrack(name)
 
     def untrack(self, name: str) -> None:
         """Stop estimating peer ``name``'s clock (it left); its offset is forgotten."""
@@ -426,7 +443,10 @@ class ClockTracker:
             return {name: dict(peer.estimator.refused) for name, peer in self._peers.items() if peer.estimator.refused}
 
     def close(self) -> None:
-        """Stop the thread; safe twice."""
+        """Stop the thread (and the watch of :meth:`follow`); safe twice."""
+        watch, self._watch = self._watch, None
+        if watch is not None:
+            watch.undeclare()
         self._stop.set()
         self._wake.set()
         if self._thread is not threading.current_thread():

@@ -20,8 +20,6 @@ skip when they are missing (libfaketime is installed with apt-get when running a
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -33,9 +31,9 @@ import pytest
 
 from dyknow.testing import SCENARIO_HOSTS
 from dyknow.testing.hosts import Hosts, unavailable
+from tests.conftest import faked_clock
 from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child
 
-FAKETIME = Path("/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1")
 #: How far the robot's and the field's figures may differ for reasons other than clocks: two
 #: cameras on two hosts, on a machine of two cores shared with the rest of the suite. In the
 #: first four runs the two hop p50s differed by 3-30 µs and the ages by as little (the robot's
@@ -45,20 +43,6 @@ MARGIN_US = 500.0
 
 def _under_ci() -> bool:
     return os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
-@pytest.fixture(scope="session")
-def faketime() -> Path:
-    """Debian's libfaketime, installed with apt-get when missing and run as root."""
-    if not FAKETIME.is_file() and os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "-q", "faketime"], capture_output=True, timeout=900,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
-    if not FAKETIME.is_file():
-        why = f"libfaketime is not installed ({FAKETIME}; apt-get install faketime)"
-        if _under_ci():
-            pytest.fail(why)
-        pytest.skip(why)
-    return FAKETIME
 
 
 @pytest.fixture
@@ -126,7 +110,7 @@ def _fill_window() -> None:
 @pytest.mark.parametrize("skew", list(SKEWS.values()), ids=list(SKEWS))
 def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Path, skew: Skew) -> None:
     hosts = clean_hosts
-    env = {"FAKETIME": skew.faketime, "FAKETIME_DONT_FAKE_MONOTONIC": "1", "LD_PRELOAD": str(faketime)}
+    env = faked_clock(faketime, skew.faketime)
     children: list[Child] = []
     try:
         station, _ = start(hosts, "station", "--dwell", "1")
