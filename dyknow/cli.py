@@ -393,8 +393,8 @@ def cmd_managers(args: argparse.Namespace) -> int:
     """list every manager reachable: host, library size, units, requests, and its clock's offset as --manager estimates it"""
     with _client(args) as client:
         managers = client.managers(timeout_s=min(args.timeout, 2.0))
-        try:
-            clocks = client.clocks()
+        try:  # (a --manager that is not there would hold the list up for --timeout)
+            clocks = client.clocks() if any(m["manager"] == args.manager for m in managers) else {}
         except DyKnowError as exc:  # the other columns stand without it
             logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
             clocks = {}
@@ -632,8 +632,9 @@ def cmd_echo(args: argparse.Namespace) -> int:
     def follow(client: Client) -> None:  # the offsets, kept current (a clock drifts; a peer appears)
         nonlocal clocks
         while True:
-            try:
-                clocks = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in client.clocks().values()}}
+            try:  # (a --manager that is not there would hold the first message up for --timeout)
+                if args.manager in client.manager_names(timeout_s=min(args.timeout, 1.0)):
+                    clocks = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in client.clocks().values()}}
             except DyKnowError as exc:
                 logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
             fetched.set()
