@@ -390,15 +390,24 @@ def cmd_model(args: argparse.Namespace) -> int:
 
 
 def cmd_managers(args: argparse.Namespace) -> int:
-    """list every manager reachable: host, library size, units, requests"""
+    """list every manager reachable: host, library size, units, requests, and its clock's offset as --manager estimates it"""
     with _client(args) as client:
         managers = client.managers(timeout_s=min(args.timeout, 2.0))
+        try:  # (a --manager that is not there would hold the list up for --timeout)
+            clocks = client.clocks() if any(m["manager"] == args.manager for m in managers) else {}
+        except DyKnowError as exc:  # the other columns stand without it
+            logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
+            clocks = {}
+    for m in managers:  # the offset of each manager's clock from --manager's (None: not known to it yet)
+        found = clocks.get(m["manager"])
+        m["clock"] = None if found is None else {"offset_us": found.offset_ns / 1000, "uncertainty_us": found.uncertainty_ns / 1000}
 
     def text() -> Iterable[str]:
         if not managers:
             yield "no manager reachable"
         for m in managers:
-            yield f"{m['manager']:<20} host {m['host']:<20} {m['specs']:>5} specs {m['units']:>5} units {m['requests']:>4} requests"
+            clock = "clock unknown" if m["clock"] is None else f"clock {m['clock']['offset_us']:+.1f} us +/- {m['clock']['uncertainty_us']:.1f}"
+            yield f"{m['manager']:<20} host {m['host']:<20} {m['specs']:>5} specs {m['units']:>5} units {m['requests']:>4} requests  {clock}"
 
     _report(args, managers, text)
     return 0
@@ -582,36 +591,64 @@ def _payload_json(payload: Any) -> Any:
 
 
 def cmd_echo(args: argparse.Namespace) -> int:
-    """print the messages published on a key expression"""
+    """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
+    from dyknow.clocks import Estimate
+    from dyknow.message import CLOCK_ID
+
     if args.count is not None and args.count <= 0:
         raise _Usage(f"--count: got {args.count}; expected a positive number")
     done = threading.Event()
     lock = threading.Lock()
     seen = 0
+    clocks: dict[int, Estimate] = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0)}  # clock id -> offset from --manager's; swapped whole
 
     def show(msg: Message) -> None:
         nonlocal seen
         with lock:
             if done.is_set():
                 return
-            latency_us = (time.time_ns() - msg.origin_ns) / 1000
+            now = time.time_ns()
+            estimate = clocks.get(msg.origin_clock)  # (a message of a clock --manager does not know: its age is not shown)
+            known = None if estimate is None else estimate.carried(now)
+            age_us = None if known is None else round((now - msg.origin_ns + known[0]) / 1000, 1)
             data = {
                 "key": msg.key,
                 "seq": msg.seq,
                 "origin_ns": msg.origin_ns,
                 "send_ns": msg.send_ns,
-                "latency_us": round(latency_us, 1),
+                "origin_clock": f"{msg.origin_clock:08x}",
+                "latency_us": age_us,
+                "uncertainty_us": None if known is None else round(known[1] / 1000, 1),
                 "payload": _payload_json(msg.payload),
             }
-            _report(args, data, f"{msg.key} #{msg.seq} age {latency_us / 1000:.3f} ms: {describe_payload(msg.payload)}")
+            age = "clock unknown" if known is None or age_us is None else f"{age_us / 1000:.3f} ms" + (f" +/- {known[1] / 1e6:.3f}" if known[1] else "")
+            _report(args, data, f"{msg.key} #{msg.seq} age {age}: {describe_payload(msg.payload)}")
             seen += 1
             if args.count is not None and seen >= args.count:
                 done.set()
 
-    with _client(args) as client, client.declare_subscriber(args.keyexpr, show):
-        signal.signal(signal.SIGINT, lambda *_: done.set())
-        signal.signal(signal.SIGTERM, lambda *_: done.set())
-        done.wait(args.timeout_total) if args.timeout_total else done.wait()
+    fetched = threading.Event()
+
+    def follow(client: Client) -> None:  # the offsets, kept current (a clock drifts; a peer appears)
+        nonlocal clocks
+        while True:
+            try:  # (a --manager that is not there would hold the first message up for --timeout)
+                if args.manager in client.manager_names(timeout_s=min(args.timeout, 1.0)):
+                    clocks = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in client.clocks().values()}}
+            except DyKnowError as exc:
+                logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
+            fetched.set()
+            if done.wait(5.0):
+                return
+
+    with _client(args) as client:
+        threading.Thread(target=follow, args=(client,), name="dyknow-echo-clocks", daemon=True).start()
+        fetched.wait(args.timeout)  # the offsets before the first message
+        with client.declare_subscriber(args.keyexpr, show):
+            signal.signal(signal.SIGINT, lambda *_: done.set())
+            signal.signal(signal.SIGTERM, lambda *_: done.set())
+            done.wait(args.timeout_total) if args.timeout_total else done.wait()
+        done.set()
     if args.count is not None and seen < args.count:
         print(f"dyknow: error: received {seen} of {args.count} messages on {args.keyexpr!r}", file=sys.stderr)
         return 1

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import threading
 import time
@@ -25,6 +26,7 @@ from typing import Any
 
 from dyknow import keys, service
 from dyknow.access import TlsFiles
+from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
 from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
 from dyknow.identity import Signer
 from dyknow.message import Message
@@ -37,6 +39,23 @@ log = logging.getLogger(__name__)
 
 _MAX_PAGES = 100_000  # of one model: far past any manager's (each page holds at least one entry)
 _MAX_GONE = 10_000  # managers remembered as gone (names come from the network: bounded)
+
+
+def _clock_id(raw: Any) -> int | None:
+    """A clock id as a model shows it (8 hex digits), or None."""
+    if not isinstance(raw, str) or len(raw) != 8:
+        return None
+    try:
+        return int(raw, 16)
+    except ValueError:
+        return None
+
+
+def _number(value: Any) -> float | None:
+    """A finite number of a model (under 10^15: µs of years), or None."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and abs(value) < 1e15:
+        return float(value)
+    return None
 
 
 class _Presence:
@@ -250,6 +269,45 @@ class Client:
         model.pop("next", None)
         model.pop("total", None)
         return model
+
+    def clocks(self, manager: str | None = None) -> dict[str, Estimate]:
+        """Every manager's clock as the manager (or ``manager``) estimates it, from its model:
+        manager name -> :class:`~dyknow.clocks.Estimate`, its offset that clock minus the
+        manager's (ns), at ``at_ns`` (when the model was read; :meth:`Estimate.carried` carries it
+        on by its drift). The manager itself is there too, with offset and uncertainty 0; a
+        manager whose offset it does not know yet is not. Offsets are from the manager's clock: a
+        client on the manager's host shares it (one host, one clock), so ``origin_ns`` of a
+        message stamped by the clock of an estimate reads ``origin_ns - offset`` on this host's
+        clock; elsewhere, add how far this host's clock is from the manager's host's. Entries that
+        do not parse (a model is another process's word) are left out."""
+        name = manager or self.manager
+        raw = self.get_model(name).get("clocks", {})
+        now = time.time_ns()
+        found: dict[str, Estimate] = {}
+        if not isinstance(raw, dict):
+            return found
+        own = _clock_id(raw.get("clock"))
+        if own is not None:
+            found[name] = Estimate(own, 0, 0, 0.0, 0, now)
+        for peer, entry in raw.items():
+            if peer == "clock" or not isinstance(entry, dict):
+                continue
+            clock = _clock_id(entry.get("clock"))
+            offset, uncertainty = _number(entry.get("offset_us")), _number(entry.get("uncertainty_us"))
+            if clock is None or offset is None or uncertainty is None or uncertainty < 0:
+                continue
+            samples = entry.get("samples", 0)
+            drift, growth = _number(entry.get("drift_ppm")) or 0.0, _number(entry.get("growth_ppm"))
+            found[str(peer)] = Estimate(
+                clock,
+                round(offset * 1000),
+                round(uncertainty * 1000),
+                drift,
+                samples if isinstance(samples, int) else 0,
+                now,
+                abs(growth) if growth is not None else DRIFT_BOUND_PPM + abs(drift),  # (a manager that does not say: the bound)
+            )
+        return found
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key bindings of unit ``name``."""

@@ -15,28 +15,54 @@ peer's ``@dyknow/<manager>/clock``; the peer answers ``t2`` (when the request ar
     delay  = (t4 - t1) - (t3 - t2)            (the round trip, less the peer's own time)
 
 and the offset is exact when the two legs of the trip took as long, off by at most ``delay / 2``
-otherwise. Both ends take their times on Zenoh's receiving thread (no thread hand-off inside
-them). Request: ``b"DKT1"`` + ``t1`` (i64, little endian); answer: ``b"DKT1"`` + ``t1`` + ``t2``
-+ ``t3`` (i64) + the peer's clock id (u32).
+otherwise: whatever the legs took, the true offset lies in ``[t3 - t4, t2 - t1]``. Both ends
+take their times on Zenoh's receiving thread (no thread hand-off inside them). The caller also
+reads its clock once Zenoh took the request, ``ts`` (``t1 <= ts <= t4``): the request left
+between ``t1`` and ``ts``, most likely near ``ts`` (``t1`` counts the call's own cost on the
+request's leg alone, which tilted every offset by tens of µs). So the offset taken is
+``((t2 - ts) + (t3 - t4)) / 2``, moved into ``[t3 - t4, t2 - t1]`` if it falls outside (a request
+that arrived before ``ts`` was read), and the exchange's *width* is twice its distance to the
+far end of that interval (``delay`` above when there is no ``ts``): the offset is off by at most
+half the width, whatever happened on the way. Request: ``b"DKT1"`` + ``t1`` (i64, little
+endian); answer: ``b"DKT1"`` + ``t1`` + ``t2`` + ``t3`` (i64) + the peer's clock id (u32).
 
 **The estimate** (:class:`Estimator`), as NTP and chrony do it: of the last
-:data:`SAMPLES` exchanges, only those whose delay is close to the smallest count (a long trip is
-an uneven one). Once there are six such spread over 8 s, a least-squares line through them gives
-the offset now and the drift (a clock running fast or slow), which carries the offset forward
-between exchanges; until then, the exchange with the smallest delay among the latest eight gives
-the offset, with no drift. The uncertainty is half the smallest delay, plus 1 ppm of the time
-the offset is carried. Exchanges run 8 times in the first half second of a peer, then once a
-second.
+:data:`SAMPLES` exchanges, only the narrower half count, and any whose width is at most 1.5 times
+the smallest plus 30 µs (a long trip may be an uneven one).
+
+- Until there is a line, the offset is one exchange's, carried with no drift. A clock may run up
+  to :data:`DRIFT_BOUND_PPM` fast or slow, so an older exchange is worth less: of the latest
+  eight, the one with the least ``width / 2 + DRIFT_BOUND_PPM x its age`` is taken.
+- Once three good exchanges span a second, a least-squares line through them gives the offset
+  and the drift (a clock running fast or slow), which carries the offset forward. Each
+  exchange's offset is off by at most half its width and the line is a weighted sum of them, so
+  the line is off by at most the sum of those bounds with the weights' sizes, at its end and in
+  its slope (the *slope bound*, plus 1 ppm for a drift that is not quite steady); or by one
+  good exchange's half width plus how far the line passes from it, grown by the slope bound.
+- The uncertainty is the tightest of those bounds of the line and, for each of the latest eight
+  exchanges, how far the offset given is from it plus half its width plus
+  :data:`DRIFT_BOUND_PPM` of the time since (which holds whatever the line says, for any clock
+  within the drift bound).
+
+Exchanges run 8 times in the first half second of a peer, then 3 in a row once a second: the
+first of a round after a second idle wakes the path up, and is the slow and uneven one (between
+two processes on loopback, 20 rounds: the first was off by 41 µs at the median, its half width
+386 µs; the second and third by 8 µs, half widths 126 and 93 µs).
 
 **What is refused** (counted by reason in :attr:`Estimator.refused`, never mixed into the
-estimate): an answer that does not echo the request's ``t1`` (stray or flooded replies), one
-whose peer spent negative time (``t3 < t2``) or whose delay is negative or over a second, a peer
-clock that went backwards between two exchanges, an offset beyond :data:`MAX_OFFSET_S` (years
-off), a clock id other than the one the peer gave first, and, once an estimate stands, an
-exchange that disagrees with it by far more than both uncertainties (a single wild answer);
-:data:`STEP_AFTER` such answers in a row that agree with each other are taken as a step of the
-peer's clock (an NTP correction after a reboot) and start the estimate over. A peer can only
-misstate its own clock: the estimate of each clock is its own.
+estimate): an answer that is not one (malformed), one that does not echo the request's ``t1``
+(stray replies), one whose peer spent negative time (``t3 < t2``) or whose delay is negative or
+over a second, an offset beyond :data:`MAX_OFFSET_S` (years off), a clock id other than the one
+the peer gave first (or than the one its summary names, when the tracker was told), replies
+beyond the first to one request (a flood: only the first counts), and two kinds of wild answer:
+a peer clock that went backwards since the last exchange taken, and, once an estimate stands,
+an exchange that disagrees with it by far more than both uncertainties. :data:`STEP_AFTER` wild
+answers in a row that agree with each other, the peer's clock running forward among them, are
+taken as a step of the peer's clock (an NTP correction, a reboot) and start the estimate over;
+the latest :data:`STEP_AFTER` wild answers are all that is kept of them. A peer can only
+misstate its own clock: the estimate of each clock is its own, and a clock id two peers claim
+is nobody's (:meth:`ClockTable.register`: its offset is not known, counted as "clock id of
+another peer").
 
 :data:`CLOCKS` is this process's table of clocks, read on the hot path by
 :meth:`ClockTable.offset` (a dictionary lookup); a :class:`ClockTracker` keeps it up to date for
@@ -48,6 +74,7 @@ with the world, a log read across machines).
 from __future__ import annotations
 
 import logging
+import queue
 import struct
 import threading
 import time
@@ -55,11 +82,13 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Any, Final
 
+from dyknow import keys
 from dyknow.message import CLOCK_ID
-from dyknow.transport import Session
+from dyknow.transport import LivelinessSubscriber, Session
 
 __all__ = [
     "CLOCKS",
+    "DRIFT_BOUND_PPM",
     "MAX_OFFSET_S",
     "SAMPLES",
     "STEP_AFTER",
@@ -77,19 +106,24 @@ log = logging.getLogger(__name__)
 _MAGIC: Final = b"DKT1"
 _REQUEST: Final = struct.Struct("<4sq")
 _ANSWER: Final = struct.Struct("<4sqqqI")
-#: Exchanges the estimate rests on (the last ones: about a minute of them).
-SAMPLES: Final = 64
-_FIT_SAMPLES: Final = 6  # good exchanges a drift needs ...
-_FIT_SPAN_NS: Final = 8_000_000_000  # ... spread over this long
-_RECENT: Final = 8  # before a drift is known, the best of the latest exchanges carries the offset
+#: Exchanges the estimate rests on (the last ones: about 40 s of them).
+SAMPLES: Final = 128
+_FIT_SAMPLES: Final = 3  # good exchanges a drift needs ...
+_FIT_SPAN_NS: Final = 1_000_000_000  # ... spread over this long
+_RECENT: Final = 8  # the latest exchanges, each a bound on the offset (and before a line, the best carries it)
 #: An offset beyond this many seconds is refused as absurd (about ten years).
 MAX_OFFSET_S: Final = 10 * 366 * 86400.0
 #: Wild answers in a row, agreeing with each other, taken as a step of the peer's clock.
 STEP_AFTER: Final = 4
+#: How fast or slow a clock may run (ppm) before its drift is measured: a quartz clock is off by
+#: 20-50 ppm at most; 100 ppm is 8.6 s a day.
+DRIFT_BOUND_PPM: Final = 100.0
+_FIT_DRIFT_PPM: Final = 1.0  # a drift that is not quite steady (beyond what the fit's own bound says)
 _MAX_DELAY_NS: Final = 1_000_000_000
 _BURST: Final = 8  # exchanges in a new peer's first half second
 _BURST_S: Final = 0.06
 _PERIOD_S: Final = 1.0
+_ROUND: Final = 3  # exchanges in a row each period: the first wakes the path up (an exchange after a second idle is slow and uneven)
 _MAX_PEERS: Final = 256
 
 
@@ -108,7 +142,9 @@ def answer(payload: bytes, t2_ns: int) -> tuple[bool, bytes]:
 
 @dataclass(frozen=True, slots=True)
 class Estimate:
-    """A peer clock's offset from this one (peer minus this, ns) at ``at_ns`` of this clock, and how sure."""
+    """A peer clock's offset from this one (peer minus this, ns) at ``at_ns`` of this clock, and how
+    sure; ``growth_ppm``: how fast the uncertainty grows when the offset is carried on by its
+    drift (:meth:`carried`), as a process that holds no estimator of its own does."""
 
     clock: int
     offset_ns: int
@@ -116,6 +152,12 @@ class Estimate:
     drift_ppm: float
     samples: int
     at_ns: int
+    growth_ppm: float = 0.0
+
+    def carried(self, at_ns: int) -> tuple[int, int]:
+        """``(offset, uncertainty)`` at ``at_ns`` of this clock: the offset carried by the drift."""
+        since = at_ns - self.at_ns
+        return self.offset_ns + int(self.drift_ppm * 1e-6 * since), self.uncertainty_ns + int(abs(since) * self.growth_ppm * 1e-6)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (µs), as the model shows it."""
@@ -124,6 +166,7 @@ class Estimate:
             "offset_us": round(self.offset_ns / 1000, 1),
             "uncertainty_us": round(self.uncertainty_ns / 1000, 1),
             "drift_ppm": round(self.drift_ppm, 2),
+            "growth_ppm": round(self.growth_ppm, 2),
             "samples": self.samples,
         }
 
@@ -135,25 +178,24 @@ class Estimator:
     another thread at any time (it reads an immutable snapshot).
     """
 
-    def __init__(self) -> None:
-        self.clock = 0  # the peer's clock id, from its first answer
+    def __init__(self, clock: int = 0) -> None:
+        self.clock = clock  # the peer's clock id: as told (its summary), else from its first answer
         self.refused: Counter[str] = Counter()
-        self._samples: deque[tuple[int, int, int]] = deque(maxlen=SAMPLES)  # (t of this clock, offset, delay)
+        self._samples: deque[tuple[int, int, int]] = deque(maxlen=SAMPLES)  # (t of this clock, offset, width)
         self._last_t2 = 0
-        self._wild: list[tuple[int, int, int]] = []
-        self._estimate: tuple[int, int, float, int] | None = None  # (at, offset, drift, delay)
+        self._wild: deque[tuple[int, int, int, int]] = deque(maxlen=STEP_AFTER)  # (t, offset, width, t2)
+        self._estimate: tuple[int, int, float, int, int, float, tuple[tuple[int, int, int], ...]] | None = None
+        # (at, offset, drift; the line's bound at, the bound, its growth ppm; the latest exchanges (t, offset, half width))
 
     def add(self, t1: int, reply: bytes, t4: int, *, sent_ns: int | None = None) -> bool:
         """Take one exchange: the request carried ``t1``, ``reply`` arrived at ``t4``; False when
-        refused (counted). ``sent_ns``: when the request actually left, if measured later than
-        ``t1`` (the exchange's own time, closer to the wire: it is used instead)."""
+        refused (counted). ``sent_ns``: this clock read once the request was handed over (``ts``
+        in the module documentation; ignored unless ``t1 <= sent_ns <= t4``)."""
         if len(reply) != _ANSWER.size or reply[:4] != _MAGIC:
             return self._refuse("malformed")
         _, echo, t2, t3, clock = _ANSWER.unpack(reply)
         if echo != t1:
             return self._refuse("not this request")
-        if sent_ns is not None and t1 <= sent_ns <= t4:
-            t1 = sent_ns
         if self.clock and clock != self.clock:
             return self._refuse("another clock id")
         if t3 < t2:
@@ -161,30 +203,46 @@ class Estimator:
         delay = (t4 - t1) - (t3 - t2)
         if delay < 0 or delay > _MAX_DELAY_NS:
             return self._refuse("delay out of range")
-        offset = ((t2 - t1) + (t3 - t4)) // 2
+        low, high = t3 - t4, t2 - t1  # the true offset lies in here, whatever the legs took
+        if sent_ns is not None and t1 <= sent_ns <= t4:
+            offset = min(high, max(low, ((t2 - sent_ns) + (t3 - t4)) // 2))
+        else:
+            offset = (low + high) // 2
+        width = 2 * max(offset - low, high - offset)  # (the delay, without ts)
         if abs(offset) > MAX_OFFSET_S * 1e9:
             return self._refuse("offset absurd")
-        if t2 < self._last_t2:
-            return self._refuse("peer clock went backwards")
         mid = (t1 + t4) // 2
+        backwards = t2 < self._last_t2
         current = self.estimate(mid)
-        if current is not None and len(self._samples) >= 4:
-            tolerance = 4 * (current.uncertainty_ns + delay // 2) + 200_000
-            if abs(offset - current.offset_ns) > tolerance:
-                self._wild.append((mid, offset, delay))
-                agreeing = [w for w in self._wild if abs(w[1] - offset) <= 4 * (w[2] + delay) + 200_000]
-                if len(agreeing) < STEP_AFTER:
-                    return self._refuse("disagrees with the estimate")
-                log.info("the clock %08x stepped by %.3f ms: its estimate starts over", clock, (offset - current.offset_ns) / 1e6)
-                self._samples.clear()
-                for sample in agreeing[:-1]:
-                    self._samples.append(sample)
-            self._wild.clear()
+        wild = backwards
+        if not wild and current is not None and len(self._samples) >= 4:
+            wild = abs(offset - current.offset_ns) > 4 * (current.uncertainty_ns + width // 2) + 200_000
+        if wild:
+            self._wild.append((mid, offset, width, t2))
+            if not self._stepped():
+                return self._refuse("peer clock went backwards" if backwards else "disagrees with the estimate")
+            log.info(
+                "the clock %08x stepped by %.3f ms: its estimate starts over", clock, (offset - (current.offset_ns if current else 0)) / 1e6
+            )
+            self._samples.clear()
+            for w_mid, w_offset, w_delay, _ in list(self._wild)[:-1]:
+                self._samples.append((w_mid, w_offset, w_delay))
+        self._wild.clear()
         self.clock = self.clock or clock
         self._last_t2 = t2
-        self._samples.append((mid, offset, delay))
+        self._samples.append((mid, offset, width))
         self._fit()
         return True
+
+    def _stepped(self) -> bool:
+        """Whether the latest :data:`STEP_AFTER` wild answers agree with each other, the peer's
+        clock running forward among them: a step of the peer's clock, not noise or a liar."""
+        wild = list(self._wild)
+        if len(wild) < STEP_AFTER:
+            return False
+        last = wild[-1]
+        agree = all(abs(w[1] - last[1]) <= 4 * (w[2] + last[2]) + 200_000 for w in wild)
+        return agree and all(a[3] <= b[3] for a, b in zip(wild, wild[1:], strict=False))
 
     def _refuse(self, why: str) -> bool:
         self.refused[why] += 1
@@ -192,22 +250,30 @@ class Estimator:
 
     def _fit(self) -> None:
         samples = list(self._samples)
-        best = min(samples, key=lambda s: s[2])
-        good = [s for s in samples if s[2] <= best[2] * 1.5 + 30_000]
-        span = good[-1][0] - good[0][0]
-        if len(good) >= _FIT_SAMPLES and span >= _FIT_SPAN_NS:
-            # a line through the good exchanges: the offset now and the drift, the noise of
-            # single exchanges averaged out
-            mean_t = sum(s[0] for s in good) / len(good)
-            mean_o = sum(s[1] for s in good) / len(good)
-            var = sum((s[0] - mean_t) ** 2 for s in good)
-            drift = sum((s[0] - mean_t) * (s[1] - mean_o) for s in good) / var if var > 0 else 0.0
-            at = good[-1][0]
-            self._estimate = (at, int(mean_o + drift * (at - mean_t)), drift, best[2])
+        recent = tuple((s[0], s[1], s[2] // 2) for s in samples[-_RECENT:])
+        newest = samples[-1][0]
+        # the drift unknown: of the latest few, the exchange that bounds the offset now the
+        # tightest (an older one is worth less), carried with no drift
+        t, offset, half = min(recent, key=lambda s: s[2] + (newest - s[0]) * DRIFT_BOUND_PPM * 1e-6)
+        self._estimate = (t, offset, 0.0, t, 1 << 62, 0.0, recent)
+        widths = sorted(s[2] for s in samples)
+        good = [s for s in samples if s[2] <= max(widths[0] * 1.5 + 30_000, widths[len(widths) // 2])]
+        if len(good) < _FIT_SAMPLES or good[-1][0] - good[0][0] < _FIT_SPAN_NS:
             return
-        # not enough yet: the exchange with the smallest delay among the latest few, no drift
-        recent = min(samples[-_RECENT:], key=lambda s: s[2])
-        self._estimate = (recent[0], recent[1], 0.0, recent[2])
+        # a line through the good exchanges: the offset and the drift, the noise of single
+        # exchanges averaged out; its own bound (the module documentation)
+        n = len(good)
+        mean_t = sum(s[0] for s in good) / n
+        mean_o = sum(s[1] for s in good) / n
+        var = sum((s[0] - mean_t) ** 2 for s in good)
+        drift = sum((s[0] - mean_t) * (s[1] - mean_o) for s in good) / var
+        at = good[-1][0]
+        slope_ppm = sum(abs(s[0] - mean_t) / var * s[2] / 2 for s in good) * 1e6 + _FIT_DRIFT_PPM
+        bounds = [(at, sum(abs(1 / n + (at - mean_t) * (s[0] - mean_t) / var) * s[2] / 2 for s in good))]
+        bounds += [(s[0], s[2] / 2 + abs(s[1] - mean_o - drift * (s[0] - mean_t))) for s in good]
+        later = newest + 1_000_000_000  # the bound that holds the tightest until the next exchange
+        bound_at, bound = min(bounds, key=lambda b: b[1] + (later - b[0]) * slope_ppm * 1e-6)
+        self._estimate = (at, int(mean_o + drift * (at - mean_t)), drift, bound_at, int(bound) + 1, slope_ppm, recent)
 
     def estimate(self, at_ns: int | None = None) -> Estimate | None:
         """The offset at ``at_ns`` of this clock (now when None), or None before any exchange."""
@@ -215,11 +281,16 @@ class Estimator:
         if current is None:
             return None
         at = time.time_ns() if at_ns is None else at_ns
-        base, offset, drift, delay = current
-        carried = drift * (at - base)
-        # the drift's own error grows with the time carried: a conservative 1 ppm of it, at least
-        uncertainty = delay // 2 + int(abs(at - base) * 1e-6)
-        return Estimate(self.clock, offset + int(carried), uncertainty, drift * 1e6, len(self._samples), at)
+        base, offset, drift, bound_at, bound, slope_ppm, recent = current
+        offset += int(drift * (at - base))
+        # the line's own bound, or any recent exchange's with the drift bound for the time since;
+        # and how fast the one taken grows (the distance to an exchange grows with the drift)
+        uncertainty, growth = bound + int(abs(at - bound_at) * slope_ppm * 1e-6), slope_ppm
+        for t, o, half in recent:
+            bound_t = abs(offset - o) + half + int(abs(at - t) * DRIFT_BOUND_PPM * 1e-6)
+            if bound_t < uncertainty:
+                uncertainty, growth = bound_t, DRIFT_BOUND_PPM + abs(drift) * 1e6
+        return Estimate(self.clock, offset, uncertainty, drift * 1e6, len(self._samples), at, growth)
 
 
 class ClockTable:
@@ -233,7 +304,7 @@ class ClockTable:
     def __init__(self) -> None:
         self.current: dict[int, int] = {CLOCK_ID: 0}
         self._uncertainty: dict[int, int] = {CLOCK_ID: 0}
-        self._estimators: dict[int, Estimator] = {}
+        self._claims: dict[int, list[Estimator]] = {}  # clock id -> the estimators of the peers that answer with it
         self._lock = threading.Lock()
 
     def offset(self, clock: int) -> int | None:
@@ -244,17 +315,33 @@ class ClockTable:
         """How far the offset of ``clock`` may be off (ns), or None when it is not known."""
         return self._uncertainty.get(clock)
 
-    def register(self, estimator: Estimator) -> None:
-        """Keep ``estimator``'s clock in the table (once it has a clock id)."""
+    def register(self, estimator: Estimator) -> bool:
+        """Keep ``estimator``'s clock in the table (once it has a clock id); False when it cannot.
+
+        A clock id that two peers answer with is nobody's: neither estimate is used for it (its
+        offset is not known) while both claim it, and each claim made meanwhile is counted as
+        "clock id of another peer" (the ids are random: an honest pair never collides)."""
+        clock = estimator.clock
+        if not clock or clock == CLOCK_ID:
+            return False
         with self._lock:
-            if estimator.clock and estimator.clock != CLOCK_ID:
-                self._estimators[estimator.clock] = estimator
+            claims = self._claims.setdefault(clock, [])
+            if estimator not in claims:
+                claims.append(estimator)
+            if len(claims) == 1:
+                return True
+        estimator.refused["clock id of another peer"] += 1
+        self.refresh()
+        return False
 
     def forget(self, estimator: Estimator) -> None:
         """Stop keeping ``estimator``'s clock."""
         with self._lock:
-            if self._estimators.get(estimator.clock) is estimator:
-                del self._estimators[estimator.clock]
+            claims = self._claims.get(estimator.clock, [])
+            if estimator in claims:
+                claims.remove(estimator)
+            if not claims:
+                self._claims.pop(estimator.clock, None)
         self.refresh()
 
     def refresh(self, now_ns: int | None = None) -> None:
@@ -262,7 +349,7 @@ class ClockTable:
         now = time.time_ns() if now_ns is None else now_ns
         offsets, uncertainty = {CLOCK_ID: 0}, {CLOCK_ID: 0}
         with self._lock:
-            estimators = list(self._estimators.items())
+            estimators = [(clock, claims[0]) for clock, claims in self._claims.items() if len(claims) == 1]
         for clock, estimator in estimators:
             found = estimator.estimate(now)
             if found is not None:
@@ -275,19 +362,21 @@ CLOCKS: Final = ClockTable()
 
 
 class _Peer:
-    __slots__ = ("estimator", "key", "next_at", "sent")
+    __slots__ = ("estimator", "key", "next_at", "pending", "sent")
 
-    def __init__(self, key: str) -> None:
+    def __init__(self, key: str, clock: int) -> None:
         self.key = key
-        self.estimator = Estimator()
+        self.estimator = Estimator(clock)
         self.sent = 0
         self.next_at = 0.0
+        self.pending = False  # an exchange is on its way: one at a time per peer
 
 
 class ClockTracker:
     """Keeps :data:`CLOCKS` (or ``table``) up to date for the peers it is given: a thread that runs
-    their exchanges (8 in a peer's first half second, then one a second) and refreshes the table
-    ten times a second. A context manager; :meth:`close` stops it."""
+    their exchanges (8 in a peer's first half second, then 3 in a row once a second; one at a time
+    per peer, and never waiting on one: a peer that does not answer delays nobody else's) and
+    refreshes the table ten times a second. A context manager; :meth:`close` stops it."""
 
     def __init__(self, session: Session, table: ClockTable = CLOCKS, *, timeout_s: float = 1.0) -> None:
         self._session = session
@@ -296,14 +385,42 @@ class ClockTracker:
         self._peers: dict[str, _Peer] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._results: queue.SimpleQueue[tuple[str, _Peer, int, tuple[bytes, int, int, int] | None]] = queue.SimpleQueue()
+        self._watch: LivelinessSubscriber | None = None
         self._thread = threading.Thread(target=self._run, name="dyknow-clocks", daemon=True)
         self._thread.start()
 
-    def track(self, name: str, key: str) -> None:
-        """Estimate the clock of peer ``name``, which answers exchanges on ``key``."""
+    def track(self, name: str, key: str, clock: int = 0) -> None:
+        """Estimate the clock of peer ``name``, which answers exchanges on ``key``. ``clock``: its
+        clock id when known (a manager's summary names it): answers with another are refused,
+        and a new id (the peer restarted under the same name) starts its estimate over."""
         with self._lock:
-            if name not in self._peers and len(self._peers) < _MAX_PEERS:
-                self._peers[name] = _Peer(key)
+            known = self._peers.get(name)
+            if known is not None and (not clock or known.estimator.clock == clock):
+                return
+            if known is None and len(self._peers) >= _MAX_PEERS:
+                log.warning("not estimating the clock of %r: %d peers tracked already", name, _MAX_PEERS)
+                return
+            self._peers[name] = _Peer(key, clock)
+        if known is not None:
+            self._table.forget(known.estimator)
+        self._wake.set()
+
+    def follow(self) -> None:
+        """Track every manager whose liveliness token appears, and untrack it when its token goes:
+        for a process that is no manager (a recorder, a tool). Safe twice."""
+        if self._watch is None:
+            self._watch = self._session.declare_liveliness_subscriber(keys.managers_pattern(), self._token, inline=True)
+
+    def _token(self, key: str, alive: bool) -> None:
+        name = keys.manager_of_token(key)
+        if name is None:
+            return
+        if alive:
+            self.track(name, keys.clock_key(name))
+        else:
+            self.untrack(name)
 
     def untrack(self, name: str) -> None:
         """Stop estimating peer ``name``'s clock (it left); its offset is forgotten."""
@@ -321,15 +438,19 @@ class ClockTracker:
         return {name: e for name, e in found.items() if e is not None}
 
     def refused(self) -> dict[str, dict[str, int]]:
-        """Refused exchanges, by peer and reason."""
+        """Refused exchanges, by peer and reason ("no answer" counts the exchanges that timed out)."""
         with self._lock:
             return {name: dict(peer.estimator.refused) for name, peer in self._peers.items() if peer.estimator.refused}
 
     def close(self) -> None:
-        """Stop the thread; safe twice."""
+        """Stop the thread (and the watch of :meth:`follow`); safe twice."""
+        watch, self._watch = self._watch, None
+        if watch is not None:
+            watch.undeclare()
         self._stop.set()
+        self._wake.set()
         if self._thread is not threading.current_thread():
-            self._thread.join(2 * self._timeout_s + 1)
+            self._thread.join(2.0)
 
     def __enter__(self) -> ClockTracker:
         return self
@@ -340,37 +461,57 @@ class ClockTracker:
     def _run(self) -> None:
         refreshed = 0.0
         while not self._stop.is_set():
+            self._wake.clear()
+            while True:  # what came back, taken on this thread alone (an Estimator is not thread-safe)
+                try:
+                    name, peer, t1, got = self._results.get_nowait()
+                except queue.Empty:
+                    break
+                self._take(name, peer, t1, got)
             now = time.monotonic()
             with self._lock:
-                due = [(name, peer) for name, peer in self._peers.items() if peer.next_at <= now]
+                due = [(name, peer) for name, peer in self._peers.items() if peer.next_at <= now and not peer.pending]
             for name, peer in due:
-                if self._stop.is_set():
-                    return
-                self._exchange(name, peer)
-                peer.sent += 1
-                peer.next_at = time.monotonic() + (_BURST_S if peer.sent < _BURST else _PERIOD_S)
+                self._send(name, peer)
             if now - refreshed >= 0.1:
                 self._table.refresh()
                 refreshed = now
             with self._lock:
-                waits = [p.next_at for p in self._peers.values()]
-            self._stop.wait(max(0.005, min([0.1, *(w - time.monotonic() for w in waits)])))
+                waits = [p.next_at for p in self._peers.values() if not p.pending]
+            self._wake.wait(max(0.001, min([0.1, *(w - time.monotonic() for w in waits)])))
 
-    def _exchange(self, name: str, peer: _Peer) -> None:
+    def _send(self, name: str, peer: _Peer) -> None:
+        peer.sent += 1
+        if peer.sent < _BURST:
+            peer.next_at = time.monotonic() + _BURST_S
+        else:  # the rest of a round right after this one ends, the next round a period later
+            peer.next_at = time.monotonic() + (0.0 if (peer.sent - _BURST) % _ROUND else _PERIOD_S)
+        t1 = time.time_ns()
+
+        def done(got: tuple[bytes, int, int, int] | None) -> None:  # on a Zenoh thread
+            self._results.put((name, peer, t1, got))
+            self._wake.set()
+
+        peer.pending = True
         try:
-            t1 = time.time_ns()
-            got = self._session.exchange(peer.key, request(t1), timeout_s=self._timeout_s)
-        except Exception as exc:  # a peer that is gone, a closed session: the next round tries again
+            self._session.exchange(peer.key, request(t1), timeout_s=self._timeout_s, done=done)
+        except Exception as exc:  # a closed session, say: the next round tries again
+            peer.pending = False
             log.debug("no clock exchange with %r: %s", name, exc)
-            return
-        if got is None:
-            peer.estimator.refused["no answer"] += 1
-            return
-        reply, sent, arrived, replies = got
-        if replies > 1:
-            peer.estimator.refused["extra replies"] += replies - 1
-        if peer.estimator.add(t1, reply, arrived, sent_ns=sent):
-            self._table.register(peer.estimator)
+
+    def _take(self, name: str, peer: _Peer, t1: int, got: tuple[bytes, int, int, int] | None) -> None:
+        with self._lock:  # (the counts are read from other threads)
+            peer.pending = False
+            estimator = peer.estimator
+            if got is None:
+                estimator.refused["no answer"] += 1
+                return
+            reply, sent, arrived, replies = got
+            if replies > 1:
+                estimator.refused["extra replies"] += replies - 1
+            # an answer that came back after the peer left (or was replaced) is not kept
+            if estimator.add(t1, reply, arrived, sent_ns=sent) and self._peers.get(name) is peer:
+                self._table.register(estimator)
 
 
 def corrected(time_ns: int, clock: int, table: ClockTable = CLOCKS) -> int | None:

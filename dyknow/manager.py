@@ -807,7 +807,7 @@ class Manager:
             if kind == "lost":
                 self._clocks.untrack(manager)
             elif summary is not None and summary.clock and summary.clock != CLOCK_ID:  # one process, one clock: nothing to estimate
-                self._clocks.track(manager, keys.clock_key(manager))
+                self._clocks.track(manager, keys.clock_key(manager), summary.clock)
         if kind == "lost":
             with self._lock:
                 orphans = [unit for unit, owner in self._owners.items() if owner == manager]

@@ -186,6 +186,17 @@ def _inline(callback: Callable[[Any], None]) -> Any:
     return zenoh.handlers.Callback(run, indirect=False)
 
 
+def _inline_with_end(callback: Callable[[Any], None], end: Callable[[], None]) -> Any:
+    """:func:`_inline`, and ``end()`` once Zenoh lets go of the handler (a request ended)."""
+
+    def run(arg: Any) -> None:
+        if not getattr(_pinned, "seen", False):
+            _keep_thread_state()
+        callback(arg)
+
+    return zenoh.handlers.Callback(run, end, indirect=False)
+
+
 def _clean(exc: BaseException) -> str:
     """Zenoh's message without the Rust source locations it appends."""
     text = str(exc)
@@ -749,33 +760,51 @@ class Session:
         Zenoh's receiving thread (the handler must return at once), not a thread of its own."""
         return Queryable(self._z(), key, handler, inline)
 
-    def exchange(self, key: str, payload: bytes, *, timeout_s: float) -> tuple[bytes, int, int, int] | None:
-        """One timed request to the queryable on ``key``: ``(first reply, t_sent_ns, t_received_ns,
-        replies)``, the times of this process's wall clock taken once Zenoh took the request and
-        on Zenoh's thread as the reply arrived; None when no reply came within ``timeout_s``. For
-        clock exchanges (:mod:`dyknow.clocks`): no thread hand-off inside either time. (A reply
-        may arrive before ``t_sent_ns`` is taken: the caller then uses its own earlier time.)"""
-        done = threading.Event()
-        got: list[tuple[bytes, int]] = []
-        count = [0]
+    def exchange(self, key: str, payload: bytes, *, timeout_s: float, done: Callable[[tuple[bytes, int, int, int] | None], None]) -> None:
+        """Send one timed request to the queryable on ``key`` and return at once; ``done(result)``
+        is called once, on a Zenoh thread, when the request ends (every reply in, or
+        ``timeout_s`` passed): ``(first reply, t_sent_ns, t_received_ns, replies)``, or None when
+        no reply came. The times are this process's wall clock, taken once Zenoh took the request
+        and on Zenoh's thread as the first reply arrived: no thread hand-off inside either. For
+        clock exchanges (:mod:`dyknow.clocks`). Replies are not consolidated, so ``replies``
+        counts them all (a peer that floods is seen); only the first is kept. (A reply may
+        arrive before ``t_sent_ns`` is taken: the caller then uses its own earlier time.)"""
+        lock = threading.Lock()
+        state: list[Any] = [None, 0, 0, False, False]  # first (payload, arrival), replies, sent, get returned, ended
 
         def on_reply(reply: zenoh.Reply) -> None:
             arrived = time.time_ns()
-            count[0] += 1
-            if reply.ok is not None and not got:
-                got.append((reply.ok.payload.to_bytes(), arrived))
-                done.set()
+            with lock:
+                state[1] += 1
+                if state[0] is None and reply.ok is not None:
+                    state[0] = (reply.ok.payload.to_bytes(), arrived)
+
+        def finish() -> None:
+            first, replies, sent = state[0], state[1], state[2]
+            done(None if first is None else (first[0], sent, first[1], replies))
+
+        def ended() -> None:  # Zenoh drops the handler when the request ends
+            with lock:
+                state[4] = True
+                returned = state[3]
+            if returned:
+                finish()
 
         try:
-            self._z().get(key, _inline(on_reply), payload=payload, timeout=timeout_s)
-            # taken once Zenoh has the query: before it, the Python call's own cost counted on the
-            # request's leg alone and tilted every offset by tens of µs (measured in namespaces)
-            sent = time.time_ns()
+            self._z().get(
+                key, _inline_with_end(on_reply, ended), payload=payload, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
+            )
         except zenoh.ZError as exc:
             raise TransportError(f"cannot query {key!r}: {_clean(exc)}") from exc
-        if not done.wait(timeout_s):
-            return None
-        return got[0][0], sent, got[0][1], count[0]
+        # taken once Zenoh has the query: before it, the Python call's own cost counted on the
+        # request's leg alone and tilted every offset by tens of µs (measured in namespaces)
+        sent = time.time_ns()
+        with lock:
+            state[2] = sent
+            state[3] = True
+            over = state[4]
+        if over:
+            finish()
 
     def declare_service_channel(
         self, key: str, capacity: int = 1024, *, at_once: Mapping[str, Callable[[bytes, int], tuple[bool, bytes]]] | None = None

@@ -242,3 +242,28 @@ def browser_paths() -> tuple[str, str]:
             pytest.fail(why)
         pytest.skip(why)
     return found
+
+
+FAKETIME = Path("/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1")
+
+
+@pytest.fixture(scope="session")
+def faketime() -> Path:
+    """Debian's libfaketime (a process's wall clock faked: ``LD_PRELOAD`` it with ``FAKETIME``),
+    installed with apt-get when missing and run as root. Missing, it fails under CI (``CI=true``);
+    elsewhere the tests that need it are skipped with the reason."""
+    if not FAKETIME.is_file() and os.geteuid() == 0 and shutil.which("apt-get"):
+        subprocess.run(["apt-get", "install", "-y", "-q", "faketime"], capture_output=True, timeout=900,
+                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+    if not FAKETIME.is_file():
+        why = f"libfaketime is not installed ({FAKETIME}; apt-get install faketime)"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(why)
+        pytest.skip(why)
+    return FAKETIME
+
+
+def faked_clock(faketime: Path, setting: str) -> dict[str, str]:
+    """The environment that runs a process with its wall clock faked by ``setting`` (libfaketime's
+    ``FAKETIME``: ``+0.25``, ``+0 x1.0001``), its monotonic clock left alone (Zenoh's leases, timers)."""
+    return {"FAKETIME": setting, "FAKETIME_DONT_FAKE_MONOTONIC": "1", "LD_PRELOAD": str(faketime)}

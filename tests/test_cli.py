@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -15,7 +16,7 @@ import pytest
 
 from dyknow import Manager
 from dyknow.testing import SCENARIO_SPECS, Sink
-from tests.conftest import REPO, ManagerProcess, free_port, run_cli, subprocess_env
+from tests.conftest import REPO, ManagerProcess, free_port, run_cli, subprocess_env, wait_until
 
 SPECS = REPO / "tests" / "specs"
 
@@ -233,3 +234,57 @@ def test_request_measure_release_over_the_cli(manager_process: Callable[..., Man
     assert run_cli("release", key, *conn).returncode == 0
     model = json.loads(run_cli("model", "--json", *conn).stdout)
     assert model["units"] == [] and model["requests"] == []
+
+
+def test_managers_and_echo_show_clocks_as_the_manager_estimates_them(manager_process: Callable[..., ManagerProcess]) -> None:
+    """Two manager processes, two clocks of one machine (the true offset is 0). ``managers`` shows
+    each manager's offset from --manager's clock with its uncertainty; ``echo`` corrects the age
+    of a message stamped by the other manager's clock, and says "clock unknown" for a clock
+    --manager does not know (a plain process's, here this test's)."""
+    from dyknow import Client, Message
+    from dyknow.transport import Session, make_config
+
+    a = manager_process(name="clk-a")
+    b = manager_process("--connect", a.endpoint, name="clk-b")
+    conn = a.client_args()
+    with Client("clk-a", connect=[a.endpoint]) as client:
+        wait_until(lambda: "clk-b" in client.clocks(), "clk-a's estimate of clk-b's clock")
+        other = client.clocks()["clk-b"].clock
+
+    listed = run_cli("managers", "--json", *conn)
+    assert listed.returncode == 0, listed.stderr
+    clocks = {m["manager"]: m["clock"] for m in json.loads(listed.stdout)}
+    assert clocks["clk-a"] == {"offset_us": 0.0, "uncertainty_us": 0.0}
+    assert clocks["clk-b"] is not None and abs(clocks["clk-b"]["offset_us"]) <= clocks["clk-b"]["uncertainty_us"]
+    text = run_cli("managers", *conn).stdout
+    assert "clk-a" in text and "clock +0.0 us +/- 0.0" in text and text.count("clock ") == 2, text
+
+    assert run_cli("spawn", "periodic-source", "src", "--param", "rate_hz=200", *b.client_args()).returncode == 0
+    echo = run_cli("echo", "dyknow/clk-b/src/out", "--count", "3", "--json", *conn)
+    assert echo.returncode == 0, echo.stderr
+    for line in echo.stdout.splitlines():
+        message = json.loads(line)
+        assert message["origin_clock"] == f"{other:08x}"  # stamped by clk-b's process
+        assert message["latency_us"] is not None and message["uncertainty_us"] > 0
+
+    stop = threading.Event()
+
+    def publish() -> None:  # a clock clk-a knows nothing of: this process's
+        with Session(make_config(connect=[a.endpoint])) as session:
+            publisher = session.declare_publisher("clk/plain")
+            seq = 0
+            while not stop.wait(0.02):
+                seq += 1
+                publisher.put(Message({"n": seq}, seq, time.time_ns(), time.time_ns(), "clk/plain"))
+
+    thread = threading.Thread(target=publish, daemon=True)
+    thread.start()
+    try:
+        unknown = run_cli("echo", "clk/plain", "--count", "2", "--json", *conn)
+        plain = run_cli("echo", "clk/plain", "--count", "1", *conn)
+    finally:
+        stop.set()
+        thread.join(10)
+    assert unknown.returncode == 0, unknown.stderr
+    assert all(json.loads(x)["latency_us"] is None and json.loads(x)["uncertainty_us"] is None for x in unknown.stdout.splitlines())
+    assert "age clock unknown" in plain.stdout, plain.stdout

@@ -116,3 +116,24 @@ def test_a_call_to_a_manager_that_is_gone_ends_at_once_saying_so(manager_process
         assert re.search(rf"manager {proc.name!r} is gone: its liveliness token went away .* s ago", said[-1]), said
     with Client("never-seen", connect=[proc.endpoint], timeout_s=0.5) as other, pytest.raises(ServiceError, match="within 0.5 s"):
         other.get_model()
+
+
+def test_clocks_are_the_managers_as_it_estimates_them(manager_process: Callable[..., ManagerProcess], make_manager: Callable[..., Manager]) -> None:
+    """Two manager processes: two clocks of one machine (the true offset is 0). The client's
+    manager gives its own clock (offset 0) and the other's once it has estimated it, with an
+    uncertainty that holds. A manager of the client's own process shares its clock: nothing to
+    estimate, and none listed."""
+    a = manager_process(name="clk-a")
+    b = manager_process("--connect", a.endpoint, name="clk-b")
+    with Client("clk-a", connect=[a.endpoint]) as client:
+        wait_until(lambda: "clk-b" in client.clocks(), "clk-a's estimate of clk-b's clock")
+        clocks = client.clocks()
+        assert set(clocks) == {"clk-a", "clk-b"}
+        own, other = clocks["clk-a"], clocks["clk-b"]
+        assert own.clock == int(client.get_model()["clocks"]["clock"], 16) and (own.offset_ns, own.uncertainty_ns) == (0, 0)
+        assert other.clock == int(client.get_model("clk-b")["clocks"]["clock"], 16) != own.clock
+        assert abs(other.offset_ns) <= other.uncertainty_ns and other.samples >= 1
+    assert b.proc.poll() is None
+    here = make_manager("clk-here")
+    with Client(here.name, session=here.session) as client:
+        assert list(client.clocks()) == ["clk-here"]

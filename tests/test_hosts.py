@@ -48,9 +48,9 @@ def hosts() -> Iterator[Hosts]:
 class Child:
     """A process on one host whose JSON lines are read as they come."""
 
-    def __init__(self, hosts: Hosts, host: str, argv: list[str]) -> None:
+    def __init__(self, hosts: Hosts, host: str, argv: list[str], env: dict[str, str] | None = None) -> None:
         self.host = host
-        env = {**subprocess_env(), "DYKNOW_LOG": "INFO"}  # managers say what they discover, for a failure's report
+        env = {**subprocess_env(), "DYKNOW_LOG": "INFO", **(env or {})}  # managers say what they discover, for a failure's report
         self.proc = hosts.popen(host, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
         self.stderr = ""
         self.lines: queue.Queue[dict[str, Any]] = queue.Queue()

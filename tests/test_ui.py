@@ -20,7 +20,7 @@ import pytest
 from dyknow import Manager
 from dyknow.testing import SCENARIO_SPECS
 from dyknow.ui.server import check_bind
-from tests.conftest import REPO, CliProcess, run_cli, wait_until
+from tests.conftest import REPO, CliProcess, ManagerProcess, run_cli, wait_until
 
 ARTIFACTS = Path(os.environ.get("DYKNOW_ARTIFACTS", REPO / "test-artifacts"))
 
@@ -407,3 +407,47 @@ ws.onerror = () => document.getElementById("ws").textContent = "refused";
     finally:
         attacker.shutdown()
         attacker.server_close()
+
+
+def test_the_active_panel_shows_clock_offsets_and_messages_of_unknown_clocks(
+    ui: Callable[..., tuple[Manager, str]], browser: Any, manager_process: Callable[..., ManagerProcess]
+) -> None:
+    """A manager in another process: its clock as the page's manager estimates it (offset and
+    uncertainty). Messages of a clock nobody knows (a version-1 header has none) are counted on
+    the port they came in on, where the count is not zero."""
+    import threading
+    import time
+
+    import zenoh
+
+    from dyknow.message import HEADER_V1
+
+    manager, url = ui()
+    manager_process("--connect", manager.endpoints[0], name="clock-peer")
+    manager.spawn("relay", "r1")
+    browser.get(url)
+    wait_text(browser, "clocks", "\u2192 clock-peer: ", timeout_s=30)
+    line = browser.find_element("css selector", f"#clocks li[data-manager='{manager.name}'][data-peer='clock-peer']").text
+    assert " \u00b5s \u00b1 " in line, line
+
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([manager.endpoints[0]]))
+    stop = threading.Event()
+    with zenoh.open(conf) as plain:  # a plain Zenoh peer: an old dyknow header, without clocks
+
+        def publish() -> None:
+            seq = 0
+            while not stop.wait(0.05):
+                seq += 1
+                plain.put(f"dyknow/{manager.name}/r1/in", b"x", attachment=HEADER_V1.pack(b"DK", 1, 0, seq, time.time_ns(), time.time_ns()))
+
+        thread = threading.Thread(target=publish, daemon=True)
+        thread.start()
+        try:
+            wait_text(browser, "units", "of a clock not known", timeout_s=30)
+        finally:
+            stop.set()
+            thread.join(10)
+    assert "of a clock not known" not in browser.find_element("css selector", "#units tr[data-unit='r1']").text.split("out ")[-1]  # on the input only
+    shot(browser, "clocks")

@@ -10,10 +10,11 @@ module              what it holds
 :mod:`~.framing`    records and chunks read with every bound checked, and the :class:`~.framing.Damage`
 :mod:`~.scan`       the index of a file without a usable summary, and where such a file is damaged
 :mod:`~.player`     :class:`Player`: replay into Zenoh or a callback; the key of each topic, remapping
+:mod:`~.offsets`    times of other clocks: the clock records beside the origins as stamped, and correcting them
 ==================  =====================================================================================
 
-Imports flow one way: ``protobuf <- codecs <- writer``, ``framing <- scan <- reader``, and
-``codecs, reader <- player``.
+Imports flow one way: ``protobuf <- codecs <- writer``, ``framing <- scan <- reader``,
+``codecs, reader <- player``, and ``offsets <- writer, player``.
 
 What the ``mcap`` library does here, and what is ours (the details are in :mod:`~.reader`):
 
@@ -35,11 +36,14 @@ from __future__ import annotations
 
 from dyknow.errors import RecordingError
 from dyknow.recording.codecs import COMPRESSED_IMAGE, NDARRAY, PAYLOAD_METADATA, PROTOBUF_SCHEMAS, RAW_IMAGE, image_array, image_encoding
+from dyknow.recording.offsets import CLOCK_METADATA, CLOCKS_TOPIC
 from dyknow.recording.player import Player, key_for_topic
 from dyknow.recording.reader import ChannelInfo, RecordedMessage, Recording, RecordingInfo
 from dyknow.recording.writer import COMPRESSIONS, Recorder
 
 __all__ = [
+    "CLOCKS_TOPIC",
+    "CLOCK_METADATA",
     "COMPRESSED_IMAGE",
     "COMPRESSIONS",
     "NDARRAY",

@@ -11,7 +11,11 @@ topics remapped to other keys::
 
 Each replayed :class:`~dyknow.message.Message` carries the file's sequence number, the message's
 ``log_time`` as its origin timestamp (it stays as in the file, also when looping) and the replay
-time as its send timestamp. A topic replays on the key :func:`key_for_topic` gives, such as
+time as its send timestamp. An origin stamped by another clock than the recorder's is corrected
+by the offset recorded beside it (:mod:`dyknow.recording.offsets`), a time of the recording's
+clock; one whose clock's offset the recorder did not know stays as stamped, with origin clock 0
+(unknown: a consumer leaves it out of its figures). The pace follows the corrected times; the
+order stays the file's (by stamped time). The clock records themselves are not replayed. A topic replays on the key :func:`key_for_topic` gives, such as
 ``camera/image`` for ``/camera/image``, unless it is remapped. Payloads are decoded from the
 file's encodings as :mod:`dyknow.recording.codecs` says; ``decode=False`` delivers every message
 as the bytes stored in the file.
@@ -33,8 +37,9 @@ from typing import Any
 
 from dyknow.access import TlsFiles
 from dyknow.errors import BindingError, ClosedError, RecordingError, did_you_mean
-from dyknow.message import Message
+from dyknow.message import CLOCK_ID, Message
 from dyknow.recording.codecs import Decoders
+from dyknow.recording.offsets import CLOCK_METADATA, CLOCKS_TOPIC, ClockRecord, Offsets
 from dyknow.recording.reader import ChannelInfo, RecordedMessage, Recording, RecordingInfo
 from dyknow.transport import Session, check_key_expr, is_wild, key_exprs_intersect, make_config
 
@@ -106,6 +111,7 @@ class Player:
     message. ``topics`` selects topics: a topic name, its key, or a key expression such as
     ``camera/**``. ``remap`` maps a topic (or a ``prefix/**``) to the key it replays on.
     ``recover`` reads what is valid in a damaged file. ``decode=False`` delivers the stored bytes.
+    ``correct_clocks=False`` leaves every origin of another clock as stamped (and marked unknown).
 
     Raises :class:`RecordingError` for a file that cannot be read, a topic or remap that matches
     nothing, or a topic that cannot be a Zenoh key (remap it).
@@ -123,6 +129,7 @@ class Player:
         remap: Mapping[str, str] | None = None,
         recover: bool = False,
         decode: bool = True,
+        correct_clocks: bool = True,
     ) -> None:
         if not (isinstance(rate, (int, float)) and rate > 0):
             raise RecordingError(
@@ -142,6 +149,7 @@ class Player:
         self.recording = Recording(path, recover=recover)
         try:
             self._select(list(topics), dict(remap or {}), start_s, end_s)
+            self._offsets = self._read_offsets() if correct_clocks else Offsets(())
         except BaseException:
             self.recording.close()
             raise
@@ -149,7 +157,7 @@ class Player:
 
     def _select(self, topics: list[str], remap: dict[str, str], start_s: float | None, end_s: float | None) -> None:
         path = self.recording.path
-        everything = self.recording.channels
+        everything = [c for c in self.recording.channels if c.topic != CLOCKS_TOPIC]  # (bookkeeping, not a stream)
         names = sorted({c.topic for c in everything})
         for pattern in topics:
             if not any(_matches(pattern, c.topic) for c in everything):
@@ -225,6 +233,34 @@ class Player:
             raise ClosedError("the player is closed; open a new one", where=self.recording.path)
         return self.recording.messages(self._keys, self._start_ns, self._end_ns)
 
+    def _read_offsets(self) -> Offsets:
+        """The recording's clock records, if any of the selected channels needs them."""
+        if not any(CLOCK_METADATA in c.metadata for c in self.channels):
+            return Offsets(())
+        ids = [c.id for c in self.recording.channels if c.topic == CLOCKS_TOPIC]
+        where = f"{self.recording.path}: {CLOCKS_TOPIC}"
+        records: list[ClockRecord] = []
+        for message in self.recording.messages(ids):
+            try:
+                records.append(ClockRecord.from_json(message.data, f"{where} #{len(records) + 1}"))
+            except RecordingError:
+                if not self.recording.problem:  # (read with recover: what is valid is used)
+                    raise
+        return Offsets(records)
+
+    def corrected_origin(self, record: RecordedMessage) -> int | None:
+        """The message's origin time on the recording's clock: its log time when the recorder's own
+        clock stamped it, corrected by the recorded offset when another did, None when that
+        clock's offset was not known (or ``correct_clocks`` is off)."""
+        clock = record.channel.metadata.get(CLOCK_METADATA)
+        if clock is None:
+            return record.log_time_ns
+        try:
+            found = self._offsets.corrected(int(clock, 16), record.log_time_ns)
+        except ValueError:
+            return None
+        return None if found is None else found[0]
+
     def payload(self, record: RecordedMessage) -> Any:
         """The dyknow payload of a recorded message (its bytes with ``decode=False``)."""
         return self._decoders.payload(record.channel, record.data) if self.decode else record.data
@@ -252,15 +288,18 @@ class Player:
                         return count
                     key = self._keys[record.channel.id]
                     payload = self.payload(record)
+                    corrected = self.corrected_origin(record)
+                    at = record.log_time_ns if corrected is None else corrected
                     if self.rate != math.inf:
                         if first is None:
-                            first = (record.log_time_ns, time.monotonic_ns())
-                        due = first[1] + int((record.log_time_ns - first[0]) / self.rate)
+                            first = (at, time.monotonic_ns())
+                        due = first[1] + int((at - first[0]) / self.rate)
                         while (now := time.monotonic_ns()) < due:  # never early, even if a wait wakes up early
                             if self._wait((due - now) / 1e9, stop):
                                 return count
-                    origin = min(record.log_time_ns, _INT64_MAX)
-                    sink(Message(payload, record.sequence, origin, time.time_ns(), key), record)
+                    origin = min(max(at, -_INT64_MAX), _INT64_MAX)
+                    clock = CLOCK_ID if corrected is not None else 0  # (0: a clock whose offset is not known)
+                    sink(Message(payload, record.sequence, origin, time.time_ns(), key, origin_clock=clock), record)
                     count += 1
                     delivered += 1
                 if not self.loop or not delivered or self._stopped(stop):

@@ -5,7 +5,10 @@ an MCAP file, through the ``mcap`` library's writer. Every key gets its own chan
 payloads change kind (JSON, then bytes, say) gets one channel per kind, all with the key as
 topic. How payloads are stored is :mod:`dyknow.recording.codecs`' table. The message header goes
 into the MCAP message: ``log_time`` is the origin timestamp, ``publish_time`` the send timestamp
-and ``sequence`` the sequence number. The file is chunked and compressed (zstd by default, or lz4
+and ``sequence`` the sequence number. An origin stamped by another process's clock stays as
+stamped, and the offset of that clock the recorder knew is recorded beside it, so that a replay
+can correct it (:mod:`dyknow.recording.offsets`); a recorder with subscriptions of its own
+estimates the offsets of the managers it finds (:meth:`dyknow.clocks.ClockTracker.follow`). The file is chunked and compressed (zstd by default, or lz4
 or none) and has a summary with statistics and chunk, message and metadata indexes::
 
     from dyknow.recording import Recorder
@@ -40,9 +43,11 @@ from typing import Any
 from mcap.writer import CompressionType, IndexType, Writer
 
 from dyknow.access import TlsFiles
+from dyknow.clocks import CLOCKS, ClockTable, ClockTracker
 from dyknow.errors import ClosedError, RecordingError
-from dyknow.message import Message
+from dyknow.message import CLOCK_ID, Message
 from dyknow.recording.codecs import PAYLOAD_METADATA, PROTOBUF_SCHEMAS, encode, json_schema
+from dyknow.recording.offsets import CLOCK_METADATA, CLOCKS_SCHEMA, CLOCKS_TOPIC, OffsetLog
 from dyknow.transport import Session, Subscriber, check_key_expr, make_config
 
 __all__ = ["COMPRESSIONS", "Recorder"]
@@ -113,6 +118,8 @@ class Recorder:
     which a chunk is written. ``flush_interval_s`` bounds how long a message stays in memory
     before its chunk goes to disk. ``max_messages`` stops the recording after that many messages
     (:meth:`wait` returns then). ``metadata`` goes into an MCAP metadata record named ``dyknow``.
+    ``track_clocks``: with subscriptions, estimate the clock offsets of the managers found (for a
+    recorder in a manager's process, that manager's estimates are used in any case).
 
     Raises :class:`RecordingError` when the file cannot be created or written.
     """
@@ -131,6 +138,7 @@ class Recorder:
         flush_interval_s: float = 1.0,
         max_messages: int | None = None,
         metadata: Mapping[str, str] | None = None,
+        track_clocks: bool = True,
     ) -> None:
         keys = [key_exprs] if isinstance(key_exprs, str) else list(key_exprs)
         for key in keys:
@@ -185,7 +193,10 @@ class Recorder:
                 self._out.close()
             raise _write_error(self.path, exc, "nothing was recorded") from exc
         self._schemas: dict[tuple[str, str, bytes], int] = {}
-        self._channels: dict[tuple[str, str, str, str], int] = {}
+        self._channels: dict[tuple[str, str, str, str, int], int] = {}
+        self._offsets = OffsetLog(CLOCK_ID)
+        self._clock_table: ClockTable | None = None  # the offsets of this recorder's own tracker, if it has one
+        self._tracker: ClockTracker | None = None
         self._thread = threading.Thread(target=self._run, name=f"dyknow-recorder:{os.path.basename(self.path)}", daemon=True)
         self._thread.start()
         if keys:
@@ -194,6 +205,10 @@ class Recorder:
                     session = Session(make_config(connect=list(connect), config_file=zenoh_config, tls=tls))
                     self._own_session = True
                 self._session = session
+                if track_clocks:
+                    self._clock_table = ClockTable()
+                    self._tracker = ClockTracker(session, self._clock_table)
+                    self._tracker.follow()
                 for key in keys:
                     self._subscribers.append(session.declare_subscriber(key, self.write, self._on_error))
             except BaseException:
@@ -309,7 +324,10 @@ class Recorder:
             log.warning("recorder %s: message on %s not recorded: %s", self.path, msg.key, exc)
             return
         try:
-            channel = self._channel(msg.key, kind, encoding, schema_name, msg.payload)
+            clock = self._offsets.clock_of(msg.origin_clock)
+            if clock != CLOCK_ID:
+                self._clock_records(clock)
+            channel = self._channel(msg.key, kind, encoding, schema_name, msg.payload, clock)
             self._writer.add_message(
                 channel_id=channel,
                 log_time=max(0, msg.origin_ns),
@@ -333,8 +351,21 @@ class Recorder:
                 log.error("%s", self._error)
         self._done.set()
 
-    def _channel(self, key: str, kind: str, encoding: str, schema_name: str, payload: Any) -> int:
-        signature = (key, kind, encoding, schema_name)
+    def _clock_records(self, clock: int) -> None:
+        """Write what the recording needs to know of ``clock`` (another's) before its next message."""
+        tables = [t for t in (self._clock_table, CLOCKS) if t is not None]
+        offset = next((o for o in (t.offset(clock) for t in tables) if o is not None), None)
+        uncertainty = next((t.uncertainty(clock) for t in tables if t.offset(clock) is not None), None)
+        for record in self._offsets.note(clock, offset, uncertainty, time.time_ns()):
+            channel = self._channels.get((CLOCKS_TOPIC, "json", "json", CLOCKS_TOPIC, CLOCK_ID))
+            if channel is None:
+                schema_id = self._writer.register_schema(CLOCKS_TOPIC, "jsonschema", json.dumps(CLOCKS_SCHEMA).encode())
+                channel = self._writer.register_channel(CLOCKS_TOPIC, "json", schema_id, {PAYLOAD_METADATA: "json"})
+                self._channels[(CLOCKS_TOPIC, "json", "json", CLOCKS_TOPIC, CLOCK_ID)] = channel
+            self._writer.add_message(channel_id=channel, log_time=max(0, record.at_ns), publish_time=max(0, record.at_ns), sequence=0, data=record.to_json())
+
+    def _channel(self, key: str, kind: str, encoding: str, schema_name: str, payload: Any, clock: int = CLOCK_ID) -> int:
+        signature = (key, kind, encoding, schema_name, clock)
         channel = self._channels.get(signature)
         if channel is not None:
             return channel
@@ -349,7 +380,8 @@ class Recorder:
             schema_id = self._schemas.get(schema, 0)
             if not schema_id:
                 schema_id = self._schemas[schema] = self._writer.register_schema(*schema)
-        channel = self._channels[signature] = self._writer.register_channel(key, encoding, schema_id, {PAYLOAD_METADATA: kind})
+        metadata = {PAYLOAD_METADATA: kind} if clock == CLOCK_ID else {PAYLOAD_METADATA: kind, CLOCK_METADATA: f"{clock:08x}"}
+        channel = self._channels[signature] = self._writer.register_channel(key, encoding, schema_id, metadata)
         return channel
 
     # ------------------------------------------------------------------ closing
@@ -368,6 +400,8 @@ class Recorder:
         for sub in reversed(self._subscribers):
             sub.undeclare()
         self._subscribers.clear()
+        if self._tracker is not None:
+            self._tracker.close()
         if self._own_session and self._session is not None:
             self._session.close()
         self._session = None

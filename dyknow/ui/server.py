@@ -7,9 +7,9 @@ manager's own services, so the managers' access control applies to it as to the 
 HTTP (aiohttp):
 
 - ``GET /`` the page; ``GET /static/...`` its script, style and the vendored cytoscape.js;
-- ``GET /api/model`` ``{"version", "managers": [model, ...], "stats": {"manager/unit": {port: {"rate", "hop_p50_us", "lost", "dropped"}}}}``
-  (statistics asked every ``stats_s``), and ``"verdicts": {key: [[t, verdict, gap cause], ...]}``, the
-  latest verdicts of every monitor and requirement the models list;
+- ``GET /api/model`` ``{"version", "managers": [model, ...], "stats": {"manager/unit": {port: {"rate", "hop_p50_us", "lost", "dropped",
+  "unknown_clock"}}}}`` (statistics asked every ``stats_s``; ``unknown_clock``: messages of a clock whose offset was not known),
+  and ``"verdicts": {key: [[t, verdict, gap cause], ...]}``, the latest verdicts of every monitor and requirement the models list;
 - ``GET /api/events`` server-sent events: the model again each time it changes (checked every
   ``poll_s``);
 - ``GET /api/stream?key=KEY`` a WebSocket of the messages on ``KEY``: for each, a JSON header
@@ -92,6 +92,7 @@ class ModelWatch:
         self._stats_at = 0.0
         self._counts: dict[tuple[str, str, str], tuple[int, float]] = {}  # (manager, unit, port) -> (messages, at)
         self._stats: dict[str, dict[str, dict[str, float | None]]] = {}
+        self._clocks: dict[Any, Any] = {}  # manager -> its model's clocks, as of the last statistics
         self.version = 0
         self.data: dict[str, Any] = {"version": 0, "managers": []}
         self._names: list[str] = []
@@ -165,6 +166,11 @@ class ModelWatch:
         if now - self._stats_at >= self.stats_s:
             self._stats_at = now
             self._stats = self._statistics(models)
+            self._clocks = {m.get("manager"): m.get("clocks") for m in models}
+        else:  # clock offsets move a little at every look: they are refreshed with the statistics, so as not to redraw at each
+            for m in models:
+                if m.get("manager") in self._clocks:
+                    m["clocks"] = self._clocks[m.get("manager")]
         self._follow_verdicts(models)
         with self._lock:
             verdicts = {key: [list(v) for v in kept] for key, kept in self._verdicts.items()}
@@ -201,7 +207,8 @@ class ModelWatch:
                     self._counts[ident] = (count, now)
                     rate = round((count - before[0]) / (now - before[1]), 1) if before and now > before[1] and count >= before[0] else None
                     hop = (entry.get("hop") or {}).get("p50_us")
-                    ports[port] = {"rate": rate, "hop_p50_us": hop, "lost": entry.get("lost", 0), "dropped": entry.get("dropped", 0)}
+                    unknown = (entry.get("clock") or {}).get("unknown", 0)
+                    ports[port] = {"rate": rate, "hop_p50_us": hop, "lost": entry.get("lost", 0), "dropped": entry.get("dropped", 0), "unknown_clock": unknown}
                 out[f"{model['manager']}/{unit['name']}"] = ports
         for gone in set(self._counts) - seen:
             del self._counts[gone]

@@ -19,7 +19,7 @@ from dyknow import Manager
 from dyknow.cli import main
 from dyknow.errors import RecordingError
 from dyknow.message import Message
-from dyknow.recording import Recording
+from dyknow.recording import CLOCKS_TOPIC, RecordedMessage, Recording
 from dyknow.transport import Session
 from tests.conftest import UNIT_SPECS, CliProcess, run_cli, wait_until
 from tests.recording.support import wait_matched
@@ -28,12 +28,18 @@ TEN = "TenMessages/TenMessages-ch-chx-mx-pad-rch-rsh-st-sum"
 
 
 def readable(path: Path) -> int:
-    """How many messages of a file being written are readable now."""
+    """How many messages of a file being written are readable now (the clock records left out:
+    the messages here come from this process, a clock the recorder's process does not know)."""
     try:
         with Recording(path, recover=True) as recording:
-            return recording.info.message_count
+            return sum(1 for m in recording.messages() if m.topic != CLOCKS_TOPIC)
     except RecordingError:
         return 0
+
+
+def streams(recording: Recording) -> list[RecordedMessage]:
+    """The messages of a recording, its clock records left out."""
+    return [m for m in recording.messages() if m.topic != CLOCKS_TOPIC]
 
 
 def one_line_error(result: subprocess.CompletedProcess[str]) -> str:
@@ -65,11 +71,13 @@ def test_record_until_a_signal_finalizes_the_file(tmp_path: Path, listening: tup
     assert proc.proc.wait(10) == 0
     assert proc.line() == {"event": "done", "file": str(path), "messages": 51, "topics": {"rec/json": 50, "rec/image": 1}, "bytes": path.stat().st_size}
     with Recording(path) as recording:  # finalized: summary and footer, no recovery needed
-        assert recording.info.indexed and recording.problem is None and recording.info.message_count == 51
+        assert recording.info.indexed and recording.problem is None and len(streams(recording)) == 51
+        # and two clock records: the recorder's own clock, then this process's, which it does not know
+        assert recording.info.message_count == 53 and [json.loads(m.data)["offset_ns"] for m in recording.messages() if m.topic == CLOCKS_TOPIC] == [0, None]
     cat = run_cli("mcap", "cat", str(path), "--json")
     assert cat.returncode == 0, cat.stderr
     lines = [json.loads(line) for line in cat.stdout.splitlines()]
-    assert len(lines) == 51
+    assert len(lines) == 51  # (cat replays the streams: not the clock records)
     assert lines[0] == {
         "topic": "rec/json", "sequence": 1, "log_time": 1_001, "publish_time": 2_001, "schema": "rec/json",
         "message_encoding": "json", "data_b64": base64.b64encode(b'{"n":1}').decode(),
@@ -90,7 +98,7 @@ def test_record_stops_by_itself_after_max_messages(tmp_path: Path, listening: tu
         assert proc.proc.wait(20) == 0
     assert proc.line()["messages"] == 5
     with Recording(path) as recording:
-        assert [m.data for m in recording.messages()] == [f"text {i}".encode() for i in range(1, 6)]
+        assert [m.data for m in streams(recording)] == [f"text {i}".encode() for i in range(1, 6)]
         assert recording.info.compressions == ("lz4",)
 
 
@@ -133,7 +141,7 @@ def test_a_killed_recorder_leaves_its_complete_chunks_readable(tmp_path: Path, l
         Recording(path)
     assert str(info.value).startswith(f"{path}: truncated at offset ")
     with Recording(path, recover=True) as recording:
-        seqs = [json.loads(m.data)["seq"] for m in recording.messages()]
+        seqs = [json.loads(m.data)["seq"] for m in streams(recording)]
         assert recording.info.chunk_count >= 10
     assert seqs == list(range(1, len(seqs) + 1)) and len(seqs) >= 300  # every message of every complete chunk
 

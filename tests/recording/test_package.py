@@ -13,8 +13,9 @@ import pytest
 import dyknow.recording
 from tests.conftest import REPO, subprocess_env
 
-# Every public name dyknow.recording and dyknow.replay exported before they became this package.
+# Every public name dyknow.recording and dyknow.replay exported before they became this package, and since.
 EXPECTED = [
+    "CLOCKS_TOPIC", "CLOCK_METADATA",  # (added with the clock records, issue 31)
     "COMPRESSED_IMAGE", "COMPRESSIONS", "NDARRAY", "PAYLOAD_METADATA", "PROTOBUF_SCHEMAS", "RAW_IMAGE",
     "ChannelInfo", "Player", "RecordedMessage", "Recorder", "Recording", "RecordingError", "RecordingInfo",
     "image_array", "image_encoding", "key_for_topic",

@@ -92,6 +92,7 @@ function elements() {
         if (dirs[port] !== "out" && live.hop_p50_us) label += ` ${(live.hop_p50_us / 1000).toFixed(2)} ms`;
         // what went missing, and why: lost on the way (gaps in the sender's numbers), dropped by the full queue
         if (live.lost) label += ` ${live.lost} lost`;
+        if (live.unknown_clock) label += ` ${live.unknown_clock} clock unknown`; // their times left out of the figures
         if (live.dropped) label += ` ${live.dropped} dropped`;
         if (dirs[port] === "out") edges.push({ data: { id: id + "->" + key, source: id, target: kid, label } });
         else edges.push({ data: { id: key + "->" + id + "." + port, source: kid, target: id, label } });
@@ -207,7 +208,8 @@ function drawActive() {
       const live = (model.stats || {})[m.manager + "/" + u.name] || {};
       for (const [port, key] of Object.entries(u.bindings)) {
         const rate = live[port] && live[port].rate !== null && live[port].rate !== undefined ? `  (${live[port].rate}/s)` : "";
-        keys.append(el("div", (dirs[port] === "in" ? "in  " : "out ") + port + " \u2192 " + key + rate));
+        const unknown = live[port] && live[port].unknown_clock ? `  ${live[port].unknown_clock} of a clock not known` : "";
+        keys.append(el("div", (dirs[port] === "in" ? "in  " : "out ") + port + " \u2192 " + key + rate + unknown));
       }
       if (u.error) keys.append(el("div", "error: " + u.error, { class: "state-failed" }));
       row.append(keys);
@@ -226,6 +228,20 @@ function drawActive() {
     row.append(el("td", "no unit runs", { colspan: 6, class: "muted" }));
     body.append(row);
   }
+}
+
+// each manager's estimate of the other managers' clocks: offset (theirs minus its) and uncertainty
+function drawClocks() {
+  const items = [];
+  for (const m of model.managers) {
+    for (const [peer, c] of Object.entries(m.clocks || {})) {
+      if (peer === "clock" || typeof c !== "object") continue;
+      items.push(el("li", `${m.manager} \u2192 ${peer}: ${c.offset_us >= 0 ? "+" : ""}${c.offset_us} \u00b5s \u00b1 ${c.uncertainty_us} \u00b5s` +
+        (c.drift_ppm ? `, drift ${c.drift_ppm} ppm` : ""), { "data-manager": m.manager, "data-peer": peer }));
+    }
+  }
+  if (!items.length) items.push(el("li", "no other manager's clock estimated", { class: "muted" }));
+  $("clocks").replaceChildren(...items);
 }
 
 function fillManagers() {
@@ -513,6 +529,7 @@ function render() {
   drawVerdicts();
   drawGraph();
   drawActive();
+  drawClocks();
   drawLibrary();
   drawCreate();
   drawConnect();

@@ -1,0 +1,190 @@
+"""Clocks that disagree across hosts: the paper's scenario with the robot's wall clock faked.
+
+Three hosts in network namespaces (as in tests/test_hosts.py, on clean links) run a manager each;
+the robot's runs under libfaketime with its wall clock 250 ms ahead, 250 ms behind, or running
+100 ppm fast (``FAKETIME_DONT_FAKE_MONOTONIC=1``: Zenoh's leases and dyknow's timers run on the
+monotonic clock, untouched). The station must show the robot's offset within its stated
+uncertainty of the injected one, report no negative hop or age anywhere, and report the
+cross-host hop and the ages of the robot's stream as it reports those of the field's camera
+(whose clock is the station's) once a cut of the robot's link moved the request there, and so
+must a client of the station that corrects its ages by the offsets the station gives it
+(``Client.clocks``); the cut and the deadlines must behave as with equal clocks.
+
+The injected offset is known exactly: the robot's manager runs through ``tests.clocked``, which
+first prints its wall clock beside the monotonic clock (the machine's, shared by the
+namespaces), so the offset at any moment is that line's difference less this process's, grown at
+the faked rate. Under ``CI=true`` namespaces and libfaketime are required; elsewhere these tests
+skip when they are missing (libfaketime is installed with apt-get when running as root).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dyknow.testing import SCENARIO_HOSTS
+from dyknow.testing.hosts import Hosts, unavailable
+from tests.conftest import faked_clock
+from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child
+
+#: How far the robot's and the field's figures may differ for reasons other than clocks: two
+#: cameras on two hosts, on a machine of two cores shared with the rest of the suite. In the
+#: first four runs the two hop p50s differed by 3-30 µs and the ages by as little (the robot's
+#: corrected); the margin leaves room for a loaded machine. Uncorrected, they differ by 250,000 µs.
+MARGIN_US = 500.0
+
+
+def _under_ci() -> bool:
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+@pytest.fixture
+def clean_hosts() -> Iterator[Hosts]:
+    """Three hosts on clean links: a clock exchange's accuracy is the link's evenness."""
+    why = unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces are required under CI: {why}")
+        pytest.skip(why)
+    with Hosts(["station", "robot", "field"]) as made:
+        yield made
+
+
+@dataclass(frozen=True)
+class Skew:
+    """A fault of the robot's clock: libfaketime's ``FAKETIME`` and the rate it makes the clock run at."""
+
+    faketime: str
+    rate: float
+
+
+SKEWS = {"ahead": Skew("+0.25", 1.0), "behind": Skew("-0.25", 1.0), "drifting": Skew("+0 x1.0001", 1.0001)}
+
+
+def injected(clock_line: dict[str, Any], rate: float, at_ns: int) -> int:
+    """The robot's clock minus the machine's at ``at_ns`` (the machine's wall clock), from the
+    robot's ``clock`` line (see tests/clocked.py), to within half its ``read_ns``."""
+    before, realtime, after = time.monotonic_ns(), time.time_ns(), time.monotonic_ns()
+    machine = realtime - (before + after) // 2  # this process's clock is the machine's
+    offset_then = clock_line["realtime_ns"] - clock_line["monotonic_ns"] - machine
+    then = clock_line["monotonic_ns"] + machine
+    return offset_then + round((rate - 1) * (at_ns - then))
+
+
+def start(hosts: Hosts, name: str, *extra: str, env: dict[str, str] | None = None) -> tuple[Child, dict[str, Any]]:
+    """A manager on host ``name`` (as tests/test_hosts.py starts them), and its clock line."""
+    endpoint = f"tcp/{hosts.address(name)}:{PORT}"
+    connect = [] if name == "station" else ["--connect", f"tcp/{hosts.address('station')}:{PORT}"]
+    child = Child(hosts, name, [
+        sys.executable, "-m", "tests.clocked", "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]), "--ontology", str(ONTOLOGY),
+        "--listen", endpoint, *connect, "--host", f"{name}-host", "--lease-ms", "1000", "--json", *extra,
+    ], env)  # fmt: skip
+    clock = child.next("clock")
+    assert child.next("ready")["endpoints"] == [endpoint]
+    return child, clock
+
+
+def _until(what: str, check: Any, timeout_s: float = 40.0) -> Any:
+    """Ask ``check()`` every half second until it returns something (state of other processes, no event to wait on)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        found = check()
+        if found:
+            return found
+        assert time.monotonic() < deadline, f"{what} within {timeout_s} s"
+        time.sleep(0.5)
+
+
+def _fill_window() -> None:
+    """Let the ports' statistics windows (1,024 messages, 5 s at 200 Hz) fill with what runs now."""
+    time.sleep(5.5)
+
+
+@pytest.mark.parametrize("skew", list(SKEWS.values()), ids=list(SKEWS))
+def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Path, skew: Skew) -> None:
+    hosts = clean_hosts
+    env = faked_clock(faketime, skew.faketime)
+    children: list[Child] = []
+    try:
+        station, _ = start(hosts, "station", "--dwell", "1")
+        children.append(station)
+        robot, robot_clock = start(hosts, "robot", env=env)
+        children.append(robot)
+        field, _ = start(hosts, "field")
+        children.append(field)
+        nominal = {"+0.25": 250_000, "-0.25": -250_000}.get(skew.faketime, 0)
+        assert abs(injected(robot_clock, skew.rate, time.time_ns()) / 1000 - nominal) < 1000  # what libfaketime was asked for
+        observer = Child(hosts, "station", [sys.executable, "-m", "tests.netns_observer", f"tcp/{hosts.address('station')}:{PORT}", "station", "BallTrack(field)"])
+        children.append(observer)
+        key = observer.next("key")["key"]
+        observer.next("camera", camera=BOTTOM)
+
+        def robot_known() -> dict[str, Any] | None:
+            clocks = observer.ask("model station")[0]["clocks"]
+            found = clocks.get("robot")
+            if found is None or found["samples"] < 8 or (skew.rate != 1.0 and found["drift_ppm"] == 0):  # a drift: once a line is fitted
+                return None
+            return dict(clocks)
+
+        _until("the station's estimate of the robot's clock", robot_known)
+        observer.stats()  # its window starts now, with the station's offsets (a client's ages: Client.clocks)
+        _fill_window()
+        robot_window = observer.stats()
+        before = time.time_ns()
+        clocks = observer.ask("model station")[0]["clocks"]
+        after = time.time_ns()
+        estimate = clocks["robot"]
+        truth = injected(robot_clock, skew.rate, before), injected(robot_clock, skew.rate, after)
+        error_us = min(abs(estimate["offset_us"] * 1000 - t) for t in truth) / 1000
+        # when, between the two readings, the station took its estimate; how sure the robot's clock line is
+        slack_us = abs(truth[1] - truth[0]) / 1000 + robot_clock["read_ns"] / 2000 + 1
+        print(f"robot's clock: injected {truth[0] / 1000:.1f} us, estimated {estimate}, error {error_us:.1f} us")
+        assert error_us <= estimate["uncertainty_us"] + slack_us, (estimate, truth)
+        if skew.rate != 1.0:
+            assert abs(estimate["drift_ppm"] - 100) < 50, estimate  # fitted over several seconds by then
+        assert abs(clocks["field"]["offset_us"]) <= clocks["field"]["uncertainty_us"], clocks["field"]  # equal clocks: 0
+
+        robot_ports = {p["unit"]: p for p in observer.ask("ports")}
+        print(f"with the robot's camera: {robot_ports}")
+        for port in robot_ports.values():
+            assert port["messages"] > 0 and port["hop_p50_us"] >= 0 and port["latency_p50_us"] >= 0, port  # nothing negative
+        assert robot_ports["subsampler(bottom)"]["uncertainty_us"] > 0  # its hop came from the robot's clock, corrected
+        states = {u["label"]: u["state"] for u in observer.ask("model robot")[0]["units"]}
+        assert states == {"robot-camera": "running"}, states  # its deadline kept: never stalled
+        assert [e["cause"] for e in observer.ask("adaptations")] == []  # no stall, no loss: nothing to adapt
+
+        hosts.cut("robot")  # failover as with equal clocks
+        observer.next("camera", camera=CEILING, timeout_s=60)
+        lost = [e for e in observer.ask("adaptations") if e["cause"] == "manager 'robot' was lost"]
+        assert lost and lost[0]["key"] == key, lost
+        observer.stats()
+        _fill_window()
+        field_window = observer.stats()
+        field_ports = {p["unit"]: p for p in observer.ask("ports")}
+        print(f"with the field's camera (equal clocks): {field_ports}")
+        for stage in ("subsampler", "ball-detector", "localization"):
+            skewed, equal = robot_ports[f"{stage}({'bottom'})"], field_ports[f"{stage}(ceiling)"]
+            assert equal["hop_p50_us"] >= 0 and equal["latency_p50_us"] >= 0, equal
+            bound = skewed["uncertainty_us"] + MARGIN_US
+            assert abs(skewed["hop_p50_us"] - equal["hop_p50_us"]) <= bound, (skewed, equal)
+            assert abs(skewed["latency_p50_us"] - equal["latency_p50_us"]) <= bound, (skewed, equal)
+        # and the age at a client of the station, corrected by the offsets the station gives it
+        print(f"observer's ages: with the robot's camera {robot_window}, with the field's {field_window}")
+        assert robot_window["age_unknown_clock"] == 0 and robot_window["by_camera"] == {str(BOTTOM): robot_window["messages"]}
+        assert field_window["by_camera"] == {str(CEILING): field_window["messages"]}
+        skewed_age, equal_age = robot_window["age_p50_us_corrected"], field_window["age_p50_us_corrected"]
+        assert skewed_age > 0 and equal_age > 0
+        assert abs(skewed_age - equal_age) <= robot_window["age_uncertainty_us"] + MARGIN_US, (robot_window, field_window)
+        assert all(e["cause"] in ("manager 'robot' was lost",) for e in observer.ask("adaptations") if e["kind"] == "adapted")
+    finally:
+        for child in reversed(children):
+            child.close()
+        for child in children:  # what each host said, for a failure's report (pytest shows it then)
+            print(f"----- {child.host}\n{child.stderr[-3000:]}")
