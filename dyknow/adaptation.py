@@ -285,6 +285,10 @@ class _Request:
     requirements: tuple[str, ...] = ()
     watchers: list[str] = field(default_factory=list)
     needs: list[str] = field(default_factory=list)
+    # the requirements of the transformations in the configuration (their specs'): (unit, formula)
+    # -> its watch, kept while the unit serves the request
+    spec_watches: dict[tuple[str, str], _SpecWatch] = field(default_factory=dict)
+    spec_watch_count: int = 0
 
     def info(self) -> RequestInfo:
         return RequestInfo(
@@ -299,11 +303,26 @@ class _Request:
             tuple(sorted(set(self.standby.values()))),
             self.standby_reason if self.standby_mode == "warm" and not self.standby else None,
             self.requirements,
+            tuple(
+                {"formula": formula, "transformation": watch.label, "unit": ref, "key": watch.key}
+                for (ref, formula), watch in self.spec_watches.items()
+            ),
         )
 
     def held(self) -> list[str]:
         """Every unit the request holds: its configuration, its standby and spare units."""
         return [*self.units, *self.standby, *self.spare]
+
+
+@dataclass(frozen=True, slots=True)
+class _SpecWatch:
+    """A requirement of a transformation's spec, watched while one of its units serves a request:
+    the monitor unit, the key of its verdicts, and the requests of its other terms."""
+
+    label: str
+    monitor: str
+    key: str
+    needs: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -324,6 +343,7 @@ class Symptom:
     deferred: bool = False  # an opportunity taken after the dwell time
     raised_ns: int = 0  # a deferred opportunity: when it arose (time_ns is when it is taken)
     request: str | None = None  # "requirement": the key of the request whose requirement was false
+    # ("unit" and "label": the unit and transformation whose spec's requirement it was, if one's)
     state_ns: int = 0  # "requirement": the time of the state the false verdict is about
 
 
@@ -1027,6 +1047,10 @@ class Reconfigurer:
                 return unit.healthy
         return ref not in self._knowledge.seen  # spawned and not in a summary yet
 
+    def config(self, ref: str) -> dict[str, str]:
+        """The bindings (port -> key) of the unit ``ref``, here or on another manager."""
+        return self._config(ref)
+
     def _config(self, ref: str) -> dict[str, str]:
         name, manager = unqualify(ref, self._runtime.name)
         if manager == self._runtime.name:
@@ -1154,6 +1178,7 @@ class AdaptationLoop:
             except DyKnowError:
                 self.release(key)
                 raise
+            self._watch_specs(request)
             return key
 
     def _require(self, request: _Request, formulas: list[Formula]) -> None:
@@ -1180,10 +1205,71 @@ class AdaptationLoop:
                 text, key = str(formula), request.key
                 watcher.listen(lambda verdict, text=text, key=key: self._verdict(key, text, verdict))  # type: ignore[misc]
 
-    def _verdict(self, key: str, formula: str, verdict: Verdict) -> None:
+    def _verdict(self, key: str, formula: str, verdict: Verdict, unit: str | None = None, label: str | None = None) -> None:
         """A requirement's verdict (on its monitor's thread): a false one is a symptom."""
         if verdict.verdict is False:
-            self._report(Symptom("requirement", time.time_ns(), detail=formula, request=key, state_ns=verdict.t_ns))
+            symptom = Symptom("requirement", time.time_ns(), unit=unit, label=label, detail=formula, request=key, state_ns=verdict.t_ns)
+            self._report(symptom)
+
+    def _watch_specs(self, request: _Request) -> None:
+        """Watch the requirements of the transformations now serving ``request`` (their specs'),
+        and stop watching those of units that no longer do. A term that is one of the unit's
+        output tags reads that output; any other is requested in turn. A requirement that cannot
+        be watched is logged, and the configuration runs unwatched rather than not at all."""
+        planner = self.reconfigurer.planner()
+        wanted: dict[tuple[str, str], str] = {}  # (unit, formula) -> label
+        for ref, label in request.units.items():
+            try:
+                spec = planner.spec(label)
+            except (KeyError, DyKnowError):
+                continue  # (a unit of a transformation no library holds any more: nothing to watch)
+            for formula in spec.requirements:
+                wanted[(ref, formula)] = label
+        for ident in [i for i in request.spec_watches if i not in wanted]:
+            watch = request.spec_watches.pop(ident)
+            self.reconfigurer.cleanup([watch.monitor])
+            for needed in watch.needs:
+                if needed in self.knowledge.requests:
+                    self.release(needed)
+        for (ref, text), label in wanted.items():
+            if (ref, text) not in request.spec_watches:
+                try:
+                    request.spec_watches[(ref, text)] = self._spec_watch(request, ref, label, parse(text))
+                except DyKnowError as exc:
+                    log.warning("cannot watch the requirement %r of %s for %s: %s", text, label, request.tag, exc)
+
+    def _spec_watch(self, request: _Request, ref: str, label: str, formula: Formula) -> _SpecWatch:
+        spec = self.reconfigurer.planner().spec(label)
+        outputs = self.reconfigurer.config(ref)
+        bindings: dict[str, str] = {}
+        needs: list[str] = []
+        try:
+            for term, port in term_ports(formula).items():
+                produced = [
+                    outputs[p.name]
+                    for p in spec.outputs
+                    if p.name in outputs and term in {str(parse_term(t)) for t in spec.tags_for(p.name)}
+                ]
+                if produced:
+                    bindings[port] = produced[0]
+                else:
+                    needs.append(self.request(term))
+                    bindings[port] = needs[-1]
+            request.spec_watch_count += 1
+            n = request.spec_watch_count
+            name = f"{request.anchor}-spec-require-{n}"
+            key = bindings[VERDICTS_PORT] = f"{request.key}/requirements/spec-{n}"
+            self.runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
+        except DyKnowError:
+            for needed in needs:
+                self.release(needed)
+            raise
+        self.knowledge.managed.add(name)
+        watcher = self.runtime.unit(name)
+        if isinstance(watcher, FormulaMonitor):
+            text, rkey = str(formula), request.key
+            watcher.listen(lambda verdict, text=text, rkey=rkey, ref=ref, label=label: self._verdict(rkey, text, verdict, ref, label))  # type: ignore[misc]
+        return _SpecWatch(label, name, key, tuple(needs))
 
     def _warm_up(self, request: _Request) -> None:
         """A shared request asked for a warm standby: a new anchor that can hold one, then the standby."""
@@ -1218,8 +1304,9 @@ class AdaptationLoop:
             del self.knowledge.requests[key]
             self._deferred.pop(key, None)
             orphans = [n for n in request.held() if n in self.knowledge.managed and not self.knowledge.users(n)]
-            self.reconfigurer.cleanup([*request.watchers, request.anchor, *orphans])
-            for needed in request.needs:
+            watches = list(request.spec_watches.values())
+            self.reconfigurer.cleanup([*request.watchers, *(w.monitor for w in watches), request.anchor, *orphans])
+            for needed in [*request.needs, *(n for w in watches for n in w.needs)]:
                 if needed in self.knowledge.requests:
                     self.release(needed)
 
@@ -1387,6 +1474,18 @@ class AdaptationLoop:
         if request is None or request.state != "active" or symptom.state_ns < request.last_change_ns + self.dwell_ns:
             return
         now = time.time_ns()
+        if symptom.unit is not None:  # a transformation's own requirement: that transformation goes
+            label = request.units.get(symptom.unit)
+            if label is None or label != symptom.label:
+                return  # (the unit no longer serves the request: a verdict that was on its way)
+            try:
+                self.reconfigurer.plan(request, now, exclude={label})
+            except PlanningError:
+                log.info("requirement %r of %s is false, and no configuration without it provides %s", symptom.detail, label, request.tag)
+                return
+            self.knowledge.fail(label, now)
+            self._adapt(request, symptom, fault=True)
+            return
         best: tuple[tuple[Any, ...], str] | None = None
         for label in sorted(set(request.units.values())):
             try:
@@ -1508,6 +1607,7 @@ class AdaptationLoop:
             event.adaptation_ms,
         )
         self._leave(request, orphans)
+        self._watch_specs(request)
         return wired
 
     def _take_standby(self, request: _Request, symptom: Symptom, old_labels: tuple[str, ...], fault: bool) -> None:
@@ -1594,6 +1694,7 @@ class AdaptationLoop:
             self._next_id += 1
             self._emit(event)
             log.warning("request %s is degraded: %s", request.tag, why)
+        self._watch_specs(request)
 
 
 class _Recovery:
@@ -1695,6 +1796,8 @@ def _what(symptom: Symptom) -> str:
         return f"manager {symptom.manager!r} was lost"
     if symptom.kind == "peer-found":
         return f"manager {symptom.manager!r} was found"
+    if symptom.kind == "requirement" and symptom.label is not None:
+        return f"requirement of {symptom.label} violated: {symptom.detail}"
     if symptom.kind == "requirement":
         return f"requirement violated: {symptom.detail}"
     if symptom.kind == "peer-trusted":

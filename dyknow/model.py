@@ -118,6 +118,9 @@ class RequestInfo:
     standby_labels: tuple[str, ...] = ()
     standby_reason: str | None = None
     requirements: tuple[str, ...] = ()  # formulas the stream must satisfy (see Manager.request)
+    #: the requirements of the transformations serving it (their specs'), watched while they do:
+    #: ``{"formula", "transformation", "unit", "key"}`` (``key``: where their verdicts go)
+    spec_requirements: tuple[Mapping[str, str], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -133,6 +136,7 @@ class RequestInfo:
             "standby_labels": list(self.standby_labels),
             "standby_reason": self.standby_reason,
             "requirements": list(self.requirements),
+            "spec_requirements": [dict(r) for r in self.spec_requirements],
         }
 
 

@@ -68,3 +68,14 @@ def test_the_unit_and_its_test_run_as_written(tmp_path: Path) -> None:
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
     assert "1 passed" in result.stdout
+
+
+def test_the_spec_format_example_reads_as_the_readme_says() -> None:
+    """Transformation specifications: the example expands to one spec per camera, its requirement included."""
+    from dyknow.spec import parse_specs
+
+    block = next(b for b in _blocks("xml") if b.startswith('<transformation type="unit">\n  <label>undistort(${Cam})'))
+    specs = parse_specs(block, "README.md")
+    assert [s.label for s in specs] == ["undistort(cam1)", "undistort(cam2)", "undistort(cam3)"]
+    assert specs[1].requirements == ("not historically[0, 1s] UndistortedImage(cam2).blank",)
+    assert specs[1].priority == 1 and specs[1].port("undist").deadline_ms == 500

@@ -22,11 +22,12 @@ BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
 def system(make_manager: Callable[..., Manager]) -> Callable[..., dict[str, Manager]]:
     """The scenario's three managers on loopback (station, robot, field), deep queues."""
 
-    def start(**kwargs: Any) -> dict[str, Manager]:
+    def start(station_specs: Any = None, **kwargs: Any) -> dict[str, Manager]:
         hub = f"tcp/127.0.0.1:{free_port()}"
         managers: dict[str, Manager] = {}
         for i, name in enumerate(("station", "robot", "field")):
-            managers[name] = make_manager(name, specs=[SCENARIO_HOSTS[name]], ontology=[ONTOLOGY], listen=[hub] if i == 0 else ["tcp/127.0.0.1:0"],
+            specs = station_specs if name == "station" and station_specs is not None else SCENARIO_HOSTS[name]
+            managers[name] = make_manager(name, specs=[specs], ontology=[ONTOLOGY], listen=[hub] if i == 0 else ["tcp/127.0.0.1:0"],
                                           connect=[] if i == 0 else [hub], queue_depth=100_000, **kwargs)  # fmt: skip
         for manager in managers.values():
             wait_until(lambda m=manager: len(m.peers()) == 2, f"{manager.name} to know the others")  # type: ignore[misc]
@@ -200,6 +201,72 @@ def test_a_false_requirement_moves_the_request_to_the_next_best_configuration(sy
     assert any(msg.payload["verdict"] is False for msg in verdicts.messages)
     station.release(key)
     assert station.requests() == [] and not any("require" in u.name for u in station.units())
+
+
+def test_a_transformations_own_requirement_moves_its_requests_off_it(system: Callable[..., dict[str, Manager]], tmp_path: Any) -> None:
+    """A spec may require formulas of its outputs: the station's detectors here require that the
+    detections are not the bottom camera's. The request starts on the robot's bottom camera (the
+    planner's preference), the requirement of ball-detector(bottom) is watched on that unit's
+    output, its false verdict puts that transformation in back-off, the request moves to the
+    ceiling camera, and the adaptation names the transformation and the formula; the model lists
+    the watched requirement with its key, and a release takes its monitor down."""
+    station_xml = (
+        SCENARIO_HOSTS["station"]
+        .read_text()
+        .replace(
+            '<tag port="out">BallObject(${Cam})</tag></tags>',
+            f'<tag port="out">BallObject(${{Cam}})</tag></tags>\n    <requirements><requirement>BallObject(${{Cam}}).camera != {BOTTOM}</requirement></requirements>',
+        )
+    )
+    assert "<requirements>" in station_xml
+    (tmp_path / "station.xml").write_text(station_xml)
+    m = system(station_specs=tmp_path / "station.xml", dwell_s=0.3)
+    station = m["station"]
+    formula = f"BallObject(bottom).camera != {BOTTOM}"
+    cause = f"requirement of ball-detector(bottom) violated: {formula}"
+    with Client("station", connect=station.endpoints) as client:
+        key = client.request(TRACK)
+        (info,) = client.get_model()["requests"]
+    assert "robot-camera@robot" in info["labels"] and info["requirements"] == []
+    (watched,) = info["spec_requirements"]
+    assert watched["formula"] == formula and watched["transformation"] == "ball-detector(bottom)"
+    verdicts = _sink(station, "verdicts", watched["key"])
+    wait_until(lambda: any(e.cause == cause for e in station.get_adaptations()), "the spec's requirement to make it adapt")
+    moved = next(e for e in station.get_adaptations() if e.cause == cause)
+    assert "robot-camera@robot" in moved.old and "ceiling-camera@field" in moved.new and "ball-detector(bottom)" not in moved.new
+    assert any(msg.payload["verdict"] is False for msg in verdicts.messages)
+    with Client("station", connect=station.endpoints) as client:
+        (info,) = client.get_model()["requests"]
+    (watched,) = info["spec_requirements"]  # the ceiling's detector now, whose requirement holds
+    assert watched["transformation"] == "ball-detector(ceiling)" and watched["formula"] == f"BallObject(ceiling).camera != {BOTTOM}"
+    ceiling = _sink(station, "ceiling-verdicts", watched["key"])
+    ceiling.wait_until(lambda msg: msg.payload["verdict"] is True, timeout_s=10)
+    station.release(key)
+    assert station.requests() == [] and not any("require" in u.name for u in station.units() if not u.name.endswith("verdicts"))
+
+
+def test_a_requirement_in_a_spec_that_does_not_read_is_refused_with_its_line(tmp_path: Any) -> None:
+    from dyknow import SpecError
+    from dyknow.spec import parse_specs
+
+    xml = (
+        "<transformation>\n  <label>t</label><source>a:B</source>\n"
+        '  <ports><port type="out">out</port></ports><tags><tag port="out">Track(x)</tag></tags>\n'
+        "  <requirements>\n    <requirement>always[0, 1s Track(x).ok</requirement>\n"
+        "    <requirement>Other(x) &gt; 1</requirement>\n  </requirements>\n</transformation>\n"
+    )
+    with pytest.raises(SpecError) as caught:
+        parse_specs(xml, "t.xml")
+    message = str(caught.value)
+    assert "t.xml:5: <requirement>: formula column 14" in message and "expected ']'" in message
+    assert (
+        "t.xml:6: <requirement>: 'Other(x) > 1' reads none of this transformation's outputs; expected a term that is one of its output tags (Track(x))"
+        in message
+    )
+    (spec,) = parse_specs(xml.replace("always[0, 1s Track", "always[0, 1s] Track").replace("Other(x)", "Track(x).n"), "t.xml")
+    assert spec.requirements == ("always[0, 1s] Track(x).ok", "Track(x).n > 1")
+    (again,) = parse_specs(spec.to_xml(), "again.xml")  # written back and read (as another manager's summary is)
+    assert again.requirements == spec.requirements and spec.to_dict()["requirements"] == list(spec.requirements)
 
 
 def test_a_requirement_that_does_not_read_is_refused_before_anything_runs(system: Callable[..., dict[str, Manager]]) -> None:

@@ -26,6 +26,9 @@ instantiate, its parameters, its ports and the semantic tags that describe what 
         <constraints>
           <constraint measure="battery" op="&gt;=" value="0.25"/>
         </constraints>
+        <requirements>                         <!-- temporal formulas over its outputs (dyknow.reasoning) -->
+          <requirement>always[0, 1s] Undistorted(${Cam}).ok</requirement>
+        </requirements>
       </transformation>
     </transformations>
 
@@ -34,7 +37,7 @@ and ``ports`` are required. ``specs/transformation.xsd`` describes the same form
 
 A ``<transformation>`` with ``<args>`` is a *template*: ``${Name}`` is replaced by each value of
 the arg ``Name`` in the label, source, description, param values, port names, tag texts, tag
-``port`` attributes and constraint values, and ``$$`` stands for a literal ``$``. Several args
+``port`` attributes, constraint values and requirements, and ``$$`` stands for a literal ``$``. Several args
 expand as their cartesian product, in document order.
 
 Loading happens in two steps. :func:`parse_templates` checks the structure (elements, attributes,

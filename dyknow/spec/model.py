@@ -179,6 +179,7 @@ class TransformationSpec:
     tags: tuple[Tag, ...] = ()
     priority: int = DEFAULT_PRIORITY
     constraints: tuple[Constraint, ...] = ()
+    requirements: tuple[str, ...] = ()  # temporal formulas its outputs must satisfy (dyknow.reasoning)
     description: str = ""
     args: tuple[tuple[str, str], ...] = ()
     path: str = "<memory>"
@@ -236,6 +237,7 @@ class TransformationSpec:
             "tags": [{"port": t.port, "tag": t.tag} for t in self.tags],
             "priority": self.priority,
             "constraints": [{"measure": c.measure, "op": c.op, "value": c.value} for c in self.constraints],
+            "requirements": list(self.requirements),
             "description": self.description,
             "args": dict(self.args),
             "location": self.location,
@@ -289,6 +291,10 @@ class TransformationSpec:
                 attributes = f"measure={quoteattr(c.measure)} op={quoteattr(c.op)} value={value}"
                 out.append(f"    <constraint {attributes}/>")
             out.append("  </constraints>")
+        if self.requirements:
+            out.append("  <requirements>")
+            out.extend(f"    <requirement>{_xml_text(r)}</requirement>" for r in self.requirements)
+            out.append("  </requirements>")
         out.append("</transformation>")
         return "\n".join(out) + "\n"
 

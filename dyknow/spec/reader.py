@@ -69,13 +69,15 @@ _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "priority": (),
     "constraints": (),
     "constraint": ("measure", "op", "value"),
+    "requirements": (),
+    "requirement": (),
 }
 
 ELEMENTS: Mapping[str, frozenset[str]] = MappingProxyType({name: frozenset(attributes) for name, attributes in _ATTRIBUTES.items()})
 """Every element of the format and the attributes it allows (``specs/transformation.xsd`` agrees)."""
 
 _TRANSFORMATION_CHILDREN = (
-    "label", "source", "description", "args", "params", "ports", "tags", "priority", "constraints",
+    "label", "source", "description", "args", "params", "ports", "tags", "priority", "constraints", "requirements",
 )  # fmt: skip
 # Required children and attributes, with the example their "missing" message shows.
 _REQUIRED_CHILDREN = {
@@ -98,6 +100,7 @@ _CONTAINERS = {
     "ports": "port",
     "tags": "tag",
     "constraints": "constraint",
+    "requirements": "requirement",
 }
 _EMPTY_ELEMENTS = frozenset({"constraint"})  # attributes only, no text
 # Root-only attributes: namespace declarations and the ones editors use to attach the XSD.
@@ -459,6 +462,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
     ports, port_lines = _read_ports(first.get("ports"), declared, issues)
     tags, tag_lines = _read_tags(first.get("tags"), declared, issues)
     constraints, constraint_lines = _read_constraints(first.get("constraints"), declared, issues)
+    requirements, requirement_lines = _read_requirements(first.get("requirements"), declared, issues)
     return Template(
         label=label,
         source=source,
@@ -477,6 +481,8 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
         port_lines=port_lines,
         tag_lines=tag_lines,
         constraint_lines=constraint_lines,
+        requirements=requirements,
+        requirement_lines=requirement_lines,
     )
 
 
@@ -652,6 +658,20 @@ def _read_constraints(container: _Node | None, declared: Sequence[str], issues: 
         _check_template("<constraint> @value", value, node.line, declared, issues)
         constraints.append(Constraint(measure, op, value))
     return tuple(constraints), tuple(n.line for n in nodes)
+
+
+def _read_requirements(container: _Node | None, declared: Sequence[str], issues: _Issues) -> tuple[tuple[str, ...], tuple[int, ...]]:
+    """The formulas' text as written (checked against the language when expanded)."""
+    formulas: list[str] = []
+    nodes = _children(container)
+    for node in nodes:
+        if not node.text:
+            issues.add(
+                node.line, "<requirement>", "empty", "a temporal formula over the outputs, such as eventually[0, 2s] Track(${Cam}).seen"
+            )
+        _check_template("<requirement>", node.text, node.line, declared, issues)
+        formulas.append(node.text)
+    return tuple(formulas), tuple(n.line for n in nodes)
 
 
 def _check_template(where: str, text: str, line: int, declared: Sequence[str], issues: _Issues) -> None:

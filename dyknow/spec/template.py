@@ -1,10 +1,11 @@
 """Templates: a ``<transformation>`` with ``<args>``, expanded into one spec per combination.
 
 ``${Name}`` is replaced by each value of the arg ``Name`` in the label, source, description, param
-values, port names, tag texts, tag ``port`` attributes and constraint values, and ``$$`` stands for
-a literal ``$``. Several args expand as their cartesian product, in document order.
+values, port names, tag texts, tag ``port`` attributes, constraint values and requirements, and
+``$$`` stands for a literal ``$``. Several args expand as their cartesian product, in document order.
 :meth:`Template.expand` checks what depends on the substituted text (param values against their
-type, port names, tag ports, constraint values, distinct labels) and reports every problem of the
+type, port names, tag ports, constraint values, requirements against the formula language,
+distinct labels) and reports every problem of the
 template, located.
 """
 
@@ -17,8 +18,9 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
-from dyknow.errors import SpecError, SpecIssue, TagError, compose, did_you_mean
+from dyknow.errors import FormulaError, SpecError, SpecIssue, TagError, compose, did_you_mean
 from dyknow.keys import label_problem
+from dyknow.reasoning.syntax import parse
 from dyknow.spec.model import (
     DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
@@ -70,6 +72,8 @@ class Template:
     port_lines: tuple[int, ...] = ()
     tag_lines: tuple[int, ...] = ()
     constraint_lines: tuple[int, ...] = ()
+    requirements: tuple[str, ...] = ()
+    requirement_lines: tuple[int, ...] = ()
 
     @property
     def is_template(self) -> bool:
@@ -141,6 +145,7 @@ class Template:
         texts += [p.name for p in self.ports]
         texts += [t for tag in self.tags for t in (tag.port, tag.tag)]
         texts += [t for c in self.constraints for t in (c.measure, c.op, str(c.value))]
+        texts += list(self.requirements)
         return sum(len(t.encode()) + t.count("${") * longest_value for t in texts) + 64 * (1 + len(texts))
 
     def _build(self, values: Mapping[str, str]) -> tuple[TransformationSpec, list[_Problem]]:
@@ -197,6 +202,22 @@ class Template:
                 problems.append((line, "<constraint> @value", problem, "a number, or op == or !="))
             constraints.append(replace(constraint, value=text))
 
+        requirements = []
+        out_ports = {p.name for p in ports if p.direction == "out"}
+        outputs = {str(parse_term(t.tag)) for t in tags if t.port in out_ports and _is_term(t.tag)}
+        for text, line in zip(self.requirements, self.requirement_lines, strict=True):
+            formula_text = sub(text)
+            try:
+                formula = parse(formula_text)
+            except FormulaError as exc:
+                problems.append((line, "<requirement>", compose(exc.what, exc.where), exc.expected or ""))
+                continue
+            if not {str(term) for term in formula.terms} & outputs:
+                expected = f"a term that is one of its output tags ({', '.join(sorted(outputs)) or 'it has none'})"
+                problems.append((line, "<requirement>", f"{shorten(formula_text)!r} reads none of this transformation's outputs", expected))
+                continue
+            requirements.append(str(formula))
+
         label = sub(self.label)
         label_issue = label_problem(label) if label else None  # an empty one is reported where it is read
         if label_issue is not None:
@@ -209,6 +230,7 @@ class Template:
             tags=tuple(tags),
             priority=self.priority,
             constraints=tuple(constraints),
+            requirements=tuple(requirements),
             description=sub(self.description),
             args=tuple(values.items()),
             path=self.path,
@@ -266,3 +288,11 @@ def _arg_values(arg: Arg, individuals: Individuals | None) -> tuple[tuple[str, .
             return (), (problem, "non-empty strings")
     # An ontology may list an individual twice (asserted under two classes); that is no error.
     return tuple(dict.fromkeys(v.strip() for v in values)), None
+
+
+def _is_term(text: str) -> bool:
+    try:
+        parse_term(text)
+    except TagError:
+        return False
+    return True

@@ -128,6 +128,7 @@ class ModelWatch:
                 wanted += [str(m["key"]) for m in monitor.get("monitors", [])]
             for request in model.get("requests", []):
                 wanted += [f"{request['key']}/requirements/{n}" for n in range(1, len(request.get("requirements", [])) + 1)]
+                wanted += [str(r["key"]) for r in request.get("spec_requirements", []) if isinstance(r, dict) and "key" in r]
         wanted = list(dict.fromkeys(wanted))[:MAX_VERDICT_KEYS]
         for key in [k for k in self._verdict_subs if k not in wanted]:
             self._verdict_subs.pop(key).undeclare()
