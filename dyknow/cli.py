@@ -852,6 +852,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         as_json=args.json,
         distributed=args.distributed,
         ui_port=args.ui_port if args.ui else None,
+        standby=not args.no_standby,
     )
 
 
@@ -971,6 +972,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--chain", action="store_true", help="the latency demo instead: a chain of relays, per-hop latency")
     p.add_argument("--ui", action="store_true", help="serve the interactive tool beside the demo (dyknow ui) and print its URL")
     p.add_argument("--ui-port", type=int, default=8321, metavar="PORT", help="the tool's port with --ui (default 8321; 0: any free port)")
+    p.add_argument("--no-standby", action="store_true", help="request the track without a warm standby (switches then build their configuration cold)")
     p.add_argument("--distributed", action="store_true",
                    help="the scenario across three manager processes (robot, field, station): battery drop, then a manager killed")  # fmt: skip
     p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")
