@@ -286,6 +286,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         connect=args.connect,
         zenoh_config=args.zenoh_config,
         allow_sources=args.allow_source,
+        code_paths=args.path,
         data_roots=args.data_root,
         limits=limits,
         tls=tls,
@@ -912,6 +913,8 @@ def _parser() -> argparse.ArgumentParser:
     zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
                    help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
+    p.add_argument("--path", action="append", default=[], metavar="DIR",
+                   help="a folder to find units' modules in, besides the spec files' own folders (repeatable)")  # fmt: skip
     p.add_argument("--data-root", action="append", default=[], metavar="DIR",
                    help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
     p.add_argument(

@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.machinery
+import importlib.util
 import inspect
 import json
 import logging
@@ -75,6 +77,11 @@ class Manager:
     ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`).
     ``dwell_s``: how long a request keeps a configuration before switching for a better one.
 
+    Where units' code comes from: an installed package, ``PYTHONPATH``, or a module or package
+    beside a spec file the operator gave (at start or through the Python API) or in one of
+    ``code_paths`` (``--path DIR``): a unit's module that is not importable otherwise is looked
+    for there (``thermo.py`` beside ``thermo.xml`` is found), without changing ``sys.path``.
+
     Security (see :mod:`dyknow.security`): ``allow_sources`` adds unit sources the manager may
     load (beyond ``dyknow``, ``transformations`` and the modules its specs name);
     ``data_roots`` are the folders file params may name for remote callers (reads also may name
@@ -106,6 +113,7 @@ class Manager:
         slow_callback_s: float = 0.002,
         dwell_s: float = DEFAULT_DWELL_S,
         allow_sources: Iterable[str] = (),
+        code_paths: Iterable[str | os.PathLike[str]] = (),
         data_roots: Iterable[str | os.PathLike[str]] = (),
         limits: Limits | None = None,
         tls: TlsFiles | None = None,
@@ -123,6 +131,11 @@ class Manager:
         self.limits = limits = limits or Limits()
         self.library = Library()
         self._sources = SourcePolicy([*DEFAULT_SOURCES, *allow_sources])
+        self._code_paths: list[str] = []  # folders unit modules are looked for in (--path, the trusted specs' own)
+        for folder in code_paths:
+            if not os.path.isdir(folder):
+                raise LibraryError(f"code path {os.fspath(folder)!r} is not a folder", expected="a folder holding unit modules (--path DIR)")
+            self._code_paths.append(os.path.abspath(folder))
         self._remote_labels: set[str] = set()  # added through the service: their params are checked
         spec_objs = [s for s in specs if isinstance(s, TransformationSpec)]
         paths = [s for s in specs if not isinstance(s, TransformationSpec)]
@@ -417,7 +430,7 @@ class Manager:
         self, spec: TransformationSpec, name: str, *, protected: bool, values: dict[str, Any], ports: dict[str, str], confine: bool = False
     ) -> UnitInfo:
         """Import, create and start a unit (its name is reserved; the manager lock is not held)."""
-        cls = _import_unit(spec, self._sources)
+        cls = _import_unit(spec, self._sources, self._code_paths)
         if confine:  # file params, as the spec declares them and as the (trusted) class does
             modes = {p.name: p.mode or "read" for p in spec.params if p.type == "path"} | dict(cls.path_params)
             for param, mode in modes.items():
@@ -587,8 +600,12 @@ class Manager:
         return proxy
 
     def _trust(self, specs: Iterable[TransformationSpec]) -> None:
-        """Specs from the operator (files at start, the Python API): their modules may be loaded."""
+        """Specs from the operator (files at start, the Python API): their modules may be loaded,
+        and are looked for beside the spec file too."""
         for spec in specs:
+            folder = os.path.dirname(os.path.abspath(spec.path)) if os.path.isfile(spec.path) else None
+            if folder is not None and folder not in self._code_paths:
+                self._code_paths.append(folder)
             if self._sources.allows(spec.source) or not _SOURCE_SYNTAX.fullmatch(spec.source):
                 continue  # allowed already, or not a source at all (refused with its own message at spawn)
             self._sources.allow(module_of(spec.source))
@@ -909,7 +926,29 @@ def _loopback(endpoint: str) -> bool:
 _SOURCE_SYNTAX = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*")
 
 
-def _import_unit(spec: TransformationSpec, sources: SourcePolicy) -> type[Unit]:
+def _import_from(module_name: str, folders: Sequence[str]) -> Any:
+    """Import ``module_name``; when its top-level package is not importable, look for it in
+    ``folders`` (in order) and load it from there, leaving ``sys.path`` as it is."""
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        top = module_name.partition(".")[0]
+        if exc.name != top or not folders:
+            raise
+        found = importlib.machinery.PathFinder.find_spec(top, list(folders))
+        if found is None or found.loader is None:
+            raise
+        module = importlib.util.module_from_spec(found)
+        sys.modules[top] = module
+        try:
+            found.loader.exec_module(module)
+        except BaseException:
+            sys.modules.pop(top, None)
+            raise
+        return importlib.import_module(module_name)
+
+
+def _import_unit(spec: TransformationSpec, sources: SourcePolicy, folders: Sequence[str] = ()) -> type[Unit]:
     where = f"transformation {spec.label!r} ({spec.path}:{spec.line})"
     module_name, sep, class_name = spec.source.partition(":")
     if not _SOURCE_SYNTAX.fullmatch(spec.source):
@@ -917,12 +956,14 @@ def _import_unit(spec: TransformationSpec, sources: SourcePolicy) -> type[Unit]:
     sources.check(spec.source, where)  # before anything is imported
     try:
         # imported already: skip the import machinery (it keeps a little for every call)
-        module = sys.modules.get(module_name) or importlib.import_module(module_name)
+        module = sys.modules.get(module_name) or _import_from(module_name, folders)
     except ModuleNotFoundError as exc:
+        looked = f" (looked beside the specs and in --path folders: {', '.join(folders)})" if folders else ""
         raise UnitError(
-            f"cannot import module {module_name!r} named in its source: {exc}",
+            f"cannot import module {module_name!r} named in its source: {exc}{looked}",
             where=where,
-            expected="an installed package or one on PYTHONPATH",
+            expected=f"{module_name.partition('.')[0]}.py (or a package of that name) beside the spec file or in a folder given with "
+            "--path DIR (code_paths=), an installed package, or one on PYTHONPATH",
         ) from exc
     except Exception as exc:
         raise UnitError(f"importing module {module_name!r} failed: {type(exc).__name__}: {exc}", where=where) from exc
