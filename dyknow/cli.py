@@ -506,7 +506,8 @@ def cmd_stats(args: argparse.Namespace) -> int:
             f"{stats['reconfigurations']} reconfigurations, {stats['executor']}"
         )
         for port, p in stats["ports"].items():
-            line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B, {p['dropped']} dropped"
+            unsized = f" (+{p['unsized']} msgs of unknown size: passed by reference, never encoded)" if p.get("unsized") else ""
+            line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B{unsized}, {p['dropped']} dropped"
             if p["direction"] == "in" and p["latency"]["count"]:
                 lat, hop = p["latency"], p["hop"]
                 line += f"; latency p50 {lat['p50_us']:.1f} µs p99 {lat['p99_us']:.1f} µs; hop p50 {hop['p50_us']:.1f} µs p99 {hop['p99_us']:.1f} µs"
