@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from dyknow.client import Client, ClockView
-from dyknow.errors import DyKnowError, SpecError
+from dyknow.errors import DyKnowError, SpecError, did_you_mean
 from dyknow.message import Message, describe_payload
 from dyknow.model import STANDBY_MODES
 from dyknow.spec import DEFAULT_MAX_EXPANSIONS, load_specs
@@ -381,6 +381,8 @@ def cmd_model(args: argparse.Namespace) -> int:
                     yield f"      {port} -> {key}"
                 if unit.get("error"):
                     yield f"      error: {unit['error']}"
+            if not model["units"]:
+                yield "  no units"
             for request in model.get("requests", []):
                 yield f"  request {request['tag']} on {request['key']}: {request['state']}"
             if model["specs"]:
@@ -550,8 +552,12 @@ def cmd_request(args: argparse.Namespace) -> int:
 def cmd_release(args: argparse.Namespace) -> int:
     """give back a requested stream"""
     with _client(args) as client:
-        client.release(args.key)
-    _report(args, {"released": args.key}, f"released {args.key}")
+        remaining = client.release(args.key)
+    if remaining:
+        text = f"released one reference to {args.key}; {remaining} more remain, so it runs on until they are released too"
+    else:
+        text = f"released {args.key}: it is gone (the units only it used were destroyed)"
+    _report(args, {"released": args.key, "references": remaining}, text)
     return 0
 
 
@@ -573,6 +579,8 @@ def cmd_adaptations(args: argparse.Namespace) -> int:
         events = client.get_adaptations()
 
     def text() -> Iterable[str]:
+        if not events:
+            yield f"no adaptations on manager {args.manager!r} yet"
         for e in events:
             times = f"adapted in {e['adaptation_ms']} ms" if e["adaptation_ms"] is not None else ""
             if e["recovery_ms"] is not None:
@@ -582,6 +590,17 @@ def cmd_adaptations(args: argparse.Namespace) -> int:
 
     _report(args, events, text)
     return 0
+
+
+def _printable(payload: Any) -> str:
+    """A payload as a user can paste it: JSON for JSON-like values and text, a description of
+    arrays and bytes."""
+    if isinstance(payload, (np.ndarray, bytes, bytearray, memoryview)):
+        return describe_payload(payload)
+    try:
+        return json.dumps(payload, ensure_ascii=False)
+    except (TypeError, ValueError):
+        return describe_payload(payload)
 
 
 def _payload_json(payload: Any) -> Any:
@@ -620,7 +639,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 "payload": _payload_json(msg.payload),
             }
             age = "clock unknown" if known is None or age_us is None else f"{age_us / 1000:.3f} ms" + (f" +/- {known[1] / 1e6:.3f}" if known[1] else "")
-            _report(args, data, f"{msg.key} #{msg.seq} age {age}: {describe_payload(msg.payload)}")
+            _report(args, data, f"{msg.key} #{msg.seq} age {age}: {_printable(msg.payload)}")
             seen += 1
             if args.count is not None and seen >= args.count:
                 done.set()
@@ -628,6 +647,13 @@ def cmd_echo(args: argparse.Namespace) -> int:
     with _client(args) as client, client.follow_clocks() as view:
         view.fetched.wait(args.timeout)  # the offsets before the first message
         clocks = view
+        if view.found is False and args.manager != DEFAULT_MANAGER:  # --manager given, and not there: say so
+            there = ", ".join(view.reachable) or "none"
+            print(
+                f"dyknow: warning: no manager {args.manager!r} is reachable (reachable: {there}"
+                f"{did_you_mean(args.manager, view.reachable)}): the ages of messages from other hosts' clocks cannot be corrected",
+                file=sys.stderr,
+            )
         with client.declare_subscriber(args.keyexpr, show):
             signal.signal(signal.SIGINT, lambda *_: done.set())
             signal.signal(signal.SIGTERM, lambda *_: done.set())

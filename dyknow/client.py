@@ -112,6 +112,8 @@ class ClockView:
         self.manager = manager
         self.every_s = every_s
         self.fetched = threading.Event()  # set once the first look is over (found or not)
+        self.found: bool | None = None  # whether the manager was reachable at the latest look
+        self.reachable: list[str] = []  # the managers reachable then
         self._client = client
         self._estimates: dict[int, Estimate] = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0)}  # swapped whole
         self._done = threading.Event()
@@ -143,7 +145,9 @@ class ClockView:
         client = self._client
         while True:
             try:  # (a manager that is not there would hold each look up for the client's timeout)
-                if self.manager in client.manager_names(timeout_s=min(client.timeout_s, 1.0)):
+                self.reachable = client.manager_names(timeout_s=min(client.timeout_s, 1.0))
+                self.found = self.manager in self.reachable
+                if self.found:
                     found = client.clocks(self.manager)
                     self._estimates = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in found.values()}}
             except DyKnowError as exc:
@@ -394,9 +398,12 @@ class Client:
             request["standby"] = check_standby(standby)
         return str(self._manager("request", request)["key"])
 
-    def release(self, key: str) -> None:
-        """Give back a request made with :meth:`request`."""
-        self._manager("release", {"key": key})
+    def release(self, key: str) -> int:
+        """Give back a request made with :meth:`request`; returns how many references to it remain
+        (another client's, or an earlier request of the same tag): it runs on while any does."""
+        reply = self._manager("release", {"key": key})
+        remaining = reply.get("references", 0) if isinstance(reply, dict) else 0
+        return remaining if isinstance(remaining, int) else 0
 
     def measure(self, name: str, value: float | str) -> None:
         """Record a measurement on the manager (constraints are checked against it)."""

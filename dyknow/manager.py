@@ -634,12 +634,14 @@ class Manager:
         self._check_open()
         return self._adaptation.request(tag, standby=standby, require=require)
 
-    def release(self, key: str) -> None:
+    def release(self, key: str) -> int:
         """Give back a request, or a monitor (the key :meth:`monitor` returned); its units are
-        destroyed when no other request uses them."""
+        destroyed when no other request uses them. Returns how many references to the request
+        remain (it stays while any does; 0: it is gone)."""
         self._check_open()
-        if not self._monitors.release(key):
-            self._adaptation.release(key)
+        if self._monitors.release(key):
+            return 0
+        return self._adaptation.release(key)
 
     def monitor(self, formula: str, *, reorder_ms: float = 0.0) -> str:
         """Monitor a temporal formula over the streams its terms name; returns the key of its
@@ -883,8 +885,8 @@ class Manager:
         return {"destroyed": request["name"]}
 
     def _serve_release(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
-        self.release(str(request["key"]))
-        return {"released": request["key"]}
+        remaining = self.release(str(request["key"]))
+        return {"released": request["key"], "references": remaining}
 
     def _serve_measure(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         self.measure(str(request["name"]), request["value"])
