@@ -544,8 +544,10 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
 def cmd_request(args: argparse.Namespace) -> int:
     """ask a manager for a stream by tag; prints its key"""
     with _client(args) as client:
-        key = client.request(args.tag, standby=args.standby, require=args.require)
-    _report(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require}, key)
+        key = client.request(args.tag, standby=args.standby, require=args.require, keep=True)
+    _report(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require, "kept": True}, key)
+    if not args.json:  # (stdout is the key alone, for scripts)
+        print(f"dyknow: the request is kept until released: dyknow release '{key}' --manager {args.manager}", file=sys.stderr)
     return 0
 
 

@@ -47,6 +47,7 @@ from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
 from dyknow.federation import Directory, Summary, SummaryUnit
+from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
 from dyknow.message import CLOCK_ID
@@ -95,6 +96,9 @@ class Manager:
     manager it reaches. ``host`` names the machine it runs on (default: the host name);
     ``lease_ms``: how soon a silent link, so a cut-off manager, is given up (Zenoh's lease).
 
+    Requests made by a :class:`~dyknow.client.Client` are held by it (:mod:`dyknow.holders`):
+    ``client_grace_s`` after the client is gone, the references it held are released.
+
     It is the adaptation loop's :class:`~dyknow.adaptation.Runtime`.
     """
 
@@ -121,6 +125,7 @@ class Manager:
         host: str | None = None,
         lease_ms: int | None = None,
         federate: bool | None = None,
+        client_grace_s: float = DEFAULT_GRACE_S,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
@@ -200,6 +205,7 @@ class Manager:
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._workers: service.Workers | None = None
+        self._holders: Holders | None = None
         self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
         self.on_unit_event(self._adaptation.unit_event)
         self._monitors = Monitors(
@@ -222,6 +228,7 @@ class Manager:
             raise
         if serve:
             try:
+                self._holders = Holders(self._session, self.name, self.release, grace_s=client_grace_s)
                 self._workers = service.Workers(
                     self.name,
                     # clock exchanges are answered on Zenoh's thread, where their times are taken
@@ -274,6 +281,8 @@ class Manager:
             self._deadlines.clear()
         if self._workers is not None:
             self._workers.close(timeout_s / 4)
+        if self._holders is not None:
+            self._holders.close()
         self._adaptation.close(timeout_s / 2)  # releases what its requests run on other managers
         if self._directory is not None:
             self._directory.close(timeout_s / 4)
@@ -641,7 +650,10 @@ class Manager:
         self._check_open()
         if self._monitors.release(key):
             return 0
-        return self._adaptation.release(key)
+        remaining = self._adaptation.release(key)
+        if remaining == 0 and self._holders is not None:
+            self._holders.forget(key)
+        return remaining
 
     def monitor(self, formula: str, *, reorder_ms: float = 0.0) -> str:
         """Monitor a temporal formula over the streams its terms name; returns the key of its
@@ -663,8 +675,11 @@ class Manager:
         return self._monitors.infos()
 
     def requests(self) -> list[RequestInfo]:
-        """The active requests: tag, key, state ("active" or "degraded"), units."""
-        return self._adaptation.requests()
+        """The active requests: tag, key, state ("active" or "degraded"), units, holders."""
+        found = self._adaptation.requests()
+        if self._holders is None:
+            return found
+        return [replace(info, holders=self._holders.holders(info.key)) for info in found]
 
     def measure(self, name: str, value: float | str) -> None:
         """Record the latest value of a measure (battery, say); constraints are checked against it."""
@@ -843,7 +858,7 @@ class Manager:
             "spawn": self._serve_spawn,
             "destroy": self._serve_destroy,
             "get_model": self._serve_model,
-            "request": lambda r, c: {"key": self.request(str(r["tag"]), standby=r.get("standby"), require=r.get("require", ()))},
+            "request": self._serve_request,
             "release": self._serve_release,
             "monitor": lambda r, c: {"key": self.monitor(str(r["formula"]), reorder_ms=float(r.get("reorder_ms", 0.0)))},
             "measure": self._serve_measure,
@@ -885,8 +900,23 @@ class Manager:
         return {"destroyed": request["name"]}
 
     def _serve_release(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
-        remaining = self.release(str(request["key"]))
-        return {"released": request["key"], "references": remaining}
+        key = str(request["key"])
+        holder = request.get("holder")  # (checked with the request: dyknow.service)
+        remaining = self.release(key)
+        if holder is not None and self._holders is not None:
+            self._holders.gave_back(key, holder)
+        return {"released": key, "references": remaining}
+
+    def _serve_request(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
+        holder = request.get("holder")  # (checked with the request, before anything is taken: dyknow.service)
+        key = self.request(str(request["tag"]), standby=request.get("standby"), require=request.get("require", ()))
+        if holder is not None and self._holders is not None:
+            try:
+                self._holders.took(key, holder)
+            except DyKnowError:
+                self.release(key)
+                raise
+        return {"key": key, "kept": holder is None}
 
     def _serve_measure(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         self.measure(str(request["name"]), request["value"])
