@@ -1289,8 +1289,9 @@ class AdaptationLoop:
         self.runtime.spawn(spec, request.anchor, bindings=bindings)
         self.knowledge.managed.add(request.anchor)
 
-    def release(self, key: str) -> None:
-        """Drop one reference to a request; the last one tears down what only it used."""
+    def release(self, key: str) -> int:
+        """Drop one reference to a request; the last one tears down what only it used. Returns
+        the references that remain (0: the request is gone)."""
         with self._lock:
             request = self.knowledge.requests.get(key)
             if request is None:
@@ -1300,7 +1301,7 @@ class AdaptationLoop:
                 )
             request.references -= 1
             if request.references > 0:
-                return
+                return request.references
             del self.knowledge.requests[key]
             self._deferred.pop(key, None)
             orphans = [n for n in request.held() if n in self.knowledge.managed and not self.knowledge.users(n)]
@@ -1309,6 +1310,7 @@ class AdaptationLoop:
             for needed in [*request.needs, *(n for w in watches for n in w.needs)]:
                 if needed in self.knowledge.requests:
                     self.release(needed)
+            return 0
 
     def requests(self) -> list[RequestInfo]:
         """The active requests, by key. Never waits for a request being planned or adapted (the

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from dyknow.client import Client, ClockView
-from dyknow.errors import DyKnowError, SpecError
+from dyknow.errors import DyKnowError, SpecError, did_you_mean
 from dyknow.message import Message, describe_payload
 from dyknow.model import STANDBY_MODES
 from dyknow.spec import DEFAULT_MAX_EXPANSIONS, load_specs
@@ -286,6 +286,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         connect=args.connect,
         zenoh_config=args.zenoh_config,
         allow_sources=args.allow_source,
+        code_paths=args.path,
         data_roots=args.data_root,
         limits=limits,
         tls=tls,
@@ -380,6 +381,8 @@ def cmd_model(args: argparse.Namespace) -> int:
                     yield f"      {port} -> {key}"
                 if unit.get("error"):
                     yield f"      error: {unit['error']}"
+            if not model["units"]:
+                yield "  no units"
             for request in model.get("requests", []):
                 yield f"  request {request['tag']} on {request['key']}: {request['state']}"
             if model["specs"]:
@@ -505,7 +508,8 @@ def cmd_stats(args: argparse.Namespace) -> int:
             f"{stats['reconfigurations']} reconfigurations, {stats['executor']}"
         )
         for port, p in stats["ports"].items():
-            line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B, {p['dropped']} dropped"
+            unsized = f" (+{p['unsized']} msgs of unknown size: passed by reference, never encoded)" if p.get("unsized") else ""
+            line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B{unsized}, {p['dropped']} dropped"
             if p["direction"] == "in" and p["latency"]["count"]:
                 lat, hop = p["latency"], p["hop"]
                 line += f"; latency p50 {lat['p50_us']:.1f} µs p99 {lat['p99_us']:.1f} µs; hop p50 {hop['p50_us']:.1f} µs p99 {hop['p99_us']:.1f} µs"
@@ -540,16 +544,22 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
 def cmd_request(args: argparse.Namespace) -> int:
     """ask a manager for a stream by tag; prints its key"""
     with _client(args) as client:
-        key = client.request(args.tag, standby=args.standby, require=args.require)
-    _report(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require}, key)
+        key = client.request(args.tag, standby=args.standby, require=args.require, keep=True)
+    _report(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require, "kept": True}, key)
+    if not args.json:  # (stdout is the key alone, for scripts)
+        print(f"dyknow: the request is kept until released: dyknow release '{key}' --manager {args.manager}", file=sys.stderr)
     return 0
 
 
 def cmd_release(args: argparse.Namespace) -> int:
     """give back a requested stream"""
     with _client(args) as client:
-        client.release(args.key)
-    _report(args, {"released": args.key}, f"released {args.key}")
+        remaining = client.release(args.key)
+    if remaining:
+        text = f"released one reference to {args.key}; {remaining} more remain, so it runs on until they are released too"
+    else:
+        text = f"released {args.key}: it is gone (the units only it used were destroyed)"
+    _report(args, {"released": args.key, "references": remaining}, text)
     return 0
 
 
@@ -571,6 +581,8 @@ def cmd_adaptations(args: argparse.Namespace) -> int:
         events = client.get_adaptations()
 
     def text() -> Iterable[str]:
+        if not events:
+            yield f"no adaptations on manager {args.manager!r} yet"
         for e in events:
             times = f"adapted in {e['adaptation_ms']} ms" if e["adaptation_ms"] is not None else ""
             if e["recovery_ms"] is not None:
@@ -580,6 +592,17 @@ def cmd_adaptations(args: argparse.Namespace) -> int:
 
     _report(args, events, text)
     return 0
+
+
+def _printable(payload: Any) -> str:
+    """A payload as a user can paste it: JSON for JSON-like values and text, a description of
+    arrays and bytes."""
+    if isinstance(payload, (np.ndarray, bytes, bytearray, memoryview)):
+        return describe_payload(payload)
+    try:
+        return json.dumps(payload, ensure_ascii=False)
+    except (TypeError, ValueError):
+        return describe_payload(payload)
 
 
 def _payload_json(payload: Any) -> Any:
@@ -618,7 +641,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 "payload": _payload_json(msg.payload),
             }
             age = "clock unknown" if known is None or age_us is None else f"{age_us / 1000:.3f} ms" + (f" +/- {known[1] / 1e6:.3f}" if known[1] else "")
-            _report(args, data, f"{msg.key} #{msg.seq} age {age}: {describe_payload(msg.payload)}")
+            _report(args, data, f"{msg.key} #{msg.seq} age {age}: {_printable(msg.payload)}")
             seen += 1
             if args.count is not None and seen >= args.count:
                 done.set()
@@ -626,6 +649,13 @@ def cmd_echo(args: argparse.Namespace) -> int:
     with _client(args) as client, client.follow_clocks() as view:
         view.fetched.wait(args.timeout)  # the offsets before the first message
         clocks = view
+        if view.found is False and args.manager != DEFAULT_MANAGER:  # --manager given, and not there: say so
+            there = ", ".join(view.reachable) or "none"
+            print(
+                f"dyknow: warning: no manager {args.manager!r} is reachable (reachable: {there}"
+                f"{did_you_mean(args.manager, view.reachable)}): the ages of messages from other hosts' clocks cannot be corrected",
+                file=sys.stderr,
+            )
         with client.declare_subscriber(args.keyexpr, show):
             signal.signal(signal.SIGINT, lambda *_: done.set())
             signal.signal(signal.SIGTERM, lambda *_: done.set())
@@ -912,6 +942,8 @@ def _parser() -> argparse.ArgumentParser:
     zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
                    help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
+    p.add_argument("--path", action="append", default=[], metavar="DIR",
+                   help="a folder to find units' modules in, besides the spec files' own folders (repeatable)")  # fmt: skip
     p.add_argument("--data-root", action="append", default=[], metavar="DIR",
                    help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
     p.add_argument(

@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import os
+import secrets
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -28,10 +29,11 @@ from dyknow import keys, service
 from dyknow.access import TlsFiles
 from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError
+from dyknow.holders import holder_token
 from dyknow.identity import Signer
 from dyknow.message import CLOCK_ID, Message
 from dyknow.model import check_standby
-from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, Session, Subscriber, check_key_expr, make_config
+from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, LivelinessToken, Session, Subscriber, check_key_expr, make_config
 
 __all__ = ["Client"]
 
@@ -112,6 +114,8 @@ class ClockView:
         self.manager = manager
         self.every_s = every_s
         self.fetched = threading.Event()  # set once the first look is over (found or not)
+        self.found: bool | None = None  # whether the manager was reachable at the latest look
+        self.reachable: list[str] = []  # the managers reachable then
         self._client = client
         self._estimates: dict[int, Estimate] = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0)}  # swapped whole
         self._done = threading.Event()
@@ -143,7 +147,9 @@ class ClockView:
         client = self._client
         while True:
             try:  # (a manager that is not there would hold each look up for the client's timeout)
-                if self.manager in client.manager_names(timeout_s=min(client.timeout_s, 1.0)):
+                self.reachable = client.manager_names(timeout_s=min(client.timeout_s, 1.0))
+                self.found = self.manager in self.reachable
+                if self.found:
                     found = client.clocks(self.manager)
                     self._estimates = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in found.values()}}
             except DyKnowError as exc:
@@ -193,6 +199,10 @@ class Client:
                 session = Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls, lease_ms=lease_ms))
         self._session = session
         self._presence = _Presence(session)
+        # the requests this client holds (dyknow.holders): key -> (references, the token that says it is alive)
+        self._holder = secrets.token_hex(8)
+        self._held: dict[str, tuple[int, LivelinessToken]] = {}
+        self._held_lock = threading.Lock()
 
     def _open_leaf(self, lease_ms: int | None) -> Session:
         """A session that only connects: a Zenoh client of the endpoints when one answers now,
@@ -218,7 +228,13 @@ class Client:
         self.close()
 
     def close(self) -> None:
-        """Close the client's own session (not one it was given); safe twice."""
+        """Close the client's own session (not one it was given); safe twice. The requests it
+        holds are released by their manager a grace period later (:mod:`dyknow.holders`)."""
+        with self._held_lock:
+            tokens = [token for _, token in self._held.values()]
+            self._held.clear()
+        for token in tokens:
+            token.undeclare()
         self._presence.close()
         if self._own_session:
             self._session.close()
@@ -379,24 +395,49 @@ class Client:
         """Uptime, reconfigurations and per-port statistics of unit ``name``."""
         return dict(self._unit(name, "get_statistics", {}))
 
-    def request(self, tag: str, *, standby: str | None = None, require: Sequence[str] = ()) -> str:
+    def request(self, tag: str, *, standby: str | None = None, require: Sequence[str] = (), keep: bool = False) -> str:
         """Ask the manager for a stream of ``tag``; returns its key (PlanningError when nothing fits).
 
         ``standby="warm"`` keeps the next-best configuration running beside it (see
         :meth:`dyknow.manager.Manager.request`); an unknown mode is refused as a UnitError naming the
         field and the allowed values, before anything is sent. ``require``: formulas the stream
         must satisfy (a false verdict makes it adapt).
+
+        The client holds the request: once it is gone (closed, crashed, cut off), the manager
+        releases it a grace period later (:mod:`dyknow.holders`). ``keep=True`` leaves it
+        running until someone releases it (``dyknow request`` does).
         """
         request: dict[str, Any] = {"tag": tag}
         if require:
             request["require"] = list(require)
         if standby is not None:
             request["standby"] = check_standby(standby)
-        return str(self._manager("request", request)["key"])
+        if not keep:
+            request["holder"] = self._holder
+        key = str(self._manager("request", request)["key"])
+        if not keep:
+            with self._held_lock:
+                references, token = self._held.get(key) or (0, None)
+                if token is None:
+                    token = self._session.declare_liveliness_token(holder_token(key, self._holder))
+                self._held[key] = (references + 1, token)
+        return key
 
-    def release(self, key: str) -> None:
-        """Give back a request made with :meth:`request`."""
-        self._manager("release", {"key": key})
+    def release(self, key: str) -> int:
+        """Give back a request made with :meth:`request`; returns how many references to it remain
+        (another client's, or an earlier request of the same tag): it runs on while any does."""
+        with self._held_lock:
+            held = key in self._held
+        reply = self._manager("release", {"key": key, "holder": self._holder} if held else {"key": key})
+        with self._held_lock:
+            references, was = self._held.get(key) or (0, None)
+            if references > 1 and was is not None:
+                self._held[key] = (references - 1, was)
+            elif was is not None:
+                del self._held[key]
+                was.undeclare()
+        remaining = reply.get("references", 0) if isinstance(reply, dict) else 0
+        return remaining if isinstance(remaining, int) else 0
 
     def measure(self, name: str, value: float | str) -> None:
         """Record a measurement on the manager (constraints are checked against it)."""

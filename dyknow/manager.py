@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import importlib.machinery
+import importlib.util
 import inspect
 import json
 import logging
@@ -45,6 +47,7 @@ from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
 from dyknow.federation import Directory, Summary, SummaryUnit
+from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
 from dyknow.message import CLOCK_ID
@@ -75,6 +78,11 @@ class Manager:
     ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`).
     ``dwell_s``: how long a request keeps a configuration before switching for a better one.
 
+    Where units' code comes from: an installed package, ``PYTHONPATH``, or a module or package
+    beside a spec file the operator gave (at start or through the Python API) or in one of
+    ``code_paths`` (``--path DIR``): a unit's module that is not importable otherwise is looked
+    for there (``thermo.py`` beside ``thermo.xml`` is found), without changing ``sys.path``.
+
     Security (see :mod:`dyknow.security`): ``allow_sources`` adds unit sources the manager may
     load (beyond ``dyknow``, ``transformations`` and the modules its specs name);
     ``data_roots`` are the folders file params may name for remote callers (reads also may name
@@ -87,6 +95,9 @@ class Manager:
     the manager announce itself and its summary and plan over the libraries and units of every
     manager it reaches. ``host`` names the machine it runs on (default: the host name);
     ``lease_ms``: how soon a silent link, so a cut-off manager, is given up (Zenoh's lease).
+
+    Requests made by a :class:`~dyknow.client.Client` are held by it (:mod:`dyknow.holders`):
+    ``client_grace_s`` after the client is gone, the references it held are released.
 
     It is the adaptation loop's :class:`~dyknow.adaptation.Runtime`.
     """
@@ -106,6 +117,7 @@ class Manager:
         slow_callback_s: float = 0.002,
         dwell_s: float = DEFAULT_DWELL_S,
         allow_sources: Iterable[str] = (),
+        code_paths: Iterable[str | os.PathLike[str]] = (),
         data_roots: Iterable[str | os.PathLike[str]] = (),
         limits: Limits | None = None,
         tls: TlsFiles | None = None,
@@ -113,6 +125,7 @@ class Manager:
         host: str | None = None,
         lease_ms: int | None = None,
         federate: bool | None = None,
+        client_grace_s: float = DEFAULT_GRACE_S,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
@@ -123,6 +136,11 @@ class Manager:
         self.limits = limits = limits or Limits()
         self.library = Library()
         self._sources = SourcePolicy([*DEFAULT_SOURCES, *allow_sources])
+        self._code_paths: list[str] = []  # folders unit modules are looked for in (--path, the trusted specs' own)
+        for folder in code_paths:
+            if not os.path.isdir(folder):
+                raise LibraryError(f"code path {os.fspath(folder)!r} is not a folder", expected="a folder holding unit modules (--path DIR)")
+            self._code_paths.append(os.path.abspath(folder))
         self._remote_labels: set[str] = set()  # added through the service: their params are checked
         spec_objs = [s for s in specs if isinstance(s, TransformationSpec)]
         paths = [s for s in specs if not isinstance(s, TransformationSpec)]
@@ -187,6 +205,7 @@ class Manager:
         self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._workers: service.Workers | None = None
+        self._holders: Holders | None = None
         self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
         self.on_unit_event(self._adaptation.unit_event)
         self._monitors = Monitors(
@@ -209,6 +228,7 @@ class Manager:
             raise
         if serve:
             try:
+                self._holders = Holders(self._session, self.name, self.release, grace_s=client_grace_s)
                 self._workers = service.Workers(
                     self.name,
                     # clock exchanges are answered on Zenoh's thread, where their times are taken
@@ -261,6 +281,8 @@ class Manager:
             self._deadlines.clear()
         if self._workers is not None:
             self._workers.close(timeout_s / 4)
+        if self._holders is not None:
+            self._holders.close()
         self._adaptation.close(timeout_s / 2)  # releases what its requests run on other managers
         if self._directory is not None:
             self._directory.close(timeout_s / 4)
@@ -417,7 +439,7 @@ class Manager:
         self, spec: TransformationSpec, name: str, *, protected: bool, values: dict[str, Any], ports: dict[str, str], confine: bool = False
     ) -> UnitInfo:
         """Import, create and start a unit (its name is reserved; the manager lock is not held)."""
-        cls = _import_unit(spec, self._sources)
+        cls = _import_unit(spec, self._sources, self._code_paths)
         if confine:  # file params, as the spec declares them and as the (trusted) class does
             modes = {p.name: p.mode or "read" for p in spec.params if p.type == "path"} | dict(cls.path_params)
             for param, mode in modes.items():
@@ -587,8 +609,12 @@ class Manager:
         return proxy
 
     def _trust(self, specs: Iterable[TransformationSpec]) -> None:
-        """Specs from the operator (files at start, the Python API): their modules may be loaded."""
+        """Specs from the operator (files at start, the Python API): their modules may be loaded,
+        and are looked for beside the spec file too."""
         for spec in specs:
+            folder = os.path.dirname(os.path.abspath(spec.path)) if os.path.isfile(spec.path) else None
+            if folder is not None and folder not in self._code_paths:
+                self._code_paths.append(folder)
             if self._sources.allows(spec.source) or not _SOURCE_SYNTAX.fullmatch(spec.source):
                 continue  # allowed already, or not a source at all (refused with its own message at spawn)
             self._sources.allow(module_of(spec.source))
@@ -617,12 +643,17 @@ class Manager:
         self._check_open()
         return self._adaptation.request(tag, standby=standby, require=require)
 
-    def release(self, key: str) -> None:
+    def release(self, key: str) -> int:
         """Give back a request, or a monitor (the key :meth:`monitor` returned); its units are
-        destroyed when no other request uses them."""
+        destroyed when no other request uses them. Returns how many references to the request
+        remain (it stays while any does; 0: it is gone)."""
         self._check_open()
-        if not self._monitors.release(key):
-            self._adaptation.release(key)
+        if self._monitors.release(key):
+            return 0
+        remaining = self._adaptation.release(key)
+        if remaining == 0 and self._holders is not None:
+            self._holders.forget(key)
+        return remaining
 
     def monitor(self, formula: str, *, reorder_ms: float = 0.0) -> str:
         """Monitor a temporal formula over the streams its terms name; returns the key of its
@@ -644,8 +675,11 @@ class Manager:
         return self._monitors.infos()
 
     def requests(self) -> list[RequestInfo]:
-        """The active requests: tag, key, state ("active" or "degraded"), units."""
-        return self._adaptation.requests()
+        """The active requests: tag, key, state ("active" or "degraded"), units, holders."""
+        found = self._adaptation.requests()
+        if self._holders is None:
+            return found
+        return [replace(info, holders=self._holders.holders(info.key)) for info in found]
 
     def measure(self, name: str, value: float | str) -> None:
         """Record the latest value of a measure (battery, say); constraints are checked against it."""
@@ -824,7 +858,7 @@ class Manager:
             "spawn": self._serve_spawn,
             "destroy": self._serve_destroy,
             "get_model": self._serve_model,
-            "request": lambda r, c: {"key": self.request(str(r["tag"]), standby=r.get("standby"), require=r.get("require", ()))},
+            "request": self._serve_request,
             "release": self._serve_release,
             "monitor": lambda r, c: {"key": self.monitor(str(r["formula"]), reorder_ms=float(r.get("reorder_ms", 0.0)))},
             "measure": self._serve_measure,
@@ -866,8 +900,23 @@ class Manager:
         return {"destroyed": request["name"]}
 
     def _serve_release(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
-        self.release(str(request["key"]))
-        return {"released": request["key"]}
+        key = str(request["key"])
+        holder = request.get("holder")  # (checked with the request: dyknow.service)
+        remaining = self.release(key)
+        if holder is not None and self._holders is not None:
+            self._holders.gave_back(key, holder)
+        return {"released": key, "references": remaining}
+
+    def _serve_request(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
+        holder = request.get("holder")  # (checked with the request, before anything is taken: dyknow.service)
+        key = self.request(str(request["tag"]), standby=request.get("standby"), require=request.get("require", ()))
+        if holder is not None and self._holders is not None:
+            try:
+                self._holders.took(key, holder)
+            except DyKnowError:
+                self.release(key)
+                raise
+        return {"key": key, "kept": holder is None}
 
     def _serve_measure(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         self.measure(str(request["name"]), request["value"])
@@ -909,7 +958,29 @@ def _loopback(endpoint: str) -> bool:
 _SOURCE_SYNTAX = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*:[A-Za-z_][A-Za-z0-9_]*")
 
 
-def _import_unit(spec: TransformationSpec, sources: SourcePolicy) -> type[Unit]:
+def _import_from(module_name: str, folders: Sequence[str]) -> Any:
+    """Import ``module_name``; when its top-level package is not importable, look for it in
+    ``folders`` (in order) and load it from there, leaving ``sys.path`` as it is."""
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        top = module_name.partition(".")[0]
+        if exc.name != top or not folders:
+            raise
+        found = importlib.machinery.PathFinder.find_spec(top, list(folders))
+        if found is None or found.loader is None:
+            raise
+        module = importlib.util.module_from_spec(found)
+        sys.modules[top] = module
+        try:
+            found.loader.exec_module(module)
+        except BaseException:
+            sys.modules.pop(top, None)
+            raise
+        return importlib.import_module(module_name)
+
+
+def _import_unit(spec: TransformationSpec, sources: SourcePolicy, folders: Sequence[str] = ()) -> type[Unit]:
     where = f"transformation {spec.label!r} ({spec.path}:{spec.line})"
     module_name, sep, class_name = spec.source.partition(":")
     if not _SOURCE_SYNTAX.fullmatch(spec.source):
@@ -917,12 +988,14 @@ def _import_unit(spec: TransformationSpec, sources: SourcePolicy) -> type[Unit]:
     sources.check(spec.source, where)  # before anything is imported
     try:
         # imported already: skip the import machinery (it keeps a little for every call)
-        module = sys.modules.get(module_name) or importlib.import_module(module_name)
+        module = sys.modules.get(module_name) or _import_from(module_name, folders)
     except ModuleNotFoundError as exc:
+        looked = f" (looked beside the specs and in --path folders: {', '.join(folders)})" if folders else ""
         raise UnitError(
-            f"cannot import module {module_name!r} named in its source: {exc}",
+            f"cannot import module {module_name!r} named in its source: {exc}{looked}",
             where=where,
-            expected="an installed package or one on PYTHONPATH",
+            expected=f"{module_name.partition('.')[0]}.py (or a package of that name) beside the spec file or in a folder given with "
+            "--path DIR (code_paths=), an installed package, or one on PYTHONPATH",
         ) from exc
     except Exception as exc:
         raise UnitError(f"importing module {module_name!r} failed: {type(exc).__name__}: {exc}", where=where) from exc

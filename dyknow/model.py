@@ -121,6 +121,9 @@ class RequestInfo:
     #: the requirements of the transformations serving it (their specs'), watched while they do:
     #: ``{"formula", "transformation", "unit", "key"}`` (``key``: where their verdicts go)
     spec_requirements: tuple[Mapping[str, str], ...] = ()
+    #: the clients holding it (client id -> references; :mod:`dyknow.holders`); the other
+    #: references (``references`` minus these) are kept until released
+    holders: Mapping[str, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -137,6 +140,8 @@ class RequestInfo:
             "standby_reason": self.standby_reason,
             "requirements": list(self.requirements),
             "spec_requirements": [dict(r) for r in self.spec_requirements],
+            "holders": dict(self.holders),
+            "kept": self.references - sum(self.holders.values()),
         }
 
 

@@ -778,7 +778,10 @@ class Proxy:
         sent = publisher.put(msg) if publisher is not None and publisher.matched else 0
         counters = out.counters  # counted once sent: bookkeeping stays off the message's path
         counters.messages += 1
-        counters.bytes += msg.nbytes or sent
+        nbytes = msg.nbytes or sent
+        counters.bytes += nbytes
+        if nbytes == 0:
+            counters.unsized += 1
 
     def fail(self, reason: str) -> None:
         """The unit declares itself failed (from any thread): it stops, the manager is told."""

@@ -8,8 +8,10 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
 - ``@dyknow/<manager>/<service>`` for the manager's services: ``add_transformation``
   ``{"xml": "...", "path": "name used in errors"}``, ``remove_transformation`` ``{"label"}``,
   ``spawn`` ``{"label", "name", "protected", "params", "bindings"}``, ``destroy`` ``{"name"}``,
-  ``get_model`` ``{}``; ``request`` ``{"tag", "standby"}`` -> ``{"key"}`` (``standby``: optional,
-  one of :data:`~dyknow.model.STANDBY_MODES`); ``release`` ``{"key"}``;
+  ``get_model`` ``{}``; ``request`` ``{"tag", "standby", "require", "holder"}`` -> ``{"key", "kept"}``
+  (``standby``: optional, one of :data:`~dyknow.model.STANDBY_MODES`; ``holder``: the client
+  that holds it, see :mod:`dyknow.holders`); ``release`` ``{"key", "holder"}`` -> ``{"released",
+  "references"}`` (the references that remain);
   ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_summary`` ``{}`` (for
   the other managers: see :mod:`dyknow.federation`); a ``spawn`` may name the ``owner``, the
   manager whose request it serves (its units go when that manager does);
@@ -38,6 +40,7 @@ from typing import Any
 from dyknow import errors, keys
 from dyknow.access import AccessControl
 from dyknow.errors import AccessError, DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
+from dyknow.holders import HOLDER
 from dyknow.identity import Caller, Verifier
 from dyknow.model import standby_problem
 from dyknow.reasoning.syntax import MAX_FORMULA_CHARS
@@ -161,6 +164,13 @@ def _number_or_text(value: Any, field: str, limits: Limits) -> Any:
     raise _refuse(field, value, "a finite number, or text of at most 256 bytes")
 
 
+def _holder(value: Any, field: str, limits: Limits) -> str:
+    """The id of the client that holds a request (:mod:`dyknow.holders`)."""
+    if not isinstance(value, str) or not HOLDER.fullmatch(value):
+        raise _refuse(field, value, "a client id: 8 to 32 hexadecimal digits")
+    return value
+
+
 def _standby(value: Any, field: str, limits: Limits) -> str:
     """A request's standby mode (in the same words as :func:`~dyknow.model.check_standby`)."""
     problem = standby_problem(value)
@@ -221,9 +231,9 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     },
     "destroy": {"name": (True, _name("unit name")), "force": (False, _flag)},
     "get_model": {"page": (False, _page)},
-    "request": {"tag": (True, _text(512)), "standby": (False, _standby), "require": (False, _formulas)},
+    "request": {"tag": (True, _text(512)), "standby": (False, _standby), "require": (False, _formulas), "holder": (False, _holder)},
     "monitor": {"formula": (True, _text(_FORMULA_BYTES)), "reorder_ms": (False, _milliseconds)},
-    "release": {"key": (True, _key)},
+    "release": {"key": (True, _key), "holder": (False, _holder)},
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},
     "get_summary": {},

@@ -69,6 +69,10 @@ class PortStatistics:
     how far the latest one may be off for it (0 when both times were this process's). A message
     stamped by a clock whose offset is not known yet is counted in ``unknown_clock`` and left out
     of both figures: never shown as if it were true.
+
+    ``bytes`` counts the size of what was encoded or is bytes or an array; a JSON-like value (or
+    text) handed between units of one manager by reference is never encoded, so its size is not
+    known: such messages are counted in ``unsized`` (their bytes are not in ``bytes``).
     """
 
     port: str
@@ -84,6 +88,7 @@ class PortStatistics:
     lost: int = 0
     unknown_clock: int = 0
     uncertainty_us: float = 0.0
+    unsized: int = 0
 
     def to_dict(self) -> dict[str, object]:
         """The JSON form (latency and hop only for input ports)."""
@@ -92,6 +97,7 @@ class PortStatistics:
             "key": self.key,
             "messages": self.messages,
             "bytes": self.bytes,
+            "unsized": self.unsized,
             "dropped": self.dropped,
         }
         if self.direction == "in":
@@ -107,11 +113,14 @@ class PortStatistics:
 class PortCounters:
     """Mutable counters of one port, updated on the hot path."""
 
-    __slots__ = ("_hop", "_latency", "_n", "bytes", "clocks", "dropped", "last_rejection", "lost", "messages", "rejected", "unknown_clock")
+    __slots__ = (
+        "_hop", "_latency", "_n", "bytes", "clocks", "dropped", "last_rejection", "lost", "messages", "rejected", "unknown_clock", "unsized",
+    )  # fmt: skip
 
     def __init__(self) -> None:
         self.messages = 0
         self.bytes = 0
+        self.unsized = 0  # messages whose size is not known (JSON-like values passed by reference)
         self.dropped = 0
         self.lost = 0
         self.unknown_clock = 0
@@ -133,6 +142,8 @@ class PortCounters:
         """Count one message handed to a unit (one call on the hot path instead of three)."""
         self.messages += 1
         self.bytes += nbytes
+        if nbytes == 0:
+            self.unsized += 1
         i = self._n & _MASK
         self._latency[i] = latency_ns
         self._hop[i] = hop_ns
@@ -142,6 +153,8 @@ class PortCounters:
         """Count one message handed to a unit whose times come from a clock of unknown offset."""
         self.messages += 1
         self.bytes += nbytes
+        if nbytes == 0:
+            self.unsized += 1
         self.unknown_clock += 1
 
     def snapshot(self, port: str, direction: str, key: str, uncertainty_us: float = 0.0) -> PortStatistics:
@@ -162,4 +175,5 @@ class PortCounters:
             self.lost,
             self.unknown_clock,
             uncertainty_us,
+            self.unsized,
         )

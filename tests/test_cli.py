@@ -288,3 +288,26 @@ def test_managers_and_echo_show_clocks_as_the_manager_estimates_them(manager_pro
     assert unknown.returncode == 0, unknown.stderr
     assert all(json.loads(x)["latency_us"] is None and json.loads(x)["uncertainty_us"] is None for x in unknown.stdout.splitlines())
     assert "age clock unknown" in plain.stdout, plain.stdout
+
+
+def test_what_a_new_user_trips_on_is_said_plainly(manager_process: Callable[..., ManagerProcess]) -> None:
+    """Empty listings say so; release says how many references remain; echo prints JSON a user
+    can paste, and says when the --manager it was given is not there (with the close match)."""
+    proc = manager_process("--specs", str(SCENARIO), "--ontology", str(ONTOLOGY), name="engine")
+    conn = proc.client_args()
+    assert run_cli("adaptations", *conn).stdout.strip() == "no adaptations on manager 'engine' yet"
+    assert "  no units" in run_cli("model", *conn).stdout
+    key = run_cli("request", "BallPosition(field)", *conn).stdout.strip()
+    assert run_cli("request", "BallPosition(field)", *conn).stdout.strip() == key
+    first = run_cli("release", key, *conn)
+    assert first.stdout.strip() == f"released one reference to {key}; 1 more remain, so it runs on until they are released too"
+    second = run_cli("release", key, "--json", *conn)
+    assert json.loads(second.stdout) == {"released": key, "references": 0}
+    assert run_cli("spawn", "ceiling-camera", "cam", *conn).returncode == 0
+    assert run_cli("spawn", "subsampler(ceiling)", "sub", "--bind", "in=dyknow/engine/cam/out", *conn).returncode == 0
+    assert run_cli("spawn", "ball-detector(ceiling)", "det", "--bind", "in=dyknow/engine/sub/hsv", *conn).returncode == 0
+    typo = run_cli("echo", "dyknow/engine/det/out", "--count", "1", "--connect", proc.endpoint, "--manager", "engin")
+    assert typo.returncode == 0, typo.stderr
+    assert "dyknow: warning: no manager 'engin' is reachable (reachable: engine (did you mean 'engine'?))" in typo.stderr
+    printed = typo.stdout.split(": ", 1)[1].strip()  # "KEY #SEQ age ...: PAYLOAD"
+    assert json.loads(printed)["camera"] == 3  # JSON, as the unit published it

@@ -59,6 +59,7 @@ VALID: dict[str, Any] = {
     "formula": "A > 1",
     "reorder_ms": 5,
     "require": [],
+    "holder": "0123456789abcdef",
 }
 # Which of the JSON_PROBES each field takes; every other probe is refused naming the field.
 TEXT = {'"text"'}
@@ -84,6 +85,8 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("monitor", "formula"): TEXT,
     ("monitor", "reorder_ms"): {"0", "1.5"},
     ("request", "require"): {"[]"},
+    ("request", "holder"): set(),  # only hexadecimal client ids, none of the probes
+    ("release", "holder"): set(),
 }
 SWEEP = [(service, field, probe) for service, fields in SCHEMAS.items() for field in fields for probe in JSON_PROBES]
 

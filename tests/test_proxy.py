@@ -126,7 +126,7 @@ def test_statistics_count_messages_bytes_and_latency(manager: Manager) -> None:
     assert stats.to_dict()["ports"]["in"]["latency"]["count"] == 20
     source_stats = manager.get_statistics("src").to_dict()
     assert source_stats["ports"]["out"] == {"direction": "out", "key": default_key(manager.name, "src", "out"),
-                                              "messages": 20, "bytes": 2000, "dropped": 0}
+                                              "messages": 20, "bytes": 2000, "unsized": 0, "dropped": 0}
 
 
 def test_origin_timestamp_propagates_and_sequence_numbers_are_per_port(manager: Manager) -> None:

@@ -76,7 +76,7 @@ class Monitors:
         manager: str,
         *,
         request: Callable[[str], str],
-        release: Callable[[str], None],
+        release: Callable[[str], object],
         spawn: Callable[[TransformationSpec, str, Mapping[str, str]], Any],
         destroy: Callable[[str], None],
         unit: Callable[[str], object],

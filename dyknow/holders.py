@@ -1,0 +1,166 @@
+"""Who holds each request: a client's requests end with the client, a grace period after it is gone.
+
+A request counts its references (:meth:`dyknow.manager.Manager.request` twice, two references).
+A reference a client takes through the ``request`` service names the client (``holder``: a
+random id per :class:`~dyknow.client.Client`), and the client declares a liveliness token on
+``<request key>/holders/<holder>`` while it holds it. When that token goes (the client closed,
+crashed, or its host was cut off past its lease), the manager waits ``grace_s`` and, unless the
+token came back, releases every reference the client held there. A reference taken with
+``keep`` (``dyknow request`` does: it exits at once) or through the Python API names no holder
+and lasts until released. A holder that never declares its token is released ``grace_s`` after
+its request, as one that went.
+
+The holder id comes from the network: the service checks it (:data:`HOLDER`: hexadecimal,
+bounded), and each request keeps at most :data:`MAX_HOLDERS` of them.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import re
+import threading
+import time
+from collections.abc import Callable
+
+from dyknow import keys
+from dyknow.errors import ServiceError
+from dyknow.transport import LivelinessSubscriber, Session
+
+__all__ = ["DEFAULT_GRACE_S", "HOLDER", "MAX_HOLDERS", "Holders", "holder_token", "holders_pattern"]
+
+log = logging.getLogger(__name__)
+
+#: How long a manager keeps the requests of a client that is gone (s): longer than a lease, so a
+#: client whose link flapped keeps what it asked for.
+DEFAULT_GRACE_S = 10.0
+#: The holders one request keeps track of (each a client that asked for it and did not keep it).
+MAX_HOLDERS = 1000
+#: What a holder id looks like: the hexadecimal id a Client makes for itself.
+HOLDER = re.compile(r"[0-9a-f]{8,32}")
+
+
+def holder_token(request_key: str, holder: str) -> str:
+    """The liveliness token a client declares while it holds the request on ``request_key``."""
+    return f"{request_key}/holders/{holder}"
+
+
+def holders_pattern(manager: str) -> str:
+    """The tokens of every holder of every request of ``manager``."""
+    return f"{_requests_prefix(manager)}*/holders/*"
+
+
+def _requests_prefix(manager: str) -> str:
+    return f"{keys.DATA_ROOT}/{manager}/requests/"
+
+
+class Holders:
+    """The holders of a manager's requests, and the releases of those that are gone.
+
+    ``release(key)`` gives back one reference (the manager's own release); it runs on this
+    object's thread. A context manager; :meth:`close` stops the watch and the thread.
+    """
+
+    def __init__(self, session: Session, manager: str, release: Callable[[str], object], grace_s: float = DEFAULT_GRACE_S) -> None:
+        self.grace_s = grace_s
+        self._release = release
+        self._lock = threading.Condition()
+        self._held: dict[str, dict[str, int]] = {}  # request key -> holder -> references
+        self._alive: set[tuple[str, str]] = set()  # (request key, holder) whose token is up
+        self._due: list[tuple[float, str, str]] = []  # (monotonic time, request key, holder): look again then
+        self._closed = False
+        self._prefix = _requests_prefix(manager)
+        self._thread = threading.Thread(target=self._run, name=f"dyknow-{manager}-holders", daemon=True)
+        self._thread.start()
+        self._watch: LivelinessSubscriber | None = session.declare_liveliness_subscriber(holders_pattern(manager), self._changed)
+
+    def __enter__(self) -> Holders:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop watching and releasing; safe twice."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._lock.notify_all()
+        if self._watch is not None:
+            self._watch.undeclare()
+            self._watch = None
+        self._thread.join(timeout=2.0)
+
+    def took(self, key: str, holder: str) -> None:
+        """``holder`` took a reference to the request on ``key`` (after the request succeeded)."""
+        with self._lock:
+            held = self._held.setdefault(key, {})
+            if holder not in held and len(held) >= MAX_HOLDERS:
+                raise ServiceError(f"request {key!r} has {MAX_HOLDERS} holders already", where="field 'holder'", expected="fewer clients")
+            held[holder] = held.get(holder, 0) + 1
+            if (key, holder) not in self._alive:  # its token may be on its way: look again after the grace
+                self._look_later(key, holder)
+
+    def gave_back(self, key: str, holder: str) -> None:
+        """``holder`` released one reference it held (the manager released it)."""
+        with self._lock:
+            held = self._held.get(key, {})
+            if held.get(holder, 0) > 1:
+                held[holder] -= 1
+            else:
+                held.pop(holder, None)
+                if not held:
+                    self._held.pop(key, None)
+
+    def holders(self, key: str) -> dict[str, int]:
+        """The clients holding the request on ``key``: holder -> references."""
+        with self._lock:
+            return dict(self._held.get(key, {}))
+
+    def forget(self, key: str) -> None:
+        """The request on ``key`` is gone."""
+        with self._lock:
+            self._held.pop(key, None)
+
+    # -- liveliness (Zenoh's thread) and the releases (this object's thread)
+
+    def _changed(self, token: str, alive: bool) -> None:
+        rest = token[len(self._prefix) :] if token.startswith(self._prefix) else ""
+        chunk, _, holder = rest.rpartition("/holders/")
+        if not chunk or "/" in chunk or not HOLDER.fullmatch(holder):
+            return
+        key = self._prefix + chunk
+        with self._lock:
+            if alive:
+                self._alive.add((key, holder))
+            else:
+                self._alive.discard((key, holder))
+                if holder in self._held.get(key, {}):
+                    self._look_later(key, holder)
+
+    def _look_later(self, key: str, holder: str) -> None:
+        heapq.heappush(self._due, (time.monotonic() + self.grace_s, key, holder))
+        self._lock.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                while not self._closed and (not self._due or self._due[0][0] > time.monotonic()):
+                    self._lock.wait(None if not self._due else max(0.0, self._due[0][0] - time.monotonic()))
+                if self._closed:
+                    return
+                _, key, holder = heapq.heappop(self._due)
+                if (key, holder) in self._alive:
+                    continue
+                references = self._held.get(key, {}).pop(holder, 0)
+                if key in self._held and not self._held[key]:
+                    del self._held[key]
+            if references:
+                log.info("client %s holding %s is gone: %d reference(s) released after %.1f s", holder, key, references, self.grace_s)
+            for _ in range(references):
+                try:
+                    self._release(key)
+                except Exception as exc:  # (released meanwhile by someone else: nothing left to give back)
+                    log.debug("releasing %s for the gone client %s: %s", key, holder, exc)
+                    break

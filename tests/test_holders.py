@@ -1,0 +1,98 @@
+"""Requests have owners: a client's requests end a grace period after the client is gone, unless
+it kept them; the model shows who holds each; hostile holder ids are refused."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+
+import pytest
+
+from dyknow import Client, Manager, ServiceError
+from dyknow.testing import SCENARIO_SPECS
+from tests.conftest import REPO, run_cli, subprocess_env, wait_until
+
+TAG = "BallPosition(field)"
+ONTOLOGY = REPO / "specs" / "dyknow.ttl"
+
+
+@pytest.fixture
+def manager(make_manager: Callable[..., Manager]) -> Manager:
+    return make_manager("owners", specs=[SCENARIO_SPECS], ontology=[ONTOLOGY], client_grace_s=0.5)
+
+
+def _request(manager: Manager) -> dict[str, object] | None:
+    return next((r.to_dict() for r in manager.requests() if r.tag == TAG), None)
+
+
+def test_a_closed_clients_request_ends_after_the_grace_and_a_kept_one_stays(manager: Manager) -> None:
+    with Client(manager.name, connect=manager.endpoints) as client:
+        key = client.request(TAG)
+        held = _request(manager)
+        assert held is not None and held["references"] == 1 and held["kept"] == 0
+        assert list(held["holders"].values()) == [1]  # type: ignore[union-attr]
+    wait_until(lambda: _request(manager) is None, "the request of the closed client to be released")
+    assert manager.units() == []
+    with Client(manager.name, connect=manager.endpoints) as client:
+        assert client.request(TAG, keep=True) == key
+    assert not wait_until_false(lambda: _request(manager) is not None, seconds=1.5)  # well past the grace
+    assert _request(manager) == {**_request(manager), "references": 1, "kept": 1, "holders": {}}  # type: ignore[dict-item]
+
+
+def wait_until_false(condition: Callable[[], bool], seconds: float) -> bool:
+    """Whether ``condition`` turned false within ``seconds`` (it should not)."""
+    try:
+        wait_until(lambda: not condition(), "never", timeout_s=seconds)
+    except AssertionError:
+        return False
+    return True
+
+
+def test_one_client_gone_leaves_the_others_reference(manager: Manager) -> None:
+    with Client(manager.name, connect=manager.endpoints) as staying:
+        with Client(manager.name, connect=manager.endpoints) as leaving:
+            key = staying.request(TAG)
+            assert leaving.request(TAG) == key
+            assert _request(manager)["references"] == 2  # type: ignore[index]
+        wait_until(lambda: _request(manager)["references"] == 1, "the gone client's reference released")  # type: ignore[index]
+        assert len(_request(manager)["holders"]) == 1  # type: ignore[arg-type]
+        assert staying.release(key) == 0
+    assert _request(manager) is None
+
+
+def test_a_crashed_clients_request_ends_too(manager: Manager) -> None:
+    script = (
+        "import sys, time\nfrom dyknow import Client\n"
+        f"c = Client({manager.name!r}, connect=[sys.argv[1]], lease_ms=1000)\nprint(c.request({TAG!r}), flush=True)\ntime.sleep(60)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script, manager.endpoints[0]], stdout=subprocess.PIPE, text=True, env=subprocess_env())
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip().endswith("requests/BallPosition(field)")
+        assert _request(manager) is not None
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        wait_until(lambda: _request(manager) is None, "the crashed client's request released (its lease, then the grace)", timeout_s=30)
+    finally:
+        proc.kill()
+        proc.communicate(timeout=10)
+
+
+def test_a_bad_holder_id_is_refused_and_takes_nothing(manager: Manager) -> None:
+    with Client(manager.name, connect=manager.endpoints) as client:
+        with pytest.raises(ServiceError, match=r"field .holder.: got .\.\./\.\..; expected a client id: 8 to 32 hexadecimal digits"):
+            client.call_manager(manager.name, "request", {"tag": TAG, "holder": "../.."})
+    assert _request(manager) is None and manager.units() == []
+
+
+def test_the_cli_keeps_its_request_and_says_how_to_release_it(make_manager: Callable[..., Manager]) -> None:
+    manager = make_manager("kept", specs=[SCENARIO_SPECS], ontology=[ONTOLOGY], client_grace_s=0.5)
+    conn = ["--connect", manager.endpoints[0], "--manager", manager.name]
+    result = run_cli("request", TAG, *conn)
+    key = result.stdout.strip()
+    assert result.returncode == 0 and f"dyknow: the request is kept until released: dyknow release '{key}' --manager kept" in result.stderr
+    assert not wait_until_false(lambda: _request(manager) is not None, seconds=1.5)
+    model = json.loads(run_cli("model", "--json", *conn).stdout)
+    assert model["requests"][0]["kept"] == 1 and model["requests"][0]["holders"] == {}
