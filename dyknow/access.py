@@ -41,12 +41,14 @@ other managers. Without an ACL everything is allowed (local use).
 from __future__ import annotations
 
 import os
+import ssl
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import json5
+from cryptography.exceptions import InvalidSignature
 
 from dyknow import keys
 from dyknow.errors import AccessError, DyKnowError
@@ -81,12 +83,42 @@ class TlsFiles:
     key: str
 
     def check(self) -> TlsFiles:
-        """This, once every file is known to be readable; :class:`AccessError` naming the one that is not."""
+        """This, once the files are known to work together; else :class:`AccessError` naming the
+        file: one that is not readable, a CA file without a certificate, a certificate or key that
+        does not load, a key that is not the certificate's, a certificate its CA did not sign
+        (every peer would refuse it)."""
         for option, path in (("--tls-ca", self.ca), ("--tls-cert", self.cert), ("--tls-key", self.key)):
             if not os.path.isfile(path) or not os.access(path, os.R_OK):
                 raise AccessError(
                     f"{path!r} is not a readable file", where=option, expected="a PEM file (dyknow certs DIR writes development ones)"
                 )
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+        try:
+            context.load_verify_locations(self.ca)
+        except (ssl.SSLError, ValueError) as exc:
+            raise AccessError(
+                f"{self.ca} holds no CA certificate ({exc})", where="--tls-ca", expected="the PEM certificate of the CA"
+            ) from exc
+        try:
+            context.load_cert_chain(self.cert, self.key)
+        except ssl.SSLError as exc:
+            if "KEY_VALUES_MISMATCH" in str(exc):
+                raise AccessError(
+                    f"the key in {self.key} is not the key of the certificate {self.cert}",
+                    where="--tls-key",
+                    expected="the private key the certificate was issued for (NAME.key beside NAME.pem)",
+                ) from exc
+            raise AccessError(
+                f"{self.cert} and {self.key} do not load as a certificate and its key ({exc})",
+                where="--tls-cert/--tls-key",
+                expected="a PEM certificate and its unencrypted PEM private key",
+            ) from exc
+        if not _issued_by(Path(self.cert).read_bytes(), Path(self.ca).read_bytes()):
+            raise AccessError(
+                f"the certificate {self.cert} is not signed by the CA of {self.ca}: every peer that trusts that CA would refuse it",
+                where="--tls-cert",
+                expected="a certificate issued by the CA of --tls-ca (dyknow certs DIR writes both in DIR), or the CA file that issued it",
+            )
         return self
 
     @classmethod
@@ -99,6 +131,27 @@ class TlsFiles:
         if missing:
             raise AccessError(f"{', '.join(missing)} missing", where="TLS options", expected="--tls-ca, --tls-cert and --tls-key together")
         return cls(str(ca), str(cert), str(key)).check()
+
+
+def _issued_by(cert_pem: bytes, ca_pem: bytes) -> bool:
+    """Whether a certificate of the file ``cert_pem`` (the leaf, or a chain's intermediate) is a CA
+    of ``ca_pem`` or was signed by one."""
+    from cryptography import x509
+
+    try:
+        chain, cas = x509.load_pem_x509_certificates(cert_pem), x509.load_pem_x509_certificates(ca_pem)
+    except ValueError:
+        return True  # (ssl loaded them: a form this check does not read; the handshake judges)
+    for cert in chain:
+        for ca in cas:
+            if cert == ca:
+                return True
+            try:
+                cert.verify_directly_issued_by(ca)
+                return True
+            except (ValueError, TypeError, InvalidSignature):
+                continue
+    return False
 
 
 @dataclass(frozen=True, slots=True)

@@ -1073,7 +1073,8 @@ class Reconfigurer:
                 elif manager in self._runtime.peers():  # a lost manager took its units with it
                     self._runtime.destroy_on(manager, name)
             except DyKnowError as exc:
-                log.warning("could not destroy unit %r after an adaptation: %s", ref, exc)
+                gone = isinstance(exc, UnitError) and "no unit named" in exc.what  # replaced, or lost with its manager: as it should be
+                log.log(logging.DEBUG if gone else logging.WARNING, "could not destroy unit %r after an adaptation: %s", ref, exc)
             self._knowledge.managed.discard(ref)
             self._knowledge.stalled.discard(ref)
             self._knowledge.remote.pop(ref, None)
@@ -1466,7 +1467,7 @@ class AdaptationLoop:
             log.warning("adaptation of %s failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not wire the new configuration: {exc}")
             return
-        self._adapted(request, symptom, cause, old_labels, orphans, recovery, standby=False)
+        self._adapted(request, symptom, cause, old_labels, orphans, recovery, standby=False, fault=fault)
 
     def _adapted(
         self,
@@ -1478,9 +1479,11 @@ class AdaptationLoop:
         recovery: _Recovery,
         *,
         standby: bool,
+        fault: bool = False,
     ) -> int:
         """The new configuration is wired: record it, tell the listeners, let go of what it left;
-        returns when it was wired (ns)."""
+        returns when it was wired (ns). One log line says what was rebuilt and why: a warning
+        after a fault (something broke), else information (a better configuration came back)."""
         wired = time.time_ns()
         request.last_change_ns = wired
         event = AdaptationEvent(
@@ -1498,7 +1501,8 @@ class AdaptationLoop:
         self._next_id += 1
         self._emit(event)
         recovery.adapted(event)
-        log.info(
+        log.log(
+            logging.WARNING if fault else logging.INFO,
             "adapted %s (%s)%s: %s -> %s in %.1f ms",
             request.tag,
             cause,
@@ -1520,7 +1524,7 @@ class AdaptationLoop:
             log.warning("switching %s onto its standby failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not switch onto the standby: {exc}")
             return
-        wired = self._adapted(request, symptom, _cause(symptom), old_labels, orphans, recovery, standby=True)
+        wired = self._adapted(request, symptom, _cause(symptom), old_labels, orphans, recovery, standby=True, fault=fault)
         if fault:
             try:
                 preferred = self.reconfigurer.plan(request, time.time_ns())
@@ -1593,7 +1597,9 @@ class AdaptationLoop:
             )
             self._next_id += 1
             self._emit(event)
-            log.warning("request %s is degraded: %s", request.tag, why)
+            # one line; the planner's whole explanation at debug level (and in the event's detail, dyknow plan)
+            log.warning("request %s is degraded (%s): %s", request.tag, _cause(symptom), why.splitlines()[0] if why else "")
+            log.debug("request %s is degraded: %s", request.tag, why)
 
 
 class _Recovery:

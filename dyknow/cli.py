@@ -337,7 +337,7 @@ def _default_endpoint(tls: Any) -> str:
 def _client(args: argparse.Namespace) -> Client:
     tls = _tls(args)
     connect = args.connect or ([_default_endpoint(tls)] if args.zenoh_config is None else [])
-    return Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls)
+    return Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls, lease_ms=args.lease_ms)
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
@@ -386,21 +386,40 @@ def cmd_model(args: argparse.Namespace) -> int:
                 yield "specs: " + ", ".join(s["label"] for s in model["specs"])
 
     _report(args, data, text)
+    if args.all and not models:
+        print("dyknow: error: no manager reachable; expected a running manager at --connect", file=sys.stderr)
+        return 1
     return 0
 
 
 def cmd_managers(args: argparse.Namespace) -> int:
-    """list every manager reachable: host, library size, units, requests, and its clock's offset as --manager estimates it"""
+    """list every manager reachable (host, library size, units, requests, its clock's offset as --manager estimates it),
+    then those --manager knew and lost (since when, why); exit 1 when none is reachable"""
     with _client(args) as client:
         managers = client.managers(timeout_s=min(args.timeout, 2.0))
-        try:  # (a --manager that is not there would hold the list up for --timeout)
-            clocks = client.clocks() if any(m["manager"] == args.manager for m in managers) else {}
-        except DyKnowError as exc:  # the other columns stand without it
-            logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
-            clocks = {}
+        if not managers:
+            why = client.unreachable()
+            if why is not None:
+                raise why
+        names = [m["manager"] for m in managers]
+        # (a --manager that is not there would hold the list up for --timeout: ask another one)
+        asked = args.manager if args.manager in names else names[0] if names else None
+        clocks: dict[str, Any] = {}
+        lost: list[dict[str, Any]] = []
+        if asked is not None:
+            try:
+                model = client.get_model(asked)
+                clocks = client.clocks(asked, model=model) if asked == args.manager else {}
+                lost = [m for m in client.lost_managers(asked, model=model) if m["manager"] not in names]
+            except DyKnowError as exc:  # the other columns stand without it
+                logging.getLogger(__name__).debug("no clock offsets or lost managers from %r: %s", asked, exc)
     for m in managers:  # the offset of each manager's clock from --manager's (None: not known to it yet)
         found = clocks.get(m["manager"])
+        m["state"] = "up"
         m["clock"] = None if found is None else {"offset_us": found.offset_ns / 1000, "uncertainty_us": found.uncertainty_ns / 1000}
+    now = time.time_ns()
+    for m in lost:
+        m.update(state="lost", reported_by=asked)
 
     def text() -> Iterable[str]:
         if not managers:
@@ -408,8 +427,15 @@ def cmd_managers(args: argparse.Namespace) -> int:
         for m in managers:
             clock = "clock unknown" if m["clock"] is None else f"clock {m['clock']['offset_us']:+.1f} us +/- {m['clock']['uncertainty_us']:.1f}"
             yield f"{m['manager']:<20} host {m['host']:<20} {m['specs']:>5} specs {m['units']:>5} units {m['requests']:>4} requests  {clock}"
+        for m in lost:
+            when = time.strftime("%H:%M:%S", time.localtime(m["since_ns"] / 1e9))
+            yield f"{m['manager']:<20} LOST since {when} ({(now - m['since_ns']) / 1e9:.1f} s ago, as {asked} saw it): {m['why']}"
 
-    _report(args, managers, text)
+    _report(args, [*managers, *lost], text)
+    if not managers:
+        where = ", ".join(args.connect) or "--connect"
+        print(f"dyknow: error: no manager reachable through {where}; expected a running manager there (dyknow manager)", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -534,7 +560,7 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
         removed = client.remove_transformation(args.label)
     text = f"removed {args.label}" if removed else f"no spec labelled {args.label!r}; nothing removed"
     _report(args, {"label": args.label, "removed": removed}, text)
-    return 0
+    return 0 if removed else 1
 
 
 def cmd_request(args: argparse.Namespace) -> int:
@@ -890,6 +916,7 @@ def _parser() -> argparse.ArgumentParser:
             zenoh_options(p, connect_help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
             p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
             p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
+            lease_option(p)
         return p
 
     def zenoh_options(p: argparse.ArgumentParser, connect_help: str) -> None:

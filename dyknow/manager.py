@@ -21,7 +21,6 @@ Usage::
 
 from __future__ import annotations
 
-import contextlib
 import importlib
 import inspect
 import json
@@ -44,7 +43,7 @@ from dyknow.bus import LocalBus
 from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
-from dyknow.federation import Directory, Summary, SummaryUnit
+from dyknow.federation import STOPPED, Directory, Summary, SummaryUnit
 from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
 from dyknow.message import CLOCK_ID
@@ -259,6 +258,8 @@ class Manager:
             proxies = list(self._units.values())
             self._units.clear()
             self._deadlines.clear()
+        if self._directory is not None:  # first: the others then know it stopped, and did not crash
+            self._directory.say_goodbye()
         if self._workers is not None:
             self._workers.close(timeout_s / 4)
         self._adaptation.close(timeout_s / 2)  # releases what its requests run on other managers
@@ -729,7 +730,9 @@ class Manager:
         estimates = self._clocks.estimates() if self._clocks is not None else {}
         clock_view = {"clock": f"{CLOCK_ID:08x}", **{name: e.to_dict() for name, e in sorted(estimates.items())}}
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors)
+        lost = self._directory.lost() if self._directory is not None else {}
+        gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone)
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
@@ -811,10 +814,22 @@ class Manager:
         if kind == "lost":
             with self._lock:
                 orphans = [unit for unit, owner in self._owners.items() if owner == manager]
+            destroyed = []
             for unit in orphans:  # units that served the lost manager's requests
-                log.info("unit %r served manager %r, which is gone: destroying it", unit, manager)
-                with contextlib.suppress(DyKnowError):
+                try:
                     self.destroy(unit)
+                    destroyed.append(unit)
+                except DyKnowError as exc:
+                    log.debug("unit %r of lost manager %r: %s", unit, manager, exc)
+            why = self._directory.lost().get(manager, (0, "it is gone"))[1] if self._directory is not None else "it is gone"
+            # one line: a manager that stopped is no fault; one that vanished is
+            log.log(
+                logging.INFO if why == STOPPED else logging.WARNING,
+                "manager %r was lost (%s)%s",
+                manager,
+                why,
+                f"; destroyed the units it had asked for: {', '.join(destroyed)}" if destroyed else "",
+            )
         self._adaptation.peer_changed(kind, manager)
 
     def _manager_handlers(self) -> dict[str, service.Handler]:
