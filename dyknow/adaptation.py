@@ -1598,7 +1598,8 @@ class AdaptationLoop:
             self._next_id += 1
             self._emit(event)
             # one line; the planner's whole explanation at debug level (and in the event's detail, dyknow plan)
-            log.warning("request %s is degraded (%s): %s", request.tag, _cause(symptom), why.splitlines()[0] if why else "")
+            head = ": ".join(line.strip().rstrip(":") for line in why.splitlines()[:2])  # "cannot plan T: nothing can provide T"
+            log.warning("request %s is degraded (%s): %s (the planner's reasons: its event, or dyknow plan)", request.tag, _cause(symptom), head)
             log.debug("request %s is degraded: %s", request.tag, why)
 
 

@@ -134,6 +134,13 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
         observer.next("camera", camera=CEILING, timeout_s=60)
         lost = [e for e in observer.ask("adaptations") if e["cause"] == "manager 'robot' was lost"]
         assert lost and lost[0]["key"] == key, lost  # adapted onto the field's camera, or degraded until the field answers
+        # the operator sees the robot as lost, since when and why, not just missing from the list
+        argv = [sys.executable, "-m", "dyknow.cli", "managers", "--json", "--connect", f"tcp/{hosts.address('station')}:{PORT}", "--manager", "station"]
+        listed = subprocess.run(hosts.command("station", argv), capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO)
+        assert listed.returncode == 0, listed.stderr
+        states = {m["manager"]: m for m in json.loads(listed.stdout)}
+        assert states["robot"]["state"] == "lost" and states["robot"]["why"].startswith("its liveliness token went away without a goodbye"), states
+        assert states["robot"]["reported_by"] == "station" and states["field"]["state"] == "up"
 
         hosts.restore("robot")  # it reconnects; the preferred camera returns after the dwell time
         observer.next("camera", camera=BOTTOM, timeout_s=60)
@@ -150,6 +157,13 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
             child.close()
         for child in children:  # what each host said, for a failure's report (pytest shows it then)
             print(f"----- {child.host}\n{child.stderr[-3000:]}")
+    # one line on each side says what was destroyed or rebuilt and why; nothing that went as it
+    # should is a warning (the units of the lost robot are gone with it: no failed destroy)
+    station, robot = children[0].stderr, children[1].stderr
+    assert "WARNING dyknow.adaptation: adapted BallTrack(field) (manager 'robot' was lost): " in station
+    assert "WARNING dyknow.manager: manager 'station' was lost (its liveliness token went away without a goodbye" in robot
+    assert "destroyed the units it had asked for: robot-camera" in robot
+    assert "could not destroy" not in station
 
 
 # ---------------------------------------------------------------------------- faults beyond a clean cut
