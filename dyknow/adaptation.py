@@ -72,7 +72,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from dyknow import keys
-from dyknow.errors import DyKnowError, PlanningError, UnitError
+from dyknow.errors import DyKnowError, PlanningError, ServiceError, UnitError
 from dyknow.federation import Summary
 from dyknow.library import Library
 from dyknow.message import Message
@@ -1073,7 +1073,10 @@ class Reconfigurer:
                 elif manager in self._runtime.peers():  # a lost manager took its units with it
                     self._runtime.destroy_on(manager, name)
             except DyKnowError as exc:
-                gone = isinstance(exc, UnitError) and "no unit named" in exc.what  # replaced, or lost with its manager: as it should be
+                # replaced already, or lost with its manager: as it should be
+                gone = (isinstance(exc, UnitError) and "no unit named" in exc.what) or (
+                    isinstance(exc, ServiceError) and exc.details.get("reason") == "gone"
+                )
                 log.log(logging.DEBUG if gone else logging.WARNING, "could not destroy unit %r after an adaptation: %s", ref, exc)
             self._knowledge.managed.discard(ref)
             self._knowledge.stalled.discard(ref)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import shutil
 import signal
 import subprocess
@@ -376,3 +377,82 @@ def test_frames_a_slow_link_could_not_carry_are_counted_as_lost(faulty: Hosts, t
     finally:
         for child in reversed(children):
             child.close()
+
+
+# ---------------------------------------------------------------------------- the README's example, as written
+
+
+def _readme_two_hosts() -> list[tuple[str, str]]:
+    """The README's two-host example: (the comment naming where it runs, command line) in order."""
+    readme = (REPO / "README.md").read_text()
+    block = next(b for b in re.findall(r"```sh\n(.*?)```", readme, re.DOTALL) if "# on the ground station (10.0.0.2)" in b)
+    steps, where = [], ""
+    for line in block.replace("\\\n", " ").splitlines():
+        if line.startswith("#"):
+            where = line
+        elif line.strip():
+            steps.append((where, " ".join(line.split())))
+    return steps
+
+
+def test_the_readmes_two_host_example_runs_as_written(tmp_path: Path) -> None:
+    """Three namespaces with the README's addresses; each line run on the machine its comment
+    names, in a folder holding the checkout's specs (the files "copied" are shared: one disk)."""
+    why = unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces are required under CI: {why}")
+        pytest.skip(why)
+    steps = _readme_two_hosts()
+    addresses = {"station": "10.0.0.2", "robot": "10.0.0.5", "laptop": "10.0.0.9"}
+    for name in ("dyknow", "specs"):
+        (tmp_path / name).symlink_to(REPO / name)
+    env = {**subprocess_env(), "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "DYKNOW_LOG": "INFO"}
+    managers: list[subprocess.Popen[str]] = []
+    with Hosts(list(addresses), addresses=addresses) as hosts:
+        try:
+            for where, line in steps:
+                host = next((h for h, a in addresses.items() if f"({a})" in where), "laptop")  # "on any machine": the laptop
+                argv = ["sh", "-c", line]
+                if line.startswith("dyknow manager "):
+                    proc = hosts.popen(host, ["sh", "-c", f"exec {line}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+                    managers.append(proc)
+                    assert proc.stdout is not None
+                    ready = proc.stdout.readline()
+                    assert " ready on tls/" in ready, (line, ready, proc.stderr.read() if proc.poll() is not None and proc.stderr else "")
+                    continue
+
+                def run(argv: list[str] = argv, host: str = host) -> subprocess.CompletedProcess[str]:
+                    return subprocess.run(hosts.command(host, argv), capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+
+                done = run()
+                if line.startswith("dyknow managers "):
+                    # an operator waits for the robot to show up, with its clock known to the station
+                    # (that is, once the station has the robot's summary): the same line, again
+                    listed = run([*argv[:2], line + " --json"])
+                    deadline = time.monotonic() + 60
+                    while not any(m["manager"] == "robot" and m["clock"] for m in json.loads(listed.stdout or "[]")):
+                        assert time.monotonic() < deadline, listed.stdout + listed.stderr
+                        time.sleep(0.2)
+                        listed = run([*argv[:2], line + " --json"])
+                assert done.returncode == 0, (line, done.stdout, done.stderr)
+                if line.startswith("dyknow request "):
+                    assert done.stdout.strip() == "dyknow/station/requests/BallTrack(field)"
+                if line.startswith("dyknow echo "):
+                    assert done.stdout.count("dyknow/station/requests/BallTrack(field) #") == 5, done.stdout
+        finally:
+            for proc in managers:
+                proc.send_signal(signal.SIGTERM)
+            for proc in managers:
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait(10)
+                said = proc.stderr.read() if proc.stderr else ""
+                print(f"----- {proc.args[-1][:60]}\n{said[-3000:]}")  # for a failure's report
+                for stream in (proc.stdout, proc.stderr):
+                    if stream is not None:
+                        stream.close()
+    assert [p.returncode for p in managers] == [0, 0]
+    assert [s[1].split()[1] for s in steps] == ["certs", "'{", "manager", "manager", "managers", "request", "echo"]
