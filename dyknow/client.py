@@ -238,7 +238,7 @@ class Client:
                     f"{where} dropped the call to {what!r} without a reply: the manager's --acl does not let this client's "
                     f"certificate (common name {self._signer.common_name!r}, --tls-cert {self._tls.cert if self._tls else ''}) call it",
                     expected=f"a certificate whose common name has a role that may call {what!r} in the manager's --acl file "
-                    f"({' or '.join(roles) or 'none of the built-in roles'})",
+                    f"({' or '.join(roles) or 'none of the built-in roles'}, or a role its define lists it in)",
                     details={"reason": "dropped"},
                 ) from exc
             raise service.raise_remote(exc) from None

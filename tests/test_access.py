@@ -413,3 +413,69 @@ def test_without_roles_force_destroys_a_protected_unit(manager: Manager) -> None
             anyone.destroy("kept")
         anyone.destroy("kept", force=True)
     assert not manager.has_unit("kept")
+
+
+# ---------------------------------------------------------------------------- roles the file defines
+
+REQUESTER_ACL = """{
+  roles: { requester: ["operator"], viewer: ["viewer"] },
+  define: {
+    // may read and request streams, may not change units
+    requester: { like: "viewer", calls: ["request", "release"] },
+  },
+}
+"""
+
+
+def test_a_defined_role_may_request_and_not_destroy(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """Transport and manager alike: the requester reads, requests and releases; spawn and destroy
+    are dropped at its link (and refused by the manager's own check, whatever carries them)."""
+    acl_file = tmp_path / "acl.json5"
+    acl_file.write_text(REQUESTER_ACL)
+    acl = AccessControl.load(acl_file)
+    assert acl.role_of("operator") == "requester" and acl.may_call("operator", "request") and not acl.may_call("operator", "destroy")
+    manager = make_manager(listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=acl)
+    manager.spawn("periodic-source", "ticks")
+    with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "operator"), timeout_s=2.0) as requester:
+        assert [u["name"] for u in requester.get_model()["units"]] == ["ticks"]
+        with pytest.raises(PlanningError, match="nothing provides Anything"):
+            requester.request("Anything")  # it reached the planner
+        with pytest.raises(UnitError, match="no request on key"):
+            requester.release("dyknow/x/requests/Anything")
+        for refused in (lambda: requester.destroy("ticks"), lambda: requester.spawn("relay", "r")):
+            with pytest.raises(ServiceError, match="without a reply"):
+                refused()
+    assert [u.name for u in manager.units()] == ["ticks"]
+
+
+@pytest.mark.parametrize(
+    ("text", "said"),
+    [
+        ('{ roles: { requester: ["a"] } }', r"acl.json5:1: roles.requester: unknown role 'requester'; expected one of viewer, operator"),
+        ('{ roles: {},\n  define: { r: { like: "veiwer" } } }', r"acl.json5:2: define.r.like: like 'veiwer'; expected one of the built-in roles viewer, operator, admin \(did you mean 'viewer'\?\)"),
+        ('{ roles: {},\n  define: {\n    r: { calls: ["get_model", "destory"] } } }', r"acl.json5:3: define.r.calls\[1\]: unknown service 'destory'; expected one of .* \(did you mean 'destroy'\?\)"),
+        ('{ roles: {}, define: { r: { publish: ["@dyknow/x"] } } }', r"acl.json5:1: define.r.publish\[0\]: '@dyknow/x' is not a key expression under dyknow/"),
+        ('{ roles: {}, define: { admin: { calls: [] } } }', r"define.admin: 'admin' is a built-in role"),
+        ('{ roles: {}, define: { r: { cals: [] } } }', r"define.r: unknown field 'cals' \(did you mean 'calls'\?\)"),
+    ],
+)  # fmt: skip
+def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> None:
+    path = tmp_path / "acl.json5"
+    path.write_text(text)
+    with pytest.raises(AccessError, match=said):
+        AccessControl.load(path)
+
+
+def test_the_readmes_acl_files_are_valid() -> None:
+    """Every json5 block of the README is an ACL file that loads; its own role reads and requests."""
+    import re
+
+    import json5
+
+    from tests.conftest import REPO
+
+    blocks = re.findall(r"```json5\n(.*?)```", (REPO / "README.md").read_text(), re.DOTALL)
+    acls = [AccessControl.from_dict(json5.loads(block)) for block in blocks]
+    defined = next(a for a in acls if a.defined)
+    assert defined.may_call("robot-ui", "request") and defined.may_call("robot-ui", "get_model")
+    assert not defined.may_call("robot-ui", "destroy") and not defined.may_call("robot-ui", "set_config", unit=True)

@@ -127,7 +127,7 @@ def test_a_call_dropped_for_the_callers_role(robot: Manager, pki: Path) -> None:
         client.spawn("relay", "r")
     assert "dropped the call to 'spawn' without a reply: the manager's --acl does not let this client's certificate " in str(failed.value)
     assert "(common name 'laptop'" in str(failed.value)
-    assert str(failed.value).endswith("a role that may call 'spawn' in the manager's --acl file (operator or admin)")
+    assert str(failed.value).endswith("a role that may call 'spawn' in the manager's --acl file (operator or admin, or a role its define lists it in)")
 
 
 @pytest.mark.timeout(30)
