@@ -154,7 +154,7 @@ def test_acl_files_are_checked(tmp_path: Path) -> None:
     for text, message in [
         ("{ roles: { guest: ['a'] } }", "unknown role 'guest'; expected one of viewer, operator, admin"),
         ("{ roles: { viewer: 'a' } }", "roles.viewer: got 'a'; expected a list of certificate common names"),
-        ("{ users: {} }", "the file must hold exactly one field, roles"),
+        ("{ users: {} }", "the file must hold the field roles"),
         ("{ roles: ", "not JSON5"),
     ]:
         bad = tmp_path / "bad.json5"
