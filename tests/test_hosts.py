@@ -459,3 +459,57 @@ def test_the_readmes_two_host_example_runs_as_written(tmp_path: Path) -> None:
                         stream.close()
     assert [p.returncode for p in managers] == [0, 0]
     assert [s[1].split()[1] for s in steps] == ["certs", "'{", "manager", "manager", "managers", "request", "echo", "destroy"]
+
+
+# ---------------------------------------------------------------------------- a caller's own rights, whatever carries it
+
+
+def test_through_a_router_and_a_third_manager_each_client_has_its_own_rights(tmp_path: Path) -> None:
+    """One ACL file everywhere (the station, the robot, the router on its own host). From the
+    laptop, through the router and through the robot's manager in turn: a viewer reads and
+    receives data but may not destroy nor publish; a requester also requests; an operator also
+    publishes; a certificate without a role gets nothing, services or data."""
+    why = unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces are required under CI: {why}")
+        pytest.skip(why)
+    from dyknow.certs import write_dev_certs
+
+    names = ["station", "robot", "hub", "laptop"]
+    with Hosts(names) as hosts:
+        pki = tmp_path / "pki"
+        write_dev_certs(pki, ["station", "robot", "hub", "admin", "viewer", "requester", "operator", "stranger"], hosts=[hosts.address(n) for n in names])
+        acl = tmp_path / "acl.json5"
+        acl.write_text("""{ roles: { manager: ["station", "robot"], router: ["hub"], admin: ["admin"], viewer: ["viewer"],
+                                    requester: ["requester"], operator: ["operator"] },
+                         define: { requester: { like: "viewer", calls: ["request", "release"] } } }""")
+        tls_of = {n: ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{n}.pem"), "--tls-key", str(pki / f"{n}.key")] for n in names}
+        hub = f"tls/{hosts.address('hub')}:7446"
+        common = ["--acl", str(acl), "--lease-ms", "1000", "--json"]
+        children = [Child(hosts, "hub", [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, *common, *tls_of["hub"]])]
+        try:
+            assert children[0].next("ready")["endpoints"] == [hub]
+            for name, specs in (("station", REPO / "specs" / "generic.xml"), ("robot", REPO / "specs" / "generic.xml")):
+                endpoint = f"tls/{hosts.address(name)}:{PORT}"
+                argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(specs), "--listen", endpoint, "--connect", hub]
+                children.append(Child(hosts, name, [*argv, *common, *tls_of[name]]))
+                assert children[-1].next("ready")["endpoints"] == [endpoint]
+            identities = ["viewer", "requester", "operator", "stranger"]
+            expected = {
+                "viewer": {"get_model": "reached", "destroy": "dropped", "request": "dropped", "receives": True, "publishes": False},
+                "requester": {"get_model": "reached", "destroy": "dropped", "request": "reached", "receives": True, "publishes": False},
+                "operator": {"get_model": "reached", "destroy": "reached", "request": "reached", "receives": True, "publishes": True},
+                "stranger": {"get_model": "nothing", "destroy": "nothing", "request": "nothing", "receives": False, "publishes": False},
+            }
+            for via in (hub, f"tls/{hosts.address('robot')}:{PORT}"):  # the router, then the robot's manager
+                argv = [sys.executable, "-m", "tests.netns_rights", via, "station", str(pki), *identities]
+                done = subprocess.run(hosts.command("laptop", argv), capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO)
+                assert done.returncode == 0, done.stderr[-3000:]
+                found = {r.pop("name"): r for r in map(json.loads, done.stdout.splitlines())}
+                assert found == expected, (via, found)
+        finally:
+            for child in reversed(children):
+                child.close()
+            for child in children:
+                print(f"----- {child.host}\n{child.stderr[-3000:]}")
