@@ -367,6 +367,9 @@ def cmd_model(args: argparse.Namespace) -> int:
     """show the manager's units and specs (--all: of every manager reachable)"""
     with _client(args) as client:
         data = client.get_federated_model() if args.all else client.get_model()
+        why = client.unreachable() if args.all and not data["managers"] else None
+    if why is not None:
+        raise why
     models = data["managers"] if args.all else [data]
 
     def text() -> Iterable[str]:
@@ -620,6 +623,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
     """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
     from dyknow.clocks import Estimate
     from dyknow.message import CLOCK_ID
+    from dyknow.reach import DEFINITE
 
     if args.count is not None and args.count <= 0:
         raise _Usage(f"--count: got {args.count}; expected a positive number")
@@ -668,6 +672,9 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 return
 
     with _client(args) as client:
+        why = client.unreachable()  # nothing would ever come: say why at once (a silent host may come back: wait)
+        if why is not None and why.details.get("reason") in DEFINITE:
+            raise why
         threading.Thread(target=follow, args=(client,), name="dyknow-echo-clocks", daemon=True).start()
         fetched.wait(args.timeout)  # the offsets before the first message
         with client.declare_subscriber(args.keyexpr, show):

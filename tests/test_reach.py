@@ -145,8 +145,9 @@ def test_every_mistake_on_the_command_line_has_its_message_and_exit_1(robot: Man
         result = run_cli("model", "--manager", "robot", "--timeout", "20", *args)
         assert result.returncode == 1 and said in result.stderr, (case, result.stderr)
         assert len(result.stderr.strip().splitlines()) == 1, (case, result.stderr)
-    none = run_cli("managers", "--connect", f"tcp/127.0.0.1:{free_port()}")
-    assert none.returncode == 1 and "cannot reach any manager: the connection to" in none.stderr
+    for command in (["managers"], ["model", "--all"], ["echo", "dyknow/**"]):  # (echo would wait for ever)
+        none = run_cli(*command, "--connect", f"tcp/127.0.0.1:{free_port()}")
+        assert none.returncode == 1 and "cannot reach any manager: the connection to" in none.stderr, (command, none.stderr)
     listed = run_cli("managers", "--json", "--connect", endpoint, *laptop, "--lease-ms", "2000")
     assert listed.returncode == 0 and [m["manager"] for m in json.loads(listed.stdout)] == ["robot"]
     dropped = run_cli("destroy", "x", "--manager", "robot", "--connect", endpoint, *laptop)
