@@ -398,7 +398,12 @@ def cmd_model(args: argparse.Namespace) -> int:
 def cmd_managers(args: argparse.Namespace) -> int:
     """list every manager reachable (host, library size, units, requests, its clock's offset as --manager estimates it),
     then those --manager knew and lost (since when, why); exit 1 when none is reachable"""
+    from dyknow.reach import DEFINITE
+
     with _client(args) as client:
+        why = client.unreachable()  # (a refusal at once, rather than after listening for 2 s)
+        if why is not None and why.details.get("reason") in DEFINITE:
+            raise why
         managers = client.managers(timeout_s=min(args.timeout, 2.0))
         if not managers:
             why = client.unreachable()
