@@ -28,6 +28,14 @@ The processes of the system:
 - **router**: a Zenoh router of the system (``dyknow router``): it carries everyone's traffic, so
   every message may pass its link, and it enforces the same file at its own links.
 
+Roles of the file's own, for what these do not fit: ``define`` gives each the built-in role it
+starts from (``like``, optional) and besides it the services it may call (``calls``, names of
+:data:`SERVICES`) and the key expressions under ``dyknow/`` it may ``publish`` and ``subscribe``
+to; a mistake is located (``FILE:LINE: define.ROLE.calls[1]: unknown service ...``)::
+
+    { roles: { requester: ["robot-ui"] },
+      define: { requester: { like: "viewer", calls: ["request", "release"] } } }
+
 It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessControl.zenoh`):
 default deny, one subject per role (by certificate common name), one allow rule per role and
 message kind, and for each manager one subject and rules of its own name. So the transport

@@ -974,7 +974,8 @@ def _parser() -> argparse.ArgumentParser:
         "--acl",
         metavar="FILE",
         help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
-        "router: [...] } }); every call must then be signed by its caller (dyknow clients with --tls-* do)",
+        "router: [...], ROLE: [...] }, define: { ROLE: { like: viewer, calls: [SERVICE, ...], publish: [...], subscribe: [...] } } }); "
+        "every call must then be signed by its caller (dyknow clients with --tls-* do)",
     )
     p.add_argument(
         "--max-request-bytes", type=_positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
