@@ -130,7 +130,8 @@ class Client:
         self.timeout_s = timeout_s
         self._own_session = session is None
         self._connect = [] if session is not None and tuple(connect) == (DEFAULT_ENDPOINT,) else list(connect)
-        self._tls = tls
+        self._tls = tls.check() if tls is not None else None  # (files that do not belong together: said here, naming them)
+        tls = self._tls
         # with a certificate, every call carries its caller's signature (a manager with --acl
         # checks it, whichever routers or managers carry the call): dyknow.identity
         self._signer = Signer(tls) if tls is not None else None

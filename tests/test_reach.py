@@ -46,8 +46,13 @@ def robot(pki: Path, make_manager: Callable[..., Manager]) -> Manager:
     return make_manager("robot", listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(pki, "robot"), acl=acl)
 
 
-def fails(manager: Manager, files: TlsFiles | None, endpoint: str | None = None, name: str = "robot", timeout_s: float = 5.0) -> ServiceError:
-    with Client(name, connect=[endpoint or manager.endpoints[0]], tls=files, timeout_s=timeout_s) as client, pytest.raises(ServiceError) as failed:
+def fails(
+    manager: Manager, files: TlsFiles | None, endpoint: str | None = None, name: str = "robot", timeout_s: float = 5.0
+) -> ServiceError:
+    with (
+        Client(name, connect=[endpoint or manager.endpoints[0]], tls=files, timeout_s=timeout_s) as client,
+        pytest.raises(ServiceError) as failed,
+    ):
         client.get_model()
     return failed.value
 
@@ -97,10 +102,14 @@ def test_a_tls_endpoint_without_tls_files(robot: Manager) -> None:
 
 def test_files_that_do_not_belong_together_name_the_files(pki: Path) -> None:
     mismatched = TlsFiles(str(pki / "ca.pem"), str(pki / "laptop.pem"), str(pki / "robot.key"))
-    with pytest.raises(AccessError, match=f"--tls-key: the key in {pki / 'robot.key'} is not the key of the certificate {pki / 'laptop.pem'}"):
+    with pytest.raises(
+        AccessError, match=f"--tls-key: the key in {pki / 'robot.key'} is not the key of the certificate {pki / 'laptop.pem'}"
+    ):
         mismatched.check()
     foreign = TlsFiles(str(pki / "ca.pem"), str(pki / "other" / "laptop.pem"), str(pki / "other" / "laptop.key"))
-    with pytest.raises(AccessError, match=f"--tls-cert: the certificate {pki / 'other' / 'laptop.pem'} is not signed by the CA of {pki / 'ca.pem'}"):
+    with pytest.raises(
+        AccessError, match=f"--tls-cert: the certificate {pki / 'other' / 'laptop.pem'} is not signed by the CA of {pki / 'ca.pem'}"
+    ):
         foreign.check()
     # the manager's own files, at start, before anything listens
     started = run_cli("manager", "--name", "m", "--listen", f"tls/127.0.0.1:{free_port()}", *tls_args(mismatched))
@@ -127,7 +136,9 @@ def test_a_call_dropped_for_the_callers_role(robot: Manager, pki: Path) -> None:
         client.spawn("relay", "r")
     assert "dropped the call to 'spawn' without a reply: the manager's --acl does not let this client's certificate " in str(failed.value)
     assert "(common name 'laptop'" in str(failed.value)
-    assert str(failed.value).endswith("a role that may call 'spawn' in the manager's --acl file (operator or admin, or a role its define lists it in)")
+    assert str(failed.value).endswith(
+        "a role that may call 'spawn' in the manager's --acl file (operator or admin, or a role its define lists it in)"
+    )
 
 
 @pytest.mark.timeout(30)
@@ -188,5 +199,8 @@ def test_a_host_without_the_manager_and_a_silent_host(two_hosts: Hosts) -> None:
     two_hosts.cut("robot")
     silent = model("2")
     assert silent.returncode == 1, silent.stderr
-    assert f"{robot} did not answer a connection to port 7447 within 1 s: it is down, cut off, or a firewall drops the packets" in silent.stderr
+    assert (
+        f"{robot} did not answer a connection to port 7447 within 1 s: it is down, cut off, or a firewall drops the packets"
+        in silent.stderr
+    )
     assert "expected a host this machine reaches (--connect)" in silent.stderr
