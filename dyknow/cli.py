@@ -497,6 +497,11 @@ def cmd_router(args: argparse.Namespace) -> int:
                               expected="--tls-ca, --tls-cert and --tls-key with --acl")  # fmt: skip
         access = AccessControl.load(args.acl)
     listen = args.listen or [_default_endpoint(tls)]
+    if args.zenoh_config is None:  # (Zenoh would say only "Missing TLS private key")
+        from dyknow.reach import check_endpoints
+
+        check_endpoints(listen, tls, option="--listen", who="the router")
+        check_endpoints(args.connect, tls, option="--connect", who="the router")
     config = make_config(
         listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms
     )

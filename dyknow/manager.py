@@ -36,7 +36,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
-from dyknow import clocks, keys, service
+from dyknow import clocks, keys, reach, service
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
@@ -162,6 +162,15 @@ class Manager:
                     own,
                 )
         self._access = access
+        if zenoh_config is None:  # (Zenoh would say only "Missing TLS private key")
+            reach.check_endpoints(listen or (), self._tls, option="--listen", who=f"manager {self.name!r}")
+            reach.check_endpoints(connect, self._tls, option="--connect", who=f"manager {self.name!r}")
+            if self._tls is not None and listen and not any(e.startswith("tls/") for e in [*listen, *connect]):
+                log.warning(
+                    "manager %r has TLS files but no tls/ endpoint (--listen, --connect): every link is plain TCP, and no "
+                    "caller has a certificate for its roles",
+                    self.name,
+                )
         self.host = host or socket.gethostname()
         self._session = Session(
             make_config(

@@ -28,7 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from dyknow.access import TlsFiles
-from dyknow.errors import ServiceError
+from dyknow.errors import AccessError
 
 __all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "probe", "probe_all"]
 
@@ -64,16 +64,17 @@ def _split(endpoint: str) -> tuple[str, str, int] | None:
     return proto, host.strip("[]"), int(port)
 
 
-def check_endpoints(endpoints: Sequence[str], tls: TlsFiles | None) -> None:
-    """Refuse what cannot connect whatever runs there: a ``tls/`` endpoint without TLS files
-    (:class:`ServiceError` naming the options)."""
+def check_endpoints(endpoints: Sequence[str], tls: TlsFiles | None, *, option: str = "--connect", who: str = "this client") -> None:
+    """Refuse what cannot work whatever runs there: a ``tls/`` endpoint without TLS files
+    (:class:`AccessError`, as for the other TLS options, naming them; ``option`` and ``who`` say
+    whose endpoints)."""
     if tls is None:
         bare = [e for e in endpoints if e.startswith("tls/")]
         if bare:
-            raise ServiceError(
-                f"{', '.join(bare)} is a TLS endpoint, and this client has no TLS files",
-                where="--connect",
-                expected=f"{_TLS_OPTIONS} with a tls/ endpoint (or tcp/ to a manager listening without TLS)",
+            raise AccessError(
+                f"{', '.join(bare)} is a TLS endpoint, and {who} has no TLS files",
+                where=option,
+                expected=f"{_TLS_OPTIONS} with a tls/ endpoint (or tcp/ without TLS)",
             )
 
 

@@ -99,7 +99,7 @@ def test_no_role_or_no_certificate_reaches_nothing(secured: Manager, certs: Path
         ServiceError, match=r"no answer from manager .* within 1 s: linked, but no manager is visible from here; expected a running manager"
     ):
         c.get_model()
-    with pytest.raises(ServiceError, match="is a TLS endpoint, and this client has no TLS files"):
+    with pytest.raises(AccessError, match="is a TLS endpoint, and this client has no TLS files"):
         Client(secured.name, connect=secured.endpoints)
     plain = [e.replace("tls/", "tcp/") for e in secured.endpoints]
     with Client(secured.name, connect=plain, timeout_s=1.0) as c, pytest.raises(ServiceError, match="speaks TLS, and tcp/ connects without it"):
@@ -285,7 +285,7 @@ def test_a_call_through_another_manager_keeps_its_callers_rights(pair: tuple[Man
         admin.spawn("extra-relay", "kept", protected=True)
         admin.destroy("kept", force=True)
     assert station.units() == []
-    with pytest.raises(ServiceError, match="this client has no TLS files"):
+    with pytest.raises(AccessError, match="this client has no TLS files"):
         Client("station", connect=robot.endpoints, timeout_s=1.0)  # no certificate: no TLS link at all
 
 

@@ -96,7 +96,7 @@ def test_tcp_to_a_tls_listener(robot: Manager, pki: Path) -> None:
 
 
 def test_a_tls_endpoint_without_tls_files(robot: Manager) -> None:
-    with pytest.raises(ServiceError, match=r"--connect: tls/\S+ is a TLS endpoint, and this client has no TLS files; expected --tls-ca"):
+    with pytest.raises(AccessError, match=r"--connect: tls/\S+ is a TLS endpoint, and this client has no TLS files; expected --tls-ca"):
         Client("robot", connect=robot.endpoints)
 
 
@@ -204,3 +204,18 @@ def test_a_host_without_the_manager_and_a_silent_host(two_hosts: Hosts) -> None:
         in silent.stderr
     )
     assert "expected a host this machine reaches (--connect)" in silent.stderr
+
+
+def test_a_manager_or_router_with_a_tls_endpoint_and_no_tls_files(
+    make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture, pki: Path
+) -> None:
+    """Said naming the option (Zenoh says only "Missing TLS private key"); TLS files with no tls/
+    endpoint at all are a warning (every link is plain TCP)."""
+    with pytest.raises(
+        AccessError, match=r"--listen: tls/\S+ is a TLS endpoint, and manager 'lonely' has no TLS files; expected --tls-ca"
+    ):
+        make_manager("lonely", listen=[f"tls/127.0.0.1:{free_port()}"])
+    router = run_cli("router", "--listen", f"tls/127.0.0.1:{free_port()}")
+    assert router.returncode == 1 and "is a TLS endpoint, and the router has no TLS files" in router.stderr
+    make_manager("plain", listen=[f"tcp/127.0.0.1:{free_port()}"], tls=tls(pki, "robot"))
+    assert "manager 'plain' has TLS files but no tls/ endpoint (--listen, --connect): every link is plain TCP" in caplog.text
