@@ -39,6 +39,9 @@ log = logging.getLogger(__name__)
 
 _MAX_PAGES = 100_000  # of one model: far past any manager's (each page holds at least one entry)
 _MAX_GONE = 10_000  # managers remembered as gone (names come from the network: bounded)
+#: How long a call waits for a manager never seen while others are up, before it says so: a
+#: manager's token and its services come to a client together, so this is ample.
+_ABSENT_S = 1.0
 _DIAL_MS = 2000  # how long a client that could not connect at once gives each new attempt (TCP and TLS handshakes)
 
 
@@ -62,11 +65,13 @@ def _number(value: Any) -> float | None:
 class _Presence:
     """Which managers have left: their liveliness tokens went away (stopped, crashed, or cut off
     past their lease). A call to one of them ends at once, saying so, instead of waiting for its
-    service to come back."""
+    service to come back. And which are up: a call to a manager never seen, while others are,
+    ends after :data:`_ABSENT_S` (a misspelled name), listing those there."""
 
     def __init__(self, session: Session) -> None:
         self._lock = threading.Lock()
         self._gone: dict[str, float] = {}  # manager -> time.monotonic() when its token went
+        self._up: set[str] = set()
         self._watch: LivelinessSubscriber | None = None
         try:
             self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._change, inline=True)
@@ -79,10 +84,20 @@ class _Presence:
             return
         with self._lock:
             self._gone.pop(name, None)
+            if alive and len(self._up) < _MAX_GONE:
+                self._up.add(name)
             if not alive:
+                self._up.discard(name)
                 self._gone[name] = time.monotonic()
                 while len(self._gone) > _MAX_GONE:
                     del self._gone[next(iter(self._gone))]
+
+    def why_absent(self, manager: str) -> str | None:
+        """Why ``manager`` is not there when others are and it was never seen, or None."""
+        with self._lock:
+            if not self._up or manager in self._up or manager in self._gone:
+                return None
+            return f"no manager {manager!r} among those reachable ({', '.join(sorted(self._up)[:20])})"
 
     def why_gone(self, manager: str) -> str | None:
         """Why ``manager`` is known to be gone, or None (it is up, or was never seen)."""
@@ -218,6 +233,14 @@ class Client:
         manager = manager or self.manager
         where = f"manager {manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
         self._probe()
+        started = time.monotonic()
+
+        def gone() -> str | None:
+            why = self._presence.why_gone(manager)
+            if why is None and time.monotonic() - started > min(_ABSENT_S, self.timeout_s / 2):
+                why = self._presence.why_absent(manager)
+            return why
+
         try:
             reply = self._session.call(
                 key,
@@ -225,10 +248,12 @@ class Client:
                 timeout_s=self.timeout_s,
                 what=f"{what} of {where}",
                 sign=self._signer.sign if self._signer is not None else None,
-                gone=lambda: self._presence.why_gone(manager),
+                gone=gone,
             )
         except ServiceError as exc:
             reason = exc.details.get("reason") if exc.kind is None else None
+            if reason == "gone" and self._presence.why_absent(manager) is not None:
+                raise self._unanswered(manager, where) from exc  # (with the close match)
             if reason == "unreachable":
                 raise self._unanswered(manager, where) from exc
             if reason == "dropped" and self._signer is not None:

@@ -120,8 +120,10 @@ def test_files_that_do_not_belong_together_name_the_files(pki: Path) -> None:
     )
 
 
+@pytest.mark.timeout(20)
 def test_a_misspelled_manager_gets_a_close_match(robot: Manager, pki: Path) -> None:
-    error = fails(robot, tls(pki, "laptop"), name="robt", timeout_s=1.0)
+    """Said once the others are seen and it is not, without waiting for the (long) timeout."""
+    error = fails(robot, tls(pki, "laptop"), name="robt", timeout_s=30)
     assert str(error).endswith("no manager 'robt' among those reachable (robot); expected --manager one of robot (did you mean 'robot'?)")
 
 
