@@ -3,7 +3,11 @@
 Every method mirrors the manager's, takes JSON-friendly arguments and returns the manager's JSON
 reply (plain dicts and lists). A refused request raises the same exception class the manager
 raised (``UnitError``, ``BindingError``, ``SpecError``, ...); a manager that does not answer raises
-:class:`~dyknow.errors.ServiceError`.
+:class:`~dyknow.errors.ServiceError`, whose ``details["reason"]`` says why, as far as it can be
+told (:mod:`dyknow.reach`): ``refused``, ``unreachable``, ``silent``, ``tls-listener``,
+``tls-untrusted``, ``tls-rejected`` (the endpoint), ``no-such-manager`` (others are there:
+``details["managers"]``), ``no-role`` (linked, but nothing visible), ``dropped`` (an access control
+on the way), ``gone`` (its token went away) or ``timeout``.
 
 Usage::
 
