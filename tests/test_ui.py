@@ -147,7 +147,13 @@ def test_request_and_release_from_the_page(ui: Callable[..., tuple[Manager, str]
     assert [r.tag for r in manager.get_model().requests] == ["BallTrack(field)"]
     wait_text(browser, "requests", "BallTrack(field)")
     shot(browser, "requests")
-    browser.find_element("css selector", "#requests button").click()
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    # (the list is drawn again at every push of the model: a button found may be replaced before the click)
+    WebDriverWait(browser, 10, ignored_exceptions=[StaleElementReferenceException]).until(
+        lambda d: d.find_element("css selector", "#requests button").click() or True
+    )
     wait_text(browser, "message", "released")
     assert manager.get_model().requests == ()
 
