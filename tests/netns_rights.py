@@ -15,6 +15,7 @@ access control on the way dropped the call) or ``nothing`` (no service visible a
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import threading
@@ -61,10 +62,14 @@ def main() -> int:
             result: dict[str, Any] = {"name": name}
             with Client(manager, connect=[endpoint], tls=tls(name), timeout_s=3) as client:
                 result["get_model"] = _outcome(client.get_model)
-                result["destroy"] = _outcome(lambda c=client: c.destroy("no-such-unit"))
-                result["request"] = _outcome(lambda c=client: c.request("NoSuchTag"))
+                result["destroy"] = _outcome(functools.partial(client.destroy, "no-such-unit"))
+                result["request"] = _outcome(functools.partial(client.request, "NoSuchTag"))
                 got = threading.Event()
-                with client.declare_subscriber(f"dyknow/{manager}/{SOURCE}/out", lambda msg, got=got: got.set()):
+
+                def seen(msg: Message, got: threading.Event = got) -> None:
+                    got.set()
+
+                with client.declare_subscriber(f"dyknow/{manager}/{SOURCE}/out", seen):
                     result["receives"] = got.wait(3)  # (50 messages a second: one comes within 3 s, if any may)
             before = inbox()
             # a leaf of the endpoint (a peer would find the manager through gossip and bypass it)
