@@ -213,11 +213,21 @@ def test_a_manager_or_router_with_a_tls_endpoint_and_no_tls_files(
 ) -> None:
     """Said naming the option (Zenoh says only "Missing TLS private key"); TLS files with no tls/
     endpoint at all are a warning (every link is plain TCP)."""
-    with pytest.raises(
-        AccessError, match=r"--listen: tls/\S+ is a TLS endpoint, and manager 'lonely' has no TLS files; expected --tls-ca"
-    ):
+    with pytest.raises(AccessError, match=r"--listen: tls/\S+ is a TLS endpoint, and manager 'lonely' has no TLS files; expected --tls-ca"):
         make_manager("lonely", listen=[f"tls/127.0.0.1:{free_port()}"])
     router = run_cli("router", "--listen", f"tls/127.0.0.1:{free_port()}")
     assert router.returncode == 1 and "is a TLS endpoint, and the router has no TLS files" in router.stderr
     make_manager("plain", listen=[f"tcp/127.0.0.1:{free_port()}"], tls=tls(pki, "robot"))
     assert "manager 'plain' has TLS files but no tls/ endpoint (--listen, --connect): every link is plain TCP" in caplog.text
+
+
+@pytest.mark.timeout(20)
+def test_a_manager_certificate_not_made_for_the_address(tmp_path: Path, make_manager: Callable[..., Manager]) -> None:
+    """Certificates made for the name localhost only, connected to by address: said at once, with the fix."""
+    write_dev_certs(tmp_path, ["robot", "laptop"], hosts=["localhost"])
+    manager = make_manager("robot", listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(tmp_path, "robot"))
+    error = fails(manager, tls(tmp_path, "laptop"), timeout_s=30)
+    assert f"the certificate of the listener at {manager.endpoints[0]} is not valid for '127.0.0.1'" in str(error)
+    assert "expected certificates made for the address clients connect to (dyknow certs DIR --names ... --hosts ...,127.0.0.1)" in str(
+        error
+    )
