@@ -13,8 +13,8 @@ Zenoh says only that it could not connect. When a client's session has no link, 
 - ``tls-rejected``: the listener refused this client's certificate (another CA, or none);
 - ``ok``: TCP (and TLS) went through: the failure is elsewhere (a role, a manager's name).
 
-:func:`check_endpoints` refuses at once what cannot work whatever runs there: an endpoint that
-does not parse, a ``tls/`` endpoint without TLS files. Every finding names the option to change.
+:func:`check_endpoints` refuses at once what cannot work whatever runs there: a ``tls/``
+endpoint without TLS files. Every finding names the option to change.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from dyknow.errors import AccessError
 
 __all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "probe", "probe_all"]
 
-#: The kinds of finding that a running manager behind the endpoint cannot change: a call fails at once.
+#: The kinds of finding that fail a call at once: nothing listens now, no route, TLS refused either
+#: way (waiting would not help; a manager that starts there later is reached by the next call).
 DEFINITE: frozenset[str] = frozenset({"refused", "unreachable", "tls-listener", "tls-untrusted", "tls-rejected"})
 _ALERT_WAIT_S = 0.5  # how long the probe waits, after its TLS handshake, for the listener to refuse its certificate
 _TLS_OPTIONS = "--tls-ca, --tls-cert and --tls-key (TlsFiles)"
@@ -50,7 +51,7 @@ class Finding:
 
     @property
     def definite(self) -> bool:
-        """Whether a manager starting there could not make it work (the call may fail at once)."""
+        """Whether waiting would not help: the call fails at once (see :data:`DEFINITE`)."""
         return self.kind in DEFINITE
 
 
