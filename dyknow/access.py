@@ -215,7 +215,9 @@ class AccessControl:
         (``FILE:LINE: field`` when the file's ``text`` is given)."""
         shape = "{ roles: { viewer: [...], operator: [...], admin: [...], manager: [...], router: [...], ROLE: [...] }, define: { ROLE: {...} } }"
         if not isinstance(data, dict) or "roles" not in data or not set(data) <= {"roles", "define"} or not isinstance(data["roles"], dict):
-            raise AccessError("the file must hold the field roles (and, to define roles, define), nothing else", where=where, expected=shape)
+            raise AccessError(
+                "the file must hold the field roles (and, to define roles, define), nothing else", where=where, expected=shape
+            )
         defined = _definitions(data.get("define", {}), where, text)
         roles: dict[str, tuple[str, ...]] = {}
         for role, names in data["roles"].items():
@@ -227,7 +229,9 @@ class AccessControl:
                     expected=f"one of {', '.join(known)}, or a role of define{did_you_mean(role, known)}",
                 )
             if not isinstance(names, list) or not all(isinstance(n, str) and n.strip() for n in names):
-                raise AccessError(f"got {names!r}", where=_at(where, text, f"roles.{role}", role), expected="a list of certificate common names")
+                raise AccessError(
+                    f"got {names!r}", where=_at(where, text, f"roles.{role}", role), expected="a list of certificate common names"
+                )
             roles[role] = tuple(n.strip() for n in names)
         for name in roles.get("manager", ()):
             try:
@@ -363,7 +367,10 @@ _RULES: dict[str, list[dict[str, Any]]] = {
         _rule("manager-receives", "egress", _ALL_MESSAGES, _EVERYTHING),
     ],
     # A router carries everyone's messages both ways (it enforces the same roles at its own links).
-    "router": [_rule("router-carries", "ingress", _ALL_MESSAGES, _EVERYTHING), _rule("router-delivers", "egress", _ALL_MESSAGES, _EVERYTHING)],
+    "router": [
+        _rule("router-carries", "ingress", _ALL_MESSAGES, _EVERYTHING),
+        _rule("router-delivers", "egress", _ALL_MESSAGES, _EVERYTHING),
+    ],
 }
 
 
@@ -383,7 +390,9 @@ def _rules_of(role: str) -> list[str]:
 def _defined_rules(subject: str, role: RoleDefinition) -> list[dict[str, Any]]:
     """The Zenoh rules of a defined role, besides those of the built-in role it is ``like``."""
     rules = []
-    own_calls = sorted(role.services() - {s for r in ROLES[: ROLES.index(role.like) + 1] for s in _SERVICES_OF[r]} if role.like else role.services())
+    own_calls = sorted(
+        role.services() - {s for r in ROLES[: ROLES.index(role.like) + 1] for s in _SERVICES_OF[r]} if role.like else role.services()
+    )
     if own_calls:
         rules.append(_rule(f"{subject}-calls", "ingress", ["query"], [f"{keys.SERVICE_ROOT}/*/{c}" for c in own_calls]))
         rules.append(_rule(f"{subject}-sees-services", "egress", ["declare_queryable", "reply"], [_SERVICES]))
@@ -419,7 +428,9 @@ def _definitions(raw: Any, where: str, text: str | None) -> dict[str, RoleDefini
         at = _at(where, text, f"define.{name}", str(name), "define")
         if name in ROLES + PEER_ROLES:
             raise AccessError(
-                f"{name!r} is a built-in role", where=at, expected="another name: the built-in roles stay as they are (use like: to start from one)"
+                f"{name!r} is a built-in role",
+                where=at,
+                expected="another name: the built-in roles stay as they are (use like: to start from one)",
             )
         try:
             keys.check_name(str(name), "role name")
@@ -442,11 +453,15 @@ def _definitions(raw: Any, where: str, text: str | None) -> dict[str, RoleDefini
         for kind in ("calls", "publish", "subscribe"):
             values = spec.get(kind, [])
             if not isinstance(values, list) or not all(isinstance(v, str) for v in values):
-                raise AccessError(f"got {values!r}", where=_at(where, text, f"define.{name}.{kind}", kind, str(name)), expected="a list of strings")
+                raise AccessError(
+                    f"got {values!r}", where=_at(where, text, f"define.{name}.{kind}", kind, str(name)), expected="a list of strings"
+                )
             for i, value in enumerate(values):
                 problem = _check_call(value) if kind == "calls" else _check_key_expr(value)
                 if problem is not None:
-                    raise AccessError(problem[0], where=_at(where, text, f"define.{name}.{kind}[{i}]", f"{value}", str(name)), expected=problem[1])
+                    raise AccessError(
+                        problem[0], where=_at(where, text, f"define.{name}.{kind}[{i}]", f"{value}", str(name)), expected=problem[1]
+                    )
             lists[kind] = tuple(values)
         defined[str(name)] = RoleDefinition(str(name), like, lists["calls"], lists["publish"], lists["subscribe"])
     return defined
@@ -461,5 +476,8 @@ def _check_call(service: str) -> tuple[str, str] | None:
 def _check_key_expr(key_expr: str) -> tuple[str, str] | None:
     chunks = key_expr.split("/")
     if chunks[0] != keys.DATA_ROOT or len(chunks) < 2 or any(not c or c.startswith("@") or any(ch in c for ch in "?#$") for c in chunks):
-        return f"{key_expr!r} is not a key expression under {keys.DATA_ROOT}/", f"chunks under {keys.DATA_ROOT}/, such as dyknow/robot/** or dyknow/*/requests/**"
+        return (
+            f"{key_expr!r} is not a key expression under {keys.DATA_ROOT}/",
+            f"chunks under {keys.DATA_ROOT}/, such as dyknow/robot/** or dyknow/*/requests/**",
+        )
     return None

@@ -1602,7 +1602,9 @@ class AdaptationLoop:
             self._emit(event)
             # one line; the planner's whole explanation at debug level (and in the event's detail, dyknow plan)
             head = ": ".join(line.strip().rstrip(":") for line in why.splitlines()[:2])  # "cannot plan T: nothing can provide T"
-            log.warning("request %s is degraded (%s): %s (the planner's reasons: its event, or dyknow plan)", request.tag, _cause(symptom), head)
+            log.warning(
+                "request %s is degraded (%s): %s (the planner's reasons: its event, or dyknow plan)", request.tag, _cause(symptom), head
+            )
             log.debug("request %s is degraded: %s", request.tag, why)
 
 

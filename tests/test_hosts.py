@@ -136,11 +136,23 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
         lost = [e for e in observer.ask("adaptations") if e["cause"] == "manager 'robot' was lost"]
         assert lost and lost[0]["key"] == key, lost  # adapted onto the field's camera, or degraded until the field answers
         # the operator sees the robot as lost, since when and why, not just missing from the list
-        argv = [sys.executable, "-m", "dyknow.cli", "managers", "--json", "--connect", f"tcp/{hosts.address('station')}:{PORT}", "--manager", "station"]
+        argv = [
+            sys.executable,
+            "-m",
+            "dyknow.cli",
+            "managers",
+            "--json",
+            "--connect",
+            f"tcp/{hosts.address('station')}:{PORT}",
+            "--manager",
+            "station",
+        ]
         listed = subprocess.run(hosts.command("station", argv), capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO)
         assert listed.returncode == 0, listed.stderr
         states = {m["manager"]: m for m in json.loads(listed.stdout)}
-        assert states["robot"]["state"] == "lost" and states["robot"]["why"].startswith("its liveliness token went away without a goodbye"), states
+        assert states["robot"]["state"] == "lost" and states["robot"]["why"].startswith(
+            "its liveliness token went away without a goodbye"
+        ), states
         assert states["robot"]["reported_by"] == "station" and states["field"]["state"] == "up"
 
         hosts.restore("robot")  # it reconnects; the preferred camera returns after the dwell time
@@ -415,7 +427,9 @@ def test_the_readmes_two_host_example_runs_as_written(tmp_path: Path) -> None:
                 host = next((h for h, a in addresses.items() if f"({a})" in where), "laptop")  # "on any machine": the laptop
                 argv = ["sh", "-c", line]
                 if line.startswith("dyknow manager "):
-                    proc = hosts.popen(host, ["sh", "-c", f"exec {line}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+                    proc = hosts.popen(
+                        host, ["sh", "-c", f"exec {line}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path
+                    )
                     managers.append(proc)
                     assert proc.stdout is not None
                     ready = proc.stdout.readline()
@@ -479,12 +493,18 @@ def test_through_a_router_and_a_third_manager_each_client_has_its_own_rights(tmp
     names = ["station", "robot", "hub", "laptop"]
     with Hosts(names) as hosts:
         pki = tmp_path / "pki"
-        write_dev_certs(pki, ["station", "robot", "hub", "admin", "viewer", "requester", "operator", "stranger"], hosts=[hosts.address(n) for n in names])
+        write_dev_certs(
+            pki,
+            ["station", "robot", "hub", "admin", "viewer", "requester", "operator", "stranger"],
+            hosts=[hosts.address(n) for n in names],
+        )
         acl = tmp_path / "acl.json5"
         acl.write_text("""{ roles: { manager: ["station", "robot"], router: ["hub"], admin: ["admin"], viewer: ["viewer"],
                                     requester: ["requester"], operator: ["operator"] },
                          define: { requester: { like: "viewer", calls: ["request", "release"] } } }""")
-        tls_of = {n: ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{n}.pem"), "--tls-key", str(pki / f"{n}.key")] for n in names}
+        tls_of = {
+            n: ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{n}.pem"), "--tls-key", str(pki / f"{n}.key")] for n in names
+        }
         hub = f"tls/{hosts.address('hub')}:7446"
         common = ["--acl", str(acl), "--lease-ms", "1000", "--json"]
         children = [Child(hosts, "hub", [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, *common, *tls_of["hub"]])]
@@ -492,7 +512,20 @@ def test_through_a_router_and_a_third_manager_each_client_has_its_own_rights(tmp
             assert children[0].next("ready")["endpoints"] == [hub]
             for name, specs in (("station", REPO / "specs" / "generic.xml"), ("robot", REPO / "specs" / "generic.xml")):
                 endpoint = f"tls/{hosts.address(name)}:{PORT}"
-                argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(specs), "--listen", endpoint, "--connect", hub]
+                argv = [
+                    sys.executable,
+                    "-m",
+                    "dyknow.cli",
+                    "manager",
+                    "--name",
+                    name,
+                    "--specs",
+                    str(specs),
+                    "--listen",
+                    endpoint,
+                    "--connect",
+                    hub,
+                ]
                 children.append(Child(hosts, name, [*argv, *common, *tls_of[name]]))
                 assert children[-1].next("ready")["endpoints"] == [endpoint]
             identities = ["viewer", "requester", "operator", "stranger"]
@@ -504,7 +537,9 @@ def test_through_a_router_and_a_third_manager_each_client_has_its_own_rights(tmp
             }
             for via in (hub, f"tls/{hosts.address('robot')}:{PORT}"):  # the router, then the robot's manager
                 argv = [sys.executable, "-m", "tests.netns_rights", via, "station", str(pki), *identities]
-                done = subprocess.run(hosts.command("laptop", argv), capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO)
+                done = subprocess.run(
+                    hosts.command("laptop", argv), capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO
+                )
                 assert done.returncode == 0, done.stderr[-3000:]
                 found = {r.pop("name"): r for r in map(json.loads, done.stdout.splitlines())}
                 assert found == expected, (via, found)
