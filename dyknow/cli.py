@@ -385,6 +385,9 @@ def cmd_model(args: argparse.Namespace) -> int:
                     yield f"      error: {unit['error']}"
             for request in model.get("requests", []):
                 yield f"  request {request['tag']} on {request['key']}: {request['state']}"
+            for lost in model.get("lost", []):
+                when = time.strftime("%H:%M:%S", time.localtime(lost["since_ns"] / 1e9))
+                yield f"  lost manager {lost['manager']} since {when}: {lost['why']}"
             if model["specs"]:
                 yield "specs: " + ", ".join(s["label"] for s in model["specs"])
 

@@ -272,6 +272,7 @@ def test_three_processes_keep_the_key_through_a_sigkill(processes: Callable[...,
         assert [(x["manager"], x["state"]) for x in listed] == [("field", "up"), ("station", "up"), ("robot", "lost")]
         assert listed[2]["why"].startswith("its liveliness token went away without a goodbye: it crashed, or its host was cut off")
         assert "LOST since" in run_cli("managers", *hub, "--manager", "station").stdout
+        assert "  lost manager robot since " in run_cli("model", *hub, "--manager", "station").stdout
 
         processes("robot", free_port(), *hub)  # it comes back: the preferred camera returns after the dwell time
         stream.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
