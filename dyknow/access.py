@@ -28,6 +28,14 @@ The processes of the system:
 - **router**: a Zenoh router of the system (``dyknow router``): it carries everyone's traffic, so
   every message may pass its link, and it enforces the same file at its own links.
 
+Roles of the file's own, for what these do not fit: ``define`` gives each the built-in role it
+starts from (``like``, optional) and besides it the services it may call (``calls``, names of
+:data:`SERVICES`) and the key expressions under ``dyknow/`` it may ``publish`` and ``subscribe``
+to; a mistake is located (``FILE:LINE: define.ROLE.calls[1]: unknown service ...``)::
+
+    { roles: { requester: ["robot-ui"] },
+      define: { requester: { like: "viewer", calls: ["request", "release"] } } }
+
 It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessControl.zenoh`):
 default deny, one subject per role (by certificate common name), one allow rule per role and
 message kind, and for each manager one subject and rules of its own name. So the transport
@@ -41,17 +49,19 @@ other managers. Without an ACL everything is allowed (local use).
 from __future__ import annotations
 
 import os
+import ssl
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import json5
+from cryptography.exceptions import InvalidSignature
 
 from dyknow import keys
-from dyknow.errors import AccessError, DyKnowError
+from dyknow.errors import AccessError, DyKnowError, did_you_mean
 
-__all__ = ["PEER_ROLES", "ROLES", "AccessControl", "TlsFiles"]
+__all__ = ["PEER_ROLES", "ROLES", "SERVICES", "AccessControl", "RoleDefinition", "TlsFiles"]
 
 #: The roles of people and tools, each allowed what the ones before it are.
 ROLES: tuple[str, ...] = ("viewer", "operator", "admin")
@@ -70,6 +80,31 @@ _SERVICES_OF = {
 }
 # What a manager may call as itself: what its requests across managers need.
 _MANAGER_CALLS = [*_SERVICES_OF["viewer"], *_SERVICES_OF["operator"]]
+#: Every service a role may be given (``calls`` of a defined role), as the ACL file names them:
+#: a unit's services by their own name (``get_config`` is ``unit/*/get_config``).
+SERVICES: tuple[str, ...] = tuple(sorted(s.removeprefix("unit/*/") for r in ROLES for s in _SERVICES_OF[r]))
+_UNIT_SERVICES = frozenset(s.removeprefix("unit/*/") for r in ROLES for s in _SERVICES_OF[r] if s.startswith("unit/*/"))
+_DEFINE_FIELDS = ("like", "calls", "publish", "subscribe")
+
+
+@dataclass(frozen=True, slots=True)
+class RoleDefinition:
+    """A role the ACL file defines (``define: { NAME: {...} }``): what a built-in role may
+    (``like``, or nothing) and besides it the services it may ``calls`` and the key expressions
+    under ``dyknow/`` it may ``publish`` and ``subscribe`` to."""
+
+    name: str
+    like: str | None = None
+    calls: tuple[str, ...] = ()
+    publish: tuple[str, ...] = ()
+    subscribe: tuple[str, ...] = ()
+
+    def services(self) -> set[str]:
+        """The services it may call, as :data:`_SERVICES_OF` names them (``unit/*/...``)."""
+        found = {f"unit/*/{c}" if c in _UNIT_SERVICES else c for c in self.calls}
+        if self.like is not None:
+            found.update(s for r in ROLES[: ROLES.index(self.like) + 1] for s in _SERVICES_OF[r])
+        return found
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,12 +116,42 @@ class TlsFiles:
     key: str
 
     def check(self) -> TlsFiles:
-        """This, once every file is known to be readable; :class:`AccessError` naming the one that is not."""
+        """This, once the files are known to work together; else :class:`AccessError` naming the
+        file: one that is not readable, a CA file without a certificate, a certificate or key that
+        does not load, a key that is not the certificate's, a certificate its CA did not sign
+        (every peer would refuse it)."""
         for option, path in (("--tls-ca", self.ca), ("--tls-cert", self.cert), ("--tls-key", self.key)):
             if not os.path.isfile(path) or not os.access(path, os.R_OK):
                 raise AccessError(
                     f"{path!r} is not a readable file", where=option, expected="a PEM file (dyknow certs DIR writes development ones)"
                 )
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+        try:
+            context.load_verify_locations(self.ca)
+        except (ssl.SSLError, ValueError) as exc:
+            raise AccessError(
+                f"{self.ca} holds no CA certificate ({exc})", where="--tls-ca", expected="the PEM certificate of the CA"
+            ) from exc
+        try:
+            context.load_cert_chain(self.cert, self.key)
+        except ssl.SSLError as exc:
+            if "KEY_VALUES_MISMATCH" in str(exc):
+                raise AccessError(
+                    f"the key in {self.key} is not the key of the certificate {self.cert}",
+                    where="--tls-key",
+                    expected="the private key the certificate was issued for (NAME.key beside NAME.pem)",
+                ) from exc
+            raise AccessError(
+                f"{self.cert} and {self.key} do not load as a certificate and its key ({exc})",
+                where="--tls-cert/--tls-key",
+                expected="a PEM certificate and its unencrypted PEM private key",
+            ) from exc
+        if not _issued_by(Path(self.cert).read_bytes(), Path(self.ca).read_bytes()):
+            raise AccessError(
+                f"the certificate {self.cert} is not signed by the CA of {self.ca}: every peer that trusts that CA would refuse it",
+                where="--tls-cert",
+                expected="a certificate issued by the CA of --tls-ca (dyknow certs DIR writes both in DIR), or the CA file that issued it",
+            )
         return self
 
     @classmethod
@@ -101,11 +166,34 @@ class TlsFiles:
         return cls(str(ca), str(cert), str(key)).check()
 
 
+def _issued_by(cert_pem: bytes, ca_pem: bytes) -> bool:
+    """Whether a certificate of the file ``cert_pem`` (the leaf, or a chain's intermediate) is a CA
+    of ``ca_pem`` or was signed by one."""
+    from cryptography import x509
+
+    try:
+        chain, cas = x509.load_pem_x509_certificates(cert_pem), x509.load_pem_x509_certificates(ca_pem)
+    except ValueError:
+        return True  # (ssl loaded them: a form this check does not read; the handshake judges)
+    for cert in chain:
+        for ca in cas:
+            if cert == ca:
+                return True
+            try:
+                cert.verify_directly_issued_by(ca)
+                return True
+            except (ValueError, TypeError, InvalidSignature):
+                continue
+    return False
+
+
 @dataclass(frozen=True, slots=True)
 class AccessControl:
     """Certificate common names by role (see the module documentation)."""
 
     roles: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    #: The roles the file defines, by name (see :class:`RoleDefinition`).
+    defined: Mapping[str, RoleDefinition] = field(default_factory=dict)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> AccessControl:
@@ -119,22 +207,31 @@ class AccessControl:
             raise AccessError(
                 f"not JSON5: {exc}", where=where, expected='{ roles: { viewer: ["CN", ...], operator: [...], admin: [...] } }'
             ) from exc
-        return cls.from_dict(data, where)
+        return cls.from_dict(data, where, text=Path(path).read_text(encoding="utf-8"))
 
     @classmethod
-    def from_dict(cls, data: Any, where: str = "<acl>") -> AccessControl:
-        """The ACL from its parsed form; :class:`AccessError` naming the field when malformed."""
-        shape = "{ roles: { viewer: [...], operator: [...], admin: [...], manager: [...], router: [...] } }"
-        if not isinstance(data, dict) or set(data) != {"roles"} or not isinstance(data["roles"], dict):
-            raise AccessError("the file must hold exactly one field, roles", where=where, expected=shape)
+    def from_dict(cls, data: Any, where: str = "<acl>", *, text: str | None = None) -> AccessControl:
+        """The ACL from its parsed form; :class:`AccessError` naming the field when malformed
+        (``FILE:LINE: field`` when the file's ``text`` is given)."""
+        shape = "{ roles: { viewer: [...], operator: [...], admin: [...], manager: [...], router: [...], ROLE: [...] }, define: { ROLE: {...} } }"
+        if not isinstance(data, dict) or "roles" not in data or not set(data) <= {"roles", "define"} or not isinstance(data["roles"], dict):
+            raise AccessError(
+                "the file must hold the field roles (and, to define roles, define), nothing else", where=where, expected=shape
+            )
+        defined = _definitions(data.get("define", {}), where, text)
         roles: dict[str, tuple[str, ...]] = {}
         for role, names in data["roles"].items():
-            if role not in ROLES + PEER_ROLES:
+            if role not in ROLES + PEER_ROLES and role not in defined:
+                known = [*ROLES, *PEER_ROLES, *defined]
                 raise AccessError(
-                    f"unknown role {role!r}", where=f"{where}: roles", expected=f"one of {', '.join(ROLES + PEER_ROLES)}"
+                    f"unknown role {role!r}",
+                    where=_at(where, text, f"roles.{role}", role),
+                    expected=f"one of {', '.join(known)}, or a role of define{did_you_mean(role, known)}",
                 )
             if not isinstance(names, list) or not all(isinstance(n, str) and n.strip() for n in names):
-                raise AccessError(f"got {names!r}", where=f"{where}: roles.{role}", expected="a list of certificate common names")
+                raise AccessError(
+                    f"got {names!r}", where=_at(where, text, f"roles.{role}", role), expected="a list of certificate common names"
+                )
             roles[role] = tuple(n.strip() for n in names)
         for name in roles.get("manager", ()):
             try:
@@ -144,7 +241,7 @@ class AccessControl:
                     f"{name!r} cannot be a manager's name", where=f"{where}: roles.manager",
                     expected="the common names of the managers' certificates, each its manager's --name",
                 ) from exc  # fmt: skip
-        return cls(roles)
+        return cls(roles, defined)
 
     def role_of(self, common_name: str) -> str | None:
         """The role of a certificate's common name: its highest of viewer, operator and admin,
@@ -153,6 +250,9 @@ class AccessControl:
         people = [role for role in found if role in ROLES]
         if people:
             return people[-1]
+        own = [role for role in self.defined if common_name in self.roles.get(role, ())]
+        if own:
+            return own[0]
         return found[0] if found else None
 
     def may_call(self, common_name: str, service: str, *, unit: bool = False) -> bool:
@@ -165,12 +265,16 @@ class AccessControl:
                 allowed.update(s for r in ROLES[: level + 1] for s in _SERVICES_OF[r])
         if common_name in self.roles.get("manager", ()):
             allowed.update(_MANAGER_CALLS)
+        for role, definition in self.defined.items():
+            if common_name in self.roles.get(role, ()):
+                allowed.update(definition.services())
         return wanted in allowed
 
     def roles_for_call(self, service: str, *, unit: bool = False) -> list[str]:
         """The roles that may call ``service`` (for messages that say who may)."""
         wanted = f"unit/*/{service}" if unit else service
         found = [role for level, role in enumerate(ROLES) if any(wanted in _SERVICES_OF[r] for r in ROLES[: level + 1])]
+        found += [role for role, definition in self.defined.items() if wanted in definition.services()]
         return found + (["manager"] if wanted in _MANAGER_CALLS else [])
 
     def zenoh(self) -> dict[str, Any]:
@@ -191,6 +295,16 @@ class AccessControl:
             rules.extend(_RULES["router"])
             subjects.append({"id": "router", "cert_common_names": list(self.roles["router"])})
             policies.append({"id": "router-policy", "rules": _rules_of("router"), "subjects": ["router"]})
+        for i, (role, definition) in enumerate(self.defined.items()):
+            names = self.roles.get(role, ())
+            if not names:
+                continue
+            subject = f"defined-{i}"  # (the file's names are not Zenoh ids)
+            own = _defined_rules(subject, definition)
+            rules.extend(own)
+            subjects.append({"id": subject, "cert_common_names": list(names)})
+            base = [name for r in ROLES[: ROLES.index(definition.like) + 1] for name in _rules_of(r)] if definition.like else []
+            policies.append({"id": f"{subject}-policy", "rules": [*base, *(r["id"] for r in own)], "subjects": [subject]})
         managers = self.roles.get("manager", ())
         if managers:
             rules.extend(_RULES["manager"])
@@ -253,7 +367,10 @@ _RULES: dict[str, list[dict[str, Any]]] = {
         _rule("manager-receives", "egress", _ALL_MESSAGES, _EVERYTHING),
     ],
     # A router carries everyone's messages both ways (it enforces the same roles at its own links).
-    "router": [_rule("router-carries", "ingress", _ALL_MESSAGES, _EVERYTHING), _rule("router-delivers", "egress", _ALL_MESSAGES, _EVERYTHING)],
+    "router": [
+        _rule("router-carries", "ingress", _ALL_MESSAGES, _EVERYTHING),
+        _rule("router-delivers", "egress", _ALL_MESSAGES, _EVERYTHING),
+    ],
 }
 
 
@@ -268,3 +385,99 @@ def _own_rules(subject: str, manager: str) -> list[dict[str, Any]]:
 
 def _rules_of(role: str) -> list[str]:
     return [rule["id"] for rule in _RULES[role]]
+
+
+def _defined_rules(subject: str, role: RoleDefinition) -> list[dict[str, Any]]:
+    """The Zenoh rules of a defined role, besides those of the built-in role it is ``like``."""
+    rules = []
+    own_calls = sorted(
+        role.services() - {s for r in ROLES[: ROLES.index(role.like) + 1] for s in _SERVICES_OF[r]} if role.like else role.services()
+    )
+    if own_calls:
+        rules.append(_rule(f"{subject}-calls", "ingress", ["query"], [f"{keys.SERVICE_ROOT}/*/{c}" for c in own_calls]))
+        rules.append(_rule(f"{subject}-sees-services", "egress", ["declare_queryable", "reply"], [_SERVICES]))
+    if role.subscribe:
+        rules.append(_rule(f"{subject}-subscribes", "ingress", ["declare_subscriber"], list(role.subscribe)))
+        rules.append(_rule(f"{subject}-receives", "egress", ["put", "delete"], list(role.subscribe)))
+    if role.publish:
+        rules.append(_rule(f"{subject}-publishes", "ingress", ["put", "delete", "liveliness_token"], list(role.publish)))
+        rules.append(_rule(f"{subject}-reaches-subscribers", "egress", ["declare_subscriber"], list(role.publish)))
+    return rules
+
+
+def _at(where: str, text: str | None, field_path: str, needle: str, after: str | None = None) -> str:
+    """``FILE:LINE: field`` for a value of the file (the first line holding ``needle``, after the
+    first holding ``after``), or ``FILE: field`` when the line cannot be told."""
+    if text is None:
+        return f"{where}: {field_path}"
+    lines = text.splitlines()
+    start = 0
+    if after is not None:
+        start = next((i for i, line in enumerate(lines) if after in line), 0)
+    line = next((i for i in range(start, len(lines)) if needle in lines[i]), None)
+    return f"{where}:{line + 1}: {field_path}" if line is not None else f"{where}: {field_path}"
+
+
+def _definitions(raw: Any, where: str, text: str | None) -> dict[str, RoleDefinition]:
+    """The ``define`` field: role name -> definition, each checked (located errors)."""
+    shape = '{ define: { requester: { like: "viewer", calls: ["request", "release"], publish: [], subscribe: [] } } }'
+    if not isinstance(raw, dict):
+        raise AccessError(f"got {raw!r}", where=_at(where, text, "define", "define"), expected=shape)
+    defined: dict[str, RoleDefinition] = {}
+    for name, spec in raw.items():
+        at = _at(where, text, f"define.{name}", str(name), "define")
+        if name in ROLES + PEER_ROLES:
+            raise AccessError(
+                f"{name!r} is a built-in role",
+                where=at,
+                expected="another name: the built-in roles stay as they are (use like: to start from one)",
+            )
+        try:
+            keys.check_name(str(name), "role name")
+        except DyKnowError as exc:
+            raise AccessError(f"{name!r} cannot be a role's name", where=at, expected="letters, digits, '_', '-' and '.'") from exc
+        if not isinstance(spec, dict) or not set(spec) <= set(_DEFINE_FIELDS):
+            unknown = sorted(set(spec) - set(_DEFINE_FIELDS)) if isinstance(spec, dict) else []
+            raise AccessError(
+                f"unknown field {unknown[0]!r}{did_you_mean(unknown[0], _DEFINE_FIELDS)}" if unknown else f"got {spec!r}",
+                where=_at(where, text, f"define.{name}", unknown[0] if unknown else str(name), "define"),
+                expected=f"an object of {', '.join(_DEFINE_FIELDS)}",
+            )
+        like = spec.get("like")
+        if like is not None and like not in ROLES:
+            raise AccessError(
+                f"like {like!r}", where=_at(where, text, f"define.{name}.like", f"{like}", str(name)),
+                expected=f"one of the built-in roles {', '.join(ROLES)}{did_you_mean(str(like), ROLES)}",
+            )  # fmt: skip
+        lists: dict[str, tuple[str, ...]] = {}
+        for kind in ("calls", "publish", "subscribe"):
+            values = spec.get(kind, [])
+            if not isinstance(values, list) or not all(isinstance(v, str) for v in values):
+                raise AccessError(
+                    f"got {values!r}", where=_at(where, text, f"define.{name}.{kind}", kind, str(name)), expected="a list of strings"
+                )
+            for i, value in enumerate(values):
+                problem = _check_call(value) if kind == "calls" else _check_key_expr(value)
+                if problem is not None:
+                    raise AccessError(
+                        problem[0], where=_at(where, text, f"define.{name}.{kind}[{i}]", f"{value}", str(name)), expected=problem[1]
+                    )
+            lists[kind] = tuple(values)
+        defined[str(name)] = RoleDefinition(str(name), like, lists["calls"], lists["publish"], lists["subscribe"])
+    return defined
+
+
+def _check_call(service: str) -> tuple[str, str] | None:
+    if service in SERVICES:
+        return None
+    return f"unknown service {service!r}", f"one of {', '.join(SERVICES)}{did_you_mean(service, SERVICES)}"
+
+
+def _check_key_expr(key_expr: str) -> tuple[str, str] | None:
+    chunks = key_expr.split("/")
+    if chunks[0] != keys.DATA_ROOT or len(chunks) < 2 or any(not c or c.startswith("@") or any(ch in c for ch in "?#$") for c in chunks):
+        return (
+            f"{key_expr!r} is not a key expression under {keys.DATA_ROOT}/",
+            f"chunks under {keys.DATA_ROOT}/, such as dyknow/robot/** or dyknow/*/requests/**",
+        )
+    return None

@@ -72,7 +72,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from dyknow import keys
-from dyknow.errors import DyKnowError, PlanningError, UnitError
+from dyknow.errors import DyKnowError, PlanningError, ServiceError, UnitError
 from dyknow.federation import Summary
 from dyknow.library import Library
 from dyknow.message import Message
@@ -1097,7 +1097,11 @@ class Reconfigurer:
                 elif manager in self._runtime.peers():  # a lost manager took its units with it
                     self._runtime.destroy_on(manager, name)
             except DyKnowError as exc:
-                log.warning("could not destroy unit %r after an adaptation: %s", ref, exc)
+                # replaced already, or lost with its manager: as it should be
+                gone = (isinstance(exc, UnitError) and "no unit named" in exc.what) or (
+                    isinstance(exc, ServiceError) and exc.details.get("reason") == "gone"
+                )
+                log.log(logging.DEBUG if gone else logging.WARNING, "could not destroy unit %r after an adaptation: %s", ref, exc)
             self._knowledge.managed.discard(ref)
             self._knowledge.stalled.discard(ref)
             self._knowledge.remote.pop(ref, None)
@@ -1567,7 +1571,7 @@ class AdaptationLoop:
             log.warning("adaptation of %s failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not wire the new configuration: {exc}")
             return
-        self._adapted(request, symptom, cause, old_labels, orphans, recovery, standby=False)
+        self._adapted(request, symptom, cause, old_labels, orphans, recovery, standby=False, fault=fault)
 
     def _adapted(
         self,
@@ -1579,9 +1583,11 @@ class AdaptationLoop:
         recovery: _Recovery,
         *,
         standby: bool,
+        fault: bool = False,
     ) -> int:
         """The new configuration is wired: record it, tell the listeners, let go of what it left;
-        returns when it was wired (ns)."""
+        returns when it was wired (ns). One log line says what was rebuilt and why: a warning
+        after a fault (something broke), else information (a better configuration came back)."""
         wired = time.time_ns()
         request.last_change_ns = wired
         event = AdaptationEvent(
@@ -1599,7 +1605,8 @@ class AdaptationLoop:
         self._next_id += 1
         self._emit(event)
         recovery.adapted(event)
-        log.info(
+        log.log(
+            logging.WARNING if fault else logging.INFO,
             "adapted %s (%s)%s: %s -> %s in %.1f ms",
             request.tag,
             cause,
@@ -1622,7 +1629,7 @@ class AdaptationLoop:
             log.warning("switching %s onto its standby failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not switch onto the standby: {exc}")
             return
-        wired = self._adapted(request, symptom, _cause(symptom), old_labels, orphans, recovery, standby=True)
+        wired = self._adapted(request, symptom, _cause(symptom), old_labels, orphans, recovery, standby=True, fault=fault)
         if fault:
             try:
                 preferred = self.reconfigurer.plan(request, time.time_ns())
@@ -1695,7 +1702,12 @@ class AdaptationLoop:
             )
             self._next_id += 1
             self._emit(event)
-            log.warning("request %s is degraded: %s", request.tag, why)
+            # one line; the planner's whole explanation at debug level (and in the event's detail, dyknow plan)
+            head = ": ".join(line.strip().rstrip(":") for line in why.splitlines()[:2])  # "cannot plan T: nothing can provide T"
+            log.warning(
+                "request %s is degraded (%s): %s (the planner's reasons: its event, or dyknow plan)", request.tag, _cause(symptom), head
+            )
+            log.debug("request %s is degraded: %s", request.tag, why)
         self._watch_specs(request)
 
 

@@ -338,7 +338,7 @@ def _default_endpoint(tls: Any) -> str:
 def _client(args: argparse.Namespace) -> Client:
     tls = _tls(args)
     connect = args.connect or ([_default_endpoint(tls)] if args.zenoh_config is None else [])
-    return Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls)
+    return Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls, lease_ms=args.lease_ms)
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
@@ -368,6 +368,9 @@ def cmd_model(args: argparse.Namespace) -> int:
     """show the manager's units and specs (--all: of every manager reachable)"""
     with _client(args) as client:
         data = client.get_federated_model() if args.all else client.get_model()
+        why = client.unreachable() if args.all and not data["managers"] else None
+    if why is not None:
+        raise why
     models = data["managers"] if args.all else [data]
 
     def text() -> Iterable[str]:
@@ -385,25 +388,52 @@ def cmd_model(args: argparse.Namespace) -> int:
                 yield "  no units"
             for request in model.get("requests", []):
                 yield f"  request {request['tag']} on {request['key']}: {request['state']}"
+            for lost in model.get("lost", []):
+                when = time.strftime("%H:%M:%S", time.localtime(lost["since_ns"] / 1e9))
+                yield f"  lost manager {lost['manager']} since {when}: {lost['why']}"
             if model["specs"]:
                 yield "specs: " + ", ".join(s["label"] for s in model["specs"])
 
     _report(args, data, text)
+    if args.all and not models:
+        print("dyknow: error: no manager reachable; expected a running manager at --connect", file=sys.stderr)
+        return 1
     return 0
 
 
 def cmd_managers(args: argparse.Namespace) -> int:
-    """list every manager reachable: host, library size, units, requests, and its clock's offset as --manager estimates it"""
+    """list every manager reachable (host, library size, units, requests, its clock's offset as --manager estimates it),
+    then those --manager knew and lost (since when, why); exit 1 when none is reachable"""
+    from dyknow.reach import DEFINITE
+
     with _client(args) as client:
+        why = client.unreachable()  # (a refusal at once, rather than after listening for 2 s)
+        if why is not None and why.details.get("reason") in DEFINITE:
+            raise why
         managers = client.managers(timeout_s=min(args.timeout, 2.0))
-        try:  # (a --manager that is not there would hold the list up for --timeout)
-            clocks = client.clocks() if any(m["manager"] == args.manager for m in managers) else {}
-        except DyKnowError as exc:  # the other columns stand without it
-            logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
-            clocks = {}
+        if not managers:
+            why = client.unreachable()
+            if why is not None:
+                raise why
+        names = [m["manager"] for m in managers]
+        # (a --manager that is not there would hold the list up for --timeout: ask another one)
+        asked = args.manager if args.manager in names else names[0] if names else None
+        clocks: dict[str, Any] = {}
+        lost: list[dict[str, Any]] = []
+        if asked is not None:
+            try:
+                model = client.get_model(asked)
+                clocks = client.clocks(asked, model=model) if asked == args.manager else {}
+                lost = [m for m in client.lost_managers(asked, model=model) if m["manager"] not in names]
+            except DyKnowError as exc:  # the other columns stand without it
+                logging.getLogger(__name__).debug("no clock offsets or lost managers from %r: %s", asked, exc)
     for m in managers:  # the offset of each manager's clock from --manager's (None: not known to it yet)
         found = clocks.get(m["manager"])
+        m["state"] = "up"
         m["clock"] = None if found is None else {"offset_us": found.offset_ns / 1000, "uncertainty_us": found.uncertainty_ns / 1000}
+    now = time.time_ns()
+    for m in lost:
+        m.update(state="lost", reported_by=asked)
 
     def text() -> Iterable[str]:
         if not managers:
@@ -411,8 +441,15 @@ def cmd_managers(args: argparse.Namespace) -> int:
         for m in managers:
             clock = "clock unknown" if m["clock"] is None else f"clock {m['clock']['offset_us']:+.1f} us +/- {m['clock']['uncertainty_us']:.1f}"
             yield f"{m['manager']:<20} host {m['host']:<20} {m['specs']:>5} specs {m['units']:>5} units {m['requests']:>4} requests  {clock}"
+        for m in lost:
+            when = time.strftime("%H:%M:%S", time.localtime(m["since_ns"] / 1e9))
+            yield f"{m['manager']:<20} LOST since {when} ({(now - m['since_ns']) / 1e9:.1f} s ago, as {asked} saw it): {m['why']}"
 
-    _report(args, managers, text)
+    _report(args, [*managers, *lost], text)
+    if not managers:
+        where = ", ".join(args.connect) or "--connect"
+        print(f"dyknow: error: no manager reachable through {where}; expected a running manager there (dyknow manager)", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -466,6 +503,11 @@ def cmd_router(args: argparse.Namespace) -> int:
                               expected="--tls-ca, --tls-cert and --tls-key with --acl")  # fmt: skip
         access = AccessControl.load(args.acl)
     listen = args.listen or [_default_endpoint(tls)]
+    if args.zenoh_config is None:  # (Zenoh would say only "Missing TLS private key")
+        from dyknow.reach import check_endpoints
+
+        check_endpoints(listen, tls, option="--listen", who="the router")
+        check_endpoints(args.connect, tls, option="--connect", who="the router")
     config = make_config(
         listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms
     )
@@ -538,7 +580,7 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
         removed = client.remove_transformation(args.label)
     text = f"removed {args.label}" if removed else f"no spec labelled {args.label!r}; nothing removed"
     _report(args, {"label": args.label, "removed": removed}, text)
-    return 0
+    return 0 if removed else 1
 
 
 def cmd_request(args: argparse.Namespace) -> int:
@@ -615,6 +657,8 @@ def _payload_json(payload: Any) -> Any:
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
+    from dyknow.reach import DEFINITE
+
     if args.count is not None and args.count <= 0:
         raise _Usage(f"--count: got {args.count}; expected a positive number")
     done = threading.Event()
@@ -646,7 +690,11 @@ def cmd_echo(args: argparse.Namespace) -> int:
             if args.count is not None and seen >= args.count:
                 done.set()
 
-    with _client(args) as client, client.follow_clocks() as view:
+    with _client(args) as client:
+        why = client.unreachable()  # nothing would ever come: say why at once (a silent host may come back: wait)
+        if why is not None and why.details.get("reason") in DEFINITE:
+            raise why
+        view = client.follow_clocks()
         view.fetched.wait(args.timeout)  # the offsets before the first message
         clocks = view
         if view.found is False and args.manager != DEFAULT_MANAGER:  # --manager given, and not there: say so
@@ -661,6 +709,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
             signal.signal(signal.SIGTERM, lambda *_: done.set())
             done.wait(args.timeout_total) if args.timeout_total else done.wait()
         done.set()
+        view.close()
     if args.count is not None and seen < args.count:
         print(f"dyknow: error: received {seen} of {args.count} messages on {args.keyexpr!r}", file=sys.stderr)
         return 1
@@ -903,6 +952,7 @@ def _parser() -> argparse.ArgumentParser:
             zenoh_options(p, connect_help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
             p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
             p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
+            lease_option(p)
         return p
 
     def zenoh_options(p: argparse.ArgumentParser, connect_help: str) -> None:
@@ -950,7 +1000,8 @@ def _parser() -> argparse.ArgumentParser:
         "--acl",
         metavar="FILE",
         help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
-        "router: [...] } }); every call must then be signed by its caller (dyknow clients with --tls-* do)",
+        "router: [...], ROLE: [...] }, define: { ROLE: { like: viewer, calls: [SERVICE, ...], publish: [...], subscribe: [...] } } }); "
+        "every call must then be signed by its caller (dyknow clients with --tls-* do)",
     )
     p.add_argument(
         "--max-request-bytes", type=_positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"

@@ -3,7 +3,11 @@
 Every method mirrors the manager's, takes JSON-friendly arguments and returns the manager's JSON
 reply (plain dicts and lists). A refused request raises the same exception class the manager
 raised (``UnitError``, ``BindingError``, ``SpecError``, ...); a manager that does not answer raises
-:class:`~dyknow.errors.ServiceError`.
+:class:`~dyknow.errors.ServiceError`, whose ``details["reason"]`` says why, as far as it can be
+told (:mod:`dyknow.reach`): ``refused``, ``unreachable``, ``silent``, ``tls-listener``,
+``tls-untrusted``, ``tls-rejected`` (the endpoint), ``no-such-manager`` (others are there:
+``details["managers"]``), ``no-role`` (linked, but nothing visible), ``dropped`` (an access control
+on the way), ``gone`` (its token went away) or ``timeout``.
 
 Usage::
 
@@ -25,10 +29,10 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from dyknow import keys, service
-from dyknow.access import TlsFiles
+from dyknow import keys, reach, service
+from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
-from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError
+from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
 from dyknow.holders import holder_token
 from dyknow.identity import Signer
 from dyknow.message import CLOCK_ID, Message
@@ -41,6 +45,10 @@ log = logging.getLogger(__name__)
 
 _MAX_PAGES = 100_000  # of one model: far past any manager's (each page holds at least one entry)
 _MAX_GONE = 10_000  # managers remembered as gone (names come from the network: bounded)
+#: How long a call waits for a manager never seen while others are up, before it says so: a
+#: manager's token and its services come to a client together, so this is ample.
+_ABSENT_S = 1.0
+_DIAL_MS = 2000  # how long a client that could not connect at once gives each new attempt (TCP and TLS handshakes)
 
 
 def _clock_id(raw: Any) -> int | None:
@@ -63,11 +71,13 @@ def _number(value: Any) -> float | None:
 class _Presence:
     """Which managers have left: their liveliness tokens went away (stopped, crashed, or cut off
     past their lease). A call to one of them ends at once, saying so, instead of waiting for its
-    service to come back."""
+    service to come back. And which are up: a call to a manager never seen, while others are,
+    ends after :data:`_ABSENT_S` (a misspelled name), listing those there."""
 
     def __init__(self, session: Session) -> None:
         self._lock = threading.Lock()
         self._gone: dict[str, float] = {}  # manager -> time.monotonic() when its token went
+        self._up: set[str] = set()
         self._watch: LivelinessSubscriber | None = None
         try:
             self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._change, inline=True)
@@ -80,10 +90,20 @@ class _Presence:
             return
         with self._lock:
             self._gone.pop(name, None)
+            if alive and len(self._up) < _MAX_GONE:
+                self._up.add(name)
             if not alive:
+                self._up.discard(name)
                 self._gone[name] = time.monotonic()
                 while len(self._gone) > _MAX_GONE:
                     del self._gone[next(iter(self._gone))]
+
+    def why_absent(self, manager: str) -> str | None:
+        """Why ``manager`` is not there when others are and it was never seen, or None."""
+        with self._lock:
+            if not self._up or manager in self._up or manager in self._gone:
+                return None
+            return f"no manager {manager!r} among those reachable ({', '.join(sorted(self._up)[:20])})"
 
     def why_gone(self, manager: str) -> str | None:
         """Why ``manager`` is known to be gone, or None (it is up, or was never seen)."""
@@ -188,10 +208,16 @@ class Client:
         self.timeout_s = timeout_s
         self._own_session = session is None
         self._connect = [] if session is not None and tuple(connect) == (DEFAULT_ENDPOINT,) else list(connect)
-        self._tls = tls
+        self._tls = tls.check() if tls is not None else None  # (files that do not belong together: said here, naming them)
+        tls = self._tls
         # with a certificate, every call carries its caller's signature (a manager with --acl
         # checks it, whichever routers or managers carry the call): dyknow.identity
         self._signer = Signer(tls) if tls is not None else None
+        # set when the session could not connect at once: what probing each endpoint found
+        # (None: connected, or nothing to probe), so a call that cannot work fails saying why
+        self._findings: list[reach.Finding] | None = None
+        if session is None and zenoh_config is None:
+            reach.check_endpoints(self._connect, tls)
         if session is None:
             if self._connect and zenoh_config is None:
                 session = self._open_leaf(lease_ms)
@@ -206,14 +232,44 @@ class Client:
 
     def _open_leaf(self, lease_ms: int | None) -> Session:
         """A session that only connects: a Zenoh client of the endpoints when one answers now,
-        else a peer without a listener (it keeps trying, so a client may start before its
-        manager: its calls then wait for it, up to ``timeout_s``)."""
-        try:
-            return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[]))
-        except TransportError as exc:
-            if "Unable to connect" not in str(exc):
-                raise
-        return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, listen=[]))
+        else a peer without a listener that keeps trying. Then each endpoint is probed
+        (:mod:`dyknow.reach`): a call made while every endpoint refuses for a reason no manager
+        starting there would change (nothing listens, TLS refused) fails at once, saying why;
+        otherwise calls wait for the manager, up to ``timeout_s`` (it may be starting)."""
+        # (Zenoh's client would wait up to its open timeout, 10 s, for a host that does not answer)
+        if reach.answering(self._connect, timeout_s=min(1.0, self.timeout_s)):
+            try:
+                return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[]))
+            except TransportError as exc:
+                if "Unable to connect" not in str(exc):
+                    raise
+        self._findings = []
+        # each attempt to dial bounded: closing waits for the one under way (10 s by default)
+        return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, listen=[], open_timeout_ms=_DIAL_MS))
+
+    def _probe(self) -> None:
+        """When the session never connected and has no link now: probe the endpoints, and raise
+        at once when each one fails for good (refused, unreachable, TLS refused either way)."""
+        if self._findings is None or self._session.linked():
+            return
+        self._findings = reach.probe_all(self._connect, self._tls, timeout_s=min(1.0, self.timeout_s))
+        if self._findings and all(f.definite for f in self._findings):
+            raise self._unlinked_error(self._findings)
+
+    def unreachable(self) -> ServiceError | None:
+        """Why this client reaches nothing, when its session has no link: each endpoint probed
+        (:mod:`dyknow.reach`); None when it has a link (or nothing was found wrong)."""
+        if self._session.linked() or not self._connect:
+            return None
+        findings = reach.probe_all(self._connect, self._tls, timeout_s=min(1.0, self.timeout_s))
+        return self._unlinked_error(findings, "any manager") if any(f.kind not in ("ok", "unknown") for f in findings) else None
+
+    def _unlinked_error(self, findings: Sequence[reach.Finding], who: str | None = None) -> ServiceError:
+        failed = [f for f in findings if f.kind not in ("ok", "unknown")] or list(findings)
+        what = "; ".join(f.what or f"no link to {f.endpoint}" for f in failed)
+        expected = "; or ".join(dict.fromkeys(f.expected for f in failed if f.expected)) or self._expected(self.manager)
+        who = who or f"manager {self.manager!r}"
+        return ServiceError(f"cannot reach {who}: {what}", expected=expected, details={"reason": failed[0].kind})
 
     def _expected(self, manager: str) -> str:
         expected = f"a running manager (dyknow manager --name {manager})"
@@ -249,6 +305,15 @@ class Client:
     def _call(self, key: str, request: Mapping[str, Any], what: str, manager: str | None = None) -> Any:
         manager = manager or self.manager
         where = f"manager {manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
+        self._probe()
+        started = time.monotonic()
+
+        def gone() -> str | None:
+            why = self._presence.why_gone(manager)
+            if why is None and time.monotonic() - started > min(_ABSENT_S, self.timeout_s / 2):
+                why = self._presence.why_absent(manager)
+            return why
+
         try:
             reply = self._session.call(
                 key,
@@ -256,13 +321,52 @@ class Client:
                 timeout_s=self.timeout_s,
                 what=f"{what} of {where}",
                 sign=self._signer.sign if self._signer is not None else None,
-                gone=lambda: self._presence.why_gone(manager),
+                gone=gone,
             )
         except ServiceError as exc:
-            if exc.kind is None and "nothing serves" in str(exc):
-                raise ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=self._expected(manager)) from exc
+            reason = exc.details.get("reason") if exc.kind is None else None
+            if reason == "gone" and self._presence.why_absent(manager) is not None:
+                raise self._unanswered(manager, where) from exc  # (with the close match)
+            if reason == "unreachable":
+                raise self._unanswered(manager, where) from exc
+            if reason == "dropped" and self._signer is not None:
+                chunks = key.split("/")
+                unit = len(chunks) == 5 and chunks[2] == "unit"  # @dyknow/<manager>/unit/<name>/<service>
+                roles = [r for r in AccessControl().roles_for_call(what, unit=unit) if r in ROLES]  # (manager: not a person's)
+                raise ServiceError(
+                    f"{where} dropped the call to {what!r} without a reply: the manager's --acl does not let this client's "
+                    f"certificate (common name {self._signer.common_name!r}, --tls-cert {self._tls.cert if self._tls else ''}) call it",
+                    expected=f"a certificate whose common name has a role that may call {what!r} in the manager's --acl file "
+                    f"({' or '.join(roles) or 'none of the built-in roles'}, or a role its define lists it in)",
+                    details={"reason": "dropped"},
+                ) from exc
             raise service.raise_remote(exc) from None
         return json.loads(reply)
+
+    def _unanswered(self, manager: str, where: str) -> ServiceError:
+        """Why nothing answered within the timeout, as far as it can be told (see :mod:`dyknow.reach`)."""
+        if self._findings is not None and not self._session.linked():
+            return self._unlinked_error(self._findings or reach.probe_all(self._connect, self._tls, timeout_s=1.0))
+        try:
+            names = self.manager_names(timeout_s=0.5)
+        except ServiceError:
+            names = []
+        if names and manager not in names:
+            return ServiceError(
+                f"no manager {manager!r} among those reachable ({', '.join(names)})",
+                where=where.split(" at ", 1)[-1] if self._connect else None,
+                expected=f"--manager one of {', '.join(names)}{did_you_mean(manager, names)}",
+                details={"reason": "no-such-manager", "managers": names},
+            )
+        expected = self._expected(manager)
+        if not names and self._signer is not None:
+            return ServiceError(
+                f"no answer from {where} within {self.timeout_s:g} s: linked, but no manager is visible from here",
+                expected=f"a running manager (dyknow manager --name {manager}) whose --acl gives this client's certificate "
+                f"(common name {self._signer.common_name!r}) a role: without one, it shows the client nothing",
+                details={"reason": "no-role"},
+            )
+        return ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=expected, details={"reason": "timeout"})
 
     def _manager(self, service_name: str, request: Mapping[str, Any]) -> Any:
         return self.call_manager(self.manager, service_name, request)
@@ -339,7 +443,7 @@ class Client:
         model.pop("total", None)
         return model
 
-    def clocks(self, manager: str | None = None) -> dict[str, Estimate]:
+    def clocks(self, manager: str | None = None, *, model: Mapping[str, Any] | None = None) -> dict[str, Estimate]:
         """Every manager's clock as the manager (or ``manager``) estimates it, from its model:
         manager name -> :class:`~dyknow.clocks.Estimate`, its offset that clock minus the
         manager's (ns), at ``at_ns`` (when the model was read; :meth:`Estimate.carried` carries it
@@ -348,9 +452,10 @@ class Client:
         client on the manager's host shares it (one host, one clock), so ``origin_ns`` of a
         message stamped by the clock of an estimate reads ``origin_ns - offset`` on this host's
         clock; elsewhere, add how far this host's clock is from the manager's host's. Entries that
-        do not parse (a model is another process's word) are left out."""
+        do not parse (a model is another process's word) are left out. ``model``: that manager's
+        model, read already (it is not asked again)."""
         name = manager or self.manager
-        raw = self.get_model(name).get("clocks", {})
+        raw = (model if model is not None else self.get_model(name)).get("clocks", {})
         now = time.time_ns()
         found: dict[str, Estimate] = {}
         if not isinstance(raw, dict):
@@ -473,6 +578,20 @@ class Client:
                 "requests": summary.get("requests", 0),
             })  # fmt: skip
         return out
+
+    def lost_managers(self, manager: str | None = None, *, model: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
+        """The managers the manager (or ``manager``) knew and lost, and that have not come back:
+        ``{"manager", "since_ns" (wall clock), "why"}`` each, from its model (or ``model``, read
+        already). Entries that do not parse (a model is another process's word) are left out."""
+        raw = (model if model is not None else self.get_model(manager or self.manager)).get("lost", [])
+        found = []
+        for entry in raw if isinstance(raw, list) else []:
+            if not isinstance(entry, dict):
+                continue
+            name, since, why = entry.get("manager"), entry.get("since_ns"), entry.get("why")
+            if isinstance(name, str) and isinstance(since, int) and not isinstance(since, bool) and isinstance(why, str):
+                found.append({"manager": name[:128], "since_ns": since, "why": why[:512]})
+        return found
 
     def get_federated_model(self, timeout_s: float = 1.0) -> dict[str, Any]:
         """The model of every manager reachable: ``{"managers": [model, ...]}``, each as :meth:`get_model`."""

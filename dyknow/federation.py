@@ -28,7 +28,7 @@ from dyknow.errors import DyKnowError, SpecError
 from dyknow.planner import RunningUnit
 from dyknow.spec import TransformationSpec, parse_specs
 
-__all__ = ["MAX_SUMMARY_BYTES", "Directory", "Summary", "SummaryUnit"]
+__all__ = ["GOODBYE", "MAX_SUMMARY_BYTES", "STOPPED", "Directory", "Summary", "SummaryUnit"]
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +37,14 @@ MAX_SUMMARY_BYTES = 16 << 20
 
 _MAX_ITEMS = 20_000
 _RETRY_S = 2.0  # how often to ask again a manager whose summary could not be fetched
+#: What a manager publishes on its summary key as it stops, before its token goes: the others
+#: then tell a manager that stopped from one that crashed or was cut off.
+GOODBYE = b'{"stopping":true}'
+_GOODBYE_S = 5.0  # a goodbye this recent explains a loss
+_MAX_LOST = 1_000  # lost managers remembered (names come from the network: bounded)
+#: Why a manager is lost, when it said goodbye.
+STOPPED = "it stopped (it said goodbye)"
+_VANISHED = "its liveliness token went away without a goodbye: it crashed, or its host was cut off past its lease"
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,11 +196,14 @@ class Directory:
         self._alive: set[str] = set()
         self._summaries: dict[str, Summary] = {}
         self._retry_at: dict[str, float] = {}  # manager -> when to ask again for its summary
+        self._lost: dict[str, tuple[int, str]] = {}  # manager known, then lost -> (when, wall clock ns; why)
+        self._goodbyes: dict[str, float] = {}  # manager -> when it said it was stopping (monotonic)
         self._todo: list[tuple[str, str, bytes | None]] = []  # (kind, manager, summary bytes)
         self._wake = threading.Event()
         self._dirty = threading.Event()
         self._settle = threading.Event()  # set only to cut a wait short at close (a timed wait, not time.sleep)
         self._closed = False
+        self._said_goodbye = False
         self._thread = threading.Thread(target=self._run, name=f"dyknow-{name}-directory", daemon=True)
         self._thread.start()
         self._token = session.declare_liveliness_token(keys.manager_token(name))
@@ -212,17 +223,35 @@ class Directory:
         with self._lock:
             return set(self._alive)
 
+    def lost(self) -> dict[str, tuple[int, str]]:
+        """The managers this one knew and lost, and that have not come back: name -> (when, in
+        wall-clock ns; why: stopped, or gone without a goodbye)."""
+        with self._lock:
+            return dict(self._lost)
+
     def changed(self) -> None:
         """This manager's summary changed: publish it soon (several changes, one publication)."""
         self._dirty.set()
         self._wake.set()
 
+    def say_goodbye(self) -> None:
+        """Tell the others this manager is stopping (once), before its token goes: they then tell
+        it from a manager that crashed or was cut off. The owner says it as its close begins."""
+        if self._said_goodbye:
+            return
+        self._said_goodbye = True
+        try:
+            self._session.put(keys.summary_key(self.name), GOODBYE)
+        except DyKnowError as exc:
+            log.debug("directory of %r: no goodbye: %s", self.name, exc)
+
     def close(self, timeout_s: float = 2.0) -> None:
-        """Stop watching and withdraw this manager's token; safe twice."""
+        """Say goodbye, stop watching and withdraw this manager's token; safe twice."""
         if self._closed:
             return
         self._closed = True
         self._settle.set()
+        self.say_goodbye()
         for entity in (self._watch, self._summary_sub, self._token):
             entity.undeclare()
         self._wake.set()
@@ -240,6 +269,14 @@ class Directory:
     def _summary_sample(self, key: str, payload: bytes) -> None:
         manager = key.split("/")[1] if key.count("/") == 2 else None
         if manager is None or manager == self.name:
+            return
+        if payload == GOODBYE:
+            with self._lock:
+                self._goodbyes[manager] = time.monotonic()
+                while len(self._goodbyes) > _MAX_LOST:
+                    del self._goodbyes[next(iter(self._goodbyes))]
+                if manager in self._lost:  # its token's end came first
+                    self._lost[manager] = (self._lost[manager][0], STOPPED)
             return
         self._queue("summary", manager, payload)
 
@@ -287,11 +324,18 @@ class Directory:
                 self._alive.discard(manager)
                 self._summaries.pop(manager, None)  # a manager that comes back starts afresh
                 self._retry_at.pop(manager, None)
+                if known:
+                    said = self._goodbyes.pop(manager, None)
+                    stopped = said is not None and time.monotonic() - said < _GOODBYE_S
+                    self._lost[manager] = (time.time_ns(), STOPPED if stopped else _VANISHED)
+                    while len(self._lost) > _MAX_LOST:
+                        del self._lost[next(iter(self._lost))]
             if known:
                 self._on_change("lost", manager)
             return
         if kind in ("found", "retry"):
             with self._lock:
+                self._lost.pop(manager, None)
                 new = manager not in self._alive or (kind == "retry" and manager not in self._summaries)
                 self._alive.add(manager)
             if not new:

@@ -21,7 +21,6 @@ Usage::
 
 from __future__ import annotations
 
-import contextlib
 import importlib
 import importlib.machinery
 import importlib.util
@@ -39,14 +38,14 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
-from dyknow import clocks, keys, service
+from dyknow import clocks, keys, reach, service
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
 from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
 from dyknow.executor import Executor
-from dyknow.federation import Directory, Summary, SummaryUnit
+from dyknow.federation import STOPPED, Directory, Summary, SummaryUnit
 from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
@@ -181,6 +180,15 @@ class Manager:
                     own,
                 )
         self._access = access
+        if zenoh_config is None:  # (Zenoh would say only "Missing TLS private key")
+            reach.check_endpoints(listen or (), self._tls, option="--listen", who=f"manager {self.name!r}")
+            reach.check_endpoints(connect, self._tls, option="--connect", who=f"manager {self.name!r}")
+            if self._tls is not None and listen and not any(e.startswith("tls/") for e in [*listen, *connect]):
+                log.warning(
+                    "manager %r has TLS files but no tls/ endpoint (--listen, --connect): every link is plain TCP, and no "
+                    "caller has a certificate for its roles",
+                    self.name,
+                )
         self.host = host or socket.gethostname()
         self._session = Session(
             make_config(
@@ -279,6 +287,8 @@ class Manager:
             proxies = list(self._units.values())
             self._units.clear()
             self._deadlines.clear()
+        if self._directory is not None:  # first: the others then know it stopped, and did not crash
+            self._directory.say_goodbye()
         if self._workers is not None:
             self._workers.close(timeout_s / 4)
         if self._holders is not None:
@@ -763,7 +773,9 @@ class Manager:
         estimates = self._clocks.estimates() if self._clocks is not None else {}
         clock_view = {"clock": f"{CLOCK_ID:08x}", **{name: e.to_dict() for name, e in sorted(estimates.items())}}
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors)
+        lost = self._directory.lost() if self._directory is not None else {}
+        gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone)
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
@@ -845,10 +857,22 @@ class Manager:
         if kind == "lost":
             with self._lock:
                 orphans = [unit for unit, owner in self._owners.items() if owner == manager]
+            destroyed = []
             for unit in orphans:  # units that served the lost manager's requests
-                log.info("unit %r served manager %r, which is gone: destroying it", unit, manager)
-                with contextlib.suppress(DyKnowError):
+                try:
                     self.destroy(unit)
+                    destroyed.append(unit)
+                except DyKnowError as exc:
+                    log.debug("unit %r of lost manager %r: %s", unit, manager, exc)
+            why = self._directory.lost().get(manager, (0, "it is gone"))[1] if self._directory is not None else "it is gone"
+            # one line: a manager that stopped is no fault; one that vanished is
+            log.log(
+                logging.INFO if why == STOPPED else logging.WARNING,
+                "manager %r was lost (%s)%s",
+                manager,
+                why,
+                f"; destroyed the units it had asked for: {', '.join(destroyed)}" if destroyed else "",
+            )
         self._adaptation.peer_changed(kind, manager)
 
     def _manager_handlers(self) -> dict[str, service.Handler]:

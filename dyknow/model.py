@@ -158,6 +158,9 @@ class Model:
     clocks: Mapping[str, Any] = field(default_factory=dict)
     #: The formulas it monitors (``MonitorInfo.to_dict()``, :mod:`dyknow.reasoning.monitors`).
     monitors: tuple[Mapping[str, Any], ...] = ()
+    #: The managers this one knew and lost, and that have not come back:
+    #: ``{"manager", "since_ns" (wall clock), "why"}`` each (see :meth:`dyknow.federation.Directory.lost`).
+    lost: tuple[Mapping[str, Any], ...] = ()
 
     def unit(self, name: str) -> UnitInfo:
         """The running unit ``name``; :class:`UnitError` when the model has none."""
@@ -175,6 +178,7 @@ class Model:
             "requests": [r.to_dict() for r in self.requests],
             "clocks": dict(self.clocks),
             "monitors": [dict(m) for m in self.monitors],
+            "lost": [dict(m) for m in self.lost],
         }
 
     def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
@@ -192,6 +196,7 @@ class Model:
             "requests": [r.to_dict() for r in self.requests],
             "clocks": dict(self.clocks),
             "monitors": [dict(m) for m in self.monitors],
+            "lost": [dict(m) for m in self.lost],
             "total": {"units": len(self.units), "specs": len(self.specs)},
         }
         used = len(json.dumps(out))

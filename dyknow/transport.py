@@ -256,6 +256,7 @@ def make_config(
     lease_ms: int | None = None,
     mode: str = "peer",
     max_message_bytes: int | None = None,
+    open_timeout_ms: int | None = None,
 ) -> zenoh.Config:
     """Build a Zenoh configuration.
 
@@ -272,6 +273,9 @@ def make_config(
     ``max_message_bytes``: the largest message this session takes in (Zenoh's
     ``transport/link/rx/max_message_size``, 1 GiB by default). Zenoh drops a larger one while it
     reassembles it, fragment by fragment, so an oversized message costs at most this much memory.
+    ``open_timeout_ms``: how long one attempt to open a link may take (Zenoh's
+    ``transport/unicast/open_timeout``, 10 s by default); closing the session waits for an attempt
+    under way, so a session that keeps dialling a silent host takes up to this long to close.
     """
     try:
         if config_file is not None:
@@ -323,6 +327,8 @@ def make_config(
             if lease_ms < 100:
                 raise TransportError(f"got {lease_ms} ms", where="lease", expected="at least 100 ms")
             config.insert_json5("transport/link/tx/lease", str(int(lease_ms)))
+        if open_timeout_ms is not None:
+            config.insert_json5("transport/unicast/open_timeout", str(max(100, int(open_timeout_ms))))
         if max_message_bytes is not None:
             if max_message_bytes < 65536:
                 raise TransportError(f"got {max_message_bytes} bytes", where="max_message_bytes", expected="at least 65,536")
@@ -730,6 +736,11 @@ class Session:
                         return []
         return []
 
+    def linked(self) -> bool:
+        """Whether the session has a link to another Zenoh node (a peer or a router) now."""
+        info = self._z().info
+        return bool(info.peers_zid()) or bool(info.routers_zid())
+
     # -- declarations
 
     def declare_publisher(self, key: str, on_matching: Callable[[bool], None] | None = None, *, reliable: bool = False) -> Publisher:
@@ -929,10 +940,10 @@ class Session:
         while not reachable.is_set():
             why = gone() if gone is not None else None
             if why is not None:
-                raise ServiceError(f"no answer from {what}: {why}")
+                raise ServiceError(f"no answer from {what}: {why}", details={"reason": "gone"})
             left = deadline - time.monotonic()
             if left <= 0:
-                raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s")
+                raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s", details={"reason": "unreachable"})
             reachable.wait(min(left, 0.05) if gone is not None else left)
         try:
             attachment = sign(key, payload) if sign is not None else None
@@ -954,6 +965,7 @@ class Session:
             raise ServiceError(
                 f"no answer from {what}: the request to {key!r} was dropped without a reply",
                 expected="a role allowed to call it (the manager's --acl refuses silently), and a manager that stays up until it answers",
+                details={"reason": "dropped"},
             )
         raise ServiceError(f"no answer from {what} on {key!r} within {timeout_s:g} s")
 

@@ -78,33 +78,37 @@ def test_each_role_against_each_service(client: Callable[[str], Client], role: s
     if allowed:
         call(c)
     else:
-        with pytest.raises(ServiceError, match="was dropped without a reply; expected a role allowed to call it"):
+        with pytest.raises(ServiceError, match=r"dropped the call to '\w+' without a reply: the manager's --acl does not let this client's certificate"):
             call(c)
 
 
 def test_request_and_release_need_an_operator(secured: Manager, client: Callable[[str], Client]) -> None:
-    with pytest.raises(ServiceError, match="dropped without a reply"):
+    with pytest.raises(ServiceError, match="without a reply"):
         client("viewer").request("Anything")
     with pytest.raises(PlanningError, match="nothing provides Anything"):
         client("operator").request("Anything")  # reaches the planner: refused for another reason
-    with pytest.raises(ServiceError, match="dropped without a reply"):
+    with pytest.raises(ServiceError, match="without a reply"):
         client("viewer").release("dyknow/x/requests/Anything")
     with pytest.raises(UnitError, match="no request on key"):
         client("operator").release("dyknow/x/requests/Anything")
 
 
-@pytest.mark.parametrize("name", ["stranger", None])
-def test_no_role_or_no_certificate_reaches_nothing(secured: Manager, certs: Path, name: str | None) -> None:
+def test_no_role_or_no_certificate_reaches_nothing(secured: Manager, certs: Path) -> None:
     """A certificate of the CA without a role, or no certificate at all: not even the model."""
-    with Client(secured.name, connect=secured.endpoints, tls=tls(certs, name) if name else None, timeout_s=1.0) as c, pytest.raises(
-        ServiceError, match=r"no answer from manager .* within 1 s; expected a running manager"
+    with Client(secured.name, connect=secured.endpoints, tls=tls(certs, "stranger"), timeout_s=1.0) as c, pytest.raises(
+        ServiceError, match=r"no answer from manager .* within 1 s: linked, but no manager is visible from here; expected a running manager"
     ):
+        c.get_model()
+    with pytest.raises(AccessError, match="is a TLS endpoint, and this client has no TLS files"):
+        Client(secured.name, connect=secured.endpoints)
+    plain = [e.replace("tls/", "tcp/") for e in secured.endpoints]
+    with Client(secured.name, connect=plain, timeout_s=1.0) as c, pytest.raises(ServiceError, match="speaks TLS, and tcp/ connects without it"):
         c.get_model()
 
 
 def test_a_certificate_from_another_ca_is_refused(secured: Manager, tmp_path: Path) -> None:
     write_dev_certs(tmp_path, ["admin"])  # the same name, another CA
-    with Client(secured.name, connect=secured.endpoints, tls=tls(tmp_path, "admin"), timeout_s=1.0) as c, pytest.raises(ServiceError, match="no answer"):
+    with Client(secured.name, connect=secured.endpoints, tls=tls(tmp_path, "admin"), timeout_s=1.0) as c, pytest.raises(ServiceError, match="is not signed by the CA of --tls-ca"):
         c.get_model()
 
 
@@ -150,7 +154,7 @@ def test_acl_files_are_checked(tmp_path: Path) -> None:
     for text, message in [
         ("{ roles: { guest: ['a'] } }", "unknown role 'guest'; expected one of viewer, operator, admin"),
         ("{ roles: { viewer: 'a' } }", "roles.viewer: got 'a'; expected a list of certificate common names"),
-        ("{ users: {} }", "the file must hold exactly one field, roles"),
+        ("{ users: {} }", "the file must hold the field roles"),
         ("{ roles: ", "not JSON5"),
     ]:
         bad = tmp_path / "bad.json5"
@@ -187,10 +191,10 @@ def test_the_command_line_speaks_tls_and_roles(certs: Path, tmp_path: Path, cli_
     viewer = run_cli("model", "--json", *conn, *_tls_args(certs, "viewer"))
     assert viewer.returncode == 0 and json.loads(viewer.stdout)["manager"] == "secure"
     refused = run_cli("spawn", "relay", "r", *conn, *_tls_args(certs, "viewer"))
-    assert refused.returncode == 1 and "was dropped without a reply; expected a role allowed to call it" in refused.stderr
+    assert refused.returncode == 1 and "dropped the call to 'spawn' without a reply" in refused.stderr
     assert run_cli("spawn", "relay", "r", *conn, *_tls_args(certs, "operator")).returncode == 0
     no_cert = run_cli("model", *conn)
-    assert no_cert.returncode == 1 and "no answer from manager 'secure'" in no_cert.stderr
+    assert no_cert.returncode == 1 and "is a TLS endpoint, and this client has no TLS files" in no_cert.stderr
     partial = run_cli("model", *conn, "--tls-ca", str(certs / "ca.pem"))
     assert partial.returncode == 1 and "--tls-cert, --tls-key missing" in partial.stderr
     assert manager.stop() == 0
@@ -227,7 +231,7 @@ def test_managers_federate_over_tls_with_the_manager_role(certs: Path, make_mana
     else:
         assert "station" not in robot.peers()  # it cannot pose as a manager there
     if station_role == "viewer":
-        with pytest.raises(DyKnowError, match="spawn of manager 'robot'"):
+        with pytest.raises(DyKnowError, match="manager 'robot' dropped the call to 'spawn'"):
             station.request("BallTrack(field)")
         assert robot.units() == [] and station.get_model().requests == ()
         return
@@ -274,15 +278,15 @@ def test_a_call_through_another_manager_keeps_its_callers_rights(pair: tuple[Man
             outsider.spawn("relay", "planted", protected=True)
     with Client("station", tls=tls(certs, "viewer"), **via_robot) as viewer:  # type: ignore[arg-type]
         assert viewer.get_model()["manager"] == "station"
-        with pytest.raises(ServiceError, match="dropped without a reply"):
+        with pytest.raises(ServiceError, match="without a reply"):
             viewer.spawn("relay", "planted")  # a viewer on the robot too: the robot does not even carry it
     with Client("station", tls=tls(certs, "admin"), **via_robot) as admin:  # type: ignore[arg-type]
         assert admin.add_transformation(RELAY) == ["extra-relay"]
         admin.spawn("extra-relay", "kept", protected=True)
         admin.destroy("kept", force=True)
     assert station.units() == []
-    with Client("station", connect=robot.endpoints, timeout_s=1.0) as anonymous, pytest.raises(ServiceError, match="no answer"):
-        anonymous.get_model()  # no certificate: the TLS link itself is refused
+    with pytest.raises(AccessError, match="this client has no TLS files"):
+        Client("station", connect=robot.endpoints, timeout_s=1.0)  # no certificate: no TLS link at all
 
 
 def test_a_call_through_a_router_keeps_its_callers_rights(certs: Path, make_manager: Callable[..., Manager], cli_process: Callable[..., CliProcess], tmp_path: Path) -> None:
@@ -300,7 +304,7 @@ def test_a_call_through_a_router_keeps_its_callers_rights(certs: Path, make_mana
     make_manager("station", listen=[f"tls/127.0.0.1:{free_port()}"], connect=hub, tls=tls(certs, "station"), acl=station_acl)
     with Client("station", connect=hub, tls=tls(certs, "viewer"), timeout_s=5.0) as viewer:
         assert viewer.get_model()["manager"] == "station"
-        with pytest.raises(ServiceError, match="dropped without a reply"):
+        with pytest.raises(ServiceError, match="without a reply"):
             viewer.spawn("relay", "r")  # the router itself does not carry a viewer's spawn
     with Client("station", connect=hub, tls=tls(certs, "operator"), timeout_s=5.0) as operator:
         assert operator.spawn("relay", "r")["state"] == "running"
@@ -409,3 +413,69 @@ def test_without_roles_force_destroys_a_protected_unit(manager: Manager) -> None
             anyone.destroy("kept")
         anyone.destroy("kept", force=True)
     assert not manager.has_unit("kept")
+
+
+# ---------------------------------------------------------------------------- roles the file defines
+
+REQUESTER_ACL = """{
+  roles: { requester: ["operator"], viewer: ["viewer"] },
+  define: {
+    // may read and request streams, may not change units
+    requester: { like: "viewer", calls: ["request", "release"] },
+  },
+}
+"""
+
+
+def test_a_defined_role_may_request_and_not_destroy(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """Transport and manager alike: the requester reads, requests and releases; spawn and destroy
+    are dropped at its link (and refused by the manager's own check, whatever carries them)."""
+    acl_file = tmp_path / "acl.json5"
+    acl_file.write_text(REQUESTER_ACL)
+    acl = AccessControl.load(acl_file)
+    assert acl.role_of("operator") == "requester" and acl.may_call("operator", "request") and not acl.may_call("operator", "destroy")
+    manager = make_manager(listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=acl)
+    manager.spawn("periodic-source", "ticks")
+    with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "operator"), timeout_s=2.0) as requester:
+        assert [u["name"] for u in requester.get_model()["units"]] == ["ticks"]
+        with pytest.raises(PlanningError, match="nothing provides Anything"):
+            requester.request("Anything")  # it reached the planner
+        with pytest.raises(UnitError, match="no request on key"):
+            requester.release("dyknow/x/requests/Anything")
+        for refused in (lambda: requester.destroy("ticks"), lambda: requester.spawn("relay", "r")):
+            with pytest.raises(ServiceError, match="without a reply"):
+                refused()
+    assert [u.name for u in manager.units()] == ["ticks"]
+
+
+@pytest.mark.parametrize(
+    ("text", "said"),
+    [
+        ('{ roles: { requester: ["a"] } }', r"acl.json5:1: roles.requester: unknown role 'requester'; expected one of viewer, operator"),
+        ('{ roles: {},\n  define: { r: { like: "veiwer" } } }', r"acl.json5:2: define.r.like: like 'veiwer'; expected one of the built-in roles viewer, operator, admin \(did you mean 'viewer'\?\)"),
+        ('{ roles: {},\n  define: {\n    r: { calls: ["get_model", "destory"] } } }', r"acl.json5:3: define.r.calls\[1\]: unknown service 'destory'; expected one of .* \(did you mean 'destroy'\?\)"),
+        ('{ roles: {}, define: { r: { publish: ["@dyknow/x"] } } }', r"acl.json5:1: define.r.publish\[0\]: '@dyknow/x' is not a key expression under dyknow/"),
+        ('{ roles: {}, define: { admin: { calls: [] } } }', r"define.admin: 'admin' is a built-in role"),
+        ('{ roles: {}, define: { r: { cals: [] } } }', r"define.r: unknown field 'cals' \(did you mean 'calls'\?\)"),
+    ],
+)  # fmt: skip
+def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> None:
+    path = tmp_path / "acl.json5"
+    path.write_text(text)
+    with pytest.raises(AccessError, match=said):
+        AccessControl.load(path)
+
+
+def test_the_readmes_acl_files_are_valid() -> None:
+    """Every json5 block of the README is an ACL file that loads; its own role reads and requests."""
+    import re
+
+    import json5
+
+    from tests.conftest import REPO
+
+    blocks = re.findall(r"```json5\n(.*?)```", (REPO / "README.md").read_text(), re.DOTALL)
+    acls = [AccessControl.from_dict(json5.loads(block)) for block in blocks]
+    defined = next(a for a in acls if a.defined)
+    assert defined.may_call("robot-ui", "request") and defined.may_call("robot-ui", "get_model")
+    assert not defined.may_call("robot-ui", "destroy") and not defined.may_call("robot-ui", "set_config", unit=True)

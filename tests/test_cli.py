@@ -121,8 +121,8 @@ def test_manager_shuts_down_cleanly_on_signals(manager_process: Callable[..., Ma
 def test_no_manager_is_one_clear_line() -> None:
     result = run_cli("model", "--connect", f"tcp/127.0.0.1:{free_port()}", "--manager", "ghost", "--timeout", "1")
     assert result.returncode == 1
-    assert result.stderr.strip().startswith("dyknow: error: no answer from manager 'ghost' at tcp/127.0.0.1:")
-    assert result.stderr.strip().endswith("; expected a running manager (dyknow manager --name ghost)")
+    assert result.stderr.strip().startswith("dyknow: error: cannot reach manager 'ghost': the connection to tcp/127.0.0.1:")
+    assert result.stderr.strip().endswith("; expected the endpoint a manager listens on (its --listen) in --connect, and that manager running")
     assert len(result.stderr.strip().splitlines()) == 1
 
 

@@ -7,6 +7,7 @@ as ``dyknow manager`` child processes, killed with SIGKILL where the issue asks 
 from __future__ import annotations
 
 import json
+import logging
 import signal
 import threading
 import time
@@ -169,12 +170,21 @@ def test_a_lost_manager_fails_over_on_the_same_key_and_its_return_is_preferred(s
     wait_until(lambda: not m["field"].units(), "the field's camera to be released")
 
 
-def test_units_serving_a_lost_manager_are_destroyed(system: Callable[..., dict[str, Manager]]) -> None:
+def test_units_serving_a_lost_manager_are_destroyed(system: Callable[..., dict[str, Manager]], caplog: pytest.LogCaptureFixture) -> None:
     m = system()
     m["station"].request(TRACK)
     wait_until(lambda: [u.label for u in m["robot"].units()] == ["robot-camera"], "the camera on the robot")
+    caplog.set_level(logging.INFO, logger="dyknow.manager")
     m["station"].close()
     wait_until(lambda: not m["robot"].units(), "the robot to destroy what served the station")
+    # one line says what went and why; a manager that said goodbye is no fault (and it released its
+    # units itself: those of a manager that vanished are destroyed here, tests/test_hosts.py)
+    wait_until(lambda: any("was lost" in r.getMessage() for r in caplog.records), "the loss in the log")
+    said = [r.getMessage() for r in caplog.records if r.name == "dyknow.manager" and "was lost" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("manager 'station' was lost ("), said
+    # (the goodbye and the token's end come by different paths: the model says it once both are in)
+    wait_until(lambda: [x["why"] for x in m["robot"].get_model().to_dict()["lost"]] == ["it stopped (it said goodbye)"], "the goodbye")
+    assert m["robot"].get_model().to_dict()["lost"][0]["since_ns"] <= time.time_ns()
 
 
 def test_a_federated_manager_alone_still_plans_locally(make_manager: Callable[..., Manager]) -> None:
@@ -254,7 +264,15 @@ def test_three_processes_keep_the_key_through_a_sigkill(processes: Callable[...,
         stream.wait_until(lambda msg: msg.payload["camera"] == CEILING)
         events = client.get_adaptations()
         assert any(e["cause"] == "manager 'robot' was lost" and e["key"] == key for e in events), events
-        wait_until(lambda: "robot" not in run_cli("managers", *hub).stdout, "the robot to leave the list")
+        def up() -> list[str]:
+            return [x["manager"] for x in json.loads(run_cli("managers", "--json", *hub, "--manager", "station").stdout) if x["state"] == "up"]
+
+        wait_until(lambda: "robot" not in up(), "the robot to leave the list")
+        listed = json.loads(run_cli("managers", "--json", *hub, "--manager", "station").stdout)
+        assert [(x["manager"], x["state"]) for x in listed] == [("field", "up"), ("station", "up"), ("robot", "lost")]
+        assert listed[2]["why"].startswith("its liveliness token went away without a goodbye: it crashed, or its host was cut off")
+        assert "LOST since" in run_cli("managers", *hub, "--manager", "station").stdout
+        assert "  lost manager robot since " in run_cli("model", *hub, "--manager", "station").stdout
 
         processes("robot", free_port(), *hub)  # it comes back: the preferred camera returns after the dwell time
         stream.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)

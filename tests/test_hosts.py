@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import shutil
 import signal
 import subprocess
@@ -134,6 +135,25 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
         observer.next("camera", camera=CEILING, timeout_s=60)
         lost = [e for e in observer.ask("adaptations") if e["cause"] == "manager 'robot' was lost"]
         assert lost and lost[0]["key"] == key, lost  # adapted onto the field's camera, or degraded until the field answers
+        # the operator sees the robot as lost, since when and why, not just missing from the list
+        argv = [
+            sys.executable,
+            "-m",
+            "dyknow.cli",
+            "managers",
+            "--json",
+            "--connect",
+            f"tcp/{hosts.address('station')}:{PORT}",
+            "--manager",
+            "station",
+        ]
+        listed = subprocess.run(hosts.command("station", argv), capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO)
+        assert listed.returncode == 0, listed.stderr
+        states = {m["manager"]: m for m in json.loads(listed.stdout)}
+        assert states["robot"]["state"] == "lost" and states["robot"]["why"].startswith(
+            "its liveliness token went away without a goodbye"
+        ), states
+        assert states["robot"]["reported_by"] == "station" and states["field"]["state"] == "up"
 
         hosts.restore("robot")  # it reconnects; the preferred camera returns after the dwell time
         observer.next("camera", camera=BOTTOM, timeout_s=60)
@@ -150,6 +170,13 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
             child.close()
         for child in children:  # what each host said, for a failure's report (pytest shows it then)
             print(f"----- {child.host}\n{child.stderr[-3000:]}")
+    # one line on each side says what was destroyed or rebuilt and why; nothing that went as it
+    # should is a warning (the units of the lost robot are gone with it: no failed destroy)
+    station, robot = children[0].stderr, children[1].stderr
+    assert "WARNING dyknow.adaptation: adapted BallTrack(field) (manager 'robot' was lost): " in station
+    assert "WARNING dyknow.manager: manager 'station' was lost (its liveliness token went away without a goodbye" in robot
+    assert "destroyed the units it had asked for: robot-camera" in robot
+    assert "could not destroy" not in station
 
 
 # ---------------------------------------------------------------------------- faults beyond a clean cut
@@ -368,3 +395,162 @@ def test_frames_a_slow_link_could_not_carry_are_counted_as_lost(faulty: Hosts, t
     finally:
         for child in reversed(children):
             child.close()
+
+
+# ---------------------------------------------------------------------------- the README's example, as written
+
+
+def _readme_two_hosts() -> list[tuple[str, str]]:
+    """The README's two-host example: (the comment naming where it runs, command line) in order."""
+    readme = (REPO / "README.md").read_text()
+    block = next(b for b in re.findall(r"```sh\n(.*?)```", readme, re.DOTALL) if "# on the ground station (10.0.0.2)" in b)
+    steps, where = [], ""
+    for line in block.replace("\\\n", " ").splitlines():
+        if line.startswith("#"):
+            where = line
+        elif line.strip():
+            steps.append((where, " ".join(line.split())))
+    return steps
+
+
+def test_the_readmes_two_host_example_runs_as_written(tmp_path: Path) -> None:
+    """Three namespaces with the README's addresses; each line run on the machine its comment
+    names, in a folder holding the checkout's specs (the files "copied" are shared: one disk)."""
+    why = unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces are required under CI: {why}")
+        pytest.skip(why)
+    steps = _readme_two_hosts()
+    addresses = {"station": "10.0.0.2", "robot": "10.0.0.5", "laptop": "10.0.0.9"}
+    for name in ("dyknow", "specs"):
+        (tmp_path / name).symlink_to(REPO / name)
+    env = {**subprocess_env(), "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "DYKNOW_LOG": "INFO"}
+    managers: list[subprocess.Popen[str]] = []
+    with Hosts(list(addresses), addresses=addresses) as hosts:
+        try:
+            for where, line in steps:
+                host = next((h for h, a in addresses.items() if f"({a})" in where), "laptop")  # "on any machine": the laptop
+                argv = ["sh", "-c", line]
+                if line.startswith("dyknow manager "):
+                    proc = hosts.popen(
+                        host, ["sh", "-c", f"exec {line}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path
+                    )
+                    managers.append(proc)
+                    assert proc.stdout is not None
+                    ready = proc.stdout.readline()
+                    assert " ready on tls/" in ready, (line, ready, proc.stderr.read() if proc.poll() is not None and proc.stderr else "")
+                    continue
+
+                def run(argv: list[str] = argv, host: str = host) -> subprocess.CompletedProcess[str]:
+                    return subprocess.run(hosts.command(host, argv), capture_output=True, text=True, timeout=120, env=env, cwd=tmp_path)
+
+                done = run()
+                if "# exit 1" in line:
+                    assert done.returncode == 1 and "dropped the call to 'destroy' without a reply" in done.stderr, (line, done.stderr)
+                    continue
+                if line.startswith("dyknow managers "):
+                    # an operator waits for the robot to show up, with its clock known to the station
+                    # (that is, once the station has the robot's summary): the same line, again
+                    listed = run([*argv[:2], line + " --json"])
+                    deadline = time.monotonic() + 60
+                    while not any(m["manager"] == "robot" and m["clock"] for m in json.loads(listed.stdout or "[]")):
+                        assert time.monotonic() < deadline, listed.stdout + listed.stderr
+                        time.sleep(0.2)
+                        listed = run([*argv[:2], line + " --json"])
+                assert done.returncode == 0, (line, done.stdout, done.stderr)
+                if line.startswith("dyknow request "):
+                    assert done.stdout.strip() == "dyknow/station/requests/BallTrack(field)"
+                if line.startswith("dyknow echo "):
+                    assert done.stdout.count("dyknow/station/requests/BallTrack(field) #") == 5, done.stdout
+        finally:
+            for proc in managers:
+                proc.send_signal(signal.SIGTERM)
+            for proc in managers:
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait(10)
+                said = proc.stderr.read() if proc.stderr else ""
+                print(f"----- {proc.args[-1][:60]}\n{said[-3000:]}")  # for a failure's report
+                for stream in (proc.stdout, proc.stderr):
+                    if stream is not None:
+                        stream.close()
+    assert [p.returncode for p in managers] == [0, 0]
+    assert [s[1].split()[1] for s in steps] == ["certs", "'{", "manager", "manager", "managers", "request", "echo", "destroy"]
+
+
+# ---------------------------------------------------------------------------- a caller's own rights, whatever carries it
+
+
+def test_through_a_router_and_a_third_manager_each_client_has_its_own_rights(tmp_path: Path) -> None:
+    """One ACL file everywhere (the station, the robot, the router on its own host). From the
+    laptop, through the router and through the robot's manager in turn: a viewer reads and
+    receives data but may not destroy nor publish; a requester also requests; an operator also
+    publishes; a certificate without a role gets nothing, services or data."""
+    why = unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces are required under CI: {why}")
+        pytest.skip(why)
+    from dyknow.certs import write_dev_certs
+
+    names = ["station", "robot", "hub", "laptop"]
+    with Hosts(names) as hosts:
+        pki = tmp_path / "pki"
+        write_dev_certs(
+            pki,
+            ["station", "robot", "hub", "admin", "viewer", "requester", "operator", "stranger"],
+            hosts=[hosts.address(n) for n in names],
+        )
+        acl = tmp_path / "acl.json5"
+        acl.write_text("""{ roles: { manager: ["station", "robot"], router: ["hub"], admin: ["admin"], viewer: ["viewer"],
+                                    requester: ["requester"], operator: ["operator"] },
+                         define: { requester: { like: "viewer", calls: ["request", "release"] } } }""")
+        tls_of = {
+            n: ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{n}.pem"), "--tls-key", str(pki / f"{n}.key")] for n in names
+        }
+        hub = f"tls/{hosts.address('hub')}:7446"
+        common = ["--acl", str(acl), "--lease-ms", "1000", "--json"]
+        children = [Child(hosts, "hub", [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, *common, *tls_of["hub"]])]
+        try:
+            assert children[0].next("ready")["endpoints"] == [hub]
+            for name, specs in (("station", REPO / "specs" / "generic.xml"), ("robot", REPO / "specs" / "generic.xml")):
+                endpoint = f"tls/{hosts.address(name)}:{PORT}"
+                argv = [
+                    sys.executable,
+                    "-m",
+                    "dyknow.cli",
+                    "manager",
+                    "--name",
+                    name,
+                    "--specs",
+                    str(specs),
+                    "--listen",
+                    endpoint,
+                    "--connect",
+                    hub,
+                ]
+                children.append(Child(hosts, name, [*argv, *common, *tls_of[name]]))
+                assert children[-1].next("ready")["endpoints"] == [endpoint]
+            identities = ["viewer", "requester", "operator", "stranger"]
+            expected = {
+                "viewer": {"get_model": "reached", "destroy": "dropped", "request": "dropped", "receives": True, "publishes": False},
+                "requester": {"get_model": "reached", "destroy": "dropped", "request": "reached", "receives": True, "publishes": False},
+                "operator": {"get_model": "reached", "destroy": "reached", "request": "reached", "receives": True, "publishes": True},
+                "stranger": {"get_model": "nothing", "destroy": "nothing", "request": "nothing", "receives": False, "publishes": False},
+            }
+            for via in (hub, f"tls/{hosts.address('robot')}:{PORT}"):  # the router, then the robot's manager
+                argv = [sys.executable, "-m", "tests.netns_rights", via, "station", str(pki), *identities]
+                done = subprocess.run(
+                    hosts.command("laptop", argv), capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO
+                )
+                assert done.returncode == 0, done.stderr[-3000:]
+                found = {r.pop("name"): r for r in map(json.loads, done.stdout.splitlines())}
+                assert found == expected, (via, found)
+        finally:
+            for child in reversed(children):
+                child.close()
+            for child in children:
+                print(f"----- {child.host}\n{child.stderr[-3000:]}")

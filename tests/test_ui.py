@@ -147,7 +147,13 @@ def test_request_and_release_from_the_page(ui: Callable[..., tuple[Manager, str]
     assert [r.tag for r in manager.get_model().requests] == ["BallTrack(field)"]
     wait_text(browser, "requests", "BallTrack(field)")
     shot(browser, "requests")
-    browser.find_element("css selector", "#requests button").click()
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    # (the list is drawn again at every push of the model: a button found may be replaced before the click)
+    WebDriverWait(browser, 10, ignored_exceptions=[StaleElementReferenceException]).until(
+        lambda d: d.find_element("css selector", "#requests button").click() or True
+    )
     wait_text(browser, "message", "released")
     assert manager.get_model().requests == ()
 
@@ -451,3 +457,23 @@ def test_the_active_panel_shows_clock_offsets_and_messages_of_unknown_clocks(
             thread.join(10)
     assert "of a clock not known" not in browser.find_element("css selector", "#units tr[data-unit='r1']").text.split("out ")[-1]  # on the input only
     shot(browser, "clocks")
+
+
+def test_a_lost_manager_shows_with_when_and_why(
+    ui: Callable[..., tuple[Manager, str]], browser: Any, manager_process: Callable[..., ManagerProcess]
+) -> None:
+    """A manager in another process killed: the page lists it as lost (since when, why, as the
+    page's manager saw it) and says so in its status line, until it comes back."""
+    import signal
+
+    manager, url = ui()
+    peer = manager_process("--connect", manager.endpoints[0], name="doomed-peer")
+    browser.get(url)
+    wait_text(browser, "status", "2 managers", timeout_s=30)
+    assert browser.find_element("id", "lost").text == "no manager lost"
+    peer.proc.send_signal(signal.SIGKILL)
+    wait_text(browser, "lost", "doomed-peer: lost ", timeout_s=30)
+    line = browser.find_element("css selector", "#lost li[data-manager='doomed-peer']").text
+    assert f"as {manager.name} saw it): its liveliness token went away without a goodbye" in line, line
+    assert browser.find_element("id", "status").text.endswith("; lost: doomed-peer")
+    shot(browser, "lost")

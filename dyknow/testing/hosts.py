@@ -34,7 +34,7 @@ import itertools
 import os
 import shutil
 import subprocess
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 __all__ = ["Hosts", "faults_unavailable", "unavailable"]
@@ -71,10 +71,23 @@ class Hosts:
     has it; :attr:`shaping` says what was applied, or why nothing was.
     """
 
-    def __init__(self, names: Sequence[str], *, delay_ms: float | None = None, loss_percent: float | None = None) -> None:
+    def __init__(
+        self,
+        names: Sequence[str],
+        *,
+        delay_ms: float | None = None,
+        loss_percent: float | None = None,
+        addresses: Mapping[str, str] | None = None,
+    ) -> None:
         if len(names) > 200 or len(set(names)) != len(names):
             raise ValueError(f"hosts {list(names)!r}: expected up to 200 distinct names")
         self.names = list(names)
+        # ``addresses``: a host's own address instead of 10.77.0.<n> (to run a documented example
+        # as written); all on one /24, as hosts on one switch
+        self._addresses = {name: (addresses or {}).get(name, f"10.77.0.{i + 1}") for i, name in enumerate(self.names)}
+        nets = {a.rsplit(".", 1)[0] for a in self._addresses.values()}
+        if len(nets) != 1 or len(set(self._addresses.values())) != len(self.names):
+            raise ValueError(f"addresses {self._addresses!r}: expected distinct IPv4 addresses on one /24")
         self.tag = f"dk{os.getpid() % 100000}x{next(_serial)}"
         self.lan = f"{self.tag}-lan"
         self._namespaces: list[str] = []
@@ -91,7 +104,7 @@ class Hosts:
 
     def address(self, name: str) -> str:
         """Host ``name``'s address on the shared network."""
-        return f"10.77.0.{self.names.index(name) + 1}"
+        return self._addresses[name]
 
     def command(self, name: str, argv: Sequence[str]) -> list[str]:
         """``argv`` run inside host ``name``'s namespace."""

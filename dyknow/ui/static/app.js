@@ -244,6 +244,27 @@ function drawClocks() {
   $("clocks").replaceChildren(...items);
 }
 
+// managers some manager knew and lost, and that are not back: the latest loss of each, with its cause
+function lostManagers() {
+  const up = new Set(model.managers.map((m) => m.manager));
+  const lost = new Map();
+  for (const m of model.managers) for (const l of m.lost || []) {
+    if (up.has(l.manager) || typeof l.since_ns !== "number") continue;
+    const seen = lost.get(l.manager);
+    if (!seen || seen.since_ns < l.since_ns) lost.set(l.manager, { ...l, by: m.manager });
+  }
+  return [...lost.values()].sort((a, b) => a.manager.localeCompare(b.manager));
+}
+
+function drawLost() {
+  const now = Date.now();
+  const items = lostManagers().map((l) => el("li",
+    `${l.manager}: lost ${Math.max(0, Math.round((now - l.since_ns / 1e6) / 1000))} s ago (${new Date(l.since_ns / 1e6).toLocaleTimeString()}, as ${l.by} saw it): ${l.why}`,
+    { "data-manager": l.manager, class: "lost" }));
+  if (!items.length) items.push(el("li", "no manager lost", { class: "muted" }));
+  $("lost").replaceChildren(...items);
+}
+
 function fillManagers() {
   for (const select of document.querySelectorAll("select.managers")) {
     const current = select.value;
@@ -530,6 +551,7 @@ function render() {
   drawGraph();
   drawActive();
   drawClocks();
+  drawLost();
   drawLibrary();
   drawCreate();
   drawConnect();
@@ -538,7 +560,9 @@ function render() {
   for (const m of model.managers) for (const u of m.units) for (const k of Object.values(u.bindings)) keys.add(k);
   $("known-keys").replaceChildren(...[...keys].sort().map((k) => el("option", undefined, { value: k })));
   const units = model.managers.reduce((n, m) => n + m.units.length, 0);
-  $("status").textContent = `${model.managers.length} managers, ${units} units (model ${model.version})`;
+  const lost = lostManagers();
+  $("status").textContent = `${model.managers.length} managers, ${units} units (model ${model.version})` +
+    (lost.length ? `; lost: ${lost.map((l) => l.manager).join(", ")}` : "");
   document.body.dataset.version = String(model.version);
   if (units && window.dyknowFirstDraw === undefined) window.dyknowFirstDraw = performance.now(); // for benchmarks/ui.py
 }
