@@ -139,7 +139,7 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
     site = tmp_path / "site"
     for page in PAGES:
         assert (site / page.relative_to(DOCS)).with_suffix(".html").is_file(), page
-    api = (site / "reference" / "api.html").read_text(encoding="utf-8")
+    api = (site / "reference" / "api" / "dyknow.html").read_text(encoding="utf-8")
     import dyknow
 
     for name in dyknow.__all__:  # every public name has its entry in the API reference

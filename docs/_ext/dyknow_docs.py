@@ -223,10 +223,16 @@ def resolve_public_alias(app: Sphinx, env: Any, node: Any, contnode: nodes.Eleme
     return None
 
 
+def drop_object_base(app: Sphinx, name: str, obj: object, options: object, bases: list[type]) -> None:
+    """``Bases: object`` says nothing; the bases that do (``Bases: DyKnowError``) stay."""
+    bases[:] = [base for base in bases if base is not object]
+
+
 def setup(app: Sphinx) -> dict[str, Any]:
     """Register the directives and the reference resolver."""
     app.add_directive("dyknow-cli", CliDirective)
     app.add_directive("dyknow-api", ApiDirective)
     app.add_directive("dyknow-services", ServicesDirective)
     app.connect("missing-reference", resolve_public_alias)
+    app.connect("autodoc-process-bases", drop_object_base)
     return {"parallel_read_safe": True, "parallel_write_safe": True}
