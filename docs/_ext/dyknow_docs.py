@@ -36,7 +36,7 @@ def cli_help(*argv: str) -> str:
 
     out = io.StringIO()
     columns = os.environ.get("COLUMNS")
-    os.environ["COLUMNS"] = "100"
+    os.environ["COLUMNS"] = "80"  # what a page of the theme shows without scrolling
     try:
         with contextlib.redirect_stdout(out), contextlib.suppress(SystemExit):
             main([*argv, "--help"])
@@ -82,11 +82,11 @@ class ServicesDirective(SphinxDirective):
     def run(self) -> list[nodes.Node]:
         from dyknow import service
 
-        lines = ["| service | key | fields (required in bold) | read-only |", "|---|---|---|---|"]
+        lines = ["| service | of | fields (required in bold) | read-only |", "|---|---|---|---|"]
         for name, schema in service.SCHEMAS.items():
-            key = f"`@dyknow/<manager>/unit/<name>/{name}`" if name in service.UNIT_SERVICES else f"`@dyknow/<manager>/{name}`"
+            scope = "a unit" if name in service.UNIT_SERVICES else "a manager"
             fields = ", ".join(f"**`{field}`**" if required else f"`{field}`" for field, (required, _) in schema.items()) or "(none)"
-            lines.append(f"| `{name}` | {key} | {fields} | {'yes' if name in service.READ_ONLY_SERVICES else ''} |")
+            lines.append(f"| `{name}` | {scope} | {fields} | {'yes' if name in service.READ_ONLY_SERVICES else ''} |")
         container = nodes.container()
         self.state.nested_parse(StringList(lines, source="<dyknow-services>"), self.content_offset, container)
         return container.children
