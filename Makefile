@@ -36,9 +36,10 @@ test: $(VENV)/.installed-test
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: the test suite is missing or cannot be imported" >&2; fi; \
 	exit $$rc
 
-# warnings, broken links and unresolved references fail the build (-W --keep-going -n); offline
+# warnings, broken links and unresolved references fail the build (-W --keep-going -n); offline;
+# -E reads every page again: Sphinx does not notice a docstring or an extension that changed
 docs: $(VENV)/.installed-docs
-	$(BIN)/sphinx-build -b html -W --keep-going -n -q docs site
+	$(BIN)/sphinx-build -b html -E -W --keep-going -n -q docs site
 
 bench: $(VENV)/.installed-test
 	$(BIN)/python benchmarks/chain.py --quick --json out/chain.json --plot out/chain.png

@@ -35,7 +35,7 @@ html_show_sourcelink = False
 
 autodoc_member_order = "bysource"
 autodoc_typehints = "signature"
-autodoc_default_options = {"members": True, "show-inheritance": True}
+autodoc_default_options = {"members": True}
 
 nitpicky = True
 # Offline there are no inventories of Python's, numpy's or Zenoh's documentation to link to, so a

@@ -144,6 +144,9 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
 
     for name in dyknow.__all__:  # every public name has its entry in the API reference
         assert f'id="dyknow.{name}"' in api, name
+    reasoning = (site / "reference" / "api" / "reasoning.html").read_text(encoding="utf-8")
+    assert 'id="dyknow.reasoning.Monitor.push"' in reasoning  # compiled by mypyc: its docstring from the source
+    assert "Hand over one sample of" in reasoning
     cli = (site / "reference" / "cli.html").read_text(encoding="utf-8")
     assert "dyknow manager" in cli and "--allow-source" in cli and "dyknow mcap cat" in cli
     assert (site / "_images" / "ui.png").is_file()
@@ -151,7 +154,7 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
 
 def test_the_makefile_builds_the_site_as_the_test_does() -> None:
     makefile = (REPO / "Makefile").read_text()
-    assert "sphinx-build -b html -W --keep-going -n -q docs site" in makefile
+    assert "sphinx-build -b html -E -W --keep-going -n -q docs site" in makefile
     assert "/site/" in (REPO / ".gitignore").read_text().splitlines()
 
 

@@ -11,13 +11,17 @@
 
 from __future__ import annotations
 
+import ast
 import contextlib
+import functools
 import importlib
 import inspect
 import io
 import os
 import pkgutil
 import re
+import sys
+from pathlib import Path
 from typing import Any
 
 from docutils import nodes
@@ -112,7 +116,7 @@ class ApiDirective(SphinxDirective):
         family = self.arguments[0]
         module = importlib.import_module(family)
         # the pages are MyST Markdown, and autodoc writes reStructuredText: hand it to eval-rst
-        lines = ["```{eval-rst}", f".. py:module:: {family}", ""]
+        lines = ["```{eval-rst}", f".. automodule:: {family}", "   :no-members:", ""]  # its docstring, then its names
         for name in public_names(family):
             obj = getattr(module, name)
             if inspect.isclass(obj):
@@ -124,7 +128,10 @@ class ApiDirective(SphinxDirective):
             if kind == "data":
                 lines += data_directive(family, name, obj)
             else:
-                lines += [f".. auto{kind}:: {family}.{name}", ""]
+                lines += [f".. auto{kind}:: {family}.{name}"]
+                if inspect.isclass(obj) and obj.__bases__ != (object,):
+                    lines += ["   :show-inheritance:"]  # Bases: DyKnowError, Unit; never Bases: object
+                lines += [""]
         lines += ["```"]
         container = nodes.container()
         self.state.nested_parse(StringList(lines, source=f"<dyknow-api {family}>"), self.content_offset, container)
@@ -223,9 +230,48 @@ def resolve_public_alias(app: Sphinx, env: Any, node: Any, contnode: nodes.Eleme
     return None
 
 
-def drop_object_base(app: Sphinx, name: str, obj: object, options: object, bases: list[type]) -> None:
-    """``Bases: object`` says nothing; the bases that do (``Bases: DyKnowError``) stay."""
-    bases[:] = [base for base in bases if base is not object]
+@functools.cache
+def _source_docstrings(module_name: str) -> dict[str, str]:
+    """Qualified name -> docstring of every class, function and method in a module's source."""
+    module = sys.modules.get(module_name) or importlib.import_module(module_name)
+    source = Path(str(module.__file__)).with_name(module_name.rsplit(".", 1)[-1] + ".py")
+    if not source.is_file():
+        return {}
+    found: dict[str, str] = {}
+
+    def walk(node: ast.AST, prefix: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+                found[prefix + child.name] = ast.get_docstring(child) or ""
+                if isinstance(child, ast.ClassDef):
+                    walk(child, f"{prefix}{child.name}.")
+
+    walk(ast.parse(source.read_text(encoding="utf-8")), "")
+    return found
+
+
+def _compiled_docstring(obj: Any) -> str:
+    """The source's docstring of a function, class or method of dyknow, or ""."""
+    module_name = getattr(obj, "__module__", None) or getattr(getattr(obj, "__objclass__", None), "__module__", None)
+    qualname = getattr(obj, "__qualname__", None)
+    if not (isinstance(module_name, str) and module_name.startswith("dyknow") and isinstance(qualname, str)):
+        return ""
+    return _source_docstrings(module_name).get(qualname, "")
+
+
+def restore_compiled_docstring(app: Sphinx, what: str, name: str, obj: Any, options: Any, lines: list[str]) -> None:
+    """Modules compiled by mypyc (setup.py) lose the docstrings of their functions and methods
+    (``dyknow.reasoning.evaluate``, ``Monitor.push``); take them from the source beside the
+    compiled module."""
+    if "".join(lines).strip() in ("", "mypyc filler docstring") and (doc := _compiled_docstring(obj)):
+        lines[:] = inspect.cleandoc(doc).splitlines() + [""]
+
+
+def keep_compiled_members(app: Sphinx, what: str, name: str, obj: Any, skip: bool, options: Any) -> bool | None:
+    """A public method of a compiled class has no ``__doc__``, so autodoc would leave it out."""
+    if skip and not name.startswith("_") and _compiled_docstring(obj):
+        return False
+    return None
 
 
 def setup(app: Sphinx) -> dict[str, Any]:
@@ -234,5 +280,6 @@ def setup(app: Sphinx) -> dict[str, Any]:
     app.add_directive("dyknow-api", ApiDirective)
     app.add_directive("dyknow-services", ServicesDirective)
     app.connect("missing-reference", resolve_public_alias)
-    app.connect("autodoc-process-bases", drop_object_base)
+    app.connect("autodoc-process-docstring", restore_compiled_docstring)
+    app.connect("autodoc-skip-member", keep_compiled_members)
     return {"parallel_read_safe": True, "parallel_write_safe": True}
