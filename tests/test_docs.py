@@ -41,6 +41,7 @@ DOCS = REPO / "docs"
 PAGES = sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.parts)
 TUTORIAL = DOCS / "tutorials" / "first-unit.md"
 IN_TUTORIAL_FOLDER = "<!-- docs-test: run in the tutorial's folder -->"
+WITH_BASH = "<!-- docs-test: run in the tutorial's folder, with bash -->"
 
 #: Python blocks that are not run, by page and first line, with the reason. Keep it short.
 NOT_RUN = {
@@ -120,7 +121,7 @@ def _dyknow_lines() -> list[tuple[str, str]]:
     found = []
     for block in _of("sh"):
         for command, _ in _lines(block):
-            command = re.sub(r"^([A-Z_]+=\S*\s+)+", "", command)  # PYTHONPATH=. dyknow ...
+            command = re.sub(r"^([A-Z_]+=\S*\s+)+", "", command).removesuffix(" &")  # PYTHONPATH=. dyknow ... &
             if command.startswith("dyknow "):
                 found.append((str(block), command.removeprefix("dyknow ")))
     return found
@@ -202,6 +203,12 @@ def test_the_first_tutorial_runs_outside_the_checkout(tmp_path: Path) -> None:
         (folder / name).write_text(text)
     (folder / "mypkg" / "__init__.py").write_text("")  # the page's layout lists it, empty
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    _run_in_folder(blocks, folder, env)
+    _run_with_bash(blocks, folder, env)
+
+
+def _run_in_folder(blocks: list[Block], folder: Path, env: dict[str, str]) -> None:
+    """The tutorial's block of commands that end by themselves, one by one."""
     (block,) = [b for b in blocks if b.marker == IN_TUTORIAL_FOLDER]
     commands = _commands(block)
     assert [words[:2] for words, _ in commands] == [["dyknow", "validate"], ["python", "-m"], ["python", "run_doubler.py"]]
@@ -215,6 +222,22 @@ def test_the_first_tutorial_runs_outside_the_checkout(tmp_path: Path) -> None:
             assert result.stdout.startswith("ok: 1 transformation")
         if words[1] == "run_doubler.py":
             assert "'messages'" in result.stdout
+
+
+def _run_with_bash(blocks: list[Block], folder: Path, env: dict[str, str]) -> None:
+    """The tutorial's manager session, as a bash script with the venv's ``dyknow`` and ``python``
+    first on PATH. The one change: a free port instead of the default 7447, in ``--listen`` and
+    ``--connect``, so that no other manager on this machine can answer."""
+    (block,) = [b for b in blocks if b.marker == WITH_BASH]
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    script, managers = re.subn(r"^(PYTHONPATH=\. dyknow manager .*) &$", rf"\1 --listen {endpoint} &", block.text, flags=re.MULTILINE)
+    script, clients = re.subn(r"--manager robot", f"--manager robot --connect {endpoint}", script)
+    assert (managers, clients) == (1, 4), script
+    env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
+    result = subprocess.run(["bash", "-e", "-c", script], capture_output=True, text=True, timeout=120, cwd=folder, env=env)
+    assert result.returncode == 0, f"{script}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    assert result.stdout.count("dyknow/robot/double/out") >= 3, result.stdout  # echo printed three messages
+    assert "double" in result.stdout and "Traceback" not in result.stderr
 
 
 # ------------------------------------------------------------------------------------------- sh
