@@ -9,9 +9,12 @@ What each kind of block gets (``docs/**/*.md``):
   instead, so that a manager another test (or engineer) runs on the default port cannot collide.
 - ``sh``: every ``dyknow`` line is parsed by the command line's own parser (options, choices,
   types); ``dyknow validate|expand|plan`` lines, which need no manager, run; ``python
-  tools/...`` and ``python benchmarks/...`` name scripts that exist, with options they define;
-  ``make`` targets exist. A block after ``<!-- docs-test: run in the tutorial's folder -->`` runs
-  line by line in the tutorial's folder.
+  tools/...`` and ``python benchmarks/...`` (in blocks and in the prose) name scripts that exist,
+  with options they define; ``make`` targets exist. A block after ``<!-- docs-test: bash -->``
+  (a session with a manager in the background) runs as a bash script from the checkout, one after
+  ``<!-- docs-test: bash, in the tutorial's folder -->`` in the tutorial's folder, and one after
+  ``<!-- docs-test: run in the tutorial's folder -->`` line by line there. A manager session gets
+  a free port instead of the default 7447 (``--listen``, ``--connect``).
 - ``xml``: read by :func:`dyknow.spec.parse_specs` (and a whole transformation is valid against
   ``specs/transformation.xsd``); ``json5``: an ACL that :meth:`dyknow.AccessControl.from_dict`
   accepts.
@@ -41,7 +44,8 @@ DOCS = REPO / "docs"
 PAGES = sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.parts)
 TUTORIAL = DOCS / "tutorials" / "first-unit.md"
 IN_TUTORIAL_FOLDER = "<!-- docs-test: run in the tutorial's folder -->"
-WITH_BASH = "<!-- docs-test: run in the tutorial's folder, with bash -->"
+BASH = "<!-- docs-test: bash -->"
+BASH_IN_TUTORIAL_FOLDER = "<!-- docs-test: bash, in the tutorial's folder -->"
 
 #: Python blocks that are not run, by page and first line, with the reason. Keep it short.
 NOT_RUN = {
@@ -225,19 +229,42 @@ def _run_in_folder(blocks: list[Block], folder: Path, env: dict[str, str]) -> No
 
 
 def _run_with_bash(blocks: list[Block], folder: Path, env: dict[str, str]) -> None:
-    """The tutorial's manager session, as a bash script with the venv's ``dyknow`` and ``python``
-    first on PATH. The one change: a free port instead of the default 7447, in ``--listen`` and
-    ``--connect``, so that no other manager on this machine can answer."""
-    (block,) = [b for b in blocks if b.marker == WITH_BASH]
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    script, managers = re.subn(r"^(PYTHONPATH=\. dyknow manager .*) &$", rf"\1 --listen {endpoint} &", block.text, flags=re.MULTILINE)
-    script, clients = re.subn(r"--manager robot", f"--manager robot --connect {endpoint}", script)
-    assert (managers, clients) == (1, 4), script
-    env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
-    result = subprocess.run(["bash", "-e", "-c", script], capture_output=True, text=True, timeout=120, cwd=folder, env=env)
-    assert result.returncode == 0, f"{script}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    """The tutorial's manager session, in its folder."""
+    (block,) = [b for b in blocks if b.marker == BASH_IN_TUTORIAL_FOLDER]
+    result = _bash(block, folder, env)
     assert result.stdout.count("dyknow/robot/double/out") >= 3, result.stdout  # echo printed three messages
-    assert "double" in result.stdout and "Traceback" not in result.stderr
+    assert "double (doubler) running" in result.stdout  # stats
+
+
+def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """A manager session as a bash script (``bash -e``), with the venv's ``dyknow`` and ``python``
+    first on PATH. The one change: a free port instead of the default 7447, in the manager's
+    ``--listen`` and each client's ``--connect``, so that no other manager on this machine answers."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    script, managers = re.subn(
+        r"^((?:\S+=\S+ )*dyknow manager .*?)(?: --listen tcp/127\.0\.0\.1:7447)? &$",
+        rf"\1 --listen {endpoint} &",
+        block.text,
+        flags=re.MULTILINE,
+    )
+    script, clients = re.subn(r"(--manager \S+)", rf"\1 --connect {endpoint}", script)
+    assert managers == 1 and clients >= 1, script
+    env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
+    result = subprocess.run(["bash", "-e", "-c", script], capture_output=True, text=True, timeout=120, cwd=cwd, env=env)
+    assert result.returncode == 0, f"{block}\n{script}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
+    assert "Traceback" not in result.stderr and f"ready on {endpoint}" in result.stdout and "stopped" in result.stdout
+    return result
+
+
+@pytest.mark.parametrize("block", [b for b in BLOCKS if b.marker == BASH], ids=str)
+def test_manager_sessions_run_as_written(block: Block) -> None:
+    """The sessions of Getting started and the CLI reference, run from the checkout."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    result = _bash(block, REPO, env)
+    if "dyknow request" in block.text:
+        assert result.stdout.count("dyknow/robot/requests/BallTrack(field) #") == 5  # echo: the track
+    if "spawn relay" in block.text:
+        assert "r1 (relay) running" in result.stdout and "dyknow/robot/src/out #" in result.stdout
 
 
 # ------------------------------------------------------------------------------------------- sh
