@@ -30,6 +30,7 @@ import io
 import os
 import re
 import shlex
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -240,6 +241,7 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
     """A manager session as a bash script (``bash -e``), with the venv's ``dyknow`` and ``python``
     first on PATH. The one change: a free port instead of the default 7447, in the manager's
     ``--listen`` and each client's ``--connect``, so that no other manager on this machine answers."""
+    assert "--connect" not in block.text, "a session's clients reach its manager by the default endpoint"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     script, managers = re.subn(
         r"^((?:\S+=\S+ )*dyknow manager .*?)(?: --listen tcp/127\.0\.0\.1:7447)? &$",
@@ -247,24 +249,44 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
         block.text,
         flags=re.MULTILINE,
     )
-    script, clients = re.subn(r"(--manager \S+)", rf"\1 --connect {endpoint}", script)
+    client = r"^(dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay))(?!.* --connect )"
+    script, clients = re.subn(client, rf"\1 --connect {endpoint}", script, flags=re.MULTILINE)
     assert managers == 1 and clients >= 1, script
     env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
-    result = subprocess.run(["bash", "-e", "-c", script], capture_output=True, text=True, timeout=120, cwd=cwd, env=env)
+    # a session of its own, killed whole at the end: a failed line (bash -e) or a timeout must not
+    # leave its manager running in the background
+    proc = subprocess.Popen(
+        ["bash", "-e", "-c", script], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=env, start_new_session=True
+    )
+    try:
+        stdout, stderr = proc.communicate(timeout=90)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        stdout, stderr = proc.communicate()
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    result = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
     assert result.returncode == 0, f"{block}\n{script}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
     assert "Traceback" not in result.stderr and f"ready on {endpoint}" in result.stdout and "stopped" in result.stdout
     return result
 
 
 @pytest.mark.parametrize("block", [b for b in BLOCKS if b.marker == BASH], ids=str)
-def test_manager_sessions_run_as_written(block: Block) -> None:
-    """The sessions of Getting started and the CLI reference, run from the checkout."""
+def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
+    """The sessions with a manager, as from the checkout: in a folder of their own where ``specs/``
+    is the checkout's, so that what they write (``run.mcap``) stays out of the checkout."""
+    (tmp_path / "specs").symlink_to(REPO / "specs")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    result = _bash(block, REPO, env)
-    if "dyknow request" in block.text:
+    result = _bash(block, tmp_path, env)
+    if "dyknow echo 'dyknow/robot/requests" in block.text:
         assert result.stdout.count("dyknow/robot/requests/BallTrack(field) #") == 5  # echo: the track
     if "spawn relay" in block.text:
         assert "r1 (relay) running" in result.stdout and "dyknow/robot/src/out #" in result.stdout
+    if "dyknow measure" in block.text:
+        assert "measurement battery = 0.2" in result.stdout  # the adaptation, listed with its cause
+    if "dyknow record" in block.text:
+        assert (tmp_path / "run.mcap").is_file() and "recorded 20 messages on 1 key" in result.stdout
 
 
 # ------------------------------------------------------------------------------------------- sh
