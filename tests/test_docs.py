@@ -283,6 +283,8 @@ def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
         assert result.stdout.count("dyknow/robot/requests/BallTrack(field) #") == 5  # echo: the track
     if "spawn relay" in block.text:
         assert "r1 (relay) running" in result.stdout and "dyknow/robot/src/out #" in result.stdout
+    if "dyknow monitor" in block.text:
+        assert "dyknow/robot/monitors/1" in result.stdout and " true" in result.stdout  # verdicts as decided
     if "dyknow measure" in block.text:
         assert "measurement battery = 0.2" in result.stdout  # the adaptation, listed with its cause
     if "dyknow record" in block.text:
