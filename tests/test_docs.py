@@ -123,7 +123,7 @@ def _dyknow_lines() -> list[tuple[str, str]]:
     found = []
     for block in _of("sh"):
         for command, _ in _lines(block):
-            command = re.sub(r"^([A-Z_]+=\S*\s+)+", "", command).removesuffix(" &")  # PYTHONPATH=. dyknow ... &
+            command = re.sub(r"^(! )?([A-Z_]+=\S*\s+)*", "", command).removesuffix(" &")  # PYTHONPATH=. dyknow ... &, ! dyknow ...
             if command.startswith("dyknow "):
                 found.append((str(block), command.removeprefix("dyknow ")))
     return found
@@ -237,18 +237,16 @@ def _run_with_bash(blocks: list[Block], folder: Path, env: dict[str, str]) -> No
 def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
     """A manager session as a bash script (``bash -e``), with the venv's ``dyknow`` and ``python``
     first on PATH. The one change: a free port instead of the default 7447, in the manager's
-    ``--listen`` and each client's ``--connect``, so that no other manager on this machine answers."""
-    assert "--connect" not in block.text, "a session's clients reach its manager by the default endpoint"
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    script, managers = re.subn(
-        r"^((?:\S+=\S+ )*dyknow manager .*?)(?: --listen tcp/127\.0\.0\.1:7447)? &$",
-        rf"\1 --listen {endpoint} &",
-        block.text,
-        flags=re.MULTILINE,
-    )
-    client = r"^(dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay))(?!.* --connect )"
-    script, clients = re.subn(client, rf"\1 --connect {endpoint}", script, flags=re.MULTILINE)
-    assert managers == 1 and clients >= 1, script
+    ``--listen`` and each client's ``--connect`` (added where the page leaves them to their
+    default), so that no other manager on this machine answers."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    script = block.text.replace("\\\n", " ").replace("127.0.0.1:7447", f"127.0.0.1:{port}")
+    script = re.sub(r"^((?:\S+=\S+ )*dyknow manager (?:(?! --listen ).)*) &$", rf"\1 --listen {endpoint} &", script, flags=re.MULTILINE)
+    assert len(re.findall(rf"dyknow manager .* --listen \w+/127\.0\.0\.1:{port}", script)) == 1, script
+    client = r"^((?:! )?dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay))(?!.* --connect )"
+    script = re.sub(client, rf"\1 --connect {endpoint}", script, flags=re.MULTILINE)
+    assert re.search(rf"--connect \w+/127\.0\.0\.1:{port}", script), script
     env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
     # a session of its own, killed whole at the end: a failed line (bash -e) or a timeout must not
     # leave its manager running in the background
@@ -265,7 +263,7 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
             os.killpg(proc.pid, signal.SIGKILL)
     result = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
     assert result.returncode == 0, f"{block}\n{script}\n{result.stdout[-3000:]}\n{result.stderr[-3000:]}"
-    assert "Traceback" not in result.stderr and f"ready on {endpoint}" in result.stdout and "stopped" in result.stdout
+    assert "Traceback" not in result.stderr and f"/127.0.0.1:{port} with" in result.stdout and "stopped" in result.stdout
     return result
 
 
@@ -279,8 +277,11 @@ def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
     if "dyknow echo 'dyknow/robot/requests" in block.text:
         track = [line for line in result.stdout.splitlines() if line.startswith("dyknow/robot/requests/BallTrack(field) ")]
         assert len(track) == 5, result.stdout  # echo: five messages of the track
-    if "spawn relay" in block.text:
+    if "spawn relay r1 --bind" in block.text:
         assert "r1 (relay) running" in result.stdout and "dyknow/robot/src/out #" in result.stdout
+    if "dyknow certs" in block.text:  # roles: the admin spawned, the viewer was refused and reads the model
+        assert "spawned src (periodic-source): running" in result.stdout and "src (periodic-source) running" in result.stdout
+        assert "the request to '@dyknow/robot/spawn' was dropped without a reply" in result.stderr
     if "dyknow monitor" in block.text:
         assert "dyknow/robot/monitors/1" in result.stdout and " true" in result.stdout  # verdicts as decided
     if "dyknow measure" in block.text:
