@@ -5,13 +5,15 @@ What each kind of block gets (``docs/**/*.md``):
 - ``python``: executed in a fresh interpreter from the checkout (its asserts are part of the
   test), except a file of a tutorial (its first line names it, ``# mypkg/doubler.py``), which
   ``test_the_first_tutorial_runs_outside_the_checkout`` writes out and runs, and the few listed in
-  ``NOT_RUN`` with the reason. Blocks that listen on ``tcp/127.0.0.1:7447`` get a free port
-  instead, so that a manager another test (or engineer) runs on the default port cannot collide.
+  ``NOT_RUN`` with the reason (none today). Blocks that listen on ``tcp/127.0.0.1:7447`` get a
+  free port instead, so that a manager another test (or engineer) runs on the default port cannot
+  collide.
 - ``sh``: every ``dyknow`` line is parsed by the command line's own parser (options, choices,
   types); ``dyknow validate|expand|plan`` lines, which need no manager, run; ``python
   tools/...`` and ``python benchmarks/...`` (in blocks and in the prose) name scripts that exist,
   with options they define; ``make`` targets exist. A block after ``<!-- docs-test: bash -->``
-  (a session with a manager in the background) runs as a bash script from the checkout, one after
+  (a session with a manager in the background) runs as a bash script as from the checkout (in a
+  folder whose ``specs/`` is the checkout's, so what it writes stays out), one after
   ``<!-- docs-test: bash, in the tutorial's folder -->`` in the tutorial's folder, and one after
   ``<!-- docs-test: run in the tutorial's folder -->`` line by line there. A manager session gets
   a free port instead of the default 7447 (``--listen``, ``--connect``).
@@ -19,7 +21,9 @@ What each kind of block gets (``docs/**/*.md``):
   ``specs/transformation.xsd``); ``json5``: an ACL that :meth:`dyknow.AccessControl.from_dict`
   accepts.
 
-Nothing here is skipped, under ``CI=true`` or not.
+Besides: the site builds with warnings as errors (``-W --keep-going -n``), and the ``>>>``
+examples of every module's docstrings (the API reference shows them) run. Nothing here is
+skipped, under ``CI=true`` or not.
 """
 
 from __future__ import annotations
@@ -175,6 +179,17 @@ def test_the_pages_have_blocks_of_each_kind() -> None:
 
 def _runnable_python() -> list[Block]:
     return [b for b in _of("python") if b.file_name is None and (b.page, b.first_line) not in NOT_RUN]
+
+
+def test_every_marker_is_one_the_test_knows() -> None:
+    """A misspelt ``<!-- docs-test: ... -->`` would leave its block run by nothing."""
+    known = {"", IN_TUTORIAL_FOLDER, BASH, BASH_IN_TUTORIAL_FOLDER}
+    assert [str(b) for b in BLOCKS if b.marker not in known] == []
+    for page in PAGES:
+        for number, line in enumerate(page.read_text(encoding="utf-8").splitlines(), 1):
+            if line.lstrip().startswith("<!-- docs-test"):
+                assert line.strip() in known, f"{page.relative_to(DOCS)}:{number}: {line}"
+    assert {b.language for b in BLOCKS if b.marker} == {"sh"}
 
 
 def test_the_exceptions_are_few_and_still_there() -> None:
