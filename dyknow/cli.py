@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from dyknow.client import Client
+from dyknow.client import Client, ClockView
 from dyknow.errors import DyKnowError, SpecError
 from dyknow.message import Message, describe_payload
 from dyknow.model import STANDBY_MODES
@@ -592,25 +592,21 @@ def _payload_json(payload: Any) -> Any:
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
-    from dyknow.clocks import Estimate
-    from dyknow.message import CLOCK_ID
-
     if args.count is not None and args.count <= 0:
         raise _Usage(f"--count: got {args.count}; expected a positive number")
     done = threading.Event()
     lock = threading.Lock()
     seen = 0
-    clocks: dict[int, Estimate] = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0)}  # clock id -> offset from --manager's; swapped whole
+    clocks: ClockView | None = None
 
     def show(msg: Message) -> None:
         nonlocal seen
         with lock:
-            if done.is_set():
+            if done.is_set() or clocks is None:
                 return
             now = time.time_ns()
-            estimate = clocks.get(msg.origin_clock)  # (a message of a clock --manager does not know: its age is not shown)
-            known = None if estimate is None else estimate.carried(now)
-            age_us = None if known is None else round((now - msg.origin_ns + known[0]) / 1000, 1)
+            known = clocks.corrected(msg.origin_clock, msg.origin_ns, now)  # (a clock --manager does not know: no age shown)
+            age_us = None if known is None else round((now - known[0]) / 1000, 1)
             data = {
                 "key": msg.key,
                 "seq": msg.seq,
@@ -627,23 +623,9 @@ def cmd_echo(args: argparse.Namespace) -> int:
             if args.count is not None and seen >= args.count:
                 done.set()
 
-    fetched = threading.Event()
-
-    def follow(client: Client) -> None:  # the offsets, kept current (a clock drifts; a peer appears)
-        nonlocal clocks
-        while True:
-            try:  # (a --manager that is not there would hold the first message up for --timeout)
-                if args.manager in client.manager_names(timeout_s=min(args.timeout, 1.0)):
-                    clocks = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in client.clocks().values()}}
-            except DyKnowError as exc:
-                logging.getLogger(__name__).debug("no clock offsets from %r: %s", args.manager, exc)
-            fetched.set()
-            if done.wait(5.0):
-                return
-
-    with _client(args) as client:
-        threading.Thread(target=follow, args=(client,), name="dyknow-echo-clocks", daemon=True).start()
-        fetched.wait(args.timeout)  # the offsets before the first message
+    with _client(args) as client, client.follow_clocks() as view:
+        view.fetched.wait(args.timeout)  # the offsets before the first message
+        clocks = view
         with client.declare_subscriber(args.keyexpr, show):
             signal.signal(signal.SIGINT, lambda *_: done.set())
             signal.signal(signal.SIGTERM, lambda *_: done.set())
@@ -870,6 +852,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         as_json=args.json,
         distributed=args.distributed,
         ui_port=args.ui_port if args.ui else None,
+        standby=not args.no_standby,
     )
 
 
@@ -989,6 +972,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--chain", action="store_true", help="the latency demo instead: a chain of relays, per-hop latency")
     p.add_argument("--ui", action="store_true", help="serve the interactive tool beside the demo (dyknow ui) and print its URL")
     p.add_argument("--ui-port", type=int, default=8321, metavar="PORT", help="the tool's port with --ui (default 8321; 0: any free port)")
+    p.add_argument("--no-standby", action="store_true", help="request the track without a warm standby (switches then build their configuration cold)")
     p.add_argument("--distributed", action="store_true",
                    help="the scenario across three manager processes (robot, field, station): battery drop, then a manager killed")  # fmt: skip
     p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")

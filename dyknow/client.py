@@ -27,9 +27,9 @@ from typing import Any
 from dyknow import keys, service
 from dyknow.access import TlsFiles
 from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
-from dyknow.errors import ServiceError, SpecError, SpecIssue, TransportError
+from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError
 from dyknow.identity import Signer
-from dyknow.message import Message
+from dyknow.message import CLOCK_ID, Message
 from dyknow.model import check_standby
 from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, Session, Subscriber, check_key_expr, make_config
 
@@ -98,6 +98,59 @@ class _Presence:
         if self._watch is not None:
             self._watch.undeclare()
             self._watch = None
+
+
+class ClockView:
+    """The clock offsets a manager estimates (:meth:`Client.clocks`), kept current by a thread of
+    its own (a clock drifts; a peer appears): a process that reads messages from other hosts
+    corrects their times by it. A context manager (:meth:`Client.follow_clocks`).
+
+    This host's clock is taken as the manager's (a client beside its manager shares its clock).
+    """
+
+    def __init__(self, client: Client, manager: str, every_s: float = 5.0) -> None:
+        self.manager = manager
+        self.every_s = every_s
+        self.fetched = threading.Event()  # set once the first look is over (found or not)
+        self._client = client
+        self._estimates: dict[int, Estimate] = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0)}  # swapped whole
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._follow, name="dyknow-clock-view", daemon=True)
+        self._thread.start()
+
+    def __enter__(self) -> ClockView:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop following; safe twice."""
+        self._done.set()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=self._client.timeout_s + 2.0)
+
+    def corrected(self, clock: int, t_ns: int, now_ns: int | None = None) -> tuple[int, int] | None:
+        """``t_ns`` of clock ``clock`` (a header's ``origin_clock``) on this host's clock, and its
+        uncertainty (ns); None when the manager does not know that clock (yet)."""
+        estimate = self._estimates.get(clock)
+        if estimate is None:
+            return None
+        offset, uncertainty = estimate.carried(time.time_ns() if now_ns is None else now_ns)
+        return t_ns - offset, uncertainty
+
+    def _follow(self) -> None:
+        client = self._client
+        while True:
+            try:  # (a manager that is not there would hold each look up for the client's timeout)
+                if self.manager in client.manager_names(timeout_s=min(client.timeout_s, 1.0)):
+                    found = client.clocks(self.manager)
+                    self._estimates = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0), **{e.clock: e for e in found.values()}}
+            except DyKnowError as exc:
+                log.debug("no clock offsets from %r: %s", self.manager, exc)
+            self.fetched.set()
+            if self._done.wait(self.every_s):
+                return
 
 
 class Client:
@@ -308,6 +361,11 @@ class Client:
                 abs(growth) if growth is not None else DRIFT_BOUND_PPM + abs(drift),  # (a manager that does not say: the bound)
             )
         return found
+
+    def follow_clocks(self, manager: str | None = None, every_s: float = 5.0) -> ClockView:
+        """The clock offsets ``manager`` (default: the client's) estimates, looked up every
+        ``every_s`` (see :class:`ClockView`); close it (or use it in ``with``) when done."""
+        return ClockView(self, manager or self.manager, every_s)
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key bindings of unit ``name``."""

@@ -24,7 +24,11 @@ other JSON value        the same                             ``json``           
 other ``bytes``         not served (one warning per key)
 ======================  ===================================  ==================  ==============================
 
-A message's log time (the time Foxglove shows) is when its data was captured (``origin_ns``).
+A message's log time (the time Foxglove shows) is when its data was captured (``origin_ns``), on
+this host's clock: a time another host's clock took is corrected by the offset the client's
+manager estimates for that clock (:meth:`Client.follow_clocks`, this host's clock taken as the
+manager's); one of a clock whose offset is not known yet is logged as stamped and counted in
+:attr:`Bridge.unknown_clock`.
 A key whose payload type changes gets a new channel in place of its old one. At most
 ``max_channels`` keys (default :data:`MAX_CHANNELS`) get a channel; messages on further keys
 are skipped, with a warning. Messages are encoded only while a client subscribes to their
@@ -52,7 +56,7 @@ from typing import Any
 
 import foxglove
 
-from dyknow.client import Client
+from dyknow.client import Client, ClockView
 from dyknow.errors import RecordingError, TransportError
 from dyknow.message import Message
 from dyknow.recording.codecs import PAYLOAD_METADATA, PROTOBUF_SCHEMAS, encode, json_schema
@@ -123,6 +127,8 @@ class Bridge:
         self._subscribers: list[Subscriber] = []
         self._closed = False
         self._guard: OriginGuard | None = None
+        self.unknown_clock = 0  # messages logged at their time as stamped: their clock's offset was not known
+        self.clocks: ClockView | None = None
         try:
             # the SDK's server on a loopback port of its own, behind the guard on the port served
             self._server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=self._context, message_backlog_size=BACKLOG)
@@ -138,6 +144,8 @@ class Bridge:
             self._server.stop()
             raise TransportError(exc.what, where="Foxglove WebSocket server", expected=exc.expected) from exc
         self.port = self._guard.port
+        self.clocks = client.follow_clocks()
+        self.clocks.fetched.wait(client.timeout_s)  # the offsets before the first message
         try:
             for keyexpr in self.keyexprs:
                 self._subscribers.append(client.declare_subscriber(keyexpr, self._on_message))
@@ -182,6 +190,8 @@ class Bridge:
             self._streams.clear()
         for stream in streams:
             stream.channel.close()
+        if self.clocks is not None:
+            self.clocks.close()
         if getattr(self, "_guard", None) is not None:
             self._guard.close()  # type: ignore[union-attr]
         if hasattr(self, "_server"):
@@ -216,7 +226,10 @@ class Bridge:
             stream = self._stream(msg.key, signature, kind, value)
             if stream is None:
                 return
-        stream.channel.log(data, log_time=max(0, msg.origin_ns))
+        known = None if self.clocks is None else self.clocks.corrected(msg.origin_clock, msg.origin_ns)
+        if known is None:
+            self.unknown_clock += 1
+        stream.channel.log(data, log_time=max(0, msg.origin_ns if known is None else known[0]))
 
     def _stream(self, key: str, signature: _Signature, kind: str, value: Any) -> _Stream | None:
         """The channel for ``key`` and ``signature``, created (or replacing the key's old one) if need be."""

@@ -37,6 +37,7 @@ every option is looked at once, so a library of thousands of specs plans in mill
 
 from __future__ import annotations
 
+import difflib
 import heapq
 import itertools
 import re
@@ -168,17 +169,23 @@ class Rejection:
 
     tag: str
     alternatives: tuple[Alternative, ...]
+    suggestions: tuple[str, ...] = ()  # when nothing has the tag: the closest tags there are
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON form: the unmet tag and each alternative's reason."""
-        return {"tag": self.tag, "alternatives": [a.to_dict() for a in self.alternatives]}
+        """The JSON form: the unmet tag and each alternative's reason (and close tags there are)."""
+        out: dict[str, Any] = {"tag": self.tag, "alternatives": [a.to_dict() for a in self.alternatives]}
+        if self.suggestions:
+            out["suggestions"] = list(self.suggestions)
+        return out
 
     def lines(self, indent: int = 0, _seen: set[str] | None = None) -> list[str]:
         """The explanation as indented text; a tag explained once is referred to afterwards."""
         seen = set() if _seen is None else _seen
         pad = "  " * indent
         if not self.alternatives:
-            return [f"{pad}nothing provides {self.tag} (no transformation or running unit has an output port with a matching tag)"]
+            hint = " or ".join(repr(s) for s in self.suggestions)
+            hint = f"; did you mean {hint}?" if hint else ""
+            return [f"{pad}nothing provides {self.tag} (no transformation or running unit has an output port with a matching tag{hint})"]
         if self.tag in seen:
             return [f"{pad}nothing can provide {self.tag} (see above)"]
         seen.add(self.tag)
@@ -290,6 +297,12 @@ class Planner:
     def spec(self, ref: str) -> TransformationSpec:
         """A transformation by the label the planner knows it by (``label`` or ``label@manager``)."""
         return self._specs[ref]
+
+    def close_tags(self, tag: str, running: Iterable[RunningUnit] = ()) -> tuple[str, ...]:
+        """The tags the library's outputs (and ``running`` units') carry that are closest to ``tag``."""
+        known = {t for s in self._specs.values() for p in s.outputs for t in s.tags_for(p.name)}
+        known |= {t for u in running for tags in u.tags.values() for t in tags}
+        return tuple(difflib.get_close_matches(tag, sorted(known), n=3, cutoff=0.8))  # (0.6 matched any tag of the same args)
 
     def _functor_key(self, functor: str) -> str:
         iri = self.ontology.resolve(functor)
@@ -612,6 +625,8 @@ class _Search:
                             Alternative(option.unit, option.port, f"input {port!r} needs {tag_of(needed)}", explained[needed])
                         )
                     break
+            if not alternatives:
+                return Rejection(tag_of(r), (), self.planner.close_tags(tag_of(r), self.running))
             return Rejection(tag_of(r), tuple(alternatives))
 
         return why(0)

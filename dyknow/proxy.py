@@ -802,8 +802,8 @@ class Proxy:
             raise self._no_port(port, "output", self._outputs)
         return bool(out.targets) or (out.publisher is not None and out.publisher.matched)
 
-    def reject(self, port: str, reason: str) -> None:
-        """Count and log an unusable input message; the unit carries on."""
+    def reject(self, port: str, reason: str, *, expected: bool = False) -> None:
+        """Count and log an unusable input message (``expected``: at INFO); the unit carries on."""
         inp = self._inputs.get(port)
         if inp is None:
             raise self._no_port(port, "input", self._inputs)
@@ -812,7 +812,8 @@ class Proxy:
         counters.last_rejection = reason
         # log the first few, then every 100th, so a stream of bad frames does not flood the log
         if counters.rejected <= 3 or counters.rejected % 100 == 0:
-            log.warning("unit %r rejected a message on %r (%d so far): %s", self.name, port, counters.rejected, reason)
+            level = logging.INFO if expected else logging.WARNING
+            log.log(level, "unit %r rejected a message on %r (%d so far): %s", self.name, port, counters.rejected, reason)
 
     # ------------------------------------------------------------------ proxy services
 

@@ -77,7 +77,7 @@ class UnitRuntime(Protocol):
         """Whether anyone receives output ``port`` now."""
         ...
 
-    def reject(self, port: str, reason: str) -> None:
+    def reject(self, port: str, reason: str, *, expected: bool = False) -> None:
         """Count and log an unusable input message."""
         ...
 
@@ -210,14 +210,16 @@ class Unit:
         """
         return self._runtime.has_subscribers(port)
 
-    def reject(self, port: str, reason: str) -> None:
+    def reject(self, port: str, reason: str, *, expected: bool = False) -> None:
         """Report that the message just received on ``port`` was unusable, and carry on.
 
         For bad input that is not the unit's fault (an image of the wrong shape, say): it is
         counted per port in the statistics (``rejected``, ``last_rejection``) and logged, and the
-        unit keeps running. Raising instead would mark the unit failed.
+        unit keeps running. Raising instead would mark the unit failed. ``expected``: a rejection
+        that is no one's mistake (a sample that came too late after its producer was switched) is
+        counted alike but logged at INFO, not as a warning.
         """
-        self._runtime.reject(port, reason)
+        self._runtime.reject(port, reason, expected=expected)
 
     def set_config(self, bindings: Mapping[str, str]) -> dict[str, str]:
         """Rebind some of this unit's own ports (``{port: key}``) atomically; returns the new bindings.

@@ -47,6 +47,23 @@ def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp
     stored = json.loads((tmp_path / "report.json").read_text())
     assert stored["summary"] == summary and len(stored["battery"]) > 20
     assert len(stored["verdicts"]) == summary["requirement_states"] and {v["verdict"] for v in stored["verdicts"]} == {True, False}
+    # the warm standby: the first switch went onto it, and the demo says what it cost and saved
+    standby = summary["standby"]
+    assert standby["warm"] is True and required[0]["standby"] is True and standby["switches_onto_standby"] >= 1
+    assert standby["standby_switch_median_ms"] is not None and standby["seconds_with"] > 0
+    assert f"warm standby: {standby['switches_onto_standby']} switches onto it took {standby['standby_switch_median_ms']} ms median" in text
+    assert "adapted onto the warm standby in" in text
+
+
+def test_demo_runs_without_a_standby_when_asked(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "dyknow.cli", "demo", "--no-standby", "--duration", "3", "--json", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=120, env=subprocess_env(), cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    summary = json.loads(result.stdout.splitlines()[-1])
+    assert summary["standby"]["warm"] is False and summary["standby"]["switches_onto_standby"] == 0
+    assert summary["standby"]["seconds_with"] == 0
 
 
 def test_battery_story() -> None:

@@ -14,7 +14,10 @@ import base64
 import json
 import logging
 import struct
+import subprocess
+import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -26,9 +29,9 @@ import pytest
 from dyknow import Client, Manager, Message
 from dyknow.foxglove import Bridge
 from dyknow.recording import COMPRESSED_IMAGE, NDARRAY, PROTOBUF_SCHEMAS, RAW_IMAGE, image_array, protobuf
-from dyknow.testing import SCENARIO_SPECS
+from dyknow.testing import SCENARIO_HOSTS, SCENARIO_SPECS
 from dyknow.transport import Session, make_config
-from tests.conftest import REPO, CliProcess, free_port, run_cli, wait_until
+from tests.conftest import REPO, CliProcess, faked_clock, free_port, run_cli, subprocess_env, wait_until
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 
@@ -304,3 +307,46 @@ def test_the_bridge_is_closed_to_other_web_pages(make_manager: Callable[..., Man
         assert status == 403
         for headers in ({}, {"Origin": "https://app.foxglove.dev"}, {"Origin": f"http://127.0.0.1:{bridge.port}"}, {"Origin": "http://lichtblick.local:8080"}):
             assert upgrade(bridge.port, **headers)[0] == 101, headers
+
+
+def test_a_message_from_a_host_whose_clock_is_ahead_is_logged_at_this_hosts_time(make_manager: Callable[..., Manager], faketime: Any) -> None:
+    """The robot's manager runs with its wall clock 10 s ahead (libfaketime): its camera's frames
+    are stamped 10 s in the future, and the bridge logs them at the time they were captured on
+    this host's clock, corrected by the offset the station estimates (to within the frames' few
+    milliseconds of travel; uncorrected they would be 10 s off)."""
+    station = make_manager("station", listen=[f"tcp/127.0.0.1:{free_port()}"])
+    robot = subprocess.Popen(
+        [sys.executable, "-m", "dyknow.cli", "manager", "--name", "robot", "--listen", f"tcp/127.0.0.1:{free_port()}",
+         "--connect", station.endpoints[0], "--specs", str(SCENARIO_HOSTS["robot"]), "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**subprocess_env(), **faked_clock(faketime, "+10")},
+    )  # fmt: skip
+    try:
+        assert robot.stdout is not None and json.loads(robot.stdout.readline())["event"] == "ready"
+        with Client("station", connect=station.endpoints) as client:
+            wait_until(lambda: "robot" in client.clocks(), "the station to estimate the robot's clock")
+            assert abs(client.clocks()["robot"].offset_ns - 10_000_000_000) < 100_000_000  # what libfaketime was asked for
+            Client("robot", session=client.session).spawn("robot-camera", "cam", bindings={"out": "fox/robot"})
+            with Bridge(client, ["fox/**"], port=0) as bridge:
+                assert bridge.clocks is not None and bridge.clocks.fetched.wait(10)
+
+                async def watch() -> list[tuple[int, int]]:
+                    seen = Seen()
+                    arrived: list[tuple[int, int]] = []  # (log time, when it arrived here)
+                    async with aiohttp.ClientSession() as http, http.ws_connect(bridge.url, protocols=[SUBPROTOCOL]) as ws:
+                        await pump(ws, seen, lambda: seen.channel("fox/robot") is not None, "the robot's channel")
+                        channel = seen.channel("fox/robot")
+                        assert channel is not None
+                        await subscribe(ws, {1: channel["id"]})
+                        while len(arrived) < 20:
+                            count = len(arrived)
+                            await pump(ws, seen, lambda: len(seen.messages.get(1, [])) > count, "a frame")  # noqa: B023 (awaited here)
+                            arrived += [(log_time, time.time_ns()) for log_time, _ in seen.messages[1][count:]]
+                    return arrived
+
+                arrived = asyncio.run(watch())
+            assert bridge.unknown_clock == 0
+        for log_time, now in arrived:
+            assert 0 <= now - log_time < 1_000_000_000, (now - log_time) / 1e6  # captured here before it arrived: not 10 s ahead
+    finally:
+        robot.terminate()
+        robot.communicate(timeout=10)

@@ -307,12 +307,18 @@ def test_a_slow_link_carries_what_it_can_and_nothing_grows(faulty: Hosts, tmp_pa
         causes = scenario.causes()
         assert all(cause.startswith(LINK_CAUSES) for cause in causes), causes
         assert all(g < 64 for g in grew.values()), grew
-        if scenario.observer.stats()["camera"] != BOTTOM:
-            scenario.observer.next("camera", camera=BOTTOM, timeout_s=60)
-        _while(2)
-        after = scenario.observer.stats()
-        print(f"afterwards: {after}")
-        assert after["by_camera"].get(str(BOTTOM), 0) > 20 * after["seconds"] * 0.5, after
+        # back on the robot's camera at its rate: frames the link's queue still held when the limit
+        # was lifted arrive first (and may be the robot's, from before the failover), so look at
+        # whole windows until one is the robot's camera at half its rate or better
+        deadline = time.monotonic() + 60
+        scenario.observer.stats()
+        while True:
+            _while(2)
+            after = scenario.observer.stats()
+            print(f"afterwards: {after}")
+            if after["by_camera"].get(str(BOTTOM), 0) > 20 * after["seconds"] * 0.5:
+                break
+            assert time.monotonic() < deadline, f"the robot's camera not back at its rate within 60 s: {after}"
     finally:
         scenario.close()
 

@@ -96,6 +96,22 @@ def test_functors_in_no_ontology_match_only_themselves() -> None:
         plan("Baz(x)", library)
 
 
+def test_a_tag_nothing_has_is_told_the_close_ones_there_are() -> None:
+    """A misspelled request (or input tag) gets the closest tags of the library and of what runs."""
+    library = specs(t("sensor", {}, {"out": "OverheatAlert(engine)"}) + t("b", {}, {"out": "Temperature(engine)"}))
+    with pytest.raises(PlanningError) as caught:
+        plan("OverheatAlrt(engine)", library)
+    assert "nothing provides OverheatAlrt(engine) (no transformation or running unit has an output port with a matching tag; " \
+        "did you mean 'OverheatAlert(engine)'?)" in str(caught.value)  # fmt: skip
+    assert caught.value.to_dict()["rejection"]["suggestions"] == ["OverheatAlert(engine)"]
+    running = [RunningUnit("probe", "probe", {"out": "k/probe"}, {"out": ("Pressure(engine)",)})]
+    with pytest.raises(PlanningError, match=r"did you mean 'Pressure\(engine\)'\?"):
+        Planner(library).plan("Presure(engine)", running)
+    with pytest.raises(PlanningError) as far:
+        plan("Nothing(alike)", library)
+    assert "did you mean" not in str(far.value) and "suggestions" not in far.value.to_dict()["rejection"]
+
+
 def test_ontology_template_args_expand_over_individuals(scenario: list[TransformationSpec]) -> None:
     detectors = sorted(s.label for s in scenario if s.label.startswith("ball-detector"))
     assert detectors == ["ball-detector(bottom)", "ball-detector(ceiling)", "ball-detector(top)"]

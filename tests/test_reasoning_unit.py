@@ -4,6 +4,7 @@ samples counted as rejections, and setup errors."""
 
 from __future__ import annotations
 
+import logging
 import random
 import time
 from collections.abc import Callable
@@ -58,7 +59,10 @@ def test_the_spec_has_a_port_per_term_tagged_with_it_and_survives_xml() -> None:
         monitor_spec("p and")
 
 
-def test_late_samples_are_rejections_of_their_port() -> None:
+def test_late_samples_are_rejections_of_their_port(caplog: pytest.LogCaptureFixture) -> None:
+    """Counted like any rejection, but logged at INFO: a sample that comes too late after its
+    producer was switched is no one's mistake, so no warning is printed."""
+    caplog.set_level(logging.INFO, logger="dyknow.proxy")
     with UnitHarness(monitor_spec("once[0, 1s] p > 0"), name="m") as harness:
         harness.send("t0", 1, origin_ns=T0 + 10 * MS)
         harness.wait_for(VERDICTS_PORT, 1)
@@ -72,6 +76,8 @@ def test_late_samples_are_rejections_of_their_port() -> None:
         assert port["last_rejection"].startswith(
             f"late: a sample at {T0 + 5 * MS} ns, at or before the last state closed ({T0 + 10 * MS} ns"
         )
+    (logged,) = [r for r in caplog.records if "rejected a message" in r.getMessage()]
+    assert logged.levelno == logging.INFO and "late: a sample at" in logged.getMessage()
 
 
 @pytest.mark.parametrize(

@@ -12,6 +12,12 @@ whole field; when the ball stays out of its view, the requirement turns false, a
 moves the request to the next-best configuration, the ceiling camera, naming the formula as the
 cause; it tries the robot's camera again after a back-off.
 
+The request asks for a warm standby: the next-best configuration (the ceiling camera's chain)
+runs beside the active one, so a switch only moves the request's anchor (a few milliseconds
+instead of the tens a cold start takes). The demo prints what the standby cost (the process's
+CPU with one running and without) beside what it saved (its switches against the cold ones);
+``--no-standby`` runs without it.
+
 A simulated battery monitor publishes the battery level on ``dyknow/measurements/battery`` from a
 Zenoh session of its own. Midway the battery runs low: the robot camera becomes unavailable and
 the manager switches to the ceiling camera; the track keeps flowing on the same key. Later the
@@ -162,6 +168,32 @@ def video_localization(cams: list[str]) -> list[TransformationSpec]:
     return out
 
 
+class _CpuShare:
+    """The process's CPU (share of one core) while the request had a standby running and while it
+    had none, from samples taken along the run (each interval counted by the state at its end)."""
+
+    def __init__(self) -> None:
+        self._cpu = {True: 0.0, False: 0.0}
+        self._wall = {True: 0.0, False: 0.0}
+        self._last = (time.monotonic(), time.process_time())
+
+    def sample(self, standby: bool) -> None:
+        """Count the time since the last sample as with (or without) a standby."""
+        wall, cpu = time.monotonic(), time.process_time()
+        self._wall[standby] += wall - self._last[0]
+        self._cpu[standby] += cpu - self._last[1]
+        self._last = (wall, cpu)
+
+    def shares(self) -> dict[str, float | None]:
+        """``cpu_with_pct`` / ``cpu_without_pct`` (None when no such time) and the seconds of each."""
+        out: dict[str, float | None] = {}
+        for state, name in ((True, "with"), (False, "without")):
+            wall = self._wall[state]
+            out[f"cpu_{name}_pct"] = round(100 * self._cpu[state] / wall, 1) if wall >= 0.5 else None
+            out[f"seconds_{name}"] = round(wall, 1)
+        return out
+
+
 @dataclass(slots=True)
 class _Rates:
     last: dict[str, tuple[float, int]] = field(default_factory=dict)
@@ -191,6 +223,7 @@ class BallDemo:
         seed: int = 0,
         ui_port: int | None = None,
         requirement: str | None = REQUIREMENT,
+        standby: bool = True,
     ) -> None:
         if duration_s <= 0:
             raise ValueError(f"duration must be positive; got {duration_s}")
@@ -210,6 +243,7 @@ class BallDemo:
         self.ui_port = ui_port  # serve `dyknow ui` beside the demo on this port (0: any free one)
         self.ui_url: str | None = None
         self.requirement = requirement
+        self.standby = standby
         self.events: list[AdaptationEvent] = []
         self._events_lock = threading.Lock()
         self._printed: set[tuple[int, str]] = set()
@@ -269,7 +303,7 @@ class BallDemo:
                 self.say(f"the interactive tool: open {ui.url} (the View panel shows the cameras)")
             self.say(f"requesting {REQUEST} from the planner ...")
             t0 = time.monotonic()
-            key = manager.request(REQUEST, require=[self.requirement] if self.requirement else [])
+            key = manager.request(REQUEST, standby="warm" if self.standby else None, require=[self.requirement] if self.requirement else [])
             manager.spawn("track-log", "track-log", bindings={"in": key})
             log = manager.unit("track-log")
             assert isinstance(log, TrackLog)
@@ -284,7 +318,10 @@ class BallDemo:
             self.say(f"the tracked position streams on {key}")
             if self.requirement:
                 self.say(f"required of it: {self.requirement} (verdicts on {key}/requirements/1)")
+            if self.standby:
+                self.say("with a warm standby: the next-best configuration runs beside it (--no-standby: without)")
             self.say()
+            cpu = _CpuShare()
             battery_trace: list[tuple[float, float]] = []
             self.start_ns = time.time_ns()
             with Client("demo", connect=manager.endpoints) as monitor:  # the battery monitor, elsewhere
@@ -299,10 +336,11 @@ class BallDemo:
                     if t >= next_show:
                         self._show(manager, key, log, scene, rates, t, level, verdicts)
                         next_show += 1.0
+                    cpu.sample(any(r.standby for r in manager.requests() if r.key == key))
                     time.sleep(0.25)
             self._print_events()
             frame = self._annotated_frame(manager, log)
-            report = self._report(manager, key, log, scene, battery_trace, frame, info.tag, verdicts)
+            report = self._report(manager, key, log, scene, battery_trace, frame, info.tag, verdicts, cpu)
             if ui is not None:
                 ui.close()
         return report
@@ -419,6 +457,7 @@ class BallDemo:
         frame: Any,
         tag: str,
         verdicts: VerdictLog | None,
+        cpu: _CpuShare,
     ) -> dict[str, Any]:
         from dyknow.demo.report import write_report
 
@@ -442,6 +481,7 @@ class BallDemo:
             say=self.say,
             requirement=self.requirement,
             verdicts=judged,
+            standby={"warm": self.standby, **cpu.shares()},
         )
 
 
@@ -503,9 +543,12 @@ def run_ball_demo(
     out_dir: str = "dyknow-demo-report",
     as_json: bool = False,
     ui_port: int | None = None,
+    standby: bool = True,
 ) -> int:
     """The ``dyknow demo`` command; returns an exit code."""
-    demo = BallDemo(duration_s=duration_s, robot_video=robot_video, ceiling_video=ceiling_video, out_dir=Path(out_dir), ui_port=ui_port)
+    demo = BallDemo(
+        duration_s=duration_s, robot_video=robot_video, ceiling_video=ceiling_video, out_dir=Path(out_dir), ui_port=ui_port, standby=standby
+    )
     report = demo.run()
     if as_json:
         print(json.dumps(report["summary"]))

@@ -28,11 +28,14 @@ def write_report(
     say: Callable[[str], None],
     requirement: str | None = None,
     verdicts: list[tuple[int, bool]] | None = None,
+    standby: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write ``report.json``, ``track.png`` and ``frame.png`` into ``out_dir``; returns the report.
 
     ``requirement`` and its ``verdicts`` (state time ns, verdict): the request's requirement,
-    summarised, listed and plotted."""
+    summarised, listed and plotted. ``standby``: whether the request had a warm standby
+    (``"warm"``) and the process's CPU with and without one running (:class:`_CpuShare`'s
+    shares); the summary sets what it cost beside what its switches saved."""
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = start_ns  # times in the report are seconds since the demo started (when the battery trace starts)
     rows = []
@@ -64,6 +67,7 @@ def write_report(
             "to": list(e.new),
             "adaptation_ms": e.adaptation_ms,
             "recovery_ms": e.recovery_ms,
+            "standby": e.standby,
             "detail": e.detail,
         }
         for e in sorted(finals.values(), key=lambda e: e.fault_ns)
@@ -71,6 +75,7 @@ def write_report(
     gaps = [(b[0] - a[0]) / 1e6 for a, b in zip(track, track[1:], strict=False)]
     errors = sorted(r["error_cm"] for r in rows if "error_cm" in r)
     measured = sorted(r["error_cm"] for r in rows if "error_cm" in r and not r["predicted"])
+    standby_summary = _standby_summary(standby or {}, adaptations)
     summary = {
         "request": request,
         "key": key,
@@ -87,6 +92,7 @@ def write_report(
         "requirement": requirement,
         "requirement_states": len(verdicts or []),
         "requirement_false_states": sum(1 for _, v in verdicts or [] if not v),
+        "standby": standby_summary,
     }
     judged = [{"t_s": round((t - t0) / 1e9, 3), "verdict": v} for t, v in verdicts or []]
     report = {
@@ -119,7 +125,9 @@ def write_report(
         say(f"requirement {requirement}: false in {summary['requirement_false_states']} of {summary['requirement_states']} states")
     for a in adaptations:
         if a["kind"] != "degraded":
-            say(f"adaptation at {a['t_s']:.1f} s ({a['cause']}): adapted in {a['adaptation_ms']} ms, recovered in {a['recovery_ms']} ms")
+            onto = " onto the warm standby" if a["standby"] else ""
+            say(f"adaptation at {a['t_s']:.1f} s ({a['cause']}): adapted{onto} in {a['adaptation_ms']} ms, recovered in {a['recovery_ms']} ms")
+    say(_standby_line(standby_summary))
     say(f"report written to {out_dir.resolve()} ({', '.join(written)})")
     return report
 
@@ -176,3 +184,41 @@ def _plot(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return True
+
+
+def _median(values: list[float]) -> float | None:
+    ordered = sorted(values)
+    return ordered[len(ordered) // 2] if ordered else None
+
+
+def _standby_summary(standby: dict[str, Any], adaptations: list[dict[str, Any]]) -> dict[str, Any]:
+    """What the warm standby cost and saved: the CPU shares with and without one running, and the
+    switches onto it against the switches that built their configuration cold."""
+    switches = [a for a in adaptations if a["kind"] != "degraded" and a["adaptation_ms"] is not None]
+    warm = [a["adaptation_ms"] for a in switches if a["standby"]]
+    cold = [a["adaptation_ms"] for a in switches if not a["standby"]]
+    return {
+        **standby,
+        "switches_onto_standby": len(warm),
+        "standby_switch_median_ms": _median(warm),
+        "cold_switches": len(cold),
+        "cold_switch_median_ms": _median(cold),
+    }
+
+
+def _standby_line(s: dict[str, Any]) -> str:
+    if not s.get("warm"):
+        cold = f"{s['cold_switch_median_ms']} ms median over {s['cold_switches']}" if s["cold_switches"] else "none"
+        return f"no warm standby (--no-standby): switches built their configuration cold: {cold}"
+    saved = "no switch onto it"
+    if s["switches_onto_standby"]:
+        saved = f"{s['switches_onto_standby']} switches onto it took {s['standby_switch_median_ms']} ms median"
+        saved += f", against {s['cold_switch_median_ms']} ms for the {s['cold_switches']} built cold" if s["cold_switches"] else " (none built cold)"
+    with_, without = s.get("cpu_with_pct"), s.get("cpu_without_pct")
+    cost = "its cost was not measured (no time both with and without one)"
+    if with_ is not None and without is not None:
+        cost = (
+            f"it cost {with_ - without:+.1f} % of a core (the process used {with_} % of one in the {s['seconds_with']} s a "
+            f"standby ran, {without} % in the {s['seconds_without']} s none could: the battery was low)"
+        )
+    return f"warm standby: {saved}; {cost}"

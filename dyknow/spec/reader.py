@@ -300,7 +300,15 @@ def _parse_xml(data: str | bytes, path: str) -> _Node:
         raise SpecError([SpecIssue(path, exc.line, _DTD_PROBLEM, "<!DOCTYPE>")]) from None
     except expat.ExpatError as exc:
         what = f"malformed XML: {expat.ErrorString(exc.code)} at column {exc.offset + 1}"
-        raise SpecError([SpecIssue(path, exc.lineno, what, expected="well-formed XML")]) from None
+        expected = "well-formed XML"
+        if stack:  # the mistake is usually in the element still open, not where the parser stopped
+            open_ = stack[-1]
+            what += f", inside <{open_.name}> opened at line {open_.line}"
+            expected = f"</{open_.name}> closing it, complete"
+            if exc.code == expat.errors.codes[expat.errors.XML_ERROR_TAG_MISMATCH]:
+                what = f"malformed XML: a closing tag that does not match at column {exc.offset + 1}"
+                expected = f"</{open_.name}> closing the <{open_.name}> opened at line {open_.line}"
+        raise SpecError([SpecIssue(path, exc.lineno, what, expected=expected)]) from None
     except (LookupError, ValueError, Warning) as exc:
         # An XML declaration naming an encoding Python lacks (LookupError), cannot use for XML
         # (ValueError), or warns about while decoding: unicode_escape's DeprecationWarning, an

@@ -77,7 +77,8 @@ BROKEN_CASES = [
     ("duplicate_arg.xml", 6, "<arg> @label: duplicate arg 'Cam' (first at line 5)", 1),
     ("duplicate_child.xml", 5, "<source>: duplicate <source> in <transformation> (the first is at line 3); expected at most one", 1),
     ("same_label.xml", 2, "<label>: 3 expansions get the same label 'undistort'; expected one label per expansion (put ${Cam} in the label)", 1),
-    ("malformed.xml", 4, "malformed XML: mismatched tag at column 30; expected well-formed XML", 1),
+    ("malformed.xml", 4, "malformed XML: a closing tag that does not match at column 30; expected </port> closing the <port> opened at line 4", 1),
+    ("truncated.xml", 4, "malformed XML: not well-formed (invalid token) at column 3, inside <label> opened at line 3; expected </label> closing it, complete", 1),
     ("text_in_container.xml", 4, "<ports>: unexpected text 'stray words'; expected only <port> elements", 1),
     ("text_in_constraint.xml", 6, "<constraint>: unexpected text 'high'; expected an empty element", 1),
     ("element_in_text.xml", 2, "<b>: unexpected element in <label>; expected text only", 1),
@@ -283,7 +284,7 @@ FIELDS = [
      "one of label, source, description, args, params, ports, tags, priority, constraints, requirements (did you mean 'label'?)"),
     ("missing_source", 2, "<transformation>", "missing <source>", "<source>package.module:Class</source>"),
     ("param_expansion", 6, "<param> 'rate'", "value 'two' is not a valid int", "a whole number such as 10 (in expansion N=two)"),
-    ("malformed", 4, "", "malformed XML: mismatched tag at column 30", "well-formed XML"),
+    ("malformed", 4, "", "malformed XML: a closing tag that does not match at column 30", "</port> closing the <port> opened at line 4"),
     ("arg_empty_set", 5, "<arg> 'Cam'", "empty set", 'values such as {cam1; cam2}, or class="ex:Class"'),
     ("stray_dollar", 4, "<description>", "stray '$' in 'costs $5'", "${Name} to use an arg, or $$ for a literal '$'"),
 ]  # fmt: skip
