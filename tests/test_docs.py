@@ -95,12 +95,20 @@ def _blocks(page: Path) -> list[Block]:
         end = next(j for j in range(i + 1, len(lines)) if lines[j].startswith(fence.group(1)) and not lines[j].strip("`"))
         previous = lines[i - 1].strip() if i else ""
         marker = previous if previous.startswith("<!-- docs-test:") else ""
-        found.append(Block(str(page.relative_to(DOCS)), i + 1, fence.group(2), "\n".join(lines[i + 1 : end]) + "\n", marker))
+        where = str(page.relative_to(DOCS) if page.is_relative_to(DOCS) else page.relative_to(REPO))
+        found.append(Block(where, i + 1, fence.group(2), "\n".join(lines[i + 1 : end]) + "\n", marker))
         i = end + 1
     return found
 
 
-BLOCKS = [block for page in PAGES for block in _blocks(page)]
+def _included(page: Path) -> list[Path]:
+    """The files a page includes (``{include}``: CHANGELOG.md, CONTRIBUTING.md), whose blocks are the page's too."""
+    return [
+        (page.parent / name).resolve() for name in re.findall(r"^```\{include\} (\S+)$", page.read_text(encoding="utf-8"), re.MULTILINE)
+    ]
+
+
+BLOCKS = [block for page in PAGES for source in [page, *_included(page)] for block in _blocks(source)]
 
 
 def _of(language: str) -> list[Block]:
