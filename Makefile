@@ -1,11 +1,12 @@
-# The two commands of the README's quick start, and what they need.
+# The commands of the README's quick start, and what they need.
 #   make demo   sets up .venv and runs the demo
 #   make test   sets up .venv (with test tools) and runs the whole test suite
+#   make docs   sets up .venv (with the documentation tools) and builds the site into site/
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test bench clean
+.PHONY: demo test docs bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +21,10 @@ $(VENV)/.installed: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
 
 $(VENV)/.installed-test: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $@ $(VENV)/.installed $(VENV)/.installed-docs  # the test extra includes the docs one
+
+$(VENV)/.installed-docs: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[docs]'
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
@@ -31,8 +36,13 @@ test: $(VENV)/.installed-test
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: the test suite is missing or cannot be imported" >&2; fi; \
 	exit $$rc
 
+# warnings, broken links and unresolved references fail the build (-W --keep-going -n); offline;
+# -E reads every page again: Sphinx does not notice a docstring or an extension that changed
+docs: $(VENV)/.installed-docs
+	$(BIN)/sphinx-build -b html -E -W --keep-going -n -q docs site
+
 bench: $(VENV)/.installed-test
 	$(BIN)/python benchmarks/chain.py --quick --json out/chain.json --plot out/chain.png
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out .pytest_cache site

@@ -8,7 +8,8 @@ The public API::
         def on_message(self, port, msg):
             self.publish("out", msg.payload * 2)
 
-See the README for the concepts: transformation specs, the manager, units and their proxies.
+The documentation site (``make docs``, from ``docs/``) explains the concepts: transformation
+specs, the manager, units and their proxies.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from dyknow.ontology import Ontology
 from dyknow.planner import Plan, Planner, RunningUnit, plan
 from dyknow.proxy import UnitState, UnitStatistics
 from dyknow.recording import ChannelInfo, Player, RecordedMessage, Recorder, Recording, RecordingInfo
+from dyknow.resources import restore_docstrings
 from dyknow.security import Limits
 from dyknow.spec import (
     Constraint,
@@ -123,26 +125,4 @@ __all__ = [
 ]
 
 
-def _restore_docstrings() -> None:
-    """Classes compiled by mypyc (see setup.py) lose their docstrings; give the public ones
-    theirs back from the source beside the compiled module, so ``help()`` still explains them."""
-    import ast
-    import sys
-    from pathlib import Path
-
-    sources: dict[str, dict[str, str]] = {}
-    for name in __all__:
-        cls = globals()[name]
-        if not isinstance(cls, type) or (cls.__doc__ or "").strip() not in ("", "mypyc filler docstring"):
-            continue
-        module = sys.modules[cls.__module__]
-        if cls.__module__ not in sources:
-            source = Path(str(module.__file__)).with_name(cls.__module__.rsplit(".", 1)[-1] + ".py")
-            tree = ast.parse(source.read_text(encoding="utf-8")) if source.is_file() else ast.Module(body=[], type_ignores=[])
-            sources[cls.__module__] = {
-                node.name: ast.get_docstring(node) or "" for node in tree.body if isinstance(node, ast.ClassDef)
-            }
-        cls.__doc__ = sources[cls.__module__].get(cls.__name__) or cls.__doc__
-
-
-_restore_docstrings()
+restore_docstrings(globals(), __all__)

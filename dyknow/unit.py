@@ -98,14 +98,25 @@ class UnitRuntime(Protocol):
         ...
 
 
+#: The services of :class:`UnitRuntime`, by name.
+_SERVICES = frozenset(name for name in vars(UnitRuntime) if not name.startswith("_"))
+
+
 class _Detached:
     """The runtime of a unit that no manager runs: every service says how to run the unit."""
 
     def __getattr__(self, name: str) -> Any:
+        if name not in _SERVICES:
+            # help(), pydoc, Sphinx's autodoc, copy and pickle probe for dunders such as
+            # __objclass__ and expect AttributeError: only the services answer with advice
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
         raise UnitError(
             f"the unit is not running, so it cannot {name.replace('_', ' ')}",
             expected="a unit spawned by a Manager (or run by dyknow.testing.UnitHarness in a test)",
         )
+
+    def __repr__(self) -> str:
+        return "<no runtime: the unit is not running>"
 
 
 _DETACHED: Any = _Detached()

@@ -7,7 +7,7 @@ from collections.abc import Callable, Mapping
 
 import pytest
 
-from dyknow import Manager, Message, Unit
+from dyknow import Manager, Message, Unit, UnitError
 from dyknow.testing import UnitHarness
 
 SPEC = """<transformation><label>hooks</label><source>tests.test_unit:Hooks</source>
@@ -105,3 +105,16 @@ def test_spawning_many_names_leaves_no_logger_behind(make_manager: Callable[...,
         unit.log.info("hello")
     (record,) = [r for r in caplog.records if r.name == "dyknow.unit"]
     assert record.getMessage() == "[warm-up] hello" and record.unit == "warm-up"  # type: ignore[attr-defined]
+
+
+def test_a_unit_no_manager_runs_answers_introspection() -> None:
+    """Its services say how to run it; the lookups of help(), pydoc and copy get AttributeError, not that advice."""
+    import copy
+
+    unit = Unit()
+    with pytest.raises(UnitError, match="the unit is not running, so it cannot create timer"):
+        unit.create_timer(1.0, lambda: None)
+    runtime = unit._runtime
+    assert not hasattr(runtime, "__objclass__") and not hasattr(runtime, "__wrapped__")
+    assert repr(runtime) == "<no runtime: the unit is not running>"
+    copy.copy(unit)  # probes __reduce_ex__ and __deepcopy__ on the class, __setstate__ on the copy

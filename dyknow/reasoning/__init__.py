@@ -24,6 +24,7 @@ from dyknow.reasoning.progression import Monitor, Verdict
 from dyknow.reasoning.semantics import evaluate, evaluate_ns
 from dyknow.reasoning.syntax import Formula, parse
 from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
+from dyknow.resources import restore_docstrings
 
 __all__ = [
     "Formula",
@@ -37,3 +38,5 @@ __all__ = [
     "parse",
     "term_ports",
 ]
+
+restore_docstrings(globals(), __all__)  # Monitor and Verdict are compiled by mypyc
