@@ -338,7 +338,19 @@ def _default_endpoint(tls: Any) -> str:
 def _client(args: argparse.Namespace) -> Client:
     tls = _tls(args)
     connect = args.connect or ([_default_endpoint(tls)] if args.zenoh_config is None else [])
-    return Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls, lease_ms=args.lease_ms)
+    client = Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls, lease_ms=args.lease_ms)
+    wait = getattr(args, "wait", 0.0)
+    if wait < 0:
+        client.close()
+        raise _Usage(f"--wait: got {wait}; expected a number of seconds, 0 or more")
+    deadline = time.monotonic() + wait
+    try:  # --wait: until the manager is there (or the time is up: the call then says what is wrong)
+        while wait and time.monotonic() < deadline and args.manager not in client.manager_names(timeout_s=0.3):
+            time.sleep(0.1)
+    except BaseException:
+        client.close()
+        raise
+    return client
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
@@ -952,6 +964,9 @@ def _parser() -> argparse.ArgumentParser:
             zenoh_options(p, connect_help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
             p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
             p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
+            p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                           help="first wait up to S seconds for the manager to come up (one started just before); "
+                           "without it a manager that is not there is reported at once")  # fmt: skip
             lease_option(p)
         return p
 
