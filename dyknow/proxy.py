@@ -169,7 +169,9 @@ _MAX_SENDERS: Final = 64
 
 def _arrived(counters: PortCounters, nbytes: int, now: int, origin_ns: int, origin_clock: int, send_ns: int, send_clock: int) -> None:
     """Count one message handed to a unit, its age and hop in this process's clock: times of
-    another clock corrected by its offset (dyknow.clocks), or left out when it is not known."""
+    another clock corrected by its offset (dyknow.clocks), or left out when it is not known. A
+    corrected figure below zero (the estimate off by less than its uncertainty, on a hop shorter
+    than that) counts as zero: a message never arrives before it was sent."""
     if origin_clock == CLOCK_ID and send_clock == CLOCK_ID:
         counters.arrived(nbytes, now - origin_ns, now - send_ns)
         return
@@ -180,7 +182,8 @@ def _arrived(counters: PortCounters, nbytes: int, now: int, origin_ns: int, orig
         counters.arrived_unknown(nbytes)
         return
     counters.clocks = (origin_clock, send_clock)
-    counters.arrived(nbytes, now - origin_ns + origin_offset, now - send_ns + send_offset)
+    age, hop = now - origin_ns + origin_offset, now - send_ns + send_offset
+    counters.arrived(nbytes, age if age > 0 else 0, hop if hop > 0 else 0)
 
 
 def _uncertainty_us(clocks: tuple[int, int]) -> float:

@@ -157,7 +157,9 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
     assert all(m.key == "fleet/ticks" and m.payload == bytes(16) for m in got)
     assert all(m.send_ns >= m.origin_ns for m in got)
     stats = manager.get_statistics("s").ports[0]
-    assert stats.messages >= 20 and stats.hop.p50_us > 0
+    # (the other process's clock is corrected by its estimated offset: a hop shorter than the
+    # estimate's uncertainty may read 0, never less)
+    assert stats.messages >= 20 and stats.hop.count > 0 and stats.hop.p50_us >= 0
 
 
 def test_manager_listen_conflict_is_one_clear_line(manager_process: Callable[..., ManagerProcess]) -> None:
