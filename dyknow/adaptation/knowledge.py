@@ -1,0 +1,209 @@
+"""The K of MAPE-K: what the loop knows. The requests (each a :class:`Request`: its configuration,
+standby, requirements and their watches), the latest measurements, failed transformations and their
+back-off, stalled units, managers lost and on probation, and the history of adaptations
+(:class:`AdaptationEvent`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+from dyknow.model import RequestInfo
+from dyknow.planner import Plan
+
+log = logging.getLogger(__name__)
+
+#: How long a request keeps a configuration before an opportunity may switch it (s).
+DEFAULT_DWELL_S = 2.0
+BACKOFF_FIRST_S = 1.0
+BACKOFF_MAX_S = 60.0
+#: A manager's losses count towards its probation for this long.
+FLAP_WINDOW_S = 60.0
+#: The longest probation of a manager that comes back.
+FLAP_HOLD_MAX_S = 30.0
+
+
+# ---------------------------------------------------------------------------- events and state
+
+
+@dataclass(frozen=True, slots=True)
+class AdaptationEvent:
+    """One adaptation of one request (``kind``: "adapted", "degraded" or "recovered").
+
+    ``standby`` is true when the switch only moved the request onto its warm standby.
+    """
+
+    id: int
+    kind: str
+    request: str
+    key: str
+    cause: str
+    old: tuple[str, ...]  # labels of the units of the configuration before
+    new: tuple[str, ...]  # and after (empty when degraded)
+    fault_ns: int
+    adaptation_ms: float | None = None
+    recovery_ms: float | None = None
+    detail: str | None = None
+    standby: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (events on ``dyknow/<manager>/events/adaptation`` and ``get_adaptations``)."""
+        return {
+            "id": self.id,
+            "kind": self.kind,
+            "request": self.request,
+            "key": self.key,
+            "cause": self.cause,
+            "old": list(self.old),
+            "new": list(self.new),
+            "fault_ns": self.fault_ns,
+            "adaptation_ms": self.adaptation_ms,
+            "recovery_ms": self.recovery_ms,
+            "detail": self.detail,
+            "standby": self.standby,
+        }
+
+
+@dataclass(slots=True)
+class Request:
+    tag: str
+    key: str
+    anchor: str
+    references: int = 1
+    state: str = "active"
+    plan: Plan | None = None
+    # the configuration: unit -> label; a unit or label of another manager as ``name@manager``
+    units: dict[str, str] = field(default_factory=dict)
+    output_key: str | None = None
+    last_change_ns: int = 0
+    reason: str | None = None  # why it is degraded
+    standby_mode: str = "none"
+    # the warm standby, like the configuration: unit -> label, its plan and output key
+    standby: dict[str, str] = field(default_factory=dict)
+    standby_plan: Plan | None = None
+    standby_key: str | None = None
+    standby_reason: str | None = None  # why there is none
+    standby_inputs: tuple[Any, ...] | None = None  # what the standby was last planned from
+    # healthy units a switch left behind, kept until the next standby is planned (it may reuse them)
+    spare: dict[str, str] = field(default_factory=dict)
+    # after a switch the next standby waits for the new configuration's first message (or this time):
+    # building it takes CPU the first message needs
+    standby_after_ns: int = 0
+    standby_due: bool = False
+    # formulas the stream must satisfy (a false verdict makes it adapt), their monitor units, and
+    # the requests of their other terms
+    requirements: tuple[str, ...] = ()
+    watchers: list[str] = field(default_factory=list)
+    needs: list[str] = field(default_factory=list)
+    # the requirements of the transformations in the configuration (their specs'): (unit, formula)
+    # -> its watch, kept while the unit serves the request
+    spec_watches: dict[tuple[str, str], SpecWatch] = field(default_factory=dict)
+    spec_watch_count: int = 0
+
+    def info(self) -> RequestInfo:
+        return RequestInfo(
+            self.tag,
+            self.key,
+            self.state,
+            self.references,
+            tuple(self.units),
+            tuple(sorted(set(self.units.values()))),
+            self.standby_mode,
+            tuple(self.standby),
+            tuple(sorted(set(self.standby.values()))),
+            self.standby_reason if self.standby_mode == "warm" and not self.standby else None,
+            self.requirements,
+            tuple(
+                {"formula": formula, "transformation": watch.label, "unit": ref, "key": watch.key}
+                for (ref, formula), watch in self.spec_watches.items()
+            ),
+        )
+
+    def held(self) -> list[str]:
+        """Every unit the request holds: its configuration, its standby and spare units."""
+        return [*self.units, *self.standby, *self.spare]
+
+
+@dataclass(frozen=True, slots=True)
+class SpecWatch:
+    """A requirement of a transformation's spec, watched while one of its units serves a request:
+    the monitor unit, the key of its verdicts, and the requests of its other terms."""
+
+    label: str
+    monitor: str
+    key: str
+    needs: tuple[str, ...] = ()
+
+
+class Knowledge:
+    """What the loop knows: requests, measurements, failures and their back-off, stalls, history."""
+
+    def __init__(self) -> None:
+        self.requests: dict[str, Request] = {}  # by key
+        self.measurements: dict[str, float | str] = {}
+        # label -> [retry at (ns), current back-off (s), retry announced]
+        self.backoff: dict[str, list[Any]] = {}
+        self.stalled: set[str] = set()  # unit names
+        self.managed: set[str] = set()  # units the loop spawned (it never destroys the others)
+        self.remote: dict[str, dict[str, str]] = {}  # name@manager -> bindings, of those on other managers
+        self.seen: set[str] = set()  # units of other managers the requests use, once in a summary
+        self.history: list[AdaptationEvent] = []
+        self.losses: dict[str, list[int]] = {}  # manager -> when it was lost (ns), the last FLAP_WINDOW_S
+        self.returned: dict[str, list[int]] = {}  # manager -> [when it came back after a loss (ns), trust announced]
+
+    def unavailable(self, now_ns: int) -> set[str]:
+        """Labels in back-off right now."""
+        return {label for label, (until, _, _) in self.backoff.items() if until > now_ns}
+
+    def fail(self, label: str, now_ns: int) -> None:
+        """A transformation failed: exclude it, for twice as long as last time (1 s, 2 s, ... 60 s)."""
+        previous = self.backoff[label][1] if label in self.backoff else BACKOFF_FIRST_S / 2
+        delay = min(BACKOFF_MAX_S, previous * 2)
+        self.backoff[label] = [now_ns + int(delay * 1e9), delay, False]
+
+    def lost(self, manager: str, now_ns: int) -> None:
+        """Another manager was lost: one more loss towards its probation."""
+        recent = [t for t in self.losses.get(manager, []) if now_ns - t < FLAP_WINDOW_S * 1e9][-63:]
+        self.losses[manager] = [*recent, now_ns]
+        self.returned.pop(manager, None)
+
+    def found(self, manager: str, now_ns: int) -> None:
+        """Another manager came (back): its probation starts now, if it was lost before."""
+        if manager in self.losses:
+            self.returned[manager] = [now_ns, False]
+
+    def probation(self, manager: str, now_ns: int, dwell_ns: int) -> tuple[int, int]:
+        """Until when (ns) ``manager`` is on probation, and after how many recent losses; (0, 0)
+        when it was not lost lately."""
+        back = self.returned.get(manager)
+        if back is None:
+            return 0, 0
+        losses = sum(1 for t in self.losses.get(manager, []) if back[0] - t < FLAP_WINDOW_S * 1e9)
+        if losses == 0:
+            return 0, 0
+        hold = min(FLAP_HOLD_MAX_S * 1e9, dwell_ns * 2 ** (losses - 1))
+        return back[0] + int(hold), losses
+
+    def on_probation(self, now_ns: int, dwell_ns: int) -> set[str]:
+        """The managers an opportunity may not move a request onto yet."""
+        return {m for m in self.returned if self.probation(m, now_ns, dwell_ns)[0] > now_ns}
+
+    def users(self, unit: str) -> list[Request]:
+        """The requests whose configuration, warm standby or spare units hold ``unit``."""
+        return [r for r in self.requests.values() if unit in r.units or unit in r.standby or unit in r.spare]
+
+    def standing_by(self, unit: str) -> bool:
+        """Whether ``unit`` only stands by (a warm standby's or a spare unit): reserved for its request."""
+        held = False
+        for r in self.requests.values():
+            if unit in r.units:
+                return False
+            held = held or unit in r.standby or unit in r.spare
+        return held
+
+
+def runs_on(ref: str, manager: str | None) -> bool:
+    """Whether a unit reference (``name@manager``) is on ``manager``."""
+    return manager is not None and ref.endswith(f"@{manager}")

@@ -1,0 +1,117 @@
+"""The M of MAPE-K: the :class:`Monitor` turns what happens (a unit failed or was destroyed, a deadline
+passed or was met again, a measurement, a back-off ended) into :class:`Symptom` s for the loop.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, FLAP_WINDOW_S, Knowledge
+from dyknow.adaptation.runtime import DeadlinePort
+from dyknow.model import UnitEvent
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class Symptom:
+    """Something the monitor saw. ``fault`` symptoms break configurations; others are opportunities."""
+
+    # "failed", "destroyed", "stalled", "resumed", "measurement", "retry", "library",
+    # "peer-found", "peer-lost", "peer-changed" (another manager came, went or changed),
+    # "peer-trusted" (a manager that came back after losses has held through its probation),
+    # "requirement" (a formula a request requires was false)
+    kind: str
+    time_ns: int
+    unit: str | None = None
+    label: str | None = None
+    measure: str | None = None
+    detail: str = ""
+    manager: str | None = None
+    deferred: bool = False  # an opportunity taken after the dwell time
+    raised_ns: int = 0  # a deferred opportunity: when it arose (time_ns is when it is taken)
+    request: str | None = None  # "requirement": the key of the request whose requirement was false
+    # ("unit" and "label": the unit and transformation whose spec's requirement it was, if one's)
+    state_ns: int = 0  # "requirement": the time of the state the false verdict is about
+
+
+# ---------------------------------------------------------------------------- monitor
+
+
+class Monitor:
+    """Turns unit events, deadlines, measurements and timers into symptoms for the loop.
+
+    ``deadline_ports()`` lists the ports to watch (the runtime's :meth:`Runtime.deadline_ports`).
+    """
+
+    def __init__(self, deadline_ports: Callable[[], list[DeadlinePort]], knowledge: Knowledge, report: Callable[[Symptom], None]) -> None:
+        self._deadline_ports = deadline_ports
+        self._knowledge = knowledge
+        self._report = report
+        # (unit, port) -> (count, changed at ns, started_ns of the unit instance counted)
+        self._seen: dict[tuple[str, str], tuple[int, int, int]] = {}
+
+    def unit_event(self, event: UnitEvent) -> None:
+        """A unit failed or was destroyed: a symptom."""
+        if event.kind in ("failed", "destroyed"):
+            self._report(Symptom(event.kind, event.time_ns, unit=event.unit, label=event.label, detail=event.error or ""))
+
+    def measurement(self, name: str, value: float | str, now_ns: int) -> None:
+        """A measurement arrived: remember it and report it."""
+        self._knowledge.measurements[name] = value
+        self._report(Symptom("measurement", now_ns, measure=name, detail=f"{name} = {value!r}"))
+
+    def tick(self, now_ns: int, dwell_ns: int = int(DEFAULT_DWELL_S * 1e9)) -> None:
+        """Check deadlines, back-offs and probations (called every few milliseconds by the loop)."""
+        knowledge = self._knowledge
+        for label, entry in knowledge.backoff.items():
+            if entry[0] <= now_ns and not entry[2]:
+                entry[2] = True  # announce each retry once; the back-off doubles if it fails again
+                self._report(Symptom("retry", now_ns, label=label, detail=f"back-off of {label} ended"))
+        for manager, back in knowledge.returned.items():
+            until, losses = knowledge.probation(manager, now_ns, dwell_ns)
+            if not back[1] and until <= now_ns:
+                back[1] = True  # announce it once
+                hold = (until - back[0]) / 1e9
+                why = f"back for its probation of {hold:g} s ({losses} loss{'es' if losses > 1 else ''} in the last {FLAP_WINDOW_S:g} s)"
+                self._report(Symptom("peer-trusted", now_ns, manager=manager, detail=why))
+        ports = self._deadline_ports()
+        for name, label, port, deadline_ns, count, started_ns in (
+            (p.unit, p.label, p.port, p.deadline_ns, p.messages, p.started_ns) for p in ports
+        ):
+            seen = self._seen.get((name, port))
+            if seen is not None and seen[2] != started_ns:
+                seen = None  # a new unit under the same name (respawned): its own count and clock
+            if seen is None or count != seen[0]:
+                self._seen[(name, port)] = (count, now_ns if seen is not None else max(now_ns, started_ns), started_ns)
+                if name in knowledge.stalled and seen is not None:
+                    knowledge.stalled.discard(name)
+                    self._report(Symptom("resumed", now_ns, unit=name, label=label, detail=f"{name}.{port} publishes again"))
+                continue
+            if name not in knowledge.stalled and now_ns - seen[1] > deadline_ns:
+                knowledge.stalled.add(name)
+                silent_ms = (now_ns - seen[1]) / 1e6
+                self._report(
+                    Symptom(
+                        "stalled",
+                        now_ns,
+                        unit=name,
+                        label=label,
+                        detail=f"{name}.{port} silent for {silent_ms:.0f} ms (deadline {deadline_ns / 1e6:g} ms)",
+                    )
+                )
+        live = {(p.unit, p.port) for p in ports}
+        for gone in [k for k in self._seen if k not in live]:
+            del self._seen[gone]
+        if knowledge.stalled:  # a stalled unit destroyed meanwhile is forgotten
+            knowledge.stalled.intersection_update(p.unit for p in ports)
+
+    def watched(self) -> int:
+        """How many (unit, port) deadlines the monitor follows."""
+        return len(self._seen)
+
+    def watches(self, unit: str) -> bool:
+        """Whether the monitor follows a deadline of ``unit``."""
+        return any(name == unit for name, _ in list(self._seen))

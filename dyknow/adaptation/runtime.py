@@ -1,0 +1,115 @@
+"""What the adaptation loop needs of the manager that runs it: a :class:`Runtime` (a test can hand the
+loop a small stand-in), and the :class:`DeadlinePort` s it watches.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from dyknow.federation import Summary
+from dyknow.library import Library
+from dyknow.model import UnitInfo
+from dyknow.ontology import Ontology
+from dyknow.spec import TransformationSpec
+from dyknow.unit import Unit
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------- what the loop needs
+
+
+@dataclass(frozen=True, slots=True)
+class DeadlinePort:
+    """An output port with a ``deadline-ms`` of a live unit, and how many messages it sent so far.
+
+    ``started_ns`` tells two units spawned under the same name apart.
+    """
+
+    unit: str
+    label: str
+    port: str
+    deadline_ns: int
+    messages: int
+    started_ns: int
+
+
+class Runtime(Protocol):
+    """What the adaptation loop needs of the manager whose requests it keeps flowing.
+
+    :class:`~dyknow.manager.Manager` provides all of it publicly.
+    """
+
+    @property
+    def name(self) -> str:
+        """The manager's name (it appears in keys)."""
+        ...
+
+    @property
+    def library(self) -> Library:
+        """The specs the planner may use."""
+        ...
+
+    @property
+    def ontology(self) -> Ontology | None:
+        """The ontology tags are matched against."""
+        ...
+
+    def units(self) -> list[UnitInfo]:
+        """A snapshot of every running unit."""
+        ...
+
+    def has_unit(self, name: str) -> bool:
+        """Whether a unit called ``name`` runs."""
+        ...
+
+    def unit(self, name: str) -> Unit:
+        """The Python object of running unit ``name``."""
+        ...
+
+    def spawn(self, label: str | TransformationSpec, name: str, *, bindings: Mapping[str, str] | None = None) -> UnitInfo:
+        """Start a unit of a library label, or of a spec given directly."""
+        ...
+
+    def destroy(self, name: str) -> None:
+        """Stop unit ``name``."""
+        ...
+
+    def get_config(self, name: str) -> dict[str, str]:
+        """Port -> key bindings of unit ``name``."""
+        ...
+
+    def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
+        """Rebind ports of unit ``name``."""
+        ...
+
+    def deadline_ports(self) -> list[DeadlinePort]:
+        """The output ports with a deadline, of every live unit."""
+        ...
+
+    def publish_event(self, kind: str, event: Mapping[str, Any]) -> None:
+        """Publish an event of ``kind`` (JSON) on the manager's event key."""
+        ...
+
+    def peers(self) -> Mapping[str, Summary]:
+        """The other managers reachable now, with their last summary (empty when alone)."""
+        ...
+
+    def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
+        """Spawn a unit of ``manager``'s library on ``manager``, for a request of this one."""
+        ...
+
+    def destroy_on(self, manager: str, name: str) -> None:
+        """Destroy a unit this manager spawned on ``manager``."""
+        ...
+
+    def set_config_on(self, manager: str, name: str, bindings: Mapping[str, str]) -> None:
+        """Rebind ports of a unit on ``manager``."""
+        ...
+
+    def changed(self) -> None:
+        """Something the other managers see changed (a unit stalled or resumed)."""
+        ...
