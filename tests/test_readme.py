@@ -84,7 +84,8 @@ def test_the_peers_are_the_ones_the_benchmarks_measure() -> None:
     row = re.search(r"^\| median per hop.*$", comparison, re.MULTILINE)
     assert row
     figures = re.findall(r"\d+", row.group(0).split("|", 2)[2])
-    for variant, (b2b, paced) in zip(("dyknow-process", "zenoh-process", "dds-process", "dora-process"), zip(figures[::2], figures[1::2])):
+    variants = ("dyknow-process", "zenoh-process", "dds-process", "dora-process")
+    for variant, (b2b, paced) in zip(variants, zip(figures[::2], figures[1::2], strict=True), strict=True):
         line = next(line for line in performance.splitlines() if f"(`{variant}`)" in line)
         cells = [c.strip(" *") for c in line.split("|")[2:-1]]
         assert (cells[0], cells[2]) == (b2b, paced), (variant, cells)
