@@ -1,4 +1,4 @@
-"""Build hook: compile dyknow's hot-path modules with mypyc (see README, Performance).
+"""Build hook: compile dyknow's hot-path modules with mypyc (see docs/performance.md).
 
 The modules listed in ``COMPILED`` run once per message and per hop: compiled to C by mypyc they
 take about half the time they take interpreted (``python benchmarks/chain.py``). The temporal

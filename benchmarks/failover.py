@@ -18,7 +18,7 @@ which camera each message came from (the tracker's output names it).
   namespace. The link is restored and the robot's camera comes back before the next cut.
   Target: p99 <= 1.5 s. Skipped, with the reason, where namespaces cannot be made.
 - ``link-cut-router``: the same, with the three managers connected to a ``dyknow router`` on a
-  fourth host (the README's rendezvous point) instead of to the station. Target: p99 <= 1.5 s.
+  fourth host (the rendezvous point of docs/tutorials/two-hosts.md) instead of to the station. Target: p99 <= 1.5 s.
 
     python benchmarks/failover.py                       # 30 kills, 10 cuts per topology
     python benchmarks/failover.py --kills 5 --cuts 2 --json out/failover.json
@@ -251,8 +251,8 @@ def run_link_cut(cuts: int, observer_lease_ms: int | None, router: bool = False)
     """Per cut of the robot's link: ms from the cut to the first ceiling-camera message; ms from the restore
     to the robot's camera on the key again. Also the links' shaping and how many robot restarts were needed.
 
-    ``router``: the managers connect to a ``dyknow router`` on a host of its own (the README's
-    rendezvous point) instead of the robot and the field connecting to the station."""
+    ``router``: the managers connect to a ``dyknow router`` on a host of its own (the
+    two-host tutorial's rendezvous point) instead of the robot and the field connecting to the station."""
     from dyknow.testing.hosts import Hosts
 
     procs: dict[str, Proc] = {}

@@ -300,7 +300,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         if exposed:
             print(
                 f"dyknow: warning: listening beyond this host without TLS ({', '.join(exposed)}): anyone who reaches it may "
-                "call its services; use --tls-ca/--tls-cert/--tls-key and --acl (see the README's Security section)",
+                "call its services; use --tls-ca/--tls-cert/--tls-key and --acl (see docs/howto/security.md)",
                 file=sys.stderr,
                 flush=True,
             )

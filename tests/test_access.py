@@ -335,8 +335,8 @@ def test_only_a_manager_serves_announces_and_summarises_under_its_name(pair: tup
     of the operator's link) drops them all, so the admin's calls reach the real station (3 of 3),
     a viewer reads the real model (5 of 5), and no ghost is listed. The robot, a manager, may not
     serve in the station's name either: the station drops that declaration, so the station's
-    own callers are answered by the station (the robot's own clients trust the robot: see the
-    README on what a compromised manager can do)."""
+    own callers are answered by the station (the robot's own clients trust the robot: see
+    docs/howto/security.md on what a compromised manager can do)."""
     from tests.conftest import wait_until
 
     station, robot = pair
@@ -466,15 +466,15 @@ def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> No
         AccessControl.load(path)
 
 
-def test_the_readmes_acl_files_are_valid() -> None:
-    """Every json5 block of the README is an ACL file that loads; its own role reads and requests."""
+def test_the_docs_acl_files_are_valid() -> None:
+    """Every json5 block of the security guide is an ACL file that loads; its own role reads and requests."""
     import re
 
     import json5
 
     from tests.conftest import REPO
 
-    blocks = re.findall(r"```json5\n(.*?)```", (REPO / "README.md").read_text(), re.DOTALL)
+    blocks = re.findall(r"```json5\n(.*?)```", (REPO / "docs" / "howto" / "security.md").read_text(), re.DOTALL)
     acls = [AccessControl.from_dict(json5.loads(block)) for block in blocks]
     defined = next(a for a in acls if a.defined)
     assert defined.may_call("robot-ui", "request") and defined.may_call("robot-ui", "get_model")

@@ -397,13 +397,17 @@ def test_frames_a_slow_link_could_not_carry_are_counted_as_lost(faulty: Hosts, t
             child.close()
 
 
-# ---------------------------------------------------------------------------- the README's example, as written
+# ---------------------------------------------------------------------------- the docs' two-host example, as written
 
 
-def _readme_two_hosts() -> list[tuple[str, str]]:
-    """The README's two-host example: (the comment naming where it runs, command line) in order."""
-    readme = (REPO / "README.md").read_text()
-    block = next(b for b in re.findall(r"```sh\n(.*?)```", readme, re.DOTALL) if "# on the ground station (10.0.0.2)" in b)
+TWO_HOSTS = REPO / "docs" / "tutorials" / "two-hosts.md"
+
+
+def _docs_two_hosts() -> list[tuple[str, str]]:
+    """The two-host example of the tutorial (section "Two hosts with TLS and roles, to copy"):
+    (the comment naming where it runs, command line) in order."""
+    page = TWO_HOSTS.read_text()
+    block = next(b for b in re.findall(r"```sh\n(.*?)```", page, re.DOTALL) if "# on the ground station (10.0.0.2)" in b)
     steps, where = [], ""
     for line in block.replace("\\\n", " ").splitlines():
         if line.startswith("#"):
@@ -413,15 +417,15 @@ def _readme_two_hosts() -> list[tuple[str, str]]:
     return steps
 
 
-def test_the_readmes_two_host_example_runs_as_written(tmp_path: Path) -> None:
-    """Three namespaces with the README's addresses; each line run on the machine its comment
+def test_the_docs_two_host_example_runs_as_written(tmp_path: Path) -> None:
+    """Three namespaces with the tutorial's addresses; each line run on the machine its comment
     names, in a folder holding the checkout's specs (the files "copied" are shared: one disk)."""
     why = unavailable()
     if why is not None:
         if _under_ci():
             pytest.fail(f"network namespaces are required under CI: {why}")
         pytest.skip(why)
-    steps = _readme_two_hosts()
+    steps = _docs_two_hosts()
     addresses = {"station": "10.0.0.2", "robot": "10.0.0.5", "laptop": "10.0.0.9"}
     for name in ("dyknow", "specs"):
         (tmp_path / name).symlink_to(REPO / name)

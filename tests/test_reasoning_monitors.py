@@ -277,10 +277,10 @@ def test_a_requirement_that_does_not_read_is_refused_before_anything_runs(system
     assert station.requests() == [] and station.units() == []
 
 
-def test_the_readme_example_of_monitors_and_requirements_runs_as_written() -> None:
-    """README, Temporal reasoning: the block '# monitors and requirements, by meaning', verbatim."""
+def test_the_tutorials_example_of_monitors_and_requirements_runs_as_written() -> None:
+    """docs/tutorials/temporal.md: the block '# monitors and requirements, by meaning', verbatim."""
     import re
 
-    readme = (REPO / "README.md").read_text()
-    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, re.DOTALL) if b.startswith("# monitors and requirements, by meaning"))
-    exec(compile(block, "README.md (Temporal reasoning: by meaning)", "exec"), {})  # its asserts are the test
+    page = (REPO / "docs" / "tutorials" / "temporal.md").read_text()
+    block = next(b for b in re.findall(r"```python\n(.*?)```", page, re.DOTALL) if b.startswith("# monitors and requirements, by meaning"))
+    exec(compile(block, "docs/tutorials/temporal.md (by meaning)", "exec"), {})  # its asserts are the test

@@ -17,7 +17,7 @@ DOUBLER = """<transformation>
 
 
 class Doubler(Unit):
-    """The README's example unit, plus a count of what it saw."""
+    """The first tutorial's example unit (docs/tutorials/first-unit.md), plus a count of what it saw."""
 
     def setup(self) -> None:
         self.seen = 0
