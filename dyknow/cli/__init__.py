@@ -1,0 +1,92 @@
+"""The ``dyknow`` command line.
+
+Thin by design: every subcommand is a small function over the public API, in the module of its
+family: :mod:`~dyknow.cli.serve` (manager, router, ui, foxglove), :mod:`~dyknow.cli.client`
+(the commands that talk to a manager), :mod:`~dyknow.cli.offline` (certs, validate, expand,
+plan), :mod:`~dyknow.cli.mcap` (record, replay, mcap) and :mod:`~dyknow.cli.demo`; the options
+they share are declared once, in :mod:`~dyknow.cli.common`. ``--json`` gives
+machine-readable output wherever a command prints data. Errors are one line on stderr and a
+non-zero exit, never a traceback (set ``DYKNOW_DEBUG=1`` to see one).
+
+Commands::
+
+    dyknow manager --name NAME [--specs PATH ...] [--listen ENDPOINT] [--zenoh-config FILE]
+    dyknow demo [--duration S]
+    dyknow validate PATH ... [--ontology FILE ...]  (offline)
+    dyknow expand PATH ... [--json]                (offline)
+    dyknow plan --specs PATH ... [--ontology FILE ...] --request TAG [--unavailable LABEL ...]
+                [--measure NAME=VALUE ...] --json  (offline)
+    dyknow spawn LABEL NAME [--protect] [--param K=V ...] [--bind PORT=KEY ...]
+    dyknow destroy NAME
+    dyknow model
+    dyknow config get NAME | dyknow config set NAME PORT=KEY ...
+    dyknow stats NAME
+    dyknow add-spec FILE | dyknow remove-spec LABEL
+    dyknow echo KEYEXPR [--count N]
+    dyknow foxglove [KEYEXPR ...] [--host ADDR] [--port N]
+    dyknow request TAG [--standby warm] | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
+    dyknow record KEYEXPR ... -o FILE.mcap [--duration S] [--max-messages N] [--compression zstd|lz4|none]
+    dyknow replay FILE.mcap [--rate X] [--loop] [--start S] [--end S] [--topics T ...] [--remap FROM=TO ...]
+    dyknow mcap cat FILE [--topics T ...] [--json] | dyknow mcap info FILE [--json]   (offline)
+
+Client commands reach a manager with ``--connect ENDPOINT`` (default tcp/127.0.0.1:7447) and
+``--manager NAME`` (default ``dyknow``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Sequence
+
+from dyknow.cli import client, demo, mcap, offline, serve
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError
+from dyknow.errors import DyKnowError, SpecError
+
+__all__ = ["DEFAULT_MANAGER", "main"]
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dyknow", description="Reconfigurable stream reasoning on Eclipse Zenoh.")
+    parser.add_argument("--version", action="version", version=f"dyknow {_version()}")
+    commands = Commands(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
+    for family in (serve, offline, demo, mcap, client):
+        family.add_commands(commands)
+    return parser
+
+
+def _version() -> str:
+    from dyknow import __version__
+
+    return __version__
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; returns the exit code."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=os.environ.get("DYKNOW_LOG", "WARNING").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.fn(args))
+    except UsageError as exc:
+        parser.error(str(exc))
+    except SpecError as exc:
+        for issue in exc.issues:
+            print(str(issue), file=sys.stderr)
+        return 1
+    except DyKnowError as exc:
+        print(f"dyknow: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:
+        if os.environ.get("DYKNOW_DEBUG"):
+            raise
+        print(
+            f"dyknow: internal error: {type(exc).__name__}: {exc} (set DYKNOW_DEBUG=1 for a traceback, and please report it)",
+            file=sys.stderr,
+        )
+        return 70
+    return 2

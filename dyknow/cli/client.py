@@ -1,0 +1,452 @@
+"""Commands that talk to a running manager: spawn, destroy, model, managers, config, stats, add-spec,
+remove-spec, request, release, measure, adaptations, monitor, echo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, open_client, parse_pairs, parse_value, print_json, report_result
+from dyknow.client import ClockView
+from dyknow.errors import DyKnowError, did_you_mean
+from dyknow.message import Message, describe_payload
+from dyknow.model import STANDBY_MODES
+
+
+def cmd_spawn(args: argparse.Namespace) -> int:
+    """spawn a unit on a manager"""
+    params, bindings = parse_pairs(args.param, "--param"), parse_pairs(args.bind, "--bind")  # usage first, then connect
+    with open_client(args) as client:
+        info = client.spawn(args.label, args.name, protected=args.protect, params=params, bindings=bindings)
+
+    def text() -> Iterable[str]:
+        yield f"spawned {info['name']} ({info['label']}): {info['state']}" + (" [protected]" if info["protected"] else "")
+        if info.get("error"):
+            yield f"  error: {info['error']}"
+
+    report_result(args, info, text)
+    return 1 if info["state"] == "failed" else 0
+
+
+def cmd_destroy(args: argparse.Namespace) -> int:
+    """destroy a unit"""
+    with open_client(args) as client:
+        client.destroy(args.name, force=args.force)
+    report_result(args, {"destroyed": args.name}, f"destroyed {args.name}")
+    return 0
+
+
+def cmd_model(args: argparse.Namespace) -> int:
+    """show the manager's units and specs (--all: of every manager reachable)"""
+    with open_client(args) as client:
+        data = client.get_federated_model() if args.all else client.get_model()
+        why = client.unreachable() if args.all and not data["managers"] else None
+    if why is not None:
+        raise why
+    models = data["managers"] if args.all else [data]
+
+    def text() -> Iterable[str]:
+        if args.all and not models:
+            yield "no manager reachable"
+        for model in models:
+            yield f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs"
+            for unit in model["units"]:
+                yield f"  {unit['name']} ({unit['label']}) {unit['state']}" + (" [protected]" if unit["protected"] else "")
+                for port, key in unit["bindings"].items():
+                    yield f"      {port} -> {key}"
+                if unit.get("error"):
+                    yield f"      error: {unit['error']}"
+            if not model["units"]:
+                yield "  no units"
+            for request in model.get("requests", []):
+                yield f"  request {request['tag']} on {request['key']}: {request['state']}"
+            for lost in model.get("lost", []):
+                when = time.strftime("%H:%M:%S", time.localtime(lost["since_ns"] / 1e9))
+                yield f"  lost manager {lost['manager']} since {when}: {lost['why']}"
+            if model["specs"]:
+                yield "specs: " + ", ".join(s["label"] for s in model["specs"])
+
+    report_result(args, data, text)
+    if args.all and not models:
+        print("dyknow: error: no manager reachable; expected a running manager at --connect", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_managers(args: argparse.Namespace) -> int:
+    """list every manager reachable (host, library size, units, requests, its clock's offset as --manager estimates it),
+    then those --manager knew and lost (since when, why); exit 1 when none is reachable"""
+    from dyknow.reach import DEFINITE
+
+    with open_client(args) as client:
+        why = client.unreachable()  # (a refusal at once, rather than after listening for 2 s)
+        if why is not None and why.details.get("reason") in DEFINITE:
+            raise why
+        managers = client.managers(timeout_s=min(args.timeout, 2.0))
+        if not managers:
+            why = client.unreachable()
+            if why is not None:
+                raise why
+        names = [m["manager"] for m in managers]
+        # (a --manager that is not there would hold the list up for --timeout: ask another one)
+        asked = args.manager if args.manager in names else names[0] if names else None
+        clocks: dict[str, Any] = {}
+        lost: list[dict[str, Any]] = []
+        if asked is not None:
+            try:
+                model = client.get_model(asked)
+                clocks = client.clocks(asked, model=model) if asked == args.manager else {}
+                lost = [m for m in client.lost_managers(asked, model=model) if m["manager"] not in names]
+            except DyKnowError as exc:  # the other columns stand without it
+                logging.getLogger(__name__).debug("no clock offsets or lost managers from %r: %s", asked, exc)
+    for m in managers:  # the offset of each manager's clock from --manager's (None: not known to it yet)
+        found = clocks.get(m["manager"])
+        m["state"] = "up"
+        m["clock"] = None if found is None else {"offset_us": found.offset_ns / 1000, "uncertainty_us": found.uncertainty_ns / 1000}
+    now = time.time_ns()
+    for m in lost:
+        m.update(state="lost", reported_by=asked)
+
+    def text() -> Iterable[str]:
+        if not managers:
+            yield "no manager reachable"
+        for m in managers:
+            clock = (
+                "clock unknown" if m["clock"] is None else f"clock {m['clock']['offset_us']:+.1f} us +/- {m['clock']['uncertainty_us']:.1f}"
+            )
+            yield f"{m['manager']:<20} host {m['host']:<20} {m['specs']:>5} specs {m['units']:>5} units {m['requests']:>4} requests  {clock}"
+        for m in lost:
+            when = time.strftime("%H:%M:%S", time.localtime(m["since_ns"] / 1e9))
+            yield f"{m['manager']:<20} LOST since {when} ({(now - m['since_ns']) / 1e9:.1f} s ago, as {asked} saw it): {m['why']}"
+
+    report_result(args, [*managers, *lost], text)
+    if not managers:
+        where = ", ".join(args.connect) or "--connect"
+        print(f"dyknow: error: no manager reachable through {where}; expected a running manager there (dyknow manager)", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_config(args: argparse.Namespace) -> int:
+    """get or set a unit's port bindings"""
+    if args.action == "get" and args.bindings:  # usage first, then connect
+        raise UsageError("config get takes no PORT=KEY pairs; did you mean 'config set'?")
+    if args.action != "get" and not args.bindings:
+        raise UsageError("config set needs at least one PORT=KEY pair")
+    changes = parse_pairs(args.bindings, "config set") if args.action != "get" else {}
+    with open_client(args) as client:
+        config = client.get_config(args.name) if args.action == "get" else client.set_config(args.name, changes)
+    report_result(args, config, [f"{port} -> {key}" for port, key in config.items()])
+    return 0
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    """show a unit's statistics"""
+    with open_client(args) as client:
+        stats = client.get_statistics(args.name)
+
+    def text() -> Iterable[str]:
+        yield (
+            f"{stats['name']} ({stats['label']}) {stats['state']}: up {stats['uptime_s']:.1f} s, "
+            f"{stats['reconfigurations']} reconfigurations, {stats['executor']}"
+        )
+        for port, p in stats["ports"].items():
+            unsized = f" (+{p['unsized']} msgs of unknown size: passed by reference, never encoded)" if p.get("unsized") else ""
+            line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B{unsized}, {p['dropped']} dropped"
+            if p["direction"] == "in" and p["latency"]["count"]:
+                lat, hop = p["latency"], p["hop"]
+                line += f"; latency p50 {lat['p50_us']:.1f} µs p99 {lat['p99_us']:.1f} µs; hop p50 {hop['p50_us']:.1f} µs p99 {hop['p99_us']:.1f} µs"
+            yield line
+        if stats.get("error"):
+            yield f"  error: {stats['error']}"
+
+    report_result(args, stats, text)
+    return 0
+
+
+def cmd_add_spec(args: argparse.Namespace) -> int:
+    """add the transformations of a spec file (or - for standard input) to the manager"""
+    source = sys.stdin.read() if args.file == "-" else args.file
+    if args.file == "-" and not source.lstrip().startswith("<"):
+        raise UsageError("add-spec -: standard input holds no XML; expected a spec such as <transformation>...")
+    with open_client(args) as client:
+        labels = client.add_transformation(source)
+    report_result(args, {"labels": labels}, "added " + ", ".join(labels))
+    return 0
+
+
+def cmd_remove_spec(args: argparse.Namespace) -> int:
+    """remove a transformation from the manager's library"""
+    with open_client(args) as client:
+        removed = client.remove_transformation(args.label)
+    text = f"removed {args.label}" if removed else f"no spec labelled {args.label!r}; nothing removed"
+    report_result(args, {"label": args.label, "removed": removed}, text)
+    return 0 if removed else 1
+
+
+def cmd_request(args: argparse.Namespace) -> int:
+    """ask a manager for a stream by tag; prints its key"""
+    with open_client(args) as client:
+        key = client.request(args.tag, standby=args.standby, require=args.require, keep=True)
+    report_result(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require, "kept": True}, key)
+    if not args.json:  # (stdout is the key alone, for scripts)
+        print(f"dyknow: the request is kept until released: dyknow release '{key}' --manager {args.manager}", file=sys.stderr)
+    return 0
+
+
+def cmd_release(args: argparse.Namespace) -> int:
+    """give back a requested stream"""
+    with open_client(args) as client:
+        remaining = client.release(args.key)
+    if remaining:
+        text = f"released one reference to {args.key}; {remaining} more remain, so it runs on until they are released too"
+    else:
+        text = f"released {args.key}: it is gone (the units only it used were destroyed)"
+    report_result(args, {"released": args.key, "references": remaining}, text)
+    return 0
+
+
+def cmd_measure(args: argparse.Namespace) -> int:
+    """record measurements on a manager, e.g. battery=0.2"""
+    values = {k: parse_value(v) for k, v in parse_pairs(args.values, "measure").items()}
+    if not values:
+        raise UsageError("measure needs at least one NAME=VALUE, e.g. battery=0.2")
+    with open_client(args) as client:
+        for name, value in values.items():
+            client.measure(name, value)
+    report_result(args, {"measured": values}, ())
+    return 0
+
+
+def cmd_adaptations(args: argparse.Namespace) -> int:
+    """list a manager's adaptations"""
+    with open_client(args) as client:
+        events = client.get_adaptations()
+
+    def text() -> Iterable[str]:
+        if not events:
+            yield f"no adaptations on manager {args.manager!r} yet"
+        for e in events:
+            times = f"adapted in {e['adaptation_ms']} ms" if e["adaptation_ms"] is not None else ""
+            if e["recovery_ms"] is not None:
+                times += f", recovered in {e['recovery_ms']} ms"
+            via = " (onto the warm standby)" if e.get("standby") else ""
+            yield f"#{e['id']} {e['kind']} {e['request']}: {e['cause']}; {', '.join(e['old'])} -> {', '.join(e['new']) or '(none)'}{via} {times}"
+
+    report_result(args, events, text)
+    return 0
+
+
+def _printable(payload: Any) -> str:
+    """A payload as a user can paste it: JSON for JSON-like values and text, a description of
+    arrays and bytes."""
+    if isinstance(payload, (np.ndarray, bytes, bytearray, memoryview)):
+        return describe_payload(payload)
+    try:
+        return json.dumps(payload, ensure_ascii=False)
+    except (TypeError, ValueError):
+        return describe_payload(payload)
+
+
+def _payload_json(payload: Any) -> Any:
+    if isinstance(payload, np.ndarray):
+        return {"ndarray": {"dtype": str(payload.dtype), "shape": list(payload.shape)}}
+    if isinstance(payload, (bytes, bytearray)):
+        return {"bytes": len(payload), "base64": base64.b64encode(payload[:4096]).decode()}
+    return payload
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
+    from dyknow.reach import DEFINITE
+
+    if args.count is not None and args.count <= 0:
+        raise UsageError(f"--count: got {args.count}; expected a positive number")
+    done = threading.Event()
+    lock = threading.Lock()
+    seen = 0
+    clocks: ClockView | None = None
+
+    def show(msg: Message) -> None:
+        nonlocal seen
+        with lock:
+            if done.is_set() or clocks is None:
+                return
+            now = time.time_ns()
+            known = clocks.corrected(msg.origin_clock, msg.origin_ns, now)  # (a clock --manager does not know: no age shown)
+            age_us = None if known is None else round((now - known[0]) / 1000, 1)
+            data = {
+                "key": msg.key,
+                "seq": msg.seq,
+                "origin_ns": msg.origin_ns,
+                "send_ns": msg.send_ns,
+                "origin_clock": f"{msg.origin_clock:08x}",
+                "latency_us": age_us,
+                "uncertainty_us": None if known is None else round(known[1] / 1000, 1),
+                "payload": _payload_json(msg.payload),
+            }
+            age = (
+                "clock unknown"
+                if known is None or age_us is None
+                else f"{age_us / 1000:.3f} ms" + (f" +/- {known[1] / 1e6:.3f}" if known[1] else "")
+            )
+            report_result(args, data, f"{msg.key} #{msg.seq} age {age}: {_printable(msg.payload)}")
+            seen += 1
+            if args.count is not None and seen >= args.count:
+                done.set()
+
+    with open_client(args) as client:
+        why = client.unreachable()  # nothing would ever come: say why at once (a silent host may come back: wait)
+        if why is not None and why.details.get("reason") in DEFINITE:
+            raise why
+        view = client.follow_clocks()
+        view.fetched.wait(args.timeout)  # the offsets before the first message
+        clocks = view
+        if view.found is False and args.manager != DEFAULT_MANAGER:  # --manager given, and not there: say so
+            there = ", ".join(view.reachable) or "none"
+            print(
+                f"dyknow: warning: no manager {args.manager!r} is reachable (reachable: {there}"
+                f"{did_you_mean(args.manager, view.reachable)}): the ages of messages from other hosts' clocks cannot be corrected",
+                file=sys.stderr,
+            )
+        with client.declare_subscriber(args.keyexpr, show):
+            signal.signal(signal.SIGINT, lambda *_: done.set())
+            signal.signal(signal.SIGTERM, lambda *_: done.set())
+            done.wait(args.timeout_total) if args.timeout_total else done.wait()
+        done.set()
+        view.close()
+    if args.count is not None and seen < args.count:
+        print(f"dyknow: error: received {seen} of {args.count} messages on {args.keyexpr!r}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    """monitor a temporal formula: its verdicts as they are decided (or over a recording, with --mcap)"""
+    if args.mcap is not None:
+        return _monitor_recording(args)
+    if args.bind:
+        raise UsageError("--bind: only with --mcap (live, the manager finds each term's stream by its meaning)")
+    if args.duration is not None and args.duration <= 0:
+        raise UsageError(f"--duration: got {args.duration}; expected a positive number of seconds")
+    done = threading.Event()
+    lock = threading.Lock()
+
+    def show(msg: Message) -> None:
+        verdict = msg.payload if isinstance(msg.payload, dict) else {}
+        with lock:
+            if done.is_set():
+                return
+            gap = verdict.get("gap")
+            said = "true " if verdict.get("verdict") is True else "false"
+            text = f"{msg.key}  t={verdict.get('t', 0):.3f} s  {said}" + (
+                f"  (after a gap: {gap.get('term')} re-planned: {gap.get('cause')})" if isinstance(gap, dict) else ""
+            )
+            report_result(args, {"key": msg.key, **verdict}, text)
+
+    with open_client(args) as client:
+        key = client.monitor(args.formula, reorder_ms=args.reorder_ms)
+        if not args.json:
+            print(f"monitoring {args.formula} on {key} (Ctrl-C to stop)", flush=True)
+        try:
+            with client.declare_subscriber(key, show):
+                signal.signal(signal.SIGINT, lambda *_: done.set())
+                signal.signal(signal.SIGTERM, lambda *_: done.set())
+                done.wait(args.duration) if args.duration else done.wait()
+                done.set()
+        finally:
+            client.release(key)
+    return 0
+
+
+def _monitor_recording(args: argparse.Namespace) -> int:
+    from dyknow.reasoning.offline import evaluate_recording
+
+    bindings = parse_pairs(args.bind, "--bind")
+    results = evaluate_recording(args.formula, args.mcap, bindings)
+    if args.json:
+        for t_ns, verdict in results:
+            print_json({"t": t_ns / 1e9, "t_ns": t_ns, "verdict": verdict})
+        return 0
+    counts = {True: 0, False: 0, None: 0}
+    for t_ns, verdict in results:
+        counts[verdict] += 1
+        print(f"t={t_ns / 1e9:.3f} s  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
+    print(f"{len(results)} states: {counts[True]} true, {counts[False]} false, {counts[None]} unknown", flush=True)
+    return 0
+
+
+def add_commands(cmds: Commands) -> None:
+    """Add this family's commands to the parser."""
+    command = cmds.command
+    p = command("spawn", cmd_spawn, client=True)
+    p.add_argument("label")
+    p.add_argument("name")
+    p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit, unless forced (by an admin)")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
+    p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
+
+    p = command("destroy", cmd_destroy, client=True)
+    p.add_argument("name")
+    p.add_argument("--force", action="store_true", help="destroy a protected unit too (an admin's call, when the manager has roles)")
+
+    p = command("model", cmd_model, client=True)
+    p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')
+
+    command("managers", cmd_managers, client=True)
+
+    p = command("config", cmd_config, client=True)
+    p.add_argument("action", choices=["get", "set"])
+    p.add_argument("name")
+    p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
+
+    p = command("stats", cmd_stats, client=True)
+    p.add_argument("name")
+
+    p = command("add-spec", cmd_add_spec, client=True)
+    p.add_argument("file")
+
+    p = command("remove-spec", cmd_remove_spec, client=True)
+    p.add_argument("label")
+
+    p = command("request", cmd_request, client=True)
+    p.add_argument("tag")
+    p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
+                   help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
+                        "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
+    p.add_argument("--require", action="append", default=[], metavar="FORMULA",
+                   help="a temporal formula the stream must satisfy: a false verdict moves it to the next-best configuration "
+                        "(repeatable; see dyknow monitor)")  # fmt: skip
+
+    p = command("release", cmd_release, client=True)
+    p.add_argument("key")
+
+    p = command("measure", cmd_measure, client=True)
+    p.add_argument("values", nargs="+", metavar="NAME=VALUE")
+
+    command("adaptations", cmd_adaptations, client=True)
+
+    p = command("monitor", cmd_monitor, client=True)
+    p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
+    p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
+    p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
+    p.add_argument(
+        "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
+    )
+
+    p = command("echo", cmd_echo, client=True)
+    p.add_argument("keyexpr")
+    p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
+    p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")

@@ -1,0 +1,152 @@
+"""What every command shares: usage errors, output (text or ``--json``), ``NAME=VALUE`` pairs, and the
+client that reaches a manager (``--connect``, TLS, ``--wait``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+from dyknow.client import Client
+from dyknow.spec import DEFAULT_MAX_EXPANSIONS
+from dyknow.transport import DEFAULT_ENDPOINT
+
+DEFAULT_MANAGER = "dyknow"
+
+
+class UsageError(Exception):
+    """A command line that parses but makes no sense (exit code 2)."""
+
+
+def print_json(data: Any) -> None:
+    sys.stdout.write(json.dumps(data, indent=None, separators=(",", ":")) + "\n")
+    sys.stdout.flush()
+
+
+def report_result(args: argparse.Namespace, data: Any, text: str | Iterable[str] | Callable[[], Iterable[str]]) -> None:
+    """How every command ends: ``data`` as one JSON line with ``--json``, else ``text`` for people."""
+    if args.json:
+        print_json(data)
+        return
+    lines = text() if callable(text) else [text] if isinstance(text, str) else text
+    for line in lines:
+        print(line, flush=True)
+
+
+def parse_pairs(items: Sequence[str], what: str) -> dict[str, str]:
+    result: dict[str, str] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise UsageError(f"{what}: got {item!r}; expected NAME=VALUE")
+        result[name] = value
+    return result
+
+
+def parse_value(text: str) -> float | str:
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected a positive whole number")
+    return value
+
+
+def name_list(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected names separated by commas, such as manager,operator")
+    return names
+
+
+def tls_files(args: argparse.Namespace) -> Any:
+    from dyknow.access import TlsFiles
+
+    return TlsFiles.from_options(args.tls_ca, args.tls_cert, args.tls_key)
+
+
+def default_endpoint(tls: Any) -> str:
+    return DEFAULT_ENDPOINT.replace("tcp/", "tls/", 1) if tls is not None else DEFAULT_ENDPOINT
+
+
+def open_client(args: argparse.Namespace) -> Client:
+    tls = tls_files(args)
+    connect = args.connect or ([default_endpoint(tls)] if args.zenoh_config is None else [])
+    client = Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls, lease_ms=args.lease_ms)
+    wait = getattr(args, "wait", 0.0)
+    if wait < 0:
+        client.close()
+        raise UsageError(f"--wait: got {wait}; expected a number of seconds, 0 or more")
+    deadline = time.monotonic() + wait
+    try:  # --wait: until the manager is there (or the time is up: the call then says what is wrong)
+        while wait and time.monotonic() < deadline and args.manager not in client.manager_names(timeout_s=0.3):
+            time.sleep(0.1)
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
+class Commands:
+    """What each family's ``add_commands`` adds its commands with: the options every command of a
+    kind shares are declared here, once."""
+
+    def __init__(self, sub: Any) -> None:
+        self.sub = sub
+
+    def command(self, name: str, fn: Callable[[argparse.Namespace], int], client: bool = False) -> argparse.ArgumentParser:
+        """A subcommand whose help is ``fn``'s docstring; ``client``: it reaches a manager (the
+        client options: --connect, TLS, --manager, --timeout, --wait, --lease-ms)."""
+        help = (fn.__doc__ or "").strip()  # each command's docstring is its help
+        p: argparse.ArgumentParser = self.sub.add_parser(name, help=help, description=help)
+        p.set_defaults(fn=fn)
+        p.add_argument("--json", action="store_true", help="machine-readable output")
+        if client:
+            self.zenoh_options(p, connect_help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
+            p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
+            p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
+            p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                           help="first wait up to S seconds for the manager to come up (one started just before); "
+                           "without it a manager that is not there is reported at once")  # fmt: skip
+            self.lease_option(p)
+        return p
+
+    @staticmethod
+    def zenoh_options(p: argparse.ArgumentParser, connect_help: str) -> None:
+        """The options every command that opens a Zenoh session shares."""
+        p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT", help=connect_help)
+        p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh json5 configuration file instead of the loopback defaults")
+        p.add_argument(
+            "--tls-ca",
+            metavar="FILE",
+            help="TLS: the CA certificate that signs every peer's certificate (PEM); with --tls-cert and --tls-key",
+        )
+        p.add_argument(
+            "--tls-cert", metavar="FILE", help="TLS: this process's certificate (PEM); its common name is its identity for --acl"
+        )
+        p.add_argument("--tls-key", metavar="FILE", help="TLS: this process's private key (PEM)")
+
+    @staticmethod
+    def lease_option(p: argparse.ArgumentParser) -> None:
+        """--lease-ms, for every command whose session must notice a host cut off."""
+        p.add_argument("--lease-ms", type=positive_int, metavar="MS",
+                       help="how long a silent link lives (default Zenoh's 10000): a host cut off is noticed after about this; "
+                            "shorter is sooner, with more keep-alive traffic and false alarms on a slow link")  # fmt: skip
+
+    @staticmethod
+    def limit_options(p: argparse.ArgumentParser) -> None:
+        """--max-expansions, for every command that expands templates."""
+        p.add_argument("--max-expansions", type=positive_int, default=DEFAULT_MAX_EXPANSIONS, metavar="N",
+                       help=f"refuse a template that expands to more specs (default {DEFAULT_MAX_EXPANSIONS})")  # fmt: skip

@@ -1,0 +1,141 @@
+"""Commands that need no running system: ``certs``, ``validate``, ``expand``, ``plan``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, name_list, parse_pairs, parse_value, print_json, report_result
+from dyknow.errors import SpecError
+from dyknow.spec import load_specs
+
+
+def _ontology(paths: Sequence[str]) -> Any:
+    from dyknow.ontology import Ontology
+
+    return Ontology.load(paths) if paths else None
+
+
+def _load(args: argparse.Namespace) -> list[Any]:
+    ontology = _ontology(getattr(args, "ontology", []))
+    return load_specs(args.paths, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
+
+
+def cmd_certs(args: argparse.Namespace) -> int:
+    """write a development CA and certificates signed by it, for TLS with mutual authentication"""
+    from dyknow.certs import write_dev_certs
+
+    written = write_dev_certs(args.dir, args.names, hosts=args.hosts)
+    report_result(args, {"written": [str(p) for p in written]}, [f"wrote {p}" for p in written])
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    """check spec files; exit 1 with one PATH:LINE: message per error"""
+    try:
+        specs = _load(args)
+    except SpecError as exc:
+        for issue in exc.issues:
+            print(str(issue), file=sys.stderr)
+        if args.json:
+            print_json({"valid": False, "errors": [str(i) for i in exc.issues], "issues": [i.to_dict() for i in exc.issues]})
+        return 1
+    files = len({s.path for s in specs})
+    report_result(
+        args,
+        {"valid": True, "transformations": len(specs), "files": files},
+        f"ok: {len(specs)} transformations in {files} file{'s' if files != 1 else ''}",
+    )
+    return 0
+
+
+def cmd_expand(args: argparse.Namespace) -> int:
+    """print every transformation after template expansion"""
+    specs = _load(args)
+
+    def text() -> Iterable[str]:
+        for s in specs:
+            yield f"{s.label}  ({s.source})  {s.location}"
+            for p in s.ports:
+                tags = ", ".join(s.tags_for(p.name))
+                yield f"    {p.direction:>3} {p.name}" + (f"  [{tags}]" if tags else "")
+            for name, value in s.param_values().items():
+                yield f"    param {name} = {value!r}"
+
+    data = [
+        {
+            "label": s.label,
+            "source": s.source,
+            "params": s.param_values(),
+            "ports": [{"name": p.name, "direction": p.direction} for p in s.ports],
+            "tags": [{"port": t.port, "tag": t.tag} for t in s.tags],
+        }
+        for s in specs
+    ]
+    report_result(args, data, text)
+    return 0
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    """plan a configuration for a tag, offline; exit 1 with the explanation when none exists"""
+    from dyknow.errors import PlanningError
+    from dyknow.planner import plan
+
+    ontology = _ontology(args.ontology)
+    specs = load_specs(args.specs, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
+    measurements = {k: parse_value(v) for k, v in parse_pairs(args.measure, "--measure").items()}
+    individuals = ontology.individuals if ontology is not None else None
+    peers: dict[str, list[Any]] = {}
+    for name, path in ((n, p) for item in args.peer for n, p in parse_pairs([item], "--peer").items()):
+        peers.setdefault(name, []).extend(load_specs([path], individuals=individuals, max_expansions=args.max_expansions))
+    try:
+        result = plan(args.request, specs, ontology, (), set(args.unavailable), measurements, manager=args.manager, peers=peers)
+    except PlanningError as exc:
+        if args.json:
+            print_json({"request": args.request, "error": str(exc), "rejection": exc.rejection.to_dict() if exc.rejection else None})
+        print(str(exc), file=sys.stderr)
+        return 1
+
+    def text() -> Iterable[str]:
+        yield f"{result.request}: {len(result.units)} units, output {result.output_unit}.{result.output_port} on {result.output_key}"
+        for unit in result.units:
+            yield f"  {'new ' if unit.new else 'reuse'} {unit.name} ({unit.label})" + (f" on {unit.manager}" if unit.remote else "")
+        for c in result.connections:
+            yield f"  {c.source} -> {c.target}  ({c.key})"
+
+    report_result(args, result.to_dict(), text)
+    return 0
+
+
+def add_commands(cmds: Commands) -> None:
+    """Add this family's commands to the parser."""
+    command = cmds.command
+    limit_options = cmds.limit_options
+    p = command("certs", cmd_certs)
+    p.add_argument("dir", metavar="DIR", help="where to write ca.pem, ca.key and NAME.pem, NAME.key (an existing CA there is reused)")
+    p.add_argument("--names", required=True, type=name_list, metavar="A,B,C", help="the certificates' common names")
+    p.add_argument("--hosts", type=name_list, default=["localhost", "127.0.0.1"], metavar="H,H",
+                   help="host names and addresses the certificates are valid for (default localhost,127.0.0.1)")  # fmt: skip
+
+    p = command("validate", cmd_validate)
+    limit_options(p)
+    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+
+    p = command("expand", cmd_expand)
+    limit_options(p)
+    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+
+    p = command("plan", cmd_plan)
+    limit_options(p)
+    p.add_argument("--specs", action="extend", nargs="+", required=True, metavar="PATH", help="spec files or directories")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files")
+    p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")
+    p.add_argument("--unavailable", action="extend", nargs="+", default=[], metavar="LABEL", help="transformations not to use")
+    p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
+    p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
+    p.add_argument("--peer", action="append", default=[], metavar="NAME=PATH",
+                   help="another manager's library (spec file or directory), to plan across managers; repeatable")  # fmt: skip

@@ -1,0 +1,269 @@
+"""Commands that serve until stopped: ``manager``, ``router``, ``ui`` (the browser tool), ``foxglove``."""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import signal
+import sys
+import threading
+
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, default_endpoint, open_client, positive_int, report_result, tls_files
+from dyknow.transport import DEFAULT_ENDPOINT
+
+
+def _stop_event() -> threading.Event:
+    """An event SIGINT and SIGTERM set: install it before saying "ready", so that a signal sent
+    as soon as the ready line is read stops the process cleanly instead of killing it."""
+    stop = threading.Event()
+
+    def handler(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
+
+
+def _wait_for(stop: threading.Event) -> None:
+    while not stop.wait(0.5):
+        pass
+
+
+#: How long a manager may take to stop once asked (SIGINT or SIGTERM); past it, it exits at once.
+
+
+#: How long a manager may take to stop once asked (SIGINT or SIGTERM); past it, it exits at once.
+STOP_DEADLINE_S = 5.0
+
+
+def _exit_by_deadline(what: str) -> None:
+    """From now on, exit within :data:`STOP_DEADLINE_S` whatever the process is doing.
+
+    The manager closes its units, services and session in a bounded time; this is the backstop
+    for what no timeout reaches (a unit's C code holding the interpreter lock, say). It runs on
+    faulthandler's own C thread, which needs no interpreter lock: it prints every thread's
+    stack to stderr (what was stuck) and exits with status 1. A second signal exits at once.
+    """
+    import faulthandler
+
+    faulthandler.dump_traceback_later(STOP_DEADLINE_S, exit=True)
+
+    def again(signum: int, frame: object) -> None:
+        print(f"dyknow: {what} stopped at once (a second signal)", file=sys.stderr, flush=True)
+        os._exit(1)
+
+    signal.signal(signal.SIGINT, again)
+    signal.signal(signal.SIGTERM, again)
+
+
+# How long a thread of a manager process keeps the interpreter lock while others wait for it
+# (Python's default: 5 ms). A manager is a server: a service call or a message from another
+# process waiting 5 ms for each turn adds up (with 32 clients calling at once, get_model's p99
+# went from about 60 ms to under 50 with 1 ms; benchmarks/load.py).
+
+
+MANAGER_SWITCH_INTERVAL_S = 0.001
+
+
+def cmd_manager(args: argparse.Namespace) -> int:
+    """run a manager until interrupted"""
+    sys.setswitchinterval(MANAGER_SWITCH_INTERVAL_S)
+    from dyknow.manager import Manager
+    from dyknow.security import Limits
+
+    tls = tls_files(args)
+    listen = args.listen or ([default_endpoint(tls)] if args.zenoh_config is None else None)
+    limits = Limits(
+        max_request_bytes=args.max_request_bytes,
+        max_expansions=args.max_expansions,
+        max_units=args.max_units,
+        max_message_bytes=args.max_message_bytes,
+        max_expansion_bytes=args.max_expansion_bytes,
+    )
+    with Manager(
+        args.name,
+        specs=args.specs,
+        ontology=args.ontology,
+        listen=listen,
+        connect=args.connect,
+        zenoh_config=args.zenoh_config,
+        allow_sources=args.allow_source,
+        code_paths=args.path,
+        data_roots=args.data_root,
+        limits=limits,
+        tls=tls,
+        acl=args.acl,
+        host=args.host,
+        lease_ms=args.lease_ms,
+        federate=not args.alone,
+        **({"dwell_s": args.dwell} if args.dwell is not None else {}),
+    ) as manager:
+        exposed = manager.exposed()
+        if exposed:
+            print(
+                f"dyknow: warning: listening beyond this host without TLS ({', '.join(exposed)}): anyone who reaches it may "
+                "call its services; use --tls-ca/--tls-cert/--tls-key and --acl (see docs/howto/security.md)",
+                file=sys.stderr,
+                flush=True,
+            )
+        # What start-up built lives as long as the manager: keep it out of the garbage
+        # collector's way, so collections stay short while the robot runs.
+        gc.collect()
+        gc.freeze()
+        endpoints = manager.endpoints
+        stop = _stop_event()
+        report_result(
+            args,
+            {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library)},
+            f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs; Ctrl-C to stop",
+        )
+        _wait_for(stop)
+        _exit_by_deadline(f"manager {args.name!r}")
+    if not args.json:
+        print(f"dyknow manager {args.name!r} stopped", flush=True)
+    return 0
+
+
+def cmd_ui(args: argparse.Namespace) -> int:
+    """serve the interactive tool in the browser: the live graph of every manager and its control panel"""
+    from dyknow.ui import run_ui
+
+    if not 0 <= args.port <= 65535:
+        raise UsageError(f"--port: got {args.port}; expected 0 to 65535")
+
+    def ready(url: str) -> None:
+        report_result(args, {"event": "ready", "url": url}, f"dyknow ui: open {url} (Ctrl-C to stop)")
+        sys.stdout.flush()
+
+    with open_client(args) as client:
+        return run_ui(client, host=args.host, port=args.port, token=args.token, ready=ready)
+
+
+def cmd_foxglove(args: argparse.Namespace) -> int:
+    """serve streams live to Foxglove or Lichtblick over the Foxglove WebSocket protocol (images, JSON)"""
+    from dyknow.foxglove import FOXGLOVE_ORIGINS, run_bridge
+    from dyknow.security import is_loopback
+
+    if not 0 <= args.port <= 65535:
+        raise UsageError(f"--port: got {args.port}; expected 0 to 65535")
+    if not is_loopback(args.host):
+        print(f"dyknow: warning: serving on {args.host}, beyond this host: the Foxglove WebSocket protocol has no access control, "
+              "so anyone who reaches the port sees every stream served", file=sys.stderr, flush=True)  # fmt: skip
+
+    def ready(url: str) -> None:
+        report_result(args, {"event": "ready", "url": url}, f"dyknow foxglove: open {url} in Foxglove or Lichtblick (Ctrl-C to stop)")
+        sys.stdout.flush()
+
+    with open_client(args) as client:
+        origins = [*FOXGLOVE_ORIGINS, *args.allow_origin]
+        return run_bridge(client, host=args.host, port=args.port, keyexprs=args.keyexprs, ready=ready, origins=origins)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    """run a Zenoh router: a rendezvous point managers and clients connect to (it runs no units)"""
+    from dyknow.transport import Session, make_config
+
+    tls = tls_files(args)
+    access = None
+    if args.acl is not None:
+        from dyknow.access import AccessControl
+        from dyknow.errors import AccessError
+
+        if tls is None:
+            raise AccessError("roles (--acl) are given by certificate, and the router has none", where="dyknow router",
+                              expected="--tls-ca, --tls-cert and --tls-key with --acl")  # fmt: skip
+        access = AccessControl.load(args.acl)
+    listen = args.listen or [default_endpoint(tls)]
+    if args.zenoh_config is None:  # (Zenoh would say only "Missing TLS private key")
+        from dyknow.reach import check_endpoints
+
+        check_endpoints(listen, tls, option="--listen", who="the router")
+        check_endpoints(args.connect, tls, option="--connect", who="the router")
+    config = make_config(
+        listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms
+    )
+    with Session(config) as session:
+        endpoints = session.endpoints()
+        stop = _stop_event()
+        report_result(
+            args,
+            {"event": "ready", "router": session.zid, "endpoints": endpoints},
+            f"dyknow router ready on {', '.join(endpoints)}; Ctrl-C to stop",
+        )
+        _wait_for(stop)
+        _exit_by_deadline("router")
+    if not args.json:
+        print("dyknow router stopped", flush=True)
+    return 0
+
+
+def add_commands(cmds: Commands) -> None:
+    """Add this family's commands to the parser."""
+    command = cmds.command
+    zenoh_options = cmds.zenoh_options
+    lease_option = cmds.lease_option
+    limit_options = cmds.limit_options
+    p = command("manager", cmd_manager)
+    p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
+    p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
+    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)",
+    )
+    zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
+                   help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
+    p.add_argument("--path", action="append", default=[], metavar="DIR",
+                   help="a folder to find units' modules in, besides the spec files' own folders (repeatable)")  # fmt: skip
+    p.add_argument("--data-root", action="append", default=[], metavar="DIR",
+                   help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
+    p.add_argument(
+        "--acl",
+        metavar="FILE",
+        help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
+        "router: [...], ROLE: [...] }, define: { ROLE: { like: viewer, calls: [SERVICE, ...], publish: [...], subscribe: [...] } } }); "
+        "every call must then be signed by its caller (dyknow clients with --tls-* do)",
+    )
+    p.add_argument(
+        "--max-request-bytes", type=positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
+    )
+    p.add_argument("--max-units", type=positive_int, default=1000, metavar="N", help="refuse spawns beyond this many units (default 1000)")
+    p.add_argument("--max-message-bytes", type=positive_int, default=64 << 20, metavar="N",
+                   help="drop larger messages (data or calls) while they arrive, before they take memory (default 64 MiB)")  # fmt: skip
+    p.add_argument("--max-expansion-bytes", type=positive_int, default=16 << 20, metavar="N",
+                   help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
+    limit_options(p)
+    p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
+    p.add_argument("--dwell", type=float, metavar="S",
+                   help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
+    p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
+    lease_option(p)
+
+    p = command("ui", cmd_ui, client=True)
+    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
+    p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
+    p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
+
+    p = command("foxglove", cmd_foxglove, client=True)
+    p.add_argument("keyexprs", nargs="*", metavar="KEYEXPR", help="key expressions to serve (default dyknow/**: every stream)")
+    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; the protocol has no access control)")
+    p.add_argument("--port", type=int, default=8765, help="the port to serve on (default 8765; 0: any free port)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                   help="a web page origin that may connect besides the Foxglove web app (https://app.foxglove.dev), "
+                        "e.g. a self-hosted Lichtblick; repeatable (desktop apps send no origin and are always served)")  # fmt: skip
+
+    p = command("router", cmd_router)
+    p.add_argument(
+        "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
+    )
+    zenoh_options(p, connect_help="another router to connect to (repeatable)")
+    p.add_argument(
+        "--acl", metavar="FILE", help="enforce these roles at the router's links (the managers' ACL file; see dyknow manager --acl)"
+    )
+    lease_option(p)
