@@ -1,0 +1,149 @@
+"""The units between dyknow streams and ROS 2 topics, on their manager's ROS 2 node.
+
+- :class:`Ros2Source` takes a ROS 2 topic and publishes each message on its output ``out``;
+- :class:`Ros2Sink` takes what arrives on its input ``in`` and publishes it on a ROS 2 topic.
+
+Both read the param ``binding``, a ``ros2:`` binding (:mod:`dyknow.ros2.binding`). A spec may
+name them directly, so a ROS 2 topic becomes a tagged source the planner plans with::
+
+    <transformation type="unit">
+      <label>ros2-camera(top)</label>
+      <source>dyknow.ros2.bridge:Ros2Source</source>
+      <params><param name="binding" type="string">ros2:/camera/image_raw?type=sensor_msgs/msg/Image</param></params>
+      <ports><port type="out">out</port></ports>
+      <tags><tag port="out">RawRGB(top)</tag></tags>
+    </transformation>
+
+and a port bound to ``ros2:/TOPIC`` (in a spawn, ``set_config`` or ``--bind``) is wired by its
+manager through one of them, spawned beside the unit as ``<unit>.<port>.ros2``.
+
+Times. dyknow's header cannot ride on a ROS-facing key (ROS subscribers need rmw_zenoh's
+attachment there), so the times travel by ROS's own fields: a message taken from ROS gets as its
+origin time its ``header.stamp`` when its type has one and it is set, else the attachment's
+source timestamp (when the ROS publisher sent it), else its arrival; dyknow's input ports then
+measure age since that origin as for any stream. A message given to ROS gets the dyknow message's
+origin time as its ``header.stamp`` when its type has a header the payload left unset, and the
+send time as the attachment's source timestamp.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+from dyknow.errors import BindingError
+from dyknow.message import Message
+from dyknow.ros2.binding import Ros2Binding, parse_binding
+from dyknow.ros2.convert import COMPRESSED, from_message, stamp_ns, to_message
+from dyknow.ros2.node import Received, Ros2Node, Ros2Publisher, Ros2Subscription
+from dyknow.unit import Unit
+
+__all__ = ["Ros2Sink", "Ros2Source", "UsesRos2"]
+
+
+@runtime_checkable
+class UsesRos2(Protocol):
+    """A unit that needs its manager's ROS 2 node: the manager calls ``use_ros2`` before ``setup()``."""
+
+    def use_ros2(self, node: Ros2Node) -> None:
+        """Take the node to declare publishers and subscriptions on."""
+
+
+class _Ros2Unit(Unit):
+    _node: Ros2Node | None = None
+
+    def use_ros2(self, node: Ros2Node) -> None:
+        """Take the manager's ROS 2 node (called by the manager before ``setup()``)."""
+        self._node = node
+
+    def _binding(self) -> tuple[Ros2Node, Ros2Binding]:
+        node = self._node
+        if node is None:
+            raise BindingError(
+                "no ROS 2 node to publish or subscribe on",
+                where=f"unit {self.name!r}",
+                expected="a manager started with ROS 2 (the ros2 extra installed)",
+            )
+        return node, parse_binding(str(self.params.get("binding", "")), where=f"param 'binding' of unit {self.name!r}")
+
+
+class Ros2Source(_Ros2Unit):
+    """Publishes on ``out`` every message of a ROS 2 topic, converted (:mod:`dyknow.ros2.convert`).
+
+    ``refused`` counts the messages that could not be used (undecodable, of another type, an
+    image that contradicts its sizes); ``last_refusal`` says why the latest was.
+    """
+
+    refused = 0
+    last_refusal: str | None = None
+    _sub: Ros2Subscription | None = None
+
+    def setup(self) -> None:
+        """Subscribe to the topic."""
+        node, binding = self._binding()
+        self.binding = binding
+        self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
+
+    def _arrived(self, received: Received) -> None:
+        try:
+            payload = from_message(received.message, received.ros_type)
+        except BindingError as exc:
+            self.refused += 1
+            self.last_refusal = str(exc)
+            self.log.warning("refused a message from %s: %s", self.binding.topic, exc)
+            return
+        origin = stamp_ns(received.message) or received.attachment.source_timestamp_ns or received.arrival_ns
+        self.publish("out", payload, origin_ns=origin)
+
+    @property
+    def transport_refused(self) -> int:
+        """Messages the subscription refused before conversion (bad key, hash, attachment or CDR)."""
+        return self._sub.refused if self._sub is not None else 0
+
+    def teardown(self) -> None:
+        """Unsubscribe."""
+        if self._sub is not None:
+            self._sub.close()
+
+
+class Ros2Sink(_Ros2Unit):
+    """Publishes on a ROS 2 topic every message arriving on ``in``, converted; a payload that does
+    not fit the type is rejected (counted on ``in``) and the unit carries on. ``bytes`` for a type
+    other than ``CompressedImage`` are taken as CDR of that type: checked, then sent as they are."""
+
+    _pub: Ros2Publisher | None = None
+
+    def setup(self) -> None:
+        """Declare the publisher."""
+        node, binding = self._binding()
+        if binding.ros_type is None:
+            raise BindingError(
+                f"{binding.uri()} names no type",
+                where=f"unit {self.name!r}",
+                expected=f"ros2:{binding.topic}?type=pkg/msg/Type for an output",
+            )
+        self.binding = binding
+        self._types = node.types
+        self._pub = node.create_publisher(binding.topic, binding.ros_type, binding.qos, humble=binding.humble)
+
+    def on_message(self, port: str, msg: Message) -> None:
+        """Convert and publish."""
+        pub = self._pub
+        if pub is None:
+            return
+        ros_type = self.binding.ros_type
+        assert ros_type is not None
+        payload: Any = msg.payload
+        try:
+            if isinstance(payload, bytes) and ros_type != COMPRESSED:
+                self._types.deserialize(payload, ros_type)  # checked before it goes out
+                pub.publish_cdr(payload)
+                return
+            message = to_message(payload, ros_type, self._types, origin_ns=msg.origin_ns, frame_id=self.binding.frame_id)
+            pub.publish(message)
+        except BindingError as exc:
+            self.reject(port, str(exc))
+
+    def teardown(self) -> None:
+        """Undeclare the publisher."""
+        if self._pub is not None:
+            self._pub.close()
