@@ -18,7 +18,8 @@ Commands::
     dyknow config get NAME | dyknow config set NAME PORT=KEY ...
     dyknow stats NAME
     dyknow add-spec FILE | dyknow remove-spec LABEL
-    dyknow echo KEYEXPR [--count N]
+    dyknow echo KEYEXPR [--count N] | dyknow echo ros2:/TOPIC [--ros2-domain N]
+    dyknow ros2 list [--ros2-domain N]
     dyknow foxglove [KEYEXPR ...] [--host ADDR] [--port N]
     dyknow request TAG [--standby warm] | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
     dyknow record KEYEXPR ... -o FILE.mcap [--duration S] [--max-messages N] [--compression zstd|lz4|none]
@@ -293,6 +294,9 @@ def cmd_manager(args: argparse.Namespace) -> int:
         host=args.host,
         lease_ms=args.lease_ms,
         federate=not args.alone,
+        ros2_domain=args.ros2_domain,
+        ros2_node=args.ros2_node,
+        ros2_namespace=args.ros2_namespace,
         **({"dwell_s": args.dwell} if args.dwell is not None else {}),
     ) as manager:
         exposed = manager.exposed()
@@ -597,6 +601,8 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
     if args.count is not None and args.count <= 0:
         raise _Usage(f"--count: got {args.count}; expected a positive number")
+    if args.keyexpr.startswith("ros2:"):
+        return _echo_ros2(args)
     done = threading.Event()
     lock = threading.Lock()
     seen = 0
@@ -652,6 +658,89 @@ def cmd_echo(args: argparse.Namespace) -> int:
     if args.count is not None and seen < args.count:
         print(f"dyknow: error: received {seen} of {args.count} messages on {args.keyexpr!r}", file=sys.stderr)
         return 1
+    return 0
+
+
+def _ros2_domain_number(text: str) -> int:
+    if not text.isdigit() or int(text) > 232:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected a ROS_DOMAIN_ID from 0 to 232")
+    return int(text)
+
+
+def _ros2_domain(args: argparse.Namespace) -> int:
+    if args.ros2_domain is not None:
+        return int(args.ros2_domain)
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+    if not text.isdigit() or int(text) > 232:
+        raise _Usage(f"ROS_DOMAIN_ID={text!r}; expected a number from 0 to 232 (or --ros2-domain)")
+    return int(text)
+
+
+def _echo_ros2(args: argparse.Namespace) -> int:
+    """``dyknow echo ros2:/TOPIC``: a ROS 2 topic decoded, with its latency (from the header stamp
+    when the type has one, else from the publisher's source timestamp)."""
+    from dyknow.ros2 import Received, Ros2Node, parse_binding
+    from dyknow.ros2.convert import from_message, stamp_ns
+
+    binding = parse_binding(args.keyexpr, where="echo")
+    done = threading.Event()
+    lock = threading.Lock()
+    seen = 0
+
+    def show(received: Received) -> None:
+        nonlocal seen
+        with lock:
+            if done.is_set():
+                return
+            try:
+                payload: Any = from_message(received.message, received.ros_type)
+            except DyKnowError as exc:
+                payload = {"refused": str(exc)}
+            stamp = stamp_ns(received.message)
+            origin = stamp or received.attachment.source_timestamp_ns
+            data = {
+                "topic": binding.topic,
+                "type": received.ros_type,
+                "seq": received.attachment.sequence_number,
+                "source_timestamp_ns": received.attachment.source_timestamp_ns,
+                "stamp_ns": stamp,
+                "latency_us": round((received.arrival_ns - origin) / 1000, 1),
+                "measured_from": "header.stamp" if stamp else "source_timestamp",
+                "payload": _payload_json(payload),
+            }
+            _report(args, data, f"{binding.topic} [{received.ros_type}] #{data['seq']} age {data['latency_us'] / 1000:.3f} ms: {describe_payload(payload)}")
+            seen += 1
+            if args.count is not None and seen >= args.count:
+                done.set()
+
+    with _client(args) as client, Ros2Node(client.session, f"dyknow_echo_{os.getpid()}", domain=_ros2_domain(args)) as node:
+        node.create_subscription(binding.topic, binding.ros_type, show, binding.qos, humble=binding.humble)
+        signal.signal(signal.SIGINT, lambda *_: done.set())
+        signal.signal(signal.SIGTERM, lambda *_: done.set())
+        done.wait(args.timeout_total) if args.timeout_total else done.wait()
+        done.set()
+    if args.count is not None and seen < args.count:
+        print(f"dyknow: error: received {seen} of {args.count} messages on {binding.topic!r}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def cmd_ros2_list(args: argparse.Namespace) -> int:
+    """list the ROS 2 graph seen on Zenoh (rmw_zenoh's liveliness tokens): nodes, topics and their types"""
+    from dyknow.ros2 import snapshot
+
+    with _client(args) as client:
+        view = snapshot(client.session, _ros2_domain(args), timeout_s=args.timeout)
+
+    def lines() -> Iterable[str]:
+        yield "nodes:"
+        yield from (f"  {node}" for node in view.nodes())
+        yield "topics:"
+        for topic, types in view.topics().items():
+            publishers = len(view.publishers(topic))
+            yield f"  {topic} [{', '.join(types)}] ({publishers} publisher{'s' if publishers != 1 else ''})"
+
+    _report(args, view.to_dict(), lines)
     return 0
 
 
@@ -906,6 +995,10 @@ def _parser() -> argparse.ArgumentParser:
         )
         p.add_argument("--tls-key", metavar="FILE", help="TLS: this process's private key (PEM)")
 
+    def ros2_domain_option(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--ros2-domain", type=_ros2_domain_number, metavar="N",
+                       help="the ROS 2 domain for ros2: bindings and topics (default ROS_DOMAIN_ID, else 0)")  # fmt: skip
+
     def lease_option(p: argparse.ArgumentParser) -> None:
         p.add_argument("--lease-ms", type=_positive_int, metavar="MS",
                        help="how long a silent link lives (default Zenoh's 10000): a host cut off is noticed after about this; "
@@ -953,6 +1046,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
     p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
     lease_option(p)
+    ros2_domain_option(p)
+    p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
+    p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
 
     p = command("ui", cmd_ui, client=True)
     p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
@@ -1119,9 +1215,21 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)")
 
     p = command("echo", cmd_echo, client=True)
-    p.add_argument("keyexpr")
+    p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=pkg/msg/Type] for a ROS 2 topic, decoded")
     p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
     p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
+    ros2_domain_option(p)
+
+    p = sub.add_parser("ros2", help="the ROS 2 graph on Zenoh (list)", description="the ROS 2 graph, as rmw_zenoh's tokens show it")
+    ros2 = p.add_subparsers(dest="ros2_command", required=True, metavar="COMMAND")
+    help = (cmd_ros2_list.__doc__ or "").strip()
+    p = ros2.add_parser("list", help=help, description=help)
+    p.set_defaults(fn=cmd_ros2_list)
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
+    p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=argparse.SUPPRESS)
+    p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="seconds to gather the graph (default 1)")
+    ros2_domain_option(p)
     return parser
 
 
