@@ -523,7 +523,13 @@ class PlainPublisher(_Entity):
                 import zenoh.ext as zext  # the advanced publisher is an extension (unstable API)
 
                 pub: Any = zext.declare_advanced_publisher(
-                    session, key, congestion_control=congestion, cache=zext.CacheConfig(cache), publisher_detection=True
+                    session,
+                    key,
+                    congestion_control=congestion,
+                    cache=zext.CacheConfig(cache),
+                    # sequence numbers, not timestamps (those need timestamping on in the session config)
+                    sample_miss_detection=zext.MissDetectionConfig(),
+                    publisher_detection=True,
                 )
             else:
                 pub = session.declare_publisher(key, congestion_control=congestion)

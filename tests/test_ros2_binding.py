@@ -170,3 +170,13 @@ def test_the_cli_binds_lists_and_echoes(tmp_path: object) -> None:
     finally:
         manager.stop()
         manager.close()
+
+
+def test_a_transient_local_output_reaches_a_late_subscriber(make_manager: Callable[..., Manager]) -> None:
+    port = free_port()
+    a = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=6)
+    a.spawn("publisher", "latched", bindings={"out": "ros2:/map?type=std_msgs/msg/String&durability=transient_local&depth=1"})
+    a.unit("latched").emit("the map")  # type: ignore[attr-defined]
+    b = make_manager(connect=[f"tcp/127.0.0.1:{port}"], ros2_domain=6)  # joins after the message was sent
+    b.spawn("sink", "late", bindings={"in": "ros2:/map?type=std_msgs/msg/String&durability=transient_local&depth=1"})
+    assert b.unit("late").wait_for(1, timeout_s=20)[0].payload == "the map"  # type: ignore[attr-defined]

@@ -191,7 +191,8 @@ def test_undecodable_messages_are_counted_and_refused(ros_manager: tuple[Manager
     key = data_key(0, "/chatter", "std_msgs/msg/String", types.type_hash("std_msgs/msg/String"))
     good = types.serialize(types.message_class("std_msgs/msg/String")(data="fine"), "std_msgs/msg/String")
     attachment = Attachment(1, time.time_ns(), bytes(16)).encode()
-    with manager.session.declare_plain_publisher(key) as pub:
+    pub = manager.session.declare_plain_publisher(key)
+    try:
         pub.put(good[:-3], attachment)  # truncated CDR
         pub.put(good, b"\x01\x02")  # a malformed attachment
         pub.put(good)  # no attachment at all
@@ -199,5 +200,7 @@ def test_undecodable_messages_are_counted_and_refused(ros_manager: tuple[Manager
         wait_until(lambda: companion.transport_refused == 4, "four refusals")
         pub.put(good, attachment)
         msg = manager.unit("listener").wait_for(1)[0]  # type: ignore[attr-defined]
+    finally:
+        pub.undeclare()
     assert msg.payload == "fine"
     assert manager.get_model().units[0].state == "running"

@@ -34,6 +34,8 @@ from dyknow.errors import BindingError
 from dyknow.message import Message
 from dyknow.ros2.binding import Ros2Binding, parse_binding
 from dyknow.ros2.convert import COMPRESSED, from_message, stamp_ns, to_message
+from dyknow.ros2.graph import Graph
+from dyknow.ros2.names import Entity, EntityKind
 from dyknow.ros2.node import Received, Ros2Node, Ros2Publisher, Ros2Subscription
 from dyknow.unit import Unit
 
@@ -71,17 +73,41 @@ class Ros2Source(_Ros2Unit):
 
     ``refused`` counts the messages that could not be used (undecodable, of another type, an
     image that contradicts its sizes); ``last_refusal`` says why the latest was.
+
+    The source watches the topic's publishers through their liveliness tokens: when the last one
+    it saw goes (its node ended or crashed), the unit fails, so the adaptation loop moves what it
+    fed to another producer as for any failed source, and may come back to it later. A source
+    started before any publisher waits for one without failing.
     """
 
     refused = 0
     last_refusal: str | None = None
     _sub: Ros2Subscription | None = None
+    _graph: Graph | None = None
 
     def setup(self) -> None:
-        """Subscribe to the topic."""
+        """Subscribe to the topic and watch its publishers."""
         node, binding = self._binding()
         self.binding = binding
+        self._publishers: set[tuple[str, int, int]] = set()
         self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
+        self._graph = Graph(node.session, node.domain, self._graph_changed)
+
+    def _graph_changed(self, entity: Entity, alive: bool) -> None:
+        if entity.kind is not EntityKind.PUBLISHER or entity.topic != self.binding.topic:
+            return
+        ident = (entity.session_id, entity.node_id, entity.entity_id)
+        if alive:
+            self._publishers.add(ident)
+        elif ident in self._publishers:
+            self._publishers.discard(ident)
+            if not self._publishers:
+                self.fail(f"the ROS 2 publishers of {self.binding.topic} are gone (their liveliness tokens vanished)")
+
+    @property
+    def publishers(self) -> int:
+        """How many ROS 2 publishers of the topic are alive now."""
+        return len(self._publishers)
 
     def _arrived(self, received: Received) -> None:
         try:
@@ -100,7 +126,9 @@ class Ros2Source(_Ros2Unit):
         return self._sub.refused if self._sub is not None else 0
 
     def teardown(self) -> None:
-        """Unsubscribe."""
+        """Stop watching, unsubscribe."""
+        if self._graph is not None:
+            self._graph.close()
         if self._sub is not None:
             self._sub.close()
 

@@ -228,7 +228,7 @@ def _build(values: dict[str, Any], ros_type: str, types: TypeSupport, where: str
                 elif inner == Nodetype.BASE:
                     kwargs[name] = [str(v) for v in (value or [""] * count)]
                 else:
-                    items = value if given else [{}] * count
+                    items: list[Any] = list(value) if given and value is not None else [{}] * count
                     kwargs[name] = [_build(v, inner_rest, types, f"{here}[{i}]") for i, v in enumerate(items)]
                 if node == Nodetype.ARRAY and len(kwargs[name]) != count:
                     raise BindingError(f"{len(kwargs[name])} items", where=here, expected=f"exactly {count}")

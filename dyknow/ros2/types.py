@@ -134,7 +134,7 @@ class TypeSupport:
         if ros_type in described:
             return
         fielddefs = self._store.fielddefs[self.check(ros_type)][1]
-        fields = []
+        fields: list[dict[str, Any]] = []
         described[ros_type] = {"type_name": ros_type, "fields": fields}
         for name, desc in fielddefs:
             fields.append({"name": name, "type": self._field_type(desc, described)})
