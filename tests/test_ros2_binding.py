@@ -180,3 +180,22 @@ def test_a_transient_local_output_reaches_a_late_subscriber(make_manager: Callab
     b = make_manager(connect=[f"tcp/127.0.0.1:{port}"], ros2_domain=6)  # joins after the message was sent
     b.spawn("sink", "late", bindings={"in": "ros2:/map?type=std_msgs/msg/String&durability=transient_local&depth=1"})
     assert b.unit("late").wait_for(1, timeout_s=20)[0].payload == "the map"  # type: ignore[attr-defined]
+
+
+def test_the_readmes_relay_echoes_a_topic(make_manager: Callable[..., Manager]) -> None:
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=8)  # generic.xml has the relay
+    robot.spawn("relay", "echo", bindings={"in": "ros2:/chatter", "out": "ros2:/chatter_echo?type=std_msgs/msg/String"})
+    got: list[str] = []
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+        Ros2Node(session, "talker", domain=8) as node,
+    ):
+        node.create_subscription("/chatter_echo", "std_msgs/msg/String", lambda r: got.append(r.message.data))
+        pub = node.create_publisher("/chatter", "std_msgs/msg/String")
+        deadline = time.monotonic() + 20
+        while not got:
+            assert time.monotonic() < deadline, "nothing echoed in 20 s"
+            pub.publish(node.types.message_class("std_msgs/msg/String")(data="ping"))
+            time.sleep(0.05)
+    assert got[0] == "ping"
