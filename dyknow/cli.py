@@ -43,6 +43,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -297,6 +298,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         ros2_domain=args.ros2_domain,
         ros2_node=args.ros2_node,
         ros2_namespace=args.ros2_namespace,
+        dds_config=Path(args.ros2_dds_config).read_text() if args.ros2_dds_config else None,
         **({"dwell_s": args.dwell} if args.dwell is not None else {}),
     ) as manager:
         exposed = manager.exposed()
@@ -1049,6 +1051,8 @@ def _parser() -> argparse.ArgumentParser:
     ros2_domain_option(p)
     p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
     p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
+    p.add_argument("--ros2-dds-config", metavar="FILE",
+                   help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
 
     p = command("ui", cmd_ui, client=True)
     p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")

@@ -55,6 +55,7 @@ from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.receiver import Receiver
 from dyknow.ros2.binding import is_ros2, parse_binding
 from dyknow.ros2.bridge import UsesRos2
+from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.node import Ros2Node
 from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
@@ -119,6 +120,7 @@ class Manager:
         ros2_domain: int | None = None,
         ros2_node: str | None = None,
         ros2_namespace: str = "/",
+        dds_config: str | None = None,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
@@ -152,6 +154,8 @@ class Manager:
         # ROS 2 (dyknow.ros2): the node is made when first needed (or now, when named); ports
         # bound to ros2: topics are wired through a companion unit each: (unit, port) -> (companion, binding)
         self._ros2: Ros2Node | None = None
+        self._dds: DdsNode | None = None
+        self._dds_config = dds_config
         self._ros2_options = (ros2_domain, ros2_node, ros2_namespace)
         self._ros2_ports: dict[tuple[str, str], tuple[str, str]] = {}
         access = acl if isinstance(acl, AccessControl) or acl is None else AccessControl.load(acl)
@@ -290,6 +294,8 @@ class Manager:
         self._receiver.close()
         if self._ros2 is not None:
             self._ros2.close()
+        if self._dds is not None:
+            self._dds.close()
         self._session.close()
 
     @property
@@ -306,24 +312,39 @@ class Manager:
         """The manager's Zenoh session (for clients and tools living in the same process)."""
         return self._session
 
+    def _ros2_domain(self) -> int:
+        domain = self._ros2_options[0]
+        if domain is None:
+            text = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+            if not text.isdigit():
+                raise BindingError(f"ROS_DOMAIN_ID={text!r}", where=f"manager {self.name!r}", expected="a number from 0 to 232")
+            domain = int(text)
+        return domain
+
     def ros2_node(self) -> Ros2Node:
-        """The manager's ROS 2 node (made on first use): named ``ros2_node`` (default: the manager's
-        name, with ``-`` and ``.`` as ``_``) in ``ros2_namespace``, on ROS domain ``ros2_domain``
-        (default: ``ROS_DOMAIN_ID``, else 0)."""
+        """The manager's ROS 2 node on rmw_zenoh (made on first use): named ``ros2_node`` (default:
+        the manager's name, with ``-`` and ``.`` as ``_``) in ``ros2_namespace``, on ROS domain
+        ``ros2_domain`` (default: ``ROS_DOMAIN_ID``, else 0)."""
         with self._lock:
             self._check_open()
             if self._ros2 is None:
-                domain, node, namespace = self._ros2_options
-                if domain is None:
-                    text = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
-                    if not text.isdigit():
-                        raise BindingError(f"ROS_DOMAIN_ID={text!r}", where=f"manager {self.name!r}", expected="a number from 0 to 232")
-                    domain = int(text)
+                _, node, namespace = self._ros2_options
                 name = node or re.sub(r"[^A-Za-z0-9_]", "_", self.name)
                 if name[0].isdigit():
                     name = "_" + name
-                self._ros2 = Ros2Node(self._session, name, namespace=namespace, domain=domain)
+                self._ros2 = Ros2Node(self._session, name, namespace=namespace, domain=self._ros2_domain())
             return self._ros2
+
+    def dds_node(self) -> DdsNode:
+        """The manager's DDS participant for ``ros2dds:`` bindings (made on first use), on ROS
+        domain ``ros2_domain``, configured by ``dds_config`` (Cyclone XML; default: loopback only)."""
+        with self._lock:
+            self._check_open()
+            if self._dds is None:
+                self._dds = DdsNode(
+                    domain=self._ros2_domain(), config=self._dds_config, types=self.ros2_node().types if self._ros2 else None
+                )
+            return self._dds
 
     def exposed(self) -> list[str]:
         """The endpoints this manager listens on beyond this host without TLS (a warning sign)."""
@@ -446,7 +467,7 @@ class Manager:
             if binding.ros_type is None and output:
                 raise BindingError(f"{text!r} names no type", where=where, expected=f"ros2:{binding.topic}?type=pkg/msg/Type for an output")
             if binding.ros_type is not None:
-                self.ros2_node().types.check(binding.ros_type, where=where)
+                (self.dds_node() if binding.dds else self.ros2_node()).types.check(binding.ros_type, where=where)
             companion = keys.check_name(f"{name}.{port}.ros2", "companion unit name")
             cspec = _ROS2_SINK if output else _ROS2_SOURCE
             key = keys.default_key(self.name, companion, "in" if output else "out")
@@ -556,7 +577,7 @@ class Manager:
         except Exception as exc:
             raise UnitError(f"{spec.source}() raised {type(exc).__name__}: {exc}", where=f"cannot create unit {name!r}") from exc
         if isinstance(unit, UsesRos2):
-            unit.use_ros2(self.ros2_node())
+            unit.use_ros2(self)
         proxy = Proxy(
             name=name,
             spec=spec,

@@ -1,9 +1,12 @@
-"""``ros2:`` bindings: a port bound to a ROS 2 topic instead of a dyknow key.
+"""``ros2:`` and ``ros2dds:`` bindings: a port bound to a ROS 2 topic instead of a dyknow key.
 
-``ros2:/TOPIC[?OPTION=VALUE&...]``, options:
+``ros2:/TOPIC[?OPTION=VALUE&...]`` is the topic on rmw_zenoh (ROS 2's Zenoh middleware, spoken
+natively on the manager's session); ``ros2dds:/TOPIC?...`` is the same topic on DDS (ROS 2's
+default middleware, through Cyclone DDS: :mod:`dyknow.ros2.dds`). The middleware is chosen per
+binding, not per manager, so one manager can read from one and write to the other. Options:
 
-- ``type=pkg/msg/Type``: the message type. Required for an output; an input without it takes the
-  type its publishers send (learned from each message's key).
+- ``type=pkg/msg/Type``: the message type. Required for an output and for any DDS binding; an
+  rmw_zenoh input without it takes the type its publishers send (learned from each message's key).
 - ``reliability=reliable|best_effort`` (default reliable), ``durability=volatile|transient_local``
   (default volatile; transient-local outputs keep ``depth`` messages for late subscribers, as
   rmw_zenoh's do), ``depth=N`` (default 10), ``history=keep_last|keep_all``;
@@ -20,16 +23,18 @@ from dyknow.errors import BindingError, did_you_mean
 from dyknow.ros2.names import Durability as _Durability
 from dyknow.ros2.names import QoS, Reliability, check_topic, dds_type_name
 
-__all__ = ["SCHEME", "Ros2Binding", "is_ros2", "parse_binding"]
+__all__ = ["DDS_SCHEME", "SCHEME", "Ros2Binding", "is_ros2", "parse_binding"]
 
-#: The prefix of a ROS 2 binding.
+#: The prefix of a ROS 2 binding on rmw_zenoh.
 SCHEME = "ros2:"
+#: The prefix of a ROS 2 binding on DDS.
+DDS_SCHEME = "ros2dds:"
 _OPTIONS = ("type", "reliability", "durability", "depth", "history", "frame_id", "hash")
 
 
 def is_ros2(binding: object) -> bool:
-    """Whether ``binding`` is a ``ros2:`` binding."""
-    return isinstance(binding, str) and binding.startswith(SCHEME)
+    """Whether ``binding`` is a ``ros2:`` or ``ros2dds:`` binding."""
+    return isinstance(binding, str) and (binding.startswith(SCHEME) or binding.startswith(DDS_SCHEME))
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,6 +46,7 @@ class Ros2Binding:
     qos: QoS = QoS()
     frame_id: str = ""
     humble: bool = False
+    dds: bool = False
 
     def uri(self) -> str:
         """The binding written back (options in a fixed order, defaults left out)."""
@@ -59,16 +65,19 @@ class Ros2Binding:
             options.append(f"frame_id={self.frame_id}")
         if self.humble:
             options.append("hash=none")
-        return SCHEME + self.topic + ("?" + "&".join(options) if options else "")
+        return (DDS_SCHEME if self.dds else SCHEME) + self.topic + ("?" + "&".join(options) if options else "")
 
 
 def parse_binding(text: str, *, where: str = "binding") -> Ros2Binding:
     """Parse ``ros2:/TOPIC?...``; raises :class:`BindingError` naming the option at fault."""
     if not is_ros2(text):
-        raise BindingError(f"{str(text)[:80]!r}", where=where, expected="ros2:/TOPIC or ros2:/TOPIC?type=pkg/msg/Type")
+        raise BindingError(
+            f"{str(text)[:80]!r}", where=where, expected="ros2:/TOPIC, ros2:/TOPIC?type=pkg/msg/Type or ros2dds:/TOPIC?type=..."
+        )
     if len(text) > 1024:
         raise BindingError(f"a binding of {len(text)} characters", where=where, expected="at most 1024")
-    topic, _, query = text[len(SCHEME) :].partition("?")
+    dds = text.startswith(DDS_SCHEME)
+    topic, _, query = text[len(DDS_SCHEME if dds else SCHEME) :].partition("?")
     check_topic(topic, where)
     options: dict[str, str] = {}
     for name, value in parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)):
@@ -98,4 +107,10 @@ def parse_binding(text: str, *, where: str = "binding") -> Ros2Binding:
         int(depth),
         options.get("history") == "keep_all",
     )
-    return Ros2Binding(topic, ros_type, qos, options.get("frame_id", ""), options.get("hash") == "none")
+    if dds and ros_type is None:
+        raise BindingError(
+            f"{text[:80]!r} names no type", where=where, expected=f"ros2dds:{topic}?type=pkg/msg/Type (DDS needs the type up front)"
+        )
+    if dds and "hash" in options:
+        raise BindingError("hash=none on a DDS binding", where=where, expected="hash only on ros2: bindings (DDS names no hash)")
+    return Ros2Binding(topic, ros_type, qos, options.get("frame_id", ""), options.get("hash") == "none", dds)

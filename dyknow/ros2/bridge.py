@@ -34,38 +34,49 @@ from dyknow.errors import BindingError
 from dyknow.message import Message
 from dyknow.ros2.binding import Ros2Binding, parse_binding
 from dyknow.ros2.convert import COMPRESSED, from_message, stamp_ns, to_message
+from dyknow.ros2.dds import DdsNode, DdsPublisher, DdsSubscription
 from dyknow.ros2.graph import Graph
 from dyknow.ros2.names import Entity, EntityKind
 from dyknow.ros2.node import Received, Ros2Node, Ros2Publisher, Ros2Subscription
 from dyknow.unit import Unit
 
-__all__ = ["Ros2Sink", "Ros2Source", "UsesRos2"]
+__all__ = ["Ros2Provider", "Ros2Sink", "Ros2Source", "UsesRos2"]
+
+
+class Ros2Provider(Protocol):
+    """What a manager gives its ROS 2 units: its rmw_zenoh node and its DDS participant, each
+    made on first use."""
+
+    def ros2_node(self) -> Ros2Node:
+        """The node on the manager's Zenoh session."""
+
+    def dds_node(self) -> DdsNode:
+        """The DDS participant."""
 
 
 @runtime_checkable
 class UsesRos2(Protocol):
-    """A unit that needs its manager's ROS 2 node: the manager calls ``use_ros2`` before ``setup()``."""
+    """A unit that needs its manager's ROS 2 middleware: the manager calls ``use_ros2`` before ``setup()``."""
 
-    def use_ros2(self, node: Ros2Node) -> None:
-        """Take the node to declare publishers and subscriptions on."""
+    def use_ros2(self, provider: Ros2Provider) -> None:
+        """Take the provider of the node or participant to declare publishers and subscriptions on."""
 
 
 class _Ros2Unit(Unit):
-    _node: Ros2Node | None = None
+    _provider: Ros2Provider | None = None
 
-    def use_ros2(self, node: Ros2Node) -> None:
-        """Take the manager's ROS 2 node (called by the manager before ``setup()``)."""
-        self._node = node
+    def use_ros2(self, provider: Ros2Provider) -> None:
+        """Take the manager's ROS 2 middleware (called by the manager before ``setup()``)."""
+        self._provider = provider
 
-    def _binding(self) -> tuple[Ros2Node, Ros2Binding]:
-        node = self._node
-        if node is None:
+    def _binding(self) -> tuple[Ros2Node | DdsNode, Ros2Binding]:
+        binding = parse_binding(str(self.params.get("binding", "")), where=f"param 'binding' of unit {self.name!r}")
+        provider = self._provider
+        if provider is None:
             raise BindingError(
-                "no ROS 2 node to publish or subscribe on",
-                where=f"unit {self.name!r}",
-                expected="a manager started with ROS 2 (the ros2 extra installed)",
+                "no ROS 2 middleware to publish or subscribe on", where=f"unit {self.name!r}", expected="a unit spawned by a manager"
             )
-        return node, parse_binding(str(self.params.get("binding", "")), where=f"param 'binding' of unit {self.name!r}")
+        return (provider.dds_node() if binding.dds else provider.ros2_node()), binding
 
 
 class Ros2Source(_Ros2Unit):
@@ -82,16 +93,25 @@ class Ros2Source(_Ros2Unit):
 
     refused = 0
     last_refusal: str | None = None
-    _sub: Ros2Subscription | None = None
+    _sub: Ros2Subscription | DdsSubscription | None = None
     _graph: Graph | None = None
 
     def setup(self) -> None:
-        """Subscribe to the topic and watch its publishers."""
+        """Subscribe to the topic and watch its publishers (their tokens; on DDS, the matched writers)."""
         node, binding = self._binding()
         self.binding = binding
         self._publishers: set[tuple[str, int, int]] = set()
+        self._seen_dds = 0
+        if isinstance(node, DdsNode):
+            self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, self._dds_matched)
+            return
         self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
         self._graph = Graph(node.session, node.domain, self._graph_changed)
+
+    def _dds_matched(self, count: int) -> None:
+        if count == 0 and self._seen_dds > 0:
+            self.fail(f"the DDS writers of rt{self.binding.topic} are gone")
+        self._seen_dds = count
 
     def _graph_changed(self, entity: Entity, alive: bool) -> None:
         if entity.kind is not EntityKind.PUBLISHER or entity.topic != self.binding.topic:
@@ -107,7 +127,7 @@ class Ros2Source(_Ros2Unit):
     @property
     def publishers(self) -> int:
         """How many ROS 2 publishers of the topic are alive now."""
-        return len(self._publishers)
+        return self._seen_dds if isinstance(self._sub, DdsSubscription) else len(self._publishers)
 
     def _arrived(self, received: Received) -> None:
         try:
@@ -138,7 +158,7 @@ class Ros2Sink(_Ros2Unit):
     not fit the type is rejected (counted on ``in``) and the unit carries on. ``bytes`` for a type
     other than ``CompressedImage`` are taken as CDR of that type: checked, then sent as they are."""
 
-    _pub: Ros2Publisher | None = None
+    _pub: Ros2Publisher | DdsPublisher | None = None
 
     def setup(self) -> None:
         """Declare the publisher."""
@@ -151,7 +171,10 @@ class Ros2Sink(_Ros2Unit):
             )
         self.binding = binding
         self._types = node.types
-        self._pub = node.create_publisher(binding.topic, binding.ros_type, binding.qos, humble=binding.humble)
+        if isinstance(node, DdsNode):
+            self._pub = node.create_publisher(binding.topic, binding.ros_type, binding.qos)
+        else:
+            self._pub = node.create_publisher(binding.topic, binding.ros_type, binding.qos, humble=binding.humble)
 
     def on_message(self, port: str, msg: Message) -> None:
         """Convert and publish."""
