@@ -961,6 +961,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         as_json=args.json,
         distributed=args.distributed,
         ui_port=args.ui_port if args.ui else None,
+        ros2=args.ros2,
     )
 
 
@@ -1091,6 +1092,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--ui-port", type=int, default=8321, metavar="PORT", help="the tool's port with --ui (default 8321; 0: any free port)")
     p.add_argument("--distributed", action="store_true",
                    help="the scenario across three manager processes (robot, field, station): battery drop, then a manager killed")  # fmt: skip
+    p.add_argument("--ros2", action="store_true",
+                   help="the robot camera as a ROS 2 node (rmw_zenoh) and the tracked ball published back to ROS 2")  # fmt: skip
     p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")
     p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (--chain; default 20 Hz)")
 

@@ -28,11 +28,13 @@ def write_report(
     say: Callable[[str], None],
     requirement: str | None = None,
     verdicts: list[tuple[int, bool]] | None = None,
+    ros2: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write ``report.json``, ``track.png`` and ``frame.png`` into ``out_dir``; returns the report.
 
     ``requirement`` and its ``verdicts`` (state time ns, verdict): the request's requirement,
-    summarised, listed and plotted."""
+    summarised, listed and plotted. ``ros2``: what crossed the ROS 2 boundary (the ROS 2
+    variant), in the summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = start_ns  # times in the report are seconds since the demo started (when the battery trace starts)
     rows = []
@@ -88,6 +90,8 @@ def write_report(
         "requirement_states": len(verdicts or []),
         "requirement_false_states": sum(1 for _, v in verdicts or [] if not v),
     }
+    if ros2 is not None:
+        summary["ros2"] = ros2
     judged = [{"t_s": round((t - t0) / 1e9, 3), "verdict": v} for t, v in verdicts or []]
     report = {
         "summary": summary,
