@@ -18,7 +18,7 @@ Commands::
     dyknow config get NAME | dyknow config set NAME PORT=KEY ...
     dyknow stats NAME
     dyknow add-spec FILE | dyknow remove-spec LABEL
-    dyknow echo KEYEXPR [--count N] | dyknow echo ros2:/TOPIC [--ros2-domain N]
+    dyknow echo KEYEXPR [--count N] | dyknow echo ros2:/TOPIC | ros2dds:/TOPIC?type=T [--ros2-domain N]
     dyknow ros2 list [--ros2-domain N]
     dyknow foxglove [KEYEXPR ...] [--host ADDR] [--port N]
     dyknow request TAG [--standby warm] | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
@@ -603,7 +603,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
     if args.count is not None and args.count <= 0:
         raise _Usage(f"--count: got {args.count}; expected a positive number")
-    if args.keyexpr.startswith("ros2:"):
+    if args.keyexpr.startswith(("ros2:", "ros2dds:")):
         return _echo_ros2(args)
     done = threading.Event()
     lock = threading.Lock()
@@ -710,17 +710,28 @@ def _echo_ros2(args: argparse.Namespace) -> int:
                 "measured_from": "header.stamp" if stamp else "source_timestamp",
                 "payload": _payload_json(payload),
             }
-            _report(args, data, f"{binding.topic} [{received.ros_type}] #{data['seq']} age {data['latency_us'] / 1000:.3f} ms: {describe_payload(payload)}")
+            text = f"{binding.topic} [{received.ros_type}] #{data['seq']} age {data['latency_us'] / 1000:.3f} ms: {describe_payload(payload)}"
+            _report(args, data, text)
             seen += 1
             if args.count is not None and seen >= args.count:
                 done.set()
 
-    with _client(args) as client, Ros2Node(client.session, f"dyknow_echo_{os.getpid()}", domain=_ros2_domain(args)) as node:
-        node.create_subscription(binding.topic, binding.ros_type, show, binding.qos, humble=binding.humble)
+    def wait() -> None:
         signal.signal(signal.SIGINT, lambda *_: done.set())
         signal.signal(signal.SIGTERM, lambda *_: done.set())
         done.wait(args.timeout_total) if args.timeout_total else done.wait()
         done.set()
+
+    if binding.dds:  # DDS needs no manager: a participant of its own (discovery on loopback)
+        from dyknow.ros2.dds import DdsNode
+
+        with DdsNode(domain=_ros2_domain(args)) as participant:
+            participant.create_subscription(binding.topic, binding.ros_type, show, binding.qos)
+            wait()
+    else:
+        with _client(args) as client, Ros2Node(client.session, f"dyknow_echo_{os.getpid()}", domain=_ros2_domain(args)) as node:
+            node.create_subscription(binding.topic, binding.ros_type, show, binding.qos, humble=binding.humble)
+            wait()
     if args.count is not None and seen < args.count:
         print(f"dyknow: error: received {seen} of {args.count} messages on {binding.topic!r}", file=sys.stderr)
         return 1
@@ -1222,7 +1233,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)")
 
     p = command("echo", cmd_echo, client=True)
-    p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=pkg/msg/Type] for a ROS 2 topic, decoded")
+    p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=T] (rmw_zenoh) or ros2dds:/TOPIC?type=T (DDS), decoded")
     p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
     p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
     ros2_domain_option(p)

@@ -199,3 +199,50 @@ def test_the_readmes_relay_echoes_a_topic(make_manager: Callable[..., Manager]) 
             pub.publish(node.types.message_class("std_msgs/msg/String")(data="ping"))
             time.sleep(0.05)
     assert got[0] == "ping"
+
+
+def test_a_humble_publisher_without_type_hash_reaches_an_untyped_input(make_manager: Callable[..., Manager]) -> None:
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=9)
+    robot.spawn("sink", "snk", bindings={"in": "ros2:/humble_chatter"})
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+        Ros2Node(session, "humble", domain=9) as node,
+    ):
+        pub = node.create_publisher("/humble_chatter", "std_msgs/msg/String", humble=True)
+        assert pub.key.endswith("/TypeHashNotSupported")
+        sink = robot.unit("snk")
+        deadline = time.monotonic() + 20
+        while not sink.messages:  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline
+            pub.publish(node.types.message_class("std_msgs/msg/String")(data="from humble"))
+            time.sleep(0.05)
+    assert sink.messages[0].payload == "from humble"  # type: ignore[attr-defined]
+
+
+def test_echo_reads_a_dds_topic(make_manager: Callable[..., Manager]) -> None:
+    manager = make_manager(ros2_domain=11)
+    manager.spawn("publisher", "talker", bindings={"out": "ros2dds:/dds_chatter?type=std_msgs/msg/String"})
+    stop = threading.Event()
+
+    def talk() -> None:
+        while not stop.wait(0.05):
+            manager.unit("talker").emit("over dds")  # type: ignore[attr-defined]
+
+    threading.Thread(target=talk, daemon=True).start()
+    try:
+        echoed = run_cli(
+            "echo",
+            "ros2dds:/dds_chatter?type=std_msgs/msg/String",
+            "--count",
+            "1",
+            "--json",
+            "--ros2-domain",
+            "11",
+            "--timeout-total",
+            "30",
+        )
+    finally:
+        stop.set()
+    assert echoed.returncode == 0, echoed.stderr
+    assert json.loads(echoed.stdout.splitlines()[0])["payload"] == "over dds"

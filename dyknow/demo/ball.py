@@ -362,9 +362,7 @@ class BallDemo:
             with verdicts.lock:
                 held = verdicts.verdicts[-1][1] if verdicts.verdicts else None
                 false = sum(1 for _, v in verdicts.verdicts if not v)
-            required = (
-                f"  requirement: {'holds' if held else 'VIOLATED' if held is False else '(no verdict yet)'}, false in {false} states so far"
-            )
+            required = f"  requirement: {'holds' if held else 'VIOLATED' if held is False else '(no verdict yet)'}, false in {false} states so far"
         lines = [f"t={t:5.1f}s  battery {level:4.2f}{' (low)' if level < LOW_BATTERY else ''}  camera: {camera}{required}"]
         hops = []
         for name, label in chain:

@@ -115,10 +115,7 @@ def run_distributed_demo(*, dwell_s: float = 8.0, as_json: bool = False) -> int:
         hub = ("--connect", station.endpoint)
         managers += [_Manager("robot", ontology, *hub), _Manager("field", ontology, *hub)]
         say("three managers on loopback: station (processing), robot (robot camera), field (ceiling camera)")
-        with (
-            Client("station", connect=[station.endpoint], timeout_s=10.0) as client,
-            Session(make_config(connect=[station.endpoint])) as data,
-        ):
+        with Client("station", connect=[station.endpoint], timeout_s=10.0) as client, Session(make_config(connect=[station.endpoint])) as data:
             deadline = time.monotonic() + 20
             while len(client.managers()) < 3 and time.monotonic() < deadline:
                 time.sleep(0.1)
@@ -133,32 +130,15 @@ def run_distributed_demo(*, dwell_s: float = 8.0, as_json: bool = False) -> int:
                         action()
                     waited = watch.wait_for(camera, timeout_s)
                     ok = waited is not None
-                    phases.append(
-                        {
-                            "phase": name,
-                            "camera": watch.camera,
-                            "expected": camera,
-                            "ok": ok,
-                            "seconds": round(time.monotonic() - started, 3),
-                        }
-                    )
+                    phases.append({"phase": name, "camera": watch.camera, "expected": camera, "ok": ok, "seconds": round(time.monotonic() - started, 3)})
                     say(f"  {'ok  ' if ok else 'FAIL'} {name}: the track comes from the {watch.camera} camera (expected {camera})")
 
                 phase("the robot's camera feeds the track", "bottom", 15)
                 phase("the robot's battery drops to 10 %", "ceiling", 10, lambda: _battery(data, 0.1))
                 _battery(data, 0.9)
                 time.sleep(min(2.0, dwell_s / 2))
-                phases.append(
-                    {
-                        "phase": "recharged within the dwell time: no flapping",
-                        "camera": watch.camera,
-                        "expected": "ceiling",
-                        "ok": watch.camera == "ceiling",
-                    }
-                )
-                say(
-                    f"  {'ok  ' if watch.camera == 'ceiling' else 'FAIL'} recharged within the dwell time: still the {watch.camera} camera (no flapping)"
-                )
+                phases.append({"phase": "recharged within the dwell time: no flapping", "camera": watch.camera, "expected": "ceiling", "ok": watch.camera == "ceiling"})
+                say(f"  {'ok  ' if watch.camera == 'ceiling' else 'FAIL'} recharged within the dwell time: still the {watch.camera} camera (no flapping)")
                 field = managers[2]
                 phase("the field manager is killed (SIGKILL)", "bottom", 10, lambda: os.kill(field.proc.pid, signal.SIGKILL))
                 # The station records an adaptation just before or just after the new
@@ -171,9 +151,7 @@ def run_distributed_demo(*, dwell_s: float = 8.0, as_json: bool = False) -> int:
                     events = client.get_adaptations()
             say("adaptations on the station (the key never changed):")
             for e in events:
-                say(
-                    f"  #{e['id']} {e['kind']}: {e['cause']}; adapted in {e['adaptation_ms']} ms, first message after {e['recovery_ms']} ms"
-                )
+                say(f"  #{e['id']} {e['kind']}: {e['cause']}; adapted in {e['adaptation_ms']} ms, first message after {e['recovery_ms']} ms")
             say(f"{watch.messages} messages on {key}")
         ok = all(p["ok"] for p in phases)
         if as_json:
