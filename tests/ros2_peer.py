@@ -1,7 +1,8 @@
 """An rmw_zenoh counterparty dyknow did not write: zenoh-ros2-sdk (PyPI), run as a child process.
 
     python tests/ros2_peer.py PORT talk TOPIC TYPE      publish every 20 ms until stdin closes
-    python tests/ros2_peer.py PORT listen TOPIC TYPE    print each message received, one JSON line
+    python tests/ros2_peer.py PORT listen TOPIC TYPE [transient_local]
+                                                        print each message received, one JSON line
     python tests/ros2_peer.py PORT info TOPIC           print `ros2 topic info -v` once a publisher shows
 
 It connects to a Zenoh peer at tcp/127.0.0.1:PORT (the manager under test), as rmw_zenoh's
@@ -84,8 +85,9 @@ def talk(port: int, topic: str, ros_type: str) -> None:
     pub.close()
 
 
-def listen(port: int, topic: str, ros_type: str) -> None:
+def listen(port: int, topic: str, ros_type: str, durability: str = "volatile") -> None:
     from zenoh_ros2_sdk import ROS2Subscriber
+    from zenoh_ros2_sdk.qos import QosDurability, QosProfile
 
     prepare(port, ros_type)
 
@@ -104,6 +106,7 @@ def listen(port: int, topic: str, ros_type: str) -> None:
                 }
             )
 
+    qos = QosProfile(durability=QosDurability.TRANSIENT_LOCAL, history_depth=1) if durability == "transient_local" else None
     sub = ROS2Subscriber(
         topic,
         ros_type,
@@ -112,6 +115,7 @@ def listen(port: int, topic: str, ros_type: str) -> None:
         node_name="sdk_listener",
         router_port=port,
         type_hash=type_hash(ros_type),
+        qos=qos,
     )
     out({"ready": True})
     until_stdin_closes().wait(60)

@@ -59,8 +59,9 @@ class Peer:
         try:
             return self.lines.get(timeout=timeout_s)
         except queue.Empty:
-            self.close()
+            self.proc.kill()
             stderr = self.proc.stderr.read() if self.proc.stderr else ""
+            self.close()
             raise AssertionError(f"no line from the SDK within {timeout_s} s; stderr: {stderr[-2000:]}") from None
 
     def close(self) -> None:
@@ -204,3 +205,12 @@ def test_undecodable_messages_are_counted_and_refused(ros_manager: tuple[Manager
         pub.undeclare()
     assert msg.payload == "fine"
     assert manager.get_model().units[0].state == "running"
+
+
+def test_a_late_sdk_subscriber_gets_a_transient_local_message(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
+    manager, port = ros_manager
+    manager.spawn("publisher", "latched", bindings={"out": "ros2:/map?type=std_msgs/msg/String&durability=transient_local&depth=1"})
+    manager.unit("latched").emit("the map")  # type: ignore[attr-defined]
+    peer = peers(str(port), "listen", "/map", "std_msgs/msg/String", "transient_local")  # starts after the message went out
+    lines = [peer.line(), peer.line()]  # the SDK asks for history while it starts: the message may come first
+    assert {"ready": True} in lines and {"data": "the map"} in lines
