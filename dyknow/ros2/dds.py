@@ -16,6 +16,7 @@ timestamp, sequence number 0 and a zero GID.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -40,6 +41,28 @@ LOOPBACK_CONFIG = (
 )
 
 
+@functools.cache
+def _raw_entities() -> tuple[Any, Any]:
+    """Cyclone's DataWriter and DataReader with a raw CDR write and take: what ``write`` and
+    ``take`` do around the ``IdlStruct`` (de)serialization they skip, through the same C layer.
+    An ``IdlStruct`` costs a Python int per byte of an image (15 ms a 640x480 frame)."""
+    from cyclonedds._clayer import ddspy_take, ddspy_write
+    from cyclonedds.core import InstanceState, SampleState, ViewState
+    from cyclonedds.pub import DataWriter
+    from cyclonedds.sub import DataReader
+
+    class RawWriter(DataWriter):  # type: ignore[misc]
+        def write_cdr(self, data: bytes) -> int:
+            return int(ddspy_write(self._ref, data.ljust((len(data) + 3) & ~3, b"\0")))
+
+    class RawReader(DataReader):  # type: ignore[misc]
+        def take_cdr(self, n: int) -> list[tuple[bytes, Any]]:
+            taken = ddspy_take(self._ref, SampleState.Any | ViewState.Any | InstanceState.Any, n)
+            return [] if isinstance(taken, int) else [(bytes(data), info) for data, info in taken]
+
+    return RawWriter, RawReader
+
+
 def _qos(qos: QoS) -> Any:
     from cyclonedds.core import Policy, Qos
     from cyclonedds.util import duration
@@ -59,12 +82,11 @@ class DdsPublisher:
     """Writes one ROS 2 topic of one type. A context manager; ``close()`` is safe twice."""
 
     def __init__(self, node: DdsNode, topic: str, ros_type: str, qos: QoS) -> None:
-        from cyclonedds.pub import DataWriter
-
+        raw_writer, _ = _raw_entities()
         self.topic = check_topic(topic)
         self.ros_type = node.types.check(ros_type)
         self._types = node.types
-        self._writer: Any = DataWriter(node.participant, node.dds_topic(topic, ros_type), qos=_qos(qos))
+        self._writer: Any = raw_writer(node.participant, node.dds_topic(topic, ros_type), qos=_qos(qos))
         self._node = node
 
     def publish(self, message: Any) -> None:
@@ -72,17 +94,11 @@ class DdsPublisher:
         self.publish_cdr(self._types.serialize(message, self.ros_type))
 
     def publish_cdr(self, data: bytes) -> None:
-        """Write CDR bytes (with their encapsulation header) as they are.
-
-        Through the binding's C layer, as ``DataWriter.write`` does after it serialized a sample:
-        going through an ``IdlStruct`` would cost a Python int per byte of an image (15 ms a
-        640x480 frame, against none)."""
-        from cyclonedds._clayer import ddspy_write
-
+        """Write CDR bytes (with their encapsulation header) as they are."""
         writer = self._writer
         if writer is None:
             return
-        ret = ddspy_write(writer._ref, data.ljust((len(data) + 3) & ~3, b"\0"))
+        ret = writer.write_cdr(data)
         if ret < 0:
             raise BindingError(f"Cyclone DDS returned {ret}", where=f"writing rt{self.topic}")
 
@@ -115,7 +131,8 @@ class DdsSubscription:
         on_publishers: Callable[[int], None] | None = None,
     ) -> None:
         from cyclonedds.core import Listener
-        from cyclonedds.sub import DataReader
+
+        _, raw_reader = _raw_entities()
 
         self.topic = check_topic(topic)
         self.ros_type = node.types.check(ros_type)
@@ -138,24 +155,16 @@ class DdsSubscription:
                 if on_publishers is not None:
                     on_publishers(subscription.publishers)
 
-        self._reader: Any = DataReader(node.participant, node.dds_topic(topic, ros_type), qos=_qos(qos), listener=_Listener())
+        self._reader: Any = raw_reader(node.participant, node.dds_topic(topic, ros_type), qos=_qos(qos), listener=_Listener())
         self._node = node
 
     def _take(self, reader: Any, key: str) -> None:
-        # raw CDR through the binding's C layer, as DataReader.take does before it builds
-        # IdlStruct samples (a Python int per byte of an image): the one codec reads it
-        from cyclonedds._clayer import ddspy_take
-        from cyclonedds.core import InstanceState, SampleState, ViewState
-
-        taken = ddspy_take(reader._ref, SampleState.Any | ViewState.Any | InstanceState.Any, 64)
-        if isinstance(taken, int):
-            return
-        for data, info in taken:
+        for data, info in reader.take_cdr(64):  # raw CDR: the one codec reads it
             arrival = time.time_ns()
             try:
                 if not info.valid_data:
                     continue
-                message = self._types.deserialize(bytes(data), self.ros_type)
+                message = self._types.deserialize(data, self.ros_type)
             except BindingError as exc:
                 with self._lock:
                     self.refused += 1
