@@ -97,7 +97,7 @@ class DdsPublisher:
         """Write CDR bytes (with their encapsulation header) as they are."""
         writer = self._writer
         if writer is None:
-            return
+            raise ClosedError("the writer is closed", where=f"DDS writer on rt{self.topic}", expected="a new publisher")
         ret = writer.write_cdr(data)
         if ret < 0:
             raise BindingError(f"Cyclone DDS returned {ret}", where=f"writing rt{self.topic}")

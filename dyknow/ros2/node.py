@@ -69,6 +69,7 @@ class Ros2Publisher:
             self._publisher.undeclare()
             raise
         self._node = node
+        self._closed = False
 
     def publish(self, message: Any) -> int:
         """Serialize and send a message object; returns its sequence number."""
@@ -76,6 +77,8 @@ class Ros2Publisher:
 
     def publish_cdr(self, data: bytes) -> int:
         """Send CDR bytes as they are (with their encapsulation header); returns the sequence number."""
+        if self._closed:
+            raise ClosedError("the publisher is closed", where=f"ROS 2 publisher on {self.topic}", expected="a new publisher")
         with self._lock:
             self._seq += 1
             seq = self._seq
@@ -84,6 +87,7 @@ class Ros2Publisher:
 
     def close(self) -> None:
         """Undeclare the token, then the publisher; safe twice."""
+        self._closed = True
         self._token.undeclare()
         self._publisher.undeclare()
         self._node.forget(self)

@@ -1,0 +1,76 @@
+"""dyknow.ros2.node and dyknow.ros2.graph on real Zenoh sessions on loopback: entities and their
+tokens come and go in pairs, use after close is refused, untyped subscriptions learn their type,
+and what a hostile peer sends (malformed tokens, other types) is counted and refused."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+
+import pytest
+
+from dyknow.errors import ClosedError
+from dyknow.ros2 import Graph, Received, Ros2Node, snapshot
+from dyknow.ros2.names import ADMIN_SPACE, EntityKind
+from dyknow.transport import Session, open_session
+from tests.conftest import free_port, wait_until
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[Session, Session]]:
+    port = free_port()
+    with (
+        open_session(listen=[f"tcp/127.0.0.1:{port}"]) as a,
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as b,
+    ):
+        yield a, b
+
+
+def string(node: Ros2Node, text: str) -> object:
+    return node.types.message_class("std_msgs/msg/String")(data=text)
+
+
+def test_entities_and_their_tokens_come_and_go_in_pairs(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    seen: list[tuple[str, bool]] = []
+    with Graph(b, 12, lambda e, alive: seen.append((e.kind.value, alive))) as graph:
+        node = Ros2Node(a, "pairs", domain=12)
+        pub = node.create_publisher("/p", "std_msgs/msg/String")
+        sub = node.create_subscription("/s", "std_msgs/msg/String", lambda r: None)
+        wait_until(lambda: len(graph.view().entities) == 3, "node, publisher and subscription")
+        assert graph.view().topics() == {"/p": ["std_msgs/msg/String"], "/s": ["std_msgs/msg/String"]}
+        node.close()  # closes the subscription, then the publisher, then the node's own token
+        node.close()
+        wait_until(lambda: not graph.view().entities, "every token gone")
+        assert sorted(seen) == sorted([("NN", True), ("MP", True), ("MS", True), ("NN", False), ("MP", False), ("MS", False)])
+    with pytest.raises(ClosedError, match="publisher is closed"):
+        pub.publish(string(node, "late"))
+    with pytest.raises(ClosedError, match="node is closed"):
+        node.create_publisher("/p", "std_msgs/msg/String")
+    sub.close()  # safe again
+
+
+def test_an_untyped_subscription_learns_the_type_then_refuses_others(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    got: list[Received] = []
+    arrived = threading.Event()
+    with Ros2Node(a, "talker", domain=13) as talker, Ros2Node(b, "listener", domain=13) as listener:
+        sub = listener.create_subscription("/mixed", None, lambda r: (got.append(r), arrived.set()))
+        assert snapshot(b, 13, timeout_s=0.3).topics() == {}  # no type yet: no MS token yet
+        strings = talker.create_publisher("/mixed", "std_msgs/msg/String")
+        while not arrived.wait(0.05):
+            strings.publish(string(talker, "first"))
+        assert sub.ros_type == "std_msgs/msg/String" and got[0].message.data == "first"
+        wait_until(
+            lambda: any(e.kind is EntityKind.SUBSCRIPTION for e in snapshot(b, 13, timeout_s=0.2).entities), "the MS token, now typed"
+        )
+        ints = talker.create_publisher("/mixed", "std_msgs/msg/Int32")
+        ints.publish(talker.types.message_class("std_msgs/msg/Int32")(data=7))
+        wait_until(lambda: sub.refused >= 1, "the other type refused")
+        assert "std_msgs/msg/Int32" in str(sub.last_refusal)
+
+
+def test_malformed_tokens_are_counted_and_ignored(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    with Graph(b, 14) as graph, a.declare_liveliness_token(f"{ADMIN_SPACE}/14/zid/0/0/XX/%/%/bogus"), Ros2Node(a, "fine", domain=14):
+        wait_until(lambda: graph.malformed == 1 and graph.view().nodes() == ["/fine"], "one bad token counted, the good one kept")
