@@ -20,7 +20,11 @@ from tests.test_adaptation import ONTOLOGY, Events
 ROS_CAMERA = TransformationSpec(
     "ros2-camera(bottom)",
     "dyknow.ros2.bridge:Ros2Source",
-    (Param("binding", "string", "ros2:/camera/image_raw?type=sensor_msgs/msg/Image"),),
+    (
+        Param("binding", "string", "ros2:/camera/image_raw?type=sensor_msgs/msg/Image"),
+        Param("require_publisher", "bool", True),  # a producer only while its ROS 2 publisher is there
+        Param("wait_s", "float", 0.5),
+    ),
     (Port("out", "out"),),
     (Tag("out", "RawImage(bottom)"),),
     priority=0,  # preferred over the scenario's own cameras
@@ -69,6 +73,13 @@ def test_a_tagged_ros2_topic_is_planned_with_and_left_when_its_publisher_goes(ma
         wait_until(lambda: "robot-camera" in {u.label for u in robot.get_model().units}, "the robot's own camera instead")
         count = len(viewer.messages)
         viewer.wait_for(count + 3)  # the stream goes on, on the same key
+        # the driver publishes again: once the back-off ends, the request is back on the ROS 2 camera
+        pub = driver.create_publisher("/camera/image_raw", "sensor_msgs/msg/Image")
+        wait_until(
+            lambda: any(e.kind == "adapted" and "ros2-camera(bottom)" in e.new for e in events.events),
+            "the request back on the ROS 2 camera",
+        )
+        assert "ros2-camera(bottom)" in {u.label for u in robot.get_model().units}
 
 
 def _header(node: Ros2Node) -> object:

@@ -28,6 +28,7 @@ send time as the attachment's source timestamp.
 
 from __future__ import annotations
 
+import threading
 from typing import Any, Protocol, runtime_checkable
 
 from dyknow.errors import BindingError
@@ -88,7 +89,10 @@ class Ros2Source(_Ros2Unit):
     The source watches the topic's publishers through their liveliness tokens: when the last one
     it saw goes (its node ended or crashed), the unit fails, so the adaptation loop moves what it
     fed to another producer as for any failed source, and may come back to it later. A source
-    started before any publisher waits for one without failing.
+    started before any publisher waits for one without failing, unless its param
+    ``require_publisher`` is true (a spec that offers a ROS 2 topic as a producer): then it waits
+    up to ``wait_s`` (default 2) for one and fails without, so the adaptation loop keeps it in
+    back-off until its publisher is back, and returns to it then.
     """
 
     refused = 0
@@ -101,17 +105,29 @@ class Ros2Source(_Ros2Unit):
         node, binding = self._binding()
         self.binding = binding
         self._publishers: set[tuple[str, int, int]] = set()
+        self._present = threading.Event()
         self._seen_dds = 0
         if isinstance(node, DdsNode):
             self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, self._dds_matched)
-            return
-        self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
-        self._graph = Graph(node.session, node.domain, self._graph_changed)
+        else:
+            self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
+            self._graph = Graph(node.session, node.domain, self._graph_changed)
+        if self.params.get("require_publisher") in (True, "true", "1"):
+            wait_s = float(self.params.get("wait_s", 2.0))
+            if not self._present.wait(wait_s):
+                self.teardown()
+                raise BindingError(
+                    f"no publisher of {binding.topic} within {wait_s} s",
+                    where=f"unit {self.name!r}",
+                    expected="a ROS 2 node publishing it (its liveliness token)",
+                )
 
     def _dds_matched(self, count: int) -> None:
         if count == 0 and self._seen_dds > 0:
             self.fail(f"the DDS writers of rt{self.binding.topic} are gone")
         self._seen_dds = count
+        if count:
+            self._present.set()
 
     def _graph_changed(self, entity: Entity, alive: bool) -> None:
         if entity.kind is not EntityKind.PUBLISHER or entity.topic != self.binding.topic:
@@ -119,6 +135,7 @@ class Ros2Source(_Ros2Unit):
         ident = (entity.session_id, entity.node_id, entity.entity_id)
         if alive:
             self._publishers.add(ident)
+            self._present.set()
         elif ident in self._publishers:
             self._publishers.discard(ident)
             if not self._publishers:
@@ -146,11 +163,13 @@ class Ros2Source(_Ros2Unit):
         return self._sub.refused if self._sub is not None else 0
 
     def teardown(self) -> None:
-        """Stop watching, unsubscribe."""
-        if self._graph is not None:
-            self._graph.close()
-        if self._sub is not None:
-            self._sub.close()
+        """Stop watching, unsubscribe; safe twice."""
+        graph, self._graph = self._graph, None
+        if graph is not None:
+            graph.close()
+        sub, self._sub = self._sub, None
+        if sub is not None:
+            sub.close()
 
 
 class Ros2Sink(_Ros2Unit):
