@@ -38,7 +38,8 @@ def ros2_camera(spec: TransformationSpec) -> TransformationSpec:
     """``spec`` (the robot camera of ``specs/robot.xml``) as a ROS 2 topic: same label, tags,
     priority and constraints, its frames taken from :data:`CAMERA_TOPIC`."""
     binding = Param("binding", "string", f"ros2:{CAMERA_TOPIC}?type=sensor_msgs/msg/Image&depth=2&reliability=best_effort")
-    return replace(spec, source="dyknow.ros2.bridge:Ros2Source", params=(binding,), description="the robot camera, a ROS 2 node")
+    params = (binding, Param("require_publisher", "bool", True))  # a producer while its ROS 2 node publishes
+    return replace(spec, source="dyknow.ros2.bridge:Ros2Source", params=params, description="the robot camera, a ROS 2 node")
 
 
 class TrackToRos(Unit):
