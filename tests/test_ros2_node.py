@@ -74,3 +74,13 @@ def test_malformed_tokens_are_counted_and_ignored(sessions: tuple[Session, Sessi
     a, b = sessions
     with Graph(b, 14) as graph, a.declare_liveliness_token(f"{ADMIN_SPACE}/14/zid/0/0/XX/%/%/bogus"), Ros2Node(a, "fine", domain=14):
         wait_until(lambda: graph.malformed == 1 and graph.view().nodes() == ["/fine"], "one bad token counted, the good one kept")
+
+
+def test_an_untyped_subscription_takes_the_type_its_publishers_announce(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    with Ros2Node(a, "talker", domain=15) as talker, Ros2Node(b, "listener", domain=15) as listener:
+        talker.create_publisher("/announced", "sensor_msgs/msg/Image")
+        wait_until(lambda: bool(snapshot(b, 15, timeout_s=0.2).publishers("/announced")), "the publisher's token")
+        sub = listener.create_subscription("/announced", None, lambda r: None)
+        assert sub.ros_type == "sensor_msgs/msg/Image" and sub.key.endswith(talker.types.type_hash("sensor_msgs/msg/Image"))
+        wait_until(lambda: any(e.kind is EntityKind.SUBSCRIPTION for e in snapshot(a, 15, timeout_s=0.2).entities), "its MS token at once")

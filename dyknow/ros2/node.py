@@ -6,8 +6,9 @@ subscriptions with an ``MP``/``MS`` token (:mod:`dyknow.ros2.names`), so ``ros2 
 rmw_zenoh's attachment (:mod:`dyknow.ros2.attachment`); a subscription takes CDR from it. Every
 entity is a context manager; closing the node undeclares what it declared, in reverse order.
 
-A subscription created without a type subscribes to the topic's key of *any* type
-(``<domain>/<topic>/*/*``) and reads the type from each sample's key; its ``MS`` token is declared
+A subscription created without a type takes it from the topic's publishers when their tokens
+show exactly one known type; else it subscribes to the topic's key of *any* type
+(``<domain>/<topic>/*/*``), reads the type from each sample's key and declares its ``MS`` token
 once the first message told the type. A sample whose type is unknown, whose hash differs from
 this process's hash of that type, whose attachment is malformed or whose CDR does not parse is
 counted in ``refused`` (with ``last_refusal``) and dropped: never raised into Zenoh's thread.
@@ -106,6 +107,8 @@ class Ros2Subscription:
         self, node: Ros2Node, topic: str, ros_type: str | None, qos: QoS, on_message: Callable[[Received], None], *, humble: bool
     ) -> None:
         self.topic = names.check_topic(topic)
+        if ros_type is None:
+            ros_type = _published_type(node, self.topic)
         self.ros_type = node.types.check(ros_type) if ros_type is not None else None
         self.qos = qos
         self.received = 0
@@ -190,6 +193,18 @@ class Ros2Subscription:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _published_type(node: Ros2Node, topic: str) -> str | None:
+    """The one known type the publishers of ``topic`` announce now, else None."""
+    from dyknow.ros2.graph import snapshot
+
+    found = {e.ros_type for e in snapshot(node.session, node.domain, timeout_s=0.3).publishers(topic)}
+    if len(found) == 1:
+        (ros_type,) = found
+        if ros_type is not None and node.types.known(ros_type):
+            return ros_type
+    return None
 
 
 class Ros2Node:
