@@ -246,3 +246,10 @@ def test_echo_reads_a_dds_topic(make_manager: Callable[..., Manager]) -> None:
         stop.set()
     assert echoed.returncode == 0, echoed.stderr
     assert json.loads(echoed.stdout.splitlines()[0])["payload"] == "over dds"
+
+
+def test_a_units_own_set_config_refuses_a_ros2_binding(ros: Manager) -> None:
+    ros.spawn("sink", "snk")
+    with pytest.raises(BindingError, match="is a ROS 2 binding, not a key"):
+        ros.unit("snk").set_config({"in": "ros2:/chatter"})  # the proxy's: keys only; the manager's wires ROS 2
+    assert ros.get_config("snk")["in"].endswith("/snk/in")

@@ -20,15 +20,14 @@ from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
 from dyknow.errors import BindingError, did_you_mean
+from dyknow.keys import ROS2_SCHEMES
 from dyknow.ros2.names import Durability as _Durability
 from dyknow.ros2.names import QoS, Reliability, check_topic, dds_type_name
 
 __all__ = ["DDS_SCHEME", "SCHEME", "Ros2Binding", "is_ros2", "parse_binding"]
 
-#: The prefix of a ROS 2 binding on rmw_zenoh.
-SCHEME = "ros2:"
-#: The prefix of a ROS 2 binding on DDS.
-DDS_SCHEME = "ros2dds:"
+#: The prefix of a ROS 2 binding on rmw_zenoh, and on DDS (their home: :data:`dyknow.keys.ROS2_SCHEMES`).
+SCHEME, DDS_SCHEME = ROS2_SCHEMES
 _OPTIONS = ("type", "reliability", "durability", "depth", "history", "frame_id", "hash")
 
 
