@@ -84,3 +84,19 @@ def test_an_untyped_subscription_takes_the_type_its_publishers_announce(sessions
         sub = listener.create_subscription("/announced", None, lambda r: None)
         assert sub.ros_type == "sensor_msgs/msg/Image" and sub.key.endswith(talker.types.type_hash("sensor_msgs/msg/Image"))
         wait_until(lambda: any(e.kind is EntityKind.SUBSCRIPTION for e in snapshot(a, 15, timeout_s=0.2).entities), "its MS token at once")
+
+
+def test_an_oversized_sample_is_refused_before_it_is_copied(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    refused: list[str] = []
+    taken: list[bytes] = []
+    with b.declare_sample_subscriber(
+        "0/big/**", lambda k, p, att: taken.append(p), max_bytes=100, on_refused=lambda k, why: refused.append(why)
+    ):
+        pub = a.declare_plain_publisher("0/big/x")
+        try:
+            wait_until(lambda: (pub.put(bytes(200)), bool(refused))[1], "the oversized sample refused")
+            wait_until(lambda: (pub.put(bytes(50)), bool(taken))[1], "a small one taken")
+        finally:
+            pub.undeclare()
+    assert "200 bytes, over the limit of 100" in refused[0]
