@@ -10,7 +10,9 @@ so latency is one clock: arrival minus the image's ``header.stamp``, set when it
 - ``dyknow-dds``: the same relay bound ``ros2dds:`` (Cyclone DDS); the ROS side is rclpy on
   rmw_fastrtps_cpp (the ROS 2 wheels);
 - ``rclpy-dds``: an rclpy relay node (subscription -> publish) between the same rclpy ROS side:
-  what ROS 2 itself costs over the same middleware as ``dyknow-dds``.
+  what ROS 2 itself costs over the same middleware as ``dyknow-dds``;
+- ``dyknow-native``: dyknow's own path for comparison: the same relay bound to dyknow keys, fed
+  and read by a dyknow manager (BGR arrays, dyknow's header; latency from its origin time).
 
 The dyknow relays convert as a unit sees it (Image -> BGR array -> Image: two copies and a
 channel swap); the rclpy relay republishes the message object. CPU per message is the relay
@@ -74,6 +76,37 @@ def ros_side(middleware: str, endpoint: str, domain: int, rate_hz: float, durati
             latencies.append((time.time_ns() - stamp_ns(msg)) / 1e6)
 
     print(json.dumps({"ready": True}), flush=True)
+    if middleware == "native":
+        from dyknow import Manager
+        from dyknow.resources import specs_dir
+
+        with Manager("side", specs=[specs_dir() / "generic.xml"], connect=[endpoint]) as side:
+            from dyknow.spec import Port, TransformationSpec
+
+            side.add_transformation(TransformationSpec("source", "dyknow.testing:Source", ports=(Port("out", "out"),)))
+            side.add_transformation(TransformationSpec("sink", "dyknow.testing:Sink", ports=(Port("in", "in", queue=64),)))
+            side.spawn("source", "source", bindings={"out": "bench/in"})
+            side.spawn("sink", "sink", bindings={"in": "bench/out"})
+            source, sink = side.unit("source"), side.unit("sink")
+            deadline = time.monotonic() + 30
+            while "bench" not in side.get_model().clocks and time.monotonic() < deadline:  # the relay's clock, for its times
+                time.sleep(0.1)
+            bgr = np.ascontiguousarray(frame)
+            start = time.monotonic()
+            cpu0 = time.process_time()
+            while time.monotonic() - start < duration_s:
+                source.emit(bgr.copy())  # type: ignore[attr-defined]  # a new frame each time, as a camera's
+                sent += 1
+                time.sleep(max(0.0, sent / rate_hz - (time.monotonic() - start)))
+            time.sleep(0.5)
+            cpu = time.process_time() - cpu0
+            # the sink's input port measures arrival minus origin itself (the last 1,000 or so)
+            latency = side.get_statistics("sink").ports[0].latency
+            received = len(sink.messages)  # type: ignore[attr-defined]
+        print(
+            json.dumps({"sent": sent, "received": received, "p50_ms": latency.p50_us / 1000, "p99_ms": latency.p99_us / 1000, "cpu_s": cpu})
+        )
+        return
     if middleware == "zenoh":
         from dyknow.ros2 import Ros2Node
         from dyknow.ros2.convert import to_message
@@ -132,13 +165,17 @@ def _until_sigterm() -> threading.Event:
 
 
 def relay_dyknow(middleware: str, listen: str, domain: int) -> None:
-    """A manager with one relay unit between /bench/in and /bench/out; runs until SIGTERM."""
+    """A manager with one relay unit between /bench/in and /bench/out (dyknow keys bench/in and
+    bench/out for ``native``); runs until SIGTERM."""
     from dyknow import Manager
     from dyknow.resources import specs_dir
 
     scheme = "ros2" if middleware == "zenoh" else "ros2dds"
     with Manager("bench", specs=[specs_dir() / "generic.xml"], listen=[listen], ros2_domain=domain) as manager:
-        manager.spawn("relay", "relay", bindings={"in": f"{scheme}:/bench/in?type={IMAGE}", "out": f"{scheme}:/bench/out?type={IMAGE}"})
+        if middleware == "native":
+            manager.spawn("relay", "relay", bindings={"in": "bench/in", "out": "bench/out"})
+        else:
+            manager.spawn("relay", "relay", bindings={"in": f"{scheme}:/bench/in?type={IMAGE}", "out": f"{scheme}:/bench/out?type={IMAGE}"})
         stop = _until_sigterm()
         print(json.dumps({"ready": True}), flush=True)
         stop.wait()
@@ -175,7 +212,7 @@ def run_variant(variant: str, rate_hz: float, duration_s: float, domain: int) ->
 
     port = free_ports(1)[0]
     endpoint = f"tcp/127.0.0.1:{port}"
-    middleware = "zenoh" if variant == "dyknow-zenoh" else "dds"
+    middleware = {"dyknow-zenoh": "zenoh", "dyknow-native": "native"}.get(variant, "dds")
     env = _rclpy_env(domain)
     relay_args = ["relay-rclpy"] if variant == "rclpy-dds" else ["relay-dyknow", middleware, endpoint]
     relay = Proc([sys.executable, SCRIPT, *relay_args, str(domain)], env=env)
@@ -193,15 +230,17 @@ def run_variant(variant: str, rate_hz: float, duration_s: float, domain: int) ->
         relayed = int(relay.next_json(30)["relayed"])
     finally:
         relay.close()
-    lat = result["latencies_ms"]
+    lat = result.get("latencies_ms", [])
+    p50 = result.get("p50_ms", percentile(lat, 50) if lat else None)
+    p99 = result.get("p99_ms", percentile(lat, 99) if lat else None)
     return {
         "variant": variant,
         "rate_hz": rate_hz,
         "sent": result["sent"],
         "received": result["received"],
         "relayed": relayed,
-        "latency_p50_ms": percentile(lat, 50) if lat else None,
-        "latency_p99_ms": percentile(lat, 99) if lat else None,
+        "latency_p50_ms": None if p50 is None else round(p50, 3),
+        "latency_p99_ms": None if p99 is None else round(p99, 3),
         "relay_cpu_ms_per_msg": round(relay_cpu * 1000 / max(1, relayed), 3),
         "ros_side_cpu_ms_per_msg": round(result["cpu_s"] * 1000 / max(1, result["sent"]), 3),
     }
@@ -227,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     opts = parser.parse_args(args)
     duration, rate = (1.0, 10.0) if opts.smoke else (opts.duration, opts.rate)
     domain = 150 + os.getpid() % 40
-    rows = [run_variant(v, rate, duration, domain + i) for i, v in enumerate(("dyknow-zenoh", "dyknow-dds", "rclpy-dds"))]
+    rows = [run_variant(v, rate, duration, domain + i) for i, v in enumerate(("dyknow-native", "dyknow-zenoh", "dyknow-dds", "rclpy-dds"))]
     print(f"{'variant':<14} {'sent':>5} {'back':>5} {'p50 ms':>8} {'p99 ms':>8} {'relay CPU ms/msg':>17} {'ROS side CPU ms/msg':>20}")
     for r in rows:
         print(

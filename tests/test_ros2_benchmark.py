@@ -18,7 +18,7 @@ def test_ros2_benchmark_smoke(tmp_path: Path) -> None:
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     rows = {r["variant"]: r for r in json.loads(out.read_text())["results"]}
-    assert set(rows) == {"dyknow-zenoh", "dyknow-dds", "rclpy-dds"}
+    assert set(rows) == {"dyknow-native", "dyknow-zenoh", "dyknow-dds", "rclpy-dds"}
     for row in rows.values():
         assert row["sent"] > 0 and row["received"] > 0 and row["relayed"] > 0, row
         assert row["latency_p50_ms"] > 0 and row["relay_cpu_ms_per_msg"] >= 0
