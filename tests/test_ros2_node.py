@@ -11,7 +11,7 @@ import pytest
 
 from dyknow.errors import ClosedError
 from dyknow.ros2 import Graph, Received, Ros2Node, snapshot
-from dyknow.ros2.names import ADMIN_SPACE, EntityKind
+from dyknow.ros2.names import ADMIN_SPACE, Durability, EntityKind, QoS
 from dyknow.transport import Session, open_session
 from tests.conftest import free_port, wait_until
 
@@ -58,8 +58,7 @@ def test_an_untyped_subscription_learns_the_type_then_refuses_others(sessions: t
         sub = listener.create_subscription("/mixed", None, lambda r: (got.append(r), arrived.set()))
         assert snapshot(b, 13, timeout_s=0.3).topics() == {}  # no type yet: no MS token yet
         strings = talker.create_publisher("/mixed", "std_msgs/msg/String")
-        while not arrived.wait(0.05):
-            strings.publish(string(talker, "first"))
+        wait_until(lambda: (strings.publish(string(talker, "first")), arrived.wait(0.05))[1], "the first message")
         assert sub.ros_type == "std_msgs/msg/String" and got[0].message.data == "first"
         wait_until(
             lambda: any(e.kind is EntityKind.SUBSCRIPTION for e in snapshot(b, 13, timeout_s=0.2).entities), "the MS token, now typed"
@@ -100,3 +99,14 @@ def test_an_oversized_sample_is_refused_before_it_is_copied(sessions: tuple[Sess
         finally:
             pub.undeclare()
     assert "200 bytes, over the limit of 100" in refused[0]
+
+
+def test_a_volatile_subscription_reads_an_advanced_publisher(sessions: tuple[Session, Session]) -> None:
+    # rmw_zenoh_cpp's publishers are Zenoh advanced publishers (a cache, miss detection); a plain
+    # subscriber must read them as it reads plain ones
+    a, b = sessions
+    got = threading.Event()
+    with Ros2Node(a, "advanced", domain=16) as talker, Ros2Node(b, "plain", domain=16) as listener:
+        listener.create_subscription("/adv", "std_msgs/msg/String", lambda r: got.set())
+        pub = talker.create_publisher("/adv", "std_msgs/msg/String", QoS(durability=Durability.TRANSIENT_LOCAL, depth=3))
+        wait_until(lambda: (pub.publish(string(talker, "live")), got.wait(0.05))[1], "a live message")
