@@ -512,11 +512,11 @@ class PlainPublisher(_Entity):
 
     ``cache``: keep the last ``cache`` samples for late subscribers that ask for history (Zenoh's
     advanced publisher, as rmw_zenoh declares it for transient-local durability); 0 is a plain
-    publisher. ``reliable``: block when the network queue is full instead of dropping.
+    publisher. ``block``: block when the network queue is full instead of dropping.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, *, reliable: bool, cache: int, encoding: str) -> None:
-        congestion = zenoh.CongestionControl.BLOCK if reliable else zenoh.CongestionControl.DROP
+    def __init__(self, session: zenoh.Session, key: str, *, block: bool, cache: int, encoding: str) -> None:
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self._encoding = zenoh.Encoding(encoding)
         try:
             if cache > 0:
@@ -800,10 +800,10 @@ class Session:
         return Subscriber(self._z(), key, on_message, on_error, inline, wanted, forward)
 
     def declare_plain_publisher(
-        self, key: str, *, reliable: bool = True, cache: int = 0, encoding: str = "application/cdr"
+        self, key: str, *, block: bool = False, cache: int = 0, encoding: str = "application/cdr"
     ) -> PlainPublisher:
         """A publisher of another protocol's payloads on ``key`` (see :class:`PlainPublisher`)."""
-        return PlainPublisher(self._z(), key, reliable=reliable, cache=cache, encoding=encoding)
+        return PlainPublisher(self._z(), key, block=block, cache=cache, encoding=encoding)
 
     def declare_sample_subscriber(
         self,

@@ -63,7 +63,10 @@ class Ros2Publisher:
         self._seq = 0
         self._lock = threading.Lock()
         cache = qos.depth if qos.durability is names.Durability.TRANSIENT_LOCAL else 0
-        self._publisher = node.session.declare_plain_publisher(self.key, reliable=qos.reliability is Reliability.RELIABLE, cache=cache)
+        # as rmw_zenoh: only a reliable keep-all publisher blocks when the network is congested; the
+        # others drop (a 30 Hz camera must not stall its unit behind a slow reader)
+        block = qos.reliability is Reliability.RELIABLE and qos.keep_all
+        self._publisher = node.session.declare_plain_publisher(self.key, block=block, cache=cache)
         try:
             self._token = node.session.declare_liveliness_token(self.entity.token())
         except BaseException:
