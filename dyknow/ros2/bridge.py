@@ -29,6 +29,7 @@ send time as the attachment's source timestamp.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
 from dyknow.errors import BindingError
@@ -36,8 +37,7 @@ from dyknow.message import Message
 from dyknow.ros2.binding import Ros2Binding, parse_binding
 from dyknow.ros2.convert import COMPRESSED, from_message, stamp_ns, to_message
 from dyknow.ros2.dds import DdsNode, DdsPublisher, DdsSubscription
-from dyknow.ros2.graph import Graph
-from dyknow.ros2.names import Entity, EntityKind
+from dyknow.ros2.names import Entity
 from dyknow.ros2.node import Received, Ros2Node, Ros2Publisher, Ros2Subscription
 from dyknow.unit import Unit
 
@@ -98,7 +98,7 @@ class Ros2Source(_Ros2Unit):
     refused = 0
     last_refusal: str | None = None
     _sub: Ros2Subscription | DdsSubscription | None = None
-    _graph: Graph | None = None
+    _stop_watch: Callable[[], None] | None = None
 
     def setup(self) -> None:
         """Subscribe to the topic and watch its publishers (their tokens; on DDS, the matched writers)."""
@@ -111,7 +111,7 @@ class Ros2Source(_Ros2Unit):
             self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, self._dds_matched)
         else:
             self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
-            self._graph = Graph(node.session, node.domain, self._graph_changed)
+            self._stop_watch = node.watch_publishers(binding.topic, self._graph_changed)
         if self.params.get("require_publisher") in (True, "true", "1"):
             wait_s = float(self.params.get("wait_s", 2.0))
             if not self._present.wait(wait_s):
@@ -130,8 +130,6 @@ class Ros2Source(_Ros2Unit):
             self._present.set()
 
     def _graph_changed(self, entity: Entity, alive: bool) -> None:
-        if entity.kind is not EntityKind.PUBLISHER or entity.topic != self.binding.topic:
-            return
         ident = (entity.session_id, entity.node_id, entity.entity_id)
         if alive:
             self._publishers.add(ident)
@@ -164,9 +162,9 @@ class Ros2Source(_Ros2Unit):
 
     def teardown(self) -> None:
         """Stop watching, unsubscribe; safe twice."""
-        graph, self._graph = self._graph, None
-        if graph is not None:
-            graph.close()
+        stop, self._stop_watch = self._stop_watch, None
+        if stop is not None:
+            stop()
         sub, self._sub = self._sub, None
         if sub is not None:
             sub.close()

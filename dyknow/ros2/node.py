@@ -234,6 +234,9 @@ class Ros2Node:
         self._lock = threading.Lock()
         self.entity_token = names.Entity(self.domain, session.zid, self.node_id, self.node_id, names.EntityKind.NODE, namespace, name)
         self._token: Any = session.declare_liveliness_token(self.entity_token.token())
+        self._graph: Any = None  # one Graph for every watcher of this node (see watch_publishers)
+        self._watchers: dict[int, tuple[str, Callable[[names.Entity, bool], None]]] = {}
+        self._watch_ids = itertools.count(1)
 
     def entity(self, kind: names.EntityKind, topic: str, ros_type: str, type_hash: str, qos: QoS) -> names.Entity:
         """A new entity of this node (its id taken from the node's counter)."""
@@ -280,6 +283,40 @@ class Ros2Node:
             self._entities.append(sub)
         return sub
 
+    def watch_publishers(self, topic: str, on_change: Callable[[names.Entity, bool], None]) -> Callable[[], None]:
+        """Call ``on_change(entity, alive)`` as publishers of ``topic`` appear and vanish (their
+        tokens; those up now first), on a Zenoh thread; returns the function that stops it. The
+        node keeps one watch of the graph for all its watchers."""
+        from dyknow.ros2.graph import Graph
+
+        self._check_open()
+        with self._lock:
+            ident = next(self._watch_ids)
+            self._watchers[ident] = (topic, on_change)
+            graph = self._graph
+            if graph is None:  # its history brings the tokens up now to every watcher
+                self._graph = Graph(self.session, self.domain, self._graph_changed)
+        if graph is not None:
+            for entity in graph.view().publishers(topic):
+                on_change(entity, True)
+
+        def stop() -> None:
+            with self._lock:
+                self._watchers.pop(ident, None)
+
+        return stop
+
+    def _graph_changed(self, entity: names.Entity, alive: bool) -> None:
+        if entity.kind is not names.EntityKind.PUBLISHER:
+            return
+        with self._lock:
+            watchers = [fn for topic, fn in self._watchers.values() if topic == entity.topic]
+        for fn in watchers:
+            try:
+                fn(entity, alive)
+            except Exception:
+                log.exception("a watcher of %s failed", entity.topic)
+
     def forget(self, entity: Ros2Publisher | Ros2Subscription) -> None:
         """Called by an entity that closed itself."""
         with self._lock:
@@ -292,6 +329,9 @@ class Ros2Node:
             entities = list(reversed(self._entities))
         for entity in entities:
             entity.close()
+        graph, self._graph = self._graph, None
+        if graph is not None:
+            graph.close()
         token, self._token = self._token, None
         if token is not None:
             token.undeclare()
