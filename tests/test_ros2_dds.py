@@ -151,3 +151,17 @@ def test_an_rclpy_listener_reads_what_dyknow_publishes_over_dds(
             "data": list(range(24)),
             "stamp": [1_700_000_000, 250_000_000],
         }
+
+
+def test_two_managers_of_one_process_share_a_dds_domain(make_manager: Callable[..., Manager], domain: int) -> None:
+    a, b = make_manager(ros2_domain=domain), make_manager(ros2_domain=domain)
+    b.spawn("sink", "snk", bindings={"in": "ros2dds:/between?type=geometry_msgs/msg/Twist"})
+    a.spawn("publisher", "src", bindings={"out": "ros2dds:/between?type=geometry_msgs/msg/Twist"})
+    deadline = time.monotonic() + 30
+    while not b.unit("snk").messages:  # type: ignore[attr-defined]
+        assert time.monotonic() < deadline, "nothing crossed in 30 s"
+        a.unit("src").emit({"angular": {"z": 1.5}})  # type: ignore[attr-defined]
+        time.sleep(0.05)
+    assert b.unit("snk").messages[0].payload["angular"]["z"] == 1.5  # type: ignore[attr-defined]
+    with pytest.raises(BindingError, match="configured already"):
+        make_manager(ros2_domain=domain, dds_config="<CycloneDDS/>").dds_node()

@@ -63,6 +63,27 @@ def _raw_entities() -> tuple[Any, Any]:
     return RawWriter, RawReader
 
 
+# Cyclone configures a domain once per process: every participant of it shares that configuration
+_domains: dict[int, tuple[str, Any]] = {}
+_domains_lock = threading.Lock()
+
+
+def _domain(domain: int, config: str) -> Any:
+    from cyclonedds.domain import Domain
+
+    with _domains_lock:
+        found = _domains.get(domain)
+        if found is None:
+            found = _domains[domain] = (config, Domain(domain, config))
+        elif found[0] != config:
+            raise BindingError(
+                f"DDS domain {domain} is configured already in this process, otherwise",
+                where="DDS participant",
+                expected="the same Cyclone configuration for every manager of this process on that domain",
+            )
+        return found[1]
+
+
 def _qos(qos: QoS) -> Any:
     from cyclonedds.core import Policy, Qos
     from cyclonedds.util import duration
@@ -205,7 +226,7 @@ class DdsNode:
 
     def __init__(self, *, domain: int = 0, config: str | None = None, types: TypeSupport | None = None) -> None:
         try:
-            from cyclonedds.domain import Domain, DomainParticipant
+            from cyclonedds.domain import DomainParticipant
         except ImportError as exc:
             raise BindingError(
                 "Cyclone DDS's Python binding is not installed", where="ros2dds binding", expected="pip install 'dyknow[ros2]'"
@@ -214,7 +235,7 @@ class DdsNode:
             raise BindingError(f"domain {domain}", where="DDS participant", expected="a ROS_DOMAIN_ID from 0 to 232")
         self.domain = int(domain)
         self.types = types or TypeSupport()
-        self._domain = Domain(self.domain, config or LOOPBACK_CONFIG)
+        self._domain = _domain(self.domain, config or LOOPBACK_CONFIG)
         self.participant: Any = DomainParticipant(self.domain)
         self._classes: dict[str, Any] = {}
         self._topics: dict[tuple[str, str], Any] = {}
