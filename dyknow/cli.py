@@ -19,7 +19,7 @@ Commands::
     dyknow stats NAME
     dyknow add-spec FILE | dyknow remove-spec LABEL
     dyknow echo KEYEXPR [--count N] | dyknow echo ros2:/TOPIC | ros2dds:/TOPIC?type=T [--ros2-domain N]
-    dyknow ros2 list [--ros2-domain N]
+    dyknow ros2 list [--dds] [--ros2-domain N]
     dyknow foxglove [KEYEXPR ...] [--host ADDR] [--port N]
     dyknow request TAG [--standby warm] | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
     dyknow record KEYEXPR ... -o FILE.mcap [--duration S] [--max-messages N] [--compression zstd|lz4|none]
@@ -742,6 +742,13 @@ def cmd_ros2_list(args: argparse.Namespace) -> int:
     """list the ROS 2 graph seen on Zenoh (rmw_zenoh's liveliness tokens): nodes, topics and their types"""
     from dyknow.ros2 import snapshot
 
+    if args.dds:  # DDS: what discovery brings within --timeout (types only: DDS has no node tokens)
+        from dyknow.ros2.dds import DdsNode
+
+        with DdsNode(domain=_ros2_domain(args)) as participant:
+            topics = participant.topics(wait_s=args.timeout)
+        _report(args, {"topics": topics}, ["topics (DDS):", *(f"  {t} [{', '.join(types)}]" for t, types in topics.items())])
+        return 0
     with _client(args) as client:
         view = snapshot(client.session, _ros2_domain(args), timeout_s=args.timeout)
 
@@ -1247,6 +1254,7 @@ def _parser() -> argparse.ArgumentParser:
     zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
     p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=argparse.SUPPRESS)
     p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="seconds to gather the graph (default 1)")
+    p.add_argument("--dds", action="store_true", help="the topics on DDS (Cyclone DDS, loopback discovery) instead of rmw_zenoh")
     ros2_domain_option(p)
     return parser
 

@@ -23,7 +23,7 @@ import pytest
 from dyknow import Manager
 from dyknow.errors import BindingError
 from dyknow.ros2 import parse_binding
-from tests.conftest import REPO, subprocess_env
+from tests.conftest import REPO, run_cli, subprocess_env
 
 PEER = Path(__file__).with_name("ros2_rclpy_peer.py")
 _domains = itertools.count(100 + os.getpid() % 50 * 2)
@@ -165,3 +165,12 @@ def test_two_managers_of_one_process_share_a_dds_domain(make_manager: Callable[.
     assert b.unit("snk").messages[0].payload["angular"]["z"] == 1.5  # type: ignore[attr-defined]
     with pytest.raises(BindingError, match="configured already"):
         make_manager(ros2_domain=domain, dds_config="<CycloneDDS/>").dds_node()
+
+
+def test_ros2_list_shows_the_dds_topics(dds_manager: Manager, rclpy_node: Callable[..., Rclpy], domain: int) -> None:
+    dds_manager.spawn("publisher", "talker", bindings={"out": "ros2dds:/from_dyknow?type=std_msgs/msg/String"})
+    rclpy_node("talk", "/chatter", "std_msgs/msg/String")
+    listed = run_cli("ros2", "list", "--dds", "--json", "--ros2-domain", str(domain), "--timeout", "3")
+    assert listed.returncode == 0, listed.stderr
+    topics = json.loads(listed.stdout)["topics"]
+    assert topics["/chatter"] == ["std_msgs/msg/String"] and topics["/from_dyknow"] == ["std_msgs/msg/String"]

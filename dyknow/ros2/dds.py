@@ -25,13 +25,16 @@ from typing import Any
 
 from dyknow.errors import BindingError, ClosedError
 from dyknow.ros2.attachment import Attachment
-from dyknow.ros2.names import DEFAULT_QOS, Durability, QoS, Reliability, check_topic, dds_type_name
+from dyknow.ros2.names import DEFAULT_QOS, Durability, QoS, Reliability, check_topic, dds_type_name, ros_type_name
 from dyknow.ros2.node import Received
 from dyknow.ros2.types import TypeSupport
 
 __all__ = ["LOOPBACK_CONFIG", "DdsNode", "DdsPublisher", "DdsSubscription"]
 
 log = logging.getLogger(__name__)
+
+#: The most publications and subscriptions :meth:`DdsNode.topics` reads.
+MAX_DISCOVERED = 10_000
 
 #: Cyclone DDS on loopback only: unicast discovery to 127.0.0.1 (participant indices 0 to 30).
 LOOPBACK_CONFIG = (
@@ -304,6 +307,29 @@ class DdsNode:
             if found is None:
                 found = self._topics[(topic, ros_type)] = Topic(self.participant, "rt" + check_topic(topic), self.idl_type(ros_type))
             return found
+
+    def topics(self, *, wait_s: float = 1.0) -> dict[str, list[str]]:
+        """The ROS 2 topics the DDS writers and readers of this domain carry (``rt/`` topics with
+        ROS type names), topic -> types, after discovery had ``wait_s`` to bring them."""
+        from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription
+
+        with self._lock:
+            if self._closed:
+                raise ClosedError("the DDS participant is closed", where="ros2dds", expected="a new participant")
+            readers = [BuiltinDataReader(self.participant, t) for t in (BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription)]
+        time.sleep(wait_s)  # DDS discovery has no "done": what came within the wait
+        found: dict[str, set[str]] = {}
+        for reader in readers:
+            for sample in reader.read(N=MAX_DISCOVERED):
+                name, type_name = str(getattr(sample, "topic_name", "")), str(getattr(sample, "type_name", ""))
+                if not name.startswith("rt/"):
+                    continue  # not a ROS 2 topic (rq/, rr/ are services; others are not ROS's)
+                try:
+                    found.setdefault(check_topic(name[2:]), set()).add(ros_type_name(type_name))
+                except BindingError:
+                    log.debug("ignoring DDS topic %r of type %r", name[:200], type_name[:200])
+            reader.__del__()  # as DdsPublisher.close
+        return {topic: sorted(types) for topic, types in sorted(found.items())}
 
     def create_publisher(self, topic: str, ros_type: str, qos: QoS = DEFAULT_QOS) -> DdsPublisher:
         """A writer of ``ros_type`` on ``topic``."""
