@@ -103,10 +103,17 @@ def dds_manager(make_manager: Callable[..., Manager], domain: int) -> Manager:
     return make_manager(ros2_domain=domain)
 
 
-def test_dds_bindings_need_a_type() -> None:
+def test_dds_bindings_write_back() -> None:
     assert parse_binding("ros2dds:/chatter?type=std_msgs/msg/String").uri() == "ros2dds:/chatter?type=std_msgs/msg/String"
-    with pytest.raises(BindingError, match="DDS needs the type"):
-        parse_binding("ros2dds:/chatter")
+    assert parse_binding("ros2dds:/chatter").dds
+
+
+def test_an_untyped_dds_input_takes_the_type_its_writers_announce(dds_manager: Manager, rclpy_node: Callable[..., Rclpy]) -> None:
+    rclpy_node("talk", "/chatter", "std_msgs/msg/String")
+    dds_manager.spawn("sink", "listener", bindings={"in": "ros2dds:/chatter"})
+    assert dds_manager.unit("listener").wait_for(1, timeout_s=30)[0].payload.startswith("hello ")  # type: ignore[attr-defined]
+    with pytest.raises(BindingError, match="announced none"):
+        dds_manager.spawn("sink", "nobody", bindings={"in": "ros2dds:/nobody_writes_this"})
 
 
 def test_a_unit_reads_an_rclpy_talker_over_dds(dds_manager: Manager, rclpy_node: Callable[..., Rclpy]) -> None:

@@ -5,8 +5,9 @@ natively on the manager's session); ``ros2dds:/TOPIC?...`` is the same topic on 
 default middleware, through Cyclone DDS: :mod:`dyknow.ros2.dds`). The middleware is chosen per
 binding, not per manager, so one manager can read from one and write to the other. Options:
 
-- ``type=pkg/msg/Type``: the message type. Required for an output and for any DDS binding; an
-  rmw_zenoh input without it takes the type its publishers send (learned from each message's key).
+- ``type=pkg/msg/Type``: the message type. Required for an output; an input without it takes the
+  type its publishers announce (rmw_zenoh: their tokens, else each message's key; DDS: the
+  writers discovery shows within 2 s, else it fails).
 - ``reliability=reliable|best_effort`` (default reliable), ``durability=volatile|transient_local``
   (default volatile; transient-local outputs keep ``depth`` messages for late subscribers, as
   rmw_zenoh's do), ``depth=N`` (default 10), ``history=keep_last|keep_all``;
@@ -106,10 +107,6 @@ def parse_binding(text: str, *, where: str = "binding") -> Ros2Binding:
         int(depth),
         options.get("history") == "keep_all",
     )
-    if dds and ros_type is None:
-        raise BindingError(
-            f"{text[:80]!r} names no type", where=where, expected=f"ros2dds:{topic}?type=pkg/msg/Type (DDS needs the type up front)"
-        )
     if dds and "hash" in options:
         raise BindingError("hash=none on a DDS binding", where=where, expected="hash only on ros2: bindings (DDS names no hash)")
     return Ros2Binding(topic, ros_type, qos, options.get("frame_id", ""), options.get("hash") == "none", dds)

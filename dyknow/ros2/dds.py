@@ -346,9 +346,17 @@ class DdsNode:
         qos: QoS = DEFAULT_QOS,
         on_publishers: Callable[[int], None] | None = None,
     ) -> DdsSubscription:
-        """A reader of ``topic``; DDS needs the type up front (``?type=pkg/msg/Type``)."""
+        """A reader of ``topic``; ``ros_type`` None: the one known type its writers announce
+        (discovery is given 2 s), else :class:`BindingError`."""
         if ros_type is None:
-            raise BindingError(f"ros2dds:{topic} names no type", where="DDS subscription", expected=f"ros2dds:{topic}?type=pkg/msg/Type")
+            announced = [t for t in self.topics(wait_s=2.0).get(check_topic(topic), []) if self.types.known(t)]
+            if len(announced) != 1:
+                raise BindingError(
+                    f"ros2dds:{topic} names no type, and its DDS writers announced {announced or 'none'} within 2 s",
+                    where="DDS subscription",
+                    expected=f"ros2dds:{topic}?type=pkg/msg/Type",
+                )
+            ros_type = announced[0]
         sub = DdsSubscription(self, topic, ros_type, qos, on_message, on_publishers)
         with self._lock:
             self._entities.append(sub)
