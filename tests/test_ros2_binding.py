@@ -253,3 +253,22 @@ def test_a_units_own_set_config_refuses_a_ros2_binding(ros: Manager) -> None:
     with pytest.raises(BindingError, match="is a ROS 2 binding, not a key"):
         ros.unit("snk").set_config({"in": "ros2:/chatter"})  # the proxy's: keys only; the manager's wires ROS 2
     assert ros.get_config("snk")["in"].endswith("/snk/in")
+
+
+def test_a_bound_input_waits_across_a_publisher_restart(make_manager: Callable[..., Manager]) -> None:
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=10)
+    robot.spawn("sink", "snk", bindings={"in": "ros2:/restarting?type=std_msgs/msg/String"})
+    sink = robot.unit("snk")
+    for text in ("before", "after"):  # the talker's node goes away between the two
+        with (
+            open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+            Ros2Node(session, "talker", domain=10) as node,
+        ):
+            pub = node.create_publisher("/restarting", "std_msgs/msg/String")
+            deadline = time.monotonic() + 20
+            while not any(m.payload == text for m in sink.messages):  # type: ignore[attr-defined]
+                assert time.monotonic() < deadline, f"no {text!r} in 20 s"
+                pub.publish(node.types.message_class("std_msgs/msg/String")(data=text))
+                time.sleep(0.05)
+    assert {u.name: u.state for u in robot.get_model().units}["snk.in.ros2"] == "running"

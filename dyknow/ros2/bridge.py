@@ -84,15 +84,16 @@ class Ros2Source(_Ros2Unit):
     """Publishes on ``out`` every message of a ROS 2 topic, converted (:mod:`dyknow.ros2.convert`).
 
     ``refused`` counts the messages that could not be used (undecodable, of another type, an
-    image that contradicts its sizes); ``last_refusal`` says why the latest was.
+    image that contradicts its sizes); ``last_refusal`` says why the latest was. ``publishers``
+    is how many ROS 2 publishers of the topic are up (their liveliness tokens; on DDS, the
+    matched writers).
 
-    The source watches the topic's publishers through their liveliness tokens: when the last one
-    it saw goes (its node ended or crashed), the unit fails, so the adaptation loop moves what it
-    fed to another producer as for any failed source, and may come back to it later. A source
-    started before any publisher waits for one without failing, unless its param
-    ``require_publisher`` is true (a spec that offers a ROS 2 topic as a producer): then it waits
-    up to ``wait_s`` (default 2) for one and fails without, so the adaptation loop keeps it in
-    back-off until its publisher is back, and returns to it then.
+    By default the source waits for publishers, and across their restarts (a port bound to a
+    topic keeps its binding). With the param ``require_publisher`` true (a spec that offers a
+    ROS 2 topic as a producer) it is a producer only while one is up: it waits up to ``wait_s``
+    (default 2) for one at start and fails without, and fails when the last one goes, so the
+    adaptation loop moves what it fed to another producer, keeps it in back-off while its
+    publisher is gone and returns to it once it is back.
     """
 
     refused = 0
@@ -107,12 +108,13 @@ class Ros2Source(_Ros2Unit):
         self._publishers: set[tuple[str, int, int]] = set()
         self._present = threading.Event()
         self._seen_dds = 0
+        self._required = self.params.get("require_publisher") in (True, "true", "1")
         if isinstance(node, DdsNode):
             self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, self._dds_matched)
         else:
             self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
             self._stop_watch = node.watch_publishers(binding.topic, self._graph_changed)
-        if self.params.get("require_publisher") in (True, "true", "1"):
+        if self._required:
             wait_s = float(self.params.get("wait_s", 2.0))
             if not self._present.wait(wait_s):
                 self.teardown()
@@ -123,7 +125,7 @@ class Ros2Source(_Ros2Unit):
                 )
 
     def _dds_matched(self, count: int) -> None:
-        if count == 0 and self._seen_dds > 0:
+        if count == 0 and self._seen_dds > 0 and self._required:
             self.fail(f"the DDS writers of rt{self.binding.topic} are gone")
         self._seen_dds = count
         if count:
@@ -136,7 +138,7 @@ class Ros2Source(_Ros2Unit):
             self._present.set()
         elif ident in self._publishers:
             self._publishers.discard(ident)
-            if not self._publishers:
+            if not self._publishers and self._required:
                 self.fail(f"the ROS 2 publishers of {self.binding.topic} are gone (their liveliness tokens vanished)")
 
     @property
