@@ -272,3 +272,18 @@ def test_a_bound_input_waits_across_a_publisher_restart(make_manager: Callable[.
                 pub.publish(node.types.message_class("std_msgs/msg/String")(data=text))
                 time.sleep(0.05)
     assert {u.name: u.state for u in robot.get_model().units}["snk.in.ros2"] == "running"
+
+
+def test_a_publisher_of_another_type_hash_is_named_in_the_log(
+    make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture
+) -> None:
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=12)
+    robot.spawn("sink", "snk", bindings={"in": "ros2:/hashed?type=std_msgs/msg/String"})
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+        Ros2Node(session, "humble", domain=12) as node,
+    ):
+        node.create_publisher("/hashed", "std_msgs/msg/String", humble=True)  # TypeHashNotSupported: another key
+        wait_until(lambda: "so none of its messages will match" in caplog.text, "the warning")
+    assert "/humble of /hashed announces std_msgs/msg/String TypeHashNotSupported" in caplog.text

@@ -109,10 +109,13 @@ class Ros2Source(_Ros2Unit):
         self._present = threading.Event()
         self._seen_dds = 0
         self._required = self.params.get("require_publisher") in (True, "true", "1")
+        self._expected: tuple[str, str] | None = None  # (type, hash) a publisher must announce to reach us
         if isinstance(node, DdsNode):
             self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, self._dds_matched)
         else:
             self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
+            ros_type = self._sub.ros_type
+            self._expected = None if ros_type is None else (ros_type, node.types.type_hash(ros_type, humble=binding.humble))
             self._stop_watch = node.watch_publishers(binding.topic, self._graph_changed)
         if self._required:
             wait_s = float(self.params.get("wait_s", 2.0))
@@ -133,6 +136,14 @@ class Ros2Source(_Ros2Unit):
 
     def _graph_changed(self, entity: Entity, alive: bool) -> None:
         ident = (entity.session_id, entity.node_id, entity.entity_id)
+        expected = self._expected
+        if alive and expected is not None and (entity.ros_type, entity.type_hash) != expected:
+            # its messages travel on another key: none will arrive here; say why once per publisher
+            self.log.warning(
+                "publisher %s of %s announces %s %s; this input takes %s %s, so none of its messages will match",
+                entity.node, self.binding.topic, entity.ros_type, entity.type_hash, *expected,
+            )  # fmt: skip
+            return
         if alive:
             self._publishers.add(ident)
             self._present.set()
