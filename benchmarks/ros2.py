@@ -47,7 +47,9 @@ def _rclpy_env(domain: int) -> dict[str, str]:
     env = dict(os.environ)
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", RMW_IMPLEMENTATION="rmw_fastrtps_cpp")
     # Cyclone (dyknow-dds) refuses Fast DDS 3's type objects for byte sequences: type propagation off
-    env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(Path(__file__).resolve().parent.parent / "tests" / "ros2_fastdds.xml")
+    from dyknow.ros2.dds import FASTDDS_PROFILE
+
+    env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
     return env
 
 

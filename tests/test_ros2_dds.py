@@ -23,6 +23,7 @@ import pytest
 from dyknow import Manager
 from dyknow.errors import BindingError
 from dyknow.ros2 import parse_binding
+from dyknow.ros2.dds import FASTDDS_PROFILE
 from tests.conftest import REPO, run_cli, subprocess_env
 
 PEER = Path(__file__).with_name("ros2_rclpy_peer.py")
@@ -38,7 +39,7 @@ class Rclpy:
         # Fast DDS 3 sends type objects for sequences of plain types that Cyclone 11 refuses (both log
         # "invalid type object"), and then an Image never matches: the ROS side turns type propagation off
         if not type_propagation:
-            env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(Path(__file__).with_name("ros2_fastdds.xml"))
+            env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
         self.proc = subprocess.Popen(
             [sys.executable, str(PEER), *args],
             stdin=subprocess.PIPE,

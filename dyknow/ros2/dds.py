@@ -21,6 +21,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from dyknow.errors import BindingError, ClosedError
@@ -29,9 +30,16 @@ from dyknow.ros2.names import DEFAULT_QOS, Durability, QoS, Reliability, check_t
 from dyknow.ros2.node import Received
 from dyknow.ros2.types import TypeSupport
 
-__all__ = ["LOOPBACK_CONFIG", "DdsNode", "DdsPublisher", "DdsSubscription"]
+__all__ = ["FASTDDS_PROFILE", "LOOPBACK_CONFIG", "DdsNode", "DdsPublisher", "DdsSubscription"]
 
 log = logging.getLogger(__name__)
+
+#: A Fast DDS profile for the ROS 2 nodes that talk to dyknow over DDS
+#: (``FASTDDS_DEFAULT_PROFILES_FILE``): it turns Fast DDS's type propagation off. Fast DDS 3
+#: sends type objects for sequences of plain types (an Image's ``data``) that Cyclone 11 refuses
+#: ("invalid type object"), and then such a topic never matches; without type objects it matches
+#: by type name, as ROS 2 names types. Strings and other types without such sequences need it not.
+FASTDDS_PROFILE = Path(__file__).with_name("fastdds_profile.xml")
 
 #: The most publications and subscriptions :meth:`DdsNode.topics` reads.
 MAX_DISCOVERED = 10_000
