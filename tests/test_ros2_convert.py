@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
 import pytest
 
 from dyknow.errors import BindingError
-from dyknow.ros2.convert import from_message, stamp_ns, to_message
+from dyknow.ros2.convert import compressed_size, from_message, stamp_ns, to_message
 from dyknow.ros2.types import TypeSupport
 
 IMAGE, COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
@@ -126,3 +129,34 @@ def test_payloads_that_do_not_fit_are_refused_naming_the_field(types: TypeSuppor
 def test_fixed_arrays_must_have_their_length(types: TypeSupport) -> None:
     with pytest.raises(BindingError, match="exactly 36"):
         to_message({"pose": {"covariance": [0.0] * 35}}, "geometry_msgs/msg/PoseWithCovarianceStamped", types, origin_ns=0)
+
+
+def test_compressed_images_can_arrive_decoded(types: TypeSupport, data_dir: Path) -> None:
+    jpeg = (data_dir / "images" / "ball" / "messi5.jpg").read_bytes()  # 548 x 342, a real photo
+    assert compressed_size(jpeg) == (548, 342)
+    msg = types.deserialize(types.serialize(to_message(jpeg, COMPRESSED, types, origin_ns=1), COMPRESSED), COMPRESSED)
+    frame = from_message(msg, COMPRESSED, decode=True)
+    assert frame.shape == (342, 548, 3) and frame.dtype == np.uint8
+    png = cv2.imencode(".png", frame[:10, :20])[1].tobytes()
+    assert compressed_size(png) == (20, 10)
+
+
+@pytest.mark.parametrize(
+    ("data", "problem"),
+    [
+        (b"\xff\xd8\xff\xc0\x00\x11\x08\xff\xff\xff\xff\x03" + bytes(20), "65535x65535 declared"),  # a bomb's header
+        (b"\x89PNG\r\n\x1a\n" + bytes(4) + b"IHDR" + (100000).to_bytes(4, "big") + (1).to_bytes(4, "big"), "100000x1"),
+        (b"GIF89a" + bytes(20), "no JPEG or PNG header"),
+        (b"\xff\xd8\xff\xe0\x00\x10" + bytes(14) + b"\xff\xc0\x00\x11\x08\x00\x10\x00\x10\x03" + bytes(30), "could not decode"),
+    ],
+)
+def test_compressed_images_that_would_not_decode_safely_are_refused(types: TypeSupport, data: bytes, problem: str) -> None:
+    msg = types.message_class(COMPRESSED)(
+        header=types.message_class("std_msgs/msg/Header")(
+            stamp=types.message_class("builtin_interfaces/msg/Time")(sec=0, nanosec=0), frame_id=""
+        ),
+        format="jpeg",
+        data=np.frombuffer(data, np.uint8),
+    )
+    with pytest.raises(BindingError, match=problem):
+        from_message(msg, COMPRESSED, decode=True)

@@ -12,6 +12,7 @@ binding, not per manager, so one manager can read from one and write to the othe
   (default volatile; transient-local outputs keep ``depth`` messages for late subscribers, as
   rmw_zenoh's do), ``depth=N`` (default 10), ``history=keep_last|keep_all``;
 - ``frame_id=NAME``: the ``header.frame_id`` of messages dyknow builds (images);
+- ``decode=bgr``: an input of ``CompressedImage`` delivers BGR arrays, decoded, not JPEG bytes;
 - ``hash=none``: no type hash in keys and tokens (``TypeHashNotSupported``, as Humble writes).
 """
 
@@ -29,7 +30,7 @@ __all__ = ["DDS_SCHEME", "SCHEME", "Ros2Binding", "is_ros2", "parse_binding"]
 
 #: The prefix of a ROS 2 binding on rmw_zenoh, and on DDS (their home: :data:`dyknow.keys.ROS2_SCHEMES`).
 SCHEME, DDS_SCHEME = ROS2_SCHEMES
-_OPTIONS = ("type", "reliability", "durability", "depth", "history", "frame_id", "hash")
+_OPTIONS = ("type", "reliability", "durability", "depth", "history", "frame_id", "hash", "decode")
 
 
 def is_ros2(binding: object) -> bool:
@@ -47,6 +48,7 @@ class Ros2Binding:
     frame_id: str = ""
     humble: bool = False
     dds: bool = False
+    decode: bool = False
 
     def uri(self) -> str:
         """The binding written back (options in a fixed order, defaults left out)."""
@@ -65,6 +67,8 @@ class Ros2Binding:
             options.append(f"frame_id={self.frame_id}")
         if self.humble:
             options.append("hash=none")
+        if self.decode:
+            options.append("decode=bgr")
         return (DDS_SCHEME if self.dds else SCHEME) + self.topic + ("?" + "&".join(options) if options else "")
 
 
@@ -94,6 +98,7 @@ def parse_binding(text: str, *, where: str = "binding") -> Ros2Binding:
         "durability": ("volatile", "transient_local"),
         "history": ("keep_last", "keep_all"),
         "hash": ("none",),
+        "decode": ("bgr",),
     }
     for name, allowed in choices.items():
         if name in options and options[name] not in allowed:
@@ -109,4 +114,4 @@ def parse_binding(text: str, *, where: str = "binding") -> Ros2Binding:
     )
     if dds and "hash" in options:
         raise BindingError("hash=none on a DDS binding", where=where, expected="hash only on ros2: bindings (DDS names no hash)")
-    return Ros2Binding(topic, ros_type, qos, options.get("frame_id", ""), options.get("hash") == "none", dds)
+    return Ros2Binding(topic, ros_type, qos, options.get("frame_id", ""), options.get("hash") == "none", dds, "decode" in options)

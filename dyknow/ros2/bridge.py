@@ -159,7 +159,7 @@ class Ros2Source(_Ros2Unit):
 
     def _arrived(self, received: Received) -> None:
         try:
-            payload = from_message(received.message, received.ros_type)
+            payload = from_message(received.message, received.ros_type, decode=self.binding.decode)
         except BindingError as exc:
             self.refused += 1
             self.last_refusal = str(exc)

@@ -6,8 +6,10 @@
   BGR, ``rgba8``/``bgra8`` without their alpha, ``mono16``/``16UC1`` as ``H x W`` uint16; rows
   padded beyond ``width`` (``step``) are cut. Out: ``H x W x 3`` uint8 as ``bgr8``, ``H x W``
   uint8 as ``mono8``, uint16 as ``mono16``;
-- ``sensor_msgs/msg/CompressedImage`` <-> the compressed bytes (JPEG or PNG); out, a numpy
-  image is JPEG-encoded first (OpenCV, imported then);
+- ``sensor_msgs/msg/CompressedImage`` <-> the compressed bytes (JPEG or PNG); in, with
+  ``decode=True``, a BGR array decoded by OpenCV instead, once the image's header says it is at
+  most :data:`MAX_DECODED_SIDE` pixels a side (a small file can declare a huge image); out, a
+  numpy image is JPEG-encoded first (OpenCV, imported then);
 - any other type <-> a ``dict`` of its fields (nested messages as dicts, ``time`` fields as
   ``{"sec", "nanosec"}``, numeric arrays as lists); out, fields left out keep their zero value and
   an unknown field is refused naming it.
@@ -26,11 +28,13 @@ import numpy as np
 from dyknow.errors import BindingError, did_you_mean
 from dyknow.ros2.types import TypeSupport
 
-__all__ = ["from_message", "stamp_ns", "to_message"]
+__all__ = ["MAX_DECODED_SIDE", "compressed_size", "from_message", "stamp_ns", "to_message"]
 
 STRING, IMAGE, COMPRESSED = "std_msgs/msg/String", "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
 HEADER = "std_msgs/msg/Header"
 _MAX_SIDE = 1 << 15
+#: The largest width or height of a compressed image decoded for a unit.
+MAX_DECODED_SIDE = 8192
 _CHANNELS = {"bgr8": 3, "rgb8": 3, "mono8": 1, "8UC1": 1, "8UC3": 3, "rgba8": 4, "bgra8": 4, "mono16": 1, "16UC1": 1}
 
 
@@ -44,16 +48,50 @@ def stamp_ns(message: Any) -> int | None:
     return value if value > 0 else None
 
 
-def from_message(message: Any, ros_type: str) -> Any:
+def from_message(message: Any, ros_type: str, *, decode: bool = False) -> Any:
     """The dyknow payload of a ROS 2 message object; raises :class:`BindingError` when the message
-    is not usable (an image whose sizes and data disagree, an unsupported encoding)."""
+    is not usable (an image whose sizes and data disagree, an unsupported encoding).
+    ``decode``: a compressed image as a BGR array rather than its bytes."""
     if ros_type == STRING:
         return str(message.data)
     if ros_type == IMAGE:
         return _image_from(message)
     if ros_type == COMPRESSED:
-        return bytes(np.asarray(message.data, dtype=np.uint8).tobytes())
+        data = bytes(np.asarray(message.data, dtype=np.uint8).tobytes())
+        return _decode(data) if decode else data
     return _to_plain(message)
+
+
+def compressed_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` a PNG's or JPEG's header declares, None when it declares none."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] != b"\xff\xd8":
+        return None
+    at = 2
+    while at + 4 <= len(data):  # JPEG markers up to the frame header (SOF0..SOF15 but DHT, JPG, DAC)
+        if data[at] != 0xFF:
+            return None
+        marker, length = data[at + 1], int.from_bytes(data[at + 2 : at + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC) and at + 9 <= len(data):
+            return int.from_bytes(data[at + 7 : at + 9], "big"), int.from_bytes(data[at + 5 : at + 7], "big")
+        at += 2 + length
+    return None
+
+
+def _decode(data: bytes) -> np.ndarray:
+    where = f"{COMPRESSED} of {len(data)} bytes"
+    size = compressed_size(data)
+    if size is None:
+        raise BindingError("no JPEG or PNG header", where=where, expected="JPEG or PNG bytes")
+    if not (0 < size[0] <= MAX_DECODED_SIDE and 0 < size[1] <= MAX_DECODED_SIDE):
+        raise BindingError(f"an image of {size[0]}x{size[1]} declared", where=where, expected=f"at most {MAX_DECODED_SIDE} pixels a side")
+    import cv2  # only for compressed images decoded for a unit
+
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise BindingError("OpenCV could not decode it", where=where, expected="a valid JPEG or PNG")
+    return np.asarray(image)
 
 
 def _image_from(msg: Any) -> np.ndarray:
