@@ -57,16 +57,16 @@ def test_bindings_parse_and_write_back(text: str, topic: str, ros_type: str | No
         ("dyknow/x", "ros2:/TOPIC"),
     ],
 )
+def test_bad_bindings_are_refused_naming_the_option(text: str, problem: str) -> None:
+    with pytest.raises(BindingError, match=problem):
+        parse_binding(text)
+
+
 def test_the_decode_option() -> None:
     binding = parse_binding("ros2:/cam/compressed?type=sensor_msgs/msg/CompressedImage&decode=bgr")
     assert binding.decode and binding.uri() == "ros2:/cam/compressed?type=sensor_msgs/msg/CompressedImage&decode=bgr"
     with pytest.raises(BindingError, match="decode='rgb'"):
         parse_binding("ros2:/cam/compressed?decode=rgb")
-
-
-def test_bad_bindings_are_refused_naming_the_option(text: str, problem: str) -> None:
-    with pytest.raises(BindingError, match=problem):
-        parse_binding(text)
 
 
 @pytest.fixture
