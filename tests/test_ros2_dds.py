@@ -182,3 +182,33 @@ def test_ros2_list_shows_the_dds_topics(dds_manager: Manager, rclpy_node: Callab
     assert listed.returncode == 0, listed.stderr
     topics = json.loads(listed.stdout)["topics"]
     assert topics["/chatter"] == ["std_msgs/msg/String"] and topics["/from_dyknow"] == ["std_msgs/msg/String"]
+
+
+def test_a_tagged_dds_topic_is_left_when_its_writer_goes(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    from dyknow.spec import TransformationSpec
+    from dyknow.spec.model import Param, Port, Tag
+    from dyknow.testing import SCENARIO_SPECS
+    from tests.test_adaptation import ONTOLOGY, Events
+
+    camera = TransformationSpec(
+        "dds-camera(bottom)",
+        "dyknow.ros2.bridge:Ros2Source",
+        (
+            Param("binding", "string", "ros2dds:/image?type=sensor_msgs/msg/Image"),
+            Param("require_publisher", "bool", True),
+            Param("wait_s", "float", 20.0),
+        ),
+        (Port("out", "out"),),
+        (Tag("out", "RawImage(bottom)"),),
+        priority=0,
+    )
+    robot = make_manager(specs=[SCENARIO_SPECS, camera], ontology=[ONTOLOGY], dwell_s=0.3, ros2_domain=domain)
+    events = Events(robot)
+    talker = rclpy_node("talk", "/image", "sensor_msgs/msg/Image")
+    robot.request("RawImage(bottom)")
+    assert "dds-camera(bottom)" in {u.label for u in robot.get_model().units}
+    talker.close()  # the rclpy node ends: its writer is no longer matched
+    event = events.wait("adapted", timeout_s=30)
+    assert "dds-camera(bottom)" in event.old and "robot-camera" in event.new, event.to_dict()
