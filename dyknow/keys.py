@@ -39,6 +39,7 @@ __all__ = [
     "MAX_LABEL_BYTES",
     "MAX_KEY_BYTES",
     "MAX_NAME_BYTES",
+    "ROS2_SCHEMES",
     "SERVICE_ROOT",
     "ServiceAddress",
     "check_data_key",
@@ -81,6 +82,10 @@ MAX_KEY_BYTES = 1024
 #: The longest transformation label (bytes).
 MAX_LABEL_BYTES = 256
 _UNSAFE_IN_CHUNK = "/*$?#@ "
+#: The prefixes of bindings to ROS 2 topics instead of keys: rmw_zenoh's, then DDS's
+#: (:mod:`dyknow.ros2.binding`). A manager wires them; as a key, ``ros2:/chatter`` would be a
+#: Zenoh key no ROS 2 node reads, so :func:`check_data_key` refuses them.
+ROS2_SCHEMES = ("ros2:", "ros2dds:")
 
 
 def check_name(name: object, what: str) -> str:
@@ -105,6 +110,12 @@ def check_data_key(key: str, what: str) -> str:
     liveliness and summaries (``@dyknow/...``) or Zenoh's admin space (``@/...``), and an output
     bound there would pose as a manager (its port token would be a manager's token).
     """
+    if key.startswith(ROS2_SCHEMES):
+        raise BindingError(
+            f"{key[:200]!r} is a ROS 2 binding, not a key",
+            where=what,
+            expected="a manager's spawn or set_config for ros2: bindings (a unit's own set_config takes keys only)",
+        )
     if any(chunk.startswith("@") for chunk in key.split("/")):
         raise BindingError(
             f"{key[:200]!r} has a chunk starting with '@', which is for services and Zenoh's admin space, not data",

@@ -21,6 +21,7 @@ Usage::
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.machinery
 import importlib.util
@@ -55,9 +56,13 @@ from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.receiver import Receiver
+from dyknow.ros2.binding import is_ros2, parse_binding
+from dyknow.ros2.bridge import UsesRos2
+from dyknow.ros2.dds import DdsNode
+from dyknow.ros2.node import Ros2Node
 from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
-from dyknow.spec.model import INT_RANGE, convert_param
+from dyknow.spec.model import INT_RANGE, Param, Port, convert_param
 from dyknow.transport import Session, check_key_expr, make_config
 from dyknow.unit import Unit
 
@@ -125,6 +130,10 @@ class Manager:
         lease_ms: int | None = None,
         federate: bool | None = None,
         client_grace_s: float = DEFAULT_GRACE_S,
+        ros2_domain: int | None = None,
+        ros2_node: str | None = None,
+        ros2_namespace: str = "/",
+        dds_config: str | None = None,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
         if ontology is None or isinstance(ontology, Ontology):
@@ -160,6 +169,13 @@ class Manager:
         self._deadlines: dict[str, Proxy] = {}  # the units with deadline-ms outputs (the monitor watches them)
         self._starting: dict[str, threading.Lock] = {}  # units being spawned: held until spawn returns
         self._closed = False
+        # ROS 2 (dyknow.ros2): the node is made when first needed (or now, when named); ports
+        # bound to ros2: topics are wired through a companion unit each: (unit, port) -> (companion, binding)
+        self._ros2: Ros2Node | None = None
+        self._dds: DdsNode | None = None
+        self._dds_config = dds_config
+        self._ros2_options = (ros2_domain, ros2_node, ros2_namespace)
+        self._ros2_ports: dict[tuple[str, str], tuple[str, str]] = {}
         access = acl if isinstance(acl, AccessControl) or acl is None else AccessControl.load(acl)
         self._tls = tls.check() if tls is not None else None
         self._verifier: Verifier | None = None
@@ -263,6 +279,12 @@ class Manager:
                 self.name,
                 ", ".join(self.exposed()),
             )
+        if ros2_node is not None:
+            try:
+                self.ros2_node()
+            except DyKnowError:
+                self.close()
+                raise
         log.info("manager %r ready with %d specs", self.name, len(self.library))
 
     # ------------------------------------------------------------------ lifecycle
@@ -303,6 +325,10 @@ class Manager:
             proxy.stop(per_unit)
         self._executor.close(timeout_s)
         self._receiver.close()
+        if self._ros2 is not None:
+            self._ros2.close()
+        if self._dds is not None:
+            self._dds.close()
         self._session.close()
 
     @property
@@ -318,6 +344,40 @@ class Manager:
     def session(self) -> Session:
         """The manager's Zenoh session (for clients and tools living in the same process)."""
         return self._session
+
+    def _ros2_domain(self) -> int:
+        domain = self._ros2_options[0]
+        if domain is None:
+            text = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+            if not text.isdigit():
+                raise BindingError(f"ROS_DOMAIN_ID={text!r}", where=f"manager {self.name!r}", expected="a number from 0 to 232")
+            domain = int(text)
+        return domain
+
+    def ros2_node(self) -> Ros2Node:
+        """The manager's ROS 2 node on rmw_zenoh (made on first use): named ``ros2_node`` (default:
+        the manager's name, with ``-`` and ``.`` as ``_``) in ``ros2_namespace``, on ROS domain
+        ``ros2_domain`` (default: ``ROS_DOMAIN_ID``, else 0)."""
+        with self._lock:
+            self._check_open()
+            if self._ros2 is None:
+                _, node, namespace = self._ros2_options
+                name = node or re.sub(r"[^A-Za-z0-9_]", "_", self.name)
+                if name[0].isdigit():
+                    name = "_" + name
+                self._ros2 = Ros2Node(self._session, name, namespace=namespace, domain=self._ros2_domain())
+            return self._ros2
+
+    def dds_node(self) -> DdsNode:
+        """The manager's DDS participant for ``ros2dds:`` bindings (made on first use), on ROS
+        domain ``ros2_domain``, configured by ``dds_config`` (Cyclone XML; default: loopback only)."""
+        with self._lock:
+            self._check_open()
+            if self._dds is None:
+                self._dds = DdsNode(
+                    domain=self._ros2_domain(), config=self._dds_config, types=self.ros2_node().types if self._ros2 else None
+                )
+            return self._dds
 
     def exposed(self) -> list[str]:
         """The endpoints this manager listens on beyond this host without TLS (a warning sign)."""
@@ -398,6 +458,89 @@ class Manager:
         bindings: Mapping[str, str] | None = None,
         remote: bool = False,
     ) -> UnitInfo:
+        """Start a unit of transformation ``label`` named ``name`` (see :meth:`_spawn`).
+
+        A binding ``ros2:/TOPIC?...`` (:mod:`dyknow.ros2.binding`) wires the port to a ROS 2 topic
+        through a companion unit ``<name>.<port>.ros2`` (a :class:`~dyknow.ros2.bridge.Ros2Source`
+        or :class:`~dyknow.ros2.bridge.Ros2Sink`), spawned after the unit and destroyed with it; if
+        one cannot start, the unit is destroyed again and the error raised.
+        """
+        ros2 = {port: key for port, key in (bindings or {}).items() if is_ros2(key)}
+        if not ros2:
+            return self._spawn(label, name, protected=protected, params=params, bindings=bindings, remote=remote)
+        spec = label if isinstance(label, TransformationSpec) else self.library.get(label)
+        plan = self._ros2_plan(spec, name, ros2)
+        plain = {port: key for port, key in (bindings or {}).items() if port not in ros2}
+        plain.update((port, key) for port, (_, _, key, _) in plan.items())
+        info = self._spawn(label, name, protected=protected, params=params, bindings=plain, remote=remote)
+        try:
+            self._start_companions(name, plan)
+        except BaseException:
+            with contextlib.suppress(DyKnowError):
+                self.destroy(name, force=True)
+            raise
+        return replace(info, bindings=self._shown(name, info.bindings))
+
+    def _ros2_plan(
+        self, spec: TransformationSpec, name: str, ros2: Mapping[str, str]
+    ) -> dict[str, tuple[str, TransformationSpec, str, str]]:
+        """Port -> (companion name, companion spec, the key the port binds to, the binding), checked."""
+        ports = {p.name: p for p in spec.ports}
+        plan = {}
+        for port, text in ros2.items():
+            where = f"port {port!r} of unit {name!r}"
+            if port not in ports:
+                raise BindingError(
+                    f"no port {port!r}",
+                    where=f"transformation {spec.label!r}",
+                    expected=f"one of {', '.join(ports)}{did_you_mean(port, ports)}",
+                )
+            binding = parse_binding(text, where=where)
+            output = ports[port].direction == "out"
+            if binding.ros_type is None and output:
+                raise BindingError(f"{text!r} names no type", where=where, expected=f"ros2:{binding.topic}?type=pkg/msg/Type for an output")
+            if binding.ros_type is not None:
+                (self.dds_node() if binding.dds else self.ros2_node()).types.check(binding.ros_type, where=where)
+            companion = keys.check_name(f"{name}.{port}.ros2", "companion unit name")
+            cspec = _ROS2_SINK if output else _ROS2_SOURCE
+            key = keys.default_key(self.name, companion, "in" if output else "out")
+            plan[port] = (companion, cspec, key, binding.uri())
+        return plan
+
+    def _start_companions(self, name: str, plan: Mapping[str, tuple[str, TransformationSpec, str, str]]) -> None:
+        for port, (companion, cspec, _key, uri) in plan.items():
+            info = self._spawn(cspec, companion, params={"binding": uri})
+            if info.state == "failed":
+                with contextlib.suppress(DyKnowError):
+                    self.destroy(companion, force=True)
+                raise BindingError(f"{uri}: {info.error}", where=f"port {port!r} of unit {name!r}")
+            with self._lock:
+                self._ros2_ports[(name, port)] = (companion, uri)
+
+    def _drop_companions(self, name: str, ports: Iterable[str] | None = None) -> None:
+        with self._lock:
+            gone = [(k, v[0]) for k, v in self._ros2_ports.items() if k[0] == name and (ports is None or k[1] in ports)]
+            for k, _ in gone:
+                del self._ros2_ports[k]
+        for _, companion in gone:
+            with contextlib.suppress(DyKnowError):
+                self.destroy(companion, force=True)
+
+    def _shown(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
+        """``bindings`` with each port wired to ROS 2 shown as its ``ros2:`` binding."""
+        with self._lock:
+            return {port: self._ros2_ports.get((name, port), (None, key))[1] for port, key in bindings.items()}
+
+    def _spawn(
+        self,
+        label: str | TransformationSpec,
+        name: str,
+        *,
+        protected: bool = False,
+        params: Mapping[str, Any] | None = None,
+        bindings: Mapping[str, str] | None = None,
+        remote: bool = False,
+    ) -> UnitInfo:
         """Start a unit of transformation ``label`` named ``name``.
 
         ``label`` names a spec of the library; a :class:`TransformationSpec` that is not in the
@@ -466,6 +609,8 @@ class Manager:
             unit = cls()
         except Exception as exc:
             raise UnitError(f"{spec.source}() raised {type(exc).__name__}: {exc}", where=f"cannot create unit {name!r}") from exc
+        if isinstance(unit, UsesRos2):
+            unit.use_ros2(self)
         proxy = Proxy(
             name=name,
             spec=spec,
@@ -524,6 +669,7 @@ class Manager:
         proxy.stop()
         log.info("unit %r destroyed", name)
         self._emit("destroyed", proxy)
+        self._drop_companions(name)
 
     def _destroy_requested(self, proxy: Proxy) -> None:
         with self._lock:
@@ -534,6 +680,7 @@ class Manager:
         proxy.stop()
         log.info("unit %r destroyed itself", proxy.name)
         self._emit("destroyed", proxy)
+        self._drop_companions(proxy.name)
 
     def _unit_failed(self, proxy: Proxy) -> None:
         self._emit("failed", proxy)
@@ -770,6 +917,8 @@ class Manager:
         infos = tuple(
             replace(info, state="stalled") if info.name in stalled and info.state == "running" else info for info in map(_info, proxies)
         )
+        if self._ros2_ports:
+            infos = tuple(replace(info, bindings=self._shown(info.name, info.bindings)) for info in infos)
         estimates = self._clocks.estimates() if self._clocks is not None else {}
         clock_view = {"clock": f"{CLOCK_ID:08x}", **{name: e.to_dict() for name, e in sorted(estimates.items())}}
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
@@ -780,13 +929,25 @@ class Manager:
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
         self._check_open()
-        return self._proxy(name).get_config()
+        return self._shown(name, self._proxy(name).get_config())
 
     def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:
         """Rebind ports of unit ``name`` atomically at runtime; returns the new bindings."""
         self._check_open()
         self._settled(name)
-        return self._proxy(name).set_config(bindings)
+        proxy = self._proxy(name)
+        ros2 = {port: key for port, key in bindings.items() if is_ros2(key)} if isinstance(bindings, Mapping) else {}
+        with self._lock:
+            wired = [port for port in bindings if (name, port) in self._ros2_ports] if isinstance(bindings, Mapping) else []
+        if not ros2 and not wired:
+            return proxy.set_config(bindings)
+        # A port rewired to or from ROS 2 is not switched atomically: its old companion goes first.
+        plan = self._ros2_plan(proxy.spec, name, ros2)
+        self._drop_companions(name, wired)
+        self._start_companions(name, plan)
+        plain = {port: key for port, key in bindings.items() if port not in ros2}
+        plain.update((port, key) for port, (_, _, key, _) in plan.items())
+        return self._shown(name, proxy.set_config(plain))
 
     def get_statistics(self, name: str) -> UnitStatistics:
         """Uptime, reconfigurations, per-port messages, bytes, drops and latency of unit ``name``."""
@@ -1090,3 +1251,12 @@ def _bindings(spec: TransformationSpec, manager: str, unit: str, overrides: Mapp
         what = f"port {name!r} of unit {unit!r}"
         result[name] = keys.check_data_key(check_key_expr(key, what=what, concrete=port.direction == "out"), what)
     return result
+
+
+_ROS2_BINDING = (Param("binding", "string", ""),)
+_ROS2_SOURCE = TransformationSpec(
+    "ros2-source", "dyknow.ros2.bridge:Ros2Source", _ROS2_BINDING, (Port("out", "out"),), description="a ROS 2 topic as a dyknow stream"
+)
+_ROS2_SINK = TransformationSpec(
+    "ros2-sink", "dyknow.ros2.bridge:Ros2Sink", _ROS2_BINDING, (Port("in", "in"),), description="a dyknow stream as a ROS 2 topic"
+)

@@ -40,6 +40,7 @@ __all__ = [
     "ZENOH_RUNTIME",
     "LivelinessSubscriber",
     "LivelinessToken",
+    "PlainPublisher",
     "Publisher",
     "Queryable",
     "ServiceChannel",
@@ -511,6 +512,49 @@ class Subscriber(_Entity):
         super().__init__(sub)
 
 
+class PlainPublisher(_Entity):
+    """Publishes payloads of another protocol (ROS 2 over rmw_zenoh) as they are: bytes with an
+    attachment of that protocol, to every session (this one included).
+
+    ``cache``: keep the last ``cache`` samples for late subscribers that ask for history (Zenoh's
+    advanced publisher, as rmw_zenoh declares it for transient-local durability); 0 is a plain
+    publisher. ``block``: block when the network queue is full instead of dropping.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, *, block: bool, cache: int, encoding: str) -> None:
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self._encoding = zenoh.Encoding(encoding)
+        try:
+            if cache > 0:
+                import zenoh.ext as zext  # the advanced publisher is an extension (unstable API)
+
+                pub: Any = zext.declare_advanced_publisher(
+                    session,
+                    key,
+                    congestion_control=congestion,
+                    cache=zext.CacheConfig(cache),
+                    # sequence numbers, not timestamps (those need timestamping on in the session config)
+                    sample_miss_detection=zext.MissDetectionConfig(),
+                    publisher_detection=True,
+                )
+            else:
+                pub = session.declare_publisher(key, congestion_control=congestion)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare a publisher on {key!r}: {_clean(exc)}") from exc
+        super().__init__(pub)
+        self.key = key
+
+    def put(self, data: bytes, attachment: bytes | None = None) -> None:
+        """Send ``data`` with ``attachment``; nothing once undeclared."""
+        handle = self._handle
+        if handle is None:
+            return
+        try:
+            handle.put(data, attachment=attachment, encoding=self._encoding)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {self.key!r}: {_clean(exc)}") from exc
+
+
 class Queryable(_Entity):
     """Answers requests on a key expression with ``handler(key, payload) -> (ok, reply_bytes)``.
 
@@ -765,6 +809,56 @@ class Session:
         is decoded (see :class:`Subscriber`)."""
         on_error = on_error or (lambda exc: log.warning("on %s: %s", key, exc))
         return Subscriber(self._z(), key, on_message, on_error, inline, wanted, forward)
+
+    def declare_plain_publisher(
+        self, key: str, *, block: bool = False, cache: int = 0, encoding: str = "application/cdr"
+    ) -> PlainPublisher:
+        """A publisher of another protocol's payloads on ``key`` (see :class:`PlainPublisher`)."""
+        return PlainPublisher(self._z(), key, block=block, cache=cache, encoding=encoding)
+
+    def declare_sample_subscriber(
+        self,
+        key: str,
+        on_sample: Callable[[str, bytes, bytes | None], None],
+        *,
+        history: bool = False,
+        max_bytes: int = 64 * 1024 * 1024,
+        on_refused: Callable[[str, str], None] | None = None,
+    ) -> _Entity:
+        """Receive another protocol's samples on ``key`` from every session, this one included:
+        ``on_sample(key, payload, attachment)`` on a thread Zenoh keeps for this subscriber.
+
+        A payload over ``max_bytes`` is refused before it is copied: ``on_refused(key, why)``.
+        ``history``: also ask publishers with a cache for what they kept (Zenoh's advanced
+        subscriber, as rmw_zenoh declares it for transient-local durability)."""
+
+        def callback(sample: zenoh.Sample) -> None:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            key_expr = str(sample.key_expr)
+            try:
+                size = len(sample.payload)
+                if size > max_bytes:
+                    if on_refused is not None:
+                        on_refused(key_expr, f"a payload of {size} bytes, over the limit of {max_bytes}")
+                    return
+                attachment = sample.attachment
+                on_sample(key_expr, sample.payload.to_bytes(), attachment.to_bytes() if attachment is not None else None)
+            except Exception:
+                log.exception("callback for %s failed", key)
+
+        try:
+            if history:
+                import zenoh.ext as zext
+
+                sub: Any = zext.declare_advanced_subscriber(
+                    self._z(), key, callback, history=zext.HistoryConfig(detect_late_publishers=True)
+                )
+            else:
+                sub = self._z().declare_subscriber(key, callback)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot subscribe to {key!r}: {_clean(exc)}") from exc
+        return _Entity(sub)
 
     def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]], *, inline: bool = False) -> Queryable:
         """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``; ``inline``: on

@@ -3,7 +3,8 @@
 Thin by design: every subcommand is a small function over the public API, in the module of its
 family: :mod:`~dyknow.cli.serve` (manager, router, ui, foxglove), :mod:`~dyknow.cli.client`
 (the commands that talk to a manager), :mod:`~dyknow.cli.offline` (certs, validate, expand,
-plan), :mod:`~dyknow.cli.mcap` (record, replay, mcap) and :mod:`~dyknow.cli.demo`; the options
+plan), :mod:`~dyknow.cli.mcap` (record, replay, mcap), :mod:`~dyknow.cli.ros2` (echo of ROS 2
+topics, ros2 list) and :mod:`~dyknow.cli.demo`; the options
 they share are declared once, in :mod:`~dyknow.cli.common`. ``--json`` gives
 machine-readable output wherever a command prints data. Errors are one line on stderr and a
 non-zero exit, never a traceback (set ``DYKNOW_DEBUG=1`` to see one).
@@ -22,7 +23,8 @@ Commands::
     dyknow config get NAME | dyknow config set NAME PORT=KEY ...
     dyknow stats NAME
     dyknow add-spec FILE | dyknow remove-spec LABEL
-    dyknow echo KEYEXPR [--count N]
+    dyknow echo KEYEXPR [--count N] | dyknow echo ros2:/TOPIC | ros2dds:/TOPIC?type=T [--ros2-domain N]
+    dyknow ros2 list [--dds] [--ros2-domain N]
     dyknow foxglove [KEYEXPR ...] [--host ADDR] [--port N]
     dyknow request TAG [--standby warm] | dyknow release KEY | dyknow measure NAME=VALUE ... | dyknow adaptations
     dyknow record KEYEXPR ... -o FILE.mcap [--duration S] [--max-messages N] [--compression zstd|lz4|none]
@@ -41,7 +43,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from dyknow.cli import client, demo, mcap, offline, serve
+from dyknow.cli import client, demo, mcap, offline, ros2, serve
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError
 from dyknow.errors import DyKnowError, SpecError
 
@@ -52,7 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dyknow", description="Reconfigurable stream reasoning on Eclipse Zenoh.")
     parser.add_argument("--version", action="version", version=f"dyknow {_version()}")
     commands = Commands(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
-    for family in (serve, offline, demo, mcap, client):
+    for family in (serve, offline, demo, mcap, client, ros2):
         family.add_commands(commands)
     return parser
 

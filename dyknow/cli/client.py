@@ -5,7 +5,6 @@ remove-spec, request, release, measure, adaptations, monitor, echo.
 from __future__ import annotations
 
 import argparse
-import base64
 import json
 import logging
 import signal
@@ -17,7 +16,18 @@ from typing import Any
 
 import numpy as np
 
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, open_client, parse_pairs, parse_value, print_json, report_result
+from dyknow.cli.common import (
+    DEFAULT_MANAGER,
+    Commands,
+    UsageError,
+    open_client,
+    parse_pairs,
+    parse_value,
+    payload_json,
+    print_json,
+    report_result,
+)
+from dyknow.cli.ros2 import echo_ros2
 from dyknow.client import ClockView
 from dyknow.errors import DyKnowError, did_you_mean
 from dyknow.message import Message, describe_payload
@@ -259,20 +269,14 @@ def _printable(payload: Any) -> str:
         return describe_payload(payload)
 
 
-def _payload_json(payload: Any) -> Any:
-    if isinstance(payload, np.ndarray):
-        return {"ndarray": {"dtype": str(payload.dtype), "shape": list(payload.shape)}}
-    if isinstance(payload, (bytes, bytearray)):
-        return {"bytes": len(payload), "base64": base64.b64encode(payload[:4096]).decode()}
-    return payload
-
-
 def cmd_echo(args: argparse.Namespace) -> int:
     """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
     from dyknow.reach import DEFINITE
 
     if args.count is not None and args.count <= 0:
         raise UsageError(f"--count: got {args.count}; expected a positive number")
+    if args.keyexpr.startswith(("ros2:", "ros2dds:")):
+        return echo_ros2(args)
     done = threading.Event()
     lock = threading.Lock()
     seen = 0
@@ -294,7 +298,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 "origin_clock": f"{msg.origin_clock:08x}",
                 "latency_us": age_us,
                 "uncertainty_us": None if known is None else round(known[1] / 1000, 1),
-                "payload": _payload_json(msg.payload),
+                "payload": payload_json(msg.payload),
             }
             age = (
                 "clock unknown"
@@ -447,6 +451,7 @@ def add_commands(cmds: Commands) -> None:
     )
 
     p = command("echo", cmd_echo, client=True)
-    p.add_argument("keyexpr")
+    p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=T] (rmw_zenoh) or ros2dds:/TOPIC?type=T (DDS), decoded")
     p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
     p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
+    cmds.ros2_domain_option(p)

@@ -5,11 +5,15 @@ client that reaches a manager (``--connect``, TLS, ``--wait``).
 from __future__ import annotations
 
 import argparse
+import base64
 import json
+import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
+
+import numpy as np
 
 from dyknow.client import Client
 from dyknow.spec import DEFAULT_MAX_EXPANSIONS
@@ -139,6 +143,12 @@ class Commands:
         p.add_argument("--tls-key", metavar="FILE", help="TLS: this process's private key (PEM)")
 
     @staticmethod
+    def ros2_domain_option(p: argparse.ArgumentParser) -> None:
+        """--ros2-domain, for every command that reaches ROS 2 topics."""
+        p.add_argument("--ros2-domain", type=ros2_domain_number, metavar="N",
+                       help="the ROS 2 domain for ros2: bindings and topics (default ROS_DOMAIN_ID, else 0)")  # fmt: skip
+
+    @staticmethod
     def lease_option(p: argparse.ArgumentParser) -> None:
         """--lease-ms, for every command whose session must notice a host cut off."""
         p.add_argument("--lease-ms", type=positive_int, metavar="MS",
@@ -150,3 +160,30 @@ class Commands:
         """--max-expansions, for every command that expands templates."""
         p.add_argument("--max-expansions", type=positive_int, default=DEFAULT_MAX_EXPANSIONS, metavar="N",
                        help=f"refuse a template that expands to more specs (default {DEFAULT_MAX_EXPANSIONS})")  # fmt: skip
+
+
+
+def payload_json(payload: Any) -> Any:
+    """A payload as JSON can hold it: arrays described, bytes in base64 (the first 4 KiB)."""
+    if isinstance(payload, np.ndarray):
+        return {"ndarray": {"dtype": str(payload.dtype), "shape": list(payload.shape)}}
+    if isinstance(payload, (bytes, bytearray)):
+        return {"bytes": len(payload), "base64": base64.b64encode(payload[:4096]).decode()}
+    return payload
+
+
+def ros2_domain_number(text: str) -> int:
+    """--ros2-domain's value: a ROS_DOMAIN_ID."""
+    if not text.isdigit() or int(text) > 232:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected a ROS_DOMAIN_ID from 0 to 232")
+    return int(text)
+
+
+def ros2_domain(args: argparse.Namespace) -> int:
+    """The ROS 2 domain: --ros2-domain, else ROS_DOMAIN_ID, else 0."""
+    if args.ros2_domain is not None:
+        return int(args.ros2_domain)
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip() or "0"
+    if not text.isdigit() or int(text) > 232:
+        raise UsageError(f"ROS_DOMAIN_ID={text!r}; expected a number from 0 to 232 (or --ros2-domain)")
+    return int(text)

@@ -29,6 +29,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         distributed=args.distributed,
         ui_port=args.ui_port if args.ui else None,
         standby=not args.no_standby,
+        ros2=args.ros2,
     )
 
 
@@ -48,5 +49,7 @@ def add_commands(cmds: Commands) -> None:
     )
     p.add_argument("--distributed", action="store_true",
                    help="the scenario across three manager processes (robot, field, station): battery drop, then a manager killed")  # fmt: skip
+    p.add_argument("--ros2", action="store_true",
+                   help="the robot camera as a ROS 2 node (rmw_zenoh) and the tracked ball published back to ROS 2")  # fmt: skip
     p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")
     p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (--chain; default 20 Hz)")

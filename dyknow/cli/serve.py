@@ -8,6 +8,7 @@ import os
 import signal
 import sys
 import threading
+from pathlib import Path
 
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, default_endpoint, open_client, positive_int, report_result, tls_files
 from dyknow.transport import DEFAULT_ENDPOINT
@@ -98,6 +99,10 @@ def cmd_manager(args: argparse.Namespace) -> int:
         host=args.host,
         lease_ms=args.lease_ms,
         federate=not args.alone,
+        ros2_domain=args.ros2_domain,
+        ros2_node=args.ros2_node,
+        ros2_namespace=args.ros2_namespace,
+        dds_config=Path(args.ros2_dds_config).read_text() if args.ros2_dds_config else None,
         **({"dwell_s": args.dwell} if args.dwell is not None else {}),
     ) as manager:
         exposed = manager.exposed()
@@ -244,6 +249,11 @@ def add_commands(cmds: Commands) -> None:
                    help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
     p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
     lease_option(p)
+    cmds.ros2_domain_option(p)
+    p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
+    p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
+    p.add_argument("--ros2-dds-config", metavar="FILE",
+                   help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
 
     p = command("ui", cmd_ui, client=True)
     p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")

@@ -18,6 +18,7 @@ def run_demo(
     distributed: bool = False,
     ui_port: int | None = None,
     standby: bool = True,
+    ros2: bool = False,
 ) -> int:
     """Run a demo; returns an exit code. Imports OpenCV only for the ball demo."""
     if distributed:
@@ -31,6 +32,12 @@ def run_demo(
     from dyknow.demo.ball import run_ball_demo
 
     return run_ball_demo(
-        duration_s=duration_s or 30.0, robot_video=robot_video, ceiling_video=ceiling_video, out_dir=out_dir, as_json=as_json, ui_port=ui_port,
+        duration_s=duration_s or 30.0,
+        robot_video=robot_video,
+        ceiling_video=ceiling_video,
+        out_dir=out_dir,
+        as_json=as_json,
+        ui_port=ui_port,
         standby=standby,
+        ros2=ros2,
     )

@@ -224,6 +224,7 @@ class BallDemo:
         ui_port: int | None = None,
         requirement: str | None = REQUIREMENT,
         standby: bool = True,
+        ros2: bool = False,
     ) -> None:
         if duration_s <= 0:
             raise ValueError(f"duration must be positive; got {duration_s}")
@@ -233,6 +234,9 @@ class BallDemo:
         self.duration_s = duration_s
         self.robot_video, self.ceiling_video = robot_video, ceiling_video
         self.synthetic = robot_video is None and ceiling_video is None
+        if ros2 and robot_video is not None:
+            raise ValueError("the ROS 2 variant renders the robot camera itself; expected no robot video with ros2")
+        self.ros2 = ros2  # the robot camera is a ROS 2 node, the track goes back to ROS 2 (dyknow.demo.ros2)
         self.rate_hz = rate_hz
         self.out_dir = Path(out_dir)
         scale = duration_s / 30.0  # the battery story fits the duration
@@ -288,6 +292,15 @@ class BallDemo:
             cameras = camera_specs(
                 robot_video=self.robot_video, ceiling_video=self.ceiling_video, rate_hz=self.rate_hz, seed=self.seed, epoch_ns=epoch_ns
             )
+            if self.ros2:
+                from dyknow.demo.ros2 import ros2_camera
+
+                cameras = [ros2_camera(s) if s.label == "robot-camera" else s for s in cameras]
+                cameras.append(
+                    TransformationSpec(
+                        "track-to-ros", "dyknow.demo.ros2:TrackToRos", ports=(Port("in", "in", queue=16), Port("out", "out"))
+                    )
+                )
             for spec in cameras:
                 manager.add_transformation(spec)
             if not self.synthetic:
@@ -301,9 +314,20 @@ class BallDemo:
             if ui is not None:
                 self.ui_url = ui.url
                 self.say(f"the interactive tool: open {ui.url} (the View panel shows the cameras)")
+            driver = None
+            if self.ros2:
+                from dyknow.demo.ros2 import CAMERA_TOPIC, TRACK_BINDING, CameraDriver
+
+                driver = CameraDriver(
+                    manager.endpoints, Scene(seed=self.seed, epoch_ns=epoch_ns), rate_hz=self.rate_hz, domain=manager.ros2_node().domain
+                )
+                self.say(f"the robot camera is a ROS 2 node publishing {CAMERA_TOPIC} (sensor_msgs/Image, rmw_zenoh)")
             self.say(f"requesting {REQUEST} from the planner ...")
             t0 = time.monotonic()
             key = manager.request(REQUEST, standby="warm" if self.standby else None, require=[self.requirement] if self.requirement else [])
+            if self.ros2:
+                manager.spawn("track-to-ros", "track-to-ros", bindings={"in": key, "out": TRACK_BINDING})
+                self.say(f"the tracked ball goes back to ROS 2: {TRACK_BINDING}")
             manager.spawn("track-log", "track-log", bindings={"in": key})
             log = manager.unit("track-log")
             assert isinstance(log, TrackLog)
@@ -340,7 +364,9 @@ class BallDemo:
                     time.sleep(0.25)
             self._print_events()
             frame = self._annotated_frame(manager, log)
-            report = self._report(manager, key, log, scene, battery_trace, frame, info.tag, verdicts, cpu)
+            report = self._report(manager, key, log, scene, battery_trace, frame, info.tag, verdicts, cpu, driver)
+            if driver is not None:  # after the report: its publisher gone, the camera's unit fails (as it should)
+                driver.close()
             if ui is not None:
                 ui.close()
         return report
@@ -458,6 +484,7 @@ class BallDemo:
         tag: str,
         verdicts: VerdictLog | None,
         cpu: _CpuShare,
+        driver: Any = None,
     ) -> dict[str, Any]:
         from dyknow.demo.report import write_report
 
@@ -482,6 +509,7 @@ class BallDemo:
             requirement=self.requirement,
             verdicts=judged,
             standby={"warm": self.standby, **cpu.shares()},
+            ros2=driver.summary() if driver is not None else None,
         )
 
 
@@ -544,10 +572,17 @@ def run_ball_demo(
     as_json: bool = False,
     ui_port: int | None = None,
     standby: bool = True,
+    ros2: bool = False,
 ) -> int:
     """The ``dyknow demo`` command; returns an exit code."""
     demo = BallDemo(
-        duration_s=duration_s, robot_video=robot_video, ceiling_video=ceiling_video, out_dir=Path(out_dir), ui_port=ui_port, standby=standby
+        duration_s=duration_s,
+        robot_video=robot_video,
+        ceiling_video=ceiling_video,
+        out_dir=Path(out_dir),
+        ui_port=ui_port,
+        standby=standby,
+        ros2=ros2,
     )
     report = demo.run()
     if as_json:

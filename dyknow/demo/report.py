@@ -29,13 +29,15 @@ def write_report(
     requirement: str | None = None,
     verdicts: list[tuple[int, bool]] | None = None,
     standby: dict[str, Any] | None = None,
+    ros2: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write ``report.json``, ``track.png`` and ``frame.png`` into ``out_dir``; returns the report.
 
     ``requirement`` and its ``verdicts`` (state time ns, verdict): the request's requirement,
     summarised, listed and plotted. ``standby``: whether the request had a warm standby
     (``"warm"``) and the process's CPU with and without one running (:class:`_CpuShare`'s
-    shares); the summary sets what it cost beside what its switches saved."""
+    shares); the summary sets what it cost beside what its switches saved. ``ros2``: what
+    crossed the ROS 2 boundary (the ROS 2 variant), in the summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = start_ns  # times in the report are seconds since the demo started (when the battery trace starts)
     rows = []
@@ -94,6 +96,8 @@ def write_report(
         "requirement_false_states": sum(1 for _, v in verdicts or [] if not v),
         "standby": standby_summary,
     }
+    if ros2 is not None:
+        summary["ros2"] = ros2
     judged = [{"t_s": round((t - t0) / 1e9, 3), "verdict": v} for t, v in verdicts or []]
     report = {
         "summary": summary,

@@ -1,0 +1,150 @@
+"""An rmw_zenoh counterparty dyknow did not write: zenoh-ros2-sdk (PyPI), run as a child process.
+
+    python tests/ros2_peer.py PORT talk TOPIC TYPE      publish every 20 ms until stdin closes
+    python tests/ros2_peer.py PORT listen TOPIC TYPE [transient_local]
+                                                        print each message received, one JSON line
+    python tests/ros2_peer.py PORT info TOPIC           print `ros2 topic info -v` once a publisher shows
+
+It connects to a Zenoh peer at tcp/127.0.0.1:PORT (the manager under test), as rmw_zenoh's
+sessions connect to their router. Types and hashes come from ROS 2's own files (the ros-std-msgs
+and ros-sensor-msgs wheels' share/<pkg>/msg/*.msg and *.json), so the SDK never fetches a
+definition from the network. Prints {"ready": true} once its entities are declared.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+SHARE = Path(sys.prefix) / "share"
+DEPENDENCIES = {
+    "std_msgs/msg/String": [],
+    "sensor_msgs/msg/Image": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header"],
+}
+
+
+def definition(ros_type: str) -> str:
+    pkg, _, name = ros_type.split("/")
+    return (SHARE / pkg / "msg" / f"{name}.msg").read_text()
+
+
+def type_hash(ros_type: str) -> str:
+    pkg, _, name = ros_type.split("/")
+    return str(json.loads((SHARE / pkg / "msg" / f"{name}.json").read_text())["type_hashes"][0]["hash_string"])
+
+
+def prepare(port: int, ros_type: str) -> None:
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    session = ZenohSession.get_instance("127.0.0.1", port)
+    for dep in DEPENDENCIES[ros_type]:
+        session.register_message_type(definition(dep), dep)
+
+
+def out(record: dict[str, object]) -> None:
+    print(json.dumps(record), flush=True)
+
+
+def until_stdin_closes() -> threading.Event:
+    closed = threading.Event()
+
+    def read() -> None:
+        sys.stdin.read()
+        closed.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    return closed
+
+
+def talk(port: int, topic: str, ros_type: str) -> None:
+    from zenoh_ros2_sdk import ROS2Publisher
+
+    prepare(port, ros_type)
+    pub = ROS2Publisher(
+        topic, ros_type, msg_definition=definition(ros_type), node_name="sdk_talker", router_port=port, type_hash=type_hash(ros_type)
+    )
+    out({"ready": True})
+    closed = until_stdin_closes()
+    i = 0
+    while not closed.wait(0.02) and i < 2000:
+        i += 1
+        if ros_type == "std_msgs/msg/String":
+            pub.publish(data=f"hello {i}")
+        else:
+            from zenoh_ros2_sdk.session import ZenohSession
+
+            store = ZenohSession.get_instance("127.0.0.1", port).store
+            header = store.types["std_msgs/msg/Header"](stamp=store.types["builtin_interfaces/msg/Time"](sec=i, nanosec=5), frame_id="cam")
+            import numpy as np
+
+            data = np.arange(2 * 3 * 3, dtype=np.uint8)  # 2 rows, 3 pixels of RGB
+            pub.publish(header=header, height=2, width=3, encoding="rgb8", is_bigendian=0, step=9, data=data)
+    pub.close()
+
+
+def listen(port: int, topic: str, ros_type: str, durability: str = "volatile") -> None:
+    from zenoh_ros2_sdk import ROS2Subscriber
+    from zenoh_ros2_sdk.qos import QosDurability, QosProfile
+
+    prepare(port, ros_type)
+
+    def received(msg: object) -> None:
+        if ros_type == "std_msgs/msg/String":
+            out({"data": msg.data})  # type: ignore[attr-defined]
+        else:
+            out(
+                {
+                    "encoding": msg.encoding,  # type: ignore[attr-defined]
+                    "height": int(msg.height),  # type: ignore[attr-defined]
+                    "width": int(msg.width),  # type: ignore[attr-defined]
+                    "step": int(msg.step),  # type: ignore[attr-defined]
+                    "data": [int(b) for b in msg.data],  # type: ignore[attr-defined]
+                    "stamp": [int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)],  # type: ignore[attr-defined]
+                }
+            )
+
+    qos = QosProfile(durability=QosDurability.TRANSIENT_LOCAL, history_depth=1) if durability == "transient_local" else None
+    sub = ROS2Subscriber(
+        topic,
+        ros_type,
+        received,
+        msg_definition=definition(ros_type),
+        node_name="sdk_listener",
+        router_port=port,
+        type_hash=type_hash(ros_type),
+        qos=qos,
+    )
+    out({"ready": True})
+    until_stdin_closes().wait(60)
+    sub.close()
+
+
+def info(port: int, topic: str) -> None:
+    from zenoh_ros2_sdk.discovery import get_topic_info, get_topic_names_and_types
+
+    deadline = time.monotonic() + 20
+    while True:
+        found = get_topic_info(topic, router_port=port, verbose=True)
+        if (found is not None and found.publisher_count) or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    publishers = [
+        {"node": p.node_name, "namespace": p.node_namespace, "type": p.topic_type, "hash": p.type_hash, "qos": p.qos}
+        for p in (found.publishers if found else [])
+    ]
+    out({"topics": get_topic_names_and_types(router_port=port), "publishers": publishers})
+
+
+def main() -> None:
+    port, mode, *args = sys.argv[1:]
+    {"talk": talk, "listen": listen, "info": info}[mode](int(port), *args)  # type: ignore[operator]
+    from zenoh_ros2_sdk.session import ZenohSession
+
+    ZenohSession.get_instance("127.0.0.1", int(port)).close()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,29 @@
+"""benchmarks/ros2.py runs (a smoke run: 1 s at 10 Hz per variant; no timing asserts)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.conftest import REPO, subprocess_env, undocumented
+
+
+def test_ros2_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "ros2.json"
+    result = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "ros2.py"), "--smoke", "--json", str(out)],
+        capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = {r["variant"]: r for r in json.loads(out.read_text())["results"]}
+    assert set(rows) == {"dyknow-native", "dyknow-zenoh", "dyknow-dds", "rclpy-dds"}
+    for row in rows.values():
+        assert row["sent"] > 0 and row["received"] > 0 and row["relayed"] > 0, row
+        assert row["latency_p50_ms"] > 0 and row["relay_cpu_ms_per_msg"] >= 0
+    assert "target: dyknow's DDS relay CPU/msg within 2x rclpy's" in result.stdout
+
+
+def test_the_benchmark_is_documented() -> None:
+    assert undocumented(REPO / "benchmarks" / "ros2.py") == []
