@@ -534,7 +534,7 @@ class PlainPublisher(_Entity):
                     congestion_control=congestion,
                     cache=zext.CacheConfig(cache),
                     # sequence numbers, not timestamps (those need timestamping on in the session config)
-                    sample_miss_detection=zext.MissDetectionConfig(),
+                    sample_miss_detection=zext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None),
                     publisher_detection=True,
                 )
             else:

@@ -13,7 +13,7 @@ from dyknow.adaptation.monitor import Symptom
 from dyknow.adaptation.runtime import Runtime
 from dyknow.planner import unqualify
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 
 # ---------------------------------------------------------------------------- analyzer

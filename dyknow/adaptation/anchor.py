@@ -13,7 +13,7 @@ from dyknow.message import Message
 from dyknow.spec import Port, TransformationSpec
 from dyknow.unit import Unit
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 ANCHOR_LABEL = "dyknow-request-anchor"
 

@@ -13,7 +13,7 @@ from typing import Any
 from dyknow.model import RequestInfo
 from dyknow.planner import Plan
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 #: How long a request keeps a configuration before an opportunity may switch it (s).
 DEFAULT_DWELL_S = 2.0

@@ -28,7 +28,7 @@ from dyknow.reasoning.syntax import Formula, parse
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
 from dyknow.tags import parse_term
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 _TICK_S = 0.02  # deadlines, back-offs and deferred opportunities are checked this often
 _STANDBY_WAIT_NS = 1_000_000_000  # after a switch, the next standby waits this long at most for the stream

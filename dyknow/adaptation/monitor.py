@@ -12,7 +12,7 @@ from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, FLAP_WINDOW_S, Knowledg
 from dyknow.adaptation.runtime import DeadlinePort
 from dyknow.model import UnitEvent
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,7 +19,7 @@ from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, UnitError
 from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unqualify
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 
 # ---------------------------------------------------------------------------- plan and execute

@@ -16,7 +16,7 @@ from dyknow.ontology import Ontology
 from dyknow.spec import TransformationSpec
 from dyknow.unit import Unit
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 
 # ---------------------------------------------------------------------------- what the loop needs
