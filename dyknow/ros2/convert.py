@@ -261,7 +261,7 @@ def _build(values: dict[str, Any], ros_type: str, types: TypeSupport, where: str
             else:  # array or sequence
                 (inner, inner_rest), count = rest
                 if inner == Nodetype.BASE and inner_rest[0] in _NUMERIC:
-                    arr = np.asarray(value if given else np.zeros(count), dtype=_NUMERIC[inner_rest[0]])
+                    arr: np.ndarray = np.asarray(value if given else np.zeros(count), dtype=_NUMERIC[inner_rest[0]])
                     kwargs[name] = arr.reshape(-1)
                 elif inner == Nodetype.BASE:
                     kwargs[name] = [str(v) for v in (value or [""] * count)]

@@ -57,7 +57,7 @@ def _raw_entities() -> tuple[Any, Any]:
     """Cyclone's DataWriter and DataReader with a raw CDR write and take: what ``write`` and
     ``take`` do around the ``IdlStruct`` (de)serialization they skip, through the same C layer.
     An ``IdlStruct`` costs a Python int per byte of an image (15 ms a 640x480 frame)."""
-    from cyclonedds._clayer import ddspy_take, ddspy_write
+    from cyclonedds._clayer import ddspy_take, ddspy_write  # type: ignore[import-not-found]  # (Cyclone's C layer ships no stubs)
     from cyclonedds.core import InstanceState, SampleState, ViewState
     from cyclonedds.pub import DataWriter
     from cyclonedds.sub import DataReader
@@ -287,14 +287,14 @@ class DdsNode:
                     return self.idl_type(rest)
                 if node == Nodetype.BASE:
                     if rest[0] == "string" and rest[1]:
-                        return t.bounded_str[rest[1]]
+                        return t.bounded_str[rest[1]]  # type: ignore[misc]  # (cyclonedds's IDL types are generic at run time; its stubs do not say so)
                     if rest[0] not in base:
                         raise BindingError(f"field type {rest[0]}", where=f"type {ros_type}", expected="a type DDS can carry here")
                     return base[rest[0]]
                 inner, count = rest
                 if node == Nodetype.ARRAY:
-                    return t.array[field_type(inner), count]
-                return t.sequence[field_type(inner), count] if count else t.sequence[field_type(inner)]
+                    return t.array[field_type(inner), count]  # type: ignore[misc]  # (cyclonedds's IDL types are generic at run time; its stubs do not say so)
+                return t.sequence[field_type(inner), count] if count else t.sequence[field_type(inner)]  # type: ignore[misc]  # (cyclonedds's IDL types are generic at run time; its stubs do not say so)
 
             fields = {name: field_type(desc) for name, desc in self.types.field_definitions(ros_type)} or {
                 "structure_needs_at_least_one_member": t.uint8
