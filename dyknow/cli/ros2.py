@@ -116,3 +116,4 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="seconds to gather the graph (default 1)")
     p.add_argument("--dds", action="store_true", help="the topics on DDS (Cyclone DDS, loopback discovery) instead of rmw_zenoh")
     cmds.ros2_domain_option(p)
+    cmds.lease_option(p)
