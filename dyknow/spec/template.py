@@ -177,6 +177,8 @@ class Template:
             first_line.setdefault(port.name, line)
 
         tags = [Tag(sub(tag.port), sub(tag.tag)) for tag in self.tags]
+        out_ports = {p.name for p in ports if p.direction == "out"}
+        outputs: set[str] = set()  # the output ports' tags, as terms write themselves (requirements read them)
         for tag, line in zip(tags, self.tag_lines, strict=True):
             if tag.port not in first_line:
                 names = list(first_line)
@@ -184,7 +186,9 @@ class Template:
                 problems.append((line, "<tag> @port", f"no port named {tag.port!r}", f"{one_of(names)}{hint}"))
             if tag.tag:
                 try:
-                    parse_term(tag.tag)
+                    term = parse_term(tag.tag)
+                    if tag.port in out_ports:
+                        outputs.add(str(term))
                 except TagError as exc:
                     problems.append((line, "<tag>", compose(exc.what, exc.where), exc.expected or ""))
 
@@ -203,8 +207,6 @@ class Template:
             constraints.append(replace(constraint, value=text))
 
         requirements = []
-        out_ports = {p.name for p in ports if p.direction == "out"}
-        outputs = {str(parse_term(t.tag)) for t in tags if t.port in out_ports and _is_term(t.tag)}
         for text, line in zip(self.requirements, self.requirement_lines, strict=True):
             formula_text = sub(text)
             try:
@@ -289,10 +291,3 @@ def _arg_values(arg: Arg, individuals: Individuals | None) -> tuple[tuple[str, .
     # An ontology may list an individual twice (asserted under two classes); that is no error.
     return tuple(dict.fromkeys(v.strip() for v in values)), None
 
-
-def _is_term(text: str) -> bool:
-    try:
-        parse_term(text)
-    except TagError:
-        return False
-    return True
