@@ -159,13 +159,15 @@ def test_the_cli_binds_lists_and_echoes(tmp_path: object) -> None:
                 while not stop.wait(0.05):
                     pub.publish(node.types.message_class("std_msgs/msg/String")(data="hi"))
 
-            threading.Thread(target=talk, daemon=True).start()
+            talker = threading.Thread(target=talk, daemon=True)
+            talker.start()
             try:
                 echoed = run_cli(
                     "echo", "ros2:/from_ros", "--count", "2", "--json", "--connect", endpoint, "--ros2-domain", "4", "--timeout-total", "20"
                 )
             finally:
                 stop.set()
+                talker.join(10)  # before the node closes its publisher under it
         assert echoed.returncode == 0, echoed.stderr
         lines = [json.loads(line) for line in echoed.stdout.splitlines()]
         assert [line["payload"] for line in lines] == ["hi", "hi"]
@@ -236,7 +238,8 @@ def test_echo_reads_a_dds_topic(make_manager: Callable[..., Manager]) -> None:
         while not stop.wait(0.05):
             manager.unit("talker").emit("over dds")  # type: ignore[attr-defined]
 
-    threading.Thread(target=talk, daemon=True).start()
+    talker = threading.Thread(target=talk, daemon=True)
+    talker.start()
     try:
         echoed = run_cli(
             "echo",
@@ -251,6 +254,7 @@ def test_echo_reads_a_dds_topic(make_manager: Callable[..., Manager]) -> None:
         )
     finally:
         stop.set()
+        talker.join(10)  # before the manager closes under it
     assert echoed.returncode == 0, echoed.stderr
     assert json.loads(echoed.stdout.splitlines()[0])["payload"] == "over dds"
 
