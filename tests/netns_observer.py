@@ -5,8 +5,8 @@ test process cannot reach addresses inside the namespaces). It prints JSON lines
 ``key``, then a ``camera`` line each time the camera id in the frames changes; on a line
 ``adaptations`` or ``managers`` on its standard input it prints that list, and on ``stats`` what
 arrived since the last ``stats`` (messages, rate, the largest gap, the age p99 on this host's
-clock as stamped, the age p50 corrected by the station's clock offsets (``Client.clocks``) with
-the largest uncertainty of those used and the count of messages of a clock it did not know, the
+clock as stamped, the age p50 corrected by the station's clock offsets (``Client.follow_clocks``,
+looked up every second as a user who wants current ages would) with the largest uncertainty of those used and the count of messages of a clock it did not know, the
 camera switches and the messages from each camera); on ``lost``, the messages lost on the way into each
 unit of the manager (by label); on ``ports``, every input port of the manager's units with its
 hop and age (latency) p50 and its clock figures (see :class:`dyknow.stats.PortStatistics`); on
@@ -21,8 +21,7 @@ import threading
 import time
 
 from dyknow import Client, Message
-from dyknow.clocks import Estimate
-from dyknow.errors import DyKnowError
+from dyknow.client import ClockView
 
 
 def main() -> int:
@@ -36,7 +35,7 @@ def main() -> int:
             print(json.dumps(data), flush=True)
 
     window: dict[str, list[int]] = {"arrived": [], "ages": [], "corrected": [], "cameras": []}  # since the last stats
-    clocks: dict[int, Estimate] = {}  # clock id -> the station's estimate of it; swapped whole
+    view: list[ClockView] = []  # the station's estimates of the clocks, once following them
     unknown = [0]
     uncertainty = [0]
     switches = [0]
@@ -45,8 +44,7 @@ def main() -> int:
     def on_message(msg: Message) -> None:
         now = time.time_ns()
         camera = int(msg.payload["camera"])  # the tracker says which camera the frames came from
-        estimate = clocks.get(msg.origin_clock)
-        known = None if estimate is None else estimate.carried(now)  # carried on by its drift
+        known = view[0].corrected(msg.origin_clock, msg.origin_ns, now) if view else None  # carried on by its drift
         with lock:
             window["arrived"].append(now)
             window["ages"].append(now - msg.origin_ns)  # one machine's clock: ages are true (unless a clock is faked)
@@ -54,7 +52,7 @@ def main() -> int:
             if known is None:
                 unknown[0] += 1
             else:
-                window["corrected"].append(now - msg.origin_ns + known[0])
+                window["corrected"].append(now - known[0])
                 uncertainty[0] = max(uncertainty[0], known[1])
         if last != [camera]:
             if last:
@@ -100,20 +98,13 @@ def main() -> int:
                 time.sleep(0.2)
         say({"event": "key", "key": key})
 
-        def follow_clocks() -> None:
-            nonlocal clocks
-            try:
-                clocks = {e.clock: e for e in client.clocks().values()}
-            except DyKnowError as exc:  # the figures of the last known offsets stand
-                say({"event": "no clocks", "why": str(exc)[:200]})
-
-        follow_clocks()
-        with client.declare_subscriber(key, on_message):
+        with client.follow_clocks(every_s=1.0) as clocks, client.declare_subscriber(key, on_message):
+            clocks.fetched.wait(client.timeout_s)
+            view.append(clocks)
             stats()  # the window starts now
             for line in sys.stdin:
                 if line.strip() == "stats":
                     say(stats())
-                    follow_clocks()  # for the next window
                 elif line.strip() == "lost":  # messages lost on the way into the manager's units, by unit
                     lost = {}
                     for unit in client.get_model()["units"]:
