@@ -18,6 +18,9 @@ The dyknow relays convert as a unit sees it (Image -> BGR array -> Image: two co
 channel swap); the rclpy relay republishes the message object. CPU per message is the relay
 process's CPU time over the messages it relayed, and the ROS side's over the messages it sent.
 Targets printed: dyknow's relay within 2x rclpy's CPU per message and within 5 ms of its p50.
+The rclpy processes load dyknow's Fast DDS profile (``dyknow.ros2.dds.FASTDDS_PROFILE``: type
+propagation off, 4 MB UDP socket buffers), as its docs tell ROS 2 users to; the kernel caps those
+buffers at ``net.core.rmem_max``, printed first.
 
     python benchmarks/ros2.py --json out/ros2.json
     python benchmarks/ros2.py --smoke --json /tmp/ros2.json
@@ -269,6 +272,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--variant", action="append", choices=VARIANTS, help="run only this variant (repeatable; default all)")
     opts = parser.parse_args(args)
     duration, rate = (1.0, 10.0) if opts.smoke else (opts.duration, opts.rate)
+    # the DDS variants' UDP buffers (dyknow's Fast DDS profile asks 4 MB) are capped by the kernel here
+    rmem_max = Path("/proc/sys/net/core/rmem_max").read_text().strip()
+    print(f"net.core.rmem_max={rmem_max} (the Fast DDS profile's 4 MB UDP buffers need >= 4194304)")
     domain = 150 + os.getpid() % 40
     rows = [run_variant(v, rate, duration, domain + i) for i, v in enumerate(VARIANTS) if not opts.variant or v in opts.variant]
     print(f"{'variant':<14} {'sent':>5} {'back':>5} {'p50 ms':>8} {'p99 ms':>8} {'relay CPU ms/msg':>17} {'ROS side CPU ms/msg':>20}")

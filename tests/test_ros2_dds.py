@@ -212,3 +212,28 @@ def test_a_tagged_dds_topic_is_left_when_its_writer_goes(
     talker.close()  # the rclpy node ends: its writer is no longer matched
     event = events.wait("adapted", timeout_s=30)
     assert "dds-camera(bottom)" in event.old and "robot-camera" in event.new, event.to_dict()
+
+
+def _udp_receive_buffers(pid: int) -> list[int]:
+    """The receive buffer sizes (``ss``'s ``rb``) of process ``pid``'s UDP sockets."""
+    out = subprocess.run(["ss", "-uamnp"], capture_output=True, text=True, check=True).stdout
+    sizes, owner = [], False
+    for line in out.splitlines():
+        if "users:" in line:
+            owner = f"pid={pid}," in line
+        if owner and "skmem:(" in line:
+            sizes.append(int(line.split("skmem:(", 1)[1].split(",rb", 1)[1].split(",", 1)[0]))
+    return sizes
+
+
+def test_the_shipped_fast_dds_profile_gives_rclpy_large_udp_buffers(rclpy_node: Callable[..., Rclpy]) -> None:
+    """With the kernel's default 208 kB, a third of a 640x480 image's datagrams from Cyclone were
+    dropped (benchmarks/ros2.py: p50 159 ms, 17 % of the frames lost); the profile asks for 4 MB,
+    as far as net.core.rmem_max lets it."""
+    listener = rclpy_node("listen", "/image", "sensor_msgs/msg/Image")
+    rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+    rmem_default = int(Path("/proc/sys/net/core/rmem_default").read_text())
+    wanted = min(4 * 1024 * 1024, rmem_max)
+    assert wanted > rmem_default, f"net.core.rmem_max is {rmem_max}: raise it to 4194304 (see docs/howto/ros2.md)"
+    sizes = _udp_receive_buffers(listener.proc.pid)
+    assert sizes and max(sizes) >= wanted, sizes  # (the kernel reports twice what was set)
