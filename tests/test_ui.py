@@ -477,3 +477,24 @@ def test_a_lost_manager_shows_with_when_and_why(
     assert f"as {manager.name} saw it): its liveliness token went away without a goodbye" in line, line
     assert browser.find_element("id", "status").text.endswith("; lost: doomed-peer")
     shot(browser, "lost")
+
+
+def test_a_unit_bound_to_ros2_topics_shows_topic_companion_and_unit_in_a_line(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
+    manager, url = ui()
+    manager.spawn("relay", "r", bindings={"in": "ros2:/chatter?type=std_msgs/msg/String", "out": "ros2dds:/echo?type=std_msgs/msg/String"})
+    browser.get(url)
+    wait_text(browser, "units", "r.out.ros2")
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    WebDriverWait(browser, 10).until(lambda d: d.execute_script("return cy.nodes('.companion').length") == 2)
+    m = manager.name
+    edges = browser.execute_script("return cy.edges().map(e => [e.source().id(), e.target().id()])")
+    assert sorted(map(tuple, edges)) == sorted([
+        ("key:ros2:/chatter?type=std_msgs/msg/String", f"unit:{m}/r.in.ros2"),
+        (f"unit:{m}/r.in.ros2", f"unit:{m}/r"),
+        (f"unit:{m}/r", f"unit:{m}/r.out.ros2"),
+        (f"unit:{m}/r.out.ros2", "key:ros2dds:/echo?type=std_msgs/msg/String"),
+    ])  # fmt: skip
+    keys = browser.execute_script("return cy.nodes('.key').map(n => [n.data('label'), n.hasClass('ros2')])")
+    assert sorted(keys) == [["ros2:/chatter?type=std_msgs/msg/String", True], ["ros2dds:/echo?type=std_msgs/msg/String", True]]  # no internal key
+    shot(browser, "ros2")

@@ -54,6 +54,11 @@ function unitState(manager, unit) {
   return unit.state;
 }
 
+function isRos2(key) {
+  // a binding to a ROS 2 topic: rmw_zenoh (ros2:) or DDS (ros2dds:)
+  return key.startsWith("ros2:") || key.startsWith("ros2dds:");
+}
+
 function globToRegex(glob) {
   const escaped = glob.trim().replace(/[.+^${}()|[\]\\]/g, "\\$&").replace(/\*\*/g, "\u0000").replace(/\*/g, "[^/]*").replace(/\u0000/g, ".*");
   return new RegExp("^" + escaped + "$");
@@ -73,7 +78,13 @@ function elements() {
   for (const m of model.managers) for (const r of m.requests || []) requestKeys.add(r.key);
   for (const m of model.managers) {
     if (group) nodes.push({ data: { id: "manager:" + m.manager, label: m.manager }, classes: "manager" });
+    // a port bound to a ROS 2 topic is wired through a companion unit <unit>.<port>.ros2 on an
+    // internal key: drawn as topic -> companion -> unit (or back), the internal key left out
+    const byName = new Map(m.units.map((u) => [u.name, u]));
+    const companions = new Set();
+    for (const u of m.units) for (const [port, key] of Object.entries(u.bindings)) if (isRos2(key) && byName.has(`${u.name}.${port}.ros2`)) companions.add(`${u.name}.${port}.ros2`);
     for (const u of m.units) {
+      if (companions.has(u.name)) continue; // drawn beside the unit it serves
       const text = (u.name + " " + u.label + " " + Object.values(u.bindings).join(" ")).toLowerCase();
       if (filter && !text.includes(filter)) continue;
       const id = "unit:" + m.manager + "/" + u.name;
@@ -94,7 +105,18 @@ function elements() {
         if (live.lost) label += ` ${live.lost} lost`;
         if (live.unknown_clock) label += ` ${live.unknown_clock} clock unknown`; // their times left out of the figures
         if (live.dropped) label += ` ${live.dropped} dropped`;
-        if (dirs[port] === "out") edges.push({ data: { id: id + "->" + key, source: id, target: kid, label } });
+        const companion = byName.get(`${u.name}.${port}.ros2`);
+        if (isRos2(key) && companion) {
+          const cid = "unit:" + m.manager + "/" + companion.name;
+          nodes.push({ data: { id: cid, label: companion.name + "\n" + companion.label, parent: group ? "manager:" + m.manager : undefined, manager: m.manager, unit: companion.name }, classes: "unit companion state-" + companion.state });
+          if (dirs[port] === "out") {
+            edges.push({ data: { id: id + "->" + cid, source: id, target: cid, label } });
+            edges.push({ data: { id: cid + "->" + key, source: cid, target: kid, label: "ROS 2" } });
+          } else {
+            edges.push({ data: { id: key + "->" + cid, source: kid, target: cid, label: "ROS 2" } });
+            edges.push({ data: { id: cid + "->" + id + "." + port, source: cid, target: id, label } });
+          }
+        } else if (dirs[port] === "out") edges.push({ data: { id: id + "->" + key, source: id, target: kid, label } });
         else edges.push({ data: { id: key + "->" + id + "." + port, source: kid, target: id, label } });
       }
     }
@@ -106,7 +128,7 @@ function elements() {
       parent = "prefix:" + parts.slice(0, 2).join("/");
       if (!nodes.some((n) => n.data.id === parent)) nodes.push({ data: { id: parent, label: parts.slice(0, 2).join("/") + "/" }, classes: "prefix" });
     }
-    nodes.push({ data: { id: kid, label: key, parent, width: 12 + 6 * key.length }, classes: "key" + (requestKeys.has(key) ? " request" : "") });
+    nodes.push({ data: { id: kid, label: key, parent, width: 12 + 6 * key.length }, classes: "key" + (requestKeys.has(key) ? " request" : "") + (isRos2(key) ? " ros2" : "") });
   }
   return { nodes, edges };
 }
@@ -119,11 +141,13 @@ function drawGraph() {
       style: [
         { selector: "node", style: { label: "data(label)", "text-wrap": "wrap", "font-size": 10, "text-valign": "center", "text-halign": "center" } },
         { selector: ".unit", style: { shape: "ellipse", width: 120, height: 44, "background-color": "#cfe8d5", "border-width": 1, "border-color": "#1a7f37" } },
+        { selector: ".companion", style: { width: 96, height: 32, "font-size": 8, "background-color": "#e6f4ff", "border-color": "#0958d9" } },
         { selector: ".state-failed", style: { "background-color": "#f8c9c4", "border-color": "#c62828", "border-width": 3 } },
         { selector: ".state-stalled", style: { "background-color": "#ffe2b3", "border-color": "#b26a00", "border-width": 3 } },
         { selector: ".protected", style: { "border-style": "double", "border-width": 4 } },
         { selector: ".anchor", style: { "background-color": "#d6e4ff", "border-color": "#2f54eb" } },
         { selector: ".key", style: { shape: "round-rectangle", width: "data(width)", height: 22, padding: 6, "background-color": "#f4f4f8", "border-width": 1, "border-color": "#889", "font-family": "monospace", "font-size": 9 } },
+        { selector: ".key.ros2", style: { "background-color": "#eef7ff", "border-color": "#0958d9" } },
         { selector: ".request", style: { "border-color": "#2f54eb", "border-width": 3, "background-color": "#e8efff" } },
         { selector: ".manager, .prefix", style: { "text-valign": "top", "background-opacity": 0.05, "border-style": "dashed", "font-weight": "bold" } },
         { selector: "edge", style: { width: 1.5, "curve-style": "bezier", "target-arrow-shape": "triangle", label: "data(label)", "font-size": 8, "text-rotation": "autorotate", "line-color": "#99a", "target-arrow-color": "#99a" } },
