@@ -7,8 +7,9 @@ random id per :class:`~dyknow.client.Client`), and the client declares a livelin
 crashed, or its host was cut off past its lease), the manager waits ``grace_s`` and, unless the
 token came back, releases every reference the client held there. A reference taken with
 ``keep`` (``dyknow request`` does: it exits at once) or through the Python API names no holder
-and lasts until released. A holder that never declares its token is released ``grace_s`` after
-its request, as one that went.
+and lasts until released. A holder that never declares its token is released
+``max(grace_s, TOKEN_WAIT_S)`` after its request, as one that went (the client declares it once
+the reply with the key is back: a grace of 0 must not release it before).
 
 The holder id comes from the network: the service checks it (:data:`HOLDER`: hexadecimal,
 bounded), and each request keeps at most :data:`MAX_HOLDERS` of them.
@@ -27,13 +28,16 @@ from dyknow import keys
 from dyknow.errors import ServiceError
 from dyknow.transport import LivelinessSubscriber, Session
 
-__all__ = ["DEFAULT_GRACE_S", "HOLDER", "MAX_HOLDERS", "Holders", "holder_token", "holders_pattern"]
+__all__ = ["DEFAULT_GRACE_S", "HOLDER", "MAX_HOLDERS", "TOKEN_WAIT_S", "Holders", "holder_token", "holders_pattern"]
 
 log = logging.getLogger(__name__)
 
 #: How long a manager keeps the requests of a client that is gone (s): longer than a lease, so a
 #: client whose link flapped keeps what it asked for.
 DEFAULT_GRACE_S = 10.0
+#: How long a holder has to declare its token after its request (s): the reply's way back and the
+#: token's way in, on a slow link.
+TOKEN_WAIT_S = 5.0
 #: The holders one request keeps track of (each a client that asked for it and did not keep it).
 MAX_HOLDERS = 1000
 #: What a holder id looks like: the hexadecimal id a Client makes for itself.
@@ -99,8 +103,8 @@ class Holders:
             if holder not in held and len(held) >= MAX_HOLDERS:
                 raise ServiceError(f"request {key!r} has {MAX_HOLDERS} holders already", where="field 'holder'", expected="fewer clients")
             held[holder] = held.get(holder, 0) + 1
-            if (key, holder) not in self._alive:  # its token may be on its way: look again after the grace
-                self._look_later(key, holder)
+            if (key, holder) not in self._alive:  # its token may be on its way: look again once it had time to come
+                self._look_later(key, holder, max(self.grace_s, TOKEN_WAIT_S))
 
     def gave_back(self, key: str, holder: str) -> None:
         """``holder`` released one reference it held (the manager released it)."""
@@ -139,8 +143,8 @@ class Holders:
                 if holder in self._held.get(key, {}):
                     self._look_later(key, holder)
 
-    def _look_later(self, key: str, holder: str) -> None:
-        heapq.heappush(self._due, (time.monotonic() + self.grace_s, key, holder))
+    def _look_later(self, key: str, holder: str, after_s: float | None = None) -> None:
+        heapq.heappush(self._due, (time.monotonic() + (self.grace_s if after_s is None else after_s), key, holder))
         self._lock.notify_all()
 
     def _run(self) -> None:

@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Callable
+from typing import Any
 
 import pytest
 
@@ -96,3 +97,24 @@ def test_the_cli_keeps_its_request_and_says_how_to_release_it(make_manager: Call
     assert not wait_until_false(lambda: _request(manager) is not None, seconds=1.5)
     model = json.loads(run_cli("model", "--json", *conn).stdout)
     assert model["requests"][0]["kept"] == 1 and model["requests"][0]["holders"] == {}
+
+
+def test_the_manager_command_sets_the_grace(manager_process: Callable[..., Any]) -> None:
+    proc = manager_process("--specs", str(SCENARIO_SPECS), "--ontology", str(ONTOLOGY), "--client-grace", "0")
+
+    def requests() -> list[dict[str, Any]]:
+        with Client(proc.name, connect=[proc.endpoint]) as looker:
+            return list(looker.get_model()["requests"])
+
+    with Client(proc.name, connect=[proc.endpoint]) as client:
+        client.request(TAG)
+        assert [r["tag"] for r in requests()] == [TAG]
+    # released as soon as the client's token is gone (the default grace would keep it 10 s)
+    wait_until(lambda: requests() == [], "the closed client's request released at once", timeout_s=5)
+
+
+def test_a_holder_that_never_declares_its_token_is_released_once_it_had_time_to(manager: Manager) -> None:
+    with Client(manager.name, connect=manager.endpoints) as client:
+        client.call_manager(manager.name, "request", {"tag": TAG, "holder": "0123456789abcdef"})  # and no token, ever
+        assert not wait_until_false(lambda: _request(manager) is not None, seconds=1.5)  # past the grace: its token may be on its way
+        wait_until(lambda: _request(manager) is None, "the request of a holder without a token released", timeout_s=15)

@@ -68,6 +68,16 @@ def positive_int(text: str) -> int:
     return value
 
 
+def seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0 <= value < 1e9:  # (nan fails too)
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected seconds, a number of 0 or more such as 10 or 0.5")
+    return value
+
+
 def name_list(text: str) -> list[str]:
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:

@@ -10,7 +10,18 @@ import sys
 import threading
 from pathlib import Path
 
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, default_endpoint, open_client, positive_int, report_result, tls_files
+from dyknow.cli.common import (
+    DEFAULT_MANAGER,
+    Commands,
+    UsageError,
+    default_endpoint,
+    open_client,
+    positive_int,
+    report_result,
+    seconds,
+    tls_files,
+)
+from dyknow.holders import DEFAULT_GRACE_S
 from dyknow.transport import DEFAULT_ENDPOINT
 
 
@@ -103,6 +114,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         ros2_node=args.ros2_node,
         ros2_namespace=args.ros2_namespace,
         dds_config=Path(args.ros2_dds_config).read_text() if args.ros2_dds_config else None,
+        client_grace_s=args.client_grace,
         **({"dwell_s": args.dwell} if args.dwell is not None else {}),
     ) as manager:
         exposed = manager.exposed()
@@ -245,7 +257,9 @@ def add_commands(cmds: Commands) -> None:
                    help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
     limit_options(p)
     p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
-    p.add_argument("--dwell", type=float, metavar="S",
+    p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",
+                   help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
+    p.add_argument("--dwell", type=seconds, metavar="S",
                    help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
     p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
     lease_option(p)
