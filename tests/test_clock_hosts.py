@@ -32,7 +32,7 @@ import pytest
 from dyknow.testing import SCENARIO_HOSTS
 from dyknow.testing.hosts import Hosts, unavailable
 from tests.conftest import faked_clock
-from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child
+from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child, adaptations
 
 #: How far the robot's and the field's figures may differ for reasons other than clocks: two
 #: cameras on two hosts, on a machine of two cores shared with the rest of the suite. In the
@@ -162,8 +162,8 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
 
         hosts.cut("robot")  # failover as with equal clocks
         observer.next("camera", camera=CEILING, timeout_s=60)
-        lost = [e for e in observer.ask("adaptations") if e["cause"] == "manager 'robot' was lost"]
-        assert lost and lost[0]["key"] == key, lost
+        lost = adaptations(observer, "manager 'robot' was lost", 1)
+        assert lost[0]["key"] == key, lost
         observer.stats()
         _fill_window()
         field_window = observer.stats()

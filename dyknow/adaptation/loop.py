@@ -647,7 +647,11 @@ class _Recovery:
     reach the anchor before the loop has recorded the adaptation: the anchor then holds it until
     the adaptation is in the history (at most :data:`_RECORD_WAIT_S`, in practice microseconds),
     so whoever sees the stream change finds the adaptation that changed it in
-    ``get_adaptations``.
+    ``get_adaptations``. Not so when the new configuration keeps the unit that feeds the anchor
+    (the key does not change): that unit is rebound first (consumers first, so nothing is lost),
+    and what the new producers send can reach the request's key while the loop is still
+    building, up to the build's time (milliseconds; a remote spawn's round trip) before the
+    record. Holding the anchor over the build would block its lane for that long.
     """
 
     def __init__(self, loop: AdaptationLoop) -> None:
