@@ -6,8 +6,8 @@ test process cannot reach addresses inside the namespaces). It prints JSON lines
 ``adaptations`` or ``managers`` on its standard input it prints that list, and on ``stats`` what
 arrived since the last ``stats`` (messages, rate, the largest gap, the age p99 on this host's
 clock as stamped, the age p50 corrected by the station's clock offsets (``Client.follow_clocks``,
-looked up every second as a user who wants current ages would) with the largest uncertainty of those used and the count of messages of a clock it did not know, the
-camera switches and the messages from each camera); on ``lost``, the messages lost on the way into each
+looked up every second as a user who wants current ages would) with the largest uncertainty of
+those used and the count of messages of a clock it did not know, the camera switches and the messages from each camera); on ``lost``, the messages lost on the way into each
 unit of the manager (by label); on ``ports``, every input port of the manager's units with its
 hop and age (latency) p50 and its clock figures (see :class:`dyknow.stats.PortStatistics`); on
 ``model NAME``, the model of manager NAME (as its ``get_model`` gives it).

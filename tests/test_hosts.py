@@ -105,7 +105,6 @@ class Child:
                 stream.close()
 
 
-
 def adaptations(observer: Child, cause: str, count: int, timeout_s: float = 30.0) -> list[dict[str, Any]]:
     """The station's adaptations of ``cause`` once there are ``count`` of them. Asked until then:
     when the new configuration keeps the unit that feeds the request's key, its first frames can

@@ -54,6 +54,11 @@ function unitState(manager, unit) {
   return unit.state;
 }
 
+function companionName(unit, port) {
+  // the unit that wires a port bound to a ROS 2 topic (see dyknow/manager.py)
+  return `${unit.name}.${port}.ros2`;
+}
+
 function isRos2(key) {
   // a binding to a ROS 2 topic: rmw_zenoh (ros2:) or DDS (ros2dds:)
   return key.startsWith("ros2:") || key.startsWith("ros2dds:");
@@ -82,7 +87,7 @@ function elements() {
     // internal key: drawn as topic -> companion -> unit (or back), the internal key left out
     const byName = new Map(m.units.map((u) => [u.name, u]));
     const companions = new Set();
-    for (const u of m.units) for (const [port, key] of Object.entries(u.bindings)) if (isRos2(key) && byName.has(`${u.name}.${port}.ros2`)) companions.add(`${u.name}.${port}.ros2`);
+    for (const u of m.units) for (const [port, key] of Object.entries(u.bindings)) if (isRos2(key) && byName.has(companionName(u, port))) companions.add(companionName(u, port));
     for (const u of m.units) {
       if (companions.has(u.name)) continue; // drawn beside the unit it serves
       const text = (u.name + " " + u.label + " " + Object.values(u.bindings).join(" ")).toLowerCase();
@@ -105,8 +110,8 @@ function elements() {
         if (live.lost) label += ` ${live.lost} lost`;
         if (live.unknown_clock) label += ` ${live.unknown_clock} clock unknown`; // their times left out of the figures
         if (live.dropped) label += ` ${live.dropped} dropped`;
-        const companion = byName.get(`${u.name}.${port}.ros2`);
-        if (isRos2(key) && companion) {
+        const companion = isRos2(key) ? byName.get(companionName(u, port)) : undefined;
+        if (companion) {
           const cid = "unit:" + m.manager + "/" + companion.name;
           nodes.push({ data: { id: cid, label: companion.name + "\n" + companion.label, parent: group ? "manager:" + m.manager : undefined, manager: m.manager, unit: companion.name }, classes: "unit companion state-" + companion.state });
           if (dirs[port] === "out") {
