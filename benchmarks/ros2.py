@@ -19,8 +19,10 @@ channel swap); the rclpy relay republishes the message object. CPU per message i
 process's CPU time over the messages it relayed, and the ROS side's over the messages it sent.
 Targets printed: dyknow's relay within 2x rclpy's CPU per message and within 5 ms of its p50.
 The rclpy processes load dyknow's Fast DDS profile (``dyknow.ros2.dds.FASTDDS_PROFILE``: type
-propagation off, 4 MB UDP socket buffers), as its docs tell ROS 2 users to; the kernel caps those
-buffers at ``net.core.rmem_max``, printed first.
+propagation off, 4 MB UDP socket buffers), as its docs tell ROS 2 users to (``--fastdds-profile``
+another); the kernel caps those buffers at ``net.core.rmem_max``, printed first. Each variant
+also reports the UDP datagrams the kernel dropped for a full socket receive buffer meanwhile
+(``RcvbufErrors`` in ``/proc/net/snmp``).
 
     python benchmarks/ros2.py --json out/ros2.json
     python benchmarks/ros2.py --smoke --json /tmp/ros2.json
@@ -47,14 +49,21 @@ SCRIPT = str(Path(__file__).resolve())
 VARIANTS = ("dyknow-native", "dyknow-zenoh", "dyknow-dds", "rclpy-dds")
 
 
-def _rclpy_env(domain: int) -> dict[str, str]:
+def _rclpy_env(domain: int, profile: Path | None = None) -> dict[str, str]:
     env = dict(os.environ)
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", RMW_IMPLEMENTATION="rmw_fastrtps_cpp")
     # Cyclone (dyknow-dds) refuses Fast DDS 3's type objects for byte sequences: type propagation off
     from dyknow.ros2.dds import FASTDDS_PROFILE
 
-    env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(FASTDDS_PROFILE)
+    env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(profile or FASTDDS_PROFILE)
     return env
+
+
+def udp_receive_buffer_errors() -> int:
+    """The kernel's count of UDP datagrams dropped for a full socket receive buffer (this network
+    namespace, every process: the benchmark runs alone)."""
+    lines = [line.split() for line in Path("/proc/net/snmp").read_text().splitlines() if line.startswith("Udp:")]
+    return int(lines[1][lines[0].index("RcvbufErrors")])
 
 
 def _import_rclpy() -> Any:
@@ -212,19 +221,20 @@ def relay_rclpy() -> None:
     rclpy.shutdown()
 
 
-def run_variant(variant: str, rate_hz: float, duration_s: float, domain: int) -> dict[str, Any]:
+def run_variant(variant: str, rate_hz: float, duration_s: float, domain: int, profile: Path | None = None) -> dict[str, Any]:
     """One variant: start the relay, run the ROS side, stop the relay; the figures."""
     import signal
 
     port = free_ports(1)[0]
     endpoint = f"tcp/127.0.0.1:{port}"
     middleware = {"dyknow-zenoh": "zenoh", "dyknow-native": "native"}.get(variant, "dds")
-    env = _rclpy_env(domain)
+    env = _rclpy_env(domain, profile)
     relay_args = ["relay-rclpy"] if variant == "rclpy-dds" else ["relay-dyknow", middleware, endpoint]
     relay = Proc([sys.executable, SCRIPT, *relay_args, str(domain)], env=env)
     try:
         relay.next_json(60, ready=True)
         cpu_before = cpu_seconds([relay.proc.pid])
+        drops_before = udp_receive_buffer_errors()
         side = Proc([sys.executable, SCRIPT, "ros-side", middleware, endpoint, str(domain), str(rate_hz), str(duration_s)], env=env)
         try:
             side.next_json(60, ready=True)
@@ -232,6 +242,7 @@ def run_variant(variant: str, rate_hz: float, duration_s: float, domain: int) ->
         finally:
             side.close()
         relay_cpu = cpu_seconds([relay.proc.pid]) - cpu_before
+        drops = udp_receive_buffer_errors() - drops_before
         relay.proc.send_signal(signal.SIGTERM)
         relayed = int(relay.next_json(30)["relayed"])
     finally:
@@ -249,6 +260,7 @@ def run_variant(variant: str, rate_hz: float, duration_s: float, domain: int) ->
         "latency_p99_ms": None if p99 is None else round(p99, 3),
         "relay_cpu_ms_per_msg": round(relay_cpu * 1000 / max(1, relayed), 3),
         "ros_side_cpu_ms_per_msg": round(result["cpu_s"] * 1000 / max(1, result["sent"]), 3),
+        "udp_rcvbuf_drops": drops,
     }
 
 
@@ -270,18 +282,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="a quick run that checks the benchmark works (1 s at 10 Hz)")
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--variant", action="append", choices=VARIANTS, help="run only this variant (repeatable; default all)")
+    parser.add_argument("--fastdds-profile", type=Path, metavar="FILE",
+                        help="the Fast DDS profile the rclpy processes load (default: dyknow's, dyknow.ros2.dds.FASTDDS_PROFILE)")  # fmt: skip
     opts = parser.parse_args(args)
     duration, rate = (1.0, 10.0) if opts.smoke else (opts.duration, opts.rate)
     # the DDS variants' UDP buffers (dyknow's Fast DDS profile asks 4 MB) are capped by the kernel here
     rmem_max = Path("/proc/sys/net/core/rmem_max").read_text().strip()
     print(f"net.core.rmem_max={rmem_max} (the Fast DDS profile's 4 MB UDP buffers need >= 4194304)")
     domain = 150 + os.getpid() % 40
-    rows = [run_variant(v, rate, duration, domain + i) for i, v in enumerate(VARIANTS) if not opts.variant or v in opts.variant]
-    print(f"{'variant':<14} {'sent':>5} {'back':>5} {'p50 ms':>8} {'p99 ms':>8} {'relay CPU ms/msg':>17} {'ROS side CPU ms/msg':>20}")
+    if opts.fastdds_profile is not None:
+        print(f"Fast DDS profile: {opts.fastdds_profile}")
+    rows = [
+        run_variant(v, rate, duration, domain + i, opts.fastdds_profile) for i, v in enumerate(VARIANTS) if not opts.variant or v in opts.variant
+    ]
+    print(f"{'variant':<14} {'sent':>5} {'back':>5} {'p50 ms':>8} {'p99 ms':>8} {'relay CPU ms/msg':>17} {'ROS side CPU ms/msg':>20} {'UDP rcvbuf drops':>17}")
     for r in rows:
         print(
             f"{r['variant']:<14} {r['sent']:>5} {r['received']:>5} {r['latency_p50_ms'] or float('nan'):>8.2f} {r['latency_p99_ms'] or float('nan'):>8.2f} "
-            f"{r['relay_cpu_ms_per_msg']:>17.2f} {r['ros_side_cpu_ms_per_msg']:>20.2f}"
+            f"{r['relay_cpu_ms_per_msg']:>17.2f} {r['ros_side_cpu_ms_per_msg']:>20.2f} {r['udp_rcvbuf_drops']:>17}"
         )
     by = {r["variant"]: r for r in rows}
     dds, ros = by.get("dyknow-dds"), by.get("rclpy-dds")
