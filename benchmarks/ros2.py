@@ -291,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"net.core.rmem_max={rmem_max} (the Fast DDS profile's 4 MB UDP buffers need >= 4194304)")
     domain = 150 + os.getpid() % 40
     if opts.fastdds_profile is not None:
+        if not opts.fastdds_profile.is_file():  # (Fast DDS would go on without it, saying nothing)
+            parser.error(f"--fastdds-profile: no file at {opts.fastdds_profile}")
         print(f"Fast DDS profile: {opts.fastdds_profile}")
     rows = [
         run_variant(v, rate, duration, domain + i, opts.fastdds_profile) for i, v in enumerate(VARIANTS) if not opts.variant or v in opts.variant
