@@ -29,20 +29,34 @@ with the certificate's key: ECDSA with SHA-256 (DER-encoded signature) for an EC
 PKCS #1 v1.5 with SHA-256 for an RSA key, Ed25519 for an Ed25519 key. The manager accepts the
 call when CERT is signed by its CA and valid now (and, if it lists extended key usages, allows
 client authentication), SIG verifies, ``time_ns`` is within :data:`WINDOW_S` of the manager's
-own clock, and the nonce was not seen within that window. The signature covers the key, so a
-call signed for one manager or service is refused by any other.
+own clock, the certificate's common name has a role that may make the call, and the nonce was
+not seen within that window. The signature covers the key, so a call signed for one manager or
+service is refused by any other.
+
+**No replay within the window, whatever the flood.** Nothing is remembered of a call before its
+caller's role is known to allow it, so callers without a role cost nothing. Each caller (common
+name) has a ledger of its own: the nonces of its calls still within the window, at most
+:data:`NONCE_BUDGET` of them. When a caller's ledger is full, its oldest call (by ``time_ns``)
+makes room and the ledger's *floor* rises to that call's time: from then on a call of this
+caller signed at or before the floor is refused. So a nonce is only ever forgotten together
+with every call as old as it, and a recorded call replayed later is refused either as seen, as
+older than the floor, or as outside the window, however many calls (anyone's, or the same
+caller's) came between. A caller that makes more than :data:`NONCE_BUDGET` calls in
+:data:`WINDOW_S` only has its own calls that arrive later than that many newer ones refused.
 """
 
 from __future__ import annotations
 
 import datetime
 import hashlib
+import heapq
 import os
 import struct
 import threading
 import time
-from collections import OrderedDict, deque
-from dataclasses import dataclass
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cryptography import x509
@@ -54,7 +68,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.errors import AccessError
 
-__all__ = ["MAGIC", "MAX_CERT_BYTES", "MAX_SIGNATURE_BYTES", "WINDOW_S", "Caller", "Signer", "Verifier", "signed_bytes"]
+__all__ = ["MAGIC", "MAX_CERT_BYTES", "MAX_SIGNATURE_BYTES", "NONCE_BUDGET", "WINDOW_S", "Caller", "Signer", "Verifier", "signed_bytes"]
 
 #: The first four bytes of a signed call's attachment.
 MAGIC = b"DKC1"
@@ -67,7 +81,9 @@ MAX_SIGNATURE_BYTES = 1024
 
 _DOMAIN = b"dyknow-call-v1\n"
 _HEAD = struct.Struct(">4sQ16sH")
-_NONCES = 100_000  # nonces remembered at most (the oldest go first)
+#: The calls a manager remembers per caller within the window (see the module documentation):
+#: about 70 calls a second, sustained over the whole window, before the caller's floor rises.
+NONCE_BUDGET = 20_000
 _CERTS = 256  # verified certificates remembered
 
 
@@ -142,27 +158,49 @@ class Signer:
         return _HEAD.pack(MAGIC, when, once, len(self._der)) + self._der + struct.pack(">H", len(signature)) + signature
 
 
+@dataclass(slots=True)
+class _Ledger:
+    """One caller's calls within the window: nonce -> time, the times in a heap, and the floor."""
+
+    seen: dict[bytes, int] = field(default_factory=dict)
+    times: list[tuple[int, bytes]] = field(default_factory=list)
+    floor_ns: int = -1  # calls signed at or before it are refused (their nonces may be forgotten)
+
+
 class Verifier:
     """Checks signed calls for one manager: its CA, its ACL's roles.
 
     :meth:`verify` returns the :class:`Caller` or raises :class:`AccessError` saying what is wrong
     with the call. Thread-safe (the manager's service threads call it side by side).
+    ``budget``: the calls remembered per caller within the window (:data:`NONCE_BUDGET`).
     """
 
-    def __init__(self, ca: str | os.PathLike[str], access: AccessControl, *, window_s: float = WINDOW_S) -> None:
+    def __init__(self, ca: str | os.PathLike[str], access: AccessControl, *, window_s: float = WINDOW_S, budget: int = NONCE_BUDGET) -> None:
         try:
             self._ca = x509.load_pem_x509_certificate(Path(ca).read_bytes())
         except (OSError, ValueError) as exc:
             raise AccessError(f"cannot read the CA certificate: {exc}", where=f"--tls-ca {os.fspath(ca)}", expected="a PEM certificate") from exc
         self._access = access
         self._window_ns = int(window_s * 1e9)
+        self._budget = max(1, budget)
         self._lock = threading.Lock()
         self._certs: OrderedDict[bytes, tuple[str, datetime.datetime, datetime.datetime]] = OrderedDict()
-        self._seen: dict[bytes, int] = {}
-        self._order: deque[tuple[int, bytes]] = deque()
+        self._ledgers: dict[str, _Ledger] = {}
 
-    def verify(self, key: str, payload: bytes, attachment: bytes | None, *, now_ns: int | None = None) -> Caller:
-        """The caller of a call of ``payload`` on ``key`` with ``attachment``; :class:`AccessError` when it cannot be trusted."""
+    def verify(
+        self,
+        key: str,
+        payload: bytes,
+        attachment: bytes | None,
+        *,
+        now_ns: int | None = None,
+        allowed: Callable[[Caller], None] | None = None,
+    ) -> Caller:
+        """The caller of a call of ``payload`` on ``key`` with ``attachment``; :class:`AccessError` when it cannot be trusted.
+
+        ``allowed(caller)`` raises when the caller's role may not make this call: it runs before
+        anything of the call is remembered (a caller without a role is never remembered either).
+        """
         if not attachment:
             raise AccessError(
                 "the call is not signed, and this manager checks every caller's identity (it runs with --acl)",
@@ -185,11 +223,18 @@ class Verifier:
                 f"the signature of the call does not verify with the certificate of {name!r}", where="call",
                 expected="a call signed with the key of the certificate it carries",
             ) from None  # fmt: skip
+        caller = Caller(name, self._access.role_of(name))
+        if allowed is not None:
+            allowed(caller)
+        if caller.role is not None:
+            with self._lock:
+                self._remember(name, nonce, when, now)
+        return caller
+
+    def remembered(self) -> dict[str, int]:
+        """How many calls are remembered, per caller (common name)."""
         with self._lock:
-            if nonce in self._seen:
-                raise AccessError("the call is a replay of one already received", where="call", expected="a new call (a fresh nonce)")
-            self._remember(nonce, when, now)
-        return Caller(name, self._access.role_of(name))
+            return {name: len(ledger.seen) for name, ledger in self._ledgers.items()}
 
     def _certificate(self, der: bytes, now_ns: int) -> tuple[str, x509.Certificate]:
         digest = hashlib.sha256(der).digest()
@@ -234,12 +279,37 @@ class Verifier:
             )
         return name, cert
 
-    def _remember(self, nonce: bytes, when: int, now: int) -> None:
-        order = self._order
-        while order and (order[0][0] < now - self._window_ns or len(order) >= _NONCES):
-            self._seen.pop(order.popleft()[1], None)
-        self._seen[nonce] = when
-        order.append((when, nonce))
+    def _remember(self, name: str, nonce: bytes, when: int, now: int) -> None:
+        """Note the call in its caller's ledger, or raise when it is a replay (under the lock)."""
+        ledger = self._ledgers.get(name)
+        if ledger is None:
+            ledger = self._ledgers[name] = _Ledger()
+        if nonce in ledger.seen:
+            raise AccessError("the call is a replay of one already received", where="call", expected="a new call (a fresh nonce)")
+        if when <= ledger.floor_ns:
+            raise AccessError(
+                f"the call was signed before the {self._budget:,} most recent calls of {name!r} that this manager remembers: "
+                "it is a replay, or it arrived too late",
+                where="call",
+                expected=f"a new call; a caller making over {self._budget:,} calls in {self._window_ns / 1e9:g} s sees its late calls refused",
+            )
+        times = ledger.times
+        while times and times[0][0] < now - self._window_ns:  # outside the window: refused by their time anyway
+            expired, forgotten = heapq.heappop(times)
+            ledger.seen.pop(forgotten, None)
+            ledger.floor_ns = max(ledger.floor_ns, expired)  # (and should the clock step back)
+        while len(times) >= self._budget:
+            oldest, forgotten = heapq.heappop(times)
+            ledger.seen.pop(forgotten, None)
+            ledger.floor_ns = max(ledger.floor_ns, oldest)
+        if when <= ledger.floor_ns:  # (it was the oldest itself)
+            raise AccessError(
+                f"the call was signed before the {self._budget:,} most recent calls of {name!r} that this manager remembers",
+                where="call",
+                expected="a new call",
+            )
+        ledger.seen[nonce] = when
+        heapq.heappush(times, (when, nonce))
 
 
 def _parse(attachment: bytes) -> tuple[int, bytes, bytes, bytes]:

@@ -323,9 +323,11 @@ def dispatcher(
             address = keys.parse_service_key(manager, key)
             caller: Caller | None = None
             if verifier is not None and access is not None:
-                caller = verifier.verify(key, payload, attachment)
-                if address is not None:
-                    _authorize(manager, access, caller, address.service, address.unit is not None)
+                if address is None:
+                    raise ServiceError(f"no service at {key[:200]!r} on manager {manager!r}", expected=f"one of {known}")
+                service, unit = address.service, address.unit is not None
+                # the role is checked before anything of the call is remembered (dyknow.identity)
+                caller = verifier.verify(key, payload, attachment, allowed=lambda c: _authorize(manager, access, c, service, unit))
             if address is not None and address.unit is None and address.service in manager_handlers:
                 result = manager_handlers[address.service](check_request(address.service, decode_request(payload, bounds), bounds), caller)
             elif address is not None and address.unit is not None and address.service in UNIT_SERVICES:

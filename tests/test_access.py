@@ -13,6 +13,7 @@ import pytest
 from dyknow import AccessError, BindingError, Client, Manager, Message, PlanningError, ServiceError, UnitError
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
+from dyknow.identity import Signer
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import GENERIC_SPECS, CliProcess, free_port, run_cli
@@ -324,6 +325,32 @@ def test_unsigned_calls_are_refused_by_a_manager_with_roles(secured: Manager, ce
         ServiceError, match="the call is not signed, and this manager checks every caller's identity"
     ):
         session.call(f"@dyknow/{secured.name}/get_model", b"{}", timeout_s=5.0, what="get_model")
+
+
+def test_a_recorded_call_replayed_after_a_flood_is_refused(secured: Manager, certs: Path) -> None:
+    """The attack of an on-path router: it records an admin's signed spawn as it passes, floods
+    the manager with signed calls of its own, and replays the recording. The replay is refused
+    as such and the unit does not come back; the flood's caller is remembered apart (its role
+    was checked first)."""
+    admin = Signer(tls(certs, "admin"))
+    payload = json.dumps({"label": "relay", "name": "replayed"}).encode()
+    recorded: list[bytes] = []
+
+    def record(key: str, body: bytes) -> bytes:
+        recorded.append(admin.sign(key, body))
+        return recorded[-1]
+
+    key = f"@dyknow/{secured.name}/spawn"
+    with Session(make_config(connect=secured.endpoints, tls=tls(certs, "admin"))) as session:
+        session.call(key, payload, timeout_s=5.0, what="spawn", sign=record)
+        assert secured.has_unit("replayed")
+        secured.destroy("replayed")
+        with Client(secured.name, connect=secured.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0) as flood:
+            for _ in range(300):
+                flood.get_adaptations()
+        with pytest.raises(ServiceError, match="a replay of one already received"):
+            session.call(key, payload, timeout_s=5.0, what="spawn", sign=lambda k, b: recorded[0])
+    assert not secured.has_unit("replayed")
 
 
 # ---------------------------------------------------------------------- only a manager speaks for itself

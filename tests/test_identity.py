@@ -20,7 +20,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from dyknow import AccessError
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
-from dyknow.identity import WINDOW_S, Signer, Verifier
+from dyknow.identity import WINDOW_S, Caller, Signer, Verifier
 
 KEY = "@dyknow/station/spawn"
 PAYLOAD = b'{"label": "relay", "name": "r"}'
@@ -158,3 +158,90 @@ def test_a_signer_refuses_a_key_that_is_not_its_certificates(certs: Path) -> Non
     mixed = TlsFiles(str(certs / "ca.pem"), str(certs / "alice.pem"), str(certs / "viewer.key"))
     with pytest.raises(AccessError, match=r"the key in .*viewer\.key is not the key of the certificate .*alice\.pem"):
         Signer(mixed)
+
+
+# ---------------------------------------------------------------------- replay, whatever the flood
+
+
+def _flood(verifier: Verifier, signer: Signer, calls: int, start_ns: int) -> None:
+    """``calls`` fresh calls of ``signer``, signed 1 ms apart from ``start_ns``, all accepted."""
+    for i in range(calls):
+        when = start_ns + i * 1_000_000
+        verifier.verify(KEY, PAYLOAD, signer.sign(KEY, PAYLOAD, time_ns=when), now_ns=when)
+
+
+def test_a_call_replayed_after_another_callers_flood_is_refused(certs: Path) -> None:
+    """An on-path router records an admin's call, floods the manager with more signed calls of
+    its own than the manager remembers in all, then replays the recording inside the window:
+    refused, since each caller's calls are remembered apart (the flood fills the router's
+    ledger, not the admin's)."""
+    verifier = Verifier(str(certs / "ca.pem"), ACL, budget=500)
+    now = 1_800_000_000_000_000_000  # a fixed wall clock, so the test needs no sleeps
+    recorded = Signer(tls(certs, "alice")).sign(KEY, PAYLOAD, time_ns=now)
+    verifier.verify(KEY, PAYLOAD, recorded, now_ns=now)
+    _flood(verifier, Signer(tls(certs, "robot")), 1_200, now + 1)  # over twice the budget
+    assert verifier.remembered() == {"alice": 1, "robot": 500}
+    with pytest.raises(AccessError, match="a replay of one already received"):
+        verifier.verify(KEY, PAYLOAD, recorded, now_ns=now + int(151e9))  # 151 s later, as in the attack
+
+
+def test_a_call_replayed_after_its_own_callers_flood_is_refused(certs: Path) -> None:
+    """When the admin itself makes more calls than its ledger holds, its oldest are forgotten and
+    its floor rises with them: the recorded call is refused as older than the floor, while the
+    admin's new calls go on being accepted."""
+    verifier = Verifier(str(certs / "ca.pem"), ACL, budget=300)
+    alice = Signer(tls(certs, "alice"))
+    now = 1_800_000_000_000_000_000
+    recorded = alice.sign(KEY, PAYLOAD, time_ns=now)
+    verifier.verify(KEY, PAYLOAD, recorded, now_ns=now)
+    _flood(verifier, alice, 1_000, now + 1)
+    assert verifier.remembered() == {"alice": 300}
+    with pytest.raises(AccessError, match="signed before the 300 most recent calls of 'alice'"):
+        verifier.verify(KEY, PAYLOAD, recorded, now_ns=now + int(2e9))
+    later = now + int(3e9)
+    verifier.verify(KEY, PAYLOAD, alice.sign(KEY, PAYLOAD, time_ns=later), now_ns=later)  # new calls still work
+
+
+def test_a_window_of_calls_out_of_order_is_accepted_once_each(certs: Path) -> None:
+    """Calls of one caller that arrive out of order (threads, several links) are accepted as
+    long as the ledger holds them, each once; a naive model (a set of every nonce ever seen)
+    agrees on every verdict while the budget is not exceeded."""
+    import random
+
+    verifier = Verifier(str(certs / "ca.pem"), ACL, budget=1_000)
+    alice = Signer(tls(certs, "alice"))
+    now = 1_800_000_000_000_000_000
+    calls = [(now + i * 1_000_000, alice.sign(KEY, PAYLOAD, time_ns=now + i * 1_000_000)) for i in range(400)]
+    order = calls + random.Random(7).sample(calls, 200)  # every call, then 200 replays
+    random.Random(8).shuffle(order)
+    seen: set[bytes] = set()
+    for when, attachment in order:
+        replay = attachment in seen
+        seen.add(attachment)
+        if replay:
+            with pytest.raises(AccessError, match="replay"):
+                verifier.verify(KEY, PAYLOAD, attachment, now_ns=now + int(1e9))
+        else:
+            verifier.verify(KEY, PAYLOAD, attachment, now_ns=now + int(1e9))
+
+
+def test_nothing_is_remembered_of_a_call_its_role_may_not_make(certs: Path) -> None:
+    """The role is checked before the nonce is stored: a stranger (no role) and a viewer calling
+    what only an admin may cost the manager no memory, however many calls they make."""
+    verifier = Verifier(str(certs / "ca.pem"), ACL)
+
+    def admin_only(caller: Caller) -> None:
+        if caller.role != "admin":
+            raise AccessError(f"{caller.common_name!r} may not call spawn")
+
+    for name in ("stranger", "viewer"):
+        signer = Signer(tls(certs, name))
+        for _ in range(50):
+            with pytest.raises(AccessError, match="may not call spawn"):
+                verifier.verify(KEY, PAYLOAD, signer.sign(KEY, PAYLOAD), allowed=admin_only)
+    stranger = Signer(tls(certs, "stranger"))
+    for _ in range(50):
+        assert verifier.verify(KEY, PAYLOAD, stranger.sign(KEY, PAYLOAD)).role is None  # (no role: refused by the caller's check)
+    assert verifier.remembered() == {}
+    verifier.verify(KEY, PAYLOAD, Signer(tls(certs, "alice")).sign(KEY, PAYLOAD), allowed=admin_only)
+    assert verifier.remembered() == {"alice": 1}
