@@ -215,7 +215,7 @@ def test_a_window_of_calls_out_of_order_is_accepted_once_each(certs: Path) -> No
     order = calls + random.Random(7).sample(calls, 200)  # every call, then 200 replays
     random.Random(8).shuffle(order)
     seen: set[bytes] = set()
-    for when, attachment in order:
+    for _when, attachment in order:
         replay = attachment in seen
         seen.add(attachment)
         if replay:
