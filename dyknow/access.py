@@ -72,6 +72,7 @@ _DATA = f"{keys.DATA_ROOT}/**"
 _SERVICES = f"{keys.SERVICE_ROOT}/**"
 _MANAGERS = keys.managers_pattern()
 _SUMMARIES = keys.summaries_pattern()
+_HOLDERS = f"{keys.DATA_ROOT}/*/*/*/holders/*"  # (dyknow.holders: <request or monitor key>/holders/<client>)
 # The services each role may call, besides those of the roles before it (any manager, any unit).
 _SERVICES_OF = {
     "viewer": ["get_model", "get_summary", "get_adaptations", "clock", "unit/*/get_config", "unit/*/get_statistics"],
@@ -270,6 +271,32 @@ class AccessControl:
                 allowed.update(definition.services())
         return wanted in allowed
 
+    def may_read(self, common_name: str, key: str) -> bool:
+        """Whether the holder of ``common_name`` may subscribe to the data on ``key`` (a concrete
+        key under ``dyknow/``): the built-in roles, managers and routers may read all data; a
+        role of the file's own what its ``like`` may and the key expressions it may
+        ``subscribe`` to. A monitor or a requirement reads only what its caller may read."""
+        if any(common_name in self.roles.get(role, ()) for role in (*ROLES, *PEER_ROLES)):
+            return keys.includes(_DATA, key)
+        for role, definition in self.defined.items():
+            if common_name not in self.roles.get(role, ()):
+                continue
+            if definition.like is not None and keys.includes(_DATA, key):
+                return True
+            if any(keys.includes(expr, key) for expr in definition.subscribe):
+                return True
+        return False
+
+    def roles_for_read(self, key: str) -> list[str]:
+        """The roles that may read the data on ``key`` (for messages that say who may)."""
+        found = [*ROLES, *PEER_ROLES] if keys.includes(_DATA, key) else []
+        found += [
+            role
+            for role, definition in self.defined.items()
+            if (definition.like is not None and keys.includes(_DATA, key)) or any(keys.includes(e, key) for e in definition.subscribe)
+        ]
+        return found
+
     def roles_for_call(self, service: str, *, unit: bool = False) -> list[str]:
         """The roles that may call ``service`` (for messages that say who may)."""
         wanted = f"unit/*/{service}" if unit else service
@@ -396,6 +423,9 @@ def _defined_rules(subject: str, role: RoleDefinition) -> list[dict[str, Any]]:
     if own_calls:
         rules.append(_rule(f"{subject}-calls", "ingress", ["query"], [f"{keys.SERVICE_ROOT}/*/{c}" for c in own_calls]))
         rules.append(_rule(f"{subject}-sees-services", "egress", ["declare_queryable", "reply"], [_SERVICES]))
+    if {"request", "monitor"} & set(own_calls):
+        # what it requests, it holds: the client's liveliness token says it is still there (dyknow.holders)
+        rules.append(_rule(f"{subject}-holds", "ingress", ["liveliness_token"], [_HOLDERS]))
     if role.subscribe:
         rules.append(_rule(f"{subject}-subscribes", "ingress", ["declare_subscriber"], list(role.subscribe)))
         rules.append(_rule(f"{subject}-receives", "egress", ["put", "delete"], list(role.subscribe)))

@@ -417,10 +417,19 @@ class Client:
         when the manager has roles)."""
         self._manager("destroy", {"name": name, "force": True} if force else {"name": name})
 
-    def monitor(self, formula: str, *, reorder_ms: float = 0.0) -> str:
+    def monitor(self, formula: str, *, reorder_ms: float = 0.0, keep: bool = False) -> str:
         """Ask the manager to monitor a temporal formula; the key of its verdicts (see
-        :meth:`dyknow.manager.Manager.monitor`). :meth:`release` of the key takes it down."""
-        return str(self._manager("monitor", {"formula": formula, "reorder_ms": reorder_ms})["key"])
+        :meth:`dyknow.manager.Manager.monitor`). :meth:`release` of the key takes it down.
+
+        The client holds the monitor as it holds a request: once the client is gone, the manager
+        releases it a grace period later (``keep=True``: it runs until released)."""
+        request: dict[str, Any] = {"formula": formula, "reorder_ms": reorder_ms}
+        if not keep:
+            request["holder"] = self._holder
+        key = str(self._manager("monitor", request)["key"])
+        if not keep:
+            self._hold(key)
+        return key
 
     def get_model(self, manager: str | None = None) -> dict[str, Any]:
         """The model of the manager (or of ``manager``): units, specs and requests (the JSON form
@@ -521,22 +530,32 @@ class Client:
             request["holder"] = self._holder
         key = str(self._manager("request", request)["key"])
         if not keep:
-            with self._held_lock:
-                references, token = self._held.get(key) or (0, None)
-                if token is None:
-                    token = self._session.declare_liveliness_token(holder_token(key, self._holder))
-                self._held[key] = (references + 1, token)
+            self._hold(key)
         return key
 
-    def release(self, key: str) -> int:
-        """Give back a request made with :meth:`request`; returns how many references to it remain
-        (another client's, or an earlier request of the same tag): it runs on while any does."""
+    def _hold(self, key: str) -> None:
+        """One more reference held on ``key``: its token says this client is there while it holds any."""
+        with self._held_lock:
+            references, token = self._held.get(key) or (0, None)
+            if token is None:
+                token = self._session.declare_liveliness_token(holder_token(key, self._holder))
+            self._held[key] = (references + 1, token)
+
+    def release(self, key: str, *, force: bool = False) -> int:
+        """Give back a request made with :meth:`request` (or a monitor); returns how many
+        references to it remain (another client's, or an earlier request of the same tag): it
+        runs on while any does. A client gives back only what it (or, on a manager with roles,
+        its certificate's name) requested; ``force`` gives back every reference, whoever took
+        it (an admin's call on a manager with roles)."""
         with self._held_lock:
             held = key in self._held
-        reply = self._manager("release", {"key": key, "holder": self._holder} if held else {"key": key})
+        request: dict[str, Any] = {"key": key, "holder": self._holder} if held else {"key": key}
+        if force:
+            request["force"] = True
+        reply = self._manager("release", request)
         with self._held_lock:
             references, was = self._held.get(key) or (0, None)
-            if references > 1 and was is not None:
+            if references > 1 and was is not None and not force:
                 self._held[key] = (references - 1, was)
             elif was is not None:
                 del self._held[key]

@@ -79,6 +79,7 @@ import struct
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -376,10 +377,17 @@ class ClockTracker:
     """Keeps :data:`CLOCKS` (or ``table``) up to date for the peers it is given: a thread that runs
     their exchanges (8 in a peer's first half second, then 3 in a row once a second; one at a time
     per peer, and never waiting on one: a peer that does not answer delays nobody else's) and
-    refreshes the table ten times a second. A context manager; :meth:`close` stops it."""
+    refreshes the table ten times a second. A context manager; :meth:`close` stops it.
 
-    def __init__(self, session: Session, table: ClockTable = CLOCKS, *, timeout_s: float = 1.0) -> None:
+    It tracks at most 256 peers. ``in_use()`` names the peers one exchanges data or calls with:
+    when the table is full, such a peer takes the place of one that is not, so peers that only
+    announce themselves (300 fake managers, say) never leave a real one without an estimate."""
+
+    def __init__(
+        self, session: Session, table: ClockTable = CLOCKS, *, timeout_s: float = 1.0, in_use: Callable[[], Collection[str]] | None = None
+    ) -> None:
         self._session = session
+        self._in_use = in_use  # the peers one exchanges data or calls with: they never go without an estimate
         self._table = table
         self._timeout_s = timeout_s
         self._peers: dict[str, _Peer] = {}
@@ -399,12 +407,19 @@ class ClockTracker:
             known = self._peers.get(name)
             if known is not None and (not clock or known.estimator.clock == clock):
                 return
+            evicted: _Peer | None = None
             if known is None and len(self._peers) >= _MAX_PEERS:
-                log.warning("not estimating the clock of %r: %d peers tracked already", name, _MAX_PEERS)
-                return
+                used = set(self._in_use()) if self._in_use is not None else set()
+                idle = next((n for n in self._peers if n not in used), None) if name in used else None
+                if idle is None:
+                    log.warning("not estimating the clock of %r: %d peers tracked already", name, _MAX_PEERS)
+                    return
+                evicted = self._peers.pop(idle)  # a peer in use takes the place of one that is not
             self._peers[name] = _Peer(key, clock)
         if known is not None:
             self._table.forget(known.estimator)
+        if evicted is not None:
+            self._table.forget(evicted.estimator)
         self._wake.set()
 
     def follow(self) -> None:

@@ -1,18 +1,23 @@
-"""Who holds each request: a client's requests end with the client, a grace period after it is gone.
+"""Who holds each request and monitor: a client's end with the client, a grace period after it is gone.
 
-A request counts its references (:meth:`dyknow.manager.Manager.request` twice, two references).
-A reference a client takes through the ``request`` service names the client (``holder``: a
-random id per :class:`~dyknow.client.Client`), and the client declares a liveliness token on
-``<request key>/holders/<holder>`` while it holds it. When that token goes (the client closed,
-crashed, or its host was cut off past its lease), the manager waits ``grace_s`` and, unless the
-token came back, releases every reference the client held there. A reference taken with
-``keep`` (``dyknow request`` does: it exits at once) or through the Python API names no holder
-and lasts until released. A holder that never declares its token is released
-``max(grace_s, TOKEN_WAIT_S)`` after its request, as one that went (the client declares it once
-the reply with the key is back: a grace of 0 must not release it before).
+A request counts its references (:meth:`dyknow.manager.Manager.request` twice, two references),
+each with its :class:`~dyknow.model.Owner`. A reference a client takes through the ``request``
+service names the client (``holder``: a random id per :class:`~dyknow.client.Client`), and the
+client declares a liveliness token on ``<request key>/holders/<holder>`` while it holds it; a
+monitor it asks for, likewise on ``<monitor key>/holders/<holder>`` (a quantified monitor's key
+without its ``/*``). When that token goes (the client closed, crashed, or its host was cut off
+past its lease), the manager waits ``grace_s`` and, unless the token came back, releases every
+reference the client held there (and its monitor). A reference taken with ``keep`` (``dyknow
+request`` does: it exits at once) or through the Python API names no holder and lasts until
+released. A holder that never declares its token is released ``max(grace_s, TOKEN_WAIT_S)``
+after its request, as one that went (the client declares it once the reply with the key is
+back: a grace of 0 must not release it before).
 
 The holder id comes from the network: the service checks it (:data:`HOLDER`: hexadecimal,
-bounded), and each request keeps at most :data:`MAX_HOLDERS` of them.
+bounded), each request keeps at most :data:`MAX_HOLDERS` of them, and only the tokens of holders
+the manager knows are tracked (anyone may declare tokens; they cost nothing unless they are
+of a holder that asked for something here). A token keeps a reference alive; it never releases
+one, and no client can give back another's reference (:meth:`dyknow.model.Owner.holds`).
 """
 
 from __future__ import annotations
@@ -44,36 +49,33 @@ MAX_HOLDERS = 1000
 HOLDER = re.compile(r"[0-9a-f]{8,32}")
 
 
-def holder_token(request_key: str, holder: str) -> str:
-    """The liveliness token a client declares while it holds the request on ``request_key``."""
-    return f"{request_key}/holders/{holder}"
+def holder_token(key: str, holder: str) -> str:
+    """The liveliness token a client declares while it holds the request or monitor on ``key``."""
+    return f"{key.removesuffix('/*')}/holders/{holder}"
 
 
 def holders_pattern(manager: str) -> str:
-    """The tokens of every holder of every request of ``manager``."""
-    return f"{_requests_prefix(manager)}*/holders/*"
-
-
-def _requests_prefix(manager: str) -> str:
-    return f"{keys.DATA_ROOT}/{manager}/requests/"
+    """The tokens of every holder of every request and monitor of ``manager``."""
+    return f"{keys.DATA_ROOT}/{manager}/*/*/holders/*"
 
 
 class Holders:
-    """The holders of a manager's requests, and the releases of those that are gone.
+    """The holders of a manager's requests and monitors, and the releases of those that are gone.
 
-    ``release(key)`` gives back one reference (the manager's own release); it runs on this
-    object's thread. A context manager; :meth:`close` stops the watch and the thread.
+    ``release(key, holder)`` gives back every reference ``holder`` holds on ``key`` (the manager's
+    own release); it runs on this object's thread, once per holder gone. A context manager;
+    :meth:`close` stops the watch and the thread.
     """
 
-    def __init__(self, session: Session, manager: str, release: Callable[[str], object], grace_s: float = DEFAULT_GRACE_S) -> None:
+    def __init__(self, session: Session, manager: str, release: Callable[[str, str], object], grace_s: float = DEFAULT_GRACE_S) -> None:
         self.grace_s = grace_s
         self._release = release
         self._lock = threading.Condition()
-        self._held: dict[str, dict[str, int]] = {}  # request key -> holder -> references
-        self._alive: set[tuple[str, str]] = set()  # (request key, holder) whose token is up
-        self._due: list[tuple[float, str, str]] = []  # (monotonic time, request key, holder): look again then
+        self._held: dict[str, dict[str, int]] = {}  # key -> holder -> references
+        self._tokens: dict[str, tuple[str, str]] = {}  # token -> (key, holder), of the holders known
+        self._alive: set[tuple[str, str]] = set()  # (key, holder) whose token is up
+        self._due: list[tuple[float, str, str]] = []  # (monotonic time, key, holder): look again then
         self._closed = False
-        self._prefix = _requests_prefix(manager)
         self._thread = threading.Thread(target=self._run, name=f"dyknow-{manager}-holders", daemon=True)
         self._thread.start()
         self._watch: LivelinessSubscriber | None = session.declare_liveliness_subscriber(holders_pattern(manager), self._changed)
@@ -97,12 +99,13 @@ class Holders:
         self._thread.join(timeout=2.0)
 
     def took(self, key: str, holder: str) -> None:
-        """``holder`` took a reference to the request on ``key`` (after the request succeeded)."""
+        """``holder`` took a reference to the request (or asked for the monitor) on ``key``."""
         with self._lock:
             held = self._held.setdefault(key, {})
             if holder not in held and len(held) >= MAX_HOLDERS:
                 raise ServiceError(f"request {key!r} has {MAX_HOLDERS} holders already", where="field 'holder'", expected="fewer clients")
             held[holder] = held.get(holder, 0) + 1
+            self._tokens[holder_token(key, holder)] = (key, holder)
             if (key, holder) not in self._alive:  # its token may be on its way: look again once it had time to come
                 self._look_later(key, holder, max(self.grace_s, TOKEN_WAIT_S))
 
@@ -113,35 +116,44 @@ class Holders:
             if held.get(holder, 0) > 1:
                 held[holder] -= 1
             else:
-                held.pop(holder, None)
-                if not held:
-                    self._held.pop(key, None)
+                self._drop(key, holder)
 
     def holders(self, key: str) -> dict[str, int]:
         """The clients holding the request on ``key``: holder -> references."""
         with self._lock:
             return dict(self._held.get(key, {}))
 
-    def forget(self, key: str) -> None:
-        """The request on ``key`` is gone."""
+    def alive(self, key: str, holder: str) -> bool:
+        """Whether the manager sees ``holder``'s token for ``key`` (it holds it, and is there)."""
         with self._lock:
+            return (key, holder) in self._alive
+
+    def forget(self, key: str) -> None:
+        """The request or monitor on ``key`` is gone."""
+        with self._lock:
+            for holder in list(self._held.get(key, {})):
+                self._drop(key, holder)
+
+    def _drop(self, key: str, holder: str) -> None:
+        held = self._held.get(key, {})
+        held.pop(holder, None)
+        if not held:
             self._held.pop(key, None)
+        self._tokens.pop(holder_token(key, holder), None)
+        self._alive.discard((key, holder))
 
     # -- liveliness (Zenoh's thread) and the releases (this object's thread)
 
     def _changed(self, token: str, alive: bool) -> None:
-        rest = token[len(self._prefix) :] if token.startswith(self._prefix) else ""
-        chunk, _, holder = rest.rpartition("/holders/")
-        if not chunk or "/" in chunk or not HOLDER.fullmatch(holder):
-            return
-        key = self._prefix + chunk
         with self._lock:
+            known = self._tokens.get(token)
+            if known is None:
+                return  # a holder of nothing here (anyone may declare tokens)
             if alive:
-                self._alive.add((key, holder))
+                self._alive.add(known)
             else:
-                self._alive.discard((key, holder))
-                if holder in self._held.get(key, {}):
-                    self._look_later(key, holder)
+                self._alive.discard(known)
+                self._look_later(*known)
 
     def _look_later(self, key: str, holder: str, after_s: float | None = None) -> None:
         heapq.heappush(self._due, (time.monotonic() + (self.grace_s if after_s is None else after_s), key, holder))
@@ -155,16 +167,12 @@ class Holders:
                 if self._closed:
                     return
                 _, key, holder = heapq.heappop(self._due)
-                if (key, holder) in self._alive:
+                if (key, holder) in self._alive or holder not in self._held.get(key, {}):
                     continue
-                references = self._held.get(key, {}).pop(holder, 0)
-                if key in self._held and not self._held[key]:
-                    del self._held[key]
-            if references:
-                log.info("client %s holding %s is gone: %d reference(s) released after %.1f s", holder, key, references, self.grace_s)
-            for _ in range(references):
-                try:
-                    self._release(key)
-                except Exception as exc:  # (released meanwhile by someone else: nothing left to give back)
-                    log.debug("releasing %s for the gone client %s: %s", key, holder, exc)
-                    break
+                references = self._held[key][holder]
+                self._drop(key, holder)
+            log.info("client %s holding %s is gone: %d reference(s) released after %.1f s", holder, key, references, self.grace_s)
+            try:
+                self._release(key, holder)
+            except Exception as exc:  # (released meanwhile by someone else: nothing left to give back)
+                log.debug("releasing %s for the gone client %s: %s", key, holder, exc)

@@ -57,6 +57,7 @@ __all__ = [
     "measurement_key",
     "measurement_patterns",
     "monitor_key",
+    "includes",
     "parse_service_key",
     "port_token",
     "request_key",
@@ -172,6 +173,54 @@ def manager_prefix(manager: str) -> str:
 def unit_prefix(manager: str, unit: str) -> str:
     """The prefix of a unit's default port keys: ``dyknow/<manager>/<unit>/``."""
     return f"{DATA_ROOT}/{manager}/{unit}/"
+
+
+def includes(key_expr: str, key: str) -> bool:
+    """Whether the key expression ``key_expr`` matches the concrete ``key``, as Zenoh matches them.
+
+    ``*`` stands for one chunk, ``**`` for any number of chunks (none too), ``$*`` for any text
+    inside a chunk; neither wildcard reaches a verbatim chunk (one starting with ``@``), which
+    only the same chunk matches. Walked without recursion (the ACL's data rights use it on keys
+    callers choose).
+    """
+    pattern, chunks = key_expr.split("/"), key.split("/")
+    here = {0}  # how many chunks of the key the pattern's chunks so far can have matched
+    for part in pattern:
+        after: set[int] = set()
+        if part == "**":
+            for start in sorted(here):
+                after.add(start)
+                for end in range(start, len(chunks)):
+                    if chunks[end].startswith("@"):
+                        break
+                    after.add(end + 1)
+        else:
+            after = {i + 1 for i in here if i < len(chunks) and _chunk_matches(part, chunks[i])}
+        here = after
+        if not here:
+            return False
+    return len(chunks) in here
+
+
+def _chunk_matches(part: str, chunk: str) -> bool:
+    if part == chunk:
+        return True
+    if chunk.startswith("@"):
+        return False
+    if part == "*":
+        return True
+    pieces = part.split("$*")
+    if len(pieces) == 1:
+        return False
+    if not chunk.startswith(pieces[0]) or not chunk.endswith(pieces[-1]) or len(chunk) < len(pieces[0]) + len(pieces[-1]):
+        return False
+    at, end = len(pieces[0]), len(chunk) - len(pieces[-1])
+    for piece in pieces[1:-1]:
+        found = chunk.find(piece, at, end)
+        if found < 0:
+            return False
+        at = found + len(piece)
+    return True
 
 
 def request_key(manager: str, tag: str) -> str:

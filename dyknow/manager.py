@@ -51,7 +51,7 @@ from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
 from dyknow.message import CLOCK_ID
-from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
+from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
@@ -63,6 +63,7 @@ from dyknow.ros2.node import Ros2Node
 from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
 from dyknow.spec.model import INT_RANGE, Param, Port, convert_param
+from dyknow.tags import parse_term
 from dyknow.transport import Session, check_key_expr, make_config
 from dyknow.unit import Unit
 
@@ -252,7 +253,7 @@ class Manager:
             raise
         if serve:
             try:
-                self._holders = Holders(self._session, self.name, self.release, grace_s=client_grace_s)
+                self._holders = Holders(self._session, self.name, self._release_gone, grace_s=client_grace_s)
                 self._workers = service.Workers(
                     self.name,
                     # clock exchanges are answered on Zenoh's thread, where their times are taken
@@ -266,7 +267,7 @@ class Manager:
                 raise
         if federate if federate is not None else serve:
             try:
-                self._clocks = clocks.ClockTracker(self._session)
+                self._clocks = clocks.ClockTracker(self._session, in_use=self._peers_in_use)
                 self._directory = Directory(
                     self._session, self.name, summarize=self.summary, fetch=self._fetch_summary, on_change=self._peer_changed
                 )
@@ -783,7 +784,7 @@ class Manager:
 
     # ------------------------------------------------------------------ requests (self-adaptation)
 
-    def request(self, tag: str, *, standby: str | None = None, require: Sequence[str] = ()) -> str:
+    def request(self, tag: str, *, standby: str | None = None, require: Sequence[str] = (), owner: Owner = LOCAL) -> str:
         """Provide a stream of ``tag`` (e.g. ``"BallPosition(field)"``); returns its key.
 
         The planner chooses the transformations, reusing what already runs; they are spawned and
@@ -794,49 +795,94 @@ class Manager:
         ``require``: temporal formulas the stream must satisfy (``BallTrack(field).predicted
         implies eventually[0, 1.5s] not BallTrack(field).predicted``): a false verdict moves the
         request to its next-best configuration, the formula named as the cause (see
-        :meth:`dyknow.adaptation.AdaptationLoop.request`).
-        Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when nothing fits.
+        :meth:`dyknow.adaptation.AdaptationLoop.request`); they belong to this reference.
+        ``owner``: who takes the reference (the services pass the caller; the Python API is the
+        operator's). Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when
+        nothing fits, :class:`~dyknow.errors.AccessError` when the owner may not read a stream
+        it names; when it raises, nothing of the call remains.
         """
         self._check_open()
-        return self._adaptation.request(tag, standby=standby, require=require)
+        return self._adaptation.request(tag, standby=standby, require=require, owner=owner, readable=self._reader(owner))
 
-    def release(self, key: str) -> int:
+    def release(self, key: str, *, owner: Owner = LOCAL, force: bool = False) -> int:
         """Give back a request, or a monitor (the key :meth:`monitor` returned); its units are
         destroyed when no other request uses them. Returns how many references to the request
-        remain (it stays while any does; 0: it is gone)."""
+        remain (it stays while any does; 0: it is gone).
+
+        ``owner`` gives back a reference it took (the Python API may give back any);
+        :class:`~dyknow.errors.AccessError` when it holds none. ``force`` gives back every
+        reference, whoever took it (on a manager with roles, the services allow it to admins).
+        """
         self._check_open()
-        if self._monitors.release(key):
+        if self._monitors.release(key, owner=owner, force=force):
+            if self._holders is not None:
+                self._holders.forget(key)
+            self.changed()
             return 0
-        remaining = self._adaptation.release(key)
+        remaining = self._adaptation.release(key, owner=owner, force=force)
         if remaining == 0 and self._holders is not None:
             self._holders.forget(key)
         return remaining
 
-    def monitor(self, formula: str, *, reorder_ms: float = 0.0) -> str:
+    def _release_gone(self, key: str, holder: str) -> None:
+        """The client ``holder`` is gone (:mod:`dyknow.holders`): what it held on ``key`` goes."""
+        owner = self._monitors.owner(key)
+        if owner is not None:
+            if owner.holder == holder:
+                self.release(key, force=True)
+            return
+        if self._adaptation.release_holder(key, holder) == 0 and self._holders is not None:
+            self._holders.forget(key)
+
+    def monitor(self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL) -> str:
         """Monitor a temporal formula over the streams its terms name; returns the key of its
         verdicts (see :mod:`dyknow.reasoning.monitors`; ``forall c in Class: ...`` gives one
         monitor per individual and a key expression for them all).
 
         Each term is requested as :meth:`request` does, so the planner finds its stream by
         meaning and the adaptation loop keeps it flowing; ``reorder_ms`` is the monitor's reorder
-        delay. :meth:`release` of the key takes it down. Raises
-        :class:`~dyknow.errors.FormulaError` or :class:`~dyknow.planner.PlanningError`.
+        delay. :meth:`release` of the key takes it down (only by ``owner``, or forced). Raises
+        :class:`~dyknow.errors.FormulaError`, :class:`~dyknow.planner.PlanningError`, or
+        :class:`~dyknow.errors.AccessError` when ``owner`` may not read a term's stream.
         """
         self._check_open()
-        info = self._monitors.add(formula, reorder_ms=reorder_ms)
+        info = self._monitors.add(formula, reorder_ms=reorder_ms, owner=owner, readable=self._reader(owner))
         self.changed()
         return info.key
+
+    def _reader(self, owner: Owner) -> Callable[[str], None] | None:
+        """A check that ``owner`` may read the stream of a tag (its request's key), on a manager
+        with roles; None when everything may be read (no roles, or the Python API)."""
+        access = self._access
+        caller = owner.caller
+        if access is None or owner.local or caller is None:
+            return None
+        manager = self.name
+
+        def readable(tag: str) -> None:
+            key = keys.request_key(manager, str(parse_term(tag)))
+            if not access.may_read(caller, key):
+                roles = access.roles_for_read(key)
+                raise AccessError(
+                    f"{caller!r} may not read {tag} (its stream is on {key!r}), so it may not ask for it, monitor it or require it",
+                    where=f"manager {manager!r}",
+                    expected=f"a caller whose role may subscribe to {key!r} in this manager's --acl ({' or '.join(roles) or 'none'})",
+                )
+
+        return readable
 
     def monitors(self) -> list[MonitorInfo]:
         """The formulas this manager monitors."""
         return self._monitors.infos()
 
     def requests(self) -> list[RequestInfo]:
-        """The active requests: tag, key, state ("active" or "degraded"), units, holders."""
+        """The active requests: tag, key, state ("active" or "degraded"), units, holders (and
+        those whose client is not seen now)."""
         found = self._adaptation.requests()
-        if self._holders is None:
+        holders = self._holders
+        if holders is None:
             return found
-        return [replace(info, holders=self._holders.holders(info.key)) for info in found]
+        return [replace(info, absent=tuple(h for h in info.holders if not holders.alive(info.key, h))) for info in found]
 
     def measure(self, name: str, value: float | str) -> None:
         """Record the latest value of a measure (battery, say); constraints are checked against it."""
@@ -986,6 +1032,14 @@ class Manager:
         """The other managers this one reaches, with their last summary (empty when not federated)."""
         return self._directory.peers() if self._directory is not None else {}
 
+    def _peers_in_use(self) -> set[str]:
+        """The managers this one exchanges data and calls with: those whose units its requests
+        use, and those whose requests its units serve."""
+        used = set(self._owners.values())
+        for info in self._adaptation.requests():
+            used.update(ref.rpartition("@")[2] for ref in (*info.units, *info.standby) if "@" in ref)
+        return used
+
     def changed(self) -> None:
         """This manager's model changed: the other managers hear of it (a summary, debounced)."""
         if self._directory is not None:
@@ -1045,7 +1099,7 @@ class Manager:
             "get_model": self._serve_model,
             "request": self._serve_request,
             "release": self._serve_release,
-            "monitor": lambda r, c: {"key": self.monitor(str(r["formula"]), reorder_ms=float(r.get("reorder_ms", 0.0)))},
+            "monitor": self._serve_monitor,
             "measure": self._serve_measure,
             "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
             "get_summary": lambda r, c: self.summary().to_dict(),
@@ -1087,19 +1141,40 @@ class Manager:
     def _serve_release(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         key = str(request["key"])
         holder = request.get("holder")  # (checked with the request: dyknow.service)
-        remaining = self.release(key)
-        if holder is not None and self._holders is not None:
+        force = bool(request.get("force", False))
+        if force and caller is not None and caller.role != "admin":
+            role = f"the role {caller.role}" if caller.role else "no role"
+            raise AccessError(
+                f"{caller.common_name!r}, with {role}, may not force a release",
+                where=f"{key!r} on manager {self.name!r}",
+                expected="an admin (force: true is for admins), or a release of what the caller requested",
+            )
+        remaining = self.release(key, owner=_owner(caller, holder), force=force)
+        if holder is not None and self._holders is not None and remaining > 0:
             self._holders.gave_back(key, holder)
         return {"released": key, "references": remaining}
 
     def _serve_request(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         holder = request.get("holder")  # (checked with the request, before anything is taken: dyknow.service)
-        key = self.request(str(request["tag"]), standby=request.get("standby"), require=request.get("require", ()))
+        owner = _owner(caller, holder)
+        key = self.request(str(request["tag"]), standby=request.get("standby"), require=request.get("require", ()), owner=owner)
         if holder is not None and self._holders is not None:
             try:
                 self._holders.took(key, holder)
             except DyKnowError:
-                self.release(key)
+                self.release(key, owner=owner)
+                raise
+        return {"key": key, "kept": holder is None}
+
+    def _serve_monitor(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
+        holder = request.get("holder")
+        owner = _owner(caller, holder)
+        key = self.monitor(str(request["formula"]), reorder_ms=float(request.get("reorder_ms", 0.0)), owner=owner)
+        if holder is not None and self._holders is not None:
+            try:
+                self._holders.took(key, holder)
+            except DyKnowError:
+                self.release(key, owner=owner)
                 raise
         return {"key": key, "kept": holder is None}
 
@@ -1119,6 +1194,11 @@ class Manager:
 
 
 # ---------------------------------------------------------------------- helpers
+
+
+def _owner(caller: Caller | None, holder: str | None) -> Owner:
+    """Who a service call takes a reference for: its caller's name (with roles) and its client."""
+    return Owner(caller.common_name if caller is not None else None, holder)
 
 
 def _info(proxy: Proxy) -> UnitInfo:

@@ -11,7 +11,12 @@ Every message carries a header:
   messages lost on the way (Zenoh's publishers drop under congestion rather than block);
 - ``origin_clock`` and ``send_clock``: whose clock took ``origin_ns`` and ``send_ns``, the random
   32-bit :data:`CLOCK_ID` of that process (0: unknown). An id, not a name: nothing is trusted
-  because of it; it says which clock offset applies to a time from another host.
+  because of it; it says which clock offset applies to a time from another host;
+- ``forwards``: how many forwarding units (``forward_to``, such as the shipped relay) passed the
+  message on since a unit last published it. A forwarding unit drops a message that
+  :data:`MAX_FORWARDS` of them passed on already, so forwarding units bound into a cycle across
+  processes (which no manager alone can see) carry each message round at most that often
+  instead of for ever.
 
 Times are wall-clock integer nanoseconds (``time.time_ns()``).
 
@@ -27,8 +32,8 @@ only messages that leave the process are encoded, by :func:`encode`:
 
       offset  size  field
       0       2     magic, the bytes "DK"
-      2       1     version: 2
-      3       1     kind: 0 bytes, 1 text (UTF-8), 2 JSON, 3 array
+      2       1     version: 3
+      3       1     kind (bits 0-1): 0 bytes, 1 text (UTF-8), 2 JSON, 3 array; forwards (bits 2-7)
       4       8     seq, u64
       12      8     origin_ns, i64
       20      8     send_ns, i64
@@ -36,8 +41,9 @@ only messages that leave the process are encoded, by :func:`encode`:
       32      4     origin_clock, u32
       36      4     send_clock, u32
 
-  Version 1 (``HEADER_V1``, the first 28 bytes of the same layout, without the last three
-  fields) is still read: its source and clocks are 0.
+  Versions 2 (the same layout, the whole byte 3 the kind: no forwards) and 1 (``HEADER_V1``, the
+  first 28 bytes, without the last three fields) are still read: their forwards are 0, and a
+  version 1 header's source and clocks too.
 
 Tools that know nothing of dyknow still see plain bytes, text or JSON on the key, with a matching
 Zenoh encoding. Samples that arrive without a dyknow attachment (from plain Zenoh publishers) are
@@ -60,6 +66,7 @@ __all__ = [
     "ENCODINGS",
     "HEADER",
     "HEADER_V1",
+    "MAX_FORWARDS",
     "Message",
     "PayloadError",
     "check_payload",
@@ -83,10 +90,13 @@ _TEXT: Final = 1
 _JSON: Final = 2
 _ARRAY: Final = 3
 _MAGIC: Final = b"DK"
-_VERSION: Final = 2
+_VERSION: Final = 3
+_V2: Final = 2
 HEADER: Final = struct.Struct("<2sBBQqqIII")
 HEADER_V1: Final = struct.Struct("<2sBBQqq")
 _V1: Final = 1
+#: The most forwarding units that pass one message on (see the module documentation).
+MAX_FORWARDS: Final = 63
 
 
 def new_id() -> int:
@@ -120,7 +130,7 @@ class Message:
     hop and frozen dataclasses cost several times more to construct.
     """
 
-    __slots__ = ("key", "nbytes", "origin_clock", "origin_ns", "payload", "send_clock", "send_ns", "seq", "source", "wire")
+    __slots__ = ("forwards", "key", "nbytes", "origin_clock", "origin_ns", "payload", "send_clock", "send_ns", "seq", "source", "wire")
 
     def __init__(
         self,
@@ -134,6 +144,7 @@ class Message:
         source: int = 0,
         origin_clock: int = CLOCK_ID,
         send_clock: int = CLOCK_ID,
+        forwards: int = 0,
     ) -> None:
         self.payload = payload
         self.seq = seq
@@ -147,6 +158,7 @@ class Message:
         self.source = source  # the sending output port's id (0: unknown)
         self.origin_clock = origin_clock  # whose clock took origin_ns (CLOCK_ID: this process's)
         self.send_clock = send_clock  # whose clock took send_ns
+        self.forwards = forwards  # forwarding units that passed it on since a unit published it
 
     def __repr__(self) -> str:
         return (
@@ -197,7 +209,7 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
     wire = msg.wire
     if wire is not None:
         data, kind, extra = wire
-        header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
+        header = HEADER.pack(_MAGIC, _VERSION, kind | min(msg.forwards, MAX_FORWARDS) << 2, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
         return data, header + extra if extra else header, ENCODINGS[kind]
     payload = msg.payload
     extra = b""
@@ -222,7 +234,7 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
             data = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
         except (TypeError, ValueError) as exc:
             raise PayloadError(f"cannot encode the payload as JSON: {exc}") from exc
-    header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
+    header = HEADER.pack(_MAGIC, _VERSION, kind | min(msg.forwards, MAX_FORWARDS) << 2, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
     return data, header + extra, ENCODINGS[kind]
 
 
@@ -258,22 +270,26 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     """:func:`decode` for a sample known to carry a dyknow header (the transport checked)."""
     raw = data if type(data) is bytes else data.to_bytes()
     version = attachment[2]
-    if version == _VERSION and len(attachment) >= HEADER.size:
+    forwards = 0
+    if (version == _VERSION or version == _V2) and len(attachment) >= HEADER.size:
         _, _, kind, mseq, origin_ns, send_ns, source, origin_clock, send_clock = HEADER.unpack_from(attachment)
+        if version == _VERSION:
+            forwards = kind >> 2
+            kind &= 3
         size = HEADER.size
     elif version == _V1:
         _, _, kind, mseq, origin_ns, send_ns = HEADER_V1.unpack_from(attachment)
         source = origin_clock = send_clock = 0
         size = HEADER_V1.size
     else:
-        raise PayloadError(f"header version {version} of {len(attachment)} bytes", where=f"message on {key!r}", expected="version 2 (or 1)")
+        raise PayloadError(f"header version {version} of {len(attachment)} bytes", where=f"message on {key!r}", expected="version 3 (or 2, 1)")
     extra = b""
     if kind == _BYTES:
         payload: Any = raw
     elif kind == _TEXT:
         payload = raw.decode()
     elif kind == _JSON:  # mutable: no wire reuse
-        return Message(json.loads(raw), mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock)
+        return Message(json.loads(raw), mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock, forwards)
     elif kind == _ARRAY:
         ndim, dlen = _ARRAY_META.unpack_from(attachment, size)
         pos = size + _ARRAY_META.size
@@ -283,25 +299,31 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
         extra = attachment[size:]
     else:
         raise PayloadError(f"unknown payload kind {kind}", where=f"message on {key!r}", expected="0 to 3 (bytes, text, JSON, array)")
-    return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra), source, origin_clock, send_clock)
+    return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra), source, origin_clock, send_clock, forwards)
 
 
-def reheader(attachment: bytes, seq: int, send_ns: int, source: int) -> tuple[bytes, int, int, int, int, int, int, str] | None:
+def reheader(attachment: bytes, seq: int, send_ns: int, source: int) -> tuple[bytes, int, int, int, int, int, int, str, int] | None:
     """The header of a received message of raw bytes made the header of the next hop, for a unit
     that forwards it as it came (no :class:`Message`, no copy of the payload): the same origin and
-    origin clock, a new ``seq``, ``send_ns`` and ``source``, this process's send clock. Returns
-    ``(attachment, origin_ns, origin_clock, previous send_ns, previous send_clock, previous
-    source, previous seq, encoding)``, or None for any other header: text, JSON and arrays are
-    decoded first (which checks them, so that a relay never passes on what its readers would
-    refuse), and so is a header of another version (decoding reads it, or reports what is wrong
-    with it)."""
-    if len(attachment) != HEADER.size or attachment[2] != _VERSION:
+    origin clock, one more forward, a new ``seq``, ``send_ns`` and ``source``, this process's
+    send clock. Returns ``(attachment, origin_ns, origin_clock, previous send_ns, previous send
+    clock, previous source, previous seq, encoding, forwards so far)`` (the caller drops the
+    message when the forwards so far reach :data:`MAX_FORWARDS`), or None for any other
+    header: text, JSON and arrays are decoded first (which checks them, so that a relay never
+    passes on what its readers would refuse), and so is a header of another version (decoding
+    reads it, or reports what is wrong with it)."""
+    if len(attachment) != HEADER.size:
         return None
-    _, _, kind, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, sent_clock = HEADER.unpack_from(attachment)
-    if kind != _BYTES:
+    version = attachment[2]
+    if version != _VERSION and version != _V2:
         return None
-    header = HEADER.pack(_MAGIC, _VERSION, _BYTES, seq, origin_ns, send_ns, source, origin_clock, CLOCK_ID)
-    return header, origin_ns, origin_clock, sent_ns, sent_clock, prev_source, prev_seq, _BYTES_ENCODING
+    _, _, byte, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, sent_clock = HEADER.unpack_from(attachment)
+    forwards = byte >> 2 if version == _VERSION else 0
+    if byte & 3 != _BYTES or (version == _V2 and byte != _BYTES):
+        return None
+    onward = min(forwards + 1, MAX_FORWARDS)
+    header = HEADER.pack(_MAGIC, _VERSION, _BYTES | onward << 2, seq, origin_ns, send_ns, source, origin_clock, CLOCK_ID)
+    return header, origin_ns, origin_clock, sent_ns, sent_clock, prev_source, prev_seq, _BYTES_ENCODING, forwards
 
 
 def _decode_foreign(data: bytes, encoding: str) -> Any:

@@ -20,12 +20,56 @@ from typing import Any
 from dyknow.errors import UnitError, did_you_mean
 from dyknow.spec import TransformationSpec
 
-__all__ = ["STANDBY_MODES", "Model", "RequestInfo", "UnitEvent", "UnitInfo", "check_standby", "standby_problem"]
+__all__ = ["LOCAL", "STANDBY_MODES", "Model", "Owner", "RequestInfo", "UnitEvent", "UnitInfo", "check_standby", "standby_problem"]
 
 #: How a request stands by for faults: ``"none"`` (re-plan and spawn when the configuration
 #: breaks) or ``"warm"`` (the next-best configuration runs beside it, and a fault only moves the
 #: request's anchor onto it).
 STANDBY_MODES = ("none", "warm")
+
+
+@dataclass(frozen=True, slots=True)
+class Owner:
+    """Who took a reference to a request, or asked for a monitor.
+
+    ``caller``: the common name of the caller's certificate, on a manager with roles (None
+    without); ``holder``: the id of the :class:`~dyknow.client.Client` that holds it (None: kept
+    until released, :mod:`dyknow.holders`); ``local``: the manager's own Python API (the
+    operator, trusted). Only the owner may give a reference back, or an admin who forces it.
+    """
+
+    caller: str | None = None
+    holder: str | None = None
+    local: bool = False
+
+    def holds(self, other: Owner) -> bool:
+        """Whether a release by this owner may give back ``other``'s reference: the local API
+        any; a caller of a manager with roles those taken under its certificate's name (its own
+        client's first); without roles, a client its own, and a caller without a holder the
+        references kept over the services."""
+        if self.local:
+            return True
+        if other.local or other.caller != self.caller:
+            return False
+        if self.holder is not None:
+            return other.holder == self.holder
+        return self.caller is not None or other.holder is None
+
+    def who(self) -> str:
+        """The owner as a message names a caller: ``'alice' (client 3f2a...)``, ``'alice'``."""
+        if self.local:
+            return "the manager's own API"
+        if self.caller is None:
+            return f"client {self.holder}" if self.holder is not None else "a caller without a client id"
+        return f"{self.caller!r} (client {self.holder})" if self.holder is not None else repr(self.caller)
+
+    def __str__(self) -> str:
+        """The owner as a message names a reference: kept ones say so."""
+        return self.who() if self.local or self.holder is not None else f"{self.who()} (kept)"
+
+
+#: The owner of what the manager's Python API asks for.
+LOCAL = Owner(local=True)
 
 
 def standby_problem(value: object) -> tuple[str, str] | None:
@@ -124,6 +168,9 @@ class RequestInfo:
     #: the clients holding it (client id -> references; :mod:`dyknow.holders`); the other
     #: references (``references`` minus these) are kept until released
     holders: Mapping[str, int] = field(default_factory=dict)
+    #: the holders whose client the manager does not see now (its token is not there): their
+    #: references are released after the manager's grace unless the client comes back
+    absent: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -141,6 +188,7 @@ class RequestInfo:
             "requirements": list(self.requirements),
             "spec_requirements": [dict(r) for r in self.spec_requirements],
             "holders": dict(self.holders),
+            "absent": list(self.absent),
             "kept": self.references - sum(self.holders.values()),
         }
 

@@ -37,7 +37,7 @@ from dyknow import keys
 from dyknow.bus import cycle_error
 from dyknow.clocks import CLOCKS
 from dyknow.errors import BindingError, UnitError, did_you_mean
-from dyknow.message import CLOCK_ID, Message, check_payload, new_id, payload_nbytes, reheader
+from dyknow.message import CLOCK_ID, MAX_FORWARDS, Message, check_payload, new_id, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
 from dyknow.transport import check_key_expr
 from dyknow.unit import Unit
@@ -570,8 +570,11 @@ class Proxy:
             wire = reheader(header, out.seq + 1, now, out.source)
             if wire is None:
                 return False
-            attachment, origin_ns, origin_clock, sent_ns, sent_clock, sender, sender_seq, encoding = wire
+            attachment, origin_ns, origin_clock, sent_ns, sent_clock, sender, sender_seq, encoding, forwards = wire
             port.track(sender, sender_seq)
+            if forwards >= MAX_FORWARDS:
+                self._looped(port)
+                return True
             out.seq += 1
             nbytes = len(data)
             publisher = out.publisher
@@ -589,11 +592,25 @@ class Proxy:
         return True
 
     def _forward(self, port: InputPort, msg: Message, now: int) -> None:
-        """Send ``msg`` on as it came (payload, origin, wire form) from the port's ``forward`` output."""
+        """Send ``msg`` on as it came (payload, origin, wire form) from the port's ``forward`` output,
+        unless :data:`~dyknow.message.MAX_FORWARDS` forwarding units passed it on already."""
         out = port.forward
         assert out is not None
+        if msg.forwards >= MAX_FORWARDS:
+            self._looped(port)
+            return
         out.seq += 1
-        self._send(out, Message(msg.payload, out.seq, msg.origin_ns, now, out.key, msg.nbytes, msg.wire, out.source, msg.origin_clock, CLOCK_ID))
+        self._send(
+            out, Message(msg.payload, out.seq, msg.origin_ns, now, out.key, msg.nbytes, msg.wire, out.source, msg.origin_clock, CLOCK_ID, msg.forwards + 1)
+        )
+
+    def _looped(self, port: InputPort) -> None:
+        """A message to forward that went through too many forwarding units: dropped, said why."""
+        self.reject(
+            port.name,
+            f"a message already passed on by {MAX_FORWARDS} forwarding units was dropped: forwarding units (relays) are bound "
+            "into a cycle, probably across managers (each relays the other's output); rebind one of them",
+        )
 
     def _wire_forwards(self, cls: type[Unit]) -> None:
         """Point every input at the ``forward_to`` output of a forwarding unit class (checked here,

@@ -10,8 +10,10 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
   ``spawn`` ``{"label", "name", "protected", "params", "bindings"}``, ``destroy`` ``{"name"}``,
   ``get_model`` ``{}``; ``request`` ``{"tag", "standby", "require", "holder"}`` -> ``{"key", "kept"}``
   (``standby``: optional, one of :data:`~dyknow.model.STANDBY_MODES`; ``holder``: the client
-  that holds it, see :mod:`dyknow.holders`); ``release`` ``{"key", "holder"}`` -> ``{"released",
-  "references"}`` (the references that remain);
+  that holds it, see :mod:`dyknow.holders`); ``release`` ``{"key", "holder", "force"}`` ->
+  ``{"released", "references"}`` (the references that remain; a caller gives back only what it
+  took, and ``force``, an admin's on a manager with roles, every reference); ``monitor``
+  ``{"formula", "reorder_ms", "holder"}`` -> ``{"key", "kept"}``;
   ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_summary`` ``{}`` (for
   the other managers: see :mod:`dyknow.federation`); a ``spawn`` may name the ``owner``, the
   manager whose request it serves (its units go when that manager does);
@@ -232,8 +234,8 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "destroy": {"name": (True, _name("unit name")), "force": (False, _flag)},
     "get_model": {"page": (False, _page)},
     "request": {"tag": (True, _text(512)), "standby": (False, _standby), "require": (False, _formulas), "holder": (False, _holder)},
-    "monitor": {"formula": (True, _text(_FORMULA_BYTES)), "reorder_ms": (False, _milliseconds)},
-    "release": {"key": (True, _key), "holder": (False, _holder)},
+    "monitor": {"formula": (True, _text(_FORMULA_BYTES)), "reorder_ms": (False, _milliseconds), "holder": (False, _holder)},
+    "release": {"key": (True, _key), "holder": (False, _holder), "force": (False, _flag)},
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},
     "get_summary": {},

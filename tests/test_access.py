@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ from dyknow.certs import write_dev_certs
 from dyknow.identity import Signer
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
-from tests.conftest import GENERIC_SPECS, CliProcess, free_port, run_cli
+from tests.conftest import GENERIC_SPECS, CliProcess, free_port, run_cli, wait_until
 
 NAMES = ["manager", "viewer", "operator", "admin", "stranger", "station", "robot", "router"]
 RELAY = """<transformation><label>extra-relay</label><source>transformations.generic:Relay</source>
@@ -506,3 +507,109 @@ def test_the_docs_acl_files_are_valid() -> None:
     defined = next(a for a in acls if a.defined)
     assert defined.may_call("robot-ui", "request") and defined.may_call("robot-ui", "get_model")
     assert not defined.may_call("robot-ui", "destroy") and not defined.may_call("robot-ui", "set_config", unit=True)
+
+
+# ---------------------------------------------------------------------- what is whose, and who may read what
+
+OWNERS_ACL = """{
+  roles: { admin: ["admin"], operator: ["operator"], requester: ["viewer"], watcher: ["stranger"] },
+  define: {
+    requester: { like: "viewer", calls: ["request", "release", "monitor"] },
+    // may ask for monitors and read their verdicts, and nothing else
+    watcher: { calls: ["monitor", "get_model", "release"], subscribe: ["dyknow/*/monitors/**"] },
+  },
+}
+"""
+SECRET = """<transformation><label>vault</label><source>transformations.generic:PeriodicSource</source>
+  <params><param name="rate_hz" type="float">50</param></params>
+  <ports><port type="out">out</port></ports><tags><tag port="out">Secret(vault)</tag></tags></transformation>"""
+
+
+@pytest.fixture
+def owners(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> Manager:
+    (tmp_path / "acl.json5").write_text(OWNERS_ACL)
+    (tmp_path / "vault.xml").write_text(SECRET)
+    return make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS, tmp_path / "vault.xml"], client_grace_s=0.2,
+    )  # fmt: skip
+
+
+def _held(manager: Manager, tag: str) -> dict[str, Any] | None:
+    return next((r.to_dict() for r in manager.requests() if r.tag == tag), None)
+
+
+def test_a_caller_releases_only_what_it_requested(owners: Manager, certs: Path) -> None:
+    """The attack of the report: a requester releases an admin's held request (refused; the
+    stream keeps its units), an operator adds a requirement to it and releases its own
+    reference (the requirement goes with it); forcing is an admin's."""
+    with ExitStack() as stack:
+        admin, operator, requester = (
+            stack.enter_context(Client(owners.name, connect=owners.endpoints, tls=tls(certs, n), timeout_s=5.0)) for n in ("admin", "operator", "viewer")
+        )  # fmt: skip
+        key = admin.request("Ticks")
+        units = {u.name for u in owners.units()}
+        with pytest.raises(AccessError, match=r"'viewer' holds no reference to the request on .*\(its references: 'admin' \(client [0-9a-f]+\)\)"):
+            requester.release(key)
+        with pytest.raises(AccessError, match=r"'viewer', with the role requester, may not force a release"):
+            requester.release(key, force=True)
+        operator.request("Ticks", require=["Ticks.value < 0"])
+        assert _held(owners, "Ticks")["requirements"] == ["Ticks.value < 0"]  # type: ignore[index]
+        assert operator.release(key) == 1
+        held = _held(owners, "Ticks")
+        assert held is not None and held["references"] == 1 and held["requirements"] == [] and {u.name for u in owners.units()} == units
+        operator.request("Ticks", keep=True)
+        assert admin.release(key, force=True) == 0
+    assert _held(owners, "Ticks") is None
+
+
+def test_a_requesters_held_request_stays_while_its_client_does(owners: Manager, certs: Path) -> None:
+    """A role of the file's own that may request (like a viewer) may also declare its holder
+    token, so the manager sees its client there and keeps what it holds (with a grace of 0.2 s
+    it was released within 6 s while the client was connected)."""
+    with Client(owners.name, connect=owners.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0) as requester:
+        requester.request("Ticks")
+        wait_until(lambda: (_held(owners, "Ticks") or {}).get("absent") == [], "the manager to see the requester's client")
+        assert list(_held(owners, "Ticks")["holders"].values()) == [1]  # type: ignore[index]
+    wait_until(lambda: _held(owners, "Ticks") is None, "the closed requester's request released")
+
+
+def test_a_monitor_reads_only_what_its_caller_may_read(owners: Manager, certs: Path) -> None:
+    """A role that may ask for monitors and read only their verdicts cannot learn a secret
+    through threshold monitors: the term's stream is one it may not read, so the monitor is
+    refused before anything is planned (the secret's source is not started); nor can a
+    requester require a formula over it. What it may read, it may monitor."""
+    with Client(owners.name, connect=owners.endpoints, tls=tls(certs, "stranger"), timeout_s=5.0) as watcher:
+        for threshold in (1000, 5000, 4711):
+            with pytest.raises(AccessError, match=r"'stranger' may not read Secret\(vault\) \(its stream is on 'dyknow/.*/requests/Secret\(vault\)'\)"):
+                watcher.monitor(f"Secret(vault).pin > {threshold}")
+        with pytest.raises(AccessError, match="may not read Ticks"):
+            watcher.monitor("Ticks.value > 0")
+    assert owners.units() == [] and owners.requests() == [] and owners.monitors() == []
+    with Client(owners.name, connect=owners.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0) as requester:
+        key = requester.monitor("Secret(vault).pin > 4711")  # a requester (like a viewer) may read all data
+        assert [m.key for m in owners.monitors()] == [key]
+        assert requester.release(key) == 0
+    assert owners.units() == []
+
+
+def test_a_requirement_reads_only_what_its_caller_may_read(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """A requester allowed to read one request's stream requires a formula over the secret:
+    refused, and nothing is planned for it."""
+    (tmp_path / "acl.json5").write_text(
+        '{ roles: { limited: ["operator"] }, define: { limited: { calls: ["request", "release"], subscribe: ["dyknow/*/requests/Ticks"] } } }'
+    )
+    (tmp_path / "vault.xml").write_text(SECRET)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS, tmp_path / "vault.xml"],
+    )  # fmt: skip
+    with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "operator"), timeout_s=5.0) as limited:
+        with pytest.raises(AccessError, match=r"'operator' may not read Secret\(vault\)"):
+            limited.request("Ticks", require=["Secret(vault).pin > 4711"])
+        assert manager.units() == [] and manager.requests() == []
+        with pytest.raises(AccessError, match=r"may not read Secret\(vault\)"):
+            limited.request("Secret(vault)")
+        key = limited.request("Ticks", require=["Ticks.value >= 0"])
+        assert _held(manager, "Ticks")["requirements"] == ["Ticks.value >= 0"]  # type: ignore[index]
+        assert limited.release(key) == 0

@@ -497,3 +497,19 @@ def test_the_process_table_is_kept_by_a_tracker_and_forgotten_when_untracked(man
         assert offset is not None and uncertainty is not None and abs(offset) <= uncertainty
         tracker.untrack("honest2")
         assert CLOCKS.offset(clock) is None
+
+
+def test_fake_managers_filling_the_table_leave_no_peer_in_use_without_an_estimate(manager_process: Callable[..., ManagerProcess]) -> None:
+    """300 names announced by nobody that answers (fake managers) fill the tracker's 256 places
+    before a real peer does; the real one is in use (this process exchanges data with it), so
+    it takes the place of a fake one and is estimated. A newcomer not in use is still turned
+    away while the table is full."""
+    honest = manager_process(name="honest4")
+    used = {"honest4"}
+    with Session(make_config(connect=[honest.endpoint])) as session, ClockTracker(session, ClockTable(), in_use=lambda: used) as tracker:
+        for i in range(300):
+            tracker.track(f"fake{i}", keys.clock_key(f"fake{i}"))
+        tracker.track("idle", keys.clock_key("idle"))
+        tracker.track("honest4", keys.clock_key("honest4"))
+        wait_until(lambda: "honest4" in tracker.estimates(), "the peer in use estimated")
+        assert "idle" not in tracker.refused() and "idle" not in tracker.estimates()

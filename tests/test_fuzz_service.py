@@ -87,6 +87,8 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("request", "require"): {"[]"},
     ("request", "holder"): set(),  # only hexadecimal client ids, none of the probes
     ("release", "holder"): set(),
+    ("release", "force"): {"true"},
+    ("monitor", "holder"): set(),
 }
 SWEEP = [(service, field, probe) for service, fields in SCHEMAS.items() for field in fields for probe in JSON_PROBES]
 

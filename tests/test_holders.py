@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from dyknow import Client, Manager, ServiceError
+from dyknow import AccessError, Client, Manager, PlanningError, ServiceError
 from dyknow.testing import SCENARIO_SPECS
 from tests.conftest import REPO, run_cli, subprocess_env, wait_until
 
@@ -118,3 +118,79 @@ def test_a_holder_that_never_declares_its_token_is_released_once_it_had_time_to(
         client.call_manager(manager.name, "request", {"tag": TAG, "holder": "0123456789abcdef"})  # and no token, ever
         assert not wait_until_false(lambda: _request(manager) is not None, seconds=1.5)  # past the grace: its token may be on its way
         wait_until(lambda: _request(manager) is None, "the request of a holder without a token released", timeout_s=15)
+
+
+# ---------------------------------------------------------------------- each gives back only its own
+
+
+def test_a_client_may_not_release_another_clients_request(manager: Manager) -> None:
+    """Another client (no roles here, so no certificate to tell callers apart: the client id
+    does) cannot give back the first one's reference, with its own id or none; forcing it can
+    (without roles every caller may what an admin may), and takes every reference."""
+    with Client(manager.name, connect=manager.endpoints) as holder, Client(manager.name, connect=manager.endpoints) as other:
+        key = holder.request(TAG)
+        units = {u.name for u in manager.units()}
+        for attempt in (lambda: other.release(key), lambda: other.call_manager(manager.name, "release", {"key": key, "holder": "0123456789abcdef"})):
+            with pytest.raises(AccessError, match=r"holds no reference to the request on 'dyknow/owners/requests/BallPosition\(field\)' \(its references: client [0-9a-f]+\)"):
+                attempt()
+        assert _request(manager)["references"] == 1 and {u.name for u in manager.units()} == units  # type: ignore[index]
+        other.request(TAG, keep=True)
+        assert other.release(key) == 1  # its own kept reference, not the holder's
+        assert _request(manager)["holders"] == {holder._holder: 1}  # type: ignore[index]
+        assert other.release(key, force=True) == 0
+        assert _request(manager) is None
+
+
+def test_a_requirement_goes_with_the_reference_that_added_it(manager: Manager) -> None:
+    """A second client shares the request and requires a formula of it; when it releases its
+    reference the requirement and its monitor go, and the first client's request runs on
+    without it. A requirement both references added stays until both are gone."""
+    formula = f"{TAG}.x < -1000"
+    with Client(manager.name, connect=manager.endpoints) as first, Client(manager.name, connect=manager.endpoints) as second:
+        key = first.request(TAG)
+        second.request(TAG, require=[formula])
+        held = _request(manager)
+        assert held is not None and held["requirements"] == [formula] and held["references"] == 2
+        watchers = {u.name for u in manager.units()} - {u.name for u in manager.units() if "require" not in u.name}
+        assert len(watchers) == 1
+        assert second.release(key) == 1
+        assert _request(manager)["requirements"] == []  # type: ignore[index]
+        assert not watchers & {u.name for u in manager.units()}
+        first.request(TAG, require=[formula])
+        second.request(TAG, require=[formula])
+        assert first.release(key) == 2 and _request(manager)["requirements"] == [formula]  # type: ignore[index]
+        assert second.release(key) == 1 and _request(manager)["requirements"] == []  # type: ignore[index]
+
+
+def test_a_failed_call_leaves_nothing_behind(manager: Manager) -> None:
+    """A requirement whose term nothing provides fails the call: on a new request nothing of
+    it stays, on a shared one no reference is added, and five failures leak nothing."""
+    with Client(manager.name, connect=manager.endpoints) as client:
+        for _ in range(5):
+            with pytest.raises(PlanningError, match="Unheard"):
+                client.request(TAG, require=["Unheard(x) > 0"])
+        assert _request(manager) is None and manager.units() == []
+        key = client.request(TAG)
+        units = {u.name for u in manager.units()}
+        for _ in range(5):
+            with pytest.raises(PlanningError, match="Unheard"):
+                client.request(TAG, require=[f"{TAG}.x > 0", "Unheard(x) > 0"])
+        held = _request(manager)
+        assert held is not None and held["references"] == 1 and held["requirements"] == [] and {u.name for u in manager.units()} == units
+        assert client.release(key) == 0
+
+
+def test_a_monitor_has_a_holder_too(manager: Manager) -> None:
+    """A client's monitor is its own: another client cannot release it by its key, and it ends
+    a grace period after its client is gone; a kept one stays until released."""
+    formula = f"historically[0, 1s] {TAG}.x > 0"
+    with Client(manager.name, connect=manager.endpoints) as other:
+        with Client(manager.name, connect=manager.endpoints) as owner:
+            key = owner.monitor(formula)
+            with pytest.raises(AccessError, match=f"may not release the monitor on '{key}'"):
+                other.release(key)
+            assert [m.key for m in manager.monitors()] == [key]
+        wait_until(lambda: manager.monitors() == [] and _request(manager) is None, "the closed client's monitor released, its term too")
+        kept = other.monitor(formula, keep=True)
+    assert not wait_until_false(lambda: [m.key for m in manager.monitors()] == [kept], seconds=1.5)
+    assert manager.release(kept) == 0 and manager.monitors() == []

@@ -74,3 +74,60 @@ def test_valid_names(name: str) -> None:
 def test_invalid_names(name: object) -> None:
     with pytest.raises(UnitError, match="is not a valid name"):
         keys.check_name(name, "unit name")
+
+
+# ---------------------------------------------------------------------- key expressions matching keys
+
+_CHUNKS = ["a", "b", "ab", "robot", "requests", "Secret(vault)", "@dyknow", "@x", "x1"]
+_PARTS = [*_CHUNKS, "*", "**", "a$*", "$*b", "r$*s", "$*"]
+
+
+def _zenoh_includes(key_expr: str, key: str) -> bool:
+    import zenoh  # the independent implementation: Zenoh's own (Rust) key expressions
+
+    return bool(zenoh.KeyExpr.autocanonize(key_expr).includes(zenoh.KeyExpr(key)))
+
+
+def _canonical(parts: list[str]) -> bool:
+    """Whether Zenoh takes this pattern as written (no '**/**', no '**/*': it canonises those)."""
+    text = "/".join(parts)
+    import zenoh
+
+    try:
+        return str(zenoh.KeyExpr(text)) == text
+    except zenoh.ZError:
+        return False
+
+
+@pytest.mark.parametrize(
+    ("key_expr", "key", "expected"),
+    [
+        ("dyknow/**", "dyknow/robot/requests/Secret(vault)", True),
+        ("dyknow/robot/monitors/**", "dyknow/robot/requests/Secret(vault)", False),
+        ("dyknow/*/requests/*", "dyknow/robot/requests/Secret(vault)", True),
+        ("dyknow/**/Secret$*", "dyknow/robot/requests/Secret(vault)", True),
+        ("**", "@dyknow/robot/spawn", False),
+        ("@dyknow/**", "@dyknow/robot/spawn", True),
+        ("dyknow/robot/**", "dyknow/robot", True),
+    ],
+)
+def test_a_key_expression_includes_a_key(key_expr: str, key: str, expected: bool) -> None:
+    assert keys.includes(key_expr, key) is expected is _zenoh_includes(key_expr, key)
+
+
+def test_includes_agrees_with_zenoh_on_random_patterns() -> None:
+    """keys.includes (the ACL's data rights use it) against Zenoh's own matching, on every
+    pattern of up to 4 parts and keys of up to 4 chunks drawn from a mix of plain, verbatim and
+    wildcard chunks."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=3000, deadline=None, derandomize=True)
+    @given(st.lists(st.sampled_from(_PARTS), min_size=1, max_size=4), st.lists(st.sampled_from(_CHUNKS), min_size=1, max_size=4))
+    def agree(parts: list[str], chunks: list[str]) -> None:
+        if not _canonical(parts):
+            return
+        key_expr, key = "/".join(parts), "/".join(chunks)
+        assert keys.includes(key_expr, key) == _zenoh_includes(key_expr, key), (key_expr, key)
+
+    agree()

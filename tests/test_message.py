@@ -52,7 +52,8 @@ def _parse_header(attachment: bytes) -> dict[str, int]:
     little = "little"
     return {
         "version": attachment[2],
-        "kind": attachment[3],
+        "kind": attachment[3] & 0b11,
+        "forwards": attachment[3] >> 2,
         "seq": int.from_bytes(attachment[4:12], little),
         "origin_ns": int.from_bytes(attachment[12:20], little, signed=True),
         "send_ns": int.from_bytes(attachment[20:28], little, signed=True),
@@ -65,12 +66,18 @@ def _parse_header(attachment: bytes) -> dict[str, int]:
 def test_the_header_is_what_the_documentation_says() -> None:
     """Every field at its documented offset; a version-1 header (the first 28 bytes) still reads,
     with no source and no clocks; a message made here carries this process's clock."""
-    msg = Message(b"x", 2**40 + 5, -7, 1_800_000_000_000_000_000, "k", source=0xDEADBEEF, origin_clock=17, send_clock=CLOCK_ID)
+    msg = Message(b"x", 2**40 + 5, -7, 1_800_000_000_000_000_000, "k", source=0xDEADBEEF, origin_clock=17, send_clock=CLOCK_ID, forwards=5)
     _, attachment, _ = encode(msg)
     assert attachment[:2] == b"DK" and _parse_header(attachment) == {
-        "version": 2, "kind": 0, "seq": 2**40 + 5, "origin_ns": -7, "send_ns": 1_800_000_000_000_000_000,
+        "version": 3, "kind": 0, "forwards": 5, "seq": 2**40 + 5, "origin_ns": -7, "send_ns": 1_800_000_000_000_000_000,
         "source": 0xDEADBEEF, "origin_clock": 17, "send_clock": CLOCK_ID,
     }  # fmt: skip
+    assert decode(b"x", attachment, "k").forwards == 5
+    for payload, kind in (("text", 1), ({"j": 1}, 2), (np.zeros(3, np.uint8), 3)):  # forwards beside every kind
+        back = _parse_header(encode(Message(payload, 1, 1, 1, "k", forwards=63))[1])
+        assert (back["kind"], back["forwards"]) == (kind, 63)
+    v2 = attachment[:2] + bytes([2, 0]) + attachment[4:]  # version 2: byte 3 is the kind alone
+    assert (decode(b"x", v2, "k").payload, decode(b"x", v2, "k").forwards, decode(b"x", v2, "k").source) == (b"x", 0, 0xDEADBEEF)
     for payload, kind in (("text", 1), ({"j": 1}, 2), (np.zeros(3, np.uint8), 3)):
         assert _parse_header(encode(Message(payload, 1, 1, 1, "k"))[1])["kind"] == kind
     assert Message(b"x", 1, 1, 1, "k").origin_clock == CLOCK_ID != 0
@@ -129,14 +136,14 @@ def test_forwarded_payloads_reuse_their_wire_form() -> None:
 def test_reheader_rewrites_a_bytes_header_for_the_next_hop_and_nothing_else() -> None:
     """A relay passes raw bytes on under a header with its own seq and send time, the origin
     kept; any other kind (or version) is left to decoding, which checks it."""
-    raw = Message(b"data", 7, 111, 222, "k", 4, source=41, origin_clock=5, send_clock=6)
+    raw = Message(b"data", 7, 111, 222, "k", 4, source=41, origin_clock=5, send_clock=6, forwards=2)
     _, header, _ = encode(raw)
     rewritten = reheader(header, 8, 333, 42)
     assert rewritten is not None
-    attachment, origin_ns, origin_clock, sent_ns, sent_clock, source, seq, encoding = rewritten
-    assert (origin_ns, origin_clock, sent_ns, sent_clock, source, seq, encoding) == (111, 5, 222, 6, 41, 7, "application/octet-stream")
+    attachment, origin_ns, origin_clock, sent_ns, sent_clock, source, seq, encoding, forwards = rewritten
+    assert (origin_ns, origin_clock, sent_ns, sent_clock, source, seq, encoding, forwards) == (111, 5, 222, 6, 41, 7, "application/octet-stream", 2)
     msg = decode(b"data", attachment, "k")
-    assert (msg.payload, msg.seq, msg.origin_ns, msg.send_ns) == (b"data", 8, 111, 333)
+    assert (msg.payload, msg.seq, msg.origin_ns, msg.send_ns, msg.forwards) == (b"data", 8, 111, 333, 3)  # one more forward
     assert (msg.source, msg.origin_clock, msg.send_clock) == (42, 5, CLOCK_ID)  # the origin's clock goes on; the send is ours
     for payload in ("text", {"json": 1}, np.zeros((2, 2), dtype=np.uint8)):
         _, header, _ = encode(Message(payload, 1, 1, 1, "k"))

@@ -11,7 +11,7 @@ import pytest
 import zenoh  # a plain Zenoh publisher stands in for a sender of a header dyknow does not know
 
 from dyknow import BindingError, Client, Manager, Message, TransformationSpec, Unit, UnitError, default_key
-from dyknow.message import HEADER
+from dyknow.message import HEADER, MAX_FORWARDS
 from dyknow.spec import Param, Port
 from dyknow.testing import Sink, Source
 from dyknow.transport import make_config
@@ -605,6 +605,37 @@ def test_a_forwarding_unit_passes_remote_bytes_on_undecoded_and_keeps_count(make
     assert far.wait_for(8)[7].payload == b"after"
     assert [m.payload for m in far.messages].count(b"from the future") == 0
     assert relay.get_statistics("r").state == "running"
+
+
+@pytest.mark.parametrize("payload", [b"raw bytes", {"json": 1}], ids=["bytes", "json"])
+def test_relays_in_a_cycle_across_managers_carry_a_message_round_at_most_max_forwards_times(
+    make_manager: Callable[..., Manager], payload: object
+) -> None:
+    """Two managers each relay the other's output (no manager alone sees the cycle): one message
+    put in goes round until MAX_FORWARDS relays have passed it on, then the relay it reaches drops
+    it, says why, and both relays run on. Raw bytes take the undecoded path, JSON the decoded one."""
+    one = make_manager()
+    two = make_manager(connect=one.endpoints)
+    one.spawn("relay", "r1", bindings={"in": "loop/a", "out": "loop/b"})
+    two.spawn("relay", "r2", bindings={"in": "loop/b", "out": "loop/a"})
+    one.spawn("publisher", "src", bindings={"out": "loop/a"})
+    src = one.unit("src")
+    assert isinstance(src, Source)
+    wait_until(lambda: one.unit("r1").has_subscribers("out") and two.unit("r2").has_subscribers("out"), "the cycle wired")
+
+    def rejected() -> int:
+        return sum(p.rejected for n, m in (("r1", one), ("r2", two)) for p in m.get_statistics(n).ports)
+
+    src.publish("out", payload)
+    wait_until(lambda: rejected() == 1, "the message dropped once it went round MAX_FORWARDS times")
+    sent = [p.messages for n, m in (("r1", one), ("r2", two)) for p in m.get_statistics(n).ports if p.direction == "out"]
+    assert sum(sent) == MAX_FORWARDS == 63, sent
+    (why,) = [p.last_rejection for n, m in (("r1", one), ("r2", two)) for p in m.get_statistics(n).ports if p.rejected]
+    assert why is not None and "bound into a cycle" in why
+    assert one.get_statistics("r1").state == two.get_statistics("r2").state == "running"
+    src.publish("out", payload)  # the next one goes round as far, and no further
+    wait_until(lambda: rejected() == 2, "the second message dropped too")
+    assert sum(p.messages for n, m in (("r1", one), ("r2", two)) for p in m.get_statistics(n).ports if p.direction == "out") == 2 * 63
 
 
 # ---------------------------------------------------------------------------- nothing lost silently

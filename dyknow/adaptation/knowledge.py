@@ -10,7 +10,7 @@ import logging
 from dataclasses import dataclass, field
 from typing import Any
 
-from dyknow.model import RequestInfo
+from dyknow.model import Owner, RequestInfo
 from dyknow.planner import Plan
 
 log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
@@ -71,7 +71,8 @@ class Request:
     tag: str
     key: str
     anchor: str
-    references: int = 1
+    # its references: who took each, and the requirements that reference added (formulas)
+    owners: list[tuple[Owner, tuple[str, ...]]] = field(default_factory=list)
     state: str = "active"
     plan: Plan | None = None
     # the configuration: unit -> label; a unit or label of another manager as ``name@manager``
@@ -92,17 +93,34 @@ class Request:
     # building it takes CPU the first message needs
     standby_after_ns: int = 0
     standby_due: bool = False
-    # formulas the stream must satisfy (a false verdict makes it adapt), their monitor units, and
-    # the requests of their other terms
-    requirements: tuple[str, ...] = ()
-    watchers: list[str] = field(default_factory=list)
-    needs: list[str] = field(default_factory=list)
+    # formulas the stream must satisfy (a false verdict makes it adapt): formula -> its watch (the
+    # monitor unit, the requests of its other terms), kept while a reference requires it
+    watches: dict[str, tuple[str, tuple[str, ...]]] = field(default_factory=dict)
+    watch_count: int = 0
     # the requirements of the transformations in the configuration (their specs'): (unit, formula)
     # -> its watch, kept while the unit serves the request
     spec_watches: dict[tuple[str, str], SpecWatch] = field(default_factory=dict)
     spec_watch_count: int = 0
 
+    @property
+    def references(self) -> int:
+        """How many references it has."""
+        return len(self.owners)
+
+    @property
+    def requirements(self) -> tuple[str, ...]:
+        """The formulas its stream must satisfy, in the order they were required."""
+        return tuple(self.watches)
+
+    def required(self) -> set[str]:
+        """The formulas some reference still requires."""
+        return {formula for _, formulas in self.owners for formula in formulas}
+
     def info(self) -> RequestInfo:
+        holders: dict[str, int] = {}
+        for owner, _ in self.owners:
+            if owner.holder is not None:
+                holders[owner.holder] = holders.get(owner.holder, 0) + 1
         return RequestInfo(
             self.tag,
             self.key,
@@ -119,6 +137,7 @@ class Request:
                 {"formula": formula, "transformation": watch.label, "unit": ref, "key": watch.key}
                 for (ref, formula), watch in self.spec_watches.items()
             ),
+            holders,
         )
 
     def held(self) -> list[str]:

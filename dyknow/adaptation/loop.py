@@ -21,8 +21,8 @@ from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, AdaptationEvent, Knowle
 from dyknow.adaptation.monitor import Monitor, Symptom
 from dyknow.adaptation.reconfigure import Reconfigurer, is_current
 from dyknow.adaptation.runtime import Runtime
-from dyknow.errors import DyKnowError, PlanningError, UnitError
-from dyknow.model import RequestInfo, UnitEvent, check_standby
+from dyknow.errors import AccessError, DyKnowError, PlanningError, UnitError
+from dyknow.model import LOCAL, Owner, RequestInfo, UnitEvent, check_standby
 from dyknow.reasoning.progression import Verdict
 from dyknow.reasoning.syntax import Formula, parse
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
@@ -59,43 +59,65 @@ class AdaptationLoop:
 
     # -- requests
 
-    def request(self, tag: str, *, standby: str | None = None, require: Iterable[str] = ()) -> str:
+    def request(
+        self,
+        tag: str,
+        *,
+        standby: str | None = None,
+        require: Iterable[str] = (),
+        owner: Owner = LOCAL,
+        readable: Callable[[str], None] | None = None,
+    ) -> str:
         """Plan and wire a configuration providing ``tag``; returns its stable key.
 
         ``standby="warm"`` keeps the next-best configuration running beside it, so that a fault
         only moves the anchor (see the module documentation); ``"none"`` (or None, the default)
-        does not. Requesting a tag again shares the request; asking for a warm standby then gives
-        the shared request one, which it keeps until it is released. An unknown ``standby`` is a
-        :class:`UnitError` naming the allowed values, raised before anything changes.
+        does not. Requesting a tag again shares the request (one more reference); asking for a
+        warm standby then gives the shared request one, which it keeps until it is released.
+        An unknown ``standby`` is a :class:`UnitError` naming the allowed values, raised before
+        anything changes.
 
         ``require``: temporal formulas (:mod:`dyknow.reasoning`) the stream must satisfy; a term
         that is ``tag`` reads the request's own stream, any other is requested in turn. A state
         a requirement finds false is a fault: the request moves to the next-best configuration
         (the cause names the formula), unless the present one has not run for the dwell time
         yet. A formula that does not read is a :class:`~dyknow.errors.FormulaError`, raised
-        before anything changes.
+        before anything changes. The requirements belong to the reference: they go when it is
+        released, unless another reference requires them too.
+
+        ``owner``: who takes the reference (:class:`~dyknow.model.Owner`; only it may give it
+        back). ``readable(tag)`` raises when the owner may not read the stream of a tag: it is
+        asked of ``tag`` and of every term of every formula before anything is planned. When the
+        call fails, nothing of it remains.
         """
         mode = check_standby(standby)
         runtime = self.runtime
         canonical = str(parse_term(tag))
         key = keys.request_key(runtime.name, canonical)
         formulas = [parse(text) for text in require]
+        texts = tuple(dict.fromkeys(str(f) for f in formulas))
+        if readable is not None:
+            readable(canonical)
+            for formula in formulas:
+                for term in term_ports(formula):
+                    if term != canonical:
+                        readable(term)
         with self._lock:
             existing = self.knowledge.requests.get(key)
             if existing is not None:
-                existing.references += 1
+                self._require(existing, [f for f in formulas if str(f) not in existing.watches])  # (undoes itself when it fails)
+                existing.owners.append((owner, texts))
                 if mode == "warm" and existing.standby_mode != "warm":
                     self._warm_up(existing)
-                self._require(existing, [f for f in formulas if str(f) not in existing.requirements])
                 return key
             now = time.time_ns()
-            request = Request(canonical, key, anchor=self._anchor_name(canonical), standby_mode=mode)
+            request = Request(canonical, key, anchor=self._anchor_name(canonical), standby_mode=mode, owners=[(owner, texts)])
             plan = self.reconfigurer.plan(request, now)  # PlanningError: nothing fits, nothing changes
             self._spawn_anchor(request, plan.output_key)
             self.knowledge.requests[key] = request
             try:
                 self.reconfigurer.apply(request, plan)
-            except DyKnowError:
+            except BaseException:
                 del self.knowledge.requests[key]
                 self.reconfigurer.cleanup([request.anchor])
                 raise
@@ -106,35 +128,61 @@ class AdaptationLoop:
                 self._maintain_standby(request, time.time_ns())
             try:
                 self._require(request, formulas)
-            except DyKnowError:
-                self.release(key)
+            except BaseException:
+                self.release(key, force=True)
                 raise
             self._watch_specs(request)
             return key
 
     def _require(self, request: Request, formulas: list[Formula]) -> None:
         """Watch ``formulas`` over ``request``'s stream: a monitor unit each, whose false
-        verdicts become "requirement" symptoms (see :meth:`request`)."""
-        for formula in formulas:
-            bindings: dict[str, str] = {}
-            for term, port in term_ports(formula).items():
-                if term == request.tag:
-                    bindings[port] = request.key
-                else:
-                    needed = self.request(term)
-                    request.needs.append(needed)
-                    bindings[port] = needed
-            n = len(request.requirements)
-            name = f"{request.anchor}-require-{n + 1}"
-            bindings[VERDICTS_PORT] = f"{request.key}/requirements/{n + 1}"
-            self.runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
-            self.knowledge.managed.add(name)
-            request.watchers.append(name)
-            request.requirements = (*request.requirements, str(formula))
-            watcher = self.runtime.unit(name)
-            if isinstance(watcher, FormulaMonitor):
-                text, key = str(formula), request.key
-                watcher.listen(lambda verdict, text=text, key=key: self._verdict(key, text, verdict))  # type: ignore[misc]
+        verdicts become "requirement" symptoms (see :meth:`request`). All or nothing: when one
+        cannot be watched, those this call set up are taken down again before it raises."""
+        added: list[str] = []
+        try:
+            for formula in formulas:
+                text = str(formula)
+                if text in request.watches:
+                    continue
+                bindings: dict[str, str] = {}
+                needs: list[str] = []
+                try:
+                    for term, port in term_ports(formula).items():
+                        if term == request.tag:
+                            bindings[port] = request.key
+                        else:
+                            needs.append(self.request(term))
+                            bindings[port] = needs[-1]
+                    request.watch_count += 1
+                    name = f"{request.anchor}-require-{request.watch_count}"
+                    bindings[VERDICTS_PORT] = f"{request.key}/requirements/{request.watch_count}"
+                    self.runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
+                except BaseException:
+                    self._give_back(needs)
+                    raise
+                self.knowledge.managed.add(name)
+                request.watches[text] = (name, tuple(needs))
+                added.append(text)
+                watcher = self.runtime.unit(name)
+                if isinstance(watcher, FormulaMonitor):
+                    key = request.key
+                    watcher.listen(lambda verdict, text=text, key=key: self._verdict(key, text, verdict))  # type: ignore[misc]
+        except BaseException:
+            self._unrequire(request, added)
+            raise
+
+    def _unrequire(self, request: Request, formulas: Iterable[str]) -> None:
+        """Stop watching ``formulas`` over ``request``: their monitors go, their terms are given back."""
+        for text in formulas:
+            watch = request.watches.pop(text, None)
+            if watch is not None:
+                self.reconfigurer.cleanup([watch[0]])
+                self._give_back(watch[1])
+
+    def _give_back(self, needs: Iterable[str]) -> None:
+        for needed in needs:
+            if needed in self.knowledge.requests:
+                self.release(needed)
 
     def _verdict(self, key: str, formula: str, verdict: Verdict, unit: str | None = None, label: str | None = None) -> None:
         """A requirement's verdict (on its monitor's thread): a false one is a symptom."""
@@ -220,28 +268,71 @@ class AdaptationLoop:
         self.runtime.spawn(spec, request.anchor, bindings=bindings)
         self.knowledge.managed.add(request.anchor)
 
-    def release(self, key: str) -> int:
-        """Drop one reference to a request; the last one tears down what only it used. Returns
-        the references that remain (0: the request is gone)."""
+    def release(self, key: str, *, owner: Owner = LOCAL, force: bool = False) -> int:
+        """Give back one reference of ``owner`` to a request (``force``: every reference, whoever
+        took it); the requirements it alone added go with it, and the last one tears down what
+        only the request used. Returns the references that remain (0: the request is gone).
+
+        :class:`UnitError` when there is no request on ``key``; :class:`AccessError` when
+        ``owner`` holds none of its references (:meth:`dyknow.model.Owner.holds`).
+        """
         with self._lock:
-            request = self.knowledge.requests.get(key)
-            if request is None:
-                known = ", ".join(sorted(self.knowledge.requests)) or "none"
-                raise UnitError(
-                    f"no request on key {key!r}", where=f"manager {self.runtime.name!r}", expected=f"one of the active requests: {known}"
-                )
-            request.references -= 1
-            if request.references > 0:
-                return request.references
-            del self.knowledge.requests[key]
-            self._deferred.pop(key, None)
-            orphans = [n for n in request.held() if n in self.knowledge.managed and not self.knowledge.users(n)]
-            watches = list(request.spec_watches.values())
-            self.reconfigurer.cleanup([*request.watchers, *(w.monitor for w in watches), request.anchor, *orphans])
-            for needed in [*request.needs, *(n for w in watches for n in w.needs)]:
-                if needed in self.knowledge.requests:
-                    self.release(needed)
-            return 0
+            request = self._known(key)
+            if force:
+                dropped = list(request.owners)
+            else:
+                dropped = [request.owners[self._pick(request, owner)]]
+            return self._drop(request, dropped)
+
+    def release_holder(self, key: str, holder: str) -> int:
+        """Give back every reference the client ``holder`` took to the request on ``key`` (it is
+        gone: :mod:`dyknow.holders`); the references that remain."""
+        with self._lock:
+            request = self._known(key)
+            return self._drop(request, [entry for entry in request.owners if entry[0].holder == holder])
+
+    def _known(self, key: str) -> Request:
+        request = self.knowledge.requests.get(key)
+        if request is None:
+            known = ", ".join(sorted(self.knowledge.requests)) or "none"
+            raise UnitError(f"no request on key {key!r}", where=f"manager {self.runtime.name!r}", expected=f"one of the active requests: {known}")
+        return request
+
+    def _pick(self, request: Request, owner: Owner) -> int:
+        """Which of ``request``'s references a release by ``owner`` gives back: its own exact one
+        (the newest), else one it may give back, kept ones first; :class:`AccessError` when none."""
+        entries = list(enumerate(request.owners))[::-1]
+        for i, (taken, _) in entries:
+            if taken == owner:
+                return i
+        allowed = [(i, taken) for i, (taken, _) in entries if owner.holds(taken)]
+        for i, taken in allowed:
+            if taken.holder is None and not taken.local:
+                return i
+        if allowed:
+            return allowed[0][0]
+        holders = sorted({str(taken) for taken, _ in request.owners})
+        raise AccessError(
+            f"{owner.who()} holds no reference to the request on {request.key!r} (its references: {', '.join(holders) or 'none'})",
+            where=f"manager {self.runtime.name!r}",
+            expected="a release by the client or caller that requested it; an admin may force it (release with force, dyknow release KEY --force)",
+        )
+
+    def _drop(self, request: Request, dropped: list[tuple[Owner, tuple[str, ...]]]) -> int:
+        for entry in dropped:
+            request.owners.remove(entry)
+        if request.owners:
+            still = request.required()
+            self._unrequire(request, [text for _, texts in dropped for text in texts if text not in still])
+            return request.references
+        key = request.key
+        del self.knowledge.requests[key]
+        self._deferred.pop(key, None)
+        orphans = [n for n in request.held() if n in self.knowledge.managed and not self.knowledge.users(n)]
+        watches = list(request.spec_watches.values())
+        self.reconfigurer.cleanup([*(w[0] for w in request.watches.values()), *(w.monitor for w in watches), request.anchor, *orphans])
+        self._give_back([*(n for w in request.watches.values() for n in w[1]), *(n for w in watches for n in w.needs)])
+        return 0
 
     def requests(self) -> list[RequestInfo]:
         """The active requests, by key. Never waits for a request being planned or adapted (the

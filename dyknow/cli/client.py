@@ -218,7 +218,7 @@ def cmd_request(args: argparse.Namespace) -> int:
 def cmd_release(args: argparse.Namespace) -> int:
     """give back a requested stream"""
     with open_client(args) as client:
-        remaining = client.release(args.key)
+        remaining = client.release(args.key, force=args.force)
     if remaining:
         text = f"released one reference to {args.key}; {remaining} more remain, so it runs on until they are released too"
     else:
@@ -435,6 +435,9 @@ def add_commands(cmds: Commands) -> None:
 
     p = command("release", cmd_release, client=True)
     p.add_argument("key")
+    p.add_argument("--force", action="store_true",
+                   help="give back every reference, whoever requested it (an admin's call on a manager with roles); "
+                        "without it, only what this caller requested")  # fmt: skip
 
     p = command("measure", cmd_measure, client=True)
     p.add_argument("values", nargs="+", metavar="NAME=VALUE")

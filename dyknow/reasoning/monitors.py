@@ -15,6 +15,11 @@ A quantified formula (``forall c in Camera: ...``, :mod:`dyknow.reasoning.quanti
 monitor per individual, publishing on ``dyknow/<manager>/monitors/<n>/<individual>``; the key
 returned is then ``dyknow/<manager>/monitors/<n>/*``, which a subscriber takes them all by.
 Releasing that key (:meth:`Monitors.release`) destroys the monitors and gives their terms back.
+
+A monitor has an owner (:class:`~dyknow.model.Owner`), as a request's reference has: only it
+may release the monitor, or an admin who forces it; a client's monitor ends with the client
+(:mod:`dyknow.holders`). ``readable(term)`` is asked of every term of every expansion before
+anything is requested: a monitor may only read what its caller may read.
 """
 
 from __future__ import annotations
@@ -27,7 +32,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from dyknow import keys
-from dyknow.errors import DyKnowError, UnitError
+from dyknow.errors import AccessError, DyKnowError, UnitError
+from dyknow.model import LOCAL, Owner
 from dyknow.reasoning.quantify import expand
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
 from dyknow.spec import TransformationSpec
@@ -47,6 +53,7 @@ class MonitorInfo:
     formula: str
     expansions: tuple[tuple[str | None, str, str, str], ...]  # (individual, formula, unit, verdict key)
     terms: Mapping[str, str] = field(default_factory=dict)
+    owner: Owner = LOCAL
 
     @property
     def units(self) -> tuple[str, ...]:
@@ -59,6 +66,7 @@ class MonitorInfo:
             "key": self.key,
             "formula": self.formula,
             "terms": dict(self.terms),
+            "holder": self.owner.holder,
             "monitors": [{"individual": i, "formula": f, "unit": u, "key": k} for i, f, u, k in self.expansions],
         }
 
@@ -95,16 +103,22 @@ class Monitors:
         self._by_key: dict[str, MonitorInfo] = {}
         self._serial = itertools.count(1)
 
-    def add(self, formula: str, *, reorder_ms: float = 0.0) -> MonitorInfo:
-        """Monitor ``formula`` (see the module documentation); its :class:`MonitorInfo`.
+    def add(
+        self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, readable: Callable[[str], None] | None = None
+    ) -> MonitorInfo:
+        """Monitor ``formula`` (see the module documentation) for ``owner``; its :class:`MonitorInfo`.
 
         Raises :class:`~dyknow.errors.FormulaError` when the formula does not read,
-        :class:`~dyknow.planner.PlanningError` when a term has no stream (what was set up for the
-        others is taken down again).
+        :class:`~dyknow.errors.AccessError` when ``readable`` refuses a term (before anything
+        is requested), :class:`~dyknow.planner.PlanningError` when a term has no stream (what
+        was set up for the others is taken down again, whatever the failure).
         """
         if not isinstance(reorder_ms, int | float) or not reorder_ms >= 0 or reorder_ms > 3_600_000:
             raise UnitError(f"reorder_ms {reorder_ms!r}", where="monitor", expected="0 to 3,600,000 milliseconds")
         expansions = expand(formula, self._individuals, max_expansions=self._max_expansions)
+        if readable is not None:
+            for text in dict.fromkeys(str(term) for _, parsed in expansions for term in parsed.terms):
+                readable(text)
         n = next(self._serial)
         base = keys.monitor_key(self.manager, n)
         quantified = expansions[0][0] is not None
@@ -125,22 +139,37 @@ class Monitors:
                 self._spawn(spec, name, bindings)
                 spawned.append(name)
                 made.append((individual, str(parsed), name, key))
-        except DyKnowError:
+        except BaseException:
             self._undo(spawned, list(requested.values()))
             raise
-        info = MonitorInfo(f"{base}/*" if quantified else base, formula, tuple(made), requested)
+        info = MonitorInfo(f"{base}/*" if quantified else base, formula, tuple(made), requested, owner)
         with self._lock:
             self._by_key[info.key] = info
         return info
 
-    def release(self, key: str) -> bool:
-        """Destroy the monitor(s) of ``key`` and give their terms back; False when ``key`` is no monitor's."""
+    def release(self, key: str, *, owner: Owner = LOCAL, force: bool = False) -> bool:
+        """Destroy the monitor(s) of ``key`` and give their terms back; False when ``key`` is no
+        monitor's. :class:`~dyknow.errors.AccessError` when ``owner`` may not release it (it is
+        another's, and not forced)."""
         with self._lock:
-            info = self._by_key.pop(key, None)
-        if info is None:
-            return False
+            info = self._by_key.get(key)
+            if info is None:
+                return False
+            if not force and not owner.holds(info.owner):
+                raise AccessError(
+                    f"{owner.who()} may not release the monitor on {key!r}: it is {info.owner}'s",
+                    where=f"manager {self.manager!r}",
+                    expected="a release by the client or caller that asked for it; an admin may force it (release with force)",
+                )
+            del self._by_key[key]
         self._undo(list(info.units), list(info.terms.values()))
         return True
+
+    def owner(self, key: str) -> Owner | None:
+        """Who asked for the monitor on ``key`` (None: no monitor there)."""
+        with self._lock:
+            info = self._by_key.get(key)
+        return info.owner if info is not None else None
 
     def adapted(self, key: str, cause: str) -> None:
         """A request's stream on ``key`` was re-planned: the monitors that read it note a gap."""
