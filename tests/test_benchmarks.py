@@ -312,3 +312,13 @@ def test_clocks_benchmark_smoke(tmp_path: Path) -> None:
     for row in rows.values():
         assert row["first_estimate_s"] is not None and row["error_at_2s_us"] is not None and row["hop_p50_us"] is not None
     assert "(target <= 100)" in result.stdout and "(target within 10%)" in result.stdout
+
+
+def test_mcap_bombs_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "bombs.json"
+    result = _run("mcap_bombs.py", "--bombs", "zstd-1g,lz4-1g-declares-8m", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [r["bomb"] for r in rows] == ["zstd-1g", "lz4-1g-declares-8m"]
+    assert all(r["exit"] == 1 and r["met"] and 0 < r["peak_mib"] < 1024 and "offset" in r["error"] for r in rows)
+    assert "| zstd-1g | 33237 B | 1 |" in result.stdout

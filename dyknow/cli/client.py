@@ -25,6 +25,7 @@ from dyknow.cli.common import (
     parse_value,
     payload_json,
     print_json,
+    read_limits,
     report_result,
 )
 from dyknow.cli.ros2 import echo_ros2
@@ -378,7 +379,7 @@ def _monitor_recording(args: argparse.Namespace) -> int:
     from dyknow.reasoning.offline import evaluate_recording
 
     bindings = parse_pairs(args.bind, "--bind")
-    results = evaluate_recording(args.formula, args.mcap, bindings)
+    results = evaluate_recording(args.formula, args.mcap, bindings, read_limits(args))
     if args.json:
         for t_ns, verdict in results:
             print_json({"t": t_ns / 1e9, "t_ns": t_ns, "verdict": verdict})
@@ -452,6 +453,7 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument(
         "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
     )
+    cmds.mcap_limit_options(p, prefix="with --mcap: ")
 
     p = command("echo", cmd_echo, client=True)
     p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=T] (rmw_zenoh) or ros2dds:/TOPIC?type=T (DDS), decoded")

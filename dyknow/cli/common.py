@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from dyknow.client import Client
+from dyknow.recording import ReadLimits
 from dyknow.spec import DEFAULT_MAX_EXPANSIONS
 from dyknow.transport import DEFAULT_ENDPOINT
 
@@ -171,6 +172,22 @@ class Commands:
         p.add_argument("--max-expansions", type=positive_int, default=DEFAULT_MAX_EXPANSIONS, metavar="N",
                        help=f"refuse a template that expands to more specs (default {DEFAULT_MAX_EXPANSIONS})")  # fmt: skip
 
+    @staticmethod
+    def mcap_limit_options(p: argparse.ArgumentParser, prefix: str = "") -> None:
+        """--max-chunk-bytes and --max-memory-bytes, for every command that reads MCAP files
+        (``read_limits(args)`` gives them as ReadLimits); ``prefix`` starts their help."""
+        chunk, memory = ReadLimits().max_chunk_bytes, ReadLimits().max_memory_bytes
+        p.add_argument("--max-chunk-bytes", type=positive_int, default=chunk, metavar="N",
+                       help=f"{prefix}refuse a chunk declaring more bytes uncompressed, before reading it (default {chunk}: {chunk >> 20} MiB)")  # fmt: skip
+        p.add_argument("--max-memory-bytes", type=positive_int, default=memory, metavar="N",
+                       help=f"{prefix}refuse to hold more decompressed bytes at once: the chunk being read and the messages of "
+                       f"chunks whose time ranges overlap (default {memory}: {memory >> 30} GiB)")  # fmt: skip
+
+
+
+def read_limits(args: argparse.Namespace) -> ReadLimits:
+    """The ReadLimits of a command's --max-chunk-bytes and --max-memory-bytes."""
+    return ReadLimits(max_chunk_bytes=args.max_chunk_bytes, max_memory_bytes=args.max_memory_bytes)
 
 
 def payload_json(payload: Any) -> Any:

@@ -10,7 +10,7 @@ import threading
 import time
 from collections.abc import Iterable
 
-from dyknow.cli.common import Commands, UsageError, default_endpoint, parse_pairs, print_json, report_result, tls_files
+from dyknow.cli.common import Commands, UsageError, default_endpoint, parse_pairs, print_json, read_limits, report_result, tls_files
 from dyknow.transport import DEFAULT_ENDPOINT
 
 
@@ -86,7 +86,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     remap = parse_pairs(args.remap, "--remap")
     with Player(
-        args.file, rate=args.rate, loop=args.loop, start_s=args.start, end_s=args.end, topics=args.topics, remap=remap, recover=args.recover
+        args.file,
+        rate=args.rate,
+        loop=args.loop,
+        start_s=args.start,
+        end_s=args.end,
+        topics=args.topics,
+        remap=remap,
+        recover=args.recover,
+        limits=read_limits(args),
     ) as player:
         stop = _stop_on_signals()
         topics = ", ".join(f"{topic} -> {key}" if key != topic else topic for topic, key in player.keys.items())
@@ -102,7 +110,7 @@ def cmd_mcap_cat(args: argparse.Namespace) -> int:
     """print the messages in log-time order"""
     from dyknow.recording import Player
 
-    with Player(args.file, topics=args.topics, recover=args.recover, decode=False) as player:
+    with Player(args.file, topics=args.topics, recover=args.recover, decode=False, limits=read_limits(args)) as player:
         try:
             for record in player.messages():
                 if args.json:
@@ -126,7 +134,7 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
 
     from dyknow.recording import Recording
 
-    with Recording(args.file, recover=args.recover) as recording:
+    with Recording(args.file, recover=args.recover, limits=read_limits(args)) as recording:
         info = recording.info
 
     def when(ns: int) -> str:
@@ -182,6 +190,7 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument(
         "--wait", type=float, default=1.0, metavar="S", help="first wait up to S seconds for a subscriber on every key (default 1)"
     )
+    cmds.mcap_limit_options(p)
     zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
 
     p = sub.add_parser("mcap", help="inspect MCAP files (cat, info)", description="inspect MCAP files, whoever wrote them")
@@ -198,8 +207,10 @@ def add_commands(cmds: Commands) -> None:
         help="one JSON object per message and line: topic, sequence, log_time, publish_time, schema, message_encoding, data_b64",
     )
     p.add_argument("--recover", action="store_true", help="print what is valid in a truncated or corrupt file, with a warning")
+    cmds.mcap_limit_options(p)
     p = mcap.add_parser("info", help=cmd_mcap_info.__doc__, description=cmd_mcap_info.__doc__)
     p.set_defaults(fn=cmd_mcap_info)
     p.add_argument("file", metavar="FILE.mcap")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--recover", action="store_true", help="summarise what is valid in a truncated or corrupt file")
+    cmds.mcap_limit_options(p)

@@ -15,15 +15,18 @@ from collections.abc import Mapping
 from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.semantics import evaluate_ns
 from dyknow.reasoning.syntax import parse
-from dyknow.recording import Player
+from dyknow.recording import Player, ReadLimits
 from dyknow.tags import parse_term
 
 __all__ = ["evaluate_recording"]
 
 
-def evaluate_recording(formula: str, path: str | os.PathLike[str], bindings: Mapping[str, str]) -> list[tuple[int, bool | None]]:
+def evaluate_recording(
+    formula: str, path: str | os.PathLike[str], bindings: Mapping[str, str], limits: ReadLimits | None = None
+) -> list[tuple[int, bool | None]]:
     """Every state's ``(t_ns, verdict)`` of ``formula`` over the recording at ``path``, each term
     read from the topic ``bindings[term]`` names (the topic as written in the file, or its key).
+    ``limits`` bound what reading the file holds in memory (:class:`~dyknow.recording.ReadLimits`).
 
     :class:`~dyknow.errors.FormulaError` when the formula does not read, a term has no binding, a
     binding names no term or a topic the file does not hold (with the topics it does);
@@ -41,7 +44,7 @@ def evaluate_recording(formula: str, path: str | os.PathLike[str], bindings: Map
     extra = [t for t in bindings if t not in terms]
     if extra:
         raise FormulaError(f"{extra[0]!r} is no term of the formula", where="--bind", expected=f"one of {', '.join(terms)}{did_you_mean(extra[0], terms)}")
-    with Player(path, rate=math.inf) as player:
+    with Player(path, rate=math.inf, limits=limits) as player:
         topics = {c.topic: c.topic for c in player.channels} | {key: topic for topic, key in player.keys.items()}
         for term, topic in bindings.items():
             if topic not in topics:

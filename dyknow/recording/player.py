@@ -40,7 +40,7 @@ from dyknow.errors import BindingError, ClosedError, RecordingError, did_you_mea
 from dyknow.message import CLOCK_ID, Message
 from dyknow.recording.codecs import Decoders
 from dyknow.recording.offsets import CLOCK_METADATA, CLOCKS_TOPIC, ClockRecord, Offsets
-from dyknow.recording.reader import ChannelInfo, RecordedMessage, Recording, RecordingInfo
+from dyknow.recording.reader import ChannelInfo, ReadLimits, RecordedMessage, Recording, RecordingInfo
 from dyknow.transport import Session, check_key_expr, is_wild, key_exprs_intersect, make_config
 
 __all__ = ["Player", "key_for_topic"]
@@ -112,6 +112,7 @@ class Player:
     ``camera/**``. ``remap`` maps a topic (or a ``prefix/**``) to the key it replays on.
     ``recover`` reads what is valid in a damaged file. ``decode=False`` delivers the stored bytes.
     ``correct_clocks=False`` leaves every origin of another clock as stamped (and marked unknown).
+    ``limits`` bound what reading the file holds in memory (:class:`~dyknow.recording.ReadLimits`).
 
     Raises :class:`RecordingError` for a file that cannot be read, a topic or remap that matches
     nothing, or a topic that cannot be a Zenoh key (remap it).
@@ -130,6 +131,7 @@ class Player:
         recover: bool = False,
         decode: bool = True,
         correct_clocks: bool = True,
+        limits: ReadLimits | None = None,
     ) -> None:
         if not (isinstance(rate, (int, float)) and rate > 0):
             raise RecordingError(
@@ -146,7 +148,7 @@ class Player:
         self.decode = decode
         self._stop = threading.Event()
         self._playing = threading.Lock()
-        self.recording = Recording(path, recover=recover)
+        self.recording = Recording(path, recover=recover, limits=limits)
         try:
             self._select(list(topics), dict(remap or {}), start_s, end_s)
             self._offsets = self._read_offsets() if correct_clocks else Offsets(())

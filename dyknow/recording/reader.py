@@ -6,7 +6,9 @@ the file from the start (:mod:`dyknow.recording.scan`). Messages come out in log
 in file order), and only the chunks being merged are held in memory. A truncated or corrupt file
 raises :class:`~dyknow.errors.RecordingError` naming the file and the offset of the damage. With
 ``recover=True`` the valid part is read instead, with a warning (:attr:`Recording.problem` says
-what was skipped).
+what was skipped). What a reading pass holds in memory is bounded by its
+:class:`~dyknow.recording.framing.ReadLimits`: a chunk over them is refused, ``recover`` or not
+(the file is not damaged, only larger than allowed), and never decompressed past its declared size.
 
 What the ``mcap`` library (1.6) does, and why the rest is ours. Each point was checked against
 the library with truncated, corrupt and summary-less files:
@@ -64,18 +66,20 @@ from dyknow.recording.framing import (
     MESSAGE,
     PARSERS,
     RECORD,
+    RECORD_COST,
     UNCLOSED,
+    Budget,
     Clamped,
     Damage,
+    ReadLimits,
     RecordFile,
+    cost,
     parse,
     record_name,
-    split_chunk,
-    unpack_chunk,
 )
 from dyknow.recording.scan import Index, Loose, scan
 
-__all__ = ["ChannelInfo", "RecordedMessage", "Recording", "RecordingInfo"]
+__all__ = ["ChannelInfo", "ReadLimits", "RecordedMessage", "Recording", "RecordingInfo"]
 
 log = logging.getLogger(__name__)
 
@@ -190,12 +194,17 @@ class Recording:
     Opening reads the summary, or scans the file when it has none. A truncated or corrupt file
     raises :class:`RecordingError` naming the file and offset. With ``recover=True`` the valid
     part is read instead, :attr:`problem` says what is wrong, and a warning is logged.
+    ``limits`` bound what each reading pass (the scan, :meth:`messages`, :meth:`records`) holds
+    in memory (:class:`ReadLimits`; a chunk over them raises :class:`RecordingError`, with
+    ``recover`` too).
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, recover: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, recover: bool = False, limits: ReadLimits | None = None) -> None:
         self.path = os.fspath(path)
         self.recover = recover
+        self.limits = ReadLimits() if limits is None else limits
         self.problem: str | None = None
+        self._kept = 0  # what the Schema and Channel records learnt from chunks hold (in every pass's budget)
         self._index = Index()
         self._indexed = False
         self._header = Header(profile="", library="")
@@ -260,7 +269,9 @@ class Recording:
         data_end = footer_offset if footer is not None else file.size
         if footer is not None and footer.summary_start:
             data_end = footer.summary_start
-        self._index, damages = scan(file, data_start, data_end, footer is not None)
+        budget = Budget(self.path, self.limits)
+        self._index, damages = scan(file, data_start, data_end, footer is not None, budget)
+        self._kept = budget.held
         if problem is not None and not damages:  # the scan says more precisely what is wrong
             damages.append(problem)
         if damages:
@@ -400,10 +411,13 @@ class Recording:
         with ``start_ns <= log_time <= end_ns``.
 
         Chunks are read when their turn comes. A chunk found damaged now raises
-        :class:`RecordingError`, or is skipped with a warning when reading with ``recover``.
+        :class:`RecordingError`, or is skipped with a warning when reading with ``recover``. The
+        messages of chunks whose time ranges overlap wait together: when they would hold more
+        than :attr:`limits` allow, :class:`RecordingError` is raised (``recover`` or not).
         """
         wanted = None if channel_ids is None else set(channel_ids)
         index = self._index
+        budget = Budget(self.path, self.limits, self._kept)
 
         def keep(channel_id: int, log_time: int) -> bool:
             return (
@@ -426,25 +440,30 @@ class Recording:
         while heap:
             log_time, offset, position, item = heappop(heap)
             if position == -1:
-                for i, record in enumerate(self._load_chunk(offset)):
+                for i, record in enumerate(self._load_chunk(offset, budget)):  # each charged to the budget
                     if isinstance(record, tuple):
                         if keep(record[0], record[2]):
-                            heappush(heap, (record[2], offset, i, record))
-                    else:
-                        index.register(record)
+                            heappush(heap, (record[2], offset, i, record))  # until it is popped
+                            continue
+                    elif index.register(record):
+                        self._kept += cost(record)  # for good
+                        continue
+                    budget.give(cost(record))
                 continue
             if isinstance(item, Loose):
                 data = self._file.read(item.offset + RECORD.size + MESSAGE.size, item.length - MESSAGE.size, "a Message record")
                 item = (item.channel_id, item.sequence, item.log_time, item.publish_time, data)
+            else:
+                budget.give(len(item[4]) + RECORD_COST)
             channel_id, sequence, log_time, publish_time, data = item
             if channel_id not in index.channels:
                 self._bad(Damage(offset, f"a message refers to channel {channel_id}, which no Channel record defines", fatal=False))
                 continue
             yield RecordedMessage(self._info(channel_id), sequence, log_time, publish_time, data)
 
-    def _load_chunk(self, offset: int) -> list[Any]:
+    def _load_chunk(self, offset: int, budget: Budget) -> list[Any]:
         try:
-            return split_chunk(offset, self._file.chunk(offset)[1])
+            return self._file.chunk(offset, budget)[1]
         except Damage as damage:
             self._bad(damage)
             return []
@@ -465,9 +484,11 @@ class Recording:
 
         Chunks are replaced by the Schema, Channel and Message records inside them, and
         MessageIndex records are left out: the form of the MCAP conformance suite's streamed
-        reader. Raises :class:`RecordingError` at damage (with ``recover``: stops there, warning).
+        reader. Raises :class:`RecordingError` at damage (with ``recover``: stops there, warning)
+        and at a chunk over :attr:`limits`.
         """
         size = self._file.size
+        budget = Budget(self.path, self.limits, self._kept)
         with open(self.path, "rb") as file:  # a file of its own: records are read in turn
             stream = cast(BinaryIO, Clamped(file, size))
             reader: Iterator[McapRecord] | None = StreamReader(stream, emit_chunks=True).records
@@ -489,8 +510,7 @@ class Recording:
                         record, reader = self._file.record(offset), None
                     inner = None
                     if isinstance(record, Chunk):
-                        data = unpack_chunk(offset, record.compression, record.data, record.uncompressed_size, record.uncompressed_crc)
-                        inner = split_chunk(offset, data)
+                        inner = self._file.chunk(offset, budget, record)[1]
                 except Damage as damage:
                     self._stop_records(damage)
                     return
@@ -502,6 +522,8 @@ class Recording:
                         yield McapMessage(channel_id=channel_id, sequence=sequence, log_time=log_time, publish_time=publish_time, data=data)
                     else:
                         yield item
+                if inner is not None:
+                    budget.give(sum(map(cost, inner)))  # let go (the next chunk is read after inner is)
                 if isinstance(record, Footer):
                     if self._file.read(end, min(len(MAGIC), size - end), "the closing magic") != MAGIC or end + len(MAGIC) != size:
                         self._stop_records(Damage(end, "expected the MCAP magic (and nothing else) after the footer"))

@@ -9,17 +9,20 @@ checking each record's framing (:mod:`dyknow.recording.framing`), and builds an 
 the channels, each chunk's offset and log-time range, the messages outside chunks, counts and
 times. It records what is damaged and carries on after damage that leaves the rest readable (a
 corrupt chunk, a malformed record), so a recovering reader replays everything valid. The reader
-then loads chunks only when their turn comes.
+then loads chunks only when their turn comes. Chunks are read one at a time within a
+:class:`~dyknow.recording.framing.Budget`: what the scan keeps of them (their Schema and Channel
+records) stays charged to it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from mcap.opcode import Opcode
 from mcap.records import Channel, Schema
 
-from dyknow.recording.framing import MESSAGE, RECORD, UNCLOSED, Damage, RecordFile, parse, split_chunk
+from dyknow.recording.framing import MESSAGE, RECORD, UNCLOSED, Budget, Damage, RecordFile, cost, parse
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,12 +56,13 @@ class Index:
     attachments: int = 0
     metadata: int = 0
 
-    def register(self, record: Schema | Channel) -> None:
-        """Learn a Schema or Channel record (the first one with an id wins)."""
-        if isinstance(record, Schema):
-            self.schemas.setdefault(record.id, record)
-        else:
-            self.channels.setdefault(record.id, record)
+    def register(self, record: Schema | Channel) -> bool:
+        """Learn a Schema or Channel record (the first one with an id wins); True if it is new."""
+        known: dict[int, Any] = self.schemas if isinstance(record, Schema) else self.channels
+        if record.id in known:
+            return False
+        known[record.id] = record
+        return True
 
     def count(self, channel_id: int, log_time: int, offset: int) -> None:
         """Count a message of ``channel_id``; :class:`Damage` if no channel record before it defines it."""
@@ -69,11 +73,12 @@ class Index:
         self.end_ns = log_time if self.end_ns is None else max(self.end_ns, log_time)
 
 
-def scan(file: RecordFile, start: int, end: int, closed: bool) -> tuple[Index, list[Damage]]:
+def scan(file: RecordFile, start: int, end: int, closed: bool, budget: Budget) -> tuple[Index, list[Damage]]:
     """Index the data section from ``start`` to ``end``, and list what is damaged in it.
 
     ``closed``: the file has a footer; otherwise reaching ``end`` without a DataEnd record means
-    the file was not closed, which is damage too.
+    the file was not closed, which is damage too. Chunks are read within ``budget`` (a chunk
+    over its limits raises :class:`~dyknow.errors.RecordingError`).
     """
     index = Index()
     damages: list[Damage] = []
@@ -84,7 +89,7 @@ def scan(file: RecordFile, start: int, end: int, closed: bool) -> tuple[Index, l
             if opcode == Opcode.DATA_END or opcode == Opcode.FOOTER:
                 break
             if opcode == Opcode.CHUNK:
-                _scan_chunk(file, pos, index)
+                _scan_chunk(file, pos, index, budget)
             elif opcode == Opcode.MESSAGE:
                 _scan_message(file, pos, length, index)
             elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
@@ -104,17 +109,21 @@ def scan(file: RecordFile, start: int, end: int, closed: bool) -> tuple[Index, l
     return index, damages
 
 
-def _scan_chunk(file: RecordFile, offset: int, index: Index) -> None:
-    compression, data = file.chunk(offset)
+def _scan_chunk(file: RecordFile, offset: int, index: Index, budget: Budget) -> None:
+    compression, records = file.chunk(offset, budget)
     index.compressions.add(compression)
     first = last = None
-    for record in split_chunk(offset, data):
-        if isinstance(record, tuple):
-            index.count(record[0], record[2], offset)
-            first = record[2] if first is None else min(first, record[2])
-            last = record[2] if last is None else max(last, record[2])
-        else:
-            index.register(record)
+    kept = 0  # the new Schema and Channel records stay in the index, and charged
+    try:
+        for record in records:
+            if isinstance(record, tuple):
+                index.count(record[0], record[2], offset)
+                first = record[2] if first is None else min(first, record[2])
+                last = record[2] if last is None else max(last, record[2])
+            elif index.register(record):
+                kept += cost(record)
+    finally:
+        budget.give(sum(map(cost, records)) - kept)
     if first is not None and last is not None:
         index.chunks.append((first, offset, last))
 

@@ -13,7 +13,10 @@ What users need to test their own units (as ``bytewax.testing`` ships with bytew
   split over three managers (robot, field, station);
 - :mod:`dyknow.testing.fuzzing` (imported on its own; it needs Hypothesis, a test dependency):
   strategies for spec documents, tags, service requests and damaged MCAP files, and the
-  properties dyknow keeps for any of them, shared by the fuzz tests and ``tools/fuzz.py``.
+  properties dyknow keeps for any of them, shared by the fuzz tests and ``tools/fuzz.py``;
+- :mod:`dyknow.testing.bombs` (imported on its own): MCAP decompression bombs built in a moment
+  (a chunk of 33 KB holding 1 GiB, chunks whose sizes lie, overlapping chunks), for the tests of
+  anything that reads MCAP files and for ``benchmarks/mcap_bombs.py``.
 
 Example::
 

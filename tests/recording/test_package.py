@@ -17,7 +17,9 @@ from tests.conftest import REPO, subprocess_env
 EXPECTED = [
     "CLOCKS_TOPIC", "CLOCK_METADATA",  # (added with the clock records, issue 31)
     "COMPRESSED_IMAGE", "COMPRESSIONS", "NDARRAY", "PAYLOAD_METADATA", "PROTOBUF_SCHEMAS", "RAW_IMAGE",
-    "ChannelInfo", "Player", "RecordedMessage", "Recorder", "Recording", "RecordingError", "RecordingInfo",
+    "ChannelInfo", "Player",
+    "ReadLimits",  # (added with the bounds on decompression, issue 38)
+    "RecordedMessage", "Recorder", "Recording", "RecordingError", "RecordingInfo",
     "image_array", "image_encoding", "key_for_topic",
 ]  # fmt: skip
 MODULES = sorted(m.name for m in pkgutil.iter_modules(dyknow.recording.__path__))
