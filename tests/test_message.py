@@ -145,3 +145,90 @@ def test_reheader_rewrites_a_bytes_header_for_the_next_hop_and_nothing_else() ->
     assert reheader(HEADER_V1.pack(b"DK", 1, 0, 1, 1, 1), 2, 2, 1) is None  # an older version: decoded first
     assert reheader(header_of_bytes := HEADER.pack(b"DK", 2, 0, 1, 1, 1, 1, 1, 1), 2, 2, 1) is not None
     assert reheader(header_of_bytes + b"extra", 2, 2, 1) is None
+
+
+def _parse_parts(data: bytes, attachment: bytes) -> tuple[object, list[tuple[str, str, list[int], bytes]]]:
+    """A payload of kind 4 taken apart as the module's documentation lays it out (written from
+    its text, not from the module's code): the JSON text, and each array's path, dtype, shape
+    and bytes."""
+    at, count = 41, attachment[40]
+    arrays = []
+    for _ in range(count):
+        length = int.from_bytes(attachment[at : at + 2], "little")
+        path = attachment[at + 2 : at + 2 + length].decode()
+        at += 2 + length
+        ndim, dlen = attachment[at], attachment[at + 1]
+        dtype = attachment[at + 2 : at + 2 + dlen].decode()
+        at += 2 + dlen
+        shape = [int.from_bytes(attachment[at + 8 * i : at + 8 * i + 8], "little") for i in range(ndim)]
+        at += 8 * ndim
+        arrays.append((path, dtype, shape))
+    sizes = [int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize for _, dtype, shape in arrays]
+    end = len(data) - sum(sizes)
+    parts, offset = [], end
+    for (path, dtype, shape), size in zip(arrays, sizes, strict=True):
+        parts.append((path, dtype, shape, data[offset : offset + size]))
+        offset += size
+    return json.loads(data[:end]), parts
+
+
+def test_json_with_arrays_keeps_them_binary_as_documented() -> None:
+    """A ROS 2 message's payload: JSON-like, with numpy arrays inside (any depth, any dtype, a
+    key to escape); the arrays travel as their bytes after the JSON text, not as JSON lists."""
+    cloud = np.arange(3000, dtype=np.uint8)
+    grid = np.arange(12, dtype=">i4").reshape(3, 4)[:, ::2]  # big-endian, not contiguous
+    payload = {
+        "header": {"frame_id": "lidar"},
+        "width": 1000,
+        "data": cloud,
+        "fields": [{"a/b~c": grid}, {"empty": np.zeros((0, 3), np.float32)}],
+    }
+    data, attachment, encoding = encode(Message(payload, 3, 4, 5, "k"))
+    assert encoding == "application/x-dyknow-json-ndarrays" and _parse_header(attachment)["kind"] == 4
+    assert len(data) < len(b'{"header":{"frame_id":"lidar"},"width":1000}') + 3000 + 24 + 100  # bytes, not 3,000 numbers in text
+    text, parts = _parse_parts(bytes(data), attachment)
+    assert text == {"header": {"frame_id": "lidar"}, "width": 1000, "data": None, "fields": [{"a/b~c": None}, {"empty": None}]}
+    assert [(p, d, s) for p, d, s, _ in parts] == [
+        ("/data", "|u1", [3000]),
+        ("/fields/0/a~1b~0c", ">i4", [3, 2]),
+        ("/fields/1/empty", "<f4", [0, 3]),
+    ]
+    assert parts[0][3] == cloud.tobytes() and parts[1][3] == np.ascontiguousarray(grid).tobytes()
+    back = decode(bytes(data), attachment, "k")
+    assert back.wire is None and back.nbytes == len(data)  # a mutable value: never forwarded as its wire form
+    got = back.payload
+    assert got["header"] == {"frame_id": "lidar"} and got["width"] == 1000
+    for mine, theirs in (
+        (got["data"], cloud),
+        (got["fields"][0]["a/b~c"], grid),
+        (got["fields"][1]["empty"], payload["fields"][1]["empty"]),
+    ):
+        assert mine.dtype == theirs.dtype and mine.shape == theirs.shape and np.array_equal(mine, theirs) and not mine.flags.writeable
+
+
+def test_past_255_arrays_the_smallest_go_as_lists() -> None:
+    payload = [np.full(i + 1, i, np.int16) for i in range(300)]
+    data, attachment, _ = encode(Message(payload, 1, 1, 1, "k"))
+    assert attachment[40] == 255
+    back = decode(bytes(data), attachment, "k").payload
+    assert back[0] == [0] and isinstance(back[44], list) and isinstance(back[45], np.ndarray)
+    assert all(np.array_equal(np.asarray(b), a) for a, b in zip(payload, back, strict=True))
+
+
+@pytest.mark.parametrize(
+    ("change", "problem"),
+    [
+        (lambda d, a: (d, a[:41] + (5).to_bytes(2, "little") + b"/nope" + a[48:]), "leads nowhere"),
+        (lambda d, a: (d, a[:41] + (2).to_bytes(2, "little") + b"/w" + a[48:]), "not null"),
+        (lambda d, a: (d[-10:], a), "arrays of 3000 bytes in 10"),
+        (lambda d, a: (d, a.replace(b"|u1", b"|O8")), "dtype object|malformed"),
+        (lambda d, a: (d, a[:-4]), "malformed"),
+        (lambda d, a: (b"[" + d[1:], a), "does not parse"),
+    ],
+    ids=["nowhere", "not-null", "too-short", "objects", "truncated", "not-json"],
+)
+def test_json_with_arrays_from_the_network_is_checked(change: object, problem: str) -> None:
+    data, attachment, _ = encode(Message({"data": np.zeros(3000, np.uint8), "w": 1}, 1, 1, 1, "k"))
+    bad_data, bad_attachment = change(bytes(data), attachment)  # type: ignore[operator]
+    with pytest.raises(PayloadError, match=problem):
+        decode(bad_data, bad_attachment, "k")

@@ -15,6 +15,7 @@ import pytest
 from dyknow import Manager
 from dyknow.client import Client
 from dyknow.errors import BindingError, DyKnowError
+from dyknow.message import Message
 from dyknow.ros2 import Ros2Node, Ros2Source, TypeSupport, parse_binding, snapshot
 from dyknow.ros2.names import Durability, QoS, Reliability
 from dyknow.ros2.node import DEFAULT_MAX_MESSAGE_BYTES
@@ -470,3 +471,34 @@ def test_a_message_held_in_decoding_holds_no_one_else(make_manager: Callable[...
     sink = robot.unit("snk")
     wait_until(lambda: len(sink.messages) >= 2, "the queued messages delivered once the decode ended")  # type: ignore[attr-defined]
     assert len(sink.messages) <= 1 + 5 + 1  # type: ignore[attr-defined]  # the held one, the queue's depth, one in flight
+
+
+def test_a_clouds_data_stays_binary_to_a_unit_and_to_another_process(make_manager: Callable[..., Manager]) -> None:
+    """A 32 MiB PointCloud2 became a 64 MiB-and-more JSON dict, which reached no one. Its data
+    now comes as a numpy array: by reference to the bound unit, and as its bytes to a subscriber
+    in another session (the message's JSON text is a few hundred bytes)."""
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=28)
+    robot.spawn("sink", "snk", bindings={"in": f"ros2:/cloud?type={POINT_CLOUD}&max_bytes={48 << 20}"})
+    sink = robot.unit("snk")
+    assert isinstance(sink, Sink)
+    received: list[Message] = []
+    points = (32 << 20) // 16
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+        Ros2Node(session, "lidar", domain=28) as lidar,
+        Client(robot.name, session=session, timeout_s=10) as client,
+        client.declare_subscriber(f"dyknow/{robot.name}/snk.in.ros2/out", received.append),
+    ):
+        pub = lidar.create_publisher("/cloud", POINT_CLOUD, QoS(keep_all=True))  # reliable keep-all: none lost on the way
+        small = cloud(lidar.types, 100)
+        wait_until(lambda: (pub.publish_cdr(small), bool(received) and bool(sink.messages))[1], "small clouds to both")
+        large = cloud(lidar.types, points)
+        pub.publish_cdr(large)
+        wait_until(lambda: any(m.payload["width"] == points for m in list(received)), "the large cloud in the other session")
+    local = next(m.payload for m in sink.messages if m.payload["width"] == points)
+    remote = next(m for m in received if m.payload["width"] == points)
+    assert isinstance(local["data"], np.ndarray) and local["data"].nbytes == 32 << 20
+    assert remote.nbytes < (32 << 20) + 2048, remote.nbytes  # the data's bytes and a little JSON
+    assert isinstance(remote.payload["data"], np.ndarray) and np.array_equal(remote.payload["data"], local["data"])
+    assert remote.payload["fields"] == local["fields"] and remote.payload["header"]["frame_id"] == "lidar"
