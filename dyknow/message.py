@@ -341,7 +341,7 @@ def _decode_parts(raw: bytes, attachment: bytes, at: int, key: str) -> Any:
                 size *= n
             parts.append((path, dtype, shape, size))
             total += size
-    except (struct.error, IndexError, UnicodeDecodeError, TypeError, ValueError) as exc:
+    except (struct.error, IndexError, TypeError, ValueError, SyntaxError) as exc:  # (numpy's dtype parser raises SyntaxError too)
         raise PayloadError(f"a malformed list of arrays ({type(exc).__name__}: {exc})", where=where, expected="kind 4's layout") from exc
     if total > len(raw):
         raise PayloadError(f"arrays of {total} bytes in {len(raw)}", where=where, expected="the arrays' bytes at the payload's end")
