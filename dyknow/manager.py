@@ -366,7 +366,9 @@ class Manager:
                 name = node or re.sub(r"[^A-Za-z0-9_]", "_", self.name)
                 if name[0].isdigit():
                     name = "_" + name
-                self._ros2 = Ros2Node(self._session, name, namespace=namespace, domain=self._ros2_domain())
+                self._ros2 = Ros2Node(
+                    self._session, name, namespace=namespace, domain=self._ros2_domain(), max_message_bytes=self.limits.max_ros2_message_bytes
+                )
             return self._ros2
 
     def dds_node(self) -> DdsNode:
@@ -376,7 +378,10 @@ class Manager:
             self._check_open()
             if self._dds is None:
                 self._dds = DdsNode(
-                    domain=self._ros2_domain(), config=self._dds_config, types=self.ros2_node().types if self._ros2 else None
+                    domain=self._ros2_domain(),
+                    config=self._dds_config,
+                    types=self.ros2_node().types if self._ros2 else None,
+                    max_message_bytes=self.limits.max_ros2_message_bytes,
                 )
             return self._dds
 

@@ -21,29 +21,36 @@ Every message carries a header:
 Times are wall-clock integer nanoseconds (``time.time_ns()``).
 
 Payloads are ``bytes``, ``str``, numpy arrays, or JSON-like values (dict, list, numbers, bool,
-None). Between units of one manager a payload travels by reference (no copy, no serialization);
-only messages that leave the process are encoded, by :func:`encode`:
+None), which may hold numpy arrays (a ROS 2 message's large arrays, say). Between units of one
+manager a payload travels by reference (no copy, no serialization); only messages that leave the
+process are encoded, by :func:`encode`:
 
 - the Zenoh payload is the raw data: the bytes, the UTF-8 text, the JSON text, or the array's
-  bytes in C order;
+  bytes in C order; for a JSON-like value holding arrays, the JSON text with ``null`` where each
+  array is, then each array's bytes in C order, one after the other (so the JSON text is the
+  payload but the arrays' bytes at its end);
 - the Zenoh attachment is the header, ``HEADER``, followed for arrays by ``ndim`` u8, the length
-  of the dtype string u8, the dtype string (numpy's, e.g. ``<f4``) and the shape (``ndim`` u64).
-  ``HEADER`` is 40 bytes, little endian::
+  of the dtype string u8, the dtype string (numpy's, e.g. ``<f4``) and the shape (``ndim`` u64);
+  for a JSON-like value holding arrays by their count u8 and, for each in the payload's order,
+  the length of its path u16, its path (a JSON Pointer, RFC 6901, in UTF-8: ``/fields/0/data``)
+  and then its ``ndim``, dtype and shape as for an array. At most 255 arrays travel so; beyond,
+  the smallest go as JSON lists. ``HEADER`` is 41 bytes, little endian::
 
       offset  size  field
       0       2     magic, the bytes "DK"
       2       1     version: 3
-      3       1     kind (bits 0-1): 0 bytes, 1 text (UTF-8), 2 JSON, 3 array; forwards (bits 2-7)
+      3       1     kind: 0 bytes, 1 text (UTF-8), 2 JSON, 3 array, 4 JSON with arrays
       4       8     seq, u64
       12      8     origin_ns, i64
       20      8     send_ns, i64
       28      4     source, u32
       32      4     origin_clock, u32
       36      4     send_clock, u32
+      40      1     forwards, u8
 
-  Versions 2 (the same layout, the whole byte 3 the kind: no forwards) and 1 (``HEADER_V1``, the
-  first 28 bytes, without the last three fields) are still read: their forwards are 0, and a
-  version 1 header's source and clocks too.
+  Versions 2 (``HEADER_V2``, the first 40 bytes: no forwards) and 1 (``HEADER_V1``, the first 28
+  bytes, without source and clocks either) are still read: their forwards are 0, and a version 1
+  header's source and clocks too.
 
 Tools that know nothing of dyknow still see plain bytes, text or JSON on the key, with a matching
 Zenoh encoding. Samples that arrive without a dyknow attachment (from plain Zenoh publishers) are
@@ -66,6 +73,7 @@ __all__ = [
     "ENCODINGS",
     "HEADER",
     "HEADER_V1",
+    "HEADER_V2",
     "MAX_FORWARDS",
     "Message",
     "PayloadError",
@@ -89,10 +97,12 @@ _BYTES: Final = 0
 _TEXT: Final = 1
 _JSON: Final = 2
 _ARRAY: Final = 3
+_PARTS: Final = 4  # JSON with arrays
 _MAGIC: Final = b"DK"
 _VERSION: Final = 3
 _V2: Final = 2
-HEADER: Final = struct.Struct("<2sBBQqqIII")
+HEADER: Final = struct.Struct("<2sBBQqqIIIB")
+HEADER_V2: Final = struct.Struct("<2sBBQqqIII")
 HEADER_V1: Final = struct.Struct("<2sBBQqq")
 _V1: Final = 1
 #: The most forwarding units that pass one message on (see the module documentation).
@@ -107,6 +117,8 @@ def new_id() -> int:
 #: This process's clock id (see the module documentation).
 CLOCK_ID: Final = new_id()
 _ARRAY_META: Final = struct.Struct("<BB")  # ndim, len(dtype string)
+_PATH_LENGTH: Final = struct.Struct("<H")
+_MAX_PARTS: Final = 255
 
 #: Zenoh encoding announced for each kind of payload, for tools that know nothing of dyknow.
 ENCODINGS: Final = {
@@ -114,6 +126,7 @@ ENCODINGS: Final = {
     _TEXT: "text/plain;charset=utf-8",
     _JSON: "application/json",
     _ARRAY: "application/x-dyknow-ndarray",
+    _PARTS: "application/x-dyknow-json-ndarrays",
 }
 
 _BYTES_ENCODING: Final = ENCODINGS[_BYTES]
@@ -209,7 +222,7 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
     wire = msg.wire
     if wire is not None:
         data, kind, extra = wire
-        header = HEADER.pack(_MAGIC, _VERSION, kind | min(msg.forwards, MAX_FORWARDS) << 2, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
+        header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock, min(msg.forwards, MAX_FORWARDS))
         return data, header + extra if extra else header, ENCODINGS[kind]
     payload = msg.payload
     extra = b""
@@ -221,21 +234,143 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
         kind, data = _TEXT, payload.encode()
     elif isinstance(payload, np.ndarray):
         kind = _ARRAY
-        dtype = payload.dtype.str.encode()
-        if payload.ndim > 255 or payload.dtype.hasobject:
-            raise PayloadError(
-                f"cannot send an array of dtype {payload.dtype} with {payload.ndim} dims", expected="numbers, at most 255 dims"
-            )
-        extra = _ARRAY_META.pack(payload.ndim, len(dtype)) + dtype + struct.pack(f"<{payload.ndim}Q", *payload.shape)
+        extra = _array_meta(payload)
         data = np.ascontiguousarray(payload).tobytes()
     else:
         kind = _JSON
         try:
             data = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
-        except (TypeError, ValueError) as exc:
+        except TypeError as exc:  # arrays inside (else something JSON cannot hold: said again below)
+            data, extra = _encode_parts(payload, exc)
+            kind = _PARTS
+        except ValueError as exc:
             raise PayloadError(f"cannot encode the payload as JSON: {exc}") from exc
-    header = HEADER.pack(_MAGIC, _VERSION, kind | min(msg.forwards, MAX_FORWARDS) << 2, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock)
+    header = HEADER.pack(_MAGIC, _VERSION, kind, msg.seq, msg.origin_ns, msg.send_ns, msg.source, msg.origin_clock, msg.send_clock, min(msg.forwards, MAX_FORWARDS))
     return data, header + extra, ENCODINGS[kind]
+
+
+def _array_meta(array: np.ndarray) -> bytes:
+    dtype = array.dtype.str.encode()
+    if array.ndim > 255 or array.dtype.hasobject:
+        raise PayloadError(f"cannot send an array of dtype {array.dtype} with {array.ndim} dims", expected="numbers, at most 255 dims")
+    return _ARRAY_META.pack(array.ndim, len(dtype)) + dtype + struct.pack(f"<{array.ndim}Q", *array.shape)
+
+
+def _encode_parts(payload: Any, failure: TypeError) -> tuple[bytes, bytes]:
+    """``(payload, attachment after the header)`` of a JSON-like value holding numpy arrays."""
+    arrays: list[tuple[str, np.ndarray]] = []
+    skeleton = _split(payload, "", arrays, 0)
+    if not arrays:
+        raise PayloadError(f"cannot encode the payload as JSON: {failure}") from failure
+    if len(arrays) > _MAX_PARTS:  # the smallest go as JSON lists
+        keep = {path for path, _ in sorted(arrays, key=lambda item: item[1].nbytes)[len(arrays) - _MAX_PARTS :]}
+        listed = {path: array.tolist() for path, array in arrays if path not in keep}
+        arrays = [(path, array) for path, array in arrays if path in keep]
+        skeleton = _fill(skeleton, listed)
+    try:
+        text = json.dumps(skeleton, separators=(",", ":"), allow_nan=False).encode()
+    except (TypeError, ValueError) as exc:
+        raise PayloadError(f"cannot encode the payload as JSON: {exc}") from exc
+    extra = [bytes([len(arrays)])]
+    data: list[Any] = [text]
+    for path, array in arrays:
+        encoded = path.encode()
+        extra += [_PATH_LENGTH.pack(len(encoded)), encoded, _array_meta(array)]
+        data.append(np.ascontiguousarray(array).reshape(-1).view(np.uint8))  # a view: join copies it once
+    return b"".join(data), b"".join(extra)
+
+
+def _split(value: Any, path: str, arrays: list[tuple[str, np.ndarray]], depth: int) -> Any:
+    """``value`` with each numpy array in it replaced by None, its path and itself in ``arrays``."""
+    if isinstance(value, np.ndarray):
+        arrays.append((path, value))
+        return None
+    if depth > 64:
+        raise PayloadError("a payload nested more than 64 levels deep", expected="JSON-like values at most 64 levels deep")
+    if isinstance(value, dict):
+        out = {}
+        for key, item in value.items():
+            if not isinstance(key, str):
+                raise PayloadError(f"a key {key!r} of type {type(key).__name__} beside arrays", expected="text keys")
+            out[key] = _split(item, f"{path}/{key.replace('~', '~0').replace('/', '~1')}", arrays, depth + 1)
+        return out
+    if isinstance(value, (list, tuple)):
+        return [_split(item, f"{path}/{i}", arrays, depth + 1) for i, item in enumerate(value)]
+    return value
+
+
+def _fill(skeleton: Any, values: dict[str, Any]) -> Any:
+    for path, value in values.items():
+        _place(skeleton, path, value, "")
+    return skeleton
+
+
+def _place(root: Any, path: str, value: Any, key: str) -> None:
+    """Put ``value`` where JSON Pointer ``path`` points in ``root``, in place of a null."""
+    where = f"array {path[:80]!r} of the message on {key!r}"
+    if not path.startswith("/"):
+        raise PayloadError("a path not starting with /", where=where, expected="a JSON Pointer")
+    parts = [p.replace("~1", "/").replace("~0", "~") for p in path[1:].split("/")]
+    node = root
+    for i, part in enumerate(parts):
+        if isinstance(node, dict):
+            index: Any = part
+            found = part in node
+        elif isinstance(node, list) and part.isascii() and part.isdigit() and len(part) < 10:
+            index = int(part)
+            found = index < len(node)
+        else:
+            found = False
+        if not found:
+            raise PayloadError("a path that leads nowhere in the JSON text", where=where, expected="the path of a null in it")
+        if i == len(parts) - 1:
+            if node[index] is not None:
+                raise PayloadError("a path to a value that is not null", where=where, expected="the path of a null in it")
+            node[index] = value
+        else:
+            node = node[index]
+
+
+def _decode_parts(raw: bytes, attachment: bytes, at: int, key: str) -> Any:
+    """The JSON-like value of a kind 4 payload, its arrays read-only views of ``raw``."""
+    where = f"message on {key!r}"
+    try:
+        count = attachment[at]
+        at += 1
+        parts: list[tuple[str, np.dtype[Any], tuple[int, ...], int]] = []
+        total = 0
+        for _ in range(count):
+            (length,) = _PATH_LENGTH.unpack_from(attachment, at)
+            path = attachment[at + 2 : at + 2 + length].decode()
+            at += 2 + length
+            ndim, dlen = _ARRAY_META.unpack_from(attachment, at)
+            at += _ARRAY_META.size
+            dtype = np.dtype(attachment[at : at + dlen].decode())
+            at += dlen
+            shape = struct.unpack_from(f"<{ndim}Q", attachment, at)
+            at += 8 * ndim
+            if dtype.hasobject or dtype.itemsize == 0:
+                raise PayloadError(f"an array of dtype {dtype}", where=where, expected="numbers")
+            size = dtype.itemsize
+            for n in shape:
+                size *= n
+            parts.append((path, dtype, shape, size))
+            total += size
+    except (struct.error, IndexError, TypeError, ValueError, SyntaxError) as exc:  # (numpy's dtype parser raises SyntaxError too)
+        raise PayloadError(f"a malformed list of arrays ({type(exc).__name__}: {exc})", where=where, expected="kind 4's layout") from exc
+    if total > len(raw):
+        raise PayloadError(f"arrays of {total} bytes in {len(raw)}", where=where, expected="the arrays' bytes at the payload's end")
+    text_end = len(raw) - total
+    try:
+        value = json.loads(raw[:text_end])
+    except (ValueError, RecursionError) as exc:
+        raise PayloadError(f"JSON text that does not parse ({exc})", where=where, expected="JSON") from exc
+    offset = text_end
+    for path, dtype, shape, size in parts:
+        array = np.frombuffer(raw, dtype=dtype, count=size // dtype.itemsize, offset=offset).reshape(shape)  # read-only: immutable bytes
+        _place(value, path, array, key)
+        offset += size
+    return value
 
 
 def is_dyknow(attachment: bytes | None) -> bool:
@@ -271,12 +406,12 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     raw = data if type(data) is bytes else data.to_bytes()
     version = attachment[2]
     forwards = 0
-    if (version == _VERSION or version == _V2) and len(attachment) >= HEADER.size:
-        _, _, kind, mseq, origin_ns, send_ns, source, origin_clock, send_clock = HEADER.unpack_from(attachment)
-        if version == _VERSION:
-            forwards = kind >> 2
-            kind &= 3
+    if version == _VERSION and len(attachment) >= HEADER.size:
+        _, _, kind, mseq, origin_ns, send_ns, source, origin_clock, send_clock, forwards = HEADER.unpack_from(attachment)
         size = HEADER.size
+    elif version == _V2 and len(attachment) >= HEADER_V2.size:
+        _, _, kind, mseq, origin_ns, send_ns, source, origin_clock, send_clock = HEADER_V2.unpack_from(attachment)
+        size = HEADER_V2.size
     elif version == _V1:
         _, _, kind, mseq, origin_ns, send_ns = HEADER_V1.unpack_from(attachment)
         source = origin_clock = send_clock = 0
@@ -290,6 +425,9 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
         payload = raw.decode()
     elif kind == _JSON:  # mutable: no wire reuse
         return Message(json.loads(raw), mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock, forwards)
+    elif kind == _PARTS:  # mutable too
+        value = _decode_parts(raw, attachment, size, key)
+        return Message(value, mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock, forwards)
     elif kind == _ARRAY:
         ndim, dlen = _ARRAY_META.unpack_from(attachment, size)
         pos = size + _ARRAY_META.size
@@ -298,7 +436,9 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
         payload = np.frombuffer(raw, dtype=dtype).reshape(shape)  # read-only: it views immutable bytes
         extra = attachment[size:]
     else:
-        raise PayloadError(f"unknown payload kind {kind}", where=f"message on {key!r}", expected="0 to 3 (bytes, text, JSON, array)")
+        raise PayloadError(
+            f"unknown payload kind {kind}", where=f"message on {key!r}", expected="0 to 4 (bytes, text, JSON, array, JSON with arrays)"
+        )
     return Message(payload, mseq, origin_ns, send_ns, key, len(raw), (data, kind, extra), source, origin_clock, send_clock, forwards)
 
 
@@ -312,17 +452,18 @@ def reheader(attachment: bytes, seq: int, send_ns: int, source: int) -> tuple[by
     header: text, JSON and arrays are decoded first (which checks them, so that a relay never
     passes on what its readers would refuse), and so is a header of another version (decoding
     reads it, or reports what is wrong with it)."""
-    if len(attachment) != HEADER.size:
-        return None
     version = attachment[2]
-    if version != _VERSION and version != _V2:
+    if version == _VERSION and len(attachment) == HEADER.size:
+        _, _, kind, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, sent_clock, forwards = HEADER.unpack_from(attachment)
+    elif version == _V2 and len(attachment) == HEADER_V2.size:
+        _, _, kind, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, sent_clock = HEADER_V2.unpack_from(attachment)
+        forwards = 0
+    else:
         return None
-    _, _, byte, prev_seq, origin_ns, sent_ns, prev_source, origin_clock, sent_clock = HEADER.unpack_from(attachment)
-    forwards = byte >> 2 if version == _VERSION else 0
-    if byte & 3 != _BYTES or (version == _V2 and byte != _BYTES):
+    if kind != _BYTES:
         return None
     onward = min(forwards + 1, MAX_FORWARDS)
-    header = HEADER.pack(_MAGIC, _VERSION, _BYTES | onward << 2, seq, origin_ns, send_ns, source, origin_clock, CLOCK_ID)
+    header = HEADER.pack(_MAGIC, _VERSION, _BYTES, seq, origin_ns, send_ns, source, origin_clock, CLOCK_ID, onward)
     return header, origin_ns, origin_clock, sent_ns, sent_clock, prev_source, prev_seq, _BYTES_ENCODING, forwards
 
 

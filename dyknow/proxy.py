@@ -818,6 +818,12 @@ class Proxy:
 
         self._watches.append(self._session.declare_liveliness_subscriber(key_expr, changed, inline=True))
 
+    def call_soon(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the unit's lane like its other callbacks (from any thread); dropped once
+        the unit stops."""
+        if self.alive:
+            self._call_soon(fn, "a call_soon callback")
+
     def has_subscribers(self, port: str) -> bool:
         """Whether a local input or a remote subscriber receives output ``port`` now."""
         out = self._outputs.get(port)

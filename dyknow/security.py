@@ -67,6 +67,10 @@ class Limits:
     max_expansion_bytes: int = 16 << 20
     #: The most bytes one ``get_model`` reply holds; a larger model comes in pages.
     max_reply_bytes: int = 4 << 20
+    #: The largest ROS 2 message a ``ros2:``/``ros2dds:`` input takes unless its binding says
+    #: ``max_bytes=`` (an untyped input: at most 1 MiB); a larger one is dropped before it is
+    #: copied or decoded (:data:`dyknow.ros2.node.DEFAULT_MAX_MESSAGE_BYTES`).
+    max_ros2_message_bytes: int = 16 << 20
 
 
 _DEFAULT = Limits()

@@ -967,6 +967,35 @@ class Session:
             last = found
             threading.Event().wait(0.05)  # (time.sleep fails under a faked clock: libfaketime's clock_nanosleep)
 
+    def ask_alive(self, key: str, *, timeout_s: float, limit: int, done: Callable[[list[str], int], None]) -> None:
+        """Ask once which liveliness tokens on ``key`` are up, and return at once: ``done(keys,
+        count)`` is called once, on a Zenoh thread, when the answer is complete (or ``timeout_s``
+        passed): the first ``limit`` keys in the order they came, and how many came in all."""
+        lock = threading.Lock()
+        found: list[str] = []
+        count = [0]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            with lock:
+                count[0] += 1
+                if len(found) < limit:
+                    found.append(str(reply.ok.key_expr))
+
+        def ended() -> None:  # Zenoh drops the handler when the request ends
+            with lock:
+                keys, total = list(found), count[0]
+            try:
+                done(keys, total)
+            except Exception:
+                log.exception("the answer to who is alive on %s failed", key)
+
+        try:
+            self._z().liveliness().get(key, _inline_with_end(on_reply, ended), timeout=timeout_s)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot ask who is alive on {key!r}: {_clean(exc)}") from exc
+
     def put(self, key: str, data: bytes | str, *, encoding: str = "application/json") -> None:
         """Publish one plain sample (for events and measurements)."""
         try:

@@ -97,6 +97,10 @@ class UnitRuntime(Protocol):
         """Call ``on_change(key, alive)`` as producers on ``key_expr`` appear and vanish."""
         ...
 
+    def call_soon(self, fn: Callable[[], None]) -> None:
+        """Run ``fn()`` on the unit's thread, like its other callbacks (from any thread)."""
+        ...
+
 
 #: The services of :class:`UnitRuntime`, by name.
 _SERVICES = frozenset(name for name in vars(UnitRuntime) if not name.startswith("_"))
@@ -241,6 +245,14 @@ class Unit:
         thread, never at the same time as them); an exception in it fails the unit.
         """
         self._runtime.watch_liveliness(key_expr, on_change)
+
+    def call_soon(self, fn: Callable[[], None]) -> None:
+        """Run ``fn()`` on the unit's thread as soon as it is free, like the unit's other callbacks
+        (never at the same time as them; an exception in it fails the unit). Callable from any
+        thread: a library's callback thread hands its work over this way, so that slow work (a
+        decode, say) never holds the thread that called it. Dropped once the unit stops.
+        """
+        self._runtime.call_soon(fn)
 
     def get_config(self) -> dict[str, str]:
         """The current port -> key expression bindings (what the proxy's ``get_config`` serves)."""

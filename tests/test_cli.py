@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from dyknow import Manager
@@ -313,3 +314,15 @@ def test_what_a_new_user_trips_on_is_said_plainly(manager_process: Callable[...,
     assert "dyknow: warning: no manager 'engin' is reachable (reachable: engine (did you mean 'engine'?))" in typo.stderr
     printed = typo.stdout.split(": ", 1)[1].strip()  # "KEY #SEQ age ...: PAYLOAD"
     assert json.loads(printed)["camera"] == 3  # JSON, as the unit published it
+
+
+def test_echo_describes_arrays_inside_a_payload() -> None:
+    from dyknow.cli.common import payload_json
+
+    payload = {"width": 2, "data": np.zeros(8, np.uint8), "fields": [{"a": np.zeros((2, 3), np.float32)}], "raw": b"\x01"}
+    assert payload_json(payload) == {
+        "width": 2,
+        "data": {"ndarray": {"dtype": "uint8", "shape": [8]}},
+        "fields": [{"a": {"ndarray": {"dtype": "float32", "shape": [2, 3]}}}],
+        "raw": {"bytes": 1, "base64": "AQ=="},
+    }

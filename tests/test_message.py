@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from dyknow.message import CLOCK_ID, HEADER, HEADER_V1, Message, PayloadError, check_payload, decode, encode, reheader
+from dyknow.message import CLOCK_ID, HEADER, HEADER_V1, HEADER_V2, Message, PayloadError, check_payload, decode, encode, reheader
 
 
 @pytest.mark.parametrize(
@@ -42,7 +42,7 @@ def test_plain_zenoh_samples_are_accepted() -> None:
 
 def test_header_layout_is_documented_size() -> None:
     _, attachment, encoding = encode(Message(b"x", 1, 2, 3, "k"))
-    assert len(attachment) == HEADER.size == 40 and HEADER_V1.size == 28 and attachment[:2] == b"DK"
+    assert len(attachment) == HEADER.size == 41 and HEADER_V2.size == 40 and HEADER_V1.size == 28 and attachment[:2] == b"DK"
     assert encoding == "application/octet-stream"
 
 
@@ -52,14 +52,14 @@ def _parse_header(attachment: bytes) -> dict[str, int]:
     little = "little"
     return {
         "version": attachment[2],
-        "kind": attachment[3] & 0b11,
-        "forwards": attachment[3] >> 2,
+        "kind": attachment[3],
         "seq": int.from_bytes(attachment[4:12], little),
         "origin_ns": int.from_bytes(attachment[12:20], little, signed=True),
         "send_ns": int.from_bytes(attachment[20:28], little, signed=True),
         "source": int.from_bytes(attachment[28:32], little),
         "origin_clock": int.from_bytes(attachment[32:36], little),
         "send_clock": int.from_bytes(attachment[36:40], little),
+        "forwards": attachment[40],
     }
 
 
@@ -76,7 +76,7 @@ def test_the_header_is_what_the_documentation_says() -> None:
     for payload, kind in (("text", 1), ({"j": 1}, 2), (np.zeros(3, np.uint8), 3)):  # forwards beside every kind
         back = _parse_header(encode(Message(payload, 1, 1, 1, "k", forwards=63))[1])
         assert (back["kind"], back["forwards"]) == (kind, 63)
-    v2 = attachment[:2] + bytes([2, 0]) + attachment[4:]  # version 2: byte 3 is the kind alone
+    v2 = attachment[:2] + bytes([2]) + attachment[3:40]  # version 2: the first 40 bytes, no forwards
     assert (decode(b"x", v2, "k").payload, decode(b"x", v2, "k").forwards, decode(b"x", v2, "k").source) == (b"x", 0, 0xDEADBEEF)
     for payload, kind in (("text", 1), ({"j": 1}, 2), (np.zeros(3, np.uint8), 3)):
         assert _parse_header(encode(Message(payload, 1, 1, 1, "k"))[1])["kind"] == kind
@@ -86,10 +86,10 @@ def test_the_header_is_what_the_documentation_says() -> None:
     assert (back.payload, back.seq, back.origin_ns, back.send_ns, back.source, back.origin_clock, back.send_clock) == (b"old", 9, 10, 11, 0, 0, 0)
     array = np.arange(6, dtype="<i2").reshape(2, 3)
     data, attachment, _ = encode(Message(array, 1, 1, 1, "k"))
-    ndim, dlen = attachment[40], attachment[41]
-    assert (ndim, attachment[42 : 42 + dlen]) == (2, b"<i2")
-    assert [int.from_bytes(attachment[42 + dlen + 8 * i : 50 + dlen + 8 * i], "little") for i in range(2)] == [2, 3]
-    old_array = old + attachment[40:]
+    ndim, dlen = attachment[41], attachment[42]
+    assert (ndim, attachment[43 : 43 + dlen]) == (2, b"<i2")
+    assert [int.from_bytes(attachment[43 + dlen + 8 * i : 51 + dlen + 8 * i], "little") for i in range(2)] == [2, 3]
+    old_array = old + attachment[41:]
     old_array = old_array[:3] + bytes([3]) + old_array[4:]
     np.testing.assert_array_equal(decode(bytes(data), old_array, "k").payload, array)
 
@@ -103,7 +103,7 @@ def test_bad_payloads_are_refused_clearly() -> None:
         encode(Message(np.array([object()]), 1, 1, 1, "k"))
     _, attachment, _ = encode(Message(b"x", 1, 1, 1, "k"))
     bad_version = attachment[:2] + bytes([99]) + attachment[3:]
-    with pytest.raises(PayloadError, match="header version 99 of 40 bytes"):
+    with pytest.raises(PayloadError, match="header version 99 of 41 bytes"):
         decode(b"x", bad_version, "k")
     assert json.loads(encode(Message({"a": 1}, 1, 1, 1, "k"))[0]) == {"a": 1}
 
@@ -148,7 +148,95 @@ def test_reheader_rewrites_a_bytes_header_for_the_next_hop_and_nothing_else() ->
     for payload in ("text", {"json": 1}, np.zeros((2, 2), dtype=np.uint8)):
         _, header, _ = encode(Message(payload, 1, 1, 1, "k"))
         assert reheader(header, 2, 2, 1) is None, payload
-    assert reheader(HEADER.pack(b"DK", 9, 0, 1, 1, 1, 1, 1, 1), 2, 2, 1) is None
+    assert reheader(HEADER.pack(b"DK", 9, 0, 1, 1, 1, 1, 1, 1, 0), 2, 2, 1) is None
     assert reheader(HEADER_V1.pack(b"DK", 1, 0, 1, 1, 1), 2, 2, 1) is None  # an older version: decoded first
-    assert reheader(header_of_bytes := HEADER.pack(b"DK", 2, 0, 1, 1, 1, 1, 1, 1), 2, 2, 1) is not None
+    assert reheader(HEADER_V2.pack(b"DK", 2, 0, 1, 1, 1, 1, 1, 1), 2, 2, 1) is not None  # version 2: no forwards yet
+    assert reheader(header_of_bytes := HEADER.pack(b"DK", 3, 0, 1, 1, 1, 1, 1, 1, 0), 2, 2, 1) is not None
     assert reheader(header_of_bytes + b"extra", 2, 2, 1) is None
+
+
+def _parse_parts(data: bytes, attachment: bytes) -> tuple[object, list[tuple[str, str, list[int], bytes]]]:
+    """A payload of kind 4 taken apart as the module's documentation lays it out (written from
+    its text, not from the module's code): the JSON text, and each array's path, dtype, shape
+    and bytes."""
+    at, count = 42, attachment[41]
+    arrays = []
+    for _ in range(count):
+        length = int.from_bytes(attachment[at : at + 2], "little")
+        path = attachment[at + 2 : at + 2 + length].decode()
+        at += 2 + length
+        ndim, dlen = attachment[at], attachment[at + 1]
+        dtype = attachment[at + 2 : at + 2 + dlen].decode()
+        at += 2 + dlen
+        shape = [int.from_bytes(attachment[at + 8 * i : at + 8 * i + 8], "little") for i in range(ndim)]
+        at += 8 * ndim
+        arrays.append((path, dtype, shape))
+    sizes = [int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize for _, dtype, shape in arrays]
+    end = len(data) - sum(sizes)
+    parts, offset = [], end
+    for (path, dtype, shape), size in zip(arrays, sizes, strict=True):
+        parts.append((path, dtype, shape, data[offset : offset + size]))
+        offset += size
+    return json.loads(data[:end]), parts
+
+
+def test_json_with_arrays_keeps_them_binary_as_documented() -> None:
+    """A ROS 2 message's payload: JSON-like, with numpy arrays inside (any depth, any dtype, a
+    key to escape); the arrays travel as their bytes after the JSON text, not as JSON lists."""
+    cloud = np.arange(3000, dtype=np.uint8)
+    grid = np.arange(12, dtype=">i4").reshape(3, 4)[:, ::2]  # big-endian, not contiguous
+    payload = {
+        "header": {"frame_id": "lidar"},
+        "width": 1000,
+        "data": cloud,
+        "fields": [{"a/b~c": grid}, {"empty": np.zeros((0, 3), np.float32)}],
+    }
+    data, attachment, encoding = encode(Message(payload, 3, 4, 5, "k"))
+    assert encoding == "application/x-dyknow-json-ndarrays" and _parse_header(attachment)["kind"] == 4
+    assert len(data) < len(b'{"header":{"frame_id":"lidar"},"width":1000}') + 3000 + 24 + 100  # bytes, not 3,000 numbers in text
+    text, parts = _parse_parts(bytes(data), attachment)
+    assert text == {"header": {"frame_id": "lidar"}, "width": 1000, "data": None, "fields": [{"a/b~c": None}, {"empty": None}]}
+    assert [(p, d, s) for p, d, s, _ in parts] == [
+        ("/data", "|u1", [3000]),
+        ("/fields/0/a~1b~0c", ">i4", [3, 2]),
+        ("/fields/1/empty", "<f4", [0, 3]),
+    ]
+    assert parts[0][3] == cloud.tobytes() and parts[1][3] == np.ascontiguousarray(grid).tobytes()
+    back = decode(bytes(data), attachment, "k")
+    assert back.wire is None and back.nbytes == len(data)  # a mutable value: never forwarded as its wire form
+    got = back.payload
+    assert got["header"] == {"frame_id": "lidar"} and got["width"] == 1000
+    for mine, theirs in (
+        (got["data"], cloud),
+        (got["fields"][0]["a/b~c"], grid),
+        (got["fields"][1]["empty"], payload["fields"][1]["empty"]),
+    ):
+        assert mine.dtype == theirs.dtype and mine.shape == theirs.shape and np.array_equal(mine, theirs) and not mine.flags.writeable
+
+
+def test_past_255_arrays_the_smallest_go_as_lists() -> None:
+    payload = [np.full(i + 1, i, np.int16) for i in range(300)]
+    data, attachment, _ = encode(Message(payload, 1, 1, 1, "k"))
+    assert attachment[41] == 255
+    back = decode(bytes(data), attachment, "k").payload
+    assert back[0] == [0] and isinstance(back[44], list) and isinstance(back[45], np.ndarray)
+    assert all(np.array_equal(np.asarray(b), a) for a, b in zip(payload, back, strict=True))
+
+
+@pytest.mark.parametrize(
+    ("change", "problem"),
+    [
+        (lambda d, a: (d, a[:42] + (5).to_bytes(2, "little") + b"/nope" + a[49:]), "leads nowhere"),
+        (lambda d, a: (d, a[:42] + (2).to_bytes(2, "little") + b"/w" + a[49:]), "not null"),
+        (lambda d, a: (d[-10:], a), "arrays of 3000 bytes in 10"),
+        (lambda d, a: (d, a.replace(b"|u1", b"|O8")), "dtype object|malformed"),
+        (lambda d, a: (d, a[:-4]), "malformed"),
+        (lambda d, a: (b"[" + d[1:], a), "does not parse"),
+    ],
+    ids=["nowhere", "not-null", "too-short", "objects", "truncated", "not-json"],
+)
+def test_json_with_arrays_from_the_network_is_checked(change: object, problem: str) -> None:
+    data, attachment, _ = encode(Message({"data": np.zeros(3000, np.uint8), "w": 1}, 1, 1, 1, "k"))
+    bad_data, bad_attachment = change(bytes(data), attachment)  # type: ignore[operator]
+    with pytest.raises(PayloadError, match=problem):
+        decode(bad_data, bad_attachment, "k")

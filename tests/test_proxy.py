@@ -598,7 +598,7 @@ def test_a_forwarding_unit_passes_remote_bytes_on_undecoded_and_keeps_count(make
 
     # a dyknow header of a version this one does not write, from a plain Zenoh publisher
     with zenoh.open(make_config(connect=sender.endpoints)) as plain:
-        bad = HEADER.pack(b"DK", 9, 0, 1, 1, 1, 1, 1, 1)
+        bad = HEADER.pack(b"DK", 9, 0, 1, 1, 1, 1, 1, 1, 0)
         plain.put("wire/in", b"from the future", attachment=bad)
         wait_until(lambda: src.has_subscribers("out"), "still subscribed")
     src.publish("out", b"after")
@@ -643,7 +643,7 @@ def test_relays_in_a_cycle_across_managers_carry_a_message_round_at_most_max_for
 
 def _dyknow_header(seq: int, source: int) -> bytes:
     """A version-2 dyknow header of a bytes payload (as its documentation lays it out)."""
-    return HEADER.pack(b"DK", 2, 0, seq, time.time_ns(), time.time_ns(), source, 7, 7)
+    return HEADER.pack(b"DK", 3, 0, seq, time.time_ns(), time.time_ns(), source, 7, 7, 0)
 
 
 def test_messages_another_process_sent_that_never_arrived_are_counted_as_lost(make_manager: Callable[..., Manager]) -> None:

@@ -27,3 +27,23 @@ def test_ros2_benchmark_smoke(tmp_path: Path) -> None:
 
 def test_the_benchmark_is_documented() -> None:
     assert undocumented(REPO / "benchmarks" / "ros2.py") == []
+
+
+def test_ros2_cloud_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "ros2-cloud.json"
+    result = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "ros2_cloud.py"), "--smoke", "--json", str(out)],
+        capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = {r["variant"]: r for r in json.loads(out.read_text())["results"]}
+    assert set(rows) == {"default-bound", "raised-bound"}
+    assert rows["default-bound"]["received_bytes"] == 0  # 17 MiB: over the default bound, dropped
+    assert rows["raised-bound"]["cloud_bytes"] <= rows["raised-bound"]["received_bytes"] < rows["raised-bound"]["cloud_bytes"] + 4096
+    for row in rows.values():
+        assert row["manager_cpu_s"] >= 0 and row["get_model_calls"] >= 3
+    assert "target: get_model under 500 ms behind a cloud" in result.stdout
+
+
+def test_the_cloud_benchmark_is_documented() -> None:
+    assert undocumented(REPO / "benchmarks" / "ros2_cloud.py") == []

@@ -7,15 +7,21 @@ import json
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from dyknow import Manager
+from dyknow.client import Client
 from dyknow.errors import BindingError, DyKnowError
-from dyknow.ros2 import Ros2Node, parse_binding, snapshot
+from dyknow.message import Message
+from dyknow.ros2 import Ros2Node, Ros2Source, TypeSupport, parse_binding, snapshot
 from dyknow.ros2.names import Durability, QoS, Reliability
+from dyknow.ros2.node import DEFAULT_MAX_MESSAGE_BYTES
+from dyknow.testing import Sink
 from dyknow.transport import open_session
-from tests.conftest import UNIT_SPECS, CliProcess, free_port, run_cli, wait_until
+from tests.conftest import UNIT_SPECS, CliProcess, ManagerProcess, free_port, run_cli, wait_until
 
 
 @pytest.mark.parametrize(
@@ -37,6 +43,13 @@ from tests.conftest import UNIT_SPECS, CliProcess, free_port, run_cli, wait_unti
             QoS(durability=Durability.TRANSIENT_LOCAL, depth=1),
             "ros2:/map?durability=transient_local&depth=1",
         ),
+        (
+            "ros2:/cloud?max_bytes=65536&type=sensor_msgs/msg/PointCloud2",
+            "/cloud",
+            "sensor_msgs/msg/PointCloud2",
+            QoS(),
+            "ros2:/cloud?type=sensor_msgs/msg/PointCloud2&max_bytes=65536",
+        ),
     ],
 )
 def test_bindings_parse_and_write_back(text: str, topic: str, ros_type: str | None, qos: QoS, uri: str) -> None:
@@ -54,12 +67,20 @@ def test_bindings_parse_and_write_back(text: str, topic: str, ros_type: str | No
         ("ros2:/chatter?reliability=sometimes", "reliable or best_effort"),
         ("ros2:/chatter?depth=0", "from 1 to 10000"),
         ("ros2:/chatter?depth=1&depth=2", "twice"),
+        ("ros2:/cloud?max_bytes=0", "max_bytes='0'; expected a whole number of bytes from 1 to 67108864"),
+        ("ros2:/cloud?max_bytes=16MiB", "max_bytes='16MiB'"),
+        ("ros2:/cloud?max_bytes=67108865", "from 1 to 67108864"),
         ("dyknow/x", "ros2:/TOPIC"),
     ],
 )
 def test_bad_bindings_are_refused_naming_the_option(text: str, problem: str) -> None:
     with pytest.raises(BindingError, match=problem):
         parse_binding(text)
+
+
+def test_the_max_bytes_option() -> None:
+    assert parse_binding("ros2:/cloud?max_bytes=1024").max_bytes == 1024
+    assert parse_binding("ros2:/cloud").max_bytes is None  # the node's default
 
 
 def test_the_decode_option() -> None:
@@ -298,3 +319,186 @@ def test_a_publisher_of_another_type_hash_is_named_in_the_log(
         node.create_publisher("/hashed", "std_msgs/msg/String", humble=True)  # TypeHashNotSupported: another key
         wait_until(lambda: "so none of its messages will match" in caplog.text, "the warning")
     assert "/humble of /hashed announces std_msgs/msg/String TypeHashNotSupported" in caplog.text
+
+
+POINT_CLOUD = "sensor_msgs/msg/PointCloud2"
+
+
+def cloud(types: TypeSupport, points: int, stamp_s: int = 1) -> bytes:
+    """The CDR of an unorganised PointCloud2 of ``points`` points of x, y, z, intensity (float32)."""
+    t = types.message_class
+    fields = [t("sensor_msgs/msg/PointField")(name=name, offset=4 * i, datatype=7, count=1) for i, name in enumerate(("x", "y", "z", "i"))]
+    header = t("std_msgs/msg/Header")(stamp=t("builtin_interfaces/msg/Time")(sec=stamp_s, nanosec=0), frame_id="lidar")
+    data = np.arange(points * 4, dtype=np.float32).view(np.uint8)
+    message = t(POINT_CLOUD)(
+        header=header,
+        height=1,
+        width=points,
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * points,
+        data=data,
+        is_dense=True,
+    )
+    return types.serialize(message, POINT_CLOUD)
+
+
+def test_a_message_over_the_bound_is_dropped_before_it_is_decoded(
+    make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture
+) -> None:
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=17)
+    robot.spawn("sink", "snk", bindings={"in": f"ros2:/cloud?type={POINT_CLOUD}&max_bytes=100000"})
+    source = robot.unit("snk.in.ros2")
+    sink = robot.unit("snk")
+    assert isinstance(source, Ros2Source) and isinstance(sink, Sink)
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+        Ros2Node(session, "lidar", domain=17) as lidar,
+    ):
+        pub = lidar.create_publisher("/cloud", POINT_CLOUD, QoS(keep_all=True))  # reliable keep-all: none lost on the way
+        big, small = cloud(lidar.types, 10_000), cloud(lidar.types, 100)  # 160 kB and 1.6 kB
+        wait_until(lambda: (pub.publish_cdr(big), source.oversized >= 1)[1], "the large cloud dropped")
+        wait_until(lambda: (pub.publish_cdr(small), bool(sink.messages))[1], "a small cloud through")
+    assert {m.payload["width"] for m in sink.messages} == {100}  # nothing over the bound reached the unit
+    assert f"a payload of {len(big)} bytes, over the limit of 100000" in caplog.text
+    assert f"ros2:/cloud?type={POINT_CLOUD}&max_bytes=100000 (unit 'snk.in.ros2') refused a message" in caplog.text
+
+
+def test_a_manager_sets_the_bound_of_its_inputs(make_manager: Callable[..., Manager]) -> None:
+    from dyknow.security import Limits
+
+    assert Limits().max_ros2_message_bytes == DEFAULT_MAX_MESSAGE_BYTES == 16 << 20
+    robot = make_manager(ros2_domain=18, limits=Limits(max_ros2_message_bytes=4096))
+    robot.spawn("sink", "typed", bindings={"in": f"ros2:/a?type={POINT_CLOUD}"})
+    robot.spawn("sink", "untyped", bindings={"in": "ros2:/b"})
+    robot.spawn("sink", "chosen", bindings={"in": f"ros2:/c?type={POINT_CLOUD}&max_bytes=100"})
+    bounds = {name: robot.unit(f"{name}.in.ros2").max_bytes for name in ("typed", "untyped", "chosen")}  # type: ignore[attr-defined]
+    assert bounds == {"typed": 4096, "untyped": 4096, "chosen": 100}
+    assert make_manager(ros2_domain=18).ros2_node().max_message_bytes == 16 << 20
+
+
+def _peak_rss_kib(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1])
+    raise AssertionError("no VmHWM")
+
+
+def test_large_clouds_cost_a_manager_no_memory_on_typed_and_untyped_inputs(manager_process: Callable[..., ManagerProcess]) -> None:
+    """A 60 MiB PointCloud2 cost 7-13 s of a manager's CPU and +900-1,000 MiB of memory, and an
+    untyped input took a 48 MiB one (+528 MiB). By default a typed input takes at most 16 MiB and
+    an untyped one 1 MiB: a 40 MiB cloud is dropped on both before it is copied (Zenoh itself
+    reassembles it once), and the clouds under the bounds go through."""
+    proc = manager_process("--ros2-domain", "19")
+    with Client(proc.name, connect=[proc.endpoint], timeout_s=20) as client:
+        client.spawn("sink", "typed", bindings={"in": f"ros2:/lidar?type={POINT_CLOUD}"})
+        client.spawn("sink", "untyped", bindings={"in": "ros2:/lidar_any"})
+        with (
+            open_session(listen=["tcp/127.0.0.1:0"], connect=[proc.endpoint]) as session,
+            Ros2Node(session, "lidar", domain=19) as lidar,
+        ):
+            typed = lidar.create_publisher("/lidar", POINT_CLOUD, QoS(keep_all=True))  # reliable keep-all: none lost on the way
+            untyped = lidar.create_publisher("/lidar_any", POINT_CLOUD, QoS(keep_all=True))
+            small = cloud(lidar.types, 100)
+            for pub, unit in ((typed, "typed"), (untyped, "untyped")):  # both matched before the large clouds go
+                wait_until(lambda p=pub, u=unit: (p.publish_cdr(small), _messages(client, u) >= 1)[1], f"a small cloud on {unit}")
+            before = {unit: _messages(client, unit) for unit in ("typed", "untyped")}
+            peak = _peak_rss_kib(proc.proc.pid)
+            large = cloud(lidar.types, (40 << 20) // 16)
+            for pub in (typed, untyped):
+                pub.publish_cdr(large)
+                pub.publish_cdr(small)  # behind the large one on the same link: in once the large one was dealt with
+            for unit in ("typed", "untyped"):
+                wait_until(lambda u=unit: _messages(client, u) == before[u] + 1, f"the small cloud after the large one on {unit}")
+            grew = _peak_rss_kib(proc.proc.pid) - peak
+            assert client.get_model()["manager"] == proc.name
+    assert proc.stop() == 0
+    assert grew < 128 * 1024, f"the manager's peak memory grew by {grew / 1024:.0f} MiB"
+    stderr = proc.proc.stderr.read() if proc.proc.stderr else ""
+    assert f"a payload of {len(large)} bytes, over the limit of {16 << 20}" in stderr
+    assert f"a payload of {len(large)} bytes, over the limit of {1 << 20}" in stderr
+
+
+def _messages(client: Client, unit: str) -> int:
+    return int(client.get_statistics(unit)["ports"]["in"]["messages"])
+
+
+def test_a_message_held_in_decoding_holds_no_one_else(make_manager: Callable[..., Manager], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A message is decoded on its input's own thread (the companion unit's lane), never on the
+    Zenoh thread that received it: while one is held in decoding, the messages behind it are
+    queued (the newest ``depth`` kept) and a get_model sent on the very link they come by is
+    answered. Decoded on Zenoh's thread, the samples behind it filled Zenoh's queue for that
+    subscriber and stalled the link, get_model's request with it."""
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=20)
+    robot.spawn("sink", "snk", bindings={"in": "ros2:/chatter?type=std_msgs/msg/String&depth=5"})
+    source = robot.unit("snk.in.ros2")
+    assert isinstance(source, Ros2Source)
+    types = robot.ros2_node().types
+    decode = types.deserialize
+    holding, release = threading.Event(), threading.Event()
+    threads: list[str] = []
+
+    def held(data: bytes, ros_type: str) -> object:
+        threads.append(threading.current_thread().name)
+        if not holding.is_set():
+            holding.set()
+            release.wait(60)
+        return decode(data, ros_type)
+
+    monkeypatch.setattr(types, "deserialize", held)
+    try:
+        with (
+            open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+            Ros2Node(session, "talker", domain=20) as talker,
+            Client(robot.name, session=session, timeout_s=10) as client,
+        ):
+            pub = talker.create_publisher("/chatter", "std_msgs/msg/String")  # drops, as rmw_zenoh's, rather than block
+            text = talker.types.message_class("std_msgs/msg/String")
+            wait_until(lambda: (pub.publish(text(data="first")), holding.is_set())[1], "a message in decoding")
+            for i in range(3000):
+                pub.publish(text(data=f"behind {i}"))
+            model = client.get_model()  # on the same link, behind the 3,000
+            answered_while_held = not release.is_set()
+            dropped = source.dropped
+    finally:
+        release.set()
+    assert answered_while_held and model["manager"] == robot.name
+    assert dropped > 0  # the queue kept the newest 5
+    assert threads[0].startswith("dyknow-"), threads[0]  # the lane's thread, not Zenoh's
+    sink = robot.unit("snk")
+    wait_until(lambda: len(sink.messages) >= 2, "the queued messages delivered once the decode ended")  # type: ignore[attr-defined]
+    assert len(sink.messages) <= 1 + 5 + 1  # type: ignore[attr-defined]  # the held one, the queue's depth, one in flight
+
+
+def test_a_clouds_data_stays_binary_to_a_unit_and_to_another_process(make_manager: Callable[..., Manager]) -> None:
+    """A 32 MiB PointCloud2 became a 64 MiB-and-more JSON dict, which reached no one. Its data
+    now comes as a numpy array: by reference to the bound unit, and as its bytes to a subscriber
+    in another session (the message's JSON text is a few hundred bytes)."""
+    port = free_port()
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=28)
+    robot.spawn("sink", "snk", bindings={"in": f"ros2:/cloud?type={POINT_CLOUD}&max_bytes={48 << 20}"})
+    sink = robot.unit("snk")
+    assert isinstance(sink, Sink)
+    received: list[Message] = []
+    points = (32 << 20) // 16
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+        Ros2Node(session, "lidar", domain=28) as lidar,
+        Client(robot.name, session=session, timeout_s=10) as client,
+        client.declare_subscriber(f"dyknow/{robot.name}/snk.in.ros2/out", received.append),
+    ):
+        pub = lidar.create_publisher("/cloud", POINT_CLOUD, QoS(keep_all=True))  # reliable keep-all: none lost on the way
+        small = cloud(lidar.types, 100)
+        wait_until(lambda: (pub.publish_cdr(small), bool(received) and bool(sink.messages))[1], "small clouds to both")
+        large = cloud(lidar.types, points)
+        pub.publish_cdr(large)
+        wait_until(lambda: any(m.payload["width"] == points for m in list(received)), "the large cloud in the other session")
+    local = next(m.payload for m in sink.messages if m.payload["width"] == points)
+    remote = next(m for m in received if m.payload["width"] == points)
+    assert isinstance(local["data"], np.ndarray) and local["data"].nbytes == 32 << 20
+    assert remote.nbytes < (32 << 20) + 2048, remote.nbytes  # the data's bytes and a little JSON
+    assert isinstance(remote.payload["data"], np.ndarray) and np.array_equal(remote.payload["data"], local["data"])
+    assert remote.payload["fields"] == local["fields"] and remote.payload["header"]["frame_id"] == "lidar"

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from dyknow.errors import BindingError
-from dyknow.ros2.convert import compressed_size, from_message, stamp_ns, to_message
+from dyknow.ros2.convert import MAX_LISTED, compressed_size, from_message, stamp_ns, to_message
 from dyknow.ros2.types import TypeSupport
 
-IMAGE, COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
+IMAGE, COMPRESSED, CLOUD = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/PointCloud2"
 
 
 @pytest.fixture(scope="module")
@@ -160,3 +160,57 @@ def test_compressed_images_that_would_not_decode_safely_are_refused(types: TypeS
     )
     with pytest.raises(BindingError, match=problem):
         from_message(msg, COMPRESSED, decode=True)
+
+
+def point_cloud(types: TypeSupport, points: int) -> bytes:
+    t = types.message_class
+    fields = [t("sensor_msgs/msg/PointField")(name=name, offset=4 * i, datatype=7, count=1) for i, name in enumerate("xyz")]
+    header = t("std_msgs/msg/Header")(stamp=t("builtin_interfaces/msg/Time")(sec=4, nanosec=2), frame_id="lidar")
+    message = t(CLOUD)(
+        header=header,
+        height=1,
+        width=points,
+        fields=fields,
+        is_bigendian=False,
+        point_step=12,
+        row_step=12 * points,
+        data=np.arange(points * 3, dtype=np.float32).view(np.uint8),
+        is_dense=True,
+    )
+    return types.serialize(message, CLOUD)
+
+
+def test_a_point_clouds_data_is_a_view_of_the_message_not_a_list(types: TypeSupport) -> None:
+    cdr = point_cloud(types, 1000)
+    plain = from_message(types.deserialize(cdr, CLOUD), CLOUD)
+    data = plain["data"]
+    assert isinstance(data, np.ndarray) and data.dtype == np.uint8 and data.size == 12_000 and not data.flags.writeable
+    assert np.shares_memory(data, np.frombuffer(cdr, np.uint8))  # no copy, no Python object per byte
+    assert plain["fields"][1] | {"name": "y", "offset": 4, "datatype": 7, "count": 1} == plain["fields"][1] and plain["width"] == 1000
+    points = data.view(np.float32).reshape(-1, 3)
+    assert points[999].tolist() == [2997.0, 2998.0, 2999.0]
+    back = to_message(plain, CLOUD, types, origin_ns=0)  # out again as it came
+    assert types.serialize(back, CLOUD) == cdr
+
+
+@pytest.mark.parametrize(
+    ("ros_type", "field", "values", "listed"),
+    [
+        ("std_msgs/msg/Float32MultiArray", "data", np.arange(MAX_LISTED, dtype=np.float32), True),  # a laser scan's ranges
+        ("std_msgs/msg/Float32MultiArray", "data", np.arange(MAX_LISTED + 1, dtype=np.float32), False),
+        ("std_msgs/msg/UInt8MultiArray", "data", np.arange(3, dtype=np.uint8), False),  # bytes: never a list
+        ("std_msgs/msg/Int8MultiArray", "data", np.arange(3, dtype=np.int8), False),
+    ],
+)
+def test_long_arrays_and_bytes_come_as_arrays(types: TypeSupport, ros_type: str, field: str, values: np.ndarray, listed: bool) -> None:
+    msg = to_message({field: values}, ros_type, types, origin_ns=0)
+    got = from_message(types.deserialize(types.serialize(msg, ros_type), ros_type), ros_type)[field]
+    assert isinstance(got, list) == listed
+    assert np.array_equal(np.asarray(got), values)
+
+
+def test_fixed_arrays_stay_lists(types: TypeSupport) -> None:
+    msg = to_message({"pose": {"covariance": [1.0] * 36}}, "geometry_msgs/msg/PoseWithCovarianceStamped", types, origin_ns=0)
+    ros_type = "geometry_msgs/msg/PoseWithCovarianceStamped"
+    got = from_message(types.deserialize(types.serialize(msg, ros_type), ros_type), ros_type)
+    assert got["pose"]["covariance"] == [1.0] * 36

@@ -7,11 +7,14 @@ from __future__ import annotations
 import threading
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 
 from dyknow.errors import ClosedError
-from dyknow.ros2 import Graph, Received, Ros2Node, snapshot
-from dyknow.ros2.names import ADMIN_SPACE, Durability, EntityKind, QoS
+from dyknow.ros2 import Graph, Received, Ros2Node, graph, snapshot
+from dyknow.ros2.graph import PublisherWatch
+from dyknow.ros2.names import ADMIN_SPACE, HASH_NOT_SUPPORTED, Durability, Entity, EntityKind, QoS
+from dyknow.ros2.node import UNTYPED_MAX_MESSAGE_BYTES
 from dyknow.transport import Session, open_session
 from tests.conftest import free_port, wait_until
 
@@ -110,3 +113,112 @@ def test_a_volatile_subscription_reads_an_advanced_publisher(sessions: tuple[Ses
         listener.create_subscription("/adv", "std_msgs/msg/String", lambda r: got.set())
         pub = talker.create_publisher("/adv", "std_msgs/msg/String", QoS(durability=Durability.TRANSIENT_LOCAL, depth=3))
         wait_until(lambda: (pub.publish(string(talker, "live")), got.wait(0.05))[1], "a live message")
+
+
+def test_messages_are_decoded_off_zenohs_thread_from_a_bounded_queue(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    got: list[str] = []
+    threads: set[str] = set()
+    first, release = threading.Event(), threading.Event()
+
+    def slow(received: Received) -> None:
+        threads.add(threading.current_thread().name)
+        got.append(received.message.data)
+        first.set()
+        release.wait(20)
+
+    with Ros2Node(a, "talker", domain=21) as talker, Ros2Node(b, "listener", domain=21) as listener:
+        sub = listener.create_subscription("/queued", "std_msgs/msg/String", slow, QoS(depth=5))
+        pub = talker.create_publisher("/queued", "std_msgs/msg/String", QoS(keep_all=True))  # blocks rather than drop: all 50 arrive
+        wait_until(lambda: (pub.publish(string(talker, "first")), first.is_set())[1], "a message in on_message")
+        for i in range(50):
+            pub.publish(string(talker, f"m{i}"))
+        wait_until(lambda: sub.dropped >= 45, "the queue at its depth, the oldest dropped")
+        release.set()
+        wait_until(lambda: got[-1:] == ["m49"], "the newest delivered")
+    assert len(got) <= 1 + 5 + 1 and got[-5:] == [f"m{i}" for i in range(45, 50)]  # the newest five, in order
+    assert threads == {"dyknow-ros2-listener"}  # the node's delivery thread, not Zenoh's
+
+
+def test_an_oversized_message_is_dropped_naming_the_topic_the_size_and_the_bound(
+    sessions: tuple[Session, Session], caplog: pytest.LogCaptureFixture
+) -> None:
+    a, b = sessions
+    got: list[str] = []
+    with Ros2Node(a, "talker", domain=22) as talker, Ros2Node(b, "listener", domain=22, max_message_bytes=4096) as listener:
+        typed = listener.create_subscription("/big", "std_msgs/msg/String", lambda r: got.append(r.message.data))
+        chosen = listener.create_subscription("/bigger", "std_msgs/msg/String", lambda r: got.append(r.message.data), max_bytes=100_000)
+        untyped = listener.create_subscription("/any", None, lambda r: got.append(r.message.data))
+        assert (typed.max_bytes, chosen.max_bytes, untyped.max_bytes) == (4096, 100_000, 4096)
+        pubs = {topic: talker.create_publisher(topic, "std_msgs/msg/String", QoS(keep_all=True)) for topic in ("/big", "/bigger", "/any")}
+        wait_until(lambda: (pubs["/big"].publish(string(talker, "x" * 5000)), typed.oversized >= 1)[1], "the large one dropped")
+        wait_until(lambda: (pubs["/bigger"].publish(string(talker, "y" * 5000)), "y" * 5000 in got)[1], "under its own bound: taken")
+        wait_until(lambda: (pubs["/big"].publish(string(talker, "small")), "small" in got)[1], "a small one taken")
+    assert "x" * 5000 not in got and typed.refused == typed.oversized
+    assert "ROS 2 subscription on /big refused a message (1 so far): a payload of 5009 bytes, over the limit of 4096" in caplog.text
+
+
+def test_an_untyped_subscription_takes_at_most_one_mib(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    got: list[int] = []
+    with Ros2Node(a, "talker", domain=23) as talker, Ros2Node(b, "listener", domain=23) as listener:
+        sub = listener.create_subscription("/blob", None, lambda r: got.append(len(r.message.data)))
+        assert sub.max_bytes == UNTYPED_MAX_MESSAGE_BYTES == 1 << 20
+        pub = talker.create_publisher("/blob", "std_msgs/msg/UInt8MultiArray", QoS(keep_all=True))
+        blob = talker.types.message_class("std_msgs/msg/UInt8MultiArray")
+        layout = talker.types.message_class("std_msgs/msg/MultiArrayLayout")(dim=[], data_offset=0)
+        wait_until(lambda: (pub.publish(blob(layout=layout, data=np.zeros(2 << 20, np.uint8))), sub.oversized >= 1)[1], "2 MiB dropped")
+        wait_until(lambda: (pub.publish(blob(layout=layout, data=np.zeros(1000, np.uint8))), bool(got))[1], "1 kB taken")
+    assert set(got) == {1000}
+
+
+def _fake_publisher(session: Session, domain: int, topic: str, i: int, ros_type: str = "std_msgs/msg/String") -> object:
+    """A publisher's liveliness token and nothing else, as anyone on the network may declare."""
+    entity = Entity(
+        domain, f"f{i:031x}", 1, 100 + i, EntityKind.PUBLISHER, "/", f"fake{i}", "/", topic, ros_type, HASH_NOT_SUPPORTED, QoS()
+    )
+    return session.declare_liveliness_token(entity.token())
+
+
+def test_a_publisher_watch_sees_its_topic_only(sessions: tuple[Session, Session]) -> None:
+    a, b = sessions
+    seen: list[tuple[str, bool]] = []
+    others = [_fake_publisher(a, 24, f"/other{i}", i) for i in range(20)]
+    with PublisherWatch(b, 24, "/watched", lambda e, alive: seen.append((e.node, alive))) as watch, Ros2Node(a, "real", domain=24) as real:
+        pub = real.create_publisher("/watched", "std_msgs/msg/String")
+        wait_until(lambda: seen == [("/real", True)], "the topic's publisher")
+        pub.close()
+        wait_until(lambda: seen == [("/real", True), ("/real", False)], "it gone")
+        assert watch.overflow == 0 and watch.view() == []
+    for token in others:
+        token.undeclare()  # type: ignore[attr-defined]
+
+
+def test_a_crowded_watch_asks_before_it_says_the_last_publisher_went(
+    sessions: tuple[Session, Session], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Tokens over the watch's bound are left out, not forgotten: when the last publisher it kept
+    goes, it asks which are still up, and reports those before the one that went."""
+    monkeypatch.setattr(graph, "MAX_TOPIC_PUBLISHERS", 5)
+    a, b = sessions
+    alive: set[str] = set()
+    emptied: list[int] = []
+
+    def changed(entity: Entity, up: bool) -> None:
+        (alive.add if up else alive.discard)(entity.node)
+        if not alive:
+            emptied.append(len(alive))
+
+    with open_session(listen=["tcp/127.0.0.1:0"], connect=a.endpoints()) as attacker:
+        fakes = [_fake_publisher(attacker, 25, "/crowded", i) for i in range(5)]
+        with PublisherWatch(b, 25, "/crowded", changed) as watch:
+            wait_until(lambda: len(alive) == 5, "the five fakes kept")
+            with Ros2Node(a, "real", domain=25) as real:
+                real.create_publisher("/crowded", "std_msgs/msg/String")
+                wait_until(lambda: watch.overflow >= 1, "the real publisher left out")
+                assert "/real" not in alive
+                for token in fakes:
+                    token.undeclare()  # type: ignore[attr-defined]
+                wait_until(lambda: alive == {"/real"}, "the real one found by asking")
+                assert emptied == []  # never "no publisher" while the real one was up
+            wait_until(lambda: not alive, "the real one gone")

@@ -88,3 +88,20 @@ def test_we_read_rclpys_cdr(types: TypeSupport, case: int) -> None:
         ) | ({"header": got["header"]} if "header" in got else {})
     else:
         assert got == payload
+
+
+def test_a_point_cloud_both_ways(types: TypeSupport) -> None:
+    """A PointCloud2 of 500 points: its data comes as a numpy array (a view of the CDR, not a list
+    of 8,000 numbers) holding rclpy's bytes, and the dict goes out as the bytes rclpy writes."""
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    points = np.arange(500 * 4, dtype=np.float32)
+    cloud = PointCloud2(height=1, width=500, is_bigendian=False, point_step=16, row_step=8000, data=points.tobytes(), is_dense=True)
+    cloud.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "i"))]
+    cloud.header.frame_id, cloud.header.stamp.sec = "lidar", 9
+    theirs = serialize_message(cloud)
+    got = from_message(types.deserialize(theirs, "sensor_msgs/msg/PointCloud2"), "sensor_msgs/msg/PointCloud2")
+    assert isinstance(got["data"], np.ndarray) and got["data"].tobytes() == points.tobytes()
+    assert [f["name"] for f in got["fields"]] == ["x", "y", "z", "i"] and got["row_step"] == 8000
+    ours = types.serialize(to_message(got, "sensor_msgs/msg/PointCloud2", types, origin_ns=0), "sensor_msgs/msg/PointCloud2")
+    same_but_padding(ours, theirs)

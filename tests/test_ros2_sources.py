@@ -5,16 +5,19 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from dyknow import Manager
-from dyknow.ros2 import Ros2Node, Ros2Source
+from dyknow.ros2 import Ros2Node, Ros2Source, graph, snapshot
+from dyknow.ros2.names import HASH_NOT_SUPPORTED, Entity, EntityKind, QoS
 from dyknow.spec import TransformationSpec
 from dyknow.spec.model import Param, Port, Tag
 from dyknow.testing import SCENARIO_SPECS, Sink
-from dyknow.transport import open_session
-from tests.conftest import free_port, wait_until
+from dyknow.transport import Session, open_session
+from tests.conftest import UNIT_SPECS, free_port, wait_until
 from tests.test_adaptation import ONTOLOGY, Events
 
 ROS_CAMERA = TransformationSpec(
@@ -87,3 +90,73 @@ def _header(node: Ros2Node) -> object:
     return types.message_class("std_msgs/msg/Header")(
         stamp=types.message_class("builtin_interfaces/msg/Time")(sec=1, nanosec=0), frame_id="cam"
     )
+
+
+def _token(session: Session, domain: int, topic: str, i: int, ros_type: str, type_hash: str) -> object:
+    """A publisher's liveliness token and nothing else, as anyone on the network may declare."""
+    entity = Entity(domain, f"f{i:031x}", 1, 100 + i, EntityKind.PUBLISHER, "/", f"fake{i}", "/", topic, ros_type, type_hash, QoS())
+    return session.declare_liveliness_token(entity.token())
+
+
+REQUIRING = replace(ROS_CAMERA, label="ros2-camera(flooded)", tags=(Tag("out", "RawImage(flooded)"),))
+
+
+def test_a_flood_of_tokens_of_other_topics_hides_no_publisher(
+    make_manager: Callable[..., Manager], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """10,500 fake publisher tokens filled the graph a manager kept (10,000 entries), after which
+    a source requiring a publisher failed while a real one was up. A source now watches its
+    topic's publishers alone. (Here the graph's bound is 100, so that 150 tokens fill it.)"""
+    monkeypatch.setattr(graph, "MAX_ENTITIES", 100)
+    port = free_port()
+    robot = make_manager(specs=[UNIT_SPECS, REQUIRING], listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=26)
+    robot.spawn("sink", "early", bindings={"in": "ros2:/elsewhere?type=std_msgs/msg/String"})  # the manager's node watches already
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as attacker,
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+    ):
+        fakes = [_token(attacker, 26, f"/noise/n{i}", i, "std_msgs/msg/String", HASH_NOT_SUPPORTED) for i in range(150)]
+        wait_until(lambda: len(robot.session.alive("@ros2_lv/26/*/*/*/MP/**", timeout_s=0.2)) >= 150, "the flood seen by the manager")
+        with Ros2Node(session, "camera_driver", domain=26) as driver:
+            driver.create_publisher("/camera/image_raw", "sensor_msgs/msg/Image")
+            wait_until(lambda: bool(snapshot(robot.session, 26, timeout_s=0.2).publishers("/camera/image_raw")), "the real publisher up")
+            robot.spawn("ros2-camera(flooded)", "camera")
+            states = {u.name: u.state for u in robot.get_model().units}
+            assert states["camera"] == "running", robot.get_model().to_dict()
+            source = robot.unit("camera")
+            assert isinstance(source, Ros2Source) and source.publishers == 1
+        for token in fakes:
+            token.undeclare()  # type: ignore[attr-defined]
+
+
+def test_fake_tokens_on_the_topic_itself_cannot_make_a_source_fail_while_its_publisher_is_up(
+    make_manager: Callable[..., Manager], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Tokens of another type never count (their messages could not reach the source); tokens of
+    its type over the watch's bound are left out but not forgotten: when the ones kept go, the
+    source asks which are up and stays with the real publisher. (The bound here: 5.)"""
+    monkeypatch.setattr(graph, "MAX_TOPIC_PUBLISHERS", 5)
+    port = free_port()
+    robot = make_manager(specs=[REQUIRING], listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=27)
+    image = "sensor_msgs/msg/Image"
+    image_hash = robot.ros2_node().types.type_hash(image)
+    with (
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as attacker,
+        open_session(listen=["tcp/127.0.0.1:0"], connect=[f"tcp/127.0.0.1:{port}"]) as session,
+        Ros2Node(session, "camera_driver", domain=27) as driver,
+    ):
+        other_type = [_token(attacker, 27, "/camera/image_raw", i, "std_msgs/msg/String", HASH_NOT_SUPPORTED) for i in range(20)]
+        same_type = [_token(attacker, 27, "/camera/image_raw", 100 + i, image, image_hash) for i in range(5)]
+        wait_until(lambda: len(snapshot(robot.session, 27, timeout_s=0.2).publishers("/camera/image_raw")) == 25, "the fakes up")
+        robot.spawn("ros2-camera(flooded)", "camera")  # the five fakes of its type fill its watch
+        source = robot.unit("camera")
+        assert isinstance(source, Ros2Source)
+        wait_until(lambda: source.publishers == 5, "the fakes of its type kept, the others not counted")
+        pub = driver.create_publisher("/camera/image_raw", image)  # left out: the watch is full
+        wait_until(lambda: len(snapshot(robot.session, 27, timeout_s=0.2).publishers("/camera/image_raw")) == 26, "the real one up")
+        for token in same_type + other_type:
+            token.undeclare()  # type: ignore[attr-defined]
+        wait_until(lambda: source.publishers == 1, "the real publisher found once the fakes went")
+        assert {u.name: u.state for u in robot.get_model().units}["camera"] == "running"
+        pub.close()  # the real one goes: now the source has none, and says so
+        wait_until(lambda: {u.name: u.state for u in robot.get_model().units}.get("camera") != "running", "the source failed")

@@ -191,11 +191,16 @@ def read_limits(args: argparse.Namespace) -> ReadLimits:
 
 
 def payload_json(payload: Any) -> Any:
-    """A payload as JSON can hold it: arrays described, bytes in base64 (the first 4 KiB)."""
+    """A payload as JSON can hold it: arrays described (also inside a JSON-like value: a ROS 2
+    message's large arrays), bytes in base64 (the first 4 KiB)."""
     if isinstance(payload, np.ndarray):
         return {"ndarray": {"dtype": str(payload.dtype), "shape": list(payload.shape)}}
     if isinstance(payload, (bytes, bytearray)):
         return {"bytes": len(payload), "base64": base64.b64encode(payload[:4096]).decode()}
+    if isinstance(payload, dict):
+        return {key: payload_json(value) for key, value in payload.items()}
+    if isinstance(payload, (list, tuple)):
+        return [payload_json(value) for value in payload]
     return payload
 
 

@@ -93,6 +93,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         max_units=args.max_units,
         max_message_bytes=args.max_message_bytes,
         max_expansion_bytes=args.max_expansion_bytes,
+        max_ros2_message_bytes=args.max_ros2_message_bytes,
     )
     with Manager(
         args.name,
@@ -268,6 +269,9 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
     p.add_argument("--ros2-dds-config", metavar="FILE",
                    help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
+    p.add_argument("--max-ros2-message-bytes", type=positive_int, default=16 << 20, metavar="N",
+                   help="drop a larger ROS 2 message on a ros2:/ros2dds: input before decoding it, unless its binding says "
+                        "max_bytes= (default 16 MiB; untyped inputs: at most 1 MiB)")  # fmt: skip
 
     p = command("ui", cmd_ui, client=True)
     p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")

@@ -232,13 +232,20 @@ def encode(payload: Any, time_ns: int) -> tuple[str, str, str, bytes]:
         return "bytes", BYTES_ENCODING, "", data
     if isinstance(payload, str):
         return "text", TEXT_ENCODING, "", payload.encode()
-    try:  # the very text dyknow puts on the wire (message.encode), so replay is byte-identical
-        data = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
+    try:  # the very text dyknow puts on the wire (message.encode), so replay is byte-identical;
+        # arrays inside (a ROS 2 message's data) are recorded as JSON lists, and replayed so
+        data = json.dumps(payload, separators=(",", ":"), allow_nan=False, default=_listed).encode()
     except (TypeError, ValueError) as exc:
         raise RecordingError(
             f"cannot record a payload of type {type(payload).__name__}: {exc}", expected="bytes, str, a numpy array or a JSON value"
         ) from exc
     return "json", "json", "", data
+
+
+def _listed(value: Any) -> Any:
+    if isinstance(value, np.ndarray) and not value.dtype.hasobject:
+        return value.tolist()
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
 # --------------------------------------------------------------------------- MCAP -> payload

@@ -13,11 +13,16 @@ binding, not per manager, so one manager can read from one and write to the othe
   rmw_zenoh's do), ``depth=N`` (default 10), ``history=keep_last|keep_all``;
 - ``frame_id=NAME``: the ``header.frame_id`` of messages dyknow builds (images);
 - ``decode=bgr``: an input of ``CompressedImage`` delivers BGR arrays, decoded, not JPEG bytes;
-- ``hash=none``: no type hash in keys and tokens (``TypeHashNotSupported``, as Humble writes).
+- ``hash=none``: no type hash in keys and tokens (``TypeHashNotSupported``, as Humble writes);
+- ``max_bytes=N``: an input drops a larger message before copying or decoding it (counted and
+  logged). Default: the manager's ``--max-ros2-message-bytes`` (16 MiB) for a typed input, 1 MiB
+  for an untyped one (whose publishers choose the type); at most
+  :data:`~dyknow.ros2.types.MAX_CDR_BYTES`.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
@@ -25,12 +30,14 @@ from dyknow.errors import BindingError, did_you_mean
 from dyknow.keys import ROS2_SCHEMES
 from dyknow.ros2.names import Durability as _Durability
 from dyknow.ros2.names import QoS, Reliability, check_topic, dds_type_name
+from dyknow.ros2.types import MAX_CDR_BYTES
 
 __all__ = ["DDS_SCHEME", "SCHEME", "Ros2Binding", "is_ros2", "parse_binding"]
 
 #: The prefix of a ROS 2 binding on rmw_zenoh, and on DDS (their home: :data:`dyknow.keys.ROS2_SCHEMES`).
 SCHEME, DDS_SCHEME = ROS2_SCHEMES
-_OPTIONS = ("type", "reliability", "durability", "depth", "history", "frame_id", "hash", "decode")
+_OPTIONS = ("type", "reliability", "durability", "depth", "history", "frame_id", "hash", "decode", "max_bytes")
+_WHOLE = re.compile(r"[0-9]{1,9}")
 
 
 def is_ros2(binding: object) -> bool:
@@ -49,6 +56,7 @@ class Ros2Binding:
     humble: bool = False
     dds: bool = False
     decode: bool = False
+    max_bytes: int | None = None  # None: the node's default (see the module documentation)
 
     def uri(self) -> str:
         """The binding written back (options in a fixed order, defaults left out)."""
@@ -69,6 +77,8 @@ class Ros2Binding:
             options.append("hash=none")
         if self.decode:
             options.append("decode=bgr")
+        if self.max_bytes is not None:
+            options.append(f"max_bytes={self.max_bytes}")
         return (DDS_SCHEME if self.dds else SCHEME) + self.topic + ("?" + "&".join(options) if options else "")
 
 
@@ -106,6 +116,9 @@ def parse_binding(text: str, *, where: str = "binding") -> Ros2Binding:
     depth = options.get("depth", "10")
     if not depth.isdigit() or not 1 <= int(depth) <= 10_000:
         raise BindingError(f"depth={depth!r}", where=where, expected="a whole number from 1 to 10000")
+    max_bytes = options.get("max_bytes")
+    if max_bytes is not None and (not _WHOLE.fullmatch(max_bytes) or not 1 <= int(max_bytes) <= MAX_CDR_BYTES):
+        raise BindingError(f"max_bytes={max_bytes[:40]!r}", where=where, expected=f"a whole number of bytes from 1 to {MAX_CDR_BYTES}")
     qos = QoS(
         Reliability.BEST_EFFORT if options.get("reliability") == "best_effort" else Reliability.RELIABLE,
         _Durability.TRANSIENT_LOCAL if options.get("durability") == "transient_local" else _Durability.VOLATILE,
@@ -114,4 +127,13 @@ def parse_binding(text: str, *, where: str = "binding") -> Ros2Binding:
     )
     if dds and "hash" in options:
         raise BindingError("hash=none on a DDS binding", where=where, expected="hash only on ros2: bindings (DDS names no hash)")
-    return Ros2Binding(topic, ros_type, qos, options.get("frame_id", ""), options.get("hash") == "none", dds, "decode" in options)
+    return Ros2Binding(
+        topic,
+        ros_type,
+        qos,
+        options.get("frame_id", ""),
+        options.get("hash") == "none",
+        dds,
+        "decode" in options,
+        None if max_bytes is None else int(max_bytes),
+    )

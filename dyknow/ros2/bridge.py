@@ -86,20 +86,24 @@ class Ros2Source(_Ros2Unit):
     ``refused`` counts the messages that could not be used (undecodable, of another type, an
     image that contradicts its sizes); ``last_refusal`` says why the latest was. ``publishers``
     is how many ROS 2 publishers of the topic are up (their liveliness tokens; on DDS, the
-    matched writers).
+    matched writers). A message over the binding's ``max_bytes`` is dropped before it is copied
+    (``oversized``), and messages are decoded and converted on the unit's own thread (its
+    :meth:`~dyknow.unit.Unit.call_soon`), never on Zenoh's: see :class:`~dyknow.ros2.node.Ros2Subscription`.
 
     By default the source waits for publishers, and across their restarts (a port bound to a
     topic keeps its binding). With the param ``require_publisher`` true (a spec that offers a
     ROS 2 topic as a producer) it is a producer only while one is up: it waits up to ``wait_s``
     (default 2) for one at start and fails without, and fails when the last one goes, so the
     adaptation loop moves what it fed to another producer, keeps it in back-off while its
-    publisher is gone and returns to it once it is back.
+    publisher is gone and returns to it once it is back. Only publishers whose messages can reach
+    it count (of its type and hash), and tokens of other topics are never looked at, so a flood
+    of tokens cannot hide a real publisher (:class:`~dyknow.ros2.graph.PublisherWatch`).
     """
 
     refused = 0
     last_refusal: str | None = None
     _sub: Ros2Subscription | DdsSubscription | None = None
-    _stop_watch: Callable[[], None] | None = None
+    _stop_watch: tuple[Callable[[], None], ...] = ()
 
     def setup(self) -> None:
         """Subscribe to the topic and watch its publishers (their tokens; on DDS, the matched writers)."""
@@ -108,15 +112,41 @@ class Ros2Source(_Ros2Unit):
         self._publishers: set[tuple[str, int, int]] = set()
         self._present = threading.Event()
         self._seen_dds = 0
+        self._mismatched = 0
         self._required = self.params.get("require_publisher") in (True, "true", "1")
         self._expected: tuple[str, str] | None = None  # (type, hash) a publisher must announce to reach us
+        where = f"{binding.uri()} (unit {self.name!r})"
         if isinstance(node, DdsNode):
-            self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, self._dds_matched)
+            self._sub = node.create_subscription(
+                binding.topic,
+                binding.ros_type,
+                self._arrived,
+                binding.qos,
+                self._dds_matched,
+                max_bytes=binding.max_bytes,
+                call_soon=self.call_soon,
+            )
         else:
-            self._sub = node.create_subscription(binding.topic, binding.ros_type, self._arrived, binding.qos, humble=binding.humble)
+            self._sub = node.create_subscription(
+                binding.topic,
+                binding.ros_type,
+                self._arrived,
+                binding.qos,
+                humble=binding.humble,
+                max_bytes=binding.max_bytes,
+                call_soon=self.call_soon,
+                where=where,
+            )
             ros_type = self._sub.ros_type
-            self._expected = None if ros_type is None else (ros_type, node.types.type_hash(ros_type, humble=binding.humble))
-            self._stop_watch = node.watch_publishers(binding.topic, self._graph_changed)
+            if ros_type is None:
+                self._stop_watch = (node.watch_publishers(binding.topic, self._graph_changed),)
+            else:
+                type_hash = node.types.type_hash(ros_type, humble=binding.humble)
+                self._expected = (ros_type, type_hash)
+                self._stop_watch = (
+                    node.watch_publishers(binding.topic, self._graph_changed, ros_type=ros_type, type_hash=type_hash),
+                    node.watch_publishers(binding.topic, self._other_publisher),
+                )
         if self._required:
             wait_s = float(self.params.get("wait_s", 2.0))
             if not self._present.wait(wait_s):
@@ -124,7 +154,8 @@ class Ros2Source(_Ros2Unit):
                 raise BindingError(
                     f"no publisher of {binding.topic} within {wait_s} s",
                     where=f"unit {self.name!r}",
-                    expected="a ROS 2 node publishing it (its liveliness token)",
+                    expected="a ROS 2 node publishing it (its liveliness token)"
+                    + ("" if self._expected is None else f" of {self._expected[0]} with hash {self._expected[1]}"),
                 )
 
     def _dds_matched(self, count: int) -> None:
@@ -134,16 +165,21 @@ class Ros2Source(_Ros2Unit):
         if count:
             self._present.set()
 
+    def _other_publisher(self, entity: Entity, alive: bool) -> None:
+        expected = self._expected
+        if not alive or expected is None or (entity.ros_type, entity.type_hash) == expected:
+            return
+        # its messages travel on another key: none will arrive here; say why (the first few, then
+        # every 100th: tokens come from the network, and a flood of them must not flood the log)
+        self._mismatched += 1
+        if self._mismatched <= 3 or self._mismatched % 100 == 0:
+            self.log.warning(
+                "publisher %s of %s announces %s %s; this input takes %s %s, so none of its messages will match (%d such so far)",
+                entity.node, self.binding.topic, entity.ros_type, entity.type_hash, *expected, self._mismatched,
+            )  # fmt: skip
+
     def _graph_changed(self, entity: Entity, alive: bool) -> None:
         ident = (entity.session_id, entity.node_id, entity.entity_id)
-        expected = self._expected
-        if alive and expected is not None and (entity.ros_type, entity.type_hash) != expected:
-            # its messages travel on another key: none will arrive here; say why once per publisher
-            self.log.warning(
-                "publisher %s of %s announces %s %s; this input takes %s %s, so none of its messages will match",
-                entity.node, self.binding.topic, entity.ros_type, entity.type_hash, *expected,
-            )  # fmt: skip
-            return
         if alive:
             self._publishers.add(ident)
             self._present.set()
@@ -157,7 +193,7 @@ class Ros2Source(_Ros2Unit):
         """How many ROS 2 publishers of the topic are alive now."""
         return self._seen_dds if isinstance(self._sub, DdsSubscription) else len(self._publishers)
 
-    def _arrived(self, received: Received) -> None:
+    def _arrived(self, received: Received) -> None:  # on the unit's thread (call_soon)
         try:
             payload = from_message(received.message, received.ros_type, decode=self.binding.decode)
         except BindingError as exc:
@@ -169,14 +205,30 @@ class Ros2Source(_Ros2Unit):
         self.publish("out", payload, origin_ns=origin)
 
     @property
+    def oversized(self) -> int:
+        """Messages dropped for being over the binding's ``max_bytes``, before they were copied."""
+        return self._sub.oversized if self._sub is not None else 0
+
+    @property
+    def max_bytes(self) -> int:
+        """The largest message taken: the binding's ``max_bytes``, else the manager's bound."""
+        return self._sub.max_bytes if self._sub is not None else 0
+
+    @property
+    def dropped(self) -> int:
+        """Messages dropped undecoded because newer ones filled the queue (rmw_zenoh; keep-last ``depth``)."""
+        sub = self._sub
+        return sub.dropped if isinstance(sub, Ros2Subscription) else 0
+
+    @property
     def transport_refused(self) -> int:
-        """Messages the subscription refused before conversion (bad key, hash, attachment or CDR)."""
+        """Messages the subscription refused before conversion (too large, bad key, hash, attachment or CDR)."""
         return self._sub.refused if self._sub is not None else 0
 
     def teardown(self) -> None:
         """Stop watching, unsubscribe; safe twice."""
-        stop, self._stop_watch = self._stop_watch, None
-        if stop is not None:
+        stops, self._stop_watch = self._stop_watch, ()
+        for stop in stops:
             stop()
         sub, self._sub = self._sub, None
         if sub is not None:

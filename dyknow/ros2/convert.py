@@ -11,8 +11,13 @@
   most :data:`MAX_DECODED_SIDE` pixels a side (a small file can declare a huge image); out, a
   numpy image is JPEG-encoded first (OpenCV, imported then);
 - any other type <-> a ``dict`` of its fields (nested messages as dicts, ``time`` fields as
-  ``{"sec", "nanosec"}``, numeric arrays as lists); out, fields left out keep their zero value and
-  an unknown field is refused naming it.
+  ``{"sec", "nanosec"}``); out, fields left out keep their zero value and an unknown field is
+  refused naming it. Numeric arrays come as lists, but arrays of bytes (``uint8[]``, ``int8[]``,
+  ``byte[]``, ``char[]``: a ``PointCloud2``'s or an ``OccupancyGrid``'s ``data``) and arrays of
+  more than :data:`MAX_LISTED` numbers come as read-only numpy arrays, views of the message's
+  bytes: no Python object per element, and they cross to other processes as binary
+  (:mod:`dyknow.message`, JSON with arrays), never as JSON lists. Out, a field takes a list or an
+  array alike.
 
 Times: :func:`stamp_ns` reads a message's ``header.stamp`` (the time its data was taken, by ROS
 convention); out, a message whose type has a header and whose payload gave no stamp gets the
@@ -21,6 +26,7 @@ dyknow message's origin time.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -28,13 +34,16 @@ import numpy as np
 from dyknow.errors import BindingError, did_you_mean
 from dyknow.ros2.types import TypeSupport
 
-__all__ = ["MAX_DECODED_SIDE", "compressed_size", "from_message", "stamp_ns", "to_message"]
+__all__ = ["MAX_DECODED_SIDE", "MAX_LISTED", "compressed_size", "from_message", "stamp_ns", "to_message"]
 
 STRING, IMAGE, COMPRESSED = "std_msgs/msg/String", "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
 HEADER = "std_msgs/msg/Header"
 _MAX_SIDE = 1 << 15
 #: The largest width or height of a compressed image decoded for a unit.
 MAX_DECODED_SIDE = 8192
+#: The most numbers an array of a message field may hold to come as a list (bytes never do):
+#: a laser scan's ranges and a covariance do, a point cloud's or a map's data do not.
+MAX_LISTED = 4096
 _CHANNELS = {"bgr8": 3, "rgb8": 3, "mono8": 1, "8UC1": 1, "8UC3": 3, "rgba8": 4, "bgra8": 4, "mono16": 1, "16UC1": 1}
 
 
@@ -123,15 +132,24 @@ def _image_from(msg: Any) -> np.ndarray:
 
 def _to_plain(value: Any) -> Any:
     if isinstance(value, np.ndarray):
+        if (value.dtype.kind in "ui" and value.dtype.itemsize == 1) or value.size > MAX_LISTED:
+            value.flags.writeable = False  # every receiver shares it (a view of the message's bytes, mostly)
+            return value
         return value.tolist()
     if isinstance(value, (list, tuple)):
         return [_to_plain(v) for v in value]
-    fields = getattr(value, "__dataclass_fields__", None)
-    if fields is not None:
-        return {name: _to_plain(getattr(value, name)) for name in fields if name != "__msgtype__"}
+    if dataclasses.is_dataclass(value):
+        return {f.name: _to_plain(getattr(value, f.name)) for f in dataclasses.fields(value) if _carried(f)}
     if isinstance(value, np.generic):
         return value.item()
     return value
+
+
+def _carried(field: dataclasses.Field[Any]) -> bool:
+    """Whether a field of a rosbags message class is one a message carries: not rosbags'
+    ``__msgtype__``, nor a constant (a ``ClassVar``, which dataclasses take for a field when the
+    annotation is text), which a message does not carry and ``to_message`` would refuse."""
+    return not field.name.startswith("__") and not str(field.type).startswith(("ClassVar", "typing.ClassVar"))
 
 
 def to_message(payload: Any, ros_type: str, types: TypeSupport, *, origin_ns: int, frame_id: str = "") -> Any:

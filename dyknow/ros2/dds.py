@@ -27,8 +27,8 @@ from typing import Any
 from dyknow.errors import BindingError, ClosedError
 from dyknow.ros2.attachment import Attachment
 from dyknow.ros2.names import DEFAULT_QOS, Durability, QoS, Reliability, check_topic, dds_type_name, ros_type_name
-from dyknow.ros2.node import Received
-from dyknow.ros2.types import TypeSupport
+from dyknow.ros2.node import DEFAULT_MAX_MESSAGE_BYTES, UNTYPED_MAX_MESSAGE_BYTES, Received
+from dyknow.ros2.types import MAX_CDR_BYTES, TypeSupport
 
 __all__ = ["FASTDDS_PROFILE", "LOOPBACK_CONFIG", "DdsNode", "DdsPublisher", "DdsSubscription"]
 
@@ -152,9 +152,12 @@ class DdsPublisher:
 
 
 class DdsSubscription:
-    """Reads one ROS 2 topic of one type: ``on_message(Received)`` on Cyclone's thread; samples
-    that do not decode are counted in ``refused``. ``publishers`` is the number of matched writers;
-    ``on_publishers(count)`` is called when it changes."""
+    """Reads one ROS 2 topic of one type: ``on_message(Received)`` for each sample; samples that
+    do not decode, or are over ``max_bytes`` (dropped before they are decoded), are counted in
+    ``refused``. ``publishers`` is the number of matched writers; ``on_publishers(count)`` is
+    called when it changes. With ``call_soon`` (a unit's), Cyclone's thread only says that data
+    is there and the samples are taken and decoded where ``call_soon`` runs them; without, on
+    Cyclone's thread."""
 
     def __init__(
         self,
@@ -164,6 +167,9 @@ class DdsSubscription:
         qos: QoS,
         on_message: Callable[[Received], None],
         on_publishers: Callable[[int], None] | None = None,
+        *,
+        max_bytes: int | None = None,
+        call_soon: Callable[[Callable[[], None]], None] | None = None,
     ) -> None:
         from cyclonedds.core import Listener
 
@@ -171,19 +177,40 @@ class DdsSubscription:
 
         self.topic = check_topic(topic)
         self.ros_type = node.types.check(ros_type)
+        self.max_bytes = node.max_message_bytes if max_bytes is None else max_bytes
+        if not 0 < self.max_bytes <= MAX_CDR_BYTES:
+            raise BindingError(
+                f"max_bytes {self.max_bytes}", where=f"DDS subscription on {self.topic}", expected=f"from 1 to {MAX_CDR_BYTES}"
+            )
         self.received = 0
         self.refused = 0
+        self.oversized = 0
         self.last_refusal: str | None = None
         self.publishers = 0
         self._types = node.types
         self._on_message = on_message
         self._lock = threading.Lock()
+        self._pending = False
         key = "rt" + topic
         subscription = self
 
+        def take() -> None:
+            with subscription._lock:
+                subscription._pending = False
+            reader = subscription._reader
+            if reader is not None:
+                subscription._take(reader, key)
+
         class _Listener(Listener):  # type: ignore[misc]
             def on_data_available(self, reader: Any) -> None:
-                subscription._take(reader, key)
+                if call_soon is None:
+                    subscription._take(reader, key)
+                    return
+                with subscription._lock:
+                    schedule = not subscription._pending
+                    subscription._pending = True
+                if schedule:
+                    call_soon(take)
 
             def on_subscription_matched(self, reader: Any, status: Any) -> None:
                 subscription.publishers = int(status.current_count)
@@ -193,30 +220,46 @@ class DdsSubscription:
         self._reader: Any = raw_reader(node.participant, node.dds_topic(topic, ros_type), qos=_qos(qos), listener=_Listener())
         self._node = node
 
+    def _refuse(self, why: str, *, oversized: bool = False) -> None:
+        with self._lock:
+            self.refused += 1
+            self.oversized += oversized
+            self.last_refusal = why
+            count = self.refused
+        if count <= 3 or count % 100 == 0:  # a stream of bad samples must not flood the log
+            log.warning("DDS subscription on %s refused a sample (%d so far): %s", self.topic, count, why)
+
     def _take(self, reader: Any, key: str) -> None:
-        for data, info in reader.take_cdr(64):  # raw CDR: the one codec reads it
-            arrival = time.time_ns()
-            try:
-                if not info.valid_data:
+        while True:
+            taken = reader.take_cdr(64)  # raw CDR: the one codec reads it
+            if not taken:
+                return
+            for data, info in taken:
+                arrival = time.time_ns()
+                try:
+                    if not info.valid_data:
+                        continue
+                    if len(data) > self.max_bytes:
+                        self._refuse(
+                            f"a sample of {len(data)} bytes, over the limit of {self.max_bytes} (raise it with max_bytes= in the binding)",
+                            oversized=True,
+                        )
+                        continue
+                    message = self._types.deserialize(data, self.ros_type)
+                except BindingError as exc:
+                    self._refuse(str(exc))
                     continue
-                message = self._types.deserialize(data, self.ros_type)
-            except BindingError as exc:
+                except Exception as exc:  # the binding's own errors: counted the same way
+                    self._refuse(f"{type(exc).__name__}: {exc}")
+                    continue
                 with self._lock:
-                    self.refused += 1
-                    self.last_refusal = str(exc)
-                log.warning("DDS subscription on %s refused a sample: %s", self.topic, exc)
-                continue
-            except Exception as exc:  # the binding's own errors: counted the same way
-                with self._lock:
-                    self.refused += 1
-                    self.last_refusal = f"{type(exc).__name__}: {exc}"
-                continue
-            with self._lock:
-                self.received += 1
-            try:
-                self._on_message(Received(message, self.ros_type, Attachment(0, int(info.source_timestamp), bytes(16)), arrival, key))
-            except Exception:
-                log.exception("DDS subscription on %s: on_message failed", self.topic)
+                    self.received += 1
+                try:
+                    self._on_message(Received(message, self.ros_type, Attachment(0, int(info.source_timestamp), bytes(16)), arrival, key))
+                except Exception:
+                    log.exception("DDS subscription on %s: on_message failed", self.topic)
+            if len(taken) < 64:
+                return
 
     def close(self) -> None:
         """Delete the reader; safe twice."""
@@ -235,10 +278,18 @@ class DdsSubscription:
 class DdsNode:
     """A DDS domain participant for ROS 2 topics of ROS domain ``domain``.
 
-    ``config``: a Cyclone DDS XML configuration (default :data:`LOOPBACK_CONFIG`).
+    ``config``: a Cyclone DDS XML configuration (default :data:`LOOPBACK_CONFIG`);
+    ``max_message_bytes``: the largest sample a subscription decodes unless told otherwise.
     """
 
-    def __init__(self, *, domain: int = 0, config: str | None = None, types: TypeSupport | None = None) -> None:
+    def __init__(
+        self,
+        *,
+        domain: int = 0,
+        config: str | None = None,
+        types: TypeSupport | None = None,
+        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    ) -> None:
         try:
             from cyclonedds.domain import DomainParticipant
         except ImportError as exc:
@@ -249,6 +300,7 @@ class DdsNode:
             raise BindingError(f"domain {domain}", where="DDS participant", expected="a ROS_DOMAIN_ID from 0 to 232")
         self.domain = int(domain)
         self.types = types or TypeSupport()
+        self.max_message_bytes = max_message_bytes  # what a subscription takes unless told otherwise
         self._domain = _domain(self.domain, config or LOOPBACK_CONFIG)
         self.participant: Any = DomainParticipant(self.domain)
         self._classes: dict[str, Any] = {}
@@ -356,9 +408,13 @@ class DdsNode:
         on_message: Callable[[Received], None],
         qos: QoS = DEFAULT_QOS,
         on_publishers: Callable[[int], None] | None = None,
+        *,
+        max_bytes: int | None = None,
+        call_soon: Callable[[Callable[[], None]], None] | None = None,
     ) -> DdsSubscription:
         """A reader of ``topic``; ``ros_type`` None: the one known type its writers announce
-        (discovery is given 2 s), else :class:`BindingError`."""
+        (discovery is given 2 s), else :class:`BindingError`. ``max_bytes`` and ``call_soon``:
+        as :class:`DdsSubscription` takes them."""
         if ros_type is None:
             announced = [t for t in self.topics(wait_s=2.0).get(check_topic(topic), []) if self.types.known(t)]
             if len(announced) != 1:
@@ -368,7 +424,9 @@ class DdsNode:
                     expected=f"ros2dds:{topic}?type=pkg/msg/Type",
                 )
             ros_type = announced[0]
-        sub = DdsSubscription(self, topic, ros_type, qos, on_message, on_publishers)
+            if max_bytes is None:  # the writers chose the type: the tighter bound
+                max_bytes = min(self.max_message_bytes, UNTYPED_MAX_MESSAGE_BYTES)
+        sub = DdsSubscription(self, topic, ros_type, qos, on_message, on_publishers, max_bytes=max_bytes, call_soon=call_soon)
         with self._lock:
             self._entities.append(sub)
         return sub

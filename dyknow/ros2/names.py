@@ -49,6 +49,7 @@ __all__ = [
     "mangle",
     "parse_data_key",
     "parse_token",
+    "publisher_pattern",
     "ros_type_name",
     "topic_pattern",
 ]
@@ -192,6 +193,16 @@ def data_key(domain: int, topic: str, ros_type: str, type_hash: str) -> str:
 def topic_pattern(domain: int, topic: str) -> str:
     """A key expression for a topic's messages of any type: ``<domain>/<topic>/*/*``."""
     return f"{int(domain)}/{check_topic(topic)[1:]}/*/*"
+
+
+def publisher_pattern(domain: int, topic: str, ros_type: str | None = None, type_hash: str | None = None) -> str:
+    """A key expression for the liveliness tokens of ``topic``'s publishers (of ``ros_type`` with
+    ``type_hash`` when given, else of any type): what a watch of one topic subscribes to, so that
+    tokens of other topics never reach it."""
+    kind = f"{ADMIN_SPACE}/{int(domain)}/*/*/*/{EntityKind.PUBLISHER.value}/*/*/*/{mangle(check_topic(topic))}"
+    if ros_type is None:
+        return f"{kind}/*/*/*"
+    return f"{kind}/{dds_type_name(ros_type)}/{_check_hash(type_hash or '', 'publisher pattern')}/*"
 
 
 def parse_data_key(key: str) -> tuple[int, str, str, str]:

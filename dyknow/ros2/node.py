@@ -9,9 +9,16 @@ entity is a context manager; closing the node undeclares what it declared, in re
 A subscription created without a type takes it from the topic's publishers when their tokens
 show exactly one known type; else it subscribes to the topic's key of *any* type
 (``<domain>/<topic>/*/*``), reads the type from each sample's key and declares its ``MS`` token
-once the first message told the type. A sample whose type is unknown, whose hash differs from
-this process's hash of that type, whose attachment is malformed or whose CDR does not parse is
-counted in ``refused`` (with ``last_refusal``) and dropped: never raised into Zenoh's thread.
+once the first message told the type; the publishers chose that type, so such a subscription
+takes messages of at most :data:`UNTYPED_MAX_MESSAGE_BYTES` unless told otherwise. A sample whose
+type is unknown or another than the subscription took, whose hash differs from this process's
+hash of that type, whose attachment is malformed or whose CDR does not parse is counted in
+``refused`` (with ``last_refusal``) and dropped: never raised into Zenoh's thread.
+
+What crosses the network is bounded before it costs anything: a subscription drops a message
+over its ``max_bytes`` before copying it, and decodes off Zenoh's thread, from a bounded queue
+(:class:`Ros2Subscription`); the node watches the publishers of the topics it is asked about and
+no others (:class:`~dyknow.ros2.graph.PublisherWatch`).
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ import itertools
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -31,9 +39,17 @@ from dyknow.ros2.names import HASH_NOT_SUPPORTED, QoS, Reliability
 from dyknow.ros2.types import MAX_CDR_BYTES, TypeSupport
 from dyknow.transport import Session
 
-__all__ = ["Received", "Ros2Node", "Ros2Publisher", "Ros2Subscription"]
+__all__ = ["DEFAULT_MAX_MESSAGE_BYTES", "UNTYPED_MAX_MESSAGE_BYTES", "Received", "Ros2Node", "Ros2Publisher", "Ros2Subscription"]
 
 log = logging.getLogger(__name__)
+
+#: The largest message a subscription takes unless told otherwise (bytes): a 1080p RGB image
+#: (6 MB) and a lidar sweep of some 500,000 points (16 bytes each) fit. A manager's
+#: ``--max-ros2-message-bytes`` (:class:`~dyknow.security.Limits`) sets it for its node.
+DEFAULT_MAX_MESSAGE_BYTES = 16 << 20
+#: The largest message a subscription takes when its type was not declared (its publishers chose it).
+UNTYPED_MAX_MESSAGE_BYTES = 1 << 20
+_KEEP_ALL_DEPTH = 1000  # the queue of a keep-all subscription (messages)
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,23 +120,56 @@ class Ros2Publisher:
 
 
 class Ros2Subscription:
-    """Takes messages from one topic and calls ``on_message(Received)`` on a Zenoh thread."""
+    """Takes messages from one topic and calls ``on_message(Received)`` for each, off Zenoh's thread.
+
+    Zenoh's thread only checks a message's size and queues its bytes: a message over
+    ``max_bytes`` is dropped there, before it is copied (counted in ``refused`` and ``oversized``,
+    and logged naming the topic, the size and the bound), and the queue keeps the newest
+    ``qos.depth`` messages (1,000 for keep-all) and at most twice ``max_bytes`` (the oldest go
+    first, counted in ``dropped``). Decoding runs where ``call_soon`` runs what it is given (a
+    unit's lane), else on the node's delivery thread, in batches of what was queued.
+    """
 
     def __init__(
-        self, node: Ros2Node, topic: str, ros_type: str | None, qos: QoS, on_message: Callable[[Received], None], *, humble: bool
+        self,
+        node: Ros2Node,
+        topic: str,
+        ros_type: str | None,
+        qos: QoS,
+        on_message: Callable[[Received], None],
+        *,
+        humble: bool,
+        max_bytes: int | None = None,
+        call_soon: Callable[[Callable[[], None]], None] | None = None,
+        where: str | None = None,
     ) -> None:
         self.topic = names.check_topic(topic)
+        self.where = where or f"ROS 2 subscription on {self.topic}"
+        declared = ros_type is not None
         if ros_type is None:
             ros_type = _published_type(node, self.topic)
         self.ros_type = node.types.check(ros_type) if ros_type is not None else None
         self.qos = qos
+        if max_bytes is None:  # a type the publishers chose gets the tighter bound
+            max_bytes = node.max_message_bytes if declared else min(node.max_message_bytes, UNTYPED_MAX_MESSAGE_BYTES)
+        if not 0 < max_bytes <= MAX_CDR_BYTES:
+            raise BindingError(f"max_bytes {max_bytes}", where=self.where, expected=f"from 1 to {MAX_CDR_BYTES}")
+        self.max_bytes = max_bytes
         self.received = 0
         self.refused = 0
+        self.oversized = 0
+        self.dropped = 0
         self.last_refusal: str | None = None
         self._node = node
         self._humble = humble
         self._on_message = on_message
+        self._call_soon = call_soon or node.call_soon
         self._lock = threading.Lock()
+        self._queue: deque[tuple[str, bytes, bytes | None, int]] = deque()
+        self._queued_bytes = 0
+        self._depth = _KEEP_ALL_DEPTH if qos.keep_all else qos.depth
+        self._pending = False  # a drain is scheduled and has not emptied the queue yet
+        self._closed = False
         self._token: Any = None
         if self.ros_type is not None:
             key = names.data_key(node.domain, topic, self.ros_type, node.types.type_hash(self.ros_type, humble=humble))
@@ -131,7 +180,7 @@ class Ros2Subscription:
         history = qos.durability is names.Durability.TRANSIENT_LOCAL
         try:
             self._subscriber = node.session.declare_sample_subscriber(
-                key, self._arrived, history=history, max_bytes=MAX_CDR_BYTES, on_refused=lambda _k, why: self._refuse(why)
+                key, self._arrived, history=history, max_bytes=max_bytes, on_refused=self._oversize
             )
         except BaseException:
             if self._token is not None:
@@ -143,22 +192,69 @@ class Ros2Subscription:
         entity = self._node.entity(names.EntityKind.SUBSCRIPTION, self.topic, ros_type, type_hash, self.qos)
         self._token = self._node.session.declare_liveliness_token(entity.token())
 
-    def _refuse(self, why: str) -> None:
+    def _refuse(self, why: str, *, oversized: bool = False) -> None:
         with self._lock:
             self.refused += 1
+            self.oversized += oversized
             self.last_refusal = why
             count = self.refused
         if count <= 3 or count % 100 == 0:  # a stream of bad messages must not flood the log
-            log.warning("ROS 2 subscription on %s refused a message (%d so far): %s", self.topic, count, why)
+            log.warning("%s refused a message (%d so far): %s", self.where, count, why)
+
+    def _oversize(self, _key: str, why: str) -> None:  # on Zenoh's thread, before the payload is copied
+        self._refuse(f"{why} (raise it with max_bytes= in the binding)", oversized=True)
 
     def _arrived(self, key: str, payload: bytes, attachment: bytes | None) -> None:
+        # on Zenoh's thread: queue the bytes and return; never decode here (a large message would
+        # hold the thread, and with it every sample behind it in Zenoh's queue)
         arrival = time.time_ns()
+        with self._lock:
+            if self._closed:
+                return
+            queue = self._queue
+            queue.append((key, payload, attachment, arrival))
+            self._queued_bytes += len(payload)
+            dropped = self.dropped
+            while len(queue) > self._depth or (self._queued_bytes > 2 * self.max_bytes and len(queue) > 1):
+                self._queued_bytes -= len(queue.popleft()[1])
+                self.dropped += 1
+            schedule = not self._pending
+            self._pending = True
+        if self.dropped != dropped and (dropped == 0 or self.dropped // 1000 != dropped // 1000):  # the first, then every 1,000th
+            log.info(
+                "%s dropped %d undecoded messages so far: newer ones filled its queue (depth %d)", self.where, self.dropped, self._depth
+            )
+        if schedule:
+            self._call_soon(self._drain)
+
+    def _drain(self) -> None:
+        """Decode and deliver what was queued when it started, then schedule itself again if more came."""
+        with self._lock:
+            batch = len(self._queue)
+        for _ in range(batch):
+            with self._lock:
+                if self._closed or not self._queue:
+                    break
+                key, payload, attachment, arrival = self._queue.popleft()
+                self._queued_bytes -= len(payload)
+            self._deliver(key, payload, attachment, arrival)
+        with self._lock:
+            more = bool(self._queue) and not self._closed
+            self._pending = more
+        if more:
+            self._call_soon(self._drain)
+
+    def _deliver(self, key: str, payload: bytes, attachment: bytes | None, arrival: int) -> None:
         try:
             _domain, _topic, ros_type, type_hash = names.parse_data_key(key)
             types = self._node.types
             if self.ros_type is not None and ros_type != self.ros_type:
-                raise BindingError(f"type {ros_type}", where=f"topic {self.topic}", expected=self.ros_type)
-            types.check(ros_type, where=f"topic {self.topic}")
+                raise BindingError(
+                    f"a message of type {ros_type}",
+                    where=self.where,
+                    expected=f"{self.ros_type}, the type it takes (declare ?type= to choose another)",
+                )
+            types.check(ros_type, where=self.where)
             if type_hash != HASH_NOT_SUPPORTED and type_hash != types.type_hash(ros_type):
                 raise BindingError(
                     f"type hash {type_hash}",
@@ -182,11 +278,15 @@ class Ros2Subscription:
         try:
             self._on_message(Received(message, ros_type, meta, arrival, key))
         except Exception:
-            log.exception("ROS 2 subscription on %s: on_message failed", self.topic)
+            log.exception("%s: on_message failed", self.where)
 
     def close(self) -> None:
-        """Undeclare the subscriber, then the token; safe twice."""
+        """Undeclare the subscriber, then the token; drop what is queued; safe twice."""
         self._subscriber.undeclare()
+        with self._lock:
+            self._closed = True
+            self._queue.clear()
+            self._queued_bytes = 0
         if self._token is not None:
             self._token.undeclare()
         self._node.forget(self)
@@ -199,15 +299,68 @@ class Ros2Subscription:
 
 
 def _published_type(node: Ros2Node, topic: str) -> str | None:
-    """The one known type the publishers of ``topic`` announce now, else None."""
-    from dyknow.ros2.graph import snapshot
+    """The one known type the publishers of ``topic`` announce now, else None (a bounded answer
+    about this topic alone: tokens of other topics are not asked for)."""
+    from dyknow.ros2.graph import MAX_TOPIC_PUBLISHERS
 
-    found = {e.ros_type for e in snapshot(node.session, node.domain, timeout_s=0.3).publishers(topic)}
+    pattern = names.publisher_pattern(node.domain, topic)
+    found = set()
+    for key in node.session.alive(pattern, timeout_s=0.3)[:MAX_TOPIC_PUBLISHERS]:
+        try:
+            found.add(names.parse_token(key).ros_type)
+        except BindingError:
+            continue
     if len(found) == 1:
         (ros_type,) = found
         if ros_type is not None and node.types.known(ros_type):
             return ros_type
     return None
+
+
+class _Deliveries:
+    """The thread that decodes and delivers for the node's subscriptions that were given no
+    ``call_soon`` (tools, tests): one per node, started on first use."""
+
+    def __init__(self, name: str) -> None:
+        self._name = name
+        self._calls: deque[Callable[[], None]] = deque()
+        self._ready = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    def call_soon(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the thread (started now if it is not yet); dropped once closed."""
+        with self._ready:
+            if self._closed:
+                return
+            self._calls.append(fn)
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._serve, name=f"dyknow-ros2-{self._name}", daemon=True)
+                self._thread.start()
+            self._ready.notify()
+
+    def _serve(self) -> None:
+        while True:
+            with self._ready:
+                while not self._calls and not self._closed:
+                    self._ready.wait()
+                if self._closed:
+                    return
+                fn = self._calls.popleft()
+            try:
+                fn()
+            except Exception:
+                log.exception("a ROS 2 delivery failed")
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the thread (waiting up to ``timeout_s`` for what it runs now); safe twice."""
+        with self._ready:
+            self._closed = True
+            self._calls.clear()
+            self._ready.notify()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout_s)
 
 
 class Ros2Node:
@@ -216,14 +369,30 @@ class Ros2Node:
     The session is the caller's (a manager's) and stays open when the node closes.
     """
 
-    def __init__(self, session: Session, name: str, *, namespace: str = "/", domain: int = 0, types: TypeSupport | None = None) -> None:
+    def __init__(
+        self,
+        session: Session,
+        name: str,
+        *,
+        namespace: str = "/",
+        domain: int = 0,
+        types: TypeSupport | None = None,
+        max_message_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    ) -> None:
         if not names.check_topic("/" + name, "ROS 2 node name").count("/") == 1:
             raise BindingError(f"node name {name!r}", where="ROS 2 node", expected="one name part, like 'dyknow_robot'")
         if namespace != "/":
             names.check_topic(namespace, "ROS 2 node namespace")
         if not 0 <= int(domain) <= 232:
             raise BindingError(f"domain {domain}", where="ROS 2 node", expected="a ROS_DOMAIN_ID from 0 to 232")
+        if not 0 < max_message_bytes <= MAX_CDR_BYTES:
+            raise BindingError(
+                f"max_message_bytes {max_message_bytes}",
+                where="ROS 2 node (--max-ros2-message-bytes)",
+                expected=f"from 1 to {MAX_CDR_BYTES}",
+            )
         self.session = session
+        self.max_message_bytes = max_message_bytes
         self.name = name
         self.namespace = namespace
         self.domain = int(domain)
@@ -234,9 +403,10 @@ class Ros2Node:
         self._lock = threading.Lock()
         self.entity_token = names.Entity(self.domain, session.zid, self.node_id, self.node_id, names.EntityKind.NODE, namespace, name)
         self._token: Any = session.declare_liveliness_token(self.entity_token.token())
-        self._graph: Any = None  # one Graph for every watcher of this node (see watch_publishers)
-        self._watchers: dict[int, tuple[str, Callable[[names.Entity, bool], None]]] = {}
+        # one PublisherWatch per (topic, type, hash) watched, shared by its watchers (see watch_publishers)
+        self._watches: dict[tuple[str, str | None, str | None], tuple[Any, dict[int, Callable[[names.Entity, bool], None]]]] = {}
         self._watch_ids = itertools.count(1)
+        self._deliveries = _Deliveries(name)
 
     def entity(self, kind: names.EntityKind, topic: str, ros_type: str, type_hash: str, qos: QoS) -> names.Entity:
         """A new entity of this node (its id taken from the node's counter)."""
@@ -275,42 +445,81 @@ class Ros2Node:
         qos: QoS = names.DEFAULT_QOS,
         *,
         humble: bool = False,
+        max_bytes: int | None = None,
+        call_soon: Callable[[Callable[[], None]], None] | None = None,
+        where: str | None = None,
     ) -> Ros2Subscription:
-        """A subscription to ``topic``; ``ros_type`` None: of whatever type its publishers send."""
+        """A subscription to ``topic``; ``ros_type`` None: of whatever type its publishers send.
+
+        ``max_bytes``: the largest message taken (default: the node's ``max_message_bytes``, and
+        at most :data:`UNTYPED_MAX_MESSAGE_BYTES` without ``ros_type``); ``call_soon``: runs the
+        decoding and ``on_message`` (a unit's :meth:`~dyknow.unit.Unit.call_soon`; default: the
+        node's delivery thread); ``where``: how log lines and refusals name it."""
         self._check_open()
-        sub = Ros2Subscription(self, topic, ros_type, qos, on_message, humble=humble)
+        sub = Ros2Subscription(self, topic, ros_type, qos, on_message, humble=humble, max_bytes=max_bytes, call_soon=call_soon, where=where)
         with self._lock:
             self._entities.append(sub)
         return sub
 
-    def watch_publishers(self, topic: str, on_change: Callable[[names.Entity, bool], None]) -> Callable[[], None]:
-        """Call ``on_change(entity, alive)`` as publishers of ``topic`` appear and vanish (their
-        tokens; those up now first), on a Zenoh thread; returns the function that stops it. The
-        node keeps one watch of the graph for all its watchers."""
-        from dyknow.ros2.graph import Graph
+    def call_soon(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the node's delivery thread (started on first use)."""
+        self._deliveries.call_soon(fn)
+
+    def watch_publishers(
+        self,
+        topic: str,
+        on_change: Callable[[names.Entity, bool], None],
+        *,
+        ros_type: str | None = None,
+        type_hash: str | None = None,
+    ) -> Callable[[], None]:
+        """Call ``on_change(entity, alive)`` as publishers of ``topic`` (of ``ros_type`` with
+        ``type_hash``, when given) appear and vanish (their tokens; those up now first), on a
+        Zenoh thread; returns the function that stops it. Watchers of the same publishers share
+        one :class:`~dyknow.ros2.graph.PublisherWatch`, which sees no other topic's tokens."""
+        from dyknow.ros2.graph import PublisherWatch
 
         self._check_open()
+        which = (names.check_topic(topic), ros_type, type_hash)
         with self._lock:
             ident = next(self._watch_ids)
-            self._watchers[ident] = (topic, on_change)
-            graph = self._graph
-            if graph is None:  # its history brings the tokens up now to every watcher
-                self._graph = Graph(self.session, self.domain, self._graph_changed)
-        if graph is not None:
-            for entity in graph.view().publishers(topic):
+            shared = self._watches.get(which)
+            if shared is None:  # its history brings the tokens up now to the watcher
+                watchers = {ident: on_change}
+                watch = PublisherWatch(
+                    self.session,
+                    self.domain,
+                    topic,
+                    lambda entity, alive: self._publisher_changed(which, entity, alive),
+                    ros_type=ros_type,
+                    type_hash=type_hash,
+                )
+                self._watches[which] = (watch, watchers)
+            else:
+                watch, watchers = shared
+                watchers[ident] = on_change
+        if shared is not None:
+            for entity in watch.view():
                 on_change(entity, True)
 
         def stop() -> None:
             with self._lock:
-                self._watchers.pop(ident, None)
+                held = self._watches.get(which)
+                if held is None:
+                    return
+                held[1].pop(ident, None)
+                last = not held[1]
+                if last:
+                    del self._watches[which]
+            if last:
+                held[0].close()
 
         return stop
 
-    def _graph_changed(self, entity: names.Entity, alive: bool) -> None:
-        if entity.kind is not names.EntityKind.PUBLISHER:
-            return
+    def _publisher_changed(self, which: tuple[str, str | None, str | None], entity: names.Entity, alive: bool) -> None:
         with self._lock:
-            watchers = [fn for topic, fn in self._watchers.values() if topic == entity.topic]
+            held = self._watches.get(which)
+            watchers = list(held[1].values()) if held is not None else []
         for fn in watchers:
             try:
                 fn(entity, alive)
@@ -329,9 +538,11 @@ class Ros2Node:
             entities = list(reversed(self._entities))
         for entity in entities:
             entity.close()
-        graph, self._graph = self._graph, None
-        if graph is not None:
-            graph.close()
+        with self._lock:
+            watches, self._watches = list(self._watches.values()), {}
+        for watch, _ in watches:
+            watch.close()
+        self._deliveries.close()
         token, self._token = self._token, None
         if token is not None:
             token.undeclare()

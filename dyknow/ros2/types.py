@@ -181,7 +181,8 @@ class TypeSupport:
 
     def deserialize(self, data: bytes, ros_type: str) -> Any:
         """The message object in CDR ``data``; a payload too large, too short, with an unknown
-        encapsulation or that does not parse as ``ros_type`` raises :class:`BindingError`."""
+        encapsulation or that does not parse as ``ros_type`` raises :class:`BindingError`.
+        Numeric arrays in it are read-only views of ``data``, not copies."""
         where = f"CDR payload of type {ros_type!r}"
         if len(data) > MAX_CDR_BYTES:
             raise BindingError(f"{len(data)} bytes", where=where, expected=f"at most {MAX_CDR_BYTES}")
@@ -192,7 +193,7 @@ class TypeSupport:
                 expected="00010000 (CDR little-endian) or 00000000 (big-endian)",
             )
         self.check(ros_type)
-        try:
-            return self._store.deserialize_cdr(data, ros_type)
+        try:  # a view: rosbags cuts the header off by slicing, which would copy bytes whole
+            return self._store.deserialize_cdr(memoryview(data), ros_type)
         except Exception as exc:
             raise BindingError(f"does not parse: {type(exc).__name__}: {exc}", where=where, expected="CDR of this type") from exc

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from dyknow.errors import RecordingError
 from dyknow.message import Message
 from dyknow.recording import (
     COMPRESSED_IMAGE,
@@ -31,7 +32,7 @@ from dyknow.recording import (
     image_encoding,
     protobuf,
 )
-from dyknow.recording.codecs import compressed_image, raw_image
+from dyknow.recording.codecs import compressed_image, encode, raw_image
 from tests.recording.support import FOREIGN, official, play_all, real, same_payload, write_mcap
 
 # --- dyknow payloads -> MCAP ------------------------------------------------------------------
@@ -295,3 +296,12 @@ def test_image_array_refuses_what_it_cannot_read() -> None:
         image_array(2, 2, "bayer_rggb8", 2, bytes(4))
     with pytest.raises(ValueError, match="are too few"):
         image_array(4, 4, "mono8", 4, bytes(15))
+
+
+def test_arrays_inside_a_json_value_are_recorded_as_lists() -> None:
+    """A ROS 2 message's large arrays come as numpy arrays inside its dict: recorded as JSON
+    lists, as such a message was before they did."""
+    kind, encoding, schema, data = encode({"width": 3, "data": np.arange(3, dtype=np.uint8)}, 0)
+    assert (kind, encoding, schema, json.loads(data)) == ("json", "json", "", {"width": 3, "data": [0, 1, 2]})
+    with pytest.raises(RecordingError, match="cannot record a payload of type dict"):
+        encode({"x": object()}, 0)
