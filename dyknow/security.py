@@ -67,6 +67,13 @@ class Limits:
     max_expansion_bytes: int = 16 << 20
     #: The most bytes one ``get_model`` reply holds; a larger model comes in pages.
     max_reply_bytes: int = 4 << 20
+    #: The most nodes (atoms, constants, operators) a temporal formula may have: a monitor's cost
+    #: per sample grows with them (``dyknow.reasoning.check_formula``).
+    max_formula_nodes: int = 500
+    #: The longest a formula's interval bound, and how far ahead it may look in all (its future
+    #: horizon), in ns: one day. A verdict waits up to its horizon; a past operator that must look
+    #: further back writes ``inf`` (which costs nothing per state over plain operands).
+    max_window_ns: int = 86_400 * 1_000_000_000
 
 
 _DEFAULT = Limits()
