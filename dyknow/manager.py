@@ -55,6 +55,7 @@ from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
+from dyknow.reasoning.unit import FormulaMonitor, MonitorBudget
 from dyknow.receiver import Receiver
 from dyknow.ros2.binding import is_ros2, parse_binding
 from dyknow.ros2.bridge import UsesRos2
@@ -230,6 +231,7 @@ class Manager:
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._workers: service.Workers | None = None
         self._holders: Holders | None = None
+        self._monitor_budget = MonitorBudget(limits)  # the cells its formula monitors share
         self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
         self.on_unit_event(self._adaptation.unit_event)
         self._monitors = Monitors(
@@ -241,6 +243,7 @@ class Manager:
             unit=self.unit,
             individuals=self._individuals if self.ontology is not None else None,
             max_expansions=self.limits.max_expansions,
+            limits=self.limits,
         )
         self._adaptation.on_event(lambda event: self._monitors.adapted(event.key, event.cause) if event.kind == "adapted" else None)
         self._measurement_subs = []
@@ -611,6 +614,8 @@ class Manager:
             raise UnitError(f"{spec.source}() raised {type(exc).__name__}: {exc}", where=f"cannot create unit {name!r}") from exc
         if isinstance(unit, UsesRos2):
             unit.use_ros2(self)
+        if isinstance(unit, FormulaMonitor):
+            unit.use_budget(self._monitor_budget)
         proxy = Proxy(
             name=name,
             spec=spec,

@@ -74,6 +74,17 @@ class Limits:
     #: horizon), in ns: one day. A verdict waits up to its horizon; a past operator that must look
     #: further back writes ``inf`` (which costs nothing per state over plain operands).
     max_window_ns: int = 86_400 * 1_000_000_000
+    #: What a quantified formula (``forall c in Class: ...``) may expand to: individuals times
+    #: the body's nodes, checked before anything is substituted.
+    max_quantified_nodes: int = 20_000
+    #: What the formula monitors of one manager keep together, in cells: a cell is one node's
+    #: entry for one retained state (13-45 bytes measured, at most about 100 by construction), so
+    #: about 0.1-0.8 GB at most. Each monitor's share is this over the monitors running; past it,
+    #: the oldest states are given up, their pending verdicts unknown (``dyknow.reasoning.progression``).
+    max_monitor_cells: int = 8_000_000
+    #: How far in the future (beyond its clock's uncertainty) a sample's time may lie for a monitor
+    #: to take it, in ns: a later one would close every state before it and blind the monitor.
+    max_future_ns: int = 100_000_000
 
 
 _DEFAULT = Limits()
