@@ -222,10 +222,12 @@ def test_deep_nesting_is_refused_with_its_column(text: str) -> None:
 
 def test_a_caller_deep_in_its_stack_gets_a_formula_error_not_a_recursion_error() -> None:
     import sys
+    from types import FrameType
 
     text = "(" * (MAX_DEPTH - 1) + "p" + ")" * (MAX_DEPTH - 1)  # five frames a level
     caught: list[BaseException] = []
-    frame, depth = sys._getframe(), 0
+    frame: FrameType | None = sys._getframe()
+    depth = 0
     while frame is not None:
         frame, depth = frame.f_back, depth + 1
 

@@ -30,6 +30,7 @@ from dyknow import keys
 from dyknow.errors import DyKnowError, UnitError
 from dyknow.reasoning.quantify import expand
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
+from dyknow.security import Limits
 from dyknow.spec import TransformationSpec
 
 __all__ = ["MonitorInfo", "Monitors"]
@@ -82,6 +83,7 @@ class Monitors:
         unit: Callable[[str], object],
         individuals: Callable[[str], Sequence[str]] | None,
         max_expansions: int,
+        limits: Limits | None = None,
     ) -> None:
         self.manager = manager
         self._request = request
@@ -91,6 +93,7 @@ class Monitors:
         self._unit = unit
         self._individuals = individuals
         self._max_expansions = max_expansions
+        self._limits = limits  # the bounds every formula is held to before anything is requested
         self._lock = threading.Lock()
         self._by_key: dict[str, MonitorInfo] = {}
         self._serial = itertools.count(1)
@@ -104,7 +107,7 @@ class Monitors:
         """
         if not isinstance(reorder_ms, int | float) or not reorder_ms >= 0 or reorder_ms > 3_600_000:
             raise UnitError(f"reorder_ms {reorder_ms!r}", where="monitor", expected="0 to 3,600,000 milliseconds")
-        expansions = expand(formula, self._individuals, max_expansions=self._max_expansions)
+        expansions = expand(formula, self._individuals, max_expansions=self._max_expansions, limits=self._limits)
         n = next(self._serial)
         base = keys.monitor_key(self.manager, n)
         quantified = expansions[0][0] is not None

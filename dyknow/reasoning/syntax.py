@@ -426,6 +426,11 @@ class Formula:
         return _future_horizon(self.root)
 
     @property
+    def nodes(self) -> int:
+        """How many nodes the syntax tree has: atoms, constants and operators."""
+        return len(_walk(self.root))
+
+    @property
     def operators(self) -> int:
         """How many operators (connectives and temporal operators, not atoms) the formula has."""
         return sum(1 for node in _walk(self.root) if not isinstance(node, Atom | Const))
