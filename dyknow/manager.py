@@ -143,7 +143,7 @@ class Manager:
             paths_ = list(ontology)
             self.ontology = Ontology.load(paths_) if paths_ else None  # bad ontologies fail first
         self.limits = limits = limits or Limits()
-        self.library = Library()
+        self.library = Library(max_specs=limits.max_library_specs, max_bytes=limits.max_library_bytes)
         self._sources = SourcePolicy([*DEFAULT_SOURCES, *allow_sources])
         self._code_paths: list[str] = []  # folders unit modules are looked for in (--path, the trusted specs' own)
         for folder in code_paths:
@@ -429,12 +429,19 @@ class Manager:
             specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals, max_expansions=limit)
         else:
             raise LibraryError(f"add_transformation got a {type(spec).__name__}", expected="a spec, a template, XML text or a path")
+        added = {s.label for s in specs}
+        was_remote = added & self._remote_labels
         if remote:
-            self._remote_labels.update(s.label for s in specs)
+            self._remote_labels.update(added)
         else:
             self._trust(specs)
-            self._remote_labels.difference_update(s.label for s in specs)
-        labels = self.library.add(specs)
+            self._remote_labels.difference_update(added)
+        try:
+            labels = self.library.add(specs)
+        except LibraryError:  # past the library's bounds: nothing added, the labels as they were
+            self._remote_labels.difference_update(added - was_remote)
+            self._remote_labels.update(was_remote)
+            raise
         self._adaptation.library_changed()
         self.changed()
         return labels

@@ -85,6 +85,11 @@ class Limits:
     #: How far in the future (beyond its clock's uncertainty) a sample's time may lie for a monitor
     #: to take it, in ns: a later one would close every state before it and blind the monitor.
     max_future_ns: int = 100_000_000
+    #: The most specs a manager's library holds, and their bytes as its summary carries them: a
+    #: peer takes a summary of at most 16 MiB (``dyknow.federation.MAX_SUMMARY_BYTES``), which
+    #: also carries the units and measurements.
+    max_library_specs: int = 10_000
+    max_library_bytes: int = 8 << 20
 
 
 _DEFAULT = Limits()
