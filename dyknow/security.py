@@ -17,7 +17,10 @@ passes through unchecked (it runs as the operator):
   (a symbolic link inside a root) are refused, naming the param and nothing outside the roots.
 - :class:`Limits`: the size of a request, the depth of its JSON, the length of names and keys
   (a key over Zenoh's batch size would make its transport panic), the expansions of a template,
-  and the entries and time a glob may take.
+  the entries and time a glob may take; the size and windows of a temporal formula and what a
+  quantified one expands to, the memory the formula monitors share and how far ahead a sample
+  they take may be stamped (:mod:`dyknow.reasoning`); and the size of the library, which the
+  manager's summary carries to its peers.
 """
 
 from __future__ import annotations
@@ -78,10 +81,10 @@ class Limits:
     #: the body's nodes, checked before anything is substituted.
     max_quantified_nodes: int = 20_000
     #: What the formula monitors of one manager keep together, in cells: a cell is one node's
-    #: entry for one retained state (13-45 bytes measured, at most about 100 by construction), so
-    #: about 0.1-0.8 GB at most. Each monitor's share is this over the monitors running; past it,
+    #: entry for one retained state (12-73 bytes measured, at most about 250 by construction), so
+    #: 25-150 MB as measured, 0.5 GB at most. Each monitor's share is this over the monitors running; past it,
     #: the oldest states are given up, their pending verdicts unknown (``dyknow.reasoning.progression``).
-    max_monitor_cells: int = 8_000_000
+    max_monitor_cells: int = 2_000_000
     #: How far in the future (beyond its clock's uncertainty) a sample's time may lie for a monitor
     #: to take it, in ns: a later one would close every state before it and blind the monitor.
     max_future_ns: int = 100_000_000

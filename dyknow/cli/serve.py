@@ -263,9 +263,9 @@ def add_commands(cmds: Commands) -> None:
                    help="refuse a temporal formula with more atoms, constants and operators (default 500)")  # fmt: skip
     p.add_argument("--max-window", type=seconds, default=86400.0, metavar="S",
                    help="refuse a formula whose interval bounds, or how far ahead it looks, pass this (default 86400: a day)")  # fmt: skip
-    p.add_argument("--max-monitor-cells", type=positive_int, default=8_000_000, metavar="N",
-                   help="what the formula monitors keep together, in cells of 13-100 bytes; past their share they give old states up "
-                        "(default 8,000,000)")  # fmt: skip
+    p.add_argument("--max-monitor-cells", type=positive_int, default=2_000_000, metavar="N",
+                   help="what the formula monitors keep together, in cells of 12-73 bytes (250 at most); past their share they "
+                        "give old states up (default 2,000,000)")  # fmt: skip
     p.add_argument("--max-library-bytes", type=positive_int, default=8 << 20, metavar="N",
                    help="refuse specs that would make the library larger, as its summary carries it (default 8 MiB; peers take 16)")  # fmt: skip
     limit_options(p)

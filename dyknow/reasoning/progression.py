@@ -54,10 +54,11 @@ quarter of the bound at a time, and counted in :attr:`Monitor.given_up`:
 - a buffered sample's state is closed at once: later samples at its time are late.
 
 So the rule stays: **every verdict returned is evaluate()'s**; over the bound, fewer are
-returned (tests run random formulas with the fewest cells against evaluate()). A cell costs 13 to
-45 bytes as measured (pure Python, ``tracemalloc``) and at most about 100 by construction (up to
-six list slots per temporal node and state, plus each state's time and index), so a monitor keeps
-at most about ``100 * max_cells`` bytes, besides the payloads its reorder buffer holds.
+returned (tests run random formulas with the fewest cells against evaluate()). A cell costs 12 to
+50 bytes as measured interpreted and 21 to 73 compiled (``tracemalloc``; compiled, each state
+index a list holds is an int object of its own), and at most about 250 by construction (six list
+slots per temporal node and state, each with its int, plus each state's time), so a monitor keeps
+at most about ``250 * max_cells`` bytes, besides the payloads its reorder buffer holds.
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ __all__ = ["DEFAULT_MAX_CELLS", "MIN_STATES", "Monitor", "Verdict"]
 _NEVER = -(2**62)  # a time before every sample
 _NONE = -(2**62)  # "no such state" for the last-position summaries
 
-DEFAULT_MAX_CELLS: Final = 8_000_000
+DEFAULT_MAX_CELLS: Final = 2_000_000
 """The cells a :class:`Monitor` keeps at most unless told otherwise (``dyknow.security.Limits.max_monitor_cells``)."""
 MIN_STATES: Final = 16
 """The states a monitor may always keep, however small its share of cells."""
