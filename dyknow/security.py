@@ -85,6 +85,9 @@ class Limits:
     #: 25-150 MB as measured, 0.5 GB at most. Each monitor's share is this over the monitors running; past it,
     #: the oldest states are given up, their pending verdicts unknown (``dyknow.reasoning.progression``).
     max_monitor_cells: int = 2_000_000
+    #: The formula nodes the monitors of one manager have in all (requirements included): every
+    #: sample costs each node of the formulas that read it a step.
+    max_monitor_nodes: int = 20_000
     #: How far in the future (beyond its clock's uncertainty) a sample's time may lie for a monitor
     #: to take it, in ns: a later one would close every state before it and blind the monitor.
     max_future_ns: int = 100_000_000

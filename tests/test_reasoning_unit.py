@@ -270,3 +270,18 @@ def test_the_monitors_of_a_manager_share_its_cells(make_manager: Callable[..., M
     manager.destroy("b")
     assert share("a") == 4000 // 2
     assert Limits().max_monitor_cells == DEFAULT_MAX_CELLS  # one default, two homes
+
+
+def test_the_monitors_of_a_manager_have_at_most_so_many_nodes_in_all(make_manager: Callable[..., Manager]) -> None:
+    """Every sample costs each node of the formulas that read it a step: a manager's monitors have
+    at most Limits.max_monitor_nodes in all; past it a monitor fails to start, naming the bound."""
+    manager = make_manager(limits=Limits(max_monitor_nodes=5))
+    spec = monitor_spec("once[0, 1s] Battery(robot) > 0.2 or p")  # 4 nodes
+    manager.add_transformation(spec)
+    assert manager.spawn(spec.label, "a", bindings={"t0": "robot/battery"}).state == "running"
+    second = manager.spawn(spec.label, "b", bindings={"t0": "robot/battery"})
+    assert second.state == "failed"
+    assert "the manager's monitors hold 4 formula nodes, and this formula has 4; expected at most 5 nodes in all" in (second.error or "")
+    manager.destroy("b")
+    manager.destroy("a")
+    assert manager.spawn(spec.label, "c", bindings={"t0": "robot/battery"}).state == "running"

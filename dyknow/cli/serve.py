@@ -96,6 +96,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         max_formula_nodes=args.max_formula_nodes,
         max_window_ns=round(args.max_window * 1e9),
         max_monitor_cells=args.max_monitor_cells,
+        max_monitor_nodes=args.max_monitor_nodes,
         max_library_bytes=args.max_library_bytes,
     )
     with Manager(
@@ -266,6 +267,8 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument("--max-monitor-cells", type=positive_int, default=2_000_000, metavar="N",
                    help="what the formula monitors keep together, in cells of 12-73 bytes (250 at most); past their share they "
                         "give old states up (default 2,000,000)")  # fmt: skip
+    p.add_argument("--max-monitor-nodes", type=positive_int, default=20_000, metavar="N",
+                   help="refuse a monitor or requirement past this many formula nodes in all (default 20,000)")  # fmt: skip
     p.add_argument("--max-library-bytes", type=positive_int, default=8 << 20, metavar="N",
                    help="refuse specs that would make the library larger, as its summary carries it (default 8 MiB; peers take 16)")  # fmt: skip
     limit_options(p)

@@ -131,28 +131,50 @@ def monitor_spec(
 
 
 class MonitorBudget:
-    """What the monitor units of one manager share: its :class:`~dyknow.security.Limits`, and the
+    """What the monitor units of one manager share: its :class:`~dyknow.security.Limits`; the
     cells ``limits.max_monitor_cells``, divided evenly among the monitors running (each is told
-    its share as monitors join and leave). Thread-safe. The manager hands its budget to each
-    :class:`FormulaMonitor` before ``setup()``."""
+    its share as monitors join and leave); and at most ``limits.max_monitor_nodes`` formula nodes
+    in all, which bounds what every sample costs the manager. Thread-safe. The manager hands its
+    budget to each :class:`FormulaMonitor` before ``setup()``."""
 
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
         self._lock = threading.Lock()
-        self._monitors: list[Monitor] = []
+        self._monitors: dict[Monitor, int] = {}  # -> its formula's nodes
+        #: the formula nodes of the monitors running
+        self.nodes = 0
+
+    def check(self, formula: Formula) -> None:
+        """:class:`~dyknow.errors.FormulaError` when a monitor of ``formula`` would take the
+        manager's monitors past ``limits.max_monitor_nodes`` (what :meth:`join` checks)."""
+        self._check(formula.nodes, self.nodes)
 
     def join(self, monitor: Monitor) -> None:
-        """Count ``monitor`` in; every monitor's share shrinks to fit it."""
+        """Count ``monitor`` in (:class:`~dyknow.errors.FormulaError` past the nodes' bound);
+        every monitor's share of cells shrinks to fit it."""
+        nodes = monitor.formula.nodes
         with self._lock:
-            self._monitors.append(monitor)
+            self._check(nodes, self.nodes)
+            self._monitors[monitor] = nodes
+            self.nodes += nodes
             self._share()
 
     def leave(self, monitor: Monitor) -> None:
         """Count ``monitor`` out (safe twice); the others' shares grow."""
         with self._lock:
-            if monitor in self._monitors:
-                self._monitors.remove(monitor)
+            nodes = self._monitors.pop(monitor, None)
+            if nodes is not None:
+                self.nodes -= nodes
                 self._share()
+
+    def _check(self, nodes: int, held: int) -> None:
+        bound = self.limits.max_monitor_nodes
+        if held + nodes > bound:
+            raise FormulaError(
+                f"the manager's monitors hold {held:,} formula nodes, and this formula has {nodes:,}",
+                where="monitor",
+                expected=f"at most {bound:,} nodes in all (Limits.max_monitor_nodes): release monitors or requirements first",
+            )
 
     @property
     def share(self) -> int:
@@ -217,7 +239,7 @@ class FormulaMonitor(Unit):
         if flush_ms > 0:
             self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
         if budget is not None:
-            budget.join(self.monitor)
+            budget.join(self.monitor)  # last: a failed setup() has nothing to give back
 
     def teardown(self) -> None:
         """Give the monitor's share of cells back."""
