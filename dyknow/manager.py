@@ -55,6 +55,7 @@ from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
+from dyknow.reasoning.unit import FormulaMonitor, MonitorBudget
 from dyknow.receiver import Receiver
 from dyknow.ros2.binding import is_ros2, parse_binding
 from dyknow.ros2.bridge import UsesRos2
@@ -143,7 +144,7 @@ class Manager:
             paths_ = list(ontology)
             self.ontology = Ontology.load(paths_) if paths_ else None  # bad ontologies fail first
         self.limits = limits = limits or Limits()
-        self.library = Library()
+        self.library = Library(max_specs=limits.max_library_specs, max_bytes=limits.max_library_bytes)
         self._sources = SourcePolicy([*DEFAULT_SOURCES, *allow_sources])
         self._code_paths: list[str] = []  # folders unit modules are looked for in (--path, the trusted specs' own)
         for folder in code_paths:
@@ -231,6 +232,7 @@ class Manager:
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._workers: service.Workers | None = None
         self._holders: Holders | None = None
+        self._monitor_budget = MonitorBudget(limits)  # the cells its formula monitors share
         self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
         self.on_unit_event(self._adaptation.unit_event)
         self._monitors = Monitors(
@@ -242,6 +244,7 @@ class Manager:
             unit=self.unit,
             individuals=self._individuals if self.ontology is not None else None,
             max_expansions=self.limits.max_expansions,
+            limits=self.limits,
         )
         self._adaptation.on_event(lambda event: self._monitors.adapted(event.key, event.cause) if event.kind == "adapted" else None)
         self._measurement_subs = []
@@ -432,12 +435,19 @@ class Manager:
             specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals, max_expansions=limit)
         else:
             raise LibraryError(f"add_transformation got a {type(spec).__name__}", expected="a spec, a template, XML text or a path")
+        added = {s.label for s in specs}
+        was_remote = added & self._remote_labels
         if remote:
-            self._remote_labels.update(s.label for s in specs)
+            self._remote_labels.update(added)
         else:
             self._trust(specs)
-            self._remote_labels.difference_update(s.label for s in specs)
-        labels = self.library.add(specs)
+            self._remote_labels.difference_update(added)
+        try:
+            labels = self.library.add(specs)
+        except LibraryError:  # past the library's bounds: nothing added, the labels as they were
+            self._remote_labels.difference_update(added - was_remote)
+            self._remote_labels.update(was_remote)
+            raise
         self._adaptation.library_changed()
         self.changed()
         return labels
@@ -617,6 +627,8 @@ class Manager:
             raise UnitError(f"{spec.source}() raised {type(exc).__name__}: {exc}", where=f"cannot create unit {name!r}") from exc
         if isinstance(unit, UsesRos2):
             unit.use_ros2(self)
+        if isinstance(unit, FormulaMonitor):
+            unit.use_budget(self._monitor_budget)
         proxy = Proxy(
             name=name,
             spec=spec,

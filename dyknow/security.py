@@ -17,7 +17,10 @@ passes through unchecked (it runs as the operator):
   (a symbolic link inside a root) are refused, naming the param and nothing outside the roots.
 - :class:`Limits`: the size of a request, the depth of its JSON, the length of names and keys
   (a key over Zenoh's batch size would make its transport panic), the expansions of a template,
-  and the entries and time a glob may take.
+  the entries and time a glob may take; the size and windows of a temporal formula and what a
+  quantified one expands to, the memory the formula monitors share and how far ahead a sample
+  they take may be stamped (:mod:`dyknow.reasoning`); and the size of the library, which the
+  manager's summary carries to its peers.
 """
 
 from __future__ import annotations
@@ -71,6 +74,32 @@ class Limits:
     #: ``max_bytes=`` (an untyped input: at most 1 MiB); a larger one is dropped before it is
     #: copied or decoded (:data:`dyknow.ros2.node.DEFAULT_MAX_MESSAGE_BYTES`).
     max_ros2_message_bytes: int = 16 << 20
+    #: The most nodes (atoms, constants, operators) a temporal formula may have: a monitor's cost
+    #: per sample grows with them (``dyknow.reasoning.check_formula``).
+    max_formula_nodes: int = 500
+    #: The longest a formula's interval bound, and how far ahead it may look in all (its future
+    #: horizon), in ns: one day. A verdict waits up to its horizon; a past operator that must look
+    #: further back writes ``inf`` (which costs nothing per state over plain operands).
+    max_window_ns: int = 86_400 * 1_000_000_000
+    #: What a quantified formula (``forall c in Class: ...``) may expand to: individuals times
+    #: the body's nodes, checked before anything is substituted.
+    max_quantified_nodes: int = 20_000
+    #: What the formula monitors of one manager keep together, in cells: a cell is one node's
+    #: entry for one retained state (12-73 bytes measured, at most about 250 by construction), so
+    #: 25-150 MB as measured, 0.5 GB at most. Each monitor's share is this over the monitors running; past it,
+    #: the oldest states are given up, their pending verdicts unknown (``dyknow.reasoning.progression``).
+    max_monitor_cells: int = 2_000_000
+    #: The formula nodes the monitors of one manager have in all (requirements included): every
+    #: sample costs each node of the formulas that read it a step.
+    max_monitor_nodes: int = 20_000
+    #: How far in the future (beyond its clock's uncertainty) a sample's time may lie for a monitor
+    #: to take it, in ns: a later one would close every state before it and blind the monitor.
+    max_future_ns: int = 100_000_000
+    #: The most specs a manager's library holds, and their bytes as its summary carries them: a
+    #: peer takes a summary of at most 16 MiB (``dyknow.federation.MAX_SUMMARY_BYTES``), which
+    #: also carries the units and measurements.
+    max_library_specs: int = 10_000
+    max_library_bytes: int = 8 << 20
 
 
 _DEFAULT = Limits()

@@ -32,13 +32,15 @@ from collections.abc import Collection
 from dyknow.errors import TransportError
 from dyknow.security import is_loopback
 
-__all__ = ["MAX_HEAD_BYTES", "OriginGuard", "foreign", "host_name", "served_hosts"]
+__all__ = ["HEAD_TIMEOUT_S", "MAX_HEAD_BYTES", "OriginGuard", "foreign", "host_name", "served_hosts"]
 
 log = logging.getLogger(__name__)
 
 #: The largest HTTP request head :class:`OriginGuard` reads before refusing the connection.
 MAX_HEAD_BYTES = 16 * 1024
-_HEAD_TIMEOUT_S = 5.0
+#: How long a connection may take to send its HTTP request head (and, for ``dyknow ui``, to be
+#: idle between requests) before it is closed: half-open connections cost a socket each.
+HEAD_TIMEOUT_S = 5.0
 
 
 def served_hosts(bind: str) -> frozenset[str] | None:
@@ -133,7 +135,7 @@ class OriginGuard:
         self._tasks.add(task)
         try:
             try:
-                head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), _HEAD_TIMEOUT_S)
+                head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), HEAD_TIMEOUT_S)
             except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError, ConnectionError):
                 return
             why = self._why_refused(head)

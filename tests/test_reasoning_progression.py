@@ -16,7 +16,21 @@ from hypothesis import strategies as st
 
 from dyknow.errors import ClosedError, FormulaError
 from dyknow.reasoning import Monitor, Verdict, evaluate_ns, parse
-from dyknow.reasoning.syntax import Formula
+from dyknow.reasoning.progression import MIN_STATES
+from dyknow.reasoning.syntax import (
+    And,
+    Atom,
+    Const,
+    Formula,
+    Implies,
+    Interval,
+    Node,
+    Not,
+    Or,
+    Since,
+    Until,
+    children,
+)
 from dyknow.tags import Term
 from tests.reasoning_support import MS, formulas, long_trace, traces
 
@@ -262,3 +276,107 @@ def test_the_tutorials_example_runs_as_written() -> None:
     page = (Path(__file__).resolve().parent.parent / "docs" / "tutorials" / "temporal.md").read_text()
     (block,) = [b for b in re.findall(r"```python\n(.*?)```", page, re.DOTALL) if "from dyknow.reasoning import" in b]
     exec(compile(block, "docs/tutorials/temporal.md", "exec"), {})  # its asserts are the test
+
+
+# -- the memory bound (issue 38): over it, verdicts are given up, never wrong
+
+
+def _stretched(formula: Formula, factor: int) -> Formula:
+    """The formula with every interval ``factor`` times longer (windows over many more states)."""
+
+    def build(node: Node) -> Node:
+        if isinstance(node, Atom | Const):
+            return node
+        kids = [build(kid) for kid in children(node)]
+        if isinstance(node, Not | And | Or | Implies):
+            return type(node)(*kids)  # type: ignore[arg-type]
+        hi = None if node.interval.hi_ns is None else node.interval.hi_ns * factor
+        interval = Interval(node.interval.lo_ns * factor, hi)
+        if isinstance(node, Until | Since):
+            return type(node)(kids[0], kids[1], interval)
+        return type(node)(interval, kids[0])  # type: ignore[call-arg, arg-type]
+
+    return Formula.of(build(formula.root))
+
+
+def _sound(formula: Formula, monitor: Monitor, samples: list[tuple[Term, int, Any]]) -> list[Verdict]:
+    """Run the monitor; every verdict it returns is evaluate()'s at that state, returned once."""
+    verdicts, accepted = _run(monitor, samples)
+    got = {v.state: (v.t_ns, v.verdict) for v in verdicts}
+    assert len(got) == len(verdicts), "a state's verdict was returned twice"
+    expected = _decided(formula, accepted)
+    wrong = {state: (tv, expected.get(state)) for state, tv in got.items() if expected.get(state) != tv}
+    assert not wrong, (str(formula), wrong)
+    assert len(monitor._clock.times) <= monitor.max_states  # noqa: SLF001  # the bound itself
+    return verdicts
+
+
+@cases(200)
+@given(formula=formulas(max_depth=4), seed=st.integers(0, 10**6), delay=st.sampled_from([0, 0, 2]))
+def test_over_the_memory_bound_every_verdict_returned_is_still_evaluates(formula: Formula, seed: int, delay: int) -> None:
+    """With the fewest cells (16 states), windows over 30 to 70 states: the oldest states are given
+    up again and again, past windows reaching them stay unknown, and nothing returned is wrong."""
+    formula = _stretched(formula, 8)
+    trace = long_trace(formula.terms, seed, samples=300)
+    monitor = Monitor(formula, reorder_ns=delay * MS, max_cells=1)
+    assert monitor.max_states == MIN_STATES
+    _sound(formula, monitor, _in_time_order(trace, random.Random(seed)))
+
+
+@pytest.mark.parametrize(
+    ("text", "goes_on"),
+    [
+        ("eventually[0, 100ms] p > 2", True),  # pending states over the bound
+        ("p > 0 until[0, 100ms] p > 2", True),
+        ("once[0, 80ms] eventually[0, 20ms] p > 2", True),  # a past window over states given up
+        ("p > 0 since[0, inf] eventually[0, 30ms] p > 2", True),
+        # states waiting to enter a past window: given up before they enter, so it never decides again
+        ("once[50ms, inf] p > 2", False),
+        ("not historically[40ms, 90ms] p < 3", False),
+        ("p > 0 since[40ms, inf] p > 2", False),
+    ],
+)
+def test_the_bound_strikes_and_nothing_returned_is_wrong(text: str, goes_on: bool) -> None:
+    formula = parse(text)
+    rng = random.Random(5)
+    samples = [(Term("p"), n * MS, rng.choice([0, 1, 3, 3])) for n in range(2000)]
+    samples += [(Term("p"), (2000 + n) * MS, rng.choice([0, 1])) for n in range(200)]  # and a long stretch without p > 2
+    bounded = Monitor(formula, max_cells=1)
+    verdicts = _sound(formula, bounded, samples)
+    assert bounded.given_up > 0
+    assert len(verdicts) > (100 if goes_on else 10)  # those that did not need what was given up
+    free = Monitor(formula)  # the default bound is far away: nothing given up, every verdict
+    assert len(_sound(formula, free, samples)) > len(verdicts) and free.given_up == 0
+
+
+def test_270_long_windows_at_1000_samples_a_second_keep_their_cells() -> None:
+    """Issue 38: 270 eventually[0, 9999999s] nodes grew a manager by 373 MiB in 23 s at 1,000
+    samples/s. The monitor now keeps at most its cells: what it allocates stops growing."""
+    formula = " and ".join(f"eventually[0, 9999999s] x > {k % 300}" for k in range(270))
+    monitor = Monitor(formula, max_cells=100_000)  # ~810 nodes: 123 states
+    assert monitor.max_states == 100_000 // 811
+    tracemalloc.start()
+    try:
+        sizes = []
+        for n in range(1500):
+            monitor.push_index(0, n * MS, n % 300)
+            if n % 250 == 249:
+                sizes.append(tracemalloc.get_traced_memory()[0])
+    finally:
+        tracemalloc.stop()
+    assert monitor.retained() <= monitor.max_states and monitor.given_up > 1300
+    # 123 states of 811 nodes: about a megabyte, whatever the length (before: 10 MB more per 1,000 samples)
+    assert max(sizes) < 4_000_000 and max(sizes[1:]) - min(sizes[1:]) < 1_000_000, sizes
+
+
+def test_a_monitors_share_of_cells_may_change_while_it_runs() -> None:
+    monitor = Monitor("eventually[0, 5s] p > 2", max_cells=10_000)
+    assert monitor.max_states == 10_000 // 2  # two nodes
+    for n in range(3000):
+        monitor.push_index(0, n * MS, 0)
+    assert monitor.retained() == 3000
+    monitor.set_max_cells(300)  # more monitors joined: its share shrinks, the next state obeys it
+    monitor.push_index(0, 3000 * MS, 0)
+    assert monitor.retained() <= 150 and monitor.given_up > 2800
+    with pytest.raises(FormulaError):
+        Monitor("p", max_cells=0)

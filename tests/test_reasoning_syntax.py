@@ -7,7 +7,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 
 from dyknow.errors import DyKnowError, FormulaError
-from dyknow.reasoning import Formula, parse
+from dyknow.reasoning import Formula, Monitor, check_formula, evaluate_ns, monitor_spec, parse, term_ports
 from dyknow.reasoning.syntax import (
     MAX_DEPTH,
     MAX_FORMULA_CHARS,
@@ -158,3 +158,124 @@ def test_every_formula_written_out_parses_back_to_itself(formula: Formula) -> No
     assert again.root == formula.root, text
     assert again.terms == formula.terms
     assert str(again) == text
+
+
+# -- formulas from callers the manager does not trust (issue 38)
+
+
+def _every_walk(formula: Formula) -> None:
+    """What the manager and the monitor do with a formula: write it, compare, hash, show it, build
+    its spec and its monitor, evaluate it."""
+    text = str(formula)
+    again = parse(text)
+    assert again == formula and hash(again) == hash(formula) and again.root == formula.root
+    assert repr(formula.root).startswith(type(formula.root).__name__ + "(")
+    spec = monitor_spec(formula)
+    assert term_ports(spec) == term_ports(formula)
+    monitor = Monitor(formula)
+    assert monitor.push_all(0, [0.5] * len(monitor.terms)) is not None
+    assert len(evaluate_ns(formula, {str(t): [(0, 0.5)] for t in formula.terms})) == 1
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        " or ".join(f"P(x{i % 7})" for i in range(830)),  # a chain nests to the left, 830 deep
+        " and ".join("p" for _ in range(1500)),
+        " or ".join("p until[0, 1s] q" for _ in range(500)),
+    ],
+    ids=["or-830", "and-1500", "until-500"],
+)
+def test_long_chains_are_walked_without_recursion(text: str) -> None:
+    """Parsing reads a chain in a loop, and nothing that walks the tree recurses: an 830-deep
+    ``or`` chain is written, compared, hashed, monitored and evaluated (it raised RecursionError
+    from str() before); a manager's bounds then refuse it for its size, as a FormulaError."""
+    formula = parse(text)
+    _every_walk(formula)
+    with pytest.raises(FormulaError) as refused:
+        check_formula(text)
+    assert refused.value.what.startswith("the formula has more than 500 nodes")
+    assert refused.value.expected == "at most 500 atoms, constants and operators (Limits.max_formula_nodes)"
+    assert refused.value.column is not None and refused.value.where == f"formula column {refused.value.column}"
+
+
+def test_a_chain_of_200_disjuncts_is_within_the_bounds() -> None:
+    text = " or ".join(f"Fresh(cam{i}) > 0.5" for i in range(200))
+    formula = check_formula(text)
+    assert formula.operators == 199 and len(formula.terms) == 200
+    _every_walk(formula)
+
+
+@pytest.mark.parametrize(
+    "text",
+    ["not " * 830 + "p", "(" * 830 + "p" + ")" * 830, "p implies " * 830 + "p", "always[0, 1s] " * 500 + "p", "p until[0, 1s] (" * 400 + "p" + ")" * 400],
+    ids=["not", "parentheses", "implies", "always", "until"],
+)
+def test_deep_nesting_is_refused_with_its_column(text: str) -> None:
+    for read in (parse, check_formula):
+        with pytest.raises(FormulaError) as deep:
+            read(text)
+        assert deep.value.what.startswith(f"the formula nests deeper than {MAX_DEPTH} levels"), deep.value.what
+        assert deep.value.expected == f"at most {MAX_DEPTH} levels of operators and parentheses"
+        assert deep.value.column is not None and deep.value.column > 1
+
+
+def test_a_caller_deep_in_its_stack_gets_a_formula_error_not_a_recursion_error() -> None:
+    import sys
+    from types import FrameType
+
+    text = "(" * (MAX_DEPTH - 1) + "p" + ")" * (MAX_DEPTH - 1)  # five frames a level
+    caught: list[BaseException] = []
+    frame: FrameType | None = sys._getframe()
+    depth = 0
+    while frame is not None:
+        frame, depth = frame.f_back, depth + 1
+
+    def descend(levels: int) -> None:
+        if levels:
+            descend(levels - 1)
+            return
+        try:
+            parse(text)
+        except BaseException as exc:  # noqa: BLE001  # what it raises is the point
+            caught.append(exc)
+
+    descend(sys.getrecursionlimit() - depth - 100)  # the parser needs more than 100 frames
+    (error,) = caught
+    assert isinstance(error, FormulaError), repr(error)
+    assert error.what.startswith("the formula nests deeper than this thread's stack allows")
+
+
+@pytest.mark.parametrize(
+    ("text", "column", "what", "expected"),
+    [
+        ("always[0, 100000000000000000000000000000s] p", 7, "'always[0, 100000000000000000000000000000s]' has the bound 100000000000000000000000000000s, beyond the longest window", "bounds of at most 86400s (Limits.max_window_ns)"),
+        ("p and once[0, 86401s] q", 11, "'once[0, 86401s]' has the bound 86401s, beyond the longest window", "a past operator may write inf"),
+        ("once[90000s, inf] q", 5, "'once[90000s, inf]' has the bound 90000s", "at most 86400s"),
+        ("p until[86400s, 86400.5s] q", 8, "'until[86400s, 86400.5s]' has the bound 86400500ms", "at most 86400s"),
+        ("always[0, 50000s] (p or eventually[0, 40000s] q)", 1, "'always' here makes the formula look 90000s ahead", "at most 86400s ahead (Limits.max_window_ns)"),
+    ],
+)
+def test_windows_are_bounded(text: str, column: int, what: str, expected: str) -> None:
+    assert parse(text).text == text  # the language takes them; a manager's bounds do not
+    with pytest.raises(FormulaError) as refused:
+        check_formula(text)
+    error = refused.value
+    assert (error.where, error.column) == (f"formula column {column}", column)
+    assert error.what.startswith(what), error.what
+    assert expected in (error.expected or ""), error.expected
+
+
+def test_the_bounds_are_the_operators_to_set() -> None:
+    from dyknow.security import Limits
+
+    text = "always[0, 2d] p".replace("2d", "172800s")
+    with pytest.raises(FormulaError):
+        check_formula(text)
+    assert check_formula(text, Limits(max_window_ns=3 * 86_400 * S)).horizon_ns == 2 * 86_400 * S
+    assert check_formula("once[0, 1s] p", Limits(max_formula_nodes=2)).operators == 1
+    with pytest.raises(FormulaError) as nodes:
+        check_formula("once[0, 1s] p and q", Limits(max_formula_nodes=2))
+    assert nodes.value.column == 19  # at q, the third node read
+    assert check_formula(parse("p or q")).text == "p or q"  # a parsed formula is checked by its text
+    assert check_formula("historically[0, inf] p").horizon_ns == 0  # inf: no bound to exceed

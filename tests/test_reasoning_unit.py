@@ -16,7 +16,9 @@ import pytest
 from dyknow import Manager, Message, Player, Recorder, parse_specs
 from dyknow.errors import FormulaError
 from dyknow.reasoning import FormulaMonitor, evaluate_ns, monitor_spec, term_ports
+from dyknow.reasoning.progression import DEFAULT_MAX_CELLS
 from dyknow.reasoning.unit import VERDICTS_PORT
+from dyknow.security import Limits
 from dyknow.testing import Sink, Source, UnitHarness
 
 MS = 1_000_000
@@ -205,3 +207,81 @@ def test_verdicts_over_a_replayed_recording_equal_evaluate(make_manager: Callabl
     assert _published(sink, len(expected)) == expected
     unit = receiver.unit("monitor")
     assert isinstance(unit, FormulaMonitor) and unit.monitor.late == 0
+
+
+# -- bounds (issue 38): formulas, memory, samples from the future
+
+YEAR_NS = 365 * 86_400 * 1_000_000_000
+
+
+def test_one_sample_ten_years_ahead_no_longer_blinds_the_monitor(make_manager: Callable[..., Manager]) -> None:
+    """A sample stamped ten years ahead closed every state before it, so every later sample was
+    late and no violation was ever reported again. It is refused now, and the violation after
+    it is reported."""
+    manager = make_manager(queue_depth=4096)
+    spec = monitor_spec("historically[0, 20ms] Battery(robot) > 0.2")
+    manager.add_transformation(spec)
+    manager.spawn("sink", "verdicts", bindings={"in": "robot/verdicts"})
+    manager.spawn(spec.label, "monitor", bindings={"t0": "robot/battery", "verdicts": "robot/verdicts"})
+    manager.spawn("publisher", "battery", bindings={"out": "robot/battery"})
+    source, sink, unit = manager.unit("battery"), manager.unit("verdicts"), manager.unit("monitor")
+    assert isinstance(source, Source) and isinstance(sink, Sink) and isinstance(unit, FormulaMonitor)
+    _wait_until(lambda: source.has_subscribers("out"), "the monitor to subscribe")
+    now = time.time_ns()
+    source.emit(0.9, origin_ns=now + 10 * YEAR_NS)  # forged
+    for k, level in enumerate([0.9, 0.5, 0.1, 0.8]):  # then the robot's own samples: 0.1 violates it
+        source.emit(level, origin_ns=now + k * 10 * MS)
+    got = [m.payload for m in sink.wait_for(4, timeout_s=10)]
+    assert [(v["t_ns"] - now, v["verdict"]) for v in got] == [(0, True), (10 * MS, True), (20 * MS, False), (30 * MS, False)]
+    port = manager.get_statistics("monitor").to_dict()["ports"]["t0"]
+    assert unit.future == 1 and unit.monitor.late == 0 and port["rejected"] == 1
+    assert port["last_rejection"].startswith(f"future: a sample at {now + 10 * YEAR_NS} ns, 3.15")
+    assert "s ahead of this host's clock beyond its uncertainty (at most 100 ms are taken)" in port["last_rejection"]
+
+
+def test_a_monitor_holds_its_formula_to_its_managers_bounds(make_manager: Callable[..., Manager]) -> None:
+    """A formula that reaches a manager in a spec is checked when its monitor starts: over the
+    bounds the unit fails, naming the bound, and the manager goes on."""
+    with UnitHarness(monitor_spec("always[0, 100000000000000000000000000000s] p"), name="m") as harness:
+        assert harness.info.state == "failed"
+        assert "has the bound 100000000000000000000000000000s, beyond the longest window" in (harness.info.error or "")
+    manager = make_manager(limits=Limits(max_formula_nodes=3))
+    spec = monitor_spec("p > 0 and q > 0 and r > 0")  # 5 nodes
+    manager.add_transformation(spec)
+    info = manager.spawn(spec.label, "m", bindings={"verdicts": "robot/verdicts"})
+    assert info.state == "failed" and "the formula has more than 3 nodes" in (info.error or "")
+    assert manager.spawn("publisher", "other").state == "running"
+
+
+def test_the_monitors_of_a_manager_share_its_cells(make_manager: Callable[..., Manager]) -> None:
+    manager = make_manager(limits=Limits(max_monitor_cells=4000))
+    spec = monitor_spec("eventually[0, 5s] Battery(robot) > 0.2")  # 2 nodes
+    manager.add_transformation(spec)
+
+    def share(name: str) -> int:
+        unit = manager.unit(name)
+        assert isinstance(unit, FormulaMonitor)
+        return unit.monitor.max_states
+
+    manager.spawn(spec.label, "a", bindings={"t0": "robot/battery"})
+    assert share("a") == 4000 // 2
+    manager.spawn(spec.label, "b", bindings={"t0": "robot/battery"})
+    assert share("a") == share("b") == 2000 // 2
+    manager.destroy("b")
+    assert share("a") == 4000 // 2
+    assert Limits().max_monitor_cells == DEFAULT_MAX_CELLS  # one default, two homes
+
+
+def test_the_monitors_of_a_manager_have_at_most_so_many_nodes_in_all(make_manager: Callable[..., Manager]) -> None:
+    """Every sample costs each node of the formulas that read it a step: a manager's monitors have
+    at most Limits.max_monitor_nodes in all; past it a monitor fails to start, naming the bound."""
+    manager = make_manager(limits=Limits(max_monitor_nodes=5))
+    spec = monitor_spec("once[0, 1s] Battery(robot) > 0.2 or p")  # 4 nodes
+    manager.add_transformation(spec)
+    assert manager.spawn(spec.label, "a", bindings={"t0": "robot/battery"}).state == "running"
+    second = manager.spawn(spec.label, "b", bindings={"t0": "robot/battery"})
+    assert second.state == "failed"
+    assert "the manager's monitors hold 4 formula nodes, and this formula has 4; expected at most 5 nodes in all" in (second.error or "")
+    manager.destroy("b")
+    manager.destroy("a")
+    assert manager.spawn(spec.label, "c", bindings={"t0": "robot/battery"}).state == "running"

@@ -291,6 +291,42 @@ def test_many_open_pages_hold_up_nothing(ui: Callable[..., tuple[Manager, str]])
             page.close()
 
 
+def test_half_open_connections_are_closed_and_bounded(ui: Callable[..., tuple[Manager, str]]) -> None:
+    """Issue 38: the tool kept 1,500 half-open connections (a request head never finished). A head
+    not sent within HEAD_TIMEOUT_S is closed now (the server ends the connection: EOF here), and
+    past MAX_CONNECTIONS open at once the next is answered 503 and closed; then it serves again."""
+    import socket
+
+    from dyknow.ui.server import MAX_CONNECTIONS
+
+    _manager, url = ui()
+    host, port = url.split("//")[1].split("/")[0].split(":")
+    sockets = []
+    try:
+        for _ in range(MAX_CONNECTIONS + 20):
+            sock = socket.create_connection((host, int(port)), timeout=60)  # generous: the server closes them after 5 s
+            sock.sendall(b"GET /api/model HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # and never the empty line
+            sockets.append(sock)
+        answers = []
+        for sock in sockets:
+            got = b""
+            try:
+                while chunk := sock.recv(4096):  # until the server closes it (socket.timeout otherwise)
+                    got += chunk
+            except ConnectionResetError:  # closed by the server with our head unread: a reset
+                got = b"reset"
+            answers.append(got)
+    finally:
+        for sock in sockets:
+            sock.close()
+    busy = [a for a in answers if a.startswith(b"HTTP/1.1 503 Service Unavailable") or a == b"reset"]
+    assert len(busy) >= 20, answers
+    assert all(a == b"" for a in answers if a not in busy)  # closed without an answer: the head never came
+    assert len(busy) < len(answers) - MAX_CONNECTIONS // 2  # (the others were taken)
+    status, body = _http(url.split("?")[0] + "api/model")
+    assert status == 200 and '"managers"' in body
+
+
 # ---------------------------------------------------------------------- closed to other web pages
 
 

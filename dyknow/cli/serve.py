@@ -94,6 +94,11 @@ def cmd_manager(args: argparse.Namespace) -> int:
         max_message_bytes=args.max_message_bytes,
         max_expansion_bytes=args.max_expansion_bytes,
         max_ros2_message_bytes=args.max_ros2_message_bytes,
+        max_formula_nodes=args.max_formula_nodes,
+        max_window_ns=round(args.max_window * 1e9),
+        max_monitor_cells=args.max_monitor_cells,
+        max_monitor_nodes=args.max_monitor_nodes,
+        max_library_bytes=args.max_library_bytes,
     )
     with Manager(
         args.name,
@@ -256,6 +261,17 @@ def add_commands(cmds: Commands) -> None:
                    help="drop larger messages (data or calls) while they arrive, before they take memory (default 64 MiB)")  # fmt: skip
     p.add_argument("--max-expansion-bytes", type=positive_int, default=16 << 20, metavar="N",
                    help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
+    p.add_argument("--max-formula-nodes", type=positive_int, default=500, metavar="N",
+                   help="refuse a temporal formula with more atoms, constants and operators (default 500)")  # fmt: skip
+    p.add_argument("--max-window", type=seconds, default=86400.0, metavar="S",
+                   help="refuse a formula whose interval bounds, or how far ahead it looks, pass this (default 86400: a day)")  # fmt: skip
+    p.add_argument("--max-monitor-cells", type=positive_int, default=2_000_000, metavar="N",
+                   help="what the formula monitors keep together, in cells of 12-73 bytes (250 at most); past their share they "
+                        "give old states up (default 2,000,000)")  # fmt: skip
+    p.add_argument("--max-monitor-nodes", type=positive_int, default=20_000, metavar="N",
+                   help="refuse a monitor or requirement past this many formula nodes in all (default 20,000)")  # fmt: skip
+    p.add_argument("--max-library-bytes", type=positive_int, default=8 << 20, metavar="N",
+                   help="refuse specs that would make the library larger, as its summary carries it (default 8 MiB; peers take 16)")  # fmt: skip
     limit_options(p)
     p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
     p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",

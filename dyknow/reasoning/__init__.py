@@ -4,7 +4,7 @@ monitor as a unit.
 ==========================  ==============================================================================
 module                      what it holds
 ==========================  ==============================================================================
-:mod:`~.syntax`             the language: :func:`parse`, :class:`Formula` and its syntax tree
+:mod:`~.syntax`             the language: :func:`parse`, :func:`check_formula`, :class:`Formula`, its tree
 :mod:`~.semantics`          what a formula means, exactly: states, Kleene verdicts, windows; :func:`evaluate`
 :mod:`~.progression`        :class:`Monitor`: samples in, each state's :class:`Verdict` out as soon as decided
 :mod:`~.unit`               :class:`FormulaMonitor`, the monitor as a unit, and :func:`monitor_spec` for its spec
@@ -22,7 +22,7 @@ from __future__ import annotations
 from dyknow.errors import FormulaError
 from dyknow.reasoning.progression import Monitor, Verdict
 from dyknow.reasoning.semantics import evaluate, evaluate_ns
-from dyknow.reasoning.syntax import Formula, parse
+from dyknow.reasoning.syntax import Formula, check_formula, parse
 from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
 from dyknow.resources import restore_docstrings
 
@@ -32,6 +32,7 @@ __all__ = [
     "FormulaMonitor",
     "Monitor",
     "Verdict",
+    "check_formula",
     "evaluate",
     "evaluate_ns",
     "monitor_spec",

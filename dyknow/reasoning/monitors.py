@@ -36,6 +36,7 @@ from dyknow.errors import AccessError, DyKnowError, UnitError
 from dyknow.model import LOCAL, Owner
 from dyknow.reasoning.quantify import expand
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
+from dyknow.security import Limits
 from dyknow.spec import TransformationSpec
 
 __all__ = ["MonitorInfo", "Monitors"]
@@ -90,6 +91,7 @@ class Monitors:
         unit: Callable[[str], object],
         individuals: Callable[[str], Sequence[str]] | None,
         max_expansions: int,
+        limits: Limits | None = None,
     ) -> None:
         self.manager = manager
         self._request = request
@@ -99,6 +101,7 @@ class Monitors:
         self._unit = unit
         self._individuals = individuals
         self._max_expansions = max_expansions
+        self._limits = limits  # the bounds every formula is held to before anything is requested
         self._lock = threading.Lock()
         self._by_key: dict[str, MonitorInfo] = {}
         self._serial = itertools.count(1)
@@ -115,7 +118,7 @@ class Monitors:
         """
         if not isinstance(reorder_ms, int | float) or not reorder_ms >= 0 or reorder_ms > 3_600_000:
             raise UnitError(f"reorder_ms {reorder_ms!r}", where="monitor", expected="0 to 3,600,000 milliseconds")
-        expansions = expand(formula, self._individuals, max_expansions=self._max_expansions)
+        expansions = expand(formula, self._individuals, max_expansions=self._max_expansions, limits=self._limits)
         if readable is not None:
             for text in dict.fromkeys(str(term) for _, parsed in expansions for term in parsed.terms):
                 readable(text)

@@ -36,6 +36,29 @@ are pending and sorted lists of where their operands are true, not false, and so
 decided operand value resolves exactly the pending states it decides, found by bisection as one
 contiguous range. States older than the formula's horizon are dropped: :meth:`Monitor.retained`
 says how many are kept.
+
+**Memory, bounded whatever the sample rate.** The horizon bounds the states kept in time, not in
+number: a window of a day at a thousand samples a second is 86 million states. So a monitor also
+keeps at most ``max_cells`` *cells* (:data:`DEFAULT_MAX_CELLS`; a manager shares
+``Limits.max_monitor_cells`` among its monitors): a cell is one node's entry for one retained
+state, so at most ``max_cells // nodes`` states (:attr:`Monitor.max_states`, never fewer than
+:data:`MIN_STATES`) are retained, buffered for the reorder delay, or wait to enter a past window
+(``once[a, b]`` holds the states younger than ``a``). Over it, the oldest are **given up**, a
+quarter of the bound at a time, and counted in :attr:`Monitor.given_up`:
+
+- a retained state is dropped: its verdicts still pending stay unknown (never returned), and a
+  past window that reaches a state given up is never found false (a term there may have been
+  true) nor located by it (its end among them: unknown);
+- a state waiting to enter a past window is dropped: the window is never found false while it
+  may hold it, unless a false left operand of ``since`` cuts it off;
+- a buffered sample's state is closed at once: later samples at its time are late.
+
+So the rule stays: **every verdict returned is evaluate()'s**; over the bound, fewer are
+returned (tests run random formulas with the fewest cells against evaluate()). A cell costs 12 to
+50 bytes as measured interpreted and 21 to 73 compiled (``tracemalloc``; compiled, each state
+index a list holds is an int object of its own), and at most about 250 by construction (six list
+slots per temporal node and state, each with its int, plus each state's time), so a monitor keeps
+at most about ``250 * max_cells`` bytes, besides the payloads its reorder buffer holds.
 """
 
 from __future__ import annotations
@@ -67,10 +90,15 @@ from dyknow.reasoning.syntax import (
 )
 from dyknow.tags import parse_term
 
-__all__ = ["Monitor", "Verdict"]
+__all__ = ["DEFAULT_MAX_CELLS", "MIN_STATES", "Monitor", "Verdict"]
 
 _NEVER = -(2**62)  # a time before every sample
 _NONE = -(2**62)  # "no such state" for the last-position summaries
+
+DEFAULT_MAX_CELLS: Final = 2_000_000
+"""The cells a :class:`Monitor` keeps at most unless told otherwise (``dyknow.security.Limits.max_monitor_cells``)."""
+MIN_STATES: Final = 16
+"""The states a monitor may always keep, however small its share of cells."""
 
 
 class Verdict:
@@ -119,6 +147,7 @@ class _Clock:
     def __init__(self) -> None:
         self.times: list[int] = []
         self.base = 0
+        self.given_up_t = _NEVER  # the newest state dropped before the formula was done with it
 
     def at(self, i: int) -> int:
         return self.times[i - self.base]
@@ -145,6 +174,7 @@ class _Node:
         self.events: list[int] = []
         self.sync = sync
         self.need_ns = need_ns  # how far back from the newest state this node reads
+        self.max_states = 1 << 62  # how many states' entries it may keep (the monitor sets it)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         """Evaluate the new state ``n`` at ``t`` (children have stepped already)."""
@@ -269,6 +299,9 @@ class _SinceSync(_Node):
         self.break_f = _NONE
         self.waiting: list[tuple[int, int, int]] = []  # (index, time, right) younger than lo_ns
         self.head = 0
+        self.lost = _NONE  # the newest waiting state given up (over max_states) and its time
+        self.lost_t = _NEVER
+        self.given_up = 0
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         psi = self.right.cur
@@ -305,12 +338,20 @@ class _SinceSync(_Node):
             if head > 64 and head * 2 > len(waiting):
                 del waiting[:head]
                 head = 0
+            if len(waiting) - head > self.max_states:  # give up the oldest: they may hide a term
+                cut = len(waiting) - self.max_states + self.max_states // 4
+                self.lost, self.lost_t = waiting[cut - 1][0], waiting[cut - 1][1]
+                self.given_up += cut - head
+                del waiting[:cut]
+                head = 0
             self.head = head
         oldest = t - self.hi_ns if self.bounded else _NEVER
         if self.last_true >= self.break_nt and self.last_true != _NONE and self.last_true_t >= oldest:
             value = TRUE
         elif self.last_nf >= self.break_f and self.last_nf != _NONE and self.last_nf_t >= oldest:
             value = UNKNOWN
+        elif self.lost != _NONE and self.lost_t >= oldest and self.lost >= self.break_f:
+            value = UNKNOWN  # all known terms are false, but one given up may be in the window
         else:
             value = FALSE
         if self.negate:
@@ -451,6 +492,9 @@ class _Temporal(_Node):
     def prune(self, base: int) -> None:
         for positions in (self.left_nt, self.left_f, self.right_t, self.right_nf):
             _prune_keep_last(positions, base)
+        undecided = self.undecided
+        if undecided and undecided[0] < base:  # given up before their time: unknown for good
+            del undecided[: bisect_left(undecided, base)]
 
 
 class _UntilNode(_Temporal):
@@ -577,6 +621,9 @@ class _SinceNode(_Temporal):
 
     def check(self, i: int) -> int:
         """The verdict at i from what is known now (UNKNOWN: not decided)."""
+        clock = self.clock
+        if clock.given_up_t != _NEVER and clock.at(i) - self.lo_ns < clock.times[0]:
+            return UNKNOWN  # the window ends among states given up: where exactly is lost with them
         first, last = self.window(i)
         k = bisect_right(self.right_t, last)
         if k:
@@ -587,6 +634,9 @@ class _SinceNode(_Temporal):
         k = bisect_right(self.right_nf, last)
         cut = _pred(self.left_f, i + 1) if self.left is not None else _NONE
         if k == 0 or self.right_nf[k - 1] < max(first, cut):
+            given_up = clock.given_up_t
+            if given_up != _NEVER and cut < clock.base and (not self.bounded or given_up >= clock.at(i) - self.hi_ns):
+                return UNKNOWN  # a state given up may be a term of the window, and not false
             return FALSE
         return UNKNOWN
 
@@ -626,10 +676,12 @@ class Monitor:
     caller at a time (a unit's callbacks are).
     """
 
-    def __init__(self, formula: str | Formula, *, reorder_ns: int = 0) -> None:
+    def __init__(self, formula: str | Formula, *, reorder_ns: int = 0, max_cells: int = DEFAULT_MAX_CELLS) -> None:
         self.formula = parse(formula) if isinstance(formula, str) else formula
         if reorder_ns < 0:
             raise FormulaError(f"reorder_ns is {reorder_ns}", where="Monitor(reorder_ns=...)", expected="0 or more nanoseconds")
+        if max_cells < 1:
+            raise FormulaError(f"max_cells is {max_cells}", where="Monitor(max_cells=...)", expected="1 or more cells")
         self.reorder_ns = int(reorder_ns)
         #: the terms as the formula writes them, in order of first appearance (push's ``term``)
         self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
@@ -655,8 +707,20 @@ class Monitor:
         self._closed_t = _NEVER
         self._closed = False
         self._trim_from = 0
+        self._given_up = 0
+        self._waiting = [node for node in self._nodes if isinstance(node, _SinceSync)]  # their own count
+        self._max_states = 0
+        self.set_max_cells(max_cells)
         #: samples dropped because they came at or before the last closed state's time
         self.late = 0
+
+    def set_max_cells(self, max_cells: int) -> None:
+        """Keep at most ``max_cells`` cells from now on (a manager shares its monitors' cells out
+        as they come and go): ``max_cells // nodes`` states, and never fewer than :data:`MIN_STATES`."""
+        states = max(MIN_STATES, max_cells // len(self._nodes))
+        self._max_states = states
+        for node in self._nodes:
+            node.max_states = states
 
     # -- building
 
@@ -762,6 +826,9 @@ class Monitor:
         heapq.heappush(buffer, (t_ns, self._arrivals, k, value))
         while buffer and self._ready(buffer[0][0]):
             self._close_first(out)
+        while len(buffer) > self._max_states:  # over the memory bound: close the earliest state early
+            self._given_up += 1
+            self._close_first(out)
         return out
 
     def push_all(self, t_ns: int, values: Sequence[Any]) -> list[Verdict]:
@@ -797,6 +864,9 @@ class Monitor:
             self._arrivals += 1
             heapq.heappush(buffer, (t_ns, self._arrivals, k, value))
         while buffer and self._ready(buffer[0][0]):
+            self._close_first(out)
+        while len(buffer) > self._max_states:
+            self._given_up += 1
             self._close_first(out)
         return out
 
@@ -878,13 +948,25 @@ class Monitor:
             k += 1
         self._trim_from = k
         if k >= 64 and k * 2 >= len(times):
-            del times[:k]
-            for node in self._nodes:
-                del node.vals[:k]
-            clock.base += k
-            self._trim_from = 0
-            for node in self._nodes:
-                node.prune(clock.base)
+            self._drop(k)
+        if len(times) > self._max_states:  # over the memory bound: give up the oldest states
+            k = min(len(times) - self._max_states + self._max_states // 4, len(times) - 1)
+            needed = k - self._trim_from  # (those before _trim_from are older than the formula reads)
+            if needed > 0:
+                clock.given_up_t = times[k - 1]
+                self._given_up += needed
+            self._drop(k)
+
+    def _drop(self, k: int) -> None:
+        """Drop the ``k`` oldest retained states."""
+        clock = self._clock
+        del clock.times[:k]
+        for node in self._nodes:
+            del node.vals[:k]
+        clock.base += k
+        self._trim_from = 0
+        for node in self._nodes:
+            node.prune(clock.base)
 
     # -- introspection
 
@@ -897,6 +979,17 @@ class Monitor:
     def closed_ns(self) -> int | None:
         """The time of the last closed state (samples at or before it are late), or None."""
         return None if self._closed_t == _NEVER else self._closed_t
+
+    @property
+    def given_up(self) -> int:
+        """How many states the memory bound gave up: dropped while the formula still needed them,
+        or closed before the reorder delay passed (see the module documentation)."""
+        return self._given_up + sum(node.given_up for node in self._waiting)
+
+    @property
+    def max_states(self) -> int:
+        """The states (and buffered samples) it keeps at most: its cells over its nodes."""
+        return self._max_states
 
     def retained(self) -> int:
         """How many states (and buffered samples) the monitor keeps: bounded by the formula's

@@ -37,7 +37,13 @@ So unary operators bind tightest, then ``until``/``since``, ``and``, ``or`` and 
   finite upper bound; past ones (``historically``, ``once``, ``since``) may write ``inf``.
 
 A formula's text is bounded (:data:`MAX_FORMULA_CHARS` characters, :data:`MAX_DEPTH` levels of
-nesting), because formulas reach a manager over the network as unit params.
+nesting), because formulas reach a manager over the network as unit params; a chain ``p or q or
+...`` (or ``and``) is read in a loop and counts as one level however long it is. Nothing that
+walks a formula (writing it, comparing, hashing, evaluating, monitoring) recurses in Python, so
+no depth that parses can exhaust the stack. :func:`check_formula` holds a formula to a manager's
+:class:`~dyknow.security.Limits` as well: at most ``max_formula_nodes`` nodes (500), interval
+bounds and a future horizon of at most ``max_window_ns`` (one day); a manager checks every
+formula so before it requests or spawns anything for it.
 
 Parse errors are :class:`~dyknow.errors.FormulaError` with ``where`` = ``formula column N``
 (1-based), saying what came and what was expected there. ``str(formula)`` writes a formula back
@@ -47,10 +53,12 @@ with only the parentheses it needs; parsing that text gives the same tree.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from decimal import Decimal, InvalidOperation
+from typing import TypeVar
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
+from dyknow.security import Limits
 from dyknow.tags import Term, parse_term
 
 __all__ = [
@@ -72,6 +80,7 @@ __all__ = [
     "Or",
     "Since",
     "Until",
+    "check_formula",
     "children",
     "parse",
 ]
@@ -82,8 +91,10 @@ COMPARISONS: tuple[str, ...] = ("<", "<=", ">", ">=", "==", "!=")
 MAX_FORMULA_CHARS: int = 10_000
 """The longest formula text :func:`parse` reads."""
 
-MAX_DEPTH: int = 100
-"""The deepest nesting of operators and parentheses :func:`parse` reads."""
+MAX_DEPTH: int = 64
+"""The deepest nesting of operators and parentheses :func:`parse` reads (``not``, temporal
+operators, ``implies``, which groups to the right, and parentheses; a chain ``p or q or ...``
+is one level however long: it is read in a loop)."""
 
 _NS_PER_S = 1_000_000_000
 
@@ -150,119 +161,114 @@ class Const:
         return "true" if self.value else "false"
 
 
-@dataclass(frozen=True, slots=True)
-class Not:
+class _Operator:
+    """What the operators share: writing, comparing, hashing and ``repr`` walk the tree with a
+    stack of their own, not Python's, so a tree as deep as a long ``p or q or ...`` chain (which
+    nests to the left, one level per ``or``) costs no recursion. The operators' dataclasses keep
+    these (``eq=False, repr=False``)."""
+
+    __slots__ = ()
+
+    def __str__(self) -> str:
+        return _text(self)  # type: ignore[arg-type]  # every subclass is a Node
+
+    def __repr__(self) -> str:
+        return _repr(self)  # type: ignore[arg-type]
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return _same(self, other)  # type: ignore[arg-type]
+
+    def __hash__(self) -> int:
+        return hash((type(self).__name__, _text(self)))  # type: ignore[arg-type]  # the text determines the tree
+
+
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Not(_Operator):
     """``not arg``."""
 
     arg: Node
 
-    def __str__(self) -> str:
-        return f"not {_wrap(self.arg, _UNARY)}"
 
-
-@dataclass(frozen=True, slots=True)
-class And:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class And(_Operator):
     """``left and right``."""
 
     left: Node
     right: Node
 
-    def __str__(self) -> str:
-        return f"{_wrap(self.left, _AND)} and {_wrap(self.right, _BINARY)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Or:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Or(_Operator):
     """``left or right``."""
 
     left: Node
     right: Node
 
-    def __str__(self) -> str:
-        return f"{_wrap(self.left, _OR)} or {_wrap(self.right, _AND)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Implies:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Implies(_Operator):
     """``left implies right``: ``(not left) or right``."""
 
     left: Node
     right: Node
 
-    def __str__(self) -> str:
-        return f"{_wrap(self.left, _OR)} implies {_wrap(self.right, _IMPLIES)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Always:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Always(_Operator):
     """``always[a, b] arg`` (future): ``arg`` at every state between ``a`` and ``b`` from now."""
 
     interval: Interval
     arg: Node
 
-    def __str__(self) -> str:
-        return f"always{self.interval} {_wrap(self.arg, _UNARY)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Eventually:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Eventually(_Operator):
     """``eventually[a, b] arg`` (future): ``arg`` at some state between ``a`` and ``b`` from now."""
 
     interval: Interval
     arg: Node
 
-    def __str__(self) -> str:
-        return f"eventually{self.interval} {_wrap(self.arg, _UNARY)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Historically:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Historically(_Operator):
     """``historically[a, b] arg`` (past): ``arg`` at every state between ``b`` and ``a`` ago."""
 
     interval: Interval
     arg: Node
 
-    def __str__(self) -> str:
-        return f"historically{self.interval} {_wrap(self.arg, _UNARY)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Once:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Once(_Operator):
     """``once[a, b] arg`` (past): ``arg`` at some state between ``b`` and ``a`` ago."""
 
     interval: Interval
     arg: Node
 
-    def __str__(self) -> str:
-        return f"once{self.interval} {_wrap(self.arg, _UNARY)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Until:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Until(_Operator):
     """``left until[a, b] right`` (future)."""
 
     left: Node
     right: Node
     interval: Interval
 
-    def __str__(self) -> str:
-        return f"{_wrap(self.left, _UNARY)} until{self.interval} {_wrap(self.right, _UNARY)}"
 
-
-@dataclass(frozen=True, slots=True)
-class Since:
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Since(_Operator):
     """``left since[a, b] right`` (past)."""
 
     left: Node
     right: Node
     interval: Interval
 
-    def __str__(self) -> str:
-        return f"{_wrap(self.left, _UNARY)} since{self.interval} {_wrap(self.right, _UNARY)}"
-
 
 Node = Atom | Const | Not | And | Or | Implies | Always | Eventually | Historically | Once | Until | Since
 """A node of a formula's syntax tree."""
+
+_N = TypeVar("_N", bound=Node)
 
 _FUTURE = (Always, Eventually, Until)
 
@@ -282,8 +288,88 @@ def _level(node: Node) -> int:
     return _UNARY
 
 
-def _wrap(node: Node, least: int) -> str:
-    return f"({node})" if _level(node) < least else str(node)
+_Piece = str | tuple[Node, int]  # text as is, or a node written at least at a binding strength
+
+
+def _pieces(node: Node) -> list[_Piece]:
+    """How ``node`` is written: its own text around its operands, each with the binding strength
+    it must reach to go without parentheses."""
+    if isinstance(node, Atom | Const):
+        return [str(node)]
+    if isinstance(node, Not):
+        return ["not ", (node.arg, _UNARY)]
+    if isinstance(node, And):
+        return [(node.left, _AND), " and ", (node.right, _BINARY)]
+    if isinstance(node, Or):
+        return [(node.left, _OR), " or ", (node.right, _AND)]
+    if isinstance(node, Implies):
+        return [(node.left, _OR), " implies ", (node.right, _IMPLIES)]
+    if isinstance(node, Until | Since):
+        op = "until" if isinstance(node, Until) else "since"
+        return [(node.left, _UNARY), f" {op}{node.interval} ", (node.right, _UNARY)]
+    return [f"{type(node).__name__.lower()}{node.interval} ", (node.arg, _UNARY)]
+
+
+def _text(root: Node) -> str:
+    """The formula's text with only the parentheses it needs (iteratively: trees may be deep)."""
+    out: list[str] = []
+    stack: list[_Piece] = [(root, 0)]
+    while stack:
+        piece = stack.pop()
+        if isinstance(piece, str):
+            out.append(piece)
+            continue
+        node, least = piece
+        pieces = _pieces(node)
+        if _level(node) < least:
+            pieces = ["(", *pieces, ")"]
+        stack.extend(reversed(pieces))
+    return "".join(out)
+
+
+def _own(node: Node) -> object:
+    """What a node holds besides its operands (compared by value)."""
+    if isinstance(node, Atom | Const):
+        return node
+    if isinstance(node, Not | And | Or | Implies):
+        return None
+    return node.interval
+
+
+def _same(a: Node, b: Node) -> bool:
+    """Whether two trees are equal, node by node (iteratively)."""
+    stack = [(a, b)]
+    while stack:
+        x, y = stack.pop()
+        if x is y:
+            continue
+        if type(x) is not type(y) or _own(x) != _own(y):
+            return False
+        stack.extend(zip(children(x), children(y), strict=True))
+    return True
+
+
+def _repr(root: Node) -> str:
+    """``repr`` as a dataclass writes it, ``And(left=Atom(...), right=...)`` (iteratively)."""
+    out: list[str] = []
+    stack: list[str | Node] = [root]
+    while stack:
+        item = stack.pop()
+        if isinstance(item, str):
+            out.append(item)
+            continue
+        if isinstance(item, Atom | Const):
+            out.append(repr(item))
+            continue
+        names = [f.name for f in fields(item)]
+        pieces: list[str | Node] = [f"{type(item).__name__}("]
+        for k, name in enumerate(names):
+            value = getattr(item, name)
+            pieces.append(("" if k == 0 else ", ") + f"{name}=")
+            pieces.append(repr(value) if isinstance(value, Interval) else value)
+        pieces.append(")")
+        stack.extend(reversed(pieces))
+    return "".join(out)
 
 
 def _number_text(number: float | None) -> str:
@@ -340,6 +426,11 @@ class Formula:
         return _future_horizon(self.root)
 
     @property
+    def nodes(self) -> int:
+        """How many nodes the syntax tree has: atoms, constants and operators."""
+        return len(_walk(self.root))
+
+    @property
     def operators(self) -> int:
         """How many operators (connectives and temporal operators, not atoms) the formula has."""
         return sum(1 for node in _walk(self.root) if not isinstance(node, Atom | Const))
@@ -389,17 +480,53 @@ _FORMULA_START = "a formula: an atom such as Battery(robot) > 0.2, 'not', a temp
 def parse(text: str) -> Formula:
     """Parse a formula; raises :class:`~dyknow.errors.FormulaError` naming the column and what was expected.
 
+    Only the language's own bounds apply (:data:`MAX_FORMULA_CHARS`, :data:`MAX_DEPTH`); a
+    formula from a caller the process does not trust goes through :func:`check_formula`.
+
     >>> str(parse("historically[0,2s](Battery(robot)>0.2)"))
     'historically[0, 2s] Battery(robot) > 0.2'
     """
+    return _parse(text, None, None)
+
+
+def check_formula(formula: str | Formula, limits: Limits | None = None) -> Formula:
+    """Parse ``formula`` and hold it to ``limits`` (:class:`~dyknow.security.Limits`; its
+    defaults when None): what a manager does with every formula before it requests or spawns
+    anything for it. A :class:`Formula` is checked by its text.
+
+    Besides the language's bounds (:func:`parse`), the formula may have at most
+    ``limits.max_formula_nodes`` nodes (atoms, constants and operators), no interval bound beyond
+    ``limits.max_window_ns`` (a past operator may still write ``inf``), and may look at most that
+    far ahead (its future horizon: the upper bounds of nested future operators add up). Raises
+    :class:`~dyknow.errors.FormulaError` located at the column where the formula crosses a bound,
+    naming the bound; nothing else (a deep formula is refused, never a ``RecursionError``).
+
+    >>> check_formula("p implies eventually[0, 2s] q").horizon_ns
+    2000000000
+    >>> check_formula("always[0, 100000000000000000000000000000s] p")
+    Traceback (most recent call last):
+    ...
+    dyknow.errors.FormulaError: formula column 7: 'always[0, 100000000000000000000000000000s]' has the bound ..., beyond the longest window ...; expected bounds of at most 86400s (Limits.max_window_ns)
+    """
+    limits = limits if limits is not None else Limits()
+    text = formula.text if isinstance(formula, Formula) else formula
+    return _parse(text, limits.max_formula_nodes, limits.max_window_ns)
+
+
+def _parse(text: str, max_nodes: int | None, max_window_ns: int | None) -> Formula:
     if not isinstance(text, str):
         raise FormulaError(f"a formula is text, got {type(text).__name__}", where="formula", expected="a str such as 'once[0, 1s] p'")
     if len(text) > MAX_FORMULA_CHARS:
         raise FormulaError(
             f"the formula has {len(text)} characters", where="formula", expected=f"at most {MAX_FORMULA_CHARS}", formula=text[:80] + "..."
         )
-    parser = _Parser(text)
-    root = parser.formula(0)
+    parser = _Parser(text, max_nodes, max_window_ns)
+    try:
+        root = parser.formula(0)
+    except RecursionError:  # a caller already deep in its stack: MAX_DEPTH levels did not fit
+        raise parser.fail(
+            "the formula nests deeper than this thread's stack allows", f"fewer levels of operators and parentheses (at most {MAX_DEPTH})"
+        ) from None
     parser.skip()
     if not parser.at_end():
         hint = did_you_mean(parser.word(), ["and", "or", "implies", "until", "since"])
@@ -410,9 +537,36 @@ def parse(text: str) -> Formula:
 class _Parser:
     """A recursive-descent reader over the text that says where and why it is malformed."""
 
-    def __init__(self, text: str) -> None:
+    def __init__(self, text: str, max_nodes: int | None = None, max_window_ns: int | None = None) -> None:
         self.text = text
         self.pos = 0
+        self.max_nodes = max_nodes
+        self.max_window_ns = max_window_ns
+        self.nodes = 0
+        self.ahead: dict[int, int] = {}  # id(node) -> its future horizon, where not 0 (bounded windows only)
+
+    def made(self, node: _N, column: int) -> _N:
+        """Count a node built from the text at ``column``; refuse it past the bounds."""
+        self.nodes += 1
+        if self.max_nodes is not None and self.nodes > self.max_nodes:
+            raise self.fail(
+                f"the formula has more than {self.max_nodes} nodes",
+                f"at most {self.max_nodes} atoms, constants and operators (Limits.max_formula_nodes)",
+                column=column,
+            )
+        if self.max_window_ns is not None:
+            below = max((self.ahead.get(id(kid), 0) for kid in children(node)), default=0)
+            ahead = below + ((node.interval.hi_ns or 0) if isinstance(node, _FUTURE) else 0)
+            if ahead > self.max_window_ns:
+                op = type(node).__name__.lower()
+                raise self.fail(
+                    f"'{op}' here makes the formula look {_duration_text(ahead)} ahead (the upper bounds of nested future operators add up)",
+                    f"at most {_duration_text(self.max_window_ns)} ahead (Limits.max_window_ns)",
+                    column=column,
+                )
+            if ahead:
+                self.ahead[id(node)] = ahead
+        return node
 
     # -- reading
 
@@ -470,24 +624,36 @@ class _Parser:
         if depth > MAX_DEPTH:
             raise self.fail(f"the formula nests deeper than {MAX_DEPTH} levels", f"at most {MAX_DEPTH} levels of operators and parentheses")
         left = self.disjunction(depth)
+        self.skip()
+        at = self.pos
         if self.keyword("implies"):
-            return Implies(left, self.formula(depth + 1))
+            return self.made(Implies(left, self.formula(depth + 1)), at)
         return left
 
     def disjunction(self, depth: int) -> Node:
         node = self.conjunction(depth)
+        self.skip()
+        at = self.pos
         while self.keyword("or"):
-            node = Or(node, self.conjunction(depth + 1))
+            node = self.made(Or(node, self.conjunction(depth + 1)), at)
+            self.skip()
+            at = self.pos
         return node
 
     def conjunction(self, depth: int) -> Node:
         node = self.binary(depth)
+        self.skip()
+        at = self.pos
         while self.keyword("and"):
-            node = And(node, self.binary(depth + 1))
+            node = self.made(And(node, self.binary(depth + 1)), at)
+            self.skip()
+            at = self.pos
         return node
 
     def binary(self, depth: int) -> Node:
         left = self.unary(depth)
+        self.skip()
+        at = self.pos
         op = self.keyword("until", "since")
         if op is None:
             return left
@@ -498,7 +664,7 @@ class _Parser:
             raise self.fail(
                 f"'{self.word()}' right after '{op}'", "parentheses around one of them: (p until[..] q) until[..] r", column=self.pos
             )
-        return Until(left, right, interval) if op == "until" else Since(left, right, interval)
+        return self.made(Until(left, right, interval) if op == "until" else Since(left, right, interval), at)
 
     def unary(self, depth: int) -> Node:
         if depth > MAX_DEPTH:
@@ -512,22 +678,23 @@ class _Parser:
                 raise self.unexpected("')' closing the '(' before")
             return inner
         chunk = self.word()
+        at = self.pos
         if chunk == "not":
             self.pos += 3
-            return Not(self.unary(depth + 1))
+            return self.made(Not(self.unary(depth + 1)), at)
         if chunk in _UNARY_TEMPORAL:
             self.pos += len(chunk)
             interval = self.interval(chunk, future=chunk in ("always", "eventually"))
-            return _UNARY_TEMPORAL[chunk](interval, self.unary(depth + 1))
+            return self.made(_UNARY_TEMPORAL[chunk](interval, self.unary(depth + 1)), at)
         if chunk in ("true", "false"):
             self.pos += len(chunk)
-            return Const(chunk == "true")
+            return self.made(Const(chunk == "true"), at)
         if chunk in _KEYWORDS:
             raise self.fail(f"unexpected keyword '{chunk}'", _FORMULA_START)
         if chunk and self.text.startswith("[", self.pos + len(chunk)):
             operators = [*_UNARY_TEMPORAL, "until", "since"]
             raise self.fail(f"'{chunk}' is not a temporal operator", "one of " + ", ".join(operators) + did_you_mean(chunk, operators))
-        return self.atom()
+        return self.made(self.atom(), at)
 
     def interval(self, op: str, *, future: bool) -> Interval:
         if not self.char("["):
@@ -546,6 +713,15 @@ class _Parser:
                 f"the interval's lower bound {_duration_text(lo)} is above its upper bound {_duration_text(hi)}",
                 "[a, b] with a <= b",
                 column=lo_at,
+            )
+        longest = self.max_window_ns
+        if longest is not None and max(lo, hi or 0) > longest:
+            opened = self.text.rfind("[", 0, lo_at)
+            raise self.fail(
+                f"{_quote(op + self.text[opened : self.pos])} has the bound {_duration_text(max(lo, hi or 0))}, beyond the longest window",
+                f"bounds of at most {_duration_text(longest)} (Limits.max_window_ns)"
+                + ("" if future else "; a past operator may write inf for no upper bound"),
+                column=opened,
             )
         return Interval(lo, hi)
 

@@ -16,6 +16,18 @@ decided (:mod:`dyknow.reasoning.progression`), as JSON::
 and of the state that decided it), ``state`` the state's index since the unit started. A verdict
 never decided (still unknown when the unit is destroyed) is never published.
 
+**Bounds.** A monitor unit holds its formula to its manager's :class:`~dyknow.security.Limits`
+(:func:`~dyknow.reasoning.check_formula`: nodes, windows, horizon) when it starts, so a formula
+that reached the manager in a spec fails the unit, not the manager. Its memory is bounded by its
+share of the manager's cells (:class:`MonitorBudget`, ``Limits.max_monitor_cells`` over the
+monitors running, re-shared as they come and go; see :mod:`dyknow.reasoning.progression` for what
+is given up past it). A sample whose time, on this host's clock, lies further in the future than
+the clock's uncertainty plus ``Limits.max_future_ns`` is **refused**, counted as a rejection of
+its port (``future: ...``) and in :attr:`FormulaMonitor.future`: taken, it would close every state
+before it, and every later sample would be late, so one sample stamped ten years ahead would
+blind the monitor for good. Outside a manager (:mod:`dyknow.testing`) the defaults of
+:class:`~dyknow.security.Limits` apply.
+
 Gaps: when the stream of a term was re-planned, the manager that runs the monitor tells it
 (:meth:`FormulaMonitor.adapted`, with the adaptation event), and the next verdict says so:
 ``"gap": {"term": "Battery(robot)", "cause": "manager 'robot' was lost"}``.
@@ -40,6 +52,7 @@ Example::
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -48,14 +61,15 @@ from dyknow.clocks import CLOCKS
 from dyknow.errors import FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.progression import Monitor, Verdict
-from dyknow.reasoning.syntax import Formula, parse
+from dyknow.reasoning.syntax import Formula, check_formula, parse
+from dyknow.security import Limits
 from dyknow.spec import Param, Port, Tag, TransformationSpec
 from dyknow.unit import Unit
 
 if TYPE_CHECKING:
     from dyknow.message import Message
 
-__all__ = ["DEFAULT_QUEUE", "VERDICTS_PORT", "FormulaMonitor", "monitor_spec", "term_ports"]
+__all__ = ["DEFAULT_QUEUE", "VERDICTS_PORT", "FormulaMonitor", "MonitorBudget", "monitor_spec", "term_ports"]
 
 VERDICTS_PORT: str = "verdicts"
 """The output port on which a monitor unit publishes its verdicts."""
@@ -116,6 +130,68 @@ def monitor_spec(
     )
 
 
+class MonitorBudget:
+    """What the monitor units of one manager share: its :class:`~dyknow.security.Limits`; the
+    cells ``limits.max_monitor_cells``, divided evenly among the monitors running (each is told
+    its share as monitors join and leave); and at most ``limits.max_monitor_nodes`` formula nodes
+    in all, which bounds what every sample costs the manager. Thread-safe. The manager hands its
+    budget to each :class:`FormulaMonitor` before ``setup()``."""
+
+    def __init__(self, limits: Limits) -> None:
+        self.limits = limits
+        self._lock = threading.Lock()
+        self._monitors: dict[Monitor, int] = {}  # -> its formula's nodes
+        #: the formula nodes of the monitors running
+        self.nodes = 0
+
+    def check(self, formula: Formula) -> None:
+        """:class:`~dyknow.errors.FormulaError` when a monitor of ``formula`` would take the
+        manager's monitors past ``limits.max_monitor_nodes`` (what :meth:`join` checks)."""
+        self._check(formula.nodes, self.nodes)
+
+    def join(self, monitor: Monitor) -> None:
+        """Count ``monitor`` in (:class:`~dyknow.errors.FormulaError` past the nodes' bound);
+        every monitor's share of cells shrinks to fit it."""
+        nodes = monitor.formula.nodes
+        with self._lock:
+            self._check(nodes, self.nodes)
+            self._monitors[monitor] = nodes
+            self.nodes += nodes
+            self._share()
+
+    def leave(self, monitor: Monitor) -> None:
+        """Count ``monitor`` out (safe twice); the others' shares grow."""
+        with self._lock:
+            nodes = self._monitors.pop(monitor, None)
+            if nodes is not None:
+                self.nodes -= nodes
+                self._share()
+
+    def _check(self, nodes: int, held: int) -> None:
+        bound = self.limits.max_monitor_nodes
+        if held + nodes > bound:
+            raise FormulaError(
+                f"the manager's monitors hold {held:,} formula nodes, and this formula has {nodes:,}",
+                where="monitor",
+                expected=f"at most {bound:,} nodes in all (Limits.max_monitor_nodes): release monitors or requirements first",
+            )
+
+    @property
+    def share(self) -> int:
+        """The cells each monitor running may keep now (all of them, when none runs)."""
+        return self.limits.max_monitor_cells // max(1, len(self._monitors))
+
+    @property
+    def running(self) -> int:
+        """How many monitors share the cells."""
+        return len(self._monitors)
+
+    def _share(self) -> None:
+        share = self.share
+        for monitor in self._monitors:
+            monitor.set_max_cells(share)
+
+
 class FormulaMonitor(Unit):
     """A :class:`~dyknow.reasoning.Monitor` as a unit (see the module documentation).
 
@@ -125,13 +201,26 @@ class FormulaMonitor(Unit):
     """
 
     monitor: Monitor
+    _budget: MonitorBudget | None = None
+
+    def use_budget(self, budget: MonitorBudget) -> None:
+        """Take the manager's bounds and share of cells (called by the manager before ``setup()``)."""
+        self._budget = budget
 
     def setup(self) -> None:
-        """Parse the formula, check there is a port per term, start the idle flush if asked for."""
+        """Check the formula against the bounds, check there is a port per term, start the idle
+        flush if asked for, and take a share of the cells."""
         reorder_ms = float(self.params.get("reorder_ms", 0.0))
-        if not reorder_ms >= 0:
-            raise FormulaError(f"reorder_ms is {reorder_ms}", where=f"unit {self.name!r}", expected="0 or more milliseconds")
-        self.monitor = Monitor(str(self.params["formula"]), reorder_ns=round(reorder_ms * 1_000_000))
+        if not 0 <= reorder_ms <= 3_600_000:
+            raise FormulaError(f"reorder_ms is {reorder_ms}", where=f"unit {self.name!r}", expected="0 to 3,600,000 milliseconds")
+        budget = self._budget
+        limits = budget.limits if budget is not None else Limits()
+        formula = check_formula(str(self.params["formula"]), limits)
+        self.monitor = Monitor(formula, reorder_ns=round(reorder_ms * 1_000_000), max_cells=budget.share if budget is not None else limits.max_monitor_cells)
+        self._future_ns = limits.max_future_ns
+        #: samples refused because their time lay in the future (see the module documentation)
+        self.future = 0
+        self._given_up_logged = 0
         self._ports = {f"t{k}": k for k in range(len(self.monitor.terms))}
         bound = self.get_config()
         missing = [f"{port} for {self.monitor.terms[k]}" for port, k in self._ports.items() if port not in bound]
@@ -149,6 +238,13 @@ class FormulaMonitor(Unit):
         self._flush_s = flush_ms / 1000
         if flush_ms > 0:
             self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
+        if budget is not None:
+            budget.join(self.monitor)  # last: a failed setup() has nothing to give back
+
+    def teardown(self) -> None:
+        """Give the monitor's share of cells back."""
+        if self._budget is not None:
+            self._budget.leave(self.monitor)
 
     def listen(self, callback: Callable[[Verdict], None]) -> None:
         """Call ``callback(verdict)`` for every verdict from now on, on the unit's thread (it must return at once)."""
@@ -165,6 +261,17 @@ class FormulaMonitor(Unit):
                 self.unknown_clock += 1
             else:
                 t_ns -= offset
+        now = time.time_ns()
+        if t_ns > now + self._future_ns:
+            ahead = t_ns - now - (CLOCKS.uncertainty(msg.origin_clock) or 0)
+            if ahead > self._future_ns:
+                self.future += 1
+                self.reject(
+                    port,
+                    f"future: a sample at {t_ns} ns, {ahead / 1e9:.6g} s ahead of this host's clock beyond its uncertainty "
+                    f"(at most {self._future_ns / 1e6:g} ms are taken)",
+                )
+                return
         verdicts = monitor.push_index(self._ports[port], t_ns, msg.payload)
         if monitor.late != late:  # (expected when a term's producer was switched, or hosts interleave)
             self.reject(
@@ -175,6 +282,20 @@ class FormulaMonitor(Unit):
         self._last_sample = time.monotonic()
         for verdict in verdicts:
             self._publish(verdict)
+        if monitor.states & 1023 == 0:
+            self._report_given_up()
+
+    def _report_given_up(self) -> None:
+        """Log, now and then (at 1, 10, 100, ... states), that the memory bound gave states up."""
+        given_up = self.monitor.given_up
+        if given_up > self._given_up_logged:
+            self._given_up_logged = 10 ** len(str(given_up))
+            self.log.warning(
+                "the memory bound gave up %d states so far (%d kept at most: its share of the manager's cells, "
+                "Limits.max_monitor_cells): the verdicts that needed them stay unknown",
+                given_up,
+                self.monitor.max_states,
+            )
 
     def _publish(self, verdict: Verdict, origin_ns: int | None = None) -> None:
         out = verdict.to_json()

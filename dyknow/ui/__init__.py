@@ -13,10 +13,8 @@ import asyncio
 import signal
 from collections.abc import Callable
 
-from aiohttp import web
-
 from dyknow.client import Client
-from dyknow.ui.server import ModelWatch, check_bind, make_app
+from dyknow.ui.server import ModelWatch, check_bind, make_app, serve
 
 __all__ = ["run_ui"]
 
@@ -27,11 +25,8 @@ def run_ui(client: Client, *, host: str = "127.0.0.1", port: int = 8321, token: 
 
     async def main() -> None:
         with ModelWatch(client) as watch:
-            runner = web.AppRunner(make_app(client, watch, token=token, bind=host), handle_signals=False, shutdown_timeout=1.0)
-            await runner.setup()
-            site = web.TCPSite(runner, host, port)
-            await site.start()
-            bound = runner.addresses[0][1] if runner.addresses else port
+            runner, server = await serve(make_app(client, watch, token=token, bind=host), host, port)
+            bound = server.sockets[0].getsockname()[1] if server.sockets else port
             shown = f"[{host}]" if ":" in host else host
             ready(f"http://{shown}:{bound}/" + (f"?token={token}" if token else ""))
             stop = asyncio.Event()
@@ -39,6 +34,7 @@ def run_ui(client: Client, *, host: str = "127.0.0.1", port: int = 8321, token: 
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
             await stop.wait()
+            server.close()
             await runner.cleanup()
 
     asyncio.run(main())

@@ -37,6 +37,12 @@ page the operator opens in the same browser must not drive the tool. So, whateve
   ``application/x-www-form-urlencoded`` post is refused).
 
 Each refusal is a 403 (415 for the content type) whose JSON says what was refused and why.
+
+Connections cost a socket each, so they are bounded too (:func:`serve`): a connection that has not
+sent a whole request head within :data:`~dyknow.webguard.HEAD_TIMEOUT_S` (5 s, as the Foxglove
+guard waits), or stays that long idle between requests, is closed; a call's body must arrive
+within :data:`BODY_TIMEOUT_S`; and at most :data:`MAX_CONNECTIONS` are open at once (open pages'
+event streams and views included): one more is answered 503 and closed.
 """
 
 from __future__ import annotations
@@ -64,9 +70,9 @@ from dyknow.message import Message, describe_payload
 from dyknow.security import is_loopback
 from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
 from dyknow.transport import check_key_expr
-from dyknow.webguard import foreign, host_name, served_hosts
+from dyknow.webguard import HEAD_TIMEOUT_S, foreign, host_name, served_hosts
 
-__all__ = ["MAX_CALL_BYTES", "MAX_STREAMS", "MAX_VERDICT_KEYS", "ModelWatch", "check_bind", "make_app"]
+__all__ = ["BODY_TIMEOUT_S", "MAX_CALL_BYTES", "MAX_CONNECTIONS", "MAX_STREAMS", "MAX_VERDICT_KEYS", "ModelWatch", "check_bind", "make_app", "serve"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +82,8 @@ _MAX_JSON_CHARS = 64 << 10  # larger JSON payloads are described, not shown
 MAX_STREAMS = 16  # streams watched at once (each is a Zenoh subscriber and JPEG encoding)
 _MAX_STATS_UNITS = 1000  # units whose statistics are asked each round
 MAX_VERDICT_KEYS = 32  # verdict streams followed at once (monitors' and requirements')
+MAX_CONNECTIONS = 256  # open at once, whatever they are doing
+BODY_TIMEOUT_S = 10.0  # for a call's body to arrive once its head has
 _VERDICTS_KEPT = 300  # the latest verdicts of each, for the page's timeline
 
 
@@ -301,7 +309,11 @@ def make_app(client: Client, watch: ModelWatch, *, token: str | None = None, bin
         if request.content_length is not None and request.content_length > MAX_CALL_BYTES:
             return _refused("RequestError", f"a request of {request.content_length} bytes; expected at most {MAX_CALL_BYTES}", 413)
         try:
-            body = json.loads(await request.content.read(MAX_CALL_BYTES + 1))
+            data = await asyncio.wait_for(request.content.read(MAX_CALL_BYTES + 1), BODY_TIMEOUT_S)
+        except TimeoutError:
+            return _refused("RequestError", f"the call's body did not arrive within {BODY_TIMEOUT_S:g} s", 408)
+        try:
+            body = json.loads(data)
             manager, service = str(body["manager"]), str(body["service"])
             unit = body.get("unit")
             payload = body.get("request", {})
@@ -356,6 +368,55 @@ def make_app(client: Client, watch: ModelWatch, *, token: str | None = None, bin
     app.router.add_post("/api/call", call)
     app.router.add_static("/static/", STATIC)
     return app
+
+
+async def serve(app: web.Application, host: str, port: int) -> tuple[web.AppRunner, asyncio.Server]:
+    """Serve ``app`` on ``host``:``port`` (0: any free port) with the connection bounds of the
+    module documentation; returns the runner and the listening server (its ``sockets`` say the
+    port). To stop: close the server, then ``await runner.cleanup()``."""
+    runner = web.AppRunner(app, handle_signals=False, shutdown_timeout=1.0, keepalive_timeout=HEAD_TIMEOUT_S)
+    await runner.setup()
+    handlers = runner.server
+    assert handlers is not None  # (set up just now)
+    try:
+        server = await asyncio.get_running_loop().create_server(_Bounded(handlers, MAX_CONNECTIONS), host, port)
+    except BaseException:
+        await runner.cleanup()
+        raise
+    return runner, server
+
+
+class _Bounded:
+    """The protocol factory of :func:`serve`: aiohttp's handler for each connection while fewer
+    than ``limit`` are open, a :class:`_Busy` one beyond. (aiohttp closes a connection that has not
+    sent a request head within its ``keepalive_timeout``, which it starts as the connection opens.)"""
+
+    def __init__(self, handlers: web.Server, limit: int) -> None:
+        self._handlers = handlers
+        self._limit = limit
+        self._accepting = 0  # made here, not yet counted by aiohttp (it counts them in connection_made)
+
+    def __call__(self) -> asyncio.BaseProtocol:
+        if len(self._handlers.connections) + self._accepting >= self._limit:
+            return _Busy()
+        self._accepting += 1
+        # runs just before the connection's connection_made, which the transport schedules next
+        asyncio.get_running_loop().call_soon(self._accepted)
+        return self._handlers()
+
+    def _accepted(self) -> None:
+        self._accepting -= 1
+
+
+class _Busy(asyncio.Protocol):
+    """A connection over :data:`MAX_CONNECTIONS`: answered 503 and closed."""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        body = f"the tool has {MAX_CONNECTIONS} connections open, its most; close some pages or views\n".encode()
+        transport.write(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nConnection: close\r\n"
+                        + f"Content-Length: {len(body)}\r\n\r\n".encode() + body)  # fmt: skip
+        transport.close()
 
 
 class _Latest:
