@@ -55,6 +55,7 @@ from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
+from dyknow.reasoning.syntax import Formula, check_formula
 from dyknow.reasoning.unit import FormulaMonitor, MonitorBudget
 from dyknow.receiver import Receiver
 from dyknow.ros2.binding import is_ros2, parse_binding
@@ -245,6 +246,7 @@ class Manager:
             individuals=self._individuals if self.ontology is not None else None,
             max_expansions=self.limits.max_expansions,
             limits=self.limits,
+            budget=self._monitor_budget.check,
         )
         self._adaptation.on_event(lambda event: self._monitors.adapted(event.key, event.cause) if event.kind == "adapted" else None)
         self._measurement_subs = []
@@ -866,6 +868,14 @@ class Manager:
         info = self._monitors.add(formula, reorder_ms=reorder_ms, owner=owner, readable=self._reader(owner))
         self.changed()
         return info.key
+
+    def check_formula(self, formula: str) -> Formula:
+        """``formula`` parsed and held to this manager's bounds (:func:`~dyknow.reasoning.check_formula`)
+        and to the formula nodes its monitors may still take; :class:`~dyknow.errors.FormulaError`
+        otherwise. Requests, requirements and monitors call it before they request anything."""
+        parsed = check_formula(formula, self.limits)
+        self._monitor_budget.check(parsed)
+        return parsed
 
     def _reader(self, owner: Owner) -> Callable[[str], None] | None:
         """A check that ``owner`` may read the stream of a tag (its request's key), on a manager

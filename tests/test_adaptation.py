@@ -19,6 +19,7 @@ from dyknow import Client, Library, Manager, Message, Ontology, Port, Tag, Trans
 from dyknow.adaptation import ANCHOR_LABEL, AdaptationEvent, AdaptationLoop, DeadlinePort, Knowledge, Monitor, RequestAnchor, Symptom
 from dyknow.errors import PlanningError
 from dyknow.federation import Summary, SummaryUnit
+from dyknow.reasoning import Formula, check_formula
 from dyknow.testing import CAMERA_IDS, SCENARIO_SPECS, Camera, Sink, Tracker
 from tests.conftest import REPO, subprocess_env, wait_until
 
@@ -348,6 +349,9 @@ class StandInRuntime:
 
     def changed(self) -> None:
         pass
+
+    def check_formula(self, formula: str) -> Formula:
+        return check_formula(formula)
 
     def fail(self, name: str, loop: AdaptationLoop) -> None:
         info = self.table[name]

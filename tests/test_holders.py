@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from dyknow import AccessError, Client, Manager, PlanningError, ServiceError
+from dyknow import AccessError, Client, FormulaError, Manager, PlanningError, ServiceError
 from dyknow.testing import SCENARIO_SPECS
 from tests.conftest import REPO, run_cli, subprocess_env, wait_until
 
@@ -175,8 +175,15 @@ def test_a_failed_call_leaves_nothing_behind(manager: Manager) -> None:
         for _ in range(5):
             with pytest.raises(PlanningError, match="Unheard"):
                 client.request(TAG, require=[f"{TAG}.x > 0", "Unheard(x) > 0"])
+        deep = " or ".join(f"P > {i}" for i in range(830))  # the report's 830-deep chain (9,010 characters)
+        for _ in range(5):
+            with pytest.raises(FormulaError, match="nodes"):
+                client.request(TAG, require=[deep])
+            with pytest.raises(FormulaError, match="nodes"):
+                client.monitor(deep)
         held = _request(manager)
         assert held is not None and held["references"] == 1 and held["requirements"] == [] and {u.name for u in manager.units()} == units
+        assert manager.monitors() == []
         assert client.release(key) == 0
 
 

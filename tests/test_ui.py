@@ -65,6 +65,22 @@ def wait_text(driver: Any, element_id: str, text: str, timeout_s: float = 10.0) 
     WebDriverWait(driver, timeout_s).until(lambda d: text in d.find_element("id", element_id).text, f"{text!r} in #{element_id}")
 
 
+def choose(driver: Any, element_id: str, value: str) -> None:
+    """Select ``value`` in the select ``element_id``, again if the page re-rendered its options
+    meanwhile (it refreshes them from the model, keeping the selection: a found option may be gone)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.support.ui import Select
+
+    def chosen() -> bool:
+        try:
+            Select(driver.find_element("id", element_id)).select_by_value(value)
+            return bool(driver.find_element("id", element_id).get_attribute("value") == value)
+        except StaleElementReferenceException:
+            return False
+
+    wait_until(chosen, f"{value!r} chosen in #{element_id}")
+
+
 def tab(driver: Any, name: str) -> None:
     driver.find_element("css selector", f"nav button[data-tab={name}]").click()
 
@@ -88,7 +104,6 @@ def test_the_active_panel_lists_units_as_text_and_follows_the_cli(ui: Callable[.
 
 
 def test_create_connect_and_destroy_from_the_page(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
-    from selenium.webdriver.support.ui import Select
 
     manager, url = ui()
     manager.spawn("relay", "r1")
@@ -96,7 +111,7 @@ def test_create_connect_and_destroy_from_the_page(ui: Callable[..., tuple[Manage
     wait_text(browser, "units", "r1")
 
     tab(browser, "create")
-    Select(browser.find_element("id", "create-label")).select_by_value("relay")
+    choose(browser, "create-label", "relay")
     browser.find_element("id", "create-name").send_keys("made-in-page")
     browser.find_element("css selector", "#create-form button[type=submit]").click()
     wait_text(browser, "message", "created made-in-page")
@@ -104,12 +119,12 @@ def test_create_connect_and_destroy_from_the_page(ui: Callable[..., tuple[Manage
     shot(browser, "create")
 
     tab(browser, "connect")
-    wait_until(lambda: len(Select(browser.find_element("id", "connect-to")).options) >= 2, "the ports listed")
+    wait_until(lambda: len(browser.find_elements("css selector", "#connect-to option")) >= 2, "the ports listed")
     compact = (",", ":")  # as the page's JSON.stringify writes the options' values
     out = json.dumps({"manager": manager.name, "unit": "r1", "port": "out", "key": f"dyknow/{manager.name}/r1/out"}, separators=compact)
     into = json.dumps({"manager": manager.name, "unit": "made-in-page", "port": "in", "key": f"dyknow/{manager.name}/made-in-page/in"}, separators=compact)
-    Select(browser.find_element("id", "connect-from")).select_by_value(out)
-    Select(browser.find_element("id", "connect-to")).select_by_value(into)
+    choose(browser, "connect-from", out)
+    choose(browser, "connect-to", into)
     browser.find_element("css selector", "#connect-form button[type=submit]").click()
     wait_text(browser, "message", "now reads")
     assert manager.get_config("made-in-page")["in"] == f"dyknow/{manager.name}/r1/out"

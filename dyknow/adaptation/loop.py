@@ -24,7 +24,7 @@ from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import AccessError, DyKnowError, PlanningError, UnitError
 from dyknow.model import LOCAL, Owner, RequestInfo, UnitEvent, check_standby
 from dyknow.reasoning.progression import Verdict
-from dyknow.reasoning.syntax import Formula, parse
+from dyknow.reasoning.syntax import Formula
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
 from dyknow.tags import parse_term
 
@@ -94,7 +94,7 @@ class AdaptationLoop:
         runtime = self.runtime
         canonical = str(parse_term(tag))
         key = keys.request_key(runtime.name, canonical)
-        formulas = [parse(text) for text in require]
+        formulas = [runtime.check_formula(text) for text in require]  # (bounded before anything is requested)
         texts = tuple(dict.fromkeys(str(f) for f in formulas))
         if readable is not None:
             readable(canonical)
@@ -213,7 +213,7 @@ class AdaptationLoop:
         for (ref, text), label in wanted.items():
             if (ref, text) not in request.spec_watches:
                 try:
-                    request.spec_watches[(ref, text)] = self._spec_watch(request, ref, label, parse(text))
+                    request.spec_watches[(ref, text)] = self._spec_watch(request, ref, label, self.runtime.check_formula(text))
                 except DyKnowError as exc:
                     log.warning("cannot watch the requirement %r of %s for %s: %s", text, label, request.tag, exc)
 

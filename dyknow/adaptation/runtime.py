@@ -13,6 +13,7 @@ from dyknow.federation import Summary
 from dyknow.library import Library
 from dyknow.model import UnitInfo
 from dyknow.ontology import Ontology
+from dyknow.reasoning.syntax import Formula
 from dyknow.spec import TransformationSpec
 from dyknow.unit import Unit
 
@@ -108,6 +109,11 @@ class Runtime(Protocol):
 
     def set_config_on(self, manager: str, name: str, bindings: Mapping[str, str]) -> None:
         """Rebind ports of a unit on ``manager``."""
+        ...
+
+    def check_formula(self, formula: str) -> Formula:
+        """``formula`` parsed and held to the manager's bounds, and to what its monitors may
+        still take (:class:`~dyknow.errors.FormulaError` otherwise), before anything is requested."""
         ...
 
     def changed(self) -> None:

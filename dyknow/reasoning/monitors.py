@@ -77,7 +77,8 @@ class Monitors:
 
     It acts on the manager through the callables it is given: ``request(tag) -> key`` and
     ``release(key)`` (the manager's requests), ``spawn(spec, name, bindings)``, ``destroy(name)``
-    and ``unit(name)`` (its units), and ``individuals(class_ref)`` (its ontology; None without one).
+    and ``unit(name)`` (its units), ``individuals(class_ref)`` (its ontology; None without one),
+    and ``budget(*formulas)``, which raises when its monitors could not take the formulas.
     """
 
     def __init__(
@@ -92,6 +93,7 @@ class Monitors:
         individuals: Callable[[str], Sequence[str]] | None,
         max_expansions: int,
         limits: Limits | None = None,
+        budget: Callable[..., None] | None = None,
     ) -> None:
         self.manager = manager
         self._request = request
@@ -102,6 +104,7 @@ class Monitors:
         self._individuals = individuals
         self._max_expansions = max_expansions
         self._limits = limits  # the bounds every formula is held to before anything is requested
+        self._budget = budget  # budget(*formulas): raises when the manager's monitors could not take them
         self._lock = threading.Lock()
         self._by_key: dict[str, MonitorInfo] = {}
         self._serial = itertools.count(1)
@@ -119,6 +122,8 @@ class Monitors:
         if not isinstance(reorder_ms, int | float) or not reorder_ms >= 0 or reorder_ms > 3_600_000:
             raise UnitError(f"reorder_ms {reorder_ms!r}", where="monitor", expected="0 to 3,600,000 milliseconds")
         expansions = expand(formula, self._individuals, max_expansions=self._max_expansions, limits=self._limits)
+        if self._budget is not None:
+            self._budget(*(parsed for _, parsed in expansions))
         if readable is not None:
             for text in dict.fromkeys(str(term) for _, parsed in expansions for term in parsed.terms):
                 readable(text)

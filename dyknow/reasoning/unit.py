@@ -144,10 +144,10 @@ class MonitorBudget:
         #: the formula nodes of the monitors running
         self.nodes = 0
 
-    def check(self, formula: Formula) -> None:
-        """:class:`~dyknow.errors.FormulaError` when a monitor of ``formula`` would take the
+    def check(self, *formulas: Formula) -> None:
+        """:class:`~dyknow.errors.FormulaError` when monitors of ``formulas`` would take the
         manager's monitors past ``limits.max_monitor_nodes`` (what :meth:`join` checks)."""
-        self._check(formula.nodes, self.nodes)
+        self._check(sum(f.nodes for f in formulas), self.nodes)
 
     def join(self, monitor: Monitor) -> None:
         """Count ``monitor`` in (:class:`~dyknow.errors.FormulaError` past the nodes' bound);
