@@ -539,6 +539,7 @@ class Executor:
         Worker(self.shared).start()
         self._stop = threading.Event()
         self._poke = threading.Event()  # wakes a dozing watchdog (set by close, too)
+        self.keep_measuring = False  # the watchdog never sleeps (it polls slowly when idle): load is being shed
         self.dozing = False  # the watchdog polls slowly: the shared lane was idle
         self.sleeping = False  # the watchdog waits to be woken: the shared lane sleeps, without timers
         self._watchdog = threading.Thread(target=self._watch, name=f"dyknow-{name}-watchdog", daemon=True)
@@ -730,7 +731,7 @@ class Executor:
         Where the platform cannot tell, every tick counts. It also measures the load (see
         :class:`Load`) every :data:`LOAD_WINDOW_S` while it is awake.
         """
-        interval_s = max(0.001, self.stall_budget_ns / 4e9)
+        interval_s = min(LOAD_WINDOW_S / 2, max(0.001, self.stall_budget_ns / 4e9))  # (a long budget: the load is still read)
         interval_ns = int(interval_s * 1e9)
         watched: tuple[int, object] | None = None
         evidence_ns = 0
@@ -747,7 +748,7 @@ class Executor:
             if pause_s >= _IDLE_POLL_S:
                 self.sleeping = True  # before reading the worker's state: see Worker._serve
                 worker = shared.worker
-                if worker is not None and not worker.active and shared.next_due_ns == _NEVER:
+                if worker is not None and not worker.active and shared.next_due_ns == _NEVER and not self.keep_measuring:
                     timeout_s = None
                     load_at = self._measure(load_at, final=True, probe=False)  # the last reading before it sleeps
                 else:

@@ -45,7 +45,7 @@ from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, Ad
 from dyknow.bus import LocalBus
 from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
-from dyknow.executor import Executor
+from dyknow.executor import DEFAULT_MAX_LANES, Executor
 from dyknow.federation import STOPPED, Directory, Summary, SummaryUnit
 from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.identity import Caller, Signer, Verifier
@@ -53,6 +53,7 @@ from dyknow.library import Library
 from dyknow.message import CLOCK_ID
 from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
+from dyknow.overload import DEFAULT_LAG_BUDGET_S, OverloadGuard, OverloadState, describe
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.receiver import Receiver
@@ -80,7 +81,11 @@ class Manager:
     nothing); ``zenoh_config``: a json5 Zenoh configuration file to join a real deployment instead.
     ``serve``: declare the Zenoh services so other processes can call this manager.
     ``queue_depth``: the input queue size of ports whose spec sets none. ``stall_budget_s`` and
-    ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`).
+    ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`);
+    ``max_lanes``: the most threads the manager runs units on, whatever the load (units that ask
+    for a thread of their own aside). ``overload_lag_s``: how long a message may wait for its
+    unit's turn before the manager counts as overloaded and sheds its least important work (see
+    :mod:`dyknow.overload`).
     ``dwell_s``: how long a request keeps a configuration before switching for a better one.
 
     Where units' code comes from: an installed package, ``PYTHONPATH``, or a module or package
@@ -120,6 +125,8 @@ class Manager:
         queue_depth: int = DEFAULT_QUEUE_DEPTH,
         stall_budget_s: float = 0.02,
         slow_callback_s: float = 0.002,
+        max_lanes: int = DEFAULT_MAX_LANES,
+        overload_lag_s: float = DEFAULT_LAG_BUDGET_S,
         dwell_s: float = DEFAULT_DWELL_S,
         allow_sources: Iterable[str] = (),
         code_paths: Iterable[str | os.PathLike[str]] = (),
@@ -227,7 +234,17 @@ class Manager:
         self._clocks: clocks.ClockTracker | None = None  # the peers' clock offsets (dyknow.clocks)
         self._bus = LocalBus()
         self._receiver = Receiver(self._session, self.name)
-        self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
+        self._guard = OverloadGuard(
+            self.name,
+            lag_budget_s=overload_lag_s,
+            priorities=self._shed_priorities,
+            apply=self._apply_shed,
+            on_change=self._overload_changed,
+            clock_ns=time.time_ns,
+        )
+        self._executor = Executor(
+            name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s, max_lanes=max_lanes, on_load=self._guard.reading
+        )
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._workers: service.Workers | None = None
         self._holders: Holders | None = None
@@ -746,6 +763,7 @@ class Manager:
         counts["subscribers"] = len(self._receiver)
         counts["routes"] = self._receiver.routes()
         counts["lanes"] = self._executor.lanes()
+        counts["shed_units"] = sum(1 for p in list(self._units.values()) if p.shed)
         counts["timers"] = self._executor.timers()
         counts["watched_deadlines"] = self._adaptation.monitor.watched()
         return counts
@@ -970,7 +988,75 @@ class Manager:
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
         lost = self._directory.lost() if self._directory is not None else {}
         gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone)
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone, self.load())
+
+    # ------------------------------------------------------------------ load (dyknow.executor, dyknow.overload)
+
+    def load(self) -> dict[str, Any]:
+        """How the manager keeps up: its lanes (kind, units, busy fraction, lag, queue, whether
+        its thread is stuck), the bound on them, and its overload state (``"ok"`` or
+        ``"overloaded"``, with what it sheds). The JSON form; the model's ``executor``."""
+        executor = self._executor
+        return {
+            "max_lanes": executor.max_lanes,
+            "threads": executor.threads(),
+            "lanes": [lane.to_dict() for lane in executor.lane_infos()],
+            "overload": self._guard.state.to_dict(),
+        }
+
+    @property
+    def overload(self) -> OverloadState:
+        """The manager's overload state now (see :mod:`dyknow.overload`)."""
+        return self._guard.state
+
+    def _shed_priorities(self) -> list[tuple[str, int]]:
+        """Every unit that may be shed, with its priority: its spec's, or that of a more important
+        request it serves (the most important transformation of the request's configuration)."""
+        with self._lock:
+            proxies = [p for p in self._units.values() if not p.protected]
+        boost: dict[str, int] = {}
+        by_key: dict[str, int] = {}
+        for info in self._adaptation.requests():
+            found = [self.library.get(label).priority for label in info.labels if label in self.library]
+            if not found:
+                continue
+            best = min(found)
+            by_key[info.key] = best
+            for unit in (*info.units, *info.standby):
+                boost[unit] = min(best, boost.get(unit, best))
+        out = []
+        for proxy in proxies:
+            priority = proxy.spec.priority
+            if proxy.label == ANCHOR_LABEL:
+                priority = by_key.get(proxy.get_config().get("out", ""), priority)
+            out.append((proxy.name, min(priority, boost.get(proxy.name, priority))))
+        return out
+
+    def _apply_shed(self, shed: Mapping[int, int]) -> int:
+        """Run the units of each priority in ``shed`` at that setting, every other one at full rate."""
+        priorities = dict(self._shed_priorities()) if shed else {}
+        with self._lock:
+            proxies = list(self._units.values())
+        slowed = 0
+        for proxy in proxies:
+            setting = shed.get(priorities[proxy.name], 0) if proxy.name in priorities else 0
+            proxy.shed = setting
+            slowed += setting != 0
+        return slowed
+
+    def _overload_changed(self, state: OverloadState, entered: bool | None) -> None:
+        """The guard changed the state (on the watchdog's thread): one log line, an event."""
+        self._executor.keep_measuring = self._guard.shedding
+        if entered is True:
+            log.warning("manager %r is %s", self.name, describe(state))
+        elif entered is False:
+            log.info("manager %r keeps up again: %s", self.name, describe(state))
+        else:
+            log.info("manager %r: %s", self.name, describe(state))
+        try:
+            self.publish_event("overload", state.to_dict())
+        except DyKnowError as exc:
+            log.debug("overload event of manager %r not published: %s", self.name, exc)
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
@@ -1103,6 +1189,7 @@ class Manager:
             "measure": self._serve_measure,
             "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
             "get_summary": lambda r, c: self.summary().to_dict(),
+            "get_load": lambda r, c: self.load(),
         }
 
     def _serve_model(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
