@@ -21,6 +21,7 @@ Usage::
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import importlib
 import importlib.machinery
@@ -71,6 +72,8 @@ from dyknow.unit import Unit
 __all__ = ["Manager"]
 
 log = logging.getLogger(__name__)
+
+_UNIT_LOG = 4096  # changes of units remembered (unit_changes); a reader further behind reads them all
 
 
 class Manager:
@@ -174,6 +177,9 @@ class Manager:
         self._queue_depth = queue_depth
         self._lock = threading.RLock()
         self._units: dict[str, Proxy] = {}
+        # which units changed, and when (a version each): what the adaptation loop's index reads
+        self._unit_version = 0
+        self._unit_log: collections.deque[tuple[int, str]] = collections.deque(maxlen=_UNIT_LOG)
         self._deadlines: dict[str, Proxy] = {}  # the units with deadline-ms outputs (the monitor watches them)
         self._starting: dict[str, threading.Lock] = {}  # units being spawned: held until spawn returns
         self._closed = False
@@ -650,6 +656,7 @@ class Manager:
             if any(port.deadline_ms for port in spec.outputs):
                 self._deadlines[name] = proxy
         proxy.start()
+        self._unit_changed(name)
         if self._closed:  # closed while it started: close() did not see it
             proxy.stop(0.5)
             self._check_open()
@@ -684,6 +691,7 @@ class Manager:
                 )
             del self._units[name]
             self._deadlines.pop(name, None)
+            self._unit_changed(name)
         proxy.stop()
         log.info("unit %r destroyed", name)
         self._emit("destroyed", proxy)
@@ -695,13 +703,43 @@ class Manager:
                 return
             del self._units[proxy.name]
             self._deadlines.pop(proxy.name, None)
+            self._unit_changed(proxy.name)
         proxy.stop()
         log.info("unit %r destroyed itself", proxy.name)
         self._emit("destroyed", proxy)
         self._drop_companions(proxy.name)
 
     def _unit_failed(self, proxy: Proxy) -> None:
+        self._unit_changed(proxy.name)
         self._emit("failed", proxy)
+
+    def _unit_changed(self, name: str) -> None:
+        with self._lock:
+            self._unit_version += 1
+            self._unit_log.append((self._unit_version, name))
+
+    def unit_changes(self, since: int) -> tuple[int, list[str] | None]:
+        """The version of the units now, and the names of those spawned, destroyed, rebound or
+        failed after version ``since`` (None when the log no longer reaches back that far: read
+        :meth:`units` again). What the adaptation loop's index follows."""
+        with self._lock:
+            version = self._unit_version
+            if since == version:
+                return version, []
+            changes = self._unit_log
+            if since < 0 or since > version or not changes or changes[0][0] > since + 1:
+                return version, None
+            names: list[str] = []
+            for serial, name in reversed(changes):
+                if serial <= since:
+                    break
+                names.append(name)
+        return version, list(dict.fromkeys(names))
+
+    def unit_info(self, name: str) -> UnitInfo | None:
+        """Unit ``name`` as :meth:`units` shows it; None when it does not run."""
+        proxy = self._units.get(name)
+        return _info(proxy) if proxy is not None else None
 
     def on_unit_event(self, listener: Callable[[UnitEvent], None]) -> Callable[[], None]:
         """Call ``listener(event)`` whenever a unit is spawned, fails or is destroyed.
@@ -1072,14 +1110,20 @@ class Manager:
         with self._lock:
             wired = [port for port in bindings if (name, port) in self._ros2_ports] if isinstance(bindings, Mapping) else []
         if not ros2 and not wired:
-            return proxy.set_config(bindings)
+            try:
+                return proxy.set_config(bindings)
+            finally:
+                self._unit_changed(name)
         # A port rewired to or from ROS 2 is not switched atomically: its old companion goes first.
         plan = self._ros2_plan(proxy.spec, name, ros2)
         self._drop_companions(name, wired)
         self._start_companions(name, plan)
         plain = {port: key for port, key in bindings.items() if port not in ros2}
         plain.update((port, key) for port, (_, _, key, _) in plan.items())
-        return self._shown(name, proxy.set_config(plain))
+        try:
+            return self._shown(name, proxy.set_config(plain))
+        finally:
+            self._unit_changed(name)
 
     def get_statistics(self, name: str) -> UnitStatistics:
         """Uptime, reconfigurations, per-port messages, bytes, drops and latency of unit ``name``."""
