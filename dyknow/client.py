@@ -571,6 +571,11 @@ class Client:
         """Every adaptation the manager made so far, oldest first (JSON form of its events)."""
         return list(self._manager("get_adaptations", {}))
 
+    def get_load(self) -> dict[str, Any]:
+        """How the manager keeps up: its lanes (threads), their units and how busy each is, and
+        its overload state (see :meth:`dyknow.manager.Manager.load`)."""
+        return dict(self._manager("get_load", {}))
+
     # ------------------------------------------------------------------ every manager
 
     def manager_names(self, timeout_s: float = 1.0) -> list[str]:

@@ -21,6 +21,7 @@ Usage::
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import importlib
 import importlib.machinery
@@ -45,7 +46,7 @@ from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, Ad
 from dyknow.bus import LocalBus
 from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
-from dyknow.executor import Executor
+from dyknow.executor import DEFAULT_MAX_LANES, Executor
 from dyknow.federation import STOPPED, Directory, Summary, SummaryUnit
 from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.identity import Caller, Signer, Verifier
@@ -53,6 +54,7 @@ from dyknow.library import Library
 from dyknow.message import CLOCK_ID
 from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
+from dyknow.overload import DEFAULT_LAG_BUDGET_S, OverloadGuard, OverloadState, describe
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.reasoning.syntax import Formula, check_formula
@@ -73,6 +75,8 @@ __all__ = ["Manager"]
 
 log = logging.getLogger(__name__)
 
+_UNIT_LOG = 4096  # changes of units remembered (unit_changes); a reader further behind reads them all
+
 
 class Manager:
     """Spawns units from transformation specs and serves the DyKnow services. A context manager.
@@ -82,7 +86,11 @@ class Manager:
     nothing); ``zenoh_config``: a json5 Zenoh configuration file to join a real deployment instead.
     ``serve``: declare the Zenoh services so other processes can call this manager.
     ``queue_depth``: the input queue size of ports whose spec sets none. ``stall_budget_s`` and
-    ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`).
+    ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`);
+    ``max_lanes``: the most threads the manager runs units on, whatever the load (units that ask
+    for a thread of their own aside). ``overload_lag_s``: how long a message may wait for its
+    unit's turn before the manager counts as overloaded and sheds its least important work (see
+    :mod:`dyknow.overload`).
     ``dwell_s``: how long a request keeps a configuration before switching for a better one.
 
     Where units' code comes from: an installed package, ``PYTHONPATH``, or a module or package
@@ -122,6 +130,8 @@ class Manager:
         queue_depth: int = DEFAULT_QUEUE_DEPTH,
         stall_budget_s: float = 0.02,
         slow_callback_s: float = 0.002,
+        max_lanes: int = DEFAULT_MAX_LANES,
+        overload_lag_s: float = DEFAULT_LAG_BUDGET_S,
         dwell_s: float = DEFAULT_DWELL_S,
         allow_sources: Iterable[str] = (),
         code_paths: Iterable[str | os.PathLike[str]] = (),
@@ -169,6 +179,9 @@ class Manager:
         self._queue_depth = queue_depth
         self._lock = threading.RLock()
         self._units: dict[str, Proxy] = {}
+        # which units changed, and when (a version each): what the adaptation loop's index reads
+        self._unit_version = 0
+        self._unit_log: collections.deque[tuple[int, str]] = collections.deque(maxlen=_UNIT_LOG)
         self._deadlines: dict[str, Proxy] = {}  # the units with deadline-ms outputs (the monitor watches them)
         self._starting: dict[str, threading.Lock] = {}  # units being spawned: held until spawn returns
         self._closed = False
@@ -229,7 +242,17 @@ class Manager:
         self._clocks: clocks.ClockTracker | None = None  # the peers' clock offsets (dyknow.clocks)
         self._bus = LocalBus()
         self._receiver = Receiver(self._session, self.name)
-        self._executor = Executor(name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s)
+        self._guard = OverloadGuard(
+            self.name,
+            lag_budget_s=overload_lag_s,
+            priorities=self._shed_priorities,
+            apply=self._apply_shed,
+            on_change=self._overload_changed,
+            clock_ns=time.time_ns,
+        )
+        self._executor = Executor(
+            name, stall_budget_s=stall_budget_s, slow_callback_s=slow_callback_s, max_lanes=max_lanes, on_load=self._guard.reading
+        )
         self._listeners: list[Callable[[UnitEvent], None]] = []
         self._workers: service.Workers | None = None
         self._holders: Holders | None = None
@@ -652,6 +675,7 @@ class Manager:
             if any(port.deadline_ms for port in spec.outputs):
                 self._deadlines[name] = proxy
         proxy.start()
+        self._unit_changed(name)
         if self._closed:  # closed while it started: close() did not see it
             proxy.stop(0.5)
             self._check_open()
@@ -686,6 +710,7 @@ class Manager:
                 )
             del self._units[name]
             self._deadlines.pop(name, None)
+            self._unit_changed(name)
         proxy.stop()
         log.info("unit %r destroyed", name)
         self._emit("destroyed", proxy)
@@ -697,13 +722,43 @@ class Manager:
                 return
             del self._units[proxy.name]
             self._deadlines.pop(proxy.name, None)
+            self._unit_changed(proxy.name)
         proxy.stop()
         log.info("unit %r destroyed itself", proxy.name)
         self._emit("destroyed", proxy)
         self._drop_companions(proxy.name)
 
     def _unit_failed(self, proxy: Proxy) -> None:
+        self._unit_changed(proxy.name)
         self._emit("failed", proxy)
+
+    def _unit_changed(self, name: str) -> None:
+        with self._lock:
+            self._unit_version += 1
+            self._unit_log.append((self._unit_version, name))
+
+    def unit_changes(self, since: int) -> tuple[int, list[str] | None]:
+        """The version of the units now, and the names of those spawned, destroyed, rebound or
+        failed after version ``since`` (None when the log no longer reaches back that far: read
+        :meth:`units` again). What the adaptation loop's index follows."""
+        with self._lock:
+            version = self._unit_version
+            if since == version:
+                return version, []
+            changes = self._unit_log
+            if since < 0 or since > version or not changes or changes[0][0] > since + 1:
+                return version, None
+            names: list[str] = []
+            for serial, name in reversed(changes):
+                if serial <= since:
+                    break
+                names.append(name)
+        return version, list(dict.fromkeys(names))
+
+    def unit_info(self, name: str) -> UnitInfo | None:
+        """Unit ``name`` as :meth:`units` shows it; None when it does not run."""
+        proxy = self._units.get(name)
+        return _info(proxy) if proxy is not None else None
 
     def on_unit_event(self, listener: Callable[[UnitEvent], None]) -> Callable[[], None]:
         """Call ``listener(event)`` whenever a unit is spawned, fails or is destroyed.
@@ -765,6 +820,7 @@ class Manager:
         counts["subscribers"] = len(self._receiver)
         counts["routes"] = self._receiver.routes()
         counts["lanes"] = self._executor.lanes()
+        counts["shed_units"] = sum(1 for p in list(self._units.values()) if p.shed)
         counts["timers"] = self._executor.timers()
         counts["watched_deadlines"] = self._adaptation.monitor.watched()
         return counts
@@ -997,7 +1053,75 @@ class Manager:
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
         lost = self._directory.lost() if self._directory is not None else {}
         gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone)
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone, self.load())
+
+    # ------------------------------------------------------------------ load (dyknow.executor, dyknow.overload)
+
+    def load(self) -> dict[str, Any]:
+        """How the manager keeps up: its lanes (kind, units, busy fraction, lag, queue, whether
+        its thread is stuck), the bound on them, and its overload state (``"ok"`` or
+        ``"overloaded"``, with what it sheds). The JSON form; the model's ``executor``."""
+        executor = self._executor
+        return {
+            "max_lanes": executor.max_lanes,
+            "threads": executor.threads(),
+            "lanes": [lane.to_dict() for lane in executor.lane_infos()],
+            "overload": self._guard.state.to_dict(),
+        }
+
+    @property
+    def overload(self) -> OverloadState:
+        """The manager's overload state now (see :mod:`dyknow.overload`)."""
+        return self._guard.state
+
+    def _shed_priorities(self) -> list[tuple[str, int]]:
+        """Every unit that may be shed, with its priority: its spec's, or that of a more important
+        request it serves (the most important transformation of the request's configuration)."""
+        with self._lock:
+            proxies = [p for p in self._units.values() if not p.protected]
+        boost: dict[str, int] = {}
+        by_key: dict[str, int] = {}
+        for info in self._adaptation.requests():
+            found = [self.library.get(label).priority for label in info.labels if label in self.library]
+            if not found:
+                continue
+            best = min(found)
+            by_key[info.key] = best
+            for unit in (*info.units, *info.standby):
+                boost[unit] = min(best, boost.get(unit, best))
+        out = []
+        for proxy in proxies:
+            priority = proxy.spec.priority
+            if proxy.label == ANCHOR_LABEL:
+                priority = by_key.get(proxy.get_config().get("out", ""), priority)
+            out.append((proxy.name, min(priority, boost.get(proxy.name, priority))))
+        return out
+
+    def _apply_shed(self, shed: Mapping[int, int]) -> int:
+        """Run the units of each priority in ``shed`` at that setting, every other one at full rate."""
+        priorities = dict(self._shed_priorities()) if shed else {}
+        with self._lock:
+            proxies = list(self._units.values())
+        slowed = 0
+        for proxy in proxies:
+            setting = shed.get(priorities[proxy.name], 0) if proxy.name in priorities else 0
+            proxy.shed = setting
+            slowed += setting != 0
+        return slowed
+
+    def _overload_changed(self, state: OverloadState, entered: bool | None) -> None:
+        """The guard changed the state (on the watchdog's thread): one log line, an event."""
+        self._executor.keep_measuring = self._guard.shedding
+        if entered is True:
+            log.warning("manager %r is %s", self.name, describe(state))
+        elif entered is False:
+            log.info("manager %r keeps up again: %s", self.name, describe(state))
+        else:
+            log.info("manager %r: %s", self.name, describe(state))
+        try:
+            self.publish_event("overload", state.to_dict())
+        except DyKnowError as exc:
+            log.debug("overload event of manager %r not published: %s", self.name, exc)
 
     def get_config(self, name: str) -> dict[str, str]:
         """Port -> key expression bindings of unit ``name``."""
@@ -1013,14 +1137,20 @@ class Manager:
         with self._lock:
             wired = [port for port in bindings if (name, port) in self._ros2_ports] if isinstance(bindings, Mapping) else []
         if not ros2 and not wired:
-            return proxy.set_config(bindings)
+            try:
+                return proxy.set_config(bindings)
+            finally:
+                self._unit_changed(name)
         # A port rewired to or from ROS 2 is not switched atomically: its old companion goes first.
         plan = self._ros2_plan(proxy.spec, name, ros2)
         self._drop_companions(name, wired)
         self._start_companions(name, plan)
         plain = {port: key for port, key in bindings.items() if port not in ros2}
         plain.update((port, key) for port, (_, _, key, _) in plan.items())
-        return self._shown(name, proxy.set_config(plain))
+        try:
+            return self._shown(name, proxy.set_config(plain))
+        finally:
+            self._unit_changed(name)
 
     def get_statistics(self, name: str) -> UnitStatistics:
         """Uptime, reconfigurations, per-port messages, bytes, drops and latency of unit ``name``."""
@@ -1130,6 +1260,7 @@ class Manager:
             "measure": self._serve_measure,
             "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
             "get_summary": lambda r, c: self.summary().to_dict(),
+            "get_load": lambda r, c: self.load(),
         }
 
     def _serve_model(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:

@@ -209,6 +209,10 @@ class Model:
     #: The managers this one knew and lost, and that have not come back:
     #: ``{"manager", "since_ns" (wall clock), "why"}`` each (see :meth:`dyknow.federation.Directory.lost`).
     lost: tuple[Mapping[str, Any], ...] = ()
+    #: How it keeps up (:meth:`dyknow.manager.Manager.load`): ``max_lanes``, ``threads`` (of that
+    #: bound, now), ``lanes`` (each lane's kind, units, busy fraction, lag, queue, stuck time) and
+    #: ``overload`` (``state``: ``"ok"`` or ``"overloaded"``, and what is shed; :mod:`dyknow.overload`).
+    executor: Mapping[str, Any] = field(default_factory=dict)
 
     def unit(self, name: str) -> UnitInfo:
         """The running unit ``name``; :class:`UnitError` when the model has none."""
@@ -227,6 +231,7 @@ class Model:
             "clocks": dict(self.clocks),
             "monitors": [dict(m) for m in self.monitors],
             "lost": [dict(m) for m in self.lost],
+            "executor": dict(self.executor),
         }
 
     def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
@@ -245,6 +250,7 @@ class Model:
             "clocks": dict(self.clocks),
             "monitors": [dict(m) for m in self.monitors],
             "lost": [dict(m) for m in self.lost],
+            "executor": dict(self.executor),
             "total": {"units": len(self.units), "specs": len(self.specs)},
         }
         used = len(json.dumps(out))

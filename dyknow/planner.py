@@ -41,7 +41,7 @@ import difflib
 import heapq
 import itertools
 import re
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -338,6 +338,22 @@ class Planner:
             found = self._options[required] = tuple(result)
         return found
 
+    def running_keys(self, request: str) -> frozenset[tuple[str, tuple[str, ...]]]:
+        """What a running unit's output tag may be to serve ``request`` or anything it could need:
+        ``(functor, args)`` by local names (more than :meth:`plan` accepts, never less; it checks
+        each unit exactly). A caller that keeps its units indexed so passes :meth:`plan` only
+        those, however many run. Empty when ``request`` does not parse (:meth:`plan` says why)."""
+        try:
+            wanted = (parse_term(request),)
+        except DyKnowError:
+            return frozenset()
+        found = set()
+        for required in self.graph(wanted).required:
+            args = tuple(local_name(a) for a in required[0].args)
+            for key in self._functor_keys(required[0].functor):
+                found.add((local_name(key.removeprefix("local:")), args))
+        return frozenset(found)
+
     def graph(self, request: Required) -> _Graph:
         """Everything ``request`` could need, numbered for a fast search (built once per request)."""
         graph = self._graphs.get(request)
@@ -363,7 +379,8 @@ class Planner:
         ``measurements``: the latest value of each measure of the requesting manager, and
         ``peer_measurements`` those of the others, checked against the constraints of the
         transformations each would run. ``reserved_names``: unit names new units must not take
-        (``name`` on the requesting manager, ``name@manager`` on another). ``load``: units per manager (the least loaded is preferred).
+        (``name`` on the requesting manager, ``name@manager`` on another; only asked whether it
+        holds a name, so it may be a live view of what runs). ``load``: units per manager (the least loaded is preferred).
         """
         try:
             wanted = (parse_term(request),)
@@ -378,13 +395,18 @@ class Planner:
         search.settle()
         if not search.settled(0):
             raise PlanningError(str(wanted[0]), search.explain())
-        taken: dict[str, set[str]] = {self.manager: set()}
-        for reserved in reserved_names:
-            name, where = unqualify(reserved, self.manager)
-            taken.setdefault(where, set()).add(name)
-        for u in running:
-            taken.setdefault(u.manager or self.manager, set()).add(u.name)
-        return _materialize(str(wanted[0]), search.config(), self._specs, self._placement, {u.ref: u for u in running}, taken, self.manager)
+        home = self.manager
+        running_refs = {u.name if (u.manager or home) == home else qualify(u.name, u.manager or home) for u in running}
+        assigned: set[str] = set()
+
+        def taken(name: str, where: str) -> bool:
+            ref = name if where == home else qualify(name, where)
+            return ref in assigned or ref in reserved_names or ref in running_refs
+
+        def take(name: str, where: str) -> None:
+            assigned.add(name if where == home else qualify(name, where))
+
+        return _materialize(str(wanted[0]), search.config(), self._specs, self._placement, {u.ref: u for u in running}, (taken, take), home)
 
 
 Required = tuple[Term, ...]  # the tags one input port requires (all of them)
@@ -638,7 +660,7 @@ def _materialize(
     specs: Mapping[str, TransformationSpec],
     placement: Mapping[str, str],
     running: Mapping[str, RunningUnit],
-    taken: dict[str, set[str]],
+    names_taken: tuple[Callable[[str, str], bool], Callable[[str, str], None]],
     manager: str,
 ) -> Plan:
     """Names, keys and connections for a chosen configuration; producers before consumers."""
@@ -659,15 +681,15 @@ def _materialize(
 
     visit(config.output)
     names: dict[str, str] = {}  # ref -> name on its manager
+    taken, take = names_taken
     for ref in needed:
         where = placement[ref]
         base = unit_name_for(specs[ref].label)
         name, n = base, 1
-        used = taken.setdefault(where, set())
-        while name in used:
+        while taken(name, where):
             n += 1
             name = f"{base}-{n}"
-        used.add(name)
+        take(name, where)
         names[ref] = name
 
     def key_of(source: _Source) -> str:

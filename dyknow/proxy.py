@@ -37,6 +37,7 @@ from dyknow import keys
 from dyknow.bus import cycle_error
 from dyknow.clocks import CLOCKS
 from dyknow.errors import BindingError, UnitError, did_you_mean
+from dyknow.executor import charged_ns, cpu_mark
 from dyknow.message import CLOCK_ID, MAX_FORWARDS, Message, check_payload, new_id, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
 from dyknow.transport import check_key_expr
@@ -116,6 +117,8 @@ class InputPort:
         """A message from another process, on Zenoh's receiving thread: run a unit proven quick
         and free right here (no thread hand-off), queue it for the unit's lane otherwise."""
         self.track(msg.source, msg.seq)
+        if self.job.shed and self.job.shedding(self):
+            return
         if self.forward is not None:
             if self.queue or not self.job.forward_now(self, msg, None):
                 self.deliver(msg)
@@ -125,7 +128,7 @@ class InputPort:
     def forward_wire(self, data: Any, header: bytes) -> bool:
         """A message from another process, before it is decoded: a unit that only forwards
         passes it on as it came when it is free (True); False hands it to :meth:`deliver_remote`."""
-        if self.forward is None or self.queue:
+        if self.forward is None or self.queue or self.job.shed:
             return False
         return self.job.forward_wire(self, data, header)
 
@@ -133,6 +136,8 @@ class InputPort:
         """A message from a unit of this manager, on the publisher's thread: run a unit proven
         quick and free right here, depth-first like a function call (no queue, no lane), queue
         it otherwise or when ``_MAX_DEPTH`` units already run nested on this thread."""
+        if self.job.shed and self.job.shedding(self):
+            return
         if self.queue or publisher.inline_depth >= _MAX_DEPTH:
             self.deliver(msg)
         elif self.forward is not None:
@@ -165,6 +170,11 @@ _INLINE_BUDGET_NS: Final = 200_000
 _MAX_DEPTH: Final = 64
 # An input port follows the sequence numbers of at most this many senders at once.
 _MAX_SENDERS: Final = 64
+# A unit whose callbacks average over the slow line is probed this many callbacks (their own
+# time measured: dyknow.executor.charged_ns) before it moves; a probe that finds 5 times the
+# line decides at once.
+_PROBES: Final = 3
+_NO_MARK: Final = (0, 0, 0, 0)
 
 
 def _arrived(counters: PortCounters, nbytes: int, now: int, origin_ns: int, origin_clock: int, send_ns: int, send_clock: int) -> None:
@@ -227,6 +237,10 @@ class UnitStatistics:
     error: str | None = None
     traceback: str | None = None
     timer_overruns: int = 0
+    #: callbacks found slow by the clock and not by their own time (the machine was busy): kept on their lane
+    excused: int = 0
+    #: the rate the unit runs at while its manager sheds load: 1 (all), 1/k, or 0 (paused)
+    rate: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form that ``get_statistics`` serves."""
@@ -239,6 +253,8 @@ class UnitStatistics:
             "executor": self.executor,
             "callback_avg_us": round(self.callback_avg_us, 3),
             "timer_overruns": self.timer_overruns,
+            "excused": self.excused,
+            "rate": self.rate,
             "ports": {p.port: p.to_dict() for p in self.ports},
             "error": self.error,
             "traceback": self.traceback,
@@ -307,6 +323,15 @@ class Proxy:
         self._current: Message | None = None
         self._current_thread = 0
         self._ewma_ns = 0  # moving average of the unit's callback times
+        self._probe_left = 0  # callbacks still to probe for their own time before it may move
+        self._probe_sum = 0  # the own time of the callbacks probed so far, and how many
+        self._probe_n = 0
+        self.excused = 0  # times its callbacks were slow by the clock only
+        # Load shedding (set by the manager's overload guard, dyknow.overload): 0 runs at full
+        # rate; k > 1 lets one message in k through on each input, and one timer tick in k;
+        # -1 pauses it (nothing delivered, no ticks). What it sheds is counted per port.
+        self.shed = 0
+        self._shed_n = 0
         # time spent in the current callback by units it ran inline (they count as their own)
         self._child_ns = 0
         self.inline_depth = 0  # while it runs inline: how many units run nested on the thread
@@ -512,6 +537,8 @@ class Proxy:
         self._current_thread = get_ident()
         self._child_ns = 0
         self.inline_depth = publisher.inline_depth + 1 if publisher is not None else 1
+        probing = self._probe_left
+        mark = cpu_mark() if probing else _NO_MARK
         try:
             self.unit.on_message(port.name, msg)
         except (Exception, SystemExit) as exc:
@@ -526,6 +553,8 @@ class Proxy:
         _arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
         took = time_ns() - now
         self._ewma_ns += (took - self._child_ns - self._ewma_ns) >> 3
+        if probing:
+            self._probed(charged_ns(mark) - self._child_ns)
         if publisher is not None:
             publisher._child_ns += took
         if self._destroy_requested or self._ewma_ns > self._slow_ns:
@@ -674,6 +703,8 @@ class Proxy:
                 worker.busy_job = self
                 worker.busy_since_ns = now
                 self._child_ns = 0
+                probing = self._probe_left
+                mark = cpu_mark() if probing else _NO_MARK
                 try:
                     if port.forward is None:
                         on_message(port.name, msg)
@@ -688,6 +719,8 @@ class Proxy:
                 self._current = None
                 self._current_thread = 0
                 self._ewma_ns += (time_ns() - now - self._child_ns - self._ewma_ns) >> 3
+                if probing:
+                    self._probed(charged_ns(mark) - self._child_ns)
                 if self.state is not _RUNNING or self._destroy_requested:
                     return
                 budget -= 1
@@ -700,6 +733,8 @@ class Proxy:
 
     def run_timer(self, timer: Timer, worker: Worker) -> None:
         """Fire one timer tick under the unit's lock."""
+        if self.shed and self._skip_tick():
+            return
         if not self._lock.acquire(False):
             return  # the unit is busy on another thread: skip this tick
         try:
@@ -721,6 +756,8 @@ class Proxy:
         worker.busy_since_ns = t0
         self._child_ns = 0
         self.inline_depth = 1  # as in run_locked: the first unit nested on the lane's thread
+        probing = self._probe_left
+        mark = cpu_mark() if probing else _NO_MARK
         try:
             fn()
         except (Exception, SystemExit) as exc:
@@ -730,6 +767,35 @@ class Proxy:
             self._current_thread = 0
             self.inline_depth = 0
         self._ewma_ns += (time_ns() - t0 - self._child_ns - self._ewma_ns) >> 3
+        if probing:
+            self._probed(charged_ns(mark) - self._child_ns)
+
+    def _probed(self, own_ns: int) -> None:
+        """One probed callback took ``own_ns`` of its own time (see :meth:`_after_callbacks`)."""
+        self._probe_sum += own_ns if own_ns > 0 else 0
+        self._probe_n += 1
+        self._probe_left -= 1
+        if own_ns >= 5 * self._slow_ns:
+            self._probe_left = 0  # clearly slow: no need to wait for more
+
+    def shedding(self, port: InputPort) -> bool:
+        """Whether the message just arriving on ``port`` is shed (see ``shed``); counts it."""
+        shed = self.shed
+        if shed > 0:
+            self._shed_n += 1
+            if self._shed_n % shed == 0:
+                return False
+        elif shed == 0:
+            return False
+        port.counters.shed += 1
+        return True
+
+    def _skip_tick(self) -> bool:
+        shed = self.shed
+        if shed > 0:
+            self._shed_n += 1
+            return self._shed_n % shed != 0
+        return shed < 0
 
     def _after_callbacks(self) -> None:
         if self._destroy_requested:
@@ -738,10 +804,28 @@ class Proxy:
                 self._on_destroy_request(self)
             return
         lane = self.lane
-        if lane.shared and self._ewma_ns > self._executor.slow_callback_ns and self.alive:
-            self.isolation = f"its callbacks take {self._ewma_ns / 1e6:.1f} ms on average"
-            log.info("unit %r moves to a thread of its own: %s", self.name, self.isolation)
-            self._executor.isolate(self)
+        if lane.shared and self._ewma_ns > self._slow_ns and self.alive:
+            # Slow by the clock: probe its next callbacks for their own time before moving it
+            # (a callback is slow by the clock alone when the CPU was taken away from it).
+            if self._probe_n == 0:
+                if self._probe_left == 0:
+                    self._probe_left = _PROBES
+                return
+            if self._probe_left > 0:
+                return
+            own = self._probe_sum // self._probe_n
+            self._probe_sum = self._probe_n = 0
+            if own <= self._slow_ns:
+                self.excused += 1
+                log.debug("unit %r: slow by the clock (%.1f ms) but not by its own time (%.2f ms): it stays", self.name, self._ewma_ns / 1e6, own / 1e6)
+                self._ewma_ns = own
+                return
+            self.isolation = f"its callbacks take {self._ewma_ns / 1e6:.1f} ms on average, {own / 1e6:.1f} ms of it their own"
+            if self._executor.isolate(self) is None:
+                self.isolation = None  # no lane to move to: it stays on the shared lane
+                self._ewma_ns = own
+                return
+            log.info("unit %r moves off the shared thread: %s", self.name, self.isolation)
 
     def _call_soon(self, fn: Callable[[], None], where: str) -> None:
         """Run ``fn`` on the unit's lane, under its lock, before its next messages (any thread)."""
@@ -951,15 +1035,23 @@ class Proxy:
             error=self.error,
             traceback=self.traceback,
             timer_overruns=sum(timer.overruns for timer in self._timers),
+            excused=self.excused,
+            rate=1.0 if self.shed == 0 else (0.0 if self.shed < 0 else 1 / self.shed),
         )
 
     @property
     def executor_description(self) -> str:
         # ``isolation`` is set as soon as the move is decided, even while a slow callback still runs
-        """Which thread runs the unit, and why it got one of its own."""
-        if self.isolation:
-            return f"own thread ({self.isolation})"
-        return "shared thread" if self.lane.shared else "own thread"
+        """Which thread runs the unit, and why it left the shared one: ``own thread (why)``, or
+        ``slow lane shared with N units (why)`` once the manager's bound on lanes is reached."""
+        kind, units = self._executor.lane_of(self)
+        shed = self.shed
+        rate = "" if shed == 0 else (", paused by load shedding" if shed < 0 else f", at 1/{shed} of its rate by load shedding")
+        if kind == "shared" and not self.isolation:
+            return "shared thread" + rate
+        # (on the shared lane with a reason: the watchdog left it the thread it is stuck on)
+        where = "own thread" if units <= 1 or kind != "slow" else f"slow lane shared with {units - 1} other units"
+        return f"{where} ({self.isolation}){rate}" if self.isolation else where + rate
 
     def _no_port(self, port: str, direction: str, ports: Mapping[str, object]) -> BindingError:
         kind = f"{direction} port" if direction else "port"

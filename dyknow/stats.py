@@ -73,6 +73,9 @@ class PortStatistics:
     ``bytes`` counts the size of what was encoded or is bytes or an array; a JSON-like value (or
     text) handed between units of one manager by reference is never encoded, so its size is not
     known: such messages are counted in ``unsized`` (their bytes are not in ``bytes``).
+
+    ``shed`` counts the messages an input port let go while its manager shed load
+    (:mod:`dyknow.overload`): they never reached the unit, and are not in ``messages``.
     """
 
     port: str
@@ -89,6 +92,7 @@ class PortStatistics:
     unknown_clock: int = 0
     uncertainty_us: float = 0.0
     unsized: int = 0
+    shed: int = 0
 
     def to_dict(self) -> dict[str, object]:
         """The JSON form (latency and hop only for input ports)."""
@@ -103,6 +107,7 @@ class PortStatistics:
         if self.direction == "in":
             out["lost"] = self.lost
             out["clock"] = {"unknown": self.unknown_clock, "uncertainty_us": self.uncertainty_us}
+            out["shed"] = self.shed
             out["rejected"] = self.rejected
             out["last_rejection"] = self.last_rejection
             out["latency"] = self.latency.to_dict()
@@ -114,7 +119,8 @@ class PortCounters:
     """Mutable counters of one port, updated on the hot path."""
 
     __slots__ = (
-        "_hop", "_latency", "_n", "bytes", "clocks", "dropped", "last_rejection", "lost", "messages", "rejected", "unknown_clock", "unsized",
+        "_hop", "_latency", "_n", "bytes", "clocks", "dropped", "last_rejection", "lost", "messages", "rejected", "shed", "unknown_clock",
+        "unsized",
     )  # fmt: skip
 
     def __init__(self) -> None:
@@ -126,6 +132,7 @@ class PortCounters:
         self.unknown_clock = 0
         self.clocks = (0, 0)  # the clocks of the latest corrected sample (origin, send); (0, 0): this process's
         self.rejected = 0
+        self.shed = 0  # messages let go while the manager shed load
         self.last_rejection: str | None = None
         self._latency = [0] * WINDOW
         self._hop = [0] * WINDOW
@@ -176,4 +183,5 @@ class PortCounters:
             self.unknown_clock,
             uncertainty_us,
             self.unsized,
+            self.shed,
         )

@@ -294,6 +294,12 @@ class StandInRuntime:
     def has_unit(self, name: str) -> bool:
         return name in self.table
 
+    def unit_info(self, name: str) -> UnitInfo | None:
+        return self.table.get(name)
+
+    def unit_changes(self, since: int) -> tuple[int, list[str] | None]:
+        return 0, None  # no log of changes: the loop's index reads every unit each time
+
     def unit(self, name: str) -> Unit:
         return self.anchors[name]
 

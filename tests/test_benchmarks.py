@@ -117,6 +117,21 @@ def test_idle_benchmark_smoke(tmp_path: Path) -> None:
     assert "wake-ups/s" in result.stdout
 
 
+def test_overload_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "overload.json"
+    result = _run("overload.py", "--units", "60", "--seconds", "0.5", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())["results"]
+    cores = os.cpu_count() or 1
+    assert data["units"] == 60 and [p["hogs"] for p in data["phases"]] == [0, cores, 2 * cores]
+    for phase in data["phases"]:
+        assert 1 <= phase["lanes_max"] <= data["max_lanes"] and phase["threads_max"] >= phase["lanes_max"]
+        assert phase["high_count"] > 0 and phase["low_count"] > 0 and phase["high_p99_ms"] >= phase["high_p50_ms"] > 0
+    assert len(data["spawn_s_per_1000"]) == 10 and set(data["targets"]) == {"lanes_within_bound", "spawn_flat", "high_p99"}
+    assert data["targets"]["lanes_within_bound"]["met"] is True
+    assert "load average" in result.stdout and "target <= 3x" in result.stdout
+
+
 def test_every_public_name_of_the_benchmarks_is_documented() -> None:
     assert undocumented(*sorted((REPO / "benchmarks").glob("*.py"))) == []
 

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from dyknow import Manager, Message, Port, TransformationSpec, Unit, default_key
+from dyknow.executor import Executor
 from dyknow.testing import Sink, Source
 from tests.conftest import subprocess_env, wait_until
 from tests.units import Slow
@@ -52,8 +55,36 @@ class Exclusive(Unit):
         self.messages += 1
 
 
+class Pass(Unit):
+    """Publishes what it receives (in Python: a callback per message, timed like any other)."""
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.publish("out", msg.payload)
+
+
+class Stuck(Unit):
+    """Takes half a millisecond per message (too long to be run on its publisher's thread, well
+    under the line for slow), except "stick": it then waits until the test lets it go (or forever)."""
+
+    release = threading.Event()
+
+    def setup(self) -> None:
+        self.inside = threading.Event()
+
+    def on_message(self, port: str, msg: Message) -> None:
+        if msg.payload == "stick":
+            self.inside.set()
+            Stuck.release.wait()
+            return
+        time.sleep(0.0005)
+
+
 SPECS = """<transformations>
   <transformation><label>busy</label><source>tests.test_executor:Busy</source>
+    <ports><port type="in">in</port><port type="out">out</port></ports></transformation>
+  <transformation><label>pass</label><source>tests.test_executor:Pass</source>
+    <ports><port type="in">in</port><port type="out">out</port></ports></transformation>
+  <transformation><label>stuck</label><source>tests.test_executor:Stuck</source>
     <ports><port type="in">in</port><port type="out">out</port></ports></transformation>
   <transformation><label>exclusive</label><source>tests.test_executor:Exclusive</source>
     <ports><port type="in">in</port></ports></transformation>
@@ -283,3 +314,93 @@ def test_a_lane_busy_with_code_that_never_reaches_python_lets_other_threads_run(
         pytest.fail("the main thread never ran again while the lane was busy (60 s)")
     assert result.returncode == 0, result.stderr[-2000:]
     assert "the main thread ran beside the lane" in result.stdout
+
+
+# ---------------------------------------------------------------------------- the bound on threads
+
+
+def _lane_threads(manager: Manager) -> int:
+    """The threads serving the manager's lanes, as Python knows them (by their names)."""
+    pattern = re.compile(rf"dyknow-{re.escape(manager.name)}-(shared|lane\d+)")
+    return sum(1 for thread in threading.enumerate() if pattern.fullmatch(thread.name) and thread.is_alive())
+
+
+def _chain(manager: Manager, label: str, count: int) -> tuple[Source, Sink]:
+    manager.add_transformation(SPECS)
+    manager.spawn("sink", "sink", bindings={"in": default_key(manager.name, f"p{count - 1}", "out")})
+    for i in reversed(range(count)):
+        upstream = default_key(manager.name, f"p{i - 1}" if i else "src", "out")
+        manager.spawn(label, f"p{i}", bindings={"in": upstream})
+    manager.spawn("publisher", "src")
+    src, sink = manager.unit("src"), manager.unit("sink")
+    assert isinstance(src, Source) and isinstance(sink, Sink)
+    return src, sink
+
+
+def test_with_every_callback_slow_the_threads_stay_within_the_bound(make_manager: Callable[..., Manager]) -> None:
+    """The line for slow made tiny (1 ns): every callback counts as slow, so every unit of a
+    chain of twelve leaves the shared lane once its probe confirms it. With max_lanes=3 the
+    manager never runs more than three lanes: the first two slow units get a lane each, the
+    others share those two; every message still arrives, in order."""
+    manager = make_manager(listen=[], slow_callback_s=1e-9, max_lanes=3)
+    src, sink = _chain(manager, "pass", 12)
+    lanes, threads = [], []
+    for i in range(60):
+        src.emit(i)
+        sink.wait_for(i + 1)
+        lanes.append(manager.load()["threads"])
+        threads.append(_lane_threads(manager))
+    assert [m.payload for m in sink.messages] == list(range(60))
+    assert max(lanes) <= 3 and max(threads) <= 3, (lanes, threads)
+    load = manager.load()
+    slow = [lane for lane in load["lanes"] if lane["kind"] == "slow"]
+    assert len(slow) == 2 and sum(lane["units"] for lane in slow) >= 12  # the twelve, and the sink once it was slow too
+    described = [manager.get_statistics(f"p{i}").executor for i in range(12)]
+    assert all(d.startswith(("own thread (its callbacks take", "slow lane shared with")) for d in described), described
+    assert any(d.startswith("slow lane shared with") for d in described)
+
+
+def test_the_bound_must_leave_room_for_a_slow_lane() -> None:
+    with pytest.raises(ValueError, match="at least 2"):
+        Executor("too-few", max_lanes=1)
+
+
+def test_a_unit_stuck_forever_at_the_bound_does_not_stop_the_others(make_manager: Callable[..., Manager]) -> None:
+    """At the bound (max_lanes=2: the shared lane and one slow lane, taken by a slow unit), a unit
+    gets stuck in a callback for good. No thread may be added: the watchdog makes the slow lane
+    the shared one, moves the other units there, and leaves the stuck lane to the stuck unit.
+    Messages keep flowing past it (through a unit beside it), and the manager still runs two lanes."""
+    Stuck.release.clear()
+    manager = make_manager(listen=[], max_lanes=2, stall_budget_s=0.02)
+    manager.add_transformation(SPECS)
+    key = default_key(manager.name, "src", "out")
+    try:
+        manager.spawn("busy", "busy", bindings={"in": key})  # slow: it takes the one slow lane
+        manager.spawn("stuck", "stuck", bindings={"in": key})
+        manager.spawn("pass", "beside", bindings={"in": key})
+        manager.spawn("sink", "sink", bindings={"in": default_key(manager.name, "beside", "out")})
+        manager.spawn("publisher", "src")
+        src, sink = manager.unit("src"), manager.unit("sink")
+        assert isinstance(src, Source) and isinstance(sink, Sink)
+        for i in range(20):
+            src.emit(i)
+            sink.wait_for(i + 1)
+        wait_until(lambda: manager.get_statistics("busy").executor.startswith("own thread (its callbacks take"), "the busy unit moved")
+        assert manager.load()["threads"] == 2
+        stuck = manager.unit("stuck")
+        assert isinstance(stuck, Stuck)
+        src.emit("stick")
+        assert stuck.inside.wait(10)
+        wait_until(lambda: manager.get_statistics("stuck").executor.startswith("own thread (a callback held"), "the stuck unit left alone")
+        for i in range(20, 60):
+            src.emit(i)
+            sink.wait_for(i + 2)  # (the sink got 20, then "stick" passed on by "beside")
+        assert [m.payload for m in sink.messages if m.payload != "stick"] == list(range(60))
+        load = manager.load()
+        assert load["threads"] == 2 and _lane_threads(manager) == 2, load
+        kinds = {lane["name"]: lane for lane in load["lanes"]}
+        assert sorted(lane["kind"] for lane in kinds.values()) == ["shared", "slow"]
+        (left,) = [lane for lane in kinds.values() if lane["kind"] == "slow"]
+        assert left["names"] == ["stuck"]
+    finally:
+        Stuck.release.set()

@@ -8,12 +8,13 @@ builds the warm standby.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from dyknow import keys
 from dyknow.adaptation.anchor import ANCHOR_LABEL
+from dyknow.adaptation.index import RunningIndex
 from dyknow.adaptation.knowledge import Knowledge, Request, runs_on
 from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, UnitError
@@ -49,6 +50,12 @@ class Reconfigurer:
         self._planner_version: tuple[Any, ...] = ()
         self._constraints: list[tuple[str, tuple[Any, ...]]] = []
         self._constraints_version: Any = None
+        self.index = RunningIndex(runtime)  # what runs here, by tag and by key (refreshed before each use)
+
+    def _local(self) -> RunningIndex:
+        """The index of this manager's units, brought up to date."""
+        self.index.refresh()
+        return self.index
 
     def planner(self) -> Planner:
         """The planner over the current libraries (rebuilt when one of them or the ontology changed)."""
@@ -62,20 +69,22 @@ class Reconfigurer:
             self._planner_version = version
         return self._planner
 
-    def running_model(self, request: Request | None) -> tuple[list[RunningUnit], set[str]]:
+    def running_model(self, request: Request | None) -> tuple[list[RunningUnit], Collection[str]]:
         """Units the plan may reuse (the request's own set aside) and every name in use.
 
         Names of units on other managers are ``name@manager``. Units another manager spawned
-        for its own requests are not reused: that manager takes them down when it likes.
+        for its own requests are not reused: that manager takes them down when it likes. With a
+        request, only the local units whose tags could serve it are looked at (the index), so
+        the cost does not grow with the units running; the names are then a live view.
         """
         knowledge = self._knowledge
         own = set()
         if request is not None:
             own = {u for u in request.held() if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
         running: list[RunningUnit] = []
-        names: set[str] = set()
-        for info in self._runtime.units():
-            names.add(info.name)
+        index = self._local()
+        local = index.serving(self.planner().running_keys(request.tag)) if request is not None else list(index.units.values())
+        for info in local:
             if info.name in own or info.label == ANCHOR_LABEL or info.spec is None or knowledge.standing_by(info.name):
                 continue
             outputs = {p.name: info.bindings[p.name] for p in info.spec.outputs}
@@ -83,6 +92,7 @@ class Reconfigurer:
             healthy = info.alive and info.name not in knowledge.stalled
             running.append(RunningUnit(info.name, info.label, outputs, tags, healthy))
         home = self._runtime.name
+        names = _Names(index.units)
         for manager, summary in sorted(self._runtime.peers().items()):
             for unit in summary.units:
                 ref = qualify(unit.name, manager)
@@ -93,7 +103,7 @@ class Reconfigurer:
                     continue  # ours, but already destroyed (the summary is older) or left by an earlier run
 
                 running.append(unit.running(manager))
-        names.update(r for r in knowledge.remote)  # spawned, maybe not in a summary yet
+        names.update(knowledge.remote)  # spawned, maybe not in a summary yet
         return running, names
 
     def plan(
@@ -125,9 +135,9 @@ class Reconfigurer:
             summary = peers.get(manager)
             if summary is not None:
                 unavailable |= {qualify(spec.label, manager) for spec in summary.specs} - used
-        labels = {info.name: info.label for info in self._runtime.units()}
-        stalled_labels = {labels[n] for n in self._knowledge.stalled if n in labels}
-        load = {self._runtime.name: len(labels), **{m: s.load for m, s in peers.items()}}
+        units = self._local().units
+        stalled_labels = {units[n].label for n in self._knowledge.stalled if n in units}
+        load = {self._runtime.name: len(units), **{m: s.load for m, s in peers.items()}}
         return self.planner().plan(
             request.tag,
             running,
@@ -242,7 +252,7 @@ class Reconfigurer:
         if not request.standby or request.standby_key is None:
             return False
         unavailable = self._knowledge.unavailable(now_ns)
-        local = {info.name: info for info in self._runtime.units()}
+        local = self._local().units
         for ref, label in request.standby.items():
             name, manager = unqualify(ref, self._runtime.name)
             if manager == self._runtime.name:
@@ -376,7 +386,7 @@ class Reconfigurer:
             frozenset(self._knowledge.unavailable(now_ns)),
             frozenset(self._knowledge.stalled),
             tuple(holds),
-            frozenset((info.name, info.alive) for info in runtime.units()),
+            frozenset((info.name, info.alive) for info in self._local().units.values()),
             tuple(sorted((m, s.version, s.library) for m, s in runtime.peers().items())),
             tuple(sorted(request.units.items())),
             tuple(sorted(request.standby.items())),
@@ -391,28 +401,24 @@ class Reconfigurer:
 
     def _downstream(self, refs: Iterable[str]) -> set[str]:
         """The given units and every local unit they feed, transitively (anchors aside)."""
-        units = {info.name: info for info in self._runtime.units() if info.spec is not None and info.label != ANCHOR_LABEL}
-        readers: dict[str, list[str]] = {}
-        for info in units.values():
-            assert info.spec is not None
-            for port in info.spec.inputs:
-                readers.setdefault(info.bindings[port.name], []).append(info.name)
+        index = self._local()
+        units = index.units
         found = set(refs)
-        todo = [r for r in found if r in units]
+        todo = [r for r in found if r in units and units[r].spec is not None and units[r].label != ANCHOR_LABEL]
         while todo:
             info = units[todo.pop()]
             assert info.spec is not None
             for port in info.spec.outputs:
-                for reader in readers.get(info.bindings[port.name], ()):
-                    if reader not in found:
-                        found.add(reader)
-                        todo.append(reader)
+                for reader in index.readers(info.bindings[port.name]):
+                    if reader.name not in found and reader.spec is not None and reader.label != ANCHOR_LABEL:
+                        found.add(reader.name)
+                        todo.append(reader.name)
         return found
 
     def _healthy(self, ref: str) -> bool:
         name, manager = unqualify(ref, self._runtime.name)
         if manager == self._runtime.name:
-            info = next((i for i in self._runtime.units() if i.name == name), None)
+            info = self._local().units.get(name)
             return info is not None and info.alive and name not in self._knowledge.stalled
         summary = self._runtime.peers().get(manager)
         if summary is None:
@@ -442,22 +448,18 @@ class Reconfigurer:
 
     def _upstream(self, names: Iterable[str]) -> dict[str, str]:
         """Every running unit that feeds the given ones, transitively: a reused unit needs them."""
-        units = {info.name: info for info in self._runtime.units() if info.spec is not None}
-        producers: dict[str, list[str]] = {}
-        for info in units.values():
-            assert info.spec is not None
-            for port in info.spec.outputs:
-                producers.setdefault(info.bindings[port.name], []).append(info.name)
+        index = self._local()
+        units = index.units
         found: dict[str, str] = {}
-        todo = [n for n in names if n in units]
+        todo = [n for n in names if n in units and units[n].spec is not None]
         while todo:
             info = units[todo.pop()]
             assert info.spec is not None
             for port in info.spec.inputs:
-                for producer in producers.get(info.bindings[port.name], ()):
-                    if producer not in found and units[producer].label != ANCHOR_LABEL:
-                        found[producer] = units[producer].label
-                        todo.append(producer)
+                for producer in index.producers(info.bindings[port.name]):
+                    if producer.name not in found and producer.label != ANCHOR_LABEL and producer.spec is not None:
+                        found[producer.name] = producer.label
+                        todo.append(producer.name)
         return found
 
     def cleanup(self, names: Iterable[str]) -> None:
@@ -492,3 +494,28 @@ def is_current(request: Request, plan: Plan) -> bool:
 def _label_ref(unit: PlannedUnit) -> str:
     """A planned unit's transformation as the request records it: ``label``, or ``label@manager``."""
     return qualify(unit.label, unit.manager) if unit.remote else unit.label
+
+
+class _Names(Collection[str]):
+    """Every unit name in use, for the planner's choice of new names: the local units (a live
+    view of the index) and those of other managers (``name@manager``)."""
+
+    def __init__(self, local: Mapping[str, object]) -> None:
+        self._local = local
+        self._elsewhere: set[str] = set()
+
+    def add(self, ref: str) -> None:
+        self._elsewhere.add(ref)
+
+    def update(self, refs: Iterable[str]) -> None:
+        self._elsewhere.update(refs)
+
+    def __contains__(self, ref: object) -> bool:
+        return ref in self._local or ref in self._elsewhere
+
+    def __iter__(self) -> Iterator[str]:
+        yield from self._local
+        yield from self._elsewhere
+
+    def __len__(self) -> int:
+        return len(self._local) + len(self._elsewhere)

@@ -67,6 +67,16 @@ class Runtime(Protocol):
         """Whether a unit called ``name`` runs."""
         ...
 
+    def unit_info(self, name: str) -> UnitInfo | None:
+        """Running unit ``name`` as :meth:`units` shows it (None when there is none)."""
+        ...
+
+    def unit_changes(self, since: int) -> tuple[int, list[str] | None]:
+        """The version of the units now, and the names of the units spawned, destroyed, rebound
+        or failed after version ``since`` (None: the log does not reach back that far, so read
+        :meth:`units` again)."""
+        ...
+
     def unit(self, name: str) -> Unit:
         """The Python object of running unit ``name``."""
         ...

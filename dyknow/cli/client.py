@@ -163,7 +163,9 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    """show a unit's statistics"""
+    """show a unit's statistics, or without a name the manager's lanes and load"""
+    if args.name is None:
+        return _manager_stats(args)
     with open_client(args) as client:
         stats = client.get_statistics(args.name)
 
@@ -175,6 +177,8 @@ def cmd_stats(args: argparse.Namespace) -> int:
         for port, p in stats["ports"].items():
             unsized = f" (+{p['unsized']} msgs of unknown size: passed by reference, never encoded)" if p.get("unsized") else ""
             line = f"  {p['direction']:>3} {port} ({p['key']}): {p['messages']} msgs, {p['bytes']} B{unsized}, {p['dropped']} dropped"
+            if p.get("shed"):
+                line += f", {p['shed']} shed"
             if p["direction"] == "in" and p["latency"]["count"]:
                 lat, hop = p["latency"], p["hop"]
                 line += f"; latency p50 {lat['p50_us']:.1f} µs p99 {lat['p99_us']:.1f} µs; hop p50 {hop['p50_us']:.1f} µs p99 {hop['p99_us']:.1f} µs"
@@ -183,6 +187,28 @@ def cmd_stats(args: argparse.Namespace) -> int:
             yield f"  error: {stats['error']}"
 
     report_result(args, stats, text)
+    return 0
+
+
+def _manager_stats(args: argparse.Namespace) -> int:
+    with open_client(args) as client:
+        load = client.get_load()
+
+    def text() -> Iterable[str]:
+        overload = load["overload"]
+        state = f"{overload['state']} (lag {overload['lag_ms']:.1f} ms, budget {overload['lag_budget_ms']:g} ms)"
+        if overload["shed"]:
+            shed = ", ".join(f"priority {t['priority']} " + ("paused" if t["rate"] == 0 else f"at {t['rate']:g} of its rate") for t in overload["shed"])
+            state += f"; shedding {shed} ({overload['units_shed']} units)"
+        yield f"{args.manager}: {state}; {load['threads']} of at most {load['max_lanes']} lanes"
+        for lane in load["lanes"]:
+            stuck = f", stuck {lane['stuck_ms'] / 1000:.1f} s in a callback" if lane["stuck_ms"] >= 1000 else ""
+            lag = f", lag {lane['lag_ms']:.1f} ms" if lane["kind"] == "shared" else ""
+            names = f": {', '.join(lane['names'])}" if lane["names"] else ""
+            more = "..." if len(lane["names"]) < lane["units"] and lane["names"] else ""
+            yield f"  {lane['name']} ({lane['kind']}): {lane['units']} units, busy {lane['busy']:.0%}{lag}, {lane['queued']} queued{stuck}{names}{more}"
+
+    report_result(args, load, text)
     return 0
 
 
@@ -417,7 +443,7 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
 
     p = command("stats", cmd_stats, client=True)
-    p.add_argument("name")
+    p.add_argument("name", nargs="?", help="a unit (default: the manager itself: its lanes, how busy each is, its overload state)")
 
     p = command("add-spec", cmd_add_spec, client=True)
     p.add_argument("file")

@@ -21,8 +21,26 @@ from dyknow.cli.common import (
     seconds,
     tls_files,
 )
+from dyknow.executor import DEFAULT_MAX_LANES
 from dyknow.holders import DEFAULT_GRACE_S
+from dyknow.overload import DEFAULT_LAG_BUDGET_S
 from dyknow.transport import DEFAULT_ENDPOINT
+
+
+def _lanes(text: str) -> int:
+    """--max-lanes: a whole number of at least 2 (the shared lane and one for slow units)."""
+    value = positive_int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"got {value}; expected at least 2 (the shared lane and one for slow units)")
+    return value
+
+
+def _lag(text: str) -> float:
+    """--overload-lag: seconds, more than 0."""
+    value = seconds(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected seconds, more than 0, such as 0.05")
+    return value
 
 
 def _stop_event() -> threading.Event:
@@ -121,6 +139,8 @@ def cmd_manager(args: argparse.Namespace) -> int:
         ros2_namespace=args.ros2_namespace,
         dds_config=Path(args.ros2_dds_config).read_text() if args.ros2_dds_config else None,
         client_grace_s=args.client_grace,
+        max_lanes=args.max_lanes,
+        overload_lag_s=args.overload_lag,
         **({"dwell_s": args.dwell} if args.dwell is not None else {}),
     ) as manager:
         exposed = manager.exposed()
@@ -273,6 +293,12 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument("--max-library-bytes", type=positive_int, default=8 << 20, metavar="N",
                    help="refuse specs that would make the library larger, as its summary carries it (default 8 MiB; peers take 16)")  # fmt: skip
     limit_options(p)
+    p.add_argument("--max-lanes", type=_lanes, default=DEFAULT_MAX_LANES, metavar="N",
+                   help=f"the most threads units run on, whatever the load (default {DEFAULT_MAX_LANES}; at least 2): past it, slow "
+                        "units share threads (units that ask for a thread of their own aside)")  # fmt: skip
+    p.add_argument("--overload-lag", type=_lag, default=DEFAULT_LAG_BUDGET_S, metavar="S",
+                   help=f"how long a message may wait for its unit's turn before the manager counts as overloaded and sheds its "
+                        f"least important units (default {DEFAULT_LAG_BUDGET_S:g})")  # fmt: skip
     p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
     p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",
                    help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
