@@ -511,8 +511,25 @@ class Proxy:
         """Handle what is pending: control calls, then messages (a batch, then yield the lane)."""
         self.scheduled = False
         if not self._lock.acquire(False):
-            return  # running on another thread right now; it drains before releasing
+            return  # running on another thread right now; it drains before releasing, or reschedules
         self.run_locked(worker)
+
+    def _release(self) -> None:
+        """Release the lock an inline run took; a message queued meanwhile (its lane found the
+        unit busy, and left it to whoever held the lock) is scheduled again, or it would wait
+        for the next message."""
+        self._lock.release()
+        if self.scheduled:
+            return
+        pending = bool(self._calls)
+        if not pending:
+            for port in self._input_seq:
+                if port.queue:
+                    pending = True
+                    break
+        if pending:
+            self.scheduled = True
+            self.lane.put(self)
 
     def run_inline(self, port: InputPort, msg: Message, publisher: Proxy | None) -> bool:
         """Handle ``msg`` on the calling thread (Zenoh's receiving thread, or the thread of the
@@ -548,7 +565,7 @@ class Proxy:
             self._current = None
             self._current_thread = 0
             self.inline_depth = 0
-            self._lock.release()
+            self._release()
         # bookkeeping after the callback, off the path of what the unit published
         _arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
         took = time_ns() - now
@@ -579,7 +596,7 @@ class Proxy:
             self._fail(exc, f"forwarding {port.name!r}")
         finally:
             self.inline_depth = 0
-            self._lock.release()
+            self._release()
         _arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
         return True
 
@@ -616,7 +633,7 @@ class Proxy:
             self._fail(exc, f"forwarding {port.name!r}")
             return True  # taken, and counted as the unit's failure
         finally:
-            self._lock.release()
+            self._release()
         _arrived(port.counters, nbytes, now, origin_ns, origin_clock, sent_ns, sent_clock)
         return True
 
@@ -745,7 +762,7 @@ class Proxy:
             # STARTING: setup() is done (it ran under this lock), the inputs are being bound: tick
             self._call(timer.callback, worker, "a timer callback")
         finally:
-            self._lock.release()
+            self._release()
         self._after_callbacks()
 
     def _call(self, fn: Callable[[], None], worker: Worker, where: str) -> None:
