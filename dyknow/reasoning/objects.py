@@ -195,6 +195,20 @@ class ObjectMonitor:
         for monitor in self._live.values():
             monitor.set_max_cells(cells)
 
+    def set_max_age(self, term: str, max_age_ns: int | None) -> None:
+        """Every instance's (and every later one's) maximum age of ``term`` (see :meth:`Monitor.set_max_age`)."""
+        k = self._index.get(term)
+        if k is None:
+            k = self._term_index(term)
+        name = self.terms[k]
+        if max_age_ns is None:
+            self._max_age.pop(name, None)
+        else:
+            self._max_age[name] = int(max_age_ns)
+        for monitor in self._live.values():
+            if name in monitor.terms:
+                monitor.set_max_age(name, max_age_ns)
+
     def set_max_cells(self, max_cells: int) -> None:
         """Keep at most ``max_cells`` cells in all from now on, shared among the instances."""
         self._max_cells = max(1, int(max_cells))

@@ -73,10 +73,12 @@ def expand(
                 expected=f"at most {max_expansions:,} (--max-expansions)",
             )
         tuples = [[*t, v] for t in tuples for v in values]
-    size = _expanded_size(node, members) * len(tuples)
+    per = _expanded_size(node, members)
+    size = per * len(tuples)
     if size > limits.max_quantified_nodes:
+        what = f"forall over {prefix[0].domain!r}" if len(prefix) == 1 else "the quantifiers"
         raise FormulaError(
-            f"the quantifiers expand to {size:,} nodes ({len(tuples):,} monitor{'s' if len(tuples) != 1 else ''})",
+            f"{what} expands to {len(tuples):,} formulas of {per:,} nodes each: {size:,} nodes",
             where="formula",
             expected=f"at most {limits.max_quantified_nodes:,} nodes in all (Limits.max_quantified_nodes): a smaller class or body",
         )

@@ -692,6 +692,13 @@ class Formula:
         return _future_horizon(self.root)
 
     @property
+    def reach_ns(self) -> int | None:
+        """How far into the past a verdict may read: the largest sum of past upper bounds (past
+        windows, aggregates, and a state for prev, rise and fall) along a path from the root;
+        None when a past window is unbounded (it reads back to the first state)."""
+        return _past_reach(self.root)
+
+    @property
     def nodes(self) -> int:
         """How many atoms and operators the syntax tree has (the leaves, streams and constants,
         are not counted: they cost a monitor nothing per state): what the bounds count."""
@@ -723,6 +730,21 @@ class Formula:
             if isinstance(node, Stream):
                 terms.setdefault(node.term, None)
         return cls(str(root) if text is None else text, root, tuple(terms))
+
+
+def _past_reach(root: Node) -> int | None:
+    memo: dict[int, int | None] = {}
+    for node in reversed(walk(root)):  # children before parents
+        below: int | None = 0
+        for child in children(node):
+            value = memo[id(child)]
+            below = None if below is None or value is None else max(below, value)
+        if isinstance(node, Historically | Once | Since | Aggregate):
+            hi = node.interval.hi_ns
+            memo[id(node)] = None if below is None or hi is None else below + hi
+        else:
+            memo[id(node)] = below
+    return memo[id(root)]
 
 
 def _future_horizon(root: Node) -> int:
@@ -977,10 +999,10 @@ class _Parser:
         return kind_of(node)
 
     def past(self, node: Node, what: str) -> None:
-        """Refuse an operand of a past window that looks into the future."""
+        """Refuse an operand of a past window (or of a comparison) that looks into the future."""
         if id(node) in self.future:
             raise self.fail(
-                f"{what} reads decided values of the past, and {_quote(str(node))} looks into the future",
+                f"{what} reads values decided by its state, and {_quote(str(node))} looks into the future",
                 f"an operand without always, eventually or until; or put {what} outside the future operator",
                 column=self.column_of(node),
             )
@@ -1140,6 +1162,8 @@ class _Parser:
             raise self.fail(
                 f"a second comparison right after '{op}'", "one comparison per atom: (a < b) and (b < c)", column=self.pos
             )
+        self.past(left, f"'{op}'")
+        self.past(right, f"'{op}'")
         lk, rk = self.kind(left), self.kind(right)
         if op in ("==", "!="):
             if ANY not in (lk, rk) and lk != rk:
