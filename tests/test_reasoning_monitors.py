@@ -259,10 +259,16 @@ def test_a_transformations_own_requirement_moves_its_requests_off_it(system: Cal
     moved = next(e for e in station.get_adaptations() if e.cause == cause)
     assert "robot-camera@robot" in moved.old and "ceiling-camera@field" in moved.new and "ball-detector(bottom)" not in moved.new
     assert any(msg.payload["verdict"] is False for msg in verdicts.messages)
-    with Client("station", connect=station.endpoints) as client:
-        (info,) = client.get_model()["requests"]
-    (watched,) = info["spec_requirements"]  # the ceiling's detector now, whose requirement holds
-    assert watched["transformation"] == "ball-detector(ceiling)" and watched["formula"] == f"BallObject(ceiling).camera != {BOTTOM}"
+
+    def watched_now() -> list[dict[str, Any]]:
+        with Client("station", connect=station.endpoints) as client:
+            (info,) = client.get_model()["requests"]
+        return list(info["spec_requirements"])
+
+    # (the adaptation is recorded before the new configuration's watches are set up: ask until they are)
+    wait_until(lambda: [w["transformation"] for w in watched_now()] == ["ball-detector(ceiling)"], "the ceiling detector's requirement watched")
+    (watched,) = watched_now()  # the ceiling's detector now, whose requirement holds
+    assert watched["formula"] == f"BallObject(ceiling).camera != {BOTTOM}"
     ceiling = _sink(station, "ceiling-verdicts", watched["key"])
     ceiling.wait_until(lambda msg: msg.payload["verdict"] is True, timeout_s=10)
     station.release(key)
