@@ -176,6 +176,36 @@ def naive_evaluate_ns(
     n = len(times)
     ages = dict(max_age or {})
     names = dict(variables or {})
+    sample_times = {term: sorted({t for t, _ in streams[term]}) for term in terms}
+
+    def terms_below(node: Node) -> set[Term]:
+        found: set[Term] = set()
+        todo = [node]
+        while todo:
+            here = todo.pop()
+            if isinstance(here, Stream):
+                found.add(here.term)
+            for name in ("arg", "left", "right", "body"):
+                child = getattr(here, name, None)
+                if child is not None and not isinstance(child, str):
+                    todo.append(child)
+            todo.extend(getattr(here, "args", ()) if isinstance(here, Call) else ())
+        return found
+
+    def stale_somewhere(node: Node, lo: int | None, hi: int) -> bool:
+        """Whether a term below ``node`` is stale at some whole ns of [lo, hi] (lo None: from the first state)."""
+        lo = times[0] if lo is None else max(lo, times[0])
+        for term in terms_below(node):
+            if term not in ages:
+                continue
+            ts = sample_times[term]
+            # staleness grows between samples: the first stale time after a sample s is s + age + 1
+            for tau in {lo, *(s + ages[term] + 1 for s in ts)}:
+                if lo <= tau <= hi:
+                    latest = [t for t in ts if t <= tau]
+                    if latest and tau - latest[-1] > ages[term]:
+                        return True
+        return False
     memo: dict[tuple[int, int], Any] = {}
     rmemo: dict[tuple[int, int], float | None] = {}
 
@@ -196,10 +226,12 @@ def naive_evaluate_ns(
         a, b = interval.lo_ns, interval.hi_ns
         return [j for j in range(n) if a <= times[i] - times[j] and (b is None or times[i] - times[j] <= b)]
 
-    def until(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False) -> Verdict:
+    def until(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False, owner: Node | None = None) -> Verdict:
         a, b = interval.lo_ns, interval.hi_ns
         assert b is not None
         terms_: list[Verdict] = []
+        if owner is not None and stale_somewhere(owner, times[i] + a, times[i] + b):
+            terms_.append(None)  # an outage in the window: one more unknown
         for j in range(n):
             if a <= times[j] - times[i] <= b:
                 chain = [True if left is None else value(left, k) for k in range(i, j)]
@@ -209,8 +241,11 @@ def naive_evaluate_ns(
             terms_.append(None)
         return k_or(terms_)
 
-    def since(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False) -> Verdict:
+    def since(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False, owner: Node | None = None) -> Verdict:
         terms_: list[Verdict] = []
+        a, b = interval.lo_ns, interval.hi_ns
+        if owner is not None and stale_somewhere(owner, None if b is None else times[i] - b, times[i] - a):
+            terms_.append(None)  # an outage in the window: one more unknown
         for j in window_past(interval, i):
             chain = [True if left is None else value(left, k) for k in range(j + 1, i + 1)]
             right_j = k_not(value(right, j)) if negate else value(right, j)
@@ -219,6 +254,9 @@ def naive_evaluate_ns(
 
     def aggregate(node: Aggregate, i: int) -> Any:
         kind = node.kind
+        lo_, hi_ = node.interval.lo_ns, node.interval.hi_ns
+        if stale_somewhere(node, None if hi_ is None else times[i] - hi_, times[i] - lo_):
+            return U
         if kind == "integral":
             lo, hi = node.interval.lo_ns, node.interval.hi_ns
             start = times[0] if hi is None else max(times[0], times[i] - hi)
@@ -303,17 +341,17 @@ def naive_evaluate_ns(
         if isinstance(node, Implies):
             return k_or([k_not(value(node.left, i)), value(node.right, i)])
         if isinstance(node, Until):
-            return until(node.left, node.right, node.interval, i)
+            return until(node.left, node.right, node.interval, i, owner=node)
         if isinstance(node, Since):
-            return since(node.left, node.right, node.interval, i)
+            return since(node.left, node.right, node.interval, i, owner=node)
         if isinstance(node, Eventually):
-            return until(None, node.arg, node.interval, i)
+            return until(None, node.arg, node.interval, i, owner=node)
         if isinstance(node, Once):
-            return since(None, node.arg, node.interval, i)
+            return since(None, node.arg, node.interval, i, owner=node)
         if isinstance(node, Always):
-            return k_not(until(None, node.arg, node.interval, i, negate=True))  # not eventually not
+            return k_not(until(None, node.arg, node.interval, i, negate=True, owner=node))  # not eventually not
         assert isinstance(node, Historically)
-        return k_not(since(None, node.arg, node.interval, i, negate=True))  # not once not
+        return k_not(since(None, node.arg, node.interval, i, negate=True, owner=node))  # not once not
 
     # -- robustness, from its definitions (None: undefined)
 
@@ -362,8 +400,8 @@ def naive_evaluate_ns(
         if isinstance(node, Eventually | Always | Until):
             a, b = node.interval.lo_ns, node.interval.hi_ns
             assert b is not None
-            if times[-1] < times[i] + b:
-                return None  # an incomplete window
+            if times[-1] < times[i] + b or stale_somewhere(node, times[i] + a, times[i] + b):
+                return None  # an incomplete window, or one with an outage
             left = node.left if isinstance(node, Until) else None
             right = node.right if isinstance(node, Until) else node.arg
             sign = -1.0 if isinstance(node, Always) else 1.0
@@ -376,6 +414,9 @@ def naive_evaluate_ns(
             out = hi_(best)
             return None if out is None else sign * out
         if isinstance(node, Once | Historically | Since):
+            a, b = node.interval.lo_ns, node.interval.hi_ns
+            if stale_somewhere(node, None if b is None else times[i] - b, times[i] - a):
+                return None  # a window with an outage
             left = node.left if isinstance(node, Since) else None
             right = node.right if isinstance(node, Since) else node.arg
             sign = -1.0 if isinstance(node, Historically) else 1.0

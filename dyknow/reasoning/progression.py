@@ -189,6 +189,9 @@ class _Node:
         self.sync = sync
         self.need_ns = need_ns  # how far back from the newest state this node reads
         self.max_states = 1 << 62  # how many states' entries it may keep (the monitor sets it)
+        self.held: _Held | None = None  # a window's: the staleness of the terms below it
+        self.below: list[int] = []
+        self.first_t = _NEVER  # the first state's time (where an unbounded past window starts)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         """Evaluate the new state ``n`` at ``t`` (children have stepped already)."""
@@ -213,12 +216,59 @@ class _Value:
 
 
 class _Held:
-    """What the stream nodes of a monitor read: each term's latest sample time, and its maximum age
-    (-1: no bound), shared by the monitor and its stream nodes."""
+    """What the stream nodes of a monitor read, and its windows ask: each term's latest sample
+    time, its maximum age (-1: no bound) and the time spans it was stale in (open: ``from < t <
+    until``; the one it may be stale in now runs from its latest sample's time plus its age),
+    shared by the monitor and its nodes. Spans older than ``keep_ns`` before the newest sample
+    are dropped, noted in ``pruned`` (a window without a lower bound still finds them)."""
 
     def __init__(self, terms: int) -> None:
-        self.times: list[int] = [0] * terms
+        self.times: list[int] = [_NEVER] * terms
         self.max_age: list[int] = [-1] * terms
+        self.periods: list[list[tuple[int, int]]] = [[] for _ in range(terms)]
+        self.heads: list[int] = [0] * terms
+        self.pruned: list[bool] = [False] * terms
+        self.keep_ns = 0
+        self.max_periods = 1 << 62
+
+    def sample(self, k: int, t: int) -> None:
+        """Term ``k`` had a sample at ``t`` (in time order)."""
+        last = self.times[k]
+        age = self.max_age[k]
+        if age >= 0 and last != _NEVER and t - last > age + 1:
+            periods = self.periods[k]
+            periods.append((last + age, t))
+            head = self.heads[k]
+            edge = t - self.keep_ns
+            while head < len(periods) and (periods[head][1] < edge or len(periods) - head > self.max_periods):
+                head += 1
+                self.pruned[k] = True
+            if head > 64 and head * 2 > len(periods):
+                del periods[:head]
+                head = 0
+            self.heads[k] = head
+        self.times[k] = t
+
+    def stale(self, terms: list[int], lo: int | None, hi: int) -> bool:
+        """Whether one of ``terms`` is stale at a whole-ns time of ``[lo, hi]`` (``lo`` None: no bound)."""
+        for k in terms:
+            age = self.max_age[k]
+            if age < 0:
+                continue
+            if lo is None and self.pruned[k]:
+                return True
+            last = self.times[k]
+            if last != _NEVER and (last + age + 1 if lo is None else max(last + age + 1, lo)) <= hi:
+                return True  # stale since its latest sample
+            periods = self.periods[k]
+            for index in range(len(periods) - 1, self.heads[k] - 1, -1):
+                start, end = periods[index]
+                if end - 1 < (lo if lo is not None else _NEVER):
+                    break  # (older ones end before the span)
+                first = start + 1 if lo is None else max(start + 1, lo)
+                if first <= min(end - 1, hi):
+                    return True
+        return False
 
 
 class _StreamValue(_Value):
@@ -403,9 +453,14 @@ class _AggregateValue(_Value):
         self.before: tuple[int, Any] | None = None  # the entry that left the window last (integral)
         self.pieces_bad = 0  # integral: pieces between entries whose value is not a number
         self.lost_t = -(2**62)  # the newest state given up (over max_states) and what may hide behind it
+        self.held: _Held | None = None  # the staleness of the terms below (set by the monitor)
+        self.below: list[int] = []
+        self.first_t = -(2**62)  # the first state's time (an unbounded window's start)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         value = self.arg.val if self.arg is not None else self.cond.cur  # type: ignore[union-attr]
+        if n == 0:
+            self.first_t = t
         if self.lo == 0:
             self.enter(t, value)
         else:
@@ -514,6 +569,9 @@ class _AggregateValue(_Value):
         start = t - self.hi if self.bounded else -(2**62)
         if self.lost_t > -(2**62) and self.lost_t >= start:
             return UNKNOWN_VALUE  # a state given up may be in the window
+        held = self.held
+        if held is not None and held.stale(self.below, start if self.bounded else self.first_t, t - self.lo):
+            return UNKNOWN_VALUE  # a term below was stale in the window
         if kind == "integral":
             return self.integral(t, start)
         if self.bad and kind != "rate":
@@ -747,7 +805,12 @@ class _SinceSync(_Node):
         self.lost_t = _NEVER
         self.given_up = 0
 
+    def stale_window(self, n: int, t: int) -> bool:
+        return _past_stale(self, t, self.lo_ns, self.hi_ns if self.bounded else None)
+
     def step(self, n: int, t: int, held: list[Any]) -> None:
+        if self.first_t == _NEVER:
+            self.first_t = t
         psi = self.right.cur
         if self.negate:
             psi = 2 - psi
@@ -796,6 +859,8 @@ class _SinceSync(_Node):
             value = UNKNOWN
         elif self.lost != _NONE and self.lost_t >= oldest and self.lost >= self.break_f:
             value = UNKNOWN  # all known terms are false, but one given up may be in the window
+        elif self.held is not None and self.stale_window(n, t):
+            value = UNKNOWN  # a term below was stale in the window: an outage is no violation
         else:
             value = FALSE
         if self.negate:
@@ -803,6 +868,16 @@ class _SinceSync(_Node):
         self.cur = value
         if self.history:
             self.vals.append(value)
+
+
+def _past_stale(node: _Node, t: int, lo_ns: int, hi_ns: int | None) -> bool:
+    """Whether a term below ``node`` was stale in the past window ``[t - hi, t - lo]`` of the state at ``t``."""
+    held = node.held
+    if held is None:
+        return False
+    if node.first_t == _NEVER:
+        node.first_t = t
+    return held.stale(node.below, t - hi_ns if hi_ns is not None else node.first_t, t - lo_ns)
 
 
 def _pred(positions: list[int], below: int) -> int:
@@ -909,7 +984,8 @@ class _Temporal(_Node):
         return left_t, left_f, right_t, right_f
 
     def resolve(self, first: int, last: int, value: int) -> None:
-        """Decide every pending state in [first, last] as ``value``."""
+        """Decide every pending state in [first, last] as ``value`` (false: those whose window
+        no term below was stale in: the others stay unknown for good)."""
         if first > last:
             return
         undecided = self.undecided
@@ -917,12 +993,18 @@ class _Temporal(_Node):
         hi = bisect_right(undecided, last)
         if lo < hi:
             for i in undecided[lo:hi]:
-                self.decide(i, value)
+                if value != FALSE or not self.stale_at(i):
+                    self.decide(i, value)
             del undecided[lo:hi]
 
     def resolve_one(self, i: int, value: int) -> None:
         _remove(self.undecided, i)
-        self.decide(i, value)
+        if value != FALSE or not self.stale_at(i):
+            self.decide(i, value)
+
+    def stale_at(self, i: int) -> bool:
+        """Whether a term below was stale in the window of state ``i`` (a false verdict there is unknown)."""
+        raise NotImplementedError
 
     def retire(self, now: int) -> None:
         undecided = self.undecided
@@ -945,6 +1027,13 @@ class _UntilNode(_Temporal):
     """``left until[a,b] right``, ``eventually`` (no left) and ``always`` (negated): states wait in
     ``undecided`` until a true right with an unbroken left chain decides them true, or their
     window is complete and every term is false."""
+
+    def stale_at(self, i: int) -> bool:
+        held = self.held
+        if held is None:
+            return False
+        ti = self.clock.at(i)
+        return held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         self.events = []
@@ -1057,6 +1146,9 @@ class _SinceNode(_Temporal):
         super().__init__(clock, left, right, lo_ns, hi_ns if hi_ns is not None else 0, negate, need_ns, retire_ns)
         self.bounded = hi_ns is not None
 
+    def stale_at(self, i: int) -> bool:
+        return _past_stale(self, self.clock.at(i), self.lo_ns, self.hi_ns if self.bounded else None)
+
     def window(self, i: int) -> tuple[int, int]:
         clock = self.clock
         ti = clock.at(i)
@@ -1085,11 +1177,15 @@ class _SinceNode(_Temporal):
         return UNKNOWN
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
+        if self.first_t == _NEVER:
+            self.first_t = t
         self.events = []
         self.vals.append(UNKNOWN)
         self.record_new(n)
         value = self.check(n)
-        if value != UNKNOWN:
+        if value == FALSE and self.stale_at(n):
+            pass  # unknown for good: a term below was stale in the window
+        elif value != UNKNOWN:
             self.decide(n, value)
         else:
             self.undecided.append(n)
@@ -1156,6 +1252,10 @@ class Monitor:
             raise FormulaError("the formula is a value, not a condition", where=f"monitor of {str(self.formula)!r}", expected="a condition")
         self._root = root
         self._span_ns = max([node.need_ns for node in self._nodes] + [self.formula.horizon_ns])
+        # stale spans are kept as far back as any bounded window may read, all windows at once
+        self._times.keep_ns = self._span_ns + sum(
+            (n.interval.hi_ns or n.interval.lo_ns) for n in walk(self.formula.root) if isinstance(n, Historically | Once | Since | Aggregate | Always | Eventually | Until)
+        )
         # with a future operator somewhere, nodes read their operands' verdicts at older states
         self._history = not all(node.sync for node in self._nodes)
         for node in self._nodes:
@@ -1190,6 +1290,7 @@ class Monitor:
         holders = len(self._nodes) + sum(1 for node in self._values if isinstance(node, _AggregateValue))  # (values keep no states)
         states = max(MIN_STATES, max_cells // holders)
         self._max_states = states
+        self._times.max_periods = states
         for node in self._steps:
             node.max_states = states
 
@@ -1207,6 +1308,7 @@ class Monitor:
         # iterative post-order: formulas may nest deeper than Python's recursion allows
         built: dict[int, _Node | _Value] = {}
         horizons: dict[int, int] = {}
+        terms: dict[int, set[int]] = {}  # the terms each node reads, itself or below
         stack: list[tuple[Node, bool]] = [(node, False)]
         while stack:
             current, expanded = stack.pop()
@@ -1221,7 +1323,16 @@ class Monitor:
             below = max((horizons[id(kid)] for kid in kids), default=0)
             own = current.interval.hi_ns or 0 if isinstance(current, Always | Eventually | Until) else 0
             horizons[id(current)] = below + own
+            reads: set[int] = set()
+            for kid in kids:
+                reads |= terms[id(kid)]
+            if isinstance(current, Stream):
+                reads.add(self._index[str(current.term)])
+            terms[id(current)] = reads
             made = self._make(current, args, below, below + own)
+            if isinstance(made, _UntilNode | _SinceNode | _SinceSync | _AggregateValue):
+                made.held = self._times  # its windows ask whether a term below was stale in them
+                made.below = sorted(reads)
             if isinstance(made, _Node):
                 self._nodes.append(made)
             else:
@@ -1332,7 +1443,7 @@ class Monitor:
             self._closed_t = t_ns
             self._max_t = t_ns
             self._held[0] = value
-            self._times.times[0] = t_ns
+            self._times.sample(0, t_ns)
             if self._missing:
                 self._seen[0] = True
                 self._missing = 0
@@ -1435,7 +1546,7 @@ class Monitor:
 
     def _hold(self, k: int, value: Any, t: int) -> None:
         self._held[k] = value
-        self._times.times[k] = t
+        self._times.sample(k, t)
         if not self._seen[k]:
             self._seen[k] = True
             self._missing -= 1

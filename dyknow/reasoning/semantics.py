@@ -11,9 +11,15 @@ hold). Samples before that first time only set the values held. Two samples of o
 time: the later one in the sequence is the value. Times are integer nanoseconds (float seconds
 ``t`` are read as ``round(t * 1e9)``). A formula that mentions no stream (``true``) has no states.
 
-**Freshness.** A term may be given a maximum age (``max_age``): at a state more than that after
-the term's latest sample, the term is *stale* and its value unknown. A monitor that is told of a
-gap (its term re-planned) marks each verdict whose window reaches into it.
+**Freshness.** A term may be given a maximum age (``max_age``): at a time more than that after the
+term's latest sample (its first excepted: there is no state before it), the term is *stale*. At a
+stale state its value is unknown; and a window (of a temporal operator or an aggregate) in whose
+time span a term read below the operator is stale counts one more unknown term, so a window an
+outage of its streams reaches into is never found false (nor an ``always`` true), nor an
+aggregate over it known: a failure is not a violation. The span of a future window at state i
+is ``[t_i + a, t_i + b]``, of a past one ``[t_i - b, t_i - a]`` (from the first state when ``b``
+is ``inf``). A monitor that is told of a gap (its term re-planned) marks each verdict whose window
+reaches into it.
 
 **Values.** A stream's value at a state is the payload it holds, down the field path when there is
 one (each step needs a JSON object, a ``dict``, holding the field). A value is a *number* (an
@@ -675,15 +681,45 @@ def _evaluate_ns(
     index = {term: k for k, term in enumerate(formula.terms)}
     max_age = [ages.get(str(term), -1) for term in formula.terms]
     evaluator = _Evaluator(times, values, latest, index, max_age, dict(variables or {}), robustness)
+    evaluator.stale = _stale_periods(streams, max_age)
     verdicts, margins = evaluator.node(formula.root)
     if robustness:
         return [(t, verdict_of(v), r) for t, v, r in zip(times, verdicts, margins, strict=True)]
     return [(t, verdict_of(v)) for t, v in zip(times, verdicts, strict=True)]
 
 
+def _stale_periods(streams: Sequence[Sequence[tuple[int, Any]]], max_age: list[int]) -> list[list[tuple[int, int | None]]]:
+    """Per term, the open time spans ``(from, until)`` in which it is stale (``until`` None: from
+    its last sample on), given its samples and maximum age (-1: never stale)."""
+    out: list[list[tuple[int, int | None]]] = []
+    for samples, age in zip(streams, max_age, strict=True):
+        periods: list[tuple[int, int | None]] = []
+        if age >= 0 and samples:
+            times = sorted({t for t, _ in samples})
+            for before, after in zip(times, times[1:], strict=False):
+                if after - before > age:
+                    periods.append((before + age, after))
+            periods.append((times[-1] + age, None))
+        out.append(periods)
+    return out
+
+
+def stale_in(periods: Sequence[tuple[int, int | None]], lo: int | None, hi: int) -> bool:
+    """Whether a stale period (open: ``from < t < until``) holds a time ``t`` of the span ``[lo,
+    hi]`` (``lo`` None: no bound)."""
+    for start, end in periods:
+        first = start + 1 if lo is None else max(start + 1, lo)
+        last = hi if end is None else min(end - 1, hi)
+        if first <= last:
+            return True
+    return False
+
+
 class _Evaluator:
     """Bottom-up evaluation of every node over all states: a condition's verdicts (and robustness),
     a value's values, each as a list."""
+
+    stale: list[list[tuple[int, int | None]]] = []
 
     def __init__(
         self,
@@ -750,7 +786,14 @@ class _Evaluator:
         if isinstance(node, Prev):
             return [args[0][0][i - 1] if i else self._unknown_like(node.arg) for i in range(n)], none
         if isinstance(node, Aggregate):
-            return self.aggregate(node, args[0][0]), none
+            out = self.aggregate(node, args[0][0])
+            stale = self.stale_terms(node)
+            if stale:
+                lo, hi = node.interval.lo_ns, node.interval.hi_ns
+                for i in range(n):
+                    if self.stale_window(stale, None if hi is None else self.times[i] - hi, self.times[i] - lo):
+                        out[i] = UNKNOWN_VALUE
+            return out, none
         if isinstance(node, Atom):
             return self.atom(node, args)
         if isinstance(node, Rise | Fall):
@@ -769,22 +812,35 @@ class _Evaluator:
             neg = isinstance(node, Always)
             hi = node.interval.hi_ns
             assert hi is not None, "future operators have a finite upper bound (the parser checks it)"
-            out_v, out_r = self.until([TRUE] * n, [_inf_list(n)][0], _flip(v, neg), _negate(r, neg), node.interval.lo_ns, hi)
+            out_v, out_r = self.until([TRUE] * n, _inf_list(n), _flip(v, neg), _negate(r, neg), node.interval.lo_ns, hi, self.stale_terms(node))
             return _flip(out_v, neg), _negate(out_r, neg)
         if isinstance(node, Until):
             (lv, lr), (rv, rr) = args
             hi = node.interval.hi_ns
             assert hi is not None
-            return self.until(lv, lr, rv, rr, node.interval.lo_ns, hi)
+            return self.until(lv, lr, rv, rr, node.interval.lo_ns, hi, self.stale_terms(node))
         if isinstance(node, Once | Historically):
             v, r = args[0]
             neg = isinstance(node, Historically)
-            out_v, out_r = self.since([TRUE] * n, _inf_list(n), _flip(v, neg), _negate(r, neg), node.interval.lo_ns, node.interval.hi_ns)
+            out_v, out_r = self.since(
+                [TRUE] * n, _inf_list(n), _flip(v, neg), _negate(r, neg), node.interval.lo_ns, node.interval.hi_ns, self.stale_terms(node)
+            )
             return _flip(out_v, neg), _negate(out_r, neg)
         if isinstance(node, Since):
             (lv, lr), (rv, rr) = args
-            return self.since(lv, lr, rv, rr, node.interval.lo_ns, node.interval.hi_ns)
+            return self.since(lv, lr, rv, rr, node.interval.lo_ns, node.interval.hi_ns, self.stale_terms(node))
         raise FormulaError(f"{type(node).__name__} cannot be evaluated here", where="formula", expected="a formula without foreach inside")
+
+    def stale_terms(self, node: Node) -> list[int]:
+        """The terms read below ``node`` that may be stale (they have a maximum age)."""
+        found = {self.index[n.term] for n in walk(node) if isinstance(n, Stream) and n.term in self.index}
+        return sorted(k for k in found if self.max_age[k] >= 0 and k < len(self.stale) and self.stale[k])
+
+    def stale_window(self, terms: list[int], lo: int | None, hi: int) -> bool:
+        """Whether one of ``terms`` is stale at a time of ``[lo, hi]`` (from the first state when ``lo`` is None)."""
+        first = self.times[0] if self.times else 0
+        lo = first if lo is None else max(lo, first)
+        return any(stale_in(self.stale[k], lo, hi) for k in terms)
 
     @staticmethod
     def _unknown_like(node: Node) -> Any:
@@ -890,7 +946,9 @@ class _Evaluator:
 
     # -- temporal operators (verdicts and robustness)
 
-    def until(self, left: list[int], left_r: list[float | None], right: list[int], right_r: list[float | None], a: int, b: int) -> tuple[list[int], list[float | None]]:
+    def until(
+        self, left: list[int], left_r: list[float | None], right: list[int], right_r: list[float | None], a: int, b: int, stale: list[int]
+    ) -> tuple[list[int], list[float | None]]:
         """``left until[a,b] right`` at every state, from "next" tables built backwards."""
         times, n = self.times, self.n
         next_not_true, next_false, next_true, next_not_false = [n] * (n + 1), [n] * (n + 1), [n] * (n + 1), [n] * (n + 1)
@@ -906,13 +964,14 @@ class _Evaluator:
             lo = bisect_left(times, times[i] + a)  # the window is [lo, hi]
             hi = bisect_right(times, times[i] + b) - 1
             complete = last >= times[i] + b
+            gap = bool(stale) and self.stale_window(stale, times[i] + a, times[i] + b)
             if next_true[lo] <= min(hi, next_not_true[i]):
                 out.append(TRUE)
-            elif complete and next_not_false[lo] > min(hi, next_false[i]):
+            elif complete and not gap and next_not_false[lo] > min(hi, next_false[i]):
                 out.append(FALSE)
             else:
                 out.append(UNKNOWN)
-            if not self.robust or out[-1] == UNKNOWN or not complete:
+            if not self.robust or out[-1] == UNKNOWN or not complete or gap:
                 rob.append(None)
                 continue
             best: float | None = -_INF
@@ -924,7 +983,9 @@ class _Evaluator:
             rob.append(best)
         return out, rob
 
-    def since(self, left: list[int], left_r: list[float | None], right: list[int], right_r: list[float | None], a: int, b: int | None) -> tuple[list[int], list[float | None]]:
+    def since(
+        self, left: list[int], left_r: list[float | None], right: list[int], right_r: list[float | None], a: int, b: int | None, stale: list[int]
+    ) -> tuple[list[int], list[float | None]]:
         """``left since[a,b] right`` at every state, from "last" tables built forwards."""
         times, n = self.times, self.n
         last_not_true, last_false, last_true, last_not_false = [-1] * n, [-1] * n, [-1] * n, [-1] * n
@@ -938,15 +999,16 @@ class _Evaluator:
         for i in range(n):
             lo = 0 if b is None else bisect_left(times, times[i] - b)  # the window is [lo, hi]
             hi = bisect_right(times, times[i] - a) - 1
-            if hi < 0:
-                out.append(FALSE)  # no state in the window
-            elif last_true[hi] >= max(lo, last_not_true[i]):
+            gap = bool(stale) and self.stale_window(stale, None if b is None else times[i] - b, times[i] - a)
+            if hi >= 0 and last_true[hi] >= max(lo, last_not_true[i]):
                 out.append(TRUE)
-            elif last_not_false[hi] < max(lo, last_false[i]):
-                out.append(FALSE)
+            elif gap:
+                out.append(UNKNOWN)
+            elif hi < 0 or last_not_false[hi] < max(lo, last_false[i]):
+                out.append(FALSE)  # (no state in the window: false)
             else:
                 out.append(UNKNOWN)
-            if not self.robust or out[-1] == UNKNOWN:
+            if not self.robust or out[-1] == UNKNOWN or gap:
                 rob.append(None)
                 continue
             best: float | None = -_INF
