@@ -1,9 +1,10 @@
-"""For the temporal reasoning tests: a naive evaluator written from the issue's definitions, and
+"""For the temporal reasoning tests: a naive evaluator written from the semantics' text, and
 Hypothesis strategies for formulas and irregular traces.
 
 The naive evaluator shares no code with :mod:`dyknow.reasoning.semantics`: it reads the
 definitions literally (every window enumerated, every AND and OR over explicit lists of Python
-``True``/``False``/``None``), quadratic and slow, which is the point.
+``True``/``False``/``None``, every aggregate recomputed from the window's states, every integral
+from its pieces), quadratic and slow, which is the point.
 """
 
 from __future__ import annotations
@@ -16,25 +17,44 @@ from typing import Any
 from hypothesis import strategies as st
 
 from dyknow.reasoning.syntax import (
+    Aggregate,
     Always,
     And,
+    Arith,
     Atom,
+    Call,
     Const,
     Eventually,
+    Fall,
     Formula,
     Historically,
     Implies,
     Interval,
+    Neg,
     Node,
     Not,
+    Num,
     Once,
     Or,
+    Prev,
+    Rise,
     Since,
+    Str,
+    Stream,
     Until,
+    Var,
 )
 from dyknow.tags import Term
 
 Verdict = bool | None
+
+
+class _U:
+    def __repr__(self) -> str:
+        return "U"
+
+
+U = _U()  # an unknown value, the naive evaluator's own
 
 
 def k_or(terms: Sequence[Verdict]) -> Verdict:
@@ -60,73 +80,258 @@ def k_not(v: Verdict) -> Verdict:
     return None if v is None else not v
 
 
-def naive_atom(atom: Atom, value: Any) -> Verdict:
-    """An atom on a held value, from the semantics' text."""
-    for name in atom.fields:
+def is_number(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool)
+
+
+def naive_read(payload: Any, fields: Sequence[str]) -> Any:
+    """A stream's value from the text: down the fields through dicts; a number (not NaN nor
+    infinite), a string or a boolean; else unknown."""
+    value = payload
+    for name in fields:
         if not isinstance(value, dict) or name not in value:
-            return None
+            return U
         value = value[name]
-    if atom.op is None:
-        return value if isinstance(value, bool) else None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+    if isinstance(value, bool) or isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else U
+    return U
+
+
+def naive_compare(op: str, x: Any, y: Any) -> Verdict:
+    if op in ("==", "!="):
+        if is_number(x) and is_number(y):
+            same = x == y
+        elif isinstance(x, str) and isinstance(y, str):
+            same = x == y
+        elif isinstance(x, bool) and isinstance(y, bool):
+            same = x == y
+        else:
+            return None
+        return same if op == "==" else not same
+    if not (is_number(x) and is_number(y)):
         return None
-    x, y = value, atom.number
-    return {"<": x < y, "<=": x <= y, ">": x > y, ">=": x >= y, "==": x == y, "!=": x != y}[atom.op]
+    return {"<": x < y, "<=": x <= y, ">": x > y, ">=": x >= y}[op]
 
 
-def naive_states(terms: Sequence[Term], streams: Sequence[Sequence[tuple[int, Any]]]) -> tuple[list[int], list[list[Any]]]:
+def naive_arith(op: str, x: Any, y: Any) -> Any:
+    if not (is_number(x) and is_number(y)):
+        return U
+    if op == "/" and y == 0:
+        return U
+    try:
+        result = {"+": lambda: x + y, "-": lambda: x - y, "*": lambda: x * y, "/": lambda: x / y}[op]()
+    except OverflowError:
+        return U
+    if isinstance(result, float) and not math.isfinite(result):
+        return U
+    return result
+
+
+def naive_sum(values: Sequence[Any]) -> Any:
+    """Exact for ints; else the exactly rounded sum as floats (fractions, rounded once)."""
+    if all(isinstance(v, int) for v in values):
+        return sum(values)
+    from fractions import Fraction
+
+    try:
+        exact = sum((Fraction(float(v)) for v in values), Fraction(0))
+        total = float(exact)
+    except OverflowError:
+        return U
+    return total if math.isfinite(total) else U
+
+
+def naive_states(terms: Sequence[Term], streams: Sequence[Sequence[tuple[int, Any]]]) -> tuple[list[int], list[list[Any]], list[list[int]]]:
     """States from the definition: distinct times from the first time all streams have a value,
-    each holding every stream's latest value (the later sample wins at equal times)."""
+    each holding every stream's latest value (the later sample wins at equal times), and the
+    time of each stream's latest sample."""
     if not streams or any(not s for s in streams):
-        return [], []
+        return [], [], []
     start = max(s[0][0] for s in streams)
     times = sorted({t for s in streams for t, _ in s if t >= start})
     held = [[[v for t, v in s if t <= now][-1] for s in streams] for now in times]
-    return times, held
+    when = [[[t for t, _ in s if t <= now][-1] for s in streams] for now in times]
+    return times, held, when
 
 
-def naive_evaluate_ns(formula: Formula, streams: Mapping[Term, Sequence[tuple[int, Any]]]) -> list[tuple[int, Verdict]]:
-    """Every state's (t_ns, verdict), straight from the definitions."""
+def naive_evaluate_ns(
+    formula: Formula,
+    streams: Mapping[Term, Sequence[tuple[int, Any]]],
+    *,
+    max_age: Mapping[Term, int] | None = None,
+    variables: Mapping[str, Any] | None = None,
+    robustness: bool = False,
+    start_ns: int | None = None,
+) -> list[Any]:
+    """Every state's (t_ns, verdict), or (t_ns, verdict, robustness), straight from the definitions."""
     terms = list(formula.terms)
-    times, held = naive_states(terms, [streams[t] for t in terms])
+    times, held, when = naive_states(terms, [streams[t] for t in terms])
+    if start_ns is not None:
+        keep = [i for i, t in enumerate(times) if t >= start_ns]
+        times, held, when = [times[i] for i in keep], [held[i] for i in keep], [when[i] for i in keep]
     n = len(times)
-    memo: dict[tuple[int, int], Verdict] = {}
+    ages = dict(max_age or {})
+    names = dict(variables or {})
+    sample_times = {term: sorted({t for t, _ in streams[term]}) for term in terms}
 
-    def value(node: Node, i: int) -> Verdict:
+    def terms_below(node: Node) -> set[Term]:
+        found: set[Term] = set()
+        todo = [node]
+        while todo:
+            here = todo.pop()
+            if isinstance(here, Stream):
+                found.add(here.term)
+            for name in ("arg", "left", "right", "body"):
+                child = getattr(here, name, None)
+                if child is not None and not isinstance(child, str):
+                    todo.append(child)
+            todo.extend(getattr(here, "args", ()) if isinstance(here, Call) else ())
+        return found
+
+    def stale_somewhere(node: Node, lo: int | None, hi: int) -> bool:
+        """Whether a term below ``node`` is stale at some whole ns of [lo, hi] (lo None: from the first state)."""
+        lo = times[0] if lo is None else max(lo, times[0])
+        for term in terms_below(node):
+            if term not in ages:
+                continue
+            ts = sample_times[term]
+            # staleness grows between samples: the first stale time after a sample s is s + age + 1
+            for tau in {lo, *(s + ages[term] + 1 for s in ts)}:
+                if lo <= tau <= hi:
+                    latest = [t for t in ts if t <= tau]
+                    if latest and tau - latest[-1] > ages[term]:
+                        return True
+        return False
+    memo: dict[tuple[int, int], Any] = {}
+    rmemo: dict[tuple[int, int], float | None] = {}
+
+    def value(node: Node, i: int) -> Any:
         key = (id(node), i)
         if key not in memo:
             memo[key] = compute(node, i)
         return memo[key]
 
-    def target(node: Node, j: int, negate: bool) -> Verdict:
-        return k_not(value(node, j)) if negate else value(node, j)
+    def as_value(node: Node, i: int) -> Any:
+        """A node's value; a condition's verdict as True/False (unknown: U)."""
+        v = value(node, i)
+        if is_condition(node):
+            return U if v is None else v
+        return v
 
-    def until(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False) -> Verdict:
+    def window_past(interval: Interval, i: int) -> list[int]:
+        a, b = interval.lo_ns, interval.hi_ns
+        return [j for j in range(n) if a <= times[i] - times[j] and (b is None or times[i] - times[j] <= b)]
+
+    def until(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False, owner: Node | None = None) -> Verdict:
         a, b = interval.lo_ns, interval.hi_ns
         assert b is not None
         terms_: list[Verdict] = []
+        if owner is not None and stale_somewhere(owner, times[i] + a, times[i] + b):
+            terms_.append(None)  # an outage in the window: one more unknown
         for j in range(n):
             if a <= times[j] - times[i] <= b:
                 chain = [True if left is None else value(left, k) for k in range(i, j)]
-                terms_.append(k_and([target(right, j, negate), *chain]))
+                right_j = k_not(value(right, j)) if negate else value(right, j)
+                terms_.append(k_and([right_j, *chain]))
         if times[-1] < times[i] + b:  # incomplete window: one more unknown
             terms_.append(None)
         return k_or(terms_)
 
-    def since(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False) -> Verdict:
-        a, b = interval.lo_ns, interval.hi_ns
+    def since(left: Node | None, right: Node, interval: Interval, i: int, negate: bool = False, owner: Node | None = None) -> Verdict:
         terms_: list[Verdict] = []
-        for j in range(n):
-            if a <= times[i] - times[j] and (b is None or times[i] - times[j] <= b):
-                chain = [True if left is None else value(left, k) for k in range(j + 1, i + 1)]
-                terms_.append(k_and([target(right, j, negate), *chain]))
+        a, b = interval.lo_ns, interval.hi_ns
+        if owner is not None and stale_somewhere(owner, None if b is None else times[i] - b, times[i] - a):
+            terms_.append(None)  # an outage in the window: one more unknown
+        for j in window_past(interval, i):
+            chain = [True if left is None else value(left, k) for k in range(j + 1, i + 1)]
+            right_j = k_not(value(right, j)) if negate else value(right, j)
+            terms_.append(k_and([right_j, *chain]))
         return k_or(terms_)
 
-    def compute(node: Node, i: int) -> Verdict:
-        if isinstance(node, Atom):
-            return naive_atom(node, held[i][terms.index(node.term)])
+    def aggregate(node: Aggregate, i: int) -> Any:
+        kind = node.kind
+        lo_, hi_ = node.interval.lo_ns, node.interval.hi_ns
+        if stale_somewhere(node, None if hi_ is None else times[i] - hi_, times[i] - lo_):
+            return U
+        if kind == "integral":
+            lo, hi = node.interval.lo_ns, node.interval.hi_ns
+            start = times[0] if hi is None else max(times[0], times[i] - hi)
+            end = times[i] - lo
+            if end <= start:
+                return 0
+            pieces = []
+            for j in range(i + 1):
+                piece_end = times[j + 1] if j < i else times[i]
+                overlap = min(piece_end, end) - max(times[j], start)
+                if overlap > 0:
+                    x = value(node.arg, j)
+                    if not is_number(x):
+                        return U
+                    pieces.append(x * overlap)
+            total = naive_sum(pieces)
+            return naive_arith("/", total, 1e9)
+        states = window_past(node.interval, i)
+        if kind == "rate":
+            if len(states) < 2:
+                return U
+            x, y = value(node.arg, states[0]), value(node.arg, states[-1])
+            return naive_arith("/", naive_arith("-", y, x), (times[states[-1]] - times[states[0]]) / 1e9)
+        if kind == "count":
+            verdicts = [value(node.arg, j) for j in states]
+            return U if any(v is None for v in verdicts) else sum(1 for v in verdicts if v is True)
+        xs = [value(node.arg, j) for j in states]
+        if any(not is_number(x) for x in xs):
+            return U
+        if kind == "sum":
+            return naive_sum(xs)
+        if kind == "avg":
+            return naive_arith("/", naive_sum(xs), len(xs)) if xs else U
+        if not xs:
+            return U
+        return min(xs) if kind == "min" else max(xs)
+
+    def compute(node: Node, i: int) -> Any:
+        if isinstance(node, Num | Str):
+            return node.value
+        if isinstance(node, Var):
+            return names.get(node.name, U)
         if isinstance(node, Const):
             return node.value
+        if isinstance(node, Stream):
+            k = terms.index(node.term)
+            if node.term in ages and times[i] - when[i][k] > ages[node.term]:
+                return U
+            return naive_read(held[i][k], node.fields)
+        if isinstance(node, Neg):
+            x = value(node.arg, i)
+            return -x if is_number(x) else U
+        if isinstance(node, Arith):
+            return naive_arith(node.op, value(node.left, i), value(node.right, i))
+        if isinstance(node, Call):
+            xs = [value(a, i) for a in node.args]
+            if not all(is_number(x) for x in xs):
+                return U
+            return abs(xs[0]) if node.fn == "abs" else min(xs) if node.fn == "min" else max(xs)
+        if isinstance(node, Prev):
+            if i == 0:
+                return None if is_condition(node.arg) else U
+            return value(node.arg, i - 1)
+        if isinstance(node, Aggregate):
+            return aggregate(node, i)
+        if isinstance(node, Atom):
+            x = as_value(node.left, i)
+            if node.op is None:
+                return x if isinstance(x, bool) else None
+            assert node.right is not None
+            return naive_compare(node.op, x, as_value(node.right, i))
+        if isinstance(node, Rise):
+            return k_and([value(node.arg, i), k_not(value(node.arg, i - 1) if i else None)])
+        if isinstance(node, Fall):
+            return k_and([k_not(value(node.arg, i)), value(node.arg, i - 1) if i else None])
         if isinstance(node, Not):
             return k_not(value(node.arg, i))
         if isinstance(node, And):
@@ -136,19 +341,103 @@ def naive_evaluate_ns(formula: Formula, streams: Mapping[Term, Sequence[tuple[in
         if isinstance(node, Implies):
             return k_or([k_not(value(node.left, i)), value(node.right, i)])
         if isinstance(node, Until):
-            return until(node.left, node.right, node.interval, i)
+            return until(node.left, node.right, node.interval, i, owner=node)
         if isinstance(node, Since):
-            return since(node.left, node.right, node.interval, i)
+            return since(node.left, node.right, node.interval, i, owner=node)
         if isinstance(node, Eventually):
-            return until(None, node.arg, node.interval, i)
+            return until(None, node.arg, node.interval, i, owner=node)
         if isinstance(node, Once):
-            return since(None, node.arg, node.interval, i)
+            return since(None, node.arg, node.interval, i, owner=node)
         if isinstance(node, Always):
-            return k_not(until(None, node.arg, node.interval, i, negate=True))  # not eventually not
+            return k_not(until(None, node.arg, node.interval, i, negate=True, owner=node))  # not eventually not
         assert isinstance(node, Historically)
-        return k_not(since(None, node.arg, node.interval, i, negate=True))  # not once not
+        return k_not(since(None, node.arg, node.interval, i, negate=True, owner=node))  # not once not
 
+    # -- robustness, from its definitions (None: undefined)
+
+    def rob(node: Node, i: int) -> float | None:
+        key = (id(node), i)
+        if key not in rmemo:
+            rmemo[key] = robust(node, i) if value(node, i) is not None else None
+        return rmemo[key]
+
+    def lo_(xs: Sequence[float | None]) -> float | None:
+        return None if any(x is None for x in xs) else min(xs, default=math.inf)  # type: ignore[type-var]
+
+    def hi_(xs: Sequence[float | None]) -> float | None:
+        return None if any(x is None for x in xs) else max(xs, default=-math.inf)  # type: ignore[type-var]
+
+    def robust(node: Node, i: int) -> float | None:
+        if isinstance(node, Const):
+            return math.inf if node.value else -math.inf
+        if isinstance(node, Atom):
+            x = as_value(node.left, i)
+            verdict = value(node, i)
+            if node.op is None:
+                return math.inf if verdict else -math.inf
+            y = as_value(node.right, i)  # type: ignore[arg-type]
+            if is_number(x) and is_number(y):
+                d = float(y - x) if node.op in ("<", "<=") else float(x - y)
+                return {"<": d, "<=": d, ">": d, ">=": d, "==": -abs(float(x - y)), "!=": abs(float(x - y))}[node.op]
+            return math.inf if verdict else -math.inf
+        if isinstance(node, Not):
+            r = rob(node.arg, i)
+            return None if r is None else -r
+        if isinstance(node, And):
+            return lo_([rob(node.left, i), rob(node.right, i)])
+        if isinstance(node, Or):
+            return hi_([rob(node.left, i), rob(node.right, i)])
+        if isinstance(node, Implies):
+            left = rob(node.left, i)
+            return hi_([None if left is None else -left, rob(node.right, i)])
+        if isinstance(node, Rise | Fall):
+            if i == 0:
+                return None
+            now, before = rob(node.arg, i), rob(node.arg, i - 1)
+            if now is None or before is None:
+                return None
+            return min(now, -before) if isinstance(node, Rise) else min(-now, before)
+        if isinstance(node, Eventually | Always | Until):
+            a, b = node.interval.lo_ns, node.interval.hi_ns
+            assert b is not None
+            if times[-1] < times[i] + b or stale_somewhere(node, times[i] + a, times[i] + b):
+                return None  # an incomplete window, or one with an outage
+            left = node.left if isinstance(node, Until) else None
+            right = node.right if isinstance(node, Until) else node.arg
+            sign = -1.0 if isinstance(node, Always) else 1.0
+            best: list[float | None] = []
+            for j in range(n):
+                if a <= times[j] - times[i] <= b:
+                    chain = [math.inf if left is None else rob(left, k) for k in range(i, j)]
+                    r = rob(right, j)
+                    best.append(lo_([None if r is None else sign * r, *chain]))
+            out = hi_(best)
+            return None if out is None else sign * out
+        if isinstance(node, Once | Historically | Since):
+            a, b = node.interval.lo_ns, node.interval.hi_ns
+            if stale_somewhere(node, None if b is None else times[i] - b, times[i] - a):
+                return None  # a window with an outage
+            left = node.left if isinstance(node, Since) else None
+            right = node.right if isinstance(node, Since) else node.arg
+            sign = -1.0 if isinstance(node, Historically) else 1.0
+            best = []
+            for j in window_past(node.interval, i):
+                chain = [math.inf if left is None else rob(left, k) for k in range(j + 1, i + 1)]
+                r = rob(right, j)
+                best.append(lo_([None if r is None else sign * r, *chain]))
+            out = hi_(best)
+            return None if out is None else sign * out
+        raise AssertionError(f"no robustness for {type(node).__name__}")
+
+    if robustness:
+        return [(times[i], value(formula.root, i), rob(formula.root, i)) for i in range(n)]
     return [(times[i], value(formula.root, i)) for i in range(n)]
+
+
+def is_condition(node: Node) -> bool:
+    if isinstance(node, Prev):
+        return is_condition(node.arg)
+    return not isinstance(node, Num | Str | Var | Stream | Neg | Arith | Call | Aggregate)
 
 
 # -- strategies
@@ -157,12 +446,42 @@ TERMS = (Term("p"), Term("Battery", ("robot",)), Term("q"))
 MS = 1_000_000  # traces are in milliseconds: times and bounds are small multiples of it
 
 
-def atoms(terms: Sequence[Term]) -> st.SearchStrategy[Atom]:
-    """Comparisons (on the payload or a field) and boolean atoms over ``terms``."""
-    term = st.sampled_from(list(terms))
-    fields = st.sampled_from([(), (), ("v",)])
-    comparison = st.builds(Atom, term, fields, st.sampled_from(["<", "<=", ">", ">=", "==", "!="]), st.sampled_from([0.0, 1.0, 2.0, 2.5]))
-    return st.one_of(comparison, comparison, st.builds(Atom, term, fields))
+def streams(terms: Sequence[Term]) -> st.SearchStrategy[Stream]:
+    return st.builds(Stream, st.sampled_from(list(terms)), st.sampled_from([(), (), ("v",)]))
+
+
+def values(terms: Sequence[Term], depth: int = 2) -> st.SearchStrategy[Node]:
+    """Expressions over ``terms``: streams, constants, arithmetic, abs/min/max, prev, aggregates."""
+    leaves: st.SearchStrategy[Node] = st.one_of(
+        streams(terms), streams(terms), st.builds(Num, st.sampled_from([0, 1, 2, 2.5, -1, 0.5]))
+    )
+    if depth == 0:
+        return leaves
+    inner = values(terms, depth - 1)
+    return st.one_of(
+        leaves,
+        leaves,
+        st.builds(Arith, st.sampled_from(["+", "-", "*", "/"]), inner, inner),
+        st.builds(Neg, inner),
+        st.builds(lambda fn, x, y: Call(fn, (x,) if fn == "abs" else (x, y)), st.sampled_from(["abs", "min", "max"]), inner, inner),
+        st.builds(Prev, inner),
+        st.builds(Aggregate, st.sampled_from(["sum", "avg", "min", "max", "rate", "integral"]), intervals(future=False), inner),
+    )
+
+
+def atoms(terms: Sequence[Term], *, rich: bool = False) -> st.SearchStrategy[Node]:
+    """Comparisons (a stream with a constant; with ``rich``, any two expressions, strings and
+    booleans too) and boolean atoms over ``terms``."""
+    ops = st.sampled_from(["<", "<=", ">", ">=", "==", "!="])
+    simple = st.builds(Atom, streams(terms), ops, st.builds(Num, st.sampled_from([0.0, 1.0, 2.0, 2.5])))
+    boolean = st.builds(Atom, streams(terms))
+    if not rich:
+        return st.one_of(simple, simple, boolean)
+    two = st.builds(Atom, values(terms), ops, values(terms))
+    eq = st.sampled_from(["==", "!="])
+    text = st.builds(Atom, streams(terms), eq, st.builds(Str, st.sampled_from(["x", "manual"])))
+    truth = st.builds(Atom, streams(terms), eq, st.builds(Const, st.booleans()))
+    return st.one_of(simple, two, two, boolean, text, truth)
 
 
 def intervals(*, future: bool) -> st.SearchStrategy[Interval]:
@@ -174,13 +493,13 @@ def intervals(*, future: bool) -> st.SearchStrategy[Interval]:
     return st.builds(build, st.integers(0, 4), st.integers(0, 5), st.booleans())
 
 
-def _trees(terms: Sequence[Term], depth: int, *, past: bool, future: bool) -> st.SearchStrategy[Node]:
+def _trees(terms: Sequence[Term], depth: int, *, past: bool, future: bool, rich: bool) -> st.SearchStrategy[Node]:
     """Trees exactly ``depth`` deep along their leftmost deepest path; the other operands shallower."""
-    leaves = st.one_of(atoms(terms), atoms(terms), atoms(terms), st.builds(Const, st.booleans()))
+    leaves = st.one_of(atoms(terms, rich=rich), atoms(terms, rich=rich), atoms(terms, rich=rich), st.builds(Const, st.booleans()))
     if depth == 0:
         return leaves
-    deep = _trees(terms, depth - 1, past=past, future=future)
-    any_ = st.one_of(leaves, deep) if depth == 1 else st.one_of(leaves, _trees(terms, depth - 2, past=past, future=future), deep)
+    deep = _trees(terms, depth - 1, past=past, future=future, rich=rich)
+    any_ = st.one_of(leaves, deep) if depth == 1 else st.one_of(leaves, _trees(terms, depth - 2, past=past, future=future, rich=rich), deep)
     options: list[st.SearchStrategy[Node]] = [
         st.builds(Not, deep),
         st.builds(And, deep, any_),
@@ -201,36 +520,58 @@ def _trees(terms: Sequence[Term], depth: int, *, past: bool, future: bool) -> st
             st.builds(Since, deep, any_, intervals(future=False)),
             st.builds(Since, any_, deep, intervals(future=False)),
         ]
+    if rich and not future:  # edges and counts read decided values of the past
+        options += [
+            st.builds(Rise, deep),
+            st.builds(Fall, deep),
+            st.builds(lambda iv, x, op, c: Atom(Aggregate("count", iv, x), op, Num(c)), intervals(future=False), deep, st.sampled_from(["<", ">=", "=="]), st.sampled_from([0, 1, 2])),
+            st.builds(lambda x, y: Atom(Prev(Not(x)), "==", y), deep, st.builds(Const, st.booleans())),  # (prev of a bare stream reads its value)
+        ]
     return st.one_of(*options)
 
 
-def formulas(terms: Sequence[Term] = TERMS, *, past: bool = True, future: bool = True, max_depth: int = 4) -> st.SearchStrategy[Formula]:
+def formulas(
+    terms: Sequence[Term] = TERMS, *, past: bool = True, future: bool = True, max_depth: int = 4, rich: bool = False
+) -> st.SearchStrategy[Formula]:
     """Random formulas over ``terms``, 0 to ``max_depth`` operators deep, with every connective and
-    the temporal operators asked for, nested in any order."""
-    by_depth = [_trees(terms, depth, past=past, future=future) for depth in range(max_depth + 1)]
+    the temporal operators asked for, nested in any order; ``rich``: expressions, strings,
+    booleans, edges, aggregates and counts too (edges and counts only where no future operator
+    is asked for: their operands may not look ahead)."""
+    by_depth = [_trees(terms, depth, past=past, future=future, rich=rich) for depth in range(max_depth + 1)]
     return st.integers(0, max_depth).flatmap(lambda depth: by_depth[depth]).map(Formula.of)
 
 
 VALUES: st.SearchStrategy[Any] = st.one_of(
-    st.sampled_from([0, 1, 2, 3, 2.5, 1.0]),
+    st.sampled_from([0, 1, 2, 3, 2.5, 1.0, -1.5]),
     st.sampled_from([0, 1, 2, 3]),
     st.booleans(),
     st.booleans(),
-    st.builds(lambda v: {"v": v}, st.one_of(st.sampled_from([0, 1, 2, 3]), st.booleans())),
-    st.sampled_from([None, "x", {"w": 1}, float("nan")]),  # unknown for every atom
+    st.builds(lambda v: {"v": v}, st.one_of(st.sampled_from([0, 1, 2, 3, 0.5]), st.booleans(), st.sampled_from(["x", "manual"]))),
+    st.sampled_from([None, "x", "manual", {"w": 1}, float("nan")]),  # unknown for every comparison with a number
 )
 
 
+NUMBERS: st.SearchStrategy[Any] = st.one_of(
+    st.sampled_from([0, 1, 2, 3, -2, 7]),
+    st.sampled_from([0.5, 2.5, -1.5, 1e-3, 3.25, 0.1]),
+    st.builds(lambda v: {"v": v}, st.sampled_from([0, 1, 2, 0.5, -1.5, 0.1])),
+    st.builds(lambda v: {"v": v}, st.sampled_from([0, 1, 2, 0.5, -1.5, 0.1])),
+)
+"""Mostly numbers, at the payload and in the field ``v``: aggregates over them are often decided."""
+MOSTLY_NUMBERS: st.SearchStrategy[Any] = st.one_of(NUMBERS, NUMBERS, NUMBERS, NUMBERS, NUMBERS, NUMBERS, NUMBERS, NUMBERS, NUMBERS, VALUES)
+
+
 @st.composite
-def traces(draw: st.DrawFn, terms: Sequence[Term], *, max_samples: int = 30) -> dict[Term, list[tuple[int, Any]]]:
+def traces(draw: st.DrawFn, terms: Sequence[Term], *, max_samples: int = 30, numeric: bool = False) -> dict[Term, list[tuple[int, Any]]]:
     """Irregular samples (ns, value) per term: gaps of 0 to 4 ms, shared times across streams,
-    now and then two samples of one stream at one time."""
+    now and then two samples of one stream at one time (``numeric``: mostly numbers)."""
+    pool = MOSTLY_NUMBERS if numeric else VALUES
     out: dict[Term, list[tuple[int, Any]]] = {}
     for term in terms:
         t = draw(st.integers(0, 3))
         samples = []
         for _ in range(draw(st.integers(4, max_samples))):
-            samples.append((t * MS, draw(VALUES)))
+            samples.append((t * MS, draw(pool)))
             t += draw(st.sampled_from([0, 1, 1, 1, 1, 2, 3, 4]))
         out[term] = samples
     return out
@@ -240,7 +581,7 @@ def long_trace(terms: Sequence[Term], seed: int, samples: int = 400) -> dict[Ter
     """A long irregular trace from a seed (drawing hundreds of samples through Hypothesis is slow):
     long enough that the monitor drops old states many times over."""
     rng = random.Random(seed)
-    pool = [0, 1, 2, 3, 2.5, True, False, {"v": 1}, {"v": 3}, {"v": True}, None]
+    pool = [0, 1, 2, 3, 2.5, -1.5, True, False, {"v": 1}, {"v": 3}, {"v": True}, {"v": "x"}, "manual", None]
     out: dict[Term, list[tuple[int, Any]]] = {}
     for term in terms:
         t = rng.randrange(4)
@@ -255,3 +596,41 @@ def long_trace(terms: Sequence[Term], seed: int, samples: int = 400) -> dict[Ter
 def seconds(trace: Mapping[Term, Sequence[tuple[int, Any]]]) -> dict[str, list[tuple[float, Any]]]:
     """A trace keyed by term text with times in float seconds, as :func:`evaluate` takes it."""
     return {str(term): [(t / 1e9, v) for t, v in samples] for term, samples in trace.items()}
+
+
+def naive_evaluate_objects(
+    var: str, domain: Stream, body: Formula, streams: Mapping[Term, Sequence[tuple[int, Any]]], idle_ns: int
+) -> dict[str, list[list[tuple[int, Verdict]]]]:
+    """A foreach formula per object and life, from the text: an object is a string or number the
+    domain field names; a life runs while its samples come at most ``idle_ns`` apart; over a life
+    the domain stream is the object's samples, the other terms their samples between the life's
+    first sample and ``idle_ns`` after its last (and the latest before it), the variable the
+    object's value; states from the life's first sample."""
+    own = streams[domain.term]
+    objects: dict[str, list[list[tuple[int, Any]]]] = {}
+    last_seen: dict[str, int] = {}
+    first_value: dict[str, Any] = {}
+    for t, payload in own:
+        v = naive_read(payload, domain.fields)
+        if isinstance(v, bool) or not (isinstance(v, str) or is_number(v)):
+            continue
+        key = v if isinstance(v, str) else repr(v)
+        if key not in objects or t - last_seen[key] > idle_ns:
+            objects.setdefault(key, []).append([])
+        objects[key][-1].append((t, payload))
+        last_seen[key] = t
+        first_value.setdefault(key, v)
+    terms = [domain.term, *(t for t in body.terms if t != domain.term)]
+    formula = Formula(body.text, body.root, tuple(terms))
+    out: dict[str, list[list[tuple[int, Verdict]]]] = {}
+    for key, lives in objects.items():
+        for life in lives:
+            start, end = life[0][0], life[-1][0] + idle_ns
+            picked: dict[Term, list[tuple[int, Any]]] = {domain.term: life}
+            for term in terms[1:]:
+                samples = streams[term]
+                earlier = [s for s in samples if s[0] < start]
+                picked[term] = earlier[-1:] + [s for s in samples if start <= s[0] <= end]
+            value = naive_read(life[0][1], domain.fields)
+            out.setdefault(key, []).append(naive_evaluate_ns(formula, picked, variables={var: value}, start_ns=start))
+    return out

@@ -129,6 +129,41 @@ def test_mixed_monitors_return_evaluates_verdicts_at_the_first_deciding_state(fo
     _check(formula, data.draw(traces(formula.terms)), seed)
 
 
+@cases(800)
+@given(formula=formulas(past=True, future=False, rich=True), data=st.data(), seed=st.integers(0, 1000))
+def test_monitors_of_expressions_edges_and_aggregates_return_evaluates_verdicts(formula: Formula, data: st.DataObject, seed: int) -> None:
+    _check(formula, data.draw(traces(formula.terms, numeric=data.draw(st.booleans()))), seed)
+
+
+@cases(500)
+@given(formula=formulas(max_depth=4, rich=True), data=st.data(), seed=st.integers(0, 1000))
+def test_monitors_of_expressions_under_future_operators_return_evaluates_verdicts(formula: Formula, data: st.DataObject, seed: int) -> None:
+    _check(formula, data.draw(traces(formula.terms, numeric=data.draw(st.booleans()))), seed)
+
+
+@cases(400)
+@given(formula=formulas(max_depth=3, rich=True), data=st.data(), seed=st.integers(0, 1000))
+def test_a_monitor_of_stale_terms_returns_evaluates_verdicts(formula: Formula, data: st.DataObject, seed: int) -> None:
+    trace = data.draw(traces(formula.terms))
+    ages = {str(term): data.draw(st.sampled_from([0, 1, 2, 3])) * MS for term in formula.terms if data.draw(st.booleans())}
+    monitor = Monitor(formula, max_age_ns=ages)
+    verdicts, accepted = _run(monitor, _in_time_order(trace, random.Random(seed)))
+    streams = {str(term): sorted(accepted.get(term, []), key=lambda s: s[0]) for term in formula.terms}
+    expected = {i: (t, v) for i, (t, v) in enumerate(evaluate_ns(formula, streams, max_age_ns=ages)) if v is not None}
+    assert {v.state: (v.t_ns, v.verdict) for v in verdicts} == expected, (str(formula), ages)
+
+
+@cases(80)
+@given(formula=formulas(max_depth=4, rich=True), seed=st.integers(0, 10**6))
+def test_long_traces_of_rich_formulas_agree_while_old_states_are_dropped(formula: Formula, seed: int) -> None:
+    trace = long_trace(formula.terms, seed, samples=600)
+    monitor = Monitor(formula)
+    verdicts, accepted = _run(monitor, _in_time_order(trace, random.Random(seed)))
+    got = {v.state: (v.t_ns, v.verdict) for v in verdicts}
+    assert len(got) == len(verdicts)
+    assert got == _decided(formula, accepted), str(formula)
+
+
 @cases(80)
 @given(formula=formulas(max_depth=5), seed=st.integers(0, 10**6))
 def test_long_traces_agree_while_old_states_are_dropped(formula: Formula, seed: int) -> None:
@@ -380,3 +415,36 @@ def test_a_monitors_share_of_cells_may_change_while_it_runs() -> None:
     assert monitor.retained() <= 150 and monitor.given_up > 2800
     with pytest.raises(FormulaError):
         Monitor("p", max_cells=0)
+
+
+@pytest.mark.parametrize("kind", ["count", "sum", "avg", "min", "max", "rate", "integral"])
+def test_a_monitors_aggregates_are_evaluates_across_thresholds(kind: str) -> None:
+    """The monitor's running aggregates (entries in and out of the window, exact sums, monotonic
+    queues, the integral's cut pieces) against evaluate(), at thresholds drawn from the aggregate's
+    own values, so the verdicts flip all along: 1,500 irregular samples with junk now and then."""
+    from dyknow.reasoning.semantics import evaluate_values
+
+    rng = random.Random(kind)
+    t, clean, junky = 0, [], []
+    for _ in range(1500):
+        t += rng.choice([1, 1, 2, 5, 13]) * MS
+        value = rng.choice([rng.uniform(-5, 5), rng.randint(-3, 9), rng.uniform(0, 1e3)])
+        clean.append((t, value))
+        junky.append((t, None if rng.random() < 0.02 else value))  # unknown now and then: bounded windows get over it
+    for lo, hi in [(0, 50), (0, None), (20, 300), (7, None), (0, 0)]:
+        samples = clean if hi is None else junky
+        interval = f"[{lo}ms, {'inf' if hi is None else f'{hi}ms'}]"
+        expression = f"{kind}{interval} (x > 1)" if kind == "count" else f"{kind}{interval} x"
+        values = sorted(v for _, v in evaluate_values(expression, {"x": samples}) if v is not None)
+        assert values or (kind == "rate" and hi == 0), expression
+        flips = 0
+        for q in (0.1, 0.5, 0.9):
+            formula = parse(f"{expression} > {values[int(q * (len(values) - 1))]!r}" if values else f"{expression} > 0")
+            monitor = Monitor(formula)
+            got = []
+            for t_ns, value in samples:
+                got += monitor.push("x", t_ns, value)
+            expected = {i: (t_ns, v) for i, (t_ns, v) in enumerate(evaluate_ns(formula, {"x": samples})) if v is not None}
+            assert {v.state: (v.t_ns, v.verdict) for v in got} == expected, str(formula)
+            flips += len({v for _, v in expected.values()}) == 2
+        assert flips or hi == 0 or (hi is None and kind in ("min", "max")), expression  # the verdicts flip: the values were checked

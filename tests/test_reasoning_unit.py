@@ -50,6 +50,10 @@ def test_the_spec_has_a_port_per_term_tagged_with_it_and_survives_xml() -> None:
         "formula": "BallTrack(field).speed < 3 since[0, inf] not Stalled(robot) or BallTrack(field).seen",
         "reorder_ms": 5.0,
         "flush_ms": 100.0,
+        "max_age_ms": 0.0,
+        "idle_ms": 10_000.0,
+        "max_objects": 1000,
+        "changes_only": False,
     }
     assert term_ports(spec) == term_ports(spec.param_values()["formula"]) == {"BallTrack(field)": "t0", "Stalled(robot)": "t1"}
     (again,) = parse_specs(spec.to_xml())  # so it can be sent to a remote manager as XML

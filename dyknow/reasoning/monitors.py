@@ -12,8 +12,10 @@ the term is re-planned, the monitor keeps its key, and its next verdict says tha
 (:meth:`Monitors.adapted`, which the manager calls for each adaptation).
 
 A quantified formula (``forall c in Camera: ...``, :mod:`dyknow.reasoning.quantify`) becomes one
-monitor per individual, publishing on ``dyknow/<manager>/monitors/<n>/<individual>``; the key
-returned is then ``dyknow/<manager>/monitors/<n>/*``, which a subscriber takes them all by.
+monitor per individual (per tuple, for ``forall a in R: forall b in R: ...``), publishing on
+``dyknow/<manager>/monitors/<n>/<individual>`` (``.../<a>/<b>``); the key returned is then
+``dyknow/<manager>/monitors/<n>/*`` (``.../*/*``), which a subscriber takes them all by. A
+``foreach`` formula is one monitor whose verdicts each name their object (``"object": ...``).
 Releasing that key (:meth:`Monitors.release`) destroys the monitors and gives their terms back.
 
 A monitor has an owner (:class:`~dyknow.model.Owner`), as a request's reference has: only it
@@ -28,7 +30,7 @@ import itertools
 import re
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from dyknow import keys
@@ -55,6 +57,8 @@ class MonitorInfo:
     expansions: tuple[tuple[str | None, str, str, str], ...]  # (individual, formula, unit, verdict key)
     terms: Mapping[str, str] = field(default_factory=dict)
     owner: Owner = LOCAL
+    #: what its units found wrong with their data (a field no sample holds)
+    warnings: tuple[str, ...] = ()
 
     @property
     def units(self) -> tuple[str, ...]:
@@ -69,6 +73,7 @@ class MonitorInfo:
             "terms": dict(self.terms),
             "holder": self.owner.holder,
             "monitors": [{"individual": i, "formula": f, "unit": u, "key": k} for i, f, u, k in self.expansions],
+            "warnings": list(self.warnings),
         }
 
 
@@ -138,9 +143,9 @@ class Monitors:
                 for term in parsed.terms:
                     if str(term) not in requested:
                         requested[str(term)] = self._request(str(term))
-                chunk = _UNSAFE.sub("_", individual) if individual is not None else None
-                key = f"{base}/{chunk}" if chunk is not None else base
-                name = f"monitor-{n}" + (f"-{chunk}" if chunk is not None else "")
+                chunks = [_UNSAFE.sub("_", part) for part in individual.split("/")] if individual is not None else []
+                key = "/".join([base, *chunks])
+                name = "-".join([f"monitor-{n}", *chunks])
                 spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms)
                 bindings = {port: requested[term] for term, port in term_ports(parsed).items()}
                 bindings[VERDICTS_PORT] = key
@@ -150,7 +155,8 @@ class Monitors:
         except BaseException:
             self._undo(spawned, list(requested.values()))
             raise
-        info = MonitorInfo(f"{base}/*" if quantified else base, formula, tuple(made), requested, owner)
+        depth = len(expansions[0][0].split("/")) if quantified and expansions[0][0] is not None else 0
+        info = MonitorInfo("/".join([base, *["*"] * depth]), formula, tuple(made), requested, owner)
         with self._lock:
             self._by_key[info.key] = info
         return info
@@ -196,9 +202,21 @@ class Monitors:
             return key in self._by_key
 
     def infos(self) -> list[MonitorInfo]:
-        """Every monitor, oldest first."""
+        """Every monitor, oldest first (with what its units warned of so far)."""
         with self._lock:
-            return list(self._by_key.values())
+            found = list(self._by_key.values())
+        out = []
+        for info in found:
+            warnings: list[str] = []
+            for name in info.units:
+                try:
+                    unit = self._unit(name)
+                except DyKnowError:
+                    continue
+                if isinstance(unit, FormulaMonitor):
+                    warnings.extend(unit.warnings)
+            out.append(replace(info, warnings=tuple(warnings)) if warnings else info)
+        return out
 
     def _undo(self, units: list[str], requests: list[str]) -> None:
         for name in reversed(units):

@@ -64,29 +64,43 @@ at most about ``250 * max_cells`` bytes, besides the payloads its reorder buffer
 from __future__ import annotations
 
 import heapq
+import math
 from bisect import bisect_left, bisect_right, insort
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Final
 
 from dyknow.errors import ClosedError, FormulaError, TagError, did_you_mean
-from dyknow.reasoning.semantics import FALSE, TRUE, UNKNOWN, AtomTest
+from dyknow.reasoning.semantics import FALSE, TRUE, UNKNOWN, UNKNOWN_VALUE, arith, as_value, call, compare, read, truth
 from dyknow.reasoning.syntax import (
+    Aggregate,
     Always,
     And,
+    Arith,
     Atom,
+    Call,
     Const,
     Eventually,
+    Fall,
     Formula,
     Historically,
     Implies,
+    Neg,
     Node,
     Not,
+    Num,
     Once,
     Or,
+    Prev,
+    Quantifier,
+    Rise,
     Since,
+    Str,
+    Stream,
     Until,
+    Var,
     children,
     parse,
+    walk,
 )
 from dyknow.tags import parse_term
 
@@ -175,6 +189,9 @@ class _Node:
         self.sync = sync
         self.need_ns = need_ns  # how far back from the newest state this node reads
         self.max_states = 1 << 62  # how many states' entries it may keep (the monitor sets it)
+        self.held: _Held | None = None  # a window's: the staleness of the terms below it
+        self.below: list[int] = []
+        self.first_t = _NEVER  # the first state's time (where an unbounded past window starts)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         """Evaluate the new state ``n`` at ``t`` (children have stepped already)."""
@@ -184,14 +201,499 @@ class _Node:
         """States before ``base`` were dropped from ``vals``' front; drop what refers to them."""
 
 
-class _AtomNode(_Node):
-    def __init__(self, clock: _Clock, term: int, test: AtomTest) -> None:
-        super().__init__(clock, True, 0)
-        self.term = term
-        self.test = test
+class _Value:
+    """A node that gives a value at each state (a stream's, a constant, an expression, an
+    aggregate): always decided at its state, so it keeps no history."""
+
+    def __init__(self) -> None:
+        self.val: Any = UNKNOWN_VALUE
+        self.max_states = 1 << 62
+        self.given_up = 0
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        value = self.test.verdict(held[self.term])
+        """Compute the value at the new state ``n`` at ``t`` (operands have stepped already)."""
+        raise NotImplementedError
+
+
+class _Held:
+    """What the stream nodes of a monitor read, and its windows ask: each term's latest sample
+    time, its maximum age (-1: no bound) and the time spans it was stale in (open: ``from < t <
+    until``; the one it may be stale in now runs from its latest sample's time plus its age),
+    shared by the monitor and its nodes. Spans older than ``keep_ns`` before the newest sample
+    are dropped, noted in ``pruned`` (a window without a lower bound still finds them)."""
+
+    def __init__(self, terms: int) -> None:
+        self.times: list[int] = [_NEVER] * terms
+        self.max_age: list[int] = [-1] * terms
+        self.periods: list[list[tuple[int, int]]] = [[] for _ in range(terms)]
+        self.heads: list[int] = [0] * terms
+        self.pruned: list[bool] = [False] * terms
+        self.keep_ns = 0
+        self.max_periods = 1 << 62
+
+    def sample(self, k: int, t: int) -> None:
+        """Term ``k`` had a sample at ``t`` (in time order)."""
+        last = self.times[k]
+        age = self.max_age[k]
+        if age >= 0 and last != _NEVER and t - last > age + 1:
+            periods = self.periods[k]
+            periods.append((last + age, t))
+            head = self.heads[k]
+            edge = t - self.keep_ns
+            while head < len(periods) and (periods[head][1] < edge or len(periods) - head > self.max_periods):
+                head += 1
+                self.pruned[k] = True
+            if head > 64 and head * 2 > len(periods):
+                del periods[:head]
+                head = 0
+            self.heads[k] = head
+        self.times[k] = t
+
+    def stale(self, terms: list[int], lo: int | None, hi: int) -> bool:
+        """Whether one of ``terms`` is stale at a whole-ns time of ``[lo, hi]`` (``lo`` None: no bound)."""
+        for k in terms:
+            age = self.max_age[k]
+            if age < 0:
+                continue
+            if lo is None and self.pruned[k]:
+                return True
+            last = self.times[k]
+            if last != _NEVER and (last + age + 1 if lo is None else max(last + age + 1, lo)) <= hi:
+                return True  # stale since its latest sample
+            periods = self.periods[k]
+            for index in range(len(periods) - 1, self.heads[k] - 1, -1):
+                start, end = periods[index]
+                if end - 1 < (lo if lo is not None else _NEVER):
+                    break  # (older ones end before the span)
+                first = start + 1 if lo is None else max(start + 1, lo)
+                if first <= min(end - 1, hi):
+                    return True
+        return False
+
+
+class _StreamValue(_Value):
+    def __init__(self, k: int, fields: tuple[str, ...], held: _Held) -> None:
+        super().__init__()
+        self.k = k
+        self.fields = fields
+        self.held = held
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        k = self.k
+        age = self.held.max_age[k]
+        if age >= 0 and t - self.held.times[k] > age:
+            self.val = UNKNOWN_VALUE  # stale
+            return
+        value = held[k]
+        if not self.fields and type(value) is float and value - value == 0.0:
+            self.val = value  # the common case, without a call
+        else:
+            self.val = read(value, self.fields)
+
+
+class _ConstValue(_Value):
+    def __init__(self, value: Any) -> None:
+        super().__init__()
+        self.val = value
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        pass
+
+
+class _VerdictValue(_Value):
+    """A condition used as a value: True, False or unknown."""
+
+    def __init__(self, arg: _Node) -> None:
+        super().__init__()
+        self.arg = arg
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        self.val = as_value(self.arg.cur)
+
+
+class _ArithValue(_Value):
+    def __init__(self, op: str, left: _Value, right: _Value) -> None:
+        super().__init__()
+        self.op = op
+        self.left = left
+        self.right = right
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        x = self.left.val
+        y = self.right.val
+        op = self.op
+        if type(x) is float and type(y) is float:  # the common case, without a call
+            if op == "+":
+                result = x + y
+            elif op == "-":
+                result = x - y
+            elif op == "*":
+                result = x * y
+            elif y != 0.0:
+                result = x / y
+            else:
+                self.val = UNKNOWN_VALUE
+                return
+            self.val = result if result - result == 0.0 else UNKNOWN_VALUE
+        else:
+            self.val = arith(op, x, y)
+
+
+class _CallValue(_Value):
+    def __init__(self, fn: str, args: list[_Value]) -> None:
+        super().__init__()
+        self.fn = fn
+        self.args = args
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        self.val = call(self.fn, [a.val for a in self.args])
+
+
+class _PrevValue(_Value):
+    def __init__(self, arg: _Value) -> None:
+        super().__init__()
+        self.arg = arg
+        self.before: Any = UNKNOWN_VALUE
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        self.val = self.before
+        self.before = self.arg.val
+
+
+class _Total:
+    """The exact sum of numbers as the semantics defines it (``exact_sum``), kept as values come
+    and go: the ``int`` s summed exactly, and every value as a float in Shewchuk's partials
+    (non-overlapping floats whose sum is exact), so taking a value out is adding its negative
+    and loses nothing. Rounded once, when read."""
+
+    __slots__ = ("floats", "huge", "ints", "partials")
+
+    def __init__(self) -> None:
+        self.ints = 0  # the sum of the int values
+        self.floats = 0  # how many values are floats
+        self.huge = 0  # ints too large for a float
+        self.partials: list[float] = []
+
+    def add(self, x: Any, sign: int) -> None:
+        if type(x) is int:
+            self.ints += sign * x
+            try:
+                f = float(x)
+            except OverflowError:
+                self.huge += sign
+                return
+        else:
+            self.floats += sign
+            f = float(x)
+        self._add(f if sign > 0 else -f)
+
+    def _add(self, x: float) -> None:
+        partials = self.partials
+        i = 0
+        for y in partials:
+            if abs(x) < abs(y):
+                x, y = y, x
+            hi = x + y
+            lo = y - (hi - x)
+            if lo:
+                partials[i] = lo
+                i += 1
+            x = hi
+        del partials[i:]
+        partials.append(x)
+
+    def value(self, extra: Sequence[Any] = ()) -> Any:
+        """The sum, with ``extra`` numbers added (not kept); unknown when not finite."""
+        if self.floats == 0 and all(type(x) is int for x in extra):
+            total: Any = self.ints
+            for x in extra:
+                total += x
+            return total
+        if self.huge or any(type(x) is int and abs(x) > 1 << 1023 for x in extra):
+            return UNKNOWN_VALUE
+        try:
+            result = math.fsum([*self.partials, *(float(x) for x in extra)])
+        except OverflowError:
+            return UNKNOWN_VALUE
+        return result if result - result == 0.0 else UNKNOWN_VALUE
+
+
+def _number(x: Any) -> bool:
+    kind = type(x)
+    return kind is int or kind is float
+
+
+class _AggregateValue(_Value):
+    """``count``, ``sum``, ``avg``, ``min``, ``max``, ``rate`` and ``integral`` of a past window, in
+    O(1) amortized per state: the states younger than ``lo`` wait in ``pending``, the window's in
+    ``entries`` (a bounded window only); running totals, monotonic queues for ``min``/``max``, the
+    window's ends for ``rate``, and for ``integral`` the exact sum of the pieces between entries,
+    the entry before the window and the state after it for the pieces cut by the span's ends."""
+
+    def __init__(self, kind: str, lo_ns: int, hi_ns: int | None, arg: _Value | None, cond: _Node | None) -> None:
+        super().__init__()
+        self.kind = kind
+        self.lo = lo_ns
+        self.bounded = hi_ns is not None
+        self.hi = hi_ns if hi_ns is not None else 0
+        self.arg = arg
+        self.cond = cond
+        self.pending: list[tuple[int, Any]] = []
+        self.phead = 0
+        self.entries: list[tuple[int, Any]] = []
+        self.ehead = 0
+        self.count = 0  # entries in the window
+        self.true = 0  # count: entries true
+        self.bad = 0  # entries that are unknown (count) or not numbers (the others)
+        self.total = _Total()
+        self.extreme: list[tuple[int, Any]] = []  # min/max: a monotonic queue of (time, value)
+        self.xhead = 0
+        self.first: tuple[int, Any] | None = None  # the oldest entry (rate, unbounded)
+        self.last: tuple[int, Any] | None = None  # the newest entry
+        self.before: tuple[int, Any] | None = None  # the entry that left the window last (integral)
+        self.pieces_bad = 0  # integral: pieces between entries whose value is not a number
+        self.lost_t = -(2**62)  # the newest state given up (over max_states) and what may hide behind it
+        self.held: _Held | None = None  # the staleness of the terms below (set by the monitor)
+        self.below: list[int] = []
+        self.first_t = -(2**62)  # the first state's time (an unbounded window's start)
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        value = self.arg.val if self.arg is not None else self.cond.cur  # type: ignore[union-attr]
+        if n == 0:
+            self.first_t = t
+        if self.lo == 0:
+            self.enter(t, value)
+        else:
+            pending = self.pending
+            pending.append((t, value))
+            edge = t - self.lo
+            head = self.phead
+            while head < len(pending) and pending[head][0] <= edge:
+                self.enter(*pending[head])
+                head += 1
+            if head > 64 and head * 2 > len(pending):
+                del pending[:head]
+                head = 0
+            if len(pending) - head > self.max_states:  # over the memory bound: give up the oldest
+                cut = len(pending) - self.max_states + self.max_states // 4
+                self.lost_t = max(self.lost_t, pending[cut - 1][0])
+                self.given_up += cut - head
+                del pending[:cut]
+                head = 0
+            self.phead = head
+        if self.bounded:
+            self.leave(t - self.hi)
+        self.val = self.result(t)
+
+    def enter(self, t: int, value: Any) -> None:
+        kind = self.kind
+        self.count += 1
+        if kind == "count":
+            if value == UNKNOWN:
+                self.bad += 1
+            elif value == TRUE:
+                self.true += 1
+        elif not _number(value):
+            self.bad += 1
+        elif kind == "sum" or kind == "avg":
+            self.total.add(value, 1)
+        elif kind == "min" or kind == "max":
+            extreme = self.extreme
+            keep_min = kind == "min"
+            while len(extreme) > self.xhead and (extreme[-1][1] >= value if keep_min else extreme[-1][1] <= value):
+                extreme.pop()
+            extreme.append((t, value))
+        if kind == "integral" and self.last is not None:
+            t0, v0 = self.last
+            if _number(v0):
+                self.total.add(v0 * (t - t0), 1)
+            else:
+                self.pieces_bad += 1
+        if self.first is None:
+            self.first = (t, value)
+        self.last = (t, value)
+        if self.bounded:
+            self.entries.append((t, value))
+            if len(self.entries) - self.ehead > self.max_states:  # over the memory bound: give up the oldest
+                cut = len(self.entries) - self.max_states + self.max_states // 4
+                self.lost_t = max(self.lost_t, self.entries[cut - 1][0])
+                self.given_up += cut - self.ehead
+                while self.ehead < cut:
+                    self.drop()
+
+    def leave(self, edge: int) -> None:
+        """Entries older than ``edge`` leave the window."""
+        entries = self.entries
+        while self.ehead < len(entries) and entries[self.ehead][0] < edge:
+            self.drop()
+        if self.ehead > 64 and self.ehead * 2 > len(entries):
+            del entries[: self.ehead]
+            self.ehead = 0
+
+    def drop(self) -> None:
+        """The oldest entry leaves the window."""
+        entries = self.entries
+        t, value = entries[self.ehead]
+        self.ehead += 1
+        kind = self.kind
+        self.count -= 1
+        if kind == "count":
+            if value == UNKNOWN:
+                self.bad -= 1
+            elif value == TRUE:
+                self.true -= 1
+        elif not _number(value):
+            self.bad -= 1
+        elif kind == "sum" or kind == "avg":
+            self.total.add(value, -1)
+        elif kind == "min" or kind == "max":
+            extreme = self.extreme
+            if self.xhead < len(extreme) and extreme[self.xhead][0] == t:
+                self.xhead += 1
+                if self.xhead > 64 and self.xhead * 2 > len(extreme):
+                    del extreme[: self.xhead]
+                    self.xhead = 0
+        if kind == "integral" and self.ehead < len(entries):
+            t1 = entries[self.ehead][0]
+            if _number(value):
+                self.total.add(value * (t1 - t), -1)
+            else:
+                self.pieces_bad -= 1
+        self.before = (t, value)
+        self.first = entries[self.ehead] if self.ehead < len(entries) else None
+        if self.first is None:
+            self.last = None
+
+    def result(self, t: int) -> Any:
+        kind = self.kind
+        start = t - self.hi if self.bounded else -(2**62)
+        if self.lost_t > -(2**62) and self.lost_t >= start:
+            return UNKNOWN_VALUE  # a state given up may be in the window
+        held = self.held
+        if held is not None and held.stale(self.below, start if self.bounded else self.first_t, t - self.lo):
+            return UNKNOWN_VALUE  # a term below was stale in the window
+        if kind == "integral":
+            return self.integral(t, start)
+        if self.bad and kind != "rate":
+            return UNKNOWN_VALUE
+        if kind == "count":
+            return self.true
+        if kind == "sum":
+            return self.total.value()
+        if kind == "avg":
+            return arith("/", self.total.value(), self.count) if self.count else UNKNOWN_VALUE
+        if kind == "min" or kind == "max":
+            return self.extreme[self.xhead][1] if self.xhead < len(self.extreme) else UNKNOWN_VALUE
+        # rate
+        first, last = self.first, self.last
+        if first is None or last is None or first[0] == last[0]:
+            return UNKNOWN_VALUE
+        if not _number(first[1]) or not _number(last[1]):
+            return UNKNOWN_VALUE
+        return arith("/", arith("-", last[1], first[1]), (last[0] - first[0]) / 1e9)
+
+    def integral(self, t: int, start: int) -> Any:
+        right = t - self.lo
+        nxt = self.pending[self.phead][0] if self.phead < len(self.pending) else t  # the state after the window
+        extra: list[Any] = []
+        first, last = self.first, self.last
+        if last is None:  # no state in the window: one piece spans it, the last to leave
+            before = self.before
+            if before is None:
+                return 0
+            d = right - max(start, before[0])
+            if d <= 0:
+                return 0
+            if not _number(before[1]):
+                return UNKNOWN_VALUE
+            return arith("/", before[1] * d, 1e9)
+        if self.pieces_bad:
+            return UNKNOWN_VALUE
+        assert first is not None
+        before = self.before
+        if before is not None and first[0] > start:  # the piece cut by the span's start
+            if not _number(before[1]):
+                return UNKNOWN_VALUE
+            extra.append(before[1] * (first[0] - max(start, before[0])))
+        d = min(nxt, right) - last[0]  # the piece cut by the span's end
+        if d > 0:
+            if not _number(last[1]):
+                return UNKNOWN_VALUE
+            extra.append(last[1] * d)
+        total = self.total.value(extra)
+        return arith("/", total, 1e9) if total is not UNKNOWN_VALUE else UNKNOWN_VALUE
+
+
+class _AtomNode(_Node):
+    """``left OP right`` (or a bare value, ``op`` None): a condition decided at its state."""
+
+    def __init__(self, clock: _Clock, op: str | None, left: _Value, right: _Value | None) -> None:
+        super().__init__(clock, True, 0)
+        self.op = op
+        self.left = left
+        self.right = right
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        x = self.left.val
+        op = self.op
+        right = self.right
+        if right is None:
+            value = truth(x)
+        else:
+            y = right.val
+            if type(x) is float and type(y) is float:  # the common case, without a call
+                if op == "<":
+                    value = TRUE if x < y else FALSE
+                elif op == ">":
+                    value = TRUE if x > y else FALSE
+                elif op == "<=":
+                    value = TRUE if x <= y else FALSE
+                elif op == ">=":
+                    value = TRUE if x >= y else FALSE
+                elif op == "==":
+                    value = TRUE if x == y else FALSE
+                else:
+                    value = TRUE if x != y else FALSE
+            else:
+                value = compare(op or "", x, y)
+        self.cur = value
+        if self.history:
+            self.vals.append(value)
+
+
+class _PrevNode(_Node):
+    """``prev(F)`` of a condition decided at its state: F's verdict at the previous state."""
+
+    def __init__(self, clock: _Clock, arg: _Node) -> None:
+        super().__init__(clock, True, 0)
+        self.arg = arg
+        self.before = UNKNOWN
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        value = self.before
+        self.before = self.arg.cur
+        self.cur = value
+        if self.history:
+            self.vals.append(value)
+
+
+class _EdgeNode(_Node):
+    """``rise(F)``: F and not prev(F); ``fall(F)``: not F and prev(F)."""
+
+    def __init__(self, clock: _Clock, rise: bool, arg: _Node) -> None:
+        super().__init__(clock, True, 0)
+        self.rise = rise
+        self.arg = arg
+        self.before = UNKNOWN
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        now = self.arg.cur
+        before = self.before
+        self.before = now
+        if self.rise:
+            value = now if now < 2 - before else 2 - before
+        else:
+            value = 2 - now if 2 - now < before else before
         self.cur = value
         if self.history:
             self.vals.append(value)
@@ -303,7 +805,12 @@ class _SinceSync(_Node):
         self.lost_t = _NEVER
         self.given_up = 0
 
+    def stale_window(self, n: int, t: int) -> bool:
+        return _past_stale(self, t, self.lo_ns, self.hi_ns if self.bounded else None)
+
     def step(self, n: int, t: int, held: list[Any]) -> None:
+        if self.first_t == _NEVER:
+            self.first_t = t
         psi = self.right.cur
         if self.negate:
             psi = 2 - psi
@@ -352,6 +859,8 @@ class _SinceSync(_Node):
             value = UNKNOWN
         elif self.lost != _NONE and self.lost_t >= oldest and self.lost >= self.break_f:
             value = UNKNOWN  # all known terms are false, but one given up may be in the window
+        elif self.held is not None and self.stale_window(n, t):
+            value = UNKNOWN  # a term below was stale in the window: an outage is no violation
         else:
             value = FALSE
         if self.negate:
@@ -359,6 +868,16 @@ class _SinceSync(_Node):
         self.cur = value
         if self.history:
             self.vals.append(value)
+
+
+def _past_stale(node: _Node, t: int, lo_ns: int, hi_ns: int | None) -> bool:
+    """Whether a term below ``node`` was stale in the past window ``[t - hi, t - lo]`` of the state at ``t``."""
+    held = node.held
+    if held is None:
+        return False
+    if node.first_t == _NEVER:
+        node.first_t = t
+    return held.stale(node.below, t - hi_ns if hi_ns is not None else node.first_t, t - lo_ns)
 
 
 def _pred(positions: list[int], below: int) -> int:
@@ -465,7 +984,8 @@ class _Temporal(_Node):
         return left_t, left_f, right_t, right_f
 
     def resolve(self, first: int, last: int, value: int) -> None:
-        """Decide every pending state in [first, last] as ``value``."""
+        """Decide every pending state in [first, last] as ``value`` (false: those whose window
+        no term below was stale in: the others stay unknown for good)."""
         if first > last:
             return
         undecided = self.undecided
@@ -473,12 +993,18 @@ class _Temporal(_Node):
         hi = bisect_right(undecided, last)
         if lo < hi:
             for i in undecided[lo:hi]:
-                self.decide(i, value)
+                if value != FALSE or not self.stale_at(i):
+                    self.decide(i, value)
             del undecided[lo:hi]
 
     def resolve_one(self, i: int, value: int) -> None:
         _remove(self.undecided, i)
-        self.decide(i, value)
+        if value != FALSE or not self.stale_at(i):
+            self.decide(i, value)
+
+    def stale_at(self, i: int) -> bool:
+        """Whether a term below was stale in the window of state ``i`` (a false verdict there is unknown)."""
+        raise NotImplementedError
 
     def retire(self, now: int) -> None:
         undecided = self.undecided
@@ -501,6 +1027,13 @@ class _UntilNode(_Temporal):
     """``left until[a,b] right``, ``eventually`` (no left) and ``always`` (negated): states wait in
     ``undecided`` until a true right with an unbroken left chain decides them true, or their
     window is complete and every term is false."""
+
+    def stale_at(self, i: int) -> bool:
+        held = self.held
+        if held is None:
+            return False
+        ti = self.clock.at(i)
+        return held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         self.events = []
@@ -613,6 +1146,9 @@ class _SinceNode(_Temporal):
         super().__init__(clock, left, right, lo_ns, hi_ns if hi_ns is not None else 0, negate, need_ns, retire_ns)
         self.bounded = hi_ns is not None
 
+    def stale_at(self, i: int) -> bool:
+        return _past_stale(self, self.clock.at(i), self.lo_ns, self.hi_ns if self.bounded else None)
+
     def window(self, i: int) -> tuple[int, int]:
         clock = self.clock
         ti = clock.at(i)
@@ -641,11 +1177,15 @@ class _SinceNode(_Temporal):
         return UNKNOWN
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
+        if self.first_t == _NEVER:
+            self.first_t = t
         self.events = []
         self.vals.append(UNKNOWN)
         self.record_new(n)
         value = self.check(n)
-        if value != UNKNOWN:
+        if value == FALSE and self.stale_at(n):
+            pass  # unknown for good: a term below was stale in the window
+        elif value != UNKNOWN:
             self.decide(n, value)
         else:
             self.undecided.append(n)
@@ -676,20 +1216,46 @@ class Monitor:
     caller at a time (a unit's callbacks are).
     """
 
-    def __init__(self, formula: str | Formula, *, reorder_ns: int = 0, max_cells: int = DEFAULT_MAX_CELLS) -> None:
+    def __init__(
+        self,
+        formula: str | Formula,
+        *,
+        reorder_ns: int = 0,
+        max_cells: int = DEFAULT_MAX_CELLS,
+        max_age_ns: Mapping[str, int] | None = None,
+        variables: Mapping[str, Any] | None = None,
+    ) -> None:
         self.formula = parse(formula) if isinstance(formula, str) else formula
         if reorder_ns < 0:
             raise FormulaError(f"reorder_ns is {reorder_ns}", where="Monitor(reorder_ns=...)", expected="0 or more nanoseconds")
         if max_cells < 1:
             raise FormulaError(f"max_cells is {max_cells}", where="Monitor(max_cells=...)", expected="1 or more cells")
+        for part in walk(self.formula.root):
+            if isinstance(part, Quantifier):
+                raise FormulaError(
+                    f"the formula holds the quantifier '{part.kind} {part.var} in {part.domain}'",
+                    where=f"monitor of {str(self.formula)!r}",
+                    expected="a formula whose forall/exists are expanded (dyknow.reasoning.expand); foreach: an ObjectMonitor",
+                )
         self.reorder_ns = int(reorder_ns)
         #: the terms as the formula writes them, in order of first appearance (push's ``term``)
         self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
         self._index = {term: k for k, term in enumerate(self.terms)}
+        self._variables: dict[str, Any] = dict(variables or {})
+        self._times = _Held(len(self.terms))
         self._clock = _Clock()
         self._nodes: list[_Node] = []
-        self._root = self._build(self.formula.root)
+        self._values: list[_Value] = []
+        self._steps: list[_Node | _Value] = []  # every node, operands first: what a state steps through
+        root = self._build(self.formula.root)
+        if not isinstance(root, _Node):  # (the parser makes the root a condition)
+            raise FormulaError("the formula is a value, not a condition", where=f"monitor of {str(self.formula)!r}", expected="a condition")
+        self._root = root
         self._span_ns = max([node.need_ns for node in self._nodes] + [self.formula.horizon_ns])
+        # stale spans are kept as far back as any bounded window may read, all windows at once
+        self._times.keep_ns = self._span_ns + sum(
+            (n.interval.hi_ns or n.interval.lo_ns) for n in walk(self.formula.root) if isinstance(n, Historically | Once | Since | Aggregate | Always | Eventually | Until)
+        )
         # with a future operator somewhere, nodes read their operands' verdicts at older states
         self._history = not all(node.sync for node in self._nodes)
         for node in self._nodes:
@@ -708,29 +1274,46 @@ class Monitor:
         self._closed = False
         self._trim_from = 0
         self._given_up = 0
-        self._waiting = [node for node in self._nodes if isinstance(node, _SinceSync)]  # their own count
+        self._waiting: list[_SinceSync | _AggregateValue] = [
+            node for node in self._steps if isinstance(node, _SinceSync | _AggregateValue)
+        ]  # their own count
         self._max_states = 0
         self.set_max_cells(max_cells)
+        for term, age in (max_age_ns or {}).items():
+            self.set_max_age(term, age)
         #: samples dropped because they came at or before the last closed state's time
         self.late = 0
 
     def set_max_cells(self, max_cells: int) -> None:
         """Keep at most ``max_cells`` cells from now on (a manager shares its monitors' cells out
         as they come and go): ``max_cells // nodes`` states, and never fewer than :data:`MIN_STATES`."""
-        states = max(MIN_STATES, max_cells // len(self._nodes))
+        holders = len(self._nodes) + sum(1 for node in self._values if isinstance(node, _AggregateValue))  # (values keep no states)
+        states = max(MIN_STATES, max_cells // holders)
         self._max_states = states
-        for node in self._nodes:
+        self._times.max_periods = states
+        for node in self._steps:
             node.max_states = states
+
+    def set_max_age(self, term: str, max_age_ns: int | None) -> None:
+        """From now on, ``term``'s value is unknown at a state more than ``max_age_ns`` after its
+        latest sample (None: no bound; see the semantics' freshness)."""
+        k = self._index.get(term)
+        if k is None:
+            k = self._term_index(term)
+        self._times.max_age[k] = -1 if max_age_ns is None else int(max_age_ns)
 
     # -- building
 
-    def _build(self, node: Node) -> _Node:
+    def _build(self, node: Node) -> _Node | _Value:
         # iterative post-order: formulas may nest deeper than Python's recursion allows
-        built: dict[int, _Node] = {}
+        built: dict[int, _Node | _Value] = {}
         horizons: dict[int, int] = {}
+        terms: dict[int, set[int]] = {}  # the terms each node reads, itself or below
         stack: list[tuple[Node, bool]] = [(node, False)]
         while stack:
             current, expanded = stack.pop()
+            if id(current) in built:
+                continue
             kids = children(current)
             if not expanded and kids:
                 stack.append((current, True))
@@ -740,31 +1323,85 @@ class Monitor:
             below = max((horizons[id(kid)] for kid in kids), default=0)
             own = current.interval.hi_ns or 0 if isinstance(current, Always | Eventually | Until) else 0
             horizons[id(current)] = below + own
+            reads: set[int] = set()
+            for kid in kids:
+                reads |= terms[id(kid)]
+            if isinstance(current, Stream):
+                reads.add(self._index[str(current.term)])
+            terms[id(current)] = reads
             made = self._make(current, args, below, below + own)
-            self._nodes.append(made)
+            if isinstance(made, _UntilNode | _SinceNode | _SinceSync | _AggregateValue):
+                made.held = self._times  # its windows ask whether a term below was stale in them
+                made.below = sorted(reads)
+            if isinstance(made, _Node):
+                self._nodes.append(made)
+            else:
+                self._values.append(made)
+            self._steps.append(made)
             built[id(current)] = made
         return built[id(node)]
 
-    def _make(self, node: Node, args: list[_Node], below: int, horizon: int) -> _Node:
+    def _value(self, node: _Node | _Value) -> _Value:
+        """An operand as a value: a condition's verdict becomes True, False or unknown."""
+        if isinstance(node, _Value):
+            return node
+        made = _VerdictValue(node)
+        self._values.append(made)
+        self._steps.append(made)
+        return made
+
+    def _make(self, node: Node, args: list[_Node | _Value], below: int, horizon: int) -> _Node | _Value:
         clock = self._clock
+        if isinstance(node, Num | Str):
+            return _ConstValue(node.value)
+        if isinstance(node, Var):
+            if node.name not in self._variables:
+                raise FormulaError(f"the variable {node.name!r} has no value", where=f"monitor of {str(self.formula)!r}",
+                                   expected="Monitor(variables={...}) for a quantifier's body")  # fmt: skip
+            return _ConstValue(self._variables[node.name])
+        if isinstance(node, Stream):
+            return _StreamValue(self._index[str(node.term)], node.fields, self._times)
+        if isinstance(node, Neg):
+            return _CallValue("neg", [self._value(args[0])])
+        if isinstance(node, Arith):
+            return _ArithValue(node.op, self._value(args[0]), self._value(args[1]))
+        if isinstance(node, Call):
+            return _CallValue(node.fn, [self._value(a) for a in args])
+        if isinstance(node, Aggregate):
+            arg = args[0]
+            if node.kind == "count":
+                assert isinstance(arg, _Node)
+                return _AggregateValue(node.kind, node.interval.lo_ns, node.interval.hi_ns, None, arg)
+            return _AggregateValue(node.kind, node.interval.lo_ns, node.interval.hi_ns, self._value(arg), None)
+        if isinstance(node, Prev):
+            arg = args[0]
+            if isinstance(arg, _Node):
+                return _PrevNode(clock, arg)
+            return _PrevValue(arg)
+        if isinstance(node, Rise | Fall):
+            arg = args[0]
+            assert isinstance(arg, _Node)
+            return _EdgeNode(clock, isinstance(node, Rise), arg)
         if isinstance(node, Atom):
-            return _AtomNode(clock, self._index[str(node.term)], AtomTest(node))
+            return _AtomNode(clock, node.op, self._value(args[0]), self._value(args[1]) if len(args) > 1 else None)
         if isinstance(node, Const):
             return _ConstNode(clock, TRUE if node.value else FALSE)
+        conds = [a for a in args if isinstance(a, _Node)]
+        assert len(conds) == len(args), "the parser makes every operand of a connective a condition"
         if isinstance(node, Not):
-            return _NotNode(clock, args[0])
+            return _NotNode(clock, conds[0])
         if isinstance(node, And | Or | Implies):
             kind = _AND if isinstance(node, And) else _OR if isinstance(node, Or) else _IMPLIES
-            return _BinaryNode(clock, kind, args[0], args[1], horizon)
+            return _BinaryNode(clock, kind, conds[0], conds[1], horizon)
         if isinstance(node, Eventually | Always | Until):
-            left, right = (args[0], args[1]) if isinstance(node, Until) else (None, args[0])
+            left, right = (conds[0], conds[1]) if isinstance(node, Until) else (None, conds[0])
             hi = node.interval.hi_ns
             assert hi is not None
             return _UntilNode(clock, left, right, node.interval.lo_ns, hi, _negated(node), horizon, horizon)
         assert isinstance(node, Once | Historically | Since)
-        left, right = (args[0], args[1]) if isinstance(node, Since) else (None, args[0])
+        left, right = (conds[0], conds[1]) if isinstance(node, Since) else (None, conds[0])
         hi = node.interval.hi_ns
-        if all(arg.sync for arg in args):
+        if all(arg.sync for arg in conds):
             return _SinceSync(clock, left, right, node.interval.lo_ns, hi, _negated(node))
         # it reads back to the window's start (or, unbounded, its end: older states count as one)
         reach = hi if hi is not None else node.interval.lo_ns
@@ -806,6 +1443,7 @@ class Monitor:
             self._closed_t = t_ns
             self._max_t = t_ns
             self._held[0] = value
+            self._times.sample(0, t_ns)
             if self._missing:
                 self._seen[0] = True
                 self._missing = 0
@@ -818,7 +1456,7 @@ class Monitor:
         buffer = self._buffer
         if not buffer and self._ready(t_ns):  # the common case: in order, nothing to wait for
             self._closed_t = t_ns
-            self._hold(k, value)
+            self._hold(k, value, t_ns)
             if not self._missing:
                 self._state(t_ns, out)
             return out
@@ -856,7 +1494,7 @@ class Monitor:
         if not buffer and self._ready(t_ns):
             self._closed_t = t_ns
             for k, value in enumerate(values):
-                self._hold(k, value)
+                self._hold(k, value, t_ns)
             if not self._missing:
                 self._state(t_ns, out)
             return out
@@ -902,12 +1540,13 @@ class Monitor:
         self._closed_t = t
         while buffer and buffer[0][0] == t:
             _t, _arrival, k, value = heapq.heappop(buffer)
-            self._hold(k, value)
+            self._hold(k, value, t)
         if not self._missing:  # states start when every stream has a value
             self._state(t, out)
 
-    def _hold(self, k: int, value: Any) -> None:
+    def _hold(self, k: int, value: Any, t: int) -> None:
         self._held[k] = value
+        self._times.sample(k, t)
         if not self._seen[k]:
             self._seen[k] = True
             self._missing -= 1
@@ -920,7 +1559,7 @@ class Monitor:
         history = self._history
         if history:
             self._clock.times.append(t)
-        for node in self._nodes:
+        for node in self._steps:
             node.step(n, t, held)
         root = self._root
         if root.sync:

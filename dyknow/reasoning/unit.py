@@ -28,9 +28,27 @@ before it, and every later sample would be late, so one sample stamped ten years
 blind the monitor for good. Outside a manager (:mod:`dyknow.testing`) the defaults of
 :class:`~dyknow.security.Limits` apply.
 
-Gaps: when the stream of a term was re-planned, the manager that runs the monitor tells it
-(:meth:`FormulaMonitor.adapted`, with the adaptation event), and the next verdict says so:
+**Objects.** A ``foreach`` formula (``foreach t in Track(field).id: ...``) runs as an
+:class:`~dyknow.reasoning.objects.ObjectMonitor`: one instance per object, ending ``idle_ms``
+after the object's last sample, at most ``max_objects`` at once; each verdict carries its
+object: ``"object": "17"``.
+
+**Freshness.** A term's value is unknown at a state more than its maximum age after its latest
+sample (:mod:`dyknow.reasoning.semantics`). ``max_age_ms`` declares it for every term; 0 (the
+default) derives each term's from its measured rate: after its first 20 samples, five times their
+median spacing (at least 20 ms), then fixed (logged, and in the unit's ``ages``); a negative
+value sets none.
+
+**Gaps.** When the stream of a term was re-planned, the manager that runs the monitor tells it
+(:meth:`FormulaMonitor.adapted`, with the adaptation event): the gap runs from the term's last
+sample before to its first after, and every verdict whose window reaches into it (from its state
+back by the formula's past reach, forward by its horizon) says so:
 ``"gap": {"term": "Battery(robot)", "cause": "manager 'robot' was lost"}``.
+
+**No silent failure.** A field the formula reads that a term's first 20 samples never hold (a
+typo, ``Speed(robot).sped``) is warned about once, naming the field and the fields the samples
+did hold: in the log, in :attr:`FormulaMonitor.warnings` (the manager's model shows them with the
+monitor) and as a message ``{"warning": "..."}`` on ``verdicts``.
 
 Params:
 
@@ -38,7 +56,12 @@ Params:
 - ``reorder_ms`` (float, default 0): the reorder delay, in sample time; a sample later than the
   policy allows is counted as a rejection of its port (``late: ...``) and dropped;
 - ``flush_ms`` (float, default 0: never): close the buffered states after this much wall time
-  without a sample (the end of a replay, a stream that stopped), so their verdicts come out.
+  without a sample (the end of a replay, a stream that stopped), so their verdicts come out;
+- ``max_age_ms`` (float, default 0: derived): the terms' freshness (see above);
+- ``idle_ms`` (float, default 10,000) and ``max_objects`` (int, default 1,000): a ``foreach``
+  formula's object lifetime and cap;
+- ``changes_only`` (bool, default false): publish a verdict only when it differs from the last
+  one published (an object's, with ``foreach``).
 
 Example::
 
@@ -52,16 +75,18 @@ Example::
 
 from __future__ import annotations
 
+import statistics
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 from dyknow.clocks import CLOCKS
 from dyknow.errors import FormulaError
 from dyknow.message import CLOCK_ID
+from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
-from dyknow.reasoning.syntax import Formula, check_formula, parse
+from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
 from dyknow.security import Limits
 from dyknow.spec import Param, Port, Tag, TransformationSpec
 from dyknow.unit import Unit
@@ -103,6 +128,10 @@ def monitor_spec(
     reorder_ms: float = 0.0,
     flush_ms: float = 0.0,
     queue: int = DEFAULT_QUEUE,
+    max_age_ms: float = 0.0,
+    idle_ms: float = DEFAULT_IDLE_NS / 1e6,
+    max_objects: int = DEFAULT_MAX_OBJECTS,
+    changes_only: bool = False,
 ) -> TransformationSpec:
     """The transformation spec of a monitor of ``formula``: its params, a port per term, ``verdicts``.
 
@@ -123,11 +152,23 @@ def monitor_spec(
             Param("formula", "string", parsed.text),
             Param("reorder_ms", "float", float(reorder_ms)),
             Param("flush_ms", "float", float(flush_ms)),
+            Param("max_age_ms", "float", float(max_age_ms)),
+            Param("idle_ms", "float", float(idle_ms)),
+            Param("max_objects", "int", int(max_objects)),
+            Param("changes_only", "bool", bool(changes_only)),
         ),
         ports=(*(Port(port, "in", queue=queue) for port in ports.values()), Port(VERDICTS_PORT, "out")),
         tags=tuple(Tag(port, term) for term, port in ports.items()),
         description=f"Monitors {parsed}: publishes each state's verdict on {VERDICTS_PORT} as soon as it is decided.",
     )
+
+
+class _Shared(Protocol):
+    """What a budget shares cells with: a monitor, or an object monitor."""
+
+    formula: Formula
+
+    def set_max_cells(self, max_cells: int) -> None: ...
 
 
 class MonitorBudget:
@@ -140,7 +181,7 @@ class MonitorBudget:
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
         self._lock = threading.Lock()
-        self._monitors: dict[Monitor, int] = {}  # -> its formula's nodes
+        self._monitors: dict[_Shared, int] = {}  # -> its formula's nodes
         #: the formula nodes of the monitors running
         self.nodes = 0
 
@@ -149,7 +190,7 @@ class MonitorBudget:
         manager's monitors past ``limits.max_monitor_nodes`` (what :meth:`join` checks)."""
         self._check(sum(f.nodes for f in formulas), self.nodes)
 
-    def join(self, monitor: Monitor) -> None:
+    def join(self, monitor: _Shared) -> None:
         """Count ``monitor`` in (:class:`~dyknow.errors.FormulaError` past the nodes' bound);
         every monitor's share of cells shrinks to fit it."""
         nodes = monitor.formula.nodes
@@ -159,7 +200,7 @@ class MonitorBudget:
             self.nodes += nodes
             self._share()
 
-    def leave(self, monitor: Monitor) -> None:
+    def leave(self, monitor: _Shared) -> None:
         """Count ``monitor`` out (safe twice); the others' shares grow."""
         with self._lock:
             nodes = self._monitors.pop(monitor, None)
@@ -192,15 +233,21 @@ class MonitorBudget:
             monitor.set_max_cells(share)
 
 
+_DERIVE_AFTER = 20  # samples a term's freshness and fields are judged from
+_MIN_AGE_NS = 20_000_000
+_MAX_GAPS = 64
+
+
 class FormulaMonitor(Unit):
-    """A :class:`~dyknow.reasoning.Monitor` as a unit (see the module documentation).
+    """A :class:`~dyknow.reasoning.Monitor` (or, for ``foreach``, an
+    :class:`~dyknow.reasoning.objects.ObjectMonitor`) as a unit (see the module documentation).
 
     ``monitor`` is the monitor (its ``late`` count, ``states``, ``retained()``). In the process
     that runs it, :meth:`listen` hands each verdict to a callback too (the adaptation loop does,
-    for a request's requirements).
+    for a request's requirements); :attr:`warnings` says what it found wrong with the data.
     """
 
-    monitor: Monitor
+    monitor: Monitor | ObjectMonitor
     _budget: MonitorBudget | None = None
 
     def use_budget(self, budget: MonitorBudget) -> None:
@@ -210,20 +257,34 @@ class FormulaMonitor(Unit):
     def setup(self) -> None:
         """Check the formula against the bounds, check there is a port per term, start the idle
         flush if asked for, and take a share of the cells."""
-        reorder_ms = float(self.params.get("reorder_ms", 0.0))
+        params = self.params
+        reorder_ms = float(params.get("reorder_ms", 0.0))
         if not 0 <= reorder_ms <= 3_600_000:
             raise FormulaError(f"reorder_ms is {reorder_ms}", where=f"unit {self.name!r}", expected="0 to 3,600,000 milliseconds")
         budget = self._budget
         limits = budget.limits if budget is not None else Limits()
-        formula = check_formula(str(self.params["formula"]), limits)
-        self.monitor = Monitor(formula, reorder_ns=round(reorder_ms * 1_000_000), max_cells=budget.share if budget is not None else limits.max_monitor_cells)
+        formula = check_formula(str(params["formula"]), limits)
+        cells = budget.share if budget is not None else limits.max_monitor_cells
+        reorder_ns = round(reorder_ms * 1_000_000)
+        root = formula.root
+        self._objects = isinstance(root, Quantifier) and root.kind == "foreach"
+        if self._objects:
+            idle_ms = float(params.get("idle_ms", DEFAULT_IDLE_NS / 1e6))
+            max_objects = int(params.get("max_objects", DEFAULT_MAX_OBJECTS))
+            if not 0 < idle_ms <= 86_400_000 or not 1 <= max_objects <= 1_000_000:
+                raise FormulaError(f"idle_ms {idle_ms}, max_objects {max_objects}", where=f"unit {self.name!r}",
+                                   expected="idle_ms in (0, 86,400,000] and max_objects in [1, 1,000,000]")  # fmt: skip
+            self.monitor = ObjectMonitor(formula, reorder_ns=reorder_ns, max_cells=cells, idle_ns=round(idle_ms * 1e6), max_objects=max_objects)
+        else:
+            self.monitor = Monitor(formula, reorder_ns=reorder_ns, max_cells=cells)
         self._future_ns = limits.max_future_ns
         #: samples refused because their time lay in the future (see the module documentation)
         self.future = 0
         self._given_up_logged = 0
-        self._ports = {f"t{k}": k for k in range(len(self.monitor.terms))}
+        terms = self.monitor.terms
+        self._ports = {f"t{k}": k for k in range(len(terms))}
         bound = self.get_config()
-        missing = [f"{port} for {self.monitor.terms[k]}" for port, k in self._ports.items() if port not in bound]
+        missing = [f"{port} for {terms[k]}" for port, k in self._ports.items() if port not in bound]
         if missing or VERDICTS_PORT not in bound:
             raise FormulaError(
                 f"the unit lacks ports: {', '.join(missing) or VERDICTS_PORT}",
@@ -232,9 +293,35 @@ class FormulaMonitor(Unit):
             )
         self._last_sample = time.monotonic()
         self._listeners: list[Callable[[Verdict], None]] = []
-        self._gap: dict[str, str] | None = None
         self.unknown_clock = 0  # samples stamped by a clock whose offset was not known
-        flush_ms = float(self.params.get("flush_ms", 0.0))
+        # freshness: declared, derived from each term's first samples, or none
+        max_age_ms = float(params.get("max_age_ms", 0.0))
+        #: each term's maximum age in ns, as set (declared, or derived once enough samples came)
+        self.ages: dict[str, int] = {}
+        self._derive = max_age_ms == 0
+        if max_age_ms > 0:
+            for term in terms:
+                self._set_age(term, round(max_age_ms * 1e6))
+        self._spacing: dict[int, list[int]] = {k: [] for k in range(len(terms))}
+        self._last_t: list[int] = [-(2**62)] * len(terms)
+        # gaps a re-plan left: (term, cause, from ns, until ns or None while it lasts)
+        self._gaps: list[tuple[str, str, int, int | None]] = []
+        self._reach = formula.reach_ns
+        self._horizon = formula.horizon_ns
+        # fields the formula reads, per term: judged on the term's first samples
+        self._fields: dict[int, set[tuple[str, ...]]] = {}
+        for node in walk(root):
+            stream = node if isinstance(node, Stream) else (node.domain if isinstance(node, Quantifier) and isinstance(node.domain, Stream) else None)
+            if stream is not None and stream.fields:
+                self._fields.setdefault(terms.index(str(stream.term)), set()).add(stream.fields)
+        self._held_fields: dict[int, set[tuple[str, ...]]] = {k: set() for k in self._fields}
+        self._seen_keys: dict[int, set[str]] = {k: set() for k in self._fields}
+        self._samples = [0] * len(terms)
+        #: what the monitor found wrong with its data (a field no sample holds), each said once
+        self.warnings: list[str] = []
+        self._changes_only = bool(params.get("changes_only", False))
+        self._last_published: dict[str | None, bool] = {}
+        flush_ms = float(params.get("flush_ms", 0.0))
         self._flush_s = flush_ms / 1000
         if flush_ms > 0:
             self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
@@ -272,18 +359,78 @@ class FormulaMonitor(Unit):
                     f"(at most {self._future_ns / 1e6:g} ms are taken)",
                 )
                 return
-        verdicts = monitor.push_index(self._ports[port], t_ns, msg.payload)
+        k = self._ports[port]
+        self._observe(k, t_ns, msg.payload)
+        if isinstance(monitor, ObjectMonitor):
+            decided: list[tuple[str | None, Verdict]] = list(monitor.push_index(k, t_ns, msg.payload))
+        else:
+            decided = [(None, v) for v in monitor.push_index(k, t_ns, msg.payload)]
         if monitor.late != late:  # (expected when a term's producer was switched, or hosts interleave)
+            closed = monitor.closed_ns if isinstance(monitor, Monitor) else None
             self.reject(
                 port,
-                f"late: a sample at {t_ns} ns, at or before the last state closed ({monitor.closed_ns} ns; reorder delay {monitor.reorder_ns / 1e6:g} ms)",
+                f"late: a sample at {t_ns} ns, at or before the last state closed ({closed} ns; reorder delay {monitor.reorder_ns / 1e6:g} ms)",
                 expected=True,
             )
         self._last_sample = time.monotonic()
-        for verdict in verdicts:
-            self._publish(verdict)
+        for key, verdict in decided:
+            self._publish(verdict, key)
         if monitor.states & 1023 == 0:
             self._report_given_up()
+
+    # -- what the samples tell: freshness, fields, the end of a gap
+
+    def _observe(self, k: int, t_ns: int, payload: Any) -> None:
+        term = self.monitor.terms[k]
+        last = self._last_t[k]
+        if t_ns > last:
+            if self._derive and term not in self.ages:
+                spacing = self._spacing[k]
+                if last > -(2**62):
+                    spacing.append(t_ns - last)
+                if len(spacing) >= _DERIVE_AFTER:
+                    self._set_age(term, max(_MIN_AGE_NS, 5 * int(statistics.median(spacing))))
+                    self.log.info("the freshness of %s: %.1f ms (5 times the median spacing of its first %d samples)",
+                                  term, self.ages[term] / 1e6, len(spacing))  # fmt: skip
+            self._last_t[k] = t_ns
+        for index, (gap_term, cause, start, end) in enumerate(self._gaps):
+            if end is None and gap_term == term and t_ns > start:
+                self._gaps[index] = (gap_term, cause, start, t_ns)
+        wanted = self._fields.get(k)
+        if wanted is None or self._samples[k] > _DERIVE_AFTER:
+            return
+        self._samples[k] += 1
+        held = self._held_fields[k]
+        for path in wanted:
+            value = payload
+            for name in path:
+                if type(value) is not dict:
+                    break
+                self._seen_keys[k].update(str(key)[:64] for key in list(value)[:32])
+                if name not in value:
+                    break
+                value = value[name]
+            else:
+                held.add(path)
+        if self._samples[k] == _DERIVE_AFTER:
+            for path in sorted(wanted - held):
+                seen = sorted(self._seen_keys[k])[:12]
+                field = ".".join(path)
+                warning = (
+                    f"none of the first {_DERIVE_AFTER} samples of {term} holds the field {field!r} the formula reads"
+                    f" (they hold {', '.join(seen) if seen else 'no fields: not JSON objects'}): its atoms stay unknown"
+                )
+                self.warnings.append(warning)
+                self.log.warning("%s", warning)
+                self.publish(VERDICTS_PORT, {"warning": warning, "term": term, "field": field, "fields_seen": seen})
+
+    def _set_age(self, term: str, age_ns: int) -> None:
+        self.ages[term] = age_ns
+        monitor = self.monitor
+        if isinstance(monitor, ObjectMonitor):
+            monitor.set_max_age(term, age_ns)
+        else:
+            monitor.set_max_age(term, age_ns)
 
     def _report_given_up(self) -> None:
         """Log, now and then (at 1, 10, 100, ... states), that the memory bound gave states up."""
@@ -291,29 +438,59 @@ class FormulaMonitor(Unit):
         if given_up > self._given_up_logged:
             self._given_up_logged = 10 ** len(str(given_up))
             self.log.warning(
-                "the memory bound gave up %d states so far (%d kept at most: its share of the manager's cells, "
+                "the memory bound gave up %d states so far (its share of the manager's cells, "
                 "Limits.max_monitor_cells): the verdicts that needed them stay unknown",
                 given_up,
-                self.monitor.max_states,
             )
 
-    def _publish(self, verdict: Verdict, origin_ns: int | None = None) -> None:
+    def _publish(self, verdict: Verdict, key: str | None = None, origin_ns: int | None = None) -> None:
+        if self._changes_only:
+            if self._last_published.get(key) is verdict.verdict:
+                for listener in self._listeners:
+                    listener(verdict)
+                return
+            self._last_published[key] = verdict.verdict
         out = verdict.to_json()
-        if self._gap is not None:
-            out["gap"], self._gap = self._gap, None
+        if key is not None:
+            out["object"] = key
+        gap = self._gap_for(verdict.t_ns)
+        if gap is not None:
+            out["gap"] = gap
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
         for listener in self._listeners:
             listener(verdict)
 
+    def _gap_for(self, t_ns: int) -> dict[str, str] | None:
+        """The gap a verdict at ``t_ns`` reads into, if any: its window runs from ``t_ns`` back by
+        the formula's past reach and forward by its horizon."""
+        if not self._gaps:
+            return None
+        earliest = -(2**62) if self._reach is None else t_ns - self._reach
+        latest = t_ns + self._horizon
+        for term, cause, start, end in self._gaps:
+            if start <= latest and (end is None or end >= earliest):
+                return {"term": term, "cause": cause}
+        return None
+
     def adapted(self, key: str, cause: str) -> None:
-        """The stream on ``key`` was re-planned for ``cause``: when a term reads it, the next
-        verdict says a gap occurred (any thread may call it: the manager's adaptation loop does)."""
+        """The stream on ``key`` was re-planned for ``cause``: when a term reads it, the verdicts
+        whose window reaches into the gap say so (any thread may call it: the manager's
+        adaptation loop does)."""
         bound = self.get_config()
+        terms = self.monitor.terms
         for port, k in self._ports.items():
             if bound.get(port) == key:
-                self._gap = {"term": str(self.monitor.terms[k]), "cause": cause[:500]}
+                gaps = self._gaps
+                gaps.append((str(terms[k]), cause[:500], self._last_t[k], None))
+                if len(gaps) > _MAX_GAPS:
+                    del gaps[0]
 
     def _flush_if_idle(self) -> None:
         if time.monotonic() - self._last_sample >= self._flush_s:
-            for verdict in self.monitor.flush():
-                self._publish(verdict, origin_ns=verdict.decided_ns)
+            monitor = self.monitor
+            if isinstance(monitor, ObjectMonitor):
+                for key, verdict in monitor.flush():
+                    self._publish(verdict, key, origin_ns=verdict.decided_ns)
+            else:
+                for verdict in monitor.flush():
+                    self._publish(verdict, origin_ns=verdict.decided_ns)

@@ -1,0 +1,255 @@
+"""One monitor per object: :class:`ObjectMonitor` runs a ``foreach`` formula
+(``foreach t in Track(field).id: always[0, 2s] Track(field).speed < 3``) as one
+:class:`~dyknow.reasoning.Monitor` of its body per object, as the semantics defines it
+(:mod:`dyknow.reasoning.semantics`: each object's lives, evaluated apart).
+
+**Instances.** A sample of the quantified stream whose field names an object (a string, or a
+number) goes to that object's instance, which is made at the object's first sample (seeded with
+the other terms' latest samples, so its states hold them from the start) and ends
+``idle_ns`` (sample time) after the object's last sample: the first sample of any term later
+than that (less the reorder delay) retires it (its buffered states are closed, its verdicts
+given), and a sample of the object after that starts a new instance. The other terms' samples go
+to every live instance. A sample whose field names no object is counted in :attr:`unassigned`.
+
+**Bounds.** At most ``max_objects`` instances live at once: a sample of a new object past that
+is refused, and counted in :attr:`refused` (the objects already tracked go on). Each instance
+keeps at most its share of ``max_cells`` (the cells over the instances alive), so the monitor's
+memory is bounded by ``max_cells`` cells plus the instances' constant part, whatever the number of
+objects a stream names over time.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Mapping
+from typing import Any
+
+from dyknow.errors import FormulaError, TagError, did_you_mean
+from dyknow.reasoning.progression import DEFAULT_MAX_CELLS, Monitor, Verdict
+from dyknow.reasoning.semantics import object_key, read
+from dyknow.reasoning.syntax import Formula, Quantifier, Stream, parse
+from dyknow.tags import parse_term
+
+__all__ = ["DEFAULT_IDLE_NS", "DEFAULT_MAX_OBJECTS", "ObjectMonitor"]
+
+#: How long an object lives without a sample (sample time): 10 s.
+DEFAULT_IDLE_NS = 10_000_000_000
+#: How many objects a monitor tracks at once.
+DEFAULT_MAX_OBJECTS = 1000
+
+
+class ObjectMonitor:
+    """Monitors a ``foreach`` formula, one instance of its body per object (see the module
+    documentation). ``push`` a sample, get the ``(object, verdict)`` pairs it decided;
+    :meth:`flush` at the end of the input. Not thread-safe: one caller at a time."""
+
+    def __init__(
+        self,
+        formula: str | Formula,
+        *,
+        reorder_ns: int = 0,
+        max_cells: int = DEFAULT_MAX_CELLS,
+        idle_ns: int = DEFAULT_IDLE_NS,
+        max_objects: int = DEFAULT_MAX_OBJECTS,
+        max_age_ns: Mapping[str, int] | None = None,
+    ) -> None:
+        self.formula = parse(formula) if isinstance(formula, str) else formula
+        root = self.formula.root
+        if not isinstance(root, Quantifier) or root.kind != "foreach":
+            raise FormulaError("an ObjectMonitor monitors a foreach formula", where=f"monitor of {str(self.formula)!r}",
+                               expected="foreach t in Track(field).id: ...")  # fmt: skip
+        if idle_ns <= 0 or max_objects < 1:
+            raise FormulaError(f"idle_ns {idle_ns}, max_objects {max_objects}", where="ObjectMonitor", expected="both positive")
+        domain = root.domain
+        assert isinstance(domain, Stream)
+        self.var = root.var
+        self.domain = domain
+        inner = Formula.of(root.body)  # its states are the object's samples' too, whether the body reads them or not
+        self.body = Formula(inner.text, inner.root, (domain.term, *(t for t in inner.terms if t != domain.term)))
+        self.reorder_ns = int(reorder_ns)
+        self.idle_ns = int(idle_ns)
+        self.max_objects = int(max_objects)
+        self._max_cells = int(max_cells)
+        self._max_age = dict(max_age_ns or {})
+        #: the terms as the formula writes them (the quantified stream's first)
+        self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
+        self._index = {term: k for k, term in enumerate(self.terms)}
+        self._domain_k = self._index[str(domain.term)]
+        self._latest: dict[int, tuple[int, Any]] = {}  # term -> its latest sample, to seed new instances
+        self._live: dict[str, Monitor] = {}
+        self._last: dict[str, int] = {}  # object -> its latest sample's time
+        self._deadlines: list[tuple[int, str]] = []  # (last + idle, object): looked at as time goes on
+        self._newest = -(2**62)
+        #: samples of the quantified stream whose field names no object
+        self.unassigned = 0
+        #: samples of new objects refused because max_objects were alive
+        self.refused = 0
+        #: instances made so far (objects and their later lives)
+        self.made = 0
+        #: samples late for their instance (see Monitor.late), summed over instances retired too
+        self._late_retired = 0
+        #: states given up by the memory bound, summed over instances retired too
+        self._given_up_retired = 0
+
+    # -- input
+
+    def push(self, term: str, t_ns: int, value: Any) -> list[tuple[str, Verdict]]:
+        """Hand over one sample of ``term`` at ``t_ns``; the ``(object, verdict)`` pairs it decided."""
+        k = self._index.get(term)
+        if k is None:
+            k = self._term_index(term)
+        return self.push_index(k, t_ns, value)
+
+    def push_index(self, k: int, t_ns: int, value: Any) -> list[tuple[str, Verdict]]:
+        """:meth:`push` with the term given by its position in :attr:`terms`."""
+        out: list[tuple[str, Verdict]] = []
+        if t_ns > self._newest:
+            self._newest = t_ns
+            self._retire(out)
+        name = self.terms[k]
+        if k == self._domain_k:
+            self._latest[k] = (t_ns, value)
+            key = object_key(read(value, self.domain.fields))
+            if key is None:
+                self.unassigned += 1
+                self._others(k, name, t_ns, value, out)  # the body may read the stream's other samples too: not when it is the domain
+                return out
+            monitor = self._live.get(key)
+            if monitor is not None and t_ns - self._last[key] > self.idle_ns:
+                self._end(key, out)
+                monitor = None
+            if monitor is None:
+                if len(self._live) >= self.max_objects:
+                    self.refused += 1
+                    return out
+                monitor = self._start(key, read(value, self.domain.fields))
+            self._last[key] = max(self._last.get(key, t_ns), t_ns)
+            heapq.heappush(self._deadlines, (self._last[key] + self.idle_ns, key))
+            if name in monitor.terms:
+                out.extend((key, v) for v in monitor.push(name, t_ns, value))
+            return out
+        self._latest[k] = (t_ns, value)
+        self._others(k, name, t_ns, value, out)
+        return out
+
+    def _others(self, k: int, name: str, t_ns: int, value: Any, out: list[tuple[str, Verdict]]) -> None:
+        if k == self._domain_k:
+            return
+        for key, monitor in self._live.items():
+            if name in monitor.terms:
+                out.extend((key, v) for v in monitor.push(name, t_ns, value))
+
+    def flush(self) -> list[tuple[str, Verdict]]:
+        """Close every instance's buffered states (the input ended); the pairs that decided."""
+        out: list[tuple[str, Verdict]] = []
+        for key, monitor in self._live.items():
+            out.extend((key, v) for v in monitor.flush())
+        return out
+
+    def close(self) -> list[tuple[str, Verdict]]:
+        """:meth:`flush`, then retire every instance; safe twice."""
+        out = self.flush()
+        for key in list(self._live):
+            self._end(key, out)
+        return out
+
+    # -- instances
+
+    def _start(self, key: str, value: Any) -> Monitor:
+        cells = max(1, self._max_cells // (len(self._live) + 1))
+        monitor = Monitor(self.body, reorder_ns=self.reorder_ns, max_cells=cells, variables={self.var: value})
+        for term, age in self._max_age.items():
+            if term in monitor.terms:
+                monitor.set_max_age(term, age)
+        for k, (t, held) in sorted(self._latest.items(), key=lambda item: item[1][0]):
+            name = self.terms[k]
+            if k != self._domain_k and name in monitor.terms:
+                monitor.push(name, t, held)  # (before the object's first sample: no state yet)
+        self._live[key] = monitor
+        self.made += 1
+        self._reshare()
+        return monitor
+
+    def _end(self, key: str, out: list[tuple[str, Verdict]]) -> None:
+        monitor = self._live.pop(key)
+        out.extend((key, v) for v in monitor.close())
+        self._late_retired += monitor.late
+        self._given_up_retired += monitor.given_up
+        del self._last[key]
+        self._reshare()
+
+    def _retire(self, out: list[tuple[str, Verdict]]) -> None:
+        """End the instances whose object has been silent longer than ``idle_ns`` (less the reorder delay)."""
+        now = self._newest - self.reorder_ns
+        deadlines = self._deadlines
+        while deadlines and deadlines[0][0] < now:
+            deadline, key = heapq.heappop(deadlines)
+            last = self._last.get(key)
+            if last is not None and last + self.idle_ns == deadline:  # (else a later sample moved it on)
+                self._end(key, out)
+
+    def _reshare(self) -> None:
+        if not self._live:
+            return
+        cells = max(1, self._max_cells // len(self._live))
+        for monitor in self._live.values():
+            monitor.set_max_cells(cells)
+
+    def set_max_age(self, term: str, max_age_ns: int | None) -> None:
+        """Every instance's (and every later one's) maximum age of ``term`` (see :meth:`Monitor.set_max_age`)."""
+        k = self._index.get(term)
+        if k is None:
+            k = self._term_index(term)
+        name = self.terms[k]
+        if max_age_ns is None:
+            self._max_age.pop(name, None)
+        else:
+            self._max_age[name] = int(max_age_ns)
+        for monitor in self._live.values():
+            if name in monitor.terms:
+                monitor.set_max_age(name, max_age_ns)
+
+    def set_max_cells(self, max_cells: int) -> None:
+        """Keep at most ``max_cells`` cells in all from now on, shared among the instances."""
+        self._max_cells = max(1, int(max_cells))
+        self._reshare()
+
+    def _term_index(self, term: str) -> int:
+        try:
+            k = self._index.get(str(parse_term(term)))
+        except TagError:
+            k = None
+        if k is None:
+            raise FormulaError(
+                f"the formula does not mention the term {term!r}",
+                where=f"monitor of {str(self.formula)!r}",
+                expected="one of " + ", ".join(repr(t) for t in self.terms) + did_you_mean(term, self.terms),
+            )
+        self._index[term] = k
+        return k
+
+    # -- introspection
+
+    @property
+    def objects(self) -> list[str]:
+        """The objects alive now."""
+        return list(self._live)
+
+    @property
+    def late(self) -> int:
+        """Samples late for their instance (see :attr:`Monitor.late`), over every instance so far."""
+        return self._late_retired + sum(m.late for m in self._live.values())
+
+    @property
+    def given_up(self) -> int:
+        """States the memory bound gave up, over every instance so far."""
+        return self._given_up_retired + sum(m.given_up for m in self._live.values())
+
+    @property
+    def states(self) -> int:
+        """States closed by the instances alive."""
+        return sum(m.states for m in self._live.values())
+
+    def retained(self) -> int:
+        """States (and buffered samples) the instances alive keep."""
+        return sum(m.retained() for m in self._live.values())

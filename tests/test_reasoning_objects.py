@@ -1,0 +1,107 @@
+"""One monitor per object (dyknow.reasoning.objects): a foreach formula's verdicts per object and
+life, against evaluate_objects() and a naive evaluator written from the semantics' text; the
+bounds on live objects; an object retired and seen again."""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dyknow.errors import FormulaError
+from dyknow.reasoning import parse
+from dyknow.reasoning.objects import ObjectMonitor
+from dyknow.reasoning.semantics import evaluate_objects
+from dyknow.reasoning.syntax import Formula, Quantifier, Stream
+from dyknow.tags import Term
+from tests.reasoning_support import MS, formulas, naive_evaluate_objects
+
+TRACK, ZONE = Term("Track", ("f",)), Term("Zone", ("z",))
+
+
+def _trace(rng: random.Random, samples: int = 300, objects: tuple[Any, ...] = ("a", "b", 4, 2.5)) -> dict[Term, list[tuple[int, Any]]]:
+    """Track samples naming objects (now and then none, or a bool: no object), zone samples between;
+    one stream never sends two samples at one time (a monitor would count the second late), two
+    streams often do."""
+    t, track, zone = 0, [], []
+    for _ in range(samples):
+        t += rng.choice([0, 1, 1, 2, 3, 9]) * MS
+        if rng.random() < 0.7 and (not track or track[-1][0] < t):
+            ident = rng.choice([*objects, None, True]) if rng.random() < 0.95 else rng.choice(objects)
+            track.append((t, {"id": ident, "v": rng.choice([0, 1, 2, 3, 2.5, None, True, "x"])}))
+        elif not zone or zone[-1][0] < t:
+            zone.append((t, rng.choice([0, 1, 2, 0.5, False, True])))
+    return {TRACK: track, ZONE: zone}
+
+
+def _run(monitor: ObjectMonitor, trace: dict[Term, list[tuple[int, Any]]], rng: random.Random) -> dict[str, list[tuple[int, bool]]]:
+    merged = sorted(((t, rng.random(), term, v) for term, samples in trace.items() for t, v in samples), key=lambda s: (s[0], s[1]))
+    # within one stream, equal times keep their order
+    cursor = dict.fromkeys(trace, 0)
+    got: dict[str, list[tuple[int, bool]]] = {}
+    for _t, _r, term, _v in merged:
+        t, v = trace[term][cursor[term]]
+        cursor[term] += 1
+        if str(term) not in monitor.terms:
+            continue
+        for key, verdict in monitor.push(str(term), t, v):
+            got.setdefault(key, []).append((verdict.t_ns, verdict.verdict))
+    for key, verdict in monitor.close():
+        got.setdefault(key, []).append((verdict.t_ns, verdict.verdict))
+    return got
+
+
+@settings(max_examples=300, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(body=formulas((TRACK, ZONE), max_depth=3, rich=True, future=False) | formulas((TRACK, ZONE), max_depth=3), seed=st.integers(0, 10**6), idle=st.sampled_from([2, 5, 20]))
+def test_an_object_monitor_returns_the_naive_evaluators_decided_verdicts_per_object(body: Formula, seed: int, idle: int) -> None:
+    """Random bodies over the tracked stream and another, with the object's value read too
+    (``t == "a"``): every instance's verdicts are the naive evaluator's decided ones, per object
+    and life, and evaluate_objects() agrees with the naive evaluator on every verdict."""
+    from dyknow.reasoning.syntax import And, Atom, Or, Str, Var
+
+    root = Or(body.root, Atom(Var("t"), "==", Str("a")))  # the variable as a value
+    formula = Formula.of(Quantifier("foreach", "t", Stream(TRACK, ("id",)), And(root, root) if seed % 2 else root))
+    rng = random.Random(seed)
+    trace = _trace(rng)
+    inner = Formula.of(formula.root.body)  # type: ignore[union-attr]
+    naive = naive_evaluate_objects("t", Stream(TRACK, ("id",)), inner, trace, idle * MS)
+    offline = evaluate_objects(formula, {str(k): v for k, v in trace.items() if k in formula.terms}, idle_ns=idle * MS)
+    assert offline == naive, str(formula)
+    got = _run(ObjectMonitor(formula, idle_ns=idle * MS), trace, rng)
+    want = {key: [(t, v) for life in lives for t, v in life if v is not None] for key, lives in naive.items()}
+    assert {k: sorted(v) for k, v in got.items()} == {k: sorted(v) for k, v in want.items() if v}, str(formula)
+
+
+def test_at_most_max_objects_live_and_the_others_are_refused() -> None:
+    monitor = ObjectMonitor("foreach t in Track(f).id: Track(f).v > 1", max_objects=3, idle_ns=100 * MS)
+    out = []
+    for i, ident in enumerate(["a", "b", "c", "d", "a", "e"]):
+        out += monitor.push("Track(f)", i * MS, {"id": ident, "v": 2})
+    assert sorted(monitor.objects) == ["a", "b", "c"] and monitor.refused == 2
+    assert sorted({key for key, _ in out}) == ["a", "b", "c"]
+    # once 'a' has been silent longer than idle, 'd' takes its place
+    out = monitor.push("Track(f)", 150 * MS, {"id": "d", "v": 2})
+    assert sorted(monitor.objects) == ["d"] and [(k, v.verdict) for k, v in out] == [("d", True)]
+
+
+def test_an_object_seen_again_after_idle_starts_a_new_life() -> None:
+    monitor = ObjectMonitor("foreach t in Track(f).id: once[0, 1s] Track(f).v > 1", idle_ns=10 * MS)
+    assert [v.verdict for _, v in monitor.push("Track(f)", 0, {"id": "a", "v": 2})] == [True]
+    assert [v.verdict for _, v in monitor.push("Track(f)", 5 * MS, {"id": "a", "v": 0})] == [True]  # the same life: once remembers
+    assert [v.verdict for _, v in monitor.push("Track(f)", 30 * MS, {"id": "a", "v": 0})] == [False]  # a new life: it does not
+    assert monitor.made == 2
+
+
+def test_samples_naming_no_object_are_counted() -> None:
+    monitor = ObjectMonitor("foreach t in Track(f).id: Track(f).v > 1")
+    for value in ({"id": None, "v": 1}, {"v": 1}, {"id": True, "v": 1}, {"id": [1], "v": 1}, 7):
+        assert monitor.push("Track(f)", 0, value) == []
+    assert monitor.unassigned == 5 and monitor.objects == []
+
+
+def test_a_plain_formula_is_no_object_monitors() -> None:
+    with pytest.raises(FormulaError, match="an ObjectMonitor monitors a foreach formula"):
+        ObjectMonitor(parse("Track(f).v > 1"))
