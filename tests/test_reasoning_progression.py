@@ -448,3 +448,19 @@ def test_a_monitors_aggregates_are_evaluates_across_thresholds(kind: str) -> Non
             assert {v.state: (v.t_ns, v.verdict) for v in got} == expected, str(formula)
             flips += len({v for _, v in expected.values()}) == 2
         assert flips or hi == 0 or (hi is None and kind in ("min", "max")), expression  # the verdicts flip: the values were checked
+
+
+@cases(500)
+@given(formula=formulas(max_depth=4, rich=True), data=st.data(), seed=st.integers(0, 1000))
+def test_a_monitor_asked_for_robustness_gives_each_verdict_evaluates(formula: Formula, data: st.DataObject, seed: int) -> None:
+    """Monitor(robustness=True): every verdict evaluate() decides, once, with the robustness
+    evaluate() gives its state (None where undefined); a future formula's verdict waits for its
+    window to complete."""
+    trace = data.draw(traces(formula.terms, numeric=data.draw(st.booleans())))
+    monitor = Monitor(formula, robustness=True)
+    verdicts, accepted = _run(monitor, _in_time_order(trace, random.Random(seed)))
+    streams = {str(term): sorted(accepted.get(term, []), key=lambda s: s[0]) for term in formula.terms}
+    expected = {i: (t, v, r) for i, (t, v, r) in enumerate(evaluate_ns(formula, streams, robustness=True)) if v is not None}
+    got = {v.state: (v.t_ns, v.verdict, v.robustness) for v in verdicts}
+    assert len(got) == len(verdicts)
+    assert got == expected, str(formula)

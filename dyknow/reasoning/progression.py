@@ -70,6 +70,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any, Final
 
 from dyknow.errors import ClosedError, FormulaError, TagError, did_you_mean
+from dyknow.reasoning.robustness import RNode, RobustnessTree
 from dyknow.reasoning.semantics import FALSE, TRUE, UNKNOWN, UNKNOWN_VALUE, arith, as_value, call, compare, read, truth
 from dyknow.reasoning.syntax import (
     Aggregate,
@@ -125,27 +126,33 @@ class Verdict:
     this module (the default install), and to be treated as read-only elsewhere.
     """
 
-    def __init__(self, state: int, t_ns: int, verdict: bool, decided_ns: int) -> None:
+    def __init__(self, state: int, t_ns: int, verdict: bool, decided_ns: int, robustness: float | None = None) -> None:
         self.state: Final = state
         self.t_ns: Final = t_ns
         self.verdict: Final = verdict
         self.decided_ns: Final = decided_ns
+        #: the state's robustness (a monitor asked for it: ``Monitor(robustness=True)``), None where undefined
+        self.robustness: Final = robustness
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Verdict):
             return NotImplemented
-        return (self.state, self.t_ns, self.verdict, self.decided_ns) == (other.state, other.t_ns, other.verdict, other.decided_ns)
+        return (self.state, self.t_ns, self.verdict, self.decided_ns, self.robustness) == (
+            other.state, other.t_ns, other.verdict, other.decided_ns, other.robustness
+        )  # fmt: skip
 
     def __hash__(self) -> int:
         return hash((self.state, self.t_ns, self.verdict, self.decided_ns))
 
     def __repr__(self) -> str:
-        return f"Verdict(state={self.state}, t_ns={self.t_ns}, verdict={self.verdict}, decided_ns={self.decided_ns})"
+        rob = f", robustness={self.robustness}" if self.robustness is not None else ""
+        return f"Verdict(state={self.state}, t_ns={self.t_ns}, verdict={self.verdict}, decided_ns={self.decided_ns}{rob})"
 
     def to_json(self) -> dict[str, Any]:
         """What a monitor unit publishes: ``{"t", "verdict", "decided_t"}`` in seconds, and the
-        exact integer nanoseconds and state index beside them."""
-        return {
+        exact integer nanoseconds and state index beside them; ``robustness`` when known (an
+        infinite one as the strings ``"inf"`` and ``"-inf"``: JSON has no infinities)."""
+        out: dict[str, Any] = {
             "t": self.t_ns / 1e9,
             "verdict": self.verdict,
             "decided_t": self.decided_ns / 1e9,
@@ -153,6 +160,10 @@ class Verdict:
             "decided_ns": self.decided_ns,
             "state": self.state,
         }
+        rob = self.robustness
+        if rob is not None:
+            out["robustness"] = rob if rob - rob == 0.0 else ("inf" if rob > 0 else "-inf")
+        return out
 
 
 class _Clock:
@@ -1224,6 +1235,7 @@ class Monitor:
         max_cells: int = DEFAULT_MAX_CELLS,
         max_age_ns: Mapping[str, int] | None = None,
         variables: Mapping[str, Any] | None = None,
+        robustness: bool = False,
     ) -> None:
         self.formula = parse(formula) if isinstance(formula, str) else formula
         if reorder_ns < 0:
@@ -1247,6 +1259,9 @@ class Monitor:
         self._nodes: list[_Node] = []
         self._values: list[_Value] = []
         self._steps: list[_Node | _Value] = []  # every node, operands first: what a state steps through
+        # the robustness tree beside the verdict nodes, when asked for (dyknow.reasoning.robustness)
+        self._robust: RobustnessTree | None = RobustnessTree(0) if robustness else None
+        self._rob_wait: list[tuple[int, int, bool, int]] = []  # verdicts decided before their robustness
         root = self._build(self.formula.root)
         if not isinstance(root, _Node):  # (the parser makes the root a condition)
             raise FormulaError("the formula is a value, not a condition", where=f"monitor of {str(self.formula)!r}", expected="a condition")
@@ -1256,6 +1271,8 @@ class Monitor:
         self._times.keep_ns = self._span_ns + sum(
             (n.interval.hi_ns or n.interval.lo_ns) for n in walk(self.formula.root) if isinstance(n, Historically | Once | Since | Aggregate | Always | Eventually | Until)
         )
+        if self._robust is not None:
+            self._robust.keep_ns = self._times.keep_ns + self.formula.horizon_ns
         # with a future operator somewhere, nodes read their operands' verdicts at older states
         self._history = not all(node.sync for node in self._nodes)
         for node in self._nodes:
@@ -1309,6 +1326,7 @@ class Monitor:
         built: dict[int, _Node | _Value] = {}
         horizons: dict[int, int] = {}
         terms: dict[int, set[int]] = {}  # the terms each node reads, itself or below
+        robs: dict[int, RNode] = {}  # a condition's robustness node (when asked for)
         stack: list[tuple[Node, bool]] = [(node, False)]
         while stack:
             current, expanded = stack.pop()
@@ -1333,6 +1351,8 @@ class Monitor:
             if isinstance(made, _UntilNode | _SinceNode | _SinceSync | _AggregateValue):
                 made.held = self._times  # its windows ask whether a term below was stale in them
                 made.below = sorted(reads)
+            if self._robust is not None and isinstance(made, _Node):
+                robs[id(current)] = self._rob_node(current, made, [robs[id(k)] for k in kids if id(k) in robs], sorted(reads))
             if isinstance(made, _Node):
                 self._nodes.append(made)
             else:
@@ -1340,6 +1360,35 @@ class Monitor:
             self._steps.append(made)
             built[id(current)] = made
         return built[id(node)]
+
+    def _rob_node(self, node: Node, made: _Node, kids: list[RNode], below: list[int]) -> RNode:
+        """The robustness node of a condition (see :mod:`dyknow.reasoning.robustness`)."""
+        tree = self._robust
+        assert tree is not None
+        held = self._times
+        if isinstance(node, Atom):
+            return tree.atom(made)
+        if isinstance(node, Const):
+            return tree.const(node.value)
+        if isinstance(node, Not):
+            return tree.negation(kids[0])
+        if isinstance(node, And | Or | Implies):
+            return tree.boolean("and" if isinstance(node, And) else "or" if isinstance(node, Or) else "implies", kids[0], kids[1])
+        if isinstance(node, Rise | Fall):
+            return tree.edge(isinstance(node, Rise), kids[0])
+        if isinstance(node, Prev):
+            return tree.prev(kids[0])
+        if isinstance(node, Always | Eventually | Until | Historically | Once | Since):
+            left, right = (kids[0], kids[1]) if isinstance(node, Until | Since) else (None, kids[0])
+
+            def stale(lo: int | None, hi: int, below: list[int] = below) -> bool:
+                return held.stale(below, lo, hi)
+
+            return tree.window(
+                left, right, node.interval.lo_ns, node.interval.hi_ns,
+                future=isinstance(node, Always | Eventually | Until), negate=isinstance(node, Always | Historically), stale=stale,
+            )  # fmt: skip
+        raise FormulaError(f"no robustness for {type(node).__name__}", where=f"monitor of {str(self.formula)!r}", expected="an STL formula")
 
     def _value(self, node: _Node | _Value) -> _Value:
         """An operand as a value: a condition's verdict becomes True, False or unknown."""
@@ -1514,6 +1563,9 @@ class Monitor:
         out: list[Verdict] = []
         while self._buffer:
             self._close_first(out)
+        if self._rob_wait:  # (their windows never complete: no robustness)
+            out.extend(Verdict(state, t_ns, verdict, decided_ns, None) for state, t_ns, verdict, decided_ns in self._rob_wait)
+            self._rob_wait = []
         return out
 
     def close(self) -> list[Verdict]:
@@ -1562,6 +1614,10 @@ class Monitor:
         for node in self._steps:
             node.step(n, t, held)
         root = self._root
+        robust = self._robust
+        if robust is not None:
+            robust.step(n, t)
+            first = len(out)
         if root.sync:
             value = root.cur
             if value != UNKNOWN:
@@ -1576,6 +1632,27 @@ class Monitor:
                 for i in events:
                     out.append(Verdict(i, clock.times[i - base], root.vals[i - base] == TRUE, t))
             self._trim(t)
+        if robust is not None:
+            self._with_robustness(out, first, t)
+            robust.trim(t)
+
+    def _with_robustness(self, out: list[Verdict], first: int, t: int) -> None:
+        """Give the verdicts decided now their robustness; hold those whose robustness is not
+        known yet (a future window not complete), and give out the held ones now known."""
+        robust = self._robust
+        assert robust is not None
+        decided = out[first:]
+        del out[first:]
+        waiting = self._rob_wait
+        waiting.extend((v.state, v.t_ns, v.verdict, v.decided_ns) for v in decided)
+        still: list[tuple[int, int, bool, int]] = []
+        for state, t_ns, verdict, decided_ns in waiting:
+            known, rob = robust.get(state)
+            if known:
+                out.append(Verdict(state, t_ns, verdict, decided_ns if decided_ns >= t else t, rob))
+            else:
+                still.append((state, t_ns, verdict, decided_ns))
+        self._rob_wait = still
 
     def _trim(self, t: int) -> None:
         """Drop states older than the formula needs (in batches, so it costs O(1) per state)."""
