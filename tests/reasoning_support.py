@@ -311,6 +311,9 @@ def naive_evaluate_ns(
             return -x if is_number(x) else U
         if isinstance(node, Arith):
             return naive_arith(node.op, value(node.left, i), value(node.right, i))
+        if isinstance(node, Call) and node.fn == "robustness":
+            r = rob(node.args[0], i)
+            return U if r is None else r
         if isinstance(node, Call):
             xs = [value(a, i) for a in node.args]
             if not all(is_number(x) for x in xs):
@@ -461,6 +464,7 @@ def values(terms: Sequence[Term], depth: int = 2) -> st.SearchStrategy[Node]:
     return st.one_of(
         leaves,
         leaves,
+        st.builds(lambda x, c: Call("robustness", (Atom(x, "<", Num(c)),)), inner, st.sampled_from([0, 1, 2.5])),
         st.builds(Arith, st.sampled_from(["+", "-", "*", "/"]), inner, inner),
         st.builds(Neg, inner),
         st.builds(lambda fn, x, y: Call(fn, (x,) if fn == "abs" else (x, y)), st.sampled_from(["abs", "min", "max"]), inner, inner),

@@ -108,6 +108,7 @@ def s_(name: str, *args: str, fields: tuple[str, ...] = ()) -> Stream:
         ("integral[0, 60s] Current(motor) < 120", Atom(Aggregate("integral", Interval(0, 60 * S), s_("Current", "motor")), "<", Num(120))),
         ("rate[1s, inf] Odo(r) > 0", Atom(Aggregate("rate", Interval(S, None), s_("Odo", "r")), ">", Num(0))),
         ("count(x) > 1", cmp(Term("count", ("x",)), (), ">", 1)),  # a tag named count: no window, no aggregate
+        ("robustness(historically[0, 1s] Speed(r) < 2) >= 0.1", Atom(Call("robustness", (Historically(Interval(0, S), Atom(s_("Speed", "r"), "<", Num(2))),)), ">=", Num(0.1))),
         ("forall c in Camera: Fresh(c)", Quantifier("forall", "c", "Camera", bare(Term("Fresh", ("c",))))),
         ("forall a in Robot: forall b in Robot: D(a) > D(b) or a == b", Quantifier("forall", "a", "Robot", Quantifier("forall", "b", "Robot", Or(Atom(s_("D", "a"), ">", s_("D", "b")), Atom(Var("a"), "==", Var("b")))))),
         ("always[0, 1s] (exists c in dk:Camera: Fresh(c))", Always(Interval(0, S), Quantifier("exists", "c", "dk:Camera", bare(Term("Fresh", ("c",)))))),
@@ -154,6 +155,7 @@ ERRORS = [
     ("(eventually[0, 1s] p) == true", 2, "'==' reads values decided by its state", "outside the future operator"),
     ("avg[0, inf] x > 1 and sum[0, 1s] x < eventually[0,1s] p", 38, "unexpected keyword 'eventually'", "a value"),
     ("min(x) > 1", 1, "min of 1 operand", "min of 2: min(x, y)"),
+    ("robustness(eventually[0, 1s] p) > 0", 12, "robustness reads values decided by its state", "outside the future operator"),
     ("abs(x, y) > 1", 1, "abs of 2 operands", "abs of 1: abs(x)"),
     ("abs(x > 1) > 1", 5, "'x > 1' is a condition, and abs takes numbers", "a number"),
     ("mode == 'manual", 9, "the string opened by ' is never closed", "a closing '"),

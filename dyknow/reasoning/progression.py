@@ -635,6 +635,22 @@ class _AggregateValue(_Value):
         return arith("/", total, 1e9) if total is not UNKNOWN_VALUE else UNKNOWN_VALUE
 
 
+class _RobustnessValue(_Value):
+    """``robustness(F)`` of a condition decided by its state: its own robustness tree, stepped
+    after F's verdict nodes (they are its operands), read at the state."""
+
+    def __init__(self, tree: RobustnessTree) -> None:
+        super().__init__()
+        self.tree = tree
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        tree = self.tree
+        tree.step(n, t)
+        known, rob = tree.get(n)
+        self.val = rob if known and rob is not None else UNKNOWN_VALUE
+        tree.trim(t)
+
+
 class _AtomNode(_Node):
     """``left OP right`` (or a bare value, ``op`` None): a condition decided at its state."""
 
@@ -1347,7 +1363,11 @@ class Monitor:
             if isinstance(current, Stream):
                 reads.add(self._index[str(current.term)])
             terms[id(current)] = reads
-            made = self._make(current, args, below, below + own)
+            made: _Node | _Value
+            if isinstance(current, Call) and current.fn == "robustness":
+                made = self._robustness_value(current.args[0], built, terms)
+            else:
+                made = self._make(current, args, below, below + own)
             if isinstance(made, _UntilNode | _SinceNode | _SinceSync | _AggregateValue):
                 made.held = self._times  # its windows ask whether a term below was stale in them
                 made.below = sorted(reads)
@@ -1361,9 +1381,20 @@ class Monitor:
             built[id(current)] = made
         return built[id(node)]
 
-    def _rob_node(self, node: Node, made: _Node, kids: list[RNode], below: list[int]) -> RNode:
+    def _robustness_value(self, root: Node, built: Mapping[int, _Node | _Value], terms: Mapping[int, set[int]]) -> _Value:
+        """``robustness(F)``: a robustness tree of F's own, over its verdict nodes (built already)."""
+        tree = RobustnessTree(0)
+        robs: dict[int, RNode] = {}
+        for node in reversed(walk(root)):  # children before parents
+            made = built[id(node)]
+            if isinstance(made, _Node):
+                robs[id(node)] = self._rob_node(node, made, [robs[id(k)] for k in children(node) if id(k) in robs], sorted(terms[id(node)]), tree)
+        tree.keep_ns = sum((n.interval.hi_ns or n.interval.lo_ns) for n in walk(root) if isinstance(n, Historically | Once | Since | Aggregate))
+        return _RobustnessValue(tree)
+
+    def _rob_node(self, node: Node, made: _Node, kids: list[RNode], below: list[int], tree: RobustnessTree | None = None) -> RNode:
         """The robustness node of a condition (see :mod:`dyknow.reasoning.robustness`)."""
-        tree = self._robust
+        tree = tree if tree is not None else self._robust
         assert tree is not None
         held = self._times
         if isinstance(node, Atom):

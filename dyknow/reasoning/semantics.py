@@ -33,6 +33,8 @@ its individual, a string; a ``foreach`` variable is its object's value.
   when an operand is unknown or not a number, when dividing by zero, and when the result is not
   finite.
 - ``prev(X)`` is X's value (or verdict) at the previous state; unknown at the first state.
+- ``robustness(F)`` is F's robustness at the state (below), unknown where it is undefined; its
+  infinities (``true``, a boolean atom) are numbers here.
 
 **Verdicts.** Each state i (time t_i) gets a verdict: true, false or unknown. Connectives are
 Kleene's three-valued ones: ``not`` swaps true and false; ``and`` is false if either side is false,
@@ -680,7 +682,8 @@ def _evaluate_ns(
         times, values, latest = times[first:], values[first:], latest[first:]
     index = {term: k for k, term in enumerate(formula.terms)}
     max_age = [ages.get(str(term), -1) for term in formula.terms]
-    evaluator = _Evaluator(times, values, latest, index, max_age, dict(variables or {}), robustness)
+    wants = robustness or any(isinstance(n, Call) and n.fn == "robustness" for n in walk(formula.root))
+    evaluator = _Evaluator(times, values, latest, index, max_age, dict(variables or {}), wants)
     evaluator.stale = _stale_periods(streams, max_age)
     verdicts, margins = evaluator.node(formula.root)
     if robustness:
@@ -781,6 +784,8 @@ class _Evaluator:
         if isinstance(node, Arith):
             return [arith(node.op, x, y) for x, y in zip(args[0][0], args[1][0], strict=True)], none
         if isinstance(node, Call):
+            if node.fn == "robustness":
+                return [UNKNOWN_VALUE if r is None else r for r in args[0][1]], none
             columns = [a[0] for a in args]
             return [call(node.fn, [c[i] for c in columns]) for i in range(n)], none
         if isinstance(node, Prev):

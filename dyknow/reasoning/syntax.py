@@ -30,7 +30,7 @@ Grammar (keywords are lowercase; whitespace is free)::
                 | AGGREGATE interval prefix                              count sum avg min max integral rate
                 | primary
     primary    := NUMBER | STRING | 'true' | 'false'
-                | ('abs' | 'prev' | 'rise' | 'fall') '(' formula ')'
+                | ('abs' | 'prev' | 'rise' | 'fall' | 'robustness') '(' formula ')'
                 | ('min' | 'max') '(' formula ',' formula ')'
                 | '(' formula ')'
                 | VAR                                                    a quantifier's variable, in its body
@@ -53,7 +53,8 @@ reaches as far right as it can (``forall c in C: p and q`` quantifies both).
 - **Values** are numbers, strings (``"manual"`` or ``'manual'``, with ``\\"``, ``\\'`` and
   ``\\\\`` escapes), ``true`` and ``false``, and what streams carry. **Expressions** compute
   with them: ``+ - * /``, unary ``-``, ``abs``, ``min`` and ``max`` of two, ``prev`` (the value at
-  the previous state) and the aggregates of a past window. **Conditions** (what ``and``, ``or``,
+  the previous state), ``robustness(F)`` (a condition's robustness: how far from changing) and the
+  aggregates of a past window. **Conditions** (what ``and``, ``or``,
   ``not``, the temporal operators, ``rise``, ``fall`` and ``count`` take) are comparisons, ``true``
   and ``false``, ``rise(F)``/``fall(F)``, and bare expressions of boolean value (``Stalled(robot)``,
   ``Door(hall).open``, ``prev(p)``). A mistake of kinds that can be seen in the text is refused at
@@ -149,7 +150,7 @@ ARITHMETIC: tuple[str, ...] = ("+", "-", "*", "/")
 AGGREGATES: tuple[str, ...] = ("count", "sum", "avg", "min", "max", "integral", "rate")
 """The aggregates of a past window."""
 
-FUNCTIONS: tuple[str, ...] = ("abs", "min", "max", "prev", "rise", "fall")
+FUNCTIONS: tuple[str, ...] = ("abs", "min", "max", "prev", "rise", "fall", "robustness")
 """The functions written with their operands in parentheses."""
 
 MAX_FORMULA_CHARS: int = 10_000
@@ -1285,6 +1286,10 @@ class _Parser:
                 arg = self.condition(arg)
             self.past(arg, fn)
             return self.made(Prev(arg), at)
+        if fn == "robustness":
+            arg = self.condition(args[0])
+            self.past(arg, fn)
+            return self.made(Call(fn, (arg,)), at)
         checked = tuple(self.value(arg, NUM, fn) for arg in args)
         return self.made(Call(fn, checked), at)
 
