@@ -480,7 +480,7 @@ def test_robustness_is_rtamts_discrete_time_robustness(pair: tuple[str, str, boo
         expected = [r for _, r in spec.evaluate({"time": list(range(n)), "x": xs, "y": ys})]
     got = evaluate(ours, {"x": [(float(i), x) for i, x in enumerate(xs)], "y": [(float(i), y) for i, y in enumerate(ys)]}, robustness=True)
     compared = 0
-    for (t, verdict, mine), theirs_r in zip(got, expected, strict=True):
+    for (t, _verdict, mine), theirs_r in zip(got, expected, strict=True):
         if mine is None:
             continue
         compared += 1
