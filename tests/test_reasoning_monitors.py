@@ -3,6 +3,7 @@ term, keeps them flowing, and publishes the verdicts on a key that outlives fail
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -12,7 +13,7 @@ import pytest
 from dyknow import Client, FormulaError, Manager, PlanningError
 from dyknow.reasoning import evaluate
 from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS, Sink
-from tests.conftest import REPO, free_port, wait_until
+from tests.conftest import GENERIC_SPECS, REPO, UNIT_SPECS, free_port, wait_until
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 TRACK = "BallTrack(field)"
@@ -172,6 +173,40 @@ def test_dyknow_monitor_prints_verdicts_as_they_come_and_releases_the_monitor(ma
     assert model["monitors"] == [] and model["requests"] == []  # released when the command ended
     refused = run_cli("monitor", "Fresh(x).value >", *proc.client_args())
     assert refused.returncode == 1 and "formula column 17: unexpected end of formula" in refused.stderr and "Traceback" not in refused.stderr
+
+
+def test_a_field_no_sample_holds_is_said_once_where_the_user_looks(make_manager: Callable[..., Manager], tmp_path: Any) -> None:
+    """A typo in a field (valeu) gave 0 verdicts and nothing said: now the monitor warns once,
+    naming the field and the fields the samples hold, in the model and on the verdicts key."""
+    (tmp_path / "level.xml").write_text(LEVEL_SPEC)
+    manager = make_manager(specs=[tmp_path / "level.xml", GENERIC_SPECS, UNIT_SPECS])
+    key = manager.monitor("Fresh(x).valeu > 1")
+    manager.spawn("sink", "watch", bindings={"in": key})
+    watch = manager.unit("watch")
+    assert isinstance(watch, Sink)
+    wait_until(lambda: any(m.to_dict()["warnings"] for m in manager.monitors()), "the monitor's warning in the model")
+    (info,) = manager.monitors()
+    (warning,) = info.to_dict()["warnings"]
+    assert "none of the first 20 samples of Fresh(x) holds the field 'valeu'" in warning and "value" in warning
+    def said() -> list[Any]:
+        return [m.payload for m in list(watch.messages) if isinstance(m.payload, dict) and "warning" in m.payload]
+
+    wait_until(lambda: bool(said()), "the warning on the verdicts key")
+    (payload,) = said()
+    assert payload["field"] == "valeu" and "value" in payload["fields_seen"]
+
+
+def test_dyknow_monitor_prints_times_since_it_started(manager_process: Callable[..., Any], tmp_path: Any) -> None:
+    from tests.conftest import run_cli
+
+    (tmp_path / "level.xml").write_text(LEVEL_SPEC)
+    proc = manager_process("--specs", str(tmp_path / "level.xml"))
+    result = run_cli("monitor", "Fresh(x).value > 1", "--duration", "2", *proc.client_args())
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stdout.splitlines() if line.startswith("dyknow/")]
+    assert lines and all(re.search(r"monitors/1  \+[0-9]+\.[0-9]{3} s  true", line) for line in lines), lines[:3]
+    iso = run_cli("monitor", "Fresh(x).value > 1", "--duration", "1", "--iso", *proc.client_args())
+    assert re.search(r"monitors/2  20[0-9]{2}-[0-9]{2}-[0-9]{2}T[0-9:.]+\+00:00  true", iso.stdout), iso.stdout[:300]
 
 
 def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: Any) -> None:

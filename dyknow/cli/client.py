@@ -5,6 +5,7 @@ remove-spec, request, release, measure, adaptations, monitor, echo.
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
 import logging
 import signal
@@ -373,16 +374,30 @@ def cmd_monitor(args: argparse.Namespace) -> int:
         raise UsageError(f"--duration: got {args.duration}; expected a positive number of seconds")
     done = threading.Event()
     lock = threading.Lock()
+    started_ns = time.time_ns()
+
+    def when(t: object) -> str:
+        """A verdict's time as the user reads it: seconds since the command started, or ISO."""
+        if not isinstance(t, int | float) or isinstance(t, bool):
+            return "?"
+        if args.iso:
+            return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat(timespec="milliseconds")
+        return f"{(float(t) * 1e9 - started_ns) / 1e9:+.3f} s"
 
     def show(msg: Message) -> None:
         verdict = msg.payload if isinstance(msg.payload, dict) else {}
         with lock:
             if done.is_set():
                 return
+            if "warning" in verdict:  # what the monitor found wrong with its data (a field no sample holds)
+                report_result(args, {"key": msg.key, **verdict}, f"{msg.key}  warning: {verdict.get('warning')}")
+                return
             gap = verdict.get("gap")
             said = "true " if verdict.get("verdict") is True else "false"
-            text = f"{msg.key}  t={verdict.get('t', 0):.3f} s  {said}" + (
-                f"  (after a gap: {gap.get('term')} re-planned: {gap.get('cause')})" if isinstance(gap, dict) else ""
+            who = f"  object {verdict['object']}" if "object" in verdict else ""
+            rob = f"  robustness {verdict['robustness']}" if "robustness" in verdict else ""
+            text = f"{msg.key}  {when(verdict.get('t'))}{who}  {said}{rob}" + (
+                f"  (a gap: {gap.get('term')} re-planned: {gap.get('cause')})" if isinstance(gap, dict) else ""
             )
             report_result(args, {"key": msg.key, **verdict}, text)
 
@@ -475,6 +490,7 @@ def add_commands(cmds: Commands) -> None:
     p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
     p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
+    p.add_argument("--iso", action="store_true", help="print each verdict's time as ISO 8601 wall time (default: seconds since the command started)")
     p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
     p.add_argument(
         "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
