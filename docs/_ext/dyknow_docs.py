@@ -246,12 +246,16 @@ def _source_docstrings(module_name: str) -> dict[str, str]:
                 if isinstance(child, ast.ClassDef):
                     walk(child, f"{prefix}{child.name}.")
 
-    walk(ast.parse(source.read_text(encoding="utf-8")), "")
+    tree = ast.parse(source.read_text(encoding="utf-8"))
+    found[""] = ast.get_docstring(tree) or ""  # the module's own
+    walk(tree, "")
     return found
 
 
 def _compiled_docstring(obj: Any) -> str:
-    """The source's docstring of a function, class or method of dyknow, or ""."""
+    """The source's docstring of a module, function, class or method of dyknow, or ""."""
+    if inspect.ismodule(obj):
+        return _source_docstrings(obj.__name__).get("", "") if obj.__name__.startswith("dyknow") else ""
     module_name = getattr(obj, "__module__", None) or getattr(getattr(obj, "__objclass__", None), "__module__", None)
     qualname = getattr(obj, "__qualname__", None)
     if not (isinstance(module_name, str) and module_name.startswith("dyknow") and isinstance(qualname, str)):
@@ -260,9 +264,9 @@ def _compiled_docstring(obj: Any) -> str:
 
 
 def restore_compiled_docstring(app: Sphinx, what: str, name: str, obj: Any, options: Any, lines: list[str]) -> None:
-    """Modules compiled by mypyc (setup.py) lose the docstrings of their functions and methods
-    (``dyknow.reasoning.evaluate``, ``Monitor.push``); take them from the source beside the
-    compiled module."""
+    """Modules compiled by mypyc (setup.py) lose their docstrings and those of their functions and
+    methods (``dyknow.reasoning.evaluate``, ``Monitor.push``); take them from the source beside
+    the compiled module."""
     if "".join(lines).strip() in ("", "mypyc filler docstring") and (doc := _compiled_docstring(obj)):
         lines[:] = inspect.cleandoc(doc).splitlines() + [""]
 

@@ -7,10 +7,13 @@ module                      what it holds
 :mod:`~.syntax`             the language: :func:`parse`, :func:`check_formula`, :class:`Formula`, its tree
 :mod:`~.semantics`          what a formula means, exactly: states, Kleene verdicts, windows; :func:`evaluate`
 :mod:`~.progression`        :class:`Monitor`: samples in, each state's :class:`Verdict` out as soon as decided
+:mod:`~.robustness`         the robustness of each state, for a monitor asked for it
+:mod:`~.objects`            :class:`ObjectMonitor`: a ``foreach`` formula, one monitor per object
+:mod:`~.quantify`           ``forall``/``exists`` over an ontology class, expanded for a manager
 :mod:`~.unit`               :class:`FormulaMonitor`, the monitor as a unit, and :func:`monitor_spec` for its spec
 ==========================  ==============================================================================
 
-Imports flow one way: ``syntax <- semantics <- progression <- unit``.
+Imports flow one way: ``syntax <- semantics <- robustness <- progression <- objects <- unit``.
 
     >>> from dyknow.reasoning import evaluate
     >>> evaluate("once[0, 1s] Battery(robot) < 0.2", {"Battery(robot)": [(0.0, 0.5), (0.5, 0.1), (2.0, 0.4)]})
@@ -20,9 +23,10 @@ Imports flow one way: ``syntax <- semantics <- progression <- unit``.
 from __future__ import annotations
 
 from dyknow.errors import FormulaError
+from dyknow.reasoning.objects import ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
-from dyknow.reasoning.semantics import evaluate, evaluate_ns
-from dyknow.reasoning.syntax import Formula, check_formula, parse
+from dyknow.reasoning.semantics import evaluate, evaluate_ns, evaluate_objects, evaluate_values
+from dyknow.reasoning.syntax import Formula, check_formula, parse, parse_value
 from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
 from dyknow.resources import restore_docstrings
 
@@ -31,12 +35,16 @@ __all__ = [
     "FormulaError",
     "FormulaMonitor",
     "Monitor",
+    "ObjectMonitor",
     "Verdict",
     "check_formula",
     "evaluate",
     "evaluate_ns",
+    "evaluate_objects",
+    "evaluate_values",
     "monitor_spec",
     "parse",
+    "parse_value",
     "term_ports",
 ]
 
