@@ -45,15 +45,16 @@ from collections.abc import Sequence
 
 from dyknow.cli import client, demo, mcap, offline, ros2, serve
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError
-from dyknow.errors import DyKnowError, SpecError
 
 __all__ = ["DEFAULT_MANAGER", "main"]
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser; ``selected``: only that command's options are declared (the
+    others are listed), so that a command imports what it needs and no more."""
     parser = argparse.ArgumentParser(prog="dyknow", description="Reconfigurable stream reasoning on Eclipse Zenoh.")
     parser.add_argument("--version", action="version", version=f"dyknow {_version()}")
-    commands = Commands(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
+    commands = Commands(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"), selected)
     for family in (serve, offline, demo, mcap, client, ros2):
         family.add_commands(commands)
     return parser
@@ -67,9 +68,12 @@ def _version() -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
-    parser = _parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = _parser(selected=next((word for word in argv if not word.startswith("-")), ""))
     args = parser.parse_args(argv)
     logging.basicConfig(level=os.environ.get("DYKNOW_LOG", "WARNING").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from dyknow.errors import DyKnowError, SpecError
+
     try:
         return int(args.fn(args))
     except UsageError as exc:

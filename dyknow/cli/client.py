@@ -12,9 +12,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterable
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from dyknow.cli.common import (
     DEFAULT_MANAGER,
@@ -29,10 +27,10 @@ from dyknow.cli.common import (
     report_result,
 )
 from dyknow.cli.ros2 import echo_ros2
-from dyknow.client import ClockView
-from dyknow.errors import DyKnowError, did_you_mean
-from dyknow.message import Message, describe_payload
-from dyknow.model import STANDBY_MODES
+
+if TYPE_CHECKING:
+    from dyknow.client import ClockView
+    from dyknow.message import Message
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
@@ -98,6 +96,7 @@ def cmd_model(args: argparse.Namespace) -> int:
 def cmd_managers(args: argparse.Namespace) -> int:
     """list every manager reachable (host, library size, units, requests, its clock's offset as --manager estimates it),
     then those --manager knew and lost (since when, why); exit 1 when none is reachable"""
+    from dyknow.errors import DyKnowError
     from dyknow.reach import DEFINITE
 
     with open_client(args) as client:
@@ -262,6 +261,10 @@ def cmd_adaptations(args: argparse.Namespace) -> int:
 def _printable(payload: Any) -> str:
     """A payload as a user can paste it: JSON for JSON-like values and text, a description of
     arrays and bytes."""
+    import numpy as np
+
+    from dyknow.message import describe_payload
+
     if isinstance(payload, (np.ndarray, bytes, bytearray, memoryview)):
         return describe_payload(payload)
     try:
@@ -272,6 +275,7 @@ def _printable(payload: Any) -> str:
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
+    from dyknow.errors import did_you_mean
     from dyknow.reach import DEFINITE
 
     if args.count is not None and args.count <= 0:
@@ -394,69 +398,95 @@ def _monitor_recording(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
-    p = command("spawn", cmd_spawn, client=True)
-    p.add_argument("label")
-    p.add_argument("name")
-    p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit, unless forced (by an admin)")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
-    p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
 
-    p = command("destroy", cmd_destroy, client=True)
-    p.add_argument("name")
-    p.add_argument("--force", action="store_true", help="destroy a protected unit too (an admin's call, when the manager has roles)")
+    def spawn_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("label")
+        p.add_argument("name")
+        p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit, unless forced (by an admin)")
+        p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
+        p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
 
-    p = command("model", cmd_model, client=True)
-    p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')
+    cmds.command("spawn", cmd_spawn, spawn_options, client=True)
 
-    command("managers", cmd_managers, client=True)
+    def destroy_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("name")
+        p.add_argument("--force", action="store_true", help="destroy a protected unit too (an admin's call, when the manager has roles)")
 
-    p = command("config", cmd_config, client=True)
-    p.add_argument("action", choices=["get", "set"])
-    p.add_argument("name")
-    p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
+    cmds.command("destroy", cmd_destroy, destroy_options, client=True)
 
-    p = command("stats", cmd_stats, client=True)
-    p.add_argument("name")
+    def model_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')
 
-    p = command("add-spec", cmd_add_spec, client=True)
-    p.add_argument("file")
+    cmds.command("model", cmd_model, model_options, client=True)
 
-    p = command("remove-spec", cmd_remove_spec, client=True)
-    p.add_argument("label")
+    cmds.command("managers", cmd_managers, client=True)
 
-    p = command("request", cmd_request, client=True)
-    p.add_argument("tag")
-    p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
-                   help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
-                        "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
-    p.add_argument("--require", action="append", default=[], metavar="FORMULA",
-                   help="a temporal formula the stream must satisfy: a false verdict moves it to the next-best configuration "
-                        "(repeatable; see dyknow monitor)")  # fmt: skip
+    def config_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("action", choices=["get", "set"])
+        p.add_argument("name")
+        p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
 
-    p = command("release", cmd_release, client=True)
-    p.add_argument("key")
-    p.add_argument("--force", action="store_true",
-                   help="give back every reference, whoever requested it (an admin's call on a manager with roles); "
-                        "without it, only what this caller requested")  # fmt: skip
+    cmds.command("config", cmd_config, config_options, client=True)
 
-    p = command("measure", cmd_measure, client=True)
-    p.add_argument("values", nargs="+", metavar="NAME=VALUE")
+    def stats_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("name")
 
-    command("adaptations", cmd_adaptations, client=True)
+    cmds.command("stats", cmd_stats, stats_options, client=True)
 
-    p = command("monitor", cmd_monitor, client=True)
-    p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
-    p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
-    p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
-    p.add_argument(
-        "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
-    )
-    cmds.mcap_limit_options(p, prefix="with --mcap: ")
+    def add_spec_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("file")
 
-    p = command("echo", cmd_echo, client=True)
-    p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=T] (rmw_zenoh) or ros2dds:/TOPIC?type=T (DDS), decoded")
-    p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
-    p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
-    cmds.ros2_domain_option(p)
+    cmds.command("add-spec", cmd_add_spec, add_spec_options, client=True)
+
+    def remove_spec_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("label")
+
+    cmds.command("remove-spec", cmd_remove_spec, remove_spec_options, client=True)
+
+    def request_options(p: argparse.ArgumentParser) -> None:
+        from dyknow.model import STANDBY_MODES
+
+        p.add_argument("tag")
+        p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
+                       help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
+                            "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
+        p.add_argument("--require", action="append", default=[], metavar="FORMULA",
+                       help="a temporal formula the stream must satisfy: a false verdict moves it to the next-best configuration "
+                            "(repeatable; see dyknow monitor)")  # fmt: skip
+
+    cmds.command("request", cmd_request, request_options, client=True)
+
+    def release_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("key")
+        p.add_argument("--force", action="store_true",
+                       help="give back every reference, whoever requested it (an admin's call on a manager with roles); "
+                            "without it, only what this caller requested")  # fmt: skip
+
+    cmds.command("release", cmd_release, release_options, client=True)
+
+    def measure_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("values", nargs="+", metavar="NAME=VALUE")
+
+    cmds.command("measure", cmd_measure, measure_options, client=True)
+
+    cmds.command("adaptations", cmd_adaptations, client=True)
+
+    def monitor_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
+        p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
+        p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
+        p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
+        p.add_argument(
+            "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
+        )
+        cmds.mcap_limit_options(p, prefix="with --mcap: ")
+
+    cmds.command("monitor", cmd_monitor, monitor_options, client=True)
+
+    def echo_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=T] (rmw_zenoh) or ros2dds:/TOPIC?type=T (DDS), decoded")
+        p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
+        p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
+        cmds.ros2_domain_option(p)
+
+    cmds.command("echo", cmd_echo, echo_options, client=True)

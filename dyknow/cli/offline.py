@@ -8,8 +8,6 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, name_list, parse_pairs, parse_value, print_json, report_result
-from dyknow.errors import SpecError
-from dyknow.spec import load_specs
 
 
 def _ontology(paths: Sequence[str]) -> Any:
@@ -19,6 +17,8 @@ def _ontology(paths: Sequence[str]) -> Any:
 
 
 def _load(args: argparse.Namespace) -> list[Any]:
+    from dyknow.spec import load_specs
+
     ontology = _ontology(getattr(args, "ontology", []))
     return load_specs(args.paths, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
 
@@ -34,6 +34,8 @@ def cmd_certs(args: argparse.Namespace) -> int:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     """check spec files; exit 1 with one PATH:LINE: message per error"""
+    from dyknow.errors import SpecError
+
     try:
         specs = _load(args)
     except SpecError as exc:
@@ -82,6 +84,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     """plan a configuration for a tag, offline; exit 1 with the explanation when none exists"""
     from dyknow.errors import PlanningError
     from dyknow.planner import plan
+    from dyknow.spec import load_specs
 
     ontology = _ontology(args.ontology)
     specs = load_specs(args.specs, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
@@ -111,31 +114,39 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
     limit_options = cmds.limit_options
-    p = command("certs", cmd_certs)
-    p.add_argument("dir", metavar="DIR", help="where to write ca.pem, ca.key and NAME.pem, NAME.key (an existing CA there is reused)")
-    p.add_argument("--names", required=True, type=name_list, metavar="A,B,C", help="the certificates' common names")
-    p.add_argument("--hosts", type=name_list, default=["localhost", "127.0.0.1"], metavar="H,H",
-                   help="host names and addresses the certificates are valid for (default localhost,127.0.0.1)")  # fmt: skip
 
-    p = command("validate", cmd_validate)
-    limit_options(p)
-    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+    def certs_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("dir", metavar="DIR", help="where to write ca.pem, ca.key and NAME.pem, NAME.key (an existing CA there is reused)")
+        p.add_argument("--names", required=True, type=name_list, metavar="A,B,C", help="the certificates' common names")
+        p.add_argument("--hosts", type=name_list, default=["localhost", "127.0.0.1"], metavar="H,H",
+                       help="host names and addresses the certificates are valid for (default localhost,127.0.0.1)")  # fmt: skip
 
-    p = command("expand", cmd_expand)
-    limit_options(p)
-    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+    cmds.command("certs", cmd_certs, certs_options)
 
-    p = command("plan", cmd_plan)
-    limit_options(p)
-    p.add_argument("--specs", action="extend", nargs="+", required=True, metavar="PATH", help="spec files or directories")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files")
-    p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")
-    p.add_argument("--unavailable", action="extend", nargs="+", default=[], metavar="LABEL", help="transformations not to use")
-    p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
-    p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
-    p.add_argument("--peer", action="append", default=[], metavar="NAME=PATH",
-                   help="another manager's library (spec file or directory), to plan across managers; repeatable")  # fmt: skip
+    def validate_options(p: argparse.ArgumentParser) -> None:
+        limit_options(p)
+        p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+
+    cmds.command("validate", cmd_validate, validate_options)
+
+    def expand_options(p: argparse.ArgumentParser) -> None:
+        limit_options(p)
+        p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+
+    cmds.command("expand", cmd_expand, expand_options)
+
+    def plan_options(p: argparse.ArgumentParser) -> None:
+        limit_options(p)
+        p.add_argument("--specs", action="extend", nargs="+", required=True, metavar="PATH", help="spec files or directories")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files")
+        p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")
+        p.add_argument("--unavailable", action="extend", nargs="+", default=[], metavar="LABEL", help="transformations not to use")
+        p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
+        p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
+        p.add_argument("--peer", action="append", default=[], metavar="NAME=PATH",
+                       help="another manager's library (spec file or directory), to plan across managers; repeatable")  # fmt: skip
+
+    cmds.command("plan", cmd_plan, plan_options)

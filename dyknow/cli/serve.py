@@ -21,8 +21,6 @@ from dyknow.cli.common import (
     seconds,
     tls_files,
 )
-from dyknow.holders import DEFAULT_GRACE_S
-from dyknow.transport import DEFAULT_ENDPOINT
 
 
 def _stop_event() -> threading.Event:
@@ -219,79 +217,92 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
     zenoh_options = cmds.zenoh_options
     lease_option = cmds.lease_option
     limit_options = cmds.limit_options
-    p = command("manager", cmd_manager)
-    p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
-    p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
-    p.add_argument(
-        "--listen",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)",
-    )
-    zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
-                   help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
-    p.add_argument("--path", action="append", default=[], metavar="DIR",
-                   help="a folder to find units' modules in, besides the spec files' own folders (repeatable)")  # fmt: skip
-    p.add_argument("--data-root", action="append", default=[], metavar="DIR",
-                   help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
-    p.add_argument(
-        "--acl",
-        metavar="FILE",
-        help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
-        "router: [...], ROLE: [...] }, define: { ROLE: { like: viewer, calls: [SERVICE, ...], publish: [...], subscribe: [...] } } }); "
-        "every call must then be signed by its caller (dyknow clients with --tls-* do)",
-    )
-    p.add_argument(
-        "--max-request-bytes", type=positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
-    )
-    p.add_argument("--max-units", type=positive_int, default=1000, metavar="N", help="refuse spawns beyond this many units (default 1000)")
-    p.add_argument("--max-message-bytes", type=positive_int, default=64 << 20, metavar="N",
-                   help="drop larger messages (data or calls) while they arrive, before they take memory (default 64 MiB)")  # fmt: skip
-    p.add_argument("--max-expansion-bytes", type=positive_int, default=16 << 20, metavar="N",
-                   help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
-    limit_options(p)
-    p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
-    p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",
-                   help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
-    p.add_argument("--dwell", type=seconds, metavar="S",
-                   help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
-    p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
-    lease_option(p)
-    cmds.ros2_domain_option(p)
-    p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
-    p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
-    p.add_argument("--ros2-dds-config", metavar="FILE",
-                   help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
-    p.add_argument("--max-ros2-message-bytes", type=positive_int, default=16 << 20, metavar="N",
-                   help="drop a larger ROS 2 message on a ros2:/ros2dds: input before decoding it, unless its binding says "
-                        "max_bytes= (default 16 MiB; untyped inputs: at most 1 MiB)")  # fmt: skip
 
-    p = command("ui", cmd_ui, client=True)
-    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
-    p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
-    p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
+    def manager_options(p: argparse.ArgumentParser) -> None:
+        from dyknow.holders import DEFAULT_GRACE_S
+        from dyknow.transport import DEFAULT_ENDPOINT
 
-    p = command("foxglove", cmd_foxglove, client=True)
-    p.add_argument("keyexprs", nargs="*", metavar="KEYEXPR", help="key expressions to serve (default dyknow/**: every stream)")
-    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; the protocol has no access control)")
-    p.add_argument("--port", type=int, default=8765, help="the port to serve on (default 8765; 0: any free port)")
-    p.add_argument("--allow-origin", action="append", default=[], metavar="URL",
-                   help="a web page origin that may connect besides the Foxglove web app (https://app.foxglove.dev), "
-                        "e.g. a self-hosted Lichtblick; repeatable (desktop apps send no origin and are always served)")  # fmt: skip
+        p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
+        p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
+        p.add_argument(
+            "--listen",
+            action="append",
+            default=[],
+            metavar="ENDPOINT",
+            help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)",
+        )
+        zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
+        p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
+                       help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
+        p.add_argument("--path", action="append", default=[], metavar="DIR",
+                       help="a folder to find units' modules in, besides the spec files' own folders (repeatable)")  # fmt: skip
+        p.add_argument("--data-root", action="append", default=[], metavar="DIR",
+                       help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
+        p.add_argument(
+            "--acl",
+            metavar="FILE",
+            help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
+            "router: [...], ROLE: [...] }, define: { ROLE: { like: viewer, calls: [SERVICE, ...], publish: [...], subscribe: [...] } } }); "
+            "every call must then be signed by its caller (dyknow clients with --tls-* do)",
+        )
+        p.add_argument(
+            "--max-request-bytes", type=positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
+        )
+        p.add_argument("--max-units", type=positive_int, default=1000, metavar="N", help="refuse spawns beyond this many units (default 1000)")
+        p.add_argument("--max-message-bytes", type=positive_int, default=64 << 20, metavar="N",
+                       help="drop larger messages (data or calls) while they arrive, before they take memory (default 64 MiB)")  # fmt: skip
+        p.add_argument("--max-expansion-bytes", type=positive_int, default=16 << 20, metavar="N",
+                       help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
+        limit_options(p)
+        p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
+        p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",
+                       help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
+        p.add_argument("--dwell", type=seconds, metavar="S",
+                       help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
+        p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
+        lease_option(p)
+        cmds.ros2_domain_option(p)
+        p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
+        p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
+        p.add_argument("--ros2-dds-config", metavar="FILE",
+                       help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
+        p.add_argument("--max-ros2-message-bytes", type=positive_int, default=16 << 20, metavar="N",
+                       help="drop a larger ROS 2 message on a ros2:/ros2dds: input before decoding it, unless its binding says "
+                            "max_bytes= (default 16 MiB; untyped inputs: at most 1 MiB)")  # fmt: skip
 
-    p = command("router", cmd_router)
-    p.add_argument(
-        "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
-    )
-    zenoh_options(p, connect_help="another router to connect to (repeatable)")
-    p.add_argument(
-        "--acl", metavar="FILE", help="enforce these roles at the router's links (the managers' ACL file; see dyknow manager --acl)"
-    )
-    lease_option(p)
+    cmds.command("manager", cmd_manager, manager_options)
+
+    def ui_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
+        p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
+        p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
+
+    cmds.command("ui", cmd_ui, ui_options, client=True)
+
+    def foxglove_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("keyexprs", nargs="*", metavar="KEYEXPR", help="key expressions to serve (default dyknow/**: every stream)")
+        p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; the protocol has no access control)")
+        p.add_argument("--port", type=int, default=8765, help="the port to serve on (default 8765; 0: any free port)")
+        p.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                       help="a web page origin that may connect besides the Foxglove web app (https://app.foxglove.dev), "
+                            "e.g. a self-hosted Lichtblick; repeatable (desktop apps send no origin and are always served)")  # fmt: skip
+
+    cmds.command("foxglove", cmd_foxglove, foxglove_options, client=True)
+
+    def router_options(p: argparse.ArgumentParser) -> None:
+        from dyknow.transport import DEFAULT_ENDPOINT
+
+        p.add_argument(
+            "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
+        )
+        zenoh_options(p, connect_help="another router to connect to (repeatable)")
+        p.add_argument(
+            "--acl", metavar="FILE", help="enforce these roles at the router's links (the managers' ACL file; see dyknow manager --acl)"
+        )
+        lease_option(p)
+
+    cmds.command("router", cmd_router, router_options)

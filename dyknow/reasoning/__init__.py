@@ -19,12 +19,16 @@ Imports flow one way: ``syntax <- semantics <- progression <- unit``.
 
 from __future__ import annotations
 
-from dyknow.errors import FormulaError
-from dyknow.reasoning.progression import Monitor, Verdict
-from dyknow.reasoning.semantics import evaluate, evaluate_ns
-from dyknow.reasoning.syntax import Formula, parse
-from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
-from dyknow.resources import restore_docstrings
+from typing import TYPE_CHECKING, Any
+
+from dyknow.exports import lazy_exports
+
+if TYPE_CHECKING:
+    from dyknow.errors import FormulaError
+    from dyknow.reasoning.progression import Monitor, Verdict
+    from dyknow.reasoning.semantics import evaluate, evaluate_ns
+    from dyknow.reasoning.syntax import Formula, parse
+    from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
 
 __all__ = [
     "Formula",
@@ -39,4 +43,26 @@ __all__ = [
     "term_ports",
 ]
 
-restore_docstrings(globals(), __all__)  # Monitor and Verdict are compiled by mypyc
+#: Where each public name is defined, imported on first use: a module that needs only the syntax
+#: (the service's bounds, a spec's requirements) does not import the monitors (dyknow.exports).
+_WHERE = {
+    "Formula": "dyknow.reasoning.syntax",
+    "FormulaError": "dyknow.errors",
+    "FormulaMonitor": "dyknow.reasoning.unit",
+    "Monitor": "dyknow.reasoning.progression",
+    "Verdict": "dyknow.reasoning.progression",
+    "evaluate": "dyknow.reasoning.semantics",
+    "evaluate_ns": "dyknow.reasoning.semantics",
+    "monitor_spec": "dyknow.reasoning.unit",
+    "parse": "dyknow.reasoning.syntax",
+    "term_ports": "dyknow.reasoning.unit",
+}
+
+
+def _restore_docstring(name: str, value: Any) -> None:  # Monitor and Verdict are compiled by mypyc
+    from dyknow.resources import restore_docstrings
+
+    restore_docstrings({name: value}, [name])
+
+
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _WHERE, after=_restore_docstring)
