@@ -326,3 +326,42 @@ def test_echo_describes_arrays_inside_a_payload() -> None:
         "fields": [{"a": {"ndarray": {"dtype": "float32", "shape": [2, 3]}}}],
         "raw": {"bytes": 1, "base64": "AQ=="},
     }
+
+
+# ------------------------------------------------------------------------------------------- shipped files, from anywhere
+
+
+def _outside(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``dyknow ARGS`` from an empty folder outside the checkout."""
+    return subprocess.run([sys.executable, "-m", "dyknow.cli", *args], capture_output=True, text=True, timeout=60,
+                          env=subprocess_env(), cwd=tmp_path)  # fmt: skip
+
+
+def test_shipped_specs_have_a_name_that_works_from_any_folder(tmp_path: Path) -> None:
+    assert REPO not in tmp_path.parents
+    done = _outside(tmp_path, "validate", "@shipped", "--ontology", "@shipped/dyknow.ttl")
+    assert done.returncode == 0 and done.stdout.startswith("ok: "), done.stderr
+    done = _outside(tmp_path, "validate", "specs/", "--ontology", "specs/dyknow.ttl")  # the checkout's path, from elsewhere
+    assert done.returncode == 2 and f"specs/: no such file in {tmp_path}; dyknow's shipped copy is @shipped (dyknow paths)" in done.stderr
+    done = _outside(tmp_path, "plan", "--specs", "@testing/scenario-station.xml", "--ontology", "@shipped/dyknow.ttl", "--manager",
+                    "station", "--request", "BallTrack(field)", "--peer", "robot=@testing/scenario-robot.xml", "--json")  # fmt: skip
+    assert done.returncode == 0 and '"manager":"robot"' in done.stdout, done.stderr
+
+
+def test_a_misspelled_shipped_name_says_which_exist(tmp_path: Path) -> None:
+    done = _outside(tmp_path, "validate", "@shiped")
+    assert done.returncode == 2
+    assert "no shipped folder '@shiped' (did you mean '@shipped'?); expected one of @shipped, @testing" in done.stderr
+    done = _outside(tmp_path, "manager", "--specs", "@shipped/visoin.xml")
+    assert done.returncode == 2 and "is not shipped; @shipped holds dyknow.ttl, generic.xml" in done.stderr
+
+
+def test_paths_prints_where_the_shipped_files_are(tmp_path: Path) -> None:
+    done = _outside(tmp_path, "paths", "--json")
+    assert done.returncode == 0, done.stderr
+    found = json.loads(done.stdout)
+    shipped = Path(found["folders"]["@shipped"]["path"])
+    assert (shipped / "generic.xml").is_file() and "dyknow.ttl" in found["folders"]["@shipped"]["files"]
+    assert "scenario-station.xml" in found["folders"]["@testing"]["files"]
+    text = _outside(tmp_path, "paths").stdout
+    assert f"@shipped   {shipped}" in text and "@testing" in text

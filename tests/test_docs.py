@@ -2,7 +2,11 @@
 
 What each kind of block gets (``docs/**/*.md``):
 
-- ``python``: executed in a fresh interpreter from the checkout (its asserts are part of the
+Every block runs from a folder outside the checkout, as a user who installed dyknow runs it: the
+shipped specs are named ``@shipped`` and ``@testing`` on the command line (``dyknow paths``), and
+:func:`dyknow.resources.specs_dir` from Python.
+
+- ``python``: executed in a fresh interpreter in a folder of its own (its asserts are part of the
   test), except a file of a tutorial (its first line names it, ``# mypkg/doubler.py``), which
   ``test_the_first_tutorial_runs_outside_the_checkout`` writes out and runs, and the few listed in
   ``NOT_RUN`` with the reason (none today). Blocks that listen on ``tcp/127.0.0.1:7447`` get a
@@ -11,9 +15,9 @@ What each kind of block gets (``docs/**/*.md``):
 - ``sh``: every ``dyknow`` line is parsed by the command line's own parser (options, choices,
   types); ``dyknow validate|expand|plan`` lines, which need no manager, run; ``python
   tools/...`` and ``python benchmarks/...`` (in blocks and in the prose) name scripts that exist,
-  with options they define; ``make`` targets exist. A block after ``<!-- docs-test: bash -->``
-  (a session with a manager in the background) runs as a bash script as from the checkout (in a
-  folder whose ``specs/`` is the checkout's, so what it writes stays out), one after
+  with options they define; ``make`` targets exist; no ``dyknow`` line names a file of the
+  checkout (``specs/vision.xml``) that a user's folder would not have. A block after ``<!-- docs-test: bash -->``
+  (a session with a manager in the background) runs as a bash script in an empty folder, one after
   ``<!-- docs-test: bash, in the tutorial's folder -->`` in the tutorial's folder, and one after
   ``<!-- docs-test: run in the tutorial's folder -->`` line by line there. A manager session gets
   a free port instead of the default 7447 (``--listen``, ``--connect``). The two-host example of
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import io
 import os
 import re
@@ -45,7 +50,7 @@ from unittest import mock
 
 import pytest
 
-from tests.conftest import REPO, free_port, run_cli, subprocess_env
+from tests.conftest import REPO, free_port
 
 DOCS = REPO / "docs"
 PAGES = sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.parts)
@@ -209,11 +214,27 @@ def test_the_exceptions_are_few_and_still_there() -> None:
     assert len(NOT_RUN) <= 3
 
 
+@functools.cache
+def _outside_env() -> dict[str, str]:
+    """The environment of a user outside the checkout: no PYTHONPATH, so ``dyknow`` is the installed
+    package. Where the dyknow under test is not the one this interpreter imports without
+    PYTHONPATH (a developer's worktree beside a shared environment), its folder alone goes first."""
+    import dyknow
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    ours = Path(dyknow.__file__).resolve().parent
+    found = subprocess.run([sys.executable, "-c", "import dyknow; print(dyknow.__file__)"], capture_output=True, text=True, cwd="/", env=env)
+    if Path(found.stdout.strip() or "/").resolve().parent != ours:
+        env["PYTHONPATH"] = str(ours.parent)
+    return env
+
+
 @pytest.mark.parametrize("block", _runnable_python(), ids=str)
-def test_python_blocks_run_as_written(block: Block) -> None:
+def test_python_blocks_run_as_written(block: Block, tmp_path: Path) -> None:
+    """From a folder of their own, outside the checkout."""
     code = block.text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{free_port()}")
     result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO, env=subprocess_env()
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=_outside_env()
     )  # fmt: skip
     assert result.returncode == 0, f"{block}\n{result.stdout[-2000:]}\n{result.stderr[-4000:]}"
 
@@ -229,7 +250,7 @@ def test_the_first_tutorial_runs_outside_the_checkout(tmp_path: Path) -> None:
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_text(text)
     (folder / "mypkg" / "__init__.py").write_text("")  # the page's layout lists it, empty
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env = _outside_env()
     _run_in_folder(blocks, folder, env)
     _run_with_bash(blocks, folder, env)
 
@@ -294,11 +315,9 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
 
 @pytest.mark.parametrize("block", [b for b in BLOCKS if b.marker == BASH], ids=str)
 def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
-    """The sessions with a manager, as from the checkout: in a folder of their own where ``specs/``
-    is the checkout's, so that what they write (``run.mcap``) stays out of the checkout."""
-    (tmp_path / "specs").symlink_to(REPO / "specs")
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    result = _bash(block, tmp_path, env)
+    """The sessions with a manager, in an empty folder outside the checkout."""
+    assert REPO not in tmp_path.parents
+    result = _bash(block, tmp_path, _outside_env())
     if "dyknow echo 'dyknow/robot/requests" in block.text:
         track = [line for line in result.stdout.splitlines() if line.startswith("dyknow/robot/requests/BallTrack(field) ")]
         assert len(track) == 5, result.stdout  # echo: five messages of the track
@@ -369,6 +388,22 @@ def test_every_dyknow_command_line_parses(where: str, command: str) -> None:
             assert option in out.getvalue(), f"{where}: {option} is not an option of dyknow {kept[0]}"
 
 
+#: The files a page's own commands write before naming them (the tutorial's spec, the two-host
+#: example's station.xml and robot.xml, copied there from another page's section).
+PAGE_FILES = {"specs/doubler.xml", "station.xml", "robot.xml", "acl.json5", "run.mcap"}
+
+
+@pytest.mark.parametrize(("where", "command"), _dyknow_lines(), ids=lambda v: v[:60])
+def test_no_command_line_needs_the_checkout(where: str, command: str) -> None:
+    """A path in a documented command line is a shipped name (``@shipped/vision.xml``), a file the
+    page makes, or a folder of the user's: never one of the checkout (``specs/``, ``dyknow/testing/``)."""
+    for word in shlex.split(command):
+        value = word.partition("=")[2] if word.startswith("--") or re.match(r"^\w+=", word) else word
+        checkout_file = re.match(r"^(specs|dyknow|transformations|tests)(/[\w./-]*\.(xml|ttl|xsd|py)|/?)$", value)
+        if checkout_file and value not in PAGE_FILES:
+            raise AssertionError(f"{where}: dyknow {command}: {value} is a file of the checkout; name it @shipped/... or @testing/...")
+
+
 def _offline_commands() -> list[tuple[str, str, str]]:
     found = []
     for block in _of("sh"):
@@ -385,8 +420,10 @@ def test_the_pages_have_offline_commands() -> None:
 
 
 @pytest.mark.parametrize(("where", "command", "comment"), _offline_commands(), ids=lambda v: v[:60])
-def test_offline_commands_run_as_written(where: str, command: str, comment: str) -> None:
-    result = run_cli(*shlex.split(command), timeout=120)
+def test_offline_commands_run_as_written(where: str, command: str, comment: str, tmp_path: Path) -> None:
+    """From an empty folder outside the checkout."""
+    result = subprocess.run([sys.executable, "-m", "dyknow.cli", *shlex.split(command)], capture_output=True, text=True, timeout=120,
+                            cwd=tmp_path, env=_outside_env())  # fmt: skip
     expected = 1 if "exit 1" in comment and not command.startswith("validate") else 0
     assert result.returncode == expected, f"{where}: {result.stderr[-2000:]}"
     assert "Traceback" not in result.stderr

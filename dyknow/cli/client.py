@@ -25,6 +25,7 @@ from dyknow.cli.common import (
     print_json,
     read_limits,
     report_result,
+    shipped,
 )
 from dyknow.cli.ros2 import echo_ros2
 
@@ -434,7 +435,7 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("stats", cmd_stats, stats_options, client=True)
 
     def add_spec_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("file")
+        p.add_argument("file", type=shipped, help="a spec file (@shipped/NAME.xml: one of dyknow's own), or - for standard input")
 
     cmds.command("add-spec", cmd_add_spec, add_spec_options, client=True)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import inspect
 import json
 import os
@@ -82,6 +83,26 @@ def seconds(text: str) -> float:
     if not 0 <= value < 1e9:  # (nan fails too)
         raise argparse.ArgumentTypeError(f"got {text!r}; expected seconds, a number of 0 or more such as 10 or 0.5")
     return value
+
+
+def shipped(text: str) -> str:
+    """A path option's value, where ``@shipped`` and ``@testing`` name the shipped folders
+    (:func:`dyknow.resources.shipped_path`), so a documented command line works from any folder."""
+    from pathlib import Path
+
+    from dyknow.resources import shipped_path, specs_dir
+
+    try:
+        path = shipped_path(text)
+    except (ValueError, FileNotFoundError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    parts = Path(text).parts
+    if parts and parts[0] == "specs" and not Path(text).exists():  # the checkout's path, from another folder
+        shipped = Path("@shipped", *parts[1:]).as_posix()
+        with contextlib.suppress(FileNotFoundError):
+            if (specs_dir().joinpath(*parts[1:])).exists():
+                raise argparse.ArgumentTypeError(f"{text}: no such file in {Path.cwd()}; dyknow's shipped copy is {shipped} (dyknow paths)")
+    return path
 
 
 def name_list(text: str) -> list[str]:

@@ -19,6 +19,7 @@ from dyknow.cli.common import (
     positive_int,
     report_result,
     seconds,
+    shipped,
     tls_files,
 )
 
@@ -226,8 +227,10 @@ def add_commands(cmds: Commands) -> None:
         from dyknow.transport import DEFAULT_ENDPOINT
 
         p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
-        p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
-        p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
+        p.add_argument("--specs", action="extend", nargs="+", default=[], type=shipped, metavar="PATH",
+                       help="spec files or directories of .xml specs (@shipped: dyknow's own; dyknow paths)")  # fmt: skip
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="ontology files (Turtle or RDF/XML; @shipped/dyknow.ttl: the example ontology)")  # fmt: skip
         p.add_argument(
             "--listen",
             action="append",
