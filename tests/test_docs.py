@@ -152,10 +152,12 @@ def _dyknow_lines() -> list[tuple[str, str]]:
 
 
 def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
-    """``make docs`` as CI runs it: a warning, a broken link or an unresolved reference fails."""
+    """``make docs`` as it runs on a fresh clone, where only the ``docs`` extra is installed
+    (``tests/docs_extra_only.py``: what the other extras bring cannot be imported): a warning, a
+    broken link or an unresolved reference fails."""
     result = subprocess.run(
-        [sys.executable, "-m", "sphinx", "-b", "html", "-W", "--keep-going", "-n", "-q", str(DOCS), str(tmp_path / "site")],
-        capture_output=True, text=True, timeout=300, cwd=REPO,
+        [sys.executable, "-m", "tests.docs_extra_only", "-b", "html", "-W", "--keep-going", "-n", "-q", str(DOCS), str(tmp_path / "site")],
+        capture_output=True, text=True, timeout=300, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)),
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
     site = tmp_path / "site"
@@ -174,6 +176,19 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
     assert (site / "_images" / "ui.png").is_file()
     changelog = (site / "changelog.html").read_text(encoding="utf-8")
     assert "0.1.0" in changelog and "Changelog" in changelog  # CHANGELOG.md, included
+
+
+def test_the_docs_extra_alone_lacks_what_the_other_extras_bring() -> None:
+    """The environment the site's build test makes: Hypothesis (test), rosbags (ros2), pyzmq
+    (bench) refused; Sphinx, myst, furo and dyknow's own requirements kept."""
+    from tests.docs_extra_only import allowed_distributions, refused_modules
+
+    allowed = allowed_distributions()
+    assert {"sphinx", "myst-parser", "furo", "eclipse-zenoh", "numpy", "rdflib"} <= allowed
+    assert not {"hypothesis", "pytest", "rosbags", "pyzmq", "selenium"} & allowed
+    refused = refused_modules()
+    assert {"hypothesis", "pytest", "rosbags", "zmq"} <= set(refused)
+    assert not {"sphinx", "numpy", "zenoh", "dyknow", "transformations", "docutils"} & set(refused)
 
 
 def test_the_makefile_builds_the_site_as_the_test_does() -> None:
