@@ -15,16 +15,18 @@ $(BIN)/python:
 # setup.py compiles these with mypyc, in place: an edit to one of them needs a new install
 COMPILED := $(shell sed -n 's/^    "\(dyknow\/[a-z_/]*\.py\)",$$/\1/p' setup.py)
 
+# tools/install.py runs pip quietly but shows the progress of the compilation (the first install
+# compiles the hot-path modules with mypyc: 2 to 6 minutes); DYKNOW_PURE_PYTHON=1 skips it
 $(VENV)/.installed: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e .
+	$(BIN)/python tools/install.py "-e ."
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python tools/install.py "-e .[test]"
 	touch $@ $(VENV)/.installed $(VENV)/.installed-docs  # the test extra includes the docs one
 
 $(VENV)/.installed-docs: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	$(BIN)/python tools/install.py "-e .[docs]"
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
