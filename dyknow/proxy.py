@@ -449,7 +449,10 @@ class Proxy:
         self.state = UnitState.FAILED
         self.error = f"{where}: {type(exc).__name__}: {exc}"
         self.traceback = "".join(traceback.format_exception(exc))
-        log.error("unit %r (%s) failed in %s: %s: %s", self.name, self.label, where, type(exc).__name__, exc)
+        frames = traceback.extract_tb(exc.__traceback__)  # where it was raised: the file and line of the unit's code
+        at = f" at {frames[-1].filename}:{frames[-1].lineno} in {frames[-1].name}" if frames else ""
+        log.error("unit %r (%s) failed in %s: %s: %s%s (dyknow stats %s shows the traceback)", self.name, self.label, where,
+                  type(exc).__name__, exc, at, self.name)  # fmt: skip
         self._stop.set()
         for timer in self._timers:
             timer.cancel()

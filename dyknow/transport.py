@@ -30,13 +30,14 @@ from typing import Any, Final
 import zenoh
 
 from dyknow.access import AccessControl, TlsFiles
-from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError
+from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError, did_you_mean
 from dyknow.keys import MAX_KEY_BYTES
 from dyknow.message import ENCODINGS, HEADER_V1, Message, decode, decode_dyknow, encode
 
 __all__ = [
     "DEFAULT_ENDPOINT",
     "MAX_QUERIERS",
+    "SCHEMES",
     "ZENOH_RUNTIME",
     "LivelinessSubscriber",
     "LivelinessToken",
@@ -48,6 +49,7 @@ __all__ = [
     "Session",
     "Subscriber",
     "check_key_expr",
+    "check_schemes",
     "is_wild",
     "key_exprs_intersect",
     "make_config",
@@ -247,6 +249,24 @@ def key_exprs_intersect(a: str, b: str) -> bool:
 # --------------------------------------------------------------------------- configuration
 
 
+#: The link protocols of the Zenoh that dyknow installs (eclipse-zenoh's wheel leaves out
+#: unixpipe, serial and vsock).
+SCHEMES: Final = ("tcp", "tls", "udp", "quic", "ws", "unixsock-stream")
+
+
+def check_schemes(endpoints: Iterable[str], option: str) -> None:
+    """Refuse an endpoint whose protocol Zenoh does not speak (``tpc/...``), naming the ones it
+    does (Zenoh itself says only "Unicast not supported for tpc protocol")."""
+    for endpoint in endpoints:
+        scheme = endpoint.partition("/")[0]
+        if scheme not in SCHEMES:
+            raise TransportError(
+                f"{endpoint}: no Zenoh link protocol {scheme!r}{did_you_mean(scheme, SCHEMES)}",
+                where=option,
+                expected=f"PROTOCOL/ADDRESS:PORT with PROTOCOL one of {', '.join(SCHEMES)} (such as tcp/127.0.0.1:7447)",
+            )
+
+
 def make_config(
     *,
     listen: Sequence[str] | None = None,
@@ -278,6 +298,8 @@ def make_config(
     ``transport/unicast/open_timeout``, 10 s by default); closing the session waits for an attempt
     under way, so a session that keeps dialling a silent host takes up to this long to close.
     """
+    for option, endpoints in (("--listen", listen or ()), ("--connect", connect)):
+        check_schemes(endpoints, option)
     try:
         if config_file is not None:
             path = Path(config_file)

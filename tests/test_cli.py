@@ -365,3 +365,39 @@ def test_paths_prints_where_the_shipped_files_are(tmp_path: Path) -> None:
     assert "scenario-station.xml" in found["folders"]["@testing"]["files"]
     text = _outside(tmp_path, "paths").stdout
     assert f"@shipped   {shipped}" in text and "@testing" in text
+
+
+def test_a_units_exception_shows_where_in_its_code_in_the_log_model_and_stats(manager_process: Callable[..., ManagerProcess]) -> None:
+    """``KeyError: 'speed'`` alone says nothing of where: the log names the file and line, and
+    ``dyknow model`` and ``dyknow stats`` show the last frames of the traceback."""
+    proc = manager_process()
+    client = proc.client_args()
+    assert run_cli("spawn", "failing", "f", "--bind", "in=t/in", *client).returncode == 0
+    assert run_cli("spawn", "periodic-source", "src", "--param", "rate_hz=20", "--bind", "out=t/in", *client).returncode == 0
+    units = REPO / "tests" / "units.py"
+    line = next(n for n, text in enumerate(units.read_text().splitlines(), 1) if 'raise RuntimeError(f"boom at message' in text)
+
+    def failed() -> bool:
+        model = json.loads(run_cli("model", "--json", *client).stdout)
+        return any(u["name"] == "f" and u["state"] == "failed" for u in model["units"])
+
+    wait_until(failed, "the failing unit failed")
+    model = run_cli("model", *client).stdout
+    assert "error: on_message('in'): RuntimeError: boom at message 1" in model
+    assert "traceback (last " in model and f'File "{units}", line {line}, in on_message' in model
+    stats = run_cli("stats", "f", *client).stdout
+    assert f'File "{units}", line {line}, in on_message' in stats and "RuntimeError: boom at message 1" in stats
+    proc.stop()
+    assert proc.proc.stderr is not None
+    log = proc.proc.stderr.read()
+    assert f"RuntimeError: boom at message 1 at {units}:{line} in on_message (dyknow stats f shows the traceback)" in log
+
+
+def test_a_misspelled_endpoint_protocol_names_the_protocols() -> None:
+    """Zenoh says only "Unicast not supported for tpc protocol"."""
+    expected = "no Zenoh link protocol 'tpc' (did you mean 'tcp'?); expected PROTOCOL/ADDRESS:PORT with PROTOCOL one of tcp, tls, udp, quic, ws"
+    for argv, option in ((["model", "--connect", "tpc/127.0.0.1:7447"], "--connect"), (["manager", "--listen", "tpc/127.0.0.1:0"], "--listen"),
+                         (["record", "x/**", "-o", "x.mcap", "--connect", "tpc/127.0.0.1:7447"], "--connect")):  # fmt: skip
+        done = run_cli(*argv)
+        assert done.returncode == 1 and f"dyknow: error: {option}: tpc/127.0.0.1:" in done.stderr and expected in done.stderr, done.stderr
+        assert "Unicast not supported" not in done.stderr

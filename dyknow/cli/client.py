@@ -34,6 +34,19 @@ if TYPE_CHECKING:
     from dyknow.message import Message
 
 
+def traceback_tail(text: object, frames: int = 3) -> list[str]:
+    """The last ``frames`` frames of a unit's traceback (where in its code it failed), as lines;
+    none when there is no traceback."""
+    if not isinstance(text, str) or not text.strip():
+        return []
+    lines = text.rstrip().splitlines()
+    starts = [i for i, line in enumerate(lines) if line.startswith("  File ")]
+    if not starts:
+        return lines[-1:]
+    shown = lines[starts[-frames] if len(starts) >= frames else starts[0] :]
+    return [f"traceback (last {min(frames, len(starts))} of {len(starts)} frames):", *shown]
+
+
 def cmd_spawn(args: argparse.Namespace) -> int:
     """spawn a unit on a manager"""
     params, bindings = parse_pairs(args.param, "--param"), parse_pairs(args.bind, "--bind")  # usage first, then connect
@@ -44,6 +57,7 @@ def cmd_spawn(args: argparse.Namespace) -> int:
         yield f"spawned {info['name']} ({info['label']}): {info['state']}" + (" [protected]" if info["protected"] else "")
         if info.get("error"):
             yield f"  error: {info['error']}"
+            yield from (f"  {line}" for line in traceback_tail(info.get("traceback")))
 
     report_result(args, info, text)
     return 1 if info["state"] == "failed" else 0
@@ -77,6 +91,7 @@ def cmd_model(args: argparse.Namespace) -> int:
                     yield f"      {port} -> {key}"
                 if unit.get("error"):
                     yield f"      error: {unit['error']}"
+                    yield from (f"      {line}" for line in traceback_tail(unit.get("traceback")))
             if not model["units"]:
                 yield "  no units"
             for request in model.get("requests", []):
@@ -181,6 +196,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
             yield line
         if stats.get("error"):
             yield f"  error: {stats['error']}"
+            yield from (f"  {line}" for line in traceback_tail(stats.get("traceback"), frames=5))
 
     report_result(args, stats, text)
     return 0

@@ -66,11 +66,22 @@ def cmd_paths(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    """check spec files; exit 1 with one PATH:LINE: message per error"""
+    """check spec files, and that the module and class each <source> names can be found as a
+    manager would find them (nothing is imported); exit 1 with one PATH:LINE: message per error
+
+    examples:
+      dyknow validate specs/ --path .                  # your specs, your units' package in this folder
+      dyknow validate @shipped --ontology @shipped/dyknow.ttl
+      dyknow validate specs/ --skip-sources            # away from the units' code: the specs alone"""
     from dyknow.errors import SpecError
+    from dyknow.spec.sources import source_issues
 
     try:
         specs = _load(args)
+        if not args.skip_sources:
+            issues = source_issues(specs, args.path)
+            if issues:
+                raise SpecError(issues)
     except SpecError as exc:
         for issue in exc.issues:
             print(str(issue), file=sys.stderr)
@@ -165,6 +176,9 @@ def add_commands(cmds: Commands) -> None:
 
     def validate_options(p: argparse.ArgumentParser) -> None:
         limit_options(p)
+        p.add_argument("--path", action="append", default=[], metavar="DIR",
+                       help="a folder to find units' modules in, besides the spec files' own folders (as dyknow manager --path)")  # fmt: skip
+        p.add_argument("--skip-sources", action="store_true", help="do not look for the modules of <source> (specs checked away from their code)")
         p.add_argument("paths", nargs="+", type=shipped, metavar="PATH", help="spec file or directory of .xml specs (@shipped: dyknow's own)")
         p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
                        help="ontologies for <arg class=...> (@shipped/dyknow.ttl: the example ontology)")  # fmt: skip
