@@ -956,6 +956,14 @@ class Proxy:
             timer_overruns=sum(timer.overruns for timer in self._timers),
         )
 
+    def queued(self) -> dict[str, int]:
+        """How many messages each input port holds, waiting for the unit (dyknow top)."""
+        return {name: len(port.queue) for name, port in self._inputs.items()}
+
+    def input_counters(self) -> dict[str, PortCounters]:
+        """Each input port's counters, for exporters that keep histograms (dyknow.metrics)."""
+        return {name: port.counters for name, port in self._inputs.items()}
+
     @property
     def executor_description(self) -> str:
         # ``isolation`` is set as soon as the move is decided, even while a slow callback still runs

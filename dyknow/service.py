@@ -15,7 +15,8 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
   took, and ``force``, an admin's on a manager with roles, every reference); ``monitor``
   ``{"formula", "reorder_ms", "holder"}`` -> ``{"key", "kept"}``;
   ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_summary`` ``{}`` (for
-  the other managers: see :mod:`dyknow.federation`); a ``spawn`` may name the ``owner``, the
+  the other managers: see :mod:`dyknow.federation`); ``get_metrics`` ``{}`` (every unit's
+  figures at once: :mod:`dyknow.metrics`, ``dyknow top``); a ``spawn`` may name the ``owner``, the
   manager whose request it serves (its units go when that manager does);
 - ``@dyknow/<manager>/unit/<unit>/<service>`` for a unit's proxy: ``get_config`` ``{}``,
   ``set_config`` ``{"bindings": {port: key}}``, ``get_statistics`` ``{}``.
@@ -76,11 +77,12 @@ MANAGER_SERVICES = (
     "monitor",
     "get_adaptations",
     "get_summary",
+    "get_metrics",
 )
 UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 #: Services that change nothing: they have threads of their own, so they never wait behind a spawn.
 _STUCK_S = 0.05  # writers all inside their calls this long while a change waits: add one
-READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_config", "get_statistics"})
+READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_metrics", "get_config", "get_statistics"})
 
 Handler = Callable[[dict[str, Any], Caller | None], Any]
 """A service's handler: the checked request and its caller (None when the manager has no roles)."""
@@ -239,6 +241,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},
     "get_summary": {},
+    "get_metrics": {},
     "get_config": {},
     "set_config": {"bindings": (True, _mapping(_PORT, _key))},
     "get_statistics": {},

@@ -53,6 +53,7 @@ __all__ = [
     "is_wild",
     "key_exprs_intersect",
     "make_config",
+    "shared_memory_problem",
 ]
 
 log = logging.getLogger(__name__)
@@ -73,6 +74,18 @@ _ENCODINGS: Final = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
 SHM_THRESHOLD: Final = 64 * 1024
 _HEADER_SIZE: Final = HEADER_V1.size  # the shortest dyknow header (version 1)
 SHM_POOL_BYTES = 96 * 1024 * 1024
+
+
+def shared_memory_problem(pool_bytes: int = SHM_POOL_BYTES) -> str | None:
+    """Why this process could not use Zenoh shared memory for large payloads (a pool of
+    ``pool_bytes`` made and a buffer taken from it, as a publisher does), or None when it can.
+    Where it cannot, such payloads are copied the ordinary way (dyknow doctor says so)."""
+    try:
+        provider = zenoh.shm.ShmProvider.default_backend(pool_bytes)
+        provider.alloc(SHM_THRESHOLD, zenoh.shm.GarbageCollect())
+    except (zenoh.ZError, AttributeError) as exc:
+        return _clean(exc)
+    return None
 
 
 class _SharedMemory:

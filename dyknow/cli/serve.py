@@ -125,19 +125,32 @@ def cmd_manager(args: argparse.Namespace) -> int:
                 file=sys.stderr,
                 flush=True,
             )
+        exporter = None
+        if args.metrics_port is not None:
+            from dyknow.metrics import MetricsExporter
+            from dyknow.security import is_loopback
+
+            exporter = MetricsExporter(manager.metrics, args.metrics_port, host=args.metrics_host)
+            if not is_loopback(args.metrics_host):
+                print(f"dyknow: warning: serving metrics on {exporter.url}, beyond this host: they name every unit and key, "
+                      "and the endpoint has no access control", file=sys.stderr, flush=True)  # fmt: skip
         # What start-up built lives as long as the manager: keep it out of the garbage
         # collector's way, so collections stay short while the robot runs.
         gc.collect()
         gc.freeze()
         endpoints = manager.endpoints
         stop = _stop_event()
+        metrics = f"; metrics on {exporter.url}" if exporter is not None else ""
         report_result(
             args,
-            {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library)},
-            f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs; Ctrl-C to stop",
-        )
+            {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library),
+             **({"metrics": exporter.url} if exporter is not None else {})},
+            f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs{metrics}; Ctrl-C to stop",
+        )  # fmt: skip
         _wait_for(stop)
         _exit_by_deadline(f"manager {args.name!r}")
+        if exporter is not None:
+            exporter.close()
     if not args.json:
         print(f"dyknow manager {args.name!r} stopped", flush=True)
     return 0
@@ -266,6 +279,11 @@ def add_commands(cmds: Commands) -> None:
                        help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
         p.add_argument("--dwell", type=seconds, metavar="S",
                        help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
+        p.add_argument("--metrics-port", type=int, metavar="PORT",
+                       help="serve the manager's figures to Prometheus on http://--metrics-host:PORT/metrics (0: any free port; "
+                            "default: not served)")  # fmt: skip
+        p.add_argument("--metrics-host", default="127.0.0.1", metavar="ADDR",
+                       help="the address --metrics-port serves on (default 127.0.0.1; the figures name every unit and key)")  # fmt: skip
         p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
         lease_option(p)
         cmds.ros2_domain_option(p)
