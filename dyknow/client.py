@@ -34,7 +34,6 @@ from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
 from dyknow.holders import holder_token
-from dyknow.identity import Signer
 from dyknow.message import CLOCK_ID, Message
 from dyknow.model import check_standby
 from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, LivelinessToken, Session, Subscriber, check_key_expr, make_config
@@ -212,7 +211,11 @@ class Client:
         tls = self._tls
         # with a certificate, every call carries its caller's signature (a manager with --acl
         # checks it, whichever routers or managers carry the call): dyknow.identity
-        self._signer = Signer(tls) if tls is not None else None
+        self._signer = None
+        if tls is not None:  # (cryptography's x509 is imported only for a client with a certificate: the command starts faster)
+            from dyknow.identity import Signer
+
+            self._signer = Signer(tls)
         # set when the session could not connect at once: what probing each endpoint found
         # (None: connected, or nothing to probe), so a call that cannot work fails saying why
         self._findings: list[reach.Finding] | None = None
