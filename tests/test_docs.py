@@ -347,6 +347,7 @@ def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
         assert "measurement battery = 0.2" in result.stdout  # the adaptation, listed with its cause
     if "dyknow record" in block.text:
         assert (tmp_path / "run.mcap").is_file() and "recorded 20 messages on 1 key" in result.stdout
+        assert "replayed 20 messages" in result.stdout and (tmp_path / "replayed.txt").read_text().count("replayed/track #") == 20
 
 
 # ------------------------------------------------------------------------------------------- sh

@@ -80,7 +80,12 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    """replay an MCAP file into Zenoh in log-time order, at the original pace"""
+    """replay an MCAP file into Zenoh in log-time order, at the original pace, once its consumers are
+    there (--wait); exit 1 when no message reached a subscriber
+
+    examples:
+      dyknow replay run.mcap
+      dyknow replay run.mcap --rate max --topics camera/front --remap camera/front=replayed/front"""
     from dyknow.recording import Player
 
     remap = parse_pairs(args.remap, "--remap")
@@ -101,7 +106,18 @@ def cmd_replay(args: argparse.Namespace) -> int:
         count = player.publish(
             connect=_zenoh_connect(args), zenoh_config=args.zenoh_config, tls=tls_files(args), stop=stop, wait_s=args.wait
         )
-    report_result(args, {"event": "done", "file": args.file, "messages": count}, f"replayed {count} messages from {args.file}")
+        unmatched = {key: n for key, n in player.unmatched.items() if n}
+    delivered = count - sum(unmatched.values())
+    report_result(args, {"event": "done", "file": args.file, "messages": count, "unmatched": unmatched},
+                  f"replayed {count} messages from {args.file}")  # fmt: skip
+    if count and not delivered:
+        print(f"dyknow: error: no subscriber matched any key while the {count} messages were put (waited up to --wait {args.wait:g} s "
+              f"for one first): nothing was delivered; start the consumer first (a manager's unit bound to the key, dyknow echo), "
+              "check --connect reaches it, or give a longer --wait", file=sys.stderr)  # fmt: skip
+        return 1
+    for key, n in unmatched.items():
+        print(f"dyknow: warning: {n} of the messages on {key!r} were put while no subscriber matched it: delivered to no one",
+              file=sys.stderr)  # fmt: skip
     return 0
 
 
@@ -189,7 +205,9 @@ def add_commands(cmds: Commands) -> None:
         )
         p.add_argument("--recover", action="store_true", help="replay what is valid in a truncated or corrupt file, with a warning")
         p.add_argument(
-            "--wait", type=float, default=1.0, metavar="S", help="first wait up to S seconds for a subscriber on every key (default 1)"
+            "--wait", type=float, default=5.0, metavar="S",
+            help="first wait up to S seconds for a subscriber on every key (default 5; it starts as soon as every key has one); "
+            "exit 1 when no message reached a subscriber"
         )
         cmds.mcap_limit_options(p)
         zenoh_options(p, connect_help=cmds.connect_help())
