@@ -41,6 +41,7 @@ test: $(VENV)/.installed-test
 # warnings, broken links and unresolved references fail the build (-W --keep-going -n); offline;
 # -E reads every page again: Sphinx does not notice a docstring or an extension that changed
 docs: $(VENV)/.installed-docs
+	@command -v dot >/dev/null || { echo "make docs draws the site's figures with Graphviz's dot: install it (Debian, Ubuntu: sudo apt-get install graphviz; macOS: brew install graphviz)" >&2; exit 1; }
 	$(BIN)/sphinx-build -b html -E -W --keep-going -n -q docs site
 
 bench: $(VENV)/.installed-test

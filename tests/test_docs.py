@@ -151,7 +151,7 @@ def _dyknow_lines() -> list[tuple[str, str]]:
 # ------------------------------------------------------------------------------------------- the site
 
 
-def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
+def test_the_site_builds_with_warnings_as_errors(tmp_path: Path, graphviz: str) -> None:
     """``make docs`` as it runs on a fresh clone, where only the ``docs`` extra is installed
     (``tests/docs_extra_only.py``: what the other extras bring cannot be imported): a warning, a
     broken link or an unresolved reference fails."""
@@ -174,6 +174,12 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
     cli = (site / "reference" / "cli.html").read_text(encoding="utf-8")
     assert "dyknow manager" in cli and "--allow-source" in cli and "dyknow mcap cat" in cli
     assert (site / "_images" / "ui.png").is_file()
+    for page, figures in (("architecture", 2), ("adaptation", 1), ("federation", 1)):  # drawn by Graphviz at build time
+        html = (site / "concepts" / f"{page}.html").read_text(encoding="utf-8")
+        drawn = re.findall(r'src="\.\./_images/(graphviz-[0-9a-f]+\.svg)"', html) or re.findall(r'data="\.\./_images/(graphviz-[0-9a-f]+\.svg)"', html)
+        assert len(drawn) == figures, page
+        for svg in drawn:
+            assert "<svg" in (site / "_images" / svg).read_text(encoding="utf-8")
     changelog = (site / "changelog.html").read_text(encoding="utf-8")
     assert "0.1.0" in changelog and "Changelog" in changelog  # CHANGELOG.md, included
 
