@@ -309,9 +309,11 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     script = block.text.replace("\\\n", " ").replace("127.0.0.1:7447", f"127.0.0.1:{port}")
+    metrics = str(free_port())  # (the documented --metrics-port, likewise)
+    script = script.replace("--metrics-port 9464", f"--metrics-port {metrics}").replace("127.0.0.1:9464", f"127.0.0.1:{metrics}")
     script = re.sub(r"^((?:\S+=\S+ )*dyknow manager (?:(?! --listen ).)*) &$", rf"\1 --listen {endpoint} &", script, flags=re.MULTILINE)
     assert len(re.findall(rf"dyknow manager .* --listen \w+/127\.0\.0\.1:{port}", script)) == 1, script
-    client = r"^((?:! )?dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay))(?!.* --connect )"
+    client = r"^((?:! )?dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay|hz|top|doctor))(?!.* --connect )"
     script = re.sub(client, rf"\1 --connect {endpoint}", script, flags=re.MULTILINE)
     assert re.search(rf"--connect \w+/127\.0\.0\.1:{port}", script), script
     env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
@@ -351,6 +353,10 @@ def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
         assert "dyknow/robot/monitors/1" in result.stdout and " true" in result.stdout  # verdicts as decided
     if "dyknow measure" in block.text:
         assert "measurement battery = 0.2" in result.stdout  # the adaptation, listed with its cause
+    if "dyknow hz" in block.text:  # the operator's tools: rates, a view of every unit, a clean bill of health, a scrape
+        assert re.search(r"^dyknow/robot/fwd/out: \d+\.\d\d Hz ", result.stdout, re.MULTILINE), result.stdout
+        assert "manager robot: cpu" in result.stdout and "relay" in result.stdout
+        assert "0 failed" in result.stdout and 'dyknow_port_messages_total{direction="in"' in result.stdout
     if "dyknow record" in block.text:
         assert (tmp_path / "run.mcap").is_file() and "recorded 20 messages on 1 key" in result.stdout
         assert "replayed 20 messages" in result.stdout and (tmp_path / "replayed.txt").read_text().count("replayed/track #") == 20

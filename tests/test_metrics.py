@@ -86,3 +86,23 @@ def test_a_manager_serves_metrics_on_loopback_when_asked() -> None:
         assert "metrics" not in plain.wait_ready()  # opt-in: nothing served unless asked
     finally:
         plain.close()
+
+
+def test_the_documented_grafana_dashboard_asks_for_what_is_served(manager: Manager) -> None:
+    """Every metric docs/howto/dyknow-grafana.json queries is one the exporter serves."""
+    import json
+    import re
+
+    from tests.conftest import REPO
+
+    dashboard = json.loads((REPO / "docs" / "howto" / "dyknow-grafana.json").read_text())
+    queried = {name for panel in dashboard["panels"] for target in panel["targets"] for name in re.findall(r"\bdyknow_\w+", target["expr"])}
+    manager.spawn("periodic-source", "src", params={"rate_hz": 100}, bindings={"out": "g/a"})
+    manager.spawn("relay", "r1", bindings={"in": "g/a"})
+    wait_until(lambda: manager.get_statistics("r1").ports[0].messages >= 5, "messages through the relay")
+    with MetricsExporter(manager.metrics, 0) as exporter:
+        text = urllib.request.urlopen(exporter.url, timeout=10).read().decode()
+    served = set()
+    for family in text_string_to_metric_families(text):  # (a counter with no sample yet is declared all the same)
+        served |= {s.name for s in family.samples} | {family.name + {"counter": "_total", "histogram": "_bucket"}.get(family.type, "")}
+    assert len(queried) >= 8 and queried <= served, queried - served
