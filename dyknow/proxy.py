@@ -16,7 +16,7 @@ One proxy per running unit. It
 
 It is also the executor's *job* for the unit (see :mod:`dyknow.executor`) and the unit's
 :class:`~dyknow.unit.UnitRuntime`: the proxy owns the wiring, handing itself to the unit through
-:meth:`Unit.attach_runtime <dyknow.unit.Unit.attach_runtime>` when it is created.
+:func:`dyknow.unit.attach` when it is created.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from dyknow.errors import BindingError, UnitError, did_you_mean
 from dyknow.message import CLOCK_ID, MAX_FORWARDS, Message, check_payload, new_id, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
 from dyknow.transport import check_key_expr
-from dyknow.unit import Unit
+from dyknow.unit import Unit, attach
 
 if TYPE_CHECKING:
     from dyknow.bus import LocalBus
@@ -332,7 +332,7 @@ class Proxy:
         self._wire_forwards(type(unit))
         self.check_bindings()  # before anything is declared or started: a refusal changes nothing
         self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
-        unit.attach_runtime(self, name=name, label=spec.label, params=params, log=UnitLog(_UNIT_LOG, name))
+        attach(unit, self, name=name, label=spec.label, params=params, log=UnitLog(_UNIT_LOG, name))
         if type(unit).dedicated_thread:
             self.isolation = "the unit asks for a thread of its own (dedicated_thread = True)"
 

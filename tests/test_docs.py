@@ -168,6 +168,8 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path: Path, graphviz: str) 
 
     for name in dyknow.__all__:  # every public name has its entry in the API reference
         assert f'id="dyknow.{name}"' in api, name
+    where = {name: api.index(f'id="dyknow.{name}"') for name in ("Manager", "Unit", "Client", "AccessControl", "DyKnowError", "UnitError")}
+    assert where["Manager"] < where["Unit"] < where["Client"] < where["AccessControl"] < where["DyKnowError"] < where["UnitError"]  # by first use
     reasoning = (site / "reference" / "api" / "reasoning.html").read_text(encoding="utf-8")
     assert 'id="dyknow.reasoning.Monitor.push"' in reasoning  # compiled by mypyc: its docstring from the source
     assert "Hand over one sample of" in reasoning
