@@ -401,3 +401,37 @@ def test_a_misspelled_endpoint_protocol_names_the_protocols() -> None:
         done = run_cli(*argv)
         assert done.returncode == 1 and f"dyknow: error: {option}: tpc/127.0.0.1:" in done.stderr and expected in done.stderr, done.stderr
         assert "Unicast not supported" not in done.stderr
+
+
+def _subparsers(parser: object) -> dict[str, object]:
+    import argparse
+
+    found: dict[str, object] = {}
+    for action in getattr(parser, "_actions", []):
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found[name] = sub
+                found.update({f"{name} {k}": v for k, v in _subparsers(sub).items()})
+    return found
+
+
+def test_every_positional_argument_has_help_and_every_example_parses() -> None:
+    """``dyknow config --help`` said ``action``, ``name``, ``bindings`` and nothing more."""
+    import argparse
+    import shlex
+
+    from dyknow.cli import _parser
+
+    parser = _parser()
+    commands = _subparsers(parser)
+    missing = [f"{name} {a.dest}" for name, sub in commands.items() for a in sub._actions  # type: ignore[attr-defined]
+               if not a.option_strings and not isinstance(a, argparse._SubParsersAction) and not a.help]  # fmt: skip
+    assert missing == []
+    examples = [line.strip() for sub in commands.values() for line in (sub.epilog or "").splitlines()[1:]]  # type: ignore[attr-defined]
+    assert len(examples) >= 15
+    for command in ("spawn", "config", "stats", "request", "monitor"):
+        assert (commands[command].epilog or "").startswith("examples:"), command  # type: ignore[attr-defined]
+    for line in examples:
+        words = shlex.split(line.split("  #")[0])
+        assert words[0] == "dyknow", line
+        parser.parse_args(words[1:])  # (exits, failing the test, on an example that does not parse)

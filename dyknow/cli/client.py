@@ -48,7 +48,12 @@ def traceback_tail(text: object, frames: int = 3) -> list[str]:
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
-    """spawn a unit on a manager"""
+    """spawn a unit on a manager, from a transformation of its library
+
+    examples:
+      dyknow spawn periodic-source src --param rate_hz=20
+      dyknow spawn relay r1 --bind in=dyknow/robot/src/out --manager robot
+      dyknow spawn doubler double --param factor=3 --bind in=sensors/x --protect"""
     params, bindings = parse_pairs(args.param, "--param"), parse_pairs(args.bind, "--bind")  # usage first, then connect
     with open_client(args) as client:
         info = client.spawn(args.label, args.name, protected=args.protect, params=params, bindings=bindings)
@@ -165,7 +170,12 @@ def cmd_managers(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    """get or set a unit's port bindings"""
+    """get or set a unit's port bindings (set: rebinds the ports given, atomically, while it runs)
+
+    examples:
+      dyknow config get r1
+      dyknow config set r1 out=robot/elsewhere
+      dyknow config set fusion in1=dyknow/robot/left/out in2=dyknow/robot/right/out"""
     if args.action == "get" and args.bindings:  # usage first, then connect
         raise UsageError("config get takes no PORT=KEY pairs; did you mean 'config set'?")
     if args.action != "get" and not args.bindings:
@@ -178,7 +188,12 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    """show a unit's statistics"""
+    """show a unit's statistics: per port messages, bytes, drops, lost, and for inputs latency (age since
+    the data's origin) and hop (time since the previous unit sent it) percentiles; its error and traceback
+
+    examples:
+      dyknow stats r1
+      dyknow stats tracker --manager station --json"""
     with open_client(args) as client:
         stats = client.get_statistics(args.name)
 
@@ -223,7 +238,11 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
 
 
 def cmd_request(args: argparse.Namespace) -> int:
-    """ask a manager for a stream by tag; prints its key"""
+    """ask a manager for a stream by its meaning (a tag); prints the key it flows on, kept until released
+
+    examples:
+      dyknow request 'BallTrack(field)'
+      dyknow request 'BallTrack(field)' --standby warm --require 'not historically[0, 500ms] BallTrack(field).predicted'"""
     with open_client(args) as client:
         key = client.request(args.tag, standby=args.standby, require=args.require, keep=True)
     report_result(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require, "kept": True}, key)
@@ -359,7 +378,12 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:
-    """monitor a temporal formula: its verdicts as they are decided (or over a recording, with --mcap)"""
+    """monitor a temporal formula: its verdicts as they are decided (or over a recording, with --mcap)
+
+    examples:
+      dyknow monitor 'historically[0, 1s] BallTrack(field).tracked > 0' --duration 10
+      dyknow monitor 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'
+      dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x"""
     if args.mcap is not None:
         return _monitor_recording(args)
     if args.bind:
@@ -417,8 +441,8 @@ def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
 
     def spawn_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("label")
-        p.add_argument("name")
+        p.add_argument("label", help="the transformation's label in the manager's library (dyknow model lists them), e.g. relay")
+        p.add_argument("name", help="the new unit's name, unique on the manager, e.g. r1 (its outputs default to dyknow/MANAGER/NAME/PORT)")
         p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit, unless forced (by an admin)")
         p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
         p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
@@ -426,7 +450,7 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("spawn", cmd_spawn, spawn_options, client=True)
 
     def destroy_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("name")
+        p.add_argument("name", help="the unit's name")
         p.add_argument("--force", action="store_true", help="destroy a protected unit too (an admin's call, when the manager has roles)")
 
     cmds.command("destroy", cmd_destroy, destroy_options, client=True)
@@ -439,14 +463,14 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("managers", cmd_managers, client=True)
 
     def config_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("action", choices=["get", "set"])
-        p.add_argument("name")
-        p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
+        p.add_argument("action", choices=["get", "set"], help="get: print the bindings; set: rebind the ports given")
+        p.add_argument("name", help="the unit's name")
+        p.add_argument("bindings", nargs="*", metavar="PORT=KEY", help="with set: a port and the key (or key expression, for an input) to bind it to")
 
     cmds.command("config", cmd_config, config_options, client=True)
 
     def stats_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("name")
+        p.add_argument("name", help="the unit's name (dyknow model lists them)")
 
     cmds.command("stats", cmd_stats, stats_options, client=True)
 
@@ -456,14 +480,14 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("add-spec", cmd_add_spec, add_spec_options, client=True)
 
     def remove_spec_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("label")
+        p.add_argument("label", help="the transformation's label")
 
     cmds.command("remove-spec", cmd_remove_spec, remove_spec_options, client=True)
 
     def request_options(p: argparse.ArgumentParser) -> None:
         from dyknow.model import STANDBY_MODES
 
-        p.add_argument("tag")
+        p.add_argument("tag", help="what the stream means, a semantic tag such as 'BallTrack(field)' (quote it for the shell)")
         p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
                        help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
                             "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
@@ -474,7 +498,7 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("request", cmd_request, request_options, client=True)
 
     def release_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("key")
+        p.add_argument("key", help="the key dyknow request printed")
         p.add_argument("--force", action="store_true",
                        help="give back every reference, whoever requested it (an admin's call on a manager with roles); "
                             "without it, only what this caller requested")  # fmt: skip
@@ -482,7 +506,7 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("release", cmd_release, release_options, client=True)
 
     def measure_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("values", nargs="+", metavar="NAME=VALUE")
+        p.add_argument("values", nargs="+", metavar="NAME=VALUE", help="a measurement and its value, e.g. battery=0.2 (a number, else text)")
 
     cmds.command("measure", cmd_measure, measure_options, client=True)
 

@@ -190,7 +190,7 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("record", cmd_record, record_options)
 
     def replay_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("file", metavar="FILE.mcap")
+        p.add_argument("file", metavar="FILE.mcap", help="an MCAP file (dyknow record's, or any writer's)")
         p.add_argument(
             "--rate", type=_rate, default=1.0, metavar="X", help="pace: 2 is twice as fast, 0.5 half, max as fast as possible (default 1)"
         )
@@ -217,7 +217,7 @@ def add_commands(cmds: Commands) -> None:
     mcap = cmds.group("mcap", help="inspect MCAP files (cat, info)", description="inspect MCAP files, whoever wrote them")
 
     def cat_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("file", metavar="FILE.mcap")
+        p.add_argument("file", metavar="FILE.mcap", help="an MCAP file")
         p.add_argument(
             "--topics", nargs="+", action="extend", default=[], metavar="T", help="only these topics (names, keys or key expressions)"
         )
@@ -227,7 +227,7 @@ def add_commands(cmds: Commands) -> None:
     mcap.command("cat", cmd_mcap_cat, cat_options)
 
     def info_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("file", metavar="FILE.mcap")
+        p.add_argument("file", metavar="FILE.mcap", help="an MCAP file")
         p.add_argument("--recover", action="store_true", help="summarise what is valid in a truncated or corrupt file")
         cmds.mcap_limit_options(p)
 
