@@ -38,17 +38,19 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dyknow import errors, keys
 from dyknow.access import AccessControl
 from dyknow.errors import AccessError, DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
 from dyknow.holders import HOLDER
-from dyknow.identity import Caller, Verifier
 from dyknow.model import standby_problem
 from dyknow.reasoning.syntax import MAX_FORMULA_CHARS
 from dyknow.security import Limits
 from dyknow.transport import ServiceChannel, ServiceRequest
+
+if TYPE_CHECKING:  # (cryptography's x509 is imported only where calls are signed or checked)
+    from dyknow.identity import Caller, Verifier
 
 __all__ = [
     "MANAGER_SERVICES",
@@ -84,7 +86,7 @@ UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 _STUCK_S = 0.05  # writers all inside their calls this long while a change waits: add one
 READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_metrics", "get_config", "get_statistics"})
 
-Handler = Callable[[dict[str, Any], Caller | None], Any]
+Handler = Callable[[dict[str, Any], "Caller | None"], Any]
 """A service's handler: the checked request and its caller (None when the manager has no roles)."""
 
 

@@ -435,3 +435,24 @@ def test_every_positional_argument_has_help_and_every_example_parses() -> None:
         words = shlex.split(line.split("  #")[0])
         assert words[0] == "dyknow", line
         parser.parse_args(words[1:])  # (exits, failing the test, on an example that does not parse)
+
+
+@pytest.mark.parametrize(
+    ("argv", "absent"),
+    [
+        (["--help"], ["numpy", "zenoh", "rdflib", "cryptography", "dyknow.manager", "dyknow.client", "dyknow.spec.reader"]),
+        (["validate", "--help"], ["zenoh", "rdflib", "cryptography", "dyknow.manager", "dyknow.client"]),
+        (["model", "--connect", "tcp/127.0.0.1:9"], ["rdflib", "cryptography.x509", "dyknow.manager", "dyknow.planner", "dyknow.spec.reader", "cv2"]),
+    ],
+    ids=["help", "validate --help", "model, failing"],
+)
+def test_a_command_imports_what_it_needs_only(argv: list[str], absent: list[str]) -> None:
+    """The start-up of ``dyknow`` (0.55 s for --help when it imported everything): what each
+    command imports is checked here; the time itself is measured by benchmarks/operator.py."""
+    code = (
+        "import sys\nfrom dyknow.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        "print(' '.join(sorted(m for m in sys.modules)), file=sys.stderr)"
+    )
+    done = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=60, env=subprocess_env())
+    imported = set(done.stderr.splitlines()[-1].split())
+    assert [m for m in absent if m in imported] == []
