@@ -143,6 +143,7 @@ def _dyknow_lines() -> list[tuple[str, str]]:
     for block in _of("sh"):
         for command, _ in _lines(block):
             command = re.sub(r"^(! )?([A-Z_]+=\S*\s+)*", "", command).removesuffix(" &")  # PYTHONPATH=. dyknow ... &, ! dyknow ...
+            command = re.sub(r"\s+>\s*\S+$", "", command)  # dyknow echo ... > FILE
             if command.startswith("dyknow "):
                 found.append((str(block), command.removeprefix("dyknow ")))
     return found
