@@ -271,8 +271,8 @@ def check_schemes(endpoints: Iterable[str], option: str) -> None:
     """Refuse an endpoint whose protocol Zenoh does not speak (``tpc/...``), naming the ones it
     does (Zenoh itself says only "Unicast not supported for tpc protocol")."""
     for endpoint in endpoints:
-        scheme = endpoint.partition("/")[0]
-        if scheme not in SCHEMES:
+        scheme, slash, _ = endpoint.partition("/")
+        if slash and scheme not in SCHEMES:  # (no protocol at all: Zenoh's own error, at make_config)
             raise TransportError(
                 f"{endpoint}: no Zenoh link protocol {scheme!r}{did_you_mean(scheme, SCHEMES)}",
                 where=option,
