@@ -60,9 +60,10 @@ def say(text: str) -> None:
 
 def ext_modules() -> list:
     """The mypyc extensions, or none when pure Python is asked for or cannot be avoided."""
-    if os.environ.get("DYKNOW_PURE_PYTHON"):
-        return []
     if not BUILDS & set(sys.argv[1:]):
+        return []
+    if os.environ.get("DYKNOW_PURE_PYTHON"):
+        _remove_compiled()
         return []
     if _compiler() is None:
         say("no C compiler found: installing the hot-path modules as pure Python (slower)")
@@ -77,6 +78,22 @@ def ext_modules() -> list:
     found = mypycify(["--no-site-packages", "--ignore-missing-imports", *COMPILED], opt_level="3")
     say(f"wrote C in {time.monotonic() - started:.0f} s; compiling it ({len(found)} extensions)")
     return found
+
+
+def _remove_compiled() -> None:
+    """Remove what an earlier compiled install left in place (an editable install compiles in the
+    source tree): those copies would shadow the sources, and their shared helper module is no longer
+    importable once the install is pure Python."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    stale = [os.path.join(here, name) for name in os.listdir(here) if "__mypyc." in name and name.endswith((".so", ".pyd"))]
+    for module in COMPILED:
+        folder, base = os.path.split(os.path.join(here, module[:-3]))
+        if os.path.isdir(folder):
+            stale += [os.path.join(folder, n) for n in os.listdir(folder) if n.startswith(base + ".") and n.endswith((".so", ".pyd"))]
+    for path in stale:
+        os.remove(path)
+    if stale:
+        say(f"DYKNOW_PURE_PYTHON: removed {len(stale)} compiled modules an earlier install left beside the sources")
 
 
 class ProgressBuildExt(build_ext):
