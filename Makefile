@@ -15,16 +15,18 @@ $(BIN)/python:
 # setup.py compiles these with mypyc, in place: an edit to one of them needs a new install
 COMPILED := $(shell sed -n 's/^    "\(dyknow\/[a-z_/]*\.py\)",$$/\1/p' setup.py)
 
+# tools/install.py runs pip quietly but shows the progress of the compilation (the first install
+# compiles the hot-path modules with mypyc: 2 to 6 minutes); DYKNOW_PURE_PYTHON=1 skips it
 $(VENV)/.installed: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e .
+	$(BIN)/python tools/install.py "-e ."
 	touch $@
 
 $(VENV)/.installed-test: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python tools/install.py "-e .[test]"
 	touch $@ $(VENV)/.installed $(VENV)/.installed-docs  # the test extra includes the docs one
 
 $(VENV)/.installed-docs: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	$(BIN)/python tools/install.py "-e .[docs]"
 	touch $@ $(VENV)/.installed
 
 demo: $(VENV)/.installed
@@ -39,6 +41,7 @@ test: $(VENV)/.installed-test
 # warnings, broken links and unresolved references fail the build (-W --keep-going -n); offline;
 # -E reads every page again: Sphinx does not notice a docstring or an extension that changed
 docs: $(VENV)/.installed-docs
+	@command -v dot >/dev/null || { echo "make docs draws the site's figures with Graphviz's dot: install it (Debian, Ubuntu: sudo apt-get install graphviz; macOS: brew install graphviz)" >&2; exit 1; }
 	$(BIN)/sphinx-build -b html -E -W --keep-going -n -q docs site
 
 bench: $(VENV)/.installed-test

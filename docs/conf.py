@@ -20,7 +20,10 @@ copyright = "the dyknow authors, Apache-2.0"
 release = dyknow.__version__
 version = release
 
-extensions = ["myst_parser", "sphinx.ext.autodoc", "dyknow_docs"]
+# sphinx.ext.graphviz draws the concept pages' figures with Graphviz's dot at build time (make docs
+# needs it: apt-get install graphviz); SVG, so they stay sharp and their text searchable
+extensions = ["myst_parser", "sphinx.ext.autodoc", "sphinx.ext.graphviz", "dyknow_docs"]
+graphviz_output_format = "svg"
 source_suffix = {".md": "markdown"}
 exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
 root_doc = "index"

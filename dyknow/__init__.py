@@ -14,52 +14,56 @@ specs, the manager, units and their proxies.
 
 from __future__ import annotations
 
-from dyknow.access import AccessControl, TlsFiles
-from dyknow.adaptation import AdaptationEvent
-from dyknow.client import Client
-from dyknow.errors import (
-    AccessError,
-    BindingError,
-    ClosedError,
-    DyKnowError,
-    FormulaError,
-    LibraryError,
-    OntologyError,
-    PlanningError,
-    RecordingError,
-    ServiceError,
-    SpecError,
-    SpecIssue,
-    TagError,
-    TransportError,
-    UnitError,
-)
-from dyknow.executor import Timer
-from dyknow.keys import default_key
-from dyknow.library import Library
-from dyknow.manager import Manager
-from dyknow.message import Message, PayloadError
-from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
-from dyknow.ontology import Ontology
-from dyknow.planner import Plan, Planner, RunningUnit, plan
-from dyknow.proxy import UnitState, UnitStatistics
-from dyknow.recording import ChannelInfo, Player, RecordedMessage, Recorder, Recording, RecordingInfo
-from dyknow.resources import restore_docstrings
-from dyknow.security import Limits
-from dyknow.spec import (
-    Constraint,
-    Param,
-    Port,
-    Tag,
-    Template,
-    TransformationSpec,
-    load_specs,
-    parse_specs,
-)
-from dyknow.stats import LatencySummary, PortStatistics
-from dyknow.tags import Term, parse_term
-from dyknow.transport import DEFAULT_ENDPOINT
-from dyknow.unit import Unit
+from typing import TYPE_CHECKING, Any
+
+from dyknow.exports import lazy_exports
+
+if TYPE_CHECKING:
+    from dyknow.access import AccessControl, TlsFiles
+    from dyknow.adaptation import AdaptationEvent
+    from dyknow.client import Client
+    from dyknow.errors import (
+        AccessError,
+        BindingError,
+        ClosedError,
+        DyKnowError,
+        FormulaError,
+        LibraryError,
+        OntologyError,
+        PlanningError,
+        RecordingError,
+        ServiceError,
+        SpecError,
+        SpecIssue,
+        TagError,
+        TransportError,
+        UnitError,
+    )
+    from dyknow.executor import Timer
+    from dyknow.keys import default_key
+    from dyknow.library import Library
+    from dyknow.manager import Manager
+    from dyknow.message import Message, PayloadError
+    from dyknow.model import Model, RequestInfo, UnitEvent, UnitInfo
+    from dyknow.ontology import Ontology
+    from dyknow.planner import Plan, Planner, RunningUnit, plan
+    from dyknow.proxy import UnitState, UnitStatistics
+    from dyknow.recording import ChannelInfo, Player, RecordedMessage, Recorder, Recording, RecordingInfo
+    from dyknow.security import Limits
+    from dyknow.spec import (
+        Constraint,
+        Param,
+        Port,
+        Tag,
+        Template,
+        TransformationSpec,
+        load_specs,
+        parse_specs,
+    )
+    from dyknow.stats import LatencySummary, PortStatistics
+    from dyknow.tags import Term, parse_term
+    from dyknow.transport import DEFAULT_ENDPOINT
+    from dyknow.unit import Unit
 
 __version__ = "0.1.0"
 
@@ -124,5 +128,73 @@ __all__ = [
     "plan",
 ]
 
+#: Where each public name is defined: imported on first use (``import dyknow`` stays cheap, so the
+#: ``dyknow`` command starts fast; :mod:`dyknow.exports`).
+_WHERE: dict[str, str] = {
+    "AccessControl": "dyknow.access",
+    "AccessError": "dyknow.errors",
+    "AdaptationEvent": "dyknow.adaptation",
+    "BindingError": "dyknow.errors",
+    "ChannelInfo": "dyknow.recording",
+    "Client": "dyknow.client",
+    "ClosedError": "dyknow.errors",
+    "Constraint": "dyknow.spec",
+    "DEFAULT_ENDPOINT": "dyknow.transport",
+    "DyKnowError": "dyknow.errors",
+    "FormulaError": "dyknow.errors",
+    "LatencySummary": "dyknow.stats",
+    "Library": "dyknow.library",
+    "LibraryError": "dyknow.errors",
+    "Limits": "dyknow.security",
+    "Manager": "dyknow.manager",
+    "Message": "dyknow.message",
+    "Model": "dyknow.model",
+    "Ontology": "dyknow.ontology",
+    "OntologyError": "dyknow.errors",
+    "Param": "dyknow.spec",
+    "PayloadError": "dyknow.message",
+    "Plan": "dyknow.planner",
+    "Planner": "dyknow.planner",
+    "PlanningError": "dyknow.errors",
+    "Player": "dyknow.recording",
+    "Port": "dyknow.spec",
+    "PortStatistics": "dyknow.stats",
+    "RecordedMessage": "dyknow.recording",
+    "Recorder": "dyknow.recording",
+    "Recording": "dyknow.recording",
+    "RecordingError": "dyknow.errors",
+    "RecordingInfo": "dyknow.recording",
+    "RequestInfo": "dyknow.model",
+    "RunningUnit": "dyknow.planner",
+    "ServiceError": "dyknow.errors",
+    "SpecError": "dyknow.errors",
+    "SpecIssue": "dyknow.errors",
+    "Tag": "dyknow.spec",
+    "TagError": "dyknow.errors",
+    "Template": "dyknow.spec",
+    "Term": "dyknow.tags",
+    "Timer": "dyknow.executor",
+    "TlsFiles": "dyknow.access",
+    "TransformationSpec": "dyknow.spec",
+    "TransportError": "dyknow.errors",
+    "Unit": "dyknow.unit",
+    "UnitError": "dyknow.errors",
+    "UnitEvent": "dyknow.model",
+    "UnitInfo": "dyknow.model",
+    "UnitState": "dyknow.proxy",
+    "UnitStatistics": "dyknow.proxy",
+    "default_key": "dyknow.keys",
+    "load_specs": "dyknow.spec",
+    "parse_specs": "dyknow.spec",
+    "parse_term": "dyknow.tags",
+    "plan": "dyknow.planner",
+}
 
-restore_docstrings(globals(), __all__)
+
+def _restore_docstring(name: str, value: Any) -> None:
+    from dyknow.resources import restore_docstrings
+
+    restore_docstrings({name: value}, [name])
+
+
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _WHERE, after=_restore_docstring)

@@ -75,7 +75,7 @@ _SUMMARIES = keys.summaries_pattern()
 _HOLDERS = f"{keys.DATA_ROOT}/*/*/*/holders/*"  # (dyknow.holders: <request or monitor key>/holders/<client>)
 # The services each role may call, besides those of the roles before it (any manager, any unit).
 _SERVICES_OF = {
-    "viewer": ["get_model", "get_summary", "get_adaptations", "get_load", "clock", "unit/*/get_config", "unit/*/get_statistics"],
+    "viewer": ["get_model", "get_summary", "get_metrics", "get_adaptations", "get_load", "clock", "unit/*/get_config", "unit/*/get_statistics"],
     "operator": ["spawn", "destroy", "unit/*/set_config", "request", "release", "measure", "monitor"],
     "admin": ["add_transformation", "remove_transformation"],
 }

@@ -34,7 +34,6 @@ from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
 from dyknow.holders import holder_token
-from dyknow.identity import Signer
 from dyknow.message import CLOCK_ID, Message
 from dyknow.model import check_standby
 from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, LivelinessToken, Session, Subscriber, check_key_expr, make_config
@@ -212,7 +211,11 @@ class Client:
         tls = self._tls
         # with a certificate, every call carries its caller's signature (a manager with --acl
         # checks it, whichever routers or managers carry the call): dyknow.identity
-        self._signer = Signer(tls) if tls is not None else None
+        self._signer = None
+        if tls is not None:  # (cryptography's x509 is imported only for a client with a certificate: the command starts faster)
+            from dyknow.identity import Signer
+
+            self._signer = Signer(tls)
         # set when the session could not connect at once: what probing each endpoint found
         # (None: connected, or nothing to probe), so a call that cannot work fails saying why
         self._findings: list[reach.Finding] | None = None
@@ -340,8 +343,28 @@ class Client:
                     f"({' or '.join(roles) or 'none of the built-in roles'}, or a role its define lists it in)",
                     details={"reason": "dropped"},
                 ) from exc
+            if exc.kind is None and (str(exc) == "Timeout" or (reason is None and str(exc).endswith(f"within {self.timeout_s:g} s"))):
+                raise self._timed_out(what, where, time.monotonic() - started) from None
             raise service.raise_remote(exc) from None
         return json.loads(reply)
+
+    def _timed_out(self, what: str, where: str, waited_s: float) -> ServiceError:
+        """A call that reached the manager and got no answer in time (Zenoh says only "Timeout")."""
+        if what in service.READ_ONLY_SERVICES:
+            done = "it only reads, so nothing was changed"
+            expected = "a longer --timeout (timeout_s) if the manager is busy, or a manager that is not stuck (its log says why)"
+        else:
+            done = "the request was sent to it and may still be carried out"
+            expected = (
+                "a longer --timeout (timeout_s) if the manager is busy (planning, spawning, a slow unit's setup); "
+                "before calling again, check whether it was done (dyknow model)"
+            )
+        return ServiceError(
+            f"no answer from {where} to {what!r} within {self.timeout_s:g} s (waited {waited_s:.1f} s; --timeout): it serves "
+            f"the call, but did not answer in time; {done}",
+            expected=expected,
+            details={"reason": "timeout", "call": what, "waited_s": round(waited_s, 3), "may_have_run": what not in service.READ_ONLY_SERVICES},
+        )
 
     def _unanswered(self, manager: str, where: str) -> ServiceError:
         """Why nothing answered within the timeout, as far as it can be told (see :mod:`dyknow.reach`)."""

@@ -52,6 +52,7 @@ from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.identity import Caller, Signer, Verifier
 from dyknow.library import Library
 from dyknow.message import CLOCK_ID
+from dyknow.metrics import Metrics
 from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.overload import DEFAULT_LAG_BUDGET_S, OverloadGuard, OverloadState, describe
@@ -67,6 +68,7 @@ from dyknow.ros2.node import Ros2Node
 from dyknow.security import DEFAULT_SOURCES, DataRoots, Limits, SourcePolicy, is_loopback, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
 from dyknow.spec.model import INT_RANGE, Param, Port, convert_param
+from dyknow.stats import PortCounters
 from dyknow.tags import parse_term
 from dyknow.transport import Session, check_key_expr, make_config
 from dyknow.unit import Unit
@@ -178,6 +180,7 @@ class Manager:
         self._roots = DataRoots(write=data_roots, read=spec_dirs)
         self._queue_depth = queue_depth
         self._lock = threading.RLock()
+        self._metrics: Metrics | None = None
         self._units: dict[str, Proxy] = {}
         # which units changed, and when (a version each): what the adaptation loop's index reads
         self._unit_version = 0
@@ -1157,6 +1160,24 @@ class Manager:
         self._check_open()
         return self._proxy(name).get_statistics()
 
+    def queue_depths(self, name: str) -> dict[str, int]:
+        """How many messages each input port of unit ``name`` holds, waiting for it."""
+        return self._proxy(name).queued()
+
+    def port_counters(self, name: str) -> dict[str, PortCounters]:
+        """The counters of each input port of unit ``name`` (for :mod:`dyknow.metrics`)."""
+        return self._proxy(name).input_counters()
+
+    @property
+    def metrics(self) -> Metrics:
+        """The manager's figures for operators: ``metrics.snapshot()`` (what ``get_metrics``
+        answers, ``dyknow top`` shows) and what :class:`~dyknow.metrics.MetricsExporter` serves
+        to Prometheus."""
+        with self._lock:
+            if self._metrics is None:
+                self._metrics = Metrics(self)
+            return self._metrics
+
     # ------------------------------------------------------------------ Zenoh services
 
     # ------------------------------------------------------------------ several managers
@@ -1261,6 +1282,7 @@ class Manager:
             "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
             "get_summary": lambda r, c: self.summary().to_dict(),
             "get_load": lambda r, c: self.load(),
+            "get_metrics": lambda r, c: self.metrics.snapshot(),
         }
 
     def _serve_model(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:

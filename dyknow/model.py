@@ -15,10 +15,12 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dyknow.errors import UnitError, did_you_mean
-from dyknow.spec import TransformationSpec
+
+if TYPE_CHECKING:
+    from dyknow.spec import TransformationSpec
 
 __all__ = ["LOCAL", "STANDBY_MODES", "Model", "Owner", "RequestInfo", "UnitEvent", "UnitInfo", "check_standby", "standby_problem"]
 

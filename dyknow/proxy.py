@@ -16,7 +16,7 @@ One proxy per running unit. It
 
 It is also the executor's *job* for the unit (see :mod:`dyknow.executor`) and the unit's
 :class:`~dyknow.unit.UnitRuntime`: the proxy owns the wiring, handing itself to the unit through
-:meth:`Unit.attach_runtime <dyknow.unit.Unit.attach_runtime>` when it is created.
+:func:`dyknow.unit.attach` when it is created.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from dyknow.executor import charged_ns, cpu_mark
 from dyknow.message import CLOCK_ID, MAX_FORWARDS, Message, check_payload, new_id, payload_nbytes, reheader
 from dyknow.stats import PortCounters, PortStatistics
 from dyknow.transport import check_key_expr
-from dyknow.unit import Unit
+from dyknow.unit import Unit, attach
 
 if TYPE_CHECKING:
     from dyknow.bus import LocalBus
@@ -357,7 +357,7 @@ class Proxy:
         self._wire_forwards(type(unit))
         self.check_bindings()  # before anything is declared or started: a refusal changes nothing
         self.lane: Lane = executor.lane_for(self, dedicated=type(unit).dedicated_thread)
-        unit.attach_runtime(self, name=name, label=spec.label, params=params, log=UnitLog(_UNIT_LOG, name))
+        attach(unit, self, name=name, label=spec.label, params=params, log=UnitLog(_UNIT_LOG, name))
         if type(unit).dedicated_thread:
             self.isolation = "the unit asks for a thread of its own (dedicated_thread = True)"
 
@@ -474,7 +474,10 @@ class Proxy:
         self.state = UnitState.FAILED
         self.error = f"{where}: {type(exc).__name__}: {exc}"
         self.traceback = "".join(traceback.format_exception(exc))
-        log.error("unit %r (%s) failed in %s: %s: %s", self.name, self.label, where, type(exc).__name__, exc)
+        frames = traceback.extract_tb(exc.__traceback__)  # where it was raised: the file and line of the unit's code
+        at = f" at {frames[-1].filename}:{frames[-1].lineno} in {frames[-1].name}" if frames else ""
+        log.error("unit %r (%s) failed in %s: %s: %s%s (dyknow stats %s shows the traceback)", self.name, self.label, where,
+                  type(exc).__name__, exc, at, self.name)  # fmt: skip
         self._stop.set()
         for timer in self._timers:
             timer.cancel()
@@ -1055,6 +1058,14 @@ class Proxy:
             excused=self.excused,
             rate=1.0 if self.shed == 0 else (0.0 if self.shed < 0 else 1 / self.shed),
         )
+
+    def queued(self) -> dict[str, int]:
+        """How many messages each input port holds, waiting for the unit (dyknow top)."""
+        return {name: len(port.queue) for name, port in self._inputs.items()}
+
+    def input_counters(self) -> dict[str, PortCounters]:
+        """Each input port's counters, for exporters that keep histograms (dyknow.metrics)."""
+        return {name: port.counters for name, port in self._inputs.items()}
 
     @property
     def executor_description(self) -> str:

@@ -1,5 +1,11 @@
 """The files shipped beside the package: the specs (in a checkout, or installed data files), and
-the sources beside the modules that mypyc compiled."""
+the sources beside the modules that mypyc compiled.
+
+On the command line the shipped files have names that work from any folder (:func:`shipped_path`):
+``@shipped`` is the folder of shipped specs and ontology (``--specs @shipped``, ``--ontology
+@shipped/dyknow.ttl``), ``@testing`` the folder of :mod:`dyknow.testing`'s scenario specs
+(``@testing/scenario-station.xml``); ``dyknow paths`` prints where they are.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +16,7 @@ from collections.abc import Iterable, MutableMapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["restore_docstrings", "specs_dir"]
+__all__ = ["SHIPPED_NAMES", "restore_docstrings", "shipped_path", "specs_dir", "testing_dir"]
 
 
 def specs_dir() -> Path:
@@ -27,6 +33,47 @@ def specs_dir() -> Path:
     raise FileNotFoundError(
         "cannot find dyknow's shipped specs (looked in " + ", ".join(str(p) for p in candidates) + "); set DYKNOW_SPECS"
     )
+
+
+def testing_dir() -> Path:
+    """The folder of :mod:`dyknow.testing`'s files: the paper's scenario specs (``scenario*.xml``)."""
+    return Path(__file__).resolve().parent / "testing"
+
+
+#: The names of the shipped folders on the command line, and what each holds.
+SHIPPED_NAMES = {
+    "@shipped": "dyknow's shipped specs and the example ontology (dyknow.ttl)",
+    "@testing": "the scenario specs of dyknow.testing, whose stand-in units need no camera",
+}
+
+
+def shipped_path(text: str) -> str:
+    """``text`` with a leading shipped name replaced by its folder: ``@shipped`` (the shipped
+    specs: :func:`specs_dir`), ``@shipped/dyknow.ttl`` (a file of it), ``@testing/scenario.xml``
+    (:func:`testing_dir`); any other text unchanged.
+
+    >>> shipped_path("specs/mine.xml")
+    'specs/mine.xml'
+    >>> shipped_path("@shipped/dyknow.ttl").endswith("dyknow.ttl")
+    True
+
+    Raises :class:`ValueError` naming the known names for an unknown one (``@shiped``), and
+    :class:`FileNotFoundError` when the file named is not shipped.
+    """
+    if not text.startswith("@"):
+        return text
+    name, sep, rest = text.partition("/")
+    if name not in SHIPPED_NAMES:
+        from dyknow.errors import did_you_mean
+
+        known = ", ".join(SHIPPED_NAMES)
+        raise ValueError(f"{text}: no shipped folder {name!r}{did_you_mean(name, list(SHIPPED_NAMES))}; expected one of {known} (dyknow paths lists them)")
+    folder = specs_dir() if name == "@shipped" else testing_dir()
+    path = folder / rest if rest else folder
+    if not path.exists():
+        there = ", ".join(sorted(p.name for p in folder.iterdir() if p.suffix in (".xml", ".ttl", ".xsd")))
+        raise FileNotFoundError(f"{text}: {path} is not shipped; {name} holds {there}")
+    return str(path)
 
 
 def restore_docstrings(namespace: MutableMapping[str, Any], names: Iterable[str]) -> None:

@@ -16,7 +16,8 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
   ``{"formula", "reorder_ms", "holder"}`` -> ``{"key", "kept"}``;
   ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_load`` ``{}`` (its lanes and
   overload state: :meth:`~dyknow.manager.Manager.load`); ``get_summary`` ``{}`` (for
-  the other managers: see :mod:`dyknow.federation`); a ``spawn`` may name the ``owner``, the
+  the other managers: see :mod:`dyknow.federation`); ``get_metrics`` ``{}`` (every unit's
+  figures at once: :mod:`dyknow.metrics`, ``dyknow top``); a ``spawn`` may name the ``owner``, the
   manager whose request it serves (its units go when that manager does);
 - ``@dyknow/<manager>/unit/<unit>/<service>`` for a unit's proxy: ``get_config`` ``{}``,
   ``set_config`` ``{"bindings": {port: key}}``, ``get_statistics`` ``{}``.
@@ -38,17 +39,19 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dyknow import errors, keys
 from dyknow.access import AccessControl
 from dyknow.errors import AccessError, DyKnowError, PlanningError, ServiceError, SpecError, SpecIssue
 from dyknow.holders import HOLDER
-from dyknow.identity import Caller, Verifier
 from dyknow.model import standby_problem
 from dyknow.reasoning.syntax import MAX_FORMULA_CHARS
 from dyknow.security import Limits
 from dyknow.transport import ServiceChannel, ServiceRequest
+
+if TYPE_CHECKING:  # (cryptography's x509 is imported only where calls are signed or checked)
+    from dyknow.identity import Caller, Verifier
 
 __all__ = [
     "MANAGER_SERVICES",
@@ -78,13 +81,14 @@ MANAGER_SERVICES = (
     "get_adaptations",
     "get_summary",
     "get_load",
+    "get_metrics",
 )
 UNIT_SERVICES = ("get_config", "set_config", "get_statistics")
 #: Services that change nothing: they have threads of their own, so they never wait behind a spawn.
 _STUCK_S = 0.05  # writers all inside their calls this long while a change waits: add one
-READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_load", "get_config", "get_statistics"})
+READ_ONLY_SERVICES = frozenset({"get_model", "get_adaptations", "get_summary", "get_load", "get_metrics", "get_config", "get_statistics"})
 
-Handler = Callable[[dict[str, Any], Caller | None], Any]
+Handler = Callable[[dict[str, Any], "Caller | None"], Any]
 """A service's handler: the checked request and its caller (None when the manager has no roles)."""
 
 
@@ -242,6 +246,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "get_adaptations": {},
     "get_summary": {},
     "get_load": {},
+    "get_metrics": {},
     "get_config": {},
     "set_config": {"bindings": (True, _mapping(_PORT, _key))},
     "get_statistics": {},

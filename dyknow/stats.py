@@ -164,6 +164,15 @@ class PortCounters:
             self.unsized += 1
         self.unknown_clock += 1
 
+    def samples_since(self, start: int) -> tuple[int, list[int], list[int]]:
+        """``(n, latencies_ns, hops_ns)``: how many samples were recorded so far, and those recorded
+        since the ``start``-th (at most the last :data:`WINDOW`; all of them when ``start`` is past
+        ``n``, as for counters made anew). For exporters that keep histograms (dyknow.metrics)."""
+        n = self._n
+        first = max(0 if start > n else start, n - WINDOW)
+        slots = [i & _MASK for i in range(first, n)]
+        return n, [self._latency[i] for i in slots], [self._hop[i] for i in slots]
+
     def snapshot(self, port: str, direction: str, key: str, uncertainty_us: float = 0.0) -> PortStatistics:
         """The counters and percentiles of the last samples, as plain data (``uncertainty_us``:
         what the caller knows of the offsets of :attr:`clocks`)."""

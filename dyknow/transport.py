@@ -30,13 +30,14 @@ from typing import Any, Final
 import zenoh
 
 from dyknow.access import AccessControl, TlsFiles
-from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError
+from dyknow.errors import BindingError, ClosedError, ServiceError, TransportError, did_you_mean
 from dyknow.keys import MAX_KEY_BYTES
 from dyknow.message import ENCODINGS, HEADER_V1, Message, decode, decode_dyknow, encode
 
 __all__ = [
     "DEFAULT_ENDPOINT",
     "MAX_QUERIERS",
+    "SCHEMES",
     "ZENOH_RUNTIME",
     "LivelinessSubscriber",
     "LivelinessToken",
@@ -48,9 +49,11 @@ __all__ = [
     "Session",
     "Subscriber",
     "check_key_expr",
+    "check_schemes",
     "is_wild",
     "key_exprs_intersect",
     "make_config",
+    "shared_memory_problem",
 ]
 
 log = logging.getLogger(__name__)
@@ -71,6 +74,18 @@ _ENCODINGS: Final = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
 SHM_THRESHOLD: Final = 64 * 1024
 _HEADER_SIZE: Final = HEADER_V1.size  # the shortest dyknow header (version 1)
 SHM_POOL_BYTES = 96 * 1024 * 1024
+
+
+def shared_memory_problem(pool_bytes: int = SHM_POOL_BYTES) -> str | None:
+    """Why this process could not use Zenoh shared memory for large payloads (a pool of
+    ``pool_bytes`` made and a buffer taken from it, as a publisher does), or None when it can.
+    Where it cannot, such payloads are copied the ordinary way (dyknow doctor says so)."""
+    try:
+        provider = zenoh.shm.ShmProvider.default_backend(pool_bytes)
+        provider.alloc(SHM_THRESHOLD, zenoh.shm.GarbageCollect())
+    except (zenoh.ZError, AttributeError) as exc:
+        return _clean(exc)
+    return None
 
 
 class _SharedMemory:
@@ -247,6 +262,24 @@ def key_exprs_intersect(a: str, b: str) -> bool:
 # --------------------------------------------------------------------------- configuration
 
 
+#: The link protocols of the Zenoh that dyknow installs (eclipse-zenoh's wheel leaves out
+#: unixpipe, serial and vsock).
+SCHEMES: Final = ("tcp", "tls", "udp", "quic", "ws", "unixsock-stream")
+
+
+def check_schemes(endpoints: Iterable[str], option: str) -> None:
+    """Refuse an endpoint whose protocol Zenoh does not speak (``tpc/...``), naming the ones it
+    does (Zenoh itself says only "Unicast not supported for tpc protocol")."""
+    for endpoint in endpoints:
+        scheme, slash, _ = endpoint.partition("/")
+        if slash and scheme not in SCHEMES:  # (no protocol at all: Zenoh's own error, at make_config)
+            raise TransportError(
+                f"{endpoint}: no Zenoh link protocol {scheme!r}{did_you_mean(scheme, SCHEMES)}",
+                where=option,
+                expected=f"PROTOCOL/ADDRESS:PORT with PROTOCOL one of {', '.join(SCHEMES)} (such as tcp/127.0.0.1:7447)",
+            )
+
+
 def make_config(
     *,
     listen: Sequence[str] | None = None,
@@ -278,6 +311,8 @@ def make_config(
     ``transport/unicast/open_timeout``, 10 s by default); closing the session waits for an attempt
     under way, so a session that keeps dialling a silent host takes up to this long to close.
     """
+    for option, endpoints in (("--listen", listen or ()), ("--connect", connect)):
+        check_schemes(endpoints, option)
     try:
         if config_file is not None:
             path = Path(config_file)

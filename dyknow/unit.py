@@ -26,8 +26,8 @@ shared ``dyknow.unit`` logger, the unit's name in front of each message and in `
 names and the methods below are the unit's interface with dyknow; other attribute names are
 free for the unit's own state.
 
-How a unit is wired: the unit's proxy (:mod:`dyknow.proxy`) calls :meth:`Unit.attach_runtime`
-once, before ``setup()``, handing over itself as the unit's :class:`UnitRuntime`; every service
+How a unit is wired: the unit's proxy (:mod:`dyknow.proxy`) calls :func:`attach` once, before
+``setup()``, handing over itself as the unit's :class:`UnitRuntime`; every service
 below goes through it. This module knows only that small protocol, not the proxy. To run a unit
 in a test, spawn it in a manager, or use :mod:`dyknow.testing`.
 
@@ -55,7 +55,7 @@ if TYPE_CHECKING:
     from dyknow.executor import Timer
     from dyknow.message import Message
 
-__all__ = ["Unit", "UnitRuntime"]
+__all__ = ["Unit", "UnitRuntime", "attach"]
 
 
 class UnitRuntime(Protocol):
@@ -127,7 +127,38 @@ _DETACHED: Any = _Detached()
 
 
 class Unit:
-    """Base class of computation units. See the module documentation for the hooks."""
+    """Base class of computation units: subclass it, override the hooks you need, name the class in
+    a transformation spec's ``<source>`` (``mypkg.doubler:Doubler``).
+
+    Example::
+
+        from dyknow import Unit
+
+        class Doubler(Unit):
+            def setup(self):                   # once, after the ports are bound
+                self.factor = self.params["factor"]
+
+            def on_message(self, port, msg):   # each message on an input port
+                self.log.debug("got %s on %s", msg.seq, port)
+                self.publish("out", msg.payload * self.factor)
+
+    Set by dyknow before ``setup()``:
+
+    - ``name``: the unit's instance name (``dyknow spawn doubler NAME``);
+    - ``label``: its transformation spec's label;
+    - ``params``: the spec's typed params, with spawn-time overrides (``--param factor=3``);
+    - ``log``: a logger that puts the unit's name in front of each message.
+
+    Hooks, on the unit's thread, never two at once: ``setup()``, ``on_message(port, msg)``,
+    ``on_reconfigure(changes)``, ``teardown()``, and ``run(stop)`` (a blocking loop on a thread of
+    its own). Services: ``publish``, ``create_timer``, ``reject``, ``fail``, ``has_subscribers``,
+    ``get_config``, ``set_config``, ``watch_liveliness``, ``call_soon``, ``destroy``.
+
+    Class attributes: ``dedicated_thread`` (slow callbacks: a thread of its own from the start),
+    ``forward_to`` (pass every message on unchanged, without Python per message), ``path_params``
+    (params that name files). The module documentation has the details;
+    :class:`dyknow.testing.UnitHarness` runs one in a test.
+    """
 
     #: Run this unit's callbacks on a thread of its own from the start.
     dedicated_thread: ClassVar[bool] = False
@@ -145,21 +176,6 @@ class Unit:
     params: Mapping[str, Any]
     log: logging.Logger | logging.LoggerAdapter  # type: ignore[type-arg]
     _runtime: UnitRuntime = _DETACHED
-
-    def attach_runtime(
-        self, runtime: UnitRuntime, *, name: str, label: str, params: Mapping[str, Any], log: logging.Logger | logging.LoggerAdapter  # type: ignore[type-arg]
-    ) -> None:
-        """Called by dyknow once, before ``setup()``: set the unit's attributes and its runtime.
-
-        Not for units to call or override. ``publish`` is bound straight to the runtime's, which
-        saves a call on every message (its documentation above still holds).
-        """
-        self.name = name
-        self.label = label
-        self.params = params
-        self.log = log
-        self._runtime = runtime
-        self.publish = runtime.publish  # type: ignore[method-assign]
 
     # -- hooks
 
@@ -257,3 +273,20 @@ class Unit:
     def get_config(self) -> dict[str, str]:
         """The current port -> key expression bindings (what the proxy's ``get_config`` serves)."""
         return self._runtime.get_config()
+
+
+def attach(
+    unit: Unit, runtime: UnitRuntime, *, name: str, label: str, params: Mapping[str, Any], log: logging.Logger | logging.LoggerAdapter  # type: ignore[type-arg]
+) -> None:
+    """Called by dyknow once per unit, before ``setup()``: set its attributes and its runtime.
+
+    Not for units to call (a function of this module, not a method, so that ``help(Unit)`` shows
+    what a unit's author uses). ``publish`` is bound straight to the runtime's, which saves a call
+    on every message (:meth:`Unit.publish` still documents it).
+    """
+    unit.name = name
+    unit.label = label
+    unit.params = params
+    unit.log = log
+    unit._runtime = runtime
+    unit.publish = runtime.publish  # type: ignore[method-assign]

@@ -244,6 +244,24 @@ def browser_paths() -> tuple[str, str]:
     return found
 
 
+@pytest.fixture(scope="session")
+def graphviz() -> str:
+    """Debian's Graphviz (``dot``), which the site's build draws its figures with, installed with
+    apt-get when missing and run as root (as the browser is). Missing, it fails under CI
+    (``CI=true``); elsewhere the tests that need it are skipped with the reason."""
+    found = shutil.which("dot")
+    if found is None and os.geteuid() == 0 and shutil.which("apt-get"):
+        subprocess.run(["apt-get", "install", "-y", "-q", "graphviz"], capture_output=True, timeout=900,
+                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+        found = shutil.which("dot")
+    if found is None:
+        why = "Graphviz is not installed (apt-get install graphviz): the site's figures are drawn with its dot"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(why)
+        pytest.skip(why)
+    return found
+
+
 FAKETIME = Path("/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1")
 
 

@@ -21,6 +21,7 @@ from dyknow.errors import PlanningError
 from dyknow.federation import Summary, SummaryUnit
 from dyknow.reasoning import Formula, check_formula
 from dyknow.testing import CAMERA_IDS, SCENARIO_SPECS, Camera, Sink, Tracker
+from dyknow.unit import attach
 from tests.conftest import REPO, subprocess_env, wait_until
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
@@ -418,7 +419,7 @@ class EagerRuntime(StandInRuntime):
     def spawn(self, label: str | TransformationSpec, name: str, *, bindings: Mapping[str, str] | None = None) -> UnitInfo:
         info = super().spawn(label, name, bindings=bindings)
         if name in self.anchors:
-            self.anchors[name].attach_runtime(self.relay, name=name, label=info.label, params={}, log=logging.getLogger(name))  # type: ignore[arg-type]
+            attach(self.anchors[name], self.relay, name=name, label=info.label, params={}, log=logging.getLogger(name))  # type: ignore[arg-type]
         return info
 
     def set_config(self, name: str, bindings: Mapping[str, str]) -> dict[str, str]:

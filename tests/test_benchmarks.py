@@ -337,3 +337,14 @@ def test_mcap_bombs_benchmark_smoke(tmp_path: Path) -> None:
     assert [r["bomb"] for r in rows] == ["zstd-1g", "lz4-1g-declares-8m"]
     assert all(r["exit"] == 1 and r["met"] and 0 < r["peak_mib"] < 1024 and "offset" in r["error"] for r in rows)
     assert "| zstd-1g | 33237 B | 1 |" in result.stdout
+
+
+def test_operator_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "operator.json"
+    result = _run("operator.py", "--window", "0.5", "--settle", "0.5", "--units", "4", "--runs", "1", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert set(data["startup"]) == {"dyknow --help", "dyknow model (no manager)", "python -c pass"}
+    assert data["startup"]["dyknow --help"]["wall_median_s"] > 0 and data["startup"]["dyknow --help"]["imports_median_s"] > 0
+    assert data["top"]["units"] == 4 and data["top"]["top_cpu_pct"] >= 0
+    assert "target < 1 %" in result.stdout and "< 0.3 s" in result.stdout and "load average" in result.stdout

@@ -326,3 +326,133 @@ def test_echo_describes_arrays_inside_a_payload() -> None:
         "fields": [{"a": {"ndarray": {"dtype": "float32", "shape": [2, 3]}}}],
         "raw": {"bytes": 1, "base64": "AQ=="},
     }
+
+
+# ------------------------------------------------------------------------------------------- shipped files, from anywhere
+
+
+def _outside(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """``dyknow ARGS`` from an empty folder outside the checkout."""
+    return subprocess.run([sys.executable, "-m", "dyknow.cli", *args], capture_output=True, text=True, timeout=60,
+                          env=subprocess_env(), cwd=tmp_path)  # fmt: skip
+
+
+def test_shipped_specs_have_a_name_that_works_from_any_folder(tmp_path: Path) -> None:
+    assert REPO not in tmp_path.parents
+    done = _outside(tmp_path, "validate", "@shipped", "--ontology", "@shipped/dyknow.ttl")
+    assert done.returncode == 0 and done.stdout.startswith("ok: "), done.stderr
+    done = _outside(tmp_path, "validate", "specs/", "--ontology", "specs/dyknow.ttl")  # the checkout's path, from elsewhere
+    assert done.returncode == 2 and f"specs/: no such file in {tmp_path}; dyknow's shipped copy is @shipped (dyknow paths)" in done.stderr
+    done = _outside(tmp_path, "plan", "--specs", "@testing/scenario-station.xml", "--ontology", "@shipped/dyknow.ttl", "--manager",
+                    "station", "--request", "BallTrack(field)", "--peer", "robot=@testing/scenario-robot.xml", "--json")  # fmt: skip
+    assert done.returncode == 0 and '"manager":"robot"' in done.stdout, done.stderr
+
+
+def test_a_misspelled_shipped_name_says_which_exist(tmp_path: Path) -> None:
+    done = _outside(tmp_path, "validate", "@shiped")
+    assert done.returncode == 2
+    assert "no shipped folder '@shiped' (did you mean '@shipped'?); expected one of @shipped, @testing" in done.stderr
+    done = _outside(tmp_path, "manager", "--specs", "@shipped/visoin.xml")
+    assert done.returncode == 2 and "is not shipped; @shipped holds dyknow.ttl, generic.xml" in done.stderr
+
+
+def test_paths_prints_where_the_shipped_files_are(tmp_path: Path) -> None:
+    done = _outside(tmp_path, "paths", "--json")
+    assert done.returncode == 0, done.stderr
+    found = json.loads(done.stdout)
+    shipped = Path(found["folders"]["@shipped"]["path"])
+    assert (shipped / "generic.xml").is_file() and "dyknow.ttl" in found["folders"]["@shipped"]["files"]
+    assert "scenario-station.xml" in found["folders"]["@testing"]["files"]
+    text = _outside(tmp_path, "paths").stdout
+    assert f"@shipped   {shipped}" in text and "@testing" in text
+
+
+def test_a_units_exception_shows_where_in_its_code_in_the_log_model_and_stats(manager_process: Callable[..., ManagerProcess]) -> None:
+    """``KeyError: 'speed'`` alone says nothing of where: the log names the file and line, and
+    ``dyknow model`` and ``dyknow stats`` show the last frames of the traceback."""
+    proc = manager_process()
+    client = proc.client_args()
+    assert run_cli("spawn", "failing", "f", "--bind", "in=t/in", *client).returncode == 0
+    assert run_cli("spawn", "periodic-source", "src", "--param", "rate_hz=20", "--bind", "out=t/in", *client).returncode == 0
+    units = REPO / "tests" / "units.py"
+    line = next(n for n, text in enumerate(units.read_text().splitlines(), 1) if 'raise RuntimeError(f"boom at message' in text)
+
+    def failed() -> bool:
+        model = json.loads(run_cli("model", "--json", *client).stdout)
+        return any(u["name"] == "f" and u["state"] == "failed" for u in model["units"])
+
+    wait_until(failed, "the failing unit failed")
+    model = run_cli("model", *client).stdout
+    assert "error: on_message('in'): RuntimeError: boom at message 1" in model
+    assert "traceback (last " in model and f'File "{units}", line {line}, in on_message' in model
+    stats = run_cli("stats", "f", *client).stdout
+    assert f'File "{units}", line {line}, in on_message' in stats and "RuntimeError: boom at message 1" in stats
+    proc.stop()
+    assert proc.proc.stderr is not None
+    log = proc.proc.stderr.read()
+    assert f"RuntimeError: boom at message 1 at {units}:{line} in on_message (dyknow stats f shows the traceback)" in log
+
+
+def test_a_misspelled_endpoint_protocol_names_the_protocols() -> None:
+    """Zenoh says only "Unicast not supported for tpc protocol"."""
+    expected = "no Zenoh link protocol 'tpc' (did you mean 'tcp'?); expected PROTOCOL/ADDRESS:PORT with PROTOCOL one of tcp, tls, udp, quic, ws"
+    for argv, option in ((["model", "--connect", "tpc/127.0.0.1:7447"], "--connect"), (["manager", "--listen", "tpc/127.0.0.1:0"], "--listen"),
+                         (["record", "x/**", "-o", "x.mcap", "--connect", "tpc/127.0.0.1:7447"], "--connect")):  # fmt: skip
+        done = run_cli(*argv)
+        assert done.returncode == 1 and f"dyknow: error: {option}: tpc/127.0.0.1:" in done.stderr and expected in done.stderr, done.stderr
+        assert "Unicast not supported" not in done.stderr
+
+
+def _subparsers(parser: object) -> dict[str, object]:
+    import argparse
+
+    found: dict[str, object] = {}
+    for action in getattr(parser, "_actions", []):
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found[name] = sub
+                found.update({f"{name} {k}": v for k, v in _subparsers(sub).items()})
+    return found
+
+
+def test_every_positional_argument_has_help_and_every_example_parses() -> None:
+    """``dyknow config --help`` said ``action``, ``name``, ``bindings`` and nothing more."""
+    import argparse
+    import shlex
+
+    from dyknow.cli import _parser
+
+    parser = _parser()
+    commands = _subparsers(parser)
+    missing = [f"{name} {a.dest}" for name, sub in commands.items() for a in sub._actions  # type: ignore[attr-defined]
+               if not a.option_strings and not isinstance(a, argparse._SubParsersAction) and not a.help]  # fmt: skip
+    assert missing == []
+    examples = [line.strip() for sub in commands.values() for line in (sub.epilog or "").splitlines()[1:]]  # type: ignore[attr-defined]
+    assert len(examples) >= 15
+    for command in ("spawn", "config", "stats", "request", "monitor"):
+        assert (commands[command].epilog or "").startswith("examples:"), command  # type: ignore[attr-defined]
+    for line in examples:
+        words = shlex.split(line.split("  #")[0])
+        assert words[0] == "dyknow", line
+        parser.parse_args(words[1:])  # (exits, failing the test, on an example that does not parse)
+
+
+@pytest.mark.parametrize(
+    ("argv", "absent"),
+    [
+        (["--help"], ["numpy", "zenoh", "rdflib", "cryptography", "dyknow.manager", "dyknow.client", "dyknow.spec.reader"]),
+        (["validate", "--help"], ["zenoh", "rdflib", "cryptography", "dyknow.manager", "dyknow.client"]),
+        (["model", "--connect", "tcp/127.0.0.1:9"], ["rdflib", "cryptography.x509", "dyknow.manager", "dyknow.planner", "dyknow.spec.reader", "cv2"]),
+    ],
+    ids=["help", "validate --help", "model, failing"],
+)
+def test_a_command_imports_what_it_needs_only(argv: list[str], absent: list[str]) -> None:
+    """The start-up of ``dyknow`` (0.55 s for --help when it imported everything): what each
+    command imports is checked here; the time itself is measured by benchmarks/operator.py."""
+    code = (
+        "import sys\nfrom dyknow.cli import main\ntry:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        "print(' '.join(sorted(m for m in sys.modules)), file=sys.stderr)"
+    )
+    done = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=60, env=subprocess_env())
+    imported = set(done.stderr.splitlines()[-1].split())
+    assert [m for m in absent if m in imported] == []

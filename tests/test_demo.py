@@ -32,6 +32,13 @@ def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp
     assert 0 < required[0]["adaptation_ms"] <= required[0]["recovery_ms"]
     battery = [a for a in switches if a["cause"].startswith("measurement battery = 0.")]
     assert battery and "robot-camera" in battery[-1]["to"]  # back on the robot's camera once the battery recovered
+    # the measurement's line says which constraint it meets again, not only the value
+    assert f"measurement battery = {battery[-1]['cause'].rpartition(' = ')[2]} (robot-camera needs battery >= 0.25: holds again)" in text
+    # each switch is announced before the status line that shows its new camera
+    lines = text.splitlines()
+    announced = next(i for i, line in enumerate(lines) if line.startswith(">>> adaptation #") and "=> ceiling-camera" in line)
+    shown = next(i for i, line in enumerate(lines) if line.startswith("t=") and "camera: ceiling-camera" in line)
+    assert announced < shown
     assert summary["requirement"] == REQUIREMENT and 0 < summary["requirement_false_states"] < summary["requirement_states"]
     assert f"requirement {REQUIREMENT}: false in" in text and f": requirement violated: {REQUIREMENT}: robot-camera => ceiling-camera" in text
     # real detection, localization and tracking against the synthetic scene's ground truth
@@ -44,6 +51,10 @@ def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp
     assert f"report written to {tmp_path.resolve()} (report.json, track.png, frame.png)" in text
     assert (tmp_path / "track.png").read_bytes()[:4] == b"\x89PNG"
     assert (tmp_path / "frame.png").read_bytes()[:4] == b"\x89PNG"
+    import cv2
+
+    frame = cv2.imread(str(tmp_path / "frame.png"))
+    assert frame.shape[0] > frame.shape[1] * 3 // 4 and frame[-3:].mean() > 200  # a white caption band below the camera's 4:3 view
     stored = json.loads((tmp_path / "report.json").read_text())
     assert stored["summary"] == summary and len(stored["battery"]) > 20
     assert len(stored["verdicts"]) == summary["requirement_states"] and {v["verdict"] for v in stored["verdicts"]} == {True, False}

@@ -2,7 +2,11 @@
 
 What each kind of block gets (``docs/**/*.md``):
 
-- ``python``: executed in a fresh interpreter from the checkout (its asserts are part of the
+Every block runs from a folder outside the checkout, as a user who installed dyknow runs it: the
+shipped specs are named ``@shipped`` and ``@testing`` on the command line (``dyknow paths``), and
+:func:`dyknow.resources.specs_dir` from Python.
+
+- ``python``: executed in a fresh interpreter in a folder of its own (its asserts are part of the
   test), except a file of a tutorial (its first line names it, ``# mypkg/doubler.py``), which
   ``test_the_first_tutorial_runs_outside_the_checkout`` writes out and runs, and the few listed in
   ``NOT_RUN`` with the reason (none today). Blocks that listen on ``tcp/127.0.0.1:7447`` get a
@@ -11,9 +15,9 @@ What each kind of block gets (``docs/**/*.md``):
 - ``sh``: every ``dyknow`` line is parsed by the command line's own parser (options, choices,
   types); ``dyknow validate|expand|plan`` lines, which need no manager, run; ``python
   tools/...`` and ``python benchmarks/...`` (in blocks and in the prose) name scripts that exist,
-  with options they define; ``make`` targets exist. A block after ``<!-- docs-test: bash -->``
-  (a session with a manager in the background) runs as a bash script as from the checkout (in a
-  folder whose ``specs/`` is the checkout's, so what it writes stays out), one after
+  with options they define; ``make`` targets exist; no ``dyknow`` line names a file of the
+  checkout (``specs/vision.xml``) that a user's folder would not have. A block after ``<!-- docs-test: bash -->``
+  (a session with a manager in the background) runs as a bash script in an empty folder, one after
   ``<!-- docs-test: bash, in the tutorial's folder -->`` in the tutorial's folder, and one after
   ``<!-- docs-test: run in the tutorial's folder -->`` line by line there. A manager session gets
   a free port instead of the default 7447 (``--listen``, ``--connect``). The two-host example of
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import io
 import os
 import re
@@ -45,7 +50,7 @@ from unittest import mock
 
 import pytest
 
-from tests.conftest import REPO, free_port, run_cli, subprocess_env
+from tests.conftest import REPO, free_port
 
 DOCS = REPO / "docs"
 PAGES = sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.parts)
@@ -138,6 +143,7 @@ def _dyknow_lines() -> list[tuple[str, str]]:
     for block in _of("sh"):
         for command, _ in _lines(block):
             command = re.sub(r"^(! )?([A-Z_]+=\S*\s+)*", "", command).removesuffix(" &")  # PYTHONPATH=. dyknow ... &, ! dyknow ...
+            command = re.sub(r"\s+>\s*\S+$", "", command)  # dyknow echo ... > FILE
             if command.startswith("dyknow "):
                 found.append((str(block), command.removeprefix("dyknow ")))
     return found
@@ -146,11 +152,13 @@ def _dyknow_lines() -> list[tuple[str, str]]:
 # ------------------------------------------------------------------------------------------- the site
 
 
-def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
-    """``make docs`` as CI runs it: a warning, a broken link or an unresolved reference fails."""
+def test_the_site_builds_with_warnings_as_errors(tmp_path: Path, graphviz: str) -> None:
+    """``make docs`` as it runs on a fresh clone, where only the ``docs`` extra is installed
+    (``tests/docs_extra_only.py``: what the other extras bring cannot be imported): a warning, a
+    broken link or an unresolved reference fails."""
     result = subprocess.run(
-        [sys.executable, "-m", "sphinx", "-b", "html", "-W", "--keep-going", "-n", "-q", str(DOCS), str(tmp_path / "site")],
-        capture_output=True, text=True, timeout=300, cwd=REPO,
+        [sys.executable, "-m", "tests.docs_extra_only", "-b", "html", "-W", "--keep-going", "-n", "-q", str(DOCS), str(tmp_path / "site")],
+        capture_output=True, text=True, timeout=300, cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO)),
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
     site = tmp_path / "site"
@@ -161,14 +169,35 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path: Path) -> None:
 
     for name in dyknow.__all__:  # every public name has its entry in the API reference
         assert f'id="dyknow.{name}"' in api, name
+    where = {name: api.index(f'id="dyknow.{name}"') for name in ("Manager", "Unit", "Client", "AccessControl", "DyKnowError", "UnitError")}
+    assert where["Manager"] < where["Unit"] < where["Client"] < where["AccessControl"] < where["DyKnowError"] < where["UnitError"]  # by first use
     reasoning = (site / "reference" / "api" / "reasoning.html").read_text(encoding="utf-8")
     assert 'id="dyknow.reasoning.Monitor.push"' in reasoning  # compiled by mypyc: its docstring from the source
     assert "Hand over one sample of" in reasoning
     cli = (site / "reference" / "cli.html").read_text(encoding="utf-8")
     assert "dyknow manager" in cli and "--allow-source" in cli and "dyknow mcap cat" in cli
     assert (site / "_images" / "ui.png").is_file()
+    for page, figures in (("architecture", 2), ("adaptation", 1), ("federation", 1)):  # drawn by Graphviz at build time
+        html = (site / "concepts" / f"{page}.html").read_text(encoding="utf-8")
+        drawn = re.findall(r'src="\.\./_images/(graphviz-[0-9a-f]+\.svg)"', html) or re.findall(r'data="\.\./_images/(graphviz-[0-9a-f]+\.svg)"', html)
+        assert len(drawn) == figures, page
+        for svg in drawn:
+            assert "<svg" in (site / "_images" / svg).read_text(encoding="utf-8")
     changelog = (site / "changelog.html").read_text(encoding="utf-8")
     assert "0.1.0" in changelog and "Changelog" in changelog  # CHANGELOG.md, included
+
+
+def test_the_docs_extra_alone_lacks_what_the_other_extras_bring() -> None:
+    """The environment the site's build test makes: Hypothesis (test), rosbags (ros2), pyzmq
+    (bench) refused; Sphinx, myst, furo and dyknow's own requirements kept."""
+    from tests.docs_extra_only import allowed_distributions, refused_modules
+
+    allowed = allowed_distributions()
+    assert {"sphinx", "myst-parser", "furo", "eclipse-zenoh", "numpy", "rdflib"} <= allowed
+    assert not {"hypothesis", "pytest", "rosbags", "pyzmq", "selenium"} & allowed
+    refused = refused_modules()
+    assert {"hypothesis", "pytest", "rosbags", "zmq"} <= set(refused)
+    assert not {"sphinx", "numpy", "zenoh", "dyknow", "transformations", "docutils"} & set(refused)
 
 
 def test_the_makefile_builds_the_site_as_the_test_does() -> None:
@@ -209,11 +238,27 @@ def test_the_exceptions_are_few_and_still_there() -> None:
     assert len(NOT_RUN) <= 3
 
 
+@functools.cache
+def _outside_env() -> dict[str, str]:
+    """The environment of a user outside the checkout: no PYTHONPATH, so ``dyknow`` is the installed
+    package. Where the dyknow under test is not the one this interpreter imports without
+    PYTHONPATH (a developer's worktree beside a shared environment), its folder alone goes first."""
+    import dyknow
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    ours = Path(dyknow.__file__).resolve().parent
+    found = subprocess.run([sys.executable, "-c", "import dyknow; print(dyknow.__file__)"], capture_output=True, text=True, cwd="/", env=env)
+    if Path(found.stdout.strip() or "/").resolve().parent != ours:
+        env["PYTHONPATH"] = str(ours.parent)
+    return env
+
+
 @pytest.mark.parametrize("block", _runnable_python(), ids=str)
-def test_python_blocks_run_as_written(block: Block) -> None:
+def test_python_blocks_run_as_written(block: Block, tmp_path: Path) -> None:
+    """From a folder of their own, outside the checkout."""
     code = block.text.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{free_port()}")
     result = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO, env=subprocess_env()
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=_outside_env()
     )  # fmt: skip
     assert result.returncode == 0, f"{block}\n{result.stdout[-2000:]}\n{result.stderr[-4000:]}"
 
@@ -229,7 +274,7 @@ def test_the_first_tutorial_runs_outside_the_checkout(tmp_path: Path) -> None:
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_text(text)
     (folder / "mypkg" / "__init__.py").write_text("")  # the page's layout lists it, empty
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env = _outside_env()
     _run_in_folder(blocks, folder, env)
     _run_with_bash(blocks, folder, env)
 
@@ -267,9 +312,11 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     script = block.text.replace("\\\n", " ").replace("127.0.0.1:7447", f"127.0.0.1:{port}")
+    metrics = str(free_port())  # (the documented --metrics-port, likewise)
+    script = script.replace("--metrics-port 9464", f"--metrics-port {metrics}").replace("127.0.0.1:9464", f"127.0.0.1:{metrics}")
     script = re.sub(r"^((?:\S+=\S+ )*dyknow manager (?:(?! --listen ).)*) &$", rf"\1 --listen {endpoint} &", script, flags=re.MULTILINE)
     assert len(re.findall(rf"dyknow manager .* --listen \w+/127\.0\.0\.1:{port}", script)) == 1, script
-    client = r"^((?:! )?dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay))(?!.* --connect )"
+    client = r"^((?:! )?dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay|hz|top|doctor))(?!.* --connect )"
     script = re.sub(client, rf"\1 --connect {endpoint}", script, flags=re.MULTILINE)
     assert re.search(rf"--connect \w+/127\.0\.0\.1:{port}", script), script
     env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
@@ -294,11 +341,9 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
 
 @pytest.mark.parametrize("block", [b for b in BLOCKS if b.marker == BASH], ids=str)
 def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
-    """The sessions with a manager, as from the checkout: in a folder of their own where ``specs/``
-    is the checkout's, so that what they write (``run.mcap``) stays out of the checkout."""
-    (tmp_path / "specs").symlink_to(REPO / "specs")
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    result = _bash(block, tmp_path, env)
+    """The sessions with a manager, in an empty folder outside the checkout."""
+    assert REPO not in tmp_path.parents
+    result = _bash(block, tmp_path, _outside_env())
     if "dyknow echo 'dyknow/robot/requests" in block.text:
         track = [line for line in result.stdout.splitlines() if line.startswith("dyknow/robot/requests/BallTrack(field) ")]
         assert len(track) == 5, result.stdout  # echo: five messages of the track
@@ -311,8 +356,13 @@ def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
         assert "dyknow/robot/monitors/1" in result.stdout and " true" in result.stdout  # verdicts as decided
     if "dyknow measure" in block.text:
         assert "measurement battery = 0.2" in result.stdout  # the adaptation, listed with its cause
+    if "dyknow hz" in block.text:  # the operator's tools: rates, a view of every unit, a clean bill of health, a scrape
+        assert re.search(r"^dyknow/robot/fwd/out: \d+\.\d\d Hz ", result.stdout, re.MULTILINE), result.stdout
+        assert "manager robot: cpu" in result.stdout and "relay" in result.stdout
+        assert "0 failed" in result.stdout and 'dyknow_port_messages_total{direction="in"' in result.stdout
     if "dyknow record" in block.text:
         assert (tmp_path / "run.mcap").is_file() and "recorded 20 messages on 1 key" in result.stdout
+        assert "replayed 20 messages" in result.stdout and (tmp_path / "replayed.txt").read_text().count("replayed/track #") == 20
 
 
 # ------------------------------------------------------------------------------------------- sh
@@ -369,6 +419,22 @@ def test_every_dyknow_command_line_parses(where: str, command: str) -> None:
             assert option in out.getvalue(), f"{where}: {option} is not an option of dyknow {kept[0]}"
 
 
+#: The files a page's own commands write before naming them (the tutorial's spec, the two-host
+#: example's station.xml and robot.xml, copied there from another page's section).
+PAGE_FILES = {"specs/doubler.xml", "station.xml", "robot.xml", "acl.json5", "run.mcap"}
+
+
+@pytest.mark.parametrize(("where", "command"), _dyknow_lines(), ids=lambda v: v[:60])
+def test_no_command_line_needs_the_checkout(where: str, command: str) -> None:
+    """A path in a documented command line is a shipped name (``@shipped/vision.xml``), a file the
+    page makes, or a folder of the user's: never one of the checkout (``specs/``, ``dyknow/testing/``)."""
+    for word in shlex.split(command):
+        value = word.partition("=")[2] if word.startswith("--") or re.match(r"^\w+=", word) else word
+        checkout_file = re.match(r"^(specs|dyknow|transformations|tests)(/[\w./-]*\.(xml|ttl|xsd|py)|/?)$", value)
+        if checkout_file and value not in PAGE_FILES:
+            raise AssertionError(f"{where}: dyknow {command}: {value} is a file of the checkout; name it @shipped/... or @testing/...")
+
+
 def _offline_commands() -> list[tuple[str, str, str]]:
     found = []
     for block in _of("sh"):
@@ -385,8 +451,10 @@ def test_the_pages_have_offline_commands() -> None:
 
 
 @pytest.mark.parametrize(("where", "command", "comment"), _offline_commands(), ids=lambda v: v[:60])
-def test_offline_commands_run_as_written(where: str, command: str, comment: str) -> None:
-    result = run_cli(*shlex.split(command), timeout=120)
+def test_offline_commands_run_as_written(where: str, command: str, comment: str, tmp_path: Path) -> None:
+    """From an empty folder outside the checkout."""
+    result = subprocess.run([sys.executable, "-m", "dyknow.cli", *shlex.split(command)], capture_output=True, text=True, timeout=120,
+                            cwd=tmp_path, env=_outside_env())  # fmt: skip
     expected = 1 if "exit 1" in comment and not command.startswith("validate") else 0
     assert result.returncode == expected, f"{where}: {result.stderr[-2000:]}"
     assert "Traceback" not in result.stderr

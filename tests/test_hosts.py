@@ -437,8 +437,6 @@ def test_the_docs_two_host_example_runs_as_written(tmp_path: Path) -> None:
         pytest.skip(why)
     steps = _docs_two_hosts()
     addresses = {"station": "10.0.0.2", "robot": "10.0.0.5", "laptop": "10.0.0.9"}
-    for name in ("dyknow", "specs"):
-        (tmp_path / name).symlink_to(REPO / name)
     env = {**subprocess_env(), "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "DYKNOW_LOG": "INFO"}
     managers: list[subprocess.Popen[str]] = []
     with Hosts(list(addresses), addresses=addresses) as hosts:

@@ -7,6 +7,7 @@ detector's recall and false detections on the shared videos.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -194,3 +195,47 @@ def test_accuracy_meets_every_target(data_dir: Path) -> None:
 
 def test_every_public_name_of_the_tools_is_documented() -> None:
     assert undocumented(*sorted(TOOLS.glob("*.py"))) == []
+
+
+# ----------------------------------------------------------------------------------- install.py
+
+
+def _package(folder: Path, fails: bool = False) -> Path:
+    """A small package whose setup.py reports progress as dyknow's does (lines starting ``dyknow:``)."""
+    folder.mkdir()
+    (folder / "pyproject.toml").write_text('[build-system]\nrequires = ["setuptools"]\nbuild-backend = "setuptools.build_meta"\n'
+                                           '[project]\nname = "tiny-progress"\nversion = "1.0"\n')  # fmt: skip
+    (folder / "setup.py").write_text(
+        "import sys\nfrom setuptools import setup\n"
+        "if 'bdist_wheel' in sys.argv or 'editable_wheel' in sys.argv:\n"
+        "    print('dyknow: compiling 1 module (a stand-in)', file=sys.stderr, flush=True)\n"
+        + ("    raise SystemExit('the compiler broke')\n" if fails else "")
+        + "setup(py_modules=[])\n"
+    )
+    return folder
+
+
+@pytest.mark.parametrize("fails", [False, True], ids=["installs", "fails"])
+def test_install_shows_the_progress_lines_and_keeps_pips_output(tmp_path: Path, fails: bool) -> None:
+    """What make demo runs: pip quiet, but setup.py's dyknow: lines shown with the time, the rest
+    in the log, its tail shown and pip's exit status passed on when it fails."""
+    package = _package(tmp_path / "pkg", fails)
+    log = tmp_path / "install.log"
+    target = f"--no-deps --target {tmp_path / 'site'} {package}"
+    done = subprocess.run([sys.executable, str(TOOLS / "install.py"), target, "--log", str(log)], capture_output=True, text=True,
+                          timeout=300, env=subprocess_env(), cwd=tmp_path)  # fmt: skip
+    assert "the first install compiles the hot-path modules with mypyc: about 2 minutes" in done.stdout
+    assert re.search(r"^\[\s*\d+ s\] dyknow: compiling 1 module \(a stand-in\)$", done.stdout, re.MULTILINE), done.stdout
+    assert "tiny-progress" in log.read_text()
+    if fails:
+        assert done.returncode != 0 and "the compiler broke" in done.stderr and f"every line is in {log}" in done.stderr
+    else:
+        assert done.returncode == 0 and "dyknow: installed in" in done.stdout, done.stdout + done.stderr
+    skipped = subprocess.run([sys.executable, str(TOOLS / "install.py"), target, "--log", str(log)], capture_output=True, text=True,
+                             timeout=300, env={**subprocess_env(), "DYKNOW_PURE_PYTHON": "1"}, cwd=tmp_path)  # fmt: skip
+    assert "DYKNOW_PURE_PYTHON is set: the hot-path modules stay interpreted" in skipped.stdout
+
+
+def test_the_makefile_installs_through_install_py() -> None:
+    makefile = (REPO / "Makefile").read_text()
+    assert makefile.count("$(BIN)/python tools/install.py") == 3 and "pip install --quiet -e" not in makefile

@@ -256,3 +256,19 @@ def test_an_unparsable_zenoh_runtime_is_a_clear_error_every_time() -> None:
         assert reply["error"] == "TransportError"
         assert "ZENOH_RUNTIME='(bogus: ())'" in str(reply["message"])
         assert "environment variable ZENOH_RUNTIME" in str(reply["message"])
+
+
+def test_a_misspelled_link_protocol_names_those_zenoh_speaks() -> None:
+    """Zenoh says only "Unicast not supported for tpc protocol", when the session opens."""
+    from dyknow.transport import SCHEMES
+
+    for option, kwargs in (("--connect", {"connect": ["tpc/127.0.0.1:7447"]}), ("--listen", {"listen": ["tpc/127.0.0.1:0"]})):
+        with pytest.raises(TransportError) as refused:
+            make_config(**kwargs)  # type: ignore[arg-type]
+        assert str(refused.value) == (
+            f"{option}: tpc/127.0.0.1:{7447 if option == '--connect' else 0}: no Zenoh link protocol 'tpc' (did you mean 'tcp'?); "
+            f"expected PROTOCOL/ADDRESS:PORT with PROTOCOL one of {', '.join(SCHEMES)} (such as tcp/127.0.0.1:7447)"
+        )
+    for scheme in SCHEMES:  # every protocol listed is one this Zenoh opens
+        with Session(make_config(listen=[], connect=[f"{scheme}/127.0.0.1:9"], open_timeout_ms=100)):
+            pass

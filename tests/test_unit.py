@@ -1,4 +1,4 @@
-"""The Unit base class: its hooks, its services and how dyknow wires it (attach_runtime)."""
+"""The Unit base class: its hooks, its services and how dyknow wires it (dyknow.unit.attach)."""
 
 from __future__ import annotations
 

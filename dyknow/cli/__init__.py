@@ -3,8 +3,8 @@
 Thin by design: every subcommand is a small function over the public API, in the module of its
 family: :mod:`~dyknow.cli.serve` (manager, router, ui, foxglove), :mod:`~dyknow.cli.client`
 (the commands that talk to a manager), :mod:`~dyknow.cli.offline` (certs, validate, expand,
-plan), :mod:`~dyknow.cli.mcap` (record, replay, mcap), :mod:`~dyknow.cli.ros2` (echo of ROS 2
-topics, ros2 list) and :mod:`~dyknow.cli.demo`; the options
+plan, paths), :mod:`~dyknow.cli.mcap` (record, replay, mcap), :mod:`~dyknow.cli.operate` (hz, top,
+doctor), :mod:`~dyknow.cli.ros2` (echo of ROS 2 topics, ros2 list) and :mod:`~dyknow.cli.demo`; the options
 they share are declared once, in :mod:`~dyknow.cli.common`. ``--json`` gives
 machine-readable output wherever a command prints data. Errors are one line on stderr and a
 non-zero exit, never a traceback (set ``DYKNOW_DEBUG=1`` to see one).
@@ -30,6 +30,8 @@ Commands::
     dyknow record KEYEXPR ... -o FILE.mcap [--duration S] [--max-messages N] [--compression zstd|lz4|none]
     dyknow replay FILE.mcap [--rate X] [--loop] [--start S] [--end S] [--topics T ...] [--remap FROM=TO ...]
     dyknow mcap cat FILE [--topics T ...] [--json] | dyknow mcap info FILE [--json]   (offline)
+    dyknow hz KEYEXPR [--window N] | dyknow top [--interval S] [--once] | dyknow doctor [--listen ENDPOINT]
+    dyknow paths                                   (offline)
 
 Client commands reach a manager with ``--connect ENDPOINT`` (default tcp/127.0.0.1:7447) and
 ``--manager NAME`` (default ``dyknow``).
@@ -43,18 +45,19 @@ import os
 import sys
 from collections.abc import Sequence
 
-from dyknow.cli import client, demo, mcap, offline, ros2, serve
+from dyknow.cli import client, demo, mcap, offline, operate, ros2, serve
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError
-from dyknow.errors import DyKnowError, SpecError
 
 __all__ = ["DEFAULT_MANAGER", "main"]
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser(selected: str | None = None) -> argparse.ArgumentParser:
+    """The command line's parser; ``selected``: only that command's options are declared (the
+    others are listed), so that a command imports what it needs and no more."""
     parser = argparse.ArgumentParser(prog="dyknow", description="Reconfigurable stream reasoning on Eclipse Zenoh.")
     parser.add_argument("--version", action="version", version=f"dyknow {_version()}")
-    commands = Commands(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"))
-    for family in (serve, offline, demo, mcap, client, ros2):
+    commands = Commands(parser.add_subparsers(dest="command", required=True, metavar="COMMAND"), selected)
+    for family in (serve, offline, demo, mcap, client, operate, ros2):
         family.add_commands(commands)
     return parser
 
@@ -67,9 +70,12 @@ def _version() -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit code."""
-    parser = _parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = _parser(selected=next((word for word in argv if not word.startswith("-")), ""))
     args = parser.parse_args(argv)
     logging.basicConfig(level=os.environ.get("DYKNOW_LOG", "WARNING").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from dyknow.errors import DyKnowError, SpecError
+
     try:
         return int(args.fn(args))
     except UsageError as exc:

@@ -13,9 +13,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterable
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from dyknow.cli.common import (
     DEFAULT_MANAGER,
@@ -28,16 +26,35 @@ from dyknow.cli.common import (
     print_json,
     read_limits,
     report_result,
+    shipped,
 )
 from dyknow.cli.ros2 import echo_ros2
-from dyknow.client import ClockView
-from dyknow.errors import DyKnowError, did_you_mean
-from dyknow.message import Message, describe_payload
-from dyknow.model import STANDBY_MODES
+
+if TYPE_CHECKING:
+    from dyknow.client import ClockView
+    from dyknow.message import Message
+
+
+def traceback_tail(text: object, frames: int = 3) -> list[str]:
+    """The last ``frames`` frames of a unit's traceback (where in its code it failed), as lines;
+    none when there is no traceback."""
+    if not isinstance(text, str) or not text.strip():
+        return []
+    lines = text.rstrip().splitlines()
+    starts = [i for i, line in enumerate(lines) if line.startswith("  File ")]
+    if not starts:
+        return lines[-1:]
+    shown = lines[starts[-frames] if len(starts) >= frames else starts[0] :]
+    return [f"traceback (last {min(frames, len(starts))} of {len(starts)} frames):", *shown]
 
 
 def cmd_spawn(args: argparse.Namespace) -> int:
-    """spawn a unit on a manager"""
+    """spawn a unit on a manager, from a transformation of its library
+
+    examples:
+      dyknow spawn periodic-source src --param rate_hz=20
+      dyknow spawn relay r1 --bind in=dyknow/robot/src/out --manager robot
+      dyknow spawn doubler double --param factor=3 --bind in=sensors/x --protect"""
     params, bindings = parse_pairs(args.param, "--param"), parse_pairs(args.bind, "--bind")  # usage first, then connect
     with open_client(args) as client:
         info = client.spawn(args.label, args.name, protected=args.protect, params=params, bindings=bindings)
@@ -46,6 +63,7 @@ def cmd_spawn(args: argparse.Namespace) -> int:
         yield f"spawned {info['name']} ({info['label']}): {info['state']}" + (" [protected]" if info["protected"] else "")
         if info.get("error"):
             yield f"  error: {info['error']}"
+            yield from (f"  {line}" for line in traceback_tail(info.get("traceback")))
 
     report_result(args, info, text)
     return 1 if info["state"] == "failed" else 0
@@ -79,6 +97,7 @@ def cmd_model(args: argparse.Namespace) -> int:
                     yield f"      {port} -> {key}"
                 if unit.get("error"):
                     yield f"      error: {unit['error']}"
+                    yield from (f"      {line}" for line in traceback_tail(unit.get("traceback")))
             if not model["units"]:
                 yield "  no units"
             for request in model.get("requests", []):
@@ -99,6 +118,7 @@ def cmd_model(args: argparse.Namespace) -> int:
 def cmd_managers(args: argparse.Namespace) -> int:
     """list every manager reachable (host, library size, units, requests, its clock's offset as --manager estimates it),
     then those --manager knew and lost (since when, why); exit 1 when none is reachable"""
+    from dyknow.errors import DyKnowError
     from dyknow.reach import DEFINITE
 
     with open_client(args) as client:
@@ -151,7 +171,12 @@ def cmd_managers(args: argparse.Namespace) -> int:
 
 
 def cmd_config(args: argparse.Namespace) -> int:
-    """get or set a unit's port bindings"""
+    """get or set a unit's port bindings (set: rebinds the ports given, atomically, while it runs)
+
+    examples:
+      dyknow config get r1
+      dyknow config set r1 out=robot/elsewhere
+      dyknow config set fusion in1=dyknow/robot/left/out in2=dyknow/robot/right/out"""
     if args.action == "get" and args.bindings:  # usage first, then connect
         raise UsageError("config get takes no PORT=KEY pairs; did you mean 'config set'?")
     if args.action != "get" and not args.bindings:
@@ -164,7 +189,14 @@ def cmd_config(args: argparse.Namespace) -> int:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    """show a unit's statistics, or without a name the manager's lanes and load"""
+    """show a unit's statistics: per port messages, bytes, drops, lost, and for inputs latency (age since
+    the data's origin) and hop (time since the previous unit sent it) percentiles; its error and traceback.
+    Without a name: the manager's lanes, how busy each is, and its overload state
+
+    examples:
+      dyknow stats r1
+      dyknow stats tracker --manager station --json
+      dyknow stats"""
     if args.name is None:
         return _manager_stats(args)
     with open_client(args) as client:
@@ -186,6 +218,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
             yield line
         if stats.get("error"):
             yield f"  error: {stats['error']}"
+            yield from (f"  {line}" for line in traceback_tail(stats.get("traceback"), frames=5))
 
     report_result(args, stats, text)
     return 0
@@ -234,7 +267,11 @@ def cmd_remove_spec(args: argparse.Namespace) -> int:
 
 
 def cmd_request(args: argparse.Namespace) -> int:
-    """ask a manager for a stream by tag; prints its key"""
+    """ask a manager for a stream by its meaning (a tag); prints the key it flows on, kept until released
+
+    examples:
+      dyknow request 'BallTrack(field)'
+      dyknow request 'BallTrack(field)' --standby warm --require 'not historically[0, 500ms] BallTrack(field).predicted'"""
     with open_client(args) as client:
         key = client.request(args.tag, standby=args.standby, require=args.require, keep=True)
     report_result(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require, "kept": True}, key)
@@ -289,6 +326,10 @@ def cmd_adaptations(args: argparse.Namespace) -> int:
 def _printable(payload: Any) -> str:
     """A payload as a user can paste it: JSON for JSON-like values and text, a description of
     arrays and bytes."""
+    import numpy as np
+
+    from dyknow.message import describe_payload
+
     if isinstance(payload, (np.ndarray, bytes, bytearray, memoryview)):
         return describe_payload(payload)
     try:
@@ -299,6 +340,7 @@ def _printable(payload: Any) -> str:
 
 def cmd_echo(args: argparse.Namespace) -> int:
     """print the messages published on a key expression, with their age (corrected by --manager's clock offsets; this host's clock taken as its)"""
+    from dyknow.errors import did_you_mean
     from dyknow.reach import DEFINITE
 
     if args.count is not None and args.count <= 0:
@@ -365,7 +407,12 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:
-    """monitor a temporal formula: its verdicts as they are decided (or over a recording, with --mcap)"""
+    """monitor a temporal formula: its verdicts as they are decided (or over a recording, with --mcap)
+
+    examples:
+      dyknow monitor 'historically[0, 1s] BallTrack(field).tracked > 0' --duration 10
+      dyknow monitor 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'
+      dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x"""
     if args.mcap is not None:
         return _monitor_recording(args)
     if args.bind:
@@ -435,70 +482,99 @@ def _monitor_recording(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
-    p = command("spawn", cmd_spawn, client=True)
-    p.add_argument("label")
-    p.add_argument("name")
-    p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit, unless forced (by an admin)")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
-    p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
 
-    p = command("destroy", cmd_destroy, client=True)
-    p.add_argument("name")
-    p.add_argument("--force", action="store_true", help="destroy a protected unit too (an admin's call, when the manager has roles)")
+    def spawn_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("label", help="the transformation's label in the manager's library (dyknow model lists them), e.g. relay")
+        p.add_argument("name", help="the new unit's name, unique on the manager, e.g. r1 (its outputs default to dyknow/MANAGER/NAME/PORT)")
+        p.add_argument("--protect", action="store_true", help="refuse destroy requests for this unit, unless forced (by an admin)")
+        p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="override a param (repeatable)")
+        p.add_argument("--bind", action="append", default=[], metavar="PORT=KEY", help="bind a port to a key (repeatable)")
 
-    p = command("model", cmd_model, client=True)
-    p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')
+    cmds.command("spawn", cmd_spawn, spawn_options, client=True)
 
-    command("managers", cmd_managers, client=True)
+    def destroy_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("name", help="the unit's name")
+        p.add_argument("--force", action="store_true", help="destroy a protected unit too (an admin's call, when the manager has roles)")
 
-    p = command("config", cmd_config, client=True)
-    p.add_argument("action", choices=["get", "set"])
-    p.add_argument("name")
-    p.add_argument("bindings", nargs="*", metavar="PORT=KEY")
+    cmds.command("destroy", cmd_destroy, destroy_options, client=True)
 
-    p = command("stats", cmd_stats, client=True)
-    p.add_argument("name", nargs="?", help="a unit (default: the manager itself: its lanes, how busy each is, its overload state)")
+    def model_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')
 
-    p = command("add-spec", cmd_add_spec, client=True)
-    p.add_argument("file")
+    cmds.command("model", cmd_model, model_options, client=True)
 
-    p = command("remove-spec", cmd_remove_spec, client=True)
-    p.add_argument("label")
+    cmds.command("managers", cmd_managers, client=True)
 
-    p = command("request", cmd_request, client=True)
-    p.add_argument("tag")
-    p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
-                   help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
-                        "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
-    p.add_argument("--require", action="append", default=[], metavar="FORMULA",
-                   help="a temporal formula the stream must satisfy: a false verdict moves it to the next-best configuration "
-                        "(repeatable; see dyknow monitor)")  # fmt: skip
+    def config_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("action", choices=["get", "set"], help="get: print the bindings; set: rebind the ports given")
+        p.add_argument("name", help="the unit's name")
+        p.add_argument("bindings", nargs="*", metavar="PORT=KEY", help="with set: a port and the key (or key expression, for an input) to bind it to")
 
-    p = command("release", cmd_release, client=True)
-    p.add_argument("key")
-    p.add_argument("--force", action="store_true",
-                   help="give back every reference, whoever requested it (an admin's call on a manager with roles); "
-                        "without it, only what this caller requested")  # fmt: skip
+    cmds.command("config", cmd_config, config_options, client=True)
 
-    p = command("measure", cmd_measure, client=True)
-    p.add_argument("values", nargs="+", metavar="NAME=VALUE")
+    def stats_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("name", nargs="?",
+                       help="the unit's name (dyknow model lists them; default: the manager itself: its lanes, how busy each is, "
+                            "its overload state)")  # fmt: skip
 
-    command("adaptations", cmd_adaptations, client=True)
+    cmds.command("stats", cmd_stats, stats_options, client=True)
 
-    p = command("monitor", cmd_monitor, client=True)
-    p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
-    p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
-    p.add_argument("--iso", action="store_true", help="print each verdict's time as ISO 8601 wall time (default: seconds since the command started)")
-    p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
-    p.add_argument(
-        "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
-    )
-    cmds.mcap_limit_options(p, prefix="with --mcap: ")
+    def add_spec_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("file", type=shipped, help="a spec file (@shipped/NAME.xml: one of dyknow's own), or - for standard input")
 
-    p = command("echo", cmd_echo, client=True)
-    p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=T] (rmw_zenoh) or ros2dds:/TOPIC?type=T (DDS), decoded")
-    p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
-    p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
-    cmds.ros2_domain_option(p)
+    cmds.command("add-spec", cmd_add_spec, add_spec_options, client=True)
+
+    def remove_spec_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("label", help="the transformation's label")
+
+    cmds.command("remove-spec", cmd_remove_spec, remove_spec_options, client=True)
+
+    def request_options(p: argparse.ArgumentParser) -> None:
+        from dyknow.model import STANDBY_MODES
+
+        p.add_argument("tag", help="what the stream means, a semantic tag such as 'BallTrack(field)' (quote it for the shell)")
+        p.add_argument("--standby", choices=STANDBY_MODES, metavar="MODE",
+                       help="'warm': keep the next-best configuration running, so a fault only moves the stream onto it; "
+                            "'none' (default): re-plan and spawn when the configuration breaks")  # fmt: skip
+        p.add_argument("--require", action="append", default=[], metavar="FORMULA",
+                       help="a temporal formula the stream must satisfy: a false verdict moves it to the next-best configuration "
+                            "(repeatable; see dyknow monitor)")  # fmt: skip
+
+    cmds.command("request", cmd_request, request_options, client=True)
+
+    def release_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("key", help="the key dyknow request printed")
+        p.add_argument("--force", action="store_true",
+                       help="give back every reference, whoever requested it (an admin's call on a manager with roles); "
+                            "without it, only what this caller requested")  # fmt: skip
+
+    cmds.command("release", cmd_release, release_options, client=True)
+
+    def measure_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("values", nargs="+", metavar="NAME=VALUE", help="a measurement and its value, e.g. battery=0.2 (a number, else text)")
+
+    cmds.command("measure", cmd_measure, measure_options, client=True)
+
+    cmds.command("adaptations", cmd_adaptations, client=True)
+
+    def monitor_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
+        p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
+        p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
+        p.add_argument("--iso", action="store_true",
+                       help="print each verdict's time as ISO 8601 wall time (default: seconds since the command started)")  # fmt: skip
+        p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
+        p.add_argument(
+            "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
+        )
+        cmds.mcap_limit_options(p, prefix="with --mcap: ")
+
+    cmds.command("monitor", cmd_monitor, monitor_options, client=True)
+
+    def echo_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("keyexpr", help="a key expression, or ros2:/TOPIC[?type=T] (rmw_zenoh) or ros2dds:/TOPIC?type=T (DDS), decoded")
+        p.add_argument("--count", type=int, metavar="N", help="exit after N messages")
+        p.add_argument("--timeout-total", type=float, metavar="S", help="give up after S seconds")
+        cmds.ros2_domain_option(p)
+
+    cmds.command("echo", cmd_echo, echo_options, client=True)

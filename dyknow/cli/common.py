@@ -1,26 +1,32 @@
 """What every command shares: usage errors, output (text or ``--json``), ``NAME=VALUE`` pairs, and the
 client that reaches a manager (``--connect``, TLS, ``--wait``).
+
+The command starts fast: this module and each family's imports only what parsing needs, and a
+command's options are declared only when that command is the one run (:class:`Commands`), so
+``dyknow --help`` imports none of the middleware and ``dyknow model`` none of the planner's.
 """
 
 from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
+import inspect
 import json
 import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from dyknow.client import Client
-from dyknow.recording import ReadLimits
-from dyknow.spec import DEFAULT_MAX_EXPANSIONS
-from dyknow.transport import DEFAULT_ENDPOINT
+if TYPE_CHECKING:
+    from dyknow.client import Client
+    from dyknow.recording.framing import ReadLimits
 
 DEFAULT_MANAGER = "dyknow"
+
+#: A command's options: a function that adds them to its parser (run only when the command is).
+Options = Callable[[argparse.ArgumentParser], None]
 
 
 class UsageError(Exception):
@@ -79,6 +85,26 @@ def seconds(text: str) -> float:
     return value
 
 
+def shipped(text: str) -> str:
+    """A path option's value, where ``@shipped`` and ``@testing`` name the shipped folders
+    (:func:`dyknow.resources.shipped_path`), so a documented command line works from any folder."""
+    from pathlib import Path
+
+    from dyknow.resources import shipped_path, specs_dir
+
+    try:
+        path = shipped_path(text)
+    except (ValueError, FileNotFoundError) as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    parts = Path(text).parts
+    if parts and parts[0] == "specs" and not Path(text).exists():  # the checkout's path, from another folder
+        shipped = Path("@shipped", *parts[1:]).as_posix()
+        with contextlib.suppress(FileNotFoundError):
+            if (specs_dir().joinpath(*parts[1:])).exists():
+                raise argparse.ArgumentTypeError(f"{text}: no such file in {Path.cwd()}; dyknow's shipped copy is {shipped} (dyknow paths)")
+    return path
+
+
 def name_list(text: str) -> list[str]:
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
@@ -93,10 +119,14 @@ def tls_files(args: argparse.Namespace) -> Any:
 
 
 def default_endpoint(tls: Any) -> str:
+    from dyknow.transport import DEFAULT_ENDPOINT
+
     return DEFAULT_ENDPOINT.replace("tcp/", "tls/", 1) if tls is not None else DEFAULT_ENDPOINT
 
 
 def open_client(args: argparse.Namespace) -> Client:
+    from dyknow.client import Client
+
     tls = tls_files(args)
     connect = args.connect or ([default_endpoint(tls)] if args.zenoh_config is None else [])
     client = Client(args.manager, connect=connect, zenoh_config=args.zenoh_config, timeout_s=args.timeout, tls=tls, lease_ms=args.lease_ms)
@@ -114,29 +144,82 @@ def open_client(args: argparse.Namespace) -> Client:
     return client
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """argparse's, but a command's examples (its epilog) are shown as written, line by line."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if text.startswith("examples:"):
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+def command_help(fn: Callable[..., Any]) -> tuple[str, str | None]:
+    """A command's help (the first paragraph of its function's docstring) and its examples (a
+    paragraph that starts with ``examples:``, shown as written)."""
+    doc = inspect.cleandoc(fn.__doc__ or "")
+    paragraphs = doc.split("\n\n")
+    examples = next((p for p in paragraphs if p.startswith("examples:")), None)
+    return " ".join(paragraphs[0].split()), examples
+
+
 class Commands:
-    """What each family's ``add_commands`` adds its commands with: the options every command of a
-    kind shares are declared here, once."""
+    """What each family's ``add_commands`` declares its commands with: the options every command
+    of a kind shares are declared here, once.
 
-    def __init__(self, sub: Any) -> None:
+    Every command is listed (``dyknow --help``, a typo's "invalid choice"), but its options are
+    added only when it is the command being run (``selected``, the first word of the command line
+    that is not an option; ``None``: every command, as the site's reference and the tests build
+    it). Declaring options imports what their defaults and choices come from, and a command
+    should not pay for its neighbours'.
+    """
+
+    def __init__(self, sub: Any, selected: str | None = None) -> None:
         self.sub = sub
+        self.selected = selected
 
-    def command(self, name: str, fn: Callable[[argparse.Namespace], int], client: bool = False) -> argparse.ArgumentParser:
-        """A subcommand whose help is ``fn``'s docstring; ``client``: it reaches a manager (the
-        client options: --connect, TLS, --manager, --timeout, --wait, --lease-ms)."""
-        help = (fn.__doc__ or "").strip()  # each command's docstring is its help
-        p: argparse.ArgumentParser = self.sub.add_parser(name, help=help, description=help)
+    def wanted(self, name: str) -> bool:
+        """Whether the options of command ``name`` are needed for this command line."""
+        return self.selected is None or self.selected == name
+
+    def command(self, name: str, fn: Callable[[argparse.Namespace], int], options: Options | None = None, client: bool = False) -> None:
+        """A subcommand whose help is ``fn``'s docstring and whose own options ``options`` adds;
+        ``client``: it reaches a manager (the client options: --connect, TLS, --manager,
+        --timeout, --wait, --lease-ms)."""
+        help, examples = command_help(fn)
+        p: argparse.ArgumentParser = self.sub.add_parser(name, help=help, description=help, epilog=examples, formatter_class=HelpFormatter)
         p.set_defaults(fn=fn)
+        if not self.wanted(name):
+            return
         p.add_argument("--json", action="store_true", help="machine-readable output")
         if client:
-            self.zenoh_options(p, connect_help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
-            p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
-            p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
-            p.add_argument("--wait", type=float, default=0.0, metavar="S",
-                           help="first wait up to S seconds for the manager to come up (one started just before); "
-                           "without it a manager that is not there is reported at once")  # fmt: skip
-            self.lease_option(p)
-        return p
+            self.client_options(p)
+        if options is not None:
+            options(p)
+
+    def group(self, name: str, help: str, description: str) -> Commands:
+        """A command of subcommands (``dyknow mcap cat``): the Commands to declare them with."""
+        p = self.sub.add_parser(name, help=help, description=description)
+        sub = p.add_subparsers(dest=f"{name}_command", required=True, metavar="COMMAND")
+        return Commands(sub, selected=None) if self.wanted(name) else _Listed(sub)
+
+    def client_options(self, p: argparse.ArgumentParser) -> None:
+        """The options of every command that reaches a manager."""
+        from dyknow.transport import DEFAULT_ENDPOINT
+
+        self.zenoh_options(p, connect_help=f"Zenoh endpoint of the manager (default {DEFAULT_ENDPOINT})")
+        p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=f"the manager's name (default {DEFAULT_MANAGER})")
+        p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for the manager (default 5)")
+        p.add_argument("--wait", type=float, default=0.0, metavar="S",
+                       help="first wait up to S seconds for the manager to come up (one started just before); "
+                       "without it a manager that is not there is reported at once")  # fmt: skip
+        self.lease_option(p)
+
+    @staticmethod
+    def connect_help(what: str = "Zenoh endpoint to connect to") -> str:
+        """``--connect``'s help, with the default endpoint."""
+        from dyknow.transport import DEFAULT_ENDPOINT
+
+        return f"{what} (default {DEFAULT_ENDPOINT})"
 
     @staticmethod
     def zenoh_options(p: argparse.ArgumentParser, connect_help: str) -> None:
@@ -169,6 +252,8 @@ class Commands:
     @staticmethod
     def limit_options(p: argparse.ArgumentParser) -> None:
         """--max-expansions, for every command that expands templates."""
+        from dyknow.spec.model import DEFAULT_MAX_EXPANSIONS
+
         p.add_argument("--max-expansions", type=positive_int, default=DEFAULT_MAX_EXPANSIONS, metavar="N",
                        help=f"refuse a template that expands to more specs (default {DEFAULT_MAX_EXPANSIONS})")  # fmt: skip
 
@@ -176,6 +261,8 @@ class Commands:
     def mcap_limit_options(p: argparse.ArgumentParser, prefix: str = "") -> None:
         """--max-chunk-bytes and --max-memory-bytes, for every command that reads MCAP files
         (``read_limits(args)`` gives them as ReadLimits); ``prefix`` starts their help."""
+        from dyknow.recording.framing import ReadLimits
+
         chunk, memory = ReadLimits().max_chunk_bytes, ReadLimits().max_memory_bytes
         p.add_argument("--max-chunk-bytes", type=positive_int, default=chunk, metavar="N",
                        help=f"{prefix}refuse a chunk declaring more bytes uncompressed, before reading it (default {chunk}: {chunk >> 20} MiB)")  # fmt: skip
@@ -185,14 +272,25 @@ class Commands:
 
 
 
+class _Listed(Commands):
+    """The subcommands of a group that is not the command being run: listed, no options."""
+
+    def wanted(self, name: str) -> bool:
+        return False
+
+
 def read_limits(args: argparse.Namespace) -> ReadLimits:
     """The ReadLimits of a command's --max-chunk-bytes and --max-memory-bytes."""
+    from dyknow.recording.framing import ReadLimits
+
     return ReadLimits(max_chunk_bytes=args.max_chunk_bytes, max_memory_bytes=args.max_memory_bytes)
 
 
 def payload_json(payload: Any) -> Any:
     """A payload as JSON can hold it: arrays described (also inside a JSON-like value: a ROS 2
     message's large arrays), bytes in base64 (the first 4 KiB)."""
+    import numpy as np
+
     if isinstance(payload, np.ndarray):
         return {"ndarray": {"dtype": str(payload.dtype), "shape": list(payload.shape)}}
     if isinstance(payload, (bytes, bytearray)):

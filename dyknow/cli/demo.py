@@ -35,21 +35,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
-    p = command("demo", cmd_demo)
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="how long to run (default 30 s; 6 s with --chain)")
-    p.add_argument("--robot-video", metavar="PATH", help="a video for the robot camera instead of the synthetic scene")
-    p.add_argument("--ceiling-video", metavar="PATH", help="a video for the ceiling camera instead of the synthetic scene")
-    p.add_argument("--out", default="dyknow-demo-report", metavar="DIR", help="where to write the report (default ./dyknow-demo-report)")
-    p.add_argument("--chain", action="store_true", help="the latency demo instead: a chain of relays, per-hop latency")
-    p.add_argument("--ui", action="store_true", help="serve the interactive tool beside the demo (dyknow ui) and print its URL")
-    p.add_argument("--ui-port", type=int, default=8321, metavar="PORT", help="the tool's port with --ui (default 8321; 0: any free port)")
-    p.add_argument(
-        "--no-standby", action="store_true", help="request the track without a warm standby (switches then build their configuration cold)"
-    )
-    p.add_argument("--distributed", action="store_true",
-                   help="the scenario across three manager processes (robot, field, station): battery drop, then a manager killed")  # fmt: skip
-    p.add_argument("--ros2", action="store_true",
-                   help="the robot camera as a ROS 2 node (rmw_zenoh) and the tracked ball published back to ROS 2")  # fmt: skip
-    p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")
-    p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (--chain; default 20 Hz)")
+
+    def demo_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--duration", type=float, default=None, metavar="S", help="how long to run (default 30 s; 6 s with --chain)")
+        p.add_argument("--robot-video", metavar="PATH", help="a video for the robot camera instead of the synthetic scene")
+        p.add_argument("--ceiling-video", metavar="PATH", help="a video for the ceiling camera instead of the synthetic scene")
+        p.add_argument("--out", default="dyknow-demo-report", metavar="DIR", help="where to write the report (default ./dyknow-demo-report)")
+        p.add_argument("--chain", action="store_true", help="the latency demo instead: a chain of relays, per-hop latency")
+        p.add_argument("--ui", action="store_true", help="serve the interactive tool beside the demo (dyknow ui) and print its URL")
+        p.add_argument("--ui-port", type=int, default=8321, metavar="PORT", help="the tool's port with --ui (default 8321; 0: any free port)")
+        p.add_argument(
+            "--no-standby", action="store_true", help="request the track without a warm standby (switches then build their configuration cold)"
+        )
+        p.add_argument("--distributed", action="store_true",
+                       help="the scenario across three manager processes (robot, field, station): battery drop, then a manager killed")  # fmt: skip
+        p.add_argument("--ros2", action="store_true",
+                       help="the robot camera as a ROS 2 node (rmw_zenoh) and the tracked ball published back to ROS 2")  # fmt: skip
+        p.add_argument("--hops", type=int, default=5, help="relays in the chain (--chain; default 5)")
+        p.add_argument("--rate", type=float, default=20.0, metavar="HZ", help="source rate (--chain; default 20 Hz)")
+
+    cmds.command("demo", cmd_demo, demo_options)

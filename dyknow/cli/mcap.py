@@ -11,7 +11,6 @@ import time
 from collections.abc import Iterable
 
 from dyknow.cli.common import Commands, UsageError, default_endpoint, parse_pairs, print_json, read_limits, report_result, tls_files
-from dyknow.transport import DEFAULT_ENDPOINT
 
 
 def _rate(text: str) -> float:
@@ -81,7 +80,12 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    """replay an MCAP file into Zenoh in log-time order, at the original pace"""
+    """replay an MCAP file into Zenoh in log-time order, at the original pace, once its consumers are
+    there (--wait); exit 1 when no message reached a subscriber
+
+    examples:
+      dyknow replay run.mcap
+      dyknow replay run.mcap --rate max --topics camera/front --remap camera/front=replayed/front"""
     from dyknow.recording import Player
 
     remap = parse_pairs(args.remap, "--remap")
@@ -102,12 +106,24 @@ def cmd_replay(args: argparse.Namespace) -> int:
         count = player.publish(
             connect=_zenoh_connect(args), zenoh_config=args.zenoh_config, tls=tls_files(args), stop=stop, wait_s=args.wait
         )
-    report_result(args, {"event": "done", "file": args.file, "messages": count}, f"replayed {count} messages from {args.file}")
+        unmatched = {key: n for key, n in player.unmatched.items() if n}
+    delivered = count - sum(unmatched.values())
+    report_result(args, {"event": "done", "file": args.file, "messages": count, "unmatched": unmatched},
+                  f"replayed {count} messages from {args.file}")  # fmt: skip
+    if count and not delivered:
+        print(f"dyknow: error: no subscriber matched any key while the {count} messages were put (waited up to --wait {args.wait:g} s "
+              f"for one first): nothing was delivered; start the consumer first (a manager's unit bound to the key, dyknow echo), "
+              "check --connect reaches it, or give a longer --wait", file=sys.stderr)  # fmt: skip
+        return 1
+    for key, n in unmatched.items():
+        print(f"dyknow: warning: {n} of the messages on {key!r} were put while no subscriber matched it: delivered to no one",
+              file=sys.stderr)  # fmt: skip
     return 0
 
 
 def cmd_mcap_cat(args: argparse.Namespace) -> int:
-    """print the messages in log-time order"""
+    """print the messages in log-time order (--json: one JSON object per message and line: topic, sequence,
+    log_time, publish_time, schema, message_encoding, data_b64)"""
     from dyknow.recording import Player
 
     with Player(args.file, topics=args.topics, recover=args.recover, decode=False, limits=read_limits(args)) as player:
@@ -160,57 +176,59 @@ def cmd_mcap_info(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
-    sub = cmds.sub
     zenoh_options = cmds.zenoh_options
-    p = command("record", cmd_record)
-    p.add_argument("keyexprs", nargs="+", metavar="KEYEXPR", help="key expressions to record, e.g. 'robot/**'")
-    p.add_argument("-o", "--output", required=True, metavar="FILE.mcap", help="the MCAP file to write")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
-    p.add_argument("--max-messages", type=int, metavar="N", help="stop after N messages")
-    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="chunk compression (default zstd)")
-    p.add_argument("--chunk-size", type=int, default=1024 * 1024, metavar="BYTES", help="uncompressed chunk size (default 1 MiB)")
-    zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
 
-    p = command("replay", cmd_replay)
-    p.add_argument("file", metavar="FILE.mcap")
-    p.add_argument(
-        "--rate", type=_rate, default=1.0, metavar="X", help="pace: 2 is twice as fast, 0.5 half, max as fast as possible (default 1)"
-    )
-    p.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
-    p.add_argument("--start", type=float, metavar="S", help="begin S seconds after the first message")
-    p.add_argument("--end", type=float, metavar="S", help="stop S seconds after the first message")
-    p.add_argument(
-        "--topics", nargs="+", action="extend", default=[], metavar="T", help="replay only these topics (names, keys or key expressions)"
-    )
-    p.add_argument(
-        "--remap", action="append", default=[], metavar="FROM=TO", help="replay topic FROM (or a prefix FROM/**) on key TO (repeatable)"
-    )
-    p.add_argument("--recover", action="store_true", help="replay what is valid in a truncated or corrupt file, with a warning")
-    p.add_argument(
-        "--wait", type=float, default=1.0, metavar="S", help="first wait up to S seconds for a subscriber on every key (default 1)"
-    )
-    cmds.mcap_limit_options(p)
-    zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
+    def record_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("keyexprs", nargs="+", metavar="KEYEXPR", help="key expressions to record, e.g. 'robot/**'")
+        p.add_argument("-o", "--output", required=True, metavar="FILE.mcap", help="the MCAP file to write")
+        p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+        p.add_argument("--max-messages", type=int, metavar="N", help="stop after N messages")
+        p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd", help="chunk compression (default zstd)")
+        p.add_argument("--chunk-size", type=int, default=1024 * 1024, metavar="BYTES", help="uncompressed chunk size (default 1 MiB)")
+        zenoh_options(p, connect_help=cmds.connect_help())
 
-    p = sub.add_parser("mcap", help="inspect MCAP files (cat, info)", description="inspect MCAP files, whoever wrote them")
-    mcap = p.add_subparsers(dest="mcap_command", required=True, metavar="COMMAND")
-    p = mcap.add_parser("cat", help=cmd_mcap_cat.__doc__, description=cmd_mcap_cat.__doc__)
-    p.set_defaults(fn=cmd_mcap_cat)
-    p.add_argument("file", metavar="FILE.mcap")
-    p.add_argument(
-        "--topics", nargs="+", action="extend", default=[], metavar="T", help="only these topics (names, keys or key expressions)"
-    )
-    p.add_argument(
-        "--json",
-        action="store_true",
-        help="one JSON object per message and line: topic, sequence, log_time, publish_time, schema, message_encoding, data_b64",
-    )
-    p.add_argument("--recover", action="store_true", help="print what is valid in a truncated or corrupt file, with a warning")
-    cmds.mcap_limit_options(p)
-    p = mcap.add_parser("info", help=cmd_mcap_info.__doc__, description=cmd_mcap_info.__doc__)
-    p.set_defaults(fn=cmd_mcap_info)
-    p.add_argument("file", metavar="FILE.mcap")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
-    p.add_argument("--recover", action="store_true", help="summarise what is valid in a truncated or corrupt file")
-    cmds.mcap_limit_options(p)
+    cmds.command("record", cmd_record, record_options)
+
+    def replay_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("file", metavar="FILE.mcap", help="an MCAP file (dyknow record's, or any writer's)")
+        p.add_argument(
+            "--rate", type=_rate, default=1.0, metavar="X", help="pace: 2 is twice as fast, 0.5 half, max as fast as possible (default 1)"
+        )
+        p.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
+        p.add_argument("--start", type=float, metavar="S", help="begin S seconds after the first message")
+        p.add_argument("--end", type=float, metavar="S", help="stop S seconds after the first message")
+        p.add_argument(
+            "--topics", nargs="+", action="extend", default=[], metavar="T", help="replay only these topics (names, keys or key expressions)"
+        )
+        p.add_argument(
+            "--remap", action="append", default=[], metavar="FROM=TO", help="replay topic FROM (or a prefix FROM/**) on key TO (repeatable)"
+        )
+        p.add_argument("--recover", action="store_true", help="replay what is valid in a truncated or corrupt file, with a warning")
+        p.add_argument(
+            "--wait", type=float, default=5.0, metavar="S",
+            help="first wait up to S seconds for a subscriber on every key (default 5; it starts as soon as every key has one); "
+            "exit 1 when no message reached a subscriber"
+        )
+        cmds.mcap_limit_options(p)
+        zenoh_options(p, connect_help=cmds.connect_help())
+
+    cmds.command("replay", cmd_replay, replay_options)
+
+    mcap = cmds.group("mcap", help="inspect MCAP files (cat, info)", description="inspect MCAP files, whoever wrote them")
+
+    def cat_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("file", metavar="FILE.mcap", help="an MCAP file")
+        p.add_argument(
+            "--topics", nargs="+", action="extend", default=[], metavar="T", help="only these topics (names, keys or key expressions)"
+        )
+        p.add_argument("--recover", action="store_true", help="print what is valid in a truncated or corrupt file, with a warning")
+        cmds.mcap_limit_options(p)
+
+    mcap.command("cat", cmd_mcap_cat, cat_options)
+
+    def info_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("file", metavar="FILE.mcap", help="an MCAP file")
+        p.add_argument("--recover", action="store_true", help="summarise what is valid in a truncated or corrupt file")
+        cmds.mcap_limit_options(p)
+
+    mcap.command("info", cmd_mcap_info, info_options)

@@ -7,9 +7,7 @@ import sys
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, name_list, parse_pairs, parse_value, print_json, report_result
-from dyknow.errors import SpecError
-from dyknow.spec import load_specs
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, name_list, parse_pairs, parse_value, print_json, report_result, shipped
 
 
 def _ontology(paths: Sequence[str]) -> Any:
@@ -19,6 +17,8 @@ def _ontology(paths: Sequence[str]) -> Any:
 
 
 def _load(args: argparse.Namespace) -> list[Any]:
+    from dyknow.spec import load_specs
+
     ontology = _ontology(getattr(args, "ontology", []))
     return load_specs(args.paths, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
 
@@ -32,10 +32,56 @@ def cmd_certs(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_paths(args: argparse.Namespace) -> int:
+    """print where dyknow's shipped files are, and the names that reach them from any folder
+    (@shipped, @testing: --specs @shipped --ontology @shipped/dyknow.ttl)
+
+    examples:
+      dyknow paths
+      dyknow manager --specs @shipped --ontology @shipped/dyknow.ttl
+      dyknow validate @testing/scenario-station.xml"""
+    import sys as _sys
+    from pathlib import Path
+
+    import dyknow
+    from dyknow.resources import SHIPPED_NAMES, shipped_path
+
+    folders = {name: shipped_path(name) for name in SHIPPED_NAMES}
+    files = {name: sorted(p.name for p in Path(folder).iterdir() if p.suffix in (".xml", ".ttl", ".xsd")) for name, folder in folders.items()}
+    data = {
+        "version": dyknow.__version__,
+        "package": str(Path(dyknow.__file__).resolve().parent),
+        "python": _sys.executable,
+        "folders": {name: {"path": folders[name], "holds": what, "files": files[name]} for name, what in SHIPPED_NAMES.items()},
+    }
+
+    def text() -> Iterable[str]:
+        yield f"dyknow {data['version']} in {data['package']} (python {data['python']})"
+        for name, what in SHIPPED_NAMES.items():
+            yield f"{name:<10} {folders[name]}"
+            yield f"{'':<10} {what}: {', '.join(files[name])}"
+
+    report_result(args, data, text)
+    return 0
+
+
 def cmd_validate(args: argparse.Namespace) -> int:
-    """check spec files; exit 1 with one PATH:LINE: message per error"""
+    """check spec files, and that the module and class each <source> names can be found as a
+    manager would find them (nothing is imported); exit 1 with one PATH:LINE: message per error
+
+    examples:
+      dyknow validate specs/ --path .                  # your specs, your units' package in this folder
+      dyknow validate @shipped --ontology @shipped/dyknow.ttl
+      dyknow validate specs/ --skip-sources            # away from the units' code: the specs alone"""
+    from dyknow.errors import SpecError
+    from dyknow.spec.sources import source_issues
+
     try:
         specs = _load(args)
+        if not args.skip_sources:
+            issues = source_issues(specs, args.path)
+            if issues:
+                raise SpecError(issues)
     except SpecError as exc:
         for issue in exc.issues:
             print(str(issue), file=sys.stderr)
@@ -82,6 +128,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     """plan a configuration for a tag, offline; exit 1 with the explanation when none exists"""
     from dyknow.errors import PlanningError
     from dyknow.planner import plan
+    from dyknow.resources import shipped_path
+    from dyknow.spec import load_specs
 
     ontology = _ontology(args.ontology)
     specs = load_specs(args.specs, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
@@ -89,6 +137,10 @@ def cmd_plan(args: argparse.Namespace) -> int:
     individuals = ontology.individuals if ontology is not None else None
     peers: dict[str, list[Any]] = {}
     for name, path in ((n, p) for item in args.peer for n, p in parse_pairs([item], "--peer").items()):
+        try:
+            path = shipped_path(path)
+        except (ValueError, FileNotFoundError) as exc:
+            raise UsageError(f"--peer {name}={path}: {exc}") from None
         peers.setdefault(name, []).extend(load_specs([path], individuals=individuals, max_expansions=args.max_expansions))
     try:
         result = plan(args.request, specs, ontology, (), set(args.unavailable), measurements, manager=args.manager, peers=peers)
@@ -111,31 +163,47 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
     limit_options = cmds.limit_options
-    p = command("certs", cmd_certs)
-    p.add_argument("dir", metavar="DIR", help="where to write ca.pem, ca.key and NAME.pem, NAME.key (an existing CA there is reused)")
-    p.add_argument("--names", required=True, type=name_list, metavar="A,B,C", help="the certificates' common names")
-    p.add_argument("--hosts", type=name_list, default=["localhost", "127.0.0.1"], metavar="H,H",
-                   help="host names and addresses the certificates are valid for (default localhost,127.0.0.1)")  # fmt: skip
 
-    p = command("validate", cmd_validate)
-    limit_options(p)
-    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+    def certs_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("dir", metavar="DIR", help="where to write ca.pem, ca.key and NAME.pem, NAME.key (an existing CA there is reused)")
+        p.add_argument("--names", required=True, type=name_list, metavar="A,B,C", help="the certificates' common names")
+        p.add_argument("--hosts", type=name_list, default=["localhost", "127.0.0.1"], metavar="H,H",
+                       help="host names and addresses the certificates are valid for (default localhost,127.0.0.1)")  # fmt: skip
 
-    p = command("expand", cmd_expand)
-    limit_options(p)
-    p.add_argument("paths", nargs="+", metavar="PATH", help="spec file or directory of .xml specs")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontologies for <arg class=...>")
+    cmds.command("certs", cmd_certs, certs_options)
+    cmds.command("paths", cmd_paths)
 
-    p = command("plan", cmd_plan)
-    limit_options(p)
-    p.add_argument("--specs", action="extend", nargs="+", required=True, metavar="PATH", help="spec files or directories")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files")
-    p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")
-    p.add_argument("--unavailable", action="extend", nargs="+", default=[], metavar="LABEL", help="transformations not to use")
-    p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
-    p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
-    p.add_argument("--peer", action="append", default=[], metavar="NAME=PATH",
-                   help="another manager's library (spec file or directory), to plan across managers; repeatable")  # fmt: skip
+    def validate_options(p: argparse.ArgumentParser) -> None:
+        limit_options(p)
+        p.add_argument("--path", action="append", default=[], metavar="DIR",
+                       help="a folder to find units' modules in, besides the spec files' own folders (as dyknow manager --path)")  # fmt: skip
+        p.add_argument("--skip-sources", action="store_true", help="do not look for the modules of <source> (specs checked away from their code)")
+        p.add_argument("paths", nargs="+", type=shipped, metavar="PATH", help="spec file or directory of .xml specs (@shipped: dyknow's own)")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="ontologies for <arg class=...> (@shipped/dyknow.ttl: the example ontology)")  # fmt: skip
+
+    cmds.command("validate", cmd_validate, validate_options)
+
+    def expand_options(p: argparse.ArgumentParser) -> None:
+        limit_options(p)
+        p.add_argument("paths", nargs="+", type=shipped, metavar="PATH", help="spec file or directory of .xml specs (@shipped: dyknow's own)")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="ontologies for <arg class=...> (@shipped/dyknow.ttl: the example ontology)")  # fmt: skip
+
+    cmds.command("expand", cmd_expand, expand_options)
+
+    def plan_options(p: argparse.ArgumentParser) -> None:
+        limit_options(p)
+        p.add_argument("--specs", action="extend", nargs="+", required=True, type=shipped, metavar="PATH",
+                       help="spec files or directories (@shipped: dyknow's own, @testing: the scenario's)")  # fmt: skip
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="ontology files (@shipped/dyknow.ttl: the example ontology)")  # fmt: skip
+        p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")
+        p.add_argument("--unavailable", action="extend", nargs="+", default=[], metavar="LABEL", help="transformations not to use")
+        p.add_argument("--measure", action="extend", nargs="+", default=[], metavar="NAME=VALUE", help="latest measurements")
+        p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help="manager name used in the planned keys")
+        p.add_argument("--peer", action="append", default=[], metavar="NAME=PATH",
+                       help="another manager's library (spec file or directory), to plan across managers; repeatable")  # fmt: skip
+
+    cmds.command("plan", cmd_plan, plan_options)

@@ -12,14 +12,13 @@ from collections.abc import Iterable
 from typing import Any
 
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, open_client, payload_json, report_result, ros2_domain
-from dyknow.errors import DyKnowError
-from dyknow.message import describe_payload
-from dyknow.transport import DEFAULT_ENDPOINT
 
 
 def echo_ros2(args: argparse.Namespace) -> int:
     """``dyknow echo ros2:/TOPIC``: a ROS 2 topic decoded, with its latency (from the header stamp
     when the type has one, else from the publisher's source timestamp)."""
+    from dyknow.errors import DyKnowError
+    from dyknow.message import describe_payload
     from dyknow.ros2 import Received, Ros2Node, parse_binding
     from dyknow.ros2.convert import from_message, stamp_ns
 
@@ -105,15 +104,14 @@ def cmd_ros2_list(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    p = cmds.sub.add_parser("ros2", help="the ROS 2 graph on Zenoh (list)", description="the ROS 2 graph, as rmw_zenoh's tokens show it")
-    ros2 = p.add_subparsers(dest="ros2_command", required=True, metavar="COMMAND")
-    help = (cmd_ros2_list.__doc__ or "").strip()
-    p = ros2.add_parser("list", help=help, description=help)
-    p.set_defaults(fn=cmd_ros2_list)
-    p.add_argument("--json", action="store_true", help="machine-readable output")
-    cmds.zenoh_options(p, connect_help=f"Zenoh endpoint to connect to (default {DEFAULT_ENDPOINT})")
-    p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=argparse.SUPPRESS)
-    p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="seconds to gather the graph (default 1)")
-    p.add_argument("--dds", action="store_true", help="the topics on DDS (Cyclone DDS, loopback discovery) instead of rmw_zenoh")
-    cmds.ros2_domain_option(p)
-    cmds.lease_option(p)
+    ros2 = cmds.group("ros2", help="the ROS 2 graph on Zenoh (list)", description="the ROS 2 graph, as rmw_zenoh's tokens show it")
+
+    def list_options(p: argparse.ArgumentParser) -> None:
+        cmds.zenoh_options(p, connect_help=cmds.connect_help())
+        p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=argparse.SUPPRESS)
+        p.add_argument("--timeout", type=float, default=1.0, metavar="S", help="seconds to gather the graph (default 1)")
+        p.add_argument("--dds", action="store_true", help="the topics on DDS (Cyclone DDS, loopback discovery) instead of rmw_zenoh")
+        cmds.ros2_domain_option(p)
+        cmds.lease_option(p)
+
+    ros2.command("list", cmd_ros2_list, list_options)

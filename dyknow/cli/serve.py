@@ -19,12 +19,9 @@ from dyknow.cli.common import (
     positive_int,
     report_result,
     seconds,
+    shipped,
     tls_files,
 )
-from dyknow.executor import DEFAULT_MAX_LANES
-from dyknow.holders import DEFAULT_GRACE_S
-from dyknow.overload import DEFAULT_LAG_BUDGET_S
-from dyknow.transport import DEFAULT_ENDPOINT
 
 
 def _lanes(text: str) -> int:
@@ -151,19 +148,32 @@ def cmd_manager(args: argparse.Namespace) -> int:
                 file=sys.stderr,
                 flush=True,
             )
+        exporter = None
+        if args.metrics_port is not None:
+            from dyknow.metrics import MetricsExporter
+            from dyknow.security import is_loopback
+
+            exporter = MetricsExporter(manager.metrics, args.metrics_port, host=args.metrics_host)
+            if not is_loopback(args.metrics_host):
+                print(f"dyknow: warning: serving metrics on {exporter.url}, beyond this host: they name every unit and key, "
+                      "and the endpoint has no access control", file=sys.stderr, flush=True)  # fmt: skip
         # What start-up built lives as long as the manager: keep it out of the garbage
         # collector's way, so collections stay short while the robot runs.
         gc.collect()
         gc.freeze()
         endpoints = manager.endpoints
         stop = _stop_event()
+        metrics = f"; metrics on {exporter.url}" if exporter is not None else ""
         report_result(
             args,
-            {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library)},
-            f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs; Ctrl-C to stop",
-        )
+            {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library),
+             **({"metrics": exporter.url} if exporter is not None else {})},
+            f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs{metrics}; Ctrl-C to stop",
+        )  # fmt: skip
         _wait_for(stop)
         _exit_by_deadline(f"manager {args.name!r}")
+        if exporter is not None:
+            exporter.close()
     if not args.json:
         print(f"dyknow manager {args.name!r} stopped", flush=True)
     return 0
@@ -244,96 +254,118 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    command = cmds.command
     zenoh_options = cmds.zenoh_options
     lease_option = cmds.lease_option
     limit_options = cmds.limit_options
-    p = command("manager", cmd_manager)
-    p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
-    p.add_argument("--specs", action="extend", nargs="+", default=[], metavar="PATH", help="spec files or directories of .xml specs")
-    p.add_argument("--ontology", action="extend", nargs="+", default=[], metavar="FILE", help="ontology files (Turtle or RDF/XML)")
-    p.add_argument(
-        "--listen",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)",
-    )
-    zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
-                   help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
-    p.add_argument("--path", action="append", default=[], metavar="DIR",
-                   help="a folder to find units' modules in, besides the spec files' own folders (repeatable)")  # fmt: skip
-    p.add_argument("--data-root", action="append", default=[], metavar="DIR",
-                   help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
-    p.add_argument(
-        "--acl",
-        metavar="FILE",
-        help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
-        "router: [...], ROLE: [...] }, define: { ROLE: { like: viewer, calls: [SERVICE, ...], publish: [...], subscribe: [...] } } }); "
-        "every call must then be signed by its caller (dyknow clients with --tls-* do)",
-    )
-    p.add_argument(
-        "--max-request-bytes", type=positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
-    )
-    p.add_argument("--max-units", type=positive_int, default=1000, metavar="N", help="refuse spawns beyond this many units (default 1000)")
-    p.add_argument("--max-message-bytes", type=positive_int, default=64 << 20, metavar="N",
-                   help="drop larger messages (data or calls) while they arrive, before they take memory (default 64 MiB)")  # fmt: skip
-    p.add_argument("--max-expansion-bytes", type=positive_int, default=16 << 20, metavar="N",
-                   help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
-    p.add_argument("--max-formula-nodes", type=positive_int, default=500, metavar="N",
-                   help="refuse a temporal formula with more atoms, constants and operators (default 500)")  # fmt: skip
-    p.add_argument("--max-window", type=seconds, default=86400.0, metavar="S",
-                   help="refuse a formula whose interval bounds, or how far ahead it looks, pass this (default 86400: a day)")  # fmt: skip
-    p.add_argument("--max-monitor-cells", type=positive_int, default=2_000_000, metavar="N",
-                   help="what the formula monitors keep together, in cells of 12-73 bytes (250 at most); past their share they "
-                        "give old states up (default 2,000,000)")  # fmt: skip
-    p.add_argument("--max-monitor-nodes", type=positive_int, default=20_000, metavar="N",
-                   help="refuse a monitor or requirement past this many formula nodes in all (default 20,000)")  # fmt: skip
-    p.add_argument("--max-library-bytes", type=positive_int, default=8 << 20, metavar="N",
-                   help="refuse specs that would make the library larger, as its summary carries it (default 8 MiB; peers take 16)")  # fmt: skip
-    limit_options(p)
-    p.add_argument("--max-lanes", type=_lanes, default=DEFAULT_MAX_LANES, metavar="N",
-                   help=f"the most threads units run on, whatever the load (default {DEFAULT_MAX_LANES}; at least 2): past it, slow "
-                        "units share threads (units that ask for a thread of their own aside)")  # fmt: skip
-    p.add_argument("--overload-lag", type=_lag, default=DEFAULT_LAG_BUDGET_S, metavar="S",
-                   help=f"how long a message may wait for its unit's turn before the manager counts as overloaded and sheds its "
-                        f"least important units (default {DEFAULT_LAG_BUDGET_S:g})")  # fmt: skip
-    p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
-    p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",
-                   help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
-    p.add_argument("--dwell", type=seconds, metavar="S",
-                   help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
-    p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
-    lease_option(p)
-    cmds.ros2_domain_option(p)
-    p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
-    p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
-    p.add_argument("--ros2-dds-config", metavar="FILE",
-                   help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
-    p.add_argument("--max-ros2-message-bytes", type=positive_int, default=16 << 20, metavar="N",
-                   help="drop a larger ROS 2 message on a ros2:/ros2dds: input before decoding it, unless its binding says "
-                        "max_bytes= (default 16 MiB; untyped inputs: at most 1 MiB)")  # fmt: skip
 
-    p = command("ui", cmd_ui, client=True)
-    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
-    p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
-    p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
+    def manager_options(p: argparse.ArgumentParser) -> None:
+        from dyknow.executor import DEFAULT_MAX_LANES
+        from dyknow.holders import DEFAULT_GRACE_S
+        from dyknow.overload import DEFAULT_LAG_BUDGET_S
+        from dyknow.transport import DEFAULT_ENDPOINT
 
-    p = command("foxglove", cmd_foxglove, client=True)
-    p.add_argument("keyexprs", nargs="*", metavar="KEYEXPR", help="key expressions to serve (default dyknow/**: every stream)")
-    p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; the protocol has no access control)")
-    p.add_argument("--port", type=int, default=8765, help="the port to serve on (default 8765; 0: any free port)")
-    p.add_argument("--allow-origin", action="append", default=[], metavar="URL",
-                   help="a web page origin that may connect besides the Foxglove web app (https://app.foxglove.dev), "
-                        "e.g. a self-hosted Lichtblick; repeatable (desktop apps send no origin and are always served)")  # fmt: skip
+        p.add_argument("--name", default=DEFAULT_MANAGER, help=f"the manager's name (default {DEFAULT_MANAGER})")
+        p.add_argument("--specs", action="extend", nargs="+", default=[], type=shipped, metavar="PATH",
+                       help="spec files or directories of .xml specs (@shipped: dyknow's own; dyknow paths)")  # fmt: skip
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="ontology files (Turtle or RDF/XML; @shipped/dyknow.ttl: the example ontology)")  # fmt: skip
+        p.add_argument(
+            "--listen",
+            action="append",
+            default=[],
+            metavar="ENDPOINT",
+            help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)",
+        )
+        zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
+        p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
+                       help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
+        p.add_argument("--path", action="append", default=[], metavar="DIR",
+                       help="a folder to find units' modules in, besides the spec files' own folders (repeatable)")  # fmt: skip
+        p.add_argument("--data-root", action="append", default=[], metavar="DIR",
+                       help="folders whose files remote callers may name in file params (reads also: the spec folders); repeatable")  # fmt: skip
+        p.add_argument(
+            "--acl",
+            metavar="FILE",
+            help="roles by certificate common name (JSON5: { roles: { viewer: [...], operator: [...], admin: [...], manager: [...], "
+            "router: [...], ROLE: [...] }, define: { ROLE: { like: viewer, calls: [SERVICE, ...], publish: [...], subscribe: [...] } } }); "
+            "every call must then be signed by its caller (dyknow clients with --tls-* do)",
+        )
+        p.add_argument(
+            "--max-request-bytes", type=positive_int, default=1 << 20, metavar="N", help="refuse larger service requests (default 1 MiB)"
+        )
+        p.add_argument("--max-units", type=positive_int, default=1000, metavar="N", help="refuse spawns beyond this many units (default 1000)")
+        p.add_argument("--max-message-bytes", type=positive_int, default=64 << 20, metavar="N",
+                       help="drop larger messages (data or calls) while they arrive, before they take memory (default 64 MiB)")  # fmt: skip
+        p.add_argument("--max-expansion-bytes", type=positive_int, default=16 << 20, metavar="N",
+                       help="refuse a spec added remotely whose expansions would hold more text (default 16 MiB)")  # fmt: skip
+        p.add_argument("--max-formula-nodes", type=positive_int, default=500, metavar="N",
+                       help="refuse a temporal formula with more atoms, constants and operators (default 500)")  # fmt: skip
+        p.add_argument("--max-window", type=seconds, default=86400.0, metavar="S",
+                       help="refuse a formula whose interval bounds, or how far ahead it looks, pass this (default 86400: a day)")  # fmt: skip
+        p.add_argument("--max-monitor-cells", type=positive_int, default=2_000_000, metavar="N",
+                       help="what the formula monitors keep together, in cells of 12-73 bytes (250 at most); past their share they "
+                            "give old states up (default 2,000,000)")  # fmt: skip
+        p.add_argument("--max-monitor-nodes", type=positive_int, default=20_000, metavar="N",
+                       help="refuse a monitor or requirement past this many formula nodes in all (default 20,000)")  # fmt: skip
+        p.add_argument("--max-library-bytes", type=positive_int, default=8 << 20, metavar="N",
+                       help="refuse specs that would make the library larger, as its summary carries it (default 8 MiB; peers take 16)")  # fmt: skip
+        limit_options(p)
+        p.add_argument("--max-lanes", type=_lanes, default=DEFAULT_MAX_LANES, metavar="N",
+                       help=f"the most threads units run on, whatever the load (default {DEFAULT_MAX_LANES}; at least 2): past it, slow "
+                            "units share threads (units that ask for a thread of their own aside)")  # fmt: skip
+        p.add_argument("--overload-lag", type=_lag, default=DEFAULT_LAG_BUDGET_S, metavar="S",
+                       help=f"how long a message may wait for its unit's turn before the manager counts as overloaded and sheds its "
+                            f"least important units (default {DEFAULT_LAG_BUDGET_S:g})")  # fmt: skip
+        p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
+        p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",
+                       help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
+        p.add_argument("--dwell", type=seconds, metavar="S",
+                       help="how long a request keeps a configuration before switching to a better one (default 2)")  # fmt: skip
+        p.add_argument("--metrics-port", type=int, metavar="PORT",
+                       help="serve the manager's figures to Prometheus on http://--metrics-host:PORT/metrics (0: any free port; "
+                            "default: not served)")  # fmt: skip
+        p.add_argument("--metrics-host", default="127.0.0.1", metavar="ADDR",
+                       help="the address --metrics-port serves on (default 127.0.0.1; the figures name every unit and key)")  # fmt: skip
+        p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
+        lease_option(p)
+        cmds.ros2_domain_option(p)
+        p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
+        p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
+        p.add_argument("--ros2-dds-config", metavar="FILE",
+                       help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
+        p.add_argument("--max-ros2-message-bytes", type=positive_int, default=16 << 20, metavar="N",
+                       help="drop a larger ROS 2 message on a ros2:/ros2dds: input before decoding it, unless its binding says "
+                            "max_bytes= (default 16 MiB; untyped inputs: at most 1 MiB)")  # fmt: skip
 
-    p = command("router", cmd_router)
-    p.add_argument(
-        "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
-    )
-    zenoh_options(p, connect_help="another router to connect to (repeatable)")
-    p.add_argument(
-        "--acl", metavar="FILE", help="enforce these roles at the router's links (the managers' ACL file; see dyknow manager --acl)"
-    )
-    lease_option(p)
+    cmds.command("manager", cmd_manager, manager_options)
+
+    def ui_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
+        p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
+        p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
+
+    cmds.command("ui", cmd_ui, ui_options, client=True)
+
+    def foxglove_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("keyexprs", nargs="*", metavar="KEYEXPR", help="key expressions to serve (default dyknow/**: every stream)")
+        p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; the protocol has no access control)")
+        p.add_argument("--port", type=int, default=8765, help="the port to serve on (default 8765; 0: any free port)")
+        p.add_argument("--allow-origin", action="append", default=[], metavar="URL",
+                       help="a web page origin that may connect besides the Foxglove web app (https://app.foxglove.dev), "
+                            "e.g. a self-hosted Lichtblick; repeatable (desktop apps send no origin and are always served)")  # fmt: skip
+
+    cmds.command("foxglove", cmd_foxglove, foxglove_options, client=True)
+
+    def router_options(p: argparse.ArgumentParser) -> None:
+        from dyknow.transport import DEFAULT_ENDPOINT
+
+        p.add_argument(
+            "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
+        )
+        zenoh_options(p, connect_help="another router to connect to (repeatable)")
+        p.add_argument(
+            "--acl", metavar="FILE", help="enforce these roles at the router's links (the managers' ACL file; see dyknow manager --acl)"
+        )
+        lease_option(p)
+
+    cmds.command("router", cmd_router, router_options)

@@ -270,7 +270,7 @@ class BallDemo:
         with self._events_lock:
             self.events.append(event)
 
-    def _event_line(self, e: AdaptationEvent) -> str:
+    def _event_line(self, e: AdaptationEvent, specs: dict[str, TransformationSpec] | None = None) -> str:
         if e.kind == "degraded":
             return f">>> request degraded ({e.cause}): {e.detail}"
         old = " -> ".join(x for x in e.old if "camera" in x) or "?"
@@ -278,7 +278,7 @@ class BallDemo:
         times = f"adapted in {e.adaptation_ms:.1f} ms" if e.adaptation_ms is not None else ""
         if e.recovery_ms is not None:
             times += f", stream recovered in {e.recovery_ms:.1f} ms"
-        return f">>> adaptation #{e.id}: {e.cause}: {old} => {new}; {times}"
+        return f">>> adaptation #{e.id}: {_explained(e, specs or {})}: {old} => {new}; {times}"
 
     # ------------------------------------------------------------------ the run
 
@@ -307,6 +307,7 @@ class BallDemo:
                 for spec in video_localization(["top", "ceiling"]):
                     manager.add_transformation(spec)
             manager.on_adaptation(self._on_adaptation)
+            specs_by_label = {spec.label: spec for spec in manager.library}
             scene = Scene(seed=self.seed, epoch_ns=epoch_ns) if self.synthetic else None
             source = "the synthetic scene" if self.synthetic else f"videos {self.robot_video} / {self.ceiling_video}"
             self.say(f"dyknow demo: tracking a ball on {source}; manager 'demo' on {', '.join(manager.endpoints)}")
@@ -356,13 +357,13 @@ class BallDemo:
                     level = self.battery.level(t)
                     monitor.session.put("dyknow/measurements/battery", json.dumps({"value": round(level, 3)}))
                     battery_trace.append((t, level))
-                    self._print_events()
+                    self._print_events(specs_by_label)
                     if t >= next_show:
                         self._show(manager, key, log, scene, rates, t, level, verdicts)
                         next_show += 1.0
                     cpu.sample(any(r.standby for r in manager.requests() if r.key == key))
                     time.sleep(0.25)
-            self._print_events()
+            self._print_events(specs_by_label)
             frame = self._annotated_frame(manager, log)
             report = self._report(manager, key, log, scene, battery_trace, frame, info.tag, verdicts, cpu, driver)
             if driver is not None:  # after the report: its publisher gone, the camera's unit fails (as it should)
@@ -371,7 +372,10 @@ class BallDemo:
                 ui.close()
         return report
 
-    def _print_events(self) -> None:
+    def _print_events(self, specs: dict[str, TransformationSpec]) -> None:
+        """Print the adaptations not printed yet, each with its recovery time when the stream is
+        back; one still recovering is printed anyway before the next status line (which shows
+        the new camera already), and its recovery on a line of its own once it comes."""
         with self._events_lock:
             events = list(self.events)
         for e in events:
@@ -379,14 +383,16 @@ class BallDemo:
                 continue
             if e.kind == "adapted":
                 done = [x for x in events if x.id == e.id and x.kind == "recovered"]
-                if not done:
-                    continue  # wait for its recovery time
                 self._printed.add((e.id, "adapted"))
-                self._printed.add((e.id, "recovered"))
-                self.say(self._event_line(done[0]))
+                if done:
+                    self._printed.add((e.id, "recovered"))
+                self.say(self._event_line(done[0] if done else e, specs))
+            elif e.kind == "recovered" and e.recovery_ms is not None:
+                self._printed.add((e.id, e.kind))
+                self.say(f"    (#{e.id}: the stream recovered in {e.recovery_ms:.1f} ms)")
             elif e.kind == "degraded":
                 self._printed.add((e.id, e.kind))
-                self.say(self._event_line(e))
+                self.say(self._event_line(e, specs))
 
     def _show(
         self, manager: Manager, key: str, log: TrackLog, scene: Any, rates: _Rates, t: float, level: float, verdicts: VerdictLog | None
@@ -471,7 +477,9 @@ class BallDemo:
                 grab.got.wait(1.0)
                 break
             time.sleep(0.05)
-        return grab.frame
+        camera = "the robot's camera" if cam == "top" else "the ceiling camera"
+        return _captioned(grab.frame, f"dyknow demo, the end of the run: {camera}, as the stream AnnotatedImage({cam}) shows it: "
+                          "the ball the detector found circled, with its confidence")  # fmt: skip
 
     def _report(
         self,
@@ -511,6 +519,51 @@ class BallDemo:
             standby={"warm": self.standby, **cpu.shares()},
             ros2=driver.summary() if driver is not None else None,
         )
+
+
+def _captioned(frame: Any, caption: str) -> Any:
+    """``frame`` with ``caption`` in a band below it (frame.png says what it shows)."""
+    if frame is None:
+        return None
+    import cv2
+    import numpy as np
+
+    height, width = frame.shape[:2]
+    words, lines, line = caption.split(), [], ""
+    scale = max(0.4, width / 1400)
+    for word in words:  # wrap to the frame's width
+        trial = f"{line} {word}".strip()
+        if cv2.getTextSize(trial, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][0] > width - 16 and line:
+            lines.append(line)
+            line = word
+        else:
+            line = trial
+    lines.append(line)
+    step = int(cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, scale, 1)[0][1] * 1.9)
+    band = np.full((step * len(lines) + 10, width, 3), 255, dtype=np.uint8)
+    for i, text in enumerate(lines):
+        cv2.putText(band, text, (8, step * (i + 1)), cv2.FONT_HERSHEY_SIMPLEX, scale, (40, 40, 40), 1, cv2.LINE_AA)
+    return np.vstack([frame if frame.ndim == 3 else cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR), band])
+
+
+def _explained(e: AdaptationEvent, specs: dict[str, TransformationSpec]) -> str:
+    """An adaptation's cause, and for a measurement the constraints it breaks or meets again
+    (``battery = 0.386`` alone does not say the robot camera needs ``battery >= 0.25``)."""
+    if not e.cause.startswith("measurement "):
+        return e.cause
+    name, _, raw = e.cause.removeprefix("measurement ").partition(" = ")
+    try:
+        value: float | str = float(raw.split(",")[0])
+    except ValueError:
+        return e.cause
+    said = []
+    for label in dict.fromkeys([*e.old, *e.new]):
+        spec = specs.get(label)
+        for c in spec.constraints if spec is not None else ():
+            if c.measure == name:
+                state = "holds again" if c.holds(value) else "broken"
+                said.append(f"{label} needs {c.measure} {c.op} {c.value}: {state}")
+    return e.cause + (f" ({'; '.join(said)})" if said else "")
 
 
 def _chain(manager: Manager, key: str) -> list[tuple[str, str]]:
@@ -575,6 +628,11 @@ def run_ball_demo(
     ros2: bool = False,
 ) -> int:
     """The ``dyknow demo`` command; returns an exit code."""
+    import logging
+    import os
+
+    if not os.environ.get("DYKNOW_LOG"):  # the demo prints each adaptation itself (>>>): not twice, as a log warning too
+        logging.getLogger("dyknow.adaptation").setLevel(logging.ERROR)
     demo = BallDemo(
         duration_s=duration_s,
         robot_video=robot_video,

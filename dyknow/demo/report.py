@@ -151,14 +151,14 @@ def _plot(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax_x, ax_y, ax_b) = plt.subplots(3, 1, figsize=(10, 7), sharex=True, gridspec_kw={"height_ratios": [3, 3, 1.5]})
+    fig, (ax_x, ax_y, ax_b) = plt.subplots(3, 1, figsize=(11.5, 7), sharex=True, gridspec_kw={"height_ratios": [3, 3, 1.5]})
     t = [r["t_s"] for r in rows]
     for ax, coord in ((ax_x, "x"), (ax_y, "y")):
         ax.plot(t, [r[coord] for r in rows], ".", markersize=2, label=f"tracked {coord}")
         if truth:
             ax.plot(t, [r.get(f"truth_{coord}") for r in rows], "-", linewidth=0.8, alpha=0.7, label="ground truth")
         ax.set_ylabel(f"{coord} (m)")
-        ax.legend(loc="upper right", fontsize=8)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=8, frameon=False)  # beside the plot: it hides nothing
     ax_b.plot([b[0] for b in battery], [b[1] for b in battery], color="tab:green")
     ax_b.axhline(0.25, color="grey", linestyle=":", linewidth=0.8)
     ax_b.set_ylabel("battery")
@@ -166,22 +166,22 @@ def _plot(
         for value, colour in ((True, "tab:green"), (False, "tab:red")):
             times = [v["t_s"] for v in verdicts if v["verdict"] is value]
             ax_b.plot(times, [0.02] * len(times), "|", color=colour, markersize=6, label=f"requirement {'holds' if value else 'false'}")
-        ax_b.legend(loc="upper left", fontsize=7)
+        ax_b.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=7, frameon=False)
     ax_b.set_xlabel("time (s)")
-    for a in adaptations:
-        if a["kind"] == "degraded":
-            continue
+    switches = [a for a in adaptations if a["kind"] != "degraded"]
+    for i, a in enumerate(switches):
         camera = next((x for x in a["to"] if "camera" in x), "?")
         for ax in (ax_x, ax_y, ax_b):
             ax.axvline(a["t_s"], color="tab:red", linewidth=1)
-        ax_x.annotate(
-            f"-> {camera}",
+        ax_x.annotate(  # staggered, so that switches close in time do not overwrite each other
+            f"{i + 1}: -> {camera}",
             (a["t_s"], 1),
             xycoords=("data", "axes fraction"),
-            xytext=(3, -12),
+            xytext=(3, -11 - 10 * (i % 3)),
             textcoords="offset points",
             color="tab:red",
-            fontsize=8,
+            fontsize=7,
+            bbox={"boxstyle": "square,pad=0.1", "facecolor": "white", "edgecolor": "none", "alpha": 0.8},
         )
     fig.suptitle("dyknow demo: the tracked ball, with the adaptations (red)")
     fig.tight_layout()

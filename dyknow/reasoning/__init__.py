@@ -22,13 +22,17 @@ Imports flow one way: ``syntax <- semantics <- robustness <- progression <- obje
 
 from __future__ import annotations
 
-from dyknow.errors import FormulaError
-from dyknow.reasoning.objects import ObjectMonitor
-from dyknow.reasoning.progression import Monitor, Verdict
-from dyknow.reasoning.semantics import evaluate, evaluate_ns, evaluate_objects, evaluate_values
-from dyknow.reasoning.syntax import Formula, check_formula, parse, parse_value
-from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
-from dyknow.resources import restore_docstrings
+from typing import TYPE_CHECKING, Any
+
+from dyknow.exports import lazy_exports
+
+if TYPE_CHECKING:
+    from dyknow.errors import FormulaError
+    from dyknow.reasoning.objects import ObjectMonitor
+    from dyknow.reasoning.progression import Monitor, Verdict
+    from dyknow.reasoning.semantics import evaluate, evaluate_ns, evaluate_objects, evaluate_values
+    from dyknow.reasoning.syntax import Formula, check_formula, parse, parse_value
+    from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
 
 __all__ = [
     "Formula",
@@ -48,4 +52,31 @@ __all__ = [
     "term_ports",
 ]
 
-restore_docstrings(globals(), __all__)  # Monitor and Verdict are compiled by mypyc
+#: Where each public name is defined, imported on first use: a module that needs only the syntax
+#: (the service's bounds, a spec's requirements) does not import the monitors (dyknow.exports).
+_WHERE = {
+    "Formula": "dyknow.reasoning.syntax",
+    "FormulaError": "dyknow.errors",
+    "FormulaMonitor": "dyknow.reasoning.unit",
+    "Monitor": "dyknow.reasoning.progression",
+    "ObjectMonitor": "dyknow.reasoning.objects",
+    "Verdict": "dyknow.reasoning.progression",
+    "check_formula": "dyknow.reasoning.syntax",
+    "evaluate": "dyknow.reasoning.semantics",
+    "evaluate_ns": "dyknow.reasoning.semantics",
+    "evaluate_objects": "dyknow.reasoning.semantics",
+    "evaluate_values": "dyknow.reasoning.semantics",
+    "monitor_spec": "dyknow.reasoning.unit",
+    "parse": "dyknow.reasoning.syntax",
+    "parse_value": "dyknow.reasoning.syntax",
+    "term_ports": "dyknow.reasoning.unit",
+}
+
+
+def _restore_docstring(name: str, value: Any) -> None:  # Monitor and Verdict are compiled by mypyc
+    from dyknow.resources import restore_docstrings
+
+    restore_docstrings({name: value}, [name])
+
+
+__getattr__, __dir__ = lazy_exports(__name__, globals(), _WHERE, after=_restore_docstring)

@@ -148,6 +148,8 @@ class Player:
         self.decode = decode
         self._stop = threading.Event()
         self._playing = threading.Lock()
+        #: After :meth:`publish`: per key, the messages put while no subscriber matched it (delivered to no one).
+        self.unmatched: dict[str, int] = {}
         self.recording = Recording(path, recover=recover, limits=limits)
         try:
             self._select(list(topics), dict(remap or {}), start_s, end_s)
@@ -334,9 +336,12 @@ class Player:
     ) -> int:
         """Replay into Zenoh: each topic on its key, through ``session`` or a session of its own.
 
-        ``wait_s``: first wait up to that long for every key to have a subscriber, so that
-        consumers that are starting up get the first messages. Returns how many were published.
-        Raises :class:`RecordingError` when a topic cannot be a Zenoh key (remap it).
+        ``wait_s``: first wait up to that long for every key to have a subscriber (Zenoh's
+        matching status: through routers and other managers too), so that consumers that are
+        starting up get the first messages; it starts at once when they all have. Returns how many
+        were published; :attr:`unmatched` then says, per key, how many of them were put while no
+        subscriber matched it (delivered to no one). Raises :class:`RecordingError` when a topic
+        cannot be a Zenoh key (remap it).
         """
         if self._bad_keys:
             raise RecordingError(self._bad_keys[0], where=self.recording.path)
@@ -355,8 +360,13 @@ class Player:
                 if self._wait(min(0.02, max(0.0, deadline - time.monotonic())), stop):
                     return 0
 
+            unmatched = self.unmatched = dict.fromkeys(publishers, 0)
+
             def send(msg: Message, record: RecordedMessage) -> None:
-                publishers[msg.key].put(msg)
+                publisher = publishers[msg.key]
+                if not publisher.matched:
+                    unmatched[msg.key] += 1
+                publisher.put(msg)
 
             sent = self.play(send, stop=stop)
             session.flush()  # what is still queued must reach the subscribers before we close

@@ -21,7 +21,7 @@ from dyknow.errors import RecordingError
 from dyknow.message import Message
 from dyknow.recording import CLOCKS_TOPIC, RecordedMessage, Recording
 from dyknow.transport import Session
-from tests.conftest import UNIT_SPECS, CliProcess, run_cli, wait_until
+from tests.conftest import UNIT_SPECS, CliProcess, ManagerProcess, free_port, run_cli, wait_until
 from tests.recording.support import wait_matched
 
 TEN = "TenMessages/TenMessages-ch-chx-mx-pad-rch-rsh-st-sum"
@@ -211,7 +211,7 @@ def test_replay_feeds_camera_images_to_a_unit(data_dir: Path, make_manager: Call
     assert result.returncode == 0, result.stderr
     ready, done = (json.loads(line) for line in result.stdout.splitlines())
     assert ready == {"event": "ready", "file": str(path), "keys": {"/image/compressed": "camera/front"}}
-    assert done == {"event": "done", "file": str(path), "messages": 10}
+    assert done == {"event": "done", "file": str(path), "messages": 10, "unmatched": {}}
     messages = manager.unit("sink").wait_for(10)
     assert all(m.payload.shape == (360, 520, 3) and m.payload.dtype == np.uint8 for m in messages)
     with Recording(path) as recording:  # the file's header fields: sequence and log time as origin
@@ -297,3 +297,55 @@ def test_mcap_info_on_a_damaged_file(tmp_path: Path, data_dir: Path) -> None:
     assert recovered.returncode == 0, recovered.stderr
     info = json.loads(recovered.stdout)
     assert info["problem"].startswith("truncated at offset ") and 0 < info["message_count"] < 111
+
+
+# --- a replay's consumers elsewhere: through a router, through another manager, or none -----------------
+
+
+def _sink_count(proc: ManagerProcess) -> int:
+    """What reached the sink's input: handed to it, or dropped by its queue (a burst at --rate max
+    overflows its 8 places)."""
+    port = json.loads(run_cli("stats", "sink", "--json", *proc.client_args()).stdout)["ports"]["in"]
+    return int(port["messages"]) + int(port["dropped"])
+
+
+@pytest.mark.parametrize("via", ["router", "another manager"])
+def test_a_replay_through_a_router_or_another_manager_waits_for_its_consumer(
+    via: str, data_dir: Path, manager_process: Callable[..., ManagerProcess]
+) -> None:
+    """The operator connects to a router, or to a manager that is not the consumer's: the replay
+    waits until Zenoh matches the consumer's subscriber there, and every message arrives (it used
+    to exit 0 having delivered nothing)."""
+    talker = data_dir / "mcap" / "real" / "talker.mcap"  # 10 messages on /topic
+    router = None
+    if via == "router":
+        hub = f"tcp/127.0.0.1:{free_port()}"
+        router = CliProcess("router", "--listen", hub, "--json")
+        assert router.line()["event"] == "ready"
+        entry = hub
+        consumer = manager_process("--connect", hub, name="consumer")
+    else:
+        front = manager_process(name="front")
+        entry = front.endpoint
+        consumer = manager_process("--connect", front.endpoint, name="consumer")
+    try:
+        assert run_cli("spawn", "sink", "sink", "--bind", "in=replayed/talk", *consumer.client_args()).returncode == 0
+        replay = run_cli("replay", str(talker), "--topics", "/topic", "--remap", "/topic=replayed/talk", "--rate", "max",
+                         "--connect", entry, "--json", timeout=60)  # fmt: skip  (the default --wait, as an operator types it)
+        assert replay.returncode == 0, replay.stderr
+        assert json.loads(replay.stdout.splitlines()[-1]) == {"event": "done", "file": str(talker), "messages": 10, "unmatched": {}}
+        wait_until(lambda: _sink_count(consumer) == 10, "the ten messages at the consumer")
+    finally:
+        if router is not None:
+            router.stop()
+            router.close()
+
+
+def test_a_replay_that_delivers_nothing_says_so_and_fails(data_dir: Path, manager_process: Callable[..., ManagerProcess]) -> None:
+    lonely = manager_process(name="lonely")
+    talker = data_dir / "mcap" / "real" / "talker.mcap"
+    replay = run_cli("replay", str(talker), "--topics", "/topic", "--rate", "max", "--wait", "0.5", "--connect", lonely.endpoint)
+    assert replay.returncode == 1
+    assert "replayed 10 messages" in replay.stdout
+    assert "dyknow: error: no subscriber matched any key while the 10 messages were put (waited up to --wait 0.5 s" in replay.stderr
+    assert "nothing was delivered; start the consumer first" in replay.stderr
