@@ -69,9 +69,7 @@ class Reconfigurer:
         for its own requests are not reused: that manager takes them down when it likes.
         """
         knowledge = self._knowledge
-        own = set()
-        if request is not None:
-            own = {u for u in request.held() if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
+        own = self._own(request)
         running: list[RunningUnit] = []
         names: set[str] = set()
         for info in self._runtime.units():
@@ -96,6 +94,29 @@ class Reconfigurer:
         names.update(r for r in knowledge.remote)  # spawned, maybe not in a summary yet
         return running, names
 
+    def _own(self, request: Request | None) -> set[str]:
+        """The units only ``request`` holds (its configuration, standby and spare units)."""
+        knowledge = self._knowledge
+        if request is None:
+            return set()
+        return {u for u in request.held() if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
+
+    def load(self, request: Request | None = None) -> dict[str, int]:
+        """Units per manager, as the planner weighs them for ``request``: what each runs (this
+        manager's units, the others' from their summaries, plus what this manager spawned there
+        that their summaries do not show yet), without the units only ``request`` holds. A
+        configuration is never judged worse for carrying the request it serves."""
+        runtime = self._runtime
+        home = runtime.name
+        own = self._own(request)
+        local = [info.name for info in runtime.units()]
+        load = {home: sum(1 for name in local if name not in own)}
+        for manager, summary in runtime.peers().items():
+            shown = {qualify(unit.name, manager) for unit in summary.units}
+            pending = sum(1 for ref in self._knowledge.remote if runs_on(ref, manager) and ref not in shown)
+            load[manager] = summary.load - len(shown & own) + pending
+        return load
+
     def plan(
         self,
         request: Request,
@@ -111,6 +132,11 @@ class Reconfigurer:
         running units not to reuse (besides the request's own, which are always set aside);
         ``managers_excluded``: other managers none of whose transformations or units to use,
         except those the request already uses there.
+
+        The request's configuration (and its standby's) is preferred: another of equal cost
+        replaces it only when its manager carries clearly fewer units (:func:`~dyknow.planner.load_margin`),
+        the request's own units not counted (:meth:`load`), so an opportunity moves a request for
+        a strict improvement, never for a tie.
         """
         running, names = self.running_model(request)
         peers = self._runtime.peers()
@@ -127,7 +153,6 @@ class Reconfigurer:
                 unavailable |= {qualify(spec.label, manager) for spec in summary.specs} - used
         labels = {info.name: info.label for info in self._runtime.units()}
         stalled_labels = {labels[n] for n in self._knowledge.stalled if n in labels}
-        load = {self._runtime.name: len(labels), **{m: s.load for m, s in peers.items()}}
         return self.planner().plan(
             request.tag,
             running,
@@ -135,7 +160,8 @@ class Reconfigurer:
             self._knowledge.measurements,
             reserved_names=names,
             peer_measurements={m: s.measurements for m, s in peers.items()},
-            load=load,
+            load=self.load(request),
+            prefer={*request.units.values(), *request.standby.values()},
         )
 
     def apply(self, request: Request, plan: Plan, before_switch: Callable[[str], None] | None = None) -> list[str]:
