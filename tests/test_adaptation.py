@@ -594,7 +594,8 @@ def _provider(manager: Manager, key: str) -> str:
 
 
 def _moves(manager: Manager, key: str) -> list[AdaptationEvent]:
-    return [e for e in manager.get_adaptations() if e.key == key and e.kind in ("adapted", "degraded")]
+    """The request's adaptations in the history (an adaptation's entry becomes "recovered" once its stream flows)."""
+    return [e for e in manager.get_adaptations() if e.key == key]
 
 
 def _stir(fleet: Mapping[str, Manager], names: list[str], rounds: int, pause_s: float) -> None:
@@ -658,7 +659,7 @@ def test_a_request_leaves_a_provider_that_becomes_clearly_busier(make_manager: C
         p1.spawn("publisher", f"busy-{i}")
     wait_until(lambda: len(_moves(m0, key)) == 1, "the request to move off the busy provider")
     (moved,) = _moves(m0, key)
-    assert moved.kind == "adapted" and moved.cause.startswith("manager 'p1' changed") and moved.new == ("offer-pair@p2",)
+    assert moved.kind in ("adapted", "recovered") and moved.cause.startswith("manager 'p1' changed") and moved.new == ("offer-pair@p2",)
     assert _provider(m0, key) == "p2"
     _stir(fleet, ["p1", "p2"], 5, 0.25)
     assert len(_moves(m0, key)) == 1 and _provider(m0, key) == "p2"
