@@ -606,7 +606,7 @@ def _stir(fleet: Mapping[str, Manager], names: list[str], rounds: int, pause_s: 
         for name in names:
             fleet[name].measure("round", float(n))
         for name in names:
-            wait_until(lambda name=name: fleet["m0"].peers()[name].measurements.get("round") == float(n), f"m0 to see round {n} of {name}")  # type: ignore[misc]
+            wait_until(lambda name=name, n=n: fleet["m0"].peers()[name].measurements.get("round") == float(n), f"m0 to see round {n} of {name}")  # type: ignore[misc]
         time.sleep(pause_s)
 
 

@@ -854,6 +854,7 @@ class AdaptationLoop:
         after a fault (something broke), else information (a better configuration came back)."""
         wired = time.time_ns()
         request.last_change_ns = wired
+        self._in_place.pop(request.key, None)  # (a request degraded in place that moved is judged where it went)
         event = AdaptationEvent(
             self._next_id,
             "adapted",
