@@ -32,21 +32,23 @@ DEVICE = """<transformation><label>tank-device</label><source>tests.units:Readin
   <ports><port type="out">out</port></ports></transformation>"""
 
 
-def _level(name: str, priority: int) -> str:
+def _level(name: str, priority: int, requirement: str | None = None) -> str:
+    required = f"<requirements><requirement>{requirement}</requirement></requirements>" if requirement else ""
     return f"""<transformation><label>{name}</label><source>transformations.generic:RemoteStream</source>
   <params><param name="key">tank/{name}</param><param name="grace_s" type="float">5</param></params>
   <ports><port type="in">in</port><port type="out">out</port></ports>
-  <tags><tag port="out">Level(tank)</tag></tags><priority>{priority}</priority></transformation>"""
+  <tags><tag port="out">Level(tank)</tag></tags>{required}<priority>{priority}</priority></transformation>"""
 
 
 @pytest.fixture
 def tank(make_manager: Callable[..., Manager]) -> Iterator[Callable[..., Manager]]:
     """A manager with the tank's devices running (``level-a`` sends 1, ``level-b`` 2) and, in
-    its library, the streams of those given (the preferred first)."""
+    its library, the streams of those given (the preferred first; ``spec_requirement``: each
+    requires it of its own output in its spec)."""
 
-    def start(*levels: str) -> Manager:
+    def start(*levels: str, spec_requirement: str | None = None) -> Manager:
         manager = make_manager("tank", dwell_s=DWELL_S)
-        specs = [DEVICE, *(_level(name, priority) for priority, name in enumerate(levels))]
+        specs = [DEVICE, *(_level(name, priority, spec_requirement) for priority, name in enumerate(levels))]
         manager.add_transformation(f"<transformations>{''.join(specs)}</transformations>")
         for name, value in (("level-a", 1), ("level-b", 2)):
             manager.spawn("tank-device", f"device-{name}", params={"id": value}, bindings={"out": f"tank/{name}"})
@@ -115,22 +117,31 @@ def test_a_producer_that_keeps_violating_is_tried_in_the_shadow_and_never_return
     assert manager.requests() == [] and [u.name for u in manager.units()] == ["device-level-a", "device-level-b", "consumer", "trial-verdicts"]
 
 
-def test_a_producer_fixed_mid_run_is_trusted_again_after_its_next_trial_holds(tank: Callable[..., Manager]) -> None:
+@pytest.mark.parametrize("where", ["request", "spec"])
+def test_a_producer_fixed_mid_run_is_trusted_again_after_its_next_trial_holds(tank: Callable[..., Manager], where: str) -> None:
     """After the first trial failed, device a is repaired. The next trial (due one back-off, 2 s,
     after the first failed) finds the requirement holding in the shadow for the dwell time, and
     the request moves back: the bound stated in docs/concepts/adaptation.md is the back-off at the
-    time of the fix, plus the dwell time, plus the trial's first verdict."""
-    manager = tank("level-a", "level-b")
-    key = manager.request("Level(tank)", require=[FORMULA])
+    time of the fix, plus the dwell time, plus the trial's first verdict. The same whether the
+    request requires the formula or the specs do (each of its own output: the trial watches the
+    requirement of its new unit there)."""
+    if where == "request":
+        manager = tank("level-a", "level-b")
+        key = manager.request("Level(tank)", require=[FORMULA])
+        cause = f"requirement violated: {FORMULA}"
+    else:
+        manager = tank("level-a", "level-b", spec_requirement=FORMULA)
+        key = manager.request("Level(tank)")
+        cause = f"requirement of level-a violated: {FORMULA}"
     consumer = _sink(manager, "consumer", key)
     wait_until(lambda: _request(manager).suspects and _suspect(manager)["failed_trials"] == 1, "the first trial to fail", 20)
     suspect = _suspect(manager)
-    assert suspect["trial"] == "waiting" and suspect["backoff_s"] == 2.0
+    assert suspect["trial"] == "waiting" and suspect["backoff_s"] == 2.0 and suspect["transformation"] == "level-a"
     fixed_s, next_trial_s = time.time(), suspect["next_trial_ns"] / 1e9
     _device(manager, "level-a").id = 2
     wait_until(lambda: len(manager.get_adaptations()) == 2, "the request to return to level-a", 20)
     left, back = manager.get_adaptations()
-    assert left.new == ("level-b",) and back.old == ("level-b",) and back.new == ("level-a",)
+    assert left.cause == cause and left.new == ("level-b",) and back.old == ("level-b",) and back.new == ("level-a",)
     assert back.cause == f"level-a held its requirements for {DWELL_S:g} s in the shadow (trial 2)"  # the first trial after the fix
     assert _request(manager).suspects == () and _request(manager).labels == ("level-a",)
     # the bound, from the history: the wait for the next trial, the dwell time, the trial's first
@@ -167,3 +178,25 @@ def test_a_requirement_false_with_nothing_else_marks_the_request_degraded_once(
     assert recovered.id == degraded.id and recovered.kind == "recovered" and recovered.recovery_ms is not None
     assert recovered.recovery_ms / 1000 >= DWELL_S  # degraded until the requirement had held for the dwell time
     assert any(r.getMessage() == "request Level(tank) is active again: its requirements held for 0.3 s on level-a" for r in caplog.records)
+
+
+def test_a_fault_with_only_a_suspect_left_runs_on_it_degraded_until_it_holds(tank: Callable[..., Manager]) -> None:
+    """The request left level-a for its requirement; then level-b's device dies. Nothing but the
+    suspect can provide the tag: the request runs on it rather than on nothing, degraded in place
+    (the event names the suspect and the formula), and is active again, level-a trusted, once the
+    repaired device's stream has held the requirement for the dwell time."""
+    manager = tank("level-a", "level-b")
+    key = manager.request("Level(tank)", require=[FORMULA])
+    consumer = _sink(manager, "consumer", key)
+    wait_until(lambda: _request(manager).labels == ("level-b",), "the request to leave level-a")
+    manager.destroy("device-level-b")  # its RemoteStream fails: the producer of tank/level-b is gone
+    wait_until(lambda: any(e.kind == "degraded" for e in manager.get_adaptations()), "the request to fall back onto level-a")
+    degraded = next(e for e in manager.get_adaptations() if e.kind == "degraded")
+    assert "unit 'level-b' failed" in degraded.cause and degraded.new == ("level-a",)
+    assert degraded.detail == f"nothing but level-a provides Level(tank), and its requirement {FORMULA!r} was false there"
+    assert _request(manager).state == "degraded" and _suspect(manager)["trial"] == "in place"
+    consumer.wait_until(lambda m: m.payload["id"] == 1, timeout_s=5)  # a stream, if a wrong one, rather than none
+    _device(manager, "level-a").id = 2
+    wait_until(lambda: _request(manager).state == "active", "the request to be active again")
+    assert _request(manager).suspects == () and _request(manager).labels == ("level-a",)
+    assert [e.kind for e in manager.get_adaptations() if e.id == degraded.id] == ["recovered"]
