@@ -584,12 +584,14 @@ class AdaptationLoop:
         else:
             self._adapt(request, symptom, fault=False)  # "trial-held": an opportunity, taken after the dwell time (_trust)
 
-    def _reschedule(self, suspect: Suspect | None, now: int, *, failed: bool) -> None:
-        """The next trial of ``suspect``: after twice the wait when its trial failed, else the same wait."""
+    def _reschedule(self, suspect: Suspect | None, now: int, *, failed: bool, slower: bool = False) -> None:
+        """The next trial of ``suspect``: after twice the wait when its trial failed (or could not
+        start: ``slower``), else after the same wait."""
         if suspect is None:
             return
         if failed:
             suspect.failed += 1
+        if failed or slower:
             suspect.backoff_s = min(BACKOFF_MAX_S, suspect.backoff_s * 2)
         suspect.next_trial_ns = now + int(suspect.backoff_s * 1e9)
         suspect.announced = False
@@ -620,7 +622,7 @@ class AdaptationLoop:
         except DyKnowError as exc:
             log.warning("could not try %s for %s in the shadow: %s", label, request.tag, exc)
             self._end_trial(request)
-            self._reschedule(suspect, now, failed=False)
+            self._reschedule(suspect, now, failed=False, slower=True)
             return
         log.info(
             "trial %d of %s for %s in the shadow: %s (its requirements must hold for %g s there)",
@@ -774,7 +776,7 @@ class AdaptationLoop:
             # but another manager's routine summary does not hide the cause already waiting, nor
             # does a routine measurement hide an ended back-off or probation)
             waiting = self._deferred.get(request.key)
-            # a trial that held waits for its turn whatever comes meanwhile: taking it plans afresh)
+            # (and a trial that held waits for its turn whatever comes meanwhile: taking it plans afresh)
             routine = (
                 symptom.kind == "peer-changed"
                 or (symptom.kind == "measurement" and waiting is not None and waiting[1].kind in ("retry", "peer-trusted"))
