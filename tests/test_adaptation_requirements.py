@@ -181,14 +181,16 @@ def test_a_requirement_false_with_nothing_else_marks_the_request_degraded_once(
 
 
 def test_a_fault_with_only_a_suspect_left_runs_on_it_degraded_until_it_holds(tank: Callable[..., Manager]) -> None:
-    """The request left level-a for its requirement; then level-b's device dies. Nothing but the
-    suspect can provide the tag: the request runs on it rather than on nothing, degraded in place
-    (the event names the suspect and the formula), and is active again, level-a trusted, once the
-    repaired device's stream has held the requirement for the dwell time."""
+    """The request left level-a for its requirement; then level-b goes for good (its spec
+    removed, its device dead). Nothing but the suspect can provide the tag: the request runs on it
+    rather than on nothing, degraded in place (the event names the suspect and the formula), and
+    is active again, level-a trusted, once the repaired device's stream has held the requirement
+    for the dwell time."""
     manager = tank("level-a", "level-b")
     key = manager.request("Level(tank)", require=[FORMULA])
     consumer = _sink(manager, "consumer", key)
     wait_until(lambda: _request(manager).labels == ("level-b",), "the request to leave level-a")
+    assert manager.remove_transformation("level-b")  # (no retry of it after its back-off, then)
     manager.destroy("device-level-b")  # its RemoteStream fails: the producer of tank/level-b is gone
     wait_until(lambda: any(e.kind == "degraded" for e in manager.get_adaptations()), "the request to fall back onto level-a")
     degraded = next(e for e in manager.get_adaptations() if e.kind == "degraded")
