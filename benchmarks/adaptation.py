@@ -17,6 +17,13 @@ costs to start. ``benchmarks/adaptation_vision.py`` measures the demo's real vis
 - ``remote-kill``: the preferred camera runs in another process and that process is killed with
   SIGKILL; times are taken from the kill, not from its detection.
 
+- ``idle`` (issue 44): nothing fails. ``--idle-managers`` managers on loopback (default 5, each
+  its own session in this process), ``--idle-providers`` of them (default 3) offering the tag
+  ``Shared`` with equal idle sources; a request for ``Shared`` on ``m0`` is held for ``--idle-s``
+  seconds (default 60) at the default dwell time (2 s) while every provider's summary changes
+  once a second (a measurement), each change an opportunity. Reported: the request's moves per
+  minute, beside the target, 0 (before the fix: 29 moves in 60 s).
+
 Garbage collection: ``--gc on`` injects each fault right after a ``gc.collect()``, ``--gc off``
 without one, and ``--gc both`` (the default) runs every kind both ways and reports both rows.
 Collecting first models a robot whose faults do not come right after its start-up (the benchmark
@@ -32,6 +39,7 @@ times of 1.24-2.50 s, Metacontrol 0.82-1.55 s, and a behaviour-tree baseline 0.0
     python benchmarks/adaptation.py --json out/adaptation.json
     python benchmarks/adaptation.py --smoke
     python benchmarks/adaptation.py --gc off --kinds measurement
+    python benchmarks/adaptation.py --kinds idle --idle-managers 40 --idle-providers 3
 """
 
 from __future__ import annotations
@@ -39,6 +47,7 @@ from __future__ import annotations
 import argparse
 import gc
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -52,10 +61,11 @@ from typing import Any
 import numpy as np
 
 from dyknow import AdaptationEvent, Manager, Ontology
+from dyknow.adaptation import DEFAULT_DWELL_S
 from dyknow.resources import specs_dir
 from dyknow.testing import CAMERA_IDS, SCENARIO_SPECS, Camera, Sink
 
-from harness import machine, write_json
+from harness import free_ports, machine, write_json
 
 ONTOLOGY = specs_dir() / "dyknow.ttl"
 GENERIC = specs_dir() / "generic.xml"
@@ -233,6 +243,60 @@ def run_remote_kill(n: int, rate: float) -> list[tuple[float, float, float]]:
     return out
 
 
+SHARED = """<transformations><transformation><label>shared</label><source>dyknow.testing:Source</source>
+  <ports><port type="out">out</port></ports><tags><tag port="out">Shared</tag></tags></transformation></transformations>"""
+
+
+def run_idle(managers: int, providers: int, hold_s: float) -> dict[str, Any]:
+    """An idle request between equal providers: how often it moves (see the module documentation)."""
+    hub = f"tcp/127.0.0.1:{free_ports(1)[0]}"
+    fleet: list[Manager] = []
+    try:
+        for i in range(managers):
+            fleet.append(
+                Manager(
+                    f"m{i}",
+                    specs=[GENERIC],
+                    listen=[hub] if i == 0 else ["tcp/127.0.0.1:0"],
+                    connect=[] if i == 0 else [hub],
+                    dwell_s=DEFAULT_DWELL_S,
+                )
+            )
+            if 1 <= i <= providers:
+                fleet[-1].add_transformation(SHARED)
+        deadline = time.monotonic() + 60
+        while not all(len(m.peers()) == managers - 1 for m in fleet):
+            if time.monotonic() > deadline:
+                raise RuntimeError("the managers did not find each other within 60 s")
+            time.sleep(0.05)
+        requester = fleet[0]
+        key = requester.request("Shared")
+        load_before = os.getloadavg()[0]
+        started = time.monotonic()
+        n = 0
+        while time.monotonic() - started < hold_s:
+            n += 1
+            for manager in fleet[1 : providers + 1]:
+                manager.measure("round", float(n))  # a summary change: an opportunity for the request
+            time.sleep(1.0)
+        held = time.monotonic() - started
+        moves = [e for e in requester.get_adaptations() if e.key == key]  # (each adaptation's entry, "recovered" once it is)
+        return {
+            "managers": managers,
+            "providers": providers,
+            "dwell_s": DEFAULT_DWELL_S,
+            "held_s": round(held, 1),
+            "summary_changes": n * providers,
+            "moves": len(moves),
+            "moves_per_min": round(len(moves) * 60 / held, 2),
+            "target_moves_per_min": 0,
+            "loadavg_1min": round((load_before + os.getloadavg()[0]) / 2, 2),
+        }
+    finally:
+        for manager in reversed(fleet):
+            manager.close()
+
+
 def summary(pairs: list[tuple[float, ...]], period_ms: float) -> dict[str, Any]:
     """Medians and 99th percentiles of adaptation and recovery times, and the share recovered within one camera period."""
     adaptation = np.asarray([p[0] for p in pairs])
@@ -258,7 +322,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--faults", type=int, default=100, help="faults of each kind (default 100)")
     parser.add_argument("--rate", type=float, default=200.0, help="camera rate in Hz (default 200)")
-    parser.add_argument("--kinds", default="exception,destroyed,measurement,remote-kill")
+    parser.add_argument("--kinds", default="exception,destroyed,measurement,remote-kill,idle")
+    parser.add_argument("--idle-managers", type=int, default=5, help="idle: managers on loopback (default 5)")
+    parser.add_argument("--idle-providers", type=int, default=3, help="idle: how many of them offer the requested tag (default 3)")
+    parser.add_argument("--idle-s", type=float, default=60.0, help="idle: how long the request is held (default 60 s; --smoke: 10 s)")
     parser.add_argument(
         "--gc", choices=sorted(GC_MODES), default="both", help="gc.collect() before each fault: on, off, or both (default: both rows)"
     )
@@ -285,7 +352,8 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{'fault':<22} {'gc':>3} {'adapt p50':>10} {'adapt p99':>10} {'recov p50':>10} {'recov p99':>10} {'recov<=adapt+period':>20}  target"
     )
-    for kind in args.kinds.split(","):
+    kinds = args.kinds.split(",")
+    for kind in [k for k in kinds if k != "idle"]:
         for mode in GC_MODES[args.gc]:
             _COLLECT[0] = mode == "on"
             measured = runners[kind]()
@@ -303,6 +371,15 @@ def main(argv: list[str] | None = None) -> int:
                     f"{row['recovery_median_ms']:>8.2f}ms {row['recovery_p99_ms']:>8.2f}ms {row['recovered_within_one_period']:>19.0%}  {note}",
                     flush=True,
                 )
+    if "idle" in kinds:
+        idle = results["idle"] = run_idle(args.idle_managers, args.idle_providers, 10.0 if args.smoke else args.idle_s)
+        print(
+            f"idle request ({idle['managers']} managers, {idle['providers']} equal providers, dwell {idle['dwell_s']:g} s, "
+            f"{idle['summary_changes']} summary changes): {idle['moves']} moves in {idle['held_s']:g} s = "
+            f"{idle['moves_per_min']:g} moves/min, target 0: {'met' if idle['moves'] == 0 else 'MISSED'} "
+            f"(load average {idle['loadavg_1min']:g})",
+            flush=True,
+        )
     print(
         "for comparison, mean reaction times cited from the ROSA paper (its Table 6, the SUAVE exemplar): "
         "ROSA 1.24-2.50 s, Metacontrol 0.82-1.55 s, behaviour tree 0.07-1.09 s"

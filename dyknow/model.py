@@ -173,6 +173,10 @@ class RequestInfo:
     #: the holders whose client the manager does not see now (its token is not there): their
     #: references are released after the manager's grace unless the client comes back
     absent: tuple[str, ...] = ()
+    #: transformations a requirement found false, avoided until a trial in the shadow shows the
+    #: requirements hold on them: ``{"transformation", "formula", "since_ns", "trial" ("waiting",
+    #: "running" or "in place"), "failed_trials", "backoff_s", "next_trial_ns"}``
+    suspects: tuple[Mapping[str, Any], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -192,6 +196,7 @@ class RequestInfo:
             "holders": dict(self.holders),
             "absent": list(self.absent),
             "kept": self.references - sum(self.holders.values()),
+            "suspects": [dict(s) for s in self.suspects],
         }
 
 

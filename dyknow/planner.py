@@ -21,7 +21,11 @@ unit is named after its label (``ball-detector(bottom)`` becomes ``ball-detector
 (``RunningUnit.manager``), the planner plans over their union. A transformation runs on the
 manager whose library holds it. When several hold the same label, the cost decides after the
 number of new units and their priority: **the requesting manager first, then one already
-running the unit's inputs, then the least loaded** (``load``: units per manager). Constraints
+running the unit's inputs, then the least loaded** (``load``: units per manager). A request's
+current configuration is *preferred* (``prefer``): among options of equal cost its transformations
+win, unless another manager carries fewer units than theirs by more than a margin
+(:func:`load_margin`: 2 units, or a quarter of the preferred manager's load when that is more),
+so a request is never moved for a tie, nor for a difference of a unit or two. Constraints
 are checked against the measurements of the manager that would run the unit. Inside the planner
 a transformation of another manager is known as ``label@manager`` (as are its running units).
 
@@ -52,6 +56,7 @@ from dyknow.spec import TransformationSpec
 from dyknow.tags import Term, local_name, parse_term
 
 __all__ = [
+    "LOAD_MARGIN_UNITS",
     "Alternative",
     "Connection",
     "Plan",
@@ -60,6 +65,7 @@ __all__ = [
     "PlanningError",
     "Rejection",
     "RunningUnit",
+    "load_margin",
     "plan",
     "qualify",
     "unit_name_for",
@@ -67,6 +73,15 @@ __all__ = [
 ]
 
 DEFAULT_MAX_DEPTH = 32
+#: The least difference in load (units) for which a request leaves a preferred manager (see :func:`load_margin`).
+LOAD_MARGIN_UNITS = 2
+
+
+def load_margin(load: int) -> int:
+    """By how many units another manager must carry fewer than ``load`` (the preferred one's, the
+    request's own units not counted) to win a tie of cost against a preferred transformation:
+    :data:`LOAD_MARGIN_UNITS`, or a quarter of ``load`` when that is more."""
+    return max(LOAD_MARGIN_UNITS, load // 4)
 
 
 # ---------------------------------------------------------------------------- inputs and outputs
@@ -371,6 +386,7 @@ class Planner:
         reserved_names: Collection[str] = (),
         peer_measurements: Mapping[str, Mapping[str, float | str]] | None = None,
         load: Mapping[str, int] | None = None,
+        prefer: Collection[str] = (),
     ) -> Plan:
         """A configuration providing ``request``; :class:`PlanningError` when none exists.
 
@@ -381,6 +397,9 @@ class Planner:
         transformations each would run. ``reserved_names``: unit names new units must not take
         (``name`` on the requesting manager, ``name@manager`` on another; only asked whether it
         holds a name, so it may be a live view of what runs). ``load``: units per manager (the least loaded is preferred).
+        ``prefer``: transformations (``label``, ``label@manager``) that win ties of cost, unless
+        another manager is less loaded by more than :func:`load_margin` (hysteresis: a request's
+        current configuration, so that it moves only for a strict improvement).
         """
         try:
             wanted = (parse_term(request),)
@@ -391,7 +410,7 @@ class Planner:
             self.manager: dict(measurements or {}),
             **{m: dict(v) for m, v in (peer_measurements or {}).items() if m != self.manager},
         }
-        search = _Search(self, self.graph(wanted), running, frozenset(unavailable), by_manager, dict(load or {}))
+        search = _Search(self, self.graph(wanted), running, frozenset(unavailable), by_manager, dict(load or {}), frozenset(prefer))
         search.settle()
         if not search.settled(0):
             raise PlanningError(str(wanted[0]), search.explain())
@@ -472,7 +491,8 @@ class _Search:
     once all that option's inputs are settled. Every tag and option is handled once, so cyclic
     specs cannot loop and large libraries plan fast. The cost is (new units, their priority,
     their placement): placement is 0 on the requesting manager, 1 on a manager that runs one of
-    the unit's inputs, 2 elsewhere. Ties go to the least loaded manager, then the lower label,
+    the unit's inputs, 2 elsewhere. Ties go to the least loaded manager (a preferred option's
+    load counted :func:`load_margin` lower), then to a preferred option, then the lower label,
     then port.
     """
 
@@ -484,8 +504,10 @@ class _Search:
         unavailable: frozenset[str],
         measurements: dict[str, dict[str, Any]],
         load: dict[str, int],
+        prefer: frozenset[str] = frozenset(),
     ) -> None:
         self.planner = planner
+        self.prefer = prefer
         self.graph = graph
         self.unavailable = unavailable
         self.measurements = measurements  # by manager
@@ -541,11 +563,12 @@ class _Search:
         graph = self.graph
         max_depth = self.planner.max_depth
         best_cost, best_depth, best_option = self.best_cost, self.best_depth, self.best_option
-        heap: list[tuple[tuple[int, int, int], int, str, str, int, int, int, _Option]] = []
+        heap: list[tuple[tuple[int, int, int], int, bool, str, str, int, int, int, _Option]] = []
         pending = list(graph.distinct_needs)
         serial = itertools.count()
         home = self.planner.manager
         load = self.load
+        prefer = self.prefer
 
         def push(o: int) -> None:
             option = graph.options[o]
@@ -561,8 +584,12 @@ class _Search:
                 self.rejected[o] = f"depth limit ({max_depth} transformations deep)"
                 return
             cost = (cost_new, cost_priority, cost_place)
+            busy = load.get(option.manager, 0)
+            preferred = option.unit in prefer
+            if preferred:  # hysteresis: the request's present provider keeps it unless another is clearly less loaded
+                busy -= load_margin(busy)
             heapq.heappush(
-                heap, (cost, load.get(option.manager, 0), option.unit, option.port, next(serial), graph.provides[o], depth, option)
+                heap, (cost, busy, not preferred, option.unit, option.port, next(serial), graph.provides[o], depth, option)
             )
 
         for o, option in enumerate(graph.options):
@@ -574,9 +601,9 @@ class _Search:
         for r, options in enumerate(self.running_options):
             for option, reason in options:
                 if reason is None:
-                    heapq.heappush(heap, ((0, 0, 0), 0, option.unit, option.port, next(serial), r, 0, option))
+                    heapq.heappush(heap, ((0, 0, 0), 0, False, option.unit, option.port, next(serial), r, 0, option))
         while heap:
-            cost, _, _, _, _, r, depth, option = heapq.heappop(heap)
+            cost, _, _, _, _, _, r, depth, option = heapq.heappop(heap)
             if best_cost[r] is not None:
                 continue
             best_cost[r], best_depth[r], best_option[r] = cost, depth, option
@@ -739,8 +766,9 @@ def plan(
     peers: Mapping[str, Iterable[TransformationSpec]] | None = None,
     peer_measurements: Mapping[str, Mapping[str, float | str]] | None = None,
     load: Mapping[str, int] | None = None,
+    prefer: Collection[str] = (),
 ) -> Plan:
     """Plan once (see :class:`Planner` to plan repeatedly over the same libraries)."""
     return Planner(library, ontology, manager=manager, max_depth=max_depth, peers=peers).plan(
-        request_tag, running_model, unavailable, measurements, peer_measurements=peer_measurements, load=load
+        request_tag, running_model, unavailable, measurements, peer_measurements=peer_measurements, load=load, prefer=prefer
     )

@@ -567,3 +567,106 @@ def test_a_measurement_the_constraints_cannot_use_is_refused_with_its_name(robot
     with Client(robot.name, connect=robot.endpoints) as client:
         with pytest.raises(LibraryError, match="measurement 'battery': got the text 'low'"):
             client.measure("battery", "low")
+
+
+# ---------------------------------------------------------------------------- equal providers (issue 44)
+
+
+def _offering(tag: str) -> str:
+    """A spec of an idle source whose output carries ``tag`` (a provider as good as any other)."""
+    return f"""<transformations><transformation><label>offer-{tag.lower()}</label><source>dyknow.testing:Source</source>
+  <ports><port type="out">out</port></ports><tags><tag port="out">{tag}</tag></tags></transformation></transformations>"""
+
+
+def _fleet(make_manager: Callable[..., Manager], offers: Mapping[str, str], dwell_s: float) -> dict[str, Manager]:
+    """Managers on loopback, each its own session: ``m0`` (the requester, the hub) and one per
+    entry of ``offers`` (its name -> the tag it offers); returns them once each knows the others."""
+    from tests.conftest import free_port
+
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    fleet = {"m0": make_manager("m0", listen=[hub], dwell_s=dwell_s)}
+    for name, tag in offers.items():
+        fleet[name] = make_manager(name, listen=["tcp/127.0.0.1:0"], connect=[hub], dwell_s=dwell_s)
+        fleet[name].add_transformation(_offering(tag))
+    for manager in fleet.values():
+        wait_until(lambda m=manager: len(m.peers()) == len(fleet) - 1, f"{manager.name} to know the others")  # type: ignore[misc]
+    return fleet
+
+
+def _provider(manager: Manager, key: str) -> str:
+    """Which manager serves the request on ``key`` (``offer-x@p1`` -> ``p1``)."""
+    (labels,) = [info.labels for info in manager.requests() if info.key == key]
+    (label,) = labels
+    return label.rpartition("@")[2]
+
+
+def _moves(manager: Manager, key: str) -> list[AdaptationEvent]:
+    """The request's adaptations in the history (an adaptation's entry becomes "recovered" once its stream flows)."""
+    return [e for e in manager.get_adaptations() if e.key == key]
+
+
+def _stir(fleet: Mapping[str, Manager], names: list[str], rounds: int, pause_s: float) -> None:
+    """Change the summaries of the managers ``names`` ``rounds`` times (a measurement each round),
+    waiting each time until ``m0`` has the new summary: every round is an opportunity for its
+    requests, taken after the dwell time (``pause_s`` longer than it)."""
+    for n in range(rounds):
+        for name in names:
+            fleet[name].measure("round", float(n))
+        for name in names:
+            wait_until(lambda name=name, n=n: fleet["m0"].peers()[name].measurements.get("round") == float(n), f"m0 to see round {n} of {name}")  # type: ignore[misc]
+        time.sleep(pause_s)
+
+
+def test_a_request_between_equal_providers_stays_where_it_is(make_manager: Callable[..., Manager]) -> None:
+    """Two equal providers of ``Pair`` and three of ``Trio``, nothing failing: for 30 s (150
+    dwell times, every one with a summary change that is an opportunity) neither request moves.
+    Each starts on the provider last in label order (the others were busier then), so neither
+    the provider's own unit in its load nor the planner's label order may move it."""
+    offers = {"p1": "Pair", "p2": "Pair", "t1": "Trio", "t2": "Trio", "t3": "Trio"}
+    fleet = _fleet(make_manager, offers, dwell_s=0.2)
+    m0 = fleet["m0"]
+    for busy in ("p1", "t1", "t2"):
+        for i in range(3):
+            fleet[busy].spawn("publisher", f"busy-{i}")
+    for busy in ("p1", "t1", "t2"):
+        wait_until(lambda busy=busy: m0.peers()[busy].load == 3, f"m0 to see {busy} busy")  # type: ignore[misc]
+    pair, trio = m0.request("Pair"), m0.request("Trio")
+    assert (_provider(m0, pair), _provider(m0, trio)) == ("p2", "t3")  # the least loaded, at the time
+    for busy in ("p1", "t1", "t2"):
+        for i in range(3):
+            fleet[busy].destroy(f"busy-{i}")
+    for name in ("p1", "p2", "t1", "t2", "t3"):  # all equal now (only what serves the requests runs)
+        wait_until(lambda name=name: m0.peers()[name].load == (1 if name in ("p2", "t3") else 0), f"m0 to see {name} idle")  # type: ignore[misc]
+    started = time.monotonic()
+    rounds = 0
+    while time.monotonic() - started < 30.0:
+        _stir(fleet, list(offers), 1, 0.25)
+        rounds += 1
+    assert rounds >= 30
+    assert _moves(m0, pair) == [] and _moves(m0, trio) == []
+    assert (_provider(m0, pair), _provider(m0, trio)) == ("p2", "t3")
+
+
+def test_a_request_leaves_a_provider_that_becomes_clearly_busier(make_manager: Callable[..., Manager]) -> None:
+    """The hysteresis is a margin, not a refusal: two more units on the request's provider do not
+    move it (:func:`dyknow.planner.load_margin`: 2), six more do, once, and it stays there."""
+    from dyknow.planner import load_margin
+
+    fleet = _fleet(make_manager, {"p1": "Pair", "p2": "Pair"}, dwell_s=0.2)
+    m0, p1 = fleet["m0"], fleet["p1"]
+    key = m0.request("Pair")
+    assert _provider(m0, key) == "p1"  # a tie: the lower label
+    for i in range(2):
+        p1.spawn("publisher", f"busy-{i}")
+    wait_until(lambda: m0.peers()["p1"].load == 3, "m0 to see p1's two more units")
+    assert load_margin(2) == 2
+    _stir(fleet, ["p1", "p2"], 5, 0.25)
+    assert _moves(m0, key) == [] and _provider(m0, key) == "p1"
+    for i in range(2, 6):
+        p1.spawn("publisher", f"busy-{i}")
+    wait_until(lambda: len(_moves(m0, key)) == 1, "the request to move off the busy provider")
+    (moved,) = _moves(m0, key)
+    assert moved.kind in ("adapted", "recovered") and moved.cause.startswith("manager 'p1' changed") and moved.new == ("offer-pair@p2",)
+    assert _provider(m0, key) == "p2"
+    _stir(fleet, ["p1", "p2"], 5, 0.25)
+    assert len(_moves(m0, key)) == 1 and _provider(m0, key) == "p2"

@@ -97,8 +97,11 @@ def test_adaptation_benchmark_smoke(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads(out.read_text())
     data = report["results"]
-    assert set(data) == {"exception", "destroyed", "measurement", "measurement (return)", "remote-kill"}
+    assert set(data) == {"exception", "destroyed", "measurement", "measurement (return)", "remote-kill", "idle"}
     assert "stand-in" in report["units"] and "STAND-IN" in result.stdout
+    idle = data.pop("idle")  # an idle request between equal providers (issue 44): its moves beside the target, 0
+    assert idle["managers"] == 5 and idle["providers"] == 3 and idle["target_moves_per_min"] == 0 and idle["summary_changes"] >= 15
+    assert idle["moves"] >= 0 and "moves/min, target 0" in result.stdout
     for rows in data.values():  # with and without gc.collect() before each fault
         assert set(rows) == {"gc on", "gc off"}
         for row in rows.values():

@@ -15,14 +15,16 @@ from tests.conftest import REPO, subprocess_env
 def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp_path: Path) -> None:
     """The robot's camera loses the ball about 4 s in: the requirement (never only predicted for
     half a second) turns false and the request moves to the ceiling camera, the formula named as
-    the cause; later the battery runs low and recovers, and the request follows it."""
+    the cause; the robot's camera is tried again in the shadow, and trusted again once the ball is
+    back in its view (from 10.5 s) and the requirement has held there for the dwell time (2 s);
+    later the battery runs low and recovers, and the request follows it."""
     out = io.StringIO()
-    demo = BallDemo(duration_s=14.0, out_dir=tmp_path, stream=out, live=False, battery=Battery(low_at_s=9.0, charge_at_s=10.5, charge_rate=0.15))
+    demo = BallDemo(duration_s=22.0, out_dir=tmp_path, stream=out, live=False, battery=Battery(low_at_s=17.0, charge_at_s=18.5, charge_rate=0.15))
     report = demo.run()
     summary = report["summary"]
     text = out.getvalue()
     assert summary["key"] == "dyknow/demo/requests/BallTrack(field)"
-    assert summary["track_messages"] > 60  # about 20 per second for 14 s
+    assert summary["track_messages"] > 100  # about 20 per second for 22 s
     # the stream kept flowing on the same key through every switch
     assert summary["longest_gap_ms"] < 2000
     switches = [a for a in summary["adaptations"] if a["kind"] != "degraded"]
@@ -30,6 +32,9 @@ def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp
     assert required, [a["cause"] for a in switches]
     assert "robot-camera" in required[0]["from"] and "ceiling-camera" in required[0]["to"] and "tracker" in required[0]["to"]
     assert 0 < required[0]["adaptation_ms"] <= required[0]["recovery_ms"]
+    trusted = [a for a in switches if "held its requirements for 2 s in the shadow" in a["cause"]]
+    assert trusted and "ceiling-camera" in trusted[0]["from"] and "robot-camera" in trusted[0]["to"], [a["cause"] for a in switches]
+    assert required[0]["t_s"] < trusted[0]["t_s"] and not any("robot-camera" in a["to"] for a in switches if a["t_s"] < trusted[0]["t_s"])
     battery = [a for a in switches if a["cause"].startswith("measurement battery = 0.")]
     assert battery and "robot-camera" in battery[-1]["to"]  # back on the robot's camera once the battery recovered
     # the measurement's line says which constraint it meets again, not only the value

@@ -187,3 +187,17 @@ class Level(Unit):
     def tick(self) -> None:
         self.n += 1
         self.publish("out", {"value": float(self.params.get("value", 1.0)), "n": self.n})
+
+
+class Reading(Unit):
+    """Publishes ``{"id": id, "n": n}`` on out at ``rate_hz``: a producer whose ``id`` (param, and
+    attribute: a test may change it while it runs, as a repair would) a requirement can check."""
+
+    def setup(self) -> None:
+        self.n = 0
+        self.id = int(self.params.get("id", 1))
+        self.create_timer(1.0 / float(self.params.get("rate_hz", 20.0)), self.tick)
+
+    def tick(self) -> None:
+        self.n += 1
+        self.publish("out", {"id": self.id, "n": self.n})

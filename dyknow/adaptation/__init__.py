@@ -25,10 +25,25 @@ control the components. Each part is a module of this package:
   configuration is broken: adapt now) or an *opportunity* (a preferred configuration may be
   available again: adapt, but not more often than the dwell time allows).
 - :class:`Reconfigurer` (plan and execute): re-plans with failed and unavailable transformations
-  excluded and the request's own units set aside so that preferences decide, then changes as little
-  as possible: units of the new configuration that already run for the request are kept (with
-  their state) and only rebound where their upstream changed; new ones are spawned, consumers
-  before producers; the anchor is rebound; units nothing uses any more are destroyed last.
+  excluded, and the request's suspects (below), and the request's own units set aside so that
+  preferences decide, its present configuration winning ties (hysteresis: another of equal cost
+  wins only on a manager that carries clearly fewer units, :func:`~dyknow.planner.load_margin`,
+  the request's own units not counted, so an idle request never moves for a tie); then changes as
+  little as possible: units of the new configuration that already run for the request are kept
+  (with their state) and only rebound where their upstream changed; new ones are spawned,
+  consumers before producers; the anchor is rebound; units nothing uses any more are destroyed last.
+
+**Requirements that learn.** A requirement's false state moves the request off one of its
+transformations, which becomes a *suspect* of the request: avoided by its plans, and tried again
+*in the shadow* at each back-off (1 s, doubled after each failed trial, at most
+:data:`BACKOFF_MAX_S`): the configuration the request would prefer with it runs beside the active
+one, watched by monitors of the requirements over its own output (a :class:`~dyknow.adaptation.monitor.Judge`
+follows their verdicts). It fails at a false verdict; once the requirements have held there for the
+dwell time, the request moves onto it (only the anchor moves). So a producer that keeps violating
+never gets the stream back, and one that is fixed is trusted again within its present back-off plus
+the dwell time plus its first verdict. A requirement false with no other configuration leaves the
+request running where it is, *degraded in place* (one log line, one event), until its requirements
+hold again for the dwell time.
 
 **Warm standby** (``request(tag, standby="warm")``, opt-in per request): besides the active
 configuration the request keeps the next-best one running, the configuration the planner would
@@ -42,7 +57,8 @@ switch, and may be older than the last message the broken configuration sent). A
 then planned, once the new configuration's first message is out (building it takes CPU that
 message needs; at most a second later), reusing the healthy units of the old configuration where
 it can. When the preferred configuration is allowed again the request returns to it as any
-request does (after the dwell time), and the configuration it leaves becomes the standby. Releasing the request tears the
+request does (after the dwell time), and the configuration it leaves becomes the standby; the
+standby never uses a suspect. Releasing the request tears the
 standby down too. The model lists the standby's units (:class:`~dyknow.model.RequestInfo`), and
 the events of a switch onto the standby say so (``standby``).
 

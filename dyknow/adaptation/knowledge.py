@@ -1,7 +1,7 @@
 """The K of MAPE-K: what the loop knows. The requests (each a :class:`Request`: its configuration,
-standby, requirements and their watches), the latest measurements, failed transformations and their
-back-off, stalled units, managers lost and on probation, and the history of adaptations
-(:class:`AdaptationEvent`).
+standby, requirements and their watches, the transformations its requirements found false and their
+trials in the shadow), the latest measurements, failed transformations and their back-off, stalled
+units, managers lost and on probation, and the history of adaptations (:class:`AdaptationEvent`).
 """
 
 from __future__ import annotations
@@ -67,6 +67,54 @@ class AdaptationEvent:
 
 
 @dataclass(slots=True)
+class Suspect:
+    """A transformation a requirement of the request found false: the request's plans avoid it
+    until a trial in the shadow shows that the requirements hold on it (see the loop).
+
+    ``backoff_s`` is the wait before the next trial (1 s, doubled after each failed trial, at
+    most :data:`BACKOFF_MAX_S`), ``next_trial_ns`` when it is due.
+    """
+
+    label: str
+    formula: str  # the requirement that was false
+    since_ns: int
+    backoff_s: float = BACKOFF_FIRST_S
+    next_trial_ns: int = 0
+    failed: int = 0  # trials in which a requirement was false again
+    announced: bool = False  # the monitor said the trial is due
+
+    def info(self, trial: Trial | None, in_place: bool) -> dict[str, Any]:
+        """The JSON form of the model (``RequestInfo.suspects``)."""
+        state = "in place" if in_place else "running" if trial is not None and trial.label == self.label else "waiting"
+        return {
+            "transformation": self.label,
+            "formula": self.formula,
+            "since_ns": self.since_ns,
+            "trial": state,
+            "failed_trials": self.failed,
+            "backoff_s": self.backoff_s,
+            "next_trial_ns": self.next_trial_ns,
+        }
+
+
+@dataclass(slots=True)
+class Trial:
+    """The configuration a request would prefer with its suspect ``label``, run in the shadow: its
+    units run and its output is watched by monitors of the request's requirements (and of its new
+    units' own), but the anchor does not forward it."""
+
+    serial: int
+    label: str
+    plan: Plan
+    units: dict[str, str]  # unit -> label, as a request records its configuration
+    output_key: str
+    started_ns: int
+    monitors: list[str] = field(default_factory=list)
+    needs: list[str] = field(default_factory=list)  # requests its monitors' other terms needed
+    overdue: bool = False  # the monitor said it ran too long undecided
+
+
+@dataclass(slots=True)
 class Request:
     tag: str
     key: str
@@ -101,6 +149,13 @@ class Request:
     # -> its watch, kept while the unit serves the request
     spec_watches: dict[tuple[str, str], SpecWatch] = field(default_factory=dict)
     spec_watch_count: int = 0
+    # transformations its requirements found false, avoided by its plans until a trial clears them
+    suspects: dict[str, Suspect] = field(default_factory=dict)
+    trial: Trial | None = None  # the one running in the shadow
+    trial_count: int = 0
+    # degraded in place: a requirement is false and nothing else provides the tag, so the request
+    # runs on (marked degraded) until its requirements hold again or an alternative comes
+    in_place: bool = False
 
     @property
     def references(self) -> int:
@@ -138,11 +193,16 @@ class Request:
                 for (ref, formula), watch in self.spec_watches.items()
             ),
             holders,
+            suspects=tuple(suspect.info(self.trial, self.in_place and suspect.label in self.units.values()) for suspect in self.suspects.values()),
         )
 
     def held(self) -> list[str]:
-        """Every unit the request holds: its configuration, its standby and spare units."""
-        return [*self.units, *self.standby, *self.spare]
+        """Every unit the request holds: its configuration, its standby, spare and trial units."""
+        return [*self.units, *self.standby, *self.spare, *(self.trial.units if self.trial is not None else ())]
+
+    def holds_aside(self, unit: str) -> bool:
+        """Whether ``unit`` is one the request holds beside its configuration (standby, spare, trial)."""
+        return unit in self.standby or unit in self.spare or (self.trial is not None and unit in self.trial.units)
 
 
 @dataclass(frozen=True, slots=True)
@@ -210,16 +270,16 @@ class Knowledge:
         return {m for m in self.returned if self.probation(m, now_ns, dwell_ns)[0] > now_ns}
 
     def users(self, unit: str) -> list[Request]:
-        """The requests whose configuration, warm standby or spare units hold ``unit``."""
-        return [r for r in self.requests.values() if unit in r.units or unit in r.standby or unit in r.spare]
+        """The requests whose configuration, warm standby, spare or trial units hold ``unit``."""
+        return [r for r in self.requests.values() if unit in r.units or r.holds_aside(unit)]
 
     def standing_by(self, unit: str) -> bool:
-        """Whether ``unit`` only stands by (a warm standby's or a spare unit): reserved for its request."""
+        """Whether ``unit`` only stands by (a warm standby's, a spare or a trial's unit): reserved for its request."""
         held = False
         for r in self.requests.values():
             if unit in r.units:
                 return False
-            held = held or unit in r.standby or unit in r.spare
+            held = held or r.holds_aside(unit)
         return held
 
 

@@ -1,7 +1,8 @@
 """The loop itself: :class:`AdaptationLoop` runs monitor, analyzer and reconfigurer on a thread of its
 own, one symptom at a time; it owns the requests' lifecycle (request, release, requirements and
-their watches), the dwell time against flapping, the warm standby's upkeep, and each adaptation's
-record (its recovery time).
+their watches), the dwell time against flapping, the warm standby's upkeep, the trials in the
+shadow of transformations a requirement found false, and each adaptation's record (its recovery
+time).
 """
 
 from __future__ import annotations
@@ -17,12 +18,23 @@ from typing import Any
 from dyknow import keys
 from dyknow.adaptation.analyze import Analyzer
 from dyknow.adaptation.anchor import ANCHOR_LABEL, ANCHOR_SPEC, WARM_ANCHOR_SPEC, RequestAnchor
-from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, AdaptationEvent, Knowledge, Request, SpecWatch
-from dyknow.adaptation.monitor import Monitor, Symptom
+from dyknow.adaptation.knowledge import (
+    BACKOFF_FIRST_S,
+    BACKOFF_MAX_S,
+    DEFAULT_DWELL_S,
+    AdaptationEvent,
+    Knowledge,
+    Request,
+    SpecWatch,
+    Suspect,
+    Trial,
+)
+from dyknow.adaptation.monitor import Judge, Monitor, Symptom
 from dyknow.adaptation.reconfigure import Reconfigurer, is_current
 from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import AccessError, DyKnowError, PlanningError, UnitError
 from dyknow.model import LOCAL, Owner, RequestInfo, UnitEvent, check_standby
+from dyknow.planner import Plan
 from dyknow.reasoning.progression import Verdict
 from dyknow.reasoning.syntax import Formula
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
@@ -53,6 +65,8 @@ class AdaptationLoop:
         self._listeners: list[Callable[[AdaptationEvent], None]] = []
         self._next_id = 1
         self._deferred: dict[str, tuple[int, Symptom]] = {}  # request key -> (when, the opportunity)
+        # requests degraded in place: key -> (the judge of their requirements, the "degraded" event)
+        self._in_place: dict[str, tuple[Judge, AdaptationEvent]] = {}
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"dyknow-{runtime.name}-adaptation", daemon=True)
         self._thread.start()
@@ -185,7 +199,11 @@ class AdaptationLoop:
                 self.release(needed)
 
     def _verdict(self, key: str, formula: str, verdict: Verdict, unit: str | None = None, label: str | None = None) -> None:
-        """A requirement's verdict (on its monitor's thread): a false one is a symptom."""
+        """A requirement's verdict (on its monitor's thread): a false one is a symptom; while the
+        request is degraded in place, its judge sees them all."""
+        in_place = self._in_place.get(key)
+        if in_place is not None:
+            in_place[0].verdict(formula, verdict)
         if verdict.verdict is False:
             symptom = Symptom("requirement", time.time_ns(), unit=unit, label=label, detail=formula, request=key, state_ns=verdict.t_ns)
             self._report(symptom)
@@ -217,7 +235,10 @@ class AdaptationLoop:
                 except DyKnowError as exc:
                     log.warning("cannot watch the requirement %r of %s for %s: %s", text, label, request.tag, exc)
 
-    def _spec_watch(self, request: Request, ref: str, label: str, formula: Formula) -> SpecWatch:
+    def _unit_bindings(self, ref: str, label: str, formula: Formula) -> tuple[dict[str, str], list[str]]:
+        """Where a monitor of a requirement of unit ``ref`` (of transformation ``label``) reads
+        each term: a term that is one of the unit's output tags reads that output, any other is
+        requested in turn. Returns the bindings and those requests (given back on a failure)."""
         spec = self.reconfigurer.planner().spec(label)
         outputs = self.reconfigurer.config(ref)
         bindings: dict[str, str] = {}
@@ -234,14 +255,21 @@ class AdaptationLoop:
                 else:
                     needs.append(self.request(term))
                     bindings[port] = needs[-1]
+        except DyKnowError:
+            self._give_back(needs)
+            raise
+        return bindings, needs
+
+    def _spec_watch(self, request: Request, ref: str, label: str, formula: Formula) -> SpecWatch:
+        bindings, needs = self._unit_bindings(ref, label, formula)
+        try:
             request.spec_watch_count += 1
             n = request.spec_watch_count
             name = f"{request.anchor}-spec-require-{n}"
             key = bindings[VERDICTS_PORT] = f"{request.key}/requirements/spec-{n}"
             self.runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
         except DyKnowError:
-            for needed in needs:
-                self.release(needed)
+            self._give_back(needs)
             raise
         self.knowledge.managed.add(name)
         watcher = self.runtime.unit(name)
@@ -326,8 +354,10 @@ class AdaptationLoop:
             self._unrequire(request, [text for _, texts in dropped for text in texts if text not in still])
             return request.references
         key = request.key
+        self._end_trial(request)
         del self.knowledge.requests[key]
         self._deferred.pop(key, None)
+        self._in_place.pop(key, None)
         orphans = [n for n in request.held() if n in self.knowledge.managed and not self.knowledge.users(n)]
         watches = list(request.spec_watches.values())
         self.reconfigurer.cleanup([*(w[0] for w in request.watches.values()), *(w.monitor for w in watches), request.anchor, *orphans])
@@ -480,6 +510,16 @@ class AdaptationLoop:
         if symptom.kind == "requirement":
             self._violated(symptom)
             return
+        if symptom.kind in ("trial-due", "trial-held", "trial-failed", "held"):
+            self._judged(symptom)
+            return
+        if symptom.kind in ("failed", "destroyed", "stalled") and symptom.unit is not None:
+            for request in list(knowledge.requests.values()):
+                trial = request.trial
+                if trial is not None and symptom.unit in trial.units:  # not the suspect's doing: the same wait again
+                    log.info("trial %d of %s for %s ended: %s", trial.serial, trial.label, request.tag, _what(symptom))
+                    self._end_trial(request)
+                    self._reschedule(request.suspects.get(trial.label), time.time_ns(), failed=False)
         for request, fault in self.analyzer.affected(symptom):
             if symptom.unit is not None and symptom.unit == request.anchor:
                 self._reanchor(request, symptom)
@@ -492,8 +532,9 @@ class AdaptationLoop:
         Not when the present configuration has run less than the dwell time (its first states
         are judged partly on what the one before delivered), nor when it is degraded. The next
         best is the cheapest plan without one of the present configuration's transformations;
-        that transformation is put in back-off (so the request returns to it later, and leaves it
-        again, for twice as long, if the requirement fails again)."""
+        that transformation becomes a *suspect* of the request: its plans avoid it until a trial
+        in the shadow shows the requirements hold on it (:meth:`_judged`). When no configuration
+        without one of them exists, the request runs on, degraded in place (:meth:`_hold_in_place`)."""
         request = self.knowledge.requests.get(symptom.request or "")
         if request is None or request.state != "active" or symptom.state_ns < request.last_change_ns + self.dwell_ns:
             return
@@ -502,16 +543,11 @@ class AdaptationLoop:
             label = request.units.get(symptom.unit)
             if label is None or label != symptom.label:
                 return  # (the unit no longer serves the request: a verdict that was on its way)
-            try:
-                self.reconfigurer.plan(request, now, exclude={label})
-            except PlanningError:
-                log.info("requirement %r of %s is false, and no configuration without it provides %s", symptom.detail, label, request.tag)
-                return
-            self.knowledge.fail(label, now)
-            self._adapt(request, symptom, fault=True)
-            return
+            candidates = [label]
+        else:
+            candidates = sorted(set(request.units.values()))
         best: tuple[tuple[Any, ...], str] | None = None
-        for label in sorted(set(request.units.values())):
+        for label in candidates:
             try:
                 plan = self.reconfigurer.plan(request, now, exclude={label})
             except PlanningError:
@@ -519,10 +555,194 @@ class AdaptationLoop:
             if best is None or plan.cost < best[0]:
                 best = (plan.cost, label)
         if best is None:
-            log.info("requirement %r of %s is false, and no other configuration provides it", symptom.detail, request.tag)
+            old = tuple(sorted(set(request.units.values())))
+            where = f" of {symptom.label}" if symptom.label is not None else ""
+            self._hold_in_place(request, symptom, old, f"its requirement{where} {symptom.detail!r} is false, and no other configuration provides {request.tag}")
             return
-        self.knowledge.fail(best[1], now)
+        request.suspects[best[1]] = Suspect(best[1], symptom.detail, now, next_trial_ns=now + int(BACKOFF_FIRST_S * 1e9))
         self._adapt(request, symptom, fault=True)
+
+    # -- suspects: their trials in the shadow, and requests degraded in place
+
+    def _judged(self, symptom: Symptom) -> None:
+        """A suspect's trial is due, held or failed; or a request degraded in place holds again."""
+        request = self.knowledge.requests.get(symptom.request or "")
+        if request is None:
+            return
+        if symptom.kind == "held":
+            self._holds_again(request, symptom)
+            return
+        trial = request.trial
+        if symptom.kind == "trial-due":
+            self._start_trial(request, symptom.label or "")
+        elif trial is None or trial.serial != symptom.trial:
+            return  # (about a trial that ended meanwhile)
+        elif symptom.kind == "trial-failed":
+            log.info("trial %d of %s for %s in the shadow failed: %s", trial.serial, trial.label, request.tag, symptom.detail)
+            self._end_trial(request)
+            self._reschedule(request.suspects.get(trial.label), time.time_ns(), failed=True)
+        else:
+            self._adapt(request, symptom, fault=False)  # "trial-held": an opportunity, taken after the dwell time (_trust)
+
+    def _reschedule(self, suspect: Suspect | None, now: int, *, failed: bool, slower: bool = False) -> None:
+        """The next trial of ``suspect``: after twice the wait when its trial failed (or could not
+        start: ``slower``), else after the same wait."""
+        if suspect is None:
+            return
+        if failed:
+            suspect.failed += 1
+        if failed or slower:
+            suspect.backoff_s = min(BACKOFF_MAX_S, suspect.backoff_s * 2)
+        suspect.next_trial_ns = now + int(suspect.backoff_s * 1e9)
+        suspect.announced = False
+
+    def _start_trial(self, request: Request, label: str) -> None:
+        """Run the configuration the request would prefer with its suspect ``label`` in the
+        shadow, its requirements watched there by monitors of their own; unless the planner
+        would not use the suspect now, or the request is busy (then: the same wait again)."""
+        suspect = request.suspects.get(label)
+        if suspect is None:
+            return
+        now = time.time_ns()
+        if request.state != "active" or request.trial is not None or request.in_place:
+            self._reschedule(suspect, now, failed=False)
+            return
+        try:
+            plan = self.reconfigurer.plan(request, now, trying={label})
+        except PlanningError:
+            self._reschedule(suspect, now, failed=False)
+            return
+        if label not in self.reconfigurer.labels(plan) or is_current(request, plan):
+            self._reschedule(suspect, now, failed=False)  # the planner would not use it now anyway
+            return
+        request.trial_count += 1
+        try:
+            trial = request.trial = self.reconfigurer.wire_trial(request, plan, label, request.trial_count, now)
+            self._watch_trial(request, trial)
+        except DyKnowError as exc:
+            log.warning("could not try %s for %s in the shadow: %s", label, request.tag, exc)
+            self._end_trial(request)
+            self._reschedule(suspect, now, failed=False, slower=True)
+            return
+        log.info(
+            "trial %d of %s for %s in the shadow: %s (its requirements must hold for %g s there)",
+            trial.serial,
+            label,
+            request.tag,
+            ", ".join(sorted(set(trial.units.values()))),
+            self.dwell_ns / 1e9,
+        )
+
+    def _watch_trial(self, request: Request, trial: Trial) -> None:
+        """Monitors of the request's requirements over the trial's output (their other terms read
+        what the request's own monitors read), and of the trial's new units' own requirements;
+        one judge over them all. :class:`DyKnowError` when one cannot be watched."""
+        watched: list[tuple[str, Formula, dict[str, str]]] = []  # (judge's name of it, formula, bindings)
+        for text, (monitor, _) in request.watches.items():
+            formula = self.runtime.check_formula(text)
+            current = self.runtime.get_config(monitor)
+            bindings = {port: trial.output_key if term == request.tag else current[port] for term, port in term_ports(formula).items()}
+            watched.append((text, formula, bindings))
+        planner = self.reconfigurer.planner()
+        for unit in trial.plan.new_units:
+            ref, label = unit.ref, trial.units.get(unit.ref)
+            if label is None:
+                continue
+            for text in planner.spec(label).requirements:
+                formula = self.runtime.check_formula(text)
+                bindings, needs = self._unit_bindings(ref, label, formula)
+                trial.needs.extend(needs)
+                watched.append((f"{text} (of {label})", formula, bindings))
+        if not watched:
+            raise UnitError("no requirement to judge it by", where=f"the trial of {trial.label}")
+        key, serial = request.key, trial.serial
+
+        def report(outcome: str, formula: str) -> None:
+            detail = f"{trial.label} held its requirements for {self.dwell_ns / 1e9:g} s" if outcome == "held" else f"requirement {formula!r} was false there"
+            self._report(Symptom(f"trial-{outcome}", time.time_ns(), label=trial.label, detail=detail, request=key, trial=serial))
+
+        judge = Judge([name for name, _, _ in watched], self.dwell_ns, report, strict=True)
+        for k, (name, formula, bindings) in enumerate(watched, start=1):
+            monitor = f"{request.anchor}-trial-{serial}-{k}"
+            bindings[VERDICTS_PORT] = f"{request.key}/trials/{serial}/{k}"
+            self.runtime.spawn(monitor_spec(formula, label="requirement"), monitor, bindings=bindings)
+            self.knowledge.managed.add(monitor)
+            trial.monitors.append(monitor)
+            watcher = self.runtime.unit(monitor)
+            if isinstance(watcher, FormulaMonitor):
+                watcher.listen(lambda verdict, name=name: judge.verdict(name, verdict))  # type: ignore[misc]
+
+    def _end_trial(self, request: Request) -> None:
+        """Take the request's trial down: its monitors, its units nothing else holds, its terms."""
+        trial = request.trial
+        if trial is None:
+            return
+        orphans = self.reconfigurer.drop_trial(request)
+        self.reconfigurer.cleanup([*trial.monitors, *orphans])
+        self._give_back(trial.needs)
+
+    def _trust(self, request: Request, symptom: Symptom) -> None:
+        """A trial held (and the dwell time is over): its suspect is trusted again, and the request
+        moves onto the trial's configuration (only the anchor moves), if the planner prefers it."""
+        trial = request.trial
+        if trial is None or trial.serial != symptom.trial:
+            return
+        request.suspects.pop(trial.label, None)
+        now = time.time_ns()
+        try:
+            plan: Plan | None = self.reconfigurer.plan(request, now)
+        except PlanningError:
+            plan = None
+        if plan is None or self.reconfigurer.labels(plan) != self.reconfigurer.labels(trial.plan):
+            log.info("%s is trusted again for %s, but the planner prefers another configuration now", trial.label, request.tag)
+            self._end_trial(request)
+            self._adapt(request, replace(symptom, kind="preferred", detail=f"{trial.label} is trusted again"), fault=False)
+            return
+        old_labels = tuple(sorted(set(request.units.values())))
+        monitors, needs = list(trial.monitors), list(trial.needs)
+        recovery = _Recovery(self)
+        try:
+            orphans = self.reconfigurer.promote_trial(request, recovery.arm(request))
+        except DyKnowError as exc:
+            log.warning("switching %s onto its trial's configuration failed: %s", request.tag, exc)
+            self._end_trial(request)
+            return
+        self.reconfigurer.cleanup(monitors)  # the request's own monitors read its key, which now carries the trial's stream
+        self._give_back(needs)
+        self._adapted(request, symptom, _cause(symptom), old_labels, orphans, recovery, standby=False)
+
+    def _hold_in_place(self, request: Request, symptom: Symptom, old: tuple[str, ...], why: str) -> None:
+        """A requirement is false and nothing else provides the tag: the request runs on where it
+        is, degraded (one log line and one event, with the formula), until its requirements hold
+        there for the dwell time (:meth:`_holds_again`) or another configuration comes."""
+        self._end_trial(request)
+        request.state, request.reason, request.in_place = "degraded", why, True
+        event = AdaptationEvent(
+            self._next_id, "degraded", request.tag, request.key, _cause(symptom), old, tuple(sorted(set(request.units.values()))), symptom.time_ns, detail=why
+        )
+        self._next_id += 1
+        formulas = [*request.watches, *(formula for _, formula in request.spec_watches)]
+        key = request.key
+        judge = Judge(formulas, self.dwell_ns, lambda _, formula: self._report(Symptom("held", time.time_ns(), detail=formula, request=key)), strict=False)
+        self._in_place[key] = (judge, event)
+        self._emit(event)
+        log.warning("request %s is degraded: %s; it runs on %s until its requirements hold again", request.tag, why, ", ".join(event.new) or "nothing")
+
+    def _holds_again(self, request: Request, symptom: Symptom) -> None:
+        """The requirements of a request degraded in place held for the dwell time: it is active
+        again (its "degraded" event is completed as "recovered", with the time it took), and
+        the suspects it runs on are trusted again."""
+        entry = self._in_place.get(request.key)
+        if entry is None or not request.in_place or not entry[0].done:
+            return
+        del self._in_place[request.key]
+        request.state, request.reason, request.in_place = "active", None, False
+        for label in set(request.units.values()):
+            request.suspects.pop(label, None)
+        now = time.time_ns()
+        event = entry[1]
+        self._emit(replace(event, kind="recovered", new=tuple(sorted(set(request.units.values()))), recovery_ms=round((now - event.fault_ns) / 1e6, 3)))
+        log.info("request %s is active again: its requirements held for %g s on %s", request.tag, self.dwell_ns / 1e9, ", ".join(sorted(set(request.units.values()))))
 
     def _later_unit(self, name: str, time_ns: int) -> bool:
         """Whether the unit now named ``name`` started after ``time_ns``."""
@@ -556,11 +776,17 @@ class AdaptationLoop:
             # but another manager's routine summary does not hide the cause already waiting, nor
             # does a routine measurement hide an ended back-off or probation)
             waiting = self._deferred.get(request.key)
-            routine = symptom.kind == "peer-changed" or (
-                symptom.kind == "measurement" and waiting is not None and waiting[1].kind in ("retry", "peer-trusted")
+            # (and a trial that held waits for its turn whatever comes meanwhile: taking it plans afresh)
+            routine = (
+                symptom.kind == "peer-changed"
+                or (symptom.kind == "measurement" and waiting is not None and waiting[1].kind in ("retry", "peer-trusted"))
+                or (waiting is not None and waiting[1].kind == "trial-held")
             )
             if waiting is None or not routine:
                 self._deferred[request.key] = (request.last_change_ns + self.dwell_ns, symptom)
+            return
+        if symptom.kind == "trial-held":
+            self._trust(request, symptom)
             return
         old_labels = tuple(sorted(set(request.units.values())))
         cause = _cause(symptom)
@@ -573,14 +799,21 @@ class AdaptationLoop:
         # (as of when the opportunity arose: a return seen then is not trusted by it, even later)
         at = min(now, symptom.raised_ns or symptom.time_ns)
         wary = self.knowledge.on_probation(at, self.dwell_ns) if not fault and request.state == "active" else set()
+        suspects: list[str] = []  # the suspects a fault falls back on, when nothing else is left
         try:
             plan = self.reconfigurer.plan(request, now, managers_excluded=wary)
         except PlanningError as exc:
-            if fault or request.state == "degraded":
-                self._degrade(request, symptom, old_labels, str(exc))
-            return
-        if not fault and request.state == "active" and is_current(request, plan):
-            return  # already the preferred configuration
+            if request.in_place and not fault:
+                return  # it runs on where it is, degraded, until something else can provide its tag
+            fallback = self._plan_on_suspects(request, now) if fault or request.state == "degraded" else None
+            if fallback is None:
+                if fault or request.state == "degraded":
+                    self._degrade(request, symptom, old_labels, str(exc))
+                return
+            plan = fallback
+            suspects = sorted(set(request.suspects) & self.reconfigurer.labels(plan))
+        if not fault and (request.state == "active" or request.in_place) and is_current(request, plan):
+            return  # already the preferred configuration (or, degraded in place, the only one)
         if warm and self.reconfigurer.standby_ready(request, now) and self.reconfigurer.labels(plan) == set(request.standby.values()):
             self._take_standby(request, symptom, old_labels, fault)  # the standby is what the planner prefers now
             return
@@ -592,6 +825,19 @@ class AdaptationLoop:
             self._degrade(request, symptom, old_labels, f"could not wire the new configuration: {exc}")
             return
         self._adapted(request, symptom, cause, old_labels, orphans, recovery, standby=False, fault=fault)
+        if suspects:
+            formulas = ", ".join(repr(request.suspects[label].formula) for label in suspects)
+            why = f"nothing but {', '.join(suspects)} provides {request.tag}, and its requirement {formulas} was false there"
+            self._hold_in_place(request, symptom, old_labels, why)
+
+    def _plan_on_suspects(self, request: Request, now: int) -> Plan | None:
+        """The configuration ``request`` would run with its suspects allowed, when it has any and one exists."""
+        if not request.suspects:
+            return None
+        try:
+            return self.reconfigurer.plan(request, now, trying=set(request.suspects))
+        except PlanningError:
+            return None
 
     def _adapted(
         self,
@@ -610,6 +856,7 @@ class AdaptationLoop:
         after a fault (something broke), else information (a better configuration came back)."""
         wired = time.time_ns()
         request.last_change_ns = wired
+        self._in_place.pop(request.key, None)  # (a request degraded in place that moved is judged where it went)
         event = AdaptationEvent(
             self._next_id,
             "adapted",
@@ -714,9 +961,13 @@ class AdaptationLoop:
 
     def _degrade(self, request: Request, symptom: Symptom, old: tuple[str, ...], why: str) -> None:
         was = request.state
+        was_in_place = request.in_place
+        self._end_trial(request)
+        self._in_place.pop(request.key, None)
         request.state = "degraded"
         request.reason = why
-        if was != "degraded":
+        request.in_place = False
+        if was != "degraded" or was_in_place:
             event = AdaptationEvent(
                 self._next_id, "degraded", request.tag, request.key, _cause(symptom), old, (), symptom.time_ns, detail=why
             )
@@ -824,6 +1075,12 @@ def _what(symptom: Symptom) -> str:
         return f"requirement violated: {symptom.detail}"
     if symptom.kind == "peer-trusted":
         return f"manager {symptom.manager!r} is trusted again: {symptom.detail}"
+    if symptom.kind == "trial-held":
+        return f"{symptom.detail} in the shadow (trial {symptom.trial})"
+    if symptom.kind == "trial-failed":
+        return f"trial {symptom.trial} of {symptom.label} failed: {symptom.detail}"
+    if symptom.kind == "held":
+        return f"requirement held again: {symptom.detail}"
     if symptom.kind == "peer-changed":
         return f"manager {symptom.manager!r} changed: {symptom.detail}" if symptom.detail else f"manager {symptom.manager!r} changed"
     return symptom.detail or symptom.kind

@@ -1,16 +1,20 @@
 """The M of MAPE-K: the :class:`Monitor` turns what happens (a unit failed or was destroyed, a deadline
-passed or was met again, a measurement, a back-off ended) into :class:`Symptom` s for the loop.
+passed or was met again, a measurement, a back-off ended, a suspect's trial is due or overdue) into
+:class:`Symptom` s for the loop; a :class:`Judge` turns the verdicts of requirements watched over
+one configuration into one symptom: they held for the dwell time, or one was false.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, FLAP_WINDOW_S, Knowledge
 from dyknow.adaptation.runtime import DeadlinePort
 from dyknow.model import UnitEvent
+from dyknow.reasoning.progression import Verdict
 
 log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
@@ -22,7 +26,10 @@ class Symptom:
     # "failed", "destroyed", "stalled", "resumed", "measurement", "retry", "library",
     # "peer-found", "peer-lost", "peer-changed" (another manager came, went or changed),
     # "peer-trusted" (a manager that came back after losses has held through its probation),
-    # "requirement" (a formula a request requires was false)
+    # "requirement" (a formula a request requires was false), "trial-due" (a suspect's back-off
+    # ended: try it in the shadow), "trial-held" / "trial-failed" (a trial's requirements held
+    # for the dwell time / one was false, or none was decided in time), "held" (the requirements
+    # of a request degraded in place held for the dwell time)
     kind: str
     time_ns: int
     unit: str | None = None
@@ -35,6 +42,11 @@ class Symptom:
     request: str | None = None  # "requirement": the key of the request whose requirement was false
     # ("unit" and "label": the unit and transformation whose spec's requirement it was, if one's)
     state_ns: int = 0  # "requirement": the time of the state the false verdict is about
+    trial: int = 0  # "trial-*": the trial's number (a symptom of an earlier trial is stale)
+
+
+#: How long past the dwell time a trial may run without its requirements decided (then it failed).
+TRIAL_TIMEOUT_NS = 30_000_000_000
 
 
 # ---------------------------------------------------------------------------- monitor
@@ -77,6 +89,18 @@ class Monitor:
                 hold = (until - back[0]) / 1e9
                 why = f"back for its probation of {hold:g} s ({losses} loss{'es' if losses > 1 else ''} in the last {FLAP_WINDOW_S:g} s)"
                 self._report(Symptom("peer-trusted", now_ns, manager=manager, detail=why))
+        for request in knowledge.requests.values():
+            for suspect in request.suspects.values():
+                if not suspect.announced and suspect.next_trial_ns <= now_ns and request.trial is None and request.state == "active":
+                    suspect.announced = True  # announce it once; the loop schedules the next
+                    self._report(
+                        Symptom("trial-due", now_ns, label=suspect.label, request=request.key, detail=f"back-off of {suspect.label} ended")
+                    )
+            trial = request.trial
+            if trial is not None and not trial.overdue and now_ns - trial.started_ns > dwell_ns + TRIAL_TIMEOUT_NS:
+                trial.overdue = True  # announce it once
+                why = f"its requirements were not decided within {(dwell_ns + TRIAL_TIMEOUT_NS) / 1e9:g} s"
+                self._report(Symptom("trial-failed", now_ns, label=trial.label, request=request.key, detail=why, trial=trial.serial))
         ports = self._deadline_ports()
         for name, label, port, deadline_ns, count, started_ns in (
             (p.unit, p.label, p.port, p.deadline_ns, p.messages, p.started_ns) for p in ports
@@ -115,3 +139,58 @@ class Monitor:
     def watches(self, unit: str) -> bool:
         """Whether the monitor follows a deadline of ``unit``."""
         return any(name == unit for name, _ in list(self._seen))
+
+
+# ---------------------------------------------------------------------------- judging a configuration
+
+
+class Judge:
+    """Follows the verdicts of ``formulas`` watched over one configuration and reports once.
+
+    ``report("held", formula)`` once every formula's verdicts have been true over at least
+    ``hold_ns`` of state time (from its first true verdict to its latest, none false between);
+    unknown verdicts count for nothing. A false verdict either reports ``("failed", formula)``
+    (``strict``: a trial in the shadow fails at once) or starts that formula's time over (a
+    request degraded in place must hold for ``hold_ns`` in a row). Verdicts come on the monitors'
+    threads: the judge only keeps two times per formula and reports through the loop's queue.
+    """
+
+    def __init__(self, formulas: Iterable[str], hold_ns: int, report: Callable[[str, str], None], *, strict: bool) -> None:
+        self._held: dict[str, list[int]] = {f: [] for f in formulas}  # formula -> [first true ns, latest true ns], or []
+        self._hold_ns = hold_ns
+        self._report = report
+        self._strict = strict
+        self._lock = threading.Lock()
+        self.done = False
+
+    @property
+    def formulas(self) -> tuple[str, ...]:
+        """The formulas it judges."""
+        return tuple(self._held)
+
+    def verdict(self, formula: str, verdict: Verdict) -> None:
+        """One verdict of ``formula`` (any other formula's is ignored)."""
+        value: bool | None = verdict.verdict
+        if value is None:  # (a verdict not decided counts for nothing)
+            return
+        with self._lock:
+            held = self._held.get(formula)
+            if held is None or self.done:
+                return
+            if value is False:
+                if self._strict:
+                    self.done = True
+                else:
+                    held.clear()
+                    return
+                outcome = "failed"
+            else:
+                if held:
+                    held[1] = max(held[1], verdict.t_ns)
+                else:
+                    held.extend((verdict.t_ns, verdict.t_ns))
+                if not all(h and h[1] - h[0] >= self._hold_ns for h in self._held.values()):
+                    return
+                self.done = True
+                outcome = "held"
+        self._report(outcome, formula)

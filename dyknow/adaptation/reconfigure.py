@@ -1,8 +1,9 @@
 """The P and E of MAPE-K: the :class:`Reconfigurer` plans a request's configuration (failed,
-unavailable and stalled transformations excluded; the request's own units set aside so that
-preferences decide) and moves the running system to it changing little: kept units rebound, new ones
-spawned consumers first, the anchor rebound, what nothing uses destroyed last. It also plans and
-builds the warm standby.
+unavailable and stalled transformations excluded, and those its requirements found false; the
+request's own units set aside so that preferences decide, its present configuration winning ties)
+and moves the running system to it changing little: kept units rebound, new ones spawned consumers
+first, the anchor rebound, what nothing uses destroyed last. It also plans and builds the warm
+standby, and the trial of a suspect transformation in the shadow.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import Any
 from dyknow import keys
 from dyknow.adaptation.anchor import ANCHOR_LABEL
 from dyknow.adaptation.index import RunningIndex
-from dyknow.adaptation.knowledge import Knowledge, Request, runs_on
+from dyknow.adaptation.knowledge import Knowledge, Request, Trial, runs_on
 from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, UnitError
 from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unqualify
@@ -78,9 +79,7 @@ class Reconfigurer:
         the cost does not grow with the units running; the names are then a live view.
         """
         knowledge = self._knowledge
-        own = set()
-        if request is not None:
-            own = {u for u in request.held() if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
+        own = self._own(request)
         running: list[RunningUnit] = []
         index = self._local()
         local = index.serving(self.planner().running_keys(request.tag)) if request is not None else list(index.units.values())
@@ -106,6 +105,29 @@ class Reconfigurer:
         names.update(knowledge.remote)  # spawned, maybe not in a summary yet
         return running, names
 
+    def _own(self, request: Request | None) -> set[str]:
+        """The units only ``request`` holds (its configuration, standby and spare units)."""
+        knowledge = self._knowledge
+        if request is None:
+            return set()
+        return {u for u in request.held() if u in knowledge.managed and all(r is request for r in knowledge.users(u))}
+
+    def load(self, request: Request | None = None) -> dict[str, int]:
+        """Units per manager, as the planner weighs them for ``request``: what each runs (this
+        manager's units, the others' from their summaries, plus what this manager spawned there
+        that their summaries do not show yet), without the units only ``request`` holds. A
+        configuration is never judged worse for carrying the request it serves."""
+        runtime = self._runtime
+        home = runtime.name
+        own = self._own(request)
+        local = self._local().units  # the index: no walk over every unit
+        load = {home: len(local) - sum(1 for name in own if name in local)}
+        for manager, summary in runtime.peers().items():
+            shown = {qualify(unit.name, manager) for unit in summary.units}
+            pending = sum(1 for ref in self._knowledge.remote if runs_on(ref, manager) and ref not in shown)
+            load[manager] = summary.load - len(shown & own) + pending
+        return load
+
     def plan(
         self,
         request: Request,
@@ -114,13 +136,20 @@ class Reconfigurer:
         exclude: Collection[str] = (),
         avoid: Collection[str] = (),
         managers_excluded: Collection[str] = (),
+        trying: Collection[str] = (),
     ) -> Plan:
         """The preferred configuration for ``request`` now (:class:`PlanningError` when none).
 
-        ``exclude``: transformations not to use besides those in back-off or stalled; ``avoid``:
+        ``exclude``: transformations not to use besides those in back-off or stalled, and the
+        request's suspects (those its requirements found false) other than ``trying``; ``avoid``:
         running units not to reuse (besides the request's own, which are always set aside);
         ``managers_excluded``: other managers none of whose transformations or units to use,
         except those the request already uses there.
+
+        The request's configuration (and its standby's) is preferred: another of equal cost
+        replaces it only when its manager carries clearly fewer units (:func:`~dyknow.planner.load_margin`),
+        the request's own units not counted (:meth:`load`), so an opportunity moves a request for
+        a strict improvement, never for a tie.
         """
         running, names = self.running_model(request)
         peers = self._runtime.peers()
@@ -129,7 +158,7 @@ class Reconfigurer:
             running = [u for u in running if u.ref not in avoid]
         if managers_excluded:
             running = [u for u in running if u.ref in kept or not any(runs_on(u.ref, m) for m in managers_excluded)]
-        unavailable = self._knowledge.unavailable(now_ns) | set(exclude)
+        unavailable = self._knowledge.unavailable(now_ns) | set(exclude) | (set(request.suspects) - set(trying))
         used = set(request.units.values())
         for manager in managers_excluded:
             summary = peers.get(manager)
@@ -137,7 +166,6 @@ class Reconfigurer:
                 unavailable |= {qualify(spec.label, manager) for spec in summary.specs} - used
         units = self._local().units
         stalled_labels = {units[n].label for n in self._knowledge.stalled if n in units}
-        load = {self._runtime.name: len(units), **{m: s.load for m, s in peers.items()}}
         return self.planner().plan(
             request.tag,
             running,
@@ -145,7 +173,8 @@ class Reconfigurer:
             self._knowledge.measurements,
             reserved_names=names,
             peer_measurements={m: s.measurements for m, s in peers.items()},
-            load=load,
+            load=self.load(request),
+            prefer={*request.units.values(), *request.standby.values()},
         )
 
     def apply(self, request: Request, plan: Plan, before_switch: Callable[[str], None] | None = None) -> list[str]:
@@ -174,6 +203,7 @@ class Reconfigurer:
         request.output_key = built.output_key
         request.state = "active"
         request.reason = None
+        request.in_place = False
         return [n for n in old if n not in built.units and n in knowledge.managed and not knowledge.users(n)]
 
     def build(self, plan: Plan, pool: Mapping[str, str]) -> _Built:
@@ -261,7 +291,7 @@ class Reconfigurer:
                     return False
             elif not self._healthy(ref):
                 return False
-            if label in unavailable or self.violated(label):
+            if label in unavailable or label in request.suspects or self.violated(label):
                 return False
         return True
 
@@ -364,6 +394,37 @@ class Reconfigurer:
         request.standby, request.standby_plan, request.standby_key = {}, None, None
         request.state = "active"
         request.reason = None
+        request.in_place = False
+        return [n for n in old if n not in request.units and n in knowledge.managed and not knowledge.users(n)]
+
+    # -- a suspect's trial in the shadow
+
+    def wire_trial(self, request: Request, plan: Plan, label: str, serial: int, now_ns: int) -> Trial:
+        """Run ``plan`` (the configuration the request would prefer with its suspect ``label``)
+        beside the active one, reusing nothing the request holds; the anchor does not see it."""
+        built = self.build(plan, {})
+        return Trial(serial, label, plan, built.units, built.output_key, now_ns)
+
+    def drop_trial(self, request: Request) -> list[str]:
+        """The request's trial ends: returns its units nothing else holds (to destroy, with its monitors)."""
+        trial, request.trial = request.trial, None
+        if trial is None:
+            return []
+        knowledge = self._knowledge
+        return [n for n in trial.units if n in knowledge.managed and not knowledge.users(n)]
+
+    def promote_trial(self, request: Request, before_switch: Callable[[str], None] | None = None) -> list[str]:
+        """Switch ``request`` onto its trial's configuration (it held): only the anchor moves.
+        Returns the units of the configuration it left that nothing holds any more."""
+        knowledge = self._knowledge
+        trial = request.trial
+        assert trial is not None
+        if before_switch is not None:
+            before_switch(trial.output_key)
+        self._runtime.set_config(request.anchor, {"in": trial.output_key})
+        old = request.units
+        request.units, request.plan, request.output_key, request.trial = trial.units, trial.plan, trial.output_key, None
+        request.state, request.reason, request.in_place = "active", None, False
         return [n for n in old if n not in request.units and n in knowledge.managed and not knowledge.users(n)]
 
     def idle_key(self, request: Request) -> str:

@@ -10,7 +10,9 @@ The request carries a requirement, a temporal formula over its own stream (:data
 the ball must not be merely predicted for half a second. The robot's camera does not see the
 whole field; when the ball stays out of its view, the requirement turns false, and the manager
 moves the request to the next-best configuration, the ceiling camera, naming the formula as the
-cause; it tries the robot's camera again after a back-off.
+cause; it tries the robot's camera again in the shadow after a back-off (its chain runs beside the
+active one, the requirement watched over it) and moves back once the requirement has held there
+for the dwell time, that is once the ball has been back in the robot camera's view for 2 s.
 
 The request asks for a warm standby: the next-best configuration (the ceiling camera's chain)
 runs beside the active one, so a switch only moves the request's anchor (a few milliseconds
