@@ -581,7 +581,7 @@ class _AggregateValue(_Value):
         if self.lost_t > -(2**62) and self.lost_t >= start:
             return UNKNOWN_VALUE  # a state given up may be in the window
         held = self.held
-        if held is not None and held.stale(self.below, start if self.bounded else self.first_t, t - self.lo):
+        if held is not None and held.stale(self.below, start if self.bounded else None, t - self.lo):
             return UNKNOWN_VALUE  # a term below was stale in the window
         if kind == "integral":
             return self.integral(t, start)
@@ -904,7 +904,8 @@ def _past_stale(node: _Node, t: int, lo_ns: int, hi_ns: int | None) -> bool:
         return False
     if node.first_t == _NEVER:
         node.first_t = t
-    return held.stale(node.below, t - hi_ns if hi_ns is not None else node.first_t, t - lo_ns)
+    # (an unbounded window reads from the first state: lo None, which also finds spans pruned)
+    return held.stale(node.below, t - hi_ns if hi_ns is not None else None, t - lo_ns)
 
 
 def _pred(positions: list[int], below: int) -> int:

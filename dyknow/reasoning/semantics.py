@@ -743,7 +743,8 @@ class _Evaluator:
         self.robust = robustness
         self.n = len(times)
 
-    def node(self, root: Node) -> tuple[list[int], list[float | None]]:
+    def node(self, root: Node) -> tuple[list[Any], list[float | None]]:
+        """A node's column over all states (a condition's verdicts, a value's values) and its robustness."""
         # iterative post-order: formulas may nest deeper than Python's recursion allows
         done: dict[int, tuple[list[Any], list[float | None]]] = {}
         stack: list[tuple[Node, bool]] = [(root, False)]
