@@ -5,7 +5,7 @@ Writes the bombs of :func:`dyknow.testing.bombs.write_bombs` (a 33 KB zstd chunk
 a 4.2 MiB lz4 chunk holding 1 GiB that declares 1 KiB, 16 overlapping chunks of 200 MiB, 256 MiB
 of empty messages), runs ``dyknow replay FILE --rate max`` on each in a child process, and
 reports its exit code, its first line of errors and its peak resident memory (``ru_maxrss`` of
-that child, from ``wait4``).
+that command alone, by :func:`dyknow.testing.memory.peak_run`).
 
 Target: every bomb refused (exit 1, a one-line error naming the file and the chunk's offset)
 with a peak of at most 1.2 GiB: the default bound of 1 GiB held (``--max-memory-bytes``), plus the
@@ -21,15 +21,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from dyknow.testing.bombs import write_bombs
+from dyknow.testing.memory import peak_run
 
 from harness import free_ports, machine, write_json
 
@@ -46,20 +45,13 @@ def replay_peak(path: Path, extra: list[str], source: str | None, timeout_s: flo
             "--connect", f"tcp/127.0.0.1:{port}", *extra]  # fmt: skip
     with tempfile.TemporaryFile() as err:
         start = time.monotonic()
-        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err, env=env)
-        killer = threading.Timer(timeout_s, proc.kill)
-        killer.start()
-        try:
-            _, status, usage = os.wait4(proc.pid, 0)
-        finally:
-            killer.cancel()
-        proc.returncode = code = os.waitstatus_to_exitcode(status)
+        code, peak_mib = peak_run(argv, timeout_s=timeout_s, env=env, stderr=err)
         err.seek(0)
         lines = [line for line in err.read().decode(errors="replace").splitlines() if line.strip()]
     return {
         "exit": code,
         "seconds": round(time.monotonic() - start, 2),
-        "peak_mib": round(usage.ru_maxrss / 1024, 1),
+        "peak_mib": round(peak_mib, 1),
         "error": lines[-1] if lines else "",
     }
 

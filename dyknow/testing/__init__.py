@@ -17,6 +17,8 @@ What users need to test their own units (as ``bytewax.testing`` ships with bytew
 - :mod:`dyknow.testing.bombs` (imported on its own): MCAP decompression bombs built in a moment
   (a chunk of 33 KB holding 1 GiB, chunks whose sizes lie, overlapping chunks), for the tests of
   anything that reads MCAP files and for ``benchmarks/mcap_bombs.py``.
+- :mod:`dyknow.testing.memory` (imported on its own): :func:`~dyknow.testing.memory.peak_run`,
+  the peak memory of a command alone (``ru_maxrss`` of a child counts its parent's size too).
 
 Example::
 

@@ -4,18 +4,16 @@ The bombs are built here in a moment (:mod:`dyknow.testing.bombs` writes zstd RL
 copies of one lz4 block rather than compressing anything): chunks of a few KiB holding a GiB,
 chunks whose declared size or frame header lies, overlapping chunks, floods of empty messages.
 The commands run as real processes, and the peak memory of each is read from the kernel
-(``ru_maxrss`` of that child, from ``wait4``): before these bounds the same commands peaked at 1.1
+(:func:`dyknow.testing.memory.peak_run`: ``ru_maxrss`` of that command alone, not of pytest): before these bounds the same commands peaked at 1.1
 to 8.2 GiB on such files (``benchmarks/results/mcap_bombs.txt``), and some exited 0.
 """
 
 from __future__ import annotations
 
-import os
 import struct
 import subprocess
 import sys
 import tempfile
-import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -25,6 +23,7 @@ from mcap.records import Message as McapMessage
 from dyknow.errors import RecordingError
 from dyknow.recording import Player, ReadLimits, Recording
 from dyknow.testing.bombs import BombChunk, lz4_zeros, write_bomb, zeros_message, zstd_empty_messages, zstd_zeros
+from dyknow.testing.memory import peak_run
 from tests.conftest import REPO, free_port, subprocess_env
 
 GIB, MIB = 1 << 30, 1 << 20
@@ -38,18 +37,11 @@ SMALL_MIB = 256
 def measured(*args: str, timeout_s: float = 120.0) -> tuple[int, str, float]:
     """Run ``dyknow ARGS``: its exit code, its stderr, and its peak resident memory in MiB."""
     with tempfile.TemporaryFile() as err:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "dyknow.cli", *args], stdout=subprocess.DEVNULL, stderr=err, env=subprocess_env(), cwd=REPO
+        code, peak_mib = peak_run(
+            [sys.executable, "-m", "dyknow.cli", *args], timeout_s=timeout_s, env=subprocess_env(), cwd=REPO, stderr=err
         )
-        killer = threading.Timer(timeout_s, proc.kill)
-        killer.start()
-        try:
-            _, status, usage = os.wait4(proc.pid, 0)
-        finally:
-            killer.cancel()
-        proc.returncode = code = os.waitstatus_to_exitcode(status)
         err.seek(0)
-        return code, err.read().decode(), usage.ru_maxrss / 1024
+        return code, err.read().decode(), peak_mib
 
 
 def refusal(code: int, stderr: str) -> str:
