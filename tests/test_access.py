@@ -485,6 +485,7 @@ def test_a_defined_role_may_request_and_not_destroy(certs: Path, make_manager: C
         ('{ roles: {}, define: { r: { publish: ["@dyknow/x"] } } }', r"acl.json5:1: define.r.publish\[0\]: '@dyknow/x' is not a key expression under dyknow/"),
         ('{ roles: {}, define: { admin: { calls: [] } } }', r"define.admin: 'admin' is a built-in role"),
         ('{ roles: {}, define: { r: { cals: [] } } }', r"define.r: unknown field 'cals' \(did you mean 'calls'\?\)"),
+        ('{ roles: {\n  admin: ["laptop"]\n  viewer: ["x"] } }', r"acl.json5:3: not JSON5: Unexpected \"v\" at column 3"),  # a syntax error: the file's line, not <string>
     ],
 )  # fmt: skip
 def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> None:
