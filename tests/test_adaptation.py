@@ -556,3 +556,31 @@ def test_a_measurement_the_constraints_cannot_use_is_refused_with_its_name(robot
     with Client(robot.name, connect=robot.endpoints) as client:
         with pytest.raises(LibraryError, match="measurement 'battery': got the text 'low'"):
             client.measure("battery", "low")
+
+
+def test_a_unit_is_not_judged_stalled_on_a_tick_that_came_late() -> None:
+    """A tick long after the one before (the process starved: a loaded machine) finds every unit
+    silent; the verdict waits for the next tick, when the unit's own thread had its turn too, so
+    a healthy camera of a loaded manager is not marked stalled (issue 43). A unit still silent then
+    is stalled, and ticks late one after the other still judge."""
+    ms = 1_000_000
+    ports = [DeadlinePort("cam", "camera", "out", 100 * ms, 5, 0)]
+    symptoms: list[Symptom] = []
+    monitor = Monitor(lambda: list(ports), Knowledge(), symptoms.append)
+    monitor.tick(10 * ms)
+    monitor.tick(400 * ms)  # starved for 390 ms: the camera's thread was too
+    assert symptoms == []
+    ports[:] = [DeadlinePort("cam", "camera", "out", 100 * ms, 6, 0)]  # it sent as soon as it ran
+    monitor.tick(420 * ms)
+    assert symptoms == []
+    monitor.tick(900 * ms)  # starved again, and the camera sent nothing meanwhile: judged at the next tick
+    assert symptoms == []
+    monitor.tick(920 * ms)
+    assert [s.kind for s in symptoms] == ["stalled"] and "silent for 500 ms" in symptoms[0].detail
+    # late ticks one after the other: a dead unit is still found
+    ports[:] = [DeadlinePort("dead", "camera", "out", 100 * ms, 1, 0)]
+    symptoms.clear()
+    monitor.tick(1100 * ms)
+    monitor.tick(1300 * ms)
+    monitor.tick(1500 * ms)
+    assert [s.kind for s in symptoms] == ["stalled"]
