@@ -209,6 +209,9 @@ class Model:
     #: The managers this one knew and lost, and that have not come back:
     #: ``{"manager", "since_ns" (wall clock), "why"}`` each (see :meth:`dyknow.federation.Directory.lost`).
     lost: tuple[Mapping[str, Any], ...] = ()
+    #: The other managers this one reaches now and plans with (their token is up and their summary
+    #: known: :meth:`dyknow.federation.Directory.peers`), by name.
+    peers: tuple[str, ...] = ()
 
     def unit(self, name: str) -> UnitInfo:
         """The running unit ``name``; :class:`UnitError` when the model has none."""
@@ -227,6 +230,7 @@ class Model:
             "clocks": dict(self.clocks),
             "monitors": [dict(m) for m in self.monitors],
             "lost": [dict(m) for m in self.lost],
+            "peers": list(self.peers),
         }
 
     def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
@@ -245,6 +249,7 @@ class Model:
             "clocks": dict(self.clocks),
             "monitors": [dict(m) for m in self.monitors],
             "lost": [dict(m) for m in self.lost],
+            "peers": list(self.peers),
             "total": {"units": len(self.units), "specs": len(self.specs)},
         }
         used = len(json.dumps(out))

@@ -584,3 +584,22 @@ def test_a_unit_is_not_judged_stalled_on_a_tick_that_came_late() -> None:
     monitor.tick(1300 * ms)
     monitor.tick(1500 * ms)
     assert [s.kind for s in symptoms] == ["stalled"]
+
+
+def test_a_manager_back_before_the_loop_heard_of_it_is_on_probation() -> None:
+    """A manager lost lately is on probation from the moment it is back, even while its return has
+    not reached the loop yet (its summary reaches the planner first): an opportunity then (another
+    manager's change) does not move a request onto it ahead of its probation (issue 43: the robot
+    was trusted again for "manager 'field' changed", not after its probation)."""
+    ms = 1_000_000
+    knowledge = Knowledge()
+    dwell = 500 * ms
+    assert knowledge.on_probation(0, dwell) == set()
+    knowledge.lost("robot", 1000 * ms)
+    assert knowledge.on_probation(1100 * ms, dwell) == {"robot"}  # back in the planner's view, not yet in the loop's
+    knowledge.found("robot", 1200 * ms)
+    assert knowledge.on_probation(1500 * ms, dwell) == {"robot"}  # its probation of 0.5 s from its return
+    assert knowledge.on_probation(1800 * ms, dwell) == set()
+    earlier = Knowledge()
+    earlier.lost("field", 1000 * ms)
+    assert earlier.on_probation(70_000 * ms, dwell) == set()  # a loss long ago (past the window) holds nothing back
