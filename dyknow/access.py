@@ -49,6 +49,7 @@ other managers. Without an ACL everything is allowed (local use).
 from __future__ import annotations
 
 import os
+import re
 import ssl
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -205,8 +206,12 @@ class AccessControl:
         except OSError as exc:
             raise AccessError(f"cannot read the ACL file: {exc.strerror or exc}", where=where) from exc
         except ValueError as exc:
+            # (the json5 reader names no file: "<string>:LINE what"; the file's own name instead)
+            found = re.match(r"<string>:(\d+) (.*)", str(exc), re.DOTALL)
             raise AccessError(
-                f"not JSON5: {exc}", where=where, expected='{ roles: { viewer: ["CN", ...], operator: [...], admin: [...] } }'
+                f"not JSON5: {found.group(2) if found else exc}",
+                where=f"{where}:{found.group(1)}" if found else where,
+                expected='{ roles: { viewer: ["CN", ...], operator: [...], admin: [...] } }',
             ) from exc
         return cls.from_dict(data, where, text=Path(path).read_text(encoding="utf-8"))
 

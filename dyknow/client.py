@@ -219,6 +219,10 @@ class Client:
         # set when the session could not connect at once: what probing each endpoint found
         # (None: connected, or nothing to probe), so a call that cannot work fails saying why
         self._findings: list[reach.Finding] | None = None
+        self._found_at = 0.0  # when they were found (time.monotonic())
+        # the timeout counts from here for what the client does before it ever reached anything
+        # (a command's whole wait for a silent host is its --timeout: issue 43)
+        self._started = time.monotonic()
         if session is None and zenoh_config is None:
             reach.check_endpoints(self._connect, tls)
         if session is None:
@@ -235,36 +239,58 @@ class Client:
 
     def _open_leaf(self, lease_ms: int | None) -> Session:
         """A session that only connects: a Zenoh client of the endpoints when one answers now,
-        else a peer without a listener that keeps trying. Then each endpoint is probed
-        (:mod:`dyknow.reach`): a call made while every endpoint refuses for a reason no manager
-        starting there would change (nothing listens, TLS refused) fails at once, saying why;
-        otherwise calls wait for the manager, up to ``timeout_s`` (it may be starting)."""
+        else a peer without a listener that keeps trying. What the first try found about each
+        endpoint (:mod:`dyknow.reach`) is kept: a call made while every endpoint refuses for a
+        reason no manager starting there would change (nothing listens, TLS refused) fails at
+        once, saying why; otherwise calls wait for the manager (it may be starting), together no
+        longer than ``timeout_s`` from here, and then say what the endpoints did."""
         # (Zenoh's client would wait up to its open timeout, 10 s, for a host that does not answer)
-        if reach.answering(self._connect, timeout_s=min(1.0, self.timeout_s)):
+        found = reach.dial(self._connect, timeout_s=min(1.0, self.timeout_s))
+        if any(f.kind == "ok" for f in found):
             try:
                 return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[]))
             except TransportError as exc:
                 if "Unable to connect" not in str(exc):
                     raise
-        self._findings = []
-        # each attempt to dial bounded: closing waits for the one under way (10 s by default)
+            found = []  # TCP went through but Zenoh did not: its TLS is probed at the first call
+        self._findings, self._found_at = found, time.monotonic()
+        # each attempt to dial bounded (closing the session ends one under way: Session.close)
         return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, listen=[], open_timeout_ms=_DIAL_MS))
 
-    def _probe(self) -> None:
-        """When the session never connected and has no link now: probe the endpoints, and raise
-        at once when each one fails for good (refused, unreachable, TLS refused either way)."""
+    def _fresh_findings(self) -> list[reach.Finding] | None:
+        """What probing the endpoints found, when the session has no link: the last findings while
+        they are younger than the timeout, else the endpoints probed again; None once linked."""
         if self._findings is None or self._session.linked():
-            return
-        self._findings = reach.probe_all(self._connect, self._tls, timeout_s=min(1.0, self.timeout_s))
-        if self._findings and all(f.definite for f in self._findings):
-            raise self._unlinked_error(self._findings)
+            return None
+        if not self._findings or time.monotonic() - self._found_at > self.timeout_s:
+            self._findings = reach.probe_all(self._connect, self._tls, timeout_s=min(1.0, self.timeout_s))
+            self._found_at = time.monotonic()
+        return self._findings
+
+    def _budget(self, timeout_s: float) -> float:
+        """``timeout_s``, or less while the session never reached anything and the client's own
+        timeout, counted from its start, ends sooner (at least 50 ms)."""
+        if self._findings is None or self._session.linked():
+            return timeout_s
+        left = self._started + self.timeout_s - time.monotonic()
+        return max(0.05, min(timeout_s, left)) if left > 0 else timeout_s
+
+    def _probe(self) -> None:
+        """When the session never connected and has no link now: raise at once when each endpoint
+        fails for good (refused, unreachable, TLS refused either way)."""
+        findings = self._fresh_findings()
+        if findings and all(f.definite for f in findings):
+            raise self._unlinked_error(findings)
 
     def unreachable(self) -> ServiceError | None:
         """Why this client reaches nothing, when its session has no link: each endpoint probed
-        (:mod:`dyknow.reach`); None when it has a link (or nothing was found wrong)."""
+        (:mod:`dyknow.reach`; findings younger than the timeout are not probed again); None when
+        it has a link (or nothing was found wrong)."""
         if self._session.linked() or not self._connect:
             return None
-        findings = reach.probe_all(self._connect, self._tls, timeout_s=min(1.0, self.timeout_s))
+        findings = self._fresh_findings()
+        if findings is None:
+            findings = reach.probe_all(self._connect, self._tls, timeout_s=min(1.0, self.timeout_s))
         return self._unlinked_error(findings, "any manager") if any(f.kind not in ("ok", "unknown") for f in findings) else None
 
     def _unlinked_error(self, findings: Sequence[reach.Finding], who: str | None = None) -> ServiceError:
@@ -322,6 +348,7 @@ class Client:
                 key,
                 json.dumps(request).encode(),
                 timeout_s=self.timeout_s,
+                reachable_within_s=self._budget(self.timeout_s),
                 what=f"{what} of {where}",
                 sign=self._signer.sign if self._signer is not None else None,
                 gone=gone,
@@ -368,8 +395,9 @@ class Client:
 
     def _unanswered(self, manager: str, where: str) -> ServiceError:
         """Why nothing answered within the timeout, as far as it can be told (see :mod:`dyknow.reach`)."""
-        if self._findings is not None and not self._session.linked():
-            return self._unlinked_error(self._findings or reach.probe_all(self._connect, self._tls, timeout_s=1.0))
+        findings = self._fresh_findings()
+        if findings is not None:
+            return self._unlinked_error(findings)
         try:
             names = self.manager_names(timeout_s=0.5)
         except ServiceError:
@@ -603,7 +631,7 @@ class Client:
 
     def manager_names(self, timeout_s: float = 1.0) -> list[str]:
         """The names of the managers reachable now (their liveliness tokens), sorted."""
-        found = (keys.manager_of_token(k) for k in self._session.alive(keys.managers_pattern(), timeout_s=timeout_s))
+        found = (keys.manager_of_token(k) for k in self._session.alive(keys.managers_pattern(), timeout_s=self._budget(timeout_s)))
         return sorted(m for m in found if m is not None)
 
     def managers(self, timeout_s: float = 1.0) -> list[dict[str, Any]]:

@@ -36,7 +36,12 @@ log = logging.getLogger(__name__)
 MAX_SUMMARY_BYTES = 16 << 20
 
 _MAX_ITEMS = 20_000
-_RETRY_S = 2.0  # how often to ask again a manager whose summary could not be fetched
+# A manager whose summary could not be fetched is asked again after 0.05 s, then twice as long
+# each time up to 2 s: a fetch made as a manager's token appears can fail for a moment (its
+# services not reachable yet, a watcher that has not yet seen the token), and a fixed 2 s made a
+# healed partition wait for it (issue 43).
+_RETRY_FIRST_S = 0.05
+_RETRY_S = 2.0
 #: What a manager publishes on its summary key as it stops, before its token goes: the others
 #: then tell a manager that stopped from one that crashed or was cut off.
 GOODBYE = b'{"stopping":true}'
@@ -195,7 +200,7 @@ class Directory:
         self._lock = threading.Lock()
         self._alive: set[str] = set()
         self._summaries: dict[str, Summary] = {}
-        self._retry_at: dict[str, float] = {}  # manager -> when to ask again for its summary
+        self._retry_at: dict[str, tuple[float, float]] = {}  # manager -> (when to ask again for its summary, the wait after)
         self._lost: dict[str, tuple[int, str]] = {}  # manager known, then lost -> (when, wall clock ns; why)
         self._goodbyes: dict[str, float] = {}  # manager -> when it said it was stopping (monotonic)
         self._todo: list[tuple[str, str, bytes | None]] = []  # (kind, manager, summary bytes)
@@ -289,18 +294,22 @@ class Directory:
 
     def _run(self) -> None:
         while not self._closed:
-            self._wake.wait(1.0)
+            with self._lock:
+                due = min((at for at, _ in self._retry_at.values()), default=None)
+            self._wake.wait(1.0 if due is None else min(1.0, max(0.0, due - time.monotonic())))
             self._wake.clear()
             if self._closed:
                 return
             now = time.monotonic()
             with self._lock:
                 todo, self._todo = self._todo, []
-                # alive, but no summary yet (its fetch failed): ask again, every few seconds
+                # alive, but no summary yet (its fetch failed): ask again, sooner at first
                 for m in sorted(self._alive - set(self._summaries)):
-                    if self._retry_at.setdefault(m, now + _RETRY_S) <= now and not any(t[1] == m for t in todo):
-                        self._retry_at[m] = now + _RETRY_S
+                    at, _ = self._retry_at.setdefault(m, (now + _RETRY_S, _RETRY_S))
+                    if at <= now and not any(t[1] == m for t in todo):
                         todo.append(("retry", m, None))
+                for m in [m for m in self._retry_at if m not in self._alive or m in self._summaries]:
+                    del self._retry_at[m]
             for kind, manager, data in todo:
                 try:
                     self._handle(kind, manager, data)
@@ -351,6 +360,8 @@ class Directory:
             summary = Summary.from_json(data, manager, previous)
         except DyKnowError as exc:
             log.warning("directory of %r: %s", self.name, exc)
+            if kind == "found":  # fetched: ask again later, not at once
+                self._retry_later(manager)
             return
         with self._lock:
             old = self._summaries.get(manager)
@@ -365,8 +376,19 @@ class Directory:
         try:
             return self._fetch(manager)
         except DyKnowError as exc:
-            log.warning("directory of %r: no summary from %r yet: %s", self.name, manager, exc)
+            wait = self._retry_later(manager)
+            # (the first failures are expected as a manager appears: said only once it persists)
+            log.log(logging.WARNING if wait >= _RETRY_S else logging.DEBUG, "directory of %r: no summary from %r yet: %s", self.name, manager, exc)
             return None
+
+    def _retry_later(self, manager: str) -> float:
+        """Ask ``manager`` for its summary again later: soon after a first failure, then twice as
+        late each time (see ``_RETRY_FIRST_S``); returns the wait."""
+        with self._lock:
+            previous = self._retry_at.get(manager)
+            wait = _RETRY_FIRST_S if previous is None else min(2 * previous[1], _RETRY_S)
+            self._retry_at[manager] = (time.monotonic() + wait, wait)
+        return wait
 
     def _publish(self) -> None:
         try:

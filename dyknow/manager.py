@@ -234,6 +234,10 @@ class Manager:
                 access=access,
                 lease_ms=lease_ms,
                 max_message_bytes=limits.max_message_bytes,
+                # a router: managers reach each other through any path (a third manager, a
+                # dyknow router) when they cannot link directly, and keep trying the links they
+                # were told to make; peers see only the peers they link to (issue 43)
+                mode="router",
             )
         )
         # calls to the other managers, signed with this manager's certificate (dyknow.identity)
@@ -1056,7 +1060,8 @@ class Manager:
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
         lost = self._directory.lost() if self._directory is not None else {}
         gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone, self.load())
+        peers = tuple(sorted(self._directory.peers())) if self._directory is not None else ()
+        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone, self.load(), peers)
 
     # ------------------------------------------------------------------ load (dyknow.executor, dyknow.overload)
 

@@ -220,6 +220,9 @@ class Model:
     #: bound, now), ``lanes`` (each lane's kind, units, busy fraction, lag, queue, stuck time) and
     #: ``overload`` (``state``: ``"ok"`` or ``"overloaded"``, and what is shed; :mod:`dyknow.overload`).
     executor: Mapping[str, Any] = field(default_factory=dict)
+    #: The other managers this one reaches now and plans with (their token is up and their summary
+    #: known: :meth:`dyknow.federation.Directory.peers`), by name.
+    peers: tuple[str, ...] = ()
 
     def unit(self, name: str) -> UnitInfo:
         """The running unit ``name``; :class:`UnitError` when the model has none."""
@@ -239,6 +242,7 @@ class Model:
             "monitors": [dict(m) for m in self.monitors],
             "lost": [dict(m) for m in self.lost],
             "executor": dict(self.executor),
+            "peers": list(self.peers),
         }
 
     def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
@@ -258,6 +262,7 @@ class Model:
             "monitors": [dict(m) for m in self.monitors],
             "lost": [dict(m) for m in self.lost],
             "executor": dict(self.executor),
+            "peers": list(self.peers),
             "total": {"units": len(self.units), "specs": len(self.specs)},
         }
         used = len(json.dumps(out))

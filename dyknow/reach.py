@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from dyknow.access import TlsFiles
 from dyknow.errors import AccessError
 
-__all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "probe", "probe_all"]
+__all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "dial", "probe", "probe_all"]
 
 #: The kinds of finding that fail a call at once: nothing listens now, no route, TLS refused either
 #: way (waiting would not help; a manager that starts there later is reached by the next call).
@@ -79,14 +79,14 @@ def check_endpoints(endpoints: Sequence[str], tls: TlsFiles | None, *, option: s
             )
 
 
-def probe(endpoint: str, tls: TlsFiles | None, timeout_s: float = 1.0) -> Finding:
-    """Probe one endpoint (see the module documentation); never raises."""
+def _connect(endpoint: str, timeout_s: float) -> socket.socket | Finding:
+    """A TCP connection to ``endpoint`` (``tcp/`` or ``tls/``), or the finding of why there is none."""
     parts = _split(endpoint)
     if parts is None or parts[0] not in ("tcp", "tls"):
         return Finding(endpoint, "unknown")
-    proto, host, port = parts
+    _, host, port = parts
     try:
-        sock = socket.create_connection((host, port), timeout=timeout_s)
+        return socket.create_connection((host, port), timeout=timeout_s)
     except ConnectionRefusedError:
         return Finding(
             endpoint,
@@ -110,6 +110,16 @@ def probe(endpoint: str, tls: TlsFiles | None, timeout_s: float = 1.0) -> Findin
                 "an address of the manager's host on a network this machine is on (--connect)",
             )
         return Finding(endpoint, "unknown", f"{endpoint}: {exc.strerror or exc}")
+
+
+def probe(endpoint: str, tls: TlsFiles | None, timeout_s: float = 1.0) -> Finding:
+    """Probe one endpoint (see the module documentation); never raises."""
+    sock = _connect(endpoint, timeout_s)
+    if isinstance(sock, Finding):
+        return sock
+    parts = _split(endpoint)
+    assert parts is not None
+    proto, host, _ = parts
     with sock:
         if proto == "tcp":
             return _plain(endpoint, sock, host, min(timeout_s, 1.0))
@@ -207,32 +217,42 @@ def _refused_certificate(endpoint: str, exc: ssl.SSLError, tls: TlsFiles) -> Fin
     )
 
 
-def answering(endpoints: Sequence[str], timeout_s: float = 1.0) -> bool:
-    """Whether a TCP connection to any of ``endpoints`` (``tcp/`` or ``tls/``) is accepted within
-    ``timeout_s``; endpoints of other protocols count as answering (they are not probed)."""
-    answered = threading.Event()
-    done = threading.Semaphore(0)
+def dial(endpoints: Sequence[str], timeout_s: float = 1.0) -> list[Finding]:
+    """A TCP connection to each of ``endpoints`` (``tcp/`` or ``tls/``), side by side: a finding
+    each, ``ok`` for one that accepted (its TLS not looked at) and the connection's own failure
+    otherwise (``refused``, ``unreachable``, ``silent`` after ``timeout_s``). Returns as soon as
+    one accepts (the others then ``unknown``), or once all have failed; endpoints of other
+    protocols count as accepting (they are not probed)."""
+    found: list[Finding | None] = [None] * len(endpoints)
+    lock = threading.Lock()
+    settled = threading.Condition(lock)
 
-    def run(endpoint: str) -> None:
+    def run(i: int, endpoint: str) -> None:
         parts = _split(endpoint)
-        try:
-            if parts is None or parts[0] not in ("tcp", "tls"):
-                answered.set()
-                return
-            with socket.create_connection((parts[1], parts[2]), timeout=timeout_s):
-                answered.set()
-        except OSError:
-            pass
-        finally:
-            done.release()
+        if parts is None or parts[0] not in ("tcp", "tls"):
+            result: Finding = Finding(endpoint, "ok")
+        else:
+            sock = _connect(endpoint, timeout_s)
+            if not isinstance(sock, Finding):
+                sock.close()
+                sock = Finding(endpoint, "ok")
+            result = sock
+        with settled:
+            found[i] = result
+            settled.notify_all()
 
-    for endpoint in endpoints:
-        threading.Thread(target=run, args=(endpoint,), name="dyknow-probe", daemon=True).start()
-    for _ in endpoints:
-        if answered.is_set():
-            break
-        done.acquire(timeout=timeout_s + 1.0)
-    return answered.is_set()
+    for i, endpoint in enumerate(endpoints):
+        threading.Thread(target=run, args=(i, endpoint), name="dyknow-probe", daemon=True).start()
+    with settled:
+        settled.wait_for(
+            lambda: all(f is not None for f in found) or any(f is not None and f.kind == "ok" for f in found), timeout_s + 1.0
+        )
+        return [f if f is not None else Finding(e, "unknown") for f, e in zip(found, endpoints, strict=True)]
+
+
+def answering(endpoints: Sequence[str], timeout_s: float = 1.0) -> bool:
+    """Whether a TCP connection to any of ``endpoints`` is accepted within ``timeout_s`` (see :func:`dial`)."""
+    return any(f.kind == "ok" for f in dial(endpoints, timeout_s))
 
 
 def probe_all(endpoints: Sequence[str], tls: TlsFiles | None, timeout_s: float = 1.0) -> list[Finding]:

@@ -164,9 +164,20 @@ class SourcePolicy:
 
 
 class DataRoots:
-    """The folders file params may name for remote callers: ``read`` and ``write`` roots."""
+    """The folders file params may name for remote callers: ``read`` and ``write`` roots.
+
+    A ``write`` root (``--data-root``) must be an existing folder: :class:`AccessError` naming it."""
 
     def __init__(self, write: Iterable[str | os.PathLike[str]] = (), read: Iterable[str | os.PathLike[str]] = ()) -> None:
+        write = list(write)
+        for folder in write:  # (a root that is not there would refuse every file named under it, silently until then)
+            if not Path(folder).is_dir():
+                why = "is not a folder" if Path(folder).exists() else "does not exist"
+                raise AccessError(
+                    f"{os.fspath(folder)} {why}",
+                    where=f"--data-root {os.fspath(folder)}",
+                    expected=f"an existing folder for the files remote callers may name (mkdir -p {os.fspath(folder)})",
+                )
         self.write: tuple[Path, ...] = tuple(dict.fromkeys(Path(os.path.realpath(p)) for p in write))
         # whatever may be written may be read too
         self.read: tuple[Path, ...] = tuple(dict.fromkeys([*self.write, *(Path(os.path.realpath(p)) for p in read)]))

@@ -3,8 +3,16 @@
 The default session is a Zenoh *peer* that talks over loopback only: multicast scouting is off,
 it listens on ``tcp/127.0.0.1`` (a given port, or any free one) and connects to the endpoints it is
 given. Gossip scouting stays on so that peers which connect to a manager also find each other and
-exchange data directly. A Zenoh configuration file (json5) replaces these defaults to join a real
-deployment.
+exchange data directly. A manager's session is a Zenoh *router* (``mode="router"``): routers route
+for each other over any path, so two managers that cannot link directly still reach each other
+through a third one or a ``dyknow router``, where peers see only the peers they link to. A Zenoh
+configuration file (json5) replaces these defaults to join a real deployment.
+
+A session bounds how long its dead links hold it up (see "dead links" below: the kernel drops a
+link whose data goes unacknowledged for a lease), dials a lost link again within a second, ends
+a dial under way when it closes, and is closed before the interpreter's threads end at exit. A
+call that ends without an answer says why, as far as it can be told: the link closed, the
+service's owner went, or the request was dropped on its way (an access control).
 
 Entities mirror Zenoh's: ``declare_*`` returns an object with ``undeclare()`` (safe twice) that is
 also a context manager. Zenoh errors are wrapped in :class:`~dyknow.errors.TransportError` with the
@@ -13,16 +21,21 @@ Rust source location trimmed off.
 
 from __future__ import annotations
 
+import atexit
 import collections
 import contextlib
 import ctypes
+import ipaddress
 import json
 import logging
 import os
 import queue
 import re
+import socket
+import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
@@ -62,6 +75,10 @@ log = logging.getLogger(__name__)
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 #: Service queriers a session keeps for its next calls (the least recently used go first).
 MAX_QUERIERS = 64
+# How long a call that ended early with no reply looks for what explains it, asking again
+# meanwhile, first after this long (see Session._call).
+_CUT_GRACE_S = 0.5
+_RETRY_FIRST_S = 0.01
 
 _WILD = re.compile(r"\*|\$\*")
 _ENCODINGS: Final = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
@@ -220,6 +237,158 @@ def _clean(exc: BaseException) -> str:
     return text.strip().rstrip(".")
 
 
+# --------------------------------------------------------------------------- dead links
+
+# Zenoh sets SO_LINGER to 10 s on every TCP (and TLS) socket, a compile-time constant
+# (eclipse-zenoh/zenoh#2350), and closes a link on one of its network threads. After a silent cut
+# a socket still holds data its peer never acknowledged (keep-alives, a camera's frames), so
+# closing it blocks that thread for up to 10 s, and Zenoh closes a session's links one after the
+# other: a manager cut off from two others kept the third's transport for 25 s after the lease
+# expired, past the link's return, and refused that manager's new link meanwhile (issue 43). So
+# every TCP link of a session gets TCP_USER_TIMEOUT = its lease: the kernel itself drops a
+# connection whose data went unacknowledged for a whole lease (Zenoh's own definition of a dead
+# link), purging what it held, and Zenoh's close then returns at once. A healthy link is not
+# touched: its data is acknowledged within a round trip. Zenoh gives no option for it, so it is
+# set on the socket of each new link (Zenoh's link events name its two addresses), in this
+# process (Linux).
+_USER_TIMEOUT: Final = getattr(socket, "TCP_USER_TIMEOUT", None)
+
+
+def _socket_address(locator: str) -> tuple[ipaddress.IPv4Address | ipaddress.IPv6Address, int] | None:
+    """The (address, port) of a ``tcp/`` or ``tls/`` locator with a numeric address, else None."""
+    proto, _, rest = locator.partition("/")
+    if proto not in ("tcp", "tls"):
+        return None
+    host, _, port = rest.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    try:
+        return _plain_ip(host.strip("[]")), int(port)
+    except ValueError:
+        return None
+
+
+def _plain_ip(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
+    address = ipaddress.ip_address(text.split("%", 1)[0])
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        return address.ipv4_mapped
+    return address
+
+
+def bound_unacknowledged(local: str, remote: str, timeout_ms: int) -> bool:
+    """Give the TCP socket of this process between the locators ``local`` and ``remote`` (a
+    Zenoh link's ``src`` and ``dst``) a ``TCP_USER_TIMEOUT`` of ``timeout_ms``; whether one was
+    found and set (never on other systems than Linux, nor for other protocols)."""
+    ends = _socket_address(local), _socket_address(remote)
+    if _USER_TIMEOUT is None or ends[0] is None or ends[1] is None:
+        return False
+    try:
+        names = os.listdir("/proc/self/fd")
+    except OSError:
+        return False
+    for name in names:
+        try:
+            if not os.readlink(f"/proc/self/fd/{name}").startswith("socket:"):
+                continue
+            sock = socket.socket(fileno=os.dup(int(name)))  # a duplicate: closing it leaves Zenoh's open
+        except (OSError, ValueError):
+            continue
+        with sock:
+            try:
+                if sock.type != socket.SOCK_STREAM or sock.family not in (socket.AF_INET, socket.AF_INET6):
+                    continue
+                here, there = sock.getsockname(), sock.getpeername()
+                if (_plain_ip(here[0]), here[1]) != ends[0] or (_plain_ip(there[0]), there[1]) != ends[1]:
+                    continue
+                sock.setsockopt(socket.IPPROTO_TCP, _USER_TIMEOUT, max(1, int(timeout_ms)))
+                return True
+            except (OSError, ValueError):
+                continue
+    return False
+
+
+def _proc_address(text: str) -> tuple[ipaddress.IPv4Address | ipaddress.IPv6Address, int]:
+    """An address of ``/proc/net/tcp`` or ``tcp6`` (hex, each 32-bit word in the host's order)."""
+    host, port = text.split(":")
+    raw = bytes.fromhex(host)
+    if sys.byteorder == "little":
+        raw = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+    return _plain_ip(str(ipaddress.ip_address(raw))), int(port, 16)
+
+
+def abort_dials(endpoints: Sequence[str]) -> int:
+    """End this process's TCP connections still being made to ``endpoints`` (``tcp/``, ``tls/``):
+    each socket still in SYN_SENT is shut down, so the connect under way fails at once. Zenoh's
+    close waits for a dial under way (up to its open timeout), and a session dialling a silent
+    host must close without waiting for it (issue 43). Returns how many were ended (Linux only)."""
+    targets = {a for a in map(_socket_address, endpoints) if a is not None}
+    inodes: set[str] = set()
+    for table in ("/proc/self/net/tcp", "/proc/self/net/tcp6") if targets else ():
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            fields = line.split()
+            try:
+                if len(fields) > 9 and fields[3] == "02" and _proc_address(fields[2]) in targets:  # 02: SYN_SENT
+                    inodes.add(f"socket:[{fields[9]}]")
+            except ValueError:
+                continue
+    ended = 0
+    for name in os.listdir("/proc/self/fd") if inodes else ():
+        try:
+            if os.readlink(f"/proc/self/fd/{name}") not in inodes:
+                continue
+            with socket.socket(fileno=os.dup(int(name))) as sock:
+                sock.shutdown(socket.SHUT_RDWR)
+                ended += 1
+        except (OSError, ValueError):
+            continue
+    return ended
+
+
+class _Links:
+    """A session's links as they open and close (Zenoh's link events, on Zenoh's thread):
+    each new TCP link gets :func:`bound_unacknowledged` (see above), and the links that closed
+    are counted, so a call that ended without a reply can tell a link closed under it."""
+
+    def __init__(self, session: zenoh.Session, timeout_ms: int) -> None:
+        self._timeout_ms = timeout_ms
+        self._changed = threading.Condition()
+        self.closed = 0  # links closed so far
+        self.last_closed = ""  # the other end of the last one
+        self._listener: Any = None
+        try:
+            # inline: a callback of its own would be a thread Python waits for at exit (a script
+            # that forgot to close its session would hang); a link event is rare and this is quick
+            self._listener = session.info.declare_link_events_listener(_inline(self._event), history=True)
+        except (zenoh.ZError, AttributeError) as exc:
+            log.info("no watch of the session's links (%s)", exc)
+
+    def _event(self, event: Any) -> None:
+        try:
+            link = event.link
+            if event.kind != zenoh.SampleKind.PUT:
+                with self._changed:
+                    self.closed += 1
+                    self.last_closed = str(link.dst)
+                    self._changed.notify_all()
+            elif _USER_TIMEOUT is not None and not bound_unacknowledged(link.src, link.dst, self._timeout_ms):
+                log.debug("link %s => %s: no TCP socket found to bound", link.src, link.dst)
+        except Exception:  # Zenoh would swallow it; a link left unbounded is no failure
+            log.exception("link event %s", event)
+
+    def wait_closed(self, since: int, timeout_s: float) -> bool:
+        """Whether a link closed after ``since`` (a value of :attr:`closed`), waiting up to ``timeout_s``."""
+        with self._changed:
+            return self._changed.wait_for(lambda: self.closed != since, timeout_s)
+
+    def close(self) -> None:
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            with contextlib.suppress(zenoh.ZError):
+                listener.undeclare()
+
+
 # --------------------------------------------------------------------------- key expressions
 
 
@@ -302,14 +471,16 @@ def make_config(
     roles to enforce, as Zenoh access control. ``lease_ms``: how long a silent link lives before
     Zenoh closes it (default 10,000 ms): what a peer cut off from the network takes to be noticed;
     shorter detects sooner, at the cost of keep-alive traffic and of false alarms on a slow link.
-    ``mode``: "peer" (default), "router" (``dyknow router``) or "client" (a leaf that only
+    ``mode``: "peer" (default), "router" (a manager, and ``dyknow router``: Zenoh routes
+    between routers over any path, so two managers that cannot link directly still reach each
+    other through a third or a router, where peers would not) or "client" (a leaf that only
     connects: :class:`~dyknow.client.Client` sessions; give it ``listen=[]``).
     ``max_message_bytes``: the largest message this session takes in (Zenoh's
     ``transport/link/rx/max_message_size``, 1 GiB by default). Zenoh drops a larger one while it
     reassembles it, fragment by fragment, so an oversized message costs at most this much memory.
     ``open_timeout_ms``: how long one attempt to open a link may take (Zenoh's
-    ``transport/unicast/open_timeout``, 10 s by default); closing the session waits for an attempt
-    under way, so a session that keeps dialling a silent host takes up to this long to close.
+    ``transport/unicast/open_timeout``; by default the lease, from 2 to 10 s). A lost link is
+    dialled again after 0.25 s, then up to every 1 s (half the lease when shorter).
     """
     for option, endpoints in (("--listen", listen or ()), ("--connect", connect)):
         check_schemes(endpoints, option)
@@ -327,11 +498,27 @@ def make_config(
             config.insert_json5("mode", json.dumps(mode))
             config.insert_json5("scouting/multicast/enabled", "false")
             config.insert_json5("scouting/gossip/enabled", "true")
-            # One link per pair of peers: when both dial each other (two peers that learn of
-            # each other at once), the pair holds two TCP links, and after a silent cut closing
-            # them blocks both of Zenoh's receive threads for up to 10 s (its fixed SO_LINGER),
-            # so nothing is read from the healthy links meanwhile. Only the greater id dials.
-            config.insert_json5("scouting/gossip/autoconnect_strategy", '{ peer: { to_router: "always", to_peer: "greater-zid" } }')
+            # One link per pair: when both dial each other (two peers that learn of each other
+            # at once), the pair holds two TCP links, and after a silent cut closing them blocked
+            # both of Zenoh's receive threads for up to 10 s (its fixed SO_LINGER, see "dead
+            # links" above), so nothing was read from the healthy links meanwhile. Only the
+            # greater id dials. Routers (managers are) also dial the routers they hear of, for a
+            # direct path; the path through the others stays when it cannot be made.
+            config.insert_json5(
+                "scouting/gossip/autoconnect_strategy",
+                '{ peer: { to_router: "always", to_peer: "greater-zid" }, router: { to_router: "greater-zid", to_peer: "greater-zid" } }',
+            )
+            if mode == "router":
+                config.insert_json5("scouting/gossip/autoconnect", '{ router: ["router"], peer: ["router", "peer"] }')
+            # Dial again soon after a link is lost (Zenoh: after 1 s, then up to every 4 s), each
+            # attempt bounded (Zenoh: 10 s): an attempt started while the link was down waits for
+            # TCP's next SYN, 1, 3 then 7 s on, so a link back was used up to 4 s late (issue 43).
+            # With attempts of at most 2 s (or the lease, up to 10 s), a SYN leaves every 1.25 s.
+            lease = lease_ms if lease_ms is not None else 10_000
+            retry = {"period_init_ms": 250, "period_max_ms": max(250, min(1000, lease // 2)), "period_increase_factor": 2}
+            config.insert_json5("connect/retry", json.dumps(retry))
+            if open_timeout_ms is None:
+                open_timeout_ms = max(2000, min(10_000, lease))
             # Shared memory only where dyknow asks for it (unit payloads of SHM_THRESHOLD and up, in
             # a pool made on first use): Zenoh's own transport optimization put every message over
             # 3 KiB (the managers' summaries among them) in a 16 MiB pool of each session, and
@@ -713,6 +900,43 @@ class LivelinessSubscriber(_Entity):
 # --------------------------------------------------------------------------- session
 
 
+# Every session still open when the interpreter exits is closed first, newest first. Left to the
+# garbage collector at exit, Zenoh closed one from a finalizer once and panicked ("close operation
+# timed out", issue 43). It runs before Python waits for its threads (as concurrent.futures does),
+# so the threads of Zenoh's callbacks end and a script that forgot to close a session exits.
+_open_sessions: Final[weakref.WeakSet[Session]] = weakref.WeakSet()
+
+
+def _close_open_sessions() -> None:
+    for session in sorted(_open_sessions, key=lambda s: s.opened_ns, reverse=True):
+        try:
+            session.close()
+        except Exception:  # at exit: the others are closed whatever this one does
+            log.debug("closing a session at exit failed", exc_info=True)
+
+
+_before_threads_end: Callable[[Callable[[], None]], object] | None = getattr(threading, "_register_atexit", None)
+if _before_threads_end is not None:
+    _before_threads_end(_close_open_sessions)
+else:  # (an interpreter without it: at exit, then)
+    atexit.register(_close_open_sessions)
+
+
+def _lease_and_dials(config: zenoh.Config) -> tuple[int, list[str]]:
+    """The lease (ms) of a configuration, and the endpoints it dials (a list, or one per mode)."""
+    try:
+        lease = json.loads(config.get_json("transport/link/tx/lease"))
+        lease_ms = int(lease) if isinstance(lease, int) and not isinstance(lease, bool) and lease > 0 else 10_000
+    except (zenoh.ZError, ValueError):
+        lease_ms = 10_000
+    try:
+        found = json.loads(config.get_json("connect/endpoints"))
+    except (zenoh.ZError, ValueError):
+        found = []
+    listed = found if isinstance(found, list) else [e for v in found.values() if isinstance(v, list) for e in v] if isinstance(found, dict) else []
+    return lease_ms, [str(e) for e in listed]
+
+
 class Session:
     """A Zenoh session: the entry point to declare publishers, subscribers and services.
 
@@ -722,6 +946,7 @@ class Session:
     def __init__(self, config: zenoh.Config | None = None) -> None:
         if config is None:
             config = make_config()
+        lease_ms, dials = _lease_and_dials(config)
         _lay_out_runtimes()
         try:
             self._session: zenoh.Session | None = zenoh.open(config)
@@ -741,6 +966,10 @@ class Session:
         # service key -> [querier, reachable, calls using it now]; the most recently used last
         self._queriers: collections.OrderedDict[str, list[Any]] = collections.OrderedDict()
         self._shm = _SharedMemory()
+        self._links = _Links(self._session, lease_ms)
+        self._dials = dials
+        self.opened_ns = time.monotonic_ns()
+        _open_sessions.add(self)
 
     # -- lifecycle
 
@@ -759,6 +988,9 @@ class Session:
         """Close the session; safe to call twice."""
         session, self._session = self._session, None
         if session is not None:
+            self._links.close()
+            if self._dials:  # (Zenoh's close would wait for a dial under way)
+                abort_dials(self._dials)
             for querier, _, _ in self._queriers.values():
                 with contextlib.suppress(zenoh.ZError):
                     querier.undeclare()
@@ -1064,10 +1296,12 @@ class Session:
         what: str,
         sign: Callable[[str, bytes], bytes] | None = None,
         gone: Callable[[], str | None] | None = None,
+        reachable_within_s: float | None = None,
     ) -> bytes:
         """Send a request to the service on ``key`` and return its reply.
 
-        Waits up to ``timeout_s`` seconds for the service to be reachable, then for its answer.
+        Waits up to ``timeout_s`` seconds (``reachable_within_s`` when given) for the service to be
+        reachable, then up to ``timeout_s`` for its answer.
         Raises :class:`ServiceError` when nobody answers (``what`` names the service for the
         message) or with the service's own error when it refuses the request. ``sign(key,
         payload)`` gives the call's attachment (its caller's signature: see
@@ -1075,10 +1309,11 @@ class Session:
         ``gone()``: why the service's owner is known to be gone, or None; while it says so the
         call ends at once with that reason instead of waiting for the service to come back.
         """
-        deadline = time.monotonic() + timeout_s
+        window_s = timeout_s if reachable_within_s is None else reachable_within_s
+        deadline = time.monotonic() + window_s
         entry = self._querier(key, timeout_s)
         try:
-            return self._call(entry[0], entry[1], key, payload, deadline, timeout_s, what, sign, gone)
+            return self._call(entry[0], entry[1], key, payload, deadline, window_s, timeout_s, what, sign, gone)
         finally:
             with self._lock:
                 entry[2] -= 1
@@ -1090,6 +1325,7 @@ class Session:
         key: str,
         payload: bytes,
         deadline: float,
+        window_s: float,
         timeout_s: float,
         what: str,
         sign: Callable[[str, bytes], bytes] | None,
@@ -1101,14 +1337,59 @@ class Session:
                 raise ServiceError(f"no answer from {what}: {why}", details={"reason": "gone"})
             left = deadline - time.monotonic()
             if left <= 0:
-                raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {timeout_s:g} s", details={"reason": "unreachable"})
+                raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {window_s:.3g} s", details={"reason": "unreachable"})
             reachable.wait(min(left, 0.05) if gone is not None else left)
+        since = self._links.closed
+        until: float | None = None  # when an early end, unexplained, is taken as a drop
+        pause = _RETRY_FIRST_S
+        while True:
+            sent = time.monotonic()
+            reply = self._ask(querier, key, payload, what, sign)
+            if reply is not None:
+                return reply
+            now = time.monotonic()
+            if now >= sent + 0.9 * timeout_s:
+                raise ServiceError(f"no answer from {what} on {key!r} within {timeout_s:g} s")
+            # It ended early, without a reply. Zenoh ends a request so when the link it went over
+            # closes (a host cut off past its lease, a process gone), when an access control on
+            # the way drops it, and when no route reaches the service yet although the service
+            # is known (just after a router appears, while the routers compute their paths); it
+            # says nothing of which (issue 43: a link lost mid-call read as the manager's --acl
+            # refusing the caller). A link of this session that closed, or the service's owner
+            # gone (``gone()``: its liveliness token), shows within moments: looked for, while the
+            # request is asked again (it reached no service: asking again is safe) for up to
+            # _CUT_GRACE_S; only when nothing explains it is it taken as dropped on its way.
+            until = until if until is not None else min(sent + timeout_s, now + _CUT_GRACE_S)
+            if self._links.closed != since:
+                raise ServiceError(
+                    f"no answer from {what}: the link to {self._links.last_closed} closed during the call "
+                    "(a host cut off past its lease, or the process at the other end stopped)",
+                    expected="the link back (Zenoh dials again by itself), then the call again",
+                    details={"reason": "link-closed"},
+                )
+            why = gone() if gone is not None else None
+            if why is not None:
+                raise ServiceError(f"no answer from {what}: {why}, during the call", details={"reason": "gone"})
+            if now >= until:
+                raise ServiceError(
+                    f"no answer from {what}: the request to {key!r} was dropped without a reply",
+                    expected="a role allowed to call it (the manager's --acl refuses silently), and a manager that stays up until it answers",
+                    details={"reason": "dropped"},
+                )
+            self._links.wait_closed(since, min(pause, until - now))
+            pause = min(2 * pause, 0.1)
+
+    def _ask(
+        self, querier: Any, key: str, payload: bytes, what: str, sign: Callable[[str, bytes], bytes] | None
+    ) -> bytes | None:
+        """One request: the reply, None when it ended without one; :class:`ServiceError` with
+        the service's own error when it refused."""
         try:
             attachment = sign(key, payload) if sign is not None else None
             replies = querier.get(payload=payload, attachment=attachment)
             for reply in replies:
                 if reply.ok is not None:
-                    return reply.ok.payload.to_bytes()
+                    return bytes(reply.ok.payload.to_bytes())
                 data = reply.err.payload.to_bytes()
                 try:
                     err = json.loads(data)
@@ -1119,13 +1400,7 @@ class Session:
                 raise ServiceError(str(err.get("message", data)), kind=err.get("error"), details=err)
         except zenoh.ZError as exc:
             raise ServiceError(f"request to {what} failed: {_clean(exc)}") from exc
-        if time.monotonic() < deadline - 0.1 * timeout_s:  # it ended early, without a reply: dropped on its way
-            raise ServiceError(
-                f"no answer from {what}: the request to {key!r} was dropped without a reply",
-                expected="a role allowed to call it (the manager's --acl refuses silently), and a manager that stays up until it answers",
-                details={"reason": "dropped"},
-            )
-        raise ServiceError(f"no answer from {what} on {key!r} within {timeout_s:g} s")
+        return None
 
     def _querier(self, key: str, timeout_s: float) -> list[Any]:
         """The querier of ``key`` (declared on first use, kept for the next calls), marked in use.

@@ -1,7 +1,8 @@
 """A consumer on one host of a namespace test: requests a stream and reports which camera feeds it.
 
-Run as ``python -m tests.netns_observer ENDPOINT MANAGER TAG`` inside a host's namespace (the
-test process cannot reach addresses inside the namespaces). It prints JSON lines: the request's
+Run as ``python -m tests.netns_observer ENDPOINT MANAGER TAG [CA CERT KEY]`` inside a host's
+namespace (the test process cannot reach addresses inside the namespaces); with TLS files it
+calls with that certificate. It prints JSON lines: the request's
 ``key``, then a ``camera`` line each time the camera id in the frames changes; on a line
 ``adaptations`` or ``managers`` on its standard input it prints that list, and on ``stats`` what
 arrived since the last ``stats`` (messages, rate, the largest gap, the age p99 on this host's
@@ -21,12 +22,14 @@ import threading
 import time
 
 from dyknow import Client, Message
+from dyknow.access import TlsFiles
 from dyknow.client import ClockView
 
 
 def main() -> int:
     """Request, watch, answer questions until standard input closes."""
     endpoint, manager, tag = sys.argv[1:4]
+    tls = TlsFiles(*sys.argv[4:7]) if len(sys.argv) >= 7 else None  # CA, certificate, key
     lock = threading.Lock()
     last: list[int] = []
 
@@ -85,7 +88,7 @@ def main() -> int:
             "camera": last[0] if last else None,
         }
 
-    with Client(manager, connect=[endpoint], timeout_s=10.0, lease_ms=1000) as client:  # the managers' lease: see the cut as soon
+    with Client(manager, connect=[endpoint], timeout_s=10.0, lease_ms=1000, tls=tls) as client:  # the managers' lease: see the cut as soon
         deadline = time.monotonic() + 30
         while True:
             try:

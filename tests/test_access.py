@@ -485,6 +485,7 @@ def test_a_defined_role_may_request_and_not_destroy(certs: Path, make_manager: C
         ('{ roles: {}, define: { r: { publish: ["@dyknow/x"] } } }', r"acl.json5:1: define.r.publish\[0\]: '@dyknow/x' is not a key expression under dyknow/"),
         ('{ roles: {}, define: { admin: { calls: [] } } }', r"define.admin: 'admin' is a built-in role"),
         ('{ roles: {}, define: { r: { cals: [] } } }', r"define.r: unknown field 'cals' \(did you mean 'calls'\?\)"),
+        ('{ roles: {\n  admin: ["laptop"]\n  viewer: ["x"] } }', r"acl.json5:3: not JSON5: Unexpected \"v\" at column 3"),  # a syntax error: the file's line, not <string>
     ],
 )  # fmt: skip
 def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> None:
@@ -613,3 +614,53 @@ def test_a_requirement_reads_only_what_its_caller_may_read(certs: Path, make_man
         key = limited.request("Ticks", require=["Ticks.value >= 0"])
         assert _held(manager, "Ticks")["requirements"] == ["Ticks.value >= 0"]  # type: ignore[index]
         assert limited.release(key) == 0
+
+
+def test_a_link_lost_mid_call_is_not_read_as_the_acl_refusing(certs: Path, tmp_path: Path) -> None:
+    """A manager with --acl stops mid-call (SIGKILL: its links close at once): the admin's call
+    fails saying the link closed, or the manager went, never that the ACL refused the admin, which
+    would lead an operator to widen the ACL (issue 43). The ACL's own refusal still says so."""
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO, UNIT_SPECS, subprocess_env
+
+    acl = tmp_path / "acl.json5"
+    acl.write_text('{ roles: { admin: ["admin"], viewer: ["viewer"] } }')
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    files = ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / "manager.pem"), "--tls-key", str(certs / "manager.key")]
+    argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", "secure", "--listen", endpoint, "--specs", str(UNIT_SPECS),
+            "--acl", str(acl), "--json", *files]  # fmt: skip
+    env = {**subprocess_env(), "DYKNOW_LOG": "INFO"}  # it says "spawn NAME" as a spawn call comes in
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+    said: list[str] = []
+    threading.Thread(target=lambda: said.extend(proc.stderr or []), daemon=True).start()
+    try:
+        assert proc.stdout is not None and '"ready"' in proc.stdout.readline()
+        with Client("secure", connect=[endpoint], tls=tls(certs, "viewer"), timeout_s=10) as viewer:
+            with pytest.raises(ServiceError, match="the manager's --acl does not let this client's certificate") as refused:
+                viewer.spawn("slow-setup", "nope")
+            assert refused.value.details["reason"] == "dropped"
+        with Client("secure", connect=[endpoint], tls=tls(certs, "admin"), timeout_s=30) as admin:
+            failed: list[BaseException] = []
+
+            def call() -> None:
+                try:
+                    admin.spawn("slow-setup", "slow", params={"setup_s": 60})
+                except BaseException as exc:  # noqa: BLE001 - the test looks at it
+                    failed.append(exc)
+
+            calling = threading.Thread(target=call)
+            calling.start()
+            wait_until(lambda: any("spawn slow " in line for line in said), "the spawn to be under way")
+            proc.kill()
+            calling.join(60)
+            assert len(failed) == 1 and isinstance(failed[0], ServiceError), failed
+            message = str(failed[0])
+            assert "acl" not in message.lower() and failed[0].details["reason"] in ("link-closed", "gone"), message
+    finally:
+        proc.kill()
+        proc.wait(10)
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()

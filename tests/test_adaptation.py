@@ -670,3 +670,50 @@ def test_a_request_leaves_a_provider_that_becomes_clearly_busier(make_manager: C
     assert _provider(m0, key) == "p2"
     _stir(fleet, ["p1", "p2"], 5, 0.25)
     assert len(_moves(m0, key)) == 1 and _provider(m0, key) == "p2"
+
+
+def test_a_unit_is_not_judged_stalled_on_a_tick_that_came_late() -> None:
+    """A tick long after the one before (the process starved: a loaded machine) finds every unit
+    silent; the verdict waits for the next tick, when the unit's own thread had its turn too, so
+    a healthy camera of a loaded manager is not marked stalled (issue 43). A unit still silent then
+    is stalled, and ticks late one after the other still judge."""
+    ms = 1_000_000
+    ports = [DeadlinePort("cam", "camera", "out", 100 * ms, 5, 0)]
+    symptoms: list[Symptom] = []
+    monitor = Monitor(lambda: list(ports), Knowledge(), symptoms.append)
+    monitor.tick(10 * ms)
+    monitor.tick(400 * ms)  # starved for 390 ms: the camera's thread was too
+    assert symptoms == []
+    ports[:] = [DeadlinePort("cam", "camera", "out", 100 * ms, 6, 0)]  # it sent as soon as it ran
+    monitor.tick(420 * ms)
+    assert symptoms == []
+    monitor.tick(900 * ms)  # starved again, and the camera sent nothing meanwhile: judged at the next tick
+    assert symptoms == []
+    monitor.tick(920 * ms)
+    assert [s.kind for s in symptoms] == ["stalled"] and "silent for 500 ms" in symptoms[0].detail
+    # late ticks one after the other: a dead unit is still found
+    ports[:] = [DeadlinePort("dead", "camera", "out", 100 * ms, 1, 0)]
+    symptoms.clear()
+    monitor.tick(1100 * ms)
+    monitor.tick(1300 * ms)
+    monitor.tick(1500 * ms)
+    assert [s.kind for s in symptoms] == ["stalled"]
+
+
+def test_a_manager_back_before_the_loop_heard_of_it_is_on_probation() -> None:
+    """A manager lost lately is on probation from the moment it is back, even while its return has
+    not reached the loop yet (its summary reaches the planner first): an opportunity then (another
+    manager's change) does not move a request onto it ahead of its probation (issue 43: the robot
+    was trusted again for "manager 'field' changed", not after its probation)."""
+    ms = 1_000_000
+    knowledge = Knowledge()
+    dwell = 500 * ms
+    assert knowledge.on_probation(0, dwell) == set()
+    knowledge.lost("robot", 1000 * ms)
+    assert knowledge.on_probation(1100 * ms, dwell) == {"robot"}  # back in the planner's view, not yet in the loop's
+    knowledge.found("robot", 1200 * ms)
+    assert knowledge.on_probation(1500 * ms, dwell) == {"robot"}  # its probation of 0.5 s from its return
+    assert knowledge.on_probation(1800 * ms, dwell) == set()
+    earlier = Knowledge()
+    earlier.lost("field", 1000 * ms)
+    assert earlier.on_probation(70_000 * ms, dwell) == set()  # a loss long ago (past the window) holds nothing back

@@ -159,13 +159,21 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
     skipped = data.get("skipped", {})
     assert "sigkill-loopback" in rows and ("link-cut-1s-lease" in rows) != ("link-cut-1s-lease" in skipped)
     assert ("link-cut-router" in rows) == ("link-cut-1s-lease" in rows)
-    expected = {"sigkill-loopback": (3, 200.0), "link-cut-1s-lease": (1, 1500.0), "link-cut-router": (1, 1500.0)}
+    expected = {"sigkill-loopback": (3, 200.0), "link-cut-1s-lease": (2, 1500.0), "link-cut-router": (2, 1500.0),
+                "silent-host-report": (1, 2500.0), "silent-host-close": (1, 100.0)}  # fmt: skip
+    for topology in ("peers", "router"):
+        for kind in ("down", "silent"):
+            expected[f"rejoin-{topology}-{kind}"] = expected[f"preferred-{topology}-{kind}"] = (1, 2000.0)
     for scenario, row in rows.items():
+        if scenario.startswith("false-losses-"):
+            assert row["cuts"] == 2 and row["target"] == 0 and row["met"] == (row["false_losses"] == 0)
+            continue
         assert (row["runs"], row["target_ms"]) == expected[scenario] and len(row["samples_ms"]) == row["runs"]
-        assert 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"] and isinstance(row["met"], bool)
-    assert "target p99 <= 200 ms" in result.stdout
+        assert 0 <= row["p50_ms"] <= row["p99_ms"] <= row["max_ms"] and isinstance(row["met"], bool)
+    assert "target p99 <= 200 ms" in result.stdout and "load average" in result.stdout
     if "link-cut-1s-lease" in rows:
         assert "Hosts.shaping" in rows["link-cut-1s-lease"]["links"] and "target p99 <= 1.5 s" in result.stdout
+        assert {"rejoin-peers-silent", "preferred-router-down", "false-losses-peers", "silent-host-report"} <= set(rows)
     else:
         assert f"skipped: {skipped['link-cut-1s-lease']}" in result.stdout
 

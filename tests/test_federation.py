@@ -104,6 +104,8 @@ def test_managers_discover_each_other_and_plan_across_them(system: Callable[...,
     m = system()
     station, robot = m["station"], m["robot"]
     assert {n: (s.host, len(s.specs)) for n, s in station.peers().items()} == {"robot": ("robot-host", 1), "field": ("field-host", 1)}
+    # the model says whom it plans with (an operator sees a healed partition there: issue 43)
+    assert station.get_model().peers == ("field", "robot") and station.get_model().to_dict()["peers"] == ["field", "robot"]
     key = station.request(TRACK)
     (request,) = station.get_model().requests
     assert "robot-camera@robot" in request.labels and "tracker" in request.labels

@@ -55,13 +55,25 @@ class Child:
         self.proc = hosts.popen(host, argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
         self.stderr = ""
         self.lines: queue.Queue[dict[str, Any]] = queue.Queue()
+        self._said: list[str] = []  # stderr so far
         threading.Thread(target=self._read, daemon=True).start()
+        self._reading = threading.Thread(target=self._read_stderr, daemon=True)
+        self._reading.start()
 
     def _read(self) -> None:
         assert self.proc.stdout is not None
         for line in self.proc.stdout:
             if line.startswith("{"):
                 self.lines.put(json.loads(line))
+
+    def _read_stderr(self) -> None:
+        assert self.proc.stderr is not None
+        for line in self.proc.stderr:
+            self._said.append(line)
+
+    def said(self) -> str:
+        """What the process wrote on stderr so far."""
+        return "".join(self._said)
 
     def next(self, event: str, timeout_s: float = 30.0, **match: Any) -> dict[str, Any]:
         """The next line of ``event`` (with the given fields), skipping others."""
@@ -70,7 +82,7 @@ class Child:
                 line = self.lines.get(timeout=timeout_s)
             except queue.Empty:
                 self.proc.kill()
-                err = self.proc.stderr.read() if self.proc.stderr else ""
+                err = self.said()
                 raise AssertionError(f"no {event} {match} from {self.proc.args[4:7]} within {timeout_s} s; stderr: {err[-2000:]}") from None
             if line.get("event") == event and all(line.get(k) == v for k, v in match.items()):
                 return line
@@ -99,7 +111,8 @@ class Child:
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait(10)
-        self.stderr = self.proc.stderr.read() if self.proc.stderr and not self.proc.stderr.closed else ""
+        self._reading.join(10)
+        self.stderr = self.said()
         for stream in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
             if stream is not None:
                 stream.close()
@@ -566,3 +579,257 @@ def test_through_a_router_and_a_third_manager_each_client_has_its_own_rights(tmp
                 child.close()
             for child in children:
                 print(f"----- {child.host}\n{child.stderr[-3000:]}")
+
+
+# ---------------------------------------------------------------------------- partitions that heal
+
+
+def _model_on(hosts: Hosts, host: str, manager: str, tls: list[str] | None = None) -> dict[str, Any]:
+    """The model of ``manager``, asked from ``host`` through that host's own manager (so it is
+    reachable while the host is cut off from the others); {} when it does not answer. ``tls``:
+    the TLS options of the caller (its endpoint then tls/)."""
+    endpoint = f"{'tls' if tls else 'tcp'}/{hosts.address(host)}:{PORT}"
+    argv = [sys.executable, "-m", "dyknow.cli", "model", "--json", "--manager", manager,
+            "--connect", endpoint, "--timeout", "5", "--lease-ms", "1000", *(tls or [])]  # fmt: skip
+    done = subprocess.run(hosts.command(host, argv), capture_output=True, text=True, timeout=120, env=subprocess_env(), cwd=REPO)
+    return dict(json.loads(done.stdout)) if done.returncode == 0 and done.stdout.startswith("{") else {}
+
+
+def _until(condition: Any, what: str, timeout_s: float = 90.0) -> None:
+    """Wait for ``condition()`` (asked again and again, each ask a process); fail naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"{what} within {timeout_s:g} s"
+        time.sleep(0.2)
+
+
+@pytest.mark.parametrize("topology", ["peers", "router with TLS and roles"])
+@pytest.mark.parametrize("kind", ["down", "silent"])
+def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -> None:
+    """The robot cut off (its link taken down, or left up while every packet is dropped: nothing
+    tells either side), long enough for every side to give the others up; then the link back.
+    Each side finds the other again by itself (both list each other: the dialler keeps trying,
+    a dead link's socket does not hold the new one up, the managers reach each other through any
+    path) and the robot's camera is back on the requested key once its probation is over; the
+    healthy field is never declared lost. Peers (the robot and the field connect to the station),
+    and behind a dyknow router on a fourth host with TLS and one ACL file everywhere (the docs'
+    fleet). Before: after a silent drop was lifted the station never found the robot again, its
+    link to the robot held for 25 s past its lease (issue 43)."""
+    why = unavailable() or (faults_unavailable() if kind == "silent" else None)
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces (and nft for a silent cut) are required under CI: {why}")
+        pytest.skip(why)
+    router = topology != "peers"
+    names = ["station", "robot", "field", *(["hub"] if router else [])]
+    with Hosts(names) as hosts:
+        proto = "tls" if router else "tcp"
+        hub = f"{proto}/{hosts.address('hub')}:{PORT}" if router else None
+        secure: dict[str, list[str]] = {name: [] for name in [*names, "admin"]}
+        if router:
+            from dyknow.certs import write_dev_certs
+
+            pki = tmp_path / "pki"
+            write_dev_certs(pki, [*names, "admin"], hosts=[hosts.address(n) for n in names])
+            acl = tmp_path / "acl.json5"
+            acl.write_text('{ roles: { manager: ["station", "robot", "field"], router: ["hub"], admin: ["admin"] } }')
+            for name in secure:
+                secure[name] = ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{name}.pem"), "--tls-key", str(pki / f"{name}.key")]
+                secure[name] += ["--acl", str(acl)] if name != "admin" else []
+        children: list[Child] = []
+        try:
+            if hub is not None:
+                argv = [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, "--lease-ms", "1000", "--json", *secure["hub"]]
+                children.append(Child(hosts, "hub", argv))
+                children[-1].next("ready")
+            for name, extra in (("station", ["--dwell", "0.5"]), ("robot", []), ("field", [])):
+                connect = hub if hub else (None if name == "station" else f"tcp/{hosts.address('station')}:{PORT}")
+                endpoint = f"{proto}/{hosts.address(name)}:{PORT}"
+                argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]),
+                        "--ontology", str(ONTOLOGY), "--listen", endpoint, *(["--connect", connect] if connect else []),
+                        "--host", f"{name}-host", "--lease-ms", "1000", "--json", *secure[name], *extra]  # fmt: skip
+                children.append(Child(hosts, name, argv))
+                assert children[-1].next("ready")["endpoints"] == [endpoint]
+            pem = [a for a in secure["admin"] if not a.startswith("--")]  # CA, certificate, key
+            argv = [sys.executable, "-m", "tests.netns_observer", f"{proto}/{hosts.address('station')}:{PORT}", "station", "BallTrack(field)", *pem]
+            observer = Child(hosts, "station", argv)
+            children.append(observer)
+            observer.next("key")
+            observer.next("camera", camera=BOTTOM)
+
+            def station_lists(name: str) -> bool:
+                return name in observer.ask("model station")[0]["peers"]
+
+            _until(lambda: station_lists("robot") and station_lists("field"), "the station to list the robot and the field")
+            admin = secure["admin"]
+            _until(lambda: "station" in _model_on(hosts, "robot", "robot", admin).get("peers", []), "the robot to list the station")
+
+            hosts.cut("robot", silent=kind == "silent")
+            observer.next("camera", camera=CEILING, timeout_s=60)  # failed over to the field's camera
+            _until(lambda: "robot" in [m["manager"] for m in observer.ask("model station")[0]["lost"]], "the station to lose the robot")
+            # the robot, on its side, gives the others up too: a partition on both sides
+            _until(lambda: {"station", "field"} <= {m["manager"] for m in _model_on(hosts, "robot", "robot", admin).get("lost", [])},
+                   "the robot to lose the station and the field")  # fmt: skip
+
+            hosts.restore("robot")
+            _until(lambda: station_lists("robot"), "the station to list the robot again")
+            _until(lambda: {"station", "field"} <= set(_model_on(hosts, "robot", "robot", admin).get("peers", [])), "the robot to list the others again")
+            observer.next("camera", camera=BOTTOM, timeout_s=60)  # the preferred configuration, after the robot's probation
+            causes = [e["cause"] for e in observer.ask("adaptations")]
+            assert all(cause.startswith(LINK_CAUSES) for cause in causes), causes
+            assert not any("'field'" in cause for cause in causes), causes  # the field was never lost, nor broken
+            assert station_lists("field") and "field" not in [m["manager"] for m in observer.ask("model station")[0]["lost"]]
+        finally:
+            for child in reversed(children):
+                child.close()
+            for child in children:  # what each host said, for a failure's report (pytest shows it then)
+                print(f"----- {child.host}\n{child.stderr[-3000:]}")
+
+
+def test_a_link_cut_mid_call_is_not_read_as_the_acl_refusing(tmp_path: Path) -> None:
+    """The robot's link goes silent while an admin's call to its manager (which has --acl) is
+    under way: once the lease gives the link up the call fails saying the link closed or the
+    manager went, not that the ACL refused the admin (issue 43: "the manager's --acl does not let
+    this client's certificate (common name 'admin') call it", and the next call said it was gone)."""
+    why = unavailable() or faults_unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces and nft are required under CI: {why}")
+        pytest.skip(why)
+    from dyknow.certs import write_dev_certs
+
+    with Hosts(["robot", "laptop"]) as hosts:
+        pki = tmp_path / "pki"
+        write_dev_certs(pki, ["robot", "admin"], hosts=[hosts.address("robot")])
+        acl = tmp_path / "acl.json5"
+        acl.write_text('{ roles: { admin: ["admin"] } }')
+        endpoint = f"tls/{hosts.address('robot')}:{PORT}"
+
+        def files(name: str) -> list[str]:
+            return ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{name}.pem"), "--tls-key", str(pki / f"{name}.key")]
+
+        argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", "robot", "--specs", str(REPO / "tests" / "units.xml"),
+                "--listen", endpoint, "--acl", str(acl), "--lease-ms", "1000", "--json", *files("robot")]  # fmt: skip
+        robot = Child(hosts, "robot", argv)
+        script = (  # the admin's call, then what it failed with, as JSON
+            "import json, sys\n"
+            "from dyknow import Client, ServiceError\n"
+            "from dyknow.access import TlsFiles\n"
+            "tls = TlsFiles(*sys.argv[2:5])\n"
+            "with Client('robot', connect=[sys.argv[1]], tls=tls, timeout_s=60, lease_ms=1000) as c:\n"
+            "    c.get_model()\n"
+            "    print(json.dumps({'event': 'calling'}), flush=True)\n"
+            "    try:\n"
+            "        c.spawn('slow-setup', 'slow', params={'setup_s': 120})\n"
+            "        print(json.dumps({'event': 'answered'}), flush=True)\n"
+            "    except ServiceError as exc:\n"
+            "        print(json.dumps({'event': 'failed', 'message': str(exc), 'reason': exc.details.get('reason')}), flush=True)\n"
+        )
+        pem = [str(pki / "ca.pem"), str(pki / "admin.pem"), str(pki / "admin.key")]
+        caller: Child | None = None
+        try:
+            robot.next("ready")
+            caller = Child(hosts, "laptop", [sys.executable, "-c", script, endpoint, *pem])
+            caller.next("calling")
+            _until(lambda: "spawn slow " in robot.said(), "the spawn to be under way on the robot")
+            hosts.cut("robot", silent=True)
+            failed = caller.next("failed", timeout_s=60)
+            assert "acl" not in failed["message"].lower() and failed["reason"] in ("link-closed", "gone"), failed
+        finally:
+            for child in (caller, robot):
+                if child is not None:
+                    child.close()
+            print(f"----- robot\n{robot.stderr[-3000:]}")
+
+
+def test_managers_that_cannot_link_directly_reach_each_other_through_a_router() -> None:
+    """Behind a dyknow router, the station and the robot lose their direct link (a firewall drops
+    only what goes between the two) while both keep theirs to the router: they still list each
+    other and the request stays on the robot's camera, carried through the router. As Zenoh peers
+    they saw each other only over their direct link and never again once it was gone, though both
+    reached the router (it does not route between peers); managers are Zenoh routers (issue 43)."""
+    why = unavailable() or faults_unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces and nft are required under CI: {why}")
+        pytest.skip(why)
+    with Hosts(["station", "robot", "field", "hub"]) as hosts:
+        hub = f"tcp/{hosts.address('hub')}:{PORT}"
+        children = [Child(hosts, "hub", [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, "--lease-ms", "1000", "--json"])]
+        try:
+            children[0].next("ready")
+            for name, extra in (("station", ["--dwell", "0.5"]), ("robot", []), ("field", [])):
+                argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]),
+                        "--ontology", str(ONTOLOGY), "--listen", f"tcp/{hosts.address(name)}:{PORT}", "--connect", hub,
+                        "--host", f"{name}-host", "--lease-ms", "1000", "--json", *extra]  # fmt: skip
+                children.append(Child(hosts, name, argv))
+                children[-1].next("ready")
+            argv = [sys.executable, "-m", "tests.netns_observer", f"tcp/{hosts.address('station')}:{PORT}", "station", "BallTrack(field)"]
+            observer = Child(hosts, "station", argv)
+            children.append(observer)
+            observer.next("key")
+            observer.next("camera", camera=BOTTOM)
+
+            def direct() -> int:  # the robot's TCP connections with the station
+                listed = subprocess.run(hosts.command("robot", ["ss", "-tnH", "state", "established"]), capture_output=True, text=True)
+                return sum(f"{hosts.address('station')}:" in line for line in listed.stdout.splitlines())
+
+            _until(lambda: direct() > 0, "the robot and the station to link directly")
+            station_address = hosts.address("station")
+            rules = f"""
+                table inet between {{
+                    chain incoming {{ type filter hook input priority -10; ip saddr {station_address} drop; }}
+                    chain outgoing {{ type filter hook output priority -10; ip daddr {station_address} drop; }}
+                }}
+            """
+            done = subprocess.run(hosts.command("robot", ["nft", "-f", "-"]), input=rules, capture_output=True, text=True)
+            assert done.returncode == 0, done.stderr
+            _until(lambda: direct() == 0, "the direct link to be given up (its lease, then the kernel's bound)")
+            assert "robot" in observer.ask("model station")[0]["peers"]
+            assert "station" in _model_on(hosts, "robot", "robot").get("peers", [])
+            observer.stats()  # a window from now
+            _until(lambda: observer.stats()["by_camera"].get(str(BOTTOM), 0) > 0, "the robot's frames on the key, through the router")
+            causes = [e["cause"] for e in observer.ask("adaptations")]
+            assert not any("was lost" in cause for cause in causes), causes
+        finally:
+            for child in reversed(children):
+                child.close()
+            for child in children:
+                print(f"----- {child.host}\n{child.stderr[-3000:]}")
+
+
+def test_a_silent_host_is_reported_and_a_dial_under_way_ends_with_its_session(tmp_path: Path) -> None:
+    """A client of a host that answers nothing (every packet dropped) says so once its --timeout
+    is over, naming the host, without probing it again; closing a session that dials it ends the
+    dial under way (Zenoh's close waited for it, up to the dial's 2 s bound: issue 43, item 4)."""
+    why = unavailable() or faults_unavailable()
+    if why is not None:
+        if _under_ci():
+            pytest.fail(f"network namespaces and nft are required under CI: {why}")
+        pytest.skip(why)
+    with Hosts(["robot", "laptop"]) as hosts:
+        hosts.cut("robot", silent=True)
+        endpoint = f"tcp/{hosts.address('robot')}:{PORT}"
+        argv = [sys.executable, "-m", "dyknow.cli", "model", "--manager", "robot", "--connect", endpoint, "--timeout", "2"]
+        done = subprocess.run(hosts.command("laptop", argv), capture_output=True, text=True, timeout=120, env=subprocess_env(), cwd=REPO)
+        assert done.returncode == 1, done.stderr
+        assert f"{hosts.address('robot')} did not answer a connection to port {PORT}" in done.stderr, done.stderr
+        assert done.stderr.count("did not answer") == 1, done.stderr  # one finding, from one probe
+        script = (  # a session dialling the silent host: its dial under way, then ended by close
+            "import json, sys, time\n"
+            "from dyknow.transport import Session, abort_dials, make_config\n"
+            "def dialling():\n"
+            "    return sum(1 for l in open('/proc/self/net/tcp').read().splitlines()[1:] if l.split()[3] == '02')\n"
+            "s = Session(make_config(connect=[sys.argv[1]], listen=[], lease_ms=1000, open_timeout_ms=60000))\n"
+            "while not dialling():\n"
+            "    time.sleep(0.01)\n"
+            "ended = abort_dials([sys.argv[1]])\n"
+            "while dialling():  # the kernel forgets the connection as Zenoh's attempt fails\n"
+            "    time.sleep(0.01)\n"
+            "s.close()\n"
+            "print(json.dumps({'ended': ended}), flush=True)\n"
+        )
+        done = subprocess.run(hosts.command("laptop", [sys.executable, "-c", script, endpoint]), capture_output=True, text=True, timeout=120,
+                              env=subprocess_env(), cwd=REPO)  # fmt: skip
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert json.loads(done.stdout)["ended"] >= 1, done.stdout

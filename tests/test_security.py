@@ -88,6 +88,16 @@ def data(tmp_path: Path) -> Path:
     return root
 
 
+def test_a_data_root_that_is_not_a_folder_is_refused_at_start(tmp_path: Path) -> None:
+    """A --data-root that does not exist (or is a file) would refuse every file named under it,
+    silently until a caller tried: the manager refuses to start, naming it."""
+    with pytest.raises(AccessError, match=r"--data-root .*missing: .*missing does not exist; expected an existing folder .*mkdir -p"):
+        Manager("roots", data_roots=[tmp_path / "missing"], serve=False)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(AccessError, match=r"file is not a folder"):
+        DataRoots(write=[tmp_path / "file"])
+
+
 @pytest.fixture
 def rooted(make_manager: Callable[..., Manager], data: Path) -> Iterator[tuple[Manager, Client]]:
     manager = make_manager(data_roots=[data], specs=[Path("specs/recording.xml"), Path("specs/sources.xml"), Path("tests/units.xml")])

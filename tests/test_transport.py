@@ -17,7 +17,7 @@ import zenoh  # a plain Zenoh peer stands in for tools that know nothing of dykn
 from dyknow import BindingError, Manager, Message, ServiceError, TransportError
 from dyknow.testing import Sink
 from dyknow.transport import ZENOH_RUNTIME, Session, check_key_expr, key_exprs_intersect, make_config
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_until
 
 
 def test_key_expressions_are_checked() -> None:
@@ -272,3 +272,54 @@ def test_a_misspelled_link_protocol_names_those_zenoh_speaks() -> None:
     for scheme in SCHEMES:  # every protocol listed is one this Zenoh opens
         with Session(make_config(listen=[], connect=[f"{scheme}/127.0.0.1:9"], open_timeout_ms=100)):
             pass
+
+
+def test_a_script_that_leaves_its_sessions_open_exits_cleanly() -> None:
+    """Sessions still open at exit are closed before Python waits for its threads: a script that
+    forgot to close one (a subscriber's callback thread alive) exits, and no Zenoh panic comes
+    from a session closed by the garbage collector at exit (issue 43)."""
+    from tests.conftest import subprocess_env
+
+    script = (
+        "from dyknow.transport import Session, make_config\n"
+        "a = Session(make_config())\n"
+        "b = Session(make_config(connect=a.endpoints()))\n"
+        "a.declare_raw_subscriber('x/**', lambda key, payload: None)\n"
+        "b.declare_raw_subscriber('y/**', lambda key, payload: None)\n"
+        "print('leaving', flush=True)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=subprocess_env())
+    assert done.returncode == 0 and done.stdout == "leaving\n", done.stderr[-2000:]
+    assert "Panic" not in done.stderr, done.stderr[-2000:]
+
+
+@pytest.mark.skipif(not hasattr(socket, "TCP_USER_TIMEOUT"), reason="TCP_USER_TIMEOUT is Linux's")
+def test_every_link_drops_what_goes_unacknowledged_for_a_lease() -> None:
+    """Each TCP link of a session, both ends, gets TCP_USER_TIMEOUT = the session's lease: after a
+    silent cut the kernel drops the connection a lease on, with what it held, so Zenoh's close of
+    the dead link no longer lingers 10 s (its SO_LINGER) holding the new link up (issue 43)."""
+    from dyknow.transport import bound_unacknowledged
+
+    port = free_port()
+    with Session(make_config(listen=[f"tcp/127.0.0.1:{port}"], lease_ms=1500)) as a, Session(
+        make_config(connect=[f"tcp/127.0.0.1:{port}"], listen=[], lease_ms=1500)
+    ):
+
+        def bounds() -> dict[tuple[int, int], int]:  # (local port, remote port) -> TCP_USER_TIMEOUT, this process's links to the port
+            found = {}
+            for name in os.listdir("/proc/self/fd"):
+                try:
+                    if not os.readlink(f"/proc/self/fd/{name}").startswith("socket:"):
+                        continue
+                    with socket.socket(fileno=os.dup(int(name))) as sock:
+                        here, there = sock.getsockname(), sock.getpeername()
+                        if port in (here[1], there[1]):
+                            found[(here[1], there[1])] = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT)
+                except OSError:
+                    continue
+            return found
+
+        # both ends, bounded once their link event came
+        wait_until(lambda: len(bounds()) == 2 and set(bounds().values()) == {1500}, "both ends of the link bounded")
+        assert a.linked()
+    assert not bound_unacknowledged("udp/127.0.0.1:1", "udp/127.0.0.1:2", 1000)  # other protocols: nothing to bound

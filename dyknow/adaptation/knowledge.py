@@ -266,8 +266,12 @@ class Knowledge:
         return back[0] + int(hold), losses
 
     def on_probation(self, now_ns: int, dwell_ns: int) -> set[str]:
-        """The managers an opportunity may not move a request onto yet."""
-        return {m for m in self.returned if self.probation(m, now_ns, dwell_ns)[0] > now_ns}
+        """The managers an opportunity may not move a request onto yet: those back for less than
+        their probation, and those lost lately whose return has not been taken in yet (its summary
+        reaches the planner before the loop hears that it came back)."""
+        held = {m for m in self.returned if self.probation(m, now_ns, dwell_ns)[0] > now_ns}
+        window = FLAP_WINDOW_S * 1e9
+        return held | {m for m, times in self.losses.items() if m not in self.returned and any(now_ns - t < window for t in times)}
 
     def users(self, unit: str) -> list[Request]:
         """The requests whose configuration, warm standby, spare or trial units hold ``unit``."""

@@ -51,6 +51,13 @@ TRIAL_TIMEOUT_NS = 30_000_000_000
 
 # ---------------------------------------------------------------------------- monitor
 
+#: A tick this much later than the one before (the loop ticks every 20 ms) means this process was
+#: starved (its threads not run: a loaded machine, a long pause): a unit found silent then is judged
+#: at the next tick instead, once its own thread, starved too, had its turn. Without it a healthy
+#: camera of a loaded manager was marked stalled, its 200 Hz frames "silent" past a 100 ms deadline,
+#: and the requests using it degraded (issue 43). Ticks starved one after the other are judged.
+STARVED_NS = 100_000_000
+
 
 class Monitor:
     """Turns unit events, deadlines, measurements and timers into symptoms for the loop.
@@ -64,6 +71,8 @@ class Monitor:
         self._report = report
         # (unit, port) -> (count, changed at ns, started_ns of the unit instance counted)
         self._seen: dict[tuple[str, str], tuple[int, int, int]] = {}
+        self._last_tick_ns = 0
+        self._starved = False  # whether the last tick came late
 
     def unit_event(self, event: UnitEvent) -> None:
         """A unit failed or was destroyed: a symptom."""
@@ -78,6 +87,9 @@ class Monitor:
     def tick(self, now_ns: int, dwell_ns: int = int(DEFAULT_DWELL_S * 1e9)) -> None:
         """Check deadlines, back-offs and probations (called every few milliseconds by the loop)."""
         knowledge = self._knowledge
+        starved = self._last_tick_ns != 0 and now_ns - self._last_tick_ns > STARVED_NS
+        judge = not starved or self._starved  # (see STARVED_NS)
+        self._last_tick_ns, self._starved = now_ns, starved
         for label, entry in knowledge.backoff.items():
             if entry[0] <= now_ns and not entry[2]:
                 entry[2] = True  # announce each retry once; the back-off doubles if it fails again
@@ -114,7 +126,7 @@ class Monitor:
                     knowledge.stalled.discard(name)
                     self._report(Symptom("resumed", now_ns, unit=name, label=label, detail=f"{name}.{port} publishes again"))
                 continue
-            if name not in knowledge.stalled and now_ns - seen[1] > deadline_ns:
+            if name not in knowledge.stalled and now_ns - seen[1] > deadline_ns and judge:
                 knowledge.stalled.add(name)
                 silent_ms = (now_ns - seen[1]) / 1e6
                 self._report(

@@ -4,7 +4,8 @@
 in a namespace of its own, like machines on one switch. Each host has its own loopback and an
 address ``10.77.0.<n>`` on ``eth0``. Faults on a host's link:
 
-- :meth:`Hosts.cut` takes it down (the host is cut off, its processes keep running) and
+- :meth:`Hosts.cut` takes it down (the host is cut off, its processes keep running), or with
+  ``silent=True`` drops every packet on it (``nftables``) while it stays up, and
   :meth:`Hosts.restore` brings it back;
 - :meth:`Hosts.loss` drops a share of the packets both ways at random (``nftables``: Debian's
   ``nft``), on ``eth0`` only, so the host's own loopback is untouched;
@@ -57,7 +58,7 @@ def unavailable() -> str | None:
 
 
 def faults_unavailable() -> str | None:
-    """Why :meth:`Hosts.loss` or :meth:`Hosts.bandwidth` cannot work here (no ``nft`` or ``tc``), or None."""
+    """Why :meth:`Hosts.loss`, :meth:`Hosts.bandwidth` or a silent :meth:`Hosts.cut` cannot work here (no ``nft`` or ``tc``), or None."""
     missing = [tool for tool, package in (("nft", "nftables"), ("tc", "iproute2")) if shutil.which(tool) is None]
     if missing:
         return f"{' and '.join(missing)} not installed (apt-get install nftables iproute2)"
@@ -150,12 +151,26 @@ class Hosts:
             if done.returncode != 0:
                 raise OSError(f"tc tbf on host {name!r}: {done.stderr.strip() or 'failed'}")
 
-    def cut(self, name: str) -> None:
-        """Take host ``name``'s link down: it is cut off from the others (its processes keep running)."""
-        self._ip("-n", self.lan, "link", "set", self._port(name), "down")
+    def cut(self, name: str, *, silent: bool = False) -> None:
+        """Cut host ``name`` off from the others (its processes keep running): its link taken down,
+        or with ``silent`` left up while every packet on it is dropped both ways (``nftables``),
+        as a firewall or a radio out of range does: nothing tells either side the link is gone."""
+        if not silent:
+            self._ip("-n", self.lan, "link", "set", self._port(name), "down")
+            return
+        rules = """
+            table inet dyknow_cut {
+                chain incoming { type filter hook input priority -10; iifname "eth0" drop; }
+                chain outgoing { type filter hook output priority -10; oifname "eth0" drop; }
+            }
+        """
+        done = subprocess.run(["ip", "netns", "exec", self.namespace(name), "nft", "-f", "-"], input=rules, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise OSError(f"nft on host {name!r}: {done.stderr.strip() or 'failed'}")
 
     def restore(self, name: str) -> None:
-        """Bring host ``name``'s link back up."""
+        """Bring host ``name``'s link back up, and lift a silent cut."""
+        subprocess.run(["ip", "netns", "exec", self.namespace(name), "nft", "delete", "table", "inet", "dyknow_cut"], capture_output=True)
         self._ip("-n", self.lan, "link", "set", self._port(name), "up")
 
     def close(self) -> None:
