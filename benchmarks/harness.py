@@ -1,4 +1,4 @@
-"""What the benchmarks share: the machine's description, JSON output, ports, CPU time, pacing.
+"""What the benchmarks share: the machine's description, JSON output, ports, CPU time, memory, pacing.
 
 Benchmarks import the installed ``dyknow`` package (``pip install -e .``) and this module, which
 Python finds because it sits beside the benchmark script being run; nothing edits ``sys.path``
@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Proc", "cpu_seconds", "free_ports", "machine", "percentile", "sleep_until", "write_json"]
+__all__ = ["Proc", "cpu_seconds", "free_ports", "machine", "memory_mib", "percentile", "schedstat_ns", "sleep_until", "thread_cpu_ns", "write_json"]
 
 
 def machine() -> dict[str, Any]:
@@ -94,6 +94,48 @@ def cpu_seconds(pids: Iterable[int]) -> float:
         except (OSError, IndexError, ValueError):
             pass
     return total / os.sysconf("SC_CLK_TCK")
+
+
+def schedstat_ns(pid: int) -> tuple[int, int]:
+    """How long every thread of ``pid`` so far ran on a CPU, and waited for one (runnable, on a run
+    queue), in nanoseconds (``/proc/PID/task/*/schedstat``; threads that ended are not counted)."""
+    ran = waited = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            fields = (task / "schedstat").read_text().split()
+            ran, waited = ran + int(fields[0]), waited + int(fields[1])
+        except (OSError, ValueError, IndexError):
+            pass  # a thread that ended meanwhile
+    return ran, waited
+
+
+def thread_cpu_ns(pid: int) -> int:
+    """CPU time of every thread of ``pid`` so far, in nanoseconds (``/proc/PID/task/*/schedstat``).
+
+    Finer than the 10 ms ticks of ``/proc/PID/stat`` (:func:`cpu_seconds`), which an idle process
+    hardly reaches.
+    """
+    return schedstat_ns(pid)[0]
+
+
+def memory_mib(pid: int) -> dict[str, float]:
+    """Memory of process ``pid`` in MiB: ``VmRSS`` and its parts (``rss``; ``anon``: ``RssAnon``,
+    ``file``: ``RssFile``, ``shmem``: ``RssShmem``) from ``/proc/<pid>/status``, and ``pss`` (shared
+    pages divided among the processes mapping them; NaN when unreadable) from ``smaps_rollup``."""
+    out: dict[str, float] = {}
+    fields = {"VmRSS": "rss", "RssAnon": "anon", "RssFile": "file", "RssShmem": "shmem"}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        name, _, value = line.partition(":")
+        if name in fields:
+            out[fields[name]] = int(value.split()[0]) / 1024
+    out["pss"] = float("nan")
+    try:
+        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+            if line.startswith("Pss:"):
+                out["pss"] = int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return out
 
 
 def sleep_until(deadline: float) -> None:

@@ -35,21 +35,7 @@ from dyknow import Client
 from dyknow.resources import specs_dir
 from dyknow.transport import make_config
 
-from harness import free_ports, machine, worker_env, write_json
-
-
-def _cpu_ns(pid: int) -> int:
-    """CPU time of every thread of ``pid`` so far, in nanoseconds (``/proc/PID/task/*/schedstat``).
-
-    Finer than the 10 ms ticks of ``/proc/PID/stat``, which an idle process hardly reaches.
-    """
-    total = 0
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            total += int((task / "schedstat").read_text().split()[0])
-        except (OSError, ValueError, IndexError):
-            pass  # a thread that ended meanwhile
-    return total
+from harness import free_ports, machine, thread_cpu_ns, worker_env, write_json
 
 
 def _switches(pid: int) -> int:
@@ -74,9 +60,9 @@ def _status(pid: int, field: str) -> int:
 
 def measure(proc: subprocess.Popen[str], window_s: float) -> dict[str, Any]:
     """CPU, wake-ups, threads and memory of ``proc`` over ``window_s`` seconds of idling."""
-    cpu0, sw0, t0 = _cpu_ns(proc.pid), _switches(proc.pid), time.monotonic()
+    cpu0, sw0, t0 = thread_cpu_ns(proc.pid), _switches(proc.pid), time.monotonic()
     time.sleep(window_s)  # the measurement window: the process is left alone
-    cpu1, sw1, t1 = _cpu_ns(proc.pid), _switches(proc.pid), time.monotonic()
+    cpu1, sw1, t1 = thread_cpu_ns(proc.pid), _switches(proc.pid), time.monotonic()
     elapsed = t1 - t0
     cpu_s = (cpu1 - cpu0) / 1e9
     return {

@@ -29,22 +29,9 @@ from typing import Any
 from dyknow import Client
 from dyknow.resources import specs_dir
 
-from harness import Proc, free_ports, machine, write_json
+from harness import Proc, free_ports, machine, memory_mib, write_json
 
 TARGET_PSS_MIB = 64.0
-
-
-def memory_mib(pid: int) -> dict[str, float]:
-    """``pss``, ``rss`` and ``shmem`` of process ``pid``, in MiB."""
-    out = {"pss": float("nan"), "rss": float("nan"), "shmem": float("nan")}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        name, _, value = line.partition(":")
-        if name in ("VmRSS", "RssShmem"):
-            out["rss" if name == "VmRSS" else "shmem"] = int(value.split()[0]) / 1024
-    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
-        if line.startswith("Pss:"):
-            out["pss"] = int(line.split()[1]) / 1024
-    return out
 
 
 def run(size: int, settle_s: float) -> dict[str, Any]:

@@ -34,27 +34,16 @@ from typing import Any
 from dyknow import Client
 from dyknow.resources import specs_dir
 
-from harness import free_ports, machine, worker_env, write_json
+from harness import free_ports, machine, thread_cpu_ns, worker_env, write_json
 
 TOP_TARGET_PCT = 1.0
 START_TARGET_S = 0.3
 
 
-def _cpu_ns(pid: int) -> int:
-    """CPU time of every thread of ``pid`` so far (``/proc/PID/task/*/schedstat``), in nanoseconds."""
-    total = 0
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            total += int((task / "schedstat").read_text().split()[0])
-        except (OSError, ValueError, IndexError):
-            pass
-    return total
-
-
 def _cpu_pct(pid: int, window_s: float) -> float:
-    before, t0 = _cpu_ns(pid), time.monotonic()
+    before, t0 = thread_cpu_ns(pid), time.monotonic()
     time.sleep(window_s)
-    return 100 * (_cpu_ns(pid) - before) / 1e9 / (time.monotonic() - t0)
+    return 100 * (thread_cpu_ns(pid) - before) / 1e9 / (time.monotonic() - t0)
 
 
 def _stop(proc: subprocess.Popen[str]) -> None:
@@ -92,11 +81,11 @@ def top(units: int, window_s: float, settle_s: float) -> dict[str, Any]:
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=worker_env())  # fmt: skip
         try:
             time.sleep(settle_s)  # its start-up (imports, the first snapshots) is over
-            before_top, before_manager, t0 = _cpu_ns(watcher.pid), _cpu_ns(manager.pid), time.monotonic()
+            before_top, before_manager, t0 = thread_cpu_ns(watcher.pid), thread_cpu_ns(manager.pid), time.monotonic()
             time.sleep(window_s)
             elapsed = time.monotonic() - t0
-            top_pct = 100 * (_cpu_ns(watcher.pid) - before_top) / 1e9 / elapsed
-            watched = 100 * (_cpu_ns(manager.pid) - before_manager) / 1e9 / elapsed
+            top_pct = 100 * (thread_cpu_ns(watcher.pid) - before_top) / 1e9 / elapsed
+            watched = 100 * (thread_cpu_ns(manager.pid) - before_manager) / 1e9 / elapsed
             alive = watcher.poll() is None
         finally:
             _stop(watcher)

@@ -41,7 +41,7 @@ from dyknow.errors import DyKnowError
 from dyknow.planner import Planner, RunningUnit
 from dyknow.spec import load_specs
 
-from harness import Proc, free_ports, machine, percentile, write_json
+from harness import Proc, free_ports, machine, memory_mib, percentile, write_json
 
 PRODUCERS = 5  # managers the joined request spans
 
@@ -78,24 +78,6 @@ def library_xml(i: int, feeds: list[int]) -> str:
     <tags>{tags}<tag port="out">Joined</tag></tags>
   </transformation>""")
     return '<?xml version="1.0" encoding="UTF-8"?>\n<transformations>\n' + "\n".join(specs) + "\n</transformations>\n"
-
-
-def memory_mib(pid: int) -> dict[str, float]:
-    """Memory of process ``pid`` in MiB: ``VmRSS`` and its parts (``RssAnon``, ``RssFile``, ``RssShmem``) from
-    ``/proc/<pid>/status``, and ``Pss`` (shared pages divided among the processes mapping them) from ``smaps_rollup``."""
-    out: dict[str, float] = {}
-    fields = {"VmRSS": "rss", "RssAnon": "anon", "RssFile": "file", "RssShmem": "shmem"}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        name, _, value = line.partition(":")
-        if name in fields:
-            out[fields[name]] = int(value.split()[0]) / 1024
-    try:
-        for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
-            if line.startswith("Pss:"):
-                out["pss"] = int(line.split()[1]) / 1024
-    except OSError:
-        out["pss"] = float("nan")
-    return out
 
 
 def memory_summary(pids: list[int]) -> dict[str, Any]:

@@ -359,3 +359,52 @@ def test_operator_benchmark_smoke(tmp_path: Path) -> None:
     assert data["startup"]["dyknow --help"]["wall_median_s"] > 0 and data["startup"]["dyknow --help"]["imports_median_s"] > 0
     assert data["top"]["units"] == 4 and data["top"]["top_cpu_pct"] >= 0
     assert "target < 1 %" in result.stdout and "< 0.3 s" in result.stdout and "load average" in result.stdout
+
+
+def test_fleet_benchmark_smoke(tmp_path: Path) -> None:
+    """Fleets of 1, 2 and 3 managers in both topologies: every row for every size, measured or saying why not."""
+    out, txt = tmp_path / "fleet.json", tmp_path / "fleet.txt"
+    result = _run("fleet.py", "--smoke", "--json", str(out), "--txt", str(txt))
+    assert result.returncode == 0, result.stderr[-3000:]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.syspath_prepend(str(REPO / "benchmarks"))
+        import fleet
+    try:
+        rows = [key for key, *_ in fleet.ROWS]
+        labels = [label for _, label, *_ in fleet.ROWS]
+    finally:
+        sys.modules.pop("fleet", None)
+    data = json.loads(out.read_text())
+    assert {"cpu", "cores", "python", "zenoh"} <= set(data["machine"])
+    runs = {(r["topology"], r["managers"]): r for r in data["results"]}
+    assert set(runs) == {(t, n) for t in ("peers", "router") for n in (1, 2, 3)}
+    for (topology, n), run in runs.items():
+        figures = run["figures"]
+        assert set(rows) <= set(figures), set(rows) - set(figures)
+        for key in rows:
+            figure = figures[key]
+            assert figure["load"] >= 0 and (figure["value"] is not None or figure["note"]), (topology, n, key, figure)
+        # what a fleet of n can measure: plans need a provider besides m0, failover two
+        unmeasurable = ("router_",) + (("first_plan", "repeated_plan") if n == 1 else ()) + (("failover",) if n < 3 else ())
+        measured = [k for k in rows if not k.startswith(unmeasurable)]
+        assert all(figures[k]["value"] is not None for k in measured), [(k, figures[k]["note"]) for k in measured if figures[k]["value"] is None]
+        for key in set(rows) - set(measured) - {"router_cpu", "router_traffic", "router_links"}:
+            assert figures[key]["value"] is None and figures[key]["note"].startswith("n/a"), (key, figures[key])  # said, not made up
+        assert (figures["router_links"]["value"] is not None) == (topology == "router")
+        assert figures["cpu_per_manager"]["value"] >= 0 and figures["pss_per_manager"]["value"] > 10
+        assert figures["federated_model_listed"]["value"] == figures["managers_cmd_listed"]["value"] == n
+        assert figures["newcomer_launch_ms"]["value"] >= figures["newcomer_ms"]["value"] > 0
+        if n > 1:
+            assert figures["links_per_manager"]["value"] >= 1 and figures["traffic_per_manager"]["value"] > 0
+            assert set(run["plans"]["first"]["providers_used"]) <= set(run["providers"]) == {f"m{i}" for i in range(1, n)}
+        if n == 3:
+            assert run["failover"]["count"] == 2 and 0 < figures["failover_p50_ms"]["value"] <= figures["failover_p99_ms"]["value"]
+    targets = ("cpu_per_manager", "traffic_per_manager", "first_plan_ms", "newcomer_max_ms", "failover_p99_ms")
+    checks = {(c["topology"], c["row"]) for c in data["targets"]}
+    assert checks == {(t, r) for t in ("peers", "router") for r in targets} | {("router", "links_per_manager_max")}
+    assert all(c["met"] in (True, False) and c["at"] == 3 for c in data["targets"])
+    report = txt.read_text()
+    for label in labels:
+        assert label in report
+    assert report.count("MET") >= len(data["targets"]) and "load average" in report and "N^" in report
+    assert report in result.stdout
