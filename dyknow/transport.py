@@ -292,17 +292,23 @@ def bound_unacknowledged(local: str, remote: str, timeout_ms: int) -> bool:
         except (OSError, ValueError):
             continue
         with sock:
-            try:
-                if sock.type != socket.SOCK_STREAM or sock.family not in (socket.AF_INET, socket.AF_INET6):
-                    continue
-                here, there = sock.getsockname(), sock.getpeername()
-                if (_plain_ip(here[0]), here[1]) != ends[0] or (_plain_ip(there[0]), there[1]) != ends[1]:
-                    continue
-                sock.setsockopt(socket.IPPROTO_TCP, _USER_TIMEOUT, max(1, int(timeout_ms)))
+            if _set_user_timeout(sock, ends[0], ends[1], timeout_ms):
                 return True
-            except (OSError, ValueError):
-                continue
     return False
+
+
+def _set_user_timeout(sock: socket.socket, local: tuple[Any, int], remote: tuple[Any, int], timeout_ms: int) -> bool:
+    """Set ``TCP_USER_TIMEOUT`` on ``sock`` if it is the TCP socket between ``local`` and ``remote``."""
+    try:
+        if sock.type != socket.SOCK_STREAM or sock.family not in (socket.AF_INET, socket.AF_INET6):
+            return False
+        here, there = sock.getsockname(), sock.getpeername()
+        if (_plain_ip(here[0]), here[1]) != local or (_plain_ip(there[0]), there[1]) != remote:
+            return False
+        sock.setsockopt(socket.IPPROTO_TCP, _USER_TIMEOUT, max(1, int(timeout_ms)))  # type: ignore[arg-type]
+        return True
+    except (OSError, ValueError):
+        return False
 
 
 def _proc_address(text: str) -> tuple[ipaddress.IPv4Address | ipaddress.IPv6Address, int]:
