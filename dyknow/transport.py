@@ -35,7 +35,6 @@ import socket
 import sys
 import threading
 import time
-import weakref
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
@@ -910,11 +909,13 @@ class LivelinessSubscriber(_Entity):
 # garbage collector at exit, Zenoh closed one from a finalizer once and panicked ("close operation
 # timed out", issue 43). It runs before Python waits for its threads (as concurrent.futures does),
 # so the threads of Zenoh's callbacks end and a script that forgot to close a session exits.
-_open_sessions: Final[weakref.WeakSet[Session]] = weakref.WeakSet()
+# (Held strongly: the class is compiled, and mypyc's classes take no weak references. A session
+# is taken out as it closes; one never closed stays open until exit, as a Zenoh session would.)
+_open_sessions: Final[dict[int, Session]] = {}
 
 
 def _close_open_sessions() -> None:
-    for session in sorted(_open_sessions, key=lambda s: s.opened_ns, reverse=True):
+    for session in sorted(list(_open_sessions.values()), key=lambda s: s.opened_ns, reverse=True):
         try:
             session.close()
         except Exception:  # at exit: the others are closed whatever this one does
@@ -975,7 +976,7 @@ class Session:
         self._links = _Links(self._session, lease_ms)
         self._dials = dials
         self.opened_ns = time.monotonic_ns()
-        _open_sessions.add(self)
+        _open_sessions[id(self)] = self
 
     # -- lifecycle
 
@@ -994,6 +995,7 @@ class Session:
         """Close the session; safe to call twice."""
         session, self._session = self._session, None
         if session is not None:
+            _open_sessions.pop(id(self), None)
             self._links.close()
             if self._dials:  # (Zenoh's close would wait for a dial under way)
                 abort_dials(self._dials)
