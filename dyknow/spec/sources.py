@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ast
 import importlib.machinery
+import importlib.util
 import os
 import sys
 from collections.abc import Iterable, Sequence
@@ -31,6 +32,11 @@ def _locate(module_name: str, folders: Sequence[str]) -> importlib.machinery.Mod
     if top in sys.builtin_module_names:
         return importlib.machinery.ModuleSpec(top, None, origin="built-in")
     found = importlib.machinery.PathFinder.find_spec(top, [*sys.path, *folders])
+    if found is None:  # installed through a finder of its own (an editable install): a top-level name imports nothing
+        try:
+            found = importlib.util.find_spec(top)
+        except (ImportError, ValueError):
+            found = None
     for part in rest:
         if found is None or not found.submodule_search_locations:
             return None
