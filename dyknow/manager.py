@@ -45,7 +45,7 @@ from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
 from dyknow.client import Client
-from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
+from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, TransportError, UnitError, did_you_mean
 from dyknow.executor import DEFAULT_MAX_LANES, Executor
 from dyknow.federation import STOPPED, Directory, Summary, SummaryUnit
 from dyknow.holders import DEFAULT_GRACE_S, Holders
@@ -86,6 +86,10 @@ class Manager:
     ``specs``: spec files, directories of ``*.xml`` files, or specs to load at start.
     ``listen``/``connect``: Zenoh endpoints (default: listen on a free loopback port, connect to
     nothing); ``zenoh_config``: a json5 Zenoh configuration file to join a real deployment instead.
+    ``router``: the manager sits behind these Zenoh routers (``dyknow router``), as in a fleet: it
+    dials the first that answers and holds that one link, listens on nothing, and reaches every
+    other manager through it (a Zenoh client); the others are standbys it dials when the link is
+    lost. Not with ``listen`` or ``connect``.
     ``serve``: declare the Zenoh services so other processes can call this manager.
     ``queue_depth``: the input queue size of ports whose spec sets none. ``stall_budget_s`` and
     ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`);
@@ -126,6 +130,7 @@ class Manager:
         specs: Iterable[str | os.PathLike[str] | TransformationSpec] = (),
         listen: Sequence[str] | None = None,
         connect: Sequence[str] = (),
+        router: Sequence[str] = (),
         zenoh_config: str | os.PathLike[str] | None = None,
         serve: bool = True,
         ontology: Ontology | Iterable[str | os.PathLike[str]] | None = None,
@@ -225,10 +230,19 @@ class Manager:
                     self.name,
                 )
         self.host = host or socket.gethostname()
+        if router:
+            if listen or connect:
+                raise TransportError(
+                    "a manager behind a router dials only its router",
+                    where=f"manager {self.name!r}",
+                    expected="router endpoints alone (--router), or --listen/--connect without --router",
+                )
+            if zenoh_config is None:
+                reach.check_endpoints(router, self._tls, option="--router", who=f"manager {self.name!r}")
         self._session = Session(
             make_config(
-                listen=listen,
-                connect=list(connect),
+                listen=[] if router else listen,
+                connect=list(router or connect),
                 config_file=zenoh_config,
                 tls=self._tls,
                 access=access,
@@ -236,8 +250,10 @@ class Manager:
                 max_message_bytes=limits.max_message_bytes,
                 # a router: managers reach each other through any path (a third manager, a
                 # dyknow router) when they cannot link directly, and keep trying the links they
-                # were told to make; peers see only the peers they link to (issue 43)
-                mode="router",
+                # were told to make; peers see only the peers they link to (issue 43). Behind a
+                # router, a client: one link, to the router, which routes everything (issue 40;
+                # a peer or a router there also links to every manager it hears of)
+                mode="client" if router else "router",
             )
         )
         # calls to the other managers, signed with this manager's certificate (dyknow.identity)
