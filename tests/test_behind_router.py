@@ -12,6 +12,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from dyknow import Client, Manager
 from dyknow.errors import TransportError
 from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS, Sink
 from dyknow.transport import Session, make_config
-from tests.conftest import REPO, CliProcess, free_port, run_cli, wait_until
+from tests.conftest import REPO, CliProcess, free_port, run_cli, subprocess_env, wait_until
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
@@ -143,3 +144,41 @@ def test_a_manager_behind_a_router_dials_nothing_else(tmp_path: Path) -> None:
     assert bad.returncode != 0 and "--router: a manager behind a router dials only its router" in bad.stderr
     tls = run_cli("manager", "--router", "tls/127.0.0.1:7447")
     assert tls.returncode != 0 and "tls/127.0.0.1:7447 is a TLS endpoint" in tls.stderr and "--router" in tls.stderr
+
+
+def test_behind_a_router_each_client_keeps_its_own_rights(started: Callable[..., CliProcess], tmp_path: Path) -> None:
+    """Roles (issue 40, item 4): one ACL file for the router and the two managers behind it, TLS
+    everywhere. A client through the router gets its own rights at the station: a viewer reads and
+    receives but may not destroy nor publish, a requester also requests, an operator also
+    publishes, a certificate without a role gets nothing (as in tests/test_hosts.py, with managers
+    that link to each other)."""
+    from dyknow.certs import write_dev_certs
+
+    pki = tmp_path / "pki"
+    names = ["station", "robot", "hub", "admin", "viewer", "requester", "operator", "stranger"]
+    write_dev_certs(pki, names, hosts=["127.0.0.1"])
+    acl = tmp_path / "acl.json5"
+    acl.write_text("""{ roles: { manager: ["station", "robot"], router: ["hub"], admin: ["admin"], viewer: ["viewer"],
+                                requester: ["requester"], operator: ["operator"] },
+                     define: { requester: { like: "viewer", calls: ["request", "release"] } } }""")
+
+    def tls(name: str) -> list[str]:
+        return ["--acl", str(acl), "--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{name}.pem"), "--tls-key", str(pki / f"{name}.key")]
+
+    hub = f"tls/127.0.0.1:{free_port()}"
+    started("router", "--listen", hub, *tls("hub"))
+    generic = str(REPO / "specs" / "generic.xml")
+    station = started("manager", "--name", "station", "--specs", generic, "--router", hub, *tls("station"))
+    started("manager", "--name", "robot", "--specs", generic, "--router", hub, *tls("robot"))
+    assert links(station.proc.pid) == [hub.removeprefix("tls/")]
+    identities = ["viewer", "requester", "operator", "stranger"]
+    done = subprocess.run([sys.executable, "-m", "tests.netns_rights", hub, "station", str(pki), *identities],
+                          capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    found = {r.pop("name"): r for r in map(json.loads, done.stdout.splitlines())}
+    assert found == {
+        "viewer": {"get_model": "reached", "destroy": "dropped", "request": "dropped", "receives": True, "publishes": False},
+        "requester": {"get_model": "reached", "destroy": "dropped", "request": "reached", "receives": True, "publishes": False},
+        "operator": {"get_model": "reached", "destroy": "reached", "request": "reached", "receives": True, "publishes": True},
+        "stranger": {"get_model": "nothing", "destroy": "nothing", "request": "nothing", "receives": False, "publishes": False},
+    }
