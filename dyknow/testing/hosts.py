@@ -144,9 +144,16 @@ class Hosts:
                 return address
         raise ValueError(f"host {name!r} is not on network {network!r} (it is on {[n for n, *_ in self._links[name]]!r})")
 
-    def _devices(self, name: str) -> str:
+    def _on(self, name: str, network: str | None) -> list[tuple[str, str, str, str]]:
+        """Host ``name``'s links: every one, or the one on ``network``."""
+        links = [link for link in self._links[name] if network is None or link[0] == network]
+        if not links:
+            raise ValueError(f"host {name!r} is not on network {network!r} (it is on {[n for n, *_ in self._links[name]]!r})")
+        return links
+
+    def _devices(self, name: str, network: str | None = None) -> str:
         """nft's match of host ``name``'s network interfaces (``"eth0"``, or a set of them)."""
-        devices = [f'"{dev}"' for _, dev, _, _ in self._links[name]]
+        devices = [f'"{dev}"' for _, dev, _, _ in self._on(name, network)]
         return devices[0] if len(devices) == 1 else "{ " + ", ".join(devices) + " }"
 
     def command(self, name: str, argv: Sequence[str]) -> list[str]:
@@ -194,18 +201,19 @@ class Hosts:
             if done.returncode != 0:
                 raise OSError(f"tc tbf on host {name!r}: {done.stderr.strip() or 'failed'}")
 
-    def cut(self, name: str, *, silent: bool = False) -> None:
+    def cut(self, name: str, *, silent: bool = False, network: str | None = None) -> None:
         """Cut host ``name`` off from the others (its processes keep running): its link taken down,
         or with ``silent`` left up while every packet on it is dropped both ways (``nftables``),
-        as a firewall or a radio out of range does: nothing tells either side the link is gone."""
+        as a firewall or a radio out of range does: nothing tells either side the link is gone.
+        ``network``: only its link to that network (a gateway's WAN, say); default every link."""
         if not silent:
-            for network, _, port, _ in self._links[name]:
-                self._ip("-n", self._bridges[network], "link", "set", port, "down")
+            for net, _, port, _ in self._on(name, network):
+                self._ip("-n", self._bridges[net], "link", "set", port, "down")
             return
         rules = f"""
             table inet dyknow_cut {{
-                chain incoming {{ type filter hook input priority -10; iifname {self._devices(name)} drop; }}
-                chain outgoing {{ type filter hook output priority -10; oifname {self._devices(name)} drop; }}
+                chain incoming {{ type filter hook input priority -10; iifname {self._devices(name, network)} drop; }}
+                chain outgoing {{ type filter hook output priority -10; oifname {self._devices(name, network)} drop; }}
             }}
         """
         done = subprocess.run(["ip", "netns", "exec", self.namespace(name), "nft", "-f", "-"], input=rules, capture_output=True, text=True)
@@ -213,7 +221,7 @@ class Hosts:
             raise OSError(f"nft on host {name!r}: {done.stderr.strip() or 'failed'}")
 
     def restore(self, name: str) -> None:
-        """Bring host ``name``'s link back up, and lift a silent cut."""
+        """Bring host ``name``'s links back up, and lift a silent cut."""
         subprocess.run(["ip", "netns", "exec", self.namespace(name), "nft", "delete", "table", "inet", "dyknow_cut"], capture_output=True)
         for network, _, port, _ in self._links[name]:
             self._ip("-n", self._bridges[network], "link", "set", port, "up")
