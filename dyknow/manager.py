@@ -239,23 +239,42 @@ class Manager:
                 )
             if zenoh_config is None:
                 reach.check_endpoints(router, self._tls, option="--router", who=f"manager {self.name!r}")
-        self._session = Session(
-            make_config(
-                listen=[] if router else listen,
-                connect=list(router or connect),
-                config_file=zenoh_config,
-                tls=self._tls,
-                access=access,
-                lease_ms=lease_ms,
-                max_message_bytes=limits.max_message_bytes,
-                # a router: managers reach each other through any path (a third manager, a
-                # dyknow router) when they cannot link directly, and keep trying the links they
-                # were told to make; peers see only the peers they link to (issue 43). Behind a
-                # router, a client: one link, to the router, which routes everything (issue 40;
-                # a peer or a router there also links to every manager it hears of)
-                mode="client" if router else "router",
+        def session(mode: str) -> Session:
+            return Session(
+                make_config(
+                    listen=[] if router else listen,
+                    connect=list(router or connect),
+                    config_file=zenoh_config,
+                    tls=self._tls,
+                    access=access,
+                    lease_ms=lease_ms,
+                    max_message_bytes=limits.max_message_bytes,
+                    mode=mode,
+                )
             )
-        )
+
+        # A router: managers reach each other through any path (a third manager, a dyknow router)
+        # when they cannot link directly, and keep trying the links they were told to make; peers
+        # see only the peers they link to (issue 43). Behind a router, a Zenoh client of it: one
+        # link, which the router routes everything through, and only what the manager asks for
+        # comes down it (issue 40); it dials the router again when the link goes, or a standby.
+        if not router:
+            self._session = session("router")
+        else:
+            try:
+                self._session = session("client")
+            except TransportError as exc:
+                if "Unable to connect" not in str(exc):
+                    raise
+                # (a Zenoh client does not start without its router; a robot's manager must run
+                # its own units meanwhile: a router without a listener keeps dialling, one link each)
+                log.warning(
+                    "manager %r: no router of %s answers yet; it runs meanwhile and dials them until they do (holding a link to "
+                    "each that answers, not only to the first)",
+                    self.name,
+                    ", ".join(router),
+                )
+                self._session = session("router")
         # calls to the other managers, signed with this manager's certificate (dyknow.identity)
         self._peers = Client(self.name, session=self._session, timeout_s=3.0, tls=self._tls)
         self._owners: dict[str, str] = {}  # unit -> the manager whose request it serves

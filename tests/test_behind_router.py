@@ -182,3 +182,24 @@ def test_behind_a_router_each_client_keeps_its_own_rights(started: Callable[...,
         "operator": {"get_model": "reached", "destroy": "reached", "request": "reached", "receives": True, "publishes": True},
         "stranger": {"get_model": "nothing", "destroy": "nothing", "request": "nothing", "receives": False, "publishes": False},
     }
+
+
+def test_a_manager_starts_before_its_router_and_joins_it_when_it_comes(started: Callable[..., CliProcess]) -> None:
+    """A robot may boot before its router: its manager starts (its own units run), says that no
+    router answers yet, and joins the router once it comes, with one link."""
+    port = free_port()
+    hub = f"tcp/127.0.0.1:{port}"
+    station = behind(started, "station", hub)
+    field = behind(started, "field", hub)
+    assert links(station.proc.pid) == []
+    started("router", "--listen", hub)
+    wait_until(lambda: links(station.proc.pid) == links(field.proc.pid) == [f"127.0.0.1:{port}"], "one link each, to the router")
+    with Client("station", connect=[hub]) as client:
+        wait_until(lambda: [m["manager"] for m in client.managers()] == ["field", "station"], "both listed through the router")
+        key = client.request(TRACK)
+        got: list[int] = []
+        with client.session.declare_subscriber(key, lambda msg: got.append(msg.payload["camera"])):
+            wait_until(lambda: got.count(CEILING) > 3, "the field's camera on the station's request")
+    station.proc.terminate()
+    assert station.proc.wait(10) == 0
+    assert station.proc.stderr is not None and "no router of " + hub + " answers yet" in station.proc.stderr.read()
