@@ -230,6 +230,7 @@ class Manager:
                     self.name,
                 )
         self.host = host or socket.gethostname()
+        self._routers = list(router)
         if router:
             if listen or connect:
                 raise TransportError(
@@ -346,7 +347,7 @@ class Manager:
                 raise
         if self._tls is None and self.exposed():
             log.warning(
-                "manager %r listens beyond this host without TLS (%s): anyone who reaches it may call its services",
+                "manager %r is reachable beyond this host without TLS (%s): anyone who reaches it may call its services",
                 self.name,
                 ", ".join(self.exposed()),
             )
@@ -456,8 +457,9 @@ class Manager:
             return self._dds
 
     def exposed(self) -> list[str]:
-        """The endpoints this manager listens on beyond this host without TLS (a warning sign)."""
-        return [e for e in self.endpoints if not e.startswith("tls/") and not _loopback(e)]
+        """The endpoints this manager listens on beyond this host without TLS, or the routers it
+        sits behind there (anyone who reaches them reaches the manager): a warning sign."""
+        return [e for e in [*self.endpoints, *self._routers] if not e.startswith("tls/") and not _loopback(e)]
 
     @property
     def endpoints(self) -> list[str]:

@@ -203,3 +203,10 @@ def test_a_manager_starts_before_its_router_and_joins_it_when_it_comes(started: 
     station.proc.terminate()
     assert station.proc.wait(10) == 0
     assert station.proc.stderr is not None and "no router of " + hub + " answers yet" in station.proc.stderr.read()
+
+
+def test_a_manager_behind_a_router_beyond_this_host_without_tls_is_exposed(make_manager: Callable[..., Manager]) -> None:
+    """Anyone who reaches its router may call its services: the same warning sign as listening
+    beyond this host without TLS (a documentation address: no router answers there)."""
+    assert make_manager(router=[f"tcp/127.0.0.1:{free_port()}"], lease_ms=1000).exposed() == []
+    assert make_manager(router=["tcp/192.0.2.1:7447"], lease_ms=1000).exposed() == ["tcp/192.0.2.1:7447"]

@@ -146,8 +146,9 @@ def cmd_manager(args: argparse.Namespace) -> int:
         exposed = manager.exposed()
         if exposed:
             print(
-                f"dyknow: warning: listening beyond this host without TLS ({', '.join(exposed)}): anyone who reaches it may "
-                "call its services; use --tls-ca/--tls-cert/--tls-key and --acl (see docs/howto/security.md)",
+                f"dyknow: warning: {'behind a router' if args.router else 'listening'} beyond this host without TLS "
+                f"({', '.join(exposed)}): anyone who reaches {'the router' if args.router else 'it'} may call its services; "
+                "use --tls-ca/--tls-cert/--tls-key and --acl (see docs/howto/security.md)",
                 file=sys.stderr,
                 flush=True,
             )
