@@ -240,6 +240,7 @@ class Manager:
                 )
             if zenoh_config is None:
                 reach.check_endpoints(router, self._tls, option="--router", who=f"manager {self.name!r}")
+
         def session(mode: str) -> Session:
             return Session(
                 make_config(
