@@ -26,6 +26,9 @@ which camera each message came from (the tracker's output names it).
   declared lost, or a unit of another declared broken, by the station or the field (target 0).
 - ``link-cut-router``: the same, with the three managers connected to a ``dyknow router`` on a
   fourth host (the rendezvous point of docs/tutorials/two-hosts.md) instead of to the station.
+- ``link-cut-behind``: the same, with the three managers behind that router (``--router``, as a
+  fleet deploys them: each holds one link, to the router, and listens on nothing); the robot's
+  cut is of its one link, and on its return the robot dials the router again by itself.
 - ``silent-host-report`` / ``-close``: a client of a host that drops every packet: from its
   construction to ``get_model``'s error with ``--timeout 2`` (target: the timeout + 0.5 s), and
   its ``close()`` (its session was dialling the host; target 100 ms: no wait for the dial); the
@@ -67,7 +70,7 @@ from harness import Proc, free_ports, machine, percentile, write_json
 ONTOLOGY = specs_dir() / "dyknow.ttl"
 TAG = "BallTrack(field)"
 BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
-TARGETS_MS = {"sigkill-loopback": 200.0, "link-cut-1s-lease": 1500.0, "link-cut-router": 1500.0}
+TARGETS_MS = {"sigkill-loopback": 200.0, "link-cut-1s-lease": 1500.0, "link-cut-router": 1500.0, "link-cut-behind": 1500.0}
 NETNS_PORT = 7447
 LEASE_MS = 1000  # every manager's lease in the link-cut scenario
 DWELL_S = 0.5
@@ -122,12 +125,13 @@ class CameraWatch:
             return found() or 0
 
 
-def manager_argv(name: str, listen: str, connect: str | None, *extra: str) -> list[str]:
-    """``dyknow manager`` for one of the scenario's managers (its library from ``SCENARIO_HOSTS``)."""
+def manager_argv(name: str, listen: str | None, connect: str | None, *extra: str) -> list[str]:
+    """``dyknow manager`` for one of the scenario's managers (its library from ``SCENARIO_HOSTS``);
+    without ``listen``, behind the router ``connect`` (``--router``)."""
+    links = ["--listen", listen, *(["--connect", connect] if connect else [])] if listen is not None else ["--router", str(connect)]
     return [
         sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]),
-        "--ontology", str(ONTOLOGY), "--listen", listen, *(["--connect", connect] if connect else []),
-        "--host", f"{name}-host", "--json", *extra,
+        "--ontology", str(ONTOLOGY), *links, "--host", f"{name}-host", "--json", *extra,
     ]  # fmt: skip
 
 
@@ -348,7 +352,7 @@ FALSE_ALARM = re.compile(r"manager '(?!robot')[^']+' was lost|unit '[^']*@(?!rob
 
 
 def run_partitions(
-    heals: int, observer_lease_ms: int | None, router: bool = False, hold_s: float = 1.5, logs: Path | None = None
+    heals: int, observer_lease_ms: int | None, router: bool = False, hold_s: float = 1.5, logs: Path | None = None, behind: bool = False
 ) -> dict[str, Any]:
     """Cut the robot off ``heals`` times each way, alternating: its link taken down, then brought
     back up ("down"); every packet of its link dropped, then let through again ("silent"). Per cut:
@@ -360,7 +364,8 @@ def run_partitions(
     lost, and the station's adaptations naming another manager lost or a unit of another broken.
 
     ``router``: the managers connect to a ``dyknow router`` on a host of its own (the
-    two-host tutorial's rendezvous point) instead of the robot and the field connecting to the station.
+    two-host tutorial's rendezvous point) instead of the robot and the field connecting to the station;
+    ``behind``: every manager behind that router (``--router``), the measuring client connected to it.
     ``logs``: a folder to write each process's stderr to (``DYKNOW_LOG=INFO`` says more)."""
     from dyknow.testing.hosts import Hosts
 
@@ -369,13 +374,15 @@ def run_partitions(
     out: dict[str, Any] = {"failover_ms": {"down": [], "silent": []}, "rejoined_ms": {"down": [], "silent": []},
                            "preferred_ms": {"down": [], "silent": []}, "probation_s": {"down": [], "silent": []},
                            "false_alarms": [], "cuts": 0}  # fmt: skip
+    router = router or behind
     with Hosts(["station", "robot", "field", *(["hub"] if router else [])]) as hosts:
         station = f"tcp/{hosts.address('station')}:{NETNS_PORT}"
         hub = f"tcp/{hosts.address('hub')}:{NETNS_PORT}" if router else None
 
         def start(name: str, *extra: str) -> None:
             connect = hub if router else (None if name == "station" else station)
-            argv = manager_argv(name, f"tcp/{hosts.address(name)}:{NETNS_PORT}", connect, "--lease-ms", str(LEASE_MS), *extra)
+            listen = None if behind else f"tcp/{hosts.address(name)}:{NETNS_PORT}"
+            argv = manager_argv(name, listen, connect, "--lease-ms", str(LEASE_MS), *extra)
             procs[name] = Proc(argv, popen=lambda a, **kw: hosts.popen(name, a, **kw))
             procs[name].next_json(30, event="ready")
 
@@ -388,7 +395,8 @@ def run_partitions(
             start("robot")
             start("field")
             lease = ["--observer-lease-ms", str(observer_lease_ms or 0)]
-            observer = Proc([sys.executable, __file__, "--observe", station, *lease], popen=lambda a, **kw: hosts.popen("station", a, **kw))
+            via = str(hub) if behind else station  # (a manager behind the router listens on nothing)
+            observer = Proc([sys.executable, __file__, "--observe", via, *lease], popen=lambda a, **kw: hosts.popen("station", a, **kw))
             events = Events(observer)
             events.wait(lambda e: e.get("event") == "key", 0, 60, "key")
             events.wait(lambda e: e.get("event") == "camera" and e["camera"] == BOTTOM, 0, 60, "robot camera")
@@ -431,7 +439,7 @@ def run_partitions(
             for name, proc in reversed(procs.items()):
                 if logs is not None:
                     logs.mkdir(parents=True, exist_ok=True)
-                    (logs / f"{'router' if router else 'peers'}-{name}.log").write_text(stderr_text(proc))
+                    (logs / f"{'behind' if behind else 'router' if router else 'peers'}-{name}.log").write_text(stderr_text(proc))
                 proc.close()
         out["links"] = hosts.shaping
     return out
@@ -505,8 +513,9 @@ def main(argv: list[str] | None = None) -> int:
         default=LEASE_MS,
         help=f"link cut: the lease of the measuring client's own Zenoh session (default {LEASE_MS}, the managers'; 0: Zenoh's default, 10 s)",
     )
-    parser.add_argument("--topology", choices=["peers", "router", "both"], default="both",
-                        help="link cut: the managers as peers (robot and field connect to the station), through a router, or both (default)")  # fmt: skip
+    parser.add_argument("--topology", choices=["peers", "router", "behind", "both", "all"], default="all",
+                        help="link cut: the managers as peers (robot and field connect to the station), connected to a router, behind "
+                             "a router (--router), peers and router (both), or the three (all, default)")  # fmt: skip
     parser.add_argument("--silent", type=int, default=None, help="clients of a silent host, in namespaces (default 10; --smoke 1)")
     parser.add_argument("--logs", type=Path, help="link cuts: write each manager's stderr to this folder (with DYKNOW_LOG=INFO: what it saw)")
     parser.add_argument("--observe", metavar="ENDPOINT", help=argparse.SUPPRESS)
@@ -545,22 +554,23 @@ def main(argv: list[str] | None = None) -> int:
     elif cuts > 0:
         netem = netem_probe()
         observer_lease = f"{args.observer_lease_ms} ms" if args.observer_lease_ms else "Zenoh's default (10 s)"
-        topologies = {"peers": ["link-cut-1s-lease"], "router": ["link-cut-router"]}.get(args.topology, ["link-cut-1s-lease", "link-cut-router"])
+        topologies = {"peers": ["link-cut-1s-lease"], "router": ["link-cut-router"], "behind": ["link-cut-behind"],
+                      "both": ["link-cut-1s-lease", "link-cut-router"]}.get(args.topology, ["link-cut-1s-lease", "link-cut-router", "link-cut-behind"])  # fmt: skip
         for scenario in topologies:
-            router = scenario == "link-cut-router"
-            short = "router" if router else "peers"
-            layout = (
-                "the three managers connect to a dyknow router on a fourth host"
-                if router
-                else "the robot and the field connect to the station"
-            )
+            router, behind = scenario == "link-cut-router", scenario == "link-cut-behind"
+            short = "behind" if behind else "router" if router else "peers"
+            layout = {
+                "router": "the three managers connect to a dyknow router on a fourth host",
+                "behind": "the three managers behind a dyknow router on a fourth host (--router: one link each)",
+                "peers": "the robot and the field connect to the station",
+            }[short]
             print(
-                f"\n({'c' if router else 'b'}) {scenario}: the robot cut off {2 * cuts} times, its link taken down and brought back up "
+                f"\n({'c' if router else 'c2' if behind else 'b'}) {scenario}: the robot cut off {2 * cuts} times, its link taken down and brought back up "
                 f"({cuts}) and every packet of it dropped then let through ({cuts}), in turn; network namespaces on a bridge ({layout}), "
                 f"every manager --lease-ms {LEASE_MS}, the measuring client's session lease {observer_lease}; load average {load()}",
                 flush=True,
             )
-            run = run_partitions(cuts, args.observer_lease_ms or None, router=router, logs=args.logs)
+            run = run_partitions(cuts, args.observer_lease_ms or None, router=router, logs=args.logs, behind=behind)
             samples = run["failover_ms"]["down"] + run["failover_ms"]["silent"]
             results.append({"scenario": scenario, **summary(samples, TARGETS_MS[scenario]),
                             "measured": "from just before the robot's link goes down (or silent) to the first ceiling-camera message on the "

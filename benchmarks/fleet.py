@@ -6,8 +6,8 @@ loopback with multicast scouting off (the loopback defaults), named ``m0`` ...:
 
 - ``peers``: as the docs recommend today, ``m0`` listens and every other manager connects to it;
   gossip introduces the rest;
-- ``router``: a ``dyknow router`` listens and every manager connects to it only (each still
-  listens on a port of its own, as a manager does).
+- ``router``: a ``dyknow router`` listens and every manager sits behind it (``--router``): it
+  dials the router only and listens on nothing, as a fleet deploys them (docs/howto/router.md).
 
 Each manager has a small library of its own in a temporary folder, and runs two units of it,
 spawned through its services: ``src`` (an idle ``dyknow.testing:Source``, tag ``Idle(m<i>)``) and
@@ -242,9 +242,11 @@ class Fleet:
         """``dyknow manager`` for ``name``, its library written into the folder."""
         path = self.folder / f"{name}.xml"
         path.write_text(library_xml(name, shared=shared, fresh=fresh))
-        connect = [] if self.topology == "peers" and name == "m0" else ["--connect", self.hub]
-        return [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(path),
-                "--listen", f"tcp/127.0.0.1:{free_ports(1)[0]}", *connect, "--json"]  # fmt: skip
+        if self.topology == "router":  # behind the router: it alone is dialled, nothing listens
+            links = ["--router", self.hub]
+        else:
+            links = ["--listen", f"tcp/127.0.0.1:{free_ports(1)[0]}", *([] if name == "m0" else ["--connect", self.hub])]
+        return [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(path), *links, "--json"]
 
     def launch(self, name: str, *, fresh: bool = False) -> Proc:
         """Start manager ``name`` (not waiting for its ready line)."""
@@ -803,7 +805,7 @@ def report(runs: list[dict[str, Any]], info: dict[str, Any], args: argparse.Name
         width = 12
         lines.append("")
         lines.append(f"{topology}: " + ("m0 listens, every other manager connects to it (gossip does the rest)" if topology == "peers"
-                                         else "a dyknow router listens, every manager connects to it only"))  # fmt: skip
+                                         else "a dyknow router listens, every manager sits behind it (--router)"))  # fmt: skip
         lines.append(f"{'figure':<52}" + "".join(f"{'N=' + str(n):>{width}}" for n in sizes) + f"{'growth':>9}   target: verdict")
         current_phase = None
         reasons: dict[str, str] = {}

@@ -45,7 +45,7 @@ from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
 from dyknow.client import Client
-from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, UnitError, did_you_mean
+from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError, LibraryError, TransportError, UnitError, did_you_mean
 from dyknow.executor import DEFAULT_MAX_LANES, Executor
 from dyknow.federation import STOPPED, Directory, Summary, SummaryUnit
 from dyknow.holders import DEFAULT_GRACE_S, Holders
@@ -86,6 +86,10 @@ class Manager:
     ``specs``: spec files, directories of ``*.xml`` files, or specs to load at start.
     ``listen``/``connect``: Zenoh endpoints (default: listen on a free loopback port, connect to
     nothing); ``zenoh_config``: a json5 Zenoh configuration file to join a real deployment instead.
+    ``router``: the manager sits behind these Zenoh routers (``dyknow router``), as in a fleet: it
+    dials the first that answers and holds that one link, listens on nothing, and reaches every
+    other manager through it (a Zenoh client); the others are standbys it dials when the link is
+    lost. Not with ``listen`` or ``connect``.
     ``serve``: declare the Zenoh services so other processes can call this manager.
     ``queue_depth``: the input queue size of ports whose spec sets none. ``stall_budget_s`` and
     ``slow_callback_s``: when a unit leaves the shared thread (see :mod:`dyknow.executor`);
@@ -126,6 +130,7 @@ class Manager:
         specs: Iterable[str | os.PathLike[str] | TransformationSpec] = (),
         listen: Sequence[str] | None = None,
         connect: Sequence[str] = (),
+        router: Sequence[str] = (),
         zenoh_config: str | os.PathLike[str] | None = None,
         serve: bool = True,
         ontology: Ontology | Iterable[str | os.PathLike[str]] | None = None,
@@ -225,21 +230,53 @@ class Manager:
                     self.name,
                 )
         self.host = host or socket.gethostname()
-        self._session = Session(
-            make_config(
-                listen=listen,
-                connect=list(connect),
-                config_file=zenoh_config,
-                tls=self._tls,
-                access=access,
-                lease_ms=lease_ms,
-                max_message_bytes=limits.max_message_bytes,
-                # a router: managers reach each other through any path (a third manager, a
-                # dyknow router) when they cannot link directly, and keep trying the links they
-                # were told to make; peers see only the peers they link to (issue 43)
-                mode="router",
+        self._routers = list(router)
+        if router:
+            if listen or connect:
+                raise TransportError(
+                    "a manager behind a router dials only its router",
+                    where=f"manager {self.name!r}",
+                    expected="router endpoints alone (--router), or --listen/--connect without --router",
+                )
+            if zenoh_config is None:
+                reach.check_endpoints(router, self._tls, option="--router", who=f"manager {self.name!r}")
+
+        def session(mode: str) -> Session:
+            return Session(
+                make_config(
+                    listen=[] if router else listen,
+                    connect=list(router or connect),
+                    config_file=zenoh_config,
+                    tls=self._tls,
+                    access=access,
+                    lease_ms=lease_ms,
+                    max_message_bytes=limits.max_message_bytes,
+                    mode=mode,
+                )
             )
-        )
+
+        # A router: managers reach each other through any path (a third manager, a dyknow router)
+        # when they cannot link directly, and keep trying the links they were told to make; peers
+        # see only the peers they link to (issue 43). Behind a router, a Zenoh client of it: one
+        # link, which the router routes everything through, and only what the manager asks for
+        # comes down it (issue 40); it dials the router again when the link goes, or a standby.
+        if not router:
+            self._session = session("router")
+        else:
+            try:
+                self._session = session("client")
+            except TransportError as exc:
+                if "Unable to connect" not in str(exc):
+                    raise
+                # (a Zenoh client does not start without its router; a robot's manager must run
+                # its own units meanwhile: a router without a listener keeps dialling, one link each)
+                log.warning(
+                    "manager %r: no router of %s answers yet; it runs meanwhile and dials them until they do (holding a link to "
+                    "each that answers, not only to the first)",
+                    self.name,
+                    ", ".join(router),
+                )
+                self._session = session("router")
         # calls to the other managers, signed with this manager's certificate (dyknow.identity)
         self._peers = Client(self.name, session=self._session, timeout_s=3.0, tls=self._tls)
         self._owners: dict[str, str] = {}  # unit -> the manager whose request it serves
@@ -311,7 +348,7 @@ class Manager:
                 raise
         if self._tls is None and self.exposed():
             log.warning(
-                "manager %r listens beyond this host without TLS (%s): anyone who reaches it may call its services",
+                "manager %r is reachable beyond this host without TLS (%s): anyone who reaches it may call its services",
                 self.name,
                 ", ".join(self.exposed()),
             )
@@ -421,8 +458,9 @@ class Manager:
             return self._dds
 
     def exposed(self) -> list[str]:
-        """The endpoints this manager listens on beyond this host without TLS (a warning sign)."""
-        return [e for e in self.endpoints if not e.startswith("tls/") and not _loopback(e)]
+        """The endpoints this manager listens on beyond this host without TLS, or the routers it
+        sits behind there (anyone who reaches them reaches the manager): a warning sign."""
+        return [e for e in [*self.endpoints, *self._routers] if not e.startswith("tls/") and not _loopback(e)]
 
     @property
     def endpoints(self) -> list[str]:

@@ -158,10 +158,10 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
     rows = {r["scenario"]: r for r in data["results"]}
     skipped = data.get("skipped", {})
     assert "sigkill-loopback" in rows and ("link-cut-1s-lease" in rows) != ("link-cut-1s-lease" in skipped)
-    assert ("link-cut-router" in rows) == ("link-cut-1s-lease" in rows)
+    assert ("link-cut-router" in rows) == ("link-cut-1s-lease" in rows) == ("link-cut-behind" in rows)
     expected = {"sigkill-loopback": (3, 200.0), "link-cut-1s-lease": (2, 1500.0), "link-cut-router": (2, 1500.0),
-                "silent-host-report": (1, 2500.0), "silent-host-close": (1, 100.0)}  # fmt: skip
-    for topology in ("peers", "router"):
+                "link-cut-behind": (2, 1500.0), "silent-host-report": (1, 2500.0), "silent-host-close": (1, 100.0)}  # fmt: skip
+    for topology in ("peers", "router", "behind"):
         for kind in ("down", "silent"):
             expected[f"rejoin-{topology}-{kind}"] = expected[f"preferred-{topology}-{kind}"] = (1, 2000.0)
     for scenario, row in rows.items():
@@ -173,7 +173,7 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
     assert "target p99 <= 200 ms" in result.stdout and "load average" in result.stdout
     if "link-cut-1s-lease" in rows:
         assert "Hosts.shaping" in rows["link-cut-1s-lease"]["links"] and "target p99 <= 1.5 s" in result.stdout
-        assert {"rejoin-peers-silent", "preferred-router-down", "false-losses-peers", "silent-host-report"} <= set(rows)
+        assert {"rejoin-peers-silent", "preferred-router-down", "preferred-behind-silent", "false-losses-behind", "silent-host-report"} <= set(rows)
     else:
         assert f"skipped: {skipped['link-cut-1s-lease']}" in result.stdout
 

@@ -101,7 +101,9 @@ def cmd_manager(args: argparse.Namespace) -> int:
     from dyknow.security import Limits
 
     tls = tls_files(args)
-    listen = args.listen or ([default_endpoint(tls)] if args.zenoh_config is None else None)
+    if args.router and (args.listen or args.connect):
+        raise UsageError("--router: a manager behind a router dials only its router; give --router alone, or --listen/--connect without it")
+    listen = args.listen or ([default_endpoint(tls)] if args.zenoh_config is None and not args.router else None)
     limits = Limits(
         max_request_bytes=args.max_request_bytes,
         max_expansions=args.max_expansions,
@@ -121,6 +123,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         ontology=args.ontology,
         listen=listen,
         connect=args.connect,
+        router=args.router,
         zenoh_config=args.zenoh_config,
         allow_sources=args.allow_source,
         code_paths=args.path,
@@ -143,8 +146,9 @@ def cmd_manager(args: argparse.Namespace) -> int:
         exposed = manager.exposed()
         if exposed:
             print(
-                f"dyknow: warning: listening beyond this host without TLS ({', '.join(exposed)}): anyone who reaches it may "
-                "call its services; use --tls-ca/--tls-cert/--tls-key and --acl (see docs/howto/security.md)",
+                f"dyknow: warning: {'behind a router' if args.router else 'listening'} beyond this host without TLS "
+                f"({', '.join(exposed)}): anyone who reaches {'the router' if args.router else 'it'} may call its services; "
+                "use --tls-ca/--tls-cert/--tls-key and --acl (see docs/howto/security.md)",
                 file=sys.stderr,
                 flush=True,
             )
@@ -164,11 +168,12 @@ def cmd_manager(args: argparse.Namespace) -> int:
         endpoints = manager.endpoints
         stop = _stop_event()
         metrics = f"; metrics on {exporter.url}" if exporter is not None else ""
+        where = f"on {', '.join(endpoints)}" if endpoints else f"behind {', '.join(args.router)}" if args.router else "on (no listener)"
         report_result(
             args,
             {"event": "ready", "manager": args.name, "host": manager.host, "endpoints": endpoints, "specs": len(manager.library),
-             **({"metrics": exporter.url} if exporter is not None else {})},
-            f"dyknow manager {args.name!r} ready on {', '.join(endpoints) or '(no listener)'} with {len(manager.library)} specs{metrics}; Ctrl-C to stop",
+             **({"router": args.router} if args.router else {}), **({"metrics": exporter.url} if exporter is not None else {})},
+            f"dyknow manager {args.name!r} ready {where} with {len(manager.library)} specs{metrics}; Ctrl-C to stop",
         )  # fmt: skip
         _wait_for(stop)
         _exit_by_deadline(f"manager {args.name!r}")
@@ -277,6 +282,14 @@ def add_commands(cmds: Commands) -> None:
             help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT}; tls/... with TLS)",
         )
         zenoh_options(p, connect_help="Zenoh endpoint to connect to (repeatable)")
+        p.add_argument(
+            "--router",
+            action="append",
+            default=[],
+            metavar="ENDPOINT",
+            help="sit behind this Zenoh router (dyknow router), as in a fleet: dial it alone, hold that one link, listen on nothing; "
+            "repeat for standbys, dialled in turn when the link is lost (not with --listen or --connect)",
+        )
         p.add_argument("--allow-source", action="append", default=[], metavar="PATTERN",
                        help="also load units of these modules (mypkg, mypkg.units*, mypkg.units:Class); repeatable")  # fmt: skip
         p.add_argument("--path", action="append", default=[], metavar="DIR",
