@@ -75,6 +75,8 @@ class ObjectMonitor:
         self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
         self._index = {term: k for k, term in enumerate(self.terms)}
         self._domain_k = self._index[str(domain.term)]
+        #: the position of the quantified stream in :attr:`terms`
+        self.domain_index = self._domain_k
         self._latest: dict[int, tuple[int, Any]] = {}  # term -> its latest sample, to seed new instances
         self._live: dict[str, Monitor] = {}
         self._last: dict[str, int] = {}  # object -> its latest sample's time

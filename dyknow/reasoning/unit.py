@@ -36,7 +36,8 @@ object: ``"object": "17"``.
 **Freshness.** A term's value is unknown at a state more than its maximum age after its latest
 sample (:mod:`dyknow.reasoning.semantics`). ``max_age_ms`` declares it for every term; 0 (the
 default) derives each term's from its measured rate: after its first 20 samples, five times their
-median spacing (at least 20 ms), then fixed (logged, and in the unit's ``ages``); a negative
+median spacing (at least 20 ms; for a ``foreach`` stream, the spacing of each object's samples),
+then fixed (logged, and in the unit's ``ages``); a negative
 value sets none.
 
 **Gaps.** When the stream of a term was re-planned, the manager that runs the monitor tells it
@@ -86,6 +87,7 @@ from dyknow.errors import FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
+from dyknow.reasoning.semantics import object_key, read
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
 from dyknow.security import Limits
 from dyknow.spec import Param, Port, Tag, TransformationSpec
@@ -303,6 +305,7 @@ class FormulaMonitor(Unit):
             for term in terms:
                 self._set_age(term, round(max_age_ms * 1e6))
         self._spacing: dict[int, list[int]] = {k: [] for k in range(len(terms))}
+        self._object_last: dict[str, int] = {}  # a foreach stream's objects' latest sample times, while deriving
         self._last_t: list[int] = [-(2**62)] * len(terms)
         # gaps a re-plan left: (term, cause, from ns, until ns or None while it lasts)
         self._gaps: list[tuple[str, str, int, int | None]] = []
@@ -386,9 +389,21 @@ class FormulaMonitor(Unit):
         if t_ns > last:
             if self._derive and term not in self.ages:
                 spacing = self._spacing[k]
-                if last > -(2**62):
+                monitor = self.monitor
+                if isinstance(monitor, ObjectMonitor) and k == monitor.domain_index:
+                    # each object's instance reads its own samples: the spacing that counts is an
+                    # object's, not the stream's (1,000 objects at 20 Hz are 0.05 ms apart on it)
+                    key = object_key(read(payload, monitor.domain.fields))
+                    if key is not None:
+                        previous = self._object_last.get(key)
+                        if previous is not None and t_ns > previous:
+                            spacing.append(t_ns - previous)
+                        if previous is not None or len(self._object_last) < monitor.max_objects:
+                            self._object_last[key] = t_ns
+                elif last > -(2**62):
                     spacing.append(t_ns - last)
                 if len(spacing) >= _DERIVE_AFTER:
+                    self._object_last.clear()
                     self._set_age(term, max(_MIN_AGE_NS, 5 * int(statistics.median(spacing))))
                     self.log.info("the freshness of %s: %.1f ms (5 times the median spacing of its first %d samples)",
                                   term, self.ages[term] / 1e6, len(spacing))  # fmt: skip
