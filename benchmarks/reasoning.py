@@ -304,43 +304,47 @@ class RtamtRun(Run):
                 out[i - shift] = None if robustness == 0 else robustness > 0
 
 
-def interleaved(makers: dict[str, Callable[[], Run]], fill: int, states: int, repeat: int, budget_s: float) -> tuple[dict[str, float], dict[str, int], dict[str, Run]]:
-    """Every peer's cost per state, in microseconds, measured in one interleaved run: each is
-    built and given the first ``fill`` states (its windows fill: not timed), then all are given
-    the same chunk of 200 states in turn, each chunk timed, so a change in the machine's load
-    falls on all of them alike. A peer is given states until ``states`` or until its timed
-    total passes ``budget_s``. Of ``repeat`` such runs, the best per peer is kept (the machine
-    is shared: the least disturbed). Also how many states each figure was measured over, and
-    the first run of each (its verdicts)."""
-    best = {peer: float("inf") for peer in makers}
+def interleaved(makers: dict[Any, tuple[Callable[[], Run], int]], states: int, repeat: int, budget_s: float) -> tuple[dict[Any, float], dict[Any, int], dict[Any, Run]]:
+    """Every run's cost per state, in microseconds, measured in one interleaved run: each is
+    built and given its first ``fill`` states (its windows fill: not timed), then each is given
+    its next chunk of 200 states in turn, each chunk timed, so a change in the machine's load
+    falls on all of them alike (every peer, every window). A run is given ``states`` states, or
+    fewer when its timed total passes ``budget_s``. Of ``repeat`` such runs, the best per run is
+    kept (the machine is shared: the least disturbed). Also how many states each figure was
+    measured over, and the first run of each (its verdicts)."""
+    best = {key: float("inf") for key in makers}
     measured = dict.fromkeys(makers, 0)
-    first: dict[str, Run] = {}
+    first: dict[Any, Run] = {}
     chunk = 200
     for _ in range(repeat):
-        runs = {peer: make() for peer, make in makers.items()}
-        for run in runs.values():
+        runs = {key: make() for key, (make, _fill) in makers.items()}
+        for key, run in runs.items():
+            fill = makers[key][1]
             run.feed(0, fill)
             run.fed = fill
         elapsed = dict.fromkeys(runs, 0.0)
         active = list(runs)
-        lo = fill
-        while lo < states and active:
-            hi = min(states, lo + chunk)
-            for peer in list(active):
-                run = runs[peer]
+        j = 0
+        while active:
+            for key in list(active):
+                run, fill = runs[key], makers[key][1]
+                lo, hi = fill + j * chunk, min(fill + states, fill + (j + 1) * chunk)
+                if lo >= hi:
+                    active.remove(key)
+                    continue
                 t0 = time.perf_counter()
                 run.feed(lo, hi)
-                elapsed[peer] += time.perf_counter() - t0
+                elapsed[key] += time.perf_counter() - t0
                 run.fed = hi
-                if elapsed[peer] > budget_s:
-                    active.remove(peer)
-            lo = hi
-        for peer, run in runs.items():
-            first.setdefault(peer, run)
-            cost = elapsed[peer] / (run.fed - fill)
-            if cost < best[peer]:
-                best[peer], measured[peer] = cost, run.fed - fill
-    return {peer: us * 1e6 for peer, us in best.items()}, measured, first
+                if elapsed[key] > budget_s:
+                    active.remove(key)
+            j += 1
+        for key, run in runs.items():
+            first.setdefault(key, run)
+            cost = elapsed[key] / (run.fed - makers[key][1])
+            if cost < best[key]:
+                best[key], measured[key] = cost, run.fed - makers[key][1]
+    return {key: us * 1e6 for key, us in best.items()}, measured, first
 
 
 def _agreement(ours: list[bool | None], theirs: list[bool | None]) -> bool:
@@ -354,57 +358,68 @@ def _figure(row: dict[str, Any], key: str, width: int) -> str:
 
 
 def per_state(windows: list[str], states: int, repeat: int, budget_s: float, rtamt_max: int) -> tuple[list[dict[str, Any]], dict[str, str]]:
-    """Measure every formula and window on every monitor that supports it; print a table."""
+    """Measure every formula at every window on every monitor that supports it, all windows and
+    peers of one formula interleaved; print a table."""
     reelay, rtamt = _import("reelay"), _import("rtamt")
     peers = {
         "reelay": "reelay 25 (C++), discrete time; future formulas in their past form" if reelay else "not installed",
         "rtamt": f"RTAMT 0.4.10 (Python), discrete time, pastified; windows up to {rtamt_max} states" if rtamt else "not installed",
     }
-    print(f"per state, 100 Hz data, {states:,} states timed after the windows fill, best of {repeat} interleaved runs; load {_load()}")
+    print(f"per state, 100 Hz data, {states:,} states timed after the windows fill, best of {repeat} runs, each formula's windows and peers interleaved; load {_load()}")
     print(f"{'formula':>10} {'window':>6} {'dyknow':>9} {'reelay':>9} {'RTAMT':>10} {'target':>32}  verdicts")
     rows = []
-    for label in windows:
-        window_ns = WINDOWS[label]
-        w = window_ns // STEP_NS
-        for name, kind, text in formulas(window_ns):
+    fills = {label: 2 * (WINDOWS[label] // STEP_NS) + 2 for label in windows}  # the nested windows full: the steady state
+    xs, ys = trace(max(fills.values()) + states)
+    names = [(name, kind) for name, kind, _text in formulas(WINDOWS[windows[0]])]
+    for index, (name, kind) in enumerate(names):
+        makers: dict[tuple[str, str], tuple[Callable[[], Run], int]] = {}
+        by_window: dict[str, dict[str, Any]] = {}
+        for label in windows:
+            text = formulas(WINDOWS[label])[index][2]
             formula = parse(text)
-            fill = 2 * w + 2  # the windows of the nested operators full: the steady state
-            n = fill + states
-            xs, ys = trace(n)
+            fill = fills[label]
             row: dict[str, Any] = {"formula": name, "kind": kind, "operators": formula.operators, "window": label, "text": text}
-            makers: dict[str, Callable[[], Run]] = {"dyknow": functools.partial(DyknowRun, formula, xs, ys)}
+            makers[(label, "dyknow")] = (functools.partial(DyknowRun, formula, xs, ys), fill)
             if reelay is not None and kind != "aggregate":
                 try:
                     row["reelay_form"] = to_reelay(formula.root, STEP_NS, horizon_steps(formula.root))
-                    makers["reelay"] = functools.partial(ReelayRun, reelay, formula, xs, ys)
+                    makers[(label, "reelay")] = (functools.partial(ReelayRun, reelay, formula, xs, ys), fill)
                 except ValueError as exc:
                     row["reelay_form"] = str(exc)
-            if rtamt is not None and kind != "aggregate" and w <= rtamt_max:
-                makers["rtamt"] = functools.partial(RtamtRun, rtamt, formula, xs, ys, future=kind == "future")
-            costs, measured, runs = interleaved(makers, fill, n, repeat, budget_s)
-            for peer in makers:
-                row[f"{peer}_us"], row[f"{peer}_states"] = round(costs[peer], 3), measured[peer]
+            if rtamt is not None and kind != "aggregate" and WINDOWS[label] // STEP_NS <= rtamt_max:
+                makers[(label, "rtamt")] = (functools.partial(RtamtRun, rtamt, formula, xs, ys, future=kind == "future"), fill)
+            by_window[label] = row
+        costs, measured, runs = interleaved(makers, states, repeat, budget_s)
+        for label, row in by_window.items():
+            here = [peer for (w, peer) in makers if w == label]
+            for peer in here:
+                row[f"{peer}_us"], row[f"{peer}_states"] = round(costs[(label, peer)], 3), measured[(label, peer)]
             # the same verdicts, where both decided, over the states both were given
-            ours = runs["dyknow"]
-            row["agree"] = {
-                peer: _agreement(ours.verdicts[: min(ours.fed, run.fed)], run.verdicts[: min(ours.fed, run.fed)])
-                for peer, run in runs.items()
-                if peer != "dyknow"
-            }
-            theirs = {peer: row[f"{peer}_us"] for peer in makers if peer != "dyknow"}
+            ours = runs[(label, "dyknow")]
+            row["agree"] = {}
+            for peer in here:
+                if peer != "dyknow":
+                    run = runs[(label, peer)]
+                    fed = min(ours.fed, run.fed)
+                    row["agree"][peer] = _agreement(ours.verdicts[:fed], run.verdicts[:fed])
+            theirs = {peer: row[f"{peer}_us"] for peer in here if peer != "dyknow"}
             if theirs:
                 fastest = min(theirs, key=lambda p: theirs[p])
                 row["target_us"], row["target_peer"] = theirs[fastest], fastest
                 row["met"] = row["dyknow_us"] <= row["target_us"]
+            row["load"] = _load()
             rows.append(row)
-            target = (
-                f"<= {row['target_us']:.2f}us ({row['target_peer']}): {'met' if row['met'] else 'MISSED'}"
-                if "target_us" in row
-                else "no peer"
-            )
-            agree = ", ".join(f"{p} {'agree' if ok else 'DIFFER'}" for p, ok in row["agree"].items()) or "-"
-            figures = f"{_figure(row, 'dyknow_us', 9)} {_figure(row, 'reelay_us', 9)} {_figure(row, 'rtamt_us', 10)}"
-            print(f"{name:>10} {label:>6} {figures} {target:>32}  {agree}", flush=True)
+    rows = [row for label in windows for row in rows if row["window"] == label]  # window by window
+    for row in rows:
+        label = row["window"]
+        target = (
+            f"<= {row['target_us']:.2f}us ({row['target_peer']}): {'met' if row['met'] else 'MISSED'}"
+            if "target_us" in row
+            else "no peer"
+        )
+        agree = ", ".join(f"{p} {'agree' if ok else 'DIFFER'}" for p, ok in row["agree"].items()) or "-"
+        figures = f"{_figure(row, 'dyknow_us', 9)} {_figure(row, 'reelay_us', 9)} {_figure(row, 'rtamt_us', 10)}"
+        print(f"{row['formula']:>10} {label:>6} {figures} {target:>32}  {agree}", flush=True)
     return rows, peers
 
 
