@@ -105,3 +105,14 @@ def test_samples_naming_no_object_are_counted() -> None:
 def test_a_plain_formula_is_no_object_monitors() -> None:
     with pytest.raises(FormulaError, match="an ObjectMonitor monitors a foreach formula"):
         ObjectMonitor(parse("Track(f).v > 1"))
+
+
+def test_late_samples_are_counted_per_object_and_kept_after_it_retires() -> None:
+    monitor = ObjectMonitor("foreach t in Track(f).id: Track(f).v > 1", idle_ns=100 * MS)
+    monitor.push("Track(f)", 10 * MS, {"id": 1, "v": 2})
+    monitor.push("Track(f)", 20 * MS, {"id": 2, "v": 2})
+    assert monitor.push("Track(f)", 5 * MS, {"id": 1, "v": 2}) == [] and monitor.late == 1  # before object 1's last state
+    monitor.push("Track(f)", 15 * MS, {"id": 2, "v": 2})
+    assert monitor.late == 2
+    monitor.push("Track(f)", 500 * MS, {"id": 3, "v": 2})  # 1 and 2 silent for longer than idle_ns: retired
+    assert monitor.objects == ["3"] and monitor.late == 2 and monitor.made == 3

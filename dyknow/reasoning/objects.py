@@ -88,8 +88,9 @@ class ObjectMonitor:
         self.refused = 0
         #: instances made so far (objects and their later lives)
         self.made = 0
-        #: samples late for their instance (see Monitor.late), summed over instances retired too
-        self._late_retired = 0
+        # samples late for their instance (see Monitor.late), over every instance so far: counted
+        # as they come (summing the instances' counts costs a pass over them, per sample)
+        self._late = 0
         #: states given up by the memory bound, summed over instances retired too
         self._given_up_retired = 0
 
@@ -120,15 +121,21 @@ class ObjectMonitor:
             if monitor is not None and t_ns - self._last[key] > self.idle_ns:
                 self._end(key, out)
                 monitor = None
+            last = self._last
             if monitor is None:
                 if len(self._live) >= self.max_objects:
                     self.refused += 1
                     return out
                 monitor = self._start(key, read(value, self.domain.fields))
-            self._last[key] = max(self._last.get(key, t_ns), t_ns)
-            heapq.heappush(self._deadlines, (self._last[key] + self.idle_ns, key))
-            if name in monitor.terms:
-                out.extend((key, v) for v in monitor.push(name, t_ns, value))
+                last[key] = t_ns
+                heapq.heappush(self._deadlines, (t_ns + self.idle_ns, key))  # (moved on when it comes up: _retire)
+            elif t_ns > last[key]:
+                last[key] = t_ns
+            late = monitor.late
+            for verdict in monitor.push_index(0, t_ns, value):  # (the body's terms start with the quantified stream)
+                out.append((key, verdict))
+            if monitor.late != late:
+                self._late += monitor.late - late
             return out
         self._latest[k] = (t_ns, value)
         self._others(k, name, t_ns, value, out)
@@ -139,7 +146,9 @@ class ObjectMonitor:
             return
         for key, monitor in self._live.items():
             if name in monitor.terms:
+                late = monitor.late
                 out.extend((key, v) for v in monitor.push(name, t_ns, value))
+                self._late += monitor.late - late
 
     def flush(self) -> list[tuple[str, Verdict]]:
         """Close every instance's buffered states (the input ended); the pairs that decided."""
@@ -175,7 +184,6 @@ class ObjectMonitor:
     def _end(self, key: str, out: list[tuple[str, Verdict]]) -> None:
         monitor = self._live.pop(key)
         out.extend((key, v) for v in monitor.close())
-        self._late_retired += monitor.late
         self._given_up_retired += monitor.given_up
         del self._last[key]
         self._reshare()
@@ -185,10 +193,15 @@ class ObjectMonitor:
         now = self._newest - self.reorder_ns
         deadlines = self._deadlines
         while deadlines and deadlines[0][0] < now:
-            deadline, key = heapq.heappop(deadlines)
+            _deadline, key = heapq.heappop(deadlines)
             last = self._last.get(key)
-            if last is not None and last + self.idle_ns == deadline:  # (else a later sample moved it on)
+            if last is None:
+                continue  # (that life ended)
+            due = last + self.idle_ns
+            if due < now:
                 self._end(key, out)
+            else:  # a later sample moved it on: one entry per object, not one per sample
+                heapq.heappush(deadlines, (due, key))
 
     def _reshare(self) -> None:
         if not self._live:
@@ -240,7 +253,7 @@ class ObjectMonitor:
     @property
     def late(self) -> int:
         """Samples late for their instance (see :attr:`Monitor.late`), over every instance so far."""
-        return self._late_retired + sum(m.late for m in self._live.values())
+        return self._late
 
     @property
     def given_up(self) -> int:

@@ -283,6 +283,7 @@ class FormulaMonitor(Unit):
         #: samples refused because their time lay in the future (see the module documentation)
         self.future = 0
         self._given_up_logged = 0
+        self._received = 0
         terms = self.monitor.terms
         self._ports = {f"t{k}": k for k in range(len(terms))}
         bound = self.get_config()
@@ -378,7 +379,8 @@ class FormulaMonitor(Unit):
         self._last_sample = time.monotonic()
         for key, verdict in decided:
             self._publish(verdict, key)
-        if monitor.states & 1023 == 0:
+        self._received += 1
+        if self._received & 1023 == 0:  # (not monitor.states: an object monitor's sums its instances')
             self._report_given_up()
 
     # -- what the samples tell: freshness, fields, the end of a gap
