@@ -116,3 +116,16 @@ def test_late_samples_are_counted_per_object_and_kept_after_it_retires() -> None
     assert monitor.late == 2
     monitor.push("Track(f)", 500 * MS, {"id": 3, "v": 2})  # 1 and 2 silent for longer than idle_ns: retired
     assert monitor.objects == ["3"] and monitor.late == 2 and monitor.made == 3
+
+
+def test_the_instances_share_the_cells_and_keep_to_them_as_objects_come() -> None:
+    monitor = ObjectMonitor("foreach t in Track(f).id: historically[0, 1s] Track(f).v > 1", max_cells=64_000, max_objects=100)
+    shares = []
+    for total in (1, 2, 3, 5, 17, 100):  # objects alive: together they keep at most the cells
+        for k in range(len(monitor.objects), total):
+            monitor.push("Track(f)", k * MS, {"id": k, "v": 2})
+        live = [monitor.instance(key) for key in monitor.objects]
+        assert len(live) == total
+        assert sum(m.max_states * m.formula.nodes for m in live) <= 64_000
+        shares.append(min(m.max_states for m in live))
+    assert shares == sorted(shares, reverse=True) and shares[0] > shares[-1]

@@ -13,7 +13,9 @@ to every live instance. A sample whose field names no object is counted in :attr
 
 **Bounds.** At most ``max_objects`` instances live at once: a sample of a new object past that
 is refused, and counted in :attr:`refused` (the objects already tracked go on). Each instance
-keeps at most its share of ``max_cells`` (the cells over the instances alive), so the monitor's
+keeps at most its share of ``max_cells`` (the cells over the instances alive, their number rounded
+up to a power of two, so that shares are dealt again only when it doubles or falls to a quarter:
+10,000 objects appearing cost 10,000 deals, not 50 million), so the monitor's
 memory is bounded by ``max_cells`` cells plus the instances' constant part, whatever the number of
 objects a stream names over time.
 """
@@ -70,6 +72,7 @@ class ObjectMonitor:
         self.idle_ns = int(idle_ns)
         self.max_objects = int(max_objects)
         self._max_cells = int(max_cells)
+        self._slots = 0  # the instances the cells are shared among: a power of two, at least those alive
         self._max_age = dict(max_age_ns or {})
         #: the terms as the formula writes them (the quantified stream's first)
         self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
@@ -167,7 +170,7 @@ class ObjectMonitor:
     # -- instances
 
     def _start(self, key: str, value: Any) -> Monitor:
-        cells = max(1, self._max_cells // (len(self._live) + 1))
+        cells = max(1, self._max_cells // self._slots_for(len(self._live) + 1))
         monitor = Monitor(self.body, reorder_ns=self.reorder_ns, max_cells=cells, variables={self.var: value})
         for term, age in self._max_age.items():
             if term in monitor.terms:
@@ -203,10 +206,22 @@ class ObjectMonitor:
             else:  # a later sample moved it on: one entry per object, not one per sample
                 heapq.heappush(deadlines, (due, key))
 
-    def _reshare(self) -> None:
+    def _slots_for(self, live: int) -> int:
+        slots = self._slots or 1
+        while live > slots:
+            slots *= 2
+        while slots > 1 and live <= slots // 4:
+            slots //= 2
+        return slots
+
+    def _reshare(self, again: bool = False) -> None:
         if not self._live:
             return
-        cells = max(1, self._max_cells // len(self._live))
+        slots = self._slots_for(len(self._live))
+        if slots == self._slots and not again:
+            return  # (every instance's share is still max_cells // slots)
+        self._slots = slots
+        cells = max(1, self._max_cells // slots)
         for monitor in self._live.values():
             monitor.set_max_cells(cells)
 
@@ -227,7 +242,7 @@ class ObjectMonitor:
     def set_max_cells(self, max_cells: int) -> None:
         """Keep at most ``max_cells`` cells in all from now on, shared among the instances."""
         self._max_cells = max(1, int(max_cells))
-        self._reshare()
+        self._reshare(again=True)
 
     def _term_index(self, term: str) -> int:
         try:
@@ -249,6 +264,10 @@ class ObjectMonitor:
     def objects(self) -> list[str]:
         """The objects alive now."""
         return list(self._live)
+
+    def instance(self, key: str) -> Monitor:
+        """The monitor of object ``key`` (one of :attr:`objects`); KeyError when it has none alive."""
+        return self._live[key]
 
     @property
     def late(self) -> int:
