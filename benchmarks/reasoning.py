@@ -474,27 +474,34 @@ OBJECTS_FORMULA = "foreach t in Track(field).id: historically[0, 1s] Track(field
 turns false for a second now and then (what ``--changes-only`` publishes)."""
 
 
-def _drive(sources: list[Any], rate_hz: float, stop: threading.Event, sent: list[int], objects: int) -> None:
-    """Every source (or, with ``objects``, every object of the one source) once per period, spread
-    evenly over it, until ``stop``; counts into ``sent``."""
+def _drive(sources: list[Any], rate_hz: float, stop: threading.Event, sent: list[int], objects: int, frame: int = 1) -> None:
+    """Every source (or, with ``objects``, every object of the one source, ``frame`` objects a
+    message) once per period, spread evenly over it, until ``stop``; counts samples into ``sent``."""
     rng = random.Random(3)
     values = [rng.random() for _ in range(4096)]
     speeds = [3.5 if rng.random() < 1 / 500 else rng.random() for _ in range(4096)]
-    period, count = 1.0 / rate_hz, objects or len(sources)
+    period = 1.0 / rate_hz
+    messages = -(-objects // frame) if objects else len(sources)  # per period
     start = time.perf_counter()
-    i = 0
+    i = samples = 0
     while not stop.is_set():
-        cycle, k = divmod(i, count)
-        sleep_until(start + cycle * period + k * period / count)
-        if objects:
+        cycle, k = divmod(i, messages)
+        sleep_until(start + cycle * period + k * period / messages)
+        if objects and frame > 1:
+            tracks = [{"id": j, "speed": speeds[(samples + j) % 4096]} for j in range(k * frame, min(objects, (k + 1) * frame))]
+            sources[0].emit(tracks)
+            samples += len(tracks)
+        elif objects:
             sources[0].emit({"id": k, "speed": speeds[i % 4096]})
+            samples += 1
         else:
             sources[k].emit(values[i % 4096])
+            samples += 1
         i += 1
-    sent[0] = i
+    sent[0] = samples
 
 
-def _feed(manager: Manager, count: int, rate_hz: float, seconds: float, warmup_s: float, on_record: Callable[[bool], None], objects: bool) -> dict[str, Any]:
+def _feed(manager: Manager, count: int, rate_hz: float, seconds: float, warmup_s: float, on_record: Callable[[bool], None], objects: bool, frame: int = 1) -> dict[str, Any]:
     """Spawn the sources and the latency sink in ``manager``, drive them, record the latencies
     for ``seconds`` after ``warmup_s`` (``on_record(True/False)`` around the recording)."""
     manager.spawn("latency-sink", "sink", bindings={"in": "bench/verdicts/**"})
@@ -509,7 +516,7 @@ def _feed(manager: Manager, count: int, rate_hz: float, seconds: float, warmup_s
         time.sleep(0.05)
     receiver: Any = manager.unit("sink")  # a LatencySink of the module "reasoning" (this script runs as __main__)
     stop, sent = threading.Event(), [0]
-    driver = threading.Thread(target=_drive, args=(sources, rate_hz, stop, sent, count if objects else 0), name="bench-driver", daemon=True)
+    driver = threading.Thread(target=_drive, args=(sources, rate_hz, stop, sent, count if objects else 0, frame), name="bench-driver", daemon=True)
     driver.start()
     time.sleep(warmup_s)
     on_record(True)
@@ -550,7 +557,7 @@ def _rss_bytes() -> int:
     return 0
 
 
-def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, remote: bool, *, objects: bool = False, changes_only: bool = False) -> dict[str, Any]:
+def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, remote: bool, *, objects: bool = False, changes_only: bool = False, frame: int = 1) -> dict[str, Any]:
     """``count`` monitors of a past formula, each fed by its own source at ``rate_hz`` (or, with
     ``objects``, one ``foreach`` monitor of ``count`` objects, each sampled at ``rate_hz`` on one
     stream), in one manager whose process runs on CPU ``core``; the latency from each sample to
@@ -581,7 +588,7 @@ def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: 
 
         if remote:
             argv = [sys.executable, __file__, "--feeder", listen[0], "--objects" if objects else "--monitors", str(count), "--rate-hz", str(rate_hz)]
-            argv += ["--seconds", str(seconds), "--warmup", str(warmup_s), "--core", str((core + 1) % (os.cpu_count() or 1))]
+            argv += ["--seconds", str(seconds), "--warmup", str(warmup_s), "--core", str((core + 1) % (os.cpu_count() or 1)), "--frame", str(frame)]
             feeder = Proc(argv)
             try:
                 feeder.next_json(120, phase="recording")
@@ -592,7 +599,7 @@ def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: 
             finally:
                 feeder.close()
         else:
-            fed = _feed(manager, count, rate_hz, seconds, warmup_s, on_record, objects)
+            fed = _feed(manager, count, rate_hz, seconds, warmup_s, on_record, objects, frame)
         rss1 = _rss_bytes()
         stats = [manager.get_statistics(f"m{k}") for k in range(len(units))]
         dropped = sum(p.dropped for s in stats for p in s.ports)
@@ -610,6 +617,7 @@ def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: 
         "rate_hz": rate_hz,
         "formula": OBJECTS_FORMULA if objects else MONITORS_FORMULA,
         "changes_only": changes_only,
+        "frame": frame,
         "remote": remote,
         "core": core,
         "spawn_s": round(spawn_s, 2),
@@ -669,7 +677,7 @@ def instance_memory(count: int, rate_hz: float, seconds: float) -> dict[str, Any
     }
 
 
-def feeder(endpoint: str, count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, *, objects: bool = False) -> int:
+def feeder(endpoint: str, count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, *, objects: bool = False, frame: int = 1) -> int:
     """The other process of ``--remote``: sources and the sink, connected to the monitors' manager;
     prints JSON lines as it starts and stops recording, then its figures."""
     os.sched_setaffinity(0, {core})
@@ -678,7 +686,7 @@ def feeder(endpoint: str, count: int, rate_hz: float, seconds: float, warmup_s: 
         print(json.dumps({"phase": "recording" if start else "recorded"}), flush=True)
 
     with Manager("reasoning-feeder", specs=_specs(), connect=[endpoint], listen=[], serve=False, limits=Limits(max_units=count + 10)) as manager:
-        result = _feed(manager, count, rate_hz, seconds, warmup_s, on_record, objects)
+        result = _feed(manager, count, rate_hz, seconds, warmup_s, on_record, objects, frame)
     print(json.dumps({"phase": "done", **result}), flush=True)
     return 0
 
@@ -687,10 +695,12 @@ def end_to_end(args: argparse.Namespace) -> dict[str, Any]:
     """``--monitors`` or ``--objects``: run, print the figures beside their targets."""
     objects = bool(args.objects)
     count = args.objects or args.monitors
-    result = monitors(count, args.rate_hz, args.seconds, args.warmup, args.core, args.remote, objects=objects, changes_only=args.changes_only)
+    result = monitors(count, args.rate_hz, args.seconds, args.warmup, args.core, args.remote, objects=objects, changes_only=args.changes_only, frame=args.frame)
     met = result["latency_p99_ms"] <= result["target_p99_ms"]
     where = "sources and sink in another process, over Zenoh" if result["remote"] else "sources and sink in the same process"
     what = f"one foreach monitor of {count} objects" if objects else f"{count} monitors"
+    if objects and args.frame > 1:
+        what += f" ({args.frame} a message: a tracker's frame)"
     publish = "changed verdicts only" if args.changes_only else "every verdict"
     print(
         f"{what} at {result['rate_hz']:g} Hz in one manager on core {result['core']} ({where}; {publish} published): "
@@ -731,6 +741,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--monitors", type=int, metavar="N", help="instead: N monitors at --rate-hz in one manager on one core, end to end")
     parser.add_argument("--objects", type=int, metavar="N", help="instead: one foreach monitor of N objects at --rate-hz, end to end")
     parser.add_argument("--changes-only", action="store_true", help="with --objects: publish a verdict only when it changes")
+    parser.add_argument("--frame", type=int, default=1, metavar="N", help="with --objects: N objects' samples a message, a list (default 1)")
     parser.add_argument("--rate-hz", type=float, default=20.0, help="samples per second per monitor or object (default 20)")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long latencies are recorded end to end (default 10)")
     parser.add_argument("--warmup", type=float, default=3.0, metavar="S", help="seconds before recording end to end (default 3)")
@@ -740,7 +751,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
     if args.feeder:
-        return feeder(args.feeder, args.monitors or args.objects, args.rate_hz, args.seconds, args.warmup, args.core, objects=bool(args.objects))
+        return feeder(args.feeder, args.monitors or args.objects, args.rate_hz, args.seconds, args.warmup, args.core, objects=bool(args.objects), frame=args.frame)
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}; load {_load()}")
     if args.monitors or args.objects:

@@ -333,6 +333,11 @@ def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     assert 0 < run["latency_p50_ms"] <= run["latency_p99_ms"] and run["cpu_percent"] > 0
     assert run["memory"]["bytes"] > 0 and isinstance(run["memory"]["met"], bool)
     assert "target <= 1 ms" in result.stdout and "against the stated bound" in result.stdout
+    result = _run("reasoning.py", "--objects", "20", "--frame", "10", "--changes-only", "--seconds", "1", "--warmup", "0.5", "--json", str(objects))
+    assert result.returncode == 0, result.stderr[-3000:]
+    run = json.loads(objects.read_text())["objects"]
+    assert run["frame"] == 10 and run["changes_only"] and run["instances"] == 20 and run["decided_per_s"] > 0 and run["dropped"] == 0
+    assert "(10 a message: a tracker's frame)" in result.stdout
 
 
 def test_clocks_benchmark_smoke(tmp_path: Path) -> None:

@@ -129,3 +129,23 @@ def test_the_instances_share_the_cells_and_keep_to_them_as_objects_come() -> Non
         assert sum(m.max_states * m.formula.nodes for m in live) <= 64_000
         shares.append(min(m.max_states for m in live))
     assert shares == sorted(shares, reverse=True) and shares[0] > shares[-1]
+
+
+def test_a_frame_is_one_sample_per_object_at_its_time() -> None:
+    # a tracker publishes all its tracks in one message: the monitor and evaluate_objects() read
+    # each element as its object's sample at the frame's time
+    formula = "foreach t in Track(f).id: once[0, 20ms] Track(f).v > 1"
+    frames: list[tuple[int, Any]] = [
+        (0, [{"id": "a", "v": 2}, {"id": "b", "v": 0}]),
+        (10 * MS, [{"id": "a", "v": 0}, {"id": "b", "v": 0}, {"id": "c", "v": 3}]),
+        (40 * MS, [{"id": "a", "v": 0}, [1], {"v": 1}]),  # a list in a frame, a track without id: no object
+    ]
+    want = evaluate_objects(formula, {"Track(f)": frames}, idle_ns=100 * MS)
+    assert want == {"a": [[(0, True), (10 * MS, True), (40 * MS, False)]], "b": [[(0, False), (10 * MS, False)]], "c": [[(10 * MS, True)]]}
+    monitor = ObjectMonitor(formula, idle_ns=100 * MS)
+    got: dict[str, list[tuple[int, bool]]] = {}
+    for t, frame in frames:
+        for key, verdict in monitor.push("Track(f)", t, frame):
+            got.setdefault(key, []).append((verdict.t_ns, verdict.verdict))
+    assert got == {key: [pair for life in lives for pair in life] for key, lives in want.items()}
+    assert monitor.unassigned == 2 and monitor.late == 0

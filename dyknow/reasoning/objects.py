@@ -10,6 +10,8 @@ the other terms' latest samples, so its states hold them from the start) and end
 than that (less the reorder delay) retires it (its buffered states are closed, its verdicts
 given), and a sample of the object after that starts a new instance. The other terms' samples go
 to every live instance. A sample whose field names no object is counted in :attr:`unassigned`.
+A sample of the quantified stream whose value is a list is a *frame* (a tracker's tracks): one
+sample per element, all at its time, so one message can carry every object's sample.
 
 **Bounds.** At most ``max_objects`` instances live at once: a sample of a new object past that
 is refused, and counted in :attr:`refused` (the objects already tracked go on). Each instance
@@ -114,6 +116,13 @@ class ObjectMonitor:
             self._retire(out)
         name = self.terms[k]
         if k == self._domain_k:
+            if type(value) is list:  # a frame (a tracker's tracks): a sample per element, all at its time
+                for item in value:
+                    if type(item) is list:
+                        self.unassigned += 1  # (one level: a list in a frame names no object)
+                    else:
+                        out.extend(self.push_index(k, t_ns, item))
+                return out
             self._latest[k] = (t_ns, value)
             key = object_key(read(value, self.domain.fields))
             if key is None:

@@ -31,7 +31,9 @@ blind the monitor for good. Outside a manager (:mod:`dyknow.testing`) the defaul
 **Objects.** A ``foreach`` formula (``foreach t in Track(field).id: ...``) runs as an
 :class:`~dyknow.reasoning.objects.ObjectMonitor`: one instance per object, ending ``idle_ms``
 after the object's last sample, at most ``max_objects`` at once; each verdict carries its
-object: ``"object": "17"``.
+object: ``"object": "17"``. A message on the quantified stream whose payload is a JSON list is a
+*frame* (a tracker's tracks): one sample per element, at the message's time, so a frame of 1,000
+objects costs one message, not 1,000.
 
 **Freshness.** A term's value is unknown at a state more than its maximum age after its latest
 sample (:mod:`dyknow.reasoning.semantics`). ``max_age_ms`` declares it for every term; 0 (the
@@ -364,7 +366,12 @@ class FormulaMonitor(Unit):
                 )
                 return
         k = self._ports[port]
-        self._observe(k, t_ns, msg.payload)
+        payload = msg.payload
+        if isinstance(monitor, ObjectMonitor) and k == monitor.domain_index and type(payload) is list:
+            for item in payload:  # a frame: a sample per element (what the fields and the rate are judged on)
+                self._observe(k, t_ns, item)
+        else:
+            self._observe(k, t_ns, payload)
         if isinstance(monitor, ObjectMonitor):
             decided: list[tuple[str | None, Verdict]] = list(monitor.push_index(k, t_ns, msg.payload))
         else:
