@@ -34,6 +34,7 @@ import random
 import sys
 import threading
 import time
+import tracemalloc
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -53,9 +54,11 @@ from dyknow.reasoning.syntax import (
     Interval,
     Node,
     Not,
+    Num,
     Once,
     Or,
     Since,
+    Stream,
     Until,
 )
 
@@ -64,10 +67,22 @@ from harness import Proc, cpu_seconds, free_ports, machine, percentile, sleep_un
 MS = 1_000_000
 
 
-def formulas(window: int) -> list[tuple[str, str, str]]:
-    """``(name, kind, formula)`` for a window of ``window`` states (1 ms each): 1, 5 and 20
-    operators, past and future; the future ones mirror the past ones operator for operator."""
-    w, h = f"{window}ms", f"{max(1, window // 2)}ms"
+STEP_NS = 10 * MS
+"""The trace's sample period: 100 Hz, what a robot's fast streams run at."""
+
+WINDOWS = {"10ms": 10 * MS, "1s": 1000 * MS, "100s": 100_000 * MS}
+"""The windows every formula is measured with (item 7: within 1.5x of each other)."""
+
+
+def _ms(ns: int) -> str:
+    return f"{ns // MS}ms" if ns % MS == 0 else f"{ns}ns"
+
+
+def formulas(window_ns: int) -> list[tuple[str, str, str]]:
+    """``(name, kind, formula)`` for a window of ``window_ns``: 1, 5 and 20 operators, past and
+    future (the future ones mirror the past ones operator for operator); the response property
+    ``always[0, W] (p implies eventually[0, W/5] q)``; and the aggregate ``avg[0, W] x < 0.5``."""
+    w, h = _ms(window_ns), _ms(max(MS, window_ns // 2))
     past = {
         1: f"once[0, {w}] x > 0.9",
         5: f"historically[0, {w}] (x < 0.1 or once[0, {w}] y > 0.9) or once[0, {w}] x > 0.99",
@@ -84,51 +99,98 @@ def formulas(window: int) -> list[tuple[str, str, str]]:
         mirrored = text.replace("historically", "always").replace("once", "eventually").replace("since", "until")
         out.append((f"{ops}-past", "past", text))
         out.append((f"{ops}-future", "future", mirrored))
+    out.append(("response", "future", f"always[0, {w}] (x > 0.9 implies eventually[0, {_ms(window_ns // 5)}] y > 0.5)"))
+    out.append(("avg", "aggregate", f"avg[0, {w}] x < 0.5"))
     return out
 
 
-def _interval(interval: Interval, step_ns: int) -> str:
+def _atom(node: Atom) -> tuple[str, str, str]:
+    """``(stream, op, number)`` of an atom comparing a stream with a number (all the benchmark writes)."""
+    left, right = node.left, node.right
+    if not isinstance(left, Stream) or left.fields or node.op is None or not isinstance(right, Num):
+        raise ValueError(f"the peers' form is written for 'stream OP number' atoms only, not {node}")
+    return str(left.term), node.op, str(right)
+
+
+def _steps(interval: Interval, step_ns: int) -> tuple[int, int]:
+    """The interval in whole steps: the states at ``k`` steps from now for ``k`` in it."""
     hi = interval.hi_ns
     assert hi is not None, "the benchmark's formulas are bounded"
-    return f"[{interval.lo_ns // step_ns}:{hi // step_ns}]"
+    return -(-interval.lo_ns // step_ns), hi // step_ns
 
 
-def to_reelay(node: Node, step_ns: int = MS) -> str:
-    """The formula in reelay's syntax, fully parenthesised, intervals in steps (past only)."""
-    r = lambda n: to_reelay(n, step_ns)  # noqa: E731
+def horizon_steps(node: Node, step_ns: int = STEP_NS) -> int:
+    """How many states ahead a verdict of ``node`` reads, in the peers' step units."""
+    if isinstance(node, Atom | Const):
+        return 0
+    if isinstance(node, Not | Historically | Once):
+        return horizon_steps(node.arg, step_ns)
+    if isinstance(node, And | Or | Implies | Since):
+        return max(horizon_steps(node.left, step_ns), horizon_steps(node.right, step_ns))
+    if isinstance(node, Always | Eventually):
+        return _steps(node.interval, step_ns)[1] + horizon_steps(node.arg, step_ns)
+    if isinstance(node, Until):
+        return _steps(node.interval, step_ns)[1] + max(horizon_steps(node.left, step_ns), horizon_steps(node.right, step_ns))
+    raise ValueError(f"no horizon for {type(node).__name__}")
+
+
+def to_reelay(node: Node, step_ns: int = STEP_NS, delay: int = 0) -> str:
+    """The formula in reelay's syntax, fully parenthesised, intervals in steps. A future formula
+    is written in its past form, as a user of reelay (past-time only) would write it: evaluated
+    ``delay`` states late (its horizon, at the root), each future operator ``[a, b]`` becomes
+    the past one over ``[0, b - a]`` of its operand ``b`` states less late, and an atom still
+    ``d`` states late reads ``once[d:d]``. ``until`` has no such form here (it raises). A window
+    of one state, ``[0:0]``, is written as its operand: reelay 25 reads ``once[0:0]`` and
+    ``historically[0:0]`` as unbounded (``once[0:0] p`` true ever after the first true p)."""
+    r = lambda n, d=delay: to_reelay(n, step_ns, d)  # noqa: E731
     if isinstance(node, Atom):
-        return f"{{{node.term} {node.op} {node.number}}}"
+        name, op, number = _atom(node)
+        text = f"{{{name} {op} {number}}}"
+        return f"once[{delay}:{delay}]({text})" if delay else text
     if isinstance(node, Not):
         return f"not({r(node.arg)})"
     if isinstance(node, And | Or | Implies):
         word = "and" if isinstance(node, And) else "or" if isinstance(node, Or) else "implies"
         return f"({r(node.left)} {word} {r(node.right)})"
-    if isinstance(node, Historically | Once):
+    if isinstance(node, Historically | Once):  # a past window commutes with the delay
+        lo, hi = _steps(node.interval, step_ns)
         word = "historically" if isinstance(node, Historically) else "once"
-        return f"{word}{_interval(node.interval, step_ns)}({r(node.arg)})"
+        return r(node.arg) if hi == 0 else f"{word}[{lo}:{hi}]({r(node.arg)})"
     if isinstance(node, Since):
-        return f"({r(node.left)} since{_interval(node.interval, step_ns)} {r(node.right)})"
-    raise ValueError(f"reelay is past-time only: no {type(node).__name__}")
+        lo, hi = _steps(node.interval, step_ns)
+        return f"({r(node.left)} since[{lo}:{hi}] {r(node.right)})"
+    if isinstance(node, Always | Eventually):
+        lo, hi = _steps(node.interval, step_ns)
+        assert delay >= hi, "the delay covers the horizon"
+        word = "historically" if isinstance(node, Always) else "once"
+        return r(node.arg, delay - hi) if hi == lo else f"{word}[0:{hi - lo}]({r(node.arg, delay - hi)})"
+    raise ValueError(f"no past form written for {type(node).__name__}")
 
 
-def to_rtamt(node: Node, step_ns: int = MS) -> str:
-    """The formula in RTAMT's STL syntax, fully parenthesised, intervals in steps."""
+def to_rtamt(node: Node, step_ns: int = STEP_NS) -> str:
+    """The formula in RTAMT's STL syntax, fully parenthesised, intervals in steps; ``a implies b``
+    as ``not a or b`` (RTAMT 0.4.10 pastifies ``->`` wrongly: see monitoring-facts)."""
     r = lambda n: to_rtamt(n, step_ns)  # noqa: E731
     if isinstance(node, Atom):
-        return f"({node.term} {node.op} {node.number})"
+        name, op, number = _atom(node)
+        return f"({name} {op} {number})"
     if isinstance(node, Const):
         return "true" if node.value else "false"
     if isinstance(node, Not):
         return f"not({r(node.arg)})"
     if isinstance(node, And | Or):
         return f"({r(node.left)} {'and' if isinstance(node, And) else 'or'} {r(node.right)})"
+    if isinstance(node, Implies):
+        return f"(not({r(node.left)}) or {r(node.right)})"
     if isinstance(node, Always | Eventually | Historically | Once):
         word = {Always: "always", Eventually: "eventually", Historically: "historically", Once: "once"}[type(node)]
-        return f"{word}{_interval(node.interval, step_ns)}({r(node.arg)})"
+        lo, hi = _steps(node.interval, step_ns)
+        return f"{word}[{lo}:{hi}]({r(node.arg)})"
     if isinstance(node, Until | Since):
         word = "until" if isinstance(node, Until) else "since"
-        return f"({r(node.left)} {word}{_interval(node.interval, step_ns)} {r(node.right)})"
-    raise ValueError(f"no RTAMT form for {type(node).__name__}")  # implies: see the 0.4.10 bug
+        lo, hi = _steps(node.interval, step_ns)
+        return f"({r(node.left)} {word}[{lo}:{hi}] {r(node.right)})"
+    raise ValueError(f"no RTAMT form for {type(node).__name__}")
 
 
 def trace(states: int, seed: int = 1) -> tuple[list[float], list[float]]:
@@ -149,7 +211,7 @@ def _import(name: str) -> Any:
 class Run:
     """One monitor over the trace, built but not fed: :meth:`feed` gives it states ``lo`` to
     ``hi - 1`` in one loop of the peer's own calls; ``verdicts`` collects each state's verdict
-    (None: not decided, or not yet)."""
+    (None: not decided, or not yet), indexed by the state it is about."""
 
     def __init__(self, states: int) -> None:
         self.verdicts: list[bool | None] = [None] * states
@@ -177,21 +239,25 @@ class DyknowRun(Run):
         if self.one:
             push, series = self.monitor.push_index, self.series
             for i in range(lo, hi):
-                for verdict in push(0, i * MS, series[i]):
+                for verdict in push(0, i * STEP_NS, series[i]):
                     out[verdict.state] = verdict.verdict
         else:
             push_all, pairs = self.monitor.push_all, self.pairs
             for i in range(lo, hi):
-                for verdict in push_all(i * MS, pairs[i]):
+                for verdict in push_all(i * STEP_NS, pairs[i]):
                     out[verdict.state] = verdict.verdict
 
 
 class ReelayRun(Run):
-    """reelay's discrete-time Boolean monitor (``condense=False``: a verdict every update)."""
+    """reelay's discrete-time Boolean monitor (``condense=False``: a verdict every update), of the
+    formula or, for a future one, of its past form (:func:`to_reelay`): its verdict at state
+    ``i`` is the formula's at ``i - delay``."""
 
     def __init__(self, reelay: Any, formula: Formula, xs: list[float], ys: list[float]) -> None:
         super().__init__(len(xs))
-        self.monitor = reelay.discrete_timed_monitor(pattern=to_reelay(formula.root), condense=False)
+        self.delay = horizon_steps(formula.root)
+        self.pattern = to_reelay(formula.root, STEP_NS, self.delay)
+        self.monitor = reelay.discrete_timed_monitor(pattern=self.pattern, condense=False)
         names = {str(t) for t in formula.terms}
         self.inputs = (
             [{"x": x} for x in xs]
@@ -203,9 +269,11 @@ class ReelayRun(Run):
 
     def feed(self, lo: int, hi: int) -> None:
         """Update the monitor with each state's values, record its verdicts."""
-        update, inputs, out = self.monitor.update, self.inputs, self.verdicts
+        update, inputs, out, delay = self.monitor.update, self.inputs, self.verdicts, self.delay
         for i in range(lo, hi):
-            out[i] = update(inputs[i])["value"]
+            value = update(inputs[i])["value"]
+            if i >= delay:
+                out[i - delay] = value
 
 
 class RtamtRun(Run):
@@ -224,7 +292,7 @@ class RtamtRun(Run):
             if future:
                 spec.pastify()
         self.spec = spec
-        self.shift = formula.horizon_ns // MS if future else 0
+        self.shift = horizon_steps(formula.root) if future else 0
         self.inputs = [[("x", x), ("y", y)] for x, y in zip(xs, ys, strict=True)]
 
     def feed(self, lo: int, hi: int) -> None:
@@ -236,33 +304,47 @@ class RtamtRun(Run):
                 out[i - shift] = None if robustness == 0 else robustness > 0
 
 
-def per_state_us(make: Callable[[], Run], window: int, states: int, repeat: int, budget_s: float) -> tuple[float, int, Run]:
-    """The best of ``repeat`` runs, in microseconds per state, timed after the first window of
-    states (the steady state), over at most ``budget_s`` seconds of each run; how many states
-    that figure was measured over; and the first run (its verdicts). A monitor so slow that its
-    first run took ten budgets is run once."""
-    best, measured = float("inf"), 0
-    first: Run | None = None
+def interleaved(makers: dict[Any, tuple[Callable[[], Run], int]], states: int, repeat: int, budget_s: float) -> tuple[dict[Any, float], dict[Any, int], dict[Any, Run]]:
+    """Every run's cost per state, in microseconds, measured in one interleaved run: each is
+    built and given its first ``fill`` states (its windows fill: not timed), then each is given
+    its next chunk of 200 states in turn, each chunk timed, so a change in the machine's load
+    falls on all of them alike (every peer, every window). A run is given ``states`` states, or
+    fewer when its timed total passes ``budget_s``. Of ``repeat`` such runs, the best per run is
+    kept (the machine is shared: the least disturbed). Also how many states each figure was
+    measured over, and the first run of each (its verdicts)."""
+    best = {key: float("inf") for key in makers}
+    measured = dict.fromkeys(makers, 0)
+    first: dict[Any, Run] = {}
     chunk = 200
     for _ in range(repeat):
-        started = time.perf_counter()
-        run = make()
-        run.feed(0, window)  # the windows fill: not timed
-        lo, elapsed = window, 0.0
-        while lo < states and (elapsed < budget_s or lo - window < chunk):
-            hi = min(states, lo + chunk)
-            t0 = time.perf_counter()
-            run.feed(lo, hi)
-            elapsed += time.perf_counter() - t0
-            lo = hi
-        run.fed = lo
-        first = first or run
-        if elapsed / (lo - window) < best:
-            best, measured = elapsed / (lo - window), lo - window
-        if time.perf_counter() - started > 10 * budget_s:
-            break
-    assert first is not None
-    return best * 1e6, measured, first
+        runs = {key: make() for key, (make, _fill) in makers.items()}
+        for key, run in runs.items():
+            fill = makers[key][1]
+            run.feed(0, fill)
+            run.fed = fill
+        elapsed = dict.fromkeys(runs, 0.0)
+        active = list(runs)
+        j = 0
+        while active:
+            for key in list(active):
+                run, fill = runs[key], makers[key][1]
+                lo, hi = fill + j * chunk, min(fill + states, fill + (j + 1) * chunk)
+                if lo >= hi:
+                    active.remove(key)
+                    continue
+                t0 = time.perf_counter()
+                run.feed(lo, hi)
+                elapsed[key] += time.perf_counter() - t0
+                run.fed = hi
+                if elapsed[key] > budget_s:
+                    active.remove(key)
+            j += 1
+        for key, run in runs.items():
+            first.setdefault(key, run)
+            cost = elapsed[key] / (run.fed - makers[key][1])
+            if cost < best[key]:
+                best[key], measured[key] = cost, run.fed - makers[key][1]
+    return {key: us * 1e6 for key, us in best.items()}, measured, first
 
 
 def _agreement(ours: list[bool | None], theirs: list[bool | None]) -> bool:
@@ -275,51 +357,98 @@ def _figure(row: dict[str, Any], key: str, width: int) -> str:
     return f"{row[key]:>{width - 2}.2f}us" if key in row else f"{'-':>{width}}"
 
 
-def per_state(windows: list[int], states: int, repeat: int, budget_s: float) -> tuple[list[dict[str, Any]], dict[str, str]]:
-    """Measure every formula and window on every monitor that supports it; print a table."""
+def per_state(windows: list[str], states: int, repeat: int, budget_s: float, rtamt_max: int) -> tuple[list[dict[str, Any]], dict[str, str]]:
+    """Measure every formula at every window on every monitor that supports it, all windows and
+    peers of one formula interleaved; print a table."""
     reelay, rtamt = _import("reelay"), _import("rtamt")
     peers = {
-        "reelay": "reelay 25 (C++), discrete time" if reelay else "not installed",
-        "rtamt": "RTAMT 0.4.10 (Python), discrete time" if rtamt else "not installed",
+        "reelay": "reelay 25 (C++), discrete time; future formulas in their past form" if reelay else "not installed",
+        "rtamt": f"RTAMT 0.4.10 (Python), discrete time, pastified; windows up to {rtamt_max} states" if rtamt else "not installed",
     }
+    print(f"per state, 100 Hz data, {states:,} states timed after the windows fill, best of {repeat} runs, each formula's windows and peers interleaved; load {_load()}")
     print(f"{'formula':>10} {'window':>6} {'dyknow':>9} {'reelay':>9} {'RTAMT':>10} {'target':>32}  verdicts")
     rows = []
-    for window in windows:
-        n = window + states
-        xs, ys = trace(n)
-        for name, kind, text in formulas(window):
+    fills = {label: 2 * (WINDOWS[label] // STEP_NS) + 2 for label in windows}  # the nested windows full: the steady state
+    xs, ys = trace(max(fills.values()) + states)
+    names = [(name, kind) for name, kind, _text in formulas(WINDOWS[windows[0]])]
+    for index, (name, kind) in enumerate(names):
+        makers: dict[tuple[str, str], tuple[Callable[[], Run], int]] = {}
+        by_window: dict[str, dict[str, Any]] = {}
+        for label in windows:
+            text = formulas(WINDOWS[label])[index][2]
             formula = parse(text)
-            future = kind == "future"
-            row: dict[str, Any] = {"formula": name, "kind": kind, "operators": formula.operators, "window": window, "text": text}
-            makers: dict[str, Callable[[], Run]] = {"dyknow": functools.partial(DyknowRun, formula, xs, ys)}
-            if reelay is not None and not future:
-                makers["reelay"] = functools.partial(ReelayRun, reelay, formula, xs, ys)
-            if rtamt is not None:
-                makers["rtamt"] = functools.partial(RtamtRun, rtamt, formula, xs, ys, future=future)
-            runs: dict[str, Run] = {}
-            for peer, make in makers.items():
-                us, measured, runs[peer] = per_state_us(make, window, n, repeat, budget_s)
-                row[f"{peer}_us"], row[f"{peer}_states"] = round(us, 3), measured
+            fill = fills[label]
+            row: dict[str, Any] = {"formula": name, "kind": kind, "operators": formula.operators, "window": label, "text": text}
+            makers[(label, "dyknow")] = (functools.partial(DyknowRun, formula, xs, ys), fill)
+            if reelay is not None and kind != "aggregate":
+                try:
+                    row["reelay_form"] = to_reelay(formula.root, STEP_NS, horizon_steps(formula.root))
+                    makers[(label, "reelay")] = (functools.partial(ReelayRun, reelay, formula, xs, ys), fill)
+                except ValueError as exc:
+                    row["reelay_form"] = str(exc)
+            if rtamt is not None and kind != "aggregate" and WINDOWS[label] // STEP_NS <= rtamt_max:
+                makers[(label, "rtamt")] = (functools.partial(RtamtRun, rtamt, formula, xs, ys, future=kind == "future"), fill)
+            by_window[label] = row
+        costs, measured, runs = interleaved(makers, states, repeat, budget_s)
+        for label, row in by_window.items():
+            here = [peer for (w, peer) in makers if w == label]
+            for peer in here:
+                row[f"{peer}_us"], row[f"{peer}_states"] = round(costs[(label, peer)], 3), measured[(label, peer)]
             # the same verdicts, where both decided, over the states both were given
-            ours = runs["dyknow"]
-            row["agree"] = {
-                peer: _agreement(ours.verdicts[: run.fed], run.verdicts[: run.fed]) for peer, run in runs.items() if peer != "dyknow"
-            }
-            theirs = {peer: row[f"{peer}_us"] for peer in makers if peer != "dyknow"}
+            ours = runs[(label, "dyknow")]
+            row["agree"] = {}
+            for peer in here:
+                if peer != "dyknow":
+                    run = runs[(label, peer)]
+                    fed = min(ours.fed, run.fed)
+                    row["agree"][peer] = _agreement(ours.verdicts[:fed], run.verdicts[:fed])
+            theirs = {peer: row[f"{peer}_us"] for peer in here if peer != "dyknow"}
             if theirs:
                 fastest = min(theirs, key=lambda p: theirs[p])
                 row["target_us"], row["target_peer"] = theirs[fastest], fastest
                 row["met"] = row["dyknow_us"] <= row["target_us"]
+            row["load"] = _load()
             rows.append(row)
-            target = (
-                f"<= {row['target_us']:.2f}us ({row['target_peer']}): {'met' if row['met'] else 'MISSED'}"
-                if "target_us" in row
-                else "no peer"
-            )
-            agree = ", ".join(f"{p} {'agree' if ok else 'DIFFER'}" for p, ok in row["agree"].items()) or "-"
-            figures = f"{_figure(row, 'dyknow_us', 9)} {_figure(row, 'reelay_us', 9)} {_figure(row, 'rtamt_us', 10)}"
-            print(f"{name:>10} {window:>6} {figures} {target:>32}  {agree}", flush=True)
+    rows = [row for label in windows for row in rows if row["window"] == label]  # window by window
+    for row in rows:
+        label = row["window"]
+        target = (
+            f"<= {row['target_us']:.2f}us ({row['target_peer']}): {'met' if row['met'] else 'MISSED'}"
+            if "target_us" in row
+            else "no peer"
+        )
+        agree = ", ".join(f"{p} {'agree' if ok else 'DIFFER'}" for p, ok in row["agree"].items()) or "-"
+        figures = f"{_figure(row, 'dyknow_us', 9)} {_figure(row, 'reelay_us', 9)} {_figure(row, 'rtamt_us', 10)}"
+        print(f"{row['formula']:>10} {label:>6} {figures} {target:>32}  {agree}", flush=True)
     return rows, peers
+
+
+def flatness(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per formula measured at several windows: the largest cost over the smallest (target <= 1.5);
+    and the aggregate at the longest window over it at 1 s (target: no slower, within 10 %, the
+    run-to-run noise of these figures on a shared machine)."""
+    out = []
+    by_name: dict[str, dict[str, float]] = {}
+    for row in rows:
+        by_name.setdefault(row["formula"], {})[row["window"]] = row["dyknow_us"]
+    for name, costs in by_name.items():
+        if len(costs) < 2:
+            continue
+        ratio = max(costs.values()) / min(costs.values())
+        item = {"formula": name, "costs_us": costs, "ratio": round(ratio, 2), "target": 1.5, "met": ratio <= 1.5}
+        out.append(item)
+        print(f"flat in the window: {name:>10} {' '.join(f'{w} {c:.2f}us' for w, c in costs.items())}: max/min {ratio:.2f} (target <= 1.5: {'met' if ratio <= 1.5 else 'MISSED'})")
+    avg = by_name.get("avg", {})
+    if "1s" in avg and "100s" in avg:
+        ratio = avg["100s"] / avg["1s"]
+        met = ratio <= 1.1
+        out.append({"formula": "avg", "aggregate_100s_over_1s": round(ratio, 2), "target": "no slower (within 10 %)", "met": met})
+        print(f"aggregate avg[0, 100s] {avg['100s']:.2f}us against avg[0, 1s] {avg['1s']:.2f}us: {ratio:.2f}x (target no slower, within the 10 % noise: {'met' if met else 'MISSED'})")
+    return out
+
+
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 class LatencySink(Unit):
@@ -340,30 +469,45 @@ class LatencySink(Unit):
 
 
 MONITORS_FORMULA = "historically[0, 1s] Battery(r{k}) > 0.2"
+OBJECTS_FORMULA = "foreach t in Track(field).id: historically[0, 1s] Track(field).speed < 3"
+"""Objects' speeds are uniform in [0, 1) but one sample in 500, 3.5: each object's verdict
+turns false for a second now and then (what ``--changes-only`` publishes)."""
 
 
-def _drive(sources: list[Any], rate_hz: float, stop: threading.Event, sent: list[int]) -> None:
-    """Every source once per period, spread evenly over it, until ``stop``; counts into ``sent``."""
+def _drive(sources: list[Any], rate_hz: float, stop: threading.Event, sent: list[int], objects: int, frame: int = 1) -> None:
+    """Every source (or, with ``objects``, every object of the one source, ``frame`` objects a
+    message) once per period, spread evenly over it, until ``stop``; counts samples into ``sent``."""
     rng = random.Random(3)
     values = [rng.random() for _ in range(4096)]
-    period, count = 1.0 / rate_hz, len(sources)
+    speeds = [3.5 if rng.random() < 1 / 500 else rng.random() for _ in range(4096)]
+    period = 1.0 / rate_hz
+    messages = -(-objects // frame) if objects else len(sources)  # per period
     start = time.perf_counter()
-    i = 0
+    i = samples = 0
     while not stop.is_set():
-        cycle, k = divmod(i, count)
-        sleep_until(start + cycle * period + k * period / count)
-        sources[k].emit(values[i % 4096])
+        cycle, k = divmod(i, messages)
+        sleep_until(start + cycle * period + k * period / messages)
+        if objects and frame > 1:
+            tracks = [{"id": j, "speed": speeds[(samples + j) % 4096]} for j in range(k * frame, min(objects, (k + 1) * frame))]
+            sources[0].emit(tracks)
+            samples += len(tracks)
+        elif objects:
+            sources[0].emit({"id": k, "speed": speeds[i % 4096]})
+            samples += 1
+        else:
+            sources[k].emit(values[i % 4096])
+            samples += 1
         i += 1
-    sent[0] = i
+    sent[0] = samples
 
 
-def _feed(manager: Manager, count: int, rate_hz: float, seconds: float, warmup_s: float, on_record: Callable[[bool], None]) -> dict[str, Any]:
+def _feed(manager: Manager, count: int, rate_hz: float, seconds: float, warmup_s: float, on_record: Callable[[bool], None], objects: bool, frame: int = 1) -> dict[str, Any]:
     """Spawn the sources and the latency sink in ``manager``, drive them, record the latencies
     for ``seconds`` after ``warmup_s`` (``on_record(True/False)`` around the recording)."""
     manager.spawn("latency-sink", "sink", bindings={"in": "bench/verdicts/**"})
     sources = []
-    for k in range(count):
-        manager.spawn("bench-source", f"s{k}", bindings={"out": f"bench/term/{k}"})
+    for k in range(1 if objects else count):
+        manager.spawn("bench-source", f"s{k}", bindings={"out": "bench/track" if objects else f"bench/term/{k}"})
         sources.append(manager.unit(f"s{k}"))
     deadline = time.monotonic() + 60
     while not all(source.has_subscribers("out") for source in sources):  # every monitor is listening
@@ -372,7 +516,7 @@ def _feed(manager: Manager, count: int, rate_hz: float, seconds: float, warmup_s
         time.sleep(0.05)
     receiver: Any = manager.unit("sink")  # a LatencySink of the module "reasoning" (this script runs as __main__)
     stop, sent = threading.Event(), [0]
-    driver = threading.Thread(target=_drive, args=(sources, rate_hz, stop, sent), name="bench-driver", daemon=True)
+    driver = threading.Thread(target=_drive, args=(sources, rate_hz, stop, sent, count if objects else 0, frame), name="bench-driver", daemon=True)
     driver.start()
     time.sleep(warmup_s)
     on_record(True)
@@ -401,12 +545,23 @@ def _specs() -> list[TransformationSpec]:
         TransformationSpec(label="bench-source", source="dyknow.testing:Source", ports=(Port("out", "out"),)),
         TransformationSpec(label="latency-sink", source="reasoning:LatencySink", ports=(Port("in", "in", queue=1 << 20),)),
         monitor_spec(MONITORS_FORMULA.format(k=0), label="monitor"),
+        monitor_spec(OBJECTS_FORMULA, label="objects-monitor", queue=1 << 17),
     ]
 
 
-def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, remote: bool) -> dict[str, Any]:
-    """``count`` monitors of a past formula, each fed by its own source at ``rate_hz``, in one
-    manager whose process runs on CPU ``core``; the latency from each sample to its verdict.
+def _rss_bytes() -> int:
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, remote: bool, *, objects: bool = False, changes_only: bool = False, frame: int = 1) -> dict[str, Any]:
+    """``count`` monitors of a past formula, each fed by its own source at ``rate_hz`` (or, with
+    ``objects``, one ``foreach`` monitor of ``count`` objects, each sampled at ``rate_hz`` on one
+    stream), in one manager whose process runs on CPU ``core``; the latency from each sample to
+    its verdict, the verdicts decided per second, the CPU the process took, its memory.
 
     ``remote``: the sources and the sink run in another process (on another core when there is
     one), so each sample and each verdict crosses Zenoh over loopback; else all in one process.
@@ -415,19 +570,25 @@ def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: 
     limits = Limits(max_units=2 * count + 10)
     listen = [f"tcp/127.0.0.1:{free_ports(1)[0]}"] if remote else []
     with Manager("reasoning-bench", specs=_specs(), listen=listen, serve=False, limits=limits) as manager:
+        rss0 = _rss_bytes()
         t0 = time.perf_counter()
-        for k in range(count):
-            bindings = {"t0": f"bench/term/{k}", "verdicts": f"bench/verdicts/{k}"}
-            manager.spawn("monitor", f"m{k}", params={"formula": MONITORS_FORMULA.format(k=k)}, bindings=bindings)
+        if objects:
+            params = {"formula": OBJECTS_FORMULA, "max_objects": count, "changes_only": changes_only}
+            manager.spawn("objects-monitor", "m0", params=params, bindings={"t0": "bench/track", "verdicts": "bench/verdicts/0"})
+        else:
+            for k in range(count):
+                bindings = {"t0": f"bench/term/{k}", "verdicts": f"bench/verdicts/{k}"}
+                manager.spawn("monitor", f"m{k}", params={"formula": MONITORS_FORMULA.format(k=k), "changes_only": changes_only}, bindings=bindings)
         spawn_s = time.perf_counter() - t0
-        cpu: dict[bool, tuple[float, float]] = {}
+        units: list[Any] = [manager.unit(f"m{k}") for k in range(1 if objects else count)]
+        cpu: dict[bool, tuple[float, float, int]] = {}
 
         def on_record(start: bool) -> None:
-            cpu[start] = (cpu_seconds([os.getpid()]), time.perf_counter())
+            cpu[start] = (cpu_seconds([os.getpid()]), time.perf_counter(), sum(unit.monitor.states for unit in units))
 
         if remote:
-            argv = [sys.executable, __file__, "--feeder", listen[0], "--monitors", str(count), "--rate-hz", str(rate_hz)]
-            argv += ["--seconds", str(seconds), "--warmup", str(warmup_s), "--core", str((core + 1) % (os.cpu_count() or 1))]
+            argv = [sys.executable, __file__, "--feeder", listen[0], "--objects" if objects else "--monitors", str(count), "--rate-hz", str(rate_hz)]
+            argv += ["--seconds", str(seconds), "--warmup", str(warmup_s), "--core", str((core + 1) % (os.cpu_count() or 1)), "--frame", str(frame)]
             feeder = Proc(argv)
             try:
                 feeder.next_json(120, phase="recording")
@@ -438,27 +599,85 @@ def monitors(count: int, rate_hz: float, seconds: float, warmup_s: float, core: 
             finally:
                 feeder.close()
         else:
-            fed = _feed(manager, count, rate_hz, seconds, warmup_s, on_record)
-        dropped = sum(p.dropped for k in range(count) for p in manager.get_statistics(f"m{k}").ports)
-        late = sum(p.rejected for k in range(count) for p in manager.get_statistics(f"m{k}").ports)
-    (cpu0, wall0), (cpu1, wall1) = cpu[True], cpu[False]
+            fed = _feed(manager, count, rate_hz, seconds, warmup_s, on_record, objects, frame)
+        rss1 = _rss_bytes()
+        stats = [manager.get_statistics(f"m{k}") for k in range(len(units))]
+        dropped = sum(p.dropped for s in stats for p in s.ports)
+        late = sum(p.rejected for s in stats for p in s.ports)
+        retained = sum(unit.monitor.retained() for unit in units)
+        live = len(units[0].monitor.objects) if objects else count
+        refused = units[0].monitor.refused if objects else 0
+        nodes = units[0].monitor.body.nodes if objects else units[0].monitor.formula.nodes
+    (cpu0, wall0, states0), (cpu1, wall1, states1) = cpu[True], cpu[False]
     return {
-        "monitors": count,
+        "kind": "objects" if objects else "monitors",
+        "monitors": 1 if objects else count,
+        "instances": live,
+        "refused": refused,
         "rate_hz": rate_hz,
-        "formula": MONITORS_FORMULA,
+        "formula": OBJECTS_FORMULA if objects else MONITORS_FORMULA,
+        "changes_only": changes_only,
+        "frame": frame,
         "remote": remote,
         "core": core,
         "spawn_s": round(spawn_s, 2),
         **{k: v for k, v in fed.items() if k != "phase"},
         "expected_per_s": count * rate_hz,
+        "decided_per_s": round((states1 - states0) / (wall1 - wall0), 1),
         "cpu_percent": round(100 * (cpu1 - cpu0) / (wall1 - wall0), 1),
+        "load": _load(),
         "dropped": dropped + fed["sink_dropped"],
         "late": late,
         "target_p99_ms": 1.0,
+        "rss_growth_bytes": rss1 - rss0,
+        "retained_states": retained,
+        "cells": retained * nodes,
+        "bound_bytes": 250 * retained * nodes,
     }
 
 
-def feeder(endpoint: str, count: int, rate_hz: float, seconds: float, warmup_s: float, core: int) -> int:
+def instance_memory(count: int, rate_hz: float, seconds: float) -> dict[str, Any]:
+    """The memory of one ``foreach`` monitor of ``count`` objects at ``rate_hz`` after ``seconds``
+    of samples (its window full), measured with ``tracemalloc`` beside the bound stated from the
+    formula and the rate: each instance's constant part (measured here, after its first sample)
+    plus 250 bytes a cell (:mod:`dyknow.reasoning.progression`), a cell per node and per state
+    its windows hold (its past reach over the sample period, and the newest)."""
+    from dyknow.reasoning.objects import ObjectMonitor
+
+    tracemalloc.start()
+    try:
+        monitor = ObjectMonitor(OBJECTS_FORMULA, max_objects=count)
+        period = round(1e9 / rate_hz)
+        base = tracemalloc.get_traced_memory()[0]
+        rng = random.Random(5)
+        for k in range(count):
+            monitor.push("Track(field)", k * period // count, {"id": k, "speed": rng.random()})
+        constant = tracemalloc.get_traced_memory()[0] - base
+        for cycle in range(1, round(seconds * rate_hz)):
+            for k in range(count):
+                monitor.push("Track(field)", cycle * period + k * period // count, {"id": k, "speed": rng.random()})
+        used = tracemalloc.get_traced_memory()[0] - base
+    finally:
+        tracemalloc.stop()
+    # the states an instance's windows hold at this rate: its reach over the sample period, and the
+    # newest; a cell per node and state
+    reach = monitor.body.reach_ns or 0
+    cells = count * monitor.body.nodes * (reach // period + 2)
+    bound = constant + 250 * cells
+    return {
+        "objects": count,
+        "rate_hz": rate_hz,
+        "seconds": seconds,
+        "bytes": used,
+        "bytes_per_object": round(used / count),
+        "constant_per_object": round(constant / count),
+        "cells": cells,
+        "bound_bytes": bound,
+        "met": used <= bound,
+    }
+
+
+def feeder(endpoint: str, count: int, rate_hz: float, seconds: float, warmup_s: float, core: int, *, objects: bool = False, frame: int = 1) -> int:
     """The other process of ``--remote``: sources and the sink, connected to the monitors' manager;
     prints JSON lines as it starts and stops recording, then its figures."""
     os.sched_setaffinity(0, {core})
@@ -467,65 +686,104 @@ def feeder(endpoint: str, count: int, rate_hz: float, seconds: float, warmup_s: 
         print(json.dumps({"phase": "recording" if start else "recorded"}), flush=True)
 
     with Manager("reasoning-feeder", specs=_specs(), connect=[endpoint], listen=[], serve=False, limits=Limits(max_units=count + 10)) as manager:
-        result = _feed(manager, count, rate_hz, seconds, warmup_s, on_record)
+        result = _feed(manager, count, rate_hz, seconds, warmup_s, on_record, objects, frame)
     print(json.dumps({"phase": "done", **result}), flush=True)
     return 0
 
 
+def end_to_end(args: argparse.Namespace) -> dict[str, Any]:
+    """``--monitors`` or ``--objects``: run, print the figures beside their targets."""
+    objects = bool(args.objects)
+    count = args.objects or args.monitors
+    result = monitors(count, args.rate_hz, args.seconds, args.warmup, args.core, args.remote, objects=objects, changes_only=args.changes_only, frame=args.frame)
+    met = result["latency_p99_ms"] <= result["target_p99_ms"]
+    where = "sources and sink in another process, over Zenoh" if result["remote"] else "sources and sink in the same process"
+    what = f"one foreach monitor of {count} objects" if objects else f"{count} monitors"
+    if objects and args.frame > 1:
+        what += f" ({args.frame} a message: a tracker's frame)"
+    publish = "changed verdicts only" if args.changes_only else "every verdict"
+    print(
+        f"{what} at {result['rate_hz']:g} Hz in one manager on core {result['core']} ({where}; {publish} published): "
+        f"{result['decided_per_s']:.0f} verdicts decided/s (expected {result['expected_per_s']:.0f}), {result['verdicts_per_s']:.0f} published/s, "
+        f"CPU {result['cpu_percent']:.0f}% of a core (target <= 100%: {'met' if result['cpu_percent'] <= 100 else 'MISSED'}), "
+        f"dropped {result['dropped']}, late {result['late']}, refused {result['refused']}; load {result['load']}"
+    )
+    print(
+        f"sample to verdict: p50 {result['latency_p50_ms']:.3f} ms, p99 {result['latency_p99_ms']:.3f} ms (target <= 1 ms: "
+        f"{'met' if met else 'MISSED'}), max {result['latency_max_ms']:.3f} ms"
+        if result["latency_p99_ms"] == result["latency_p99_ms"]
+        else "sample to verdict: no verdict changed while recording, so none was published (run without --changes-only for latencies)"
+    )
+    result["met"] = met
+    result["cpu_met"] = result["cpu_percent"] <= 100
+    if objects:
+        memory = instance_memory(count, args.rate_hz, 2.0)
+        print(
+            f"memory of {count} objects after 2 s at {args.rate_hz:g} Hz (tracemalloc): {memory['bytes'] / 1e6:.2f} MB, "
+            f"{memory['bytes_per_object']} B per object, against the stated bound {memory['bound_bytes'] / 1e6:.2f} MB "
+            f"({memory['constant_per_object']} B per object constant + 250 B a cell, {memory['cells']:,} cells for a reach of 1 s): {'met' if memory['met'] else 'MISSED'}; "
+            f"the manager's RSS grew {result['rss_growth_bytes'] / 1e6:.1f} MB over the run"
+        )
+        result["memory"] = memory
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the per-state comparison (default) or the end-to-end run of many monitors (``--monitors``)."""
+    """Run the per-state comparison (default) or the end-to-end runs (``--monitors``, ``--objects``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--windows", default="10,100,1000", help="window lengths in states (default 10,100,1000)")
-    parser.add_argument("--states", type=int, default=20_000, help="states timed per run, after the first window (default 20,000)")
-    parser.add_argument("--repeat", type=int, default=3, help="runs per figure, the best kept (default 3)")
-    parser.add_argument("--budget", type=float, default=5.0, metavar="S", help="seconds timed per run at most (RTAMT is slow; default 5)")
-    parser.add_argument("--quick", action="store_true", help="a short run: 1,000 states after the window, one run each, 0.5 s budget")
+    parser.add_argument("--windows", default="10ms,1s,100s", help=f"windows, of {', '.join(WINDOWS)} (default all)")
+    parser.add_argument("--states", type=int, default=20_000, help="states timed per run, after the windows fill (default 20,000)")
+    parser.add_argument("--repeat", type=int, default=3, help="interleaved runs per formula, the best kept per peer (default 3)")
+    parser.add_argument("--budget", type=float, default=5.0, metavar="S", help="seconds timed per peer and run at most (RTAMT is slow; default 5)")
+    parser.add_argument("--rtamt-max", type=int, default=100, metavar="STATES",
+                        help="run RTAMT on windows of at most this many states (its cost grows with the window; default 100: 1 s)")  # fmt: skip
+    parser.add_argument("--smoke", "--quick", action="store_true", help="a short run of every part, for the tests")
     parser.add_argument("--monitors", type=int, metavar="N", help="instead: N monitors at --rate-hz in one manager on one core, end to end")
-    parser.add_argument("--rate-hz", type=float, default=20.0, help="samples per second per monitor (default 20)")
-    parser.add_argument("--seconds", type=float, default=10.0, help="how long latencies are recorded with --monitors (default 10)")
-    parser.add_argument("--warmup", type=float, default=3.0, metavar="S", help="seconds before recording with --monitors (default 3)")
-    parser.add_argument("--core", type=int, default=0, help="the CPU the --monitors run is pinned to (default 0)")
-    parser.add_argument("--remote", action="store_true", help="with --monitors: sources and sink in another process, over Zenoh")
+    parser.add_argument("--objects", type=int, metavar="N", help="instead: one foreach monitor of N objects at --rate-hz, end to end")
+    parser.add_argument("--changes-only", action="store_true", help="with --objects: publish a verdict only when it changes")
+    parser.add_argument("--frame", type=int, default=1, metavar="N", help="with --objects: N objects' samples a message, a list (default 1)")
+    parser.add_argument("--rate-hz", type=float, default=20.0, help="samples per second per monitor or object (default 20)")
+    parser.add_argument("--seconds", type=float, default=10.0, help="how long latencies are recorded end to end (default 10)")
+    parser.add_argument("--warmup", type=float, default=3.0, metavar="S", help="seconds before recording end to end (default 3)")
+    parser.add_argument("--core", type=int, default=0, help="the CPU an end-to-end run's manager is pinned to (default 0)")
+    parser.add_argument("--remote", action="store_true", help="end to end: sources and sink in another process, over Zenoh")
     parser.add_argument("--feeder", metavar="ENDPOINT", help=argparse.SUPPRESS)  # the other process of --remote
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
     if args.feeder:
-        return feeder(args.feeder, args.monitors, args.rate_hz, args.seconds, args.warmup, args.core)
+        return feeder(args.feeder, args.monitors or args.objects, args.rate_hz, args.seconds, args.warmup, args.core, objects=bool(args.objects), frame=args.frame)
     info = machine()
-    print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}")
-    if args.monitors:
-        result = monitors(args.monitors, args.rate_hz, args.seconds, args.warmup, args.core, args.remote)
-        met = result["latency_p99_ms"] <= result["target_p99_ms"]
-        where = "sources and sink in another process, over Zenoh" if result["remote"] else "sources and sink in the same process"
-        print(
-            f"{result['monitors']} monitors at {result['rate_hz']:g} Hz in one manager on core {result['core']} ({where}): {result['verdicts_per_s']:.0f} verdicts/s "
-            f"(expected {result['expected_per_s']:.0f}), CPU {result['cpu_percent']:.0f}%, dropped {result['dropped']}, late {result['late']}"
-        )
-        print(
-            f"sample to verdict: p50 {result['latency_p50_ms']:.3f} ms, p99 {result['latency_p99_ms']:.3f} ms (target <= 1 ms: "
-            f"{'met' if met else 'MISSED'}), max {result['latency_max_ms']:.3f} ms"
-        )
+    print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}; load {_load()}")
+    if args.monitors or args.objects:
+        result = end_to_end(args)
         if args.json:
-            write_json(args.json, {"machine": info, "monitors": {**result, "met": met}})
+            write_json(args.json, {"machine": info, "monitors" if args.monitors else "objects": result})
         return 0
-    windows = [int(w) for w in args.windows.split(",")]
-    states, repeat, budget = (1_000, 1, 0.5) if args.quick else (args.states, args.repeat, args.budget)
-    rows, peers = per_state(windows, states, repeat, budget)
+    windows = [w.strip() for w in args.windows.split(",")]
+    unknown = [w for w in windows if w not in WINDOWS]
+    if unknown:
+        parser.error(f"unknown window {unknown[0]!r}: one of {', '.join(WINDOWS)}")
+    states, repeat, budget = (300, 1, 0.3) if args.smoke else (args.states, args.repeat, args.budget)
+    rows, peers = per_state(windows, states, repeat, budget, args.rtamt_max)
     checked = [r for r in rows if "met" in r]
     met = sum(1 for r in checked if r["met"])
     print(f"target (dyknow at most the faster peer per state): met on {met} of {len(checked)} formulas and windows")
+    flat = flatness(rows)
     if args.json:
         write_json(
             args.json,
             {
                 "machine": info,
                 "peers": peers,
+                "step_ns": STEP_NS,
                 "states": states,
                 "repeat": repeat,
                 "budget_s": budget,
+                "load": _load(),
                 "results": rows,
                 "targets_met": met,
                 "targets": len(checked),
+                "flatness": flat,
             },
         )
     return 0

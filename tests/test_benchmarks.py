@@ -298,19 +298,25 @@ def test_chain_targets_show_each_rounds_ratio_and_whether_the_rounds_agree() -> 
 
 def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "reasoning.json"
-    result = _run("reasoning.py", "--quick", "--windows", "10", "--json", str(out))
+    result = _run("reasoning.py", "--smoke", "--windows", "10ms,1s", "--json", str(out))
     assert result.returncode == 0, result.stderr[-3000:]
     data = json.loads(out.read_text())
     rows = data["results"]
-    assert [(r["formula"], r["window"]) for r in rows] == [(f"{n}-{k}", 10) for n in (1, 5, 20) for k in ("past", "future")]
-    assert [r["operators"] for r in rows] == [1, 1, 5, 5, 20, 20]
+    names = [f"{n}-{k}" for n in (1, 5, 20) for k in ("past", "future")] + ["response", "avg"]
+    assert [(r["formula"], r["window"]) for r in rows] == [(name, w) for w in ("10ms", "1s") for name in names]
+    assert [r["operators"] for r in rows[:8]] == [1, 1, 5, 5, 20, 20, 3, 1]
     for row in rows:
         assert row["dyknow_us"] > 0
         if "target_us" in row:  # RTAMT and reelay are in the bench extra, which the test extra pulls in
             assert isinstance(row["met"], bool) and row["target_us"] == min(row.get("reelay_us", float("inf")), row.get("rtamt_us", float("inf")))
-        if row["kind"] == "past" and "reelay" in row["agree"]:
-            assert row["agree"]["reelay"], row  # reelay agrees on every past formula here
-    assert "at most the faster peer per state" in result.stdout
+        if "reelay" in row["agree"]:
+            assert row["agree"]["reelay"], row  # reelay agrees on every formula, future ones in their past form
+        if row["kind"] == "past" and "rtamt" in row["agree"]:
+            assert row["agree"]["rtamt"], row
+    assert {r["formula"] for r in rows if r["kind"] == "future" and "reelay_us" not in r} == {"20-future"}  # until: no past form
+    flat = {f["formula"]: f for f in data["flatness"]}
+    assert set(flat) == set(names) and all(isinstance(f["met"], bool) and f["ratio"] >= 1 for f in flat.values())
+    assert "at most the faster peer per state" in result.stdout and "(target <= 1.5: " in result.stdout
     monitors = tmp_path / "monitors.json"
     result = _run("reasoning.py", "--monitors", "20", "--seconds", "0.5", "--warmup", "0.2", "--json", str(monitors))
     assert result.returncode == 0, result.stderr[-3000:]
@@ -318,6 +324,20 @@ def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     assert run["monitors"] == 20 and run["verdicts_per_s"] > 0 and run["dropped"] == 0 and run["late"] == 0
     assert 0 < run["latency_p50_ms"] <= run["latency_p99_ms"] and isinstance(run["met"], bool)
     assert "target <= 1 ms" in result.stdout
+    objects = tmp_path / "objects.json"
+    result = _run("reasoning.py", "--objects", "20", "--seconds", "1", "--warmup", "0.5", "--json", str(objects))
+    assert result.returncode == 0, result.stderr[-3000:]
+    run = json.loads(objects.read_text())["objects"]
+    assert run["monitors"] == 1 and run["instances"] == 20 and run["refused"] == 0 and run["dropped"] == 0 and run["late"] == 0
+    assert run["decided_per_s"] > 0 and run["verdicts_per_s"] > 0  # every verdict published: each object's are known
+    assert 0 < run["latency_p50_ms"] <= run["latency_p99_ms"] and run["cpu_percent"] > 0
+    assert run["memory"]["bytes"] > 0 and isinstance(run["memory"]["met"], bool)
+    assert "target <= 1 ms" in result.stdout and "against the stated bound" in result.stdout
+    result = _run("reasoning.py", "--objects", "20", "--frame", "10", "--changes-only", "--seconds", "1", "--warmup", "0.5", "--json", str(objects))
+    assert result.returncode == 0, result.stderr[-3000:]
+    run = json.loads(objects.read_text())["objects"]
+    assert run["frame"] == 10 and run["changes_only"] and run["instances"] == 20 and run["decided_per_s"] > 0 and run["dropped"] == 0
+    assert "(10 a message: a tracker's frame)" in result.stdout
 
 
 def test_clocks_benchmark_smoke(tmp_path: Path) -> None:

@@ -105,3 +105,47 @@ def test_samples_naming_no_object_are_counted() -> None:
 def test_a_plain_formula_is_no_object_monitors() -> None:
     with pytest.raises(FormulaError, match="an ObjectMonitor monitors a foreach formula"):
         ObjectMonitor(parse("Track(f).v > 1"))
+
+
+def test_late_samples_are_counted_per_object_and_kept_after_it_retires() -> None:
+    monitor = ObjectMonitor("foreach t in Track(f).id: Track(f).v > 1", idle_ns=100 * MS)
+    monitor.push("Track(f)", 10 * MS, {"id": 1, "v": 2})
+    monitor.push("Track(f)", 20 * MS, {"id": 2, "v": 2})
+    assert monitor.push("Track(f)", 5 * MS, {"id": 1, "v": 2}) == [] and monitor.late == 1  # before object 1's last state
+    monitor.push("Track(f)", 15 * MS, {"id": 2, "v": 2})
+    assert monitor.late == 2
+    monitor.push("Track(f)", 500 * MS, {"id": 3, "v": 2})  # 1 and 2 silent for longer than idle_ns: retired
+    assert monitor.objects == ["3"] and monitor.late == 2 and monitor.made == 3
+
+
+def test_the_instances_share_the_cells_and_keep_to_them_as_objects_come() -> None:
+    monitor = ObjectMonitor("foreach t in Track(f).id: historically[0, 1s] Track(f).v > 1", max_cells=64_000, max_objects=100)
+    shares = []
+    for total in (1, 2, 3, 5, 17, 100):  # objects alive: together they keep at most the cells
+        for k in range(len(monitor.objects), total):
+            monitor.push("Track(f)", k * MS, {"id": k, "v": 2})
+        live = [monitor.instance(key) for key in monitor.objects]
+        assert len(live) == total
+        assert sum(m.max_states * m.formula.nodes for m in live) <= 64_000
+        shares.append(min(m.max_states for m in live))
+    assert shares == sorted(shares, reverse=True) and shares[0] > shares[-1]
+
+
+def test_a_frame_is_one_sample_per_object_at_its_time() -> None:
+    # a tracker publishes all its tracks in one message: the monitor and evaluate_objects() read
+    # each element as its object's sample at the frame's time
+    formula = "foreach t in Track(f).id: once[0, 20ms] Track(f).v > 1"
+    frames: list[tuple[int, Any]] = [
+        (0, [{"id": "a", "v": 2}, {"id": "b", "v": 0}]),
+        (10 * MS, [{"id": "a", "v": 0}, {"id": "b", "v": 0}, {"id": "c", "v": 3}]),
+        (40 * MS, [{"id": "a", "v": 0}, [1], {"v": 1}]),  # a list in a frame, a track without id: no object
+    ]
+    want = evaluate_objects(formula, {"Track(f)": frames}, idle_ns=100 * MS)
+    assert want == {"a": [[(0, True), (10 * MS, True), (40 * MS, False)]], "b": [[(0, False), (10 * MS, False)]], "c": [[(10 * MS, True)]]}
+    monitor = ObjectMonitor(formula, idle_ns=100 * MS)
+    got: dict[str, list[tuple[int, bool]]] = {}
+    for t, frame in frames:
+        for key, verdict in monitor.push("Track(f)", t, frame):
+            got.setdefault(key, []).append((verdict.t_ns, verdict.verdict))
+    assert got == {key: [pair for life in lives for pair in life] for key, lives in want.items()}
+    assert monitor.unassigned == 2 and monitor.late == 0

@@ -468,6 +468,19 @@ def test_a_monitor_asked_for_robustness_gives_each_verdict_evaluates(formula: Fo
     assert got == expected, str(formula)
 
 
+def test_a_term_stale_before_the_first_state_leaves_the_windows_known() -> None:
+    # Battery is stale in (0, 1) ms, but the first state is at 1 ms (p's first sample): the window
+    # [0, 1] ms of that state starts at it, so the staleness before it is in no window (found by
+    # Hypothesis in test_a_monitor_of_stale_terms_returns_evaluates_verdicts)
+    formula = "Battery(robot) < 0 since[0, 1ms] p < 0"
+    samples = [("Battery(robot)", 0, 0), ("Battery(robot)", MS, 0), ("p", MS, 0)]
+    monitor = Monitor(formula, max_age_ns={"Battery(robot)": 0})
+    verdicts = [v for term, t, value in samples for v in monitor.push(term, t, value)] + monitor.flush()
+    streams = {"Battery(robot)": [(0, 0), (MS, 0)], "p": [(MS, 0)]}
+    assert evaluate_ns(formula, streams, max_age_ns={"Battery(robot)": 0}) == [(MS, False)]
+    assert [(v.t_ns, v.verdict) for v in verdicts] == [(MS, False)]
+
+
 def test_an_unbounded_past_window_keeps_an_outage_it_no_longer_stores() -> None:
     # p sampled at 0, 2 and 5 ms with a maximum age of 1 ms: stale in (1, 2) ms and (3, 5) ms.
     # At 5 ms the window of once[2ms, inf] reaches back to the first state, so it holds the

@@ -10,10 +10,14 @@ the other terms' latest samples, so its states hold them from the start) and end
 than that (less the reorder delay) retires it (its buffered states are closed, its verdicts
 given), and a sample of the object after that starts a new instance. The other terms' samples go
 to every live instance. A sample whose field names no object is counted in :attr:`unassigned`.
+A sample of the quantified stream whose value is a list is a *frame* (a tracker's tracks): one
+sample per element, all at its time, so one message can carry every object's sample.
 
 **Bounds.** At most ``max_objects`` instances live at once: a sample of a new object past that
 is refused, and counted in :attr:`refused` (the objects already tracked go on). Each instance
-keeps at most its share of ``max_cells`` (the cells over the instances alive), so the monitor's
+keeps at most its share of ``max_cells`` (the cells over the instances alive, their number rounded
+up to a power of two, so that shares are dealt again only when it doubles or falls to a quarter:
+10,000 objects appearing cost 10,000 deals, not 50 million), so the monitor's
 memory is bounded by ``max_cells`` cells plus the instances' constant part, whatever the number of
 objects a stream names over time.
 """
@@ -70,11 +74,14 @@ class ObjectMonitor:
         self.idle_ns = int(idle_ns)
         self.max_objects = int(max_objects)
         self._max_cells = int(max_cells)
+        self._slots = 0  # the instances the cells are shared among: a power of two, at least those alive
         self._max_age = dict(max_age_ns or {})
         #: the terms as the formula writes them (the quantified stream's first)
         self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
         self._index = {term: k for k, term in enumerate(self.terms)}
         self._domain_k = self._index[str(domain.term)]
+        #: the position of the quantified stream in :attr:`terms`
+        self.domain_index = self._domain_k
         self._latest: dict[int, tuple[int, Any]] = {}  # term -> its latest sample, to seed new instances
         self._live: dict[str, Monitor] = {}
         self._last: dict[str, int] = {}  # object -> its latest sample's time
@@ -86,8 +93,9 @@ class ObjectMonitor:
         self.refused = 0
         #: instances made so far (objects and their later lives)
         self.made = 0
-        #: samples late for their instance (see Monitor.late), summed over instances retired too
-        self._late_retired = 0
+        # samples late for their instance (see Monitor.late), over every instance so far: counted
+        # as they come (summing the instances' counts costs a pass over them, per sample)
+        self._late = 0
         #: states given up by the memory bound, summed over instances retired too
         self._given_up_retired = 0
 
@@ -108,6 +116,13 @@ class ObjectMonitor:
             self._retire(out)
         name = self.terms[k]
         if k == self._domain_k:
+            if type(value) is list:  # a frame (a tracker's tracks): a sample per element, all at its time
+                for item in value:
+                    if type(item) is list:
+                        self.unassigned += 1  # (one level: a list in a frame names no object)
+                    else:
+                        out.extend(self.push_index(k, t_ns, item))
+                return out
             self._latest[k] = (t_ns, value)
             key = object_key(read(value, self.domain.fields))
             if key is None:
@@ -118,15 +133,21 @@ class ObjectMonitor:
             if monitor is not None and t_ns - self._last[key] > self.idle_ns:
                 self._end(key, out)
                 monitor = None
+            last = self._last
             if monitor is None:
                 if len(self._live) >= self.max_objects:
                     self.refused += 1
                     return out
                 monitor = self._start(key, read(value, self.domain.fields))
-            self._last[key] = max(self._last.get(key, t_ns), t_ns)
-            heapq.heappush(self._deadlines, (self._last[key] + self.idle_ns, key))
-            if name in monitor.terms:
-                out.extend((key, v) for v in monitor.push(name, t_ns, value))
+                last[key] = t_ns
+                heapq.heappush(self._deadlines, (t_ns + self.idle_ns, key))  # (moved on when it comes up: _retire)
+            elif t_ns > last[key]:
+                last[key] = t_ns
+            late = monitor.late
+            for verdict in monitor.push_index(0, t_ns, value):  # (the body's terms start with the quantified stream)
+                out.append((key, verdict))
+            if monitor.late != late:
+                self._late += monitor.late - late
             return out
         self._latest[k] = (t_ns, value)
         self._others(k, name, t_ns, value, out)
@@ -137,7 +158,9 @@ class ObjectMonitor:
             return
         for key, monitor in self._live.items():
             if name in monitor.terms:
+                late = monitor.late
                 out.extend((key, v) for v in monitor.push(name, t_ns, value))
+                self._late += monitor.late - late
 
     def flush(self) -> list[tuple[str, Verdict]]:
         """Close every instance's buffered states (the input ended); the pairs that decided."""
@@ -156,7 +179,7 @@ class ObjectMonitor:
     # -- instances
 
     def _start(self, key: str, value: Any) -> Monitor:
-        cells = max(1, self._max_cells // (len(self._live) + 1))
+        cells = max(1, self._max_cells // self._slots_for(len(self._live) + 1))
         monitor = Monitor(self.body, reorder_ns=self.reorder_ns, max_cells=cells, variables={self.var: value})
         for term, age in self._max_age.items():
             if term in monitor.terms:
@@ -173,7 +196,6 @@ class ObjectMonitor:
     def _end(self, key: str, out: list[tuple[str, Verdict]]) -> None:
         monitor = self._live.pop(key)
         out.extend((key, v) for v in monitor.close())
-        self._late_retired += monitor.late
         self._given_up_retired += monitor.given_up
         del self._last[key]
         self._reshare()
@@ -183,15 +205,32 @@ class ObjectMonitor:
         now = self._newest - self.reorder_ns
         deadlines = self._deadlines
         while deadlines and deadlines[0][0] < now:
-            deadline, key = heapq.heappop(deadlines)
+            _deadline, key = heapq.heappop(deadlines)
             last = self._last.get(key)
-            if last is not None and last + self.idle_ns == deadline:  # (else a later sample moved it on)
+            if last is None:
+                continue  # (that life ended)
+            due = last + self.idle_ns
+            if due < now:
                 self._end(key, out)
+            else:  # a later sample moved it on: one entry per object, not one per sample
+                heapq.heappush(deadlines, (due, key))
 
-    def _reshare(self) -> None:
+    def _slots_for(self, live: int) -> int:
+        slots = self._slots or 1
+        while live > slots:
+            slots *= 2
+        while slots > 1 and live <= slots // 4:
+            slots //= 2
+        return slots
+
+    def _reshare(self, again: bool = False) -> None:
         if not self._live:
             return
-        cells = max(1, self._max_cells // len(self._live))
+        slots = self._slots_for(len(self._live))
+        if slots == self._slots and not again:
+            return  # (every instance's share is still max_cells // slots)
+        self._slots = slots
+        cells = max(1, self._max_cells // slots)
         for monitor in self._live.values():
             monitor.set_max_cells(cells)
 
@@ -212,7 +251,7 @@ class ObjectMonitor:
     def set_max_cells(self, max_cells: int) -> None:
         """Keep at most ``max_cells`` cells in all from now on, shared among the instances."""
         self._max_cells = max(1, int(max_cells))
-        self._reshare()
+        self._reshare(again=True)
 
     def _term_index(self, term: str) -> int:
         try:
@@ -235,10 +274,14 @@ class ObjectMonitor:
         """The objects alive now."""
         return list(self._live)
 
+    def instance(self, key: str) -> Monitor:
+        """The monitor of object ``key`` (one of :attr:`objects`); KeyError when it has none alive."""
+        return self._live[key]
+
     @property
     def late(self) -> int:
         """Samples late for their instance (see :attr:`Monitor.late`), over every instance so far."""
-        return self._late_retired + sum(m.late for m in self._live.values())
+        return self._late
 
     @property
     def given_up(self) -> int:

@@ -85,7 +85,9 @@ when the operand is unknown at a state of W it reads:
 **Quantifiers.** ``forall c in C: F`` is ``F[c:=v1] and ... and F[c:=vn]`` over the individuals of
 the class C (the variable replaced where it is a term's argument and where it is a value);
 ``exists`` is the same with ``or``. ``foreach x in S.f: F`` is one formula per *object*: per value
-of ``S.f`` (a string or a number; a sample whose field is anything else belongs to no object). An
+of ``S.f`` (a string or a number; a sample whose field is anything else belongs to no object; a
+sample of ``S`` whose value is a list, a *frame* such as a tracker's tracks, is one sample per
+element, all at its time). An
 object *lives* from its first sample until more than ``idle`` (ns of sample time) pass before its
 next one, which starts a new life: each life is evaluated apart, over states whose times are the
 object's samples in the life and the other terms' samples between the life's first sample and
@@ -587,14 +589,15 @@ def evaluate_objects(
     own = chosen[str(domain.term)]
     lives: dict[str, list[list[tuple[int, Any]]]] = {}
     last: dict[str, int] = {}
-    for t, payload in own:
-        key = object_key(read(payload, domain.fields))
-        if key is None:
-            continue
-        if key not in lives or t - last[key] > idle_ns:
-            lives.setdefault(key, []).append([])
-        lives[key][-1].append((t, payload))
-        last[key] = t
+    for t, sample in own:
+        for payload in sample if type(sample) is list else [sample]:  # a frame: a sample per element
+            key = object_key(read(payload, domain.fields))
+            if key is None:
+                continue
+            if key not in lives or t - last[key] > idle_ns:
+                lives.setdefault(key, []).append([])
+            lives[key][-1].append((t, payload))
+            last[key] = t
     out: dict[str, list[list[Any]]] = {}
     for key, runs in lives.items():
         for run in runs:
