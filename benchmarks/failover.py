@@ -334,6 +334,7 @@ class Events:
             return [e for e in self.seen if e["t_ns"] >= after_ns and e.get("event") == event]
 
     def last_camera(self) -> int | None:
+        """The camera of the latest message seen on the key (None before the first)."""
         with self._cond:
             return next((e["camera"] for e in reversed(self.seen) if e.get("event") == "camera"), None)
 

@@ -11,8 +11,10 @@ runs (the *lag*), how busy its thread was, how much CPU the process used. An
   publishes an ``overload`` event (``dyknow/<manager>/events/overload``) and its model says
   ``overloaded``.
 - **shedding, one step at a time**: at once, and again after every :data:`STEP_READINGS`
-  readings (1 s) that the lag is still over the budget, the least important work is shed one
-  step further (see below).
+  readings (1 s) of which most were over the budget, the latest among them, the least important
+  work is shed one step further (see below). Most, not all: a probe that happens to land between
+  two long callbacks reads a short lag, and readings in a row over the budget could then take
+  many seconds to come on a busy machine (a step waited over 30 s so).
 - **restoring**: after :data:`CLEAR_READINGS` readings (2 s) in a row with the lag under half the
   budget, the last step is undone, the most important shed work first; once nothing is shed and
   the lag is under the budget the state is ``ok`` again (one info line, an event).
@@ -65,7 +67,7 @@ DEFAULT_LAG_BUDGET_S: Final = 0.05
 #: Readings in a row over the budget before the manager is overloaded (with readings every
 #: :data:`~dyknow.executor.LOAD_WINDOW_S`: 0.75 s).
 ENTER_READINGS: Final = 3
-#: Readings still over the budget between two shedding steps (1 s).
+#: Readings between two shedding steps (1 s), most of them (and the latest) over the budget.
 STEP_READINGS: Final = 4
 #: Readings in a row under half the budget before one step is undone (2 s).
 CLEAR_READINGS: Final = 8
@@ -140,6 +142,8 @@ class OverloadGuard:
         self._clock_ns = clock_ns
         self._lock = threading.Lock()
         self._over = 0  # readings in a row over the budget
+        self._window = 0  # readings since the last step (or since the window began again)
+        self._window_over = 0  # of those, over the budget
         self._under = 0  # readings in a row under half the budget
         self._steps: list[tuple[int, int]] = []  # (priority, setting), in the order taken
         self._units_shed = 0
@@ -168,7 +172,8 @@ class OverloadGuard:
                     entered, changed = True, True
                     self._step_up()
                     self._over = 0
-            elif over and self._over >= STEP_READINGS:
+                    self._window = self._window_over = 0
+            elif self._step_due(over):
                 self._over = 0
                 changed = self._step_up()
             elif self._under >= CLEAR_READINGS:
@@ -185,6 +190,19 @@ class OverloadGuard:
                 self.state = self._refresh(self.state)
                 return
         self._on_change(state, entered)
+
+    def _step_due(self, over: bool) -> bool:
+        """Count this reading in the window since the last step; whether the next step is due:
+        :data:`STEP_READINGS` readings or more, most of them over the budget, this one too. A
+        window twice that long without a step begins again (old readings say little of now)."""
+        self._window += 1
+        self._window_over += over
+        if over and self._window >= STEP_READINGS and 2 * self._window_over > self._window:
+            self._window = self._window_over = 0
+            return True
+        if self._window >= 2 * STEP_READINGS:
+            self._window = self._window_over = 0
+        return False
 
     def _state(self, name: str, *, keep_since: bool) -> OverloadState:
         load = self._last

@@ -86,6 +86,25 @@ def test_a_lag_between_half_the_budget_and_the_budget_neither_sheds_more_nor_res
     assert units.settings["b"] == REDUCED and guard.state.state == "overloaded"
 
 
+def test_a_step_comes_when_most_readings_are_over_though_not_all_in_a_row() -> None:
+    """A probe that lands between two long callbacks reads a short lag: readings alternating over
+    and under the budget (3 in 4 over) still shed one step per STEP_READINGS readings; fewer than
+    half over never does, and nor does a lag between half the budget and the budget restore."""
+    units = _Units({"a": 1, "b": 2, "c": 3})
+    guard = _guard(units)
+    _feed(guard, 60, ENTER_READINGS)
+    assert units.settings == {"a": 0, "b": 0, "c": REDUCED}
+    for _ in range(STEP_READINGS // 4):
+        _feed(guard, 60, 1)
+        _feed(guard, 2, 1)
+        _feed(guard, 60, 2)
+    assert units.settings["c"] == PAUSED and units.settings["b"] == 0
+    for _ in range(5 * STEP_READINGS):  # one in three over: no step
+        _feed(guard, 60, 1)
+        _feed(guard, 40, 2)
+    assert units.settings == {"a": 0, "b": 0, "c": PAUSED}
+
+
 class Hog(Unit):
     """Every 2 ms, works 20 ms on the CPU and publishes: more than its lane can give it."""
 
