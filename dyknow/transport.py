@@ -588,6 +588,68 @@ class _Entity:
         self.undeclare()
 
 
+class _HistorySubscriber(_Entity):
+    """Zenoh's advanced subscriber with history (rmw_zenoh's transient-local durability), declared
+    again while it has received nothing: a router (a manager) that has just linked may not have
+    its neighbour's cache routed yet when the subscriber asks for history and sees the late
+    publisher's token, and the latched sample was then never asked for again (a transient-local
+    ``/map`` missed by a subscriber that joined late; Zenoh 1.10). Once a sample came, the
+    subscriber stays as it is (asking again would deliver the cache twice)."""
+
+    def __init__(self, session: zenoh.Session, key: str, callback: Callable[[zenoh.Sample], None]) -> None:
+        import zenoh.ext as zext  # (an extension: unstable API)
+
+        self._zext: Any = zext
+        self._session = session
+        self._key = key
+        self._callback = callback
+        self._lock = threading.Lock()
+        self._received = False
+        self._timer: threading.Timer | None = None
+        super().__init__(self._declare())
+        self._schedule(0)
+
+    def _declare(self) -> Any:
+        zext = self._zext
+        return zext.declare_advanced_subscriber(
+            self._session, self._key, self._on_sample, history=zext.HistoryConfig(detect_late_publishers=True)
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        self._received = True
+        self._callback(sample)
+
+    def _schedule(self, attempt: int) -> None:
+        delays = (0.5, 1.0, 2.0, 4.0, 8.0)  # s, while nothing was received (a 15.5 s window)
+        if attempt >= len(delays):
+            return
+        timer = threading.Timer(delays[attempt], self._again, (attempt,))
+        timer.daemon = True
+        self._timer = timer
+        timer.start()
+
+    def _again(self, attempt: int) -> None:
+        with self._lock:
+            if self._received or self._handle is None:
+                return
+            try:
+                fresh = self._declare()
+            except zenoh.ZError:
+                return  # the session closed meanwhile
+            old, self._handle = self._handle, fresh
+        with contextlib.suppress(zenoh.ZError):
+            old.undeclare()
+        self._schedule(attempt + 1)
+
+    def undeclare(self) -> None:
+        """Stop receiving; safe twice."""
+        with self._lock:
+            timer, self._timer = self._timer, None
+            if timer is not None:
+                timer.cancel()
+            super().undeclare()
+
+
 class Publisher(_Entity):
     """Publishes dyknow messages on one concrete key, to other sessions only.
 
@@ -1124,11 +1186,7 @@ class Session:
 
         try:
             if history:
-                import zenoh.ext as zext
-
-                sub: Any = zext.declare_advanced_subscriber(
-                    self._z(), key, callback, history=zext.HistoryConfig(detect_late_publishers=True)
-                )
+                return _HistorySubscriber(self._z(), key, callback)
             else:
                 sub = self._z().declare_subscriber(key, callback)
         except zenoh.ZError as exc:

@@ -212,6 +212,26 @@ def test_a_transient_local_output_reaches_a_late_subscriber(make_manager: Callab
     assert b.unit("late").wait_for(1, timeout_s=20)[0].payload == "the map"  # type: ignore[attr-defined]
 
 
+def test_every_late_subscriber_gets_the_latched_message_however_new_its_link(make_manager: Callable[..., Manager]) -> None:
+    """Managers are Zenoh routers: one that has just linked may not have its neighbour's cache
+    routed yet when its subscriber asks for history, and Zenoh never asked again (the second and
+    third pairs of a process missed the latched message every time). The subscriber is declared
+    again while it has received nothing, and gets it once."""
+    for domain in (11, 12, 13):
+        port = free_port()
+        a = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=domain)
+        a.spawn("publisher", "latched", bindings={"out": "ros2:/map?type=std_msgs/msg/String&durability=transient_local&depth=1"})
+        a.unit("latched").emit(f"map {domain}")  # type: ignore[attr-defined]
+        b = make_manager(connect=[f"tcp/127.0.0.1:{port}"], ros2_domain=domain)
+        b.spawn("sink", "late", bindings={"in": "ros2:/map?type=std_msgs/msg/String&durability=transient_local&depth=1"})
+        late = b.unit("late")
+        assert late.wait_for(1, timeout_s=20)[0].payload == f"map {domain}"  # type: ignore[attr-defined]
+        a.unit("latched").emit("after")  # type: ignore[attr-defined]
+        assert [m.payload for m in late.wait_for(2, timeout_s=20)] == [f"map {domain}", "after"]  # type: ignore[attr-defined]
+        b.close()
+        a.close()
+
+
 def test_the_readmes_relay_echoes_a_topic(make_manager: Callable[..., Manager]) -> None:
     port = free_port()
     robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=8)  # generic.xml has the relay
