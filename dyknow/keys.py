@@ -11,6 +11,8 @@ matches a service)::
     dyknow/measurements/<name>                a measurement for every manager (measurement_key)
     dyknow/<manager>/measurements/<name>      a measurement for one manager
     @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
+    @dyknow/offers/<functor>/<args>/<manager> a manager offers a tag (offer_token; dyknow.federation)
+    @dyknow/clocks/<clock id>/<manager>       whose clock an id is (clock_token; dyknow.clocks)
     @dyknow/<manager>/summary                 what a manager offers the others (summary_key)
     @dyknow/<manager>/clock                   a manager's clock exchanges (clock_key; dyknow.clocks)
     @dyknow/<manager>/<service>               a manager's services (manager_service_key)
@@ -46,12 +48,19 @@ __all__ = [
     "check_label",
     "check_name",
     "clock_key",
+    "clock_token",
+    "clocks_of",
     "default_key",
     "event_key",
     "label_problem",
     "manager_of_token",
     "manager_prefix",
     "manager_service_key",
+    "manager_of_offer",
+    "OFFERS",
+    "offer_token",
+    "offers_of",
+    "offers_pattern",
     "manager_token",
     "managers_pattern",
     "measurement_key",
@@ -281,6 +290,57 @@ def manager_of_token(key: str) -> str | None:
     prefix = f"{SERVICE_ROOT}/"
     rest = key[len(prefix) :] if key.startswith(prefix) else ""
     return rest if rest and "/" not in rest else None
+
+
+#: The chunk under which managers announce the tags they offer (see :func:`offer_token`).
+OFFERS = "offers"
+
+
+def _offer_chunk(text: str) -> str:
+    return "".join(c if c not in _UNSAFE_IN_CHUNK else "_" for c in text) or "_"
+
+
+def _offer_args(args: tuple[str, ...]) -> str:
+    return "(" + ",".join(_offer_chunk(a) for a in args) + ")"
+
+
+def offer_token(functor: str, args: tuple[str, ...], manager: str) -> str:
+    """The liveliness token by which ``manager`` says it offers streams tagged ``functor(args)``:
+    ``@dyknow/offers/<functor>/(<arg>,...)/<manager>``, functor and arguments by their local names
+    (unsafe characters as ``_``). An index, not the truth: a planner that finds a manager here
+    reads its summary, and plans on what the summary says. The arguments' chunk starts with ``(``,
+    which no unit name does, so no offer is ever a service key of a manager named ``offers``."""
+    return f"{SERVICE_ROOT}/{OFFERS}/{_offer_chunk(functor)}/{_offer_args(args)}/{manager}"
+
+
+def offers_pattern(functor: str, args: tuple[str, ...]) -> str:
+    """The key expression of every manager's offer of ``functor(args)`` (one Zenoh query finds them)."""
+    return offer_token(functor, args, "*")
+
+
+def clock_token(clock: int, manager: str) -> str:
+    """The liveliness token by which ``manager`` says whose clock ``clock`` (a 32-bit id) is:
+    ``@dyknow/clocks/<id, 8 hex digits>/<manager>``. A manager that receives data stamped by a
+    clock it does not know asks who has it, and estimates that manager's clock (:mod:`dyknow.clocks`)."""
+    return f"{SERVICE_ROOT}/clocks/{clock:08x}/{manager}"
+
+
+def clocks_of(manager: str) -> str:
+    """The key expression of ``manager``'s clock token, whatever its clock."""
+    return f"{SERVICE_ROOT}/clocks/*/{manager}"
+
+
+def offers_of(manager: str) -> str:
+    """The key expression of every offer ``manager`` may announce: ``@dyknow/offers/*/*/<manager>``."""
+    return f"{SERVICE_ROOT}/{OFFERS}/*/*/{manager}"
+
+
+def manager_of_offer(key: str) -> str | None:
+    """The manager an offer token names, or None for another key."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != SERVICE_ROOT or parts[1] != OFFERS or not _NAME.fullmatch(parts[4]):
+        return None
+    return parts[4]
 
 
 def port_token(key: str) -> str:

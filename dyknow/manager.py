@@ -36,7 +36,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -247,6 +247,8 @@ class Manager:
         self._started_ns = time.time_ns()
         self._directory: Directory | None = None
         self._clocks: clocks.ClockTracker | None = None  # the peers' clock offsets (dyknow.clocks)
+        self._clock_token: Any = None  # says whose clock this process's clock id is
+        self._clocks_asked: dict[int, float] = {}  # unknown clock ids asked about -> when (monotonic)
         self._bus = LocalBus()
         self._receiver = Receiver(self._session, self.name)
         self._guard = OverloadGuard(
@@ -302,9 +304,16 @@ class Manager:
                 raise
         if federate if federate is not None else serve:
             try:
-                self._clocks = clocks.ClockTracker(self._session, in_use=self._peers_in_use)
+                # clocks on demand: those of the managers this one exchanges data or calls with (issue 40)
+                self._clocks = clocks.ClockTracker(self._session, in_use=self._peers_in_use, wanted=self._clock_peers)
+                self._clock_token = self._session.declare_liveliness_token(keys.clock_token(CLOCK_ID, self.name))
                 self._directory = Directory(
-                    self._session, self.name, summarize=self.summary, fetch=self._fetch_summary, on_change=self._peer_changed
+                    self._session,
+                    self.name,
+                    summarize=self.summary,
+                    fetch=self._fetch_summary,
+                    on_change=self._peer_changed,
+                    in_use=self._peers_in_use,
                 )
             except DyKnowError:
                 self.close()
@@ -356,6 +365,8 @@ class Manager:
             self._directory.close(timeout_s / 4)
         if self._clocks is not None:
             self._clocks.close()
+        if self._clock_token is not None:
+            self._clock_token.undeclare()
         per_unit = min(0.5, timeout_s / max(1, len(proxies)))
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
@@ -1215,6 +1226,15 @@ class Manager:
         """The other managers this one reaches, with their last summary (empty when not federated)."""
         return self._directory.peers() if self._directory is not None else {}
 
+    def discover(self, wanted: Collection[tuple[str, tuple[str, ...]]]) -> bool:
+        """Find the managers that offer the tags ``wanted`` and follow them (see
+        :meth:`dyknow.federation.Directory.discover`); True when one was added."""
+        return self._directory.discover(wanted) if self._directory is not None else False
+
+    def reachable(self) -> set[str]:
+        """The names of the other managers whose liveliness token is up (followed or not)."""
+        return self._directory.alive() if self._directory is not None else set()
+
     def _peers_in_use(self) -> set[str]:
         """The managers this one exchanges data and calls with: those whose units its requests
         use, and those whose requests its units serve."""
@@ -1227,6 +1247,8 @@ class Manager:
         """This manager's model changed: the other managers hear of it (a summary, debounced)."""
         if self._directory is not None:
             self._directory.changed()
+        if self._clocks is not None:
+            self._clocks.reconcile()  # a manager may be in use now, or no longer
 
     def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
         """Spawn a unit on another manager, through its spawn service, for a request of this one."""
@@ -1245,13 +1267,50 @@ class Manager:
     def _fetch_summary(self, manager: str) -> bytes:
         return json.dumps(self._peers.call_manager(manager, "get_summary", {})).encode()
 
+    def _clock_peers(self) -> dict[str, tuple[str, int]]:
+        """The managers whose clocks to estimate (on demand, issue 40): those this one exchanges
+        data or calls with, and those whose clocks stamp data it received with no offset known.
+        Such a clock id of a manager not followed yet is looked up by its clock token (at most
+        8 ids a second, each once in 10 s): its manager is then followed, and tracked next round."""
+        directory = self._directory
+        if directory is None:
+            return {}
+        peers = directory.peers()
+        used = self._peers_in_use()
+        unknown = clocks.CLOCKS.unknown()
+        wanted = {
+            name: (keys.clock_key(name), s.clock)
+            for name, s in peers.items()
+            if s.clock and s.clock != CLOCK_ID and (name in used or s.clock in unknown)  # one process, one clock: nothing to estimate
+        }
+        now = time.monotonic()
+        for clock, at in list(self._clocks_asked.items()):
+            if now - at > 10.0:
+                del self._clocks_asked[clock]
+        known = {s.clock for s in peers.values()}
+        for clock in sorted(unknown - known)[:8]:
+            if clock in self._clocks_asked or len(self._clocks_asked) >= 1024:
+                continue
+            self._clocks_asked[clock] = now
+
+            def found(tokens: list[str], count: int, clock: int = clock) -> None:
+                for token in tokens:
+                    name = token.rpartition("/")[2]
+                    if name != self.name:
+                        directory.follow(name)
+
+            try:
+                self._session.ask_alive(keys.clock_token(clock, "*"), timeout_s=1.0, limit=2, done=found)
+            except DyKnowError as exc:
+                log.debug("no answer about clock %08x: %s", clock, exc)
+        return wanted
+
     def _peer_changed(self, kind: str, manager: str) -> None:
         if self._clocks is not None:
-            summary = self.peers().get(manager) if kind != "lost" else None
             if kind == "lost":
                 self._clocks.untrack(manager)
-            elif summary is not None and summary.clock and summary.clock != CLOCK_ID:  # one process, one clock: nothing to estimate
-                self._clocks.track(manager, keys.clock_key(manager), summary.clock)
+            else:
+                self._clocks.reconcile()  # maybe one to estimate now
         if kind == "lost":
             with self._lock:
                 orphans = [unit for unit, owner in self._owners.items() if owner == manager]
@@ -1297,6 +1356,8 @@ class Manager:
     def _serve_spawn(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         owner = request.get("owner")
         log.info("spawn %s for %s", request.get("name"), owner)
+        if owner and self._directory is not None:
+            self._directory.follow(str(owner), at_once=True)  # its loss (or goodbye) is this one's concern now
         info = self.spawn(
             request["label"],
             request["name"],
