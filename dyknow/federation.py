@@ -59,6 +59,7 @@ _MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
 _MAX_TODO = 100_000  # changes waiting for the directory's thread
 _DISCOVER_TIMEOUT_S = 1.0
 _FETCHERS = 8  # summaries fetched at once
+_GIVE_UP_ASKS, _GIVE_UP_S = 5, 10.0  # a manager followed that gives no summary for that long is let go
 #: The most tags a manager announces as offer tokens; the rest are found only through its summary.
 MAX_OFFERS = 1_024
 #: The most providers of one tag whose summaries a planner reads.
@@ -230,6 +231,8 @@ class Directory:
         self._summaries: dict[str, Summary] = {}
         self._followed: dict[str, Any] = {}  # manager -> its summary subscriber (oldest use first)
         self._to_follow: set[str] = set()  # managers follow() was asked for, not followed yet
+        self._fetching: set[str] = set()  # managers asked for their summaries now (on a fetcher)
+        self._failures: dict[str, tuple[int, float]] = {}  # manager -> (asks in vain in a row, since when)
         self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
         self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
         self._offers: dict[str, Any] = {}  # this manager's offer tokens, by key
@@ -602,7 +605,7 @@ class Directory:
                 # alive, but no summary yet (its fetch failed): ask again, sooner at first
                 for m in sorted((self._alive & set(self._followed)) - set(self._summaries)):
                     at, _ = self._retry_at.setdefault(m, (now + _RETRY_S, _RETRY_S))
-                    if at <= now and not any(t[1] == m for t in todo):
+                    if at <= now and m not in self._fetching and not any(t[1] == m for t in todo):
                         todo.append(("retry", m, None))
                 for m in [m for m in self._retry_at if m not in self._alive or m in self._summaries or m not in self._followed]:
                     del self._retry_at[m]
@@ -623,7 +626,7 @@ class Directory:
     def _handle(self, kind: str, manager: str, data: bytes | None) -> None:
         with self._lock:
             followed = manager in self._followed
-        if kind != "retry" and (followed or kind == "lost"):
+        if kind not in ("retry", "fetched") and (followed or kind == "lost"):
             log.log(logging.INFO if followed else logging.DEBUG, "directory of %r: %s %r", self.name, kind, manager)
         if kind == "lost":
             with self._lock:
@@ -663,8 +666,17 @@ class Directory:
                 return
             if not wanted:
                 return  # not followed (its name is all this manager keeps), or not up
-            data = self._fetch_summary(manager)
+            self._fetch_soon(manager)  # on a fetcher: a manager slow to answer holds up no other
+            return
+        if kind == "fetched":
+            with self._lock:
+                self._fetching.discard(manager)
+                count, first = self._failures.pop(manager, (0, time.monotonic()))
+                if data is None:
+                    self._failures[manager] = (count + 1, first)
             if data is None:
+                if count + 1 >= _GIVE_UP_ASKS and time.monotonic() - first >= _GIVE_UP_S:
+                    self._let_go(manager)
                 return
             kind = "found"
         assert data is not None
@@ -688,6 +700,45 @@ class Directory:
             alive = manager in self._alive
         if alive:
             self._on_change("found" if kind == "found" or old is None else "changed", manager)
+
+    def _let_go(self, manager: str) -> None:
+        """Stop following a manager that never gave its summary (a token with no manager behind
+        it, say), unless it is in use: its place among the candidates is free again."""
+        used = set(self._in_use()) if self._in_use is not None else set()
+        if manager in used:
+            return
+        with self._lock:
+            sub = self._followed.pop(manager, None)
+            self._retry_at.pop(manager, None)
+            self._failures.pop(manager, None)
+            for providers in self._candidates.values():
+                providers.discard(manager)
+        if sub is not None:
+            sub.undeclare()
+        self._bound(
+            f"silent {manager}",
+            f"directory of {self.name!r}: not following {manager!r} any more: no summary after {_GIVE_UP_ASKS} asks in "
+            f"{_GIVE_UP_S:g} s (its tokens say it offers what a plan needs; nothing answers for it)",
+        )
+
+    def _fetch_soon(self, manager: str) -> None:
+        """Ask ``manager`` for its summary on a fetcher thread; the answer comes back to the
+        directory's thread as a "fetched" change (None: no answer, asked again later)."""
+        with self._lock:
+            if manager in self._fetching or self._closed:
+                return
+            self._fetching.add(manager)
+        try:
+            self._fetchers().submit(self._fetch_job, manager)
+        except RuntimeError:  # (closed meanwhile)
+            with self._lock:
+                self._fetching.discard(manager)
+
+    def _fetch_job(self, manager: str) -> None:
+        data = self._fetch_summary(manager)
+        with self._lock:
+            self._todo.append(("fetched", manager, data))  # (not bounded by _MAX_TODO: one per manager followed)
+        self._wake.set()
 
     def _fetch_summary(self, manager: str) -> bytes | None:
         try:

@@ -62,6 +62,7 @@ __all__ = [
     "offers_of",
     "offers_pattern",
     "manager_token",
+    "managers_matching",
     "managers_pattern",
     "measurement_key",
     "measurement_patterns",
@@ -283,6 +284,26 @@ def manager_token(manager: str) -> str:
 def managers_pattern() -> str:
     """The key expression of every manager's liveliness token."""
     return manager_token("*")
+
+
+_GLOB = re.compile(r"[A-Za-z0-9_.*?\[\]!-]+")
+
+
+def managers_matching(glob: str) -> str:
+    """The key expression of the liveliness tokens of the managers whose names match ``glob``
+    (``*`` any text, ``?`` one character, ``[...]`` a set, as in a shell): ``robot-*`` asks Zenoh
+    for ``@dyknow/robot-$*`` only. ``?`` and sets are matched by the caller (:func:`fnmatch.fnmatchcase`)
+    within what the key expression finds. :class:`UnitError` for a glob that cannot match a name."""
+    if not _GLOB.fullmatch(glob) or len(glob.encode()) > MAX_NAME_BYTES:
+        raise UnitError(
+            f"manager pattern {glob[:200]!r} cannot match a manager name",
+            expected="letters, digits, '_', '-', '.', and the wildcards '*', '?' and '[...]', like 'robot-*'",
+        )
+    if "?" in glob or "[" in glob:
+        return managers_pattern()  # (Zenoh has no one-character wildcard: filtered after)
+    if glob == "*":
+        return managers_pattern()
+    return manager_token(re.sub(r"\*+", "$*", glob))
 
 
 def manager_of_token(key: str) -> str | None:

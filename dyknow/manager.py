@@ -1332,6 +1332,12 @@ class Manager:
             )
         self._adaptation.peer_changed(kind, manager)
 
+    def _brief(self) -> dict[str, Any]:
+        """What a listing of the managers shows (``get_summary`` with ``brief``): counts, no library."""
+        with self._lock:
+            units = sum(1 for p in self._units.values() if p.label != ANCHOR_LABEL)
+        return {"manager": self.name, "host": self.host, "specs": len(self.library), "units": units, "requests": len(self._adaptation.requests())}
+
     def _manager_handlers(self) -> dict[str, service.Handler]:
         return {
             "add_transformation": lambda r, c: {"labels": self.add_transformation(r["xml"], path=r.get("path") or "<remote>", remote=True)},
@@ -1344,7 +1350,7 @@ class Manager:
             "monitor": self._serve_monitor,
             "measure": self._serve_measure,
             "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
-            "get_summary": lambda r, c: self.summary().to_dict(),
+            "get_summary": lambda r, c: self._brief() if r.get("brief") else self.summary().to_dict(),
             "get_load": lambda r, c: self.load(),
             "get_metrics": lambda r, c: self.metrics.snapshot(),
         }
