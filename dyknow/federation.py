@@ -253,6 +253,8 @@ class Directory:
         self._announce(summarize())  # its offers before its token: whoever sees it can find what it offers
         self._token = session.declare_liveliness_token(keys.manager_token(name))
         self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._liveliness)
+        self._goodbye_watch = session.declare_liveliness_subscriber(keys.goodbye_token("*"), self._goodbye_token)
+        self._goodbye: Any = None  # this manager's goodbye token, as it stops
         self.changed()
 
     # -- what is known
@@ -414,7 +416,8 @@ class Directory:
             return
         self._said_goodbye = True
         try:
-            self._session.put(keys.summary_key(self.name), GOODBYE)
+            self._goodbye = self._session.declare_liveliness_token(keys.goodbye_token(self.name))  # for every manager
+            self._session.put(keys.summary_key(self.name), GOODBYE)  # (and for those following it, as before)
         except DyKnowError as exc:
             log.debug("directory of %r: no goodbye: %s", self.name, exc)
 
@@ -426,7 +429,8 @@ class Directory:
         self._settle.set()
         self.say_goodbye()
         with self._lock:
-            entities = [self._watch, *self._followed.values(), *self._offer_watch.values(), *self._offers.values(), self._token]
+            entities = [self._watch, self._goodbye_watch, *self._followed.values(), *self._offer_watch.values(), *self._offers.values(),
+                        self._token, self._goodbye]  # fmt: skip
             self._followed.clear()
             self._offer_watch.clear()
             self._offers.clear()
@@ -563,17 +567,25 @@ class Directory:
             return
         self._queue("offer", manager, None)
 
+    def _goodbye_token(self, key: str, alive: bool) -> None:
+        manager = key.rpartition("/")[2]
+        if alive and manager != self.name and keys.manager_of_token(keys.manager_token(manager)) == manager:
+            self._said_goodbye_by(manager)
+
+    def _said_goodbye_by(self, manager: str) -> None:
+        with self._lock:
+            self._goodbyes[manager] = time.monotonic()
+            while len(self._goodbyes) > _MAX_LOST:
+                del self._goodbyes[next(iter(self._goodbyes))]
+            if manager in self._lost:  # its token's end came first
+                self._lost[manager] = (self._lost[manager][0], STOPPED)
+
     def _summary_sample(self, key: str, payload: bytes) -> None:
         manager = key.split("/")[1] if key.count("/") == 2 else None
         if manager is None or manager == self.name:
             return
         if payload == GOODBYE:
-            with self._lock:
-                self._goodbyes[manager] = time.monotonic()
-                while len(self._goodbyes) > _MAX_LOST:
-                    del self._goodbyes[next(iter(self._goodbyes))]
-                if manager in self._lost:  # its token's end came first
-                    self._lost[manager] = (self._lost[manager][0], STOPPED)
+            self._said_goodbye_by(manager)
             return
         self._queue("summary", manager, payload)
 
@@ -630,7 +642,7 @@ class Directory:
             log.log(logging.INFO if followed else logging.DEBUG, "directory of %r: %s %r", self.name, kind, manager)
         if kind == "lost":
             with self._lock:
-                known = manager in self._alive and followed
+                known = manager in self._alive  # (every manager seen is remembered when lost: a name each, at most 1,000)
                 self._alive.discard(manager)
                 self._summaries.pop(manager, None)  # a manager that comes back starts afresh
                 self._retry_at.pop(manager, None)
@@ -640,7 +652,7 @@ class Directory:
                     self._lost[manager] = (time.time_ns(), STOPPED if stopped else _VANISHED)
                     while len(self._lost) > _MAX_LOST:
                         del self._lost[next(iter(self._lost))]
-            if known:
+            if known and followed:  # (the loss of a manager this one never followed changes nothing here)
                 self._on_change("lost", manager)
             return
         if kind == "offer":  # a provider of a tag this manager plans with, or a manager in use: follow it

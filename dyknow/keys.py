@@ -13,6 +13,7 @@ matches a service)::
     @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
     @dyknow/offers/<functor>/<args>/<manager> a manager offers a tag (offer_token; dyknow.federation)
     @dyknow/clocks/<clock id>/<manager>       whose clock an id is (clock_token; dyknow.clocks)
+    @dyknow/goodbye/<manager>                 a manager is stopping (goodbye_token)
     @dyknow/<manager>/summary                 what a manager offers the others (summary_key)
     @dyknow/<manager>/clock                   a manager's clock exchanges (clock_key; dyknow.clocks)
     @dyknow/<manager>/<service>               a manager's services (manager_service_key)
@@ -50,6 +51,7 @@ __all__ = [
     "clock_key",
     "clock_token",
     "clocks_of",
+    "goodbye_token",
     "default_key",
     "event_key",
     "label_problem",
@@ -344,6 +346,13 @@ def clock_token(clock: int, manager: str) -> str:
     ``@dyknow/clocks/<id, 8 hex digits>/<manager>``. A manager that receives data stamped by a
     clock it does not know asks who has it, and estimates that manager's clock (:mod:`dyknow.clocks`)."""
     return f"{SERVICE_ROOT}/clocks/{clock:08x}/{manager}"
+
+
+def goodbye_token(manager: str) -> str:
+    """The liveliness token a manager declares as it stops, before its others go:
+    ``@dyknow/goodbye/<manager>``. Whoever sees it tells a manager that stopped from one that
+    crashed or was cut off, without following its summary."""
+    return f"{SERVICE_ROOT}/goodbye/{manager}"
 
 
 def clocks_of(manager: str) -> str:

@@ -1071,7 +1071,7 @@ class Manager:
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
         lost = self._directory.lost() if self._directory is not None else {}
         gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
-        peers = tuple(sorted(self._directory.peers())) if self._directory is not None else ()
+        peers = tuple(sorted(self._directory.alive())) if self._directory is not None else ()  # (whose tokens are up)
         return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone, self.load(), peers)
 
     # ------------------------------------------------------------------ load (dyknow.executor, dyknow.overload)
