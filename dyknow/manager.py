@@ -249,6 +249,7 @@ class Manager:
         self._clocks: clocks.ClockTracker | None = None  # the peers' clock offsets (dyknow.clocks)
         self._clock_token: Any = None  # says whose clock this process's clock id is
         self._clocks_asked: dict[int, float] = {}  # unknown clock ids asked about -> when (monotonic)
+        self._data_peers: set[str] = set()  # managers whose data reached this one: their clocks estimated until they go
         self._bus = LocalBus()
         self._receiver = Receiver(self._session, self.name)
         self._guard = OverloadGuard(
@@ -1278,10 +1279,13 @@ class Manager:
         peers = directory.peers()
         used = self._peers_in_use()
         unknown = clocks.CLOCKS.unknown()
+        for name, s in peers.items():  # whose data arrived: kept until it goes (once known, its data says no more)
+            if s.clock in unknown and len(self._data_peers) < 256:
+                self._data_peers.add(name)
         wanted = {
             name: (keys.clock_key(name), s.clock)
             for name, s in peers.items()
-            if s.clock and s.clock != CLOCK_ID and (name in used or s.clock in unknown)  # one process, one clock: nothing to estimate
+            if s.clock and s.clock != CLOCK_ID and (name in used or name in self._data_peers)  # one process, one clock: nothing to estimate
         }
         now = time.monotonic()
         for clock, at in list(self._clocks_asked.items()):
@@ -1308,6 +1312,7 @@ class Manager:
     def _peer_changed(self, kind: str, manager: str) -> None:
         if self._clocks is not None:
             if kind == "lost":
+                self._data_peers.discard(manager)
                 self._clocks.untrack(manager)
             else:
                 self._clocks.reconcile()  # maybe one to estimate now

@@ -251,6 +251,9 @@ def test_managers_and_echo_show_clocks_as_the_manager_estimates_them(manager_pro
     b = manager_process("--connect", a.endpoint, name="clk-b")
     conn = a.client_args()
     with Client("clk-a", connect=[a.endpoint]) as client:
+        # clk-a estimates clk-b's clock once it receives clk-b's data (on demand, issue 40)
+        Client("clk-b", session=client.session).spawn("periodic-source", "feed", params={"rate_hz": 50})
+        client.spawn("relay", "fed", bindings={"in": "dyknow/clk-b/feed/out"})
         wait_until(lambda: "clk-b" in client.clocks(), "clk-a's estimate of clk-b's clock")
         other = client.clocks()["clk-b"].clock
 
