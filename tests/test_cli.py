@@ -139,7 +139,7 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
         import threading
         from dyknow import Manager
         with Manager("remote", specs=[{str(REPO / 'specs' / 'generic.xml')!r}], connect={manager.endpoints!r}) as m:
-            m.spawn("periodic-source", "src", params={{"rate_hz": 100, "count": 300}}, bindings={{"out": "fleet/ticks"}})
+            m.spawn("periodic-source", "src", params={{"rate_hz": 100, "count": 3000}}, bindings={{"out": "fleet/ticks"}})
             threading.Event().wait()  # until the test kills it
         """
     )
@@ -148,6 +148,8 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
         sink = manager.unit("s")
         assert isinstance(sink, Sink)
         got = sink.wait_for(20, timeout_s=20)
+        # (the other process's clock is estimated once its data arrives: on demand, issue 40)
+        wait_until(lambda: manager.get_statistics("s").ports[0].hop.count > 0, "a hop corrected by the remote's clock")
     finally:
         child.kill()
         child.wait(10)
