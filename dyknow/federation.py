@@ -59,7 +59,7 @@ _MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
 _MAX_TODO = 100_000  # changes waiting for the directory's thread
 _DISCOVER_TIMEOUT_S = 1.0
 _FETCHERS = 8  # summaries fetched at once
-_GIVE_UP_ASKS, _GIVE_UP_S = 5, 10.0  # a manager followed that gives no summary for that long is let go
+_GIVE_UP_ASKS, _GIVE_UP_S = 10, 30.0  # a manager followed that gives no summary for that long is let go (followed again if it restarts)
 #: The most tags a manager announces as offer tokens; the rest are found only through its summary.
 MAX_OFFERS = 1_024
 #: The most providers of one tag whose summaries a planner reads.
@@ -233,6 +233,7 @@ class Directory:
         self._to_follow: set[str] = set()  # managers follow() was asked for, not followed yet
         self._fetching: set[str] = set()  # managers asked for their summaries now (on a fetcher)
         self._failures: dict[str, tuple[int, float]] = {}  # manager -> (asks in vain in a row, since when)
+        self._dropped: dict[str, None] = {}  # managers let go for giving no summary: followed again when they come back
         self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
         self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
         self._offers: dict[str, Any] = {}  # this manager's offer tokens, by key
@@ -660,6 +661,14 @@ class Directory:
             with self._lock:
                 self._to_follow.discard(manager)
             kind = "retry"  # fetched below if its token is up (else when its token comes)
+        if kind == "found":
+            with self._lock:
+                again = manager in self._dropped and manager not in self._alive
+                if again:
+                    del self._dropped[manager]
+            if again:  # it was let go for giving no summary; this is a new start of it: give it its chance again
+                self._follow(manager)
+                followed = True
         if kind in ("found", "retry"):
             with self._lock:
                 new = manager not in self._alive
@@ -723,8 +732,12 @@ class Directory:
             sub = self._followed.pop(manager, None)
             self._retry_at.pop(manager, None)
             self._failures.pop(manager, None)
+            self._summaries.pop(manager, None)
             for providers in self._candidates.values():
                 providers.discard(manager)
+            self._dropped[manager] = None  # followed again if it comes back (its token goes, then up again)
+            while len(self._dropped) > _MAX_LOST:
+                del self._dropped[next(iter(self._dropped))]
         if sub is not None:
             sub.undeclare()
         self._bound(

@@ -143,3 +143,37 @@ def test_offers_and_fake_providers_are_bounded(make_manager: Callable[..., Manag
         for entity in held:
             entity.undeclare()
     assert {info.key for info in requester.requests()} == {wanted, many}  # what ran before runs on
+
+
+def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_when_it_starts_anew(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A token with nobody behind it (its summary never comes) is let go after the asks in vain
+    (here 2 over 0.5 s, 10 over 30 s in the product), with a warning; if that manager's token
+    goes and comes back (a new start of it), it is followed again."""
+    from dyknow import federation
+    from dyknow.errors import DyKnowError
+    from dyknow.federation import Directory, Summary
+
+    monkeypatch.setattr(federation, "_GIVE_UP_ASKS", 2)
+    monkeypatch.setattr(federation, "_GIVE_UP_S", 0.5)
+    asked: list[str] = []
+
+    def fetch(manager: str) -> bytes:
+        asked.append(manager)
+        raise DyKnowError("nobody answers", where=f"manager {manager!r}")
+
+    port = free_port()
+    with Session(make_config(listen=[f"tcp/127.0.0.1:{port}"])) as one, Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as two:
+        a = Directory(one, "a", summarize=lambda: Summary("a", "a-host", 1), fetch=fetch, on_change=lambda k, m: None)
+        try:
+            token = two.declare_liveliness_token(keys.manager_token("ghost"))
+            wait_until(lambda: "ghost" in a.alive(), "the ghost's token")
+            assert a.follow("ghost", at_once=True) and "ghost" in a.followed()
+            wait_until(lambda: "ghost" not in a.followed(), "the ghost let go")
+            assert a.refused().get("silent") == 1 and len(asked) >= 2
+            token.undeclare()
+            wait_until(lambda: "ghost" not in a.alive(), "the ghost's token gone")
+            token = two.declare_liveliness_token(keys.manager_token("ghost"))  # a new start of it
+            wait_until(lambda: "ghost" in a.followed(), "the ghost followed again")
+            token.undeclare()
+        finally:
+            a.close()
