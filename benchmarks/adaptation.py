@@ -265,7 +265,7 @@ def run_idle(managers: int, providers: int, hold_s: float) -> dict[str, Any]:
             if 1 <= i <= providers:
                 fleet[-1].add_transformation(SHARED)
         deadline = time.monotonic() + 60
-        while not all(len(m.peers()) == managers - 1 for m in fleet):
+        while not all(len(m.reachable()) == managers - 1 for m in fleet):
             if time.monotonic() > deadline:
                 raise RuntimeError("the managers did not find each other within 60 s")
             time.sleep(0.05)

@@ -73,6 +73,9 @@ _DATA = f"{keys.DATA_ROOT}/**"
 _SERVICES = f"{keys.SERVICE_ROOT}/**"
 _MANAGERS = keys.managers_pattern()
 _SUMMARIES = keys.summaries_pattern()
+_OFFERS = f"{keys.SERVICE_ROOT}/{keys.OFFERS}/**"  # (dyknow.keys.offer_token: what the managers offer)
+_CLOCKS = keys.clocks_of("*")  # (dyknow.keys.clock_token: whose clock an id is)
+_GOODBYES = keys.goodbye_token("*")
 _HOLDERS = f"{keys.DATA_ROOT}/*/*/*/holders/*"  # (dyknow.holders: <request or monitor key>/holders/<client>)
 # The services each role may call, besides those of the roles before it (any manager, any unit).
 _SERVICES_OF = {
@@ -372,9 +375,9 @@ _RULES: dict[str, list[dict[str, Any]]] = {
             "viewer-subscribes",
             "ingress",
             ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
-            [_DATA, _MANAGERS, _SUMMARIES],
+            [_DATA, _MANAGERS, _SUMMARIES, _OFFERS, _CLOCKS, _GOODBYES],
         ),
-        _rule("viewer-receives", "egress", ["put", "delete", "liveliness_token"], [_DATA, _MANAGERS, _SUMMARIES]),
+        _rule("viewer-receives", "egress", ["put", "delete", "liveliness_token"], [_DATA, _MANAGERS, _SUMMARIES, _OFFERS, _CLOCKS, _GOODBYES]),
         _rule("viewer-sees-services", "egress", ["declare_queryable", "reply"], [_SERVICES]),
     ],
     "operator": [
@@ -394,7 +397,7 @@ _RULES: dict[str, list[dict[str, Any]]] = {
             "manager-subscribes",
             "ingress",
             ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
-            [_DATA, _MANAGERS, _SUMMARIES],
+            [_DATA, _MANAGERS, _SUMMARIES, _OFFERS, _CLOCKS, _GOODBYES],
         ),
         _rule("manager-receives", "egress", _ALL_MESSAGES, _EVERYTHING),
     ],
@@ -410,7 +413,7 @@ def _own_rules(subject: str, manager: str) -> list[dict[str, Any]]:
     """What only the manager named ``manager`` may do: serve, announce and summarise under its name."""
     return [
         _rule(f"{subject}-serves", "ingress", ["declare_queryable", "reply"], [keys.services_pattern(manager)]),
-        _rule(f"{subject}-announces", "ingress", ["liveliness_token"], [keys.manager_token(manager)]),
+        _rule(f"{subject}-announces", "ingress", ["liveliness_token"], [keys.manager_token(manager), keys.offers_of(manager), keys.clocks_of(manager), keys.goodbye_token(manager)]),
         _rule(f"{subject}-summarises", "ingress", ["put"], [keys.summary_key(manager)]),
     ]
 

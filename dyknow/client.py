@@ -18,6 +18,7 @@ Usage::
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import logging
 import math
@@ -26,6 +27,7 @@ import secrets
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -629,30 +631,75 @@ class Client:
 
     # ------------------------------------------------------------------ every manager
 
-    def manager_names(self, timeout_s: float = 1.0) -> list[str]:
-        """The names of the managers reachable now (their liveliness tokens), sorted."""
-        found = (keys.manager_of_token(k) for k in self._session.alive(keys.managers_pattern(), timeout_s=self._budget(timeout_s)))
-        return sorted(m for m in found if m is not None)
+    def manager_names(self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*") -> list[str]:
+        """The names of the managers reachable now (their liveliness tokens), sorted; ``match``:
+        only those whose names match one of these globs (``robot-*``), asked of Zenoh as such.
 
-    def managers(self, timeout_s: float = 1.0) -> list[dict[str, Any]]:
-        """Every manager reachable: ``{"manager", "host", "specs", "units", "requests"}``, by name.
+        One liveliness query per glob: a name each (tens of bytes), however many managers there
+        are; their summaries and models are read a page at a time (:meth:`managers_page`)."""
+        globs = [match] if isinstance(match, str) else list(match)
+        found: set[str] = set()
+        for glob in globs or ["*"]:
+            pattern = keys.managers_matching(glob)
+            names = (keys.manager_of_token(k) for k in self._session.alive(pattern, timeout_s=self._budget(timeout_s)))
+            found.update(m for m in names if m is not None and fnmatch.fnmatchcase(m, glob))
+        return sorted(found)
 
-        A manager that vanishes while asked is left out.
-        """
-        out = []
-        for name in self.manager_names(timeout_s):
+    def managers_page(
+        self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*", limit: int = 100, after: str | None = None
+    ) -> dict[str, Any]:
+        """One page of :meth:`managers`: ``{"managers": [...], "next": name or None, "total": n}``.
+
+        The managers matching ``match`` whose names sort after ``after`` (a previous page's
+        ``next``), at most ``limit`` of them; ``next`` is the name to pass as ``after`` for the
+        following page (None on the last), ``total`` how many match in all. Only the page's
+        managers are asked for their summaries (8 at once, each a brief one: counts, no library)."""
+        if limit < 1:
+            raise ServiceError(f"a page of {limit} managers", where="managers_page", expected="a limit of at least 1")
+        names = self.manager_names(timeout_s, match=match)
+        rest = [n for n in names if after is None or n > after]
+        page = rest[:limit]
+
+        def brief(name: str) -> dict[str, Any] | None:
             try:
-                summary = self.call_manager(name, "get_summary", {})
+                try:
+                    summary = self.call_manager(name, "get_summary", {"brief": True})
+                except ServiceError as exc:
+                    if "unknown field 'brief'" not in str(exc):
+                        raise
+                    summary = self.call_manager(name, "get_summary", {})  # an older manager: its whole summary
             except ServiceError:
-                continue
-            out.append({
-                "manager": name,
-                "host": summary.get("host", ""),
-                "specs": len(summary.get("specs", [])),
-                "units": len(summary.get("units", [])),
-                "requests": summary.get("requests", 0),
-            })  # fmt: skip
-        return out
+                return None  # it vanished while asked: left out
+            if not isinstance(summary, dict):
+                return None
+
+            def count(field: str) -> int:
+                value = summary.get(field, 0)
+                return len(value) if isinstance(value, list) else value if isinstance(value, int) and not isinstance(value, bool) else 0
+
+            return {"manager": name, "host": str(summary.get("host", ""))[:256], "specs": count("specs"), "units": count("units"),
+                    "requests": count("requests")}  # fmt: skip
+
+        with ThreadPoolExecutor(min(8, max(1, len(page)))) as pool:
+            listed = [m for m in pool.map(brief, page) if m is not None]
+        return {"managers": listed, "next": page[-1] if len(rest) > limit else None, "total": len(names)}
+
+    def managers(
+        self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*", limit: int | None = None, after: str | None = None
+    ) -> list[dict[str, Any]]:
+        """Every manager reachable (matching ``match``): ``{"manager", "host", "specs", "units",
+        "requests"}``, by name. With ``limit``, one page (see :meth:`managers_page`, which also
+        says where the next one starts). A manager that vanishes while asked is left out."""
+        if limit is not None:
+            return list(self.managers_page(timeout_s, match=match, limit=limit, after=after)["managers"])
+        listed: list[dict[str, Any]] = []
+        cursor = after
+        while True:  # (a page at a time: a fleet of 1,000 is read in ten)
+            page = self.managers_page(timeout_s, match=match, limit=100, after=cursor)
+            listed.extend(page["managers"])
+            cursor = page["next"]
+            if cursor is None:
+                return listed
 
     def lost_managers(self, manager: str | None = None, *, model: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
         """The managers the manager (or ``manager``) knew and lost, and that have not come back:
@@ -668,15 +715,24 @@ class Client:
                 found.append({"manager": name[:128], "since_ns": since, "why": why[:512]})
         return found
 
-    def get_federated_model(self, timeout_s: float = 1.0) -> dict[str, Any]:
-        """The model of every manager reachable: ``{"managers": [model, ...]}``, each as :meth:`get_model`."""
+    def get_federated_model(
+        self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*", limit: int | None = None, after: str | None = None
+    ) -> dict[str, Any]:
+        """The model of every manager reachable (matching ``match``): ``{"managers": [model, ...],
+        "next": name or None}``, each as :meth:`get_model`. With ``limit``, one page of at most
+        that many managers after ``after``; ``next`` is where the following page starts (None on
+        the last). Only the page's managers are asked."""
+        if limit is not None and limit < 1:
+            raise ServiceError(f"a page of {limit} managers", where="get_federated_model", expected="a limit of at least 1")
+        names = [n for n in self.manager_names(timeout_s, match=match) if after is None or n > after]
+        page = names if limit is None else names[:limit]
         models = []
-        for name in self.manager_names(timeout_s):
+        for name in page:
             try:
                 models.append(self.get_model(name))
             except ServiceError:
                 continue
-        return {"managers": models}
+        return {"managers": models, "next": page[-1] if limit is not None and len(names) > limit else None}
 
     # ------------------------------------------------------------------ streams
 

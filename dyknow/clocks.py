@@ -79,7 +79,7 @@ import struct
 import threading
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -126,6 +126,7 @@ _BURST_S: Final = 0.06
 _PERIOD_S: Final = 1.0
 _ROUND: Final = 3  # exchanges in a row each period: the first wakes the path up (an exchange after a second idle is slow and uneven)
 _MAX_PEERS: Final = 256
+_MAX_MISSING: Final = 1024
 
 
 def request(t1_ns: int) -> bytes:
@@ -307,6 +308,27 @@ class ClockTable:
         self._uncertainty: dict[int, int] = {CLOCK_ID: 0}
         self._claims: dict[int, list[Estimator]] = {}  # clock id -> the estimators of the peers that answer with it
         self._lock = threading.Lock()
+        self._missing: dict[int, float] = {}  # clock ids seen in data with no offset known -> when (monotonic)
+
+    def missing(self, clock: int) -> None:
+        """Note that data stamped by ``clock`` arrived and its offset is not known (its manager's
+        clock is then estimated on demand: :meth:`ClockTracker.reconcile`). Bounded: 1,024 ids."""
+        if not clock or clock in self.current:
+            return
+        seen = self._missing
+        if clock in seen or len(seen) < _MAX_MISSING:
+            seen[clock] = time.monotonic()
+
+    def unknown(self, within_s: float = 10.0) -> set[int]:
+        """The clock ids seen in data within the last ``within_s`` whose offsets are not known."""
+        now = time.monotonic()
+        found = set()
+        for clock, at in list(self._missing.items()):
+            if now - at > within_s or clock in self.current:
+                self._missing.pop(clock, None)
+            else:
+                found.add(clock)
+        return found
 
     def offset(self, clock: int) -> int | None:
         """The offset (peer minus this, ns) of ``clock`` now, or None when it is not known."""
@@ -384,10 +406,20 @@ class ClockTracker:
     announce themselves (300 fake managers, say) never leave a real one without an estimate."""
 
     def __init__(
-        self, session: Session, table: ClockTable = CLOCKS, *, timeout_s: float = 1.0, in_use: Callable[[], Collection[str]] | None = None
+        self,
+        session: Session,
+        table: ClockTable = CLOCKS,
+        *,
+        timeout_s: float = 1.0,
+        in_use: Callable[[], Collection[str]] | None = None,
+        wanted: Callable[[], Mapping[str, tuple[str, int]]] | None = None,
     ) -> None:
         self._session = session
         self._in_use = in_use  # the peers one exchanges data or calls with: they never go without an estimate
+        # on demand: the peers to track (name -> (key, clock id)), asked once a second and at
+        # reconcile(); the others are let go
+        self._wanted = wanted
+        self._reconciled = 0.0
         self._table = table
         self._timeout_s = timeout_s
         self._peers: dict[str, _Peer] = {}
@@ -437,6 +469,29 @@ class ClockTracker:
         else:
             self.untrack(name)
 
+    def reconcile(self) -> None:
+        """Ask ``wanted()`` now (rather than within a second) which peers to track."""
+        self._reconciled = 0.0
+        self._wake.set()
+
+    def tracked(self) -> set[str]:
+        """The peers whose clocks are estimated now."""
+        with self._lock:
+            return set(self._peers)
+
+    def _reconcile(self) -> None:
+        if self._wanted is None:
+            return
+        try:
+            wanted = dict(self._wanted())
+        except Exception:  # (the owner's view, read on this thread: a failure skips one round)
+            log.exception("which clocks to estimate")
+            return
+        for name in self.tracked() - set(wanted):
+            self.untrack(name)
+        for name, (key, clock) in sorted(wanted.items()):
+            self.track(name, key, clock)
+
     def untrack(self, name: str) -> None:
         """Stop estimating peer ``name``'s clock (it left); its offset is forgotten."""
         with self._lock:
@@ -484,6 +539,9 @@ class ClockTracker:
                     break
                 self._take(name, peer, t1, got)
             now = time.monotonic()
+            if now - self._reconciled >= 1.0:
+                self._reconciled = now
+                self._reconcile()
             with self._lock:
                 due = [(name, peer) for name, peer in self._peers.items() if peer.next_at <= now and not peer.pending]
             for name, peer in due:

@@ -15,11 +15,15 @@ manager's units are only ever spawned by that manager, through its own services 
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
+import random
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections import Counter
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,8 +31,9 @@ from dyknow import keys
 from dyknow.errors import DyKnowError, SpecError
 from dyknow.planner import RunningUnit
 from dyknow.spec import TransformationSpec, parse_specs
+from dyknow.tags import local_name, parse_term
 
-__all__ = ["GOODBYE", "MAX_SUMMARY_BYTES", "STOPPED", "Directory", "Summary", "SummaryUnit"]
+__all__ = ["GOODBYE", "MAX_CANDIDATES", "MAX_OFFERS", "MAX_SUMMARY_BYTES", "STOPPED", "Directory", "Summary", "SummaryUnit", "offered"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +52,18 @@ _RETRY_S = 2.0
 GOODBYE = b'{"stopping":true}'
 _GOODBYE_S = 5.0  # a goodbye this recent explains a loss
 _MAX_LOST = 1_000  # lost managers remembered (names come from the network: bounded)
+# What a manager keeps of a fleet is bounded whatever the others announce (issue 40):
+_MAX_ALIVE = 10_000  # managers whose token is noticed (a name each)
+_MAX_FOLLOWED = 256  # managers whose summaries are followed (candidates, managers in use)
+_MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
+_MAX_TODO = 100_000  # changes waiting for the directory's thread
+_DISCOVER_TIMEOUT_S = 1.0
+_FETCHERS = 8  # summaries fetched at once
+_GIVE_UP_ASKS, _GIVE_UP_S = 10, 30.0  # a manager followed that gives no summary for that long is let go (followed again if it restarts)
+#: The most tags a manager announces as offer tokens; the rest are found only through its summary.
+MAX_OFFERS = 1_024
+#: The most providers of one tag whose summaries a planner reads.
+MAX_CANDIDATES = 16
 #: Why a manager is lost, when it said goodbye.
 STOPPED = "it stopped (it said goodbye)"
 _VANISHED = "its liveliness token went away without a goodbye: it crashed, or its host was cut off past its lease"
@@ -173,11 +190,21 @@ def _unit(raw: Any, manager: str) -> SummaryUnit:
 
 
 class Directory:
-    """The other managers a manager can reach, and the last summary each published.
+    """The other managers a manager plans with, and the last summary each published.
+
+    A manager follows only the managers it needs, so what it pays does not grow with the fleet
+    (issue 40). It announces each tag it offers as a liveliness token
+    (:func:`dyknow.keys.offer_token`); :meth:`discover` finds the providers of the tags a plan
+    needs with one liveliness query per tag, reads the summaries of those candidates only, and
+    follows them from then on (their summary key, and new offers of those tags). Every manager's
+    liveliness token is watched (a name each: who is reachable), but a summary is fetched only
+    from a manager followed: a candidate, or one ``in_use()`` names (it runs units for this one,
+    or this one for it).
 
     ``fetch(name)`` asks a manager for its summary (the manager's client call, bytes back);
-    ``on_change(kind, name)`` is told "found", "lost" or "changed", on the directory's thread.
-    ``summarize()`` gives this manager's own summary, published by :meth:`changed` (debounced).
+    ``on_change(kind, name)`` is told "found", "lost" or "changed" about managers followed, on
+    the directory's thread. ``summarize()`` gives this manager's own summary, published by
+    :meth:`changed` (debounced) with its offers.
     """
 
     def __init__(
@@ -189,17 +216,30 @@ class Directory:
         fetch: Callable[[str], bytes],
         on_change: Callable[[str, str], None],
         debounce_s: float = 0.05,
+        in_use: Callable[[], Collection[str]] | None = None,
     ) -> None:
         self.name = name
         self._session = session
         self._summarize = summarize
         self._fetch = fetch
         self._on_change = on_change
+        self._in_use = in_use
         self._debounce_s = debounce_s
         self._publish_s = 0.0  # how long building and sending the last summary took
         self._lock = threading.Lock()
         self._alive: set[str] = set()
         self._summaries: dict[str, Summary] = {}
+        self._followed: dict[str, Any] = {}  # manager -> its summary subscriber (oldest use first)
+        self._to_follow: set[str] = set()  # managers follow() was asked for, not followed yet
+        self._fetching: set[str] = set()  # managers asked for their summaries now (on a fetcher)
+        self._failures: dict[str, tuple[int, float]] = {}  # manager -> (asks in vain in a row, since when)
+        self._dropped: dict[str, None] = {}  # managers let go for giving no summary: followed again when they come back
+        self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
+        self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
+        self._offers: dict[str, Any] = {}  # this manager's offer tokens, by key
+        self._refused: Counter[str] = Counter()  # what the directory refused, by reason (bounds)
+        self._said: set[str] = set()  # the bounds already logged (one line each)
+        self._pool: ThreadPoolExecutor | None = None
         self._retry_at: dict[str, tuple[float, float]] = {}  # manager -> (when to ask again for its summary, the wait after)
         self._lost: dict[str, tuple[int, str]] = {}  # manager known, then lost -> (when, wall clock ns; why)
         self._goodbyes: dict[str, float] = {}  # manager -> when it said it was stopping (monotonic)
@@ -211,22 +251,153 @@ class Directory:
         self._said_goodbye = False
         self._thread = threading.Thread(target=self._run, name=f"dyknow-{name}-directory", daemon=True)
         self._thread.start()
+        self._announce(summarize())  # its offers before its token: whoever sees it can find what it offers
         self._token = session.declare_liveliness_token(keys.manager_token(name))
-        self._summary_sub = session.declare_raw_subscriber(keys.summaries_pattern(), self._summary_sample)
         self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._liveliness)
+        self._goodbye_watch = session.declare_liveliness_subscriber(keys.goodbye_token("*"), self._goodbye_token)
+        self._goodbye: Any = None  # this manager's goodbye token, as it stops
         self.changed()
 
     # -- what is known
 
     def peers(self) -> dict[str, Summary]:
-        """The reachable managers (this one excluded) whose summary is known, by name."""
+        """The reachable managers followed (this one excluded) whose summary is known, by name."""
         with self._lock:
             return {m: s for m, s in self._summaries.items() if m in self._alive}
 
     def alive(self) -> set[str]:
-        """The names of the managers whose liveliness token is up (this one excluded)."""
+        """The names of the managers whose liveliness token is up (this one excluded; at most 10,000)."""
         with self._lock:
             return set(self._alive)
+
+    def followed(self) -> set[str]:
+        """The managers whose summaries this one follows (candidates of its plans, managers in use)."""
+        with self._lock:
+            return set(self._followed)
+
+    def refused(self) -> dict[str, int]:
+        """What the directory refused to keep, by reason (a flood of tokens, too many offers)."""
+        with self._lock:
+            return dict(self._refused)
+
+    def follow(self, manager: str, *, at_once: bool = False) -> bool:
+        """Follow ``manager``'s summary from now on (fetched soon, on the directory's thread);
+        True when it was not followed yet. For a manager in use that was no candidate: the owner
+        of a unit this one runs. ``at_once``: subscribe to its summary key (and goodbye) before
+        returning; not on a Zenoh thread (the subscription is a call into Zenoh)."""
+        if manager == self.name or keys.manager_of_token(keys.manager_token(manager)) != manager:
+            return False
+        if at_once:
+            new = self._follow(manager)
+            if new:
+                self._queue("offer", manager, None)
+            return new
+        with self._lock:  # (followed on the directory's thread: this may be called on Zenoh's)
+            if manager in self._followed or manager in self._to_follow or len(self._to_follow) >= _MAX_FOLLOWED:
+                return False
+            self._to_follow.add(manager)
+        self._queue("offer", manager, None)
+        return True
+
+    def discover(self, wanted: Iterable[tuple[str, tuple[str, ...]]], timeout_s: float = _DISCOVER_TIMEOUT_S) -> bool:
+        """Find the providers of the tags ``wanted`` (``(functor, args)`` by local names), read
+        the summaries of those not followed yet, and follow them; True when a summary was added.
+
+        One liveliness query per tag not asked about before (:func:`dyknow.keys.offers_pattern`),
+        all at once; a tag asked about stays watched (new providers are noticed as they appear),
+        up to 1,024 tags. At most :data:`MAX_CANDIDATES` providers per tag are taken (a log line
+        says when there were more: those already followed first, then a random choice, so names
+        chosen to sort first do not crowd out the others). Called on the planner's thread: it
+        waits for the answers, at most ``timeout_s`` for the query and as long for the summaries.
+        """
+        patterns = sorted({keys.offers_pattern(f, a) for f, a in wanted})
+        with self._lock:
+            for p in patterns:
+                if p in self._offer_watch:
+                    self._offer_watch[p] = self._offer_watch.pop(p)  # used: the last to go
+            new = [p for p in patterns if p not in self._offer_watch]
+        if not new or self._closed:
+            return False
+        if len(new) > _MAX_OFFER_KEYS:
+            self._bound("tags", f"directory of {self.name!r}: a plan needs {len(new)} tags; watching the providers of {_MAX_OFFER_KEYS}")
+            new = new[:_MAX_OFFER_KEYS]
+        # watch first, then ask: a provider that appears in between is not missed
+        for p in new:
+            try:
+                watch = self._session.declare_liveliness_subscriber(p, functools.partial(self._offer_change, p))
+            except DyKnowError as exc:
+                log.warning("directory of %r: cannot watch the providers of %s: %s", self.name, p, exc)
+                continue
+            evicted: list[Any] = []
+            with self._lock:
+                self._offer_watch[p] = watch
+                self._candidates.setdefault(p, set())
+                while len(self._offer_watch) > _MAX_OFFER_KEYS:
+                    gone = next(iter(self._offer_watch))
+                    evicted.append(self._offer_watch.pop(gone))
+                    self._candidates.pop(gone, None)
+            for entity in evicted:
+                entity.undeclare()
+        answers: dict[str, tuple[list[str], int]] = {}
+        done = threading.Event()
+
+        def answered(pattern: str, found: list[str], count: int) -> None:
+            with self._lock:
+                answers[pattern] = (found, count)
+                if len(answers) == len(new):
+                    done.set()
+
+        for p in new:
+            try:
+                self._session.ask_alive(p, timeout_s=timeout_s, limit=4 * MAX_CANDIDATES, done=functools.partial(answered, p))
+            except DyKnowError as exc:
+                log.warning("directory of %r: cannot ask who offers %s: %s", self.name, p, exc)
+                answered(p, [], 0)
+        done.wait(timeout_s + 0.5)
+        with self._lock:
+            got = dict(answers)
+            followed = set(self._followed)
+        candidates: set[str] = set()
+        for p, (found, count) in sorted(got.items()):
+            names = sorted({m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name})
+            if count > MAX_CANDIDATES or len(names) > MAX_CANDIDATES:
+                known = [m for m in names if m in followed]
+                rest = [m for m in names if m not in followed]
+                names = sorted(known[:MAX_CANDIDATES] + random.sample(rest, max(0, min(len(rest), MAX_CANDIDATES - len(known)))))
+                self._bound(
+                    f"candidates {p}",
+                    f"directory of {self.name!r}: {count} managers offer {p}; planning with {len(names)} of them (MAX_CANDIDATES)",
+                )
+            candidates.update(names)
+            with self._lock:
+                self._candidates.setdefault(p, set()).update(names)
+        with self._lock:
+            todo = sorted(m for m in candidates if m not in self._summaries)
+        if not todo:
+            return False
+        for m in todo:
+            self._follow(m)
+        added = False
+        pool = self._fetchers()
+        fetched = list(pool.map(self._fetch_quietly, todo))
+        for m, data in zip(todo, fetched, strict=True):
+            if data is None:
+                self._retry_later(m)
+                continue
+            try:
+                with self._lock:
+                    previous = self._summaries.get(m)
+                summary = Summary.from_json(data, m, previous)
+            except DyKnowError as exc:
+                log.warning("directory of %r: %s", self.name, exc)
+                self._retry_later(m)
+                continue
+            with self._lock:
+                if m not in self._followed:
+                    continue
+                self._summaries[m] = summary  # (planned with once its token is up: peers())
+            added = True
+        return added
 
     def lost(self) -> dict[str, tuple[int, str]]:
         """The managers this one knew and lost, and that have not come back: name -> (when, in
@@ -246,7 +417,8 @@ class Directory:
             return
         self._said_goodbye = True
         try:
-            self._session.put(keys.summary_key(self.name), GOODBYE)
+            self._goodbye = self._session.declare_liveliness_token(keys.goodbye_token(self.name))  # for every manager
+            self._session.put(keys.summary_key(self.name), GOODBYE)  # (and for those following it, as before)
         except DyKnowError as exc:
             log.debug("directory of %r: no goodbye: %s", self.name, exc)
 
@@ -257,11 +429,116 @@ class Directory:
         self._closed = True
         self._settle.set()
         self.say_goodbye()
-        for entity in (self._watch, self._summary_sub, self._token):
-            entity.undeclare()
+        with self._lock:
+            entities = [self._watch, self._goodbye_watch, *self._followed.values(), *self._offer_watch.values(), *self._offers.values(),
+                        self._token, self._goodbye]  # fmt: skip
+            self._followed.clear()
+            self._offer_watch.clear()
+            self._offers.clear()
+        for entity in entities:
+            if entity is not None:
+                entity.undeclare()
         self._wake.set()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+
+    # -- following managers
+
+    def _follow(self, manager: str) -> bool:
+        """Follow ``manager``'s summary (its key subscribed); the least recently used manager not
+        in use makes way beyond 256. True when it was not followed."""
+        with self._lock:
+            if manager in self._followed:
+                self._followed[manager] = self._followed.pop(manager)
+                return False
+            full = len(self._followed) >= _MAX_FOLLOWED
+        used = set(self._in_use()) if full and self._in_use is not None else set()
+        try:
+            sub = self._session.declare_raw_subscriber(keys.summary_key(manager), self._summary_sample)
+        except DyKnowError as exc:
+            log.warning("directory of %r: cannot follow the summary of %r: %s", self.name, manager, exc)
+            sub = None
+        evicted: list[Any] = []
+        with self._lock:
+            if manager in self._followed or self._closed:
+                evicted.append(sub)
+            else:
+                self._followed[manager] = sub
+                while len(self._followed) > _MAX_FOLLOWED:
+                    idle = next((m for m in self._followed if m not in used and m != manager), None)
+                    if idle is None:
+                        break
+                    evicted.append(self._followed.pop(idle))
+                    self._summaries.pop(idle, None)
+                    self._retry_at.pop(idle, None)
+        for entity in evicted:
+            if entity is not None:
+                entity.undeclare()
+        return True
+
+    def _fetchers(self) -> ThreadPoolExecutor:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(_FETCHERS, thread_name_prefix=f"dyknow-{self.name}-fetch")
+        return self._pool
+
+    def _fetch_quietly(self, manager: str) -> bytes | None:
+        try:
+            return self._fetch(manager)
+        except DyKnowError as exc:
+            log.debug("directory of %r: no summary from %r yet: %s", self.name, manager, exc)
+            return None
+
+    def _bound(self, what: str, line: str) -> None:
+        """Count a refusal by a bound; its log line once per kind of refusal."""
+        with self._lock:
+            self._refused[what.split(" ")[0]] += 1
+            first = what not in self._said and len(self._said) < _MAX_LOST
+            self._said.add(what)
+        if first:
+            log.warning("%s", line)
+
+    def _announce(self, summary: Summary) -> None:
+        """Declare an offer token per tag this manager's summary offers (at most MAX_OFFERS), and
+        withdraw those of tags it no longer offers."""
+        wanted: set[str] = set()
+        too_long = 0
+        for functor, args in offered(summary):
+            key = keys.offer_token(functor, args, self.name)
+            if len(key.encode()) > keys.MAX_KEY_BYTES:
+                too_long += 1
+            else:
+                wanted.add(key)
+        if too_long:
+            self._bound(
+                "offer-too-long",
+                f"manager {self.name!r}: {too_long} of its tags make offer keys over {keys.MAX_KEY_BYTES} bytes; not announced "
+                "(other managers find them only once they follow this one)",
+            )
+        if len(wanted) > MAX_OFFERS:
+            self._bound(
+                "offers",
+                f"manager {self.name!r} offers {len(wanted)} tags; announces {MAX_OFFERS} of them (MAX_OFFERS): the others are "
+                "found only by the managers that follow it already",
+            )
+            wanted = set(sorted(wanted)[:MAX_OFFERS])
+        with self._lock:
+            gone = [self._offers.pop(k) for k in list(self._offers) if k not in wanted]
+            add = sorted(wanted - set(self._offers))
+        for entity in gone:
+            entity.undeclare()
+        for key in add:
+            try:
+                token = self._session.declare_liveliness_token(key)
+            except DyKnowError as exc:
+                log.warning("manager %r: cannot announce its offer %s: %s", self.name, key, exc)
+                continue
+            with self._lock:
+                if self._closed:
+                    token.undeclare()
+                    return
+                self._offers[key] = token
 
     # -- Zenoh callbacks (quick: the work happens on the directory's thread)
 
@@ -271,23 +548,58 @@ class Directory:
             return
         self._queue("found" if alive else "lost", manager, None)
 
+    def _offer_change(self, pattern: str, key: str, alive: bool) -> None:
+        manager = keys.manager_of_offer(key)
+        if manager is None or manager == self.name:
+            return
+        with self._lock:
+            providers = self._candidates.get(pattern)
+            if providers is None:
+                return
+            if not alive:
+                providers.discard(manager)
+                return
+            full = manager not in providers and len(providers) >= MAX_CANDIDATES
+            if not full:
+                providers.add(manager)
+        if full:
+            self._bound(f"candidates {pattern}", f"directory of {self.name!r}: more than {MAX_CANDIDATES} managers offer {pattern}; "
+                        f"not following {manager!r} (MAX_CANDIDATES)")  # fmt: skip
+            return
+        self._queue("offer", manager, None)
+
+    def _goodbye_token(self, key: str, alive: bool) -> None:
+        manager = key.rpartition("/")[2]
+        if alive and manager != self.name and keys.manager_of_token(keys.manager_token(manager)) == manager:
+            self._said_goodbye_by(manager)
+
+    def _said_goodbye_by(self, manager: str) -> None:
+        with self._lock:
+            self._goodbyes[manager] = time.monotonic()
+            while len(self._goodbyes) > _MAX_LOST:
+                del self._goodbyes[next(iter(self._goodbyes))]
+            if manager in self._lost:  # its token's end came first
+                self._lost[manager] = (self._lost[manager][0], STOPPED)
+
     def _summary_sample(self, key: str, payload: bytes) -> None:
         manager = key.split("/")[1] if key.count("/") == 2 else None
         if manager is None or manager == self.name:
             return
         if payload == GOODBYE:
-            with self._lock:
-                self._goodbyes[manager] = time.monotonic()
-                while len(self._goodbyes) > _MAX_LOST:
-                    del self._goodbyes[next(iter(self._goodbyes))]
-                if manager in self._lost:  # its token's end came first
-                    self._lost[manager] = (self._lost[manager][0], STOPPED)
+            self._said_goodbye_by(manager)
             return
         self._queue("summary", manager, payload)
 
     def _queue(self, kind: str, manager: str, data: bytes | None) -> None:
         with self._lock:
-            self._todo.append((kind, manager, data))
+            if len(self._todo) >= _MAX_TODO:
+                full = True
+            else:
+                full = False
+                self._todo.append((kind, manager, data))
+        if full:
+            self._bound("backlog", f"directory of {self.name!r}: {_MAX_TODO} changes waiting; dropping {kind} of {manager!r} (a flood of tokens?)")
+            return
         self._wake.set()
 
     # -- the directory's thread
@@ -304,11 +616,11 @@ class Directory:
             with self._lock:
                 todo, self._todo = self._todo, []
                 # alive, but no summary yet (its fetch failed): ask again, sooner at first
-                for m in sorted(self._alive - set(self._summaries)):
+                for m in sorted((self._alive & set(self._followed)) - set(self._summaries)):
                     at, _ = self._retry_at.setdefault(m, (now + _RETRY_S, _RETRY_S))
-                    if at <= now and not any(t[1] == m for t in todo):
+                    if at <= now and m not in self._fetching and not any(t[1] == m for t in todo):
                         todo.append(("retry", m, None))
-                for m in [m for m in self._retry_at if m not in self._alive or m in self._summaries]:
+                for m in [m for m in self._retry_at if m not in self._alive or m in self._summaries or m not in self._followed]:
                     del self._retry_at[m]
             for kind, manager, data in todo:
                 try:
@@ -325,35 +637,73 @@ class Directory:
                 self._publish_s = time.perf_counter() - started
 
     def _handle(self, kind: str, manager: str, data: bytes | None) -> None:
-        if kind != "retry":
-            log.info("directory of %r: %s %r", self.name, kind, manager)
+        with self._lock:
+            followed = manager in self._followed
+        if kind not in ("retry", "fetched") and (followed or kind == "lost"):
+            log.log(logging.INFO if followed else logging.DEBUG, "directory of %r: %s %r", self.name, kind, manager)
         if kind == "lost":
             with self._lock:
-                known = manager in self._alive
+                known = manager in self._alive  # (every manager seen is remembered when lost: a name each, at most 1,000)
                 self._alive.discard(manager)
                 self._summaries.pop(manager, None)  # a manager that comes back starts afresh
                 self._retry_at.pop(manager, None)
+                said = self._goodbyes.pop(manager, None)
                 if known:
-                    said = self._goodbyes.pop(manager, None)
                     stopped = said is not None and time.monotonic() - said < _GOODBYE_S
                     self._lost[manager] = (time.time_ns(), STOPPED if stopped else _VANISHED)
                     while len(self._lost) > _MAX_LOST:
                         del self._lost[next(iter(self._lost))]
-            if known:
+            if known and followed:  # (the loss of a manager this one never followed changes nothing here)
                 self._on_change("lost", manager)
             return
+        if kind == "offer":  # a provider of a tag this manager plans with, or a manager in use: follow it
+            self._follow(manager)
+            with self._lock:
+                self._to_follow.discard(manager)
+            kind = "retry"  # fetched below if its token is up (else when its token comes)
+        if kind == "found":
+            with self._lock:
+                again = manager in self._dropped and manager not in self._alive
+                if again:
+                    del self._dropped[manager]
+            if again:  # it was let go for giving no summary; this is a new start of it: give it its chance again
+                self._follow(manager)
+                followed = True
         if kind in ("found", "retry"):
             with self._lock:
-                self._lost.pop(manager, None)
-                new = manager not in self._alive or (kind == "retry" and manager not in self._summaries)
-                self._alive.add(manager)
-            if not new:
+                new = manager not in self._alive
+                full = False
+                if kind == "found" and new:  # only its token says a manager is up
+                    if len(self._alive) >= _MAX_ALIVE:
+                        full = True
+                    else:
+                        self._lost.pop(manager, None)
+                        self._alive.add(manager)
+                alive = manager in self._alive
+                # a manager that came back starts afresh; one asked again, if it has no summary yet
+                wanted = alive and manager in self._followed and ((kind == "found" and new) or manager not in self._summaries)
+            if full:
+                self._bound("alive", f"directory of {self.name!r}: {_MAX_ALIVE} managers known already; ignoring the token of {manager!r}")
                 return
-            data = self._fetch_summary(manager)
+            if not wanted:
+                return  # not followed (its name is all this manager keeps), or not up
+            self._fetch_soon(manager)  # on a fetcher: a manager slow to answer holds up no other
+            return
+        if kind == "fetched":
+            with self._lock:
+                self._fetching.discard(manager)
+                count, first = self._failures.pop(manager, (0, time.monotonic()))
+                if data is None:
+                    self._failures[manager] = (count + 1, first)
             if data is None:
+                if count + 1 >= _GIVE_UP_ASKS and time.monotonic() - first >= _GIVE_UP_S:
+                    self._let_go(manager)
                 return
             kind = "found"
         assert data is not None
+        with self._lock:
+            if manager not in self._followed or manager not in self._alive:
+                return  # not followed any more (a summary on its way when it was let go), or gone
         try:
             with self._lock:
                 previous = self._summaries.get(manager)
@@ -370,7 +720,50 @@ class Directory:
             self._summaries[manager] = summary
             alive = manager in self._alive
         if alive:
-            self._on_change("found" if kind == "found" else "changed", manager)
+            self._on_change("found" if kind == "found" or old is None else "changed", manager)
+
+    def _let_go(self, manager: str) -> None:
+        """Stop following a manager that never gave its summary (a token with no manager behind
+        it, say), unless it is in use: its place among the candidates is free again."""
+        used = set(self._in_use()) if self._in_use is not None else set()
+        if manager in used:
+            return
+        with self._lock:
+            sub = self._followed.pop(manager, None)
+            self._retry_at.pop(manager, None)
+            self._failures.pop(manager, None)
+            self._summaries.pop(manager, None)
+            for providers in self._candidates.values():
+                providers.discard(manager)
+            self._dropped[manager] = None  # followed again if it comes back (its token goes, then up again)
+            while len(self._dropped) > _MAX_LOST:
+                del self._dropped[next(iter(self._dropped))]
+        if sub is not None:
+            sub.undeclare()
+        self._bound(
+            f"silent {manager}",
+            f"directory of {self.name!r}: not following {manager!r} any more: no summary after {_GIVE_UP_ASKS} asks in "
+            f"{_GIVE_UP_S:g} s (its tokens say it offers what a plan needs; nothing answers for it)",
+        )
+
+    def _fetch_soon(self, manager: str) -> None:
+        """Ask ``manager`` for its summary on a fetcher thread; the answer comes back to the
+        directory's thread as a "fetched" change (None: no answer, asked again later)."""
+        with self._lock:
+            if manager in self._fetching or self._closed:
+                return
+            self._fetching.add(manager)
+        try:
+            self._fetchers().submit(self._fetch_job, manager)
+        except RuntimeError:  # (closed meanwhile)
+            with self._lock:
+                self._fetching.discard(manager)
+
+    def _fetch_job(self, manager: str) -> None:
+        data = self._fetch_summary(manager)
+        with self._lock:
+            self._todo.append(("fetched", manager, data))  # (not bounded by _MAX_TODO: one per manager followed)
+        self._wake.set()
 
     def _fetch_summary(self, manager: str) -> bytes | None:
         try:
@@ -391,10 +784,27 @@ class Directory:
         return wait
 
     def _publish(self) -> None:
+        summary = self._summarize()
         try:
-            self._session.put(keys.summary_key(self.name), json.dumps(self._summarize().to_dict()))
+            self._session.put(keys.summary_key(self.name), json.dumps(summary.to_dict()))
         except DyKnowError as exc:
             log.warning("directory of %r: cannot publish the summary: %s", self.name, exc)
+        self._announce(summary)
+
+
+def offered(summary: Summary) -> set[tuple[str, tuple[str, ...]]]:
+    """The tags a manager offers, ``(functor, args)`` by local names: those of its library's
+    output ports and of its running units' outputs (what :func:`dyknow.keys.offer_token` announces)."""
+    tags = [t for s in summary.specs for p in s.outputs for t in s.tags_for(p.name)]
+    tags.extend(t for u in summary.units for ts in u.tags.values() for t in ts)
+    found: set[tuple[str, tuple[str, ...]]] = set()
+    for tag in tags:
+        try:
+            term = parse_term(tag)
+        except DyKnowError:
+            continue
+        found.add((local_name(term.functor), tuple(local_name(a) for a in term.args)))
+    return found
 
 
 def running_units(peers: Mapping[str, Summary]) -> list[RunningUnit]:

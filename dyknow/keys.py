@@ -11,6 +11,9 @@ matches a service)::
     dyknow/measurements/<name>                a measurement for every manager (measurement_key)
     dyknow/<manager>/measurements/<name>      a measurement for one manager
     @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
+    @dyknow/offers/<functor>/<args>/<manager> a manager offers a tag (offer_token; dyknow.federation)
+    @dyknow/clocks/<clock id>/<manager>       whose clock an id is (clock_token; dyknow.clocks)
+    @dyknow/goodbye/<manager>                 a manager is stopping (goodbye_token)
     @dyknow/<manager>/summary                 what a manager offers the others (summary_key)
     @dyknow/<manager>/clock                   a manager's clock exchanges (clock_key; dyknow.clocks)
     @dyknow/<manager>/<service>               a manager's services (manager_service_key)
@@ -46,13 +49,22 @@ __all__ = [
     "check_label",
     "check_name",
     "clock_key",
+    "clock_token",
+    "clocks_of",
+    "goodbye_token",
     "default_key",
     "event_key",
     "label_problem",
     "manager_of_token",
     "manager_prefix",
     "manager_service_key",
+    "manager_of_offer",
+    "OFFERS",
+    "offer_token",
+    "offers_of",
+    "offers_pattern",
     "manager_token",
+    "managers_matching",
     "managers_pattern",
     "measurement_key",
     "measurement_patterns",
@@ -276,11 +288,89 @@ def managers_pattern() -> str:
     return manager_token("*")
 
 
+_GLOB = re.compile(r"[A-Za-z0-9_.*?\[\]!-]+")
+
+
+def managers_matching(glob: str) -> str:
+    """The key expression of the liveliness tokens of the managers whose names match ``glob``
+    (``*`` any text, ``?`` one character, ``[...]`` a set, as in a shell): ``robot-*`` asks Zenoh
+    for ``@dyknow/robot-$*`` only. ``?`` and sets are matched by the caller (:func:`fnmatch.fnmatchcase`)
+    within what the key expression finds. :class:`UnitError` for a glob that cannot match a name."""
+    if not _GLOB.fullmatch(glob) or len(glob.encode()) > MAX_NAME_BYTES:
+        raise UnitError(
+            f"manager pattern {glob[:200]!r} cannot match a manager name",
+            expected="letters, digits, '_', '-', '.', and the wildcards '*', '?' and '[...]', like 'robot-*'",
+        )
+    if "?" in glob or "[" in glob:
+        return managers_pattern()  # (Zenoh has no one-character wildcard: filtered after)
+    if glob == "*":
+        return managers_pattern()
+    return manager_token(re.sub(r"\*+", "$*", glob))
+
+
 def manager_of_token(key: str) -> str | None:
     """The manager a liveliness token names, or None for another key."""
     prefix = f"{SERVICE_ROOT}/"
     rest = key[len(prefix) :] if key.startswith(prefix) else ""
     return rest if rest and "/" not in rest else None
+
+
+#: The chunk under which managers announce the tags they offer (see :func:`offer_token`).
+OFFERS = "offers"
+
+
+def _offer_chunk(text: str) -> str:
+    return "".join(c if c not in _UNSAFE_IN_CHUNK else "_" for c in text) or "_"
+
+
+def _offer_args(args: tuple[str, ...]) -> str:
+    return "(" + ",".join(_offer_chunk(a) for a in args) + ")"
+
+
+def offer_token(functor: str, args: tuple[str, ...], manager: str) -> str:
+    """The liveliness token by which ``manager`` says it offers streams tagged ``functor(args)``:
+    ``@dyknow/offers/<functor>/(<arg>,...)/<manager>``, functor and arguments by their local names
+    (unsafe characters as ``_``). An index, not the truth: a planner that finds a manager here
+    reads its summary, and plans on what the summary says. The arguments' chunk starts with ``(``,
+    which no unit name does, so no offer is ever a service key of a manager named ``offers``."""
+    return f"{SERVICE_ROOT}/{OFFERS}/{_offer_chunk(functor)}/{_offer_args(args)}/{manager}"
+
+
+def offers_pattern(functor: str, args: tuple[str, ...]) -> str:
+    """The key expression of every manager's offer of ``functor(args)`` (one Zenoh query finds them)."""
+    return offer_token(functor, args, "*")
+
+
+def clock_token(clock: int, manager: str) -> str:
+    """The liveliness token by which ``manager`` says whose clock ``clock`` (a 32-bit id) is:
+    ``@dyknow/clocks/<id, 8 hex digits>/<manager>``. A manager that receives data stamped by a
+    clock it does not know asks who has it, and estimates that manager's clock (:mod:`dyknow.clocks`)."""
+    return f"{SERVICE_ROOT}/clocks/{clock:08x}/{manager}"
+
+
+def goodbye_token(manager: str) -> str:
+    """The liveliness token a manager declares as it stops, before its others go:
+    ``@dyknow/goodbye/<manager>``. Whoever sees it tells a manager that stopped from one that
+    crashed or was cut off, without following its summary."""
+    return f"{SERVICE_ROOT}/goodbye/{manager}"
+
+
+def clocks_of(manager: str) -> str:
+    """The key expression of ``manager``'s clock token, whatever its clock."""
+    return f"{SERVICE_ROOT}/clocks/*/{manager}"
+
+
+def offers_of(manager: str) -> str:
+    """The key expression of every offer ``manager`` may announce: ``@dyknow/offers/*/*/<manager>``."""
+    return f"{SERVICE_ROOT}/{OFFERS}/*/*/{manager}"
+
+
+def manager_of_offer(key: str) -> str | None:
+    """The manager an offer token names, or None for another key."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != SERVICE_ROOT or parts[1] != OFFERS or not _NAME.fullmatch(parts[4]):
+        return None
+    return parts[4]
 
 
 def port_token(key: str) -> str:

@@ -36,7 +36,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
@@ -284,6 +284,9 @@ class Manager:
         self._started_ns = time.time_ns()
         self._directory: Directory | None = None
         self._clocks: clocks.ClockTracker | None = None  # the peers' clock offsets (dyknow.clocks)
+        self._clock_token: Any = None  # says whose clock this process's clock id is
+        self._clocks_asked: dict[int, float] = {}  # unknown clock ids asked about -> when (monotonic)
+        self._data_peers: set[str] = set()  # managers whose data reached this one: their clocks estimated until they go
         self._bus = LocalBus()
         self._receiver = Receiver(self._session, self.name)
         self._guard = OverloadGuard(
@@ -339,9 +342,16 @@ class Manager:
                 raise
         if federate if federate is not None else serve:
             try:
-                self._clocks = clocks.ClockTracker(self._session, in_use=self._peers_in_use)
+                # clocks on demand: those of the managers this one exchanges data or calls with (issue 40)
+                self._clocks = clocks.ClockTracker(self._session, in_use=self._peers_in_use, wanted=self._clock_peers)
+                self._clock_token = self._session.declare_liveliness_token(keys.clock_token(CLOCK_ID, self.name))
                 self._directory = Directory(
-                    self._session, self.name, summarize=self.summary, fetch=self._fetch_summary, on_change=self._peer_changed
+                    self._session,
+                    self.name,
+                    summarize=self.summary,
+                    fetch=self._fetch_summary,
+                    on_change=self._peer_changed,
+                    in_use=self._peers_in_use,
                 )
             except DyKnowError:
                 self.close()
@@ -393,6 +403,8 @@ class Manager:
             self._directory.close(timeout_s / 4)
         if self._clocks is not None:
             self._clocks.close()
+        if self._clock_token is not None:
+            self._clock_token.undeclare()
         per_unit = min(0.5, timeout_s / max(1, len(proxies)))
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
@@ -1098,7 +1110,7 @@ class Manager:
         monitors = tuple(m.to_dict() for m in self._monitors.infos())
         lost = self._directory.lost() if self._directory is not None else {}
         gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
-        peers = tuple(sorted(self._directory.peers())) if self._directory is not None else ()
+        peers = tuple(sorted(self._directory.alive())) if self._directory is not None else ()  # (whose tokens are up)
         return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone, self.load(), peers)
 
     # ------------------------------------------------------------------ load (dyknow.executor, dyknow.overload)
@@ -1253,6 +1265,15 @@ class Manager:
         """The other managers this one reaches, with their last summary (empty when not federated)."""
         return self._directory.peers() if self._directory is not None else {}
 
+    def discover(self, wanted: Collection[tuple[str, tuple[str, ...]]]) -> bool:
+        """Find the managers that offer the tags ``wanted`` and follow them (see
+        :meth:`dyknow.federation.Directory.discover`); True when one was added."""
+        return self._directory.discover(wanted) if self._directory is not None else False
+
+    def reachable(self) -> set[str]:
+        """The names of the other managers whose liveliness token is up (followed or not)."""
+        return self._directory.alive() if self._directory is not None else set()
+
     def _peers_in_use(self) -> set[str]:
         """The managers this one exchanges data and calls with: those whose units its requests
         use, and those whose requests its units serve."""
@@ -1265,6 +1286,8 @@ class Manager:
         """This manager's model changed: the other managers hear of it (a summary, debounced)."""
         if self._directory is not None:
             self._directory.changed()
+        if self._clocks is not None:
+            self._clocks.reconcile()  # a manager may be in use now, or no longer
 
     def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
         """Spawn a unit on another manager, through its spawn service, for a request of this one."""
@@ -1283,13 +1306,54 @@ class Manager:
     def _fetch_summary(self, manager: str) -> bytes:
         return json.dumps(self._peers.call_manager(manager, "get_summary", {})).encode()
 
+    def _clock_peers(self) -> dict[str, tuple[str, int]]:
+        """The managers whose clocks to estimate (on demand, issue 40): those this one exchanges
+        data or calls with, and those whose clocks stamp data it received with no offset known.
+        Such a clock id of a manager not followed yet is looked up by its clock token (at most
+        8 ids a second, each once in 10 s): its manager is then followed, and tracked next round."""
+        directory = self._directory
+        if directory is None:
+            return {}
+        peers = directory.peers()
+        used = self._peers_in_use()
+        unknown = clocks.CLOCKS.unknown()
+        for name, s in peers.items():  # whose data arrived: kept until it goes (once known, its data says no more)
+            if s.clock in unknown and len(self._data_peers) < 256:
+                self._data_peers.add(name)
+        wanted = {
+            name: (keys.clock_key(name), s.clock)
+            for name, s in peers.items()
+            if s.clock and s.clock != CLOCK_ID and (name in used or name in self._data_peers)  # one process, one clock: nothing to estimate
+        }
+        now = time.monotonic()
+        for clock, at in list(self._clocks_asked.items()):
+            if now - at > 10.0:
+                del self._clocks_asked[clock]
+        known = {s.clock for s in peers.values()}
+        for clock in sorted(unknown - known)[:8]:
+            if clock in self._clocks_asked or len(self._clocks_asked) >= 1024:
+                continue
+            self._clocks_asked[clock] = now
+
+            def found(tokens: list[str], count: int, clock: int = clock) -> None:
+                for token in tokens:
+                    name = token.rpartition("/")[2]
+                    if name != self.name:
+                        directory.follow(name)
+
+            try:
+                self._session.ask_alive(keys.clock_token(clock, "*"), timeout_s=1.0, limit=2, done=found)
+            except DyKnowError as exc:
+                log.debug("no answer about clock %08x: %s", clock, exc)
+        return wanted
+
     def _peer_changed(self, kind: str, manager: str) -> None:
         if self._clocks is not None:
-            summary = self.peers().get(manager) if kind != "lost" else None
             if kind == "lost":
+                self._data_peers.discard(manager)
                 self._clocks.untrack(manager)
-            elif summary is not None and summary.clock and summary.clock != CLOCK_ID:  # one process, one clock: nothing to estimate
-                self._clocks.track(manager, keys.clock_key(manager), summary.clock)
+            else:
+                self._clocks.reconcile()  # maybe one to estimate now
         if kind == "lost":
             with self._lock:
                 orphans = [unit for unit, owner in self._owners.items() if owner == manager]
@@ -1311,6 +1375,12 @@ class Manager:
             )
         self._adaptation.peer_changed(kind, manager)
 
+    def _brief(self) -> dict[str, Any]:
+        """What a listing of the managers shows (``get_summary`` with ``brief``): counts, no library."""
+        with self._lock:
+            units = sum(1 for p in self._units.values() if p.label != ANCHOR_LABEL)
+        return {"manager": self.name, "host": self.host, "specs": len(self.library), "units": units, "requests": len(self._adaptation.requests())}
+
     def _manager_handlers(self) -> dict[str, service.Handler]:
         return {
             "add_transformation": lambda r, c: {"labels": self.add_transformation(r["xml"], path=r.get("path") or "<remote>", remote=True)},
@@ -1323,7 +1393,7 @@ class Manager:
             "monitor": self._serve_monitor,
             "measure": self._serve_measure,
             "get_adaptations": lambda r, c: [e.to_dict() for e in self.get_adaptations()],
-            "get_summary": lambda r, c: self.summary().to_dict(),
+            "get_summary": lambda r, c: self._brief() if r.get("brief") else self.summary().to_dict(),
             "get_load": lambda r, c: self.load(),
             "get_metrics": lambda r, c: self.metrics.snapshot(),
         }
@@ -1335,6 +1405,8 @@ class Manager:
     def _serve_spawn(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         owner = request.get("owner")
         log.info("spawn %s for %s", request.get("name"), owner)
+        if owner and self._directory is not None:
+            self._directory.follow(str(owner), at_once=True)  # its loss (or goodbye) is this one's concern now
         info = self.spawn(
             request["label"],
             request["name"],

@@ -220,8 +220,9 @@ class Model:
     #: bound, now), ``lanes`` (each lane's kind, units, busy fraction, lag, queue, stuck time) and
     #: ``overload`` (``state``: ``"ok"`` or ``"overloaded"``, and what is shed; :mod:`dyknow.overload`).
     executor: Mapping[str, Any] = field(default_factory=dict)
-    #: The other managers this one reaches now and plans with (their token is up and their summary
-    #: known: :meth:`dyknow.federation.Directory.peers`), by name.
+    #: The other managers this one reaches now (their liveliness token is up:
+    #: :meth:`dyknow.federation.Directory.alive`), by name; it reads the summaries of those its
+    #: plans need only (:meth:`dyknow.federation.Directory.peers`).
     peers: tuple[str, ...] = ()
 
     def unit(self, name: str) -> UnitInfo:

@@ -190,6 +190,7 @@ def _arrived(counters: PortCounters, nbytes: int, now: int, origin_ns: int, orig
     send_offset = current.get(send_clock)
     if origin_offset is None or send_offset is None:
         counters.arrived_unknown(nbytes)
+        CLOCKS.missing(origin_clock if origin_offset is None else send_clock)  # estimated on demand
         return
     counters.clocks = (origin_clock, send_clock)
     age, hop = now - origin_ns + origin_offset, now - send_ns + send_offset

@@ -244,7 +244,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "release": {"key": (True, _key), "holder": (False, _holder), "force": (False, _flag)},
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},
-    "get_summary": {},
+    "get_summary": {"brief": (False, _flag)},
     "get_load": {},
     "get_metrics": {},
     "get_config": {},

@@ -227,11 +227,11 @@ def test_managers_federate_over_tls_with_the_manager_role(certs: Path, make_mana
     station = make_manager("station", specs=[SCENARIO_HOSTS["station"]], ontology=ontology, listen=[endpoint], tls=tls(certs, "station"), acl=station_acl)
     robot = make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=ontology, listen=[f"tls/127.0.0.1:{free_port()}"], connect=[endpoint],
                          tls=tls(certs, "robot"), acl=robot_acl)  # fmt: skip
-    wait_until(lambda: "robot" in station.peers(), "the station to know the robot over TLS")
+    wait_until(lambda: "robot" in station.reachable(), "the station to know the robot over TLS")
     if station_role == "manager":
-        wait_until(lambda: "station" in robot.peers(), "the robot to know the station")
+        wait_until(lambda: "station" in robot.reachable(), "the robot to know the station")
     else:
-        assert "station" not in robot.peers()  # it cannot pose as a manager there
+        assert "station" not in robot.reachable()  # it cannot pose as a manager there
     if station_role == "viewer":
         with pytest.raises(DyKnowError, match="manager 'robot' dropped the call to 'spawn'"):
             station.request("BallTrack(field)")
@@ -260,7 +260,7 @@ def pair(certs: Path, make_manager: Callable[..., Manager]) -> tuple[Manager, Ma
     robot = make_manager("robot", listen=[f"tls/127.0.0.1:{free_port()}"], connect=[endpoint], tls=tls(certs, "robot"), acl=robot_acl)
     from tests.conftest import wait_until
 
-    wait_until(lambda: "robot" in station.peers() and "station" in robot.peers(), "the two managers to know each other")
+    wait_until(lambda: "robot" in station.reachable() and "station" in robot.reachable(), "the two managers to know each other")
     return station, robot
 
 
@@ -401,8 +401,8 @@ def test_only_a_manager_serves_announces_and_summarises_under_its_name(pair: tup
             entity.undeclare()
     assert {f"added-{i}" for i in range(3)} <= set(station.library.labels())
     assert stolen == {"operator": [], "robot": []}
-    wait_until(lambda: "robot" in station.peers(), "the station to list the robot")
-    assert set(station.peers()) == {"robot"} and set(robot.peers()) == {"station"}
+    wait_until(lambda: "robot" in station.reachable(), "the station to list the robot")
+    assert station.reachable() == {"robot"} and robot.reachable() == {"station"}
 
 
 def test_a_port_may_not_bind_to_a_service_or_admin_key(manager: Manager) -> None:

@@ -338,6 +338,9 @@ class StandInRuntime:
     def peers(self) -> dict[str, Summary]:
         return dict(self.peer_summaries)
 
+    def discover(self, wanted: Any) -> bool:
+        return False  # every peer is known here
+
     def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
         summary = self.peer_summaries[manager]
         spec = next(s for s in summary.specs if s.label == label)
@@ -589,7 +592,10 @@ def _fleet(make_manager: Callable[..., Manager], offers: Mapping[str, str], dwel
         fleet[name] = make_manager(name, listen=["tcp/127.0.0.1:0"], connect=[hub], dwell_s=dwell_s)
         fleet[name].add_transformation(_offering(tag))
     for manager in fleet.values():
-        wait_until(lambda m=manager: len(m.peers()) == len(fleet) - 1, f"{manager.name} to know the others")  # type: ignore[misc]
+        wait_until(lambda m=manager: len(m.reachable()) == len(fleet) - 1, f"{manager.name} to see the others")  # type: ignore[misc]
+    # m0 follows the providers of the tags offered (as a request for them would make it do)
+    fleet["m0"].discover({(tag, ()) for tag in offers.values()})
+    wait_until(lambda: len(fleet["m0"].peers()) == len(offers), "m0 to follow every provider")
     return fleet
 
 

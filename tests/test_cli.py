@@ -139,7 +139,7 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
         import threading
         from dyknow import Manager
         with Manager("remote", specs=[{str(REPO / 'specs' / 'generic.xml')!r}], connect={manager.endpoints!r}) as m:
-            m.spawn("periodic-source", "src", params={{"rate_hz": 100, "count": 300}}, bindings={{"out": "fleet/ticks"}})
+            m.spawn("periodic-source", "src", params={{"rate_hz": 100, "count": 3000}}, bindings={{"out": "fleet/ticks"}})
             threading.Event().wait()  # until the test kills it
         """
     )
@@ -148,6 +148,8 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
         sink = manager.unit("s")
         assert isinstance(sink, Sink)
         got = sink.wait_for(20, timeout_s=20)
+        # (the other process's clock is estimated once its data arrives: on demand, issue 40)
+        wait_until(lambda: manager.get_statistics("s").ports[0].hop.count > 0, "a hop corrected by the remote's clock")
     finally:
         child.kill()
         child.wait(10)
@@ -251,6 +253,9 @@ def test_managers_and_echo_show_clocks_as_the_manager_estimates_them(manager_pro
     b = manager_process("--connect", a.endpoint, name="clk-b")
     conn = a.client_args()
     with Client("clk-a", connect=[a.endpoint]) as client:
+        # clk-a estimates clk-b's clock once it receives clk-b's data (on demand, issue 40)
+        Client("clk-b", session=client.session).spawn("periodic-source", "feed", params={"rate_hz": 50})
+        client.spawn("relay", "fed", bindings={"in": "dyknow/clk-b/feed/out"})
         wait_until(lambda: "clk-b" in client.clocks(), "clk-a's estimate of clk-b's clock")
         other = client.clocks()["clk-b"].clock
 

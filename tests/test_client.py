@@ -119,14 +119,21 @@ def test_a_call_to_a_manager_that_is_gone_ends_at_once_saying_so(manager_process
 
 
 def test_clocks_are_the_managers_as_it_estimates_them(manager_process: Callable[..., ManagerProcess], make_manager: Callable[..., Manager]) -> None:
-    """Two manager processes: two clocks of one machine (the true offset is 0). The client's
-    manager gives its own clock (offset 0) and the other's once it has estimated it, with an
+    """Two manager processes: two clocks of one machine (the true offset is 0). A manager
+    estimates the clock of another only while it exchanges data with it (issue 40): none while
+    they are idle; once clk-b's stream reaches a unit of clk-a, clk-a finds whose clock stamps
+    it (its clock token), and gives its own clock (offset 0) and the other's, with an
     uncertainty that holds. A manager of the client's own process shares its clock: nothing to
     estimate, and none listed."""
     a = manager_process(name="clk-a")
     b = manager_process("--connect", a.endpoint, name="clk-b")
-    with Client("clk-a", connect=[a.endpoint]) as client:
-        wait_until(lambda: "clk-b" in client.clocks(), "clk-a's estimate of clk-b's clock")
+    with Client("clk-a", connect=[a.endpoint]) as client, Client("clk-b", connect=[a.endpoint]) as other:
+        wait_until(lambda: client.manager_names() == ["clk-a", "clk-b"], "both managers up")
+        threading.Event().wait(1.5)  # (a reconcile of the clocks to estimate runs every second)
+        assert list(client.clocks()) == ["clk-a"]  # idle: the other's clock is not estimated
+        other.spawn("periodic-source", "src", params={"rate_hz": 50})
+        client.spawn("relay", "rel", bindings={"in": "dyknow/clk-b/src/out"})
+        wait_until(lambda: "clk-b" in client.clocks(), "clk-a's estimate of clk-b's clock, whose data it receives")
         clocks = client.clocks()
         assert set(clocks) == {"clk-a", "clk-b"}
         own, other = clocks["clk-a"], clocks["clk-b"]

@@ -134,6 +134,9 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
             return dict(clocks)
 
         _until("the station's estimate of the robot's clock", robot_known)
+        # (the station estimates the robot's clock since the request made them exchange data; the
+        # observer looks the station's estimates up once a second: a window with none unknown says it has it)
+        _until("the observer to have the robot's clock", lambda: observer.stats()["age_unknown_clock"] == 0)
         observer.stats()  # its window starts now, with the station's offsets (a client's ages: Client.clocks)
         _fill_window()
         robot_window = observer.stats()
@@ -149,7 +152,7 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         assert error_us <= estimate["uncertainty_us"] + slack_us, (estimate, truth)
         if skew.rate != 1.0:
             assert abs(estimate["drift_ppm"] - 100) < 50, estimate  # fitted over several seconds by then
-        assert abs(clocks["field"]["offset_us"]) <= clocks["field"]["uncertainty_us"], clocks["field"]  # equal clocks: 0
+        assert "field" not in clocks  # no data exchanged with the field yet: its clock is not estimated (on demand, issue 40)
 
         robot_ports = {p["unit"]: p for p in observer.ask("ports")}
         print(f"with the robot's camera: {robot_ports}")
@@ -164,6 +167,13 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         observer.next("camera", camera=CEILING, timeout_s=60)
         lost = adaptations(observer, "manager 'robot' was lost", 1)
         assert lost[0]["key"] == key, lost
+
+        def field_known() -> dict[str, Any] | None:  # in use since the failover: estimated from then on
+            found = observer.ask("model station")[0]["clocks"].get("field")
+            return found if found is not None and found["samples"] >= 8 else None
+
+        field_clock = _until("the station's estimate of the field's clock", field_known)
+        assert abs(field_clock["offset_us"]) <= field_clock["uncertainty_us"], field_clock  # equal clocks: 0
         observer.stats()
         _fill_window()
         field_window = observer.stats()

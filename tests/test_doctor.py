@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from dyknow import AccessControl, Manager, TlsFiles
+from dyknow import AccessControl, Client, Manager, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.doctor import Diagnosis, check_config, check_port, check_shm, diagnose
 from tests.conftest import REPO, CliProcess, ManagerProcess, faked_clock, free_port, run_cli, subprocess_env, wait_until
@@ -138,15 +138,19 @@ def test_a_skewed_clock_between_two_managers_is_named(faketime: Path) -> None:
     """The robot's manager runs with its wall clock 250 ms ahead (libfaketime), as an
     unsynchronised host's would be; the station estimates the offset, and doctor names it."""
     station_port, robot_port = free_port(), free_port()
-    station = CliProcess("manager", "--name", "station", "--listen", f"tcp/127.0.0.1:{station_port}", "--json")
+    generic = ["--specs", str(REPO / "specs" / "generic.xml")]
+    station = CliProcess("manager", "--name", "station", "--listen", f"tcp/127.0.0.1:{station_port}", "--json", *generic)
     robot_argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", "robot", "--listen", f"tcp/127.0.0.1:{robot_port}",
-                  "--connect", f"tcp/127.0.0.1:{station_port}", "--json"]  # fmt: skip
+                  "--connect", f"tcp/127.0.0.1:{station_port}", "--json", *generic]  # fmt: skip
     robot = subprocess.Popen(robot_argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
                              env={**subprocess_env(), **faked_clock(faketime, "+0.25")})  # fmt: skip
     try:
         assert station.line()["event"] == "ready"
         assert robot.stdout is not None and json.loads(robot.stdout.readline())["event"] == "ready"
         args = ["--connect", f"tcp/127.0.0.1:{station_port}", "--manager", "station", "--listen", f"tcp/127.0.0.1:{free_port()}"]
+        with Client("station", connect=[f"tcp/127.0.0.1:{station_port}"]) as client:  # the station receives the robot's data:
+            Client("robot", session=client.session).spawn("periodic-source", "src", params={"rate_hz": 50})  # it estimates
+            client.spawn("relay", "rel", bindings={"in": "dyknow/robot/src/out"})  # the robot's clock (on demand, issue 40)
 
         def clocks() -> list[dict[str, str]]:
             return [d for d in _doctor(*args)[1] if d["check"] == "clocks" and d["status"] != "warn"]

@@ -16,9 +16,10 @@ from typing import Any
 
 import pytest
 
-from dyknow import Client, Manager, Message
+from dyknow import Client, Manager, Message, keys
 from dyknow.errors import DyKnowError, TransportError
 from dyknow.federation import MAX_SUMMARY_BYTES, Summary
+from dyknow.tags import parse_term
 from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS, Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import REPO, CliProcess, ManagerProcess, free_port, run_cli, wait_until
@@ -81,7 +82,7 @@ def system(make_manager: Callable[..., Manager]) -> Callable[..., dict[str, Mana
                 **kwargs,
             )
         for manager in managers.values():
-            wait_until(lambda m=manager: len(m.peers()) == len(names) - 1, f"{manager.name} to know the others")  # type: ignore[misc]
+            wait_until(lambda m=manager: len(m.reachable()) == len(names) - 1, f"{manager.name} to see the others")  # type: ignore[misc]
         return managers
 
     return start
@@ -103,10 +104,12 @@ def test_managers_discover_each_other_and_plan_across_them(system: Callable[...,
     """The camera runs on the robot (its library), the processing on the requester; the stream flows."""
     m = system()
     station, robot = m["station"], m["robot"]
+    assert station.peers() == {}  # a manager reads the others' summaries only when a plan needs them (issue 40)
+    key = station.request(TRACK)
+    # the providers of the cameras it needs, found by their offers: now followed
     assert {n: (s.host, len(s.specs)) for n, s in station.peers().items()} == {"robot": ("robot-host", 1), "field": ("field-host", 1)}
     # the model says whom it plans with (an operator sees a healed partition there: issue 43)
     assert station.get_model().peers == ("field", "robot") and station.get_model().to_dict()["peers"] == ["field", "robot"]
-    key = station.request(TRACK)
     (request,) = station.get_model().requests
     assert "robot-camera@robot" in request.labels and "tracker" in request.labels
     assert [u.label for u in robot.units()] == ["robot-camera"]  # spawned there, through its spawn service
@@ -344,6 +347,7 @@ def test_a_directory_asks_again_for_a_summary_it_could_not_fetch() -> None:
         # b publishes its summary only after 30 s: a learns it by asking
         b = Directory(two, "b", summarize=lambda: Summary("b", "b-host", 1), fetch=lambda m: b"{}", on_change=lambda k, m: None, debounce_s=30)
         try:
+            assert a.follow("b") and not a.follow("b")  # (a directory reads only the summaries of managers it follows)
             wait_until(lambda: "b" in a.peers(), "the summary, asked again", timeout_s=10)
             assert calls == ["b", "b"] and ("found", "b") in changes and a.peers()["b"].host == "b-host"
         finally:
@@ -366,7 +370,10 @@ class Ghost:
         self.entities = [  # kept: an entity no one holds is undeclared
             self.session.declare_queryable(f"@dyknow/{name}/get_summary", lambda key, payload: (True, data)),
             self.session.declare_liveliness_token(f"@dyknow/{name}"),
-        ]
+            # and it says it offers what its units claim, so that planners read its summary
+            *(self.session.declare_liveliness_token(keys.offer_token(f, a, name))
+              for f, a in sorted({(parse_term(t).functor, parse_term(t).args) for u in units for ts in u["tags"].values() for t in ts})),
+        ]  # fmt: skip
         self.session.put(f"@dyknow/{name}/summary", data)
 
     def close(self) -> None:
@@ -385,9 +392,8 @@ def test_a_forged_summary_offers_no_stream_outside_its_managers_own_keys(system:
              for name, key in claims.items()]  # fmt: skip
     ghost = Ghost(station.endpoints[0], units)
     try:
-        wait_until(lambda: "ghost" in station.peers(), "the station to hear the ghost")
-        assert [u.outputs for u in station.peers()["ghost"].units] == [{}, {}, {}]
         key = station.request(TRACK)
+        assert [u.outputs for u in station.peers()["ghost"].units] == [{}, {}, {}]  # heard, as a provider of the tag
         (request,) = station.get_model().requests
         assert not any("@ghost" in label for label in request.labels), request.labels
         assert "robot-camera@robot" in request.labels

@@ -323,9 +323,10 @@ def test_a_message_from_a_host_whose_clock_is_ahead_is_logged_at_this_hosts_time
     try:
         assert robot.stdout is not None and json.loads(robot.stdout.readline())["event"] == "ready"
         with Client("station", connect=station.endpoints) as client:
+            Client("robot", session=client.session).spawn("robot-camera", "cam", bindings={"out": "fox/robot"})
+            station.spawn("relay", "seen", bindings={"in": "fox/robot"})  # the station receives the robot's data: it estimates its clock
             wait_until(lambda: "robot" in client.clocks(), "the station to estimate the robot's clock")
             assert abs(client.clocks()["robot"].offset_ns - 10_000_000_000) < 100_000_000  # what libfaketime was asked for
-            Client("robot", session=client.session).spawn("robot-camera", "cam", bindings={"out": "fox/robot"})
             with Bridge(client, ["fox/**"], port=0) as bridge:
                 assert bridge.clocks is not None and bridge.clocks.fetched.wait(10)
 

@@ -131,3 +131,30 @@ def test_includes_agrees_with_zenoh_on_random_patterns() -> None:
         assert keys.includes(key_expr, key) == _zenoh_includes(key_expr, key), (key_expr, key)
 
     agree()
+
+
+def test_offer_tokens_name_their_manager_and_a_glob_asks_zenoh_for_no_less_than_fnmatch() -> None:
+    """Offer tokens (issue 40): functor and arguments by chunk, unsafe characters as '_', the
+    manager last; a manager glob's key expression matches every token whose name fnmatch accepts."""
+    import fnmatch
+
+    assert keys.offer_token("BallTrack", ("field",), "robot") == "@dyknow/offers/BallTrack/(field)/robot"
+    assert keys.offer_token("Battery", (), "robot") == "@dyknow/offers/Battery/()/robot"
+    assert keys.offer_token("A/B*", ("x y", "z"), "m") == "@dyknow/offers/A_B_/(x_y,z)/m"
+    for functor, args in [("A/B*", ("x y", "z")), ("T$x", ("#", "?")), ("", ())]:
+        check_key_expr(keys.offer_token(functor, args, "m"), what="offer", concrete=True)  # Zenoh takes it
+    assert keys.manager_of_offer(keys.offer_token("T", ("a",), "m-1")) == "m-1"
+    assert keys.manager_of_offer("@dyknow/offers/T/(a)/*") is None and keys.manager_of_offer("@dyknow/m-1") is None
+    assert keys.includes(keys.offers_pattern("T", ("a",)), keys.offer_token("T", ("a",), "m"))
+    assert not keys.includes(keys.offers_pattern("T", ("a",)), keys.offer_token("T", ("b",), "m"))
+    assert keys.includes(keys.offers_of("m"), keys.offer_token("T", ("a", "b"), "m"))
+    names = ["robot", "robot-1", "robot-12", "rob", "station", "r", "robot.x", "xrobot", "a-b-c"]
+    for glob in ["*", "robot*", "robot-*", "r*t", "*o*", "rob?t", "robot-[12]*", "a*b*c", "station", "?"]:
+        pattern = keys.managers_matching(glob)
+        for name in names:
+            if fnmatch.fnmatchcase(name, glob):
+                assert keys.includes(pattern, keys.manager_token(name)), (glob, name, pattern)
+                assert key_exprs_intersect(pattern, keys.manager_token(name)), (glob, name, pattern)  # as Zenoh matches them
+        check_key_expr(pattern, what="glob")
+    with pytest.raises(UnitError, match="cannot match a manager name"):
+        keys.managers_matching("a/b")

@@ -32,7 +32,7 @@ def system(make_manager: Callable[..., Manager]) -> Callable[..., dict[str, Mana
             managers[name] = make_manager(name, specs=[specs], ontology=[ONTOLOGY], listen=[hub] if i == 0 else ["tcp/127.0.0.1:0"],
                                           connect=[] if i == 0 else [hub], queue_depth=100_000, **kwargs)  # fmt: skip
         for manager in managers.values():
-            wait_until(lambda m=manager: len(m.peers()) == 2, f"{manager.name} to know the others")  # type: ignore[misc]
+            wait_until(lambda m=manager: len(m.reachable()) == 2, f"{manager.name} to see the others")  # type: ignore[misc]
         return managers
 
     return start

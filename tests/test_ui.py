@@ -482,6 +482,11 @@ def test_the_active_panel_shows_clock_offsets_and_messages_of_unknown_clocks(
     manager, url = ui()
     manager_process("--connect", manager.endpoints[0], name="clock-peer")
     manager.spawn("relay", "r1")
+    # its data reaches r1: the page's manager estimates its clock (on demand, issue 40)
+    from dyknow import Client
+
+    with Client("clock-peer", connect=manager.endpoints) as peer:
+        peer.spawn("periodic-source", "feed", params={"rate_hz": 20}, bindings={"out": f"dyknow/{manager.name}/r1/in"})
     browser.get(url)
     wait_text(browser, "clocks", "\u2192 clock-peer: ", timeout_s=30)
     line = browser.find_element("css selector", f"#clocks li[data-manager='{manager.name}'][data-peer='clock-peer']").text

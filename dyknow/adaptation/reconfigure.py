@@ -23,6 +23,8 @@ from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unq
 
 log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
+_DISCOVERY_ROUNDS = 16  # libraries read one after the other for a plan (a chain of 16 managers)
+
 
 # ---------------------------------------------------------------------------- plan and execute
 
@@ -69,6 +71,14 @@ class Reconfigurer:
             )
             self._planner_version = version
         return self._planner
+
+    def discover(self, tag: str) -> None:
+        """Follow the managers that offer what ``tag`` could need: the tags of its graph over
+        the libraries known, asked for (one query per tag not asked about yet) until no new
+        library brings a new tag. A plan then weighs its candidate providers, not the fleet."""
+        for _ in range(_DISCOVERY_ROUNDS):
+            if not self._runtime.discover(self.planner().running_keys(tag)):
+                return
 
     def running_model(self, request: Request | None) -> tuple[list[RunningUnit], Collection[str]]:
         """Units the plan may reuse (the request's own set aside) and every name in use.
@@ -151,6 +161,7 @@ class Reconfigurer:
         the request's own units not counted (:meth:`load`), so an opportunity moves a request for
         a strict improvement, never for a tie.
         """
+        self.discover(request.tag)
         running, names = self.running_model(request)
         peers = self._runtime.peers()
         kept = set(request.units)

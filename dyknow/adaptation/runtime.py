@@ -5,7 +5,7 @@ loop a small stand-in), and the :class:`DeadlinePort` s it watches.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -106,7 +106,13 @@ class Runtime(Protocol):
         ...
 
     def peers(self) -> Mapping[str, Summary]:
-        """The other managers reachable now, with their last summary (empty when alone)."""
+        """The other managers this one follows (reachable, and candidates of its plans or in use),
+        with their last summary (empty when alone)."""
+        ...
+
+    def discover(self, wanted: Collection[tuple[str, tuple[str, ...]]]) -> bool:
+        """Find the managers that offer the tags ``wanted`` (``(functor, args)`` by local names)
+        and follow them (:meth:`peers` then has them); True when one was added."""
         ...
 
     def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:

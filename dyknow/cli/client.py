@@ -69,6 +69,17 @@ def cmd_spawn(args: argparse.Namespace) -> int:
     return 1 if info["state"] == "failed" else 0
 
 
+def _positive(text: str) -> int:
+    """An argparse type: a whole number of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of at least 1")
+    return value
+
+
 def cmd_destroy(args: argparse.Namespace) -> int:
     """destroy a unit"""
     with open_client(args) as client:
@@ -80,7 +91,9 @@ def cmd_destroy(args: argparse.Namespace) -> int:
 def cmd_model(args: argparse.Namespace) -> int:
     """show the manager's units and specs (--all: of every manager reachable)"""
     with open_client(args) as client:
-        data = client.get_federated_model() if args.all else client.get_model()
+        data = (
+            client.get_federated_model(match=args.match or "*", limit=args.limit, after=args.after) if args.all else client.get_model()
+        )
         why = client.unreachable() if args.all and not data["managers"] else None
     if why is not None:
         raise why
@@ -109,6 +122,8 @@ def cmd_model(args: argparse.Namespace) -> int:
                 yield "specs: " + ", ".join(s["label"] for s in model["specs"])
 
     report_result(args, data, text)
+    if args.all and data.get("next") is not None:
+        print(f"dyknow: more managers after {data['next']}: continue with --after {data['next']}", file=sys.stderr)
     if args.all and not models:
         print("dyknow: error: no manager reachable; expected a running manager at --connect", file=sys.stderr)
         return 1
@@ -125,14 +140,17 @@ def cmd_managers(args: argparse.Namespace) -> int:
         why = client.unreachable()  # (a refusal at once, rather than after listening for 2 s)
         if why is not None and why.details.get("reason") in DEFINITE:
             raise why
-        managers = client.managers(timeout_s=min(args.timeout, 2.0))
-        if not managers:
+        page = client.managers_page(timeout_s=min(args.timeout, 2.0), match=args.match or "*", limit=args.limit, after=args.after)
+        managers = page["managers"]
+        if not managers and page["total"] == 0:
             why = client.unreachable()
             if why is not None:
                 raise why
         names = [m["manager"] for m in managers]
         # (a --manager that is not there would hold the list up for --timeout: ask another one)
-        asked = args.manager if args.manager in names else names[0] if names else None
+        # (on another page, maybe: asked apart, briefly, for it is usually absent when not listed)
+        up = args.manager in names or (len(names) < page["total"] and args.manager in client.manager_names(0.3, match=args.manager))
+        asked = args.manager if up else names[0] if names else None
         clocks: dict[str, Any] = {}
         lost: list[dict[str, Any]] = []
         if asked is not None:
@@ -163,7 +181,12 @@ def cmd_managers(args: argparse.Namespace) -> int:
             yield f"{m['manager']:<20} LOST since {when} ({(now - m['since_ns']) / 1e9:.1f} s ago, as {asked} saw it): {m['why']}"
 
     report_result(args, [*managers, *lost], text)
-    if not managers:
+    if page["next"] is not None:
+        print(
+            f"dyknow: {len(managers)} of {page['total']} managers listed; continue with --after {page['next']}",
+            file=sys.stderr,
+        )
+    if not managers and page["total"] == 0:
         where = ", ".join(args.connect) or "--connect"
         print(f"dyknow: error: no manager reachable through {where}; expected a running manager there (dyknow manager)", file=sys.stderr)
         return 1
@@ -498,12 +521,23 @@ def add_commands(cmds: Commands) -> None:
 
     cmds.command("destroy", cmd_destroy, destroy_options, client=True)
 
+    def page_options(p: argparse.ArgumentParser, limit: int | None) -> None:
+        p.add_argument(
+            "--match", action="append", metavar="GLOB", help="only the managers whose names match (repeatable; 'robot-*', 'station?')"
+        )
+        p.add_argument(
+            "--limit", type=_positive, default=limit, metavar="N",
+            help=f"at most N managers (a page; default {limit or 'all'}): the last line on stderr says how to go on",
+        )  # fmt: skip
+        p.add_argument("--after", metavar="NAME", help="the managers whose names sort after NAME (the next page)")
+
     def model_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...]}')
+        p.add_argument("--all", action="store_true", help='the model of every manager reachable: {"managers": [...], "next": ...}')
+        page_options(p, None)
 
     cmds.command("model", cmd_model, model_options, client=True)
 
-    cmds.command("managers", cmd_managers, client=True)
+    cmds.command("managers", cmd_managers, lambda p: page_options(p, 100), client=True)
 
     def config_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("action", choices=["get", "set"], help="get: print the bindings; set: rebind the ports given")

@@ -1,0 +1,179 @@
+"""A fleet: what one manager pays must not grow with the number of managers (issue 40).
+
+Thirty managers in this process on loopback, each its own Zenoh session: a planner finds the
+two providers of a tag by their offers and reads no other summary; the listing pages through
+the fleet; what the others announce is bounded.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+
+import pytest
+
+from dyknow import Client, Manager, keys
+from dyknow.federation import MAX_CANDIDATES, MAX_OFFERS
+from dyknow.transport import Session, make_config
+from tests.conftest import free_port, run_cli, wait_until
+
+FLEET = 30
+
+
+def _offering(tag: str, label: str | None = None) -> str:
+    """A spec of an idle source whose output carries ``tag``."""
+    return f"""<transformations><transformation><label>{label or "offer-" + tag.lower()}</label><source>dyknow.testing:Source</source>
+  <ports><port type="out">out</port></ports><tags><tag port="out">{tag}</tag></tags></transformation></transformations>"""
+
+
+def _fleet(make_manager: Callable[..., Manager], providers: dict[str, str]) -> tuple[str, list[Manager]]:
+    """``FLEET`` managers ``m00`` (the hub, the requester) to ``m29``; ``providers``: name -> a tag
+    it offers besides the generic specs every one has. Returns the hub's endpoint and the fleet
+    once ``m00`` sees every other's token. The others dial the hub and listen nowhere (a star,
+    as behind a router: 30 routers of one process that mesh make Zenoh 1.10.2 panic as they close)."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    fleet = [make_manager("m00", listen=[hub], dwell_s=0.2)]
+    for i in range(1, FLEET):
+        name = f"m{i:02d}"
+        fleet.append(make_manager(name, listen=[], connect=[hub], dwell_s=0.2))
+        if name in providers:
+            fleet[-1].add_transformation(_offering(providers[name]))
+    wait_until(lambda: len(fleet[0].reachable()) == FLEET - 1, "m00 to see the whole fleet")
+    return hub, fleet
+
+
+def _provider(manager: Manager, key: str) -> str:
+    (labels,) = [info.labels for info in manager.requests() if info.key == key]
+    return next(label.rpartition("@")[2] for label in labels if "@" in label)
+
+
+def test_a_provider_found_among_30_managers_of_which_2_offer_the_tag(make_manager: Callable[..., Manager]) -> None:
+    """``m00`` requests ``Rare``, which only m07 and m23 offer: it finds both with one query,
+    reads their summaries and no other, plans on one; when that one stops, the request moves to
+    the other on the same key."""
+    _, fleet = _fleet(make_manager, {"m07": "Rare", "m23": "Rare"})
+    m00 = fleet[0]
+    assert m00.peers() == {}  # nothing read before a plan needs it
+    key = m00.request("Rare")
+    first = _provider(m00, key)
+    assert first in ("m07", "m23")
+    assert set(m00.peers()) == {"m07", "m23"}  # the candidates' summaries only: not 29
+    other = "m23" if first == "m07" else "m07"
+    next(m for m in fleet if m.name == first).close()
+    wait_until(lambda: _provider(m00, key) == other, f"the request to move to {other}")
+    assert [info.key for info in m00.requests()] == [key]
+
+
+def test_a_fleet_is_listed_in_pages(make_manager: Callable[..., Manager]) -> None:
+    """``Client.managers_page`` and ``dyknow managers --limit/--after/--match`` page through 30
+    managers: every one listed once, a page at a time, each page asking only its own managers."""
+    hub, fleet = _fleet(make_manager, {})
+    names = sorted(m.name for m in fleet)
+    with Client("m00", connect=[hub]) as client:
+        wait_until(lambda: len(client.manager_names()) == FLEET, "the client to see the fleet")
+        seen: list[str] = []
+        after = None
+        pages = 0
+        while True:
+            page = client.managers_page(match="*", limit=7, after=after)
+            assert page["total"] == FLEET and len(page["managers"]) <= 7
+            seen.extend(m["manager"] for m in page["managers"])
+            pages += 1
+            after = page["next"]
+            if after is None:
+                break
+        assert seen == names and pages == 5
+        assert [m["manager"] for m in client.managers()] == names  # (the whole list, read in pages)
+        brief = client.managers(match="m0*", limit=3)
+        assert [(m["manager"], m["specs"], m["units"]) for m in brief] == [("m00", len(fleet[0].library), 0), ("m01", len(fleet[1].library), 0), ("m02", len(fleet[2].library), 0)]
+        assert client.manager_names(match=["m1?", "m29"]) == [f"m1{i}" for i in range(10)] + ["m29"]
+        models = client.get_federated_model(match="m2*", limit=4, after="m21")
+        assert [m["manager"] for m in models["managers"]] == ["m22", "m23", "m24", "m25"] and models["next"] == "m25"
+    listed = run_cli("managers", "--connect", hub, "--json", "--match", "m1*", "--limit", "4", "--after", "m13")
+    assert listed.returncode == 0, listed.stderr
+    assert [m["manager"] for m in json.loads(listed.stdout)] == ["m14", "m15", "m16", "m17"]
+    assert "4 of 10 managers listed; continue with --after m17" in listed.stderr
+    last = run_cli("managers", "--connect", hub, "--json", "--match", "m1*", "--after", "m17")
+    assert [m["manager"] for m in json.loads(last.stdout)] == ["m18", "m19"] and "continue" not in last.stderr
+    bad = run_cli("managers", "--connect", hub, "--match", "m/1")
+    assert bad.returncode != 0 and "manager pattern 'm/1' cannot match a manager name" in bad.stderr
+
+
+def test_offers_and_fake_providers_are_bounded(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
+    """A manager whose library offers 1,500 tags announces 1,024 of them (a log line names it);
+    40 fake managers that offer the tag a running request uses are followed at most 16 per tag
+    (a log line names the tag), the request stays where it runs and a new one is planned; a
+    newcomer asking who offers that tag reads at most 16 candidates (a log line says so)."""
+    from dyknow.errors import PlanningError
+
+    caplog.set_level(logging.WARNING, logger="dyknow.federation")
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    requester = make_manager("req", listen=[hub])
+    many = "".join(f'<tag port="out">Many{i:04d}</tag>' for i in range(1500))
+    big = make_manager("big", listen=[], connect=[hub], specs=[])
+    big.add_transformation(f"""<transformations><transformation><label>many</label><source>dyknow.testing:Source</source>
+      <ports><port type="out">out</port></ports><tags>{many}</tags></transformation></transformations>""")
+    real = make_manager("real", listen=[], connect=[hub])
+    real.add_transformation(_offering("Wanted"))
+    wait_until(lambda: any("manager 'big' offers 1500 tags; announces 1024 of them" in r.getMessage() for r in caplog.records), "big's bound")
+    with Session(make_config(connect=[hub])) as probe:
+        wait_until(lambda: len(probe.alive("@dyknow/offers/**/big", timeout_s=0.5)) == MAX_OFFERS, "big's offers")
+    wait_until(lambda: {"big", "real"} <= requester.reachable(), "the requester to see both")
+    wanted = requester.request("Wanted")
+    assert _provider(requester, wanted) == "real"
+    with Session(make_config(connect=[hub])) as attacker:  # 40 managers that do not exist offer it too
+        held = [attacker.declare_liveliness_token(keys.manager_token(f"fake{i:02d}")) for i in range(40)]
+        held += [attacker.declare_liveliness_token(keys.offer_token("Wanted", (), f"fake{i:02d}")) for i in range(40)]
+        wait_until(lambda: any(f"more than {MAX_CANDIDATES} managers offer @dyknow/offers/Wanted/()/*" in r.getMessage() for r in caplog.records),
+                   "the requester's bound on candidates")  # fmt: skip
+        many = requester.request("Many0000")  # planned while the fake candidates are asked in vain
+        assert _provider(requester, many) == "big" and _provider(requester, wanted) == "real"
+        assert set(requester.peers()) == {"big", "real"}  # no fake gave a summary
+        newcomer = make_manager("newcomer", listen=[], connect=[hub], specs=[])
+        offers = keys.offers_pattern("Wanted", ())
+        wait_until(lambda: len(newcomer.session.alive(offers, timeout_s=0.5)) == 41, "the newcomer's session to know the 41 offers")
+        try:
+            newcomer.request("Wanted")  # the real provider may or may not be among the 16 chosen
+        except PlanningError:
+            pass
+        assert set(newcomer.peers()) <= {"real"}
+        said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("directory of 'newcomer'")]
+        assert any(f"{MAX_CANDIDATES}" in line and "managers offer @dyknow/offers/Wanted/()/*" in line for line in said), said
+        for entity in held:
+            entity.undeclare()
+    assert {info.key for info in requester.requests()} == {wanted, many}  # what ran before runs on
+
+
+def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_when_it_starts_anew(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A token with nobody behind it (its summary never comes) is let go after the asks in vain
+    (here 2 over 0.5 s, 10 over 30 s in the product), with a warning; if that manager's token
+    goes and comes back (a new start of it), it is followed again."""
+    from dyknow import federation
+    from dyknow.errors import DyKnowError
+    from dyknow.federation import Directory, Summary
+
+    monkeypatch.setattr(federation, "_GIVE_UP_ASKS", 2)
+    monkeypatch.setattr(federation, "_GIVE_UP_S", 0.5)
+    asked: list[str] = []
+
+    def fetch(manager: str) -> bytes:
+        asked.append(manager)
+        raise DyKnowError("nobody answers", where=f"manager {manager!r}")
+
+    port = free_port()
+    with Session(make_config(listen=[f"tcp/127.0.0.1:{port}"])) as one, Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as two:
+        a = Directory(one, "a", summarize=lambda: Summary("a", "a-host", 1), fetch=fetch, on_change=lambda k, m: None)
+        try:
+            token = two.declare_liveliness_token(keys.manager_token("ghost"))
+            wait_until(lambda: "ghost" in a.alive(), "the ghost's token")
+            assert a.follow("ghost", at_once=True) and "ghost" in a.followed()
+            wait_until(lambda: "ghost" not in a.followed(), "the ghost let go")
+            assert a.refused().get("silent") == 1 and len(asked) >= 2
+            token.undeclare()
+            wait_until(lambda: "ghost" not in a.alive(), "the ghost's token gone")
+            token = two.declare_liveliness_token(keys.manager_token("ghost"))  # a new start of it
+            wait_until(lambda: "ghost" in a.followed(), "the ghost followed again")
+            token.undeclare()
+        finally:
+            a.close()
