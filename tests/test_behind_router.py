@@ -121,7 +121,7 @@ def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..
         station = make_manager("station", specs=[SCENARIO_HOSTS["station"]], ontology=[ONTOLOGY], router=[hub])
         robot = make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=[ONTOLOGY], router=[hub])
         assert station.endpoints == [] and robot.endpoints == []
-        wait_until(lambda: list(station.peers()) == ["robot"] and list(robot.peers()) == ["station"], "each to know the other")
+        wait_until(lambda: station.reachable() == {"robot"} and robot.reachable() == {"station"}, "each to know the other")
         key = station.request(TRACK)
         assert [u.label for u in robot.units()] == ["robot-camera"]
         station.spawn("consumer", "consumer", bindings={"in": key})
