@@ -58,6 +58,7 @@ VALID: dict[str, Any] = {
     "page": {},
     "formula": "A > 1",
     "reorder_ms": 5,
+    "brief": True,
     "require": [],
     "holder": "0123456789abcdef",
 }
@@ -89,6 +90,7 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("release", "holder"): set(),
     ("release", "force"): {"true"},
     ("monitor", "holder"): set(),
+    ("get_summary", "brief"): {"true"},
 }
 SWEEP = [(service, field, probe) for service, fields in SCHEMAS.items() for field in fields for probe in JSON_PROBES]
 
