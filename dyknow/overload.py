@@ -11,7 +11,7 @@ runs (the *lag*), how busy its thread was, how much CPU the process used. An
   publishes an ``overload`` event (``dyknow/<manager>/events/overload``) and its model says
   ``overloaded``.
 - **shedding, one step at a time**: at once, and again after every :data:`STEP_READINGS`
-  readings (1 s) of which most were over the budget, the latest among them, the least important
+  readings (1 s) of which most were over the budget, or whose mean lag was, the least important
   work is shed one step further (see below). Most, not all: a probe that happens to land between
   two long callbacks reads a short lag, and readings in a row over the budget could then take
   many seconds to come on a busy machine (a step waited over 30 s so).
@@ -144,6 +144,7 @@ class OverloadGuard:
         self._over = 0  # readings in a row over the budget
         self._window = 0  # readings since the last step (or since the window began again)
         self._window_over = 0  # of those, over the budget
+        self._window_lag_ns = 0  # their lags, summed
         self._under = 0  # readings in a row under half the budget
         self._steps: list[tuple[int, int]] = []  # (priority, setting), in the order taken
         self._units_shed = 0
@@ -172,7 +173,7 @@ class OverloadGuard:
                     entered, changed = True, True
                     self._step_up()
                     self._over = 0
-                    self._window = self._window_over = 0
+                    self._window = self._window_over = self._window_lag_ns = 0
             elif self._step_due(over):
                 self._over = 0
                 changed = self._step_up()
@@ -193,15 +194,17 @@ class OverloadGuard:
 
     def _step_due(self, over: bool) -> bool:
         """Count this reading in the window since the last step; whether the next step is due:
-        :data:`STEP_READINGS` readings or more, most of them over the budget, this one too. A
-        window twice that long without a step begins again (old readings say little of now)."""
+        :data:`STEP_READINGS` readings or more, most of them over the budget or their mean lag at
+        least the budget. A window twice that long without a step begins again (old readings say
+        little of now)."""
         self._window += 1
         self._window_over += over
-        if over and self._window >= STEP_READINGS and 2 * self._window_over > self._window:
-            self._window = self._window_over = 0
+        self._window_lag_ns += self._last.lag_ns if self._last is not None else 0
+        if self._window >= STEP_READINGS and (2 * self._window_over > self._window or self._window_lag_ns >= self.lag_budget_ns * self._window):
+            self._window = self._window_over = self._window_lag_ns = 0
             return True
         if self._window >= 2 * STEP_READINGS:
-            self._window = self._window_over = 0
+            self._window = self._window_over = self._window_lag_ns = 0
         return False
 
     def _state(self, name: str, *, keep_since: bool) -> OverloadState:
