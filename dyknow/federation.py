@@ -321,7 +321,32 @@ class Directory:
         if len(new) > _MAX_OFFER_KEYS:
             self._bound("tags", f"directory of {self.name!r}: a plan needs {len(new)} tags; watching the providers of {_MAX_OFFER_KEYS}")
             new = new[:_MAX_OFFER_KEYS]
-        # watch first, then ask: a provider that appears in between is not missed
+        answers: dict[str, tuple[list[str], int]] = {}
+        done = threading.Event()
+
+        pending = [2 * len(new)]
+
+        def answered(pattern: str, found: list[str], count: int) -> None:
+            with self._lock:
+                before, counted = answers.get(pattern, ([], 0))
+                answers[pattern] = (sorted({*before, *found}), max(counted, count))
+                pending[0] -= 1
+                if pending[0] == 0:
+                    done.set()
+
+        def ask() -> None:
+            for p in new:
+                try:
+                    self._session.ask_alive(p, timeout_s=timeout_s, limit=4 * MAX_CANDIDATES, done=functools.partial(answered, p))
+                except DyKnowError as exc:
+                    log.warning("directory of %r: cannot ask who offers %s: %s", self.name, p, exc)
+                    answered(p, [], 0)
+
+        # asked before the watch and again after it, the answers together: a Zenoh client's
+        # liveliness query just after a liveliness subscriber on the same key expression finds
+        # nothing (a manager behind a router planned nothing), and a provider that appears
+        # between the first query and the watch is found by the second
+        ask()
         for p in new:
             try:
                 watch = self._session.declare_liveliness_subscriber(p, functools.partial(self._offer_change, p))
@@ -338,21 +363,7 @@ class Directory:
                     self._candidates.pop(gone, None)
             for entity in evicted:
                 entity.undeclare()
-        answers: dict[str, tuple[list[str], int]] = {}
-        done = threading.Event()
-
-        def answered(pattern: str, found: list[str], count: int) -> None:
-            with self._lock:
-                answers[pattern] = (found, count)
-                if len(answers) == len(new):
-                    done.set()
-
-        for p in new:
-            try:
-                self._session.ask_alive(p, timeout_s=timeout_s, limit=4 * MAX_CANDIDATES, done=functools.partial(answered, p))
-            except DyKnowError as exc:
-                log.warning("directory of %r: cannot ask who offers %s: %s", self.name, p, exc)
-                answered(p, [], 0)
+        ask()
         done.wait(timeout_s + 0.5)
         with self._lock:
             got = dict(answers)

@@ -210,3 +210,26 @@ def test_a_manager_behind_a_router_beyond_this_host_without_tls_is_exposed(make_
     beyond this host without TLS (a documentation address: no router answers there)."""
     assert make_manager(router=[f"tcp/127.0.0.1:{free_port()}"], lease_ms=1000).exposed() == []
     assert make_manager(router=["tcp/192.0.2.1:7447"], lease_ms=1000).exposed() == ["tcp/192.0.2.1:7447"]
+
+
+SHARED = """<transformations><transformation><label>shared-{name}</label><source>transformations.generic:PeriodicSource</source>
+  <params><param name="rate_hz" type="float">5</param></params><ports><port type="out">out</port></ports>
+  <tags><tag port="out">Shared</tag></tags></transformation></transformations>"""
+
+
+def test_a_manager_behind_a_router_finds_a_provider_it_never_heard_of(make_manager: Callable[..., Manager]) -> None:
+    """A Zenoh client's liveliness query just after its liveliness subscriber on the same key
+    expression finds nothing: the directory asked who offers a tag only after watching it, and a
+    manager behind a router planned nothing ("nothing provides Shared"). It now asks before and
+    after the watch."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    with Session(make_config(listen=[hub], mode="router")):
+        m0 = make_manager("m0", router=[hub])
+        m1 = make_manager("m1", router=[hub])
+        m1.add_transformation(SHARED.format(name="m1"))
+        # the offer is on its way once m0 could see it; nothing of m1 was read before the request
+        wait_until(lambda: bool(m0.session.alive("@dyknow/offers/Shared/*/*", timeout_s=1.0)), "m0 to see m1's offer")
+        assert "m1" not in m0.peers()
+        key = m0.request("Shared")
+        (request,) = m0.get_model().requests
+        assert request.key == key and request.labels == ("shared-m1@m1",), request.labels
