@@ -473,16 +473,24 @@ def test_units_run_inline_count_their_own_time_not_the_publishers(make_manager: 
     carry 9 ms, the middle one 4.5 ms), so a quick unit upstream of a long chain is not taken for
     slow. The median unit's average is checked (a callback's time is wall time: a preempted unit
     here or there on a loaded machine reads high, the median does not), and nothing moves off
-    the shared thread with the line for moving set far away."""
+    the shared thread with the line for moving set far away. The first unit still runs inline,
+    with the second nested under it, after 40 messages: counting the chain below it (9 ms
+    against the 200 us inline budget) would have moved it to its lane for good (one preempted
+    callback moves it for a few messages only, so the test sends on until it is back)."""
     manager = make_manager(listen=[], slow_callback_s=1.0)
     source, sink = _where_chain(manager, 60, spin_us=150)
-    for i in range(40):
+    w1, w2 = manager.unit("w1"), manager.unit("w2")
+    assert isinstance(w1, Where) and isinstance(w2, Where)
+    me = threading.get_ident()
+    for i in range(2000):
         source.emit(i)
         sink.wait_for(i + 1)
+        if i >= 40 and w1.threads[-1] == me and w2.threads[-1] == me and w2.depths[-1] == 2:
+            break  # run inline, on the publisher's thread, the chain nested under it
+    else:
+        raise AssertionError(f"w1 ran on the publisher's thread {w1.threads.count(me)} times in 2,000 messages, never after the 40th")
     averages = sorted(manager.get_statistics(f"w{i}").callback_avg_us for i in range(1, 61))
     assert averages[30] < 1000, averages  # own 150 us, where counting the chain below would give 4,500
-    w1 = manager.unit("w1")
-    assert isinstance(w1, Where) and w1.threads[-1] == threading.get_ident()  # run inline, on the publisher's thread
 
 
 # ---------------------------------------------------------------------------- forward_to

@@ -407,6 +407,11 @@ class AdaptationLoop:
         return list(self.knowledge.history)
 
     def _emit(self, event: AdaptationEvent) -> None:
+        self._record(event)
+        self._announce(event)
+
+    def _record(self, event: AdaptationEvent) -> None:
+        """Keep ``event`` in the history (a recovery replaces its adaptation's entry)."""
         history = self.knowledge.history
         for i in range(len(history) - 1, -1, -1):  # a recovery completes its adaptation's entry
             if history[i].id == event.id:
@@ -414,6 +419,9 @@ class AdaptationLoop:
                 break
         else:
             history.append(event)
+
+    def _announce(self, event: AdaptationEvent) -> None:
+        """Publish ``event`` and hand it to the listeners."""
         try:
             self.runtime.publish_event("adaptation", event.to_dict())
         except DyKnowError as exc:
@@ -736,13 +744,17 @@ class AdaptationLoop:
         if entry is None or not request.in_place or not entry[0].done:
             return
         del self._in_place[request.key]
-        request.state, request.reason, request.in_place = "active", None, False
         for label in set(request.units.values()):
             request.suspects.pop(label, None)
         now = time.time_ns()
         event = entry[1]
-        self._emit(replace(event, kind="recovered", new=tuple(sorted(set(request.units.values()))), recovery_ms=round((now - event.fault_ns) / 1e6, 3)))
-        log.info("request %s is active again: its requirements held for %g s on %s", request.tag, self.dwell_ns / 1e9, ", ".join(sorted(set(request.units.values()))))
+        recovered = replace(event, kind="recovered", new=tuple(sorted(set(request.units.values()))), recovery_ms=round((now - event.fault_ns) / 1e6, 3))
+        # in this order: whoever sees the request active (list_requests, on another thread) also
+        # finds its "recovered" event and the log line, and listeners see it active
+        log.info("request %s is active again: its requirements held for %g s on %s", request.tag, self.dwell_ns / 1e9, ", ".join(recovered.new))
+        self._record(recovered)
+        request.state, request.reason, request.in_place = "active", None, False
+        self._announce(recovered)
 
     def _later_unit(self, name: str, time_ns: int) -> bool:
         """Whether the unit now named ``name`` started after ``time_ns``."""
