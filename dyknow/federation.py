@@ -395,12 +395,8 @@ class Directory:
             if data is None:
                 self._retry_later(m)
                 continue
-            try:
-                with self._lock:
-                    previous = self._summaries.get(m)
-                summary = Summary.from_json(data, m, previous)
-            except DyKnowError as exc:
-                log.warning("directory of %r: %s", self.name, exc)
+            summary = self._parse(m, data)
+            if summary is None:
                 self._retry_later(m)
                 continue
             with self._lock:
@@ -715,12 +711,8 @@ class Directory:
         with self._lock:
             if manager not in self._followed or manager not in self._alive:
                 return  # not followed any more (a summary on its way when it was let go), or gone
-        try:
-            with self._lock:
-                previous = self._summaries.get(manager)
-            summary = Summary.from_json(data, manager, previous)
-        except DyKnowError as exc:
-            log.warning("directory of %r: %s", self.name, exc)
+        summary = self._parse(manager, data)
+        if summary is None:
             if kind == "found":  # fetched: ask again later, not at once
                 self._retry_later(manager)
             return
@@ -783,6 +775,17 @@ class Directory:
             wait = self._retry_later(manager)
             # (the first failures are expected as a manager appears: said only once it persists)
             log.log(logging.WARNING if wait >= _RETRY_S else logging.DEBUG, "directory of %r: no summary from %r yet: %s", self.name, manager, exc)
+            return None
+
+    def _parse(self, manager: str, data: bytes) -> Summary | None:
+        """``manager``'s summary from what it sent (reusing what is unchanged since the last
+        one), or None, said in the log, when it is not one."""
+        with self._lock:
+            previous = self._summaries.get(manager)
+        try:
+            return Summary.from_json(data, manager, previous)
+        except DyKnowError as exc:
+            log.warning("directory of %r: %s", self.name, exc)
             return None
 
     def _retry_later(self, manager: str) -> float:

@@ -97,6 +97,41 @@ def run_cli(*args: str, timeout: float = 30.0, stdin: str | None = None) -> subp
     )
 
 
+def end_process(proc: subprocess.Popen[Any], grace_s: float = 0.0) -> None:
+    """End ``proc`` (SIGTERM and up to ``grace_s`` seconds to finish when given, then SIGKILL),
+    wait for it and close its pipes."""
+    if proc.poll() is None and grace_s > 0:
+        proc.terminate()
+        try:
+            proc.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait(10)
+    for stream in (proc.stdin, proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
+
+
+def under_ci() -> bool:
+    """Whether the suite runs in CI (``CI=true``), where nothing may be skipped."""
+    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def need_hosts(faults: bool = False) -> None:
+    """Network namespaces (and, with ``faults``, nftables for link faults) are required: the test
+    fails under CI without them and is skipped elsewhere, saying what is missing."""
+    from dyknow.testing.hosts import faults_unavailable, unavailable
+
+    why = unavailable() or (faults_unavailable() if faults else None)
+    if why is None:
+        return
+    if under_ci():
+        pytest.fail(f"network namespaces{' and nft' if faults else ''} are required under CI: {why}")
+    pytest.skip(why)
+
+
 def wait_until(condition: Callable[[], bool], what: str, timeout_s: float = 20.0) -> None:
     """Wait for state another thread or process changes and that has no event to wait on."""
     deadline = time.monotonic() + timeout_s
@@ -142,12 +177,7 @@ class CliProcess:
 
     def close(self) -> None:
         """Kill the process if it still runs, and close its pipes."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(10)
-        for stream in (self.proc.stdout, self.proc.stderr):
-            if stream is not None:
-                stream.close()
+        end_process(self.proc)
 
 
 @pytest.fixture
@@ -211,7 +241,7 @@ def data_dir() -> Path:
     path = Path(os.environ.get("DYKNOW_DATA", REPO.parent / "shared" / "data"))
     if not (path / "SOURCES.md").is_file():
         message = f"test data not found at {path}; set DYKNOW_DATA to the shared/data folder"
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        if under_ci():
             pytest.fail(message)
         pytest.skip(message)
     return path
@@ -238,7 +268,7 @@ def browser_paths() -> tuple[str, str]:
         found = _browser_paths()
     if found is None:
         why = "Chromium and chromedriver are not installed (apt-get install chromium chromium-driver)"
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        if under_ci():
             pytest.fail(why)
         pytest.skip(why)
     return found
@@ -256,7 +286,7 @@ def graphviz() -> str:
         found = shutil.which("dot")
     if found is None:
         why = "Graphviz is not installed (apt-get install graphviz): the site's figures are drawn with its dot"
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        if under_ci():
             pytest.fail(why)
         pytest.skip(why)
     return found
@@ -275,7 +305,7 @@ def faketime() -> Path:
                        env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
     if not FAKETIME.is_file():
         why = f"libfaketime is not installed ({FAKETIME}; apt-get install faketime)"
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+        if under_ci():
             pytest.fail(why)
         pytest.skip(why)
     return FAKETIME

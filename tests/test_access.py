@@ -17,7 +17,7 @@ from dyknow.certs import write_dev_certs
 from dyknow.identity import Signer
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
-from tests.conftest import GENERIC_SPECS, CliProcess, free_port, run_cli, wait_until
+from tests.conftest import GENERIC_SPECS, CliProcess, end_process, free_port, run_cli, wait_until
 
 NAMES = ["manager", "viewer", "operator", "admin", "stranger", "station", "robot", "router"]
 RELAY = """<transformation><label>extra-relay</label><source>transformations.generic:Relay</source>
@@ -659,8 +659,4 @@ def test_a_link_lost_mid_call_is_not_read_as_the_acl_refusing(certs: Path, tmp_p
             message = str(failed[0])
             assert "acl" not in message.lower() and failed[0].details["reason"] in ("link-closed", "gone"), message
     finally:
-        proc.kill()
-        proc.wait(10)
-        for stream in (proc.stdout, proc.stderr):
-            if stream is not None:
-                stream.close()
+        end_process(proc)

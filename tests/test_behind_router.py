@@ -104,12 +104,18 @@ def test_a_standby_router_takes_over_when_the_first_goes(started: Callable[..., 
     router.proc.send_signal(signal.SIGKILL)
     for proc in managers:
         wait_until(lambda p=proc: links(p.proc.pid) == [f"127.0.0.1:{b}"], "one link, to the standby")  # type: ignore[misc]
-    with Client("station", connect=[standby]) as client:
-        wait_until(lambda: [m["manager"] for m in client.managers()] == ["field", "station"], "both listed through the standby")
+    _field_camera_on_request(standby, "through the standby")
+
+
+def _field_camera_on_request(router: str, how: str) -> None:
+    """Through ``router``, the station and the field are both listed, and a request made of the
+    station gets the field's camera on its key."""
+    with Client("station", connect=[router]) as client:
+        wait_until(lambda: [m["manager"] for m in client.managers()] == ["field", "station"], f"both listed {how}")
         key = client.request(TRACK)
         got: list[int] = []
         with client.session.declare_subscriber(key, lambda msg: got.append(msg.payload["camera"])):
-            wait_until(lambda: got.count(CEILING) > 3, "the field's camera through the standby")
+            wait_until(lambda: got.count(CEILING) > 3, f"the field's camera on the station's request, {how}")
 
 
 def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..., Manager]) -> None:
@@ -194,12 +200,7 @@ def test_a_manager_starts_before_its_router_and_joins_it_when_it_comes(started: 
     assert links(station.proc.pid) == []
     started("router", "--listen", hub)
     wait_until(lambda: links(station.proc.pid) == links(field.proc.pid) == [f"127.0.0.1:{port}"], "one link each, to the router")
-    with Client("station", connect=[hub]) as client:
-        wait_until(lambda: [m["manager"] for m in client.managers()] == ["field", "station"], "both listed through the router")
-        key = client.request(TRACK)
-        got: list[int] = []
-        with client.session.declare_subscriber(key, lambda msg: got.append(msg.payload["camera"])):
-            wait_until(lambda: got.count(CEILING) > 3, "the field's camera on the station's request")
+    _field_camera_on_request(hub, "through the router")
     station.proc.terminate()
     assert station.proc.wait(10) == 0
     assert station.proc.stderr is not None and "no router of " + hub + " answers yet" in station.proc.stderr.read()

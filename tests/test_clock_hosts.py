@@ -19,7 +19,6 @@ skip when they are missing (libfaketime is installed with apt-get when running a
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from collections.abc import Iterator
@@ -30,8 +29,8 @@ from typing import Any
 import pytest
 
 from dyknow.testing import SCENARIO_HOSTS
-from dyknow.testing.hosts import Hosts, unavailable
-from tests.conftest import faked_clock
+from dyknow.testing.hosts import Hosts
+from tests.conftest import faked_clock, need_hosts
 from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child, adaptations
 
 #: How far the robot's and the field's figures may differ for reasons other than clocks: two
@@ -41,18 +40,10 @@ from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child, adaptations
 MARGIN_US = 500.0
 
 
-def _under_ci() -> bool:
-    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
 @pytest.fixture
 def clean_hosts() -> Iterator[Hosts]:
     """Three hosts on clean links: a clock exchange's accuracy is the link's evenness."""
-    why = unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts()
     with Hosts(["station", "robot", "field"]) as made:
         yield made
 

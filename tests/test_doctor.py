@@ -18,9 +18,20 @@ import pytest
 from dyknow import AccessControl, Client, Manager, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.doctor import Diagnosis, check_config, check_port, check_shm, diagnose
-from tests.conftest import REPO, CliProcess, ManagerProcess, faked_clock, free_port, run_cli, subprocess_env, wait_until
+from tests.conftest import (
+    REPO,
+    CliProcess,
+    ManagerProcess,
+    end_process,
+    faked_clock,
+    free_port,
+    run_cli,
+    subprocess_env,
+    under_ci,
+    wait_until,
+)
 
-CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+CI = under_ci()
 
 
 def _of(found: list[Diagnosis], check: str) -> list[Diagnosis]:
@@ -164,10 +175,6 @@ def test_a_skewed_clock_between_two_managers_is_named(faketime: Path) -> None:
         code, found, _ = _doctor(*args, "--max-clock-offset-ms", "1000")
         assert code == 0 and [d["status"] for d in found if d["check"] == "clocks"] == ["ok"]
     finally:
-        robot.terminate()
-        robot.wait(10)
-        for stream in (robot.stdout, robot.stderr):
-            if stream is not None:
-                stream.close()
+        end_process(robot, grace_s=10)
         station.stop()
         station.close()

@@ -27,8 +27,8 @@ from typing import Any
 import pytest
 
 from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS
-from dyknow.testing.hosts import Hosts, faults_unavailable, unavailable
-from tests.conftest import REPO, subprocess_env
+from dyknow.testing.hosts import Hosts, faults_unavailable
+from tests.conftest import REPO, need_hosts, subprocess_env
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
@@ -37,11 +37,7 @@ PORT = 7447
 
 @pytest.fixture
 def hosts() -> Iterator[Hosts]:
-    why = unavailable()
-    if why is not None:
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-            pytest.fail(f"network namespaces are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts()
     with Hosts(["station", "robot", "field"], delay_ms=5, loss_percent=1) as made:
         yield made
 
@@ -203,10 +199,6 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
 # ---------------------------------------------------------------------------- faults beyond a clean cut
 
 
-def _under_ci() -> bool:
-    return os.environ.get("CI", "").lower() in ("1", "true", "yes")
-
-
 @pytest.fixture
 def faulty(hosts: Hosts) -> Hosts:
     """The hosts, with packet loss and bandwidth limits at hand (Debian's nftables, installed
@@ -214,11 +206,7 @@ def faulty(hosts: Hosts) -> Hosts:
     if faults_unavailable() is not None and os.geteuid() == 0 and shutil.which("apt-get"):
         subprocess.run(["apt-get", "install", "-y", "-q", "nftables"], capture_output=True, timeout=900,
                        env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
-    why = faults_unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"link faults are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts(faults=True)
     return hosts
 
 
@@ -443,11 +431,7 @@ def _docs_two_hosts() -> list[tuple[str, str]]:
 def test_the_docs_two_host_example_runs_as_written(tmp_path: Path) -> None:
     """Three namespaces with the tutorial's addresses; each line run on the machine its comment
     names, in a folder holding the checkout's specs (the files "copied" are shared: one disk)."""
-    why = unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts()
     steps = _docs_two_hosts()
     addresses = {"station": "10.0.0.2", "robot": "10.0.0.5", "laptop": "10.0.0.9"}
     env = {**subprocess_env(), "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", "DYKNOW_LOG": "INFO"}
@@ -515,11 +499,7 @@ def test_through_a_router_and_a_third_manager_each_client_has_its_own_rights(tmp
     laptop, through the router and through the robot's manager in turn: a viewer reads and
     receives data but may not destroy nor publish; a requester also requests; an operator also
     publishes; a certificate without a role gets nothing, services or data."""
-    why = unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts()
     from dyknow.certs import write_dev_certs
 
     names = ["station", "robot", "hub", "laptop"]
@@ -616,11 +596,7 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
     and behind a dyknow router on a fourth host with TLS and one ACL file everywhere (the docs'
     fleet). Before: after a silent drop was lifted the station never found the robot again, its
     link to the robot held for 25 s past its lease (issue 43)."""
-    why = unavailable() or (faults_unavailable() if kind == "silent" else None)
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces (and nft for a silent cut) are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts(faults=kind == "silent")
     router = topology != "peers"
     names = ["station", "robot", "field", *(["hub"] if router else [])]
     with Hosts(names) as hosts:
@@ -692,11 +668,7 @@ def test_a_link_cut_mid_call_is_not_read_as_the_acl_refusing(tmp_path: Path) -> 
     under way: once the lease gives the link up the call fails saying the link closed or the
     manager went, not that the ACL refused the admin (issue 43: "the manager's --acl does not let
     this client's certificate (common name 'admin') call it", and the next call said it was gone)."""
-    why = unavailable() or faults_unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces and nft are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts(faults=True)
     from dyknow.certs import write_dev_certs
 
     with Hosts(["robot", "laptop"]) as hosts:
@@ -749,11 +721,7 @@ def test_managers_that_cannot_link_directly_reach_each_other_through_a_router() 
     other and the request stays on the robot's camera, carried through the router. As Zenoh peers
     they saw each other only over their direct link and never again once it was gone, though both
     reached the router (it does not route between peers); managers are Zenoh routers (issue 43)."""
-    why = unavailable() or faults_unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces and nft are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts(faults=True)
     with Hosts(["station", "robot", "field", "hub"]) as hosts:
         hub = f"tcp/{hosts.address('hub')}:{PORT}"
         children = [Child(hosts, "hub", [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, "--lease-ms", "1000", "--json"])]
@@ -803,11 +771,7 @@ def test_a_silent_host_is_reported_and_a_dial_under_way_ends_with_its_session(tm
     """A client of a host that answers nothing (every packet dropped) says so once its --timeout
     is over, naming the host, without probing it again; closing a session that dials it ends the
     dial under way (Zenoh's close waited for it, up to the dial's 2 s bound: issue 43, item 4)."""
-    why = unavailable() or faults_unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces and nft are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts(faults=True)
     with Hosts(["robot", "laptop"]) as hosts:
         hosts.cut("robot", silent=True)
         endpoint = f"tcp/{hosts.address('robot')}:{PORT}"

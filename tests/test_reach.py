@@ -4,7 +4,6 @@ naming the option or file to change, and a non-zero exit (real managers, real TL
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -16,8 +15,8 @@ from dyknow import AccessError, Client, Manager, ServiceError
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.reach import probe
-from dyknow.testing.hosts import Hosts, unavailable
-from tests.conftest import REPO, free_port, run_cli, subprocess_env
+from dyknow.testing.hosts import Hosts
+from tests.conftest import REPO, free_port, need_hosts, run_cli, subprocess_env
 
 
 @pytest.fixture(scope="module")
@@ -178,11 +177,7 @@ def test_a_spec_not_removed_exits_1(robot: Manager, pki: Path, make_manager: Cal
 
 @pytest.fixture
 def two_hosts() -> Iterator[Hosts]:
-    why = unavailable()
-    if why is not None:
-        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
-            pytest.fail(f"network namespaces are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts()
     with Hosts(["laptop", "robot"]) as made:
         yield made
 

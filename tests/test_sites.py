@@ -25,12 +25,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import pytest
-
 from dyknow.testing import CAMERA_IDS
-from dyknow.testing.hosts import Hosts, unavailable
-from tests.conftest import subprocess_env
-from tests.test_hosts import Child, _under_ci
+from dyknow.testing.hosts import Hosts
+from tests.conftest import need_hosts, subprocess_env
+from tests.test_hosts import Child
 
 REPO = Path(__file__).resolve().parent.parent
 PAGE = REPO / "docs" / "howto" / "router.md"
@@ -127,11 +125,7 @@ class Sites:
 
 
 def _namespaces() -> None:
-    why = unavailable()
-    if why is not None:
-        if _under_ci():
-            pytest.fail(f"network namespaces are required under CI: {why}")
-        pytest.skip(why)
+    need_hosts()
 
 
 def _until(condition: Callable[[], bool], what: str, timeout_s: float = 60.0) -> None:

@@ -23,6 +23,7 @@ from dyknow.cli.common import (
     parse_pairs,
     parse_value,
     payload_json,
+    positive_int,
     print_json,
     read_limits,
     report_result,
@@ -67,17 +68,6 @@ def cmd_spawn(args: argparse.Namespace) -> int:
 
     report_result(args, info, text)
     return 1 if info["state"] == "failed" else 0
-
-
-def _positive(text: str) -> int:
-    """An argparse type: a whole number of at least 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of at least 1")
-    return value
 
 
 def cmd_destroy(args: argparse.Namespace) -> int:
@@ -526,7 +516,7 @@ def add_commands(cmds: Commands) -> None:
             "--match", action="append", metavar="GLOB", help="only the managers whose names match (repeatable; 'robot-*', 'station?')"
         )
         p.add_argument(
-            "--limit", type=_positive, default=limit, metavar="N",
+            "--limit", type=positive_int, default=limit, metavar="N",
             help=f"at most N managers (a page; default {limit or 'all'}): the last line on stderr says how to go on",
         )  # fmt: skip
         p.add_argument("--after", metavar="NAME", help="the managers whose names sort after NAME (the next page)")

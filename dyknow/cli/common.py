@@ -66,6 +66,7 @@ def parse_value(text: str) -> float | str:
 
 
 def positive_int(text: str) -> int:
+    """An argparse type: a whole number of at least 1."""
     try:
         value = int(text)
     except ValueError:

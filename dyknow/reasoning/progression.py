@@ -142,6 +142,17 @@ def _bisect_right(a: list[int], x: int) -> int:
     return lo
 
 
+def _drop_before(positions: list[int], head: int, oldest: int) -> int:
+    """Move ``head`` past the positions before ``oldest`` and return it; the positions behind it
+    are deleted (and it starts over) once they are over 64 and half the list."""
+    while head < len(positions) and positions[head] < oldest:
+        head += 1
+    if head > 64 and head * 2 > len(positions):
+        del positions[:head]
+        head = 0
+    return head
+
+
 def _insort(a: list[int], x: int) -> None:
     a.insert(_bisect_right(a, x), x)
 
@@ -1324,22 +1335,8 @@ class _UntilSync(_Node):
 
     def forget(self, oldest: int) -> None:
         """Drop the positions before ``oldest``, the oldest pending state: no window reads them."""
-        left_f = self.left_f
-        h = self.lf_head
-        while h < len(left_f) and left_f[h] < oldest:
-            h += 1
-        if h > 64 and h * 2 > len(left_f):
-            del left_f[:h]
-            h = 0
-        self.lf_head = h
-        right_nf = self.right_nf
-        r = self.rnf_head
-        while r < len(right_nf) and right_nf[r] < oldest:
-            r += 1
-        if r > 64 and r * 2 > len(right_nf):
-            del right_nf[:r]
-            r = 0
-        self.rnf_head = r
+        self.lf_head = _drop_before(self.left_f, self.lf_head, oldest)
+        self.rnf_head = _drop_before(self.right_nf, self.rnf_head, oldest)
 
     def decide(self, i: int, value: int) -> None:
         self.vals[i - self.clock.base] = 2 - value if self.negate else value

@@ -27,7 +27,7 @@ from dyknow.errors import RecordingError
 from dyknow.message import CLOCK_ID
 from dyknow.recording import CLOCK_METADATA, CLOCKS_TOPIC, PAYLOAD_METADATA, Player, RecordedMessage, Recorder, Recording
 from dyknow.recording.offsets import MAX_CLOCKS, ClockRecord, OffsetLog, Offsets
-from tests.conftest import GENERIC_SPECS, REPO, faked_clock, free_port, subprocess_env, wait_until
+from tests.conftest import GENERIC_SPECS, REPO, end_process, faked_clock, free_port, subprocess_env, wait_until
 
 OWN, OTHER = 0x0000AAAA, 0x0000BBBB
 MS = 1_000_000
@@ -140,11 +140,7 @@ class Faked:
         return int(self.clock["realtime_ns"] - self.clock["monotonic_ns"] - (realtime - (before + after) // 2))
 
     def close(self) -> None:
-        self.proc.kill()
-        self.proc.wait(10)
-        for stream in (self.proc.stdout, self.proc.stderr):
-            if stream is not None:
-                stream.close()
+        end_process(self.proc)
 
 
 @pytest.fixture
