@@ -271,8 +271,9 @@ class Manager:
                 # (a Zenoh client does not start without its router; a robot's manager must run
                 # its own units meanwhile: a router without a listener keeps dialling, one link each)
                 log.warning(
-                    "manager %r: no router of %s answers yet; it runs meanwhile and dials them until they do (holding a link to "
-                    "each that answers, not only to the first)",
+                    "manager %r: no router of %s answers yet (none listens there, or it refused this manager: a router full at its "
+                    "--max-sessions, or TLS); it runs meanwhile and dials them until they do (holding a link to each that answers, not "
+                    "only to the first)",
                     self.name,
                     ", ".join(router),
                 )

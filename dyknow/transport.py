@@ -88,6 +88,9 @@ _ENCODINGS: Final = {text: zenoh.Encoding(text) for text in ENCODINGS.values()}
 # faster for a 6 MiB frame with nothing else in flight (1.0 vs 1.5 ms), since the receiver copies a
 # shared-memory sample out too. When to use it is an open question (README, Payload sizes).
 SHM_THRESHOLD: Final = 64 * 1024
+#: How many sessions a router (``dyknow router``, a manager) accepts at once by default (as
+#: rmw_zenoh's router configuration does; Zenoh's own default is 1,000).
+ROUTER_MAX_SESSIONS: Final = 10_000
 _HEADER_SIZE: Final = HEADER_V1.size  # the shortest dyknow header (version 1)
 SHM_POOL_BYTES = 96 * 1024 * 1024
 
@@ -465,6 +468,7 @@ def make_config(
     mode: str = "peer",
     max_message_bytes: int | None = None,
     open_timeout_ms: int | None = None,
+    max_sessions: int | None = None,
 ) -> zenoh.Config:
     """Build a Zenoh configuration.
 
@@ -486,6 +490,10 @@ def make_config(
     ``open_timeout_ms``: how long one attempt to open a link may take (Zenoh's
     ``transport/unicast/open_timeout``; by default the lease, from 2 to 10 s). A lost link is
     dialled again after 0.25 s, then up to every 1 s (half the lease when shorter).
+    ``max_sessions``: how many sessions (managers, clients, routers) may link to this one at
+    once (Zenoh's ``transport/unicast/max_sessions``); by default 10,000 for a router (Zenoh's
+    own 1,000 refused the 1,001st manager of a fleet behind a ``dyknow router``), Zenoh's
+    1,000 otherwise.
     """
     for option, endpoints in (("--listen", listen or ()), ("--connect", connect)):
         check_schemes(endpoints, option)
@@ -557,6 +565,12 @@ def make_config(
             config.insert_json5("transport/link/tx/lease", str(int(lease_ms)))
         if open_timeout_ms is not None:
             config.insert_json5("transport/unicast/open_timeout", str(max(100, int(open_timeout_ms))))
+        if max_sessions is None and mode == "router" and config_file is None:
+            max_sessions = ROUTER_MAX_SESSIONS
+        if max_sessions is not None:
+            if max_sessions < 1:
+                raise TransportError(f"got {max_sessions}", where="max_sessions", expected="a whole number of at least 1")
+            config.insert_json5("transport/unicast/max_sessions", str(int(max_sessions)))
         if max_message_bytes is not None:
             if max_message_bytes < 65536:
                 raise TransportError(f"got {max_message_bytes} bytes", where="max_message_bytes", expected="at least 65,536")

@@ -9,6 +9,7 @@ Links are counted as the kernel sees them (``ss``: established TCP sockets of a 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -139,6 +140,26 @@ def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..
         out = subprocess.run(["ss", "-tnpH", "state", "established"], capture_output=True, text=True, check=True).stdout
         mine = [line.split()[2:4] for line in out.splitlines() if f"pid={os.getpid()}," in line]
         assert sorted(remote for local, remote in mine if local != f"127.0.0.1:{port}") == [f"127.0.0.1:{port}"] * 2
+
+
+def test_a_full_router_refuses_the_next_manager_which_says_so(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
+    """A router takes 10,000 sessions by default (Zenoh's own 1,000 refused the 1,001st manager of
+    a fleet); one at its ``max_sessions`` refuses the next manager, whose warning names the
+    bound, and that manager runs on, listed by none; ``dyknow router --max-sessions`` takes a
+    whole number of at least 1."""
+    assert make_config(mode="router").get_json("transport/unicast/max_sessions") == "10000"
+    assert make_config(mode="peer").get_json("transport/unicast/max_sessions") == "1000"  # (Zenoh's)
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    with Session(make_config(listen=[hub], mode="router", max_sessions=1)):
+        first = make_manager("first", router=[hub], specs=[])
+        with caplog.at_level(logging.WARNING, logger="dyknow.manager"):
+            second = make_manager("second", router=[hub], specs=[])
+        said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("manager 'second'")]
+        assert len(said) == 1 and f"no router of {hub} answers yet (none listens there, or it refused this manager: a router full at its --max-sessions" in said[0], said
+        assert first.reachable() == set() and second.reachable() == set()
+        assert [u.name for u in second.units()] == []  # it runs, alone
+    bad = run_cli("router", "--max-sessions", "0")
+    assert bad.returncode == 2 and "--max-sessions: got '0'; expected a positive whole number" in bad.stderr, bad.stderr
 
 
 def test_a_manager_behind_a_router_dials_nothing_else(tmp_path: Path) -> None:

@@ -428,3 +428,20 @@ def test_fleet_benchmark_smoke(tmp_path: Path) -> None:
         assert label in report
     assert report.count("MET") >= len(data["targets"]) and "load average" in report and "N^" in report
     assert report in result.stdout
+
+
+def test_fleet_listing_benchmark_smoke(tmp_path: Path) -> None:
+    """20 managers in two host processes behind a router, listed in pages of 7: every manager
+    exactly once over three pages, `dyknow managers --limit 7` lists 7 and says where to go on."""
+    out, txt = tmp_path / "listing.json", tmp_path / "listing.txt"
+    result = _run("fleet_listing.py", "--processes", "2", "--per-process", "10", "--page", "7", "--repeats", "2", "--cmd-runs", "1",
+                  "--json", str(out), "--txt", str(txt))  # fmt: skip
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert data["managers"] == 20 and data["names"]["n"] == 2
+    assert data["first_page"]["listed"] == 7 and data["first_page"]["total"] == 20
+    assert data["all_pages"]["pages"] == 3 and data["all_pages"]["listed"] == 20 and data["all_pages"]["each_once"] is True
+    assert data["managers_cmd"]["listed"] == [7] and "7 of 20 managers listed; continue with --after p00m0006" in data["managers_cmd"]["said"]
+    assert data["model_page"]["listed"] == 7 and data["memory"]["pss_mib_per_manager"] > 0
+    report = txt.read_text()
+    assert "works, in pages: met" in report and report in result.stdout

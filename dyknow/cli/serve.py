@@ -240,7 +240,8 @@ def cmd_router(args: argparse.Namespace) -> int:
         check_endpoints(listen, tls, option="--listen", who="the router")
         check_endpoints(args.connect, tls, option="--connect", who="the router")
     config = make_config(
-        listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms
+        listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms,
+        max_sessions=args.max_sessions,
     )
     with Session(config) as session:
         endpoints = session.endpoints()
@@ -370,7 +371,7 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("foxglove", cmd_foxglove, foxglove_options, client=True)
 
     def router_options(p: argparse.ArgumentParser) -> None:
-        from dyknow.transport import DEFAULT_ENDPOINT
+        from dyknow.transport import DEFAULT_ENDPOINT, ROUTER_MAX_SESSIONS
 
         p.add_argument(
             "--listen", action="append", default=[], metavar="ENDPOINT", help=f"Zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})"
@@ -379,6 +380,11 @@ def add_commands(cmds: Commands) -> None:
         p.add_argument(
             "--acl", metavar="FILE", help="enforce these roles at the router's links (the managers' ACL file; see dyknow manager --acl)"
         )
+        p.add_argument(
+            "--max-sessions", type=positive_int, metavar="N",
+            help=f"how many managers and clients may link to the router at once (default {ROUTER_MAX_SESSIONS:,}, or what --zenoh-config says; "
+            "Zenoh's own is 1,000)",
+        )  # fmt: skip
         lease_option(p)
 
     cmds.command("router", cmd_router, router_options)
