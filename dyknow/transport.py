@@ -469,6 +469,7 @@ def make_config(
     max_message_bytes: int | None = None,
     open_timeout_ms: int | None = None,
     max_sessions: int | None = None,
+    shared_memory: bool = True,
 ) -> zenoh.Config:
     """Build a Zenoh configuration.
 
@@ -493,7 +494,9 @@ def make_config(
     ``max_sessions``: how many sessions (managers, clients, routers) may link to this one at
     once (Zenoh's ``transport/unicast/max_sessions``); by default 10,000 for a router (Zenoh's
     own 1,000 refused the 1,001st manager of a fleet behind a ``dyknow router``), Zenoh's
-    1,000 otherwise.
+    1,000 otherwise. ``shared_memory=False``: no Zenoh shared memory on this session's links, unless
+    ``config_file`` says otherwise (``dyknow router``: it carries between hosts, and Zenoh 1.10 made a segment in /dev/shm for
+    every session that negotiated it, refusing every session after the 351st).
     """
     for option, endpoints in (("--listen", listen or ()), ("--connect", connect)):
         check_schemes(endpoints, option)
@@ -565,6 +568,8 @@ def make_config(
             config.insert_json5("transport/link/tx/lease", str(int(lease_ms)))
         if open_timeout_ms is not None:
             config.insert_json5("transport/unicast/open_timeout", str(max(100, int(open_timeout_ms))))
+        if not shared_memory and config_file is None:
+            config.insert_json5("transport/shared_memory/enabled", "false")
         if max_sessions is None and mode == "router" and config_file is None:
             max_sessions = ROUTER_MAX_SESSIONS
         if max_sessions is not None:

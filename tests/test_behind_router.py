@@ -8,6 +8,7 @@ Links are counted as the kernel sees them (``ss``: established TCP sockets of a 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -160,6 +161,20 @@ def test_a_full_router_refuses_the_next_manager_which_says_so(make_manager: Call
         assert [u.name for u in second.units()] == []  # it runs, alone
     bad = run_cli("router", "--max-sessions", "0")
     assert bad.returncode == 2 and "--max-sessions: got '0'; expected a positive whole number" in bad.stderr, bad.stderr
+
+
+def test_a_router_takes_sessions_beyond_the_351st(started: Callable[..., CliProcess]) -> None:
+    """``dyknow router`` uses no shared memory: with it, Zenoh 1.10 made a segment in /dev/shm for
+    each session and refused every session after the 351st (a fleet of 1,000 managers behind one
+    router had 351). 400 client sessions link to it."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    started("router", "--listen", hub)
+    with contextlib.ExitStack() as stack:
+        for i in range(400):
+            try:
+                stack.enter_context(Session(make_config(mode="client", listen=[], connect=[hub])))
+            except TransportError as exc:
+                raise AssertionError(f"session {i + 1} refused: {exc}") from None
 
 
 def test_a_manager_behind_a_router_dials_nothing_else(tmp_path: Path) -> None:

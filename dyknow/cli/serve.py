@@ -241,7 +241,7 @@ def cmd_router(args: argparse.Namespace) -> int:
         check_endpoints(args.connect, tls, option="--connect", who="the router")
     config = make_config(
         listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms,
-        max_sessions=args.max_sessions,
+        max_sessions=args.max_sessions, shared_memory=False,
     )
     with Session(config) as session:
         endpoints = session.endpoints()
