@@ -254,6 +254,12 @@ def _clean(exc: BaseException) -> str:
 # set on the socket of each new link (Zenoh's link events name its two addresses), in this
 # process (Linux).
 _USER_TIMEOUT: Final = getattr(socket, "TCP_USER_TIMEOUT", None)
+# The two ends of each socket of this process seen so far, by its /proc/self/fd link
+# ("socket:[inode]"): None for a socket that is not a connected TCP one.
+_ends_by_inode: dict[str, Any] = {}
+_ends_lock = threading.Lock()
+_bounding: queue.SimpleQueue[tuple[str, str, int]] | None = None  # links for the bounding thread
+_bounding_pid = 0
 
 
 def _socket_address(locator: str) -> tuple[ipaddress.IPv4Address | ipaddress.IPv6Address, int] | None:
@@ -278,7 +284,11 @@ def _plain_ip(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address:
 def bound_unacknowledged(local: str, remote: str, timeout_ms: int) -> bool:
     """Give the TCP socket of this process between the locators ``local`` and ``remote`` (a
     Zenoh link's ``src`` and ``dst``) a ``TCP_USER_TIMEOUT`` of ``timeout_ms``; whether one was
-    found and set (never on other systems than Linux, nor for other protocols)."""
+    found and set (never on other systems than Linux, nor for other protocols).
+
+    It looks through this process's file descriptors; the two ends of each socket seen are
+    remembered by its inode (a connected socket keeps its ends), so a process with many links
+    (a router) reads one link per descriptor, not a socket's addresses each time."""
     ends = _socket_address(local), _socket_address(remote)
     if _USER_TIMEOUT is None or ends[0] is None or ends[1] is None:
         return False
@@ -286,27 +296,79 @@ def bound_unacknowledged(local: str, remote: str, timeout_ms: int) -> bool:
         names = os.listdir("/proc/self/fd")
     except OSError:
         return False
-    for name in names:
-        try:
-            if not os.readlink(f"/proc/self/fd/{name}").startswith("socket:"):
+    with _ends_lock:
+        seen = _ends_by_inode
+        live: set[str] = set()
+        found = False
+        for name in names:
+            try:
+                target = os.readlink(f"/proc/self/fd/{name}")
+            except OSError:
                 continue
-            sock = socket.socket(fileno=os.dup(int(name)))  # a duplicate: closing it leaves Zenoh's open
-        except (OSError, ValueError):
-            continue
-        with sock:
-            if _set_user_timeout(sock, ends[0], ends[1], timeout_ms):
-                return True
-    return False
+            if not target.startswith("socket:"):
+                continue
+            live.add(target)
+            if target in seen and seen[target] != ends:
+                continue  # not a TCP socket, or another link's
+            try:
+                sock = socket.socket(fileno=os.dup(int(name)))  # a duplicate: closing it leaves Zenoh's open
+            except (OSError, ValueError):
+                continue
+            with sock:
+                mine = _socket_ends(sock)
+                if mine != "unconnected":  # (one still connecting is looked at again)
+                    seen[target] = mine
+                found = mine == ends and _set_user_timeout(sock, timeout_ms)
+            if found:
+                break
+        if len(seen) > 2 * len(live) + 64:  # forget the sockets closed since
+            for gone in [t for t in seen if t not in live]:
+                del seen[gone]
+        return found
 
 
-def _set_user_timeout(sock: socket.socket, local: tuple[Any, int], remote: tuple[Any, int], timeout_ms: int) -> bool:
-    """Set ``TCP_USER_TIMEOUT`` on ``sock`` if it is the TCP socket between ``local`` and ``remote``."""
+def _bound_soon(local: str, remote: str, timeout_ms: int) -> None:
+    """:func:`bound_unacknowledged` on the process's bounding thread (started on first use), not
+    on Zenoh's thread that reports the link: looking through the descriptors there held up the
+    links being accepted, and a router (``dyknow router``) refused every session after about 300."""
+    global _bounding, _bounding_pid
+    with _ends_lock:
+        if _bounding is None or _bounding_pid != os.getpid():  # (a forked child has no such thread)
+            _bounding, _bounding_pid = queue.SimpleQueue(), os.getpid()
+            threading.Thread(target=_bound_links, args=(_bounding,), name="dyknow-links", daemon=True).start()
+        todo = _bounding
+    todo.put((local, remote, timeout_ms))
+
+
+def _bound_links(todo: queue.SimpleQueue[tuple[str, str, int]]) -> None:
+    while True:
+        local, remote, timeout_ms = todo.get()
+        try:
+            if not bound_unacknowledged(local, remote, timeout_ms):
+                log.debug("link %s => %s: no TCP socket found to bound", local, remote)
+        except Exception:  # a link left unbounded is no failure
+            log.exception("bounding link %s => %s", local, remote)
+
+
+def _socket_ends(sock: socket.socket) -> Any:
+    """(local, remote) of a connected TCP socket, each (address, port); None for a socket that
+    is not a TCP one, "unconnected" for one that has no peer (yet)."""
     try:
         if sock.type != socket.SOCK_STREAM or sock.family not in (socket.AF_INET, socket.AF_INET6):
-            return False
-        here, there = sock.getsockname(), sock.getpeername()
-        if (_plain_ip(here[0]), here[1]) != local or (_plain_ip(there[0]), there[1]) != remote:
-            return False
+            return None
+        here = sock.getsockname()
+    except (OSError, ValueError):
+        return None
+    try:
+        there = sock.getpeername()
+    except OSError:
+        return "unconnected"
+    return (_plain_ip(here[0]), here[1]), (_plain_ip(there[0]), there[1])
+
+
+def _set_user_timeout(sock: socket.socket, timeout_ms: int) -> bool:
+    """Set ``TCP_USER_TIMEOUT`` on ``sock``; whether it could be."""
+    try:
         sock.setsockopt(socket.IPPROTO_TCP, _USER_TIMEOUT, max(1, int(timeout_ms)))  # type: ignore[arg-type]
         return True
     except (OSError, ValueError):
@@ -380,8 +442,8 @@ class _Links:
                     self.closed += 1
                     self.last_closed = str(link.dst)
                     self._changed.notify_all()
-            elif _USER_TIMEOUT is not None and not bound_unacknowledged(link.src, link.dst, self._timeout_ms):
-                log.debug("link %s => %s: no TCP socket found to bound", link.src, link.dst)
+            elif _USER_TIMEOUT is not None:
+                _bound_soon(str(link.src), str(link.dst), self._timeout_ms)
         except Exception:  # Zenoh would swallow it; a link left unbounded is no failure
             log.exception("link event %s", event)
 
