@@ -1310,8 +1310,19 @@ class Session:
                 finish()
 
         try:
+            # DROP, not Zenoh's BLOCK for queries: the reply takes the query's congestion control,
+            # and the peer answers on the thread that reads its link (the arrival time is the
+            # exchange's point). Over a saturated link a BLOCK reply waited there for room in the
+            # queue, for seconds: nothing else was read from that link meanwhile (the keep-alives
+            # neither), the link was closed and made again, and a camera's frames across it stopped
+            # for 4 s at a time. An exchange that cannot be sent now is worth nothing later anyway.
             self._z().get(
-                key, _inline_with_end(on_reply, ended), payload=payload, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
+                key,
+                _inline_with_end(on_reply, ended),
+                payload=payload,
+                timeout=timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                congestion_control=zenoh.CongestionControl.DROP,
             )
         except zenoh.ZError as exc:
             raise TransportError(f"cannot query {key!r}: {_clean(exc)}") from exc
