@@ -32,9 +32,10 @@ budget, and never again (an idle watchdog polls slowly, then sleeps; the shared 
 arrives). A unit's callbacks never run concurrently: each job carries a lock and runs on one
 thread at a time.
 
-**Load.** While it watches, the watchdog sends a probe through the shared lane every
-:data:`LOAD_WINDOW_S` and reads how long it waited in the queue (the lane's *lag*), and how busy
-the lane's thread was; each reading goes to ``on_load`` (the manager's overload guard,
+**Load.** While it watches, the watchdog sends a probe through the shared lane about every
+:data:`LOAD_WINDOW_S`, at random moments, and reads how long it waited since it was due (the
+lane's *lag*: its time in the queue, and the watchdog's own wait for the interpreter lock, which
+work pays too), and how busy the lane's thread was; each reading goes to ``on_load`` (the manager's overload guard,
 :mod:`dyknow.overload`). :meth:`Executor.lane_infos` describes every lane.
 
 A *job* (a unit's proxy) is anything with the attributes ``lane``, ``scheduled`` and the methods
@@ -50,6 +51,7 @@ import itertools
 import logging
 import os
 import queue
+import random
 import sys
 import threading
 import time
@@ -79,7 +81,8 @@ log = logging.getLogger(__name__)
 #: a few slow or blocking units apart on a small robot computer, few enough that an overloaded
 #: one does not make the load worse with threads (``--max-lanes``).
 DEFAULT_MAX_LANES: Final = 16
-#: How often the watchdog measures the shared lane's lag and busy time while it watches (s).
+#: How often the watchdog measures the shared lane's lag and busy time while it watches, on
+#: average (s): each gap is drawn between half and one and a half of it.
 LOAD_WINDOW_S: Final = 0.25
 
 _STOP: Final = object()
@@ -298,11 +301,11 @@ class _Probe:
 
     __slots__ = ("lane", "name", "scheduled", "sent_ns")
 
-    def __init__(self, lane: Lane) -> None:
+    def __init__(self, lane: Lane, sent_ns: int) -> None:
         self.lane = lane
         self.name = "probe"
         self.scheduled = True
-        self.sent_ns = time.monotonic_ns()
+        self.sent_ns = sent_ns  # when the watchdog meant to send it (see Executor._watch)
 
     def run(self, worker: Worker) -> None:
         lane = self.lane
@@ -428,6 +431,12 @@ class Worker:
                 get, get_nowait = lane.ready.get, lane.ready.get_nowait
 
 
+def _reading_gap_ns() -> int:
+    """How long until the watchdog's next load reading: :data:`LOAD_WINDOW_S` on average, drawn
+    at random between half and one and a half of it (see Executor._watch)."""
+    return _LOAD_WINDOW_NS // 2 + int(random.random() * _LOAD_WINDOW_NS)
+
+
 def _machine_idle_s() -> float:
     """Idle time of all CPUs since boot, in seconds (Linux /proc/stat).
 
@@ -480,7 +489,7 @@ class LaneInfo:
 
 @dataclass(frozen=True, slots=True)
 class Load:
-    """One reading of how well the executor keeps up, taken by the watchdog every
+    """One reading of how well the executor keeps up, taken by the watchdog about every
     :data:`LOAD_WINDOW_S` while it watches (and once more as the shared lane goes idle).
 
     ``lag_ns``: how long work waits on the shared lane before its unit runs; ``busy``: the
@@ -741,27 +750,45 @@ class Executor:
         # While the lane stays idle the watchdog polls less and less often (up to 10 times a
         # second); once the lane's thread sleeps with no timer to fire, the watchdog sleeps too,
         # until that thread wakes (see Worker._serve). So an idle manager costs nothing.
+        # Readings come at random moments between its polls, LOAD_WINDOW_S apart on average: at a
+        # fixed pace they would fall at the same point of a periodic load every time (its polls
+        # run when the lane's thread lets go of the interpreter lock, mostly as a callback
+        # returns) and could read no lag for many seconds on a lane that is nearly always busy.
         pause_s = interval_s
+        read_at = load_at[0] + _reading_gap_ns()  # when the next reading is due
+        poll_at = 0  # when the next poll is due (0: from now, after pause_s)
         while True:
             shared = self.shared
-            timeout_s: float | None = pause_s
-            if pause_s >= _IDLE_POLL_S:
-                self.sleeping = True  # before reading the worker's state: see Worker._serve
-                worker = shared.worker
-                if worker is not None and not worker.active and shared.next_due_ns == _NEVER and not self.keep_measuring:
-                    timeout_s = None
-                    load_at = self._measure(load_at, final=True, probe=False)  # the last reading before it sleeps
-                else:
-                    self.sleeping = False
-            if self._poke.wait(timeout_s):
+            now = time.monotonic_ns()
+            if poll_at == 0:
+                poll_at = now + int(pause_s * 1e9)
+                if pause_s >= _IDLE_POLL_S:
+                    self.sleeping = True  # before reading the worker's state: see Worker._serve
+                    worker = shared.worker
+                    if worker is not None and not worker.active and shared.next_due_ns == _NEVER and not self.keep_measuring:
+                        poll_at = _NEVER
+                        load_at = self._measure(load_at, final=True, probe=False)  # the last reading before it sleeps
+                        read_at = load_at[0] + _reading_gap_ns()
+                    else:
+                        self.sleeping = False
+            wake_at = poll_at if poll_at == _NEVER else min(poll_at, read_at)
+            poked = self._poke.wait(None if wake_at == _NEVER else max(0.0, (wake_at - now) / 1e9))
+            if poked:
                 self._poke.clear()
                 pause_s = interval_s
             self.sleeping = False
             if self._stop.is_set():
                 return
+            now = time.monotonic_ns()
+            if now >= read_at:
+                # The probe is timed from when the reading was due, not from when this thread got
+                # to run: the wait for the interpreter lock (or a CPU) is paid by work as well.
+                load_at = self._measure(load_at, final=False, probe=pause_s == interval_s or self.keep_measuring, due_ns=now if poked else read_at)
+                read_at = load_at[0] + _reading_gap_ns()
+            if not poked and now < poll_at:
+                continue  # a reading between two polls: the next poll keeps its time
+            poll_at = 0
             self.dozing = False
-            if time.monotonic_ns() - load_at[0] >= _LOAD_WINDOW_NS:
-                load_at = self._measure(load_at, final=False, probe=pause_s == interval_s)
             shared = self.shared
             worker = shared.worker
             if worker is None:
@@ -788,9 +815,11 @@ class Executor:
                 watched = None
                 self._hand_over(worker, job)
 
-    def _measure(self, since: tuple[int, int], *, final: bool, probe: bool) -> tuple[int, int]:
+    def _measure(self, since: tuple[int, int], *, final: bool, probe: bool, due_ns: int = 0) -> tuple[int, int]:
         """Take a :class:`Load` reading, hand it to ``on_load``; ``probe``: send the next probe
-        (only while the shared lane is busy: a probe wakes its thread)."""
+        (only while the shared lane is busy, as a probe wakes its thread, or while load is shed:
+        the guard then needs a fresh lag each time, not the last one again), timed from
+        ``due_ns`` (when the reading was due; now if 0 or later)."""
         now, cpu = time.monotonic_ns(), time.process_time_ns()
         shared = self.shared
         with self._lock:
@@ -799,7 +828,7 @@ class Executor:
         span = now - since[0]
         reading = Load(now, shared.lag(now), shared.busy(now), (cpu - since[1]) / span if span > 0 else 0.0, lanes, self.max_lanes, stuck)
         if probe and shared.probe is None:
-            sent = _Probe(shared)
+            sent = _Probe(shared, min(due_ns, now) if due_ns else now)
             shared.probe = sent
             shared.put(sent)
         elif final:

@@ -1,8 +1,8 @@
 """Overload: when a manager cannot keep up, it says so and sheds its least important work first.
 
-The executor's watchdog measures the shared lane every quarter of a second while it works
-(:class:`~dyknow.executor.Load`): how long a message waits in the lane's queue before its unit
-runs (the *lag*), how busy its thread was, how much CPU the process used. An
+The executor's watchdog measures the shared lane about every quarter of a second while it works,
+at random moments (:class:`~dyknow.executor.Load`): how long a message waits before its unit runs
+(the *lag*: in the lane's queue, and for the interpreter lock), how busy its thread was, how much CPU the process used. An
 :class:`OverloadGuard` reads those readings and keeps the manager's state:
 
 - **ok -> overloaded**: the lag was over the budget (``lag_budget_s``, default 50 ms) in

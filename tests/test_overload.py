@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import threading
@@ -143,6 +144,38 @@ SPECS = """<transformations>
     <ports><port type="out">out</port></ports>
     <tags><tag port="out">Heartbeat(robot)</tag></tags></transformation>
 </transformations>"""
+
+
+_LIBC = ctypes.PyDLL(None)  # (a PyDLL call keeps the interpreter lock)
+
+
+class Holder(Unit):
+    """Every 0.35 s, spends 0.3 s in C without letting go of the interpreter lock, as a library
+    that never releases it does: no other thread of the process runs meanwhile."""
+
+    def setup(self) -> None:
+        self.create_timer(0.35, self.tick)
+
+    def tick(self) -> None:
+        _LIBC.usleep(300_000)
+
+
+HOLDER_SPECS = """<transformations>
+  <transformation><label>holder</label><source>tests.test_overload:Holder</source>
+    <ports><port type="out">out</port></ports></transformation>
+</transformations>"""
+
+
+def test_a_callback_that_keeps_the_interpreter_lock_holds_up_work_and_the_manager_sees_it(make_manager: Callable[..., Manager]) -> None:
+    """The lane is held 0.3 s of every 0.35 s and the watchdog's thread gets to run only as the
+    callback returns, when the lane is free: a probe timed from then read no lag. Timed from when
+    its reading was due, it counts what a message arriving then waits, and the manager says it is
+    overloaded (it has nothing less important to shed)."""
+    manager = make_manager(listen=[], slow_callback_s=10.0, stall_budget_s=30.0)
+    manager.add_transformation(HOLDER_SPECS)
+    manager.spawn("holder", "holder")
+    wait_until(lambda: manager.overload.state == "overloaded", "the manager overloaded", 30)
+    assert manager.get_model().executor["overload"]["state"] == "overloaded"
 
 
 def test_an_overloaded_manager_says_so_and_sheds_the_lowest_priority_first(
