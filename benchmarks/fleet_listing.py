@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -42,19 +43,34 @@ RESULTS = Path(__file__).resolve().parent / "results"
 START_TIMEOUT_S = 600.0
 
 
+class Refused(logging.Handler):
+    """Counts the managers that found no router answering (refused by it) and fell back."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Count a manager's warning that no router of it answers."""
+        if "answers yet" in record.getMessage():
+            self.count += 1
+
+
 def host(hub: str, prefix: str, count: int) -> None:
     """Run ``count`` managers named ``<prefix><i>`` behind ``hub`` until SIGTERM; a JSON line once all are up."""
     from dyknow import Manager
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    refused = Refused()
+    logging.getLogger("dyknow.manager").addHandler(refused)
     started = time.monotonic()
     managers = []
     try:
         for i in range(count):
             managers.append(Manager(f"{prefix}{i:04d}", router=[hub], specs=[]).__enter__())
         threads = len(os.listdir("/proc/self/task"))
-        print(json.dumps({"event": "ready", "managers": count, "seconds": round(time.monotonic() - started, 2), "threads": threads}), flush=True)
+        print(json.dumps({"event": "ready", "managers": count, "seconds": round(time.monotonic() - started, 2), "threads": threads, "refused": refused.count}), flush=True)
         stop.wait()
     finally:
         for manager in managers:
@@ -144,7 +160,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         for k in range(args.processes):
             hosts.append(Proc([sys.executable, __file__, "--host", hub, f"p{k:02d}m", str(args.per_process)], env=worker_env()))
         ready = [h.next_json(START_TIMEOUT_S, event="ready") for h in hosts]
-        result["start"] = {"seconds": round(time.monotonic() - started, 2), "threads_per_process": max(r["threads"] for r in ready), "load": load_average()}
+        result["start"] = {"seconds": round(time.monotonic() - started, 2), "threads_per_process": max(r["threads"] for r in ready),
+                           "refused": sum(r["refused"] for r in ready), "load": load_average()}  # fmt: skip
         result.update(measure(hub, total, args.page, args.repeats, args.cmd_runs))
         pss = [memory_mib(h.proc.pid)["pss"] for h in hosts]
         result["memory"] = {"pss_mib_per_process": round(max(pss), 1), "pss_mib_per_manager": round(sum(pss) / total, 2),
@@ -171,7 +188,8 @@ def report(r: dict[str, Any]) -> str:
         f"# python benchmarks/fleet_listing.py --processes {r['processes']} --per-process {r['per_process']} --page {r['page']}",
         f"machine: {m['cpu']}, {m['cores']} cores, Python {m['python']}, Zenoh {m['zenoh']}",
         f"{r['managers']} managers behind one router, {r['per_process']} in each of {r['processes']} processes: "
-        f"started in {r['start']['seconds']} s (load {r['start']['load']:.1f}), all named by the client {r['all_named_after_s']} s later",
+        f"started in {r['start']['seconds']} s (load {r['start']['load']:.1f}; {r['start']['refused']} refused by the router at first), "
+        f"all named by the client {r['all_named_after_s']} s later",
         f"memory: PSS {r['memory']['pss_mib_per_manager']} MiB per manager, {r['memory']['pss_mib_per_process']} MiB per host process, "
         f"router {r['memory']['router_pss_mib']} MiB; at most {r['start']['threads_per_process']} threads in a host process",
         f"names (one liveliness query): p50 {r['names']['p50_ms']} ms, max {r['names']['max_ms']} ms (load {r['names']['load']:.1f})",
@@ -193,7 +211,7 @@ def main() -> int:
     if len(sys.argv) == 5 and sys.argv[1] == "--host":
         host(sys.argv[2], sys.argv[3], int(sys.argv[4]))
         return 0
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("--processes", type=int, default=10, help="host processes (default 10)")
     parser.add_argument("--per-process", type=int, default=100, help="managers in each (default 100)")
     parser.add_argument("--page", type=int, default=100, help="managers per page (default 100)")

@@ -438,7 +438,7 @@ def test_fleet_listing_benchmark_smoke(tmp_path: Path) -> None:
                   "--json", str(out), "--txt", str(txt))  # fmt: skip
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
     data = json.loads(out.read_text())
-    assert data["managers"] == 20 and data["names"]["n"] == 2
+    assert data["managers"] == 20 and data["names"]["n"] == 2 and data["start"]["refused"] == 0
     assert data["first_page"]["listed"] == 7 and data["first_page"]["total"] == 20
     assert data["all_pages"]["pages"] == 3 and data["all_pages"]["listed"] == 20 and data["all_pages"]["each_once"] is True
     assert data["managers_cmd"]["listed"] == [7] and "7 of 20 managers listed; continue with --after p00m0006" in data["managers_cmd"]["said"]
