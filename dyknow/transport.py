@@ -91,6 +91,9 @@ SHM_THRESHOLD: Final = 64 * 1024
 #: How many sessions a router (``dyknow router``, a manager) accepts at once by default (as
 #: rmw_zenoh's router configuration does; Zenoh's own default is 1,000).
 ROUTER_MAX_SESSIONS: Final = 10_000
+#: At most this many liveliness tokens are read in one :meth:`Session.alive` answer (a flood of
+#: tokens is hostile input).
+MAX_ALIVE_KEYS: Final = 100_000
 _HEADER_SIZE: Final = HEADER_V1.size  # the shortest dyknow header (version 1)
 SHM_POOL_BYTES = 96 * 1024 * 1024
 
@@ -1382,11 +1385,20 @@ class Session:
         deadline = time.monotonic() + timeout_s
         last: list[str] | None = None
         while True:
-            try:
-                replies = self._z().liveliness().get(key, timeout=max(0.05, deadline - time.monotonic()))
-                found = sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
-            except zenoh.ZError as exc:
-                raise TransportError(f"cannot ask who is alive on {key!r}: {_clean(exc)}") from exc
+            # (answers come to a callback: a channel of Zenoh's (256 by default) filled up inside
+            # get() itself when this session already knew the tokens, and get() never returned:
+            # a client that watches the managers' tokens, asking which of 500 managers are up)
+            answers: list[list[str]] = []
+            answered = threading.Event()
+
+            def done(keys: list[str], count: int, answers: list[list[str]] = answers, answered: threading.Event = answered) -> None:
+                answers.append(keys)
+                answered.set()
+
+            left = max(0.05, deadline - time.monotonic())
+            self.ask_alive(key, timeout_s=left, limit=MAX_ALIVE_KEYS, done=done)
+            answered.wait(left + 1.0)
+            found = sorted(set(answers[0])) if answers else []
             if (found and found == last) or time.monotonic() >= deadline:
                 return found
             last = found

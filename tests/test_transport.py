@@ -325,3 +325,21 @@ def test_every_link_drops_what_goes_unacknowledged_for_a_lease() -> None:
         wait_until(lambda: len(bounds()) == 2 and set(bounds().values()) == {1500}, "both ends of the link bounded")
         assert a.linked()
     assert not bound_unacknowledged("udp/127.0.0.1:1", "udp/127.0.0.1:2", 1000)  # other protocols: nothing to bound
+
+
+def test_who_is_alive_is_answered_whatever_the_number_of_tokens_the_session_knows() -> None:
+    """A session that holds 300 tokens and watches them is told all 300 by ``alive()``: Zenoh's
+    answer channel (256 by default) filled up inside the query itself and it never returned (a
+    client watching the managers' tokens, asking which of 500 managers were up, hung)."""
+    with Session(make_config(listen=[])) as session:
+        tokens = [session.declare_liveliness_token(f"test/alive/{i:03d}") for i in range(300)]
+        watch = session.declare_liveliness_subscriber("test/alive/*", lambda key, alive: None)
+        answers: list[list[str]] = []
+        asking = threading.Thread(target=lambda: answers.append(session.alive("test/alive/*", timeout_s=2.0)), daemon=True)
+        asking.start()
+        asking.join(30)
+        assert not asking.is_alive(), "alive() did not return"
+        assert answers == [[f"test/alive/{i:03d}" for i in range(300)]]
+        watch.undeclare()
+        for token in tokens:
+            token.undeclare()
