@@ -81,6 +81,15 @@ def choose(driver: Any, element_id: str, value: str) -> None:
     wait_until(chosen, f"{value!r} chosen in #{element_id}")
 
 
+def click_drawn(driver: Any, css: str) -> None:
+    """Click the element ``css`` of a list the page draws again at every push of the model (a
+    button found may be replaced before the click: found again then)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    WebDriverWait(driver, 10, ignored_exceptions=[StaleElementReferenceException]).until(lambda d: d.find_element("css selector", css).click() or True)
+
+
 def tab(driver: Any, name: str) -> None:
     driver.find_element("css selector", f"nav button[data-tab={name}]").click()
 
@@ -131,7 +140,7 @@ def test_create_connect_and_destroy_from_the_page(ui: Callable[..., tuple[Manage
 
     tab(browser, "active")
     wait_text(browser, "units", f"in → dyknow/{manager.name}/r1/out")
-    browser.find_element("css selector", "tr[data-unit=made-in-page] button[data-action=destroy]").click()
+    click_drawn(browser, "tr[data-unit=made-in-page] button[data-action=destroy]")
     wait_text(browser, "message", "destroyed made-in-page")
     assert "made-in-page" not in [u.name for u in manager.units()]
 
@@ -162,13 +171,7 @@ def test_request_and_release_from_the_page(ui: Callable[..., tuple[Manager, str]
     assert [r.tag for r in manager.get_model().requests] == ["BallTrack(field)"]
     wait_text(browser, "requests", "BallTrack(field)")
     shot(browser, "requests")
-    from selenium.common.exceptions import StaleElementReferenceException
-    from selenium.webdriver.support.ui import WebDriverWait
-
-    # (the list is drawn again at every push of the model: a button found may be replaced before the click)
-    WebDriverWait(browser, 10, ignored_exceptions=[StaleElementReferenceException]).until(
-        lambda d: d.find_element("css selector", "#requests button").click() or True
-    )
+    click_drawn(browser, "#requests button")
     wait_text(browser, "message", "released")
     assert manager.get_model().requests == ()
 
