@@ -262,6 +262,7 @@ _USER_TIMEOUT: Final = getattr(socket, "TCP_USER_TIMEOUT", None)
 _ends_by_inode: dict[str, Any] = {}
 _ends_lock = threading.Lock()
 _bounding: queue.SimpleQueue[tuple[str, str, int]] | None = None  # links for the bounding thread
+_bounding_lock = threading.Lock()  # (not _ends_lock: Zenoh's thread must not wait for a scan)
 _bounding_pid = 0
 
 
@@ -335,7 +336,7 @@ def _bound_soon(local: str, remote: str, timeout_ms: int) -> None:
     on Zenoh's thread that reports the link: looking through the descriptors there held up the
     links being accepted, and a router (``dyknow router``) refused every session after about 300."""
     global _bounding, _bounding_pid
-    with _ends_lock:
+    with _bounding_lock:
         if _bounding is None or _bounding_pid != os.getpid():  # (a forked child has no such thread)
             _bounding, _bounding_pid = queue.SimpleQueue(), os.getpid()
             threading.Thread(target=_bound_links, args=(_bounding,), name="dyknow-links", daemon=True).start()
