@@ -645,6 +645,31 @@ class Client:
             found.update(m for m in names if m is not None and fnmatch.fnmatchcase(m, glob))
         return sorted(found)
 
+    def wait_for_managers(self, names: Sequence[str], timeout_s: float = 10.0) -> list[str]:
+        """Wait until every manager in ``names`` is reachable, then return :meth:`manager_names`.
+
+        A manager that has just started, or just connected to this one, is listed once its
+        liveliness token has reached this client's network: a script that starts managers and
+        lists them at once should wait for them here. Raises :class:`ServiceError` after
+        ``timeout_s`` naming the managers still missing and those that are reachable."""
+        wanted = set(names)
+        deadline = time.monotonic() + timeout_s
+        delay = 0.02
+        while True:
+            reachable = self.manager_names(timeout_s=min(1.0, max(0.05, deadline - time.monotonic())))
+            missing = sorted(wanted.difference(reachable))
+            if not missing:
+                return reachable
+            if time.monotonic() >= deadline:
+                raise ServiceError(
+                    f"{', '.join(missing)} not reachable after {timeout_s:g} s",
+                    where="wait_for_managers",
+                    expected=f"the managers reachable now: {', '.join(reachable) or 'none'}; check that each is running and "
+                    "connected (dyknow doctor), or wait longer (timeout_s)",
+                )
+            time.sleep(min(delay, max(0.0, deadline - time.monotonic())))
+            delay = min(0.25, delay * 2)
+
     def managers_page(
         self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*", limit: int = 100, after: str | None = None
     ) -> dict[str, Any]:

@@ -525,15 +525,18 @@ class Proxy:
         self._lock.release()
         if self.scheduled:
             return
-        pending = bool(self._calls)
-        if not pending:
-            for port in self._input_seq:
-                if port.queue:
-                    pending = True
-                    break
-        if pending:
+        if self._calls or self._queued():
             self.scheduled = True
             self.lane.put(self)
+
+    def _queued(self) -> bool:
+        """Whether a message waits for the lane in any input port's queue: a message run on the
+        caller's thread now would overtake it (a unit reading several streams, such as a formula
+        monitor, would see them out of their arrival order, by as much as its lane is starved)."""
+        for port in self._input_seq:
+            if port.queue:
+                return True
+        return False
 
     def run_inline(self, port: InputPort, msg: Message, publisher: Proxy | None) -> bool:
         """Handle ``msg`` on the calling thread (Zenoh's receiving thread, or the thread of the
@@ -546,7 +549,7 @@ class Proxy:
         rules it out, and it moves to a thread of its own. A unit never proven quick (a slow first
         callback) never runs here. The time it takes is its own, not the publisher's.
         """
-        if self._ewma_ns >= self._inline_ns or port.counters.messages < _PROVEN or self._calls:
+        if self._ewma_ns >= self._inline_ns or port.counters.messages < _PROVEN or self._calls or self._queued():
             return False
         if not self._lock.acquire(False):
             return False
@@ -587,7 +590,7 @@ class Proxy:
         ``forward_to``: no callback of the unit runs). Under the unit's lock like a callback, so
         it never runs beside one; False when the unit is busy, has control calls pending or is
         not running (the caller queues the message for the lane, which forwards it in turn)."""
-        if self._calls or not self._lock.acquire(False):
+        if self._calls or self._queued() or not self._lock.acquire(False):
             return False
         if self.state is not _RUNNING:
             self._lock.release()
@@ -611,7 +614,7 @@ class Proxy:
         readers (they need a :class:`Message`), the payload is of another kind (decoding checks
         it first), or the unit cannot forward right now; the caller then decodes and delivers."""
         out = port.forward
-        if out is None or out.targets or self._calls or not self._lock.acquire(False):
+        if out is None or out.targets or self._calls or self._queued() or not self._lock.acquire(False):
             return False
         try:
             if self.state is not _RUNNING:

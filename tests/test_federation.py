@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from dyknow import Client, Manager, Message, keys
-from dyknow.errors import DyKnowError, TransportError
+from dyknow.errors import DyKnowError, ServiceError, TransportError
 from dyknow.federation import MAX_SUMMARY_BYTES, Summary
 from dyknow.tags import parse_term
 from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS, Sink
@@ -197,6 +197,22 @@ def test_a_federated_manager_alone_still_plans_locally(make_manager: Callable[..
     assert lonely.peers() == {}
     with pytest.raises(DyKnowError, match="RawImage"):
         lonely.request(TRACK)  # the cameras are on managers it cannot reach
+
+
+def test_a_client_waits_for_managers_that_are_joining(make_manager: Callable[..., Manager]) -> None:
+    """A script that starts managers and lists them at once waits for them to be reachable; one
+    that never comes is named in the error, beside those that are reachable."""
+    station = make_manager("station")
+    port = station.endpoints[0].rsplit(":", 1)[1]
+    with Client("station", connect=[f"tcp/127.0.0.1:{port}"]) as client:
+        joining = threading.Thread(target=lambda: make_manager("robot", connect=station.endpoints))
+        joining.start()
+        assert client.wait_for_managers(["robot", "station"]) == ["robot", "station"]
+        joining.join()
+        with pytest.raises(ServiceError) as never:
+            client.wait_for_managers(["robot", "ghost"], timeout_s=0.5)
+    assert never.value.what == "ghost not reachable after 0.5 s"
+    assert never.value.expected is not None and "the managers reachable now: robot, station" in never.value.expected
 
 
 def test_lease_is_checked() -> None:

@@ -407,6 +407,58 @@ def test_quick_local_units_run_on_the_publishers_thread_depth_first(make_manager
     assert [m.payload for m in sink.messages] == list(range(20))
 
 
+class Pair(Unit):
+    """Two inputs; records the order in which their messages reach it."""
+
+    def setup(self) -> None:
+        self.seen: list[tuple[str, object]] = []
+
+    def on_message(self, port: str, msg: Message) -> None:
+        self.seen.append((port, msg.payload))
+
+
+class Blocker(Unit):
+    """Holds its lane in its callback until the test lets it go."""
+
+    entered = threading.Event()
+    go = threading.Event()
+
+    def on_message(self, port: str, msg: Message) -> None:
+        Blocker.entered.set()
+        Blocker.go.wait(10)
+
+
+def test_a_message_run_inline_never_overtakes_one_queued_on_another_port(make_manager: Callable[..., Manager]) -> None:
+    """A unit with several inputs sees their messages in the order they came: while a message of
+    one port waits for the lane (here: the port is not proven quick yet, and the lane is busy), a
+    message of another port, proven quick, waits behind it instead of running at once on the
+    publisher's thread. (A formula monitor whose lane was starved saw one stream run ahead of the
+    other by dozens of samples, and refused the other's as late: CI failed on it.)"""
+    manager = make_manager(listen=[])
+    manager.add_transformation(TransformationSpec("pair", "tests.test_proxy:Pair", ports=(Port("a", "in"), Port("b", "in"))))
+    manager.add_transformation(TransformationSpec("blocker", "tests.test_proxy:Blocker", ports=(Port("in", "in"),)))
+    manager.spawn("pair", "pair", bindings={"a": "pair/a", "b": "pair/b"})
+    manager.spawn("blocker", "blocker", bindings={"in": "pair/block"})
+    for name in ("a", "b", "block"):
+        manager.spawn("publisher", f"send-{name}", bindings={"out": f"pair/{name}"})
+    pair, send_a, send_b, send_block = (manager.unit(n) for n in ("pair", "send-a", "send-b", "send-block"))
+    assert isinstance(pair, Pair) and isinstance(send_a, Source) and isinstance(send_b, Source) and isinstance(send_block, Source)
+    for i in range(10):  # port b proves itself quick
+        send_b.emit(i)
+        wait_until(lambda n=i + 1: len(pair.seen) == n, "b's message")
+    Blocker.entered.clear()
+    Blocker.go.clear()
+    try:
+        send_block.emit(0)  # the lane is busy with the blocker
+        assert Blocker.entered.wait(10)
+        send_a.emit("first")  # a is not proven: queued for the lane
+        send_b.emit("second")  # b is: it would run at once, ahead of "first"
+    finally:
+        Blocker.go.set()
+    wait_until(lambda: len(pair.seen) == 12, "both messages")
+    assert pair.seen[10:] == [("a", "first"), ("b", "second")]
+
+
 def test_a_long_local_chain_goes_through_the_lanes_past_the_depth_limit(make_manager: Callable[..., Manager]) -> None:
     """At most 64 units run nested on one thread: a chain of 150 delivers every message, in
     order, the stack stays shallow.
