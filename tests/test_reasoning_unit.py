@@ -275,7 +275,7 @@ def test_the_monitors_of_a_manager_share_its_cells(make_manager: Callable[..., M
         """Send samples until every monitor in ``want`` keeps to its share."""
         deadline = time.monotonic() + 10
         while {name: share(name) for name in want} != want:
-            assert time.monotonic() < deadline, f"shares {({name: share(name) for name in want})}, expected {want}"
+            assert time.monotonic() < deadline, f"shares of {list(want)}: {[share(name) for name in want]}, expected {want}"
             source.emit(0.5)
             time.sleep(0.01)
 
