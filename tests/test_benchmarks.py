@@ -145,6 +145,16 @@ def test_overload_benchmark_spawn_only_with_namespace_keys(tmp_path: Path) -> No
     assert "keys namespace" in result.stdout and "not measured (--spawn-only)" in result.stdout
 
 
+def test_zenoh_keys_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "zenoh_keys.json"
+    result = _run("zenoh_keys.py", "--keys", "40", "--kinds", "publisher,subscriber", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["kind"], r["count"], len(r["s_per_1000"])) for r in rows] == [("publisher", 40, 10), ("subscriber", 40, 10)]
+    assert all(r["put_fresh_key_us"] > 0 and r["same_key_s_per_1000"] > 0 for r in rows)
+    assert "target <= 1.5" in result.stdout and "load average" in result.stdout
+
+
 def test_every_public_name_of_the_benchmarks_is_documented() -> None:
     assert undocumented(*sorted((REPO / "benchmarks").glob("*.py"))) == []
 
