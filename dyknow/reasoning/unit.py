@@ -184,7 +184,7 @@ class MonitorBudget:
 
     A monitor takes its share itself (:meth:`take_share`) before each sample and each flush: a
     share only bounds the states a monitor stores next, and it stores states only then. Joining
-    and leaving touch no other monitor, so the 10,000th monitor spawns as fast as the 100th
+    and leaving touch no other monitor, so they cost the same beside 10 monitors or 10,000
     (telling every monitor its new share on each join made spawning N monitors cost N²/2 calls:
     7.5 s of the 17 s that 1,000 spawns took beside 2,300 monitors, ``benchmarks/overload.py``)."""
 
