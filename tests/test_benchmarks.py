@@ -135,6 +135,26 @@ def test_overload_benchmark_smoke(tmp_path: Path) -> None:
     assert "load average" in result.stdout and "target <= 3x" in result.stdout
 
 
+def test_overload_benchmark_spawn_only_with_namespace_keys(tmp_path: Path) -> None:
+    out = tmp_path / "overload.json"
+    result = _run("overload.py", "--units", "60", "--seconds", "0.3", "--keys", "namespace", "--spawn-only", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())["results"]
+    assert data["units"] == 60 and data["keys"] == "namespace" and [p["hogs"] for p in data["phases"]] == [0]
+    assert data["phases"][0]["high_count"] > 0 and data["targets"]["high_p99"] is None
+    assert "keys namespace" in result.stdout and "not measured (--spawn-only)" in result.stdout
+
+
+def test_zenoh_keys_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "zenoh_keys.json"
+    result = _run("zenoh_keys.py", "--keys", "40", "--kinds", "publisher,subscriber", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [(r["kind"], r["count"], len(r["s_per_1000"])) for r in rows] == [("publisher", 40, 10), ("subscriber", 40, 10)]
+    assert all(r["put_fresh_key_us"] > 0 and r["same_key_s_per_1000"] > 0 for r in rows)
+    assert "target <= 1.5" in result.stdout and "load average" in result.stdout
+
+
 def test_every_public_name_of_the_benchmarks_is_documented() -> None:
     assert undocumented(*sorted((REPO / "benchmarks").glob("*.py"))) == []
 

@@ -177,10 +177,16 @@ class _Shared(Protocol):
 
 class MonitorBudget:
     """What the monitor units of one manager share: its :class:`~dyknow.security.Limits`; the
-    cells ``limits.max_monitor_cells``, divided evenly among the monitors running (each is told
-    its share as monitors join and leave); and at most ``limits.max_monitor_nodes`` formula nodes
-    in all, which bounds what every sample costs the manager. Thread-safe. The manager hands its
-    budget to each :class:`FormulaMonitor` before ``setup()``."""
+    cells ``limits.max_monitor_cells``, divided evenly among the monitors running; and at most
+    ``limits.max_monitor_nodes`` formula nodes in all, which bounds what every sample costs the
+    manager. Thread-safe. The manager hands its budget to each :class:`FormulaMonitor` before
+    ``setup()``.
+
+    A monitor takes its share itself (:meth:`take_share`) before each sample and each flush: a
+    share only bounds the states a monitor stores next, and it stores states only then. Joining
+    and leaving touch no other monitor, so they cost the same beside 10 monitors or 10,000
+    (telling every monitor its new share on each join made spawning N monitors cost N²/2 calls:
+    7.5 s of the 17 s that 1,000 spawns took beside 2,300 monitors, ``benchmarks/overload.py``)."""
 
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
@@ -188,6 +194,8 @@ class MonitorBudget:
         self._monitors: dict[_Shared, int] = {}  # -> its formula's nodes
         #: the formula nodes of the monitors running
         self.nodes = 0
+        #: counts the joins and leaves: a monitor whose last look saw another takes its share again
+        self.generation = 0
 
     def check(self, *formulas: Formula) -> None:
         """:class:`~dyknow.errors.FormulaError` when monitors of ``formulas`` would take the
@@ -196,21 +204,32 @@ class MonitorBudget:
 
     def join(self, monitor: _Shared) -> None:
         """Count ``monitor`` in (:class:`~dyknow.errors.FormulaError` past the nodes' bound);
-        every monitor's share of cells shrinks to fit it."""
+        every monitor's share of cells shrinks to fit it, from its next sample on. Costs the same
+        however many monitors run."""
         nodes = monitor.formula.nodes
         with self._lock:
             self._check(nodes, self.nodes)
             self._monitors[monitor] = nodes
             self.nodes += nodes
-            self._share()
+            self.generation += 1
 
     def leave(self, monitor: _Shared) -> None:
-        """Count ``monitor`` out (safe twice); the others' shares grow."""
+        """Count ``monitor`` out (safe twice); the others' shares grow, from their next sample on."""
         with self._lock:
             nodes = self._monitors.pop(monitor, None)
             if nodes is not None:
                 self.nodes -= nodes
-                self._share()
+                self.generation += 1
+
+    def take_share(self, monitor: _Shared, seen: int) -> int:
+        """Give ``monitor`` its share of cells now when monitors joined or left since it last
+        looked (``seen``: the :attr:`generation` it saw then, -1 at first); returns the generation
+        to pass next time. One comparison when nothing changed: monitors call it per sample."""
+        generation = self.generation
+        if generation != seen:
+            # read after the generation: a join in between makes the next call look again
+            monitor.set_max_cells(self.share)
+        return generation
 
     def _check(self, nodes: int, held: int) -> None:
         bound = self.limits.max_monitor_nodes
@@ -231,11 +250,6 @@ class MonitorBudget:
         """How many monitors share the cells."""
         return len(self._monitors)
 
-    def _share(self) -> None:
-        share = self.share
-        for monitor in self._monitors:
-            monitor.set_max_cells(share)
-
 
 _DERIVE_AFTER = 20  # samples a term's freshness and fields are judged from
 _MIN_AGE_NS = 20_000_000
@@ -253,6 +267,7 @@ class FormulaMonitor(Unit):
 
     monitor: Monitor | ObjectMonitor
     _budget: MonitorBudget | None = None
+    _seen_share = -1  # the budget's generation when the monitor last took its share
 
     def use_budget(self, budget: MonitorBudget) -> None:
         """Take the manager's bounds and share of cells (called by the manager before ``setup()``)."""
@@ -346,6 +361,9 @@ class FormulaMonitor(Unit):
     def on_message(self, port: str, msg: Message) -> None:
         """Push the sample (its origin time, its payload); publish the verdicts it decided."""
         monitor = self.monitor
+        budget = self._budget
+        if budget is not None:
+            self._seen_share = budget.take_share(monitor, self._seen_share)
         late = monitor.late
         t_ns = msg.origin_ns
         if msg.origin_clock != CLOCK_ID:
@@ -512,6 +530,8 @@ class FormulaMonitor(Unit):
     def _flush_if_idle(self) -> None:
         if time.monotonic() - self._last_sample >= self._flush_s:
             monitor = self.monitor
+            if self._budget is not None:
+                self._seen_share = self._budget.take_share(monitor, self._seen_share)
             if isinstance(monitor, ObjectMonitor):
                 for key, verdict in monitor.flush():
                     self._publish(verdict, key, origin_ns=verdict.decided_ns)
