@@ -129,7 +129,9 @@ def test_overload_benchmark_smoke(tmp_path: Path) -> None:
     assert data["units"] == 60 and [p["hogs"] for p in data["phases"]] == [0, cores, 2 * cores]
     for phase in data["phases"]:
         assert 1 <= phase["lanes_max"] <= data["max_lanes"] and phase["threads_max"] >= phase["lanes_max"]
-        assert phase["high_count"] > 0 and phase["low_count"] > 0 and phase["high_p99_ms"] >= phase["high_p50_ms"] > 0
+        assert phase["high_count"] > 0 and phase["high_p99_ms"] >= phase["high_p50_ms"] > 0
+        # the low-priority stream may be paused altogether when the machine is loaded: that is the shedding it measures
+        assert phase["low_count"] > 0 or phase["units_shed_max"] > 0, phase
     assert len(data["spawn_s_per_1000"]) == 10 and set(data["targets"]) == {"lanes_within_bound", "spawn_flat", "high_p99"}
     assert data["targets"]["lanes_within_bound"]["met"] is True
     assert "load average" in result.stdout and "target <= 3x" in result.stdout
