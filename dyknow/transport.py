@@ -1207,7 +1207,6 @@ class Session:
         info = self._z().info
         return bool(info.peers_zid()) or bool(info.routers_zid())
 
-
     # -- declarations
 
     def declare_publisher(self, key: str, on_matching: Callable[[bool], None] | None = None, *, reliable: bool = False) -> Publisher:
