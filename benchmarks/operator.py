@@ -13,9 +13,10 @@ without, so its own work at 20 Hz is the baseline).
 manager ``robot`` that runs: said at once, naming ``robot``), each run ``--runs`` times: the wall
 time of the whole command (median and min), and the import time of ``python -X importtime``
 (every top-level import: what Python spends importing). Target: under 0.3 s. Where the
-environment sets ``PYTHONDONTWRITEBYTECODE`` (every module of a source checkout is then compiled
-again at each start), the commands are measured once more with byte-code caches, as an
-installed package has them (a first run writes them).
+environment sets ``PYTHONDONTWRITEBYTECODE`` (a source checkout without ``__pycache__`` folders
+then compiles its modules again at each start; one that has them, from an earlier run, reads
+them all the same), the commands are measured once more with byte-code caches, as an installed
+package has them (a first run writes them).
 
     python benchmarks/operator.py                     # 20 s windows, 50 units, 10 runs
     python benchmarks/operator.py --window 5 --units 10 --runs 3 --json out/operator.json
@@ -176,7 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     start = startup(args.runs)
     if os.environ.get("PYTHONDONTWRITEBYTECODE"):
-        print("PYTHONDONTWRITEBYTECODE is set: each module is compiled at each start; ', .pyc': with byte-code caches, as installed")
+        print("PYTHONDONTWRITEBYTECODE is set: modules without a __pycache__ are compiled at each start; "
+              "', .pyc': with byte-code caches written, as installed")
     print(f"{'command':<34} {'median s':>9} {'min s':>7} {'imports s':>10}   target")
     for name, row in start.items():
         imports = f"{row['imports_median_s']:>10.3f}" if "imports_median_s" in row else f"{'':>10}"
