@@ -50,14 +50,10 @@ from __future__ import annotations
 
 import os
 import re
-import ssl
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import json5
-from cryptography.exceptions import InvalidSignature
 
 from dyknow import keys
 from dyknow.errors import AccessError, DyKnowError, did_you_mean
@@ -130,6 +126,8 @@ class TlsFiles:
                 raise AccessError(
                     f"{path!r} is not a readable file", where=option, expected="a PEM file (dyknow certs DIR writes development ones)"
                 )
+        import ssl  # (here, json5 and cryptography where they are used: a command without TLS or an ACL starts faster)
+
         context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
         try:
             context.load_verify_locations(self.ca)
@@ -175,6 +173,7 @@ def _issued_by(cert_pem: bytes, ca_pem: bytes) -> bool:
     """Whether a certificate of the file ``cert_pem`` (the leaf, or a chain's intermediate) is a CA
     of ``ca_pem`` or was signed by one."""
     from cryptography import x509
+    from cryptography.exceptions import InvalidSignature
 
     try:
         chain, cas = x509.load_pem_x509_certificates(cert_pem), x509.load_pem_x509_certificates(ca_pem)
@@ -203,6 +202,8 @@ class AccessControl:
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> AccessControl:
         """Read an ACL file (JSON5); :class:`AccessError` naming the file and the field when malformed."""
+        import json5
+
         where = os.fspath(path)
         try:
             data = json5.loads(Path(path).read_text(encoding="utf-8"))

@@ -6,8 +6,16 @@ raised (``UnitError``, ``BindingError``, ``SpecError``, ...); a manager that doe
 :class:`~dyknow.errors.ServiceError`, whose ``details["reason"]`` says why, as far as it can be
 told (:mod:`dyknow.reach`): ``refused``, ``unreachable``, ``silent``, ``tls-listener``,
 ``tls-untrusted``, ``tls-rejected`` (the endpoint), ``no-such-manager`` (others are there:
-``details["managers"]``), ``no-role`` (linked, but nothing visible), ``dropped`` (an access control
-on the way), ``gone`` (its token went away) or ``timeout``.
+``details["managers"]``), ``no-manager`` (linked, and no manager is there at all), ``no-role``
+(linked, but nothing visible), ``dropped`` (an access control on the way), ``gone`` (its token
+went away) or ``timeout``.
+
+A manager that is not there is said as soon as the network has said so, not after a timeout: the
+client's own session is a Zenoh client, whose router answers the client's first question (which
+managers' liveliness tokens are up) whole, tokens and then the end of them. A call to a manager
+not among them, nor heard of since, is sent once anyway (to a manager that announces no token,
+``--alone``, it goes through); when it reaches nothing, it ends at once, naming the managers that
+are there.
 
 Usage::
 
@@ -23,22 +31,24 @@ import json
 import logging
 import math
 import os
-import secrets
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from dyknow import keys, reach, service
+from dyknow import keys, reach
 from dyknow.access import ROLES, AccessControl, TlsFiles
-from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
-from dyknow.holders import holder_token
 from dyknow.message import CLOCK_ID, Message
-from dyknow.model import check_standby
 from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, LivelinessToken, Session, Subscriber, check_key_expr, make_config
+
+if TYPE_CHECKING:
+    from dyknow.clocks import Estimate
+
+# (dyknow.service, dyknow.clocks, dyknow.model and dyknow.holders are imported where they are
+# needed: a command that fails at once, or reads a model, does not pay for the services' checks,
+# the formula parser they pull in, or the clock estimates: the dyknow command starts faster)
 
 __all__ = ["Client"]
 
@@ -49,6 +59,9 @@ _MAX_GONE = 10_000  # managers remembered as gone (names come from the network: 
 #: How long a call waits for a manager never seen while others are up, before it says so: a
 #: manager's token and its services come to a client together, so this is ample.
 _ABSENT_S = 1.0
+#: How long a call that finds no service at once waits for the answer to the client's first
+#: question, which managers are up (a round trip; it is looked at again while the call waits).
+_ASKED_S = 0.05
 _DIAL_MS = 2000  # how long a client that could not connect at once gives each new attempt (TCP and TLS handshakes)
 
 
@@ -99,6 +112,11 @@ class _Presence:
                 while len(self._gone) > _MAX_GONE:
                     del self._gone[next(iter(self._gone))]
 
+    def heard(self) -> tuple[set[str], set[str]]:
+        """The managers whose tokens came since the watch began, and those whose tokens went."""
+        with self._lock:
+            return set(self._up), set(self._gone)
+
     def why_absent(self, manager: str) -> str | None:
         """Why ``manager`` is not there when others are and it was never seen, or None."""
         with self._lock:
@@ -123,6 +141,24 @@ class _Presence:
             self._watch = None
 
 
+class _Answer:
+    """The answer to a liveliness query: the keys of the tokens that are up, once the whole answer
+    came (None until then, and for good when Zenoh's timeout ended it, or it held too many)."""
+
+    def __init__(self) -> None:
+        self.keys: list[str] | None = None
+        self.ended = threading.Event()
+        self._late = False
+
+    def timed_out(self) -> None:
+        self._late = True
+
+    def done(self, keys: list[str], count: int) -> None:
+        if not self._late and count <= len(keys):
+            self.keys = keys
+        self.ended.set()
+
+
 class ClockView:
     """The clock offsets a manager estimates (:meth:`Client.clocks`), kept current by a thread of
     its own (a clock drifts; a peer appears): a process that reads messages from other hosts
@@ -137,6 +173,8 @@ class ClockView:
         self.fetched = threading.Event()  # set once the first look is over (found or not)
         self.found: bool | None = None  # whether the manager was reachable at the latest look
         self.reachable: list[str] = []  # the managers reachable then
+        from dyknow.clocks import Estimate
+
         self._client = client
         self._estimates: dict[int, Estimate] = {CLOCK_ID: Estimate(CLOCK_ID, 0, 0, 0.0, 0, 0)}  # swapped whole
         self._done = threading.Event()
@@ -165,6 +203,8 @@ class ClockView:
         return t_ns - offset, uncertainty
 
     def _follow(self) -> None:
+        from dyknow.clocks import Estimate
+
         client = self._client
         while True:
             try:  # (a manager that is not there would hold each look up for the client's timeout)
@@ -218,6 +258,10 @@ class Client:
             from dyknow.identity import Signer
 
             self._signer = Signer(tls)
+        # whether the session is a Zenoh client, whose router answers a liveliness query for the
+        # network and says when it is done (a peer answers from what it heard so far: 1 of 120
+        # fresh peer sessions asked just after their link came up heard nothing)
+        self._routed = False
         # set when the session could not connect at once: what probing each endpoint found
         # (None: connected, or nothing to probe), so a call that cannot work fails saying why
         self._findings: list[reach.Finding] | None = None
@@ -233,9 +277,15 @@ class Client:
             else:
                 session = Session(make_config(connect=self._connect, config_file=zenoh_config, tls=tls, lease_ms=lease_ms))
         self._session = session
+        # Which managers are up, asked before the watch below begins: while a watch's first
+        # tokens are on their way, Zenoh answers such a question from what the session heard so
+        # far (nothing, in 19 of 30 fresh sessions), and asked first, the router answers it whole
+        # (50 of 50). A call to a manager not among them (nor heard of since) is sent once and,
+        # when it reaches nothing, ends at once (see _call).
+        self._first = self._ask_managers()
         self._presence = _Presence(session)
         # the requests this client holds (dyknow.holders): key -> (references, the token that says it is alive)
-        self._holder = secrets.token_hex(8)
+        self._holder = os.urandom(8).hex()  # (what secrets.token_hex does, without importing it)
         self._held: dict[str, tuple[int, LivelinessToken]] = {}
         self._held_lock = threading.Lock()
 
@@ -250,7 +300,9 @@ class Client:
         found = reach.dial(self._connect, timeout_s=min(1.0, self.timeout_s))
         if any(f.kind == "ok" for f in found):
             try:
-                return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[]))
+                session = Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[]))
+                self._routed = True
+                return session
             except TransportError as exc:
                 if "Unable to connect" not in str(exc):
                     raise
@@ -302,6 +354,33 @@ class Client:
         who = who or f"manager {self.manager!r}"
         return ServiceError(f"cannot reach {who}: {what}", expected=expected, details={"reason": failed[0].kind})
 
+    def _ask_managers(self) -> _Answer | None:
+        """Ask which managers' tokens are up, when the answer will be whole (the client's own
+        session, a Zenoh client, linked now); else None. Returns at once: the answer comes to the
+        :class:`_Answer` a round trip later."""
+        if not self._routed or not self._session.linked():
+            return None
+        answer = _Answer()
+        try:
+            self._session.ask_alive(
+                keys.managers_pattern(), timeout_s=self.timeout_s, limit=_MAX_GONE, done=answer.done, timed_out=answer.timed_out
+            )
+        except TransportError as exc:
+            log.debug("no first look at the managers: %s", exc)
+            return None
+        return answer
+
+    def _known_up(self, wait_s: float) -> list[str] | None:
+        """The managers up as the network said at first (whole), with those heard of since and
+        without those gone, sorted; None when that is not known (not asked, not answered within
+        ``wait_s`` more, not whole, or the session has no link now)."""
+        first = self._first
+        if first is None or not first.ended.wait(wait_s) or first.keys is None or not self._session.linked():
+            return None
+        came, went = self._presence.heard()
+        names = {m for m in (keys.manager_of_token(k) for k in first.keys) if m is not None}
+        return sorted((names | came) - went)
+
     def _expected(self, manager: str) -> str:
         expected = f"a running manager (dyknow manager --name {manager})"
         if self._tls is not None or any(e.startswith("tls/") for e in self._connect):
@@ -338,12 +417,22 @@ class Client:
         where = f"manager {manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
         self._probe()
         started = time.monotonic()
+        known: list[list[str]] = []  # the managers up, once absent() found the manager not among them
+        waited = [False]
 
         def gone() -> str | None:
             why = self._presence.why_gone(manager)
             if why is None and time.monotonic() - started > min(_ABSENT_S, self.timeout_s / 2):
                 why = self._presence.why_absent(manager)
             return why
+
+        def absent() -> str | None:  # (while the service is not found, first at once)
+            names = self._known_up(0.0 if waited[0] else _ASKED_S)
+            waited[0] = True
+            if names is None or manager in names:
+                return None
+            known[:] = [names]  # (Session.call sends the request once more: a manager --alone announces no token)
+            return f"no manager {manager!r} is there (no liveliness token of it is up, and the call reached nothing)"
 
         try:
             reply = self._session.call(
@@ -354,9 +443,12 @@ class Client:
                 what=f"{what} of {where}",
                 sign=self._signer.sign if self._signer is not None else None,
                 gone=gone,
+                absent=absent,
             )
         except ServiceError as exc:
             reason = exc.details.get("reason") if exc.kind is None else None
+            if reason == "absent" and known:
+                raise self._unanswered(manager, where, known[0]) from exc  # (naming those there)
             if reason == "gone" and self._presence.why_absent(manager) is not None:
                 raise self._unanswered(manager, where) from exc  # (with the close match)
             if reason == "unreachable":
@@ -374,11 +466,15 @@ class Client:
                 ) from exc
             if exc.kind is None and (str(exc) == "Timeout" or (reason is None and str(exc).endswith(f"within {self.timeout_s:g} s"))):
                 raise self._timed_out(what, where, time.monotonic() - started) from None
+            from dyknow import service
+
             raise service.raise_remote(exc) from None
         return json.loads(reply)
 
     def _timed_out(self, what: str, where: str, waited_s: float) -> ServiceError:
         """A call that reached the manager and got no answer in time (Zenoh says only "Timeout")."""
+        from dyknow import service
+
         if what in service.READ_ONLY_SERVICES:
             done = "it only reads, so nothing was changed"
             expected = "a longer --timeout (timeout_s) if the manager is busy, or a manager that is not stuck (its log says why)"
@@ -395,15 +491,20 @@ class Client:
             details={"reason": "timeout", "call": what, "waited_s": round(waited_s, 3), "may_have_run": what not in service.READ_ONLY_SERVICES},
         )
 
-    def _unanswered(self, manager: str, where: str) -> ServiceError:
-        """Why nothing answered within the timeout, as far as it can be told (see :mod:`dyknow.reach`)."""
+    def _unanswered(self, manager: str, where: str, known: list[str] | None = None) -> ServiceError:
+        """Why nothing answered within the timeout, or (``known``: the managers that are there,
+        as the network said) why nothing will, as far as it can be told (see :mod:`dyknow.reach`)."""
         findings = self._fresh_findings()
         if findings is not None:
             return self._unlinked_error(findings)
-        try:
-            names = self.manager_names(timeout_s=0.5)
-        except ServiceError:
-            names = []
+        waited = known is None
+        if known is not None:
+            names = known
+        else:
+            try:
+                names = self.manager_names(timeout_s=0.5)
+            except ServiceError:
+                names = []
         if names and manager not in names:
             return ServiceError(
                 f"no manager {manager!r} among those reachable ({', '.join(names)})",
@@ -412,14 +513,22 @@ class Client:
                 details={"reason": "no-such-manager", "managers": names},
             )
         expected = self._expected(manager)
+        within = f" within {self.timeout_s:g} s" if waited else ""
         if not names and self._signer is not None:
             return ServiceError(
-                f"no answer from {where} within {self.timeout_s:g} s: linked, but no manager is visible from here",
+                f"no answer from {where}{within}: linked, but no manager is visible from here",
                 expected=f"a running manager (dyknow manager --name {manager}) whose --acl gives this client's certificate "
                 f"(common name {self._signer.common_name!r}) a role: without one, it shows the client nothing",
                 details={"reason": "no-role"},
             )
-        return ServiceError(f"no answer from {where} within {self.timeout_s:g} s", expected=expected, details={"reason": "timeout"})
+        if not waited and manager not in names:
+            linked = f"linked to {', '.join(self._connect)}" if self._connect else "linked"
+            return ServiceError(
+                f"cannot reach manager {manager!r}: {linked}, but no manager is there (no manager's liveliness token is up)",
+                expected=f"{expected} that this endpoint reaches (--connect); or --wait S for one that is starting",
+                details={"reason": "no-manager", "managers": []},
+            )
+        return ServiceError(f"no answer from {where}{within}", expected=expected, details={"reason": "timeout"})
 
     def _manager(self, service_name: str, request: Mapping[str, Any]) -> Any:
         return self.call_manager(self.manager, service_name, request)
@@ -516,6 +625,8 @@ class Client:
         clock; elsewhere, add how far this host's clock is from the manager's host's. Entries that
         do not parse (a model is another process's word) are left out. ``model``: that manager's
         model, read already (it is not asked again)."""
+        from dyknow.clocks import DRIFT_BOUND_PPM, Estimate
+
         name = manager or self.manager
         raw = (model if model is not None else self.get_model(name)).get("clocks", {})
         now = time.time_ns()
@@ -578,6 +689,8 @@ class Client:
         if require:
             request["require"] = list(require)
         if standby is not None:
+            from dyknow.model import check_standby
+
             request["standby"] = check_standby(standby)
         if not keep:
             request["holder"] = self._holder
@@ -591,6 +704,8 @@ class Client:
         with self._held_lock:
             references, token = self._held.get(key) or (0, None)
             if token is None:
+                from dyknow.holders import holder_token
+
                 token = self._session.declare_liveliness_token(holder_token(key, self._holder))
             self._held[key] = (references + 1, token)
 
@@ -704,6 +819,8 @@ class Client:
 
             return {"manager": name, "host": str(summary.get("host", ""))[:256], "specs": count("specs"), "units": count("units"),
                     "requests": count("requests")}  # fmt: skip
+
+        from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(min(8, max(1, len(page)))) as pool:
             listed = [m for m in pool.map(brief, page) if m is not None]

@@ -62,9 +62,8 @@ from __future__ import annotations
 import json
 import os
 import struct
+import sys
 from typing import Any, Final
-
-import numpy as np
 
 from dyknow.errors import PayloadError
 
@@ -133,6 +132,16 @@ _BYTES_ENCODING: Final = ENCODINGS[_BYTES]
 _JSON_TYPES: Final = (dict, list, tuple, int, float, bool, type(None))
 
 
+def _is_array(payload: Any) -> bool:
+    """Whether ``payload`` is a numpy array. Only once numpy is imported can one be, so this module
+    imports numpy only to decode an array: a process that never meets one (a command that fails
+    at once, a tool of bytes and JSON) never pays for numpy's import (the larger part of the
+    ``dyknow`` command's start-up)."""
+    numpy = sys.modules.get("numpy")
+    array = None if numpy is None else getattr(numpy, "ndarray", None)
+    return array is not None and isinstance(payload, array)
+
+
 class Message:
     """A payload and its header, as handed to ``Unit.on_message``.
 
@@ -182,7 +191,7 @@ class Message:
 
 def describe_payload(payload: Any) -> str:
     """A short, printable description of a payload (arrays by dtype and shape)."""
-    if isinstance(payload, np.ndarray):
+    if _is_array(payload):
         return f"<ndarray {payload.dtype} {payload.shape}>"
     if isinstance(payload, (bytes, bytearray, memoryview)):
         return f"<{len(payload)} bytes>"
@@ -192,7 +201,9 @@ def describe_payload(payload: Any) -> str:
 
 def check_payload(payload: Any) -> None:
     """Raise :class:`PayloadError` unless ``payload`` is of a type dyknow can carry."""
-    if isinstance(payload, (bytes, bytearray, memoryview, str, np.ndarray, *_JSON_TYPES)):
+    if isinstance(payload, (bytes, bytearray, memoryview, str, *_JSON_TYPES)):
+        return
+    if _is_array(payload):
         return
     raise PayloadError(
         f"cannot publish a payload of type {type(payload).__name__}",
@@ -204,12 +215,12 @@ def payload_nbytes(payload: Any) -> int:
     """Size of a payload in bytes where it is known without encoding (0 for JSON-like values)."""
     if isinstance(payload, (bytes, bytearray)):
         return len(payload)
-    if isinstance(payload, np.ndarray):
-        return payload.nbytes
     if isinstance(payload, memoryview):
         return payload.nbytes
     if isinstance(payload, str):
         return len(payload)
+    if _is_array(payload):
+        return int(payload.nbytes)
     return 0
 
 
@@ -232,10 +243,10 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
         kind, data = _BYTES, payload.tobytes()
     elif isinstance(payload, str):
         kind, data = _TEXT, payload.encode()
-    elif isinstance(payload, np.ndarray):
+    elif _is_array(payload):
         kind = _ARRAY
         extra = _array_meta(payload)
-        data = np.ascontiguousarray(payload).tobytes()
+        data = sys.modules["numpy"].ascontiguousarray(payload).tobytes()  # (imported: the payload is an array)
     else:
         kind = _JSON
         try:
@@ -249,7 +260,7 @@ def encode(msg: Message) -> tuple[Any, bytes, str]:
     return data, header + extra, ENCODINGS[kind]
 
 
-def _array_meta(array: np.ndarray) -> bytes:
+def _array_meta(array: Any) -> bytes:
     dtype = array.dtype.str.encode()
     if array.ndim > 255 or array.dtype.hasobject:
         raise PayloadError(f"cannot send an array of dtype {array.dtype} with {array.ndim} dims", expected="numbers, at most 255 dims")
@@ -258,7 +269,9 @@ def _array_meta(array: np.ndarray) -> bytes:
 
 def _encode_parts(payload: Any, failure: TypeError) -> tuple[bytes, bytes]:
     """``(payload, attachment after the header)`` of a JSON-like value holding numpy arrays."""
-    arrays: list[tuple[str, np.ndarray]] = []
+    import numpy as np
+
+    arrays: list[tuple[str, Any]] = []
     skeleton = _split(payload, "", arrays, 0)
     if not arrays:
         raise PayloadError(f"cannot encode the payload as JSON: {failure}") from failure
@@ -280,9 +293,9 @@ def _encode_parts(payload: Any, failure: TypeError) -> tuple[bytes, bytes]:
     return b"".join(data), b"".join(extra)
 
 
-def _split(value: Any, path: str, arrays: list[tuple[str, np.ndarray]], depth: int) -> Any:
+def _split(value: Any, path: str, arrays: list[tuple[str, Any]], depth: int) -> Any:
     """``value`` with each numpy array in it replaced by None, its path and itself in ``arrays``."""
-    if isinstance(value, np.ndarray):
+    if _is_array(value):
         arrays.append((path, value))
         return None
     if depth > 64:
@@ -333,11 +346,13 @@ def _place(root: Any, path: str, value: Any, key: str) -> None:
 
 def _decode_parts(raw: bytes, attachment: bytes, at: int, key: str) -> Any:
     """The JSON-like value of a kind 4 payload, its arrays read-only views of ``raw``."""
+    import numpy as np
+
     where = f"message on {key!r}"
     try:
         count = attachment[at]
         at += 1
-        parts: list[tuple[str, np.dtype[Any], tuple[int, ...], int]] = []
+        parts: list[tuple[str, Any, tuple[int, ...], int]] = []
         total = 0
         for _ in range(count):
             (length,) = _PATH_LENGTH.unpack_from(attachment, at)
@@ -429,6 +444,8 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
         value = _decode_parts(raw, attachment, size, key)
         return Message(value, mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock, forwards)
     elif kind == _ARRAY:
+        import numpy as np
+
         ndim, dlen = _ARRAY_META.unpack_from(attachment, size)
         pos = size + _ARRAY_META.size
         dtype = np.dtype(attachment[pos : pos + dlen].decode())

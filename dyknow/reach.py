@@ -21,14 +21,17 @@ from __future__ import annotations
 
 import errno
 import socket
-import ssl
 import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from dyknow.access import TlsFiles
 from dyknow.errors import AccessError
+
+if TYPE_CHECKING:
+    import ssl
 
 __all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "dial", "probe", "probe_all"]
 
@@ -131,6 +134,8 @@ def probe(endpoint: str, tls: TlsFiles | None, timeout_s: float = 1.0) -> Findin
 def _plain(endpoint: str, sock: socket.socket, host: str, timeout_s: float) -> Finding:
     """A ``tcp/`` endpoint: does its listener speak TLS? (a plain Zenoh listener waits for more
     bytes after a TLS greeting, so the handshake times out)."""
+    import ssl  # (here and in _tls: a probe that finds nothing listening never needs it, and the command starts faster)
+
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     context.check_hostname = False
     context.verify_mode = ssl.CERT_NONE
@@ -155,6 +160,8 @@ def _plain(endpoint: str, sock: socket.socket, host: str, timeout_s: float) -> F
 def _tls(endpoint: str, sock: socket.socket, host: str, tls: TlsFiles, timeout_s: float) -> Finding:
     """A ``tls/`` endpoint: the handshake as Zenoh makes it (mutual, the name verified), then a
     short wait for the listener to refuse this client's certificate."""
+    import ssl
+
     try:
         context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
         context.load_verify_locations(tls.ca)

@@ -1362,7 +1362,10 @@ class Session:
     ) -> LivelinessSubscriber:
         """Call ``on_change(key, alive)`` as tokens on ``key`` appear and vanish (existing ones first).
 
-        ``inline``: on Zenoh's thread (no thread of its own; ``on_change`` must return at once)."""
+        ``inline``: on Zenoh's thread (no thread of its own; ``on_change`` must return at once).
+        While this watch's first tokens are on their way, a liveliness query of this session on
+        keys it covers is answered from what the session heard so far, not by the network (a
+        Zenoh client: nothing, in 19 of 30 fresh sessions asked just after declaring it)."""
 
         def callback(sample: zenoh.Sample) -> None:
             try:
@@ -1405,16 +1408,28 @@ class Session:
             last = found
             threading.Event().wait(0.05)  # (time.sleep fails under a faked clock: libfaketime's clock_nanosleep)
 
-    def ask_alive(self, key: str, *, timeout_s: float, limit: int, done: Callable[[list[str], int], None]) -> None:
+    def ask_alive(
+        self,
+        key: str,
+        *,
+        timeout_s: float,
+        limit: int,
+        done: Callable[[list[str], int], None],
+        timed_out: Callable[[], None] | None = None,
+    ) -> None:
         """Ask once which liveliness tokens on ``key`` are up, and return at once: ``done(keys,
         count)`` is called once, on a Zenoh thread, when the answer is complete (or ``timeout_s``
-        passed): the first ``limit`` keys in the order they came, and how many came in all."""
+        passed): the first ``limit`` keys in the order they came, and how many came in all.
+        ``timed_out()`` is called first when it is not complete: Zenoh ended the question at
+        ``timeout_s`` (its only error reply to it), so tokens may be missing from the answer."""
         lock = threading.Lock()
         found: list[str] = []
         count = [0]
+        late = [False]
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is None:
+                late[0] = True
                 return
             with lock:
                 count[0] += 1
@@ -1425,6 +1440,8 @@ class Session:
             with lock:
                 keys, total = list(found), count[0]
             try:
+                if late[0] and timed_out is not None:
+                    timed_out()
                 done(keys, total)
             except Exception:
                 log.exception("the answer to who is alive on %s failed", key)
@@ -1468,6 +1485,7 @@ class Session:
         sign: Callable[[str, bytes], bytes] | None = None,
         gone: Callable[[], str | None] | None = None,
         reachable_within_s: float | None = None,
+        absent: Callable[[], str | None] | None = None,
     ) -> bytes:
         """Send a request to the service on ``key`` and return its reply.
 
@@ -1479,12 +1497,17 @@ class Session:
         :mod:`dyknow.identity`), made once the service is reachable, so its time is fresh.
         ``gone()``: why the service's owner is known to be gone, or None; while it says so the
         call ends at once with that reason instead of waiting for the service to come back.
+        ``absent()``: why the service's owner seems not to be there (the network said its token is
+        not up), or None; when it says so, the request is sent once anyway (the router routes it
+        to a service this session has not heard of yet, or ends it at once without a reply), and
+        only if nothing answered does the call end with that reason (``details["reason"]``
+        ``"absent"``). A request that reached no service did nothing, so it is safe to send later.
         """
         window_s = timeout_s if reachable_within_s is None else reachable_within_s
         deadline = time.monotonic() + window_s
         entry = self._querier(key, timeout_s)
         try:
-            return self._call(entry[0], entry[1], key, payload, deadline, window_s, timeout_s, what, sign, gone)
+            return self._call(entry[0], entry[1], key, payload, deadline, window_s, timeout_s, what, sign, gone, absent)
         finally:
             with self._lock:
                 entry[2] -= 1
@@ -1501,11 +1524,19 @@ class Session:
         what: str,
         sign: Callable[[str, bytes], bytes] | None,
         gone: Callable[[], str | None] | None,
+        absent: Callable[[], str | None] | None,
     ) -> bytes:
         while not reachable.is_set():
             why = gone() if gone is not None else None
             if why is not None:
                 raise ServiceError(f"no answer from {what}: {why}", details={"reason": "gone"})
+            why = absent() if absent is not None and not reachable.is_set() else None
+            if why is not None and not reachable.is_set():
+                reply = self._ask(querier, key, payload, what, sign)  # (once: a service not heard of yet answers it)
+                if reply is not None:
+                    return reply
+                if not reachable.is_set():
+                    raise ServiceError(f"no answer from {what}: {why}", details={"reason": "absent"})
             left = deadline - time.monotonic()
             if left <= 0:
                 raise ServiceError(f"no answer from {what}: nothing serves {key!r} within {window_s:.3g} s", details={"reason": "unreachable"})

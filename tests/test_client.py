@@ -11,7 +11,7 @@ import pytest
 
 from dyknow import BindingError, Client, LibraryError, Manager, Message, SpecError, UnitError
 from dyknow.transport import MAX_QUERIERS
-from tests.conftest import GENERIC_SPECS, ManagerProcess, wait_until
+from tests.conftest import GENERIC_SPECS, CliProcess, ManagerProcess, free_port, run_cli, wait_until
 
 RELAY = """<transformation><label>my-relay</label><source>transformations.generic:Relay</source>
   <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
@@ -170,3 +170,53 @@ def test_a_call_that_times_out_names_the_call_the_manager_the_wait_and_what_may_
     said = str(change.value)
     assert "to 'spawn' within 1 s" in said and "may still be carried out" in said and "check whether it was done (dyknow model)" in said
     assert change.value.details["may_have_run"] is True
+
+
+@pytest.mark.timeout(120)
+def test_a_fresh_client_finds_a_manager_that_is_there_every_time(
+    manager_process: Callable[..., ManagerProcess], cli_process: Callable[..., CliProcess]
+) -> None:
+    """A call that does not find its service at once asks whether the manager is there, and ends
+    at once when it is not (the next test). It must never say so of one that is: asked by a fresh
+    client 20 times in a row, each manager answers, whether it announces itself (a liveliness
+    token), does not (--alone: no token, its service only) or sits behind a router. (While the
+    client's watch of the managers' tokens is on its way, Zenoh answered a liveliness query of
+    that session from what it had heard so far: nothing, in 19 of 30 fresh sessions.)"""
+    announced = manager_process(name="there")
+    alone = manager_process("--alone", name="lonely")
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    router = cli_process("router", "--listen", hub, "--json")
+    assert router.line()["event"] == "ready"
+    behind = manager_process("--connect", hub, name="behind")
+    for name, endpoint in ((announced.name, announced.endpoint), (alone.name, alone.endpoint), (behind.name, hub)):
+        for attempt in range(20):
+            with Client(name, connect=[endpoint], timeout_s=10) as client:
+                assert client.get_model()["manager"] == name, (name, attempt)
+
+
+@pytest.mark.timeout(20)
+def test_a_manager_not_there_is_said_at_once_naming_those_that_are(
+    manager_process: Callable[..., ManagerProcess], cli_process: Callable[..., CliProcess]
+) -> None:
+    """The network's answer (which managers' tokens are up, whole) and a call that reached
+    nothing: said at once, not after the timeout (60 s: the test's own timeout ends it first)."""
+    from dyknow import ServiceError
+
+    robot = manager_process(name="robot")
+    with Client("robt", connect=[robot.endpoint], timeout_s=60) as client, pytest.raises(ServiceError) as misspelled:
+        client.get_model()
+    assert misspelled.value.details == {"reason": "no-such-manager", "managers": ["robot"]}
+    assert str(misspelled.value).endswith("no manager 'robt' among those reachable (robot); expected --manager one of robot (did you mean 'robot'?)")
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    router = cli_process("router", "--listen", hub, "--json")
+    assert router.line()["event"] == "ready"
+    with Client("robot", connect=[hub], timeout_s=60) as client, pytest.raises(ServiceError) as none:
+        client.get_model()
+    assert none.value.details == {"reason": "no-manager", "managers": []}
+    assert str(none.value) == (
+        f"cannot reach manager 'robot': linked to {hub}, but no manager is there (no manager's liveliness token is up); "
+        f"expected a running manager (dyknow manager --name robot) that this endpoint reaches (--connect); "
+        "or --wait S for one that is starting"
+    )
+    done = run_cli("model", "--manager", "robt", "--connect", robot.endpoint, "--timeout", "60")
+    assert done.returncode == 1 and done.stderr.strip().endswith("expected --manager one of robot (did you mean 'robot'?)")
