@@ -3,10 +3,12 @@
 Every manager declares a liveliness token on ``@dyknow/<manager>`` and publishes its
 :class:`Summary` (host, library, running units, measurements, load) on
 ``dyknow/<manager>/summary`` whenever it changes; a newcomer asks each manager it discovers
-for its summary through the ``get_summary`` service. A :class:`Directory` keeps what the others
-said: a manager that appears is noticed when its token does (at once on a reachable network), one
-that dies or is cut off when its token goes (its links close, or Zenoh's lease expires). There
-is no broker: Zenoh's peers, gossip and routers carry it all.
+for its summary through the ``get_summary`` service. A :class:`Directory` keeps what the managers
+it follows said (the candidates of its plans, those it exchanges data or calls with): one that
+appears is noticed when its token does (at once on a reachable network), one that dies or is cut
+off when its token goes (its links close, or Zenoh's lease expires); each such token is watched on
+its own key, so the others' comings and goings cost it nothing. There is no broker: Zenoh's peers,
+gossip and routers carry it all.
 
 A summary arrives from the network, so it is hostile input: it is bounded in size, its specs are
 XML read by the hardened spec reader, and nothing in it is ever imported or run here. A
