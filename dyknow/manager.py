@@ -1281,7 +1281,8 @@ class Manager:
         return self._directory.discover(wanted, need=need) if self._directory is not None else False
 
     def reachable(self) -> set[str]:
-        """The names of the other managers whose liveliness token is up (followed or not)."""
+        """The names of the other managers whose liveliness token is up (followed or not): a
+        liveliness query when called, at most once a second (:meth:`dyknow.federation.Directory.alive`)."""
         return self._directory.alive() if self._directory is not None else set()
 
     def _peers_in_use(self) -> set[str]:
