@@ -227,7 +227,18 @@ class _Clock:
         return _bisect_right(self.times, t) - 1 + self.base
 
 
-class _Node:
+class _Step:
+    """What a state steps through: a condition's node or a value's (one base, so the monitor's
+    loop over them dispatches with one type check, compiled)."""
+
+    max_states: int  # how many states' entries it may keep (the monitor sets it)
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        """Evaluate the new state ``n`` at ``t`` (operands have stepped already)."""
+        raise NotImplementedError
+
+
+class _Node(_Step):
     """A node of the monitored formula: its verdict at the newest state (``cur``), at every
     retained state when the formula has asynchronous nodes (``vals``: ``history``), and for an
     asynchronous node the states it decided during the current step (``events``)."""
@@ -253,7 +264,7 @@ class _Node:
         """States before ``base`` were dropped from ``vals``' front; drop what refers to them."""
 
 
-class _Value:
+class _Value(_Step):
     """A node that gives a value at each state (a stream's, a constant, an expression, an
     aggregate): always decided at its state, so it keeps no history."""
 
@@ -278,6 +289,7 @@ class _Held:
     def __init__(self, terms: int) -> None:
         self.times: list[int] = [_NEVER] * terms
         self.max_age: list[int] = [-1] * terms
+        self.aged = False  # whether some term has a maximum age (else nothing is ever stale)
         self.periods: list[list[tuple[int, int]]] = [[] for _ in range(terms)]
         self.heads: list[int] = [0] * terms
         self.pruned_end: list[int] = [_NEVER] * terms
@@ -307,6 +319,8 @@ class _Held:
     def stale(self, terms: list[int], lo: int | None, hi: int) -> bool:
         """Whether one of ``terms`` is stale at a whole-ns time of ``[lo, hi]`` (``lo`` None: no bound),
         from the first state on (there is no state, nor a window, before it)."""
+        if not self.aged:
+            return False
         if self.first_t != _NEVER and (lo is None or lo < self.first_t):
             lo = self.first_t
         for k in terms:
@@ -330,6 +344,12 @@ class _Held:
         return False
 
 
+def _finite_float(x: Any) -> bool:
+    """Whether ``x`` is a finite float (a function of its own: compiled, a caller that tested it
+    inline would hold ``x`` as a C double and box a new float to store it)."""
+    return type(x) is float and x - x == 0.0
+
+
 class _StreamValue(_Value):
     def __init__(self, k: int, fields: tuple[str, ...], held: _Held) -> None:
         super().__init__()
@@ -344,8 +364,8 @@ class _StreamValue(_Value):
             self.val = UNKNOWN_VALUE  # stale
             return
         value = held[k]
-        if not self.fields and type(value) is float and value - value == 0.0:
-            self.val = value  # the common case, without a call
+        if not self.fields and _finite_float(value):
+            self.val = value  # the common case, without a call (nor, compiled, a new float object)
         else:
             self.val = read(value, self.fields)
 
@@ -966,6 +986,12 @@ def _past_stale(node: _Node, t: int, lo_ns: int, hi_ns: int | None) -> bool:
     return held.stale(node.below, t - hi_ns if hi_ns is not None else None, t - lo_ns)
 
 
+def _only_new(events: list[int], n: int) -> bool:
+    """Whether an operand decided nothing this step but (maybe) the new state ``n`` itself."""
+    size = len(events)
+    return size == 0 or (size == 1 and events[0] == n)
+
+
 def _pred(positions: list[int], below: int) -> int:
     """The last position < ``below``, or _NONE."""
     k = _bisect_left(positions, below)
@@ -1149,6 +1175,12 @@ class _UntilNode(_Temporal):
     pending (``skip``) until a true right with an unbroken left chain decides them true, or their
     window is complete and every term is false."""
 
+    def __init__(
+        self, clock: _Clock, left: _Node | None, right: _Node, lo_ns: int, hi_ns: int, negate: bool, need_ns: int, retire_ns: int
+    ) -> None:
+        super().__init__(clock, left, right, lo_ns, hi_ns, negate, need_ns, retire_ns)
+        self.end_at = 0  # the last state of the window completing last (complete's cursor)
+
     def stale_at(self, i: int) -> bool:
         held = self.held
         if held is None:
@@ -1162,7 +1194,7 @@ class _UntilNode(_Temporal):
         self.skip.append(0)
         _left, right = self.record_new(n)
         left = self.left
-        if (left is None or not left.events) and not self.right.events:  # nothing decided below but the new state
+        if (left is None or _only_new(left.events, n)) and _only_new(self.right.events, n):  # nothing decided below but the new state
             if right == TRUE:
                 self.found_true(n)
         else:
@@ -1209,8 +1241,11 @@ class _UntilNode(_Temporal):
         """Decide a complete pending state false if every term of its window is false."""
         clock = self.clock
         ti = clock.at(i)
-        lo = clock.first_at_or_after(ti + self.lo_ns)
-        end = clock.last_at_or_before(ti + self.hi_ns)
+        self.all_false(i, ti, clock.last_at_or_before(ti + self.hi_ns))
+
+    def all_false(self, i: int, ti: int, end: int) -> None:
+        """:meth:`false_if_all_false` of state ``i`` at ``ti``, its window's last state ``end``."""
+        lo = self.clock.first_at_or_after(ti + self.lo_ns) if self.lo_ns else i  # (times are distinct)
         if self.left is not None:
             k = _bisect_left(self.left_f, i)
             if k < len(self.left_f) and self.left_f[k] < end:
@@ -1232,10 +1267,19 @@ class _UntilNode(_Temporal):
         if last < first:
             return
         self.completed = last
+        hi_ns = self.hi_ns
+        e = self.end_at  # each window's last state: a cursor too (windows complete in order)
         i = self.next_pending(first)
         while i <= last:
-            self.false_if_all_false(i)
+            ti = times[i - base]
+            reach = ti + hi_ns
+            if e < i:
+                e = i
+            while e + 1 - base < len(times) and times[e + 1 - base] <= reach:
+                e += 1
+            self.all_false(i, ti, e)
             i = self.next_pending(i + 1)
+        self.end_at = e
 
     def right_false(self, j: int, t: int) -> None:
         """Right became false at j: complete pending states whose window has no other not-false
@@ -1528,7 +1572,7 @@ class Monitor:
         self._clock = _Clock()
         self._nodes: list[_Node] = []
         self._values: list[_Value] = []
-        self._steps: list[_Node | _Value] = []  # every node, operands first: what a state steps through
+        self._steps: list[_Step] = []  # every node, operands first: what a state steps through
         # the robustness tree beside the verdict nodes, when asked for (dyknow.reasoning.robustness)
         self._robust: RobustnessTree | None = RobustnessTree(0) if robustness else None
         self._rob_wait: list[tuple[int, int, bool, int]] = []  # verdicts decided before their robustness
@@ -1587,7 +1631,9 @@ class Monitor:
         k = self._index.get(term)
         if k is None:
             k = self._term_index(term)
-        self._times.max_age[k] = -1 if max_age_ns is None else int(max_age_ns)
+        ages = self._times.max_age
+        ages[k] = -1 if max_age_ns is None else int(max_age_ns)
+        self._times.aged = any(age >= 0 for age in ages)
 
     # -- building
 
@@ -1827,10 +1873,19 @@ class Monitor:
             self._max_t = t_ns
         out: list[Verdict] = []
         buffer = self._buffer
-        if not buffer and self._ready(t_ns):
+        count = len(newest)
+        # (every term's newest sample is at t_ns or after now: without a delay the state is ready)
+        if not buffer and (self.reorder_ns == 0 or self._ready(t_ns)):
             self._closed_t = t_ns
-            for k, value in enumerate(values):
-                self._hold(k, value, t_ns)
+            if self._missing:
+                for k in range(count):
+                    self._hold(k, values[k], t_ns)
+            else:  # (indexed, not enumerate(): compiled, that makes no tuple per value)
+                held = self._held
+                times = self._times
+                for k in range(count):
+                    held[k] = values[k]
+                    times.sample(k, t_ns)
             if not self._missing:
                 self._state(t_ns, out)
             return out
