@@ -106,8 +106,13 @@ from dyknow.tags import parse_term
 
 __all__ = ["DEFAULT_MAX_CELLS", "MIN_STATES", "Monitor", "Verdict"]
 
-_NEVER = -(2**62)  # a time before every sample
-_NONE = -(2**62)  # "no such state" for the last-position summaries
+# (Final: compiled, a plain module global is a dictionary lookup at every use)
+_NEVER: Final = -(2**62)  # a time before every sample
+_NONE: Final = -(2**62)  # "no such state" for the last-position summaries
+_AND: Final = 0  # the kinds of a _BinaryNode
+_OR: Final = 1
+_IMPLIES: Final = 2
+_OPS: Final = ("<", ">", "<=", ">=", "==", "!=")  # an atom's comparison, by its code
 
 DEFAULT_MAX_CELLS: Final = 2_000_000
 """The cells a :class:`Monitor` keeps at most unless told otherwise (``dyknow.security.Limits.max_monitor_cells``)."""
@@ -299,9 +304,9 @@ class _Held:
 
     def sample(self, k: int, t: int) -> None:
         """Term ``k`` had a sample at ``t`` (in time order)."""
-        last = self.times[k]
         age = self.max_age[k]
-        if age >= 0 and last != _NEVER and t - last > age + 1:
+        if age >= 0 and self.times[k] != _NEVER and t - self.times[k] > age + 1:
+            last = self.times[k]
             periods = self.periods[k]
             periods.append((last + age, t))
             head = self.heads[k]
@@ -725,6 +730,7 @@ class _AtomNode(_Node):
     def __init__(self, clock: _Clock, op: str | None, left: _Value, right: _Value | None) -> None:
         super().__init__(clock, True, 0)
         self.op = op
+        self.code = _OPS.index(op) if op in _OPS else -1  # (an int: compiled, comparing strs costs calls)
         self.left = left
         self.right = right
 
@@ -736,16 +742,17 @@ class _AtomNode(_Node):
             value = truth(x)
         else:
             y = right.val
-            if type(x) is float and type(y) is float:  # the common case, without a call
-                if op == "<":
+            code = self.code
+            if type(x) is float and type(y) is float and code >= 0:  # the common case, without a call
+                if code == 0:
                     value = TRUE if x < y else FALSE
-                elif op == ">":
+                elif code == 1:
                     value = TRUE if x > y else FALSE
-                elif op == "<=":
+                elif code == 2:
                     value = TRUE if x <= y else FALSE
-                elif op == ">=":
+                elif code == 3:
                     value = TRUE if x >= y else FALSE
-                elif op == "==":
+                elif code == 4:
                     value = TRUE if x == y else FALSE
                 else:
                     value = TRUE if x != y else FALSE
@@ -825,9 +832,6 @@ class _NotNode(_Node):
                 self.events = arg.events
 
 
-_AND, _OR, _IMPLIES = 0, 1, 2
-
-
 def _combine(kind: int, x: int, y: int) -> int:
     if kind == _AND:
         return x if x < y else y
@@ -859,8 +863,10 @@ class _BinaryNode(_Node):
         vals.append(value)
         if self.sync:
             return
-        events = self.events  # (reused: a parent reads it during this state only)
-        events.clear()
+        events = self.events  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+        if events:
+            events = []
+            self.events = events
         if value != UNKNOWN:
             events.append(n)
         left_events = left_node.events
@@ -978,7 +984,7 @@ class _SinceSync(_Node):
 def _past_stale(node: _Node, t: int, lo_ns: int, hi_ns: int | None) -> bool:
     """Whether a term below ``node`` was stale in the past window ``[t - hi, t - lo]`` of the state at ``t``."""
     held = node.held
-    if held is None:
+    if held is None or not held.aged:
         return False
     if node.first_t == _NEVER:
         node.first_t = t
@@ -1183,13 +1189,14 @@ class _UntilNode(_Temporal):
 
     def stale_at(self, i: int) -> bool:
         held = self.held
-        if held is None:
+        if held is None or not held.aged:
             return False
         ti = self.clock.at(i)
         return held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        self.events.clear()  # (reused: a parent reads it during this state only)
+        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+            self.events = []
         self.vals.append(UNKNOWN)
         self.skip.append(0)
         _left, right = self.record_new(n)
@@ -1205,10 +1212,12 @@ class _UntilNode(_Temporal):
                 self.found_true(j)
             for k in left_t:
                 self.chain_mended(k)
-            for j in right_f:
-                self.right_false(j, t)
-            for k in left_f:
-                self.left_false(k, t)
+            if right_f or left_f:
+                complete_last = self.clock.last_at_or_before(t - self.hi_ns)  # the newest state whose window is complete
+                for j in right_f:
+                    self.right_false(j, complete_last)
+                for k in left_f:
+                    self.left_false(k, complete_last)
         self.complete(t)
         self.retire(t)
         self.cur = self.vals[-1]
@@ -1219,7 +1228,7 @@ class _UntilNode(_Temporal):
         clock = self.clock
         tj = clock.at(j)
         first = clock.first_at_or_after(tj - self.hi_ns)
-        last = min(j, clock.last_at_or_before(tj - self.lo_ns))
+        last = min(j, clock.last_at_or_before(tj - self.lo_ns)) if self.lo_ns else j  # (times are distinct)
         if self.left is not None:
             first = max(first, _pred(self.left_nt, j) + 1)
         self.resolve(first, last, TRUE)
@@ -1281,17 +1290,33 @@ class _UntilNode(_Temporal):
             i = self.next_pending(i + 1)
         self.end_at = e
 
-    def right_false(self, j: int, t: int) -> None:
+    def right_false(self, j: int, complete_last: int) -> None:
         """Right became false at j: complete pending states whose window has no other not-false
         term (up to the first false left) are false. With p and s the not-false terms around j,
         they are the states whose first term lies in (p, j] and last in [j, s): one range."""
         clock = self.clock
         tj = clock.at(j)
-        first = clock.first_at_or_after(tj - self.hi_ns)  # the window reaches j
-        last = min(clock.last_at_or_before(tj - self.lo_ns), clock.last_at_or_before(t - self.hi_ns))  # starts by j; complete
+        lo_ns = self.lo_ns
+        last = min(clock.last_at_or_before(tj - lo_ns) if lo_ns else j, complete_last)  # starts by j; complete
+        # the first pending state whose window reaches j: walked to from the oldest pending one
+        # (few complete states are pending: those waiting for an operand), else found by bisection
+        times = clock.times
+        base = clock.base
+        reach = tj - self.hi_ns  # the oldest state time whose window reaches j
+        i = self.next_pending(self.head)
+        walked = 0
+        while i <= last and times[i - base] < reach:
+            walked += 1
+            if walked == 8:
+                i = self.next_pending(clock.first_at_or_after(reach))
+                break
+            i = self.next_pending(i + 1)
+        if i > last:
+            return  # (the common case: no complete state pending there)
+        first = i  # (no state before it whose window reaches j is pending)
         p = _pred(self.right_nf, j)
         if p >= clock.base:
-            first = max(first, clock.first_at_or_after(clock.at(p) - self.lo_ns + 1))  # starts after p
+            first = max(first, clock.first_at_or_after(clock.at(p) - lo_ns + 1) if lo_ns else p + 1)  # starts after p
         if self.left is not None:
             first = max(first, _pred(self.left_f, j) + 1)  # no false left before j cuts the window short of it
         s = _succ(self.right_nf, j)
@@ -1302,10 +1327,9 @@ class _UntilNode(_Temporal):
             last = min(last, bound)
         self.resolve(first, last, FALSE)
 
-    def left_false(self, k: int, t: int) -> None:
+    def left_false(self, k: int, complete_last: int) -> None:
         """Left became false at k: complete pending states before it may now be all false."""
         clock = self.clock
-        complete_last = clock.last_at_or_before(t - self.hi_ns)
         first = _pred(self.left_f, k) + 1 if _pred(self.left_f, k) != _NONE else clock.base
         last = min(k, complete_last)
         i = self.next_pending(first)
@@ -1347,7 +1371,8 @@ class _UntilSync(_Node):
         self.lo_at = 0  # the first state of the window completing last (its start: t + a)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        self.events.clear()  # (reused: a parent reads it during this state only)
+        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+            self.events = []
         self.vals.append(UNKNOWN)
         left = self.left
         phi = TRUE if left is None else left.cur
@@ -1502,7 +1527,8 @@ class _SinceNode(_Temporal):
     def step(self, n: int, t: int, held: list[Any]) -> None:
         if self.first_t == _NEVER:
             self.first_t = t
-        self.events.clear()  # (reused: a parent reads it during this state only)
+        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+            self.events = []
         self.vals.append(UNKNOWN)
         self.record_new(n)
         value = self.check(n)
