@@ -364,10 +364,11 @@ class _StreamValue(_Value):
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         k = self.k
-        age = self.held.max_age[k]
-        if age >= 0 and t - self.held.times[k] > age:
-            self.val = UNKNOWN_VALUE  # stale
-            return
+        if self.held.aged:
+            age = self.held.max_age[k]
+            if age >= 0 and t - self.held.times[k] > age:
+                self.val = UNKNOWN_VALUE  # stale
+                return
         value = held[k]
         if not self.fields and _finite_float(value):
             self.val = value  # the common case, without a call (nor, compiled, a new float object)
@@ -1227,8 +1228,10 @@ class _UntilNode(_Temporal):
         unbroken are true."""
         clock = self.clock
         tj = clock.at(j)
-        first = clock.first_at_or_after(tj - self.hi_ns)
         last = min(j, clock.last_at_or_before(tj - self.lo_ns)) if self.lo_ns else j  # (times are distinct)
+        first = self.first_pending(tj - self.hi_ns, last)
+        if first > last:
+            return
         if self.left is not None:
             first = max(first, _pred(self.left_nt, j) + 1)
         self.resolve(first, last, TRUE)
@@ -1245,6 +1248,22 @@ class _UntilNode(_Temporal):
                 break
             self.found_true(j)
             lo = _bisect_right(self.right_t, j)
+
+    def first_pending(self, reach: int, last: int) -> int:
+        """The first pending state at ``reach`` or after, if it is at or before ``last`` (else
+        one past ``last`` or more): walked to from the oldest pending one (few states are
+        pending in the common case), else found by bisection."""
+        clock = self.clock
+        times = clock.times
+        base = clock.base
+        i = self.next_pending(self.head)
+        walked = 0
+        while i <= last and times[i - base] < reach:
+            walked += 1
+            if walked == 8:
+                return self.next_pending(clock.first_at_or_after(reach))
+            i = self.next_pending(i + 1)
+        return i
 
     def false_if_all_false(self, i: int) -> None:
         """Decide a complete pending state false if every term of its window is false."""
@@ -1300,20 +1319,9 @@ class _UntilNode(_Temporal):
         last = min(clock.last_at_or_before(tj - lo_ns) if lo_ns else j, complete_last)  # starts by j; complete
         # the first pending state whose window reaches j: walked to from the oldest pending one
         # (few complete states are pending: those waiting for an operand), else found by bisection
-        times = clock.times
-        base = clock.base
-        reach = tj - self.hi_ns  # the oldest state time whose window reaches j
-        i = self.next_pending(self.head)
-        walked = 0
-        while i <= last and times[i - base] < reach:
-            walked += 1
-            if walked == 8:
-                i = self.next_pending(clock.first_at_or_after(reach))
-                break
-            i = self.next_pending(i + 1)
-        if i > last:
+        first = self.first_pending(tj - self.hi_ns, last)  # whose window reaches j
+        if first > last:
             return  # (the common case: no complete state pending there)
-        first = i  # (no state before it whose window reaches j is pending)
         p = _pred(self.right_nf, j)
         if p >= clock.base:
             first = max(first, clock.first_at_or_after(clock.at(p) - lo_ns + 1) if lo_ns else p + 1)  # starts after p
@@ -1431,7 +1439,8 @@ class _UntilSync(_Node):
                 self.finish(i, ti, n, t)
                 i += 1
             self.dhead += 2
-        dead.clear()
+        if dead:
+            dead.clear()
         self.dhead = 0
         i = self.live
         while i <= n:
@@ -1466,7 +1475,7 @@ class _UntilSync(_Node):
         self.rnf_head = r
         if r == len(right_nf) or right_nf[r] > end:
             held = self.held
-            if held is None or not held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns):
+            if held is None or not held.aged or not held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns):
                 self.decide(i, FALSE)
 
     def prune(self, base: int) -> None:
