@@ -106,8 +106,13 @@ from dyknow.tags import parse_term
 
 __all__ = ["DEFAULT_MAX_CELLS", "MIN_STATES", "Monitor", "Verdict"]
 
-_NEVER = -(2**62)  # a time before every sample
-_NONE = -(2**62)  # "no such state" for the last-position summaries
+# (Final: compiled, a plain module global is a dictionary lookup at every use)
+_NEVER: Final = -(2**62)  # a time before every sample
+_NONE: Final = -(2**62)  # "no such state" for the last-position summaries
+_AND: Final = 0  # the kinds of a _BinaryNode
+_OR: Final = 1
+_IMPLIES: Final = 2
+_OPS: Final = ("<", ">", "<=", ">=", "==", "!=")  # an atom's comparison, by its code
 
 DEFAULT_MAX_CELLS: Final = 2_000_000
 """The cells a :class:`Monitor` keeps at most unless told otherwise (``dyknow.security.Limits.max_monitor_cells``)."""
@@ -227,7 +232,18 @@ class _Clock:
         return _bisect_right(self.times, t) - 1 + self.base
 
 
-class _Node:
+class _Step:
+    """What a state steps through: a condition's node or a value's (one base, so the monitor's
+    loop over them dispatches with one type check, compiled)."""
+
+    max_states: int  # how many states' entries it may keep (the monitor sets it)
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        """Evaluate the new state ``n`` at ``t`` (operands have stepped already)."""
+        raise NotImplementedError
+
+
+class _Node(_Step):
     """A node of the monitored formula: its verdict at the newest state (``cur``), at every
     retained state when the formula has asynchronous nodes (``vals``: ``history``), and for an
     asynchronous node the states it decided during the current step (``events``)."""
@@ -253,7 +269,7 @@ class _Node:
         """States before ``base`` were dropped from ``vals``' front; drop what refers to them."""
 
 
-class _Value:
+class _Value(_Step):
     """A node that gives a value at each state (a stream's, a constant, an expression, an
     aggregate): always decided at its state, so it keeps no history."""
 
@@ -278,6 +294,7 @@ class _Held:
     def __init__(self, terms: int) -> None:
         self.times: list[int] = [_NEVER] * terms
         self.max_age: list[int] = [-1] * terms
+        self.aged = False  # whether some term has a maximum age (else nothing is ever stale)
         self.periods: list[list[tuple[int, int]]] = [[] for _ in range(terms)]
         self.heads: list[int] = [0] * terms
         self.pruned_end: list[int] = [_NEVER] * terms
@@ -287,9 +304,9 @@ class _Held:
 
     def sample(self, k: int, t: int) -> None:
         """Term ``k`` had a sample at ``t`` (in time order)."""
-        last = self.times[k]
         age = self.max_age[k]
-        if age >= 0 and last != _NEVER and t - last > age + 1:
+        if age >= 0 and self.times[k] != _NEVER and t - self.times[k] > age + 1:
+            last = self.times[k]
             periods = self.periods[k]
             periods.append((last + age, t))
             head = self.heads[k]
@@ -307,6 +324,8 @@ class _Held:
     def stale(self, terms: list[int], lo: int | None, hi: int) -> bool:
         """Whether one of ``terms`` is stale at a whole-ns time of ``[lo, hi]`` (``lo`` None: no bound),
         from the first state on (there is no state, nor a window, before it)."""
+        if not self.aged:
+            return False
         if self.first_t != _NEVER and (lo is None or lo < self.first_t):
             lo = self.first_t
         for k in terms:
@@ -330,6 +349,12 @@ class _Held:
         return False
 
 
+def _finite_float(x: Any) -> bool:
+    """Whether ``x`` is a finite float (a function of its own: compiled, a caller that tested it
+    inline would hold ``x`` as a C double and box a new float to store it)."""
+    return type(x) is float and x - x == 0.0
+
+
 class _StreamValue(_Value):
     def __init__(self, k: int, fields: tuple[str, ...], held: _Held) -> None:
         super().__init__()
@@ -339,13 +364,14 @@ class _StreamValue(_Value):
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         k = self.k
-        age = self.held.max_age[k]
-        if age >= 0 and t - self.held.times[k] > age:
-            self.val = UNKNOWN_VALUE  # stale
-            return
+        if self.held.aged:
+            age = self.held.max_age[k]
+            if age >= 0 and t - self.held.times[k] > age:
+                self.val = UNKNOWN_VALUE  # stale
+                return
         value = held[k]
-        if not self.fields and type(value) is float and value - value == 0.0:
-            self.val = value  # the common case, without a call
+        if not self.fields and _finite_float(value):
+            self.val = value  # the common case, without a call (nor, compiled, a new float object)
         else:
             self.val = read(value, self.fields)
 
@@ -705,6 +731,7 @@ class _AtomNode(_Node):
     def __init__(self, clock: _Clock, op: str | None, left: _Value, right: _Value | None) -> None:
         super().__init__(clock, True, 0)
         self.op = op
+        self.code = _OPS.index(op) if op in _OPS else -1  # (an int: compiled, comparing strs costs calls)
         self.left = left
         self.right = right
 
@@ -716,16 +743,17 @@ class _AtomNode(_Node):
             value = truth(x)
         else:
             y = right.val
-            if type(x) is float and type(y) is float:  # the common case, without a call
-                if op == "<":
+            code = self.code
+            if type(x) is float and type(y) is float and code >= 0:  # the common case, without a call
+                if code == 0:
                     value = TRUE if x < y else FALSE
-                elif op == ">":
+                elif code == 1:
                     value = TRUE if x > y else FALSE
-                elif op == "<=":
+                elif code == 2:
                     value = TRUE if x <= y else FALSE
-                elif op == ">=":
+                elif code == 3:
                     value = TRUE if x >= y else FALSE
-                elif op == "==":
+                elif code == 4:
                     value = TRUE if x == y else FALSE
                 else:
                     value = TRUE if x != y else FALSE
@@ -805,9 +833,6 @@ class _NotNode(_Node):
                 self.events = arg.events
 
 
-_AND, _OR, _IMPLIES = 0, 1, 2
-
-
 def _combine(kind: int, x: int, y: int) -> int:
     if kind == _AND:
         return x if x < y else y
@@ -839,8 +864,10 @@ class _BinaryNode(_Node):
         vals.append(value)
         if self.sync:
             return
-        events = self.events  # (reused: a parent reads it during this state only)
-        events.clear()
+        events = self.events  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+        if events:
+            events = []
+            self.events = events
         if value != UNKNOWN:
             events.append(n)
         left_events = left_node.events
@@ -958,12 +985,18 @@ class _SinceSync(_Node):
 def _past_stale(node: _Node, t: int, lo_ns: int, hi_ns: int | None) -> bool:
     """Whether a term below ``node`` was stale in the past window ``[t - hi, t - lo]`` of the state at ``t``."""
     held = node.held
-    if held is None:
+    if held is None or not held.aged:
         return False
     if node.first_t == _NEVER:
         node.first_t = t
     # (an unbounded window reads from the first state: lo None, which also finds spans pruned)
     return held.stale(node.below, t - hi_ns if hi_ns is not None else None, t - lo_ns)
+
+
+def _only_new(events: list[int], n: int) -> bool:
+    """Whether an operand decided nothing this step but (maybe) the new state ``n`` itself."""
+    size = len(events)
+    return size == 0 or (size == 1 and events[0] == n)
 
 
 def _pred(positions: list[int], below: int) -> int:
@@ -1149,20 +1182,27 @@ class _UntilNode(_Temporal):
     pending (``skip``) until a true right with an unbroken left chain decides them true, or their
     window is complete and every term is false."""
 
+    def __init__(
+        self, clock: _Clock, left: _Node | None, right: _Node, lo_ns: int, hi_ns: int, negate: bool, need_ns: int, retire_ns: int
+    ) -> None:
+        super().__init__(clock, left, right, lo_ns, hi_ns, negate, need_ns, retire_ns)
+        self.end_at = 0  # the last state of the window completing last (complete's cursor)
+
     def stale_at(self, i: int) -> bool:
         held = self.held
-        if held is None:
+        if held is None or not held.aged:
             return False
         ti = self.clock.at(i)
         return held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        self.events.clear()  # (reused: a parent reads it during this state only)
+        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+            self.events = []
         self.vals.append(UNKNOWN)
         self.skip.append(0)
         _left, right = self.record_new(n)
         left = self.left
-        if (left is None or not left.events) and not self.right.events:  # nothing decided below but the new state
+        if (left is None or _only_new(left.events, n)) and _only_new(self.right.events, n):  # nothing decided below but the new state
             if right == TRUE:
                 self.found_true(n)
         else:
@@ -1173,10 +1213,12 @@ class _UntilNode(_Temporal):
                 self.found_true(j)
             for k in left_t:
                 self.chain_mended(k)
-            for j in right_f:
-                self.right_false(j, t)
-            for k in left_f:
-                self.left_false(k, t)
+            if right_f or left_f:
+                complete_last = self.clock.last_at_or_before(t - self.hi_ns)  # the newest state whose window is complete
+                for j in right_f:
+                    self.right_false(j, complete_last)
+                for k in left_f:
+                    self.left_false(k, complete_last)
         self.complete(t)
         self.retire(t)
         self.cur = self.vals[-1]
@@ -1186,8 +1228,10 @@ class _UntilNode(_Temporal):
         unbroken are true."""
         clock = self.clock
         tj = clock.at(j)
-        first = clock.first_at_or_after(tj - self.hi_ns)
-        last = min(j, clock.last_at_or_before(tj - self.lo_ns))
+        last = min(j, clock.last_at_or_before(tj - self.lo_ns)) if self.lo_ns else j  # (times are distinct)
+        first = self.first_pending(tj - self.hi_ns, last)
+        if first > last:
+            return
         if self.left is not None:
             first = max(first, _pred(self.left_nt, j) + 1)
         self.resolve(first, last, TRUE)
@@ -1205,12 +1249,31 @@ class _UntilNode(_Temporal):
             self.found_true(j)
             lo = _bisect_right(self.right_t, j)
 
+    def first_pending(self, reach: int, last: int) -> int:
+        """The first pending state at ``reach`` or after, if it is at or before ``last`` (else
+        one past ``last`` or more): walked to from the oldest pending one (few states are
+        pending in the common case), else found by bisection."""
+        clock = self.clock
+        times = clock.times
+        base = clock.base
+        i = self.next_pending(self.head)
+        walked = 0
+        while i <= last and times[i - base] < reach:
+            walked += 1
+            if walked == 8:
+                return self.next_pending(clock.first_at_or_after(reach))
+            i = self.next_pending(i + 1)
+        return i
+
     def false_if_all_false(self, i: int) -> None:
         """Decide a complete pending state false if every term of its window is false."""
         clock = self.clock
         ti = clock.at(i)
-        lo = clock.first_at_or_after(ti + self.lo_ns)
-        end = clock.last_at_or_before(ti + self.hi_ns)
+        self.all_false(i, ti, clock.last_at_or_before(ti + self.hi_ns))
+
+    def all_false(self, i: int, ti: int, end: int) -> None:
+        """:meth:`false_if_all_false` of state ``i`` at ``ti``, its window's last state ``end``."""
+        lo = self.clock.first_at_or_after(ti + self.lo_ns) if self.lo_ns else i  # (times are distinct)
         if self.left is not None:
             k = _bisect_left(self.left_f, i)
             if k < len(self.left_f) and self.left_f[k] < end:
@@ -1232,22 +1295,36 @@ class _UntilNode(_Temporal):
         if last < first:
             return
         self.completed = last
+        hi_ns = self.hi_ns
+        e = self.end_at  # each window's last state: a cursor too (windows complete in order)
         i = self.next_pending(first)
         while i <= last:
-            self.false_if_all_false(i)
+            ti = times[i - base]
+            reach = ti + hi_ns
+            if e < i:
+                e = i
+            while e + 1 - base < len(times) and times[e + 1 - base] <= reach:
+                e += 1
+            self.all_false(i, ti, e)
             i = self.next_pending(i + 1)
+        self.end_at = e
 
-    def right_false(self, j: int, t: int) -> None:
+    def right_false(self, j: int, complete_last: int) -> None:
         """Right became false at j: complete pending states whose window has no other not-false
         term (up to the first false left) are false. With p and s the not-false terms around j,
         they are the states whose first term lies in (p, j] and last in [j, s): one range."""
         clock = self.clock
         tj = clock.at(j)
-        first = clock.first_at_or_after(tj - self.hi_ns)  # the window reaches j
-        last = min(clock.last_at_or_before(tj - self.lo_ns), clock.last_at_or_before(t - self.hi_ns))  # starts by j; complete
+        lo_ns = self.lo_ns
+        last = min(clock.last_at_or_before(tj - lo_ns) if lo_ns else j, complete_last)  # starts by j; complete
+        # the first pending state whose window reaches j: walked to from the oldest pending one
+        # (few complete states are pending: those waiting for an operand), else found by bisection
+        first = self.first_pending(tj - self.hi_ns, last)  # whose window reaches j
+        if first > last:
+            return  # (the common case: no complete state pending there)
         p = _pred(self.right_nf, j)
         if p >= clock.base:
-            first = max(first, clock.first_at_or_after(clock.at(p) - self.lo_ns + 1))  # starts after p
+            first = max(first, clock.first_at_or_after(clock.at(p) - lo_ns + 1) if lo_ns else p + 1)  # starts after p
         if self.left is not None:
             first = max(first, _pred(self.left_f, j) + 1)  # no false left before j cuts the window short of it
         s = _succ(self.right_nf, j)
@@ -1258,10 +1335,9 @@ class _UntilNode(_Temporal):
             last = min(last, bound)
         self.resolve(first, last, FALSE)
 
-    def left_false(self, k: int, t: int) -> None:
+    def left_false(self, k: int, complete_last: int) -> None:
         """Left became false at k: complete pending states before it may now be all false."""
         clock = self.clock
-        complete_last = clock.last_at_or_before(t - self.hi_ns)
         first = _pred(self.left_f, k) + 1 if _pred(self.left_f, k) != _NONE else clock.base
         last = min(k, complete_last)
         i = self.next_pending(first)
@@ -1303,7 +1379,8 @@ class _UntilSync(_Node):
         self.lo_at = 0  # the first state of the window completing last (its start: t + a)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        self.events.clear()  # (reused: a parent reads it during this state only)
+        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+            self.events = []
         self.vals.append(UNKNOWN)
         left = self.left
         phi = TRUE if left is None else left.cur
@@ -1362,7 +1439,8 @@ class _UntilSync(_Node):
                 self.finish(i, ti, n, t)
                 i += 1
             self.dhead += 2
-        dead.clear()
+        if dead:
+            dead.clear()
         self.dhead = 0
         i = self.live
         while i <= n:
@@ -1397,7 +1475,7 @@ class _UntilSync(_Node):
         self.rnf_head = r
         if r == len(right_nf) or right_nf[r] > end:
             held = self.held
-            if held is None or not held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns):
+            if held is None or not held.aged or not held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns):
                 self.decide(i, FALSE)
 
     def prune(self, base: int) -> None:
@@ -1458,7 +1536,8 @@ class _SinceNode(_Temporal):
     def step(self, n: int, t: int, held: list[Any]) -> None:
         if self.first_t == _NEVER:
             self.first_t = t
-        self.events.clear()  # (reused: a parent reads it during this state only)
+        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
+            self.events = []
         self.vals.append(UNKNOWN)
         self.record_new(n)
         value = self.check(n)
@@ -1528,7 +1607,7 @@ class Monitor:
         self._clock = _Clock()
         self._nodes: list[_Node] = []
         self._values: list[_Value] = []
-        self._steps: list[_Node | _Value] = []  # every node, operands first: what a state steps through
+        self._steps: list[_Step] = []  # every node, operands first: what a state steps through
         # the robustness tree beside the verdict nodes, when asked for (dyknow.reasoning.robustness)
         self._robust: RobustnessTree | None = RobustnessTree(0) if robustness else None
         self._rob_wait: list[tuple[int, int, bool, int]] = []  # verdicts decided before their robustness
@@ -1587,7 +1666,9 @@ class Monitor:
         k = self._index.get(term)
         if k is None:
             k = self._term_index(term)
-        self._times.max_age[k] = -1 if max_age_ns is None else int(max_age_ns)
+        ages = self._times.max_age
+        ages[k] = -1 if max_age_ns is None else int(max_age_ns)
+        self._times.aged = any(age >= 0 for age in ages)
 
     # -- building
 
@@ -1827,10 +1908,19 @@ class Monitor:
             self._max_t = t_ns
         out: list[Verdict] = []
         buffer = self._buffer
-        if not buffer and self._ready(t_ns):
+        count = len(newest)
+        # (every term's newest sample is at t_ns or after now: without a delay the state is ready)
+        if not buffer and (self.reorder_ns == 0 or self._ready(t_ns)):
             self._closed_t = t_ns
-            for k, value in enumerate(values):
-                self._hold(k, value, t_ns)
+            if self._missing:
+                for k in range(count):
+                    self._hold(k, values[k], t_ns)
+            else:  # (indexed, not enumerate(): compiled, that makes no tuple per value)
+                held = self._held
+                times = self._times
+                for k in range(count):
+                    held[k] = values[k]
+                    times.sample(k, t_ns)
             if not self._missing:
                 self._state(t_ns, out)
             return out
