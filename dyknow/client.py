@@ -10,12 +10,13 @@ told (:mod:`dyknow.reach`): ``refused``, ``unreachable``, ``silent``, ``tls-list
 (linked, but nothing visible), ``dropped`` (an access control on the way), ``gone`` (its token
 went away) or ``timeout``.
 
-A manager that is not there is said as soon as the network has said so, not after a timeout: the
-client's own session is a Zenoh client, whose router answers the client's first question (which
-managers' liveliness tokens are up) whole, tokens and then the end of them. A call to a manager
-not among them, nor heard of since, is sent once anyway (to a manager that announces no token,
-``--alone``, it goes through); when it reaches nothing, it ends at once, naming the managers that
-are there.
+A manager that is not there is said after a grace of at most a second, not after the timeout:
+the client's own session is a Zenoh client, whose router answers the client's first question
+(which managers' liveliness tokens are up) whole, tokens and then the end of them. A call to a
+manager not among them, nor heard of since, is sent once anyway (to a manager that announces no
+token, ``--alone``, it goes through); when it reaches nothing and the grace is over (a manager
+whose "ready" was printed a moment ago may not be heard of yet), it ends, naming the managers
+that are there.
 
 Usage::
 
@@ -426,7 +427,11 @@ class Client:
                 why = self._presence.why_absent(manager)
             return why
 
-        def absent() -> str | None:  # (while the service is not found, first at once)
+        def absent() -> str | None:  # (while the service is not found)
+            if time.monotonic() - started < min(_ABSENT_S, self.timeout_s / 2):
+                # a manager that started a moment ago (its "ready" printed) may not be heard of
+                # yet: its token is on its way, so absence is only said after this grace
+                return None
             names = self._known_up(0.0 if waited[0] else _ASKED_S)
             waited[0] = True
             if names is None or manager in names:

@@ -316,7 +316,7 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
     script = script.replace("--metrics-port 9464", f"--metrics-port {metrics}").replace("127.0.0.1:9464", f"127.0.0.1:{metrics}")
     script = re.sub(r"^((?:\S+=\S+ )*dyknow manager (?:(?! --listen ).)*) &$", rf"\1 --listen {endpoint} &", script, flags=re.MULTILINE)
     assert len(re.findall(rf"dyknow manager .* --listen \w+/127\.0\.0\.1:{port}", script)) == 1, script
-    client = r"^((?:! )?dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay|hz|top|doctor))(?!.* --connect )"
+    client = r"^((?:! |until )?dyknow (?:spawn|destroy|model|managers|config|stats|add-spec|remove-spec|request|release|measure|adaptations|monitor|echo|record|replay|hz|top|doctor))(?!.* --connect )"
     script = re.sub(client, rf"\1 --connect {endpoint}", script, flags=re.MULTILINE)
     assert re.search(rf"--connect \w+/127\.0\.0\.1:{port}", script), script
     env = dict(env, PATH=f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}")
