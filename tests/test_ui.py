@@ -60,9 +60,25 @@ def shot(driver: Any, name: str) -> None:
 
 
 def wait_text(driver: Any, element_id: str, text: str, timeout_s: float = 10.0) -> None:
+    from selenium.common.exceptions import StaleElementReferenceException
     from selenium.webdriver.support.ui import WebDriverWait
 
-    WebDriverWait(driver, timeout_s).until(lambda d: text in d.find_element("id", element_id).text, f"{text!r} in #{element_id}")
+    WebDriverWait(driver, timeout_s, ignored_exceptions=[StaleElementReferenceException]).until(
+        lambda d: text in d.find_element("id", element_id).text, f"{text!r} in #{element_id}"
+    )
+
+
+def drawn_text(driver: Any, css: str) -> str:
+    """The text of the element ``css``, read again if the page drew it anew between find and read
+    (it redraws its lists at every push of the model)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    read: list[str] = []
+    WebDriverWait(driver, 10, ignored_exceptions=[StaleElementReferenceException]).until(
+        lambda d: read.append(d.find_element("css selector", css).text) or True
+    )
+    return read[-1]
 
 
 def choose(driver: Any, element_id: str, value: str) -> None:
@@ -99,8 +115,8 @@ def test_the_active_panel_lists_units_as_text_and_follows_the_cli(ui: Callable[.
     manager.spawn("relay", "r1")
     browser.get(url)
     wait_text(browser, "units", "r1")
-    assert f"out → dyknow/{manager.name}/r1/out" in browser.find_element("id", "units").text
-    assert browser.find_element("id", "status").text.startswith("1 managers, 1 units")
+    assert f"out → dyknow/{manager.name}/r1/out" in drawn_text(browser, "#units")
+    assert drawn_text(browser, "#status").startswith("1 managers, 1 units")
     where = "return cy.getElementById('unit:' + arguments[0] + '/r1').position()"
     before = browser.execute_script(where, manager.name)
     spawned = run_cli("spawn", "relay", "r2", "--connect", manager.endpoints[0], "--manager", manager.name)  # from the CLI: pushed, no reload
@@ -279,7 +295,7 @@ def test_the_demo_serves_the_tool_beside_it(browser: Any, tmp_path: Path) -> Non
     wait_until(lambda: demo.ui_url is not None, "the tool's URL")
     browser.get(demo.ui_url)
     wait_text(browser, "units", "track-log")
-    assert "dyknow/demo/requests/BallTrack(field)" in browser.find_element("id", "units").text
+    assert "dyknow/demo/requests/BallTrack(field)" in drawn_text(browser, "#units")
     shot(browser, "demo")
     runner.join(30)
     assert not runner.is_alive()
@@ -492,7 +508,7 @@ def test_the_active_panel_shows_clock_offsets_and_messages_of_unknown_clocks(
         peer.spawn("periodic-source", "feed", params={"rate_hz": 20}, bindings={"out": f"dyknow/{manager.name}/r1/in"})
     browser.get(url)
     wait_text(browser, "clocks", "\u2192 clock-peer: ", timeout_s=30)
-    line = browser.find_element("css selector", f"#clocks li[data-manager='{manager.name}'][data-peer='clock-peer']").text
+    line = drawn_text(browser, f"#clocks li[data-manager='{manager.name}'][data-peer='clock-peer']")
     assert " \u00b5s \u00b1 " in line, line
 
     conf = zenoh.Config()
@@ -514,7 +530,7 @@ def test_the_active_panel_shows_clock_offsets_and_messages_of_unknown_clocks(
         finally:
             stop.set()
             thread.join(10)
-    assert "of a clock not known" not in browser.find_element("css selector", "#units tr[data-unit='r1']").text.split("out ")[-1]  # on the input only
+    assert "of a clock not known" not in drawn_text(browser, "#units tr[data-unit='r1']").split("out ")[-1]  # on the input only
     shot(browser, "clocks")
 
 
@@ -529,12 +545,12 @@ def test_a_lost_manager_shows_with_when_and_why(
     peer = manager_process("--connect", manager.endpoints[0], name="doomed-peer")
     browser.get(url)
     wait_text(browser, "status", "2 managers", timeout_s=30)
-    assert browser.find_element("id", "lost").text == "no manager lost"
+    assert drawn_text(browser, "#lost") == "no manager lost"
     peer.proc.send_signal(signal.SIGKILL)
     wait_text(browser, "lost", "doomed-peer: lost ", timeout_s=30)
-    line = browser.find_element("css selector", "#lost li[data-manager='doomed-peer']").text
+    line = drawn_text(browser, "#lost li[data-manager='doomed-peer']")
     assert f"as {manager.name} saw it): its liveliness token went away without a goodbye" in line, line
-    assert browser.find_element("id", "status").text.endswith("; lost: doomed-peer")
+    assert drawn_text(browser, "#status").endswith("; lost: doomed-peer")
     shot(browser, "lost")
 
 
