@@ -417,20 +417,21 @@ class Client:
         manager = manager or self.manager
         where = f"manager {manager!r}" + (f" at {', '.join(self._connect)}" if self._connect else "")
         self._probe()
+        # a manager never heard of is said absent only after this grace: one that started a
+        # moment ago (its "ready" printed) may not be heard of yet, its token on its way
+        grace_over = time.monotonic() + min(_ABSENT_S, self.timeout_s / 2)
         started = time.monotonic()
         known: list[list[str]] = []  # the managers up, once absent() found the manager not among them
         waited = [False]
 
         def gone() -> str | None:
             why = self._presence.why_gone(manager)
-            if why is None and time.monotonic() - started > min(_ABSENT_S, self.timeout_s / 2):
+            if why is None and time.monotonic() > grace_over:
                 why = self._presence.why_absent(manager)
             return why
 
         def absent() -> str | None:  # (while the service is not found)
-            if time.monotonic() - started < min(_ABSENT_S, self.timeout_s / 2):
-                # a manager that started a moment ago (its "ready" printed) may not be heard of
-                # yet: its token is on its way, so absence is only said after this grace
+            if time.monotonic() < grace_over:
                 return None
             names = self._known_up(0.0 if waited[0] else _ASKED_S)
             waited[0] = True
