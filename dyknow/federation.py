@@ -3,10 +3,12 @@
 Every manager declares a liveliness token on ``@dyknow/<manager>`` and publishes its
 :class:`Summary` (host, library, running units, measurements, load) on
 ``dyknow/<manager>/summary`` whenever it changes; a newcomer asks each manager it discovers
-for its summary through the ``get_summary`` service. A :class:`Directory` keeps what the others
-said: a manager that appears is noticed when its token does (at once on a reachable network), one
-that dies or is cut off when its token goes (its links close, or Zenoh's lease expires). There
-is no broker: Zenoh's peers, gossip and routers carry it all.
+for its summary through the ``get_summary`` service. A :class:`Directory` keeps what the managers
+it follows said (the candidates of its plans, those it exchanges data or calls with): one that
+appears is noticed when its token does (at once on a reachable network), one that dies or is cut
+off when its token goes (its links close, or Zenoh's lease expires); each such token is watched on
+its own key, so the others' comings and goings cost it nothing. There is no broker: Zenoh's peers,
+gossip and routers carry it all.
 
 A summary arrives from the network, so it is hostile input: it is bounded in size, its specs are
 XML read by the hardened spec reader, and nothing in it is ever imported or run here. A
@@ -19,6 +21,7 @@ import functools
 import json
 import logging
 import random
+import re
 import threading
 import time
 from collections import Counter
@@ -33,7 +36,7 @@ from dyknow.planner import RunningUnit
 from dyknow.spec import TransformationSpec, parse_specs
 from dyknow.tags import local_name, parse_term
 
-__all__ = ["GOODBYE", "MAX_CANDIDATES", "MAX_OFFERS", "MAX_SUMMARY_BYTES", "STOPPED", "Directory", "Summary", "SummaryUnit", "offered"]
+__all__ = ["GOODBYE", "MAX_CANDIDATES", "MAX_OFFERS", "MAX_SUMMARY_BYTES", "MAX_SUMMARY_TAGS", "STOPPED", "Directory", "Summary", "SummaryUnit", "offered"]
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +56,8 @@ GOODBYE = b'{"stopping":true}'
 _GOODBYE_S = 5.0  # a goodbye this recent explains a loss
 _MAX_LOST = 1_000  # lost managers remembered (names come from the network: bounded)
 # What a manager keeps of a fleet is bounded whatever the others announce (issue 40):
-_MAX_ALIVE = 10_000  # managers whose token is noticed (a name each)
+_MAX_ALIVE = 10_000  # managers listed by alive() (a name each)
+_ALIVE_S = 1.0  # alive() asks who is up at most this often (a liveliness query; the answer before meanwhile)
 _MAX_FOLLOWED = 256  # managers whose summaries are followed (candidates, managers in use)
 _MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
 _MAX_TODO = 100_000  # changes waiting for the directory's thread
@@ -64,6 +68,9 @@ _GIVE_UP_ASKS, _GIVE_UP_S = 10, 30.0  # a manager followed that gives no summary
 MAX_OFFERS = 1_024
 #: The most providers of one tag whose summaries a planner reads.
 MAX_CANDIDATES = 16
+#: The most tags a summary taken from another manager may carry (its library's and its units'
+#: together); a summary with more is refused whole, with a log line naming its manager.
+MAX_SUMMARY_TAGS = 65_536
 #: Why a manager is lost, when it said goodbye.
 STOPPED = "it stopped (it said goodbye)"
 _VANISHED = "its liveliness token went away without a goodbye: it crashed, or its host was cut off past its lease"
@@ -141,6 +148,10 @@ class Summary:
             units = raw.get("units", [])
             if len(specs_xml) > _MAX_ITEMS or len(units) > _MAX_ITEMS:
                 raise ValueError("too many specs or units")
+            # its tags counted before any is read (a million of them costs the reader, not the sender)
+            tags = sum(len(_TAG.findall(str(xml))) for xml in specs_xml) + sum(_unit_tags(u) for u in units)
+            if tags > MAX_SUMMARY_TAGS:
+                raise _TooManyTags(f"a summary offering {tags} tags; expected at most {MAX_SUMMARY_TAGS} (MAX_SUMMARY_TAGS)")
             library = str(raw.get("library", ""))[:128]
             specs: list[TransformationSpec] = []
             if previous is not None and library and previous.library == library:
@@ -164,8 +175,23 @@ class Summary:
                 requests=int(raw.get("requests", 0)),
                 clock=_clock(raw.get("clock", 0)),
             )
+        except _TooManyTags as exc:
+            raise DyKnowError(f"refused {exc}", where=f"manager {manager!r}") from exc
         except (ValueError, TypeError, KeyError, AttributeError, RecursionError, SpecError) as exc:
             raise DyKnowError(f"a malformed summary: {str(exc)[:200]}", where=f"manager {manager!r}") from exc
+
+
+class _TooManyTags(ValueError):
+    """A summary over :data:`MAX_SUMMARY_TAGS`."""
+
+
+_TAG = re.compile(r"<tag[\s>/]")
+
+
+def _unit_tags(raw: Any) -> int:
+    """How many tags a unit of a summary carries (0 for one of the wrong shape: refused when read)."""
+    tags = raw.get("tags") if isinstance(raw, dict) else None
+    return sum(len(t) for t in tags.values() if isinstance(t, list)) if isinstance(tags, dict) else 0
 
 
 def _clock(raw: Any) -> int:
@@ -196,10 +222,14 @@ class Directory:
     (issue 40). It announces each tag it offers as a liveliness token
     (:func:`dyknow.keys.offer_token`); :meth:`discover` finds the providers of the tags a plan
     needs with one liveliness query per tag, reads the summaries of those candidates only, and
-    follows them from then on (their summary key, and new offers of those tags). Every manager's
-    liveliness token is watched (a name each: who is reachable), but a summary is fetched only
-    from a manager followed: a candidate, or one ``in_use()`` names (it runs units for this one,
-    or this one for it).
+    follows them from then on (their summary key, and new offers of those tags). Only the
+    managers followed have their liveliness tokens (and goodbyes) watched, each on its own key: a
+    manager joining or leaving the fleet costs nothing to those that do not follow it, so joins
+    cost the fleet N, not N x N. A manager followed is a candidate of a plan, or one ``in_use()``
+    names (it runs units for this one, or this one for it), or one :meth:`follow` was asked for.
+    What a request needed is let go when it ends (:meth:`keep`): the providers' watches of its
+    tags, and the candidates no other need, use or follow keeps. :meth:`alive` lists the whole
+    fleet reachable by a liveliness query, on demand.
 
     ``fetch(name)`` asks a manager for its summary (the manager's client call, bytes back);
     ``on_change(kind, name)`` is told "found", "lost" or "changed" about managers followed, on
@@ -227,13 +257,25 @@ class Directory:
         self._debounce_s = debounce_s
         self._publish_s = 0.0  # how long building and sending the last summary took
         self._lock = threading.Lock()
-        self._alive: set[str] = set()
+        self._up = threading.Condition(self._lock)  # told when a manager followed is seen up
+        self._alive: set[str] = set()  # managers followed whose token is up
+        self._reachable: set[str] | None = None  # every manager's token up, at the last query (alive())
+        self._asked_at = -_ALIVE_S
+        self._asking = False
+        self._answered = threading.Event()
+        self._received: Counter[str] = Counter()  # liveliness changes this directory's watches delivered, by kind
         self._summaries: dict[str, Summary] = {}
-        self._followed: dict[str, Any] = {}  # manager -> its summary subscriber (oldest use first)
+        # manager -> what watches it: its summary subscriber, its token's and its goodbye's (oldest use first)
+        self._followed: dict[str, list[Any]] = {}
+        self._pinned: dict[str, None] = {}  # managers follow() was asked for (not let go when a request ends)
+        self._needs: dict[str, set[str]] = {}  # offers pattern -> the needs (requests' tags) discover() was asked for it by
+        self._open: set[str] = set()  # the needs open at the last keep()
+        self._ended: set[str] = set()  # needs that ended, to let go on the directory's thread
+        self._lingering: set[str] = set()  # candidates of needs that ended, kept while in use
+        self._sweep = False
         self._to_follow: set[str] = set()  # managers follow() was asked for, not followed yet
         self._fetching: set[str] = set()  # managers asked for their summaries now (on a fetcher)
         self._failures: dict[str, tuple[int, float]] = {}  # manager -> (asks in vain in a row, since when)
-        self._dropped: dict[str, None] = {}  # managers let go for giving no summary: followed again when they come back
         self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
         self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
         self._offers: dict[str, Any] = {}  # this manager's offer tokens, by key
@@ -253,8 +295,6 @@ class Directory:
         self._thread.start()
         self._announce(summarize())  # its offers before its token: whoever sees it can find what it offers
         self._token = session.declare_liveliness_token(keys.manager_token(name))
-        self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._liveliness)
-        self._goodbye_watch = session.declare_liveliness_subscriber(keys.goodbye_token("*"), self._goodbye_token)
         self._goodbye: Any = None  # this manager's goodbye token, as it stops
         self.changed()
 
@@ -266,9 +306,48 @@ class Directory:
             return {m: s for m, s in self._summaries.items() if m in self._alive}
 
     def alive(self) -> set[str]:
-        """The names of the managers whose liveliness token is up (this one excluded; at most 10,000)."""
+        """The names of the managers whose liveliness token is up (this one excluded; at most
+        10,000). Asked of Zenoh when called (a liveliness query, a name each), at most once a
+        second: meanwhile the answer before, with the managers followed as their watches tell
+        (those are watched; the others are not). The first call waits for its answer (up to 1 s)."""
+        now = time.monotonic()
         with self._lock:
-            return set(self._alive)
+            ask = not self._asking and now - self._asked_at >= _ALIVE_S and not self._closed
+            if ask:
+                self._asking, self._asked_at = True, now
+        if ask:
+            try:
+                self._session.ask_alive(keys.managers_pattern(), timeout_s=_ALIVE_S, limit=_MAX_ALIVE, done=self._reached)
+            except DyKnowError as exc:
+                log.debug("directory of %r: cannot ask who is up: %s", self.name, exc)
+                with self._lock:
+                    self._asking = False
+        if self._reachable is None and ask:
+            self._answered.wait(_ALIVE_S + 0.5)
+        with self._lock:
+            followed_down = set(self._followed) - self._alive
+            return ((self._reachable or set()) - followed_down) | self._alive
+
+    def _reached(self, tokens: list[str], count: int) -> None:
+        """The answer of :meth:`alive`'s query (on a Zenoh thread)."""
+        names = {m for m in map(keys.manager_of_token, tokens) if m is not None and m != self.name}
+        with self._lock:
+            self._reachable, self._asking = names, False
+        self._answered.set()
+        if count > _MAX_ALIVE:
+            self._bound("alive", f"directory of {self.name!r}: {count} manager tokens up; listing {_MAX_ALIVE} of them")
+
+    def received(self) -> dict[str, int]:
+        """How many liveliness changes this directory's watches delivered, by kind ("manager
+        tokens", "goodbyes", "offers"): what the fleet's comings and goings cost it. Only the
+        managers followed, and the providers of the tags its plans need, are watched."""
+        with self._lock:
+            return dict(self._received)
+
+    def watched(self) -> set[str]:
+        """The offers patterns whose providers are watched (the tags the plans of open requests need)."""
+        with self._lock:
+            return set(self._offer_watch)
 
     def followed(self) -> set[str]:
         """The managers whose summaries this one follows (candidates of its plans, managers in use)."""
@@ -283,23 +362,34 @@ class Directory:
     def follow(self, manager: str, *, at_once: bool = False) -> bool:
         """Follow ``manager``'s summary from now on (fetched soon, on the directory's thread);
         True when it was not followed yet. For a manager in use that was no candidate: the owner
-        of a unit this one runs. ``at_once``: subscribe to its summary key (and goodbye) before
-        returning; not on a Zenoh thread (the subscription is a call into Zenoh)."""
+        of a unit this one runs. ``at_once``: subscribe to its summary key (and its token and
+        goodbye) before returning; not on a Zenoh thread (the subscription is a call into Zenoh).
+        A manager followed so stays followed when requests end (least recently used ones make way
+        beyond 256), unless it gives no summary (:data:`_GIVE_UP_S`)."""
         if manager == self.name or keys.manager_of_token(keys.manager_token(manager)) != manager:
             return False
         if at_once:
-            new = self._follow(manager)
+            new = self._follow(manager, pin=True)
             if new:
                 self._queue("offer", manager, None)
             return new
         with self._lock:  # (followed on the directory's thread: this may be called on Zenoh's)
-            if manager in self._followed or manager in self._to_follow or len(self._to_follow) >= _MAX_FOLLOWED:
+            if manager in self._followed:
+                self._pin(manager)
+                return False
+            if manager in self._to_follow or len(self._to_follow) >= _MAX_FOLLOWED:
                 return False
             self._to_follow.add(manager)
-        self._queue("offer", manager, None)
+        self._queue("follow", manager, None)
         return True
 
-    def discover(self, wanted: Iterable[tuple[str, tuple[str, ...]]], timeout_s: float = _DISCOVER_TIMEOUT_S) -> bool:
+    def _pin(self, manager: str) -> None:
+        """(Under the lock.) ``manager`` was asked for by :meth:`follow`."""
+        self._pinned[manager] = None
+        while len(self._pinned) > _MAX_FOLLOWED:
+            del self._pinned[next(iter(self._pinned))]
+
+    def discover(self, wanted: Iterable[tuple[str, tuple[str, ...]]], timeout_s: float = _DISCOVER_TIMEOUT_S, *, need: str | None = None) -> bool:
         """Find the providers of the tags ``wanted`` (``(functor, args)`` by local names), read
         the summaries of those not followed yet, and follow them; True when a summary was added.
 
@@ -308,13 +398,19 @@ class Directory:
         up to 1,024 tags. At most :data:`MAX_CANDIDATES` providers per tag are taken (a log line
         says when there were more: those already followed first, then a random choice, so names
         chosen to sort first do not crowd out the others). Called on the planner's thread: it
-        waits for the answers, at most ``timeout_s`` for the query and as long for the summaries.
+        waits for the answers, at most ``timeout_s`` for the query and as long for the summaries
+        (and for the tokens of the managers it follows so, which say they are up).
+
+        ``need``: what asks (a request's tag): when no open request has it any more
+        (:meth:`keep`), the watches of these tags and the candidates no other need keeps are let go.
         """
         patterns = sorted({keys.offers_pattern(f, a) for f, a in wanted})
         with self._lock:
             for p in patterns:
                 if p in self._offer_watch:
                     self._offer_watch[p] = self._offer_watch.pop(p)  # used: the last to go
+                if need is not None:
+                    self._needs.setdefault(p, set()).add(need)
             new = [p for p in patterns if p not in self._offer_watch]
         if not new or self._closed:
             return False
@@ -361,6 +457,7 @@ class Directory:
                     gone = next(iter(self._offer_watch))
                     evicted.append(self._offer_watch.pop(gone))
                     self._candidates.pop(gone, None)
+                    self._needs.pop(gone, None)
             for entity in evicted:
                 entity.undeclare()
         ask()
@@ -388,7 +485,7 @@ class Directory:
             return False
         for m in todo:
             self._follow(m)
-        added = False
+        added: list[str] = []
         pool = self._fetchers()
         fetched = list(pool.map(self._fetch_quietly, todo))
         for m, data in zip(todo, fetched, strict=True):
@@ -403,8 +500,26 @@ class Directory:
                 if m not in self._followed:
                     continue
                 self._summaries[m] = summary  # (planned with once its token is up: peers())
-            added = True
-        return added
+            added.append(m)
+        # planned with once their tokens are seen (watched from _follow on): it answered, so its
+        # token is up, on its way on the watch declared a round trip ago
+        with self._up:
+            self._up.wait_for(lambda: self._closed or all(m in self._alive or m not in self._followed for m in added), timeout_s)
+        return bool(added)
+
+    def keep(self, needs: Collection[str]) -> None:
+        """The needs (requests' tags, see :meth:`discover`) open now: those open before and no
+        longer are let go, on the directory's thread: the providers' watches of the tags only they
+        needed, and the managers followed as their candidates that no open need, use
+        (``in_use()``) or :meth:`follow` keeps. Call it as requests come and go."""
+        with self._lock:
+            ended = self._open - set(needs)
+            self._open = set(needs)
+            if not ended and not self._lingering:
+                return
+            self._ended |= ended
+            self._sweep = True
+        self._wake.set()
 
     def lost(self) -> dict[str, tuple[int, str]]:
         """The managers this one knew and lost, and that have not come back: name -> (when, in
@@ -437,11 +552,12 @@ class Directory:
         self._settle.set()
         self.say_goodbye()
         with self._lock:
-            entities = [self._watch, self._goodbye_watch, *self._followed.values(), *self._offer_watch.values(), *self._offers.values(),
+            entities = [*(e for es in self._followed.values() for e in es), *self._offer_watch.values(), *self._offers.values(),
                         self._token, self._goodbye]  # fmt: skip
             self._followed.clear()
             self._offer_watch.clear()
             self._offers.clear()
+            self._up.notify_all()
         for entity in entities:
             if entity is not None:
                 entity.undeclare()
@@ -453,37 +569,84 @@ class Directory:
 
     # -- following managers
 
-    def _follow(self, manager: str) -> bool:
-        """Follow ``manager``'s summary (its key subscribed); the least recently used manager not
-        in use makes way beyond 256. True when it was not followed."""
+    def _follow(self, manager: str, *, pin: bool = False) -> bool:
+        """Follow ``manager``: its summary key, its token and its goodbye token watched, each on
+        its own key (no watch of every manager: see the class). The least recently used manager
+        not in use makes way beyond 256. True when it was not followed. ``pin``: asked for by
+        :meth:`follow` (not let go when a request ends)."""
         with self._lock:
+            if pin:
+                self._pin(manager)
             if manager in self._followed:
                 self._followed[manager] = self._followed.pop(manager)
                 return False
-            full = len(self._followed) >= _MAX_FOLLOWED
+            if self._closed:
+                return False
+            # followed before its watches exist: what they tell at once (its token, up) is kept
+            self._followed[manager] = []
+            full = len(self._followed) > _MAX_FOLLOWED
         used = set(self._in_use()) if full and self._in_use is not None else set()
+        entities: list[Any] = []
         try:
-            sub = self._session.declare_raw_subscriber(keys.summary_key(manager), self._summary_sample)
+            entities.append(self._session.declare_raw_subscriber(keys.summary_key(manager), self._summary_sample))
+            entities.append(self._session.declare_liveliness_subscriber(keys.manager_token(manager), self._liveliness))
+            entities.append(self._session.declare_liveliness_subscriber(keys.goodbye_token(manager), self._goodbye_token))
         except DyKnowError as exc:
-            log.warning("directory of %r: cannot follow the summary of %r: %s", self.name, manager, exc)
-            sub = None
+            log.warning("directory of %r: cannot follow %r: %s", self.name, manager, exc)
         evicted: list[Any] = []
         with self._lock:
-            if manager in self._followed or self._closed:
-                evicted.append(sub)
+            if self._followed.get(manager) != [] or self._closed:
+                evicted.extend(entities)  # let go meanwhile (or closed)
             else:
-                self._followed[manager] = sub
+                self._followed[manager] = entities
                 while len(self._followed) > _MAX_FOLLOWED:
                     idle = next((m for m in self._followed if m not in used and m != manager), None)
                     if idle is None:
                         break
-                    evicted.append(self._followed.pop(idle))
-                    self._summaries.pop(idle, None)
-                    self._retry_at.pop(idle, None)
+                    evicted.extend(self._unfollow(idle))
         for entity in evicted:
-            if entity is not None:
-                entity.undeclare()
+            entity.undeclare()
         return True
+
+    def _unfollow(self, manager: str) -> list[Any]:
+        """(Under the lock.) Forget ``manager`` (not lost: no longer followed); its watches, to undeclare."""
+        entities = self._followed.pop(manager, None) or []
+        self._summaries.pop(manager, None)
+        self._alive.discard(manager)
+        self._retry_at.pop(manager, None)
+        self._failures.pop(manager, None)
+        self._pinned.pop(manager, None)
+        return entities
+
+    def _let_go_needs(self, ended: set[str]) -> None:
+        """Let go of what only the needs ``ended`` needed (see :meth:`keep`)."""
+        used = set(self._in_use()) if self._in_use is not None else set()
+        with self._lock:
+            freed: list[str] = []
+            for p, needs in list(self._needs.items()):
+                needs -= ended
+                if not needs:
+                    del self._needs[p]
+                    freed.append(p)
+            entities = [self._offer_watch.pop(p) for p in freed if p in self._offer_watch]
+            was = set(self._lingering)
+            for p in freed:
+                was |= self._candidates.pop(p, set())
+            kept = set(self._pinned) | self._to_follow
+            for providers in self._candidates.values():
+                kept |= providers
+            # (one still in use, the units of the request that ended being destroyed there, say: let go once it is not)
+            self._lingering = {m for m in was & used - kept if m in self._followed}
+            gone = sorted(m for m in was - kept - used if m in self._followed)
+            for m in gone:
+                entities.extend(self._unfollow(m))
+        for entity in entities:
+            entity.undeclare()
+        if freed or gone:
+            log.info(
+                "directory of %r: %s ended: no longer watching the providers of %d tags%s",
+                self.name, ", ".join(sorted(ended)[:5]), len(freed), f", nor following {', '.join(gone[:10])}" if gone else "",
+            )  # fmt: skip
 
     def _fetchers(self) -> ThreadPoolExecutor:
         if self._pool is None:
@@ -551,12 +714,16 @@ class Directory:
 
     def _liveliness(self, key: str, alive: bool) -> None:
         manager = keys.manager_of_token(key)
+        with self._lock:
+            self._received["manager tokens"] += 1
         if manager is None or manager == self.name:
             return
         self._queue("found" if alive else "lost", manager, None)
 
     def _offer_change(self, pattern: str, key: str, alive: bool) -> None:
         manager = keys.manager_of_offer(key)
+        with self._lock:
+            self._received["offers"] += 1
         if manager is None or manager == self.name:
             return
         with self._lock:
@@ -577,6 +744,8 @@ class Directory:
 
     def _goodbye_token(self, key: str, alive: bool) -> None:
         manager = key.rpartition("/")[2]
+        with self._lock:
+            self._received["goodbyes"] += 1
         if alive and manager != self.name and keys.manager_of_token(keys.manager_token(manager)) == manager:
             self._said_goodbye_by(manager)
 
@@ -622,6 +791,14 @@ class Directory:
             now = time.monotonic()
             with self._lock:
                 todo, self._todo = self._todo, []
+                ended, self._ended = self._ended, set()
+                sweep, self._sweep = self._sweep, False
+            if sweep:
+                try:
+                    self._let_go_needs(ended)
+                except Exception:
+                    log.exception("directory of %r: cannot let go of what %s needed", self.name, sorted(ended)[:5])
+            with self._lock:
                 # alive, but no summary yet (its fetch failed): ask again, sooner at first
                 for m in sorted((self._alive & set(self._followed)) - set(self._summaries)):
                     at, _ = self._retry_at.setdefault(m, (now + _RETRY_S, _RETRY_S))
@@ -660,51 +837,33 @@ class Directory:
                     self._lost[manager] = (time.time_ns(), STOPPED if stopped else _VANISHED)
                     while len(self._lost) > _MAX_LOST:
                         del self._lost[next(iter(self._lost))]
-            if known and followed:  # (the loss of a manager this one never followed changes nothing here)
+            if known and followed:  # (only a manager followed is watched: a late word of one let go changes nothing)
                 self._on_change("lost", manager)
             return
-        if kind == "offer":  # a provider of a tag this manager plans with, or a manager in use: follow it
-            self._follow(manager)
+        if kind in ("offer", "follow"):  # a provider of a tag this manager plans with, or a manager in use: follow it
+            self._follow(manager, pin=kind == "follow")
             with self._lock:
                 self._to_follow.discard(manager)
             kind = "retry"  # fetched below if its token is up (else when its token comes)
-        if kind == "found":
-            with self._lock:
-                again = manager in self._dropped and manager not in self._alive
-                if again:
-                    del self._dropped[manager]
-            if again:  # it was let go for giving no summary; this is a new start of it: give it its chance again
-                self._follow(manager)
-                followed = True
         if kind in ("found", "retry"):
             with self._lock:
-                new = manager not in self._alive
-                full = False
-                if kind == "found" and new:  # only its token says a manager is up
-                    if len(self._alive) >= _MAX_ALIVE:
-                        full = True
-                    else:
-                        self._lost.pop(manager, None)
-                        self._alive.add(manager)
-                alive = manager in self._alive
-                # a manager that came back starts afresh; one asked again, if it has no summary yet
-                wanted = alive and manager in self._followed and ((kind == "found" and new) or manager not in self._summaries)
-            if full:
-                self._bound("alive", f"directory of {self.name!r}: {_MAX_ALIVE} managers known already; ignoring the token of {manager!r}")
-                return
+                followed = manager in self._followed
+                if kind == "found" and followed:  # only its token says a manager is up (and only one followed is watched)
+                    self._lost.pop(manager, None)
+                    self._alive.add(manager)
+                    self._up.notify_all()
+                # a manager that came back starts afresh (its summary went when it was lost); one
+                # asked again, if it has no summary yet
+                wanted = followed and manager in self._alive and manager not in self._summaries
             if not wanted:
-                return  # not followed (its name is all this manager keeps), or not up
+                return  # not followed, or not up
             self._fetch_soon(manager)  # on a fetcher: a manager slow to answer holds up no other
             return
         if kind == "fetched":
             with self._lock:
                 self._fetching.discard(manager)
-                count, first = self._failures.pop(manager, (0, time.monotonic()))
-                if data is None:
-                    self._failures[manager] = (count + 1, first)
             if data is None:
-                if count + 1 >= _GIVE_UP_ASKS and time.monotonic() - first >= _GIVE_UP_S:
-                    self._let_go(manager)
+                self._failed(manager)
                 return
             kind = "found"
         assert data is not None
@@ -713,10 +872,12 @@ class Directory:
                 return  # not followed any more (a summary on its way when it was let go), or gone
         summary = self._parse(manager, data)
         if summary is None:
-            if kind == "found":  # fetched: ask again later, not at once
+            if kind == "found":  # fetched, and refused: asked again later (not at once), let go if it persists
                 self._retry_later(manager)
+                self._failed(manager)
             return
         with self._lock:
+            self._failures.pop(manager, None)
             old = self._summaries.get(manager)
             if old is not None and old.version > summary.version and kind == "summary":
                 return  # an older publication overtaken by a fetch
@@ -725,24 +886,30 @@ class Directory:
         if alive:
             self._on_change("found" if kind == "found" or old is None else "changed", manager)
 
+    def _failed(self, manager: str) -> None:
+        """No summary (or none worth keeping) came from ``manager`` when asked: counted; let go
+        after :data:`_GIVE_UP_ASKS` such asks in a row over :data:`_GIVE_UP_S`."""
+        now = time.monotonic()
+        with self._lock:
+            count, first = self._failures.get(manager, (0, now))
+            self._failures[manager] = (count + 1, first)
+        if count + 1 >= _GIVE_UP_ASKS and now - first >= _GIVE_UP_S:
+            self._let_go(manager)
+
     def _let_go(self, manager: str) -> None:
         """Stop following a manager that never gave its summary (a token with no manager behind
-        it, say), unless it is in use: its place among the candidates is free again."""
+        it, say), unless it is in use: its place among the candidates is free again. If it
+        starts anew (its offers go and come back on the watches of the tags it offers), or a plan
+        or :meth:`follow` asks for it again, it is followed again."""
         used = set(self._in_use()) if self._in_use is not None else set()
         if manager in used:
             return
         with self._lock:
-            sub = self._followed.pop(manager, None)
-            self._retry_at.pop(manager, None)
-            self._failures.pop(manager, None)
-            self._summaries.pop(manager, None)
+            entities = self._unfollow(manager)
             for providers in self._candidates.values():
                 providers.discard(manager)
-            self._dropped[manager] = None  # followed again if it comes back (its token goes, then up again)
-            while len(self._dropped) > _MAX_LOST:
-                del self._dropped[next(iter(self._dropped))]
-        if sub is not None:
-            sub.undeclare()
+        for entity in entities:
+            entity.undeclare()
         self._bound(
             f"silent {manager}",
             f"directory of {self.name!r}: not following {manager!r} any more: no summary after {_GIVE_UP_ASKS} asks in "
@@ -785,6 +952,8 @@ class Directory:
         try:
             return Summary.from_json(data, manager, previous)
         except DyKnowError as exc:
+            with self._lock:
+                self._refused["summary"] += 1
             log.warning("directory of %r: %s", self.name, exc)
             return None
 

@@ -21,7 +21,9 @@ matches a service)::
 
 Liveliness: every output port declares a liveliness token on its own key (:func:`port_token`),
 so whoever consumes a stream can watch its producer with the same key expression; every manager
-declares one on ``@dyknow/<manager>`` (:func:`manager_token`), so the others notice it come and go.
+declares one on ``@dyknow/<manager>`` (:func:`manager_token`), so the managers following it notice
+it come and go (each watches the tokens of those it follows, one key each), and a listing finds it
+by a liveliness query.
 
 Manager, unit and measurement names become key chunks, so :func:`check_name` admits only
 letters, digits, ``_``, ``-`` and ``.`` (not first). Transformation labels are shown and typed

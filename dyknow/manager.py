@@ -953,8 +953,10 @@ class Manager:
             self.changed()
             return 0
         remaining = self._adaptation.release(key, owner=owner, force=force)
-        if remaining == 0 and self._holders is not None:
-            self._holders.forget(key)
+        if remaining == 0:
+            if self._holders is not None:
+                self._holders.forget(key)
+            self.changed()  # (what only it needed of the other managers is let go)
         return remaining
 
     def _release_gone(self, key: str, holder: str) -> None:
@@ -1262,17 +1264,25 @@ class Manager:
             self.name, self.host, version, library, self.library.specs(), units, self.measurements, len(self._adaptation.requests()), CLOCK_ID
         )
 
+    @property
+    def directory(self) -> Directory | None:
+        """What this manager knows of the others (None when it does not federate): whom it
+        follows, the tags whose providers it watches, what it refused (:class:`dyknow.federation.Directory`)."""
+        return self._directory
+
     def peers(self) -> dict[str, Summary]:
         """The other managers this one reaches, with their last summary (empty when not federated)."""
         return self._directory.peers() if self._directory is not None else {}
 
-    def discover(self, wanted: Collection[tuple[str, tuple[str, ...]]]) -> bool:
+    def discover(self, wanted: Collection[tuple[str, tuple[str, ...]]], *, need: str | None = None) -> bool:
         """Find the managers that offer the tags ``wanted`` and follow them (see
-        :meth:`dyknow.federation.Directory.discover`); True when one was added."""
-        return self._directory.discover(wanted) if self._directory is not None else False
+        :meth:`dyknow.federation.Directory.discover`); True when one was added. ``need``: the tag
+        of the request that asks (let go when no open request has it: :meth:`changed`)."""
+        return self._directory.discover(wanted, need=need) if self._directory is not None else False
 
     def reachable(self) -> set[str]:
-        """The names of the other managers whose liveliness token is up (followed or not)."""
+        """The names of the other managers whose liveliness token is up (followed or not): a
+        liveliness query when called, at most once a second (:meth:`dyknow.federation.Directory.alive`)."""
         return self._directory.alive() if self._directory is not None else set()
 
     def _peers_in_use(self) -> set[str]:
@@ -1281,12 +1291,16 @@ class Manager:
         used = set(self._owners.values())
         for info in self._adaptation.requests():
             used.update(ref.rpartition("@")[2] for ref in (*info.units, *info.standby) if "@" in ref)
+        # and those where units it spawned still run (a request's, being taken down as it ends)
+        used.update(ref.rpartition("@")[2] for ref in list(self._adaptation.knowledge.remote) if "@" in ref)
         return used
 
     def changed(self) -> None:
         """This manager's model changed: the other managers hear of it (a summary, debounced)."""
         if self._directory is not None:
             self._directory.changed()
+            # what the requests that ended needed (their candidates, the watches of their tags) is let go
+            self._directory.keep({r.tag for r in list(self._adaptation.knowledge.requests.values())})
         if self._clocks is not None:
             self._clocks.reconcile()  # a manager may be in use now, or no longer
 

@@ -221,8 +221,9 @@ class Model:
     #: ``overload`` (``state``: ``"ok"`` or ``"overloaded"``, and what is shed; :mod:`dyknow.overload`).
     executor: Mapping[str, Any] = field(default_factory=dict)
     #: The other managers this one reaches now (their liveliness token is up:
-    #: :meth:`dyknow.federation.Directory.alive`), by name; it reads the summaries of those its
-    #: plans need only (:meth:`dyknow.federation.Directory.peers`).
+    #: :meth:`dyknow.federation.Directory.alive`, a liveliness query as the model is read, at most
+    #: once a second), by name; it reads the summaries of those its plans need only
+    #: (:meth:`dyknow.federation.Directory.peers`).
     peers: tuple[str, ...] = ()
 
     def unit(self, name: str) -> UnitInfo:

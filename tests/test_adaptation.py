@@ -338,7 +338,7 @@ class StandInRuntime:
     def peers(self) -> dict[str, Summary]:
         return dict(self.peer_summaries)
 
-    def discover(self, wanted: Any) -> bool:
+    def discover(self, wanted: Any, *, need: str | None = None) -> bool:
         return False  # every peer is known here
 
     def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:

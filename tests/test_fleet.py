@@ -15,7 +15,7 @@ import pytest
 
 from dyknow import Client, Manager, keys
 from dyknow.federation import MAX_CANDIDATES, MAX_OFFERS
-from dyknow.transport import Session, make_config
+from dyknow.transport import LivelinessToken, Session, make_config
 from tests.conftest import free_port, run_cli, wait_until
 
 FLEET = 30
@@ -146,9 +146,10 @@ def test_offers_and_fake_providers_are_bounded(make_manager: Callable[..., Manag
 
 
 def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_when_it_starts_anew(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A token with nobody behind it (its summary never comes) is let go after the asks in vain
-    (here 2 over 0.5 s, 10 over 30 s in the product), with a warning; if that manager's token
-    goes and comes back (a new start of it), it is followed again."""
+    """A token with nobody behind it (its summary never comes), found as the provider of a tag a
+    plan needs, is let go after the asks in vain (here 2 over 0.5 s, 10 over 30 s in the
+    product), with a warning; if that manager starts anew (its tokens go and come back), the
+    watch of the tag sees its offer again and it is followed again."""
     from dyknow import federation
     from dyknow.errors import DyKnowError
     from dyknow.federation import Directory, Summary
@@ -161,19 +162,124 @@ def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_w
         asked.append(manager)
         raise DyKnowError("nobody answers", where=f"manager {manager!r}")
 
+    def start(session: Session) -> list[LivelinessToken]:
+        return [session.declare_liveliness_token(keys.manager_token("ghost")), session.declare_liveliness_token(keys.offer_token("Ghostly", (), "ghost"))]
+
     port = free_port()
     with Session(make_config(listen=[f"tcp/127.0.0.1:{port}"])) as one, Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as two:
         a = Directory(one, "a", summarize=lambda: Summary("a", "a-host", 1), fetch=fetch, on_change=lambda k, m: None)
         try:
-            token = two.declare_liveliness_token(keys.manager_token("ghost"))
+            tokens = start(two)
             wait_until(lambda: "ghost" in a.alive(), "the ghost's token")
-            assert a.follow("ghost", at_once=True) and "ghost" in a.followed()
+            assert not a.discover([("Ghostly", ())]) and "ghost" in a.followed()  # (no summary came)
             wait_until(lambda: "ghost" not in a.followed(), "the ghost let go")
             assert a.refused().get("silent") == 1 and len(asked) >= 2
-            token.undeclare()
+            before = len(asked)
+            for token in tokens:
+                token.undeclare()
             wait_until(lambda: "ghost" not in a.alive(), "the ghost's token gone")
-            token = two.declare_liveliness_token(keys.manager_token("ghost"))  # a new start of it
-            wait_until(lambda: "ghost" in a.followed(), "the ghost followed again")
-            token.undeclare()
+            tokens = start(two)  # a new start of it
+            wait_until(lambda: len(asked) > before, "the ghost followed and asked again")
+            for token in tokens:
+                token.undeclare()
         finally:
             a.close()
+
+
+def test_managers_coming_and_going_cost_nothing_to_one_that_does_not_follow_them(make_manager: Callable[..., Manager]) -> None:
+    """Behind one router, a directory follows one provider (the candidate of a plan); 20 other
+    managers start and stop: its watches deliver none of their tokens or goodbyes (joins cost the
+    fleet N, not N x N), while a liveliness query lists them all; the provider it follows stopping
+    is seen at once (its token, then its goodbye: lost, and why)."""
+    from dyknow.federation import STOPPED, Directory, Summary
+
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    changes: list[tuple[str, str]] = []
+    with Session(make_config(listen=[hub], mode="router")), Session(make_config(connect=[hub])) as mine:
+        provider = make_manager("provider", router=[hub])
+        provider.add_transformation(_offering("Rare"))
+
+        def fetch(manager: str) -> bytes:  # (what the provider's get_summary service answers)
+            assert manager == "provider"
+            return json.dumps(provider.summary().to_dict()).encode()
+
+        watcher = Directory(mine, "watcher", summarize=lambda: Summary("watcher", "here", 1), fetch=fetch, on_change=lambda k, m: changes.append((k, m)))
+        try:
+            wait_until(lambda: mine.alive(keys.offers_pattern("Rare", ()), timeout_s=0.5) != [], "the provider's offer")
+            assert watcher.discover([("Rare", ())]) and watcher.followed() == {"provider"} and set(watcher.peers()) == {"provider"}
+            before = watcher.received()
+            assert before.get("manager tokens") == 1  # the provider's, up
+            others = [make_manager(f"j{i:02d}", router=[hub], specs=[]) for i in range(20)]
+            wait_until(lambda: len(watcher.alive()) == 21, "the watcher to list the 21 others (by a query)")
+            for other in others:
+                other.close()
+            wait_until(lambda: watcher.alive() == {"provider"}, "the 20 gone")
+            after = watcher.received()  # none of their 40 tokens and 20 goodbyes came to it (Zenoh may say the provider's twice)
+            assert after.get("goodbyes", 0) == 0 and after["manager tokens"] - before["manager tokens"] <= 1, (before, after)
+            assert watcher.followed() == {"provider"} and watcher.lost() == {}
+            provider.close()
+            wait_until(lambda: ("lost", "provider") in changes, "the provider's loss")
+            assert watcher.lost()["provider"][1] == STOPPED and watcher.peers() == {}
+            assert watcher.received().get("goodbyes", 0) >= 1  # (its goodbye up, maybe gone by now)
+        finally:
+            watcher.close()
+
+
+def test_what_a_request_needed_is_let_go_when_it_ends(make_manager: Callable[..., Manager]) -> None:
+    """Two requests on two providers: the release of one lets go of its provider and of the watch
+    of its tag's providers (not by least-recently-used eviction: at once), the other keeps its
+    own; a release of the second frees the rest; asking again finds the provider again."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    requester = make_manager("req", listen=[hub], specs=[])
+    for name, tag in (("one", "Rare"), ("two", "Other")):
+        make_manager(name, listen=[], connect=[hub], specs=[]).add_transformation(_offering(tag))
+    directory = requester.directory
+    assert directory is not None
+    rare, other = keys.offers_pattern("Rare", ()), keys.offers_pattern("Other", ())
+    wait_until(lambda: all(requester.session.alive(p, timeout_s=0.5) for p in (rare, other)), "the providers' offers")
+    first = requester.request("Rare")
+    second = requester.request("Other")
+    assert _provider(requester, first) == "one" and _provider(requester, second) == "two"
+    assert directory.followed() == {"one", "two"} and {rare, other} <= directory.watched()
+    requester.release(first)
+    wait_until(lambda: directory.followed() == {"two"}, "the provider of the request that ended let go")
+    assert rare not in directory.watched() and other in directory.watched() and set(requester.peers()) == {"two"}
+    requester.release(second)
+    wait_until(lambda: directory.followed() == set() and directory.watched() == set(), "everything let go")
+    again = requester.request("Rare")
+    assert _provider(requester, again) == "one" and directory.followed() == {"one"}
+
+
+def test_a_manager_advertising_a_million_tags_is_refused_and_costs_the_others_nothing(caplog: pytest.LogCaptureFixture) -> None:
+    """Two managers offer ``Rare``: ``good``, and ``evil``, whose summary offers a million tags
+    (on a unit's output), or 100,000 in its library's specs: a planner takes good's summary and
+    refuses evil's whole before reading its tags (counted; a log line names evil and the bound);
+    evil's announced offers are its own bound's business (1,024, tested above)."""
+    from dyknow.federation import MAX_SUMMARY_TAGS, Directory, Summary
+
+    caplog.set_level(logging.WARNING, logger="dyknow.federation")
+    million = {"manager": "evil", "host": "h", "version": 1, "clock": 1, "units": [
+        {"name": "u", "label": "l", "outputs": {"out": "dyknow/evil/out"}, "tags": {"out": [f"T{i}" for i in range(1_000_000)]}, "healthy": True}]}
+    spec = f"""<transformations><transformation><label>x</label><source>dyknow.testing:Source</source><ports><port type="out">out</port></ports>
+      <tags>{"".join(f'<tag port="out">T{i}</tag>' for i in range(100_000))}</tags></transformation></transformations>"""
+    specs = {"manager": "evil", "host": "h", "version": 2, "clock": 1, "specs": [spec]}
+    good = {"manager": "good", "host": "h", "version": 1, "clock": 2, "units": [
+        {"name": "u", "label": "l", "outputs": {"out": "dyknow/good/out"}, "tags": {"out": ["Rare"]}, "healthy": True}]}
+    for hostile in (million, specs):
+        served = {"evil": json.dumps(hostile).encode(), "good": json.dumps(good).encode()}
+        assert len(served["evil"]) < 16 << 20  # (within the size bound: the tag bound refuses it)
+        port = free_port()
+        with Session(make_config(listen=[f"tcp/127.0.0.1:{port}"])) as one, Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as two:
+            held = [two.declare_liveliness_token(k) for m in ("evil", "good") for k in (keys.manager_token(m), keys.offer_token("Rare", (), m))]
+            a = Directory(one, "a", summarize=lambda: Summary("a", "a-host", 1), fetch=served.__getitem__, on_change=lambda k, m: None)
+            try:
+                caplog.clear()
+                wait_until(lambda: len(one.alive(keys.offers_pattern("Rare", ()), timeout_s=0.5)) == 2, "both offers")
+                assert a.discover([("Rare", ())])
+                assert set(a.peers()) == {"good"} and a.refused()["summary"] >= 1
+                said = [r.getMessage() for r in caplog.records]
+                assert any("manager 'evil'" in line and f"expected at most {MAX_SUMMARY_TAGS} (MAX_SUMMARY_TAGS)" in line for line in said), said
+            finally:
+                a.close()
+                for token in held:
+                    token.undeclare()

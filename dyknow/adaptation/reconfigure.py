@@ -77,7 +77,7 @@ class Reconfigurer:
         the libraries known, asked for (one query per tag not asked about yet) until no new
         library brings a new tag. A plan then weighs its candidate providers, not the fleet."""
         for _ in range(_DISCOVERY_ROUNDS):
-            if not self._runtime.discover(self.planner().running_keys(tag)):
+            if not self._runtime.discover(self.planner().running_keys(tag), need=tag):
                 return
 
     def running_model(self, request: Request | None) -> tuple[list[RunningUnit], Collection[str]]:

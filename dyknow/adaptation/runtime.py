@@ -110,9 +110,10 @@ class Runtime(Protocol):
         with their last summary (empty when alone)."""
         ...
 
-    def discover(self, wanted: Collection[tuple[str, tuple[str, ...]]]) -> bool:
+    def discover(self, wanted: Collection[tuple[str, tuple[str, ...]]], *, need: str | None = None) -> bool:
         """Find the managers that offer the tags ``wanted`` (``(functor, args)`` by local names)
-        and follow them (:meth:`peers` then has them); True when one was added."""
+        and follow them (:meth:`peers` then has them); True when one was added. ``need``: the tag
+        of the request that asks: what it found is let go once no open request has that tag."""
         ...
 
     def spawn_on(self, manager: str, label: str, name: str, *, bindings: Mapping[str, str]) -> None:
