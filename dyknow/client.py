@@ -63,6 +63,7 @@ _ABSENT_S = 1.0
 #: How long a call that finds no service at once waits for the answer to the client's first
 #: question, which managers are up (a round trip; it is looked at again while the call waits).
 _ASKED_S = 0.05
+_GOODBYE_S = 5.0  # a goodbye this recent explains a manager's token going (as dyknow.federation takes it)
 _DIAL_MS = 2000  # how long a client that could not connect at once gives each new attempt (TCP and TLS handshakes)
 
 
@@ -87,15 +88,22 @@ class _Presence:
     """Which managers have left: their liveliness tokens went away (stopped, crashed, or cut off
     past their lease). A call to one of them ends at once, saying so, instead of waiting for its
     service to come back. And which are up: a call to a manager never seen, while others are,
-    ends after :data:`_ABSENT_S` (a misspelled name), listing those there."""
+    ends after :data:`_ABSENT_S` (a misspelled name), listing those there.
+
+    A client is a tool (a command, the web page), so it watches every manager's token and
+    goodbye, as no manager does (a manager watches only those it follows: :mod:`dyknow.federation`);
+    :meth:`lost` is what it saw leave since it started."""
 
     def __init__(self, session: Session) -> None:
         self._lock = threading.Lock()
         self._gone: dict[str, float] = {}  # manager -> time.monotonic() when its token went
+        self._lost: dict[str, tuple[int, str]] = {}  # manager -> (wall-clock ns when its token went, why)
+        self._goodbyes: dict[str, float] = {}  # manager -> time.monotonic() of its goodbye
         self._up: set[str] = set()
-        self._watch: LivelinessSubscriber | None = None
+        self._watches: list[LivelinessSubscriber] = []
         try:
-            self._watch = session.declare_liveliness_subscriber(keys.managers_pattern(), self._change, inline=True)
+            self._watches.append(session.declare_liveliness_subscriber(keys.managers_pattern(), self._change, inline=True))
+            self._watches.append(session.declare_liveliness_subscriber(keys.goodbye_token("*"), self._goodbye, inline=True))
         except TransportError as exc:  # a closed session, say: calls just wait as before
             log.debug("no watch of the managers' liveliness: %s", exc)
 
@@ -105,18 +113,42 @@ class _Presence:
             return
         with self._lock:
             self._gone.pop(name, None)
+            self._lost.pop(name, None)
             if alive and len(self._up) < _MAX_GONE:
                 self._up.add(name)
             if not alive:
                 self._up.discard(name)
-                self._gone[name] = time.monotonic()
-                while len(self._gone) > _MAX_GONE:
-                    del self._gone[next(iter(self._gone))]
+                now = time.monotonic()
+                self._gone[name] = now
+                said = self._goodbyes.pop(name, None)
+                stopped = said is not None and now - said < _GOODBYE_S
+                self._lost[name] = (time.time_ns(), keys.LOSS_STOPPED if stopped else keys.LOSS_VANISHED)
+                for kept in (self._gone, self._lost):
+                    while len(kept) > _MAX_GONE:
+                        del kept[next(iter(kept))]
+
+    def _goodbye(self, key: str, alive: bool) -> None:
+        name = key.rpartition("/")[2]
+        if not alive or keys.manager_of_token(keys.manager_token(name)) != name:
+            return
+        with self._lock:
+            if name in self._lost:  # (its token's end came first)
+                self._lost[name] = (self._lost[name][0], keys.LOSS_STOPPED)
+                return
+            self._goodbyes[name] = time.monotonic()
+            while len(self._goodbyes) > _MAX_GONE:
+                del self._goodbyes[next(iter(self._goodbyes))]
 
     def heard(self) -> tuple[set[str], set[str]]:
         """The managers whose tokens came since the watch began, and those whose tokens went."""
         with self._lock:
             return set(self._up), set(self._gone)
+
+    def lost(self) -> list[dict[str, Any]]:
+        """The managers whose tokens went since the watch began and that are not back, by name:
+        ``{"manager", "since_ns" (wall clock), "why"}`` each."""
+        with self._lock:
+            return [{"manager": m, "since_ns": since, "why": why} for m, (since, why) in sorted(self._lost.items())]
 
     def why_absent(self, manager: str) -> str | None:
         """Why ``manager`` is not there when others are and it was never seen, or None."""
@@ -137,9 +169,9 @@ class _Presence:
         )
 
     def close(self) -> None:
-        if self._watch is not None:
-            self._watch.undeclare()
-            self._watch = None
+        for watch in self._watches:
+            watch.undeclare()
+        self._watches.clear()
 
 
 class _Answer:
@@ -862,6 +894,13 @@ class Client:
             if isinstance(name, str) and isinstance(since, int) and not isinstance(since, bool) and isinstance(why, str):
                 found.append({"manager": name[:128], "since_ns": since, "why": why[:512]})
         return found
+
+    def seen_lost(self) -> list[dict[str, Any]]:
+        """The managers this client saw leave since it started, and that are not back:
+        ``{"manager", "since_ns" (wall clock), "why"}`` each, sorted by name. A client watches
+        every manager's token and goodbye (a manager lists only the losses of those it follows:
+        :meth:`lost_managers`), so a tool that stays up, such as the web page, sees every loss."""
+        return self._presence.lost()
 
     def get_federated_model(
         self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*", limit: int | None = None, after: str | None = None

@@ -72,8 +72,8 @@ MAX_CANDIDATES = 16
 #: together); a summary with more is refused whole, with a log line naming its manager.
 MAX_SUMMARY_TAGS = 65_536
 #: Why a manager is lost, when it said goodbye.
-STOPPED = "it stopped (it said goodbye)"
-_VANISHED = "its liveliness token went away without a goodbye: it crashed, or its host was cut off past its lease"
+STOPPED = keys.LOSS_STOPPED
+_VANISHED = keys.LOSS_VANISHED
 
 
 @dataclass(frozen=True, slots=True)

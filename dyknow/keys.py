@@ -54,6 +54,8 @@ __all__ = [
     "clock_token",
     "clocks_of",
     "goodbye_token",
+    "LOSS_STOPPED",
+    "LOSS_VANISHED",
     "default_key",
     "event_key",
     "label_problem",
@@ -348,6 +350,12 @@ def clock_token(clock: int, manager: str) -> str:
     ``@dyknow/clocks/<id, 8 hex digits>/<manager>``. A manager that receives data stamped by a
     clock it does not know asks who has it, and estimates that manager's clock (:mod:`dyknow.clocks`)."""
     return f"{SERVICE_ROOT}/clocks/{clock:08x}/{manager}"
+
+
+#: Why a manager is lost, when it said goodbye (:func:`goodbye_token`) as it stopped.
+LOSS_STOPPED = "it stopped (it said goodbye)"
+#: Why a manager is lost, when its liveliness token went with no goodbye.
+LOSS_VANISHED = "its liveliness token went away without a goodbye: it crashed, or its host was cut off past its lease"
 
 
 def goodbye_token(manager: str) -> str:

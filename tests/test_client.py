@@ -118,6 +118,32 @@ def test_a_call_to_a_manager_that_is_gone_ends_at_once_saying_so(manager_process
         other.get_model()  # nothing listens there any more: said at once, without waiting for the timeout
 
 
+def test_a_client_sees_every_manager_leave_stopped_or_vanished_until_it_comes_back(
+    manager_process: Callable[..., ManagerProcess], cli_process: Callable[..., CliProcess]
+) -> None:
+    """A tool's client watches every manager's token and goodbye (a manager watches only those it
+    follows): one stopped is lost as stopped, one killed as vanished, and one back is not lost."""
+    import signal
+
+    from dyknow.keys import LOSS_STOPPED, LOSS_VANISHED
+
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    assert cli_process("router", "--listen", hub, "--json").line()["event"] == "ready"
+    calm, doomed = manager_process("--connect", hub, name="calm"), manager_process("--connect", hub, name="doomed")
+    with Client("calm", connect=[hub], timeout_s=30) as client:
+        wait_until(lambda: {"calm", "doomed"} <= set(client.manager_names(timeout_s=0.5)), "both managers")
+        assert client.seen_lost() == []
+        calm.proc.send_signal(signal.SIGTERM)  # (it says goodbye as it stops)
+        doomed.proc.send_signal(signal.SIGKILL)
+        wait_until(lambda: len(client.seen_lost()) == 2, "both losses seen")
+        wait_until(lambda: client.seen_lost()[0]["why"] == LOSS_STOPPED, "the goodbye (it may come after the token's end)")
+        lost = client.seen_lost()
+        assert [(m["manager"], m["why"]) for m in lost] == [("calm", LOSS_STOPPED), ("doomed", LOSS_VANISHED)]
+        assert all(isinstance(m["since_ns"], int) and m["since_ns"] > 0 for m in lost)
+        manager_process("--connect", hub, name="doomed")
+        wait_until(lambda: [m["manager"] for m in client.seen_lost()] == ["calm"], "the manager back to be no longer lost")
+
+
 def test_clocks_are_the_managers_as_it_estimates_them(manager_process: Callable[..., ManagerProcess], make_manager: Callable[..., Manager]) -> None:
     """Two manager processes: two clocks of one machine (the true offset is 0). A manager
     estimates the clock of another only while it exchanges data with it (issue 40): none while

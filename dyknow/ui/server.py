@@ -10,6 +10,8 @@ HTTP (aiohttp):
 - ``GET /api/model`` ``{"version", "managers": [model, ...], "stats": {"manager/unit": {port: {"rate", "hop_p50_us", "lost", "dropped",
   "unknown_clock"}}}}`` (statistics asked every ``stats_s``; ``unknown_clock``: messages of a clock whose offset was not known),
   and ``"verdicts": {key: [[t, verdict, gap cause], ...]}``, the latest verdicts of every monitor and requirement the models list;
+  and ``"lost": [{"manager", "since_ns", "why"}, ...]``, the managers the tool itself saw leave (it watches every manager's
+  token, as a manager, which watches only those it follows, does not: :meth:`~dyknow.client.Client.seen_lost`);
 - ``GET /api/events`` server-sent events: the model again each time it changes (checked every
   ``poll_s``);
 - ``GET /api/stream?key=KEY`` a WebSocket of the messages on ``KEY``: for each, a JSON header
@@ -183,10 +185,11 @@ class ModelWatch:
         self._follow_verdicts(models)
         with self._lock:
             verdicts = {key: [list(v) for v in kept] for key, kept in self._verdicts.items()}
-            if models == self.data["managers"] and self._stats == self.data.get("stats") and verdicts == self.data.get("verdicts"):
+            lost = self.client.seen_lost()
+            if (models, self._stats, verdicts, lost) == (self.data["managers"], self.data.get("stats"), self.data.get("verdicts"), self.data.get("lost")):
                 return
             self.version += 1
-            self.data = {"version": self.version, "managers": models, "stats": self._stats, "verdicts": verdicts}
+            self.data = {"version": self.version, "managers": models, "stats": self._stats, "verdicts": verdicts, "lost": lost}
             listeners = list(self._listeners)
         for listener in listeners:
             listener()

@@ -273,14 +273,16 @@ function drawClocks() {
   $("clocks").replaceChildren(...items);
 }
 
-// managers some manager knew and lost, and that are not back: the latest loss of each, with its cause
+// managers lost and not back (as some manager knew them, or as this page's tool saw them
+// leave: it watches every manager, a manager only those it follows): the latest loss of each, with its cause
 function lostManagers() {
   const up = new Set(model.managers.map((m) => m.manager));
   const lost = new Map();
-  for (const m of model.managers) for (const l of m.lost || []) {
+  const seen = [...(model.lost || []).map((l) => [l, "this page"]), ...model.managers.flatMap((m) => (m.lost || []).map((l) => [l, m.manager]))];
+  for (const [l, by] of seen) {
     if (up.has(l.manager) || typeof l.since_ns !== "number") continue;
-    const seen = lost.get(l.manager);
-    if (!seen || seen.since_ns < l.since_ns) lost.set(l.manager, { ...l, by: m.manager });
+    const known = lost.get(l.manager);
+    if (!known || known.since_ns < l.since_ns) lost.set(l.manager, { ...l, by });
   }
   return [...lost.values()].sort((a, b) => a.manager.localeCompare(b.manager));
 }
