@@ -299,6 +299,7 @@ class Client:
         # (None: connected, or nothing to probe), so a call that cannot work fails saying why
         self._findings: list[reach.Finding] | None = None
         self._found_at = 0.0  # when they were found (time.monotonic())
+        self._no_session = False  # TCP went through at the start, but Zenoh opened no session (a full router)
         # the timeout counts from here for what the client does before it ever reached anything
         # (a command's whole wait for a silent host is its --timeout: issue 43)
         self._started = time.monotonic()
@@ -340,6 +341,7 @@ class Client:
                 if "Unable to connect" not in str(exc):
                     raise
             found = []  # TCP went through but Zenoh did not: its TLS is probed at the first call
+            self._no_session = True
         self._findings, self._found_at = found, time.monotonic()
         # each attempt to dial bounded (closing the session ends one under way: Session.close)
         return Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, listen=[], open_timeout_ms=_DIAL_MS))
@@ -352,6 +354,8 @@ class Client:
         if not self._findings or time.monotonic() - self._found_at > self.timeout_s:
             self._findings = reach.probe_all(self._connect, self._tls, timeout_s=min(1.0, self.timeout_s))
             self._found_at = time.monotonic()
+        if self._no_session:  # (what went through to a Zenoh that opened no session, as tried at the start)
+            return [reach.no_session(f.endpoint) if f.kind == "ok" else f for f in self._findings]
         return self._findings
 
     def _budget(self, timeout_s: float) -> float:

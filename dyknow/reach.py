@@ -11,7 +11,9 @@ Zenoh says only that it could not connect. When a client's session has no link, 
 - ``tls-untrusted``: the listener's certificate is not signed by this client's CA (``--tls-ca``),
   is not valid for the address connected to, or has expired;
 - ``tls-rejected``: the listener refused this client's certificate (another CA, or none);
-- ``ok``: TCP (and TLS) went through: the failure is elsewhere (a role, a manager's name).
+- ``ok``: TCP (and TLS) went through: the failure is elsewhere (a role, a manager's name);
+- ``no-session``: TCP (and TLS) went through, but Zenoh did not open a session there (a router
+  at its ``--max-sessions``): told by the client, which tried (:func:`no_session`).
 
 :func:`check_endpoints` refuses at once what cannot work whatever runs there: a ``tls/``
 endpoint without TLS files. Every finding names the option to change.
@@ -33,7 +35,7 @@ from dyknow.errors import AccessError
 if TYPE_CHECKING:
     import ssl
 
-__all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "dial", "probe", "probe_all"]
+__all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "dial", "no_session", "probe", "probe_all"]
 
 #: The kinds of finding that fail a call at once: nothing listens now, no route, TLS refused either
 #: way (waiting would not help; a manager that starts there later is reached by the next call).
@@ -56,6 +58,19 @@ class Finding:
     def definite(self) -> bool:
         """Whether waiting would not help: the call fails at once (see :data:`DEFINITE`)."""
         return self.kind in DEFINITE
+
+
+def no_session(endpoint: str) -> Finding:
+    """The finding for an endpoint that accepted the connection (TCP, and TLS when probed) but
+    where Zenoh did not open a session with this client: not definite (a router makes room as
+    sessions end)."""
+    return Finding(
+        endpoint,
+        "no-session",
+        f"{endpoint} accepts connections, but Zenoh did not open a session with this client there "
+        "(a router at its --max-sessions refuses more sessions)",
+        "a router with room for this client (dyknow router --max-sessions N; 10,000 by default), or another --connect endpoint",
+    )
 
 
 def _split(endpoint: str) -> tuple[str, str, int] | None:

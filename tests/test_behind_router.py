@@ -146,8 +146,8 @@ def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..
 def test_a_full_router_refuses_the_next_manager_which_says_so(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
     """A router takes 10,000 sessions by default (Zenoh's own 1,000 refused the 1,001st manager of
     a fleet); one at its ``max_sessions`` refuses the next manager, whose warning names the
-    bound, and that manager runs on, listed by none; ``dyknow router --max-sessions`` takes a
-    whole number of at least 1."""
+    bound, and that manager runs on, listed by none; a client it refuses says why; ``dyknow
+    router --max-sessions`` takes a whole number of at least 1."""
     assert make_config(mode="router").get_json("transport/unicast/max_sessions") == "10000"
     assert make_config(mode="peer").get_json("transport/unicast/max_sessions") == "1000"  # (Zenoh's)
     hub = f"tcp/127.0.0.1:{free_port()}"
@@ -159,6 +159,13 @@ def test_a_full_router_refuses_the_next_manager_which_says_so(make_manager: Call
         assert len(said) == 1 and f"no router of {hub} answers yet (none listens there, or it refused this manager: a router full at its --max-sessions" in said[0], said
         assert first.reachable() == set() and second.reachable() == set()
         assert [u.name for u in second.units()] == []  # it runs, alone
+        # a client the full router refuses says so, not that no manager is there
+        with Client("first", connect=[hub], timeout_s=2) as client:
+            why = client.unreachable()
+            assert why is not None and why.details == {"reason": "no-session"}, why
+            assert f"{hub} accepts connections, but Zenoh did not open a session with this client there" in str(why)
+        listed = run_cli("managers", "--connect", hub, "--timeout", "2")
+        assert listed.returncode == 1 and "(a router at its --max-sessions refuses more sessions)" in listed.stderr, listed.stderr
     bad = run_cli("router", "--max-sessions", "0")
     assert bad.returncode == 2 and "--max-sessions: got '0'; expected a positive whole number" in bad.stderr, bad.stderr
 
