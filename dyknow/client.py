@@ -547,6 +547,9 @@ class Client:
                 names = self.manager_names(timeout_s=0.5)
             except ServiceError:
                 names = []
+            if not names:  # (a query slow to answer, under load: the tokens heard say who is there)
+                came, went = self._presence.heard()
+                names = sorted(came - went)
         if names and manager not in names:
             return ServiceError(
                 f"no manager {manager!r} among those reachable ({', '.join(names)})",
