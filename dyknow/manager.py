@@ -273,7 +273,8 @@ class Manager:
                 log.warning(
                     "manager %r: no router of %s answers yet (none listens there, or it refused this manager: a router full at its "
                     "--max-sessions, or TLS); it runs meanwhile and dials them until they do (holding a link to each that answers, not "
-                    "only to the first)",
+                    "only to the first), linked as a Zenoh router, which receives every declaration of the fleet: in a large fleet, "
+                    "restart it once its router is up (it then links as a client)",
                     self.name,
                     ", ".join(router),
                 )
