@@ -17,6 +17,7 @@ import subprocess
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -248,6 +249,48 @@ def test_a_manager_starts_before_its_router_and_joins_it_when_it_comes(started: 
     station.proc.terminate()
     assert station.proc.wait(10) == 0
     assert station.proc.stderr is not None and "no router of " + hub + " answers yet" in station.proc.stderr.read()
+
+
+def test_a_busy_router_is_tried_again_rather_than_joined_as_a_router(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
+    """A router that accepts the connection but is slow to open the session (a fleet starting at
+    once) is tried again, and the manager becomes its client: 137 of 1,000 managers starting at
+    once gave up at the first try and joined as Zenoh routers, which receive every declaration of
+    the fleet. Here the first listener accepts and says nothing; the router then takes its port."""
+    import socket
+    import threading
+
+    import zenoh
+
+    port = free_port()
+    hub = f"tcp/127.0.0.1:{port}"
+    silent = socket.socket()
+    silent.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    silent.bind(("127.0.0.1", port))
+    silent.listen()
+    routers: list[Any] = []
+
+    def take_over() -> None:
+        conn, _ = silent.accept()  # (the manager's first try: never answered)
+        with caplog.at_level(logging.INFO):
+            wait_until(lambda: any("took the connection but not the session" in r.getMessage() for r in caplog.records), "the retry")
+        conn.close()
+        silent.close()
+        routers.append(zenoh.open(make_config(listen=[hub], mode="router")))
+
+    helper = threading.Thread(target=take_over, daemon=True)
+    helper.start()
+    try:
+        with caplog.at_level(logging.INFO, logger="dyknow.manager"):
+            manager = make_manager("patient", router=[hub], specs=[], lease_ms=1000)
+        helper.join(30)
+        (router,) = routers
+        said = [r.getMessage() for r in caplog.records]
+        assert not any("answers yet" in m for m in said), said
+        wait_until(lambda: manager.session.linked(), "the link to the router")
+        assert manager.session.zid not in {str(z) for z in router.info.routers_zid()}  # (a client of it)
+    finally:
+        for router in routers:
+            router.close()
 
 
 def test_a_manager_behind_a_router_beyond_this_host_without_tls_is_exposed(make_manager: Callable[..., Manager]) -> None:
