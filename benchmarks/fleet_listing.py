@@ -94,7 +94,11 @@ def measure(hub: str, total: int, page: int, repeats: int, cmd_runs: int) -> dic
     out: dict[str, Any] = {}
     with Client("m", connect=[hub], timeout_s=30) as client:
         started = time.monotonic()
-        while len(client.manager_names(2.0)) < total:
+        said_at = started
+        while (named := len(client.manager_names(2.0))) < total:
+            if time.monotonic() - said_at >= 10:  # (progress, to stderr: the report stays on stdout)
+                print(f"{time.monotonic() - started:.0f} s: {named} of {total} named (load {load_average():.1f})", file=sys.stderr, flush=True)
+                said_at = time.monotonic()
             if time.monotonic() - started > START_TIMEOUT_S:
                 raise RuntimeError(f"only {len(client.manager_names(2.0))} of {total} managers listed after {START_TIMEOUT_S} s")
             time.sleep(0.5)
@@ -162,6 +166,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         ready = [h.next_json(START_TIMEOUT_S, event="ready") for h in hosts]
         result["start"] = {"seconds": round(time.monotonic() - started, 2), "threads_per_process": max(r["threads"] for r in ready),
                            "refused": sum(r["refused"] for r in ready), "load": load_average()}  # fmt: skip
+        print(f"all {total} started: {result['start']}", file=sys.stderr, flush=True)
         result.update(measure(hub, total, args.page, args.repeats, args.cmd_runs))
         pss = [memory_mib(h.proc.pid)["pss"] for h in hosts]
         result["memory"] = {"pss_mib_per_process": round(max(pss), 1), "pss_mib_per_manager": round(sum(pss) / total, 2),
