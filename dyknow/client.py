@@ -333,13 +333,17 @@ class Client:
         # (Zenoh's client would wait up to its open timeout, 10 s, for a host that does not answer)
         found = reach.dial(self._connect, timeout_s=min(1.0, self.timeout_s))
         if any(f.kind == "ok" for f in found):
-            try:
-                session = Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[]))
+            # (a busy router is tried again within the timeout: a peer's liveliness queries are
+            # answered from what it heard itself, so a client fallen back to one lists nothing)
+            opened = reach.open_patiently(
+                lambda: Session(make_config(connect=self._connect, tls=self._tls, lease_ms=lease_ms, mode="client", listen=[])),
+                self._connect,
+                patience_s=self.timeout_s,
+                who=f"client of {', '.join(self._connect)}",
+            )
+            if opened is not None:
                 self._routed = True
-                return session
-            except TransportError as exc:
-                if "Unable to connect" not in str(exc):
-                    raise
+                return opened
             found = []  # TCP went through but Zenoh did not: its TLS is probed at the first call
             self._no_session = True
         self._findings, self._found_at = found, time.monotonic()

@@ -78,7 +78,6 @@ __all__ = ["Manager"]
 log = logging.getLogger(__name__)
 
 _BUSY_ROUTER_S = 60.0  # how long a manager tries again a router that accepts connections but is slow to open a session
-_REFUSED_AT_ONCE_S = 1.0  # a session refused sooner than this was refused, not timed out (a busy router)
 _UNIT_LOG = 4096  # changes of units remembered (unit_changes); a reader further behind reads them all
 
 
@@ -265,7 +264,7 @@ class Manager:
         if not router:
             self._session = session("router")
         else:
-            opened = self._open_behind(lambda: session("client"), router)
+            opened = reach.open_patiently(lambda: session("client"), router, patience_s=_BUSY_ROUTER_S, who=f"manager {self.name!r}")
             if opened is not None:
                 self._session = opened
             else:
@@ -471,27 +470,6 @@ class Manager:
                     max_message_bytes=self.limits.max_ros2_message_bytes,
                 )
             return self._dds
-
-    def _open_behind(self, open_client: Callable[[], Session], router: Sequence[str]) -> Session | None:
-        """The manager's session as a Zenoh client of its routers, or None when none of them takes
-        it. A router that accepts the connection but lets the handshake run out of time is busy
-        (a fleet starting at once: 137 of 1,000 managers gave up on the first try and fell back,
-        and every one of them then loaded the router with the fleet's declarations): tried again
-        for up to :data:`_BUSY_ROUTER_S`. Nothing listening, or a refusal that comes at once (a
-        router full at its ``--max-sessions``, TLS), is not waited for."""
-        deadline = time.monotonic() + _BUSY_ROUTER_S
-        while True:
-            tried = time.monotonic()
-            try:
-                return open_client()
-            except TransportError as exc:
-                if "Unable to connect" not in str(exc):
-                    raise
-            busy = time.monotonic() - tried >= _REFUSED_AT_ONCE_S and reach.answering(router, timeout_s=1.0)
-            if not busy or time.monotonic() >= deadline:
-                return None
-            log.info("manager %r: a router of %s took the connection but not the session in time (busy): trying again in 1 s", self.name, ", ".join(router))
-            threading.Event().wait(1.0)  # (time.sleep fails under a faked clock: libfaketime's clock_nanosleep)
 
     def exposed(self) -> list[str]:
         """The endpoints this manager listens on beyond this host without TLS, or the routers it

@@ -22,26 +22,31 @@ endpoint without TLS files. Every finding names the option to change.
 from __future__ import annotations
 
 import errno
+import logging
 import socket
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 from dyknow.access import TlsFiles
-from dyknow.errors import AccessError
+from dyknow.errors import AccessError, TransportError
 
 if TYPE_CHECKING:
     import ssl
 
-__all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "dial", "no_session", "probe", "probe_all"]
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+
+__all__ = ["DEFINITE", "Finding", "answering", "check_endpoints", "dial", "no_session", "open_patiently", "probe", "probe_all"]
 
 #: The kinds of finding that fail a call at once: nothing listens now, no route, TLS refused either
 #: way (waiting would not help; a manager that starts there later is reached by the next call).
 DEFINITE: frozenset[str] = frozenset({"refused", "unreachable", "tls-listener", "tls-untrusted", "tls-rejected"})
 _ALERT_WAIT_S = 0.5  # how long the probe waits, after its TLS handshake, for the listener to refuse its certificate
 _TLS_OPTIONS = "--tls-ca, --tls-cert and --tls-key (TlsFiles)"
+_REFUSED_AT_ONCE_S = 1.0  # a session refused sooner than this was refused, not timed out (open_patiently)
 
 
 @dataclass(frozen=True, slots=True)
@@ -275,6 +280,29 @@ def dial(endpoints: Sequence[str], timeout_s: float = 1.0) -> list[Finding]:
 def answering(endpoints: Sequence[str], timeout_s: float = 1.0) -> bool:
     """Whether a TCP connection to any of ``endpoints`` is accepted within ``timeout_s`` (see :func:`dial`)."""
     return any(f.kind == "ok" for f in dial(endpoints, timeout_s))
+
+
+def open_patiently(open_client: Callable[[], T], endpoints: Sequence[str], *, patience_s: float, who: str) -> T | None:
+    """``open_client()`` (a Zenoh client session of ``endpoints``), or None when none of them
+    takes it. Zenoh says only "Unable to connect". An endpoint that accepts the connection but
+    lets the session's handshake run out of time is busy (a fleet starting at once: 137 of 1,000
+    managers gave up at their first try, and every one that then joined as a Zenoh router loaded
+    the router with the fleet's declarations): tried again every second for up to
+    ``patience_s``. Nothing listening, or a refusal that comes at once (a router full at its
+    ``--max-sessions``, TLS), is not waited for. Other errors are raised."""
+    deadline = time.monotonic() + patience_s
+    while True:
+        tried = time.monotonic()
+        try:
+            return open_client()
+        except TransportError as exc:
+            if "Unable to connect" not in str(exc):
+                raise
+        busy = time.monotonic() - tried >= _REFUSED_AT_ONCE_S and answering(endpoints, timeout_s=1.0)
+        if not busy or time.monotonic() + 1.0 >= deadline:
+            return None
+        log.info("%s: %s took the connection but not the session in time (busy): trying again in 1 s", who, ", ".join(endpoints))
+        threading.Event().wait(1.0)  # (time.sleep fails under a faked clock: libfaketime's clock_nanosleep)
 
 
 def probe_all(endpoints: Sequence[str], tls: TlsFiles | None, timeout_s: float = 1.0) -> list[Finding]:

@@ -251,11 +251,11 @@ def test_a_manager_starts_before_its_router_and_joins_it_when_it_comes(started: 
     assert station.proc.stderr is not None and "no router of " + hub + " answers yet" in station.proc.stderr.read()
 
 
-def test_a_busy_router_is_tried_again_rather_than_joined_as_a_router(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
-    """A router that accepts the connection but is slow to open the session (a fleet starting at
-    once) is tried again, and the manager becomes its client: 137 of 1,000 managers starting at
-    once gave up at the first try and joined as Zenoh routers, which receive every declaration of
-    the fleet. Here the first listener accepts and says nothing; the router then takes its port."""
+@contextlib.contextmanager
+def _busy_then_router(caplog: pytest.LogCaptureFixture) -> Iterator[tuple[str, list[Any]]]:
+    """An endpoint whose first listener accepts a connection and says nothing (a router too busy
+    to open the session); once the caller logs that it tries again, a Zenoh router takes the port
+    (listed in the list yielded with the endpoint)."""
     import socket
     import threading
 
@@ -270,9 +270,8 @@ def test_a_busy_router_is_tried_again_rather_than_joined_as_a_router(make_manage
     routers: list[Any] = []
 
     def take_over() -> None:
-        conn, _ = silent.accept()  # (the manager's first try: never answered)
-        with caplog.at_level(logging.INFO):
-            wait_until(lambda: any("took the connection but not the session" in r.getMessage() for r in caplog.records), "the retry")
+        conn, _ = silent.accept()  # (the first try: never answered)
+        wait_until(lambda: any("took the connection but not the session" in r.getMessage() for r in caplog.records), "the retry")
         conn.close()
         silent.close()
         routers.append(zenoh.open(make_config(listen=[hub], mode="router")))
@@ -280,17 +279,37 @@ def test_a_busy_router_is_tried_again_rather_than_joined_as_a_router(make_manage
     helper = threading.Thread(target=take_over, daemon=True)
     helper.start()
     try:
-        with caplog.at_level(logging.INFO, logger="dyknow.manager"):
-            manager = make_manager("patient", router=[hub], specs=[], lease_ms=1000)
+        with caplog.at_level(logging.INFO):
+            yield hub, routers
         helper.join(30)
-        (router,) = routers
-        said = [r.getMessage() for r in caplog.records]
-        assert not any("answers yet" in m for m in said), said
-        wait_until(lambda: manager.session.linked(), "the link to the router")
-        assert manager.session.zid not in {str(z) for z in router.info.routers_zid()}  # (a client of it)
     finally:
+        silent.close()
         for router in routers:
             router.close()
+
+
+def test_a_busy_router_is_tried_again_rather_than_joined_as_a_router(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
+    """A router that accepts the connection but is slow to open the session (a fleet starting at
+    once) is tried again, and the manager becomes its client: 137 of 1,000 managers starting at
+    once gave up at the first try and joined as Zenoh routers, which receive every declaration of
+    the fleet."""
+    with _busy_then_router(caplog) as (hub, routers):
+        manager = make_manager("patient", router=[hub], specs=[], lease_ms=1000)
+        said = [r.getMessage() for r in caplog.records]
+        assert not any("answers yet" in m for m in said), said
+        (router,) = routers
+        wait_until(lambda: manager.session.linked(), "the link to the router")
+        assert manager.session.zid not in {str(z) for z in router.info.routers_zid()}  # (a client of it)
+
+
+def test_a_client_tries_a_busy_router_again_and_lists_the_managers_behind_it(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
+    """A client (a command, the web tool) that gave up on a busy router at once fell back to a
+    Zenoh peer, whose liveliness queries are answered from what it heard itself: it listed 0 of
+    1,000 managers for ten minutes. It tries the router again within its timeout."""
+    with _busy_then_router(caplog) as (hub, routers), Client("behind", connect=[hub], timeout_s=20) as client:
+        make_manager("behind", router=[hub], specs=[])
+        wait_until(lambda: client.manager_names(timeout_s=0.5) == ["behind"], "the manager behind the router listed")
+        assert client.get_model()["manager"] == "behind"
 
 
 def test_a_manager_behind_a_router_beyond_this_host_without_tls_is_exposed(make_manager: Callable[..., Manager]) -> None:
