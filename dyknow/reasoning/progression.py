@@ -55,10 +55,11 @@ quarter of the bound at a time, and counted in :attr:`Monitor.given_up`:
 
 So the rule stays: **every verdict returned is evaluate()'s**; over the bound, fewer are
 returned (tests run random formulas with the fewest cells against evaluate()). A cell costs 12 to
-50 bytes as measured interpreted and 21 to 73 compiled (``tracemalloc``; compiled, each state
-index a list holds is an int object of its own), and at most about 250 by construction (six list
-slots per temporal node and state, each with its int, plus each state's time), so a monitor keeps
-at most about ``250 * max_cells`` bytes, besides the payloads its reorder buffer holds.
+50 bytes as measured interpreted and 21 to 73 compiled (``tracemalloc``, when each state index a
+list held was an int object of its own; a state's index and time are now one int object each,
+shared by every list that holds them, so no more), and at most about 250 by construction (six
+list slots per temporal node and state, each with its int, plus each state's time), so a monitor
+keeps at most about ``250 * max_cells`` bytes, besides the payloads its reorder buffer holds.
 """
 
 from __future__ import annotations
