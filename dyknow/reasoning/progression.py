@@ -55,10 +55,11 @@ quarter of the bound at a time, and counted in :attr:`Monitor.given_up`:
 
 So the rule stays: **every verdict returned is evaluate()'s**; over the bound, fewer are
 returned (tests run random formulas with the fewest cells against evaluate()). A cell costs 12 to
-50 bytes as measured interpreted and 21 to 73 compiled (``tracemalloc``; compiled, each state
-index a list holds is an int object of its own), and at most about 250 by construction (six list
-slots per temporal node and state, each with its int, plus each state's time), so a monitor keeps
-at most about ``250 * max_cells`` bytes, besides the payloads its reorder buffer holds.
+50 bytes as measured interpreted and 21 to 73 compiled (``tracemalloc``, when each state index a
+list held was an int object of its own; a state's index and time are now one int object each,
+shared by every list that holds them, so no more), and at most about 250 by construction (six
+list slots per temporal node and state, each with its int, plus each state's time), so a monitor
+keeps at most about ``250 * max_cells`` bytes, besides the payloads its reorder buffer holds.
 """
 
 from __future__ import annotations
@@ -158,8 +159,9 @@ def _drop_before(positions: list[int], head: int, oldest: int) -> int:
     return head
 
 
-def _insort(a: list[int], x: int) -> None:
-    a.insert(_bisect_right(a, x), x)
+def _insort(a: list[int], x: int, boxed: Any) -> None:
+    """Insert ``x`` into the sorted ``a`` (as ``boxed``, the same int as an object)."""
+    a.insert(_bisect_right(a, x), boxed)
 
 
 class Verdict:
@@ -213,10 +215,14 @@ class Verdict:
 
 
 class _Clock:
-    """The retained states' times, shared by the nodes: ``times[i - base]`` is state i's time."""
+    """The retained states' times, shared by the nodes: ``times[i - base]`` is state i's time,
+    and ``idx[i - base]`` is i itself, as the one int object every list that holds state i
+    shares (compiled, an int put into a list is boxed: an object made, and freed when the list
+    lets it go; one per state made here costs less than one per list and use)."""
 
     def __init__(self) -> None:
         self.times: list[int] = []
+        self.idx: list[Any] = []
         self.base = 0
         self.given_up_t = _NEVER  # the newest state dropped before the formula was done with it
 
@@ -253,7 +259,11 @@ class _Node(_Step):
         self.cur = UNKNOWN
         self.vals: list[int] = []
         self.history = not sync  # a synchronous node keeps its verdicts only if some node reads them later
-        self.events: list[int] = []
+        # the states decided during the current step are the first ``nev`` of ``events`` (boxed:
+        # the clock's ``idx`` objects); the list is kept from step to step, its entries written
+        # over (compiled, a new list per step cost an allocation and a reallocation on its first append)
+        self.events: list[Any] = []
+        self.nev = 0
         self.sync = sync
         self.need_ns = need_ns  # how far back from the newest state this node reads
         self.max_states = 1 << 62  # how many states' entries it may keep (the monitor sets it)
@@ -264,6 +274,16 @@ class _Node(_Step):
     def step(self, n: int, t: int, held: list[Any]) -> None:
         """Evaluate the new state ``n`` at ``t`` (children have stepped already)."""
         raise NotImplementedError
+
+    def event(self, i: Any) -> None:
+        """State ``i`` (an int: its ``clock.idx`` object) was decided during this step."""
+        c = self.nev
+        events = self.events
+        if c < len(events):
+            events[c] = i
+        else:
+            events.append(i)
+        self.nev = c + 1
 
     def prune(self, base: int) -> None:
         """States before ``base`` were dropped from ``vals``' front; drop what refers to them."""
@@ -302,8 +322,8 @@ class _Held:
         self.max_periods = 1 << 62
         self.first_t = _NEVER  # the first state's time: no window reaches before it (the monitor sets it)
 
-    def sample(self, k: int, t: int) -> None:
-        """Term ``k`` had a sample at ``t`` (in time order)."""
+    def sample(self, k: int, t: int, boxed: Any) -> None:
+        """Term ``k`` had a sample at ``t`` (in time order; ``boxed``: the same int as an object)."""
         age = self.max_age[k]
         if age >= 0 and self.times[k] != _NEVER and t - self.times[k] > age + 1:
             last = self.times[k]
@@ -319,7 +339,7 @@ class _Held:
                 del periods[:head]
                 head = 0
             self.heads[k] = head
-        self.times[k] = t
+        self.times[k] = boxed
 
     def stale(self, terms: list[int], lo: int | None, hi: int) -> bool:
         """Whether one of ``terms`` is stale at a whole-ns time of ``[lo, hi]`` (``lo`` None: no bound),
@@ -828,9 +848,13 @@ class _NotNode(_Node):
             if not self.sync:
                 base = self.clock.base
                 arg_vals = arg.vals
-                for j in arg.events:
+                arg_events = arg.events
+                count = arg.nev
+                for e in range(count):
+                    j: int = arg_events[e]
                     vals[j - base] = 2 - arg_vals[j - base]
-                self.events = arg.events
+                self.events = arg_events
+                self.nev = count
 
 
 def _combine(kind: int, x: int, y: int) -> int:
@@ -864,31 +888,34 @@ class _BinaryNode(_Node):
         vals.append(value)
         if self.sync:
             return
-        events = self.events  # (a parent reads it during this state only; compiled, a new list costs less than clear())
-        if events:
-            events = []
-            self.events = events
+        self.nev = 0  # (a parent reads the events during this state only)
         if value != UNKNOWN:
-            events.append(n)
-        left_events = left_node.events
-        right_events = right_node.events
-        if not left_events and not right_events:  # (a synchronous operand has none)
+            self.event(self.clock.idx[-1])
+        left_count = left_node.nev
+        right_count = right_node.nev
+        if not left_count and not right_count:  # (a synchronous operand has none)
             return
         left = left_node.vals
         right = right_node.vals
         base = self.clock.base
-        for j in left_events:
+        left_events = left_node.events
+        for e in range(left_count):
+            jb = left_events[e]  # (kept boxed: it goes into events as it is)
+            j: int = jb
             if vals[j - base] == UNKNOWN:
                 value = _combine(kind, left[j - base], right[j - base])
                 if value != UNKNOWN:
                     vals[j - base] = value
-                    events.append(j)
-        for j in right_events:
+                    self.event(jb)
+        right_events = right_node.events
+        for e in range(right_count):
+            jb = right_events[e]
+            j = jb
             if vals[j - base] == UNKNOWN:
                 value = _combine(kind, left[j - base], right[j - base])
                 if value != UNKNOWN:
                     vals[j - base] = value
-                    events.append(j)
+                    self.event(jb)
 
 
 class _SinceSync(_Node):
@@ -993,10 +1020,15 @@ def _past_stale(node: _Node, t: int, lo_ns: int, hi_ns: int | None) -> bool:
     return held.stale(node.below, t - hi_ns if hi_ns is not None else None, t - lo_ns)
 
 
-def _only_new(events: list[int], n: int) -> bool:
+def _only_new(node: _Node, n: int) -> bool:
     """Whether an operand decided nothing this step but (maybe) the new state ``n`` itself."""
-    size = len(events)
-    return size == 0 or (size == 1 and events[0] == n)
+    size = node.nev
+    if size == 0:
+        return True
+    if size > 1:
+        return False
+    first: int = node.events[0]
+    return first == n
 
 
 def _pred(positions: list[int], below: int) -> int:
@@ -1052,14 +1084,21 @@ class _Temporal(_Node):
         self.left_f: list[int] = []  # where left is false
         self.right_t: list[int] = []  # where right (negated for always/historically) is true
         self.right_nf: list[int] = []  # where it is not false
+        # what operand_events found this step: where left became true, false, right true, false
+        self.found_lt: list[int] = []
+        self.found_lf: list[int] = []
+        self.found_rt: list[int] = []
+        self.found_rf: list[int] = []
 
     def right_at(self, j: int) -> int:
         value = self.right.vals[j - self.clock.base]
         return 2 - value if self.negate else value
 
     def decide(self, i: int, value: int) -> None:
-        self.vals[i - self.clock.base] = 2 - value if self.negate else value
-        self.events.append(i)
+        clock = self.clock
+        k = i - clock.base
+        self.vals[k] = 2 - value if self.negate else value
+        self.event(clock.idx[k])
 
     def record_new(self, n: int) -> tuple[int, int]:
         """Record the operands' verdicts at the new state; returns (left, right)."""
@@ -1067,14 +1106,15 @@ class _Temporal(_Node):
         right = self.right.cur
         if self.negate:
             right = 2 - right
+        nb = self.clock.idx[-1]  # (n, boxed once)
         if left != TRUE:
-            self.left_nt.append(n)
+            self.left_nt.append(nb)
             if left == FALSE:
-                self.left_f.append(n)
+                self.left_f.append(nb)
         if right == TRUE:
-            self.right_t.append(n)
+            self.right_t.append(nb)
         if right != FALSE:
-            self.right_nf.append(n)
+            self.right_nf.append(nb)
         return left, right
 
     def operand_events(self) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -1082,31 +1122,46 @@ class _Temporal(_Node):
         positions where left became true, left false, right true, right false."""
         base = self.clock.base
         newest = base + len(self.clock.times) - 1
-        left_t: list[int] = []
-        left_f: list[int] = []
-        right_t: list[int] = []
-        right_f: list[int] = []
+        left_t = self.found_lt  # (kept from step to step: compiled, four new lists a step cost more)
+        left_f = self.found_lf
+        right_t = self.found_rt
+        right_f = self.found_rf
+        if left_t:
+            left_t.clear()
+        if left_f:
+            left_f.clear()
+        if right_t:
+            right_t.clear()
+        if right_f:
+            right_f.clear()
         left = self.left
         if left is not None and not left.sync:
-            for k in left.events:
+            events = left.events
+            for e in range(left.nev):
+                kb = events[e]  # (kept boxed: it goes into lists as it is)
+                k: int = kb
                 if k == newest:
                     continue  # recorded as the new state's
                 if left.vals[k - base] == TRUE:
                     _remove(self.left_nt, k)
-                    left_t.append(k)
+                    left_t.append(kb)
                 else:
-                    _insort(self.left_f, k)
-                    left_f.append(k)
-        if not self.right.sync:
-            for j in self.right.events:
+                    _insort(self.left_f, k, kb)
+                    left_f.append(kb)
+        right = self.right
+        if not right.sync:
+            events = right.events
+            for e in range(right.nev):
+                jb = events[e]
+                j: int = jb
                 if j == newest:
                     continue
                 if self.right_at(j) == TRUE:
-                    _insort(self.right_t, j)
-                    right_t.append(j)
+                    _insort(self.right_t, j, jb)
+                    right_t.append(jb)
                 else:
                     _remove(self.right_nf, j)
-                    right_f.append(j)
+                    right_f.append(jb)
         return left_t, left_f, right_t, right_f
 
     def next_pending(self, i: int) -> int:
@@ -1148,7 +1203,7 @@ class _Temporal(_Node):
             i = self.next_pending(i + 1)
 
     def resolve_one(self, i: int, value: int) -> None:
-        self.done(i)
+        self.skip[i - self.clock.base] = 1  # (done(i), inline)
         if value != FALSE or not self.stale_at(i):
             self.decide(i, value)
 
@@ -1162,8 +1217,13 @@ class _Temporal(_Node):
         times = clock.times
         base = clock.base
         skip = self.skip
-        i = self.next_pending(self.head)
         edge = now - self.retire_ns
+        k = self.head - base
+        if k < 0:
+            k = 0
+        if k >= len(skip) or times[k] > edge:
+            return  # (the common case: no state from head on is that old, pending or not)
+        i = self.next_pending(self.head)
         while i - base < len(skip) and times[i - base] <= edge:
             skip[i - base] = 1
             i = self.next_pending(i + 1)
@@ -1196,13 +1256,12 @@ class _UntilNode(_Temporal):
         return held.stale(self.below, ti + self.lo_ns, ti + self.hi_ns)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
-            self.events = []
+        self.nev = 0  # (a parent reads the events during this state only)
         self.vals.append(UNKNOWN)
         self.skip.append(0)
         _left, right = self.record_new(n)
         left = self.left
-        if (left is None or _only_new(left.events, n)) and _only_new(self.right.events, n):  # nothing decided below but the new state
+        if (left is None or _only_new(left, n)) and _only_new(self.right, n):  # nothing decided below but the new state
             if right == TRUE:
                 self.found_true(n)
         else:
@@ -1379,8 +1438,7 @@ class _UntilSync(_Node):
         self.lo_at = 0  # the first state of the window completing last (its start: t + a)
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
-            self.events = []
+        self.nev = 0  # (a parent reads the events during this state only)
         self.vals.append(UNKNOWN)
         left = self.left
         phi = TRUE if left is None else left.cur
@@ -1388,12 +1446,12 @@ class _UntilSync(_Node):
         if self.negate:
             psi = 2 - psi
         if phi == FALSE:
-            self.left_f.append(n)
+            self.left_f.append(self.clock.idx[-1])  # (n, boxed once)
         if psi != FALSE:
-            self.right_nf.append(n)
+            self.right_nf.append(self.clock.idx[-1])
         edge = t - self.hi_ns
-        self.complete(n, t, edge - 1)  # windows that ended before this state
         if psi == TRUE:  # a true right decides the live states whose window holds it
+            self.complete(n, t, edge - 1)  # (first the windows that ended before this state)
             times = self.clock.times
             base = self.clock.base
             top = t - self.lo_ns
@@ -1402,7 +1460,7 @@ class _UntilSync(_Node):
                 self.decide(i, TRUE)
                 i += 1
             self.live = i
-        self.complete(n, t, edge)  # windows that end at this state
+        self.complete(n, t, edge)  # windows that end by this state
         if phi != TRUE and self.live <= n:  # a left not true ends every live chain
             self.dead.append(self.live)
             self.dead.append(n)
@@ -1416,8 +1474,10 @@ class _UntilSync(_Node):
         self.rnf_head = _drop_before(self.right_nf, self.rnf_head, oldest)
 
     def decide(self, i: int, value: int) -> None:
-        self.vals[i - self.clock.base] = 2 - value if self.negate else value
-        self.events.append(i)
+        clock = self.clock
+        k = i - clock.base
+        self.vals[k] = 2 - value if self.negate else value
+        self.event(clock.idx[k])
 
     def complete(self, n: int, t: int, upto: int) -> None:
         """Decide the pending states whose window is complete, those at or before ``upto``: false
@@ -1536,8 +1596,7 @@ class _SinceNode(_Temporal):
     def step(self, n: int, t: int, held: list[Any]) -> None:
         if self.first_t == _NEVER:
             self.first_t = t
-        if self.events:  # (a parent reads it during this state only; compiled, a new list costs less than clear())
-            self.events = []
+        self.nev = 0  # (a parent reads the events during this state only)
         self.vals.append(UNKNOWN)
         self.record_new(n)
         value = self.check(n)
@@ -1678,6 +1737,7 @@ class Monitor:
         horizons: dict[int, int] = {}
         terms: dict[int, set[int]] = {}  # the terms each node reads, itself or below
         robs: dict[int, RNode] = {}  # a condition's robustness node (when asked for)
+        streams: dict[tuple[int, tuple[str, ...]], _StreamValue] = {}  # one per term and fields, however often written
         stack: list[tuple[Node, bool]] = [(node, False)]
         while stack:
             current, expanded = stack.pop()
@@ -1701,8 +1761,13 @@ class Monitor:
             made: _Node | _Value
             if isinstance(current, Call) and current.fn == "robustness":
                 made = self._robustness_value(current.args[0], built, terms)
+            elif isinstance(current, Stream) and (self._index[str(current.term)], current.fields) in streams:
+                built[id(current)] = streams[(self._index[str(current.term)], current.fields)]  # (stepped already)
+                continue
             else:
                 made = self._make(current, args, below, below + own)
+            if isinstance(made, _StreamValue):
+                streams[(made.k, made.fields)] = made
             if isinstance(made, _UntilNode | _UntilSync | _SinceNode | _SinceSync | _AggregateValue):
                 made.held = self._times  # its windows ask whether a term below was stale in them
                 made.below = sorted(reads)
@@ -1712,7 +1777,8 @@ class Monitor:
                 self._nodes.append(made)
             else:
                 self._values.append(made)
-            self._steps.append(made)
+            if not isinstance(made, _ConstValue):  # (a constant has nothing to step)
+                self._steps.append(made)
             built[id(current)] = made
         return built[id(node)]
 
@@ -1856,26 +1922,27 @@ class Monitor:
             self.late += 1
             return []
         out: list[Verdict] = []
+        boxed: Any = t_ns  # (compiled: one int object for every list that keeps the time)
         if self._immediate:  # one stream, no delay: every sample on time closes its state at once
             self._closed_t = t_ns
             self._max_t = t_ns
             self._held[0] = value
-            self._times.sample(0, t_ns)
+            self._times.sample(0, t_ns, boxed)
             if self._missing:
                 self._seen[0] = True
                 self._missing = 0
-            self._state(t_ns, out)
+            self._state(t_ns, out, boxed)
             return out
         if t_ns > self._newest[k]:
-            self._newest[k] = t_ns
+            self._newest[k] = boxed
         if t_ns > self._max_t:
             self._max_t = t_ns
         buffer = self._buffer
         if not buffer and self._ready(t_ns):  # the common case: in order, nothing to wait for
             self._closed_t = t_ns
-            self._hold(k, value, t_ns)
+            self._hold(k, value, t_ns, boxed)
             if not self._missing:
-                self._state(t_ns, out)
+                self._state(t_ns, out, boxed)
             return out
         self._arrivals += 1
         heapq.heappush(buffer, (t_ns, self._arrivals, k, value))
@@ -1901,28 +1968,45 @@ class Monitor:
             self.late += len(values)
             return []
         newest = self._newest
-        for k in range(len(newest)):
-            if t_ns > newest[k]:
-                newest[k] = t_ns
-        if t_ns > self._max_t:
-            self._max_t = t_ns
-        out: list[Verdict] = []
+        boxed: Any = t_ns  # (compiled: one int object for every list that keeps the time)
         buffer = self._buffer
         count = len(newest)
+        if not buffer:  # then every sample so far is at or before the last closed state: before t_ns
+            for k in range(count):
+                newest[k] = boxed
+            self._max_t = t_ns
+        else:
+            for k in range(count):
+                if t_ns > newest[k]:
+                    newest[k] = boxed
+            if t_ns > self._max_t:
+                self._max_t = t_ns
+        out: list[Verdict] = []
         # (every term's newest sample is at t_ns or after now: without a delay the state is ready)
         if not buffer and (self.reorder_ns == 0 or self._ready(t_ns)):
             self._closed_t = t_ns
             if self._missing:
                 for k in range(count):
-                    self._hold(k, values[k], t_ns)
+                    self._hold(k, values[k], t_ns, boxed)
             else:  # (indexed, not enumerate(): compiled, that makes no tuple per value)
                 held = self._held
                 times = self._times
-                for k in range(count):
-                    held[k] = values[k]
-                    times.sample(k, t_ns)
+                if times.aged:
+                    for k in range(count):
+                        held[k] = values[k]
+                        times.sample(k, t_ns, boxed)
+                else:  # (no term with a maximum age: a sample's time is all there is to keep)
+                    latest = times.times
+                    if isinstance(values, tuple):  # (compiled: a tuple's items read natively)
+                        for k in range(count):
+                            held[k] = values[k]
+                            latest[k] = boxed
+                    else:
+                        for k in range(count):
+                            held[k] = values[k]
+                            latest[k] = boxed
             if not self._missing:
-                self._state(t_ns, out)
+                self._state(t_ns, out, boxed)
             return out
         for k, value in enumerate(values):
             self._arrivals += 1
@@ -1966,28 +2050,34 @@ class Monitor:
         """Close the earliest buffered state: hold its samples' values (in arrival order), evaluate it."""
         buffer = self._buffer
         t = buffer[0][0]
+        boxed: Any = t
         self._closed_t = t
         while buffer and buffer[0][0] == t:
             _t, _arrival, k, value = heapq.heappop(buffer)
-            self._hold(k, value, t)
+            self._hold(k, value, t, boxed)
         if not self._missing:  # states start when every stream has a value
-            self._state(t, out)
+            self._state(t, out, boxed)
 
-    def _hold(self, k: int, value: Any, t: int) -> None:
+    def _hold(self, k: int, value: Any, t: int, boxed: Any) -> None:
+        """Hold term ``k``'s value at ``t`` (``boxed``: the same int as an object)."""
         self._held[k] = value
-        self._times.sample(k, t)
+        self._times.sample(k, t, boxed)
         if not self._seen[k]:
             self._seen[k] = True
             self._missing -= 1
 
-    def _state(self, t: int, out: list[Verdict]) -> None:
-        """Evaluate the state at ``t``: every node bottom-up; collect the root's decided verdicts."""
+    def _state(self, t: int, out: list[Verdict], boxed: Any) -> None:
+        """Evaluate the state at ``t`` (``boxed``: the same int as an object): every node
+        bottom-up; collect the root's decided verdicts."""
         n = self._states
         self._states = n + 1
         held = self._held
         history = self._history
         if history:
-            self._clock.times.append(t)
+            clock = self._clock
+            clock.times.append(boxed)
+            number: Any = n  # (boxed once: the lists that hold state n share it)
+            clock.idx.append(number)
         if n == 0:
             self._times.first_t = t
         for node in self._steps:
@@ -2002,14 +2092,18 @@ class Monitor:
             if value != UNKNOWN:
                 out.append(Verdict(n, t, value == TRUE, t))
         if history:
-            events = root.events
-            if events and not root.sync:
+            count = root.nev
+            if count and not root.sync:
                 clock = self._clock
                 base = clock.base
-                if len(events) > 1:
-                    events = sorted(events)
-                for i in events:
+                if count == 1:  # (the common case, without a new list)
+                    i: int = root.events[0]
                     out.append(Verdict(i, clock.times[i - base], root.vals[i - base] == TRUE, t))
+                else:
+                    events: list[int] = root.events[:count]
+                    events.sort()
+                    for i in events:
+                        out.append(Verdict(i, clock.times[i - base], root.vals[i - base] == TRUE, t))
             self._trim(t)
         if robust is not None:
             self._with_robustness(out, first, t)
@@ -2056,6 +2150,7 @@ class Monitor:
         """Drop the ``k`` oldest retained states."""
         clock = self._clock
         del clock.times[:k]
+        del clock.idx[:k]
         for node in self._nodes:
             del node.vals[:k]
         clock.base += k
