@@ -49,11 +49,14 @@ class Refused(logging.Handler):
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
         self.count = 0
+        self.names: list[str] = []
 
     def emit(self, record: logging.LogRecord) -> None:
         """Count a manager's warning that no router of it answers."""
-        if "answers yet" in record.getMessage():
+        message = record.getMessage()
+        if "answers yet" in message:
             self.count += 1
+            self.names.append(message.split("'")[1] if message.count("'") >= 2 else "?")
 
 
 def host(hub: str, prefix: str, count: int) -> None:
@@ -70,7 +73,8 @@ def host(hub: str, prefix: str, count: int) -> None:
         for i in range(count):
             managers.append(Manager(f"{prefix}{i:04d}", router=[hub], specs=[]).__enter__())
         threads = len(os.listdir("/proc/self/task"))
-        print(json.dumps({"event": "ready", "managers": count, "seconds": round(time.monotonic() - started, 2), "threads": threads, "refused": refused.count}), flush=True)
+        print(json.dumps({"event": "ready", "managers": count, "seconds": round(time.monotonic() - started, 2), "threads": threads, "refused": refused.count,
+                          "refused_names": refused.names[:50]}), flush=True)
         stop.wait()
     finally:
         for manager in managers:
@@ -87,10 +91,11 @@ def stats(ms: list[float]) -> dict[str, Any]:
     return {"p50_ms": percentile(ms, 50, 1), "max_ms": round(max(ms), 1), "n": len(ms)} if ms else {"n": 0}
 
 
-def measure(hub: str, total: int, page: int, repeats: int, cmd_runs: int) -> dict[str, Any]:
-    """The listing figures of the fleet behind ``hub`` (``total`` managers)."""
+def measure(hub: str, expected: list[str], page: int, repeats: int, cmd_runs: int) -> dict[str, Any]:
+    """The listing figures of the fleet behind ``hub`` (the managers ``expected``)."""
     from dyknow import Client
 
+    total = len(expected)
     out: dict[str, Any] = {}
     with Client("m", connect=[hub], timeout_s=30) as client:
         started = time.monotonic()
@@ -100,7 +105,8 @@ def measure(hub: str, total: int, page: int, repeats: int, cmd_runs: int) -> dic
                 print(f"{time.monotonic() - started:.0f} s: {named} of {total} named (load {load_average():.1f})", file=sys.stderr, flush=True)
                 said_at = time.monotonic()
             if time.monotonic() - started > START_TIMEOUT_S:
-                raise RuntimeError(f"only {len(client.manager_names(2.0))} of {total} managers listed after {START_TIMEOUT_S} s")
+                missing = sorted(set(expected) - set(client.manager_names(2.0)))
+                raise RuntimeError(f"only {total - len(missing)} of {total} managers listed after {START_TIMEOUT_S} s; missing: {missing[:40]}")
             time.sleep(0.5)
         out["all_named_after_s"] = round(time.monotonic() - started, 2)
         names_ms = []
@@ -165,9 +171,11 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             hosts.append(Proc([sys.executable, __file__, "--host", hub, f"p{k:02d}m", str(args.per_process)], env=worker_env()))
         ready = [h.next_json(START_TIMEOUT_S, event="ready") for h in hosts]
         result["start"] = {"seconds": round(time.monotonic() - started, 2), "threads_per_process": max(r["threads"] for r in ready),
-                           "refused": sum(r["refused"] for r in ready), "load": load_average()}  # fmt: skip
+                           "refused": sum(r["refused"] for r in ready), "load": load_average(),
+                           "refused_names": [n for r in ready for n in r.get("refused_names", [])][:50]}  # fmt: skip
         print(f"all {total} started: {result['start']}", file=sys.stderr, flush=True)
-        result.update(measure(hub, total, args.page, args.repeats, args.cmd_runs))
+        expected = [f"p{k:02d}m{i:04d}" for k in range(args.processes) for i in range(args.per_process)]
+        result.update(measure(hub, expected, args.page, args.repeats, args.cmd_runs))
         pss = [memory_mib(h.proc.pid)["pss"] for h in hosts]
         result["memory"] = {"pss_mib_per_process": round(max(pss), 1), "pss_mib_per_manager": round(sum(pss) / total, 2),
                             "router_pss_mib": round(memory_mib(router.proc.pid)["pss"], 1)}  # fmt: skip
