@@ -63,7 +63,6 @@ _ABSENT_S = 1.0
 #: How long a call that finds no service at once waits for the answer to the client's first
 #: question, which managers are up (a round trip; it is looked at again while the call waits).
 _ASKED_S = 0.05
-_GOODBYE_S = 5.0  # a goodbye this recent explains a manager's token going (as dyknow.federation takes it)
 _DIAL_MS = 2000  # how long a client that could not connect at once gives each new attempt (TCP and TLS handshakes)
 
 
@@ -121,7 +120,7 @@ class _Presence:
                 now = time.monotonic()
                 self._gone[name] = now
                 said = self._goodbyes.pop(name, None)
-                stopped = said is not None and now - said < _GOODBYE_S
+                stopped = said is not None and now - said < keys.GOODBYE_S
                 self._lost[name] = (time.time_ns(), keys.LOSS_STOPPED if stopped else keys.LOSS_VANISHED)
                 for kept in (self._gone, self._lost):
                     while len(kept) > _MAX_GONE:

@@ -53,7 +53,6 @@ _RETRY_S = 2.0
 #: What a manager publishes on its summary key as it stops, before its token goes: the others
 #: then tell a manager that stopped from one that crashed or was cut off.
 GOODBYE = b'{"stopping":true}'
-_GOODBYE_S = 5.0  # a goodbye this recent explains a loss
 _MAX_LOST = 1_000  # lost managers remembered (names come from the network: bounded)
 # What a manager keeps of a fleet is bounded whatever the others announce (issue 40):
 _MAX_ALIVE = 10_000  # managers listed by alive() (a name each)
@@ -833,7 +832,7 @@ class Directory:
                 self._retry_at.pop(manager, None)
                 said = self._goodbyes.pop(manager, None)
                 if known:
-                    stopped = said is not None and time.monotonic() - said < _GOODBYE_S
+                    stopped = said is not None and time.monotonic() - said < keys.GOODBYE_S
                     self._lost[manager] = (time.time_ns(), STOPPED if stopped else _VANISHED)
                     while len(self._lost) > _MAX_LOST:
                         del self._lost[next(iter(self._lost))]

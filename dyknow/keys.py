@@ -54,6 +54,7 @@ __all__ = [
     "clock_token",
     "clocks_of",
     "goodbye_token",
+    "GOODBYE_S",
     "LOSS_STOPPED",
     "LOSS_VANISHED",
     "default_key",
@@ -352,6 +353,8 @@ def clock_token(clock: int, manager: str) -> str:
     return f"{SERVICE_ROOT}/clocks/{clock:08x}/{manager}"
 
 
+#: How recent a goodbye must be to explain a manager's token going (s).
+GOODBYE_S = 5.0
 #: Why a manager is lost, when it said goodbye (:func:`goodbye_token`) as it stopped.
 LOSS_STOPPED = "it stopped (it said goodbye)"
 #: Why a manager is lost, when its liveliness token went with no goodbye.
