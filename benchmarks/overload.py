@@ -22,10 +22,17 @@ threads (``/proc``) and the manager's lanes every 0.1 s. Printed, each beside it
   and how many units were shed;
 - the load average (1 min) at the start and end of each phase.
 
+``--nice`` (default ``0,-10``): the phases are run at each of these scheduling nicenesses of the
+manager's process (:func:`dyknow.priority.set_nice`, what ``dyknow manager --nice`` does), one
+after the other in the same manager; the hogs always run at the default, 0, as other work on the
+robot's computer would. A niceness the system refuses (under 0 without ``CAP_SYS_NICE``) is said
+and left out.
+
     python benchmarks/overload.py                    # 1,000 units, 5 s per phase
     python benchmarks/overload.py --full             # 10,000 units, 10 s per phase
     python benchmarks/overload.py --units 150 --seconds 1 --json out/overload.json   # a smoke run
     python benchmarks/overload.py --full --units 4000 --spawn-only --keys namespace   # spawn cost only, smaller
+    python benchmarks/overload.py --nice 0           # the manager at the hogs' priority only
 """
 
 from __future__ import annotations
@@ -41,6 +48,7 @@ from typing import Any
 
 from dyknow import Manager, Message, Unit
 from dyknow.keys import default_key
+from dyknow.priority import PriorityError, set_nice
 from dyknow.reasoning import monitor_spec
 from dyknow.security import Limits
 from dyknow.spec import Param, Port, Tag, TransformationSpec
@@ -140,11 +148,15 @@ def _spawn_masses(manager: Manager, units: int, block: int, keys: str = "outside
     return per_block
 
 
+#: A busy process at the default priority (it leaves the niceness it inherited from the benchmark).
+HOG = "import os\nos.setpriority(os.PRIO_PROCESS, 0, 0)\nwhile True: pass"
+
+
 def _hogs(count: int) -> list[subprocess.Popen[bytes]]:
-    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    return [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(count)]
 
 
-def _phase(manager: Manager, high: Any, low: Any, hogs: int, seconds: float) -> dict[str, Any]:
+def _phase(manager: Manager, high: Any, low: Any, hogs: int, seconds: float, nice: int) -> dict[str, Any]:
     procs = _hogs(hogs)
     try:
         load_before = os.getloadavg()[0]
@@ -162,6 +174,7 @@ def _phase(manager: Manager, high: Any, low: Any, hogs: int, seconds: float) -> 
             time.sleep(0.1)
         high.recording = low.recording = False
         return {
+            "nice": nice,
             "hogs": hogs,
             "lanes_max": lanes_max,
             "threads_max": threads_max,
@@ -183,8 +196,17 @@ def _phase(manager: Manager, high: Any, low: Any, hogs: int, seconds: float) -> 
             proc.wait()
 
 
-def run(units: int, seconds: float, max_lanes: int | None, keys: str = "outside", spawn_only: bool = False) -> dict[str, Any]:
-    """Spawn the units, then measure each phase of hogs; the results and the targets."""
+def _high_target(phases: list[dict[str, Any]]) -> dict[str, Any]:
+    """The high-priority p99 with the most hogs against none, at one niceness."""
+    none, most = phases[0]["high_p99_ms"], phases[-1]["high_p99_ms"]
+    return {"nice": phases[0]["nice"], "none_ms": none, "two_per_core_ms": most, "ratio": round(most / none, 2) if none else None,
+            "target_ratio": HIGH_P99_RATIO, "met": bool(none) and most <= HIGH_P99_RATIO * none}  # fmt: skip
+
+
+def run(
+    units: int, seconds: float, max_lanes: int | None, keys: str = "outside", spawn_only: bool = False, nices: tuple[int, ...] = (0,)
+) -> dict[str, Any]:
+    """Spawn the units, then measure each phase of hogs at each niceness; the results and the targets."""
     sys.setswitchinterval(0.001)  # as dyknow manager does
     cores = os.cpu_count() or 1
     options: dict[str, Any] = {"max_lanes": max_lanes} if max_lanes is not None else {}
@@ -201,9 +223,18 @@ def run(units: int, seconds: float, max_lanes: int | None, keys: str = "outside"
         # the sinks are Ages of the module "overload" (this script runs as __main__)
         high: Any = manager.unit("high")
         low: Any = manager.unit("low")
-        phases = [_phase(manager, high, low, hogs, seconds) for hogs in ((0,) if spawn_only else (0, cores, 2 * cores))]
+        phases: list[dict[str, Any]] = []
+        refused: dict[int, str] = {}
+        for nice in (nices[:1] if spawn_only else nices):
+            try:
+                set_nice(nice)
+            except PriorityError as error:
+                refused[nice] = str(error)
+                print(f"nice {nice}: not measured: {error}", flush=True)
+                continue
+            phases += [_phase(manager, high, low, hogs, seconds, nice) for hogs in ((0,) if spawn_only else (0, cores, 2 * cores))]
     first, last = (per_block[0], per_block[-1]) if per_block else (float("nan"), float("nan"))
-    none, most = phases[0]["high_p99_ms"], phases[-1]["high_p99_ms"]
+    measured = sorted({p["nice"] for p in phases}, reverse=True)
     return {
         "units": units,
         "keys": keys,
@@ -213,12 +244,12 @@ def run(units: int, seconds: float, max_lanes: int | None, keys: str = "outside"
         "spawn_block": block,
         "spawn_s_per_1000": [round(x, 2) for x in per_block],
         "phases": phases,
+        "refused_nice": refused,
         "targets": {
             "lanes_within_bound": {"max": max(p["lanes_max"] for p in phases), "bound": bound, "met": all(p["lanes_max"] <= bound for p in phases)},
             "spawn_flat": {"first_s_per_1000": round(first, 2), "last_s_per_1000": round(last, 2), "ratio": round(last / first, 2) if first else None,
                            "target_ratio": SPAWN_FLAT_RATIO, "met": bool(first) and last <= SPAWN_FLAT_RATIO * first},  # fmt: skip
-            "high_p99": None if spawn_only else {"none_ms": none, "two_per_core_ms": most, "ratio": round(most / none, 2) if none else None,
-                                                 "target_ratio": HIGH_P99_RATIO, "met": bool(none) and most <= HIGH_P99_RATIO * none},  # fmt: skip
+            "high_p99": None if spawn_only else [_high_target([p for p in phases if p["nice"] == nice]) for nice in measured],
         },
     }
 
@@ -233,20 +264,21 @@ def report(result: dict[str, Any]) -> None:
           f"{', '.join(f'{x:.1f}' for x in result['spawn_s_per_1000'])} s")  # fmt: skip
     print(f"  first {spawn['first_s_per_1000']:.1f} s, last {spawn['last_s_per_1000']:.1f} s per 1,000 (ratio {spawn['ratio']}; "
           f"target <= {SPAWN_FLAT_RATIO:g}: {'met' if spawn['met'] else 'NOT met'})")  # fmt: skip
-    print(f"{'hogs':>5} {'lanes max':>9} {'bound':>5} {'threads max':>11} {'high p50':>9} {'high p99':>9} {'low p50':>8} {'low p99':>8} "
+    print(f"{'nice':>5} {'hogs':>5} {'lanes max':>9} {'bound':>5} {'threads max':>11} {'high p50':>9} {'high p99':>9} {'low p50':>8} {'low p99':>8} "
           f"{'overloaded':>10} {'shed':>5} {'load before/after':>17}")  # fmt: skip
     for p in result["phases"]:
-        print(f"{p['hogs']:>5} {p['lanes_max']:>9} {result['max_lanes']:>5} {p['threads_max']:>11} {p['high_p50_ms']:>7.2f}ms {p['high_p99_ms']:>7.2f}ms "
+        print(f"{p['nice']:>5} {p['hogs']:>5} {p['lanes_max']:>9} {result['max_lanes']:>5} {p['threads_max']:>11} {p['high_p50_ms']:>7.2f}ms {p['high_p99_ms']:>7.2f}ms "
               f"{p['low_p50_ms']:>6.2f}ms {p['low_p99_ms']:>6.2f}ms {str(p['overloaded']):>10} {p['units_shed_max']:>5} "
               f"{p['load_before']:>8.2f}/{p['load_after']:<8.2f}")  # fmt: skip
     lanes = t["lanes_within_bound"]
     print(f"lanes: at most {lanes['max']} (target: never above the bound of {lanes['bound']}: {'met' if lanes['met'] else 'NOT met'})")
-    high = t["high_p99"]
-    if high is None:
+    if t["high_p99"] is None:
         print("high-priority p99 with hogs: not measured (--spawn-only)")
         return
-    print(f"high-priority p99: {high['none_ms']:.2f} ms with no hogs, {high['two_per_core_ms']:.2f} ms with two per core "
-          f"(ratio {high['ratio']}; target <= {HIGH_P99_RATIO:g}x: {'met' if high['met'] else 'NOT met'})")  # fmt: skip
+    for high in t["high_p99"]:
+        at = "the hogs' priority" if high["nice"] == 0 else f"--nice {high['nice']}"
+        print(f"high-priority p99 at nice {high['nice']} ({at}): {high['none_ms']:.2f} ms with no hogs, {high['two_per_core_ms']:.2f} ms "
+              f"with two per core (ratio {high['ratio']}; target <= {HIGH_P99_RATIO:g}x: {'met' if high['met'] else 'NOT met'})")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -260,13 +292,19 @@ def main(argv: list[str] | None = None) -> int:
                         help="where the masses' ports are bound: keys of their own under bench/ (default; an input costs a Zenoh "
                              "subscriber each) or their default keys in the manager's namespace (one subscriber serves them all)")  # fmt: skip
     parser.add_argument("--spawn-only", action="store_true", help="measure the spawns and one phase without hogs only")
+    parser.add_argument("--nice", default="0,-10", metavar="N[,N...]",
+                        help="the manager's nicenesses to measure at, in this order (default 0,-10; the hogs run at 0)")  # fmt: skip
     parser.add_argument("--json", type=Path, help="write the results as JSON")
     args = parser.parse_args(argv)
+    try:
+        nices = tuple(int(n) for n in args.nice.split(","))
+    except ValueError:
+        parser.error(f"--nice: got {args.nice!r}; expected whole numbers from -20 to 19, comma-separated")
     units = 10_000 if args.full and args.units == 1000 else args.units
     seconds = 10.0 if args.full and args.seconds == 5.0 else args.seconds
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}")
-    result = run(units, seconds, args.max_lanes, args.keys, args.spawn_only)
+    result = run(units, seconds, args.max_lanes, args.keys, args.spawn_only, nices)
     report(result)
     if args.json:
         write_json(args.json, {"machine": info, "results": result})

@@ -56,6 +56,7 @@ from dyknow.metrics import Metrics
 from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.overload import DEFAULT_LAG_BUDGET_S, OverloadGuard, OverloadState, describe
+from dyknow.priority import current_nice
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitState, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.reasoning.syntax import Formula, check_formula
@@ -1121,11 +1122,13 @@ class Manager:
 
     def load(self) -> dict[str, Any]:
         """How the manager keeps up: its lanes (kind, units, busy fraction, lag, queue, whether
-        its thread is stuck), the bound on them, and its overload state (``"ok"`` or
-        ``"overloaded"``, with what it sheds). The JSON form; the model's ``executor``."""
+        its thread is stuck), the bound on them, the process's niceness (:mod:`dyknow.priority`)
+        and its overload state (``"ok"`` or ``"overloaded"``, with what it sheds). The JSON form;
+        the model's ``executor``."""
         executor = self._executor
         return {
             "max_lanes": executor.max_lanes,
+            "nice": current_nice(),
             "threads": executor.threads(),
             "lanes": [lane.to_dict() for lane in executor.lane_infos()],
             "overload": self._guard.state.to_dict(),
@@ -1175,7 +1178,9 @@ class Manager:
         """The guard changed the state (on the watchdog's thread): one log line, an event."""
         self._executor.keep_measuring = self._guard.shedding
         if entered is True:
-            log.warning("manager %r is %s", self.name, describe(state))
+            # (other processes taking the CPU also show as lag, and a niceness is what answers that)
+            hint = "; if other processes take the CPU, dyknow manager --nice -10 gives it precedence" if current_nice() >= 0 else ""
+            log.warning("manager %r is %s%s", self.name, describe(state), hint)
         elif entered is False:
             log.info("manager %r keeps up again: %s", self.name, describe(state))
         else:

@@ -247,7 +247,8 @@ def _manager_stats(args: argparse.Namespace) -> int:
         if overload["shed"]:
             shed = ", ".join(f"priority {t['priority']} " + ("paused" if t["rate"] == 0 else f"at {t['rate']:g} of its rate") for t in overload["shed"])
             state += f"; shedding {shed} ({overload['units_shed']} units)"
-        yield f"{args.manager}: {state}; {load['threads']} of at most {load['max_lanes']} lanes"
+        nice = f"; nice {load['nice']}" if load.get("nice") else ""  # (a manager from before --nice says nothing)
+        yield f"{args.manager}: {state}; {load['threads']} of at most {load['max_lanes']} lanes{nice}"
         for lane in load["lanes"]:
             stuck = f", stuck {lane['stuck_ms'] / 1000:.1f} s in a callback" if lane["stuck_ms"] >= 1000 else ""
             lag = f", lag {lane['lag_ms']:.1f} ms" if lane["kind"] == "shared" else ""

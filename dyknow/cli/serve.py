@@ -40,6 +40,31 @@ def _lag(text: str) -> float:
     return value
 
 
+def _nice(text: str) -> int:
+    """--nice: a whole number from -20 to 19."""
+    from dyknow.priority import MAX_NICE, MIN_NICE
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = MIN_NICE - 1
+    if not MIN_NICE <= value <= MAX_NICE:
+        raise argparse.ArgumentTypeError(f"got {text!r}; expected a whole number from {MIN_NICE} (the most precedence) to {MAX_NICE}")
+    return value
+
+
+def _apply_nice(args: argparse.Namespace) -> None:
+    """Before anything starts a thread: the niceness --nice asks for, or a clear refusal."""
+    if args.nice is None:
+        return
+    from dyknow.priority import PriorityError, set_nice
+
+    try:
+        set_nice(args.nice)
+    except PriorityError as error:
+        raise UsageError(f"--nice: {error}") from None
+
+
 def _stop_event() -> threading.Event:
     """An event SIGINT and SIGTERM set: install it before saying "ready", so that a signal sent
     as soon as the ready line is read stops the process cleanly instead of killing it."""
@@ -97,6 +122,7 @@ MANAGER_SWITCH_INTERVAL_S = 0.001
 def cmd_manager(args: argparse.Namespace) -> int:
     """run a manager until interrupted"""
     sys.setswitchinterval(MANAGER_SWITCH_INTERVAL_S)
+    _apply_nice(args)
     from dyknow.manager import Manager
     from dyknow.security import Limits
 
@@ -221,6 +247,7 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
 
 def cmd_router(args: argparse.Namespace) -> int:
     """run a Zenoh router: a rendezvous point managers and clients connect to (it runs no units)"""
+    _apply_nice(args)
     from dyknow.transport import Session, make_config
 
     tls = tls_files(args)
@@ -262,6 +289,13 @@ def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
     zenoh_options = cmds.zenoh_options
     lease_option = cmds.lease_option
+
+    def nice_option(p: argparse.ArgumentParser, who: str) -> None:
+        p.add_argument("--nice", type=_nice, metavar="N",
+                       help=f"the {who}'s scheduling niceness, -20 to 19 (default: inherited, usually 0): on a CPU shared with other heavy "
+                            "work, a negative value (such as -10) keeps its messages on time; needs CAP_SYS_NICE (root) or RLIMIT_NICE; "
+                            "see docs/concepts/execution.md")  # fmt: skip
+
     limit_options = cmds.limit_options
 
     def manager_options(p: argparse.ArgumentParser) -> None:
@@ -330,6 +364,7 @@ def add_commands(cmds: Commands) -> None:
         p.add_argument("--overload-lag", type=_lag, default=DEFAULT_LAG_BUDGET_S, metavar="S",
                        help=f"how long a message may wait for its unit's turn before the manager counts as overloaded and sheds its "
                             f"least important units (default {DEFAULT_LAG_BUDGET_S:g})")  # fmt: skip
+        nice_option(p, "manager")
         p.add_argument("--host", metavar="NAME", help="the machine it runs on, for measurements addressed by host (default: the host name)")
         p.add_argument("--client-grace", type=seconds, default=DEFAULT_GRACE_S, metavar="S",
                        help=f"how long a client's requests outlive it once it is gone: closed, crashed or cut off (default {DEFAULT_GRACE_S:g})")  # fmt: skip
@@ -385,6 +420,7 @@ def add_commands(cmds: Commands) -> None:
             help=f"how many managers and clients may link to the router at once (default {ROUTER_MAX_SESSIONS:,}, or what --zenoh-config says; "
             "Zenoh's own is 1,000)",
         )  # fmt: skip
+        nice_option(p, "router")
         lease_option(p)
 
     cmds.command("router", cmd_router, router_options)
