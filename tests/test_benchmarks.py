@@ -126,8 +126,8 @@ def test_overload_benchmark_smoke(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr[-3000:]
     data = json.loads(out.read_text())["results"]
     cores = os.cpu_count() or 1
-    # by default at the hogs' niceness, 0, then at -10 (as root: dyknow manager --nice -10), the same phases each
-    nices = [0, -10] if os.geteuid() == 0 else [0]
+    # by default at the hogs' niceness, 0, then at -10 and -20 (as root: dyknow manager --nice), the same phases each
+    nices = [0, -10, -20] if os.geteuid() == 0 else [0]
     assert [(p["nice"], p["hogs"]) for p in data["phases"]] == [(n, h) for n in nices for h in (0, cores, 2 * cores)]
     assert [t["nice"] for t in data["targets"]["high_p99"]] == nices
     for phase in data["phases"]:
