@@ -13,7 +13,10 @@ their own, from the first block to the sixth, publishers 0.07 -> 1.16 s, publish
 listener 0.07 -> 1.54 s, subscribers 0.15 -> 2.48 s, liveliness tokens 0.05 -> 1.62 s; a put on a
 fresh key 2 us in an empty session, 2.4 ms beside 6,000 publishers; declarations on one shared key
 do not grow. The kind ``put`` declares nothing: one ``put`` on each fresh key, what an output
-port without a publisher of its own would cost. So a manager's spawn cost is flat only if what it declares per unit is not a key of
+port without a publisher of its own would cost. ``--shard N`` spreads the keys N to a node of
+the key tree: Zenoh looks for the declarations a new key matches by trying every sibling of each
+node on its path (``Resource::get_matches`` in zenoh/src/net/routing/dispatcher/resource.rs), so
+keys with fewer siblings cost less. So a manager's spawn cost is flat only if what it declares per unit is not a key of
 its own: the target printed is the one issue 41 sets for spawn (the last block within 1.5x of the
 first), to show what Zenoh itself allows.
 
@@ -65,7 +68,13 @@ def _declarer(session: zenoh.Session, kind: str, keep: list[Any]) -> Callable[[s
     return declare
 
 
-def measure(kind: str, count: int, block: int) -> dict[str, Any]:
+def _key(i: int, shard: int) -> str:
+    """The ``i``-th key: ``bench/k<i>/out``, or with ``shard`` ``bench/<i // shard>/k<i>/out`` (at most
+    ``shard`` siblings under one node of the key tree)."""
+    return f"bench/{i // shard}/k{i}/out" if shard else f"bench/k{i}/out"
+
+
+def measure(kind: str, count: int, block: int, shard: int = 0) -> dict[str, Any]:
     """Declare ``count`` entities of ``kind`` on keys of their own in one session: seconds per
     1,000 for each ``block``; a put on a fresh key then; ``block`` more on one shared key."""
     keep: list[Any] = []
@@ -75,7 +84,7 @@ def measure(kind: str, count: int, block: int) -> dict[str, Any]:
         per_block: list[float] = []
         start = time.perf_counter()
         for i in range(count):
-            declare(f"bench/k{i}/out")
+            declare(_key(i, shard))
             if (i + 1) % block == 0:
                 now = time.perf_counter()
                 per_block.append((now - start) * 1000 / block)
@@ -104,6 +113,7 @@ def measure(kind: str, count: int, block: int) -> dict[str, Any]:
     first, last = per_block[0], per_block[-1]
     return {
         "kind": kind,
+        "shard": shard,
         "count": count,
         "block": block,
         "s_per_1000": [round(x, 3) for x in per_block],
@@ -120,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--keys", type=int, default=10_000, help="entities of each kind, each on a key of its own (default 10,000)")
     parser.add_argument("--kinds", default=",".join(KINDS), help=f"which kinds, comma-separated (default: {','.join(KINDS)})")
+    parser.add_argument("--shard", type=int, default=0, metavar="N",
+                        help="spread the keys N to a node of the key tree, bench/<i // N>/k<i>/out (default: all under bench/)")  # fmt: skip
     parser.add_argument("--json", type=Path, help="write the results as JSON")
     args = parser.parse_args(argv)
     kinds = [k for k in args.kinds.split(",") if k]
@@ -131,9 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}, Zenoh {info.get('zenoh')}; load average {os.getloadavg()[0]:.2f}")
     results = []
     for kind in kinds:
-        row = measure(kind, args.keys, block)
+        row = measure(kind, args.keys, block, args.shard)
         results.append(row)
-        print(f"{kind:>18}: s per 1,000 on keys of their own, block by block of {block}: {', '.join(f'{x:.3f}' for x in row['s_per_1000'])}")
+        layout = f", {args.shard} to a node" if args.shard else ""
+        print(f"{kind:>18}: s per 1,000 on keys of their own{layout}, block by block of {block}: {', '.join(f'{x:.3f}' for x in row['s_per_1000'])}")
         print(f"{'':>18}  last/first {row['ratio']} (target <= {FLAT_RATIO:g}: {'met' if row['flat'] else 'NOT met'}); "
               f"on one shared key {row['same_key_s_per_1000']:.3f} s per 1,000; a put on a fresh key {row['put_fresh_key_us']:.0f} us "
               f"(in an empty session {row['put_fresh_key_empty_session_us']:.0f} us)")  # fmt: skip
