@@ -243,6 +243,10 @@ class _Step:
     loop over them dispatches with one type check, compiled)."""
 
     max_states: int  # how many states' entries it may keep (the monitor sets it)
+    # the next in the order a state steps through (the monitor links them): compiled, walking
+    # these costs nothing per node, where taking each from a list[_Step] checks its type
+    # (a walk of the class's bases, its class being a subclass)
+    next_step: _Step | None = None
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         """Evaluate the new state ``n`` at ``t`` (operands have stepped already)."""
@@ -1681,10 +1685,21 @@ class Monitor:
         )
         if self._robust is not None:
             self._robust.keep_ns = self._times.keep_ns + self.formula.horizon_ns
-        # with a future operator somewhere, nodes read their operands' verdicts at older states
+        # with a future operator somewhere, nodes read their operands' verdicts at older states:
+        # every asynchronous node keeps them, and a synchronous one only if an asynchronous
+        # and/or/implies reads it at the states its other operand decides later (the temporal
+        # nodes read a synchronous operand at its own state only: ``cur``)
         self._history = not all(node.sync for node in self._nodes)
         for node in self._nodes:
-            node.history = self._history
+            node.history = not node.sync
+        for node in self._nodes:
+            if isinstance(node, _BinaryNode) and not node.sync:
+                node.left.history = True
+                node.right.history = True
+        self._first_step: _Step | None = None
+        for each in reversed(self._steps):
+            each.next_step = self._first_step
+            self._first_step = each
         self._single = len(self.terms) == 1
         self._immediate = self._single and self.reorder_ns == 0
         self._held: list[Any] = [None] * len(self.terms)
@@ -2080,8 +2095,10 @@ class Monitor:
             clock.idx.append(number)
         if n == 0:
             self._times.first_t = t
-        for node in self._steps:
-            node.step(n, t, held)
+        step = self._first_step
+        while step is not None:
+            step.step(n, t, held)
+            step = step.next_step
         root = self._root
         robust = self._robust
         if robust is not None:
