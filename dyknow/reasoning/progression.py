@@ -749,6 +749,21 @@ class _RobustnessValue(_Value):
         tree.trim(t)
 
 
+def _compare_floats(code: int, x: float, y: float) -> int:
+    """``x OP y`` of two floats, the operator by its code in ``_OPS``, as TRUE or FALSE."""
+    if code == 0:
+        return TRUE if x < y else FALSE
+    if code == 1:
+        return TRUE if x > y else FALSE
+    if code == 2:
+        return TRUE if x <= y else FALSE
+    if code == 3:
+        return TRUE if x >= y else FALSE
+    if code == 4:
+        return TRUE if x == y else FALSE
+    return TRUE if x != y else FALSE
+
+
 class _AtomNode(_Node):
     """``left OP right`` (or a bare value, ``op`` None): a condition decided at its state."""
 
@@ -758,9 +773,18 @@ class _AtomNode(_Node):
         self.code = _OPS.index(op) if op in _OPS else -1  # (an int: compiled, comparing strs costs calls)
         self.left = left
         self.right = right
+        # a number written in the formula (``Speed(r) < 0.5``, the common atom), unboxed once:
+        # compiled, reading the constant's float object at every state cost a type check and an unboxing
+        self.const = isinstance(right, _ConstValue) and _finite_float(right.val) and self.code >= 0
+        self.number = float(right.val) if self.const and right is not None else 0.0
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         x = self.left.val
+        if self.const and type(x) is float:
+            self.cur = value = _compare_floats(self.code, x, self.number)
+            if self.history:
+                self.vals.append(value)
+            return
         op = self.op
         right = self.right
         if right is None:
@@ -768,19 +792,8 @@ class _AtomNode(_Node):
         else:
             y = right.val
             code = self.code
-            if type(x) is float and type(y) is float and code >= 0:  # the common case, without a call
-                if code == 0:
-                    value = TRUE if x < y else FALSE
-                elif code == 1:
-                    value = TRUE if x > y else FALSE
-                elif code == 2:
-                    value = TRUE if x <= y else FALSE
-                elif code == 3:
-                    value = TRUE if x >= y else FALSE
-                elif code == 4:
-                    value = TRUE if x == y else FALSE
-                else:
-                    value = TRUE if x != y else FALSE
+            if type(x) is float and type(y) is float and code >= 0:  # the common case, without a generic call
+                value = _compare_floats(code, x, y)
             else:
                 value = compare(op or "", x, y)
         self.cur = value
@@ -1520,11 +1533,14 @@ class _UntilSync(_Node):
         times = self.clock.times
         base = self.clock.base
         end = n if t <= ti + self.hi_ns else n - 1  # the window's last state
-        start = ti + self.lo_ns
-        k = self.lo_at if self.lo_at > i else i
-        while k <= n and times[k - base] < start:
-            k += 1
-        self.lo_at = k  # the window's first state (past ``end`` when it has none)
+        if self.lo_ns:
+            start = ti + self.lo_ns
+            k = self.lo_at if self.lo_at > i else i
+            while k <= n and times[k - base] < start:
+                k += 1
+            self.lo_at = k  # the window's first state (past ``end`` when it has none)
+        else:
+            k = i  # the window starts at the state itself (times are distinct): no time to read
         left_f = self.left_f
         h = self.lf_head
         while h < len(left_f) and left_f[h] < i:
