@@ -1196,7 +1196,8 @@ class _Temporal(_Node):
             j += d
         while k < j:  # path compression: what was walked over points at j from now on
             d = skip[k]
-            skip[k] = j - k
+            if k + d != j:  # (mostly it does already: compiled, a write boxes an int and swaps objects)
+                skip[k] = j - k
             k += d
         return j + self.clock.base
 
@@ -1487,7 +1488,8 @@ class _UntilSync(_Node):
 
     def forget(self, oldest: int) -> None:
         """Drop the positions before ``oldest``, the oldest pending state: no window reads them."""
-        self.lf_head = _drop_before(self.left_f, self.lf_head, oldest)
+        if self.left is not None:  # (eventually and always have none)
+            self.lf_head = _drop_before(self.left_f, self.lf_head, oldest)
         self.rnf_head = _drop_before(self.right_nf, self.rnf_head, oldest)
 
     def decide(self, i: int, value: int) -> None:
