@@ -243,6 +243,10 @@ class _Step:
     loop over them dispatches with one type check, compiled)."""
 
     max_states: int  # how many states' entries it may keep (the monitor sets it)
+    # the next in the order a state steps through (the monitor links them): compiled, walking
+    # these costs nothing per node, where taking each from a list[_Step] checks its type
+    # (a walk of the class's bases, its class being a subclass)
+    next_step: _Step | None = None
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         """Evaluate the new state ``n`` at ``t`` (operands have stepped already)."""
@@ -745,6 +749,21 @@ class _RobustnessValue(_Value):
         tree.trim(t)
 
 
+def _compare_floats(code: int, x: float, y: float) -> int:
+    """``x OP y`` of two floats, the operator by its code in ``_OPS``, as TRUE or FALSE."""
+    if code == 0:
+        return TRUE if x < y else FALSE
+    if code == 1:
+        return TRUE if x > y else FALSE
+    if code == 2:
+        return TRUE if x <= y else FALSE
+    if code == 3:
+        return TRUE if x >= y else FALSE
+    if code == 4:
+        return TRUE if x == y else FALSE
+    return TRUE if x != y else FALSE
+
+
 class _AtomNode(_Node):
     """``left OP right`` (or a bare value, ``op`` None): a condition decided at its state."""
 
@@ -754,9 +773,18 @@ class _AtomNode(_Node):
         self.code = _OPS.index(op) if op in _OPS else -1  # (an int: compiled, comparing strs costs calls)
         self.left = left
         self.right = right
+        # a number written in the formula (``Speed(r) < 0.5``, the common atom), unboxed once:
+        # compiled, reading the constant's float object at every state cost a type check and an unboxing
+        self.const = isinstance(right, _ConstValue) and _finite_float(right.val) and self.code >= 0
+        self.number = float(right.val) if self.const and right is not None else 0.0
 
     def step(self, n: int, t: int, held: list[Any]) -> None:
         x = self.left.val
+        if self.const and type(x) is float:
+            self.cur = value = _compare_floats(self.code, x, self.number)
+            if self.history:
+                self.vals.append(value)
+            return
         op = self.op
         right = self.right
         if right is None:
@@ -764,19 +792,8 @@ class _AtomNode(_Node):
         else:
             y = right.val
             code = self.code
-            if type(x) is float and type(y) is float and code >= 0:  # the common case, without a call
-                if code == 0:
-                    value = TRUE if x < y else FALSE
-                elif code == 1:
-                    value = TRUE if x > y else FALSE
-                elif code == 2:
-                    value = TRUE if x <= y else FALSE
-                elif code == 3:
-                    value = TRUE if x >= y else FALSE
-                elif code == 4:
-                    value = TRUE if x == y else FALSE
-                else:
-                    value = TRUE if x != y else FALSE
+            if type(x) is float and type(y) is float and code >= 0:  # the common case, without a generic call
+                value = _compare_floats(code, x, y)
             else:
                 value = compare(op or "", x, y)
         self.cur = value
@@ -1179,7 +1196,8 @@ class _Temporal(_Node):
             j += d
         while k < j:  # path compression: what was walked over points at j from now on
             d = skip[k]
-            skip[k] = j - k
+            if k + d != j:  # (mostly it does already: compiled, a write boxes an int and swaps objects)
+                skip[k] = j - k
             k += d
         return j + self.clock.base
 
@@ -1470,7 +1488,8 @@ class _UntilSync(_Node):
 
     def forget(self, oldest: int) -> None:
         """Drop the positions before ``oldest``, the oldest pending state: no window reads them."""
-        self.lf_head = _drop_before(self.left_f, self.lf_head, oldest)
+        if self.left is not None:  # (eventually and always have none)
+            self.lf_head = _drop_before(self.left_f, self.lf_head, oldest)
         self.rnf_head = _drop_before(self.right_nf, self.rnf_head, oldest)
 
     def decide(self, i: int, value: int) -> None:
@@ -1516,11 +1535,14 @@ class _UntilSync(_Node):
         times = self.clock.times
         base = self.clock.base
         end = n if t <= ti + self.hi_ns else n - 1  # the window's last state
-        start = ti + self.lo_ns
-        k = self.lo_at if self.lo_at > i else i
-        while k <= n and times[k - base] < start:
-            k += 1
-        self.lo_at = k  # the window's first state (past ``end`` when it has none)
+        if self.lo_ns:
+            start = ti + self.lo_ns
+            k = self.lo_at if self.lo_at > i else i
+            while k <= n and times[k - base] < start:
+                k += 1
+            self.lo_at = k  # the window's first state (past ``end`` when it has none)
+        else:
+            k = i  # the window starts at the state itself (times are distinct): no time to read
         left_f = self.left_f
         h = self.lf_head
         while h < len(left_f) and left_f[h] < i:
@@ -1681,10 +1703,21 @@ class Monitor:
         )
         if self._robust is not None:
             self._robust.keep_ns = self._times.keep_ns + self.formula.horizon_ns
-        # with a future operator somewhere, nodes read their operands' verdicts at older states
+        # with a future operator somewhere, nodes read their operands' verdicts at older states:
+        # every asynchronous node keeps them, and a synchronous one only if an asynchronous
+        # and/or/implies reads it at the states its other operand decides later (the temporal
+        # nodes read a synchronous operand at its own state only: ``cur``)
         self._history = not all(node.sync for node in self._nodes)
         for node in self._nodes:
-            node.history = self._history
+            node.history = not node.sync
+        for node in self._nodes:
+            if isinstance(node, _BinaryNode) and not node.sync:
+                node.left.history = True
+                node.right.history = True
+        self._first_step: _Step | None = None
+        for each in reversed(self._steps):
+            each.next_step = self._first_step
+            self._first_step = each
         self._single = len(self.terms) == 1
         self._immediate = self._single and self.reorder_ns == 0
         self._held: list[Any] = [None] * len(self.terms)
@@ -2080,8 +2113,10 @@ class Monitor:
             clock.idx.append(number)
         if n == 0:
             self._times.first_t = t
-        for node in self._steps:
-            node.step(n, t, held)
+        step = self._first_step
+        while step is not None:
+            step.step(n, t, held)
+            step = step.next_step
         root = self._root
         robust = self._robust
         if robust is not None:
