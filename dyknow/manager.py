@@ -1179,7 +1179,7 @@ class Manager:
         self._executor.keep_measuring = self._guard.shedding
         if entered is True:
             # (other processes taking the CPU also show as lag, and a niceness is what answers that)
-            hint = "; if other processes take the CPU, dyknow manager --nice -10 gives it precedence" if current_nice() >= 0 else ""
+            hint = "; if other processes take the CPU, dyknow manager --nice -20 (or -10) gives it precedence" if current_nice() >= 0 else ""
             log.warning("manager %r is %s%s", self.name, describe(state), hint)
         elif entered is False:
             log.info("manager %r keeps up again: %s", self.name, describe(state))

@@ -218,7 +218,8 @@ class Model:
     lost: tuple[Mapping[str, Any], ...] = ()
     #: How it keeps up (:meth:`dyknow.manager.Manager.load`): ``max_lanes``, ``threads`` (of that
     #: bound, now), ``nice`` (the process's niceness: :mod:`dyknow.priority`), ``lanes`` (each
-    #: lane's kind, units, busy fraction, lag, queue, stuck time) and ``overload`` (``state``: ``"ok"`` or ``"overloaded"``, and what is shed; :mod:`dyknow.overload`).
+    #: lane's kind, units, busy fraction, lag, queue, stuck time) and ``overload`` (``state``:
+    #: ``"ok"`` or ``"overloaded"``, and what is shed; :mod:`dyknow.overload`).
     executor: Mapping[str, Any] = field(default_factory=dict)
     #: The other managers this one reaches now (their liveliness token is up:
     #: :meth:`dyknow.federation.Directory.alive`, a liveliness query as the model is read, at most

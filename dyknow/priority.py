@@ -2,11 +2,12 @@
 
 On a CPU shared with other heavy work, a manager's threads wait for their turn like any other
 process: with two busy processes per core beside it, the hop of its most important stream went
-from under a millisecond to about ten at the 99th percentile (``python benchmarks/overload.py``),
+from under half a millisecond to 4 to 7 at the 99th percentile (``python benchmarks/overload.py``),
 although the manager itself had CPU to spare. Load shedding cannot help there (the manager is not
 overloaded: the machine is); the operating system's scheduler can. A manager given precedence
-over the other work (``dyknow manager --nice -10``) wakes as soon as a message is due, and the
-other processes run in what it leaves, which on a robot computer is most of the time.
+over the other work (``dyknow manager --nice -20``, or -10 for less) wakes as soon as a message
+is due, and the other processes run in what it leaves, which on a robot computer is most of the
+time.
 
 Linux's niceness belongs to each thread, and a thread inherits its creator's: :func:`set_nice`
 sets it on every thread the process has and those it starts later (Zenoh's included) inherit

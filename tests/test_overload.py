@@ -219,7 +219,7 @@ def test_an_overloaded_manager_says_so_and_sheds_the_lowest_priority_first(
         assert len(warnings) == 1, [r.getMessage() for r in caplog.records]
         # at the default priority, the warning says what answers a CPU taken by other processes
         assert os.getpriority(os.PRIO_PROCESS, os.getpid()) >= 0
-        assert "dyknow manager --nice -10 gives it precedence" in warnings[0].getMessage()
+        assert "dyknow manager --nice -20 (or -10) gives it precedence" in warnings[0].getMessage()
         # the heartbeat and everything serving its request run at full rate; the hogs do not
         serving = [u.name for u in manager.units() if u.name not in ("low", "mid", "beats")]
         assert serving and all(manager.get_statistics(name).rate == 1.0 for name in serving)

@@ -293,7 +293,7 @@ def add_commands(cmds: Commands) -> None:
     def nice_option(p: argparse.ArgumentParser, who: str) -> None:
         p.add_argument("--nice", type=_nice, metavar="N",
                        help=f"the {who}'s scheduling niceness, -20 to 19 (default: inherited, usually 0): on a CPU shared with other heavy "
-                            "work, a negative value (such as -10) keeps its messages on time; needs CAP_SYS_NICE (root) or RLIMIT_NICE; "
+                            "work, a negative value (-20 the most precedence, -10 less) keeps its messages on time; needs CAP_SYS_NICE (root) or RLIMIT_NICE; "
                             "see docs/concepts/execution.md")  # fmt: skip
 
     limit_options = cmds.limit_options
