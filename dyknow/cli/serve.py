@@ -44,12 +44,13 @@ def _nice(text: str) -> int:
     """--nice: a whole number from -20 to 19."""
     from dyknow.priority import MAX_NICE, MIN_NICE
 
+    expected = f"got {text!r}; expected a whole number from {MIN_NICE} (the most precedence) to {MAX_NICE}"
     try:
         value = int(text)
     except ValueError:
-        value = MIN_NICE - 1
+        raise argparse.ArgumentTypeError(expected) from None
     if not MIN_NICE <= value <= MAX_NICE:
-        raise argparse.ArgumentTypeError(f"got {text!r}; expected a whole number from {MIN_NICE} (the most precedence) to {MAX_NICE}")
+        raise argparse.ArgumentTypeError(expected)
     return value
 
 
