@@ -78,10 +78,11 @@ Example::
 
 from __future__ import annotations
 
+import json
 import statistics
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
 from dyknow.clocks import CLOCKS
@@ -98,7 +99,7 @@ from dyknow.unit import Unit
 if TYPE_CHECKING:
     from dyknow.message import Message
 
-__all__ = ["DEFAULT_QUEUE", "VERDICTS_PORT", "FormulaMonitor", "MonitorBudget", "monitor_spec", "term_ports"]
+__all__ = ["DEFAULT_QUEUE", "MAX_FORMULAS", "VERDICTS_PORT", "FormulaMonitor", "Formulas", "MonitorBudget", "monitor_spec", "term_ports"]
 
 VERDICTS_PORT: str = "verdicts"
 """The output port on which a monitor unit publishes its verdicts."""
@@ -109,24 +110,102 @@ DEFAULT_QUEUE: int = 1024
 _SOURCE = "dyknow.reasoning.unit:FormulaMonitor"
 
 
-def term_ports(formula: str | Formula | TransformationSpec) -> dict[str, str]:
+Formulas = str | Formula | Mapping[str, str | Formula] | Sequence[str | Formula]
+"""What a monitor unit serves: one formula, several by name (``{"slow": "...", ...}``), or several
+named by their text (a list)."""
+
+MAX_FORMULAS: int = 1000
+"""The most formulas one monitor unit serves (their nodes are bounded besides, with every other
+monitor's, by ``Limits.max_monitor_nodes``)."""
+
+_MAX_NAME = 200
+
+
+def _named(formulas: Formulas, where: str) -> list[tuple[str | None, Formula]]:
+    """``formulas`` as ``(name, parsed)`` pairs: one formula has no name (its verdicts carry
+    none, as they always did)."""
+    if isinstance(formulas, str | Formula):
+        return [(None, parse(formulas) if isinstance(formulas, str) else formulas)]
+    if isinstance(formulas, Mapping):
+        items = list(formulas.items())
+    else:
+        items = [(f.text if isinstance(f, Formula) else f, f) for f in formulas]
+    expected = 'one formula, or several by name: {"slow": "Speed(robot) < 0.5", "bumps": "count[0, 60s] rise(Bump(robot)) <= 3"}'
+    if not items:
+        raise FormulaError("no formula given", where=where, expected=expected)
+    if len(items) > MAX_FORMULAS:
+        raise FormulaError(
+            f"{len(items):,} formulas", where=where, expected=f"at most {MAX_FORMULAS:,} formulas a unit (spread them over several)"
+        )
+    out: list[tuple[str | None, Formula]] = []
+    names: set[str] = set()
+    for name, formula in items:
+        if not isinstance(name, str) or not name.strip() or len(name) > _MAX_NAME or not name.isprintable():
+            raise FormulaError(f"a formula named {str(name)[:60]!r}", where=where,
+                               expected=f"names of 1 to {_MAX_NAME} printable characters")  # fmt: skip
+        if name in names:
+            raise FormulaError(f"the formula {name[:60]!r} is given twice", where=where, expected="each formula once, each name once")
+        names.add(name)
+        if not isinstance(formula, str | Formula):
+            raise FormulaError(f"the formula {name[:60]!r} is a {type(formula).__name__}", where=where, expected="its text")
+        try:
+            out.append((name, parse(formula) if isinstance(formula, str) else formula))
+        except FormulaError as exc:
+            raise FormulaError(exc.what, where=f"{where}: formula {name[:60]!r}, {exc.where}", expected=exc.expected,
+                               formula=exc.formula, column=exc.column) from None  # fmt: skip
+    return out
+
+
+def _spec_formulas(spec: TransformationSpec) -> Formulas:
+    values = spec.param_values()
+    if isinstance(values.get("formulas"), str):
+        return _formulas_param(str(values["formulas"]), f"transformation {spec.label!r}")
+    text = values.get("formula")
+    if not isinstance(text, str):
+        raise FormulaError(
+            f"transformation {spec.label!r} has no formula param", where="term_ports()", expected="a spec from monitor_spec()"
+        )
+    return text
+
+
+def _formulas_param(text: str, where: str) -> dict[str, str]:
+    """The ``formulas`` param: a JSON object of names and formulas."""
+    expected = 'a JSON object of names and formulas, such as {"slow": "Speed(robot) < 0.5", "fast": "Speed(robot) > 3"}'
+
+    def unique(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        seen: dict[str, Any] = {}
+        for name, value in pairs:
+            if name in seen:
+                raise FormulaError(f"the name {name[:60]!r} is given twice", where=f"{where}: param formulas", expected=expected)
+            seen[name] = value
+        return seen
+
+    try:
+        named = json.loads(text, object_pairs_hook=unique)
+    except ValueError as exc:
+        raise FormulaError(f"the param formulas is not JSON ({exc})", where=f"{where}: param formulas", expected=expected) from None
+    if not isinstance(named, dict) or not all(isinstance(v, str) for v in named.values()):
+        raise FormulaError(f"the param formulas holds a JSON {type(named).__name__}", where=f"{where}: param formulas", expected=expected)
+    return named
+
+
+def _terms(named: list[tuple[str | None, Formula]]) -> list[str]:
+    """The terms of the formulas, each once, in the order they are first mentioned."""
+    return list(dict.fromkeys(str(term) for _, formula in named for term in formula.terms))
+
+
+def term_ports(formula: Formulas | TransformationSpec) -> dict[str, str]:
     """Which input port of a monitor takes which term: ``{"Battery(robot)": "t0", ...}``.
 
-    ``formula`` is the formula, or a spec made by :func:`monitor_spec` (its ``formula`` param).
+    ``formula`` is the formula (or the formulas, as :func:`monitor_spec` takes them: a term
+    several formulas read has one port), or a spec made by :func:`monitor_spec`.
     """
-    if isinstance(formula, TransformationSpec):
-        text = formula.param_values().get("formula")
-        if not isinstance(text, str):
-            raise FormulaError(
-                f"transformation {formula.label!r} has no formula param", where="term_ports()", expected="a spec from monitor_spec()"
-            )
-        formula = text
-    parsed = parse(formula) if isinstance(formula, str) else formula
-    return {str(term): f"t{k}" for k, term in enumerate(parsed.terms)}
+    formulas = _spec_formulas(formula) if isinstance(formula, TransformationSpec) else formula
+    return {term: f"t{k}" for k, term in enumerate(_terms(_named(formulas, "term_ports()")))}
 
 
 def monitor_spec(
-    formula: str | Formula,
+    formula: Formulas,
     *,
     label: str = "formula-monitor",
     reorder_ms: float = 0.0,
@@ -139,21 +218,34 @@ def monitor_spec(
 ) -> TransformationSpec:
     """The transformation spec of a monitor of ``formula``: its params, a port per term, ``verdicts``.
 
-    Raises :class:`~dyknow.errors.FormulaError` when the formula does not parse or mentions no term.
+    ``formula`` may be several formulas, served by one unit: a mapping of names to formulas, or
+    a list (each named by its text). A term they share has one port, so each sample is delivered
+    once for all of them; each verdict carries the name of its formula (``"formula": "slow"``).
+    The settings hold for every formula.
+
+    Raises :class:`~dyknow.errors.FormulaError` when a formula does not parse or they mention no term.
     """
-    parsed = parse(formula) if isinstance(formula, str) else formula
-    if not parsed.terms:
+    named = _named(formula, "monitor_spec()")
+    terms = _terms(named)
+    text = named[0][1].text if len(named) == 1 else f"{len(named)} formulas"
+    if not terms:
         raise FormulaError(
             "the formula mentions no stream, so it has no states to monitor",
-            where=f"monitor_spec({parsed.text!r})",
+            where=f"monitor_spec({text!r})",
             expected="a formula over at least one term, such as Battery(robot) > 0.2",
         )
-    ports = term_ports(parsed)
+    ports = {term: f"t{k}" for k, term in enumerate(terms)}
+    if named[0][0] is None:
+        what = Param("formula", "string", named[0][1].text)
+        described = str(named[0][1])
+    else:
+        what = Param("formulas", "string", json.dumps({name: parsed.text for name, parsed in named}))
+        described = f"{len(named)} formulas ({', '.join(str(name) for name, _ in named[:3])}{', ...' if len(named) > 3 else ''})"
     return TransformationSpec(
         label=label,
         source=_SOURCE,
         params=(
-            Param("formula", "string", parsed.text),
+            what,
             Param("reorder_ms", "float", float(reorder_ms)),
             Param("flush_ms", "float", float(flush_ms)),
             Param("max_age_ms", "float", float(max_age_ms)),
@@ -163,7 +255,7 @@ def monitor_spec(
         ),
         ports=(*(Port(port, "in", queue=queue) for port in ports.values()), Port(VERDICTS_PORT, "out")),
         tags=tuple(Tag(port, term) for term, port in ports.items()),
-        description=f"Monitors {parsed}: publishes each state's verdict on {VERDICTS_PORT} as soon as it is decided.",
+        description=f"Monitors {described}: publishes each state's verdict on {VERDICTS_PORT} as soon as it is decided.",
     )
 
 
@@ -200,7 +292,7 @@ class MonitorBudget:
     def check(self, *formulas: Formula) -> None:
         """:class:`~dyknow.errors.FormulaError` when monitors of ``formulas`` would take the
         manager's monitors past ``limits.max_monitor_nodes`` (what :meth:`join` checks)."""
-        self._check(sum(f.nodes for f in formulas), self.nodes)
+        self._check(sum(f.nodes for f in formulas), self.nodes, len(formulas))
 
     def join(self, monitor: _Shared) -> None:
         """Count ``monitor`` in (:class:`~dyknow.errors.FormulaError` past the nodes' bound);
@@ -231,11 +323,12 @@ class MonitorBudget:
             monitor.set_max_cells(self.share)
         return generation
 
-    def _check(self, nodes: int, held: int) -> None:
+    def _check(self, nodes: int, held: int, count: int = 1) -> None:
         bound = self.limits.max_monitor_nodes
         if held + nodes > bound:
+            these = "this formula has" if count == 1 else "these formulas have"
             raise FormulaError(
-                f"the manager's monitors hold {held:,} formula nodes, and this formula has {nodes:,}",
+                f"the manager's monitors hold {held:,} formula nodes, and {these} {nodes:,}",
                 where="monitor",
                 expected=f"at most {bound:,} nodes in all (Limits.max_monitor_nodes): release monitors or requirements first",
             )
@@ -256,59 +349,112 @@ _MIN_AGE_NS = 20_000_000
 _MAX_GAPS = 64
 
 
+class _Served:
+    """One formula a monitor unit serves: its monitor, which of the unit's terms it reads, what it
+    published last (per object)."""
+
+    __slots__ = ("given_up_logged", "horizon", "last_published", "monitor", "name", "reach")
+
+    def __init__(self, name: str | None, monitor: Monitor | ObjectMonitor) -> None:
+        self.name = name
+        self.monitor = monitor
+        self.reach = monitor.formula.reach_ns
+        self.horizon = monitor.formula.horizon_ns
+        self.given_up_logged = 0
+        self.last_published: dict[str | None, bool] = {}
+
+
 class FormulaMonitor(Unit):
     """A :class:`~dyknow.reasoning.Monitor` (or, for ``foreach``, an
-    :class:`~dyknow.reasoning.objects.ObjectMonitor`) as a unit (see the module documentation).
+    :class:`~dyknow.reasoning.objects.ObjectMonitor`) as a unit (see the module documentation);
+    one per formula when the unit serves several.
 
-    ``monitor`` is the monitor (its ``late`` count, ``states``, ``retained()``). In the process
-    that runs it, :meth:`listen` hands each verdict to a callback too (the adaptation loop does,
-    for a request's requirements); :attr:`warnings` says what it found wrong with the data.
+    ``monitor`` is the monitor of its (first) formula (its ``late`` count, ``states``,
+    ``retained()``), ``monitors`` each formula's by name (by its text for a unit of one formula).
+    In the process that runs it, :meth:`listen` hands each verdict to a callback too (the
+    adaptation loop does, for a request's requirements); :attr:`warnings` says what it found
+    wrong with the data.
     """
 
     monitor: Monitor | ObjectMonitor
     _budget: MonitorBudget | None = None
-    _seen_share = -1  # the budget's generation when the monitor last took its share
+    _seen_share = -1  # the budget's generation when the monitors last took their shares
 
     def use_budget(self, budget: MonitorBudget) -> None:
         """Take the manager's bounds and share of cells (called by the manager before ``setup()``)."""
         self._budget = budget
 
     def setup(self) -> None:
-        """Check the formula against the bounds, check there is a port per term, start the idle
+        """Check the formulas against the bounds, check there is a port per term, start the idle
         flush if asked for, and take a share of the cells."""
         params = self.params
+        where = f"unit {self.name!r}"
         reorder_ms = float(params.get("reorder_ms", 0.0))
         if not 0 <= reorder_ms <= 3_600_000:
-            raise FormulaError(f"reorder_ms is {reorder_ms}", where=f"unit {self.name!r}", expected="0 to 3,600,000 milliseconds")
+            raise FormulaError(f"reorder_ms is {reorder_ms}", where=where, expected="0 to 3,600,000 milliseconds")
         budget = self._budget
         limits = budget.limits if budget is not None else Limits()
-        formula = check_formula(str(params["formula"]), limits)
-        cells = budget.share if budget is not None else limits.max_monitor_cells
-        reorder_ns = round(reorder_ms * 1_000_000)
-        root = formula.root
-        self._objects = isinstance(root, Quantifier) and root.kind == "foreach"
-        if self._objects:
-            idle_ms = float(params.get("idle_ms", DEFAULT_IDLE_NS / 1e6))
-            max_objects = int(params.get("max_objects", DEFAULT_MAX_OBJECTS))
-            if not 0 < idle_ms <= 86_400_000 or not 1 <= max_objects <= 1_000_000:
-                raise FormulaError(f"idle_ms {idle_ms}, max_objects {max_objects}", where=f"unit {self.name!r}",
-                                   expected="idle_ms in (0, 86,400,000] and max_objects in [1, 1,000,000]")  # fmt: skip
-            self.monitor = ObjectMonitor(formula, reorder_ns=reorder_ns, max_cells=cells, idle_ns=round(idle_ms * 1e6), max_objects=max_objects)
+        given = params.get("formulas")
+        if isinstance(given, str) and given:
+            if params.get("formula"):
+                raise FormulaError("both formula and formulas are given", where=where, expected="one of the two params")
+            named = _named(_formulas_param(given, where), where)
         else:
-            self.monitor = Monitor(formula, reorder_ns=reorder_ns, max_cells=cells)
+            named = [(None, parse(str(params["formula"])))]
+        checked: list[tuple[str | None, Formula]] = []
+        for name, parsed in named:
+            try:
+                checked.append((name, check_formula(parsed, limits)))
+            except FormulaError as exc:
+                if name is None:
+                    raise
+                raise FormulaError(exc.what, where=f"{where}: formula {name[:60]!r}, {exc.where}", expected=exc.expected,
+                                   formula=exc.formula, column=exc.column) from None  # fmt: skip
+        reorder_ns = round(reorder_ms * 1_000_000)
+        idle_ms = float(params.get("idle_ms", DEFAULT_IDLE_NS / 1e6))
+        max_objects = int(params.get("max_objects", DEFAULT_MAX_OBJECTS))
+        if not 0 < idle_ms <= 86_400_000 or not 1 <= max_objects <= 1_000_000:
+            raise FormulaError(f"idle_ms {idle_ms}, max_objects {max_objects}", where=where,
+                               expected="idle_ms in (0, 86,400,000] and max_objects in [1, 1,000,000]")  # fmt: skip
+        cells = budget.share if budget is not None else limits.max_monitor_cells
+        served: list[_Served] = []
+        for name, formula in checked:
+            root = formula.root
+            if isinstance(root, Quantifier) and root.kind == "foreach":
+                monitor: Monitor | ObjectMonitor = ObjectMonitor(
+                    formula, reorder_ns=reorder_ns, max_cells=cells, idle_ns=round(idle_ms * 1e6), max_objects=max_objects
+                )
+            else:
+                monitor = Monitor(formula, reorder_ns=reorder_ns, max_cells=cells)
+            served.append(_Served(name, monitor))
+        self._served = served
+        self.monitor = served[0].monitor
+        #: each formula's monitor, by name (by its text for a unit of one formula)
+        self.monitors: dict[str, Monitor | ObjectMonitor] = {s.name or s.monitor.formula.text: s.monitor for s in served}
+        #: the terms of the formulas, each once: the unit's ports t0, t1, ... in this order
+        self.terms: tuple[str, ...] = tuple(_terms(checked))
+        terms = self.terms
+        # which monitors read each of the unit's terms, and as which of theirs
+        self._readers: list[list[tuple[_Served, int]]] = [[] for _ in terms]
+        for s in served:
+            for local, term in enumerate(s.monitor.terms):
+                self._readers[terms.index(term)].append((s, local))
+        # the terms a foreach quantifies over: the field naming the object, the cap (its first formula's)
+        self._domains: dict[int, tuple[tuple[str, ...], int]] = {}
+        for s in served:
+            if isinstance(s.monitor, ObjectMonitor):
+                self._domains.setdefault(terms.index(str(s.monitor.domain.term)), (s.monitor.domain.fields, s.monitor.max_objects))
         self._future_ns = limits.max_future_ns
         #: samples refused because their time lay in the future (see the module documentation)
         self.future = 0
-        self._given_up_logged = 0
         self._received = 0
-        terms = self.monitor.terms
         self._ports = {f"t{k}": k for k in range(len(terms))}
         bound = self.get_config()
         missing = [f"{port} for {terms[k]}" for port, k in self._ports.items() if port not in bound]
         if missing or VERDICTS_PORT not in bound:
             raise FormulaError(
                 f"the unit lacks ports: {', '.join(missing) or VERDICTS_PORT}",
-                where=f"unit {self.name!r}",
+                where=where,
                 expected="the spec monitor_spec(formula) builds: one input per term and the output 'verdicts'",
             )
         self._last_sample = time.monotonic()
@@ -320,51 +466,63 @@ class FormulaMonitor(Unit):
         self.ages: dict[str, int] = {}
         self._derive = max_age_ms == 0
         if max_age_ms > 0:
-            for term in terms:
-                self._set_age(term, round(max_age_ms * 1e6))
+            for k in range(len(terms)):
+                self._set_age(k, round(max_age_ms * 1e6))
         self._spacing: dict[int, list[int]] = {k: [] for k in range(len(terms))}
         self._object_last: dict[str, int] = {}  # a foreach stream's objects' latest sample times, while deriving
         self._last_t: list[int] = [-(2**62)] * len(terms)
         # gaps a re-plan left: (term, cause, from ns, until ns or None while it lasts)
         self._gaps: list[tuple[str, str, int, int | None]] = []
-        self._reach = formula.reach_ns
-        self._horizon = formula.horizon_ns
-        # fields the formula reads, per term: judged on the term's first samples
+        # fields the formulas read, per term: judged on the term's first samples
         self._fields: dict[int, set[tuple[str, ...]]] = {}
-        for node in walk(root):
-            stream = node if isinstance(node, Stream) else (node.domain if isinstance(node, Quantifier) and isinstance(node.domain, Stream) else None)
-            if stream is not None and stream.fields:
-                self._fields.setdefault(terms.index(str(stream.term)), set()).add(stream.fields)
+        for _, formula in checked:
+            for node in walk(formula.root):
+                stream = (
+                    node
+                    if isinstance(node, Stream)
+                    else (node.domain if isinstance(node, Quantifier) and isinstance(node.domain, Stream) else None)
+                )
+                if stream is not None and stream.fields:
+                    self._fields.setdefault(terms.index(str(stream.term)), set()).add(stream.fields)
         self._held_fields: dict[int, set[tuple[str, ...]]] = {k: set() for k in self._fields}
         self._seen_keys: dict[int, set[str]] = {k: set() for k in self._fields}
         self._samples = [0] * len(terms)
         #: what the monitor found wrong with its data (a field no sample holds), each said once
         self.warnings: list[str] = []
         self._changes_only = bool(params.get("changes_only", False))
-        self._last_published: dict[str | None, bool] = {}
         flush_ms = float(params.get("flush_ms", 0.0))
         self._flush_s = flush_ms / 1000
         if flush_ms > 0:
             self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
-        if budget is not None:
-            budget.join(self.monitor)  # last: a failed setup() has nothing to give back
+        if budget is not None:  # last: a failed setup() has nothing to give back
+            budget.check(*(s.monitor.formula for s in served))
+            for s in served:
+                budget.join(s.monitor)
 
     def teardown(self) -> None:
-        """Give the monitor's share of cells back."""
+        """Give the monitors' shares of cells back."""
         if self._budget is not None:
-            self._budget.leave(self.monitor)
+            for served in self._served:
+                self._budget.leave(served.monitor)
 
     def listen(self, callback: Callable[[Verdict], None]) -> None:
         """Call ``callback(verdict)`` for every verdict from now on, on the unit's thread (it must return at once)."""
         self._listeners.append(callback)
 
-    def on_message(self, port: str, msg: Message) -> None:
-        """Push the sample (its origin time, its payload); publish the verdicts it decided."""
-        monitor = self.monitor
+    def _take_shares(self) -> None:
+        """Give each monitor its share of cells now when monitors joined or left since the last look
+        (one comparison when nothing changed: called per sample)."""
         budget = self._budget
-        if budget is not None:
-            self._seen_share = budget.take_share(monitor, self._seen_share)
-        late = monitor.late
+        if budget is not None and budget.generation != self._seen_share:
+            generation = budget.generation
+            for served in self._served:
+                budget.take_share(served.monitor, -1)
+            self._seen_share = generation  # (read before the shares: a join in between makes the next call look again)
+
+    def on_message(self, port: str, msg: Message) -> None:
+        """Push the sample (its origin time, its payload) to every formula that reads its term;
+        publish the verdicts it decided."""
+        self._take_shares()
         t_ns = msg.origin_ns
         if msg.origin_clock != CLOCK_ID:
             offset = CLOCKS.current.get(msg.origin_clock)
@@ -385,25 +543,31 @@ class FormulaMonitor(Unit):
                 return
         k = self._ports[port]
         payload = msg.payload
-        if isinstance(monitor, ObjectMonitor) and k == monitor.domain_index and type(payload) is list:
+        if k in self._domains and type(payload) is list:
             for item in payload:  # a frame: a sample per element (what the fields and the rate are judged on)
                 self._observe(k, t_ns, item)
         else:
             self._observe(k, t_ns, payload)
-        if isinstance(monitor, ObjectMonitor):
-            decided: list[tuple[str | None, Verdict]] = list(monitor.push_index(k, t_ns, msg.payload))
-        else:
-            decided = [(None, v) for v in monitor.push_index(k, t_ns, msg.payload)]
-        if monitor.late != late:  # (expected when a term's producer was switched, or hosts interleave)
-            closed = monitor.closed_ns if isinstance(monitor, Monitor) else None
+        late: Monitor | ObjectMonitor | None = None
+        for served, local in self._readers[k]:
+            monitor = served.monitor
+            before = monitor.late
+            if isinstance(monitor, ObjectMonitor):
+                for key, verdict in monitor.push_index(local, t_ns, payload):
+                    self._publish(served, verdict, key)
+            else:
+                for verdict in monitor.push_index(local, t_ns, payload):
+                    self._publish(served, verdict)
+            if monitor.late != before:
+                late = monitor
+        if late is not None:  # (expected when a term's producer was switched, or hosts interleave)
+            closed = late.closed_ns if isinstance(late, Monitor) else None
             self.reject(
                 port,
-                f"late: a sample at {t_ns} ns, at or before the last state closed ({closed} ns; reorder delay {monitor.reorder_ns / 1e6:g} ms)",
+                f"late: a sample at {t_ns} ns, at or before the last state closed ({closed} ns; reorder delay {late.reorder_ns / 1e6:g} ms)",
                 expected=True,
             )
         self._last_sample = time.monotonic()
-        for key, verdict in decided:
-            self._publish(verdict, key)
         self._received += 1
         if self._received & 1023 == 0:  # (not monitor.states: an object monitor's sums its instances')
             self._report_given_up()
@@ -411,27 +575,28 @@ class FormulaMonitor(Unit):
     # -- what the samples tell: freshness, fields, the end of a gap
 
     def _observe(self, k: int, t_ns: int, payload: Any) -> None:
-        term = self.monitor.terms[k]
+        term = self.terms[k]
         last = self._last_t[k]
         if t_ns > last:
             if self._derive and term not in self.ages:
                 spacing = self._spacing[k]
-                monitor = self.monitor
-                if isinstance(monitor, ObjectMonitor) and k == monitor.domain_index:
+                domain = self._domains.get(k)
+                if domain is not None:
                     # each object's instance reads its own samples: the spacing that counts is an
                     # object's, not the stream's (1,000 objects at 20 Hz are 0.05 ms apart on it)
-                    key = object_key(read(payload, monitor.domain.fields))
+                    fields, max_objects = domain
+                    key = object_key(read(payload, fields))
                     if key is not None:
                         previous = self._object_last.get(key)
                         if previous is not None and t_ns > previous:
                             spacing.append(t_ns - previous)
-                        if previous is not None or len(self._object_last) < monitor.max_objects:
+                        if previous is not None or len(self._object_last) < max_objects:
                             self._object_last[key] = t_ns
                 elif last > -(2**62):
                     spacing.append(t_ns - last)
                 if len(spacing) >= _DERIVE_AFTER:
                     self._object_last.clear()
-                    self._set_age(term, max(_MIN_AGE_NS, 5 * int(statistics.median(spacing))))
+                    self._set_age(k, max(_MIN_AGE_NS, 5 * int(statistics.median(spacing))))
                     self.log.info("the freshness of %s: %.1f ms (5 times the median spacing of its first %d samples)",
                                   term, self.ages[term] / 1e6, len(spacing))  # fmt: skip
             self._last_t[k] = t_ns
@@ -466,51 +631,55 @@ class FormulaMonitor(Unit):
                 self.log.warning("%s", warning)
                 self.publish(VERDICTS_PORT, {"warning": warning, "term": term, "field": field, "fields_seen": seen})
 
-    def _set_age(self, term: str, age_ns: int) -> None:
-        self.ages[term] = age_ns
-        monitor = self.monitor
-        if isinstance(monitor, ObjectMonitor):
-            monitor.set_max_age(term, age_ns)
-        else:
-            monitor.set_max_age(term, age_ns)
+    def _set_age(self, k: int, age_ns: int) -> None:
+        """Term ``k``'s maximum age, for every formula that reads it."""
+        self.ages[self.terms[k]] = age_ns
+        for served, local in self._readers[k]:
+            served.monitor.set_max_age(served.monitor.terms[local], age_ns)
 
     def _report_given_up(self) -> None:
         """Log, now and then (at 1, 10, 100, ... states), that the memory bound gave states up."""
-        given_up = self.monitor.given_up
-        if given_up > self._given_up_logged:
-            self._given_up_logged = 10 ** len(str(given_up))
-            self.log.warning(
-                "the memory bound gave up %d states so far (its share of the manager's cells, "
-                "Limits.max_monitor_cells): the verdicts that needed them stay unknown",
-                given_up,
-            )
+        for served in self._served:
+            given_up = served.monitor.given_up
+            if given_up > served.given_up_logged:
+                served.given_up_logged = 10 ** len(str(given_up))
+                self.log.warning(
+                    "the memory bound gave up %d states of %s so far (its share of the manager's cells, "
+                    "Limits.max_monitor_cells): the verdicts that needed them stay unknown",
+                    given_up,
+                    "the formula" if served.name is None else f"the formula {served.name!r}",
+                )
 
-    def _publish(self, verdict: Verdict, key: str | None = None, origin_ns: int | None = None) -> None:
+    def _publish(self, served: _Served, verdict: Verdict, key: str | None = None, origin_ns: int | None = None) -> None:
         if self._changes_only:
-            if self._last_published.get(key) is verdict.verdict:
+            last = served.last_published
+            if last.get(key) is verdict.verdict:
                 for listener in self._listeners:
                     listener(verdict)
                 return
-            self._last_published[key] = verdict.verdict
+            last[key] = verdict.verdict
         out = verdict.to_json()
+        if served.name is not None:
+            out["formula"] = served.name
         if key is not None:
             out["object"] = key
-        gap = self._gap_for(verdict.t_ns)
+        gap = self._gap_for(served, verdict.t_ns)
         if gap is not None:
             out["gap"] = gap
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
         for listener in self._listeners:
             listener(verdict)
 
-    def _gap_for(self, t_ns: int) -> dict[str, str] | None:
+    def _gap_for(self, served: _Served, t_ns: int) -> dict[str, str] | None:
         """The gap a verdict at ``t_ns`` reads into, if any: its window runs from ``t_ns`` back by
-        the formula's past reach and forward by its horizon."""
+        its formula's past reach and forward by its horizon (a gap of a term the formula does not
+        read counts too: the unit's terms were re-planned together)."""
         if not self._gaps:
             return None
-        earliest = -(2**62) if self._reach is None else t_ns - self._reach
-        latest = t_ns + self._horizon
+        earliest = -(2**62) if served.reach is None else t_ns - served.reach
+        latest = t_ns + served.horizon
         for term, cause, start, end in self._gaps:
-            if start <= latest and (end is None or end >= earliest):
+            if term in served.monitor.terms and start <= latest and (end is None or end >= earliest):
                 return {"term": term, "cause": cause}
         return None
 
@@ -519,22 +688,21 @@ class FormulaMonitor(Unit):
         whose window reaches into the gap say so (any thread may call it: the manager's
         adaptation loop does)."""
         bound = self.get_config()
-        terms = self.monitor.terms
         for port, k in self._ports.items():
             if bound.get(port) == key:
                 gaps = self._gaps
-                gaps.append((str(terms[k]), cause[:500], self._last_t[k], None))
+                gaps.append((self.terms[k], cause[:500], self._last_t[k], None))
                 if len(gaps) > _MAX_GAPS:
                     del gaps[0]
 
     def _flush_if_idle(self) -> None:
         if time.monotonic() - self._last_sample >= self._flush_s:
-            monitor = self.monitor
-            if self._budget is not None:
-                self._seen_share = self._budget.take_share(monitor, self._seen_share)
-            if isinstance(monitor, ObjectMonitor):
-                for key, verdict in monitor.flush():
-                    self._publish(verdict, key, origin_ns=verdict.decided_ns)
-            else:
-                for verdict in monitor.flush():
-                    self._publish(verdict, origin_ns=verdict.decided_ns)
+            self._take_shares()
+            for served in self._served:
+                monitor = served.monitor
+                if isinstance(monitor, ObjectMonitor):
+                    for key, verdict in monitor.flush():
+                        self._publish(served, verdict, key, origin_ns=verdict.decided_ns)
+                else:
+                    for verdict in monitor.flush():
+                        self._publish(served, verdict, origin_ns=verdict.decided_ns)

@@ -34,8 +34,12 @@ __all__ = ["UnitHarness"]
 _SOURCE = TransformationSpec(
     label="dyknow-testing-source", source="dyknow.testing:Source", ports=(Port("out", "out"),), description="feeds a unit under test"
 )
+_SINK_QUEUE = 1 << 16
 _SINK = TransformationSpec(
-    label="dyknow-testing-sink", source="dyknow.testing:Sink", ports=(Port("in", "in"),), description="records a unit's output"
+    label="dyknow-testing-sink",
+    source="dyknow.testing:Sink",
+    ports=(Port("in", "in", queue=_SINK_QUEUE),),  # a burst (a monitor's flush) is recorded whole, not dropped
+    description="records a unit's output",
 )
 
 
