@@ -42,7 +42,9 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     assert "per-hop p50" in result.stdout
     # the targets this run can check, each with its figure (in-process: the longest chain)
     checks = {(c["mode"], c["hops"], c["ours"], c["peer"]) for c in data["targets"]}
-    assert checks == {(m, 3, ours, "zenoh-session-direct") for m in ("back-to-back", "paced") for ours in ("dyknow-inproc", "dyknow-inproc-python")}
+    assert checks == {
+        (m, 3, ours, "zenoh-session-direct") for m in ("back-to-back", "paced") for ours in ("dyknow-inproc", "dyknow-inproc-python")
+    }
     assert all(isinstance(c["met"], bool) and c["ratio"] > 0 for c in data["targets"])
     # one round: its ratio is the pooled one (computed the same way), so it agrees with the verdict
     assert all(c["round_ratios"] == [c["ratio"]] and c["settled"] for c in data["targets"])
@@ -62,7 +64,11 @@ def test_payload_benchmark_smoke(tmp_path: Path) -> None:
     rows = json.loads(out.read_text())["results"]
     assert {r["size"] for r in rows} == {"64 B", "64 KiB", "1 MiB", "6 MiB"}
     assert {(r["variant"], r["hops"]) for r in rows} == {
-        ("dyknow-inproc", 1), ("dyknow-inproc", 5), ("dyknow-process", 1), ("zenoh-process", 1), ("zenoh-shm-process", 1)
+        ("dyknow-inproc", 1),
+        ("dyknow-inproc", 5),
+        ("dyknow-process", 1),
+        ("zenoh-process", 1),
+        ("zenoh-shm-process", 1),
     }
     # the raw shared-memory baseline runs where dyknow uses shared memory: 64 KiB and more
     assert {r["size"] for r in rows if r["variant"] == "zenoh-shm-process"} == {"64 KiB", "1 MiB", "6 MiB"}
@@ -137,7 +143,11 @@ def test_overload_benchmark_smoke(tmp_path: Path) -> None:
         assert phase["low_count"] > 0 or phase["units_shed_max"] > 0, phase
     assert len(data["spawn_s_per_1000"]) == 10 and set(data["targets"]) == {"lanes_within_bound", "spawn_flat", "high_p99"}
     assert data["targets"]["lanes_within_bound"]["met"] is True
-    assert "load average" in result.stdout and "high-priority p99 at nice 0 (the hogs' priority)" in result.stdout and "target <= 3x" in result.stdout
+    assert (
+        "load average" in result.stdout
+        and "high-priority p99 at nice 0 (the hogs' priority)" in result.stdout
+        and "target <= 3x" in result.stdout
+    )
 
 
 def test_overload_benchmark_spawn_only_with_namespace_keys(tmp_path: Path) -> None:
@@ -198,7 +208,13 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
     assert "target p99 <= 200 ms" in result.stdout and "load average" in result.stdout
     if "link-cut-1s-lease" in rows:
         assert "Hosts.shaping" in rows["link-cut-1s-lease"]["links"] and "target p99 <= 1.5 s" in result.stdout
-        assert {"rejoin-peers-silent", "preferred-router-down", "preferred-behind-silent", "false-losses-behind", "silent-host-report"} <= set(rows)
+        assert {
+            "rejoin-peers-silent",
+            "preferred-router-down",
+            "preferred-behind-silent",
+            "false-losses-behind",
+            "silent-host-report",
+        } <= set(rows)
     else:
         assert f"skipped: {skipped['link-cut-1s-lease']}" in result.stdout
 
@@ -333,7 +349,9 @@ def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     for row in rows:
         assert row["dyknow_us"] > 0
         if "target_us" in row:  # RTAMT and reelay are in the bench extra, which the test extra pulls in
-            assert isinstance(row["met"], bool) and row["target_us"] == min(row.get("reelay_us", float("inf")), row.get("rtamt_us", float("inf")))
+            assert isinstance(row["met"], bool) and row["target_us"] == min(
+                row.get("reelay_us", float("inf")), row.get("rtamt_us", float("inf"))
+            )
         if "reelay" in row["agree"]:
             assert row["agree"]["reelay"], row  # reelay agrees on every formula, future ones in their past form
         if row["kind"] == "past" and "rtamt" in row["agree"]:
@@ -358,11 +376,23 @@ def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     assert 0 < run["latency_p50_ms"] <= run["latency_p99_ms"] and run["cpu_percent"] > 0
     assert run["memory"]["bytes"] > 0 and isinstance(run["memory"]["met"], bool)
     assert "target <= 1 ms" in result.stdout and "against the stated bound" in result.stdout
-    result = _run("reasoning.py", "--objects", "20", "--frame", "10", "--changes-only", "--seconds", "1", "--warmup", "0.5", "--json", str(objects))
+    result = _run(
+        "reasoning.py", "--objects", "20", "--frame", "10", "--changes-only", "--seconds", "1", "--warmup", "0.5", "--json", str(objects)
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     run = json.loads(objects.read_text())["objects"]
     assert run["frame"] == 10 and run["changes_only"] and run["instances"] == 20 and run["decided_per_s"] > 0 and run["dropped"] == 0
     assert "(10 a message: a tracker's frame)" in result.stdout
+    for separate in ([], ["--separate"]):  # three formulas over the one stream: served by one unit, or by a unit each
+        result = _run(
+            "reasoning.py", "--objects", "20", "--formulas", "3", *separate, "--seconds", "1", "--warmup", "0.5", "--json", str(objects)
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        run = json.loads(objects.read_text())["objects"]
+        assert (run["formulas"], run["units"], run["instances"]) == (3, 3 if separate else 1, 60) and run["expected_per_s"] == 1200
+        assert run["decided_per_s"] > 0 and run["dropped"] == 0 and run["late"] == 0 and isinstance(run["cpu_met"], bool)
+        assert ("served by a unit each (3 units)" if separate else "served by one unit") in result.stdout
+        assert "target: one core, keeping up: " in result.stdout
 
 
 def test_clocks_benchmark_smoke(tmp_path: Path) -> None:
@@ -435,7 +465,9 @@ def test_fleet_benchmark_smoke(tmp_path: Path) -> None:
         # what a fleet of n can measure: plans need a provider besides m0, failover two
         unmeasurable = ("router_",) + (("first_plan", "repeated_plan") if n == 1 else ()) + (("failover",) if n < 3 else ())
         measured = [k for k in rows if not k.startswith(unmeasurable)]
-        assert all(figures[k]["value"] is not None for k in measured), [(k, figures[k]["note"]) for k in measured if figures[k]["value"] is None]
+        assert all(figures[k]["value"] is not None for k in measured), [
+            (k, figures[k]["note"]) for k in measured if figures[k]["value"] is None
+        ]
         for key in set(rows) - set(measured) - {"router_cpu", "router_traffic", "router_links"}:
             assert figures[key]["value"] is None and figures[key]["note"].startswith("n/a"), (key, figures[key])  # said, not made up
         assert (figures["router_links"]["value"] is not None) == (topology == "router")
@@ -469,7 +501,9 @@ def test_fleet_listing_benchmark_smoke(tmp_path: Path) -> None:
     assert data["managers"] == 20 and data["names"]["n"] == 2 and data["start"]["refused"] == 0
     assert data["first_page"]["listed"] == 7 and data["first_page"]["total"] == 20
     assert data["all_pages"]["pages"] == 3 and data["all_pages"]["listed"] == 20 and data["all_pages"]["each_once"] is True
-    assert data["managers_cmd"]["listed"] == [7] and "7 of 20 managers listed; continue with --after p00m0006" in data["managers_cmd"]["said"]
+    assert (
+        data["managers_cmd"]["listed"] == [7] and "7 of 20 managers listed; continue with --after p00m0006" in data["managers_cmd"]["said"]
+    )
     assert data["model_page"]["listed"] == 7 and data["memory"]["pss_mib_per_manager"] > 0
     report = txt.read_text()
     assert "works, in pages: met" in report and report in result.stdout

@@ -28,6 +28,14 @@ before it, and every later sample would be late, so one sample stamped ten years
 blind the monitor for good. Outside a manager (:mod:`dyknow.testing`) the defaults of
 :class:`~dyknow.security.Limits` apply.
 
+**Many formulas.** One unit may serve several formulas (:func:`monitor_spec` given a mapping
+of names to formulas, or a list; the ``formulas`` param, a JSON object, in an XML spec). Its
+ports are the terms of them all, each once, in the order they are first mentioned, so a sample
+of a term several formulas read is received, decoded and checked once for all of them; each
+formula keeps its own monitor (its states are its own terms' samples, as if it ran alone) and
+each of its verdicts carries its name: ``"formula": "slow"``. The settings below hold for every
+formula; each counts against the manager's node budget, and all are refused together.
+
 **Objects.** A ``foreach`` formula (``foreach t in Track(field).id: ...``) runs as an
 :class:`~dyknow.reasoning.objects.ObjectMonitor`: one instance per object, ending ``idle_ms``
 after the object's last sample, at most ``max_objects`` at once; each verdict carries its
@@ -55,7 +63,8 @@ monitor) and as a message ``{"warning": "..."}`` on ``verdicts``.
 
 Params:
 
-- ``formula`` (string): the formula (:mod:`dyknow.reasoning.syntax`);
+- ``formula`` (string): the formula (:mod:`dyknow.reasoning.syntax`); or
+- ``formulas`` (string): several, a JSON object of names and formulas;
 - ``reorder_ms`` (float, default 0): the reorder delay, in sample time; a sample later than the
   policy allows is counted as a rejection of its port (``late: ...``) and dropped;
 - ``flush_ms`` (float, default 0: never): close the buffered states after this much wall time
