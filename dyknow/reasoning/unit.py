@@ -160,9 +160,15 @@ def _named(formulas: Formulas, where: str) -> list[tuple[str | None, Formula]]:
         try:
             out.append((name, parse(formula) if isinstance(formula, str) else formula))
         except FormulaError as exc:
-            raise FormulaError(exc.what, where=f"{where}: formula {name[:60]!r}, {exc.where}", expected=exc.expected,
-                               formula=exc.formula, column=exc.column) from None  # fmt: skip
+            raise _naming(exc, where, name) from None
     return out
+
+
+def _naming(exc: FormulaError, where: str, name: str) -> FormulaError:
+    """``exc`` located in the formula ``name`` of several."""
+    return FormulaError(
+        exc.what, where=f"{where}: formula {name[:60]!r}, {exc.where}", expected=exc.expected, formula=exc.formula, column=exc.column
+    )
 
 
 def _spec_formulas(spec: TransformationSpec) -> Formulas:
@@ -417,8 +423,7 @@ class FormulaMonitor(Unit):
             except FormulaError as exc:
                 if name is None:
                     raise
-                raise FormulaError(exc.what, where=f"{where}: formula {name[:60]!r}, {exc.where}", expected=exc.expected,
-                                   formula=exc.formula, column=exc.column) from None  # fmt: skip
+                raise _naming(exc, where, name) from None
         reorder_ns = round(reorder_ms * 1_000_000)
         idle_ms = float(params.get("idle_ms", DEFAULT_IDLE_NS / 1e6))
         max_objects = int(params.get("max_objects", DEFAULT_MAX_OBJECTS))
