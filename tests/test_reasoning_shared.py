@@ -153,6 +153,7 @@ def test_the_formulas_of_a_unit_join_the_managers_budget_together(make_manager: 
         ('{"a": "p > 1", "a": "q > 1"}', "the name 'a' is given twice"),
         ('{"a": "p > 1", "b": "p >"}', "formula 'b', formula column 4: unexpected end of formula"),
         ("{}", "no formula given"),
+        ("[" * 100_000 + "]" * 100_000, "the param formulas is not JSON (maximum recursion depth exceeded"),
         ('{"": "p > 1"}', "a formula named ''"),
         ('{"a": "always[0, 100000000s] p > 1"}', "formula 'a', formula column 7: 'always[0, 100000000s]' has the bound"),
     ],

@@ -197,8 +197,10 @@ def _formulas_param(text: str, where: str) -> dict[str, str]:
 
     try:
         named = json.loads(text, object_pairs_hook=unique)
-    except ValueError as exc:
-        raise FormulaError(f"the param formulas is not JSON ({exc})", where=f"{where}: param formulas", expected=expected) from None
+    except (ValueError, RecursionError) as exc:  # (a deeply nested document: refused like any other)
+        raise FormulaError(
+            f"the param formulas is not JSON ({str(exc)[:200]})", where=f"{where}: param formulas", expected=expected
+        ) from None
     if not isinstance(named, dict) or not all(isinstance(v, str) for v in named.values()):
         raise FormulaError(f"the param formulas holds a JSON {type(named).__name__}", where=f"{where}: param formulas", expected=expected)
     return named
