@@ -662,11 +662,16 @@ class Directory:
     def _bound(self, what: str, line: str) -> None:
         """Count a refusal by a bound; its log line once per kind of refusal."""
         with self._lock:
-            self._refused[what.split(" ")[0]] += 1
-            first = what not in self._said and len(self._said) < _MAX_LOST
-            self._said.add(what)
+            first = self._count_refusal(what)
         if first:
             log.warning("%s", line)
+
+    def _count_refusal(self, what: str) -> bool:
+        """Count a refusal by a bound (the lock held); whether it is the first of its kind."""
+        self._refused[what.split(" ")[0]] += 1
+        first = what not in self._said and len(self._said) < _MAX_LOST
+        self._said.add(what)
+        return first
 
     def _announce(self, summary: Summary) -> None:
         """Declare an offer token per tag this manager's summary offers (at most MAX_OFFERS), and
@@ -907,13 +912,15 @@ class Directory:
             entities = self._unfollow(manager)
             for providers in self._candidates.values():
                 providers.discard(manager)
+            first = self._count_refusal(f"silent {manager}")  # with the unfollowing: who sees it let go sees it counted
         for entity in entities:
             entity.undeclare()
-        self._bound(
-            f"silent {manager}",
-            f"directory of {self.name!r}: not following {manager!r} any more: no summary after {_GIVE_UP_ASKS} asks in "
-            f"{_GIVE_UP_S:g} s (its tokens say it offers what a plan needs; nothing answers for it)",
-        )
+        if first:
+            log.warning(
+                "directory of %r: not following %r any more: no summary after %d asks in %g s (its tokens say it offers "
+                "what a plan needs; nothing answers for it)",
+                self.name, manager, _GIVE_UP_ASKS, _GIVE_UP_S,
+            )  # fmt: skip
 
     def _fetch_soon(self, manager: str) -> None:
         """Ask ``manager`` for its summary on a fetcher thread; the answer comes back to the
