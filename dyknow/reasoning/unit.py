@@ -130,11 +130,18 @@ monitor's, by ``Limits.max_monitor_nodes``)."""
 _MAX_NAME = 200
 
 
-def _named(formulas: Formulas, where: str) -> list[tuple[str | None, Formula]]:
-    """``formulas`` as ``(name, parsed)`` pairs: one formula has no name (its verdicts carry
-    none, as they always did)."""
+def _named(formulas: Formulas, where: str, limits: Limits | None = None) -> list[tuple[str | None, Formula]]:
+    """``formulas`` as ``(name, parsed)`` pairs, each held to ``limits`` when given
+    (:func:`~dyknow.reasoning.check_formula`); one formula has no name (its verdicts carry none,
+    as they always did)."""
+
+    def read(formula: str | Formula) -> Formula:
+        if limits is not None:
+            return check_formula(formula, limits)
+        return parse(formula) if isinstance(formula, str) else formula
+
     if isinstance(formulas, str | Formula):
-        return [(None, parse(formulas) if isinstance(formulas, str) else formulas)]
+        return [(None, read(formulas))]
     if isinstance(formulas, Mapping):
         items = list(formulas.items())
     else:
@@ -158,17 +165,11 @@ def _named(formulas: Formulas, where: str) -> list[tuple[str | None, Formula]]:
         if not isinstance(formula, str | Formula):
             raise FormulaError(f"the formula {name[:60]!r} is a {type(formula).__name__}", where=where, expected="its text")
         try:
-            out.append((name, parse(formula) if isinstance(formula, str) else formula))
-        except FormulaError as exc:
-            raise _naming(exc, where, name) from None
+            out.append((name, read(formula)))
+        except FormulaError as exc:  # located in the formula of several
+            where_in = f"{where}: formula {name[:60]!r}, {exc.where}"
+            raise FormulaError(exc.what, where=where_in, expected=exc.expected, formula=exc.formula, column=exc.column) from None
     return out
-
-
-def _naming(exc: FormulaError, where: str, name: str) -> FormulaError:
-    """``exc`` located in the formula ``name`` of several."""
-    return FormulaError(
-        exc.what, where=f"{where}: formula {name[:60]!r}, {exc.where}", expected=exc.expected, formula=exc.formula, column=exc.column
-    )
 
 
 def _spec_formulas(spec: TransformationSpec) -> Formulas:
@@ -415,17 +416,9 @@ class FormulaMonitor(Unit):
         if isinstance(given, str) and given:
             if params.get("formula"):
                 raise FormulaError("both formula and formulas are given", where=where, expected="one of the two params")
-            named = _named(_formulas_param(given, where), where)
+            checked = _named(_formulas_param(given, where), where, limits)
         else:
-            named = [(None, parse(str(params["formula"])))]
-        checked: list[tuple[str | None, Formula]] = []
-        for name, parsed in named:
-            try:
-                checked.append((name, check_formula(parsed, limits)))
-            except FormulaError as exc:
-                if name is None:
-                    raise
-                raise _naming(exc, where, name) from None
+            checked = _named(str(params["formula"]), where, limits)
         reorder_ns = round(reorder_ms * 1_000_000)
         idle_ms = float(params.get("idle_ms", DEFAULT_IDLE_NS / 1e6))
         max_objects = int(params.get("max_objects", DEFAULT_MAX_OBJECTS))
