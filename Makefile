@@ -32,9 +32,14 @@ $(VENV)/.installed-docs: pyproject.toml setup.py $(COMPILED) | $(BIN)/python
 demo: $(VENV)/.installed
 	$(BIN)/dyknow demo
 
+# The suite runs in JOBS workers at once (pytest-xdist): its tests wait on processes, links and
+# leases more than they compute, so more workers than cores; each worker has its own ports and DDS
+# domains (tests/conftest.py). It ends with the 25 slowest tests. PYTEST_ARGS adds options: one tier
+# (-m unit, -m process, -m namespaces, -m browser), -k NAME, -x; JOBS=0 runs it in this one process.
 # pytest exits 5 when it collects no tests: that means the suite is missing, so say so and fail.
+JOBS ?= 4
 test: $(VENV)/.installed-test
-	@$(BIN)/python -m pytest $(PYTEST_ARGS); rc=$$?; \
+	@$(BIN)/python -m pytest -n $(JOBS) --dist worksteal --durations=25 $(PYTEST_ARGS); rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests: the test suite is missing or cannot be imported" >&2; fi; \
 	exit $$rc
 

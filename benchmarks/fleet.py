@@ -34,7 +34,8 @@ to ``m<N-1>``; fewer when there are fewer other managers) also offer the shared 
 - **newcomer**: one more manager (``new<k>``) offering ``Shared`` and its own ``Fresh(new<k>)``,
   started into the idle fleet; from its ready line (and from its launch) until a request of
   ``Fresh(new<k>)`` on ``m0`` (polled every 20 ms; the newcomer its only producer) returns
-  planned. It is stopped before the next one;
+  planned. It is stopped before the next one. The time from its ready line can be negative: its
+  tokens are up before it prints the line, and on a busy machine the line is read later still;
 - **failover on kill**: ``m0`` requests ``Shared``; a subscriber on the request's key; the manager
   whose unit feeds it is killed (SIGKILL) and the time runs from just before the kill to the
   first message on the key from another process (each message says whose clock stamped it). The

@@ -38,12 +38,11 @@ import threading
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
+from dyknow import Client, Manager, clocks, keys
+from dyknow.resources import specs_dir, testing_dir
+from dyknow.transport import Session, make_config
 
-from dyknow import Client, Manager, clocks, keys  # noqa: E402
-from dyknow.resources import specs_dir, testing_dir  # noqa: E402
-from dyknow.transport import Session, make_config  # noqa: E402
+from harness import free_ports
 
 _CHILD = """
 import sys, threading
@@ -56,15 +55,6 @@ with Session(make_config(connect=[endpoint], listen=[])) as s:
     print("declared", flush=True)
     sys.stdin.readline()
 """
-
-
-def free_port() -> int:
-    """A free TCP port on loopback."""
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def token_cpu(session: Session, endpoint: str, tag: str, count: int, subscribe: bool, base: float) -> float:
@@ -86,7 +76,7 @@ def token_cpu(session: Session, endpoint: str, tag: str, count: int, subscribe: 
     time.sleep(0.3)
     started, wall = time.process_time(), time.perf_counter()
     child = subprocess.Popen([sys.executable, "-c", _CHILD, endpoint, tag, str(count)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                             text=True, env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+                             text=True)  # fmt: skip
     assert child.stdout is not None and child.stdin is not None
     child.stdout.readline()
     if not done.wait(60):
@@ -117,7 +107,7 @@ def main() -> int:
     parser.add_argument("--tokens", type=int, default=2000, help="offer tokens the child declares (default 2000)")
     parser.add_argument("--json", type=Path, help="write the figures here too")
     args = parser.parse_args()
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_ports(1)[0]}"
     figures: dict[str, float] = {}
     ontology = [specs_dir() / "dyknow.ttl"]
     with (

@@ -113,10 +113,11 @@ def missing(variant: str) -> str | None:
     return None
 
 
-def run_peer(variant: str, hops: int, total: int, rate_hz: float | None) -> tuple[list[int], float]:
+def run_peer(variant: str, hops: int, total: int, rate_hz: float | None, domain: int | None = None) -> tuple[list[int], float]:
     """Run one chain; returns (every last-hop latency in ns of the `total` messages that arrived,
     in order, warm-up NOT dropped; CPU seconds per message of every process involved, NaN when the
-    run ended before the up file was seen)."""
+    run ended before the up file was seen). ``domain``: the DDS domain of ``dds-process`` (default:
+    one whose discovery port is free now)."""
     why = missing(variant)
     if why:
         raise RuntimeError(why)
@@ -138,7 +139,7 @@ def run_peer(variant: str, hops: int, total: int, rate_hz: float | None) -> tupl
                 env = dict(os.environ)
                 if variant == "dds-process":
                     env["CYCLONEDDS_URI"] = _cyclone_config(hops)
-                    common += ["--domain", str(_free_domain())]
+                    common += ["--domain", str(_free_domain() if domain is None else domain)]
                 for i in range(hops, -1, -1):  # receivers first, the source last
                     role = "source" if i == 0 else ("sink" if i == hops else "relay")
                     argv = [sys.executable, __file__, "--worker", variant, "--role", role, "--index", str(i), *common]

@@ -287,6 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="a quick run that checks the benchmark works (1 s at 10 Hz)")
     parser.add_argument("--json", type=Path, help="write the results here")
     parser.add_argument("--variant", action="append", choices=VARIANTS, help="run only this variant (repeatable; default all)")
+    parser.add_argument("--domains", metavar="A,B,...", help="the DDS domain of each variant in turn (default: 150 + pid %% 40 and the next ones)")
     parser.add_argument("--fastdds-profile", type=Path, metavar="FILE",
                         help="the Fast DDS profile the rclpy processes load (default: dyknow's, dyknow.ros2.dds.FASTDDS_PROFILE)")  # fmt: skip
     opts = parser.parse_args(args)
@@ -294,13 +295,16 @@ def main(argv: list[str] | None = None) -> int:
     # the DDS variants' UDP buffers (dyknow's Fast DDS profile asks 4 MB) are capped by the kernel here
     rmem_max = Path("/proc/sys/net/core/rmem_max").read_text().strip()
     print(f"net.core.rmem_max={rmem_max} (the Fast DDS profile's 4 MB UDP buffers need >= 4194304)")
-    domain = 150 + os.getpid() % 40
+    first = 150 + os.getpid() % 40
+    domains = [int(d) for d in opts.domains.split(",")] if opts.domains else [first + i for i in range(len(VARIANTS))]
+    if len(domains) < len(VARIANTS) or not all(0 <= d <= 232 for d in domains):
+        parser.error(f"--domains {opts.domains}: expected {len(VARIANTS)} DDS domain ids of 0-232, one per variant")
     if opts.fastdds_profile is not None:
         if not opts.fastdds_profile.is_file():  # (Fast DDS would go on without it, saying nothing)
             parser.error(f"--fastdds-profile: no file at {opts.fastdds_profile}")
         print(f"Fast DDS profile: {opts.fastdds_profile}")
     rows = [
-        run_variant(v, rate, duration, domain + i, opts.fastdds_profile) for i, v in enumerate(VARIANTS) if not opts.variant or v in opts.variant
+        run_variant(v, rate, duration, domains[i], opts.fastdds_profile) for i, v in enumerate(VARIANTS) if not opts.variant or v in opts.variant
     ]
     print(f"{'variant':<14} {'sent':>5} {'back':>5} {'p50 ms':>8} {'p99 ms':>8} {'relay CPU ms/msg':>17} {'ROS side CPU ms/msg':>20} {'UDP rcvbuf drops':>17}")
     for r in rows:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import fcntl
 import itertools
 import json
 import os
@@ -49,11 +50,62 @@ def undocumented(*files: Path) -> list[str]:
     return missing
 
 
+def worker() -> tuple[int, int]:
+    """This pytest process's place among the workers of a parallel run (pytest-xdist's ``-n``):
+    ``(index, count)``; ``(0, 1)`` when the suite runs in one process."""
+    index = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw"))
+    return index, max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), index + 1)
+
+
+def _share(first: int, last: int) -> range:
+    """This worker's share of ``first..last``: the workers of a parallel run never pick the same."""
+    index, count = worker()
+    size = (last - first + 1) // count
+    return range(first + index * size, first + (index + 1) * size)
+
+
+#: Ports the tests listen on: above the kernel's ephemeral range (32768-60999 on Linux: what
+#: ``bind(0)`` and every outgoing connection take) and above every DDS domain's ports that
+#: :func:`dds_domain` hands out, so nothing else on the machine takes one between the check and
+#: the listen; each worker of a parallel run takes its own share, in turn.
+_PORTS = _share(61000, 65535)
+_next_port = itertools.count()
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A TCP port on 127.0.0.1 that nothing listens on right now, of this worker's own share (see
+    ``_PORTS``): a parallel worker never hands out the same, and a port comes back only after
+    the rest of the share went round."""
+    for _ in range(len(_PORTS)):
+        port = _PORTS[next(_next_port) % len(_PORTS)]
+        with socket.socket() as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue  # in use, or still held by a closing connection
+            return port
+    raise RuntimeError(f"no free port among {_PORTS}")
+
+
+#: DDS domains of the tests: 1-213, whose ports (7400 + 250 * domain and up, the RTPS mapping)
+#: stay below the tests' own (``_PORTS``); each worker of a parallel run has its own share, as
+#: DDS discovery on loopback would join two tests on one domain.
+_DOMAINS = _share(1, 213)
+_next_domain = itertools.count()
+
+
+def dds_domain() -> int:
+    """A DDS domain (ROS 2's ``ROS_DOMAIN_ID``) no other worker of this run uses and no participant
+    on this machine has joined right now (its first discovery port is free)."""
+    for _ in range(len(_DOMAINS)):
+        domain = _DOMAINS[next(_next_domain) % len(_DOMAINS)]
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            try:
+                sock.bind(("0.0.0.0", 7400 + 250 * domain + 10))  # participant 0's unicast discovery port
+            except OSError:
+                continue
+            return domain
+    raise RuntimeError(f"no free DDS domain among {_DOMAINS}")
 
 
 def subprocess_env() -> dict[str, str]:
@@ -247,6 +299,18 @@ def data_dir() -> Path:
     return path
 
 
+def apt_install(*packages: str) -> None:
+    """Install Debian ``packages`` with apt-get, when running as root on a machine that has it
+    (the suite's system tools: Chromium, Graphviz, libfaketime, nftables). Workers of a parallel
+    run take turns (a lock file), and apt-get waits for dpkg's own lock rather than failing."""
+    if os.geteuid() != 0 or shutil.which("apt-get") is None:
+        return
+    with open("/tmp/dyknow-tests-apt.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        subprocess.run(["apt-get", "install", "-y", "-q", "-o", "DPkg::Lock::Timeout=900", *packages], capture_output=True, timeout=1800,
+                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+
+
 def _browser_paths() -> tuple[str, str] | None:
     browser = shutil.which("chromium") or shutil.which("chromium-browser")
     driver = shutil.which("chromedriver")
@@ -262,9 +326,8 @@ def browser_paths() -> tuple[str, str]:
     fail under CI (``CI=true``); elsewhere the tests that need them are skipped with the reason.
     """
     found = _browser_paths()
-    if found is None and os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "-q", "chromium", "chromium-driver"], capture_output=True, timeout=900,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+    if found is None:
+        apt_install("chromium", "chromium-driver")
         found = _browser_paths()
     if found is None:
         why = "Chromium and chromedriver are not installed (apt-get install chromium chromium-driver)"
@@ -280,9 +343,8 @@ def graphviz() -> str:
     apt-get when missing and run as root (as the browser is). Missing, it fails under CI
     (``CI=true``); elsewhere the tests that need it are skipped with the reason."""
     found = shutil.which("dot")
-    if found is None and os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "-q", "graphviz"], capture_output=True, timeout=900,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+    if found is None:
+        apt_install("graphviz")
         found = shutil.which("dot")
     if found is None:
         why = "Graphviz is not installed (apt-get install graphviz): the site's figures are drawn with its dot"
@@ -300,9 +362,8 @@ def faketime() -> Path:
     """Debian's libfaketime (a process's wall clock faked: ``LD_PRELOAD`` it with ``FAKETIME``),
     installed with apt-get when missing and run as root. Missing, it fails under CI (``CI=true``);
     elsewhere the tests that need it are skipped with the reason."""
-    if not FAKETIME.is_file() and os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "-q", "faketime"], capture_output=True, timeout=900,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+    if not FAKETIME.is_file():
+        apt_install("faketime")
     if not FAKETIME.is_file():
         why = f"libfaketime is not installed ({FAKETIME}; apt-get install faketime)"
         if under_ci():
@@ -315,3 +376,84 @@ def faked_clock(faketime: Path, setting: str) -> dict[str, str]:
     """The environment that runs a process with its wall clock faked by ``setting`` (libfaketime's
     ``FAKETIME``: ``+0.25``, ``+0 x1.0001``), its monotonic clock left alone (Zenoh's leases, timers)."""
     return {"FAKETIME": setting, "FAKETIME_DONT_FAKE_MONOTONIC": "1", "LD_PRELOAD": str(faketime)}
+
+
+# ------------------------------------------------------------------------------------------- tiers
+#
+# Every test belongs to one tier, so a contributor can run the quick part alone (CONTRIBUTING.md):
+#
+#   unit        in this process only: Zenoh sessions on loopback, files, OpenCV (no mark: the default)
+#   process     starts other processes: managers, CLI commands, benchmarks' smoke runs, ROS 2 peers
+#   namespaces  makes network namespaces (several hosts on one machine; root)
+#   browser     drives a real Chromium
+#
+# A test's tier is checked as it runs: one that starts a program of a tier above its mark fails,
+# naming the program and the mark it needs. Programs that only install what the suite needs
+# (apt-get) belong to no tier.
+
+TIERS = ("unit", "process", "namespaces", "browser")
+_UNTIERED = {"apt-get", "dpkg", "ldconfig", "ldconfig.real", "uname"}
+_started: list[tuple[str, str]] = []  # (tier, command) of each program started by the running test
+
+
+def _tier_of(argv: Any) -> str | None:
+    """The tier a program belongs to, from its command line (None: no tier)."""
+    words = [os.path.basename(str(word)) for word in ([argv] if isinstance(argv, (str, bytes, os.PathLike)) else list(argv))[:8]]
+    if not words or words[0] in _UNTIERED:
+        return None
+    if words[0] in ("ip", "nft", "tc", "unshare", "nsenter"):
+        return "namespaces"
+    if any("chromium" in word or "chromedriver" in word or "chrome" == word for word in words):
+        return "browser"
+    return "process"
+
+
+def _audit(event: str, args: tuple[Any, ...]) -> None:
+    if event == "subprocess.Popen":
+        tier = _tier_of(args[1] if args[1] is not None else args[0])
+        if tier is not None:
+            _started.append((tier, " ".join(str(a) for a in ([args[1]] if isinstance(args[1], (str, bytes)) else list(args[1] or [args[0]])))[:200]))
+    elif event in ("os.system", "os.posix_spawn", "os.spawn", "os.exec", "os.fork", "os.forkpty"):
+        _started.append(("process", f"{event} {args[0] if args else ''}"[:200]))
+
+
+sys.addaudithook(_audit)
+
+
+def _tier(item: pytest.Item) -> str:
+    marked = [tier for tier in TIERS[1:] if item.get_closest_marker(tier) is not None]
+    return marked[-1] if marked else "unit"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    for tier, what in (("unit", "in this process only (given to every test without another tier's mark)"),
+                       ("process", "starts other processes (managers, CLI commands, smoke runs of benchmarks, ROS 2 peers)"),
+                       ("namespaces", "makes network namespaces to stand in for several hosts (root)"),
+                       ("browser", "drives a real Chromium")):  # fmt: skip
+        config.addinivalue_line("markers", f"{tier}: the {tier} tier: {what}")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if _tier(item) == "unit":
+            item.add_marker(pytest.mark.unit)
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> Any:
+    _started.clear()  # before any fixture of this test: what its setup and its call start is its own
+    return (yield)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
+    report = yield
+    if call.when == "call" and report.passed:
+        rank = TIERS.index(_tier(item))
+        above = [(tier, command) for tier, command in _started if TIERS.index(tier) > rank]
+        if above:
+            tier, command = above[0]
+            report.outcome = "failed"
+            report.longrepr = (f"{item.nodeid} is in the {_tier(item)} tier but started `{command}`, a program of the {tier} tier: "
+                               f"mark it @pytest.mark.{tier} (or its module: pytestmark = pytest.mark.{tier}); see CONTRIBUTING.md, 'Tiers'")  # fmt: skip
+    return report

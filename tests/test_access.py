@@ -183,6 +183,7 @@ def _tls_args(certs: Path, name: str) -> list[str]:
     return ["--tls-ca", str(certs / "ca.pem"), "--tls-cert", str(certs / f"{name}.pem"), "--tls-key", str(certs / f"{name}.key")]
 
 
+@pytest.mark.process
 def test_the_command_line_speaks_tls_and_roles(certs: Path, tmp_path: Path, cli_process: Callable[..., CliProcess]) -> None:
     acl = tmp_path / "acl.json5"
     acl.write_text("{ roles: { viewer: ['viewer'], operator: ['operator'] } }")
@@ -202,6 +203,7 @@ def test_the_command_line_speaks_tls_and_roles(certs: Path, tmp_path: Path, cli_
     assert manager.stop() == 0
 
 
+@pytest.mark.process
 def test_a_manager_exposed_without_tls_warns(cli_process: Callable[..., CliProcess]) -> None:
     manager = cli_process("manager", "--name", "open", "--listen", f"tcp/0.0.0.0:{free_port()}", "--specs", str(GENERIC_SPECS), "--json")
     assert manager.line()["event"] == "ready"
@@ -291,6 +293,7 @@ def test_a_call_through_another_manager_keeps_its_callers_rights(pair: tuple[Man
         Client("station", connect=robot.endpoints, timeout_s=1.0)  # no certificate: no TLS link at all
 
 
+@pytest.mark.process
 def test_a_call_through_a_router_keeps_its_callers_rights(certs: Path, make_manager: Callable[..., Manager], cli_process: Callable[..., CliProcess], tmp_path: Path) -> None:
     """Clients and the manager meet at a router: the manager sees every call come by the
     router's link, and still judges each by its caller's signature against its own roles. The
@@ -616,6 +619,7 @@ def test_a_requirement_reads_only_what_its_caller_may_read(certs: Path, make_man
         assert limited.release(key) == 0
 
 
+@pytest.mark.process
 def test_a_link_lost_mid_call_is_not_read_as_the_acl_refusing(certs: Path, tmp_path: Path) -> None:
     """A manager with --acl stops mid-call (SIGKILL: its links close at once): the admin's call
     fails saying the link closed, or the manager went, never that the ACL refused the admin, which

@@ -223,6 +223,7 @@ REMOTE_SPECS = """<transformations>
 </transformations>"""
 
 
+@pytest.mark.process
 def test_remote_source_process_killed(robot: Manager) -> None:
     """A camera in another process (a hand-written RemoteStream, no federation) is preferred; killing that process switches to the local one."""
     events = Events(robot)

@@ -240,6 +240,7 @@ def test_bad_standby_values_are_refused_naming_the_field_before_anything_changes
     assert the_request(robot).standby_mode == "warm" and key == the_request(robot).key
 
 
+@pytest.mark.process
 def test_the_cli_requests_a_warm_standby_from_a_manager_process(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process("--specs", str(SCENARIO_SPECS), "--ontology", str(ONTOLOGY), "--dwell", "0.3")
     bad = run_cli("request", TAG, "--standby", "hot", *proc.client_args())

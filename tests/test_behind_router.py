@@ -58,6 +58,7 @@ def behind(started: Callable[..., CliProcess], name: str, *routers: str, dwell: 
                    "--host", f"{name}-host", *extra)  # fmt: skip
 
 
+@pytest.mark.process
 def test_managers_behind_a_router_hold_one_link_each_and_plan_across_it(started: Callable[..., CliProcess]) -> None:
     """Acceptance (issue 40, items 1 and 4): one link per manager, to its router; a request planned
     across managers flows through the router; a SIGKILL of the producer's manager fails over to the
@@ -94,6 +95,7 @@ def test_managers_behind_a_router_hold_one_link_each_and_plan_across_it(started:
         sub.undeclare()
 
 
+@pytest.mark.process
 def test_a_standby_router_takes_over_when_the_first_goes(started: Callable[..., CliProcess]) -> None:
     """``--router A --router B``: the managers hold one link, to A; when A is killed they dial B
     (one link again) and keep planning with each other."""
@@ -121,6 +123,7 @@ def _field_camera_on_request(router: str, how: str) -> None:
             wait_until(lambda: got.count(CEILING) > 3, f"the field's camera on the station's request, {how}")
 
 
+@pytest.mark.process
 def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..., Manager]) -> None:
     """``Manager(router=[...])``: no listener, one link to the router; a request on one manager is
     served by a unit of the other, through the router."""
@@ -144,6 +147,7 @@ def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..
         assert sorted(remote for local, remote in mine if local != f"127.0.0.1:{port}") == [f"127.0.0.1:{port}"] * 2
 
 
+@pytest.mark.process
 def test_a_full_router_refuses_the_next_manager_which_says_so(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
     """A router takes 10,000 sessions by default (Zenoh's own 1,000 refused the 1,001st manager of
     a fleet); one at its ``max_sessions`` refuses the next manager, whose warning names the
@@ -171,6 +175,7 @@ def test_a_full_router_refuses_the_next_manager_which_says_so(make_manager: Call
     assert bad.returncode == 2 and "--max-sessions: got '0'; expected a positive whole number" in bad.stderr, bad.stderr
 
 
+@pytest.mark.process
 def test_a_router_takes_a_thousand_sessions(started: Callable[..., CliProcess]) -> None:
     """``dyknow router`` uses no shared memory: with it, Zenoh 1.10 made a segment in /dev/shm for
     each session and refused every session after the 351st (a fleet of 1,000 managers behind one
@@ -186,6 +191,7 @@ def test_a_router_takes_a_thousand_sessions(started: Callable[..., CliProcess]) 
                 raise AssertionError(f"session {i + 1} refused: {exc}") from None
 
 
+@pytest.mark.process
 def test_a_manager_behind_a_router_dials_nothing_else(tmp_path: Path) -> None:
     with pytest.raises(TransportError, match="a manager behind a router dials only its router"):
         Manager("m", router=["tcp/127.0.0.1:7447"], connect=["tcp/127.0.0.1:7448"])
@@ -197,6 +203,7 @@ def test_a_manager_behind_a_router_dials_nothing_else(tmp_path: Path) -> None:
     assert tls.returncode != 0 and "tls/127.0.0.1:7447 is a TLS endpoint" in tls.stderr and "--router" in tls.stderr
 
 
+@pytest.mark.process
 def test_behind_a_router_each_client_keeps_its_own_rights(started: Callable[..., CliProcess], tmp_path: Path) -> None:
     """Roles (issue 40, item 4): one ACL file for the router and the two managers behind it, TLS
     everywhere. A client through the router gets its own rights at the station: a viewer reads and
@@ -235,6 +242,7 @@ def test_behind_a_router_each_client_keeps_its_own_rights(started: Callable[...,
     }
 
 
+@pytest.mark.process
 def test_a_manager_starts_before_its_router_and_joins_it_when_it_comes(started: Callable[..., CliProcess]) -> None:
     """A robot may boot before its router: its manager starts (its own units run), says that no
     router answers yet, and joins the router once it comes, with one link."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 from tests.conftest import REPO, subprocess_env, under_ci, undocumented
 
 
+@pytest.mark.process
 def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     out, png = tmp_path / "chain.json", tmp_path / "chain.png"
     result = subprocess.run(
@@ -57,6 +59,7 @@ def _run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
     )  # fmt: skip
 
 
+@pytest.mark.process
 def test_payload_benchmark_smoke(tmp_path: Path) -> None:
     out, png = tmp_path / "payload.json", tmp_path / "payload.png"
     result = _run("payload.py", "--smoke", "--json", str(out), "--plot", str(png))
@@ -77,6 +80,7 @@ def test_payload_benchmark_smoke(tmp_path: Path) -> None:
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
+@pytest.mark.process
 def test_runtime_ops_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "ops.json"
     result = _run("runtime_ops.py", "--smoke", "--json", str(out))
@@ -87,6 +91,7 @@ def test_runtime_ops_benchmark_smoke(tmp_path: Path) -> None:
     assert data["witness"]["received"] > 0
 
 
+@pytest.mark.process
 def test_planning_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "planning.json"
     result = _run("planning.py", "--smoke", "--json", str(out))
@@ -97,6 +102,7 @@ def test_planning_benchmark_smoke(tmp_path: Path) -> None:
     assert "< 10 ms per plan" in result.stdout
 
 
+@pytest.mark.process
 def test_adaptation_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "adaptation.json"
     result = _run("adaptation.py", "--smoke", "--json", str(out))
@@ -115,6 +121,7 @@ def test_adaptation_benchmark_smoke(tmp_path: Path) -> None:
     assert "ROSA" in result.stdout
 
 
+@pytest.mark.process
 def test_idle_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "idle.json"
     result = _run("idle.py", "--window", "0.5", "--settle", "0.2", "--units", "3", "--json", str(out))
@@ -126,6 +133,7 @@ def test_idle_benchmark_smoke(tmp_path: Path) -> None:
     assert "wake-ups/s" in result.stdout
 
 
+@pytest.mark.process
 def test_overload_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "overload.json"
     result = _run("overload.py", "--units", "60", "--seconds", "0.5", "--json", str(out))
@@ -150,6 +158,7 @@ def test_overload_benchmark_smoke(tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.process
 def test_overload_benchmark_spawn_only_with_namespace_keys(tmp_path: Path) -> None:
     out = tmp_path / "overload.json"
     result = _run("overload.py", "--units", "60", "--seconds", "0.3", "--keys", "namespace", "--spawn-only", "--json", str(out))
@@ -160,6 +169,7 @@ def test_overload_benchmark_spawn_only_with_namespace_keys(tmp_path: Path) -> No
     assert "keys namespace" in result.stdout and "not measured (--spawn-only)" in result.stdout
 
 
+@pytest.mark.process
 def test_zenoh_keys_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "zenoh_keys.json"
     result = _run("zenoh_keys.py", "--keys", "40", "--kinds", "publisher,subscriber", "--json", str(out))
@@ -174,6 +184,7 @@ def test_every_public_name_of_the_benchmarks_is_documented() -> None:
     assert undocumented(*sorted((REPO / "benchmarks").glob("*.py"))) == []
 
 
+@pytest.mark.process
 def test_flood_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "flood.json"
     result = _run("flood.py", "--bad", "40", "--threads", "2", "--calls", "10", "--json", str(out))
@@ -184,6 +195,7 @@ def test_flood_benchmark_smoke(tmp_path: Path) -> None:
     assert all(r["calls"] > 0 and 0 < r["p50_ms"] <= r["p99_ms"] for r in data["results"])
 
 
+@pytest.mark.process
 def test_failover_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "failover.json"
     result = _run("failover.py", "--smoke", "--json", str(out))
@@ -219,6 +231,7 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
         assert f"skipped: {skipped['link-cut-1s-lease']}" in result.stdout
 
 
+@pytest.mark.process
 def test_faults_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "faults.json"
     result = _run("faults.py", "--scenarios", "clean,loss-5", "--seconds", "2", "--json", str(out))
@@ -232,6 +245,7 @@ def test_faults_benchmark_smoke(tmp_path: Path) -> None:
     assert "(target < 64)" in result.stdout
 
 
+@pytest.mark.process
 def test_scale_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "scale.json"
     result = _run("scale.py", "--smoke", "--json", str(out))
@@ -249,6 +263,7 @@ def test_scale_benchmark_smoke(tmp_path: Path) -> None:
     assert "plannable after" in result.stdout and "planner alone, offline" in result.stdout and "VmRSS mean" in result.stdout
 
 
+@pytest.mark.process
 def test_ui_benchmark_smoke(tmp_path: Path, browser_paths: tuple[str, str]) -> None:
     """The UI benchmark drives Debian's Chromium (the fixture installs it on a fresh machine)."""
     out = tmp_path / "ui.json"
@@ -260,6 +275,7 @@ def test_ui_benchmark_smoke(tmp_path: Path, browser_paths: tuple[str, str]) -> N
     assert "image view:" in result.stdout and "target" in result.stdout
 
 
+@pytest.mark.process
 def test_soak_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "soak.json"
     result = _run("soak.py", "--minutes", "0.1", "--relays", "3", "--rate-hz", "200", "--json", str(out))
@@ -281,6 +297,7 @@ def test_soak_benchmark_smoke(tmp_path: Path) -> None:
     assert "unexplained" in result.stdout and "target < 0.5 MB/min" in result.stdout
 
 
+@pytest.mark.process
 def test_load_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "load.json"
     result = _run("load.py", "--seconds", "2", "--clients", "4", "--processes", "2", "--json", str(out))
@@ -298,6 +315,7 @@ def test_load_benchmark_smoke(tmp_path: Path) -> None:
     assert "target: get_model p99 with 4 clients < 50 ms" in result.stdout
 
 
+@pytest.mark.process
 def test_units_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "units.json"
     result = _run("units.py", "--units", "200", "--warmup", "20", "--cycles", "20", "--blocks", "2", "--listen-s", "1", "--json", str(out))
@@ -337,6 +355,7 @@ def test_chain_targets_show_each_rounds_ratio_and_whether_the_rounds_agree() -> 
         sys.modules.pop("chain", None)
 
 
+@pytest.mark.process
 def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "reasoning.json"
     result = _run("reasoning.py", "--smoke", "--windows", "10ms,1s", "--json", str(out))
@@ -390,11 +409,15 @@ def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
         assert result.returncode == 0, result.stderr[-3000:]
         run = json.loads(objects.read_text())["objects"]
         assert (run["formulas"], run["units"], run["instances"]) == (3, 3 if separate else 1, 60) and run["expected_per_s"] == 1200
-        assert run["decided_per_s"] > 0 and run["dropped"] == 0 and run["late"] == 0 and isinstance(run["cpu_met"], bool)
+        assert run["decided_per_s"] > 0 and run["dropped"] == 0 and run["late"] == 0
+        # within one core: a verdict, or unknown exactly when no verdict reached the sink while recording (a busy machine)
+        timed = run["latency_p50_ms"] == run["latency_p50_ms"]
+        assert isinstance(run["cpu_met"], bool) if timed else run["cpu_met"] is None and "unknown: no verdict published to time" in result.stdout
         assert ("served by a unit each (3 units)" if separate else "served by one unit") in result.stdout
         assert "target: one core, keeping up: " in result.stdout
 
 
+@pytest.mark.process
 def test_clocks_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "clocks.json"
     result = _run("clocks.py", "--smoke", "--seconds", "3", "--exchanges", "100", "--json", str(out))
@@ -415,6 +438,7 @@ def test_clocks_benchmark_smoke(tmp_path: Path) -> None:
     assert "(target <= 100)" in result.stdout and "(target within 10%)" in result.stdout
 
 
+@pytest.mark.process
 def test_mcap_bombs_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "bombs.json"
     result = _run("mcap_bombs.py", "--bombs", "zstd-1g,lz4-1g-declares-8m", "--json", str(out))
@@ -425,6 +449,7 @@ def test_mcap_bombs_benchmark_smoke(tmp_path: Path) -> None:
     assert "| zstd-1g | 33237 B | 1 |" in result.stdout
 
 
+@pytest.mark.process
 def test_operator_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "operator.json"
     result = _run("operator.py", "--window", "0.5", "--settle", "0.5", "--units", "4", "--runs", "1", "--json", str(out))
@@ -439,6 +464,7 @@ def test_operator_benchmark_smoke(tmp_path: Path) -> None:
     assert "target < 1 %" in result.stdout and "< 0.3 s" in result.stdout and "load average" in result.stdout
 
 
+@pytest.mark.process
 def test_fleet_benchmark_smoke(tmp_path: Path) -> None:
     """Fleets of 1, 2 and 3 managers in both topologies: every row for every size, measured or saying why not."""
     out, txt = tmp_path / "fleet.json", tmp_path / "fleet.txt"
@@ -473,7 +499,8 @@ def test_fleet_benchmark_smoke(tmp_path: Path) -> None:
         assert (figures["router_links"]["value"] is not None) == (topology == "router")
         assert figures["cpu_per_manager"]["value"] >= 0 and figures["pss_per_manager"]["value"] > 10
         assert figures["federated_model_listed"]["value"] == figures["managers_cmd_listed"]["value"] == n
-        assert figures["newcomer_launch_ms"]["value"] >= figures["newcomer_ms"]["value"] > 0
+        # (from its ready line may be below 0: a newcomer can be planned before its ready line is read)
+        assert figures["newcomer_launch_ms"]["value"] >= figures["newcomer_ms"]["value"] and figures["newcomer_launch_ms"]["value"] > 0
         if n > 1:
             assert figures["links_per_manager"]["value"] >= 1 and figures["traffic_per_manager"]["value"] > 0
             assert set(run["plans"]["first"]["providers_used"]) <= set(run["providers"]) == {f"m{i}" for i in range(1, n)}
@@ -490,6 +517,7 @@ def test_fleet_benchmark_smoke(tmp_path: Path) -> None:
     assert report in result.stdout
 
 
+@pytest.mark.process
 def test_fleet_listing_benchmark_smoke(tmp_path: Path) -> None:
     """20 managers in two host processes behind a router, listed in pages of 7: every manager
     exactly once over three pages, `dyknow managers --limit 7` lists 7 and says where to go on."""
@@ -507,3 +535,26 @@ def test_fleet_listing_benchmark_smoke(tmp_path: Path) -> None:
     assert data["model_page"]["listed"] == 7 and data["memory"]["pss_mib_per_manager"] > 0
     report = txt.read_text()
     assert "works, in pages: met" in report and report in result.stdout
+
+
+def test_the_benchmarks_stand_on_the_installed_package() -> None:
+    """No benchmark edits ``sys.path`` or imports the test suite: each runs on ``pip install -e .``
+    alone, with ``harness.py`` beside it (found because it sits beside the script)."""
+    for script in sorted((REPO / "benchmarks").glob("*.py")):
+        text = script.read_text(encoding="utf-8")
+        assert "sys.path" not in text.replace("nothing edits ``sys.path``", ""), script.name
+        assert not re.search(r"^\s*(from|import) tests\b", text, re.MULTILINE), script.name
+
+
+@pytest.mark.process
+def test_fleet_messages_benchmark_smoke(tmp_path: Path) -> None:
+    """Run from a folder outside the checkout, with no PYTHONPATH: only the installed package is found."""
+    out = tmp_path / "fleet_messages.json"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    result = subprocess.run([sys.executable, str(REPO / "benchmarks" / "fleet_messages.py"), "--tokens", "50", "--json", str(out)],
+                            capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    figures = json.loads(out.read_text())
+    assert figures["token_us_not_subscribed"] > 0 and figures["token_us_subscribed"] > 0
+    assert figures["offers_query_ms"] > 0 and figures["summary_bytes"] > figures["brief_summary_bytes"] > 0
+    assert "load average" in result.stdout and "a fleet" in result.stdout

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import REPO, subprocess_env, undocumented
 
 SCRIPT = REPO / "benchmarks" / "adaptation_vision.py"
@@ -14,6 +16,7 @@ FIGURES = {"p50", "p90", "p99", "max"}
 METRICS = {"first_message_ms", "fresh_frame_ms", "adaptation_ms"}
 
 
+@pytest.mark.process
 def test_adaptation_vision_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "adaptation-vision.json"
     result = subprocess.run(

@@ -17,6 +17,7 @@ def _cert(path: Path) -> x509.Certificate:
     return x509.load_pem_x509_certificate(path.read_bytes())
 
 
+@pytest.mark.process
 def test_a_ca_and_one_certificate_per_name(tmp_path: Path) -> None:
     result = run_cli("certs", str(tmp_path), "--names", "robot,ground", "--json")
     assert result.returncode == 0, result.stderr
@@ -61,6 +62,7 @@ def test_bad_names_are_refused_before_anything_is_written(tmp_path: Path, names:
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.process
 def test_a_broken_ca_is_not_overwritten(tmp_path: Path) -> None:
     (tmp_path / "ca.pem").write_text("not a certificate")
     (tmp_path / "ca.key").write_text("not a key")

@@ -22,12 +22,14 @@ from tests.conftest import REPO, ManagerProcess, free_port, run_cli, subprocess_
 SPECS = REPO / "tests" / "specs"
 
 
+@pytest.mark.process
 def test_validate_accepts_good_specs() -> None:
     result = run_cli("validate", str(REPO / "specs"), str(SPECS / "listing1_fixed.xml"))
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("ok: ")
 
 
+@pytest.mark.process
 def test_validate_reports_every_error_located() -> None:
     broken = SPECS / "broken" / "several_errors.xml"
     result = run_cli("validate", str(SPECS / "listing1.xml"), str(broken))
@@ -41,12 +43,14 @@ def test_validate_reports_every_error_located() -> None:
     assert "Traceback" not in result.stderr and result.stdout == ""
 
 
+@pytest.mark.process
 def test_validate_missing_path() -> None:
     result = run_cli("validate", "/nonexistent/specs")
     assert result.returncode == 1
     assert result.stderr.strip() == "/nonexistent/specs: no such file or directory; expected a spec file or a directory of *.xml files"
 
 
+@pytest.mark.process
 def test_expand_json_contract() -> None:
     result = run_cli("expand", str(SPECS / "listing1_fixed.xml"), "--json")
     assert result.returncode == 0, result.stderr
@@ -61,6 +65,7 @@ def test_expand_json_contract() -> None:
     }
 
 
+@pytest.mark.process
 def test_client_commands_drive_a_manager_process(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process()
     conn = proc.client_args()
@@ -110,6 +115,7 @@ def test_client_commands_drive_a_manager_process(manager_process: Callable[..., 
     assert proc.stop(signal.SIGTERM) == 0
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_manager_shuts_down_cleanly_on_signals(manager_process: Callable[..., ManagerProcess], sig: int) -> None:
     proc = manager_process()
@@ -119,6 +125,7 @@ def test_manager_shuts_down_cleanly_on_signals(manager_process: Callable[..., Ma
     assert proc.proc.stderr is not None and "Traceback" not in proc.proc.stderr.read()
 
 
+@pytest.mark.process
 def test_no_manager_is_one_clear_line() -> None:
     result = run_cli("model", "--connect", f"tcp/127.0.0.1:{free_port()}", "--manager", "ghost", "--timeout", "1")
     assert result.returncode == 1
@@ -127,11 +134,13 @@ def test_no_manager_is_one_clear_line() -> None:
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.process
 def test_usage_errors_exit_2() -> None:
     result = run_cli("config", "set", "x", "nonsense", "--timeout", "0.1")
     assert result.returncode == 2 and "expected NAME=VALUE" in result.stderr
 
 
+@pytest.mark.process
 def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
     manager.spawn("sink", "s", bindings={"in": "fleet/ticks"})
     script = textwrap.dedent(
@@ -165,6 +174,7 @@ def test_a_second_process_feeds_a_units_input(manager: Manager) -> None:
     assert stats.messages >= 20 and stats.hop.count > 0 and stats.hop.p50_us >= 0
 
 
+@pytest.mark.process
 def test_manager_listen_conflict_is_one_clear_line(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process()
     port = proc.endpoint.rsplit(":", 1)[1]
@@ -177,12 +187,14 @@ def test_manager_listen_conflict_is_one_clear_line(manager_process: Callable[...
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.process
 def test_manager_with_broken_specs_refuses_to_start(tmp_path: Path) -> None:
     result = run_cli("manager", "--name", "x", "--listen", f"tcp/127.0.0.1:{free_port()}", "--specs", str(SPECS / "listing1.xml"))
     assert result.returncode == 1
     assert result.stderr.startswith(f"{SPECS / 'listing1.xml'}:18:")
 
 
+@pytest.mark.process
 def test_echo_times_out_with_a_clear_message(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process()
     start = time.monotonic()
@@ -195,6 +207,7 @@ SCENARIO = SCENARIO_SPECS
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 
 
+@pytest.mark.process
 def test_plan_json_contract() -> None:
     result = run_cli("plan", "--specs", str(SCENARIO), "--ontology", str(ONTOLOGY), "--request", "BallPosition(field)",
                      "--measure", "battery=0.1", "--json")  # fmt: skip
@@ -209,6 +222,7 @@ def test_plan_json_contract() -> None:
     assert planned["connections"][0] == {"from": "ceiling-camera.out", "to": "subsampler-ceiling.in", "key": "dyknow/dyknow/ceiling-camera/out"}
 
 
+@pytest.mark.process
 def test_plan_failure_explains_and_exits_1() -> None:
     result = run_cli("plan", "--specs", str(SCENARIO), "--ontology", str(ONTOLOGY), "--request", "BallPosition(field)",
                      "--measure", "battery=0.1", "--unavailable", "ceiling-camera")  # fmt: skip
@@ -220,6 +234,7 @@ def test_plan_failure_explains_and_exits_1() -> None:
     assert missing.returncode == 1 and "no ontology is loaded; expected --ontology FILE" in missing.stderr
 
 
+@pytest.mark.process
 def test_request_measure_release_over_the_cli(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process("--specs", str(SCENARIO), "--ontology", str(ONTOLOGY))
     conn = proc.client_args()
@@ -241,6 +256,7 @@ def test_request_measure_release_over_the_cli(manager_process: Callable[..., Man
     assert model["units"] == [] and model["requests"] == []
 
 
+@pytest.mark.process
 def test_managers_and_echo_show_clocks_as_the_manager_estimates_them(manager_process: Callable[..., ManagerProcess]) -> None:
     """Two manager processes, two clocks of one machine (the true offset is 0). ``managers`` shows
     each manager's offset from --manager's clock with its uncertainty; ``echo`` corrects the age
@@ -298,6 +314,7 @@ def test_managers_and_echo_show_clocks_as_the_manager_estimates_them(manager_pro
     assert "age clock unknown" in plain.stdout, plain.stdout
 
 
+@pytest.mark.process
 def test_what_a_new_user_trips_on_is_said_plainly(manager_process: Callable[..., ManagerProcess]) -> None:
     """Empty listings say so; release says how many references remain; echo prints JSON a user
     can paste, and says when the --manager it was given is not there (with the close match)."""
@@ -342,6 +359,7 @@ def _outside(tmp_path: Path, *args: str) -> subprocess.CompletedProcess[str]:
                           env=subprocess_env(), cwd=tmp_path)  # fmt: skip
 
 
+@pytest.mark.process
 def test_shipped_specs_have_a_name_that_works_from_any_folder(tmp_path: Path) -> None:
     assert REPO not in tmp_path.parents
     done = _outside(tmp_path, "validate", "@shipped", "--ontology", "@shipped/dyknow.ttl")
@@ -353,6 +371,7 @@ def test_shipped_specs_have_a_name_that_works_from_any_folder(tmp_path: Path) ->
     assert done.returncode == 0 and '"manager":"robot"' in done.stdout, done.stderr
 
 
+@pytest.mark.process
 def test_a_misspelled_shipped_name_says_which_exist(tmp_path: Path) -> None:
     done = _outside(tmp_path, "validate", "@shiped")
     assert done.returncode == 2
@@ -361,6 +380,7 @@ def test_a_misspelled_shipped_name_says_which_exist(tmp_path: Path) -> None:
     assert done.returncode == 2 and "is not shipped; @shipped holds dyknow.ttl, generic.xml" in done.stderr
 
 
+@pytest.mark.process
 def test_paths_prints_where_the_shipped_files_are(tmp_path: Path) -> None:
     done = _outside(tmp_path, "paths", "--json")
     assert done.returncode == 0, done.stderr
@@ -372,6 +392,7 @@ def test_paths_prints_where_the_shipped_files_are(tmp_path: Path) -> None:
     assert f"@shipped   {shipped}" in text and "@testing" in text
 
 
+@pytest.mark.process
 def test_a_units_exception_shows_where_in_its_code_in_the_log_model_and_stats(manager_process: Callable[..., ManagerProcess]) -> None:
     """``KeyError: 'speed'`` alone says nothing of where: the log names the file and line, and
     ``dyknow model`` and ``dyknow stats`` show the last frames of the traceback."""
@@ -398,6 +419,7 @@ def test_a_units_exception_shows_where_in_its_code_in_the_log_model_and_stats(ma
     assert f"RuntimeError: boom at message 1 at {units}:{line} in on_message (dyknow stats f shows the traceback)" in log
 
 
+@pytest.mark.process
 def test_a_misspelled_endpoint_protocol_names_the_protocols() -> None:
     """Zenoh says only "Unicast not supported for tpc protocol"."""
     expected = "no Zenoh link protocol 'tpc' (did you mean 'tcp'?); expected PROTOCOL/ADDRESS:PORT with PROTOCOL one of tcp, tls, udp, quic, ws"
@@ -449,6 +471,7 @@ _NOT_TO_FAIL = ["numpy", "rdflib", "cryptography", "json5", "ssl", "dyknow.servi
                 "dyknow.model", "dyknow.holders", "secrets", "concurrent.futures"]  # fmt: skip
 
 
+@pytest.mark.process
 @pytest.mark.parametrize(
     ("argv", "absent"),
     [
@@ -476,6 +499,7 @@ def _imported_by(argv: list[str]) -> set[str]:
     return set(done.stderr.splitlines()[-1].split())
 
 
+@pytest.mark.process
 def test_a_misspelled_manager_is_said_without_importing_more(manager_process: Callable[..., ManagerProcess]) -> None:
     """Told a manager is not there (and which are), the command still needs none of them."""
     robot = manager_process(name="robot")

@@ -92,6 +92,7 @@ def test_a_client_calling_ever_new_units_keeps_a_bounded_number_of_queriers(mana
         assert client.get_statistics("s0")["name"] == "s0"  # an evicted querier is declared again
 
 
+@pytest.mark.process
 def test_a_call_to_a_manager_that_is_gone_ends_at_once_saying_so(manager_process: Callable[..., ManagerProcess]) -> None:
     """Its liveliness token went away (killed here; a host cut off is the same once its lease
     expires): the call does not wait its whole timeout for the service to come back, it says the
@@ -118,6 +119,7 @@ def test_a_call_to_a_manager_that_is_gone_ends_at_once_saying_so(manager_process
         other.get_model()  # nothing listens there any more: said at once, without waiting for the timeout
 
 
+@pytest.mark.process
 def test_a_client_sees_every_manager_leave_stopped_or_vanished_until_it_comes_back(
     manager_process: Callable[..., ManagerProcess], cli_process: Callable[..., CliProcess]
 ) -> None:
@@ -144,6 +146,7 @@ def test_a_client_sees_every_manager_leave_stopped_or_vanished_until_it_comes_ba
         wait_until(lambda: [m["manager"] for m in client.seen_lost()] == ["calm"], "the manager back to be no longer lost")
 
 
+@pytest.mark.process
 def test_clocks_are_the_managers_as_it_estimates_them(manager_process: Callable[..., ManagerProcess], make_manager: Callable[..., Manager]) -> None:
     """Two manager processes: two clocks of one machine (the true offset is 0). A manager
     estimates the clock of another only while it exchanges data with it (issue 40): none while
@@ -198,6 +201,7 @@ def test_a_call_that_times_out_names_the_call_the_manager_the_wait_and_what_may_
     assert change.value.details["may_have_run"] is True
 
 
+@pytest.mark.process
 @pytest.mark.timeout(120)
 def test_a_fresh_client_finds_a_manager_that_is_there_every_time(
     manager_process: Callable[..., ManagerProcess], cli_process: Callable[..., CliProcess]
@@ -220,6 +224,7 @@ def test_a_fresh_client_finds_a_manager_that_is_there_every_time(
                 assert client.get_model()["manager"] == name, (name, attempt)
 
 
+@pytest.mark.process
 @pytest.mark.timeout(20)
 def test_a_manager_not_there_is_said_at_once_naming_those_that_are(
     manager_process: Callable[..., ManagerProcess], cli_process: Callable[..., CliProcess]

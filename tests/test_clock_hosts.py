@@ -33,6 +33,8 @@ from dyknow.testing.hosts import Hosts
 from tests.conftest import faked_clock, need_hosts
 from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child, adaptations
 
+pytestmark = pytest.mark.namespaces  # every test here: see CONTRIBUTING.md, 'Tiers'
+
 #: How far the robot's and the field's figures may differ for reasons other than clocks: two
 #: cameras on two hosts, on a machine of two cores shared with the rest of the suite. In the
 #: first four runs the two hop p50s differed by 3-30 µs and the ages by as little (the robot's

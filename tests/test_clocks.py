@@ -398,6 +398,7 @@ def _unrefused(tracker: ClockTracker, name: str) -> bool:
     return set(tracker.refused().get(name, {})) <= {"no answer"}
 
 
+@pytest.mark.process
 def test_an_honest_peer_in_another_process_is_estimated_within_its_uncertainty(tracked: tuple[ClockTracker, ClockTable, str]) -> None:
     tracker, table, _ = tracked
     wait_until(lambda: "honest" in tracker.estimates() and tracker.estimates()["honest"].samples >= 8, "8 exchanges")
@@ -408,6 +409,7 @@ def test_an_honest_peer_in_another_process_is_estimated_within_its_uncertainty(t
     assert _unrefused(tracker, "honest"), tracker.refused()
 
 
+@pytest.mark.process
 @pytest.mark.parametrize(
     ("liar", "answer_with", "reasons"),
     [
@@ -445,6 +447,7 @@ def test_a_hostile_peer_is_refused_counted_and_shifts_no_one_else(
         hostile.close()
 
 
+@pytest.mark.process
 def test_a_peer_claiming_anothers_clock_id_makes_it_unknown_never_shifted(tracked: tuple[ClockTracker, ClockTable, str]) -> None:
     tracker, table, endpoint = tracked
     wait_until(lambda: "honest" in tracker.estimates(), "the honest peer's estimate")
@@ -464,6 +467,7 @@ def test_a_peer_claiming_anothers_clock_id_makes_it_unknown_never_shifted(tracke
         hostile.close()
 
 
+@pytest.mark.process
 def test_a_peer_that_never_answers_delays_no_one_else(manager_process: Callable[..., ManagerProcess]) -> None:
     """A peer that holds every request (up to a 30 s timeout here): the honest peer's exchanges go
     on meanwhile, and the silent one is asked once at a time."""
@@ -485,6 +489,7 @@ def test_a_peer_that_never_answers_delays_no_one_else(manager_process: Callable[
             hostile.close()
 
 
+@pytest.mark.process
 def test_the_process_table_is_kept_by_a_tracker_and_forgotten_when_untracked(manager_process: Callable[..., ManagerProcess]) -> None:
     """CLOCKS, the table the hot path reads, filled through the public API."""
     honest = manager_process(name="honest2")
@@ -499,6 +504,7 @@ def test_the_process_table_is_kept_by_a_tracker_and_forgotten_when_untracked(man
         assert CLOCKS.offset(clock) is None
 
 
+@pytest.mark.process
 def test_fake_managers_filling_the_table_leave_no_peer_in_use_without_an_estimate(manager_process: Callable[..., ManagerProcess]) -> None:
     """300 names announced by nobody that answers (fake managers) fill the tracker's 256 places
     before a real peer does; the real one is in use (this process exchanges data with it), so

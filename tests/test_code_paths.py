@@ -43,6 +43,7 @@ def test_a_module_beside_its_spec_file_is_found_without_pythonpath(make_manager:
     assert sys.path == path_before and sys.modules["thermo_beside"].__file__ == str(tmp_path / "thermo_beside.py")
 
 
+@pytest.mark.process
 def test_a_module_elsewhere_is_found_through_path_and_its_absence_says_where_it_was_looked_for(
     manager_process: Callable[..., ManagerProcess], tmp_path: Path
 ) -> None:

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from dyknow.demo.ball import REQUIREMENT, BallDemo, Battery
 from tests.conftest import REPO, subprocess_env
 
@@ -71,6 +73,7 @@ def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp
     assert "adapted onto the warm standby in" in text
 
 
+@pytest.mark.process
 def test_demo_runs_without_a_standby_when_asked(tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "dyknow.cli", "demo", "--no-standby", "--duration", "3", "--json", "--out", str(tmp_path)],
@@ -90,6 +93,7 @@ def test_battery_story() -> None:
     assert battery.level(100) == 1.0
 
 
+@pytest.mark.process
 def test_demo_command_on_real_videos(tmp_path: Path, data_dir: Path) -> None:
     video = data_dir / "video" / "sim1.mp4"
     result = subprocess.run(
@@ -103,6 +107,7 @@ def test_demo_command_on_real_videos(tmp_path: Path, data_dir: Path) -> None:
     assert any("ceiling-camera" in a["to"] for a in summary["adaptations"])
 
 
+@pytest.mark.process
 def test_demo_refuses_a_missing_video(tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "dyknow.cli", "demo", "--robot-video", str(tmp_path / "nope.mp4")],
@@ -113,6 +118,7 @@ def test_demo_refuses_a_missing_video(tmp_path: Path) -> None:
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.process
 def test_distributed_demo_across_three_manager_processes() -> None:
     """The scenario across hosts: battery drop -> ceiling camera on another manager; field killed -> back."""
     result = subprocess.run(

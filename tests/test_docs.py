@@ -152,6 +152,7 @@ def _dyknow_lines() -> list[tuple[str, str]]:
 # ------------------------------------------------------------------------------------------- the site
 
 
+@pytest.mark.process
 def test_the_site_builds_with_warnings_as_errors(tmp_path: Path, graphviz: str) -> None:
     """``make docs`` as it runs on a fresh clone, where only the ``docs`` extra is installed
     (``tests/docs_extra_only.py``: what the other extras bring cannot be imported): a warning, a
@@ -253,6 +254,7 @@ def _outside_env() -> dict[str, str]:
     return env
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("block", _runnable_python(), ids=str)
 def test_python_blocks_run_as_written(block: Block, tmp_path: Path) -> None:
     """From a folder of their own, outside the checkout."""
@@ -263,6 +265,7 @@ def test_python_blocks_run_as_written(block: Block, tmp_path: Path) -> None:
     assert result.returncode == 0, f"{block}\n{result.stdout[-2000:]}\n{result.stderr[-4000:]}"
 
 
+@pytest.mark.process
 def test_the_first_tutorial_runs_outside_the_checkout(tmp_path: Path) -> None:
     """Its files written to a folder of their own, its commands run there as written, no PYTHONPATH."""
     blocks = _blocks(TUTORIAL)
@@ -339,6 +342,7 @@ def _bash(block: Block, cwd: Path, env: dict[str, str]) -> subprocess.CompletedP
     return result
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("block", [b for b in BLOCKS if b.marker == BASH], ids=str)
 def test_manager_sessions_run_as_written(block: Block, tmp_path: Path) -> None:
     """The sessions with a manager, in an empty folder outside the checkout."""
@@ -450,6 +454,7 @@ def test_the_pages_have_offline_commands() -> None:
     assert {shlex.split(c)[0] for _, c, _ in _offline_commands()} == {"validate", "expand", "plan"}
 
 
+@pytest.mark.process
 @pytest.mark.parametrize(("where", "command", "comment"), _offline_commands(), ids=lambda v: v[:60])
 def test_offline_commands_run_as_written(where: str, command: str, comment: str, tmp_path: Path) -> None:
     """From an empty folder outside the checkout."""

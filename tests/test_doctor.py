@@ -55,6 +55,7 @@ def test_a_port_taken_by_another_program_is_named_with_a_free_one() -> None:
     assert free.status == "ok"
 
 
+@pytest.mark.process
 def test_a_port_held_by_a_manager_is_fine_for_clients(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process(name="robot")
     (found,) = check_port([proc.endpoint])
@@ -62,6 +63,7 @@ def test_a_port_held_by_a_manager_is_fine_for_clients(manager_process: Callable[
     assert "a second manager on this host needs another port" in found.what
 
 
+@pytest.mark.process
 def test_no_manager_reachable_says_nothing_listens_and_to_start_one() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     code, found, _ = _doctor("--connect", endpoint)
@@ -72,6 +74,7 @@ def test_no_manager_reachable_says_nothing_listens_and_to_start_one() -> None:
     assert managers["status"] == "fail" and managers["what"] == f"no manager reachable through {endpoint}"
 
 
+@pytest.mark.process
 def test_a_router_down_and_a_router_without_managers_are_told_apart(tmp_path: Path, manager_process: Callable[..., ManagerProcess]) -> None:
     hub = f"tcp/127.0.0.1:{free_port()}"
     router = CliProcess("router", "--listen", hub, "--json")
@@ -109,6 +112,7 @@ def test_an_acl_that_gives_the_caller_no_role_is_named(tmp_path: Path, make_mana
     assert managers.fix == "give this certificate's common name a role in the managers' --acl file (viewer at least)"
 
 
+@pytest.mark.process
 def test_multicast_off_with_nothing_to_connect_to_finds_no_one(tmp_path: Path) -> None:
     config = tmp_path / "zenoh.json5"
     config.write_text('{ mode: "peer", scouting: { multicast: { enabled: false } } }')
@@ -129,6 +133,7 @@ def test_shared_memory_here_works() -> None:
     assert found.status == "ok", found
 
 
+@pytest.mark.namespaces
 @pytest.mark.parametrize("mount", ["size=64k", "ro"], ids=["too-small", "read-only"])
 def test_an_unusable_dev_shm_is_diagnosed_in_a_mount_namespace(mount: str) -> None:
     """/dev/shm replaced, in a mount namespace of the doctor's own, by a tmpfs too small for Zenoh's
@@ -145,6 +150,7 @@ def test_an_unusable_dev_shm_is_diagnosed_in_a_mount_namespace(mount: str) -> No
     assert "are copied through the network stack instead" in shm["what"] and "--shm-size" in shm["fix"]
 
 
+@pytest.mark.process
 def test_a_skewed_clock_between_two_managers_is_named(faketime: Path) -> None:
     """The robot's manager runs with its wall clock 250 ms ahead (libfaketime), as an
     unsynchronised host's would be; the station estimates the offset, and doctor names it."""

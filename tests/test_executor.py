@@ -300,6 +300,7 @@ executor.close(1.0)
 """
 
 
+@pytest.mark.process
 def test_a_lane_busy_with_code_that_never_reaches_python_lets_other_threads_run(tmp_path: Path) -> None:
     """A job that runs no Python (here: it queues itself again, in C) keeps the lane's compiled
     loop busy without ever reaching one of the interpreter's switch points. The lane lets go of

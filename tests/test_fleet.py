@@ -65,6 +65,7 @@ def test_a_provider_found_among_30_managers_of_which_2_offer_the_tag(make_manage
     assert [info.key for info in m00.requests()] == [key]
 
 
+@pytest.mark.process
 def test_a_fleet_is_listed_in_pages(make_manager: Callable[..., Manager]) -> None:
     """``Client.managers_page`` and ``dyknow managers --limit/--after/--match`` page through 30
     managers: every one listed once, a page at a time, each page asking only its own managers."""

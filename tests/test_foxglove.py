@@ -114,6 +114,7 @@ def check_json_channel(channel: dict[str, Any] | None, key: str) -> dict[str, An
 # --- the command, against a manager running the scenario -----------------------------------------
 
 
+@pytest.mark.process
 def test_foxglove_serves_live_images_and_json(make_manager: Callable[..., Manager], cli_process: Callable[..., CliProcess]) -> None:
     manager = make_manager(
         specs=[SCENARIO_SPECS, REPO / "specs" / "generic.xml"], ontology=[REPO / "specs" / "dyknow.ttl"], listen=["tcp/127.0.0.1:0"]
@@ -156,6 +157,7 @@ def test_foxglove_serves_live_images_and_json(make_manager: Callable[..., Manage
     assert proc.stop() == 0
 
 
+@pytest.mark.process
 def test_foxglove_refuses_a_bad_key_expression_in_one_line() -> None:
     result = run_cli("foxglove", "robot//camera", "--connect", f"tcp/127.0.0.1:{free_port()}", "--port", "0")
     assert result.returncode == 1 and result.stdout == ""
@@ -163,6 +165,7 @@ def test_foxglove_refuses_a_bad_key_expression_in_one_line() -> None:
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
+@pytest.mark.process
 def test_foxglove_refuses_a_bad_port_and_a_port_in_use() -> None:
     bad = run_cli("foxglove", "--port", "70000")
     assert bad.returncode == 2 and "--port: got 70000; expected 0 to 65535" in bad.stderr
@@ -309,6 +312,7 @@ def test_the_bridge_is_closed_to_other_web_pages(make_manager: Callable[..., Man
             assert upgrade(bridge.port, **headers)[0] == 101, headers
 
 
+@pytest.mark.process
 def test_a_message_from_a_host_whose_clock_is_ahead_is_logged_at_this_hosts_time(make_manager: Callable[..., Manager], faketime: Any) -> None:
     """The robot's manager runs with its wall clock 10 s ahead (libfaketime): its camera's frames
     are stamped 10 s in the future, and the bridge logs them at the time they were captured on

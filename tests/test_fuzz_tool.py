@@ -15,6 +15,7 @@ from tests.test_tools import run_tool
 from tools import fuzz
 
 
+@pytest.mark.process
 def test_every_target_reports_its_examples_as_json(data_dir: Path) -> None:
     proc = run_tool("fuzz.py", "--seconds", "3", "--json", data_dir=data_dir, timeout=180)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -25,6 +26,7 @@ def test_every_target_reports_its_examples_as_json(data_dir: Path) -> None:
         assert report["ok"] is True and report["failure"] is None and report["examples"] > 0, report
 
 
+@pytest.mark.process
 def test_the_text_report_has_a_line_per_target_and_a_summary() -> None:
     proc = run_tool("fuzz.py", "--minutes", "0.01", "--targets", "tags,request")
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -34,6 +36,7 @@ def test_the_text_report_has_a_line_per_target_and_a_summary() -> None:
     assert lines[2:] == ["all 2 targets passed"]
 
 
+@pytest.mark.process
 def test_unknown_targets_are_a_usage_error() -> None:
     proc = run_tool("fuzz.py", "--targets", "spec,teleport")
     assert proc.returncode == 2 and "expected a comma-separated list of spec, tags, request, service, mcap" in proc.stderr

@@ -64,6 +64,7 @@ def test_one_client_gone_leaves_the_others_reference(manager: Manager) -> None:
     assert _request(manager) is None
 
 
+@pytest.mark.process
 def test_a_crashed_clients_request_ends_too(manager: Manager) -> None:
     script = (
         "import sys, time\nfrom dyknow import Client\n"
@@ -88,6 +89,7 @@ def test_a_bad_holder_id_is_refused_and_takes_nothing(manager: Manager) -> None:
     assert _request(manager) is None and manager.units() == []
 
 
+@pytest.mark.process
 def test_the_cli_keeps_its_request_and_says_how_to_release_it(make_manager: Callable[..., Manager]) -> None:
     manager = make_manager("kept", specs=[SCENARIO_SPECS], ontology=[ONTOLOGY], client_grace_s=0.5)
     conn = ["--connect", manager.endpoints[0], "--manager", manager.name]
@@ -99,6 +101,7 @@ def test_the_cli_keeps_its_request_and_says_how_to_release_it(make_manager: Call
     assert model["requests"][0]["kept"] == 1 and model["requests"][0]["holders"] == {}
 
 
+@pytest.mark.process
 def test_the_manager_command_sets_the_grace(manager_process: Callable[..., Any]) -> None:
     proc = manager_process("--specs", str(SCENARIO_SPECS), "--ontology", str(ONTOLOGY), "--client-grace", "0")
 

@@ -14,7 +14,6 @@ import json
 import os
 import queue
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -28,7 +27,9 @@ import pytest
 
 from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS
 from dyknow.testing.hosts import Hosts, faults_unavailable
-from tests.conftest import REPO, need_hosts, subprocess_env
+from tests.conftest import REPO, apt_install, need_hosts, subprocess_env
+
+pytestmark = pytest.mark.namespaces  # every test here: see CONTRIBUTING.md, 'Tiers'
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 BOTTOM, CEILING = CAMERA_IDS["bottom"], CAMERA_IDS["ceiling"]
@@ -203,9 +204,8 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
 def faulty(hosts: Hosts) -> Hosts:
     """The hosts, with packet loss and bandwidth limits at hand (Debian's nftables, installed
     with apt-get when missing and run as root, as Chromium is)."""
-    if faults_unavailable() is not None and os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "-q", "nftables"], capture_output=True, timeout=900,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+    if faults_unavailable() is not None:
+        apt_install("nftables")
     need_hosts(faults=True)
     return hosts
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import datetime
 import hashlib
-import os
 import shutil
 import struct
 import subprocess
@@ -21,6 +20,7 @@ from dyknow import AccessError
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.identity import WINDOW_S, Caller, Signer, Verifier
+from tests.conftest import apt_install
 
 KEY = "@dyknow/station/spawn"
 PAYLOAD = b'{"label": "relay", "name": "r"}'
@@ -83,15 +83,15 @@ def parse(attachment: bytes) -> dict[str, object]:
 def openssl() -> str:
     """The openssl command (Debian's package; installed with apt-get when missing and run as root)."""
     found = shutil.which("openssl")
-    if found is None and os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "-q", "openssl"], capture_output=True, timeout=600,
-                       env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})  # fmt: skip
+    if found is None:
+        apt_install("openssl")
         found = shutil.which("openssl")
     if found is None:
         pytest.fail("openssl is not installed (apt-get install openssl)")
     return found
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("kind", ["ec", "rsa", "ed25519"])
 def test_openssl_verifies_what_a_signer_signs(certs: Path, tmp_path: Path, openssl: str, kind: str) -> None:
     """The signature is what the documentation says, over what it says: OpenSSL checks it with the

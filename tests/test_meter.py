@@ -49,6 +49,7 @@ def test_keys_are_apart_and_one_message_gives_no_figures() -> None:
         StreamMeter(window=1)
 
 
+@pytest.mark.process
 def test_hz_measures_a_source_as_an_operator_would(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process()
     assert run_cli("spawn", "periodic-source", "src", "--param", "rate_hz=50", "--param", "payload_size=100", *proc.client_args()).returncode == 0
@@ -61,6 +62,7 @@ def test_hz_measures_a_source_as_an_operator_would(manager_process: Callable[...
     assert quiet.returncode == 1 and "no message on 'nothing/here'" in quiet.stderr
 
 
+@pytest.mark.process
 def test_top_shows_every_unit_with_its_rates(manager_process: Callable[..., ManagerProcess]) -> None:
     proc = manager_process()
     client = proc.client_args()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import urllib.request
 
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from dyknow import Client, Manager
@@ -64,6 +65,7 @@ def test_prometheus_scrapes_rates_drops_hops_adaptations_and_verdicts() -> None:
     assert all(labels["manager"] == "robot" for _, labels, _ in found["dyknow_unit_up"])
 
 
+@pytest.mark.process
 def test_a_manager_serves_metrics_on_loopback_when_asked() -> None:
     proc = ManagerProcess("metered", free_port(), "--metrics-port", "0")
     try:

@@ -30,6 +30,7 @@ def _thread_nices(pid: int) -> list[int]:
     return nices
 
 
+@pytest.mark.process
 def test_a_manager_given_nice_runs_every_thread_at_it_and_stats_say_so(manager_process: Callable[..., ManagerProcess]) -> None:
     """All of the manager's threads (Zenoh's included, started after the option took effect) have
     the niceness asked for, and ``dyknow stats --manager`` shows it in text and JSON."""
@@ -42,6 +43,7 @@ def test_a_manager_given_nice_runs_every_thread_at_it_and_stats_say_so(manager_p
     assert text.splitlines()[0].endswith("lanes; nice 4"), text
 
 
+@pytest.mark.process
 def test_a_manager_without_nice_says_nothing_of_it(manager_process: Callable[..., ManagerProcess]) -> None:
     """The default priority is not news: the stats line has no ``nice`` (the JSON says 0)."""
     proc = manager_process()
@@ -49,6 +51,7 @@ def test_a_manager_without_nice_says_nothing_of_it(manager_process: Callable[...
     assert "nice" not in run_cli("stats", *proc.client_args()).stdout.splitlines()[0]
 
 
+@pytest.mark.process
 def test_a_refused_nice_stops_the_manager_before_it_starts_and_says_how_to_allow_it() -> None:
     """Without CAP_SYS_NICE (dropped with setpriv when the test runs as root), raising the priority
     is refused: exit 2, nothing started, and the message names the option and the ways to allow it."""
@@ -64,6 +67,7 @@ def test_a_refused_nice_stops_the_manager_before_it_starts_and_says_how_to_allow
     assert "limits.conf" in done.stderr and "leave --nice out" in done.stderr
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("value", ["25", "-21", "high", "1.5"])
 def test_a_nice_out_of_range_is_a_usage_error_naming_the_range(value: str) -> None:
     """argparse refuses it before anything starts, naming what was given and the range."""

@@ -7,6 +7,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 import dyknow
 
 EXPECTED = [
@@ -38,6 +40,7 @@ def test_every_error_derives_from_the_root() -> None:
             assert issubclass(obj, dyknow.DyKnowError), name
 
 
+@pytest.mark.process
 def test_import_does_not_pull_opencv() -> None:
     code = "import sys, dyknow; print('cv2' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -117,6 +120,7 @@ def test_every_public_class_of_every_family_has_its_docstring() -> None:
     assert missing == []
 
 
+@pytest.mark.process
 def test_help_runs_in_a_fresh_interpreter() -> None:
     """As a user types it: ``help(dyknow.Unit)`` with no pager."""
     code = "import dyknow; help(dyknow.Unit); help(dyknow.Manager); help(dyknow)"

@@ -99,6 +99,7 @@ def test_a_tls_endpoint_without_tls_files(robot: Manager) -> None:
         Client("robot", connect=robot.endpoints)
 
 
+@pytest.mark.process
 def test_files_that_do_not_belong_together_name_the_files(pki: Path) -> None:
     mismatched = TlsFiles(str(pki / "ca.pem"), str(pki / "laptop.pem"), str(pki / "robot.key"))
     with pytest.raises(
@@ -142,6 +143,7 @@ def test_a_call_dropped_for_the_callers_role(robot: Manager, pki: Path) -> None:
     )
 
 
+@pytest.mark.process
 @pytest.mark.timeout(30)
 def test_every_mistake_on_the_command_line_has_its_message_and_exit_1(robot: Manager, pki: Path) -> None:
     endpoint, port = robot.endpoints[0], robot.endpoints[0].rsplit(":", 1)[1]
@@ -166,6 +168,7 @@ def test_every_mistake_on_the_command_line_has_its_message_and_exit_1(robot: Man
     assert dropped.returncode == 1 and "dropped the call to 'destroy'" in dropped.stderr
 
 
+@pytest.mark.process
 def test_a_spec_not_removed_exits_1(robot: Manager, pki: Path, make_manager: Callable[..., Manager]) -> None:
     plain = make_manager()
     result = run_cli("remove-spec", "no-such-label", "--manager", plain.name, "--connect", plain.endpoints[0])
@@ -182,6 +185,7 @@ def two_hosts() -> Iterator[Hosts]:
         yield made
 
 
+@pytest.mark.namespaces
 @pytest.mark.timeout(60)
 def test_a_host_without_the_manager_and_a_silent_host(two_hosts: Hosts) -> None:
     """Nothing listens on the robot: refused at once. The robot cut off: silent, said after the timeout."""
@@ -203,6 +207,7 @@ def test_a_host_without_the_manager_and_a_silent_host(two_hosts: Hosts) -> None:
     assert "expected a host this machine reaches (--connect)" in silent.stderr
 
 
+@pytest.mark.process
 def test_a_manager_or_router_with_a_tls_endpoint_and_no_tls_files(
     make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture, pki: Path
 ) -> None:

@@ -157,6 +157,7 @@ LEVEL_SPEC = """<transformations><transformation><label>level</label><source>tes
   <ports><port type="out">out</port></ports><tags><tag port="out">Fresh(x)</tag></tags></transformation></transformations>"""
 
 
+@pytest.mark.process
 def test_dyknow_monitor_prints_verdicts_as_they_come_and_releases_the_monitor(manager_process: Callable[..., Any], tmp_path: Any) -> None:
     import json
 
@@ -196,6 +197,7 @@ def test_a_field_no_sample_holds_is_said_once_where_the_user_looks(make_manager:
     assert payload["field"] == "valeu" and "value" in payload["fields_seen"]
 
 
+@pytest.mark.process
 def test_dyknow_monitor_prints_times_since_it_started(manager_process: Callable[..., Any], tmp_path: Any) -> None:
     from tests.conftest import run_cli
 
@@ -209,6 +211,7 @@ def test_dyknow_monitor_prints_times_since_it_started(manager_process: Callable[
     assert re.search(r"monitors/2  20[0-9]{2}-[0-9]{2}-[0-9]{2}T[0-9:.]+\+00:00  true", iso.stdout), iso.stdout[:300]
 
 
+@pytest.mark.process
 def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: Any) -> None:
     """The offline check: the same semantics over yesterday's data, state by state."""
     import json

@@ -6,6 +6,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 import dyknow.ros2
 from tests.conftest import REPO, subprocess_env, undocumented
 
@@ -21,6 +23,7 @@ def test_every_public_name_is_documented() -> None:
     assert undocumented(*sorted((REPO / "dyknow" / "ros2").glob("*.py")), REPO / "dyknow" / "demo" / "ros2.py") == []
 
 
+@pytest.mark.process
 def test_importing_it_loads_no_optional_library() -> None:
     code = "import sys, dyknow.ros2, dyknow.manager; print(sorted(m for m in ('rosbags', 'cyclonedds', 'xxhash') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=subprocess_env(), cwd=REPO, timeout=60)

@@ -156,6 +156,7 @@ def test_a_payload_that_does_not_fit_is_rejected_and_counted(ros: Manager) -> No
     assert ros.get_model().units[1].state == "running"
 
 
+@pytest.mark.process
 def test_the_cli_binds_lists_and_echoes(tmp_path: object) -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -270,6 +271,7 @@ def test_a_humble_publisher_without_type_hash_reaches_an_untyped_input(make_mana
     assert sink.messages[0].payload == "from humble"  # type: ignore[attr-defined]
 
 
+@pytest.mark.process
 def test_echo_reads_a_dds_topic(make_manager: Callable[..., Manager]) -> None:
     manager = make_manager(ros2_domain=11)
     manager.spawn("publisher", "talker", bindings={"out": "ros2dds:/dds_chatter?type=std_msgs/msg/String"})
@@ -406,6 +408,7 @@ def _peak_rss_kib(pid: int) -> int:
     raise AssertionError("no VmHWM")
 
 
+@pytest.mark.process
 def test_large_clouds_cost_a_manager_no_memory_on_typed_and_untyped_inputs(manager_process: Callable[..., ManagerProcess]) -> None:
     """A 60 MiB PointCloud2 cost 7-13 s of a manager's CPU and +900-1,000 MiB of memory, and an
     untyped input took a 48 MiB one (+528 MiB). By default a typed input takes at most 16 MiB and

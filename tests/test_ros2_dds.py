@@ -5,9 +5,7 @@ loopback, both directions. Each test runs on a ROS domain of its own (discovery 
 
 from __future__ import annotations
 
-import itertools
 import json
-import os
 import queue
 import subprocess
 import sys
@@ -24,10 +22,9 @@ from dyknow import Manager
 from dyknow.errors import BindingError
 from dyknow.ros2 import parse_binding
 from dyknow.ros2.dds import FASTDDS_PROFILE
-from tests.conftest import REPO, run_cli, subprocess_env
+from tests.conftest import REPO, dds_domain, run_cli, subprocess_env
 
 PEER = Path(__file__).with_name("ros2_rclpy_peer.py")
-_domains = itertools.count(100 + os.getpid() % 50 * 2)
 
 
 class Rclpy:
@@ -81,7 +78,8 @@ class Rclpy:
 
 @pytest.fixture
 def domain() -> int:
-    return next(_domains)
+    """A DDS domain of this test's own (no other test of a parallel run is on it)."""
+    return dds_domain()
 
 
 @pytest.fixture
@@ -109,6 +107,7 @@ def test_dds_bindings_write_back() -> None:
     assert parse_binding("ros2dds:/chatter").dds
 
 
+@pytest.mark.process
 def test_an_untyped_dds_input_takes_the_type_its_writers_announce(dds_manager: Manager, rclpy_node: Callable[..., Rclpy]) -> None:
     rclpy_node("talk", "/chatter", "std_msgs/msg/String")
     dds_manager.spawn("sink", "listener", bindings={"in": "ros2dds:/chatter"})
@@ -117,6 +116,7 @@ def test_an_untyped_dds_input_takes_the_type_its_writers_announce(dds_manager: M
         dds_manager.spawn("sink", "nobody", bindings={"in": "ros2dds:/nobody_writes_this"})
 
 
+@pytest.mark.process
 def test_a_unit_reads_an_rclpy_talker_over_dds(dds_manager: Manager, rclpy_node: Callable[..., Rclpy]) -> None:
     dds_manager.spawn("sink", "listener", bindings={"in": "ros2dds:/chatter?type=std_msgs/msg/String"})
     rclpy_node("talk", "/chatter", "std_msgs/msg/String", type_propagation=True)  # Fast DDS as it comes
@@ -125,6 +125,7 @@ def test_a_unit_reads_an_rclpy_talker_over_dds(dds_manager: Manager, rclpy_node:
     assert 0 <= time.time_ns() - msgs[0].origin_ns < 30e9  # the DDS source timestamp
 
 
+@pytest.mark.process
 def test_a_unit_reads_rclpy_images_over_dds(dds_manager: Manager, rclpy_node: Callable[..., Rclpy]) -> None:
     dds_manager.spawn("sink", "viewer", bindings={"in": "ros2dds:/image?type=sensor_msgs/msg/Image"})
     rclpy_node("talk", "/image", "sensor_msgs/msg/Image")
@@ -133,6 +134,7 @@ def test_a_unit_reads_rclpy_images_over_dds(dds_manager: Manager, rclpy_node: Ca
     assert msg.origin_ns % 1_000_000_000 == 5  # the header stamp
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("ros_type", ["std_msgs/msg/String", "sensor_msgs/msg/Image"])
 def test_an_rclpy_listener_reads_what_dyknow_publishes_over_dds(
     dds_manager: Manager, rclpy_node: Callable[..., Rclpy], ros_type: str
@@ -175,6 +177,7 @@ def test_two_managers_of_one_process_share_a_dds_domain(make_manager: Callable[.
         make_manager(ros2_domain=domain, dds_config="<CycloneDDS/>").dds_node()
 
 
+@pytest.mark.process
 def test_ros2_list_shows_the_dds_topics(dds_manager: Manager, rclpy_node: Callable[..., Rclpy], domain: int) -> None:
     dds_manager.spawn("publisher", "talker", bindings={"out": "ros2dds:/from_dyknow?type=std_msgs/msg/String"})
     rclpy_node("talk", "/chatter", "std_msgs/msg/String")
@@ -184,6 +187,7 @@ def test_ros2_list_shows_the_dds_topics(dds_manager: Manager, rclpy_node: Callab
     assert topics["/chatter"] == ["std_msgs/msg/String"] and topics["/from_dyknow"] == ["std_msgs/msg/String"]
 
 
+@pytest.mark.process
 def test_a_tagged_dds_topic_is_left_when_its_writer_goes(
     make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
 ) -> None:
@@ -226,6 +230,7 @@ def _udp_receive_buffers(pid: int) -> list[int]:
     return sizes
 
 
+@pytest.mark.process
 def test_the_shipped_fast_dds_profile_gives_rclpy_large_udp_buffers(rclpy_node: Callable[..., Rclpy]) -> None:
     """With the kernel's default 208 kB, a third of a 640x480 image's datagrams from Cyclone were
     dropped (benchmarks/ros2.py: p50 159 ms, 17 % of the frames lost); the profile asks for 4 MB,

@@ -97,6 +97,7 @@ def peers() -> Iterator[Callable[..., Peer]]:
         peer.close()
 
 
+@pytest.mark.process
 def test_a_unit_reads_strings_from_the_sdk_learning_the_type(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
     manager, port = ros_manager
     manager.spawn("sink", "listener", bindings={"in": "ros2:/chatter"})
@@ -111,6 +112,7 @@ def test_a_unit_reads_strings_from_the_sdk_learning_the_type(ros_manager: tuple[
     assert isinstance(companion, Ros2Source) and companion.refused == 0 and companion.transport_refused == 0
 
 
+@pytest.mark.process
 def test_a_unit_reads_images_from_the_sdk_as_bgr_frames(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
     manager, port = ros_manager
     manager.spawn("sink", "viewer", bindings={"in": "ros2:/camera/image_raw?type=sensor_msgs/msg/Image"})
@@ -122,6 +124,7 @@ def test_a_unit_reads_images_from_the_sdk_as_bgr_frames(ros_manager: tuple[Manag
     assert msg.origin_ns % 1_000_000_000 == 5  # the origin is the image's header stamp (sec=i, nanosec=5)
 
 
+@pytest.mark.process
 def test_the_sdk_reads_strings_dyknow_publishes(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
     manager, port = ros_manager
     manager.spawn("publisher", "talker", bindings={"out": "ros2:/dyknow_chatter?type=std_msgs/msg/String"})
@@ -138,6 +141,7 @@ def test_the_sdk_reads_strings_dyknow_publishes(ros_manager: tuple[Manager, int]
             assert time.monotonic() < deadline, "the SDK received nothing in 20 s"
 
 
+@pytest.mark.process
 def test_the_sdk_reads_images_dyknow_publishes(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
     manager, port = ros_manager
     manager.spawn("publisher", "camera", bindings={"out": "ros2:/dyknow_image?type=sensor_msgs/msg/Image"})
@@ -155,6 +159,7 @@ def test_the_sdk_reads_images_dyknow_publishes(ros_manager: tuple[Manager, int],
     assert got == {"encoding": "bgr8", "height": 2, "width": 4, "step": 12, "data": list(range(24)), "stamp": [1_700_000_000, 250_000_000]}
 
 
+@pytest.mark.process
 def test_the_sdk_discovers_dyknows_node_and_publisher(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
     manager, port = ros_manager
     manager.spawn("publisher", "talker", bindings={"out": "ros2:/dyknow_chatter?type=std_msgs/msg/String&depth=5"})
@@ -172,6 +177,7 @@ def test_the_sdk_discovers_dyknows_node_and_publisher(ros_manager: tuple[Manager
     ]
 
 
+@pytest.mark.process
 def test_dyknows_graph_shows_the_sdks_publisher(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
     manager, port = ros_manager
     peer = peers(str(port), "talk", "/chatter", "std_msgs/msg/String")
@@ -207,6 +213,7 @@ def test_undecodable_messages_are_counted_and_refused(ros_manager: tuple[Manager
     assert manager.get_model().units[0].state == "running"
 
 
+@pytest.mark.process
 def test_a_late_sdk_subscriber_gets_a_transient_local_message(ros_manager: tuple[Manager, int], peers: Callable[..., Peer]) -> None:
     manager, port = ros_manager
     manager.spawn("publisher", "latched", bindings={"out": "ros2:/map?type=std_msgs/msg/String&durability=transient_local&depth=1"})

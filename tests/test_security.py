@@ -198,6 +198,7 @@ HOSTILE = [
 ]
 
 
+@pytest.mark.process
 def test_hostile_requests_are_refused_and_the_manager_keeps_serving(hostile_target: tuple[ManagerProcess, Session]) -> None:
     proc, session = hostile_target
     for service, payload, message in HOSTILE:
@@ -218,6 +219,7 @@ BOMB += "".join(f'<arg label="{a}">{{0;1;2;3;4;5;6;7;8;9}}</arg>' for a in "ABCD
 BOMB += """</args><ports><port type="out">out</port></ports></transformation>"""
 
 
+@pytest.mark.process
 def test_a_template_bomb_is_refused_at_its_location(hostile_target: tuple[ManagerProcess, Session], tmp_path: Path) -> None:
     proc, session = hostile_target
     started = time.monotonic()
@@ -233,6 +235,7 @@ def test_a_template_bomb_is_refused_at_its_location(hostile_target: tuple[Manage
     assert proc.stop(signal.SIGTERM) == 0
 
 
+@pytest.mark.process
 def test_a_spec_loaded_locally_is_bounded_too(tmp_path: Path) -> None:
     (tmp_path / "bomb.xml").write_text(BOMB)
     with pytest.raises(SpecError, match="expands to 1,000,000"):
@@ -259,6 +262,7 @@ def test_spec_objects_given_locally_are_trusted(make_manager: Callable[..., Mana
 # ---------------------------------------------------------------------- units that would freeze a manager
 
 
+@pytest.mark.process
 def test_forwarding_units_bound_into_a_cycle_are_refused_naming_the_ports(hostile_target: tuple[ManagerProcess, Session]) -> None:
     """Two relays bound into a cycle, or a relay reading ``dyknow/**`` (its own output among it),
     would pass one message round forever: the spawn or set_config that closes the cycle is
@@ -278,6 +282,7 @@ def test_forwarding_units_bound_into_a_cycle_are_refused_naming_the_ports(hostil
     assert proc.stop(signal.SIGTERM) == 0
 
 
+@pytest.mark.process
 def test_a_cycle_of_python_units_leaves_the_manager_serving_and_it_stops_on_sigterm(
     hostile_target: tuple[ManagerProcess, Session],
 ) -> None:
@@ -304,6 +309,7 @@ def _messages(client: Client, unit: str) -> int:
     return sum(p["messages"] for p in client.get_statistics(unit)["ports"].values() if p["direction"] == "in")
 
 
+@pytest.mark.process
 def test_sigterm_stops_a_manager_within_its_deadline_even_when_a_unit_never_lets_go(
     manager_process: Callable[..., ManagerProcess],
 ) -> None:
@@ -423,6 +429,7 @@ def test_puts_on_wildcard_keys_are_no_measurements(manager: Manager) -> None:
     assert manager.measurements == {"battery": 0.25}
 
 
+@pytest.mark.process
 def test_a_template_whose_expansions_hold_too_much_text_is_refused_before_it_expands(hostile_target: tuple[ManagerProcess, Session]) -> None:
     """A 31 KiB spec expanded to 10,000 transformations of 30 KB each (get_model then returned
     291 MiB). What the expansions would hold is bounded in bytes before any is built."""
@@ -513,6 +520,7 @@ def _peak_rss_kib(pid: int) -> int:
     raise AssertionError("no VmHWM")
 
 
+@pytest.mark.process
 def test_oversized_messages_are_dropped_as_they_arrive(manager_process: Callable[..., ManagerProcess]) -> None:
     """Four 400 MiB get_model calls were each refused, but only once in memory (RSS peaked at
     1.5 GiB); 200 MiB data puts were delivered. Zenoh now drops a message over the manager's

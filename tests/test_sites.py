@@ -25,10 +25,14 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
 from dyknow.testing import CAMERA_IDS
 from dyknow.testing.hosts import Hosts
 from tests.conftest import need_hosts, subprocess_env
 from tests.test_hosts import Child
+
+pytestmark = pytest.mark.namespaces  # every test here: see CONTRIBUTING.md, 'Tiers'
 
 REPO = Path(__file__).resolve().parent.parent
 PAGE = REPO / "docs" / "howto" / "router.md"

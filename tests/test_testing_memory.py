@@ -11,6 +11,7 @@ from dyknow.testing.memory import peak_run
 GROW = "b = bytearray(200 << 20); b[::4096] = b'x' * len(b[::4096])"  # touches 200 MiB
 
 
+@pytest.mark.process
 def test_a_large_parent_does_not_count_towards_its_commands_peak() -> None:
     ballast = bytearray(400 << 20)
     ballast[::4096] = b"x" * len(ballast[::4096])  # this process now holds 400 MiB more
@@ -21,6 +22,7 @@ def test_a_large_parent_does_not_count_towards_its_commands_peak() -> None:
     del ballast
 
 
+@pytest.mark.process
 def test_the_exit_code_and_a_timeout_come_back() -> None:
     assert peak_run([sys.executable, "-c", "raise SystemExit(3)"], timeout_s=60)[0] == 3
     assert peak_run([sys.executable, "-c", "import time; time.sleep(60)"], timeout_s=0.5)[0] == -9

@@ -50,6 +50,7 @@ def json_of(proc: subprocess.CompletedProcess[str]) -> Any:
 # ---------------------------------------------------------------------------------- calibrate.py
 
 
+@pytest.mark.process
 def test_calibrate_matches_the_reference_calibration(data_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "left.yml"
     result = json_of(
@@ -73,6 +74,7 @@ def test_calibrate_matches_the_reference_calibration(data_dir: Path, tmp_path: P
     assert load_calibration(out).image_size == (640, 480)
 
 
+@pytest.mark.process
 def test_calibrate_prints_a_summary_without_json(data_dir: Path, tmp_path: Path) -> None:
     proc = run_tool("calibrate.py", data_dir / "images" / "chessboard", "--pattern", "9x6", "-o", tmp_path / "left.xml")
     assert proc.returncode == 0, proc.stderr
@@ -88,6 +90,7 @@ def _folder(tmp_path: Path, data_dir: Path, *names: str) -> Path:
     return folder
 
 
+@pytest.mark.process
 @pytest.mark.parametrize(
     ("setup", "message"),
     [
@@ -111,6 +114,7 @@ def test_calibrate_errors_are_one_clear_line(
     assert len(proc.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.process
 def test_calibrate_refuses_a_bad_pattern(tmp_path: Path, data_dir: Path) -> None:
     proc = run_tool("calibrate.py", data_dir / "images" / "chessboard", "--pattern", "nine", "-o", tmp_path / "o.yml")
     assert proc.returncode == 2 and "expected inner corners as COLSxROWS, such as 9x6" in proc.stderr
@@ -130,17 +134,20 @@ def _check_contract(result: dict[str, Any], frames: int) -> list[dict[str, float
     return hits
 
 
+@pytest.mark.process
 def test_eval_ball_finds_the_ball_in_sim1(data_dir: Path) -> None:
     hits = _check_contract(json_of(run_tool("eval_ball.py", data_dir / "video" / "sim1.mp4", "--json")), 243)
     assert len(hits) / 243 >= 0.95
     assert all(13 <= d["radius"] <= 17 for d in hits)  # the same ball throughout (radius about 15 px)
 
 
+@pytest.mark.process
 def test_eval_ball_sees_no_ball_in_vtest(data_dir: Path) -> None:
     hits = _check_contract(json_of(run_tool("eval_ball.py", data_dir / "video" / "vtest.avi", "--json")), 795)
     assert len(hits) / 795 <= 0.01
 
 
+@pytest.mark.process
 def test_eval_ball_takes_param_overrides_and_spec_labels(data_dir: Path) -> None:
     video = data_dir / "video" / "ball.mp4"
     default = _check_contract(json_of(run_tool("eval_ball.py", video, "--spec", "ball-detector(ceiling)", "--json")), 60)
@@ -159,6 +166,7 @@ def test_eval_ball_takes_param_overrides_and_spec_labels(data_dir: Path) -> None
     assert all(15 <= d["frame"] <= 45 for d in tuned[1:-1])  # the throw happens in the middle of the clip
 
 
+@pytest.mark.process
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -179,6 +187,7 @@ def test_eval_ball_errors_are_one_clear_line(data_dir: Path, args: list[str], me
 # ---------------------------------------------------------------------------------- accuracy.py
 
 
+@pytest.mark.process
 def test_accuracy_meets_every_target(data_dir: Path) -> None:
     proc = run_tool("accuracy.py", "--json", data_dir=data_dir, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -215,6 +224,7 @@ def _package(folder: Path, fails: bool = False) -> Path:
     return folder
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("fails", [False, True], ids=["installs", "fails"])
 def test_install_shows_the_progress_lines_and_keeps_pips_output(tmp_path: Path, fails: bool) -> None:
     """What make demo runs: pip quiet, but setup.py's dyknow: lines shown with the time, the rest

@@ -237,6 +237,7 @@ def _layout(runtime: str | None) -> list[dict[str, object]]:
     return [json.loads(line) for line in out.stdout.splitlines()]
 
 
+@pytest.mark.process
 def test_a_session_reads_sockets_on_the_thread_that_handles_the_messages() -> None:
     (mine,) = _layout(None)
     assert mine["env"] == ZENOH_RUNTIME
@@ -250,6 +251,7 @@ def test_a_session_reads_sockets_on_the_thread_that_handles_the_messages() -> No
     assert [t for t in theirs["threads"] if t.startswith(("net-", "acc-"))], theirs  # type: ignore[attr-defined]
 
 
+@pytest.mark.process
 def test_an_unparsable_zenoh_runtime_is_a_clear_error_every_time() -> None:
     first, second = _layout("(bogus: ())")
     for reply in (first, second):
@@ -274,6 +276,7 @@ def test_a_misspelled_link_protocol_names_those_zenoh_speaks() -> None:
             pass
 
 
+@pytest.mark.process
 def test_a_script_that_leaves_its_sessions_open_exits_cleanly() -> None:
     """Sessions still open at exit are closed before Python waits for its threads: a script that
     forgot to close one (a subscriber's callback thread alive) exits, and no Zenoh panic comes

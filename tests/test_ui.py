@@ -110,6 +110,7 @@ def tab(driver: Any, name: str) -> None:
     driver.find_element("css selector", f"nav button[data-tab={name}]").click()
 
 
+@pytest.mark.browser
 def test_the_active_panel_lists_units_as_text_and_follows_the_cli(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
     manager, url = ui()
     manager.spawn("relay", "r1")
@@ -128,6 +129,7 @@ def test_the_active_panel_lists_units_as_text_and_follows_the_cli(ui: Callable[.
     shot(browser, "graph")
 
 
+@pytest.mark.browser
 def test_create_connect_and_destroy_from_the_page(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
 
     manager, url = ui()
@@ -161,6 +163,7 @@ def test_create_connect_and_destroy_from_the_page(ui: Callable[..., tuple[Manage
     assert "made-in-page" not in [u.name for u in manager.units()]
 
 
+@pytest.mark.browser
 def test_a_broken_spec_shows_its_location_and_changes_nothing(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
     manager, url = ui()
     before = manager.library.labels()
@@ -176,6 +179,7 @@ def test_a_broken_spec_shows_its_location_and_changes_nothing(ui: Callable[..., 
     assert after == before and "broken" not in after
 
 
+@pytest.mark.browser
 def test_request_and_release_from_the_page(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
     manager, url = ui()
     browser.get(url)
@@ -192,6 +196,7 @@ def test_request_and_release_from_the_page(ui: Callable[..., tuple[Manager, str]
     assert manager.get_model().requests == ()
 
 
+@pytest.mark.browser
 def test_the_verdicts_of_monitors_and_requirements_show_as_a_timeline(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
     """A monitor and a request's requirement: each gets a strip of its latest verdicts under the
     adaptations, green where true, red where false."""
@@ -214,6 +219,7 @@ def test_the_verdicts_of_monitors_and_requirements_show_as_a_timeline(ui: Callab
     assert len(rows) == 2 and all(" verdicts, " in row for row in rows), rows
 
 
+@pytest.mark.process
 def test_the_token_is_required_when_set_and_made_beyond_loopback(ui: Callable[..., tuple[Manager, str]]) -> None:
     assert check_bind("127.0.0.1", None) is None and check_bind("::1", None) is None
     assert len(check_bind("0.0.0.0", None) or "") >= 20  # a new token: never an open tool on the network
@@ -241,6 +247,7 @@ def test_the_token_is_required_when_set_and_made_beyond_loopback(ui: Callable[..
     bad.value.close()
 
 
+@pytest.mark.browser
 def test_the_image_view_shows_live_frames_and_the_plot_numeric_fields(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -282,6 +289,7 @@ def test_the_image_view_shows_live_frames_and_the_plot_numeric_fields(ui: Callab
     shot(browser, "plot")
 
 
+@pytest.mark.browser
 def test_the_demo_serves_the_tool_beside_it(browser: Any, tmp_path: Path) -> None:
     """`dyknow demo --ui`: the ball demo's graph, live in the tool while it runs."""
     import io
@@ -301,6 +309,7 @@ def test_the_demo_serves_the_tool_beside_it(browser: Any, tmp_path: Path) -> Non
     assert not runner.is_alive()
 
 
+@pytest.mark.process
 def test_many_open_pages_hold_up_nothing(ui: Callable[..., tuple[Manager, str]]) -> None:
     """Twenty pages listening for the model (no thread waits per page): a call is still answered."""
     import http.client
@@ -325,6 +334,7 @@ def test_many_open_pages_hold_up_nothing(ui: Callable[..., tuple[Manager, str]])
             page.close()
 
 
+@pytest.mark.process
 def test_half_open_connections_are_closed_and_bounded(ui: Callable[..., tuple[Manager, str]]) -> None:
     """Issue 38: the tool kept 1,500 half-open connections (a request head never finished). A head
     not sent within HEAD_TIMEOUT_S is closed now (the server ends the connection: EOF here), and
@@ -382,6 +392,7 @@ def _http(url: str, method: str = "GET", body: bytes | None = None, **headers: s
         connection.close()
 
 
+@pytest.mark.process
 def test_other_web_pages_cannot_drive_the_tool(ui: Callable[..., tuple[Manager, str]]) -> None:
     """The three ways a web page in the operator's browser reached the tool on loopback: a
     cross-site "simple" POST (an HTML form, text/plain, no preflight) to /api/call; a page on a
@@ -435,6 +446,7 @@ def test_other_web_pages_cannot_drive_the_tool(ui: Callable[..., tuple[Manager, 
     assert status == 200
 
 
+@pytest.mark.browser
 def test_a_page_from_another_origin_in_chromium_gets_nothing(ui: Callable[..., tuple[Manager, str]], browser: Any, tmp_path: Path) -> None:
     """An attacker's page on another origin (another port of this machine), in Chromium: it
     submits a form to /api/call, posts JSON with fetch, and opens a WebSocket to /api/stream.
@@ -485,6 +497,7 @@ ws.onerror = () => document.getElementById("ws").textContent = "refused";
         attacker.server_close()
 
 
+@pytest.mark.browser
 def test_the_active_panel_shows_clock_offsets_and_messages_of_unknown_clocks(
     ui: Callable[..., tuple[Manager, str]], browser: Any, manager_process: Callable[..., ManagerProcess]
 ) -> None:
@@ -534,6 +547,7 @@ def test_the_active_panel_shows_clock_offsets_and_messages_of_unknown_clocks(
     shot(browser, "clocks")
 
 
+@pytest.mark.browser
 def test_a_lost_manager_shows_with_when_and_why(
     ui: Callable[..., tuple[Manager, str]], browser: Any, manager_process: Callable[..., ManagerProcess]
 ) -> None:
@@ -555,6 +569,7 @@ def test_a_lost_manager_shows_with_when_and_why(
     shot(browser, "lost")
 
 
+@pytest.mark.browser
 def test_a_unit_bound_to_ros2_topics_shows_topic_companion_and_unit_in_a_line(ui: Callable[..., tuple[Manager, str]], browser: Any) -> None:
     manager, url = ui()
     manager.spawn("relay", "r", bindings={"in": "ros2:/chatter?type=std_msgs/msg/String", "out": "ros2dds:/echo?type=std_msgs/msg/String"})

@@ -14,8 +14,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from dyknow import __version__
 from tests.conftest import REPO
+
+pytestmark = pytest.mark.process  # every test here: see CONTRIBUTING.md, 'Tiers'
 
 
 def _clean_env(**extra: str) -> dict[str, str]:

@@ -83,6 +83,7 @@ def command() -> Callable[[str, Path], list[str]]:
 # --- a chunk declaring more than the bound ----------------------------------------------------------
 
 
+@pytest.mark.process
 @pytest.mark.parametrize(
     ("name", "summary"),
     [("replay", True), ("replay --recover", True), ("mcap cat", True), ("mcap info", False), ("monitor --mcap", True), ("replay", False)],
@@ -105,6 +106,7 @@ def test_a_chunk_declaring_a_gib_is_refused_before_it_is_read(
     assert peak < SMALL_MIB
 
 
+@pytest.mark.process
 def test_the_bound_on_a_chunk_is_an_option(tmp_path: Path) -> None:
     size = 16 * MIB
     path = write_bomb(tmp_path / "16m.mcap", [BombChunk(zstd_zeros(zeros_message(1, size - 62), size - 62, size), "zstd", size)])
@@ -123,6 +125,7 @@ def test_the_bound_on_a_chunk_is_an_option(tmp_path: Path) -> None:
 # --- chunks whose sizes lie ----------------------------------------------------------------------------
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
 def test_a_frame_stating_another_size_than_its_chunk_is_refused_unread(
     tmp_path: Path, command: Callable[[str, Path], list[str]], compression: str
@@ -141,6 +144,7 @@ def test_a_frame_stating_another_size_than_its_chunk_is_refused_unread(
     assert peak < SMALL_MIB
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
 def test_decompression_stops_one_byte_past_the_declared_size(
     tmp_path: Path, command: Callable[[str, Path], list[str]], compression: str
@@ -173,6 +177,7 @@ def overlapping(folder: Path, chunks: int, size: int, summary: bool = True) -> P
     return write_bomb(folder / f"overlapping-{chunks}.mcap", [chunk] * chunks, summary=summary)
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("name", ["replay", "mcap cat"])
 def test_overlapping_chunks_are_bounded_together(tmp_path: Path, command: Callable[[str, Path], list[str]], name: str) -> None:
     """16 chunks of 64 MiB overlapping in time: a replay held them all (1 GiB; 3.5 GiB for 16 of
@@ -191,6 +196,7 @@ def test_overlapping_chunks_are_bounded_together(tmp_path: Path, command: Callab
     assert peak < 256 + SMALL_MIB
 
 
+@pytest.mark.process
 @pytest.mark.parametrize(("name", "summary"), [("mcap cat", True), ("mcap info", False)], ids=["mcap cat", "mcap info (scanned)"])
 def test_a_flood_of_empty_messages_counts_against_the_bound(
     tmp_path: Path, command: Callable[[str, Path], list[str]], name: str, summary: bool

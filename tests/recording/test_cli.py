@@ -53,6 +53,7 @@ def one_line_error(result: subprocess.CompletedProcess[str]) -> str:
 # --- record --------------------------------------------------------------------------------------
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_record_until_a_signal_finalizes_the_file(tmp_path: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess], sig: int) -> None:
     session, endpoint = listening
@@ -86,6 +87,7 @@ def test_record_until_a_signal_finalizes_the_file(tmp_path: Path, listening: tup
     assert [line["log_time"] for line in lines] == sorted(line["log_time"] for line in lines)
 
 
+@pytest.mark.process
 def test_record_stops_by_itself_after_max_messages(tmp_path: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     session, endpoint = listening
     path = tmp_path / "max.mcap"
@@ -102,6 +104,7 @@ def test_record_stops_by_itself_after_max_messages(tmp_path: Path, listening: tu
         assert recording.info.compressions == ("lz4",)
 
 
+@pytest.mark.process
 def test_record_stops_after_its_duration(tmp_path: Path, listening: tuple[Session, str]) -> None:
     _, endpoint = listening
     path = tmp_path / "duration.mcap"
@@ -112,6 +115,7 @@ def test_record_stops_after_its_duration(tmp_path: Path, listening: tuple[Sessio
         assert recording.info.message_count == 0 and recording.problem is None
 
 
+@pytest.mark.process
 def test_a_killed_recorder_leaves_its_complete_chunks_readable(tmp_path: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     session, endpoint = listening
     path = tmp_path / "killed.mcap"
@@ -154,6 +158,7 @@ def test_a_killed_recorder_leaves_its_complete_chunks_readable(tmp_path: Path, l
     assert "truncated at offset" in recovered.stderr and "Traceback" not in recovered.stderr
 
 
+@pytest.mark.process
 def test_record_errors_are_one_line(tmp_path: Path) -> None:
     missing = tmp_path / "no" / "such" / "out.mcap"
     result = run_cli("record", "x/**", "-o", str(missing))
@@ -197,6 +202,7 @@ def test_a_bad_key_expression_is_one_line(tmp_path: Path, capsys: pytest.Capture
 # --- replay --------------------------------------------------------------------------------------
 
 
+@pytest.mark.process
 def test_replay_feeds_camera_images_to_a_unit(data_dir: Path, make_manager: Callable[..., Manager]) -> None:
     pytest.importorskip("cv2")
     # --rate max sends the ten frames in one burst: a queue deeper than the default keep-last 8
@@ -219,6 +225,7 @@ def test_replay_feeds_camera_images_to_a_unit(data_dir: Path, make_manager: Call
     assert [(m.seq, m.origin_ns) for m in messages] == stored
 
 
+@pytest.mark.process
 def test_echo_consumes_a_replayed_ros2_bag(data_dir: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     _, endpoint = listening
     echo = cli_process("echo", "topic", "--count", "10", "--json", "--connect", endpoint)
@@ -232,6 +239,7 @@ def test_echo_consumes_a_replayed_ros2_bag(data_dir: Path, listening: tuple[Sess
     assert lines[0]["origin_ns"] == 1585866235112609068 and lines[0]["key"] == "topic"
 
 
+@pytest.mark.process
 def test_sigint_ends_a_looping_replay(data_dir: Path, listening: tuple[Session, str], cli_process: Callable[..., CliProcess]) -> None:
     session, endpoint = listening
     arrived = threading.Event()
@@ -246,6 +254,7 @@ def test_sigint_ends_a_looping_replay(data_dir: Path, listening: tuple[Session, 
     assert done["event"] == "done" and done["messages"] > 0
 
 
+@pytest.mark.process
 def test_replay_errors_are_one_line(tmp_path: Path, data_dir: Path) -> None:
     missing = run_cli("replay", str(tmp_path / "none.mcap"))
     assert one_line_error(missing) == f"dyknow: error: {tmp_path / 'none.mcap'}: cannot read the file: No such file or directory"
@@ -258,6 +267,7 @@ def test_replay_errors_are_one_line(tmp_path: Path, data_dir: Path) -> None:
 # --- mcap cat / info -----------------------------------------------------------------------------
 
 
+@pytest.mark.process
 def test_mcap_cat_json_contract(data_dir: Path) -> None:
     path = data_dir / "mcap" / "conformance" / f"{TEN}.mcap"
     result = run_cli("mcap", "cat", str(path), "--json")
@@ -273,6 +283,7 @@ def test_mcap_cat_json_contract(data_dir: Path) -> None:
     assert text.stdout.splitlines()[0] == '1740566235448000000 mouse #0 [MouseEvent] {"clientX":1511,"clientY":974}'
 
 
+@pytest.mark.process
 def test_mcap_info(data_dir: Path) -> None:
     path = data_dir / "mcap" / "real" / "talker.mcap"
     result = run_cli("mcap", "info", str(path), "--json")
@@ -287,6 +298,7 @@ def test_mcap_info(data_dir: Path) -> None:
     assert "messages:  20" in text.stdout and "     3 /topic  10 msgs  std_msgs/msg/String (ros2msg)  [cdr]" in text.stdout
 
 
+@pytest.mark.process
 def test_mcap_info_on_a_damaged_file(tmp_path: Path, data_dir: Path) -> None:
     data = (data_dir / "mcap" / "real" / "example.mcap").read_bytes()
     path = tmp_path / "cut.mcap"
@@ -309,6 +321,7 @@ def _sink_count(proc: ManagerProcess) -> int:
     return int(port["messages"]) + int(port["dropped"])
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("via", ["router", "another manager"])
 def test_a_replay_through_a_router_or_another_manager_waits_for_its_consumer(
     via: str, data_dir: Path, manager_process: Callable[..., ManagerProcess]
@@ -341,6 +354,7 @@ def test_a_replay_through_a_router_or_another_manager_waits_for_its_consumer(
             router.close()
 
 
+@pytest.mark.process
 def test_a_replay_that_delivers_nothing_says_so_and_fails(data_dir: Path, manager_process: Callable[..., ManagerProcess]) -> None:
     lonely = manager_process(name="lonely")
     talker = data_dir / "mcap" / "real" / "talker.mcap"

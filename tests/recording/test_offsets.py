@@ -152,6 +152,7 @@ def ahead(faketime: Path) -> Iterator[Faked]:
         manager.close()
 
 
+@pytest.mark.process
 def test_a_replay_corrects_origins_of_another_clock_by_the_recorded_offset(ahead: Faked, tmp_path: Path) -> None:
     path = tmp_path / "ahead.mcap"
     injected = ahead.injected()

@@ -55,6 +55,7 @@ def test_every_module_and_public_name_has_a_docstring(module: str) -> None:
                     assert inspect.getdoc(value), f"{module}.{name}.{member}"
 
 
+@pytest.mark.process
 def test_import_does_not_pull_opencv() -> None:
     code = "import sys, dyknow.recording, transformations.recording; print('cv2' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=subprocess_env(), cwd=REPO)

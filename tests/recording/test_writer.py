@@ -138,6 +138,7 @@ def test_a_full_disk_is_a_clear_error() -> None:
     assert str(info.value) == "/dev/full: cannot write the file: No space left on device (the disk is full); nothing was recorded"
 
 
+@pytest.mark.process
 def test_a_write_failing_mid_recording_stops_it_and_keeps_the_complete_chunks(tmp_path: Path) -> None:
     """The file size limit (RLIMIT_FSIZE) makes writes fail the way a full disk does, mid-recording."""
     path = tmp_path / "limited.mcap"

@@ -6,6 +6,8 @@ import sys
 import textwrap
 from pathlib import Path
 
+import pytest
+
 from dyknow.spec import load_specs
 from dyknow.spec.sources import source_issues
 from tests.conftest import run_cli
@@ -67,6 +69,7 @@ def test_installed_and_built_in_sources_pass(tmp_path: Path) -> None:
     assert source_issues(load_specs([path])) == []
 
 
+@pytest.mark.process
 def test_validate_checks_sources_unless_told_not_to(tmp_path: Path) -> None:
     project = _project(tmp_path)
     (project / "specs" / "ok.xml").write_text(SPEC.format(label="double", source="mypkg.doubler:Doubler"))
