@@ -55,7 +55,7 @@ function unitState(manager, unit) {
 }
 
 function companionName(unit, port) {
-  // the unit that wires a port bound to a ROS 2 topic (see dyknow/manager.py)
+  // the unit that wires a port bound to a ROS 2 topic (see dyknow/manager/ros2.py)
   return `${unit.name}.${port}.ros2`;
 }
 
