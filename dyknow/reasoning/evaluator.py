@@ -80,6 +80,7 @@ class Evaluator:
     """Bottom-up evaluation of every node over all states: a condition's verdicts (and robustness),
     a value's values, each as a list."""
 
+    #: per term, the spans in which it is stale (:func:`stale_in`): set by the caller when a term has a maximum age
     stale: list[list[tuple[int, int | None]]] = []
 
     def __init__(

@@ -145,7 +145,7 @@ from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.evaluator import Evaluator, is_condition
 from dyknow.reasoning.quantify import expand_quantifiers, rename
 from dyknow.reasoning.syntax import Call, Formula, Quantifier, Stream, parse, parse_value, walk
-from dyknow.reasoning.values import (
+from dyknow.reasoning.values import (  # re-exported (__all__): the monitor, and older code, import them from here
     FALSE,
     TRUE,
     UNKNOWN,
