@@ -4,8 +4,12 @@ monitor as a unit.
 ==========================  ==============================================================================
 module                      what it holds
 ==========================  ==============================================================================
-:mod:`~.syntax`             the language: :func:`parse`, :func:`check_formula`, :class:`Formula`, its tree
+:mod:`~.syntax`             the language: :func:`parse`, :func:`check_formula`, :class:`Formula`
+:mod:`~.tree`               a formula's syntax tree: its nodes, walked, written back and compared
+:mod:`~.parser`             the reader of formula text, which refuses what is malformed at its column
 :mod:`~.semantics`          what a formula means, exactly: states, Kleene verdicts, windows; :func:`evaluate`
+:mod:`~.values`             values and verdicts at one state (streams read, arithmetic, atoms), the monitor's too
+:mod:`~.evaluator`          every node over a whole trace at once: the work of :func:`evaluate`
 :mod:`~.progression`        :class:`Monitor`: samples in, each state's :class:`Verdict` out as soon as decided
 :mod:`~.robustness`         the robustness of each state, for a monitor asked for it
 :mod:`~.objects`            :class:`ObjectMonitor`: a ``foreach`` formula, one monitor per object
@@ -13,7 +17,9 @@ module                      what it holds
 :mod:`~.unit`               :class:`FormulaMonitor`, the monitor as a unit, and :func:`monitor_spec` for its spec
 ==========================  ==============================================================================
 
-Imports flow one way: ``syntax <- semantics <- robustness <- progression <- objects <- unit``.
+Imports flow one way: ``tree <- parser <- syntax <- quantify <- semantics``,
+``values <- evaluator <- semantics <- progression <- objects <- unit`` and
+``values <- robustness <- progression``.
 
     >>> from dyknow.reasoning import evaluate
     >>> evaluate("once[0, 1s] Battery(robot) < 0.2", {"Battery(robot)": [(0.0, 0.5), (0.5, 0.1), (2.0, 0.4)]})

@@ -30,8 +30,8 @@ from typing import Any
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.progression import DEFAULT_MAX_CELLS, Monitor, Verdict
-from dyknow.reasoning.semantics import object_key, read
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, parse
+from dyknow.reasoning.values import object_key, read
 from dyknow.tags import parse_term
 
 __all__ = ["DEFAULT_IDLE_NS", "DEFAULT_MAX_OBJECTS", "ObjectMonitor"]

@@ -23,18 +23,47 @@ the monitors are at most ``max_expansions``, and every monitor's nodes after exp
 at most ``Limits.max_quantified_nodes`` (20,000: 100 cameras under a 200-node body, not 2,000
 individuals under a 300-node one, which cost a manager 134 s of CPU), counted from the class
 sizes before anything is built.
+
+:func:`expand_quantifiers` is the rewriting alone (what ``forall`` and ``exists`` mean, as
+:mod:`dyknow.reasoning.semantics` states it): :func:`~dyknow.reasoning.evaluate` applies it to a
+whole formula, :func:`expand` to each monitor's body.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 from dyknow.errors import DyKnowError, FormulaError
-from dyknow.reasoning.semantics import expand_quantifiers
-from dyknow.reasoning.syntax import Const, Formula, Node, Num, Quantifier, Str, Stream, Var, check_formula, children, walk
+from dyknow.reasoning.syntax import (
+    Aggregate,
+    Always,
+    And,
+    Arith,
+    Atom,
+    Call,
+    Const,
+    Eventually,
+    Formula,
+    Historically,
+    Implies,
+    Node,
+    Num,
+    Once,
+    Or,
+    Quantifier,
+    Since,
+    Str,
+    Stream,
+    Until,
+    Var,
+    check_formula,
+    children,
+    walk,
+)
 from dyknow.security import Limits
+from dyknow.tags import Term
 
-__all__ = ["expand"]
+__all__ = ["expand", "expand_quantifiers", "rename"]
 
 
 def expand(
@@ -118,4 +147,114 @@ def _expanded_size(root: Node, members: Callable[[str], list[str]]) -> int:
             memo[id(node)] = below * n + max(0, n - 1)  # the bodies, and the and/or joining them
         else:
             memo[id(node)] = below + (0 if isinstance(node, Num | Str | Const | Stream | Var) else 1)
+    return memo[id(root)]
+
+
+def expand_quantifiers(
+    formula: Formula, individuals: Callable[[str], Sequence[str]] | None, bindings: Mapping[str, str] | None = None
+) -> Formula:
+    """``formula`` with every ``forall``/``exists`` replaced by the ``and``/``or`` of its body over
+    the class's individuals (``foreach`` is left where it is), and the variables of ``bindings``
+    (of quantifiers outside it) replaced by their individuals. :class:`FormulaError` when there
+    is a ``forall``/``exists`` and no ``individuals``, or a class without one."""
+    if not bindings and not any(isinstance(node, Quantifier) and node.kind != "foreach" for node in walk(formula.root)):
+        return formula
+    if individuals is None and not any(isinstance(node, Quantifier) and node.kind != "foreach" for node in walk(formula.root)):
+        individuals = _none
+    if individuals is None:
+        raise FormulaError("the formula quantifies over an ontology class, and no individuals are given", where="formula",
+                           expected="individuals=... (a manager's ontology: --ontology FILE)")  # fmt: skip
+    cache: dict[str, list[str]] = {}
+
+    def members(cls: str) -> list[str]:
+        if cls not in cache:
+            found = list(dict.fromkeys(v.strip() for v in individuals(cls) if isinstance(v, str) and v.strip()))
+            if not found:
+                raise FormulaError(f"the class {cls!r} has no individuals", where="formula", expected="a class with at least one individual")
+            cache[cls] = found
+        return cache[cls]
+
+    return Formula.of(_rewrite(formula.root, members, dict(bindings or {})))
+
+
+def _none(cls: str) -> Sequence[str]:
+    return ()
+
+
+def _rewrite(root: Node, members: Callable[[str], list[str]], bound: dict[str, str]) -> Node:
+    """``root`` with static quantifiers expanded and their variables replaced (iteratively)."""
+    # post-order over (node, bindings): a quantifier's body is rewritten once per individual
+    done: dict[tuple[int, tuple[tuple[str, str], ...]], Node] = {}
+    stack: list[tuple[Node, dict[str, str], bool]] = [(root, bound, False)]
+    while stack:
+        node, env, expanded = stack.pop()
+        key = (id(node), tuple(sorted(env.items())))
+        if key in done:
+            continue
+        if isinstance(node, Quantifier) and node.kind != "foreach":
+            assert isinstance(node.domain, str)
+            envs = [{**env, node.var: value} for value in members(node.domain)]
+            keys = [(id(node.body), tuple(sorted(e.items()))) for e in envs]
+            if not expanded:
+                stack.append((node, env, True))
+                stack.extend((node.body, e, False) for e in envs)
+                continue
+            parts = [done[k] for k in keys]
+            joined = parts[0]
+            for part in parts[1:]:
+                joined = And(joined, part) if node.kind == "forall" else Or(joined, part)
+            done[key] = joined
+            continue
+        kids = children(node)
+        if kids and not expanded:
+            stack.append((node, env, True))
+            stack.extend((kid, env, False) for kid in kids)
+            continue
+        args = [done[(id(kid), key[1])] for kid in kids]
+        done[key] = _rebuild(node, args, env)
+    return done[(id(root), tuple(sorted(bound.items())))]
+
+
+def _rebuild(node: Node, args: list[Node], env: dict[str, str]) -> Node:
+    """``node`` with new operands ``args`` and the variables of ``env`` replaced."""
+    if isinstance(node, Stream):
+        if any(a in env for a in node.term.args):
+            return Stream(Term(node.term.functor, tuple(env.get(a, a) for a in node.term.args)), node.fields)
+        return node
+    if isinstance(node, Var):
+        return Str(env[node.name]) if node.name in env else node
+    if isinstance(node, Num | Str | Const):
+        return node
+    if isinstance(node, Atom):
+        return Atom(args[0], node.op, args[1] if len(args) > 1 else None)
+    if isinstance(node, Arith):
+        return Arith(node.op, args[0], args[1])
+    if isinstance(node, Call):
+        return Call(node.fn, tuple(args))
+    if isinstance(node, Aggregate):
+        return Aggregate(node.kind, node.interval, args[0])
+    if isinstance(node, Quantifier):  # foreach: its stream's args too
+        domain = node.domain
+        if isinstance(domain, Stream) and any(a in env for a in domain.term.args):
+            domain = Stream(Term(domain.term.functor, tuple(env.get(a, a) for a in domain.term.args)), domain.fields)
+        return Quantifier(node.kind, node.var, domain, args[0])
+    if isinstance(node, Until | Since):
+        return type(node)(args[0], args[1], node.interval)
+    if isinstance(node, Always | Eventually | Historically | Once):
+        return type(node)(node.interval, args[0])
+    if isinstance(node, And | Or | Implies):
+        return type(node)(args[0], args[1])
+    return type(node)(args[0])  # type: ignore[call-arg]  # Not, Neg, Prev, Rise, Fall
+
+
+def rename(root: Node, var: str, name: str) -> Node:
+    """``root`` with the variable ``var`` renamed ``name`` where it is a value (``foreach``'s body
+    read alone, its variable the object's placeholder)."""
+    memo: dict[int, Node] = {}
+    for node in reversed(walk(root)):
+        args = [memo[id(kid)] for kid in children(node)]
+        if isinstance(node, Var) and node.name == var:
+            memo[id(node)] = Var(name)
+        else:
+            memo[id(node)] = _rebuild(node, args, {}) if args else node
     return memo[id(root)]

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from typing import Any, Final
 
-from dyknow.reasoning.semantics import UNKNOWN, margin
+from dyknow.reasoning.values import UNKNOWN, margin
 
 __all__ = ["RNode", "RobustnessTree"]
 

@@ -2,7 +2,12 @@
 
 This module is the one home of what a formula means; the incremental monitor
 (:mod:`dyknow.reasoning.progression`) computes the same verdicts and is tested against
-:func:`evaluate`, which is tested against a naive evaluator written from this text.
+:func:`evaluate`, which is tested against a naive evaluator written from this text. The code
+that computes it is in parts: the values and atoms at one state in :mod:`dyknow.reasoning.values`
+(the monitor calls the same functions; re-exported here), every node over a trace in
+:mod:`dyknow.reasoning.evaluator`, the expansion of ``forall`` and ``exists`` in
+:mod:`dyknow.reasoning.quantify`; the states, the freshness of terms and the lives of ``foreach``
+objects here.
 
 **States.** The streams a formula mentions are synchronized into states: the sorted distinct
 sample times of all of them (a message's time is its header's origin time), starting at the first
@@ -132,43 +137,28 @@ of a recording, an atom on a malformed value) is never published by the monitor.
 
 from __future__ import annotations
 
-import math
-from bisect import bisect_left, bisect_right
+from bisect import bisect_left
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, Final
+from typing import Any
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
-from dyknow.reasoning.syntax import (
-    Aggregate,
-    Always,
-    And,
-    Arith,
-    Atom,
-    Call,
-    Const,
-    Eventually,
-    Fall,
-    Formula,
-    Historically,
-    Implies,
-    Neg,
-    Node,
-    Not,
-    Num,
-    Once,
-    Or,
-    Prev,
-    Quantifier,
-    Rise,
-    Since,
-    Str,
-    Stream,
-    Until,
-    Var,
-    children,
-    parse,
-    parse_value,
-    walk,
+from dyknow.reasoning.evaluator import Evaluator, is_condition
+from dyknow.reasoning.quantify import expand_quantifiers, rename
+from dyknow.reasoning.syntax import Call, Formula, Quantifier, Stream, parse, parse_value, walk
+from dyknow.reasoning.values import (  # re-exported (__all__): the monitor, and older code, import them from here
+    FALSE,
+    TRUE,
+    UNKNOWN,
+    UNKNOWN_VALUE,
+    arith,
+    as_value,
+    call,
+    compare,
+    margin,
+    object_key,
+    read,
+    truth,
+    verdict_of,
 )
 from dyknow.tags import Term, parse_term
 
@@ -178,6 +168,7 @@ __all__ = [
     "UNKNOWN",
     "UNKNOWN_VALUE",
     "arith",
+    "as_value",
     "call",
     "compare",
     "evaluate",
@@ -185,283 +176,13 @@ __all__ = [
     "evaluate_objects",
     "evaluate_values",
     "expand_quantifiers",
+    "margin",
     "object_key",
     "read",
     "synchronize",
     "truth",
     "verdict_of",
 ]
-
-FALSE: Final = 0
-"""A verdict as an int: false. Kleene's ``and`` is ``min``, ``or`` is ``max``, ``not`` is ``2 - v``."""
-UNKNOWN: Final = 1
-"""A verdict as an int: unknown (neither true nor false, or not decided yet)."""
-TRUE: Final = 2
-"""A verdict as an int: true."""
-
-
-class _Unknown:
-    """The one unknown value (a missing field, a value of the wrong kind, a division by zero)."""
-
-    __slots__ = ()
-
-    def __repr__(self) -> str:
-        return "UNKNOWN_VALUE"
-
-    def __bool__(self) -> bool:
-        return False
-
-
-UNKNOWN_VALUE: Final = _Unknown()
-"""What an expression gives where its value is unknown."""
-
-_INF: Final = math.inf
-
-
-def verdict_of(value: int) -> bool | None:
-    """The verdict as Python sees it: True, False or None for unknown."""
-    return True if value == TRUE else False if value == FALSE else None
-
-
-# ---------------------------------------------------------------------------- values (shared with the monitor)
-
-
-def read(payload: Any, fields: tuple[str, ...]) -> Any:
-    """A stream's value: ``payload`` down ``fields``, as a number, string or boolean; else unknown."""
-    value = payload
-    for name in fields:
-        if type(value) is not dict:
-            return UNKNOWN_VALUE
-        value = value.get(name, UNKNOWN_VALUE)
-    kind = type(value)
-    if kind is float:
-        return value if value - value == 0.0 else UNKNOWN_VALUE  # NaN and infinities: unknown
-    if kind is int or kind is str or kind is bool:
-        return value
-    if isinstance(value, bool):
-        return bool(value)
-    if isinstance(value, int):
-        return int(value)
-    if isinstance(value, float):
-        value = float(value)
-        return value if value - value == 0.0 else UNKNOWN_VALUE
-    if isinstance(value, str):
-        return str(value)
-    return UNKNOWN_VALUE
-
-
-def _is_number(value: Any) -> bool:
-    kind = type(value)
-    return kind is int or kind is float
-
-
-def arith(op: str, x: Any, y: Any) -> Any:
-    """``x OP y`` on numbers (``op`` one of + - * /); unknown otherwise, on division by zero, and
-    when the result is not finite."""
-    if not _is_number(x) or not _is_number(y):
-        return UNKNOWN_VALUE
-    if op == "+":
-        result = x + y
-    elif op == "-":
-        result = x - y
-    elif op == "*":
-        result = x * y
-    else:
-        if y == 0:
-            return UNKNOWN_VALUE
-        try:
-            result = x / y
-        except OverflowError:  # an int too large for a float
-            return UNKNOWN_VALUE
-    if type(result) is float and result - result != 0.0:
-        return UNKNOWN_VALUE
-    return result
-
-
-def call(fn: str, args: Sequence[Any]) -> Any:
-    """``abs(x)``, ``min(x, y)``, ``max(x, y)``, ``-x`` (``fn`` "neg") on numbers; unknown otherwise."""
-    for x in args:
-        if not _is_number(x):
-            return UNKNOWN_VALUE
-    if fn == "neg":
-        return -args[0]
-    if fn == "abs":
-        return abs(args[0])
-    if fn == "min":
-        return args[0] if args[0] <= args[1] else args[1]
-    return args[0] if args[0] >= args[1] else args[1]
-
-
-_OPS: Final = ("<", "<=", ">", ">=", "==", "!=")
-
-
-def compare(op: str, x: Any, y: Any) -> int:
-    """The verdict of ``x OP y`` (see the module documentation)."""
-    tx, ty = type(x), type(y)
-    numbers = (tx is int or tx is float) and (ty is int or ty is float)
-    if op == "==" or op == "!=":
-        if not numbers and (tx is not ty or (tx is not str and tx is not bool)):
-            return UNKNOWN
-        same = x == y
-        return TRUE if same == (op == "==") else FALSE
-    if not numbers:
-        return UNKNOWN
-    if op == "<":
-        holds = x < y
-    elif op == "<=":
-        holds = x <= y
-    elif op == ">":
-        holds = x > y
-    else:
-        holds = x >= y
-    return TRUE if holds else FALSE
-
-
-def margin(op: str, x: Any, y: Any, verdict: int) -> float | None:
-    """The robustness of a decided atom ``x OP y`` (see the module documentation)."""
-    if verdict == UNKNOWN:
-        return None
-    tx, ty = type(x), type(y)
-    if (tx is int or tx is float) and (ty is int or ty is float):
-        try:
-            if op == "<" or op == "<=":
-                return float(y - x)
-            if op == ">" or op == ">=":
-                return float(x - y)
-            if op == "==":
-                return -float(abs(x - y))
-            return float(abs(x - y))
-        except OverflowError:
-            return _INF if verdict == TRUE else -_INF
-    return _INF if verdict == TRUE else -_INF
-
-
-def truth(value: Any) -> int:
-    """A value read as a condition: its verdict when it is a boolean, unknown otherwise."""
-    if value is True:
-        return TRUE
-    if value is False:
-        return FALSE
-    return UNKNOWN
-
-
-def as_value(verdict: int) -> Any:
-    """A verdict used as a value: True, False or unknown."""
-    return True if verdict == TRUE else False if verdict == FALSE else UNKNOWN_VALUE
-
-
-def object_key(value: Any) -> str | None:
-    """The object a ``foreach`` field's value names (as verdict keys carry it): a string as is, a
-    number as Python writes it; None for anything else (the sample belongs to no object)."""
-    kind = type(value)
-    if kind is str:
-        return str(value)
-    if kind is int or (kind is float and value - value == 0.0):
-        return repr(value)
-    return None
-
-
-# ---------------------------------------------------------------------------- quantifiers
-
-
-def expand_quantifiers(
-    formula: Formula, individuals: Callable[[str], Sequence[str]] | None, bindings: Mapping[str, str] | None = None
-) -> Formula:
-    """``formula`` with every ``forall``/``exists`` replaced by the ``and``/``or`` of its body over
-    the class's individuals (``foreach`` is left where it is), and the variables of ``bindings``
-    (of quantifiers outside it) replaced by their individuals. :class:`FormulaError` when there
-    is a ``forall``/``exists`` and no ``individuals``, or a class without one."""
-    if not bindings and not any(isinstance(node, Quantifier) and node.kind != "foreach" for node in walk(formula.root)):
-        return formula
-    if individuals is None and not any(isinstance(node, Quantifier) and node.kind != "foreach" for node in walk(formula.root)):
-        individuals = _none
-    if individuals is None:
-        raise FormulaError("the formula quantifies over an ontology class, and no individuals are given", where="formula",
-                           expected="individuals=... (a manager's ontology: --ontology FILE)")  # fmt: skip
-    cache: dict[str, list[str]] = {}
-
-    def members(cls: str) -> list[str]:
-        if cls not in cache:
-            found = list(dict.fromkeys(v.strip() for v in individuals(cls) if isinstance(v, str) and v.strip()))
-            if not found:
-                raise FormulaError(f"the class {cls!r} has no individuals", where="formula", expected="a class with at least one individual")
-            cache[cls] = found
-        return cache[cls]
-
-    return Formula.of(_rewrite(formula.root, members, dict(bindings or {})))
-
-
-def _none(cls: str) -> Sequence[str]:
-    return ()
-
-
-def _rewrite(root: Node, members: Callable[[str], list[str]], bound: dict[str, str]) -> Node:
-    """``root`` with static quantifiers expanded and their variables replaced (iteratively)."""
-    # post-order over (node, bindings): a quantifier's body is rewritten once per individual
-    done: dict[tuple[int, tuple[tuple[str, str], ...]], Node] = {}
-    stack: list[tuple[Node, dict[str, str], bool]] = [(root, bound, False)]
-    while stack:
-        node, env, expanded = stack.pop()
-        key = (id(node), tuple(sorted(env.items())))
-        if key in done:
-            continue
-        if isinstance(node, Quantifier) and node.kind != "foreach":
-            assert isinstance(node.domain, str)
-            envs = [{**env, node.var: value} for value in members(node.domain)]
-            keys = [(id(node.body), tuple(sorted(e.items()))) for e in envs]
-            if not expanded:
-                stack.append((node, env, True))
-                stack.extend((node.body, e, False) for e in envs)
-                continue
-            parts = [done[k] for k in keys]
-            joined = parts[0]
-            for part in parts[1:]:
-                joined = And(joined, part) if node.kind == "forall" else Or(joined, part)
-            done[key] = joined
-            continue
-        kids = children(node)
-        if kids and not expanded:
-            stack.append((node, env, True))
-            stack.extend((kid, env, False) for kid in kids)
-            continue
-        args = [done[(id(kid), key[1])] for kid in kids]
-        done[key] = _rebuild(node, args, env)
-    return done[(id(root), tuple(sorted(bound.items())))]
-
-
-def _rebuild(node: Node, args: list[Node], env: dict[str, str]) -> Node:
-    """``node`` with new operands ``args`` and the variables of ``env`` replaced."""
-    if isinstance(node, Stream):
-        if any(a in env for a in node.term.args):
-            return Stream(Term(node.term.functor, tuple(env.get(a, a) for a in node.term.args)), node.fields)
-        return node
-    if isinstance(node, Var):
-        return Str(env[node.name]) if node.name in env else node
-    if isinstance(node, Num | Str | Const):
-        return node
-    if isinstance(node, Atom):
-        return Atom(args[0], node.op, args[1] if len(args) > 1 else None)
-    if isinstance(node, Arith):
-        return Arith(node.op, args[0], args[1])
-    if isinstance(node, Call):
-        return Call(node.fn, tuple(args))
-    if isinstance(node, Aggregate):
-        return Aggregate(node.kind, node.interval, args[0])
-    if isinstance(node, Quantifier):  # foreach: its stream's args too
-        domain = node.domain
-        if isinstance(domain, Stream) and any(a in env for a in domain.term.args):
-            domain = Stream(Term(domain.term.functor, tuple(env.get(a, a) for a in domain.term.args)), domain.fields)
-        return Quantifier(node.kind, node.var, domain, args[0])
-    if isinstance(node, Until | Since):
-        return type(node)(args[0], args[1], node.interval)
-    if isinstance(node, Always | Eventually | Historically | Once):
-        return type(node)(node.interval, args[0])
-    if isinstance(node, And | Or | Implies):
-        return type(node)(args[0], args[1])
-    return type(node)(args[0])  # type: ignore[call-arg]  # Not, Neg, Prev, Rise, Fall
-
-
-# ---------------------------------------------------------------------------- offline evaluation
 
 
 def synchronize(terms: Sequence[Term], streams: Sequence[Sequence[tuple[int, Any]]]) -> tuple[list[int], list[tuple[Any, ...]]]:
@@ -557,9 +278,9 @@ def evaluate_values(expression: str | Formula, streams: Mapping[str, Sequence[tu
     chosen = _choose(parsed, streams)
     times, values, latest = _synchronize([list(samples) for samples in chosen])
     index = {term: k for k, term in enumerate(parsed.terms)}
-    evaluator = _Evaluator(times, values, latest, index, [-1] * len(parsed.terms), {}, False)
+    evaluator = Evaluator(times, values, latest, index, [-1] * len(parsed.terms), {}, False)
     column, _ = evaluator.node(parsed.root)
-    if _is_condition(parsed.root):
+    if is_condition(parsed.root):
         return [(t, verdict_of(v)) for t, v in zip(times, column, strict=True)]
     return [(t, None if v is UNKNOWN_VALUE else v) for t, v in zip(times, column, strict=True)]
 
@@ -582,7 +303,7 @@ def evaluate_objects(
         raise FormulaError("evaluate_objects takes a foreach formula", where="formula", expected="foreach x in Stream.field: ...")
     domain = root.domain
     assert isinstance(domain, Stream)
-    inner = Formula.of(_rewrite_var(root.body, root.var))
+    inner = Formula.of(rename(root.body, root.var, _OBJECT))
     body = Formula(inner.text, inner.root, (domain.term, *(t for t in inner.terms if t != domain.term)))  # the object's samples are states
     ages = {str(parse_term(k)): int(v) for k, v in (max_age_ns or {}).items()}
     chosen = dict(zip([str(t) for t in body.terms], _choose(body, streams), strict=True))
@@ -622,18 +343,6 @@ _OBJECT = "\x00object"  # the foreach variable, once its body is read alone
 
 def _object_value(payload: Any, fields: tuple[str, ...]) -> Any:
     return read(payload, fields)
-
-
-def _rewrite_var(root: Node, var: str) -> Node:
-    """``root`` with ``var`` renamed to the object's placeholder (the body read alone)."""
-    memo: dict[int, Node] = {}
-    for node in reversed(walk(root)):
-        args = [memo[id(kid)] for kid in children(node)]
-        if isinstance(node, Var) and node.name == var:
-            memo[id(node)] = Var(_OBJECT)
-        else:
-            memo[id(node)] = _rebuild(node, args, {}) if args else node
-    return memo[id(root)]
 
 
 def _no_foreach(formula: Formula) -> None:
@@ -686,7 +395,7 @@ def _evaluate_ns(
     index = {term: k for k, term in enumerate(formula.terms)}
     max_age = [ages.get(str(term), -1) for term in formula.terms]
     wants = robustness or any(isinstance(n, Call) and n.fn == "robustness" for n in walk(formula.root))
-    evaluator = _Evaluator(times, values, latest, index, max_age, dict(variables or {}), wants)
+    evaluator = Evaluator(times, values, latest, index, max_age, dict(variables or {}), wants)
     evaluator.stale = _stale_periods(streams, max_age)
     verdicts, margins = evaluator.node(formula.root)
     if robustness:
@@ -708,364 +417,3 @@ def _stale_periods(streams: Sequence[Sequence[tuple[int, Any]]], max_age: list[i
             periods.append((times[-1] + age, None))
         out.append(periods)
     return out
-
-
-def stale_in(periods: Sequence[tuple[int, int | None]], lo: int | None, hi: int) -> bool:
-    """Whether a stale period (open: ``from < t < until``) holds a time ``t`` of the span ``[lo,
-    hi]`` (``lo`` None: no bound)."""
-    for start, end in periods:
-        first = start + 1 if lo is None else max(start + 1, lo)
-        last = hi if end is None else min(end - 1, hi)
-        if first <= last:
-            return True
-    return False
-
-
-class _Evaluator:
-    """Bottom-up evaluation of every node over all states: a condition's verdicts (and robustness),
-    a value's values, each as a list."""
-
-    stale: list[list[tuple[int, int | None]]] = []
-
-    def __init__(
-        self,
-        times: list[int],
-        values: list[tuple[Any, ...]],
-        latest: list[tuple[int, ...]],
-        index: Mapping[Term, int],
-        max_age: list[int],
-        variables: dict[str, Any],
-        robustness: bool,
-    ) -> None:
-        self.times = times
-        self.values = values
-        self.latest = latest
-        self.index = index
-        self.max_age = max_age
-        self.variables = variables
-        self.robust = robustness
-        self.n = len(times)
-
-    def node(self, root: Node) -> tuple[list[Any], list[float | None]]:
-        """A node's column over all states (a condition's verdicts, a value's values) and its robustness."""
-        # iterative post-order: formulas may nest deeper than Python's recursion allows
-        done: dict[int, tuple[list[Any], list[float | None]]] = {}
-        stack: list[tuple[Node, bool]] = [(root, False)]
-        while stack:
-            node, expanded = stack.pop()
-            if id(node) in done:
-                continue
-            kids = children(node)
-            if not expanded and kids:
-                stack.append((node, True))
-                stack.extend((kid, False) for kid in kids)
-                continue
-            done[id(node)] = self.apply(node, [done[id(kid)] for kid in kids])
-        verdicts, margins = done[id(root)]
-        return verdicts, margins
-
-    def apply(self, node: Node, args: list[tuple[list[Any], list[float | None]]]) -> tuple[list[Any], list[float | None]]:
-        n = self.n
-        none: list[float | None] = [None] * n
-        if isinstance(node, Num | Str):
-            return [node.value] * n, none
-        if isinstance(node, Var):
-            return [self.variables.get(node.name, UNKNOWN_VALUE)] * n, none
-        if isinstance(node, Const):
-            return [TRUE if node.value else FALSE] * n, [(_INF if node.value else -_INF)] * n
-        if isinstance(node, Stream):
-            k = self.index[node.term]
-            age = self.max_age[k]
-            out = []
-            for i in range(n):
-                if age >= 0 and self.times[i] - self.latest[i][k] > age:
-                    out.append(UNKNOWN_VALUE)
-                else:
-                    out.append(read(self.values[i][k], node.fields))
-            return out, none
-        if isinstance(node, Neg):
-            return [call("neg", [x]) for x in args[0][0]], none
-        if isinstance(node, Arith):
-            return [arith(node.op, x, y) for x, y in zip(args[0][0], args[1][0], strict=True)], none
-        if isinstance(node, Call):
-            if node.fn == "robustness":
-                return [UNKNOWN_VALUE if r is None else r for r in args[0][1]], none
-            columns = [a[0] for a in args]
-            return [call(node.fn, [c[i] for c in columns]) for i in range(n)], none
-        if isinstance(node, Prev):
-            return [args[0][0][i - 1] if i else self._unknown_like(node.arg) for i in range(n)], none
-        if isinstance(node, Aggregate):
-            out = self.aggregate(node, args[0][0])
-            stale = self.stale_terms(node)
-            if stale:
-                lo, hi = node.interval.lo_ns, node.interval.hi_ns
-                for i in range(n):
-                    if self.stale_window(stale, None if hi is None else self.times[i] - hi, self.times[i] - lo):
-                        out[i] = UNKNOWN_VALUE
-            return out, none
-        if isinstance(node, Atom):
-            return self.atom(node, args)
-        if isinstance(node, Rise | Fall):
-            return self.edge(isinstance(node, Rise), args[0])
-        if isinstance(node, Not):
-            v, r = args[0]
-            return [2 - x for x in v], [(-x if x is not None else None) for x in r]
-        if isinstance(node, And | Or | Implies):
-            (lv, lr), (rv, rr) = args
-            if isinstance(node, Implies):
-                lv, lr = [2 - x for x in lv], [(-x if x is not None else None) for x in lr]
-            pick = min if isinstance(node, And) else max
-            return [pick(x, y) for x, y in zip(lv, rv, strict=True)], [_pair(pick, x, y) for x, y in zip(lr, rr, strict=True)]
-        if isinstance(node, Eventually | Always):
-            v, r = args[0]
-            neg = isinstance(node, Always)
-            hi = node.interval.hi_ns
-            assert hi is not None, "future operators have a finite upper bound (the parser checks it)"
-            out_v, out_r = self.until([TRUE] * n, _inf_list(n), _flip(v, neg), _negate(r, neg), node.interval.lo_ns, hi, self.stale_terms(node))
-            return _flip(out_v, neg), _negate(out_r, neg)
-        if isinstance(node, Until):
-            (lv, lr), (rv, rr) = args
-            hi = node.interval.hi_ns
-            assert hi is not None
-            return self.until(lv, lr, rv, rr, node.interval.lo_ns, hi, self.stale_terms(node))
-        if isinstance(node, Once | Historically):
-            v, r = args[0]
-            neg = isinstance(node, Historically)
-            out_v, out_r = self.since(
-                [TRUE] * n, _inf_list(n), _flip(v, neg), _negate(r, neg), node.interval.lo_ns, node.interval.hi_ns, self.stale_terms(node)
-            )
-            return _flip(out_v, neg), _negate(out_r, neg)
-        if isinstance(node, Since):
-            (lv, lr), (rv, rr) = args
-            return self.since(lv, lr, rv, rr, node.interval.lo_ns, node.interval.hi_ns, self.stale_terms(node))
-        raise FormulaError(f"{type(node).__name__} cannot be evaluated here", where="formula", expected="a formula without foreach inside")
-
-    def stale_terms(self, node: Node) -> list[int]:
-        """The terms read below ``node`` that may be stale (they have a maximum age)."""
-        found = {self.index[n.term] for n in walk(node) if isinstance(n, Stream) and n.term in self.index}
-        return sorted(k for k in found if self.max_age[k] >= 0 and k < len(self.stale) and self.stale[k])
-
-    def stale_window(self, terms: list[int], lo: int | None, hi: int) -> bool:
-        """Whether one of ``terms`` is stale at a time of ``[lo, hi]`` (from the first state when ``lo`` is None)."""
-        first = self.times[0] if self.times else 0
-        lo = first if lo is None else max(lo, first)
-        return any(stale_in(self.stale[k], lo, hi) for k in terms)
-
-    @staticmethod
-    def _unknown_like(node: Node) -> Any:
-        return UNKNOWN if _is_condition(node) else UNKNOWN_VALUE
-
-    # -- atoms and edges
-
-    def atom(self, node: Atom, args: list[tuple[list[Any], list[float | None]]]) -> tuple[list[Any], list[float | None]]:
-        left = self.as_values(node.left, args[0][0])
-        if node.op is None:
-            verdicts = [truth(x) for x in left]
-            return verdicts, [_sign(v) for v in verdicts]
-        assert node.right is not None
-        right = self.as_values(node.right, args[1][0])
-        verdicts = [compare(node.op, x, y) for x, y in zip(left, right, strict=True)]
-        return verdicts, [margin(node.op, x, y, v) for x, y, v in zip(left, right, verdicts, strict=True)]
-
-    @staticmethod
-    def as_values(node: Node, column: list[Any]) -> list[Any]:
-        """A column of a node as values: a condition's verdicts become booleans (or unknown)."""
-        if _is_condition(node):
-            return [as_value(v) for v in column]
-        return column
-
-    def edge(self, rise: bool, arg: tuple[list[Any], list[float | None]]) -> tuple[list[Any], list[float | None]]:
-        v, r = arg
-        out_v: list[Any] = []
-        out_r: list[float | None] = []
-        for i in range(self.n):
-            now, before = v[i], (v[i - 1] if i else UNKNOWN)
-            rn, rb = r[i], (r[i - 1] if i else None)
-            if rise:
-                out_v.append(min(now, 2 - before))
-                out_r.append(_pair(min, rn, (-rb if rb is not None else None)) if out_v[-1] != UNKNOWN else None)
-            else:
-                out_v.append(min(2 - now, before))
-                out_r.append(_pair(min, (-rn if rn is not None else None), rb) if out_v[-1] != UNKNOWN else None)
-        return out_v, out_r
-
-    # -- aggregates
-
-    def window(self, i: int, lo_ns: int, hi_ns: int | None) -> tuple[int, int]:
-        """The states ``[first, last]`` of the past window of state i (first > last: empty)."""
-        times = self.times
-        first = 0 if hi_ns is None else bisect_left(times, times[i] - hi_ns)
-        last = bisect_right(times, times[i] - lo_ns) - 1
-        return first, last
-
-    def aggregate(self, node: Aggregate, column: list[Any]) -> list[Any]:
-        kind, lo, hi = node.kind, node.interval.lo_ns, node.interval.hi_ns
-        out: list[Any] = []
-        for i in range(self.n):
-            if kind == "integral":
-                out.append(self.integral(i, lo, hi, column))
-                continue
-            first, last = self.window(i, lo, hi)
-            if kind == "rate":
-                if last - first < 1:
-                    out.append(UNKNOWN_VALUE)
-                    continue
-                x, y = column[first], column[last]
-                if not _is_number(x) or not _is_number(y):
-                    out.append(UNKNOWN_VALUE)
-                    continue
-                out.append(arith("/", arith("-", y, x), (self.times[last] - self.times[first]) / 1e9))
-                continue
-            part = column[first : last + 1] if last >= first else []
-            if kind == "count":
-                out.append(UNKNOWN_VALUE if any(v == UNKNOWN for v in part) else sum(1 for v in part if v == TRUE))
-                continue
-            if any(not _is_number(x) for x in part):
-                out.append(UNKNOWN_VALUE)
-                continue
-            if kind == "sum":
-                out.append(exact_sum(part))
-            elif kind == "avg":
-                out.append(arith("/", exact_sum(part), len(part)) if part else UNKNOWN_VALUE)
-            elif kind == "min":
-                out.append(min(part) if part else UNKNOWN_VALUE)
-            else:
-                out.append(max(part) if part else UNKNOWN_VALUE)
-        return out
-
-    def integral(self, i: int, lo_ns: int, hi_ns: int | None, column: list[Any]) -> Any:
-        times = self.times
-        left = times[0] if hi_ns is None else max(times[0], times[i] - hi_ns)
-        right = times[i] - lo_ns
-        if right <= left:
-            return 0
-        pieces: list[Any] = []
-        j = bisect_right(times, left) - 1  # the state whose piece holds the span's start
-        while j <= i and times[j] < right:
-            end = times[j + 1] if j < i else times[i]
-            d = min(end, right) - max(times[j], left)
-            if d > 0:
-                x = column[j]
-                if not _is_number(x):
-                    return UNKNOWN_VALUE
-                pieces.append(x * d)
-            j += 1
-        total = exact_sum(pieces)
-        return arith("/", total, 1e9)
-
-    # -- temporal operators (verdicts and robustness)
-
-    def until(
-        self, left: list[int], left_r: list[float | None], right: list[int], right_r: list[float | None], a: int, b: int, stale: list[int]
-    ) -> tuple[list[int], list[float | None]]:
-        """``left until[a,b] right`` at every state, from "next" tables built backwards."""
-        times, n = self.times, self.n
-        next_not_true, next_false, next_true, next_not_false = [n] * (n + 1), [n] * (n + 1), [n] * (n + 1), [n] * (n + 1)
-        for i in range(n - 1, -1, -1):
-            next_not_true[i] = i if left[i] != TRUE else next_not_true[i + 1]
-            next_false[i] = i if left[i] == FALSE else next_false[i + 1]
-            next_true[i] = i if right[i] == TRUE else next_true[i + 1]
-            next_not_false[i] = i if right[i] != FALSE else next_not_false[i + 1]
-        last = times[-1] if times else 0
-        out: list[int] = []
-        rob: list[float | None] = []
-        for i in range(n):
-            lo = bisect_left(times, times[i] + a)  # the window is [lo, hi]
-            hi = bisect_right(times, times[i] + b) - 1
-            complete = last >= times[i] + b
-            gap = bool(stale) and self.stale_window(stale, times[i] + a, times[i] + b)
-            if next_true[lo] <= min(hi, next_not_true[i]):
-                out.append(TRUE)
-            elif complete and not gap and next_not_false[lo] > min(hi, next_false[i]):
-                out.append(FALSE)
-            else:
-                out.append(UNKNOWN)
-            if not self.robust or out[-1] == UNKNOWN or not complete or gap:
-                rob.append(None)
-                continue
-            best: float | None = -_INF
-            chain: float | None = _INF
-            for j in range(i, hi + 1):
-                if j >= lo:
-                    best = _pair(max, best, _pair(min, right_r[j], chain))
-                chain = _pair(min, chain, left_r[j])
-            rob.append(best)
-        return out, rob
-
-    def since(
-        self, left: list[int], left_r: list[float | None], right: list[int], right_r: list[float | None], a: int, b: int | None, stale: list[int]
-    ) -> tuple[list[int], list[float | None]]:
-        """``left since[a,b] right`` at every state, from "last" tables built forwards."""
-        times, n = self.times, self.n
-        last_not_true, last_false, last_true, last_not_false = [-1] * n, [-1] * n, [-1] * n, [-1] * n
-        for i in range(n):
-            last_not_true[i] = i if left[i] != TRUE else (last_not_true[i - 1] if i else -1)
-            last_false[i] = i if left[i] == FALSE else (last_false[i - 1] if i else -1)
-            last_true[i] = i if right[i] == TRUE else (last_true[i - 1] if i else -1)
-            last_not_false[i] = i if right[i] != FALSE else (last_not_false[i - 1] if i else -1)
-        out: list[int] = []
-        rob: list[float | None] = []
-        for i in range(n):
-            lo = 0 if b is None else bisect_left(times, times[i] - b)  # the window is [lo, hi]
-            hi = bisect_right(times, times[i] - a) - 1
-            gap = bool(stale) and self.stale_window(stale, None if b is None else times[i] - b, times[i] - a)
-            if hi >= 0 and last_true[hi] >= max(lo, last_not_true[i]):
-                out.append(TRUE)
-            elif gap:
-                out.append(UNKNOWN)
-            elif hi < 0 or last_not_false[hi] < max(lo, last_false[i]):
-                out.append(FALSE)  # (no state in the window: false)
-            else:
-                out.append(UNKNOWN)
-            if not self.robust or out[-1] == UNKNOWN or gap:
-                rob.append(None)
-                continue
-            best: float | None = -_INF
-            chain: float | None = _INF
-            for j in range(i, lo - 1, -1):
-                if j <= hi:
-                    best = _pair(max, best, _pair(min, right_r[j], chain))
-                chain = _pair(min, chain, left_r[j])
-            rob.append(best)
-        return out, rob
-
-
-def _is_condition(node: Node) -> bool:
-    """Whether a node gives verdicts (else values)."""
-    if isinstance(node, Prev):
-        return _is_condition(node.arg)
-    return not isinstance(node, Num | Str | Var | Stream | Neg | Arith | Call | Aggregate)
-
-
-def exact_sum(values: Sequence[Any]) -> Any:
-    """The sum of numbers as the semantics defines it: exact for ``int`` s, else the exactly rounded
-    sum of the values as floats (``math.fsum``); unknown when that is not finite."""
-    if all(type(x) is int for x in values):
-        return sum(values)
-    try:
-        total = math.fsum(float(x) for x in values)
-    except OverflowError:
-        return UNKNOWN_VALUE
-    return total if total - total == 0.0 else UNKNOWN_VALUE
-
-
-def _pair(pick: Callable[[float, float], float], x: float | None, y: float | None) -> float | None:
-    if x is None or y is None:
-        return None
-    return pick(x, y)
-
-
-def _sign(verdict: int) -> float | None:
-    return _INF if verdict == TRUE else -_INF if verdict == FALSE else None
-
-
-def _flip(values: list[int], negate: bool) -> list[int]:
-    return [2 - v for v in values] if negate else values
-
-
-def _negate(values: list[float | None], negate: bool) -> list[float | None]:
-    return [(-v if v is not None else None) for v in values] if negate else values
-
-
-def _inf_list(n: int) -> list[float | None]:
-    return [_INF] * n

@@ -99,8 +99,8 @@ from dyknow.errors import FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
-from dyknow.reasoning.semantics import object_key, read
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
+from dyknow.reasoning.values import object_key, read
 from dyknow.security import Limits
 from dyknow.spec import Param, Port, Tag, TransformationSpec
 from dyknow.unit import Unit

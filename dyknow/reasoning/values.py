@@ -1,0 +1,208 @@
+"""A formula's values and verdicts at one state: reading a stream, arithmetic, comparisons, Kleene's three values.
+
+What the atoms and expressions of :mod:`dyknow.reasoning.semantics` compute at a state, as
+functions on plain values: the offline evaluator (:mod:`dyknow.reasoning.evaluator`) and the
+incremental monitor (:mod:`dyknow.reasoning.progression`) both call them, so the two agree by
+construction on what a value and an atom are. A verdict is an int (:data:`FALSE`,
+:data:`UNKNOWN`, :data:`TRUE`); an unknown value is :data:`UNKNOWN_VALUE`. Compiled by mypyc
+(setup.py): the monitor calls them at every state.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, Final
+
+__all__ = [
+    "FALSE",
+    "TRUE",
+    "UNKNOWN",
+    "UNKNOWN_VALUE",
+    "arith",
+    "as_value",
+    "call",
+    "compare",
+    "exact_sum",
+    "is_number",
+    "margin",
+    "object_key",
+    "read",
+    "truth",
+    "verdict_of",
+]
+
+FALSE: Final = 0
+"""A verdict as an int: false. Kleene's ``and`` is ``min``, ``or`` is ``max``, ``not`` is ``2 - v``."""
+UNKNOWN: Final = 1
+"""A verdict as an int: unknown (neither true nor false, or not decided yet)."""
+TRUE: Final = 2
+"""A verdict as an int: true."""
+
+
+class _Unknown:
+    """The one unknown value (a missing field, a value of the wrong kind, a division by zero)."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return "UNKNOWN_VALUE"
+
+    def __bool__(self) -> bool:
+        return False
+
+
+UNKNOWN_VALUE: Final = _Unknown()
+"""What an expression gives where its value is unknown."""
+
+_INF: Final = math.inf
+
+
+def verdict_of(value: int) -> bool | None:
+    """The verdict as Python sees it: True, False or None for unknown."""
+    return True if value == TRUE else False if value == FALSE else None
+
+
+def read(payload: Any, fields: tuple[str, ...]) -> Any:
+    """A stream's value: ``payload`` down ``fields``, as a number, string or boolean; else unknown."""
+    value = payload
+    for name in fields:
+        if type(value) is not dict:
+            return UNKNOWN_VALUE
+        value = value.get(name, UNKNOWN_VALUE)
+    kind = type(value)
+    if kind is float:
+        return value if value - value == 0.0 else UNKNOWN_VALUE  # NaN and infinities: unknown
+    if kind is int or kind is str or kind is bool:
+        return value
+    if isinstance(value, bool):
+        return bool(value)
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        value = float(value)
+        return value if value - value == 0.0 else UNKNOWN_VALUE
+    if isinstance(value, str):
+        return str(value)
+    return UNKNOWN_VALUE
+
+
+def is_number(value: Any) -> bool:
+    """Whether ``value`` is a number of the semantics: an ``int`` or a ``float`` (not a ``bool``)."""
+    kind = type(value)
+    return kind is int or kind is float
+
+
+def arith(op: str, x: Any, y: Any) -> Any:
+    """``x OP y`` on numbers (``op`` one of + - * /); unknown otherwise, on division by zero, and
+    when the result is not finite."""
+    if not is_number(x) or not is_number(y):
+        return UNKNOWN_VALUE
+    if op == "+":
+        result = x + y
+    elif op == "-":
+        result = x - y
+    elif op == "*":
+        result = x * y
+    else:
+        if y == 0:
+            return UNKNOWN_VALUE
+        try:
+            result = x / y
+        except OverflowError:  # an int too large for a float
+            return UNKNOWN_VALUE
+    if type(result) is float and result - result != 0.0:
+        return UNKNOWN_VALUE
+    return result
+
+
+def call(fn: str, args: Sequence[Any]) -> Any:
+    """``abs(x)``, ``min(x, y)``, ``max(x, y)``, ``-x`` (``fn`` "neg") on numbers; unknown otherwise."""
+    for x in args:
+        if not is_number(x):
+            return UNKNOWN_VALUE
+    if fn == "neg":
+        return -args[0]
+    if fn == "abs":
+        return abs(args[0])
+    if fn == "min":
+        return args[0] if args[0] <= args[1] else args[1]
+    return args[0] if args[0] >= args[1] else args[1]
+
+
+def compare(op: str, x: Any, y: Any) -> int:
+    """The verdict of ``x OP y`` (as **Atoms** in :mod:`dyknow.reasoning.semantics` states it)."""
+    tx, ty = type(x), type(y)
+    numbers = (tx is int or tx is float) and (ty is int or ty is float)
+    if op == "==" or op == "!=":
+        if not numbers and (tx is not ty or (tx is not str and tx is not bool)):
+            return UNKNOWN
+        same = x == y
+        return TRUE if same == (op == "==") else FALSE
+    if not numbers:
+        return UNKNOWN
+    if op == "<":
+        holds = x < y
+    elif op == "<=":
+        holds = x <= y
+    elif op == ">":
+        holds = x > y
+    else:
+        holds = x >= y
+    return TRUE if holds else FALSE
+
+
+def margin(op: str, x: Any, y: Any, verdict: int) -> float | None:
+    """The robustness of a decided atom ``x OP y`` (as **Robustness** in :mod:`dyknow.reasoning.semantics` states it)."""
+    if verdict == UNKNOWN:
+        return None
+    tx, ty = type(x), type(y)
+    if (tx is int or tx is float) and (ty is int or ty is float):
+        try:
+            if op == "<" or op == "<=":
+                return float(y - x)
+            if op == ">" or op == ">=":
+                return float(x - y)
+            if op == "==":
+                return -float(abs(x - y))
+            return float(abs(x - y))
+        except OverflowError:
+            return _INF if verdict == TRUE else -_INF
+    return _INF if verdict == TRUE else -_INF
+
+
+def truth(value: Any) -> int:
+    """A value read as a condition: its verdict when it is a boolean, unknown otherwise."""
+    if value is True:
+        return TRUE
+    if value is False:
+        return FALSE
+    return UNKNOWN
+
+
+def as_value(verdict: int) -> Any:
+    """A verdict used as a value: True, False or unknown."""
+    return True if verdict == TRUE else False if verdict == FALSE else UNKNOWN_VALUE
+
+
+def object_key(value: Any) -> str | None:
+    """The object a ``foreach`` field's value names (as verdict keys carry it): a string as is, a
+    number as Python writes it; None for anything else (the sample belongs to no object)."""
+    kind = type(value)
+    if kind is str:
+        return str(value)
+    if kind is int or (kind is float and value - value == 0.0):
+        return repr(value)
+    return None
+
+
+def exact_sum(values: Sequence[Any]) -> Any:
+    """The sum of numbers as the semantics defines it: exact for ``int`` s, else the exactly rounded
+    sum of the values as floats (``math.fsum``); unknown when that is not finite."""
+    if all(type(x) is int for x in values):
+        return sum(values)
+    try:
+        total = math.fsum(float(x) for x in values)
+    except OverflowError:
+        return UNKNOWN_VALUE
+    return total if total - total == 0.0 else UNKNOWN_VALUE
