@@ -249,3 +249,51 @@ def test_install_shows_the_progress_lines_and_keeps_pips_output(tmp_path: Path, 
 def test_the_makefile_installs_through_install_py() -> None:
     makefile = (REPO / "Makefile").read_text()
     assert makefile.count("$(BIN)/python tools/install.py") == 3 and "pip install --quiet -e" not in makefile
+
+
+# -------------------------------------------------------------------------------------- hogs.py
+
+_COUNT_HOGS = """import os, sys
+def hog(pid):
+    try:
+        stat = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+        return int(stat[1]) == os.getppid() and f"hog-of={os.getppid()}".encode() in open(f"/proc/{pid}/cmdline", "rb").read()
+    except OSError:
+        return False
+print(os.getppid(), sum(hog(p) for p in os.listdir("/proc") if p.isdigit() and int(p) != os.getpid()), flush=True)
+"""
+
+
+def _hogs_of(pid: int) -> int:
+    """The hogs still running that the tool of ``pid`` started (orphans included: each names it in its arguments)."""
+    alive = 0
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and f"hog-of={pid}".encode() in (entry / "cmdline").read_bytes():
+                alive += 1
+        except OSError:
+            pass
+    return alive
+
+
+@pytest.mark.process
+def test_hogs_runs_the_command_beside_busy_processes_and_stops_them() -> None:
+    import os
+
+    done = subprocess.run([sys.executable, str(TOOLS / "hogs.py"), "--per-core", "1", "--repeat", "2", "--", sys.executable, "-c", _COUNT_HOGS],
+                          capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    counts = [line.split() for line in done.stdout.splitlines() if not line.startswith("hogs:")]
+    cores = os.cpu_count() or 1
+    assert [int(n) for _, n in counts] == [cores, cores]  # one hog per core beside each run
+    assert "hogs: run 2 of 2: exit status 0" in done.stdout and f"({1} per core, {cores} cores)" in done.stdout
+    assert _hogs_of(int(counts[0][0])) == 0  # stopped with the tool
+
+
+@pytest.mark.process
+def test_hogs_stops_at_the_first_failed_run_and_passes_its_status_on() -> None:
+    done = subprocess.run([sys.executable, str(TOOLS / "hogs.py"), "--per-core", "0", "--repeat", "3", "--", sys.executable, "-c", "raise SystemExit(3)"],
+                          capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO)  # fmt: skip
+    assert done.returncode == 3 and "run 1 of 3: exit status 3" in done.stdout and "run 2" not in done.stdout
+    nothing = subprocess.run([sys.executable, str(TOOLS / "hogs.py")], capture_output=True, text=True, timeout=60)
+    assert nothing.returncode == 2 and "no command given" in nothing.stderr
