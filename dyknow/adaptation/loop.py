@@ -49,6 +49,7 @@ class AdaptationLoop:
         self.analyzer = Analyzer(runtime, self.knowledge, dwell_ns=self.dwell_ns)
         self.reconfigurer = Reconfigurer(runtime, self.knowledge)
         self._journal = Journal(runtime, self.knowledge, self._lock)
+        # (the loop itself requests the other terms of a requirement's formula, and gives them back)
         self._requirements = Requirements(runtime, self.knowledge, self.reconfigurer, self, self._report, self.dwell_ns)
         self._adapter = Adapter(
             runtime, self.knowledge, self.analyzer, self.reconfigurer, self._requirements, self._journal, self._report, self.dwell_ns
