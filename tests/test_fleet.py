@@ -151,12 +151,11 @@ def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_w
     plan needs, is let go after the asks in vain (here 2 over 0.5 s, 10 over 30 s in the
     product), with a warning; if that manager starts anew (its tokens go and come back), the
     watch of the tag sees its offer again and it is followed again."""
-    from dyknow import federation
     from dyknow.errors import DyKnowError
-    from dyknow.federation import Directory, Summary
+    from dyknow.federation import Directory, Summary, directory
 
-    monkeypatch.setattr(federation, "_GIVE_UP_ASKS", 2)
-    monkeypatch.setattr(federation, "_GIVE_UP_S", 0.5)
+    monkeypatch.setattr(directory, "_GIVE_UP_ASKS", 2)
+    monkeypatch.setattr(directory, "_GIVE_UP_S", 0.5)
     asked: list[str] = []
 
     def fetch(manager: str) -> bytes:

@@ -118,7 +118,7 @@ class Child:
 def adaptations(observer: Child, cause: str, count: int, timeout_s: float = 30.0) -> list[dict[str, Any]]:
     """The station's adaptations of ``cause`` once there are ``count`` of them. Asked until then:
     when the new configuration keeps the unit that feeds the request's key, its first frames can
-    come before the loop has recorded the adaptation (see dyknow.adaptation.loop's _Recovery)."""
+    come before the loop has recorded the adaptation (see dyknow.adaptation.events.Recovery)."""
     deadline = time.monotonic() + timeout_s
     while len(found := [e for e in observer.ask("adaptations") if e["cause"] == cause]) < count:
         assert time.monotonic() < deadline, f"{count} adaptations of cause {cause!r} within {timeout_s} s: {found}"

@@ -11,8 +11,15 @@ of Sykes et al.: requests are the goals, this package manages change, the manage
 control the components. Each part is a module of this package:
 
 - :mod:`~dyknow.adaptation.runtime`: what the loop needs of its manager (:class:`Runtime`);
-- :mod:`~dyknow.adaptation.knowledge` (K), :mod:`~dyknow.adaptation.monitor` (M),
-  :mod:`~dyknow.adaptation.analyze` (A), :mod:`~dyknow.adaptation.reconfigure` (P and E);
+- :mod:`~dyknow.adaptation.knowledge` (K);
+- :mod:`~dyknow.adaptation.monitor` (M), with :mod:`~dyknow.adaptation.requirements`, the
+  monitor units watching the temporal formulas requests require;
+- :mod:`~dyknow.adaptation.analyze` (A);
+- :mod:`~dyknow.adaptation.adapt` (P and E for one request: what to plan for, what to do with
+  the plan) over :mod:`~dyknow.adaptation.reconfigure` (planning and wiring), with
+  :mod:`~dyknow.adaptation.suspects` (requirements that learn, below);
+- :mod:`~dyknow.adaptation.requests`: the goals, requests taken and given back by reference;
+- :mod:`~dyknow.adaptation.events`: the record of adaptations and their recovery times;
 - :mod:`~dyknow.adaptation.anchor`: the unit that holds a request's key;
 - :mod:`~dyknow.adaptation.loop`: the loop that runs them, one symptom at a time.
 

@@ -1,6 +1,6 @@
 """The request anchor: the relay unit owned by a request, whose output is the request's stable key;
 adapting rebinds its input. The warm anchor also keeps the standby's latest message, forwarded at
-once on a switch.
+once on a switch. :func:`spawn_anchor` gives a request its anchor.
 """
 
 from __future__ import annotations
@@ -9,6 +9,8 @@ import logging
 import time
 from collections.abc import Callable, Mapping
 
+from dyknow.adaptation.knowledge import Knowledge, Request
+from dyknow.adaptation.runtime import Runtime
 from dyknow.message import Message
 from dyknow.spec import Port, TransformationSpec
 from dyknow.unit import Unit
@@ -52,7 +54,7 @@ class RequestAnchor(Unit):
         latest = self._latest
         if latest is not None and latest.key == msg.key:
             self._latest = None  # its configuration is the active one now: this message is newer
-        self._first(msg.key)  # before relaying it: see the loop's recovery record (dyknow.adaptation.loop)
+        self._first(msg.key)  # before relaying it: see the recovery record (dyknow.adaptation.events.Recovery)
         self.publish("out", msg.payload)
 
     def on_reconfigure(self, changes: Mapping[str, str]) -> None:
@@ -88,3 +90,29 @@ WARM_ANCHOR_SPEC = TransformationSpec(
     description="Relays a request's stream onto its stable key, and keeps its warm standby's latest message (internal to request()).",
 )
 """The anchor of a request with a warm standby: port ``standby`` reads the standby's output."""
+
+
+# ---------------------------------------------------------------------------- a request's anchor
+
+
+def anchor_name(runtime: Runtime, tag: str) -> str:
+    """A name for the anchor of a request of ``tag`` that no running unit has."""
+    base = "request-" + "".join(c if c.isalnum() or c in "_-." else "-" for c in tag).strip("-")
+    name, n = base, 1
+    while runtime.has_unit(name):
+        n += 1
+        name = f"{base}-{n}"
+    return name
+
+
+def spawn_anchor(runtime: Runtime, knowledge: Knowledge, request: Request, input_key: str) -> None:
+    """Spawn ``request``'s anchor (:attr:`Request.anchor`) reading ``input_key``; a warm request's
+    also reads its standby's output, when it has one."""
+    bindings = {"in": input_key, "out": request.key}
+    spec = ANCHOR_SPEC
+    if request.standby_mode == "warm":
+        spec = WARM_ANCHOR_SPEC
+        if request.standby_key is not None:
+            bindings["standby"] = request.standby_key
+    runtime.spawn(spec, request.anchor, bindings=bindings)
+    knowledge.managed.add(request.anchor)

@@ -69,7 +69,7 @@ class AdaptationEvent:
 @dataclass(slots=True)
 class Suspect:
     """A transformation a requirement of the request found false: the request's plans avoid it
-    until a trial in the shadow shows that the requirements hold on it (see the loop).
+    until a trial in the shadow shows that the requirements hold on it (:mod:`dyknow.adaptation.suspects`).
 
     ``backoff_s`` is the wait before the next trial (1 s, doubled after each failed trial, at
     most :data:`BACKOFF_MAX_S`), ``next_trial_ns`` when it is due.

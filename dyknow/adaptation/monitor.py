@@ -44,6 +44,45 @@ class Symptom:
     state_ns: int = 0  # "requirement": the time of the state the false verdict is about
     trial: int = 0  # "trial-*": the trial's number (a symptom of an earlier trial is stale)
 
+    def cause(self) -> str:
+        """What an adaptation's event and log line give as its cause: what happened, and whether
+        the opportunity waited for the dwell time."""
+        return self.what() + (", after the dwell time" if self.deferred else "")
+
+    def what(self) -> str:
+        """What happened, in words."""
+        if self.kind == "failed":
+            return f"unit {self.unit!r} failed: {self.detail}"
+        if self.kind == "destroyed":
+            return f"unit {self.unit!r} was destroyed"
+        if self.kind == "stalled":
+            return f"unit {self.unit!r} stalled: {self.detail}"
+        if self.kind == "measurement":
+            return f"measurement {self.detail}"
+        if self.kind == "retry":
+            return f"retry: {self.detail}"
+        if self.kind == "resumed":
+            return f"unit {self.unit!r} resumed"
+        if self.kind == "peer-lost":
+            return f"manager {self.manager!r} was lost"
+        if self.kind == "peer-found":
+            return f"manager {self.manager!r} was found"
+        if self.kind == "requirement" and self.label is not None:
+            return f"requirement of {self.label} violated: {self.detail}"
+        if self.kind == "requirement":
+            return f"requirement violated: {self.detail}"
+        if self.kind == "peer-trusted":
+            return f"manager {self.manager!r} is trusted again: {self.detail}"
+        if self.kind == "trial-held":
+            return f"{self.detail} in the shadow (trial {self.trial})"
+        if self.kind == "trial-failed":
+            return f"trial {self.trial} of {self.label} failed: {self.detail}"
+        if self.kind == "held":
+            return f"requirement held again: {self.detail}"
+        if self.kind == "peer-changed":
+            return f"manager {self.manager!r} changed: {self.detail}" if self.detail else f"manager {self.manager!r} changed"
+        return self.detail or self.kind
+
 
 #: How long past the dwell time a trial may run without its requirements decided (then it failed).
 TRIAL_TIMEOUT_NS = 30_000_000_000

@@ -1,18 +1,6 @@
-"""Several managers, one system: each knows the others through Zenoh.
-
-Every manager declares a liveliness token on ``@dyknow/<manager>`` and publishes its
-:class:`Summary` (host, library, running units, measurements, load) on
-``dyknow/<manager>/summary`` whenever it changes; a newcomer asks each manager it discovers
-for its summary through the ``get_summary`` service. A :class:`Directory` keeps what the managers
-it follows said (the candidates of its plans, those it exchanges data or calls with): one that
-appears is noticed when its token does (at once on a reachable network), one that dies or is cut
-off when its token goes (its links close, or Zenoh's lease expires); each such token is watched on
-its own key, so the others' comings and goings cost it nothing. There is no broker: Zenoh's peers,
-gossip and routers carry it all.
-
-A summary arrives from the network, so it is hostile input: it is bounded in size, its specs are
-XML read by the hardened spec reader, and nothing in it is ever imported or run here. A
-manager's units are only ever spawned by that manager, through its own services and policy.
+"""The directory of the other managers: a :class:`Directory` follows the managers a manager needs
+(the providers of the tags its plans need, those in use), their liveliness and their summaries,
+and lets them go when nothing needs them any more, within bounds whatever the fleet announces.
 """
 
 from __future__ import annotations
@@ -21,29 +9,20 @@ import functools
 import json
 import logging
 import random
-import re
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from typing import Any
 
 from dyknow import keys
-from dyknow.errors import DyKnowError, SpecError
-from dyknow.planner import RunningUnit
-from dyknow.spec import TransformationSpec, parse_specs
-from dyknow.tags import local_name, parse_term
+from dyknow.errors import DyKnowError
+from dyknow.federation.offers import Offers
+from dyknow.federation.summary import Summary
 
-__all__ = ["GOODBYE", "MAX_CANDIDATES", "MAX_OFFERS", "MAX_SUMMARY_BYTES", "MAX_SUMMARY_TAGS", "STOPPED", "Directory", "Summary", "SummaryUnit", "offered"]
+log = logging.getLogger("dyknow.federation")  # one name for the federation, whichever part logs
 
-log = logging.getLogger(__name__)
-
-#: The largest summary a manager takes from another (about 10,000 specs).
-MAX_SUMMARY_BYTES = 16 << 20
-
-_MAX_ITEMS = 20_000
 # A manager whose summary could not be fetched is asked again after 0.05 s, then twice as long
 # each time up to 2 s: a fetch made as a manager's token appears can fail for a moment (its
 # services not reachable yet, a watcher that has not yet seen the token), and a fixed 2 s made a
@@ -63,155 +42,11 @@ _MAX_TODO = 100_000  # changes waiting for the directory's thread
 _DISCOVER_TIMEOUT_S = 1.0
 _FETCHERS = 8  # summaries fetched at once
 _GIVE_UP_ASKS, _GIVE_UP_S = 10, 30.0  # a manager followed that gives no summary for that long is let go (followed again if it restarts)
-#: The most tags a manager announces as offer tokens; the rest are found only through its summary.
-MAX_OFFERS = 1_024
 #: The most providers of one tag whose summaries a planner reads.
 MAX_CANDIDATES = 16
-#: The most tags a summary taken from another manager may carry (its library's and its units'
-#: together); a summary with more is refused whole, with a log line naming its manager.
-MAX_SUMMARY_TAGS = 65_536
 #: Why a manager is lost, when it said goodbye.
 STOPPED = keys.LOSS_STOPPED
 _VANISHED = keys.LOSS_VANISHED
-
-
-@dataclass(frozen=True, slots=True)
-class SummaryUnit:
-    """A running unit as its manager's summary tells: what its outputs carry and where."""
-
-    name: str
-    label: str
-    outputs: Mapping[str, str]
-    tags: Mapping[str, tuple[str, ...]]
-    healthy: bool
-    owner: str | None = None  # the manager whose request spawned it, if another one
-
-    def running(self, manager: str) -> RunningUnit:
-        """The unit as the planner sees it, on ``manager``."""
-        return RunningUnit(self.name, self.label, dict(self.outputs), dict(self.tags), self.healthy, manager)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON form."""
-        return {"name": self.name, "label": self.label, "outputs": dict(self.outputs), "tags": {p: list(t) for p, t in self.tags.items()},
-                "healthy": self.healthy, "owner": self.owner}  # fmt: skip
-
-
-@dataclass(frozen=True, slots=True)
-class Summary:
-    """What one manager offers the others: its library, its running units, its measurements."""
-
-    manager: str
-    host: str
-    version: int
-    library: str = ""  # changes when the library does (planners cache on it)
-    specs: tuple[TransformationSpec, ...] = ()
-    units: tuple[SummaryUnit, ...] = ()
-    measurements: Mapping[str, float | str] = field(default_factory=dict)
-    requests: int = 0
-    clock: int = 0  # the manager's clock id (dyknow.message.CLOCK_ID of its process; 0: unknown)
-
-    @property
-    def load(self) -> int:
-        """How busy the manager is: its running units."""
-        return len(self.units)
-
-    def to_dict(self) -> dict[str, Any]:
-        """The JSON form, specs as XML (what ``get_summary`` serves and the summary key carries)."""
-        return {
-            "manager": self.manager,
-            "host": self.host,
-            "version": self.version,
-            "library": self.library,
-            "specs": [s.to_xml() for s in self.specs],
-            "units": [u.to_dict() for u in self.units],
-            "measurements": dict(self.measurements),
-            "requests": self.requests,
-            "clock": self.clock,
-        }
-
-    @classmethod
-    def from_json(cls, data: bytes, manager: str, previous: Summary | None = None) -> Summary:
-        """A summary received from the network; :class:`DyKnowError` when it is malformed or too big.
-
-        ``manager`` is who it must be about (the key or token it came with). The specs of
-        ``previous`` (the last summary of that manager) are kept when its library has not changed,
-        so a manager's every unit change does not mean reading its whole library again.
-        """
-        if len(data) > MAX_SUMMARY_BYTES:
-            raise DyKnowError(f"a summary of {len(data)} bytes", where=f"manager {manager!r}", expected=f"at most {MAX_SUMMARY_BYTES}")
-        try:
-            raw = json.loads(data)
-            if not isinstance(raw, dict) or raw.get("manager") != manager:
-                raise ValueError("not the summary of this manager")
-            specs_xml = raw.get("specs", [])
-            units = raw.get("units", [])
-            if len(specs_xml) > _MAX_ITEMS or len(units) > _MAX_ITEMS:
-                raise ValueError("too many specs or units")
-            # its tags counted before any is read (a million of them costs the reader, not the sender)
-            tags = sum(len(_TAG.findall(str(xml))) for xml in specs_xml) + sum(_unit_tags(u) for u in units)
-            if tags > MAX_SUMMARY_TAGS:
-                raise _TooManyTags(f"a summary offering {tags} tags; expected at most {MAX_SUMMARY_TAGS} (MAX_SUMMARY_TAGS)")
-            library = str(raw.get("library", ""))[:128]
-            specs: list[TransformationSpec] = []
-            if previous is not None and library and previous.library == library:
-                specs = list(previous.specs)
-            else:
-                for i, xml in enumerate(specs_xml):
-                    specs.extend(parse_specs(str(xml), f"<summary of {manager}, spec {i}>", max_expansions=1))
-            measurements = {
-                str(k): v
-                for k, v in dict(raw.get("measurements", {})).items()
-                if isinstance(v, int | float | str) and not isinstance(v, bool)
-            }
-            return cls(
-                manager=manager,
-                host=str(raw.get("host", "")),
-                version=int(raw.get("version", 0)),
-                library=library,
-                specs=tuple(specs),
-                units=tuple(_unit(u, manager) for u in units),
-                measurements=measurements,
-                requests=int(raw.get("requests", 0)),
-                clock=_clock(raw.get("clock", 0)),
-            )
-        except _TooManyTags as exc:
-            raise DyKnowError(f"refused {exc}", where=f"manager {manager!r}") from exc
-        except (ValueError, TypeError, KeyError, AttributeError, RecursionError, SpecError) as exc:
-            raise DyKnowError(f"a malformed summary: {str(exc)[:200]}", where=f"manager {manager!r}") from exc
-
-
-class _TooManyTags(ValueError):
-    """A summary over :data:`MAX_SUMMARY_TAGS`."""
-
-
-_TAG = re.compile(r"<tag[\s>/]")
-
-
-def _unit_tags(raw: Any) -> int:
-    """How many tags a unit of a summary carries (0 for one of the wrong shape: refused when read)."""
-    tags = raw.get("tags") if isinstance(raw, dict) else None
-    return sum(len(t) for t in tags.values() if isinstance(t, list)) if isinstance(tags, dict) else 0
-
-
-def _clock(raw: Any) -> int:
-    """A clock id from a summary: a 32-bit unsigned integer."""
-    if isinstance(raw, bool) or not isinstance(raw, int) or not 0 <= raw < 1 << 32:
-        raise ValueError(f"clock {str(raw)[:40]!r} is not a 32-bit id")
-    return raw
-
-
-def _unit(raw: Any, manager: str) -> SummaryUnit:
-    """A unit of ``manager``'s summary. Only its outputs on concrete keys of the manager's own key
-    space (``dyknow/<manager>/...``) are kept: a summary may not offer another's stream, or a
-    wildcard, as its own (a planner would wire whatever publishes there)."""
-    own = keys.manager_prefix(manager)
-    outputs = {str(p): str(k) for p, k in dict(raw["outputs"]).items()}
-    kept = {p: k for p, k in outputs.items() if k.startswith(own) and "*" not in k and "@" not in k}  # '*': any wildcard
-    if len(kept) < len(outputs):
-        log.warning("summary of %r: outputs outside its key space %s** ignored: %s", manager, own, sorted(set(outputs) - set(kept))[:5])
-    tags = {str(p): tuple(str(t) for t in ts) for p, ts in dict(raw["tags"]).items() if str(p) in kept}
-    owner = raw.get("owner")
-    return SummaryUnit(str(raw["name"]), str(raw["label"]), kept, tags, bool(raw["healthy"]), str(owner) if owner else None)
 
 
 class Directory:
@@ -256,6 +91,7 @@ class Directory:
         self._debounce_s = debounce_s
         self._publish_s = 0.0  # how long building and sending the last summary took
         self._lock = threading.Lock()
+        self._offers = Offers(session, name, lock=self._lock, closed=lambda: self._closed, bound=self._bound)  # this manager's offer tokens
         self._up = threading.Condition(self._lock)  # told when a manager followed is seen up
         self._alive: set[str] = set()  # managers followed whose token is up
         self._reachable: set[str] | None = None  # every manager's token up, at the last query (alive())
@@ -277,7 +113,6 @@ class Directory:
         self._failures: dict[str, tuple[int, float]] = {}  # manager -> (asks in vain in a row, since when)
         self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
         self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
-        self._offers: dict[str, Any] = {}  # this manager's offer tokens, by key
         self._refused: Counter[str] = Counter()  # what the directory refused, by reason (bounds)
         self._said: set[str] = set()  # the bounds already logged (one line each)
         self._pool: ThreadPoolExecutor | None = None
@@ -292,7 +127,7 @@ class Directory:
         self._said_goodbye = False
         self._thread = threading.Thread(target=self._run, name=f"dyknow-{name}-directory", daemon=True)
         self._thread.start()
-        self._announce(summarize())  # its offers before its token: whoever sees it can find what it offers
+        self._offers.announce(summarize())  # its offers before its token: whoever sees it can find what it offers
         self._token = session.declare_liveliness_token(keys.manager_token(name))
         self._goodbye: Any = None  # this manager's goodbye token, as it stops
         self.changed()
@@ -551,11 +386,10 @@ class Directory:
         self._settle.set()
         self.say_goodbye()
         with self._lock:
-            entities = [*(e for es in self._followed.values() for e in es), *self._offer_watch.values(), *self._offers.values(),
+            entities = [*(e for es in self._followed.values() for e in es), *self._offer_watch.values(), *self._offers.withdraw(),
                         self._token, self._goodbye]  # fmt: skip
             self._followed.clear()
             self._offer_watch.clear()
-            self._offers.clear()
             self._up.notify_all()
         for entity in entities:
             if entity is not None:
@@ -672,47 +506,6 @@ class Directory:
         first = what not in self._said and len(self._said) < _MAX_LOST
         self._said.add(what)
         return first
-
-    def _announce(self, summary: Summary) -> None:
-        """Declare an offer token per tag this manager's summary offers (at most MAX_OFFERS), and
-        withdraw those of tags it no longer offers."""
-        wanted: set[str] = set()
-        too_long = 0
-        for functor, args in offered(summary):
-            key = keys.offer_token(functor, args, self.name)
-            if len(key.encode()) > keys.MAX_KEY_BYTES:
-                too_long += 1
-            else:
-                wanted.add(key)
-        if too_long:
-            self._bound(
-                "offer-too-long",
-                f"manager {self.name!r}: {too_long} of its tags make offer keys over {keys.MAX_KEY_BYTES} bytes; not announced "
-                "(other managers find them only once they follow this one)",
-            )
-        if len(wanted) > MAX_OFFERS:
-            self._bound(
-                "offers",
-                f"manager {self.name!r} offers {len(wanted)} tags; announces {MAX_OFFERS} of them (MAX_OFFERS): the others are "
-                "found only by the managers that follow it already",
-            )
-            wanted = set(sorted(wanted)[:MAX_OFFERS])
-        with self._lock:
-            gone = [self._offers.pop(k) for k in list(self._offers) if k not in wanted]
-            add = sorted(wanted - set(self._offers))
-        for entity in gone:
-            entity.undeclare()
-        for key in add:
-            try:
-                token = self._session.declare_liveliness_token(key)
-            except DyKnowError as exc:
-                log.warning("manager %r: cannot announce its offer %s: %s", self.name, key, exc)
-                continue
-            with self._lock:
-                if self._closed:
-                    token.undeclare()
-                    return
-                self._offers[key] = token
 
     # -- Zenoh callbacks (quick: the work happens on the directory's thread)
 
@@ -978,29 +771,4 @@ class Directory:
             self._session.put(keys.summary_key(self.name), json.dumps(summary.to_dict()))
         except DyKnowError as exc:
             log.warning("directory of %r: cannot publish the summary: %s", self.name, exc)
-        self._announce(summary)
-
-
-def offered(summary: Summary) -> set[tuple[str, tuple[str, ...]]]:
-    """The tags a manager offers, ``(functor, args)`` by local names: those of its library's
-    output ports and of its running units' outputs (what :func:`dyknow.keys.offer_token` announces)."""
-    tags = [t for s in summary.specs for p in s.outputs for t in s.tags_for(p.name)]
-    tags.extend(t for u in summary.units for ts in u.tags.values() for t in ts)
-    found: set[tuple[str, tuple[str, ...]]] = set()
-    for tag in tags:
-        try:
-            term = parse_term(tag)
-        except DyKnowError:
-            continue
-        found.add((local_name(term.functor), tuple(local_name(a) for a in term.args)))
-    return found
-
-
-def running_units(peers: Mapping[str, Summary]) -> list[RunningUnit]:
-    """Every unit running on the given managers, as the planner sees them."""
-    return [u.running(m) for m, s in sorted(peers.items()) for u in s.units]
-
-
-def peer_specs(peers: Mapping[str, Summary]) -> dict[str, Sequence[TransformationSpec]]:
-    """Each manager's library, by manager."""
-    return {m: s.specs for m, s in peers.items()}
+        self._offers.announce(summary)

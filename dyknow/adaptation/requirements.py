@@ -1,0 +1,248 @@
+"""The watches of requirements, the monitor's sensors for temporal formulas: :class:`Requirements`
+spawns a monitor unit per formula a request requires (and per requirement of the transformations
+serving it, and of a trial in the shadow) and turns their false verdicts into symptoms.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from typing import Protocol
+
+from dyknow.adaptation.knowledge import Knowledge, Request, SpecWatch, Trial
+from dyknow.adaptation.monitor import Judge, Symptom
+from dyknow.adaptation.reconfigure import Reconfigurer
+from dyknow.adaptation.runtime import Runtime
+from dyknow.errors import DyKnowError, UnitError
+from dyknow.reasoning.progression import Verdict
+from dyknow.reasoning.syntax import Formula
+from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
+from dyknow.tags import parse_term
+
+log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
+
+
+class Requester(Protocol):
+    """What the watches need of the loop: the streams of a formula's other terms, requested in
+    turn, and given back when the watch goes (:class:`~dyknow.adaptation.AdaptationLoop`)."""
+
+    def request(self, tag: str) -> str:
+        """Request ``tag``; its key."""
+        ...
+
+    def release(self, key: str) -> int:
+        """Give back a reference to the request on ``key``."""
+        ...
+
+
+class Requirements:
+    """Watches formulas over requests' streams: a monitor unit each, whose false verdicts become
+    "requirement" symptoms (reported to the loop through ``report``).
+
+    While a request is degraded in place, the judge :meth:`attach` ed to it sees every verdict of
+    its requirements too.
+    """
+
+    def __init__(
+        self,
+        runtime: Runtime,
+        knowledge: Knowledge,
+        reconfigurer: Reconfigurer,
+        requester: Requester,
+        report: Callable[[Symptom], None],
+        dwell_ns: int,
+    ) -> None:
+        self._runtime = runtime
+        self._knowledge = knowledge
+        self._reconfigurer = reconfigurer
+        self._requester = requester
+        self._report = report
+        self._dwell_ns = dwell_ns
+        self._judges: dict[str, Judge] = {}  # request key -> the judge of a request degraded in place
+
+    # -- a request's own requirements
+
+    def require(self, request: Request, formulas: list[Formula]) -> None:
+        """Watch ``formulas`` over ``request``'s stream: a monitor unit each, whose false
+        verdicts become "requirement" symptoms. A term that is the request's tag reads its
+        stream, any other is requested in turn. All or nothing: when one cannot be watched,
+        those this call set up are taken down again before it raises."""
+        added: list[str] = []
+        try:
+            for formula in formulas:
+                text = str(formula)
+                if text in request.watches:
+                    continue
+                bindings: dict[str, str] = {}
+                needs: list[str] = []
+                try:
+                    for term, port in term_ports(formula).items():
+                        if term == request.tag:
+                            bindings[port] = request.key
+                        else:
+                            needs.append(self._requester.request(term))
+                            bindings[port] = needs[-1]
+                    request.watch_count += 1
+                    name = f"{request.anchor}-require-{request.watch_count}"
+                    bindings[VERDICTS_PORT] = f"{request.key}/requirements/{request.watch_count}"
+                    self._runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
+                except BaseException:
+                    self.give_back(needs)
+                    raise
+                self._knowledge.managed.add(name)
+                request.watches[text] = (name, tuple(needs))
+                added.append(text)
+                watcher = self._runtime.unit(name)
+                if isinstance(watcher, FormulaMonitor):
+                    key = request.key
+                    watcher.listen(lambda verdict, text=text, key=key: self._verdict(key, text, verdict))  # type: ignore[misc]
+        except BaseException:
+            self.unrequire(request, added)
+            raise
+
+    def unrequire(self, request: Request, formulas: Iterable[str]) -> None:
+        """Stop watching ``formulas`` over ``request``: their monitors go, their terms are given back."""
+        for text in formulas:
+            watch = request.watches.pop(text, None)
+            if watch is not None:
+                self._reconfigurer.cleanup([watch[0]])
+                self.give_back(watch[1])
+
+    def give_back(self, needs: Iterable[str]) -> None:
+        """Give back the requests of other terms a watch needed (those still open)."""
+        for needed in needs:
+            if needed in self._knowledge.requests:
+                self._requester.release(needed)
+
+    def attach(self, key: str, judge: Judge) -> None:
+        """Hand every verdict of the requirements of the request on ``key`` to ``judge`` too."""
+        self._judges[key] = judge
+
+    def detach(self, key: str) -> None:
+        """No judge for the request on ``key`` any more."""
+        self._judges.pop(key, None)
+
+    def _verdict(self, key: str, formula: str, verdict: Verdict, unit: str | None = None, label: str | None = None) -> None:
+        """A requirement's verdict (on its monitor's thread): a false one is a symptom; while the
+        request is degraded in place, its judge sees them all."""
+        judge = self._judges.get(key)
+        if judge is not None:
+            judge.verdict(formula, verdict)
+        if verdict.verdict is False:
+            symptom = Symptom("requirement", time.time_ns(), unit=unit, label=label, detail=formula, request=key, state_ns=verdict.t_ns)
+            self._report(symptom)
+
+    # -- the requirements of the transformations serving a request
+
+    def watch_specs(self, request: Request) -> None:
+        """Watch the requirements of the transformations now serving ``request`` (their specs'),
+        and stop watching those of units that no longer do. A term that is one of the unit's
+        output tags reads that output; any other is requested in turn. A requirement that cannot
+        be watched is logged, and the configuration runs unwatched rather than not at all."""
+        planner = self._reconfigurer.planner()
+        wanted: dict[tuple[str, str], str] = {}  # (unit, formula) -> label
+        for ref, label in request.units.items():
+            try:
+                spec = planner.spec(label)
+            except (KeyError, DyKnowError):
+                continue  # (a unit of a transformation no library holds any more: nothing to watch)
+            for formula in spec.requirements:
+                wanted[(ref, formula)] = label
+        for ident in [i for i in request.spec_watches if i not in wanted]:
+            watch = request.spec_watches.pop(ident)
+            self._reconfigurer.cleanup([watch.monitor])
+            for needed in watch.needs:
+                if needed in self._knowledge.requests:
+                    self._requester.release(needed)
+        for (ref, text), label in wanted.items():
+            if (ref, text) not in request.spec_watches:
+                try:
+                    request.spec_watches[(ref, text)] = self._spec_watch(request, ref, label, self._runtime.check_formula(text))
+                except DyKnowError as exc:
+                    log.warning("cannot watch the requirement %r of %s for %s: %s", text, label, request.tag, exc)
+
+    def _unit_bindings(self, ref: str, label: str, formula: Formula) -> tuple[dict[str, str], list[str]]:
+        """Where a monitor of a requirement of unit ``ref`` (of transformation ``label``) reads
+        each term: a term that is one of the unit's output tags reads that output, any other is
+        requested in turn. Returns the bindings and those requests (given back on a failure)."""
+        spec = self._reconfigurer.planner().spec(label)
+        outputs = self._reconfigurer.config(ref)
+        bindings: dict[str, str] = {}
+        needs: list[str] = []
+        try:
+            for term, port in term_ports(formula).items():
+                produced = [
+                    outputs[p.name]
+                    for p in spec.outputs
+                    if p.name in outputs and term in {str(parse_term(t)) for t in spec.tags_for(p.name)}
+                ]
+                if produced:
+                    bindings[port] = produced[0]
+                else:
+                    needs.append(self._requester.request(term))
+                    bindings[port] = needs[-1]
+        except DyKnowError:
+            self.give_back(needs)
+            raise
+        return bindings, needs
+
+    def _spec_watch(self, request: Request, ref: str, label: str, formula: Formula) -> SpecWatch:
+        bindings, needs = self._unit_bindings(ref, label, formula)
+        try:
+            request.spec_watch_count += 1
+            n = request.spec_watch_count
+            name = f"{request.anchor}-spec-require-{n}"
+            key = bindings[VERDICTS_PORT] = f"{request.key}/requirements/spec-{n}"
+            self._runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
+        except DyKnowError:
+            self.give_back(needs)
+            raise
+        self._knowledge.managed.add(name)
+        watcher = self._runtime.unit(name)
+        if isinstance(watcher, FormulaMonitor):
+            text, rkey = str(formula), request.key
+            watcher.listen(lambda verdict, text=text, rkey=rkey, ref=ref, label=label: self._verdict(rkey, text, verdict, ref, label))  # type: ignore[misc]
+        return SpecWatch(label, name, key, tuple(needs))
+
+    # -- a trial in the shadow
+
+    def watch_trial(self, request: Request, trial: Trial) -> None:
+        """Monitors of the request's requirements over the trial's output (their other terms read
+        what the request's own monitors read), and of the trial's new units' own requirements;
+        one judge over them all, which reports the trial "held" or "failed". :class:`DyKnowError`
+        when one cannot be watched."""
+        watched: list[tuple[str, Formula, dict[str, str]]] = []  # (judge's name of it, formula, bindings)
+        for text, (monitor, _) in request.watches.items():
+            formula = self._runtime.check_formula(text)
+            current = self._runtime.get_config(monitor)
+            bindings = {port: trial.output_key if term == request.tag else current[port] for term, port in term_ports(formula).items()}
+            watched.append((text, formula, bindings))
+        planner = self._reconfigurer.planner()
+        for unit in trial.plan.new_units:
+            ref, label = unit.ref, trial.units.get(unit.ref)
+            if label is None:
+                continue
+            for text in planner.spec(label).requirements:
+                formula = self._runtime.check_formula(text)
+                bindings, needs = self._unit_bindings(ref, label, formula)
+                trial.needs.extend(needs)
+                watched.append((f"{text} (of {label})", formula, bindings))
+        if not watched:
+            raise UnitError("no requirement to judge it by", where=f"the trial of {trial.label}")
+        key, serial = request.key, trial.serial
+
+        def report(outcome: str, formula: str) -> None:
+            detail = f"{trial.label} held its requirements for {self._dwell_ns / 1e9:g} s" if outcome == "held" else f"requirement {formula!r} was false there"
+            self._report(Symptom(f"trial-{outcome}", time.time_ns(), label=trial.label, detail=detail, request=key, trial=serial))
+
+        judge = Judge([name for name, _, _ in watched], self._dwell_ns, report, strict=True)
+        for k, (name, formula, bindings) in enumerate(watched, start=1):
+            monitor = f"{request.anchor}-trial-{serial}-{k}"
+            bindings[VERDICTS_PORT] = f"{request.key}/trials/{serial}/{k}"
+            self._runtime.spawn(monitor_spec(formula, label="requirement"), monitor, bindings=bindings)
+            self._knowledge.managed.add(monitor)
+            trial.monitors.append(monitor)
+            watcher = self._runtime.unit(monitor)
+            if isinstance(watcher, FormulaMonitor):
+                watcher.listen(lambda verdict, name=name: judge.verdict(name, verdict))  # type: ignore[misc]
