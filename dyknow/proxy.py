@@ -198,7 +198,7 @@ def _arrived(counters: PortCounters, nbytes: int, now: int, origin_ns: int, orig
 
 
 def _uncertainty_us(clocks: tuple[int, int]) -> float:
-    """How far the offsets of ``clocks`` may be off now (µs; 0 for this process's own)."""
+    """How far the offsets of ``timeline`` may be off now (µs; 0 for this process's own)."""
     worst = 0
     for clock in clocks:
         if clock != 0 and clock != CLOCK_ID:

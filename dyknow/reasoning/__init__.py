@@ -11,15 +11,23 @@ module                      what it holds
 :mod:`~.values`             values and verdicts at one state (streams read, arithmetic, atoms), the monitor's too
 :mod:`~.evaluator`          every node over a whole trace at once: the work of :func:`evaluate`
 :mod:`~.progression`        :class:`Monitor`: samples in, each state's :class:`Verdict` out as soon as decided
+:mod:`~.nodes`              the monitor's node kinds decided at their state: values, atoms, ``not``, ``and``, ``or``
+:mod:`~.aggregates`         its aggregates of a past window: ``count``, ``sum``, ``avg``, ``min``, ``max``, ...
+:mod:`~.past`               its ``since``, ``once`` and ``historically`` nodes
+:mod:`~.future`             its ``until``, ``eventually`` and ``always`` nodes
+:mod:`~.windows`            the window machinery: operands' verdicts as sorted positions, bisected and pruned
+:mod:`~.pending`            the pending-state forest: which states still wait for their verdict
+:mod:`~.timeline`           the timeline the nodes share: the retained states' times, the terms' stale spans
 :mod:`~.robustness`         the robustness of each state, for a monitor asked for it
 :mod:`~.objects`            :class:`ObjectMonitor`: a ``foreach`` formula, one monitor per object
 :mod:`~.quantify`           ``forall``/``exists`` over an ontology class, expanded for a manager
 :mod:`~.unit`               :class:`FormulaMonitor`, the monitor as a unit, and :func:`monitor_spec` for its spec
 ==========================  ==============================================================================
 
-Imports flow one way: ``tree <- parser <- syntax <- quantify <- semantics``,
-``values <- evaluator <- semantics <- progression <- objects <- unit`` and
-``values <- robustness <- progression``.
+Imports flow one way (a module imports only from those on its left): ``tree <- parser <- syntax
+<- quantify <- semantics``; ``values <- evaluator <- semantics``; and ``values, syntax <- robustness
+<- timeline <- pending <- nodes <- windows <- aggregates, past, future <- progression <- objects <-
+unit``.
 
     >>> from dyknow.reasoning import evaluate
     >>> evaluate("once[0, 1s] Battery(robot) < 0.2", {"Battery(robot)": [(0.0, 0.5), (0.5, 0.1), (2.0, 0.4)]})
