@@ -558,3 +558,13 @@ def test_fleet_messages_benchmark_smoke(tmp_path: Path) -> None:
     assert figures["token_us_not_subscribed"] > 0 and figures["token_us_subscribed"] > 0
     assert figures["offers_query_ms"] > 0 and figures["summary_bytes"] > figures["brief_summary_bytes"] > 0
     assert "load average" in result.stdout and "a fleet" in result.stdout
+
+
+@pytest.mark.process
+def test_demo_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "demo.json"
+    result = _run("demo.py", "--runs", "1", "--duration", "6", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    (run,) = json.loads(out.read_text())["runs"]
+    assert run["figures"]["states"] > 0 and run["figures"]["seen_median_cm"] > 0
+    assert "run 1:" in result.stdout and "over 1 runs of 6 s:" in result.stdout and "load average" in result.stdout
