@@ -39,7 +39,10 @@ COMPILED = [
     "dyknow/reasoning/semantics.py",
     "dyknow/receiver.py",
     "dyknow/stats.py",
-    "dyknow/transport.py",
+    "dyknow/transport/entities.py",
+    "dyknow/transport/runtime.py",
+    "dyknow/transport/session.py",
+    "dyknow/transport/shared_memory.py",
 ]
 
 
