@@ -220,7 +220,7 @@ class Subscriber(Entity):
     ``forward``: offered every dyknow message first, as ``forward(payload, header)`` (the
     transport's buffer and the header bytes) before anything is decoded; when it returns True it
     has passed the message on and ``on_message`` is not called (see
-    :meth:`~dyknow.proxy.Proxy.forward_wire`).
+    :meth:`~dyknow.proxy.InputPort.forward_wire`).
     """
 
     def __init__(
