@@ -35,7 +35,9 @@ COMPILED = [
     "dyknow/bus.py",
     "dyknow/executor.py",
     "dyknow/message.py",
-    "dyknow/proxy.py",
+    "dyknow/proxy/job.py",
+    "dyknow/proxy/ports.py",
+    "dyknow/proxy/proxy.py",
     "dyknow/reasoning/aggregates.py",
     "dyknow/reasoning/evaluator.py",
     "dyknow/reasoning/future.py",
@@ -49,7 +51,10 @@ COMPILED = [
     "dyknow/reasoning/windows.py",
     "dyknow/receiver.py",
     "dyknow/stats.py",
-    "dyknow/transport.py",
+    "dyknow/transport/entities.py",
+    "dyknow/transport/runtime.py",
+    "dyknow/transport/session.py",
+    "dyknow/transport/shared_memory.py",
 ]
 
 

@@ -34,7 +34,7 @@ __all__ = ["LocalBus", "cycle_error", "describe_cycle"]
 class _In(Protocol):
     key: str
     name: str
-    job: Any  # the unit's proxy (its name names the unit in errors)
+    job: Any  # the unit's job (dyknow.proxy.job: its name names the unit in errors)
     forward: Any  # the output it forwards to (forward_to), or None
 
 

@@ -14,7 +14,7 @@ COMPILED = re.findall(r'^    "(dyknow/[\w/]+\.py)",$', (REPO / "setup.py").read_
 
 
 def test_setup_names_the_hot_path_modules() -> None:
-    assert "dyknow/proxy.py" in COMPILED and all((REPO / path).is_file() for path in COMPILED)
+    assert "dyknow/proxy/job.py" in COMPILED and all((REPO / path).is_file() for path in COMPILED)
 
 
 @pytest.mark.parametrize("path", COMPILED)

@@ -346,3 +346,18 @@ def test_who_is_alive_is_answered_whatever_the_number_of_tokens_the_session_know
         watch.undeclare()
         for token in tokens:
             token.undeclare()
+
+
+def test_only_the_transport_package_imports_zenoh() -> None:
+    """House rule 11: Zenoh stays behind dyknow.transport; no other module of dyknow (or of the
+    shipped units) imports it."""
+    import ast
+
+    root = Path(__file__).resolve().parent.parent
+    importers = []
+    for path in sorted([*(root / "dyknow").rglob("*.py"), *(root / "transformations").rglob("*.py")]):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
+            if any(name == "zenoh" or name.startswith("zenoh.") for name in names):
+                importers.append(path.relative_to(root).as_posix())
+    assert importers and all(path.startswith("dyknow/transport/") for path in importers), sorted(set(importers))

@@ -167,12 +167,14 @@ def data_directive(family: str, name: str, obj: object) -> list[str]:
     package = importlib.import_module(family)
     candidates = [family] + [f"{family}.{m.name}" for m in pkgutil.iter_modules(getattr(package, "__path__", []))]
     candidates += [f"dyknow.{m.name}" for m in pkgutil.iter_modules(importlib.import_module("dyknow").__path__)]
-    for candidate in candidates:
+    for candidate in candidates:  # (it grows: a package that re-exports the name adds its modules)
         try:
             module = importlib.import_module(candidate)
             if getattr(module, name, None) is not obj:
                 continue
             doc = ModuleAnalyzer.for_module(candidate).find_attr_docs().get(("", name), [])
+            if not doc and candidate != family and hasattr(module, "__path__"):  # defined in one of its modules
+                candidates += [f"{candidate}.{m.name}" for m in pkgutil.iter_modules(module.__path__)]
         except Exception:  # a module without source (compiled) or one that needs an extra
             continue
         if doc:
