@@ -67,6 +67,11 @@ def _compiler() -> str | None:
 #: steps) need no mypyc run.
 BUILDS = {"build", "build_ext", "bdist_wheel", "editable_wheel", "develop", "install"}
 
+#: The commands that install in place (the source tree is what Python imports): only these leave
+#: compiled modules beside the sources, and only these remove them for a pure install. A wheel
+#: built from a checkout (``pip wheel .``) takes the sources alone and leaves the checkout as it was.
+IN_PLACE = {"editable_wheel", "develop"}
+
 
 def say(text: str) -> None:
     """A progress line (``tools/install.py`` shows the lines that start with ``dyknow:``)."""
@@ -78,7 +83,8 @@ def ext_modules() -> list:
     if not BUILDS & set(sys.argv[1:]):
         return []
     if os.environ.get("DYKNOW_PURE_PYTHON"):
-        _remove_compiled()
+        if IN_PLACE & set(sys.argv[1:]) or {"build_ext", "--inplace"} <= set(sys.argv[1:]):
+            _remove_compiled()
         return []
     if _compiler() is None:
         say("no C compiler found: installing the hot-path modules as pure Python (slower)")

@@ -12,6 +12,7 @@ import json
 import os
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,7 @@ def _clean_env(**extra: str) -> dict[str, str]:
 def test_the_wheel_installs_in_a_fresh_venv_and_runs_the_demo_outside_the_checkout(tmp_path: Path) -> None:
     dist, venv, elsewhere = tmp_path / "dist", tmp_path / "venv", tmp_path / "elsewhere"
     elsewhere.mkdir()
+    compiled = {path: path.stat().st_mtime_ns for path in (REPO / "dyknow").rglob("*.so")}  # the checkout's own install's
     build = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", str(dist), str(REPO)],
         capture_output=True, text=True, timeout=600, env=_clean_env(DYKNOW_PURE_PYTHON="1"), cwd=elsewhere,
@@ -38,6 +40,10 @@ def test_the_wheel_installs_in_a_fresh_venv_and_runs_the_demo_outside_the_checko
     assert build.returncode == 0, build.stderr[-3000:]
     (wheel,) = dist.glob("dyknow-*.whl")
     assert wheel.name == f"dyknow-{__version__}-py3-none-any.whl"
+    with zipfile.ZipFile(wheel) as built:
+        assert not [name for name in built.namelist() if name.endswith(".so")]  # pure: no compiled copy of the checkout's
+    # building a pure wheel leaves the checkout's compiled modules alone (an editable install's)
+    assert {path: path.stat().st_mtime_ns for path in (REPO / "dyknow").rglob("*.so")} == compiled
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120, env=_clean_env())
     python, dyknow = venv / "bin" / "python", venv / "bin" / "dyknow"
     install = subprocess.run(
