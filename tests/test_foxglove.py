@@ -75,7 +75,9 @@ async def pump(ws: aiohttp.ClientWebSocketResponse, seen: Seen, until: Callable[
     try:
         await asyncio.wait_for(read(), timeout_s)
     except TimeoutError:
-        raise AssertionError(f"{what} within {timeout_s} s; seen {sorted(c['topic'] for c in seen.channels.values())}") from None
+        counts = {sub: len(got) for sub, got in seen.messages.items()}
+        raise AssertionError(f"{what} within {timeout_s} s; seen {sorted(c['topic'] for c in seen.channels.values())}, "
+                             f"messages by subscription {counts}, channels withdrawn {seen.unadvertised}") from None  # fmt: skip
 
 
 async def subscribe(ws: aiohttp.ClientWebSocketResponse, subscriptions: dict[int, int]) -> None:
@@ -141,7 +143,13 @@ def test_foxglove_serves_live_images_and_json(make_manager: Callable[..., Manage
             await pump(ws, seen, lambda: len(seen.messages.get(1, [])) >= 3 and len(seen.messages.get(2, [])) >= 3, "messages on both")
         return seen, {"image": image, "track": track}
 
-    seen, channels = asyncio.run(watch())
+    try:
+        seen, channels = asyncio.run(watch())
+    except AssertionError as exc:  # say what the units sent and what the bridge said
+        sent = {name: [p.messages for p in manager.get_statistics(name).ports] for name in ("scene", "tracker") if manager.has_unit(name)}
+        proc.proc.kill()
+        stderr = proc.proc.stderr.read() if proc.proc.stderr else ""
+        raise AssertionError(f"{exc}; sent by the units {sent}; the bridge's stderr: {stderr[-2000:]}") from None
     check_protobuf_channel(channels["image"], RAW_IMAGE)
     for log_time, data in seen.messages[1]:
         frame, stamp = raw_image(data)
