@@ -149,6 +149,23 @@ def run_cli(*args: str, timeout: float = 30.0, stdin: str | None = None) -> subp
     )
 
 
+def run_group(argv: list[str], *, timeout: float, **kwargs: Any) -> subprocess.CompletedProcess[str]:
+    """Run ``argv`` to its end, as ``subprocess.run(argv, capture_output=True, text=True)``, in a
+    process group of its own; whatever of the group is left when it ends, fails or the test is cut
+    short (its timeout) is killed, so no worker process of a benchmark outlives the test."""
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, **kwargs)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # the leader's group: the children it left, or all of it
+        except ProcessLookupError:
+            pass
+        if proc.returncode is None:
+            proc.communicate()
+    return subprocess.CompletedProcess(argv, proc.returncode, out, err)
+
+
 def end_process(proc: subprocess.Popen[Any], grace_s: float = 0.0) -> None:
     """End ``proc`` (SIGTERM and up to ``grace_s`` seconds to finish when given, then SIGKILL),
     wait for it and close its pipes."""

@@ -11,19 +11,19 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, subprocess_env, under_ci, undocumented
+from tests.conftest import REPO, run_group, subprocess_env, under_ci, undocumented
 
 
 @pytest.mark.process
 def test_chain_benchmark_smoke(tmp_path: Path) -> None:
     out, png = tmp_path / "chain.json", tmp_path / "chain.png"
-    result = subprocess.run(
+    result = run_group(
         [
             sys.executable, str(REPO / "benchmarks" / "chain.py"), "--smoke", "--hops", "1,3", "--json", str(out), "--plot", str(png),
             "--variants",
             "dyknow-inproc,dyknow-inproc-python,zenoh-session,zenoh-session-direct,dyknow-process,dyknow-process-python,zenoh-process,zenoh-process-tuned,python-call",
         ],
-        capture_output=True, text=True, timeout=600, env=subprocess_env(), cwd=REPO,
+        timeout=600, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     data = json.loads(out.read_text())
@@ -53,9 +53,9 @@ def test_chain_benchmark_smoke(tmp_path: Path) -> None:
 
 
 def _run(script: str, *args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
+    return run_group(
         [sys.executable, str(REPO / "benchmarks" / script), *args],
-        capture_output=True, text=True, timeout=600, env=subprocess_env(), cwd=REPO,
+        timeout=600, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
 
 
@@ -551,8 +551,8 @@ def test_fleet_messages_benchmark_smoke(tmp_path: Path) -> None:
     """Run from a folder outside the checkout, with no PYTHONPATH: only the installed package is found."""
     out = tmp_path / "fleet_messages.json"
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    result = subprocess.run([sys.executable, str(REPO / "benchmarks" / "fleet_messages.py"), "--tokens", "50", "--json", str(out)],
-                            capture_output=True, text=True, timeout=300, env=env, cwd=tmp_path)  # fmt: skip
+    result = run_group([sys.executable, str(REPO / "benchmarks" / "fleet_messages.py"), "--tokens", "50", "--json", str(out)],
+                            timeout=300, env=env, cwd=tmp_path)  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     figures = json.loads(out.read_text())
     assert figures["token_us_not_subscribed"] > 0 and figures["token_us_subscribed"] > 0

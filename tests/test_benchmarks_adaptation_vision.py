@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, subprocess_env, undocumented
+from tests.conftest import REPO, run_group, subprocess_env, undocumented
 
 SCRIPT = REPO / "benchmarks" / "adaptation_vision.py"
 FIGURES = {"p50", "p90", "p99", "max"}
@@ -19,9 +18,9 @@ METRICS = {"first_message_ms", "fresh_frame_ms", "adaptation_ms"}
 @pytest.mark.process
 def test_adaptation_vision_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "adaptation-vision.json"
-    result = subprocess.run(
+    result = run_group(
         [sys.executable, str(SCRIPT), "--smoke", "--json", str(out)],
-        capture_output=True, text=True, timeout=600, env=subprocess_env(), cwd=REPO,
+        timeout=600, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     data = json.loads(out.read_text())

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import io
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
 from dyknow.demo.ball import REQUIREMENT, BallDemo, Battery
-from tests.conftest import REPO, subprocess_env
+from tests.conftest import REPO, run_group, subprocess_env
 
 
 def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp_path: Path) -> None:
@@ -75,9 +74,9 @@ def test_demo_tracks_the_ball_through_its_requirement_and_the_battery_switch(tmp
 
 @pytest.mark.process
 def test_demo_runs_without_a_standby_when_asked(tmp_path: Path) -> None:
-    result = subprocess.run(
+    result = run_group(
         [sys.executable, "-m", "dyknow.cli", "demo", "--no-standby", "--duration", "3", "--json", "--out", str(tmp_path)],
-        capture_output=True, text=True, timeout=120, env=subprocess_env(), cwd=tmp_path,
+        timeout=120, env=subprocess_env(), cwd=tmp_path,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads(result.stdout.splitlines()[-1])
@@ -96,10 +95,10 @@ def test_battery_story() -> None:
 @pytest.mark.process
 def test_demo_command_on_real_videos(tmp_path: Path, data_dir: Path) -> None:
     video = data_dir / "video" / "sim1.mp4"
-    result = subprocess.run(
+    result = run_group(
         [sys.executable, "-m", "dyknow.cli", "demo", "--duration", "8", "--robot-video", str(video), "--ceiling-video", str(video),
          "--out", str(tmp_path), "--json"],
-        capture_output=True, text=True, timeout=120, env=subprocess_env(), cwd=REPO,
+        timeout=120, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads(result.stdout.strip().splitlines()[-1])
@@ -109,9 +108,9 @@ def test_demo_command_on_real_videos(tmp_path: Path, data_dir: Path) -> None:
 
 @pytest.mark.process
 def test_demo_refuses_a_missing_video(tmp_path: Path) -> None:
-    result = subprocess.run(
+    result = run_group(
         [sys.executable, "-m", "dyknow.cli", "demo", "--robot-video", str(tmp_path / "nope.mp4")],
-        capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO,
+        timeout=60, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode != 0
     assert f"{tmp_path / 'nope.mp4'}: no such video file" in result.stderr
@@ -121,9 +120,9 @@ def test_demo_refuses_a_missing_video(tmp_path: Path) -> None:
 @pytest.mark.process
 def test_distributed_demo_across_three_manager_processes() -> None:
     """The scenario across hosts: battery drop -> ceiling camera on another manager; field killed -> back."""
-    result = subprocess.run(
+    result = run_group(
         [sys.executable, "-m", "dyknow.cli", "demo", "--distributed", "--json"],
-        capture_output=True, text=True, timeout=120, env=subprocess_env(), cwd=REPO,
+        timeout=120, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
     report = json.loads(result.stdout.strip().splitlines()[-1])

@@ -3,22 +3,21 @@
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, dds_domain, subprocess_env, undocumented
+from tests.conftest import REPO, dds_domain, run_group, subprocess_env, undocumented
 
 
 @pytest.mark.process
 def test_ros2_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "ros2.json"
-    result = subprocess.run(
+    result = run_group(
         [sys.executable, str(REPO / "benchmarks" / "ros2.py"), "--smoke", "--json", str(out),
          "--domains", ",".join(str(dds_domain()) for _ in range(4))],  # of this test's own: no parallel test joins them
-        capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO,
+        timeout=300, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     rows = {r["variant"]: r for r in json.loads(out.read_text())["results"]}
@@ -36,9 +35,9 @@ def test_the_benchmark_is_documented() -> None:
 @pytest.mark.process
 def test_ros2_cloud_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "ros2-cloud.json"
-    result = subprocess.run(
+    result = run_group(
         [sys.executable, str(REPO / "benchmarks" / "ros2_cloud.py"), "--smoke", "--json", str(out)],
-        capture_output=True, text=True, timeout=300, env=subprocess_env(), cwd=REPO,
+        timeout=300, env=subprocess_env(), cwd=REPO,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     rows = {r["variant"]: r for r in json.loads(out.read_text())["results"]}
