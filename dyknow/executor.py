@@ -431,10 +431,15 @@ class Worker:
                 get, get_nowait = lane.ready.get, lane.ready.get_nowait
 
 
+#: The watchdog's own random numbers: a library thread never draws from the global ``random``
+#: state, which the program around it may have seeded for its own sequence.
+_RANDOM = random.Random()
+
+
 def _reading_gap_ns() -> int:
     """How long until the watchdog's next load reading: :data:`LOAD_WINDOW_S` on average, drawn
     at random between half and one and a half of it (see Executor._watch)."""
-    return _LOAD_WINDOW_NS // 2 + int(random.random() * _LOAD_WINDOW_NS)
+    return _LOAD_WINDOW_NS // 2 + int(_RANDOM.random() * _LOAD_WINDOW_NS)
 
 
 def _machine_idle_s() -> float:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import random
 import re
 import subprocess
 import sys
@@ -13,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from dyknow import Manager, Message, Port, TransformationSpec, Unit, default_key
-from dyknow.executor import Executor
+from dyknow.executor import LOAD_WINDOW_S, Executor
 from dyknow.testing import Sink, Source
 from tests.conftest import subprocess_env, wait_until
 from tests.units import Slow
@@ -128,6 +129,21 @@ def test_timers_and_messages_never_overlap(manager: Manager) -> None:
     assert accounted() == 300
     assert x.overlaps == 0  # type: ignore[attr-defined]
     assert x.ticks > 10 and x.messages > 50  # type: ignore[attr-defined]
+
+
+def test_a_busy_manager_leaves_the_global_random_state_alone(manager: Manager) -> None:
+    """A program that seeds ``random`` for its own sequence keeps it, whatever the managers of its
+    process do: the watchdog draws the moments of its load readings from a generator of its own
+    (drawn from the global one, they changed a Hypothesis test's draws under it, on a busy machine)."""
+    random.seed(50)
+    expected = random.getstate()
+    manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "src", "out")})
+    manager.spawn("periodic-source", "src", params={"rate_hz": 1000, "payload_size": 64})
+    sink = manager.unit("s")
+    assert isinstance(sink, Sink)
+    sink.wait_for(100)  # busy: the watchdog is awake and reading the load
+    time.sleep(8 * LOAD_WINDOW_S)  # the window observed: about eight readings
+    assert random.getstate() == expected
 
 
 def test_periodic_source_stops_after_count(manager: Manager) -> None:

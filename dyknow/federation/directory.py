@@ -23,6 +23,10 @@ from dyknow.federation.summary import Summary
 
 log = logging.getLogger("dyknow.federation")  # one name for the federation, whichever part logs
 
+#: The directory's own random numbers (which unknown candidates to sample): never the global
+#: ``random`` state, which the program around a manager may have seeded for its own sequence.
+_RANDOM = random.Random()
+
 # A manager whose summary could not be fetched is asked again after 0.05 s, then twice as long
 # each time up to 2 s: a fetch made as a manager's token appears can fail for a moment (its
 # services not reachable yet, a watcher that has not yet seen the token), and a fixed 2 s made a
@@ -305,7 +309,7 @@ class Directory:
             if count > MAX_CANDIDATES or len(names) > MAX_CANDIDATES:
                 known = [m for m in names if m in followed]
                 rest = [m for m in names if m not in followed]
-                names = sorted(known[:MAX_CANDIDATES] + random.sample(rest, max(0, min(len(rest), MAX_CANDIDATES - len(known)))))
+                names = sorted(known[:MAX_CANDIDATES] + _RANDOM.sample(rest, max(0, min(len(rest), MAX_CANDIDATES - len(known)))))
                 self._bound(
                     f"candidates {p}",
                     f"directory of {self.name!r}: {count} managers offer {p}; planning with {len(names)} of them (MAX_CANDIDATES)",
