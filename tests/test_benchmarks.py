@@ -111,6 +111,7 @@ def test_adaptation_benchmark_smoke(tmp_path: Path) -> None:
     data = report["results"]
     assert set(data) == {"exception", "destroyed", "measurement", "measurement (return)", "remote-kill", "idle"}
     assert "stand-in" in report["units"] and "STAND-IN" in result.stdout
+    assert report["spurious_adaptations"] >= 0 and "not to a fault measured, skipped:" in result.stdout  # (a stall on a busy machine)
     idle = data.pop("idle")  # an idle request between equal providers (issue 44): its moves beside the target, 0
     assert idle["managers"] == 5 and idle["providers"] == 3 and idle["target_moves_per_min"] == 0 and idle["summary_changes"] >= 15
     assert idle["moves"] >= 0 and "moves/min, target 0" in result.stdout
