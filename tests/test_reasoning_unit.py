@@ -20,6 +20,7 @@ from dyknow.reasoning.progression import DEFAULT_MAX_CELLS
 from dyknow.reasoning.unit import VERDICTS_PORT, MonitorBudget
 from dyknow.security import Limits
 from dyknow.testing import Sink, Source, UnitHarness
+from tests.conftest import wait_until
 
 MS = 1_000_000
 T0 = 1_700_000_000 * 1_000_000_000  # sample times like a source's clock
@@ -156,13 +157,6 @@ def _receiver(make_manager: Callable[..., Manager], **kwargs: Any) -> tuple[Mana
     return manager, sink
 
 
-def _wait_until(predicate: Callable[[], bool], what: str, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.01)
-
-
 def test_verdicts_over_live_streams_from_another_manager_equal_evaluate(make_manager: Callable[..., Manager]) -> None:
     sender = make_manager()
     receiver, sink = _receiver(make_manager, connect=sender.endpoints)
@@ -171,7 +165,7 @@ def test_verdicts_over_live_streams_from_another_manager_equal_evaluate(make_man
     sources = {"Battery(robot)": sender.unit("battery"), "Speed(robot)": sender.unit("speed")}
     for source in sources.values():
         assert isinstance(source, Source)
-        _wait_until(lambda s=source: s.has_subscribers("out"), "the monitor to subscribe")
+        wait_until(lambda s=source: s.has_subscribers("out"), "the monitor to subscribe")
     samples = _samples(seed=26)
     # the two streams interleaved in time order, as two sources would send them
     merged = sorted((t, term, value) for term, stream in samples.items() for t, value in stream)
@@ -230,7 +224,7 @@ def test_one_sample_ten_years_ahead_no_longer_blinds_the_monitor(make_manager: C
     manager.spawn("publisher", "battery", bindings={"out": "robot/battery"})
     source, sink, unit = manager.unit("battery"), manager.unit("verdicts"), manager.unit("monitor")
     assert isinstance(source, Source) and isinstance(sink, Sink) and isinstance(unit, FormulaMonitor)
-    _wait_until(lambda: source.has_subscribers("out"), "the monitor to subscribe")
+    wait_until(lambda: source.has_subscribers("out"), "the monitor to subscribe")
     now = time.time_ns()
     source.emit(0.9, origin_ns=now + 10 * YEAR_NS)  # forged
     for k, level in enumerate([0.9, 0.5, 0.1, 0.8]):  # then the robot's own samples: 0.1 violates it

@@ -30,21 +30,56 @@ ARTIFACTS = Path(os.environ.get("DYKNOW_ARTIFACTS", REPO / "test-artifacts"))
 PAGE_S = 30.0
 
 
-@pytest.fixture
-def browser(browser_paths: tuple[str, str]) -> Iterator[Any]:
+def _start_chromium(paths: tuple[str, str]) -> Any:
     from selenium import webdriver
     from selenium.webdriver.chrome.options import Options
     from selenium.webdriver.chrome.service import Service
 
     options = Options()
-    options.binary_location = browser_paths[0]
+    options.binary_location = paths[0]
     for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--window-size=1400,900", "--disable-dev-shm-usage"):
         options.add_argument(arg)
-    driver = webdriver.Chrome(service=Service(browser_paths[1]), options=options)
+    return webdriver.Chrome(service=Service(paths[1]), options=options)
+
+
+@pytest.fixture(scope="module")
+def chromium(browser_paths: tuple[str, str]) -> Iterator[list[Any]]:
+    """One Chromium for this module's tests on a worker (its start takes seconds on a busy machine);
+    each test gets it through :func:`browser`, on a blank page. A list, so a test can replace a broken one."""
+    held = [_start_chromium(browser_paths)]
     try:
-        yield driver
+        yield held
     finally:
-        driver.quit()
+        held[0].quit()
+
+
+@pytest.fixture
+def browser(chromium: list[Any], browser_paths: tuple[str, str]) -> Iterator[Any]:
+    """The module's Chromium for one test: one blank tab, no cookies, the window at 1400x900
+    (a browser that no longer answers is replaced first). Each test's page is on a port of its
+    own, so nothing a page kept is seen by the next test's."""
+    from selenium.common.exceptions import WebDriverException
+
+    try:
+        chromium[0].get("about:blank")
+    except WebDriverException:  # a test before left it broken: start again
+        try:
+            chromium[0].quit()
+        except WebDriverException:
+            pass  # gone already
+        chromium[0] = _start_chromium(browser_paths)
+    driver = chromium[0]
+    driver.set_window_size(1400, 900)
+    yield driver
+    try:
+        for handle in driver.window_handles[1:]:
+            driver.switch_to.window(handle)
+            driver.close()
+        driver.switch_to.window(driver.window_handles[0])
+        driver.get("about:blank")
+        driver.execute_cdp_cmd("Network.clearBrowserCookies", {})
+    except WebDriverException:
+        pass  # broken by the test: the next test starts a new one
 
 
 @pytest.fixture
