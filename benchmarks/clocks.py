@@ -51,7 +51,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from dyknow import Client, keys
 from dyknow.clocks import Estimator, request
@@ -95,13 +95,13 @@ CASES = {
 # ---------------------------------------------------------------------------- inside the namespaces
 
 
-def run_manager(argv: list[str]) -> int:
+def run_manager(argv: list[str]) -> NoReturn:
     """``dyknow ARGS`` in this process, after a line with its wall clock between two readings of the monotonic clock."""
-    from dyknow.cli import main as dyknow_main
+    from dyknow.cli import run as run_dyknow
 
     before, realtime, after = time.monotonic_ns(), time.time_ns(), time.monotonic_ns()
     print(json.dumps({"event": "clock", "realtime_ns": realtime, "monotonic_ns": (before + after) // 2, "read_ns": after - before}), flush=True)
-    return dyknow_main(argv)
+    run_dyknow(argv)
 
 
 def observe(endpoint: str) -> int:
@@ -305,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run every case and print its figures beside its targets."""
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--run-manager"]:  # (inside a namespace: the rest is dyknow's command line)
-        return run_manager(argv[1:])
+        run_manager(argv[1:])
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=None, help="how long each case runs once the robot is ready (default 20)")
     parser.add_argument("--smoke", action="store_true", help="a quick run: 6 s, equal and ahead, 200 exchanges for the cost")

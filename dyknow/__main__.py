@@ -1,8 +1,8 @@
-"""``python -m dyknow``: the ``dyknow`` command (:func:`dyknow.cli.main`)."""
+"""``python -m dyknow``: the ``dyknow`` command (:func:`dyknow.cli.run`)."""
 
 from __future__ import annotations
 
-from dyknow.cli import main
+from dyknow.cli import run
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    run()

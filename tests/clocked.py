@@ -17,9 +17,9 @@ import json
 import sys
 import time
 
-from dyknow.cli import main
+from dyknow.cli import run
 
 if __name__ == "__main__":
     before, realtime, after = time.monotonic_ns(), time.time_ns(), time.monotonic_ns()  # (a faked clock is slow to read)
     print(json.dumps({"event": "clock", "realtime_ns": realtime, "monotonic_ns": (before + after) // 2, "read_ns": after - before}), flush=True)
-    sys.exit(main(sys.argv[1:]))
+    run(sys.argv[1:])

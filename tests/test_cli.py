@@ -506,3 +506,57 @@ def test_a_misspelled_manager_is_said_without_importing_more(manager_process: Ca
     imported = _imported_by(["model", "--manager", "robt", "--connect", robot.endpoint, "--timeout", "60"])
     assert [m for m in _NOT_TO_FAIL if m in imported] == []
     assert "dyknow.client" in imported
+
+
+_RUN_SCRIPT = """
+import atexit, sys, threading, time
+from pathlib import Path
+from dyknow.cli import run
+from dyknow.transport import open_session
+
+out = Path(sys.argv[1])
+session = open_session(listen=[], connect=[])  # left open: closed on the way out
+session.declare_subscriber("run/**", lambda message: None)
+atexit.register(lambda: (out / "atexit").write_text(str(session.closed)))
+
+def late() -> None:
+    time.sleep(0.3)
+    (out / "thread").write_text("done")
+
+threading.Thread(target=late).start()
+print("said before", end="")  # (not flushed)
+run(sys.argv[2:])
+print("never")
+"""
+
+
+@pytest.mark.process
+@pytest.mark.parametrize(
+    ("argv", "code", "said"),
+    [
+        (["--version"], 0, ""),
+        (["validate", "/nonexistent/specs"], 1, "/nonexistent/specs: no such file or directory"),
+        (["config", "set", "x", "nonsense"], 2, "expected NAME=VALUE"),
+    ],
+)
+def test_the_program_ends_with_its_commands_code_after_what_python_does_at_exit(tmp_path: Path, argv: list[str], code: int, said: str) -> None:
+    """``dyknow`` ends without the interpreter's teardown (where a Zenoh thread calling into
+    Python aborted a manager that had stopped cleanly, exit -6): what Python does at exit is still
+    done, in its order: sessions closed, the program's threads joined, exit handlers run, output
+    flushed, and the command's own code returned."""
+    done = subprocess.run(
+        [sys.executable, "-c", _RUN_SCRIPT, str(tmp_path), *argv], capture_output=True, text=True, timeout=60, env=subprocess_env()
+    )
+    assert done.returncode == code, done.stderr
+    assert done.stdout.startswith("said before") and "never" not in done.stdout
+    assert said in done.stderr
+    assert (tmp_path / "thread").read_text() == "done"
+    assert (tmp_path / "atexit").read_text() == "True"  # the session was closed before the exit handlers
+
+
+@pytest.mark.unit
+def test_the_installed_program_is_run() -> None:
+    from importlib.metadata import entry_points
+
+    (script,) = entry_points(group="console_scripts", name="dyknow")
+    assert script.value == "dyknow.cli:run"

@@ -133,8 +133,13 @@ def _expected(samples: dict[str, list[tuple[int, Any]]]) -> dict[int, bool]:
     return {t: v for t, v in evaluate_ns(FORMULA, samples) if v is not None}
 
 
-def _published(sink: Sink, count: int) -> dict[int, bool]:
-    got = [m.payload for m in sink.wait_for(count, timeout_s=20)]
+def _published(sink: Sink, count: int, manager: Manager) -> dict[int, bool]:
+    try:
+        got = [m.payload for m in sink.wait_for(count, timeout_s=20)]
+    except TimeoutError as exc:  # say what the monitor took in and sent
+        unit = manager.unit("monitor")
+        late = unit.monitor.late if isinstance(unit, FormulaMonitor) else None
+        raise AssertionError(f"{exc}; the monitor's ports: {manager.get_statistics('monitor').to_dict()['ports']}, late {late}") from None
     verdicts = {v["t_ns"]: v["verdict"] for v in got}
     assert len(verdicts) == len(got), "a state's verdict was published twice"
     return verdicts
@@ -175,7 +180,7 @@ def test_verdicts_over_live_streams_from_another_manager_equal_evaluate(make_man
         source.emit(value, origin_ns=t)
     expected = _expected(samples)
     assert len(expected) > 100
-    assert _published(sink, len(expected)) == expected
+    assert _published(sink, len(expected), receiver) == expected
     stats = receiver.get_statistics("monitor").to_dict()["ports"]
     assert stats["t0"]["rejected"] == stats["t1"]["rejected"] == 0
     assert stats["t0"]["dropped"] == stats["t1"]["dropped"] == 0
@@ -202,7 +207,7 @@ def test_verdicts_over_a_replayed_recording_equal_evaluate(make_manager: Callabl
         sent = player.publish(connect=receiver.endpoints, wait_s=10)
     assert sent == sum(len(s) for s in samples.values())
     expected = _expected(recorded)
-    assert _published(sink, len(expected)) == expected
+    assert _published(sink, len(expected), receiver) == expected
     unit = receiver.unit("monitor")
     assert isinstance(unit, FormulaMonitor) and unit.monitor.late == 0
 

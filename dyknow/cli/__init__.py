@@ -40,15 +40,18 @@ Client commands reach a manager with ``--connect ENDPOINT`` (default tcp/127.0.0
 from __future__ import annotations
 
 import argparse
+import atexit
 import logging
 import os
 import sys
+import threading
 from collections.abc import Sequence
+from typing import NoReturn
 
 from dyknow.cli import client, demo, mcap, offline, operate, ros2, serve
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError
 
-__all__ = ["DEFAULT_MANAGER", "main"]
+__all__ = ["DEFAULT_MANAGER", "main", "run"]
 
 
 def _parser(selected: str | None = None) -> argparse.ArgumentParser:
@@ -98,3 +101,43 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         return 70
     return 2
+
+
+def run(argv: Sequence[str] | None = None) -> NoReturn:
+    """The ``dyknow`` program: :func:`main` (over ``argv``, by default the command line's), then an exit without the interpreter's teardown.
+
+    Zenoh's threads outlive a closed session; one that calls into Python (to drop a callback, say)
+    while the interpreter is being torn down is ended by it mid-call, and the process aborts
+    ("FATAL: exception not rethrown", exit -6) when it had finished its work. So once the
+    command is done, what Python would do at exit is done here, in its order (the sessions still
+    open closed, the threads joined, the exit handlers run, logs and output flushed), and the
+    process ends with the command's code before the teardown begins.
+    """
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # argparse's errors and --help/--version, or a command's own exit
+        code = _exit_code(exc.code)
+    # What Python does at exit, up to its teardown: first the handlers that end threads (the
+    # sessions still open close here, and executors stop), then the wait for the program's threads,
+    # then the exit handlers.
+    shutdown_threads = getattr(threading, "_shutdown", None)
+    if shutdown_threads is not None:
+        shutdown_threads()
+    atexit._run_exitfuncs()  # noqa: SLF001
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing left to say
+            pass
+    os._exit(code)
+
+
+def _exit_code(code: object) -> int:
+    """The status ``SystemExit(code)`` ends a program with (a message is printed, status 1)."""
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
