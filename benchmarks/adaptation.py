@@ -75,6 +75,7 @@ DWELL_S = 0.05
 GC_MODES = {"both": ("on", "off"), "on": ("on",), "off": ("off",)}
 _COLLECT = [True]  # whether to run gc.collect() right before each fault (set per run by main)
 _SPURIOUS = [0]  # adaptations to a stall (a deadline missed on a busy machine), not to a fault measured
+_VOID = [0]  # faults a retry after such a stall recovered, not their own adaptation: injected again
 
 
 def before_fault() -> None:
@@ -103,17 +104,23 @@ class Watcher:
             (self.recovered if event.kind == "recovered" else self.adapted).append(event)
             self._cond.notify_all()
 
-    def wait(self, cause: str, timeout_s: float = 10.0) -> AdaptationEvent:
+    def wait(self, cause: str, timeout_s: float = 10.0) -> AdaptationEvent | None:
         """The next recovered event whose cause starts with ``cause``; the recovered events before it
-        (other causes) are counted as spurious. RuntimeError after ``timeout_s`` seconds."""
+        (other causes) are counted as spurious. None when the fault's own adaptation did not
+        recover and a retry did (after a stall, the only way left was in back-off, and its retry
+        ended the fault): that fault's time is not the one measured. RuntimeError after
+        ``timeout_s`` seconds."""
+        adapted_before = len(self.adapted)
 
-        def found() -> AdaptationEvent | None:
+        def found() -> AdaptationEvent | bool | None:
             while self._taken < len(self.recovered):
                 event = self.recovered[self._taken]
                 self._taken += 1
                 if event.cause.startswith(cause):
                     return event
                 self.spurious += 1
+                if event.cause.startswith("retry: ") and any(e.cause.startswith(cause) for e in self.adapted[adapted_before:]):
+                    return False
             return None
 
         deadline = time.monotonic() + timeout_s
@@ -121,7 +128,7 @@ class Watcher:
             while (event := found()) is None:
                 if not self._cond.wait(max(0.0, deadline - time.monotonic())) and time.monotonic() >= deadline:
                     raise RuntimeError(f"no recovery from {cause!r} within {timeout_s} s (adapted: {[e.cause for e in self.adapted]})")
-            return event
+            return event if isinstance(event, AdaptationEvent) else None
 
 
 _ONTOLOGY: list[Ontology] = []
@@ -155,8 +162,8 @@ def camera(manager: Manager, label: str) -> str:
 
 def run_exception(n: int, rate: float) -> list[tuple[float, float]]:
     """Per fault, (adaptation ms, recovery ms) when the robot camera raises; a fresh manager for each."""
-    out = []
-    for _ in range(n):
+    out: list[tuple[float, float]] = []
+    while len(out) < n:
         with scenario_manager(rate, DWELL_S) as manager:
             watcher = Watcher(manager)
             _, consumer = start(manager)
@@ -167,22 +174,28 @@ def run_exception(n: int, rate: float) -> list[tuple[float, float]]:
             cam.explode()
             event = watcher.wait("unit 'robot-camera' failed")
             _SPURIOUS[0] += watcher.spurious
+            if event is None:
+                _VOID[0] += 1
+                continue
             out.append((event.adaptation_ms or 0.0, event.recovery_ms or 0.0))
     return out
 
 
 def run_destroyed(n: int, rate: float) -> list[tuple[float, float]]:
     """Per fault, (adaptation ms, recovery ms) when the robot camera is destroyed, ``n`` times in one manager."""
-    out = []
+    out: list[tuple[float, float]] = []
     with scenario_manager(rate, DWELL_S) as manager:
         watcher = Watcher(manager)
         _, consumer = start(manager)
         consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
-        for _ in range(n):
-            consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=30)  # (back, after a stall moved it)
+        while len(out) < n:
+            consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=60)  # (back, after a stall moved it)
             before_fault()
             manager.destroy(camera(manager, "robot-camera"))
             event = watcher.wait("unit 'robot-camera' was destroyed")
+            if event is None:
+                _VOID[0] += 1
+                continue
             out.append((event.adaptation_ms or 0.0, event.recovery_ms or 0.0))
         _SPURIOUS[0] += watcher.spurious
     return out
@@ -200,24 +213,33 @@ def run_measurement(n: int, rate: float) -> tuple[list[tuple[float, float]], lis
     to the robot camera), both from the moment the measurement is made. The battery recovers only
     once the dwell time since the switch is over, so the measurement is what allows the return
     (earlier, the loop would wait for the dwell and the time would count the wait)."""
-    faults, returns = [], []
+    faults: list[tuple[float, float]] = []
+    returns: list[tuple[float, float]] = []
     with scenario_manager(rate, DWELL_S) as manager:
         watcher = Watcher(manager)
         _, consumer = start(manager)
         consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
-        for _ in range(n):
-            consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=30)  # (back, after a stall moved it)
+        while len(faults) < n:
+            consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=60)  # (back, after a stall moved it)
             before_fault()
             measured = time.time_ns()
             manager.measure("battery", 0.1)
-            event = watcher.wait("measurement battery = 0.1")
+            event = watcher.wait("measurement battery = 0.1", timeout_s=60)
+            if event is None:  # a retry after a stall recovered it, not this adaptation: once more
+                _VOID[0] += 1
+                time.sleep(DWELL_S + 0.02)
+                manager.measure("battery", 0.9)
+                continue
             faults.append(since(measured, event))
             wired_s = (event.fault_ns + (event.adaptation_ms or 0.0) * 1e6) / 1e9
             time.sleep(max(0.0, wired_s + DWELL_S + 0.02 - time.time()))  # the dwell is over: the return may come at once
             before_fault()
             measured = time.time_ns()
             manager.measure("battery", 0.9)
-            back = watcher.wait("measurement battery = 0.9")
+            back = watcher.wait("measurement battery = 0.9", timeout_s=60)
+            if back is None:
+                _VOID[0] += 1
+                continue
             assert "after the dwell time" not in back.cause, back.cause
             returns.append(since(measured, back))
         _SPURIOUS[0] += watcher.spurious
@@ -233,8 +255,8 @@ REMOTE = """<transformations><transformation><label>remote-camera</label>
 
 def run_remote_kill(n: int, rate: float) -> list[tuple[float, float, float]]:
     """Per fault: (adaptation ms from the kill, recovery ms from the kill, detection ms)."""
-    out = []
-    for _ in range(n):
+    out: list[tuple[float, float, float]] = []
+    while len(out) < n:
         with scenario_manager(rate, DWELL_S, REMOTE.replace("fleet/cam", f"fleet/cam{time.monotonic_ns()}")) as manager:
             key_remote = manager.library.get("remote-camera").param_values()["key"]
             script = textwrap.dedent(
@@ -258,6 +280,9 @@ def run_remote_kill(n: int, rate: float) -> list[tuple[float, float, float]]:
                 child.send_signal(signal.SIGKILL)
                 event = watcher.wait("unit 'remote-camera' failed")
                 _SPURIOUS[0] += watcher.spurious
+                if event is None:
+                    _VOID[0] += 1
+                    continue
                 wired_ns = event.fault_ns + (event.adaptation_ms or 0) * 1e6
                 recovered_ns = event.fault_ns + (event.recovery_ms or 0) * 1e6
                 out.append(((wired_ns - killed_ns) / 1e6, (recovered_ns - killed_ns) / 1e6, (event.fault_ns - killed_ns) / 1e6))
@@ -398,6 +423,7 @@ def main(argv: list[str] | None = None) -> int:
                     flush=True,
                 )
     print(f"adaptations to a stall (a unit missed its deadline: a busy machine), not to a fault measured, skipped: {_SPURIOUS[0]}")
+    print(f"faults a retry after such a stall recovered (their time not measured), injected again: {_VOID[0]}")
     if "idle" in kinds:
         idle = results["idle"] = run_idle(args.idle_managers, args.idle_providers, 10.0 if args.smoke else args.idle_s)
         print(
@@ -420,6 +446,7 @@ def main(argv: list[str] | None = None) -> int:
                 "rate_hz": args.rate,
                 "dwell_s": DWELL_S,
                 "spurious_adaptations": _SPURIOUS[0],
+                "void_faults": _VOID[0],
                 "gc": args.gc,
                 "results": results,
             },

@@ -23,7 +23,18 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Proc", "cpu_seconds", "free_ports", "machine", "memory_mib", "percentile", "schedstat_ns", "sleep_until", "thread_cpu_ns", "write_json"]
+__all__ = [
+    "Proc",
+    "cpu_seconds",
+    "free_ports",
+    "machine",
+    "memory_mib",
+    "percentile",
+    "schedstat_ns",
+    "sleep_until",
+    "thread_cpu_ns",
+    "write_json",
+]
 
 
 def machine() -> dict[str, Any]:
@@ -173,7 +184,7 @@ class Proc:
                 line = self.lines.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
                 raise RuntimeError(
-                    f"no line {match} from {self.proc.args[-12:]} within {timeout_s} s; stderr: {self.error_tail()}"
+                    f"no line {match} from {self.proc.args[-12:] if isinstance(self.proc.args, list) else self.proc.args!r} within {timeout_s} s; stderr: {self.error_tail()}"
                 ) from None
             if line.startswith("{"):
                 data = json.loads(line)

@@ -37,7 +37,7 @@ def main() -> int:
         with lock:
             print(json.dumps(data), flush=True)
 
-    window: dict[str, list[int]] = {"arrived": [], "ages": [], "corrected": [], "cameras": []}  # since the last stats
+    window: dict[str, list[int]] = {"arrived": [], "ages": [], "corrected": [], "corrections": [], "cameras": []}  # since the last stats
     view: list[ClockView] = []  # the station's estimates of the clocks, once following them
     unknown = [0]
     uncertainty = [0]
@@ -56,6 +56,7 @@ def main() -> int:
                 unknown[0] += 1
             else:
                 window["corrected"].append(now - known[0])
+                window["corrections"].append(msg.origin_ns - known[0])  # the clock's offset, as estimated
                 uncertainty[0] = max(uncertainty[0], known[1])
         if last != [camera]:
             if last:
@@ -67,7 +68,8 @@ def main() -> int:
         now = time.time_ns()
         with lock:
             arrived, ages, cameras, corrected = window["arrived"], sorted(window["ages"]), window["cameras"], sorted(window["corrected"])
-            window["arrived"], window["ages"], window["cameras"], window["corrected"] = [], [], [], []
+            corrections = sorted(window["corrections"])
+            window["arrived"], window["ages"], window["cameras"], window["corrected"], window["corrections"] = [], [], [], [], []
             since, started[0] = started[0], now
             switched, switches[0] = switches[0], 0
             not_known, unknown[0] = unknown[0], 0
@@ -82,6 +84,8 @@ def main() -> int:
             "age_p99_ms": ages[min(len(ages) - 1, int(0.99 * len(ages)))] / 1e6 if ages else None,
             "age_p50_us_corrected": corrected[len(corrected) // 2] / 1e3 if corrected else None,
             "age_uncertainty_us": worst / 1e3,
+            "correction_p50_us": corrections[len(corrections) // 2] / 1e3 if corrections else None,
+            "middle_ns": (since + now) // 2,
             "age_unknown_clock": not_known,
             "switches": switched,
             "by_camera": {str(c): cameras.count(c) for c in sorted(set(cameras))},

@@ -35,10 +35,11 @@ from tests.test_hosts import BOTTOM, CEILING, ONTOLOGY, PORT, Child, adaptations
 
 pytestmark = pytest.mark.namespaces  # every test here: see CONTRIBUTING.md, 'Tiers'
 
-#: How far the robot's and the field's figures may differ for reasons other than clocks: two
+#: How far the robot's and the field's hop p50s may differ for reasons other than clocks: two
 #: cameras on two hosts, on a machine of two cores shared with the rest of the suite. In the
-#: first four runs the two hop p50s differed by 3-30 µs and the ages by as little (the robot's
-#: corrected); the margin leaves room for a loaded machine. Uncorrected, they differ by 250,000 µs.
+#: first four runs they differed by 3-30 µs (the robot's corrected); the margin leaves room for a
+#: loaded machine. Uncorrected, they differ by 250,000 µs. (The ages at the observer are not
+#: compared so: they cross every stage, and beside CPU hogs their p50s differed by 1 ms.)
 MARGIN_US = 500.0
 
 
@@ -114,7 +115,11 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         children.append(field)
         nominal = {"+0.25": 250_000, "-0.25": -250_000}.get(skew.faketime, 0)
         assert abs(injected(robot_clock, skew.rate, time.time_ns()) / 1000 - nominal) < 1000  # what libfaketime was asked for
-        observer = Child(hosts, "station", [sys.executable, "-m", "tests.netns_observer", f"tcp/{hosts.address('station')}:{PORT}", "station", "BallTrack(field)"])
+        observer = Child(
+            hosts,
+            "station",
+            [sys.executable, "-m", "tests.netns_observer", f"tcp/{hosts.address('station')}:{PORT}", "station", "BallTrack(field)"],
+        )
         children.append(observer)
         key = observer.next("key")["key"]
         observer.next("camera", camera=BOTTOM)
@@ -184,8 +189,18 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         assert field_window["by_camera"] == {str(CEILING): field_window["messages"]}
         skewed_age, equal_age = robot_window["age_p50_us_corrected"], field_window["age_p50_us_corrected"]
         # an age corrected by an estimate is true within the estimate's uncertainty: never negative beyond it
-        assert skewed_age > -robot_window["age_uncertainty_us"] and equal_age > -field_window["age_uncertainty_us"], (robot_window, field_window)
-        assert abs(skewed_age - equal_age) <= robot_window["age_uncertainty_us"] + MARGIN_US, (robot_window, field_window)
+        assert skewed_age > -robot_window["age_uncertainty_us"] and equal_age > -field_window["age_uncertainty_us"], (
+            robot_window,
+            field_window,
+        )
+        # and the correction the client applied is the clock's true offset (injected) within that
+        # uncertainty, the drift over half the window and the reading of the robot's clock line (the
+        # ages of two windows are not compared: on a busy machine the latency itself differs by ms)
+        truth_us = injected(robot_clock, skew.rate, robot_window["middle_ns"]) / 1000
+        drift_us = abs(skew.rate - 1) * robot_window["seconds"] * 1e6 / 2
+        slack_us = drift_us + robot_clock["read_ns"] / 2000 + 1
+        assert abs(robot_window["correction_p50_us"] - truth_us) <= robot_window["age_uncertainty_us"] + slack_us, (robot_window, truth_us)
+        assert abs(field_window["correction_p50_us"]) <= field_window["age_uncertainty_us"] + 1, field_window  # equal clocks
         assert all(e["cause"] in ("manager 'robot' was lost",) for e in observer.ask("adaptations") if e["kind"] == "adapted")
     finally:
         for child in reversed(children):
