@@ -146,6 +146,39 @@ def test_offers_and_fake_providers_are_bounded(make_manager: Callable[..., Manag
     assert {info.key for info in requester.requests()} == {wanted, many}  # what ran before runs on
 
 
+def _threads() -> int:
+    """The threads of this process (Zenoh's and Python's)."""
+    with open("/proc/self/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("Threads:"))
+
+
+def test_offers_of_names_that_answer_for_nothing_never_hide_a_real_provider(make_manager: Callable[..., Manager]) -> None:
+    """Issue 51: 300 managers that do not exist offer the tag (a token each, and a manager token),
+    declared before the one real provider starts: a liveliness query finds them all, in an order
+    that put the real one past the 64 answers kept (4 of 4 requests said "nothing provides").
+    The managers that answer for their offers are asked too, and come first: the request is
+    planned on the real provider; the fakes followed meanwhile (at most 16) cost no thread each."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    make_manager("hub", listen=[hub], specs=[])
+    with Session(make_config(connect=[hub])) as attacker:
+        held = [attacker.declare_liveliness_token(keys.offer_token("Wanted", (), f"fake{i:03d}")) for i in range(300)]
+        held += [attacker.declare_liveliness_token(keys.manager_token(f"fake{i:03d}")) for i in range(300)]
+        real = make_manager("real", listen=[], connect=[hub])
+        real.add_transformation(_offering("Wanted"))
+        newcomer = make_manager("newcomer", listen=[], connect=[hub], specs=[])
+        offers = keys.offers_pattern("Wanted", ())
+        wait_until(lambda: len(newcomer.session.alive(offers, timeout_s=0.5)) == 301, "the newcomer's session to know the 301 offers")
+        threads = _threads()
+        key = newcomer.request("Wanted")
+        assert _provider(newcomer, key) == "real"
+        directory = newcomer.directory
+        assert directory is not None and "real" in directory.followed() and len(directory.followed()) <= MAX_CANDIDATES
+        # three watches per manager followed, each a thread of its own before: 16 fakes, 48 threads
+        assert _threads() - threads < 24, (threads, _threads())
+        for entity in held:
+            entity.undeclare()
+
+
 def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_when_it_starts_anew(monkeypatch: pytest.MonkeyPatch) -> None:
     """A token with nobody behind it (its summary never comes), found as the provider of a tag a
     plan needs, is let go after the asks in vain (here 2 over 0.5 s, 10 over 30 s in the

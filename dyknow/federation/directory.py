@@ -227,7 +227,9 @@ class Directory:
         while len(self._pinned) > _MAX_FOLLOWED:
             del self._pinned[next(iter(self._pinned))]
 
-    def discover(self, wanted: Iterable[tuple[str, tuple[str, ...]]], timeout_s: float = _DISCOVER_TIMEOUT_S, *, need: str | None = None) -> bool:
+    def discover(
+        self, wanted: Iterable[tuple[str, tuple[str, ...]]], timeout_s: float = _DISCOVER_TIMEOUT_S, *, need: str | None = None
+    ) -> bool:
         """Find the providers of the tags ``wanted`` (``(functor, args)`` by local names), read
         the summaries of those not followed yet, and follow them; True when a summary was added.
 
@@ -250,23 +252,39 @@ class Directory:
                 if need is not None:
                     self._needs.setdefault(p, set()).add(need)
             new = [p for p in patterns if p not in self._offer_watch]
-        if not new or self._closed:
+            # watched already, with a provider that never answered among them: the managers that
+            # answer for the tag are asked again (tokens anyone may declare must not hide them)
+            doubtful = [
+                p for p in patterns if p in self._offer_watch and any(m not in self._summaries for m in self._candidates.get(p, ()))
+            ]
+        if (not new and not doubtful) or self._closed:
             return False
         if len(new) > _MAX_OFFER_KEYS:
             self._bound("tags", f"directory of {self.name!r}: a plan needs {len(new)} tags; watching the providers of {_MAX_OFFER_KEYS}")
             new = new[:_MAX_OFFER_KEYS]
         answers: dict[str, tuple[list[str], int]] = {}
+        answering: dict[str, set[str]] = {}
         done = threading.Event()
 
-        pending = [2 * len(new)]
+        pending = [2 * len(new) + len(new) + len(doubtful)]
+
+        def arrived() -> None:  # (the lock held)
+            pending[0] -= 1
+            if pending[0] == 0:
+                done.set()
 
         def answered(pattern: str, found: list[str], count: int) -> None:
             with self._lock:
                 before, counted = answers.get(pattern, ([], 0))
                 answers[pattern] = (sorted({*before, *found}), max(counted, count))
-                pending[0] -= 1
-                if pending[0] == 0:
-                    done.set()
+                arrived()
+
+        def indexed(pattern: str, found: list[str], count: int) -> None:
+            with self._lock:
+                answering.setdefault(pattern, set()).update(
+                    m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name
+                )
+                arrived()
 
         def ask() -> None:
             for p in new:
@@ -276,14 +294,23 @@ class Directory:
                     log.warning("directory of %r: cannot ask who offers %s: %s", self.name, p, exc)
                     answered(p, [], 0)
 
+        def ask_index() -> None:
+            for p in [*new, *doubtful]:
+                try:
+                    self._session.ask_index(p, timeout_s=timeout_s, limit=MAX_CANDIDATES, done=functools.partial(indexed, p))
+                except DyKnowError as exc:
+                    log.warning("directory of %r: cannot ask which managers answer for %s: %s", self.name, p, exc)
+                    indexed(p, [], 0)
+
         # asked before the watch and again after it, the answers together: a Zenoh client's
         # liveliness query just after a liveliness subscriber on the same key expression finds
         # nothing (a manager behind a router planned nothing), and a provider that appears
         # between the first query and the watch is found by the second
         ask()
+        ask_index()
         for p in new:
             try:
-                watch = self._session.declare_liveliness_subscriber(p, functools.partial(self._offer_change, p))
+                watch = self._session.declare_liveliness_subscriber(p, functools.partial(self._offer_change, p), inline=True)
             except DyKnowError as exc:
                 log.warning("directory of %r: cannot watch the providers of %s: %s", self.name, p, exc)
                 continue
@@ -301,18 +328,29 @@ class Directory:
         ask()
         done.wait(timeout_s + 0.5)
         with self._lock:
-            got = dict(answers)
+            got = {p: answers.get(p, ([], 0)) for p in new}
+            answer = {p: set(ms) for p, ms in answering.items()}
             followed = set(self._followed)
         candidates: set[str] = set()
+        for p in doubtful:  # the managers that answer join those of the tokens seen before
+            with self._lock:
+                self._candidates.setdefault(p, set()).update(answer.get(p, set()))
+            candidates.update(answer.get(p, set()))
         for p, (found, count) in sorted(got.items()):
-            names = sorted({m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name})
+            names = sorted({m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name} | answer.get(p, set()))
             if count > MAX_CANDIDATES or len(names) > MAX_CANDIDATES:
-                known = [m for m in names if m in followed]
-                rest = [m for m in names if m not in followed]
-                names = sorted(known[:MAX_CANDIDATES] + _RANDOM.sample(rest, max(0, min(len(rest), MAX_CANDIDATES - len(known)))))
+                # those that answer first, then those followed already, then a random choice: names
+                # chosen to sort or to arrive first do not crowd out the others
+                first = sorted(answer.get(p, set()))[:MAX_CANDIDATES]
+                known = [m for m in names if m in followed and m not in first]
+                rest = [m for m in names if m not in followed and m not in first]
+                chosen = first + known[: MAX_CANDIDATES - len(first)]
+                chosen += _RANDOM.sample(rest, max(0, min(len(rest), MAX_CANDIDATES - len(chosen))))
+                names = sorted(chosen)
                 self._bound(
                     f"candidates {p}",
-                    f"directory of {self.name!r}: {count} managers offer {p}; planning with {len(names)} of them (MAX_CANDIDATES)",
+                    f"directory of {self.name!r}: {max(count, len(names))} managers offer {p}; planning with {len(names)} of them "
+                    f"(MAX_CANDIDATES), those that answer for their offers first",
                 )
             candidates.update(names)
             with self._lock:
@@ -425,9 +463,11 @@ class Directory:
         used = set(self._in_use()) if full and self._in_use is not None else set()
         entities: list[Any] = []
         try:
-            entities.append(self._session.declare_raw_subscriber(keys.summary_key(manager), self._summary_sample))
-            entities.append(self._session.declare_liveliness_subscriber(keys.manager_token(manager), self._liveliness))
-            entities.append(self._session.declare_liveliness_subscriber(keys.goodbye_token(manager), self._goodbye_token))
+            # on Zenoh's thread: each callback only queues (a thread per watch was three threads a
+            # manager followed: 20 -> 435 threads after a flood of tokens, issue 51)
+            entities.append(self._session.declare_raw_subscriber(keys.summary_key(manager), self._summary_sample, inline=True))
+            entities.append(self._session.declare_liveliness_subscriber(keys.manager_token(manager), self._liveliness, inline=True))
+            entities.append(self._session.declare_liveliness_subscriber(keys.goodbye_token(manager), self._goodbye_token, inline=True))
         except DyKnowError as exc:
             log.warning("directory of %r: cannot follow %r: %s", self.name, manager, exc)
         evicted: list[Any] = []

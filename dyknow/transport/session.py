@@ -26,6 +26,7 @@ from dyknow.transport.config import lease_and_dials, make_config
 from dyknow.transport.entities import (
     Entity,
     HistorySubscriber,
+    Index,
     LivelinessSubscriber,
     LivelinessToken,
     PlainPublisher,
@@ -426,6 +427,46 @@ class Session:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot ask who is alive on {key!r}: {error_text(exc)}") from exc
 
+    def declare_index(self, key: str, held: Callable[[], list[str]]) -> Index:
+        """Answer queries on ``key`` with the concrete keys ``held()`` lists that they cover (see
+        :class:`~dyknow.transport.entities.Index`); :meth:`ask_index` asks."""
+        return Index(self._z(), key, held)
+
+    def ask_index(self, key: str, *, timeout_s: float, limit: int, done: Callable[[list[str], int], None]) -> None:
+        """Ask once which sessions' indexes hold keys on ``key``, and return at once: ``done(keys,
+        count)`` is called once, on a Zenoh thread, when every index answered (or ``timeout_s``
+        passed): the first ``limit`` distinct keys in the order they came, and how many came."""
+        lock = threading.Lock()
+        found: dict[str, None] = {}
+        count = [0]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            with lock:
+                count[0] += 1
+                if len(found) < limit:
+                    found[str(reply.ok.key_expr)] = None
+
+        def ended() -> None:  # Zenoh drops the handler when the request ends
+            with lock:
+                keys, total = list(found), count[0]
+            try:
+                done(keys, total)
+            except Exception:
+                log.exception("the answer of the indexes on %s failed", key)
+
+        try:
+            self._z().get(
+                key,
+                inline_handler_with_end(on_reply, ended),
+                timeout=timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot ask the indexes on {key!r}: {error_text(exc)}") from exc
+
     def put(self, key: str, data: bytes | str, *, encoding: str = "application/json") -> None:
         """Publish one plain sample (for events and measurements)."""
         try:
@@ -433,8 +474,9 @@ class Session:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {key!r}: {error_text(exc)}") from exc
 
-    def declare_raw_subscriber(self, key: str, on_sample: Callable[[str, bytes], None]) -> Entity:
-        """Receive plain samples from any session, this one included (for events and measurements)."""
+    def declare_raw_subscriber(self, key: str, on_sample: Callable[[str, bytes], None], *, inline: bool = False) -> Entity:
+        """Receive plain samples from any session, this one included (for events and measurements).
+        ``inline``: on Zenoh's thread (no thread of its own; ``on_sample`` must return at once)."""
 
         def callback(sample: zenoh.Sample) -> None:
             if sample.kind == zenoh.SampleKind.PUT:
@@ -444,7 +486,7 @@ class Session:
                     log.exception("callback for %s failed", key)
 
         try:
-            return Entity(self._z().declare_subscriber(key, callback))
+            return Entity(self._z().declare_subscriber(key, inline_handler(callback) if inline else callback))
         except zenoh.ZError as exc:
             raise TransportError(f"cannot subscribe to {key!r}: {error_text(exc)}") from exc
 
