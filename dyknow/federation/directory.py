@@ -5,6 +5,7 @@ and lets them go when nothing needs them any more, within bounds whatever the fl
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import json
 import logging
@@ -45,6 +46,7 @@ _MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
 _MAX_TODO = 100_000  # changes waiting for the directory's thread
 _DISCOVER_TIMEOUT_S = 1.0
 _FETCHERS = 8  # summaries fetched at once
+_DOUBTERS = 2  # summaries of managers that never answered, asked again at once
 _GIVE_UP_ASKS, _GIVE_UP_S = 10, 30.0  # a manager followed that gives no summary for that long is let go (followed again if it restarts)
 #: The most providers of one tag whose summaries a planner reads.
 MAX_CANDIDATES = 16
@@ -120,6 +122,7 @@ class Directory:
         self._refused: Counter[str] = Counter()  # what the directory refused, by reason (bounds)
         self._said: set[str] = set()  # the bounds already logged (one line each)
         self._pool: ThreadPoolExecutor | None = None
+        self._doubt_pool: ThreadPoolExecutor | None = None  # asks again the managers that never answered
         self._retry_at: dict[str, tuple[float, float]] = {}  # manager -> (when to ask again for its summary, the wait after)
         self._lost: dict[str, tuple[int, str]] = {}  # manager known, then lost -> (when, wall clock ns; why)
         self._goodbyes: dict[str, float] = {}  # manager -> when it said it was stopping (monotonic)
@@ -355,16 +358,31 @@ class Directory:
             candidates.update(names)
             with self._lock:
                 self._candidates.setdefault(p, set()).update(names)
+        answering_any: set[str] = set().union(*answer.values()) if answer else set()
         with self._lock:
-            todo = sorted(m for m in candidates if m not in self._summaries)
+            # those that answer for their offers first: a fetcher is not held by a silent name before them
+            todo = sorted((m for m in candidates if m not in self._summaries), key=lambda m: (m not in answering_any, m))
         if not todo:
             return False
         for m in todo:
             self._follow(m)
         added: list[str] = []
         pool = self._fetchers()
-        fetched = list(pool.map(self._fetch_quietly, todo))
-        for m, data in zip(todo, fetched, strict=True):
+        futures = [pool.submit(self._fetch_quietly, m) for m in todo]
+        # waited for at most timeout_s: a name with a token and nobody behind it holds a call for
+        # the client's whole timeout (a flood of them held the request service for 30 s, issue 51);
+        # what comes later reaches the directory's thread as a fetch of its own would
+        finished, _ = concurrent.futures.wait(futures, timeout=timeout_s)
+        fetched: list[bytes | None] = []
+        for m, future in zip(todo, futures, strict=True):
+            if future in finished:
+                fetched.append(future.result())
+            else:
+                fetched.append(None)
+                future.add_done_callback(functools.partial(self._fetched_late, m))
+        for m, data, future in zip(todo, fetched, futures, strict=True):
+            if future not in finished:
+                continue
             if data is None:
                 self._retry_later(m)
                 continue
@@ -439,8 +457,9 @@ class Directory:
         self._wake.set()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        for pool in (self._pool, self._doubt_pool):
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
 
     # -- following managers
 
@@ -529,6 +548,18 @@ class Directory:
         if self._pool is None:
             self._pool = ThreadPoolExecutor(_FETCHERS, thread_name_prefix=f"dyknow-{self.name}-fetch")
         return self._pool
+
+    def _doubters(self) -> ThreadPoolExecutor:
+        if self._doubt_pool is None:
+            self._doubt_pool = ThreadPoolExecutor(_DOUBTERS, thread_name_prefix=f"dyknow-{self.name}-refetch")
+        return self._doubt_pool
+
+    def _fetched_late(self, manager: str, future: concurrent.futures.Future[bytes | None]) -> None:
+        """A summary :meth:`discover` did not wait for: to the directory's thread, as a fetch."""
+        data = None if future.cancelled() or future.exception() is not None else future.result()
+        with self._lock:
+            self._todo.append(("fetched", manager, data))  # (one per candidate: bounded as they are)
+        self._wake.set()
 
     def _fetch_quietly(self, manager: str) -> bytes | None:
         try:
@@ -766,8 +797,11 @@ class Directory:
             if manager in self._fetching or self._closed:
                 return
             self._fetching.add(manager)
+            silent = manager in self._failures  # asked in vain before: a token with nobody behind it, maybe
         try:
-            self._fetchers().submit(self._fetch_job, manager)
+            # the managers that never answered are asked again on fetchers of their own: a flood of
+            # names nobody answers for cannot hold the fetchers of those that do (issue 51)
+            (self._doubters() if silent else self._fetchers()).submit(self._fetch_job, manager)
         except RuntimeError:  # (closed meanwhile)
             with self._lock:
                 self._fetching.discard(manager)
