@@ -414,8 +414,8 @@ def _own_rules(subject: str, manager: str) -> list[dict[str, Any]]:
     """What only the manager named ``manager`` may do: serve, announce and summarise under its name."""
     return [
         _rule(f"{subject}-serves", "ingress", ["declare_queryable", "reply"], [keys.services_pattern(manager)]),
-        # (and answers for its offers: dyknow.federation.offers, the index of a manager that is there)
-        _rule(f"{subject}-answers-for-its-offers", "ingress", ["declare_queryable", "reply"], [keys.offers_of(manager)]),
+        # (and answers for its name and its offers: the indexes of a manager that is there, dyknow.federation)
+        _rule(f"{subject}-answers-for-itself", "ingress", ["declare_queryable", "reply"], [keys.manager_token(manager), keys.offers_of(manager)]),
         _rule(f"{subject}-announces", "ingress", ["liveliness_token"], [keys.manager_token(manager), keys.offers_of(manager), keys.clocks_of(manager), keys.goodbye_token(manager)]),
         _rule(f"{subject}-summarises", "ingress", ["put"], [keys.summary_key(manager)]),
     ]

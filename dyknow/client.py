@@ -42,7 +42,16 @@ from dyknow import keys, reach
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
 from dyknow.message import CLOCK_ID, Message
-from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, LivelinessToken, Session, Subscriber, check_key_expr, make_config
+from dyknow.transport import (
+    DEFAULT_ENDPOINT,
+    MAX_ALIVE_KEYS,
+    LivelinessSubscriber,
+    LivelinessToken,
+    Session,
+    Subscriber,
+    check_key_expr,
+    make_config,
+)
 
 if TYPE_CHECKING:
     from dyknow.clocks import Estimate
@@ -808,6 +817,31 @@ class Client:
             found.update(m for m in names if m is not None and fnmatch.fnmatchcase(m, glob))
         return sorted(found)
 
+    def answering_managers(self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*") -> set[str]:
+        """The managers (of those whose names match ``match``) that answer for their names: each
+        manager answers a query on its token's key. A liveliness token alone, which anyone may
+        declare without TLS, does not: thousands of tokens of names that run no manager are told
+        from the managers that are there (issue 51). Empty when none answered (or the query is
+        not allowed: an ACL lets a client that is no manager query services only)."""
+        globs = [match] if isinstance(match, str) else list(match)
+        found: set[str] = set()
+        for glob in globs or ["*"]:
+            answers: list[list[str]] = []
+            done = threading.Event()
+
+            def answered(found_keys: list[str], count: int, answers: list[list[str]] = answers, done: threading.Event = done) -> None:
+                answers.append(found_keys)
+                done.set()
+
+            try:
+                self._session.ask_index(keys.managers_matching(glob), timeout_s=self._budget(timeout_s), limit=MAX_ALIVE_KEYS, done=answered)
+            except DyKnowError:
+                continue
+            done.wait(timeout_s + 0.5)
+            names = (keys.manager_of_token(k) for k in (answers[0] if answers else []))
+            found.update(m for m in names if m is not None and fnmatch.fnmatchcase(m, glob))
+        return found
+
     def wait_for_managers(self, names: Sequence[str], timeout_s: float = 10.0) -> list[str]:
         """Wait until every manager in ``names`` is reachable, then return :meth:`manager_names`.
 
@@ -845,10 +879,22 @@ class Client:
         if limit < 1:
             raise ServiceError(f"a page of {limit} managers", where="managers_page", expected="a limit of at least 1")
         names = self.manager_names(timeout_s, match=match)
-        rest = [n for n in names if after is None or n > after]
+        silent: set[str] = set()
+        if len(names) > limit:
+            # more than a page: the managers that answer for their names first, and the names
+            # that do not (tokens with nobody behind them, maybe) listed after them without a
+            # call each: a flood of tokens made the listing ask only those and say "no manager
+            # reachable" (issue 51). (None answered: the query is not allowed, ask them all.)
+            answering = self.answering_managers(timeout_s, match=match)
+            if answering:
+                silent = {n for n in names if n not in answering}
+                names = sorted(n for n in names if n in answering) + sorted(silent)
+        rest = names[names.index(after) + 1 :] if after in names else [n for n in names if after is None or n > after]
         page = rest[:limit]
 
         def brief(name: str) -> dict[str, Any] | None:
+            if name in silent:
+                return {"manager": name, "host": "", "specs": 0, "units": 0, "requests": 0, "silent": True}
             try:
                 try:
                     summary = self.call_manager(name, "get_summary", {"brief": True})

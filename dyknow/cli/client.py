@@ -152,7 +152,7 @@ def cmd_managers(args: argparse.Namespace) -> int:
                 logging.getLogger(__name__).debug("no clock offsets or lost managers from %r: %s", asked, exc)
     for m in managers:  # the offset of each manager's clock from --manager's (None: not known to it yet)
         found = clocks.get(m["manager"])
-        m["state"] = "up"
+        m["state"] = "silent" if m.pop("silent", False) else "up"  # (a token up, and nothing answers for that name)
         m["clock"] = None if found is None else {"offset_us": found.offset_ns / 1000, "uncertainty_us": found.uncertainty_ns / 1000}
     now = time.time_ns()
     for m in lost:
@@ -162,6 +162,9 @@ def cmd_managers(args: argparse.Namespace) -> int:
         if not managers:
             yield "no manager reachable"
         for m in managers:
+            if m["state"] == "silent":
+                yield f"{m['manager']:<20} SILENT: its token is up, nothing answers for it (no manager there, or not one yet)"
+                continue
             clock = (
                 "clock unknown" if m["clock"] is None else f"clock {m['clock']['offset_us']:+.1f} us +/- {m['clock']['uncertainty_us']:.1f}"
             )

@@ -136,6 +136,10 @@ class Directory:
         self._thread.start()
         self._offers.announce(summarize())  # its offers before its token: whoever sees it can find what it offers
         self._token = session.declare_liveliness_token(keys.manager_token(name))
+        # and answers for its name: a token alone, which anyone may declare without TLS, does not
+        # (a listing of the managers puts those that answer first: Client.managers_page, issue 51)
+        token_key = keys.manager_token(name)
+        self._index = session.declare_index(token_key, lambda: [token_key])
         self._goodbye: Any = None  # this manager's goodbye token, as it stops
         self.changed()
 
@@ -447,7 +451,7 @@ class Directory:
         self.say_goodbye()
         with self._lock:
             entities = [*(e for es in self._followed.values() for e in es), *self._offer_watch.values(), *self._offers.withdraw(),
-                        self._token, self._goodbye]  # fmt: skip
+                        self._index, self._token, self._goodbye]  # fmt: skip
             self._followed.clear()
             self._offer_watch.clear()
             self._up.notify_all()
