@@ -312,3 +312,35 @@ def test_a_manager_advertising_a_million_tags_is_refused_and_costs_the_others_no
                 a.close()
                 for token in held:
                     token.undeclare()
+
+
+@pytest.mark.process  # (the listing is the command line's)
+def test_a_flood_of_tokens_through_a_router_leaves_the_services_answering_and_the_managers_listed(make_manager: Callable[..., Manager]) -> None:
+    """Issue 51: behind a router without TLS, one client with no role declared thousands of
+    manager tokens and as many offers of the tag a request needs: the manager's ``request`` gave
+    no answer in 30 s (its summary fetches of names nobody answers for held its fetchers, each for
+    the calls' whole timeout), and ``dyknow managers`` said "no manager reachable" (the first
+    page of names were all fakes). Now the request is planned on the real provider within the
+    client's timeout, the model answers, and the listing puts the managers that answer first."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    with Session(make_config(listen=[hub], mode="router")):
+        provider = make_manager("provider", router=[hub])
+        provider.add_transformation(_offering("Wanted"))
+        station = make_manager("station", router=[hub], specs=[])
+        with Session(make_config(connect=[hub])) as attacker:
+            fakes = [f"a{i:04d}" for i in range(1500)]  # (names that sort before the real ones)
+            held = [attacker.declare_liveliness_token(keys.manager_token(name)) for name in fakes]
+            held += [attacker.declare_liveliness_token(keys.offer_token("Wanted", (), name)) for name in fakes]
+            offers = keys.offers_pattern("Wanted", ())
+            wait_until(lambda: len(station.session.alive(offers, timeout_s=1.0)) == 1501, "the station's session to know the 1,501 offers")
+            with Client("station", connect=[hub], timeout_s=10.0) as client:
+                key = client.request("Wanted")  # within the client's 10 s
+                assert _provider(station, key) == "provider"
+                assert client.get_model()["name"] == "station"
+            listed = run_cli("managers", "--connect", hub, "--manager", "station", "--limit", "5", "--json")
+            assert listed.returncode == 0, listed.stderr
+            rows = json.loads(listed.stdout)
+            assert [(r["manager"], r["state"]) for r in rows[:2]] == [("provider", "up"), ("station", "up")]
+            assert {r["state"] for r in rows[2:]} == {"silent"}
+            for entity in held:
+                entity.undeclare()
