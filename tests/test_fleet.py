@@ -336,7 +336,7 @@ def test_a_flood_of_tokens_through_a_router_leaves_the_services_answering_and_th
             with Client("station", connect=[hub], timeout_s=10.0) as client:
                 key = client.request("Wanted")  # within the client's 10 s
                 assert _provider(station, key) == "provider"
-                assert client.get_model()["name"] == "station"
+                assert client.get_model()["manager"] == "station"
             listed = run_cli("managers", "--connect", hub, "--manager", "station", "--limit", "5", "--json")
             assert listed.returncode == 0, listed.stderr
             rows = json.loads(listed.stdout)
