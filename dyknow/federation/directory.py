@@ -119,6 +119,7 @@ class Directory:
         self._failures: dict[str, tuple[int, float]] = {}  # manager -> (asks in vain in a row, since when)
         self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
         self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
+        self._discovering: set[str] = set()  # offers patterns discover() is choosing the providers of now
         self._refused: Counter[str] = Counter()  # what the directory refused, by reason (bounds)
         self._said: set[str] = set()  # the bounds already logged (one line each)
         self._pool: ThreadPoolExecutor | None = None
@@ -313,6 +314,19 @@ class Directory:
         # liveliness query just after a liveliness subscriber on the same key expression finds
         # nothing (a manager behind a router planned nothing), and a provider that appears
         # between the first query and the watch is found by the second
+        with self._lock:
+            self._discovering.update(new)  # (their watches' first news: the answers to these queries)
+        try:
+            return self._discover(new, doubtful, ask, ask_index, answers, answering, done, timeout_s)
+        finally:
+            with self._lock:
+                self._discovering.difference_update(new)
+
+    def _discover(self, new: list[str], doubtful: list[str], ask: Callable[[], None], ask_index: Callable[[], None],
+                  answers: dict[str, tuple[list[str], int]], answering: dict[str, set[str]], done: threading.Event,
+                  timeout_s: float) -> bool:  # fmt: skip
+        """:meth:`discover` once its questions are ready: ask them, watch the new tags, choose and
+        read the candidates."""
         ask()
         ask_index()
         for p in new:
@@ -371,8 +385,12 @@ class Directory:
         for m in todo:
             self._follow(m)
         added: list[str] = []
-        pool = self._fetchers()
-        futures = [pool.submit(self._fetch_quietly, m) for m in todo]
+        # those that did not answer for their offers, when others did, are asked on the fetchers
+        # of the managers that never answered: they cannot hold up the fetch of one that did
+        futures = [
+            (self._doubters() if answering_any and m not in answering_any else self._fetchers()).submit(self._fetch_quietly, m)
+            for m in todo
+        ]
         # waited for at most timeout_s: a name with a token and nobody behind it holds a call for
         # the client's whole timeout (a flood of them held the request service for 30 s, issue 51);
         # what comes later reaches the directory's thread as a fetch of its own would
@@ -604,7 +622,7 @@ class Directory:
             return
         with self._lock:
             providers = self._candidates.get(pattern)
-            if providers is None:
+            if providers is None or pattern in self._discovering:  # (discover() chooses among those there now)
                 return
             if not alive:
                 providers.discard(manager)
