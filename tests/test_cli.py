@@ -511,21 +511,27 @@ def test_a_misspelled_manager_is_said_without_importing_more(manager_process: Ca
 _RUN_SCRIPT = """
 import atexit, sys, threading, time
 from pathlib import Path
-from dyknow.cli import run
+import dyknow.cli as cli
 from dyknow.transport import open_session
 
 out = Path(sys.argv[1])
-session = open_session(listen=[], connect=[])  # left open: closed on the way out
-session.declare_subscriber("run/**", lambda message: None)
-atexit.register(lambda: (out / "atexit").write_text(str(session.closed)))
+command = cli.main
 
-def late() -> None:
-    time.sleep(0.3)
-    (out / "thread").write_text("done")
+def main(argv):  # a command that leaves a session open, a thread running and an exit handler
+    session = open_session(listen=[], connect=[])  # left open: closed on the way out
+    session.declare_subscriber("run/**", lambda message: None)
+    atexit.register(lambda: (out / "atexit").write_text(str(session.closed)))
 
-threading.Thread(target=late).start()
-print("said before", end="")  # (not flushed)
-run(sys.argv[2:])
+    def late() -> None:
+        time.sleep(0.3)
+        (out / "thread").write_text("done")
+
+    threading.Thread(target=late).start()
+    print("said before", end="")  # (not flushed)
+    return command(argv)
+
+cli.main = main
+cli.run(sys.argv[2:])
 print("never")
 """
 

@@ -44,7 +44,6 @@ import atexit
 import logging
 import os
 import sys
-import threading
 from collections.abc import Sequence
 from typing import NoReturn
 
@@ -104,33 +103,34 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def run(argv: Sequence[str] | None = None) -> NoReturn:
-    """The ``dyknow`` program: :func:`main` (over ``argv``, by default the command line's), then an exit without the interpreter's teardown.
+    """The ``dyknow`` program: :func:`main` (over ``argv``, by default the command line's), then
+    an exit without the interpreter's teardown.
 
-    Zenoh's threads outlive a closed session; one that calls into Python (to drop a callback, say)
+    Zenoh's threads outlive a closed session; one that calls into Python (to end a query, say)
     while the interpreter is being torn down is ended by it mid-call, and the process aborts
-    ("FATAL: exception not rethrown", exit -6) when it had finished its work. So once the
-    command is done, what Python would do at exit is done here, in its order (the sessions still
-    open closed, the threads joined, the exit handlers run, logs and output flushed), and the
-    process ends with the command's code before the teardown begins.
+    ("FATAL: exception not rethrown", exit -6) when it had finished its work. So the program
+    exits as Python does up to its teardown (the sessions still open closed, the threads joined,
+    the exit handlers run), and then, by the exit handler registered first (which runs last),
+    with the command's code, logs and output flushed, before the teardown begins.
     """
+    code = [1]
+    atexit.register(_leave, code)
     try:
-        code = main(argv)
+        code[0] = main(argv)
     except SystemExit as exc:  # argparse's errors and --help/--version, or a command's own exit
-        code = _exit_code(exc.code)
-    # What Python does at exit, up to its teardown: first the handlers that end threads (the
-    # sessions still open close here, and executors stop), then the wait for the program's threads,
-    # then the exit handlers.
-    shutdown_threads = getattr(threading, "_shutdown", None)
-    if shutdown_threads is not None:
-        shutdown_threads()
-    atexit._run_exitfuncs()  # noqa: SLF001
+        code[0] = _exit_code(exc.code)
+    sys.exit(code[0])
+
+
+def _leave(code: list[int]) -> None:
+    """The last exit handler of :func:`run`: flush what is said, and end the process with ``code``."""
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
         except (OSError, ValueError):  # a closed pipe: nothing left to say
             pass
-    os._exit(code)
+    os._exit(code[0])
 
 
 def _exit_code(code: object) -> int:

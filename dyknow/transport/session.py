@@ -36,7 +36,7 @@ from dyknow.transport.entities import (
     Subscriber,
 )
 from dyknow.transport.links import Links, abort_dials
-from dyknow.transport.runtime import error_text, inline_handler, inline_handler_with_end, lay_out_runtimes, panic_error
+from dyknow.transport.runtime import error_text, inline_handler, inline_handler_with_end, lay_out_runtimes, panic_error, wait_for_handlers
 from dyknow.transport.shared_memory import SharedMemory
 
 __all__ = ["MAX_ALIVE_KEYS", "Session", "open_session"]
@@ -55,6 +55,7 @@ MAX_ALIVE_KEYS: Final = 100_000
 # (Held strongly: the class is compiled, and mypyc's classes take no weak references. A session
 # is taken out as it closes; one never closed stays open until exit, as a Zenoh session would.)
 _open_sessions: Final[dict[int, Session]] = {}
+_HANDLERS_AT_EXIT_S: Final = 2.0  # how long the exit waits for Zenoh to let go of handlers
 
 
 def _close_open_sessions() -> None:
@@ -63,6 +64,10 @@ def _close_open_sessions() -> None:
             session.close()
         except Exception:  # at exit: the others are closed whatever this one does
             log.debug("closing a session at exit failed", exc_info=True)
+    # and the handlers Zenoh lets go of on its own threads a moment after their sessions closed:
+    # let go now, while Python runs, not during its teardown, which a call from Zenoh aborts
+    if not wait_for_handlers(_HANDLERS_AT_EXIT_S):
+        log.debug("at exit: Zenoh still holds handlers after %g s", _HANDLERS_AT_EXIT_S)
 
 
 _before_threads_end: Callable[[Callable[[], None]], object] | None = getattr(threading, "_register_atexit", None)
