@@ -71,6 +71,7 @@ def measure(hub: str, station_pid: int) -> dict[str, Any]:
 
 
 def main() -> int:
+    """Start the router and the managers, measure before, during and after the flood, print the figures."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tokens", type=int, default=5000, help="manager tokens, and as many offer tokens (default 5,000)")
     parser.add_argument("--json", type=Path, help="write the results here")
