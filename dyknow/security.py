@@ -19,8 +19,9 @@ passes through unchecked (it runs as the operator):
   (a key over Zenoh's batch size would make its transport panic), the expansions of a template,
   the entries and time a glob may take; the size and windows of a temporal formula and what a
   quantified one expands to, the memory the formula monitors share and how far ahead a sample
-  they take may be stamped (:mod:`dyknow.reasoning`); and the size of the library, which the
-  manager's summary carries to its peers.
+  they take may be stamped (:mod:`dyknow.reasoning`); the size of the library, which the
+  manager's summary carries to its peers; and the signed calls remembered per caller against
+  replays (:mod:`dyknow.identity`).
 """
 
 from __future__ import annotations
@@ -100,6 +101,15 @@ class Limits:
     #: also carries the units and measurements.
     max_library_specs: int = 10_000
     max_library_bytes: int = 8 << 20
+    #: The signed calls a manager remembers per caller (certificate common name) among those signed
+    #: at or before its clock, within the 300 s a call's time may be off (``dyknow.identity``):
+    #: past it the caller's oldest are forgotten and its floor rises to their time, never past the
+    #: manager's clock (about 70 calls a second, sustained over the window).
+    max_caller_calls: int = 20_000
+    #: The signed calls a manager remembers per caller among those signed *ahead* of its clock (a
+    #: clock ahead, or a forged time): each is kept until it leaves the window, so none raises
+    #: the floor; past it a call signed ahead is refused, and calls signed on time are not.
+    max_caller_calls_ahead: int = 20_000
 
 
 _DEFAULT = Limits()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -15,6 +16,7 @@ from dyknow import AccessError, BindingError, Client, Manager, Message, Planning
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.identity import Signer
+from dyknow.security import Limits
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import GENERIC_SPECS, CliProcess, end_process, free_port, run_cli, wait_until
@@ -355,6 +357,36 @@ def test_a_recorded_call_replayed_after_a_flood_is_refused(secured: Manager, cer
         with pytest.raises(ServiceError, match="a replay of one already received"):
             session.call(key, payload, timeout_s=5.0, what="spawn", sign=lambda k, b: recorded[0])
     assert not secured.has_unit("replayed")
+
+
+def test_calls_signed_ahead_do_not_lock_out_the_callers_honest_calls(certs: Path, make_manager: Callable[..., Manager]) -> None:
+    """Issue 51, item 8, over real links: one holder of the viewer's certificate signs calls 290 s
+    ahead (within the 300 s the manager takes) until their part of its ledger is full. Before,
+    the next one raised the viewer's floor into the future and every honest call of the viewer
+    was refused for minutes; now that call is refused, naming the clock, and the honest client of
+    the same certificate is answered, for more calls than the ledger holds. A recorded call
+    signed ahead is still refused as a replay."""
+    acl = AccessControl.from_dict({"roles": {"viewer": ["viewer"], "admin": ["admin"]}})
+    limits = Limits(max_caller_calls=100, max_caller_calls_ahead=100)
+    manager = make_manager(listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=acl, limits=limits)
+    attacker = Signer(tls(certs, "viewer"))
+    signed: list[bytes] = []
+
+    def ahead(key: str, body: bytes) -> bytes:
+        signed.append(attacker.sign(key, body, time_ns=time.time_ns() + int(290e9)))
+        return signed[-1]
+
+    key = f"@dyknow/{manager.name}/get_adaptations"
+    with Session(make_config(connect=manager.endpoints, tls=tls(certs, "viewer"))) as session:
+        for _ in range(100):
+            session.call(key, b"{}", timeout_s=5.0, what="get_adaptations", sign=ahead)
+        with pytest.raises(ServiceError, match=r"signed \+2\d\d\.\d+ s ahead of this manager's clock, and the manager already remembers 100"):
+            session.call(key, b"{}", timeout_s=5.0, what="get_adaptations", sign=ahead)
+        with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0) as honest:
+            for _ in range(150):  # more than the ledger holds of calls signed on time
+                assert isinstance(honest.get_adaptations(), list)
+        with pytest.raises(ServiceError, match="a replay of one already received"):
+            session.call(key, b"{}", timeout_s=5.0, what="get_adaptations", sign=lambda k, b: signed[0])
 
 
 # ---------------------------------------------------------------------- only a manager speaks for itself

@@ -44,6 +44,25 @@ def test_validate_reports_every_error_located() -> None:
 
 
 @pytest.mark.process
+def test_validate_refuses_a_requirement_over_the_formula_bounds(tmp_path: Path) -> None:
+    """Issue 51, item 10: a requirement a manager could not watch (a two-day window: at most one)
+    is an error of the spec, as the manager refuses it when it is added."""
+    spec = tmp_path / "watched.xml"
+    spec.write_text(
+        "<transformation><label>watched</label><source>transformations.generic:Relay</source>\n"
+        '  <ports><port type="in">in</port><port type="out">out</port></ports><tags><tag port="out">Track(x)</tag></tags>\n'
+        "  <requirements><requirement>always[0, 172800s] Track(x).ok</requirement></requirements>\n"
+        "</transformation>\n"
+    )
+    result = run_cli("validate", "--skip-sources", str(spec))
+    assert result.returncode == 1 and result.stdout == ""
+    assert result.stderr.strip() == (
+        f"{spec}:3: <requirement>: formula column 7: 'always[0, 172800s]' has the bound 172800s, beyond the longest window "
+        "in 'always[0, 172800s] Track(x).ok'; expected bounds of at most 86400s (Limits.max_window_ns)"
+    )
+
+
+@pytest.mark.process
 def test_validate_missing_path() -> None:
     result = run_cli("validate", "/nonexistent/specs")
     assert result.returncode == 1
