@@ -20,8 +20,8 @@ passes through unchecked (it runs as the operator):
   the entries and time a glob may take; the size and windows of a temporal formula and what a
   quantified one expands to, the memory the formula monitors share and how far ahead a sample
   they take may be stamped (:mod:`dyknow.reasoning`); the size of the library, which the
-  manager's summary carries to its peers; and the signed calls remembered per caller against
-  replays (:mod:`dyknow.identity`).
+  manager's summary carries to its peers; the signed calls remembered per caller against
+  replays (:mod:`dyknow.identity`); and the series a Prometheus scrape serves.
 """
 
 from __future__ import annotations
@@ -110,6 +110,11 @@ class Limits:
     #: clock ahead, or a forged time): each is kept until it leaves the window, so none raises
     #: the floor; past it a call signed ahead is refused, and calls signed on time are not.
     max_caller_calls_ahead: int = 20_000
+    #: The most series one Prometheus scrape of the manager serves (``--metrics-port``; each
+    #: histogram bucket is one, as Prometheus counts them; about 10 MB of text): a unit takes
+    #: 2, 3 per output and 37 per input; past it the latest spawned units are left out whole,
+    #: logged and counted (``dyknow.metrics``). A unit's series go with the unit.
+    max_metric_series: int = 100_000
 
 
 _DEFAULT = Limits()

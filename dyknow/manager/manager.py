@@ -480,6 +480,8 @@ class Manager:
         counts["shed_units"] = sum(1 for p in self._spawner.proxies() if p.shed)
         counts["timers"] = self._executor.timers()
         counts["watched_deadlines"] = self._adaptation.monitor.watched()
+        metrics = self._metrics
+        counts["metrics_units"] = metrics.tracked() if metrics is not None else 0
         return counts
 
     def publish_event(self, kind: str, event: Mapping[str, Any]) -> None:
