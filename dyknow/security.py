@@ -19,8 +19,9 @@ passes through unchecked (it runs as the operator):
   (a key over Zenoh's batch size would make its transport panic), the expansions of a template,
   the entries and time a glob may take; the size and windows of a temporal formula and what a
   quantified one expands to, the memory the formula monitors share and how far ahead a sample
-  they take may be stamped (:mod:`dyknow.reasoning`); and the size of the library, which the
-  manager's summary carries to its peers.
+  they take may be stamped (:mod:`dyknow.reasoning`); the size of the library, which the
+  manager's summary carries to its peers; and the references one caller may hold on a shared
+  request.
 """
 
 from __future__ import annotations
@@ -100,6 +101,12 @@ class Limits:
     #: also carries the units and measurements.
     max_library_specs: int = 10_000
     max_library_bytes: int = 8 << 20
+    #: The most references one caller may hold on one request, kept and held alike: a caller is
+    #: a certificate's common name on a manager with roles (all its clients together), a client
+    #: id without (``dyknow.model.Owner.same_caller``). Past it that caller's next request of the
+    #: tag is refused, and everyone else's still goes through (``dyknow.holders`` counts the
+    #: callers of a request, not their clients). The manager's own Python API is not bounded.
+    max_references_per_caller: int = 256
 
 
 _DEFAULT = Limits()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
@@ -15,6 +16,7 @@ from dyknow import AccessError, BindingError, Client, Manager, Message, Planning
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.identity import Signer
+from dyknow.security import Limits
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import GENERIC_SPECS, CliProcess, end_process, free_port, run_cli, wait_until
@@ -500,8 +502,6 @@ def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> No
 
 def test_the_docs_acl_files_are_valid() -> None:
     """Every json5 block of the security guide is an ACL file that loads; its own role reads and requests."""
-    import re
-
     import json5
 
     from tests.conftest import REPO
@@ -576,6 +576,40 @@ def test_a_requesters_held_request_stays_while_its_client_does(owners: Manager, 
         wait_until(lambda: (_held(owners, "Ticks") or {}).get("absent") == [], "the manager to see the requester's client")
         assert list(_held(owners, "Ticks")["holders"].values()) == [1]  # type: ignore[index]
     wait_until(lambda: _held(owners, "Ticks") is None, "the closed requester's request released")
+
+
+def test_one_caller_cannot_fill_a_shared_request(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The attack of issue 51: a requester takes reference after reference on an admin's
+    request, each with a client id of its own choosing, to fill it for everyone else. Its share
+    is bounded (here 20 references, kept or held): past it, its own are refused naming the
+    bound, and the others, the admin included, still request the stream."""
+    (tmp_path / "acl.json5").write_text(OWNERS_ACL)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS], limits=Limits(max_references_per_caller=20), client_grace_s=60.0,
+    )  # fmt: skip
+    with ExitStack() as stack:
+        admin, operator, requester = (
+            stack.enter_context(Client(manager.name, connect=manager.endpoints, tls=tls(certs, n), timeout_s=5.0)) for n in ("admin", "operator", "viewer")
+        )  # fmt: skip
+        key = admin.request("Ticks")
+        scope = "0123456789abcdef"  # (any client id: a caller's many clients)
+        refused = None
+        for i in range(1000):
+            try:
+                requester.call_manager(manager.name, "request", {"tag": "Ticks", "holder": f"{scope}{i:016x}"})
+            except AccessError as exc:
+                refused = exc
+                break
+        assert refused is not None, "a thousand references of one caller"
+        assert re.search(r"'viewer' \(client [0-9a-f]{32}\) holds 20 references to the request on '.*' already, its most; expected at most 20 references per caller", str(refused))
+        with pytest.raises(AccessError, match="'viewer' holds 20 references"):
+            requester.request("Ticks", keep=True)  # kept ones count too
+        assert operator.request("Ticks") == key and admin.request("Ticks") == key
+        with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "admin"), timeout_s=5.0) as another:
+            assert another.request("Ticks", keep=True) == key
+        held = _held(manager, "Ticks")
+        assert held is not None and held["references"] == 1 + 20 + 3
 
 
 def test_a_monitor_reads_only_what_its_caller_may_read(owners: Manager, certs: Path) -> None:

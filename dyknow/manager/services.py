@@ -250,7 +250,7 @@ class Services:
         be, it is given back and the error raised."""
         if holder is not None and self._holders is not None:
             try:
-                self._holders.took(key, holder)
+                self._holders.took(key, holder, owner.caller)
             except DyKnowError:
                 self._manager.release(key, owner=owner)
                 raise
