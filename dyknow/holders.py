@@ -22,6 +22,15 @@ references one caller may take on one request is the manager's
 :attr:`~dyknow.security.Limits.max_references_per_caller`, so no caller fills a shared request for
 the others. A token keeps a reference alive; it never releases one, and no client can give back
 another's reference (:meth:`dyknow.model.Owner.holds`).
+
+**A holder token is its caller's.** On a manager with roles a signed caller's holder ids start
+with its *scope*, :func:`~dyknow.keys.holder_scope` of its certificate's common name (16
+hexadecimal digits: the first 8 bytes of its SHA-256), and the service refuses any other
+(:func:`check_holder`). The session's access control (:meth:`dyknow.access.AccessControl.zenoh`, the same file on every
+manager and router) lets each certificate declare holder tokens of its own scope only, at the
+first link the token crosses. So a client cannot keep another client's request alive by
+declaring its token once that client is gone. Without roles a token proves nothing: anyone who
+reaches the manager may declare any client's token (and force any release).
 """
 
 from __future__ import annotations
@@ -33,11 +42,21 @@ import threading
 import time
 from collections.abc import Callable
 
-from dyknow import keys
-from dyknow.errors import ServiceError
+from dyknow.errors import AccessError, ServiceError
+from dyknow.keys import holder_scope, holder_token, holders_pattern
 from dyknow.transport import LivelinessSubscriber, Session
 
-__all__ = ["DEFAULT_GRACE_S", "HOLDER", "MAX_HOLDERS", "TOKEN_WAIT_S", "Holders", "holder_token", "holders_pattern"]
+__all__ = [
+    "DEFAULT_GRACE_S",
+    "HOLDER",
+    "MAX_HOLDERS",
+    "TOKEN_WAIT_S",
+    "Holders",
+    "check_holder",
+    "holder_scope",
+    "holder_token",
+    "holders_pattern",
+]
 
 log = logging.getLogger(__name__)
 
@@ -51,18 +70,22 @@ TOKEN_WAIT_S = 5.0
 #: on a manager with roles, a client id without), each with at most
 #: :attr:`~dyknow.security.Limits.max_references_per_caller` references.
 MAX_HOLDERS = 1000
-#: What a holder id looks like: the hexadecimal id a Client makes for itself.
+#: What a holder id looks like: the hexadecimal id a Client makes for itself (16 random digits,
+#: after its certificate's 16-digit scope when it has one).
 HOLDER = re.compile(r"[0-9a-f]{8,32}")
 
 
-def holder_token(key: str, holder: str) -> str:
-    """The liveliness token a client declares while it holds the request or monitor on ``key``."""
-    return f"{key.removesuffix('/*')}/holders/{holder}"
-
-
-def holders_pattern(manager: str) -> str:
-    """The tokens of every holder of every request and monitor of ``manager``."""
-    return f"{keys.DATA_ROOT}/{manager}/*/*/holders/*"
+def check_holder(holder: str, common_name: str, where: str) -> None:
+    """Refuse (:class:`AccessError`) a holder id that is not of the scope of ``common_name``: a
+    signed caller holds only through client ids of its own (see the module documentation)."""
+    scope = holder_scope(common_name)
+    if not holder.startswith(scope):
+        raise AccessError(
+            f"{common_name!r} may not hold through the client id {holder!r}: on a manager with roles a certificate's "
+            f"client ids start with its scope, {scope} for {common_name!r}",
+            where=where,
+            expected="a dyknow client that makes its id from its certificate (this version's Client does), or the request kept (keep=True)",
+        )
 
 
 class Holders:
