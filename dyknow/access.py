@@ -40,8 +40,8 @@ It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessCo
 default deny, one subject per role (by certificate common name), one allow rule per role and
 message kind, for each manager one subject and rules of its own name, and for each name that may
 ``request`` or ``monitor`` one subject that lets it declare the holder tokens of its own clients
-only (:mod:`dyknow.holders`; the others' are denied to every role but managers and routers,
-which carry them). So the transport
+only (:mod:`dyknow.holders`; no other role but managers and routers, which carry them, may
+declare holder tokens, unless a role of the file's own ``publish``-es on their keys). So the transport
 refuses what a link may not carry, before any handler sees it: a refused query gets no reply.
 Zenoh judges a message by the link it came by, that is by the neighbour; so a manager with an ACL
 also checks every service call's own signature and its caller's role (:mod:`dyknow.identity`,
@@ -349,8 +349,6 @@ class AccessControl:
             rules.extend(own)
             subjects.append({"id": subject, "cert_common_names": list(names)})
             base = [name for r in ROLES[: ROLES.index(definition.like) + 1] for name in _rules_of(r)] if definition.like else []
-            if _OTHERS_HOLDERS not in base:  # (its own publish may cover holder tokens)
-                base.append(_OTHERS_HOLDERS)
             policies.append({"id": f"{subject}-policy", "rules": [*base, *(r["id"] for r in own)], "subjects": [subject]})
         for i, name in enumerate(self._holding_names()):
             # what it requests, it holds: its client's liveliness token says it is still there,
@@ -372,11 +370,14 @@ class AccessControl:
         return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
-def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str], *, permission: str = "allow") -> dict[str, Any]:
-    return {"id": rule_id, "permission": permission, "flows": [flow], "messages": messages, "key_exprs": key_exprs}
+def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": key_exprs}
 
 
-_OTHERS_HOLDERS = "no-others-holders"  # (a deny rule: within one subject's policy it wins over its allow rules)
+# Every data key of 2 to 5 chunks or of 7 and more: all but the 6 of a holder token
+# (dyknow/<manager>/<kind>/<name>/holders/<client>). Zenoh's deny rules win over any subject's
+# allow (eclipse-zenoh 1.10), so holder tokens are left out of the allow rules instead.
+_TOKENS_BUT_HOLDERS = [f"{keys.DATA_ROOT}{'/*' * n}" for n in range(1, 5)] + [f"{keys.DATA_ROOT}{'/*' * 6}/**"]
 
 
 def _services(role: str) -> list[str]:
@@ -404,11 +405,11 @@ _RULES: dict[str, list[dict[str, Any]]] = {
     ],
     "operator": [
         _rule("operator-calls", "ingress", ["query"], _services("operator")),
-        _rule("operator-publishes", "ingress", ["put", "delete", "liveliness_token"], [_DATA]),
+        _rule("operator-publishes", "ingress", ["put", "delete"], [_DATA]),
+        # a client's holder token is its certificate's own (dyknow.holders): liveliness tokens on
+        # every data key but holder tokens (a subject per name allows those of its own clients)
+        _rule("operator-declares", "ingress", ["liveliness_token"], _TOKENS_BUT_HOLDERS),
         _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA]),
-        # a client's holder token is its certificate's own (dyknow.holders): besides this one, a
-        # subject per name lets it declare those of its own scope
-        _rule(_OTHERS_HOLDERS, "ingress", ["liveliness_token"], [_HOLDERS], permission="deny"),
     ],
     "admin": [_rule("admin-calls", "ingress", ["query"], _services("admin"))],
     # Another manager: it calls services (its own calls, and those of its clients, each signed

@@ -156,7 +156,7 @@ def test_acl_files_are_checked(tmp_path: Path) -> None:
     admin_rules = next(p for p in config["policies"] if p["subjects"] == ["admin"])["rules"]
     assert "viewer-calls" in admin_rules and "operator-calls" in admin_rules  # each role may what the ones before it may
     # the admin may request, so it holds: the tokens of its own clients only, everyone else's denied
-    assert "no-others-holders" in admin_rules and next(s for s in config["subjects"] if s["id"] == "holder-0")["cert_common_names"] == ["c"]
+    assert "operator-declares" in admin_rules and next(s for s in config["subjects"] if s["id"] == "holder-0")["cert_common_names"] == ["c"]
     holds = next(r for r in config["rules"] if r["id"] == "holder-0-holds")
     assert holds["key_exprs"] == [f"dyknow/*/*/*/holders/{keys.holder_scope('c')}$*"] and holds["messages"] == ["liveliness_token"]
     for text, message in [
