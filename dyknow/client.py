@@ -56,7 +56,7 @@ from dyknow.transport import (
 if TYPE_CHECKING:
     from dyknow.clocks import Estimate
 
-# (dyknow.service, dyknow.clocks, dyknow.model and dyknow.holders are imported where they are
+# (dyknow.service, dyknow.clocks and dyknow.model are imported where they are
 # needed: a command that fails at once, or reads a model, does not pay for the services' checks,
 # the formula parser they pull in, or the clock estimates: the dyknow command starts faster)
 
@@ -328,6 +328,8 @@ class Client:
         self._presence = _Presence(session)
         # the requests this client holds (dyknow.holders): key -> (references, the token that says it is alive)
         self._holder = os.urandom(8).hex()  # (what secrets.token_hex does, without importing it)
+        if self._signer is not None:  # a manager with roles takes only ids of the certificate's own scope (dyknow.holders)
+            self._holder = keys.holder_scope(self._signer.common_name) + self._holder
         self._held: dict[str, tuple[int, LivelinessToken]] = {}
         self._held_lock = threading.Lock()
 
@@ -761,9 +763,7 @@ class Client:
         with self._held_lock:
             references, token = self._held.get(key) or (0, None)
             if token is None:
-                from dyknow.holders import holder_token
-
-                token = self._session.declare_liveliness_token(holder_token(key, self._holder))
+                token = self._session.declare_liveliness_token(keys.holder_token(key, self._holder))
             self._held[key] = (references + 1, token)
 
     def release(self, key: str, *, force: bool = False) -> int:

@@ -21,7 +21,8 @@ passes through unchecked (it runs as the operator):
   quantified one expands to, the memory the formula monitors share and how far ahead a sample
   they take may be stamped (:mod:`dyknow.reasoning`); the size of the library, which the
   manager's summary carries to its peers; the signed calls remembered per caller against
-  replays (:mod:`dyknow.identity`); and the series a Prometheus scrape serves.
+  replays (:mod:`dyknow.identity`); the series a Prometheus scrape serves; and the references
+  one caller may hold on a shared request.
 """
 
 from __future__ import annotations
@@ -115,6 +116,12 @@ class Limits:
     #: 2, 3 per output and 37 per input; past it the latest spawned units are left out whole,
     #: logged and counted (``dyknow.metrics``). A unit's series go with the unit.
     max_metric_series: int = 100_000
+    #: The most references one caller may hold on one request, kept and held alike: a caller is
+    #: a certificate's common name on a manager with roles (all its clients together), a client
+    #: id without (``dyknow.model.Owner.same_caller``). Past it that caller's next request of the
+    #: tag is refused, and everyone else's still goes through (``dyknow.holders`` counts the
+    #: callers of a request, not their clients). The manager's own Python API is not bounded.
+    max_references_per_caller: int = 256
 
 
 _DEFAULT = Limits()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -12,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from dyknow import AccessError, BindingError, Client, Manager, Message, PlanningError, ServiceError, UnitError
+from dyknow import AccessError, BindingError, Client, Manager, Message, PlanningError, ServiceError, UnitError, keys
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.identity import Signer
@@ -152,9 +153,13 @@ def test_acl_files_are_checked(tmp_path: Path) -> None:
     acl = AccessControl.load(good)
     assert acl.role_of("b") == "viewer" and acl.role_of("c") == "admin" and acl.role_of("z") is None
     config = acl.zenoh()
-    assert config["default_permission"] == "deny" and [s["id"] for s in config["subjects"]] == ["viewer", "admin"]
+    assert config["default_permission"] == "deny" and [s["id"] for s in config["subjects"]] == ["viewer", "admin", "holder-0"]
     admin_rules = next(p for p in config["policies"] if p["subjects"] == ["admin"])["rules"]
     assert "viewer-calls" in admin_rules and "operator-calls" in admin_rules  # each role may what the ones before it may
+    # the admin may request, so it holds: the tokens of its own clients only, everyone else's denied
+    assert "operator-declares" in admin_rules and next(s for s in config["subjects"] if s["id"] == "holder-0")["cert_common_names"] == ["c"]
+    holds = next(r for r in config["rules"] if r["id"] == "holder-0-holds")
+    assert holds["key_exprs"] == [f"dyknow/*/*/*/holders/{keys.holder_scope('c')}$*"] and holds["messages"] == ["liveliness_token"]
     for text, message in [
         ("{ roles: { guest: ['a'] } }", "unknown role 'guest'; expected one of viewer, operator, admin"),
         ("{ roles: { viewer: 'a' } }", "roles.viewer: got 'a'; expected a list of certificate common names"),
@@ -532,8 +537,6 @@ def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> No
 
 def test_the_docs_acl_files_are_valid() -> None:
     """Every json5 block of the security guide is an ACL file that loads; its own role reads and requests."""
-    import re
-
     import json5
 
     from tests.conftest import REPO
@@ -608,6 +611,71 @@ def test_a_requesters_held_request_stays_while_its_client_does(owners: Manager, 
         wait_until(lambda: (_held(owners, "Ticks") or {}).get("absent") == [], "the manager to see the requester's client")
         assert list(_held(owners, "Ticks")["holders"].values()) == [1]  # type: ignore[index]
     wait_until(lambda: _held(owners, "Ticks") is None, "the closed requester's request released")
+
+
+def test_a_client_cannot_keep_another_clients_request_alive(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The attack of issue 51: a requester reads the holders of an operator's request from the
+    model and, once the operator's client is gone, declares that client's holder token itself,
+    within the grace, to keep the request alive. The ACL lets a certificate declare the tokens
+    of its own clients only (their ids start with its scope), so the token is dropped at the
+    requester's link and the request ends after the grace; and the service takes a client id
+    only from the certificate whose scope it carries. The requester's own client still holds."""
+    (tmp_path / "acl.json5").write_text(OWNERS_ACL)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS], client_grace_s=3.0,
+    )  # fmt: skip
+    with ExitStack() as stack:
+        requester = stack.enter_context(Client(manager.name, connect=manager.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0))
+        attacker = stack.enter_context(Session(make_config(connect=manager.endpoints, tls=tls(certs, "viewer"))))
+        with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "operator"), timeout_s=5.0) as victim:
+            key = victim.request("Ticks")
+            wait_until(lambda: (_held(manager, "Ticks") or {}).get("absent") == [], "the manager to see the operator's client")
+            (holder,) = _held(manager, "Ticks")["holders"]  # type: ignore[index]
+            assert holder.startswith(keys.holder_scope("operator"))
+        wait_until(lambda: (_held(manager, "Ticks") or {}).get("absent") == [holder], "the manager to see the operator's client gone")
+        stack.enter_context(attacker.declare_liveliness_token(keys.holder_token(key, holder)))
+        wait_until(lambda: _held(manager, "Ticks") is None, "the gone operator's request released, whoever declared its token", timeout_s=15)
+        with pytest.raises(AccessError, match=rf"'viewer' may not hold through the client id '{holder}': .* start with its scope, {keys.holder_scope('viewer')} for 'viewer'"):
+            requester.call_manager(manager.name, "request", {"tag": "Ticks", "holder": holder})
+        assert manager.requests() == [] and manager.units() == []
+        key = requester.request("Ticks")
+        wait_until(lambda: (_held(manager, "Ticks") or {}).get("absent") == [], "the manager to see the requester's own client")
+        assert requester.release(key) == 0
+
+
+def test_one_caller_cannot_fill_a_shared_request(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The attack of issue 51: a requester takes reference after reference on an admin's
+    request, each with a client id of its own choosing, to fill it for everyone else. Its share
+    is bounded (here 20 references, kept or held): past it, its own are refused naming the
+    bound, and the others, the admin included, still request the stream."""
+    (tmp_path / "acl.json5").write_text(OWNERS_ACL)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS], limits=Limits(max_references_per_caller=20), client_grace_s=60.0,
+    )  # fmt: skip
+    with ExitStack() as stack:
+        admin, operator, requester = (
+            stack.enter_context(Client(manager.name, connect=manager.endpoints, tls=tls(certs, n), timeout_s=5.0)) for n in ("admin", "operator", "viewer")
+        )  # fmt: skip
+        key = admin.request("Ticks")
+        scope = keys.holder_scope("viewer")
+        refused = None
+        for i in range(1000):
+            try:
+                requester.call_manager(manager.name, "request", {"tag": "Ticks", "holder": f"{scope}{i:016x}"})
+            except AccessError as exc:
+                refused = exc
+                break
+        assert refused is not None, "a thousand references of one caller"
+        assert re.search(r"'viewer' \(client [0-9a-f]{32}\) holds 20 references to the request on '.*' already, its most; expected at most 20 references per caller", str(refused))
+        with pytest.raises(AccessError, match="'viewer' holds 20 references"):
+            requester.request("Ticks", keep=True)  # kept ones count too
+        assert operator.request("Ticks") == key and admin.request("Ticks") == key
+        with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "admin"), timeout_s=5.0) as another:
+            assert another.request("Ticks", keep=True) == key
+        held = _held(manager, "Ticks")
+        assert held is not None and held["references"] == 1 + 20 + 3
 
 
 def test_a_monitor_reads_only_what_its_caller_may_read(owners: Manager, certs: Path) -> None:

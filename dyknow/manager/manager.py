@@ -505,10 +505,12 @@ class Manager:
         ``owner``: who takes the reference (the services pass the caller; the Python API is the
         operator's). Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when
         nothing fits, :class:`~dyknow.errors.AccessError` when the owner may not read a stream
-        it names; when it raises, nothing of the call remains.
+        it names, or when the owner's caller holds ``limits.max_references_per_caller``
+        references to the request already; when it raises, nothing of the call remains.
         """
         self._check_open()
-        return self._adaptation.request(tag, standby=standby, require=require, owner=owner, readable=self._reader(owner))
+        bound = None if owner.local else self.limits.max_references_per_caller
+        return self._adaptation.request(tag, standby=standby, require=require, owner=owner, readable=self._reader(owner), max_references=bound)
 
     def release(self, key: str, *, owner: Owner = LOCAL, force: bool = False) -> int:
         """Give back a request, or a monitor (the key :meth:`monitor` returned); its units are
