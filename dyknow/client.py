@@ -38,7 +38,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dyknow import keys, reach
+from dyknow import keys, reach, replies
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
 from dyknow.message import CLOCK_ID, Message
@@ -524,8 +524,9 @@ class Client:
                 raise self._timed_out(what, where, time.monotonic() - started) from None
             from dyknow import service
 
+            replies.check_error(exc.details, manager, what)  # (a refusal's fields: another process's word, as a reply is)
             raise service.raise_remote(exc) from None
-        return json.loads(reply)
+        return replies.check_reply(replies.decode_reply(reply, manager, what), manager, what)
 
     def _timed_out(self, what: str, where: str, waited_s: float) -> ServiceError:
         """A call that reached the manager and got no answer in time (Zenoh says only "Timeout")."""
@@ -662,12 +663,12 @@ class Client:
             after = model.pop("next", None)
             if not after:
                 break
-            page = dict(self.call_manager(name, "get_model", {"page": after}))
+            page = dict(self.call_manager(name, "get_model", {"page": after}))  # (each page's shape checked: dyknow.replies)
             if page.get("next") and not (page["next"]["units"] > after["units"] or page["next"]["specs"] > after["specs"]):
                 raise ServiceError("a model page that does not move on", where=f"manager {name!r}", expected="a manager that pages its model")
             model["units"] += page["units"]
             model["specs"] += page["specs"]
-            model["requests"] = page["requests"]
+            model["requests"] = page.get("requests", [])
             model["next"] = page.get("next")
         model.pop("next", None)
         model.pop("total", None)
@@ -875,7 +876,9 @@ class Client:
         The managers matching ``match`` whose names sort after ``after`` (a previous page's
         ``next``), at most ``limit`` of them; ``next`` is the name to pass as ``after`` for the
         following page (None on the last), ``total`` how many match in all. Only the page's
-        managers are asked for their summaries (8 at once, each a brief one: counts, no library)."""
+        managers are asked for their summaries (8 at once, each a brief one: counts, no library).
+        A manager whose summary is not a manager's (:mod:`dyknow.replies`) is left out, and
+        ``"refused"`` says why: ``{name: message}``."""
         if limit < 1:
             raise ServiceError(f"a page of {limit} managers", where="managers_page", expected="a limit of at least 1")
         names = self.manager_names(timeout_s, match=match)
@@ -891,6 +894,7 @@ class Client:
                 names = sorted(n for n in names if n in answering) + sorted(silent)
         rest = names[names.index(after) + 1 :] if after in names else [n for n in names if after is None or n > after]
         page = rest[:limit]
+        refused: dict[str, str] = {}
 
         def brief(name: str) -> dict[str, Any] | None:
             if name in silent:
@@ -902,8 +906,10 @@ class Client:
                     if "unknown field 'brief'" not in str(exc):
                         raise
                     summary = self.call_manager(name, "get_summary", {})  # an older manager: its whole summary
-            except ServiceError:
-                return None  # it vanished while asked: left out
+            except ServiceError as exc:
+                if exc.details.get("reason") == replies.MALFORMED:
+                    refused[name] = str(exc)
+                return None  # it vanished while asked (or answered no manager's summary): left out
             if not isinstance(summary, dict):
                 return None
 
@@ -918,7 +924,7 @@ class Client:
 
         with ThreadPoolExecutor(min(8, max(1, len(page)))) as pool:
             listed = [m for m in pool.map(brief, page) if m is not None]
-        return {"managers": listed, "next": page[-1] if len(rest) > limit else None, "total": len(names)}
+        return {"managers": listed, "next": page[-1] if len(rest) > limit else None, "total": len(names), "refused": refused}
 
     def managers(
         self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*", limit: int | None = None, after: str | None = None
@@ -947,8 +953,9 @@ class Client:
             if not isinstance(entry, dict):
                 continue
             name, since, why = entry.get("manager"), entry.get("since_ns"), entry.get("why")
-            if isinstance(name, str) and isinstance(since, int) and not isinstance(since, bool) and isinstance(why, str):
-                found.append({"manager": name[:128], "since_ns": since, "why": why[:512]})
+            if keys.manager_of_token(keys.manager_token(str(name))) == name and isinstance(since, int) and not isinstance(since, bool) \
+                    and 0 <= since < 1 << 63 and isinstance(why, str):  # fmt: skip
+                found.append({"manager": name, "since_ns": since, "why": why[:512]})
         return found
 
     def seen_lost(self) -> list[dict[str, Any]]:
@@ -964,18 +971,22 @@ class Client:
         """The model of every manager reachable (matching ``match``): ``{"managers": [model, ...],
         "next": name or None}``, each as :meth:`get_model`. With ``limit``, one page of at most
         that many managers after ``after``; ``next`` is where the following page starts (None on
-        the last). Only the page's managers are asked."""
+        the last). Only the page's managers are asked. A manager whose model is not a manager's
+        (:mod:`dyknow.replies`) is left out, and ``"refused"`` says why: ``{name: message}``."""
         if limit is not None and limit < 1:
             raise ServiceError(f"a page of {limit} managers", where="get_federated_model", expected="a limit of at least 1")
         names = [n for n in self.manager_names(timeout_s, match=match) if after is None or n > after]
         page = names if limit is None else names[:limit]
         models = []
+        refused: dict[str, str] = {}
         for name in page:
             try:
                 models.append(self.get_model(name))
-            except ServiceError:
+            except ServiceError as exc:
+                if exc.details.get("reason") == replies.MALFORMED:
+                    refused[name] = str(exc)
                 continue
-        return {"managers": models, "next": page[-1] if limit is not None and len(names) > limit else None}
+        return {"managers": models, "next": page[-1] if limit is not None and len(names) > limit else None, "refused": refused}
 
     # ------------------------------------------------------------------ streams
 

@@ -350,10 +350,12 @@ def managers_matching(glob: str) -> str:
 
 
 def manager_of_token(key: str) -> str | None:
-    """The manager a liveliness token names, or None for another key."""
+    """The manager a liveliness token names, or None for another key, and for a token whose last
+    chunk is no manager name (:func:`check_name`): anyone may declare ``@dyknow/<any text>``, a
+    terminal escape say, and no manager has such a name."""
     prefix = f"{SERVICE_ROOT}/"
     rest = key[len(prefix) :] if key.startswith(prefix) else ""
-    return rest if rest and "/" not in rest else None
+    return rest if _NAME.fullmatch(rest) and len(rest.encode()) <= MAX_NAME_BYTES else None
 
 
 #: The chunk under which managers announce the tags they offer (see :func:`offer_token`).

@@ -48,7 +48,7 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from dyknow.cli import client, demo, mcap, offline, operate, ros2, serve
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, shown
 
 __all__ = ["DEFAULT_MANAGER", "main", "run"]
 
@@ -76,18 +76,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser(selected=next((word for word in argv if not word.startswith("-")), ""))
     args = parser.parse_args(argv)
     logging.basicConfig(level=os.environ.get("DYKNOW_LOG", "WARNING").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(_shown_record)
     from dyknow.errors import DyKnowError, SpecError
 
     try:
         return int(args.fn(args))
     except UsageError as exc:
-        parser.error(str(exc))
-    except SpecError as exc:
+        parser.error(shown(exc))
+    except SpecError as exc:  # (a manager's refusal carries its issues: another process's text, shown escaped)
         for issue in exc.issues:
-            print(str(issue), file=sys.stderr)
+            print(shown(issue), file=sys.stderr)
         return 1
     except DyKnowError as exc:
-        print(f"dyknow: error: {exc}", file=sys.stderr)
+        print(f"dyknow: error: {shown(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130
@@ -95,11 +97,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         if os.environ.get("DYKNOW_DEBUG"):
             raise
         print(
-            f"dyknow: internal error: {type(exc).__name__}: {exc} (set DYKNOW_DEBUG=1 for a traceback, and please report it)",
+            f"dyknow: internal error: {type(exc).__name__}: {shown(exc)} (set DYKNOW_DEBUG=1 for a traceback, and please report it)",
             file=sys.stderr,
         )
         return 70
     return 2
+
+
+def _shown_record(record: logging.LogRecord) -> bool:
+    """A log line's message :func:`~dyknow.cli.common.shown` (it may quote a peer's words); its traceback, if any, as it is."""
+    try:
+        record.msg, record.args = shown(record.getMessage()), None
+    except Exception:  # (a message that does not format: logging says so itself)
+        pass
+    return True
 
 
 def run(argv: Sequence[str] | None = None) -> NoReturn:
