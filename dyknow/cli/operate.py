@@ -113,7 +113,7 @@ def _table(views: list[dict[str, Any]], errors: dict[str, str], interval: float,
             if u["error"]:
                 lines.append(f"  error: {u['error']}"[:width])
     for name, why in errors.items():
-        lines += ["", f"manager {name}: {why}"[:width]]
+        lines += ["", f"manager {name}: {why}"]  # (whole: why a manager is left out, however wide the terminal)
     return lines
 
 
