@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from dyknow import Manager, Message, Player, Recorder, parse_specs
-from dyknow.errors import FormulaError
+from dyknow.errors import AccessError, FormulaError
 from dyknow.reasoning import FormulaMonitor, check_formula, evaluate_ns, monitor_spec, term_ports
 from dyknow.reasoning.progression import DEFAULT_MAX_CELLS
 from dyknow.reasoning.unit import VERDICTS_PORT, MonitorBudget
@@ -358,6 +358,46 @@ def test_a_monitor_joining_touches_no_other_so_spawning_costs_the_same_with_many
     assert monitors[1].told == 1  # until it looks
 
 
+def test_a_caller_holds_at_most_its_share_of_the_nodes_and_callers_leave_the_reserve() -> None:
+    """Issue 51, item 4: one operator took all 20,000 monitor nodes in 1.9 s, and everyone else's
+    monitors and requirements were refused. Now one caller holds at most its share, all callers
+    together leave the manager's reserve, and the manager's own monitors (account None) may
+    take what is left, reserve included."""
+    budget = MonitorBudget(Limits(max_monitor_nodes=100))  # a caller 25 nodes, callers 80, reserve 20
+    assert budget.caller_bounds == (25, 80)
+    formula = check_formula("once[0, 1s] Battery(robot) > 0.2 or p", Limits())
+    size = formula.nodes
+    mallory = [_Counted(formula) for _ in range(25 // size)]
+    for monitor in mallory:
+        budget.join(monitor, "caller 'mallory'")
+    with pytest.raises(AccessError, match=rf"the monitors and requirements of caller 'mallory' hold {size * len(mallory)} formula nodes, "
+                       rf"and this formula has {size}; expected at most 25 nodes a caller \(Limits.monitor_nodes_caller_share"):  # fmt: skip
+        budget.join(_Counted(formula), "caller 'mallory'")
+    with pytest.raises(AccessError, match="caller 'mallory'"):
+        budget.check(formula, account="caller 'mallory'")
+    others = []
+    for k in range(80):  # other callers fill what callers may take
+        try:
+            budget.join(monitor := _Counted(formula), f"client {k}")
+        except AccessError as exc:
+            assert "the callers' monitors and requirements hold" in str(exc) and "kept for its own requirements" in str(exc)
+            break
+        others.append(monitor)
+    assert budget.caller_nodes <= 80 and budget.caller_nodes + size > 80
+    own = []
+    while budget.nodes + size <= 100:  # the manager's own (its specs' requirements): the reserve is there
+        budget.join(monitor := _Counted(formula))
+        own.append(monitor)
+    assert len(own) >= 20 // size
+    with pytest.raises(FormulaError, match="expected at most 100 nodes in all"):
+        budget.join(_Counted(formula))
+    for monitor in mallory:
+        budget.leave(monitor)
+        budget.leave(monitor)  # (safe twice)
+    assert budget.held("caller 'mallory'") == 0 and budget.caller_nodes == size * len(others)
+    budget.join(_Counted(formula), "caller 'mallory'")  # its share is its own again
+
+
 def test_the_monitors_of_a_manager_have_at_most_so_many_nodes_in_all(make_manager: Callable[..., Manager]) -> None:
     """Every sample costs each node of the formulas that read it a step: a manager's monitors have
     at most Limits.max_monitor_nodes in all; past it a monitor fails to start, naming the bound."""
@@ -388,3 +428,4 @@ def test_a_foreach_monitor_derives_freshness_from_each_objects_rate() -> None:
         monitor: Any = harness.unit
         assert monitor.ages == {"Track(field)": 250 * MS}
     assert sorted(int(v["object"]) for v in got) == sorted(list(range(10)) * 6) and all(v["verdict"] for v in got)
+

@@ -234,7 +234,7 @@ class Manager:
             self.name,
             request=self.request,
             release=self._adaptation.release,
-            spawn=lambda spec, name, bindings: self.spawn(spec, name, bindings=bindings),
+            spawn=lambda spec, name, bindings, owner: self.spawn(spec, name, bindings=bindings, owner=owner),
             destroy=self.destroy,
             unit=self.unit,
             individuals=librarian.individuals_or_none(),
@@ -388,6 +388,7 @@ class Manager:
         params: Mapping[str, Any] | None = None,
         bindings: Mapping[str, str] | None = None,
         remote: bool = False,
+        owner: Owner = LOCAL,
     ) -> UnitInfo:
         """Start a unit of transformation ``label`` named ``name``.
 
@@ -405,11 +406,18 @@ class Manager:
         through a companion unit ``<name>.<port>.ros2`` (a :class:`~dyknow.ros2.bridge.Ros2Source`
         or :class:`~dyknow.ros2.bridge.Ros2Sink`), spawned after the unit and destroyed with it; if
         one cannot start, the unit is destroyed again and the error raised.
+
+        ``owner``: whom it is spawned for (the services pass the caller): a formula monitor's
+        nodes count against that caller's share of the monitors' nodes
+        (:class:`~dyknow.reasoning.unit.MonitorBudget`; the Python API's against none).
         """
         ros2 = ros2_bindings(bindings or {})
+        account = owner.account()
         if not ros2:
-            return self._spawner.spawn(label, name, protected=protected, params=params, bindings=bindings, remote=remote)
-        return self._ros2.spawn(label, name, protected=protected, params=params, bindings=bindings or {}, ros2=ros2, remote=remote)
+            return self._spawner.spawn(label, name, protected=protected, params=params, bindings=bindings, remote=remote, account=account)
+        return self._ros2.spawn(
+            label, name, protected=protected, params=params, bindings=bindings or {}, ros2=ros2, remote=remote, account=account
+        )
 
     def destroy(self, name: str, *, force: bool = False) -> None:
         """Stop unit ``name`` and remove it from the model. A protected unit only with ``force``
@@ -501,11 +509,20 @@ class Manager:
         request to its next-best configuration, the formula named as the cause (see
         :meth:`dyknow.adaptation.AdaptationLoop.request`); they belong to this reference.
         ``owner``: who takes the reference (the services pass the caller; the Python API is the
-        operator's). Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when
-        nothing fits, :class:`~dyknow.errors.AccessError` when the owner may not read a stream
-        it names; when it raises, nothing of the call remains.
+        operator's; a caller's requirements count against its share of the monitors' formula
+        nodes, :class:`~dyknow.reasoning.unit.MonitorBudget`). Raises
+        :class:`~dyknow.planner.PlanningError` (with the explanation) when nothing fits,
+        :class:`~dyknow.errors.AccessError` when the owner may not read a stream it names or its
+        requirements would take it past its share, :class:`~dyknow.errors.UnitError` when a
+        requirement of the chosen transformations cannot be watched (the stream is never served
+        unchecked); when it raises, nothing of the call remains.
         """
         self._check_open()
+        account = owner.account()
+        if account is not None and require:
+            # the caller's share of the monitors' nodes, for all its formulas at once (each monitor checks its own again)
+            texts = list(dict.fromkeys(str(text) for text in require))
+            self._monitor_budget.check(*(check_formula(text, self.limits) for text in texts), account=account)
         return self._adaptation.request(tag, standby=standby, require=require, owner=owner, readable=self._reader(owner))
 
     def release(self, key: str, *, owner: Owner = LOCAL, force: bool = False) -> int:
