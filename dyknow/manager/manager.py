@@ -38,6 +38,7 @@ from dyknow.manager.peers import Peers
 from dyknow.manager.ros2 import Ros2Wiring, ros2_bindings
 from dyknow.manager.services import Services
 from dyknow.manager.spawning import Spawner
+from dyknow.memory import Trimmer
 from dyknow.message import CLOCK_ID
 from dyknow.metrics import Metrics
 from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
@@ -47,7 +48,7 @@ from dyknow.priority import current_nice
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.reasoning.syntax import Formula, check_formula
-from dyknow.reasoning.unit import MonitorBudget
+from dyknow.reasoning.unit import FormulaMonitor, MonitorBudget
 from dyknow.receiver import Receiver
 from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.node import Ros2Node
@@ -188,6 +189,7 @@ class Manager:
         self._services: Services | None = None
         self._holders: Holders | None = None
         self._monitor_budget = MonitorBudget(limits)  # the cells its formula monitors share
+        self._trimmer = Trimmer(self.name)  # gives back the memory of formula monitors gone
         self._spawner = Spawner(
             self.name,
             lock=self._lock,
@@ -310,6 +312,7 @@ class Manager:
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
         self._executor.close(timeout_s)
+        self._trimmer.close()
         self._receiver.close()
         self._ros2.close()
         self._session.close()
@@ -458,6 +461,8 @@ class Manager:
                 log.exception("unit event listener failed on %s", event)
         if kind == "destroyed":
             self._ros2.drop(proxy.name)
+            if isinstance(proxy.unit, FormulaMonitor):  # (their states and object ids: the most memory units free at once)
+                self._trimmer.soon()
 
     def unit(self, name: str) -> Unit:
         """The Python object of running unit ``name`` (for embedding and tests)."""

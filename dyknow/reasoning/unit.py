@@ -455,6 +455,7 @@ class FormulaMonitor(Unit):
     """
 
     monitor: Monitor | ObjectMonitor
+    _served: Sequence[_Served] = ()  # (set up by setup(); none when it failed first)
     _budget: MonitorBudget | None = None
     _account: str | None = None  # whose share of the budget's nodes its formulas take (None: the manager's own)
     _seen_share = -1  # the budget's generation when the monitors last took their shares
@@ -580,10 +581,18 @@ class FormulaMonitor(Unit):
                 raise
 
     def teardown(self) -> None:
-        """Give the monitors' shares of cells and nodes back."""
+        """Give the monitors' shares of cells and nodes back, and let go of what they keep (an
+        object monitor's instances and ids, the last verdict per object), so the memory is free
+        once the unit goes, whoever still holds it (a listener, a model snapshot)."""
         if self._budget is not None:
             for served in self._served:
                 self._budget.leave(served.monitor)
+        for served in self._served:
+            if isinstance(served.monitor, ObjectMonitor):
+                served.monitor.discard()
+            served.last_published = {}
+        self._object_last = {}
+        self._listeners = []
 
     def listen(self, callback: Callable[[Verdict], None]) -> None:
         """Call ``callback(verdict)`` for every verdict from now on, on the unit's thread (it must return at once)."""
@@ -738,6 +747,10 @@ class FormulaMonitor(Unit):
                     listener(verdict)
                 return
             last[key] = verdict.verdict
+            monitor = served.monitor
+            if key is not None and isinstance(monitor, ObjectMonitor) and len(last) > 2 * monitor.max_objects + 16:
+                live = set(monitor.objects)  # (ids of objects gone for good: kept, they would grow with every id ever seen)
+                served.last_published = {k: v for k, v in last.items() if k in live}
         out = verdict.to_json()
         if served.name is not None:
             out["formula"] = served.name
