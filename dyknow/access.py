@@ -38,7 +38,10 @@ to; a mistake is located (``FILE:LINE: define.ROLE.calls[1]: unknown service ...
 
 It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessControl.zenoh`):
 default deny, one subject per role (by certificate common name), one allow rule per role and
-message kind, and for each manager one subject and rules of its own name. So the transport
+message kind, for each manager one subject and rules of its own name, and for each name that may
+``request`` or ``monitor`` one subject that lets it declare the holder tokens of its own clients
+only (:mod:`dyknow.holders`; no other role but managers and routers, which carry them, may
+declare holder tokens, unless a role of the file's own ``publish``-es on their keys). So the transport
 refuses what a link may not carry, before any handler sees it: a refused query gets no reply.
 Zenoh judges a message by the link it came by, that is by the neighbour; so a manager with an ACL
 also checks every service call's own signature and its caller's role (:mod:`dyknow.identity`,
@@ -72,7 +75,7 @@ _SUMMARIES = keys.summaries_pattern()
 _OFFERS = f"{keys.SERVICE_ROOT}/{keys.OFFERS}/**"  # (dyknow.keys.offer_token: what the managers offer)
 _CLOCKS = keys.clocks_of("*")  # (dyknow.keys.clock_token: whose clock an id is)
 _GOODBYES = keys.goodbye_token("*")
-_HOLDERS = f"{keys.DATA_ROOT}/*/*/*/holders/*"  # (dyknow.holders: <request or monitor key>/holders/<client>)
+_HOLDERS = keys.holders_pattern()  # (dyknow.holders: <request or monitor key>/holders/<client>)
 # The services each role may call, besides those of the roles before it (any manager, any unit).
 _SERVICES_OF = {
     "viewer": ["get_model", "get_summary", "get_metrics", "get_adaptations", "get_load", "clock", "unit/*/get_config", "unit/*/get_statistics"],
@@ -313,6 +316,12 @@ class AccessControl:
         found += [role for role, definition in self.defined.items() if wanted in definition.services()]
         return found + (["manager"] if wanted in _MANAGER_CALLS else [])
 
+    def _holding_names(self) -> list[str]:
+        """The common names that may take references a client holds (may call ``request`` or
+        ``monitor``), sorted: each gets its own holder tokens (:mod:`dyknow.holders`)."""
+        named = {name for names in self.roles.values() for name in names}
+        return sorted(name for name in named if self.may_call(name, "request") or self.may_call(name, "monitor"))
+
     def zenoh(self) -> dict[str, Any]:
         """The Zenoh ``access_control`` configuration that enforces these roles at every link."""
         rules: list[dict[str, Any]] = []
@@ -341,6 +350,13 @@ class AccessControl:
             subjects.append({"id": subject, "cert_common_names": list(names)})
             base = [name for r in ROLES[: ROLES.index(definition.like) + 1] for name in _rules_of(r)] if definition.like else []
             policies.append({"id": f"{subject}-policy", "rules": [*base, *(r["id"] for r in own)], "subjects": [subject]})
+        for i, name in enumerate(self._holding_names()):
+            # what it requests, it holds: its client's liveliness token says it is still there,
+            # and it may declare the tokens of its own clients only (dyknow.holders)
+            subject = f"holder-{i}"
+            rules.append(_rule(f"{subject}-holds", "ingress", ["liveliness_token"], [keys.holder_tokens_of(name)]))
+            subjects.append({"id": subject, "cert_common_names": [name]})
+            policies.append({"id": f"{subject}-policy", "rules": [f"{subject}-holds"], "subjects": [subject]})
         managers = self.roles.get("manager", ())
         if managers:
             rules.extend(_RULES["manager"])
@@ -356,6 +372,12 @@ class AccessControl:
 
 def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict[str, Any]:
     return {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": key_exprs}
+
+
+# Every data key of 2 to 5 chunks or of 7 and more: all but the 6 of a holder token
+# (dyknow/<manager>/<kind>/<name>/holders/<client>). Zenoh's deny rules win over any subject's
+# allow (eclipse-zenoh 1.10), so holder tokens are left out of the allow rules instead.
+_TOKENS_BUT_HOLDERS = [f"{keys.DATA_ROOT}{'/*' * n}" for n in range(1, 5)] + [f"{keys.DATA_ROOT}{'/*' * 6}/**"]
 
 
 def _services(role: str) -> list[str]:
@@ -383,7 +405,10 @@ _RULES: dict[str, list[dict[str, Any]]] = {
     ],
     "operator": [
         _rule("operator-calls", "ingress", ["query"], _services("operator")),
-        _rule("operator-publishes", "ingress", ["put", "delete", "liveliness_token"], [_DATA]),
+        _rule("operator-publishes", "ingress", ["put", "delete"], [_DATA]),
+        # a client's holder token is its certificate's own (dyknow.holders): liveliness tokens on
+        # every data key but holder tokens (a subject per name allows those of its own clients)
+        _rule("operator-declares", "ingress", ["liveliness_token"], _TOKENS_BUT_HOLDERS),
         _rule("operator-reaches-subscribers", "egress", ["declare_subscriber", "declare_liveliness_subscriber"], [_DATA]),
     ],
     "admin": [_rule("admin-calls", "ingress", ["query"], _services("admin"))],
@@ -414,6 +439,8 @@ def _own_rules(subject: str, manager: str) -> list[dict[str, Any]]:
     """What only the manager named ``manager`` may do: serve, announce and summarise under its name."""
     return [
         _rule(f"{subject}-serves", "ingress", ["declare_queryable", "reply"], [keys.services_pattern(manager)]),
+        # (and answers for its name and its offers: the indexes of a manager that is there, dyknow.federation)
+        _rule(f"{subject}-answers-for-itself", "ingress", ["declare_queryable", "reply"], [keys.manager_token(manager), keys.offers_of(manager)]),
         _rule(f"{subject}-announces", "ingress", ["liveliness_token"], [keys.manager_token(manager), keys.offers_of(manager), keys.clocks_of(manager), keys.goodbye_token(manager)]),
         _rule(f"{subject}-summarises", "ingress", ["put"], [keys.summary_key(manager)]),
     ]
@@ -432,9 +459,6 @@ def _defined_rules(subject: str, role: RoleDefinition) -> list[dict[str, Any]]:
     if own_calls:
         rules.append(_rule(f"{subject}-calls", "ingress", ["query"], [f"{keys.SERVICE_ROOT}/*/{c}" for c in own_calls]))
         rules.append(_rule(f"{subject}-sees-services", "egress", ["declare_queryable", "reply"], [_SERVICES]))
-    if {"request", "monitor"} & set(own_calls):
-        # what it requests, it holds: the client's liveliness token says it is still there (dyknow.holders)
-        rules.append(_rule(f"{subject}-holds", "ingress", ["liveliness_token"], [_HOLDERS]))
     if role.subscribe:
         rules.append(_rule(f"{subject}-subscribes", "ingress", ["declare_subscriber"], list(role.subscribe)))
         rules.append(_rule(f"{subject}-receives", "egress", ["put", "delete"], list(role.subscribe)))

@@ -38,16 +38,25 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dyknow import keys, reach
+from dyknow import keys, reach, replies
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
 from dyknow.message import CLOCK_ID, Message
-from dyknow.transport import DEFAULT_ENDPOINT, LivelinessSubscriber, LivelinessToken, Session, Subscriber, check_key_expr, make_config
+from dyknow.transport import (
+    DEFAULT_ENDPOINT,
+    MAX_ALIVE_KEYS,
+    LivelinessSubscriber,
+    LivelinessToken,
+    Session,
+    Subscriber,
+    check_key_expr,
+    make_config,
+)
 
 if TYPE_CHECKING:
     from dyknow.clocks import Estimate
 
-# (dyknow.service, dyknow.clocks, dyknow.model and dyknow.holders are imported where they are
+# (dyknow.service, dyknow.clocks and dyknow.model are imported where they are
 # needed: a command that fails at once, or reads a model, does not pay for the services' checks,
 # the formula parser they pull in, or the clock estimates: the dyknow command starts faster)
 
@@ -319,6 +328,8 @@ class Client:
         self._presence = _Presence(session)
         # the requests this client holds (dyknow.holders): key -> (references, the token that says it is alive)
         self._holder = os.urandom(8).hex()  # (what secrets.token_hex does, without importing it)
+        if self._signer is not None:  # a manager with roles takes only ids of the certificate's own scope (dyknow.holders)
+            self._holder = keys.holder_scope(self._signer.common_name) + self._holder
         self._held: dict[str, tuple[int, LivelinessToken]] = {}
         self._held_lock = threading.Lock()
 
@@ -513,8 +524,9 @@ class Client:
                 raise self._timed_out(what, where, time.monotonic() - started) from None
             from dyknow import service
 
+            replies.check_error(exc.details, manager, what)  # (a refusal's fields: another process's word, as a reply is)
             raise service.raise_remote(exc) from None
-        return json.loads(reply)
+        return replies.check_reply(replies.decode_reply(reply, manager, what), manager, what)
 
     def _timed_out(self, what: str, where: str, waited_s: float) -> ServiceError:
         """A call that reached the manager and got no answer in time (Zenoh says only "Timeout")."""
@@ -651,12 +663,12 @@ class Client:
             after = model.pop("next", None)
             if not after:
                 break
-            page = dict(self.call_manager(name, "get_model", {"page": after}))
+            page = dict(self.call_manager(name, "get_model", {"page": after}))  # (each page's shape checked: dyknow.replies)
             if page.get("next") and not (page["next"]["units"] > after["units"] or page["next"]["specs"] > after["specs"]):
                 raise ServiceError("a model page that does not move on", where=f"manager {name!r}", expected="a manager that pages its model")
             model["units"] += page["units"]
             model["specs"] += page["specs"]
-            model["requests"] = page["requests"]
+            model["requests"] = page.get("requests", [])
             model["next"] = page.get("next")
         model.pop("next", None)
         model.pop("total", None)
@@ -752,9 +764,7 @@ class Client:
         with self._held_lock:
             references, token = self._held.get(key) or (0, None)
             if token is None:
-                from dyknow.holders import holder_token
-
-                token = self._session.declare_liveliness_token(holder_token(key, self._holder))
+                token = self._session.declare_liveliness_token(keys.holder_token(key, self._holder))
             self._held[key] = (references + 1, token)
 
     def release(self, key: str, *, force: bool = False) -> int:
@@ -808,6 +818,31 @@ class Client:
             found.update(m for m in names if m is not None and fnmatch.fnmatchcase(m, glob))
         return sorted(found)
 
+    def answering_managers(self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*") -> set[str]:
+        """The managers (of those whose names match ``match``) that answer for their names: each
+        manager answers a query on its token's key. A liveliness token alone, which anyone may
+        declare without TLS, does not: thousands of tokens of names that run no manager are told
+        from the managers that are there (issue 51). Empty when none answered (or the query is
+        not allowed: an ACL lets a client that is no manager query services only)."""
+        globs = [match] if isinstance(match, str) else list(match)
+        found: set[str] = set()
+        for glob in globs or ["*"]:
+            answers: list[list[str]] = []
+            done = threading.Event()
+
+            def answered(found_keys: list[str], count: int, answers: list[list[str]] = answers, done: threading.Event = done) -> None:
+                answers.append(found_keys)
+                done.set()
+
+            try:
+                self._session.ask_index(keys.managers_matching(glob), timeout_s=self._budget(timeout_s), limit=MAX_ALIVE_KEYS, done=answered)
+            except DyKnowError:
+                continue
+            done.wait(timeout_s + 0.5)
+            names = (keys.manager_of_token(k) for k in (answers[0] if answers else []))
+            found.update(m for m in names if m is not None and fnmatch.fnmatchcase(m, glob))
+        return found
+
     def wait_for_managers(self, names: Sequence[str], timeout_s: float = 10.0) -> list[str]:
         """Wait until every manager in ``names`` is reachable, then return :meth:`manager_names`.
 
@@ -841,14 +876,29 @@ class Client:
         The managers matching ``match`` whose names sort after ``after`` (a previous page's
         ``next``), at most ``limit`` of them; ``next`` is the name to pass as ``after`` for the
         following page (None on the last), ``total`` how many match in all. Only the page's
-        managers are asked for their summaries (8 at once, each a brief one: counts, no library)."""
+        managers are asked for their summaries (8 at once, each a brief one: counts, no library).
+        A manager whose summary is not a manager's (:mod:`dyknow.replies`) is left out, and
+        ``"refused"`` says why: ``{name: message}``."""
         if limit < 1:
             raise ServiceError(f"a page of {limit} managers", where="managers_page", expected="a limit of at least 1")
         names = self.manager_names(timeout_s, match=match)
-        rest = [n for n in names if after is None or n > after]
+        silent: set[str] = set()
+        if len(names) > limit:
+            # more than a page: the managers that answer for their names first, and the names
+            # that do not (tokens with nobody behind them, maybe) listed after them without a
+            # call each: a flood of tokens made the listing ask only those and say "no manager
+            # reachable" (issue 51). (None answered: the query is not allowed, ask them all.)
+            answering = self.answering_managers(timeout_s, match=match)
+            if answering:
+                silent = {n for n in names if n not in answering}
+                names = sorted(n for n in names if n in answering) + sorted(silent)
+        rest = names[names.index(after) + 1 :] if after in names else [n for n in names if after is None or n > after]
         page = rest[:limit]
+        refused: dict[str, str] = {}
 
         def brief(name: str) -> dict[str, Any] | None:
+            if name in silent:
+                return {"manager": name, "host": "", "specs": 0, "units": 0, "requests": 0, "silent": True}
             try:
                 try:
                     summary = self.call_manager(name, "get_summary", {"brief": True})
@@ -856,8 +906,10 @@ class Client:
                     if "unknown field 'brief'" not in str(exc):
                         raise
                     summary = self.call_manager(name, "get_summary", {})  # an older manager: its whole summary
-            except ServiceError:
-                return None  # it vanished while asked: left out
+            except ServiceError as exc:
+                if exc.details.get("reason") == replies.MALFORMED:
+                    refused[name] = str(exc)
+                return None  # it vanished while asked (or answered no manager's summary): left out
             if not isinstance(summary, dict):
                 return None
 
@@ -872,7 +924,7 @@ class Client:
 
         with ThreadPoolExecutor(min(8, max(1, len(page)))) as pool:
             listed = [m for m in pool.map(brief, page) if m is not None]
-        return {"managers": listed, "next": page[-1] if len(rest) > limit else None, "total": len(names)}
+        return {"managers": listed, "next": page[-1] if len(rest) > limit else None, "total": len(names), "refused": refused}
 
     def managers(
         self, timeout_s: float = 1.0, *, match: str | Sequence[str] = "*", limit: int | None = None, after: str | None = None
@@ -901,8 +953,9 @@ class Client:
             if not isinstance(entry, dict):
                 continue
             name, since, why = entry.get("manager"), entry.get("since_ns"), entry.get("why")
-            if isinstance(name, str) and isinstance(since, int) and not isinstance(since, bool) and isinstance(why, str):
-                found.append({"manager": name[:128], "since_ns": since, "why": why[:512]})
+            if keys.manager_of_token(keys.manager_token(str(name))) == name and isinstance(since, int) and not isinstance(since, bool) \
+                    and 0 <= since < 1 << 63 and isinstance(why, str):  # fmt: skip
+                found.append({"manager": name, "since_ns": since, "why": why[:512]})
         return found
 
     def seen_lost(self) -> list[dict[str, Any]]:
@@ -918,18 +971,22 @@ class Client:
         """The model of every manager reachable (matching ``match``): ``{"managers": [model, ...],
         "next": name or None}``, each as :meth:`get_model`. With ``limit``, one page of at most
         that many managers after ``after``; ``next`` is where the following page starts (None on
-        the last). Only the page's managers are asked."""
+        the last). Only the page's managers are asked. A manager whose model is not a manager's
+        (:mod:`dyknow.replies`) is left out, and ``"refused"`` says why: ``{name: message}``."""
         if limit is not None and limit < 1:
             raise ServiceError(f"a page of {limit} managers", where="get_federated_model", expected="a limit of at least 1")
         names = [n for n in self.manager_names(timeout_s, match=match) if after is None or n > after]
         page = names if limit is None else names[:limit]
         models = []
+        refused: dict[str, str] = {}
         for name in page:
             try:
                 models.append(self.get_model(name))
-            except ServiceError:
+            except ServiceError as exc:
+                if exc.details.get("reason") == replies.MALFORMED:
+                    refused[name] = str(exc)
                 continue
-        return {"managers": models, "next": page[-1] if limit is not None and len(names) > limit else None}
+        return {"managers": models, "next": page[-1] if limit is not None and len(names) > limit else None, "refused": refused}
 
     # ------------------------------------------------------------------ streams
 

@@ -38,6 +38,7 @@ from typing import Any
 
 from dyknow.access import TlsFiles
 from dyknow.errors import DyKnowError, ServiceError, did_you_mean
+from dyknow.replies import MALFORMED
 
 __all__ = ["DEFAULT_MAX_OFFSET_MS", "Diagnosis", "check_clocks", "check_config", "check_port", "check_shm", "diagnose"]
 
@@ -61,9 +62,13 @@ class Diagnosis:
         """The JSON form (``dyknow doctor --json``)."""
         return {"check": self.check, "status": self.status, "what": self.what, "fix": self.fix}
 
-    def __str__(self) -> str:
+    def lines(self) -> list[str]:
+        """The finding as people read it: a line, and the fix's (when there is one)."""
         mark = {"ok": "ok  ", "warn": "WARN", "fail": "FAIL"}[self.status]
-        return f"{mark} {self.check:<9} {self.what}" + (f"\n               fix: {self.fix}" if self.fix else "")
+        return [f"{mark} {self.check:<9} {self.what}", *([f"               fix: {self.fix}"] if self.fix else [])]
+
+    def __str__(self) -> str:
+        return "\n".join(self.lines())
 
 
 def _split(endpoint: str) -> tuple[str, str, int] | None:
@@ -278,6 +283,8 @@ def check_access(client: Any, names: Sequence[str]) -> list[Diagnosis]:
         except ServiceError as exc:
             if exc.details.get("reason") in ("dropped", "no-role"):
                 found.append(Diagnosis("access", "fail", f"manager {name!r}: {exc.what}", exc.expected or "a role for this certificate in its --acl"))
+            elif exc.details.get("reason") == MALFORMED:  # (something answers as it, and not as a manager does)
+                found.append(Diagnosis("access", "fail", f"{exc.where}: {exc.what}", exc.expected or ""))
             else:
                 found.append(Diagnosis("access", "fail", f"manager {name!r} did not answer get_model: {exc}"))
             continue

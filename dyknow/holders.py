@@ -14,10 +14,23 @@ after its request, as one that went (the client declares it once the reply with 
 back: a grace of 0 must not release it before).
 
 The holder id comes from the network: the service checks it (:data:`HOLDER`: hexadecimal,
-bounded), each request keeps at most :data:`MAX_HOLDERS` of them, and only the tokens of holders
-the manager knows are tracked (anyone may declare tokens; they cost nothing unless they are
-of a holder that asked for something here). A token keeps a reference alive; it never releases
-one, and no client can give back another's reference (:meth:`dyknow.model.Owner.holds`).
+bounded), each request keeps the holders of at most :data:`MAX_HOLDERS` callers (a caller: a
+certificate's common name on a manager with roles, however many clients it runs; a client id
+without), and only the tokens of holders the manager knows are tracked (anyone may declare
+tokens; they cost nothing unless they are of a holder that asked for something here). How many
+references one caller may take on one request is the manager's
+:attr:`~dyknow.security.Limits.max_references_per_caller`, so no caller fills a shared request for
+the others. A token keeps a reference alive; it never releases one, and no client can give back
+another's reference (:meth:`dyknow.model.Owner.holds`).
+
+**A holder token is its caller's.** On a manager with roles a signed caller's holder ids start
+with its *scope*, :func:`~dyknow.keys.holder_scope` of its certificate's common name (16
+hexadecimal digits: the first 8 bytes of its SHA-256), and the service refuses any other
+(:func:`check_holder`). The session's access control (:meth:`dyknow.access.AccessControl.zenoh`, the same file on every
+manager and router) lets each certificate declare holder tokens of its own scope only, at the
+first link the token crosses. So a client cannot keep another client's request alive by
+declaring its token once that client is gone. Without roles a token proves nothing: anyone who
+reaches the manager may declare any client's token (and force any release).
 """
 
 from __future__ import annotations
@@ -29,11 +42,21 @@ import threading
 import time
 from collections.abc import Callable
 
-from dyknow import keys
-from dyknow.errors import ServiceError
+from dyknow.errors import AccessError, ServiceError
+from dyknow.keys import holder_scope, holder_token, holders_pattern
 from dyknow.transport import LivelinessSubscriber, Session
 
-__all__ = ["DEFAULT_GRACE_S", "HOLDER", "MAX_HOLDERS", "TOKEN_WAIT_S", "Holders", "holder_token", "holders_pattern"]
+__all__ = [
+    "DEFAULT_GRACE_S",
+    "HOLDER",
+    "MAX_HOLDERS",
+    "TOKEN_WAIT_S",
+    "Holders",
+    "check_holder",
+    "holder_scope",
+    "holder_token",
+    "holders_pattern",
+]
 
 log = logging.getLogger(__name__)
 
@@ -43,20 +66,26 @@ DEFAULT_GRACE_S = 10.0
 #: How long a holder has to declare its token after its request (s): the reply's way back and the
 #: token's way in, on a slow link.
 TOKEN_WAIT_S = 5.0
-#: The holders one request keeps track of (each a client that asked for it and did not keep it).
+#: The callers whose holders one request keeps track of (each caller a certificate's common name
+#: on a manager with roles, a client id without), each with at most
+#: :attr:`~dyknow.security.Limits.max_references_per_caller` references.
 MAX_HOLDERS = 1000
-#: What a holder id looks like: the hexadecimal id a Client makes for itself.
+#: What a holder id looks like: the hexadecimal id a Client makes for itself (16 random digits,
+#: after its certificate's 16-digit scope when it has one).
 HOLDER = re.compile(r"[0-9a-f]{8,32}")
 
 
-def holder_token(key: str, holder: str) -> str:
-    """The liveliness token a client declares while it holds the request or monitor on ``key``."""
-    return f"{key.removesuffix('/*')}/holders/{holder}"
-
-
-def holders_pattern(manager: str) -> str:
-    """The tokens of every holder of every request and monitor of ``manager``."""
-    return f"{keys.DATA_ROOT}/{manager}/*/*/holders/*"
+def check_holder(holder: str, common_name: str, where: str) -> None:
+    """Refuse (:class:`AccessError`) a holder id that is not of the scope of ``common_name``: a
+    signed caller holds only through client ids of its own (see the module documentation)."""
+    scope = holder_scope(common_name)
+    if not holder.startswith(scope):
+        raise AccessError(
+            f"{common_name!r} may not hold through the client id {holder!r}: on a manager with roles a certificate's "
+            f"client ids start with its scope, {scope} for {common_name!r}",
+            where=where,
+            expected="a dyknow client that makes its id from its certificate (this version's Client does), or the request kept (keep=True)",
+        )
 
 
 class Holders:
@@ -72,6 +101,8 @@ class Holders:
         self._release = release
         self._lock = threading.Condition()
         self._held: dict[str, dict[str, int]] = {}  # key -> holder -> references
+        self._caller_of: dict[str, dict[str, str]] = {}  # key -> holder -> its caller (a common name, or the holder itself)
+        self._callers: dict[str, dict[str, int]] = {}  # key -> caller -> its holders there
         self._tokens: dict[str, tuple[str, str]] = {}  # token -> (key, holder), of the holders known
         self._alive: set[tuple[str, str]] = set()  # (key, holder) whose token is up
         self._due: list[tuple[float, str, str]] = []  # (monotonic time, key, holder): look again then
@@ -98,12 +129,26 @@ class Holders:
             self._watch = None
         self._thread.join(timeout=2.0)
 
-    def took(self, key: str, holder: str) -> None:
-        """``holder`` took a reference to the request (or asked for the monitor) on ``key``."""
+    def took(self, key: str, holder: str, caller: str | None = None) -> None:
+        """``holder`` took a reference to the request (or asked for the monitor) on ``key``, for
+        ``caller`` (its certificate's common name on a manager with roles; None without, where
+        each client counts as a caller of its own). :class:`ServiceError` when ``key`` has the
+        holders of :data:`MAX_HOLDERS` other callers already."""
+        who = caller if caller is not None else holder
         with self._lock:
-            held = self._held.setdefault(key, {})
-            if holder not in held and len(held) >= MAX_HOLDERS:
-                raise ServiceError(f"request {key!r} has {MAX_HOLDERS} holders already", where="field 'holder'", expected="fewer clients")
+            held = self._held.get(key, {})
+            callers = self._callers.get(key, {})
+            if holder not in held and who not in callers and len(callers) >= MAX_HOLDERS:
+                raise ServiceError(
+                    f"request {key!r} has the clients of {MAX_HOLDERS} callers already",
+                    where="field 'holder'",
+                    expected="a request once one of them is released, or the request kept (keep=True)",
+                )
+            held = self._held.setdefault(key, held)
+            if holder not in held:
+                self._caller_of.setdefault(key, {})[holder] = who
+                callers = self._callers.setdefault(key, callers)
+                callers[who] = callers.get(who, 0) + 1
             held[holder] = held.get(holder, 0) + 1
             self._tokens[holder_token(key, holder)] = (key, holder)
             if (key, holder) not in self._alive:  # its token may be on its way: look again once it had time to come
@@ -136,9 +181,17 @@ class Holders:
 
     def _drop(self, key: str, holder: str) -> None:
         held = self._held.get(key, {})
-        held.pop(holder, None)
+        if held.pop(holder, None) is not None:
+            who = self._caller_of[key].pop(holder)
+            callers = self._callers[key]
+            if callers[who] > 1:
+                callers[who] -= 1
+            else:
+                del callers[who]
         if not held:
             self._held.pop(key, None)
+            self._caller_of.pop(key, None)
+            self._callers.pop(key, None)
         self._tokens.pop(holder_token(key, holder), None)
         self._alive.discard((key, holder))
 

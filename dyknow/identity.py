@@ -35,14 +35,25 @@ service is refused by any other.
 
 **No replay within the window, whatever the flood.** Nothing is remembered of a call before its
 caller's role is known to allow it, so callers without a role cost nothing. Each caller (common
-name) has a ledger of its own: the nonces of its calls still within the window, at most
-:data:`NONCE_BUDGET` of them. When a caller's ledger is full, its oldest call (by ``time_ns``)
-makes room and the ledger's *floor* rises to that call's time: from then on a call of this
-caller signed at or before the floor is refused. So a nonce is only ever forgotten together
-with every call as old as it, and a recorded call replayed later is refused either as seen, as
-older than the floor, or as outside the window, however many calls (anyone's, or the same
-caller's) came between. A caller that makes more than :data:`NONCE_BUDGET` calls in
-:data:`WINDOW_S` only has its own calls that arrive later than that many newer ones refused.
+name) has a ledger of its own: the nonces of its calls still within the window, in two parts.
+
+- Calls signed *on time*, at or before the manager's clock when they arrive: at most
+  :data:`NONCE_BUDGET` of them. When they are that many, the oldest call (by ``time_ns``) makes
+  room and the ledger's *floor* rises to that call's time: from then on a call of this caller
+  signed at or before the floor is refused. So a nonce is only ever forgotten together with
+  every call as old as it; and since only calls signed at or before the manager's clock are
+  ever forgotten early, the floor never rises past that clock.
+- Calls signed *ahead* of the manager's clock (a clock running ahead, or a forged time): at most
+  :data:`AHEAD_BUDGET` of them, each kept until it leaves the window, never forgotten earlier,
+  so they never raise the floor. When they are that many, a further call signed ahead is
+  refused, naming how far ahead it was signed; calls signed on time are not.
+
+So a recorded call replayed later is refused either as seen, as older than the floor, or as
+outside the window, however many calls (anyone's, or the same caller's) came between. A caller
+that makes more than :data:`NONCE_BUDGET` calls in :data:`WINDOW_S` only has its own calls that
+arrive later than that many newer ones refused. Calls signed ahead, by a clock or by anyone
+holding the same certificate, never make a call signed on time refused: they never raise the
+floor, and only calls signed ahead wait for room among them.
 """
 
 from __future__ import annotations
@@ -67,8 +78,20 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from dyknow.access import AccessControl, TlsFiles
 from dyknow.errors import AccessError
+from dyknow.security import Limits
 
-__all__ = ["MAGIC", "MAX_CERT_BYTES", "MAX_SIGNATURE_BYTES", "NONCE_BUDGET", "WINDOW_S", "Caller", "Signer", "Verifier", "signed_bytes"]
+__all__ = [
+    "AHEAD_BUDGET",
+    "MAGIC",
+    "MAX_CERT_BYTES",
+    "MAX_SIGNATURE_BYTES",
+    "NONCE_BUDGET",
+    "WINDOW_S",
+    "Caller",
+    "Signer",
+    "Verifier",
+    "signed_bytes",
+]
 
 #: The first four bytes of a signed call's attachment.
 MAGIC = b"DKC1"
@@ -81,9 +104,12 @@ MAX_SIGNATURE_BYTES = 1024
 
 _DOMAIN = b"dyknow-call-v1\n"
 _HEAD = struct.Struct(">4sQ16sH")
-#: The calls a manager remembers per caller within the window (see the module documentation):
-#: about 70 calls a second, sustained over the whole window, before the caller's floor rises.
-NONCE_BUDGET = 20_000
+#: The calls signed on time a manager remembers per caller within the window (see the module
+#: documentation; ``Limits.max_caller_calls``): about 70 calls a second, sustained over the whole
+#: window, before the caller's floor rises.
+NONCE_BUDGET = Limits().max_caller_calls
+#: The calls signed ahead of the manager's clock it remembers per caller (``Limits.max_caller_calls_ahead``).
+AHEAD_BUDGET = Limits().max_caller_calls_ahead
 _CERTS = 256  # verified certificates remembered
 
 
@@ -160,10 +186,12 @@ class Signer:
 
 @dataclass(slots=True)
 class _Ledger:
-    """One caller's calls within the window: nonce -> time, the times in a heap, and the floor."""
+    """One caller's calls within the window: nonce -> time, the times of those signed on time and
+    of those signed ahead in a heap each, and the floor."""
 
     seen: dict[bytes, int] = field(default_factory=dict)
-    times: list[tuple[int, bytes]] = field(default_factory=list)
+    times: list[tuple[int, bytes]] = field(default_factory=list)  # signed at or before the clock when they came
+    ahead: list[tuple[int, bytes]] = field(default_factory=list)  # signed after it: kept until they leave the window
     floor_ns: int = -1  # calls signed at or before it are refused (their nonces may be forgotten)
 
 
@@ -172,10 +200,19 @@ class Verifier:
 
     :meth:`verify` returns the :class:`Caller` or raises :class:`AccessError` saying what is wrong
     with the call. Thread-safe (the manager's service threads call it side by side).
-    ``budget``: the calls remembered per caller within the window (:data:`NONCE_BUDGET`).
+    ``budget``: the calls signed on time remembered per caller within the window
+    (:data:`NONCE_BUDGET`); ``ahead_budget``: those signed ahead of the clock (:data:`AHEAD_BUDGET`).
     """
 
-    def __init__(self, ca: str | os.PathLike[str], access: AccessControl, *, window_s: float = WINDOW_S, budget: int = NONCE_BUDGET) -> None:
+    def __init__(
+        self,
+        ca: str | os.PathLike[str],
+        access: AccessControl,
+        *,
+        window_s: float = WINDOW_S,
+        budget: int = NONCE_BUDGET,
+        ahead_budget: int = AHEAD_BUDGET,
+    ) -> None:
         try:
             self._ca = x509.load_pem_x509_certificate(Path(ca).read_bytes())
         except (OSError, ValueError) as exc:
@@ -183,6 +220,7 @@ class Verifier:
         self._access = access
         self._window_ns = int(window_s * 1e9)
         self._budget = max(1, budget)
+        self._ahead_budget = max(1, ahead_budget)
         self._lock = threading.Lock()
         self._certs: OrderedDict[bytes, tuple[str, datetime.datetime, datetime.datetime]] = OrderedDict()
         self._ledgers: dict[str, _Ledger] = {}
@@ -293,12 +331,25 @@ class Verifier:
                 where="call",
                 expected=f"a new call; a caller making over {self._budget:,} calls in {self._window_ns / 1e9:g} s sees its late calls refused",
             )
-        times = ledger.times
-        while times and times[0][0] < now - self._window_ns:  # outside the window: refused by their time anyway
-            expired, forgotten = heapq.heappop(times)
-            ledger.seen.pop(forgotten, None)
-            ledger.floor_ns = max(ledger.floor_ns, expired)  # (and should the clock step back)
-        while len(times) >= self._budget:
+        times, ahead = ledger.times, ledger.ahead
+        for heap in (times, ahead):
+            while heap and heap[0][0] < now - self._window_ns:  # outside the window: refused by their time anyway
+                expired, forgotten = heapq.heappop(heap)
+                ledger.seen.pop(forgotten, None)
+                ledger.floor_ns = max(ledger.floor_ns, expired)  # (and should the clock step back)
+        if when > now:  # signed ahead: never forgotten before it leaves the window, so it never raises the floor
+            if len(ahead) >= self._ahead_budget:
+                raise AccessError(
+                    f"the call was signed {(when - now) / 1e9:+.3f} s ahead of this manager's clock, and the manager already "
+                    f"remembers {len(ahead):,} calls of {name!r} signed ahead of it, each until it leaves the {self._window_ns / 1e9:g} s window",
+                    where="call",
+                    expected=f"a call signed at or before the manager's clock (of those signed ahead, at most {self._ahead_budget:,} "
+                    "are taken): synchronise the hosts' clocks (chrony or NTP), and give each client a certificate of its own",
+                )
+            ledger.seen[nonce] = when
+            heapq.heappush(ahead, (when, nonce))
+            return
+        while len(times) >= self._budget:  # (each signed at or before the clock when it came: the floor stays behind it)
             oldest, forgotten = heapq.heappop(times)
             ledger.seen.pop(forgotten, None)
             ledger.floor_ns = max(ledger.floor_ns, oldest)

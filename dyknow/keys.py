@@ -8,6 +8,7 @@ matches a service)::
     dyknow/<manager>/requests/<tag>           the stable key of a request (request_key)
     dyknow/<manager>/events/<kind>            the manager's events, e.g. adaptation (event_key)
     dyknow/<manager>/monitors/<n>             the verdicts of a monitored formula (monitor_key)
+    <request or monitor key>/holders/<client> a client holds it (holder_token; dyknow.holders)
     dyknow/measurements/<name>                a measurement for every manager (measurement_key)
     dyknow/<manager>/measurements/<name>      a measurement for one manager
     @dyknow/<manager>                         a manager's liveliness token: it is alive (manager_token)
@@ -55,6 +56,11 @@ __all__ = [
     "clocks_of",
     "goodbye_token",
     "GOODBYE_S",
+    "HOLDER_SCOPE_DIGITS",
+    "holder_scope",
+    "holder_token",
+    "holders_pattern",
+    "holder_tokens_of",
     "LOSS_STOPPED",
     "LOSS_VANISHED",
     "default_key",
@@ -252,6 +258,36 @@ def monitor_key(manager: str, n: int) -> str:
     return f"{DATA_ROOT}/{manager}/monitors/{n}"
 
 
+#: The hexadecimal digits of a caller's scope, which start its client ids on a manager with roles.
+HOLDER_SCOPE_DIGITS = 16
+
+
+def holder_token(key: str, holder: str) -> str:
+    """The liveliness token a client declares while it holds the request or monitor on ``key``:
+    ``<key>/holders/<holder>`` (a quantified monitor's key without its ``/*``; :mod:`dyknow.holders`)."""
+    return f"{key.removesuffix('/*')}/holders/{holder}"
+
+
+def holders_pattern(manager: str = "*") -> str:
+    """The holder tokens of every request and monitor of ``manager`` (default: of every manager)."""
+    return f"{DATA_ROOT}/{manager}/*/*/holders/*"
+
+
+def holder_scope(common_name: str) -> str:
+    """What starts the client ids of the caller whose certificate's common name is
+    ``common_name``, on a manager with roles: the first :data:`HOLDER_SCOPE_DIGITS` hexadecimal
+    digits of its SHA-256 (:mod:`dyknow.holders`)."""
+    import hashlib  # (here: only a client with a certificate, or a manager with roles, needs it; dyknow starts faster)
+
+    return hashlib.sha256(common_name.encode()).hexdigest()[:HOLDER_SCOPE_DIGITS]
+
+
+def holder_tokens_of(common_name: str) -> str:
+    """The holder tokens of the clients of ``common_name``'s certificate, on every manager: those
+    whose client id starts with its :func:`holder_scope` (what the ACL lets it declare)."""
+    return f"{DATA_ROOT}/*/*/*/holders/{holder_scope(common_name)}$*"
+
+
 def event_key(manager: str, kind: str) -> str:
     """Where a manager publishes its events of ``kind``: ``dyknow/<manager>/events/<kind>``."""
     return f"{DATA_ROOT}/{manager}/events/{kind}"
@@ -314,10 +350,12 @@ def managers_matching(glob: str) -> str:
 
 
 def manager_of_token(key: str) -> str | None:
-    """The manager a liveliness token names, or None for another key."""
+    """The manager a liveliness token names, or None for another key, and for a token whose last
+    chunk is no manager name (:func:`check_name`): anyone may declare ``@dyknow/<any text>``, a
+    terminal escape say, and no manager has such a name."""
     prefix = f"{SERVICE_ROOT}/"
     rest = key[len(prefix) :] if key.startswith(prefix) else ""
-    return rest if rest and "/" not in rest else None
+    return rest if _NAME.fullmatch(rest) and len(rest.encode()) <= MAX_NAME_BYTES else None
 
 
 #: The chunk under which managers announce the tags they offer (see :func:`offer_token`).

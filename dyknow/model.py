@@ -57,6 +57,18 @@ class Owner:
             return other.holder == self.holder
         return self.caller is not None or other.holder is None
 
+    def same_caller(self, other: Owner) -> bool:
+        """Whether ``other`` was taken by the caller that this owner is, for the references one
+        caller may hold (:attr:`~dyknow.security.Limits.max_references_per_caller`): on a manager
+        with roles the same certificate's name, whichever its client; without roles the same
+        client, or, with no client id, any other reference kept over the services. The local API
+        is nobody's caller."""
+        if self.local or other.local:
+            return False
+        if self.caller is not None:
+            return other.caller == self.caller
+        return other.caller is None and other.holder == self.holder
+
     def who(self) -> str:
         """The owner as a message names a caller: ``'alice' (client 3f2a...)``, ``'alice'``."""
         if self.local:

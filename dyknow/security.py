@@ -20,8 +20,9 @@ passes through unchecked (it runs as the operator):
   the entries and time a glob may take; the size and windows of a temporal formula and what a
   quantified one expands to, the memory and formula nodes the formula monitors share (and each
   caller's share of the nodes) and how far ahead a sample they take may be stamped
-  (:mod:`dyknow.reasoning`); and the size of the library, which the
-  manager's summary carries to its peers.
+  (:mod:`dyknow.reasoning`); the size of the library, which the manager's summary carries to its
+  peers; the signed calls remembered per caller against replays (:mod:`dyknow.identity`); the
+  series a Prometheus scrape serves; and the references one caller may hold on a shared request.
 """
 
 from __future__ import annotations
@@ -109,6 +110,26 @@ class Limits:
     #: also carries the units and measurements.
     max_library_specs: int = 10_000
     max_library_bytes: int = 8 << 20
+    #: The signed calls a manager remembers per caller (certificate common name) among those signed
+    #: at or before its clock, within the 300 s a call's time may be off (``dyknow.identity``):
+    #: past it the caller's oldest are forgotten and its floor rises to their time, never past the
+    #: manager's clock (about 70 calls a second, sustained over the window).
+    max_caller_calls: int = 20_000
+    #: The signed calls a manager remembers per caller among those signed *ahead* of its clock (a
+    #: clock ahead, or a forged time): each is kept until it leaves the window, so none raises
+    #: the floor; past it a call signed ahead is refused, and calls signed on time are not.
+    max_caller_calls_ahead: int = 20_000
+    #: The most series one Prometheus scrape of the manager serves (``--metrics-port``; each
+    #: histogram bucket is one, as Prometheus counts them; about 10 MB of text): a unit takes
+    #: 2, 3 per output and 37 per input; past it the latest spawned units are left out whole,
+    #: logged and counted (``dyknow.metrics``). A unit's series go with the unit.
+    max_metric_series: int = 100_000
+    #: The most references one caller may hold on one request, kept and held alike: a caller is
+    #: a certificate's common name on a manager with roles (all its clients together), a client
+    #: id without (``dyknow.model.Owner.same_caller``). Past it that caller's next request of the
+    #: tag is refused, and everyone else's still goes through (``dyknow.holders`` counts the
+    #: callers of a request, not their clients). The manager's own Python API is not bounded.
+    max_references_per_caller: int = 256
 
 
 _DEFAULT = Limits()

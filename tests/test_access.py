@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import re
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -11,10 +13,11 @@ from typing import Any
 
 import pytest
 
-from dyknow import AccessError, BindingError, Client, Manager, Message, PlanningError, ServiceError, UnitError
+from dyknow import AccessError, BindingError, Client, Manager, Message, PlanningError, ServiceError, UnitError, keys
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.certs import write_dev_certs
 from dyknow.identity import Signer
+from dyknow.security import Limits
 from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import GENERIC_SPECS, CliProcess, end_process, free_port, run_cli, wait_until
@@ -150,9 +153,13 @@ def test_acl_files_are_checked(tmp_path: Path) -> None:
     acl = AccessControl.load(good)
     assert acl.role_of("b") == "viewer" and acl.role_of("c") == "admin" and acl.role_of("z") is None
     config = acl.zenoh()
-    assert config["default_permission"] == "deny" and [s["id"] for s in config["subjects"]] == ["viewer", "admin"]
+    assert config["default_permission"] == "deny" and [s["id"] for s in config["subjects"]] == ["viewer", "admin", "holder-0"]
     admin_rules = next(p for p in config["policies"] if p["subjects"] == ["admin"])["rules"]
     assert "viewer-calls" in admin_rules and "operator-calls" in admin_rules  # each role may what the ones before it may
+    # the admin may request, so it holds: the tokens of its own clients only, everyone else's denied
+    assert "operator-declares" in admin_rules and next(s for s in config["subjects"] if s["id"] == "holder-0")["cert_common_names"] == ["c"]
+    holds = next(r for r in config["rules"] if r["id"] == "holder-0-holds")
+    assert holds["key_exprs"] == [f"dyknow/*/*/*/holders/{keys.holder_scope('c')}$*"] and holds["messages"] == ["liveliness_token"]
     for text, message in [
         ("{ roles: { guest: ['a'] } }", "unknown role 'guest'; expected one of viewer, operator, admin"),
         ("{ roles: { viewer: 'a' } }", "roles.viewer: got 'a'; expected a list of certificate common names"),
@@ -357,6 +364,36 @@ def test_a_recorded_call_replayed_after_a_flood_is_refused(secured: Manager, cer
     assert not secured.has_unit("replayed")
 
 
+def test_calls_signed_ahead_do_not_lock_out_the_callers_honest_calls(certs: Path, make_manager: Callable[..., Manager]) -> None:
+    """Issue 51, item 8, over real links: one holder of the viewer's certificate signs calls 290 s
+    ahead (within the 300 s the manager takes) until their part of its ledger is full. Before,
+    the next one raised the viewer's floor into the future and every honest call of the viewer
+    was refused for minutes; now that call is refused, naming the clock, and the honest client of
+    the same certificate is answered, for more calls than the ledger holds. A recorded call
+    signed ahead is still refused as a replay."""
+    acl = AccessControl.from_dict({"roles": {"viewer": ["viewer"], "admin": ["admin"]}})
+    limits = Limits(max_caller_calls=100, max_caller_calls_ahead=100)
+    manager = make_manager(listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=acl, limits=limits)
+    attacker = Signer(tls(certs, "viewer"))
+    signed: list[bytes] = []
+
+    def ahead(key: str, body: bytes) -> bytes:
+        signed.append(attacker.sign(key, body, time_ns=time.time_ns() + int(290e9)))
+        return signed[-1]
+
+    key = f"@dyknow/{manager.name}/get_adaptations"
+    with Session(make_config(connect=manager.endpoints, tls=tls(certs, "viewer"))) as session:
+        for _ in range(100):
+            session.call(key, b"{}", timeout_s=5.0, what="get_adaptations", sign=ahead)
+        with pytest.raises(ServiceError, match=r"signed \+2\d\d\.\d+ s ahead of this manager's clock, and the manager already remembers 100"):
+            session.call(key, b"{}", timeout_s=5.0, what="get_adaptations", sign=ahead)
+        with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0) as honest:
+            for _ in range(150):  # more than the ledger holds of calls signed on time
+                assert isinstance(honest.get_adaptations(), list)
+        with pytest.raises(ServiceError, match="a replay of one already received"):
+            session.call(key, b"{}", timeout_s=5.0, what="get_adaptations", sign=lambda k, b: signed[0])
+
+
 # ---------------------------------------------------------------------- only a manager speaks for itself
 
 
@@ -500,8 +537,6 @@ def test_a_bad_definition_is_located(tmp_path: Path, text: str, said: str) -> No
 
 def test_the_docs_acl_files_are_valid() -> None:
     """Every json5 block of the security guide is an ACL file that loads; its own role reads and requests."""
-    import re
-
     import json5
 
     from tests.conftest import REPO
@@ -576,6 +611,71 @@ def test_a_requesters_held_request_stays_while_its_client_does(owners: Manager, 
         wait_until(lambda: (_held(owners, "Ticks") or {}).get("absent") == [], "the manager to see the requester's client")
         assert list(_held(owners, "Ticks")["holders"].values()) == [1]  # type: ignore[index]
     wait_until(lambda: _held(owners, "Ticks") is None, "the closed requester's request released")
+
+
+def test_a_client_cannot_keep_another_clients_request_alive(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The attack of issue 51: a requester reads the holders of an operator's request from the
+    model and, once the operator's client is gone, declares that client's holder token itself,
+    within the grace, to keep the request alive. The ACL lets a certificate declare the tokens
+    of its own clients only (their ids start with its scope), so the token is dropped at the
+    requester's link and the request ends after the grace; and the service takes a client id
+    only from the certificate whose scope it carries. The requester's own client still holds."""
+    (tmp_path / "acl.json5").write_text(OWNERS_ACL)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS], client_grace_s=3.0,
+    )  # fmt: skip
+    with ExitStack() as stack:
+        requester = stack.enter_context(Client(manager.name, connect=manager.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0))
+        attacker = stack.enter_context(Session(make_config(connect=manager.endpoints, tls=tls(certs, "viewer"))))
+        with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "operator"), timeout_s=5.0) as victim:
+            key = victim.request("Ticks")
+            wait_until(lambda: (_held(manager, "Ticks") or {}).get("absent") == [], "the manager to see the operator's client")
+            (holder,) = _held(manager, "Ticks")["holders"]  # type: ignore[index]
+            assert holder.startswith(keys.holder_scope("operator"))
+        wait_until(lambda: (_held(manager, "Ticks") or {}).get("absent") == [holder], "the manager to see the operator's client gone")
+        stack.enter_context(attacker.declare_liveliness_token(keys.holder_token(key, holder)))
+        wait_until(lambda: _held(manager, "Ticks") is None, "the gone operator's request released, whoever declared its token", timeout_s=15)
+        with pytest.raises(AccessError, match=rf"'viewer' may not hold through the client id '{holder}': .* start with its scope, {keys.holder_scope('viewer')} for 'viewer'"):
+            requester.call_manager(manager.name, "request", {"tag": "Ticks", "holder": holder})
+        assert manager.requests() == [] and manager.units() == []
+        key = requester.request("Ticks")
+        wait_until(lambda: (_held(manager, "Ticks") or {}).get("absent") == [], "the manager to see the requester's own client")
+        assert requester.release(key) == 0
+
+
+def test_one_caller_cannot_fill_a_shared_request(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The attack of issue 51: a requester takes reference after reference on an admin's
+    request, each with a client id of its own choosing, to fill it for everyone else. Its share
+    is bounded (here 20 references, kept or held): past it, its own are refused naming the
+    bound, and the others, the admin included, still request the stream."""
+    (tmp_path / "acl.json5").write_text(OWNERS_ACL)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS], limits=Limits(max_references_per_caller=20), client_grace_s=60.0,
+    )  # fmt: skip
+    with ExitStack() as stack:
+        admin, operator, requester = (
+            stack.enter_context(Client(manager.name, connect=manager.endpoints, tls=tls(certs, n), timeout_s=5.0)) for n in ("admin", "operator", "viewer")
+        )  # fmt: skip
+        key = admin.request("Ticks")
+        scope = keys.holder_scope("viewer")
+        refused = None
+        for i in range(1000):
+            try:
+                requester.call_manager(manager.name, "request", {"tag": "Ticks", "holder": f"{scope}{i:016x}"})
+            except AccessError as exc:
+                refused = exc
+                break
+        assert refused is not None, "a thousand references of one caller"
+        assert re.search(r"'viewer' \(client [0-9a-f]{32}\) holds 20 references to the request on '.*' already, its most; expected at most 20 references per caller", str(refused))
+        with pytest.raises(AccessError, match="'viewer' holds 20 references"):
+            requester.request("Ticks", keep=True)  # kept ones count too
+        assert operator.request("Ticks") == key and admin.request("Ticks") == key
+        with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "admin"), timeout_s=5.0) as another:
+            assert another.request("Ticks", keep=True) == key
+        held = _held(manager, "Ticks")
+        assert held is not None and held["references"] == 1 + 20 + 3
 
 
 def test_a_monitor_reads_only_what_its_caller_may_read(owners: Manager, certs: Path) -> None:

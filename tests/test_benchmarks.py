@@ -197,6 +197,17 @@ def test_flood_benchmark_smoke(tmp_path: Path) -> None:
 
 
 @pytest.mark.process
+def test_token_flood_benchmark_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "token_flood.json"
+    result = _run("token_flood.py", "--tokens", "200", "--json", str(out))
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    rows = json.loads(out.read_text())["results"]
+    assert [r["phase"] for r in rows] == ["before the flood", "during 200 + 200 tokens", "after they went"]
+    assert all(r["request"]["provider"] == "provider" and r["managers_page"]["first"] == ["provider", "station"] for r in rows)
+    assert all(r["threads"] > 0 and r["rss_mib"] > 0 and r["get_model"]["ms"] > 0 for r in rows)
+
+
+@pytest.mark.process
 def test_failover_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "failover.json"
     result = _run("failover.py", "--smoke", "--json", str(out))

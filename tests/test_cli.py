@@ -9,7 +9,7 @@ import sys
 import textwrap
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +41,25 @@ def test_validate_reports_every_error_located() -> None:
     )
     assert len(lines) > 3 and all(line.startswith(f"{broken}:") for line in lines[1:])
     assert "Traceback" not in result.stderr and result.stdout == ""
+
+
+@pytest.mark.process
+def test_validate_refuses_a_requirement_over_the_formula_bounds(tmp_path: Path) -> None:
+    """Issue 51, item 10: a requirement a manager could not watch (a two-day window: at most one)
+    is an error of the spec, as the manager refuses it when it is added."""
+    spec = tmp_path / "watched.xml"
+    spec.write_text(
+        "<transformation><label>watched</label><source>transformations.generic:Relay</source>\n"
+        '  <ports><port type="in">in</port><port type="out">out</port></ports><tags><tag port="out">Track(x)</tag></tags>\n'
+        "  <requirements><requirement>always[0, 172800s] Track(x).ok</requirement></requirements>\n"
+        "</transformation>\n"
+    )
+    result = run_cli("validate", "--skip-sources", str(spec))
+    assert result.returncode == 1 and result.stdout == ""
+    assert result.stderr.strip() == (
+        f"{spec}:3: <requirement>: formula column 7: 'always[0, 172800s]' has the bound 172800s, beyond the longest window "
+        "in 'always[0, 172800s] Track(x).ok'; expected bounds of at most 86400s (Limits.max_window_ns)"
+    )
 
 
 @pytest.mark.process
@@ -511,21 +530,27 @@ def test_a_misspelled_manager_is_said_without_importing_more(manager_process: Ca
 _RUN_SCRIPT = """
 import atexit, sys, threading, time
 from pathlib import Path
-from dyknow.cli import run
+import dyknow.cli as cli
 from dyknow.transport import open_session
 
 out = Path(sys.argv[1])
-session = open_session(listen=[], connect=[])  # left open: closed on the way out
-session.declare_subscriber("run/**", lambda message: None)
-atexit.register(lambda: (out / "atexit").write_text(str(session.closed)))
+command = cli.main
 
-def late() -> None:
-    time.sleep(0.3)
-    (out / "thread").write_text("done")
+def main(argv):  # a command that leaves a session open, a thread running and an exit handler
+    session = open_session(listen=[], connect=[])  # left open: closed on the way out
+    session.declare_subscriber("run/**", lambda message: None)
+    atexit.register(lambda: (out / "atexit").write_text(str(session.closed)))
 
-threading.Thread(target=late).start()
-print("said before", end="")  # (not flushed)
-run(sys.argv[2:])
+    def late() -> None:
+        time.sleep(0.3)
+        (out / "thread").write_text("done")
+
+    threading.Thread(target=late).start()
+    print("said before", end="")  # (not flushed)
+    return command(argv)
+
+cli.main = main
+cli.run(sys.argv[2:])
 print("never")
 """
 
@@ -560,3 +585,132 @@ def test_the_installed_program_is_run() -> None:
 
     (script,) = entry_points(group="console_scripts", name="dyknow")
     assert script.value == "dyknow.cli:run"
+
+
+# ---------------------------------------------------------------------- a manager's word is shown, never obeyed (issue 51)
+
+
+class Impostor:
+    """A Zenoh router posing as manager ``name``, as anyone can without TLS (or a router on the
+    way): its liveliness token, and its services answered with ``replies[service]`` as given
+    (``(ok, bytes)``: a reply, or a refusal), whatever a manager would say."""
+
+    def __init__(self, name: str = "evil", tokens: tuple[str, ...] = ()) -> None:
+        from dyknow import keys
+        from dyknow.transport import Session, make_config
+
+        self.name = name
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.replies: dict[str, tuple[bool, bytes]] = {}
+        self.session = Session(make_config(listen=[self.endpoint], mode="router"))
+        self.held = [  # (an entity no one holds is undeclared)
+            self.session.declare_queryable(keys.services_pattern(name), lambda key, payload: self.replies.get(key.rpartition("/")[2], (True, b"{}"))),
+            *(self.session.declare_liveliness_token(token) for token in tokens),
+            self.session.declare_liveliness_token(keys.manager_token(name)),
+        ]  # fmt: skip
+
+    def args(self) -> list[str]:
+        """The options that point a client command at the impostor."""
+        return ["--connect", self.endpoint, "--manager", self.name, "--timeout", "5"]
+
+    def close(self) -> None:
+        self.session.close()
+
+
+@pytest.fixture
+def impostor() -> Iterator[Impostor]:
+    fake = Impostor(tokens=("@dyknow/\u202eevil", "@dyknow/a b"))
+    yield fake
+    fake.close()
+
+
+ESCAPES = "\x1b]0;pwned\x07\x1b[2J\x9b31m\u202e"  # a window title, clear screen, a C1 CSI, a right-to-left override
+SHOWN_ESCAPES = r"\x1b]0;pwned\x07\x1b[2J\x9b31m\u202e"
+
+
+def _unharmed(result: subprocess.CompletedProcess[str]) -> None:
+    """Nothing the command printed holds a character a terminal would act on but a line's end."""
+    for stream in (result.stdout, result.stderr):
+        acted = sorted({c for c in stream if not c.isprintable() and c != "\n"})
+        assert acted == [], (acted, stream[-2000:])
+    assert "internal error" not in result.stderr and "Traceback" not in result.stderr, result.stderr
+
+
+@pytest.mark.process
+def test_what_a_hostile_manager_says_is_shown_escaped_never_obeyed(impostor: Impostor) -> None:
+    """Terminal escapes in every field people read of ``model``, ``managers`` and ``hz`` (a
+    window title, a clear screen, a fake line, U+202E) are shown escaped; tokens of names no
+    manager has are not listed; ``--json`` keeps every field as it came, in ASCII JSON."""
+    unit = {"name": "u1", "label": f"relay{ESCAPES}", "state": f"running{ESCAPES}", "protected": False,
+            "bindings": {f"in{ESCAPES}": f"k{ESCAPES}"}, "error": f"boom\nmanager robot: 0 units{ESCAPES}", "traceback": f"  File x{ESCAPES}\nE"}
+    model = {"manager": "evil", "units": [unit], "specs": [{"label": f"spec{ESCAPES}"}],
+             "requests": [{"tag": f"T{ESCAPES}", "key": "k", "state": "active"}], "lost": [{"manager": "gone", "since_ns": 1, "why": ESCAPES}]}
+    impostor.replies = {"get_model": (True, json.dumps(model).encode()),
+                        "get_summary": (True, json.dumps({"host": f"host{ESCAPES}", "specs": 1, "units": 1, "requests": 1}).encode())}  # fmt: skip
+    shown = run_cli("model", *impostor.args())
+    _unharmed(shown)
+    assert shown.returncode == 0, shown.stderr
+    assert f"  u1 (relay{SHOWN_ESCAPES}) running{SHOWN_ESCAPES}" in shown.stdout
+    assert rf"      error: boom\nmanager robot: 0 units{SHOWN_ESCAPES}" in shown.stdout  # (no fake line of its own)
+    assert not any(line.startswith("manager robot") for line in shown.stdout.splitlines())
+    as_json = run_cli("model", "--json", *impostor.args())
+    assert as_json.returncode == 0 and as_json.stdout.isascii(), as_json.stderr
+    assert json.loads(as_json.stdout)["units"][0] == {**unit}  # (machines get every byte as it came)
+    listed = run_cli("managers", *impostor.args())
+    _unharmed(listed)
+    assert listed.returncode == 0, listed.stderr
+    lines = listed.stdout.splitlines()
+    assert f" host host{SHOWN_ESCAPES} " in lines[0] and lines[1].endswith(f": {SHOWN_ESCAPES}"), listed.stdout
+    assert [line.split()[0] for line in lines] == ["evil", "gone"]  # (the tokens @dyknow/<U+202E>evil and '@dyknow/a b' name no manager)
+    done = threading.Event()
+
+    def publish() -> None:
+        while not done.wait(0.01):
+            impostor.session.put(f"dyknow/evil/\u202eexe.txt{ESCAPES}/out", b"x")
+
+    publisher = threading.Thread(target=publish, daemon=True)
+    publisher.start()
+    try:
+        rates = run_cli("hz", "dyknow/evil/**", "--duration", "2", "--every", "0.5", *impostor.args())
+    finally:
+        done.set()
+        publisher.join()
+    _unharmed(rates)
+    assert rates.returncode == 0 and r"dyknow/evil/\u202eexe.txt" in rates.stdout, rates.stdout + rates.stderr
+
+
+DEEP = b"[" * 100_000 + b"]" * 100_000
+
+
+@pytest.mark.process
+@pytest.mark.parametrize(
+    ("argv", "service", "reply", "said"),
+    [
+        (["model"], "get_model", (True, DEEP), "dyknow: error: the reply of manager 'evil' to get_model: it nests deeper than 64 levels"),
+        (["model"], "get_model", (True, b"[1, 2]"), "the reply of manager 'evil' to get_model: reply is a JSON array of 2 entries"),
+        (["model"], "get_model", (True, b'{"manager": "evil", "units": [{"name": "\\u001b[2J"}], "specs": []}'),
+         r"reply.units[0].name is '\x1b[2J', not a unit name; expected letters, digits"),
+        (["model"], "get_model", (False, DEEP), "dyknow: error: [[[["),  # a refusal nested past the parser's stack: said as it came, shortened
+        (["model"], "get_model", (False, b'{"error": "UnitError", "message": "x", "what": ' + b"[" * 70 + b"]" * 70 + b"}"),
+         "its error nests deeper than 64 levels"),
+        (["model", "--all"], "get_model", (True, DEEP), "dyknow: error: the reply of manager 'evil' to get_model: it nests deeper than 64 levels"),
+        (["managers"], "get_summary", (True, DEEP), "dyknow: error: the reply of manager 'evil' to get_summary: it nests deeper than 64 levels"),
+        (["managers"], "get_summary", (True, b'"a summary"'), "to get_summary: reply is 'a summary'; expected a JSON object"),
+        (["top", "--once", "--only", "--interval", "0.1"], "get_metrics", (True, b'{"manager": "evil", "time_ns": "now"}'),
+         "manager evil: the reply of manager 'evil' to get_metrics: reply.time_ns is 'now'"),
+        (["top", "--once", "--only", "--interval", "0.1"], "get_metrics", (True, DEEP), "it nests deeper than 64 levels"),
+        (["doctor"], "get_model", (True, DEEP), "FAIL access    the reply of manager 'evil' to get_model: it nests deeper than 64 levels"),
+        (["stats", "u1"], "get_statistics", (True, b"{}"), "to get_statistics: reply.name is missing; expected the fields name, label"),
+        (["request", "T"], "request", (True, b'{"key": ["k"]}'), "to request: reply.key is a JSON array of 1 entries; expected text"),
+    ],
+)
+def test_a_reply_of_the_wrong_shape_is_named_never_an_internal_error(
+    impostor: Impostor, argv: list[str], service: str, reply: tuple[bool, bytes], said: str
+) -> None:
+    """A reply nested 100,000 deep (or 65), of another type, or with a field no manager sends:
+    one clear line naming the manager, the call and what was expected, exit 1, never exit 70."""
+    impostor.replies = {service: reply}
+    result = run_cli(*argv, *impostor.args())
+    _unharmed(result)
+    assert result.returncode == 1, (result.returncode, result.stdout, result.stderr)
+    assert said in result.stdout + result.stderr, result.stdout + result.stderr

@@ -180,8 +180,11 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         for stage in ("subsampler", "ball-detector", "localization"):
             skewed, equal = robot_ports[f"{stage}({'bottom'})"], field_ports[f"{stage}(ceiling)"]
             assert equal["hop_p50_us"] >= 0 and equal["latency_p50_us"] >= 0, equal
-            bound = skewed["uncertainty_us"] + MARGIN_US
+            # (the two hops are of two windows 20 s apart: beside CPU hogs one was 277 µs, the other
+            # 1,027 µs; the load may double a hop, an uncorrected clock moves it by 250,000 µs)
+            bound = skewed["uncertainty_us"] + MARGIN_US + max(skewed["hop_p50_us"], equal["hop_p50_us"])
             assert abs(skewed["hop_p50_us"] - equal["hop_p50_us"]) <= bound, (skewed, equal)
+            bound = skewed["uncertainty_us"] + MARGIN_US + max(skewed["latency_p50_us"], equal["latency_p50_us"])
             assert abs(skewed["latency_p50_us"] - equal["latency_p50_us"]) <= bound, (skewed, equal)
         # and the age at a client of the station, corrected by the offsets the station gives it
         print(f"observer's ages: with the robot's camera {robot_window}, with the field's {field_window}")

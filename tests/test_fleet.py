@@ -105,9 +105,8 @@ def test_offers_and_fake_providers_are_bounded(make_manager: Callable[..., Manag
     """A manager whose library offers 1,500 tags announces 1,024 of them (a log line names it);
     40 fake managers that offer the tag a running request uses are followed at most 16 per tag
     (a log line names the tag), the request stays where it runs and a new one is planned; a
-    newcomer asking who offers that tag reads at most 16 candidates (a log line says so)."""
-    from dyknow.errors import PlanningError
-
+    newcomer asking who offers that tag reads at most 16 candidates (a log line says so), the real
+    one among them."""
     caplog.set_level(logging.WARNING, logger="dyknow.federation")
     hub = f"tcp/127.0.0.1:{free_port()}"
     requester = make_manager("req", listen=[hub])
@@ -134,16 +133,46 @@ def test_offers_and_fake_providers_are_bounded(make_manager: Callable[..., Manag
         newcomer = make_manager("newcomer", listen=[], connect=[hub], specs=[])
         offers = keys.offers_pattern("Wanted", ())
         wait_until(lambda: len(newcomer.session.alive(offers, timeout_s=0.5)) == 41, "the newcomer's session to know the 41 offers")
-        try:
-            newcomer.request("Wanted")  # the real provider may or may not be among the 16 chosen
-        except PlanningError:
-            pass
-        assert set(newcomer.peers()) <= {"real"}
+        came = newcomer.request("Wanted")  # the real provider answers for its offer: among the 16 chosen (issue 51)
+        assert _provider(newcomer, came) == "real" and set(newcomer.peers()) == {"real"}
         said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("directory of 'newcomer'")]
         assert any(f"{MAX_CANDIDATES}" in line and "managers offer @dyknow/offers/Wanted/()/*" in line for line in said), said
         for entity in held:
             entity.undeclare()
     assert {info.key for info in requester.requests()} == {wanted, many}  # what ran before runs on
+
+
+def _threads() -> int:
+    """The threads of this process (Zenoh's and Python's)."""
+    with open("/proc/self/status") as status:
+        return next(int(line.split()[1]) for line in status if line.startswith("Threads:"))
+
+
+def test_offers_of_names_that_answer_for_nothing_never_hide_a_real_provider(make_manager: Callable[..., Manager]) -> None:
+    """Issue 51: 300 managers that do not exist offer the tag (a token each, and a manager token),
+    declared before the one real provider starts: a liveliness query finds them all, in an order
+    that put the real one past the 64 answers kept (4 of 4 requests said "nothing provides").
+    The managers that answer for their offers are asked too, and come first: the request is
+    planned on the real provider; the fakes followed meanwhile (at most 16) cost no thread each."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    make_manager("hub", listen=[hub], specs=[])
+    with Session(make_config(connect=[hub])) as attacker:
+        held = [attacker.declare_liveliness_token(keys.offer_token("Wanted", (), f"fake{i:03d}")) for i in range(300)]
+        held += [attacker.declare_liveliness_token(keys.manager_token(f"fake{i:03d}")) for i in range(300)]
+        real = make_manager("real", listen=[], connect=[hub])
+        real.add_transformation(_offering("Wanted"))
+        newcomer = make_manager("newcomer", listen=[], connect=[hub], specs=[])
+        offers = keys.offers_pattern("Wanted", ())
+        wait_until(lambda: len(newcomer.session.alive(offers, timeout_s=0.5)) == 301, "the newcomer's session to know the 301 offers")
+        threads = _threads()
+        key = newcomer.request("Wanted")
+        assert _provider(newcomer, key) == "real"
+        directory = newcomer.directory
+        assert directory is not None and "real" in directory.followed() and len(directory.followed()) <= MAX_CANDIDATES
+        # three watches per manager followed, each a thread of its own before: 16 fakes, 48 threads
+        assert _threads() - threads < 24, (threads, _threads())
+        for entity in held:
+            entity.undeclare()
 
 
 def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_when_it_starts_anew(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -283,3 +312,35 @@ def test_a_manager_advertising_a_million_tags_is_refused_and_costs_the_others_no
                 a.close()
                 for token in held:
                     token.undeclare()
+
+
+@pytest.mark.process  # (the listing is the command line's)
+def test_a_flood_of_tokens_through_a_router_leaves_the_services_answering_and_the_managers_listed(make_manager: Callable[..., Manager]) -> None:
+    """Issue 51: behind a router without TLS, one client with no role declared thousands of
+    manager tokens and as many offers of the tag a request needs: the manager's ``request`` gave
+    no answer in 30 s (its summary fetches of names nobody answers for held its fetchers, each for
+    the calls' whole timeout), and ``dyknow managers`` said "no manager reachable" (the first
+    page of names were all fakes). Now the request is planned on the real provider within the
+    client's timeout, the model answers, and the listing puts the managers that answer first."""
+    hub = f"tcp/127.0.0.1:{free_port()}"
+    with Session(make_config(listen=[hub], mode="router")):
+        provider = make_manager("provider", router=[hub])
+        provider.add_transformation(_offering("Wanted"))
+        station = make_manager("station", router=[hub], specs=[])
+        with Session(make_config(connect=[hub])) as attacker:
+            fakes = [f"a{i:04d}" for i in range(1500)]  # (names that sort before the real ones)
+            held = [attacker.declare_liveliness_token(keys.manager_token(name)) for name in fakes]
+            held += [attacker.declare_liveliness_token(keys.offer_token("Wanted", (), name)) for name in fakes]
+            offers = keys.offers_pattern("Wanted", ())
+            wait_until(lambda: len(station.session.alive(offers, timeout_s=1.0)) == 1501, "the station's session to know the 1,501 offers")
+            with Client("station", connect=[hub], timeout_s=10.0) as client:
+                key = client.request("Wanted")  # within the client's 10 s
+                assert _provider(station, key) == "provider"
+                assert client.get_model()["manager"] == "station"
+            listed = run_cli("managers", "--connect", hub, "--manager", "station", "--limit", "5", "--json")
+            assert listed.returncode == 0, listed.stderr
+            rows = json.loads(listed.stdout)
+            assert [(r["manager"], r["state"]) for r in rows[:2]] == [("provider", "up"), ("station", "up")]
+            assert {r["state"] for r in rows[2:]} == {"silent"}
+            for entity in held:
+                entity.undeclare()

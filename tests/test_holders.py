@@ -4,6 +4,7 @@ it kept them; the model shows who holds each; hostile holder ids are refused."""
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -12,9 +13,11 @@ from typing import Any
 
 import pytest
 
-from dyknow import AccessError, Client, FormulaError, Manager, PlanningError, ServiceError
+from dyknow import AccessError, Client, FormulaError, Limits, Manager, PlanningError, ServiceError
+from dyknow.holders import MAX_HOLDERS, Holders
 from dyknow.testing import SCENARIO_SPECS
-from tests.conftest import REPO, run_cli, subprocess_env, wait_until
+from dyknow.transport import Session, make_config
+from tests.conftest import REPO, free_port, run_cli, subprocess_env, wait_until
 
 TAG = "BallPosition(field)"
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
@@ -204,3 +207,43 @@ def test_a_monitor_has_a_holder_too(manager: Manager) -> None:
         kept = other.monitor(formula, keep=True)
     assert not wait_until_false(lambda: [m.key for m in manager.monitors()] == [kept], seconds=1.5)
     assert manager.release(kept) == 0 and manager.monitors() == []
+
+
+# ---------------------------------------------------------------------- no caller fills a shared request
+
+
+def test_a_client_takes_at_most_its_share_of_a_request(make_manager: Callable[..., Manager]) -> None:
+    """Without roles a caller is its client (issue 51): one client's references to a request are
+    bounded (here 3), refused past it naming the bound, and the others still share the request;
+    references kept without a client id count as one caller's."""
+    manager = make_manager("share", specs=[SCENARIO_SPECS], ontology=[ONTOLOGY], limits=Limits(max_references_per_caller=3))
+    with Client(manager.name, connect=manager.endpoints) as greedy, Client(manager.name, connect=manager.endpoints) as other:
+        key = greedy.request(TAG)
+        assert greedy.request(TAG) == key and greedy.request(TAG) == key
+        said = rf"client [0-9a-f]+ holds 3 references to the request on '{re.escape(key)}' already, its most; expected at most 3 references per caller"
+        with pytest.raises(AccessError, match=said):
+            greedy.request(TAG)
+        assert other.request(TAG) == key and _request(manager)["references"] == 4  # type: ignore[index]
+        for _ in range(3):
+            other.request(TAG, keep=True)
+        with pytest.raises(AccessError, match=r"a caller without a client id holds 3 references"):
+            greedy.request(TAG, keep=True)
+        assert greedy.release(key) == 6 and greedy.request(TAG) == key  # a reference given back makes room
+
+
+def test_a_request_counts_its_callers_not_their_clients() -> None:
+    """The holders a request keeps are bounded by callers: one caller's many clients never fill
+    it for the others (issue 51: a requester's 1,000 client ids refused everyone else); past
+    MAX_HOLDERS callers the next one is refused, naming the request."""
+    key = "dyknow/m/requests/Ticks"
+    with Session(make_config(listen=[f"tcp/127.0.0.1:{free_port()}"])) as session, Holders(session, "m", lambda k, h: None, grace_s=60) as holders:
+        for i in range(2 * MAX_HOLDERS):
+            holders.took(key, f"{i:032x}", "greedy")
+        for i in range(MAX_HOLDERS - 1):
+            holders.took(key, f"{i:016x}", None)  # (without roles each client is a caller of its own)
+        with pytest.raises(ServiceError, match=f"request '{key}' has the clients of {MAX_HOLDERS} callers already"):
+            holders.took(key, "ffff0000", "latecomer")
+        holders.took(key, f"{2 * MAX_HOLDERS:032x}", "greedy")  # a caller already there: its share is the manager's to bound
+        holders.gave_back(key, f"{0:016x}")
+        holders.took(key, "ffff0000", "latecomer")
+        assert len(holders.holders(key)) == 2 * MAX_HOLDERS + 1 + MAX_HOLDERS - 1

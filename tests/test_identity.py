@@ -225,6 +225,62 @@ def test_a_window_of_calls_out_of_order_is_accepted_once_each(certs: Path) -> No
             verifier.verify(KEY, PAYLOAD, attachment, now_ns=now + int(1e9))
 
 
+def test_calls_signed_ahead_never_lock_out_calls_signed_on_time(certs: Path) -> None:
+    """Issue 51, item 8: calls signed 290 s ahead (within the 300 s window) filled the caller's
+    ledger, and the next one raised its floor 290 s into the future: the caller's honest calls
+    were refused for minutes (with a shared certificate, one client locked out the others).
+    Calls signed ahead have their own part of the ledger now: they never raise the floor, one
+    past its budget is refused instead, and calls signed on time go on being accepted, however
+    many; every replay is still refused."""
+    verifier = Verifier(str(certs / "ca.pem"), ACL, budget=300, ahead_budget=300)
+    alice = Signer(tls(certs, "alice"))
+    now = 1_800_000_000_000_000_000
+    ahead = [alice.sign(KEY, PAYLOAD, time_ns=now + int(290e9) + i) for i in range(301)]
+    for attachment in ahead[:300]:
+        verifier.verify(KEY, PAYLOAD, attachment, now_ns=now)
+    with pytest.raises(AccessError, match=r"signed \+290\.000 s ahead of this manager's clock, and the manager already remembers 300 calls"):
+        verifier.verify(KEY, PAYLOAD, ahead[300], now_ns=now)
+    honest = now + 1_000_000
+    verifier.verify(KEY, PAYLOAD, alice.sign(KEY, PAYLOAD, time_ns=honest - 500_000), now_ns=honest)  # (refused before)
+    _flood(verifier, alice, 1_000, honest + 1)  # over three times the budget, each at the clock: all accepted
+    assert verifier.remembered() == {"alice": 600}
+    for when in (now + int(2e9), now + int(289e9)):  # replays of the calls signed ahead: remembered, whatever came between
+        with pytest.raises(AccessError, match="a replay of one already received"):
+            verifier.verify(KEY, PAYLOAD, ahead[0], now_ns=when)
+    with pytest.raises(AccessError, match="signed -301.0 s from this manager's clock"):
+        verifier.verify(KEY, PAYLOAD, ahead[0], now_ns=now + int(591e9))  # (and out of the window once it has left)
+
+
+def test_calls_signed_ahead_and_on_time_against_a_naive_model(certs: Path) -> None:
+    """Ten simulated minutes of one certificate shared by an honest client (its calls signed at
+    the manager's clock, 0-50 ms before they arrive) and an attacker (calls signed up to 299 s
+    ahead, 27 a second, and replays of anything seen): the honest client's calls are all
+    accepted, every replay is refused, and the ledger stays within its budgets."""
+    import random
+
+    rng = random.Random(51)
+    verifier = Verifier(str(certs / "ca.pem"), ACL, budget=200, ahead_budget=200)
+    shared = Signer(tls(certs, "alice"))
+    start = 1_800_000_000_000_000_000
+    accepted: list[bytes] = []
+    for step in range(2_000):
+        now = start + step * 300_000_000  # one step every 300 ms
+        for _ in range(8):  # the attacker: refused once its calls signed ahead fill their part, never an error of another kind
+            attachment = shared.sign(KEY, PAYLOAD, time_ns=now + rng.randrange(1, int(299e9)))
+            try:
+                verifier.verify(KEY, PAYLOAD, attachment, now_ns=now)
+                accepted.append(attachment)
+            except AccessError as exc:
+                assert "ahead of this manager's clock, and the manager already remembers 200 calls" in str(exc)
+        attachment = shared.sign(KEY, PAYLOAD, time_ns=now - rng.randrange(0, 50_000_000))
+        verifier.verify(KEY, PAYLOAD, attachment, now_ns=now)  # the honest client: always accepted
+        accepted.append(attachment)
+        if rng.random() < 0.3:
+            with pytest.raises(AccessError, match="replay|signed before the|from this manager's clock"):
+                verifier.verify(KEY, PAYLOAD, rng.choice(accepted), now_ns=now)
+        assert verifier.remembered()["alice"] <= 400
+
+
 def test_nothing_is_remembered_of_a_call_its_role_may_not_make(certs: Path) -> None:
     """The role is checked before the nonce is stored: a stranger (no role) and a viewer calling
     what only an admin may cost the manager no memory, however many calls they make."""

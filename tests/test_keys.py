@@ -76,6 +76,27 @@ def test_invalid_names(name: object) -> None:
         keys.check_name(name, "unit name")
 
 
+@pytest.mark.parametrize(
+    ("token", "manager"),
+    [
+        ("@dyknow/robot", "robot"),
+        ("@dyknow/cam-1.b_2", "cam-1.b_2"),
+        ("@dyknow/robot/get_model", None),  # a service, not a token
+        ("dyknow/robot", None),
+        ("@dyknow/", None),
+        # anyone may declare @dyknow/<any text>: no manager has such a name, so none is listed
+        ("@dyknow/\x1b]0;pwned\x07", None),
+        ("@dyknow/\x1b[2J", None),
+        ("@dyknow/evil\u202etxt", None),
+        ("@dyknow/a b", None),
+        ("@dyknow/-a", None),
+        (f"@dyknow/{'m' * 129}", None),  # longer than MAX_NAME_BYTES
+    ],
+)
+def test_a_token_names_a_manager_only_by_a_manager_name(token: str, manager: str | None) -> None:
+    assert keys.manager_of_token(token) == manager
+
+
 # ---------------------------------------------------------------------- key expressions matching keys
 
 _CHUNKS = ["a", "b", "ab", "robot", "requests", "Secret(vault)", "@dyknow", "@x", "x1"]

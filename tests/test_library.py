@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
-from dyknow import Client, Library, LibraryError, Manager, TransformationSpec
+from dyknow import Client, Library, LibraryError, Manager, SpecError, TransformationSpec
 from dyknow.federation import MAX_SUMMARY_BYTES, Summary
 from dyknow.library import spec_bytes
-from dyknow.spec import Port
+from dyknow.security import Limits
+from dyknow.spec import Port, Tag
+from tests.conftest import GENERIC_SPECS, free_port
 
 
 def spec(label: str, source: str = "m:C") -> TransformationSpec:
@@ -81,3 +85,54 @@ def test_repeated_adds_cannot_grow_the_summary_beyond_what_peers_take(make_manag
     summary = json.dumps(manager.summary().to_dict()).encode()
     assert len(summary) <= MAX_SUMMARY_BYTES
     Summary.from_json(summary, manager.name)  # what a peer does with it: taken
+
+
+WATCHED = """<transformations>
+<transformation><label>watched-{name}</label><source>transformations.generic:Relay</source>
+  <ports><port type="in">in</port><port type="out">out</port></ports>
+  <tags><tag port="out">Track(x)</tag></tags>
+  <requirements><requirement>{requirement}</requirement></requirements>
+</transformation></transformations>"""
+TOO_LONG = "always[0, 172800s] Track(x).ok"  # a window of two days: a manager's longest is one (Limits.max_window_ns)
+TOO_BIG = " or ".join(f"Track(x).n > {k}" for k in range(300))  # 599 nodes: at most 500 (Limits.max_formula_nodes)
+
+
+def test_a_spec_requirement_over_the_formula_bounds_is_refused_when_added(make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """Issue 51, item 10: a spec whose requirement is over the formula bounds was added, then its
+    requirement could not be watched, so a request it served ran unwatched, with one log line.
+    It is refused when added now, through the service, the Python API and at start, naming the
+    file and line, the requirement and the bound; nothing of it is stored and what runs, runs on."""
+    manager = make_manager(listen=[f"tcp/127.0.0.1:{free_port()}"])
+    manager.spawn("periodic-source", "ticks", params={"rate_hz": 10})
+    labels, version = manager.library.labels(), manager.library.version
+    window = tmp_path / "window.xml"
+    window.write_text(WATCHED.format(name="window", requirement=TOO_LONG))
+    nodes = tmp_path / "nodes.xml"
+    nodes.write_text(WATCHED.format(name="nodes", requirement=TOO_BIG))
+    with Client(manager.name, connect=manager.endpoints) as client:
+        with pytest.raises(SpecError) as caught:
+            client.add_transformation(window)
+        assert str(caught.value) == (
+            f"{window}:5: <requirement>: formula column 7: 'always[0, 172800s]' has the bound 172800s, beyond the longest window "
+            f"in '{TOO_LONG}'; expected bounds of at most 86400s (Limits.max_window_ns)"
+        )
+        with pytest.raises(SpecError, match=rf"^{re.escape(str(nodes))}:5: <requirement>: formula column \d+: the formula has more than 500 nodes"):
+            client.add_transformation(nodes)
+    with pytest.raises(SpecError, match=r"^<add_transformation>:5: <requirement>: .*has the bound 172800s.*Limits\.max_window_ns"):
+        manager.add_transformation(WATCHED.format(name="window", requirement=TOO_LONG))
+    built = TransformationSpec(
+        label="watched-python",
+        source="transformations.generic:Relay",
+        ports=(Port("in", "in"), Port("out", "out")),
+        tags=(Tag("out", "Track(x)"),),
+        requirements=(TOO_LONG,),
+    )
+    with pytest.raises(SpecError, match=r"^<memory>: <requirement> 'always\[0, 172800s\] Track\(x\)\.ok': formula column 7: .*172800s"):
+        manager.add_transformation(built)
+    assert manager.library.labels() == labels and manager.library.version == version
+    assert manager.has_unit("ticks")
+    with pytest.raises(SpecError, match=r"window\.xml:5: <requirement>: .*Limits\.max_window_ns"):
+        make_manager(specs=[GENERIC_SPECS, window])  # at start: the manager does not start
+    # the bound is the manager's own: one whose windows may span three days takes the spec
+    roomy = make_manager(limits=Limits(max_window_ns=3 * 86_400 * 1_000_000_000))
+    assert roomy.add_transformation(window) == ["watched-window"]

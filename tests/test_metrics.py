@@ -3,13 +3,19 @@ Prometheus's own text parser from --metrics-port (loopback by default)."""
 
 from __future__ import annotations
 
+import logging
+import os
+import socket
+import threading
+import urllib.error
 import urllib.request
+from collections.abc import Callable
 
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
-from dyknow import Client, Manager
-from dyknow.metrics import BUCKETS_S, MetricsExporter
+from dyknow import Client, Limits, Manager
+from dyknow.metrics import BUCKETS_S, MAX_CONNECTIONS, MetricsExporter
 from dyknow.resources import specs_dir
 from dyknow.testing import SCENARIO_SPECS, Sink
 from tests.conftest import ManagerProcess, free_port, run_cli, wait_until
@@ -22,6 +28,11 @@ def _scrape(url: str) -> dict[str, list[tuple[str, dict[str, str], float]]]:
     for family in text_string_to_metric_families(text):  # (a counter's samples come as a family of their own, NAME_total)
         found.setdefault(family.name.removesuffix("_total"), []).extend((s.name, s.labels, s.value) for s in family.samples)
     return found
+
+
+def _series(url: str) -> set[tuple[str, frozenset[tuple[str, str]]]]:
+    """Every series a scrape serves: (sample name, labels)."""
+    return {(name, frozenset(labels.items())) for samples in _scrape(url).values() for name, labels, _ in samples}
 
 
 def test_get_metrics_is_every_unit_in_one_call(manager: Manager) -> None:
@@ -108,3 +119,137 @@ def test_the_documented_grafana_dashboard_asks_for_what_is_served(manager: Manag
     for family in text_string_to_metric_families(text):  # (a counter with no sample yet is declared all the same)
         served |= {s.name for s in family.samples} | {family.name + {"counter": "_total", "histogram": "_bucket"}.get(family.type, "")}
     assert len(queried) >= 8 and queried <= served, queried - served
+
+
+def test_monitors_made_and_released_leave_no_series_behind() -> None:
+    """Issue 51: every monitor released (each a unit of its own) left its verdict series in the
+    scrape and in get_metrics, and its histograms in memory, for the life of the manager. Made
+    and released through the service, each seen by get_metrics and a scrape while it runs, they
+    now leave the scrape, get_metrics and what the metrics keep as they were."""
+    with (
+        Manager("robot", specs=[SCENARIO_SPECS], ontology=[specs_dir() / "dyknow.ttl"]) as robot,
+        MetricsExporter(robot.metrics, 0) as exporter,
+        Client(robot.name, connect=robot.endpoints) as client,
+    ):
+        robot.request("BallTrack(field)")  # the stream every monitor reads, up all along
+        running = {u.name for u in robot.units()}
+        before = _series(exporter.url)
+        for _ in range(25):
+            key = client.monitor("BallTrack(field).tracked > 0")
+            (monitor,) = {u.name for u in robot.units()} - running
+            assert monitor in client.call_manager(robot.name, "get_metrics", {})["verdicts"]
+            assert {labels["monitor"] for _, labels, _ in _scrape(exporter.url)["dyknow_verdicts"]} == {monitor}
+            client.release(key)
+        snap = client.call_manager(robot.name, "get_metrics", {})
+        assert snap["verdicts"] == {} and {u["name"] for u in snap["units"]} == running
+        assert _series(exporter.url) == before  # no series of a unit gone
+        assert robot.resources().get("metrics_units") == len(running)  # nor anything kept for one
+
+
+def test_a_unit_spawned_again_under_its_name_starts_its_histograms_anew(manager: Manager) -> None:
+    """What the metrics keep of a unit belongs to that unit: another spawned under its name
+    starts from nothing (its hop histogram counts its own messages only)."""
+    manager.spawn("periodic-source", "src", params={"rate_hz": 200}, bindings={"out": "again/a"})
+    manager.spawn("relay", "r1", bindings={"in": "again/a"})
+    with MetricsExporter(manager.metrics, 0) as exporter:
+
+        def hops() -> float:
+            found = _scrape(exporter.url)["dyknow_port_hop_seconds"]
+            return next(v for name, labels, v in found if labels["unit"] == "r1" and name.endswith("_count"))
+
+        wait_until(lambda: hops() >= 50, "50 messages through r1")
+        manager.destroy("r1")
+        forgotten = manager.resources().get("metrics_units")  # as it went, before any scrape
+        manager.spawn("relay", "r1", bindings={"in": "again/b"})  # fed by nothing
+        assert hops() == 0
+        assert forgotten == 1
+
+
+def test_a_scrape_serves_at_most_max_metric_series(make_manager: Callable[..., Manager], caplog: pytest.LogCaptureFixture) -> None:
+    """Limits.max_metric_series bounds a scrape: the units past it, the latest spawned, are left
+    out whole, logged and counted; they come in again when others go."""
+    manager = make_manager(limits=Limits(max_metric_series=100))  # 3 of the manager's, 42 a relay (1 in, 1 out)
+    for i in range(1, 6):
+        manager.spawn("relay", f"r{i}", bindings={"in": f"capped/{i}"})
+    with MetricsExporter(manager.metrics, 0) as exporter, caplog.at_level(logging.WARNING, logger="dyknow.metrics"):
+        found = _scrape(exporter.url)
+        assert sum(len(samples) for samples in found.values()) <= 100
+        assert {labels["unit"] for _, labels, _ in found["dyknow_unit_up"]} == {"r1", "r2"}
+        assert [v for _, _, v in found["dyknow_metrics_refused_units"]] == [3]
+        assert [v for _, _, v in found["dyknow_metrics_refused_series"]] == [3 * 42]
+        assert any("left 3 units (126 series) out" in r.message and "Limits.max_metric_series" in r.message for r in caplog.records)
+        manager.destroy("r1")
+        found = _scrape(exporter.url)
+        assert {labels["unit"] for _, labels, _ in found["dyknow_unit_up"]} == {"r2", "r3"}
+        assert [v for _, _, v in found["dyknow_metrics_refused_series"]] == [3 * 42 + 2 * 42]  # counted over the scrapes
+
+
+def _half_open(port: int, n: int) -> list[socket.socket]:
+    """``n`` connections that start a request head and never finish it."""
+    opened = []
+    for _ in range(n):
+        s = socket.create_connection(("127.0.0.1", port), timeout=10)
+        s.sendall(b"GET /metrics HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        opened.append(s)
+    return opened
+
+
+def test_half_open_connections_to_the_metrics_port_hold_no_thread(manager: Manager) -> None:
+    """Issue 51: the metrics port held a thread per connection until its request head came, so
+    1,000 half-open connections made 1,000 threads. They hold none now, and an honest scrape
+    still answers while they stay open (the oldest still sending a head make room for it)."""
+    with MetricsExporter(manager.metrics, 0) as exporter:
+        assert "dyknow_manager_cpu_seconds" in _scrape(exporter.url)  # (its threads started)
+        before = threading.active_count()
+        opened = _half_open(exporter.port, 1000)
+        try:
+            assert "dyknow_manager_cpu_seconds" in _scrape(exporter.url)  # accepted after them all
+            assert threading.active_count() <= before + 2, threading.active_count() - before
+            assert exporter.dropped >= 1000 - MAX_CONNECTIONS
+        finally:
+            for s in opened:
+                s.close()
+
+
+def test_the_metrics_port_closes_slow_heads_and_refuses_large_ones_and_other_hosts(manager: Manager) -> None:
+    """A head must come whole within the head timeout and under MAX_HEAD_BYTES; on loopback a
+    Host that is not one of this host's names (a DNS-rebound web page) is refused."""
+    with MetricsExporter(manager.metrics, 0, head_timeout_s=0.3) as exporter:
+        (silent,) = _half_open(exporter.port, 1)
+        with silent:
+            assert silent.recv(1) == b""  # closed by the server (the socket's own timeout is 10 s)
+        with socket.create_connection(("127.0.0.1", exporter.port), timeout=10) as large:
+            large.sendall(b"GET /metrics HTTP/1.1\r\nX: " + b"a" * 20_000)
+            assert large.recv(100).startswith(b"HTTP/1.1 431 ")
+        request = urllib.request.Request(exporter.url, headers={"Host": f"evil.example:{exporter.port}"})
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(request, timeout=10)
+        assert refused.value.code == 403 and "evil.example" in refused.value.read().decode()
+        assert exporter.dropped == 2
+        assert "dyknow_manager_cpu_seconds" in _scrape(exporter.url.replace("127.0.0.1", "localhost"))
+
+
+@pytest.mark.process
+def test_half_open_connections_to_a_manager_process_hold_no_thread() -> None:
+    """The same, on the port a ``dyknow manager --metrics-port`` process serves: its threads
+    (Zenoh's included, counted by the kernel) stay as they were."""
+    proc = ManagerProcess("halfopen", free_port(), "--metrics-port", "0")
+    try:
+        url = proc.wait_ready()["metrics"]
+        port = int(url.rsplit(":", 1)[1].split("/")[0])
+        _scrape(url)
+
+        def threads() -> int:
+            return len(os.listdir(f"/proc/{proc.proc.pid}/task"))
+
+        before = threads()
+        opened = _half_open(port, 500)
+        try:
+            assert "dyknow_manager_cpu_seconds" in _scrape(url)
+            assert threads() <= before + 8, threads() - before
+        finally:
+            for s in opened:
+                s.close()
+        assert proc.stop() == 0
+    finally:
+        proc.close()

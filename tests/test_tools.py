@@ -6,7 +6,9 @@ detector's recall and false detections on the shared videos.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -19,7 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tests.conftest import REPO, subprocess_env, undocumented
+from tests.conftest import REPO, subprocess_env, undocumented, wait_until
 from transformations.calibration import load_calibration
 
 TOOLS = REPO / "tools"
@@ -297,3 +299,24 @@ def test_hogs_stops_at_the_first_failed_run_and_passes_its_status_on() -> None:
     assert done.returncode == 3 and "run 1 of 3: exit status 3" in done.stdout and "run 2" not in done.stdout
     nothing = subprocess.run([sys.executable, str(TOOLS / "hogs.py")], capture_output=True, text=True, timeout=60)
     assert nothing.returncode == 2 and "no command given" in nothing.stderr
+
+
+@pytest.mark.process
+def test_hogs_end_with_the_tool_however_it_is_stopped() -> None:
+    """A hogs run killed by a signal (a runner stopped, a Ctrl-C that did not reach its cleanup)
+    left its hogs busy for every run after it: they now die with the tool."""
+    import signal
+
+    tool = subprocess.Popen([sys.executable, str(TOOLS / "hogs.py"), "--per-core", "1", "--", sys.executable, "-c", "import time; time.sleep(60)"],
+                            stdout=subprocess.PIPE, text=True, env=subprocess_env(), cwd=REPO, start_new_session=True)  # fmt: skip
+    try:
+        assert tool.stdout is not None and tool.stdout.readline().startswith("hogs: ")  # (said once its hogs run)
+        assert _hogs_of(tool.pid) == (os.cpu_count() or 1)
+        tool.send_signal(signal.SIGKILL)  # the tool alone: its command and its hogs go on unless they die with it
+        tool.wait(10)
+        wait_until(lambda: _hogs_of(tool.pid) == 0, "the hogs to end with the tool")
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(tool.pid, signal.SIGKILL)  # (its command, left running)
+        if tool.stdout is not None:
+            tool.stdout.close()

@@ -16,10 +16,14 @@ Exit status: the last run's (0 when every run passed).
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
+import signal
 import subprocess
 import sys
 import time
+
+_PR_SET_PDEATHSIG = 1  # (linux/prctl.h)
 
 #: A hog: a busy loop that never sleeps, never allocates and never ends by itself.
 HOG = "while True: pass"
@@ -28,7 +32,16 @@ HOG = "while True: pass"
 def start_hogs(count: int) -> list[subprocess.Popen[bytes]]:
     """Start ``count`` hogs (each ends with :func:`stop_hogs`); each names this process in its
     arguments (``hog-of=PID``), so that they can be told apart from another run's."""
-    return [subprocess.Popen([sys.executable, "-c", HOG, f"hog-of={os.getpid()}"], stdin=subprocess.DEVNULL) for _ in range(count)]
+    return [
+        subprocess.Popen([sys.executable, "-c", HOG, f"hog-of={os.getpid()}"], stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+        for _ in range(count)
+    ]
+
+
+def _die_with_parent() -> None:
+    """(In the hog, before it starts.) Be killed when this process ends, however it ends: a hogs
+    run stopped by a signal left its hogs busy for the runs after it (Linux's PR_SET_PDEATHSIG)."""
+    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 def stop_hogs(hogs: list[subprocess.Popen[bytes]]) -> None:

@@ -70,10 +70,11 @@ class AdaptationLoop:
         require: Iterable[str] = (),
         owner: Owner = LOCAL,
         readable: Callable[[str], None] | None = None,
+        max_references: int | None = None,
     ) -> str:
         """Plan and wire a configuration providing ``tag``; returns its stable key
         (:meth:`Requests.request <dyknow.adaptation.requests.Requests.request>` says how)."""
-        return self._requests.request(tag, standby=standby, require=require, owner=owner, readable=readable)
+        return self._requests.request(tag, standby=standby, require=require, owner=owner, readable=readable, max_references=max_references)
 
     def release(self, key: str, *, owner: Owner = LOCAL, force: bool = False) -> int:
         """Give back one reference of ``owner`` to a request (``force``: every reference); the

@@ -59,6 +59,7 @@ class Requests:
         require: Iterable[str] = (),
         owner: Owner = LOCAL,
         readable: Callable[[str], None] | None = None,
+        max_references: int | None = None,
     ) -> str:
         """Plan and wire a configuration providing ``tag``; returns its stable key.
 
@@ -84,6 +85,11 @@ class Requests:
         formula before anything is planned. A requirement of a transformation of the chosen
         configuration that cannot be watched refuses the request (:class:`UnitError` naming it
         and why). When the call fails, nothing of it remains.
+
+        ``max_references``: the most references the caller that ``owner`` is may hold on the
+        request (:meth:`~dyknow.model.Owner.same_caller`); one more is an :class:`AccessError`
+        naming the request and the bound, and the others' references still go through (None:
+        unbounded, the manager's own API).
         """
         mode = check_standby(standby)
         runtime = self._runtime
@@ -100,6 +106,8 @@ class Requests:
         with self._lock:
             existing = self._knowledge.requests.get(key)
             if existing is not None:
+                if max_references is not None:
+                    self._check_share(existing, owner, max_references)
                 self._requirements.require(existing, [f for f in formulas if str(f) not in existing.watches], owner)  # (undoes itself when it fails)
                 existing.owners.append((owner, texts))
                 if mode == "warm" and existing.standby_mode != "warm":
@@ -128,6 +136,20 @@ class Requests:
                 self.release(key, force=True)
                 raise
             return key
+
+    def _check_share(self, request: Request, owner: Owner, max_references: int) -> None:
+        """Refuse one more reference of ``owner``'s caller to ``request`` when it holds
+        ``max_references`` already: no caller fills a shared request for the others."""
+        taken = sum(1 for other, _ in request.owners if owner.same_caller(other))
+        if taken >= max_references:
+            raise AccessError(
+                f"{owner.who()} holds {taken} references to the request on {request.key!r} already, its most",
+                where=f"manager {self._runtime.name!r}",
+                expected=(
+                    f"at most {max_references} references per caller on one request (Limits.max_references_per_caller): "
+                    "release one first (dyknow release KEY), or share one reference among the caller's clients"
+                ),
+            )
 
     def _warm_up(self, request: Request) -> None:
         """A shared request asked for a warm standby: a new anchor that can hold one, then the standby."""

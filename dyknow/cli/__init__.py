@@ -44,12 +44,11 @@ import atexit
 import logging
 import os
 import sys
-import threading
 from collections.abc import Sequence
 from typing import NoReturn
 
 from dyknow.cli import client, demo, mcap, offline, operate, ros2, serve
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, shown
 
 __all__ = ["DEFAULT_MANAGER", "main", "run"]
 
@@ -77,18 +76,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser(selected=next((word for word in argv if not word.startswith("-")), ""))
     args = parser.parse_args(argv)
     logging.basicConfig(level=os.environ.get("DYKNOW_LOG", "WARNING").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(_shown_record)
     from dyknow.errors import DyKnowError, SpecError
 
     try:
         return int(args.fn(args))
     except UsageError as exc:
-        parser.error(str(exc))
-    except SpecError as exc:
+        parser.error(shown(exc))
+    except SpecError as exc:  # (a manager's refusal carries its issues: another process's text, shown escaped)
         for issue in exc.issues:
-            print(str(issue), file=sys.stderr)
+            print(shown(issue), file=sys.stderr)
         return 1
     except DyKnowError as exc:
-        print(f"dyknow: error: {exc}", file=sys.stderr)
+        print(f"dyknow: error: {shown(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         return 130
@@ -96,41 +97,51 @@ def main(argv: Sequence[str] | None = None) -> int:
         if os.environ.get("DYKNOW_DEBUG"):
             raise
         print(
-            f"dyknow: internal error: {type(exc).__name__}: {exc} (set DYKNOW_DEBUG=1 for a traceback, and please report it)",
+            f"dyknow: internal error: {type(exc).__name__}: {shown(exc)} (set DYKNOW_DEBUG=1 for a traceback, and please report it)",
             file=sys.stderr,
         )
         return 70
     return 2
 
 
-def run(argv: Sequence[str] | None = None) -> NoReturn:
-    """The ``dyknow`` program: :func:`main` (over ``argv``, by default the command line's), then an exit without the interpreter's teardown.
-
-    Zenoh's threads outlive a closed session; one that calls into Python (to drop a callback, say)
-    while the interpreter is being torn down is ended by it mid-call, and the process aborts
-    ("FATAL: exception not rethrown", exit -6) when it had finished its work. So once the
-    command is done, what Python would do at exit is done here, in its order (the sessions still
-    open closed, the threads joined, the exit handlers run, logs and output flushed), and the
-    process ends with the command's code before the teardown begins.
-    """
+def _shown_record(record: logging.LogRecord) -> bool:
+    """A log line's message :func:`~dyknow.cli.common.shown` (it may quote a peer's words); its traceback, if any, as it is."""
     try:
-        code = main(argv)
+        record.msg, record.args = shown(record.getMessage()), None
+    except Exception:  # (a message that does not format: logging says so itself)
+        pass
+    return True
+
+
+def run(argv: Sequence[str] | None = None) -> NoReturn:
+    """The ``dyknow`` program: :func:`main` (over ``argv``, by default the command line's), then
+    an exit without the interpreter's teardown.
+
+    Zenoh's threads outlive a closed session; one that calls into Python (to end a query, say)
+    while the interpreter is being torn down is ended by it mid-call, and the process aborts
+    ("FATAL: exception not rethrown", exit -6) when it had finished its work. So the program
+    exits as Python does up to its teardown (the sessions still open closed, the threads joined,
+    the exit handlers run), and then, by the exit handler registered first (which runs last),
+    with the command's code, logs and output flushed, before the teardown begins.
+    """
+    code = [1]
+    atexit.register(_leave, code)
+    try:
+        code[0] = main(argv)
     except SystemExit as exc:  # argparse's errors and --help/--version, or a command's own exit
-        code = _exit_code(exc.code)
-    # What Python does at exit, up to its teardown: first the handlers that end threads (the
-    # sessions still open close here, and executors stop), then the wait for the program's threads,
-    # then the exit handlers.
-    shutdown_threads = getattr(threading, "_shutdown", None)
-    if shutdown_threads is not None:
-        shutdown_threads()
-    atexit._run_exitfuncs()  # noqa: SLF001
+        code[0] = _exit_code(exc.code)
+    sys.exit(code[0])
+
+
+def _leave(code: list[int]) -> None:
+    """The last exit handler of :func:`run`: flush what is said, and end the process with ``code``."""
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
         except (OSError, ValueError):  # a closed pipe: nothing left to say
             pass
-    os._exit(code)
+    os._exit(code[0])
 
 
 def _exit_code(code: object) -> int:

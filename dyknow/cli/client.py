@@ -28,6 +28,7 @@ from dyknow.cli.common import (
     read_limits,
     report_result,
     shipped,
+    shown,
 )
 from dyknow.cli.ros2 import echo_ros2
 
@@ -90,7 +91,7 @@ def cmd_model(args: argparse.Namespace) -> int:
     models = data["managers"] if args.all else [data]
 
     def text() -> Iterable[str]:
-        if args.all and not models:
+        if args.all and not models and not data.get("refused"):
             yield "no manager reachable"
         for model in models:
             yield f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs"
@@ -114,15 +115,23 @@ def cmd_model(args: argparse.Namespace) -> int:
     report_result(args, data, text)
     if args.all and data.get("next") is not None:
         print(f"dyknow: more managers after {data['next']}: continue with --after {data['next']}", file=sys.stderr)
-    if args.all and not models:
+    refused = _say_refused(data.get("refused", {}) if args.all else {})
+    if args.all and not models and not refused:
         print("dyknow: error: no manager reachable; expected a running manager at --connect", file=sys.stderr)
         return 1
-    return 0
+    return 1 if refused else 0
+
+
+def _say_refused(refused: dict[str, str]) -> dict[str, str]:
+    """Say on stderr why each manager left out was (its reply was no manager's: :mod:`dyknow.replies`)."""
+    for why in refused.values():
+        print(f"dyknow: error: {shown(why)}; left out", file=sys.stderr)
+    return refused
 
 
 def cmd_managers(args: argparse.Namespace) -> int:
     """list every manager reachable (host, library size, units, requests, its clock's offset as --manager estimates it),
-    then those --manager knew and lost (since when, why); exit 1 when none is reachable"""
+    then those --manager knew and lost (since when, why); exit 1 when none is reachable, or one answered as no manager does"""
     from dyknow.errors import DyKnowError
     from dyknow.reach import DEFINITE
 
@@ -152,16 +161,19 @@ def cmd_managers(args: argparse.Namespace) -> int:
                 logging.getLogger(__name__).debug("no clock offsets or lost managers from %r: %s", asked, exc)
     for m in managers:  # the offset of each manager's clock from --manager's (None: not known to it yet)
         found = clocks.get(m["manager"])
-        m["state"] = "up"
+        m["state"] = "silent" if m.pop("silent", False) else "up"  # (a token up, and nothing answers for that name)
         m["clock"] = None if found is None else {"offset_us": found.offset_ns / 1000, "uncertainty_us": found.uncertainty_ns / 1000}
     now = time.time_ns()
     for m in lost:
         m.update(state="lost", reported_by=asked)
 
     def text() -> Iterable[str]:
-        if not managers:
+        if not managers and not page.get("refused"):
             yield "no manager reachable"
         for m in managers:
+            if m["state"] == "silent":
+                yield f"{m['manager']:<20} SILENT: its token is up, nothing answers for it (no manager there, or not one yet)"
+                continue
             clock = (
                 "clock unknown" if m["clock"] is None else f"clock {m['clock']['offset_us']:+.1f} us +/- {m['clock']['uncertainty_us']:.1f}"
             )
@@ -171,6 +183,7 @@ def cmd_managers(args: argparse.Namespace) -> int:
             yield f"{m['manager']:<20} LOST since {when} ({(now - m['since_ns']) / 1e9:.1f} s ago, as {asked} saw it): {m['why']}"
 
     report_result(args, [*managers, *lost], text)
+    refused = _say_refused(page.get("refused", {}))
     if page["next"] is not None:
         print(
             f"dyknow: {len(managers)} of {page['total']} managers listed; continue with --after {page['next']}",
@@ -180,7 +193,7 @@ def cmd_managers(args: argparse.Namespace) -> int:
         where = ", ".join(args.connect) or "--connect"
         print(f"dyknow: error: no manager reachable through {where}; expected a running manager there (dyknow manager)", file=sys.stderr)
         return 1
-    return 0
+    return 1 if refused else 0
 
 
 def cmd_config(args: argparse.Namespace) -> int:
@@ -290,7 +303,7 @@ def cmd_request(args: argparse.Namespace) -> int:
         key = client.request(args.tag, standby=args.standby, require=args.require, keep=True)
     report_result(args, {"request": args.tag, "key": key, "standby": args.standby or "none", "require": args.require, "kept": True}, key)
     if not args.json:  # (stdout is the key alone, for scripts)
-        print(f"dyknow: the request is kept until released: dyknow release '{key}' --manager {args.manager}", file=sys.stderr)
+        print(f"dyknow: the request is kept until released: dyknow release '{shown(key)}' --manager {args.manager}", file=sys.stderr)
     return 0
 
 
@@ -465,7 +478,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     with open_client(args) as client:
         key = client.monitor(args.formula, reorder_ms=args.reorder_ms)
         if not args.json:
-            print(f"monitoring {args.formula} on {key} (Ctrl-C to stop)", flush=True)
+            print(shown(f"monitoring {args.formula} on {key} (Ctrl-C to stop)"), flush=True)
         try:
             with client.declare_subscriber(key, show):
                 signal.signal(signal.SIGINT, lambda *_: done.set())

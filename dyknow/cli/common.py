@@ -33,19 +33,39 @@ class UsageError(Exception):
     """A command line that parses but makes no sense (exit code 2)."""
 
 
+def shown(text: object) -> str:
+    """``text`` as a terminal may show it: every character that is not printable (control
+    characters and escapes, line breaks, bidirectional overrides such as U+202E, other formatting
+    characters) written as its Python escape (``\\x1b``, ``\\n``, ``\\u202e``).
+
+    What a command prints comes from the network (a manager's reply, a key, a peer's error): printed
+    raw, an escape would retitle the window, clear the screen or write a line that seems the
+    command's own (``docs/howto/security.md``). Every line people read goes through here.
+
+    >>> shown("ok\\x1b]0;pwned\\x07 \\u202etxt.exe")
+    'ok\\\\x1b]0;pwned\\\\x07 \\\\u202etxt.exe'
+    """
+    text = str(text)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def print_json(data: Any) -> None:
+    """``data`` as one line of JSON (ASCII: every other character escaped, so JSON shows no terminal escape either)."""
     sys.stdout.write(json.dumps(data, indent=None, separators=(",", ":")) + "\n")
     sys.stdout.flush()
 
 
 def report_result(args: argparse.Namespace, data: Any, text: str | Iterable[str] | Callable[[], Iterable[str]]) -> None:
-    """How every command ends: ``data`` as one JSON line with ``--json``, else ``text`` for people."""
+    """How every command ends: ``data`` as one JSON line with ``--json``, else ``text`` for people,
+    each line :func:`shown` (one line each: a line break inside one is shown escaped)."""
     if args.json:
         print_json(data)
         return
     lines = text() if callable(text) else [text] if isinstance(text, str) else text
     for line in lines:
-        print(line, flush=True)
+        print(shown(line), flush=True)
 
 
 def parse_pairs(items: Sequence[str], what: str) -> dict[str, str]:

@@ -10,7 +10,7 @@ import threading
 import time
 from collections.abc import Iterable
 
-from dyknow.cli.common import Commands, UsageError, default_endpoint, parse_pairs, print_json, read_limits, report_result, tls_files
+from dyknow.cli.common import Commands, UsageError, default_endpoint, parse_pairs, print_json, read_limits, report_result, shown, tls_files
 
 
 def _rate(text: str) -> float:
@@ -138,7 +138,8 @@ def cmd_mcap_cat(args: argparse.Namespace) -> int:
                 else:
                     preview = f"<{len(record.data)} bytes>"
                 kind = channel.schema_name or channel.message_encoding
-                print(f"{record.log_time_ns} {record.topic} #{record.sequence} [{kind}] {preview}")
+                # (topics and payloads were recorded off the network: shown escaped)
+                print(shown(f"{record.log_time_ns} {record.topic} #{record.sequence} [{kind}] {preview}"))
         except BrokenPipeError:  # the reader went away (| head): stop quietly
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0

@@ -17,10 +17,14 @@ def _ontology(paths: Sequence[str]) -> Any:
 
 
 def _load(args: argparse.Namespace) -> list[Any]:
+    """The specs of ``args.paths``, expanded, their requirements held to a manager's default
+    formula bounds (a manager refuses a spec it could not watch the requirements of)."""
+    from dyknow.security import Limits
     from dyknow.spec import load_specs
 
     ontology = _ontology(getattr(args, "ontology", []))
-    return load_specs(args.paths, individuals=ontology.individuals if ontology is not None else None, max_expansions=args.max_expansions)
+    individuals = ontology.individuals if ontology is not None else None
+    return load_specs(args.paths, individuals=individuals, max_expansions=args.max_expansions, limits=Limits())
 
 
 def cmd_certs(args: argparse.Namespace) -> int:
@@ -66,8 +70,9 @@ def cmd_paths(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    """check spec files, and that the module and class each <source> names can be found as a
-    manager would find them (nothing is imported); exit 1 with one PATH:LINE: message per error
+    """check spec files (requirements within a manager's default formula bounds), and that the
+    module and class each <source> names can be found as a manager would find them (nothing is
+    imported); exit 1 with one PATH:LINE: message per error
 
     examples:
       dyknow validate specs/ --path .                  # your specs, your units' package in this folder

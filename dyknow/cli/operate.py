@@ -12,7 +12,7 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
-from dyknow.cli.common import Commands, UsageError, open_client, positive_int, print_json, report_result, seconds, tls_files
+from dyknow.cli.common import Commands, UsageError, open_client, positive_int, print_json, report_result, seconds, shown, tls_files
 
 
 def _stop_on_signals() -> threading.Event:
@@ -49,8 +49,8 @@ def cmd_hz(args: argparse.Namespace) -> int:
                 else:
                     if not figures:
                         print(f"no messages on {args.keyexpr!r} yet" + ("" if not meter.counts() else " (one so far)"), flush=True)
-                    for f in figures:
-                        print(f, flush=True)
+                    for f in figures:  # (keys are the publishers' choice: shown escaped)
+                        print(shown(f), flush=True)
                 if deadline is not None and time.monotonic() >= deadline:
                     break
         finally:
@@ -155,7 +155,8 @@ def cmd_top(args: argparse.Namespace) -> int:
                 print_json({"time_ns": time.time_ns(), "managers": views, "errors": errors})
             else:
                 width = shutil.get_terminal_size((160, 40)).columns
-                lines = _table(views, errors, args.interval, width) if names else ["no manager reachable"]
+                # (names, labels, states and errors are the managers' word: shown escaped)
+                lines = [shown(line) for line in _table(views, errors, args.interval, width)] if names else ["no manager reachable"]
                 if interactive:
                     sys.stdout.write("\x1b[H\x1b[2J" + "\n".join(lines) + "\n")
                     sys.stdout.flush()
@@ -188,7 +189,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     failed = [d for d in found if d.status == "fail"]
 
     def text() -> Iterable[str]:
-        yield from (str(d) for d in found)
+        yield from (line for d in found for line in d.lines())
         warned = sum(d.status == "warn" for d in found)
         yield f"{len(failed)} failed, {warned} warnings, {len(found) - len(failed) - warned} ok"
 

@@ -143,6 +143,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         max_monitor_cells=args.max_monitor_cells,
         max_monitor_nodes=args.max_monitor_nodes,
         max_library_bytes=args.max_library_bytes,
+        max_metric_series=args.max_metric_series,
     )
     with Manager(
         args.name,
@@ -376,6 +377,9 @@ def add_commands(cmds: Commands) -> None:
                             "default: not served)")  # fmt: skip
         p.add_argument("--metrics-host", default="127.0.0.1", metavar="ADDR",
                        help="the address --metrics-port serves on (default 127.0.0.1; the figures name every unit and key)")  # fmt: skip
+        p.add_argument("--max-metric-series", type=positive_int, default=100_000, metavar="N",
+                       help="the most series a scrape of --metrics-port serves (default 100,000; a unit takes 2, 3 per output "
+                            "and 37 per input): the latest spawned units past it are left out, logged and counted")  # fmt: skip
         p.add_argument("--alone", action="store_true", help="do not plan with the other managers on the network, nor announce this one")
         lease_option(p)
         cmds.ros2_domain_option(p)

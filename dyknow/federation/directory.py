@@ -5,6 +5,7 @@ and lets them go when nothing needs them any more, within bounds whatever the fl
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import json
 import logging
@@ -45,6 +46,7 @@ _MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
 _MAX_TODO = 100_000  # changes waiting for the directory's thread
 _DISCOVER_TIMEOUT_S = 1.0
 _FETCHERS = 8  # summaries fetched at once
+_DOUBTERS = 2  # summaries of managers that never answered, asked again at once
 _GIVE_UP_ASKS, _GIVE_UP_S = 10, 30.0  # a manager followed that gives no summary for that long is let go (followed again if it restarts)
 #: The most providers of one tag whose summaries a planner reads.
 MAX_CANDIDATES = 16
@@ -117,9 +119,11 @@ class Directory:
         self._failures: dict[str, tuple[int, float]] = {}  # manager -> (asks in vain in a row, since when)
         self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
         self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
+        self._discovering: set[str] = set()  # offers patterns discover() is choosing the providers of now
         self._refused: Counter[str] = Counter()  # what the directory refused, by reason (bounds)
         self._said: set[str] = set()  # the bounds already logged (one line each)
         self._pool: ThreadPoolExecutor | None = None
+        self._doubt_pool: ThreadPoolExecutor | None = None  # asks again the managers that never answered
         self._retry_at: dict[str, tuple[float, float]] = {}  # manager -> (when to ask again for its summary, the wait after)
         self._lost: dict[str, tuple[int, str]] = {}  # manager known, then lost -> (when, wall clock ns; why)
         self._goodbyes: dict[str, float] = {}  # manager -> when it said it was stopping (monotonic)
@@ -133,6 +137,10 @@ class Directory:
         self._thread.start()
         self._offers.announce(summarize())  # its offers before its token: whoever sees it can find what it offers
         self._token = session.declare_liveliness_token(keys.manager_token(name))
+        # and answers for its name: a token alone, which anyone may declare without TLS, does not
+        # (a listing of the managers puts those that answer first: Client.managers_page, issue 51)
+        token_key = keys.manager_token(name)
+        self._index = session.declare_index(token_key, lambda: [token_key])
         self._goodbye: Any = None  # this manager's goodbye token, as it stops
         self.changed()
 
@@ -227,7 +235,9 @@ class Directory:
         while len(self._pinned) > _MAX_FOLLOWED:
             del self._pinned[next(iter(self._pinned))]
 
-    def discover(self, wanted: Iterable[tuple[str, tuple[str, ...]]], timeout_s: float = _DISCOVER_TIMEOUT_S, *, need: str | None = None) -> bool:
+    def discover(
+        self, wanted: Iterable[tuple[str, tuple[str, ...]]], timeout_s: float = _DISCOVER_TIMEOUT_S, *, need: str | None = None
+    ) -> bool:
         """Find the providers of the tags ``wanted`` (``(functor, args)`` by local names), read
         the summaries of those not followed yet, and follow them; True when a summary was added.
 
@@ -250,23 +260,39 @@ class Directory:
                 if need is not None:
                     self._needs.setdefault(p, set()).add(need)
             new = [p for p in patterns if p not in self._offer_watch]
-        if not new or self._closed:
+            # watched already, with a provider that never answered among them: the managers that
+            # answer for the tag are asked again (tokens anyone may declare must not hide them)
+            doubtful = [
+                p for p in patterns if p in self._offer_watch and any(m not in self._summaries for m in self._candidates.get(p, ()))
+            ]
+        if (not new and not doubtful) or self._closed:
             return False
         if len(new) > _MAX_OFFER_KEYS:
             self._bound("tags", f"directory of {self.name!r}: a plan needs {len(new)} tags; watching the providers of {_MAX_OFFER_KEYS}")
             new = new[:_MAX_OFFER_KEYS]
         answers: dict[str, tuple[list[str], int]] = {}
+        answering: dict[str, set[str]] = {}
         done = threading.Event()
 
-        pending = [2 * len(new)]
+        pending = [2 * len(new) + len(new) + len(doubtful)]
+
+        def arrived() -> None:  # (the lock held)
+            pending[0] -= 1
+            if pending[0] == 0:
+                done.set()
 
         def answered(pattern: str, found: list[str], count: int) -> None:
             with self._lock:
                 before, counted = answers.get(pattern, ([], 0))
                 answers[pattern] = (sorted({*before, *found}), max(counted, count))
-                pending[0] -= 1
-                if pending[0] == 0:
-                    done.set()
+                arrived()
+
+        def indexed(pattern: str, found: list[str], count: int) -> None:
+            with self._lock:
+                answering.setdefault(pattern, set()).update(
+                    m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name
+                )
+                arrived()
 
         def ask() -> None:
             for p in new:
@@ -276,14 +302,36 @@ class Directory:
                     log.warning("directory of %r: cannot ask who offers %s: %s", self.name, p, exc)
                     answered(p, [], 0)
 
+        def ask_index() -> None:
+            for p in [*new, *doubtful]:
+                try:
+                    self._session.ask_index(p, timeout_s=timeout_s, limit=MAX_CANDIDATES, done=functools.partial(indexed, p))
+                except DyKnowError as exc:
+                    log.warning("directory of %r: cannot ask which managers answer for %s: %s", self.name, p, exc)
+                    indexed(p, [], 0)
+
         # asked before the watch and again after it, the answers together: a Zenoh client's
         # liveliness query just after a liveliness subscriber on the same key expression finds
         # nothing (a manager behind a router planned nothing), and a provider that appears
         # between the first query and the watch is found by the second
+        with self._lock:
+            self._discovering.update(new)  # (their watches' first news: the answers to these queries)
+        try:
+            return self._discover(new, doubtful, ask, ask_index, answers, answering, done, timeout_s)
+        finally:
+            with self._lock:
+                self._discovering.difference_update(new)
+
+    def _discover(self, new: list[str], doubtful: list[str], ask: Callable[[], None], ask_index: Callable[[], None],
+                  answers: dict[str, tuple[list[str], int]], answering: dict[str, set[str]], done: threading.Event,
+                  timeout_s: float) -> bool:  # fmt: skip
+        """:meth:`discover` once its questions are ready: ask them, watch the new tags, choose and
+        read the candidates."""
         ask()
+        ask_index()
         for p in new:
             try:
-                watch = self._session.declare_liveliness_subscriber(p, functools.partial(self._offer_change, p))
+                watch = self._session.declare_liveliness_subscriber(p, functools.partial(self._offer_change, p), inline=True)
             except DyKnowError as exc:
                 log.warning("directory of %r: cannot watch the providers of %s: %s", self.name, p, exc)
                 continue
@@ -301,32 +349,62 @@ class Directory:
         ask()
         done.wait(timeout_s + 0.5)
         with self._lock:
-            got = dict(answers)
+            got = {p: answers.get(p, ([], 0)) for p in new}
+            answer = {p: set(ms) for p, ms in answering.items()}
             followed = set(self._followed)
         candidates: set[str] = set()
+        for p in doubtful:  # the managers that answer join those of the tokens seen before
+            with self._lock:
+                self._candidates.setdefault(p, set()).update(answer.get(p, set()))
+            candidates.update(answer.get(p, set()))
         for p, (found, count) in sorted(got.items()):
-            names = sorted({m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name})
+            names = sorted({m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name} | answer.get(p, set()))
             if count > MAX_CANDIDATES or len(names) > MAX_CANDIDATES:
-                known = [m for m in names if m in followed]
-                rest = [m for m in names if m not in followed]
-                names = sorted(known[:MAX_CANDIDATES] + _RANDOM.sample(rest, max(0, min(len(rest), MAX_CANDIDATES - len(known)))))
+                # those that answer first, then those followed already, then a random choice: names
+                # chosen to sort or to arrive first do not crowd out the others
+                first = sorted(answer.get(p, set()))[:MAX_CANDIDATES]
+                known = [m for m in names if m in followed and m not in first]
+                rest = [m for m in names if m not in followed and m not in first]
+                chosen = first + known[: MAX_CANDIDATES - len(first)]
+                chosen += _RANDOM.sample(rest, max(0, min(len(rest), MAX_CANDIDATES - len(chosen))))
+                names = sorted(chosen)
                 self._bound(
                     f"candidates {p}",
-                    f"directory of {self.name!r}: {count} managers offer {p}; planning with {len(names)} of them (MAX_CANDIDATES)",
+                    f"directory of {self.name!r}: {max(count, len(names))} managers offer {p}; planning with {len(names)} of them "
+                    f"(MAX_CANDIDATES), those that answer for their offers first",
                 )
             candidates.update(names)
             with self._lock:
                 self._candidates.setdefault(p, set()).update(names)
+        answering_any: set[str] = set().union(*answer.values()) if answer else set()
         with self._lock:
-            todo = sorted(m for m in candidates if m not in self._summaries)
+            # those that answer for their offers first: a fetcher is not held by a silent name before them
+            todo = sorted((m for m in candidates if m not in self._summaries), key=lambda m: (m not in answering_any, m))
         if not todo:
             return False
         for m in todo:
             self._follow(m)
         added: list[str] = []
-        pool = self._fetchers()
-        fetched = list(pool.map(self._fetch_quietly, todo))
-        for m, data in zip(todo, fetched, strict=True):
+        # those that did not answer for their offers, when others did, are asked on the fetchers
+        # of the managers that never answered: they cannot hold up the fetch of one that did
+        futures = [
+            (self._doubters() if answering_any and m not in answering_any else self._fetchers()).submit(self._fetch_quietly, m)
+            for m in todo
+        ]
+        # waited for at most timeout_s: a name with a token and nobody behind it holds a call for
+        # the client's whole timeout (a flood of them held the request service for 30 s, issue 51);
+        # what comes later reaches the directory's thread as a fetch of its own would
+        finished, _ = concurrent.futures.wait(futures, timeout=timeout_s)
+        fetched: list[bytes | None] = []
+        for m, future in zip(todo, futures, strict=True):
+            if future in finished:
+                fetched.append(future.result())
+            else:
+                fetched.append(None)
+                future.add_done_callback(functools.partial(self._fetched_late, m))
+        for m, data, future in zip(todo, fetched, futures, strict=True):
+            if future not in finished:
+                continue
             if data is None:
                 self._retry_later(m)
                 continue
@@ -391,7 +469,7 @@ class Directory:
         self.say_goodbye()
         with self._lock:
             entities = [*(e for es in self._followed.values() for e in es), *self._offer_watch.values(), *self._offers.withdraw(),
-                        self._token, self._goodbye]  # fmt: skip
+                        self._index, self._token, self._goodbye]  # fmt: skip
             self._followed.clear()
             self._offer_watch.clear()
             self._up.notify_all()
@@ -401,8 +479,9 @@ class Directory:
         self._wake.set()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        for pool in (self._pool, self._doubt_pool):
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
 
     # -- following managers
 
@@ -425,9 +504,11 @@ class Directory:
         used = set(self._in_use()) if full and self._in_use is not None else set()
         entities: list[Any] = []
         try:
-            entities.append(self._session.declare_raw_subscriber(keys.summary_key(manager), self._summary_sample))
-            entities.append(self._session.declare_liveliness_subscriber(keys.manager_token(manager), self._liveliness))
-            entities.append(self._session.declare_liveliness_subscriber(keys.goodbye_token(manager), self._goodbye_token))
+            # on Zenoh's thread: each callback only queues (a thread per watch was three threads a
+            # manager followed: 20 -> 435 threads after a flood of tokens, issue 51)
+            entities.append(self._session.declare_raw_subscriber(keys.summary_key(manager), self._summary_sample, inline=True))
+            entities.append(self._session.declare_liveliness_subscriber(keys.manager_token(manager), self._liveliness, inline=True))
+            entities.append(self._session.declare_liveliness_subscriber(keys.goodbye_token(manager), self._goodbye_token, inline=True))
         except DyKnowError as exc:
             log.warning("directory of %r: cannot follow %r: %s", self.name, manager, exc)
         evicted: list[Any] = []
@@ -490,6 +571,18 @@ class Directory:
             self._pool = ThreadPoolExecutor(_FETCHERS, thread_name_prefix=f"dyknow-{self.name}-fetch")
         return self._pool
 
+    def _doubters(self) -> ThreadPoolExecutor:
+        if self._doubt_pool is None:
+            self._doubt_pool = ThreadPoolExecutor(_DOUBTERS, thread_name_prefix=f"dyknow-{self.name}-refetch")
+        return self._doubt_pool
+
+    def _fetched_late(self, manager: str, future: concurrent.futures.Future[bytes | None]) -> None:
+        """A summary :meth:`discover` did not wait for: to the directory's thread, as a fetch."""
+        data = None if future.cancelled() or future.exception() is not None else future.result()
+        with self._lock:
+            self._todo.append(("fetched", manager, data))  # (one per candidate: bounded as they are)
+        self._wake.set()
+
     def _fetch_quietly(self, manager: str) -> bytes | None:
         try:
             return self._fetch(manager)
@@ -529,7 +622,7 @@ class Directory:
             return
         with self._lock:
             providers = self._candidates.get(pattern)
-            if providers is None:
+            if providers is None or pattern in self._discovering:  # (discover() chooses among those there now)
                 return
             if not alive:
                 providers.discard(manager)
@@ -726,8 +819,11 @@ class Directory:
             if manager in self._fetching or self._closed:
                 return
             self._fetching.add(manager)
+            silent = manager in self._failures  # asked in vain before: a token with nobody behind it, maybe
         try:
-            self._fetchers().submit(self._fetch_job, manager)
+            # the managers that never answered are asked again on fetchers of their own: a flood of
+            # names nobody answers for cannot hold the fetchers of those that do (issue 51)
+            (self._doubters() if silent else self._fetchers()).submit(self._fetch_job, manager)
         except RuntimeError:  # (closed meanwhile)
             with self._lock:
                 self._fetching.discard(manager)

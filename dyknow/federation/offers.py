@@ -54,6 +54,10 @@ class Offers:
         self._closed = closed
         self._bound = bound
         self._offers: dict[str, Any] = {}  # this manager's offer tokens, by key
+        # and the index that answers which of them a query covers: an offer whose manager
+        # answers is told from a token anyone could declare (issue 51)
+        self._index: Any = None
+        self._held: tuple[str, ...] = ()  # the keys of the tokens, replaced whole (read on Zenoh's thread, without the lock)
 
     def announce(self, summary: Summary) -> None:
         """Declare an offer token per tag this manager's summary offers (at most MAX_OFFERS), and
@@ -82,6 +86,19 @@ class Offers:
         with self._lock:
             gone = [self._offers.pop(k) for k in list(self._offers) if k not in wanted]
             add = sorted(wanted - set(self._offers))
+            index = self._index is None and not self._closed()
+            self._held = tuple(self._offers)
+        if index:
+            try:
+                declared = self._session.declare_index(keys.offers_of(self.name), self.held)
+            except DyKnowError as exc:
+                log.warning("manager %r: cannot answer for its offers: %s", self.name, exc)
+            else:
+                with self._lock:
+                    if self._closed() or self._index is not None:
+                        gone.append(declared)
+                    else:
+                        self._index = declared
         for entity in gone:
             entity.undeclare()
         for key in add:
@@ -95,9 +112,18 @@ class Offers:
                     token.undeclare()
                     return
                 self._offers[key] = token
+                self._held = tuple(self._offers)
+
+    def held(self) -> list[str]:
+        """The keys of this manager's offer tokens now (what its index answers from)."""
+        return list(self._held)
 
     def withdraw(self) -> list[Any]:
-        """(Under the lock.) Forget every offer token; returns them, to undeclare."""
+        """(Under the lock.) Forget every offer token and the index; returns them, to undeclare."""
         tokens = list(self._offers.values())
+        if self._index is not None:
+            tokens.append(self._index)
+            self._index = None
         self._offers.clear()
+        self._held = ()
         return tokens

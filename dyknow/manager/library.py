@@ -5,6 +5,9 @@ in: a spec from the operator (files at start, the Python API) is trusted, so the
 may be loaded and is looked for beside the spec file too; a spec from a remote caller (the
 ``add_transformation`` service) must be XML text naming allowed sources only, and the file params
 of its units are confined to the data roots when they are spawned (:mod:`dyknow.manager.spawning`).
+From anyone, a spec whose ``<requirement>`` is over the manager's formula bounds
+(:func:`~dyknow.reasoning.check_formula`) is refused when it is added, naming the requirement and the
+bound: the manager could not watch it, and a request it served would run unwatched.
 """
 
 from __future__ import annotations
@@ -13,11 +16,13 @@ import os
 import re
 from collections.abc import Callable, Iterable
 
-from dyknow.errors import AccessError, LibraryError
+from dyknow.errors import AccessError, FormulaError, LibraryError, SpecError, SpecIssue, compose
 from dyknow.library import Library
 from dyknow.ontology import Ontology
+from dyknow.reasoning.syntax import check_formula
 from dyknow.security import DEFAULT_SOURCES, Limits, SourcePolicy, module_of
 from dyknow.spec import Template, TransformationSpec, load_specs, parse_specs
+from dyknow.spec.model import shorten
 
 __all__ = ["SOURCE_SYNTAX", "Librarian"]
 
@@ -59,9 +64,10 @@ class Librarian:
         paths = [s for s in specs if not isinstance(s, TransformationSpec)]
         if paths:
             # bad specs fail before anything starts
-            loaded = load_specs(paths, individuals=self.individuals_or_none(), max_expansions=limits.max_expansions)
+            loaded = load_specs(paths, individuals=self.individuals_or_none(), max_expansions=limits.max_expansions, limits=limits)
             self.trust(loaded)
             self.library.add(loaded)
+        self._check_requirements(spec_objs)
         self.trust(spec_objs)
         self.library.add(spec_objs)
         #: the folders of the spec files given at start (file params may read there)
@@ -80,18 +86,24 @@ class Librarian:
                     expected="the spec's XML (the client reads files on its side)",
                 )
             specs = parse_specs(
-                spec, path or "<remote>", individuals=individuals, max_expansions=limit, max_bytes=self._limits.max_expansion_bytes
+                spec,
+                path or "<remote>",
+                individuals=individuals,
+                max_expansions=limit,
+                max_bytes=self._limits.max_expansion_bytes,
+                limits=self._limits,
             )
             for one in specs:
                 self.sources.check(one.source, where=f"transformation {one.label!r} ({one.location})")
         elif isinstance(spec, TransformationSpec):
             specs = [spec]
+            self._check_requirements(specs)
         elif isinstance(spec, Template):
-            specs = spec.expand(individuals, max_expansions=limit)
+            specs = spec.expand(individuals, max_expansions=limit, limits=self._limits)
         elif isinstance(spec, os.PathLike) or (isinstance(spec, str) and not spec.lstrip().startswith("<")):
-            specs = load_specs([spec], individuals=individuals, max_expansions=limit)
+            specs = load_specs([spec], individuals=individuals, max_expansions=limit, limits=self._limits)
         elif isinstance(spec, str):
-            specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals, max_expansions=limit)
+            specs = parse_specs(spec, path or "<add_transformation>", individuals=individuals, max_expansions=limit, limits=self._limits)
         else:
             raise LibraryError(f"add_transformation got a {type(spec).__name__}", expected="a spec, a template, XML text or a path")
         added = {s.label for s in specs}
@@ -128,6 +140,21 @@ class Librarian:
             if self.sources.allows(spec.source) or not SOURCE_SYNTAX.fullmatch(spec.source):
                 continue  # allowed already, or not a source at all (refused with its own message at spawn)
             self.sources.allow(module_of(spec.source))
+
+    def _check_requirements(self, specs: Iterable[TransformationSpec]) -> None:
+        """:class:`SpecError` at each spec built in Python (not read from XML, where the reader
+        holds them to the bounds at the requirement's line) whose requirements are over this
+        manager's formula bounds."""
+        issues: list[SpecIssue] = []
+        for spec in specs:
+            for text in spec.requirements:
+                try:
+                    check_formula(text, self._limits)
+                except FormulaError as exc:
+                    element = f"<requirement> {shorten(text, 80)!r}"
+                    issues.append(SpecIssue(spec.path, spec.line, compose(exc.what, exc.where), element, exc.expected or ""))
+        if issues:
+            raise SpecError(issues)
 
     def individuals(self, class_ref: str) -> list[str]:
         """The individuals of an ontology class, for a template's ``arg class``."""

@@ -493,6 +493,8 @@ class Manager:
         counts["shed_units"] = sum(1 for p in self._spawner.proxies() if p.shed)
         counts["timers"] = self._executor.timers()
         counts["watched_deadlines"] = self._adaptation.monitor.watched()
+        metrics = self._metrics
+        counts["metrics_units"] = metrics.tracked() if metrics is not None else 0
         return counts
 
     def publish_event(self, kind: str, event: Mapping[str, Any]) -> None:
@@ -517,10 +519,12 @@ class Manager:
         operator's; a caller's requirements count against its share of the monitors' formula
         nodes, :class:`~dyknow.reasoning.unit.MonitorBudget`). Raises
         :class:`~dyknow.planner.PlanningError` (with the explanation) when nothing fits,
-        :class:`~dyknow.errors.AccessError` when the owner may not read a stream it names or its
-        requirements would take it past its share, :class:`~dyknow.errors.UnitError` when a
-        requirement of the chosen transformations cannot be watched (the stream is never served
-        unchecked); when it raises, nothing of the call remains.
+        :class:`~dyknow.errors.AccessError` when the owner may not read a stream it names, when its
+        requirements would take it past its share, or when the owner's caller holds
+        ``limits.max_references_per_caller`` references to the request already,
+        :class:`~dyknow.errors.UnitError` when a requirement of the chosen transformations cannot
+        be watched (the stream is never served unchecked); when it raises, nothing of the call
+        remains.
         """
         self._check_open()
         account = owner.account()
@@ -528,7 +532,8 @@ class Manager:
             # the caller's share of the monitors' nodes, for all its formulas at once (each monitor checks its own again)
             texts = list(dict.fromkeys(str(text) for text in require))
             self._monitor_budget.check(*(check_formula(text, self.limits) for text in texts), account=account)
-        return self._adaptation.request(tag, standby=standby, require=require, owner=owner, readable=self._reader(owner))
+        bound = None if owner.local else self.limits.max_references_per_caller
+        return self._adaptation.request(tag, standby=standby, require=require, owner=owner, readable=self._reader(owner), max_references=bound)
 
     def release(self, key: str, *, owner: Owner = LOCAL, force: bool = False) -> int:
         """Give back a request, or a monitor (the key :meth:`monitor` returned); its units are

@@ -54,7 +54,7 @@ class Network:
                     where=f"manager {manager!r}",
                     expected="--tls-ca, --tls-cert and --tls-key with --acl (dyknow certs writes development ones)",
                 )
-            self.verifier = Verifier(self.tls.ca, access)
+            self.verifier = Verifier(self.tls.ca, access, budget=limits.max_caller_calls, ahead_budget=limits.max_caller_calls_ahead)
             own = Signer(self.tls).common_name
             if own != manager:
                 log.warning(

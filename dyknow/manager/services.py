@@ -18,7 +18,7 @@ from dyknow.access import AccessControl
 from dyknow.adaptation import AdaptationEvent
 from dyknow.errors import AccessError, BindingError, DyKnowError
 from dyknow.federation import Summary
-from dyknow.holders import Holders
+from dyknow.holders import Holders, check_holder
 from dyknow.identity import Caller, Verifier
 from dyknow.manager.peers import Peers
 from dyknow.metrics import Metrics
@@ -234,25 +234,34 @@ class Services:
         return {"released": key, "references": remaining}
 
     def _serve_request(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
-        holder = request.get("holder")  # (checked with the request, before anything is taken: dyknow.service)
+        holder = self._holder(request, caller)
         owner = _owner(caller, holder)
         key = self._manager.request(str(request["tag"]), standby=request.get("standby"), require=request.get("require", ()), owner=owner)
         self._held(key, holder, owner)
         return {"key": key, "kept": holder is None}
 
     def _serve_monitor(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
-        holder = request.get("holder")
+        holder = self._holder(request, caller)
         owner = _owner(caller, holder)
         key = self._manager.monitor(str(request["formula"]), reorder_ms=float(request.get("reorder_ms", 0.0)), owner=owner)
         self._held(key, holder, owner)
         return {"key": key, "kept": holder is None}
+
+    def _holder(self, request: dict[str, Any], caller: Caller | None) -> str | None:
+        """The client a reference is taken for (checked with the request: dyknow.service), once it
+        is known to be the caller's own (a signed caller's ids start with its scope:
+        :func:`dyknow.holders.check_holder`), before anything is taken."""
+        holder = request.get("holder")
+        if holder is not None and caller is not None:
+            check_holder(str(holder), caller.common_name, f"field 'holder' on manager {self._manager.name!r}")
+        return None if holder is None else str(holder)
 
     def _held(self, key: str, holder: str | None, owner: Owner) -> None:
         """The reference ``owner`` took on ``key`` is held for its client ``holder``; if it cannot
         be, it is given back and the error raised."""
         if holder is not None and self._holders is not None:
             try:
-                self._holders.took(key, holder)
+                self._holders.took(key, holder, owner.caller)
             except DyKnowError:
                 self._manager.release(key, owner=owner)
                 raise

@@ -23,6 +23,7 @@ from typing import NoReturn
 from xml.parsers import expat
 
 from dyknow.errors import SpecError, SpecIssue, did_you_mean
+from dyknow.security import Limits
 from dyknow.spec.model import (
     CONSTRAINT_OPS,
     DECIMAL,
@@ -133,14 +134,16 @@ def parse_specs(
     *,
     max_expansions: int = DEFAULT_MAX_EXPANSIONS,
     max_bytes: int | None = None,
+    limits: Limits | None = None,
 ) -> list[TransformationSpec]:
     """Parse and expand a spec document.
 
     Every problem of the document (structure, expansion, labels defined twice) is reported in
     one :class:`SpecError`. ``max_expansions`` and ``max_bytes`` bound each template's
-    expansions (see :meth:`Template.expand`).
+    expansions; ``limits`` (a manager's bounds) holds its requirements to the formula bounds
+    (see :meth:`Template.expand`).
     """
-    located, issues = _load(data, path, individuals, max_expansions, max_bytes)
+    located, issues = _load(data, path, individuals, max_expansions, max_bytes, limits)
     issues.extend(_duplicate_labels(located))
     if issues:
         raise SpecError(sorted(issues, key=lambda i: i.line))
@@ -160,9 +163,15 @@ def spec_files(paths: PathsLike) -> list[pathlib.Path]:
 
 
 def load_specs(
-    paths: PathsLike, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS, max_bytes: int | None = None
+    paths: PathsLike,
+    individuals: Individuals | None = None,
+    *,
+    max_expansions: int = DEFAULT_MAX_EXPANSIONS,
+    max_bytes: int | None = None,
+    limits: Limits | None = None,
 ) -> list[TransformationSpec]:
-    """Load and expand every spec in ``paths`` (see :func:`spec_files`).
+    """Load and expand every spec in ``paths`` (see :func:`spec_files`; the bounds as
+    :func:`parse_specs` takes them).
 
     Raises one :class:`SpecError` with the problems of every file, including labels defined in
     more than one place.
@@ -175,7 +184,7 @@ def load_specs(
         except OSError as exc:
             issues.append(SpecIssue(str(file), 0, f"cannot read: {exc.strerror or exc}"))
             continue
-        file_located, file_issues = _load(data, str(file), individuals, max_expansions, max_bytes)
+        file_located, file_issues = _load(data, str(file), individuals, max_expansions, max_bytes, limits)
         issues.extend(sorted(file_issues, key=lambda i: i.line))
         located.extend(file_located)
     issues.extend(_duplicate_labels(located))
@@ -211,14 +220,20 @@ def _spec_files(paths: PathsLike) -> tuple[list[pathlib.Path], list[SpecIssue]]:
 
 
 def _load(
-    data: str | bytes, path: str, individuals: Individuals | None, max_expansions: int, max_bytes: int | None = None
+    data: str | bytes,
+    path: str,
+    individuals: Individuals | None,
+    max_expansions: int,
+    max_bytes: int | None = None,
+    limits: Limits | None = None,
 ) -> tuple[list[tuple[TransformationSpec, int]], list[SpecIssue]]:
     """Parse and expand; (spec, line of its label) pairs and every issue but duplicate labels."""
     templates, issues = _parse(data, path)
     located: list[tuple[TransformationSpec, int]] = []
     for template in templates:
         try:
-            located.extend((spec, template.label_line) for spec in template.expand(individuals, max_expansions=max_expansions, max_bytes=max_bytes))
+            expanded = template.expand(individuals, max_expansions=max_expansions, max_bytes=max_bytes, limits=limits)
+            located.extend((spec, template.label_line) for spec in expanded)
         except SpecError as exc:
             issues.extend(exc.issues)
     return located, issues

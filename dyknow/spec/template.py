@@ -20,7 +20,8 @@ from dataclasses import dataclass, replace
 
 from dyknow.errors import FormulaError, SpecError, SpecIssue, TagError, compose, did_you_mean
 from dyknow.keys import label_problem
-from dyknow.reasoning.syntax import parse
+from dyknow.reasoning.syntax import check_formula, parse
+from dyknow.security import Limits
 from dyknow.spec.model import (
     DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
@@ -81,7 +82,12 @@ class Template:
         return bool(self.args)
 
     def expand(
-        self, individuals: Individuals | None = None, *, max_expansions: int = DEFAULT_MAX_EXPANSIONS, max_bytes: int | None = None
+        self,
+        individuals: Individuals | None = None,
+        *,
+        max_expansions: int = DEFAULT_MAX_EXPANSIONS,
+        max_bytes: int | None = None,
+        limits: Limits | None = None,
     ) -> list[TransformationSpec]:
         """One spec per combination of arg values (cartesian product, args in document order).
 
@@ -90,7 +96,10 @@ class Template:
         every expansion is reported once, otherwise it names the expansions it occurs in. A
         template with more than ``max_expansions`` combinations, or whose expansions would hold
         more than ``max_bytes`` bytes of text (:meth:`expansion_bytes`), is refused before any is
-        built.
+        built. With ``limits`` (a manager's bounds), each requirement is held to its formula bounds
+        as the manager holds a formula it watches (:func:`~dyknow.reasoning.check_formula`: nodes,
+        windows, future horizon), so a requirement that could not be watched is refused here;
+        without, to the language's own bounds only.
         """
         issues: list[SpecIssue] = []
         value_sets: list[tuple[str, ...]] = []
@@ -116,7 +125,7 @@ class Template:
         found: dict[_Problem, list[str]] = {}  # a problem -> the expansions it occurs in
         for combination in itertools.product(*value_sets):
             values = dict(zip((a.label for a in self.args), combination, strict=True))
-            spec, problems = self._build(values)
+            spec, problems = self._build(values, limits)
             specs.append(spec)
             expansion = ", ".join(f"{name}={value}" for name, value in values.items())
             for problem in dict.fromkeys(problems):
@@ -148,7 +157,7 @@ class Template:
         texts += list(self.requirements)
         return sum(len(t.encode()) + t.count("${") * longest_value for t in texts) + 64 * (1 + len(texts))
 
-    def _build(self, values: Mapping[str, str]) -> tuple[TransformationSpec, list[_Problem]]:
+    def _build(self, values: Mapping[str, str], limits: Limits | None = None) -> tuple[TransformationSpec, list[_Problem]]:
         """The spec for one substitution, and the problems found in it."""
         problems: list[_Problem] = []
 
@@ -210,7 +219,7 @@ class Template:
         for text, line in zip(self.requirements, self.requirement_lines, strict=True):
             formula_text = sub(text)
             try:
-                formula = parse(formula_text)
+                formula = parse(formula_text) if limits is None else check_formula(formula_text, limits)
             except FormulaError as exc:
                 problems.append((line, "<requirement>", compose(exc.what, exc.where), exc.expected or ""))
                 continue

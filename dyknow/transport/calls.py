@@ -31,6 +31,12 @@ _CUT_GRACE_S = 0.5
 _RETRY_FIRST_S = 0.01
 
 
+def _said(data: bytes, limit: int = 1000) -> str:
+    """An error reply that is not a JSON object, as its message: its text, at most ``limit`` characters."""
+    text = data[: 4 * limit].decode(errors="replace")
+    return text if len(text) <= limit and len(data) <= 4 * limit else f"{text[:limit]}... ({len(data):,} bytes)"
+
+
 class ServiceCalls:
     """The service calls of one session (:meth:`Session.call <dyknow.transport.Session.call>`): the
     queriers it keeps for them, at most :data:`MAX_QUERIERS` idle ones, the least recently used
@@ -149,11 +155,13 @@ class ServiceCalls:
                 data = reply.err.payload.to_bytes()
                 try:
                     err = json.loads(data)
-                except ValueError:
-                    raise ServiceError(data.decode(errors="replace")) from None
+                except (ValueError, RecursionError):  # (not JSON, or nested past the parser's stack: said as it came)
+                    err = None
                 if not isinstance(err, dict):
-                    raise ServiceError(data.decode(errors="replace"))
-                raise ServiceError(str(err.get("message", data)), kind=err.get("error"), details=err)
+                    raise ServiceError(_said(data))
+                # (the fields are the service's word: a message or class that is not text is not taken)
+                message, kind = err.get("message"), err.get("error")
+                raise ServiceError(message if isinstance(message, str) else _said(data), kind=kind if isinstance(kind, str) else None, details=err)
         except zenoh.ZError as exc:
             raise ServiceError(f"request to {what} failed: {error_text(exc)}") from exc
         return None

@@ -26,6 +26,7 @@ from dyknow.transport.runtime import error_text, inline_handler, keep_thread_sta
 from dyknow.transport.shared_memory import SHM_THRESHOLD, SharedMemory
 
 __all__ = [
+    "Index",
     "Entity",
     "HistorySubscriber",
     "LivelinessSubscriber",
@@ -341,6 +342,35 @@ class Queryable(Entity):
             queryable = session.declare_queryable(key, inline_handler(answer) if inline else answer)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot declare a service on {key!r}: {error_text(exc)}") from exc
+        super().__init__(queryable)
+        self.key = key
+
+
+class Index(Entity):
+    """Answers a query on a key expression with the concrete keys ``held()`` lists that the query's
+    key expression covers, one empty reply each (none when it covers none), on Zenoh's thread.
+
+    What a liveliness token says, anyone may declare; an index answers only from a session that
+    holds one: a query finds who answers, where a liveliness query finds every token, answered or
+    not (issue 51: 2,000 offer tokens of names that ran no manager hid the one real provider).
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, held: Callable[[], list[str]]) -> None:
+        def answer(query: zenoh.Query) -> None:
+            try:
+                asked = query.key_expr
+                for concrete in held():
+                    if asked.intersects(zenoh.KeyExpr(concrete)):
+                        query.reply(concrete, b"")
+            except (zenoh.ZError, ValueError) as exc:
+                log.warning("cannot answer %s on %s: %s", query.key_expr, key, exc)
+            finally:
+                query.drop()
+
+        try:
+            queryable = session.declare_queryable(key, inline_handler(answer))
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare an index on {key!r}: {error_text(exc)}") from exc
         super().__init__(queryable)
         self.key = key
 

@@ -19,7 +19,7 @@ import zenoh
 
 from dyknow.errors import TransportError
 
-__all__ = ["ZENOH_RUNTIME", "error_text", "inline_handler", "inline_handler_with_end", "keep_thread_state", "lay_out_runtimes", "panic_error", "pinned"]
+__all__ = ["ZENOH_RUNTIME", "error_text", "inline_handler", "inline_handler_with_end", "keep_thread_state", "lay_out_runtimes", "panic_error", "pinned", "wait_for_handlers"]
 
 # --------------------------------------------------------------------------- Zenoh's runtimes
 
@@ -88,6 +88,34 @@ def keep_thread_state() -> None:
     pinned.seen = True
 
 
+# The inline handlers Zenoh holds: it lets go of one (calling its drop) on a thread of its own,
+# when its entity is undeclared or its request ends, which may come a moment after the session
+# closed. One let go while the interpreter is torn down calls into Python then, and the process
+# aborts ("FATAL: exception not rethrown", exit -6, after it had done its work): at exit, once
+# the sessions are closed, :func:`wait_for_handlers` waits for them (dyknow.transport.session).
+_held: Final = threading.Condition()
+_held_count: Final[list[int]] = [0]
+
+
+def _hold() -> Callable[[], None]:
+    """Count a handler handed to Zenoh; the function Zenoh calls as it lets go of it."""
+    with _held:
+        _held_count[0] += 1
+
+    def let_go() -> None:
+        with _held:
+            _held_count[0] -= 1
+            _held.notify_all()
+
+    return let_go
+
+
+def wait_for_handlers(timeout_s: float) -> bool:
+    """Wait until Zenoh has let go of every inline handler (at most ``timeout_s``); whether it has."""
+    with _held:
+        return _held.wait_for(lambda: _held_count[0] <= 0, timeout_s)
+
+
 def inline_handler(callback: Callable[[Any], None]) -> Any:
     """A Zenoh handler that runs ``callback`` on the thread delivering the sample, keeping that
     thread's Python state between calls."""
@@ -97,7 +125,7 @@ def inline_handler(callback: Callable[[Any], None]) -> Any:
             keep_thread_state()
         callback(arg)
 
-    return zenoh.handlers.Callback(run, indirect=False)
+    return zenoh.handlers.Callback(run, _hold(), indirect=False)
 
 
 def inline_handler_with_end(callback: Callable[[Any], None], end: Callable[[], None]) -> Any:
@@ -108,7 +136,15 @@ def inline_handler_with_end(callback: Callable[[Any], None], end: Callable[[], N
             keep_thread_state()
         callback(arg)
 
-    return zenoh.handlers.Callback(run, end, indirect=False)
+    let_go = _hold()
+
+    def ended() -> None:
+        try:
+            end()
+        finally:
+            let_go()
+
+    return zenoh.handlers.Callback(run, ended, indirect=False)
 
 
 def error_text(exc: BaseException) -> str:

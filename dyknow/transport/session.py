@@ -26,6 +26,7 @@ from dyknow.transport.config import lease_and_dials, make_config
 from dyknow.transport.entities import (
     Entity,
     HistorySubscriber,
+    Index,
     LivelinessSubscriber,
     LivelinessToken,
     PlainPublisher,
@@ -35,7 +36,7 @@ from dyknow.transport.entities import (
     Subscriber,
 )
 from dyknow.transport.links import Links, abort_dials
-from dyknow.transport.runtime import error_text, inline_handler, inline_handler_with_end, lay_out_runtimes, panic_error
+from dyknow.transport.runtime import error_text, inline_handler, inline_handler_with_end, lay_out_runtimes, panic_error, wait_for_handlers
 from dyknow.transport.shared_memory import SharedMemory
 
 __all__ = ["MAX_ALIVE_KEYS", "Session", "open_session"]
@@ -54,6 +55,7 @@ MAX_ALIVE_KEYS: Final = 100_000
 # (Held strongly: the class is compiled, and mypyc's classes take no weak references. A session
 # is taken out as it closes; one never closed stays open until exit, as a Zenoh session would.)
 _open_sessions: Final[dict[int, Session]] = {}
+_HANDLERS_AT_EXIT_S: Final = 2.0  # how long the exit waits for Zenoh to let go of handlers
 
 
 def _close_open_sessions() -> None:
@@ -62,6 +64,10 @@ def _close_open_sessions() -> None:
             session.close()
         except Exception:  # at exit: the others are closed whatever this one does
             log.debug("closing a session at exit failed", exc_info=True)
+    # and the handlers Zenoh lets go of on its own threads a moment after their sessions closed:
+    # let go now, while Python runs, not during its teardown, which a call from Zenoh aborts
+    if not wait_for_handlers(_HANDLERS_AT_EXIT_S):
+        log.debug("at exit: Zenoh still holds handlers after %g s", _HANDLERS_AT_EXIT_S)
 
 
 _before_threads_end: Callable[[Callable[[], None]], object] | None = getattr(threading, "_register_atexit", None)
@@ -426,6 +432,46 @@ class Session:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot ask who is alive on {key!r}: {error_text(exc)}") from exc
 
+    def declare_index(self, key: str, held: Callable[[], list[str]]) -> Index:
+        """Answer queries on ``key`` with the concrete keys ``held()`` lists that they cover (see
+        :class:`~dyknow.transport.entities.Index`); :meth:`ask_index` asks."""
+        return Index(self._z(), key, held)
+
+    def ask_index(self, key: str, *, timeout_s: float, limit: int, done: Callable[[list[str], int], None]) -> None:
+        """Ask once which sessions' indexes hold keys on ``key``, and return at once: ``done(keys,
+        count)`` is called once, on a Zenoh thread, when every index answered (or ``timeout_s``
+        passed): the first ``limit`` distinct keys in the order they came, and how many came."""
+        lock = threading.Lock()
+        found: dict[str, None] = {}
+        count = [0]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            with lock:
+                count[0] += 1
+                if len(found) < limit:
+                    found[str(reply.ok.key_expr)] = None
+
+        def ended() -> None:  # Zenoh drops the handler when the request ends
+            with lock:
+                keys, total = list(found), count[0]
+            try:
+                done(keys, total)
+            except Exception:
+                log.exception("the answer of the indexes on %s failed", key)
+
+        try:
+            self._z().get(
+                key,
+                inline_handler_with_end(on_reply, ended),
+                timeout=timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot ask the indexes on {key!r}: {error_text(exc)}") from exc
+
     def put(self, key: str, data: bytes | str, *, encoding: str = "application/json") -> None:
         """Publish one plain sample (for events and measurements)."""
         try:
@@ -433,8 +479,9 @@ class Session:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {key!r}: {error_text(exc)}") from exc
 
-    def declare_raw_subscriber(self, key: str, on_sample: Callable[[str, bytes], None]) -> Entity:
-        """Receive plain samples from any session, this one included (for events and measurements)."""
+    def declare_raw_subscriber(self, key: str, on_sample: Callable[[str, bytes], None], *, inline: bool = False) -> Entity:
+        """Receive plain samples from any session, this one included (for events and measurements).
+        ``inline``: on Zenoh's thread (no thread of its own; ``on_sample`` must return at once)."""
 
         def callback(sample: zenoh.Sample) -> None:
             if sample.kind == zenoh.SampleKind.PUT:
@@ -444,7 +491,7 @@ class Session:
                     log.exception("callback for %s failed", key)
 
         try:
-            return Entity(self._z().declare_subscriber(key, callback))
+            return Entity(self._z().declare_subscriber(key, inline_handler(callback) if inline else callback))
         except zenoh.ZError as exc:
             raise TransportError(f"cannot subscribe to {key!r}: {error_text(exc)}") from exc
 
