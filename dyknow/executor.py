@@ -387,6 +387,7 @@ class Worker:
                     os.sched_yield()  # lets go of the interpreter lock (like time.sleep(0), which a faked clock breaks)
                     yielded_ns = monotonic_ns()
             except queue.Empty:
+                job = None  # (asleep, the thread holds no unit: one destroyed meanwhile goes at once)
                 due = lane.next_due_ns
                 self.active = False  # about to sleep
                 lane.busy_ns += monotonic_ns() - self.awake_ns
@@ -666,9 +667,14 @@ class Executor:
         with self._lock:
             for lane in self._lanes:
                 lane.members.pop(id(job), None)
+                worker = lane.worker
+                if worker is not None and worker.busy_job is job:  # (a worker names the last job it ran: not a gone one)
+                    worker.busy_job = None
             dedicated = self._dedicated.pop(id(job), None)
             lane = dedicated if dedicated is not None else job.lane
             lane.members.pop(id(job), None)
+            if lane.worker is not None and lane.worker.busy_job is job:
+                lane.worker.busy_job = None
             if dedicated is not None:
                 stop = dedicated
             elif lane.kind == SLOW and not lane.members and lane in self._lanes:
@@ -748,6 +754,7 @@ class Executor:
         interval_s = min(LOAD_WINDOW_S / 2, max(0.001, self.stall_budget_ns / 4e9))  # (a long budget: the load is still read)
         interval_ns = int(interval_s * 1e9)
         watched: tuple[int, object] | None = None
+        job: Job | None = None  # (dropped before a long sleep: a job released meanwhile is not kept alive by this thread)
         evidence_ns = 0
         cpu_before = 0
         idle_before = 0.0
@@ -772,6 +779,7 @@ class Executor:
                     worker = shared.worker
                     if worker is not None and not worker.active and shared.next_due_ns == _NEVER and not self.keep_measuring:
                         poll_at = _NEVER
+                        watched = job = None
                         load_at = self._measure(load_at, final=True, probe=False)  # the last reading before it sleeps
                         read_at = load_at[0] + _reading_gap_ns()
                     else:
@@ -797,10 +805,11 @@ class Executor:
             shared = self.shared
             worker = shared.worker
             if worker is None:
+                watched = job = None
                 continue
             since, job = worker.busy_since_ns, worker.busy_job
             if not since or job is None:
-                watched = None
+                watched = job = None
                 pause_s = min(_IDLE_POLL_S, pause_s * 2)
                 self.dozing = pause_s > interval_s
                 continue
@@ -817,8 +826,8 @@ class Executor:
             if evidence_ns >= budget and _machine_idle_s() <= idle_before:
                 budget *= 5  # no idle moment since the callback began: the machine is overloaded
             if evidence_ns >= budget:
-                watched = None
                 self._hand_over(worker, job)
+                watched = job = None
 
     def _measure(self, since: tuple[int, int], *, final: bool, probe: bool, due_ns: int = 0) -> tuple[int, int]:
         """Take a :class:`Load` reading, hand it to ``on_load``; ``probe``: send the next probe

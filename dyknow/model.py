@@ -77,6 +77,19 @@ class Owner:
             return f"client {self.holder}" if self.holder is not None else "a caller without a client id"
         return f"{self.caller!r} (client {self.holder})" if self.holder is not None else repr(self.caller)
 
+    def account(self) -> str | None:
+        """Whose share of what a manager bounds per caller this owner draws on (the formula
+        nodes of its monitors, :class:`~dyknow.reasoning.unit.MonitorBudget`): None for the
+        manager's own API; else the caller's certificate name (its calls are signed), else its
+        client, else the one account of every caller that names no client."""
+        if self.local:
+            return None
+        if self.caller is not None:
+            return f"caller {self.caller!r}"
+        if self.holder is not None:
+            return f"client {self.holder}"
+        return "callers without a client id"
+
     def __str__(self) -> str:
         """The owner as a message names a reference: kept ones say so."""
         return self.who() if self.local or self.holder is not None else f"{self.who()} (kept)"
@@ -167,7 +180,7 @@ class RequestInfo:
 
     tag: str
     key: str
-    state: str  # "active" or "degraded"
+    state: str  # "active" or "degraded" (no configuration, a requirement false, or one not watched)
     references: int
     units: tuple[str, ...]
     labels: tuple[str, ...]
@@ -189,6 +202,11 @@ class RequestInfo:
     #: requirements hold on them: ``{"transformation", "formula", "since_ns", "trial" ("waiting",
     #: "running" or "in place"), "failed_trials", "backoff_s", "next_trial_ns"}``
     suspects: tuple[Mapping[str, Any], ...] = ()
+    #: the requirements of the transformations serving it that could not be watched (the
+    #: monitors' nodes were taken, say): ``{"formula", "transformation", "unit", "why"}``; while
+    #: any is, the request shows "degraded" (its stream is served unchecked) and the manager
+    #: tries again every second
+    unwatched: tuple[Mapping[str, str], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -209,6 +227,7 @@ class RequestInfo:
             "absent": list(self.absent),
             "kept": self.references - sum(self.holders.values()),
             "suspects": [dict(s) for s in self.suspects],
+            "unwatched": [dict(u) for u in self.unwatched],
         }
 
 

@@ -18,11 +18,11 @@ passes through unchecked (it runs as the operator):
 - :class:`Limits`: the size of a request, the depth of its JSON, the length of names and keys
   (a key over Zenoh's batch size would make its transport panic), the expansions of a template,
   the entries and time a glob may take; the size and windows of a temporal formula and what a
-  quantified one expands to, the memory the formula monitors share and how far ahead a sample
-  they take may be stamped (:mod:`dyknow.reasoning`); the size of the library, which the
-  manager's summary carries to its peers; the signed calls remembered per caller against
-  replays (:mod:`dyknow.identity`); the series a Prometheus scrape serves; and the references
-  one caller may hold on a shared request.
+  quantified one expands to, the memory and formula nodes the formula monitors share (and each
+  caller's share of the nodes) and how far ahead a sample they take may be stamped
+  (:mod:`dyknow.reasoning`); the size of the library, which the manager's summary carries to its
+  peers; the signed calls remembered per caller against replays (:mod:`dyknow.identity`); the
+  series a Prometheus scrape serves; and the references one caller may hold on a shared request.
 """
 
 from __future__ import annotations
@@ -94,6 +94,14 @@ class Limits:
     #: The formula nodes the monitors of one manager have in all (requirements included): every
     #: sample costs each node of the formulas that read it a step.
     max_monitor_nodes: int = 20_000
+    #: The share of ``max_monitor_nodes`` that one caller's monitors and requirements may hold in
+    #: all (a caller: its certificate's name when its calls are signed, else its client), so that
+    #: no caller takes what the others share: 5,000 nodes of 20,000.
+    monitor_nodes_caller_share: float = 0.25
+    #: The share of ``max_monitor_nodes`` that no caller may take: the manager's own watches (the
+    #: requirements of its specs, the trials of its adaptations) and its Python API keep it
+    #: (4,000 nodes of 20,000; the callers together hold at most the other 16,000).
+    monitor_nodes_reserved_share: float = 0.2
     #: How far in the future (beyond its clock's uncertainty) a sample's time may lie for a monitor
     #: to take it, in ns: a later one would close every state before it and blind the monitor.
     max_future_ns: int = 100_000_000

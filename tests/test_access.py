@@ -764,3 +764,59 @@ def test_a_link_lost_mid_call_is_not_read_as_the_acl_refusing(certs: Path, tmp_p
             assert "acl" not in message.lower() and failed[0].details["reason"] in ("link-closed", "gone"), message
     finally:
         end_process(proc)
+
+
+CHECKED = """<transformation><label>checked-ticks</label><source>transformations.generic:PeriodicSource</source>
+  <params><param name="rate_hz" type="float">50</param></params>
+  <ports><port type="out">out</port></ports><tags><tag port="out">Checked(ticks)</tag></tags>
+  <requirements><requirement>Checked(ticks).value &gt;= 0</requirement></requirements></transformation>"""
+
+
+def test_one_caller_cannot_take_the_whole_monitor_budget(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """Issue 51, item 4: an operator took all 20,000 monitor nodes in 1.9 s; everyone's monitors
+    and requirements were then refused, and the specs' requirements went unwatched. With TLS and
+    roles, four operators: the first's monitors stop at its share (a fifth of the nodes here:
+    refused naming it and the bound), and so does its requirement past it; the others still
+    monitor; once the callers hold all they may together, a request whose transformation
+    requires a formula is still watched, from the manager's reserve."""
+    from dyknow.reasoning import check_formula
+    from dyknow.security import Limits
+
+    formula = "Ticks.value > 0 and Ticks.value < 1000000 and Ticks.value != 7"
+    n = check_formula(formula).nodes
+    (tmp_path / "acl.json5").write_text('{ roles: { operator: ["operator", "robot", "station", "viewer"] } }')
+    (tmp_path / "checked.xml").write_text(CHECKED)
+    # a caller may hold 5 such monitors, all callers 16; the manager keeps 4 for its own
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS, tmp_path / "checked.xml"], limits=Limits(max_monitor_nodes=20 * n),
+    )  # fmt: skip
+    with ExitStack() as stack:
+        mallory, robot, station, viewer = (
+            stack.enter_context(Client(manager.name, connect=manager.endpoints, tls=tls(certs, name), timeout_s=5.0))
+            for name in ("operator", "robot", "station", "viewer")
+        )  # fmt: skip
+        taken = 0
+        with pytest.raises(AccessError) as refused:
+            while taken < 20:
+                mallory.monitor(formula)
+                taken += 1
+        assert taken == 5, f"one caller took {taken} monitors of {n} nodes"
+        assert f"the monitors and requirements of caller 'operator' hold {5 * n} formula nodes" in str(refused.value)
+        assert f"expected at most {5 * n} nodes a caller (Limits.monitor_nodes_caller_share" in str(refused.value)
+        with pytest.raises(AccessError, match="caller 'operator'"):
+            mallory.request("Ticks", require=["Ticks.value >= 0"])
+        assert "Ticks.value >= 0" not in _held(manager, "Ticks")["requirements"]  # type: ignore[index]
+        for other in (robot, station):
+            for _ in range(5):
+                other.monitor(formula)
+        viewer.monitor(formula)  # the callers hold 16 of 20 now: all they may
+        with pytest.raises(AccessError, match=r"the callers' monitors and requirements hold .* kept for its own requirements"):
+            viewer.monitor(formula)
+        key = robot.request("Checked(ticks)")
+        checked = _held(manager, "Checked(ticks)")
+        assert checked is not None and checked["state"] == "active" and checked["unwatched"] == []
+        (watched,) = checked["spec_requirements"]
+        assert watched["formula"] == "Checked(ticks).value >= 0"
+        assert [u.state for u in manager.units() if u.bindings.get("verdicts") == watched["key"]] == ["running"]
+        robot.release(key)

@@ -13,13 +13,15 @@ repairs it (its ``id`` attribute), as an operator would fix a miscalibrated sens
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
 
-from dyknow import AdaptationEvent, Manager
+from dyknow import AdaptationEvent, Manager, UnitError
+from dyknow.security import Limits
 from dyknow.testing import Sink
 from tests.conftest import wait_until
 from tests.units import Reading
@@ -201,4 +203,73 @@ def test_a_fault_with_only_a_suspect_left_runs_on_it_degraded_until_it_holds(tan
     _device(manager, "level-a").id = 2
     wait_until(lambda: _request(manager).state == "active", "the request to be active again")
     assert _request(manager).suspects == () and _request(manager).labels == ("level-a",)
+    assert [e.kind for e in manager.get_adaptations() if e.id == degraded.id] == ["recovered"]
+
+
+# -- requirements that cannot be watched (issue 51, item 4): never served unchecked in silence
+
+FILL = "Ticks.value > 0"  # one formula node, the whole of the manager's budget below
+
+
+def _constrained(name: str, priority: int, requirement: str | None = None) -> str:
+    """A level stream as :func:`_level` makes it, usable only while the measure ``pressure`` is at least 1."""
+    return _level(name, priority, requirement).replace(
+        "<priority>", '<constraints><constraint measure="pressure" op="&gt;=" value="1"/></constraints><priority>'
+    )
+
+
+def _on(manager: Manager, tag: str) -> Any:
+    return next(info for info in manager.requests() if info.tag == tag)
+
+
+def test_a_new_request_whose_spec_requirement_cannot_be_watched_is_refused(make_manager: Callable[..., Manager]) -> None:
+    """The monitors' formula nodes are all taken: a request whose transformation requires a
+    formula of its output used to start unwatched (one log line); now it is refused, naming
+    the requirement and the bound, and nothing of it remains. Once nodes are free it runs,
+    watched."""
+    manager = make_manager("tank", dwell_s=DWELL_S, limits=Limits(max_monitor_nodes=1))
+    manager.add_transformation(f"<transformations>{DEVICE}{_level('level-b', 0, FORMULA)}</transformations>")
+    manager.spawn("tank-device", "device-level-b", params={"id": 2}, bindings={"out": "tank/level-b"})
+    fill = manager.monitor(FILL)  # (the manager's own API may take its reserve too)
+    before = {u.name for u in manager.units()}
+    with pytest.raises(UnitError, match=rf"request Level\(tank\) on manager 'tank': the requirement '{re.escape(FORMULA)}' of level-b cannot be "
+                       r"watched: .*expected at most 1 nodes in all \(Limits.max_monitor_nodes\)"):  # fmt: skip
+        manager.request("Level(tank)")
+    assert [info.tag for info in manager.requests()] == ["Ticks"] and {u.name for u in manager.units()} == before
+    manager.release(fill)
+    manager.request("Level(tank)")
+    info = _on(manager, "Level(tank)")
+    assert info.state == "active" and [r["formula"] for r in info.spec_requirements] == [FORMULA] and info.unwatched == ()
+
+
+def test_a_request_moved_onto_a_requirement_it_cannot_watch_shows_degraded_until_it_watches(make_manager: Callable[..., Manager]) -> None:
+    """A running request must move (a measurement rules its configuration out) onto level-b,
+    whose spec requires a formula, while the monitors' nodes are all taken: it runs on rather
+    than stop, but never silently unchecked: the model shows it degraded with the requirement
+    and why, one "degraded" event says so, and once nodes are free the requirement is watched
+    within a retry (every second) and the event is completed as "recovered"."""
+    manager = make_manager("tank", dwell_s=DWELL_S, limits=Limits(max_monitor_nodes=1))
+    specs = [DEVICE, _constrained("level-a", 0), _level("level-b", 1, FORMULA)]
+    manager.add_transformation(f"<transformations>{''.join(specs)}</transformations>")
+    for name, value in (("level-a", 1), ("level-b", 2)):
+        manager.spawn("tank-device", f"device-{name}", params={"id": value}, bindings={"out": f"tank/{name}"})
+    manager.measure("pressure", 2)
+    manager.request("Level(tank)")
+    assert _on(manager, "Level(tank)").labels == ("level-a",)
+    fill = manager.monitor(FILL)
+    manager.measure("pressure", 0)  # level-a may not run: a fault, onto level-b
+    wait_until(lambda: _on(manager, "Level(tank)").labels == ("level-b",), "the request to move onto level-b")
+    wait_until(lambda: bool(_on(manager, "Level(tank)").unwatched), "level-b's requirement shown unwatched")
+    info = _on(manager, "Level(tank)")
+    assert info.state == "degraded" and info.spec_requirements == ()
+    (unwatched,) = info.unwatched
+    assert unwatched["formula"] == FORMULA and unwatched["transformation"] == "level-b"
+    assert "expected at most 1 nodes in all (Limits.max_monitor_nodes)" in unwatched["why"]
+    (degraded,) = [e for e in manager.get_adaptations() if e.kind == "degraded"]
+    assert degraded.cause == f"requirement unwatched: {FORMULA}" and degraded.new == ("level-b",)
+    assert "so the stream is served unchecked" in (degraded.detail or "")
+    manager.release(fill)
+    wait_until(lambda: _on(manager, "Level(tank)").unwatched == (), "the requirement watched once nodes are free", 10)
+    info = _on(manager, "Level(tank)")
+    assert info.state == "active" and [r["formula"] for r in info.spec_requirements] == [FORMULA]
     assert [e.kind for e in manager.get_adaptations() if e.id == degraded.id] == ["recovered"]

@@ -149,6 +149,11 @@ class Request:
     # -> its watch, kept while the unit serves the request
     spec_watches: dict[tuple[str, str], SpecWatch] = field(default_factory=dict)
     spec_watch_count: int = 0
+    # those that could not be watched: (unit, formula) -> (label, why), tried again from
+    # unwatched_retry_ns on; the "degraded" event that said so, completed once all are watched
+    unwatched: dict[tuple[str, str], tuple[str, str]] = field(default_factory=dict)
+    unwatched_retry_ns: int = 0
+    unwatched_event: AdaptationEvent | None = None
     # transformations its requirements found false, avoided by its plans until a trial clears them
     suspects: dict[str, Suspect] = field(default_factory=dict)
     trial: Trial | None = None  # the one running in the shadow
@@ -179,7 +184,7 @@ class Request:
         return RequestInfo(
             self.tag,
             self.key,
-            self.state,
+            "degraded" if self.unwatched else self.state,  # (a stream served unchecked is never shown active)
             self.references,
             tuple(self.units),
             tuple(sorted(set(self.units.values()))),
@@ -194,6 +199,10 @@ class Request:
             ),
             holders,
             suspects=tuple(suspect.info(self.trial, self.in_place and suspect.label in self.units.values()) for suspect in self.suspects.values()),
+            unwatched=tuple(
+                {"formula": formula, "transformation": label, "unit": ref, "why": why}
+                for (ref, formula), (label, why) in self.unwatched.items()
+            ),
         )
 
     def held(self) -> list[str]:

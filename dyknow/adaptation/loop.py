@@ -50,7 +50,7 @@ class AdaptationLoop:
         self.reconfigurer = Reconfigurer(runtime, self.knowledge)
         self._journal = Journal(runtime, self.knowledge, self._lock)
         # (the loop itself requests the other terms of a requirement's formula, and gives them back)
-        self._requirements = Requirements(runtime, self.knowledge, self.reconfigurer, self, self._report, self.dwell_ns)
+        self._requirements = Requirements(runtime, self.knowledge, self.reconfigurer, self, self._report, self.dwell_ns, self._journal)
         self._adapter = Adapter(
             runtime, self.knowledge, self.analyzer, self.reconfigurer, self._requirements, self._journal, self._report, self.dwell_ns
         )
@@ -167,6 +167,7 @@ class AdaptationLoop:
                     if symptom is not None:
                         self._handle(symptom)
                     self.monitor.tick(now, self.dwell_ns)
+                    self._requirements.retry_unwatched(now)  # (requirements of transformations not watched yet: every second)
                     for key, opportunity in self.analyzer.due(now):
                         changed = True
                         request = self.knowledge.requests.get(key)

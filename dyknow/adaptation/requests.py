@@ -79,9 +79,12 @@ class Requests:
         released, unless another reference requires them too.
 
         ``owner``: who takes the reference (:class:`~dyknow.model.Owner`; only it may give it
-        back). ``readable(tag)`` raises when the owner may not read the stream of a tag: it is
-        asked of ``tag`` and of every term of every formula before anything is planned. When the
-        call fails, nothing of it remains.
+        back; the monitors of the requirements it adds count against its share of the formula
+        nodes, :class:`~dyknow.reasoning.unit.MonitorBudget`). ``readable(tag)`` raises when the
+        owner may not read the stream of a tag: it is asked of ``tag`` and of every term of every
+        formula before anything is planned. A requirement of a transformation of the chosen
+        configuration that cannot be watched refuses the request (:class:`UnitError` naming it
+        and why). When the call fails, nothing of it remains.
 
         ``max_references``: the most references the caller that ``owner`` is may hold on the
         request (:meth:`~dyknow.model.Owner.same_caller`); one more is an :class:`AccessError`
@@ -105,7 +108,7 @@ class Requests:
             if existing is not None:
                 if max_references is not None:
                     self._check_share(existing, owner, max_references)
-                self._requirements.require(existing, [f for f in formulas if str(f) not in existing.watches])  # (undoes itself when it fails)
+                self._requirements.require(existing, [f for f in formulas if str(f) not in existing.watches], owner)  # (undoes itself when it fails)
                 existing.owners.append((owner, texts))
                 if mode == "warm" and existing.standby_mode != "warm":
                     self._warm_up(existing)
@@ -127,11 +130,11 @@ class Requests:
             if mode == "warm":
                 self._adapter.maintain_standby(request, time.time_ns())
             try:
-                self._requirements.require(request, formulas)
+                self._requirements.require(request, formulas, owner)
+                self._requirements.watch_specs(request, refuse=True)  # (a new stream is never served unchecked)
             except BaseException:
                 self.release(key, force=True)
                 raise
-            self._requirements.watch_specs(request)
             return key
 
     def _check_share(self, request: Request, owner: Owner, max_references: int) -> None:

@@ -8,19 +8,26 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import replace
 from typing import Protocol
 
-from dyknow.adaptation.knowledge import Knowledge, Request, SpecWatch, Trial
+from dyknow.adaptation.events import Journal
+from dyknow.adaptation.knowledge import AdaptationEvent, Knowledge, Request, SpecWatch, Trial
 from dyknow.adaptation.monitor import Judge, Symptom
 from dyknow.adaptation.reconfigure import Reconfigurer
 from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import DyKnowError, UnitError
+from dyknow.model import LOCAL, Owner
 from dyknow.reasoning.progression import Verdict
 from dyknow.reasoning.syntax import Formula
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
+from dyknow.spec import TransformationSpec
 from dyknow.tags import parse_term
 
 log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
+
+#: How often a requirement of a transformation that could not be watched is tried again.
+RETRY_UNWATCHED_NS = 1_000_000_000
 
 
 class Requester(Protocol):
@@ -41,7 +48,10 @@ class Requirements:
     "requirement" symptoms (reported to the loop through ``report``).
 
     While a request is degraded in place, the judge :meth:`attach` ed to it sees every verdict of
-    its requirements too.
+    its requirements too. Requirements are never left unchecked in silence: a monitor that fails
+    to start is an error like any other (:meth:`require`), and a requirement of a transformation
+    that cannot be watched refuses a new request or marks a running one (:meth:`watch_specs`).
+    ``journal`` records that mark (a "degraded" event, "recovered" once watched).
     """
 
     def __init__(
@@ -52,8 +62,10 @@ class Requirements:
         requester: Requester,
         report: Callable[[Symptom], None],
         dwell_ns: int,
+        journal: Journal | None = None,
     ) -> None:
         self._runtime = runtime
+        self._journal = journal
         self._knowledge = knowledge
         self._reconfigurer = reconfigurer
         self._requester = requester
@@ -63,11 +75,13 @@ class Requirements:
 
     # -- a request's own requirements
 
-    def require(self, request: Request, formulas: list[Formula]) -> None:
-        """Watch ``formulas`` over ``request``'s stream: a monitor unit each, whose false
-        verdicts become "requirement" symptoms. A term that is the request's tag reads its
-        stream, any other is requested in turn. All or nothing: when one cannot be watched,
-        those this call set up are taken down again before it raises."""
+    def require(self, request: Request, formulas: list[Formula], owner: Owner = LOCAL) -> None:
+        """Watch ``formulas`` over ``request``'s stream for ``owner`` (the reference that adds
+        them: their nodes count against its share, :class:`~dyknow.reasoning.unit.MonitorBudget`):
+        a monitor unit each, whose false verdicts become "requirement" symptoms. A term that is
+        the request's tag reads its stream, any other is requested in turn. All or nothing: when
+        one cannot be watched (its monitor fails to start, too), those this call set up are taken
+        down again before it raises."""
         added: list[str] = []
         try:
             for formula in formulas:
@@ -86,7 +100,7 @@ class Requirements:
                     request.watch_count += 1
                     name = f"{request.anchor}-require-{request.watch_count}"
                     bindings[VERDICTS_PORT] = f"{request.key}/requirements/{request.watch_count}"
-                    self._runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
+                    self._start(monitor_spec(formula, label="requirement"), name, bindings, text, owner)
                 except BaseException:
                     self.give_back(needs)
                     raise
@@ -100,6 +114,25 @@ class Requirements:
         except BaseException:
             self.unrequire(request, added)
             raise
+
+    def _start(self, spec: TransformationSpec, name: str, bindings: dict[str, str], formula: str, owner: Owner = LOCAL) -> None:
+        """Spawn the monitor unit ``name`` of a requirement; one that fails to start (its formula's
+        nodes were taken since they were checked, say) is destroyed again and the failure raised,
+        so no requirement is ever taken for watched while its monitor does not run."""
+        if owner.local:
+            info = self._runtime.spawn(spec, name, bindings=bindings)
+        else:
+            info = self._runtime.spawn(spec, name, bindings=bindings, owner=owner)
+        if info.state == "failed":
+            try:
+                self._runtime.destroy(name)
+            except DyKnowError:
+                pass  # (gone already)
+            raise UnitError(
+                f"the monitor of the requirement {formula[:200]!r} failed to start: {info.error}",
+                where=f"manager {self._runtime.name!r}",
+                expected="a requirement whose monitor can run (release monitors or requirements to free formula nodes)",
+            )
 
     def unrequire(self, request: Request, formulas: Iterable[str]) -> None:
         """Stop watching ``formulas`` over ``request``: their monitors go, their terms are given back."""
@@ -135,11 +168,20 @@ class Requirements:
 
     # -- the requirements of the transformations serving a request
 
-    def watch_specs(self, request: Request) -> None:
+    def watch_specs(self, request: Request, *, refuse: bool = False) -> None:
         """Watch the requirements of the transformations now serving ``request`` (their specs'),
         and stop watching those of units that no longer do. A term that is one of the unit's
-        output tags reads that output; any other is requested in turn. A requirement that cannot
-        be watched is logged, and the configuration runs unwatched rather than not at all."""
+        output tags reads that output; any other is requested in turn. Their monitors are the
+        manager's own (its reserve of formula nodes, which no caller can take).
+
+        A requirement that cannot be watched (no formula nodes left, a term without a stream,
+        a monitor that fails to start) is never left unchecked in silence. With ``refuse`` (a
+        new request) it raises :class:`~dyknow.errors.UnitError` naming the requirement and why
+        (the request is then refused). Otherwise the configuration runs on rather than not at
+        all, but *unwatched*, visibly: the model shows the request "degraded" with each such
+        requirement and why (``unwatched``), one warning and one "degraded" adaptation event say
+        so, and it is tried again every second (:meth:`retry_unwatched`); once all are watched,
+        a "recovered" event completes that one."""
         planner = self._reconfigurer.planner()
         wanted: dict[tuple[str, str], str] = {}  # (unit, formula) -> label
         for ref, label in request.units.items():
@@ -155,12 +197,66 @@ class Requirements:
             for needed in watch.needs:
                 if needed in self._knowledge.requests:
                     self._requester.release(needed)
+        for ident in [i for i in request.unwatched if i not in wanted]:
+            del request.unwatched[ident]
         for (ref, text), label in wanted.items():
             if (ref, text) not in request.spec_watches:
                 try:
                     request.spec_watches[(ref, text)] = self._spec_watch(request, ref, label, self._runtime.check_formula(text))
                 except DyKnowError as exc:
-                    log.warning("cannot watch the requirement %r of %s for %s: %s", text, label, request.tag, exc)
+                    if refuse:
+                        raise UnitError(
+                            f"the requirement {text[:200]!r} of {label} cannot be watched: {exc}",
+                            where=f"request {request.tag} on manager {self._runtime.name!r}",
+                            expected="a request whose transformations' requirements can be watched (a stream is never served "
+                            "unchecked); try again once monitors or requirements are released",
+                        ) from exc
+                    if (ref, text) not in request.unwatched:
+                        log.warning("cannot watch the requirement %r of %s for %s: %s; it runs unwatched, shown degraded, "
+                                    "and is tried again every %g s", text, label, request.tag, exc, RETRY_UNWATCHED_NS / 1e9)  # fmt: skip
+                    request.unwatched[(ref, text)] = (label, str(exc)[:1000])
+                    continue
+                if request.unwatched.pop((ref, text), None) is not None:
+                    log.info("the requirement %r of %s for %s is watched now", text, label, request.tag)
+        request.unwatched_retry_ns = time.time_ns() + RETRY_UNWATCHED_NS
+        self._mark_unwatched(request)
+
+    def retry_unwatched(self, now_ns: int) -> None:
+        """Try again to watch the requirements of transformations that could not be watched
+        (:meth:`watch_specs`), of each request whose retry is due (every second)."""
+        for request in list(self._knowledge.requests.values()):
+            if request.unwatched and request.unwatched_retry_ns <= now_ns:
+                self.watch_specs(request)
+
+    def _mark_unwatched(self, request: Request) -> None:
+        """One "degraded" event when the request's first requirement went unwatched, one
+        "recovered" when its last is watched again (or no longer wanted)."""
+        event = request.unwatched_event
+        if request.unwatched and event is None:
+            (ref, formula), (label, why) = next(iter(request.unwatched.items()))
+            labels = tuple(sorted(set(request.units.values())))
+            detail = f"the requirement {formula!r} of {label} ({ref}) cannot be watched, so the stream is served unchecked: {why}"
+            if len(request.unwatched) > 1:
+                detail += f" (and {len(request.unwatched) - 1} more)"
+            request.unwatched_event = event = AdaptationEvent(
+                self._journal.next_id() if self._journal is not None else 0,
+                "degraded",
+                request.tag,
+                request.key,
+                f"requirement unwatched: {formula}",
+                labels,
+                labels,
+                time.time_ns(),
+                detail=detail,
+            )
+            if self._journal is not None:
+                self._journal.emit(event)
+        elif not request.unwatched and event is not None:
+            request.unwatched_event = None
+            now = time.time_ns()
+            recovered = replace(event, kind="recovered", new=tuple(sorted(set(request.units.values()))), recovery_ms=round((now - event.fault_ns) / 1e6, 3))
+            if self._journal is not None:
+                self._journal.emit(recovered)
 
     def _unit_bindings(self, ref: str, label: str, formula: Formula) -> tuple[dict[str, str], list[str]]:
         """Where a monitor of a requirement of unit ``ref`` (of transformation ``label``) reads
@@ -194,7 +290,7 @@ class Requirements:
             n = request.spec_watch_count
             name = f"{request.anchor}-spec-require-{n}"
             key = bindings[VERDICTS_PORT] = f"{request.key}/requirements/spec-{n}"
-            self._runtime.spawn(monitor_spec(formula, label="requirement"), name, bindings=bindings)
+            self._start(monitor_spec(formula, label="requirement"), name, bindings, str(formula))
         except DyKnowError:
             self.give_back(needs)
             raise
@@ -240,7 +336,7 @@ class Requirements:
         for k, (name, formula, bindings) in enumerate(watched, start=1):
             monitor = f"{request.anchor}-trial-{serial}-{k}"
             bindings[VERDICTS_PORT] = f"{request.key}/trials/{serial}/{k}"
-            self._runtime.spawn(monitor_spec(formula, label="requirement"), monitor, bindings=bindings)
+            self._start(monitor_spec(formula, label="requirement"), monitor, bindings, name)  # (one that fails to start is gone)
             self._knowledge.managed.add(monitor)
             trial.monitors.append(monitor)
             watcher = self._runtime.unit(monitor)

@@ -11,7 +11,7 @@ from typing import Any, Protocol
 
 from dyknow.federation import Summary
 from dyknow.library import Library
-from dyknow.model import UnitInfo
+from dyknow.model import LOCAL, Owner, UnitInfo
 from dyknow.ontology import Ontology
 from dyknow.reasoning.syntax import Formula
 from dyknow.spec import TransformationSpec
@@ -81,8 +81,12 @@ class Runtime(Protocol):
         """The Python object of running unit ``name``."""
         ...
 
-    def spawn(self, label: str | TransformationSpec, name: str, *, bindings: Mapping[str, str] | None = None) -> UnitInfo:
-        """Start a unit of a library label, or of a spec given directly."""
+    def spawn(
+        self, label: str | TransformationSpec, name: str, *, bindings: Mapping[str, str] | None = None, owner: Owner = LOCAL
+    ) -> UnitInfo:
+        """Start a unit of a library label, or of a spec given directly; ``owner``: whom a
+        requirement's monitor watches for (its formula's nodes count against that caller's
+        share; the loop passes it for the requirements a request's reference adds, and only then)."""
         ...
 
     def destroy(self, name: str) -> None:

@@ -38,6 +38,7 @@ from dyknow.manager.peers import Peers
 from dyknow.manager.ros2 import Ros2Wiring, ros2_bindings
 from dyknow.manager.services import Services
 from dyknow.manager.spawning import Spawner
+from dyknow.memory import Trimmer
 from dyknow.message import CLOCK_ID
 from dyknow.metrics import Metrics
 from dyknow.model import LOCAL, Model, Owner, RequestInfo, UnitEvent, UnitInfo
@@ -47,7 +48,7 @@ from dyknow.priority import current_nice
 from dyknow.proxy import DEFAULT_QUEUE_DEPTH, Proxy, UnitStatistics
 from dyknow.reasoning.monitors import MonitorInfo, Monitors
 from dyknow.reasoning.syntax import Formula, check_formula
-from dyknow.reasoning.unit import MonitorBudget
+from dyknow.reasoning.unit import FormulaMonitor, MonitorBudget
 from dyknow.receiver import Receiver
 from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.node import Ros2Node
@@ -188,6 +189,7 @@ class Manager:
         self._services: Services | None = None
         self._holders: Holders | None = None
         self._monitor_budget = MonitorBudget(limits)  # the cells its formula monitors share
+        self._trimmer = Trimmer(self.name)  # gives back the memory of formula monitors gone
         self._spawner = Spawner(
             self.name,
             lock=self._lock,
@@ -234,7 +236,7 @@ class Manager:
             self.name,
             request=self.request,
             release=self._adaptation.release,
-            spawn=lambda spec, name, bindings: self.spawn(spec, name, bindings=bindings),
+            spawn=lambda spec, name, bindings, owner: self.spawn(spec, name, bindings=bindings, owner=owner),
             destroy=self.destroy,
             unit=self.unit,
             individuals=librarian.individuals_or_none(),
@@ -310,6 +312,7 @@ class Manager:
         for proxy in reversed(proxies):
             proxy.stop(per_unit)
         self._executor.close(timeout_s)
+        self._trimmer.close()
         self._receiver.close()
         self._ros2.close()
         self._session.close()
@@ -388,6 +391,7 @@ class Manager:
         params: Mapping[str, Any] | None = None,
         bindings: Mapping[str, str] | None = None,
         remote: bool = False,
+        owner: Owner = LOCAL,
     ) -> UnitInfo:
         """Start a unit of transformation ``label`` named ``name``.
 
@@ -405,11 +409,18 @@ class Manager:
         through a companion unit ``<name>.<port>.ros2`` (a :class:`~dyknow.ros2.bridge.Ros2Source`
         or :class:`~dyknow.ros2.bridge.Ros2Sink`), spawned after the unit and destroyed with it; if
         one cannot start, the unit is destroyed again and the error raised.
+
+        ``owner``: whom it is spawned for (the services pass the caller): a formula monitor's
+        nodes count against that caller's share of the monitors' nodes
+        (:class:`~dyknow.reasoning.unit.MonitorBudget`; the Python API's against none).
         """
         ros2 = ros2_bindings(bindings or {})
+        account = owner.account()
         if not ros2:
-            return self._spawner.spawn(label, name, protected=protected, params=params, bindings=bindings, remote=remote)
-        return self._ros2.spawn(label, name, protected=protected, params=params, bindings=bindings or {}, ros2=ros2, remote=remote)
+            return self._spawner.spawn(label, name, protected=protected, params=params, bindings=bindings, remote=remote, account=account)
+        return self._ros2.spawn(
+            label, name, protected=protected, params=params, bindings=bindings or {}, ros2=ros2, remote=remote, account=account
+        )
 
     def destroy(self, name: str, *, force: bool = False) -> None:
         """Stop unit ``name`` and remove it from the model. A protected unit only with ``force``
@@ -450,6 +461,8 @@ class Manager:
                 log.exception("unit event listener failed on %s", event)
         if kind == "destroyed":
             self._ros2.drop(proxy.name)
+            if isinstance(proxy.unit, FormulaMonitor):  # (their states and object ids: the most memory units free at once)
+                self._trimmer.soon()
 
     def unit(self, name: str) -> Unit:
         """The Python object of running unit ``name`` (for embedding and tests)."""
@@ -503,12 +516,22 @@ class Manager:
         request to its next-best configuration, the formula named as the cause (see
         :meth:`dyknow.adaptation.AdaptationLoop.request`); they belong to this reference.
         ``owner``: who takes the reference (the services pass the caller; the Python API is the
-        operator's). Raises :class:`~dyknow.planner.PlanningError` (with the explanation) when
-        nothing fits, :class:`~dyknow.errors.AccessError` when the owner may not read a stream
-        it names, or when the owner's caller holds ``limits.max_references_per_caller``
-        references to the request already; when it raises, nothing of the call remains.
+        operator's; a caller's requirements count against its share of the monitors' formula
+        nodes, :class:`~dyknow.reasoning.unit.MonitorBudget`). Raises
+        :class:`~dyknow.planner.PlanningError` (with the explanation) when nothing fits,
+        :class:`~dyknow.errors.AccessError` when the owner may not read a stream it names, when its
+        requirements would take it past its share, or when the owner's caller holds
+        ``limits.max_references_per_caller`` references to the request already,
+        :class:`~dyknow.errors.UnitError` when a requirement of the chosen transformations cannot
+        be watched (the stream is never served unchecked); when it raises, nothing of the call
+        remains.
         """
         self._check_open()
+        account = owner.account()
+        if account is not None and require:
+            # the caller's share of the monitors' nodes, for all its formulas at once (each monitor checks its own again)
+            texts = list(dict.fromkeys(str(text) for text in require))
+            self._monitor_budget.check(*(check_formula(text, self.limits) for text in texts), account=account)
         bound = None if owner.local else self.limits.max_references_per_caller
         return self._adaptation.request(tag, standby=standby, require=require, owner=owner, readable=self._reader(owner), max_references=bound)
 

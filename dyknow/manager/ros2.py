@@ -130,15 +130,16 @@ class Ros2Wiring:
         bindings: Mapping[str, str],
         ros2: Mapping[str, str],
         remote: bool,
+        account: str | None = None,
     ) -> UnitInfo:
         """Spawn a unit with its ports ``ros2`` (port -> ``ros2:`` binding, among ``bindings``)
         wired through companions, spawned after it; if one cannot start, the unit is destroyed
-        again and the error raised."""
+        again and the error raised. ``account``: as :meth:`dyknow.manager.spawning.Spawner.spawn` takes it."""
         spec = label if isinstance(label, TransformationSpec) else self._library.get(label)
         plan = self.plan(spec, name, ros2)
         plain = {port: key for port, key in bindings.items() if port not in ros2}
         plain.update((port, key) for port, (_, _, key, _) in plan.items())
-        info = self._spawner.spawn(label, name, protected=protected, params=params, bindings=plain, remote=remote)
+        info = self._spawner.spawn(label, name, protected=protected, params=params, bindings=plain, remote=remote, account=account)
         try:
             self.start(name, plan)
         except BaseException:

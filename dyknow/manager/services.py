@@ -67,8 +67,9 @@ class Served(Protocol):
         params: Mapping[str, Any] | None = None,
         bindings: Mapping[str, str] | None = None,
         remote: bool = False,
+        owner: Owner = LOCAL,
     ) -> UnitInfo:
-        """Start a unit."""
+        """Start a unit (a formula monitor's nodes count against ``owner``'s share)."""
         ...
 
     def destroy(self, name: str, *, force: bool = False) -> None:
@@ -196,6 +197,7 @@ class Services:
             params=request.get("params") or {},
             bindings=request.get("bindings") or {},
             remote=True,
+            owner=_owner(caller, None),
         )
         if owner:
             self._peers.serves(info.name, owner)

@@ -103,6 +103,7 @@ class Spawner:
         params: Mapping[str, Any] | None = None,
         bindings: Mapping[str, str] | None = None,
         remote: bool = False,
+        account: str | None = None,
     ) -> UnitInfo:
         """Start a unit of transformation ``label`` named ``name``.
 
@@ -114,7 +115,9 @@ class Spawner:
         changes nothing. An exception in the unit's ``setup()`` leaves it in the model as failed.
         ``remote``: for a caller the manager does not trust (the service): the file params are
         confined to the data roots (so are those of specs added remotely, always); a refusal
-        raises :class:`AccessError` and changes nothing.
+        raises :class:`AccessError` and changes nothing. ``account``: whose share of the
+        monitors' formula nodes a formula monitor takes (:class:`~dyknow.reasoning.unit.MonitorBudget`;
+        None: the manager's own).
         """
         with self._lock:
             self._check_open()
@@ -145,14 +148,22 @@ class Spawner:
             gate.acquire()
             self._starting[name] = gate
         try:
-            return self._start(spec, name, protected=protected, values=values, ports=ports, confine=confine)
+            return self._start(spec, name, protected=protected, values=values, ports=ports, confine=confine, account=account)
         finally:
             with self._lock:
                 del self._starting[name]
             gate.release()
 
     def _start(
-        self, spec: TransformationSpec, name: str, *, protected: bool, values: dict[str, Any], ports: dict[str, str], confine: bool = False
+        self,
+        spec: TransformationSpec,
+        name: str,
+        *,
+        protected: bool,
+        values: dict[str, Any],
+        ports: dict[str, str],
+        confine: bool = False,
+        account: str | None = None,
     ) -> UnitInfo:
         """Import, create and start a unit (its name is reserved; the manager lock is not held)."""
         cls = _import_unit(spec, self._librarian.sources, self._librarian.code_paths)
@@ -175,7 +186,7 @@ class Spawner:
         if isinstance(unit, UsesRos2):
             unit.use_ros2(self._ros2)
         if isinstance(unit, FormulaMonitor):
-            unit.use_budget(self._monitor_budget)
+            unit.use_budget(self._monitor_budget, account)
         proxy = Proxy(
             name=name,
             spec=spec,

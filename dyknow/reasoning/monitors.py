@@ -35,7 +35,7 @@ from typing import Any
 
 from dyknow import keys
 from dyknow.errors import AccessError, DyKnowError, UnitError
-from dyknow.model import LOCAL, Owner
+from dyknow.model import LOCAL, Owner, UnitInfo
 from dyknow.reasoning.quantify import expand
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
 from dyknow.security import Limits
@@ -81,9 +81,10 @@ class Monitors:
     """The monitors one manager was asked for. Thread-safe.
 
     It acts on the manager through the callables it is given: ``request(tag) -> key`` and
-    ``release(key)`` (the manager's requests), ``spawn(spec, name, bindings)``, ``destroy(name)``
-    and ``unit(name)`` (its units), ``individuals(class_ref)`` (its ontology; None without one),
-    and ``budget(*formulas)``, which raises when its monitors could not take the formulas.
+    ``release(key)`` (the manager's requests), ``spawn(spec, name, bindings, owner)``,
+    ``destroy(name)`` and ``unit(name)`` (its units), ``individuals(class_ref)`` (its ontology;
+    None without one), and ``budget(*formulas, account=...)``, which raises when its monitors
+    could not take the formulas for that caller (:meth:`dyknow.model.Owner.account`).
     """
 
     def __init__(
@@ -92,7 +93,7 @@ class Monitors:
         *,
         request: Callable[[str], str],
         release: Callable[[str], object],
-        spawn: Callable[[TransformationSpec, str, Mapping[str, str]], Any],
+        spawn: Callable[[TransformationSpec, str, Mapping[str, str], Owner], UnitInfo],
         destroy: Callable[[str], None],
         unit: Callable[[str], object],
         individuals: Callable[[str], Sequence[str]] | None,
@@ -109,7 +110,7 @@ class Monitors:
         self._individuals = individuals
         self._max_expansions = max_expansions
         self._limits = limits  # the bounds every formula is held to before anything is requested
-        self._budget = budget  # budget(*formulas): raises when the manager's monitors could not take them
+        self._budget = budget  # budget(*formulas, account=...): raises when the manager's monitors could not take them
         self._lock = threading.Lock()
         self._by_key: dict[str, MonitorInfo] = {}
         self._serial = itertools.count(1)
@@ -121,14 +122,16 @@ class Monitors:
 
         Raises :class:`~dyknow.errors.FormulaError` when the formula does not read,
         :class:`~dyknow.errors.AccessError` when ``readable`` refuses a term (before anything
-        is requested), :class:`~dyknow.planner.PlanningError` when a term has no stream (what
-        was set up for the others is taken down again, whatever the failure).
+        is requested), :class:`~dyknow.planner.PlanningError` when a term has no stream,
+        :class:`~dyknow.errors.AccessError` past ``owner``'s share of the monitors' formula
+        nodes, :class:`~dyknow.errors.UnitError` when a monitor unit fails to start (what was
+        set up for the others is taken down again, whatever the failure).
         """
         if not isinstance(reorder_ms, int | float) or not reorder_ms >= 0 or reorder_ms > 3_600_000:
             raise UnitError(f"reorder_ms {reorder_ms!r}", where="monitor", expected="0 to 3,600,000 milliseconds")
         expansions = expand(formula, self._individuals, max_expansions=self._max_expansions, limits=self._limits)
         if self._budget is not None:
-            self._budget(*(parsed for _, parsed in expansions))
+            self._budget(*(parsed for _, parsed in expansions), account=owner.account())
         if readable is not None:
             for text in dict.fromkeys(str(term) for _, parsed in expansions for term in parsed.terms):
                 readable(text)
@@ -149,8 +152,14 @@ class Monitors:
                 spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms)
                 bindings = {port: requested[term] for term, port in term_ports(parsed).items()}
                 bindings[VERDICTS_PORT] = key
-                self._spawn(spec, name, bindings)
+                started = self._spawn(spec, name, bindings, owner)
                 spawned.append(name)
+                if started.state == "failed":  # (its nodes were taken meanwhile, say): never kept half-made
+                    raise UnitError(
+                        f"the monitor of {str(parsed)[:200]!r} failed to start: {started.error}",
+                        where=f"manager {self.manager!r}",
+                        expected="a monitor that can start; nothing of this call was kept",
+                    )
                 made.append((individual, str(parsed), name, key))
         except BaseException:
             self._undo(spawned, list(requested.values()))

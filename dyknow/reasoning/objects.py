@@ -13,13 +13,17 @@ to every live instance. A sample whose field names no object is counted in :attr
 A sample of the quantified stream whose value is a list is a *frame* (a tracker's tracks): one
 sample per element, all at its time, so one message can carry every object's sample.
 
-**Bounds.** At most ``max_objects`` instances live at once: a sample of a new object past that
-is refused, and counted in :attr:`refused` (the objects already tracked go on). Each instance
-keeps at most its share of ``max_cells`` (the cells over the instances alive, their number rounded
-up to a power of two, so that shares are dealt again only when it doubles or falls to a quarter:
-10,000 objects appearing cost 10,000 deals, not 50 million), so the monitor's
-memory is bounded by ``max_cells`` cells plus the instances' constant part, whatever the number of
-objects a stream names over time.
+**Bounds.** At most ``max_objects`` instances live at once, and no more than ``max_cells``
+can hold at their least (:data:`~dyknow.reasoning.progression.MIN_STATES` states of the body's
+nodes each: :attr:`capacity`): a sample of a new object past that is refused, and counted in
+:attr:`refused` (the objects already tracked go on). Each instance keeps at most its share of
+``max_cells`` (the cells over the instances alive, their number rounded up to a power of two, so
+that shares are dealt again only when it doubles or falls to a quarter: 10,000 objects appearing
+cost 10,000 deals, not 50 million), so the monitor's memory is bounded by ``max_cells`` cells
+plus the instances' constant part, however many objects a stream names over time, and however
+many monitors share a manager's cells (each instance's least states count against them: 4,000
+monitors of 1,000 objects each could otherwise keep 16 states of 64 million instances).
+:meth:`discard` lets go of every instance at once, deciding nothing (a unit going).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
-from dyknow.reasoning.progression import DEFAULT_MAX_CELLS, Monitor, Verdict
+from dyknow.reasoning.progression import DEFAULT_MAX_CELLS, MIN_STATES, Monitor, Verdict
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, parse
 from dyknow.reasoning.values import object_key, read
 from dyknow.tags import parse_term
@@ -74,6 +78,7 @@ class ObjectMonitor:
         self.idle_ns = int(idle_ns)
         self.max_objects = int(max_objects)
         self._max_cells = int(max_cells)
+        self._least_cells = MIN_STATES * max(1, self.body.nodes)  # what an instance keeps at its least
         self._slots = 0  # the instances the cells are shared among: a power of two, at least those alive
         self._max_age = dict(max_age_ns or {})
         #: the terms as the formula writes them (the quantified stream's first)
@@ -135,7 +140,7 @@ class ObjectMonitor:
                 monitor = None
             last = self._last
             if monitor is None:
-                if len(self._live) >= self.max_objects:
+                if len(self._live) >= self.max_objects or len(self._live) >= self.capacity:
                     self.refused += 1
                     return out
                 monitor = self._start(key, read(value, self.domain.fields))
@@ -175,6 +180,17 @@ class ObjectMonitor:
         for key in list(self._live):
             self._end(key, out)
         return out
+
+    def discard(self) -> None:
+        """Let go of every instance and what it keeps (states, object ids, the latest samples)
+        at once, deciding nothing: the monitor is going, and its memory is free from now on
+        whoever still holds the monitor. It starts anew if pushed to again."""
+        self._given_up_retired += sum(m.given_up for m in self._live.values())
+        self._live = {}
+        self._last = {}
+        self._deadlines = []
+        self._latest = {}
+        self._slots = 0
 
     # -- instances
 
@@ -249,9 +265,17 @@ class ObjectMonitor:
                 monitor.set_max_age(name, max_age_ns)
 
     def set_max_cells(self, max_cells: int) -> None:
-        """Keep at most ``max_cells`` cells in all from now on, shared among the instances."""
+        """Keep at most ``max_cells`` cells in all from now on, shared among the instances
+        (fewer cells take no instance away: they bound the new ones, :attr:`capacity`)."""
         self._max_cells = max(1, int(max_cells))
         self._reshare(again=True)
+
+    @property
+    def capacity(self) -> int:
+        """The most instances ``max_cells`` can hold at their least (each keeps at least
+        :data:`~dyknow.reasoning.progression.MIN_STATES` states of the body's nodes), at least 1:
+        no new object is taken past it (nor past ``max_objects``)."""
+        return max(1, self._max_cells // self._least_cells)
 
     def _term_index(self, term: str) -> int:
         try:

@@ -95,7 +95,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
 from dyknow.clocks import CLOCKS
-from dyknow.errors import FormulaError
+from dyknow.errors import AccessError, FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
@@ -292,44 +292,85 @@ class MonitorBudget:
     manager. Thread-safe. The manager hands its budget to each :class:`FormulaMonitor` before
     ``setup()``.
 
-    A monitor takes its share itself (:meth:`take_share`) before each sample and each flush: a
-    share only bounds the states a monitor stores next, and it stores states only then. Joining
-    and leaving touch no other monitor, so they cost the same beside 10 monitors or 10,000
+    **Per caller.** A monitor joins for an *account*: None for the manager's own (its Python API,
+    the requirements of its specs, the trials of its adaptations), else the caller's
+    (:meth:`dyknow.model.Owner.account`: its certificate's name when its calls are signed, else
+    its client). One caller's monitors and requirements hold at most
+    ``limits.monitor_nodes_caller_share`` of the nodes, and the callers together at most what
+    ``limits.monitor_nodes_reserved_share`` leaves: that reserve stays for the manager's own
+    watches, so no caller, nor all of them, can leave a spec's requirement unwatched. Past a
+    caller's bound, :class:`~dyknow.errors.AccessError` names the account, what it holds and
+    the bound; past the manager's, :class:`~dyknow.errors.FormulaError` as before.
+
+    A monitor takes its share of cells itself (:meth:`take_share`) before each sample and each
+    flush: a share only bounds the states a monitor stores next, and it stores states only then.
+    Joining and leaving touch no other monitor, so they cost the same beside 10 monitors or 10,000
     (telling every monitor its new share on each join made spawning N monitors cost N²/2 calls:
     7.5 s of the 17 s that 1,000 spawns took beside 2,300 monitors, ``benchmarks/overload.py``)."""
 
     def __init__(self, limits: Limits) -> None:
         self.limits = limits
         self._lock = threading.Lock()
-        self._monitors: dict[_Shared, int] = {}  # -> its formula's nodes
+        self._monitors: dict[_Shared, tuple[int, str | None]] = {}  # -> its formula's nodes, its account
+        self._accounts: dict[str, int] = {}  # a caller's account -> the nodes of its monitors
         #: the formula nodes of the monitors running
         self.nodes = 0
+        #: of those, the nodes that callers' monitors hold (the manager's own hold the rest)
+        self.caller_nodes = 0
         #: counts the joins and leaves: a monitor whose last look saw another takes its share again
         self.generation = 0
 
-    def check(self, *formulas: Formula) -> None:
-        """:class:`~dyknow.errors.FormulaError` when monitors of ``formulas`` would take the
-        manager's monitors past ``limits.max_monitor_nodes`` (what :meth:`join` checks)."""
-        self._check(sum(f.nodes for f in formulas), self.nodes, len(formulas))
+    def check(self, *formulas: Formula, account: str | None = None) -> None:
+        """Raise when monitors of ``formulas`` for ``account`` would take the manager's monitors
+        past ``limits.max_monitor_nodes`` (:class:`~dyknow.errors.FormulaError`), or the
+        caller's past its share (:class:`~dyknow.errors.AccessError`): what :meth:`join` checks."""
+        with self._lock:
+            self._check(sum(f.nodes for f in formulas), account, len(formulas))
 
-    def join(self, monitor: _Shared) -> None:
-        """Count ``monitor`` in (:class:`~dyknow.errors.FormulaError` past the nodes' bound);
-        every monitor's share of cells shrinks to fit it, from its next sample on. Costs the same
-        however many monitors run."""
+    def join(self, monitor: _Shared, account: str | None = None) -> None:
+        """Count ``monitor`` in for ``account`` (None: the manager's own), or raise as
+        :meth:`check` does; every monitor's share of cells shrinks to fit it, from its next
+        sample on. Costs the same however many monitors run."""
         nodes = monitor.formula.nodes
         with self._lock:
-            self._check(nodes, self.nodes)
-            self._monitors[monitor] = nodes
+            self._check(nodes, account)
+            self._monitors[monitor] = (nodes, account)
             self.nodes += nodes
+            if account is not None:
+                self._accounts[account] = self._accounts.get(account, 0) + nodes
+                self.caller_nodes += nodes
             self.generation += 1
 
     def leave(self, monitor: _Shared) -> None:
         """Count ``monitor`` out (safe twice); the others' shares grow, from their next sample on."""
         with self._lock:
-            nodes = self._monitors.pop(monitor, None)
-            if nodes is not None:
-                self.nodes -= nodes
-                self.generation += 1
+            entry = self._monitors.pop(monitor, None)
+            if entry is None:
+                return
+            nodes, account = entry
+            self.nodes -= nodes
+            if account is not None:
+                left = self._accounts.get(account, 0) - nodes
+                if left > 0:
+                    self._accounts[account] = left
+                else:
+                    self._accounts.pop(account, None)  # (an account without monitors costs nothing)
+                self.caller_nodes -= nodes
+            self.generation += 1
+
+    def held(self, account: str) -> int:
+        """The formula nodes the monitors of ``account`` hold now."""
+        with self._lock:
+            return self._accounts.get(account, 0)
+
+    @property
+    def caller_bounds(self) -> tuple[int, int]:
+        """``(per caller, all callers)``: the nodes one caller's monitors may hold, and those
+        all callers' may hold together (the rest of ``limits.max_monitor_nodes`` is reserved)."""
+        limits = self.limits
+        bound = limits.max_monitor_nodes
+        callers = bound - min(bound, max(0, int(bound * limits.monitor_nodes_reserved_share)))
+        return min(callers, max(0, int(bound * limits.monitor_nodes_caller_share))), callers
 
     def take_share(self, monitor: _Shared, seen: int) -> int:
         """Give ``monitor`` its share of cells now when monitors joined or left since it last
@@ -341,12 +382,31 @@ class MonitorBudget:
             monitor.set_max_cells(self.share)
         return generation
 
-    def _check(self, nodes: int, held: int, count: int = 1) -> None:
+    def _check(self, nodes: int, account: str | None, count: int = 1) -> None:
+        """(under the lock) A caller's own bound first, then all callers', then the manager's."""
         bound = self.limits.max_monitor_nodes
-        if held + nodes > bound:
-            these = "this formula has" if count == 1 else "these formulas have"
+        these = "this formula has" if count == 1 else "these formulas have"
+        if account is not None:
+            per_caller, callers = self.caller_bounds
+            own = self._accounts.get(account, 0)
+            if own + nodes > per_caller:
+                raise AccessError(
+                    f"the monitors and requirements of {account} hold {own:,} formula nodes, and {these} {nodes:,}",
+                    where="monitor",
+                    expected=f"at most {per_caller:,} nodes a caller (Limits.monitor_nodes_caller_share of the manager's "
+                    f"{bound:,}): release some of the caller's monitors or requirements first",
+                )
+            if self.caller_nodes + nodes > callers:
+                raise AccessError(
+                    f"the callers' monitors and requirements hold {self.caller_nodes:,} formula nodes, and {these} {nodes:,}",
+                    where="monitor",
+                    expected=f"at most {callers:,} nodes for all callers together: the other {bound - callers:,} of the "
+                    f"manager's {bound:,} are kept for its own requirements (Limits.monitor_nodes_reserved_share); "
+                    "try again once monitors are released",
+                )
+        if self.nodes + nodes > bound:
             raise FormulaError(
-                f"the manager's monitors hold {held:,} formula nodes, and {these} {nodes:,}",
+                f"the manager's monitors hold {self.nodes:,} formula nodes, and {these} {nodes:,}",
                 where="monitor",
                 expected=f"at most {bound:,} nodes in all (Limits.max_monitor_nodes): release monitors or requirements first",
             )
@@ -395,12 +455,17 @@ class FormulaMonitor(Unit):
     """
 
     monitor: Monitor | ObjectMonitor
+    _served: Sequence[_Served] = ()  # (set up by setup(); none when it failed first)
     _budget: MonitorBudget | None = None
+    _account: str | None = None  # whose share of the budget's nodes its formulas take (None: the manager's own)
     _seen_share = -1  # the budget's generation when the monitors last took their shares
 
-    def use_budget(self, budget: MonitorBudget) -> None:
-        """Take the manager's bounds and share of cells (called by the manager before ``setup()``)."""
+    def use_budget(self, budget: MonitorBudget, account: str | None = None) -> None:
+        """Take the manager's bounds and share of cells, for ``account`` (the caller it is
+        spawned for, :meth:`dyknow.model.Owner.account`; None: the manager's own). Called by the
+        manager before ``setup()``."""
         self._budget = budget
+        self._account = account
 
     def setup(self) -> None:
         """Check the formulas against the bounds, check there is a port per term, start the idle
@@ -504,15 +569,30 @@ class FormulaMonitor(Unit):
         if flush_ms > 0:
             self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
         if budget is not None:  # last: a failed setup() has nothing to give back
-            budget.check(*(s.monitor.formula for s in served))
-            for s in served:
-                budget.join(s.monitor)
+            budget.check(*(s.monitor.formula for s in served), account=self._account)
+            joined: list[Monitor | ObjectMonitor] = []
+            try:
+                for s in served:
+                    budget.join(s.monitor, self._account)
+                    joined.append(s.monitor)
+            except BaseException:  # (another monitor joined since the check: none of these stays)
+                for monitor in joined:
+                    budget.leave(monitor)
+                raise
 
     def teardown(self) -> None:
-        """Give the monitors' shares of cells back."""
+        """Give the monitors' shares of cells and nodes back, and let go of what they keep (an
+        object monitor's instances and ids, the last verdict per object), so the memory is free
+        once the unit goes, whoever still holds it (a listener, a model snapshot)."""
         if self._budget is not None:
             for served in self._served:
                 self._budget.leave(served.monitor)
+        for served in self._served:
+            if isinstance(served.monitor, ObjectMonitor):
+                served.monitor.discard()
+            served.last_published = {}
+        self._object_last = {}
+        self._listeners = []
 
     def listen(self, callback: Callable[[Verdict], None]) -> None:
         """Call ``callback(verdict)`` for every verdict from now on, on the unit's thread (it must return at once)."""
@@ -667,6 +747,10 @@ class FormulaMonitor(Unit):
                     listener(verdict)
                 return
             last[key] = verdict.verdict
+            monitor = served.monitor
+            if key is not None and isinstance(monitor, ObjectMonitor) and len(last) > 2 * monitor.max_objects + 16:
+                live = set(monitor.objects)  # (ids of objects gone for good: kept, they would grow with every id ever seen)
+                served.last_published = {k: v for k, v in last.items() if k in live}
         out = verdict.to_json()
         if served.name is not None:
             out["formula"] = served.name
