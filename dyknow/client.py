@@ -854,7 +854,7 @@ class Client:
         deadline = time.monotonic() + timeout_s
         delay = 0.02
         while True:
-            reachable = self.manager_names(timeout_s=min(1.0, max(0.05, deadline - time.monotonic())))
+            reachable = self.manager_names(timeout_s=min(1.0, max(0.25, deadline - time.monotonic())))  # (shorter missed some)
             missing = sorted(wanted.difference(reachable))
             if not missing:
                 return reachable
