@@ -8,7 +8,9 @@ told (:mod:`dyknow.reach`): ``refused``, ``unreachable``, ``silent``, ``tls-list
 ``tls-untrusted``, ``tls-rejected`` (the endpoint), ``no-such-manager`` (others are there:
 ``details["managers"]``), ``no-manager`` (linked, and no manager is there at all), ``no-role``
 (linked, but nothing visible), ``dropped`` (an access control on the way), ``gone`` (its token
-went away) or ``timeout``.
+went away), ``lost`` (it went before this client started, and the managers up remember it:
+since when, why, who saw it; :mod:`dyknow.presence`) or ``timeout`` (with ``details["link"]``:
+``"cut"`` when not even its clock exchange answers, ``"up"`` when it does: busy or stuck).
 
 A manager that is not there is said after a grace of at most a second, not after the timeout:
 the client's own session is a Zenoh client, whose router answers the client's first question
@@ -42,10 +44,10 @@ from dyknow import keys, reach, replies
 from dyknow.access import ROLES, AccessControl, TlsFiles
 from dyknow.errors import DyKnowError, ServiceError, SpecError, SpecIssue, TransportError, did_you_mean
 from dyknow.message import CLOCK_ID, Message
+from dyknow.presence import MAX_GONE, Loss, Presence, recall
 from dyknow.transport import (
     DEFAULT_ENDPOINT,
     MAX_ALIVE_KEYS,
-    LivelinessSubscriber,
     LivelinessToken,
     Session,
     Subscriber,
@@ -65,7 +67,6 @@ __all__ = ["Client"]
 log = logging.getLogger(__name__)
 
 _MAX_PAGES = 100_000  # of one model: far past any manager's (each page holds at least one entry)
-_MAX_GONE = 10_000  # managers remembered as gone (names come from the network: bounded)
 #: How long a call waits for a manager never seen while others are up, before it says so: a
 #: manager's token and its services come to a client together, so this is ample.
 _ABSENT_S = 1.0
@@ -90,96 +91,6 @@ def _number(value: Any) -> float | None:
     if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and abs(value) < 1e15:
         return float(value)
     return None
-
-
-class _Presence:
-    """Which managers have left: their liveliness tokens went away (stopped, crashed, or cut off
-    past their lease). A call to one of them ends at once, saying so, instead of waiting for its
-    service to come back. And which are up: a call to a manager never seen, while others are,
-    ends after :data:`_ABSENT_S` (a misspelled name), listing those there.
-
-    A client is a tool (a command, the web page), so it watches every manager's token and
-    goodbye, as no manager does (a manager watches only those it follows: :mod:`dyknow.federation`);
-    :meth:`lost` is what it saw leave since it started."""
-
-    def __init__(self, session: Session) -> None:
-        self._lock = threading.Lock()
-        self._gone: dict[str, float] = {}  # manager -> time.monotonic() when its token went
-        self._lost: dict[str, tuple[int, str]] = {}  # manager -> (wall-clock ns when its token went, why)
-        self._goodbyes: dict[str, float] = {}  # manager -> time.monotonic() of its goodbye
-        self._up: set[str] = set()
-        self._watches: list[LivelinessSubscriber] = []
-        try:
-            self._watches.append(session.declare_liveliness_subscriber(keys.managers_pattern(), self._change, inline=True))
-            self._watches.append(session.declare_liveliness_subscriber(keys.goodbye_token("*"), self._goodbye, inline=True))
-        except TransportError as exc:  # a closed session, say: calls just wait as before
-            log.debug("no watch of the managers' liveliness: %s", exc)
-
-    def _change(self, key: str, alive: bool) -> None:
-        name = keys.manager_of_token(key)
-        if name is None:
-            return
-        with self._lock:
-            self._gone.pop(name, None)
-            self._lost.pop(name, None)
-            if alive and len(self._up) < _MAX_GONE:
-                self._up.add(name)
-            if not alive:
-                self._up.discard(name)
-                now = time.monotonic()
-                self._gone[name] = now
-                said = self._goodbyes.pop(name, None)
-                stopped = said is not None and now - said < keys.GOODBYE_S
-                self._lost[name] = (time.time_ns(), keys.LOSS_STOPPED if stopped else keys.LOSS_VANISHED)
-                for kept in (self._gone, self._lost):
-                    while len(kept) > _MAX_GONE:
-                        del kept[next(iter(kept))]
-
-    def _goodbye(self, key: str, alive: bool) -> None:
-        name = key.rpartition("/")[2]
-        if not alive or keys.manager_of_token(keys.manager_token(name)) != name:
-            return
-        with self._lock:
-            if name in self._lost:  # (its token's end came first)
-                self._lost[name] = (self._lost[name][0], keys.LOSS_STOPPED)
-                return
-            self._goodbyes[name] = time.monotonic()
-            while len(self._goodbyes) > _MAX_GONE:
-                del self._goodbyes[next(iter(self._goodbyes))]
-
-    def heard(self) -> tuple[set[str], set[str]]:
-        """The managers whose tokens came since the watch began, and those whose tokens went."""
-        with self._lock:
-            return set(self._up), set(self._gone)
-
-    def lost(self) -> list[dict[str, Any]]:
-        """The managers whose tokens went since the watch began and that are not back, by name:
-        ``{"manager", "since_ns" (wall clock), "why"}`` each."""
-        with self._lock:
-            return [{"manager": m, "since_ns": since, "why": why} for m, (since, why) in sorted(self._lost.items())]
-
-    def why_absent(self, manager: str) -> str | None:
-        """Why ``manager`` is not there when others are and it was never seen, or None."""
-        with self._lock:
-            if not self._up or manager in self._up or manager in self._gone:
-                return None
-            return f"no manager {manager!r} among those reachable ({', '.join(sorted(self._up)[:20])})"
-
-    def why_gone(self, manager: str) -> str | None:
-        """Why ``manager`` is known to be gone, or None (it is up, or was never seen)."""
-        with self._lock:
-            since = self._gone.get(manager)
-        if since is None:
-            return None
-        return (
-            f"manager {manager!r} is gone: its liveliness token went away {time.monotonic() - since:.1f} s ago "
-            "(it stopped, crashed, or its host was cut off past its lease)"
-        )
-
-    def close(self) -> None:
-        for watch in self._watches:
-            watch.undeclare()
-        self._watches.clear()
 
 
 class _Answer:
@@ -325,13 +236,14 @@ class Client:
         # (50 of 50). A call to a manager not among them (nor heard of since) is sent once and,
         # when it reaches nothing, ends at once (see _call).
         self._first = self._ask_managers()
-        self._presence = _Presence(session)
+        self._presence = Presence(session)
         # the requests this client holds (dyknow.holders): key -> (references, the token that says it is alive)
         self._holder = os.urandom(8).hex()  # (what secrets.token_hex does, without importing it)
         if self._signer is not None:  # a manager with roles takes only ids of the certificate's own scope (dyknow.holders)
             self._holder = keys.holder_scope(self._signer.common_name) + self._holder
         self._held: dict[str, tuple[int, LivelinessToken]] = {}
         self._held_lock = threading.Lock()
+        self._recalling = threading.Lock()  # held while asking the managers about one not there (never nested)
 
     def _open_leaf(self, lease_ms: int | None) -> Session:
         """A session that only connects: a Zenoh client of the endpoints when one answers now,
@@ -414,7 +326,7 @@ class Client:
         answer = _Answer()
         try:
             self._session.ask_alive(
-                keys.managers_pattern(), timeout_s=self.timeout_s, limit=_MAX_GONE, done=answer.done, timed_out=answer.timed_out
+                keys.managers_pattern(), timeout_s=self.timeout_s, limit=MAX_GONE, done=answer.done, timed_out=answer.timed_out
             )
         except TransportError as exc:
             log.debug("no first look at the managers: %s", exc)
@@ -521,32 +433,70 @@ class Client:
                     details={"reason": "dropped"},
                 ) from exc
             if exc.kind is None and (str(exc) == "Timeout" or (reason is None and str(exc).endswith(f"within {self.timeout_s:g} s"))):
-                raise self._timed_out(what, where, time.monotonic() - started) from None
+                raise self._timed_out(what, where, time.monotonic() - started, manager) from None
             from dyknow import service
 
             replies.check_error(exc.details, manager, what)  # (a refusal's fields: another process's word, as a reply is)
             raise service.raise_remote(exc) from None
         return replies.check_reply(replies.decode_reply(reply, manager, what), manager, what)
 
-    def _timed_out(self, what: str, where: str, waited_s: float) -> ServiceError:
-        """A call that reached the manager and got no answer in time (Zenoh says only "Timeout")."""
+    def _timed_out(self, what: str, where: str, waited_s: float, manager: str) -> ServiceError:
+        """A call that reached the manager's service and got no answer in time (Zenoh says only
+        "Timeout"): busy or stuck, or cut off, told apart by its clock exchange, which a manager
+        answers at once on Zenoh's thread however busy it is (:meth:`answers_at_once`)."""
         from dyknow import service
 
+        check = "" if what in service.READ_ONLY_SERVICES else "; before calling again, check whether it was done (dyknow model)"
         if what in service.READ_ONLY_SERVICES:
             done = "it only reads, so nothing was changed"
-            expected = "a longer --timeout (timeout_s) if the manager is busy, or a manager that is not stuck (its log says why)"
+            busy = "a longer --timeout (timeout_s) if the manager is busy, or a manager that is not stuck (its log says why)"
         else:
             done = "the request was sent to it and may still be carried out"
-            expected = (
-                "a longer --timeout (timeout_s) if the manager is busy (planning, spawning, a slow unit's setup); "
-                "before calling again, check whether it was done (dyknow model)"
-            )
-        return ServiceError(
-            f"no answer from {where} to {what!r} within {self.timeout_s:g} s (waited {waited_s:.1f} s; --timeout): it serves "
-            f"the call, but did not answer in time; {done}",
-            expected=expected,
-            details={"reason": "timeout", "call": what, "waited_s": round(waited_s, 3), "may_have_run": what not in service.READ_ONLY_SERVICES},
+            busy = "a longer --timeout (timeout_s) if the manager is busy (planning, spawning, a slow unit's setup)"
+        answers = self.answers_at_once(manager)
+        cut = (
+            "the link to its host back (across sites: the link between the gateways' routers, which log it going and coming back); "
+            "a manager cut off still seems there until its lease expires, then dyknow managers shows it LOST"
         )
+        if answers is False:
+            cause, expected, link = (
+                "nothing of it answers now, not even its clock exchange (answered at once, however busy it is): the link to it is "
+                "cut, or its host stalled",
+                cut,
+                "cut",
+            )
+        elif answers is True:
+            cause, expected, link = "its clock exchange answers at once, so the link is up: it is busy or stuck", busy, "up"
+        else:
+            cause, expected, link = "it is busy or stuck, or the link to it is cut", f"{busy}; or {cut}", "unknown"
+        return ServiceError(
+            f"no answer from {where} to {what!r} within {self.timeout_s:g} s (waited {waited_s:.1f} s; --timeout): its service "
+            f"is there, and did not answer in time: {cause}; {done}",
+            expected=expected + check,
+            details={"reason": "timeout", "call": what, "waited_s": round(waited_s, 3), "may_have_run": what not in service.READ_ONLY_SERVICES,
+                     "link": link},
+        )  # fmt: skip
+
+    def answers_at_once(self, manager: str, timeout_s: float = 1.0) -> bool | None:
+        """Whether ``manager`` answers a clock exchange within ``timeout_s``: a manager answers
+        one at once on Zenoh's thread, however busy its services are, so no answer says the link
+        to it is down (or its host stalled) while its token, up until its lease expires, says it
+        is there. None when the question could not be sent."""
+        from dyknow import clocks
+
+        ended = threading.Event()
+        answered = [False]
+
+        def done(got: tuple[bytes, int, int, int] | None) -> None:
+            answered[0] = got is not None
+            ended.set()
+
+        try:
+            self._session.exchange(keys.clock_key(manager), clocks.request(time.time_ns()), timeout_s=timeout_s, done=done)
+        except TransportError as exc:
+            log.debug("no clock exchange with %r: %s", manager, exc)
+            return None
+        return answered[0] if ended.wait(timeout_s + 1.0) else None
 
     def _unanswered(self, manager: str, where: str, known: list[str] | None = None) -> ServiceError:
         """Why nothing answered within the timeout, or (``known``: the managers that are there,
@@ -565,6 +515,13 @@ class Client:
             if not names:  # (a query slow to answer, under load: the tokens heard say who is there)
                 came, went = self._presence.heard()
                 names = sorted(came - went)
+        if manager not in names and self._recalling.acquire(blocking=False):
+            try:  # (a manager that anyone remembers as lost is said so, never a misspelling)
+                loss = self.recall_lost(names).get(manager)
+            finally:
+                self._recalling.release()
+            if loss is not None:
+                return loss.error(where.split(" at ", 1)[-1] if self._connect else None)
         if names and manager not in names:
             return ServiceError(
                 f"no manager {manager!r} among those reachable ({', '.join(names)})",
@@ -957,6 +914,12 @@ class Client:
                     and 0 <= since < 1 << 63 and isinstance(why, str):  # fmt: skip
                 found.append({"manager": name, "since_ns": since, "why": why[:512]})
         return found
+
+    def recall_lost(self, names: Sequence[str] | None = None) -> dict[str, Loss]:
+        """The managers lost and not back, by name (:class:`dyknow.presence.Loss`: since when, why,
+        who saw it): those this client saw go, and those the managers up (``names``, else those
+        reachable now; a few of them asked) remember. A tool started after a loss learns it here."""
+        return recall(self, self.manager_names(timeout_s=0.5) if names is None else list(names))
 
     def seen_lost(self) -> list[dict[str, Any]]:
         """The managers this client saw leave since it started, and that are not back:

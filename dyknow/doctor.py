@@ -10,14 +10,19 @@ config          a Zenoh configuration file (``--zenoh-config``) that can find no
                 off and no endpoint to connect to (or one that relies on multicast alone)
 shm             no usable ``/dev/shm``: Zenoh's shared memory cannot be made (a container's 64 MiB
                 default, a read-only mount), so large payloads are copied instead
-port            the port a manager would listen on (``--listen``, default ``tcp/127.0.0.1:7447``) taken:
-                by a dyknow manager (clients reach it), another Zenoh node, or another program
+port            the port a manager would listen on (``--listen``; without it, the first ``--connect`` endpoint
+                when it is this host's address) taken: by a dyknow manager (clients reach it), another Zenoh
+                node, or another program
 endpoints       each ``--connect`` endpoint probed (:mod:`dyknow.reach`): nothing listens (the manager or
                 router there is down), no route, a silent host, TLS refused either way
 managers        the managers reachable through them; none (a router that answers with no manager
-                behind it is told apart), or not the one ``--manager`` names
+                behind it is told apart), or not the one ``--manager`` names: LOST (since when, why, as
+                which managers saw it), or never there (with the close match)
 access          each manager answers ``get_model``: an ACL (``--acl``) that gives this certificate no
                 role, or a role that may not read, is named with the certificate's common name
+lost            the managers the others knew and lost, and that are not back (:mod:`dyknow.presence`):
+                vanished (crashed, or cut off past their lease) fails, stopped (a goodbye) warns
+requests        each manager's requests that are degraded (a provider lost, a requirement false), and why
 clocks          the offsets between the managers' clocks, as each estimates the others' (:mod:`dyknow.clocks`):
                 one beyond ``max_offset_ms`` (an unsynchronised host)
 ==============  ==========================================================================================
@@ -31,16 +36,26 @@ from __future__ import annotations
 import errno
 import os
 import socket
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from dyknow.access import TlsFiles
 from dyknow.errors import DyKnowError, ServiceError, did_you_mean
+from dyknow.presence import THIS_CLIENT, Loss, merge
 from dyknow.replies import MALFORMED
 
-__all__ = ["DEFAULT_MAX_OFFSET_MS", "Diagnosis", "check_clocks", "check_config", "check_port", "check_shm", "diagnose"]
+__all__ = [
+    "DEFAULT_MAX_OFFSET_MS",
+    "Diagnosis",
+    "check_clocks",
+    "check_config",
+    "check_federation",
+    "check_port",
+    "check_shm",
+    "diagnose",
+]
 
 #: The clock offset between two managers beyond which doctor fails (milliseconds): NTP on a LAN
 #: keeps hosts within about 1 ms, chrony within a fraction of that.
@@ -153,8 +168,10 @@ def check_shm() -> list[Diagnosis]:
     ]
 
 
-def check_port(listen: Sequence[str], tls: TlsFiles | None = None) -> list[Diagnosis]:
-    """Whether each port a manager would listen on is free, and if not, what holds it."""
+def check_port(listen: Sequence[str], tls: TlsFiles | None = None, *, connecting: bool = False) -> list[Diagnosis]:
+    """Whether each port a manager would listen on is free, and if not, what holds it.
+    ``connecting``: ``listen`` is where this host connects (no ``--listen`` given): an address
+    that is another host's is no fault (a client host has no port of its own to check)."""
     found = []
     for endpoint in listen:
         parts = _split(endpoint)
@@ -167,6 +184,10 @@ def check_port(listen: Sequence[str], tls: TlsFiles | None = None) -> list[Diagn
             with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as sock:
                 sock.bind((host, port))
         except OSError as exc:
+            if exc.errno == errno.EADDRNOTAVAIL and connecting:
+                found.append(Diagnosis("port", "ok", f"{endpoint} is another host's address: this host connects there, and listens "
+                                                     "nowhere (--listen ENDPOINT checks a port a manager here would take)"))  # fmt: skip
+                continue
             if exc.errno != errno.EADDRINUSE:
                 found.append(Diagnosis("port", "fail", f"cannot listen on {endpoint}: {exc.strerror or exc}", "an address of this host"))
                 continue
@@ -261,25 +282,61 @@ def check_managers(client: Any, manager: str, connect: Sequence[str], signed: bo
                 )
             ], []
         return [Diagnosis("managers", "fail", f"no manager reachable through {where}", "start one (dyknow manager), or --connect where one listens")], []
-    found = [Diagnosis("managers", "ok", f"reachable: {', '.join(names)}")]
-    if manager not in names:
-        found.append(
-            Diagnosis(
-                "managers",
-                "warn",
-                f"no manager {manager!r} among them{did_you_mean(manager, names)}",
-                f"--manager {names[0]}" + (f" (or one of {', '.join(names[1:])})" if len(names) > 1 else ""),
-            )
+    return [Diagnosis("managers", "ok", f"reachable: {', '.join(names)}")], names
+
+
+def check_named(manager: str, names: Sequence[str], lost: Mapping[str, Loss]) -> list[Diagnosis]:
+    """Whether ``manager`` (``--manager``) is among ``names``, the managers reachable; when not,
+    whether it is one of those ``lost`` (never then called a misspelling)."""
+    if manager in names:
+        return []
+    loss = lost.get(manager)
+    if loss is not None:
+        return [Diagnosis("managers", "warn" if loss.stopped else "fail", loss.said(), loss.fix())]
+    if not names:
+        return []
+    return [
+        Diagnosis(
+            "managers",
+            "warn",
+            f"no manager {manager!r} among them, nor lost as far as they know{did_you_mean(manager, names)}",
+            f"--manager {names[0]}" + (f" (or one of {', '.join(names[1:])})" if len(names) > 1 else ""),
         )
-    return found, names
+    ]
 
 
-def check_access(client: Any, names: Sequence[str]) -> list[Diagnosis]:
-    """Each manager asked for its model: refusals by an ACL named with the certificate."""
+def check_federation(models: Mapping[str, Mapping[str, Any]], lost: Mapping[str, Loss], manager: str) -> list[Diagnosis]:
+    """The managers lost and not back (but ``manager``, said by :func:`check_named`), and each
+    manager's degraded requests (``models``: each manager's, by name)."""
+    found = [Diagnosis("lost", "warn" if loss.stopped else "fail", loss.said(), loss.fix()) for name, loss in lost.items() if name != manager]
+    for name, model in models.items():
+        for request in model.get("requests", []):
+            if request.get("state") != "degraded":
+                continue
+            why = request.get("reason") if isinstance(request.get("reason"), str) else "no reason given (an older manager)"
+            found.append(
+                Diagnosis(
+                    "requests",
+                    "warn",
+                    f"manager {name!r}: request {request['tag']} ({request['key']}) is degraded: {why}",
+                    "it runs on what is left and returns to a full configuration by itself once one exists (a lost provider back, "
+                    f"a requirement holding again); dyknow plan '{request['tag']}' --manager {name} says what is missing now",
+                )
+            )
+    if models and not found:
+        found.append(Diagnosis("lost", "ok", f"no manager lost, no request degraded (asked: {', '.join(sorted(models))})"))
+    return found
+
+
+def check_access(client: Any, names: Sequence[str], models: dict[str, Mapping[str, Any]] | None = None) -> list[Diagnosis]:
+    """Each manager asked for its model (kept in ``models``, by name): refusals by an ACL
+    named with the certificate."""
     found = []
     for name in names:
         try:
-            client.get_model(name)
+            model = client.get_model(name)
+            if models is not None:
+                models[name] = model
         except ServiceError as exc:
             if exc.details.get("reason") in ("dropped", "no-role"):
                 found.append(Diagnosis("access", "fail", f"manager {name!r}: {exc.what}", exc.expected or "a role for this certificate in its --acl"))
@@ -344,7 +401,7 @@ def diagnose(
 
     found = check_config(zenoh_config, connect)
     found += check_shm()
-    found += check_port(listen, tls)
+    found += check_port(listen or connect[:1], tls, connecting=not listen)
     if connect:
         found += check_endpoints(connect, tls)
     if any(d.status == "fail" for d in found if d.check == "config"):
@@ -356,7 +413,13 @@ def diagnose(
     with client:
         managers, names = check_managers(client, manager, connect, signed=tls is not None)
         found += managers
+        models: dict[str, Mapping[str, Any]] = {}
         if names:
-            found += check_access(client, names)
+            found += check_access(client, names, models)
+        reports = [(THIS_CLIENT, client.seen_lost()), *((name, client.lost_managers(name, model=model)) for name, model in models.items())]
+        lost = merge(reports, up=names)
+        found += check_named(manager, names, lost)
+        found += check_federation(models, lost, manager)
+        if names:
             found += check_clocks(client, names, max_offset_ms)
     return found

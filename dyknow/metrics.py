@@ -275,6 +275,8 @@ class Metrics:
             "units": units,
             "adaptations": dict(adaptations),
             "verdicts": verdicts,
+            "requests": [r.brief() for r in model.requests],  # (their state and why, beside the figures: dyknow top)
+            "lost": [dict(m) for m in model.lost],
         }
 
     def admit(self, snap: dict[str, Any]) -> tuple[list[dict[str, Any]], int]:

@@ -207,6 +207,9 @@ class RequestInfo:
     #: any is, the request shows "degraded" (its stream is served unchecked) and the manager
     #: tries again every second
     unwatched: tuple[Mapping[str, str], ...] = ()
+    #: why it is degraded (None while active): no configuration (a provider lost, say), a
+    #: requirement false, or one not watched
+    reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON form (``get_model``'s ``requests`` entries)."""
@@ -228,7 +231,12 @@ class RequestInfo:
             "kept": self.references - sum(self.holders.values()),
             "suspects": [dict(s) for s in self.suspects],
             "unwatched": [dict(u) for u in self.unwatched],
+            "reason": self.reason,
         }
+
+    def brief(self) -> dict[str, Any]:
+        """What a tool shows of it beside the figures: ``{"tag", "key", "state", "reason"}``."""
+        return {"tag": self.tag, "key": self.key, "state": self.state, "reason": self.reason}
 
 
 @dataclass(frozen=True, slots=True)

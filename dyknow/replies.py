@@ -166,11 +166,12 @@ _UNIT = fields(
     {"name": _UNIT_NAME, "label": TEXT, "state": TEXT, "protected": FLAG, "bindings": mapped(TEXT)},
     {"error": optional(TEXT), "traceback": optional(TEXT)},
 )
+_LOST = listed(fields({"manager": _MANAGER_NAME, "since_ns": TIME_NS, "why": TEXT}))
 _MODEL = fields(
     {"manager": _MANAGER_NAME, "units": listed(_UNIT), "specs": listed(fields({"label": TEXT}))},
     {
         "requests": listed(fields({"tag": TEXT, "key": TEXT, "state": TEXT})),
-        "lost": listed(fields({"manager": _MANAGER_NAME, "since_ns": TIME_NS, "why": TEXT})),
+        "lost": _LOST,
         "clocks": mapped(ANY),
         "next": optional(fields({"units": WHOLE, "specs": WHOLE})),
     },
@@ -188,7 +189,8 @@ _METRICS = fields(
                 {"error": optional(TEXT)},
             )
         ),
-    }
+    },
+    {"requests": listed(fields({"tag": TEXT, "key": TEXT, "state": TEXT}, {"reason": optional(TEXT)})), "lost": _LOST},
 )
 _STATISTICS = fields(
     {"name": _UNIT_NAME, "label": TEXT, "state": TEXT, "uptime_s": NUMBER, "reconfigurations": WHOLE, "executor": TEXT,
@@ -233,7 +235,7 @@ SHAPES: Mapping[str, Shape] = {
     "request": _KEY,
     "monitor": _KEY,
     "release": fields({}, {"references": WHOLE}),
-    "get_summary": fields({}),
+    "get_summary": fields({}, {"lost": _LOST, "degraded": listed(fields({"tag": TEXT, "key": TEXT}, {"reason": optional(TEXT)}))}),
 }
 """The shape of each service's reply, as far as the client and the ``dyknow`` command read it."""
 

@@ -16,7 +16,9 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
   ``{"formula", "reorder_ms", "holder"}`` -> ``{"key", "kept"}``;
   ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_load`` ``{}`` (its lanes and
   overload state: :meth:`~dyknow.manager.Manager.load`); ``get_summary`` ``{}`` (for
-  the other managers: see :mod:`dyknow.federation`); ``get_metrics`` ``{}`` (every unit's
+  the other managers: see :mod:`dyknow.federation`; ``{"brief": true}`` counts only, for a
+  listing; ``{"health": true}`` those and the managers it lost and its degraded requests:
+  :mod:`dyknow.presence`); ``get_metrics`` ``{}`` (every unit's
   figures at once: :mod:`dyknow.metrics`, ``dyknow top``); a ``spawn`` may name the ``owner``, the
   manager whose request it serves (its units go when that manager does);
 - ``@dyknow/<manager>/unit/<unit>/<service>`` for a unit's proxy: ``get_config`` ``{}``,
@@ -244,7 +246,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "release": {"key": (True, _key), "holder": (False, _holder), "force": (False, _flag)},
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},
-    "get_summary": {"brief": (False, _flag)},
+    "get_summary": {"brief": (False, _flag), "health": (False, _flag)},
     "get_load": {},
     "get_metrics": {},
     "get_config": {},

@@ -178,15 +178,17 @@ def test_clocks_are_the_managers_as_it_estimates_them(manager_process: Callable[
 def test_a_call_that_times_out_names_the_call_the_manager_the_wait_and_what_may_have_happened() -> None:
     """A manager that serves its services but answers none in time (a busy one): Zenoh says only
     ``Timeout``; the client names the call, the manager, the time waited, --timeout, and whether
-    the request may still be carried out (a read: no; a spawn: yes)."""
-    from dyknow import ServiceError, keys
+    the request may still be carried out (a read: no; a spawn: yes). Its clock exchange, answered
+    at once on Zenoh's thread, says the link is up: busy or stuck, not cut (issue 52)."""
+    from dyknow import ServiceError, clocks, keys
     from dyknow.transport import Session, make_config
     from tests.conftest import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Session(make_config(listen=[endpoint], connect=[])) as busy:
         busy.declare_liveliness_token(keys.manager_token("busy"))
-        busy.declare_service_channel(keys.services_pattern("busy"))  # calls queued, never answered
+        # calls queued, never answered; clock exchanges answered at once, as a manager does
+        busy.declare_service_channel(keys.services_pattern("busy"), at_once={keys.clock_key("busy"): clocks.answer})
         with Client("busy", connect=[endpoint], timeout_s=1.0) as client:
             with pytest.raises(ServiceError) as read:
                 client.get_model()
@@ -196,6 +198,7 @@ def test_a_call_that_times_out_names_the_call_the_manager_the_wait_and_what_may_
     assert said.startswith(f"no answer from manager 'busy' at {endpoint} to 'get_model' within 1 s (waited ")
     assert "--timeout" in said and "it only reads, so nothing was changed" in said
     assert read.value.details["reason"] == "timeout" and read.value.details["may_have_run"] is False
+    assert read.value.details["link"] == "up" and "so the link is up: it is busy or stuck" in said and "is cut" not in said
     said = str(change.value)
     assert "to 'spawn' within 1 s" in said and "may still be carried out" in said and "check whether it was done (dyknow model)" in said
     assert change.value.details["may_have_run"] is True

@@ -149,7 +149,10 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         print(f"robot's clock: injected {truth[0] / 1000:.1f} us, estimated {estimate}, error {error_us:.1f} us")
         assert error_us <= estimate["uncertainty_us"] + slack_us, (estimate, truth)
         if skew.rate != 1.0:
-            assert abs(estimate["drift_ppm"] - 100) < 50, estimate  # fitted over several seconds by then
+            # the fitted drift is as far from the injected 100 ppm as the estimator says it may be: its
+            # slope bound (how far the line may tilt, from its exchanges' widths: 206 ppm in a run beside
+            # CPU hogs, whose exchanges are wide, where it fitted 188), the growth it carries the offset by
+            assert abs(estimate["drift_ppm"] - 100) <= estimate["growth_ppm"], estimate
         assert "field" not in clocks  # no data exchanged with the field yet: its clock is not estimated (on demand, issue 40)
 
         robot_ports = {p["unit"]: p for p in observer.ask("ports")}

@@ -299,6 +299,10 @@ def test_three_processes_keep_the_key_through_a_sigkill(processes: Callable[...,
         assert listed[2]["why"].startswith("its liveliness token went away without a goodbye: it crashed, or its host was cut off")
         assert "LOST since" in run_cli("managers", *hub, "--manager", "station").stdout
         assert "  lost manager robot since " in run_cli("model", *hub, "--manager", "station").stdout
+        # a command started after the loss: the robot LOST, as the station remembers it, never a misspelling (issue 52)
+        done = run_cli("model", *hub, "--manager", "robot")
+        assert done.returncode == 1 and "manager 'robot' is LOST since " in done.stderr and "as station" in done.stderr, done.stderr
+        assert "--manager one of" not in done.stderr, done.stderr
 
         processes("robot", free_port(), *hub)  # it comes back: the preferred camera returns after the dwell time
         stream.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)

@@ -59,6 +59,7 @@ VALID: dict[str, Any] = {
     "formula": "A > 1",
     "reorder_ms": 5,
     "brief": True,
+    "health": True,
     "require": [],
     "holder": "0123456789abcdef",
 }
@@ -91,6 +92,7 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("release", "force"): {"true"},
     ("monitor", "holder"): set(),
     ("get_summary", "brief"): {"true"},
+    ("get_summary", "health"): {"true"},
 }
 SWEEP = [(service, field, probe) for service, fields in SCHEMAS.items() for field in fields for probe in JSON_PROBES]
 

@@ -241,8 +241,9 @@ def test_teardown_runs_on_destroy_and_close(make_manager: Callable[..., Manager]
 
 
 def test_run_loop_unit_publishes_and_stops(manager: Manager) -> None:
-    manager.spawn("looping", "loop")
+    # the sink first: a loop spawned before it may publish its first message before anyone listens
     manager.spawn("sink", "s", bindings={"in": default_key(manager.name, "loop", "out")})
+    manager.spawn("looping", "loop")
     sink = manager.unit("s")
     assert isinstance(sink, Sink)
     got = sink.wait_for(5)

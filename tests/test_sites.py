@@ -75,9 +75,10 @@ def links(hosts: Hosts, host: str, pid: int) -> list[str]:
 
 class Sites:
     """The page's two sites, started as its lines say (every line run, the request made and
-    echoed), and an observer on the station that requests the track too (``tests.netns_observer``)."""
+    echoed), and an observer on the station that requests the track too (``tests.netns_observer``).
+    ``edit(host, argv)``: a line's command as run instead (None: not run), for a variant of the page."""
 
-    def __init__(self, hosts: Hosts, folder: Path) -> None:
+    def __init__(self, hosts: Hosts, folder: Path, edit: Callable[[str, list[str]], list[str] | None] | None = None) -> None:
         self.hosts, self.pki = hosts, folder / "pki"
         self.children: list[Child] = []
         self.served: dict[str, Child] = {}
@@ -87,8 +88,13 @@ class Sites:
         def run(host: str, argv: list[str]) -> subprocess.CompletedProcess[str]:
             return subprocess.run(hosts.command(host, argv), capture_output=True, text=True, timeout=120, env=env, cwd=folder)
 
+        started = 0
         for host, line in _docs_two_sites():
-            argv = [*dyknow, *shlex.split(line)[1:]]
+            edited = [*dyknow, *shlex.split(line)[1:]] if edit is None else edit(host, [*dyknow, *shlex.split(line)[1:]])
+            if edited is None:
+                continue
+            argv = edited
+            started += argv[3] == "manager"
             if argv[3] in ("router", "manager"):
                 self.served[host] = self.child(host, [w.replace("pki/", f"{self.pki}/") for w in argv] + ["--json"])
                 ready = self.served[host].next("ready", timeout_s=60)
@@ -98,7 +104,7 @@ class Sites:
             done = run(host, argv)
             if argv[3] == "managers":  # an operator waits for every manager of both sites to show up
                 deadline = time.monotonic() + 60
-                while len(json.loads(run(host, [*argv, "--json"]).stdout or "[]")) != 3:
+                while len(json.loads(run(host, [*argv, "--json"]).stdout or "[]")) != started:
                     assert time.monotonic() < deadline, run(host, [*argv, "--json"])
                     time.sleep(0.2)
                 done = run(host, argv)

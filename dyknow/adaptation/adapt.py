@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dyknow.adaptation.analyze import Analyzer
 from dyknow.adaptation.anchor import anchor_name, spawn_anchor
 from dyknow.adaptation.events import Journal, Recovery
-from dyknow.adaptation.knowledge import AdaptationEvent, Knowledge, Request
+from dyknow.adaptation.knowledge import AdaptationEvent, Knowledge, Request, reason_head
 from dyknow.adaptation.monitor import Symptom
 from dyknow.adaptation.reconfigure import Reconfigurer, is_current
 from dyknow.adaptation.requirements import Requirements
@@ -251,7 +251,7 @@ class Adapter:
             )
             self._journal.emit(event)
             # one line; the planner's whole explanation at debug level (and in the event's detail, dyknow plan)
-            head = ": ".join(line.strip().rstrip(":") for line in why.splitlines()[:2])  # "cannot plan T: nothing can provide T"
+            head = reason_head(why)  # "cannot plan T: nothing can provide T"
             log.warning(
                 "request %s is degraded (%s): %s (the planner's reasons: its event, or dyknow plan)", request.tag, symptom.cause(), head
             )

@@ -203,7 +203,15 @@ class Request:
                 {"formula": formula, "transformation": label, "unit": ref, "why": why}
                 for (ref, formula), (label, why) in self.unwatched.items()
             ),
+            reason=reason_head(self.reason) if self.state == "degraded" and self.reason else self._unwatched_reason(),
         )
+
+    def _unwatched_reason(self) -> str | None:
+        """Why a request served unchecked shows degraded (its first requirement not watched), or None."""
+        for (_, formula), (label, why) in self.unwatched.items():
+            more = f" (and {len(self.unwatched) - 1} more)" if len(self.unwatched) > 1 else ""
+            return f"the requirement {formula!r} of {label} is not watched{more}: {why}"
+        return None
 
     def held(self) -> list[str]:
         """Every unit the request holds: its configuration, its standby, spare and trial units."""
@@ -294,6 +302,13 @@ class Knowledge:
                 return False
             held = held or r.holds_aside(unit)
         return held
+
+
+def reason_head(why: str) -> str:
+    """The first two lines of why a request is degraded, on one line (``cannot plan T: nothing
+    can provide T``): what a log line, the model and the tools show; the planner's whole
+    explanation is in the "degraded" event's detail (and ``dyknow plan``)."""
+    return ": ".join(line.strip().rstrip(":") for line in why.splitlines()[:2])
 
 
 def runs_on(ref: str, manager: str | None) -> bool:

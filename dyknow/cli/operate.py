@@ -22,6 +22,35 @@ def _stop_on_signals() -> threading.Event:
     return stop
 
 
+def _why_silent(client: Any, keyexpr: str) -> tuple[str, str] | None:
+    """Why nothing comes on ``keyexpr``, as the managers know it (``(why, fix)``), when it is a
+    manager's key (``dyknow/<manager>/...``): that manager LOST, or a degraded request of its on
+    that key; None when nothing known explains it."""
+    from dyknow import keys, presence
+    from dyknow.errors import DyKnowError
+
+    chunks = keyexpr.split("/")
+    if len(chunks) < 2 or chunks[0] != keys.DATA_ROOT or any(c in chunks[1] for c in "*$"):
+        return None
+    manager = chunks[1]
+    try:
+        names = client.manager_names(timeout_s=0.5)
+        if manager not in names:
+            loss = client.recall_lost(names).get(manager)
+            return None if loss is None else (f"it is a key of manager {manager!r}, and {loss.said()}", loss.fix())
+        known = presence.health(client, [manager]).get(manager)
+    except DyKnowError:
+        return None
+    for request in known.degraded if known is not None else ():
+        if keys.includes(keyexpr, request["key"]) or keys.includes(request["key"], keyexpr):
+            return (
+                f"it is the key of request {request['tag']} of manager {manager!r}, which is degraded: {request.get('reason') or 'no reason given'}",
+                f"the request back on a full configuration, which it returns to by itself once one exists "
+                f"(dyknow plan '{request['tag']}' --manager {manager} says what is missing now)",
+            )
+    return None
+
+
 def cmd_hz(args: argparse.Namespace) -> int:
     """print the rate, interval jitter, message sizes and bandwidth of the streams on a key expression
     (as ros2 topic hz and bw do), every --every seconds over the last --window messages
@@ -34,6 +63,7 @@ def cmd_hz(args: argparse.Namespace) -> int:
 
     check_key_expr(args.keyexpr, what="hz")
     meter = StreamMeter(window=args.window)
+    why: list[tuple[str, str] | None] = []  # why nothing comes, once asked (at the first silent report)
     with open_client(args) as client:
         subscriber = client.session.declare_sample_subscriber(
             args.keyexpr, lambda key, payload, attachment: meter.add(key, len(payload) + len(attachment or b""))
@@ -48,15 +78,23 @@ def cmd_hz(args: argparse.Namespace) -> int:
                         print_json(f.to_dict())
                 else:
                     if not figures:
-                        print(f"no messages on {args.keyexpr!r} yet" + ("" if not meter.counts() else " (one so far)"), flush=True)
+                        if not why and not meter.counts():
+                            why.append(_why_silent(client, args.keyexpr))
+                        said = f": {why[0][0]}" if why and why[0] is not None and not meter.counts() else ""
+                        print(shown(f"no messages on {args.keyexpr!r} yet" + ("" if not meter.counts() else " (one so far)") + said), flush=True)
                     for f in figures:  # (keys are the publishers' choice: shown escaped)
                         print(shown(f), flush=True)
                 if deadline is not None and time.monotonic() >= deadline:
                     break
+            if not meter.counts() and not why:
+                why.append(_why_silent(client, args.keyexpr))
         finally:
             subscriber.undeclare()
     if not meter.counts():
-        print(f"dyknow: error: no message on {args.keyexpr!r} (is anything publishing there? dyknow model shows the keys)", file=sys.stderr)
+        if why and why[0] is not None:
+            print(shown(f"dyknow: error: no message on {args.keyexpr!r}: {why[0][0]}; expected {why[0][1]}"), file=sys.stderr)
+        else:
+            print(f"dyknow: error: no message on {args.keyexpr!r} (is anything publishing there? dyknow model shows the keys)", file=sys.stderr)
         return 1
     return 0
 
@@ -94,10 +132,10 @@ def _rates(previous: dict[str, Any] | None, snap: dict[str, Any]) -> dict[str, A
         )
     cpu = (snap["cpu_s"] - previous["cpu_s"]) / dt * 100 if previous and dt > 0 else None
     return {"manager": snap["manager"], "cpu_pct": None if cpu is None else round(cpu, 1), "threads": snap["threads"],
-            "adaptations": sum(snap["adaptations"].values()), "units": rows}  # fmt: skip
+            "adaptations": sum(snap["adaptations"].values()), "units": rows, "requests": snap.get("requests", [])}  # fmt: skip
 
 
-def _table(views: list[dict[str, Any]], errors: dict[str, str], interval: float, width: int) -> list[str]:
+def _table(views: list[dict[str, Any]], errors: dict[str, str], interval: float, width: int, lost: Iterable[Any] = ()) -> list[str]:
     lines = [f"dyknow top - {time.strftime('%H:%M:%S')}, every {interval:g} s; cpu: process for a manager, callback time x rate for a unit; Ctrl-C to quit"]
     header = f"{'UNIT':<24} {'LABEL':<22} {'STATE':<8} {'CPU%':>6} {'IN/s':>8} {'OUT/s':>8} {'QUEUE':>5} {'DROP':>6} {'LOST':>6} {'HOP p50':>9} {'p99 us':>9}"
     for view in views:
@@ -112,6 +150,13 @@ def _table(views: list[dict[str, Any]], errors: dict[str, str], interval: float,
             lines.append(row[:width])
             if u["error"]:
                 lines.append(f"  error: {u['error']}"[:width])
+        for r in view["requests"]:  # (a degraded one whole, with why: it is what the operator looks for)
+            if r["state"] == "degraded":
+                lines.append(f"request {r['tag']} on {r['key']}: DEGRADED: {r.get('reason') or 'no reason given'}")
+            else:
+                lines.append(f"request {r['tag']} on {r['key']}: {r['state']}"[:width])
+    for loss in lost:
+        lines += ["", loss.said()]  # "manager 'robot' is LOST since ..."
     for name, why in errors.items():
         lines += ["", f"manager {name}: {why}"]  # (whole: why a manager is left out, however wide the terminal)
     return lines
@@ -127,6 +172,7 @@ def cmd_top(args: argparse.Namespace) -> int:
       dyknow top --manager robot --interval 2
       dyknow top --once --json      # one snapshot with rates, for scripts"""
     from dyknow.errors import DyKnowError
+    from dyknow.presence import THIS_CLIENT, merge
 
     stop = _stop_on_signals()
     previous: dict[str, dict[str, Any]] = {}
@@ -151,12 +197,16 @@ def cmd_top(args: argparse.Namespace) -> int:
                 first = False  # rates need two snapshots: take the second after --interval
                 if not stop.wait(args.interval):
                     continue
+            # the managers lost and not back, as this client saw them go and as those up remember
+            reports = [(THIS_CLIENT, client.seen_lost()), *((v["manager"], previous[v["manager"]].get("lost", [])) for v in views)]
+            lost = list(merge(reports, up=[v["manager"] for v in views]).values())
             if args.json:
-                print_json({"time_ns": time.time_ns(), "managers": views, "errors": errors})
+                print_json({"time_ns": time.time_ns(), "managers": views, "errors": errors, "lost": [x.to_dict() for x in lost]})
             else:
                 width = shutil.get_terminal_size((160, 40)).columns
                 # (names, labels, states and errors are the managers' word: shown escaped)
-                lines = [shown(line) for line in _table(views, errors, args.interval, width)] if names else ["no manager reachable"]
+                table = _table(views, {n: e for n, e in errors.items() if n not in {x.manager for x in lost}}, args.interval, width, lost)
+                lines = [shown(line) for line in table] if names or lost else ["no manager reachable"]
                 if interactive:
                     sys.stdout.write("\x1b[H\x1b[2J" + "\n".join(lines) + "\n")
                     sys.stdout.flush()
@@ -181,7 +231,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
 
     tls = tls_files(args)
     connect = list(args.connect) or ([DEFAULT_ENDPOINT.replace("tcp/", "tls/", 1) if tls else DEFAULT_ENDPOINT] if args.zenoh_config is None else [])
-    listen = list(args.listen) or ([connect[0]] if connect and args.zenoh_config is None else [])
+    listen = list(args.listen)  # (without it, the first --connect when it is this host's address)
     if args.max_clock_offset_ms <= 0:
         raise UsageError(f"--max-clock-offset-ms: got {args.max_clock_offset_ms}; expected a positive number")
     found = diagnose(connect=connect, listen=listen, manager=args.manager, zenoh_config=args.zenoh_config, tls=tls,
@@ -219,7 +269,8 @@ def add_commands(cmds: Commands) -> None:
         from dyknow.doctor import DEFAULT_MAX_OFFSET_MS
 
         p.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                       help="where a manager would listen, to check the port is free (default: the first --connect)")  # fmt: skip
+                       help="where a manager would listen, to check the port is free (default: the first --connect, "
+                            "when it is an address of this host)")  # fmt: skip
         p.add_argument("--max-clock-offset-ms", type=float, default=DEFAULT_MAX_OFFSET_MS, metavar="MS",
                        help=f"fail when two managers' clocks are further apart (default {DEFAULT_MAX_OFFSET_MS:g})")  # fmt: skip
 

@@ -146,16 +146,25 @@ class Peers:
             self._manager, self._host, version, library, self._library.specs(), units, measurements, len(self._adaptation.requests()), CLOCK_ID
         )
 
-    def brief(self) -> dict[str, Any]:
-        """What a listing of the managers shows (``get_summary`` with ``brief``): counts, no library."""
+    def brief(self, health: bool = False) -> dict[str, Any]:
+        """What a listing of the managers shows (``get_summary`` with ``brief``): counts, no
+        library. ``health``: also the managers it lost (``{"manager", "since_ns", "why"}``) and its
+        requests that are degraded (``{"tag", "key", "reason"}``), what a tool that cannot reach a
+        manager, or finds a stream silent, asks (:mod:`dyknow.presence`)."""
         units = sum(1 for p in self._spawner.proxies() if p.label != ANCHOR_LABEL)
-        return {
+        requests = self._adaptation.requests()
+        brief: dict[str, Any] = {
             "manager": self._manager,
             "host": self._host,
             "specs": len(self._library),
             "units": units,
-            "requests": len(self._adaptation.requests()),
+            "requests": len(requests),
         }
+        if health:
+            lost = self._directory.lost() if self._directory is not None else {}
+            brief["lost"] = [{"manager": m, "since_ns": since, "why": why} for m, (since, why) in sorted(lost.items())]
+            brief["degraded"] = [{"tag": r.tag, "key": r.key, "reason": r.reason} for r in requests if r.state == "degraded"]
+        return brief
 
     def changed(self) -> None:
         """The manager's model changed: the others hear of it (a summary, debounced)."""

@@ -176,7 +176,7 @@ class Services:
             "monitor": self._serve_monitor,
             "measure": self._serve_measure,
             "get_adaptations": lambda r, c: [e.to_dict() for e in manager.get_adaptations()],
-            "get_summary": lambda r, c: self._peers.brief() if r.get("brief") else manager.summary().to_dict(),
+            "get_summary": lambda r, c: self._peers.brief(bool(r.get("health"))) if r.get("brief") or r.get("health") else manager.summary().to_dict(),
             "get_load": lambda r, c: manager.load(),
             "get_metrics": lambda r, c: manager.metrics.snapshot(),
         }
