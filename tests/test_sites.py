@@ -24,6 +24,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -82,6 +83,7 @@ class Sites:
         self.hosts, self.pki = hosts, folder / "pki"
         self.children: list[Child] = []
         self.served: dict[str, Child] = {}
+        self.ready: dict[str, dict[str, Any]] = {}  # the ready line of each router and manager, by host
         env = {**subprocess_env(), "DYKNOW_LOG": "INFO"}
         dyknow = [sys.executable, "-m", "dyknow.cli"]
 
@@ -97,7 +99,7 @@ class Sites:
             started += argv[3] == "manager"
             if argv[3] in ("router", "manager"):
                 self.served[host] = self.child(host, [w.replace("pki/", f"{self.pki}/") for w in argv] + ["--json"])
-                ready = self.served[host].next("ready", timeout_s=60)
+                ready = self.ready[host] = self.served[host].next("ready", timeout_s=60)
                 if argv[3] == "manager":
                     assert ready["endpoints"] == [] and len(ready["router"]) == 1, ready
                 continue
@@ -188,12 +190,22 @@ def test_a_cut_between_the_sites_fails_over_and_heals_by_itself(tmp_path: Path) 
         try:
             observer = sites.observer
             observer.next("camera", camera=BOTTOM, timeout_s=60)
+            # gw-b's ready line names the router it dials and, linked, the one there (or says so once linked: issue 52)
+            gateways, ready = {"gw-a": "gw-b", "gw-b": "gw-a"}, sites.ready["gw-b"]
+            assert ready["connect"] == [f"tls/{sites.a_wan}"] and [r["peer"] for r in ready["routers"]] in (["gw-a"], []), ready
+            if not ready["routers"]:
+                sites.served["gw-b"].next("link-up", peer="gw-a")
             hosts.cut("gw-b", network="wan")
             observer.next("camera", camera=CEILING, timeout_s=60)
             assert [x["manager"] for x in observer.ask("model station")[0]["lost"]] == ["robot"]
             _until(lambda: sites.gateway_links() == 0, "the link between the routers given up")
+            down = {gw: sites.served[gw].next("link-down", peer=peer) for gw, peer in gateways.items()}  # each names the other
             hosts.restore("gw-b")
             _until(lambda: sites.gateway_links() == 1, "the routers to link again", timeout_s=90)
+            for gw, peer in gateways.items():  # ... and says it came back, after how long (in its log too)
+                up = sites.served[gw].next("link-up", peer=peer)
+                assert up["zid"] == down[gw]["zid"] and up["down_s"] > 0 and down[gw]["address"].startswith("tls/192.168.9."), (up, down)
+                assert f"link to router {peer} (tls/192.168.9." in sites.served[gw].said() and " up again after " in sites.served[gw].said()
             observer.next("camera", camera=BOTTOM, timeout_s=60)  # the preferred camera back, after the dwell
             assert sorted(m["manager"] for m in observer.ask("managers")) == ["field", "robot", "station"]
             for name, router in (("station", sites.a_site), ("field", sites.a_site), ("robot", sites.b_site)):

@@ -361,3 +361,33 @@ def test_only_the_transport_package_imports_zenoh() -> None:
             if any(name == "zenoh" or name.startswith("zenoh.") for name in names):
                 importers.append(path.relative_to(root).as_posix())
     assert importers and all(path.startswith("dyknow/transport/") for path in importers), sorted(set(importers))
+
+
+def test_a_session_names_each_router_it_links_to_as_the_link_goes_and_comes_back(tmp_path: Path) -> None:
+    """Links to other routers are reported as they come up and go down, naming the router by its
+    certificate, its address and its id, and how long the link was down once it is back; a
+    client's link is not (a router has thousands: issue 52)."""
+    from dyknow.access import TlsFiles
+    from dyknow.certs import write_dev_certs
+    from dyknow.transport import RouterLink
+
+    write_dev_certs(tmp_path, ["gw-a", "gw-b", "laptop"])
+
+    def config(name: str, mode: str, listen: list[str], connect: list[str] = []) -> zenoh.Config:  # noqa: B006
+        tls = TlsFiles(str(tmp_path / "ca.pem"), str(tmp_path / f"{name}.pem"), str(tmp_path / f"{name}.key"))
+        return make_config(listen=listen, connect=connect, tls=tls, mode=mode, lease_ms=1000, shared_memory=False)
+
+    a_end, b_end = f"tls/127.0.0.1:{free_port()}", f"tls/127.0.0.1:{free_port()}"
+    changes: list[RouterLink] = []
+    with Session(config("gw-a", "router", [a_end])) as a, a.watch_routers(changes.append) as routers:
+        with Session(config("laptop", "client", [], [a_end])), Session(config("gw-b", "router", [b_end], [a_end])) as b:
+            first, zids = routers.wait_linked(1, 10), [b.zid]
+        wait_until(lambda: routers.linked() == [], "gw-b's link gone")
+        with Session(config("gw-b", "router", [b_end], [a_end])) as b:
+            zids.append(b.zid)
+            wait_until(lambda: len(routers.linked()) == 1, "gw-b back")
+            said = changes[:3]
+    assert [link.name for link in first] == ["gw-b"] and first[0].zid == zids[0] and first[0].address.startswith("tls/127.0.0.1:")
+    assert [(c.peer, c.up) for c in said] == [("gw-b", True), ("gw-b", False), ("gw-b", True)], said
+    assert said[0] == first[0] and said[1].zid == zids[0] and said[1].address == first[0].address and said[1].down_ns is None
+    assert said[2].zid == zids[1] and said[2].down_ns is not None and said[2].down_ns > 0  # (a new id: a new process)

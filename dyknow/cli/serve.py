@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import argparse
 import gc
+import logging
 import os
+import queue
 import signal
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dyknow.cli.common import (
     DEFAULT_MANAGER,
@@ -22,6 +25,10 @@ from dyknow.cli.common import (
     shipped,
     tls_files,
 )
+
+if TYPE_CHECKING:
+    from dyknow.access import AccessControl
+    from dyknow.transport import RouterLink
 
 
 def _lanes(text: str) -> int:
@@ -247,6 +254,49 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
         return run_bridge(client, host=args.host, port=args.port, keyexprs=args.keyexprs, ready=ready, origins=origins)
 
 
+#: How long ``dyknow router`` waits for its ``--connect`` routers before its ready line, which names
+#: those linked by then (a router whose peer is not up yet says so, and logs the link when it comes).
+ROUTER_LINK_WAIT_S = 2.0
+
+#: The router's own lines: each link to another router going (a warning) and coming back. Shown
+#: unless DYKNOW_LOG says otherwise (Python's default level would hide the links coming back).
+router_log = logging.getLogger("dyknow.router")
+
+
+def _router_named(link: RouterLink) -> str:
+    return f"router {link.peer} ({link.address or 'address unknown'}, zid {link.zid})"
+
+
+def _link_json(link: RouterLink) -> dict[str, object]:
+    return {"peer": link.peer, "zid": link.zid, "address": link.address}
+
+
+def _routine(link: RouterLink, access: AccessControl | None) -> bool:
+    """Whether a Zenoh router's link is routine, as a client's is: with --acl, a peer whose
+    certificate has another role than router (a manager that linked as a Zenoh router)."""
+    return access is not None and link.name is not None and access.role_of(link.name) not in (None, "router")
+
+
+def _report_router_link(args: argparse.Namespace, link: RouterLink, access: AccessControl | None) -> None:
+    """A link to another router up or down: a log line (stderr) and, with --json, an event on
+    stdout; a routine one (:func:`_routine`) at debug level only."""
+    if _routine(link, access):
+        router_log.debug("link to %s %s", _router_named(link), "up" if link.up else "down")
+        return
+    if link.up:
+        again = "" if link.down_ns is None else f" again after {link.down_ns / 1e9:.1f} s down"
+        router_log.info("link to %s up%s", _router_named(link), again)
+    else:
+        dialled = link.address in args.connect
+        router_log.warning("link to %s down: nothing passes between the routers until it is back%s", _router_named(link),
+                           "; dialling it again" if dialled else "")  # fmt: skip
+    if args.json:
+        from dyknow.cli.common import print_json
+
+        down = {"down_s": round(link.down_ns / 1e9, 3)} if link.up and link.down_ns is not None else {}
+        print_json({"event": "link-up" if link.up else "link-down", **_link_json(link), **down})
+
+
 def cmd_router(args: argparse.Namespace) -> int:
     """run a Zenoh router: a rendezvous point managers and clients connect to (it runs no units)"""
     _apply_nice(args)
@@ -272,15 +322,34 @@ def cmd_router(args: argparse.Namespace) -> int:
         listen=listen, connect=args.connect, config_file=args.zenoh_config, tls=tls, access=access, mode="router", lease_ms=args.lease_ms,
         max_sessions=args.max_sessions, shared_memory=False,
     )
-    with Session(config) as session:
+    if "DYKNOW_LOG" not in os.environ:
+        router_log.setLevel(logging.INFO)
+    changes: queue.SimpleQueue[RouterLink] = queue.SimpleQueue()
+    with Session(config) as session, session.watch_routers(changes.put) as routers:
         endpoints = session.endpoints()
+        routers.wait_linked(len(args.connect), ROUTER_LINK_WAIT_S)
+        while not changes.empty():  # what the ready line says (taken after: a change since is said twice, never lost)
+            changes.get()
+        linked = [link for link in routers.linked() if not _routine(link, access)]
         stop = _stop_event()
+        where = f"on {', '.join(endpoints)}"
+        named = "linked to " + ", ".join(map(_router_named, linked)) if linked else "not linked yet"
+        if args.connect:
+            where += f"; dialling {', '.join(args.connect)}: {named}"
+        elif linked:
+            where += f"; {named}"
         report_result(
             args,
-            {"event": "ready", "router": session.zid, "endpoints": endpoints},
-            f"dyknow router ready on {', '.join(endpoints)}; Ctrl-C to stop",
-        )
-        _wait_for(stop)
+            {"event": "ready", "router": session.zid, "endpoints": endpoints, "connect": args.connect,
+             "routers": [_link_json(link) for link in linked]},
+            f"dyknow router ready {where}; Ctrl-C to stop",
+        )  # fmt: skip
+        while not stop.is_set():
+            try:
+                link = changes.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            _report_router_link(args, link, access)
         _exit_by_deadline("router")
     if not args.json:
         print("dyknow router stopped", flush=True)

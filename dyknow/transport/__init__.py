@@ -26,7 +26,8 @@ module                      what it holds
                             :class:`ServiceChannel`, :class:`LivelinessToken`, ...
 :mod:`~.calls`              a session's service calls: its queriers, and why a call got no answer
 :mod:`~.config`             :func:`make_config`: endpoints and their schemes, modes, TLS and access control
-:mod:`~.links`              dead links bounded by the lease, dials under way ended (:func:`abort_dials`)
+:mod:`~.links`              dead links bounded by the lease, dials under way ended (:func:`abort_dials`),
+                            links to other routers as they come and go (:class:`RouterLinks`)
 :mod:`~.key_exprs`          key expressions: :func:`check_key_expr`, :func:`is_wild`, :func:`key_exprs_intersect`
 :mod:`~.shared_memory`      Zenoh shared memory for large payloads
 :mod:`~.runtime`            Zenoh's threads (:data:`ZENOH_RUNTIME`), callbacks on them, its errors in words
@@ -51,6 +52,8 @@ from dyknow.transport.entities import (
     Subscriber,
 )
 from dyknow.transport.key_exprs import check_key_expr, is_wild, key_exprs_intersect
+from dyknow.transport.links import RouterLink as RouterLink
+from dyknow.transport.links import RouterLinks as RouterLinks
 from dyknow.transport.links import abort_dials as abort_dials
 from dyknow.transport.links import bound_unacknowledged as bound_unacknowledged
 from dyknow.transport.runtime import ZENOH_RUNTIME

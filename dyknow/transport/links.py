@@ -1,9 +1,12 @@
-"""A session's links: dead ones bounded by a lease, dials under way ended, closed ones counted.
+"""A session's links: dead ones bounded by a lease, dials under way ended, closed ones counted,
+and those to other routers named as they come and go.
 
 Zenoh closes a dead link only after the kernel lets go of what the link still holds (see "dead
 links" below), and its close waits for a dial under way: :func:`bound_unacknowledged` and
 :func:`abort_dials` bound both, and :class:`Links` follows a session's links as they open and
 close, so that a call that ended without a reply can tell a link closed under it.
+:class:`RouterLinks` reports each link to another Zenoh router going and coming back, with the
+router's name (``dyknow router`` logs them: the link between two sites).
 """
 
 from __future__ import annotations
@@ -16,7 +19,9 @@ import queue
 import socket
 import sys
 import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
@@ -24,7 +29,7 @@ import zenoh
 
 from dyknow.transport.runtime import inline_handler
 
-__all__ = ["Links", "abort_dials", "bound_unacknowledged"]
+__all__ = ["Links", "RouterLink", "RouterLinks", "abort_dials", "bound_unacknowledged"]
 
 log = logging.getLogger(__name__)
 
@@ -248,3 +253,107 @@ class Links:
             with contextlib.suppress(zenoh.ZError):
                 listener.undeclare()
 
+
+
+# --------------------------------------------------------------------------- links to routers
+
+
+@dataclass(frozen=True, slots=True)
+class RouterLink:
+    """A session's link to another Zenoh router as it came up or went down (:class:`RouterLinks`)."""
+
+    zid: str  # the router's Zenoh id (a new one each time a router without a configured id starts)
+    address: str  # the link's other end ("tls/192.168.9.1:7447"; a dialling router's own port); "" if unknown
+    name: str | None  # the common name of the router's TLS certificate; None without TLS
+    up: bool
+    down_ns: int | None = None  # (a link up) how long it had been down, when this session saw it go
+
+    @property
+    def peer(self) -> str:
+        """How an operator knows the router: its certificate's name, else its Zenoh id."""
+        return self.name or self.zid
+
+
+#: At most this many routers are remembered as down (for how long a link was down when it comes
+#: back): routers without a configured id get a new one each time they start.
+MAX_REMEMBERED_DOWN: Final = 1_000
+
+
+class RouterLinks:
+    """A session's links to other Zenoh routers as they come up and go down: ``on_change(link)``
+    for each (:class:`RouterLink`), on Zenoh's thread, so it must return at once (put it on a
+    queue). The links already up when it is declared are reported too.
+
+    Only routers: a ``dyknow router``'s managers behind it and its clients (thousands of them)
+    link as Zenoh clients and are left out (logged at debug level); a manager that links as a
+    Zenoh router (one that ``--connect`` s, or that started before its router) counts as one.
+    A context manager; ``close()`` is safe twice."""
+
+    def __init__(self, session: zenoh.Session, on_change: Callable[[RouterLink], None]) -> None:
+        self._session = session
+        self._on_change = on_change
+        self._changed = threading.Condition()
+        self._linked: dict[str, RouterLink] = {}  # by zid
+        self._down_since: dict[str, int] = {}  # by peer: time.monotonic_ns() when its link went
+        self._listener: Any = None
+        try:
+            self._listener = session.info.declare_transport_events_listener(inline_handler(self._event), history=True)
+        except (zenoh.ZError, AttributeError) as exc:
+            log.warning("no watch of the links to other routers (%s)", exc)
+
+    def _event(self, event: Any) -> None:
+        try:
+            transport = event.transport
+            up = event.kind == zenoh.SampleKind.PUT
+            if transport.whatami != zenoh.WhatAmI.ROUTER:  # (kept quick: a router may hold thousands)
+                log.debug("%s %s link %s", transport.whatami, transport.zid, "up" if up else "down")
+                return
+            now, zid = time.monotonic_ns(), str(transport.zid)
+            # (the link's ends, while it is up: Zenoh's transport events do not carry them)
+            address, name = self._ends(transport.zid) if up else ("", None)
+            with self._changed:
+                if up:
+                    since = self._down_since.pop(name or zid, None)
+                    link = RouterLink(zid, address, name, True, None if since is None else now - since)
+                    self._linked[zid] = link
+                else:
+                    was = self._linked.pop(zid, None)
+                    link = RouterLink(zid, was.address if was else "", was.name if was else None, False)
+                    self._down_since.pop(link.peer, None)
+                    self._down_since[link.peer] = now
+                    while len(self._down_since) > MAX_REMEMBERED_DOWN:
+                        del self._down_since[next(iter(self._down_since))]
+                self._on_change(link)  # (under the lock: in the order they happened)
+                self._changed.notify_all()
+        except Exception:  # Zenoh would swallow it
+            log.exception("transport event %s", event)
+
+    def _ends(self, zid: Any) -> tuple[str, str | None]:
+        """The other end of the session's link to ``zid`` and its certificate's name."""
+        for link in self._session.info.links():
+            if link.zid == zid:
+                return str(link.dst), link.auth_identifier or None
+        return "", None
+
+    def linked(self) -> list[RouterLink]:
+        """The routers linked now, by name."""
+        with self._changed:
+            return sorted(self._linked.values(), key=lambda link: link.peer)
+
+    def wait_linked(self, count: int, timeout_s: float) -> list[RouterLink]:
+        """:meth:`linked`, once ``count`` routers are (or ``timeout_s`` passed)."""
+        with self._changed:
+            self._changed.wait_for(lambda: len(self._linked) >= count, timeout_s)
+        return self.linked()
+
+    def close(self) -> None:
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            with contextlib.suppress(zenoh.ZError):
+                listener.undeclare()
+
+    def __enter__(self) -> RouterLinks:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

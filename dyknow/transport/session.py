@@ -35,7 +35,7 @@ from dyknow.transport.entities import (
     ServiceChannel,
     Subscriber,
 )
-from dyknow.transport.links import Links, abort_dials
+from dyknow.transport.links import Links, RouterLink, RouterLinks, abort_dials
 from dyknow.transport.runtime import error_text, inline_handler, inline_handler_with_end, lay_out_runtimes, panic_error, wait_for_handlers
 from dyknow.transport.shared_memory import SharedMemory
 
@@ -187,6 +187,11 @@ class Session:
         """Whether the session has a link to another Zenoh node (a peer or a router) now."""
         info = self._z().info
         return bool(info.peers_zid()) or bool(info.routers_zid())
+
+    def watch_routers(self, on_change: Callable[[RouterLink], None]) -> RouterLinks:
+        """Follow the session's links to other Zenoh routers: ``on_change(link)`` as each comes up
+        (those up already too) and goes down, on Zenoh's thread (see :class:`RouterLinks`)."""
+        return RouterLinks(self._z(), on_change)
 
     # -- declarations
 
