@@ -188,7 +188,7 @@ def test_a_cut_between_the_sites_fails_over_and_heals_by_itself(tmp_path: Path) 
             # and a stream only the robot serves: degraded during the cut, rebuilt as the robot is back
             line = next(line for _, line in _docs_two_sites() if line.startswith("dyknow request ")).replace("BallTrack(field)", "RawImage(bottom)")
             assert sites.run("station", [sys.executable, "-m", "dyknow.cli", *shlex.split(line)[1:]]).returncode == 0
-            units = sorted(u["name"] for u in observer.ask("model robot")[0]["units"])
+            units = {u["name"]: u["bindings"] for u in observer.ask("model robot")[0]["units"]}  # the robot's camera: its name, its keys
             hosts.cut("gw-b", network="wan")
             observer.next("camera", camera=CEILING, timeout_s=60)
             assert [x["manager"] for x in observer.ask("model station")[0]["lost"]] == ["robot"]
@@ -200,6 +200,6 @@ def test_a_cut_between_the_sites_fails_over_and_heals_by_itself(tmp_path: Path) 
             for name, router in (("station", sites.a_site), ("field", sites.a_site), ("robot", sites.b_site)):
                 assert links(hosts, name, sites.served[name].proc.pid) == [router]  # the managers' own links never went
             # the robot's camera, gone with the station's loss, was spawned again under its name and key (issue 52)
-            assert sorted(u["name"] for u in observer.ask("model robot")[0]["units"]) == units == ["robot-camera"]
+            assert {u["name"]: u["bindings"] for u in observer.ask("model robot")[0]["units"]} == units and list(units) == ["robot-camera"]
         finally:
             sites.close()
