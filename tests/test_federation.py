@@ -175,6 +175,25 @@ def test_a_lost_manager_fails_over_on_the_same_key_and_its_return_is_preferred(s
     wait_until(lambda: not m["field"].units(), "the field's camera to be released")
 
 
+def test_a_unit_spawned_again_on_a_manager_back_from_a_loss_keeps_its_name(system: Callable[..., dict[str, Manager]], make_manager: Callable[..., Manager]) -> None:
+    """A request only the robot serves is degraded while the robot is gone; when it is back its
+    camera is spawned there again under its name and key, each time. Before, the name of the unit
+    lost with the robot stayed taken (robot-camera-2 after one loss, robot-camera after the next),
+    or, had no summary shown that unit before the loss, the request was active again on it though
+    the robot ran nothing (issue 52)."""
+    m = system(("station", "robot"))
+    station, robot = m["station"], m["robot"]
+    key = station.request("RawImage(bottom)")
+    for back in range(3):
+        wait_until(lambda r=robot: bool(r.units()) and station.requests()[0].state == "active", "the camera on the robot")  # type: ignore[misc]
+        assert [(u.name, u.bindings["out"]) for u in robot.units()] == [("robot-camera", keys.default_key("robot", "robot-camera", "out"))], back
+        assert station.requests()[0].key == key
+        if back < 2:
+            robot.close()
+            wait_until(lambda: station.requests()[0].state == "degraded", "the request degraded")
+            robot = make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=[ONTOLOGY], connect=[station.endpoints[0]], listen=["tcp/127.0.0.1:0"])
+
+
 def test_units_serving_a_lost_manager_are_destroyed(system: Callable[..., dict[str, Manager]], caplog: pytest.LogCaptureFixture) -> None:
     m = system()
     m["station"].request(TRACK)

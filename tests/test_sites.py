@@ -90,6 +90,7 @@ class Sites:
         def run(host: str, argv: list[str]) -> subprocess.CompletedProcess[str]:
             return subprocess.run(hosts.command(host, argv), capture_output=True, text=True, timeout=120, env=env, cwd=folder)
 
+        self.run = run  # (a test's own lines too)
         started = 0
         for host, line in _docs_two_sites():
             edited = [*dyknow, *shlex.split(line)[1:]] if edit is None else edit(host, [*dyknow, *shlex.split(line)[1:]])
@@ -183,7 +184,9 @@ def test_the_docs_two_sites_serve_a_request_from_the_other_site_and_fail_over_to
 def test_a_cut_between_the_sites_fails_over_and_heals_by_itself(tmp_path: Path) -> None:
     """The WAN link of site B's gateway goes down (the sites apart, every host up): site A loses
     the robot once the lease expires and takes the field's camera; the link back, the routers
-    link again by themselves, the robot is listed again and the request returns to its camera."""
+    link again by themselves, the robot is listed again and the request returns to its camera. A
+    request only the robot serves is degraded meanwhile; rebuilt, its camera on the robot has the
+    name (and key) it had, not robot-camera-2 (issue 52)."""
     _namespaces()
     with Hosts(["station", "field", "gw-a", "robot", "gw-b"], networks=SITES, addresses=ADDRESSES) as hosts:
         sites = Sites(hosts, tmp_path)
@@ -195,6 +198,10 @@ def test_a_cut_between_the_sites_fails_over_and_heals_by_itself(tmp_path: Path) 
             assert ready["connect"] == [f"tls/{sites.a_wan}"] and [r["peer"] for r in ready["routers"]] in (["gw-a"], []), ready
             if not ready["routers"]:
                 sites.served["gw-b"].next("link-up", peer="gw-a")
+            # and a stream only the robot serves: degraded during the cut, rebuilt as the robot is back
+            line = next(line for _, line in _docs_two_sites() if line.startswith("dyknow request ")).replace("BallTrack(field)", "RawImage(bottom)")
+            assert sites.run("station", [sys.executable, "-m", "dyknow.cli", *shlex.split(line)[1:]]).returncode == 0
+            units = {u["name"]: u["bindings"] for u in observer.ask("model robot")[0]["units"]}  # the robot's camera: its name, its keys
             hosts.cut("gw-b", network="wan")
             observer.next("camera", camera=CEILING, timeout_s=60)
             assert [x["manager"] for x in observer.ask("model station")[0]["lost"]] == ["robot"]
@@ -210,5 +217,7 @@ def test_a_cut_between_the_sites_fails_over_and_heals_by_itself(tmp_path: Path) 
             assert sorted(m["manager"] for m in observer.ask("managers")) == ["field", "robot", "station"]
             for name, router in (("station", sites.a_site), ("field", sites.a_site), ("robot", sites.b_site)):
                 assert links(hosts, name, sites.served[name].proc.pid) == [router]  # the managers' own links never went
+            # the robot's camera, gone with the station's loss, was spawned again under its name and key (issue 52)
+            assert {u["name"]: u["bindings"] for u in observer.ask("model robot")[0]["units"]} == units and list(units) == ["robot-camera"]
         finally:
             sites.close()

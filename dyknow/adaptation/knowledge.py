@@ -244,7 +244,9 @@ class Knowledge:
         self.stalled: set[str] = set()  # unit names
         self.managed: set[str] = set()  # units the loop spawned (it never destroys the others)
         self.remote: dict[str, dict[str, str]] = {}  # name@manager -> bindings, of those on other managers
-        self.seen: set[str] = set()  # units of other managers the requests use, once in a summary
+        # units of other managers the requests use, once in a summary (or their manager lost since):
+        # one its manager's summary does not show then is gone
+        self.seen: set[str] = set()
         self.history: list[AdaptationEvent] = []
         self.losses: dict[str, list[int]] = {}  # manager -> when it was lost (ns), the last FLAP_WINDOW_S
         self.returned: dict[str, list[int]] = {}  # manager -> [when it came back after a loss (ns), trust announced]
@@ -260,10 +262,12 @@ class Knowledge:
         self.backoff[label] = [now_ns + int(delay * 1e9), delay, False]
 
     def lost(self, manager: str, now_ns: int) -> None:
-        """Another manager was lost: one more loss towards its probation."""
+        """Another manager was lost: one more loss towards its probation. Its summary when it is
+        back accounts for every unit spawned there: one it does not show is gone (:attr:`seen`)."""
         recent = [t for t in self.losses.get(manager, []) if now_ns - t < FLAP_WINDOW_S * 1e9][-63:]
         self.losses[manager] = [*recent, now_ns]
         self.returned.pop(manager, None)
+        self.seen.update(ref for ref in self.remote if runs_on(ref, manager))
 
     def found(self, manager: str, now_ns: int) -> None:
         """Another manager came (back): its probation starts now, if it was lost before."""

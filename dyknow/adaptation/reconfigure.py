@@ -112,7 +112,9 @@ class Reconfigurer:
                     continue  # ours, but already destroyed (the summary is older) or left by an earlier run
 
                 running.append(unit.running(manager))
-        names.update(knowledge.remote)  # spawned, maybe not in a summary yet
+        # spawned, maybe not in a summary yet; one its manager's summary no longer shows is gone
+        # (destroyed there as that manager lost this one, say), and its name free for its successor
+        names.update(ref for ref in knowledge.remote if ref not in knowledge.seen)
         return running, names
 
     def _own(self, request: Request | None) -> set[str]:
@@ -134,7 +136,7 @@ class Reconfigurer:
         load = {home: len(local) - sum(1 for name in own if name in local)}
         for manager, summary in runtime.peers().items():
             shown = {qualify(unit.name, manager) for unit in summary.units}
-            pending = sum(1 for ref in self._knowledge.remote if runs_on(ref, manager) and ref not in shown)
+            pending = sum(1 for ref in self._knowledge.remote if runs_on(ref, manager) and ref not in shown and ref not in self._knowledge.seen)
             load[manager] = summary.load - len(shown & own) + pending
         return load
 
@@ -257,6 +259,7 @@ class Reconfigurer:
                     if unit.remote:
                         knowledge.remote[unit.ref] = bindings
                         knowledge.managed.add(unit.ref)
+                        knowledge.seen.discard(unit.ref)  # a new unit under a name used before: in no summary yet
                         built.spawned.append(unit.ref)
                         runtime.spawn_on(unit.manager, unit.label, unit.name, bindings=bindings)
                     else:
