@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from collections.abc import Callable
 
 import pytest
@@ -212,6 +213,30 @@ def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_w
             for token in tokens:
                 token.undeclare()
         finally:
+            a.close()
+
+
+def test_a_provider_slow_to_give_its_summary_is_waited_for_and_planned_with() -> None:
+    """A real provider whose summary takes 2.5 s to come (a loaded host, a large library: beside
+    CPU hogs, a manager offering 1,500 tags gave its summary past the second a plan waited, and the
+    request failed, "nothing provides") is still read: a tag none of whose candidates' summaries
+    came waits longer for them (up to _PATIENT_S), ending at the first (issue 50)."""
+    from dyknow.federation import Directory, Summary
+
+    def fetch(manager: str) -> bytes:
+        time.sleep(2.5)  # (a stand-in for the provider's slow answer)
+        return json.dumps(Summary(manager, "slow-host", 1, "x").to_dict()).encode()
+
+    port = free_port()
+    with Session(make_config(listen=[f"tcp/127.0.0.1:{port}"])) as one, Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as two:
+        a = Directory(one, "a", summarize=lambda: Summary("a", "a-host", 1), fetch=fetch, on_change=lambda k, m: None)
+        tokens = [two.declare_liveliness_token(keys.manager_token("slow")), two.declare_liveliness_token(keys.offer_token("Slowly", (), "slow"))]
+        try:
+            wait_until(lambda: "slow" in a.alive() and len(one.alive(keys.offers_pattern("Slowly", ()), timeout_s=0.5)) == 1, "its tokens")
+            assert a.discover([("Slowly", ())]) and a.peers()["slow"].host == "slow-host"
+        finally:
+            for token in tokens:
+                token.undeclare()
             a.close()
 
 

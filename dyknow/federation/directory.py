@@ -45,6 +45,11 @@ _MAX_FOLLOWED = 256  # managers whose summaries are followed (candidates, manage
 _MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
 _MAX_TODO = 100_000  # changes waiting for the directory's thread
 _DISCOVER_TIMEOUT_S = 1.0
+#: How much longer a plan waits for a tag none of whose candidates' summaries came within
+#: _DISCOVER_TIMEOUT_S: a real provider on a loaded host, or with a large library, may take longer
+#: (beside CPU hogs, a library of 1,500 tags did); it ends at the first summary read. A tag offered
+#: only by names with nobody behind them is held up this long once, and then planned without them.
+_PATIENT_S = 5.0
 _FETCHERS = 8  # summaries fetched at once
 _DOUBTERS = 2  # summaries of managers that never answered, asked again at once
 _GIVE_UP_ASKS, _GIVE_UP_S = 10, 30.0  # a manager followed that gives no summary for that long is let go (followed again if it restarts)
@@ -395,6 +400,7 @@ class Directory:
         # the client's whole timeout (a flood of them held the request service for 30 s, issue 51);
         # what comes later reaches the directory's thread as a fetch of its own would
         finished, _ = concurrent.futures.wait(futures, timeout=timeout_s)
+        finished = self._patiently([*new, *doubtful], dict(zip(todo, futures, strict=True)), set(finished))
         fetched: list[bytes | None] = []
         for m, future in zip(todo, futures, strict=True):
             if future in finished:
@@ -422,6 +428,30 @@ class Directory:
         with self._up:
             self._up.wait_for(lambda: self._closed or all(m in self._alive or m not in self._followed for m in added), timeout_s)
         return bool(added)
+
+    def _patiently(
+        self, patterns: list[str], fetching: dict[str, concurrent.futures.Future[bytes | None]], finished: set[Any]
+    ) -> set[Any]:
+        """``finished`` (the fetches done within the first wait), and those done while a tag of
+        ``patterns`` none of whose candidates has a summary yet waits for one of them, up to
+        :data:`_PATIENT_S` more: a tag with a candidate read plans at once."""
+        deadline = time.monotonic() + _PATIENT_S
+
+        def read(manager: str) -> bool:
+            future = fetching.get(manager)
+            return future is not None and future in finished and future.result() is not None
+
+        while not self._closed:
+            with self._lock:
+                unread = [self._candidates.get(p, set()) for p in patterns]
+                unread = [c for c in unread if not any(m in self._summaries or read(m) for m in c)]
+            waiting = {fetching[m] for c in unread for m in c if m in fetching and fetching[m] not in finished}
+            left = deadline - time.monotonic()
+            if not waiting or left <= 0:
+                break
+            done, _ = concurrent.futures.wait(waiting, timeout=left, return_when=concurrent.futures.FIRST_COMPLETED)
+            finished |= done
+        return finished
 
     def keep(self, needs: Collection[str]) -> None:
         """The needs (requests' tags, see :meth:`discover`) open now: those open before and no
