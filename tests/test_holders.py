@@ -28,19 +28,24 @@ def manager(make_manager: Callable[..., Manager]) -> Manager:
     return make_manager("owners", specs=[SCENARIO_SPECS], ontology=[ONTOLOGY], client_grace_s=0.5)
 
 
+#: How long a call may take: a request planned beside CPU hogs took over the client's default 5 s once
+#: (a slow manager is not what these tests are about).
+CALL_S = 30.0
+
+
 def _request(manager: Manager) -> dict[str, object] | None:
     return next((r.to_dict() for r in manager.requests() if r.tag == TAG), None)
 
 
 def test_a_closed_clients_request_ends_after_the_grace_and_a_kept_one_stays(manager: Manager) -> None:
-    with Client(manager.name, connect=manager.endpoints) as client:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as client:
         key = client.request(TAG)
         held = _request(manager)
         assert held is not None and held["references"] == 1 and held["kept"] == 0
         assert list(held["holders"].values()) == [1]  # type: ignore[union-attr]
     # (released on the holders' thread: the request goes first, then the units only it used)
     wait_until(lambda: _request(manager) is None and manager.units() == [], "the request of the closed client to be released, its units gone")
-    with Client(manager.name, connect=manager.endpoints) as client:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as client:
         assert client.request(TAG, keep=True) == key
     assert not wait_until_false(lambda: _request(manager) is not None, seconds=1.5)  # well past the grace
     assert _request(manager) == {**_request(manager), "references": 1, "kept": 1, "holders": {}}  # type: ignore[dict-item]
@@ -86,7 +91,7 @@ def test_a_crashed_clients_request_ends_too(manager: Manager) -> None:
 
 
 def test_a_bad_holder_id_is_refused_and_takes_nothing(manager: Manager) -> None:
-    with Client(manager.name, connect=manager.endpoints) as client:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as client:
         with pytest.raises(ServiceError, match=r"field .holder.: got .\.\./\.\..; expected a client id: 8 to 32 hexadecimal digits"):
             client.call_manager(manager.name, "request", {"tag": TAG, "holder": "../.."})
     assert _request(manager) is None and manager.units() == []
@@ -120,7 +125,7 @@ def test_the_manager_command_sets_the_grace(manager_process: Callable[..., Any])
 
 
 def test_a_holder_that_never_declares_its_token_is_released_once_it_had_time_to(manager: Manager) -> None:
-    with Client(manager.name, connect=manager.endpoints) as client:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as client:
         client.call_manager(manager.name, "request", {"tag": TAG, "holder": "0123456789abcdef"})  # and no token, ever
         assert not wait_until_false(lambda: _request(manager) is not None, seconds=1.5)  # past the grace: its token may be on its way
         wait_until(lambda: _request(manager) is None, "the request of a holder without a token released", timeout_s=15)
@@ -171,7 +176,7 @@ def test_a_requirement_goes_with_the_reference_that_added_it(manager: Manager) -
 def test_a_failed_call_leaves_nothing_behind(manager: Manager) -> None:
     """A requirement whose term nothing provides fails the call: on a new request nothing of
     it stays, on a shared one no reference is added, and five failures leak nothing."""
-    with Client(manager.name, connect=manager.endpoints) as client:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as client:
         for _ in range(5):
             with pytest.raises(PlanningError, match="Unheard"):
                 client.request(TAG, require=["Unheard(x) > 0"])
