@@ -88,6 +88,7 @@ LOAD_WINDOW_S: Final = 0.25
 _STOP: Final = object()
 _WAKE: Final = object()
 _NEVER: Final = 1 << 62  # next_due_ns of a lane without timers
+_FIRST_TICK_RETRY_NS: Final = 1_000_000  # a first tick that found its unit busy is tried again after 1 ms
 _IDLE_POLL_S = 0.1  # the watchdog's slowest poll; past it, it sleeps until the shared lane wakes
 _LOAD_WINDOW_NS: Final = int(LOAD_WINDOW_S * 1e9)
 _BUSY_WINDOW_NS: Final = 1_000_000_000  # a lane's busy fraction is over this long
@@ -109,8 +110,9 @@ class Job(Protocol):
         """Handle what is pending for the job."""
         ...
 
-    def run_timer(self, timer: Timer, worker: Worker) -> None:
-        """Fire one tick of ``timer``."""
+    def run_timer(self, timer: Timer, worker: Worker) -> bool:
+        """Fire one tick of ``timer``; False when it was skipped because the job was busy on
+        another thread (its setup, say)."""
         ...
 
 
@@ -160,7 +162,7 @@ def charged_ns(mark: tuple[int, int, int, int]) -> int:
 class Timer:
     """A periodic timer whose callback runs on its job's lane. ``cancel()`` stops it."""
 
-    __slots__ = ("_executor", "callback", "cancelled", "job", "next_ns", "overruns", "period_ns")
+    __slots__ = ("_executor", "callback", "cancelled", "fired", "job", "next_ns", "overruns", "period_ns")
 
     def __init__(self, executor: Executor, job: Job, period_ns: int, callback: Callable[[], None], first_ns: int | None = None) -> None:
         self._executor = executor
@@ -169,6 +171,7 @@ class Timer:
         self.callback = callback
         self.next_ns = time.monotonic_ns() + (period_ns if first_ns is None else first_ns)
         self.cancelled = False
+        self.fired = False  # whether a tick ran yet
         self.overruns = 0
 
     def cancel(self) -> None:
@@ -227,9 +230,18 @@ class Lane:
             if job_lane is not self:  # its unit moved to another lane
                 job_lane.add_timer(timer)
                 continue
-            timer.job.run_timer(timer, worker)
+            ran = timer.job.run_timer(timer, worker)
             if timer.cancelled:
                 continue
+            if not ran and not timer.fired:
+                # its first tick found the unit busy (a timer made in setup(), due at once, fires
+                # while setup still holds the unit, on a loaded machine): due again shortly, not a
+                # period later (a first tick 10 s late, once beside CPU hogs)
+                timer.next_ns = time.monotonic_ns() + _FIRST_TICK_RETRY_NS
+                with self._timer_lock:
+                    heapq.heappush(self._timers, (timer.next_ns, next(_tie), timer))
+                continue
+            timer.fired = True
             timer.next_ns += timer.period_ns
             now = time.monotonic_ns()
             if timer.next_ns <= now:  # we fell behind: skip the missed ticks rather than burst
@@ -313,8 +325,8 @@ class _Probe:
         if lane.probe is self:
             lane.probe = None
 
-    def run_timer(self, timer: Timer, worker: Worker) -> None:
-        pass
+    def run_timer(self, timer: Timer, worker: Worker) -> bool:
+        return True
 
 
 _tie = itertools.count()

@@ -435,22 +435,24 @@ class UnitJob:
                 self.lane.put(self)
                 return
 
-    def run_timer(self, timer: Timer, worker: Worker) -> None:
-        """Fire one timer tick under the unit's lock."""
+    def run_timer(self, timer: Timer, worker: Worker) -> bool:
+        """Fire one timer tick under the unit's lock; False when the unit was busy on another
+        thread (the tick skipped; a first tick is tried again shortly: ``dyknow.executor.Lane.fire_due``)."""
         if self.shed and self._skip_tick():
-            return
+            return True
         if not self._lock.acquire(False):
-            return  # the unit is busy on another thread: skip this tick
+            return False  # the unit is busy on another thread: skip this tick
         try:
             state = self.state
             if state is _STOPPED or state is _FAILED:
                 timer.cancel()
-                return
+                return True
             # STARTING: setup() is done (it ran under this lock), the inputs are being bound: tick
             self._call(timer.callback, worker, "a timer callback")
         finally:
             self._release()
         self._after_callbacks()
+        return True
 
     def _call(self, fn: Callable[[], None], worker: Worker, where: str) -> None:
         self._current = None
