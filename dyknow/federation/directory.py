@@ -310,9 +310,7 @@ class Directory:
         def ask_index() -> None:
             for p in [*new, *doubtful]:
                 try:
-                    # (only managers answer it, and it ends as soon as they all did: a longer bound
-                    # waits only for a slow one, whose answer puts it among the candidates chosen)
-                    self._session.ask_index(p, timeout_s=timeout_s + _PATIENT_S, limit=MAX_CANDIDATES, done=functools.partial(indexed, p))
+                    self._session.ask_index(p, timeout_s=timeout_s, limit=MAX_CANDIDATES, done=functools.partial(indexed, p))
                 except DyKnowError as exc:
                     log.warning("directory of %r: cannot ask which managers answer for %s: %s", self.name, p, exc)
                     indexed(p, [], 0)
@@ -354,7 +352,7 @@ class Directory:
             for entity in evicted:
                 entity.undeclare()
         ask()
-        done.wait(timeout_s + _PATIENT_S + 0.5)
+        done.wait(timeout_s + 0.5)
         with self._lock:
             got = {p: answers.get(p, ([], 0)) for p in new}
             answer = {p: set(ms) for p, ms in answering.items()}
