@@ -78,10 +78,12 @@ _SPURIOUS = [0]  # adaptations to a stall (a deadline missed on a busy machine),
 _VOID = [0]  # faults a retry after such a stall recovered, not their own adaptation: injected again
 
 
-def before_fault() -> None:
-    """Run ``gc.collect()`` before a fault when the run asks for it (``--gc on``)."""
+def before_fault() -> int:
+    """Run ``gc.collect()`` before a fault when the run asks for it (``--gc on``); the time (ns since
+    the epoch) after it, to pass as :meth:`Watcher.wait`'s ``since_ns``."""
     if _COLLECT[0]:
         gc.collect()
+    return time.time_ns()
 
 
 class Watcher:
@@ -104,13 +106,13 @@ class Watcher:
             (self.recovered if event.kind == "recovered" else self.adapted).append(event)
             self._cond.notify_all()
 
-    def wait(self, cause: str, timeout_s: float = 10.0) -> AdaptationEvent | None:
+    def wait(self, cause: str, since_ns: int, timeout_s: float = 10.0) -> AdaptationEvent | None:
         """The next recovered event whose cause starts with ``cause``; the recovered events before it
-        (other causes) are counted as spurious. None when the fault's own adaptation did not
-        recover and a retry did (after a stall, the only way left was in back-off, and its retry
-        ended the fault): that fault's time is not the one measured. RuntimeError after
-        ``timeout_s`` seconds."""
-        adapted_before = len(self.adapted)
+        (other causes) are counted as spurious. None when a retry recovered the request after the
+        fault (made at ``since_ns``) instead of the fault's own adaptation: after a stall, the way the
+        fault called for was in back-off, and the retry at its end took it (or the fault's own
+        adaptation did not recover and the retry did). That fault's time is not the one measured.
+        RuntimeError after ``timeout_s`` seconds."""
 
         def found() -> AdaptationEvent | bool | None:
             while self._taken < len(self.recovered):
@@ -119,7 +121,7 @@ class Watcher:
                 if event.cause.startswith(cause):
                     return event
                 self.spurious += 1
-                if event.cause.startswith("retry: ") and any(e.cause.startswith(cause) for e in self.adapted[adapted_before:]):
+                if event.cause.startswith("retry: ") and event.fault_ns >= since_ns:
                     return False
             return None
 
@@ -170,9 +172,9 @@ def run_exception(n: int, rate: float) -> list[tuple[float, float]]:
             consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
             cam = manager.unit(camera(manager, "robot-camera"))
             assert isinstance(cam, Camera)
-            before_fault()
+            fault_ns = before_fault()
             cam.explode()
-            event = watcher.wait("unit 'robot-camera' failed")
+            event = watcher.wait("unit 'robot-camera' failed", fault_ns)
             _SPURIOUS[0] += watcher.spurious
             if event is None:
                 _VOID[0] += 1
@@ -190,9 +192,9 @@ def run_destroyed(n: int, rate: float) -> list[tuple[float, float]]:
         consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
         while len(out) < n:
             consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=60)  # (back, after a stall moved it)
-            before_fault()
+            fault_ns = before_fault()
             manager.destroy(camera(manager, "robot-camera"))
-            event = watcher.wait("unit 'robot-camera' was destroyed")
+            event = watcher.wait("unit 'robot-camera' was destroyed", fault_ns)
             if event is None:
                 _VOID[0] += 1
                 continue
@@ -221,10 +223,9 @@ def run_measurement(n: int, rate: float) -> tuple[list[tuple[float, float]], lis
         consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM)
         while len(faults) < n:
             consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=60)  # (back, after a stall moved it)
-            before_fault()
-            measured = time.time_ns()
+            measured = before_fault()
             manager.measure("battery", 0.1)
-            event = watcher.wait("measurement battery = 0.1", timeout_s=60)
+            event = watcher.wait("measurement battery = 0.1", measured, timeout_s=60)
             if event is None:  # a retry after a stall recovered it, not this adaptation: once more
                 _VOID[0] += 1
                 time.sleep(DWELL_S + 0.02)
@@ -233,10 +234,9 @@ def run_measurement(n: int, rate: float) -> tuple[list[tuple[float, float]], lis
             faults.append(since(measured, event))
             wired_s = (event.fault_ns + (event.adaptation_ms or 0.0) * 1e6) / 1e9
             time.sleep(max(0.0, wired_s + DWELL_S + 0.02 - time.time()))  # the dwell is over: the return may come at once
-            before_fault()
-            measured = time.time_ns()
+            measured = before_fault()
             manager.measure("battery", 0.9)
-            back = watcher.wait("measurement battery = 0.9", timeout_s=60)
+            back = watcher.wait("measurement battery = 0.9", measured, timeout_s=60)
             if back is None:
                 _VOID[0] += 1
                 continue
@@ -275,10 +275,9 @@ def run_remote_kill(n: int, rate: float) -> list[tuple[float, float, float]]:
                 watcher = Watcher(manager)
                 _, consumer = start(manager)
                 consumer.wait_until(lambda m: m.payload["camera"] == BOTTOM, timeout_s=10)
-                before_fault()
-                killed_ns = time.time_ns()
+                killed_ns = before_fault()
                 child.send_signal(signal.SIGKILL)
-                event = watcher.wait("unit 'remote-camera' failed")
+                event = watcher.wait("unit 'remote-camera' failed", killed_ns)
                 _SPURIOUS[0] += watcher.spurious
                 if event is None:
                     _VOID[0] += 1
