@@ -292,11 +292,17 @@ class Directory:
                 answers[pattern] = (sorted({*before, *found}), max(counted, count))
                 arrived()
 
+        index_pending = [len(new) + len(doubtful)]
+        index_done = threading.Event()
+
         def indexed(pattern: str, found: list[str], count: int) -> None:
             with self._lock:
                 answering.setdefault(pattern, set()).update(
                     m for m in map(keys.manager_of_offer, found) if m is not None and m != self.name
                 )
+                index_pending[0] -= 1
+                if index_pending[0] == 0:
+                    index_done.set()
                 arrived()
 
         def ask() -> None:
@@ -310,7 +316,9 @@ class Directory:
         def ask_index() -> None:
             for p in [*new, *doubtful]:
                 try:
-                    self._session.ask_index(p, timeout_s=timeout_s, limit=MAX_CANDIDATES, done=functools.partial(indexed, p))
+                    # (it ends once every manager answered: the longer bound is waited for only
+                    # when more managers offer a tag than are followed, see _discover)
+                    self._session.ask_index(p, timeout_s=timeout_s + _PATIENT_S, limit=MAX_CANDIDATES, done=functools.partial(indexed, p))
                 except DyKnowError as exc:
                     log.warning("directory of %r: cannot ask which managers answer for %s: %s", self.name, p, exc)
                     indexed(p, [], 0)
@@ -322,16 +330,17 @@ class Directory:
         with self._lock:
             self._discovering.update(new)  # (their watches' first news: the answers to these queries)
         try:
-            return self._discover(new, doubtful, ask, ask_index, answers, answering, done, timeout_s)
+            return self._discover(new, doubtful, ask, ask_index, answers, answering, (done, index_done), timeout_s)
         finally:
             with self._lock:
                 self._discovering.difference_update(new)
 
     def _discover(self, new: list[str], doubtful: list[str], ask: Callable[[], None], ask_index: Callable[[], None],
-                  answers: dict[str, tuple[list[str], int]], answering: dict[str, set[str]], done: threading.Event,
-                  timeout_s: float) -> bool:  # fmt: skip
+                  answers: dict[str, tuple[list[str], int]], answering: dict[str, set[str]],
+                  events: tuple[threading.Event, threading.Event], timeout_s: float) -> bool:  # fmt: skip
         """:meth:`discover` once its questions are ready: ask them, watch the new tags, choose and
-        read the candidates."""
+        read the candidates. ``events``: every answer came, and every index answer came."""
+        done, index_done = events
         ask()
         ask_index()
         for p in new:
@@ -353,6 +362,13 @@ class Directory:
                 entity.undeclare()
         ask()
         done.wait(timeout_s + 0.5)
+        with self._lock:
+            crowded = any(count > MAX_CANDIDATES or len(found) > MAX_CANDIDATES for found, count in answers.values())
+        if crowded:
+            # more managers offer a tag than are followed: those that answer for their offers are
+            # chosen first, so a slow answer (a busy host) is waited for, up to _PATIENT_S more;
+            # else a random choice may leave the real provider out (tokens anyone may declare)
+            index_done.wait(_PATIENT_S)
         with self._lock:
             got = {p: answers.get(p, ([], 0)) for p in new}
             answer = {p: set(ms) for p, ms in answering.items()}
