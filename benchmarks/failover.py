@@ -323,7 +323,8 @@ class Events:
 
         with self._cond:
             if not self._cond.wait_for(lambda: found() is not None, timeout_s):
-                raise RuntimeError(f"no {what} within {timeout_s} s; observer stderr: {self._proc.error_tail()}")
+                tail = [{k: v for k, v in e.items() if k != "t_ns"} for e in self.seen[-12:]]
+                raise RuntimeError(f"no {what} within {timeout_s} s; the observer's last lines: {tail}; its stderr: {self._proc.error_tail()}")
             event = found()
             assert event is not None
             return event

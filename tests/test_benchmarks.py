@@ -209,9 +209,10 @@ def test_token_flood_benchmark_smoke(tmp_path: Path) -> None:
 
 @pytest.mark.process
 def test_failover_benchmark_smoke(tmp_path: Path) -> None:
-    out = tmp_path / "failover.json"
-    result = _run("failover.py", "--smoke", "--json", str(out))
-    assert result.returncode == 0, result.stderr[-3000:]
+    out, logs = tmp_path / "failover.json", tmp_path / "logs"
+    result = _run("failover.py", "--smoke", "--json", str(out), "--logs", str(logs))
+    said = "".join(f"\n--- {f.name}:\n{f.read_text()[-2000:]}" for f in sorted(logs.glob("*.log"))) if logs.is_dir() else ""
+    assert result.returncode == 0, result.stderr[-3000:] + said
     data = json.loads(out.read_text())
     assert {"cpu", "cores", "python", "zenoh"} <= set(data["machine"])
     rows = {r["scenario"]: r for r in data["results"]}
