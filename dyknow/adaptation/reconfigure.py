@@ -578,9 +578,9 @@ class Reconfigurer:
                 elif manager in self._runtime.peers():  # a lost manager took its units with it
                     self._runtime.destroy_on(manager, name)
             except DyKnowError as exc:
-                # replaced already, or lost with its manager: as it should be
+                # replaced already, or lost with its manager (however the call said it went): as it should be
                 gone = (isinstance(exc, UnitError) and "no unit named" in exc.what) or (
-                    isinstance(exc, ServiceError) and exc.details.get("reason") == "gone"
+                    isinstance(exc, ServiceError) and exc.kind is None and exc.details.get("reason") in _WENT
                 )
                 log.log(logging.DEBUG if gone else logging.WARNING, "could not destroy unit %r after an adaptation: %s", ref, exc)
             self._knowledge.managed.discard(ref)
