@@ -12,6 +12,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -237,6 +238,55 @@ def test_a_client_waits_for_managers_that_are_joining(make_manager: Callable[...
 def test_lease_is_checked() -> None:
     with pytest.raises(TransportError, match="lease: got 5 ms; expected at least 100 ms"):
         make_config(lease_ms=5)
+
+
+
+
+@pytest.mark.process
+def test_a_manager_killed_while_a_request_moves_onto_it_is_the_cause_of_its_failover(
+    make_manager: Callable[..., Manager], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The robot comes (a better camera for the request, which runs on the field's) and is killed
+    (SIGKILL) while the station's spawn of its camera there is in flight, the camera already
+    publishing. The move is undone: the request stays active on the field's camera, never planned
+    onto the robot again, and its adaptation names the robot's loss as its cause. Before, the
+    request was marked degraded for the robot's arrival, the robot's loss adapted nothing, and the
+    next symptom (the units the undo destroyed) planned it onto the robot again (issue 50: a
+    request moving back to the robot after its probation, in test_hosts)."""
+    port = free_port()
+    hub = f"tcp/127.0.0.1:{port}"
+    station = make_manager("station", specs=[SCENARIO_HOSTS["station"]], ontology=[ONTOLOGY], listen=[hub], host="station-host", dwell_s=0.5)
+    make_manager("field", specs=[SCENARIO_HOSTS["field"]], ontology=[ONTOLOGY], listen=["tcp/127.0.0.1:0"], connect=[hub], host="field-host")
+    wait_until(lambda: len(station.reachable()) == 1, "the station to see the field")
+    key = station.request(TRACK)
+    sink = consume(station, key)
+    sink.wait_until(lambda msg: msg.payload["camera"] == CEILING)
+
+    marker = tmp_path / "spawned"
+    specs = tmp_path / "robot.xml"
+    robot_spec = SCENARIO_HOSTS["robot"].read_text()
+    hanging = robot_spec.replace("dyknow.testing:Camera", "tests.units:HangingCamera").replace(
+        "<param name=\"camera\">bottom</param>", f"<param name=\"camera\">bottom</param><param name=\"marker\">{marker}</param>"
+    )
+    assert hanging.count("HangingCamera") == 1 and str(marker) in hanging
+    specs.write_text(hanging)
+    robot = ManagerProcess("robot", free_port(), "--specs", str(specs), "--ontology", str(ONTOLOGY), "--host", "robot-host", "--connect", hub)
+    try:
+        robot.wait_ready()
+        wait_until(marker.exists, "the station's spawn of the robot's camera", 30)  # it publishes; the spawn's reply never comes
+        robot.proc.send_signal(signal.SIGKILL)
+        wait_until(lambda: any(e.cause == "manager 'robot' was lost" for e in station.get_adaptations()), "the failover, for the robot's loss")
+    finally:
+        robot.close()
+    (event,) = [e for e in station.get_adaptations() if e.cause == "manager 'robot' was lost"]
+    assert event.key == key and "robot-camera@robot" in event.old and "ceiling-camera@field" in event.new, station.get_adaptations()
+    assert [e.kind for e in station.get_adaptations() if e.kind == "degraded"] == [], station.get_adaptations()
+    (request,) = station.get_model().requests
+    assert request.state == "active" and "ceiling-camera@field" in request.labels and request.key == key
+    sink.wait_until(lambda msg: msg.payload["camera"] == CEILING)
+    said = [r.getMessage() for r in caplog.records if r.name == "dyknow.adaptation"]
+    assert sum("was interrupted" in line for line in said) == 1, said  # one spawn on the robot, never another
+    assert not any("failed" in line for line in said), said
 
 
 # ---------------------------------------------------------------------------- separate processes

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 from typing import Any, ClassVar
 
 from dyknow import Message, Unit
+from dyknow.testing import Camera
 
 
 class Counter(Unit):
@@ -145,6 +147,17 @@ class SlowSetup(Unit):
 
     def on_message(self, port: str, msg: Message) -> None:
         self.publish("out", msg.payload)
+
+
+class HangingCamera(Camera):
+    """A camera that starts publishing, then says so (it creates the file ``marker``) and holds
+    its setup for ``hang_s`` (default 60): the spawn that started it is in flight that long, for
+    a test to kill its manager meanwhile."""
+
+    def setup(self) -> None:
+        super().setup()
+        Path(str(self.params["marker"])).touch()
+        time.sleep(float(self.params.get("hang_s", 60.0)))
 
 
 class TurnsSlow(Unit):

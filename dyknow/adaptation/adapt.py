@@ -13,9 +13,9 @@ from collections.abc import Callable
 from dyknow.adaptation.analyze import Analyzer
 from dyknow.adaptation.anchor import anchor_name, spawn_anchor
 from dyknow.adaptation.events import Journal, Recovery
-from dyknow.adaptation.knowledge import AdaptationEvent, Knowledge, Request, reason_head
+from dyknow.adaptation.knowledge import AdaptationEvent, Knowledge, Request, reason_head, runs_on
 from dyknow.adaptation.monitor import Symptom
-from dyknow.adaptation.reconfigure import Reconfigurer, is_current
+from dyknow.adaptation.reconfigure import Interrupted, Reconfigurer, is_current
 from dyknow.adaptation.requirements import Requirements
 from dyknow.adaptation.runtime import Runtime
 from dyknow.adaptation.suspects import Suspects
@@ -57,8 +57,16 @@ class Adapter:
         """Move ``request`` to the configuration the planner prefers after ``symptom``: a fault
         at once, an opportunity once the dwell time is over (:meth:`Analyzer.wait`)."""
         now = time.time_ns()
+        if symptom.kind == "peer-lost" and symptom.manager in request.interrupted:
+            labels = request.interrupted.pop(symptom.manager)
+            if request.state == "active" and not any(runs_on(ref, symptom.manager) for ref in request.units):
+                self._failed_over(request, symptom, labels)
+                return
+            fault = True  # (it ended a move onto that manager: never an opportunity to wait for)
         if self._analyzer.wait(request, symptom, fault, now):
             return
+        if symptom.deferred:
+            request.interrupted.clear()  # the dwell time since a move was interrupted is over: that manager may serve again
         if symptom.kind == "trial-held":
             self.suspects.trust(request, symptom)
             return
@@ -73,6 +81,7 @@ class Adapter:
         # (as of when the opportunity arose: a return seen then is not trusted by it, even later)
         at = min(now, symptom.raised_ns or symptom.time_ns)
         wary = self._knowledge.on_probation(at, self._dwell_ns) if not fault and request.state == "active" else set()
+        wary |= set(request.interrupted)  # (gone during a move onto it, its loss not taken in yet)
         suspects: list[str] = []  # the suspects a fault falls back on, when nothing else is left
         try:
             plan = self._reconfigurer.plan(request, now, managers_excluded=wary)
@@ -95,6 +104,9 @@ class Adapter:
         try:
             orphans = self._reconfigurer.apply(request, plan, recovery.arm(request))
         except DyKnowError as exc:
+            if isinstance(exc, Interrupted):
+                self._interrupted(request, symptom, plan, exc, old_labels, fault)
+                return
             log.warning("adaptation of %s failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not wire the new configuration: {exc}")
             return
@@ -103,6 +115,35 @@ class Adapter:
             formulas = ", ".join(repr(request.suspects[label].formula) for label in suspects)
             why = f"nothing but {', '.join(suspects)} provides {request.tag}, and its requirement {formulas} was false there"
             self.suspects.hold_in_place(request, symptom, old_labels, why)
+
+    def _interrupted(self, request: Request, symptom: Symptom, plan: Plan, exc: Interrupted, old: tuple[str, ...], fault: bool) -> None:
+        """A manager went away while ``request`` was being moved onto it (a spawn there in flight,
+        say), and the move was undone. Its loss is on its way to the loop (the loop handles one
+        symptom at a time): then it is the cause of the request's failover (:meth:`_failed_over`),
+        and until then no plan of the request uses that manager. An active request stays on the
+        configuration it had, which the undo rebound (its stream moved and came back: opportunities
+        wait the dwell time); one whose configuration broke is degraded. The opportunity or fault
+        is taken again after the dwell time, that manager back or not (it may not have been lost:
+        another link of this manager's closed during the call, say)."""
+        now = time.time_ns()
+        request.interrupted[exc.manager] = tuple(sorted(self._reconfigurer.labels(plan)))
+        self._analyzer.defer(request.key, now + self._dwell_ns, symptom)
+        if fault or request.state != "active":
+            log.warning("adaptation of %s failed: %s", request.tag, exc)
+            self._degrade(request, symptom, old, f"could not wire the new configuration: {exc}")
+            return
+        request.last_change_ns = now
+        log.warning("moving %s (%s) was interrupted, it stays on %s: %s", request.tag, symptom.cause(), ", ".join(old), exc)
+
+    def _failed_over(self, request: Request, symptom: Symptom, labels: tuple[str, ...]) -> None:
+        """The loss of a manager ended a move of ``request`` onto it (:meth:`_interrupted`): the
+        request is back on the configuration it had (what it still runs), and the loss is the cause
+        of that failover, recorded from the configuration the move was building (its stream may
+        have carried it: a kept unit that feeds the request's key is rebound first)."""
+        recovery = Recovery(self._runtime, self._journal, self._report)
+        if request.output_key is not None:
+            recovery.arm(request)(request.output_key)
+        self.adapted(request, symptom, symptom.cause(), labels, [], recovery, standby=False, fault=True)
 
     def _plan_on_suspects(self, request: Request, now: int) -> Plan | None:
         """The configuration ``request`` would run with its suspects allowed, when it has any and one exists."""
@@ -130,6 +171,7 @@ class Adapter:
         after a fault (something broke), else information (a better configuration came back)."""
         wired = time.time_ns()
         request.last_change_ns = wired
+        request.interrupted.clear()  # (a loss that comes later is not this configuration's concern)
         self.suspects.settle(request.key)  # (a request degraded in place that moved is judged where it went)
         event = AdaptationEvent(
             self._journal.next_id(),

@@ -109,8 +109,8 @@ class Analyzer:
                 )
                 out.append((r, broken))
             return out
-        if symptom.kind == "peer-lost":
-            return [(r, True) for r in requests if any(runs_on(ref, symptom.manager) for ref in r.units)]
+        if symptom.kind == "peer-lost":  # (or a move onto it was interrupted: Adapter.adapt)
+            return [(r, True) for r in requests if symptom.manager in r.interrupted or any(runs_on(ref, symptom.manager) for ref in r.units)]
         if symptom.kind == "peer-changed" and symptom.manager is not None:
             return [(r, bool(self.broken_on(r, symptom.manager))) for r in requests]
         return [(r, False) for r in requests]  # resumed, retry, library, peer-found: maybe better now

@@ -161,6 +161,10 @@ class Request:
     # degraded in place: a requirement is false and nothing else provides the tag, so the request
     # runs on (marked degraded) until its requirements hold again or an alternative comes
     in_place: bool = False
+    # moves onto another manager that went away during a call on it (undone): that manager -> the
+    # transformations the move was building; its loss, when the loop takes it in, is the cause of
+    # the request's failover from them (its plans avoid that manager until then)
+    interrupted: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
     @property
     def references(self) -> int:

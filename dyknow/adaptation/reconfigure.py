@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,6 +25,32 @@ from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unq
 log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
 _DISCOVERY_ROUNDS = 16  # libraries read one after the other for a plan (a chain of 16 managers)
+
+#: What a call on another manager that failed says when that manager is no longer there
+#: (``details["reason"]``, :mod:`dyknow.client`): the link closed during the call, its liveliness
+#: token went, it is remembered lost, or it is not among the managers up.
+_WENT = frozenset({"link-closed", "gone", "lost", "absent", "no-such-manager"})
+
+
+class Interrupted(ServiceError):
+    """Building a configuration stopped because ``manager`` went away during a call on it (its
+    link closed, its liveliness token went): what was built is undone, and the manager's loss is
+    on its way to the loop. The message and fields are the failed call's."""
+
+    def __init__(self, manager: str, error: ServiceError) -> None:
+        super().__init__(error.what, error.kind, error.details, where=error.where, expected=error.expected)
+        self.manager = manager
+
+
+@contextmanager
+def _calling(manager: str) -> Iterator[None]:
+    """A call on another manager: its failure as that manager went away is :class:`Interrupted`."""
+    try:
+        yield
+    except ServiceError as exc:
+        if exc.kind is None and exc.details.get("reason") in _WENT:
+            raise Interrupted(manager, exc) from exc
+        raise
 
 
 # ---------------------------------------------------------------------------- plan and execute
@@ -252,7 +279,8 @@ class Reconfigurer:
                     changed = {p: k for p, k in wanted.items() if current[p] != k}
                     if changed:
                         built.rebound.append((actual, {p: current[p] for p in changed}))
-                        self._set_config(actual, changed)
+                        with _calling(unqualify(actual, home)[1]):
+                            self._set_config(actual, changed)
                     built.units[actual] = _label_ref(unit)
                 else:
                     bindings = {p: key(k) for p, k in unit.bindings.items()}
@@ -261,7 +289,8 @@ class Reconfigurer:
                         knowledge.managed.add(unit.ref)
                         knowledge.seen.discard(unit.ref)  # a new unit under a name used before: in no summary yet
                         built.spawned.append(unit.ref)
-                        runtime.spawn_on(unit.manager, unit.label, unit.name, bindings=bindings)
+                        with _calling(unit.manager):
+                            runtime.spawn_on(unit.manager, unit.label, unit.name, bindings=bindings)
                     else:
                         info = runtime.spawn(unit.label, unit.name, bindings=bindings)
                         built.spawned.append(unit.name)
@@ -549,9 +578,9 @@ class Reconfigurer:
                 elif manager in self._runtime.peers():  # a lost manager took its units with it
                     self._runtime.destroy_on(manager, name)
             except DyKnowError as exc:
-                # replaced already, or lost with its manager: as it should be
+                # replaced already, or lost with its manager (however the call said it went): as it should be
                 gone = (isinstance(exc, UnitError) and "no unit named" in exc.what) or (
-                    isinstance(exc, ServiceError) and exc.details.get("reason") == "gone"
+                    isinstance(exc, ServiceError) and exc.kind is None and exc.details.get("reason") in _WENT
                 )
                 log.log(logging.DEBUG if gone else logging.WARNING, "could not destroy unit %r after an adaptation: %s", ref, exc)
             self._knowledge.managed.discard(ref)
