@@ -53,6 +53,7 @@ class Child:
         self.stderr = ""
         self.lines: queue.Queue[dict[str, Any]] = queue.Queue()
         self._said: list[str] = []  # stderr so far
+        self.other: list[str] = []  # the lines on stdout that are not JSON (Zenoh's own log, with _ZENOH_TRACED)
         threading.Thread(target=self._read, daemon=True).start()
         self._reading = threading.Thread(target=self._read_stderr, daemon=True)
         self._reading.start()
@@ -62,6 +63,8 @@ class Child:
         for line in self.proc.stdout:
             if line.startswith("{"):
                 self.lines.put(json.loads(line))
+            else:
+                self.other.append(line)
 
     def _read_stderr(self) -> None:
         assert self.proc.stderr is not None
@@ -579,6 +582,41 @@ def _model_on(hosts: Hosts, host: str, manager: str, tls: list[str] | None = Non
     return dict(json.loads(done.stdout)) if done.returncode == 0 and done.stdout.startswith("{") else {}
 
 
+#: ``python -c`` this, then a ``dyknow`` command's arguments: the command with Zenoh's own log on
+#: stdout (RUST_LOG, :data:`_ZENOH_LOG`) and every thread's stack on stderr at SIGUSR1, what a
+#: heal that did not come shows of each process (:func:`_say_why_not_healed`).
+_ZENOH_TRACED = (
+    "import faulthandler, signal, zenoh; faulthandler.register(signal.SIGUSR1, all_threads=True); "
+    "zenoh.try_init_log_from_env(); from dyknow.cli import run; run()"
+)
+#: Zenoh's dials (the connect retries and what ended each), the transports opened, and warnings.
+_ZENOH_LOG = "warn,zenoh::net::runtime::orchestrator=debug,zenoh_transport::unicast::manager=debug"
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_ZENOH_NOISE = ("compute_transient_bound_of", "compute_region_of", "Will use Universal transport", "tls handshake eof")
+
+
+def _say_why_not_healed(hosts: Hosts, children: list[Child], admin: list[str], since: str) -> None:
+    """What each side held when a partition did not heal: each host's TCP sockets, the robot's
+    own model, and of each process started with :data:`_ZENOH_TRACED` Zenoh's log since
+    ``since`` (an ISO time, UTC: the cut) and the stack of every thread."""
+    for host in hosts.names:
+        held = subprocess.run(hosts.command(host, ["ss", "-tnpH"]), capture_output=True, text=True, timeout=30).stdout
+        print(f"----- {host}: TCP sockets after the heal\n{held}")
+    print(f"----- the robot's model, asked on its host: {_model_on(hosts, 'robot', 'robot', admin)}")
+    for child in children:
+        lines = [_ANSI.sub("", line) for line in child.other]
+        lines = [line for line in lines if line[:26] >= since and not any(n in line for n in _ZENOH_NOISE)]
+        if lines:
+            print(f"----- {child.host}: Zenoh's log since the cut ({len(lines)} lines, the last 150)\n{''.join(lines[-150:])}")
+    traced = [child for child in children if _ZENOH_TRACED in child.proc.args and child.proc.poll() is None]
+    said = [len(child.said()) for child in traced]
+    for child in traced:
+        child.proc.send_signal(signal.SIGUSR1)
+    time.sleep(2)
+    for child, before in zip(traced, said, strict=True):
+        print(f"----- {child.host}: its threads\n{child.said()[before:]}")
+
+
 def _until(condition: Any, what: str, timeout_s: float = 90.0) -> None:
     """Wait for ``condition()`` (asked again and again, each ask a process); fail naming ``what``."""
     deadline = time.monotonic() + timeout_s
@@ -619,16 +657,16 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
         children: list[Child] = []
         try:
             if hub is not None:
-                argv = [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, "--lease-ms", "1000", "--json", *secure["hub"]]
-                children.append(Child(hosts, "hub", argv))
+                argv = [sys.executable, "-c", _ZENOH_TRACED, "router", "--listen", hub, "--lease-ms", "1000", "--json", *secure["hub"]]
+                children.append(Child(hosts, "hub", argv, env={"RUST_LOG": _ZENOH_LOG}))
                 children[-1].next("ready")
             for name, extra in (("station", ["--dwell", "0.5"]), ("robot", []), ("field", [])):
                 connect = hub if hub else (None if name == "station" else f"tcp/{hosts.address('station')}:{PORT}")
                 endpoint = f"{proto}/{hosts.address(name)}:{PORT}"
-                argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]),
+                argv = [sys.executable, "-c", _ZENOH_TRACED, "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]),
                         "--ontology", str(ONTOLOGY), "--listen", endpoint, *(["--connect", connect] if connect else []),
                         "--host", f"{name}-host", "--lease-ms", "1000", "--json", *secure[name], *extra]  # fmt: skip
-                children.append(Child(hosts, name, argv))
+                children.append(Child(hosts, name, argv, env={"RUST_LOG": _ZENOH_LOG}))
                 assert children[-1].next("ready")["endpoints"] == [endpoint]
             pem = [a for a in secure["admin"] if not a.startswith("--")]  # CA, certificate, key
             argv = [sys.executable, "-m", "tests.netns_observer", f"{proto}/{hosts.address('station')}:{PORT}", "station", "BallTrack(field)", *pem]
@@ -644,6 +682,7 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
             admin = secure["admin"]
             _until(lambda: "station" in _model_on(hosts, "robot", "robot", admin).get("peers", []), "the robot to list the station")
 
+            cut_at = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())  # (as Zenoh's log says it)
             hosts.cut("robot", silent=kind == "silent")
             observer.next("camera", camera=CEILING, timeout_s=60)  # failed over to the field's camera
             _until(lambda: "robot" in [m["manager"] for m in observer.ask("model station")[0]["lost"]], "the station to lose the robot")
@@ -652,15 +691,13 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
             _until(lambda: "station" in {m["manager"] for m in _model_on(hosts, "robot", "robot", admin).get("lost", [])},
                    "the robot to lose the station")  # fmt: skip
 
+            print(f"cut at {cut_at}Z, restored at {time.strftime('%H:%M:%S', time.gmtime())}Z")
             hosts.restore("robot")
             try:
                 _until(lambda: station_lists("robot"), "the station to list the robot again")
                 _until(lambda: {"station", "field"} <= set(_model_on(hosts, "robot", "robot", admin).get("peers", [])), "the robot to list the others again")
             except AssertionError:  # (once beside CPU hogs, behind the router with TLS: never listed again in 90 s; what each side held)
-                for host in names:
-                    held = subprocess.run(hosts.command(host, ["ss", "-tnpH"]), capture_output=True, text=True, timeout=30).stdout
-                    print(f"----- {host}: TCP sockets after the heal\n{held}")
-                print(f"----- the robot's model, asked on its host: {_model_on(hosts, 'robot', 'robot', admin)}")
+                _say_why_not_healed(hosts, children, admin, cut_at)
                 raise
             observer.next("camera", camera=BOTTOM, timeout_s=60)  # the preferred configuration, after the robot's probation
             causes = [e["cause"] for e in observer.ask("adaptations")]
