@@ -591,18 +591,37 @@ _ZENOH_TRACED = (
 )
 #: Zenoh's dials (the connect retries and what ended each), the transports opened, and warnings.
 _ZENOH_LOG = "warn,zenoh::net::runtime::orchestrator=debug,zenoh_transport::unicast::manager=debug"
+#: ``python -c`` this, then an endpoint and TLS files (CA, certificate, key) or none: the managers
+#: whose liveliness tokens a liveliness query through that endpoint finds, as a JSON list.
+_NAMES = (
+    "import json, sys\n"
+    "from dyknow import Client\n"
+    "from dyknow.access import TlsFiles\n"
+    "tls = TlsFiles(*sys.argv[2:5]) if len(sys.argv) > 2 else None\n"
+    "with Client('station', connect=[sys.argv[1]], tls=tls, timeout_s=5, lease_ms=1000) as c:\n"
+    "    print(json.dumps(c.manager_names(2.0)))\n"
+)
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _ZENOH_NOISE = ("compute_transient_bound_of", "compute_region_of", "Will use Universal transport", "tls handshake eof")
 
 
 def _say_why_not_healed(hosts: Hosts, children: list[Child], admin: list[str], since: str) -> None:
     """What each side held when a partition did not heal: each host's TCP sockets, the robot's
-    own model, and of each process started with :data:`_ZENOH_TRACED` Zenoh's log since
-    ``since`` (an ISO time, UTC: the cut) and the stack of every thread."""
+    own model, the managers a liveliness query through the station's and the robot's managers
+    finds, and of each process started with :data:`_ZENOH_TRACED` Zenoh's log since ``since``
+    (an ISO time, UTC: the cut) and the stack of every thread."""
     for host in hosts.names:
         held = subprocess.run(hosts.command(host, ["ss", "-tnpH"]), capture_output=True, text=True, timeout=30).stdout
         print(f"----- {host}: TCP sockets after the heal\n{held}")
     print(f"----- the robot's model, asked on its host: {_model_on(hosts, 'robot', 'robot', admin)}")
+    # a model's peers are, for the managers it follows, what its liveliness watches said last; a
+    # liveliness query through the same manager's Zenoh router tells a watch that missed a token's
+    # return from a token that never came back
+    for host in ("station", "robot"):
+        endpoint = f"{'tls' if admin else 'tcp'}/{hosts.address(host)}:{PORT}"
+        argv = [sys.executable, "-c", _NAMES, endpoint, *(a for a in admin if not a.startswith("--"))]
+        done = subprocess.run(hosts.command(host, argv), capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO)
+        print(f"----- the managers whose tokens a liveliness query through {host}'s manager finds: {done.stdout.strip()} {done.stderr[-500:]}")
     for child in children:
         lines = [_ANSI.sub("", line) for line in child.other]
         lines = [line for line in lines if line[:26] >= since and not any(n in line for n in _ZENOH_NOISE)]
