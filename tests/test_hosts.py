@@ -584,7 +584,7 @@ def _model_on(hosts: Hosts, host: str, manager: str, tls: list[str] | None = Non
 
 #: ``python -c`` this, then a ``dyknow`` command's arguments: the command with Zenoh's own log on
 #: stdout (RUST_LOG, :data:`_ZENOH_LOG`) and every thread's stack on stderr at SIGUSR1, what a
-#: heal that did not come shows of each process (:func:`_say_why_not_healed`).
+#: partition test that failed shows of each process (:func:`_say_what_each_side_held`).
 _ZENOH_TRACED = (
     "import faulthandler, signal, zenoh; faulthandler.register(signal.SIGUSR1, all_threads=True); "
     "zenoh.try_init_log_from_env(); from dyknow.cli import run; run()"
@@ -605,15 +605,18 @@ _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _ZENOH_NOISE = ("compute_transient_bound_of", "compute_region_of", "Will use Universal transport", "tls handshake eof")
 
 
-def _say_why_not_healed(hosts: Hosts, children: list[Child], admin: list[str], since: str) -> None:
-    """What each side held when a partition did not heal: each host's TCP sockets, the robot's
-    own model, the managers a liveliness query through the station's and the robot's managers
-    finds, and of each process started with :data:`_ZENOH_TRACED` Zenoh's log since ``since``
-    (an ISO time, UTC: the cut) and the stack of every thread."""
+def _say_what_each_side_held(hosts: Hosts, children: list[Child], admin: list[str], since: str) -> None:
+    """What each side held when the partition test failed: each host's TCP sockets, the robot's
+    model and the station's peers and losses, the managers a liveliness query through the
+    station's and the robot's managers finds, and of each process started with
+    :data:`_ZENOH_TRACED` Zenoh's log since ``since`` (an ISO time, UTC: the cut, or the test's
+    start) and the stack of every thread."""
     for host in hosts.names:
         held = subprocess.run(hosts.command(host, ["ss", "-tnpH"]), capture_output=True, text=True, timeout=30).stdout
-        print(f"----- {host}: TCP sockets after the heal\n{held}")
+        print(f"----- {host}: its TCP sockets\n{held}")
     print(f"----- the robot's model, asked on its host: {_model_on(hosts, 'robot', 'robot', admin)}")
+    station = _model_on(hosts, "station", "station", admin)
+    print(f"----- the station's model, asked on its host: peers {station.get('peers')}, lost {station.get('lost')}")
     # a model's peers are, for the managers it follows, what its liveliness watches said last; a
     # liveliness query through the same manager's Zenoh router tells a watch that missed a token's
     # return from a token that never came back
@@ -626,7 +629,7 @@ def _say_why_not_healed(hosts: Hosts, children: list[Child], admin: list[str], s
         lines = [_ANSI.sub("", line) for line in child.other]
         lines = [line for line in lines if line[:26] >= since and not any(n in line for n in _ZENOH_NOISE)]
         if lines:
-            print(f"----- {child.host}: Zenoh's log since the cut ({len(lines)} lines, the last 150)\n{''.join(lines[-150:])}")
+            print(f"----- {child.host}: Zenoh's log since {since}Z ({len(lines)} lines, the last 150)\n{''.join(lines[-150:])}")
     traced = [child for child in children if _ZENOH_TRACED in child.proc.args and child.proc.poll() is None]
     said = [len(child.said()) for child in traced]
     for child in traced:
@@ -674,6 +677,7 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
                 secure[name] = ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{name}.pem"), "--tls-key", str(pki / f"{name}.key")]
                 secure[name] += ["--acl", str(acl)] if name != "admin" else []
         children: list[Child] = []
+        since = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())  # (as Zenoh's log says it)
         try:
             if hub is not None:
                 argv = [sys.executable, "-c", _ZENOH_TRACED, "router", "--listen", hub, "--lease-ms", "1000", "--json", *secure["hub"]]
@@ -701,7 +705,7 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
             admin = secure["admin"]
             _until(lambda: "station" in _model_on(hosts, "robot", "robot", admin).get("peers", []), "the robot to list the station")
 
-            cut_at = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())  # (as Zenoh's log says it)
+            since = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())  # (Zenoh's log is shown from the cut on)
             hosts.cut("robot", silent=kind == "silent")
             observer.next("camera", camera=CEILING, timeout_s=60)  # failed over to the field's camera
             _until(lambda: "robot" in [m["manager"] for m in observer.ask("model station")[0]["lost"]], "the station to lose the robot")
@@ -710,19 +714,19 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
             _until(lambda: "station" in {m["manager"] for m in _model_on(hosts, "robot", "robot", admin).get("lost", [])},
                    "the robot to lose the station")  # fmt: skip
 
-            print(f"cut at {cut_at}Z, restored at {time.strftime('%H:%M:%S', time.gmtime())}Z")
+            print(f"cut at {since}Z, restored at {time.strftime('%H:%M:%S', time.gmtime())}Z")
             hosts.restore("robot")
-            try:
-                _until(lambda: station_lists("robot"), "the station to list the robot again")
-                _until(lambda: {"station", "field"} <= set(_model_on(hosts, "robot", "robot", admin).get("peers", [])), "the robot to list the others again")
-            except AssertionError:  # (once beside CPU hogs, behind the router with TLS: never listed again in 90 s; what each side held)
-                _say_why_not_healed(hosts, children, admin, cut_at)
-                raise
+            # (once beside CPU hogs, behind the router with TLS: the station never listed the robot again in 90 s)
+            _until(lambda: station_lists("robot"), "the station to list the robot again")
+            _until(lambda: {"station", "field"} <= set(_model_on(hosts, "robot", "robot", admin).get("peers", [])), "the robot to list the others again")
             observer.next("camera", camera=BOTTOM, timeout_s=60)  # the preferred configuration, after the robot's probation
             causes = [e["cause"] for e in observer.ask("adaptations")]
             assert all(cause.startswith(LINK_CAUSES) for cause in causes), causes
             assert not any("'field'" in cause for cause in causes), causes  # the field was never lost, nor broken
             assert station_lists("field") and "field" not in [m["manager"] for m in observer.ask("model station")[0]["lost"]]
+        except AssertionError:  # what each side held (the cut, or the test's start, is ``since``)
+            _say_what_each_side_held(hosts, children, secure["admin"], since)
+            raise
         finally:
             for child in reversed(children):
                 child.close()
