@@ -630,7 +630,7 @@ def _say_what_each_side_held(hosts: Hosts, children: list[Child], admin: list[st
         lines = [line for line in lines if line[:26] >= since and not any(n in line for n in _ZENOH_NOISE)]
         if lines:
             print(f"----- {child.host}: Zenoh's log since {since}Z ({len(lines)} lines, the last 150)\n{''.join(lines[-150:])}")
-    traced = [child for child in children if _ZENOH_TRACED in child.proc.args and child.proc.poll() is None]
+    traced = [child for child in children if _ZENOH_TRACED in str(child.proc.args) and child.proc.poll() is None]
     said = [len(child.said()) for child in traced]
     for child in traced:
         child.proc.send_signal(signal.SIGUSR1)
