@@ -54,6 +54,7 @@ class Child:
         self.lines: queue.Queue[dict[str, Any]] = queue.Queue()
         self._said: list[str] = []  # stderr so far
         self.other: list[str] = []  # the lines on stdout that are not JSON (Zenoh's own log, with _ZENOH_TRACED)
+        self.dumped: int | None = None  # where on stderr its threads' stacks begin, once dumped (_say_what_each_side_held)
         threading.Thread(target=self._read, daemon=True).start()
         self._reading = threading.Thread(target=self._read_stderr, daemon=True)
         self._reading.start()
@@ -636,6 +637,7 @@ def _say_what_each_side_held(hosts: Hosts, children: list[Child], admin: list[st
         child.proc.send_signal(signal.SIGUSR1)
     time.sleep(2)
     for child, before in zip(traced, said, strict=True):
+        child.dumped = before
         print(f"----- {child.host}: its threads\n{child.said()[before:]}")
 
 
@@ -730,8 +732,8 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
         finally:
             for child in reversed(children):
                 child.close()
-            for child in children:  # what each host said, for a failure's report (pytest shows it then)
-                print(f"----- {child.host}\n{child.stderr[-3000:]}")
+            for child in children:  # what each host said, for a failure's report (pytest shows it then; its stacks above)
+                print(f"----- {child.host}\n{child.stderr[: child.dumped][-3000:]}")
 
 
 def test_a_link_cut_mid_call_is_not_read_as_the_acl_refusing(tmp_path: Path) -> None:
