@@ -53,6 +53,8 @@ class Child:
         self.stderr = ""
         self.lines: queue.Queue[dict[str, Any]] = queue.Queue()
         self._said: list[str] = []  # stderr so far
+        self.other: list[str] = []  # the lines on stdout that are not JSON (Zenoh's own log, with _ZENOH_TRACED)
+        self.dumped: int | None = None  # where on stderr its threads' stacks begin, once dumped (_say_what_each_side_held)
         threading.Thread(target=self._read, daemon=True).start()
         self._reading = threading.Thread(target=self._read_stderr, daemon=True)
         self._reading.start()
@@ -62,6 +64,8 @@ class Child:
         for line in self.proc.stdout:
             if line.startswith("{"):
                 self.lines.put(json.loads(line))
+            else:
+                self.other.append(line)
 
     def _read_stderr(self) -> None:
         assert self.proc.stderr is not None
@@ -579,6 +583,64 @@ def _model_on(hosts: Hosts, host: str, manager: str, tls: list[str] | None = Non
     return dict(json.loads(done.stdout)) if done.returncode == 0 and done.stdout.startswith("{") else {}
 
 
+#: ``python -c`` this, then a ``dyknow`` command's arguments: the command with Zenoh's own log on
+#: stdout (RUST_LOG, :data:`_ZENOH_LOG`) and every thread's stack on stderr at SIGUSR1, what a
+#: partition test that failed shows of each process (:func:`_say_what_each_side_held`).
+_ZENOH_TRACED = (
+    "import faulthandler, signal, zenoh; faulthandler.register(signal.SIGUSR1, all_threads=True); "
+    "zenoh.try_init_log_from_env(); from dyknow.cli import run; run()"
+)
+#: Zenoh's dials (the connect retries and what ended each), the transports opened, and warnings.
+_ZENOH_LOG = "warn,zenoh::net::runtime::orchestrator=debug,zenoh_transport::unicast::manager=debug"
+#: ``python -c`` this, then an endpoint and TLS files (CA, certificate, key) or none: the managers
+#: whose liveliness tokens a liveliness query through that endpoint finds, as a JSON list.
+_NAMES = (
+    "import json, sys\n"
+    "from dyknow import Client\n"
+    "from dyknow.access import TlsFiles\n"
+    "tls = TlsFiles(*sys.argv[2:5]) if len(sys.argv) > 2 else None\n"
+    "with Client('station', connect=[sys.argv[1]], tls=tls, timeout_s=5, lease_ms=1000) as c:\n"
+    "    print(json.dumps(c.manager_names(2.0)))\n"
+)
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_ZENOH_NOISE = ("compute_transient_bound_of", "compute_region_of", "Will use Universal transport", "tls handshake eof")
+
+
+def _say_what_each_side_held(hosts: Hosts, children: list[Child], admin: list[str], since: str) -> None:
+    """What each side held when the partition test failed: each host's TCP sockets, the robot's
+    model and the station's peers and losses, the managers a liveliness query through the
+    station's and the robot's managers finds, and of each process started with
+    :data:`_ZENOH_TRACED` Zenoh's log since ``since`` (an ISO time, UTC: the cut, or the test's
+    start) and the stack of every thread."""
+    for host in hosts.names:
+        held = subprocess.run(hosts.command(host, ["ss", "-tnpH"]), capture_output=True, text=True, timeout=30).stdout
+        print(f"----- {host}: its TCP sockets\n{held}")
+    print(f"----- the robot's model, asked on its host: {_model_on(hosts, 'robot', 'robot', admin)}")
+    station = _model_on(hosts, "station", "station", admin)
+    print(f"----- the station's model, asked on its host: peers {station.get('peers')}, lost {station.get('lost')}")
+    # a model's peers are, for the managers it follows, what its liveliness watches said last; a
+    # liveliness query through the same manager's Zenoh router tells a watch that missed a token's
+    # return from a token that never came back
+    for host in ("station", "robot"):
+        endpoint = f"{'tls' if admin else 'tcp'}/{hosts.address(host)}:{PORT}"
+        argv = [sys.executable, "-c", _NAMES, endpoint, *(a for a in admin if not a.startswith("--"))]
+        done = subprocess.run(hosts.command(host, argv), capture_output=True, text=True, timeout=60, env=subprocess_env(), cwd=REPO)
+        print(f"----- the managers whose tokens a liveliness query through {host}'s manager finds: {done.stdout.strip()} {done.stderr[-500:]}")
+    for child in children:
+        lines = [_ANSI.sub("", line) for line in child.other]
+        lines = [line for line in lines if line[:26] >= since and not any(n in line for n in _ZENOH_NOISE)]
+        if lines:
+            print(f"----- {child.host}: Zenoh's log since {since}Z ({len(lines)} lines, the last 150)\n{''.join(lines[-150:])}")
+    traced = [child for child in children if _ZENOH_TRACED in str(child.proc.args) and child.proc.poll() is None]
+    said = [len(child.said()) for child in traced]
+    for child in traced:
+        child.proc.send_signal(signal.SIGUSR1)
+    time.sleep(2)
+    for child, before in zip(traced, said, strict=True):
+        child.dumped = before
+        print(f"----- {child.host}: its threads\n{child.said()[before:]}")
+
+
 def _until(condition: Any, what: str, timeout_s: float = 90.0) -> None:
     """Wait for ``condition()`` (asked again and again, each ask a process); fail naming ``what``."""
     deadline = time.monotonic() + timeout_s
@@ -617,18 +679,19 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
                 secure[name] = ["--tls-ca", str(pki / "ca.pem"), "--tls-cert", str(pki / f"{name}.pem"), "--tls-key", str(pki / f"{name}.key")]
                 secure[name] += ["--acl", str(acl)] if name != "admin" else []
         children: list[Child] = []
+        since = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())  # (as Zenoh's log says it)
         try:
             if hub is not None:
-                argv = [sys.executable, "-m", "dyknow.cli", "router", "--listen", hub, "--lease-ms", "1000", "--json", *secure["hub"]]
-                children.append(Child(hosts, "hub", argv))
+                argv = [sys.executable, "-c", _ZENOH_TRACED, "router", "--listen", hub, "--lease-ms", "1000", "--json", *secure["hub"]]
+                children.append(Child(hosts, "hub", argv, env={"RUST_LOG": _ZENOH_LOG}))
                 children[-1].next("ready")
             for name, extra in (("station", ["--dwell", "0.5"]), ("robot", []), ("field", [])):
                 connect = hub if hub else (None if name == "station" else f"tcp/{hosts.address('station')}:{PORT}")
                 endpoint = f"{proto}/{hosts.address(name)}:{PORT}"
-                argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]),
+                argv = [sys.executable, "-c", _ZENOH_TRACED, "manager", "--name", name, "--specs", str(SCENARIO_HOSTS[name]),
                         "--ontology", str(ONTOLOGY), "--listen", endpoint, *(["--connect", connect] if connect else []),
                         "--host", f"{name}-host", "--lease-ms", "1000", "--json", *secure[name], *extra]  # fmt: skip
-                children.append(Child(hosts, name, argv))
+                children.append(Child(hosts, name, argv, env={"RUST_LOG": _ZENOH_LOG}))
                 assert children[-1].next("ready")["endpoints"] == [endpoint]
             pem = [a for a in secure["admin"] if not a.startswith("--")]  # CA, certificate, key
             argv = [sys.executable, "-m", "tests.netns_observer", f"{proto}/{hosts.address('station')}:{PORT}", "station", "BallTrack(field)", *pem]
@@ -644,6 +707,7 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
             admin = secure["admin"]
             _until(lambda: "station" in _model_on(hosts, "robot", "robot", admin).get("peers", []), "the robot to list the station")
 
+            since = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())  # (Zenoh's log is shown from the cut on)
             hosts.cut("robot", silent=kind == "silent")
             observer.next("camera", camera=CEILING, timeout_s=60)  # failed over to the field's camera
             _until(lambda: "robot" in [m["manager"] for m in observer.ask("model station")[0]["lost"]], "the station to lose the robot")
@@ -652,26 +716,24 @@ def test_a_partition_heals_by_itself(kind: str, topology: str, tmp_path: Path) -
             _until(lambda: "station" in {m["manager"] for m in _model_on(hosts, "robot", "robot", admin).get("lost", [])},
                    "the robot to lose the station")  # fmt: skip
 
+            print(f"cut at {since}Z, restored at {time.strftime('%H:%M:%S', time.gmtime())}Z")
             hosts.restore("robot")
-            try:
-                _until(lambda: station_lists("robot"), "the station to list the robot again")
-                _until(lambda: {"station", "field"} <= set(_model_on(hosts, "robot", "robot", admin).get("peers", [])), "the robot to list the others again")
-            except AssertionError:  # (once beside CPU hogs, behind the router with TLS: never listed again in 90 s; what each side held)
-                for host in names:
-                    held = subprocess.run(hosts.command(host, ["ss", "-tnpH"]), capture_output=True, text=True, timeout=30).stdout
-                    print(f"----- {host}: TCP sockets after the heal\n{held}")
-                print(f"----- the robot's model, asked on its host: {_model_on(hosts, 'robot', 'robot', admin)}")
-                raise
+            # (once beside CPU hogs, behind the router with TLS: the station never listed the robot again in 90 s)
+            _until(lambda: station_lists("robot"), "the station to list the robot again")
+            _until(lambda: {"station", "field"} <= set(_model_on(hosts, "robot", "robot", admin).get("peers", [])), "the robot to list the others again")
             observer.next("camera", camera=BOTTOM, timeout_s=60)  # the preferred configuration, after the robot's probation
             causes = [e["cause"] for e in observer.ask("adaptations")]
             assert all(cause.startswith(LINK_CAUSES) for cause in causes), causes
             assert not any("'field'" in cause for cause in causes), causes  # the field was never lost, nor broken
             assert station_lists("field") and "field" not in [m["manager"] for m in observer.ask("model station")[0]["lost"]]
+        except AssertionError:  # what each side held (the cut, or the test's start, is ``since``)
+            _say_what_each_side_held(hosts, children, secure["admin"], since)
+            raise
         finally:
             for child in reversed(children):
                 child.close()
-            for child in children:  # what each host said, for a failure's report (pytest shows it then)
-                print(f"----- {child.host}\n{child.stderr[-3000:]}")
+            for child in children:  # what each host said, for a failure's report (pytest shows it then; its stacks above)
+                print(f"----- {child.host}\n{child.stderr[: child.dumped][-3000:]}")
 
 
 def test_a_link_cut_mid_call_is_not_read_as_the_acl_refusing(tmp_path: Path) -> None:
