@@ -301,6 +301,7 @@ class _Matched:
         self.changed = threading.Condition()
 
     def set(self, count: int) -> None:
+        """Take the new count (a listener's) and wake the waiters."""
         with self.changed:
             self.count = count
             self.changed.notify_all()

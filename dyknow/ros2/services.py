@@ -193,6 +193,8 @@ class Ros2Client:
             answered.set()
 
         def on_error(text: str) -> None:
+            if text == "Timeout":  # Zenoh's own, as the query's time ran out: no server's answer
+                return
             with self._lock:
                 if result[1] is None:
                     result[1] = text
@@ -323,8 +325,8 @@ class Ros2Service:
         try:
             meta = Attachment.decode(query.attachment)
         except BindingError as exc:
-            query.drop()
             self._refuse(str(exc))
+            query.drop()
             return
         with self._lock:
             busy = self._closed or self._pending >= self.max_pending
@@ -332,9 +334,9 @@ class Ros2Service:
                 self._pending += 1
                 self.received += 1
         if busy:
-            query.drop()
             if not self._closed:
                 self._refuse(f"{self.max_pending} requests already wait for the handler")
+            query.drop()
             return
         self._call_soon(lambda: self._serve(query, meta))
 
@@ -346,22 +348,22 @@ class Ros2Service:
             try:
                 request = self._types.deserialize(query.payload, self.request_type)
             except BindingError as exc:
-                query.drop()
                 self._refuse(str(exc))
+                query.drop()
                 return
             try:
                 response = self._handler(request)
                 data = self._types.serialize(as_message(response, self.response_type, self._types, self.where), self.response_type)
             except Exception as exc:  # the handler's: answer nothing, say why in the log
-                query.drop()
                 with self._lock:
                     self.failed += 1
                 level = logging.WARNING if isinstance(exc, DyKnowError) else logging.ERROR
                 log.log(level, "%s: the handler failed on request #%d, answered nothing", self.where, meta.sequence_number, exc_info=True)
+                query.drop()
                 return
-            query.reply(data, Attachment(meta.sequence_number, time.time_ns(), meta.gid).encode())
-            with self._lock:
+            with self._lock:  # (counted first: the caller may look as soon as it has the answer)
                 self.answered += 1
+            query.reply(data, Attachment(meta.sequence_number, time.time_ns(), meta.gid).encode())
         finally:
             with self._lock:
                 self._pending -= 1

@@ -376,9 +376,9 @@ class PlainQueryable(Entity):
             try:
                 size = len(query.payload) if query.payload is not None else 0
                 if size > max_bytes:
-                    query.drop()
                     if on_refused is not None:
                         on_refused(str(query.key_expr), f"a request of {size} bytes, over the limit of {max_bytes}")
+                    query.drop()
                     return
                 payload = query.payload.to_bytes() if query.payload is not None else b""
                 attachment = query.attachment.to_bytes() if query.attachment is not None else None
