@@ -27,7 +27,9 @@ with the fields ``request_message``, ``response_message`` and ``event_message`` 
 ``Name_Response[<=1] response``.
 
 CDR payloads start with the 4-byte encapsulation header (``00 01 00 00``: CDR, little-endian;
-``00 00 00 00``: big-endian); both are read, little-endian is written. Payloads from the network
+``00 00 00 00``: big-endian); both are read, little-endian is written. Bytes after the message
+are ignored (rclpy's ``serialize_message`` leaves 8 after an ``rcl_interfaces/srv/SetParameters``
+request holding a ``double[]``, which rosbags alone refuses). Payloads from the network
 are bounded before they are parsed and any failure is raised as
 :class:`~dyknow.errors.BindingError` naming the type.
 """
@@ -307,9 +309,17 @@ class TypeSupport:
                 expected="00010000 (CDR little-endian) or 00000000 (big-endian)",
             )
         self.check(ros_type)
-        try:  # a view: rosbags cuts the header off by slicing, which would copy bytes whole
-            return self._store.deserialize_cdr(memoryview(data), ros_type)
+        view = memoryview(data)  # a view: rosbags cuts the header off by slicing, which would copy bytes whole
+        try:
+            return self._store.deserialize_cdr(view, ros_type)
         except Exception as exc:
+            if "size mismatch" in str(exc):  # bytes after the message: read it without them
+                try:
+                    msgdef = self._store.get_msgdef(ros_type)
+                    read = msgdef.deserialize_cdr_le if data[1] == 1 else msgdef.deserialize_cdr_be
+                    return read(view[4:], 0, msgdef.cls, self._store)[0]
+                except Exception:
+                    pass  # the first error says it
             raise BindingError(f"does not parse: {type(exc).__name__}: {exc}", where=where, expected="CDR of this type") from exc
 
 
