@@ -68,13 +68,16 @@ def call(service: str, srv_type: str, fields: str, timeout_s: float, closed: thr
     else:
         out({"service": "found"})
         # the client matched the server, but the server may not know the client's writer yet (a
-        # Cyclone reader drops data from a writer it has not discovered): give discovery a second
-        settle = time.monotonic() + 1.0
-        while time.monotonic() < settle:
-            rclpy.spin_once(node, timeout_sec=0.05)
-        future = client.call_async(request)
-        rclpy.spin_until_future_complete(node, future, timeout_sec=timeout_s)
-        got = future.result() if future.done() else None
+        # reader drops data from a writer it has not discovered): ask again every half second
+        deadline = time.monotonic() + timeout_s
+        futures = []
+        got = None
+        while got is None and time.monotonic() < deadline:
+            futures.append(client.call_async(request))
+            ask_again = time.monotonic() + 0.5
+            while got is None and time.monotonic() < min(ask_again, deadline):
+                rclpy.spin_once(node, timeout_sec=0.05)
+                got = next((f.result() for f in futures if f.done()), None)
         if got is None:
             out({"response": None, "why": "no answer"})
         elif isinstance(got, GetState.Response):
