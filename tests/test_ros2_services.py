@@ -8,6 +8,7 @@ sends (oversized requests, bad attachments, floods) is refused and counted."""
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -86,7 +87,7 @@ def test_a_service_that_never_answers_is_an_error_naming_it_and_the_time_waited(
     with Ros2Node(a, "server", domain=42) as server_node, Ros2Node(b, "caller", domain=42) as client_node:
         nobody = client_node.create_client("/nobody/get_state", GET_STATE)
         started = time.monotonic()
-        with pytest.raises(ServiceError, match=r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\): no answer in 0\.5 s"):
+        with pytest.raises(ServiceError, match=r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\): no answer in 0\.[5-9] s"):
             nobody.call({}, timeout_s=0.5)
         assert time.monotonic() - started < 3
         blocked = threading.Event()
@@ -283,7 +284,7 @@ def test_dyknow_ros2_call_and_list_end_to_end(router: tuple[Session, int], peers
     assert json.loads(listed.stdout)["services"] == {"/camera_top/change_state": {"types": [CHANGE_STATE], "servers": 1, "clients": 0}}
     missing = run_cli("ros2", "call", "/nobody/get_state", GET_STATE, "--timeout", "1", *connect)
     assert missing.returncode == 1
-    assert "ROS 2 service /nobody/get_state (lifecycle_msgs/srv/GetState): no answer in 1.0 s" in missing.stderr
+    assert re.search(r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\): no answer in 1\.\d s", missing.stderr), missing.stderr
 
 
 @pytest.mark.parametrize(
