@@ -292,7 +292,7 @@ def test_a_dds_call_nobody_answers_names_the_service_and_the_time_waited(domain:
         started = time.monotonic()
         with pytest.raises(ServiceError, match=r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\) over DDS: no answer in 0\.[5-9] s"):
             client.call({}, timeout_s=0.5)
-        assert time.monotonic() - started < 3
+        assert time.monotonic() - started < 5  # the timeout, and what a loaded machine adds to a wake-up (1.3 s seen beside hogs)
 
 
 def test_a_dds_service_answers_a_dds_client(domain: int) -> None:

@@ -89,7 +89,7 @@ def test_a_service_that_never_answers_is_an_error_naming_it_and_the_time_waited(
         started = time.monotonic()
         with pytest.raises(ServiceError, match=r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\): no answer in 0\.[5-9] s"):
             nobody.call({}, timeout_s=0.5)
-        assert time.monotonic() - started < 3
+        assert time.monotonic() - started < 5  # the timeout, and what a loaded machine adds to a wake-up (1.3 s seen beside hogs)
         blocked = threading.Event()
         server_node.create_service("/slow/get_state", GET_STATE, lambda r: (blocked.wait(10), state(r))[1])
         slow = client_node.create_client("/slow/get_state", GET_STATE)
@@ -284,7 +284,7 @@ def test_dyknow_ros2_call_and_list_end_to_end(router: tuple[Session, int], peers
     assert json.loads(listed.stdout)["services"] == {"/camera_top/change_state": {"types": [CHANGE_STATE], "servers": 1, "clients": 0}}
     missing = run_cli("ros2", "call", "/nobody/get_state", GET_STATE, "--timeout", "1", *connect)
     assert missing.returncode == 1
-    assert re.search(r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\): no answer in 1\.\d s", missing.stderr), missing.stderr
+    assert re.search(r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\): no answer in \d+\.\d s \(no server of it came up\)", missing.stderr), missing.stderr
 
 
 @pytest.mark.parametrize(
