@@ -175,6 +175,32 @@ def test_what_a_hostile_client_sends_is_bounded(sessions: tuple[Session, Session
         assert sorted(results) == ["answered", "answered", "dropped", "dropped", "dropped"]
 
 
+def test_a_client_takes_only_the_reply_naming_its_call(sessions: tuple[Session, Session]) -> None:
+    """Replies are not consolidated: of what several queryables on the key answer, the client
+    takes the one whose attachment names its GID and sequence number, and refuses (counts) a
+    malformed attachment."""
+    a, b = sessions
+    with Ros2Node(a, "server", domain=48) as server_node, Ros2Node(b, "caller", domain=48) as client_node:
+        client = client_node.create_client("/contested", CHANGE_STATE)
+        types = server_node.types
+        types.service(CHANGE_STATE)
+        lie = types.serialize(types.message_class("lifecycle_msgs/srv/ChangeState_Response")(success=False), "lifecycle_msgs/srv/ChangeState_Response")
+
+        def impostor(query: Any) -> None:  # another call's sequence number, and another client's GID
+            meta = Attachment.decode(query.attachment)
+            query.reply(lie, Attachment(meta.sequence_number + 1, 0, meta.gid).encode())
+
+        with (
+            a.declare_plain_queryable(client.key, impostor),
+            a.declare_plain_queryable(client.key, lambda q: q.reply(lie, Attachment(1, 0, bytes(16)).encode())),
+            a.declare_plain_queryable(client.key, lambda q: q.reply(lie, b"not an attachment")),
+        ):
+            server_node.create_service("/contested", CHANGE_STATE, lambda r: {"success": True})
+            for _ in range(3):
+                assert client.call({"transition": {"id": 3}}, timeout_s=10).success is True
+            wait_until(lambda: client.refused == 3, "each malformed attachment refused (they may come after the answer)")
+
+
 def test_bad_arguments_are_refused_with_what_was_expected(sessions: tuple[Session, Session]) -> None:
     a, _ = sessions
     with Ros2Node(a, "node", domain=46) as node:

@@ -317,7 +317,8 @@ class DdsClient:
     Cyclone DDS neither sends nor shows to its readers. So a client cannot tell its responses from
     those to other clients of the same service: it makes one call at a time (a second call waits
     for the first), takes the first response that arrives after its request was written, and a
-    response the server writes to another client's concurrent request may be taken for its own.
+    response the server writes to another client's concurrent request (or a late response to
+    its own earlier call that timed out) may be taken for its own.
     A context manager; ``close()`` is safe twice.
     """
 

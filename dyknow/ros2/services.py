@@ -14,7 +14,8 @@ the reply. A client takes the first reply whose attachment names its own GID and
 What arrives is bounded before it costs anything: a server drops unanswered a request over its
 ``max_bytes`` (before copying it), one whose attachment is malformed, and one that finds
 ``max_pending`` requests already waiting for the handler (counted in ``refused``, with
-``last_refusal``); a client treats a reply over its ``max_bytes`` as an error reply. A server's
+``last_refusal``); a client treats a reply over its ``max_bytes`` as an error reply, and drops
+a reply whose attachment is not its call's before copying its payload. A server's
 handler runs off Zenoh's thread, where ``call_soon`` runs what it is given (a unit's lane; by
 default, :meth:`~dyknow.ros2.node.Ros2Node.create_service` gives each service a thread of its
 own, one request at a time); an exception it raises answers nothing (the client
@@ -180,17 +181,19 @@ class Ros2Client:
         result: list[Any] = [None, None]  # the response's CDR, the first error reply
 
         def on_reply(_key: str, payload: bytes, attachment: bytes | None) -> None:
-            try:
-                meta = Attachment.decode(attachment)
-            except BindingError as exc:
-                self._refuse(f"a reply with {exc}")
-                return
-            if meta.sequence_number != seq or meta.gid != self.gid:
-                return  # another client's or another call's (replies are not consolidated)
+            # (wanted() let through only this call's replies: replies are not consolidated)
             with self._lock:
                 if result[0] is None:
                     result[0] = payload
             answered.set()
+
+        def wanted(attachment: bytes | None) -> bool:  # before the payload is copied
+            try:
+                meta = Attachment.decode(attachment)
+            except BindingError as exc:
+                self._refuse(f"a reply with {exc}")
+                return False
+            return meta.sequence_number == seq and meta.gid == self.gid
 
         def on_error(text: str) -> None:
             if text == "Timeout":  # Zenoh's own, as the query's time ran out: no server's answer
@@ -209,6 +212,7 @@ class Ros2Client:
             on_error=on_error,
             done=answered.set,
             max_bytes=self.max_bytes,
+            wanted=wanted,
         )
         answered.wait(left + 1.0)  # the query's own timeout ends it; the second is a margin
         waited = time.monotonic() - started

@@ -289,13 +289,15 @@ class Session:
         done: Callable[[], None],
         max_bytes: int = 64 * 1024 * 1024,
         encoding: str = "application/cdr",
+        wanted: Callable[[bytes | None], bool] | None = None,
     ) -> None:
         """Send one query of another protocol (a ROS 2 service request over rmw_zenoh) to the
         complete queryables on ``key`` and return at once. Each reply is given to
         ``on_reply(key, payload, attachment)`` and each error reply to ``on_error(text)``, on a
         Zenoh thread; a reply over ``max_bytes`` is an error, found before it is copied.
         ``done()`` is called once when the query ends (every queryable answered, or
-        ``timeout_s`` passed)."""
+        ``timeout_s`` passed). ``wanted(attachment)``: a reply it says no to is dropped before
+        its payload is copied (another caller's, in a flood of replies)."""
 
         def reply(answer: zenoh.Reply) -> None:
             try:
@@ -310,7 +312,10 @@ class Session:
                     on_error(f"a reply of {size} bytes, over the limit of {max_bytes}")
                     return
                 att = ok.attachment
-                on_reply(str(ok.key_expr), ok.payload.to_bytes(), att.to_bytes() if att is not None else None)
+                attachment = att.to_bytes()[:1024] if att is not None else None
+                if wanted is not None and not wanted(attachment):
+                    return
+                on_reply(str(ok.key_expr), ok.payload.to_bytes(), attachment)
             except Exception:
                 log.exception("a reply on %s failed", key)
 
