@@ -4,6 +4,10 @@
     python tests/ros2_peer.py PORT listen TOPIC TYPE [transient_local]
                                                         print each message received, one JSON line
     python tests/ros2_peer.py PORT info TOPIC           print `ros2 topic info -v` once a publisher shows
+    python tests/ros2_peer.py PORT serve SERVICE TYPE   serve a lifecycle service (GetState: active;
+                                                        ChangeState: success for transition 3), print each request
+    python tests/ros2_peer.py PORT call SERVICE TYPE JSON
+                                                        call once (JSON: the request's fields), print the response
 
 It connects to a Zenoh peer at tcp/127.0.0.1:PORT (the manager under test), as rmw_zenoh's
 sessions connect to their router. Types and hashes come from ROS 2's own files (the ros-std-msgs
@@ -14,6 +18,7 @@ definition from the network. Prints {"ready": true} once its entities are declar
 from __future__ import annotations
 
 import json
+import re
 import sys
 import threading
 import time
@@ -23,6 +28,8 @@ SHARE = Path(sys.prefix) / "share"
 DEPENDENCIES = {
     "std_msgs/msg/String": [],
     "sensor_msgs/msg/Image": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header"],
+    "lifecycle_msgs/srv/GetState": ["lifecycle_msgs/msg/State"],
+    "lifecycle_msgs/srv/ChangeState": ["lifecycle_msgs/msg/Transition"],
 }
 
 
@@ -138,9 +145,70 @@ def info(port: int, topic: str) -> None:
     out({"topics": get_topic_names_and_types(router_port=port), "publishers": publishers})
 
 
+def srv_parts(srv_type: str) -> tuple[str, str, str]:
+    """(request definition, response definition, the service type's hash) from ROS 2's own files."""
+    pkg, _, name = srv_type.split("/")
+    text = (SHARE / pkg / "srv" / f"{name}.srv").read_text()
+    # the SDK's parser (rosbags) would take a bare type in a .srv for pkg/srv/msg/Type: qualify it
+    text = re.sub(r"^([A-Z][A-Za-z0-9]*)(\[\]|\s)", rf"{pkg}/msg/\1\2", text, flags=re.MULTILINE)
+    request, response = re.split(r"^---\s*$", text, maxsplit=1, flags=re.MULTILINE)
+    return request, response, str(json.loads((SHARE / pkg / "srv" / f"{name}.json").read_text())["type_hashes"][0]["hash_string"])
+
+
+def serve(port: int, service: str, srv_type: str) -> None:
+    from zenoh_ros2_sdk import ROS2ServiceServer
+
+    prepare(port, srv_type)
+    request, response, type_hash = srv_parts(srv_type)
+    server: ROS2ServiceServer | None = None
+
+    def answer(msg: object) -> object:
+        assert server is not None
+        cls = server.response_msg_class
+        if srv_type.endswith("/GetState"):
+            out({"request": {}})
+            state = server.session_mgr.store.types["lifecycle_msgs/msg/State"](id=3, label="active")
+            return cls(current_state=state)
+        out({"request": {"transition": {"id": int(msg.transition.id), "label": str(msg.transition.label)}}})  # type: ignore[attr-defined]
+        return cls(success=int(msg.transition.id) == 3)  # type: ignore[attr-defined]
+
+    server = ROS2ServiceServer(
+        service, srv_type, answer, request_definition=request, response_definition=response, node_name="sdk_server", router_port=port, type_hash=type_hash
+    )
+    out({"ready": True})
+    until_stdin_closes().wait(60)
+    server.close()
+
+
+def call(port: int, service: str, srv_type: str, fields: str) -> None:
+    from zenoh_ros2_sdk import ROS2ServiceClient
+
+    prepare(port, srv_type)
+    request, response, type_hash = srv_parts(srv_type)
+    client = ROS2ServiceClient(
+        service, srv_type, request_definition=request, response_definition=response, node_name="sdk_client", router_port=port, type_hash=type_hash, timeout=5.0
+    )
+    out({"ready": True})
+    given = json.loads(fields)
+    if "transition" in given:
+        store = client.session_mgr.store
+        given["transition"] = store.types["lifecycle_msgs/msg/Transition"](id=given["transition"]["id"], label=given["transition"].get("label", ""))
+    got = None
+    deadline = time.monotonic() + 20
+    while got is None and time.monotonic() < deadline:  # until the server's queryable is known here
+        got = client.call(**given)
+    if got is None:
+        out({"response": None})
+    elif srv_type.endswith("/GetState"):
+        out({"response": {"current_state": {"id": int(got.current_state.id), "label": str(got.current_state.label)}}})  # type: ignore[attr-defined]
+    else:
+        out({"response": {"success": bool(got.success)}})  # type: ignore[attr-defined]
+    client.close()
+
+
 def main() -> None:
     port, mode, *args = sys.argv[1:]
-    {"talk": talk, "listen": listen, "info": info}[mode](int(port), *args)  # type: ignore[operator]
+    {"talk": talk, "listen": listen, "info": info, "serve": serve, "call": call}[mode](int(port), *args)  # type: ignore[operator]
     from zenoh_ros2_sdk.session import ZenohSession
 
     ZenohSession.get_instance("127.0.0.1", int(port)).close()

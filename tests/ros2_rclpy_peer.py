@@ -3,8 +3,13 @@ run as a child process with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (discovery o
 
     python tests/ros2_rclpy_peer.py talk TOPIC TYPE     publish every 20 ms until stdin closes
     python tests/ros2_rclpy_peer.py listen TOPIC TYPE   print each message received, one JSON line
+    python tests/ros2_rclpy_peer.py lifecycle NAME      a lifecycle node NAME (rclpy.lifecycle), its services
+                                                        /NAME/get_state, /NAME/change_state, ...; prints each transition
+    python tests/ros2_rclpy_peer.py call SERVICE TYPE JSON [TIMEOUT]
+                                                        an rclpy client calls once (JSON: the request's fields,
+                                                        lifecycle_msgs types) and prints {"response": ...} or null
 
-Prints {"ready": true} once its publisher or subscription exists. TYPE: std_msgs/msg/String or
+Prints {"ready": true} once its publisher, subscription, node or client exists. TYPE: std_msgs/msg/String or
 sensor_msgs/msg/Image (a 2 x 3 rgb8 frame of bytes 0..17, stamped sec=i, nanosec=5).
 """
 
@@ -13,6 +18,7 @@ from __future__ import annotations
 import json
 import sys
 import threading
+import time
 import warnings
 
 with warnings.catch_warnings():  # ROS 2's parser (lark 0.12) imports the deprecated sre_parse
@@ -26,7 +32,72 @@ def out(record: dict[str, object]) -> None:
     print(json.dumps(record), flush=True)
 
 
+def lifecycle(name: str, closed: threading.Event) -> None:
+    from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+
+    class Node(LifecycleNode):
+        def on_configure(self, state: State) -> TransitionCallbackReturn:
+            out({"transition": "configure"})
+            return TransitionCallbackReturn.SUCCESS
+
+        def on_activate(self, state: State) -> TransitionCallbackReturn:
+            out({"transition": "activate"})
+            return TransitionCallbackReturn.SUCCESS
+
+    node = Node(name)
+    out({"ready": True})
+    while not closed.is_set():
+        rclpy.spin_once(node, timeout_sec=0.05)
+    node.destroy_node()
+
+
+def call(service: str, srv_type: str, fields: str, timeout_s: float, closed: threading.Event) -> None:
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+
+    cls = {"lifecycle_msgs/srv/GetState": GetState, "lifecycle_msgs/srv/ChangeState": ChangeState}[srv_type]
+    node = rclpy.create_node("rclpy_client")
+    client = node.create_client(cls, service)
+    out({"ready": True})
+    request = cls.Request()
+    given = json.loads(fields)
+    if "transition" in given:
+        request.transition = Transition(id=given["transition"]["id"], label=given["transition"].get("label", ""))
+    if not client.wait_for_service(timeout_sec=timeout_s):
+        out({"response": None, "why": "no service"})
+    else:
+        out({"service": "found"})
+        # the client matched the server, but the server may not know the client's writer yet (a
+        # reader drops data from a writer it has not discovered): ask again every half second
+        deadline = time.monotonic() + timeout_s
+        futures = []
+        got = None
+        while got is None and time.monotonic() < deadline:
+            futures.append(client.call_async(request))
+            ask_again = time.monotonic() + 0.5
+            while got is None and time.monotonic() < min(ask_again, deadline):
+                rclpy.spin_once(node, timeout_sec=0.05)
+                got = next((f.result() for f in futures if f.done()), None)
+        if got is None:
+            out({"response": None, "why": "no answer"})
+        elif isinstance(got, GetState.Response):
+            out({"response": {"current_state": {"id": got.current_state.id, "label": got.current_state.label}}})
+        else:
+            out({"response": {"success": got.success}})
+    node.destroy_node()
+
+
 def main() -> None:
+    if sys.argv[1] in ("lifecycle", "call"):
+        rclpy.init()
+        closed = threading.Event()
+        threading.Thread(target=lambda: (sys.stdin.read(), closed.set()), daemon=True).start()
+        if sys.argv[1] == "lifecycle":
+            lifecycle(sys.argv[2], closed)
+        else:
+            call(sys.argv[2], sys.argv[3], sys.argv[4], float(sys.argv[5]) if len(sys.argv) > 5 else 10.0, closed)
+        rclpy.shutdown()
+        return
     mode, topic, ros_type = sys.argv[1:4]
     rclpy.init()
     node = rclpy.create_node(f"rclpy_{mode}")

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from dyknow import Manager
-from dyknow.errors import BindingError
+from dyknow.errors import BindingError, ServiceError
 from dyknow.ros2 import parse_binding
 from dyknow.ros2.dds import FASTDDS_PROFILE
 from tests.conftest import REPO, dds_domain, run_cli, subprocess_env
@@ -242,3 +242,84 @@ def test_the_shipped_fast_dds_profile_gives_rclpy_large_udp_buffers(rclpy_node: 
     assert wanted > rmem_default, f"net.core.rmem_max is {rmem_max}: raise it to 4194304 (see docs/howto/ros2.md)"
     sizes = _udp_receive_buffers(listener.proc.pid)
     assert sizes and max(sizes) >= wanted, sizes  # (the kernel reports twice what was set)
+
+
+# -- services over DDS: rq/<service>Request and rr/<service>Reply
+
+CHANGE_STATE, GET_STATE = "lifecycle_msgs/srv/ChangeState", "lifecycle_msgs/srv/GetState"
+
+
+@pytest.mark.process
+def test_our_dds_client_drives_an_rclpy_lifecycle_node(domain: int, rclpy_node: Callable[..., Rclpy]) -> None:
+    from dyknow.ros2.dds import DdsNode
+
+    camera = rclpy_node("lifecycle", "camera_top")
+    with DdsNode(domain=domain) as participant:
+        get_state = participant.create_client("/camera_top/get_state", GET_STATE)
+        change_state = participant.create_client("/camera_top/change_state", CHANGE_STATE)
+        assert get_state.call({}, timeout_s=15).current_state.label == "unconfigured"
+        assert change_state.call({"transition": {"id": 3}}, timeout_s=15).success is False  # activate from unconfigured: refused
+        assert change_state.call({"transition": {"id": 1}}, timeout_s=15).success is True  # configure
+        assert camera.lines.get(timeout=10) == {"transition": "configure"}
+        assert change_state.call({"transition": {"id": 3}}, timeout_s=15).success is True  # activate
+        assert camera.lines.get(timeout=10) == {"transition": "activate"}
+        state = get_state.call({}, timeout_s=15).current_state
+        assert (state.id, state.label) == (3, "active")
+
+
+@pytest.mark.process
+def test_an_rclpy_client_does_not_take_the_answers_of_a_dds_service(domain: int, rclpy_node: Callable[..., Rclpy]) -> None:
+    """What cannot work with these peers, and why: the request reaches dyknow's service and is
+    answered, but rmw_fastrtps takes a response only when its related sample identity (RTPS
+    inline QoS) names the request, and Cyclone DDS writes none (docs/howto/ros2.md). Should this
+    start to pass the other way, the documentation is wrong."""
+    from dyknow.ros2.dds import DdsNode
+
+    with DdsNode(domain=domain) as participant:
+        server = participant.create_service("/dyknow/get_state", GET_STATE, lambda r: {"current_state": {"id": 3, "label": "active"}})
+        caller = rclpy_node("call", "/dyknow/get_state", GET_STATE, "{}", "3")
+        assert caller.lines.get(timeout=30) == {"service": "found"}
+        assert caller.lines.get(timeout=30) == {"response": None, "why": "no answer"}
+        assert server.received >= 1 and server.answered == server.received and server.refused == 0
+
+
+def test_a_dds_call_nobody_answers_names_the_service_and_the_time_waited(domain: int) -> None:
+    from dyknow.errors import ServiceError
+    from dyknow.ros2.dds import DdsNode
+
+    with DdsNode(domain=domain) as participant:
+        client = participant.create_client("/nobody/get_state", GET_STATE)
+        started = time.monotonic()
+        with pytest.raises(ServiceError, match=r"ROS 2 service /nobody/get_state \(lifecycle_msgs/srv/GetState\) over DDS: no answer in 0\.[5-9] s"):
+            client.call({}, timeout_s=0.5)
+        assert time.monotonic() - started < 5  # the timeout, and what a loaded machine adds to a wake-up (1.3 s seen beside hogs)
+
+
+def test_a_dds_service_answers_a_dds_client(domain: int) -> None:
+    from dyknow.ros2.dds import DdsNode
+
+    def fails_on_4(request: Any) -> Any:
+        if request.transition.id == 4:
+            raise RuntimeError("no")
+        return {"success": request.transition.id == 3}
+
+    with DdsNode(domain=domain) as participant:
+        server = participant.create_service("/robot/change_state", CHANGE_STATE, fails_on_4)
+        client = participant.create_client("/robot/change_state", CHANGE_STATE)
+        assert client.call({"transition": {"id": 3}}, timeout_s=15).success is True
+        assert client.call({"transition": {"id": 2}}, timeout_s=15).success is False
+        with pytest.raises(ServiceError, match=r"no answer in 0\.[5-9] s"):
+            client.call({"transition": {"id": 4}}, timeout_s=0.5)
+        assert (server.received, server.answered, server.failed) == (3, 2, 1)
+
+
+@pytest.mark.process
+def test_dyknow_ros2_call_and_list_over_dds(domain: int, rclpy_node: Callable[..., Rclpy]) -> None:
+    rclpy_node("lifecycle", "camera_top")
+    called = run_cli("ros2", "call", "/camera_top/get_state", GET_STATE, "--dds", "--ros2-domain", str(domain), "--json", "--timeout", "15")
+    assert called.returncode == 0, called.stderr
+    assert json.loads(called.stdout)["response"] == {"current_state": {"id": 1, "label": "unconfigured"}}
+    listed = run_cli("ros2", "list", "--dds", "--json", "--ros2-domain", str(domain), "--timeout", "3")
+    services = json.loads(listed.stdout)["services"]
+    assert services["/camera_top/change_state"] == {"types": [CHANGE_STATE], "servers": 1, "clients": 0}
+    assert services["/camera_top/get_state"]["types"] == [GET_STATE]

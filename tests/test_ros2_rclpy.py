@@ -105,3 +105,34 @@ def test_a_point_cloud_both_ways(types: TypeSupport) -> None:
     assert [f["name"] for f in got["fields"]] == ["x", "y", "z", "i"] and got["row_step"] == 8000
     ours = types.serialize(to_message(got, "sensor_msgs/msg/PointCloud2", types, origin_ns=0), "sensor_msgs/msg/PointCloud2")
     same_but_padding(ours, theirs)
+
+
+def rclpy_service_messages() -> list[tuple[str, Any]]:
+    """(request or response type, an rclpy message of it)."""
+    from lifecycle_msgs.msg import State, Transition
+    from lifecycle_msgs.srv import ChangeState, GetState
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue, SetParametersResult
+    from rcl_interfaces.srv import SetParameters
+
+    value = ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=[0.5, 1.5])
+    return [
+        ("lifecycle_msgs/srv/ChangeState_Request", ChangeState.Request(transition=Transition(id=3, label="activate"))),
+        ("lifecycle_msgs/srv/ChangeState_Response", ChangeState.Response(success=True)),
+        ("lifecycle_msgs/srv/GetState_Request", GetState.Request()),
+        ("lifecycle_msgs/srv/GetState_Response", GetState.Response(current_state=State(id=3, label="active"))),
+        ("rcl_interfaces/srv/SetParameters_Request", SetParameters.Request(parameters=[Parameter(name="gain", value=value)])),
+        ("rcl_interfaces/srv/SetParameters_Response", SetParameters.Response(results=[SetParametersResult(successful=False, reason="no")])),
+    ]
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_service_requests_and_responses_are_rclpys_cdr(types: TypeSupport, case: int) -> None:
+    ros_type, rclpy_message = rclpy_service_messages()[case]
+    types.service(ros_type.rsplit("_", 1)[0])
+    theirs = serialize_message(rclpy_message)
+    ours = types.serialize(to_message(from_message(types.deserialize(theirs, ros_type), ros_type), ros_type, types, origin_ns=0), ros_type)
+    # rclpy pads its buffer to 4 bytes, and left 8 more after a SetParameters request: bytes after
+    # the message, which dyknow reads past; the message itself is the same outside padding
+    assert len(theirs) - len(ours) in (0, 3, 8) and set(theirs[len(ours) + 8 :]) <= {0}
+    same_but_padding(ours, theirs[: len(ours)])
+    assert deserialize_message(ours, type(rclpy_message)) == rclpy_message

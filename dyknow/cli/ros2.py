@@ -1,17 +1,20 @@
-"""ROS 2 from the command line: ``dyknow echo ros2:/TOPIC`` (a topic decoded, with its latency)
-and ``dyknow ros2 list`` (the ROS 2 graph on Zenoh, or on DDS with ``--dds``)."""
+"""ROS 2 from the command line: ``dyknow echo ros2:/TOPIC`` (a topic decoded, with its latency),
+``dyknow ros2 list`` (the ROS 2 graph on Zenoh, or on DDS with ``--dds``) and ``dyknow ros2 call``
+(a service called, as ``ros2 service call`` does)."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterable
 from typing import Any
 
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, open_client, payload_json, report_result, ros2_domain
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, open_client, payload_json, report_result, ros2_domain
 
 
 def echo_ros2(args: argparse.Namespace) -> int:
@@ -77,15 +80,22 @@ def echo_ros2(args: argparse.Namespace) -> int:
 
 
 def cmd_ros2_list(args: argparse.Namespace) -> int:
-    """list the ROS 2 graph seen on Zenoh (rmw_zenoh's liveliness tokens): nodes, topics and their types"""
+    """list the ROS 2 graph seen on Zenoh (rmw_zenoh's liveliness tokens): nodes, topics, services and their types"""
     from dyknow.ros2 import snapshot
 
     if args.dds:  # DDS: what discovery brings within --timeout (types only: DDS has no node tokens)
         from dyknow.ros2.dds import DdsNode
 
         with DdsNode(domain=ros2_domain(args)) as participant:
-            topics = participant.topics(wait_s=args.timeout)
-        report_result(args, {"topics": topics}, ["topics (DDS):", *(f"  {t} [{', '.join(types)}]" for t, types in topics.items())])
+            topics, services = participant.discover(wait_s=args.timeout)
+
+        def dds_lines() -> Iterable[str]:
+            yield "topics (DDS):"
+            yield from (f"  {t} [{', '.join(types)}]" for t, types in topics.items())
+            yield "services (DDS):"
+            yield from (_service_line(name, entry) for name, entry in services.items())
+
+        report_result(args, {"topics": topics, "services": services}, dds_lines)
         return 0
     with open_client(args) as client:
         view = snapshot(client.session, ros2_domain(args), timeout_s=args.timeout)
@@ -97,14 +107,85 @@ def cmd_ros2_list(args: argparse.Namespace) -> int:
         for topic, types in view.topics().items():
             publishers = len(view.publishers(topic))
             yield f"  {topic} [{', '.join(types)}] ({publishers} publisher{'s' if publishers != 1 else ''})"
+        yield "services:"
+        yield from (_service_line(name, entry) for name, entry in view.services().items())
 
     report_result(args, view.to_dict(), lines)
     return 0
 
 
+def _service_line(name: str, entry: dict[str, Any]) -> str:
+    servers, clients = int(entry["servers"]), int(entry["clients"])
+    return f"  {name} [{', '.join(entry['types'])}] ({servers} server{'s' if servers != 1 else ''}, {clients} client{'s' if clients != 1 else ''})"
+
+
+def parse_request(text: str) -> dict[str, Any]:
+    """A request's fields as ``ros2 service call`` takes them: YAML (``{transition: {id: 3}}``)
+    or JSON; an empty text is an empty request. Raises :class:`UsageError` saying what is wrong."""
+    import json5
+
+    if not text.strip():
+        return {}
+    try:
+        value = json5.loads(text)
+    except ValueError as first:
+        try:
+            import yaml  # type: ignore[import-untyped]  # (when installed: block YAML, bare strings; it ships no stubs)
+        except ImportError:
+            raise UsageError(f"the request {text[:80]!r} does not parse: {first}; expected JSON or YAML such as '{{transition: {{id: 3}}}}'") from None
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise UsageError(f"the request {text[:80]!r} does not parse: {exc}; expected JSON or YAML such as '{{transition: {{id: 3}}}}'") from None
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise UsageError(f"the request is a {type(value).__name__}; expected a mapping of the request's fields, like '{{transition: {{id: 3}}}}'")
+    return value
+
+
+def cmd_ros2_call(args: argparse.Namespace) -> int:
+    """call a ROS 2 service once and print its response, as `ros2 service call` does (rmw_zenoh, or DDS with --dds)
+
+    examples:
+      dyknow ros2 call /camera_top/change_state lifecycle_msgs/srv/ChangeState '{transition: {id: 3}}'
+      dyknow ros2 call /camera_top/get_state lifecycle_msgs/srv/GetState --json
+      dyknow ros2 call /camera_top/get_state lifecycle_msgs/srv/GetState --dds --ros2-domain 7"""
+    from dyknow.ros2 import Ros2Node
+    from dyknow.ros2.convert import from_message
+
+    request = parse_request(args.request)
+    started = time.monotonic()
+    if args.dds:  # DDS needs no manager: a participant of its own (discovery on loopback)
+        from dyknow.ros2.dds import DdsNode
+
+        with DdsNode(domain=ros2_domain(args)) as participant:
+            client = participant.create_client(args.service, args.srv_type)
+            response = client.call(request, timeout_s=args.timeout)
+            response_type = client.response_type
+    else:
+        with open_client(args) as session_client, Ros2Node(session_client.session, f"dyknow_call_{os.getpid()}", domain=ros2_domain(args)) as node:
+            zclient = node.create_client(args.service, args.srv_type)
+            response = zclient.call(request, timeout_s=args.timeout)
+            response_type = zclient.response_type
+    took_ms = (time.monotonic() - started) * 1000
+    fields = payload_json(from_message(response, response_type))
+    data = {"service": args.service, "type": args.srv_type, "request": request, "response": fields, "took_ms": round(took_ms, 1)}
+
+    def lines() -> Iterable[str]:
+        yield f"requester: making request: {args.srv_type} {json.dumps(request)}"
+        yield f"response ({took_ms:.0f} ms):"
+        yield from json.dumps(fields, indent=2).splitlines()
+
+    report_result(args, data, lines)
+    return 0
+
+
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
-    ros2 = cmds.group("ros2", help="the ROS 2 graph on Zenoh (list)", description="the ROS 2 graph, as rmw_zenoh's tokens show it")
+    ros2 = cmds.group(
+        "ros2", help="the ROS 2 graph on Zenoh or DDS (list, call)", description="the ROS 2 graph (as rmw_zenoh's tokens show it) and its services"
+    )
 
     def list_options(p: argparse.ArgumentParser) -> None:
         cmds.zenoh_options(p, connect_help=cmds.connect_help())
@@ -115,3 +196,16 @@ def add_commands(cmds: Commands) -> None:
         cmds.lease_option(p)
 
     ros2.command("list", cmd_ros2_list, list_options)
+
+    def call_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("service", metavar="SERVICE", help="the service's fully qualified name, like /camera_top/change_state")
+        p.add_argument("srv_type", metavar="TYPE", help="its type, like lifecycle_msgs/srv/ChangeState")
+        p.add_argument("request", metavar="REQUEST", nargs="?", default="{}", help="the request's fields in YAML or JSON (default: {})")
+        cmds.zenoh_options(p, connect_help=cmds.connect_help())
+        p.add_argument("--manager", default=DEFAULT_MANAGER, metavar="NAME", help=argparse.SUPPRESS)
+        p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="seconds to wait for a server and its answer (default 5)")
+        p.add_argument("--dds", action="store_true", help="call over DDS (Cyclone DDS, loopback discovery) instead of rmw_zenoh")
+        cmds.ros2_domain_option(p)
+        cmds.lease_option(p)
+
+    ros2.command("call", cmd_ros2_call, call_options)

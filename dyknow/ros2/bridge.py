@@ -1,7 +1,9 @@
 """The units between dyknow streams and ROS 2 topics, on their manager's ROS 2 node.
 
 - :class:`Ros2Source` takes a ROS 2 topic and publishes each message on its output ``out``;
-- :class:`Ros2Sink` takes what arrives on its input ``in`` and publishes it on a ROS 2 topic.
+- :class:`Ros2Sink` takes what arrives on its input ``in`` and publishes it on a ROS 2 topic;
+- :class:`Ros2Server` serves a ROS 2 service on rmw_zenoh: a unit subclasses it and answers in
+  :meth:`Ros2Server.handle`, on its own thread, beside its messages.
 
 Both read the param ``binding``, a ``ros2:`` binding (:mod:`dyknow.ros2.binding`). A spec may
 name them directly, so a ROS 2 topic becomes a tagged source the planner plans with::
@@ -39,9 +41,10 @@ from dyknow.ros2.convert import COMPRESSED, from_message, stamp_ns, to_message
 from dyknow.ros2.dds import DdsNode, DdsPublisher, DdsSubscription
 from dyknow.ros2.names import Entity
 from dyknow.ros2.node import Received, Ros2Node, Ros2Publisher, Ros2Subscription
+from dyknow.ros2.services import Ros2Service
 from dyknow.unit import Unit
 
-__all__ = ["Ros2Provider", "Ros2Sink", "Ros2Source", "UsesRos2"]
+__all__ = ["Ros2Provider", "Ros2Server", "Ros2Sink", "Ros2Source", "UsesRos2"]
 
 
 class Ros2Provider(Protocol):
@@ -280,3 +283,38 @@ class Ros2Sink(_Ros2Unit):
         """Undeclare the publisher."""
         if self._pub is not None:
             self._pub.close()
+
+
+class Ros2Server(_Ros2Unit):
+    """A unit that serves one ROS 2 service on its manager's rmw_zenoh node: the params
+    ``service`` (its name, like ``/robot/get_state``) and ``type`` (``pkg/srv/Name``) choose it,
+    and a subclass answers each request in :meth:`handle`. ``handle`` runs on the unit's own
+    thread (its :meth:`~dyknow.unit.Unit.call_soon`), between its messages, so it may read and
+    change the unit's state and publish; what it raises answers nothing and is logged (the
+    caller's timeout tells it). ``ros2_service`` is the :class:`~dyknow.ros2.services.Ros2Service`
+    (its counters: ``received``, ``answered``, ``refused``, ``failed``). Any other unit serves a
+    service the same way: implement ``use_ros2`` (:class:`UsesRos2`) and call
+    ``provider.ros2_node().create_service(..., call_soon=self.call_soon)`` in ``setup``, closing it
+    in ``teardown``. (Over DDS, rclpy's clients on Fast DDS would not take the answers: see
+    :class:`~dyknow.ros2.dds.DdsService`.)
+    """
+
+    ros2_service: Ros2Service | None = None
+
+    def setup(self) -> None:
+        """Declare the service."""
+        provider = self._provider
+        if provider is None:
+            raise BindingError("no ROS 2 node to serve on", where=f"unit {self.name!r}", expected="a unit spawned by a manager")
+        service, srv_type = str(self.params.get("service", "")), str(self.params.get("type", ""))
+        self.ros2_service = provider.ros2_node().create_service(service, srv_type, self.handle, call_soon=self.call_soon)
+
+    def handle(self, request: Any) -> Any:
+        """Answer ``request`` (a message object of the request type): return the response, a
+        message object or a dict of its fields. Subclasses implement it."""
+        raise NotImplementedError(f"{type(self).__name__}.handle: a Ros2Server subclass answers the requests")
+
+    def teardown(self) -> None:
+        """Undeclare the service (its token, then its queryable)."""
+        if self.ros2_service is not None:
+            self.ros2_service.close()

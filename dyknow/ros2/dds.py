@@ -24,13 +24,24 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from dyknow.errors import BindingError, ClosedError
+from dyknow.errors import BindingError, ClosedError, DyKnowError, ServiceError
 from dyknow.ros2.attachment import Attachment
-from dyknow.ros2.names import DEFAULT_QOS, Durability, QoS, Reliability, check_topic, dds_type_name, ros_type_name
+from dyknow.ros2.names import (
+    DEFAULT_QOS,
+    Durability,
+    QoS,
+    Reliability,
+    check_topic,
+    dds_reply_topic,
+    dds_request_topic,
+    dds_type_name,
+    ros_type_name,
+)
 from dyknow.ros2.node import DEFAULT_MAX_MESSAGE_BYTES, UNTYPED_MAX_MESSAGE_BYTES, Received
+from dyknow.ros2.services import DEFAULT_MAX_REQUEST_BYTES, as_message
 from dyknow.ros2.types import MAX_CDR_BYTES, TypeSupport
 
-__all__ = ["FASTDDS_PROFILE", "LOOPBACK_CONFIG", "DdsNode", "DdsPublisher", "DdsSubscription"]
+__all__ = ["FASTDDS_PROFILE", "LOOPBACK_CONFIG", "DdsClient", "DdsNode", "DdsPublisher", "DdsService", "DdsSubscription"]
 
 log = logging.getLogger(__name__)
 
@@ -275,6 +286,279 @@ class DdsSubscription:
         self.close()
 
 
+# A DDS reader takes data only from writers it has discovered, and that a writer matched a reader
+# says nothing of whether the reader's side discovered the writer yet: a request written at once
+# was lost (seen with rclpy's client and a Cyclone server, tests/test_ros2_services.py). So a
+# client whose first server was matched during a call gives the server's side this long first.
+_SETTLE_S = 0.5
+
+
+class _Matched:
+    """Counts the peers matched with a reader or a writer, and wakes who waits for a change."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.changed = threading.Condition()
+
+    def set(self, count: int) -> None:
+        """Take the new count (a listener's) and wake the waiters."""
+        with self.changed:
+            self.count = count
+            self.changed.notify_all()
+
+
+class DdsClient:
+    """Calls the ROS 2 service ``service`` of type ``srv_type`` over DDS: requests written on
+    ``rq<service>Request``, responses read from ``rr<service>Reply`` (:mod:`~dyknow.ros2.names`),
+    the payloads CDR as rmw_fastrtps writes them (no request header in the payload).
+
+    rmw_fastrtps tells which request a response answers only in RTPS's inline QoS (the response's
+    *related sample identity*: the request writer's GUID and the request's sequence number), which
+    Cyclone DDS neither sends nor shows to its readers. So a client cannot tell its responses from
+    those to other clients of the same service: it makes one call at a time (a second call waits
+    for the first), takes the first response that arrives after its request was written, and a
+    response the server writes to another client's concurrent request (or a late response to
+    its own earlier call that timed out) may be taken for its own.
+    A context manager; ``close()`` is safe twice.
+    """
+
+    def __init__(self, node: DdsNode, service: str, srv_type: str, *, max_bytes: int = DEFAULT_MAX_REQUEST_BYTES) -> None:
+        from cyclonedds.core import Listener
+
+        raw_writer, raw_reader = _raw_entities()
+        self.service = check_topic(service, "ROS 2 service")
+        self.srv_type = srv_type
+        self.where = f"DDS client of {self.service}"
+        self.request_type, self.response_type = node.types.service(srv_type)
+        if not 0 < max_bytes <= MAX_CDR_BYTES:
+            raise BindingError(f"max_bytes {max_bytes}", where=self.where, expected=f"from 1 to {MAX_CDR_BYTES}")
+        self.max_bytes = max_bytes
+        self._types = node.types
+        self._node = node
+        self._call_lock = threading.Lock()
+        self._readers, self._writers = _Matched(), _Matched()  # the servers' request readers and reply writers
+        self._data = threading.Event()
+        client = self
+
+        class _WriterListener(Listener):  # type: ignore[misc]
+            def on_publication_matched(self, writer: Any, status: Any) -> None:
+                client._readers.set(int(status.current_count))
+
+        class _ReaderListener(Listener):  # type: ignore[misc]
+            def on_data_available(self, reader: Any) -> None:
+                client._data.set()
+
+            def on_subscription_matched(self, reader: Any, status: Any) -> None:
+                client._writers.set(int(status.current_count))
+
+        qos = _qos(DEFAULT_QOS)  # rmw_qos_profile_services_default: reliable, volatile, keep last 10
+        self._reader: Any = raw_reader(
+            node.participant, node.named_topic(dds_reply_topic(self.service), self.response_type), qos=qos, listener=_ReaderListener()
+        )
+        self._writer: Any = raw_writer(
+            node.participant, node.named_topic(dds_request_topic(self.service), self.request_type), qos=qos, listener=_WriterListener()
+        )
+
+    @property
+    def servers(self) -> int:
+        """How many servers are matched both ways (their request readers and reply writers)."""
+        return min(self._readers.count, self._writers.count)
+
+    def _wait_matched(self, deadline: float) -> bool:
+        if self.servers:
+            return True
+        for matched in (self._readers, self._writers):
+            with matched.changed:
+                while matched.count == 0:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return False
+                    matched.changed.wait(left)
+        return True
+
+    def call(self, request: Any, timeout_s: float = 5.0) -> Any:
+        """Send ``request`` (a request message or a dict of its fields) and return the response
+        message; waits up to ``timeout_s`` in all (for a server to be matched both ways, for the
+        calls before it, for the answer). Raises :class:`~dyknow.errors.ServiceError` naming the
+        service and the time waited when nothing answers."""
+        if not 0 < timeout_s <= 3600:
+            raise BindingError(f"timeout {timeout_s} s", where=self.where, expected="from 0 to 3600 s")
+        data = self._types.serialize(as_message(request, self.request_type, self._types, self.where), self.request_type)
+        started = time.monotonic()
+        deadline = started + timeout_s
+        if not self._call_lock.acquire(timeout=timeout_s):
+            raise self._no_answer(time.monotonic() - started, "the calls before it took the time")
+        try:
+            matched_before = self.servers > 0
+            if not self._wait_matched(deadline):
+                raise self._no_answer(time.monotonic() - started, "no server matched")
+            if not matched_before:  # see _SETTLE_S
+                time.sleep(min(_SETTLE_S, max(0.0, deadline - time.monotonic())))
+            reader, writer = self._reader, self._writer
+            if reader is None or writer is None:
+                raise ClosedError("the client is closed", where=self.where, expected="a new client")
+            self._data.clear()
+            reader.take_cdr(64)  # what came before the request answers another (an earlier call's late answer)
+            ret = writer.write_cdr(data)
+            if ret < 0:
+                raise ServiceError(f"Cyclone DDS returned {ret} writing the request", where=self.where)
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0 or not self._data.wait(left):
+                    raise self._no_answer(time.monotonic() - started, f"{self.servers} server(s) matched")
+                self._data.clear()
+                for payload, info in reader.take_cdr(64):
+                    if not info.valid_data:
+                        continue
+                    if len(payload) > self.max_bytes:
+                        log.warning("%s: a response of %d bytes, over the limit of %d, dropped", self.where, len(payload), self.max_bytes)
+                        continue
+                    return self._types.deserialize(payload, self.response_type)
+        finally:
+            self._call_lock.release()
+
+    def _no_answer(self, waited_s: float, why: str) -> ServiceError:
+        return ServiceError(
+            f"no answer in {waited_s:.1f} s ({why})",
+            where=f"ROS 2 service {self.service} ({self.srv_type}) over DDS",
+            expected="a server of this name and type that answers (dyknow ros2 list --dds shows the services), or a longer timeout",
+        )
+
+    def close(self) -> None:
+        """Delete the writer and the reader; safe twice."""
+        writer, self._writer = self._writer, None
+        reader, self._reader = self._reader, None
+        for entity in (writer, reader):
+            if entity is not None:
+                entity.__del__()  # as DdsPublisher.close
+        self._node.forget(self)
+
+    def __enter__(self) -> DdsClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class DdsService:
+    """Serves the ROS 2 service ``service`` of type ``srv_type`` over DDS: reads requests from
+    ``rq<service>Request``, calls ``handler(request) -> response`` (a message object or a dict
+    of its fields) where ``call_soon`` runs it (default: Cyclone's thread), and writes the
+    response on ``rr<service>Reply``. A request over ``max_bytes`` or that does not decode is
+    dropped (``refused``); an exception of the handler answers nothing and is logged (``failed``).
+
+    **rmw_fastrtps clients (rclpy on Fast DDS) do not take these answers**: they take a response
+    only when its related sample identity (RTPS inline QoS) names their request, and Cyclone DDS
+    cannot write one. rmw_cyclonedds clients expect a request header in the payload, which this
+    service neither reads nor writes. So it answers dyknow's :class:`DdsClient` only; serve
+    ROS 2 nodes over rmw_zenoh (:meth:`~dyknow.ros2.node.Ros2Node.create_service`). A context
+    manager; ``close()`` is safe twice.
+    """
+
+    def __init__(
+        self,
+        node: DdsNode,
+        service: str,
+        srv_type: str,
+        handler: Callable[[Any], Any],
+        *,
+        max_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+        call_soon: Callable[[Callable[[], None]], None] | None = None,
+    ) -> None:
+        from cyclonedds.core import Listener
+
+        raw_writer, raw_reader = _raw_entities()
+        self.service = check_topic(service, "ROS 2 service")
+        self.srv_type = srv_type
+        self.where = f"DDS service {self.service}"
+        self.request_type, self.response_type = node.types.service(srv_type)
+        if not 0 < max_bytes <= MAX_CDR_BYTES:
+            raise BindingError(f"max_bytes {max_bytes}", where=self.where, expected=f"from 1 to {MAX_CDR_BYTES}")
+        self.max_bytes = max_bytes
+        self.received = 0
+        self.answered = 0
+        self.refused = 0
+        self.failed = 0
+        self._types = node.types
+        self._handler = handler
+        self._node = node
+        self._lock = threading.Lock()
+        self._pending = False
+        server = self
+
+        def take() -> None:
+            with server._lock:
+                server._pending = False
+            server._take()
+
+        class _Listener(Listener):  # type: ignore[misc]
+            def on_data_available(self, reader: Any) -> None:
+                if call_soon is None:
+                    server._take()
+                    return
+                with server._lock:
+                    schedule = not server._pending
+                    server._pending = True
+                if schedule:
+                    call_soon(take)
+
+        qos = _qos(DEFAULT_QOS)
+        self._writer: Any = raw_writer(node.participant, node.named_topic(dds_reply_topic(self.service), self.response_type), qos=qos)
+        self._reader: Any = raw_reader(
+            node.participant, node.named_topic(dds_request_topic(self.service), self.request_type), qos=qos, listener=_Listener()
+        )
+
+    def _take(self) -> None:
+        reader = self._reader
+        while reader is not None:
+            taken = reader.take_cdr(64)
+            for payload, info in taken:
+                if info.valid_data:
+                    self._serve(payload)
+            if len(taken) < 64:
+                return
+
+    def _serve(self, payload: bytes) -> None:
+        with self._lock:
+            self.received += 1
+        try:
+            if len(payload) > self.max_bytes:
+                raise BindingError(f"a request of {len(payload)} bytes", where=self.where, expected=f"at most {self.max_bytes}")
+            request = self._types.deserialize(payload, self.request_type)
+        except BindingError as exc:
+            with self._lock:
+                self.refused += 1
+            log.warning("%s refused a request: %s", self.where, exc)
+            return
+        try:
+            response = self._handler(request)
+            data = self._types.serialize(as_message(response, self.response_type, self._types, self.where), self.response_type)
+        except Exception as exc:  # the handler's: answer nothing, say why in the log
+            with self._lock:
+                self.failed += 1
+            log.log(logging.WARNING if isinstance(exc, DyKnowError) else logging.ERROR, "%s: the handler failed, answered nothing", self.where, exc_info=True)
+            return
+        writer = self._writer
+        if writer is not None and writer.write_cdr(data) >= 0:
+            with self._lock:
+                self.answered += 1
+
+    def close(self) -> None:
+        """Delete the reader and the writer; safe twice."""
+        reader, self._reader = self._reader, None
+        writer, self._writer = self._writer, None
+        for entity in (reader, writer):
+            if entity is not None:
+                entity.__del__()  # as DdsPublisher.close
+        self._node.forget(self)
+
+    def __enter__(self) -> DdsService:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 class DdsNode:
     """A DDS domain participant for ROS 2 topics of ROS domain ``domain``.
 
@@ -305,7 +589,7 @@ class DdsNode:
         self.participant: Any = DomainParticipant(self.domain)
         self._classes: dict[str, Any] = {}
         self._topics: dict[tuple[str, str], Any] = {}
-        self._entities: list[DdsPublisher | DdsSubscription] = []
+        self._entities: list[Any] = []  # publishers, subscriptions, clients and services
         self._lock = threading.RLock()
         self._closed = False
 
@@ -361,19 +645,30 @@ class DdsNode:
 
     def dds_topic(self, topic: str, ros_type: str) -> Any:
         """The DDS topic ``rt<topic>`` of ``ros_type`` (one per name and type)."""
+        return self.named_topic("rt" + check_topic(topic), ros_type)
+
+    def named_topic(self, name: str, ros_type: str) -> Any:
+        """The DDS topic ``name`` (``rt/...``, ``rq/...Request``, ``rr/...Reply``) of ``ros_type``
+        (one per name and type)."""
         from cyclonedds.topic import Topic
 
         with self._lock:
             if self._closed:
                 raise ClosedError("the DDS participant is closed", where="ros2dds", expected="a new participant")
-            found = self._topics.get((topic, ros_type))
+            found = self._topics.get((name, ros_type))
             if found is None:
-                found = self._topics[(topic, ros_type)] = Topic(self.participant, "rt" + check_topic(topic), self.idl_type(ros_type))
+                found = self._topics[(name, ros_type)] = Topic(self.participant, name, self.idl_type(ros_type))
             return found
 
     def topics(self, *, wait_s: float = 1.0) -> dict[str, list[str]]:
         """The ROS 2 topics the DDS writers and readers of this domain carry (``rt/`` topics with
         ROS type names), topic -> types, after discovery had ``wait_s`` to bring them."""
+        return self.discover(wait_s=wait_s)[0]
+
+    def discover(self, *, wait_s: float = 1.0) -> tuple[dict[str, list[str]], dict[str, dict[str, Any]]]:
+        """``(topics, services)`` of this domain after discovery had ``wait_s`` to bring them:
+        :meth:`topics`'s, and service -> ``{"types", "servers", "clients"}`` from the request
+        topics (``rq/<service>Request``: a server reads it, a client writes it)."""
         from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription
 
         with self._lock:
@@ -382,17 +677,24 @@ class DdsNode:
             readers = [BuiltinDataReader(self.participant, t) for t in (BuiltinTopicDcpsPublication, BuiltinTopicDcpsSubscription)]
         time.sleep(wait_s)  # DDS discovery has no "done": what came within the wait
         found: dict[str, set[str]] = {}
-        for reader in readers:
+        services: dict[str, dict[str, Any]] = {}
+        for reader, role in zip(readers, ("clients", "servers"), strict=True):
             for sample in reader.read(N=MAX_DISCOVERED):
                 name, type_name = str(getattr(sample, "topic_name", "")), str(getattr(sample, "type_name", ""))
-                if not name.startswith("rt/"):
-                    continue  # not a ROS 2 topic (rq/, rr/ are services; others are not ROS's)
                 try:
-                    found.setdefault(check_topic(name[2:]), set()).add(ros_type_name(type_name))
+                    if name.startswith("rt/"):
+                        found.setdefault(check_topic(name[2:]), set()).add(ros_type_name(type_name))
+                    elif name.startswith("rq/") and name.endswith("Request") and type_name.endswith("_Request_"):
+                        service = check_topic(name[2 : -len("Request")], "ROS 2 service")
+                        entry = services.setdefault(service, {"types": set(), "servers": 0, "clients": 0})
+                        entry["types"].add(ros_type_name(type_name[: -len("Request_")]))
+                        entry[role] += 1
+                    # (rr/ topics mirror rq/ ones; others are not ROS's)
                 except BindingError:
                     log.debug("ignoring DDS topic %r of type %r", name[:200], type_name[:200])
             reader.__del__()  # as DdsPublisher.close
-        return {topic: sorted(types) for topic, types in sorted(found.items())}
+        topics = {topic: sorted(types) for topic, types in sorted(found.items())}
+        return topics, {name: {**entry, "types": sorted(entry["types"])} for name, entry in sorted(services.items())}
 
     def create_publisher(self, topic: str, ros_type: str, qos: QoS = DEFAULT_QOS) -> DdsPublisher:
         """A writer of ``ros_type`` on ``topic``."""
@@ -431,14 +733,38 @@ class DdsNode:
             self._entities.append(sub)
         return sub
 
-    def forget(self, entity: DdsPublisher | DdsSubscription) -> None:
+    def create_client(self, service: str, srv_type: str, *, max_bytes: int = DEFAULT_MAX_REQUEST_BYTES) -> DdsClient:
+        """A client of the service ``service`` of type ``srv_type`` over DDS (see :class:`DdsClient`)."""
+        client = DdsClient(self, service, srv_type, max_bytes=max_bytes)
+        with self._lock:
+            self._entities.append(client)
+        return client
+
+    def create_service(
+        self,
+        service: str,
+        srv_type: str,
+        handler: Callable[[Any], Any],
+        *,
+        max_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+        call_soon: Callable[[Callable[[], None]], None] | None = None,
+    ) -> DdsService:
+        """Serve the service ``service`` of type ``srv_type`` over DDS (see :class:`DdsService`:
+        rmw_fastrtps clients do not take its answers)."""
+        server = DdsService(self, service, srv_type, handler, max_bytes=max_bytes, call_soon=call_soon)
+        with self._lock:
+            self._entities.append(server)
+        return server
+
+    def forget(self, entity: Any) -> None:
         """Called by an entity that closed itself."""
         with self._lock:
             if entity in self._entities:
                 self._entities.remove(entity)
 
     def close(self) -> None:
-        """Close every reader and writer (the latest first), then the participant; safe twice."""
+        """Close every reader, writer, client and service (the latest first), then the participant;
+        safe twice."""
         with self._lock:
             if self._closed:
                 return

@@ -56,6 +56,17 @@ class GraphView:
                 found.setdefault(e.topic, set()).add(e.ros_type)
         return {topic: sorted(types) for topic, types in sorted(found.items())}
 
+    def services(self) -> dict[str, dict[str, object]]:
+        """Service -> ``{"types": [...], "servers": N, "clients": N}`` (their ``SS``/``SC`` tokens)."""
+        found: dict[str, dict[str, object]] = {}
+        for e in self.entities:
+            if e.kind in (EntityKind.SERVICE, EntityKind.CLIENT) and e.topic is not None and e.ros_type is not None:
+                entry = found.setdefault(e.topic, {"types": set(), "servers": 0, "clients": 0})
+                entry["types"].add(e.ros_type)  # type: ignore[attr-defined]
+                role = "servers" if e.kind is EntityKind.SERVICE else "clients"
+                entry[role] = int(entry[role]) + 1  # type: ignore[call-overload]
+        return {name: {**entry, "types": sorted(entry["types"])} for name, entry in sorted(found.items())}  # type: ignore[call-overload]
+
     def publishers(self, topic: str) -> list[Entity]:
         """The publishers of ``topic``."""
         return [e for e in self.entities if e.kind is EntityKind.PUBLISHER and e.topic == topic]
@@ -67,7 +78,7 @@ class GraphView:
             for e in self.entities
             if e.kind is not EntityKind.NODE
         ]
-        return {"nodes": self.nodes(), "topics": self.topics(), "endpoints": endpoints}
+        return {"nodes": self.nodes(), "topics": self.topics(), "services": self.services(), "endpoints": endpoints}
 
 
 def _parse(keys: Iterable[str], on_bad: Callable[[str, str], None]) -> dict[str, Entity]:

@@ -16,6 +16,12 @@ rmw_zenoh's ``docs/design.md`` states it (and ``liveliness_utils.cpp`` writes it
   default (reliable, volatile, keep-last, depth 42, infinite durations, automatic liveliness) is
   left empty; the enum values are rmw's (reliable 1, best effort 2; transient local 1, volatile 2;
   keep last 1, keep all 2);
+- a service's key is a topic's (``<domain_id>/<service name>/<type_name>/<type_hash>``), with the
+  service type's DDS name (``lifecycle_msgs::srv::dds_::ChangeState_``) and its hash: a server is
+  a queryable there, a client's request a query carrying the attachment, and the reply carries
+  it back (:mod:`dyknow.ros2.services`);
+- over DDS, a service ``/a/b`` is the request topic ``rq/a/bRequest`` and the reply topic
+  ``rr/a/bReply``, of the types ``pkg::srv::dds_::Name_Request_`` and ``..._Response_``;
 - an entity's GID is the XXH3 128-bit hash of its token: the low 64 bits then the high 64 bits,
   each in the machine's (little-endian) byte order, 16 bytes.
 
@@ -44,7 +50,10 @@ __all__ = [
     "check_topic",
     "data_key",
     "dds_type_name",
+    "dds_reply_topic",
+    "dds_request_topic",
     "demangle",
+    "endpoint_pattern",
     "entity_gid",
     "mangle",
     "parse_data_key",
@@ -203,6 +212,25 @@ def publisher_pattern(domain: int, topic: str, ros_type: str | None = None, type
     if ros_type is None:
         return f"{kind}/*/*/*"
     return f"{kind}/{dds_type_name(ros_type)}/{_check_hash(type_hash or '', 'publisher pattern')}/*"
+
+
+def endpoint_pattern(domain: int, name: str, kind: EntityKind, ros_type: str | None = None, type_hash: str | None = None) -> str:
+    """A key expression for the liveliness tokens of the endpoints of ``kind`` on topic or
+    service ``name`` (of ``ros_type`` with ``type_hash`` when given, else of any type)."""
+    head = f"{ADMIN_SPACE}/{int(domain)}/*/*/*/{kind.value}/*/*/*/{mangle(check_topic(name))}"
+    if ros_type is None:
+        return f"{head}/*/*/*"
+    return f"{head}/{dds_type_name(ros_type)}/{_check_hash(type_hash or '', 'endpoint pattern')}/*"
+
+
+def dds_request_topic(service: str) -> str:
+    """The DDS topic of a service's requests: ``/a/b`` -> ``rq/a/bRequest``."""
+    return f"rq{check_topic(service, 'ROS 2 service')}Request"
+
+
+def dds_reply_topic(service: str) -> str:
+    """The DDS topic of a service's replies: ``/a/b`` -> ``rr/a/bReply``."""
+    return f"rr{check_topic(service, 'ROS 2 service')}Reply"
 
 
 def parse_data_key(key: str) -> tuple[int, str, str, str]:

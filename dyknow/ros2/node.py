@@ -1,7 +1,8 @@
 """A ROS 2 node on a dyknow Zenoh session, speaking rmw_zenoh's protocol.
 
-The node announces itself with a ``NN`` liveliness token and each of its publishers and
-subscriptions with an ``MP``/``MS`` token (:mod:`dyknow.ros2.names`), so ``ros2 node list`` and
+The node announces itself with a ``NN`` liveliness token and each of its publishers,
+subscriptions, service clients and servers with an ``MP``/``MS``/``SC``/``SS`` token (services:
+:mod:`dyknow.ros2.services`) (:mod:`dyknow.ros2.names`), so ``ros2 node list`` and
 ``ros2 topic list`` over rmw_zenoh see them. A publisher puts CDR on the topic's data key with
 rmw_zenoh's attachment (:mod:`dyknow.ros2.attachment`); a subscription takes CDR from it. Every
 entity is a context manager; closing the node undeclares what it declared, in reverse order.
@@ -36,6 +37,7 @@ from dyknow.errors import BindingError, ClosedError
 from dyknow.ros2 import names
 from dyknow.ros2.attachment import Attachment
 from dyknow.ros2.names import HASH_NOT_SUPPORTED, QoS, Reliability
+from dyknow.ros2.services import DEFAULT_MAX_PENDING, DEFAULT_MAX_REQUEST_BYTES, Ros2Client, Ros2Service
 from dyknow.ros2.types import MAX_CDR_BYTES, TypeSupport
 from dyknow.transport import Session
 
@@ -399,7 +401,7 @@ class Ros2Node:
         self.types = types or TypeSupport()
         self._ids = itertools.count(1)
         self.node_id = 0
-        self._entities: list[Ros2Publisher | Ros2Subscription] = []
+        self._entities: list[Any] = []  # publishers, subscriptions, clients and services
         self._lock = threading.Lock()
         self.entity_token = names.Entity(self.domain, session.zid, self.node_id, self.node_id, names.EntityKind.NODE, namespace, name)
         self._token: Any = session.declare_liveliness_token(self.entity_token.token())
@@ -460,6 +462,60 @@ class Ros2Node:
         with self._lock:
             self._entities.append(sub)
         return sub
+
+    def create_client(
+        self, service: str, srv_type: str, *, humble: bool = False, max_bytes: int = DEFAULT_MAX_REQUEST_BYTES
+    ) -> Ros2Client:
+        """A client of the service ``service`` of type ``srv_type`` (``pkg/srv/Name``): its
+        :meth:`~dyknow.ros2.services.Ros2Client.call` returns the response. ``max_bytes``: the
+        largest reply taken."""
+        self._check_open()
+        client = Ros2Client(self, service, srv_type, humble=humble, max_bytes=max_bytes)
+        with self._lock:
+            self._entities.append(client)
+        return client
+
+    def create_service(
+        self,
+        service: str,
+        srv_type: str,
+        handler: Callable[[Any], Any],
+        *,
+        humble: bool = False,
+        max_bytes: int = DEFAULT_MAX_REQUEST_BYTES,
+        max_pending: int = DEFAULT_MAX_PENDING,
+        call_soon: Callable[[Callable[[], None]], None] | None = None,
+    ) -> Ros2Service:
+        """Serve the service ``service`` of type ``srv_type``: ``handler(request) -> response``
+        (a message object or a dict of its fields) for each request, where ``call_soon`` runs
+        it (a unit's :meth:`~dyknow.unit.Unit.call_soon`; default: a thread of the service's
+        own). ``max_bytes``: the largest request taken; ``max_pending``: how many requests may
+        wait for the handler (more are dropped unanswered). An exception of the handler answers
+        nothing and is logged."""
+        self._check_open()
+        worker = None
+        if call_soon is None:
+            worker = _Deliveries(f"{self.name}-{names.check_topic(service, 'ROS 2 service').rsplit('/', 1)[1]}")
+            call_soon = worker.call_soon
+        try:
+            server = Ros2Service(
+                self,
+                service,
+                srv_type,
+                handler,
+                humble=humble,
+                max_bytes=max_bytes,
+                max_pending=max_pending,
+                call_soon=call_soon,
+                on_close=worker.close if worker is not None else None,
+            )
+        except BaseException:
+            if worker is not None:
+                worker.close()
+            raise
+        with self._lock:
+            self._entities.append(server)
+        return server
 
     def call_soon(self, fn: Callable[[], None]) -> None:
         """Run ``fn`` on the node's delivery thread (started on first use)."""
@@ -526,14 +582,15 @@ class Ros2Node:
             except Exception:
                 log.exception("a watcher of %s failed", entity.topic)
 
-    def forget(self, entity: Ros2Publisher | Ros2Subscription) -> None:
+    def forget(self, entity: Any) -> None:
         """Called by an entity that closed itself."""
         with self._lock:
             if entity in self._entities:
                 self._entities.remove(entity)
 
     def close(self) -> None:
-        """Close every publisher and subscription (the latest first), then the node's token; safe twice."""
+        """Close every publisher, subscription, client and service (the latest first), then the
+        node's token; safe twice."""
         with self._lock:
             entities = list(reversed(self._entities))
         for entity in entities:

@@ -32,6 +32,8 @@ __all__ = [
     "LivelinessSubscriber",
     "LivelinessToken",
     "PlainPublisher",
+    "PlainQuery",
+    "PlainQueryable",
     "Publisher",
     "Queryable",
     "ServiceChannel",
@@ -318,6 +320,79 @@ class PlainPublisher(Entity):
             handle.put(data, attachment=attachment, encoding=self._encoding)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {self.key!r}: {error_text(exc)}") from exc
+
+
+class PlainQuery:
+    """One query of another protocol (ROS 2 over rmw_zenoh) a :class:`PlainQueryable` received:
+    its key, payload and attachment. Answer it once with :meth:`reply`, or :meth:`drop` it
+    unanswered (the caller waits until its own timeout); either may come from any thread."""
+
+    __slots__ = ("_lock", "_query", "attachment", "key", "payload")
+
+    def __init__(self, query: zenoh.Query, payload: bytes, attachment: bytes | None) -> None:
+        self._query: zenoh.Query | None = query
+        self._lock = threading.Lock()
+        self.key = str(query.key_expr)
+        self.payload = payload
+        self.attachment = attachment
+
+    def reply(self, data: bytes, attachment: bytes | None, *, encoding: str = "application/cdr") -> None:
+        """Send ``data`` with ``attachment`` on the query's key, as the one answer; nothing once answered."""
+        with self._lock:
+            query, self._query = self._query, None
+        if query is None:
+            return
+        try:
+            query.reply(query.key_expr, data, encoding=zenoh.Encoding(encoding), attachment=attachment)
+        except zenoh.ZError as exc:
+            log.warning("cannot reply to %s: %s", self.key, error_text(exc))
+        finally:
+            query.drop()
+
+    def drop(self) -> None:
+        """End the query without an answer; safe twice."""
+        with self._lock:
+            query, self._query = self._query, None
+        if query is not None:
+            query.drop()
+
+
+class PlainQueryable(Entity):
+    """Receives queries of another protocol (ROS 2 services over rmw_zenoh) on a key expression:
+    ``on_query(PlainQuery)`` on Zenoh's thread (it must return at once: queue the query). A
+    query whose payload is over ``max_bytes`` is dropped unanswered before it is copied:
+    ``on_refused(key, why)``. Declared complete, as rmw_zenoh declares a service's queryable."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        on_query: Callable[[PlainQuery], None],
+        *,
+        max_bytes: int,
+        on_refused: Callable[[str, str], None] | None = None,
+    ) -> None:
+        def arrived(query: zenoh.Query) -> None:
+            try:
+                size = len(query.payload) if query.payload is not None else 0
+                if size > max_bytes:
+                    if on_refused is not None:
+                        on_refused(str(query.key_expr), f"a request of {size} bytes, over the limit of {max_bytes}")
+                    query.drop()
+                    return
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                attachment = query.attachment.to_bytes() if query.attachment is not None else None
+                on_query(PlainQuery(query, payload, attachment))
+            except Exception:
+                log.exception("a query on %s failed", key)
+                query.drop()
+
+        try:
+            queryable = session.declare_queryable(key, inline_handler(arrived), complete=True)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot declare a queryable on {key!r}: {error_text(exc)}") from exc
+        super().__init__(queryable)
+        self.key = key
 
 
 class Queryable(Entity):

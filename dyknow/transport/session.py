@@ -30,6 +30,8 @@ from dyknow.transport.entities import (
     LivelinessSubscriber,
     LivelinessToken,
     PlainPublisher,
+    PlainQuery,
+    PlainQueryable,
     Publisher,
     Queryable,
     ServiceChannel,
@@ -263,6 +265,79 @@ class Session:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot subscribe to {key!r}: {error_text(exc)}") from exc
         return Entity(sub)
+
+    def declare_plain_queryable(
+        self,
+        key: str,
+        on_query: Callable[[PlainQuery], None],
+        *,
+        max_bytes: int = 64 * 1024 * 1024,
+        on_refused: Callable[[str, str], None] | None = None,
+    ) -> PlainQueryable:
+        """Receive another protocol's queries on ``key`` (see :class:`PlainQueryable`)."""
+        return PlainQueryable(self._z(), key, on_query, max_bytes=max_bytes, on_refused=on_refused)
+
+    def query_plain(
+        self,
+        key: str,
+        payload: bytes,
+        attachment: bytes | None,
+        *,
+        timeout_s: float,
+        on_reply: Callable[[str, bytes, bytes | None], None],
+        on_error: Callable[[str], None],
+        done: Callable[[], None],
+        max_bytes: int = 64 * 1024 * 1024,
+        encoding: str = "application/cdr",
+        wanted: Callable[[bytes | None], bool] | None = None,
+    ) -> None:
+        """Send one query of another protocol (a ROS 2 service request over rmw_zenoh) to the
+        complete queryables on ``key`` and return at once. Each reply is given to
+        ``on_reply(key, payload, attachment)`` and each error reply to ``on_error(text)``, on a
+        Zenoh thread; a reply over ``max_bytes`` is an error, found before it is copied.
+        ``done()`` is called once when the query ends (every queryable answered, or
+        ``timeout_s`` passed). ``wanted(attachment)``: a reply it says no to is dropped before
+        its payload is copied (another caller's, in a flood of replies)."""
+
+        def reply(answer: zenoh.Reply) -> None:
+            try:
+                ok = answer.ok
+                if ok is None:
+                    err = answer.err
+                    text = err.payload.to_bytes()[:1000].decode("utf-8", "replace") if err is not None else "an empty reply"
+                    on_error(text)
+                    return
+                size = len(ok.payload)
+                if size > max_bytes:
+                    on_error(f"a reply of {size} bytes, over the limit of {max_bytes}")
+                    return
+                att = ok.attachment
+                attachment = att.to_bytes()[:1024] if att is not None else None
+                if wanted is not None and not wanted(attachment):
+                    return
+                on_reply(str(ok.key_expr), ok.payload.to_bytes(), attachment)
+            except Exception:
+                log.exception("a reply on %s failed", key)
+
+        def ended() -> None:  # Zenoh drops the handler when the query ends
+            try:
+                done()
+            except Exception:
+                log.exception("the end of a query on %s failed", key)
+
+        try:
+            self._z().get(
+                key,
+                inline_handler_with_end(reply, ended),
+                payload=payload,
+                attachment=attachment,
+                encoding=zenoh.Encoding(encoding),
+                timeout=timeout_s,
+                target=zenoh.QueryTarget.ALL_COMPLETE,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot query {key!r}: {error_text(exc)}") from exc
 
     def declare_queryable(self, key: str, handler: Callable[[str, bytes], tuple[bool, bytes]], *, inline: bool = False) -> Queryable:
         """Serve requests on ``key`` with ``handler(key, payload) -> (ok, reply)``; ``inline``: on
