@@ -141,7 +141,14 @@ def test_spawn_and_destroy_leave_nothing_behind(make_manager: Callable[..., Mana
     finally:
         tracemalloc.stop()
     wait_until(lambda: manager.resources()["watched_deadlines"] == 0, "the monitor forgets the destroyed deadline units", 5)
-    assert manager.resources() == before, "a per-unit structure outlived its unit"
+    after = manager.resources()
+    # the 500 Hz source may itself have been judged slow (slow_callback_s 1 ms, tracemalloc on,
+    # beside CPU hogs) and moved to a lane of its own: a second lane then runs it, and no lane
+    # outlives its units (a slow lane whose last unit left stops)
+    lanes = manager.load()["lanes"]
+    assert after["lanes"] == len(lanes) and all(lane["units"] > 0 for lane in lanes if lane["kind"] != "shared"), lanes
+    assert sum(lane["units"] for lane in lanes) == 1, lanes
+    assert {**after, "lanes": 1} == before, "a per-unit structure outlived its unit"
     # (a structure of 1 KiB or more kept per unit, 140 of them, fails it; beside CPU hogs the growth
     # was 74 KB once, over the 64 KB this allowed: what the 500 Hz source has in flight at the
     # snapshot varies with the load, most likely, though that was not measured apart)
