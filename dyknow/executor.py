@@ -604,8 +604,8 @@ class Executor:
             return None
         start = False
         with self._lock:
-            if self._closed or job.lane is not self.shared:
-                return None
+            if self._closed or job.lane is not self.shared or id(job) not in self.shared.members:
+                return None  # (released meanwhile: destroyed)
             if self._bounded() < self.max_lanes:
                 lane = self._slow_lane()
                 self._lanes.append(lane)
@@ -675,10 +675,12 @@ class Executor:
     def release(self, job: Job) -> None:
         """The job is gone: drop its timers and its place; a dedicated lane, or a slow lane left
         without units, stops."""
-        stop: Lane | None = None
+        stops: list[Lane] = []
         with self._lock:
+            left: list[Lane] = []  # the lanes it was a member of
             for lane in self._lanes:
-                lane.members.pop(id(job), None)
+                if lane.members.pop(id(job), None) is not None:
+                    left.append(lane)
                 worker = lane.worker
                 if worker is not None and worker.busy_job is job:  # (a worker names the last job it ran: not a gone one)
                     worker.busy_job = None
@@ -688,15 +690,19 @@ class Executor:
             if lane.worker is not None and lane.worker.busy_job is job:
                 lane.worker.busy_job = None
             if dedicated is not None:
-                stop = dedicated
-            elif lane.kind == SLOW and not lane.members and lane in self._lanes:
-                self._lanes.remove(lane)
-                stop = lane
-            if stop is not None and stop.worker is not None and stop.worker.busy_since_ns and stop.kind == SLOW:
-                self._leaving.append(stop.worker)  # still inside a callback: it counts until it returns
+                stops.append(dedicated)
+            # its lane, and a slow lane it was being moved to (isolate() made it a member before
+            # the job's lane was set): each slow lane left without units stops
+            for slow in [lane, *left]:
+                if slow.kind == SLOW and not slow.members and slow in self._lanes:
+                    self._lanes.remove(slow)
+                    stops.append(slow)
+            for stop in stops:
+                if stop.worker is not None and stop.worker.busy_since_ns and stop.kind == SLOW:
+                    self._leaving.append(stop.worker)  # still inside a callback: it counts until it returns
         self.shared.take_timers_of(job)
         job.lane.take_timers_of(job)
-        if stop is not None:
+        for stop in stops:
             stop.put(_STOP)
 
     def lanes(self) -> int:

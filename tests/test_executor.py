@@ -66,8 +66,11 @@ class Pass(Unit):
 
 
 class Stuck(Unit):
-    """Takes half a millisecond per message (too long to be run on its publisher's thread, well
-    under the line for slow), except "stick": it then waits until the test lets it go (or forever)."""
+    """Takes half a millisecond of its thread's CPU time per message (too long to be run on its
+    publisher's thread, well under the line for slow), except "stick": it then waits until the test
+    lets it go (or forever). (CPU time, not a sleep: waking from a sleep it waits for the interpreter
+    lock, which the executor charges to it when the lock's holder is preempted, as beside CPU hogs,
+    where a 0.5 ms sleep was charged 3-10 ms and the unit took the one slow lane meant for Busy.)"""
 
     release = threading.Event()
 
@@ -79,7 +82,9 @@ class Stuck(Unit):
             self.inside.set()
             Stuck.release.wait()
             return
-        time.sleep(0.0005)
+        end = time.thread_time() + 0.0005
+        while time.thread_time() < end:
+            pass
 
 
 SPECS = """<transformations>
@@ -427,7 +432,10 @@ def test_a_unit_stuck_forever_at_the_bound_does_not_stop_the_others(make_manager
         for i in range(20):
             src.emit(i)
             sink.wait_for(i + 1)
-        wait_until(lambda: manager.get_statistics("busy").executor.startswith("own thread (its callbacks take"), "the busy unit moved")
+        try:
+            wait_until(lambda: manager.get_statistics("busy").executor.startswith("own thread (its callbacks take"), "the busy unit moved")
+        except AssertionError as exc:  # where each unit runs, and why
+            raise AssertionError(f"{exc}: {[(u, manager.get_statistics(u).executor) for u in ('busy', 'stuck', 'beside', 'sink')]}") from None
         assert manager.load()["threads"] == 2
         stuck = manager.unit("stuck")
         assert isinstance(stuck, Stuck)
