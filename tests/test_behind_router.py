@@ -129,6 +129,12 @@ def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..
     served by a unit of the other, through the router."""
     port = free_port()
     hub = f"tcp/127.0.0.1:{port}"
+
+    def established() -> set[tuple[str, str]]:  # (local, remote) of this process's TCP links
+        out = subprocess.run(["ss", "-tnpH", "state", "established"], capture_output=True, text=True, check=True).stdout
+        return {(line.split()[2], line.split()[3]) for line in out.splitlines() if f"pid={os.getpid()}," in line}
+
+    before = established()  # (links an earlier test of this worker process left, still closing, are not these managers')
     with Session(make_config(listen=[hub], mode="router")):
         station = make_manager("station", specs=[SCENARIO_HOSTS["station"]], ontology=[ONTOLOGY], router=[hub])
         robot = make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=[ONTOLOGY], router=[hub])
@@ -142,9 +148,8 @@ def test_the_python_api_puts_a_manager_behind_a_router(make_manager: Callable[..
         sink.wait_until(lambda msg: msg.payload["camera"] == BOTTOM and msg.payload["frame"] > 3)
         # this process holds the router's sockets too (its accepted ends, from the router's port)
         # and both managers': one each, to the router, none between them
-        out = subprocess.run(["ss", "-tnpH", "state", "established"], capture_output=True, text=True, check=True).stdout
-        mine = [line.split()[2:4] for line in out.splitlines() if f"pid={os.getpid()}," in line]
-        assert sorted(remote for local, remote in mine if local != f"127.0.0.1:{port}") == [f"127.0.0.1:{port}"] * 2
+        mine = established() - before
+        assert sorted(remote for local, remote in mine if local != f"127.0.0.1:{port}") == [f"127.0.0.1:{port}"] * 2, (mine, before)
 
 
 @pytest.mark.process
