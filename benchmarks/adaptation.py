@@ -129,7 +129,8 @@ class Watcher:
         with self._cond:
             while (event := found()) is None:
                 if not self._cond.wait(max(0.0, deadline - time.monotonic())) and time.monotonic() >= deadline:
-                    raise RuntimeError(f"no recovery from {cause!r} within {timeout_s} s (adapted: {[e.cause for e in self.adapted]})")
+                    moves = [(e.cause, e.old, e.new) for e in self.adapted]  # (cause, from, to): which configuration it was on
+                    raise RuntimeError(f"no recovery from {cause!r} within {timeout_s} s (adapted: {moves})")
             return event if isinstance(event, AdaptationEvent) else None
 
 
