@@ -1,0 +1,113 @@
+"""A managed ROS 2 node: a node dyknow did not spawn, offered to the planner as a provider of its topic.
+
+A spec's ``<node>`` element (:mod:`dyknow.spec`) becomes a transformation whose unit is a
+:class:`ManagedNode`: the planner plans with it as with any unit (its output port carries the
+tags of the node's topic), and the adaptation loop recovers its failures on the same key, with
+the same back-off, probation and anti-flapping. Being chosen spawns the unit, which
+
+- in ``setup()`` sets the node's parameters and brings it up (configure if unconfigured, then
+  activate: :class:`~dyknow.ros2.lifecycle.NodeLifecycle`), then reads its topic into ``out`` as
+  a :class:`~dyknow.ros2.bridge.Ros2Source` that requires a publisher does;
+- while it runs, asks the node for its state every ``poll_s`` and fails when the node is not
+  active any more (it went to ErrorProcessing, was finalized or deactivated by someone else) or
+  does not answer (it vanished); it also fails when the topic's publishers vanish, and the loop
+  marks it stalled when its topic is silent past the port's ``deadline-ms``;
+- in ``teardown()`` (the request left it, or it failed) deactivates the node if it is active,
+  never cleans it up or destroys it.
+
+Its params: ``node`` (the node's name, ``/camera_top``), ``binding`` (its topic, ``ros2:`` for
+rmw_zenoh or ``ros2dds:`` for DDS, with the type), ``lifecycle`` (default true), ``timeout_s``
+(each service call, default 5), ``poll_s`` (default 0.5), ``wait_s`` (for the topic's publisher
+after activation, default 2), and one ``ros.NAME`` param per ROS 2 parameter to set.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from dyknow.errors import DyKnowError
+from dyknow.ros2.bridge import Ros2Source
+from dyknow.ros2.dds import DdsNode
+from dyknow.ros2.lifecycle import NodeLifecycle
+
+__all__ = ["PARAMETER_PREFIX", "ManagedNode", "node_parameters"]
+
+PARAMETER_PREFIX = "ros."
+"""A unit param named ``ros.NAME`` is the node's ROS 2 parameter ``NAME``, set when it is chosen."""
+
+_TEARDOWN_TIMEOUT_S = 1.5  # the manager waits 2 s for a teardown
+
+
+def node_parameters(params: dict[str, Any] | Any) -> dict[str, bool | int | float | str]:
+    """The ROS 2 parameters among a managed node's unit params (``ros.NAME`` -> ``NAME``)."""
+    return {name[len(PARAMETER_PREFIX) :]: value for name, value in dict(params).items() if name.startswith(PARAMETER_PREFIX)}
+
+
+class ManagedNode(Ros2Source):
+    """The provider unit of a managed ROS 2 node (see the module's documentation).
+
+    ``node_lifecycle`` is its :class:`~dyknow.ros2.lifecycle.NodeLifecycle`; ``brought_up`` says
+    what choosing it did (``["set 1 parameter(s)", "configure", "activate"]``).
+    """
+
+    node_lifecycle: NodeLifecycle | None = None
+    brought_up: tuple[str, ...] = ()
+
+    def setup(self) -> None:
+        """Set the parameters, configure and activate the node, then subscribe to its topic."""
+        ros_node, binding = self._binding()
+        self.params = {**self.params, "require_publisher": True}
+        self.node_lifecycle = NodeLifecycle(
+            ros_node,
+            str(self.params.get("node", "")),
+            lifecycle=self.params.get("lifecycle", True) in (True, "true", "1"),
+            timeout_s=float(self.params.get("timeout_s", 5.0)),
+        )
+        try:
+            self.brought_up = tuple(self.node_lifecycle.bring_up(node_parameters(self.params)))
+        except BaseException:
+            self.node_lifecycle.close()
+            raise
+        self.log.info("%s%s: %s", self.node_lifecycle.name, " (DDS)" if isinstance(ros_node, DdsNode) else "", ", ".join(self.brought_up) or "already active")
+        try:
+            super().setup()
+        except BaseException:
+            self._leave()
+            raise
+
+    def run(self, stop: threading.Event) -> None:
+        """Ask for the node's state every ``poll_s``; fail when it is not active or does not answer."""
+        lifecycle = self.node_lifecycle
+        if lifecycle is None or not lifecycle.lifecycle:
+            return
+        poll_s = float(self.params.get("poll_s", 0.5))
+        while not stop.wait(poll_s):
+            try:
+                state, label = lifecycle.state()
+            except DyKnowError as exc:
+                if not stop.is_set():
+                    self.fail(f"{lifecycle.name} vanished: {exc}")
+                return
+            if state != 3 and not stop.is_set():
+                self.fail(f"{lifecycle.name} is {label}, not active")
+                return
+
+    def teardown(self) -> None:
+        """Unsubscribe, then deactivate the node if it is active (never destroy it)."""
+        super().teardown()
+        self._leave()
+
+    def _leave(self) -> None:
+        lifecycle, self.node_lifecycle = self.node_lifecycle, None
+        if lifecycle is None:
+            return
+        try:
+            lifecycle.timeout_s = min(lifecycle.timeout_s, _TEARDOWN_TIMEOUT_S)
+            if lifecycle.bring_down():
+                self.log.info("%s deactivated", lifecycle.name)
+        except DyKnowError as exc:
+            self.log.warning("could not deactivate %s: %s", lifecycle.name, exc)
+        finally:
+            lifecycle.close()
+

@@ -1,0 +1,183 @@
+"""Managed ROS 2 nodes (dyknow.ros2.managed, dyknow.ros2.lifecycle): a real rclpy lifecycle node on
+Fast DDS (tests/ros2_rclpy_peer.py), chosen by the planner as the provider of a request, brought up
+through its lifecycle and parameter services, failed over from, and deactivated when left."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import pytest
+
+from dyknow import Manager
+from dyknow.errors import ServiceError
+from dyknow.spec import TransformationSpec
+from dyknow.spec.model import Param, Port, Tag
+from dyknow.testing import Sink
+from tests.test_adaptation import Events
+from tests.test_ros2_dds import Rclpy
+from tests.test_ros2_dds import domain as _domain
+from tests.test_ros2_dds import rclpy_node as _rclpy_node
+
+domain, rclpy_node = _domain, _rclpy_node  # the fixtures of the DDS tests
+
+GET_STATE = "lifecycle_msgs/srv/GetState"
+
+
+def node_spec(*extra: Param, node: str = "/camera_top", deadline_ms: float | None = None, timeout_s: float = 15.0) -> TransformationSpec:
+    """The spec of the managed lifecycle node ``node`` publishing ``<node>/frames``, tagged Frames(top)."""
+    params = (
+        Param("node", "string", node),
+        Param("binding", "string", f"ros2dds:{node}/frames?type=std_msgs/msg/String"),
+        Param("timeout_s", "float", timeout_s),
+        Param("wait_s", "float", 20.0),
+        Param("poll_s", "float", 0.2),
+        *extra,
+    )
+    return TransformationSpec(
+        "camera-top", "dyknow.ros2.managed:ManagedNode", params, (Port("out", "out", deadline_ms),), (Tag("out", "Frames(top)"),), priority=0
+    )
+
+
+FALLBACK = TransformationSpec(
+    "frames-fallback",
+    "transformations.generic:PeriodicSource",
+    (Param("rate_hz", "float", 50.0),),
+    (Port("out", "out"),),
+    (Tag("out", "Frames(top)"),),
+    priority=10,
+)
+SINK = TransformationSpec("sink", "dyknow.testing:Sink", (), (Port("in", "in"),))
+
+
+def state_of(domain: int, node: str = "/camera_top") -> str:
+    """The node's state as another client sees it."""
+    from dyknow.ros2.dds import DdsNode
+
+    with DdsNode(domain=domain) as participant:
+        return str(participant.create_client(f"{node}/get_state", GET_STATE).call({}, timeout_s=15).current_state.label)
+
+
+def consume(manager: Manager, key: str) -> Sink:
+    manager.spawn("sink", "sink", bindings={"in": key})
+    sink = manager.unit("sink")
+    assert isinstance(sink, Sink)
+    return sink
+
+
+def transitions(peer: Rclpy, count: int) -> list[dict[str, Any]]:
+    return [peer.lines.get(timeout=20) for _ in range(count)]
+
+
+@pytest.mark.process
+def test_a_chosen_node_is_configured_activated_and_read_then_deactivated_when_left(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    camera = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    robot = make_manager(specs=[node_spec(Param("ros.exposure", "float", 0.5)), FALLBACK, SINK], ros2_domain=domain)
+    key = robot.request("Frames(top)")
+    assert "camera-top" in {u.label for u in robot.get_model().units}
+    assert transitions(camera, 2) == [{"transition": "configure", "exposure": 0.5}, {"transition": "activate"}]  # the parameter first
+    assert state_of(domain) == "active"
+    sink = consume(robot, key)
+    message = sink.wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    assert message.payload.startswith("camera_top ")
+    robot.release(key)
+    assert camera.lines.get(timeout=20) == {"transition": "deactivate"}
+    assert state_of(domain) == "inactive"  # deactivated, never cleaned up nor destroyed
+    assert camera.proc.poll() is None
+
+
+@pytest.mark.process
+def test_a_node_that_fails_a_transition_is_failed_over_on_the_same_key(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    camera = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    robot = make_manager(specs=[node_spec(), FALLBACK, SINK], ros2_domain=domain, dwell_s=0.3)
+    events = Events(robot)
+    key = robot.request("Frames(top)")
+    transitions(camera, 2)
+    sink = consume(robot, key)
+    sink.wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    camera.send("fail")  # its deactivation errs: ErrorProcessing, then unconfigured
+    event = events.wait("adapted", timeout_s=30)
+    assert "camera-top" in event.old and "frames-fallback" in event.new, event.to_dict()
+    assert "/camera_top is unconfigured, not active" in event.cause, event.cause
+    sink.wait_until(lambda m: isinstance(m.payload, bytes), timeout_s=10)  # the fallback's, on the same key
+
+
+@pytest.mark.process
+def test_a_node_whose_topic_stalls_is_failed_over(make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]) -> None:
+    camera = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    robot = make_manager(specs=[node_spec(deadline_ms=1000), FALLBACK, SINK], ros2_domain=domain, dwell_s=0.3)
+    events = Events(robot)
+    key = robot.request("Frames(top)")
+    transitions(camera, 2)
+    consume(robot, key).wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    camera.send("stall")
+    event = events.wait("adapted", timeout_s=30)
+    assert "camera-top" in event.old and "frames-fallback" in event.new, event.to_dict()
+    assert camera.lines.get(timeout=20) == {"transition": "deactivate"}  # left: deactivated
+    assert state_of(domain) == "inactive"
+
+
+@pytest.mark.process
+def test_a_parameter_of_the_wrong_type_fails_the_choice_and_another_provider_is_taken(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    robot = make_manager(specs=[node_spec(Param("ros.exposure", "string", "bright")), FALLBACK, SINK], ros2_domain=domain)
+    info = robot.spawn("camera-top", "camera")
+    assert info.state == "failed"
+    assert "refused the parameter exposure='bright'" in str(info.error) and "type" in str(info.error).lower(), info.error
+    assert state_of(domain) == "unconfigured"  # nothing done
+    robot.destroy("camera", force=True)
+    robot.request("Frames(top)")  # the node fails at start, and the request takes the next provider
+    labels = {u.label for u in robot.get_model().units}
+    assert "frames-fallback" in labels and "camera-top" not in labels, labels
+
+
+@pytest.mark.process
+def test_a_failover_onto_a_node_that_refuses_its_parameter_goes_on_to_the_next_provider(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    top = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    rclpy_node("lifecycle", "camera_side", "/camera_side/frames")
+    side = replace(node_spec(Param("ros.exposure", "string", "bright"), node="/camera_side"), label="camera-side", priority=5)
+    robot = make_manager(specs=[node_spec(), side, FALLBACK, SINK], ros2_domain=domain, dwell_s=0.3)
+    events = Events(robot)
+    robot.request("Frames(top)")
+    transitions(top, 2)
+    top.send("fail")
+    event = events.wait("adapted", timeout_s=30)  # camera-side refused its parameter: that choice failed, was undone
+    assert event.old == ("camera-top",) and event.new == ("frames-fallback",), event.to_dict()
+    assert not [e for e in events.events if e.kind == "degraded"]
+    assert "camera-side" not in {u.label for u in robot.get_model().units}  # nothing of it left running
+
+
+def test_a_node_that_does_not_exist_fails_naming_it_and_the_time_waited(make_manager: Callable[..., Manager], domain: int) -> None:
+    robot = make_manager(specs=[node_spec(node="/nobody", timeout_s=0.5)], ros2_domain=domain)
+    started = time.monotonic()
+    info = robot.spawn("camera-top", "camera")
+    assert info.state == "failed"
+    assert "ROS 2 node /nobody over DDS" in str(info.error) and "no answer in 0." in str(info.error), info.error
+    assert "does not answer, or does not exist" in str(info.error)
+    assert time.monotonic() - started < 10
+
+
+@pytest.mark.process
+def test_a_refused_transition_says_which_state_the_node_is_in(domain: int, rclpy_node: Callable[..., Rclpy]) -> None:
+    from dyknow.ros2.dds import DdsNode
+    from dyknow.ros2.lifecycle import ACTIVATE, NodeLifecycle
+
+    rclpy_node("lifecycle", "camera_top")
+    with DdsNode(domain=domain) as participant, NodeLifecycle(participant, "/camera_top", timeout_s=15) as node:
+        assert node.state() == (1, "unconfigured")
+        with pytest.raises(ServiceError, match=r"refused the transition 'activate'; it is unconfigured; expected configure before activate"):
+            node.change(ACTIVATE)
+        assert node.bring_up({"exposure": 0.25}) == ["set 1 parameter(s)", "configure", "activate"]
+        assert node.bring_up() == []  # active already
+        assert node.bring_down() is True
+        assert node.state() == (2, "inactive")
