@@ -13,7 +13,7 @@ import pytest
 
 from dyknow import Manager
 from dyknow.errors import ServiceError
-from dyknow.spec import TransformationSpec
+from dyknow.spec import TransformationSpec, parse_specs
 from dyknow.spec.model import Param, Port, Tag
 from dyknow.testing import Sink
 from tests.test_adaptation import Events
@@ -24,6 +24,13 @@ from tests.test_ros2_dds import rclpy_node as _rclpy_node
 domain, rclpy_node = _domain, _rclpy_node  # the fixtures of the DDS tests
 
 GET_STATE = "lifecycle_msgs/srv/GetState"
+NODE = """<node name="/camera_top" middleware="dds" timeout-s="15">
+  <label>camera-top</label>
+  <params><param name="exposure" type="float">0.5</param></params>
+  <topic type="std_msgs/msg/String">/camera_top/frames</topic>
+  <tags><tag>Frames(top)</tag></tags>
+  <priority>0</priority>
+</node>"""
 
 
 def node_spec(*extra: Param, node: str = "/camera_top", deadline_ms: float | None = None, timeout_s: float = 15.0) -> TransformationSpec:
@@ -76,7 +83,8 @@ def test_a_chosen_node_is_configured_activated_and_read_then_deactivated_when_le
     make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
 ) -> None:
     camera = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
-    robot = make_manager(specs=[node_spec(Param("ros.exposure", "float", 0.5)), FALLBACK, SINK], ros2_domain=domain)
+    (spec,) = parse_specs(NODE)
+    robot = make_manager(specs=[spec, FALLBACK, SINK], ros2_domain=domain)
     key = robot.request("Frames(top)")
     assert "camera-top" in {u.label for u in robot.get_model().units}
     assert transitions(camera, 2) == [{"transition": "configure", "exposure": 0.5}, {"transition": "activate"}]  # the parameter first

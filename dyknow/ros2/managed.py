@@ -18,7 +18,8 @@ the same back-off, probation and anti-flapping. Being chosen spawns the unit, wh
 Its params: ``node`` (the node's name, ``/camera_top``), ``binding`` (its topic, ``ros2:`` for
 rmw_zenoh or ``ros2dds:`` for DDS, with the type), ``lifecycle`` (default true), ``timeout_s``
 (each service call, default 5), ``poll_s`` (default 0.5), ``wait_s`` (for the topic's publisher
-after activation, default 2), and one ``ros.NAME`` param per ROS 2 parameter to set.
+after activation, default ``timeout_s``), and one ``ros.NAME`` param per ROS 2 parameter to set
+(:data:`~dyknow.spec.model.PARAMETER_PREFIX`).
 """
 
 from __future__ import annotations
@@ -30,11 +31,9 @@ from dyknow.errors import DyKnowError
 from dyknow.ros2.bridge import Ros2Source
 from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.lifecycle import NodeLifecycle
+from dyknow.spec.model import PARAMETER_PREFIX
 
-__all__ = ["PARAMETER_PREFIX", "ManagedNode", "node_parameters"]
-
-PARAMETER_PREFIX = "ros."
-"""A unit param named ``ros.NAME`` is the node's ROS 2 parameter ``NAME``, set when it is chosen."""
+__all__ = ["ManagedNode", "node_parameters"]
 
 _TEARDOWN_TIMEOUT_S = 1.5  # the manager waits 2 s for a teardown
 
@@ -57,12 +56,13 @@ class ManagedNode(Ros2Source):
     def setup(self) -> None:
         """Set the parameters, configure and activate the node, then subscribe to its topic."""
         ros_node, binding = self._binding()
-        self.params = {**self.params, "require_publisher": True}
+        timeout_s = float(self.params.get("timeout_s", 5.0))
+        self.params = {"wait_s": timeout_s, **self.params, "require_publisher": True}
         self.node_lifecycle = NodeLifecycle(
             ros_node,
             str(self.params.get("node", "")),
             lifecycle=self.params.get("lifecycle", True) in (True, "true", "1"),
-            timeout_s=float(self.params.get("timeout_s", 5.0)),
+            timeout_s=timeout_s,
         )
         try:
             self.brought_up = tuple(self.node_lifecycle.bring_up(node_parameters(self.params)))
