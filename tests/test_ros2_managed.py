@@ -5,7 +5,7 @@ through its lifecycle and parameter services, failed over from, and deactivated 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import replace
 from typing import Any
 
@@ -16,10 +16,12 @@ from dyknow.errors import ServiceError
 from dyknow.spec import TransformationSpec, parse_specs
 from dyknow.spec.model import Param, Port, Tag
 from dyknow.testing import Sink
+from tests.conftest import free_port
 from tests.test_adaptation import Events
 from tests.test_ros2_dds import Rclpy
 from tests.test_ros2_dds import domain as _domain
 from tests.test_ros2_dds import rclpy_node as _rclpy_node
+from tests.test_ros2_live import Peer
 
 domain, rclpy_node = _domain, _rclpy_node  # the fixtures of the DDS tests
 
@@ -189,3 +191,52 @@ def test_a_refused_transition_says_which_state_the_node_is_in(domain: int, rclpy
         assert node.bring_up() == []  # active already
         assert node.bring_down() is True
         assert node.state() == (2, "inactive")
+
+
+# ---------------------------------------------------------------------------- over rmw_zenoh
+
+ZENOH_NODE = """<node name="/camera_top" timeout-s="15">
+  <label>camera-top</label>
+  <params><param name="exposure" type="float">0.5</param></params>
+  <topic type="std_msgs/msg/String">/camera_top/frames</topic>
+  <tags><tag>Frames(top)</tag></tags>
+  <priority>0</priority>
+</node>"""
+
+
+@pytest.fixture
+def sdk_node(make_manager: Callable[..., Manager]) -> Iterator[tuple[Manager, Peer]]:
+    """A manager, and a lifecycle node on rmw_zenoh (tests/ros2_peer.py: the SDK has no lifecycle
+    node, so the peer answers lifecycle_msgs and rcl_interfaces services itself) connected to it."""
+    port = free_port()
+    (spec,) = parse_specs(ZENOH_NODE)
+    robot = make_manager(listen=[f"tcp/127.0.0.1:{port}"], ros2_domain=0, specs=[spec, FALLBACK, SINK], dwell_s=0.3)
+    peer = Peer(str(port), "lifecycle", "camera_top", "/camera_top/frames")
+    try:
+        assert peer.line() == {"ready": True}
+        yield robot, peer
+    finally:
+        peer.close()
+
+
+@pytest.mark.process
+def test_a_node_on_rmw_zenoh_is_brought_up_read_failed_over_and_deactivated(sdk_node: tuple[Manager, Peer]) -> None:
+    robot, peer = sdk_node
+    events = Events(robot)
+    key = robot.request("Frames(top)")
+    assert [peer.line(), peer.line()] == [{"transition": "configure", "exposure": 0.5}, {"transition": "activate"}]
+    sink = consume(robot, key)
+    sink.wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    assert peer.proc.stdin is not None
+    peer.proc.stdin.write("fail\n")
+    peer.proc.stdin.flush()
+    event = events.wait("adapted", timeout_s=30)
+    assert event.old == ("camera-top",) and event.new == ("frames-fallback",), event.to_dict()
+    assert "not active" in event.cause, event.cause
+    sink.wait_until(lambda m: isinstance(m.payload, bytes), timeout_s=10)
+    # the node is back (unconfigured) and preferred: after its back-off the loop returns to it
+    back = events.wait("adapted", count=2, timeout_s=30)
+    assert back.new == ("camera-top",), back.to_dict()
+    assert [peer.line(), peer.line()] == [{"transition": "configure", "exposure": 0.5}, {"transition": "activate"}]
+    robot.release(key)
+    assert peer.line() == {"transition": "deactivate"}
