@@ -172,7 +172,7 @@ def test_a_node_that_does_not_exist_fails_naming_it_and_the_time_waited(make_man
     started = time.monotonic()
     info = robot.spawn("camera-top", "camera")
     assert info.state == "failed"
-    assert "ROS 2 node /nobody over DDS" in str(info.error) and "no answer in 0." in str(info.error), info.error
+    assert "ROS 2 node /nobody over DDS: /nobody/get_state: no answer in 0." in str(info.error), info.error
     assert "does not answer, or does not exist" in str(info.error)
     assert time.monotonic() - started < 10
 
@@ -240,3 +240,15 @@ def test_a_node_on_rmw_zenoh_is_brought_up_read_failed_over_and_deactivated(sdk_
     assert [peer.line(), peer.line()] == [{"transition": "configure", "exposure": 0.5}, {"transition": "activate"}]
     robot.release(key)
     assert peer.line() == {"transition": "deactivate"}
+
+
+@pytest.mark.process
+def test_a_node_on_rmw_zenoh_that_vanishes_is_failed_over(sdk_node: tuple[Manager, Peer]) -> None:
+    robot, peer = sdk_node
+    events = Events(robot)
+    key = robot.request("Frames(top)")
+    consume(robot, key).wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    peer.proc.kill()  # gone from the graph at once: its tokens go with its session
+    event = events.wait("adapted", timeout_s=30)
+    assert event.old == ("camera-top",) and event.new == ("frames-fallback",), event.to_dict()
+    assert "gone" in event.cause or "vanished" in event.cause, event.cause

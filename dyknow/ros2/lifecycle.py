@@ -114,10 +114,11 @@ class NodeLifecycle:
         try:
             return self._client(suffix, srv_type).call(request, timeout_s=timeout_s or self.timeout_s)
         except ServiceError as exc:
+            silent = "no answer" in exc.what
             raise ServiceError(
-                f"{exc.what}: the node does not answer, or does not exist",
+                f"{self.name}/{suffix}: {exc.what}" + (": the node does not answer, or does not exist" if silent else ""),
                 where=self.where,
-                expected=exc.expected or f"a running node {self.name} serving {self.name}/{suffix}",
+                expected=f"a running node {self.name} serving {self.name}/{suffix}" if silent else exc.expected,
             ) from exc
 
     def state(self, timeout_s: float | None = None) -> tuple[int, str]:

@@ -85,9 +85,9 @@ class ManagedNode(Ros2Source):
         while not stop.wait(poll_s):
             try:
                 state, label = lifecycle.state()
-            except DyKnowError as exc:
+            except Exception as exc:  # (a call cut short by teardown closing the clients, too)
                 if not stop.is_set():
-                    self.fail(f"{lifecycle.name} vanished: {exc}")
+                    self.fail(f"{lifecycle.name} vanished: {exc}" if isinstance(exc, DyKnowError) else f"{lifecycle.name}: {exc!r}")
                 return
             if state != 3 and not stop.is_set():
                 self.fail(f"{lifecycle.name} is {label}, not active")
