@@ -63,9 +63,15 @@ STATES: Mapping[int, str] = {
 
 
 class _Client(Protocol):
-    def call(self, request: Any, timeout_s: float = 5.0) -> Any: ...
+    """A service client: :class:`~dyknow.ros2.services.Ros2Client` or :class:`~dyknow.ros2.dds.DdsClient`."""
 
-    def close(self) -> None: ...
+    def call(self, request: Any, timeout_s: float = 5.0) -> Any:
+        """Send ``request`` and return the response."""
+        ...
+
+    def close(self) -> None:
+        """Close the client."""
+        ...
 
 
 def parameter(name: str, value: bool | int | float | str) -> dict[str, Any]:
