@@ -252,3 +252,48 @@ def test_a_node_on_rmw_zenoh_that_vanishes_is_failed_over(sdk_node: tuple[Manage
     event = events.wait("adapted", timeout_s=30)
     assert event.old == ("camera-top",) and event.new == ("frames-fallback",), event.to_dict()
     assert "gone" in event.cause or "vanished" in event.cause, event.cause
+
+
+def diagnostics(*statuses: tuple[str, int]) -> dict[str, Any]:
+    """A diagnostic_msgs/msg/DiagnosticArray's fields: (name, level) per status."""
+    return {"status": [{"level": level, "name": name, "message": f"level {level}", "hardware_id": "cam"} for name, level in statuses]}
+
+
+@pytest.mark.process
+def test_an_error_of_the_node_on_diagnostics_is_failed_over(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    """The /diagnostics are published by the test through dyknow's DDS publisher (the ROS 2
+    wheels here have no diagnostic_msgs for rclpy): another node's ERROR and this node's OK change
+    nothing; this node's ERROR fails it over."""
+    from dyknow.ros2.convert import to_message
+    from dyknow.ros2.dds import DdsNode
+
+    camera = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    robot = make_manager(specs=[node_spec(), FALLBACK, SINK], ros2_domain=domain, dwell_s=0.3)
+    events = Events(robot)
+    key = robot.request("Frames(top)")
+    transitions(camera, 2)
+    consume(robot, key).wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    with DdsNode(domain=domain) as participant:
+        publisher = participant.create_publisher("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
+        fine = to_message(diagnostics(("camera_side: frames", 2), ("camera_top: frames", 0)), publisher.ros_type, participant.types, origin_ns=0)
+        error = to_message(diagnostics(("camera_top: frames", 2)), publisher.ros_type, participant.types, origin_ns=0)
+        deadline = time.monotonic() + 30
+        while not events.events and time.monotonic() < deadline:  # until its reader matched ours
+            publisher.publish(fine)
+            publisher.publish(error)
+            time.sleep(0.1)
+    event = events.wait("adapted", timeout_s=1)
+    assert event.old == ("camera-top",) and event.new == ("frames-fallback",), event.to_dict()
+    assert "/diagnostics: camera_top: frames is ERROR: level 2" in event.cause, event.cause
+
+
+def test_a_diagnostic_status_is_a_nodes_when_it_is_named_after_it() -> None:
+    from dyknow.ros2.managed import is_status_of
+
+    assert is_status_of("camera_top: Frame rate", "/camera_top")
+    assert is_status_of("/robot/camera_top: Frame rate", "/robot/camera_top")
+    assert is_status_of("camera_top", "/robot/camera_top")
+    assert not is_status_of("camera_side: Frame rate", "/camera_top")
+    assert not is_status_of("camera_top_2: Frame rate", "/camera_top")

@@ -10,8 +10,10 @@ the same back-off, probation and anti-flapping. Being chosen spawns the unit, wh
   a :class:`~dyknow.ros2.bridge.Ros2Source` that requires a publisher does;
 - while it runs, asks the node for its state every ``poll_s`` and fails when the node is not
   active any more (it went to ErrorProcessing, was finalized or deactivated by someone else) or
-  does not answer (it vanished); it also fails when the topic's publishers vanish, and the loop
-  marks it stalled when its topic is silent past the port's ``deadline-ms``;
+  does not answer (it vanished); it also fails when the topic's publishers vanish, and when
+  ``/diagnostics`` has an ERROR status of the node (:func:`is_status_of`; param ``diagnostics``
+  false: not read), and the loop marks it stalled when its topic is silent past the port's
+  ``deadline-ms``;
 - in ``teardown()`` (the request left it, or it failed) deactivates the node if it is active,
   never cleans it up or destroys it.
 
@@ -29,13 +31,25 @@ from typing import Any
 
 from dyknow.errors import DyKnowError
 from dyknow.ros2.bridge import Ros2Source
-from dyknow.ros2.dds import DdsNode
+from dyknow.ros2.dds import DdsNode, DdsSubscription
 from dyknow.ros2.lifecycle import NodeLifecycle
+from dyknow.ros2.node import Received, Ros2Subscription
 from dyknow.spec.model import PARAMETER_PREFIX
 
-__all__ = ["ManagedNode", "node_parameters"]
+__all__ = ["ManagedNode", "is_status_of", "node_parameters"]
 
 _TEARDOWN_TIMEOUT_S = 1.5  # the manager waits 2 s for a teardown
+DIAGNOSTICS_TOPIC = "/diagnostics"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+ERROR = 2  # diagnostic_msgs/msg/DiagnosticStatus.ERROR
+
+
+def is_status_of(status_name: str, node: str) -> bool:
+    """Whether a ``/diagnostics`` status named ``status_name`` is node ``node``'s: named after its
+    name as ROS 2's ``diagnostic_updater`` names them (``camera_top: Frame rate``), with or without
+    its namespace, or the node's name alone."""
+    head = status_name.split(":", 1)[0].strip()
+    return head in (node, node.lstrip("/"), node.rsplit("/", 1)[-1])
 
 
 def node_parameters(params: dict[str, Any] | Any) -> dict[str, bool | int | float | str]:
@@ -52,6 +66,7 @@ class ManagedNode(Ros2Source):
 
     node_lifecycle: NodeLifecycle | None = None
     brought_up: tuple[str, ...] = ()
+    _diagnostics: Ros2Subscription | DdsSubscription | None = None
 
     def setup(self) -> None:
         """Set the parameters, configure and activate the node, then subscribe to its topic."""
@@ -72,9 +87,22 @@ class ManagedNode(Ros2Source):
         self.log.info("%s%s: %s", self.node_lifecycle.name, " (DDS)" if isinstance(ros_node, DdsNode) else "", ", ".join(self.brought_up) or "already active")
         try:
             super().setup()
+            if self.params.get("diagnostics", True) in (True, "true", "1"):
+                self._diagnostics = ros_node.create_subscription(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, self._diagnosed, call_soon=self.call_soon)
         except BaseException:
+            super().teardown()
             self._leave()
             raise
+
+    def _diagnosed(self, received: Received) -> None:  # on the unit's thread
+        lifecycle = self.node_lifecycle
+        if lifecycle is None:
+            return
+        for status in getattr(received.message, "status", ())[:1000]:
+            level = status.level[0] if isinstance(status.level, bytes) else int(status.level)
+            if level == ERROR and is_status_of(str(status.name), lifecycle.name):
+                self.fail(f"/diagnostics: {str(status.name)[:200]} is ERROR: {str(status.message)[:300]}")
+                return
 
     def run(self, stop: threading.Event) -> None:
         """Ask for the node's state every ``poll_s``; fail when it is not active or does not answer."""
@@ -95,6 +123,9 @@ class ManagedNode(Ros2Source):
 
     def teardown(self) -> None:
         """Unsubscribe, then deactivate the node if it is active (never destroy it)."""
+        diagnostics, self._diagnostics = self._diagnostics, None
+        if diagnostics is not None:
+            diagnostics.close()
         super().teardown()
         self._leave()
 
