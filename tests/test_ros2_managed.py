@@ -297,3 +297,20 @@ def test_a_diagnostic_status_is_a_nodes_when_it_is_named_after_it() -> None:
     assert is_status_of("camera_top", "/robot/camera_top")
     assert not is_status_of("camera_side: Frame rate", "/camera_top")
     assert not is_status_of("camera_top_2: Frame rate", "/camera_top")
+
+
+@pytest.mark.process
+def test_node_lifecycle_over_rmw_zenoh_says_what_was_refused_and_what_was_set(sdk_node: tuple[Manager, Peer]) -> None:
+    from dyknow.ros2.lifecycle import ACTIVATE, NodeLifecycle
+
+    robot, peer = sdk_node
+    with NodeLifecycle(robot.ros2_node(), "/camera_top", timeout_s=15) as node:
+        refused = r"refused the parameter gain=2: parameter 'gain' is not declared; expected .* \(these were set: exposure\)"
+        with pytest.raises(ServiceError, match=refused):
+            node.set_parameters({"exposure": 0.3, "gain": 2})
+        with pytest.raises(ServiceError, match=r"refused the transition 'activate'; it is unconfigured; expected configure before activate"):
+            node.change(ACTIVATE)
+        assert node.bring_up() == ["configure", "activate"]
+        assert [peer.line(), peer.line()] == [{"transition": "configure", "exposure": 0.3}, {"transition": "activate"}]
+        assert node.bring_down() is True and node.state() == (2, "inactive")
+        assert peer.line() == {"transition": "deactivate"}

@@ -145,21 +145,24 @@ class NodeLifecycle:
             raise ServiceError(f"the node refused the transition {name!r}; it is {label}", where=self.where, expected=_expected(label, name))
 
     def set_parameters(self, values: Mapping[str, bool | int | float | str]) -> None:
-        """Set ``values`` (name -> value); a parameter the node refuses raises
-        :class:`~dyknow.errors.ServiceError` with the node's reason (those before it are set)."""
+        """Set ``values`` (name -> value), each on its own as ``ros2 param set`` does; a parameter
+        the node refuses raises :class:`~dyknow.errors.ServiceError` with the node's reason,
+        naming those that were set."""
         if not values:
             return
         params = [parameter(name, value) for name, value in values.items()]
         answer = self._call("set_parameters", "rcl_interfaces/srv/SetParameters", {"parameters": params}, None)
-        for name, result in zip(values, answer.results, strict=False):
+        results = list(zip(values, answer.results, strict=False))
+        done = [name for name, result in results if result.successful]
+        for name, result in results:
             if not result.successful:
-                done = [n for n in values if n != name]
                 raise ServiceError(
                     f"the node refused the parameter {name}={values[name]!r}: {str(result.reason)[:300] or 'no reason given'}",
                     where=self.where,
-                    expected="a parameter the node declares, of its type"
-                    + (f" (the others were set: {', '.join(done)})" if done else ""),
+                    expected="a parameter the node declares, of its type" + (f" (these were set: {', '.join(done)})" if done else ""),
                 )
+        if len(results) < len(values):
+            raise ServiceError(f"the node answered {len(results)} results for {len(values)} parameters", where=self.where)
 
     def bring_up(self, parameters: Mapping[str, bool | int | float | str] | None = None) -> list[str]:
         """Set ``parameters``, then configure (if unconfigured) and activate (if inactive) the
