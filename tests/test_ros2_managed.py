@@ -314,3 +314,21 @@ def test_node_lifecycle_over_rmw_zenoh_says_what_was_refused_and_what_was_set(sd
         assert [peer.line(), peer.line()] == [{"transition": "configure", "exposure": 0.3}, {"transition": "activate"}]
         assert node.bring_down() is True and node.state() == (2, "inactive")
         assert peer.line() == {"transition": "deactivate"}
+
+
+@pytest.mark.process
+def test_two_nodes_specs_of_one_node_share_it_and_the_last_to_leave_deactivates_it(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    camera = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    frames = node_spec()
+    texts = replace(frames, label="camera-top-text", tags=(Tag("out", "Text(top)"),))
+    robot = make_manager(specs=[frames, texts], ros2_domain=domain)
+    first = robot.request("Frames(top)")
+    second = robot.request("Text(top)")
+    assert transitions(camera, 2) == [{"transition": "configure", "exposure": 0.1}, {"transition": "activate"}]  # once
+    robot.release(first)
+    assert state_of(domain) == "active"  # the other still reads it
+    robot.release(second)
+    assert camera.lines.get(timeout=20) == {"transition": "deactivate"}
+    assert state_of(domain) == "inactive"

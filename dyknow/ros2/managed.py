@@ -14,7 +14,8 @@ the same back-off, probation and anti-flapping. Being chosen spawns the unit, wh
   ``/diagnostics`` has an ERROR status of the node (:func:`is_status_of`; param ``diagnostics``
   false: not read), and the loop marks it stalled when its topic is silent past the port's
   ``deadline-ms``;
-- in ``teardown()`` (the request left it, or it failed) deactivates the node if it is active,
+- in ``teardown()`` (the request left it, or it failed) deactivates the node if it is active and
+  no other unit of the manager uses it (two ``<node>``s of one node, one per topic, share it),
   never cleans it up or destroys it.
 
 Its params: ``node`` (the node's name, ``/camera_top``), ``binding`` (its topic, ``ros2:`` for
@@ -42,6 +43,10 @@ _TEARDOWN_TIMEOUT_S = 1.5  # the manager waits 2 s for a teardown
 DIAGNOSTICS_TOPIC = "/diagnostics"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 ERROR = 2  # diagnostic_msgs/msg/DiagnosticStatus.ERROR
+# the units of each node (by the manager's node or participant, and the node's name): the last to
+# leave deactivates it, so two <node>s of one node (one per topic) never pull it from under each other
+_HOLDERS: dict[tuple[int, str], set[str]] = {}
+_HOLDERS_LOCK = threading.Lock()
 
 
 def is_status_of(status_name: str, node: str) -> bool:
@@ -66,6 +71,7 @@ class ManagedNode(Ros2Source):
 
     node_lifecycle: NodeLifecycle | None = None
     brought_up: tuple[str, ...] = ()
+    _held: tuple[int, str] = (0, "")
     _diagnostics: Ros2Subscription | DdsSubscription | None = None
 
     def setup(self) -> None:
@@ -79,10 +85,13 @@ class ManagedNode(Ros2Source):
             lifecycle=self.params.get("lifecycle", True) in (True, "true", "1"),
             timeout_s=timeout_s,
         )
+        self._held = (id(ros_node), self.node_lifecycle.name)
+        with _HOLDERS_LOCK:  # before it is brought up: a unit of the node leaving meanwhile leaves it active
+            _HOLDERS.setdefault(self._held, set()).add(self.name)
         try:
             self.brought_up = tuple(self.node_lifecycle.bring_up(node_parameters(self.params)))
         except BaseException:
-            self.node_lifecycle.close()
+            self._leave()
             raise
         self.log.info("%s%s: %s", self.node_lifecycle.name, " (DDS)" if isinstance(ros_node, DdsNode) else "", ", ".join(self.brought_up) or "already active")
         try:
@@ -133,9 +142,17 @@ class ManagedNode(Ros2Source):
         lifecycle, self.node_lifecycle = self.node_lifecycle, None
         if lifecycle is None:
             return
+        with _HOLDERS_LOCK:
+            holders = _HOLDERS.get(self._held, set())
+            holders.discard(self.name)
+            others = sorted(holders)
+            if not holders:
+                _HOLDERS.pop(self._held, None)
         try:
             lifecycle.timeout_s = min(lifecycle.timeout_s, _TEARDOWN_TIMEOUT_S)
-            if lifecycle.bring_down():
+            if others:
+                self.log.info("%s stays as it is: units %s still use it", lifecycle.name, ", ".join(others[:10]))
+            elif lifecycle.bring_down():
                 self.log.info("%s deactivated", lifecycle.name)
         except DyKnowError as exc:
             self.log.warning("could not deactivate %s: %s", lifecycle.name, exc)
