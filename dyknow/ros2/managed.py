@@ -43,9 +43,11 @@ _TEARDOWN_TIMEOUT_S = 1.5  # the manager waits 2 s for a teardown
 DIAGNOSTICS_TOPIC = "/diagnostics"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 ERROR = 2  # diagnostic_msgs/msg/DiagnosticStatus.ERROR
-# the units of each node (by the manager's node or participant, and the node's name): the last to
-# leave deactivates it, so two <node>s of one node (one per topic) never pull it from under each other
-_HOLDERS: dict[tuple[int, str], set[str]] = {}
+# each node's NodeLifecycle and the units that use it (by the manager's node or participant, and the
+# node's name): they share its clients (a DDS client makes one call at a time, and could take another
+# client's answer), and the last to leave deactivates it, so two <node>s of one node (one per topic)
+# never pull it from under each other
+_HOLDERS: dict[tuple[int, str], tuple[NodeLifecycle, set[str]]] = {}
 _HOLDERS_LOCK = threading.Lock()
 
 
@@ -65,7 +67,8 @@ def node_parameters(params: dict[str, Any] | Any) -> dict[str, bool | int | floa
 class ManagedNode(Ros2Source):
     """The provider unit of a managed ROS 2 node (see the module's documentation).
 
-    ``node_lifecycle`` is its :class:`~dyknow.ros2.lifecycle.NodeLifecycle`; ``brought_up`` says
+    ``node_lifecycle`` is its :class:`~dyknow.ros2.lifecycle.NodeLifecycle` (shared by the units of
+    one node on one manager); ``brought_up`` says
     what choosing it did (``["set 1 parameter(s)", "configure", "activate"]``).
     """
 
@@ -79,21 +82,25 @@ class ManagedNode(Ros2Source):
         ros_node, binding = self._binding()
         timeout_s = float(self.params.get("timeout_s", 5.0))
         self.params = {"wait_s": timeout_s, **self.params, "require_publisher": True}
-        self.node_lifecycle = NodeLifecycle(
+        lifecycle = NodeLifecycle(
             ros_node,
             str(self.params.get("node", "")),
             lifecycle=self.params.get("lifecycle", True) in (True, "true", "1"),
             timeout_s=timeout_s,
         )
-        self._held = (id(ros_node), self.node_lifecycle.name)
+        self._held = (id(ros_node), lifecycle.name)
         with _HOLDERS_LOCK:  # before it is brought up: a unit of the node leaving meanwhile leaves it active
-            _HOLDERS.setdefault(self._held, set()).add(self.name)
+            shared, holders = _HOLDERS.setdefault(self._held, (lifecycle, set()))
+            holders.add(self.name)
+        self.node_lifecycle = shared
+        if shared is not lifecycle:
+            lifecycle.close()  # (it made no client yet)
         try:
-            self.brought_up = tuple(self.node_lifecycle.bring_up(node_parameters(self.params)))
+            self.brought_up = tuple(shared.bring_up(node_parameters(self.params)))
         except BaseException:
             self._leave()
             raise
-        self.log.info("%s%s: %s", self.node_lifecycle.name, " (DDS)" if isinstance(ros_node, DdsNode) else "", ", ".join(self.brought_up) or "already active")
+        self.log.info("%s%s: %s", shared.name, " (DDS)" if isinstance(ros_node, DdsNode) else "", ", ".join(self.brought_up) or "already active")
         try:
             super().setup()
             if self.params.get("diagnostics", True) in (True, "true", "1"):
@@ -143,16 +150,17 @@ class ManagedNode(Ros2Source):
         if lifecycle is None:
             return
         with _HOLDERS_LOCK:
-            holders = _HOLDERS.get(self._held, set())
+            holders = _HOLDERS.get(self._held, (lifecycle, set()))[1]
             holders.discard(self.name)
             others = sorted(holders)
             if not holders:
                 _HOLDERS.pop(self._held, None)
+        if others:
+            self.log.info("%s stays as it is: units %s still use it", lifecycle.name, ", ".join(others[:10]))
+            return
         try:
             lifecycle.timeout_s = min(lifecycle.timeout_s, _TEARDOWN_TIMEOUT_S)
-            if others:
-                self.log.info("%s stays as it is: units %s still use it", lifecycle.name, ", ".join(others[:10]))
-            elif lifecycle.bring_down():
+            if lifecycle.bring_down():
                 self.log.info("%s deactivated", lifecycle.name)
         except DyKnowError as exc:
             self.log.warning("could not deactivate %s: %s", lifecycle.name, exc)
