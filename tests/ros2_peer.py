@@ -13,8 +13,9 @@
                                                         node): /NAME/get_state, /NAME/change_state and
                                                         /NAME/set_parameters (a double "exposure"); publishes
                                                         std_msgs/String on TOPIC every 20 ms while active; prints each
-                                                        transition; a line "fail" on stdin: an error (ErrorProcessing,
-                                                        then unconfigured), "stall": stop publishing
+                                                        transition and publishes it on /NAME/transition_event; a line "fail" on stdin: an error (ErrorProcessing,
+                                                        then unconfigured), "quiet-fail": unconfigured with no
+                                                        transition_event, "stall": stop publishing
 
 It connects to a Zenoh peer at tcp/127.0.0.1:PORT (the manager under test), as rmw_zenoh's
 sessions connect to their router. Types and hashes come from ROS 2's own files (the ros-std-msgs
@@ -37,6 +38,7 @@ DEPENDENCIES = {
     "sensor_msgs/msg/Image": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header"],
     "lifecycle_msgs/srv/GetState": ["lifecycle_msgs/msg/State"],
     "lifecycle_msgs/srv/ChangeState": ["lifecycle_msgs/msg/Transition"],
+    "lifecycle_msgs/msg/TransitionEvent": ["lifecycle_msgs/msg/Transition", "lifecycle_msgs/msg/State"],
     "rcl_interfaces/srv/SetParameters": [
         "rcl_interfaces/msg/ParameterValue",
         "rcl_interfaces/msg/Parameter",
@@ -226,11 +228,28 @@ _TRANSITIONS = {1: ("configure", 1, 2), 2: ("cleanup", 2, 1), 3: ("activate", 2,
 def lifecycle(port: int, name: str, topic: str) -> None:
     from zenoh_ros2_sdk import ROS2Publisher, ROS2ServiceServer
 
-    for srv_type in ("lifecycle_msgs/srv/GetState", "lifecycle_msgs/srv/ChangeState", "rcl_interfaces/srv/SetParameters", "std_msgs/msg/String"):
-        prepare(port, srv_type)
+    for ros_type in (
+        "lifecycle_msgs/srv/GetState", "lifecycle_msgs/srv/ChangeState", "rcl_interfaces/srv/SetParameters", "std_msgs/msg/String",
+        "lifecycle_msgs/msg/TransitionEvent",
+    ):  # fmt: skip
+        prepare(port, ros_type)
     lock = threading.Lock()
     node = {"state": 1, "exposure": 0.1, "stalled": False}
     servers: dict[str, ROS2ServiceServer] = {}
+    events = ROS2Publisher(
+        f"/{name}/transition_event", "lifecycle_msgs/msg/TransitionEvent", msg_definition=definition("lifecycle_msgs/msg/TransitionEvent"),
+        node_name=name, router_port=port, type_hash=type_hash("lifecycle_msgs/msg/TransitionEvent"),
+    )  # fmt: skip
+
+    def announce(transition: int, label: str, start: int, goal: int) -> None:  # as rcl_lifecycle publishes each step
+        from zenoh_ros2_sdk.session import ZenohSession
+
+        types = ZenohSession.get_instance("127.0.0.1", port).store.types
+        state, step = types["lifecycle_msgs/msg/State"], types["lifecycle_msgs/msg/Transition"]
+        events.publish(
+            timestamp=time.time_ns(), transition=step(id=transition, label=label),
+            start_state=state(id=start, label=_STATES[start]), goal_state=state(id=goal, label=_STATES[goal]),
+        )  # fmt: skip
 
     def get_state(msg: object) -> object:
         server = servers["get_state"]
@@ -246,6 +265,7 @@ def lifecycle(port: int, name: str, topic: str) -> None:
             if ok:
                 node["state"] = after
         if ok:
+            announce(transition, label, before, after)
             out({"transition": label, **({"exposure": node["exposure"]} if label == "configure" else {})})
         return servers["change_state"].response_msg_class(success=ok)
 
@@ -289,10 +309,14 @@ def lifecycle(port: int, name: str, topic: str) -> None:
                     node["state"] = 15
                 elif command == "stall":
                     node["stalled"] = True
+                elif command == "quiet-fail":  # unconfigured with no transition_event (as if it were lost)
+                    node["state"] = 1
             if command == "fail":
+                announce(4, "deactivate", 3, 15)
                 time.sleep(0.05)
                 with lock:
                     node["state"] = 1
+                announce(0, "error", 15, 1)
         closed.set()
 
     threading.Thread(target=read, daemon=True).start()
@@ -304,6 +328,7 @@ def lifecycle(port: int, name: str, topic: str) -> None:
             i += 1
             pub.publish(data=f"{name} {i}")
     pub.close()
+    events.close()
     for server in servers.values():
         server.close()
 

@@ -114,7 +114,7 @@ def test_a_node_that_fails_a_transition_is_failed_over_on_the_same_key(
     camera.send("fail")  # its deactivation errs: ErrorProcessing, then unconfigured
     event = events.wait("adapted", timeout_s=30)
     assert "camera-top" in event.old and "frames-fallback" in event.new, event.to_dict()
-    assert "/camera_top is unconfigured, not active" in event.cause, event.cause
+    assert "/camera_top went from active to deactivating, not active (its transition_event)" in event.cause, event.cause
     sink.wait_until(lambda m: isinstance(m.payload, bytes), timeout_s=10)  # the fallback's, on the same key
 
 
@@ -232,7 +232,7 @@ def test_a_node_on_rmw_zenoh_is_brought_up_read_failed_over_and_deactivated(sdk_
     peer.proc.stdin.flush()
     event = events.wait("adapted", timeout_s=30)
     assert event.old == ("camera-top",) and event.new == ("frames-fallback",), event.to_dict()
-    assert "not active" in event.cause, event.cause
+    assert "/camera_top went from active to errorprocessing, not active (its transition_event)" in event.cause, event.cause
     sink.wait_until(lambda m: isinstance(m.payload, bytes), timeout_s=10)
     # the node is back (unconfigured) and preferred: after its back-off the loop returns to it
     back = events.wait("adapted", count=2, timeout_s=30)
@@ -332,3 +332,17 @@ def test_two_nodes_specs_of_one_node_share_it_and_the_last_to_leave_deactivates_
     robot.release(second)
     assert camera.lines.get(timeout=20) == {"transition": "deactivate"}
     assert state_of(domain) == "inactive"
+
+
+@pytest.mark.process
+def test_a_node_that_leaves_the_active_state_unannounced_is_found_by_its_state(sdk_node: tuple[Manager, Peer]) -> None:
+    """No transition_event (as if it were lost): the unit's GetState polls find the node unconfigured."""
+    robot, peer = sdk_node
+    events = Events(robot)
+    key = robot.request("Frames(top)")
+    consume(robot, key).wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    assert peer.proc.stdin is not None
+    peer.proc.stdin.write("quiet-fail\n")
+    peer.proc.stdin.flush()
+    event = events.wait("adapted", timeout_s=30)
+    assert event.new == ("frames-fallback",) and "/camera_top is unconfigured, not active" in event.cause, event.to_dict()

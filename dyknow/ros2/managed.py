@@ -8,9 +8,9 @@ the same back-off, probation and anti-flapping. Being chosen spawns the unit, wh
 - in ``setup()`` sets the node's parameters and brings it up (configure if unconfigured, then
   activate: :class:`~dyknow.ros2.lifecycle.NodeLifecycle`), then reads its topic into ``out`` as
   a :class:`~dyknow.ros2.bridge.Ros2Source` that requires a publisher does;
-- while it runs, asks the node for its state every ``poll_s`` and fails when the node is not
-  active any more (it went to ErrorProcessing, was finalized or deactivated by someone else) or
-  does not answer (it vanished); it also fails when the topic's publishers vanish, and when
+- while it runs, reads the node's ``<node>/transition_event`` and asks for its state every
+  ``poll_s``, and fails when the node is not active any more (it went to ErrorProcessing, was
+  finalized or deactivated by someone else) or does not answer (it vanished); it also fails when the topic's publishers vanish, and when
   ``/diagnostics`` has an ERROR status of the node (:func:`is_status_of`; param ``diagnostics``
   false: not read), and the loop marks it stalled when its topic is silent past the port's
   ``deadline-ms``;
@@ -33,7 +33,7 @@ from typing import Any
 from dyknow.errors import DyKnowError
 from dyknow.ros2.bridge import Ros2Source
 from dyknow.ros2.dds import DdsNode, DdsSubscription
-from dyknow.ros2.lifecycle import NodeLifecycle
+from dyknow.ros2.lifecycle import STATES, NodeLifecycle
 from dyknow.ros2.node import Received, Ros2Subscription
 from dyknow.spec.model import PARAMETER_PREFIX
 
@@ -42,6 +42,7 @@ __all__ = ["ManagedNode", "is_status_of", "node_parameters"]
 _TEARDOWN_TIMEOUT_S = 1.5  # the manager waits 2 s for a teardown
 DIAGNOSTICS_TOPIC = "/diagnostics"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+TRANSITION_EVENT = "lifecycle_msgs/msg/TransitionEvent"
 ERROR = 2  # diagnostic_msgs/msg/DiagnosticStatus.ERROR
 # each node's NodeLifecycle and the units that use it (by the manager's node or participant, and the
 # node's name): they share its clients (a DDS client makes one call at a time, and could take another
@@ -75,11 +76,12 @@ class ManagedNode(Ros2Source):
     node_lifecycle: NodeLifecycle | None = None
     brought_up: tuple[str, ...] = ()
     _held: tuple[int, str] = (0, "")
-    _diagnostics: Ros2Subscription | DdsSubscription | None = None
+    _subscriptions: list[Ros2Subscription | DdsSubscription] = []  # each unit its own list from setup() on; this one stays empty
 
     def setup(self) -> None:
         """Set the parameters, configure and activate the node, then subscribe to its topic."""
         ros_node, binding = self._binding()
+        self._subscriptions = []
         timeout_s = float(self.params.get("timeout_s", 5.0))
         self.params = {"wait_s": timeout_s, **self.params, "require_publisher": True}
         lifecycle = NodeLifecycle(
@@ -103,12 +105,27 @@ class ManagedNode(Ros2Source):
         self.log.info("%s%s: %s", shared.name, " (DDS)" if isinstance(ros_node, DdsNode) else "", ", ".join(self.brought_up) or "already active")
         try:
             super().setup()
+            if shared.lifecycle:  # told at once of a transition, beside the polls
+                topic = f"{shared.name}/transition_event"
+                self._subscriptions.append(ros_node.create_subscription(topic, TRANSITION_EVENT, self._transitioned, call_soon=self.call_soon))
             if self.params.get("diagnostics", True) in (True, "true", "1"):
-                self._diagnostics = ros_node.create_subscription(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, self._diagnosed, call_soon=self.call_soon)
+                self._subscriptions.append(
+                    ros_node.create_subscription(DIAGNOSTICS_TOPIC, DIAGNOSTIC_ARRAY, self._diagnosed, call_soon=self.call_soon)
+                )
         except BaseException:
+            self._unsubscribe()
             super().teardown()
             self._leave()
             raise
+
+    def _transitioned(self, received: Received) -> None:  # on the unit's thread
+        lifecycle = self.node_lifecycle
+        goal = getattr(received.message, "goal_state", None)
+        if lifecycle is None or goal is None or int(goal.id) == 3:
+            return
+        start = received.message.start_state
+        went = [str(state.label)[:100] or STATES.get(int(state.id), "unknown") for state in (start, goal)]
+        self.fail(f"{lifecycle.name} went from {went[0]} to {went[1]}, not active (its transition_event)")
 
     def _diagnosed(self, received: Received) -> None:  # on the unit's thread
         lifecycle = self.node_lifecycle
@@ -139,11 +156,14 @@ class ManagedNode(Ros2Source):
 
     def teardown(self) -> None:
         """Unsubscribe, then deactivate the node if it is active (never destroy it)."""
-        diagnostics, self._diagnostics = self._diagnostics, None
-        if diagnostics is not None:
-            diagnostics.close()
+        self._unsubscribe()
         super().teardown()
         self._leave()
+
+    def _unsubscribe(self) -> None:
+        subscriptions, self._subscriptions = self._subscriptions, []
+        for subscription in subscriptions:
+            subscription.close()
 
     def _leave(self) -> None:
         lifecycle, self.node_lifecycle = self.node_lifecycle, None
