@@ -15,7 +15,8 @@
                                                         std_msgs/String on TOPIC every 20 ms while active; prints each
                                                         transition and publishes it on /NAME/transition_event; a line "fail" on stdin: an error (ErrorProcessing,
                                                         then unconfigured), "quiet-fail": unconfigured with no
-                                                        transition_event, "stall": stop publishing
+                                                        transition_event, "refuse-activate": activation fails
+                                                        (it stays inactive; printed once taken), "stall": stop publishing
 
 It connects to a Zenoh peer at tcp/127.0.0.1:PORT (the manager under test), as rmw_zenoh's
 sessions connect to their router. Types and hashes come from ROS 2's own files (the ros-std-msgs
@@ -261,7 +262,7 @@ def lifecycle(port: int, name: str, topic: str) -> None:
         transition = int(msg.transition.id)  # type: ignore[attr-defined]
         label, before, after = _TRANSITIONS.get(transition, ("?", -1, -1))
         with lock:
-            ok = node["state"] == before
+            ok = node["state"] == before and not (label == "activate" and node.get("refuse_activate"))
             if ok:
                 node["state"] = after
         if ok:
@@ -309,6 +310,9 @@ def lifecycle(port: int, name: str, topic: str) -> None:
                     node["state"] = 15
                 elif command == "stall":
                     node["stalled"] = True
+                elif command == "refuse-activate":  # its on_activate fails: it stays inactive
+                    node["refuse_activate"] = True
+                    out({"command": command})
                 elif command == "quiet-fail":  # unconfigured with no transition_event (as if it were lost)
                     node["state"] = 1
             if command == "fail":

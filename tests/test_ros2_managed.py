@@ -346,3 +346,23 @@ def test_a_node_that_leaves_the_active_state_unannounced_is_found_by_its_state(s
     peer.proc.stdin.flush()
     event = events.wait("adapted", timeout_s=30)
     assert event.new == ("frames-fallback",) and "/camera_top is unconfigured, not active" in event.cause, event.to_dict()
+
+
+@pytest.mark.process
+def test_a_node_that_refuses_activation_is_cleaned_up_and_the_next_provider_taken(sdk_node: tuple[Manager, Peer]) -> None:
+    from dyknow.ros2.lifecycle import NodeLifecycle
+
+    robot, peer = sdk_node
+    assert peer.proc.stdin is not None
+    peer.proc.stdin.write("refuse-activate\n")
+    peer.proc.stdin.flush()
+    assert peer.line() == {"command": "refuse-activate"}
+    robot.request("Frames(top)")  # the node fails at start; the request takes the next provider
+    labels = {u.label for u in robot.get_model().units}
+    assert "frames-fallback" in labels and "camera-top" not in labels, labels
+    assert [peer.line(), peer.line()] == [{"transition": "configure", "exposure": 0.5}, {"transition": "cleanup"}]  # undone
+    with NodeLifecycle(robot.ros2_node(), "/camera_top", timeout_s=15) as node:
+        assert node.state() == (1, "unconfigured")
+        undone = r"refused the transition 'activate'; it is inactive; the configure before it was undone \(cleaned up: unconfigured again\); expected a node whose activation succeeds"
+        with pytest.raises(ServiceError, match=undone):
+            node.bring_up()

@@ -187,16 +187,17 @@ class NodeLifecycle:
         try:
             self.change(ACTIVATE)
         except DyKnowError as exc:
-            if configured:
-                try:
-                    self.change(CLEANUP)
-                except DyKnowError as undo:
-                    raise ServiceError(
-                        f"{exc.what}; configured it, and the cleanup back to unconfigured failed too: {undo.what}",
-                        where=self.where,
-                        expected=exc.expected,
-                    ) from exc
-            raise
+            if not configured:
+                raise
+            try:
+                self.change(CLEANUP)
+            except DyKnowError as undo:
+                raise ServiceError(
+                    f"{exc.what}; configured it, and the cleanup back to unconfigured failed too: {undo.what}",
+                    where=self.where,
+                    expected=exc.expected,
+                ) from exc
+            raise ServiceError(f"{exc.what}; the configure before it was undone (cleaned up: unconfigured again)", where=self.where, expected=exc.expected) from exc
         done.append("activate")
         return done
 
@@ -231,5 +232,6 @@ def _expected(label: str, transition: str) -> str:
             "unconfigured": "configure before activate (ROS 2 activates only an inactive node)",
             "finalized": "a node that is not finalized (a finalized node must be restarted)",
             "errorprocessing": "a node that recovered from its error (it is in ErrorProcessing)",
+            "inactive": "a node whose activation succeeds (its on_activate failed: its log says why)",
         }.get(label, "a node that is unconfigured, inactive or active")
     return f"a node in a state from which {transition!r} is allowed"
