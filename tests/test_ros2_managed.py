@@ -12,7 +12,7 @@ from typing import Any
 import pytest
 
 from dyknow import Manager
-from dyknow.errors import ServiceError
+from dyknow.errors import ClosedError, ServiceError
 from dyknow.spec import TransformationSpec, parse_specs
 from dyknow.spec.model import Param, Port, Tag
 from dyknow.testing import Sink
@@ -301,7 +301,7 @@ def test_a_diagnostic_status_is_a_nodes_when_it_is_named_after_it() -> None:
 
 @pytest.mark.process
 def test_node_lifecycle_over_rmw_zenoh_says_what_was_refused_and_what_was_set(sdk_node: tuple[Manager, Peer]) -> None:
-    from dyknow.ros2.lifecycle import ACTIVATE, NodeLifecycle
+    from dyknow.ros2.lifecycle import ACTIVATE, CLEANUP, CONFIGURE, NodeLifecycle
 
     robot, peer = sdk_node
     with NodeLifecycle(robot.ros2_node(), "/camera_top", timeout_s=15) as node:
@@ -314,6 +314,15 @@ def test_node_lifecycle_over_rmw_zenoh_says_what_was_refused_and_what_was_set(sd
         assert [peer.line(), peer.line()] == [{"transition": "configure", "exposure": 0.3}, {"transition": "activate"}]
         assert node.bring_down() is True and node.state() == (2, "inactive")
         assert peer.line() == {"transition": "deactivate"}
+    with NodeLifecycle(robot.ros2_node(), "/camera_top", lifecycle=False, timeout_s=15) as plain:  # parameters only
+        assert plain.bring_up({"exposure": 0.7}) == ["set 1 parameter(s)"]
+        assert plain.bring_down() is False  # nothing to deactivate: not a lifecycle node
+    with NodeLifecycle(robot.ros2_node(), "/camera_top", timeout_s=15) as node:
+        node.change(CLEANUP)
+        node.change(CONFIGURE)
+        assert [peer.line(), peer.line()] == [{"transition": "cleanup"}, {"transition": "configure", "exposure": 0.7}]
+    with pytest.raises(ClosedError, match="the lifecycle client is closed"):
+        node.state()
 
 
 @pytest.mark.process

@@ -29,7 +29,7 @@ import threading
 from collections.abc import Mapping
 from typing import Any, Protocol
 
-from dyknow.errors import BindingError, DyKnowError, ServiceError
+from dyknow.errors import BindingError, ClosedError, DyKnowError, ServiceError
 from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.names import check_topic
 from dyknow.ros2.node import Ros2Node
@@ -108,7 +108,7 @@ class NodeLifecycle:
     def _client(self, suffix: str, srv_type: str) -> _Client:
         with self._lock:
             if self._closed:
-                raise ServiceError("the lifecycle client is closed", where=self.where)
+                raise ClosedError("the lifecycle client is closed", where=self.where, expected="a new NodeLifecycle")
             client = self._clients.get(suffix)
             if client is None:
                 service = f"{self.name}/{suffix}"
@@ -166,7 +166,7 @@ class NodeLifecycle:
 
     def bring_up(self, parameters: Mapping[str, bool | int | float | str] | None = None) -> list[str]:
         """Set ``parameters``, then configure (if unconfigured) and activate (if inactive) the
-        node; returns what was done (``["set 2 parameters", "configure", "activate"]``). On a
+        node; returns what was done (``["set 2 parameter(s)", "configure", "activate"]``). On a
         failure after configuring, the node is cleaned up again (see the module's docs)."""
         done: list[str] = []
         if parameters:
