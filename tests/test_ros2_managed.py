@@ -375,3 +375,20 @@ def test_a_node_that_refuses_activation_is_cleaned_up_and_the_next_provider_take
         undone = r"refused the transition 'activate'; it is inactive; the configure before it was undone \(cleaned up: unconfigured again\); expected a node whose activation succeeds"
         with pytest.raises(ServiceError, match=undone):
             node.bring_up()
+
+
+@pytest.mark.process
+def test_a_node_on_dds_that_vanishes_is_failed_over_when_its_get_state_goes_unanswered(
+    make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
+) -> None:
+    """Killed, a Fast DDS node leaves no trace until its lease ends (20 s): the unit's GetState
+    poll, unanswered for its timeout (5 s here), fails it first."""
+    camera = rclpy_node("lifecycle", "camera_top", "/camera_top/frames")
+    robot = make_manager(specs=[node_spec(timeout_s=5.0), FALLBACK, SINK], ros2_domain=domain, dwell_s=0.3)
+    events = Events(robot)
+    key = robot.request("Frames(top)")
+    consume(robot, key).wait_until(lambda m: str(m.payload).startswith("camera_top "), timeout_s=20)
+    camera.proc.kill()
+    event = events.wait("adapted", timeout_s=30)
+    assert event.old == ("camera-top",) and event.new == ("frames-fallback",), event.to_dict()
+    assert "/camera_top vanished: " in event.cause and "/camera_top/get_state: no answer in" in event.cause, event.cause
