@@ -8,6 +8,15 @@
                                                         ChangeState: success for transition 3), print each request
     python tests/ros2_peer.py PORT call SERVICE TYPE JSON
                                                         call once (JSON: the request's fields), print the response
+    python tests/ros2_peer.py PORT lifecycle NAME TOPIC a lifecycle node as rclpy.lifecycle's behaves, built on the
+                                                        SDK's service servers and publisher (the SDK has no lifecycle
+                                                        node): /NAME/get_state, /NAME/change_state and
+                                                        /NAME/set_parameters (a double "exposure"); publishes
+                                                        std_msgs/String on TOPIC every 20 ms while active; prints each
+                                                        transition and publishes it on /NAME/transition_event; a line "fail" on stdin: an error (ErrorProcessing,
+                                                        then unconfigured), "quiet-fail": unconfigured with no
+                                                        transition_event, "refuse-activate": activation fails
+                                                        (it stays inactive; printed once taken), "stall": stop publishing
 
 It connects to a Zenoh peer at tcp/127.0.0.1:PORT (the manager under test), as rmw_zenoh's
 sessions connect to their router. Types and hashes come from ROS 2's own files (the ros-std-msgs
@@ -30,6 +39,12 @@ DEPENDENCIES = {
     "sensor_msgs/msg/Image": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header"],
     "lifecycle_msgs/srv/GetState": ["lifecycle_msgs/msg/State"],
     "lifecycle_msgs/srv/ChangeState": ["lifecycle_msgs/msg/Transition"],
+    "lifecycle_msgs/msg/TransitionEvent": ["lifecycle_msgs/msg/Transition", "lifecycle_msgs/msg/State"],
+    "rcl_interfaces/srv/SetParameters": [
+        "rcl_interfaces/msg/ParameterValue",
+        "rcl_interfaces/msg/Parameter",
+        "rcl_interfaces/msg/SetParametersResult",
+    ],
 }
 
 
@@ -206,9 +221,125 @@ def call(port: int, service: str, srv_type: str, fields: str) -> None:
     client.close()
 
 
+# lifecycle_msgs: the primary states, and the transitions (id -> (label, from, to)) a node takes
+_STATES = {1: "unconfigured", 2: "inactive", 3: "active", 15: "errorprocessing"}
+_TRANSITIONS = {1: ("configure", 1, 2), 2: ("cleanup", 2, 1), 3: ("activate", 2, 3), 4: ("deactivate", 3, 2)}
+
+
+def lifecycle(port: int, name: str, topic: str) -> None:
+    from zenoh_ros2_sdk import ROS2Publisher, ROS2ServiceServer
+
+    for ros_type in (
+        "lifecycle_msgs/srv/GetState", "lifecycle_msgs/srv/ChangeState", "rcl_interfaces/srv/SetParameters", "std_msgs/msg/String",
+        "lifecycle_msgs/msg/TransitionEvent",
+    ):  # fmt: skip
+        prepare(port, ros_type)
+    lock = threading.Lock()
+    node = {"state": 1, "exposure": 0.1, "stalled": False}
+    servers: dict[str, ROS2ServiceServer] = {}
+    events = ROS2Publisher(
+        f"/{name}/transition_event", "lifecycle_msgs/msg/TransitionEvent", msg_definition=definition("lifecycle_msgs/msg/TransitionEvent"),
+        node_name=name, router_port=port, type_hash=type_hash("lifecycle_msgs/msg/TransitionEvent"),
+    )  # fmt: skip
+
+    def announce(transition: int, label: str, start: int, goal: int) -> None:  # as rcl_lifecycle publishes each step
+        from zenoh_ros2_sdk.session import ZenohSession
+
+        types = ZenohSession.get_instance("127.0.0.1", port).store.types
+        state, step = types["lifecycle_msgs/msg/State"], types["lifecycle_msgs/msg/Transition"]
+        events.publish(
+            timestamp=time.time_ns(), transition=step(id=transition, label=label),
+            start_state=state(id=start, label=_STATES[start]), goal_state=state(id=goal, label=_STATES[goal]),
+        )  # fmt: skip
+
+    def get_state(msg: object) -> object:
+        server = servers["get_state"]
+        with lock:
+            state = node["state"]
+        return server.response_msg_class(current_state=server.session_mgr.store.types["lifecycle_msgs/msg/State"](id=state, label=_STATES[state]))
+
+    def change_state(msg: object) -> object:
+        transition = int(msg.transition.id)  # type: ignore[attr-defined]
+        label, before, after = _TRANSITIONS.get(transition, ("?", -1, -1))
+        with lock:
+            ok = node["state"] == before and not (label == "activate" and node.get("refuse_activate"))
+            if ok:
+                node["state"] = after
+        if ok:
+            announce(transition, label, before, after)
+            out({"transition": label, **({"exposure": node["exposure"]} if label == "configure" else {})})
+        return servers["change_state"].response_msg_class(success=ok)
+
+    def set_parameters(msg: object) -> object:
+        server = servers["set_parameters"]
+        result = server.session_mgr.store.types["rcl_interfaces/msg/SetParametersResult"]
+        results = []
+        for parameter in msg.parameters:  # type: ignore[attr-defined]
+            if parameter.name != "exposure":
+                results.append(result(successful=False, reason=f"parameter '{parameter.name}' is not declared"))
+            elif int(parameter.value.type) != 3:
+                results.append(result(successful=False, reason=f"Wrong parameter type, expected 'Type.DOUBLE' got type {int(parameter.value.type)}"))
+            else:
+                with lock:
+                    node["exposure"] = float(parameter.value.double_value)
+                results.append(result(successful=True, reason=""))
+        return server.response_msg_class(results=results)
+
+    for suffix, srv_type, handler in (
+        ("get_state", "lifecycle_msgs/srv/GetState", get_state),
+        ("change_state", "lifecycle_msgs/srv/ChangeState", change_state),
+        ("set_parameters", "rcl_interfaces/srv/SetParameters", set_parameters),
+    ):
+        request, response, srv_hash = srv_parts(srv_type)
+        servers[suffix] = ROS2ServiceServer(
+            f"/{name}/{suffix}", srv_type, handler, request_definition=request, response_definition=response,
+            node_name=name, router_port=port, type_hash=srv_hash,
+        )  # fmt: skip
+    pub = ROS2Publisher(
+        topic, "std_msgs/msg/String", msg_definition=definition("std_msgs/msg/String"), node_name=name, router_port=port,
+        type_hash=type_hash("std_msgs/msg/String"),
+    )  # fmt: skip
+    out({"ready": True})
+    closed = threading.Event()
+
+    def read() -> None:
+        for line in sys.stdin:
+            command = line.strip()
+            with lock:
+                if command == "fail":  # an error in the node: ErrorProcessing, then (its on_error succeeds) unconfigured
+                    node["state"] = 15
+                elif command == "stall":
+                    node["stalled"] = True
+                elif command == "refuse-activate":  # its on_activate fails: it stays inactive
+                    node["refuse_activate"] = True
+                    out({"command": command})
+                elif command == "quiet-fail":  # unconfigured with no transition_event (as if it were lost)
+                    node["state"] = 1
+            if command == "fail":
+                announce(4, "deactivate", 3, 15)
+                time.sleep(0.05)
+                with lock:
+                    node["state"] = 1
+                announce(0, "error", 15, 1)
+        closed.set()
+
+    threading.Thread(target=read, daemon=True).start()
+    i = 0
+    while not closed.wait(0.02):
+        with lock:
+            publishing = node["state"] == 3 and not node["stalled"]
+        if publishing:
+            i += 1
+            pub.publish(data=f"{name} {i}")
+    pub.close()
+    events.close()
+    for server in servers.values():
+        server.close()
+
+
 def main() -> None:
     port, mode, *args = sys.argv[1:]
-    {"talk": talk, "listen": listen, "info": info, "serve": serve, "call": call}[mode](int(port), *args)  # type: ignore[operator]
+    {"talk": talk, "listen": listen, "info": info, "serve": serve, "call": call, "lifecycle": lifecycle}[mode](int(port), *args)  # type: ignore[operator]
     from zenoh_ros2_sdk.session import ZenohSession
 
     ZenohSession.get_instance("127.0.0.1", int(port)).close()

@@ -3,8 +3,13 @@ run as a child process with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (discovery o
 
     python tests/ros2_rclpy_peer.py talk TOPIC TYPE     publish every 20 ms until stdin closes
     python tests/ros2_rclpy_peer.py listen TOPIC TYPE   print each message received, one JSON line
-    python tests/ros2_rclpy_peer.py lifecycle NAME      a lifecycle node NAME (rclpy.lifecycle), its services
-                                                        /NAME/get_state, /NAME/change_state, ...; prints each transition
+    python tests/ros2_rclpy_peer.py lifecycle NAME [TOPIC]
+                                                        a lifecycle node NAME (rclpy.lifecycle), its services
+                                                        /NAME/get_state, /NAME/change_state, ...; prints each transition;
+                                                        a double parameter "exposure" (0.1); publishes std_msgs/String
+                                                        on TOPIC every 20 ms while active; a line "fail" on stdin makes
+                                                        it fail a deactivation (ErrorProcessing, then unconfigured), a line
+                                                        "stall" makes it stop publishing
     python tests/ros2_rclpy_peer.py call SERVICE TYPE JSON [TIMEOUT]
                                                         an rclpy client calls once (JSON: the request's fields,
                                                         lifecycle_msgs types) and prints {"response": ...} or null
@@ -32,22 +37,50 @@ def out(record: dict[str, object]) -> None:
     print(json.dumps(record), flush=True)
 
 
-def lifecycle(name: str, closed: threading.Event) -> None:
+def lifecycle(name: str, closed: threading.Event, commands: list[str], topic: str | None = None) -> None:
     from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 
     class Node(LifecycleNode):
+        failing = False
+        stalled = False
+
         def on_configure(self, state: State) -> TransitionCallbackReturn:
-            out({"transition": "configure"})
+            out({"transition": "configure", "exposure": self.get_parameter("exposure").value})
+            if topic is not None:
+                self.pub = self.create_lifecycle_publisher(String, topic, 10)
             return TransitionCallbackReturn.SUCCESS
 
         def on_activate(self, state: State) -> TransitionCallbackReturn:
             out({"transition": "activate"})
+            return super().on_activate(state)
+
+        def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+            out({"transition": "deactivate"})
+            if self.failing:
+                self.failing = False
+                return TransitionCallbackReturn.ERROR  # to ErrorProcessing, then (rclpy's on_error succeeds) unconfigured
+            return super().on_deactivate(state)
+
+        def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+            out({"transition": "cleanup"})
             return TransitionCallbackReturn.SUCCESS
 
     node = Node(name)
+    node.declare_parameter("exposure", 0.1)
     out({"ready": True})
+    i = 0
     while not closed.is_set():
-        rclpy.spin_once(node, timeout_sec=0.05)
+        rclpy.spin_once(node, timeout_sec=0.02)
+        while commands:
+            command = commands.pop(0)
+            if command == "fail":  # an error in a transition: ErrorProcessing, then unconfigured
+                node.failing = True
+                node.trigger_deactivate()
+            elif command == "stall":  # stays active, publishes nothing more
+                node.stalled = True
+        if topic is not None and hasattr(node, "pub") and not node.stalled:
+            i += 1
+            node.pub.publish(String(data=f"{name} {i}"))  # a lifecycle publisher sends only while active
     node.destroy_node()
 
 
@@ -91,9 +124,16 @@ def main() -> None:
     if sys.argv[1] in ("lifecycle", "call"):
         rclpy.init()
         closed = threading.Event()
-        threading.Thread(target=lambda: (sys.stdin.read(), closed.set()), daemon=True).start()
+        commands: list[str] = []
+
+        def read() -> None:
+            for line in sys.stdin:
+                commands.append(line.strip())
+            closed.set()
+
+        threading.Thread(target=read, daemon=True).start()
         if sys.argv[1] == "lifecycle":
-            lifecycle(sys.argv[2], closed)
+            lifecycle(sys.argv[2], closed, commands, sys.argv[3] if len(sys.argv) > 3 else None)
         else:
             call(sys.argv[2], sys.argv[3], sys.argv[4], float(sys.argv[5]) if len(sys.argv) > 5 else 10.0, closed)
         rclpy.shutdown()

@@ -506,7 +506,7 @@ def test_xml_blocks_are_specs(block: Block) -> None:
 
     specs = parse_specs(block.text, f"docs/{block.page}")
     assert specs, block
-    if block.text.lstrip().startswith(("<transformation", "<!--")):
+    if block.text.lstrip().startswith(("<transformation", "<node", "<!--")):
         xmlschema.XMLSchema(REPO / "specs" / "transformation.xsd").validate(block.text)
 
 
@@ -514,11 +514,29 @@ def test_the_spec_format_example_reads_as_the_page_says() -> None:
     """The spec format's example expands to one spec per camera, its requirement included."""
     from dyknow.spec import parse_specs
 
-    (block,) = [b for b in _of("xml") if b.page == "reference/spec-format.md"]
+    block = [b for b in _of("xml") if b.page == "reference/spec-format.md"][0]
     specs = parse_specs(block.text, "spec-format.md")
     assert [s.label for s in specs] == ["undistort(cam1)", "undistort(cam2)", "undistort(cam3)"]
     assert specs[1].requirements == ("not historically[0, 1s] UndistortedImage(cam2).blank",)
     assert specs[1].priority == 1 and specs[1].port("undist").deadline_ms == 500
+
+
+def test_the_node_example_reads_as_the_page_says() -> None:
+    """The spec format's <node> example reads as the managed node's transformation the page describes."""
+    from dyknow.spec import parse_specs
+
+    block = [b for b in _of("xml") if b.page == "reference/spec-format.md"][1]
+    (spec,) = parse_specs(block.text, "spec-format.md")
+    assert spec.source == "dyknow.ros2.managed:ManagedNode" and spec.tags_for("out") == ("RawImage(top)",)
+    assert spec.param_values() == {
+        "node": "/camera_top",
+        "lifecycle": True,
+        "timeout_s": 5.0,
+        "binding": "ros2dds:/camera_top/image_raw?type=sensor_msgs/msg/Image",
+        "ros.exposure": 0.5,
+        "ros.frame_id": "top",
+    }
+    assert spec.priority == 1 and spec.port("out").deadline_ms == 500
 
 
 @pytest.mark.parametrize("block", _of("json5"), ids=str)

@@ -63,6 +63,12 @@ class Rclpy:
             stderr = self.proc.stderr.read() if self.proc.stderr else ""
             raise AssertionError(f"rclpy did not start: {stderr[-2000:]}") from None
 
+    def send(self, line: str) -> None:
+        """A command for the peer (a lifecycle node's "fail" or "stall")."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
     def close(self) -> None:
         if self.proc.stdin is not None and not self.proc.stdin.closed:
             self.proc.stdin.close()
@@ -260,7 +266,7 @@ def test_our_dds_client_drives_an_rclpy_lifecycle_node(domain: int, rclpy_node: 
         assert get_state.call({}, timeout_s=15).current_state.label == "unconfigured"
         assert change_state.call({"transition": {"id": 3}}, timeout_s=15).success is False  # activate from unconfigured: refused
         assert change_state.call({"transition": {"id": 1}}, timeout_s=15).success is True  # configure
-        assert camera.lines.get(timeout=10) == {"transition": "configure"}
+        assert camera.lines.get(timeout=10) == {"transition": "configure", "exposure": 0.1}
         assert change_state.call({"transition": {"id": 3}}, timeout_s=15).success is True  # activate
         assert camera.lines.get(timeout=10) == {"transition": "activate"}
         state = get_state.call({}, timeout_s=15).current_state

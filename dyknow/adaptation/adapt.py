@@ -15,7 +15,7 @@ from dyknow.adaptation.anchor import anchor_name, spawn_anchor
 from dyknow.adaptation.events import Journal, Recovery
 from dyknow.adaptation.knowledge import AdaptationEvent, Knowledge, Request, reason_head, runs_on
 from dyknow.adaptation.monitor import Symptom
-from dyknow.adaptation.reconfigure import Interrupted, Reconfigurer, is_current
+from dyknow.adaptation.reconfigure import MAX_START_FAILURES, Interrupted, Reconfigurer, StartFailed, is_current
 from dyknow.adaptation.requirements import Requirements
 from dyknow.adaptation.runtime import Runtime
 from dyknow.adaptation.suspects import Suspects
@@ -51,6 +51,7 @@ class Adapter:
         self._journal = journal
         self._report = report
         self._dwell_ns = dwell_ns
+        self._start_failures = 0  # providers that failed at start in the adaptation under way
         self.suspects = Suspects(runtime, knowledge, reconfigurer, requirements, journal, self, report, dwell_ns)
 
     def adapt(self, request: Request, symptom: Symptom, fault: bool) -> None:
@@ -106,6 +107,15 @@ class Adapter:
         except DyKnowError as exc:
             if isinstance(exc, Interrupted):
                 self._interrupted(request, symptom, plan, exc, old_labels, fault)
+                return
+            if isinstance(exc, StartFailed) and fault and self._start_failures < MAX_START_FAILURES:
+                # its transformation is in back-off now: the next plan takes another provider
+                log.warning("adaptation of %s: %s; planning again without %s", request.tag, exc, exc.label)
+                self._start_failures += 1
+                try:
+                    self.adapt(request, symptom, fault)
+                finally:
+                    self._start_failures -= 1
                 return
             log.warning("adaptation of %s failed: %s", request.tag, exc)
             self._degrade(request, symptom, old_labels, f"could not wire the new configuration: {exc}")

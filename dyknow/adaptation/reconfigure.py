@@ -9,6 +9,7 @@ standby, and the trial of a suspect transformation in the shadow.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -40,6 +41,21 @@ class Interrupted(ServiceError):
     def __init__(self, manager: str, error: ServiceError) -> None:
         super().__init__(error.what, error.kind, error.details, where=error.where, expected=error.expected)
         self.manager = manager
+
+
+MAX_START_FAILURES = 8
+"""How many providers that fail at start one request or adaptation tries before it gives up."""
+
+
+class StartFailed(UnitError):
+    """A unit of a new configuration failed at start (its ``setup()`` raised: a managed ROS 2
+    node that refused a transition or a parameter, say). Its transformation ``label`` is in
+    back-off from then on, as for a unit that fails while it runs, so the next plan takes another
+    provider; what was built is undone."""
+
+    def __init__(self, label: str, what: str, *, where: str) -> None:
+        super().__init__(what, where=where)
+        self.label = label
 
 
 @contextmanager
@@ -296,7 +312,8 @@ class Reconfigurer:
                         built.spawned.append(unit.name)
                         knowledge.managed.add(unit.name)
                         if info.state == "failed":
-                            raise UnitError(f"failed at start: {info.error}", where=f"unit {unit.name!r} ({unit.label})")
+                            knowledge.fail(_label_ref(unit), time.time_ns())
+                            raise StartFailed(_label_ref(unit), f"failed at start: {info.error}", where=f"unit {unit.name!r} ({unit.label})")
                     built.units[unit.ref] = _label_ref(unit)
             for unit in plan.units:
                 if not unit.new:

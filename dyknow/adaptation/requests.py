@@ -16,10 +16,10 @@ from dyknow.adaptation.analyze import Analyzer
 from dyknow.adaptation.anchor import anchor_name, spawn_anchor
 from dyknow.adaptation.knowledge import Knowledge, Request
 from dyknow.adaptation.monitor import Symptom
-from dyknow.adaptation.reconfigure import Reconfigurer
+from dyknow.adaptation.reconfigure import MAX_START_FAILURES, Reconfigurer, StartFailed
 from dyknow.adaptation.requirements import Requirements
 from dyknow.adaptation.runtime import Runtime
-from dyknow.errors import AccessError, UnitError
+from dyknow.errors import AccessError, PlanningError, UnitError
 from dyknow.model import LOCAL, Owner, RequestInfo, check_standby
 from dyknow.reasoning.unit import term_ports
 from dyknow.tags import parse_term
@@ -113,17 +113,27 @@ class Requests:
                 if mode == "warm" and existing.standby_mode != "warm":
                     self._warm_up(existing)
                 return key
-            now = time.time_ns()
             request = Request(canonical, key, anchor=anchor_name(runtime, canonical), standby_mode=mode, owners=[(owner, texts)])
-            plan = self._reconfigurer.plan(request, now)  # PlanningError: nothing fits, nothing changes
-            spawn_anchor(runtime, self._knowledge, request, plan.output_key)
-            self._knowledge.requests[key] = request
-            try:
-                self._reconfigurer.apply(request, plan)
-            except BaseException:
-                del self._knowledge.requests[key]
-                self._reconfigurer.cleanup([request.anchor])
-                raise
+            failed: list[StartFailed] = []
+            while True:  # a transformation that fails at start is in back-off: the next plan leaves it out
+                try:
+                    plan = self._reconfigurer.plan(request, time.time_ns())  # PlanningError: nothing fits, nothing changes
+                except PlanningError:
+                    if failed:
+                        raise failed[-1] from None  # what failed says more than "nothing fits" without it
+                    raise
+                spawn_anchor(runtime, self._knowledge, request, plan.output_key)
+                self._knowledge.requests[key] = request
+                try:
+                    self._reconfigurer.apply(request, plan)
+                    break
+                except BaseException as exc:
+                    del self._knowledge.requests[key]
+                    self._reconfigurer.cleanup([request.anchor])
+                    if not isinstance(exc, StartFailed) or len(failed) >= MAX_START_FAILURES:
+                        raise
+                    log.warning("request %s: %s; planning again without %s", canonical, exc, exc.label)
+                    failed.append(exc)
             request.last_change_ns = time.time_ns()
             self._report(Symptom("spawned", request.last_change_ns, unit=request.anchor))  # start ticking
             log.info("request %s on %s: %s", canonical, key, ", ".join(sorted(set(request.units.values()))))

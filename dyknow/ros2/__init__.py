@@ -6,7 +6,9 @@ Modules, one per concept: :mod:`~dyknow.ros2.names` (keys, liveliness tokens, Qo
 types, RIHS01 hashes, CDR), :mod:`~dyknow.ros2.convert` (messages <-> dyknow payloads),
 :mod:`~dyknow.ros2.binding` (``ros2:`` bindings), :mod:`~dyknow.ros2.node` (a ROS 2 node on a
 dyknow session), :mod:`~dyknow.ros2.services` (service clients and servers on rmw_zenoh), :mod:`~dyknow.ros2.graph` (the graph from the tokens), :mod:`~dyknow.ros2.dds` (the same topics
-over DDS, Cyclone DDS) and :mod:`~dyknow.ros2.bridge` (the units between the two). Needs the
+over DDS, Cyclone DDS), :mod:`~dyknow.ros2.bridge` (the units between the two),
+:mod:`~dyknow.ros2.lifecycle` (another node's lifecycle and parameters, through its services)
+and :mod:`~dyknow.ros2.managed` (a node dyknow did not spawn as a provider the planner chooses). Needs the
 ``ros2`` extra (``rosbags``, ``xxhash``, ``cyclonedds``), each imported only when used.
 """
 
@@ -17,6 +19,8 @@ from dyknow.ros2.binding import DDS_SCHEME, SCHEME, Ros2Binding, is_ros2, parse_
 from dyknow.ros2.bridge import Ros2Provider, Ros2Server, Ros2Sink, Ros2Source, UsesRos2
 from dyknow.ros2.dds import DdsClient, DdsNode, DdsPublisher, DdsService, DdsSubscription
 from dyknow.ros2.graph import Graph, GraphView, snapshot
+from dyknow.ros2.lifecycle import NodeLifecycle
+from dyknow.ros2.managed import ManagedNode
 from dyknow.ros2.names import QoS, data_key, parse_data_key, parse_token
 from dyknow.ros2.node import Received, Ros2Node, Ros2Publisher, Ros2Subscription
 from dyknow.ros2.services import Ros2Client, Ros2Service
@@ -33,6 +37,8 @@ __all__ = [
     "DdsSubscription",
     "Graph",
     "GraphView",
+    "ManagedNode",
+    "NodeLifecycle",
     "QoS",
     "Received",
     "Ros2Binding",

@@ -35,6 +35,23 @@ instantiate, its parameters, its ports and the semantic tags that describe what 
 The children of ``<transformation>`` come in any order, each at most once; ``label``, ``source``
 and ``ports`` are required. ``specs/transformation.xsd`` describes the same format for editors.
 
+A ``<node>`` beside them names a ROS 2 node that dyknow does not spawn, a *managed node*
+(:mod:`dyknow.ros2.managed`): it reads as the transformation whose unit drives the node (its
+``<source>`` is :data:`~dyknow.spec.model.MANAGED_NODE_SOURCE`, its one output port ``out`` its
+topic), so the planner plans with it like a unit::
+
+    <node name="/camera_top" middleware="dds" lifecycle="true" timeout-s="5">  <!-- zenoh (default) or dds -->
+      <label>camera-top</label>
+      <params><param name="exposure" type="float">0.5</param></params>   <!-- its ROS 2 parameters -->
+      <topic type="sensor_msgs/msg/Image" deadline-ms="500">/camera_top/image_raw</topic>
+      <tags><tag>RawImage(top)</tag></tags>                             <!-- a tag of its topic -->
+      <priority>1</priority>
+    </node>
+
+It takes ``label``, ``description``, ``args``, ``params``, ``tags``, ``priority``,
+``constraints`` and ``requirements`` as a transformation does, and ``topic`` instead of
+``source`` and ``ports``.
+
 A ``<transformation>`` with ``<args>`` is a *template*: ``${Name}`` is replaced by each value of
 the arg ``Name`` in the label, source, description, param values, port names, tag texts, tag
 ``port`` attributes, constraint values and requirements, and ``$$`` stands for a literal ``$``. Several args
@@ -57,6 +74,7 @@ from dyknow.spec.model import (
     CONSTRAINT_OPS,
     DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
+    NODE_MIDDLEWARES,
     PARAM_TYPES,
     PATH_MODES,
     PORT_DIRECTIONS,
@@ -79,6 +97,7 @@ __all__ = [
     "DEFAULT_MAX_EXPANSIONS",
     "DEFAULT_PRIORITY",
     "ELEMENTS",
+    "NODE_MIDDLEWARES",
     "PARAM_TYPES",
     "PATH_MODES",
     "PORT_DIRECTIONS",

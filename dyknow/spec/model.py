@@ -24,6 +24,10 @@ __all__ = [
     "CONSTRAINT_OPS",
     "DEFAULT_MAX_EXPANSIONS",
     "DEFAULT_PRIORITY",
+    "MANAGED_NODE_SOURCE",
+    "NODE_MIDDLEWARES",
+    "NODE_PORT",
+    "PARAMETER_PREFIX",
     "PARAM_TYPES",
     "PATH_MODES",
     "PORT_DIRECTIONS",
@@ -66,6 +70,18 @@ TRANSFORMATION_TYPES: tuple[str, ...] = ("unit", "nodelet")
 
 PORT_DIRECTIONS: tuple[str, ...] = ("in", "out")
 """The values allowed in ``<port type="...">``."""
+
+MANAGED_NODE_SOURCE = "dyknow.ros2.managed:ManagedNode"
+"""The ``<source>`` a ``<node>`` (a managed ROS 2 node) reads as: its unit drives the node."""
+
+NODE_MIDDLEWARES: tuple[str, ...] = ("zenoh", "dds")
+"""The values allowed in ``<node middleware="...">``: rmw_zenoh (``ros2:`` topics) or DDS (``ros2dds:``)."""
+
+NODE_PORT = "out"
+"""The output port of a managed node's transformation: its topic (a ``<tag>`` without @port tags it)."""
+
+PARAMETER_PREFIX = "ros."
+"""A managed node's unit param ``ros.NAME`` is its ROS 2 parameter ``NAME``, set when it is chosen."""
 
 QUEUE_POLICIES: tuple[str, ...] = ("keep-last", "drop-new")
 """What a full input queue does with a new message (``<port type="in" policy="...">``): keep-last

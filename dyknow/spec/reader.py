@@ -25,15 +25,20 @@ from xml.parsers import expat
 from dyknow.errors import SpecError, SpecIssue, did_you_mean
 from dyknow.security import Limits
 from dyknow.spec.model import (
+    BOOL_WORDS,
     CONSTRAINT_OPS,
     DECIMAL,
     DEFAULT_MAX_EXPANSIONS,
     DEFAULT_PRIORITY,
     INT_RANGE,
     INTEGER,
+    MANAGED_NODE_SOURCE,
     MAX_DEADLINE_MS,
     MAX_QUEUE,
+    NODE_MIDDLEWARES,
+    NODE_PORT,
     PARAM_TYPES,
+    PARAMETER_PREFIX,
     PATH_MODES,
     PORT_DIRECTIONS,
     QUEUE_POLICIES,
@@ -72,6 +77,8 @@ _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "constraint": ("measure", "op", "value"),
     "requirements": (),
     "requirement": (),
+    "node": ("name", "middleware", "lifecycle", "timeout-s"),
+    "topic": ("type", "deadline-ms"),
 }
 
 ELEMENTS: Mapping[str, frozenset[str]] = MappingProxyType({name: frozenset(attributes) for name, attributes in _ATTRIBUTES.items()})
@@ -80,6 +87,12 @@ ELEMENTS: Mapping[str, frozenset[str]] = MappingProxyType({name: frozenset(attri
 _TRANSFORMATION_CHILDREN = (
     "label", "source", "description", "args", "params", "ports", "tags", "priority", "constraints", "requirements",
 )  # fmt: skip
+_NODE_CHILDREN = ("label", "description", "args", "params", "topic", "tags", "priority", "constraints", "requirements")
+# the required children of a <node>, with their examples
+_NODE_REQUIRED = {
+    "label": "<label>camera-top</label>",
+    "topic": '<topic type="sensor_msgs/msg/Image">/camera_top/image_raw</topic>',
+}
 # Required children and attributes, with the example their "missing" message shows.
 _REQUIRED_CHILDREN = {
     "label": "<label>a-unique-name</label>",
@@ -92,6 +105,8 @@ _REQUIRED_ATTRIBUTES = {
     "port": {"type": 'type="in" or type="out"'},
     "tag": {"port": 'port="NAME" naming one of the <ports>'},
     "constraint": {"measure": 'measure="battery"', "op": 'op="&gt;="', "value": 'value="0.25"'},
+    "node": {"name": 'name="/camera_top"'},
+    "topic": {"type": 'type="sensor_msgs/msg/Image"'},
 }
 # Each container holds any number of one kind of child.
 _CONTAINERS = {
@@ -356,21 +371,23 @@ def _parse(data: str | bytes, path: str) -> tuple[list[Template], list[SpecIssue
     issues = _Issues(path)
     if root.name == "transformations":
         _check_element(root, issues, is_root=True)
-        nodes = [c for c in root.children if c.name == "transformation"]
+        nodes = [c for c in root.children if c.name in ("transformation", "node")]
         if not root.children:
             issues.add(root.line, "<transformations>", "no <transformation> inside", "at least one")
-    elif root.name == "transformation":
+    elif root.name in ("transformation", "node"):
         nodes = [root]
     else:
-        hint = did_you_mean(root.name, ["transformations", "transformation"])
-        expected = "<transformations> or <transformation>"
+        hint = did_you_mean(root.name, ["transformations", "transformation", "node"])
+        expected = "<transformations>, <transformation> or <node>"
         issues.add(root.line, f"<{root.name}>", "unknown root element", f"{expected}{hint}")
         nodes = []
     templates = []
     for node in nodes:
         before = len(issues.items)
+        if node.name == "node":
+            _untagged_ports(node)
         _check_tree(node, issues, is_root=node is root)
-        template = _read_template(node, issues)
+        template = _read_node(node, issues) if node.name == "node" else _read_template(node, issues)
         if len(issues.items) == before:  # only structurally valid templates are expanded
             templates.append(template)
     return templates, sorted(issues.items, key=lambda i: i.line)
@@ -387,6 +404,10 @@ def _check_tree(node: _Node, issues: _Issues, is_root: bool = False) -> None:
 def _allowed_children(name: str) -> tuple[str, ...]:
     if name == "transformation":
         return _TRANSFORMATION_CHILDREN
+    if name == "node":
+        return _NODE_CHILDREN
+    if name == "transformations":
+        return ("transformation", "node")
     if name in _CONTAINERS:
         return (_CONTAINERS[name],)
     return ()
@@ -421,19 +442,19 @@ def _check_element(node: _Node, issues: _Issues, is_root: bool = False) -> None:
             expected = f"one of {', '.join(allowed)}" if len(allowed) > 1 else f"<{allowed[0]}>"
             hint = did_you_mean(child.name, allowed)
             issues.add(child.line, f"<{child.name}>", f"unknown element in <{name}>", f"{expected}{hint}")
-        elif name == "transformation" and child.name in first_line:
+        elif name in ("transformation", "node") and child.name in first_line:
             where = f"the first is at line {first_line[child.name]}"
-            issues.add(child.line, f"<{child.name}>", f"duplicate <{child.name}> in <transformation> ({where})", "at most one")
+            issues.add(child.line, f"<{child.name}>", f"duplicate <{child.name}> in <{name}> ({where})", "at most one")
         first_line.setdefault(child.name, child.line)
 
-    if name == "transformation":
-        for child_name, example in _REQUIRED_CHILDREN.items():
+    if name in ("transformation", "node"):
+        for child_name, example in (_REQUIRED_CHILDREN if name == "transformation" else _NODE_REQUIRED).items():
             if child_name not in first_line:
-                issues.add(node.line, "<transformation>", f"missing <{child_name}>", example)
+                issues.add(node.line, f"<{name}>", f"missing <{child_name}>", example)
     if node.text and (allowed or name in _EMPTY_ELEMENTS):
         if name in _EMPTY_ELEMENTS:
             expected = "an empty element"
-        elif name == "transformation":
+        elif name in ("transformation", "node"):
             expected = "elements only"
         else:
             expected = f"only <{allowed[0]}> elements"
@@ -467,20 +488,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
     source, _ = text_of("source", "<source>package.module:Class</source>")
     description, _ = text_of("description", None)
 
-    priority = DEFAULT_PRIORITY
-    if "priority" in first:
-        element = first["priority"]
-        text = element.text
-        # the length bounds int() (which refuses over 4,300 digits) before the range does
-        if INTEGER.fullmatch(text) and len(text) <= 20 and INT_RANGE[0] <= int(text) <= INT_RANGE[1]:
-            priority = int(text)
-        elif INTEGER.fullmatch(text):
-            expected = "a whole number from -2**63 to 2**63-1 (lower is preferred)"
-            issues.add(element.line, "<priority>", f"{shorten(text)!r} is out of range", expected)
-        else:
-            expected = "a whole number such as 1 (lower is preferred)"
-            issues.add(element.line, "<priority>", f"{shorten(text)!r} is not an integer", expected)
-
+    priority = _read_priority(first.get("priority"), issues)
     params, param_lines = _read_params(first.get("params"), declared, issues)
     ports, port_lines = _read_ports(first.get("ports"), declared, issues)
     tags, tag_lines = _read_tags(first.get("tags"), declared, issues)
@@ -502,6 +510,118 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
         arg_lines=arg_lines,
         param_lines=param_lines,
         port_lines=port_lines,
+        tag_lines=tag_lines,
+        constraint_lines=constraint_lines,
+        requirements=requirements,
+        requirement_lines=requirement_lines,
+    )
+
+
+def _read_priority(element: _Node | None, issues: _Issues) -> int:
+    if element is None:
+        return DEFAULT_PRIORITY
+    text = element.text
+    # the length bounds int() (which refuses over 4,300 digits) before the range does
+    if INTEGER.fullmatch(text) and len(text) <= 20 and INT_RANGE[0] <= int(text) <= INT_RANGE[1]:
+        return int(text)
+    if INTEGER.fullmatch(text):
+        expected = "a whole number from -2**63 to 2**63-1 (lower is preferred)"
+        issues.add(element.line, "<priority>", f"{shorten(text)!r} is out of range", expected)
+    else:
+        expected = "a whole number such as 1 (lower is preferred)"
+        issues.add(element.line, "<priority>", f"{shorten(text)!r} is not an integer", expected)
+    return DEFAULT_PRIORITY
+
+
+def _untagged_ports(node: _Node) -> None:
+    """A ``<tag>`` of a ``<node>`` without @port tags its topic: the port ``out``."""
+    for tags in node.children:
+        if tags.name == "tags":
+            for tag in tags.children:
+                if tag.name == "tag":
+                    tag.attrs.setdefault("port", NODE_PORT)
+
+
+def _read_node(node: _Node, issues: _Issues) -> Template:
+    """Read a structurally checked ``<node>``: a managed ROS 2 node, as the transformation whose
+    unit is :class:`~dyknow.ros2.managed.ManagedNode` (its params: the node's name, its topic's
+    binding, whether it is a lifecycle node, the call timeout, and ``ros.NAME`` per parameter)."""
+    first: dict[str, _Node] = {}
+    for child in node.children:
+        first.setdefault(child.name, child)
+    args, arg_lines = _read_args(first.get("args"), issues)
+    declared = [a.label for a in args]
+    name = node.attrs.get("name", "").strip()
+    _check_template("<node> @name", name, node.line, declared, issues)
+    if "name" in node.attrs and not name:
+        issues.add(node.line, "<node> @name", "empty", 'the ROS 2 node\'s name, such as name="/camera_top"')
+    middleware = node.attrs.get("middleware", "zenoh").strip()
+    if middleware not in NODE_MIDDLEWARES:
+        hint = did_you_mean(middleware, NODE_MIDDLEWARES)
+        issues.add(node.line, "<node> @middleware", f"unknown middleware {middleware!r}", f"zenoh (rmw_zenoh) or dds{hint}")
+    lifecycle = node.attrs.get("lifecycle", "true").strip().lower()
+    if lifecycle not in BOOL_WORDS:
+        issues.add(node.line, "<node> @lifecycle", f"{shorten(lifecycle)!r} is not a boolean", "true or false")
+    params = [Param("node", "string", name), Param("lifecycle", "bool", lifecycle)]
+    if "timeout-s" in node.attrs:
+        text = node.attrs["timeout-s"].strip()
+        if not DECIMAL.fullmatch(text) or not 0 < Decimal(text) <= 3600:
+            issues.add(node.line, "<node> @timeout-s", f"{shorten(text)!r} is not a number of seconds from 0 to 3600", "seconds such as 5")
+        params.append(Param("timeout_s", "float", text))
+
+    def text_of(child: str, example: str | None) -> tuple[str, int]:
+        element = first.get(child)
+        if element is None:
+            return "", 0
+        if not element.text and example is not None:
+            issues.add(element.line, f"<{child}>", "empty", example)
+        _check_template(f"<{child}>", element.text, element.line, declared, issues)
+        return element.text, element.line
+
+    label, label_line = text_of("label", "a unique name such as camera-top")
+    description, _ = text_of("description", None)
+    topic, topic_line = text_of("topic", "the node's topic, such as /camera_top/image_raw")
+    deadline_ms = None
+    element = first.get("topic")
+    if element is not None:
+        ros_type = element.attrs.get("type", "").strip()
+        _check_template("<topic> @type", ros_type, element.line, declared, issues)
+        if "type" in element.attrs and not ros_type:
+            issues.add(element.line, "<topic> @type", "empty", "a message type such as sensor_msgs/msg/Image")
+        scheme = "ros2dds" if middleware == "dds" else "ros2"
+        params.append(Param("binding", "string", f"{scheme}:{topic}?type={ros_type}"))
+        if "deadline-ms" in element.attrs:
+            text = element.attrs["deadline-ms"].strip()
+            if not DECIMAL.fullmatch(text) or not 0 < Decimal(text) <= MAX_DEADLINE_MS:
+                expected = f"milliseconds such as 500 (at most {MAX_DEADLINE_MS:,})"
+                issues.add(element.line, "<topic> @deadline-ms", f"{text!r} is not a positive number", expected)
+            else:
+                deadline_ms = float(text)
+    ros_params, ros_param_lines = _read_params(first.get("params"), declared, issues)
+    for param in ros_params:
+        if param.type == "path":
+            issues.add(node.line, f"<param> {param.name!r}", "a path parameter of a ROS 2 node", "string, int, float or bool")
+    params.extend(Param(PARAMETER_PREFIX + p.name, p.type, p.value) for p in ros_params)
+    own_lines = (node.line,) * (len(params) - len(ros_params))
+    tags, tag_lines = _read_tags(first.get("tags"), declared, issues)
+    constraints, constraint_lines = _read_constraints(first.get("constraints"), declared, issues)
+    requirements, requirement_lines = _read_requirements(first.get("requirements"), declared, issues)
+    return Template(
+        label=label,
+        source=MANAGED_NODE_SOURCE,
+        args=args,
+        path=issues.path,
+        line=node.line,
+        description=description,
+        params=tuple(params),
+        ports=(Port(NODE_PORT, "out", deadline_ms),),
+        tags=tags,
+        priority=_read_priority(first.get("priority"), issues),
+        constraints=constraints,
+        label_line=label_line,
+        arg_lines=arg_lines,
+        param_lines=own_lines + ros_param_lines,
+        port_lines=(topic_line,),
         tag_lines=tag_lines,
         constraint_lines=constraint_lines,
         requirements=requirements,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pathlib
+from dataclasses import replace
 
 import pytest
 
@@ -103,7 +104,7 @@ BROKEN_CASES = [
     ("arg_without_ontology.xml", 5, "<arg> 'Cam': takes its values from ontology class 'ex:Camera', but no ontology is loaded; expected --ontology FILE", 1),
     ("empty_label.xml", 2, "<label>: empty; expected a unique name", 1),
     ("transformation_type.xml", 1, "<transformation> @type: unknown type 'node'; expected unit or nodelet (did you mean 'nodelet'?)", 1),
-    ("root.xml", 2, "<transformation-list>: unknown root element; expected <transformations> or <transformation>", 1),
+    ("root.xml", 2, "<transformation-list>: unknown root element; expected <transformations>, <transformation> or <node>", 1),
     ("empty_root.xml", 2, "<transformations>: no <transformation> inside", 1),
     ("namespace.xml", 1, "<transformation> @xmlns: namespace 'https://example.org/dyknow' is not used", 1),
 ]  # fmt: skip
@@ -362,3 +363,55 @@ def test_out_of_range_numbers_are_refused_where_they_are_written(tmp_path: pathl
     with pytest.raises(SpecError) as info:
         spec.load_specs([path])
     assert [(i.line, says in str(i)) for i in info.value.issues] == [(3, True)], [str(i) for i in info.value.issues]
+
+
+NODE = """<transformations>
+  <node name="/camera_${Cam}" middleware="dds" timeout-s="15">
+    <label>camera-${Cam}</label>
+    <args><arg label="Cam">{top; side}</arg></args>
+    <params><param name="exposure" type="float">0.5</param></params>
+    <topic type="std_msgs/msg/String" deadline-ms="1000">/camera_${Cam}/frames</topic>
+    <tags><tag>Frames(${Cam})</tag></tags>
+    <priority>0</priority>
+  </node>
+  <node name="/lidar" lifecycle="false">
+    <label>lidar</label>
+    <topic type="sensor_msgs/msg/PointCloud2">/points</topic>
+    <tags><tag port="out">Points(front)</tag></tags>
+  </node>
+</transformations>
+"""
+
+
+def test_a_node_reads_as_the_transformation_of_its_managed_node() -> None:
+    top, side, lidar = parse_specs(NODE)
+    assert (top.label, top.source, top.priority) == ("camera-top", spec.model.MANAGED_NODE_SOURCE, 0)
+    assert top.params == (
+        Param("node", "string", "/camera_top"),
+        Param("lifecycle", "bool", True),
+        Param("timeout_s", "float", 15.0),
+        Param("binding", "string", "ros2dds:/camera_top/frames?type=std_msgs/msg/String"),
+        Param("ros.exposure", "float", 0.5),
+    )
+    assert top.ports == (Port("out", "out", 1000.0),) and top.tags == (Tag("out", "Frames(top)"),)
+    assert side.param_values()["node"] == "/camera_side"
+    assert lidar.param_values() == {"node": "/lidar", "lifecycle": False, "binding": "ros2:/points?type=sensor_msgs/msg/PointCloud2"}
+    assert parse_specs(top.to_xml()) == [replace(top, path="<string>", line=2)]  # written back as its transformation
+
+
+@pytest.mark.parametrize(
+    ("fragment", "says"),
+    [
+        ('<node middleware="dds"><label>a</label><topic type="t/msg/T">/a</topic></node>', "<node>: missing @name; expected name=\"/camera_top\""),
+        ('<node name="/a" middleware="fastdds"><label>a</label><topic type="t/msg/T">/a</topic></node>', "unknown middleware 'fastdds'; expected zenoh (rmw_zenoh) or dds (did you mean 'dds'?)"),
+        ('<node name="/a" lifecycle="maybe"><label>a</label><topic type="t/msg/T">/a</topic></node>', "<node> @lifecycle: 'maybe' is not a boolean"),
+        ('<node name="/a"><label>a</label></node>', "<node>: missing <topic>"),
+        ('<node name="/a"><label>a</label><topic>/a</topic></node>', "<topic>: missing @type"),
+        ('<node name="/a"><label>a</label><source>x:Y</source><topic type="t/msg/T">/a</topic></node>', "<source>: unknown element in <node>"),
+        ('<node name="/a"><label>a</label><topic type="t/msg/T">/a</topic><tags><tag port="img">A</tag></tags></node>', "no port named 'img'; expected 'out'"),
+    ],
+)
+def test_a_node_with_a_mistake_is_reported_where_it_is(fragment: str, says: str) -> None:
+    with pytest.raises(SpecError) as caught:
+        parse_specs(f"<transformations>\n  {fragment}\n</transformations>")
+    assert any(says in issue.message and issue.line == 2 for issue in caught.value.issues), listing(caught.value.issues)

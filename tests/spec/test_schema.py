@@ -77,7 +77,7 @@ def xsd_elements(schema: xmlschema.XMLSchema) -> dict[str, frozenset[str]]:
 
 def test_xsd_elements_and_attributes_match_the_loader(schema: xmlschema.XMLSchema) -> None:
     assert xsd_elements(schema) == dict(spec.ELEMENTS)
-    assert set(schema.elements) == {"transformations", "transformation"}  # the two possible roots
+    assert set(schema.elements) == {"transformations", "transformation", "node"}  # the possible roots
 
 
 @pytest.mark.parametrize(
@@ -88,6 +88,7 @@ def test_xsd_elements_and_attributes_match_the_loader(schema: xmlschema.XMLSchem
         ("portDirection", spec.PORT_DIRECTIONS),
         ("transformationType", spec.TRANSFORMATION_TYPES),
         ("pathMode", spec.PATH_MODES),
+        ("nodeMiddleware", spec.NODE_MIDDLEWARES),
     ],
 )
 def test_xsd_enumerations_match_the_loader(schema: xmlschema.XMLSchema, type_name: str, values: tuple[str, ...]) -> None:
