@@ -15,14 +15,15 @@ from typing import Any
 import pytest
 import zenoh  # a plain Zenoh publisher stands in for a robot's existing key
 
-from dyknow import BindingError, FormulaError, Manager, Message
+from dyknow import BindingError, FormulaError, Manager, Message, SpecError
 from dyknow.reasoning import monitor_spec, parse, term_ports
 from dyknow.reasoning.bindings import check_bindings, sample_value
 from dyknow.reasoning.offline import evaluate_recording
 from dyknow.recording import Recorder
+from dyknow.spec import parse_specs
 from dyknow.testing import Sink
 from dyknow.transport import make_config
-from tests.conftest import REPO, free_port, run_cli, wait_until
+from tests.conftest import GENERIC_SPECS, REPO, UNIT_SPECS, free_port, run_cli, wait_until
 
 ONTOLOGY = REPO / "specs" / "dyknow.ttl"
 
@@ -258,3 +259,56 @@ def test_dyknow_monitor_over_a_recording_takes_the_live_ros2_bindings(tmp_path: 
     result = run_cli("monitor", FORMULA, "--mcap", str(path), "--bind", "Vel(r1)=ros2:/r1/cmd_vel", "--json")
     assert result.returncode == 0, result.stderr
     assert [line["verdict"] for line in map(json.loads, result.stdout.splitlines())] == [False, True, False, True, False, True]
+
+
+# ---------------------------------------------------------------------------- in a spec: a requirement's bindings
+
+LIMITED = """<transformations><transformation><label>level(${R})</label><source>tests.units:Level</source>
+  <args><arg label="R">{r1}</arg></args>
+  <params><param name="rate_hz" type="float">50</param><param name="value" type="float">2</param></params>
+  <ports><port type="out">out</port></ports><tags><tag port="out">Fresh(${R})</tag></tags>
+  <requirements><requirement>Fresh(${R}).value &lt; Limit(${R}).max</requirement></requirements>
+  <bindings><binding term="Limit(${R})">limits/${R}</binding></bindings>
+</transformation></transformations>"""
+
+
+def test_a_specs_requirement_reads_a_bound_term_from_its_key(make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The requirement's other term is bound to a key a plain Zenoh publisher puts JSON on: it is
+    not requested, its monitor reads the key, and a limit below the level makes it false."""
+    (tmp_path / "limited.xml").write_text(LIMITED)
+    manager = make_manager(specs=[tmp_path / "limited.xml", GENERIC_SPECS, UNIT_SPECS], listen=[f"tcp/127.0.0.1:{free_port()}"])
+    (spec,) = [s for s in manager.library.specs() if s.label == "level(r1)"]
+    assert spec.bindings == (("Limit(r1)", "limits/r1"),) and '<binding term="Limit(r1)">limits/r1</binding>' in spec.to_xml()
+    manager.request("Fresh(r1)")
+    (request,) = manager.requests()
+    (watched,) = request.spec_requirements
+    assert [r.tag for r in manager.requests()] == ["Fresh(r1)"]  # Limit(r1) is read, not requested
+    (monitor,) = [u.name for u in manager.units() if "spec-require" in u.name]
+    assert manager.get_config(monitor)["t1"] == "limits/r1"
+    verdicts = _sink(manager, "watch", watched["key"])
+    with zenoh.open(make_config(connect=manager.endpoints)) as plain:
+        publisher = plain.declare_publisher("limits/r1", congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_until(lambda: publisher.matching_status.matching, "the requirement's monitor to subscribe")
+        while not any(v["verdict"] is True for v in _verdicts(verdicts)):
+            publisher.put('{"max": 3}')
+            time.sleep(0.05)
+        publisher.put('{"max": 1.5}')
+        wait_until(lambda: _verdicts(verdicts)[-1]["verdict"] is False, "the lower limit's false verdict")
+
+
+@pytest.mark.parametrize(
+    ("binding", "says"),
+    [
+        ('<binding term="Limit(r2)">limits/r2</binding>', "<binding> @term: 'Limit(r2)' is no term of a requirement"),
+        ('<binding term="Fresh(r1)">limits/r1</binding>', "'Fresh(r1)' is an output tag of this transformation"),
+        ('<binding term="Limit(r1)">ros:/limits</binding>', "binding Limit(r1)=ros:/limits: the scheme 'ros:'"),
+        ('<binding term="Limit(r1)">ros2:/limits?type=oops</binding>', "binding Limit(r1)=ros2:/limits?type=oops"),
+        ('<binding term="Limit(r1)"></binding>', "<binding>: empty"),
+        ("<binding>limits/r1</binding>", "term"),
+    ],
+)
+def test_a_specs_bad_binding_is_a_located_error(binding: str, says: str) -> None:
+    xml = LIMITED.replace('<binding term="Limit(${R})">limits/${R}</binding>', binding)
+    with pytest.raises(SpecError) as raised:
+        parse_specs(xml, "limited.xml")
+    assert says in str(raised.value) and "limited.xml:6:" in str(raised.value), str(raised.value)

@@ -41,12 +41,12 @@ import re
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from dyknow.errors import BindingError, FormulaError, TagError, did_you_mean
+from dyknow.errors import BindingError, DyKnowError, FormulaError, TagError, did_you_mean
 from dyknow.keys import ROS2_SCHEMES, check_data_key
 from dyknow.reasoning.syntax import Formula, Quantifier, walk
 from dyknow.tags import parse_term
 
-__all__ = ["MAX_TEXT_VALUE", "check_bindings", "is_ros2_source", "sample_value", "topic_of"]
+__all__ = ["MAX_TEXT_VALUE", "check_bindings", "check_source", "is_ros2_source", "sample_value", "topic_of"]
 
 #: The longest text (or bytes) a bound term's sample may be to be read as JSON; a longer one stays as it is.
 MAX_TEXT_VALUE = 65536
@@ -99,7 +99,7 @@ def check_bindings(
                 "a binding in a formula with forall or exists", where=where,
                 expected="bindings in formulas without forall or exists (foreach may stay): bind each individual's formula",
             )  # fmt: skip
-        out[term] = _check_source(source, where, check_key)
+        out[term] = check_source(source, where, check_key)
     return out
 
 
@@ -108,13 +108,20 @@ def _quantified(formula: Formula) -> bool:
     return any(isinstance(node, Quantifier) and node.kind in ("forall", "exists") for node in walk(formula.root))
 
 
-def _check_source(source: str, where: str, check_key: Callable[[str, str], object] | None) -> str:
+def check_source(source: str, where: str, check_key: Callable[[str, str], object] | None = None) -> str:
+    """``source`` checked (the module documentation says what is refused; ``where`` names the
+    binding in the error), written as dyknow writes it: a ROS 2 source's options in a fixed order."""
     if not source or source != source.strip():
         raise BindingError(f"the source {source!r}", where=where, expected="ros2:/TOPIC, ros2dds:/TOPIC or a Zenoh key, without spaces around")
     if is_ros2_source(source):
         from dyknow.ros2.binding import parse_binding
 
-        return parse_binding(source, where=where).uri()
+        try:
+            return parse_binding(source, where=where).uri()
+        except DyKnowError as exc:  # (a type's own check names the type, not the binding)
+            if exc.where is not None and exc.where.startswith(where):
+                raise
+            raise BindingError(exc.what, where=f"{where}: {exc.where}" if exc.where else where, expected=exc.expected) from None
     scheme = _SCHEME.match(source)
     if scheme is not None:
         given = scheme.group()[:-1]
