@@ -197,6 +197,18 @@ def test_a_term_bound_to_an_rmw_zenoh_topic_reads_the_fields_of_its_messages(mak
     assert not [u for u in manager.get_model().units if u.name.startswith("monitor-")]  # its ROS 2 companion went with it
 
 
+def test_a_ros2_topic_nobody_publishes_is_warned_about_in_the_model(make_manager: Callable[..., Manager]) -> None:
+    """Through the manager, with its default quiet time (5 s): the warning names the binding, and
+    no verdict came."""
+    manager = make_manager(ros2_domain=0, ros2_node="dyknow_quiet")
+    key = manager.monitor(FORMULA, bindings={"Vel(r1)": f"ros2:/nobody/cmd_vel?type={TWIST}"})
+    sink = _sink(manager, "watch", key)
+    wait_until(lambda: bool(manager.monitors()[0].warnings), "the monitor's warning", timeout_s=30)
+    (warning,) = manager.monitors()[0].warnings
+    assert f"no sample of Vel(r1) from its binding Vel(r1)=ros2:/nobody/cmd_vel?type={TWIST} in 5 s" in warning
+    assert not _verdicts(sink)
+
+
 @pytest.mark.process
 def test_a_term_bound_to_a_dds_topic_reads_the_fields_of_an_rclpy_talkers_messages(make_manager: Callable[..., Manager]) -> None:
     from tests.conftest import dds_domain
