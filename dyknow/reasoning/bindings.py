@@ -27,8 +27,8 @@ a recording of the same samples gives the same verdicts.
 **Mistakes.** :func:`check_bindings` refuses, before anything is started and naming the binding
 (``binding 'Odom(r1)=ros:/r1/odom'``): a term that does not read or is no term of the formula, a
 scheme that is not ``ros2:`` or ``ros2dds:`` (``ros:/x``), a ROS 2 topic name or option that is not
-valid, a key with a chunk starting with ``@``; a key Zenoh refuses is refused by the manager's
-check of it. A binding with ``forall``/``exists`` is refused (its terms are the expansion's). A
+valid, a key with an empty chunk, a ``#``, ``?`` or space, or a chunk starting with ``@``; any
+other key Zenoh refuses is refused by the manager's check of it. A binding with ``forall``/``exists`` is refused (its terms are the expansion's). A
 term bound to a source that never publishes gives no verdict from its samples (its values are
 unknown, never false), and the monitor says so once: a ``{"warning": ...}`` on its verdicts naming
 the binding, ``quiet_ms`` after it started (:class:`~dyknow.reasoning.unit.FormulaMonitor`).
@@ -131,6 +131,12 @@ def check_source(source: str, where: str, check_key: Callable[[str, str], object
             expected=f"ros2:/TOPIC (rmw_zenoh), ros2dds:/TOPIC (DDS) or a Zenoh key{did_you_mean(given, list(ROS2_SCHEMES))}",
         )
     check_data_key(source, where)
+    if any(not chunk for chunk in source.split("/")) or any(c in source for c in "#? "):
+        raise BindingError(
+            f"the key {source[:200]!r} has an empty chunk or a '#', '?' or space",
+            where=where,
+            expected="a Zenoh key of chunks separated by single '/', like 'robots/r1/battery'",
+        )
     if check_key is not None:
         check_key(source, where)
     return source
