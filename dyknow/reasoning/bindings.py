@@ -19,7 +19,8 @@ into an array (``covariance``, a ``LaserScan``'s ``ranges``): such a field's val
 
 **Samples.** A bound term's sample that is text, or bytes, holding one JSON value is read as that
 value (:func:`sample_value`): a plain Zenoh publisher's ``1.5`` is the number 1.5, ``true`` is
-true, ``{"x": 2}`` an object (the JSON a manager's measurement keys accept). Text that is not
+true, ``{"x": 2}`` an object whose field ``.x`` a formula reads (a manager's measurement keys
+take a JSON number the same way; their ``{"value": x}`` is read here as ``TERM.value``). Text that is not
 JSON stays text (``manual``); bytes that are not UTF-8 JSON stay bytes, whose value is unknown.
 The offline evaluation (:mod:`dyknow.reasoning.offline`) reads every sample so, so a formula over
 a recording of the same samples gives the same verdicts.
