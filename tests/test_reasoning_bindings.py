@@ -77,6 +77,10 @@ def test_bindings_are_written_as_the_formula_writes_its_terms() -> None:
     formula = parse("Odom(r1).twist.twist.linear.x < 1.5 and Battery(r1) > 0.2")
     bound = check_bindings(formula, {"Odom( r1 )": "ros2dds:/r1/odom?type=nav_msgs/msg/Odometry", "Battery(r1)": "robots/r1/battery"})
     assert bound == {"Odom(r1)": "ros2dds:/r1/odom?type=nav_msgs/msg/Odometry", "Battery(r1)": "robots/r1/battery"}
+    foreach = parse("foreach t in Track(field).id: Track(field).speed < 3")  # one monitor per object: bindings stay
+    assert check_bindings(foreach, {"Track(field)": "tracker/tracks"}) == {"Track(field)": "tracker/tracks"}
+    with pytest.raises(FormulaError, match="a binding in a formula with forall or exists"):
+        check_bindings(parse("forall c in Camera: Fresh(c) > 0"), {"Fresh(c)": "x"})
 
 
 @pytest.mark.parametrize(
@@ -126,6 +130,20 @@ def test_a_zenoh_key_bound_live_gives_the_verdicts_a_recording_of_it_gives(make_
     assert live == [v for v in offline if v is not None]
     (info,) = manager.monitors()
     assert info.to_dict()["bindings"] == {"Battery(r1)": "robots/r1/battery"} and manager.requests() == []
+
+
+def test_a_foreach_formula_reads_frames_a_plain_publisher_puts_as_json(make_manager: Callable[..., Manager]) -> None:
+    """A tracker that is no dyknow unit puts its tracks as a JSON list: one frame, a sample per object."""
+    manager = make_manager(listen=[f"tcp/127.0.0.1:{free_port()}"])
+    key = manager.monitor("foreach t in Track(field).id: Track(field).speed < 3", bindings={"Track(field)": "tracker/tracks"})
+    sink = _sink(manager, "watch", key)
+    with zenoh.open(make_config(connect=manager.endpoints)) as plain:
+        publisher = plain.declare_publisher("tracker/tracks", congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_until(lambda: publisher.matching_status.matching, "the monitor to subscribe")
+        while {v.get("object") for v in _verdicts(sink)} != {"1", "2"}:
+            publisher.put('[{"id": 1, "speed": 2.0}, {"id": 2, "speed": 5.0}]')
+            time.sleep(0.05)
+    assert {v["object"]: v["verdict"] for v in _verdicts(sink)} == {"1": True, "2": False}
 
 
 def test_a_binding_to_a_source_that_never_publishes_is_warned_about_naming_it(make_manager: Callable[..., Manager]) -> None:
