@@ -242,7 +242,12 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
     "destroy": {"name": (True, _name("unit name")), "force": (False, _flag)},
     "get_model": {"page": (False, _page)},
     "request": {"tag": (True, _text(512)), "standby": (False, _standby), "require": (False, _formulas), "holder": (False, _holder)},
-    "monitor": {"formula": (True, _text(_FORMULA_BYTES)), "reorder_ms": (False, _milliseconds), "holder": (False, _holder)},
+    "monitor": {
+        "formula": (True, _text(_FORMULA_BYTES)),
+        "reorder_ms": (False, _milliseconds),
+        "holder": (False, _holder),
+        "bindings": (False, _mapping(_text(512), _key, max_items=64)),
+    },
     "release": {"key": (True, _key), "holder": (False, _holder), "force": (False, _flag)},
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},
     "get_adaptations": {},

@@ -1,6 +1,7 @@
 """An rmw_zenoh counterparty dyknow did not write: zenoh-ros2-sdk (PyPI), run as a child process.
 
-    python tests/ros2_peer.py PORT talk TOPIC TYPE      publish every 20 ms until stdin closes
+    python tests/ros2_peer.py PORT talk TOPIC TYPE      publish every 20 ms until stdin closes (the i-th
+                                                        TwistStamped: stamp sec=i, nanosec=5, twist.linear.x = i % 2)
     python tests/ros2_peer.py PORT listen TOPIC TYPE [transient_local]
                                                         print each message received, one JSON line
     python tests/ros2_peer.py PORT info TOPIC           print `ros2 topic info -v` once a publisher shows
@@ -37,6 +38,7 @@ SHARE = Path(sys.prefix) / "share"
 DEPENDENCIES = {
     "std_msgs/msg/String": [],
     "sensor_msgs/msg/Image": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header"],
+    "geometry_msgs/msg/TwistStamped": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Twist"],
     "lifecycle_msgs/srv/GetState": ["lifecycle_msgs/msg/State"],
     "lifecycle_msgs/srv/ChangeState": ["lifecycle_msgs/msg/Transition"],
     "lifecycle_msgs/msg/TransitionEvent": ["lifecycle_msgs/msg/Transition", "lifecycle_msgs/msg/State"],
@@ -95,6 +97,14 @@ def talk(port: int, topic: str, ros_type: str) -> None:
         i += 1
         if ros_type == "std_msgs/msg/String":
             pub.publish(data=f"hello {i}")
+        elif ros_type == "geometry_msgs/msg/TwistStamped":
+            from zenoh_ros2_sdk.session import ZenohSession
+
+            types = ZenohSession.get_instance("127.0.0.1", port).store.types
+            header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=i, nanosec=5), frame_id="base")
+            zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+            twist = types["geometry_msgs/msg/Twist"](linear=types["geometry_msgs/msg/Vector3"](x=float(i % 2), y=0.0, z=0.0), angular=zero)
+            pub.publish(header=header, twist=twist)
         else:
             from zenoh_ros2_sdk.session import ZenohSession
 

@@ -14,8 +14,9 @@ run as a child process with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (discovery o
                                                         an rclpy client calls once (JSON: the request's fields,
                                                         lifecycle_msgs types) and prints {"response": ...} or null
 
-Prints {"ready": true} once its publisher, subscription, node or client exists. TYPE: std_msgs/msg/String or
-sensor_msgs/msg/Image (a 2 x 3 rgb8 frame of bytes 0..17, stamped sec=i, nanosec=5).
+Prints {"ready": true} once its publisher, subscription, node or client exists. TYPE: std_msgs/msg/String,
+sensor_msgs/msg/Image (a 2 x 3 rgb8 frame of bytes 0..17, stamped sec=i, nanosec=5) or, to talk,
+geometry_msgs/msg/TwistStamped (stamped sec=i, nanosec=5; twist.linear.x = i % 2).
 """
 
 from __future__ import annotations
@@ -141,7 +142,9 @@ def main() -> None:
     mode, topic, ros_type = sys.argv[1:4]
     rclpy.init()
     node = rclpy.create_node(f"rclpy_{mode}")
-    cls = String if ros_type == "std_msgs/msg/String" else Image
+    from geometry_msgs.msg import TwistStamped
+
+    cls = {"std_msgs/msg/String": String, "geometry_msgs/msg/TwistStamped": TwistStamped}.get(ros_type, Image)
     closed = threading.Event()
     threading.Thread(target=lambda: (sys.stdin.read(), closed.set()), daemon=True).start()
     if mode == "talk":
@@ -152,6 +155,11 @@ def main() -> None:
             i += 1
             if cls is String:
                 pub.publish(String(data=f"hello {i}"))
+            elif cls is TwistStamped:
+                twist = TwistStamped()
+                twist.header.stamp.sec, twist.header.stamp.nanosec, twist.header.frame_id = i, 5, "base"
+                twist.twist.linear.x = float(i % 2)
+                pub.publish(twist)
             else:
                 msg = Image(height=2, width=3, encoding="rgb8", step=9, data=bytes(range(18)))
                 msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = i, 5, "cam"

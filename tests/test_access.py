@@ -697,6 +697,23 @@ def test_a_monitor_reads_only_what_its_caller_may_read(owners: Manager, certs: P
     assert owners.units() == []
 
 
+def test_a_bound_term_reads_only_what_its_caller_may_read(owners: Manager, certs: Path) -> None:
+    """A term bound to a key (dyknow.reasoning.bindings) needs the caller's right to subscribe to
+    it; one bound to a ROS 2 topic, which the manager's node subscribes to for it, the right to
+    spawn. Refused before anything is started."""
+    with Client(owners.name, connect=owners.endpoints, tls=tls(certs, "stranger"), timeout_s=5.0) as watcher:
+        with pytest.raises(AccessError, match=r"'stranger' may not read 'dyknow/vault/pin', so it may not bind Pin\(vault\) to it"):
+            watcher.monitor("Pin(vault) > 4711", bindings={"Pin(vault)": "dyknow/vault/pin"})
+    with Client(owners.name, connect=owners.endpoints, tls=tls(certs, "viewer"), timeout_s=5.0) as requester:
+        with pytest.raises(AccessError, match=r"'viewer' may not bind Pin\(vault\) to the ROS 2 topic 'ros2:/vault/pin'"):
+            requester.monitor("Pin(vault) > 4711", bindings={"Pin(vault)": "ros2:/vault/pin"})
+        assert owners.units() == [] and owners.monitors() == []
+        key = requester.monitor("Pin(vault) > 4711", bindings={"Pin(vault)": "dyknow/vault/pin"})  # a viewer may read all data
+        assert [m.bound for m in owners.monitors()] == [{"Pin(vault)": "dyknow/vault/pin"}]
+        assert requester.release(key) == 0
+    assert owners.units() == []
+
+
 def test_a_requirement_reads_only_what_its_caller_may_read(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
     """A requester allowed to read one request's stream requires a formula over the secret:
     refused, and nothing is planned for it."""

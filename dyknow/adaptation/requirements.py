@@ -260,14 +260,19 @@ class Requirements:
 
     def _unit_bindings(self, ref: str, label: str, formula: Formula) -> tuple[dict[str, str], list[str]]:
         """Where a monitor of a requirement of unit ``ref`` (of transformation ``label``) reads
-        each term: a term that is one of the unit's output tags reads that output, any other is
-        requested in turn. Returns the bindings and those requests (given back on a failure)."""
+        each term: a term that is one of the unit's output tags reads that output, a term the spec
+        binds (its ``<bindings>``) reads its source, any other is requested in turn. Returns the
+        bindings and those requests (given back on a failure)."""
         spec = self._reconfigurer.planner().spec(label)
         outputs = self._reconfigurer.config(ref)
+        bound = dict(spec.bindings)
         bindings: dict[str, str] = {}
         needs: list[str] = []
         try:
             for term, port in term_ports(formula).items():
+                if term in bound:
+                    bindings[port] = bound[term]
+                    continue
                 produced = [
                     outputs[p.name]
                     for p in spec.outputs
@@ -290,7 +295,7 @@ class Requirements:
             n = request.spec_watch_count
             name = f"{request.anchor}-spec-require-{n}"
             key = bindings[VERDICTS_PORT] = f"{request.key}/requirements/spec-{n}"
-            self._start(monitor_spec(formula, label="requirement"), name, bindings, str(formula))
+            self._start(monitor_spec(formula, label="requirement", bound=self._bound(label, formula)), name, bindings, str(formula))
         except DyKnowError:
             self.give_back(needs)
             raise
@@ -301,6 +306,11 @@ class Requirements:
             watcher.listen(lambda verdict, text=text, rkey=rkey, ref=ref, label=label: self._verdict(rkey, text, verdict, ref, label))  # type: ignore[misc]
         return SpecWatch(label, name, key, tuple(needs))
 
+    def _bound(self, label: str, formula: Formula) -> dict[str, str]:
+        """The terms of ``formula`` that the spec of ``label`` binds to what exists, and their sources."""
+        terms = {str(term) for term in formula.terms}
+        return {term: source for term, source in self._reconfigurer.planner().spec(label).bindings if term in terms}
+
     # -- a trial in the shadow
 
     def watch_trial(self, request: Request, trial: Trial) -> None:
@@ -308,12 +318,12 @@ class Requirements:
         what the request's own monitors read), and of the trial's new units' own requirements;
         one judge over them all, which reports the trial "held" or "failed". :class:`DyKnowError`
         when one cannot be watched."""
-        watched: list[tuple[str, Formula, dict[str, str]]] = []  # (judge's name of it, formula, bindings)
+        watched: list[tuple[str, Formula, dict[str, str], dict[str, str]]] = []  # (judge's name of it, formula, bindings, bound terms)
         for text, (monitor, _) in request.watches.items():
             formula = self._runtime.check_formula(text)
             current = self._runtime.get_config(monitor)
             bindings = {port: trial.output_key if term == request.tag else current[port] for term, port in term_ports(formula).items()}
-            watched.append((text, formula, bindings))
+            watched.append((text, formula, bindings, {}))
         planner = self._reconfigurer.planner()
         for unit in trial.plan.new_units:
             ref, label = unit.ref, trial.units.get(unit.ref)
@@ -323,7 +333,7 @@ class Requirements:
                 formula = self._runtime.check_formula(text)
                 bindings, needs = self._unit_bindings(ref, label, formula)
                 trial.needs.extend(needs)
-                watched.append((f"{text} (of {label})", formula, bindings))
+                watched.append((f"{text} (of {label})", formula, bindings, self._bound(label, formula)))
         if not watched:
             raise UnitError("no requirement to judge it by", where=f"the trial of {trial.label}")
         key, serial = request.key, trial.serial
@@ -332,11 +342,11 @@ class Requirements:
             detail = f"{trial.label} held its requirements for {self._dwell_ns / 1e9:g} s" if outcome == "held" else f"requirement {formula!r} was false there"
             self._report(Symptom(f"trial-{outcome}", time.time_ns(), label=trial.label, detail=detail, request=key, trial=serial))
 
-        judge = Judge([name for name, _, _ in watched], self._dwell_ns, report, strict=True)
-        for k, (name, formula, bindings) in enumerate(watched, start=1):
+        judge = Judge([name for name, _, _, _ in watched], self._dwell_ns, report, strict=True)
+        for k, (name, formula, bindings, bound) in enumerate(watched, start=1):
             monitor = f"{request.anchor}-trial-{serial}-{k}"
             bindings[VERDICTS_PORT] = f"{request.key}/trials/{serial}/{k}"
-            self._start(monitor_spec(formula, label="requirement"), monitor, bindings, name)  # (one that fails to start is gone)
+            self._start(monitor_spec(formula, label="requirement", bound=bound), monitor, bindings, name)  # (one that fails to start is gone)
             self._knowledge.managed.add(monitor)
             trial.monitors.append(monitor)
             watcher = self._runtime.unit(monitor)

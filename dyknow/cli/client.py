@@ -439,11 +439,17 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     examples:
       dyknow monitor 'historically[0, 1s] BallTrack(field).tracked > 0' --duration 10
       dyknow monitor 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'
+      dyknow monitor 'Odom(r1).twist.twist.linear.x < 1.5' --bind 'Odom(r1)=ros2:/r1/odom' --manager robot
+      dyknow monitor 'Battery(r1) > 0.2' --bind 'Battery(r1)=robots/r1/battery'
       dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x"""
     if args.mcap is not None:
         return _monitor_recording(args)
-    if args.bind:
-        raise UsageError("--bind: only with --mcap (live, the manager finds each term's stream by its meaning)")
+    bindings = parse_pairs(args.bind, "--bind")
+    if bindings:  # usage first, then connect: the same check the manager makes (it checks Zenoh keys further)
+        from dyknow.reasoning.bindings import check_bindings
+        from dyknow.reasoning.syntax import parse
+
+        check_bindings(parse(args.formula), bindings)
     if args.duration is not None and args.duration <= 0:
         raise UsageError(f"--duration: got {args.duration}; expected a positive number of seconds")
     done = threading.Event()
@@ -476,9 +482,10 @@ def cmd_monitor(args: argparse.Namespace) -> int:
             report_result(args, {"key": msg.key, **verdict}, text)
 
     with open_client(args) as client:
-        key = client.monitor(args.formula, reorder_ms=args.reorder_ms)
+        key = client.monitor(args.formula, reorder_ms=args.reorder_ms, bindings=bindings)
         if not args.json:
-            print(shown(f"monitoring {args.formula} on {key} (Ctrl-C to stop)"), flush=True)
+            bound = "".join(f", {term} from {source}" for term, source in bindings.items())
+            print(shown(f"monitoring {args.formula} on {key}{bound} (Ctrl-C to stop)"), flush=True)
         try:
             with client.declare_subscriber(key, show):
                 signal.signal(signal.SIGINT, lambda *_: done.set())
@@ -603,8 +610,10 @@ def add_commands(cmds: Commands) -> None:
                        help="print each verdict's time as ISO 8601 wall time (default: seconds since the command started)")  # fmt: skip
         p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
         p.add_argument(
-            "--bind", action="append", default=[], metavar="TERM=TOPIC", help="with --mcap: the topic that carries a term (repeatable)"
-        )
+            "--bind", action="append", default=[], metavar="TERM=SOURCE",
+            help="read a term from what exists, not planned: ros2:/TOPIC (rmw_zenoh), ros2dds:/TOPIC?type=T (DDS) or a Zenoh key; "
+            "with --mcap: the topic that carries it (repeatable)",
+        )  # fmt: skip
         cmds.mcap_limit_options(p, prefix="with --mcap: ")
 
     cmds.command("monitor", cmd_monitor, monitor_options, client=True)

@@ -56,7 +56,7 @@ from dyknow.security import DataRoots, Limits
 from dyknow.spec import Template, TransformationSpec
 from dyknow.stats import PortCounters
 from dyknow.tags import parse_term
-from dyknow.transport import Session
+from dyknow.transport import Session, check_key_expr
 from dyknow.unit import Unit
 
 __all__ = ["Manager"]
@@ -567,19 +567,33 @@ class Manager:
         if self._adaptation.release_holder(key, holder) == 0 and self._holders is not None:
             self._holders.forget(key)
 
-    def monitor(self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL) -> str:
+    def monitor(
+        self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, bindings: Mapping[str, str] | None = None
+    ) -> str:
         """Monitor a temporal formula over the streams its terms name; returns the key of its
         verdicts (see :mod:`dyknow.reasoning.monitors`; ``forall c in Class: ...`` gives one
         monitor per individual and a key expression for them all).
 
         Each term is requested as :meth:`request` does, so the planner finds its stream by
         meaning and the adaptation loop keeps it flowing; ``reorder_ms`` is the monitor's reorder
-        delay. :meth:`release` of the key takes it down (only by ``owner``, or forced). Raises
-        :class:`~dyknow.errors.FormulaError`, :class:`~dyknow.planner.PlanningError`, or
-        :class:`~dyknow.errors.AccessError` when ``owner`` may not read a term's stream.
+        delay. ``bindings`` bind terms to what exists instead, with no spec: a term -> a Zenoh
+        key, ``ros2:/TOPIC`` (rmw_zenoh, on this manager's node) or ``ros2dds:/TOPIC`` (DDS, on
+        its participant), as in ``{"Odom(r1)": "ros2:/r1/odom"}`` (:mod:`dyknow.reasoning.bindings`).
+        :meth:`release` of the key takes it down (only by ``owner``, or forced). Raises
+        :class:`~dyknow.errors.FormulaError`, :class:`~dyknow.errors.BindingError` (a binding
+        that is not valid, named), :class:`~dyknow.planner.PlanningError`, or
+        :class:`~dyknow.errors.AccessError` when ``owner`` may not read a term's stream or source.
         """
         self._check_open()
-        info = self._monitors.add(formula, reorder_ms=reorder_ms, owner=owner, readable=self._reader(owner))
+        info = self._monitors.add(
+            formula,
+            reorder_ms=reorder_ms,
+            owner=owner,
+            readable=self._reader(owner),
+            bindings=bindings,
+            check_key=lambda key, where: check_key_expr(key, what=where),
+            readable_source=self._source_reader(owner),
+        )
         self.changed()
         return info.key
 
@@ -608,6 +622,34 @@ class Manager:
                     f"{caller!r} may not read {tag} (its stream is on {key!r}), so it may not ask for it, monitor it or require it",
                     where=f"manager {manager!r}",
                     expected=f"a caller whose role may subscribe to {key!r} in this manager's --acl ({' or '.join(roles) or 'none'})",
+                )
+
+        return readable
+
+    def _source_reader(self, owner: Owner) -> Callable[[str, str], None] | None:
+        """A check that ``owner`` may read a bound term's source, on a manager with roles: a Zenoh
+        key its role may subscribe to; a ROS 2 topic only when its role may spawn (the manager's
+        node subscribes for it, as it would for a spawned :class:`~dyknow.ros2.bridge.Ros2Source`).
+        None when everything may be read."""
+        access = self._access
+        caller = owner.caller
+        if access is None or owner.local or caller is None:
+            return None
+        manager = self.name
+
+        def readable(source: str, term: str) -> None:
+            if source.startswith(keys.ROS2_SCHEMES):
+                if not access.may_call(caller, "spawn"):
+                    raise AccessError(
+                        f"{caller!r} may not bind {term} to the ROS 2 topic {source!r}",
+                        where=f"manager {manager!r}",
+                        expected=f"a caller whose role may spawn units in this manager's --acl ({' or '.join(access.roles_for_call('spawn')) or 'none'})",
+                    )
+            elif not access.may_read(caller, source):
+                raise AccessError(
+                    f"{caller!r} may not read {source!r}, so it may not bind {term} to it",
+                    where=f"manager {manager!r}",
+                    expected=f"a caller whose role may subscribe to {source!r} in this manager's --acl ({' or '.join(access.roles_for_read(source)) or 'none'})",
                 )
 
         return readable

@@ -92,7 +92,7 @@ class Served(Protocol):
         """Give back a request or a monitor; returns the references that remain."""
         ...
 
-    def monitor(self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL) -> str:
+    def monitor(self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, bindings: Mapping[str, str] | None = None) -> str:
         """Monitor a temporal formula; returns the key of its verdicts."""
         ...
 
@@ -243,7 +243,9 @@ class Services:
     def _serve_monitor(self, request: dict[str, Any], caller: Caller | None) -> dict[str, Any]:
         holder = self._holder(request, caller)
         owner = _owner(caller, holder)
-        key = self._manager.monitor(str(request["formula"]), reorder_ms=float(request.get("reorder_ms", 0.0)), owner=owner)
+        key = self._manager.monitor(
+            str(request["formula"]), reorder_ms=float(request.get("reorder_ms", 0.0)), owner=owner, bindings=request.get("bindings") or None
+        )
         self._held(key, holder, owner)
         return {"key": key, "kept": holder is None}
 

@@ -22,12 +22,15 @@ module                      what it holds
 :mod:`~.objects`            :class:`ObjectMonitor`: a ``foreach`` formula, one monitor per object
 :mod:`~.quantify`           ``forall``/``exists`` over an ontology class, expanded for a manager
 :mod:`~.unit`               :class:`FormulaMonitor`, the monitor as a unit, and :func:`monitor_spec` for its spec
+:mod:`~.bindings`           terms bound to what exists (a Zenoh key, a ROS 2 topic), read instead of planned
+:mod:`~.monitors`           monitors asked of a manager by meaning, each term planned or bound
+:mod:`~.offline`            a formula over a recording: the same semantics, yesterday's data
 ==========================  ==============================================================================
 
 Imports flow one way (a module imports only from those on its left): ``tree <- parser <- syntax
 <- quantify <- semantics``; ``values <- evaluator <- semantics``; and ``values, syntax <- robustness
 <- timeline <- pending <- nodes <- windows <- aggregates, past, future <- progression <- objects <-
-unit``.
+unit``; ``syntax <- bindings <- unit, monitors, offline``.
 
     >>> from dyknow.reasoning import evaluate
     >>> evaluate("once[0, 1s] Battery(robot) < 0.2", {"Battery(robot)": [(0.0, 0.5), (0.5, 0.1), (2.0, 0.4)]})

@@ -18,6 +18,11 @@ monitor per individual (per tuple, for ``forall a in R: forall b in R: ...``), p
 ``foreach`` formula is one monitor whose verdicts each name their object (``"object": ...``).
 Releasing that key (:meth:`Monitors.release`) destroys the monitors and gives their terms back.
 
+A term may be **bound** to what exists instead (``bindings``: term -> a Zenoh key, ``ros2:/TOPIC``
+or ``ros2dds:/TOPIC``, :mod:`dyknow.reasoning.bindings`): it is not requested, and the monitor's
+input of that term is bound to the source itself (a ROS 2 topic through a companion
+:class:`~dyknow.ros2.bridge.Ros2Source` on the manager's node, which the manager's spawn wires).
+
 A monitor has an owner (:class:`~dyknow.model.Owner`), as a request's reference has: only it
 may release the monitor, or an admin who forces it; a client's monitor ends with the client
 (:mod:`dyknow.holders`). ``readable(term)`` is asked of every term of every expansion before
@@ -34,8 +39,9 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from dyknow import keys
-from dyknow.errors import AccessError, DyKnowError, UnitError
+from dyknow.errors import AccessError, DyKnowError, FormulaError, UnitError
 from dyknow.model import LOCAL, Owner, UnitInfo
+from dyknow.reasoning.bindings import check_bindings
 from dyknow.reasoning.quantify import expand
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
 from dyknow.security import Limits
@@ -57,8 +63,10 @@ class MonitorInfo:
     expansions: tuple[tuple[str | None, str, str, str], ...]  # (individual, formula, unit, verdict key)
     terms: Mapping[str, str] = field(default_factory=dict)
     owner: Owner = LOCAL
-    #: what its units found wrong with their data (a field no sample holds)
+    #: what its units found wrong with their data (a field no sample holds, a bound term silent)
     warnings: tuple[str, ...] = ()
+    #: the terms bound to what exists, and their sources (also in ``terms``; never requested)
+    bound: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def units(self) -> tuple[str, ...]:
@@ -74,6 +82,7 @@ class MonitorInfo:
             "holder": self.owner.holder,
             "monitors": [{"individual": i, "formula": f, "unit": u, "key": k} for i, f, u, k in self.expansions],
             "warnings": list(self.warnings),
+            "bindings": dict(self.bound),
         }
 
 
@@ -116,9 +125,22 @@ class Monitors:
         self._serial = itertools.count(1)
 
     def add(
-        self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, readable: Callable[[str], None] | None = None
+        self,
+        formula: str,
+        *,
+        reorder_ms: float = 0.0,
+        owner: Owner = LOCAL,
+        readable: Callable[[str], None] | None = None,
+        bindings: Mapping[str, str] | None = None,
+        check_key: Callable[[str, str], object] | None = None,
+        readable_source: Callable[[str, str], None] | None = None,
     ) -> MonitorInfo:
         """Monitor ``formula`` (see the module documentation) for ``owner``; its :class:`MonitorInfo`.
+
+        ``bindings`` bind terms to what exists (checked by
+        :func:`~dyknow.reasoning.bindings.check_bindings`, with ``check_key`` for Zenoh keys;
+        ``readable_source(source, term)`` raises when ``owner`` may not read a source), before
+        anything is requested.
 
         Raises :class:`~dyknow.errors.FormulaError` when the formula does not read,
         :class:`~dyknow.errors.AccessError` when ``readable`` refuses a term (before anything
@@ -132,9 +154,21 @@ class Monitors:
         expansions = expand(formula, self._individuals, max_expansions=self._max_expansions, limits=self._limits)
         if self._budget is not None:
             self._budget(*(parsed for _, parsed in expansions), account=owner.account())
+        if bindings and expansions[0][0] is not None:
+            first = next(iter(bindings.items()))
+            raise FormulaError(
+                "a binding in a formula with forall or exists",
+                where=f"binding {str(first[0])[:200]}={str(first[1])[:300]}",
+                expected="bindings in formulas without forall or exists (foreach may stay): bind each individual's formula",
+            )
+        bound = check_bindings(expansions[0][1], bindings, check_key=check_key) if bindings else {}
+        if readable_source is not None:
+            for bound_term, source in bound.items():
+                readable_source(source, bound_term)
         if readable is not None:
             for text in dict.fromkeys(str(term) for _, parsed in expansions for term in parsed.terms):
-                readable(text)
+                if text not in bound:
+                    readable(text)
         n = next(self._serial)
         base = keys.monitor_key(self.manager, n)
         quantified = expansions[0][0] is not None
@@ -144,15 +178,15 @@ class Monitors:
         try:
             for individual, parsed in expansions:
                 for term in parsed.terms:
-                    if str(term) not in requested:
+                    if str(term) not in requested and str(term) not in bound:
                         requested[str(term)] = self._request(str(term))
                 chunks = [_UNSAFE.sub("_", part) for part in individual.split("/")] if individual is not None else []
                 key = "/".join([base, *chunks])
                 name = "-".join([f"monitor-{n}", *chunks])
-                spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms)
-                bindings = {port: requested[term] for term, port in term_ports(parsed).items()}
-                bindings[VERDICTS_PORT] = key
-                started = self._spawn(spec, name, bindings, owner)
+                spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms, bound=bound)
+                ports = {port: bound.get(term) or requested[term] for term, port in term_ports(parsed).items()}
+                ports[VERDICTS_PORT] = key
+                started = self._spawn(spec, name, ports, owner)
                 spawned.append(name)
                 if started.state == "failed":  # (its nodes were taken meanwhile, say): never kept half-made
                     raise UnitError(
@@ -165,7 +199,7 @@ class Monitors:
             self._undo(spawned, list(requested.values()))
             raise
         depth = len(expansions[0][0].split("/")) if quantified and expansions[0][0] is not None else 0
-        info = MonitorInfo("/".join([base, *["*"] * depth]), formula, tuple(made), requested, owner)
+        info = MonitorInfo("/".join([base, *["*"] * depth]), formula, tuple(made), {**requested, **bound}, owner, bound=bound)
         with self._lock:
             self._by_key[info.key] = info
         return info
@@ -185,7 +219,7 @@ class Monitors:
                     expected="a release by the client or caller that asked for it; an admin may force it (release with force)",
                 )
             del self._by_key[key]
-        self._undo(list(info.units), list(info.terms.values()))
+        self._undo(list(info.units), [key for term, key in info.terms.items() if term not in info.bound])
         return True
 
     def owner(self, key: str) -> Owner | None:

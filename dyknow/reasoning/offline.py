@@ -2,7 +2,9 @@
 
 :func:`evaluate_recording` replays an MCAP file as fast as it reads (:class:`~dyknow.recording.Player`:
 payloads decoded as live units get them, each message's origin time its sample time), takes the
-samples of the topic each term is bound to, and evaluates the formula over them with
+samples of the topic each term is bound to (``ros2:/TOPIC`` and ``ros2dds:/TOPIC`` name the topic
+``/TOPIC``, so the bindings of a live monitor serve here as they are; every sample read as a
+bound term's is, :func:`~dyknow.reasoning.bindings.sample_value`), and evaluates the formula over them with
 :func:`~dyknow.reasoning.evaluate`: every state's verdict, unknown ones included (None).
 """
 
@@ -13,6 +15,7 @@ import os
 from collections.abc import Mapping
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
+from dyknow.reasoning.bindings import sample_value, topic_of
 from dyknow.reasoning.semantics import evaluate_ns
 from dyknow.reasoning.syntax import parse
 from dyknow.recording import Player, ReadLimits
@@ -35,7 +38,7 @@ def evaluate_recording(
     parsed = parse(formula)
     terms = [str(t) for t in parsed.terms]
     try:
-        bindings = {str(parse_term(term)): topic for term, topic in bindings.items()}
+        bindings = {str(parse_term(term)): topic_of(topic) for term, topic in bindings.items()}
     except TagError as exc:
         raise FormulaError(f"a binding's term does not read: {exc.what}", where="--bind", expected="TERM=TOPIC, such as Battery(robot)=robot/battery") from exc
     unbound = [t for t in terms if t not in bindings]
@@ -58,7 +61,7 @@ def evaluate_recording(
         def take(message: object, record: object) -> None:
             term = wanted.get(getattr(record, "topic", ""))
             if term is not None:
-                samples[term].append((message.origin_ns, message.payload))  # type: ignore[attr-defined]
+                samples[term].append((message.origin_ns, sample_value(message.payload)))  # type: ignore[attr-defined]
 
         player.play(take)
     return evaluate_ns(parsed, samples)

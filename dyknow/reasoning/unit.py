@@ -73,7 +73,12 @@ Params:
 - ``idle_ms`` (float, default 10,000) and ``max_objects`` (int, default 1,000): a ``foreach``
   formula's object lifetime and cap;
 - ``changes_only`` (bool, default false): publish a verdict only when it differs from the last
-  one published (an object's, with ``foreach``).
+  one published (an object's, with ``foreach``);
+- ``bound`` (string): the terms bound to what exists, a JSON object of terms and their sources
+  (:mod:`dyknow.reasoning.bindings`): their text samples are read as JSON values, and
+- ``quiet_ms`` (float, default 5,000): a bound term without a sample this long after the unit
+  started is warned about once, naming its source (a ``{"warning": ...}`` on ``verdicts``, as
+  for a field no sample holds); 0: never.
 
 Example::
 
@@ -97,6 +102,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from dyknow.clocks import CLOCKS
 from dyknow.errors import AccessError, FormulaError
 from dyknow.message import CLOCK_ID
+from dyknow.reasoning.bindings import sample_value
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
@@ -108,7 +114,7 @@ from dyknow.unit import Unit
 if TYPE_CHECKING:
     from dyknow.message import Message
 
-__all__ = ["DEFAULT_QUEUE", "MAX_FORMULAS", "VERDICTS_PORT", "FormulaMonitor", "Formulas", "MonitorBudget", "monitor_spec", "term_ports"]
+__all__ = ["DEFAULT_QUEUE", "DEFAULT_QUIET_MS", "MAX_FORMULAS", "VERDICTS_PORT", "FormulaMonitor", "Formulas", "MonitorBudget", "monitor_spec", "term_ports"]
 
 VERDICTS_PORT: str = "verdicts"
 """The output port on which a monitor unit publishes its verdicts."""
@@ -128,6 +134,9 @@ MAX_FORMULAS: int = 1000
 monitor's, by ``Limits.max_monitor_nodes``)."""
 
 _MAX_NAME = 200
+
+DEFAULT_QUIET_MS: float = 5000.0
+"""How long a monitor waits for a bound term's first sample before it warns (milliseconds)."""
 
 
 def _named(formulas: Formulas, where: str, limits: Limits | None = None) -> list[tuple[str | None, Formula]]:
@@ -207,6 +216,23 @@ def _formulas_param(text: str, where: str) -> dict[str, str]:
     return named
 
 
+def _bound_param(given: object, terms: Sequence[str], where: str) -> dict[str, str]:
+    """The ``bound`` param: a JSON object of the unit's terms and their sources."""
+    if given is None or given == "":
+        return {}
+    expected = 'a JSON object of terms of the formula and their sources, such as {"Odom(r1)": "ros2:/r1/odom"}'
+    try:
+        bound = json.loads(str(given))
+    except (ValueError, RecursionError):
+        raise FormulaError(f"the param bound is not JSON: {str(given)[:120]!r}", where=where, expected=expected) from None
+    if not isinstance(bound, dict) or not all(isinstance(v, str) for v in bound.values()):
+        raise FormulaError(f"the param bound holds a JSON {type(bound).__name__}", where=where, expected=expected)
+    unknown = [t for t in bound if t not in terms]
+    if unknown:
+        raise FormulaError(f"the param bound names {unknown[0][:120]!r}, no term of the formula", where=where, expected=expected)
+    return bound
+
+
 def _terms(named: list[tuple[str | None, Formula]]) -> list[str]:
     """The terms of the formulas, each once, in the order they are first mentioned."""
     return list(dict.fromkeys(str(term) for _, formula in named for term in formula.terms))
@@ -233,13 +259,17 @@ def monitor_spec(
     idle_ms: float = DEFAULT_IDLE_NS / 1e6,
     max_objects: int = DEFAULT_MAX_OBJECTS,
     changes_only: bool = False,
+    bound: Mapping[str, str] | None = None,
+    quiet_ms: float = DEFAULT_QUIET_MS,
 ) -> TransformationSpec:
     """The transformation spec of a monitor of ``formula``: its params, a port per term, ``verdicts``.
 
     ``formula`` may be several formulas, served by one unit: a mapping of names to formulas, or
     a list (each named by its text). A term they share has one port, so each sample is delivered
     once for all of them; each verdict carries the name of its formula (``"formula": "slow"``).
-    The settings hold for every formula.
+    The settings hold for every formula. ``bound``: the terms bound to what exists and their
+    sources (:mod:`dyknow.reasoning.bindings`), warned about ``quiet_ms`` after the start when
+    silent.
 
     Raises :class:`~dyknow.errors.FormulaError` when a formula does not parse or they mention no term.
     """
@@ -270,6 +300,7 @@ def monitor_spec(
             Param("idle_ms", "float", float(idle_ms)),
             Param("max_objects", "int", int(max_objects)),
             Param("changes_only", "bool", bool(changes_only)),
+            *((Param("bound", "string", json.dumps(dict(bound))), Param("quiet_ms", "float", float(quiet_ms))) if bound else ()),
         ),
         ports=(*(Port(port, "in", queue=queue) for port in ports.values()), Port(VERDICTS_PORT, "out")),
         tags=tuple(Tag(port, term) for term, port in ports.items()),
@@ -459,6 +490,7 @@ class FormulaMonitor(Unit):
     _budget: MonitorBudget | None = None
     _account: str | None = None  # whose share of the budget's nodes its formulas take (None: the manager's own)
     _seen_share = -1  # the budget's generation when the monitors last took their shares
+    _textual: frozenset[int] = frozenset()  # the bound terms' ports (their text samples are read as JSON)
 
     def use_budget(self, budget: MonitorBudget, account: str | None = None) -> None:
         """Take the manager's bounds and share of cells, for ``account`` (the caller it is
@@ -564,6 +596,13 @@ class FormulaMonitor(Unit):
         #: what the monitor found wrong with its data (a field no sample holds), each said once
         self.warnings: list[str] = []
         self._changes_only = bool(params.get("changes_only", False))
+        #: the terms bound to what exists and their sources (:mod:`dyknow.reasoning.bindings`)
+        self.bound: dict[str, str] = _bound_param(params.get("bound"), terms, where)
+        self._textual = frozenset(terms.index(term) for term in self.bound)
+        quiet_ms = float(params.get("quiet_ms", DEFAULT_QUIET_MS))
+        if self.bound and quiet_ms > 0:
+            self._quiet_timer = self.create_timer(quiet_ms / 1000, self._warn_quiet)
+        self._quiet_s = quiet_ms / 1000
         flush_ms = float(params.get("flush_ms", 0.0))
         self._flush_s = flush_ms / 1000
         if flush_ms > 0:
@@ -631,7 +670,7 @@ class FormulaMonitor(Unit):
                 )
                 return
         k = self._ports[port]
-        payload = msg.payload
+        payload = msg.payload if k not in self._textual else sample_value(msg.payload)
         if k in self._domains and type(payload) is list:
             for item in payload:  # a frame: a sample per element (what the fields and the rate are judged on)
                 self._observe(k, t_ns, item)
@@ -719,6 +758,21 @@ class FormulaMonitor(Unit):
                 self.warnings.append(warning)
                 self.log.warning("%s", warning)
                 self.publish(VERDICTS_PORT, {"warning": warning, "term": term, "field": field, "fields_seen": seen})
+
+    def _warn_quiet(self) -> None:
+        """Once, ``quiet_ms`` after the start: warn of each bound term no sample came from yet."""
+        self._quiet_timer.cancel()
+        for term, source in self.bound.items():
+            k = self.terms.index(term)
+            if self._last_t[k] > -(2**62):
+                continue
+            warning = (
+                f"no sample of {term} from its binding {term}={source} in {self._quiet_s:g} s: its values are unknown"
+                " (is anything publishing there? a ROS 2 topic's name, type and domain must match)"
+            )
+            self.warnings.append(warning)
+            self.log.warning("%s", warning)
+            self.publish(VERDICTS_PORT, {"warning": warning, "term": term, "binding": source})
 
     def _set_age(self, k: int, age_ns: int) -> None:
         """Term ``k``'s maximum age, for every formula that reads it."""

@@ -196,6 +196,9 @@ class TransformationSpec:
     priority: int = DEFAULT_PRIORITY
     constraints: tuple[Constraint, ...] = ()
     requirements: tuple[str, ...] = ()  # temporal formulas its outputs must satisfy (dyknow.reasoning)
+    #: the requirements' terms read from what exists, not requested: (term, source), a source being
+    #: ros2:/TOPIC, ros2dds:/TOPIC or a Zenoh key (dyknow.reasoning.bindings)
+    bindings: tuple[tuple[str, str], ...] = ()
     description: str = ""
     args: tuple[tuple[str, str], ...] = ()
     path: str = "<memory>"
@@ -254,6 +257,7 @@ class TransformationSpec:
             "priority": self.priority,
             "constraints": [{"measure": c.measure, "op": c.op, "value": c.value} for c in self.constraints],
             "requirements": list(self.requirements),
+            "bindings": dict(self.bindings),
             "description": self.description,
             "args": dict(self.args),
             "location": self.location,
@@ -311,6 +315,10 @@ class TransformationSpec:
             out.append("  <requirements>")
             out.extend(f"    <requirement>{_xml_text(r)}</requirement>" for r in self.requirements)
             out.append("  </requirements>")
+        if self.bindings:
+            out.append("  <bindings>")
+            out.extend(f"    <binding term={_xml_attr(term)}>{_xml_text(source)}</binding>" for term, source in self.bindings)
+            out.append("  </bindings>")
         out.append("</transformation>")
         return "\n".join(out) + "\n"
 

@@ -79,13 +79,15 @@ _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "requirement": (),
     "node": ("name", "middleware", "lifecycle", "timeout-s"),
     "topic": ("type", "deadline-ms"),
+    "bindings": (),
+    "binding": ("term",),
 }
 
 ELEMENTS: Mapping[str, frozenset[str]] = MappingProxyType({name: frozenset(attributes) for name, attributes in _ATTRIBUTES.items()})
 """Every element of the format and the attributes it allows (``specs/transformation.xsd`` agrees)."""
 
 _TRANSFORMATION_CHILDREN = (
-    "label", "source", "description", "args", "params", "ports", "tags", "priority", "constraints", "requirements",
+    "label", "source", "description", "args", "params", "ports", "tags", "priority", "constraints", "requirements", "bindings",
 )  # fmt: skip
 _NODE_CHILDREN = ("label", "description", "args", "params", "topic", "tags", "priority", "constraints", "requirements")
 # the required children of a <node>, with their examples
@@ -107,6 +109,7 @@ _REQUIRED_ATTRIBUTES = {
     "constraint": {"measure": 'measure="battery"', "op": 'op="&gt;="', "value": 'value="0.25"'},
     "node": {"name": 'name="/camera_top"'},
     "topic": {"type": 'type="sensor_msgs/msg/Image"'},
+    "binding": {"term": 'term="Odom(r1)" naming a term of the requirements'},
 }
 # Each container holds any number of one kind of child.
 _CONTAINERS = {
@@ -117,6 +120,7 @@ _CONTAINERS = {
     "tags": "tag",
     "constraints": "constraint",
     "requirements": "requirement",
+    "bindings": "binding",
 }
 _EMPTY_ELEMENTS = frozenset({"constraint"})  # attributes only, no text
 # Root-only attributes: namespace declarations and the ones editors use to attach the XSD.
@@ -494,6 +498,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
     tags, tag_lines = _read_tags(first.get("tags"), declared, issues)
     constraints, constraint_lines = _read_constraints(first.get("constraints"), declared, issues)
     requirements, requirement_lines = _read_requirements(first.get("requirements"), declared, issues)
+    bindings, binding_lines = _read_bindings(first.get("bindings"), declared, issues)
     return Template(
         label=label,
         source=source,
@@ -514,6 +519,8 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
         constraint_lines=constraint_lines,
         requirements=requirements,
         requirement_lines=requirement_lines,
+        bindings=bindings,
+        binding_lines=binding_lines,
     )
 
 
@@ -815,6 +822,20 @@ def _read_requirements(container: _Node | None, declared: Sequence[str], issues:
         _check_template("<requirement>", node.text, node.line, declared, issues)
         formulas.append(node.text)
     return tuple(formulas), tuple(n.line for n in nodes)
+
+
+def _read_bindings(container: _Node | None, declared: Sequence[str], issues: _Issues) -> tuple[tuple[tuple[str, str], ...], tuple[int, ...]]:
+    """The requirements' terms bound to what exists: ``(term, source)`` as written (checked when expanded)."""
+    bindings: list[tuple[str, str]] = []
+    nodes = _children(container)
+    for node in nodes:
+        term = node.attrs["term"]
+        if not node.text:
+            issues.add(node.line, "<binding>", "empty", "the source of the term: ros2:/TOPIC, ros2dds:/TOPIC?type=pkg/msg/Type or a Zenoh key")
+        _check_template("<binding> @term", term, node.line, declared, issues)
+        _check_template("<binding>", node.text, node.line, declared, issues)
+        bindings.append((term, node.text))
+    return tuple(bindings), tuple(n.line for n in nodes)
 
 
 def _check_template(where: str, text: str, line: int, declared: Sequence[str], issues: _Issues) -> None:

@@ -1,10 +1,12 @@
 """Templates: a ``<transformation>`` with ``<args>``, expanded into one spec per combination.
 
 ``${Name}`` is replaced by each value of the arg ``Name`` in the label, source, description, param
-values, port names, tag texts, tag ``port`` attributes, constraint values and requirements, and
+values, port names, tag texts, tag ``port`` attributes, constraint values, requirements and
+bindings (a ``<binding>``'s ``term`` and source), and
 ``$$`` stands for a literal ``$``. Several args expand as their cartesian product, in document order.
 :meth:`Template.expand` checks what depends on the substituted text (param values against their
 type, port names, tag ports, constraint values, requirements against the formula language,
+bindings against the requirements' terms and the sources :mod:`dyknow.reasoning.bindings` takes,
 distinct labels) and reports every problem of the
 template, located.
 """
@@ -18,8 +20,9 @@ from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
-from dyknow.errors import FormulaError, SpecError, SpecIssue, TagError, compose, did_you_mean
+from dyknow.errors import DyKnowError, FormulaError, SpecError, SpecIssue, TagError, compose, did_you_mean
 from dyknow.keys import label_problem
+from dyknow.reasoning.bindings import check_source
 from dyknow.reasoning.syntax import check_formula, parse
 from dyknow.security import Limits
 from dyknow.spec.model import (
@@ -75,6 +78,8 @@ class Template:
     constraint_lines: tuple[int, ...] = ()
     requirements: tuple[str, ...] = ()
     requirement_lines: tuple[int, ...] = ()
+    bindings: tuple[tuple[str, str], ...] = ()
+    binding_lines: tuple[int, ...] = ()
 
     @property
     def is_template(self) -> bool:
@@ -155,6 +160,7 @@ class Template:
         texts += [t for tag in self.tags for t in (tag.port, tag.tag)]
         texts += [t for c in self.constraints for t in (c.measure, c.op, str(c.value))]
         texts += list(self.requirements)
+        texts += [t for binding in self.bindings for t in binding]
         return sum(len(t.encode()) + t.count("${") * longest_value for t in texts) + 64 * (1 + len(texts))
 
     def _build(self, values: Mapping[str, str], limits: Limits | None = None) -> tuple[TransformationSpec, list[_Problem]]:
@@ -216,6 +222,7 @@ class Template:
             constraints.append(replace(constraint, value=text))
 
         requirements = []
+        read: set[str] = set()  # the terms the requirements read
         for text, line in zip(self.requirements, self.requirement_lines, strict=True):
             formula_text = sub(text)
             try:
@@ -228,6 +235,32 @@ class Template:
                 problems.append((line, "<requirement>", f"{shorten(formula_text)!r} reads none of this transformation's outputs", expected))
                 continue
             requirements.append(str(formula))
+            read.update(str(term) for term in formula.terms)
+
+        bindings: list[tuple[str, str]] = []
+        for (term_text, source_text), line in zip(self.bindings, self.binding_lines, strict=True):
+            term_text, source_text = sub(term_text), sub(source_text)
+            try:
+                bound = str(parse_term(term_text))
+            except TagError as exc:
+                problems.append((line, "<binding> @term", compose(exc.what, exc.where), exc.expected or ""))
+                continue
+            if bound not in read:
+                expected = f"a term of its requirements ({', '.join(sorted(read)) or 'it has none'}){did_you_mean(bound, sorted(read))}"
+                problems.append((line, "<binding> @term", f"{bound!r} is no term of a requirement", expected))
+                continue
+            if bound in outputs:
+                problems.append((line, "<binding> @term", f"{bound!r} is an output tag of this transformation", "a term its requirements read from elsewhere"))
+                continue
+            if bound in dict(bindings):
+                problems.append((line, "<binding> @term", f"{bound!r} is bound twice", "one source for each term"))
+                continue
+            try:
+                source = check_source(source_text, f"binding {bound}={shorten(source_text)}")
+            except DyKnowError as exc:
+                problems.append((line, "<binding>", compose(exc.what, exc.where), exc.expected or ""))
+                continue
+            bindings.append((bound, source))
 
         label = sub(self.label)
         label_issue = label_problem(label) if label else None  # an empty one is reported where it is read
@@ -242,6 +275,7 @@ class Template:
             priority=self.priority,
             constraints=tuple(constraints),
             requirements=tuple(requirements),
+            bindings=tuple(bindings),
             description=sub(self.description),
             args=tuple(values.items()),
             path=self.path,

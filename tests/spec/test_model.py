@@ -71,6 +71,7 @@ def test_to_dict_is_json_ready() -> None:
             {"measure": "mode", "op": "!=", "value": "docked"},
         ],
         "requirements": ["not historically[0, 2s] Objects(rear).count < 1"],
+        "bindings": {},
         "description": "Finds objects in the images of rear with yolo (costs $0).",
         "args": {"Cam": "rear", "Model": "yolo"},
         "location": f"{GOOD / 'vision.xml'}:5",
