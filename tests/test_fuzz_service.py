@@ -86,6 +86,7 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("get_model", "page"): {"{}"},
     ("monitor", "formula"): TEXT,
     ("monitor", "reorder_ms"): {"0", "1.5"},
+    ("monitor", "bindings"): {"{}"},
     ("request", "require"): {"[]"},
     ("request", "holder"): set(),  # only hexadecimal client ids, none of the probes
     ("release", "holder"): set(),
