@@ -480,13 +480,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
     declared = [a.label for a in args]
 
     def text_of(name: str, example: str | None) -> tuple[str, int]:
-        element = first.get(name)
-        if element is None:
-            return "", 0
-        if not element.text and example is not None:
-            issues.add(element.line, f"<{name}>", "empty", example)
-        _check_template(f"<{name}>", element.text, element.line, declared, issues)
-        return element.text, element.line
+        return _child_text(first, name, example, declared, issues)
 
     label, label_line = text_of("label", "a unique name such as undistort(${Cam})")
     source, _ = text_of("source", "<source>package.module:Class</source>")
@@ -577,13 +571,7 @@ def _read_node(node: _Node, issues: _Issues) -> Template:
         params.append(Param("timeout_s", "float", text))
 
     def text_of(child: str, example: str | None) -> tuple[str, int]:
-        element = first.get(child)
-        if element is None:
-            return "", 0
-        if not element.text and example is not None:
-            issues.add(element.line, f"<{child}>", "empty", example)
-        _check_template(f"<{child}>", element.text, element.line, declared, issues)
-        return element.text, element.line
+        return _child_text(first, child, example, declared, issues)
 
     label, label_line = text_of("label", "a unique name such as camera-top")
     description, _ = text_of("description", None)
@@ -836,6 +824,18 @@ def _read_bindings(container: _Node | None, declared: Sequence[str], issues: _Is
         _check_template("<binding>", node.text, node.line, declared, issues)
         bindings.append((term, node.text))
     return tuple(bindings), tuple(n.line for n in nodes)
+
+
+def _child_text(first: Mapping[str, _Node], name: str, example: str | None, declared: Sequence[str], issues: _Issues) -> tuple[str, int]:
+    """The text and line of the child ``name`` of ``first`` (("", 0) when absent); an empty one is
+    an issue when ``example`` says what to write, and a template in it is checked against ``declared``."""
+    element = first.get(name)
+    if element is None:
+        return "", 0
+    if not element.text and example is not None:
+        issues.add(element.line, f"<{name}>", "empty", example)
+    _check_template(f"<{name}>", element.text, element.line, declared, issues)
+    return element.text, element.line
 
 
 def _check_template(where: str, text: str, line: int, declared: Sequence[str], issues: _Issues) -> None:
