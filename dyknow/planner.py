@@ -550,9 +550,11 @@ class _Search:
         if option.unit in self.unavailable:
             return "unavailable"
         measured = self.measurements.get(option.manager, {})
+        # a running unit, or a transformation of the request's configuration, keeps a constraint's margin (hysteresis)
+        held = not option.new or option.unit in self.prefer or qualify(option.unit, option.manager) in self.prefer
         for c in option.constraints:
             value = measured.get(c.measure)
-            if value is not None and not c.holds(value):
+            if value is not None and not c.holds(value, held=held):
                 return f"constraint violated: {c.measure} = {value!r}, needs {c.op} {c.value!r}"
         return None
 

@@ -103,7 +103,7 @@ class Analyzer:
             out = []
             for r in requests:
                 broken = any(
-                    c.measure == symptom.measure and not c.holds(knowledge.measurements[c.measure])
+                    c.measure == symptom.measure and not c.holds(knowledge.measurements[c.measure], held=True)
                     for label in r.units.values()
                     for c in self._constraints(label)
                 )
@@ -163,7 +163,7 @@ class Analyzer:
             spec = specs.get(unqualify(label, "")[0])
             for c in spec.constraints if spec is not None else ():
                 value = summary.measurements.get(c.measure)
-                if value is not None and not c.holds(value):
+                if value is not None and not c.holds(value, held=True):
                     broken.append((ref, f"unit {ref!r}: measurement {c.measure} = {value!r} on manager {manager!r}"))
         return broken
 

@@ -356,8 +356,9 @@ class Reconfigurer:
         return True
 
     def violated(self, label: str) -> bool:
-        """Whether the latest measurements break a constraint of transformation ``label``
-        (``label@manager``: that manager's measurements and spec, from its summary)."""
+        """Whether the latest measurements break a constraint of transformation ``label``, which
+        runs (so its constraints keep their margins) (``label@manager``: that manager's
+        measurements and spec, from its summary)."""
         name, manager = unqualify(label, self._runtime.name)
         if manager == self._runtime.name:
             library = self._runtime.library
@@ -369,7 +370,7 @@ class Reconfigurer:
             measurements = summary.measurements if summary is not None else {}
         for c in spec.constraints if spec is not None else ():
             value = measurements.get(c.measure)
-            if value is not None and not c.holds(value):
+            if value is not None and not c.holds(value, held=True):
                 return True
         return False
 
@@ -501,7 +502,7 @@ class Reconfigurer:
         for label, constraints in self._constrained():
             for c in constraints:
                 value = self._knowledge.measurements.get(c.measure)
-                holds.append((label, value is None or c.holds(value)))
+                holds.append((label, value is None or c.holds(value), value is None or c.holds(value, held=True)))
         return (
             self._planner_version,
             frozenset(self._knowledge.unavailable(now_ns)),

@@ -131,7 +131,9 @@ def cmd_manager(args: argparse.Namespace) -> int:
     """run a manager until interrupted"""
     sys.setswitchinterval(MANAGER_SWITCH_INTERVAL_S)
     _apply_nice(args)
+    from dyknow.errors import DyKnowError
     from dyknow.manager import Manager
+    from dyknow.manager.feeds import parse_feed
     from dyknow.security import Limits
 
     tls = tls_files(args)
@@ -152,6 +154,16 @@ def cmd_manager(args: argparse.Namespace) -> int:
         max_library_bytes=args.max_library_bytes,
         max_metric_series=args.max_metric_series,
     )
+    feeds = []
+    for entry in args.measure_from:  # checked before anything starts
+        name, equals, source = entry.partition("=")
+        if not equals:
+            raise UsageError(f"--measure-from {entry[:200]!r}: expected NAME=SOURCE[#FIELD], such as visibility=ros2dds:/water_visibility?type=std_msgs/msg/Float64#data")
+        try:
+            parse_feed(name, source)
+        except DyKnowError as exc:
+            raise UsageError(f"--measure-from {entry[:200]!r}: {exc}") from None
+        feeds.append((name, source))
     with Manager(
         args.name,
         specs=args.specs,
@@ -178,6 +190,8 @@ def cmd_manager(args: argparse.Namespace) -> int:
         overload_lag_s=args.overload_lag,
         **({"dwell_s": args.dwell} if args.dwell is not None else {}),
     ) as manager:
+        for name, source in feeds:
+            manager.measure_from(name, source)
         exposed = manager.exposed()
         if exposed:
             print(
@@ -456,6 +470,10 @@ def add_commands(cmds: Commands) -> None:
         p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
         p.add_argument("--ros2-dds-config", metavar="FILE",
                        help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
+        p.add_argument("--measure-from", action="append", default=[], metavar="NAME=SOURCE[#FIELD]",
+                       help="take measure NAME (which constraints read) from a stream: a ros2:/ros2dds: topic or a Zenoh key, "
+                            "and a field path into its samples, such as visibility=ros2dds:/water_visibility?type=std_msgs/msg/Float64#data "
+                            "(repeatable)")  # fmt: skip
         p.add_argument("--max-ros2-message-bytes", type=positive_int, default=16 << 20, metavar="N",
                        help="drop a larger ROS 2 message on a ros2:/ros2dds: input before decoding it, unless its binding says "
                             "max_bytes= (default 16 MiB; untyped inputs: at most 1 MiB)")  # fmt: skip

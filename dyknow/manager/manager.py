@@ -31,6 +31,7 @@ from dyknow.errors import AccessError, ClosedError, DyKnowError
 from dyknow.executor import DEFAULT_MAX_LANES, Executor
 from dyknow.federation import Directory, Summary
 from dyknow.holders import DEFAULT_GRACE_S, Holders
+from dyknow.manager.feeds import MeasureFeeds
 from dyknow.manager.library import Librarian
 from dyknow.manager.measurements import Measurements
 from dyknow.manager.network import Network
@@ -248,6 +249,12 @@ class Manager:
         self._measurements = Measurements(
             self.name, self.host, session=self._session, library=self.library, adaptation=self._adaptation, changed=self.changed
         )
+        self._feeds = MeasureFeeds(
+            record=self.measure,
+            constraints=lambda name: [c for spec in self.library.specs() for c in spec.constraints if c.measure == name],
+            session=self._session,
+            ros2=self._ros2,
+        )
         try:
             self._measurements.declare()
         except DyKnowError:
@@ -300,6 +307,7 @@ class Manager:
                 return
             self._closed = True
             self._measurements.undeclare()
+            self._feeds.close()
             proxies = self._spawner.close()
         self._peers.say_goodbye()  # first: the others then know it stopped, and did not crash
         if self._services is not None:
@@ -671,6 +679,19 @@ class Manager:
         """Record the latest value of a measure (battery, say); constraints are checked against it."""
         self._check_open()
         self._measurements.record(name, value)
+
+    def measure_from(self, name: str, source: str) -> None:
+        """Take measure ``name`` from a stream: ``SOURCE[#FIELD]``, a ROS 2 topic (``ros2:``,
+        ``ros2dds:``) or a Zenoh key, and a field path into its samples, such as
+        ``"ros2dds:/water_visibility?type=std_msgs/msg/Float64#data"`` (:mod:`dyknow.manager.feeds`).
+        Replaces an earlier feed of the measure."""
+        self._check_open()
+        self._feeds.add(name, source)
+
+    @property
+    def measure_feeds(self) -> dict[str, str]:
+        """Each measure taken from a stream, and its ``SOURCE[#FIELD]``."""
+        return self._feeds.feeds()
 
     @property
     def measurements(self) -> dict[str, float | str]:

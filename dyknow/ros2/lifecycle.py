@@ -33,8 +33,9 @@ from dyknow.errors import BindingError, ClosedError, DyKnowError, ServiceError
 from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.names import check_topic
 from dyknow.ros2.node import Ros2Node
+from dyknow.spec.modefile import ParameterValue
 
-__all__ = ["ACTIVATE", "CLEANUP", "CONFIGURE", "DEACTIVATE", "STATES", "NodeLifecycle", "parameter"]
+__all__ = ["ACTIVATE", "CLEANUP", "CONFIGURE", "DEACTIVATE", "STATES", "NodeLifecycle", "ParameterValue", "parameter", "parameter_value"]
 
 log = logging.getLogger(__name__)
 
@@ -74,17 +75,34 @@ class _Client(Protocol):
         ...
 
 
-def parameter(name: str, value: bool | int | float | str) -> dict[str, Any]:
-    """``rcl_interfaces/msg/Parameter``'s fields for ``name = value`` (bool, integer, double or string)."""
-    if isinstance(value, bool):
-        return {"name": name, "value": {"type": 1, "bool_value": value}}
-    if isinstance(value, int):
-        return {"name": name, "value": {"type": 2, "integer_value": value}}
-    if isinstance(value, float):
-        return {"name": name, "value": {"type": 3, "double_value": value}}
-    if isinstance(value, str):
-        return {"name": name, "value": {"type": 4, "string_value": value}}
-    raise BindingError(f"a {type(value).__name__} for parameter {name!r}", where="ROS 2 parameter", expected="a bool, int, float or str")
+# rcl_interfaces/msg/ParameterType: the type id and ParameterValue field of each kind of value
+_SCALARS = ((bool, 1, "bool_value"), (int, 2, "integer_value"), (float, 3, "double_value"), (str, 4, "string_value"))
+_ARRAYS = ((bool, 6, "bool_array_value"), (int, 7, "integer_array_value"), (float, 8, "double_array_value"), (str, 9, "string_array_value"))
+
+
+def parameter(name: str, value: ParameterValue) -> dict[str, Any]:
+    """``rcl_interfaces/msg/Parameter``'s fields for ``name = value`` (a bool, integer, double or
+    string, or a tuple or list of one of them)."""
+    for kind, type_id, value_field in _SCALARS:
+        if type(value) is kind:
+            return {"name": name, "value": {"type": type_id, value_field: value}}
+    if isinstance(value, (tuple, list)) and value:
+        for kind, type_id, value_field in _ARRAYS:
+            if all(type(v) is kind for v in value):
+                return {"name": name, "value": {"type": type_id, value_field: list(value)}}
+    raise BindingError(f"a {type(value).__name__} for parameter {name!r}", where="ROS 2 parameter", expected="a bool, int, float or str, or a list of one of them")
+
+
+def parameter_value(value: Any) -> ParameterValue | None:
+    """The Python value of a ``rcl_interfaces/msg/ParameterValue`` (None when it is not set or a byte array)."""
+    type_id = int(getattr(value, "type", 0))
+    for _, kind_id, value_field in _SCALARS:
+        if type_id == kind_id:
+            return getattr(value, value_field)  # type: ignore[no-any-return]
+    for kind, kind_id, value_field in _ARRAYS:
+        if type_id == kind_id:
+            return tuple(kind(v) for v in getattr(value, value_field))  # type: ignore[return-value]
+    return None
 
 
 class NodeLifecycle:
@@ -144,7 +162,17 @@ class NodeLifecycle:
                 label = "unknown (get_state does not answer)"
             raise ServiceError(f"the node refused the transition {name!r}; it is {label}", where=self.where, expected=_expected(label, name))
 
-    def set_parameters(self, values: Mapping[str, bool | int | float | str]) -> None:
+    def get_parameters(self, names: list[str]) -> dict[str, ParameterValue | None]:
+        """The values of parameters ``names`` (None for one that is not set)."""
+        if not names:
+            return {}
+        answer = self._call("get_parameters", "rcl_interfaces/srv/GetParameters", {"names": list(names)}, None)
+        values = list(answer.values)
+        if len(values) != len(names):
+            raise ServiceError(f"the node answered {len(values)} values for {len(names)} parameters", where=self.where)
+        return {name: parameter_value(value) for name, value in zip(names, values, strict=True)}
+
+    def set_parameters(self, values: Mapping[str, ParameterValue]) -> None:
         """Set ``values`` (name -> value), each on its own as ``ros2 param set`` does; a parameter
         the node refuses raises :class:`~dyknow.errors.ServiceError` with the node's reason,
         naming those that were set."""
@@ -164,7 +192,7 @@ class NodeLifecycle:
         if len(results) < len(values):
             raise ServiceError(f"the node answered {len(results)} results for {len(values)} parameters", where=self.where)
 
-    def bring_up(self, parameters: Mapping[str, bool | int | float | str] | None = None) -> list[str]:
+    def bring_up(self, parameters: Mapping[str, ParameterValue] | None = None) -> list[str]:
         """Set ``parameters``, then configure (if unconfigured) and activate (if inactive) the
         node; returns what was done (``["set 2 parameter(s)", "configure", "activate"]``). On a
         failure after configuring, the node is cleaned up again (see the module's docs)."""

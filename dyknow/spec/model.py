@@ -25,6 +25,8 @@ __all__ = [
     "DEFAULT_MAX_EXPANSIONS",
     "DEFAULT_PRIORITY",
     "MANAGED_NODE_SOURCE",
+    "MODE_PORT",
+    "MODE_UNIT_SOURCE",
     "NODE_MIDDLEWARES",
     "NODE_PORT",
     "PARAMETER_PREFIX",
@@ -73,6 +75,12 @@ PORT_DIRECTIONS: tuple[str, ...] = ("in", "out")
 
 MANAGED_NODE_SOURCE = "dyknow.ros2.managed:ManagedNode"
 """The ``<source>`` a ``<node>`` (a managed ROS 2 node) reads as: its unit drives the node."""
+
+MODE_UNIT_SOURCE = "dyknow.ros2.modes:ModeUnit"
+"""The ``<source>`` each mode of a ``<system>`` reads as: its unit switches the system's nodes to the mode."""
+
+MODE_PORT = "mode"
+"""The output port of a mode's transformation: the system's mode (a ``<tag>`` of a ``<system>`` tags it)."""
 
 NODE_MIDDLEWARES: tuple[str, ...] = ("zenoh", "dds")
 """The values allowed in ``<node middleware="...">``: rmw_zenoh (``ros2:`` topics) or DDS (``ros2dds:``)."""
@@ -142,14 +150,22 @@ class Tag:
 
 @dataclass(frozen=True, slots=True)
 class Constraint:
-    """A condition on a measure (``battery >= 0.25``) that must hold for the transformation to run."""
+    """A condition on a measure (``battery >= 0.25``) that must hold for the transformation to run.
+
+    ``margin`` (a number, ordering operators only) is its hysteresis: a transformation that runs
+    keeps running until the measure is past the threshold by the margin (``battery >= 0.25``
+    with margin 0.05 holds for a running one down to 0.20), while one that does not run needs the
+    threshold itself, so a measure hovering at the threshold switches once per crossing.
+    """
 
     measure: str
     op: str
     value: float | str
+    margin: float = 0.0
 
-    def holds(self, measured: float | str) -> bool:
-        """Whether ``measured op value`` holds.
+    def holds(self, measured: float | str, *, held: bool = False) -> bool:
+        """Whether ``measured op value`` holds; ``held``: for a transformation that runs (the
+        threshold moved by ``margin`` in its favour).
 
         Numbers compare as numbers. A string only supports ``==`` and ``!=`` (a number never
         equals a string); the ordering operators are false for it.
@@ -160,14 +176,15 @@ class Constraint:
             return measured != self.value
         if isinstance(measured, str) or isinstance(self.value, str):
             return False
+        slack = self.margin if held else 0.0
         if self.op == "<":
-            return measured < self.value
+            return measured < self.value + slack
         if self.op == "<=":
-            return measured <= self.value
+            return measured <= self.value + slack
         if self.op == ">":
-            return measured > self.value
+            return measured > self.value - slack
         if self.op == ">=":
-            return measured >= self.value
+            return measured >= self.value - slack
         raise ValueError(f"unknown operator {self.op!r}; expected one of {', '.join(CONSTRAINT_OPS)}")
 
 
@@ -309,6 +326,8 @@ class TransformationSpec:
             for c in self.constraints:
                 value = _xml_attr(_value_text(c.value))
                 attributes = f"measure={quoteattr(c.measure)} op={quoteattr(c.op)} value={value}"
+                if c.margin:
+                    attributes += f' margin="{c.margin!r}"'
                 out.append(f"    <constraint {attributes}/>")
             out.append("  </constraints>")
         if self.requirements:

@@ -24,6 +24,8 @@ from xml.parsers import expat
 
 from dyknow.errors import SpecError, SpecIssue, did_you_mean
 from dyknow.security import Limits
+from dyknow.spec.modefile import DEFAULT_MODE, Target, load_mode_file, targets_to_json
+from dyknow.spec.modefile import STATES as MODE_STATES
 from dyknow.spec.model import (
     BOOL_WORDS,
     CONSTRAINT_OPS,
@@ -35,6 +37,8 @@ from dyknow.spec.model import (
     MANAGED_NODE_SOURCE,
     MAX_DEADLINE_MS,
     MAX_QUEUE,
+    MODE_PORT,
+    MODE_UNIT_SOURCE,
     NODE_MIDDLEWARES,
     NODE_PORT,
     PARAM_TYPES,
@@ -51,6 +55,7 @@ from dyknow.spec.model import (
     Port,
     Tag,
     TransformationSpec,
+    convert_param,
     shorten,
 )
 from dyknow.spec.template import DOLLAR, Template
@@ -74,13 +79,16 @@ _ATTRIBUTES: dict[str, tuple[str, ...]] = {
     "tag": ("port",),
     "priority": (),
     "constraints": (),
-    "constraint": ("measure", "op", "value"),
+    "constraint": ("measure", "op", "value", "margin"),
     "requirements": (),
     "requirement": (),
     "node": ("name", "middleware", "lifecycle", "timeout-s"),
     "topic": ("type", "deadline-ms"),
     "bindings": (),
     "binding": ("term",),
+    "system": ("name", "modes", "middleware", "timeout-s"),
+    "mode": ("name",),
+    "part": ("node", "state"),
 }
 
 ELEMENTS: Mapping[str, frozenset[str]] = MappingProxyType({name: frozenset(attributes) for name, attributes in _ATTRIBUTES.items()})
@@ -90,6 +98,9 @@ _TRANSFORMATION_CHILDREN = (
     "label", "source", "description", "args", "params", "ports", "tags", "priority", "constraints", "requirements", "bindings",
 )  # fmt: skip
 _NODE_CHILDREN = ("label", "description", "args", "params", "topic", "tags", "priority", "constraints", "requirements")
+_SYSTEM_CHILDREN = ("label", "description", "tags", "mode")
+_MODE_CHILDREN = ("priority", "constraints", "requirements", "part")
+_DEFINITIONS = ("transformation", "node", "system")  # what a <transformations> holds, or a document is
 # the required children of a <node>, with their examples
 _NODE_REQUIRED = {
     "label": "<label>camera-top</label>",
@@ -110,6 +121,14 @@ _REQUIRED_ATTRIBUTES = {
     "node": {"name": 'name="/camera_top"'},
     "topic": {"type": 'type="sensor_msgs/msg/Image"'},
     "binding": {"term": 'term="Odom(r1)" naming a term of the requirements'},
+    "system": {"name": 'name="f_generate_search_path" (a system of the mode file, or a name of your own)'},
+    "mode": {"name": 'name="fd_spiral_high"'},
+    "part": {"node": 'node="/spiral_search"', "state": 'state="active" (or inactive, unconfigured)'},
+}
+# the required children of a <system>, with their examples
+_SYSTEM_REQUIRED = {
+    "label": "<label>search</label> (each mode becomes the transformation search.MODE)",
+    "tags": "<tags><tag>Mode(search)</tag></tags>",
 }
 # Each container holds any number of one kind of child.
 _CONTAINERS = {
@@ -203,7 +222,7 @@ def load_specs(
         except OSError as exc:
             issues.append(SpecIssue(str(file), 0, f"cannot read: {exc.strerror or exc}"))
             continue
-        file_located, file_issues = _load(data, str(file), individuals, max_expansions, max_bytes, limits)
+        file_located, file_issues = _load(data, str(file), individuals, max_expansions, max_bytes, limits, files=True)
         issues.extend(sorted(file_issues, key=lambda i: i.line))
         located.extend(file_located)
     issues.extend(_duplicate_labels(located))
@@ -245,9 +264,12 @@ def _load(
     max_expansions: int,
     max_bytes: int | None = None,
     limits: Limits | None = None,
+    *,
+    files: bool = False,
 ) -> tuple[list[tuple[TransformationSpec, int]], list[SpecIssue]]:
-    """Parse and expand; (spec, line of its label) pairs and every issue but duplicate labels."""
-    templates, issues = _parse(data, path)
+    """Parse and expand; (spec, line of its label) pairs and every issue but duplicate labels
+    (``files``: whether the document may read files beside it, see :func:`_parse`)."""
+    templates, issues = _parse(data, path, files=files)
     located: list[tuple[TransformationSpec, int]] = []
     for template in templates:
         try:
@@ -366,8 +388,10 @@ class _Issues:
         self.items.append(SpecIssue(self.path, line, what, element, expected))
 
 
-def _parse(data: str | bytes, path: str) -> tuple[list[Template], list[SpecIssue]]:
-    """The structurally valid templates of a document, and every structural issue."""
+def _parse(data: str | bytes, path: str, *, files: bool = False) -> tuple[list[Template], list[SpecIssue]]:
+    """The structurally valid templates of a document, and every structural issue. ``files``:
+    whether the document may read other files (a ``<system>``'s mode file, beside it): only a spec
+    file the operator gave, never a document that came over the network."""
     try:
         root = _parse_xml(data, path)
     except SpecError as exc:
@@ -375,25 +399,28 @@ def _parse(data: str | bytes, path: str) -> tuple[list[Template], list[SpecIssue
     issues = _Issues(path)
     if root.name == "transformations":
         _check_element(root, issues, is_root=True)
-        nodes = [c for c in root.children if c.name in ("transformation", "node")]
+        nodes = [c for c in root.children if c.name in _DEFINITIONS]
         if not root.children:
             issues.add(root.line, "<transformations>", "no <transformation> inside", "at least one")
-    elif root.name in ("transformation", "node"):
+    elif root.name in _DEFINITIONS:
         nodes = [root]
     else:
-        hint = did_you_mean(root.name, ["transformations", "transformation", "node"])
-        expected = "<transformations>, <transformation> or <node>"
+        hint = did_you_mean(root.name, ["transformations", *_DEFINITIONS])
+        expected = "<transformations>, <transformation>, <node> or <system>"
         issues.add(root.line, f"<{root.name}>", "unknown root element", f"{expected}{hint}")
         nodes = []
     templates = []
     for node in nodes:
         before = len(issues.items)
-        if node.name == "node":
-            _untagged_ports(node)
+        if node.name in ("node", "system"):
+            _untagged_ports(node, NODE_PORT if node.name == "node" else MODE_PORT)
         _check_tree(node, issues, is_root=node is root)
-        template = _read_node(node, issues) if node.name == "node" else _read_template(node, issues)
+        if node.name == "system":
+            read = _read_system(node, issues, pathlib.Path(path).parent if files else None)
+        else:
+            read = [_read_node(node, issues) if node.name == "node" else _read_template(node, issues)]
         if len(issues.items) == before:  # only structurally valid templates are expanded
-            templates.append(template)
+            templates.extend(read)
     return templates, sorted(issues.items, key=lambda i: i.line)
 
 
@@ -410,8 +437,14 @@ def _allowed_children(name: str) -> tuple[str, ...]:
         return _TRANSFORMATION_CHILDREN
     if name == "node":
         return _NODE_CHILDREN
+    if name == "system":
+        return _SYSTEM_CHILDREN
+    if name == "mode":
+        return _MODE_CHILDREN
+    if name == "part":
+        return ("params",)
     if name == "transformations":
-        return ("transformation", "node")
+        return _DEFINITIONS
     if name in _CONTAINERS:
         return (_CONTAINERS[name],)
     return ()
@@ -446,19 +479,20 @@ def _check_element(node: _Node, issues: _Issues, is_root: bool = False) -> None:
             expected = f"one of {', '.join(allowed)}" if len(allowed) > 1 else f"<{allowed[0]}>"
             hint = did_you_mean(child.name, allowed)
             issues.add(child.line, f"<{child.name}>", f"unknown element in <{name}>", f"{expected}{hint}")
-        elif name in ("transformation", "node") and child.name in first_line:
+        elif name in ("transformation", "node", "system", "mode", "part") and child.name in first_line and child.name not in ("mode", "part"):
             where = f"the first is at line {first_line[child.name]}"
             issues.add(child.line, f"<{child.name}>", f"duplicate <{child.name}> in <{name}> ({where})", "at most one")
         first_line.setdefault(child.name, child.line)
 
-    if name in ("transformation", "node"):
-        for child_name, example in (_REQUIRED_CHILDREN if name == "transformation" else _NODE_REQUIRED).items():
+    if name in ("transformation", "node", "system"):
+        required = {"transformation": _REQUIRED_CHILDREN, "node": _NODE_REQUIRED, "system": _SYSTEM_REQUIRED}[name]
+        for child_name, example in required.items():
             if child_name not in first_line:
                 issues.add(node.line, f"<{name}>", f"missing <{child_name}>", example)
     if node.text and (allowed or name in _EMPTY_ELEMENTS):
         if name in _EMPTY_ELEMENTS:
             expected = "an empty element"
-        elif name in ("transformation", "node"):
+        elif name in ("transformation", "node", "system", "mode", "part"):
             expected = "elements only"
         else:
             expected = f"only <{allowed[0]}> elements"
@@ -534,13 +568,14 @@ def _read_priority(element: _Node | None, issues: _Issues) -> int:
     return DEFAULT_PRIORITY
 
 
-def _untagged_ports(node: _Node) -> None:
-    """A ``<tag>`` of a ``<node>`` without @port tags its topic: the port ``out``."""
+def _untagged_ports(node: _Node, port: str) -> None:
+    """A ``<tag>`` of a ``<node>`` or ``<system>`` without @port tags its one output ``port``
+    (a node's topic, a system's mode)."""
     for tags in node.children:
         if tags.name == "tags":
             for tag in tags.children:
                 if tag.name == "tag":
-                    tag.attrs.setdefault("port", NODE_PORT)
+                    tag.attrs.setdefault("port", port)
 
 
 def _read_node(node: _Node, issues: _Issues) -> Template:
@@ -622,6 +657,140 @@ def _read_node(node: _Node, issues: _Issues) -> Template:
         requirements=requirements,
         requirement_lines=requirement_lines,
     )
+
+
+def _read_system(system: _Node, issues: _Issues, base: pathlib.Path | None) -> list[Template]:
+    """Read a structurally checked ``<system>``: one transformation per mode offered, whose unit
+    is :class:`~dyknow.ros2.modes.ModeUnit` (its params: the system, the mode, what the mode asks
+    of each node as JSON, the middleware and the call timeout). ``base``: the folder a mode file
+    is read from (None: the document may read no file)."""
+    first: dict[str, _Node] = {}
+    for child in system.children:
+        first.setdefault(child.name, child)
+    name = system.attrs.get("name", "").strip()
+    _check_template("<system> @name", name, system.line, (), issues)
+    if "name" in system.attrs and not name:
+        issues.add(system.line, "<system> @name", "empty", _REQUIRED_ATTRIBUTES["system"]["name"])
+    middleware = system.attrs.get("middleware", "zenoh").strip()
+    if middleware not in NODE_MIDDLEWARES:
+        hint = did_you_mean(middleware, NODE_MIDDLEWARES)
+        issues.add(system.line, "<system> @middleware", f"unknown middleware {middleware!r}", f"zenoh (rmw_zenoh) or dds{hint}")
+    params = [Param("system", "string", name), Param("middleware", "string", middleware)]
+    if "timeout-s" in system.attrs:
+        text = system.attrs["timeout-s"].strip()
+        if not DECIMAL.fullmatch(text) or not 0 < Decimal(text) <= 3600:
+            issues.add(system.line, "<system> @timeout-s", f"{shorten(text)!r} is not a number of seconds from 0 to 3600", "seconds such as 5")
+        params.append(Param("timeout_s", "float", text))
+    label, label_line = _child_text(first, "label", "a name such as search", (), issues)
+    description, _ = _child_text(first, "description", None, (), issues)
+    tags, tag_lines = _read_tags(first.get("tags"), (), issues)
+    modes = [m for m in system.children if m.name == "mode" and "name" in m.attrs]
+    seen: dict[str, int] = {}
+    for mode in modes:
+        mode_name = mode.attrs["name"].strip()
+        if mode_name in seen:
+            issues.add(mode.line, "<mode> @name", f"duplicate mode {mode_name!r} (first at line {seen[mode_name]})", "each mode once")
+        seen.setdefault(mode_name, mode.line)
+    targets = _system_targets(system, name, modes, issues, base)
+    if targets is None:
+        return []
+    offered: list[tuple[str, _Node | None, int]]
+    if not modes:  # every mode of the file, its default preferred
+        offered = [(mode, None, DEFAULT_PRIORITY - 1 if mode == DEFAULT_MODE else DEFAULT_PRIORITY) for mode in targets]
+    else:
+        offered = [(m.attrs["name"].strip(), m, 0) for m in modes]
+    out = []
+    for mode_name, element, priority in offered:
+        children: dict[str, _Node] = {c.name: c for c in reversed(element.children)} if element is not None else {}
+        constraints, constraint_lines = _read_constraints(children.get("constraints"), (), issues)
+        requirements, requirement_lines = _read_requirements(children.get("requirements"), (), issues)
+        line = element.line if element is not None else system.line
+        text = targets_to_json(targets.get(mode_name, {})).replace("$", "$$")
+        mode_params = [*params, Param("mode", "string", mode_name.replace("$", "$$")), Param("targets", "string", text)]
+        out.append(
+            Template(
+                label=f"{label}.{mode_name}",
+                source=MODE_UNIT_SOURCE,
+                path=issues.path,
+                line=line,
+                description=description,
+                params=tuple(mode_params),
+                ports=(Port(MODE_PORT, "out"),),
+                tags=tags,
+                priority=_read_priority(children.get("priority"), issues) if element is not None else priority,
+                constraints=constraints,
+                label_line=label_line,
+                param_lines=(line,) * len(mode_params),
+                port_lines=(line,),
+                tag_lines=tag_lines,
+                constraint_lines=constraint_lines,
+                requirements=requirements,
+                requirement_lines=requirement_lines,
+            )
+        )
+    return out
+
+
+def _system_targets(system: _Node, name: str, modes: list[_Node], issues: _Issues, base: pathlib.Path | None) -> dict[str, dict[str, Target]] | None:
+    """What each mode asks of each node: from the mode file, or from the modes' ``<part>``s."""
+    file = system.attrs.get("modes", "").strip()
+    if "modes" in system.attrs:
+        for mode in modes:
+            for part in (c for c in mode.children if c.name == "part"):
+                issues.add(part.line, "<part>", "a <part> in a mode of a system read from a mode file", "the parts in the mode file, or no @modes")
+        if not file:
+            issues.add(system.line, "<system> @modes", "empty", "a system_modes YAML file beside the spec, such as modes.yaml")
+            return None
+        if base is None:
+            expected = "a spec file on disk (dyknow manager --specs, load_specs), or the modes written in the spec with <part>s"
+            issues.add(system.line, "<system> @modes", "a mode file is read only for a spec file the operator gave", expected)
+            return None
+        try:
+            model = load_mode_file(base / file)
+            available = model.modes(name)
+            for mode in modes:
+                mode_name = mode.attrs["name"].strip()
+                if mode_name not in available:
+                    hint = did_you_mean(mode_name, available)
+                    issues.add(mode.line, "<mode> @name", f"system {name!r} of {file} has no mode {mode_name!r}", f"one of {', '.join(available)}{hint}")
+            return {mode: model.targets(name, mode) for mode in available}
+        except SpecError as exc:
+            for issue in exc.issues:
+                if issue.line == 0 and issue.path == str(base / file):  # (a system not in the file: located at the <system>)
+                    issues.add(system.line, "<system> @name", f"{issue.what} ({file})", issue.expected)
+                else:
+                    issues.items.append(issue)
+            return None
+    targets: dict[str, dict[str, Target]] = {}
+    if not modes:
+        issues.add(system.line, "<system>", "no <mode>", '<mode name="normal"><part node="/controller" state="active"/></mode>, or @modes naming a mode file')
+    for mode in modes:
+        parts = [c for c in mode.children if c.name == "part" and "node" in c.attrs and "state" in c.attrs]
+        if not parts:
+            issues.add(mode.line, "<mode>", "no <part>", '<part node="/controller" state="active"/> for each node the mode sets')
+        mode_targets: dict[str, Target] = {}
+        for part in parts:
+            node, state = part.attrs["node"].strip(), part.attrs["state"].strip()
+            node = node if node.startswith("/") else f"/{node}"
+            if state not in MODE_STATES:
+                issues.add(part.line, "<part> @state", f"unknown state {state!r}", f"one of {', '.join(MODE_STATES)}{did_you_mean(state, MODE_STATES)}")
+            if node in mode_targets:
+                issues.add(part.line, "<part> @node", f"{node} twice in mode {mode.attrs['name']!r}", "each node once per mode")
+            values, _ = _read_params(next((c for c in part.children if c.name == "params"), None), (), issues)
+            for param in values:
+                if param.type == "path":
+                    issues.add(part.line, f"<param> {param.name!r}", "a path parameter of a ROS 2 node", "string, int, float or bool")
+            parameters = {}
+            for param in values:
+                try:
+                    parameters[param.name] = convert_param(param.type, str(param.value))
+                except ValueError as exc:
+                    issues.add(part.line, f"<param> {param.name!r}", f"value {shorten(str(param.value))!r} is not a valid {param.type}", str(exc))
+            if parameters and state != "active":
+                issues.add(part.line, "<part>", f"parameters for a node that is {state}", "parameters only for an active node")
+            mode_targets[node] = Target(node, state, None, parameters)
+        targets[mode.attrs["name"].strip()] = mode_targets
+    return targets
 
 
 def _children(container: _Node | None) -> list[_Node]:
@@ -794,7 +963,16 @@ def _read_constraints(container: _Node | None, declared: Sequence[str], issues: 
             expected = "a number such as 0.25 or a word such as docked"
             issues.add(node.line, "<constraint> @value", "empty", expected)
         _check_template("<constraint> @value", value, node.line, declared, issues)
-        constraints.append(Constraint(measure, op, value))
+        margin = 0.0
+        if "margin" in node.attrs:
+            text = node.attrs["margin"].strip()
+            if not DECIMAL.fullmatch(text) or not 0 <= Decimal(text) <= Decimal("1e12"):
+                issues.add(node.line, "<constraint> @margin", f"{shorten(text)!r} is not a number from 0", "the hysteresis, such as 0.05")
+            elif op in ("==", "!="):
+                issues.add(node.line, "<constraint> @margin", f"a margin for op {op!r}", "a margin with <, <=, > or >= only")
+            else:
+                margin = float(text)
+        constraints.append(Constraint(measure, op, value, margin))
     return tuple(constraints), tuple(n.line for n in nodes)
 
 

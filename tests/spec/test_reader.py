@@ -104,7 +104,7 @@ BROKEN_CASES = [
     ("arg_without_ontology.xml", 5, "<arg> 'Cam': takes its values from ontology class 'ex:Camera', but no ontology is loaded; expected --ontology FILE", 1),
     ("empty_label.xml", 2, "<label>: empty; expected a unique name", 1),
     ("transformation_type.xml", 1, "<transformation> @type: unknown type 'node'; expected unit or nodelet (did you mean 'nodelet'?)", 1),
-    ("root.xml", 2, "<transformation-list>: unknown root element; expected <transformations>, <transformation> or <node>", 1),
+    ("root.xml", 2, "<transformation-list>: unknown root element; expected <transformations>, <transformation>, <node> or <system>", 1),
     ("empty_root.xml", 2, "<transformations>: no <transformation> inside", 1),
     ("namespace.xml", 1, "<transformation> @xmlns: namespace 'https://example.org/dyknow' is not used", 1),
 ]  # fmt: skip
