@@ -1,0 +1,206 @@
+"""System modes (dyknow.ros2.modes): real rclpy lifecycle nodes on Fast DDS (tests/ros2_rclpy_peer.py)
+switched between the modes of a system as the planner chooses them from constraints on a measure,
+with hysteresis, a switch that fails half-way rolled back, and a node that fails leaving its mode."""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from dyknow import Manager
+from dyknow.errors import BindingError
+from dyknow.ros2.dds import DdsNode
+from dyknow.ros2.lifecycle import NodeLifecycle
+from dyknow.ros2.modes import SwitchError, switch
+from dyknow.spec import parse_specs
+from dyknow.spec.modefile import Target
+from tests.test_adaptation import Events
+from tests.test_ros2_dds import Rclpy
+from tests.test_ros2_dds import domain as _domain
+from tests.test_ros2_dds import rclpy_node as _rclpy_node
+
+domain, rclpy_node = _domain, _rclpy_node  # the fixtures of the DDS tests
+
+# Two lifecycle nodes (each with a double parameter "exposure", 0.1 at start): the high mode runs the
+# search alone at exposure 3, the low one the search at exposure 1 and the follower beside it.
+SEARCH = """<system name="search" middleware="dds" timeout-s="15">
+  <label>search</label>
+  <tags><tag>Mode(search)</tag></tags>
+  <mode name="high">
+    <priority>1</priority>
+    <constraints><constraint measure="visibility" op="&gt;=" value="0.7" margin="0.05"/></constraints>
+    <part node="/searcher" state="active"><params><param name="exposure" type="float">3.0</param></params></part>
+    <part node="/follower" state="inactive"/>
+  </mode>
+  <mode name="low">
+    <priority>2</priority>
+    <part node="/searcher" state="active"><params><param name="exposure" type="float">1.0</param></params></part>
+    <part node="/follower" state="active"/>
+  </mode>
+</system>"""
+
+
+class Observer:
+    """Another client of the nodes (one DDS participant for the whole test): their states and parameters."""
+
+    def __init__(self, domain: int) -> None:
+        self.participant = DdsNode(domain=domain)
+        self.lifecycles: dict[str, NodeLifecycle] = {}
+
+    def _of(self, node: str) -> NodeLifecycle:
+        if node not in self.lifecycles:
+            self.lifecycles[node] = NodeLifecycle(self.participant, node, timeout_s=15)
+        return self.lifecycles[node]
+
+    def state(self, node: str) -> str:
+        return self._of(node).state()[1]
+
+    def exposure(self, node: str) -> object:
+        return self._of(node).get_parameters(["exposure"])["exposure"]
+
+    def close(self) -> None:
+        for lifecycle in self.lifecycles.values():
+            lifecycle.close()
+        self.participant.close()
+
+
+@pytest.fixture
+def observer(domain: int) -> Iterator[Observer]:
+    seen = Observer(domain)
+    yield seen
+    seen.close()
+
+
+def wait_for(condition: Callable[[], bool], timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "not within the time"
+        time.sleep(0.05)
+
+
+@pytest.fixture
+def nodes(rclpy_node: Callable[..., Rclpy]) -> tuple[Rclpy, Rclpy]:
+    return rclpy_node("lifecycle", "searcher"), rclpy_node("lifecycle", "follower")
+
+
+@pytest.mark.process
+def test_the_measure_chooses_the_mode_and_a_switch_sets_parameters_and_states(
+    make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], observer: Observer
+) -> None:
+    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
+    events = Events(robot)
+    robot.measure("visibility", 0.9)
+    robot.request("Mode(search)")
+    assert {u.label for u in robot.get_model().units} >= {"search.high"}
+    assert (observer.state("/searcher"), observer.state("/follower")) == ("active", "unconfigured")
+    assert observer.exposure("/searcher") == 3.0
+    robot.measure("visibility", 0.67)  # below 0.7, above 0.7 - 0.05: the high mode stays
+    robot.measure("visibility", 0.6)  # past the margin: a fault, the low mode at once
+    event = events.wait("adapted", timeout_s=30)
+    assert "search.high" in event.old and "search.low" in event.new, event.to_dict()
+    assert "visibility" in event.cause, event.cause
+    assert (observer.state("/searcher"), observer.state("/follower")) == ("active", "active")
+    assert observer.exposure("/searcher") == 1.0
+    robot.measure("visibility", 0.72)  # above the threshold: back to high (an opportunity, after the dwell time)
+    event = events.wait("adapted", count=2, timeout_s=30)
+    assert "search.low" in event.old and "search.high" in event.new, event.to_dict()
+    assert (observer.state("/searcher"), observer.state("/follower")) == ("active", "inactive")  # deactivated, not cleaned up
+    assert observer.exposure("/searcher") == 3.0
+    robot.release(robot.get_model().requests[0].key)
+    wait_for(lambda: observer.state("/searcher") == "inactive")  # the last mode left deactivates its nodes
+
+
+@pytest.mark.process
+def test_a_measure_hovering_at_the_threshold_switches_once_per_crossing(
+    make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], observer: Observer
+) -> None:
+    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
+    events = Events(robot)
+    robot.measure("visibility", 0.9)
+    robot.request("Mode(search)")
+    rng = random.Random(53)
+    # down through the threshold once, with noise of +-0.04 around each level (inside the margin)
+    levels = [0.8, 0.74, 0.7, 0.68, 0.66, 0.62, 0.6]
+    crossed = False
+    for level in levels:
+        for _ in range(10):
+            robot.measure("visibility", round(level + rng.uniform(-0.02, 0.02), 3))
+            time.sleep(0.01)
+        if level <= 0.62 and not crossed:
+            events.wait("adapted", timeout_s=30)
+            crossed = True
+    time.sleep(0.5)  # past the dwell time: a flap would show now
+    adapted = [e for e in events.events if e.kind == "adapted"]
+    assert len(adapted) == 1, [e.to_dict() for e in adapted]
+    assert "search.low" in adapted[0].new
+
+
+@pytest.mark.process
+def test_a_switch_that_fails_half_way_is_rolled_back(domain: int, nodes: tuple[Rclpy, Rclpy]) -> None:
+    with DdsNode(domain=domain) as participant:
+        lifecycles = {n: NodeLifecycle(participant, n, timeout_s=15) for n in ("/searcher", "/follower")}
+        good = {"/searcher": Target("/searcher", "active", None, {"exposure": 2.0}), "/follower": Target("/follower", "inactive")}
+        switch(lifecycles, good, where="test")
+        assert lifecycles["/searcher"].state()[1] == "active"
+        # the follower refuses a string for its double: the searcher's change and activation are undone
+        bad = {
+            "/follower": Target("/follower", "inactive"),
+            "/searcher": Target("/searcher", "active", None, {"exposure": 5.0}),
+            "/missing_part": Target("/missing_part", "active"),
+        }
+        with pytest.raises(SwitchError) as caught:
+            switch({**lifecycles, "/missing_part": NodeLifecycle(participant, "/missing_part", timeout_s=1)}, bad, where="mode s.bad")
+        assert "reading the states failed" in caught.value.what and "nothing had changed" in caught.value.what, caught.value.what
+        assert caught.value.states == {"/follower": "unconfigured", "/searcher": "active", "/missing_part": "unknown (get_state does not answer)"}
+        wrong = {"/searcher": Target("/searcher", "active", None, {"exposure": 4.0}), "/follower": Target("/follower", "active", None, {"exposure": "bright"})}
+        with pytest.raises(SwitchError) as caught:
+            switch(lifecycles, wrong, where="mode s.wrong")
+        what = caught.value.what
+        assert what.startswith("setting the parameters of /follower failed: the node refused the parameter exposure='bright'"), what
+        assert "rolled back" in what and caught.value.states == {"/searcher": "active", "/follower": "unconfigured"}, what
+        assert lifecycles["/searcher"].get_parameters(["exposure"]) == {"exposure": 2.0}  # set back
+        for lifecycle in lifecycles.values():
+            lifecycle.close()
+
+
+@pytest.mark.process
+def test_a_node_that_fails_makes_the_loop_leave_its_mode(
+    make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], observer: Observer
+) -> None:
+    searcher, follower = nodes
+    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
+    events = Events(robot)
+    robot.measure("visibility", 0.9)
+    robot.request("Mode(search)")
+    searcher.send("fail")  # its deactivation errs: ErrorProcessing, then unconfigured
+    event = events.wait("adapted", timeout_s=30)
+    assert "search.high" in event.old and "search.low" in event.new, event.to_dict()
+    assert "/searcher" in event.cause and "mode search.high needs it active" in event.cause, event.cause
+    # the low mode brought the follower up beside the searcher
+    assert [follower.lines.get(timeout=20) for _ in range(2)] == [{"transition": "configure", "exposure": 0.1}, {"transition": "activate"}]
+    # the failure was passing: once its back-off is over the preferred mode is tried again, and holds
+    event = events.wait("adapted", count=2, timeout_s=30)
+    assert "search.high" in event.new and "back-off of search.high ended" in event.cause, event.to_dict()
+    assert (observer.state("/searcher"), observer.state("/follower")) == ("active", "inactive")
+    assert observer.exposure("/searcher") == 3.0
+
+
+@pytest.mark.process
+def test_a_measure_fed_from_a_zenoh_key_chooses_the_mode(
+    make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy]
+) -> None:
+    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
+    events = Events(robot)
+    robot.measure_from("visibility", "sensors/visibility#value")
+    assert robot.measure_feeds == {"visibility": "sensors/visibility#value"}
+    robot.session.put("sensors/visibility", b'{"value": 0.9}')
+    wait_for(lambda: robot.measurements.get("visibility") == 0.9)
+    robot.request("Mode(search)")
+    robot.session.put("sensors/visibility", b'{"value": 0.3}')
+    event = events.wait("adapted", timeout_s=30)
+    assert "search.low" in event.new and "visibility" in event.cause, event.to_dict()
+    with pytest.raises(BindingError, match="the field 'not a path'"):
+        robot.measure_from("visibility", "sensors/visibility#not a path")
