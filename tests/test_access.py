@@ -911,6 +911,20 @@ def test_a_viewer_reads_ros2_nodes_and_only_a_role_with_manage_changes_them(robo
         _ros2_call(manager, certs, "stranger", "/cam/get_state", GET_STATE, {}, timeout_s=2)  # (it never comes up: any wait)
 
 
+@pytest.mark.process
+def test_dyknow_ros2_call_says_a_refused_call_needs_the_right_manage(robot: tuple[Manager, dict[str, Any]], certs: Path) -> None:
+    manager, node = robot
+    call = ["ros2", "call", "/cam/change_state", CHANGE_STATE, "{transition: {id: 1}}", "--connect", manager.endpoints[0], "--ros2-domain", "0"]
+    refused = run_cli(*call, *_tls_args(certs, "viewer"))
+    assert refused.returncode == 1, refused.stderr
+    said = " ".join(refused.stderr.split())
+    assert "the request ended at once without an answer: refused by the --acl of a manager or router on the way" in said, said
+    assert "common name 'viewer'" in said and "expected a certificate whose role has the right manage" in said, said
+    assert node["changes"] == 0
+    allowed = run_cli(*call, "--json", *_tls_args(certs, "tuner"))
+    assert allowed.returncode == 0, allowed.stderr
+    assert json.loads(allowed.stdout)["response"] == {"success": True} and node["changes"] == 1
+
 
 def test_spawning_a_managed_node_needs_the_right_manage(robot: tuple[Manager, dict[str, Any]], certs: Path) -> None:
     """A managed node's unit configures, activates and sets the parameters of the node its
