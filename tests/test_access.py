@@ -924,6 +924,9 @@ def test_dyknow_ros2_call_says_a_refused_call_needs_the_right_manage(robot: tupl
     allowed = run_cli(*call, "--json", *_tls_args(certs, "tuner"))
     assert allowed.returncode == 0, allowed.stderr
     assert json.loads(allowed.stdout)["response"] == {"success": True} and node["changes"] == 1
+    graph = run_cli("ros2", "list", "--json", "--connect", manager.endpoints[0], "--ros2-domain", "0", "--timeout", "3", *_tls_args(certs, "viewer"))
+    assert graph.returncode == 0, graph.stderr
+    assert json.loads(graph.stdout)["services"]["/cam/change_state"]["servers"] == 1  # a viewer sees what it may not call
 
 
 def test_spawning_a_managed_node_needs_the_right_manage(robot: tuple[Manager, dict[str, Any]], certs: Path) -> None:
