@@ -967,3 +967,40 @@ def test_the_right_manage_is_checked_and_located_in_the_acl_file(tmp_path: Path)
     bad.write_text('{\n  roles: { tuner: ["t"] },\n  define: {\n    tuner: { like: "viewer", calls: ["get_model", "mange"] },\n  },\n}\n')
     with pytest.raises(AccessError, match=re.escape(f"{bad}:4: define.tuner.calls[1]: unknown service 'mange'; expected one of ") + r".*or manage \(the right to manage ROS 2 nodes\) \(did you mean 'manage'\?\)"):
         AccessControl.load(bad)
+
+
+@pytest.mark.process
+def test_a_real_rmw_zenoh_node_behind_its_router_is_managed_only_with_the_right(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The robot as it runs: a lifecycle node on rmw_zenoh (zenoh-ros2-sdk, tests/ros2_peer.py)
+    linked over plain TCP to its router, which links to the manager over TLS with a certificate
+    under router (as rmw_zenohd would). A viewer reads the node's state and its configure never
+    reaches the node (the operator's, next, finds it unconfigured); a viewer may not set its
+    parameters either; the manager's own NodeLifecycle drives it."""
+    from dyknow.ros2.lifecycle import NodeLifecycle
+    from tests.test_ros2_live import Peer
+
+    (tmp_path / "acl.json5").write_text(ROS2_ACL)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"), ros2_domain=0,
+    )  # fmt: skip
+    port = free_port()
+    with Session(make_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=manager.endpoints, tls=tls(certs, "router"))):
+        peer = Peer(str(port), "lifecycle", "cam", "/cam/frames")
+        try:
+            assert peer.line() == {"ready": True}
+            assert _ros2_call(manager, certs, "viewer", "/cam/get_state", GET_STATE, {}).current_state.label == "unconfigured"
+            with pytest.raises(ServiceError, match="ended the request without an answer") as refused:
+                _ros2_call(manager, certs, "viewer", "/cam/change_state", CHANGE_STATE, {"transition": {"id": 1}})
+            assert refused.value.details["reason"] == "dropped"
+            parameters = "rcl_interfaces/srv/SetParameters"
+            exposure = {"parameters": [{"name": "exposure", "value": {"type": 3, "double_value": 0.7}}]}
+            with pytest.raises(ServiceError, match="ended the request without an answer"):
+                _ros2_call(manager, certs, "viewer", "/cam/set_parameters", parameters, exposure)
+            assert _ros2_call(manager, certs, "operator", "/cam/change_state", CHANGE_STATE, {"transition": {"id": 1}}).success is True
+            assert peer.line() == {"transition": "configure", "exposure": 0.1}  # the viewer's set_parameters did not reach it either
+            assert _ros2_call(manager, certs, "tuner", "/cam/set_parameters", parameters, exposure).results[0].successful is True
+            with NodeLifecycle(manager.ros2_node(), "/cam", timeout_s=15) as node:
+                assert node.bring_up() == ["activate"] and node.state() == (3, "active")
+            assert peer.line() == {"transition": "activate"}
+        finally:
+            peer.close()
