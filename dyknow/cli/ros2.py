@@ -12,9 +12,13 @@ import sys
 import threading
 import time
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, open_client, payload_json, report_result, ros2_domain, tls_files
+
+if TYPE_CHECKING:
+    from dyknow.access import TlsFiles
+    from dyknow.errors import ServiceError
 
 
 def echo_ros2(args: argparse.Namespace) -> int:
@@ -189,7 +193,7 @@ def cmd_ros2_call(args: argparse.Namespace) -> int:
     return 0
 
 
-def _with_roles(exc: Any, service: str, tls: Any) -> Any:
+def _with_roles(exc: ServiceError, service: str, tls: TlsFiles) -> ServiceError:
     """A call's :class:`~dyknow.errors.ServiceError` over TLS, saying what roles have to do with it:
     a request that ended at once without an answer was dropped by an ACL on the way (Zenoh
     drops it silently) or by the server, and the right the service needs is named
