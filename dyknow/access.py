@@ -14,8 +14,10 @@ ones.
 People and tools (each role may what the ones before it may):
 
 - **viewer**: read the model, configs, statistics, adaptations and summaries; subscribe to data,
-  watch liveliness and see which managers are up;
+  watch liveliness and see which managers are up; see the ROS 2 graph and read other ROS 2
+  nodes' lifecycle state, parameters and mode (below);
 - **operator**: also spawn, destroy, set_config, request, release and measure; publish data;
+  manage other ROS 2 nodes (the right ``manage``, below);
 - **admin**: also add and remove transformations, and destroy protected units.
 
 The processes of the system:
@@ -26,15 +28,40 @@ The processes of the system:
   call this manager's services as an operator would (its requests span managers). It also carries
   the calls of the clients connected to it;
 - **router**: a Zenoh router of the system (``dyknow router``): it carries everyone's traffic, so
-  every message may pass its link, and it enforces the same file at its own links.
+  every message may pass its link, and it enforces the same file at its own links. The robot's
+  ROS 2 side (rmw_zenoh's router, ``rmw_zenohd``, run with TLS and a certificate of the CA) links
+  under this role too: it carries the nodes' topics, services and graph.
+
+**Other ROS 2 nodes: the right** ``manage``. Calling the lifecycle, parameter and mode services of
+nodes dyknow did not spawn (over rmw_zenoh: queries on ``<domain>/<node>/<service>/<type>/<hash>``,
+:mod:`dyknow.ros2.names`) is governed by the service's last name, whatever the node and the type:
+
+- :data:`ROS2_READ_SERVICES` (``get_state``, ``get_parameters``, ``list_parameters``,
+  ``get_mode``, ...): every role may call them (a viewer, and a role of the file's own that is
+  ``like`` one or has ``manage``), and see the graph (``@ros2_lv/**``) to find them, declaring
+  its own node's and clients' tokens only;
+- :data:`ROS2_MANAGE_SERVICES` (``change_state``, ``set_parameters``,
+  ``set_parameters_atomically``, ``change_mode``, as a node and the ``system_modes`` mode
+  manager serve them): only with the right :data:`MANAGE`, which operators, admins, managers and
+  a role of the file's own whose ``calls`` name ``manage`` (or that is ``like`` an operator)
+  have (:meth:`AccessControl.may_manage`);
+- anything else of ROS 2 (topics, other services, serving) is carried by no role but a router.
+
+The transport enforces it at the first link a query crosses (rmw_zenoh's calls carry no dyknow
+signature, as data does not: give every manager and router the same file). A manager also refuses
+a managed node's unit (a spec's ``<node>``) to a caller without ``manage``, as it refuses spawn to a
+viewer. Over DDS (``ros2dds:``, ``--dds``) there is no Zenoh link to judge: dyknow's roles do
+not govern it.
 
 Roles of the file's own, for what these do not fit: ``define`` gives each the built-in role it
 starts from (``like``, optional) and besides it the services it may call (``calls``, names of
-:data:`SERVICES`) and the key expressions under ``dyknow/`` it may ``publish`` and ``subscribe``
-to; a mistake is located (``FILE:LINE: define.ROLE.calls[1]: unknown service ...``)::
+:data:`SERVICES`, or the right :data:`MANAGE`) and the key expressions under ``dyknow/`` it may
+``publish`` and ``subscribe`` to; a mistake is located (``FILE:LINE: define.ROLE.calls[1]:
+unknown service ...``)::
 
-    { roles: { requester: ["robot-ui"] },
-      define: { requester: { like: "viewer", calls: ["request", "release"] } } }
+    { roles: { requester: ["robot-ui"], tuner: ["field-laptop"] },
+      define: { requester: { like: "viewer", calls: ["request", "release"] },
+                tuner: { like: "viewer", calls: ["manage"] } } }
 
 It becomes the session's Zenoh ``access_control`` configuration (:meth:`AccessControl.zenoh`):
 default deny, one subject per role (by certificate common name), one allow rule per role and
@@ -51,6 +78,7 @@ other managers. Without an ACL everything is allowed (local use).
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 from collections.abc import Mapping
@@ -61,7 +89,18 @@ from typing import Any
 from dyknow import keys
 from dyknow.errors import AccessError, DyKnowError, did_you_mean
 
-__all__ = ["PEER_ROLES", "ROLES", "SERVICES", "AccessControl", "RoleDefinition", "TlsFiles"]
+__all__ = [
+    "MANAGE",
+    "PEER_ROLES",
+    "ROLES",
+    "ROS2_MANAGE_SERVICES",
+    "ROS2_READ_SERVICES",
+    "SERVICES",
+    "AccessControl",
+    "RoleDefinition",
+    "TlsFiles",
+    "ros2_right",
+]
 
 #: The roles of people and tools, each allowed what the ones before it are.
 ROLES: tuple[str, ...] = ("viewer", "operator", "admin")
@@ -90,6 +129,23 @@ SERVICES: tuple[str, ...] = tuple(sorted(s.removeprefix("unit/*/") for r in ROLE
 _UNIT_SERVICES = frozenset(s.removeprefix("unit/*/") for r in ROLES for s in _SERVICES_OF[r] if s.startswith("unit/*/"))
 _DEFINE_FIELDS = ("like", "calls", "publish", "subscribe")
 
+#: The right to manage other ROS 2 nodes (``calls`` of a defined role may name it beside the
+#: services): to call their :data:`ROS2_MANAGE_SERVICES`, and to spawn a managed node's unit.
+MANAGE = "manage"
+#: The ROS 2 services every role may call (by the last part of the service's name, whatever the
+#: node and the type): they read a node's lifecycle state, parameters and mode.
+ROS2_READ_SERVICES: tuple[str, ...] = (
+    "get_state", "get_available_states", "get_available_transitions", "get_transition_graph",  # lifecycle_msgs
+    "get_parameters", "get_parameter_types", "list_parameters", "describe_parameters",  # rcl_interfaces
+    "get_mode", "get_available_modes",  # system_modes
+    "get_type_description",  # type_description_interfaces
+)  # fmt: skip
+#: The ROS 2 services that need the right :data:`MANAGE`: they change a node's lifecycle state,
+#: parameters or mode.
+ROS2_MANAGE_SERVICES: tuple[str, ...] = ("change_state", "set_parameters", "set_parameters_atomically", "change_mode")
+# The roles of people that may manage nodes, besides the roles of the file's own that call manage.
+_MANAGERS_OF_NODES = ("operator", "admin")
+
 
 @dataclass(frozen=True, slots=True)
 class RoleDefinition:
@@ -103,9 +159,14 @@ class RoleDefinition:
     publish: tuple[str, ...] = ()
     subscribe: tuple[str, ...] = ()
 
+    @property
+    def manages(self) -> bool:
+        """Whether it may manage ROS 2 nodes (:data:`MANAGE`): it calls ``manage``, or is ``like`` an operator or admin."""
+        return MANAGE in self.calls or self.like in _MANAGERS_OF_NODES
+
     def services(self) -> set[str]:
         """The services it may call, as :data:`_SERVICES_OF` names them (``unit/*/...``)."""
-        found = {f"unit/*/{c}" if c in _UNIT_SERVICES else c for c in self.calls}
+        found = {f"unit/*/{c}" if c in _UNIT_SERVICES else c for c in self.calls if c != MANAGE}
         if self.like is not None:
             found.update(s for r in ROLES[: ROLES.index(self.like) + 1] for s in _SERVICES_OF[r])
         return found
@@ -283,6 +344,19 @@ class AccessControl:
                 allowed.update(definition.services())
         return wanted in allowed
 
+    def may_manage(self, common_name: str) -> bool:
+        """Whether the holder of ``common_name`` has the right :data:`MANAGE` here: to call other
+        ROS 2 nodes' :data:`ROS2_MANAGE_SERVICES` and to spawn a managed node's unit (an
+        operator, an admin, a manager, or a role of the file's own that calls ``manage`` or is
+        ``like`` an operator or admin)."""
+        if any(common_name in self.roles.get(role, ()) for role in (*_MANAGERS_OF_NODES, "manager")):
+            return True
+        return any(common_name in self.roles.get(role, ()) and definition.manages for role, definition in self.defined.items())
+
+    def roles_for_manage(self) -> list[str]:
+        """The roles that have the right :data:`MANAGE` (for messages that say who may)."""
+        return [*_MANAGERS_OF_NODES, *(role for role, definition in self.defined.items() if definition.manages), "manager"]
+
     def may_read(self, common_name: str, key: str) -> bool:
         """Whether the holder of ``common_name`` may subscribe to the data on ``key`` (a concrete
         key under ``dyknow/``): the built-in roles, managers and routers may read all data; a
@@ -336,8 +410,10 @@ class AccessControl:
             policies.append({"id": f"{role}-policy", "rules": granted, "subjects": [role]})
         for role in ROLES:
             rules.extend(_RULES[role])
+        rules.extend(rule for role in ROLES for rule in _ros2_rules().get(role, []))
         if self.roles.get("router"):
             rules.extend(_RULES["router"])
+            rules.extend(_ros2_rules()["router"])
             subjects.append({"id": "router", "cert_common_names": list(self.roles["router"])})
             policies.append({"id": "router-policy", "rules": _rules_of("router"), "subjects": ["router"]})
         for i, (role, definition) in enumerate(self.defined.items()):
@@ -349,6 +425,8 @@ class AccessControl:
             rules.extend(own)
             subjects.append({"id": subject, "cert_common_names": list(names)})
             base = [name for r in ROLES[: ROLES.index(definition.like) + 1] for name in _rules_of(r)] if definition.like else []
+            if definition.manages:  # (the viewer's sight of the ROS 2 graph, and the operator's calls)
+                base += [r["id"] for role in ("viewer", "operator") for r in _ros2_rules()[role] if r["id"] not in base]
             policies.append({"id": f"{subject}-policy", "rules": [*base, *(r["id"] for r in own)], "subjects": [subject]})
         for i, name in enumerate(self._holding_names()):
             # what it requests, it holds: its client's liveliness token says it is still there,
@@ -360,6 +438,7 @@ class AccessControl:
         managers = self.roles.get("manager", ())
         if managers:
             rules.extend(_RULES["manager"])
+            rules.extend(_ros2_rules()["manager"])
         for i, name in enumerate(managers):
             # each manager its own subject: it serves and announces under its own name only
             subject = f"manager-{i}"
@@ -447,7 +526,51 @@ def _own_rules(subject: str, manager: str) -> list[dict[str, Any]]:
 
 
 def _rules_of(role: str) -> list[str]:
-    return [rule["id"] for rule in _RULES[role]]
+    return [rule["id"] for rule in (*_RULES[role], *_ros2_rules().get(role, []))]
+
+
+@functools.cache
+def _ros2_rules() -> dict[str, list[dict[str, Any]]]:
+    """The rules over other ROS 2 nodes on rmw_zenoh (their keys are outside dyknow's, laid out by
+    :mod:`dyknow.ros2.names`): a viewer sees the graph, declares its own node's and clients'
+    tokens and calls the read services; an operator also the manage services; a manager what an
+    operator may. Everything else of ROS 2 (topics, other services, servers) is left to the
+    default deny: a role carries it only as a router."""
+    # (imported here: importing dyknow.ros2 imports the transport, which imports this module)
+    from dyknow.ros2.names import EntityKind, every_service, every_token
+
+    reads = [every_service(s) for s in ROS2_READ_SERVICES]
+    manages = [every_service(s) for s in ROS2_MANAGE_SERVICES]
+    graph = [every_token()]
+    own = [every_token(EntityKind.NODE), every_token(EntityKind.CLIENT)]
+
+    def sees(prefix: str) -> list[dict[str, Any]]:
+        return [
+            _rule(f"{prefix}-sees-ros2-graph", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], graph),
+            _rule(f"{prefix}-receives-ros2-graph", "egress", ["liveliness_token"], graph),
+            _rule(f"{prefix}-joins-ros2-graph", "ingress", ["liveliness_token"], own),
+            _rule(f"{prefix}-reads-ros2-nodes", "ingress", ["query"], reads),
+            _rule(f"{prefix}-hears-ros2-nodes", "egress", ["declare_queryable", "reply"], reads + manages),
+        ]
+
+    return {
+        "viewer": sees("viewer"),
+        "operator": [_rule("operator-manages-ros2-nodes", "ingress", ["query"], manages)],
+        "manager": [*sees("manager"), _rule("manager-manages-ros2-nodes", "ingress", ["query"], manages)],
+        # ('**' does not reach the verbatim @ros2_lv: a router carries the graph by name)
+        "router": [_rule("router-carries-ros2-graph", "ingress", _ALL_MESSAGES, graph), _rule("router-delivers-ros2-graph", "egress", _ALL_MESSAGES, graph)],
+    }
+
+
+def ros2_right(service: str) -> str | None:
+    """The right a call of the ROS 2 service ``service`` (``/camera_top/change_state``) needs on a
+    link with roles: :data:`MANAGE` for one of :data:`ROS2_MANAGE_SERVICES`, ``"viewer"`` (any
+    role) for one of :data:`ROS2_READ_SERVICES`; None for any other service, which no role but a
+    router's carries."""
+    last = service.rstrip("/").rsplit("/", 1)[-1]
+    if last in ROS2_MANAGE_SERVICES:
+        return MANAGE
+    return "viewer" if last in ROS2_READ_SERVICES else None
 
 
 def _defined_rules(subject: str, role: RoleDefinition) -> list[dict[str, Any]]:
@@ -531,9 +654,13 @@ def _definitions(raw: Any, where: str, text: str | None) -> dict[str, RoleDefini
 
 
 def _check_call(service: str) -> tuple[str, str] | None:
-    if service in SERVICES:
+    if service in SERVICES or service == MANAGE:
         return None
-    return f"unknown service {service!r}", f"one of {', '.join(SERVICES)}{did_you_mean(service, SERVICES)}"
+    known = [*SERVICES, MANAGE]
+    return (
+        f"unknown service {service!r}",
+        f"one of {', '.join(SERVICES)}, or {MANAGE} (the right to manage ROS 2 nodes){did_you_mean(service, known)}",
+    )
 
 
 def _check_key_expr(key_expr: str) -> tuple[str, str] | None:

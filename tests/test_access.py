@@ -22,7 +22,7 @@ from dyknow.testing import Sink
 from dyknow.transport import Session, make_config
 from tests.conftest import GENERIC_SPECS, CliProcess, end_process, free_port, run_cli, wait_until
 
-NAMES = ["manager", "viewer", "operator", "admin", "stranger", "station", "robot", "router"]
+NAMES = ["manager", "viewer", "operator", "admin", "stranger", "station", "robot", "router", "tuner"]
 RELAY = """<transformation><label>extra-relay</label><source>transformations.generic:Relay</source>
   <ports><port type="in">in</port><port type="out">out</port></ports></transformation>"""
 
@@ -837,3 +837,170 @@ def test_one_caller_cannot_take_the_whole_monitor_budget(certs: Path, make_manag
         assert watched["formula"] == "Checked(ticks).value >= 0"
         assert [u.state for u in manager.units() if u.bindings.get("verdicts") == watched["key"]] == ["running"]
         robot.release(key)
+
+
+# ---------------------------------------------------------------------- the right to manage ROS 2 nodes
+
+ROS2_ACL = """{
+  roles: { viewer: ["viewer"], operator: ["operator"], tuner: ["tuner"], spawner: ["station"], router: ["router"] },
+  define: {
+    // reads like a viewer, and may manage the robot's nodes (no spawn, no request)
+    tuner: { like: "viewer", calls: ["manage"] },
+    // may spawn and destroy units, and not manage nodes
+    spawner: { like: "viewer", calls: ["spawn", "destroy"] },
+  },
+}"""
+CHANGE_STATE, GET_STATE = "lifecycle_msgs/srv/ChangeState", "lifecycle_msgs/srv/GetState"
+CAMERA_NODE = """<node name="/cam" timeout-s="1">
+  <label>camera-node</label>
+  <topic type="std_msgs/msg/String">/cam/frames</topic>
+  <tags><tag>Frames(cam)</tag></tags>
+</node>"""
+
+
+@pytest.fixture
+def robot(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> Iterator[tuple[Manager, dict[str, Any]]]:
+    """A manager with TLS and roles (ROS2_ACL), and the robot's ROS 2 side linked to it as
+    rmw_zenoh's router would be, over TLS with a certificate under router: a lifecycle node /cam
+    serving get_state and change_state (dyknow's Ros2Service), counting what reaches it."""
+    from dyknow.ros2 import Ros2Node
+
+    (tmp_path / "acl.json5").write_text(ROS2_ACL)
+    (tmp_path / "node.xml").write_text(CAMERA_NODE)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"),
+        specs=[GENERIC_SPECS, tmp_path / "node.xml"], ros2_domain=0,
+    )  # fmt: skip
+    node_state = {"id": 1, "changes": 0}
+
+    def change(request: Any) -> dict[str, Any]:
+        node_state["changes"] += 1
+        node_state["id"] = 2 if request.transition.id == 1 else node_state["id"]
+        return {"success": request.transition.id == 1}
+
+    with Session(make_config(connect=manager.endpoints, tls=tls(certs, "router"))) as side, Ros2Node(side, "cam", domain=0) as node:
+        node.create_service("/cam/get_state", GET_STATE, lambda r: {"current_state": {"id": node_state["id"], "label": "unconfigured"}})
+        node.create_service("/cam/change_state", CHANGE_STATE, change)
+        yield manager, node_state
+
+
+def _ros2_call(manager: Manager, certs: Path, who: str, service: str, srv_type: str, request: dict[str, Any], timeout_s: float = 10) -> Any:
+    from dyknow.ros2 import Ros2Node
+
+    with Client(manager.name, connect=manager.endpoints, tls=tls(certs, who), timeout_s=5.0) as c, Ros2Node(c.session, f"caller_{who}", domain=0) as n:
+        return n.create_client(service, srv_type).call(request, timeout_s=timeout_s)
+
+
+def test_a_viewer_reads_ros2_nodes_and_only_a_role_with_manage_changes_them(robot: tuple[Manager, dict[str, Any]], certs: Path) -> None:
+    """Issue 53, item 7: calling another node's lifecycle service through a manager with roles.
+    A viewer reads the node's state, and its change_state is dropped at the manager's link (at
+    once, never reaching the node); an operator and a role of the file's own that calls manage
+    change it; a certificate with no role sees no server at all."""
+    manager, node = robot
+    assert _ros2_call(manager, certs, "viewer", "/cam/get_state", GET_STATE, {}).current_state.id == 1
+    started = time.monotonic()
+    with pytest.raises(ServiceError, match="1 server\\(s\\) up ended the request without an answer") as refused:
+        _ros2_call(manager, certs, "viewer", "/cam/change_state", CHANGE_STATE, {"transition": {"id": 1}})
+    assert refused.value.details["reason"] == "dropped" and time.monotonic() - started < 10
+    assert node["changes"] == 0
+    assert _ros2_call(manager, certs, "operator", "/cam/change_state", CHANGE_STATE, {"transition": {"id": 1}}).success is True
+    assert _ros2_call(manager, certs, "tuner", "/cam/change_state", CHANGE_STATE, {"transition": {"id": 3}}).success is False
+    assert node["changes"] == 2
+    assert _ros2_call(manager, certs, "tuner", "/cam/get_state", GET_STATE, {}).current_state.id == 2
+    with pytest.raises(ServiceError, match="no server of it came up"):
+        _ros2_call(manager, certs, "stranger", "/cam/get_state", GET_STATE, {}, timeout_s=2)  # (it never comes up: any wait)
+
+
+@pytest.mark.process
+def test_dyknow_ros2_call_says_a_refused_call_needs_the_right_manage(robot: tuple[Manager, dict[str, Any]], certs: Path) -> None:
+    manager, node = robot
+    call = ["ros2", "call", "/cam/change_state", CHANGE_STATE, "{transition: {id: 1}}", "--connect", manager.endpoints[0], "--ros2-domain", "0"]
+    refused = run_cli(*call, *_tls_args(certs, "viewer"))
+    assert refused.returncode == 1, refused.stderr
+    said = " ".join(refused.stderr.split())
+    assert "the request ended at once without an answer: refused by the --acl of a manager or router on the way" in said, said
+    assert "common name 'viewer'" in said and "expected a certificate whose role has the right manage" in said, said
+    assert node["changes"] == 0
+    allowed = run_cli(*call, "--json", *_tls_args(certs, "tuner"))
+    assert allowed.returncode == 0, allowed.stderr
+    assert json.loads(allowed.stdout)["response"] == {"success": True} and node["changes"] == 1
+    graph = run_cli("ros2", "list", "--json", "--connect", manager.endpoints[0], "--ros2-domain", "0", "--timeout", "3", *_tls_args(certs, "viewer"))
+    assert graph.returncode == 0, graph.stderr
+    assert json.loads(graph.stdout)["services"]["/cam/change_state"]["servers"] == 1  # a viewer sees what it may not call
+
+
+def test_spawning_a_managed_node_needs_the_right_manage(robot: tuple[Manager, dict[str, Any]], certs: Path) -> None:
+    """A managed node's unit configures, activates and sets the parameters of the node its
+    params name: a role that may spawn units but not manage nodes is refused it before anything
+    starts, as a viewer is refused spawn; an operator's spawn goes on to the node (which answers
+    get_state and change_state here, but publishes no frames: the unit fails on that)."""
+    manager, node = robot
+    with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "station"), timeout_s=10.0) as spawner:
+        spawner.spawn("relay", "r")  # it may spawn
+        with pytest.raises(AccessError, match=r"'station' may not spawn 'camera-node': it manages the ROS 2 node /cam .*expected a caller whose role has the right manage in this manager's --acl \(operator or admin or tuner or manager\)"):
+            spawner.spawn("camera-node", "cam", params={"node": "/cam"})
+    assert not manager.has_unit("cam") and node["changes"] == 0
+    with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "viewer"), timeout_s=10.0) as viewer, pytest.raises(ServiceError, match="without a reply"):
+        viewer.spawn("camera-node", "cam")
+    with Client(manager.name, connect=manager.endpoints, tls=tls(certs, "operator"), timeout_s=30.0) as operator:
+        info = operator.spawn("camera-node", "cam")
+    assert node["changes"] >= 1 and info["state"] == "failed", info  # the manager configured the node for the operator
+
+
+def test_the_right_manage_is_checked_and_located_in_the_acl_file(tmp_path: Path) -> None:
+    acl = AccessControl.from_dict({"roles": {"viewer": ["v"], "operator": ["o"], "tuner": ["t"], "reader": ["r"], "ops": ["p"], "manager": ["m"]},
+                                   "define": {"tuner": {"calls": ["manage"]}, "reader": {"like": "viewer"}, "ops": {"like": "operator"}}})  # fmt: skip
+    assert [n for n in ("v", "o", "t", "r", "p", "m", "nobody") if acl.may_manage(n)] == ["o", "t", "p", "m"]
+    assert acl.roles_for_manage() == ["operator", "admin", "tuner", "ops", "manager"]
+    assert not acl.may_call("t", "manage")  # a right over nodes, not a manager's service
+    config = acl.zenoh()
+    rules = {r["id"]: r for r in config["rules"]}
+    policy = {p["subjects"][0]: set(p["rules"]) for p in config["policies"]}
+    tuner = next(s["id"] for s in config["subjects"] if s.get("cert_common_names") == ["t"] and s["id"].startswith("defined"))
+    assert "operator-manages-ros2-nodes" in policy["operator"] and "operator-manages-ros2-nodes" in policy[tuner]
+    assert "operator-manages-ros2-nodes" not in policy["viewer"] and "viewer-reads-ros2-nodes" in policy["viewer"]
+    reader = next(s["id"] for s in config["subjects"] if s.get("cert_common_names") == ["r"])
+    assert "viewer-reads-ros2-nodes" in policy[reader] and "operator-manages-ros2-nodes" not in policy[reader]
+    assert "manager-manages-ros2-nodes" in policy["manager-0"] and "router-carries-ros2-graph" not in rules  # (no router listed)
+    assert rules["operator-manages-ros2-nodes"]["key_exprs"] == ["*/**/change_state/*/*", "*/**/set_parameters/*/*", "*/**/set_parameters_atomically/*/*", "*/**/change_mode/*/*"]
+    bad = tmp_path / "acl.json5"
+    bad.write_text('{\n  roles: { tuner: ["t"] },\n  define: {\n    tuner: { like: "viewer", calls: ["get_model", "mange"] },\n  },\n}\n')
+    with pytest.raises(AccessError, match=re.escape(f"{bad}:4: define.tuner.calls[1]: unknown service 'mange'; expected one of ") + r".*or manage \(the right to manage ROS 2 nodes\) \(did you mean 'manage'\?\)"):
+        AccessControl.load(bad)
+
+
+@pytest.mark.process
+def test_a_real_rmw_zenoh_node_behind_its_router_is_managed_only_with_the_right(certs: Path, make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """The robot as it runs: a lifecycle node on rmw_zenoh (zenoh-ros2-sdk, tests/ros2_peer.py)
+    linked over plain TCP to its router, which links to the manager over TLS with a certificate
+    under router (as rmw_zenohd would). A viewer reads the node's state and its configure never
+    reaches the node (the operator's, next, finds it unconfigured); a viewer may not set its
+    parameters either; the manager's own NodeLifecycle drives it."""
+    from dyknow.ros2.lifecycle import NodeLifecycle
+    from tests.test_ros2_live import Peer
+
+    (tmp_path / "acl.json5").write_text(ROS2_ACL)
+    manager = make_manager(
+        listen=[f"tls/127.0.0.1:{free_port()}"], tls=tls(certs, "manager"), acl=AccessControl.load(tmp_path / "acl.json5"), ros2_domain=0,
+    )  # fmt: skip
+    port = free_port()
+    with Session(make_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], connect=manager.endpoints, tls=tls(certs, "router"))):
+        peer = Peer(str(port), "lifecycle", "cam", "/cam/frames")
+        try:
+            assert peer.line() == {"ready": True}
+            assert _ros2_call(manager, certs, "viewer", "/cam/get_state", GET_STATE, {}).current_state.label == "unconfigured"
+            with pytest.raises(ServiceError, match="ended the request without an answer") as refused:
+                _ros2_call(manager, certs, "viewer", "/cam/change_state", CHANGE_STATE, {"transition": {"id": 1}})
+            assert refused.value.details["reason"] == "dropped"
+            parameters = "rcl_interfaces/srv/SetParameters"
+            exposure = {"parameters": [{"name": "exposure", "value": {"type": 3, "double_value": 0.7}}]}
+            with pytest.raises(ServiceError, match="ended the request without an answer"):
+                _ros2_call(manager, certs, "viewer", "/cam/set_parameters", parameters, exposure)
+            assert _ros2_call(manager, certs, "operator", "/cam/change_state", CHANGE_STATE, {"transition": {"id": 1}}).success is True
+            assert peer.line() == {"transition": "configure", "exposure": 0.1}  # the viewer's set_parameters did not reach it either
+            assert _ros2_call(manager, certs, "tuner", "/cam/set_parameters", parameters, exposure).results[0].successful is True
+            with NodeLifecycle(manager.ros2_node(), "/cam", timeout_s=15) as node:
+                assert node.bring_up() == ["activate"] and node.state() == (3, "active")
+            assert peer.line() == {"transition": "activate"}
+        finally:
+            peer.close()

@@ -12,9 +12,13 @@ import sys
 import threading
 import time
 from collections.abc import Iterable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, open_client, payload_json, report_result, ros2_domain
+from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, open_client, payload_json, report_result, ros2_domain, tls_files
+
+if TYPE_CHECKING:
+    from dyknow.access import TlsFiles
+    from dyknow.errors import ServiceError
 
 
 def echo_ros2(args: argparse.Namespace) -> int:
@@ -164,9 +168,17 @@ def cmd_ros2_call(args: argparse.Namespace) -> int:
             response = client.call(request, timeout_s=args.timeout)
             response_type = client.response_type
     else:
+        from dyknow.errors import ServiceError
+
         with open_client(args) as session_client, Ros2Node(session_client.session, f"dyknow_call_{os.getpid()}", domain=ros2_domain(args)) as node:
             zclient = node.create_client(args.service, args.srv_type)
-            response = zclient.call(request, timeout_s=args.timeout)
+            try:
+                response = zclient.call(request, timeout_s=args.timeout)
+            except ServiceError as exc:
+                tls = tls_files(args)
+                if tls is None:
+                    raise
+                raise _with_roles(exc, args.service, tls) from exc
             response_type = zclient.response_type
     took_ms = (time.monotonic() - started) * 1000
     fields = payload_json(from_message(response, response_type))
@@ -179,6 +191,47 @@ def cmd_ros2_call(args: argparse.Namespace) -> int:
 
     report_result(args, data, lines)
     return 0
+
+
+def _with_roles(exc: ServiceError, service: str, tls: TlsFiles) -> ServiceError:
+    """A call's :class:`~dyknow.errors.ServiceError` over TLS, saying what roles have to do with it:
+    a request that ended at once without an answer was dropped by an ACL on the way (Zenoh
+    drops it silently) or by the server, and the right the service needs is named
+    (:func:`dyknow.access.ros2_right`); no server at all is what a certificate with no role sees."""
+    from dyknow.access import MANAGE, ros2_right
+    from dyknow.errors import ServiceError
+    from dyknow.identity import Signer
+
+    reason = exc.details.get("reason")
+    if reason not in ("dropped", "no-server"):
+        return exc
+    name = Signer(tls).common_name
+    right = ros2_right(service)
+    if reason == "no-server":
+        return ServiceError(
+            exc.what, details=exc.details, where=exc.where,
+            expected=f"{exc.expected}; over a link with roles (--acl), a certificate with no role there (common name {name!r}) sees no ROS 2 server at all",
+        )  # fmt: skip
+    if right == MANAGE:
+        needs = (
+            f"a certificate whose role has the right {MANAGE} in the --acl of the manager or router it connects to (operator, admin, "
+            f'or a role of the file\'s own with calls: ["{MANAGE}"]): {service} changes a node'
+        )
+    elif right is not None:
+        needs = (
+            "a certificate whose role may read nodes in the --acl of the manager or router it connects to (viewer, operator, admin, or a "
+            f"role of the file's own like one of them or with {MANAGE}); with one, the server dropped it: its log says why"
+        )
+    else:
+        needs = (
+            "a service a link with roles carries: of other nodes' services, dyknow's ACL lets through only their lifecycle, parameter and "
+            "mode services (a router's certificate carries everything); call it on the robot's side"
+        )
+    return ServiceError(
+        f"the request ended at once without an answer: refused by the --acl of a manager or router on the way (this client's "
+        f"certificate, common name {name!r}, --tls-cert {tls.cert}, may not call it there), or dropped by the server",
+        details=exc.details, where=exc.where, expected=needs,
+    )  # fmt: skip
 
 
 def add_commands(cmds: Commands) -> None:

@@ -55,6 +55,7 @@ from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.node import Ros2Node
 from dyknow.security import DataRoots, Limits
 from dyknow.spec import Template, TransformationSpec
+from dyknow.spec.model import MANAGED_NODE_SOURCE
 from dyknow.stats import PortCounters
 from dyknow.tags import parse_term
 from dyknow.transport import Session, check_key_expr
@@ -420,14 +421,37 @@ class Manager:
 
         ``owner``: whom it is spawned for (the services pass the caller): a formula monitor's
         nodes count against that caller's share of the monitors' nodes
-        (:class:`~dyknow.reasoning.unit.MonitorBudget`; the Python API's against none).
+        (:class:`~dyknow.reasoning.unit.MonitorBudget`; the Python API's against none). On a
+        manager with roles, a managed ROS 2 node's unit (a spec's ``<node>``: it configures,
+        activates and sets the parameters of the node its params name) needs a caller with the
+        right ``manage`` (:meth:`~dyknow.access.AccessControl.may_manage`); else
+        :class:`AccessError`, and nothing is started.
         """
+        self._check_manages(label, params, owner)
         ros2 = ros2_bindings(bindings or {})
         account = owner.account()
         if not ros2:
             return self._spawner.spawn(label, name, protected=protected, params=params, bindings=bindings, remote=remote, account=account)
         return self._ros2.spawn(
             label, name, protected=protected, params=params, bindings=bindings or {}, ros2=ros2, remote=remote, account=account
+        )
+
+    def _check_manages(self, label: str | TransformationSpec, params: Mapping[str, Any] | None, owner: Owner) -> None:
+        """Refuse a managed node's unit to a caller without the right ``manage`` (see :meth:`spawn`)."""
+        access, caller = self._access, owner.caller
+        if access is None or owner.local or caller is None:
+            return
+        try:
+            spec = label if isinstance(label, TransformationSpec) else self.library.get(label)
+        except DyKnowError:
+            return  # (no such spec: the spawn says so)
+        if spec.source != MANAGED_NODE_SOURCE or access.may_manage(caller):
+            return
+        node = (params or {}).get("node") or next((p.value for p in spec.params if p.name == "node"), "?")
+        raise AccessError(
+            f"{caller!r} may not spawn {spec.label!r}: it manages the ROS 2 node {str(node)[:200]} (its lifecycle and parameters)",
+            where=f"manager {self.name!r}",
+            expected=f"a caller whose role has the right manage in this manager's --acl ({' or '.join(access.roles_for_manage())})",
         )
 
     def destroy(self, name: str, *, force: bool = False) -> None:

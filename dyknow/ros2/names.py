@@ -55,6 +55,8 @@ __all__ = [
     "demangle",
     "endpoint_pattern",
     "entity_gid",
+    "every_service",
+    "every_token",
     "mangle",
     "parse_data_key",
     "parse_token",
@@ -221,6 +223,22 @@ def endpoint_pattern(domain: int, name: str, kind: EntityKind, ros_type: str | N
     if ros_type is None:
         return f"{head}/*/*/*"
     return f"{head}/{dds_type_name(ros_type)}/{_check_hash(type_hash or '', 'endpoint pattern')}/*"
+
+
+def every_service(last: str) -> str:
+    """A key expression for every node's service whose name ends in ``last``
+    (``change_state``), in any domain and of any type: ``*/**/change_state/*/*``. Each node serves
+    its lifecycle, parameter and mode services under its own name (``/camera_top/change_state``),
+    so this is how an access control names one kind of them (:mod:`dyknow.access`)."""
+    if not _TOPIC_TOKEN.fullmatch(last):
+        raise BindingError(f"{last[:80]!r}", where="ROS 2 service name", expected="the last part of a service's name, such as change_state")
+    return f"*/**/{last}/*/*"
+
+
+def every_token(kind: EntityKind | None = None) -> str:
+    """A key expression for the liveliness tokens of every entity of ``kind`` (None: of every
+    kind, the whole graph) in any domain: ``@ros2_lv/*/*/*/*/SC/**``."""
+    return f"{ADMIN_SPACE}/**" if kind is None else f"{ADMIN_SPACE}/*/*/*/*/{kind.value}/**"
 
 
 def dds_request_topic(service: str) -> str:

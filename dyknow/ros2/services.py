@@ -225,13 +225,17 @@ class Ros2Client:
                 f"the server answered with an error after {waited:.1f} s: {error[:300]}",
                 where=f"ROS 2 service {self.service} ({self.srv_type})",
             )
-        if waited < timeout_s - 0.05:  # the query ended before its time: every server let it go
-            raise self._no_answer(waited, f"{self.servers} server(s) up ended the request without an answer")
-        raise self._no_answer(waited, f"{self.servers} server(s) up")
+        if waited < timeout_s - 0.05:  # the query ended before its time: every server let it go, or a link's access control dropped it
+            raise self._no_answer(waited, f"{self.servers} server(s) up ended the request without an answer", reason="dropped")
+        raise self._no_answer(waited, f"{self.servers} server(s) up", reason="timeout")
 
-    def _no_answer(self, waited_s: float, why: str) -> ServiceError:
+    def _no_answer(self, waited_s: float, why: str, *, reason: str = "no-server") -> ServiceError:
+        """``reason`` in the error's details: "no-server" (none came up), "dropped" (the request
+        ended early without an answer: the servers dropped it, or an access control on the way
+        did, which Zenoh does not tell apart) or "timeout"."""
         return ServiceError(
             f"no answer in {waited_s:.1f} s ({why})",
+            details={"reason": reason},
             where=f"ROS 2 service {self.service} ({self.srv_type})",
             expected="a server of this name and type that answers (dyknow ros2 list shows the services), or a longer timeout",
         )
