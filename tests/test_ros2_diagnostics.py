@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import json
 import queue
+import signal
+import subprocess
+import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -34,7 +37,7 @@ from dyknow.ros2.types import TypeSupport
 from dyknow.spec import TransformationSpec, parse_specs
 from dyknow.spec.model import Param, Port, Tag
 from dyknow.testing import Sink
-from tests.conftest import free_port
+from tests.conftest import REPO, free_port, subprocess_env
 from tests.test_ros2_dds import Rclpy
 from tests.test_ros2_dds import domain as _domain
 from tests.test_ros2_dds import rclpy_node as _rclpy_node
@@ -287,3 +290,22 @@ def test_a_diagnostics_source_of_another_type_is_refused_at_start(make_manager: 
     robot = make_manager(specs=[spec])
     info = robot.spawn("thruster-health", "health")
     assert info.state == "failed" and "names the type std_msgs/msg/String" in str(info.error), info
+
+
+@pytest.mark.process
+def test_dyknow_manager_diagnostics_publishes_on_dds(domain: int, rclpy_node: Callable[..., Rclpy]) -> None:
+    """``dyknow manager --diagnostics ros2dds``: its arrays reach rclpy (empty: nothing to say yet)."""
+    listener = rclpy_node("diagnostics-listen")
+    argv = [sys.executable, "-m", "dyknow.cli", "manager", "--name", "diag-cli", "--alone", "--listen", f"tcp/127.0.0.1:{free_port()}",
+            "--diagnostics", "ros2dds", "--ros2-domain", str(domain)]  # fmt: skip
+    manager = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=REPO)
+    try:
+        assert listener.lines.get(timeout=30) == {"statuses": []}
+    finally:
+        manager.send_signal(signal.SIGINT)
+        try:
+            manager.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            manager.kill()
+            manager.communicate()
+    assert manager.returncode == 0
