@@ -12,8 +12,10 @@ Each status is named as ROS 2's ``diagnostic_updater`` names them, after the man
 - ``dyknow_robot: request <tag>``: OK while active, WARN while degraded with a configuration
   running (a requirement false in place, one not watched), ERROR with none;
 - ``dyknow_robot: node <ROS 2 node>`` for each managed node (:class:`~dyknow.ros2.managed.ManagedNode`):
-  OK while its unit runs (``active``), WARN while it is brought up or its topic is stalled, ERROR
-  once it failed, kept until it is chosen and active again; OK ``inactive`` once left healthy.
+  OK once brought up and while its unit runs (``active``), WARN while its topic is stalled, ERROR
+  once it failed (at bring-up too), kept until it is chosen and active again; OK ``inactive`` once
+  left healthy. Only nodes chosen since the manager started are said (at most 1,000, the oldest
+  forgotten first).
 
 ``values`` hold the formula and what decided the verdict: the latest verdict's fields as the
 monitor publishes them (``verdict``, ``t``, ``decided_t``, ``t_ns``, ``decided_ns``, ``state``,
@@ -96,6 +98,7 @@ class Health:
         # managed nodes: unit -> the ROS 2 node it manages; the node -> its latest status
         self._node_of: dict[str, str] = {}
         self._node_status: OrderedDict[str, DiagnosticStatus] = OrderedDict()
+        self._node_events = 0  # counts the nodes' events: a poll that read the units before one does not overwrite it
         self.publisher: DiagnosticsPublisher | None = None
 
     # -- the registry
@@ -221,31 +224,35 @@ class Health:
 
     def unit_event(self, event: UnitEvent) -> None:
         """A unit was spawned, failed or was destroyed: a managed node's status follows (on the thread where it happened)."""
-        if event.kind == "spawned":
-            try:
-                unit = self._watched.unit(event.unit)
-            except DyKnowError:
-                return
-            if isinstance(unit, ManagedNode):
-                node = str(unit.params.get("node", "")) or event.unit
-                with self._lock:
-                    self._node_of[event.unit] = node
-                    self._set_node(node, DiagnosticStatus(self._name(f"node {node}"), WARN, "being brought up", node, (("unit", event.unit),)))
+        if event.kind == "destroyed":
+            with self._lock:
+                gone = self._node_of.pop(event.unit, None)
+                last = self._node_status.get(gone) if gone is not None else None
+                if gone is not None and (last is None or last.level != ERROR):  # (a failure is kept until it is active again)
+                    self._set_node(gone, DiagnosticStatus(self._name(f"node {gone}"), OK, "inactive: not chosen now", gone, (("unit", event.unit),)))
         else:
             with self._lock:
-                gone: str | None = self._node_of.get(event.unit) if event.kind == "failed" else self._node_of.pop(event.unit, None)
-                if gone is None:
+                node = self._node_of.get(event.unit)
+            if node is None:  # (a unit that fails in setup() is never said spawned)
+                try:
+                    unit = self._watched.unit(event.unit)
+                except DyKnowError:
                     return
-                node = gone
-                last = self._node_status.get(node)
-                values = (("unit", event.unit), *((("error", event.error),) if event.error else ()))
-                if event.kind == "failed":
-                    self._set_node(node, DiagnosticStatus(self._name(f"node {node}"), ERROR, f"failed: {event.error}", node, values))
-                elif last is None or last.level in (OK, WARN):
-                    self._set_node(node, DiagnosticStatus(self._name(f"node {node}"), OK, "inactive: not chosen now", node, values))
+                if not isinstance(unit, ManagedNode):
+                    return
+                node = str(unit.params.get("node", "")) or event.unit
+            values: tuple[tuple[str, str], ...] = (("unit", event.unit), ("transformation", event.label))
+            if event.kind == "failed":
+                status = DiagnosticStatus(self._name(f"node {node}"), ERROR, f"failed: {event.error}", node, (*values, ("error", str(event.error))))
+            else:  # spawned: brought up (its setup() returned)
+                status = DiagnosticStatus(self._name(f"node {node}"), OK, "active", node, values)
+            with self._lock:
+                self._node_of[event.unit] = node
+                self._set_node(node, status)
         self.notify()
 
     def _set_node(self, node: str, status: DiagnosticStatus) -> None:  # (under the lock)
+        self._node_events += 1
         self._node_status[node] = status
         self._node_status.move_to_end(node)
         while len(self._node_status) > _MAX_NODES:
@@ -254,6 +261,7 @@ class Health:
     def _nodes(self) -> list[DiagnosticStatus]:
         with self._lock:
             units = dict(self._node_of)
+            seen = self._node_events
         if units:
             stalled = set(self._knowledge.stalled)
             for info in self._watched.units():
@@ -268,9 +276,10 @@ class Health:
                 elif info.state == "running":
                     status = DiagnosticStatus(self._name(f"node {node}"), OK, "active", node, values)
                 else:
-                    status = DiagnosticStatus(self._name(f"node {node}"), WARN, f"{info.state}: being brought up", node, values)
+                    status = DiagnosticStatus(self._name(f"node {node}"), WARN, info.state, node, values)
                 with self._lock:
-                    if units.get(info.name) == self._node_of.get(info.name):
+                    if self._node_events == seen:  # (no event since the units were read)
                         self._set_node(node, status)
+                        seen = self._node_events
         with self._lock:
             return sorted(self._node_status.values(), key=lambda s: s.name)

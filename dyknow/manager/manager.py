@@ -325,6 +325,8 @@ class Manager:
             self._closed = True
             self._measurements.undeclare()
             proxies = self._spawner.close()
+        if hasattr(self, "_health"):  # first: it reads the units (not made when __init__ failed before it)
+            self._health.close()
         self._peers.say_goodbye()  # first: the others then know it stopped, and did not crash
         if self._services is not None:
             self._services.close(timeout_s / 4)
@@ -338,8 +340,6 @@ class Manager:
         self._executor.close(timeout_s)
         self._trimmer.close()
         self._receiver.close()
-        if hasattr(self, "_health"):  # (not made when __init__ failed before)
-            self._health.close()
         self._ros2.close()
         self._session.close()
 
