@@ -232,6 +232,9 @@ def test_a_status_source_plugs_in_and_a_failing_one_is_left_out(make_manager: Ca
     assert robot.diagnostic_statuses() == [mode]
     remove()
     assert robot.diagnostic_statuses() == []
+    twice = robot.add_status_source(lambda: [DiagnosticStatus("robot: thruster", OK, "", "t1"), DiagnosticStatus("robot: thruster", ERROR, "", "t2")])
+    assert [s.name for s in robot.diagnostic_statuses()] == ["robot: thruster (t1)", "robot: thruster (t2)"]  # told apart
+    twice()
     robot.monitor("Level(tank).id == 2", bindings={"Level(tank)": "tank/nothing"})
     (status,) = robot.diagnostic_statuses()
     assert (status.name, status.level, status.message) == ("robot: monitor Level(tank).id == 2", STALE, "no verdict yet")

@@ -32,8 +32,9 @@ from __future__ import annotations
 import json
 import logging
 import threading
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 from typing import Any, Protocol
 
 from dyknow.adaptation.knowledge import Knowledge
@@ -119,7 +120,8 @@ class Health:
 
     def statuses(self) -> list[DiagnosticStatus]:
         """Every source's statuses, in the order the sources were added; a source that raises is
-        logged once and left out of this array."""
+        logged once and left out of this array. A name said twice (one requirement of two
+        requests) is told apart by its ``hardware_id``: ``... (robot/request/...)``."""
         with self._lock:
             sources = list(self._sources)
         out: list[DiagnosticStatus] = []
@@ -130,6 +132,9 @@ class Health:
                 if id(source) not in self._failing:
                     self._failing.add(id(source))
                     log.exception("the /diagnostics status source %r failed; left out", source)
+        names = Counter(status.name for status in out)
+        if len(names) < len(out):
+            out = [replace(s, name=f"{s.name} ({s.hardware_id})") if names[s.name] > 1 else s for s in out]
         return out
 
     def publish_on(self, node: Any, *, period_s: float = 1.0) -> DiagnosticsPublisher:
