@@ -3,7 +3,8 @@
     python tests/ros2_peer.py PORT talk TOPIC TYPE      publish every 20 ms until stdin closes (the i-th
                                                         TwistStamped: stamp sec=i, nanosec=5, twist.linear.x = i % 2)
     python tests/ros2_peer.py PORT listen TOPIC TYPE [transient_local]
-                                                        print each message received, one JSON line
+                                                        print each message received, one JSON line (a
+                                                        diagnostic_msgs/msg/DiagnosticArray as {"statuses": [...]})
     python tests/ros2_peer.py PORT info TOPIC           print `ros2 topic info -v` once a publisher shows
     python tests/ros2_peer.py PORT serve SERVICE TYPE   serve a lifecycle service (GetState: active;
                                                         ChangeState: success for transition 3), print each request
@@ -20,8 +21,8 @@
                                                         (it stays inactive; printed once taken), "stall": stop publishing
 
 It connects to a Zenoh peer at tcp/127.0.0.1:PORT (the manager under test), as rmw_zenoh's
-sessions connect to their router. Types and hashes come from ROS 2's own files (the ros-std-msgs
-and ros-sensor-msgs wheels' share/<pkg>/msg/*.msg and *.json), so the SDK never fetches a
+sessions connect to their router. Types and hashes come from ROS 2's own files (the ros-std-msgs,
+ros-sensor-msgs and ros-diagnostic-msgs wheels' share/<pkg>/msg/*.msg and *.json), so the SDK never fetches a
 definition from the network. Prints {"ready": true} once its entities are declared.
 """
 
@@ -39,6 +40,12 @@ DEPENDENCIES = {
     "std_msgs/msg/String": [],
     "sensor_msgs/msg/Image": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header"],
     "geometry_msgs/msg/TwistStamped": ["builtin_interfaces/msg/Time", "std_msgs/msg/Header", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Twist"],
+    "diagnostic_msgs/msg/DiagnosticArray": [
+        "builtin_interfaces/msg/Time",
+        "std_msgs/msg/Header",
+        "diagnostic_msgs/msg/KeyValue",
+        "diagnostic_msgs/msg/DiagnosticStatus",
+    ],
     "lifecycle_msgs/srv/GetState": ["lifecycle_msgs/msg/State"],
     "lifecycle_msgs/srv/ChangeState": ["lifecycle_msgs/msg/Transition"],
     "lifecycle_msgs/msg/TransitionEvent": ["lifecycle_msgs/msg/Transition", "lifecycle_msgs/msg/State"],
@@ -126,6 +133,13 @@ def listen(port: int, topic: str, ros_type: str, durability: str = "volatile") -
     def received(msg: object) -> None:
         if ros_type == "std_msgs/msg/String":
             out({"data": msg.data})  # type: ignore[attr-defined]
+        elif ros_type == "diagnostic_msgs/msg/DiagnosticArray":
+            statuses = [
+                {"name": s.name, "level": s.level[0] if isinstance(s.level, bytes) else int(s.level), "message": s.message,
+                 "hardware_id": s.hardware_id, "values": {kv.key: kv.value for kv in s.values}}
+                for s in msg.status  # type: ignore[attr-defined]
+            ]  # fmt: skip
+            out({"statuses": statuses})
         else:
             out(
                 {

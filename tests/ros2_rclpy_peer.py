@@ -14,6 +14,12 @@ run as a child process with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (discovery o
                                                         an rclpy client calls once (JSON: the request's fields,
                                                         lifecycle_msgs types) and prints {"response": ...} or null
 
+    python tests/ros2_rclpy_peer.py diagnostics-listen  print each diagnostic_msgs/DiagnosticArray on /diagnostics as
+                                                        {"statuses": [{"name", "level", "message", "hardware_id", "values"}]}
+    python tests/ros2_rclpy_peer.py diagnostics-talk    publish on /diagnostics every 50 ms the statuses of the latest
+                                                        stdin line (a JSON list of {"name", "level", "message",
+                                                        "hardware_id", "values": {key: value}}), none before the first
+
 Prints {"ready": true} once its publisher, subscription, node or client exists. TYPE: std_msgs/msg/String,
 sensor_msgs/msg/Image (a 2 x 3 rgb8 frame of bytes 0..17, stamped sec=i, nanosec=5) or, to talk,
 geometry_msgs/msg/TwistStamped (stamped sec=i, nanosec=5; twist.linear.x = i % 2).
@@ -121,7 +127,59 @@ def call(service: str, srv_type: str, fields: str, timeout_s: float, closed: thr
     node.destroy_node()
 
 
+def diagnostics(mode: str, closed: threading.Event, commands: list[str]) -> None:
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    node = rclpy.create_node(f"rclpy_{mode.replace('-', '_')}")
+    if mode == "diagnostics-listen":
+
+        def received(msg: DiagnosticArray) -> None:
+            statuses = [
+                {"name": s.name, "level": s.level[0] if isinstance(s.level, bytes) else int(s.level), "message": s.message,
+                 "hardware_id": s.hardware_id, "values": {kv.key: kv.value for kv in s.values}}
+                for s in msg.status
+            ]  # fmt: skip
+            out({"statuses": statuses})
+
+        node.create_subscription(DiagnosticArray, "/diagnostics", received, 10)
+        out({"ready": True})
+        while not closed.is_set():
+            rclpy.spin_once(node, timeout_sec=0.05)
+    else:
+        pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        out({"ready": True})
+        statuses: list[DiagnosticStatus] | None = None
+        while not closed.is_set():
+            while commands:
+                given = json.loads(commands.pop(0))
+                statuses = [
+                    DiagnosticStatus(level=bytes([s["level"]]), name=s["name"], message=s.get("message", ""), hardware_id=s.get("hardware_id", ""),
+                                     values=[KeyValue(key=k, value=v) for k, v in s.get("values", {}).items()])
+                    for s in given
+                ]  # fmt: skip
+            if statuses is not None:
+                array = DiagnosticArray(status=statuses)
+                array.header.stamp = node.get_clock().now().to_msg()
+                pub.publish(array)
+            rclpy.spin_once(node, timeout_sec=0.05)
+    node.destroy_node()
+
+
 def main() -> None:
+    if sys.argv[1] in ("diagnostics-listen", "diagnostics-talk"):
+        rclpy.init()
+        closed = threading.Event()
+        commands: list[str] = []
+
+        def read() -> None:
+            for line in sys.stdin:
+                commands.append(line.strip())
+            closed.set()
+
+        threading.Thread(target=read, daemon=True).start()
+        diagnostics(sys.argv[1], closed, commands)
+        rclpy.shutdown()
+        return
     if sys.argv[1] in ("lifecycle", "call"):
         rclpy.init()
         closed = threading.Event()

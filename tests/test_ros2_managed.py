@@ -263,9 +263,9 @@ def diagnostics(*statuses: tuple[str, int]) -> dict[str, Any]:
 def test_an_error_of_the_node_on_diagnostics_is_failed_over(
     make_manager: Callable[..., Manager], domain: int, rclpy_node: Callable[..., Rclpy]
 ) -> None:
-    """The /diagnostics are published by the test through dyknow's DDS publisher (the ROS 2
-    wheels here have no diagnostic_msgs for rclpy): another node's ERROR and this node's OK change
-    nothing; this node's ERROR fails it over."""
+    """The /diagnostics are published by the test through dyknow's DDS publisher (an rclpy
+    publisher of them: tests/test_ros2_diagnostics.py): another node's ERROR and this node's OK
+    change nothing; this node's ERROR fails it over."""
     from dyknow.ros2.convert import to_message
     from dyknow.ros2.dds import DdsNode
 

@@ -185,6 +185,7 @@ def cmd_manager(args: argparse.Namespace) -> int:
         ros2_node=args.ros2_node,
         ros2_namespace=args.ros2_namespace,
         dds_config=Path(args.ros2_dds_config).read_text() if args.ros2_dds_config else None,
+        diagnostics=args.diagnostics,
         client_grace_s=args.client_grace,
         max_lanes=args.max_lanes,
         overload_lag_s=args.overload_lag,
@@ -468,6 +469,10 @@ def add_commands(cmds: Commands) -> None:
         cmds.ros2_domain_option(p)
         p.add_argument("--ros2-node", metavar="NAME", help="the manager's ROS 2 node name (default: its name; declared at start when given)")
         p.add_argument("--ros2-namespace", default="/", metavar="NS", help="the ROS 2 node's namespace (default /)")
+        p.add_argument("--diagnostics", choices=("ros2", "ros2dds"), default=None,
+                       help="publish the health of its requirements, monitors, requests and managed nodes on ROS 2's /diagnostics "
+                            "(diagnostic_msgs/DiagnosticArray, once a second and on changes): ros2 on its ROS 2 node (rmw_zenoh), "
+                            "ros2dds on its DDS participant (default: not published)")  # fmt: skip
         p.add_argument("--ros2-dds-config", metavar="FILE",
                        help="Cyclone DDS XML for ros2dds: bindings (default: discovery on loopback only)")  # fmt: skip
         p.add_argument("--measure-from", action="append", default=[], metavar="NAME=SOURCE[#FIELD]",

@@ -27,11 +27,12 @@ from dyknow.access import AccessControl, TlsFiles
 from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
 from dyknow.bus import LocalBus
 from dyknow.client import Client
-from dyknow.errors import AccessError, ClosedError, DyKnowError
+from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError
 from dyknow.executor import DEFAULT_MAX_LANES, Executor
 from dyknow.federation import Directory, Summary
 from dyknow.holders import DEFAULT_GRACE_S, Holders
 from dyknow.manager.feeds import MeasureFeeds
+from dyknow.manager.health import DIAGNOSTICS_MIDDLEWARES, Health, StatusSource
 from dyknow.manager.library import Librarian
 from dyknow.manager.measurements import Measurements
 from dyknow.manager.network import Network
@@ -52,6 +53,7 @@ from dyknow.reasoning.syntax import Formula, check_formula
 from dyknow.reasoning.unit import FormulaMonitor, MonitorBudget
 from dyknow.receiver import Receiver
 from dyknow.ros2.dds import DdsNode
+from dyknow.ros2.diagnostics import DiagnosticStatus
 from dyknow.ros2.node import Ros2Node
 from dyknow.security import DataRoots, Limits
 from dyknow.spec import Template, TransformationSpec
@@ -106,6 +108,11 @@ class Manager:
     Requests made by a :class:`~dyknow.client.Client` are held by it (:mod:`dyknow.holders`):
     ``client_grace_s`` after the client is gone, the references it held are released.
 
+    ``diagnostics``: publish the health of its requirements, monitored formulas, requests and
+    managed nodes on ROS 2's ``/diagnostics`` (:mod:`dyknow.manager.health`), ``"ros2"`` on its
+    ROS 2 node (rmw_zenoh), ``"ros2dds"`` on its DDS participant; None (the default): not
+    published (:meth:`diagnostic_statuses` still says them).
+
     It is the adaptation loop's :class:`~dyknow.adaptation.Runtime`.
     """
 
@@ -140,8 +147,15 @@ class Manager:
         ros2_node: str | None = None,
         ros2_namespace: str = "/",
         dds_config: str | None = None,
+        diagnostics: str | None = None,
     ) -> None:
         self.name = keys.check_name(name, "manager name")
+        if diagnostics not in (None, *DIAGNOSTICS_MIDDLEWARES):
+            raise BindingError(
+                f"diagnostics={diagnostics!r}",
+                where=f"manager {name!r}",
+                expected="'ros2' (on the manager's ROS 2 node, rmw_zenoh), 'ros2dds' (on its DDS participant) or None (not published)",
+            )
         if ontology is None or isinstance(ontology, Ontology):
             self.ontology: Ontology | None = ontology
         else:
@@ -288,6 +302,16 @@ class Manager:
             except DyKnowError:
                 self.close()
                 raise
+        # its health on /diagnostics (dyknow.manager.health): the statuses are kept whether or not published
+        self._health = Health(self._ros2.node_name(), self, self._adaptation.knowledge)
+        self.on_unit_event(self._health.unit_event)
+        self._adaptation.on_event(lambda event: self._health.notify())
+        if diagnostics is not None:
+            try:
+                self._health.publish_on(self.dds_node() if diagnostics == "ros2dds" else self.ros2_node())
+            except DyKnowError:
+                self.close()
+                raise
         log.info("manager %r ready with %d specs", self.name, len(self.library))
 
     # ------------------------------------------------------------------ lifecycle
@@ -310,6 +334,8 @@ class Manager:
             self._measurements.undeclare()
             self._feeds.close()
             proxies = self._spawner.close()
+        if hasattr(self, "_health"):  # first: it reads the units (not made when __init__ failed before it)
+            self._health.close()
         self._peers.say_goodbye()  # first: the others then know it stopped, and did not crash
         if self._services is not None:
             self._services.close(timeout_s / 4)
@@ -698,6 +724,26 @@ class Manager:
         if holders is None:
             return found
         return [replace(info, absent=tuple(h for h in info.holders if not holders.alive(info.key, h))) for info in found]
+
+    def add_status_source(self, source: StatusSource) -> Callable[[], None]:
+        """Add a source of ``/diagnostics`` statuses: ``source()`` returns
+        :class:`~dyknow.ros2.diagnostics.DiagnosticStatus` objects (named ``<node name>: <what>``, the node's name
+        being :attr:`ros2_node_name`), called about once a second and on changes, on the
+        publisher's thread (it must return at once). Returns a function that removes it. See
+        :mod:`dyknow.manager.health` for the statuses built in."""
+        return self._health.add_source(source)
+
+    def diagnostic_statuses(self) -> list[DiagnosticStatus]:
+        """The statuses the manager publishes on ``/diagnostics`` when asked to (``diagnostics``),
+        as they are now: its requirements, monitored formulas, requests, managed nodes, and those
+        of the sources added (:meth:`add_status_source`)."""
+        return self._health.statuses()
+
+    @property
+    def ros2_node_name(self) -> str:
+        """The name of the manager's ROS 2 node (``ros2_node``, else its name made a ROS 2 name);
+        its ``/diagnostics`` statuses are named after it."""
+        return self._ros2.node_name()
 
     def measure(self, name: str, value: float | str) -> None:
         """Record the latest value of a measure (battery, say); constraints are checked against it."""

@@ -84,17 +84,19 @@ class Ros2Wiring:
             domain = int(text)
         return domain
 
+    def node_name(self) -> str:
+        """The name of the manager's ROS 2 node: the one given, else the manager's with every
+        character a ROS 2 name may not hold as ``_`` (and ``_`` before a leading digit)."""
+        name = self._options[1] or re.sub(r"[^A-Za-z0-9_]", "_", self._manager)
+        return "_" + name if name[0].isdigit() else name
+
     def ros2_node(self) -> Ros2Node:
         """The manager's ROS 2 node (see :meth:`dyknow.manager.Manager.ros2_node`)."""
         with self._lock:
             self._check_open()
             if self._ros2 is None:
-                _, node, namespace = self._options
-                name = node or re.sub(r"[^A-Za-z0-9_]", "_", self._manager)
-                if name[0].isdigit():
-                    name = "_" + name
                 self._ros2 = Ros2Node(
-                    self._session, name, namespace=namespace, domain=self._domain(), max_message_bytes=self._limits.max_ros2_message_bytes
+                    self._session, self.node_name(), namespace=self._options[2], domain=self._domain(), max_message_bytes=self._limits.max_ros2_message_bytes
                 )
             return self._ros2
 

@@ -491,6 +491,9 @@ class FormulaMonitor(Unit):
     _account: str | None = None  # whose share of the budget's nodes its formulas take (None: the manager's own)
     _seen_share = -1  # the budget's generation when the monitors last took their shares
     _textual: frozenset[int] = frozenset()  # the bound terms' ports (their text samples are read as JSON)
+    #: the latest verdict published of each formula (by name; by its text for a unit of one
+    #: formula), as published on ``verdicts``: what its ``/diagnostics`` status says (:mod:`dyknow.ros2.diagnostics`)
+    latest: dict[str, dict[str, Any]] = {}  # (each unit its own from setup() on)
 
     def use_budget(self, budget: MonitorBudget, account: str | None = None) -> None:
         """Take the manager's bounds and share of cells, for ``account`` (the caller it is
@@ -535,6 +538,7 @@ class FormulaMonitor(Unit):
             served.append(_Served(name, monitor))
         self._served = served
         self.monitor = served[0].monitor
+        self.latest = {}
         #: each formula's monitor, by name (by its text for a unit of one formula)
         self.monitors: dict[str, Monitor | ObjectMonitor] = {s.name or s.monitor.formula.text: s.monitor for s in served}
         #: the terms of the formulas, each once: the unit's ports t0, t1, ... in this order
@@ -813,6 +817,7 @@ class FormulaMonitor(Unit):
         gap = self._gap_for(served, verdict.t_ns)
         if gap is not None:
             out["gap"] = gap
+        self.latest[served.name or served.monitor.formula.text] = out
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
         for listener in self._listeners:
             listener(verdict)

@@ -7,8 +7,9 @@ types, RIHS01 hashes, CDR), :mod:`~dyknow.ros2.convert` (messages <-> dyknow pay
 :mod:`~dyknow.ros2.binding` (``ros2:`` bindings), :mod:`~dyknow.ros2.node` (a ROS 2 node on a
 dyknow session), :mod:`~dyknow.ros2.services` (service clients and servers on rmw_zenoh), :mod:`~dyknow.ros2.graph` (the graph from the tokens), :mod:`~dyknow.ros2.dds` (the same topics
 over DDS, Cyclone DDS), :mod:`~dyknow.ros2.bridge` (the units between the two),
-:mod:`~dyknow.ros2.lifecycle` (another node's lifecycle and parameters, through its services)
-and :mod:`~dyknow.ros2.managed` (a node dyknow did not spawn as a provider the planner chooses). Needs the
+:mod:`~dyknow.ros2.lifecycle` (another node's lifecycle and parameters, through its services),
+:mod:`~dyknow.ros2.managed` (a node dyknow did not spawn as a provider the planner chooses)
+and :mod:`~dyknow.ros2.diagnostics` (``/diagnostics`` published and read). Needs the
 ``ros2`` extra (``rosbags``, ``xxhash``, ``cyclonedds``), each imported only when used.
 """
 
@@ -18,6 +19,7 @@ from dyknow.ros2.attachment import Attachment
 from dyknow.ros2.binding import DDS_SCHEME, SCHEME, Ros2Binding, is_ros2, parse_binding
 from dyknow.ros2.bridge import Ros2Provider, Ros2Server, Ros2Sink, Ros2Source, UsesRos2
 from dyknow.ros2.dds import DdsClient, DdsNode, DdsPublisher, DdsService, DdsSubscription
+from dyknow.ros2.diagnostics import DiagnosticsPublisher, DiagnosticsSource, DiagnosticStatus
 from dyknow.ros2.graph import Graph, GraphView, snapshot
 from dyknow.ros2.lifecycle import NodeLifecycle
 from dyknow.ros2.managed import ManagedNode
@@ -35,6 +37,9 @@ __all__ = [
     "DdsPublisher",
     "DdsService",
     "DdsSubscription",
+    "DiagnosticStatus",
+    "DiagnosticsPublisher",
+    "DiagnosticsSource",
     "Graph",
     "GraphView",
     "ManagedNode",
