@@ -233,7 +233,7 @@ class World:
         """One step of :data:`STEP_S`; returns the thrusters' changes, ``(thruster, failed)``."""
         before, dt = self.t_s, STEP_S
         self.t_s = round(before + dt, 9)
-        changes = [(n, True) for at, n in self.script.faults if before < at <= self.t_s and self.fail(n)]
+        changes = [(n, True) for at, n in self.script.faults if before <= at < self.t_s and self.fail(n)]  # from its time on
         if self.failed and c.recover:
             self.recovering_s += dt
             if self.recovering_s >= self.script.recovery_s - 1e-9:
