@@ -18,14 +18,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dyknow.demo.pipeline import MODES_FILE as _MODES_FILE
-from dyknow.demo.pipeline import robot
+from dyknow.demo.pipeline import MODES_FILE, robot
 from dyknow.errors import DyKnowError, ServiceError
 
 __all__ = ["BASELINE_MODES", "MODES_FILE", "NodeTarget", "fixed_mode", "main"]
 
-#: The robot's modes, in ROS 2 system_modes' format.
-MODES_FILE = _MODES_FILE
 #: The baseline's fixed mode of each system.
 BASELINE_MODES: Mapping[str, str] = {
     "f_generate_search_path": "__DEFAULT__",
