@@ -286,3 +286,27 @@ def test_the_baseline_runs_a_short_accelerated_mission_in_its_fixed_mode_and_pri
     assert measures == world.measures().to_dict()
     assert measures["time_to_find_s"] is not None and measures["distance_inspected_m"] > 0
     assert measures["thruster_faults"] == 1 and measures["thruster_recoveries"] == 0 and measures["time_stopped_s"] == 10.0
+
+
+def test_the_readmes_baseline_measures_are_the_default_missions() -> None:
+    readme = (MODES_FILE.parent / "README.md").read_text(encoding="utf-8")
+    shown = json.loads(next(line for line in readme.splitlines() if line.startswith('{"time_to_find_s"')))
+    world = World(Script())
+    world.advance(Controls(motion=True, search=True, spiral_altitude_m=1.0, follow=True, follow_altitude_m=1.0), 300.0)
+    assert shown == world.measures().to_dict()
+
+
+def test_bad_input_is_refused_before_any_node_exists(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from dyknow.demo.pipeline import baseline, robot
+
+    bad = tmp_path / "mission.json"
+    bad.write_text('{"faults": [[10, 9]]}')
+    assert robot.main(["--script", str(bad)]) == 2
+    assert "mission.json: faults[0] = [10, 9]; expected [time_s >= 0, a thruster from 1 to 6]" in capsys.readouterr().err
+    assert baseline.main(["--mode", "f_nope=fd_x"]) == 2
+    assert "--mode f_nope=fd_x; expected SYSTEM=MODE with SYSTEM one of f_generate_search_path" in capsys.readouterr().err
+    assert baseline.main(["--mode", "f_maintain_motion=fd_fast"]) == 2
+    assert "system 'f_maintain_motion' has no mode 'fd_fast'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        robot.main(["--speed", "0"])
+    assert "--speed 0.0: expected a speed-up" in capsys.readouterr().err

@@ -21,7 +21,7 @@ from typing import Any
 from dyknow.demo.pipeline import MODES_FILE, robot
 from dyknow.errors import DyKnowError, ServiceError
 
-__all__ = ["BASELINE_MODES", "MODES_FILE", "NodeTarget", "fixed_mode", "main"]
+__all__ = ["BASELINE_MODES", "MODES_FILE", "ModeError", "NodeTarget", "fixed_mode", "main"]
 
 #: The baseline's fixed mode of each system.
 BASELINE_MODES: Mapping[str, str] = {
@@ -125,9 +125,10 @@ def _bring_up(targets: list[NodeTarget], context: Any, executor: Any, failed: li
                 if not call("change_state", ChangeState, ChangeState.Request(transition=Transition(id=transition))).success:
                     raise ServiceError(f"/{target.node} refused transition {transition}", where="baseline")
             node.get_logger().info(f"/{target.node} {'active' if target.active else 'inactive'} {dict(target.parameters)}")
-    except Exception as exc:  # the run ends, saying why
-        failed.append(str(exc))
-        robot.stop()
+    except Exception as exc:  # the run ends, saying why (unless it was ending anyway: SIGTERM mid-way)
+        if robot.running():
+            failed.append(str(exc))
+            robot.stop()
 
 
 def main(argv: Sequence[str] | None = None) -> int:

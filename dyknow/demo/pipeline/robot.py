@@ -54,6 +54,7 @@ __all__ = [
     "main",
     "parse_args",
     "run",
+    "running",
     "stop",
 ]
 
@@ -171,6 +172,11 @@ def stop() -> None:
     """End the running missions now (what SIGINT and SIGTERM do)."""
     for mission in list(_RUNNING):
         mission.done.set()
+
+
+def running() -> bool:
+    """Whether a mission of :func:`run` is running and not asked to stop."""
+    return any(not mission.done.is_set() for mission in list(_RUNNING))
 
 
 def _nodes(mission: _Mission, context: Any) -> list[Any]:

@@ -35,7 +35,7 @@ from typing import Any
 
 from dyknow.errors import DyKnowError
 
-__all__ = ["DETECT_M_PER_VISIBILITY", "STEP_S", "THRUSTERS", "Controls", "Measures", "Script", "World"]
+__all__ = ["DETECT_M_PER_VISIBILITY", "STEP_S", "THRUSTERS", "Controls", "Measures", "Script", "ScriptError", "World"]
 
 #: The simulation's fixed step (simulated seconds).
 STEP_S = 0.05
