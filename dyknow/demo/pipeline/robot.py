@@ -21,7 +21,10 @@ times real time until ``--mission-s`` simulated seconds; then, or on SIGINT or S
 prints the mission's measures (:class:`~dyknow.demo.pipeline.world.Measures`) as one JSON line and
 exits. Fault messages and service answers are not sped up: they happen in real time.
 
-rclpy is imported only by :func:`run` (it comes with dyknow's test extra, not with dyknow).
+Unless ``FASTDDS_DEFAULT_PROFILES_FILE`` is set, the robot takes dyknow's Fast DDS profile
+(``dyknow/ros2/fastdds_profile.xml``: type propagation off, without which Cyclone DDS readers such
+as dyknow's never match a ``DiagnosticArray``). rclpy is imported only by :func:`run` (it comes with
+dyknow's test extra, not with dyknow).
 """
 
 from __future__ import annotations
