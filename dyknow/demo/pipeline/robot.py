@@ -22,8 +22,8 @@ prints the mission's measures (:class:`~dyknow.demo.pipeline.world.Measures`) as
 exits. Fault messages and service answers are not sped up: they happen in real time.
 
 Unless ``FASTDDS_DEFAULT_PROFILES_FILE`` is set, the robot takes dyknow's Fast DDS profile
-(``dyknow/ros2/fastdds_profile.xml``: type propagation off, without which Cyclone DDS readers such
-as dyknow's never match a ``DiagnosticArray``). rclpy is imported only by :func:`run` (it comes with
+(``dyknow/ros2/fastdds_profile.xml``: type propagation off, which Cyclone DDS readers such as
+dyknow's need for some types; that file says which). rclpy is imported only by :func:`run` (it comes with
 dyknow's test extra, not with dyknow).
 """
 
