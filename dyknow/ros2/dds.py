@@ -215,6 +215,8 @@ class DdsSubscription:
         class _Listener(Listener):  # type: ignore[misc]
             def on_data_available(self, reader: Any) -> None:
                 if call_soon is None:
+                    if reader is None:  # Cyclone calls the listener of a reader being deleted (close) with no reader
+                        return
                     subscription._take(reader, key)
                     return
                 with subscription._lock:
