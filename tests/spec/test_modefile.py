@@ -12,8 +12,8 @@ import pytest
 
 from dyknow.errors import SpecError
 from dyknow.spec import load_specs, parse_specs
-from dyknow.spec.model import Constraint
 from dyknow.spec.modefile import MAX_BYTES, Target, load_mode_file, parse_mode_file
+from dyknow.spec.model import Constraint
 
 # The mode file of SUAVE (github.com/kas-lab/suave, suave/config/suave_modes.yaml, Apache-2.0),
 # as that project writes it: parts as a plain multi-line scalar, nodes without the leading slash.
