@@ -65,8 +65,11 @@ SKEWS = {"ahead": Skew("+0.25", 1.0), "behind": Skew("-0.25", 1.0), "drifting": 
 def injected(clock_line: dict[str, Any], rate: float, at_ns: int) -> int:
     """The robot's clock minus the machine's at ``at_ns`` (the machine's wall clock), from the
     robot's ``clock`` line (see tests/clocked.py), to within half its ``read_ns``."""
-    before, realtime, after = time.monotonic_ns(), time.time_ns(), time.monotonic_ns()
-    machine = realtime - (before + after) // 2  # this process's clock is the machine's
+    readings = []
+    for _ in range(5):  # the narrowest of five: a reading this process was preempted in is left out
+        before, realtime, after = time.monotonic_ns(), time.time_ns(), time.monotonic_ns()
+        readings.append((after - before, realtime - (before + after) // 2))
+    machine = min(readings)[1]  # this process's clock is the machine's
     offset_then = clock_line["realtime_ns"] - clock_line["monotonic_ns"] - machine
     then = clock_line["monotonic_ns"] + machine
     return offset_then + round((rate - 1) * (at_ns - then))
@@ -114,7 +117,10 @@ def test_the_station_corrects_the_robots_clock(clean_hosts: Hosts, faketime: Pat
         field, _ = start(hosts, "field")
         children.append(field)
         nominal = {"+0.25": 250_000, "-0.25": -250_000}.get(skew.faketime, 0)
-        assert abs(injected(robot_clock, skew.rate, time.time_ns()) / 1000 - nominal) < 1000  # what libfaketime was asked for
+        # what libfaketime was asked for, to within 1 ms and the reading of the robot's clock line (on a
+        # busy machine the robot can be preempted between its two clocks: 1,125 us once beside CPU hogs)
+        read_us = robot_clock["read_ns"] / 2000 + 1
+        assert abs(injected(robot_clock, skew.rate, time.time_ns()) / 1000 - nominal) < 1000 + read_us, robot_clock
         observer = Child(
             hosts,
             "station",

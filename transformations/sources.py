@@ -136,6 +136,10 @@ class _CaptureSource(Unit):
     def _rate(self) -> float:
         raise NotImplementedError
 
+    def _stamp(self, read_ns: int) -> int:
+        """The origin time of the frame read at ``read_ns`` (the next to publish)."""
+        return read_ns
+
     def run(self, stop: threading.Event) -> None:
         pacer = Pacer(self._rate())
         try:
@@ -148,7 +152,7 @@ class _CaptureSource(Unit):
                     if got is None:
                         return
                     frame, stamp = got
-                self.publish("out", frame, origin_ns=stamp)
+                self.publish("out", frame, origin_ns=self._stamp(stamp))
                 self.frames_published += 1
         finally:
             self._release()
@@ -168,8 +172,11 @@ class VideoSource(_CaptureSource):
     """Publishes the frames of a video file on ``out``.
 
     Params: ``path`` (the video file), ``rate_hz`` (< 0, the default: the file's frame rate;
-    0: as fast as possible; > 0: that rate), ``loop`` (start again at the end; default false).
-    A frame is stamped when it is read, just before it is published.
+    0: as fast as possible; > 0: that rate), ``loop`` (start again at the end; default false),
+    ``stamp``: ``read`` (the default) stamps a frame when it is read, just before it is
+    published, as a camera's; ``video`` stamps it with its time in the video (frame ``i`` at the
+    first frame's stamp plus ``i / fps``, counted on across loops), so what downstream units
+    measure (a tracker's speeds) keeps the scene's timing when a loaded machine publishes late.
 
     Attributes for embedding and tests: ``fps`` (the file's frame rate), ``frame_count`` (as
     the container states it), ``frames_published``, ``loops`` (restarts so far) and
@@ -184,6 +191,10 @@ class VideoSource(_CaptureSource):
         self.path = Path(params.text(self.params, "path", required=True)).expanduser()
         self.rate_hz = params.number(self.params, "rate_hz", -1.0)
         self.loop = params.flag(self.params, "loop", False)
+        self.stamping = params.text(self.params, "stamp", "read")
+        if self.stamping not in ("read", "video"):
+            raise MediaError(f"stamp {self.stamping[:40]!r}", where="param 'stamp'", expected="read (when read) or video (its time in the video)")
+        self._first_ns: int | None = None
         self.loops = 0
         self._capture = self._open()
         self.fps = float(self._capture.get(cv2.CAP_PROP_FPS) or 0.0)
@@ -195,6 +206,13 @@ class VideoSource(_CaptureSource):
         self._pending = first[0]
         if self.rate_hz < 0 and not self.fps > 0:
             self.log.warning("video %s does not state its frame rate; playing at 30 fps", self.path)
+
+    def _stamp(self, read_ns: int) -> int:
+        if self.stamping != "video":
+            return read_ns
+        if self._first_ns is None:
+            self._first_ns = read_ns
+        return self._first_ns + round(self.frames_published * 1e9 / (self.fps if self.fps > 0 else 30.0))
 
     def _open(self) -> cv2.VideoCapture:
         if not self.path.exists():
