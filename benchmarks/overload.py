@@ -10,7 +10,8 @@ transformations of ``<priority>`` 1, so the anchor and the sink have it too), th
 one a source and a sink of priority 200; the masses have the default, 100.
 
 Then, for 0, 1 and 2 CPU hogs per core (busy ``python -c "while True: pass"`` processes), it
-records the two streams for ``--seconds`` (after a second to settle), sampling the process's
+records the two streams for ``--seconds`` (after a second to settle; longer, up to 30 s, until the
+high-priority stream gave 20 messages), sampling the process's
 threads (``/proc``) and the manager's lanes every 0.1 s. Printed, each beside its target:
 
 - spawn: seconds per 1,000 units, for each block of 1,000 (or of a tenth of the units), the
@@ -156,6 +157,10 @@ def _hogs(count: int) -> list[subprocess.Popen[bytes]]:
     return [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(count)]
 
 
+#: The fewest high-priority messages a phase records (it runs past --seconds for them, up to MAX_EXTRA_S).
+MIN_HIGH, MAX_EXTRA_S = 20, 30.0
+
+
 def _phase(manager: Manager, high: Any, low: Any, hogs: int, seconds: float, nice: int) -> dict[str, Any]:
     procs = _hogs(hogs)
     try:
@@ -164,8 +169,11 @@ def _phase(manager: Manager, high: Any, low: Any, hogs: int, seconds: float, nic
         high.ages_ns, low.ages_ns = [], []
         high.recording = low.recording = True
         lanes_max, threads_max, states, shed_max = 0, 0, set(), 0
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
+        start = time.monotonic()
+        end, limit = start + seconds, start + seconds + MAX_EXTRA_S
+        # for --seconds, and on until the high-priority stream has given MIN_HIGH messages (a short
+        # smoke phase on a machine loaded beyond its own hogs may otherwise record none)
+        while time.monotonic() < end or (len(high.ages_ns) < MIN_HIGH and time.monotonic() < limit):
             load = manager.load()
             lanes_max = max(lanes_max, load["threads"])
             threads_max = max(threads_max, _threads())
@@ -176,6 +184,7 @@ def _phase(manager: Manager, high: Any, low: Any, hogs: int, seconds: float, nic
         return {
             "nice": nice,
             "hogs": hogs,
+            "recorded_s": round(time.monotonic() - start, 2),
             "lanes_max": lanes_max,
             "threads_max": threads_max,
             "high_p50_ms": percentile([a / 1e6 for a in high.ages_ns], 50),

@@ -461,8 +461,9 @@ def test_a_peer_claiming_anothers_clock_id_makes_it_unknown_never_shifted(tracke
         honest = tracker.estimates()["honest"]
         assert abs(honest.offset_ns) <= honest.uncertainty_ns
         tracker.untrack("impostor")
-        offset = table.offset(clock)
-        assert offset is not None and abs(offset) <= 1 * MS  # its own again (carried to now: 0 within its uncertainty)
+        offset, uncertainty = table.offset(clock), table.uncertainty(clock)
+        # its own again (carried to now): 0 within its uncertainty (beside CPU hogs an exchange is wide: 1.9 ms once)
+        assert offset is not None and uncertainty is not None and abs(offset) <= uncertainty, (offset, uncertainty)
     finally:
         hostile.close()
 
