@@ -277,6 +277,7 @@ class Metrics:
             "verdicts": verdicts,
             "requests": [r.brief() for r in model.requests],  # (their state and why, beside the figures: dyknow top)
             "lost": [dict(m) for m in model.lost],
+            "modes": [{k: m[k] for k in ("system", "mode", "since_ns", "why")} for m in model.modes],
         }
 
     def admit(self, snap: dict[str, Any]) -> tuple[list[dict[str, Any]], int]:
@@ -382,11 +383,16 @@ class _Collector:
             adaptations.add_metric([manager, kind], n)
         cpu = CounterMetricFamily("dyknow_manager_cpu_seconds", "CPU time of the manager's process", labels=["manager"])
         cpu.add_metric([manager], snap["cpu_s"])
+        modes = GaugeMetricFamily("dyknow_system_mode", "1 per system in a mode (a spec's <system>), labelled with the mode", labels=["manager", "system", "mode"])
+        since = GaugeMetricFamily("dyknow_system_mode_since_seconds", "when a system entered its mode (Unix time)", labels=["manager", "system", "mode"])
+        for mode in snap.get("modes", ()):
+            modes.add_metric([manager, mode["system"], mode["mode"]], 1)
+            since.add_metric([manager, mode["system"], mode["mode"]], mode["since_ns"] / 1e9)
         refused_units = GaugeMetricFamily("dyknow_metrics_refused_units", "units left out of this scrape (over Limits.max_metric_series)", labels=["manager"])
         refused_units.add_metric([manager], len(snap["units"]) - len(admitted))
         refused = CounterMetricFamily("dyknow_metrics_refused_series", "series left out of scrapes so far (over Limits.max_metric_series)", labels=["manager"])
         refused.add_metric([manager], self.metrics.refused_series)
-        yield from (up, callback, messages, nbytes, dropped, lost, queued, hop, age, adaptations, verdicts, cpu, refused_units, refused)
+        yield from (up, callback, messages, nbytes, dropped, lost, queued, hop, age, adaptations, verdicts, cpu, modes, since, refused_units, refused)
 
 
 class MetricsExporter:

@@ -265,6 +265,10 @@ class Model:
     #: once a second), by name; it reads the summaries of those its plans need only
     #: (:meth:`dyknow.federation.Directory.peers`).
     peers: tuple[str, ...] = ()
+    #: The systems in a mode (a spec's ``<system>``, :mod:`dyknow.ros2.modes`): ``{"system",
+    #: "mode", "transformation", "unit", "request", "since_ns" (wall clock), "why",
+    #: "constraints"}`` each (:func:`dyknow.manager.modes.mode_infos`).
+    modes: tuple[Mapping[str, Any], ...] = ()
 
     def unit(self, name: str) -> UnitInfo:
         """The running unit ``name``; :class:`UnitError` when the model has none."""
@@ -285,6 +289,7 @@ class Model:
             "lost": [dict(m) for m in self.lost],
             "executor": dict(self.executor),
             "peers": list(self.peers),
+            "modes": [dict(m) for m in self.modes],
         }
 
     def page(self, units_from: int = 0, specs_from: int = 0, max_bytes: int = 4 << 20) -> dict[str, Any]:
@@ -305,6 +310,7 @@ class Model:
             "lost": [dict(m) for m in self.lost],
             "executor": dict(self.executor),
             "peers": list(self.peers),
+            "modes": [dict(m) for m in self.modes],
             "total": {"units": len(self.units), "specs": len(self.specs)},
         }
         used = len(json.dumps(out))

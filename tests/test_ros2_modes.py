@@ -7,6 +7,7 @@ from __future__ import annotations
 import random
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import pytest
 
@@ -17,12 +18,16 @@ from dyknow.ros2.lifecycle import NodeLifecycle
 from dyknow.ros2.modes import SwitchError, switch
 from dyknow.spec import parse_specs
 from dyknow.spec.modefile import Target
+from tests.conftest import CliProcess, run_cli
 from tests.test_adaptation import Events
 from tests.test_ros2_dds import Rclpy
 from tests.test_ros2_dds import domain as _domain
 from tests.test_ros2_dds import rclpy_node as _rclpy_node
+from tests.test_ui import browser as _browser
+from tests.test_ui import chromium as _chromium
+from tests.test_ui import drawn_text, wait_text
 
-domain, rclpy_node = _domain, _rclpy_node  # the fixtures of the DDS tests
+domain, rclpy_node, browser, chromium = _domain, _rclpy_node, _browser, _chromium  # the fixtures of the DDS and browser tests
 
 # Two lifecycle nodes (each with a double parameter "exposure", 0.1 at start): the high mode runs the
 # search alone at exposure 3, the low one the search at exposure 1 and the follower beside it.
@@ -97,6 +102,9 @@ def test_the_measure_chooses_the_mode_and_a_switch_sets_parameters_and_states(
     assert {u.label for u in robot.get_model().units} >= {"search.high"}
     assert (observer.state("/searcher"), observer.state("/follower")) == ("active", "unconfigured")
     assert observer.exposure("/searcher") == 3.0
+    (mode,) = robot.get_model().modes
+    assert (mode["system"], mode["mode"], mode["transformation"]) == ("search", "high", "search.high")
+    assert mode["why"] == "requested Mode(search): the preferred mode whose constraints hold (visibility = 0.9 >= 0.7)", mode
     robot.measure("visibility", 0.67)  # below 0.7, above 0.7 - 0.05: the high mode stays
     robot.measure("visibility", 0.6)  # past the margin: a fault, the low mode at once
     event = events.wait("adapted", timeout_s=30)
@@ -104,6 +112,12 @@ def test_the_measure_chooses_the_mode_and_a_switch_sets_parameters_and_states(
     assert "visibility" in event.cause, event.cause
     assert (observer.state("/searcher"), observer.state("/follower")) == ("active", "active")
     assert observer.exposure("/searcher") == 1.0
+    # the model, the metrics and /diagnostics say which mode, and why
+    (mode,) = robot.get_model().modes
+    assert mode["mode"] == "low" and mode["why"] == event.cause, mode
+    assert [(m["system"], m["mode"]) for m in robot.metrics.snapshot()["modes"]] == [("search", "low")]
+    (status,) = [s for s in robot.diagnostic_statuses() if s.name.endswith(": system search")]
+    assert status.level == 0 and status.message == f"in mode low: {event.cause}" and ("mode", "low") in status.values, status
     robot.measure("visibility", 0.72)  # above the threshold: back to high (an opportunity, after the dwell time)
     event = events.wait("adapted", count=2, timeout_s=30)
     assert "search.low" in event.old and "search.high" in event.new, event.to_dict()
@@ -204,3 +218,19 @@ def test_a_measure_fed_from_a_zenoh_key_chooses_the_mode(
     assert "search.low" in event.new and "visibility" in event.cause, event.to_dict()
     with pytest.raises(BindingError, match="the field 'not a path'"):
         robot.measure_from("visibility", "sensors/visibility#not a path")
+
+
+@pytest.mark.browser
+def test_the_browser_tool_and_dyknow_model_show_the_mode_and_why(
+    make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], cli_process: Callable[..., CliProcess], browser: Any
+) -> None:
+    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, listen=["tcp/127.0.0.1:0"])
+    robot.measure("visibility", 0.3)
+    robot.request("Mode(search)")
+    lines = run_cli("model", "--connect", robot.endpoints[0]).stdout
+    assert "system search in mode low since " in lines and "(unit search.low): requested Mode(search): the preferred mode" in lines, lines
+    url = str(cli_process("ui", "--connect", robot.endpoints[0], "--port", "0", "--json").line()["url"])
+    browser.get(url)
+    wait_text(browser, "modes", "search: low since ")
+    line = drawn_text(browser, "#modes li[data-system='search']")
+    assert "(manager " in line and "unit search.low): requested Mode(search): the preferred mode whose constraints hold" in line, line

@@ -106,6 +106,9 @@ def cmd_model(args: argparse.Namespace) -> int:
                 yield "  no units"
             for request in model.get("requests", []):
                 yield f"  request {request['tag']} on {request['key']}: {request['state']}"
+            for mode in model.get("modes", []):
+                when = time.strftime("%H:%M:%S", time.localtime(mode["since_ns"] / 1e9))
+                yield f"  system {mode['system']} in mode {mode['mode']} since {when} (unit {mode['unit']}): {mode['why']}"
             for lost in model.get("lost", []):
                 when = time.strftime("%H:%M:%S", time.localtime(lost["since_ns"] / 1e9))
                 yield f"  lost manager {lost['manager']} since {when}: {lost['why']}"

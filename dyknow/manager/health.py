@@ -15,7 +15,11 @@ Each status is named as ROS 2's ``diagnostic_updater`` names them, after the man
   OK once brought up and while its unit runs (``active``), WARN while its topic is stalled, ERROR
   once it failed (at bring-up too), kept until it is chosen and active again; OK ``inactive`` once
   left healthy. Only nodes chosen since the manager started are said (at most 1,000, the oldest
-  forgotten first).
+  forgotten first);
+- ``dyknow_robot: system <system>`` for each system in a mode (a spec's ``<system>``,
+  :mod:`dyknow.manager.modes`): OK, its message the mode and why it was chosen, its values the
+  system, the mode, the transformation, the cause and each constraint with its measure's value
+  (a mode that fails is left at once: the request's and the node's statuses say so).
 
 ``values`` hold the formula and what decided the verdict: the latest verdict's fields as the
 monitor publishes them (``verdict``, ``t``, ``decided_t``, ``t_ns``, ``decided_ns``, ``state``,
@@ -39,6 +43,7 @@ from typing import Any, Protocol
 
 from dyknow.adaptation.knowledge import Knowledge
 from dyknow.errors import DyKnowError
+from dyknow.manager.modes import mode_infos
 from dyknow.model import RequestInfo, UnitEvent, UnitInfo
 from dyknow.reasoning.monitors import MonitorInfo
 from dyknow.reasoning.unit import FormulaMonitor
@@ -94,7 +99,7 @@ class Health:
         self._watched = watched
         self._knowledge = knowledge
         self._lock = threading.Lock()
-        self._sources: list[StatusSource] = [self._requirements, self._monitors, self._requests, self._nodes]
+        self._sources: list[StatusSource] = [self._requirements, self._monitors, self._requests, self._nodes, self._modes]
         self._failing: set[int] = set()  # sources whose failure was logged (once each)
         # managed nodes: unit -> the ROS 2 node it manages; the node -> its latest status
         self._node_of: dict[str, str] = {}
@@ -225,6 +230,16 @@ class Health:
             else:
                 level, message = ERROR, f"no configuration: {info.reason or 'nothing provides it'}"
             out.append(DiagnosticStatus(self._name(f"request {info.tag}"), level, message, info.key, tuple(values)))
+        return out
+
+    def _modes(self) -> list[DiagnosticStatus]:
+        out = []
+        knowledge = self._knowledge
+        for mode in mode_infos(self._watched.units(), self._watched.requests(), list(knowledge.history), dict(knowledge.measurements)):
+            values = [("system", mode["system"]), ("mode", mode["mode"]), ("transformation", mode["transformation"]), ("why", mode["why"])]
+            values += [(f"constraint {c['measure']} {c['op']} {c['value']}", _text(c["measured"])) for c in mode["constraints"]]
+            message = f"in mode {mode['mode']}: {mode['why']}"
+            out.append(DiagnosticStatus(self._name(f"system {mode['system']}"), OK, message[:1000], mode["system"], tuple(values)))
         return out
 
     def unit_event(self, event: UnitEvent) -> None:

@@ -35,6 +35,7 @@ from dyknow.manager.feeds import MeasureFeeds
 from dyknow.manager.health import DIAGNOSTICS_MIDDLEWARES, Health, StatusSource
 from dyknow.manager.library import Librarian
 from dyknow.manager.measurements import Measurements
+from dyknow.manager.modes import mode_infos
 from dyknow.manager.network import Network
 from dyknow.manager.peers import Peers
 from dyknow.manager.ros2 import Ros2Wiring, ros2_bindings
@@ -795,7 +796,9 @@ class Manager:
         lost = directory.lost() if directory is not None else {}
         gone = tuple({"manager": name, "since_ns": since, "why": why} for name, (since, why) in sorted(lost.items()))
         peers = tuple(sorted(directory.alive())) if directory is not None else ()  # (whose tokens are up)
-        return Model(self.name, infos, self.library.specs(), tuple(self.requests()), clock_view, monitors, gone, self.load(), peers)
+        requests = tuple(self.requests())
+        modes = tuple(mode_infos(infos, requests, self._adaptation.history(), self.measurements))
+        return Model(self.name, infos, self.library.specs(), requests, clock_view, monitors, gone, self.load(), peers, modes)
 
     # ------------------------------------------------------------------ load (dyknow.executor, dyknow.overload)
 

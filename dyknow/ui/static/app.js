@@ -296,6 +296,15 @@ function drawLost() {
   $("lost").replaceChildren(...items);
 }
 
+// each system in a mode (a spec's <system>): its mode, since when, and why it was chosen
+function drawModes() {
+  const items = model.managers.flatMap((m) => (m.modes || []).map((mode) => el("li",
+    `${mode.system}: ${mode.mode} since ${new Date(mode.since_ns / 1e6).toLocaleTimeString()} (manager ${m.manager}, unit ${mode.unit}): ${mode.why}`,
+    { "data-system": mode.system, "data-mode": mode.mode, class: "mode" })));
+  if (!items.length) items.push(el("li", "no system in a mode", { class: "muted" }));
+  $("modes").replaceChildren(...items);
+}
+
 function fillManagers() {
   for (const select of document.querySelectorAll("select.managers")) {
     const current = select.value;
@@ -583,6 +592,7 @@ function render() {
   drawActive();
   drawClocks();
   drawLost();
+  drawModes();
   drawLibrary();
   drawCreate();
   drawConnect();
