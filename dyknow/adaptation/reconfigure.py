@@ -22,6 +22,7 @@ from dyknow.adaptation.knowledge import Knowledge, Request, Trial, runs_on
 from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import DyKnowError, PlanningError, ServiceError, UnitError
 from dyknow.planner import Plan, PlannedUnit, Planner, RunningUnit, qualify, unqualify
+from dyknow.spec.model import MODE_UNIT_SOURCE
 
 log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever part logs
 
@@ -390,6 +391,10 @@ class Reconfigurer:
         """
         avoid = self._downstream(request.units)
         active = sorted(set(request.units.values()))
+        library = self._runtime.library
+        modes = [label for label in active if label in library and library.get(label).source == MODE_UNIT_SOURCE]
+        if modes:  # a standby mode would switch the system's nodes beside the active mode
+            raise PlanningError(request.tag, None, f"no standby for {request.tag}: {modes[0]} is a system's mode, and two modes of one system cannot run at once")
         alone: dict[str, Plan] = {}  # label -> the plan without it
         for label in active:
             try:

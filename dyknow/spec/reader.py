@@ -704,6 +704,9 @@ def _read_system(system: _Node, issues: _Issues, base: pathlib.Path | None) -> l
         children: dict[str, _Node] = {c.name: c for c in reversed(element.children)} if element is not None else {}
         constraints, constraint_lines = _read_constraints(children.get("constraints"), (), issues)
         requirements, requirement_lines = _read_requirements(children.get("requirements"), (), issues)
+        if requirements:  # a suspect is tried in the shadow, beside the active configuration: a mode cannot be
+            expected = "constraints on measures (a measure can be taken from any stream: --measure-from), with a margin"
+            issues.add(requirement_lines[0], "<requirements>", "requirements of a mode (trying a mode in the shadow would switch the system)", expected)
         line = element.line if element is not None else system.line
         text = targets_to_json(targets.get(mode_name, {})).replace("$", "$$")
         mode_params = [*params, Param("mode", "string", mode_name.replace("$", "$$")), Param("targets", "string", text)]

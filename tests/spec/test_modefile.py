@@ -295,6 +295,9 @@ def test_modes_written_in_the_spec_need_no_file() -> None:
          '<params><param name="x" type="int">one</param></params></part></mode></system>', "<param> 'x': value 'one' is not a valid int"),
         ('<system name="s"><label>s</label><tags><tag>Mode(s)</tag></tags><mode name="m"><part node="/a" state="active"/></mode>'
          '<mode name="m"><part node="/a" state="active"/></mode></system>', "duplicate mode 'm'"),
+        ('<system name="s"><label>s</label><tags><tag>Mode(s)</tag></tags><mode name="m"><part node="/a" state="active"/>'
+         '<requirements><requirement>always Mode(s).mode == "m"</requirement></requirements></mode></system>',
+         "<requirements>: requirements of a mode (trying a mode in the shadow would switch the system)"),
     ],
 )  # fmt: skip
 def test_a_mistake_in_a_system_is_located(xml: str, fragment: str) -> None:

@@ -13,6 +13,7 @@ from dyknow.errors import SpecError
 from dyknow.spec import (
     load_specs,
 )
+from dyknow.spec.modefile import STATES as MODE_STATES
 from tests.spec.support import BROKEN, GOOD, REPO_SPECS, SPECS, XSD
 
 
@@ -77,7 +78,7 @@ def xsd_elements(schema: xmlschema.XMLSchema) -> dict[str, frozenset[str]]:
 
 def test_xsd_elements_and_attributes_match_the_loader(schema: xmlschema.XMLSchema) -> None:
     assert xsd_elements(schema) == dict(spec.ELEMENTS)
-    assert set(schema.elements) == {"transformations", "transformation", "node"}  # the possible roots
+    assert set(schema.elements) == {"transformations", "transformation", "node", "system"}  # the possible roots
 
 
 @pytest.mark.parametrize(
@@ -89,6 +90,7 @@ def test_xsd_elements_and_attributes_match_the_loader(schema: xmlschema.XMLSchem
         ("transformationType", spec.TRANSFORMATION_TYPES),
         ("pathMode", spec.PATH_MODES),
         ("nodeMiddleware", spec.NODE_MIDDLEWARES),
+        ("partState", MODE_STATES),
     ],
 )
 def test_xsd_enumerations_match_the_loader(schema: xmlschema.XMLSchema, type_name: str, values: tuple[str, ...]) -> None:
