@@ -227,8 +227,9 @@ def test_the_browser_tool_and_dyknow_model_show_the_mode_and_why(
     robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, listen=["tcp/127.0.0.1:0"])
     robot.measure("visibility", 0.3)
     robot.request("Mode(search)")
-    lines = run_cli("model", "--connect", robot.endpoints[0]).stdout
-    assert "system search in mode low since " in lines and "(unit search.low): requested Mode(search): the preferred mode" in lines, lines
+    result = run_cli("model", "--connect", robot.endpoints[0], "--manager", robot.name)
+    lines = result.stdout
+    assert "system search in mode low since " in lines and "(unit search.low): requested Mode(search): the preferred mode" in lines, result
     url = str(cli_process("ui", "--connect", robot.endpoints[0], "--port", "0", "--json").line()["url"])
     browser.get(url)
     wait_text(browser, "modes", "search: low since ")
