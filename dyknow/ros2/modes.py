@@ -222,12 +222,14 @@ class _System:
         self.lock = threading.RLock()
 
     def lifecycles_of(self, targets: Mapping[str, Target]) -> dict[str, NodeLifecycle]:
+        """The clients of the nodes of ``targets`` (made on first use, shared by the system's modes)."""
         for node in targets:
             if node not in self.lifecycles:
                 self.lifecycles[node] = NodeLifecycle(self.ros_node, node, timeout_s=self.timeout_s)
         return {node: self.lifecycles[node] for node in targets}
 
     def close(self) -> None:
+        """Close the node clients."""
         for lifecycle in self.lifecycles.values():
             lifecycle.close()
         self.lifecycles.clear()
