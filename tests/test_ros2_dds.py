@@ -59,9 +59,10 @@ class Rclpy:
         try:
             assert self.lines.get(timeout=30) == {"ready": True}
         except queue.Empty:
-            self.close()
+            self.proc.kill()  # its stderr is read before close() closes it
             stderr = self.proc.stderr.read() if self.proc.stderr else ""
-            raise AssertionError(f"rclpy did not start: {stderr[-2000:]}") from None
+            self.close()
+            raise AssertionError(f"rclpy did not start within 30 s: {stderr[-2000:]}") from None
 
     def send(self, line: str) -> None:
         """A command for the peer (a lifecycle node's "fail" or "stall")."""
