@@ -16,8 +16,10 @@ from dyknow.errors import BindingError
 from dyknow.ros2.dds import DdsNode
 from dyknow.ros2.lifecycle import NodeLifecycle
 from dyknow.ros2.modes import SwitchError, switch
-from dyknow.spec import parse_specs
+from dyknow.spec import TransformationSpec, parse_specs
 from dyknow.spec.modefile import Target
+from dyknow.spec.model import Port
+from dyknow.testing import Source
 from tests.conftest import CliProcess, run_cli
 from tests.test_adaptation import Events
 from tests.test_ros2_dds import Rclpy
@@ -202,18 +204,24 @@ def test_a_node_that_fails_makes_the_loop_leave_its_mode(
     assert observer.exposure("/searcher") == 3.0
 
 
+SENSOR = TransformationSpec("sensor", "dyknow.testing:Source", (), (Port("out", "out"),))
+
+
 @pytest.mark.process
-def test_a_measure_fed_from_a_zenoh_key_chooses_the_mode(
+def test_a_measure_fed_from_a_stream_chooses_the_mode(
     make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy]
 ) -> None:
-    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
+    robot = make_manager(specs=[*parse_specs(SEARCH), SENSOR], ros2_domain=domain, dwell_s=0.2)
     events = Events(robot)
+    robot.spawn("sensor", "sensor", bindings={"out": "sensors/visibility"})  # a unit of the same manager, as a driver's
+    sensor = robot.unit("sensor")
+    assert isinstance(sensor, Source)
     robot.measure_from("visibility", "sensors/visibility#value")
     assert robot.measure_feeds == {"visibility": "sensors/visibility#value"}
-    robot.session.put("sensors/visibility", b'{"value": 0.9}')
+    sensor.emit({"value": 0.9})
     wait_for(lambda: robot.measurements.get("visibility") == 0.9)
     robot.request("Mode(search)")
-    robot.session.put("sensors/visibility", b'{"value": 0.3}')
+    sensor.emit({"value": 0.3})
     event = events.wait("adapted", timeout_s=30)
     assert "search.low" in event.new and "visibility" in event.cause, event.to_dict()
     with pytest.raises(BindingError, match="the field 'not a path'"):

@@ -3,8 +3,12 @@
 ``Manager.measure_from("visibility", "ros2dds:/water_visibility?type=std_msgs/msg/Float64#data")``
 (``dyknow manager --measure-from NAME=SOURCE[#FIELD]``) makes every sample of SOURCE the latest
 value of measure NAME, which the specs' constraints read (:mod:`dyknow.manager.measurements`).
-SOURCE is a ``ros2:`` or ``ros2dds:`` topic (:mod:`dyknow.ros2.binding`) or a Zenoh key whose
-samples are JSON (:func:`~dyknow.reasoning.bindings.sample_value`); ``#FIELD`` is a dotted path
+SOURCE is a ``ros2:`` or ``ros2dds:`` topic (:mod:`dyknow.ros2.binding`) or a Zenoh key: a dyknow
+stream's (a unit's output, of this manager or another, such as a
+:class:`~dyknow.ros2.diagnostics.DiagnosticsSource`'s status of one node) or one whose samples are
+JSON (:func:`~dyknow.reasoning.bindings.sample_value`). The manager reads it as any input: a unit
+``feed.NAME`` (:class:`FeedUnit`) whose port ``in`` is bound to SOURCE, bounded as every input is
+(the ROS 2 companion's ``max_bytes``, the manager's message limit); ``#FIELD`` is a dotted path
 into each sample (``#pose.position.z``, ``#value``), the whole sample without it. A number or
 text is the measurement; a bool is 1 or 0; anything else is refused (logged once per feed, counted).
 
@@ -18,25 +22,40 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from dyknow import keys
 from dyknow.errors import BindingError, DyKnowError
+from dyknow.message import Message
 from dyknow.reasoning.bindings import check_source, is_ros2_source, sample_value
-from dyknow.ros2.binding import parse_binding
-from dyknow.ros2.bridge import Ros2Provider
-from dyknow.spec.model import Constraint
-from dyknow.transport import Session
+from dyknow.spec.model import Constraint, Port, TransformationSpec
+from dyknow.unit import Unit
 
-__all__ = ["REFRESH_S", "MeasureFeeds", "parse_feed"]
+__all__ = ["FEED_SPEC", "REFRESH_S", "FeedUnit", "MeasureFeeds", "parse_feed"]
 
 log = logging.getLogger("dyknow.manager")
 
 #: How often a sample that changes no constraint's verdict is recorded anyway.
 REFRESH_S = 1.0
 _MAX_FIELD = 300
+
+
+class FeedUnit(Unit):
+    """The unit of a measure's feed: hands each message of its input ``in`` to ``feed``."""
+
+    feed: Callable[[Any], None] | None = None
+
+    def on_message(self, port: str, msg: Message) -> None:
+        """Hand the message's payload on."""
+        feed = self.feed
+        if feed is not None:
+            feed(msg.payload)
+
+
+FEED_SPEC = TransformationSpec("measure-feed", "dyknow.manager.feeds:FeedUnit", (), (Port("in", "in"),), description="feeds a measure from a stream")
+"""The spec of a :class:`FeedUnit` (spawned by the manager, not in its library)."""
 
 
 def parse_feed(name: str, text: str) -> tuple[str, tuple[str, ...]]:
@@ -47,6 +66,8 @@ def parse_feed(name: str, text: str) -> tuple[str, tuple[str, ...]]:
     path = tuple(field.split(".")) if field else ()
     if len(field) > _MAX_FIELD or any(not part.isidentifier() for part in path):
         raise BindingError(f"the field {field[:100]!r}", where=where, expected="a dotted path of field names, such as #data or #pose.position.z")
+    if not is_ros2_source(source) and ("*" in source or "$" in source):
+        raise BindingError(f"the key expression {source[:200]!r} has wildcards", where=where, expected="one key: a measure has one value at a time")
     return check_source(source, where), path
 
 
@@ -71,13 +92,15 @@ class MeasureFeeds:
         *,
         record: Callable[[str, float | str], None],
         constraints: Callable[[str], Iterable[Constraint]],
-        session: Session,
-        ros2: Ros2Provider,
+        spawn: Callable[[TransformationSpec, str, Mapping[str, str]], object],
+        unit: Callable[[str], object],
+        destroy: Callable[[str], None],
     ) -> None:
         self._record = record
         self._constraints = constraints
-        self._session = session
-        self._ros2 = ros2
+        self._spawn = spawn
+        self._unit = unit
+        self._destroy = destroy
         self._feeds: dict[str, _Feed] = {}
         self._lock = threading.Lock()
 
@@ -85,28 +108,25 @@ class MeasureFeeds:
         """Feed measure ``name`` from ``SOURCE[#FIELD]`` (replacing an earlier feed of it)."""
         source, path = parse_feed(name, text)
         feed = _Feed(name, source, path, lambda: None)
-        feed.close = self._subscribe(source, lambda sample: self._sample(feed, sample))
         with self._lock:
-            old, self._feeds[name] = self._feeds.get(name), feed
-        if old is not None:
+            old = self._feeds.pop(name, None)
+        if old is not None:  # (its unit's name is the new one's)
             old.close()
+        feed.close = self._subscribe(name, source, lambda sample: self._sample(feed, sample))
+        with self._lock:
+            self._feeds[name] = feed
         log.info("measure %s from %s%s", name, source, "#" + ".".join(path) if path else "")
 
-    def _subscribe(self, source: str, on_sample: Callable[[Any], None]) -> Callable[[], None]:
-        if not is_ros2_source(source):
-            entity = self._session.declare_raw_subscriber(source, lambda _key, payload: on_sample(payload))
-            return entity.undeclare
-        binding = parse_binding(source, where=f"measure source {source[:300]!r}")
-        where = f"{binding.uri()} (a measure's source)"
-        if binding.dds:
-            dds = self._ros2.dds_node().create_subscription(
-                binding.topic, binding.ros_type, lambda received: on_sample(received.message), binding.qos, max_bytes=binding.max_bytes
-            )
-            return dds.close
-        zenoh = self._ros2.ros2_node().create_subscription(
-            binding.topic, binding.ros_type, lambda received: on_sample(received.message), binding.qos, humble=binding.humble, max_bytes=binding.max_bytes, where=where
-        )
-        return zenoh.close
+    def _subscribe(self, name: str, source: str, on_sample: Callable[[Any], None]) -> Callable[[], None]:
+        """A :class:`FeedUnit` named ``feed.NAME`` whose input is bound to ``source`` (the manager
+        wires a ROS 2 topic through its companion, a key through its bus and Zenoh, so a unit of the
+        same manager feeds it too); returns what destroys it."""
+        unit_name = f"feed.{name}"
+        self._spawn(FEED_SPEC, unit_name, {"in": source})
+        unit = self._unit(unit_name)
+        if isinstance(unit, FeedUnit):
+            unit.feed = on_sample
+        return lambda: self._destroy(unit_name)
 
     def feeds(self) -> dict[str, str]:
         """Each fed measure and its source."""
@@ -122,7 +142,7 @@ class MeasureFeeds:
         return feed is not None
 
     def _sample(self, feed: _Feed, sample: Any) -> None:
-        value = _value(sample if is_ros2_source(feed.source) else sample_value(sample), feed.path)
+        value = _value(sample_value(sample), feed.path)
         if value is None:
             feed.refused += 1
             if feed.refused == 1:
@@ -142,11 +162,14 @@ class MeasureFeeds:
         feed.last, feed.last_ns = verdicts, now
 
     def close(self) -> None:
-        """Stop every feed."""
+        """Stop every feed (a unit the manager already destroyed is left as it is)."""
         with self._lock:
             feeds, self._feeds = list(self._feeds.values()), {}
         for feed in feeds:
-            feed.close()
+            try:
+                feed.close()
+            except DyKnowError as exc:
+                log.debug("feed of %s: %s", feed.name, exc)
 
     def __enter__(self) -> MeasureFeeds:
         return self

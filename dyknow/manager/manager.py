@@ -268,8 +268,9 @@ class Manager:
         self._feeds = MeasureFeeds(
             record=self.measure,
             constraints=lambda name: [c for spec in self.library.specs() for c in spec.constraints if c.measure == name],
-            session=self._session,
-            ros2=self._ros2,
+            spawn=lambda spec, name, bindings: self.spawn(spec, name, bindings=bindings, protected=True),
+            unit=self.unit,
+            destroy=lambda name: self.destroy(name, force=True),
         )
         try:
             self._measurements.declare()
@@ -333,8 +334,7 @@ class Manager:
                 return
             self._closed = True
             self._measurements.undeclare()
-            self._feeds.close()
-            proxies = self._spawner.close()
+            proxies = self._spawner.close()  # (the feeds' units among them)
         if hasattr(self, "_health"):  # first: it reads the units (not made when __init__ failed before it)
             self._health.close()
         self._peers.say_goodbye()  # first: the others then know it stopped, and did not crash
@@ -758,6 +758,10 @@ class Manager:
         Replaces an earlier feed of the measure."""
         self._check_open()
         self._feeds.add(name, source)
+
+    def remove_measure_feed(self, name: str) -> bool:
+        """Stop taking measure ``name`` from its stream (its latest value stays); whether it was fed."""
+        return self._feeds.remove(name)
 
     @property
     def measure_feeds(self) -> dict[str, str]:
