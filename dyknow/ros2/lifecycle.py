@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 GET_STATE = "lifecycle_msgs/srv/GetState"
 CHANGE_STATE = "lifecycle_msgs/srv/ChangeState"
 SET_PARAMETERS = "rcl_interfaces/srv/SetParameters"
+GET_PARAMETERS = "rcl_interfaces/srv/GetParameters"
 
 #: The transitions dyknow asks for (``lifecycle_msgs/msg/Transition``'s ids).
 CONFIGURE, CLEANUP, ACTIVATE, DEACTIVATE = 1, 2, 3, 4
@@ -145,6 +146,16 @@ class NodeLifecycle:
                 expected=f"a running node {self.name} serving {self.name}/{suffix}" if silent else exc.expected,
             ) from exc
 
+    def prepare(self) -> None:
+        """Make every service client now (each finds its server in the background), so the first
+        transition or parameter set later does not wait for discovery (a DDS client's is tens to
+        hundreds of milliseconds)."""
+        self._client("get_state", GET_STATE)
+        if self.lifecycle:
+            self._client("change_state", CHANGE_STATE)
+        self._client("set_parameters", SET_PARAMETERS)
+        self._client("get_parameters", GET_PARAMETERS)
+
     def state(self, timeout_s: float | None = None) -> tuple[int, str]:
         """The node's state: its id and label (``(3, "active")``)."""
         state = self._call("get_state", GET_STATE, {}, timeout_s).current_state
@@ -166,7 +177,7 @@ class NodeLifecycle:
         """The values of parameters ``names`` (None for one that is not set)."""
         if not names:
             return {}
-        answer = self._call("get_parameters", "rcl_interfaces/srv/GetParameters", {"names": list(names)}, None)
+        answer = self._call("get_parameters", GET_PARAMETERS, {"names": list(names)}, None)
         values = list(answer.values)
         if len(values) != len(names):
             raise ServiceError(f"the node answered {len(values)} values for {len(names)} parameters", where=self.where)
@@ -179,7 +190,7 @@ class NodeLifecycle:
         if not values:
             return
         params = [parameter(name, value) for name, value in values.items()]
-        answer = self._call("set_parameters", "rcl_interfaces/srv/SetParameters", {"parameters": params}, None)
+        answer = self._call("set_parameters", SET_PARAMETERS, {"parameters": params}, None)
         results = list(zip(values, answer.results, strict=False))
         done = [name for name, result in results if result.successful]
         for name, result in results:

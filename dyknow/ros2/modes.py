@@ -222,10 +222,12 @@ class _System:
         self.lock = threading.RLock()
 
     def lifecycles_of(self, targets: Mapping[str, Target]) -> dict[str, NodeLifecycle]:
-        """The clients of the nodes of ``targets`` (made on first use, shared by the system's modes)."""
+        """The clients of the nodes of ``targets`` (made on first use, shared by the system's modes,
+        every service's at once: a node a mode leaves inactive is ready when another activates it)."""
         for node in targets:
             if node not in self.lifecycles:
-                self.lifecycles[node] = NodeLifecycle(self.ros_node, node, timeout_s=self.timeout_s)
+                lifecycle = self.lifecycles[node] = NodeLifecycle(self.ros_node, node, timeout_s=self.timeout_s)
+                lifecycle.prepare()
         return {node: self.lifecycles[node] for node in targets}
 
     def close(self) -> None:
