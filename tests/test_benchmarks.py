@@ -581,3 +581,21 @@ def test_demo_benchmark_smoke(tmp_path: Path) -> None:
     (run,) = json.loads(out.read_text())["runs"]
     assert run["figures"]["states"] > 0 and run["figures"]["seen_median_cm"] > 0
     assert "run 1:" in result.stdout and "over 1 runs of 6 s:" in result.stdout and "load average" in result.stdout
+
+
+@pytest.mark.process
+def test_pipeline_benchmark_smoke(tmp_path: Path) -> None:
+    from tests.conftest import dds_domain
+    from tests.test_pipeline_robot import need_ros_messages
+
+    need_ros_messages()
+    out = tmp_path / "pipeline.json"
+    result = _run("pipeline.py", "--smoke", "--ros2-domain", str(dds_domain()), "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert set(data["results"]) == {"visibility drop", "visibility rise", "thruster error"}
+    for row in data["results"].values():
+        assert row["faults"] == 2 and 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"], data
+    assert len(data["loadavg_1min"]) == 2 and data["target_p99_ms"] == 100
+    assert "target p99 <= 100 ms" in result.stdout and "load average" in result.stdout and "two hosts" in result.stdout
+    assert "ROSA paper (its Table 6" in result.stdout and "ROSA 1.24-2.50 s, Metacontrol 0.82-1.55 s" in result.stdout
