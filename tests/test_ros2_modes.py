@@ -88,6 +88,15 @@ def wait_for(condition: Callable[[], bool], timeout_s: float = 30.0) -> None:
         time.sleep(0.05)
 
 
+def in_high_mode(make_manager: Callable[..., Manager], domain: int) -> tuple[Manager, Events]:
+    """A manager of SEARCH whose request for Mode(search) took the high mode (visibility 0.9), and its events."""
+    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
+    events = Events(robot)
+    robot.measure("visibility", 0.9)
+    robot.request("Mode(search)")
+    return robot, events
+
+
 @pytest.fixture
 def nodes(rclpy_node: Callable[..., Rclpy]) -> tuple[Rclpy, Rclpy]:
     return rclpy_node("lifecycle", "searcher"), rclpy_node("lifecycle", "follower")
@@ -97,10 +106,7 @@ def nodes(rclpy_node: Callable[..., Rclpy]) -> tuple[Rclpy, Rclpy]:
 def test_the_measure_chooses_the_mode_and_a_switch_sets_parameters_and_states(
     make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], observer: Observer
 ) -> None:
-    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
-    events = Events(robot)
-    robot.measure("visibility", 0.9)
-    robot.request("Mode(search)")
+    robot, events = in_high_mode(make_manager, domain)
     assert {u.label for u in robot.get_model().units} >= {"search.high"}
     assert (observer.state("/searcher"), observer.state("/follower")) == ("active", "unconfigured")
     assert observer.exposure("/searcher") == 3.0
@@ -133,10 +139,7 @@ def test_the_measure_chooses_the_mode_and_a_switch_sets_parameters_and_states(
 def test_a_measure_hovering_at_the_threshold_switches_once_per_crossing(
     make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], observer: Observer
 ) -> None:
-    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
-    events = Events(robot)
-    robot.measure("visibility", 0.9)
-    robot.request("Mode(search)")
+    robot, events = in_high_mode(make_manager, domain)
     rng = random.Random(53)
     # down through the threshold once, with noise of +-0.04 around each level (inside the margin)
     levels = [0.8, 0.74, 0.7, 0.68, 0.66, 0.62, 0.6]
@@ -187,10 +190,7 @@ def test_a_node_that_fails_makes_the_loop_leave_its_mode(
     make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], observer: Observer
 ) -> None:
     searcher, follower = nodes
-    robot = make_manager(specs=parse_specs(SEARCH), ros2_domain=domain, dwell_s=0.2)
-    events = Events(robot)
-    robot.measure("visibility", 0.9)
-    robot.request("Mode(search)")
+    robot, events = in_high_mode(make_manager, domain)
     searcher.send("fail")  # its deactivation errs: ErrorProcessing, then unconfigured
     event = events.wait("adapted", timeout_s=30)
     assert "search.high" in event.old and "search.low" in event.new, event.to_dict()
