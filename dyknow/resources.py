@@ -4,7 +4,8 @@ the sources beside the modules that mypyc compiled.
 On the command line the shipped files have names that work from any folder (:func:`shipped_path`):
 ``@shipped`` is the folder of shipped specs and ontology (``--specs @shipped``, ``--ontology
 @shipped/dyknow.ttl``), ``@testing`` the folder of :mod:`dyknow.testing`'s scenario specs
-(``@testing/scenario-station.xml``); ``dyknow paths`` prints where they are.
+(``@testing/scenario-station.xml``), ``@pipeline`` the pipeline robot's managing spec and mode
+file (:mod:`dyknow.demo.pipeline`: ``@pipeline/pipeline.xml``); ``dyknow paths`` prints where they are.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from collections.abc import Iterable, MutableMapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SHIPPED_NAMES", "restore_docstrings", "shipped_path", "specs_dir", "testing_dir"]
+__all__ = ["SHIPPED_FILES", "SHIPPED_NAMES", "pipeline_dir", "restore_docstrings", "shipped_path", "specs_dir", "testing_dir"]
 
 
 def specs_dir() -> Path:
@@ -40,11 +41,20 @@ def testing_dir() -> Path:
     return Path(__file__).resolve().parent / "testing"
 
 
+def pipeline_dir() -> Path:
+    """The folder of :mod:`dyknow.demo.pipeline`'s files: the spec dyknow manages the pipeline
+    robot with (``pipeline.xml``) and the robot's mode file (``modes.yaml``)."""
+    return Path(__file__).resolve().parent / "demo" / "pipeline"
+
+
 #: The names of the shipped folders on the command line, and what each holds.
 SHIPPED_NAMES = {
     "@shipped": "dyknow's shipped specs and the example ontology (dyknow.ttl)",
     "@testing": "the scenario specs of dyknow.testing, whose stand-in units need no camera",
+    "@pipeline": "the pipeline robot's managing spec and its system_modes mode file (dyknow.demo.pipeline)",
 }
+#: The kinds of file the shipped folders hold (what ``dyknow paths`` lists).
+SHIPPED_FILES = (".xml", ".ttl", ".xsd", ".yaml")
 
 
 def shipped_path(text: str) -> str:
@@ -68,10 +78,10 @@ def shipped_path(text: str) -> str:
 
         known = ", ".join(SHIPPED_NAMES)
         raise ValueError(f"{text}: no shipped folder {name!r}{did_you_mean(name, list(SHIPPED_NAMES))}; expected one of {known} (dyknow paths lists them)")
-    folder = specs_dir() if name == "@shipped" else testing_dir()
+    folder = {"@shipped": specs_dir, "@testing": testing_dir, "@pipeline": pipeline_dir}[name]()
     path = folder / rest if rest else folder
     if not path.exists():
-        there = ", ".join(sorted(p.name for p in folder.iterdir() if p.suffix in (".xml", ".ttl", ".xsd")))
+        there = ", ".join(sorted(p.name for p in folder.iterdir() if p.suffix in SHIPPED_FILES))
         raise FileNotFoundError(f"{text}: {path} is not shipped; {name} holds {there}")
     return str(path)
 

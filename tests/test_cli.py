@@ -407,8 +407,12 @@ def test_paths_prints_where_the_shipped_files_are(tmp_path: Path) -> None:
     shipped = Path(found["folders"]["@shipped"]["path"])
     assert (shipped / "generic.xml").is_file() and "dyknow.ttl" in found["folders"]["@shipped"]["files"]
     assert "scenario-station.xml" in found["folders"]["@testing"]["files"]
+    assert {"pipeline.xml", "modes.yaml"} <= set(found["folders"]["@pipeline"]["files"])
     text = _outside(tmp_path, "paths").stdout
-    assert f"@shipped   {shipped}" in text and "@testing" in text
+    assert f"@shipped   {shipped}" in text and "@testing" in text and "@pipeline" in text
+    # (the pipeline robot's spec from any folder: its mode file beside it is found)
+    done = _outside(tmp_path, "validate", "@pipeline/pipeline.xml")
+    assert done.returncode == 0, done.stdout + done.stderr
 
 
 @pytest.mark.process

@@ -22,7 +22,7 @@ from dyknow import Manager
 from dyknow.errors import BindingError, ServiceError
 from dyknow.ros2 import parse_binding
 from dyknow.ros2.dds import FASTDDS_PROFILE
-from tests.conftest import REPO, dds_domain, run_cli, subprocess_env
+from tests.conftest import REPO, dds_domain, run_cli, subprocess_env, wait_until
 
 PEER = Path(__file__).with_name("ros2_rclpy_peer.py")
 
@@ -318,6 +318,42 @@ def test_a_dds_service_answers_a_dds_client(domain: int) -> None:
         with pytest.raises(ServiceError, match=r"no answer in 0\.[5-9] s"):
             client.call({"transition": {"id": 4}}, timeout_s=0.5)
         assert (server.received, server.answered, server.failed) == (3, 2, 1)
+
+
+def test_a_read_only_dds_call_asks_again_when_its_answer_is_lost_and_no_other_does(domain: int) -> None:
+    """Over DDS a response is lost when the server has not yet matched the client's reader
+    (beside CPU hogs, a new client's ``get_parameters`` waited its whole timeout, answered by
+    the next client at once). A read-only call writes its request again each ``resend_s``; a
+    call that changes something is written once, for a second ``change_state`` would be refused
+    or done twice. Here the server answers nothing to its first request, as when it is lost."""
+    from dyknow.ros2.dds import DdsNode
+    from dyknow.ros2.services import READ_ONLY_SERVICES
+
+    assert GET_STATE in READ_ONLY_SERVICES and CHANGE_STATE not in READ_ONLY_SERVICES
+    seen: list[int] = []
+
+    def lost_first(request: Any) -> Any:
+        seen.append(1)
+        if len(seen) == 1:
+            raise RuntimeError("lost")  # (a handler's exception answers nothing)
+        return {"current_state": {"id": 3, "label": "active"}}
+
+    def never(request: Any) -> Any:
+        raise RuntimeError("lost")
+
+    with DdsNode(domain=domain) as participant:
+        server = participant.create_service("/robot/get_state", GET_STATE, lost_first)
+        client = participant.create_client("/robot/get_state", GET_STATE)
+        assert client.call({}, timeout_s=30, resend_s=0.2).current_state.label == "active"
+        assert server.failed == 1 and server.answered >= 1
+        mute = participant.create_service("/mute/get_state", GET_STATE, never)
+        once = participant.create_client("/mute/get_state", GET_STATE)
+        with pytest.raises(ServiceError, match=r"no answer in \d+\.\d s"):
+            once.call({}, timeout_s=2.0)  # (written once: its only answer lost)
+        wait_until(lambda: mute.received >= 1, "the request to reach the server")
+        assert mute.received == 1
+        with pytest.raises(BindingError, match=r"resend every 0\.01 s"):
+            client.call({}, timeout_s=1.0, resend_s=0.01)
 
 
 @pytest.mark.process

@@ -311,8 +311,19 @@ def cmd_request(args: argparse.Namespace) -> int:
 
 
 def cmd_release(args: argparse.Namespace) -> int:
-    """give back a requested stream"""
+    """give back a requested stream: by the key dyknow request printed, or by its tag
+
+    examples:
+      dyknow release dyknow/robot/requests/BallTrack(field)
+      dyknow release 'Mode(motion)' --manager auv"""
     with open_client(args) as client:
+        if "/" not in args.key:  # a tag (keys have slashes, tags none): the key of the one request for it
+            requests = client.get_model().get("requests", [])
+            keys = sorted(r["key"] for r in requests if r.get("tag") == args.key)
+            if len(keys) > 1:
+                raise UsageError(f"{len(keys)} requests for {args.key!r}: {', '.join(keys)}; give the key of the one to release")
+            if keys:
+                args.key = keys[0]
         remaining = client.release(args.key, force=args.force)
     if remaining:
         text = f"released one reference to {args.key}; {remaining} more remain, so it runs on until they are released too"
@@ -591,7 +602,7 @@ def add_commands(cmds: Commands) -> None:
     cmds.command("request", cmd_request, request_options, client=True)
 
     def release_options(p: argparse.ArgumentParser) -> None:
-        p.add_argument("key", help="the key dyknow request printed")
+        p.add_argument("key", metavar="KEY_OR_TAG", help="the key dyknow request printed, or the tag it was asked for (when one request has it)")
         p.add_argument("--force", action="store_true",
                        help="give back every reference, whoever requested it (an admin's call on a manager with roles); "
                             "without it, only what this caller requested")  # fmt: skip

@@ -107,7 +107,7 @@ def seconds(text: str) -> float:
 
 
 def shipped(text: str) -> str:
-    """A path option's value, where ``@shipped`` and ``@testing`` name the shipped folders
+    """A path option's value, where ``@shipped``, ``@testing`` and ``@pipeline`` name the shipped folders
     (:func:`dyknow.resources.shipped_path`), so a documented command line works from any folder."""
     from pathlib import Path
 

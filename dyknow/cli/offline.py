@@ -38,7 +38,7 @@ def cmd_certs(args: argparse.Namespace) -> int:
 
 def cmd_paths(args: argparse.Namespace) -> int:
     """print where dyknow's shipped files are, and the names that reach them from any folder
-    (@shipped, @testing: --specs @shipped --ontology @shipped/dyknow.ttl)
+    (@shipped, @testing, @pipeline: --specs @shipped --ontology @shipped/dyknow.ttl)
 
     examples:
       dyknow paths
@@ -48,10 +48,10 @@ def cmd_paths(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     import dyknow
-    from dyknow.resources import SHIPPED_NAMES, shipped_path
+    from dyknow.resources import SHIPPED_FILES, SHIPPED_NAMES, shipped_path
 
     folders = {name: shipped_path(name) for name in SHIPPED_NAMES}
-    files = {name: sorted(p.name for p in Path(folder).iterdir() if p.suffix in (".xml", ".ttl", ".xsd")) for name, folder in folders.items()}
+    files = {name: sorted(p.name for p in Path(folder).iterdir() if p.suffix in SHIPPED_FILES) for name, folder in folders.items()}
     data = {
         "version": dyknow.__version__,
         "package": str(Path(dyknow.__file__).resolve().parent),
@@ -201,7 +201,7 @@ def add_commands(cmds: Commands) -> None:
     def plan_options(p: argparse.ArgumentParser) -> None:
         limit_options(p)
         p.add_argument("--specs", action="extend", nargs="+", required=True, type=shipped, metavar="PATH",
-                       help="spec files or directories (@shipped: dyknow's own, @testing: the scenario's)")  # fmt: skip
+                       help="spec files or directories (@shipped: dyknow's own, @testing: the scenario's, @pipeline: the pipeline robot's)")  # fmt: skip
         p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
                        help="ontology files (@shipped/dyknow.ttl: the example ontology)")  # fmt: skip
         p.add_argument("--request", required=True, metavar="TAG", help="the tag to provide, e.g. 'BallPosition(field)'")

@@ -148,6 +148,20 @@ def parse_request(text: str) -> dict[str, Any]:
     return value
 
 
+def _small_arrays_listed(value: Any, most: int = 1024) -> Any:
+    """``value`` with its arrays of at most ``most`` elements as lists (as ``ros2 service call``
+    prints ``byte_array_value=[]``); larger ones stay arrays, described by :func:`payload_json`."""
+    import numpy as np
+
+    if isinstance(value, np.ndarray):
+        return value.tolist() if value.size <= most else value
+    if isinstance(value, dict):
+        return {key: _small_arrays_listed(item, most) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_small_arrays_listed(item, most) for item in value]
+    return value
+
+
 def cmd_ros2_call(args: argparse.Namespace) -> int:
     """call a ROS 2 service once and print its response, as `ros2 service call` does (rmw_zenoh, or DDS with --dds)
 
@@ -164,8 +178,11 @@ def cmd_ros2_call(args: argparse.Namespace) -> int:
         from dyknow.ros2.dds import DdsNode
 
         with DdsNode(domain=ros2_domain(args)) as participant:
+            from dyknow.ros2.services import READ_ONLY_SERVICES, RESEND_S
+
             client = participant.create_client(args.service, args.srv_type)
-            response = client.call(request, timeout_s=args.timeout)
+            resend = RESEND_S if args.srv_type in READ_ONLY_SERVICES else None  # (an answer lost to discovery: asked again)
+            response = client.call(request, timeout_s=args.timeout, resend_s=resend)
             response_type = client.response_type
     else:
         from dyknow.errors import ServiceError
@@ -181,7 +198,7 @@ def cmd_ros2_call(args: argparse.Namespace) -> int:
                 raise _with_roles(exc, args.service, tls) from exc
             response_type = zclient.response_type
     took_ms = (time.monotonic() - started) * 1000
-    fields = payload_json(from_message(response, response_type))
+    fields = payload_json(_small_arrays_listed(from_message(response, response_type)))
     data = {"service": args.service, "type": args.srv_type, "request": request, "response": fields, "took_ms": round(took_ms, 1)}
 
     def lines() -> Iterable[str]:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -378,13 +379,23 @@ class DdsClient:
                     matched.changed.wait(left)
         return True
 
-    def call(self, request: Any, timeout_s: float = 5.0) -> Any:
+    def call(self, request: Any, timeout_s: float = 5.0, *, resend_s: float | None = None) -> Any:
         """Send ``request`` (a request message or a dict of its fields) and return the response
         message; waits up to ``timeout_s`` in all (for a server to be matched both ways, for the
         calls before it, for the answer). Raises :class:`~dyknow.errors.ServiceError` naming the
-        service and the time waited when nothing answers."""
+        service and the time waited when nothing answers.
+
+        ``resend_s``: write the request again each ``resend_s`` seconds while no answer came, for
+        a service whose call changes nothing (:data:`dyknow.ros2.services.READ_ONLY_SERVICES`). A response is lost
+        when the server's reply writer has not yet matched this client's reader (discovery runs
+        both ways, and only this side's is seen); beside CPU hogs that took longer than
+        :data:`_SETTLE_S`, and a new client's ``get_parameters`` waited its whole timeout. Never
+        for a call that changes something: a second ``change_state`` would be refused, or done
+        twice."""
         if not 0 < timeout_s <= 3600:
             raise BindingError(f"timeout {timeout_s} s", where=self.where, expected="from 0 to 3600 s")
+        if resend_s is not None and not 0.05 <= resend_s <= 3600:
+            raise BindingError(f"resend every {resend_s} s", where=self.where, expected="from 0.05 to 3600 s, or None")
         data = self._types.serialize(as_message(request, self.request_type, self._types, self.where), self.request_type)
         started = time.monotonic()
         deadline = started + timeout_s
@@ -404,10 +415,18 @@ class DdsClient:
             ret = writer.write_cdr(data)
             if ret < 0:
                 raise ServiceError(f"Cyclone DDS returned {ret} writing the request", where=self.where)
+            resend_at = time.monotonic() + resend_s if resend_s is not None else math.inf
             while True:
-                left = deadline - time.monotonic()
-                if left <= 0 or not self._data.wait(left):
-                    raise self._no_answer(time.monotonic() - started, f"{self.servers} server(s) matched")
+                now = time.monotonic()
+                if now >= resend_at and resend_s is not None:
+                    if writer.write_cdr(data) < 0:
+                        raise ServiceError("Cyclone DDS refused to write the request again", where=self.where)
+                    resend_at = now + resend_s
+                left = deadline - now
+                if left <= 0:
+                    raise self._no_answer(now - started, f"{self.servers} server(s) matched")
+                if not self._data.wait(min(left, max(0.0, resend_at - now))):
+                    continue
                 self._data.clear()
                 for payload, info in reader.take_cdr(64):
                     if not info.valid_data:

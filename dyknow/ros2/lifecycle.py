@@ -30,9 +30,10 @@ from collections.abc import Mapping
 from typing import Any, Protocol
 
 from dyknow.errors import BindingError, ClosedError, DyKnowError, ServiceError
-from dyknow.ros2.dds import DdsNode
+from dyknow.ros2.dds import DdsClient, DdsNode
 from dyknow.ros2.names import check_topic
 from dyknow.ros2.node import Ros2Node
+from dyknow.ros2.services import READ_ONLY_SERVICES, RESEND_S
 from dyknow.spec.modefile import ParameterValue
 
 __all__ = ["ACTIVATE", "CLEANUP", "CONFIGURE", "DEACTIVATE", "STATES", "NodeLifecycle", "ParameterValue", "parameter", "parameter_value"]
@@ -137,7 +138,10 @@ class NodeLifecycle:
 
     def _call(self, suffix: str, srv_type: str, request: dict[str, Any], timeout_s: float | None) -> Any:
         try:
-            return self._client(suffix, srv_type).call(request, timeout_s=timeout_s or self.timeout_s)
+            client = self._client(suffix, srv_type)
+            if isinstance(client, DdsClient) and srv_type in READ_ONLY_SERVICES:  # (a lost answer asked again)
+                return client.call(request, timeout_s=timeout_s or self.timeout_s, resend_s=RESEND_S)
+            return client.call(request, timeout_s=timeout_s or self.timeout_s)
         except ServiceError as exc:
             silent = "no answer" in exc.what
             raise ServiceError(

@@ -40,12 +40,22 @@ from dyknow.ros2.types import MAX_CDR_BYTES, TypeSupport
 if TYPE_CHECKING:
     from dyknow.transport import Session
 
-__all__ = ["DEFAULT_MAX_PENDING", "DEFAULT_MAX_REQUEST_BYTES", "Ros2Client", "Ros2Service", "ServiceNode", "as_message"]
+__all__ = ["DEFAULT_MAX_PENDING", "DEFAULT_MAX_REQUEST_BYTES", "READ_ONLY_SERVICES", "RESEND_S", "Ros2Client", "Ros2Service", "ServiceNode", "as_message"]
 
 log = logging.getLogger(__name__)
 
 #: The largest request a server takes, and reply a client takes, unless told otherwise (bytes).
 DEFAULT_MAX_REQUEST_BYTES = 1 << 20
+#: The service types of ROS 2 whose calls change nothing (they read a node's state or
+#: parameters), so a request may be written again when no answer came: over DDS a response is
+#: lost when the server has not yet matched the client's reader (:meth:`dyknow.ros2.dds.DdsClient.call`).
+READ_ONLY_SERVICES = frozenset({
+    "lifecycle_msgs/srv/GetState", "lifecycle_msgs/srv/GetAvailableStates", "lifecycle_msgs/srv/GetAvailableTransitions",
+    "rcl_interfaces/srv/GetParameters", "rcl_interfaces/srv/GetParameterTypes", "rcl_interfaces/srv/ListParameters",
+    "rcl_interfaces/srv/DescribeParameters", "type_description_interfaces/srv/GetTypeDescription",
+})  # fmt: skip
+#: Seconds between two writes of a read-only request that no answer came to (over DDS).
+RESEND_S = 1.0
 #: How many requests a server keeps waiting for its handler before it drops the next ones.
 DEFAULT_MAX_PENDING = 64
 # when the first server of a call shows up during the call, how long the call lets its queryable's

@@ -144,6 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     robot_args = ["--speed", str(options.speed), "--seed", str(options.seed), "--mission-s", str(options.mission_s)]
+    if options.recovery_s is not None:
+        robot_args += ["--recovery-s", str(options.recovery_s)]
     if options.script:
         robot_args += ["--script", options.script]
     stopping = threading.Event()

@@ -30,6 +30,7 @@ dyknow's test extra, not with dyknow).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import signal
@@ -87,19 +88,23 @@ class Options:
     seed: int = 0
     script: str | None = None
     mission_s: float = 300.0
+    recovery_s: float | None = None  # (None: the script's)
 
     def load_script(self) -> Script:
-        """The mission's script, seeded."""
-        return Script(seed=self.seed) if self.script is None else Script.load(self.script, seed=self.seed)
+        """The mission's script, seeded (its recovery time ``recovery_s`` unless None)."""
+        script = Script(seed=self.seed) if self.script is None else Script.load(self.script, seed=self.seed)
+        return script if self.recovery_s is None else dataclasses.replace(script, recovery_s=self.recovery_s)
 
 
 def argument_parser(prog: str = "python -m dyknow.demo.pipeline.robot") -> argparse.ArgumentParser:
-    """The command line's parser: ``--speed K --seed N --script FILE --mission-s S``."""
+    """The command line's parser: ``--speed K --seed N --script FILE --mission-s S --recovery-s S``."""
     parser = argparse.ArgumentParser(prog=prog, description="An underwater robot inspecting a pipeline, as ROS 2 nodes (after SUAVE).")
     parser.add_argument("--speed", type=float, default=1.0, help="simulated seconds per real second (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the visibility's noise (default 0)")
     parser.add_argument("--script", help="a JSON file: visibility steps, noise, thruster faults, ... (default: the built-in mission)")
     parser.add_argument("--mission-s", type=float, default=300.0, help="the mission's length in simulated seconds (default 300)")
+    parser.add_argument("--recovery-s", type=float, default=None,
+                        help="how long a failed thruster takes to recover while recovery is active, simulated seconds (default: the script's, 3)")  # fmt: skip
     return parser
 
 
@@ -112,7 +117,9 @@ def parse_args(argv: Sequence[str] | None = None, parser: argparse.ArgumentParse
         parser.error(f"--speed {args.speed}: expected a speed-up from more than 0 to 1000")
     if not 0 < args.mission_s <= 86400:
         parser.error(f"--mission-s {args.mission_s}: expected from more than 0 to 86400 simulated seconds")
-    return Options(speed=args.speed, seed=args.seed, script=args.script, mission_s=args.mission_s), args
+    if args.recovery_s is not None and not 0 <= args.recovery_s <= 3600:
+        parser.error(f"--recovery-s {args.recovery_s}: expected from 0 to 3600 simulated seconds")
+    return Options(speed=args.speed, seed=args.seed, script=args.script, mission_s=args.mission_s, recovery_s=args.recovery_s), args
 
 
 class _Mission:
