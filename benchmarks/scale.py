@@ -109,11 +109,14 @@ def discover(client: Client, managers: int, since: float, timeout_s: float) -> d
     errors: list[BaseException] = []
     deadline = since + timeout_s
 
+    last: list[str] = []  # (why the latest request failed, for the error when none succeeded)
+
     def plannable() -> None:
         while time.monotonic() < deadline:
             try:
                 key = client.request("Joined")
-            except DyKnowError:
+            except DyKnowError as exc:
+                last[:] = [str(exc)]
                 time.sleep(0.05)
                 continue
             out["plannable_s"] = time.monotonic() - since
@@ -145,7 +148,8 @@ def discover(client: Client, managers: int, since: float, timeout_s: float) -> d
         raise errors[0]
     missing = [k for k in ("plannable_s", "listed_s") if k not in out]
     if missing:
-        raise RuntimeError(f"discovery not complete within {timeout_s} s: {missing} never happened")
+        why = f"; the latest request said: {last[0]}" if last and "plannable_s" in missing else ""
+        raise RuntimeError(f"discovery not complete within {timeout_s} s: {missing} never happened{why}")
     return out
 
 
@@ -237,7 +241,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"all printed their ready line {ready - launched:.2f} s after the last launch", flush=True)  # fmt: skip
 
             with Client("m0", connect=[hub], timeout_s=10) as client:
-                found = discover(client, n, ready, timeout_s=120)
+                try:
+                    found = discover(client, n, ready, timeout_s=120)
+                except RuntimeError as exc:  # (what m0 logged says why its plans failed)
+                    raise RuntimeError(f"{exc}\nm0's log, its end: {procs[0].error_tail()}") from None
                 results["discovery"] = {"startup_s": round(ready - launched, 3), **{k: round(v, 3) for k, v in found.items()}}
                 up = ready - launched
                 print(

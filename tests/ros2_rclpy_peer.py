@@ -9,7 +9,8 @@ run as a child process with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (discovery o
                                                         a double parameter "exposure" (0.1); publishes std_msgs/String
                                                         on TOPIC every 20 ms while active; a line "fail" on stdin makes
                                                         it fail a deactivation (ErrorProcessing, then unconfigured), a line
-                                                        "stall" makes it stop publishing
+                                                        "stall" makes it stop publishing, a line "die-on-activate" makes
+                                                        its next activation end the process (exit status 3, no answer)
     python tests/ros2_rclpy_peer.py call SERVICE TYPE JSON [TIMEOUT]
                                                         an rclpy client calls once (JSON: the request's fields,
                                                         lifecycle_msgs types) and prints {"response": ...} or null
@@ -28,6 +29,7 @@ geometry_msgs/msg/TwistStamped (stamped sec=i, nanosec=5; twist.linear.x = i % 2
 from __future__ import annotations
 
 import json
+import os
 import sys
 import threading
 import time
@@ -50,6 +52,7 @@ def lifecycle(name: str, closed: threading.Event, commands: list[str], topic: st
     class Node(LifecycleNode):
         failing = False
         stalled = False
+        dying = False
 
         def on_configure(self, state: State) -> TransitionCallbackReturn:
             out({"transition": "configure", "exposure": self.get_parameter("exposure").value})
@@ -59,6 +62,8 @@ def lifecycle(name: str, closed: threading.Event, commands: list[str], topic: st
 
         def on_activate(self, state: State) -> TransitionCallbackReturn:
             out({"transition": "activate"})
+            if self.dying:  # the process ends mid-transition, as a crash would (it answers nothing)
+                os._exit(3)
             return super().on_activate(state)
 
         def on_deactivate(self, state: State) -> TransitionCallbackReturn:
@@ -85,6 +90,8 @@ def lifecycle(name: str, closed: threading.Event, commands: list[str], topic: st
                 node.trigger_deactivate()
             elif command == "stall":  # stays active, publishes nothing more
                 node.stalled = True
+            elif command == "die-on-activate":
+                node.dying = True
         if topic is not None and hasattr(node, "pub") and not node.stalled:
             i += 1
             node.pub.publish(String(data=f"{name} {i}"))  # a lifecycle publisher sends only while active

@@ -186,6 +186,43 @@ def test_a_switch_that_fails_half_way_is_rolled_back(domain: int, nodes: tuple[R
 
 
 @pytest.mark.process
+def test_a_node_that_crashes_mid_switch_is_reported_as_it_is_and_once_restarted_the_next_switch_brings_it_up(
+    domain: int, nodes: tuple[Rclpy, Rclpy], rclpy_node: Callable[..., Rclpy]
+) -> None:
+    """The follower's process ends in the middle of its activation (a crash): the switch fails on
+    the call that got no answer, puts the searcher's parameter back, says it could not undo the
+    follower's configuration and that the follower does not answer. The node's supervisor starts
+    it again, and the next switch to the same mode, with the same clients, configures and
+    activates the new process: it gets those two transitions and nothing of the failed switch
+    (the requests of a call that went unanswered stayed in the client's writer, and a restarted
+    node was given them: it was active before the next switch began)."""
+    searcher, follower = nodes
+    with DdsNode(domain=domain) as participant:
+        lifecycles = {"/searcher": NodeLifecycle(participant, "/searcher", timeout_s=15), "/follower": NodeLifecycle(participant, "/follower", timeout_s=4)}
+        switch(lifecycles, {"/searcher": Target("/searcher", "active", None, {"exposure": 2.0}), "/follower": Target("/follower", "inactive")}, where="test")
+        both = {"/searcher": Target("/searcher", "active", None, {"exposure": 4.0}), "/follower": Target("/follower", "active")}
+        follower.send("die-on-activate")
+        with pytest.raises(SwitchError) as caught:
+            switch(lifecycles, both, where="mode search.both")
+        what = caught.value.what
+        assert what.startswith("activating /follower failed: /follower/change_state: no answer in"), what
+        assert "the rollback could not clean up /follower" in what, what
+        assert caught.value.states == {"/searcher": "active", "/follower": "unknown (get_state does not answer)"}, caught.value.states
+        assert follower.proc.wait(timeout=30) == 3
+        assert lifecycles["/searcher"].get_parameters(["exposure"]) == {"exposure": 2.0}  # set back
+        restarted = rclpy_node("lifecycle", "follower")
+        wait_for(lambda: lifecycles["/follower"].state()[1] == "unconfigured", timeout_s=60)  # (the new process answers)
+        done = switch(lifecycles, both, where="mode search.both")
+        assert done.steps == ["/searcher: set 1 parameter(s)", "/follower: configure", "/follower: activate"], done.steps
+        assert lifecycles["/follower"].state()[1] == "active" and lifecycles["/searcher"].get_parameters(["exposure"]) == {"exposure": 4.0}
+        assert [restarted.lines.get(timeout=20) for _ in range(2)] == [{"transition": "configure", "exposure": 0.1}, {"transition": "activate"}]
+        time.sleep(0.5)  # (nothing more comes: a replayed request would be printed too)
+        assert restarted.lines.empty(), restarted.lines.get()
+        for lifecycle in lifecycles.values():
+            lifecycle.close()
+
+
+@pytest.mark.process
 def test_a_node_that_fails_makes_the_loop_leave_its_mode(
     make_manager: Callable[..., Manager], domain: int, nodes: tuple[Rclpy, Rclpy], observer: Observer
 ) -> None:

@@ -326,9 +326,6 @@ class DdsClient:
     """
 
     def __init__(self, node: DdsNode, service: str, srv_type: str, *, max_bytes: int = DEFAULT_MAX_REQUEST_BYTES) -> None:
-        from cyclonedds.core import Listener
-
-        raw_writer, raw_reader = _raw_entities()
         self.service = check_topic(service, "ROS 2 service")
         self.srv_type = srv_type
         self.where = f"DDS client of {self.service}"
@@ -338,29 +335,45 @@ class DdsClient:
         self.max_bytes = max_bytes
         self._types = node.types
         self._node = node
+        self._closed = False
         self._call_lock = threading.Lock()
-        self._readers, self._writers = _Matched(), _Matched()  # the servers' request readers and reply writers
         self._data = threading.Event()
-        client = self
+        self._readers, self._writers = _Matched(), _Matched()  # the servers' request readers and reply writers
+        self._reader: Any = None
+        self._writer: Any = None
+        self._open()
+
+    def _open(self) -> None:
+        """Make the request writer and the reply reader (anew after a call went unanswered: see
+        :meth:`call`), with counters of their matches of their own."""
+        from cyclonedds.core import Listener
+
+        raw_writer, raw_reader = _raw_entities()
+        readers, writers, data = _Matched(), _Matched(), self._data
 
         class _WriterListener(Listener):  # type: ignore[misc]
             def on_publication_matched(self, writer: Any, status: Any) -> None:
-                client._readers.set(int(status.current_count))
+                readers.set(int(status.current_count))
 
         class _ReaderListener(Listener):  # type: ignore[misc]
             def on_data_available(self, reader: Any) -> None:
-                client._data.set()
+                data.set()
 
             def on_subscription_matched(self, reader: Any, status: Any) -> None:
-                client._writers.set(int(status.current_count))
+                writers.set(int(status.current_count))
 
+        node = self._node
         qos = _qos(DEFAULT_QOS)  # rmw_qos_profile_services_default: reliable, volatile, keep last 10
-        self._reader: Any = raw_reader(
-            node.participant, node.named_topic(dds_reply_topic(self.service), self.response_type), qos=qos, listener=_ReaderListener()
-        )
-        self._writer: Any = raw_writer(
-            node.participant, node.named_topic(dds_request_topic(self.service), self.request_type), qos=qos, listener=_WriterListener()
-        )
+        self._readers, self._writers = readers, writers
+        self._reader = raw_reader(node.participant, node.named_topic(dds_reply_topic(self.service), self.response_type), qos=qos, listener=_ReaderListener())
+        self._writer = raw_writer(node.participant, node.named_topic(dds_request_topic(self.service), self.request_type), qos=qos, listener=_WriterListener())
+
+    def _delete(self) -> None:
+        writer, self._writer = self._writer, None
+        reader, self._reader = self._reader, None
+        for entity in (writer, reader):
+            if entity is not None:
+                entity.__del__()  # as DdsPublisher.close
 
     @property
     def servers(self) -> int:
@@ -384,6 +397,11 @@ class DdsClient:
         message; waits up to ``timeout_s`` in all (for a server to be matched both ways, for the
         calls before it, for the answer). Raises :class:`~dyknow.errors.ServiceError` naming the
         service and the time waited when nothing answers.
+
+        A call that goes unanswered deletes the client's writer and reader and makes new ones:
+        its request stayed in the writer's history unacknowledged, and a node that restarted
+        meanwhile was given it (and a cleanup of the rollback then took the answer to that
+        replayed activation for its own: the restarted node ended active, reported rolled back).
 
         ``resend_s``: write the request again each ``resend_s`` seconds while no answer came, for
         a service whose call changes nothing (:data:`dyknow.ros2.services.READ_ONLY_SERVICES`). A response is lost
@@ -424,7 +442,9 @@ class DdsClient:
                     resend_at = now + resend_s
                 left = deadline - now
                 if left <= 0:
-                    raise self._no_answer(now - started, f"{self.servers} server(s) matched")
+                    servers = self.servers
+                    self._reopen()  # see the docstring: nothing of this call reaches or answers a later one
+                    raise self._no_answer(now - started, f"{servers} server(s) matched")
                 if not self._data.wait(min(left, max(0.0, resend_at - now))):
                     continue
                 self._data.clear()
@@ -445,13 +465,16 @@ class DdsClient:
             expected="a server of this name and type that answers (dyknow ros2 list --dds shows the services), or a longer timeout",
         )
 
+    def _reopen(self) -> None:
+        """A writer and a reader anew, unless closed meanwhile."""
+        self._delete()
+        if not self._closed:
+            self._open()
+
     def close(self) -> None:
         """Delete the writer and the reader; safe twice."""
-        writer, self._writer = self._writer, None
-        reader, self._reader = self._reader, None
-        for entity in (writer, reader):
-            if entity is not None:
-                entity.__del__()  # as DdsPublisher.close
+        self._closed = True
+        self._delete()
         self._node.forget(self)
 
     def __enter__(self) -> DdsClient:
