@@ -264,8 +264,11 @@ HOLDER_SCOPE_DIGITS = 16
 
 def holder_token(key: str, holder: str) -> str:
     """The liveliness token a client declares while it holds the request or monitor on ``key``:
-    ``<key>/holders/<holder>`` (a quantified monitor's key without its ``/*``; :mod:`dyknow.holders`)."""
-    return f"{key.removesuffix('/*')}/holders/{holder}"
+    ``<key>/holders/<holder>`` (a quantified monitor's key without its ``/*``, one per variable:
+    ``monitors/4/*/*`` is held on ``monitors/4/holders/<holder>``; :mod:`dyknow.holders`)."""
+    while key.endswith("/*"):  # (only one was taken off: a nested forall's holder was never seen, and its monitors went after the grace)
+        key = key[:-2]
+    return f"{key}/holders/{holder}"
 
 
 def holders_pattern(manager: str = "*") -> str:

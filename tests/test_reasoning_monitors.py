@@ -4,6 +4,7 @@ term, keeps them flowing, and publishes the verdicts on a key that outlives fail
 from __future__ import annotations
 
 import re
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -129,6 +130,33 @@ def test_a_quantified_formula_is_one_monitor_per_individual(make_manager: Callab
     with pytest.raises(FormulaError, match="expected 'in' after the variable: forall c in"):
         manager.monitor("forall c Camera: Fresh(c).value > 0")
     manager.release(key)
+    assert manager.monitors() == [] and not any(u.name.startswith("monitor") for u in manager.units())
+
+
+def test_a_nested_quantified_monitor_lives_as_long_as_its_holder(make_manager: Callable[..., Manager]) -> None:
+    """Issue 54 item 1: ``forall a: forall b:`` over the ontology's 3 cameras, asked for by a
+    client, is 9 pair monitors on ``<key>/<a>/<b>``; each one's verdicts go on for 60 s, six
+    times the manager's grace for a holder that is gone. (They all stopped after the grace: the
+    client's holder token was declared on ``<key>/*/holders/<id>``, the manager watched
+    ``<key>/holders/<id>``, so the holder was never seen and its monitor released.) Released by
+    the client, they all go."""
+    manager = make_manager(ontology=[ONTOLOGY], specs=[REPO / "tests" / "units.xml", REPO / "specs" / "generic.xml"], queue_depth=10_000,
+                           client_grace_s=10.0)  # fmt: skip
+    manager.add_transformation(LEVELS)
+    with Client(manager.name, connect=manager.endpoints, timeout_s=30) as client:
+        key = client.monitor("forall a in Camera: forall b in Camera: a != b implies Fresh(a).value > 0 and Fresh(b).value > 0")
+        assert key == f"dyknow/{manager.name}/monitors/1/*/*"
+        (info,) = manager.monitors()
+        pairs = {k for _, _, _, k in info.expansions}
+        assert len(pairs) == 9 and f"dyknow/{manager.name}/monitors/1/top/bottom" in pairs
+        verdicts = _sink(manager, "verdicts", key, label="sink")
+        started = time.monotonic()
+        wait_until(lambda: {m.key for m in verdicts.messages if m.payload["verdict"]} == pairs, "a true verdict per pair")
+        time.sleep(max(0.0, 60.0 - (time.monotonic() - started)))
+        seen = len(verdicts.messages)
+        wait_until(lambda: {m.key for m in list(verdicts.messages)[seen:]} == pairs, "verdicts of every pair after 60 s")
+        assert len(manager.monitors()) == 1 and len([u for u in manager.units() if u.name.startswith("monitor")]) == 9
+        client.release(key)
     assert manager.monitors() == [] and not any(u.name.startswith("monitor") for u in manager.units())
 
 
