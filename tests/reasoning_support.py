@@ -9,9 +9,11 @@ from its pieces), quadratic and slow, which is the point.
 
 from __future__ import annotations
 
+import json
 import math
 import random
 from collections.abc import Mapping, Sequence
+from fractions import Fraction
 from typing import Any
 
 from hypothesis import strategies as st
@@ -602,6 +604,30 @@ def seconds(trace: Mapping[Term, Sequence[tuple[int, Any]]]) -> dict[str, list[t
     return {str(term): [(t / 1e9, v) for t, v in samples] for term, samples in trace.items()}
 
 
+def naive_object_key(value: str | int | float) -> str:
+    """The key of the object a string or a finite number names, from the semantics' text (JSON's
+    identity: a number is one value however written, a string never a number), by way of the
+    json module: a number's key is its value's text (an integer as one, and a float whose value is
+    an integer below 2**53), a string's
+    the string itself unless it is the key of the number JSON reads it as (or starts with a double
+    quote), then its JSON text."""
+    if isinstance(value, str):
+        if value.startswith('"'):  # (else the string '"1"' would share the string "1"'s key)
+            return json.dumps(value, ensure_ascii=False)
+        try:
+            read = json.loads(value)
+        except ValueError:
+            return value
+        is_number = isinstance(read, (int, float)) and not isinstance(read, bool) and math.isfinite(read)
+        return json.dumps(value, ensure_ascii=False) if is_number and naive_object_key(read) == value else value
+    if isinstance(value, int):
+        return str(value)
+    exact = Fraction(value)
+    if exact.denominator == 1 and abs(exact) < 2**53:
+        return str(exact.numerator)
+    return repr(value)
+
+
 def naive_evaluate_objects(
     var: str, domain: Stream, body: Formula, streams: Mapping[Term, Sequence[tuple[int, Any]]], idle_ns: int
 ) -> dict[str, list[list[tuple[int, Verdict]]]]:
@@ -618,7 +644,7 @@ def naive_evaluate_objects(
         v = naive_read(payload, domain.fields)
         if isinstance(v, bool) or not (isinstance(v, str) or is_number(v)):
             continue
-        key = v if isinstance(v, str) else repr(v)
+        key = naive_object_key(v)
         if key not in objects or t - last_seen[key] > idle_ns:
             objects.setdefault(key, []).append([])
         objects[key][-1].append((t, payload))

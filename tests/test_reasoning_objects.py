@@ -4,6 +4,7 @@ bounds on live objects; an object retired and seen again."""
 
 from __future__ import annotations
 
+import json
 import random
 from typing import Any
 
@@ -17,12 +18,12 @@ from dyknow.reasoning.objects import ObjectMonitor
 from dyknow.reasoning.semantics import evaluate_objects
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream
 from dyknow.tags import Term
-from tests.reasoning_support import MS, formulas, naive_evaluate_objects
+from tests.reasoning_support import MS, formulas, naive_evaluate_objects, naive_object_key
 
 TRACK, ZONE = Term("Track", ("f",)), Term("Zone", ("z",))
 
 
-def _trace(rng: random.Random, samples: int = 300, objects: tuple[Any, ...] = ("a", "b", 4, 2.5)) -> dict[Term, list[tuple[int, Any]]]:
+def _trace(rng: random.Random, samples: int = 300, objects: tuple[Any, ...] = ("a", "b", 4, 4.0, "4", 2.5)) -> dict[Term, list[tuple[int, Any]]]:
     """Track samples naming objects (now and then none, or a bool: no object), zone samples between;
     one stream never sends two samples at one time (a monitor would count the second late), two
     streams often do."""
@@ -73,6 +74,28 @@ def test_an_object_monitor_returns_the_naive_evaluators_decided_verdicts_per_obj
     got = _run(ObjectMonitor(formula, idle_ns=idle * MS), trace, rng)
     want = {key: [(t, v) for life in lives for t, v in life if v is not None] for key, lives in naive.items()}
     assert {k: sorted(v) for k, v in got.items()} == {k: sorted(v) for k, v in want.items() if v}, str(formula)
+
+
+def test_an_objects_identity_is_its_json_type_and_value() -> None:
+    """Issue 54 item 5: ``1`` and ``"1"`` were one object, ``1`` and ``1.0`` two. Identity is
+    JSON's (the semantics page): a number is one value however written, a string is never a
+    number; keys are the naive evaluator's, computed by way of the json module, for values
+    written every way a JSON encoder may write them."""
+    monitor = ObjectMonitor("foreach t in Track(f).id: Track(f).v > 1")
+    written = ['1', '1.0', '1e0', '"1"', '"1.0"', '2.5', '"2.5"', '25e-1', '"\\"1\\""', '"r1"', '1e+100', '"1e+100"', '-0', '"-0"', '12345678901234567890']
+    keys: dict[str, list[str]] = {}
+    for i, text in enumerate(written):
+        value = json.loads(text)
+        (pushed,) = monitor.push("Track(f)", i * MS, {"id": value, "v": 2})
+        assert pushed[0] == naive_object_key(value), text
+        keys.setdefault(pushed[0], []).append(text)
+    assert sorted(keys.values()) == sorted([
+        ['1', '1.0', '1e0'], ['"1"'], ['"1.0"'], ['2.5', '25e-1'], ['"2.5"'], ['"\\"1\\""'], ['"r1"'], ['1e+100'], ['"1e+100"'],
+        ['-0'], ['"-0"'], ['12345678901234567890'],
+    ])  # fmt: skip
+    assert keys["1"] == ['1', '1.0', '1e0'] and keys['"1"'] == ['"1"'] and keys["r1"] == ['"r1"'] and keys["1.0"] == ['"1.0"']
+    assert keys["0"] == ["-0"] and keys["-0"] == ['"-0"']
+    assert sorted(monitor.objects) == sorted(keys)
 
 
 def test_at_most_max_objects_live_and_the_others_are_refused() -> None:

@@ -92,7 +92,12 @@ the class C (the variable replaced where it is a term's argument and where it is
 ``exists`` is the same with ``or``. ``foreach x in S.f: F`` is one formula per *object*: per value
 of ``S.f`` (a string or a number; a sample whose field is anything else belongs to no object; a
 sample of ``S`` whose value is a list, a *frame* such as a tracker's tracks, is one sample per
-element, all at its time). An
+element, all at its time). Two values are one object when JSON says they are one value: the same
+type (string or number) and value, a number however written (``1``, ``1.0`` and ``1e0`` are one
+object; the string ``"1"`` another); past 2**53 an integer and a float are told apart. Verdicts
+name an object by its key (:func:`~dyknow.reasoning.values.object_key`: the string, or the
+number's canonical text; a string that reads as such a text, or starts with ``"``, as its JSON
+text). An
 object *lives* from its first sample until more than ``idle`` (ns of sample time) pass before its
 next one, which starts a new life: each life is evaluated apart, over states whose times are the
 object's samples in the life and the other terms' samples between the life's first sample and

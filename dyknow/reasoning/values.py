@@ -10,6 +10,7 @@ construction on what a value and an atom are. A verdict is an int (:data:`FALSE`
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from typing import Any, Final
@@ -186,14 +187,51 @@ def as_value(verdict: int) -> Any:
 
 
 def object_key(value: Any) -> str | None:
-    """The object a ``foreach`` field's value names (as verdict keys carry it): a string as is, a
-    number as Python writes it; None for anything else (the sample belongs to no object)."""
+    """The object a ``foreach`` field's value names (as verdict keys carry it), or None for a
+    value that names none (a boolean, null, a list, an object, NaN or an infinity: the sample
+    belongs to no object).
+
+    Identity is JSON's: the type (string or number) and the value. A number is one value however
+    it is written (``1``, ``1.0`` and ``1e0`` are one object, as in JSON, which has one number
+    type), and its key is its canonical text: an integer, or a float whose value is an integer
+    below 2**53, as an integer (``"1"``); any other float as Python's shortest round-trip text
+    (``"2.5"``). (Past 2**53 a float and an integer are told apart, as a JSON parser that reads
+    integers exactly tells them.) A string is another
+    object than every number: its key is the string itself, unless that is a number's canonical
+    text or starts with a double quote, then its JSON text (the string ``"1"`` has the key
+    ``'"1"'``, the number 1 ``'1'``), so that no two objects share a key. (They were ``1`` and
+    ``"1"`` one object, ``1`` and ``1.0`` two.)"""
     kind = type(value)
     if kind is str:
+        text: str = value
+        return json.dumps(text, ensure_ascii=False) if text.startswith('"') or _is_number_key(text) else text
+    if kind is int:
         return str(value)
-    if kind is int or (kind is float and value - value == 0.0):
-        return repr(value)
+    if kind is float and value - value == 0.0:
+        return _number_key(value)
     return None
+
+
+_SAFE_INTEGER: Final = 2**53
+
+
+def _number_key(value: float) -> str:
+    if value == int(value) and abs(value) < _SAFE_INTEGER:
+        return str(int(value))
+    return repr(value)
+
+
+def _is_number_key(text: str) -> bool:
+    """Whether ``text`` is the key of some number: the canonical text of what it reads as."""
+    if not text or text[0] not in "-0123456789":  # (Python reads at most 4,300 digits: longer is no number)
+        return False
+    try:
+        number = int(text) if text.lstrip("-").isdigit() else float(text)
+    except ValueError:
+        return False
+    if isinstance(number, int):
+        return str(number) == text
+    return number - number == 0.0 and _number_key(number) == text
 
 
 def exact_sum(values: Sequence[Any]) -> Any:
