@@ -78,20 +78,27 @@ def cmd_validate(args: argparse.Namespace) -> int:
       dyknow validate specs/ --path .                  # your specs, your units' package in this folder
       dyknow validate @shipped --ontology @shipped/dyknow.ttl
       dyknow validate specs/ --skip-sources            # away from the units' code: the specs alone"""
-    from dyknow.errors import SpecError
-    from dyknow.spec.sources import source_issues
+    from dyknow.errors import SpecError, SpecIssue
+    from dyknow.spec.reader import template_sources
+    from dyknow.spec.sources import SourceRef, source_issues
 
+    found: list[SpecIssue] = []
+    specs: list[Any] = []
     try:
         specs = _load(args)
-        if not args.skip_sources:
-            issues = source_issues(specs, args.path)
-            if issues:
-                raise SpecError(issues)
     except SpecError as exc:
-        for issue in exc.issues:
+        found += exc.issues
+    if not args.skip_sources:  # (also where a file has other mistakes: every error in one run)
+        found += source_issues([SourceRef(*ref) for ref in template_sources(args.paths)], args.path)
+    if found:
+        files: dict[str, int] = {}  # (the files in the order their first issue came: the order given)
+        for issue in found:
+            files.setdefault(issue.path, len(files))
+        found.sort(key=lambda i: (files[i.path], i.line))
+        for issue in found:
             print(str(issue), file=sys.stderr)
         if args.json:
-            print_json({"valid": False, "errors": [str(i) for i in exc.issues], "issues": [i.to_dict() for i in exc.issues]})
+            print_json({"valid": False, "errors": [str(i) for i in found], "issues": [i.to_dict() for i in found]})
         return 1
     files = len({s.path for s in specs})
     report_result(

@@ -59,7 +59,7 @@ from dyknow.spec.template import DOLLAR, Template
 from dyknow.spec.xmltree import Element as _Node
 from dyknow.spec.xmltree import parse_xml as _parse_xml
 
-__all__ = ["ELEMENTS", "load_specs", "parse_specs", "parse_templates", "spec_files"]
+__all__ = ["ELEMENTS", "load_specs", "parse_specs", "parse_templates", "spec_files", "template_sources"]
 
 # Every element and its attributes, in the order messages list them.
 _ATTRIBUTES: dict[str, tuple[str, ...]] = {
@@ -157,7 +157,22 @@ def parse_templates(data: str | bytes, path: str = "<string>") -> list[Template]
     templates, issues = _parse(data, path)
     if issues:
         raise SpecError(issues)
-    return templates
+    return [template for template, _ in templates]
+
+
+def template_sources(paths: PathsLike) -> list[tuple[str, int, str]]:
+    """``(path, line, source)`` of the ``<source>`` of every ``<transformation>`` in ``paths``,
+    read even where the rest of the file has mistakes (``dyknow validate`` checks them all in one
+    run), those with a ``${...}`` left out; files that cannot be read or parsed are skipped."""
+    files, _ = _spec_files(paths)
+    found = []
+    for file in files:
+        try:
+            templates, _ = _parse(file.read_bytes(), str(file))
+        except OSError:
+            continue
+        found += [(t.path, t.source_line or t.line, t.source) for t, _ in templates if t.source_line and "${" not in t.source]
+    return found
 
 
 def parse_specs(
@@ -265,14 +280,35 @@ def _load(
     """Parse and expand; (spec, line of its label) pairs and every issue but duplicate labels
     (``files``: whether the document may read files beside it, see :func:`_parse`)."""
     templates, issues = _parse(data, path, files=files)
+    flagged = {issue.line for issue in issues}
     located: list[tuple[TransformationSpec, int]] = []
-    for template in templates:
+    for template, valid in templates:
+        # (a template with structural issues is expanded too, for the issues its expansion finds:
+        # every mistake in one run; not those on a line already flagged, which follow from them)
         try:
             expanded = template.expand(individuals, max_expansions=max_expansions, max_bytes=max_bytes, limits=limits)
-            located.extend((spec, template.label_line) for spec in expanded)
+            if valid:
+                located.extend((spec, template.label_line) for spec in expanded)
         except SpecError as exc:
-            issues.extend(exc.issues)
-    return located, issues
+            issues.extend(i for i in exc.issues if valid or i.line not in flagged)
+        except Exception:  # noqa: BLE001 - an invalid template's expansion may fail in any way: its issues stand
+            if valid:
+                raise
+    return located, _once(issues)
+
+
+def _once(issues: list[SpecIssue]) -> list[SpecIssue]:
+    """Each mistake once per file: issues saying the same thing of the same element (an unknown
+    class in the args of several transformations) as one, at its first line, naming the others."""
+    lines: dict[tuple[str, str, str, str], list[int]] = {}
+    for issue in sorted(issues, key=lambda i: i.line):
+        lines.setdefault((issue.path, issue.element, issue.what, issue.expected), []).append(issue.line)
+    out = []
+    for (path, element, what, expected), at in lines.items():
+        also = sorted(set(at[1:]) - {at[0]})
+        more = f" (also at line{'s' if len(also) > 1 else ''} {', '.join(map(str, also))})" if also else ""
+        out.append(SpecIssue(path, at[0], what + more, element, expected))
+    return out
 
 
 def _duplicate_labels(located: Iterable[tuple[TransformationSpec, int]]) -> list[SpecIssue]:
@@ -301,8 +337,9 @@ class _Issues:
         self.items.append(SpecIssue(self.path, line, what, element, expected))
 
 
-def _parse(data: str | bytes, path: str, *, files: bool = False) -> tuple[list[Template], list[SpecIssue]]:
-    """The structurally valid templates of a document, and every structural issue. ``files``:
+def _parse(data: str | bytes, path: str, *, files: bool = False) -> tuple[list[tuple[Template, bool]], list[SpecIssue]]:
+    """The templates of a document, each with whether it is structurally valid, and every
+    structural issue. ``files``:
     whether the document may read other files (a ``<system>``'s mode file, beside it): only a spec
     file the operator gave, never a document that came over the network."""
     try:
@@ -322,7 +359,7 @@ def _parse(data: str | bytes, path: str, *, files: bool = False) -> tuple[list[T
         expected = "<transformations>, <transformation>, <node> or <system>"
         issues.add(root.line, f"<{root.name}>", "unknown root element", f"{expected}{hint}")
         nodes = []
-    templates = []
+    templates: list[tuple[Template, bool]] = []
     for node in nodes:
         before = len(issues.items)
         if node.name in ("node", "system"):
@@ -332,8 +369,7 @@ def _parse(data: str | bytes, path: str, *, files: bool = False) -> tuple[list[T
             read = _read_system(node, issues, pathlib.Path(path).parent if files else None)
         else:
             read = [_read_node(node, issues) if node.name == "node" else _read_template(node, issues)]
-        if len(issues.items) == before:  # only structurally valid templates are expanded
-            templates.extend(read)
+        templates.extend((template, len(issues.items) == before) for template in read)  # (valid: expanded for its specs)
     return templates, sorted(issues.items, key=lambda i: i.line)
 
 
@@ -430,7 +466,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
         return _child_text(first, name, example, declared, issues)
 
     label, label_line = text_of("label", "a unique name such as undistort(${Cam})")
-    source, _ = text_of("source", "<source>package.module:Class</source>")
+    source, source_line = text_of("source", "<source>package.module:Class</source>")
     description, _ = text_of("description", None)
 
     priority = _read_priority(first.get("priority"), issues)
@@ -453,6 +489,7 @@ def _read_template(node: _Node, issues: _Issues) -> Template:
         priority=priority,
         constraints=constraints,
         label_line=label_line,
+        source_line=source_line,
         arg_lines=arg_lines,
         param_lines=param_lines,
         port_lines=port_lines,

@@ -19,11 +19,12 @@ import importlib.util
 import os
 import sys
 from collections.abc import Iterable, Sequence
+from typing import NamedTuple
 
 from dyknow.errors import SpecIssue, did_you_mean
 from dyknow.spec.model import TransformationSpec
 
-__all__ = ["source_issues"]
+__all__ = ["SourceRef", "source_issues"]
 
 
 def _locate(module_name: str, folders: Sequence[str]) -> importlib.machinery.ModuleSpec | None:
@@ -67,10 +68,33 @@ def _defined_names(source: str) -> set[str] | None:
     return None if "__getattr__" in names else names
 
 
-def source_issues(specs: Iterable[TransformationSpec], folders: Iterable[str | os.PathLike[str]] = ()) -> list[SpecIssue]:
-    """One issue per spec whose source module cannot be found, or whose module's source does not
-    define the class; ``folders`` are the ``--path`` folders (each spec's own folder is looked
-    in too, as the manager does for the specs its operator gives it). Imports nothing."""
+def _unit_candidates(source: str, module_name: str) -> set[str]:
+    """The names a module offers as its own classes (to suggest for a misspelt one): the classes
+    it defines and those it imports from its own package, never what it imports from elsewhere
+    (``Unit``, the base class every unit module imports, was suggested)."""
+    package = module_name.rpartition(".")[0] if module_name.count(".") else module_name
+    names: set[str] = set()
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.ClassDef):
+            names.add(node.name)
+        elif isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith(f"{package}.")):
+            names |= {alias.asname or alias.name for alias in node.names}
+    return names - {"Unit"}
+
+
+class SourceRef(NamedTuple):
+    """A ``<source>`` as written: its file, line and text (``package.module:Class``)."""
+
+    path: str
+    line: int
+    source: str
+
+
+def source_issues(specs: Iterable[TransformationSpec | SourceRef], folders: Iterable[str | os.PathLike[str]] = ()) -> list[SpecIssue]:
+    """One issue per spec (or ``<source>`` as written: :class:`SourceRef`) whose source module
+    cannot be found, or whose module's source does not define the class; ``folders`` are the
+    ``--path`` folders (each spec's own folder is looked in too, as the manager does for the
+    specs its operator gives it). Imports nothing."""
     issues: list[SpecIssue] = []
     extra = [os.path.abspath(f) for f in folders]
     for spec in specs:
@@ -97,9 +121,10 @@ def source_issues(specs: Iterable[TransformationSpec], folders: Iterable[str | o
         if origin is None or not origin.endswith(".py") or not os.path.isfile(origin):
             continue  # compiled or built in: its names are not in a source
         with open(origin, encoding="utf-8", errors="replace") as file:
-            names = _defined_names(file.read())
+            source_text = file.read()
+        names = _defined_names(source_text)
         if names is not None and class_name not in names:
-            classes = sorted(n for n in names if n[:1].isupper() and not n.isupper())
+            classes = sorted(n for n in _unit_candidates(source_text, module_name) if n[:1].isupper() and not n.isupper())
             issues.append(SpecIssue(
                 spec.path, spec.line, f"module {module_name!r} ({origin}) defines no {class_name!r}",
                 element="<source>",

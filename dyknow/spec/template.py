@@ -71,6 +71,7 @@ class Template:
     priority: int = DEFAULT_PRIORITY
     constraints: tuple[Constraint, ...] = ()
     label_line: int = 0
+    source_line: int = 0
     arg_lines: tuple[int, ...] = ()
     param_lines: tuple[int, ...] = ()
     port_lines: tuple[int, ...] = ()
