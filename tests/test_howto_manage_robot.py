@@ -83,11 +83,13 @@ class Shell:
         return proc
 
     def logs(self) -> str:
-        """The last lines each background command wrote (for a failure's message)."""
+        """The last lines each background command wrote (for a failure's message), once stopped:
+        a manager stuck when asked to stop prints every thread's stack first."""
+        self.close()
         tails = []
         for n in range(1, len(self.background) + 1):
             lines = (self.cwd / f"background-{n}.log").read_text(errors="replace").splitlines()
-            tails.append(f"--- background {n} ({len(lines)} lines), the last 40:\n" + "\n".join(lines[-40:]))
+            tails.append(f"--- background {n} ({len(lines)} lines), the last 150:\n" + "\n".join(lines[-150:]))
         return "\n".join(tails)
 
     def until(self, line: str, seen: Callable[[str], bool], what: str, timeout_s: float = 90.0) -> str:

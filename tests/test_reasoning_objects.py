@@ -1,5 +1,5 @@
 """One monitor per object (dyknow.reasoning.objects): a foreach formula's verdicts per object and
-life, against evaluate_objects() and a naive evaluator written from the semantics' text; the
+life, against evaluate_objects_ns() and a naive evaluator written from the semantics' text; the
 bounds on live objects; an object retired and seen again."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from dyknow.errors import FormulaError
 from dyknow.reasoning import parse
 from dyknow.reasoning.objects import ObjectMonitor
-from dyknow.reasoning.semantics import evaluate_objects
+from dyknow.reasoning.semantics import evaluate_objects_ns
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream
 from dyknow.tags import Term
 from tests.reasoning_support import MS, formulas, naive_evaluate_objects, naive_object_key
@@ -60,7 +60,7 @@ def _run(monitor: ObjectMonitor, trace: dict[Term, list[tuple[int, Any]]], rng: 
 def test_an_object_monitor_returns_the_naive_evaluators_decided_verdicts_per_object(body: Formula, seed: int, idle: int) -> None:
     """Random bodies over the tracked stream and another, with the object's value read too
     (``t == "a"``): every instance's verdicts are the naive evaluator's decided ones, per object
-    and life, and evaluate_objects() agrees with the naive evaluator on every verdict."""
+    and life, and evaluate_objects_ns() agrees with the naive evaluator on every verdict."""
     from dyknow.reasoning.syntax import And, Atom, Or, Str, Var
 
     root = Or(body.root, Atom(Var("t"), "==", Str("a")))  # the variable as a value
@@ -69,7 +69,7 @@ def test_an_object_monitor_returns_the_naive_evaluators_decided_verdicts_per_obj
     trace = _trace(rng)
     inner = Formula.of(formula.root.body)  # type: ignore[union-attr]
     naive = naive_evaluate_objects("t", Stream(TRACK, ("id",)), inner, trace, idle * MS)
-    offline = evaluate_objects(formula, {str(k): v for k, v in trace.items() if k in formula.terms}, idle_ns=idle * MS)
+    offline = evaluate_objects_ns(formula, {str(k): v for k, v in trace.items() if k in formula.terms}, idle_ns=idle * MS)
     assert offline == naive, str(formula)
     got = _run(ObjectMonitor(formula, idle_ns=idle * MS), trace, rng)
     want = {key: [(t, v) for life in lives for t, v in life if v is not None] for key, lives in naive.items()}
@@ -155,7 +155,7 @@ def test_the_instances_share_the_cells_and_keep_to_them_as_objects_come() -> Non
 
 
 def test_a_frame_is_one_sample_per_object_at_its_time() -> None:
-    # a tracker publishes all its tracks in one message: the monitor and evaluate_objects() read
+    # a tracker publishes all its tracks in one message: the monitor and evaluate_objects_ns() read
     # each element as its object's sample at the frame's time
     formula = "foreach t in Track(f).id: once[0, 20ms] Track(f).v > 1"
     frames: list[tuple[int, Any]] = [
@@ -163,7 +163,7 @@ def test_a_frame_is_one_sample_per_object_at_its_time() -> None:
         (10 * MS, [{"id": "a", "v": 0}, {"id": "b", "v": 0}, {"id": "c", "v": 3}]),
         (40 * MS, [{"id": "a", "v": 0}, [1], {"v": 1}]),  # a list in a frame, a track without id: no object
     ]
-    want = evaluate_objects(formula, {"Track(f)": frames}, idle_ns=100 * MS)
+    want = evaluate_objects_ns(formula, {"Track(f)": frames}, idle_ns=100 * MS)
     assert want == {"a": [[(0, True), (10 * MS, True), (40 * MS, False)]], "b": [[(0, False), (10 * MS, False)]], "c": [[(10 * MS, True)]]}
     monitor = ObjectMonitor(formula, idle_ns=100 * MS)
     got: dict[str, list[tuple[int, bool]]] = {}

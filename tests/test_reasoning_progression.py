@@ -424,7 +424,7 @@ def test_a_monitors_aggregates_are_evaluates_across_thresholds(kind: str) -> Non
     """The monitor's running aggregates (entries in and out of the window, exact sums, monotonic
     queues, the integral's cut pieces) against evaluate(), at thresholds drawn from the aggregate's
     own values, so the verdicts flip all along: 1,500 irregular samples with junk now and then."""
-    from dyknow.reasoning.semantics import evaluate_values
+    from dyknow.reasoning.semantics import evaluate_values_ns
 
     rng = random.Random(kind)
     t, clean, junky = 0, [], []
@@ -437,7 +437,7 @@ def test_a_monitors_aggregates_are_evaluates_across_thresholds(kind: str) -> Non
         samples = clean if hi is None else junky
         interval = f"[{lo}ms, {'inf' if hi is None else f'{hi}ms'}]"
         expression = f"{kind}{interval} (x > 1)" if kind == "count" else f"{kind}{interval} x"
-        values = sorted(v for _, v in evaluate_values(expression, {"x": samples}) if v is not None)
+        values = sorted(v for _, v in evaluate_values_ns(expression, {"x": samples}) if v is not None)
         assert values or (kind == "rate" and hi == 0), expression
         flips = 0
         for q in (0.1, 0.5, 0.9):

@@ -28,7 +28,7 @@ from hypothesis import strategies as st
 
 from dyknow.errors import FormulaError
 from dyknow.reasoning import evaluate, parse
-from dyknow.reasoning.semantics import evaluate_ns, evaluate_values
+from dyknow.reasoning.semantics import evaluate_ns, evaluate_values_ns
 from dyknow.reasoning.syntax import Formula
 from tests.reasoning_support import TERMS, formulas, naive_evaluate_ns, seconds, traces
 
@@ -420,7 +420,7 @@ def test_aggregates_equal_numpys_over_the_same_windows(kind: str) -> None:
     for lo, hi in [(0, 50_000_000), (0, None), (20_000_000, 300_000_000), (7_000_000, None)]:
         interval = f"[{lo // 1_000_000}ms, {'inf' if hi is None else f'{hi // 1_000_000}ms'}]"
         text = f"{kind}{interval} (x > 1)" if kind == "count" else f"{kind}{interval} x"
-        got = evaluate_values(text, {"x": list(zip(times, xs, strict=True))})
+        got = evaluate_values_ns(text, {"x": list(zip(times, xs, strict=True))})
         for i, (_, value) in enumerate(got):
             want = _numpy_aggregate(kind, arr_t, arr_x, i, lo, hi)
             if want is None:
@@ -486,3 +486,23 @@ def test_robustness_is_rtamts_discrete_time_robustness(pair: tuple[str, str, boo
         compared += 1
         assert (mine == theirs_r) if math.isinf(mine) or math.isinf(theirs_r) else math.isclose(mine, theirs_r, rel_tol=1e-9, abs_tol=1e-9), (ours, t, mine, theirs_r)
     assert compared or any(k in ours for k in ("always", "eventually", "until", "rise", "fall")), ours
+
+
+def test_the_evaluate_functions_say_their_time_unit_in_their_names() -> None:
+    """Issue 54 item 12: ``evaluate`` takes and gives float seconds (as ``time.time``), every
+    function whose name ends in ``_ns`` integer nanoseconds (as ``time.time_ns``); the names of
+    0.1 that said nothing (``evaluate_values``, ``evaluate_objects``: nanoseconds) still work, with
+    a DeprecationWarning naming the new one."""
+    import dyknow.reasoning as reasoning
+    from dyknow.reasoning import evaluate, evaluate_ns, evaluate_objects_ns, evaluate_values_ns
+
+    seconds = {"X(a)": [(0.0, 1), (0.25, 5)]}
+    nanos = {"X(a)": [(0, 1), (250_000_000, 5)]}
+    assert evaluate("X(a) > 3", seconds) == [(0.0, False), (0.25, True)]
+    assert evaluate_ns("X(a) > 3", nanos) == [(0, False), (250_000_000, True)]
+    assert evaluate_values_ns("X(a) * 2", nanos) == [(0, 2), (250_000_000, 10)]
+    tracks = {"T(f)": [(0, {"id": "a", "v": 1}), (250_000_000, {"id": "b", "v": 5})]}
+    assert evaluate_objects_ns("foreach t in T(f).id: T(f).v > 3", tracks, idle_ns=10**9) == {"a": [[(0, False)]], "b": [[(250_000_000, True)]]}
+    for old, new in (("evaluate_values", evaluate_values_ns), ("evaluate_objects", evaluate_objects_ns)):
+        with pytest.warns(DeprecationWarning, match=f"dyknow.reasoning.{old} is now {old}_ns"):
+            assert getattr(reasoning, old) is new

@@ -47,7 +47,7 @@ if TYPE_CHECKING:
     from dyknow.errors import FormulaError
     from dyknow.reasoning.objects import ObjectMonitor
     from dyknow.reasoning.progression import Monitor, Verdict
-    from dyknow.reasoning.semantics import evaluate, evaluate_ns, evaluate_objects, evaluate_values
+    from dyknow.reasoning.semantics import evaluate, evaluate_ns, evaluate_objects_ns, evaluate_values_ns
     from dyknow.reasoning.syntax import Formula, check_formula, parse, parse_value
     from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
 
@@ -61,8 +61,8 @@ __all__ = [
     "check_formula",
     "evaluate",
     "evaluate_ns",
-    "evaluate_objects",
-    "evaluate_values",
+    "evaluate_objects_ns",
+    "evaluate_values_ns",
     "monitor_spec",
     "parse",
     "parse_value",
@@ -81,8 +81,8 @@ _WHERE = {
     "check_formula": "dyknow.reasoning.syntax",
     "evaluate": "dyknow.reasoning.semantics",
     "evaluate_ns": "dyknow.reasoning.semantics",
-    "evaluate_objects": "dyknow.reasoning.semantics",
-    "evaluate_values": "dyknow.reasoning.semantics",
+    "evaluate_objects_ns": "dyknow.reasoning.semantics",
+    "evaluate_values_ns": "dyknow.reasoning.semantics",
     "monitor_spec": "dyknow.reasoning.unit",
     "parse": "dyknow.reasoning.syntax",
     "parse_value": "dyknow.reasoning.syntax",
@@ -96,4 +96,18 @@ def _restore_docstring(name: str, value: Any) -> None:  # Monitor and Verdict ar
     restore_docstrings({name: value}, [name])
 
 
-__getattr__, __dir__ = lazy_exports(__name__, globals(), _WHERE, after=_restore_docstring)
+_exported, __dir__ = lazy_exports(__name__, globals(), _WHERE, after=_restore_docstring)
+
+#: Names of 0.1 that now say their time unit (0.2): still served, with a DeprecationWarning.
+_RENAMED = {"evaluate_values": "evaluate_values_ns", "evaluate_objects": "evaluate_objects_ns"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _RENAMED:
+        import warnings
+
+        new = _RENAMED[name]
+        warnings.warn(f"dyknow.reasoning.{name} is now {new}: the same function, whose name says its times are nanoseconds "
+                      "(evaluate takes seconds, as time.time; the _ns ones nanoseconds, as time.time_ns)", DeprecationWarning, stacklevel=2)  # fmt: skip
+        return _exported(new)
+    return _exported(name)

@@ -26,6 +26,20 @@ is ``[t_i + a, t_i + b]``, of a past one ``[t_i - b, t_i - a]`` (from the first 
 is ``inf``). A monitor that is told of a gap (its term re-planned) marks each verdict whose window
 reaches into it.
 
+**The warm-up.** There is no state before the first one: a past window whose span reaches back
+before it holds the states from the first on, and one whose span ends before it holds none. So a
+past operator's first verdicts are decided over less than its window (``historically[0, 10s] φ``
+at 2 s into the trace is φ over those 2 s, ``once[1s, 2s] φ`` at 0.5 s is over no state: false),
+and an empty window is what it is anywhere (``once`` false, ``historically`` true, an aggregate
+over no sample as the aggregates say). A monitor decides the same, as reelay does (below). The
+end is not so: a future window that reaches past the last state is unknown unless the states
+there are decide it (``eventually[0, 2s] φ`` true once a state in it holds φ), for states may
+still come.
+
+**Time units.** :func:`evaluate` takes and gives float seconds (as ``time.time``); the functions
+whose names end in ``_ns`` (:func:`evaluate_ns`, :func:`evaluate_values_ns`,
+:func:`evaluate_objects_ns`) integer nanoseconds (as ``time.time_ns``: a message's ``origin_ns``).
+
 **Values.** A stream's value at a state is the payload it holds, down the field path when there is
 one (each step needs a JSON object, a ``dict``, holding the field). A value is a *number* (an
 ``int`` or a ``float``, not a ``bool``, not NaN nor infinite), a *string* (``str``) or a *boolean*
@@ -178,8 +192,8 @@ __all__ = [
     "compare",
     "evaluate",
     "evaluate_ns",
-    "evaluate_objects",
-    "evaluate_values",
+    "evaluate_objects_ns",
+    "evaluate_values_ns",
     "expand_quantifiers",
     "margin",
     "object_key",
@@ -240,7 +254,7 @@ def evaluate(
     does not mention are ignored. The times returned are the samples' own. ``individuals(class)``:
     the ontology's individuals, for ``forall``/``exists``; ``max_age``: a term's freshness in
     seconds; ``robustness``: ``(t, verdict, robustness)`` triples instead. A ``foreach`` formula
-    goes to :func:`evaluate_objects`. Raises :class:`~dyknow.errors.FormulaError` for a malformed
+    goes to :func:`evaluate_objects_ns`. Raises :class:`~dyknow.errors.FormulaError` for a malformed
     formula, a term without a stream, or samples going back in time.
     """
     parsed = expand_quantifiers(parse(formula) if isinstance(formula, str) else formula, individuals)
@@ -268,14 +282,15 @@ def evaluate_ns(
     max_age_ns: Mapping[str, int] | None = None,
     robustness: bool = False,
 ) -> list[Any]:
-    """:func:`evaluate` with integer-nanosecond times (``msg.origin_ns``) in and out (``max_age_ns`` too)."""
+    """:func:`evaluate` with integer-nanosecond times (``msg.origin_ns``) in and out (``max_age_ns`` too):
+    every state's ``(t_ns, verdict)``, or ``(t_ns, verdict, robustness)`` with ``robustness``."""
     parsed = expand_quantifiers(parse(formula) if isinstance(formula, str) else formula, individuals)
     _no_foreach(parsed)
     ages = {str(parse_term(k)): int(v) for k, v in (max_age_ns or {}).items()}
     return _evaluate_ns(parsed, [list(samples) for samples in _choose(parsed, streams)], [str(term) for term in parsed.terms], ages, robustness)
 
 
-def evaluate_values(expression: str | Formula, streams: Mapping[str, Sequence[tuple[int, Any]]]) -> list[tuple[int, Any]]:
+def evaluate_values_ns(expression: str | Formula, streams: Mapping[str, Sequence[tuple[int, Any]]]) -> list[tuple[int, Any]]:
     """Every state's ``(t_ns, value)`` of an expression (:func:`~dyknow.reasoning.syntax.parse_value`:
     ``avg[0, 1s] Speed(robot)``, ``Pose(robot).x - Goal(robot).x``); unknown values are None, a
     condition's values its verdicts (True, False, None). Times in integer nanoseconds."""
@@ -290,7 +305,7 @@ def evaluate_values(expression: str | Formula, streams: Mapping[str, Sequence[tu
     return [(t, None if v is UNKNOWN_VALUE else v) for t, v in zip(times, column, strict=True)]
 
 
-def evaluate_objects(
+def evaluate_objects_ns(
     formula: str | Formula,
     streams: Mapping[str, Sequence[tuple[int, Any]]],
     *,
@@ -305,7 +320,7 @@ def evaluate_objects(
     parsed = expand_quantifiers(parse(formula) if isinstance(formula, str) else formula, individuals)
     root = parsed.root
     if not isinstance(root, Quantifier) or root.kind != "foreach":
-        raise FormulaError("evaluate_objects takes a foreach formula", where="formula", expected="foreach x in Stream.field: ...")
+        raise FormulaError("evaluate_objects_ns takes a foreach formula", where="formula", expected="foreach x in Stream.field: ...")
     domain = root.domain
     assert isinstance(domain, Stream)
     inner = Formula.of(rename(root.body, root.var, _OBJECT))
@@ -352,7 +367,7 @@ def _object_value(payload: Any, fields: tuple[str, ...]) -> Any:
 
 def _no_foreach(formula: Formula) -> None:
     if isinstance(formula.root, Quantifier) and formula.root.kind == "foreach":
-        raise FormulaError("a foreach formula has verdicts per object", where="formula", expected="evaluate_objects(...)")
+        raise FormulaError("a foreach formula has verdicts per object", where="formula", expected="evaluate_objects_ns(...)")
 
 
 def _choose(formula: Formula, streams: Mapping[str, Sequence[tuple[Any, Any]]]) -> list[Sequence[tuple[Any, Any]]]:

@@ -316,5 +316,5 @@ def check_formula(formula: str | Formula, limits: Limits | None = None) -> Formu
 
 def parse_value(text: str) -> Formula:
     """Parse an expression (a value, or a condition) rather than a formula: ``avg[0, 1s] Speed(robot)``;
-    :func:`~dyknow.reasoning.semantics.evaluate_values` computes it at every state."""
+    :func:`~dyknow.reasoning.semantics.evaluate_values_ns` computes it at every state."""
     return Formula.of(parse_tree(text, None, None, value=True), text)
