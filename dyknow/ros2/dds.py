@@ -489,7 +489,7 @@ class DdsService:
     ``rq<service>Request``, calls ``handler(request) -> response`` (a message object or a dict
     of its fields) where ``call_soon`` runs it (default: Cyclone's thread), and writes the
     response on ``rr<service>Reply``. A request over ``max_bytes`` or that does not decode is
-    dropped (``refused``); an exception of the handler answers nothing and is logged (``failed``).
+    dropped (``refused``); an exception of the handler answers nothing and is logged (``failed``), as an answer Cyclone DDS could not write.
 
     **rmw_fastrtps clients (rclpy on Fast DDS) do not take these answers**: they take a response
     only when its related sample identity (RTPS inline QoS) names their request, and Cyclone DDS
@@ -583,9 +583,14 @@ class DdsService:
             log.log(logging.WARNING if isinstance(exc, DyKnowError) else logging.ERROR, "%s: the handler failed, answered nothing", self.where, exc_info=True)
             return
         writer = self._writer
-        if writer is not None and writer.write_cdr(data) >= 0:
-            with self._lock:
+        written = writer.write_cdr(data) if writer is not None else None
+        with self._lock:
+            if written is not None and written >= 0:
                 self.answered += 1
+            elif written is not None:
+                self.failed += 1
+        if written is not None and written < 0:
+            log.warning("%s: Cyclone DDS returned %d writing an answer: not sent", self.where, written)
 
     def close(self) -> None:
         """Delete the reader and the writer; safe twice."""
