@@ -49,6 +49,7 @@ class Shell:
         self.env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + self.env.get("PATH", "")
         self.domain, self.endpoint, self.cwd = domain, endpoint, cwd
         self.background: list[subprocess.Popen[str]] = []
+        self.ended: dict[int, str] = {}  # background command (from 1) -> how it ended before it was stopped
 
     def adapted(self, line: str) -> str:
         line = re.sub(r"\bROS_DOMAIN_ID=\d+", f"ROS_DOMAIN_ID={self.domain}", line)
@@ -89,7 +90,8 @@ class Shell:
         tails = []
         for n in range(1, len(self.background) + 1):
             lines = (self.cwd / f"background-{n}.log").read_text(errors="replace").splitlines()
-            tails.append(f"--- background {n} ({len(lines)} lines), the last 150:\n" + "\n".join(lines[-150:]))
+            how = self.ended.get(n, f"stopped, status {self.background[n - 1].returncode}")
+            tails.append(f"--- background {n} ({how}; {len(lines)} lines), the last 150:\n" + "\n".join(lines[-150:]))
         return "\n".join(tails)
 
     def until(self, line: str, seen: Callable[[str], bool], what: str, timeout_s: float = 90.0) -> str:
@@ -104,6 +106,9 @@ class Shell:
             time.sleep(0.3)
 
     def close(self) -> None:
+        for n, proc in enumerate(self.background, 1):
+            if proc.poll() is not None and n not in self.ended:  # (ended by itself: a crash says how here)
+                self.ended[n] = f"ended by itself with status {proc.returncode}"
         for proc in reversed(self.background):
             if proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)

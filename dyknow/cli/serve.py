@@ -129,6 +129,9 @@ MANAGER_SWITCH_INTERVAL_S = 0.001
 
 def cmd_manager(args: argparse.Namespace) -> int:
     """run a manager until interrupted"""
+    import faulthandler
+
+    faulthandler.enable()  # (a crash in native code, Zenoh's or a DDS's, prints every thread's Python stack, not nothing)
     sys.setswitchinterval(MANAGER_SWITCH_INTERVAL_S)
     _apply_nice(args)
     from dyknow.errors import DyKnowError
