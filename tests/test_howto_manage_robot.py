@@ -111,6 +111,9 @@ class Shell:
                 self.ended[n] = f"ended by itself with status {proc.returncode}"
         for proc in reversed(self.background):
             if proc.poll() is None:
+                if proc is not self.background[0]:  # (a dyknow manager: its threads' stacks first, in case it is stuck)
+                    proc.send_signal(signal.SIGUSR1)
+                    time.sleep(0.5)
                 proc.send_signal(signal.SIGTERM)
                 try:
                     proc.wait(timeout=30)

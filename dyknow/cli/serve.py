@@ -132,6 +132,8 @@ def cmd_manager(args: argparse.Namespace) -> int:
     import faulthandler
 
     faulthandler.enable()  # (a crash in native code, Zenoh's or a DDS's, prints every thread's Python stack, not nothing)
+    if hasattr(signal, "SIGUSR1"):  # kill -USR1 PID: every thread's stack on stderr, from C, even when the manager is stuck
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     sys.setswitchinterval(MANAGER_SWITCH_INTERVAL_S)
     _apply_nice(args)
     from dyknow.errors import DyKnowError

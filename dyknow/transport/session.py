@@ -459,7 +459,8 @@ class Session:
         short by the deadline is never preferred to a complete one before it. (The last answer
         was given: on a loaded machine a complete answer of 1,502 tokens took most of the 2 s,
         the next ask had 0.1 s left, nothing came back in it, and ``dyknow managers`` said "no
-        manager reachable".)
+        manager reachable".) The first answer is waited for past ``timeout_s`` when Zenoh's thread
+        has not handed it over yet (at most ``max(5, 2 * timeout_s)`` s more).
         """
         deadline = time.monotonic() + timeout_s
         last: list[str] | None = None
@@ -482,7 +483,11 @@ class Session:
             started = time.monotonic()
             left = max(0.05, deadline - started)
             self.ask_alive(key, timeout_s=left, limit=MAX_ALIVE_KEYS, done=done, timed_out=cut_short)
-            answered.wait(left + 1.0)
+            if not answered.wait(left + 1.0) and not asked:
+                # (no answer yet to the first question: Zenoh ends every question, at its timeout at
+                # the latest, but its thread was starved beside CPU hogs while it handed over 1,502
+                # tokens; waiting for that answer beats saying that nobody is alive)
+                answered.wait(max(5.0, 2 * timeout_s))
             found = sorted(set(answers[0])) if answers else []
             asked.append((found, bool(answers) and not cut))
             now = time.monotonic()
