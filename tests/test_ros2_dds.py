@@ -284,12 +284,12 @@ def test_an_rclpy_client_does_not_take_the_answers_of_a_dds_service(domain: int,
 
     with DdsNode(domain=domain) as participant:
         server = participant.create_service("/dyknow/get_state", GET_STATE, lambda r: {"current_state": {"id": 3, "label": "active"}})
-        caller = rclpy_node("call", "/dyknow/get_state", GET_STATE, "{}", "3")
+        caller = rclpy_node("call", "/dyknow/get_state", GET_STATE, "{}", "10")
         assert caller.lines.get(timeout=30) == {"service": "found"}
+        # (the caller asks every 0.5 s for 10 s: answers are written while it asks, and it takes
+        # none. It asked for 3 s: once, in a whole suite, no request reached the server by then)
+        wait_until(lambda: server.answered >= 1, "the server to answer a request while the caller asks", timeout_s=30)
         assert caller.lines.get(timeout=30) == {"response": None, "why": "no answer"}
-        # (answered, and not taken: the caller asked every 0.5 s for 3 s and is gone, so answers to
-        # its last requests may be written after it, or find no reader: at least one was written)
-        wait_until(lambda: server.answered >= 1, "the server to answer a request")
         assert server.received >= server.answered and server.refused == 0
 
 
