@@ -369,3 +369,60 @@ def test_dyknow_ros2_call_and_list_over_dds(domain: int, rclpy_node: Callable[..
     services = json.loads(listed.stdout)["services"]
     assert services["/camera_top/change_state"] == {"types": [CHANGE_STATE], "servers": 1, "clients": 0}
     assert services["/camera_top/get_state"]["types"] == [GET_STATE]
+
+
+@pytest.mark.process
+def test_a_dds_write_that_waits_for_acknowledgements_lets_other_threads_run(domain: int, rclpy_node: Callable[..., Rclpy]) -> None:
+    """A reliable write waits while its reader has not acknowledged enough (here: the reader's
+    process is stopped). It must wait without the interpreter lock: Cyclone's binding kept it,
+    and a manager froze whole (its /diagnostics thread in the write, Cyclone's receive thread
+    waiting for the lock to run a listener, so no acknowledgement was ever read)."""
+    import os
+    import signal
+
+    from dyknow.ros2.convert import to_message
+    from dyknow.ros2.dds import DdsNode
+    from dyknow.ros2.names import QoS
+
+    listener = rclpy_node("listen", "/blocked", "std_msgs/msg/String")
+    with DdsNode(domain=domain) as participant:
+        pub = participant.create_publisher("/blocked", "std_msgs/msg/String", QoS(keep_all=True))
+        first = to_message("first", "std_msgs/msg/String", participant.types, origin_ns=0)
+        big = to_message("x" * 250_000, "std_msgs/msg/String", participant.types, origin_ns=0)
+        deadline = time.monotonic() + 30
+        while True:  # matched both ways: the listener has read a message
+            pub.publish(first)
+            try:
+                if listener.lines.get(timeout=0.1) == {"data": "first"}:
+                    break
+            except queue.Empty:
+                assert time.monotonic() < deadline, "rclpy received nothing in 30 s"
+        ticks: list[float] = []
+        done = threading.Event()
+
+        def tick() -> None:
+            while not done.is_set():
+                ticks.append(time.monotonic())
+                time.sleep(0.005)
+
+        ticker = threading.Thread(target=tick, daemon=True)
+        os.kill(listener.proc.pid, signal.SIGSTOP)  # no acknowledgement from now on
+        try:
+            ticker.start()
+            for _ in range(400):  # Cyclone holds up a writer past some 500 kB unacknowledged
+                started = time.monotonic()
+                try:
+                    pub.publish(big)
+                except BindingError:
+                    pass  # the write gave up after the QoS's max_blocking_time (1 s)
+                ended = time.monotonic()
+                if ended - started >= 0.5:
+                    break
+            else:
+                raise AssertionError("no write waited: the stopped reader was not holding the writer up")
+        finally:
+            done.set()
+            os.kill(listener.proc.pid, signal.SIGCONT)
+        ticker.join(5)
+        during = [t for t in ticks if started + 0.1 < t < ended - 0.1]
+        assert during, f"no other thread ran during a write that waited {ended - started:.2f} s"

@@ -71,15 +71,37 @@ LOOPBACK_CONFIG = (
 def _raw_entities() -> tuple[Any, Any]:
     """Cyclone's DataWriter and DataReader with a raw CDR write and take: what ``write`` and
     ``take`` do around the ``IdlStruct`` (de)serialization they skip, through the same C layer.
-    An ``IdlStruct`` costs a Python int per byte of an image (15 ms a 640x480 frame)."""
-    from cyclonedds._clayer import ddspy_take, ddspy_write  # type: ignore[import-not-found]  # (Cyclone's C layer ships no stubs)
+    An ``IdlStruct`` costs a Python int per byte of an image (15 ms a 640x480 frame).
+
+    The write calls ``dds_write`` through ctypes, which lets go of the interpreter lock for the
+    call, with the sample container the binding's own write builds (a pointer and a size; the
+    binding's serdata copies it and touches no Python object). The binding's ``ddspy_write``
+    keeps the lock while Cyclone writes, and a reliable write may wait there: for room in the
+    writer's history, or for a lock that Cyclone's receive thread holds while it waits for the
+    interpreter lock to run a listener. Neither then moves, and the whole process froze
+    (services, timers and SIGTERM included; seen beside CPU hogs, the ``/diagnostics`` thread
+    stuck in ``ddspy_write``)."""
+    import ctypes
+
+    from cyclonedds._clayer import ddspy_take  # type: ignore[import-not-found]  # (Cyclone's C layer ships no stubs)
     from cyclonedds.core import InstanceState, SampleState, ViewState
+    from cyclonedds.internal import load_cyclonedds
     from cyclonedds.pub import DataWriter
     from cyclonedds.sub import DataReader
 
+    class Container(ctypes.Structure):  # the binding's ddspy_sample_container_t
+        _fields_ = (("usample", ctypes.c_void_p), ("usample_size", ctypes.c_size_t))
+
+    # a foreign function of its own (ctypes.CDLL: the lock is released during the call), so
+    # the binding's prototype of dds_write is left as it is
+    dds_write = ctypes.CFUNCTYPE(ctypes.c_int32, ctypes.c_int32, ctypes.POINTER(Container))(("dds_write", load_cyclonedds()))
+
     class RawWriter(DataWriter):  # type: ignore[misc]
         def write_cdr(self, data: bytes) -> int:
-            return int(ddspy_write(self._ref, data.ljust((len(data) + 3) & ~3, b"\0")))
+            padded = data.ljust((len(data) + 3) & ~3, b"\0")
+            buffer = ctypes.c_char_p(padded)  # points into ``padded`` (kept alive by this frame)
+            container = Container(ctypes.cast(buffer, ctypes.c_void_p), len(padded))
+            return int(dds_write(self._ref, ctypes.byref(container)))
 
     class RawReader(DataReader):  # type: ignore[misc]
         def take_cdr(self, n: int) -> list[tuple[bytes, Any]]:
