@@ -597,5 +597,24 @@ def test_pipeline_benchmark_smoke(tmp_path: Path) -> None:
     for row in data["results"].values():
         assert row["faults"] == 2 and 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"], data
     assert len(data["loadavg_1min"]) == 2 and data["target_p99_ms"] == 100
-    assert "target p99 <= 100 ms" in result.stdout and "load average" in result.stdout and "two hosts" in result.stdout
+    assert "target p99 <= 100 ms on one host" in result.stdout and "load average" in result.stdout and data["hosts"] == "one"
     assert "ROSA paper (its Table 6" in result.stdout and "ROSA 1.24-2.50 s, Metacontrol 0.82-1.55 s" in result.stdout
+
+
+@pytest.mark.namespaces
+def test_pipeline_benchmark_smoke_on_two_hosts(tmp_path: Path) -> None:
+    """The robot and the manager in two network namespaces: every fault is seen and recovered
+    across the link (DDS discovery by unicast both ways)."""
+    from tests.conftest import need_hosts
+    from tests.test_pipeline_robot import need_ros_messages
+
+    need_ros_messages()
+    need_hosts()
+    out = tmp_path / "pipeline.json"
+    result = _run("pipeline.py", "--two-hosts", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    data = json.loads(out.read_text())
+    assert data["hosts"]["robot"] != data["hosts"]["manager"] and data["target_p99_ms"] == 250
+    for row in data["results"].values():
+        assert row["faults"] == 2 and 0 < row["p50_ms"] <= row["p99_ms"] <= row["max_ms"], data
+    assert "two hosts (the robot at 10.77." in result.stdout and "target p99 <= 250 ms on two hosts" in result.stdout

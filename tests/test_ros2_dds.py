@@ -426,3 +426,15 @@ def test_a_dds_write_that_waits_for_acknowledgements_lets_other_threads_run(doma
         ticker.join(5)
         during = [t for t in ticks if started + 0.1 < t < ended - 0.1]
         assert during, f"no other thread ran during a write that waited {ended - started:.2f} s"
+
+
+def test_a_unicast_dds_configuration_names_the_address_it_refuses() -> None:
+    from dyknow.ros2.dds import unicast_config
+
+    config = unicast_config("10.77.0.2", ["10.77.0.1", "fd00::1"])
+    assert '<NetworkInterface address="10.77.0.2"/>' in config and '<Peer address="10.77.0.1"/><Peer address="fd00::1"/>' in config
+    assert "<AllowMulticast>false</AllowMulticast>" in config
+    with pytest.raises(BindingError, match=r"peers 'robot\.local'.*expected an IPv4 or IPv6 address"):
+        unicast_config("10.77.0.2", ["robot.local"])
+    with pytest.raises(BindingError, match=r"address '10\.77\.0\.2\"/>'"):
+        unicast_config('10.77.0.2"/>', [])

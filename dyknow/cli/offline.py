@@ -91,10 +91,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
     if not args.skip_sources:  # (also where a file has other mistakes: every error in one run)
         found += source_issues([SourceRef(*ref) for ref in template_sources(args.paths)], args.path)
     if found:
-        files: dict[str, int] = {}  # (the files in the order their first issue came: the order given)
+        order: dict[str, int] = {}  # (the files in the order their first issue came: the order given)
         for issue in found:
-            files.setdefault(issue.path, len(files))
-        found.sort(key=lambda i: (files[i.path], i.line))
+            order.setdefault(issue.path, len(order))
+        found.sort(key=lambda i: (order[i.path], i.line))
         for issue in found:
             print(str(issue), file=sys.stderr)
         if args.json:

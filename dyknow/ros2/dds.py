@@ -21,7 +21,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +42,7 @@ from dyknow.ros2.node import DEFAULT_MAX_MESSAGE_BYTES, UNTYPED_MAX_MESSAGE_BYTE
 from dyknow.ros2.services import DEFAULT_MAX_REQUEST_BYTES, as_message
 from dyknow.ros2.types import MAX_CDR_BYTES, TypeSupport
 
-__all__ = ["FASTDDS_PROFILE", "LOOPBACK_CONFIG", "DdsClient", "DdsNode", "DdsPublisher", "DdsService", "DdsSubscription"]
+__all__ = ["FASTDDS_PROFILE", "LOOPBACK_CONFIG", "DdsClient", "DdsNode", "DdsPublisher", "DdsService", "DdsSubscription", "unicast_config"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +65,26 @@ LOOPBACK_CONFIG = (
     "<AllowMulticast>false</AllowMulticast><MaxMessageSize>65500B</MaxMessageSize><FragmentSize>64000B</FragmentSize></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
     '<MaxAutoParticipantIndex>30</MaxAutoParticipantIndex><Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>'
 )
+
+
+def unicast_config(address: str, peers: Sequence[str]) -> str:
+    """A Cyclone configuration for a network without multicast (or where it is not wanted): this
+    host's interface of ``address``, discovery by unicast to ``peers`` (the hosts of the ROS 2
+    nodes; ``ROS_STATIC_PEERS`` is their side of it). Raises :class:`BindingError` for an
+    address that is not IPv4 or IPv6."""
+    import ipaddress
+
+    for where, text in (("address", address), *(("peers", peer) for peer in peers)):
+        try:
+            ipaddress.ip_address(text)
+        except ValueError:
+            raise BindingError(f"{where} {text!r}", where="DDS unicast configuration", expected="an IPv4 or IPv6 address") from None
+    found = "".join(f'<Peer address="{peer}"/>' for peer in peers)
+    return (
+        f'<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterface address="{address}"/></Interfaces>'
+        "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
+        f"<MaxAutoParticipantIndex>30</MaxAutoParticipantIndex><Peers>{found}</Peers></Discovery></Domain></CycloneDDS>"
+    )
 
 
 @functools.cache

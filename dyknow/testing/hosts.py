@@ -160,14 +160,20 @@ class Hosts:
         """``argv`` run inside host ``name``'s namespace."""
         return ["ip", "netns", "exec", self.namespace(name), *argv]
 
-    def popen(self, name: str, argv: Sequence[str], *, private_shm: bool = True, **kwargs: Any) -> subprocess.Popen[Any]:
-        """Start ``argv`` on host ``name`` (keyword arguments go to :class:`subprocess.Popen`).
+    def argv(self, name: str, argv: Sequence[str], *, private_shm: bool = True) -> list[str]:
+        """The command line that runs ``argv`` on host ``name`` (what :meth:`popen` starts).
 
         ``private_shm``: with a ``/dev/shm`` of its own (see the module documentation)."""
         if private_shm:
             shell = 'mount -t tmpfs -o size=512m,mode=1777 tmpfs /dev/shm && exec "$0" "$@"'
             argv = ["unshare", "--mount", "--propagation", "private", "sh", "-c", shell, *argv]
-        return subprocess.Popen(self.command(name, argv), **kwargs)
+        return self.command(name, argv)
+
+    def popen(self, name: str, argv: Sequence[str], *, private_shm: bool = True, **kwargs: Any) -> subprocess.Popen[Any]:
+        """Start ``argv`` on host ``name`` (keyword arguments go to :class:`subprocess.Popen`).
+
+        ``private_shm``: with a ``/dev/shm`` of its own (see the module documentation)."""
+        return subprocess.Popen(self.argv(name, argv, private_shm=private_shm), **kwargs)
 
     def loss(self, name: str, percent: float) -> None:
         """Drop ``percent`` % of the packets of host ``name``'s link, at random, both ways (0: none)."""

@@ -68,10 +68,14 @@ class Mission:
     """One run of the robot as a child process (``role`` robot or baseline); a context manager
     that kills it on exit if still running."""
 
-    def __init__(self, domain: int, args: Sequence[str], role: str = "robot") -> None:
-        command = [sys.executable, "-m", f"dyknow.demo.pipeline.{role}", *args]
+    def __init__(
+        self, domain: int, args: Sequence[str], role: str = "robot", *, prefix: Sequence[str] = (), env: Mapping[str, str] | None = None
+    ) -> None:
+        """``prefix``: what runs the robot's command line (another host's, for example:
+        :meth:`dyknow.testing.hosts.Hosts.argv`); ``env``: variables over :func:`robot_env`'s."""
+        command = [*prefix, sys.executable, "-m", f"dyknow.demo.pipeline.{role}", *args]
         self.role = role
-        self.proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=None, text=True, env=robot_env(domain))
+        self.proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=None, text=True, env={**robot_env(domain), **(env or {})})
 
     def __enter__(self) -> Mission:
         return self
