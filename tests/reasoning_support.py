@@ -31,6 +31,7 @@ from dyknow.reasoning.syntax import (
     Formula,
     Historically,
     Implies,
+    Index,
     Interval,
     Neg,
     Node,
@@ -101,6 +102,68 @@ def naive_read(payload: Any, fields: Sequence[str]) -> Any:
     if isinstance(value, float):
         return value if math.isfinite(value) else U
     return U
+
+
+def naive_read_raw(payload: Any, fields: Sequence[str]) -> Any:
+    """A stream's payload down the fields as it is (objects and arrays too), for lookups and dist."""
+    value = payload
+    for name in fields:
+        if not isinstance(value, dict) or name not in value:
+            return U
+        value = value[name]
+    return value
+
+
+def naive_lookup(container: Any, key: Any) -> Any:
+    """``container[key]`` from the text: an object's member by a string, or by a number's key
+    (its canonical text, as object identity has it); an array's element by a whole number from 0."""
+    if isinstance(key, bool) or not (isinstance(key, str) or (is_number(key) and math.isfinite(key))):
+        return U
+    if isinstance(container, dict):
+        name = key if isinstance(key, str) else naive_object_key(key)
+        return container[name] if name in container else U
+    if isinstance(container, list) and is_number(key) and Fraction(key).denominator == 1 and 0 <= key < len(container):
+        return container[int(key)]
+    return U
+
+
+def naive_function(fn: str, xs: Sequence[Any]) -> Any:
+    """sqrt, hypot and pow from the text: in floats; unknown unless the result is a finite real number."""
+    if not all(is_number(x) for x in xs):
+        return U
+    try:
+        floats = [float(x) for x in xs]
+        if fn == "sqrt":
+            if floats[0] < 0:
+                return U
+            result: Any = math.sqrt(floats[0])
+        elif fn == "hypot":
+            result = math.hypot(floats[0], floats[1])
+        else:
+            result = floats[0] ** floats[1]  # (Python's own power, not math.pow: a complex result for a root of a negative number)
+    except (OverflowError, ZeroDivisionError, ValueError):
+        return U
+    return result if isinstance(result, float) and math.isfinite(result) else U
+
+
+def naive_distance(p: Any, q: Any) -> Any:
+    """dist from the text: objects with x and y (and z on both or neither) or arrays of one length."""
+    if isinstance(p, dict) and isinstance(q, dict):
+        names = ["x", "y", "z"] if ("z" in p or "z" in q) else ["x", "y"]
+        if not all(name in p and name in q for name in names):
+            return U
+        a, b = [p[name] for name in names], [q[name] for name in names]
+    elif isinstance(p, list) and isinstance(q, list) and len(p) == len(q) >= 1:
+        a, b = p, q
+    else:
+        return U
+    if not all(is_number(x) for x in [*a, *b]):
+        return U
+    try:
+        result = math.hypot(*[float(x) - float(y) for x, y in zip(a, b, strict=True)])
+    except OverflowError:
+        return U
+    return result if math.isfinite(result) else U
 
 
 def naive_compare(op: str, x: Any, y: Any) -> Verdict:
@@ -192,11 +255,14 @@ def naive_evaluate_ns(
                 if child is not None and not isinstance(child, str):
                     todo.append(child)
             todo.extend(getattr(here, "args", ()) if isinstance(here, Call) else ())
+            if isinstance(here, Index):
+                todo.extend([here.stream, *here.keys])
         return found
 
     def stale_somewhere(node: Node, lo: int | None, hi: int) -> bool:
-        """Whether a term below ``node`` is stale at some whole ns of [lo, hi] (lo None: from the first state)."""
-        lo = times[0] if lo is None else max(lo, times[0])
+        """Whether a term below ``node`` is stale at some whole ns of [lo, hi] (lo None: from the
+        first state; a span reaching back before the first state reaches the outages there)."""
+        lo = times[0] if lo is None else lo
         for term in terms_below(node):
             if term not in ages:
                 continue
@@ -296,6 +362,21 @@ def naive_evaluate_ns(
             return U
         return min(xs) if kind == "min" else max(xs)
 
+    def raw(node: Node, i: int) -> Any:
+        """What a lookup looks into and dist measures: a stream's payload (down its fields) or a
+        lookup's member as they are; any other operand's value."""
+        if isinstance(node, Stream):
+            k = terms.index(node.term)
+            if node.term in ages and times[i] - when[i][k] > ages[node.term]:
+                return U
+            return naive_read_raw(held[i][k], node.fields)
+        if isinstance(node, Index):
+            found = raw(node.stream, i)
+            for key in node.keys:
+                found = naive_lookup(found, value(key, i))
+            return found
+        return value(node, i)
+
     def compute(node: Node, i: int) -> Any:
         if isinstance(node, Num | Str):
             return node.value
@@ -304,10 +385,7 @@ def naive_evaluate_ns(
         if isinstance(node, Const):
             return node.value
         if isinstance(node, Stream):
-            k = terms.index(node.term)
-            if node.term in ages and times[i] - when[i][k] > ages[node.term]:
-                return U
-            return naive_read(held[i][k], node.fields)
+            return naive_read(raw(node, i), ())
         if isinstance(node, Neg):
             x = value(node.arg, i)
             return -x if is_number(x) else U
@@ -316,6 +394,12 @@ def naive_evaluate_ns(
         if isinstance(node, Call) and node.fn == "robustness":
             r = rob(node.args[0], i)
             return U if r is None else r
+        if isinstance(node, Index):
+            return naive_read(raw(node, i), ())
+        if isinstance(node, Call) and node.fn == "dist":
+            return naive_distance(raw(node.args[0], i), raw(node.args[1], i))
+        if isinstance(node, Call) and node.fn in ("sqrt", "hypot", "pow"):
+            return naive_function(node.fn, [value(a, i) for a in node.args])
         if isinstance(node, Call):
             xs = [value(a, i) for a in node.args]
             if not all(is_number(x) for x in xs):
@@ -442,7 +526,7 @@ def naive_evaluate_ns(
 def is_condition(node: Node) -> bool:
     if isinstance(node, Prev):
         return is_condition(node.arg)
-    return not isinstance(node, Num | Str | Var | Stream | Neg | Arith | Call | Aggregate)
+    return not isinstance(node, Num | Str | Var | Stream | Index | Neg | Arith | Call | Aggregate)
 
 
 # -- strategies
@@ -629,12 +713,13 @@ def naive_object_key(value: str | int | float) -> str:
 
 
 def naive_evaluate_objects(
-    var: str, domain: Stream, body: Formula, streams: Mapping[Term, Sequence[tuple[int, Any]]], idle_ns: int
+    var: str, domain: Stream, body: Formula, streams: Mapping[Term, Sequence[tuple[int, Any]]], idle_ns: int,
+    max_age: Mapping[Term, int] | None = None,
 ) -> dict[str, list[list[tuple[int, Verdict]]]]:
     """A foreach formula per object and life, from the text: an object is a string or number the
     domain field names; a life runs while its samples come at most ``idle_ns`` apart; over a life
-    the domain stream is the object's samples, the other terms their samples between the life's
-    first sample and ``idle_ns`` after its last (and the latest before it), the variable the
+    the domain stream is the object's samples, the other terms their samples up to ``idle_ns``
+    after its last (their values and outages from before the life too), the variable the
     object's value; states from the life's first sample."""
     own = streams[domain.term]
     objects: dict[str, list[list[tuple[int, Any]]]] = {}
@@ -657,10 +742,100 @@ def naive_evaluate_objects(
         for life in lives:
             start, end = life[0][0], life[-1][0] + idle_ns
             picked: dict[Term, list[tuple[int, Any]]] = {domain.term: life}
-            for term in terms[1:]:
-                samples = streams[term]
-                earlier = [s for s in samples if s[0] < start]
-                picked[term] = earlier[-1:] + [s for s in samples if start <= s[0] <= end]
+            for term in terms[1:]:  # every sample before the life too: their outages there count
+                picked[term] = [s for s in streams[term] if s[0] <= end]
             value = naive_read(life[0][1], domain.fields)
-            out.setdefault(key, []).append(naive_evaluate_ns(formula, picked, variables={var: value}, start_ns=start))
+            out.setdefault(key, []).append(naive_evaluate_ns(formula, picked, variables={var: value}, start_ns=start, max_age=max_age))
     return out
+
+
+# -- lookups, functions and points (their own terms and payloads: objects, arrays, keys of every kind)
+
+LIMITS, ZONE, P, Q = Term("Limits", ("floor",)), Term("Zone", ("r",)), Term("P", ("a",)), Term("Q", ("b",))
+LOOKUP_TERMS = (LIMITS, ZONE, P, Q)
+
+_LIMITS = [
+    {"a": 1.0, "b": 2, "3": 0.5, "1": 4, "home": {"x": 1, "y": 1}, "speed": 9, "by_zone": {"a": {"speed": 1.5}, "b": {"speed": 0.5}, "1": {"speed": 3}},
+     "open": {"a": True, "b": False, "3": True, "1": False}},
+    {"a": 0.5, "b": {"speed": 3}, "2": -1, "home": [2, 2], "by_zone": {"a": {"speed": 2}, "3": {"speed": 0.25}, "b": {"speed": 1}},
+     "open": {"a": False, "b": True, "2": True, "3": 1}},
+    {"a": True, "b": "fast", "3": None, "home": {"x": 1, "y": 1, "z": 1}},
+    [0.5, 2, 3.5, "x", {"speed": 1}],
+    [],
+    {"A": 1},
+    None,
+    3,
+]
+_ZONES = ["a", "b", "3", "1", "2", 3, 3.0, 1, 0, 2.0, 2.5, -1, -4, 0.25, 1e200, True, None, "speed", "home",
+          {"v": "a"}, {"v": 1}, {"v": 3.0}, {"v": [1]}]  # fmt: skip
+_POINTS = [
+    {"x": 0, "y": 0}, {"x": 3, "y": 4}, {"x": 1, "y": 2, "z": 2}, {"x": 1.5, "y": -2, "w": 7}, [1, 2], [1, 2, 3], [0.5], [],
+    {"x": "a", "y": 1}, {"x": True, "y": 0}, None, 5, {"position": {"x": 1, "y": 1}}, {"x": 1e308, "y": 0}, {"x": -1e308, "y": 0},
+    {"x": 2, "y": 2, "position": [4, 6]},
+]  # fmt: skip
+# mostly payloads a lookup finds something in, so that many verdicts are decided
+_POOLS = {LIMITS: _LIMITS[:2] * 6 + _LIMITS, ZONE: ["a", "b", "3", 3, 1, 2.0, 0.25, {"v": "a"}, {"v": "b"}, {"v": 3}, {"v": 1.0}] * 4 + _ZONES, P: _POINTS[:4] * 4 + _POINTS[5:8] + _POINTS, Q: _POINTS[:4] * 4 + _POINTS}
+
+
+@st.composite
+def lookup_traces(draw: st.DrawFn, terms: Sequence[Term], *, max_samples: int = 20) -> dict[Term, list[tuple[int, Any]]]:
+    """Irregular samples (ns, value) of the lookup terms, each from its own pool of payloads."""
+    out: dict[Term, list[tuple[int, Any]]] = {}
+    for term in terms:
+        t = draw(st.integers(0, 3))
+        samples = []
+        for _ in range(draw(st.integers(3, max_samples))):
+            samples.append((t * MS, draw(st.sampled_from(_POOLS[term]))))
+            t += draw(st.sampled_from([0, 1, 1, 1, 2, 3]))
+        out[term] = samples
+    return out
+
+
+_KEYS: st.SearchStrategy[Node] = st.one_of(
+    st.just(Stream(ZONE)), st.just(Stream(ZONE, ("v",))), st.builds(Str, st.sampled_from(["a", "b", "home"])), st.builds(Num, st.sampled_from([3, 1, 2.0, 0, -1]))
+)
+
+
+def lookup_values() -> st.SearchStrategy[Node]:
+    """Lookups (keys of streams, strings and numbers, chained, after a field path), sqrt, hypot,
+    pow and dist over the lookup terms."""
+    key = _KEYS
+    lookup = st.one_of(
+        st.builds(lambda k: Index(Stream(LIMITS), (k,)), key),
+        st.builds(lambda k: Index(Stream(LIMITS, ("by_zone",)), (k, Str("speed"))), key),
+        st.builds(lambda k, j: Index(Stream(LIMITS), (k, j)), key, key),
+    )
+    number = st.one_of(lookup, st.just(Stream(ZONE)), st.just(Stream(P, ("x",))), st.builds(Num, st.sampled_from([-1, 0, 0.5, 2, 3])))
+    point = st.one_of(st.just(Stream(P)), st.just(Stream(Q)), st.just(Stream(P, ("position",))), st.just(Index(Stream(LIMITS), (Str("home"),))),
+                      st.builds(lambda k: Index(Stream(LIMITS), (k,)), key))  # fmt: skip
+    return st.one_of(
+        lookup,
+        lookup,
+        st.builds(lambda x: Call("sqrt", (x,)), number),
+        st.builds(lambda x, y: Call("hypot", (x, y)), number, number),
+        st.builds(lambda x, y: Call("pow", (x, y)), number, number),
+        st.builds(lambda p, q: Call("dist", (p, q)), point, point),
+        st.builds(lambda p, q: Arith("+", Call("dist", (p, q)), Num(1)), point, point),
+    )
+
+
+def lookup_formulas(*, future: bool = True) -> st.SearchStrategy[Formula]:
+    """Atoms over :func:`lookup_values` (with a constant, with each other, ``==`` with a string),
+    alone or under one connective, temporal operator or aggregate."""
+    ops = st.sampled_from(["<", "<=", ">", ">=", "==", "!="])
+    values_ = lookup_values()
+    atom = st.one_of(
+        st.builds(Atom, values_, ops, st.builds(Num, st.sampled_from([0, 0.5, 1, 2, 5]))),
+        st.builds(Atom, values_, ops, values_),
+        st.builds(lambda k: Atom(Index(Stream(LIMITS), (k,)), "==", Str("fast")), _KEYS),
+        st.builds(Atom, st.builds(lambda k: Index(Stream(LIMITS, ("open",)), (k,)), _KEYS)),  # a bare boolean member
+    )
+    past = [
+        st.builds(Historically, intervals(future=False), atom),
+        st.builds(Once, intervals(future=False), atom),
+        st.builds(lambda kind, iv, v, c: Atom(Aggregate(kind, iv, v), ">", Num(c)), st.sampled_from(["max", "avg", "sum"]),
+                  intervals(future=False), values_, st.sampled_from([0, 1, 2])),  # fmt: skip
+    ]
+    ahead = [st.builds(Always, intervals(future=True), atom), st.builds(Eventually, intervals(future=True), atom)] if future else []
+    tree = st.one_of(atom, atom, st.builds(Not, atom), st.builds(And, atom, atom), st.builds(Or, atom, atom), *past, *ahead)
+    return tree.map(Formula.of)

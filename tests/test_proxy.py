@@ -462,6 +462,33 @@ def test_a_message_run_inline_never_overtakes_one_queued_on_another_port(make_ma
     assert pair.seen[10:] == [("a", "first"), ("b", "second")]
 
 
+def test_messages_queued_on_several_ports_are_handed_over_in_the_order_they_came(make_manager: Callable[..., Manager]) -> None:
+    """Issue 54 item 4: while the lane is busy, messages queue on two ports in the order a1 a2 a3
+    b1 a4; the unit then sees them in that order. (Taken port by port, it saw a1 b1 a2 a3 a4: a
+    formula monitor of two terms found the later one's samples late, and dropped them, even in
+    one process.)"""
+    manager = make_manager(listen=[])
+    manager.add_transformation(TransformationSpec("pair", "tests.test_proxy:Pair", ports=(Port("a", "in"), Port("b", "in"))))
+    manager.add_transformation(TransformationSpec("blocker", "tests.test_proxy:Blocker", ports=(Port("in", "in"),)))
+    manager.spawn("pair", "pair", bindings={"a": "order/a", "b": "order/b"})
+    manager.spawn("blocker", "blocker", bindings={"in": "order/block"})
+    for name in ("a", "b", "block"):
+        manager.spawn("publisher", f"send-{name}", bindings={"out": f"order/{name}"})
+    pair, send_a, send_b, send_block = (manager.unit(n) for n in ("pair", "send-a", "send-b", "send-block"))
+    assert isinstance(pair, Pair) and isinstance(send_a, Source) and isinstance(send_b, Source) and isinstance(send_block, Source)
+    Blocker.entered.clear()
+    Blocker.go.clear()
+    try:
+        send_block.emit(0)  # the lane is busy with the blocker
+        assert Blocker.entered.wait(10)
+        for port, value in [("a", 1), ("a", 2), ("a", 3), ("b", 1), ("a", 4), ("b", 2)]:
+            (send_a if port == "a" else send_b).emit(value)
+    finally:
+        Blocker.go.set()
+    wait_until(lambda: len(pair.seen) == 6, "every message")
+    assert pair.seen == [("a", 1), ("a", 2), ("a", 3), ("b", 1), ("a", 4), ("b", 2)]
+
+
 def test_a_long_local_chain_goes_through_the_lanes_past_the_depth_limit(make_manager: Callable[..., Manager]) -> None:
     """At most 64 units run nested on one thread: a chain of 150 delivers every message, in
     order, the stack stays shallow.

@@ -76,6 +76,30 @@ def test_an_object_monitor_returns_the_naive_evaluators_decided_verdicts_per_obj
     assert {k: sorted(v) for k, v in got.items()} == {k: sorted(v) for k, v in want.items() if v}, str(formula)
 
 
+@settings(max_examples=300, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(body=formulas((TRACK, ZONE), max_depth=3, rich=True, future=False) | formulas((TRACK, ZONE), max_depth=3), seed=st.integers(0, 10**6),
+       idle=st.sampled_from([2, 5, 20]), ages=st.sampled_from([(1, None), (2, None), (0, 3), (4, 1)]))  # fmt: skip
+def test_an_object_monitor_counts_the_outages_before_an_objects_first_sample(body: Formula, seed: int, idle: int, ages: tuple[int, int | None]) -> None:
+    """Issue 54 item 3: with maximum ages, a window of an object's first states that reaches back
+    before its first sample reaches the other terms' outages there (the span rule): unknown, not
+    false. Every instance's verdicts are the naive evaluator's, which keeps every sample, and
+    evaluate_objects_ns() (which keeps what the body's windows reach) agrees with it."""
+    formula = Formula.of(Quantifier("foreach", "t", Stream(TRACK, ("id",)), body.root))
+    rng = random.Random(seed)
+    trace = _trace(rng)
+    zone_age, track_age = ages
+    max_age = {ZONE: zone_age * MS, **({TRACK: track_age * MS} if track_age is not None else {})}
+    max_age = {term: age for term, age in max_age.items() if term in formula.terms}
+    inner = Formula.of(formula.root.body)  # type: ignore[union-attr]
+    naive = naive_evaluate_objects("t", Stream(TRACK, ("id",)), inner, trace, idle * MS, max_age=max_age)
+    by_name = {str(term): age for term, age in max_age.items()}
+    offline = evaluate_objects_ns(formula, {str(k): v for k, v in trace.items() if k in formula.terms}, idle_ns=idle * MS, max_age_ns=by_name)
+    assert offline == naive, (str(formula), max_age)
+    got = _run(ObjectMonitor(formula, idle_ns=idle * MS, max_age_ns=by_name), trace, rng)
+    want = {key: [(t, v) for life in lives for t, v in life if v is not None] for key, lives in naive.items()}
+    assert {k: sorted(v) for k, v in got.items()} == {k: sorted(v) for k, v in want.items() if v}, (str(formula), max_age)
+
+
 def test_an_objects_identity_is_its_json_type_and_value() -> None:
     """Issue 54 item 5: ``1`` and ``"1"`` were one object, ``1`` and ``1.0`` two. Identity is
     JSON's (the semantics page): a number is one value however written, a string is never a

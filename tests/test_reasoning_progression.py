@@ -32,7 +32,7 @@ from dyknow.reasoning.syntax import (
     children,
 )
 from dyknow.tags import Term
-from tests.reasoning_support import MS, formulas, long_trace, traces
+from tests.reasoning_support import MS, formulas, long_trace, lookup_formulas, lookup_traces, traces
 
 
 def cases(count: int) -> settings:
@@ -139,6 +139,12 @@ def test_monitors_of_expressions_edges_and_aggregates_return_evaluates_verdicts(
 @given(formula=formulas(max_depth=4, rich=True), data=st.data(), seed=st.integers(0, 1000))
 def test_monitors_of_expressions_under_future_operators_return_evaluates_verdicts(formula: Formula, data: st.DataObject, seed: int) -> None:
     _check(formula, data.draw(traces(formula.terms, numeric=data.draw(st.booleans()))), seed)
+
+
+@cases(500)
+@given(formula=lookup_formulas(), data=st.data(), seed=st.integers(0, 1000))
+def test_monitors_of_lookups_functions_and_distances_return_evaluates_verdicts(formula: Formula, data: st.DataObject, seed: int) -> None:
+    _check(formula, data.draw(lookup_traces(formula.terms)), seed)
 
 
 @cases(400)
@@ -468,17 +474,18 @@ def test_a_monitor_asked_for_robustness_gives_each_verdict_evaluates(formula: Fo
     assert got == expected, str(formula)
 
 
-def test_a_term_stale_before_the_first_state_leaves_the_windows_known() -> None:
-    # Battery is stale in (0, 1) ms, but the first state is at 1 ms (p's first sample): the window
-    # [0, 1] ms of that state starts at it, so the staleness before it is in no window (found by
-    # Hypothesis in test_a_monitor_of_stale_terms_returns_evaluates_verdicts)
+def test_a_term_stale_before_the_first_state_is_in_the_windows_that_reach_back_into_it() -> None:
+    # Battery is stale in (0, 1) ms, and the first state is at 1 ms (p's first sample): the window
+    # [0, 1] ms of that state reaches back before it, into the outage, so it counts one more
+    # unknown (the span rule; issue 54 item 3: this was false, the window cut at the first state)
     formula = "Battery(robot) < 0 since[0, 1ms] p < 0"
-    samples = [("Battery(robot)", 0, 0), ("Battery(robot)", MS, 0), ("p", MS, 0)]
+    samples = [("Battery(robot)", 0, 0), ("Battery(robot)", MS, 0), ("p", MS, 0), ("Battery(robot)", 3 * MS, 0), ("p", 3 * MS, 0)]
     monitor = Monitor(formula, max_age_ns={"Battery(robot)": 0})
     verdicts = [v for term, t, value in samples for v in monitor.push(term, t, value)] + monitor.flush()
-    streams = {"Battery(robot)": [(0, 0), (MS, 0)], "p": [(MS, 0)]}
-    assert evaluate_ns(formula, streams, max_age_ns={"Battery(robot)": 0}) == [(MS, False)]
-    assert [(v.t_ns, v.verdict) for v in verdicts] == [(MS, False)]
+    streams = {"Battery(robot)": [(0, 0), (MS, 0), (3 * MS, 0)], "p": [(MS, 0), (3 * MS, 0)]}
+    assert evaluate_ns(formula, streams, max_age_ns={"Battery(robot)": 0}) == [(MS, None), (3 * MS, None)]
+    assert verdicts == []
+    assert evaluate_ns(formula, {"Battery(robot)": [(MS - 1, 0), (MS, 0)], "p": [(MS, 0)]}, max_age_ns={"Battery(robot)": 0}) == [(MS, False)]
 
 
 def test_an_unbounded_past_window_keeps_an_outage_it_no_longer_stores() -> None:

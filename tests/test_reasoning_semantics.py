@@ -30,7 +30,7 @@ from dyknow.errors import FormulaError
 from dyknow.reasoning import evaluate, parse
 from dyknow.reasoning.semantics import evaluate_ns, evaluate_values_ns
 from dyknow.reasoning.syntax import Formula
-from tests.reasoning_support import TERMS, formulas, naive_evaluate_ns, seconds, traces
+from tests.reasoning_support import TERMS, formulas, lookup_formulas, lookup_traces, naive_evaluate_ns, seconds, traces
 
 
 def cases(count: int) -> settings:
@@ -103,6 +103,20 @@ def test_a_stale_term_is_unknown_as_the_naive_evaluator_says(formula: Formula, d
     expected = naive_evaluate_ns(formula, trace, max_age=ages)
     got = evaluate_ns(formula, {str(term): samples for term, samples in trace.items()}, max_age_ns={str(t): a for t, a in ages.items()})
     assert got == expected, (str(formula), ages)
+
+
+@cases(1500)
+@given(formula=lookup_formulas(), data=st.data())
+def test_lookups_functions_and_distances_agree_with_the_naive_evaluator(formula: Formula, data: st.DataObject) -> None:
+    """Lookups by keys of every kind (strings, numbers written as ints and floats, booleans,
+    unknowns; chained; after a field path), sqrt, hypot, pow and dist over objects, arrays and
+    junk, their verdicts and robustness, some terms stale: exactly the naive evaluator's."""
+    trace = data.draw(lookup_traces(formula.terms))
+    ages = {term: data.draw(st.sampled_from([0, 1, 2])) * 1_000_000 for term in formula.terms if data.draw(st.sampled_from([False, False, True]))}
+    expected = naive_evaluate_ns(formula, trace, max_age=ages, robustness=True)
+    got = evaluate_ns(formula, {str(term): samples for term, samples in trace.items()}, max_age_ns={str(t): a for t, a in ages.items()}, robustness=True)
+    assert got == expected, (str(formula), ages)
+    assert parse(str(formula)).root == formula.root
 
 
 def test_the_written_text_parses_back_to_the_same_formula_it_was_evaluated_as() -> None:
@@ -506,3 +520,39 @@ def test_the_evaluate_functions_say_their_time_unit_in_their_names() -> None:
     for old, new in (("evaluate_values", evaluate_values_ns), ("evaluate_objects", evaluate_objects_ns)):
         with pytest.warns(DeprecationWarning, match=f"dyknow.reasoning.{old} is now {old}_ns"):
             assert getattr(reasoning, old) is new
+
+
+def test_an_outage_before_the_first_state_is_reached_by_the_windows_that_reach_back_into_it() -> None:
+    """Issue 54 item 3: A(x) is silent from 0 s to 5 s (maximum age 1 s: stale in (1 s, 5 s));
+    B(x)'s first sample at 6 s makes the first state. ``once[0, 10s] A(x) > B(x)`` is false at
+    every state, but a window that reaches back before 5 s reaches the outage: unknown until the
+    window starts at 5 s (state 15 s), as the span rule says, in evaluate, the naive evaluator,
+    the monitor, and per object (the outage before the object's first sample)."""
+    from dyknow.reasoning import Monitor
+    from dyknow.reasoning.objects import ObjectMonitor
+    from dyknow.reasoning.semantics import evaluate_objects_ns
+    from dyknow.tags import Term
+    from tests.reasoning_support import naive_evaluate_ns
+
+    s = 1_000_000_000
+    a = [(0, 1)] + [(t * s, 1) for t in range(5, 17)]
+    b = [(6 * s, 5), (16 * s, 5)]
+    expected = [(t * s, None) for t in range(6, 15)] + [(15 * s, False), (16 * s, False)]
+    formula = parse("once[0, 10s] A(x) > B(x)")
+    ages = {"A(x)": s}
+    assert evaluate_ns(formula, {"A(x)": a, "B(x)": b}, max_age_ns=ages) == expected
+    assert naive_evaluate_ns(formula, {Term("A", ("x",)): a, Term("B", ("x",)): b}, max_age={Term("A", ("x",)): s}) == expected
+    monitor = Monitor(formula, max_age_ns=ages)
+    pushed = sorted([(t, 0, "A(x)", v) for t, v in a] + [(t, 1, "B(x)", v) for t, v in b])
+    verdicts = [v for t, _, term, value in pushed for v in monitor.push(term, t, value)] + monitor.flush()
+    assert [(v.t_ns, v.verdict) for v in verdicts] == [(15 * s, False), (16 * s, False)]
+    # the same per object: the robot's first sample at 6 s, the limit silent before it
+    robots = [(6 * s, {"id": "r1", "speed": 1}), (16 * s, {"id": "r1", "speed": 1})]
+    rule = "foreach r in Robots(f).id: once[0, 10s] Robots(f).speed > Limit(f)"
+    limit = [(t, 5) for t, _ in a]
+    got = evaluate_objects_ns(rule, {"Robots(f)": robots, "Limit(f)": limit}, idle_ns=20 * s, max_age_ns={"Limit(f)": s})
+    assert got == {"r1": [[(t * s, None) for t in range(6, 15)] + [(15 * s, False), (16 * s, False)]]}
+    objects = ObjectMonitor(rule, idle_ns=20 * s, max_age_ns={"Limit(f)": s})
+    pushed = sorted([(t, 0, "Limit(f)", v) for t, v in limit] + [(t, 1, "Robots(f)", v) for t, v in robots])
+    out = [pair for t, _, term, value in pushed for pair in objects.push(term, t, value)] + objects.close()
+    assert [(key, v.t_ns, v.verdict) for key, v in out] == [("r1", 15 * s, False), ("r1", 16 * s, False)]

@@ -51,6 +51,7 @@ def test_the_spec_has_a_port_per_term_tagged_with_it_and_survives_xml() -> None:
     assert spec.param_values() == {
         "formula": "BallTrack(field).speed < 3 since[0, inf] not Stalled(robot) or BallTrack(field).seen",
         "reorder_ms": 5.0,
+        "max_reorder_ms": 1000.0,
         "flush_ms": 100.0,
         "max_age_ms": 0.0,
         "idle_ms": 10_000.0,
@@ -67,25 +68,56 @@ def test_the_spec_has_a_port_per_term_tagged_with_it_and_survives_xml() -> None:
         monitor_spec("p and")
 
 
-def test_late_samples_are_rejections_of_their_port(caplog: pytest.LogCaptureFixture) -> None:
-    """Counted like any rejection, but logged at INFO: a sample that comes too late after its
-    producer was switched is no one's mistake, so no warning is printed."""
-    caplog.set_level(logging.INFO, logger="dyknow.proxy")
-    with UnitHarness(monitor_spec("once[0, 1s] p > 0"), name="m") as harness:
+def test_late_samples_are_rejections_of_their_port_warned_about_once(caplog: pytest.LogCaptureFixture) -> None:
+    """Counted like any rejection; the first on a port is warned about, naming the port and its
+    term (issue 54 item 4: one formula of three published nothing, and nothing said why); the
+    later ones are counted (INFO)."""
+    caplog.set_level(logging.INFO)
+    with UnitHarness(monitor_spec("once[0, 1s] p > 0", max_reorder_ms=0), name="m") as harness:
         harness.send("t0", 1, origin_ns=T0 + 10 * MS)
         harness.wait_for(VERDICTS_PORT, 1)
         harness.send("t0", 1, origin_ns=T0 + 5 * MS)  # before the state already closed
+        harness.send("t0", 1, origin_ns=T0 + 6 * MS)  # and again
         harness.send("t0", 0, origin_ns=T0 + 20 * MS)
         harness.wait_for(VERDICTS_PORT, 2)
         port = harness.statistics().to_dict()["ports"]["t0"]
         unit = harness.unit
         assert isinstance(unit, FormulaMonitor)
-        assert unit.monitor.late == 1 and port["rejected"] == 1
+        assert unit.monitor.late == 2 and port["rejected"] == 2
         assert port["last_rejection"].startswith(
-            f"late: a sample at {T0 + 5 * MS} ns, at or before the last state closed ({T0 + 10 * MS} ns"
+            f"late: a sample at {T0 + 6 * MS} ns, at or before the last state closed ({T0 + 10 * MS} ns"
         )
-    (logged,) = [r for r in caplog.records if "rejected a message" in r.getMessage()]
-    assert logged.levelno == logging.INFO and "late: a sample at" in logged.getMessage()
+    (warned,) = [r for r in caplog.records if "as late" in r.getMessage()]
+    assert warned.levelno == logging.WARNING and "dropped a sample of p on port 't0' as late (late: a sample at" in warned.getMessage()
+    counted = [r for r in caplog.records if "rejected a message" in r.getMessage()]
+    assert len(counted) == 2 and all(r.levelno == logging.INFO for r in counted)
+
+
+def test_the_reorder_delay_grows_with_the_disorder_between_ports(caplog: pytest.LogCaptureFixture) -> None:
+    """Issue 54 item 4: q's samples come two of p's behind. The first is late (the delay was 0,
+    and p's sample at 20 ms closed the state at 10 ms) and warned about; the delay grows to twice
+    the disorder (20 ms), and no later sample is lost: every state has its verdict."""
+    caplog.set_level(logging.INFO)
+    with UnitHarness(monitor_spec("p > 0 and q > 0"), name="m") as harness:
+        unit = harness.unit
+        assert isinstance(unit, FormulaMonitor)
+        harness.send("t0", 1, origin_ns=T0)
+        harness.send("t1", 1, origin_ns=T0)
+        harness.send("t0", 1, origin_ns=T0 + 10 * MS)
+        harness.send("t0", 1, origin_ns=T0 + 20 * MS)
+        for k in range(1, 8):  # q's sample at k * 10 ms comes after p's at (k + 2) * 10 ms
+            harness.send("t1", 1, origin_ns=T0 + k * 10 * MS)
+            harness.send("t0", 1, origin_ns=T0 + (k + 2) * 10 * MS)
+        harness.send("t1", 1, origin_ns=T0 + 200 * MS)
+        harness.send("t0", 1, origin_ns=T0 + 200 * MS)
+        harness.send("t0", 1, origin_ns=T0 + 300 * MS)  # closes what is buffered
+        verdicts = harness.wait_for(VERDICTS_PORT, 11)
+        assert unit.monitor.late == 1 and unit.monitor.reorder_ns == 20 * MS
+        assert [m.payload["t_ns"] for m in verdicts] == [T0 + k * 10 * MS for k in range(10)] + [T0 + 200 * MS]
+        assert all(m.payload["verdict"] is True for m in verdicts)
+    raised = [r.getMessage() for r in caplog.records if "reorder delay now" in r.getMessage()]
+    assert raised == ["[m] a sample on 't1' came 10 ms behind the newest: reorder delay now 20 ms"]
+    assert len([r for r in caplog.records if "as late" in r.getMessage()]) == 1
 
 
 @pytest.mark.parametrize(

@@ -619,7 +619,8 @@ def add_commands(cmds: Commands) -> None:
     def monitor_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("formula", help="e.g. 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'")
         p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: until Ctrl-C); the monitor is released")
-        p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS", help="how late a sample may arrive and still count (default 0)")
+        p.add_argument("--reorder-ms", type=float, default=0.0, metavar="MS",
+                       help="the least reorder delay: how late a sample may arrive and still count; it grows with the disorder seen, up to 1 s (default 0)")
         p.add_argument("--iso", action="store_true",
                        help="print each verdict's time as ISO 8601 wall time (default: seconds since the command started)")  # fmt: skip
         p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")

@@ -96,6 +96,7 @@ class UnitJob:
         self._destroy_unit = destroy
         self._isolation: str | None = None  # see the isolation property
         self.scheduled = False
+        self._arrival = 0  # the messages queued so far, over all the inputs (their order: _drain)
         self._lock = threading.Lock()  # held while one of the unit's callbacks runs
         self._calls: deque[tuple[Callable[[], None], str]] = deque()  # control calls for the unit's lane
         self._current: Message | None = None
@@ -208,7 +209,8 @@ class UnitJob:
 
     def deliver(self, port: InputPort, msg: Message) -> None:
         """Queue ``msg`` on ``port`` and make sure the unit will run. Any thread; never blocks."""
-        if port.push(msg) and not self.scheduled:
+        self._arrival += 1
+        if port.push(msg, self._arrival) and not self.scheduled:
             self.scheduled = True
             self.lane.put(self)
 
@@ -388,51 +390,59 @@ class UnitJob:
             self._after_callbacks()
 
     def _drain(self, worker: Worker) -> None:
+        """Hand the queued messages to the unit, in the order they came over all its inputs
+        (the earliest arrival first: a unit reading several streams sees them as they came, not
+        port by port), a batch at a time."""
         on_message = self.unit.on_message
         ports = self.inputs
+        single = len(ports) == 1
         ident = get_ident()
         budget = _BATCH
-        more = True
-        while more:
-            more = False
-            for port in ports:
-                q = port.queue
-                if not q:
-                    continue
-                msg = q.popleft()
-                now = time_ns()
-                arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
-                self._current = msg
-                self._current_thread = ident
-                worker.busy_job = self
-                worker.busy_since_ns = now
-                self._child_ns = 0
-                probing = self._probe_left
-                mark = cpu_mark() if probing else _NO_MARK
-                try:
-                    if port.forward is None:
-                        on_message(port.name, msg)
-                    else:
-                        self._forward(port, msg, now)
-                except (Exception, SystemExit) as exc:
-                    worker.busy_since_ns = 0
-                    self._current = None
-                    self._fail_unit(exc, f"on_message({port.name!r})" if port.forward is None else f"forwarding {port.name!r}")
-                    return
+        while True:
+            port: InputPort | None = None
+            if single:
+                port = ports[0] if ports[0].queue else None
+            else:
+                first = 0
+                for candidate in ports:
+                    queued = candidate.queue
+                    if queued and (port is None or queued[0][0] < first):
+                        port, first = candidate, queued[0][0]
+            if port is None:
+                return
+            msg = port.queue.popleft()[1]
+            now = time_ns()
+            arrived(port.counters, msg.nbytes, now, msg.origin_ns, msg.origin_clock, msg.send_ns, msg.send_clock)
+            self._current = msg
+            self._current_thread = ident
+            worker.busy_job = self
+            worker.busy_since_ns = now
+            self._child_ns = 0
+            probing = self._probe_left
+            mark = cpu_mark() if probing else _NO_MARK
+            try:
+                if port.forward is None:
+                    on_message(port.name, msg)
+                else:
+                    self._forward(port, msg, now)
+            except (Exception, SystemExit) as exc:
                 worker.busy_since_ns = 0
                 self._current = None
-                self._current_thread = 0
-                self.ewma_ns += (time_ns() - now - self._child_ns - self.ewma_ns) >> 3
-                if probing:
-                    self._probed(charged_ns(mark) - self._child_ns)
-                if self.state is not _RUNNING or self._destroy_requested:
-                    return
-                budget -= 1
-                if q:
-                    more = True
-            if more and budget <= 0:  # let the other units of the lane run, then continue
-                self.scheduled = True
-                self.lane.put(self)
+                self._fail_unit(exc, f"on_message({port.name!r})" if port.forward is None else f"forwarding {port.name!r}")
+                return
+            worker.busy_since_ns = 0
+            self._current = None
+            self._current_thread = 0
+            self.ewma_ns += (time_ns() - now - self._child_ns - self.ewma_ns) >> 3
+            if probing:
+                self._probed(charged_ns(mark) - self._child_ns)
+            if self.state is not _RUNNING or self._destroy_requested:
+                return
+            budget -= 1
+            if budget <= 0:
+                if self._queued():  # let the other units of the lane run, then continue
+                    self.scheduled = True
+                    self.lane.put(self)
                 return
 
     def run_timer(self, timer: Timer, worker: Worker) -> bool:

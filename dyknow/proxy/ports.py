@@ -56,7 +56,10 @@ class InputPort:
         self.depth = depth
         self.keep_last = keep_last
         # keep-last: the deque's maxlen drops the oldest; drop-new: push() refuses when full
-        self.queue: deque[Message] = deque(maxlen=depth if keep_last else None)
+        # each queued message with its arrival number among all the unit's inputs: a unit of
+        # several takes them in the order they came (a formula monitor reads its streams in time
+        # order), not port by port
+        self.queue: deque[tuple[int, Message]] = deque(maxlen=depth if keep_last else None)
         self.counters = PortCounters()
         self.forward: OutputPort | None = None  # the unit's forward_to: dyknow publishes there itself
         self.senders: dict[int, int] = {}  # source -> the last seq seen from it (messages from other processes)
@@ -98,16 +101,17 @@ class InputPort:
             level = logging.INFO if expected else logging.WARNING
             log.log(level, "unit %r rejected a message on %r (%d so far): %s", unit, self.name, counters.rejected, reason)
 
-    def push(self, msg: Message) -> bool:
-        """Queue ``msg``, counting a drop when the queue is full: keep-last drops the oldest,
-        drop-new refuses ``msg`` (False). Any thread; never blocks."""
+    def push(self, msg: Message, arrival: int = 0) -> bool:
+        """Queue ``msg`` (``arrival``: its number among the unit's arrivals), counting a drop when
+        the queue is full: keep-last drops the oldest, drop-new refuses ``msg`` (False). Any
+        thread; never blocks."""
         q = self.queue
         if len(q) >= self.depth:
             self.counters.dropped += 1
             if not self.keep_last:
                 return False  # drop-new: keep what is queued
             # keep-last: the deque's maxlen drops the oldest on append
-        q.append(msg)
+        q.append((arrival, msg))
         return True
 
 

@@ -27,6 +27,7 @@ from dyknow.reasoning.tree import (
     Fall,
     Historically,
     Implies,
+    Index,
     Neg,
     Node,
     Not,
@@ -41,6 +42,7 @@ from dyknow.reasoning.tree import (
     Until,
     Var,
     children,
+    raw_reads,
     walk,
 )
 from dyknow.reasoning.values import (
@@ -54,8 +56,11 @@ from dyknow.reasoning.values import (
     compare,
     exact_sum,
     is_number,
+    lookup,
     margin,
     read,
+    read_raw,
+    scalar,
     truth,
 )
 from dyknow.tags import Term
@@ -99,6 +104,7 @@ class Evaluator:
         self.index = index
         self.max_age = max_age
         self.variables = variables
+        self.raw: set[int] = set()  # the ids of the nodes read as they are (tree.raw_reads), per node()
         self.robust = robustness
         self.n = len(times)
 
@@ -106,6 +112,7 @@ class Evaluator:
         """A node's column over all states (a condition's verdicts, a value's values) and its robustness."""
         # iterative post-order: formulas may nest deeper than Python's recursion allows
         done: dict[int, tuple[list[Any], list[float | None]]] = {}
+        self.raw = raw_reads(root)
         stack: list[tuple[Node, bool]] = [(root, False)]
         while stack:
             node, expanded = stack.pop()
@@ -136,9 +143,16 @@ class Evaluator:
             for i in range(n):
                 if age >= 0 and self.times[i] - self.latest[i][k] > age:
                     out.append(UNKNOWN_VALUE)
+                elif id(node) in self.raw:
+                    out.append(read_raw(self.values[i][k], node.fields))
                 else:
                     out.append(read(self.values[i][k], node.fields))
             return out, none
+        if isinstance(node, Index):
+            found = list(args[0][0])
+            for key in args[1:]:
+                found = [lookup(c, k) for c, k in zip(found, key[0], strict=True)]
+            return (found if id(node) in self.raw else [scalar(v) for v in found]), none
         if isinstance(node, Neg):
             return [call("neg", [x]) for x in args[0][0]], none
         if isinstance(node, Arith):
@@ -202,9 +216,10 @@ class Evaluator:
         return sorted(k for k in found if self.max_age[k] >= 0 and k < len(self.stale) and self.stale[k])
 
     def stale_window(self, terms: list[int], lo: int | None, hi: int) -> bool:
-        """Whether one of ``terms`` is stale at a time of ``[lo, hi]`` (from the first state when ``lo`` is None)."""
-        first = self.times[0] if self.times else 0
-        lo = first if lo is None else max(lo, first)
+        """Whether one of ``terms`` is stale at a time of ``[lo, hi]`` (from the first state when
+        ``lo`` is None; a span reaching back before the first state reaches its outages there)."""
+        if lo is None:
+            lo = self.times[0] if self.times else 0
         return any(stale_in(self.stale[k], lo, hi) for k in terms)
 
     @staticmethod
@@ -390,7 +405,7 @@ def is_condition(node: Node) -> bool:
     """Whether a node gives verdicts (else values)."""
     if isinstance(node, Prev):
         return is_condition(node.arg)
-    return not isinstance(node, Num | Str | Var | Stream | Neg | Arith | Call | Aggregate)
+    return not isinstance(node, Num | Str | Var | Stream | Index | Neg | Arith | Call | Aggregate)
 
 
 def _pair(pick: Callable[[float, float], float], x: float | None, y: float | None) -> float | None:

@@ -14,7 +14,21 @@ from typing import Any, Final
 
 from dyknow.reasoning.robustness import RobustnessTree
 from dyknow.reasoning.timeline import NEVER, Clock, Held
-from dyknow.reasoning.values import FALSE, TRUE, UNKNOWN, UNKNOWN_VALUE, arith, as_value, call, compare, read, truth
+from dyknow.reasoning.values import (
+    FALSE,
+    TRUE,
+    UNKNOWN,
+    UNKNOWN_VALUE,
+    arith,
+    as_value,
+    call,
+    compare,
+    lookup,
+    read,
+    read_raw,
+    scalar,
+    truth,
+)
 
 __all__ = [
     "AND",
@@ -28,9 +42,11 @@ __all__ = [
     "ConstNode",
     "ConstValue",
     "EdgeNode",
+    "IndexValue",
     "NotNode",
     "PrevNode",
     "PrevValue",
+    "RawStreamValue",
     "RobustnessValue",
     "Step",
     "StreamValue",
@@ -129,18 +145,46 @@ class StreamValue(Value):
         self.fields = fields
         self.held = held
 
+    def stale(self, t: int) -> bool:
+        """Whether the term is stale at ``t`` (more than its maximum age after its latest sample)."""
+        age = self.held.max_age[self.k]
+        return age >= 0 and t - self.held.times[self.k] > age
+
     def step(self, n: int, t: int, held: list[Any]) -> None:
-        k = self.k
-        if self.held.aged:
-            age = self.held.max_age[k]
-            if age >= 0 and t - self.held.times[k] > age:
-                self.val = UNKNOWN_VALUE  # stale
-                return
-        value = held[k]
+        if self.held.aged and self.stale(t):
+            self.val = UNKNOWN_VALUE
+            return
+        value = held[self.k]
         if not self.fields and _finite_float(value):
             self.val = value  # the common case, without a call (nor, compiled, a new float object)
         else:
             self.val = read(value, self.fields)
+
+
+class RawStreamValue(StreamValue):
+    """A term's payload (or a field of it) as it is, objects and arrays too: what a lookup looks
+    into and what ``dist`` measures; unknown while the term is stale."""
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        self.val = UNKNOWN_VALUE if self.held.aged and self.stale(t) else read_raw(held[self.k], self.fields)
+
+
+class IndexValue(Value):
+    """A lookup, ``stream[key]...``: down ``keys`` from the raw value of ``base``; a value of the
+    semantics (a number, string or boolean, else unknown), or as it is when ``raw`` (the point of
+    a ``dist``)."""
+
+    def __init__(self, base: Value, keys: list[Value], raw: bool) -> None:
+        super().__init__()
+        self.base = base
+        self.keys = keys
+        self.raw = raw
+
+    def step(self, n: int, t: int, held: list[Any]) -> None:
+        value = self.base.val
+        for key in self.keys:
+            value = lookup(value, key.val)
+        self.val = value if self.raw else scalar(value)
 
 
 class ConstValue(Value):

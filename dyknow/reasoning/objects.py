@@ -5,7 +5,9 @@
 
 **Instances.** A sample of the quantified stream whose field names an object (a string, or a
 number) goes to that object's instance, which is made at the object's first sample (seeded with
-the other terms' latest samples, so its states hold them from the start) and ends
+the other terms' latest samples, so its states hold them from the start, and with their outages
+within the body's reach, at most :data:`MAX_OUTAGES` each, so that its first windows count
+them as the semantics' span rule says) and ends
 ``idle_ns`` (sample time) after the object's last sample: the first sample of any term later
 than that (less the reorder delay) retires it (its buffered states are closed, its verdicts
 given), and a sample of the object after that starts a new instance. The other terms' samples go
@@ -38,12 +40,15 @@ from dyknow.reasoning.syntax import Formula, Quantifier, Stream, parse
 from dyknow.reasoning.values import object_key, read
 from dyknow.tags import parse_term
 
-__all__ = ["DEFAULT_IDLE_NS", "DEFAULT_MAX_OBJECTS", "ObjectMonitor"]
+__all__ = ["DEFAULT_IDLE_NS", "DEFAULT_MAX_OBJECTS", "MAX_OUTAGES", "ObjectMonitor"]
 
 #: How long an object lives without a sample (sample time): 10 s.
 DEFAULT_IDLE_NS = 10_000_000_000
 #: How many objects a monitor tracks at once.
 DEFAULT_MAX_OBJECTS = 1000
+#: The most outages of one term a foreach monitor keeps for its new instances (the newest; each
+#: is a gap of more than the term's maximum age between two samples, within the body's reach)
+MAX_OUTAGES = 1024
 
 
 class ObjectMonitor:
@@ -88,6 +93,10 @@ class ObjectMonitor:
         #: the position of the quantified stream in :attr:`terms`
         self.domain_index = self._domain_k
         self._latest: dict[int, tuple[int, Any]] = {}  # term -> its latest sample, to seed new instances
+        # term -> its outages (open spans, as Held keeps them) that a new instance's first windows
+        # may reach back into: at most MAX_OUTAGES each, none older than the body's reach
+        self._outages: dict[int, list[tuple[int, int]]] = {}
+        self._reach = Monitor(self.body, variables={self.var: ""}).reach_ns  # (a probe: the variable's value does not matter)
         self._live: dict[str, Monitor] = {}
         self._last: dict[str, int] = {}  # object -> its latest sample's time
         self._deadlines: list[tuple[int, str]] = []  # (last + idle, object): looked at as time goes on
@@ -154,9 +163,25 @@ class ObjectMonitor:
             if monitor.late != late:
                 self._late += monitor.late - late
             return out
-        self._latest[k] = (t_ns, value)
+        before = self._latest.get(k)
+        if before is None or t_ns >= before[0]:
+            age = self._max_age.get(name)
+            if age is not None and before is not None and t_ns - before[0] > age + 1:
+                self._outage(k, before[0] + age, t_ns)
+            self._latest[k] = (t_ns, value)
         self._others(k, name, t_ns, value, out)
         return out
+
+    def _outage(self, k: int, start: int, end: int) -> None:
+        """Note that term ``k`` was stale in ``(start, end)``; forget what no new instance can reach."""
+        periods = self._outages.setdefault(k, [])
+        periods.append((start, end))
+        edge = end - self._reach - max(self._max_age.get(self.terms[k], 0), 0)
+        drop = 0
+        while drop < len(periods) and (periods[drop][1] < edge or len(periods) - drop > MAX_OUTAGES):
+            drop += 1
+        if drop:
+            del periods[:drop]
 
     def _others(self, k: int, name: str, t_ns: int, value: Any, out: list[tuple[str, Verdict]]) -> None:
         if k == self._domain_k:
@@ -181,6 +206,14 @@ class ObjectMonitor:
             self._end(key, out)
         return out
 
+    def widen(self, reorder_ns: int) -> None:
+        """Raise the reorder delay of every instance, and of those to come, to ``reorder_ns``
+        (:meth:`~dyknow.reasoning.Monitor.widen`)."""
+        if reorder_ns > self.reorder_ns:
+            self.reorder_ns = int(reorder_ns)
+            for monitor in self._live.values():
+                monitor.widen(self.reorder_ns)
+
     def discard(self) -> None:
         """Let go of every instance and what it keeps (states, object ids, the latest samples)
         at once, deciding nothing: the monitor is going, and its memory is free from now on
@@ -200,6 +233,11 @@ class ObjectMonitor:
         for term, age in self._max_age.items():
             if term in monitor.terms:
                 monitor.set_max_age(term, age)
+        for k, periods in self._outages.items():  # before the seeded samples: the outages they ended
+            name = self.terms[k]
+            if name in monitor.terms:
+                for start, end in periods:
+                    monitor.outage(name, start, end)
         for k, (t, held) in sorted(self._latest.items(), key=lambda item: item[1][0]):
             name = self.terms[k]
             if k != self._domain_k and name in monitor.terms:

@@ -17,6 +17,7 @@ from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.tree import (
     AGGREGATES,
     ANY,
+    ARITY,
     BOOL,
     FUNCTIONS,
     FUTURE,
@@ -36,6 +37,7 @@ from dyknow.reasoning.tree import (
     Fall,
     Historically,
     Implies,
+    Index,
     Interval,
     Neg,
     Node,
@@ -401,7 +403,7 @@ class _Parser:
             return self.made(_UNARY_TEMPORAL[chunk](interval, self.condition(self.unary(depth + 1))), at)
         if chunk in ("forall", "exists", "foreach"):
             raise self.fail(f"'{chunk}' inside an operator", f"parentheses around the quantified formula: ({chunk} ... : ...)")
-        if chunk and self.after_word(chunk) == "[" and chunk not in AGGREGATES and chunk not in KEYWORDS:
+        if chunk and self.after_word(chunk) == "[" and chunk not in AGGREGATES and chunk not in KEYWORDS and self.interval_ahead(chunk):
             operators = [*_UNARY_TEMPORAL, "until", "since", *AGGREGATES]
             raise self.fail(f"'{chunk}' is not a temporal operator", "one of " + ", ".join(operators) + did_you_mean(chunk, operators))
         return self.comparison(depth)
@@ -525,7 +527,48 @@ class _Parser:
             return self.made(Var(chunk), at)
         if chunk in KEYWORDS:
             raise self.fail(f"unexpected keyword '{chunk}'", _VALUE_START if chunk not in ("not", "always") else _FORMULA_START)
-        return self.made(self.stream(), at)
+        stream = self.made(self.stream(), at)
+        if not self.text.startswith("[", _SPACE.match(self.text, self.pos).end()):  # type: ignore[union-attr]  # \s* always matches
+            return stream
+        keys: list[Node] = []
+        while True:  # stream[key] {[key] | .field}
+            if self.char("["):
+                key = self.formula(depth + 1)
+                if self.kind(key) == BOOL:
+                    raise self.fail(f"{_quote(str(key))} is a condition, and a key is a value", "a string (an object's key) or a number (an array's index)",
+                                    column=self.column_of(key))  # fmt: skip
+                keys.append(key)
+                if not self.char("]"):
+                    raise self.unexpected("']' closing the key")
+            elif self.text.startswith(".", self.pos) and keys:
+                match = _FIELD.match(self.text, self.pos + 1)
+                if match is None:
+                    raise self.unexpected("a field name after '.' (letters, digits and '_')")
+                keys.append(self.made(Str(match.group()), self.pos + 1))
+                self.pos = match.end()
+            else:
+                return self.made(Index(stream, tuple(keys)), at)
+
+    def interval_ahead(self, word: str) -> bool:
+        """Whether the ``[`` after ``word`` opens an interval (a comma outside parentheses and
+        quotes before its ``]``: ``alwyas[0, 1s]``, a misspelt operator) rather than a lookup's
+        key (``Limits[State(r).zone]``)."""
+        text, depth, quote = self.text, 0, ""
+        for k in range(self.text.index("[", self.pos + len(word)) + 1, len(text)):
+            char = text[k]
+            if quote:
+                quote = "" if char == quote and text[k - 1] != "\\" else quote
+            elif char in "\"'":
+                quote = char
+            elif char in "([":
+                depth += 1
+            elif char in ")]":
+                if depth == 0:
+                    return False
+                depth -= 1
+            elif char == "," and depth == 0:
+                return True
+        return False
 
     def function(self, fn: str, depth: int, at: int) -> Node:
         self.pos += len(fn)
@@ -533,9 +576,9 @@ class _Parser:
         args = [self.formula(depth + 1)]
         while self.char(","):
             args.append(self.formula(depth + 1))
+        arity = ARITY[fn]
         if not self.char(")"):
-            raise self.unexpected(f"')' closing {fn}(...)" + (" or ',' before its second operand" if fn in ("min", "max") else ""))
-        arity = 2 if fn in ("min", "max") else 1
+            raise self.unexpected(f"')' closing {fn}(...)" + (" or ',' before its second operand" if arity == 2 else ""))
         if len(args) != arity:
             raise self.fail(f"{fn} of {len(args)} operand{'s' if len(args) != 1 else ''}", f"{fn} of {arity}: {fn}(x{', y' if arity == 2 else ''})", column=at)
         if fn in ("rise", "fall"):
@@ -552,6 +595,13 @@ class _Parser:
             arg = self.condition(args[0])
             self.past(arg, fn)
             return self.made(Call(fn, (arg,)), at)
+        if fn == "dist":
+            for arg in args:
+                if self.kind(arg) != ANY:
+                    raise self.fail(f"{_quote(str(arg))} is a {self.kind(arg)}, and dist takes points",
+                                    "a stream whose value is a point: an object {x, y} or {x, y, z}, or an array of numbers, as in "
+                                    "dist(Pose(r1).position, Pose(r2).position)", column=self.column_of(arg))  # fmt: skip
+            return self.made(Call(fn, tuple(args)), at)
         checked = tuple(self.value(arg, NUM, fn) for arg in args)
         return self.made(Call(fn, checked), at)
 

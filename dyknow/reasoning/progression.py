@@ -83,9 +83,11 @@ from dyknow.reasoning.nodes import (
     ConstNode,
     ConstValue,
     EdgeNode,
+    IndexValue,
     NotNode,
     PrevNode,
     PrevValue,
+    RawStreamValue,
     RobustnessValue,
     Step,
     StreamValue,
@@ -107,6 +109,7 @@ from dyknow.reasoning.syntax import (
     Formula,
     Historically,
     Implies,
+    Index,
     Neg,
     Node,
     Not,
@@ -126,6 +129,7 @@ from dyknow.reasoning.syntax import (
     walk,
 )
 from dyknow.reasoning.timeline import NEVER, Clock, Held
+from dyknow.reasoning.tree import raw_reads
 from dyknow.reasoning.values import FALSE, TRUE, UNKNOWN
 from dyknow.tags import parse_term
 
@@ -232,6 +236,7 @@ class Monitor:
         self._nodes: list[Condition] = []
         self._values: list[Value] = []
         self._steps: list[Step] = []  # every node, operands first: what a state steps through
+        self._raw: set[int] = set()  # the ids of the nodes read as they are (tree.raw_reads)
         # the robustness tree beside the verdict nodes, when asked for (dyknow.reasoning.robustness)
         self._robust: RobustnessTree | None = RobustnessTree(0) if robustness else None
         self._rob_wait: list[tuple[int, int, bool, int]] = []  # verdicts decided before their robustness
@@ -295,6 +300,34 @@ class Monitor:
         for node in self._steps:
             node.max_states = states
 
+    @property
+    def reach_ns(self) -> int:
+        """How far before its newest sample the monitor keeps what its windows may read (the
+        outages of its terms included)."""
+        return int(self._times.keep_ns)
+
+    def outage(self, term: str, from_ns: int, until_ns: int) -> None:
+        """Tell the monitor that ``term`` was stale in the open span ``(from_ns, until_ns)`` before
+        its first sample here: what a monitor made late (a ``foreach`` object's, seeded with the
+        term's latest sample) cannot see itself, so that a window of its first states that
+        reaches back into the outage counts it (the semantics' span rule). In time order, and
+        before the term's first sample; else :class:`FormulaError`."""
+        k = self._index.get(term)
+        if k is None:
+            k = self._term_index(term)
+        periods = self._times.periods[k]
+        if self._times.times[k] != NEVER or (periods and periods[-1][1] > from_ns) or until_ns <= from_ns:
+            raise FormulaError(f"an outage of {term!r} from {from_ns} to {until_ns} ns", where=f"monitor of {str(self.formula)!r}",
+                               expected="outages in time order, each before the term's first sample")  # fmt: skip
+        periods.append((int(from_ns), int(until_ns)))
+
+    def widen(self, reorder_ns: int) -> None:
+        """Raise the reorder delay to ``reorder_ns`` (never lower it): states close that much later
+        from now on, so samples that much out of order are taken (what is closed stays closed)."""
+        if reorder_ns > self.reorder_ns:
+            self.reorder_ns = int(reorder_ns)
+            self._immediate = False
+
     def set_max_age(self, term: str, max_age_ns: int | None) -> None:
         """From now on, ``term``'s value is unknown at a state more than ``max_age_ns`` after its
         latest sample (None: no bound; see the semantics' freshness)."""
@@ -313,7 +346,8 @@ class Monitor:
         horizons: dict[int, int] = {}
         terms: dict[int, set[int]] = {}  # the terms each node reads, itself or below
         robs: dict[int, RNode] = {}  # a condition's robustness node (when asked for)
-        streams: dict[tuple[int, tuple[str, ...]], StreamValue] = {}  # one per term and fields, however often written
+        streams: dict[tuple[int, tuple[str, ...], bool], Value] = {}  # one per term, fields and rawness, however often written
+        self._raw = raw_reads(node)
         stack: list[tuple[Node, bool]] = [(node, False)]
         while stack:
             current, expanded = stack.pop()
@@ -337,13 +371,13 @@ class Monitor:
             made: Condition | Value
             if isinstance(current, Call) and current.fn == "robustness":
                 made = self._robustness_value(current.args[0], built, terms)
-            elif isinstance(current, Stream) and (self._index[str(current.term)], current.fields) in streams:
-                built[id(current)] = streams[(self._index[str(current.term)], current.fields)]  # (stepped already)
+            elif isinstance(current, Stream) and (self._index[str(current.term)], current.fields, id(current) in self._raw) in streams:
+                built[id(current)] = streams[(self._index[str(current.term)], current.fields, id(current) in self._raw)]  # (stepped already)
                 continue
             else:
                 made = self._make(current, args, below, below + own)
             if isinstance(made, StreamValue):
-                streams[(made.k, made.fields)] = made
+                streams[(made.k, made.fields, isinstance(made, RawStreamValue))] = made
             if isinstance(made, UntilNode | UntilSync | SinceNode | SinceSync | AggregateValue):
                 made.held = self._times  # its windows ask whether a term below was stale in them
                 made.below = sorted(reads)
@@ -417,7 +451,11 @@ class Monitor:
                                    expected="Monitor(variables={...}) for a quantifier's body")  # fmt: skip
             return ConstValue(self._variables[node.name])
         if isinstance(node, Stream):
+            if id(node) in self._raw:
+                return RawStreamValue(self._index[str(node.term)], node.fields, self._times)
             return StreamValue(self._index[str(node.term)], node.fields, self._times)
+        if isinstance(node, Index):
+            return IndexValue(self._value(args[0]), [self._value(a) for a in args[1:]], id(node) in self._raw)
         if isinstance(node, Neg):
             return CallValue("neg", [self._value(args[0])])
         if isinstance(node, Arith):

@@ -46,6 +46,7 @@ from dyknow.reasoning.syntax import (
     Formula,
     Historically,
     Implies,
+    Index,
     Node,
     Num,
     Once,
@@ -231,6 +232,9 @@ def _rebuild(node: Node, args: list[Node], env: dict[str, str]) -> Node:
         return Arith(node.op, args[0], args[1])
     if isinstance(node, Call):
         return Call(node.fn, tuple(args))
+    if isinstance(node, Index):
+        assert isinstance(args[0], Stream)  # (a stream rebuilt is a stream)
+        return Index(args[0], tuple(args[1:]))
     if isinstance(node, Aggregate):
         return Aggregate(node.kind, node.interval, args[0])
     if isinstance(node, Quantifier):  # foreach: its stream's args too

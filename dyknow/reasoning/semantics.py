@@ -23,8 +23,12 @@ time span a term read below the operator is stale counts one more unknown term, 
 outage of its streams reaches into is never found false (nor an ``always`` true), nor an
 aggregate over it known: a failure is not a violation. The span of a future window at state i
 is ``[t_i + a, t_i + b]``, of a past one ``[t_i - b, t_i - a]`` (from the first state when ``b``
-is ``inf``). A monitor that is told of a gap (its term re-planned) marks each verdict whose window
-reaches into it.
+is ``inf``). The span is not cut at the first state: a past window of the first states that reaches
+back before it reaches the outages there too (a term silent from 1 s to 5 s, with a maximum age of
+1 s, makes ``historically[0, 10s] ...`` unknown at a first state at 6 s, not false), and so for
+an object's life (``foreach``, below): the other terms' outages before its first sample count.
+A monitor that is told of a gap (its term re-planned) marks each verdict whose window reaches
+into it.
 
 **The warm-up.** There is no state before the first one: a past window whose span reaches back
 before it holds the states from the first on, and one whose span ends before it holds none. So a
@@ -51,6 +55,26 @@ its individual, a string; a ``foreach`` variable is its object's value.
   compute as Python does on numbers (``int`` stays exact, ``/`` divides as floats do); unknown
   when an operand is unknown or not a number, when dividing by zero, and when the result is not
   finite.
+- ``sqrt(x)``, ``hypot(x, y)`` (``sqrt(x*x + y*y)`` without overflow in between) and ``pow(x,
+  y)`` (x to the power y) compute in floating point, as Python's ``math.sqrt``, ``math.hypot``
+  and ``math.pow`` on the operands as floats (``pow(2, 3)`` is ``8.0``); unknown when an operand
+  is unknown or not a number, and when the result is not a finite real number: ``sqrt`` of a
+  negative number, ``pow(0, -1)``, ``pow(-8, 1/3)``, an overflow.
+- ``dist(p, q)`` is the Euclidean distance of two points, computed as ``math.hypot`` of their
+  coordinates' differences: each point an object with the numbers ``x`` and ``y``, and ``z`` on
+  both or on neither (other members are ignored: ``dist(Pose(a).position, Pose(b).position)``),
+  or both arrays of numbers of one length (at least one); unknown otherwise, and when it is not
+  finite. Its operands are read as they are (objects and arrays), so they are streams, down their
+  field paths, or lookups.
+- **Lookups.** ``S[k]`` (``Limits(floor)[State(r).zone]``) is a value of stream ``S``'s payload
+  (down its field path) by a key ``k`` computed at the state: an object's member by a string, or
+  by a number's canonical text (``3`` and ``3.0`` find the member ``"3"``: JSON's keys are
+  strings); an array's element by a number whose value is a whole number from 0 (``2`` and
+  ``2.0`` alike). Keys chain, each a level down (``S[k1][k2]``), and a field written after a key
+  is the key of its name (``Limits(floor)[State(r).zone].speed`` is ``...["speed"]``). The value
+  found is read as above (a number, a string or a boolean; an object is unknown, except as an
+  operand of ``dist`` or of the next key). Unknown when the key is unknown or of another kind
+  (a boolean), when the member is missing or the index out of range, and while ``S`` is stale.
 - ``prev(X)`` is X's value (or verdict) at the previous state; unknown at the first state.
 - ``robustness(F)`` is F's robustness at the state (below), unknown where it is undefined; its
   infinities (``true``, a boolean atom) are numbers here.
@@ -163,7 +187,7 @@ from typing import Any
 from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.evaluator import Evaluator, is_condition
 from dyknow.reasoning.quantify import expand_quantifiers, rename
-from dyknow.reasoning.syntax import Call, Formula, Quantifier, Stream, parse, parse_value, walk
+from dyknow.reasoning.syntax import Aggregate, Call, Formula, Historically, Node, Once, Quantifier, Since, Stream, parse, parse_value, walk
 from dyknow.reasoning.values import (  # re-exported (__all__): the monitor, and older code, import them from here
     FALSE,
     TRUE,
@@ -340,6 +364,8 @@ def evaluate_objects_ns(
             lives[key][-1].append((t, payload))
             last[key] = t
     out: dict[str, list[list[Any]]] = {}
+    reach = _past_reach(body.root)
+    times_of = {name: [t for t, _ in samples] for name, samples in chosen.items()}
     for key, runs in lives.items():
         for run in runs:
             start, end = run[0][0], run[-1][0] + idle_ns
@@ -349,9 +375,11 @@ def evaluate_objects_ns(
                 if term == domain.term:
                     picked.append(run)
                 else:
-                    samples = list(chosen[name])
-                    before = [s for s in samples if s[0] < start]
-                    picked.append(([before[-1]] if before else []) + [s for s in samples if start <= s[0] <= end])
+                    # the latest value from before the life, and the outages a window of the life's
+                    # first states reaches back into: from ``reach`` and the term's age before it
+                    cutoff = start - reach - max(ages.get(name, 0), 0)
+                    first = max(bisect_left(times_of[name], cutoff) - 1, 0)
+                    picked.append([s for s in chosen[name][first:] if s[0] <= end])
             value = _object_value(run[0][1], domain.fields)
             rows = _evaluate_ns(body, picked, [str(t) for t in body.terms], ages, robustness, {_OBJECT: value}, start)
             out.setdefault(key, []).append(rows)
@@ -359,6 +387,13 @@ def evaluate_objects_ns(
 
 
 _OBJECT = "\x00object"  # the foreach variable, once its body is read alone
+
+
+def _past_reach(root: Node) -> int:
+    """How far before a state its past windows reach: the largest finite upper bound of a past
+    operator or an aggregate (a window without a bound starts at the first state)."""
+    bounds = [n.interval.hi_ns for n in walk(root) if isinstance(n, Historically | Once | Since | Aggregate) and n.interval.hi_ns is not None]
+    return max(bounds, default=0)
 
 
 def _object_value(payload: Any, fields: tuple[str, ...]) -> Any:

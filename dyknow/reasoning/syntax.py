@@ -5,6 +5,8 @@ A formula is text::
     historically[0, 2s] Battery(robot) > 0.2
     Speed(robot) < SpeedLimit(zone)
     abs(Pose(robot).x - Goal(robot).x) < 0.1
+    Speed(r1) < Limits(floor)[State(r1).zone]
+    dist(Pose(r1).position, Pose(r2).position) > 1.5
     rise(Door(hall).open) implies eventually[0, 2s] Alarm(hall)
     avg[0, 5s] Speed(robot) < 0.5 and count[0, 60s] rise(Bump(robot)) <= 3
     Mode(robot) == "manual" or Battery(robot) >= 0.2
@@ -30,11 +32,11 @@ Grammar (keywords are lowercase; whitespace is free)::
                 | AGGREGATE interval prefix                              count sum avg min max integral rate
                 | primary
     primary    := NUMBER | STRING | 'true' | 'false'
-                | ('abs' | 'prev' | 'rise' | 'fall' | 'robustness') '(' formula ')'
-                | ('min' | 'max') '(' formula ',' formula ')'
+                | ('abs' | 'sqrt' | 'prev' | 'rise' | 'fall' | 'robustness') '(' formula ')'
+                | ('min' | 'max' | 'hypot' | 'pow' | 'dist') '(' formula ',' formula ')'
                 | '(' formula ')'
                 | VAR                                                    a quantifier's variable, in its body
-                | stream
+                | stream ['[' formula ']' {'[' formula ']' | '.' FIELD}]  a lookup: Limits(floor)[State(r).zone]
     stream     := TERM {'.' FIELD}                                       Battery(robot), BallTrack(field).speed
     interval   := '[' duration ',' duration ']'                          a <= b
     duration   := NUMBER ('s' | 'ms') | '0' | 'inf'                      inf: upper bound of past windows only
@@ -52,9 +54,16 @@ reaches as far right as it can (``forall c in C: p and q`` quantifies both).
   functions and aggregates (``abs``, ``count``, ...) are keywords only before ``(`` or ``[``.
 - **Values** are numbers, strings (``"manual"`` or ``'manual'``, with ``\\"``, ``\\'`` and
   ``\\\\`` escapes), ``true`` and ``false``, and what streams carry. **Expressions** compute
-  with them: ``+ - * /``, unary ``-``, ``abs``, ``min`` and ``max`` of two, ``prev`` (the value at
-  the previous state), ``robustness(F)`` (a condition's robustness: how far from changing) and the
-  aggregates of a past window. **Conditions** (what ``and``, ``or``,
+  with them: ``+ - * /``, unary ``-``, ``abs``, ``min`` and ``max`` of two, ``sqrt``, ``hypot``
+  and ``pow``, ``prev`` (the value at the previous state), ``robustness(F)`` (a condition's
+  robustness: how far from changing) and the aggregates of a past window.
+- **Lookups** read a stream's JSON object (or array) by a key computed at each state:
+  ``Limits(floor)[State(r).zone]`` is the member of ``Limits(floor)`` named by the zone the
+  robot is in, so one atom states a limit per zone however many zones there are. Keys chain
+  (``Limits(floor)[z]["speed"]``), and a field after a key is a key (``Limits(floor)[z].speed``).
+  A key is a string or a number (an array's index), never a condition. ``dist(p, q)`` is the
+  distance of two points: streams (or lookups) whose values are ``{x, y}`` or ``{x, y, z}``
+  objects, or arrays of numbers. **Conditions** (what ``and``, ``or``,
   ``not``, the temporal operators, ``rise``, ``fall`` and ``count`` take) are comparisons, ``true``
   and ``false``, ``rise(F)``/``fall(F)``, and bare expressions of boolean value (``Stalled(robot)``,
   ``Door(hall).open``, ``prev(p)``). A mistake of kinds that can be seen in the text is refused at
@@ -115,6 +124,7 @@ from dyknow.reasoning.tree import (
     Fall,
     Historically,
     Implies,
+    Index,
     Interval,
     Neg,
     Node,
@@ -149,6 +159,7 @@ __all__ = [
     "Arith",
     "Atom",
     "Call",
+    "Index",
     "Const",
     "Eventually",
     "Fall",

@@ -85,7 +85,7 @@ class Held:
         self.pruned_end: list[int] = [NEVER] * terms
         self.keep_ns = 0
         self.max_periods = 1 << 62
-        self.first_t = NEVER  # the first state's time: no window reaches before it (the monitor sets it)
+        self.first_t = NEVER  # the first state's time: where a window without a bound starts (the monitor sets it)
 
     def sample(self, k: int, t: int, boxed: Any) -> None:
         """Term ``k`` had a sample at ``t`` (in time order; ``boxed``: the same int as an object)."""
@@ -107,11 +107,12 @@ class Held:
         self.times[k] = boxed
 
     def stale(self, terms: list[int], lo: int | None, hi: int) -> bool:
-        """Whether one of ``terms`` is stale at a whole-ns time of ``[lo, hi]`` (``lo`` None: no bound),
-        from the first state on (there is no state, nor a window, before it)."""
+        """Whether one of ``terms`` is stale at a whole-ns time of ``[lo, hi]`` (``lo`` None: a
+        window without a bound, from the first state on). A span that reaches back before the
+        first state reaches the outages there too, as the semantics' span rule says."""
         if not self.aged:
             return False
-        if self.first_t != NEVER and (lo is None or lo < self.first_t):
+        if lo is None and self.first_t != NEVER:
             lo = self.first_t
         for k in terms:
             age = self.max_age[k]

@@ -10,6 +10,7 @@ them from text.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, fields
 from decimal import Decimal
 
@@ -34,6 +35,7 @@ __all__ = [
     "Arith",
     "Atom",
     "Call",
+    "Index",
     "Const",
     "Eventually",
     "Fall",
@@ -57,6 +59,7 @@ __all__ = [
     "children",
     "duration_text",
     "kind_of",
+    "raw_reads",
     "walk",
 ]
 
@@ -69,8 +72,11 @@ ARITHMETIC: tuple[str, ...] = ("+", "-", "*", "/")
 AGGREGATES: tuple[str, ...] = ("count", "sum", "avg", "min", "max", "integral", "rate")
 """The aggregates of a past window."""
 
-FUNCTIONS: tuple[str, ...] = ("abs", "min", "max", "prev", "rise", "fall", "robustness")
+FUNCTIONS: tuple[str, ...] = ("abs", "min", "max", "sqrt", "hypot", "pow", "dist", "prev", "rise", "fall", "robustness")
 """The functions written with their operands in parentheses."""
+
+ARITY: dict[str, int] = {"abs": 1, "min": 2, "max": 2, "sqrt": 1, "hypot": 2, "pow": 2, "dist": 2, "prev": 1, "rise": 1, "fall": 1, "robustness": 1}
+"""How many operands each function takes."""
 
 KEYWORDS: frozenset[str] = frozenset(
     {
@@ -85,6 +91,7 @@ RESERVED = KEYWORDS | frozenset(AGGREGATES) | frozenset(FUNCTIONS)  # spelled li
 words of aggregates and functions."""
 
 _NS_PER_S = 1_000_000_000
+_FIELD_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")  # a key written as a field: .speed
 
 
 def duration_text(ns: int) -> str:
@@ -235,10 +242,21 @@ class Arith(_Operator):
 
 @dataclass(frozen=True, slots=True, eq=False, repr=False)
 class Call(_Operator):
-    """``abs(x)``, ``min(x, y)``, ``max(x, y)``."""
+    """``abs(x)``, ``min(x, y)``, ``max(x, y)``, ``sqrt(x)``, ``hypot(x, y)``, ``pow(x, y)``,
+    ``dist(p, q)`` and ``robustness(F)``."""
 
     fn: str
     args: tuple[Node, ...]
+
+
+@dataclass(frozen=True, slots=True, eq=False, repr=False)
+class Index(_Operator):
+    """A lookup: ``stream[key]``, a value of the stream's JSON object (or array) by a key computed
+    at each state, ``Limits(floor)[State(r).zone]``. ``keys`` go down one level each; a field
+    written after a key (``Limits(floor)[State(r).zone].speed``) is the key ``Str("speed")``."""
+
+    stream: Stream
+    keys: tuple[Node, ...]
 
 
 @dataclass(frozen=True, slots=True, eq=False, repr=False)
@@ -366,7 +384,7 @@ class Quantifier(_Operator):
 
 Node = (
     Num | Str | Const | Stream | Var
-    | Atom | Neg | Arith | Call | Prev | Rise | Fall | Aggregate
+    | Atom | Neg | Arith | Call | Index | Prev | Rise | Fall | Aggregate
     | Not | And | Or | Implies | Always | Eventually | Historically | Once | Until | Since | Quantifier
 )  # fmt: skip
 """A node of a formula's syntax tree: a value (constants, streams, variables, expressions) or a
@@ -433,6 +451,14 @@ def _pieces(node: Node) -> list[_Piece]:
                 pieces.append(", ")
             pieces.append((arg, _QUANT))
         return [*pieces, ")"]
+    if isinstance(node, Index):
+        looked: list[_Piece] = [(node.stream, _PRIMARY)]
+        for k, key in enumerate(node.keys):
+            if k and isinstance(key, Str) and _FIELD_NAME.fullmatch(key.value):
+                looked.append("." + key.value)
+            else:
+                looked.extend(["[", (key, _QUANT), "]"])
+        return looked
     if isinstance(node, Prev | Rise | Fall):
         return [f"{type(node).__name__.lower()}(", (node.arg, _QUANT), ")"]
     if isinstance(node, Aggregate):
@@ -480,6 +506,8 @@ def _own(node: Node) -> object:
         return node.op
     if isinstance(node, Call):
         return (node.fn, len(node.args))
+    if isinstance(node, Index):
+        return len(node.keys)
     if isinstance(node, Aggregate):
         return (node.kind, node.interval)
     if isinstance(node, Quantifier):
@@ -546,6 +574,8 @@ def children(node: Node) -> tuple[Node, ...]:
         return (node.left, node.right)
     if isinstance(node, Call):
         return node.args
+    if isinstance(node, Index):
+        return (node.stream, *node.keys)
     if isinstance(node, Quantifier):
         return (node.body,)
     return (node.arg,)
@@ -562,7 +592,7 @@ def walk(root: Node) -> list[Node]:
     return out
 
 
-_OPERATOR_TYPES = (Atom, Neg, Arith, Call, Prev, Rise, Fall, Aggregate, Not, And, Or, Implies, Always, Eventually, Historically, Once, Until, Since, Quantifier, *LEAVES)
+_OPERATOR_TYPES = (Atom, Neg, Arith, Call, Index, Prev, Rise, Fall, Aggregate, Not, And, Or, Implies, Always, Eventually, Historically, Once, Until, Since, Quantifier, *LEAVES)
 
 
 # ---------------------------------------------------------------------------- kinds of values
@@ -580,8 +610,21 @@ def kind_of(node: Node) -> str:
         return NUM
     if isinstance(node, Str):
         return STR
-    if isinstance(node, Stream | Var):
+    if isinstance(node, Stream | Var | Index):
         return ANY
     if isinstance(node, Prev):
         return kind_of(node.arg)
     return BOOL
+
+
+def raw_reads(root: Node) -> set[int]:
+    """The ids of the nodes below ``root`` read as they are, objects and arrays too (not only
+    numbers, strings and booleans): the stream a lookup looks into, the lookups a lookup goes on
+    from, and the points of ``dist``."""
+    found: set[int] = set()
+    for node in walk(root):
+        if isinstance(node, Index):
+            found.add(id(node.stream))
+        elif isinstance(node, Call) and node.fn == "dist":
+            found.update(id(arg) for arg in node.args if isinstance(arg, Stream | Index))
+    return found

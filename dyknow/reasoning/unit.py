@@ -65,8 +65,15 @@ Params:
 
 - ``formula`` (string): the formula (:mod:`dyknow.reasoning.syntax`); or
 - ``formulas`` (string): several, a JSON object of names and formulas;
-- ``reorder_ms`` (float, default 0): the reorder delay, in sample time; a sample later than the
-  policy allows is counted as a rejection of its port (``late: ...``) and dropped;
+- ``reorder_ms`` (float, default 0) and ``max_reorder_ms`` (float, default 1,000): the least and
+  the most reorder delay, in sample time. The delay starts at ``reorder_ms`` and grows, up to
+  ``max_reorder_ms``, to twice the disorder the unit has seen: a sample that comes behind the
+  newest sample of its ports by more than half the delay raises it (logged at INFO), so streams
+  that interleave late (hosts, starved threads) stop losing samples after the first. A sample
+  later than the delay allows is dropped, counted as a rejection of its port (``late: ...``),
+  and warned about the first time on each port, naming the port and its term (the unit's own
+  ports are handed over in the order their messages came, so one process's streams are never
+  out of order there);
 - ``flush_ms`` (float, default 0: never): close the buffered states after this much wall time
   without a sample (the end of a replay, a stream that stopped), so their verdicts come out;
 - ``max_age_ms`` (float, default 0: derived): the terms' freshness (see above);
@@ -114,7 +121,7 @@ from dyknow.unit import Unit
 if TYPE_CHECKING:
     from dyknow.message import Message
 
-__all__ = ["DEFAULT_QUEUE", "DEFAULT_QUIET_MS", "MAX_FORMULAS", "VERDICTS_PORT", "FormulaMonitor", "Formulas", "MonitorBudget", "monitor_spec", "term_ports"]
+__all__ = ["DEFAULT_MAX_REORDER_MS", "DEFAULT_QUEUE", "DEFAULT_QUIET_MS", "MAX_FORMULAS", "VERDICTS_PORT", "FormulaMonitor", "Formulas", "MonitorBudget", "monitor_spec", "term_ports"]
 
 VERDICTS_PORT: str = "verdicts"
 """The output port on which a monitor unit publishes its verdicts."""
@@ -137,6 +144,10 @@ _MAX_NAME = 200
 
 DEFAULT_QUIET_MS: float = 5000.0
 """How long a monitor waits for a bound term's first sample before it warns (milliseconds)."""
+
+DEFAULT_MAX_REORDER_MS: float = 1000.0
+"""The most a monitor's reorder delay grows to with the disorder it sees (milliseconds): the
+most its verdicts may come late for it."""
 
 
 def _named(formulas: Formulas, where: str, limits: Limits | None = None) -> list[tuple[str | None, Formula]]:
@@ -253,6 +264,7 @@ def monitor_spec(
     *,
     label: str = "formula-monitor",
     reorder_ms: float = 0.0,
+    max_reorder_ms: float = DEFAULT_MAX_REORDER_MS,
     flush_ms: float = 0.0,
     queue: int = DEFAULT_QUEUE,
     max_age_ms: float = 0.0,
@@ -295,6 +307,7 @@ def monitor_spec(
         params=(
             what,
             Param("reorder_ms", "float", float(reorder_ms)),
+            Param("max_reorder_ms", "float", float(max_reorder_ms)),
             Param("flush_ms", "float", float(flush_ms)),
             Param("max_age_ms", "float", float(max_age_ms)),
             Param("idle_ms", "float", float(idle_ms)),
@@ -508,8 +521,15 @@ class FormulaMonitor(Unit):
         params = self.params
         where = f"unit {self.name!r}"
         reorder_ms = float(params.get("reorder_ms", 0.0))
-        if not 0 <= reorder_ms <= 3_600_000:
-            raise FormulaError(f"reorder_ms is {reorder_ms}", where=where, expected="0 to 3,600,000 milliseconds")
+        max_reorder_ms = float(params.get("max_reorder_ms", DEFAULT_MAX_REORDER_MS))
+        if not 0 <= reorder_ms <= 3_600_000 or not 0 <= max_reorder_ms <= 3_600_000:
+            raise FormulaError(f"reorder_ms is {reorder_ms}, max_reorder_ms {max_reorder_ms}", where=where,
+                               expected="0 to 3,600,000 milliseconds each")  # fmt: skip
+        # the delay grows with the disorder seen, from reorder_ms up to max_reorder_ms (on_message)
+        self._reorder_ns = round(reorder_ms * 1_000_000)
+        self._max_reorder_ns = max(self._reorder_ns, round(max_reorder_ms * 1_000_000))
+        self._newest_ns = -(2**62)
+        self._late_warned: set[str] = set()
         budget = self._budget
         limits = budget.limits if budget is not None else Limits()
         given = params.get("formulas")
@@ -674,6 +694,11 @@ class FormulaMonitor(Unit):
                 )
                 return
         k = self._ports[port]
+        behind = self._newest_ns - t_ns
+        if behind <= 0:
+            self._newest_ns = t_ns
+        elif 2 * behind > self._reorder_ns and self._reorder_ns < self._max_reorder_ns:
+            self._widen(port, behind)
         payload = msg.payload if k not in self._textual else sample_value(msg.payload)
         if k in self._domains and type(payload) is list:
             for item in payload:  # a frame: a sample per element (what the fields and the rate are judged on)
@@ -694,15 +719,26 @@ class FormulaMonitor(Unit):
                 late = monitor
         if late is not None:  # (expected when a term's producer was switched, or hosts interleave)
             closed = late.closed_ns if isinstance(late, Monitor) else None
-            self.reject(
-                port,
-                f"late: a sample at {t_ns} ns, at or before the last state closed ({closed} ns; reorder delay {late.reorder_ns / 1e6:g} ms)",
-                expected=True,
-            )
+            reason = f"late: a sample at {t_ns} ns, at or before the last state closed ({closed} ns; reorder delay {late.reorder_ns / 1e6:g} ms)"
+            if port not in self._late_warned:  # once per port: the later ones are counted (rejections)
+                self._late_warned.add(port)
+                self.log.warning("dropped a sample of %s on port %r as late (%s); the later ones are counted as the port's rejections "
+                                 "(the reorder delay grows with the disorder seen, up to max_reorder_ms %g ms)", self.terms[k], port, reason,
+                                 self._max_reorder_ns / 1e6)  # fmt: skip
+            self.reject(port, reason, expected=True)
         self._last_sample = time.monotonic()
         self._received += 1
         if self._received & 1023 == 0:  # (not monitor.states: an object monitor's sums its instances')
             self._report_given_up()
+
+    def _widen(self, port: str, behind_ns: int) -> None:
+        """A sample on ``port`` came ``behind_ns`` behind the newest: raise the reorder delay of
+        every formula to twice that (at most max_reorder_ms), so the next ones are taken."""
+        delay = min(self._max_reorder_ns, 2 * behind_ns)
+        self._reorder_ns = delay
+        for served in self._served:
+            served.monitor.widen(delay)
+        self.log.info("a sample on %r came %g ms behind the newest: reorder delay now %g ms", port, behind_ns / 1e6, delay / 1e6)
 
     # -- what the samples tell: freshness, fields, the end of a gap
 

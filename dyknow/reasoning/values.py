@@ -24,11 +24,15 @@ __all__ = [
     "as_value",
     "call",
     "compare",
+    "distance",
     "exact_sum",
     "is_number",
+    "lookup",
     "margin",
     "object_key",
     "read",
+    "read_raw",
+    "scalar",
     "truth",
     "verdict_of",
 ]
@@ -71,6 +75,39 @@ def read(payload: Any, fields: tuple[str, ...]) -> Any:
         if type(value) is not dict:
             return UNKNOWN_VALUE
         value = value.get(name, UNKNOWN_VALUE)
+    return scalar(value)
+
+
+def read_raw(payload: Any, fields: tuple[str, ...]) -> Any:
+    """``payload`` down ``fields`` as it is (an object or an array too: what a lookup or ``dist``
+    reads); unknown where a field is missing or its parent is no object."""
+    value = payload
+    for name in fields:
+        if type(value) is not dict:
+            return UNKNOWN_VALUE
+        value = value.get(name, UNKNOWN_VALUE)
+    return value
+
+
+def lookup(container: Any, key: Any) -> Any:
+    """``container[key]`` as a lookup of the semantics: an object's member by a string key, or by
+    a number's canonical text (``3`` and ``3.0`` find ``"3"``: JSON's keys are strings); an
+    array's element by a number whose value is an integer from 0 (``2`` and ``2.0`` alike);
+    unknown otherwise (a missing key, an index out of range, a key of another kind)."""
+    kind = type(container)
+    if kind is dict:
+        if type(key) is str:
+            return container.get(key, UNKNOWN_VALUE)
+        text = object_key(key) if is_number(key) else None
+        return UNKNOWN_VALUE if text is None else container.get(text, UNKNOWN_VALUE)
+    if kind is list and is_number(key) and key - key == 0 and key == int(key):
+        index = int(key)
+        return container[index] if 0 <= index < len(container) else UNKNOWN_VALUE
+    return UNKNOWN_VALUE
+
+
+def scalar(value: Any) -> Any:
+    """A value of the semantics: a number (finite), a string or a boolean as it is; else unknown."""
     kind = type(value)
     if kind is float:
         return value if value - value == 0.0 else UNKNOWN_VALUE  # NaN and infinities: unknown
@@ -118,7 +155,13 @@ def arith(op: str, x: Any, y: Any) -> Any:
 
 
 def call(fn: str, args: Sequence[Any]) -> Any:
-    """``abs(x)``, ``min(x, y)``, ``max(x, y)``, ``-x`` (``fn`` "neg") on numbers; unknown otherwise."""
+    """``abs(x)``, ``min(x, y)``, ``max(x, y)``, ``-x`` (``fn`` "neg"), ``sqrt(x)``,
+    ``hypot(x, y)`` and ``pow(x, y)`` on numbers (``dist``: :func:`distance`); unknown otherwise,
+    and where the result is not a finite real number: the square root of a negative number,
+    ``pow(0, -1)``, ``pow(-8, 1/3)``, an overflow. ``sqrt``, ``hypot`` and ``pow`` compute in
+    floating point (IEEE 754 doubles, as Python's ``math`` does): ``pow(2, 3)`` is ``8.0``."""
+    if fn == "dist":
+        return distance(args[0], args[1])
     for x in args:
         if not is_number(x):
             return UNKNOWN_VALUE
@@ -128,7 +171,46 @@ def call(fn: str, args: Sequence[Any]) -> Any:
         return abs(args[0])
     if fn == "min":
         return args[0] if args[0] <= args[1] else args[1]
-    return args[0] if args[0] >= args[1] else args[1]
+    if fn == "max":
+        return args[0] if args[0] >= args[1] else args[1]
+    try:
+        if fn == "sqrt":
+            x = float(args[0])
+            if x < 0.0:
+                return UNKNOWN_VALUE
+            result = math.sqrt(x)
+        elif fn == "hypot":
+            result = math.hypot(float(args[0]), float(args[1]))
+        else:
+            result = math.pow(float(args[0]), float(args[1]))
+    except (OverflowError, ValueError):  # (an int too large for a float; a result that is no real number)
+        return UNKNOWN_VALUE
+    return result if result - result == 0.0 else UNKNOWN_VALUE
+
+
+def distance(p: Any, q: Any) -> Any:
+    """``dist(p, q)``: the Euclidean distance of two points, each an object with the numbers
+    ``x`` and ``y`` and, on both or on neither, ``z`` (other members are ignored: a pose's
+    position may carry more), or two arrays of numbers of one length (at least 1); unknown
+    otherwise, and when the distance is not finite."""
+    if type(p) is dict and type(q) is dict:
+        names = ("x", "y", "z") if "z" in p or "z" in q else ("x", "y")
+        a: list[Any] = [p.get(name) for name in names]
+        b: list[Any] = [q.get(name) for name in names]
+    elif type(p) is list and type(q) is list and len(p) == len(q) and p:
+        a, b = list(p), list(q)
+    else:
+        return UNKNOWN_VALUE
+    diffs: list[float] = []
+    for x, y in zip(a, b, strict=True):
+        if not is_number(x) or not is_number(y):
+            return UNKNOWN_VALUE
+        try:
+            diffs.append(float(x) - float(y))
+        except OverflowError:
+            return UNKNOWN_VALUE
+    result = math.hypot(*diffs)
+    return result if result - result == 0.0 else UNKNOWN_VALUE
 
 
 def compare(op: str, x: Any, y: Any) -> int:
