@@ -387,3 +387,40 @@ def test_the_tutorials_example_of_monitors_and_requirements_runs_as_written() ->
     page = (REPO / "docs" / "tutorials" / "temporal.md").read_text()
     block = next(b for b in re.findall(r"```python\n(.*?)```", page, re.DOTALL) if b.startswith("# monitors and requirements, by meaning"))
     exec(compile(block, "docs/tutorials/temporal.md (by meaning)", "exec"), {})  # its asserts are the test
+
+
+@pytest.mark.process
+def test_dyknow_monitor_checks_a_foreach_formula_over_a_recording_per_object(tmp_path: Any) -> None:
+    """Issue 54 item 6 (part): a foreach formula over a recording from the CLI, its verdicts per
+    object, the naive evaluator's over the same samples."""
+    import json
+
+    from dyknow import Message
+    from dyknow.reasoning.syntax import parse
+    from dyknow.recording import Recorder
+    from dyknow.tags import Term
+    from tests.conftest import run_cli
+    from tests.reasoning_support import naive_evaluate_objects
+
+    robots = [(1_000_000_000 + i * 100_000_000, {"id": f"r{i % 3}", "zone": "dock" if i % 4 else "aisle", "speed": 0.2 * (i % 5)}) for i in range(30)]
+    limits = [(1_000_000_000, {"dock": 0.5, "aisle": 2.0})]
+    path = tmp_path / "floor.mcap"
+    with Recorder((), path) as recorder:
+        for key, series in {"floor/robots": robots, "floor/limits": limits}.items():
+            for seq, (t_ns, payload) in enumerate(series, start=1):
+                recorder.write(Message(payload, seq, t_ns, t_ns, key))
+    formula = "foreach r in Robots(floor).id: historically[0, 300ms] Robots(floor).speed < Limits(floor)[Robots(floor).zone]"
+    binds = ["--bind", "Robots(floor)=floor/robots", "--bind", "Limits(floor)=floor/limits"]
+    result = run_cli("monitor", formula, "--mcap", str(path), *binds, "--json", "--idle-ms", "1000")
+    assert result.returncode == 0, result.stderr
+    got: dict[str, list[tuple[int, bool | None]]] = {}
+    for line in map(json.loads, result.stdout.splitlines()):
+        got.setdefault(line["object"], []).append((line["t_ns"], line["verdict"]))
+    root = parse(formula).root
+    body = parse(str(root.body))  # type: ignore[union-attr]
+    naive = naive_evaluate_objects("r", root.domain, body, {Term("Robots", ("floor",)): robots, Term("Limits", ("floor",)): limits}, 1_000_000_000)  # type: ignore[union-attr,arg-type]
+    assert got == {key: sorted(v for life in lives for v in life) for key, lives in naive.items()}
+    assert sorted(got) == ["r0", "r1", "r2"] and {v for rows in got.values() for _, v in rows} == {True, False}
+    text = run_cli("monitor", formula, "--mcap", str(path), *binds, "--idle-ms", "1000")
+    assert text.returncode == 0 and re.search(r"t=1\.000 s  r0  true", text.stdout), text.stdout[:300]
+    assert re.search(r"^30 states of 3 objects: \d+ true, \d+ false, 0 unknown; false for r[0-2]", text.stdout.splitlines()[-1]), text.stdout[-300:]

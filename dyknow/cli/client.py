@@ -512,9 +512,26 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def _monitor_recording(args: argparse.Namespace) -> int:
-    from dyknow.reasoning.offline import evaluate_recording
+    from dyknow.reasoning.offline import evaluate_recording, evaluate_recording_objects
+    from dyknow.reasoning.syntax import Quantifier, parse
 
     bindings = parse_pairs(args.bind, "--bind")
+    root = parse(args.formula).root
+    if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
+        objects = evaluate_recording_objects(args.formula, args.mcap, bindings, read_limits(args), idle_ns=round(args.idle_ms * 1e6))
+        rows = sorted((t_ns, key, verdict) for key, lives in objects.items() for life in lives for t_ns, verdict in life)
+        if args.json:
+            for t_ns, key, verdict in rows:
+                print_json({"t": t_ns / 1e9, "t_ns": t_ns, "object": key, "verdict": verdict})
+            return 0
+        counted = {True: 0, False: 0, None: 0}
+        for t_ns, key, verdict in rows:
+            counted[verdict] += 1
+            print(f"t={t_ns / 1e9:.3f} s  {shown(key)}  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
+        false = sorted({key for _, key, verdict in rows if verdict is False})
+        named = f"; false for {', '.join(shown(k) for k in false[:10])}{', ...' if len(false) > 10 else ''}" if false else ""
+        print(f"{len(rows)} states of {len(objects)} objects: {counted[True]} true, {counted[False]} false, {counted[None]} unknown{named}", flush=True)
+        return 0
     results = evaluate_recording(args.formula, args.mcap, bindings, read_limits(args))
     if args.json:
         for t_ns, verdict in results:
@@ -624,6 +641,8 @@ def add_commands(cmds: Commands) -> None:
         p.add_argument("--iso", action="store_true",
                        help="print each verdict's time as ISO 8601 wall time (default: seconds since the command started)")  # fmt: skip
         p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
+        p.add_argument("--idle-ms", type=float, default=10_000.0, metavar="MS",  # (dyknow.reasoning.objects.DEFAULT_IDLE_NS: not imported to parse)
+                       help="with --mcap, a foreach formula: an object's life ends after this long without a sample (default 10,000)")
         p.add_argument(
             "--bind", action="append", default=[], metavar="TERM=SOURCE",
             help="read a term from what exists, not planned: ros2:/TOPIC (rmw_zenoh), ros2dds:/TOPIC?type=T (DDS) or a Zenoh key; "

@@ -5,7 +5,9 @@ payloads decoded as live units get them, each message's origin time its sample t
 samples of the topic each term is bound to (``ros2:/TOPIC`` and ``ros2dds:/TOPIC`` name the topic
 ``/TOPIC``, so the bindings of a live monitor serve here as they are; every sample read as a
 bound term's is, :func:`~dyknow.reasoning.bindings.sample_value`), and evaluates the formula over them with
-:func:`~dyknow.reasoning.evaluate`: every state's verdict, unknown ones included (None).
+:func:`~dyknow.reasoning.evaluate`: every state's verdict, unknown ones included (None). A
+``foreach`` formula's verdicts are per object and life (:func:`evaluate_recording_objects`, as
+:func:`~dyknow.reasoning.semantics.evaluate_objects_ns` gives them).
 """
 
 from __future__ import annotations
@@ -16,12 +18,12 @@ from collections.abc import Mapping
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.bindings import sample_value, topic_of
-from dyknow.reasoning.semantics import evaluate_ns
-from dyknow.reasoning.syntax import parse
+from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns
+from dyknow.reasoning.syntax import Formula, parse
 from dyknow.recording import Player, ReadLimits
 from dyknow.tags import parse_term
 
-__all__ = ["evaluate_recording"]
+__all__ = ["evaluate_recording", "evaluate_recording_objects"]
 
 
 def evaluate_recording(
@@ -36,6 +38,23 @@ def evaluate_recording(
     :class:`~dyknow.errors.RecordingError` when the file cannot be read.
     """
     parsed = parse(formula)
+    return evaluate_ns(parsed, _samples(parsed, path, bindings, limits))
+
+
+def evaluate_recording_objects(
+    formula: str, path: str | os.PathLike[str], bindings: Mapping[str, str], limits: ReadLimits | None = None, *, idle_ns: int
+) -> dict[str, list[list[tuple[int, bool | None]]]]:
+    """A ``foreach`` formula's ``{object: [[(t_ns, verdict), ...] per life]}`` over the recording at
+    ``path`` (``idle_ns`` ends a life), its terms read as :func:`evaluate_recording` reads them;
+    its errors too."""
+    parsed = parse(formula)
+    return evaluate_objects_ns(parsed, _samples(parsed, path, bindings, limits), idle_ns=idle_ns)
+
+
+def _samples(
+    parsed: Formula, path: str | os.PathLike[str], bindings: Mapping[str, str], limits: ReadLimits | None
+) -> dict[str, list[tuple[int, object]]]:
+    """Each term's samples from the topic it is bound to."""
     terms = [str(t) for t in parsed.terms]
     try:
         bindings = {str(parse_term(term)): topic_of(topic) for term, topic in bindings.items()}
@@ -64,4 +83,4 @@ def evaluate_recording(
                 samples[term].append((message.origin_ns, sample_value(message.payload)))  # type: ignore[attr-defined]
 
         player.play(take)
-    return evaluate_ns(parsed, samples)
+    return samples
