@@ -223,6 +223,7 @@ class ObjectMonitor:
         self._last = {}
         self._deadlines = []
         self._latest = {}
+        self._outages = {}
         self._slots = 0
 
     # -- instances
