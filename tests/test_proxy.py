@@ -431,21 +431,28 @@ class Blocker(Unit):
         Blocker.go.wait(10)
 
 
+def _pair_beside_a_blocker(make_manager: Callable[..., Manager], prefix: str) -> tuple[Pair, Source, Source, Source]:
+    """A unit of two inputs (a, b) and a unit that blocks the lane (on a message to
+    PREFIX/block), with a publisher for each key: the pair and the publishers of a, b and block."""
+    manager = make_manager(listen=[])
+    manager.add_transformation(TransformationSpec("pair", "tests.test_proxy:Pair", ports=(Port("a", "in"), Port("b", "in"))))
+    manager.add_transformation(TransformationSpec("blocker", "tests.test_proxy:Blocker", ports=(Port("in", "in"),)))
+    manager.spawn("pair", "pair", bindings={"a": f"{prefix}/a", "b": f"{prefix}/b"})
+    manager.spawn("blocker", "blocker", bindings={"in": f"{prefix}/block"})
+    for name in ("a", "b", "block"):
+        manager.spawn("publisher", f"send-{name}", bindings={"out": f"{prefix}/{name}"})
+    pair, send_a, send_b, send_block = (manager.unit(n) for n in ("pair", "send-a", "send-b", "send-block"))
+    assert isinstance(pair, Pair) and isinstance(send_a, Source) and isinstance(send_b, Source) and isinstance(send_block, Source)
+    return pair, send_a, send_b, send_block
+
+
 def test_a_message_run_inline_never_overtakes_one_queued_on_another_port(make_manager: Callable[..., Manager]) -> None:
     """A unit with several inputs sees their messages in the order they came: while a message of
     one port waits for the lane (here: the port is not proven quick yet, and the lane is busy), a
     message of another port, proven quick, waits behind it instead of running at once on the
     publisher's thread. (A formula monitor whose lane was starved saw one stream run ahead of the
     other by dozens of samples, and refused the other's as late: CI failed on it.)"""
-    manager = make_manager(listen=[])
-    manager.add_transformation(TransformationSpec("pair", "tests.test_proxy:Pair", ports=(Port("a", "in"), Port("b", "in"))))
-    manager.add_transformation(TransformationSpec("blocker", "tests.test_proxy:Blocker", ports=(Port("in", "in"),)))
-    manager.spawn("pair", "pair", bindings={"a": "pair/a", "b": "pair/b"})
-    manager.spawn("blocker", "blocker", bindings={"in": "pair/block"})
-    for name in ("a", "b", "block"):
-        manager.spawn("publisher", f"send-{name}", bindings={"out": f"pair/{name}"})
-    pair, send_a, send_b, send_block = (manager.unit(n) for n in ("pair", "send-a", "send-b", "send-block"))
-    assert isinstance(pair, Pair) and isinstance(send_a, Source) and isinstance(send_b, Source) and isinstance(send_block, Source)
+    pair, send_a, send_b, send_block = _pair_beside_a_blocker(make_manager, "pair")
     for i in range(10):  # port b proves itself quick
         send_b.emit(i)
         wait_until(lambda n=i + 1: len(pair.seen) == n, "b's message")
@@ -467,15 +474,7 @@ def test_messages_queued_on_several_ports_are_handed_over_in_the_order_they_came
     b1 a4; the unit then sees them in that order. (Taken port by port, it saw a1 b1 a2 a3 a4: a
     formula monitor of two terms found the later one's samples late, and dropped them, even in
     one process.)"""
-    manager = make_manager(listen=[])
-    manager.add_transformation(TransformationSpec("pair", "tests.test_proxy:Pair", ports=(Port("a", "in"), Port("b", "in"))))
-    manager.add_transformation(TransformationSpec("blocker", "tests.test_proxy:Blocker", ports=(Port("in", "in"),)))
-    manager.spawn("pair", "pair", bindings={"a": "order/a", "b": "order/b"})
-    manager.spawn("blocker", "blocker", bindings={"in": "order/block"})
-    for name in ("a", "b", "block"):
-        manager.spawn("publisher", f"send-{name}", bindings={"out": f"order/{name}"})
-    pair, send_a, send_b, send_block = (manager.unit(n) for n in ("pair", "send-a", "send-b", "send-block"))
-    assert isinstance(pair, Pair) and isinstance(send_a, Source) and isinstance(send_b, Source) and isinstance(send_block, Source)
+    pair, send_a, send_b, send_block = _pair_beside_a_blocker(make_manager, "order")
     Blocker.entered.clear()
     Blocker.go.clear()
     try:
