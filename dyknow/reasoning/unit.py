@@ -539,7 +539,6 @@ class FormulaMonitor(Unit):
             checked = _named(_formulas_param(given, where), where, limits)
         else:
             checked = _named(str(params["formula"]), where, limits)
-        reorder_ns = round(reorder_ms * 1_000_000)
         idle_ms = float(params.get("idle_ms", DEFAULT_IDLE_NS / 1e6))
         max_objects = int(params.get("max_objects", DEFAULT_MAX_OBJECTS))
         if not 0 < idle_ms <= 86_400_000 or not 1 <= max_objects <= 1_000_000:
@@ -551,10 +550,10 @@ class FormulaMonitor(Unit):
             root = formula.root
             if isinstance(root, Quantifier) and root.kind == "foreach":
                 monitor: Monitor | ObjectMonitor = ObjectMonitor(
-                    formula, reorder_ns=reorder_ns, max_cells=cells, idle_ns=round(idle_ms * 1e6), max_objects=max_objects
+                    formula, reorder_ns=self._reorder_ns, max_cells=cells, idle_ns=round(idle_ms * 1e6), max_objects=max_objects
                 )
             else:
-                monitor = Monitor(formula, reorder_ns=reorder_ns, max_cells=cells)
+                monitor = Monitor(formula, reorder_ns=self._reorder_ns, max_cells=cells)
             served.append(_Served(name, monitor))
         self._served = served
         self.monitor = served[0].monitor
