@@ -34,6 +34,7 @@ from dyknow.transport import Session, make_config
 from tests.conftest import REPO, CliProcess, faked_clock, free_port, run_cli, subprocess_env, wait_until
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+UNKNOWN_CHANNEL = "Unknown channel ID: "  # the SDK server's status for a subscription to a channel it does not know
 
 
 @dataclass
@@ -44,6 +45,8 @@ class Seen:
     channels: dict[int, dict[str, Any]] = field(default_factory=dict)  # advertised and not withdrawn, by id
     unadvertised: list[int] = field(default_factory=list)
     messages: dict[int, list[tuple[int, bytes]]] = field(default_factory=dict)  # subscription id -> (log time, payload)
+    subscriptions: dict[int, int] = field(default_factory=dict)  # subscription id -> channel id, as asked
+    resent: int = 0  # subscriptions sent again after the SDK's "Unknown channel ID" for an advertised channel
 
     def channel(self, topic: str) -> dict[str, Any] | None:
         return next((c for c in self.channels.values() if c["topic"] == topic), None)
@@ -65,6 +68,8 @@ async def pump(ws: aiohttp.ClientWebSocketResponse, seen: Seen, until: Callable[
                     seen.unadvertised += data["channelIds"]
                     for gone in data["channelIds"]:
                         seen.channels.pop(gone, None)
+                elif data["op"] == "status" and data["message"].startswith(UNKNOWN_CHANNEL):
+                    await resubscribe(ws, seen, int(data["message"].removeprefix(UNKNOWN_CHANNEL)))
             elif msg.type == aiohttp.WSMsgType.BINARY:
                 assert msg.data[0] == 0x01, f"binary opcode {msg.data[0]}"  # message data
                 subscription, log_time = struct.unpack_from("<IQ", msg.data, 1)
@@ -80,8 +85,27 @@ async def pump(ws: aiohttp.ClientWebSocketResponse, seen: Seen, until: Callable[
                              f"messages by subscription {counts}, channels withdrawn {seen.unadvertised}") from None  # fmt: skip
 
 
-async def subscribe(ws: aiohttp.ClientWebSocketResponse, subscriptions: dict[int, int]) -> None:
-    """Subscribe: subscription id -> channel id."""
+async def resubscribe(ws: aiohttp.ClientWebSocketResponse, seen: Seen, channel_id: int) -> None:
+    """Send again a subscription the server refused for a channel it advertised and never withdrew.
+
+    foxglove-sdk's server (0.30, ``ConnectedClient::advertise_channels`` in ``connected_client.rs``)
+    sends a new channel's advertisement before it records the channel as advertised to the client,
+    so a client that subscribes at once can be told "Unknown channel ID" when the thread creating
+    the channel is preempted between the two (seen beside CPU hogs). A channel advertised before
+    the client connected is recorded before the client is read, so only channels created while it
+    watches are affected; a client such as this one subscribes again.
+    """
+    if channel_id not in seen.channels:
+        return  # withdrawn: the refusal is right
+    again = {s: c for s, c in seen.subscriptions.items() if c == channel_id}
+    seen.resent += len(again)
+    await ws.send_str(json.dumps({"op": "subscribe", "subscriptions": [{"id": s, "channelId": c} for s, c in again.items()]}))
+
+
+async def subscribe(ws: aiohttp.ClientWebSocketResponse, subscriptions: dict[int, int], seen: Seen | None = None) -> None:
+    """Subscribe: subscription id -> channel id (remembered in ``seen``, to be sent again if refused)."""
+    if seen is not None:
+        seen.subscriptions.update(subscriptions)
     await ws.send_str(json.dumps({"op": "subscribe", "subscriptions": [{"id": s, "channelId": c} for s, c in subscriptions.items()]}))
 
 
@@ -139,7 +163,7 @@ def test_foxglove_serves_live_images_and_json(make_manager: Callable[..., Manage
             assert seen.server_info is not None and seen.server_info["name"] == "dyknow"
             image, track = seen.channel(image_key), seen.channel(json_key)
             assert image is not None and track is not None
-            await subscribe(ws, {1: image["id"], 2: track["id"]})
+            await subscribe(ws, {1: image["id"], 2: track["id"]}, seen)
             await pump(ws, seen, lambda: len(seen.messages.get(1, [])) >= 3 and len(seen.messages.get(2, [])) >= 3, "messages on both")
         return seen, {"image": image, "track": track}
 
@@ -247,7 +271,7 @@ def test_bridge_maps_every_payload_kind_and_follows_type_changes(
                 await pump(ws, seen, lambda: {c["topic"] for c in seen.channels.values()} == shown, "every channel advertised")
                 channels = {c["topic"]: c for c in seen.channels.values()}
                 ids = {topic: n for n, topic in enumerate(sorted(shown), start=1)}
-                await subscribe(ws, {ids[t]: channels[t]["id"] for t in shown})
+                await subscribe(ws, {ids[t]: channels[t]["id"] for t in shown}, seen)
                 await pump(ws, seen, lambda: all(seen.messages.get(n) for n in ids.values()), "a message on every channel")
                 # a key whose payload type changes: its channel is withdrawn and a new one advertised
                 old = channels["fox/changes"]["id"]
@@ -255,7 +279,7 @@ def test_bridge_maps_every_payload_kind_and_follows_type_changes(
                 await pump(ws, seen, lambda: old in seen.unadvertised and seen.channel("fox/changes") is not None, "the new channel")
                 new = seen.channel("fox/changes")
                 assert new is not None
-                await subscribe(ws, {100: new["id"]})
+                await subscribe(ws, {100: new["id"]}, seen)
                 await pump(ws, seen, lambda: bool(seen.messages.get(100)), "a message on the new channel")
                 return seen, {topic: {**channel, "subscription": ids[topic]} for topic, channel in channels.items()} | {
                     "new": {**new, "subscription": 100}
@@ -349,7 +373,7 @@ def test_a_message_from_a_host_whose_clock_is_ahead_is_logged_at_this_hosts_time
                         await pump(ws, seen, lambda: seen.channel("fox/robot") is not None, "the robot's channel")
                         channel = seen.channel("fox/robot")
                         assert channel is not None
-                        await subscribe(ws, {1: channel["id"]})
+                        await subscribe(ws, {1: channel["id"]}, seen)
                         while len(arrived) < 20:
                             count = len(arrived)
                             await pump(ws, seen, lambda: len(seen.messages.get(1, [])) > count, "a frame")  # noqa: B023 (awaited here)
