@@ -446,6 +446,51 @@ def test_a_directory_asks_again_for_a_summary_it_could_not_fetch() -> None:
             a.close()
 
 
+def test_a_provider_that_appears_while_a_discovery_reads_summaries_is_found() -> None:
+    """A directory asks who offers Feed(x): 'slow' does, and its summary takes long to come.
+    Meanwhile 'late' starts offering Feed(x), after the questions were answered: the tag's watch
+    tells of it while discover() is still choosing, and it must be followed once discover() ends
+    (it was dropped, and a plan said 'nothing provides Feed(m3)' for minutes: the scale benchmark
+    beside CPU hogs)."""
+    from dyknow.federation import Directory
+
+    port = free_port()
+    reading = threading.Event()  # the directory reads slow's summary
+    release = threading.Event()
+
+    def fetch(manager: str) -> bytes:
+        if manager == "slow":
+            reading.set()
+            release.wait(20)
+        return json.dumps(Summary(manager, f"{manager}-host", 1, "x").to_dict()).encode()
+
+    def provider(session: Session, name: str) -> list[Any]:
+        return [session.declare_liveliness_token(keys.offer_token("Feed", ("x",), name)), session.declare_liveliness_token(keys.manager_token(name))]
+
+    with (
+        Session(make_config(listen=[f"tcp/127.0.0.1:{port}"])) as one,
+        Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as two,
+        Session(make_config(connect=[f"tcp/127.0.0.1:{port}"])) as three,
+    ):
+        a = Directory(one, "a", summarize=lambda: Summary("a", "a-host", 1), fetch=fetch, on_change=lambda k, m: None)
+        try:
+            held = provider(two, "slow")
+            wait_until(lambda: one.alive(keys.manager_token("slow")), "slow's token at a")
+            found: list[bool] = []
+            discovery = threading.Thread(target=lambda: found.append(a.discover([("Feed", ("x",))], timeout_s=10)))
+            discovery.start()
+            assert reading.wait(20), "discover() reads slow's summary"
+            held += provider(three, "late")
+            wait_until(lambda: a.received().get("offers", 0) >= 2, "the watch of Feed(x) to tell of both providers")
+            release.set()
+            discovery.join(30)
+            assert found == [True]
+            wait_until(lambda: {"slow", "late"} <= set(a.peers()), "both providers followed, their summaries read", timeout_s=20)
+        finally:
+            release.set()
+            a.close()
+
+
 # ---------------------------------------------------------------------------- a fake manager
 
 

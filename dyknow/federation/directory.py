@@ -43,6 +43,7 @@ _MAX_ALIVE = 10_000  # managers listed by alive() (a name each)
 _ALIVE_S = 1.0  # alive() asks who is up at most this often (a liveliness query; the answer before meanwhile)
 _MAX_FOLLOWED = 256  # managers whose summaries are followed (candidates, managers in use)
 _MAX_OFFER_KEYS = 1_024  # tags whose providers are watched
+_MAX_HELD = 64  # providers of a tag whose comings and goings are held while discover() chooses (4 x MAX_CANDIDATES)
 _MAX_TODO = 100_000  # changes waiting for the directory's thread
 _DISCOVER_TIMEOUT_S = 1.0
 #: How much longer a plan waits for a tag none of whose candidates' summaries came within
@@ -125,6 +126,8 @@ class Directory:
         self._offer_watch: dict[str, Any] = {}  # offers pattern -> its liveliness subscriber (oldest use first)
         self._candidates: dict[str, set[str]] = {}  # offers pattern -> the providers seen
         self._discovering: set[str] = set()  # offers patterns discover() is choosing the providers of now
+        # offers pattern -> manager -> up: what their watches said while discover() chose (replayed after)
+        self._held: dict[str, dict[str, bool]] = {}
         self._refused: Counter[str] = Counter()  # what the directory refused, by reason (bounds)
         self._said: set[str] = set()  # the bounds already logged (one line each)
         self._pool: ThreadPoolExecutor | None = None
@@ -334,6 +337,13 @@ class Directory:
         finally:
             with self._lock:
                 self._discovering.difference_update(new)
+                held = [(p, self._held.pop(p)) for p in new if p in self._held]
+            # what the watches said meanwhile: a provider that came after the last query's answer
+            # (while the candidates' summaries were read, seconds under load) is told only now;
+            # dropped, it was never seen (a plan said 'nothing provides' for minutes)
+            for p, changes in held:
+                for manager, up in changes.items():
+                    self._offer_seen(p, manager, up, replayed=True)
 
     def _discover(self, new: list[str], doubtful: list[str], ask: Callable[[], None], ask_index: Callable[[], None],
                   answers: dict[str, tuple[list[str], int]], answering: dict[str, set[str]],
@@ -666,10 +676,21 @@ class Directory:
             self._received["offers"] += 1
         if manager is None or manager == self.name:
             return
+        self._offer_seen(pattern, manager, alive)
+
+    def _offer_seen(self, pattern: str, manager: str, alive: bool, *, replayed: bool = False) -> None:
+        """A provider of ``pattern`` appeared or went (``replayed``: told by discover() once it chose)."""
         with self._lock:
             providers = self._candidates.get(pattern)
-            if providers is None or pattern in self._discovering:  # (discover() chooses among those there now)
+            if providers is None:
                 return
+            if pattern in self._discovering:  # discover() chooses among those there now; the rest is told after
+                held = self._held.setdefault(pattern, {})
+                if manager in held or len(held) < _MAX_HELD:
+                    held[manager] = alive
+                return
+            if replayed and alive and manager in providers:
+                return  # chosen by discover() already
             if not alive:
                 providers.discard(manager)
                 return
