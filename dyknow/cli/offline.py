@@ -1,4 +1,4 @@
-"""Commands that need no running system: ``certs``, ``validate``, ``expand``, ``plan``."""
+"""Commands that need no running system: ``certs``, ``validate``, ``expand``, ``plan``, ``check``."""
 
 from __future__ import annotations
 
@@ -7,7 +7,19 @@ import sys
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from dyknow.cli.common import DEFAULT_MANAGER, Commands, UsageError, name_list, parse_pairs, parse_value, print_json, report_result, shipped
+from dyknow.cli.common import (
+    DEFAULT_MANAGER,
+    Commands,
+    UsageError,
+    name_list,
+    parse_pairs,
+    parse_value,
+    print_json,
+    read_limits,
+    report_result,
+    shipped,
+    shown,
+)
 
 
 def _ontology(paths: Sequence[str]) -> Any:
@@ -173,6 +185,47 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check(args: argparse.Namespace) -> int:
+    """check a file of requirements over a recording, as live monitors would have judged it:
+    exit 0 when every requirement held, 1 when one was false or could not be checked
+
+    The file is TOML: [bindings] ("TERM" = "TOPIC", a topic's {ARG} making a template), then a
+    [[requirement]] table each, with name, formula and, if need be, bindings and idle_ms of its
+    own (see docs/howto/requirements-in-ci.md).
+
+    examples:
+      dyknow check requirements.toml --mcap run.mcap
+      dyknow check requirements.toml --mcap run.mcap --ontology floor.ttl --junit report.xml"""
+    from pathlib import Path
+
+    from dyknow.reasoning.requirements import check_recording, details, junit_xml, load_requirements, summary
+
+    requirements = load_requirements(args.requirements)
+    ontology = _ontology(args.ontology)
+    results = check_recording(requirements, args.mcap, individuals=ontology.individuals if ontology is not None else None, limits=read_limits(args))
+    if args.junit is not None:
+        try:
+            Path(args.junit).write_text(junit_xml(results, recording=Path(args.mcap).name), encoding="utf-8")
+        except OSError as exc:
+            raise UsageError(f"--junit {args.junit}: cannot write the report: {exc.strerror or exc}") from None
+    held = sum(r.held for r in results)
+    errors = sum(r.error is not None for r in results)
+    if args.json:
+        for r in results:
+            print_json(r.to_dict())
+    else:
+        width = min(40, max(len(r.requirement.name) for r in results))
+        for r in results:
+            mark = "held " if r.held else "ERROR" if r.error is not None else "FALSE"
+            print(shown(f"{mark}  {r.requirement.name:<{width}}  {summary(r)}"))
+            if not r.held and r.error is None:
+                for line in details(r).splitlines()[1:11]:
+                    print(shown(f"       {line}"))
+        false = len(results) - held - errors
+        print(f"{len(results)} requirements: {held} held, {false} false, {errors} not checked", flush=True)
+    return 0 if held == len(results) else 1
+
+
 def add_commands(cmds: Commands) -> None:
     """Add this family's commands to the parser."""
     limit_options = cmds.limit_options
@@ -219,3 +272,13 @@ def add_commands(cmds: Commands) -> None:
                        help="another manager's library (spec file or directory), to plan across managers; repeatable")  # fmt: skip
 
     cmds.command("plan", cmd_plan, plan_options)
+
+    def check_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("requirements", metavar="REQUIREMENTS.toml", help="the requirements: [bindings] and [[requirement]] tables")
+        p.add_argument("--mcap", required=True, metavar="FILE", help="the recording to check them over")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="ontologies whose individuals a forall ranges over (@shipped/dyknow.ttl: the example ontology)")  # fmt: skip
+        p.add_argument("--junit", metavar="FILE.xml", help="also write a JUnit XML report (a test case per requirement), for CI")
+        cmds.mcap_limit_options(p)
+
+    cmds.command("check", cmd_check, check_options)

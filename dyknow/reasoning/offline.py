@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.bindings import sample_value, topic_of
@@ -23,7 +23,7 @@ from dyknow.reasoning.syntax import Formula, parse
 from dyknow.recording import Player, ReadLimits
 from dyknow.tags import parse_term
 
-__all__ = ["evaluate_recording", "evaluate_recording_objects"]
+__all__ = ["evaluate_recording", "evaluate_recording_objects", "read_topics"]
 
 
 def evaluate_recording(
@@ -51,6 +51,29 @@ def evaluate_recording_objects(
     return evaluate_objects_ns(parsed, _samples(parsed, path, bindings, limits), idle_ns=idle_ns)
 
 
+def read_topics(
+    path: str | os.PathLike[str], wanted: Collection[str], limits: ReadLimits | None = None
+) -> tuple[dict[str, list[tuple[int, object]]], list[str]]:
+    """The samples ``(origin_ns, value)`` of each topic in ``wanted`` the recording holds (a topic
+    as written in the file, or its key), in one pass over the file; and every topic it holds,
+    sorted (to name the close ones when a topic is missing). A topic the file lacks is left out."""
+    with Player(path, rate=math.inf, limits=limits) as player:
+        names = {c.topic: c.topic for c in player.channels} | {key: topic for topic, key in player.keys.items()}
+        found = {names[t]: t for t in wanted if t in names}
+        samples: dict[str, list[tuple[int, object]]] = {t: [] for t in found.values()}
+        by_topic = {topic: samples[asked] for topic, asked in found.items()}
+        # (a topic asked by its name and by its key: one list, given under the name asked first)
+
+        def take(message: object, record: object) -> None:
+            into = by_topic.get(getattr(record, "topic", ""))
+            if into is not None:
+                into.append((message.origin_ns, sample_value(message.payload)))  # type: ignore[attr-defined]
+
+        player.play(take)
+        held = sorted(names)
+    return {t: samples[found[names[t]]] for t in wanted if t in names}, held
+
+
 def _samples(
     parsed: Formula, path: str | os.PathLike[str], bindings: Mapping[str, str], limits: ReadLimits | None
 ) -> dict[str, list[tuple[int, object]]]:
@@ -66,21 +89,11 @@ def _samples(
     extra = [t for t in bindings if t not in terms]
     if extra:
         raise FormulaError(f"{extra[0]!r} is no term of the formula", where="--bind", expected=f"one of {', '.join(terms)}{did_you_mean(extra[0], terms)}")
-    with Player(path, rate=math.inf, limits=limits) as player:
-        topics = {c.topic: c.topic for c in player.channels} | {key: topic for topic, key in player.keys.items()}
-        for term, topic in bindings.items():
-            if topic not in topics:
-                raise FormulaError(
-                    f"the recording has no topic {topic!r} (for {term})", where=f"--bind {term}={topic}",
-                    expected=f"one of {', '.join(sorted(c.topic for c in player.channels))}{did_you_mean(topic, list(topics))}",
-                )  # fmt: skip
-        wanted = {topics[topic]: term for term, topic in bindings.items()}
-        samples: dict[str, list[tuple[int, object]]] = {term: [] for term in terms}
-
-        def take(message: object, record: object) -> None:
-            term = wanted.get(getattr(record, "topic", ""))
-            if term is not None:
-                samples[term].append((message.origin_ns, sample_value(message.payload)))  # type: ignore[attr-defined]
-
-        player.play(take)
-    return samples
+    read, held = read_topics(path, set(bindings.values()), limits)
+    for term, topic in bindings.items():
+        if topic not in read:
+            raise FormulaError(
+                f"the recording has no topic {topic!r} (for {term})", where=f"--bind {term}={topic}",
+                expected=f"one of {', '.join(held)}{did_you_mean(topic, held)}",
+            )  # fmt: skip
+    return {term: list(read[topic]) for term, topic in bindings.items()}

@@ -1,0 +1,304 @@
+"""Issue 54 item 6: a file of requirements checked over a recording, for CI (``dyknow check``).
+
+Every verdict is compared with the naive evaluator of ``tests/reasoning_support.py`` over the
+same samples, each ``forall`` instance written out by hand (its terms substituted in the text),
+so the expansion, the template bindings and the evaluation are each checked by something that
+is not the code under test. A live run recorded while live monitors judged it is checked too:
+the same verdicts at the same times.
+"""
+
+from __future__ import annotations
+
+import json
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dyknow import Message
+from dyknow.errors import FormulaError
+from dyknow.reasoning.requirements import check_recording, junit_xml, load_requirements
+from dyknow.reasoning.syntax import parse
+from dyknow.recording import Recorder
+from dyknow.tags import Term
+from tests.conftest import run_cli
+from tests.reasoning_support import naive_evaluate_ns, naive_evaluate_objects
+
+ROBOTS = ["r1", "r2", "r3"]
+ONTOLOGY = """@prefix ex: <http://example.org/floor#> .
+@prefix owl: <http://www.w3.org/2002/07/owl#> .
+ex:Robot a owl:Class .
+ex:r1 a ex:Robot .
+ex:r2 a ex:Robot .
+ex:r3 a ex:Robot .
+"""
+REQUIREMENTS = """# the floor's rules, as the safety engineer wrote them
+[bindings]
+"State(r)" = "floor/{r}/state"      # a template: State(r2) is read from floor/r2/state
+"Limits(floor)" = "floor/limits"
+
+[[requirement]]
+name = "speed under the zone's limit"
+formula = "forall r in ex:Robot: State(r).speed <= Limits(floor)[State(r).zone]"
+
+[[requirement]]
+name = "robots keep apart"
+formula = "forall a in ex:Robot: forall b in ex:Robot: State(a).id == State(b).id or dist(State(a), State(b)) > 0.5"
+
+[[requirement]]
+name = "each robot seen is slow for 300 ms"
+formula = "foreach r in Seen(floor).id: historically[0, 300ms] Seen(floor).speed < 1.5"
+bindings = { "Seen(floor)" = "floor/seen" }
+idle_ms = 1000
+
+[[requirement]]
+name = "the dock's limit is set"
+formula = "Limits(floor).dock > 0"
+"""
+
+
+def states() -> dict[str, list[tuple[int, Any]]]:
+    """Three robots' states (10 Hz, r2 speeding in the dock for a while, r1 and r3 meeting),
+    the zone limits, and the robots seen (each sample one robot's)."""
+    out: dict[str, list[tuple[int, Any]]] = {}
+    for k, robot in enumerate(ROBOTS):
+        series = []
+        for i in range(30):
+            t = 1_000_000_000 + i * 100_000_000 + k * 7_000_000
+            zone = "dock" if (i + k) % 3 else "aisle"
+            speed = 0.9 if robot == "r2" and 10 <= i < 14 else 0.3
+            x = 2.0 * k if robot != "r3" or not 20 <= i < 23 else 0.2  # r3 next to r1 for three samples
+            series.append((t, {"id": robot, "zone": zone, "speed": speed, "x": x, "y": 0.0}))
+        out[f"floor/{robot}/state"] = series
+    out["floor/limits"] = [(1_000_000_000 - 50_000_000, {"dock": 0.5, "aisle": 2.0})]
+    out["floor/seen"] = [(1_000_000_000 + i * 50_000_000 + 3_000_000, {"id": ROBOTS[i % 3], "speed": 1.7 if i == 31 else 0.4}) for i in range(60)]
+    return out
+
+
+def record(path: Path, series: dict[str, list[tuple[int, Any]]]) -> None:
+    with Recorder((), path) as recorder:
+        for key, samples in series.items():
+            for seq, (t_ns, payload) in enumerate(samples, start=1):
+                recorder.write(Message(payload, seq, t_ns, t_ns, key))
+
+
+def by_hand(series: dict[str, list[tuple[int, Any]]]) -> dict[str, dict[str, list[tuple[int, Any]]]]:
+    """Each requirement's verdicts by instance, from the naive evaluator over formulas written out by hand."""
+    limits = series["floor/limits"]
+
+    def state(r: str) -> Term:
+        return Term("State", (r,))
+
+    speed: dict[str, list[tuple[int, Any]]] = {}
+    for r in ROBOTS:
+        formula = parse(f"State({r}).speed <= Limits(floor)[State({r}).zone]")
+        speed[r] = naive_evaluate_ns(formula, {state(r): series[f"floor/{r}/state"], Term("Limits", ("floor",)): limits})
+    apart: dict[str, list[tuple[int, Any]]] = {}
+    for a in ROBOTS:
+        for b in ROBOTS:
+            formula = parse(f"State({a}).id == State({b}).id or dist(State({a}), State({b})) > 0.5")
+            apart[f"{a}/{b}"] = naive_evaluate_ns(formula, {state(r): series[f"floor/{r}/state"] for r in {a, b}})
+    body = parse("historically[0, 300ms] Seen(floor).speed < 1.5")
+    domain = parse("foreach r in Seen(floor).id: true").root.domain  # type: ignore[attr-defined]
+    objects = naive_evaluate_objects("r", domain, body, {Term("Seen", ("floor",)): series["floor/seen"]}, 1_000_000_000)  # type: ignore[arg-type]
+    seen = {obj: sorted(v for life in lives for v in life) for obj, lives in objects.items()}
+    dock = {"": naive_evaluate_ns(parse("Limits(floor).dock > 0"), {Term("Limits", ("floor",)): limits})}
+    return {"speed under the zone's limit": speed, "robots keep apart": apart, "each robot seen is slow for 300 ms": seen,
+            "the dock's limit is set": dock}  # fmt: skip
+
+
+@pytest.fixture
+def floor(tmp_path: Path) -> tuple[Path, Path, Path, dict[str, list[tuple[int, Any]]]]:
+    series = states()
+    recording = tmp_path / "floor.mcap"
+    record(recording, series)
+    (tmp_path / "requirements.toml").write_text(REQUIREMENTS)
+    (tmp_path / "floor.ttl").write_text(ONTOLOGY)
+    return tmp_path / "requirements.toml", recording, tmp_path / "floor.ttl", series
+
+
+def test_every_requirement_of_a_file_gives_the_naive_evaluators_verdicts(floor: tuple[Path, Path, Path, Any]) -> None:
+    """forall with an ontology (one series per robot, per pair), a template binding, a lookup,
+    dist, a foreach with its own binding and idle time, and a plain formula: each series equals
+    the naive evaluator's over a formula written out by hand."""
+    from dyknow.ontology import Ontology
+
+    requirements_path, recording, ontology, series = floor
+    requirements = load_requirements(requirements_path)
+    assert [r.where for r in requirements] == [f"{requirements_path}:{n}" for n in (6, 10, 14, 20)]
+    results = check_recording(requirements, recording, individuals=Ontology.load([ontology]).individuals)
+    expected = by_hand(series)
+    for result in results:
+        assert result.error is None, result.error
+        assert result.verdicts == expected[result.requirement.name], result.requirement.name
+    held = {r.requirement.name: r.held for r in results}
+    assert held == {"speed under the zone's limit": False, "robots keep apart": False, "each robot seen is slow for 300 ms": False,
+                    "the dock's limit is set": True}  # fmt: skip
+    speed = results[0]
+    assert sorted(speed.false_spans()) == ["r2"]  # only r2 sped in the dock
+    assert sorted(results[1].false_spans()) == ["r1/r3", "r3/r1"]
+
+
+@pytest.mark.process
+def test_dyknow_check_exits_1_and_writes_the_same_junit_report_every_time(floor: tuple[Path, Path, Path, Any], tmp_path: Path) -> None:
+    """The CLI as CI runs it: exit 1 (a requirement was false), a line per requirement, and a
+    JUnit XML report whose failures say where and when; 10 runs, the same bytes."""
+    requirements_path, recording, ontology, _ = floor
+    reports = []
+    for i in range(10):
+        junit = tmp_path / f"report{i}.xml"
+        done = run_cli("check", str(requirements_path), "--mcap", str(recording), "--ontology", str(ontology), "--junit", str(junit))
+        assert done.returncode == 1, done.stderr
+        reports.append(junit.read_bytes())
+    assert len(set(reports)) == 1
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith("FALSE  speed under the zone's limit") and "false for r2 at t=2.007 s" in lines[0], lines[0]
+    assert "r2: false at t=2.007 s\n" in done.stdout and "r2: false from t=2.207 s to t=2.307 s" in done.stdout
+    assert lines[-1] == "4 requirements: 1 held, 3 false, 0 not checked"
+    suite = ET.fromstring(reports[0]).find("testsuite")
+    assert suite is not None and (suite.get("tests"), suite.get("failures"), suite.get("errors")) == ("4", "3", "0")
+    cases = {case.get("name"): case for case in suite.iter("testcase")}
+    failure = cases["speed under the zone's limit"].find("failure")
+    assert failure is not None and "r2: false at t=2.007 s" in (failure.text or "")
+    assert cases["the dock's limit is set"].find("failure") is None
+    as_json = run_cli("check", str(requirements_path), "--mcap", str(recording), "--ontology", str(ontology), "--json")
+    rows = [json.loads(line) for line in as_json.stdout.splitlines()]
+    assert [r["held"] for r in rows] == [False, False, False, True] and rows[0]["false"]["r2"][0][0] == 2_007_000_000
+
+
+@pytest.mark.process
+def test_a_requirement_that_cannot_be_checked_is_an_error_and_the_others_are_checked(floor: tuple[Path, Path, Path, Any], tmp_path: Path) -> None:
+    """A typo in a formula, a term without a binding and a topic the recording lacks: each an
+    error naming the file, the line and the requirement; the rest still checked, and the report
+    has an <error> for each."""
+    _, recording, _, _ = floor
+    bad = tmp_path / "bad.toml"
+    bad.write_text(
+        '[bindings]\n"Limits(floor)" = "floor/limits"\n"Gone(x)" = "floor/gone"\n\n'
+        '[[requirement]]\nname = "typo"\nformula = "Limits(floor).dock >"\n\n'
+        '[[requirement]]\nname = "unbound"\nformula = "Limit(floor).dock > 0"\n\n'
+        '[[requirement]]\nname = "no topic"\nformula = "Gone(x) > 0"\n\n'
+        '[[requirement]]\nname = "fine"\nformula = "Limits(floor).aisle > 1"\n'
+    )
+    junit = tmp_path / "bad.xml"
+    done = run_cli("check", str(bad), "--mcap", str(recording), "--junit", str(junit))
+    assert done.returncode == 1
+    lines = done.stdout.splitlines()
+    assert lines[0].startswith(f"ERROR  typo      not checked: {bad}:5: requirement 'typo': formula column 21: unexpected end of formula"), lines[0]
+    assert f"{bad}:9: requirement 'unbound': no topic for Limit(floor)" in lines[1] and "did you mean 'Limits(floor)'" in lines[1], lines[1]
+    assert f"{bad}:13: requirement 'no topic': the recording has no topic 'floor/gone' (for Gone(x))" in lines[2], lines[2]
+    assert lines[3].startswith("held   fine") and lines[-1] == "4 requirements: 1 held, 0 false, 3 not checked"
+    suite = ET.fromstring(junit.read_bytes()).find("testsuite")
+    assert suite is not None and (suite.get("failures"), suite.get("errors")) == ("0", "3")
+
+
+@pytest.mark.parametrize(
+    ("text", "said"),
+    [
+        ("[[requirement]]\nname = 'a'\nformula = 'x > 0'\nformla = 'y'\n", ":1: requirement 1: unknown field 'formla'; expected one of"),
+        ("[[requirement]]\nname = 'a'\n", ":1: requirement 1: no formula"),
+        ("[[requirement]]\nname = 'a'\nformula = 'x > 0'\n[[requirement]]\nname = 'a'\nformula = 'x > 1'\n", ":4: requirement 2: a second requirement named 'a'"),
+        ("[bindings]\n'State(r)' = 'floor/{robot}/state'\n[[requirement]]\nname = 'a'\nformula = 'x > 0'\n", "names {robot}, no argument of State(r)"),
+        ("[bindigs]\n[[requirement]]\nname = 'a'\nformula = 'x'\n", "unknown table or key 'bindigs'; expected [bindings] and [[requirement]] tables (did you mean 'bindings'?)"),
+        ("[[requirement]\nname = 'a'\n", "not TOML"),
+        ("[bindings]\n", "no requirement"),
+        ("[[requirement]]\nname = 'a'\nformula = 'x > 0'\nidle_ms = -1\n", "idle_ms = -1; expected a positive number of milliseconds"),
+    ],
+)
+def test_a_malformed_requirements_file_is_refused_naming_its_line_and_field(tmp_path: Path, text: str, said: str) -> None:
+    path = tmp_path / "r.toml"
+    path.write_text(text)
+    with pytest.raises(FormulaError) as refused:
+        load_requirements(path)
+    assert str(path) in str(refused.value) and said in str(refused.value), str(refused.value)
+
+
+def test_a_junit_report_escapes_what_the_file_says() -> None:
+    """Names and formulas are the user's text: a report with <, & and quotes in them is well-formed XML."""
+    from dyknow.reasoning.requirements import Requirement, Result
+
+    requirement = Requirement('a < b & "c"', "x < 1 and y > 2", {"x": "x", "y": "y"}, where="r.toml:3")
+    result = Result(requirement, {"": [(1_000, True), (2_000, False)]})
+    root = ET.fromstring(junit_xml([result], recording="<run>.mcap"))
+    case = root.find("testsuite/testcase")
+    assert case is not None and case.get("name") == 'a < b & "c"' and case.get("classname") == "r.toml"
+    failure = case.find("failure")
+    assert failure is not None and "x < 1 and y > 2" in (failure.text or "")
+
+
+def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_manager: Any, tmp_path: Path) -> None:
+    """Two monitors run live on a manager (a window over a lookup, and a foreach) while a
+    recorder records the keys they read; the recording checked afterwards as a requirements
+    file gives every verdict the live monitors published, at the same times. The comparison
+    starts once both the monitors and the recorder receive every key (the samples before may
+    reach one and not the other), and past the longest window after it."""
+    import time
+
+    from dyknow.recording import Player
+    from dyknow.testing import Sink
+    from dyknow.transport import Session, make_config
+    from tests.conftest import free_port, wait_until
+
+    manager = make_manager(listen=[f"tcp/127.0.0.1:{free_port()}"])
+    plain = "historically[0, 300ms] State(r1).speed <= Limits(floor)[State(r1).zone]"
+    objects = "foreach r in Seen(floor).id: historically[0, 200ms] Seen(floor).speed < 1.5"
+    keys = {"State(r1)": "floor/r1/state", "Limits(floor)": "floor/limits", "Seen(floor)": "floor/seen"}
+    watched = {}
+    for name, formula in (("plain", plain), ("objects", objects)):
+        key = manager.monitor(formula, bindings={t: k for t, k in keys.items() if t.split("(")[0] in formula})
+        manager.spawn("sink", name, bindings={"in": key})
+        sink = manager.unit(name)
+        assert isinstance(sink, Sink)
+        watched[name] = sink
+
+    def verdicts(name: str) -> list[dict[str, Any]]:
+        return [m.payload for m in list(watched[name].messages) if isinstance(m.payload, dict) and "verdict" in m.payload]
+
+    live = tmp_path / "live.mcap"
+    seq = [0]
+    with Session(make_config(connect=manager.endpoints)) as session, Recorder(["floor/**"], live, connect=manager.endpoints) as recorder:
+        publishers = {k: session.declare_publisher(k, reliable=True) for k in keys.values()}
+
+        def put(key: str, payload: Any) -> None:
+            seq[0] += 1
+            now = time.time_ns()
+            publishers[key].put(Message(payload, seq[0], now, now, key))
+
+        def publish(i: int) -> None:
+            put("floor/limits", {"dock": 0.5, "aisle": 2.0})
+            put("floor/r1/state", {"zone": "dock" if i % 7 < 4 else "aisle", "speed": 0.9 if i % 40 == 3 else 0.3})
+            put("floor/seen", {"id": f"r{i % 3}", "speed": 1.7 if i % 13 == 6 else 0.4})
+
+        i = 0
+        while not (verdicts("plain") and verdicts("objects") and len(recorder.topics) == 3 and min(recorder.topics.values()) >= 5):  # every path up
+            publish(i)
+            i += 1
+            time.sleep(0.02)
+            assert i < 1000, "the monitors and the recorder to receive the keys"
+        start_ns, recorded = time.time_ns(), recorder.count
+        for _ in range(150):
+            publish(i)
+            i += 1
+            time.sleep(0.01)
+        end_ns = time.time_ns()
+        wait_until(lambda: recorder.count >= recorded + 3 * 150 and all(v and v[-1]["t_ns"] >= end_ns - 100_000_000 for v in map(verdicts, watched)),
+                   "the last samples recorded and judged")  # fmt: skip
+    # the samples from start_ns on, as they were recorded
+    trimmed = tmp_path / "trimmed.mcap"
+    with Player(live, rate=float("inf")) as player, Recorder((), trimmed) as writer:
+        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
+    (tmp_path / "live.toml").write_text(
+        "[bindings]\n" + "".join(f'"{t}" = "{k}"\n' for t, k in keys.items())
+        + f'\n[[requirement]]\nname = "plain"\nformula = "{plain}"\n\n[[requirement]]\nname = "objects"\nformula = "{objects}"\n'
+    )  # fmt: skip
+    results = {r.requirement.name: r for r in check_recording(load_requirements(tmp_path / "live.toml"), trimmed)}
+    settled = start_ns + 500_000_000  # past the longest window (300 ms) and a lookup's first sample
+    for name in ("plain", "objects"):
+        offline = {(key, t): v for key, series in results[name].verdicts.items() for t, v in series if t >= settled}
+        judged = [v for v in verdicts(name) if v["t_ns"] >= settled]
+        assert len(judged) > 100, name
+        assert {(v.get("object", ""), v["t_ns"]): v["verdict"] for v in judged} == {
+            k: v for k, v in offline.items() if v is not None and k[1] <= judged[-1]["t_ns"]
+        }, name
+        assert {v["verdict"] for v in judged} == {True, False}, name
