@@ -127,9 +127,10 @@ def run(scenario: str, seconds: float, tmp: Path) -> dict[str, Any]:
             procs["observer"] = observer
             observer.next_json(60, event="key")
             deadline = time.monotonic() + 60
-            while observer.next_json(30, event="stats")["camera"] != BOTTOM:  # the robot's camera feeds the key
+            while (stats := observer.next_json(30, event="stats"))["camera"] != BOTTOM:  # the robot's camera feeds the key
                 if time.monotonic() > deadline:
-                    raise RuntimeError("the robot's camera never fed the key")
+                    said = "".join(f"\n{n}'s log, its end: {procs[n].error_tail()}" for n in ("station", "robot"))
+                    raise RuntimeError(f"the robot's camera never fed the key within 60 s; the last window: {stats}{said}")
             observer.next_json(30, event="stats")  # a full window on the preferred camera
             before = {n: rss_mib(procs[n]) for n in ("station", "robot")}
             if scenario.startswith("loss-"):

@@ -203,6 +203,9 @@ class Lane:
         self.busy_ns = 0  # time its threads were awake, up to the last time one went to sleep
         self.lag_ns = 0  # how long the last probe waited in the ready queue
         self.probe: _Probe | None = None  # the probe in the queue, if one is
+        # the unit whose callback held the shared lane's thread past the stall budget, the lane
+        # left to it by the watchdog: no unit is moved here while that callback runs
+        self.held: Job | None = None
         now = time.monotonic_ns()
         self._window = (now, 0)  # (start of the busy window, busy_ns then)
         self._busy = 0.0
@@ -301,11 +304,14 @@ class Lane:
         pending = now_ns - probe.sent_ns if probe is not None else 0
         return max(self.lag_ns, pending)
 
-    def stuck_ns(self, now_ns: int) -> int:
-        """How long its thread has been in one callback (0 when it is in none)."""
+    def stuck_ns(self) -> int:
+        """How long its thread has been in one callback (0 when it is in none). A callback's start
+        is stamped on the wall clock (a unit's job takes it with the message's arrival time), so
+        this reads the wall clock too: against the monotonic one it was always negative, and no
+        lane was ever stuck (nor shown so)."""
         worker = self.worker
         since = worker.busy_since_ns if worker is not None else 0
-        return now_ns - since if since else 0
+        return max(0, time.time_ns() - since) if since else 0
 
 
 class _Probe:
@@ -626,14 +632,17 @@ class Executor:
 
     def _least_busy_slow(self, now_ns: int, *, free: bool) -> Lane | None:
         """The slow lane with the fewest units, then the least busy; ``free``: only those whose
-        thread is not stuck in a callback. Prefers lanes whose thread is not stuck. Under the lock."""
+        thread is not stuck in a callback. Prefers lanes whose thread is not stuck, and never
+        takes a lane left to a unit stuck in a callback (:attr:`Lane.held`) while it is. Under the lock."""
         budget = self.stall_budget_ns
         best: Lane | None = None
         best_key: tuple[bool, int, float] | None = None
         for lane in self._lanes:
             if lane.kind != SLOW or lane.worker is None:
                 continue
-            stuck = lane.stuck_ns(now_ns) > budget
+            if lane.held is not None and lane.worker.busy_job is lane.held and lane.worker.busy_since_ns:
+                continue  # the callback that got stuck still runs (maybe for ever): a unit moved here would never run
+            stuck = lane.stuck_ns() > budget
             if free and stuck:
                 continue
             key = (stuck, len(lane.members), lane.busy(now_ns))
@@ -725,7 +734,7 @@ class Executor:
         for lane, jobs in zip(lanes, members, strict=True):
             names = () if lane.shared else tuple(sorted(job.name for job in jobs)[:_SHOWN_NAMES])
             infos.append(
-                LaneInfo(lane.name, lane.kind, len(jobs), names, lane.busy(now), lane.lag(now) / 1e6, lane.ready.qsize(), lane.stuck_ns(now) / 1e6)
+                LaneInfo(lane.name, lane.kind, len(jobs), names, lane.busy(now), lane.lag(now) / 1e6, lane.ready.qsize(), lane.stuck_ns() / 1e6)
             )
         return infos
 
@@ -856,7 +865,7 @@ class Executor:
         shared = self.shared
         with self._lock:
             lanes = self._bounded()
-            stuck = sum(1 for lane in self._lanes if lane.stuck_ns(now) > self.stall_budget_ns)
+            stuck = sum(1 for lane in self._lanes if lane.stuck_ns() > self.stall_budget_ns)
         span = now - since[0]
         reading = Load(now, shared.lag(now), shared.busy(now), (cpu - since[1]) / span if span > 0 else 0.0, lanes, self.max_lanes, stuck)
         if probe and shared.probe is None:
@@ -890,6 +899,7 @@ class Executor:
                 own.members[id(job)] = job
                 self._lanes.append(own)
                 own.worker = stuck  # (its thread is stuck: no other unit is moved there before it returns)
+                own.held = job
                 stuck.next_lane = own
                 stuck.stuck_job = job
                 stuck.released = True
@@ -917,6 +927,7 @@ class Executor:
                         target.members[key] = member
                         moved.append(member)
                 old.members = {id(job): job}
+                old.held = job
                 target.probe = None
                 self.shared = target
         self._all_stuck_said = False

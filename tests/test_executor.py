@@ -426,9 +426,10 @@ def test_a_unit_stuck_forever_at_the_bound_does_not_stop_the_others(make_manager
         manager.spawn("stuck", "stuck", bindings={"in": key})
         manager.spawn("pass", "beside", bindings={"in": key})
         manager.spawn("sink", "sink", bindings={"in": default_key(manager.name, "beside", "out")})
+        manager.spawn("sink", "after-busy", bindings={"in": default_key(manager.name, "busy", "out")})
         manager.spawn("publisher", "src")
-        src, sink = manager.unit("src"), manager.unit("sink")
-        assert isinstance(src, Source) and isinstance(sink, Sink)
+        src, sink, after_busy = manager.unit("src"), manager.unit("sink"), manager.unit("after-busy")
+        assert isinstance(src, Source) and isinstance(sink, Sink) and isinstance(after_busy, Sink)
         for i in range(20):
             src.emit(i)
             sink.wait_for(i + 1)
@@ -452,5 +453,20 @@ def test_a_unit_stuck_forever_at_the_bound_does_not_stop_the_others(make_manager
         assert sorted(lane["kind"] for lane in kinds.values()) == ["shared", "slow"]
         (left,) = [lane for lane in kinds.values() if lane["kind"] == "slow"]
         assert left["names"] == ["stuck"]
+        assert left["stuck_ms"] >= 20, left  # (it was read against another clock: a huge negative number)
+        # the busy unit, on the shared lane now, is still slow: it may not be moved onto the lane
+        # left to the stuck unit, where it would never run again (it was, beside CPU hogs: that
+        # lane was the only slow one); it keeps up on the shared lane
+        wait_until(lambda: list(after_busy.messages)[-1].payload == 59, "the busy unit to catch up (it keeps the latest message)")
+        for i in range(60, 100):  # (one at a time: it drops what comes faster than it takes)
+            seen = len(after_busy.messages)
+            src.emit(i)
+            try:
+                after_busy.wait_for(seen + 1, timeout_s=30)
+            except TimeoutError as exc:
+                raise AssertionError(f"{exc}: lanes {manager.load()['lanes']}, busy {manager.get_statistics('busy').executor}") from None
+        assert [m.payload for m in after_busy.messages][-40:] == list(range(60, 100))
+        slow = [lane["names"] for lane in manager.load()["lanes"] if lane["kind"] == "slow"]
+        assert manager.load()["threads"] == 2 and slow == [["stuck"]], slow
     finally:
         Stuck.release.set()

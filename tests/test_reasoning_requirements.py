@@ -302,3 +302,24 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
             k: v for k, v in offline.items() if v is not None and k[1] <= judged[-1]["t_ns"]
         }, name
         assert {v["verdict"] for v in judged} == {True, False}, name
+
+
+@pytest.mark.process
+def test_the_how_to_pages_requirements_give_the_lines_it_shows(floor: tuple[Path, Path, Path, Any], tmp_path: Path) -> None:
+    """docs/howto/requirements-in-ci.md: its requirements file, checked over this module's floor
+    recording by its command, prints every line the page shows (and exits 1, as it says)."""
+    import re
+
+    from tests.conftest import REPO
+
+    page = (REPO / "docs" / "howto" / "requirements-in-ci.md").read_text()
+    toml = re.search(r"```toml\n(.*?)```", page, re.DOTALL)
+    shown = re.search(r"```text\n(.*?)```", page, re.DOTALL)
+    command = re.search(r"^dyknow check (\S+) --mcap \S+ --ontology \S+ --junit (\S+)$", page, re.MULTILINE)
+    assert toml and shown and command
+    (tmp_path / command.group(1)).write_text(toml.group(1))
+    _, recording, ontology, _ = floor
+    done = run_cli("check", str(tmp_path / command.group(1)), "--mcap", str(recording), "--ontology", str(ontology), "--junit", str(tmp_path / command.group(2)))
+    assert done.returncode == 1, done.stderr
+    printed = done.stdout.splitlines()
+    assert [line for line in shown.group(1).splitlines() if line != "..." and line not in printed] == [], done.stdout

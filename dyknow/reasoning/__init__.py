@@ -25,12 +25,13 @@ module                      what it holds
 :mod:`~.bindings`           terms bound to what exists (a Zenoh key, a ROS 2 topic), read instead of planned
 :mod:`~.monitors`           monitors asked of a manager by meaning, each term planned or bound
 :mod:`~.offline`            a formula over a recording: the same semantics, yesterday's data
+:mod:`~.requirements`       a file of requirements checked over a recording, for CI (``dyknow check``)
 ==========================  ==============================================================================
 
 Imports flow one way (a module imports only from those on its left): ``tree <- parser <- syntax
 <- quantify <- semantics``; ``values <- evaluator <- semantics``; and ``values, syntax <- robustness
 <- timeline <- pending <- nodes <- windows <- aggregates, past, future <- progression <- objects <-
-unit``; ``syntax <- bindings <- unit, monitors, offline``.
+unit``; ``syntax <- bindings <- unit, monitors, offline <- requirements``.
 
     >>> from dyknow.reasoning import evaluate
     >>> evaluate("once[0, 1s] Battery(robot) < 0.2", {"Battery(robot)": [(0.0, 0.5), (0.5, 0.1), (2.0, 0.4)]})
@@ -47,6 +48,7 @@ if TYPE_CHECKING:
     from dyknow.errors import FormulaError
     from dyknow.reasoning.objects import ObjectMonitor
     from dyknow.reasoning.progression import Monitor, Verdict
+    from dyknow.reasoning.requirements import Requirement, Result, check_recording, junit_xml, load_requirements
     from dyknow.reasoning.semantics import evaluate, evaluate_ns, evaluate_objects_ns, evaluate_values_ns
     from dyknow.reasoning.syntax import Formula, check_formula, parse, parse_value
     from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
@@ -57,12 +59,17 @@ __all__ = [
     "FormulaMonitor",
     "Monitor",
     "ObjectMonitor",
+    "Requirement",
+    "Result",
     "Verdict",
     "check_formula",
+    "check_recording",
     "evaluate",
     "evaluate_ns",
     "evaluate_objects_ns",
     "evaluate_values_ns",
+    "junit_xml",
+    "load_requirements",
     "monitor_spec",
     "parse",
     "parse_value",
@@ -77,12 +84,17 @@ _WHERE = {
     "FormulaMonitor": "dyknow.reasoning.unit",
     "Monitor": "dyknow.reasoning.progression",
     "ObjectMonitor": "dyknow.reasoning.objects",
+    "Requirement": "dyknow.reasoning.requirements",
+    "Result": "dyknow.reasoning.requirements",
     "Verdict": "dyknow.reasoning.progression",
     "check_formula": "dyknow.reasoning.syntax",
+    "check_recording": "dyknow.reasoning.requirements",
     "evaluate": "dyknow.reasoning.semantics",
     "evaluate_ns": "dyknow.reasoning.semantics",
     "evaluate_objects_ns": "dyknow.reasoning.semantics",
     "evaluate_values_ns": "dyknow.reasoning.semantics",
+    "junit_xml": "dyknow.reasoning.requirements",
+    "load_requirements": "dyknow.reasoning.requirements",
     "monitor_spec": "dyknow.reasoning.unit",
     "parse": "dyknow.reasoning.syntax",
     "parse_value": "dyknow.reasoning.syntax",
