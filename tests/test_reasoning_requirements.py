@@ -138,6 +138,10 @@ def test_every_requirement_of_a_file_gives_the_naive_evaluators_verdicts(floor: 
     speed = results[0]
     assert sorted(speed.false_spans()) == ["r2"]  # only r2 sped in the dock
     assert sorted(results[1].false_spans()) == ["r1/r3", "r3/r1"]
+    # explained: each atom's sides at the first state of each run of false verdicts, as the data says
+    assert speed.why == {("r2", t): ["State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5"] for t in (2_007_000_000, 2_207_000_000)}
+    assert results[1].why[("r1/r3", 3_014_000_000)] == ['State(r1).id == State(r3).id: "r1" == "r3"', "dist(State(r1), State(r3)) > 0.5: 0.2 > 0.5"]
+    assert results[2].why == {}  # (a foreach's objects are not explained)
 
 
 @pytest.mark.process

@@ -31,6 +31,8 @@ test suite, byte for byte the same for the same inputs (no run times in it).
 
 from __future__ import annotations
 
+import bisect
+import json
 import math
 import os
 import re
@@ -46,8 +48,8 @@ from dyknow.reasoning.bindings import topic_of
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS
 from dyknow.reasoning.offline import read_topics
 from dyknow.reasoning.quantify import expand
-from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns
-from dyknow.reasoning.syntax import Formula, Quantifier
+from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns, evaluate_values_ns
+from dyknow.reasoning.syntax import Atom, Const, Formula, Num, Quantifier, Str, walk
 from dyknow.recording import ReadLimits
 from dyknow.security import Limits
 from dyknow.tags import Term, parse_term
@@ -56,6 +58,9 @@ __all__ = ["MAX_REQUIREMENTS", "Requirement", "Result", "check_recording", "juni
 
 #: The most requirements a file may hold.
 MAX_REQUIREMENTS = 1_000
+#: Runs of false verdicts explained per instance, and atoms shown per explanation.
+MAX_EXPLAINED = 10
+MAX_ATOMS = 8
 _FIELDS = {"name", "formula", "bindings", "idle_ms"}
 _HEADER = re.compile(r"^[ \t]*\[\[[ \t]*requirement[ \t]*\]\]", re.MULTILINE)
 _BRACED = re.compile(r"\{([^{}]*)\}")
@@ -84,6 +89,9 @@ class Result:
     requirement: Requirement
     verdicts: dict[str, list[tuple[int, bool | None]]] = field(default_factory=dict)
     error: DyKnowError | None = None
+    #: (instance, t_ns) -> each atom of the formula as written and with its sides' values at the
+    #: first state of each run of false verdicts (an instance of a ``foreach`` is not explained)
+    why: dict[tuple[str, int], list[str]] = field(default_factory=dict)
 
     @property
     def held(self) -> bool:
@@ -128,6 +136,7 @@ class Result:
             "counts": self.counts(),
             "instances": sorted(self.verdicts),
             "false": {k: [list(s) for s in spans] for k, spans in sorted(self.false_spans().items())},
+            "why": [{"instance": k, "t_ns": t, "atoms": atoms} for (k, t), atoms in sorted(self.why.items())],
             "error": None if self.error is None else str(self.error),
         }
 
@@ -271,10 +280,18 @@ def check_recording(
                 expected=f"one of {', '.join(held)}{did_you_mean(topic, held)}",
             )  # fmt: skip
             continue
+        samples = {t: read[topic] for t, topic in terms.items()}
         try:
-            result.verdicts = _evaluate(cases, {t: read[topic] for t, topic in terms.items()}, result.requirement.idle_ns)
+            result.verdicts = _evaluate(cases, samples, result.requirement.idle_ns)
         except DyKnowError as exc:
             result.error = _located(exc, result.requirement)
+            continue
+        formulas = dict(cases)
+        for key, spans in result.false_spans().items():
+            if key in formulas and not _foreach(formulas[key]):
+                explain = _explainer(formulas[key], samples)
+                for first, _ in spans[:MAX_EXPLAINED]:
+                    result.why[(key, first)] = explain(first)
     return [result for result, _, _ in plans]
 
 
@@ -286,6 +303,57 @@ def _located(exc: DyKnowError, requirement: Requirement) -> DyKnowError:
     located = FormulaError(exc.what, where=f"{here}: {exc.where}" if exc.where else here, expected=exc.expected)
     located.__cause__ = exc
     return located
+
+
+def _foreach(formula: Formula) -> bool:
+    return isinstance(formula.root, Quantifier) and formula.root.kind == "foreach"
+
+
+def _explainer(formula: Formula, samples: Mapping[str, list[tuple[int, object]]]) -> Callable[[int], list[str]]:
+    """``at(t_ns)``: each atom of ``formula`` (the first :data:`MAX_ATOMS`), as written and with
+    its sides' values at ``t_ns`` (a side's latest value then; ``unknown`` when it has none):
+    ``State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5``."""
+    atoms: list[tuple[str, list[list[tuple[int, object]] | str], str]] = []
+    for node in walk(formula.root):
+        if not isinstance(node, Atom) or len(atoms) >= MAX_ATOMS:
+            continue
+        sides: list[list[tuple[int, object]] | str] = []
+        for side in (node.left, node.right) if node.op is not None else (node.left,):
+            assert side is not None
+            if isinstance(side, Num | Str | Const):
+                sides.append(str(side))
+                continue
+            try:
+                series = evaluate_values_ns(str(side), {str(t): samples[str(t)] for t in Formula.of(side).terms})
+            except (DyKnowError, KeyError):  # (a foreach's variable, say: not a value alone)
+                sides.append("?")
+                continue
+            sides.append(series)
+        atoms.append((str(node), sides, node.op or ""))
+
+    def at(t_ns: int) -> list[str]:
+        out = []
+        for text, sides, op in atoms:
+            shown = [side if isinstance(side, str) else _value_at(side, t_ns) for side in sides]
+            out.append(f"{text}: {f' {op} '.join(shown)}")
+        return out
+
+    return at
+
+
+def _value_at(series: list[tuple[int, object]], t_ns: int) -> str:
+    """The latest value of ``series`` at ``t_ns``, as JSON writes it (``unknown``: none)."""
+    k = bisect.bisect_right(series, t_ns, key=lambda row: row[0])
+    value = series[k - 1][1] if k else None
+    if value is None:
+        return "unknown"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    try:
+        text = json.dumps(value, separators=(",", ":"), ensure_ascii=False)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _evaluate(
@@ -351,10 +419,12 @@ def summary(result: Result) -> str:
 
 def details(result: Result) -> str:
     """The requirement, then every run of false verdicts, by instance: ``r2: false from t=12.300 s
-    to t=14.100 s`` (``at t=...`` for one state)."""
+    to t=14.100 s`` (``at t=...`` for one state), each followed by its atoms' values at its start
+    (:attr:`Result.why`)."""
     lines = [f"{result.requirement.name}: {result.requirement.formula}"]
     for key, spans in sorted(result.false_spans().items()):
         for first, last in spans:
             when = f"at t={first / 1e9:.3f} s" if first == last else f"from t={first / 1e9:.3f} s to t={last / 1e9:.3f} s"
             lines.append(f"{key}: false {when}" if key else f"false {when}")
+            lines.extend(f"  {atom}" for atom in result.why.get((key, first), ()))
     return "\n".join(lines)
