@@ -246,6 +246,21 @@ def test_dyknow_monitor_prints_times_since_it_started(manager_process: Callable[
 
 
 @pytest.mark.process
+def test_dyknow_monitor_changes_only_prints_each_change_once(manager_process: Callable[..., Any], tmp_path: Any) -> None:
+    """Issue 54 item 7: a formula whose verdict never changes (a level of 2 against 1) gives a
+    line per state, and with --changes-only one line in all: its first verdict."""
+    from tests.conftest import run_cli
+
+    (tmp_path / "level.xml").write_text(LEVEL_SPEC)
+    proc = manager_process("--specs", str(tmp_path / "level.xml"))
+    every = run_cli("monitor", "Fresh(x).value > 1", "--duration", "2", *proc.client_args())
+    once = run_cli("monitor", "Fresh(x).value > 1", "--duration", "2", "--changes-only", *proc.client_args())
+    assert every.returncode == 0 and once.returncode == 0, once.stderr
+    verdicts = [[line for line in done.stdout.splitlines() if line.startswith("dyknow/")] for done in (every, once)]
+    assert len(verdicts[0]) > 10 and len(verdicts[1]) == 1 and verdicts[1][0].rstrip().endswith("  true"), verdicts[1]
+
+
+@pytest.mark.process
 def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: Any) -> None:
     """The offline check: the same semantics over yesterday's data, state by state."""
     import json
@@ -272,6 +287,17 @@ def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: 
     assert wrong.returncode == 1 and "the recording has no topic 'robot/batery'" in wrong.stderr and "did you mean 'robot/battery'" in wrong.stderr
     unbound = run_cli("monitor", formula, "--mcap", str(path), "--bind", "Speed(robot)=robot/speed")
     assert unbound.returncode == 1 and "no topic for Battery(robot)" in unbound.stderr
+    # --changes-only: each change of the naive evaluator's verdicts, with the comparisons' values at it
+    binds = ["--bind", "Battery(robot)=robot/battery", "--bind", "Speed(robot)=robot/speed"]
+    changed = run_cli("monitor", formula, "--mcap", str(path), *binds, "--json", "--changes-only")
+    rows = [json.loads(line) for line in changed.stdout.splitlines()]
+    expected = [(t, v) for k, (t, v) in enumerate(got) if k == 0 or got[k - 1][1] is not v]
+    assert [(r["t_ns"], r["verdict"]) for r in rows] == expected and len(expected) >= 2
+    battery = dict(samples["robot/battery"])
+    for row in rows:  # each side as the samples say at that time (the latest sample at or before it)
+        level = battery[max(t for t in battery if t <= row["t_ns"])]["value"]
+        speed = dict(samples["robot/speed"])[max(t for t, _ in samples["robot/speed"] if t <= row["t_ns"])]["value"]
+        assert row["why"] == [f"Speed(robot).value > 0: {speed:.6g} > 0", f"Battery(robot).value > 0.3: {level:.6g} > 0.3"], row
 
 
 # ---------------------------------------------------------------------------- requirements close the loop

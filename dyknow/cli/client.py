@@ -36,6 +36,8 @@ if TYPE_CHECKING:
     from dyknow.client import ClockView
     from dyknow.message import Message
 
+#: Keys and objects whose last verdict ``dyknow monitor --changes-only`` remembers (ids come and go).
+_MAX_CHANGES_KEPT = 100_000
 
 def traceback_tail(text: object, frames: int = 3) -> list[str]:
     """The last ``frames`` frames of a unit's traceback (where in its code it failed), as lines;
@@ -478,6 +480,8 @@ def cmd_monitor(args: argparse.Namespace) -> int:
             return datetime.datetime.fromtimestamp(float(t), tz=datetime.UTC).isoformat(timespec="milliseconds")
         return f"{(float(t) * 1e9 - started_ns) / 1e9:+.3f} s"
 
+    last: dict[tuple[str, str], object] = {}  # (key, object) -> its last verdict, with --changes-only
+
     def show(msg: Message) -> None:
         verdict = msg.payload if isinstance(msg.payload, dict) else {}
         with lock:
@@ -486,6 +490,13 @@ def cmd_monitor(args: argparse.Namespace) -> int:
             if "warning" in verdict:  # what the monitor found wrong with its data (a field no sample holds)
                 report_result(args, {"key": msg.key, **verdict}, f"{msg.key}  warning: {verdict.get('warning')}")
                 return
+            if args.changes_only:
+                seen = (msg.key, str(verdict.get("object", "")))
+                if seen in last and last[seen] is verdict.get("verdict"):
+                    return
+                if seen not in last and len(last) >= _MAX_CHANGES_KEPT:
+                    last.clear()  # (objects come and go: the memory of their verdicts is bounded)
+                last[seen] = verdict.get("verdict")
             gap = verdict.get("gap")
             said = "true " if verdict.get("verdict") is True else "false"
             who = f"  object {verdict['object']}" if "object" in verdict else ""
@@ -512,13 +523,15 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def _monitor_recording(args: argparse.Namespace) -> int:
-    from dyknow.reasoning.offline import evaluate_recording, evaluate_recording_objects
+    from dyknow.reasoning.offline import changes, evaluate_recording, evaluate_recording_objects
     from dyknow.reasoning.syntax import Quantifier, parse
 
     bindings = parse_pairs(args.bind, "--bind")
     root = parse(args.formula).root
     if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
         objects = evaluate_recording_objects(args.formula, args.mcap, bindings, read_limits(args), idle_ns=round(args.idle_ms * 1e6))
+        if args.changes_only:
+            objects = {key: [changes(sorted(v for life in lives for v in life))] for key, lives in objects.items()}
         rows = sorted((t_ns, key, verdict) for key, lives in objects.items() for life in lives for t_ns, verdict in life)
         if args.json:
             for t_ns, key, verdict in rows:
@@ -530,8 +543,11 @@ def _monitor_recording(args: argparse.Namespace) -> int:
             print(f"t={t_ns / 1e9:.3f} s  {shown(key)}  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
         false = sorted({key for _, key, verdict in rows if verdict is False})
         named = f"; false for {', '.join(shown(k) for k in false[:10])}{', ...' if len(false) > 10 else ''}" if false else ""
-        print(f"{len(rows)} states of {len(objects)} objects: {counted[True]} true, {counted[False]} false, {counted[None]} unknown{named}", flush=True)
+        what = "changes" if args.changes_only else "states"
+        print(f"{len(rows)} {what} of {len(objects)} objects: {counted[True]} true, {counted[False]} false, {counted[None]} unknown{named}", flush=True)
         return 0
+    if args.changes_only:
+        return _changes_of_recording(args, bindings)
     results = evaluate_recording(args.formula, args.mcap, bindings, read_limits(args))
     if args.json:
         for t_ns, verdict in results:
@@ -542,6 +558,27 @@ def _monitor_recording(args: argparse.Namespace) -> int:
         counts[verdict] += 1
         print(f"t={t_ns / 1e9:.3f} s  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
     print(f"{len(results)} states: {counts[True]} true, {counts[False]} false, {counts[None]} unknown", flush=True)
+    return 0
+
+
+def _changes_of_recording(args: argparse.Namespace, bindings: dict[str, str]) -> int:
+    """``--mcap --changes-only``: each change of the verdict, with the values of the formula's comparisons at it."""
+    from dyknow.reasoning.offline import changes, explainer, recording_samples
+    from dyknow.reasoning.semantics import evaluate_ns
+
+    parsed, samples = recording_samples(args.formula, args.mcap, bindings, read_limits(args))
+    rows = changes([(t, v) for t, v in evaluate_ns(parsed, samples)])
+    explain = explainer(parsed, samples)
+    for t_ns, verdict in rows:
+        why = explain(t_ns)
+        if args.json:
+            print_json({"t": t_ns / 1e9, "t_ns": t_ns, "verdict": verdict, "why": why})
+            continue
+        print(shown(f"t={t_ns / 1e9:.3f} s  {'unknown' if verdict is None else 'true' if verdict else 'false'}"))
+        for atom in why:
+            print(shown(f"  {atom}"))
+    if not args.json:
+        print(f"{len(rows)} changes", flush=True)
     return 0
 
 
@@ -640,6 +677,9 @@ def add_commands(cmds: Commands) -> None:
                        help="the least reorder delay: how late a sample may arrive and still count; it grows with the disorder seen, up to 1 s (default 0)")
         p.add_argument("--iso", action="store_true",
                        help="print each verdict's time as ISO 8601 wall time (default: seconds since the command started)")  # fmt: skip
+        p.add_argument("--changes-only", action="store_true",
+                       help="print a verdict only when it differs from the last one (per object); with --mcap, each change "
+                       "with the values of the formula's comparisons at it")  # fmt: skip
         p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
         p.add_argument("--idle-ms", type=float, default=10_000.0, metavar="MS",  # (dyknow.reasoning.objects.DEFAULT_IDLE_NS: not imported to parse)
                        help="with --mcap, a foreach formula: an object's life ends after this long without a sample (default 10,000)")

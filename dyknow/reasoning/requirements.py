@@ -31,8 +31,6 @@ test suite, byte for byte the same for the same inputs (no run times in it).
 
 from __future__ import annotations
 
-import bisect
-import json
 import math
 import os
 import re
@@ -46,10 +44,10 @@ from xml.sax.saxutils import escape, quoteattr
 from dyknow.errors import DyKnowError, FormulaError, did_you_mean
 from dyknow.reasoning.bindings import topic_of
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS
-from dyknow.reasoning.offline import read_topics
+from dyknow.reasoning.offline import explainer, read_topics
 from dyknow.reasoning.quantify import expand
-from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns, evaluate_values_ns
-from dyknow.reasoning.syntax import Atom, Const, Formula, Num, Quantifier, Str, walk
+from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns
+from dyknow.reasoning.syntax import Formula, Quantifier
 from dyknow.recording import ReadLimits
 from dyknow.security import Limits
 from dyknow.tags import Term, parse_term
@@ -58,9 +56,8 @@ __all__ = ["MAX_REQUIREMENTS", "Requirement", "Result", "check_recording", "juni
 
 #: The most requirements a file may hold.
 MAX_REQUIREMENTS = 1_000
-#: Runs of false verdicts explained per instance, and atoms shown per explanation.
+#: Runs of false verdicts explained per instance.
 MAX_EXPLAINED = 10
-MAX_ATOMS = 8
 _FIELDS = {"name", "formula", "bindings", "idle_ms"}
 _HEADER = re.compile(r"^[ \t]*\[\[[ \t]*requirement[ \t]*\]\]", re.MULTILINE)
 _BRACED = re.compile(r"\{([^{}]*)\}")
@@ -289,7 +286,7 @@ def check_recording(
         formulas = dict(cases)
         for key, spans in result.false_spans().items():
             if key in formulas and not _foreach(formulas[key]):
-                explain = _explainer(formulas[key], samples)
+                explain = explainer(formulas[key], samples)
                 for first, _ in spans[:MAX_EXPLAINED]:
                     result.why[(key, first)] = explain(first)
     return [result for result, _, _ in plans]
@@ -307,53 +304,6 @@ def _located(exc: DyKnowError, requirement: Requirement) -> DyKnowError:
 
 def _foreach(formula: Formula) -> bool:
     return isinstance(formula.root, Quantifier) and formula.root.kind == "foreach"
-
-
-def _explainer(formula: Formula, samples: Mapping[str, list[tuple[int, object]]]) -> Callable[[int], list[str]]:
-    """``at(t_ns)``: each atom of ``formula`` (the first :data:`MAX_ATOMS`), as written and with
-    its sides' values at ``t_ns`` (a side's latest value then; ``unknown`` when it has none):
-    ``State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5``."""
-    atoms: list[tuple[str, list[list[tuple[int, object]] | str], str]] = []
-    for node in walk(formula.root):
-        if not isinstance(node, Atom) or len(atoms) >= MAX_ATOMS:
-            continue
-        sides: list[list[tuple[int, object]] | str] = []
-        for side in (node.left, node.right) if node.op is not None else (node.left,):
-            assert side is not None
-            if isinstance(side, Num | Str | Const):
-                sides.append(str(side))
-                continue
-            try:
-                series = evaluate_values_ns(str(side), {str(t): samples[str(t)] for t in Formula.of(side).terms})
-            except (DyKnowError, KeyError):  # (a foreach's variable, say: not a value alone)
-                sides.append("?")
-                continue
-            sides.append(series)
-        atoms.append((str(node), sides, node.op or ""))
-
-    def at(t_ns: int) -> list[str]:
-        out = []
-        for text, sides, op in atoms:
-            shown = [side if isinstance(side, str) else _value_at(side, t_ns) for side in sides]
-            out.append(f"{text}: {f' {op} '.join(shown)}")
-        return out
-
-    return at
-
-
-def _value_at(series: list[tuple[int, object]], t_ns: int) -> str:
-    """The latest value of ``series`` at ``t_ns``, as JSON writes it (``unknown``: none)."""
-    k = bisect.bisect_right(series, t_ns, key=lambda row: row[0])
-    value = series[k - 1][1] if k else None
-    if value is None:
-        return "unknown"
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    try:
-        text = json.dumps(value, separators=(",", ":"), ensure_ascii=False)
-    except (TypeError, ValueError):
-        text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def _evaluate(
