@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import logging
 import socket
 import threading
@@ -84,6 +85,8 @@ SEND_TIMEOUT_S = 30.0
 
 _HISTOGRAM_SERIES = len(BUCKETS_S) + 3  # its buckets, +Inf, _sum and _count
 _MANAGER_SERIES = 3  # the manager's CPU time and the two refusal counts (its adaptations besides)
+#: The longest formula a verdict series is labelled with as it is; a longer one is cut (see :func:`formula_label`).
+MAX_FORMULA_LABEL = 200
 _WARN_EVERY_S = 60.0  # a refusal is logged at most this often
 
 
@@ -166,23 +169,36 @@ class _Tracked:
 
     def __init__(self, started_ns: int) -> None:
         self.started_ns = started_ns
-        self.verdicts: Counter[str] | None = None  # "true"/"false" -> count, for a monitor
+        self.verdicts: dict[str, Counter[str]] | None = None  # formula -> "true"/"false" -> count, for a monitor
         self.seen: dict[str, int] = {}  # port -> samples taken into its histograms
         self.histograms: dict[tuple[str, str], _Histogram] = {}  # (port, "hop"/"age")
 
 
-def _counter(counts: Counter[str]) -> Callable[[Verdict], None]:
-    def count(verdict: Verdict) -> None:  # on the monitor's thread: one dictionary update
-        counts["true" if verdict.verdict else "false"] += 1
+def _counter(counts: dict[str, Counter[str]]) -> Callable[[str, Verdict], None]:
+    def count(formula: str, verdict: Verdict) -> None:  # on the monitor's thread: two dictionary look-ups
+        by = counts.get(formula)
+        if by is None:
+            by = counts[formula] = Counter()
+        by["true" if verdict.verdict else "false"] += 1
 
     return count
 
 
-def unit_series(unit: dict[str, Any], monitor: bool) -> int:
+def formula_label(formula: str) -> str:
+    """A formula as a label's value: its text, at most :data:`MAX_FORMULA_LABEL` characters (a
+    longer one cut and ended with a digest of the whole, so two alike at the start stay apart)."""
+    if len(formula) <= MAX_FORMULA_LABEL:
+        return formula
+    digest = hashlib.sha256(formula.encode()).hexdigest()[:12]
+    return f"{formula[: MAX_FORMULA_LABEL - 17]}... #{digest}"
+
+
+def unit_series(unit: dict[str, Any], formulas: int) -> int:
     """The series one unit of a :meth:`Metrics.snapshot` adds to a scrape, as Prometheus counts
     them (each histogram bucket is one): up and callback time, 3 per output port, 5 and two
-    histograms per input port, and a monitor's two verdict counts."""
-    n = 2 + (2 if monitor else 0)
+    histograms per input port, and a monitor's two verdict counts per formula (of ``formulas``
+    that gave verdicts)."""
+    n = 2 + 2 * formulas
     for port in unit["ports"].values():
         n += 5 + 2 * _HISTOGRAM_SERIES if port["direction"] == "in" else 3
     return n
@@ -243,8 +259,8 @@ class Metrics:
                     continue
                 tracked = self._units[name] = _Tracked(started)
                 if isinstance(unit, FormulaMonitor):
-                    tracked.verdicts = Counter()
-                    unit.listen(_counter(tracked.verdicts))
+                    tracked.verdicts = {name: Counter() for name in getattr(unit, "monitors", {})}  # (listed from the first scrape on)
+                    unit.listen_formulas(_counter(tracked.verdicts))
 
     def snapshot(self) -> dict[str, Any]:
         """Every unit's figures and the manager's, as JSON (what ``get_metrics`` answers)."""
@@ -265,7 +281,8 @@ class Metrics:
             live[info.name] = info.started_ns
         self._track(live)
         with self._lock:
-            verdicts = {name: dict(t.verdicts) for name, t in self._units.items() if t.verdicts is not None and name in live}
+            by_formula = {name: {f: dict(c) for f, c in list(t.verdicts.items())} for name, t in self._units.items() if t.verdicts is not None and name in live}
+        verdicts = {name: dict(sum((Counter(c) for c in formulas.values()), Counter())) for name, formulas in by_formula.items()}
         adaptations = Counter(event.kind for event in source.get_adaptations())
         return {
             "manager": source.name,
@@ -274,7 +291,8 @@ class Metrics:
             "threads": threading.active_count(),
             "units": units,
             "adaptations": dict(adaptations),
-            "verdicts": verdicts,
+            "verdicts": verdicts,  # by unit, its formulas' together
+            "verdicts_by_formula": by_formula,
             "requests": [r.brief() for r in model.requests],  # (their state and why, beside the figures: dyknow top)
             "lost": [dict(m) for m in model.lost],
             "modes": [{k: m[k] for k in ("system", "mode", "since_ns", "why")} for m in model.modes],
@@ -289,7 +307,7 @@ class Metrics:
         admitted: list[dict[str, Any]] = []
         refused_units = refused = 0
         for unit in snap["units"]:
-            cost = unit_series(unit, unit["name"] in snap["verdicts"])
+            cost = unit_series(unit, len(snap.get("verdicts_by_formula", {}).get(unit["name"], ())))
             if used + cost > limit:
                 refused_units += 1
                 refused += cost
@@ -359,7 +377,9 @@ class _Collector:
         queued = GaugeMetricFamily("dyknow_port_queued", "messages an input port holds, waiting for its unit", labels=port_labels)
         hop = HistogramMetricFamily("dyknow_port_hop_seconds", "time from the previous hop's send to the unit", labels=["manager", "unit", "port"])
         age = HistogramMetricFamily("dyknow_port_age_seconds", "time from the data's origin to the unit", labels=["manager", "unit", "port"])
-        verdicts = CounterMetricFamily("dyknow_verdicts", "verdicts of the manager's monitors", labels=["manager", "monitor", "verdict"])
+        verdicts = CounterMetricFamily(
+            "dyknow_verdicts", "verdicts of the manager's monitors, by formula (its name, else its text)", labels=["manager", "monitor", "formula", "verdict"]
+        )
         for unit in admitted:
             name = unit["name"]
             up.add_metric([manager, name, unit["label"], unit["state"]], 1)
@@ -374,10 +394,9 @@ class _Collector:
                     queued.add_metric(labels, p.get("queued", 0))
             for (port, kind), histogram in self.metrics.histograms(name).items():
                 (hop if kind == "hop" else age).add_metric([manager, name, port], histogram.cumulative(), histogram.sum_s)
-            counts = snap["verdicts"].get(name)
-            if counts is not None:
+            for formula, counts in sorted(snap.get("verdicts_by_formula", {}).get(name, {}).items()):
                 for verdict in ("true", "false"):
-                    verdicts.add_metric([manager, name, verdict], counts.get(verdict, 0))
+                    verdicts.add_metric([manager, name, formula_label(formula), verdict], counts.get(verdict, 0))
         adaptations = CounterMetricFamily("dyknow_adaptations", "adaptations of the manager's requests, by kind", labels=["manager", "kind"])
         for kind, n in snap["adaptations"].items():
             adaptations.add_metric([manager, kind], n)

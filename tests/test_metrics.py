@@ -70,8 +70,9 @@ def test_prometheus_scrapes_rates_drops_hops_adaptations_and_verdicts() -> None:
     assert len(buckets) == len(BUCKETS_S) + 1 and buckets == sorted(buckets) and buckets[-1] == count >= 3  # cumulative, +Inf = count
     adaptations = {labels["kind"]: value for _, labels, value in found["dyknow_adaptations"]}
     assert sum(adaptations.values()) == len(events) >= 1 and set(adaptations) <= {"adapted", "recovered", "degraded"}
-    verdicts = {(labels["monitor"], labels["verdict"]): value for _, labels, value in found["dyknow_verdicts"]}
-    assert verdicts[("monitor-1", "true")] + verdicts[("monitor-1", "false")] >= 1, verdicts
+    verdicts = {(labels["monitor"], labels["formula"], labels["verdict"]): value for _, labels, value in found["dyknow_verdicts"]}
+    formula = "historically[0, 1s] BallTrack(field).tracked > 0"  # (issue 54 item 7: the formula, not only the unit's name)
+    assert verdicts[("monitor-1", formula, "true")] + verdicts[("monitor-1", formula, "false")] >= 1, verdicts
     assert "dyknow_verdicts" in first  # (listed from the first scrape on, counted since)
     assert all(labels["manager"] == "robot" for _, labels, _ in found["dyknow_unit_up"])
 
@@ -253,3 +254,16 @@ def test_half_open_connections_to_a_manager_process_hold_no_thread() -> None:
         assert proc.stop() == 0
     finally:
         proc.close()
+
+
+def test_a_long_formula_labels_its_verdicts_cut_and_apart_from_another_alike() -> None:
+    """A verdict series is labelled with its formula's text; one over 200 characters is cut to
+    200 and ended with a digest of the whole, so two alike over their first 200 stay apart."""
+    from dyknow.metrics import MAX_FORMULA_LABEL, formula_label
+
+    short = "Battery(r1) > 0.2"
+    base = " and ".join(f"Level{k}(x) > 0" for k in range(30))
+    one, two = base + " and a > 1", base + " and a > 2"
+    assert formula_label(short) == short and len(one) > MAX_FORMULA_LABEL
+    assert len(formula_label(one)) == MAX_FORMULA_LABEL and formula_label(one).startswith(one[:150])
+    assert formula_label(one) != formula_label(two) and formula_label(one) == formula_label(one)

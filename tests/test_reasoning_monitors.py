@@ -256,6 +256,20 @@ def test_dyknow_monitor_changes_only_prints_each_change_once(manager_process: Ca
     every = run_cli("monitor", "Fresh(x).value > 1", "--duration", "2", *proc.client_args())
     once = run_cli("monitor", "Fresh(x).value > 1", "--duration", "2", "--changes-only", *proc.client_args())
     assert every.returncode == 0 and once.returncode == 0, once.stderr
+    # while a monitor runs, the model's text names its unit's formula (not 'monitor-3' alone)
+    import subprocess
+    import sys
+
+    from tests.conftest import subprocess_env, wait_until
+
+    running = subprocess.Popen([sys.executable, "-m", "dyknow.cli", "monitor", "Fresh(x).value > 1", "--duration", "60", *proc.client_args()],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=subprocess_env())  # fmt: skip
+    try:
+        wait_until(lambda: any(line.endswith("running  monitors Fresh(x).value > 1") for line in run_cli("model", *proc.client_args()).stdout.splitlines()),
+                   "the model's line of the monitor's unit, with its formula")  # fmt: skip
+    finally:
+        running.terminate()
+        running.wait(30)
     verdicts = [[line for line in done.stdout.splitlines() if line.startswith("dyknow/")] for done in (every, once)]
     assert len(verdicts[0]) > 10 and len(verdicts[1]) == 1 and verdicts[1][0].rstrip().endswith("  true"), verdicts[1]
 

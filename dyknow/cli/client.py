@@ -97,8 +97,11 @@ def cmd_model(args: argparse.Namespace) -> int:
             yield "no manager reachable"
         for model in models:
             yield f"manager {model['manager']}: {len(model['units'])} units, {len(model['specs'])} specs"
+            # a monitor's unit is named by its formula too (issue 54: 'monitor-2' alone said nothing)
+            formulas = {m["unit"]: m["formula"] for info in model.get("monitors", []) for m in info.get("monitors", [])}
             for unit in model["units"]:
-                yield f"  {unit['name']} ({unit['label']}) {unit['state']}" + (" [protected]" if unit["protected"] else "")
+                judged = f"  monitors {formulas[unit['name']]}" if unit["name"] in formulas else ""
+                yield f"  {unit['name']} ({unit['label']}) {unit['state']}" + (" [protected]" if unit["protected"] else "") + judged
                 for port, key in unit["bindings"].items():
                     yield f"      {port} -> {key}"
                 if unit.get("error"):

@@ -588,6 +588,7 @@ class FormulaMonitor(Unit):
             )
         self._last_sample = time.monotonic()
         self._listeners: list[Callable[[Verdict], None]] = []
+        self._formula_listeners: list[Callable[[str, Verdict], None]] = []
         self.unknown_clock = 0  # samples stamped by a clock whose offset was not known
         # freshness: declared, derived from each term's first samples, or none
         max_age_ms = float(params.get("max_age_ms", 0.0))
@@ -655,10 +656,16 @@ class FormulaMonitor(Unit):
             served.last_published = {}
         self._object_last = {}
         self._listeners = []
+        self._formula_listeners = []
 
     def listen(self, callback: Callable[[Verdict], None]) -> None:
         """Call ``callback(verdict)`` for every verdict from now on, on the unit's thread (it must return at once)."""
         self._listeners.append(callback)
+
+    def listen_formulas(self, callback: Callable[[str, Verdict], None]) -> None:
+        """As :meth:`listen`, ``callback(formula, verdict)``: ``formula`` is the verdict's
+        formula by name (by its text for a formula without one), as :attr:`latest` keys it."""
+        self._formula_listeners.append(callback)
 
     def _take_shares(self) -> None:
         """Give each monitor its share of cells now when monitors joined or left since the last look
@@ -836,8 +843,7 @@ class FormulaMonitor(Unit):
         if self._changes_only:
             last = served.last_published
             if last.get(key) is verdict.verdict:
-                for listener in self._listeners:
-                    listener(verdict)
+                self._tell(served, verdict)
                 return
             last[key] = verdict.verdict
             monitor = served.monitor
@@ -854,8 +860,15 @@ class FormulaMonitor(Unit):
             out["gap"] = gap
         self.latest[served.name or served.monitor.formula.text] = out
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
+        self._tell(served, verdict)
+
+    def _tell(self, served: _Served, verdict: Verdict) -> None:
         for listener in self._listeners:
             listener(verdict)
+        if self._formula_listeners:
+            formula = served.name or served.monitor.formula.text
+            for named in self._formula_listeners:
+                named(formula, verdict)
 
     def _gap_for(self, served: _Served, t_ns: int) -> dict[str, str] | None:
         """The gap a verdict at ``t_ns`` reads into, if any: its window runs from ``t_ns`` back by
