@@ -121,6 +121,11 @@ def test_a_zenoh_key_bound_live_gives_the_verdicts_a_recording_of_it_gives(make_
         wait_until(lambda: len(_verdicts(sink)) >= first + 5, "the verdicts of the known states")
         publisher.undeclare()
     live = [v["verdict"] for v in _verdicts(sink)[first:]]
+    # each change of the verdict says why: both comparisons with the value of its state (issue 54 item 7)
+    known = [0.5, 0.3, 0.1, 0.25, 7, 0.9]  # the states with a number (the others are unknown, never published)
+    whys = [v.get("why") for v in _verdicts(sink)[first:]]
+    assert whys == [None if k == 0 or live[k] is live[k - 1] else [f"Battery(r1) > 0.2: {x:g} > 0.2", f"Battery(r1) <= 1: {x:g} <= 1"]
+                    for k, x in enumerate(known)], whys  # fmt: skip
     path = tmp_path / "battery.mcap"
     with Recorder((), path) as recorder:
         for seq, payload in enumerate(sent, start=1):

@@ -507,7 +507,9 @@ def cmd_monitor(args: argparse.Namespace) -> int:
             text = f"{msg.key}  {when(verdict.get('t'))}{who}  {said}{rob}" + (
                 f"  (a gap: {gap.get('term')} re-planned: {gap.get('cause')})" if isinstance(gap, dict) else ""
             )
-            report_result(args, {"key": msg.key, **verdict}, text)
+            why = verdict.get("why")
+            shown_why = [f"  {atom}" for atom in why if isinstance(atom, str)] if isinstance(why, list) else []
+            report_result(args, {"key": msg.key, **verdict}, [text, *shown_why[:16]])
 
     with open_client(args) as client:
         key = client.monitor(args.formula, reorder_ms=args.reorder_ms, bindings=bindings)

@@ -25,13 +25,15 @@ module                      what it holds
 :mod:`~.bindings`           terms bound to what exists (a Zenoh key, a ROS 2 topic), read instead of planned
 :mod:`~.monitors`           monitors asked of a manager by meaning, each term planned or bound
 :mod:`~.offline`            a formula over a recording: the same semantics, yesterday's data
+:mod:`~.explain`            why a verdict is what it is: each comparison with its sides' values at a state
 :mod:`~.requirements`       a file of requirements checked over a recording, for CI (``dyknow check``)
 ==========================  ==============================================================================
 
 Imports flow one way (a module imports only from those on its left): ``tree <- parser <- syntax
 <- quantify <- semantics``; ``values <- evaluator <- semantics``; and ``values, syntax <- robustness
 <- timeline <- pending <- nodes <- windows <- aggregates, past, future <- progression <- objects <-
-unit``; ``syntax <- bindings <- unit, monitors, offline <- requirements``.
+unit``; ``syntax <- bindings <- unit, monitors, offline <- requirements``; ``semantics <- explain
+<- unit, offline``.
 
     >>> from dyknow.reasoning import evaluate
     >>> evaluate("once[0, 1s] Battery(robot) < 0.2", {"Battery(robot)": [(0.0, 0.5), (0.5, 0.1), (2.0, 0.4)]})

@@ -14,23 +14,19 @@ of a formula with its sides' values then (``State(r2).speed <= 0.5: 0.9 <= 0.5``
 
 from __future__ import annotations
 
-import bisect
-import json
 import math
 import os
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Collection, Mapping
 
-from dyknow.errors import DyKnowError, FormulaError, TagError, did_you_mean
+from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.bindings import sample_value, topic_of
-from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns, evaluate_values_ns
-from dyknow.reasoning.syntax import Atom, Const, Formula, Num, Str, parse, walk
+from dyknow.reasoning.explain import MAX_ATOMS, explainer
+from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns
+from dyknow.reasoning.syntax import Formula, parse
 from dyknow.recording import Player, ReadLimits
 from dyknow.tags import parse_term
 
 __all__ = ["MAX_ATOMS", "changes", "evaluate_recording", "evaluate_recording_objects", "explainer", "read_topics", "recording_samples"]
-
-#: Atoms shown per explanation.
-MAX_ATOMS = 8
 
 
 def evaluate_recording(
@@ -74,53 +70,6 @@ def changes(series: list[tuple[int, bool | None]]) -> list[tuple[int, bool | Non
         if not out or out[-1][1] is not v:
             out.append((t, v))
     return out
-
-
-def explainer(formula: Formula, samples: Mapping[str, list[tuple[int, object]]]) -> Callable[[int], list[str]]:
-    """``at(t_ns)``: each atom of ``formula`` (the first :data:`MAX_ATOMS`), as written and with
-    its sides' values at ``t_ns`` (a side's latest value then; ``unknown`` when it has none):
-    ``State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5``."""
-    atoms: list[tuple[str, list[list[tuple[int, object]] | str], str]] = []
-    for node in walk(formula.root):
-        if not isinstance(node, Atom) or len(atoms) >= MAX_ATOMS:
-            continue
-        sides: list[list[tuple[int, object]] | str] = []
-        for side in (node.left, node.right) if node.op is not None else (node.left,):
-            assert side is not None
-            if isinstance(side, Num | Str | Const):
-                sides.append(str(side))
-                continue
-            try:
-                series = evaluate_values_ns(str(side), {str(t): samples[str(t)] for t in Formula.of(side).terms})
-            except (DyKnowError, KeyError):  # (a foreach's variable, say: not a value alone)
-                sides.append("?")
-                continue
-            sides.append(series)
-        atoms.append((str(node), sides, node.op or ""))
-
-    def at(t_ns: int) -> list[str]:
-        out = []
-        for text, sides, op in atoms:
-            shown = [side if isinstance(side, str) else _value_at(side, t_ns) for side in sides]
-            out.append(f"{text}: {f' {op} '.join(shown)}")
-        return out
-
-    return at
-
-
-def _value_at(series: list[tuple[int, object]], t_ns: int) -> str:
-    """The latest value of ``series`` at ``t_ns``, as JSON writes it (``unknown``: none)."""
-    k = bisect.bisect_right(series, t_ns, key=lambda row: row[0])
-    value = series[k - 1][1] if k else None
-    if value is None:
-        return "unknown"
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    try:
-        text = json.dumps(value, separators=(",", ":"), ensure_ascii=False)
-    except (TypeError, ValueError):
-        text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
 
 
 def read_topics(

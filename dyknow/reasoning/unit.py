@@ -81,6 +81,11 @@ Params:
   formula's object lifetime and cap;
 - ``changes_only`` (bool, default false): publish a verdict only when it differs from the last
   one published (an object's, with ``foreach``);
+- ``explain`` (bool, default true): a verdict of a formula without ``foreach`` that differs from
+  the last one published carries ``"why"``: each comparison of the formula as written and with
+  its sides' values at the verdict's state, from each term's latest :data:`RECENT_SAMPLES`
+  samples (``"Battery(r1) > 0.2: 0.1 > 0.2"``; a side that reads a window is ``?``, and ``unknown``
+  when no kept sample is as old as the state);
 - ``bound`` (string): the terms bound to what exists, a JSON object of terms and their sources
   (:mod:`dyknow.reasoning.bindings`): their text samples are read as JSON values, and
 - ``quiet_ms`` (float, default 5,000): a bound term without a sample this long after the unit
@@ -103,6 +108,7 @@ import json
 import statistics
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -110,6 +116,7 @@ from dyknow.clocks import CLOCKS
 from dyknow.errors import AccessError, FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.bindings import sample_value
+from dyknow.reasoning.explain import explainer
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
@@ -467,6 +474,8 @@ class MonitorBudget:
 
 
 _DERIVE_AFTER = 20  # samples a term's freshness and fields are judged from
+#: Each term's latest samples a monitor unit keeps to explain a change of a verdict ("why").
+RECENT_SAMPLES = 8
 _MIN_AGE_NS = 20_000_000
 _MAX_GAPS = 64
 
@@ -475,7 +484,7 @@ class _Served:
     """One formula a monitor unit serves: its monitor, which of the unit's terms it reads, what it
     published last (per object)."""
 
-    __slots__ = ("given_up_logged", "horizon", "last_published", "monitor", "name", "reach")
+    __slots__ = ("given_up_logged", "horizon", "last_published", "last_verdict", "monitor", "name", "reach")
 
     def __init__(self, name: str | None, monitor: Monitor | ObjectMonitor) -> None:
         self.name = name
@@ -484,6 +493,7 @@ class _Served:
         self.horizon = monitor.formula.horizon_ns
         self.given_up_logged = 0
         self.last_published: dict[str | None, bool] = {}
+        self.last_verdict: bool | None = None  # the last verdict published (a formula without foreach): its changes are explained
 
 
 class FormulaMonitor(Unit):
@@ -620,6 +630,10 @@ class FormulaMonitor(Unit):
         #: what the monitor found wrong with its data (a field no sample holds), each said once
         self.warnings: list[str] = []
         self._changes_only = bool(params.get("changes_only", False))
+        # each term's latest samples, which explain a change of a verdict ("why": each comparison
+        # with its sides' values at its state); a few only: payloads may be large
+        self._explain = bool(params.get("explain", True))
+        self._recent: list[deque[tuple[int, Any]]] = [deque(maxlen=RECENT_SAMPLES) for _ in terms]
         #: the terms bound to what exists and their sources (:mod:`dyknow.reasoning.bindings`)
         self.bound: dict[str, str] = _bound_param(params.get("bound"), terms, where)
         self._textual = frozenset(terms.index(term) for term in self.bound)
@@ -711,6 +725,8 @@ class FormulaMonitor(Unit):
                 self._observe(k, t_ns, item)
         else:
             self._observe(k, t_ns, payload)
+            if self._explain:
+                self._recent[k].append((t_ns, payload))
         late: Monitor | ObjectMonitor | None = None
         for served, local in self._readers[k]:
             monitor = served.monitor
@@ -858,6 +874,10 @@ class FormulaMonitor(Unit):
         gap = self._gap_for(served, verdict.t_ns)
         if gap is not None:
             out["gap"] = gap
+        if key is None and verdict.verdict is not served.last_verdict:
+            served.last_verdict = verdict.verdict
+            if self._explain:
+                out["why"] = self._why(served, verdict.t_ns)
         self.latest[served.name or served.monitor.formula.text] = out
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
         self._tell(served, verdict)
@@ -869,6 +889,17 @@ class FormulaMonitor(Unit):
             formula = served.name or served.monitor.formula.text
             for named in self._formula_listeners:
                 named(formula, verdict)
+
+    def _why(self, served: _Served, t_ns: int) -> list[str]:
+        """Each comparison of the formula with its sides' values at ``t_ns``, from the terms'
+        latest samples (a side that reads a window is ``?``: they are not all kept)."""
+        formula = served.monitor.formula
+        samples = {term: [row for row in self._recent[self.terms.index(term)] if row[0] <= t_ns] for term in map(str, formula.terms)}
+        try:
+            return explainer(formula, samples, current_only=True)(t_ns)
+        except Exception:  # (an explanation never stops a verdict)
+            self.log.debug("cannot explain a verdict of %s", formula.text, exc_info=True)
+            return []
 
     def _gap_for(self, served: _Served, t_ns: int) -> dict[str, str] | None:
         """The gap a verdict at ``t_ns`` reads into, if any: its window runs from ``t_ns`` back by

@@ -1,0 +1,75 @@
+"""Why a verdict is what it is: each comparison of a formula with its sides' values at a state.
+
+:func:`explainer` is shared by the offline check (``dyknow check``, ``dyknow monitor --mcap
+--changes-only``: every sample of the recording at hand) and the monitor unit (the latest few
+samples of each term, at each change of a verdict): ``State(r2).speed <= Limits(floor)[State(r2).zone]:
+0.9 <= 0.5``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+from collections.abc import Callable, Mapping, Sequence
+
+from dyknow.errors import DyKnowError
+from dyknow.reasoning.semantics import evaluate_values_ns
+from dyknow.reasoning.syntax import Atom, Const, Formula, Num, Str, walk
+
+__all__ = ["MAX_ATOMS", "explainer"]
+
+#: Atoms shown per explanation.
+MAX_ATOMS = 8
+
+
+def explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]], *, current_only: bool = False) -> Callable[[int], list[str]]:
+    """``at(t_ns)``: each atom of ``formula`` (the first :data:`MAX_ATOMS`), as written and with
+    its sides' values at ``t_ns`` (a side's latest value then; ``unknown`` when it has none):
+    ``State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5``. ``current_only``: the
+    samples are only the latest few (a live monitor's), so a side that reads a window (an
+    aggregate, a past operator) is shown as ``?`` rather than computed from part of it."""
+    atoms: list[tuple[str, list[Sequence[tuple[int, object]] | str], str]] = []
+    for node in walk(formula.root):
+        if not isinstance(node, Atom) or len(atoms) >= MAX_ATOMS:
+            continue
+        sides: list[Sequence[tuple[int, object]] | str] = []
+        for side in (node.left, node.right) if node.op is not None else (node.left,):
+            assert side is not None
+            if isinstance(side, Num | Str | Const):
+                sides.append(str(side))
+                continue
+            alone = Formula.of(side)
+            if current_only and (alone.reach_ns != 0 or alone.horizon_ns):
+                sides.append("?")
+                continue
+            try:
+                series = evaluate_values_ns(alone, {str(t): samples[str(t)] for t in alone.terms})
+            except (DyKnowError, KeyError):  # (a foreach's variable, say: not a value alone)
+                sides.append("?")
+                continue
+            sides.append(series)
+        atoms.append((str(node), sides, node.op or ""))
+
+    def at(t_ns: int) -> list[str]:
+        out = []
+        for text, sides, op in atoms:
+            shown = [side if isinstance(side, str) else _value_at(side, t_ns) for side in sides]
+            out.append(f"{text}: {f' {op} '.join(shown)}")
+        return out
+
+    return at
+
+
+def _value_at(series: Sequence[tuple[int, object]], t_ns: int) -> str:
+    """The latest value of ``series`` at ``t_ns``, as JSON writes it (``unknown``: none)."""
+    k = bisect.bisect_right(series, t_ns, key=lambda row: row[0])
+    value = series[k - 1][1] if k else None
+    if value is None:
+        return "unknown"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    try:
+        text = json.dumps(value, separators=(",", ":"), ensure_ascii=False)
+    except (TypeError, ValueError):
+        text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
