@@ -349,3 +349,42 @@ def test_a_specs_bad_binding_is_a_located_error(binding: str, says: str) -> None
     with pytest.raises(SpecError) as raised:
         parse_specs(xml, "limited.xml")
     assert says in str(raised.value) and "limited.xml:6:" in str(raised.value), str(raised.value)
+
+
+def test_a_verdict_that_flips_at_every_sample_is_explained_at_most_as_often_as_the_bound_says(make_manager: Callable[..., Manager]) -> None:
+    """200 samples 1 ms apart (in sample time) flip the verdict each time: every change is
+    published, but only 8 at once and then one per 50 ms of sample time carry "why" (each
+    costs an evaluation of the formula's comparisons), each of them right."""
+    from dyknow.reasoning.unit import EXPLAIN_BURST, EXPLAIN_GAP_NS
+    from dyknow.transport import Session
+
+    manager = make_manager(listen=[f"tcp/127.0.0.1:{free_port()}"], queue_depth=10_000)  # (the sink keeps every verdict)
+    key = manager.monitor("Level(x) > 0.5", bindings={"Level(x)": "levels/x"})
+    sink = _sink(manager, "watch", key)
+    with Session(make_config(connect=manager.endpoints)) as session:
+        publisher = session.declare_publisher("levels/x", reliable=True)
+        wait_until(lambda: publisher.matched, "the monitor to subscribe")
+        start = time.time_ns() - 10_000_000_000
+        n = 0
+        while not _verdicts(sink):  # the path up (the first may be lost before it is)
+            n += 1
+            publisher.put(Message(1.0, n, start + n * 1_000_000, start + n * 1_000_000, "levels/x"))
+            time.sleep(0.05)
+        first = n
+        for k in range(1, 201):
+            n += 1
+            publisher.put(Message(float(k % 2), n, start + n * 1_000_000, start + n * 1_000_000, "levels/x"))
+        after = start + first * 1_000_000
+
+        def flips() -> list[dict[str, Any]]:
+            return [v for v in _verdicts(sink) if v["t_ns"] > after]
+
+        try:
+            wait_until(lambda: len(flips()) >= 199, "a verdict per sample (the last one's state may stay open)")
+        except AssertionError:
+            raise AssertionError(f"{len(flips())} flips; {[(u.name, [(p.port, p.messages, p.dropped) for p in manager.get_statistics(u.name).ports]) for u in manager.units()]}") from None
+    assert [v["verdict"] for v in flips()] == [k % 2 == 1 for k in range(1, len(flips()) + 1)]
+    explained = [v for v in flips() if "why" in v]
+    allowed = EXPLAIN_BURST + 200 * 1_000_000 // EXPLAIN_GAP_NS
+    assert EXPLAIN_BURST - 1 <= len(explained) <= allowed, len(explained)  # (the warm-up's first verdict took a token)
+    assert all(v["why"] == [f"Level(x) > 0.5: {1 if v['verdict'] else 0} > 0.5"] for v in explained), explained[:3]

@@ -85,7 +85,7 @@ Params:
   the last one published carries ``"why"``: each comparison of the formula as written and with
   its sides' values at the verdict's state, from each term's latest :data:`RECENT_SAMPLES`
   samples (``"Battery(r1) > 0.2: 0.1 > 0.2"``; a side that reads a window is ``?``, and ``unknown``
-  when no kept sample is as old as the state);
+  when no kept sample is as old as the state); at most 8 at once and then one per 50 ms of sample time per formula (:data:`EXPLAIN_BURST`, :data:`EXPLAIN_GAP_NS`);
 - ``bound`` (string): the terms bound to what exists, a JSON object of terms and their sources
   (:mod:`dyknow.reasoning.bindings`): their text samples are read as JSON values, and
 - ``quiet_ms`` (float, default 5,000): a bound term without a sample this long after the unit
@@ -474,8 +474,12 @@ class MonitorBudget:
 
 
 _DERIVE_AFTER = 20  # samples a term's freshness and fields are judged from
-#: Each term's latest samples a monitor unit keeps to explain a change of a verdict ("why").
+#: Each term's latest samples a monitor unit keeps to explain a change of a verdict ("why"); and
+#: how many changes of one formula it explains: 8 at once, then one per 50 ms of sample time (a
+#: verdict that flips at every sample would otherwise cost an evaluation of each comparison per sample).
 RECENT_SAMPLES = 8
+EXPLAIN_BURST = 8
+EXPLAIN_GAP_NS = 50_000_000
 _MIN_AGE_NS = 20_000_000
 _MAX_GAPS = 64
 
@@ -484,7 +488,7 @@ class _Served:
     """One formula a monitor unit serves: its monitor, which of the unit's terms it reads, what it
     published last (per object)."""
 
-    __slots__ = ("given_up_logged", "horizon", "last_published", "last_verdict", "monitor", "name", "reach")
+    __slots__ = ("explain_tokens", "explained_ns", "given_up_logged", "horizon", "last_published", "last_verdict", "monitor", "name", "reach")
 
     def __init__(self, name: str | None, monitor: Monitor | ObjectMonitor) -> None:
         self.name = name
@@ -494,6 +498,8 @@ class _Served:
         self.given_up_logged = 0
         self.last_published: dict[str | None, bool] = {}
         self.last_verdict: bool | None = None  # the last verdict published (a formula without foreach): its changes are explained
+        self.explained_ns = 0  # the state whose change was last explained (sample time), and the
+        self.explain_tokens = float(EXPLAIN_BURST)  # explanations it may give at once (refilled with sample time)
 
 
 class FormulaMonitor(Unit):
@@ -876,7 +882,7 @@ class FormulaMonitor(Unit):
             out["gap"] = gap
         if key is None and verdict.verdict is not served.last_verdict:
             served.last_verdict = verdict.verdict
-            if self._explain:
+            if self._explain and self._may_explain(served, verdict.t_ns):
                 out["why"] = self._why(served, verdict.t_ns)
         self.latest[served.name or served.monitor.formula.text] = out
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
@@ -889,6 +895,19 @@ class FormulaMonitor(Unit):
             formula = served.name or served.monitor.formula.text
             for named in self._formula_listeners:
                 named(formula, verdict)
+
+    @staticmethod
+    def _may_explain(served: _Served, t_ns: int) -> bool:
+        """A token bucket over sample time: :data:`EXPLAIN_BURST` explanations at once, then one
+        per :data:`EXPLAIN_GAP_NS` (a verdict that flips at every sample costs no more)."""
+        gained = max(0, t_ns - served.explained_ns) / EXPLAIN_GAP_NS if served.explained_ns else 0.0
+        tokens = min(float(EXPLAIN_BURST), served.explain_tokens + gained)
+        served.explained_ns = max(served.explained_ns, t_ns)
+        if tokens < 1:
+            served.explain_tokens = tokens
+            return False
+        served.explain_tokens = tokens - 1
+        return True
 
     def _why(self, served: _Served, t_ns: int) -> list[str]:
         """Each comparison of the formula with its sides' values at ``t_ns``, from the terms'
