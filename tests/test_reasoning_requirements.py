@@ -327,3 +327,21 @@ def test_the_how_to_pages_requirements_give_the_lines_it_shows(floor: tuple[Path
     assert done.returncode == 1, done.stderr
     printed = done.stdout.splitlines()
     assert [line for line in shown.group(1).splitlines() if line != "..." and line not in printed] == [], done.stdout
+
+
+@pytest.mark.process
+def test_dyknow_monitor_checks_a_forall_formula_over_a_recording_per_individual(floor: tuple[Path, Path, Path, Any]) -> None:
+    """Issue 54 item 6: `dyknow monitor 'forall ...' --mcap --ontology` with a template binding:
+    a series per individual, each the naive evaluator's over the formula written out by hand;
+    without --ontology it says what is missing."""
+    _, recording, ontology, series = floor
+    formula = "forall r in ex:Robot: State(r).speed <= Limits(floor)[State(r).zone]"
+    binds = ["--bind", "State(r)=floor/{r}/state", "--bind", "Limits(floor)=floor/limits"]
+    done = run_cli("monitor", formula, "--mcap", str(recording), *binds, "--ontology", str(ontology), "--json")
+    assert done.returncode == 0, done.stderr
+    got: dict[str, list[tuple[int, Any]]] = {}
+    for row in map(json.loads, done.stdout.splitlines()):
+        got.setdefault(row["individual"], []).append((row["t_ns"], row["verdict"]))
+    assert got == by_hand(series)["speed under the zone's limit"]
+    missing = run_cli("monitor", formula, "--mcap", str(recording), *binds)
+    assert missing.returncode == 2 and "needs --ontology FILE" in missing.stderr

@@ -529,10 +529,13 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 def _monitor_recording(args: argparse.Namespace) -> int:
     from dyknow.reasoning.offline import changes, evaluate_recording, evaluate_recording_objects
-    from dyknow.reasoning.syntax import Quantifier, parse
+    from dyknow.reasoning.syntax import Quantifier, parse, walk
 
     bindings = parse_pairs(args.bind, "--bind")
-    root = parse(args.formula).root
+    parsed = parse(args.formula)
+    root = parsed.root
+    if any(isinstance(node, Quantifier) and node.kind in ("forall", "exists") for node in walk(root)):
+        return _quantified_recording(args, bindings)
     if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
         objects = evaluate_recording_objects(args.formula, args.mcap, bindings, read_limits(args), idle_ns=round(args.idle_ms * 1e6))
         if args.changes_only:
@@ -563,6 +566,40 @@ def _monitor_recording(args: argparse.Namespace) -> int:
         counts[verdict] += 1
         print(f"t={t_ns / 1e9:.3f} s  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
     print(f"{len(results)} states: {counts[True]} true, {counts[False]} false, {counts[None]} unknown", flush=True)
+    return 0
+
+
+def _quantified_recording(args: argparse.Namespace, bindings: dict[str, str]) -> int:
+    """``--mcap`` with ``forall``/``exists``: expanded over ``--ontology`` as a manager expands it,
+    each term bound by ``--bind`` (a template such as ``State(r)=floor/{r}/state`` binds them all),
+    a verdict series per individual (per tuple) as :func:`dyknow.reasoning.check_recording` gives it."""
+    from dyknow.errors import DyKnowError
+    from dyknow.ontology import Ontology
+    from dyknow.reasoning.offline import changes
+    from dyknow.reasoning.requirements import Requirement, check_recording
+    from dyknow.tags import parse_term
+
+    if not args.ontology:
+        raise UsageError("a formula with forall or exists over a recording needs --ontology FILE (the individuals it ranges over)")
+    try:
+        given = {str(parse_term(term)): topic for term, topic in bindings.items()}
+    except DyKnowError as exc:
+        raise UsageError(f"--bind: {exc}") from None
+    (result,) = check_recording([Requirement("formula", args.formula, given, where="--bind")], args.mcap,
+                                individuals=Ontology.load(args.ontology).individuals, limits=read_limits(args))  # fmt: skip
+    if result.error is not None:
+        raise result.error
+    series = {key: changes(rows) if args.changes_only else rows for key, rows in result.verdicts.items()}
+    rows = sorted((t_ns, key, verdict) for key, values in series.items() for t_ns, verdict in values)
+    if args.json:
+        for t_ns, key, verdict in rows:
+            print_json({"t": t_ns / 1e9, "t_ns": t_ns, **({"individual": key} if key else {}), "verdict": verdict})
+        return 0
+    for t_ns, key, verdict in rows:
+        print(shown(f"t={t_ns / 1e9:.3f} s  {key}  {'unknown' if verdict is None else 'true' if verdict else 'false'}"))
+    counted = [sum(1 for _, _, v in rows if v is which) for which in (True, False, None)]
+    print(f"{len(rows)} {'changes' if args.changes_only else 'states'} of {len(series)} instances: {counted[0]} true, "
+          f"{counted[1]} false, {counted[2]} unknown", flush=True)  # fmt: skip
     return 0
 
 
@@ -686,6 +723,8 @@ def add_commands(cmds: Commands) -> None:
                        help="print a verdict only when it differs from the last one (per object); with --mcap, each change "
                        "with the values of the formula's comparisons at it")  # fmt: skip
         p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="with --mcap, a formula with forall or exists: the ontologies whose individuals it ranges over")  # fmt: skip
         p.add_argument("--idle-ms", type=float, default=10_000.0, metavar="MS",  # (dyknow.reasoning.objects.DEFAULT_IDLE_NS: not imported to parse)
                        help="with --mcap, a foreach formula: an object's life ends after this long without a sample (default 10,000)")
         p.add_argument(
