@@ -829,6 +829,38 @@ def end_to_end(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+#: Issue 54's target for an object's monitor: made (and ended) in at most this much CPU.
+CHURN_TARGET_US = 5.0
+
+
+def object_churn(count: int, repeat: int = 3) -> dict[str, float]:
+    """CPU per object of a ``foreach`` monitor (:data:`OBJECTS_FORMULA`) whose objects each send
+    one sample and go (made, pushed, ended by their idle time), and per sample of ten objects
+    that stay; the difference is what making and ending an object's monitor costs. The best of
+    ``repeat`` runs (process CPU time, so a loaded machine's waits are not counted)."""
+    from dyknow.reasoning.objects import ObjectMonitor
+    from dyknow.reasoning.syntax import parse
+
+    formula = parse(OBJECTS_FORMULA)
+
+    def per_sample(ids: Callable[[int], str], base: int, idle_ns: int) -> float:
+        monitor = ObjectMonitor(formula, reorder_ns=0, max_cells=10**7, idle_ns=idle_ns, max_objects=1_000_000)
+        start = time.process_time()
+        for i in range(count):  # 1 ms apart
+            monitor.push_index(0, base + i * 1_000_000, {"id": ids(i), "speed": 0.4})
+        return (time.process_time() - start) / count * 1e6
+
+    # an object silent for 2 ms is ended (each sends one sample); ten objects 10 ms apart stay (idle 10 s)
+    churn = min(per_sample(lambda i: f"o{i}", 10**12 * (k + 1), 2_000_000) for k in range(repeat))
+    stay = min(per_sample(lambda i: f"o{i % 10}", 10**12 * (k + 1), 10_000_000_000) for k in range(repeat))
+    made = churn - stay
+    print(f"objects that come and go ({OBJECTS_FORMULA}): {churn:.1f} us CPU per object (one sample each); "
+          f"a sample of an object that stays {stay:.1f} us; an object's monitor made and ended {made:.1f} us "
+          f"(target <= {CHURN_TARGET_US:g} us: {'met' if made <= CHURN_TARGET_US else 'not met'})")  # fmt: skip
+    return {"per_new_object_us": round(churn, 2), "per_sample_us": round(stay, 2), "made_and_ended_us": round(made, 2),
+            "target_us": CHURN_TARGET_US, "objects": count}  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the per-state comparison (default) or the end-to-end runs (``--monitors``, ``--objects``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -861,6 +893,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--core", type=int, default=0, help="the CPU an end-to-end run's manager is pinned to (default 0)")
     parser.add_argument("--remote", action="store_true", help="end to end: sources and sink in another process, over Zenoh")
     parser.add_argument("--feeder", metavar="ENDPOINT", help=argparse.SUPPRESS)  # the other process of --remote
+    parser.add_argument("--churn", type=int, metavar="N", help="instead: the CPU an object's monitor costs to make, over N objects")
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
     if args.feeder:
@@ -876,6 +909,11 @@ def main(argv: list[str] | None = None) -> int:
         )
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}; load {_load()}")
+    if args.churn:
+        churn = object_churn(args.churn)
+        if args.json:
+            write_json(args.json, {"machine": info, "churn": churn})
+        return 0
     if args.monitors or args.objects:
         result = end_to_end(args)
         if args.json:

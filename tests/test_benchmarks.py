@@ -369,6 +369,17 @@ def test_chain_targets_show_each_rounds_ratio_and_whether_the_rounds_agree() -> 
 
 
 @pytest.mark.process
+def test_reasoning_benchmark_churn_smoke(tmp_path: Path) -> None:
+    """--churn: an object's monitor made and ended, its CPU beside the target (issue 54 item 11)."""
+    out = tmp_path / "churn.json"
+    result = _run("reasoning.py", "--churn", "2000", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    churn = json.loads(out.read_text())["churn"]
+    assert churn["objects"] == 2000 and churn["target_us"] == 5.0 and churn["per_new_object_us"] > churn["per_sample_us"] > 0
+    assert "an object's monitor made and ended" in result.stdout and "(target <= 5 us: " in result.stdout
+
+
+@pytest.mark.process
 def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "reasoning.json"
     result = _run("reasoning.py", "--smoke", "--windows", "10ms,1s", "--json", str(out))

@@ -219,7 +219,7 @@ class Monitor:
             raise FormulaError(f"reorder_ns is {reorder_ns}", where="Monitor(reorder_ns=...)", expected="0 or more nanoseconds")
         if max_cells < 1:
             raise FormulaError(f"max_cells is {max_cells}", where="Monitor(max_cells=...)", expected="1 or more cells")
-        for part in walk(self.formula.root):
+        for part in self.formula.walked:
             if isinstance(part, Quantifier):
                 raise FormulaError(
                     f"the formula holds the quantifier '{part.kind} {part.var} in {part.domain}'",
@@ -247,7 +247,7 @@ class Monitor:
         self._span_ns = max([node.need_ns for node in self._nodes] + [self.formula.horizon_ns])
         # stale spans are kept as far back as any bounded window may read, all windows at once
         self._times.keep_ns = self._span_ns + sum(
-            (n.interval.hi_ns or n.interval.lo_ns) for n in walk(self.formula.root) if isinstance(n, Historically | Once | Since | Aggregate | Always | Eventually | Until)
+            (n.interval.hi_ns or n.interval.lo_ns) for n in self.formula.walked if isinstance(n, Historically | Once | Since | Aggregate | Always | Eventually | Until)
         )
         if self._robust is not None:
             self._robust.keep_ns = self._times.keep_ns + self.formula.horizon_ns
@@ -347,7 +347,7 @@ class Monitor:
         terms: dict[int, set[int]] = {}  # the terms each node reads, itself or below
         robs: dict[int, RNode] = {}  # a condition's robustness node (when asked for)
         streams: dict[tuple[int, tuple[str, ...], bool], Value] = {}  # one per term, fields and rawness, however often written
-        self._raw = raw_reads(node)
+        self._raw = self.formula.raw if node is self.formula.root else raw_reads(node)
         stack: list[tuple[Node, bool]] = [(node, False)]
         while stack:
             current, expanded = stack.pop()

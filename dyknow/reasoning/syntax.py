@@ -142,6 +142,7 @@ from dyknow.reasoning.tree import (
     Var,
     children,
     kind_of,
+    raw_reads,
     walk,
 )
 from dyknow.security import Limits
@@ -205,9 +206,28 @@ class Formula:
     text: str
     root: Node
     terms: tuple[Term, ...] = field(default=())
+    # what is computed once from the (immutable) tree: a foreach monitor builds a monitor of its
+    # body per object, and walking the tree again each time was most of an object's cost
+    _known: dict[str, object] = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __str__(self) -> str:
         return str(self.root)
+
+    @property
+    def walked(self) -> list[Node]:
+        """Every node of the tree, parents before children (:func:`walk`), computed once; do not change it."""
+        known = self._known.get("walk")
+        if known is None:
+            known = self._known["walk"] = walk(self.root)
+        return known  # type: ignore[return-value]
+
+    @property
+    def raw(self) -> set[int]:
+        """The ids of the nodes read as they are (:func:`~dyknow.reasoning.tree.raw_reads`), computed once; do not change it."""
+        known = self._known.get("raw")
+        if known is None:
+            known = self._known["raw"] = raw_reads(self.root)
+        return known  # type: ignore[return-value]
 
     @property
     def past_only(self) -> bool:
@@ -218,14 +238,19 @@ class Formula:
     def horizon_ns(self) -> int:
         """How far into the future a verdict may need to look: the largest sum of future upper
         bounds along a path from the root (0 for a past-only formula)."""
-        return _future_horizon(self.root)
+        known = self._known.get("horizon")
+        if known is None:
+            known = self._known["horizon"] = _future_horizon(self.root)
+        return known  # type: ignore[return-value]
 
     @property
     def reach_ns(self) -> int | None:
         """How far into the past a verdict may read: the largest sum of past upper bounds (past
         windows, aggregates, and a state for prev, rise and fall) along a path from the root;
         None when a past window is unbounded (it reads back to the first state)."""
-        return _past_reach(self.root)
+        if "reach" not in self._known:
+            self._known["reach"] = _past_reach(self.root)
+        return self._known["reach"]  # type: ignore[return-value]
 
     @property
     def nodes(self) -> int:
