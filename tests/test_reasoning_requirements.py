@@ -222,11 +222,11 @@ def test_a_junit_report_escapes_what_the_file_says() -> None:
     """Names and formulas are the user's text: a report with <, & and quotes in them is well-formed XML."""
     from dyknow.reasoning.requirements import Requirement, Result
 
-    requirement = Requirement('a < b & "c"', "x < 1 and y > 2", {"x": "x", "y": "y"}, where="r.toml:3")
+    requirement = Requirement('a < b & "c"\x01', "x < 1 and y > 2", {"x": "x", "y": "y"}, where="r.toml:3")
     result = Result(requirement, {"": [(1_000, True), (2_000, False)]})
     root = ET.fromstring(junit_xml([result], recording="<run>.mcap"))
     case = root.find("testsuite/testcase")
-    assert case is not None and case.get("name") == 'a < b & "c"' and case.get("classname") == "r.toml"
+    assert case is not None and case.get("name") == 'a < b & "c"\ufffd' and case.get("classname") == "r.toml"  # (no control character in XML)
     failure = case.find("failure")
     assert failure is not None and "x < 1 and y > 2" in (failure.text or "")
 

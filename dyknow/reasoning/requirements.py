@@ -321,6 +321,14 @@ def _evaluate(
     return dict(sorted(out.items()))
 
 
+_NOT_XML = re.compile("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff\ud800-\udfff]")
+
+
+def _xml_text(text: str) -> str:
+    """``text`` without the characters XML 1.0 cannot hold (control characters: U+FFFD instead)."""
+    return _NOT_XML.sub("\ufffd", text)
+
+
 def junit_xml(results: Sequence[Result], *, suite: str = "dyknow requirements", recording: str = "") -> str:
     """``results`` as a JUnit XML report: a test suite of one test case per requirement, a
     ``<failure>`` for one that was false (where and when, by instance), an ``<error>`` for one
@@ -349,7 +357,7 @@ def junit_xml(results: Sequence[Result], *, suite: str = "dyknow requirements", 
             out.append("    </testcase>")
     out.append("  </testsuite>")
     out.append("</testsuites>")
-    return "\n".join(out) + "\n"
+    return _xml_text("\n".join(out) + "\n")
 
 
 def summary(result: Result) -> str:
