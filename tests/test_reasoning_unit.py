@@ -41,7 +41,9 @@ def test_a_monitor_unit_in_ten_lines() -> None:
         "t_ns": T0 + 20 * MS,
         "decided_ns": T0 + 20 * MS,
         "state": 2,
+        "why": ["Battery(robot) > 0.2: 0.1 > 0.2"],  # a change: the comparison, with the value of its state
     }
+    assert [v.get("why") for v in got] == [["Battery(robot) > 0.2: 0.9 > 0.2"], None, ["Battery(robot) > 0.2: 0.1 > 0.2"], None]
 
 
 def test_the_spec_has_a_port_per_term_tagged_with_it_and_survives_xml() -> None:

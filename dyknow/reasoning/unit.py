@@ -14,7 +14,8 @@ decided (:mod:`dyknow.reasoning.progression`), as JSON::
 
 ``t`` and ``decided_t`` are seconds (``t_ns``/``decided_ns`` the exact origin times of the state
 and of the state that decided it), ``state`` the state's index since the unit started. A verdict
-never decided (still unknown when the unit is destroyed) is never published.
+that differs from the last one published also carries ``"why"`` (see the param ``explain``). A
+verdict never decided (still unknown when the unit is destroyed) is never published.
 
 **Bounds.** A monitor unit holds its formula to its manager's :class:`~dyknow.security.Limits`
 (:func:`~dyknow.reasoning.check_formula`: nodes, windows, horizon) when it starts, so a formula
