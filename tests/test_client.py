@@ -88,7 +88,9 @@ def test_a_client_calling_ever_new_units_keeps_a_bounded_number_of_queriers(mana
         for i in range(80):
             assert client.get_config(f"s{i}") == manager.get_config(f"s{i}")
         assert client.session.queriers() <= MAX_QUERIERS
-        assert threading.active_count() == threads  # no thread per querier
+        # no thread per querier (64 more); the process also runs the manager, whose pools may
+        # start a thread of their own meanwhile (one did, beside a full run): a few are allowed
+        assert threading.active_count() - threads < 8, (threads, [t.name for t in threading.enumerate()])
         assert client.get_statistics("s0")["name"] == "s0"  # an evicted querier is declared again
 
 
