@@ -104,6 +104,7 @@ everything from here.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from dyknow.reasoning.parser import MAX_DEPTH, MAX_FORMULA_CHARS, parse_tree
@@ -213,21 +214,21 @@ class Formula:
     def __str__(self) -> str:
         return str(self.root)
 
+    def _once(self, name: str, compute: Callable[[Node], object]) -> object:
+        """``compute(root)``, computed on first use and kept (the tree never changes)."""
+        if name not in self._known:
+            self._known[name] = compute(self.root)
+        return self._known[name]
+
     @property
     def walked(self) -> list[Node]:
         """Every node of the tree, parents before children (:func:`walk`), computed once; do not change it."""
-        known = self._known.get("walk")
-        if known is None:
-            known = self._known["walk"] = walk(self.root)
-        return known  # type: ignore[return-value]
+        return self._once("walk", walk)  # type: ignore[return-value]
 
     @property
     def raw(self) -> set[int]:
         """The ids of the nodes read as they are (:func:`~dyknow.reasoning.tree.raw_reads`), computed once; do not change it."""
-        known = self._known.get("raw")
-        if known is None:
-            known = self._known["raw"] = raw_reads(self.root)
-        return known  # type: ignore[return-value]
+        return self._once("raw", raw_reads)  # type: ignore[return-value]
 
     @property
     def past_only(self) -> bool:
@@ -238,19 +239,14 @@ class Formula:
     def horizon_ns(self) -> int:
         """How far into the future a verdict may need to look: the largest sum of future upper
         bounds along a path from the root (0 for a past-only formula)."""
-        known = self._known.get("horizon")
-        if known is None:
-            known = self._known["horizon"] = _future_horizon(self.root)
-        return known  # type: ignore[return-value]
+        return self._once("horizon", _future_horizon)  # type: ignore[return-value]
 
     @property
     def reach_ns(self) -> int | None:
         """How far into the past a verdict may read: the largest sum of past upper bounds (past
         windows, aggregates, and a state for prev, rise and fall) along a path from the root;
         None when a past window is unbounded (it reads back to the first state)."""
-        if "reach" not in self._known:
-            self._known["reach"] = _past_reach(self.root)
-        return self._known["reach"]  # type: ignore[return-value]
+        return self._once("reach", _past_reach)  # type: ignore[return-value]
 
     @property
     def nodes(self) -> int:
