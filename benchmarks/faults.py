@@ -16,9 +16,9 @@ own, the fault on the robot's link only:
   link (tc tbf both ways). Reported: the robot's frames per second, the age, switches; target:
   memory as above;
 - ``flapping``: the link goes down and up every 2 s for 32 s. Target: at most 7 camera switches
-  (the request moves off the robot at each loss, and back only after a probation that doubles
-  with every loss in the last minute; without probation the same run switched 16 times,
-  ``tests/test_hosts.py``).
+  (the request moves off the robot at each loss, and back after the dwell time from a first loss,
+  but after losses close together only once their penalty has decayed: flap damping,
+  ``dyknow.adaptation.LINKS``; without it the same run switched 16 times, ``tests/test_hosts.py``).
 
     python benchmarks/faults.py                    # 20 s per fault
     python benchmarks/faults.py --seconds 10 --json out/faults.json

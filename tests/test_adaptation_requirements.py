@@ -13,6 +13,7 @@ repairs it (its ``id`` attribute), as an operator would fix a miscalibrated sens
 from __future__ import annotations
 
 import logging
+import math
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -21,10 +22,11 @@ from typing import Any
 import pytest
 
 from dyknow import AdaptationEvent, Manager, UnitError
+from dyknow.adaptation import Damping, Flaps
 from dyknow.security import Limits
 from dyknow.testing import Sink
 from tests.conftest import wait_until
-from tests.units import Reading
+from tests.units import Reading, Relapsing
 
 FORMULA = "Level(tank).id == 2"
 DWELL_S = 0.3
@@ -205,6 +207,68 @@ def test_a_fault_with_only_a_suspect_left_runs_on_it_degraded_until_it_holds(tan
     assert _request(manager).suspects == () and _request(manager).labels == ("level-a",)
     assert [e.kind for e in manager.get_adaptations() if e.id == degraded.id] == ["recovered"]
 
+
+
+# -- flap damping (issue 54, item 9): a provider that relapses after every start
+
+RELAPSING = """<transformation><label>level-a</label><source>tests.units:Relapsing</source>
+  <params><param name="rate_hz" type="float">20</param><param name="fail_after_s" type="float">3</param></params>
+  <ports><port type="out">out</port></ports><tags><tag port="out">Level(tank)</tag></tags><priority>0</priority></transformation>"""
+#: TRIALS with the times cut so that a test sees it through: a second relapse within about 8 s
+#: suppresses level-a for about 10 s (at most 12 s)
+SHORT_TRIALS = Damping(half_life_s=6.0, suppress=1200.0, reuse=500.0, max_hold_s=12.0)
+
+
+@pytest.fixture
+def relapsing() -> Iterator[type[Relapsing]]:
+    Relapsing.fixed = False
+    yield Relapsing
+    Relapsing.fixed = False
+
+
+def test_a_provider_that_relapses_after_every_start_is_suppressed_and_trusted_again_once_fixed(
+    make_manager: Callable[..., Manager], relapsing: type[Relapsing]
+) -> None:
+    """level-a sends what the requirement wants for 3 s after each start, then not. Its first
+    relapse moves the request away and its trial in the shadow holds (it is new there), so the
+    request moves back; its second relapse, 3 s after that trial started, puts its penalty above
+    the suppress threshold: no trial of it until the penalty decays to the reuse threshold (before,
+    it was tried and trusted again every few seconds for ever: a switch each time). Fixed for good
+    meanwhile, it is trusted again at the first trial after that, within the stated bound: the
+    damping's longest hold after its last relapse, plus the back-off, the dwell time and a verdict."""
+    manager = make_manager("tank", dwell_s=DWELL_S, damping=Flaps(trials=SHORT_TRIALS))
+    manager.add_transformation(f"<transformations>{DEVICE}{RELAPSING}{_level('level-b', 1)}</transformations>")
+    manager.spawn("tank-device", "device-level-b", params={"id": 2}, bindings={"out": "tank/level-b"})
+    manager.request("Level(tank)", require=[FORMULA])
+    assert _request(manager).labels == ("level-a",)
+
+    def adapted() -> list[AdaptationEvent]:  # (an event completed with its recovery time is "recovered")
+        return [e for e in manager.get_adaptations() if e.kind in ("adapted", "recovered")]
+
+    wait_until(lambda: len(adapted()) == 3, "a relapse, a return after the trial, and a second relapse", 30)
+    relapsed_s = time.time()
+    suspect = _suspect(manager)
+    assert suspect["relapses"] == 2 and suspect["trial"] == "waiting"
+    first, back, second = adapted()
+    assert first.cause == second.cause == f"requirement violated: {FORMULA}" and first.new == second.new == ("level-b",)
+    assert back.cause == f"level-a held its requirements for {DWELL_S:g} s in the shadow (trial 1)" and back.new == ("level-a",)
+    # its second relapse came within a few seconds of its first: suppressed, its next trial not
+    # before the penalty decays to 500 (naively: the time 1000 * 2**(-gap / 6 s) + 1000 takes to halve its way there)
+    gap_s = (second.fault_ns - first.fault_ns) / 1e9
+    penalty = 1000 * 0.5 ** (gap_s / 6.0) + 1000
+    hold_s = 6.0 * math.log2(penalty / 500)
+    wait_s = suspect["next_trial_ns"] / 1e9 - second.fault_ns / 1e9
+    assert hold_s > 6 and abs(wait_s - hold_s) < 0.5, (gap_s, hold_s, wait_s)
+    relapsing.fixed = True  # for good: every start from now on holds
+    wait_until(lambda: len(adapted()) == 4, "level-a to be trusted again", 40)
+    events = adapted()
+    trusted = events[3]
+    assert trusted.cause == f"level-a held its requirements for {DWELL_S:g} s in the shadow (trial 2)" and trusted.new == ("level-a",)
+    assert [e.id for e in events[:3]] == [first.id, back.id, second.id]  # nothing in between: 3 switches while suppressed
+    assert _wired_s(trusted) >= suspect["next_trial_ns"] / 1e9  # not before the penalty decayed
+    # the stated bound: the longest hold after the last relapse (12 s), the back-off, the dwell time, and a verdict (generous: 2 s)
+    assert _wired_s(trusted) - relapsed_s <= SHORT_TRIALS.max_hold_s + 1 + DWELL_S + 2
+    assert _request(manager).suspects == () and _request(manager).labels == ("level-a",)
 
 # -- requirements that cannot be watched (issue 51, item 4): never served unchecked in silence
 

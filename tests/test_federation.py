@@ -171,7 +171,7 @@ def test_a_lost_manager_fails_over_on_the_same_key_and_its_return_is_preferred(s
 
     make_manager("robot", specs=[SCENARIO_HOSTS["robot"]], ontology=[ONTOLOGY], connect=[station.endpoints[0]], listen=["tcp/127.0.0.1:0"])
     back = next(e for e in adapted(station, 2) if e.id != lost.id)
-    assert back.cause.startswith("manager 'robot' is trusted again: back for its probation of 0.5 s (1 loss in the last 60 s)") and "robot-camera@robot" in back.new, station.get_adaptations()
+    assert back.cause.startswith("manager 'robot' is trusted again: back for its probation of 0.5 s (1 loss)") and "robot-camera@robot" in back.new, station.get_adaptations()
     sink.wait_until(lambda msg: msg.payload["camera"] == BOTTOM)
     wait_until(lambda: not m["field"].units(), "the field's camera to be released")
 

@@ -289,10 +289,10 @@ def test_packet_loss_keeps_the_stream_on_its_key_and_nothing_grows(faulty: Hosts
 
 def test_a_flapping_link_moves_the_request_a_few_times_not_with_every_flap(faulty: Hosts) -> None:
     """The robot's link goes down and up every 2 s for 24 s: each loss moves the request off the
-    robot (a fault), but a robot lost again and again must stay longer each time before it is
-    trusted with the request again (probation). Without it the request followed every flap
-    (16 switches in 32 s); once the link holds, the robot's camera comes back."""
-    scenario = Scenario(faulty, dwell_s=0.5)  # the return after its last probation: 0.5 s x 2**5 = 16 s
+    robot (a fault), but a robot lost again within seconds is trusted with the request again only
+    once the penalty of its losses has decayed (flap damping). Without it the request followed
+    every flap (16 switches in 32 s); once the link holds, the robot's camera comes back."""
+    scenario = Scenario(faulty, dwell_s=0.5)  # the return: at most LINKS.max_hold_s (30 s) after its last loss
     try:
         scenario.observer.stats()
         for _ in range(6):
@@ -307,7 +307,7 @@ def test_a_flapping_link_moves_the_request_a_few_times_not_with_every_flap(fault
         causes = scenario.causes()
         assert all(cause.startswith(LINK_CAUSES) for cause in causes), causes
         if flapping["camera"] != BOTTOM:
-            scenario.observer.next("camera", camera=BOTTOM, timeout_s=60)  # at most its longest probation (30 s) after it holds
+            scenario.observer.next("camera", camera=BOTTOM, timeout_s=60)  # at most its longest hold (30 s) after its last loss
     finally:
         scenario.close()
 

@@ -214,3 +214,21 @@ class Reading(Unit):
     def tick(self) -> None:
         self.n += 1
         self.publish("out", {"id": self.id, "n": self.n})
+
+
+class Relapsing(Reading):
+    """A :class:`Reading` that sends ``id`` 2 for ``fail_after_s`` after each start, then 1: a
+    provider that relapses after every start (a requirement ``id == 2`` turns false), until a
+    test sets :attr:`fixed` (every start from then on keeps sending 2)."""
+
+    fixed = False
+
+    def setup(self) -> None:
+        super().setup()
+        self.id = 2
+        self.fail_at = time.monotonic() + float(self.params.get("fail_after_s", 8.0))
+
+    def tick(self) -> None:
+        if not Relapsing.fixed and time.monotonic() >= self.fail_at:
+            self.id = 1
+        super().tick()

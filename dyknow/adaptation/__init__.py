@@ -69,13 +69,16 @@ standby never uses a suspect. Releasing the request tears the
 standby down too. The model lists the standby's units (:class:`~dyknow.model.RequestInfo`), and
 the events of a switch onto the standby say so (``standby``).
 
-Flapping is prevented by a dwell time (an opportunity never switches a request twice within it),
-by exponential back-off for failed transformations (retried after 1 s, 2 s, 4 s ... up to
-60 s), and by probation for managers that come back: a manager lost ``n`` times in the last
-:data:`FLAP_WINDOW_S` is trusted again by an opportunity only once it has stayed for the dwell
-time times ``2 ** (n - 1)`` (at most :data:`FLAP_HOLD_MAX_S`); a fault or a degraded request uses
-it at once. So a link that goes down and up every few seconds moves a request off it, and back
-only once it holds. When no configuration exists the request is *degraded*, and recovered later when possible.
+Flapping is prevented by a dwell time (an opportunity never switches a request twice within it)
+and by flap damping (:mod:`dyknow.adaptation.damping`): each relapse adds to a penalty that decays
+with a half-life, as route-flap damping does. A suspect trusted again whose requirement is false
+again soon after is not tried again until its penalty decays (at most 15 minutes, :data:`TRIALS`);
+a transformation that fails again waits longer (1 s, 2 s, 4 s ... up to 60 s while its failures
+come close together, :data:`FAILURES`); a manager that comes back is trusted again by an
+opportunity after the dwell time, and when lost again within seconds only once the penalty of its
+losses decays (at most 30 s, :data:`LINKS`); a fault or a degraded request uses it at once. So a
+link that goes down and up every few seconds moves a request off it, and back only once it holds.
+When no configuration exists the request is *degraded*, and recovered later when possible.
 
 Every adaptation is an :class:`AdaptationEvent` (cause, old and new configuration, adaptation time
 from the fault to the new configuration wired and running) published as JSON on
@@ -94,6 +97,7 @@ from __future__ import annotations
 
 from dyknow.adaptation.analyze import Analyzer
 from dyknow.adaptation.anchor import ANCHOR_LABEL, ANCHOR_SPEC, WARM_ANCHOR_SPEC, RequestAnchor
+from dyknow.adaptation.damping import FAILURES, LINKS, TRIALS, Damping, Flaps
 from dyknow.adaptation.knowledge import (
     BACKOFF_FIRST_S,
     BACKOFF_MAX_S,
@@ -114,13 +118,18 @@ __all__ = [
     "BACKOFF_FIRST_S",
     "BACKOFF_MAX_S",
     "DEFAULT_DWELL_S",
+    "FAILURES",
     "FLAP_HOLD_MAX_S",
     "FLAP_WINDOW_S",
+    "LINKS",
+    "TRIALS",
     "WARM_ANCHOR_SPEC",
     "AdaptationEvent",
     "AdaptationLoop",
     "Analyzer",
+    "Damping",
     "DeadlinePort",
+    "Flaps",
     "Knowledge",
     "Monitor",
     "Reconfigurer",

@@ -7,9 +7,11 @@ units, managers lost and on probation, and the history of adaptations (:class:`A
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from dyknow.adaptation.damping import LINKS, Flaps, Penalty
 from dyknow.model import Owner, RequestInfo
 from dyknow.planner import Plan
 
@@ -19,10 +21,11 @@ log = logging.getLogger("dyknow.adaptation")  # one name for the loop, whichever
 DEFAULT_DWELL_S = 2.0
 BACKOFF_FIRST_S = 1.0
 BACKOFF_MAX_S = 60.0
-#: A manager's losses count towards its probation for this long.
+#: A manager lost this recently whose return the loop has not heard of yet is held back (its
+#: summary can reach the planner first).
 FLAP_WINDOW_S = 60.0
-#: The longest probation of a manager that comes back.
-FLAP_HOLD_MAX_S = 30.0
+#: The longest probation of a manager that comes back (after the dwell time), by default.
+FLAP_HOLD_MAX_S = LINKS.max_hold_s
 
 
 # ---------------------------------------------------------------------------- events and state
@@ -82,6 +85,7 @@ class Suspect:
     next_trial_ns: int = 0
     failed: int = 0  # trials in which a requirement was false again
     announced: bool = False  # the monitor said the trial is due
+    penalty: Penalty | None = None  # its relapses in this request (kept once it is trusted again)
 
     def info(self, trial: Trial | None, in_place: bool) -> dict[str, Any]:
         """The JSON form of the model (``RequestInfo.suspects``)."""
@@ -94,6 +98,8 @@ class Suspect:
             "failed_trials": self.failed,
             "backoff_s": self.backoff_s,
             "next_trial_ns": self.next_trial_ns,
+            "relapses": self.penalty.relapses if self.penalty is not None else 1,
+            "penalty": round(self.penalty.value(time.time_ns())) if self.penalty is not None else None,
         }
 
 
@@ -156,6 +162,8 @@ class Request:
     unwatched_event: AdaptationEvent | None = None
     # transformations its requirements found false, avoided by its plans until a trial clears them
     suspects: dict[str, Suspect] = field(default_factory=dict)
+    # the relapses of each transformation its requirements found false, trusted again or not
+    penalties: dict[str, Penalty] = field(default_factory=dict)
     trial: Trial | None = None  # the one running in the shadow
     trial_count: int = 0
     # degraded in place: a requirement is false and nothing else provides the tag, so the request
@@ -240,11 +248,13 @@ class SpecWatch:
 class Knowledge:
     """What the loop knows: requests, measurements, failures and their back-off, stalls, history."""
 
-    def __init__(self) -> None:
+    def __init__(self, flaps: Flaps | None = None) -> None:
+        self.flaps = flaps if flaps is not None else Flaps()
         self.requests: dict[str, Request] = {}  # by key
         self.measurements: dict[str, float | str] = {}
         # label -> [retry at (ns), current back-off (s), retry announced]
         self.backoff: dict[str, list[Any]] = {}
+        self.failures: dict[str, Penalty] = {}  # label -> its failures' penalty
         self.stalled: set[str] = set()  # unit names
         self.managed: set[str] = set()  # units the loop spawned (it never destroys the others)
         self.remote: dict[str, dict[str, str]] = {}  # name@manager -> bindings, of those on other managers
@@ -252,7 +262,7 @@ class Knowledge:
         # one its manager's summary does not show then is gone
         self.seen: set[str] = set()
         self.history: list[AdaptationEvent] = []
-        self.losses: dict[str, list[int]] = {}  # manager -> when it was lost (ns), the last FLAP_WINDOW_S
+        self.losses: dict[str, Penalty] = {}  # manager -> its losses' penalty
         self.returned: dict[str, list[int]] = {}  # manager -> [when it came back after a loss (ns), trust announced]
 
     def unavailable(self, now_ns: int) -> set[str]:
@@ -260,16 +270,18 @@ class Knowledge:
         return {label for label, (until, _, _) in self.backoff.items() if until > now_ns}
 
     def fail(self, label: str, now_ns: int) -> None:
-        """A transformation failed: exclude it, for twice as long as last time (1 s, 2 s, ... 60 s)."""
-        previous = self.backoff[label][1] if label in self.backoff else BACKOFF_FIRST_S / 2
-        delay = min(BACKOFF_MAX_S, previous * 2)
+        """A transformation failed: exclude it for its back-off, 1 s doubled once for each penalty
+        of its recent failures beyond this one (1 s, 2 s, 4 s ... 60 s while they come close
+        together; back to 1 s as they stop: :data:`~dyknow.adaptation.damping.FAILURES`)."""
+        penalty = self.failures.setdefault(label, Penalty(self.flaps.failures))
+        penalty.relapse(now_ns)
+        delay = min(BACKOFF_MAX_S, BACKOFF_FIRST_S * 2 ** penalty.doublings(now_ns))
         self.backoff[label] = [now_ns + int(delay * 1e9), delay, False]
 
     def lost(self, manager: str, now_ns: int) -> None:
-        """Another manager was lost: one more loss towards its probation. Its summary when it is
-        back accounts for every unit spawned there: one it does not show is gone (:attr:`seen`)."""
-        recent = [t for t in self.losses.get(manager, []) if now_ns - t < FLAP_WINDOW_S * 1e9][-63:]
-        self.losses[manager] = [*recent, now_ns]
+        """Another manager was lost: one more relapse towards its probation. Its summary when it
+        is back accounts for every unit spawned there: one it does not show is gone (:attr:`seen`)."""
+        self.losses.setdefault(manager, Penalty(self.flaps.links)).relapse(now_ns)
         self.returned.pop(manager, None)
         self.seen.update(ref for ref in self.remote if runs_on(ref, manager))
 
@@ -278,17 +290,16 @@ class Knowledge:
         if manager in self.losses:
             self.returned[manager] = [now_ns, False]
 
-    def probation(self, manager: str, now_ns: int, dwell_ns: int) -> tuple[int, int]:
-        """Until when (ns) ``manager`` is on probation, and after how many recent losses; (0, 0)
-        when it was not lost lately."""
+    def probation(self, manager: str, now_ns: int, dwell_ns: int) -> tuple[int, Penalty | None]:
+        """Until when (ns) ``manager`` is on probation, and the penalty of its losses; (0, None)
+        when it is not back from a loss. A manager back from a loss is on probation for the dwell
+        time from its return, and while its losses' penalty suppresses it
+        (:data:`~dyknow.adaptation.damping.LINKS`: lost again within about ten seconds)."""
         back = self.returned.get(manager)
-        if back is None:
-            return 0, 0
-        losses = sum(1 for t in self.losses.get(manager, []) if back[0] - t < FLAP_WINDOW_S * 1e9)
-        if losses == 0:
-            return 0, 0
-        hold = min(FLAP_HOLD_MAX_S * 1e9, dwell_ns * 2 ** (losses - 1))
-        return back[0] + int(hold), losses
+        penalty = self.losses.get(manager)
+        if back is None or penalty is None:
+            return 0, None
+        return max(back[0] + dwell_ns, penalty.suppressed_until()), penalty
 
     def on_probation(self, now_ns: int, dwell_ns: int) -> set[str]:
         """The managers an opportunity may not move a request onto yet: those back for less than
@@ -296,7 +307,7 @@ class Knowledge:
         reaches the planner before the loop hears that it came back)."""
         held = {m for m in self.returned if self.probation(m, now_ns, dwell_ns)[0] > now_ns}
         window = FLAP_WINDOW_S * 1e9
-        return held | {m for m, times in self.losses.items() if m not in self.returned and any(now_ns - t < window for t in times)}
+        return held | {m for m, penalty in self.losses.items() if m not in self.returned and now_ns - penalty.last_ns < window}
 
     def users(self, unit: str) -> list[Request]:
         """The requests whose configuration, warm standby, spare or trial units hold ``unit``."""

@@ -16,6 +16,7 @@ from dataclasses import replace
 from dyknow.adaptation.adapt import Adapter
 from dyknow.adaptation.analyze import Analyzer
 from dyknow.adaptation.anchor import ANCHOR_LABEL
+from dyknow.adaptation.damping import Flaps
 from dyknow.adaptation.events import Journal
 from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, AdaptationEvent, Knowledge
 from dyknow.adaptation.monitor import Monitor, Symptom
@@ -38,9 +39,9 @@ class AdaptationLoop:
     round.
     """
 
-    def __init__(self, runtime: Runtime, *, dwell_s: float = DEFAULT_DWELL_S) -> None:
+    def __init__(self, runtime: Runtime, *, dwell_s: float = DEFAULT_DWELL_S, damping: Flaps | None = None) -> None:
         self.runtime = runtime
-        self.knowledge = Knowledge()
+        self.knowledge = Knowledge(damping)
         self.dwell_ns = int(dwell_s * 1e9)
         self._lock = threading.RLock()
         self._symptoms: queue.SimpleQueue[Symptom | None] = queue.SimpleQueue()

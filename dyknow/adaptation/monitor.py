@@ -11,7 +11,7 @@ import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, FLAP_WINDOW_S, Knowledge
+from dyknow.adaptation.knowledge import DEFAULT_DWELL_S, Knowledge
 from dyknow.adaptation.runtime import DeadlinePort
 from dyknow.model import UnitEvent
 from dyknow.reasoning.progression import Verdict
@@ -134,11 +134,13 @@ class Monitor:
                 entry[2] = True  # announce each retry once; the back-off doubles if it fails again
                 self._report(Symptom("retry", now_ns, label=label, detail=f"back-off of {label} ended"))
         for manager, back in knowledge.returned.items():
-            until, losses = knowledge.probation(manager, now_ns, dwell_ns)
-            if not back[1] and until <= now_ns:
+            until, penalty = knowledge.probation(manager, now_ns, dwell_ns)
+            if not back[1] and until <= now_ns and penalty is not None:
                 back[1] = True  # announce it once
-                hold = (until - back[0]) / 1e9
-                why = f"back for its probation of {hold:g} s ({losses} loss{'es' if losses > 1 else ''} in the last {FLAP_WINDOW_S:g} s)"
+                hold = round((until - back[0]) / 1e9, 1)
+                losses = f"{penalty.relapses} loss{'es' if penalty.relapses > 1 else ''}"
+                damped = "" if until <= back[0] + dwell_ns else ", too close together: held back until their penalty decayed"
+                why = f"back for its probation of {hold:g} s ({losses}{damped})"
                 self._report(Symptom("peer-trusted", now_ns, manager=manager, detail=why))
         for request in knowledge.requests.values():
             for suspect in request.suspects.values():

@@ -12,8 +12,9 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any, Protocol
 
+from dyknow.adaptation.damping import Penalty
 from dyknow.adaptation.events import Journal, Recovery
-from dyknow.adaptation.knowledge import BACKOFF_FIRST_S, BACKOFF_MAX_S, AdaptationEvent, Knowledge, Request, Suspect
+from dyknow.adaptation.knowledge import BACKOFF_MAX_S, AdaptationEvent, Knowledge, Request, Suspect
 from dyknow.adaptation.monitor import Judge, Symptom
 from dyknow.adaptation.reconfigure import Reconfigurer, is_current
 from dyknow.adaptation.requirements import Requirements
@@ -109,7 +110,16 @@ class Suspects:
             where = f" of {symptom.label}" if symptom.label is not None else ""
             self.hold_in_place(request, symptom, old, f"its requirement{where} {symptom.detail!r} is false, and no other configuration provides {request.tag}")
             return
-        request.suspects[best[1]] = Suspect(best[1], symptom.detail, now, next_trial_ns=now + int(BACKOFF_FIRST_S * 1e9))
+        label = best[1]
+        penalty = request.penalties.setdefault(label, Penalty(self._knowledge.flaps.trials))
+        penalty.relapse(now)
+        suspect = request.suspects[label] = Suspect(label, symptom.detail, now, penalty=penalty)
+        _reschedule(suspect, now, failed=False)
+        if penalty.suppressed:
+            log.info(
+                "%s relapsed for %s (%d times, penalty %.0f): no trial before %.0f s from now",
+                label, request.tag, penalty.relapses, penalty.value(now), (suspect.next_trial_ns - now) / 1e9,
+            )  # fmt: skip
         self._adapting.adapt(request, symptom, fault=True)
 
     # -- trials in the shadow
@@ -275,12 +285,14 @@ class Suspects:
 
 def _reschedule(suspect: Suspect | None, now: int, *, failed: bool, slower: bool = False) -> None:
     """The next trial of ``suspect``: after twice the wait when its trial failed (or could not
-    start: ``slower``), else after the same wait."""
+    start: ``slower``), else after the same wait; and not while its relapses' penalty suppresses
+    it (:data:`~dyknow.adaptation.damping.TRIALS`)."""
     if suspect is None:
         return
     if failed:
         suspect.failed += 1
     if failed or slower:
         suspect.backoff_s = min(BACKOFF_MAX_S, suspect.backoff_s * 2)
-    suspect.next_trial_ns = now + int(suspect.backoff_s * 1e9)
+    suppressed = suspect.penalty.suppressed_until() if suspect.penalty is not None else 0
+    suspect.next_trial_ns = max(now + int(suspect.backoff_s * 1e9), suppressed)
     suspect.announced = False

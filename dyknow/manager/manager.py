@@ -24,7 +24,7 @@ from typing import Any
 
 from dyknow import keys
 from dyknow.access import AccessControl, TlsFiles
-from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort
+from dyknow.adaptation import ANCHOR_LABEL, DEFAULT_DWELL_S, AdaptationEvent, AdaptationLoop, DeadlinePort, Flaps
 from dyknow.bus import LocalBus
 from dyknow.client import Client
 from dyknow.errors import AccessError, BindingError, ClosedError, DyKnowError
@@ -87,6 +87,8 @@ class Manager:
     unit's turn before the manager counts as overloaded and sheds its least important work (see
     :mod:`dyknow.overload`).
     ``dwell_s``: how long a request keeps a configuration before switching for a better one.
+    ``damping``: how relapses are damped (:class:`~dyknow.adaptation.Flaps`: suspects whose
+    requirement is false again, transformations that fail again, managers lost again).
 
     Where units' code comes from: an installed package, ``PYTHONPATH``, or a module or package
     beside a spec file the operator gave (at start or through the Python API) or in one of
@@ -134,6 +136,7 @@ class Manager:
         max_lanes: int = DEFAULT_MAX_LANES,
         overload_lag_s: float = DEFAULT_LAG_BUDGET_S,
         dwell_s: float = DEFAULT_DWELL_S,
+        damping: Flaps | None = None,
         allow_sources: Iterable[str] = (),
         code_paths: Iterable[str | os.PathLike[str]] = (),
         data_roots: Iterable[str | os.PathLike[str]] = (),
@@ -237,7 +240,7 @@ class Manager:
             options=(ros2_domain, ros2_node, ros2_namespace),
             dds_config=dds_config,
         )
-        self._adaptation = AdaptationLoop(self, dwell_s=dwell_s)
+        self._adaptation = AdaptationLoop(self, dwell_s=dwell_s, damping=damping)
         self._peers = Peers(
             self.name,
             self.host,
