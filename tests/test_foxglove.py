@@ -149,6 +149,7 @@ def test_foxglove_serves_live_images_and_json(make_manager: Callable[..., Manage
     manager.spawn("synthetic-scene(ceiling)", "scene", params={"rate_hz": 30, "width": 160, "height": 120})
     image_key = f"dyknow/{manager.name}/scene/out"
     json_key = manager.request("BallTrack(field)")
+    verdict_key = manager.monitor("BallTrack(field).tracked >= 1")  # its verdicts: what a State Transitions panel plots
     proc = cli_process("foxglove", "--connect", manager.endpoints[0], "--port", "0", "--json")  # KEYEXPR: dyknow/** by default
     ready = proc.line()
     assert ready["event"] == "ready" and ready["url"].startswith("ws://127.0.0.1:"), ready
@@ -158,14 +159,14 @@ def test_foxglove_serves_live_images_and_json(make_manager: Callable[..., Manage
         async with aiohttp.ClientSession() as http, http.ws_connect(ready["url"], protocols=[SUBPROTOCOL]) as ws:
             assert ws.protocol == SUBPROTOCOL
             await pump(
-                ws, seen, lambda: seen.channel(image_key) is not None and seen.channel(json_key) is not None, "both channels advertised"
+                ws, seen, lambda: all(seen.channel(k) is not None for k in (image_key, json_key, verdict_key)), "the three channels advertised"
             )
             assert seen.server_info is not None and seen.server_info["name"] == "dyknow"
-            image, track = seen.channel(image_key), seen.channel(json_key)
-            assert image is not None and track is not None
-            await subscribe(ws, {1: image["id"], 2: track["id"]}, seen)
-            await pump(ws, seen, lambda: len(seen.messages.get(1, [])) >= 3 and len(seen.messages.get(2, [])) >= 3, "messages on both")
-        return seen, {"image": image, "track": track}
+            image, track, verdicts = seen.channel(image_key), seen.channel(json_key), seen.channel(verdict_key)
+            assert image is not None and track is not None and verdicts is not None
+            await subscribe(ws, {1: image["id"], 2: track["id"], 3: verdicts["id"]}, seen)
+            await pump(ws, seen, lambda: all(len(seen.messages.get(i, [])) >= 3 for i in (1, 2, 3)), "messages on the three")
+        return seen, {"image": image, "track": track, "verdicts": verdicts}
 
     try:
         seen, channels = asyncio.run(watch())
@@ -186,6 +187,11 @@ def test_foxglove_serves_live_images_and_json(make_manager: Callable[..., Manage
     assert all(isinstance(t, dict) and t["tracked"] >= 1 for t in tracks)
     assert [t["tracked"] for t in tracks] == sorted(t["tracked"] for t in tracks)
     assert all(log_time > 0 for log_time, _ in seen.messages[2])
+    # a monitor's verdicts: a JSON channel whose schema has the boolean a State Transitions panel plots
+    verdict_schema = check_json_channel(channels["verdicts"], verdict_key)
+    assert verdict_schema["properties"]["verdict"] in ({"type": "boolean"}, {}) and verdict_schema["properties"]["t"] == {"type": "number"}
+    said = [json.loads(data) for _, data in seen.messages[3]]
+    assert [v["verdict"] for v in said][-1] is True and all(log_time > 0 for log_time, _ in seen.messages[3])
     assert proc.stop() == 0
 
 

@@ -172,6 +172,44 @@ def test_dyknow_check_exits_1_and_writes_the_same_junit_report_every_time(floor:
 
 
 @pytest.mark.process
+def test_dyknow_check_writes_every_verdict_to_an_mcap_file_foxglove_plots(floor: tuple[Path, Path, Path, Any], tmp_path: Path) -> None:
+    """``--verdicts FILE.mcap``: a topic per requirement and instance, every verdict at its
+    state's time (the recording's time base, so Foxglove shows both files on one timeline), a JSON
+    schema with the fields a State Transitions panel plots, and the atoms' values at each change.
+    Read back with the ``mcap`` library, against the naive evaluator's series."""
+    from mcap.reader import make_reader
+
+    requirements_path, recording, ontology, series = floor
+    out = tmp_path / "verdicts.mcap"
+    done = run_cli("check", str(requirements_path), "--mcap", str(recording), "--ontology", str(ontology), "--verdicts", str(out))
+    assert done.returncode == 1, done.stderr
+    expected = by_hand(series)
+    got: dict[str, list[tuple[int, Any]]] = {}
+    schemas: dict[str, Any] = {}
+    whys: dict[str, list[tuple[int, Any]]] = {}
+    with out.open("rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            payload = json.loads(message.data)
+            assert channel.message_encoding == "json" and schema is not None and schema.encoding == "jsonschema"
+            schemas[channel.topic] = json.loads(schema.data)
+            assert message.log_time == message.publish_time
+            got.setdefault(channel.topic, []).append((message.log_time, payload["verdict"]))
+            assert payload["state"] == {True: "true", False: "false", None: "unknown"}[payload["verdict"]]
+            if "why" in payload:
+                whys.setdefault(channel.topic, []).append((message.log_time, payload["why"]))
+    want = {f"verdicts/{name.replace(' ', '_')}" + (f"/{instance}" if instance else ""): verdicts
+            for name, by_instance in expected.items() for instance, verdicts in by_instance.items()}  # fmt: skip
+    assert got == want
+    topic = "verdicts/speed_under_the_zone's_limit/r2"
+    assert schemas[topic]["properties"]["state"]["type"] == "string"
+    # the atoms' values at each change of r2's verdict: the first verdict, each fall and each rise
+    changes = [(t, v) for i, (t, v) in enumerate(want[topic]) if i == 0 or want[topic][i - 1][1] is not v]
+    assert [t for t, _ in whys[topic]] == [t for t, _ in changes] and len(changes) == 5
+    assert whys[topic][1] == (2_007_000_000, ["State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5"])
+    assert "each_robot_seen_is_slow_for_300_ms/r1" in {t.removeprefix("verdicts/") for t in got} and not any("each_robot" in t for t in whys)
+
+
+@pytest.mark.process
 def test_a_requirement_that_cannot_be_checked_is_an_error_and_the_others_are_checked(floor: tuple[Path, Path, Path, Any], tmp_path: Path) -> None:
     """A typo in a formula, a term without a binding and a topic the recording lacks: each an
     error naming the file, the line and the requirement; the rest still checked, and the report

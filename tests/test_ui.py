@@ -265,6 +265,58 @@ def test_the_verdicts_of_monitors_and_requirements_show_as_a_timeline(ui: Callab
     assert len(rows) == 2 and all(" verdicts, " in row for row in rows), rows
 
 
+READING = """<transformations><transformation><label>reading</label><source>tests.units:Reading</source>
+  <params><param name="id" type="int">1</param><param name="rate_hz" type="float">20</param></params>
+  <ports><port type="out">out</port></ports></transformation></transformations>"""
+
+
+@pytest.mark.browser
+def test_the_timeline_has_a_row_per_object_the_values_at_each_change_and_a_recordings_verdicts(
+    ui: Callable[..., tuple[Manager, str]], browser: Any, tmp_path: Path
+) -> None:
+    """Live: a foreach monitor's objects each get a row (two devices on one key, ids 1 and 2),
+    and a monitor whose verdict falls lists the change with the values that decided it
+    (``Level(tank).n < 30: 30 < 30``). From a recording (``dyknow ui --requirements F --mcap M``):
+    a row per requirement and instance, checked as ``dyknow check`` checks them, with the values
+    at each change (r2's speed against its zone's limit)."""
+    from tests.test_reasoning_requirements import ONTOLOGY, REQUIREMENTS, record, states
+
+    (tmp_path / "floor.toml").write_text(REQUIREMENTS)
+    (tmp_path / "floor.ttl").write_text(ONTOLOGY)
+    record(tmp_path / "floor.mcap", states())
+    manager, url = ui("--requirements", str(tmp_path / "floor.toml"), "--mcap", str(tmp_path / "floor.mcap"), "--ontology", str(tmp_path / "floor.ttl"))
+    manager.add_transformation(READING)
+    for ident in (1, 2):
+        manager.spawn("reading", f"device-{ident}", params={"id": ident}, bindings={"out": "tank/seen"})
+    objects = manager.monitor("foreach d in Seen(tank).id: Seen(tank).n > 0", bindings={"Seen(tank)": "tank/seen"})
+    falls = manager.monitor("Level(tank).n < 30", bindings={"Level(tank)": "tank/seen"})  # each device's n passes 30 after 1.5 s
+    browser.get(url)
+    wait_text(browser, "status", "1 managers")
+    tab(browser, "requests")
+    wait_text(browser, "verdicts", f"{objects} [1]")
+    wait_text(browser, "verdicts", f"{objects} [2]")
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    def changes(name: str) -> list[str]:  # a row's changes, each with its atoms, read in the page at once
+        script = ("return [...document.querySelectorAll('#verdicts .verdict-row')]"
+                  ".filter((r) => r.querySelector('code').textContent === arguments[0])"
+                  ".flatMap((r) => [...r.querySelectorAll('li.change')].map((li) => li.textContent))")  # fmt: skip
+        return [str(text) for text in browser.execute_script(script, name)]
+
+    WebDriverWait(browser, PAGE_S).until(lambda _: any("false" in c for c in changes(falls)))
+    fell = next(c for c in changes(falls) if ": false" in c)
+    assert "Level(tank).n < 30: 3" in fell, changes(falls)  # the n that made it false, 30 or more
+    assert changes(falls)[0].split(": ")[1].startswith("true"), changes(falls)  # (it held first)
+    # the recording's rows: every requirement and instance, r2's speed explained at its fall
+    wait_text(browser, "verdicts", "Checked over the recording")
+    recorded = changes("speed under the zone's limit [r2]")
+    assert any("t=2.007 s: false" in c and "0.9 <= 0.5" in c for c in recorded), recorded
+    assert changes("the dock's limit is set") and all(": true" in c for c in changes("the dock's limit is set"))
+    names = browser.execute_script("return [...document.querySelectorAll('#verdicts .verdict-row.recorded code')].map((c) => c.textContent)")
+    assert "robots keep apart [r1/r3]" in names and "each robot seen is slow for 300 ms [r2]" in names, names
+    shot(browser, "timeline")
+
+
 @pytest.mark.process
 def test_the_token_is_required_when_set_and_made_beyond_loopback(ui: Callable[..., tuple[Manager, str]]) -> None:
     assert check_bind("127.0.0.1", None) is None and check_bind("::1", None) is None

@@ -195,10 +195,11 @@ def cmd_check(args: argparse.Namespace) -> int:
 
     examples:
       dyknow check requirements.toml --mcap run.mcap
-      dyknow check requirements.toml --mcap run.mcap --ontology floor.ttl --junit report.xml"""
+      dyknow check requirements.toml --mcap run.mcap --ontology floor.ttl --junit report.xml
+      dyknow check requirements.toml --mcap run.mcap --verdicts verdicts.mcap   # open both in Foxglove"""
     from pathlib import Path
 
-    from dyknow.reasoning.requirements import check_recording, details, junit_xml, load_requirements, summary
+    from dyknow.reasoning.requirements import check_recording, details, junit_xml, load_requirements, summary, write_verdicts
 
     requirements = load_requirements(args.requirements)
     ontology = _ontology(args.ontology)
@@ -208,6 +209,8 @@ def cmd_check(args: argparse.Namespace) -> int:
             Path(args.junit).write_text(junit_xml(results, recording=Path(args.mcap).name), encoding="utf-8")
         except OSError as exc:
             raise UsageError(f"--junit {args.junit}: cannot write the report: {exc.strerror or exc}") from None
+    if args.verdicts is not None:
+        write_verdicts(results, args.verdicts)
     held = sum(r.held for r in results)
     errors = sum(r.error is not None for r in results)
     if args.json:
@@ -279,6 +282,9 @@ def add_commands(cmds: Commands) -> None:
         p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
                        help="ontologies whose individuals a forall ranges over (@shipped/dyknow.ttl: the example ontology)")  # fmt: skip
         p.add_argument("--junit", metavar="FILE.xml", help="also write a JUnit XML report (a test case per requirement), for CI")
+        p.add_argument("--verdicts", metavar="FILE.mcap",
+                       help="also write every verdict to an MCAP file, a topic per requirement and instance (verdicts/NAME[/INSTANCE]), "
+                            "at the recording's times: Foxglove's State Transitions panel plots .state")  # fmt: skip
         cmds.mcap_limit_options(p)
 
     cmds.command("check", cmd_check, check_options)

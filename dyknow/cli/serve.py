@@ -11,7 +11,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from dyknow.cli.common import (
     DEFAULT_MANAGER,
@@ -20,6 +20,7 @@ from dyknow.cli.common import (
     default_endpoint,
     open_client,
     positive_int,
+    read_limits,
     report_result,
     seconds,
     shipped,
@@ -246,12 +247,30 @@ def cmd_ui(args: argparse.Namespace) -> int:
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port: got {args.port}; expected 0 to 65535")
 
+    recorded = None
+    if args.requirements is not None or args.mcap is not None:
+        recorded = _recorded_timeline(args)
+
     def ready(url: str) -> None:
         report_result(args, {"event": "ready", "url": url}, f"dyknow ui: open {url} (Ctrl-C to stop)")
         sys.stdout.flush()
 
     with open_client(args) as client:
-        return run_ui(client, host=args.host, port=args.port, token=args.token, ready=ready)
+        return run_ui(client, host=args.host, port=args.port, token=args.token, ready=ready, recorded=recorded)
+
+
+def _recorded_timeline(args: argparse.Namespace) -> dict[str, Any]:
+    """``--requirements F --mcap M``: the requirements checked over the recording, as the page's rows."""
+    from dyknow.ontology import Ontology
+    from dyknow.reasoning.requirements import check_recording, load_requirements
+    from dyknow.ui.server import recorded_timeline
+
+    if args.requirements is None or args.mcap is None:
+        raise UsageError("--requirements and --mcap go together: the requirements file, and the recording to check it over")
+    ontology = Ontology.load(args.ontology) if args.ontology else None
+    results = check_recording(load_requirements(args.requirements), args.mcap, individuals=ontology.individuals if ontology is not None else None,
+                              limits=read_limits(args))  # fmt: skip
+    return recorded_timeline(results)
 
 
 def cmd_foxglove(args: argparse.Namespace) -> int:
@@ -494,6 +513,12 @@ def add_commands(cmds: Commands) -> None:
         p.add_argument("--host", default="127.0.0.1", help="the address to serve on (default 127.0.0.1; elsewhere a token is required)")
         p.add_argument("--port", type=int, default=8321, help="the port to serve on (default 8321; 0: any free port)")
         p.add_argument("--token", help="the access token the page must carry (default: none on loopback, a new one elsewhere)")
+        p.add_argument("--requirements", metavar="REQUIREMENTS.toml",
+                       help="with --mcap: also show the verdict timeline of these requirements over that recording (as dyknow check judges it)")  # fmt: skip
+        p.add_argument("--mcap", metavar="FILE", help="the recording --requirements are checked over")
+        p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
+                       help="ontologies whose individuals a requirement's forall ranges over")  # fmt: skip
+        cmds.mcap_limit_options(p)
 
     cmds.command("ui", cmd_ui, ui_options, client=True)
 

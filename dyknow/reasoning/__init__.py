@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from dyknow.errors import FormulaError
     from dyknow.reasoning.objects import ObjectMonitor
     from dyknow.reasoning.progression import Monitor, Verdict
-    from dyknow.reasoning.requirements import Requirement, Result, check_recording, junit_xml, load_requirements
+    from dyknow.reasoning.requirements import Requirement, Result, check_recording, junit_xml, load_requirements, write_verdicts
     from dyknow.reasoning.semantics import evaluate, evaluate_ns, evaluate_objects_ns, evaluate_values_ns
     from dyknow.reasoning.syntax import Formula, check_formula, parse, parse_value
     from dyknow.reasoning.unit import FormulaMonitor, monitor_spec, term_ports
@@ -76,6 +76,7 @@ __all__ = [
     "parse",
     "parse_value",
     "term_ports",
+    "write_verdicts",
 ]
 
 #: Where each public name is defined, imported on first use: a module that needs only the syntax
@@ -101,6 +102,7 @@ _WHERE = {
     "parse": "dyknow.reasoning.syntax",
     "parse_value": "dyknow.reasoning.syntax",
     "term_ports": "dyknow.reasoning.unit",
+    "write_verdicts": "dyknow.reasoning.requirements",
 }
 
 

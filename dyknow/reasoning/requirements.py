@@ -42,22 +42,25 @@ from typing import Any
 from xml.sax.saxutils import escape, quoteattr
 
 from dyknow.errors import DyKnowError, FormulaError, did_you_mean
+from dyknow.message import Message
 from dyknow.reasoning.bindings import topic_of
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS
-from dyknow.reasoning.offline import explainer, read_topics
+from dyknow.reasoning.offline import changes, explainer, read_topics
 from dyknow.reasoning.quantify import expand
 from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns
 from dyknow.reasoning.syntax import Formula, Quantifier
-from dyknow.recording import ReadLimits
+from dyknow.recording import ReadLimits, Recorder
 from dyknow.security import Limits
 from dyknow.tags import Term, parse_term
 
-__all__ = ["MAX_REQUIREMENTS", "Requirement", "Result", "check_recording", "junit_xml", "load_requirements"]
+__all__ = ["MAX_REQUIREMENTS", "Requirement", "Result", "check_recording", "junit_xml", "load_requirements", "write_verdicts"]
 
 #: The most requirements a file may hold.
 MAX_REQUIREMENTS = 1_000
 #: Runs of false verdicts explained per instance.
 MAX_EXPLAINED = 10
+#: Changes of a verdict explained per instance (:attr:`Result.changes`).
+MAX_CHANGES_EXPLAINED = 50
 _FIELDS = {"name", "formula", "bindings", "idle_ms"}
 _HEADER = re.compile(r"^[ \t]*\[\[[ \t]*requirement[ \t]*\]\]", re.MULTILINE)
 _BRACED = re.compile(r"\{([^{}]*)\}")
@@ -89,6 +92,10 @@ class Result:
     #: (instance, t_ns) -> each atom of the formula as written and with its sides' values at the
     #: first state of each run of false verdicts (an instance of a ``foreach`` is not explained)
     why: dict[tuple[str, int], list[str]] = field(default_factory=dict)
+    #: by instance, each change of its verdict ``(t_ns, verdict, atoms)``, the first verdict
+    #: included; the atoms' values as :attr:`why` gives them, for the first
+    #: :data:`MAX_CHANGES_EXPLAINED` changes of an instance (none for a ``foreach`` object)
+    changes: dict[str, list[tuple[int, bool | None, list[str]]]] = field(default_factory=dict)
 
     @property
     def held(self) -> bool:
@@ -284,12 +291,49 @@ def check_recording(
             result.error = _located(exc, result.requirement)
             continue
         formulas = dict(cases)
+        explainers = {key: explainer(formula, samples) for key, formula in formulas.items() if not _foreach(formula)}
         for key, spans in result.false_spans().items():
-            if key in formulas and not _foreach(formulas[key]):
-                explain = explainer(formulas[key], samples)
+            if key in explainers:
                 for first, _ in spans[:MAX_EXPLAINED]:
-                    result.why[(key, first)] = explain(first)
+                    result.why[(key, first)] = explainers[key](first)
+        for key, series in result.verdicts.items():
+            explain = explainers.get(key)
+            result.changes[key] = [
+                (t, v, explain(t) if explain is not None and i < MAX_CHANGES_EXPLAINED else []) for i, (t, v) in enumerate(changes(series))
+            ]
     return [result for result, _, _ in plans]
+
+
+def write_verdicts(results: Sequence[Result], path: str | os.PathLike[str]) -> int:
+    """Write every verdict of ``results`` to the MCAP file ``path``, for Foxglove's panels (its
+    State Transitions panel plots ``.state`` or ``.verdict``): one topic per requirement and
+    instance, ``verdicts/<name>`` (``verdicts/<name>/<instance>`` for a ``forall`` individual or a
+    ``foreach`` object), each verdict a JSON message at its state's time, ``{"requirement",
+    "formula", "instance", "verdict", "state"}`` (``state``: "true", "false" or "unknown"), and
+    ``"why"`` (the atoms' values) at each change that has it. Returns how many were written;
+    :class:`~dyknow.errors.RecordingError` when the file cannot be written."""
+    written = 0
+    with Recorder(path=path, metadata={"written_by": "dyknow check --verdicts"}) as recorder:
+        for result in results:
+            name = result.requirement.name
+            for instance, series in result.verdicts.items():
+                key = f"verdicts/{_key_chunk(name)}" + (f"/{'/'.join(_key_chunk(c) for c in instance.split('/'))}" if instance else "")
+                why = {t: atoms for t, _, atoms in result.changes.get(instance, []) if atoms}
+                for seq, (t, v) in enumerate(series):
+                    payload: dict[str, Any] = {"requirement": name, "formula": result.requirement.formula, "instance": instance,
+                                               "verdict": v, "state": "unknown" if v is None else "true" if v else "false"}  # fmt: skip
+                    if t in why:
+                        payload["why"] = why[t]
+                    recorder.write(Message(payload, seq, t, t, key))
+                    written += 1
+    if recorder.error is not None:
+        raise recorder.error
+    return written
+
+
+def _key_chunk(text: str) -> str:
+    """``text`` as one chunk of a key: the characters a Zenoh key may not hold replaced by ``_``."""
+    return re.sub(r"[/*$?#\s]", "_", text) or "_"
 
 
 def _located(exc: DyKnowError, requirement: Requirement) -> DyKnowError:

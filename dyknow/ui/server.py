@@ -58,7 +58,7 @@ import secrets
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -74,7 +74,19 @@ from dyknow.service import MANAGER_SERVICES, UNIT_SERVICES
 from dyknow.transport import check_key_expr
 from dyknow.webguard import HEAD_TIMEOUT_S, foreign, host_name, served_hosts
 
-__all__ = ["BODY_TIMEOUT_S", "MAX_CALL_BYTES", "MAX_CONNECTIONS", "MAX_STREAMS", "MAX_VERDICT_KEYS", "ModelWatch", "check_bind", "make_app", "serve"]
+__all__ = [
+    "BODY_TIMEOUT_S",
+    "MAX_CALL_BYTES",
+    "MAX_CONNECTIONS",
+    "MAX_OBJECT_ROWS",
+    "MAX_STREAMS",
+    "MAX_VERDICT_KEYS",
+    "ModelWatch",
+    "check_bind",
+    "make_app",
+    "recorded_timeline",
+    "serve",
+]
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +99,11 @@ MAX_VERDICT_KEYS = 32  # verdict streams followed at once (monitors' and require
 MAX_CONNECTIONS = 256  # open at once, whatever they are doing
 BODY_TIMEOUT_S = 10.0  # for a call's body to arrive once its head has
 _VERDICTS_KEPT = 300  # the latest verdicts of each, for the page's timeline
+_CHANGES_KEPT = 50  # the latest changes of each, with the values that decided them
+MAX_OBJECT_ROWS = 64  # rows of one foreach monitor's objects (further objects are not shown)
+MAX_OBJECT_CHARS = 80  # of an object's id in its row's name
+MAX_WHY_ATOMS = 8  # atoms shown of a change's why
+MAX_WHY_CHARS = 300  # of each
 
 
 class ModelWatch:
@@ -95,7 +112,7 @@ class ModelWatch:
     ``listen(callback)`` has ``callback()`` called (on the watch's thread) after each change.
     """
 
-    def __init__(self, client: Client, *, poll_s: float = 0.25, stats_s: float = 1.0) -> None:
+    def __init__(self, client: Client, *, poll_s: float = 0.25, stats_s: float = 1.0, recorded: dict[str, Any] | None = None) -> None:
         self.client = client
         self.poll_s = poll_s
         self.stats_s = stats_s
@@ -109,8 +126,10 @@ class ModelWatch:
         self._names_at = 0.0
         self._lock = threading.Lock()
         self._listeners: list[Callable[[], None]] = []
-        self._verdicts: dict[str, deque[list[Any]]] = {}  # verdict key -> [t, verdict, gap cause or None]
+        self._verdicts: dict[str, deque[list[Any]]] = {}  # row (key, or key [object]) -> [t, verdict, gap cause or None]
+        self._changes: dict[str, deque[list[Any]]] = {}  # row -> [t, verdict, why or None], where the verdict changed
         self._verdict_subs: dict[str, Any] = {}
+        self._recorded = recorded if recorded is not None else {}
         self._closed = False
         self._thread = threading.Thread(target=self._run, name="dyknow-ui-watch", daemon=True)
         self._thread.start()
@@ -131,7 +150,8 @@ class ModelWatch:
 
     def _follow_verdicts(self, models: list[dict[str, Any]]) -> None:
         """Subscribe to the verdicts of every monitor and requirement the models list (and drop
-        those gone), at most :data:`MAX_VERDICT_KEYS`."""
+        those gone), at most :data:`MAX_VERDICT_KEYS`. A ``foreach`` monitor's verdicts make a
+        row per object (``KEY [OBJECT]``, at most :data:`MAX_OBJECT_ROWS` per key)."""
         wanted: list[str] = []
         for model in models:
             for monitor in model.get("monitors", []):
@@ -143,19 +163,36 @@ class ModelWatch:
         for key in [k for k in self._verdict_subs if k not in wanted]:
             self._verdict_subs.pop(key).undeclare()
             with self._lock:
-                self._verdicts.pop(key, None)
+                for row in [r for r in self._verdicts if r == key or r.startswith(f"{key} [")]:
+                    self._verdicts.pop(row, None)
+                    self._changes.pop(row, None)
         for key in wanted:
             if key not in self._verdict_subs:
-                kept: deque[list[Any]] = deque(maxlen=_VERDICTS_KEPT)
                 with self._lock:
-                    self._verdicts[key] = kept
+                    self._verdicts[key] = deque(maxlen=_VERDICTS_KEPT)
+                    self._changes[key] = deque(maxlen=_CHANGES_KEPT)
 
-                def take(msg: Message, kept: deque[list[Any]] = kept) -> None:
+                def take(msg: Message, key: str = key) -> None:
                     p = msg.payload
-                    if isinstance(p, dict) and isinstance(p.get("verdict"), bool):
-                        gap = p.get("gap")
-                        with self._lock:
-                            kept.append([p.get("t"), p["verdict"], gap.get("cause") if isinstance(gap, dict) else None])
+                    if not isinstance(p, dict) or not (isinstance(p.get("verdict"), bool) or p.get("verdict") is None and "t" in p):
+                        return
+                    verdict = p.get("verdict")
+                    gap = p.get("gap")
+                    obj = p.get("object")
+                    row = key if obj is None else f"{key} [{str(obj)[:MAX_OBJECT_CHARS]}]"
+                    why = p.get("why")
+                    with self._lock:
+                        kept = self._verdicts.get(row)
+                        if kept is None:
+                            if obj is None or sum(r.startswith(f"{key} [") for r in self._verdicts) >= MAX_OBJECT_ROWS:
+                                return  # (a key given up meanwhile, or more objects than the page shows)
+                            kept = self._verdicts[row] = deque(maxlen=_VERDICTS_KEPT)
+                            self._changes[row] = deque(maxlen=_CHANGES_KEPT)
+                        changes = self._changes[row]
+                        if not changes or changes[-1][1] is not verdict:
+                            said = [str(w)[:MAX_WHY_CHARS] for w in why[:MAX_WHY_ATOMS]] if isinstance(why, list) else None
+                            changes.append([p.get("t"), verdict, said])
+                        kept.append([p.get("t"), verdict, gap.get("cause") if isinstance(gap, dict) else None])
 
                 try:
                     self._verdict_subs[key] = self.client.declare_subscriber(key, take)
@@ -184,12 +221,17 @@ class ModelWatch:
                     m["clocks"] = self._clocks[m.get("manager")]
         self._follow_verdicts(models)
         with self._lock:
-            verdicts = {key: [list(v) for v in kept] for key, kept in self._verdicts.items()}
+            objects = {row.split(" [", 1)[0] for row in self._verdicts if " [" in row}
+            verdicts = {key: [list(v) for v in kept] for key, kept in self._verdicts.items() if kept or key not in objects}
+            changes = {key: [list(c) for c in kept] for key, kept in self._changes.items() if key in verdicts}
             lost = self.client.seen_lost()
-            if (models, self._stats, verdicts, lost) == (self.data["managers"], self.data.get("stats"), self.data.get("verdicts"), self.data.get("lost")):
+            if (models, self._stats, verdicts, changes, lost) == (
+                self.data["managers"], self.data.get("stats"), self.data.get("verdicts"), self.data.get("changes"), self.data.get("lost")
+            ):  # fmt: skip
                 return
             self.version += 1
-            self.data = {"version": self.version, "managers": models, "stats": self._stats, "verdicts": verdicts, "lost": lost}
+            self.data = {"version": self.version, "managers": models, "stats": self._stats, "verdicts": verdicts, "changes": changes,
+                         "lost": lost, "recorded": self._recorded}  # fmt: skip
             listeners = list(self._listeners)
         for listener in listeners:
             listener()
@@ -245,6 +287,32 @@ class ModelWatch:
             except Exception:
                 log.exception("the model could not be refreshed")
             time.sleep(self.poll_s)
+
+
+def recorded_timeline(results: Sequence[Any], *, cells: int = _VERDICTS_KEPT, changes: int = 200) -> dict[str, Any]:
+    """The verdict timeline of requirements checked over a recording
+    (:func:`dyknow.reasoning.check_recording`'s results), for the page: a row per requirement and
+    instance (``NAME [INSTANCE]``), each ``{"formula", "verdicts": [[t, verdict, null], ...],
+    "changes": [[t, verdict, why], ...], "error"}`` (``t`` in seconds of the recording's clock).
+    A row's verdicts are at most ``cells``: each cell stands for an equal run of states and shows
+    the worst of them (false, then unknown, then true), so no false state is hidden; its first
+    ``changes`` changes are listed."""
+    rows: dict[str, Any] = {}
+    for result in results:
+        name = result.requirement.name
+        if result.error is not None:
+            rows[name] = {"formula": result.requirement.formula, "verdicts": [], "changes": [], "error": str(result.error)}
+            continue
+        for instance, series in result.verdicts.items():
+            step = max(1, -(-len(series) // cells))
+            strip = []
+            for i in range(0, len(series), step):
+                run = [v for _, v in series[i : i + step]]
+                worst = False if False in run else None if None in run else True
+                strip.append([series[i][0] / 1e9, worst, None])
+            said = [[t / 1e9, v, atoms or None] for t, v, atoms in result.changes.get(instance, [])[:changes]]
+            rows[f"{name} [{instance}]" if instance else name] = {"formula": result.requirement.formula, "verdicts": strip, "changes": said, "error": None}
+    return rows
 
 
 def make_app(client: Client, watch: ModelWatch, *, token: str | None = None, bind: str = "127.0.0.1") -> web.Application:

@@ -569,19 +569,55 @@ function wire() {
   });
 }
 
-function drawVerdicts() {
-  // one strip per monitor or requirement: its latest verdicts, green true, red false, a bar where a gap was
-  const rows = [];
-  for (const [key, verdicts] of Object.entries(model.verdicts || {}).sort()) {
-    const strip = el("span", undefined, { class: "strip" });
-    for (const [t, verdict, gap] of verdicts) {
-      const cell = el("i", undefined, { class: (verdict ? "holds" : "violated") + (gap ? " gap" : ""), title: `t=${Number(t).toFixed(2)} s: ${verdict}${gap ? " (after a gap: " + gap + ")" : ""}` });
-      strip.append(cell);
-    }
-    const falses = verdicts.filter((v) => !v[1]).length;
-    rows.push(el("div", undefined, { class: "verdict-row" }));
-    rows[rows.length - 1].append(el("code", key), strip, el("span", ` ${verdicts.length} verdicts, ${falses} false`));
+function verdictName(verdict) {
+  return verdict === true ? "true" : verdict === false ? "false" : "unknown";
+}
+
+function verdictRow(name, verdicts, changes, recorded, error) {
+  // a strip of its verdicts (green true, red false, grey unknown, a bar where a gap was), then
+  // its changes, each with the values that decided it
+  const row = el("div", undefined, { class: "verdict-row" + (recorded ? " recorded" : "") });
+  const strip = el("span", undefined, { class: "strip" });
+  for (const [t, verdict, gap] of verdicts) {
+    const cls = verdict === true ? "holds" : verdict === false ? "violated" : "unknown";
+    strip.append(el("i", undefined, { class: cls + (gap ? " gap" : ""), title: `t=${Number(t).toFixed(3)} s: ${verdictName(verdict)}${gap ? " (after a gap: " + gap + ")" : ""}` }));
   }
+  const falses = verdicts.filter((v) => v[1] === false).length;
+  const head = el("div", undefined, { class: "verdict-head" });
+  head.append(el("code", name), strip, el("span", error ? ` not checked: ${error}` : ` ${verdicts.length} ${recorded ? "cells" : "verdicts"}, ${falses} false`));
+  row.append(head);
+  if (changes && changes.length) {
+    const details = el("details", undefined, { class: "changes" });
+    details.append(el("summary", `${changes.length} change${changes.length === 1 ? "" : "s"}`));
+    const list = el("ol");
+    for (const [t, verdict, why] of changes.slice(-20)) {
+      const item = el("li", `t=${Number(t).toFixed(3)} s: ${verdictName(verdict)}`, { class: "change " + verdictName(verdict) });
+      if (why && why.length) {
+        const atoms = el("ul");
+        for (const atom of why) atoms.append(el("li", atom));
+        item.append(atoms);
+      }
+      list.append(item);
+    }
+    details.append(list);
+    if (openChanges.has(name)) details.open = true;
+    details.addEventListener("toggle", () => { if (details.open) openChanges.add(name); else openChanges.delete(name); });
+    row.append(details);
+  }
+  return row;
+}
+
+const openChanges = new Set(); // rows whose changes the user opened: kept open across redraws
+
+function drawVerdicts() {
+  // a row per monitor, requirement and foreach object (live), and per requirement and instance
+  // checked over a recording (dyknow ui --requirements F --mcap M)
+  const rows = [];
+  const changes = model.changes || {};
+  for (const [key, verdicts] of Object.entries(model.verdicts || {}).sort()) rows.push(verdictRow(key, verdicts, changes[key], false));
+  const recorded = Object.entries(model.recorded || {});
+  if (recorded.length) rows.push(el("h4", "Checked over the recording"));
+  for (const [name, row] of recorded) rows.push(verdictRow(name, row.verdicts, row.changes, true, row.error));
   $("verdicts").replaceChildren(...(rows.length ? rows : [el("p", "no monitor or requirement")]));
 }
 
