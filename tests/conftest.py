@@ -189,10 +189,13 @@ def under_ci() -> bool:
 
 
 def need_hosts(faults: bool = False) -> None:
-    """Network namespaces (and, with ``faults``, nftables for link faults) are required: the test
-    fails under CI without them and is skipped elsewhere, saying what is missing."""
+    """Network namespaces (and, with ``faults``, nftables for link faults, installed with apt-get
+    when missing, as Chromium is) are required: the test fails under CI without them and is
+    skipped elsewhere, saying what is missing."""
     from dyknow.testing.hosts import faults_unavailable, unavailable
 
+    if faults and faults_unavailable() is not None:
+        apt_install("nftables")
     why = unavailable() or (faults_unavailable() if faults else None)
     if why is None:
         return
@@ -274,8 +277,10 @@ class ManagerProcess(CliProcess):
             "manager", "--name", name, "--listen", self.endpoint, "--specs", str(GENERIC_SPECS), str(UNIT_SPECS), "--json", *extra
         )
 
-    def wait_ready(self, timeout_s: float = 20.0) -> dict[str, Any]:
-        """The ready line (fails when the manager does not become ready)."""
+    def wait_ready(self, timeout_s: float = 60.0) -> dict[str, Any]:
+        """The ready line (fails when the manager does not become ready). The bound is for a
+        stuck process, not a speed limit: a manager's start (Python, its imports, Zenoh, the specs)
+        took over 20 s once on a machine loaded with two CPU hogs per core, apt and a compiler."""
         ready = self.line(timeout_s)
         assert ready["event"] == "ready" and ready["endpoints"] == [self.endpoint], ready
         return ready

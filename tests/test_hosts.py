@@ -26,8 +26,8 @@ from typing import Any
 import pytest
 
 from dyknow.testing import CAMERA_IDS, SCENARIO_HOSTS
-from dyknow.testing.hosts import Hosts, faults_unavailable
-from tests.conftest import REPO, apt_install, need_hosts, subprocess_env
+from dyknow.testing.hosts import Hosts
+from tests.conftest import REPO, need_hosts, subprocess_env
 
 pytestmark = pytest.mark.namespaces  # every test here: see CONTRIBUTING.md, 'Tiers'
 
@@ -208,8 +208,6 @@ def test_three_hosts_fail_over_on_a_cut_link_and_a_killed_manager(hosts: Hosts) 
 def faulty(hosts: Hosts) -> Hosts:
     """The hosts, with packet loss and bandwidth limits at hand (Debian's nftables, installed
     with apt-get when missing and run as root, as Chromium is)."""
-    if faults_unavailable() is not None:
-        apt_install("nftables")
     need_hosts(faults=True)
     return hosts
 

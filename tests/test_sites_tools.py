@@ -22,8 +22,8 @@ import pytest
 
 from dyknow.testing import CAMERA_IDS
 from dyknow.testing.hosts import Hosts
-from tests.conftest import subprocess_env
-from tests.test_sites import ADDRESSES, SITES, Sites, _namespaces, _until
+from tests.conftest import need_hosts, subprocess_env
+from tests.test_sites import ADDRESSES, SITES, Sites, _until
 
 pytestmark = pytest.mark.namespaces  # see CONTRIBUTING.md, 'Tiers'
 
@@ -47,7 +47,7 @@ def _without_the_field(host: str, argv: list[str]) -> list[str] | None:
 
 
 def test_during_a_cut_between_the_sites_every_tool_says_what_happened(tmp_path: Path) -> None:
-    _namespaces()
+    need_hosts(faults=True)  # (its cut is silent: nftables drops the packets)
     with Hosts(["station", "field", "gw-a", "robot", "gw-b"], networks=SITES, addresses=ADDRESSES) as hosts:
         sites = Sites(hosts, tmp_path, edit=_without_the_field)
         pki = sites.pki
