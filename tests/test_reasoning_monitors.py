@@ -314,6 +314,39 @@ def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: 
         assert row["why"] == [f"Speed(robot).value > 0: {speed:.6g} > 0", f"Battery(robot).value > 0.3: {level:.6g} > 0.3"], row
 
 
+@pytest.mark.process
+def test_dyknow_monitor_explains_each_change_of_a_foreach_object_over_its_own_samples(tmp_path: Any) -> None:
+    """``foreach`` over a recording with ``--changes-only``: each object's changes, each with its
+    body's comparisons over that object's own samples and the variable as the object's value
+    (r2's speed, never r1's, beside it on the same key)."""
+    import json
+
+    from dyknow import Message
+    from dyknow.recording import Recorder
+    from tests.conftest import run_cli
+
+    seen = [(1_000_000_000 + i * 50_000_000, {"id": ("r1", "r2")[i % 2], "speed": 1.9 if i in (7, 8, 9) else 0.2 + i / 100}) for i in range(20)]
+    path = tmp_path / "seen.mcap"
+    with Recorder((), path) as recorder:
+        for seq, (t_ns, payload) in enumerate(seen, start=1):
+            recorder.write(Message(payload, seq, t_ns, t_ns, "floor/seen"))
+    formula = 'foreach r in Seen(floor).id: Seen(floor).speed < 1.5 or r == "r9"'
+    done = run_cli("monitor", formula, "--mcap", str(path), "--bind", "Seen(floor)=floor/seen", "--json", "--changes-only")
+    assert done.returncode == 0, done.stderr
+    rows = [json.loads(line) for line in done.stdout.splitlines()]
+    by_hand = []  # each object's changes, and its own latest sample at each
+    for obj in ("r1", "r2"):
+        own = [(t, p) for t, p in seen if p["id"] == obj]
+        last = None
+        for t, p in own:
+            verdict = p["speed"] < 1.5
+            if verdict is not last:
+                by_hand.append((t, obj, verdict, [f"Seen(floor).speed < 1.5: {p['speed']:.6g} < 1.5", f'r == "r9": "{obj}" == "r9"']))
+                last = verdict
+    assert sorted((r["t_ns"], r["object"], r["verdict"], r["why"]) for r in rows) == sorted(by_hand)
+    assert {r["object"] for r in rows if r["verdict"] is False} == {"r1", "r2"}
+
+
 # ---------------------------------------------------------------------------- requirements close the loop
 
 

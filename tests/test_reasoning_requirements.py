@@ -141,7 +141,9 @@ def test_every_requirement_of_a_file_gives_the_naive_evaluators_verdicts(floor: 
     # explained: each atom's sides at the first state of each run of false verdicts, as the data says
     assert speed.why == {("r2", t): ["State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5"] for t in (2_007_000_000, 2_207_000_000)}
     assert results[1].why[("r1/r3", 3_014_000_000)] == ['State(r1).id == State(r3).id: "r1" == "r3"', "dist(State(r1), State(r3)) > 0.5: 0.2 > 0.5"]
-    assert results[2].why == {}  # (a foreach's objects are not explained)
+    # a foreach's object: its body's atoms over its own samples (r2's 32nd sample, the only fast one)
+    seen_at = series["floor/seen"][31][0]
+    assert results[2].why == {("r2", seen_at): ["Seen(floor).speed < 1.5: 1.7 < 1.5"]}
 
 
 @pytest.mark.process
@@ -206,7 +208,9 @@ def test_dyknow_check_writes_every_verdict_to_an_mcap_file_foxglove_plots(floor:
     changes = [(t, v) for i, (t, v) in enumerate(want[topic]) if i == 0 or want[topic][i - 1][1] is not v]
     assert [t for t, _ in whys[topic]] == [t for t, _ in changes] and len(changes) == 5
     assert whys[topic][1] == (2_007_000_000, ["State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5"])
-    assert "each_robot_seen_is_slow_for_300_ms/r1" in {t.removeprefix("verdicts/") for t in got} and not any("each_robot" in t for t in whys)
+    assert "each_robot_seen_is_slow_for_300_ms/r1" in {t.removeprefix("verdicts/") for t in got}
+    fell = [why for t, why in whys["verdicts/each_robot_seen_is_slow_for_300_ms/r2"] if t == series["floor/seen"][31][0]]
+    assert fell == [["Seen(floor).speed < 1.5: 1.7 < 1.5"]]  # a foreach object's change, over its own samples
 
 
 @pytest.mark.process

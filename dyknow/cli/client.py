@@ -528,7 +528,9 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def _monitor_recording(args: argparse.Namespace) -> int:
-    from dyknow.reasoning.offline import changes, evaluate_recording, evaluate_recording_objects
+    from dyknow.reasoning.explain import object_explainer
+    from dyknow.reasoning.offline import changes, evaluate_recording, recording_samples
+    from dyknow.reasoning.semantics import evaluate_objects_ns
     from dyknow.reasoning.syntax import Quantifier, parse, walk
 
     bindings = parse_pairs(args.bind, "--bind")
@@ -537,18 +539,23 @@ def _monitor_recording(args: argparse.Namespace) -> int:
     if any(isinstance(node, Quantifier) and node.kind in ("forall", "exists") for node in walk(root)):
         return _quantified_recording(args, bindings)
     if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
-        objects = evaluate_recording_objects(args.formula, args.mcap, bindings, read_limits(args), idle_ns=round(args.idle_ms * 1e6))
-        if args.changes_only:
+        parsed, samples = recording_samples(args.formula, args.mcap, bindings, read_limits(args))
+        objects = evaluate_objects_ns(parsed, samples, idle_ns=round(args.idle_ms * 1e6))
+        explain = None
+        if args.changes_only:  # each object's changes, with its body's atoms over its own samples
             objects = {key: [changes(sorted(v for life in lives for v in life))] for key, lives in objects.items()}
+            explain = object_explainer(parsed, samples)
         rows = sorted((t_ns, key, verdict) for key, lives in objects.items() for life in lives for t_ns, verdict in life)
         if args.json:
             for t_ns, key, verdict in rows:
-                print_json({"t": t_ns / 1e9, "t_ns": t_ns, "object": key, "verdict": verdict})
+                print_json({"t": t_ns / 1e9, "t_ns": t_ns, "object": key, "verdict": verdict, **({"why": explain(key, t_ns)} if explain else {})})
             return 0
         counted = {True: 0, False: 0, None: 0}
         for t_ns, key, verdict in rows:
             counted[verdict] += 1
             print(f"t={t_ns / 1e9:.3f} s  {shown(key)}  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
+            for atom in explain(key, t_ns) if explain is not None else ():
+                print(shown(f"  {atom}"))
         false = sorted({key for _, key, verdict in rows if verdict is False})
         named = f"; false for {', '.join(shown(k) for k in false[:10])}{', ...' if len(false) > 10 else ''}" if false else ""
         what = "changes" if args.changes_only else "states"

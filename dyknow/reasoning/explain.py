@@ -14,20 +14,28 @@ from collections.abc import Callable, Mapping, Sequence
 
 from dyknow.errors import DyKnowError
 from dyknow.reasoning.semantics import evaluate_values_ns
-from dyknow.reasoning.syntax import Atom, Const, Formula, Num, Str, walk
+from dyknow.reasoning.syntax import Atom, Const, Formula, Num, Quantifier, Str, Stream, Var, walk
+from dyknow.reasoning.values import object_key, read
 
-__all__ = ["MAX_ATOMS", "explainer"]
+__all__ = ["MAX_ATOMS", "explainer", "object_explainer"]
 
 #: Atoms shown per explanation.
 MAX_ATOMS = 8
 
 
-def explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]], *, current_only: bool = False) -> Callable[[int], list[str]]:
+def explainer(
+    formula: Formula,
+    samples: Mapping[str, Sequence[tuple[int, object]]],
+    *,
+    current_only: bool = False,
+    bound: Mapping[str, object] | None = None,
+) -> Callable[[int], list[str]]:
     """``at(t_ns)``: each atom of ``formula`` (the first :data:`MAX_ATOMS`), as written and with
     its sides' values at ``t_ns`` (a side's latest value then; ``unknown`` when it has none):
     ``State(r2).speed <= Limits(floor)[State(r2).zone]: 0.9 <= 0.5``. ``current_only``: the
     samples are only the latest few (a live monitor's), so a side that reads a window (an
-    aggregate, a past operator) is shown as ``?`` rather than computed from part of it."""
+    aggregate, a past operator) is shown as ``?`` rather than computed from part of it.
+    ``bound``: the values of variables (a ``foreach`` body's, for one object)."""
     atoms: list[tuple[str, list[Sequence[tuple[int, object]] | str], str]] = []
     for node in walk(formula.root):
         if not isinstance(node, Atom) or len(atoms) >= MAX_ATOMS:
@@ -37,6 +45,9 @@ def explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object
             assert side is not None
             if isinstance(side, Num | Str | Const):
                 sides.append(str(side))
+                continue
+            if isinstance(side, Var):
+                sides.append(_value_at([(0, bound[side.name])], 0) if bound is not None and side.name in bound else "?")
                 continue
             alone = Formula.of(side)
             if current_only and (alone.reach_ns != 0 or alone.horizon_ns):
@@ -56,6 +67,34 @@ def explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object
             shown = [side if isinstance(side, str) else _value_at(side, t_ns) for side in sides]
             out.append(f"{text}: {f' {op} '.join(shown)}")
         return out
+
+    return at
+
+
+def object_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]]) -> Callable[[str, int], list[str]]:
+    """``at(object, t_ns)``: as :func:`explainer`, for one object of a ``foreach`` formula: its
+    body's atoms over the object's own samples of the domain's term (as its monitor reads them),
+    the variable bound to the object's value."""
+    root = formula.root
+    if not isinstance(root, Quantifier) or root.kind != "foreach" or not isinstance(root.domain, Stream):
+        raise DyKnowError("object_explainer takes a foreach formula", where="formula", expected="foreach x in Stream.field: ...")
+    domain = root.domain
+    body = Formula.of(root.body)
+    own: dict[str, list[tuple[int, object]]] = {}
+    values: dict[str, object] = {}
+    for t, sample in samples.get(str(domain.term), ()):
+        for payload in sample if type(sample) is list else [sample]:
+            value = read(payload, domain.fields)
+            key = object_key(value)
+            if key is not None:
+                own.setdefault(key, []).append((t, payload))
+                values.setdefault(key, value)
+    made: dict[str, Callable[[int], list[str]]] = {}
+
+    def at(obj: str, t_ns: int) -> list[str]:
+        if obj not in made:
+            made[obj] = explainer(body, {**samples, str(domain.term): own.get(obj, [])}, bound={root.var: values.get(obj)})
+        return made[obj](t_ns)
 
     return at
 

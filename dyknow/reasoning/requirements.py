@@ -31,6 +31,7 @@ test suite, byte for byte the same for the same inputs (no run times in it).
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import re
@@ -44,6 +45,7 @@ from xml.sax.saxutils import escape, quoteattr
 from dyknow.errors import DyKnowError, FormulaError, did_you_mean
 from dyknow.message import Message
 from dyknow.reasoning.bindings import topic_of
+from dyknow.reasoning.explain import object_explainer
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS
 from dyknow.reasoning.offline import changes, explainer, read_topics
 from dyknow.reasoning.quantify import expand
@@ -61,6 +63,8 @@ MAX_REQUIREMENTS = 1_000
 MAX_EXPLAINED = 10
 #: Changes of a verdict explained per instance (:attr:`Result.changes`).
 MAX_CHANGES_EXPLAINED = 50
+#: Objects of a ``foreach`` requirement whose verdicts are explained.
+MAX_OBJECTS_EXPLAINED = 100
 _FIELDS = {"name", "formula", "bindings", "idle_ms"}
 _HEADER = re.compile(r"^[ \t]*\[\[[ \t]*requirement[ \t]*\]\]", re.MULTILINE)
 _BRACED = re.compile(r"\{([^{}]*)\}")
@@ -90,11 +94,12 @@ class Result:
     verdicts: dict[str, list[tuple[int, bool | None]]] = field(default_factory=dict)
     error: DyKnowError | None = None
     #: (instance, t_ns) -> each atom of the formula as written and with its sides' values at the
-    #: first state of each run of false verdicts (an instance of a ``foreach`` is not explained)
+    #: first state of each run of false verdicts (a ``foreach`` object's: its body's atoms over
+    #: its own samples, for the first :data:`MAX_OBJECTS_EXPLAINED` objects)
     why: dict[tuple[str, int], list[str]] = field(default_factory=dict)
     #: by instance, each change of its verdict ``(t_ns, verdict, atoms)``, the first verdict
     #: included; the atoms' values as :attr:`why` gives them, for the first
-    #: :data:`MAX_CHANGES_EXPLAINED` changes of an instance (none for a ``foreach`` object)
+    #: :data:`MAX_CHANGES_EXPLAINED` changes of an instance
     changes: dict[str, list[tuple[int, bool | None, list[str]]]] = field(default_factory=dict)
 
     @property
@@ -290,8 +295,7 @@ def check_recording(
         except DyKnowError as exc:
             result.error = _located(exc, result.requirement)
             continue
-        formulas = dict(cases)
-        explainers = {key: explainer(formula, samples) for key, formula in formulas.items() if not _foreach(formula)}
+        explainers = _explainers(cases, samples, result.verdicts)
         for key, spans in result.false_spans().items():
             if key in explainers:
                 for first, _ in spans[:MAX_EXPLAINED]:
@@ -302,6 +306,25 @@ def check_recording(
                 (t, v, explain(t) if explain is not None and i < MAX_CHANGES_EXPLAINED else []) for i, (t, v) in enumerate(changes(series))
             ]
     return [result for result, _, _ in plans]
+
+
+def _explainers(
+    cases: list[tuple[str, Formula]], samples: Mapping[str, list[tuple[int, object]]], verdicts: Mapping[str, object]
+) -> dict[str, Callable[[int], list[str]]]:
+    """By instance, what explains its verdicts at a time: the formula's atoms over the samples;
+    for a ``foreach`` object (the first :data:`MAX_OBJECTS_EXPLAINED` of each formula), its body's
+    atoms over the object's own samples, the variable bound to it."""
+    out: dict[str, Callable[[int], list[str]]] = {}
+    for key, formula in cases:
+        if not _foreach(formula):
+            out[key] = explainer(formula, samples)
+            continue
+        per_object = object_explainer(formula, samples)
+        prefix = f"{key}/" if key else ""
+        objects = [k.removeprefix(prefix) for k in verdicts if k.startswith(prefix)][:MAX_OBJECTS_EXPLAINED]
+        for obj in objects:
+            out[prefix + obj] = functools.partial(per_object, obj)
+    return out
 
 
 def write_verdicts(results: Sequence[Result], path: str | os.PathLike[str]) -> int:
