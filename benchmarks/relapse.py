@@ -117,7 +117,8 @@ def run(folder: Path, damping: Damping, minutes: float, fail_after_s: float, fix
             while time.time() < deadline and next(iter(manager.requests())).labels != ("level-a",):
                 time.sleep(0.5)
             back = _switches(manager)[-1]
-            row["fixed_at_s"] = round(time.time() - started, 1)
+            row["fixed_at_s"] = round(minutes * 60, 1)  # (when the file was made; the run is timed from the request)
+            row["back_at_s"] = round(time.time() - started, 1)
             row["trusted_again_after_last_relapse_s"] = round(back.fault_ns / 1e9 + (back.adaptation_ms or 0) / 1e3 - last, 1) if last else None
             row["trusted_again_cause"] = back.cause
         return row
@@ -149,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         if "trusted_again_after_last_relapse_s" in damped:
             took = damped["trusted_again_after_last_relapse_s"]
             within = took is not None and took <= bound + 5
-            print(f"fixed at {damped['fixed_at_s']} s: trusted again {took} s after its last relapse   "
+            print(f"fixed at {damped['fixed_at_s']} s, back on it at {damped.get('back_at_s')} s: trusted again {took} s after its last relapse   "
                   f"stated bound {bound:g} s + its first verdict: {'within' if within else 'NOT within'} ({damped['trusted_again_cause']})", flush=True)  # fmt: skip
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
