@@ -245,6 +245,19 @@ def test_failover_benchmark_smoke(tmp_path: Path) -> None:
 
 
 @pytest.mark.process
+def test_relapse_benchmark_smoke(tmp_path: Path) -> None:
+    """A provider failing 3 s after every start, 20 s, damped with the default figures: it moves
+    away, back after its trial, away again, then stays (its second relapse suppresses it)."""
+    out = tmp_path / "relapse.json"
+    result = _run("relapse.py", "--minutes", "0.33", "--baseline-minutes", "0", "--fail-after-s", "3", "--no-fix", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    damped = json.loads(out.read_text())["damped"]
+    assert damped["switches"] == 3, damped
+    assert [c.startswith("requirement violated") for c in damped["causes"]] == [True, False, True], damped["causes"]
+    assert "target <= 3 in 10 min: met" in result.stdout
+
+
+@pytest.mark.process
 def test_faults_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "faults.json"
     result = _run("faults.py", "--scenarios", "clean,loss-5", "--seconds", "2", "--json", str(out))
