@@ -312,6 +312,28 @@ def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: 
         level = battery[max(t for t in battery if t <= row["t_ns"])]["value"]
         speed = dict(samples["robot/speed"])[max(t for t, _ in samples["robot/speed"] if t <= row["t_ns"])]["value"]
         assert row["why"] == [f"Speed(robot).value > 0: {speed:.6g} > 0", f"Battery(robot).value > 0.3: {level:.6g} > 0.3"], row
+    # --robustness: each subformula's robustness at each change, by hand from the quantitative
+    # semantics: an atom x > c is x - c (the latest sample); historically is the least over the
+    # window's states; implies is the larger of the premise's negation and the conclusion
+    robust = run_cli("monitor", formula, "--mcap", str(path), *binds, "--json", "--changes-only", "--robustness")
+    assert robust.returncode == 0, robust.stderr
+    states = sorted({t for series in samples.values() for t, _ in series})
+
+    def latest(key: str, t: int) -> float:
+        return float(dict(samples[key])[max(s for s, _ in samples[key] if s <= t)]["value"])
+
+    changed_rows = [json.loads(line) for line in robust.stdout.splitlines()]
+    for row in changed_rows:  # (a past window at the trace's start reads the states there are)
+        t = row["t_ns"]
+        premise = latest("robot/speed", t) - 0
+        window = min(latest("robot/battery", s) - 0.3 for s in states if t - 300_000_000 <= s <= t)
+        expected = [max(-premise, window), premise, window, latest("robot/battery", t) - 0.3]
+        said = [float(line.rsplit(": ", 1)[1]) for line in row["robustness"]]
+        assert said == pytest.approx(expected, abs=1e-5), (row, expected)
+        assert row["robustness"][0].startswith(f"{formula}: ")  # the whole formula first, then its subformulas
+    assert len(changed_rows) == len(rows) >= 2
+    refused = run_cli("monitor", formula, "--mcap", str(path), *binds, "--robustness")
+    assert refused.returncode == 2 and "--robustness goes with --mcap FILE and --changes-only" in refused.stderr, refused.stderr
 
 
 @pytest.mark.process

@@ -460,7 +460,10 @@ def cmd_monitor(args: argparse.Namespace) -> int:
       dyknow monitor 'BallTrack(field).predicted implies eventually[0, 1.5s] not BallTrack(field).predicted'
       dyknow monitor 'Odom(r1).twist.twist.linear.x < 1.5' --bind 'Odom(r1)=ros2:/r1/odom' --manager robot
       dyknow monitor 'Battery(r1) > 0.2' --bind 'Battery(r1)=robots/r1/battery'
-      dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x"""
+      dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x
+      dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x --changes-only --robustness"""
+    if args.robustness and (args.mcap is None or not args.changes_only):
+        raise UsageError("--robustness goes with --mcap FILE and --changes-only: each change over the recording, with each subformula's robustness")
     if args.mcap is not None:
         return _monitor_recording(args)
     bindings = parse_pairs(args.bind, "--bind")
@@ -536,6 +539,8 @@ def _monitor_recording(args: argparse.Namespace) -> int:
     bindings = parse_pairs(args.bind, "--bind")
     parsed = parse(args.formula)
     root = parsed.root
+    if args.robustness and any(isinstance(node, Quantifier) for node in walk(root)):
+        raise UsageError("--robustness: a formula without quantifiers (each subformula's robustness is said of one series)")
     if any(isinstance(node, Quantifier) and node.kind in ("forall", "exists") for node in walk(root)):
         return _quantified_recording(args, bindings)
     if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
@@ -612,20 +617,25 @@ def _quantified_recording(args: argparse.Namespace, bindings: dict[str, str]) ->
 
 def _changes_of_recording(args: argparse.Namespace, bindings: dict[str, str]) -> int:
     """``--mcap --changes-only``: each change of the verdict, with the values of the formula's comparisons at it."""
+    from dyknow.reasoning.explain import robustness_explainer
     from dyknow.reasoning.offline import changes, explainer, recording_samples
     from dyknow.reasoning.semantics import evaluate_ns
 
     parsed, samples = recording_samples(args.formula, args.mcap, bindings, read_limits(args))
     rows = changes([(t, v) for t, v in evaluate_ns(parsed, samples)])
     explain = explainer(parsed, samples)
+    robust = robustness_explainer(parsed, samples) if args.robustness else None
     for t_ns, verdict in rows:
         why = explain(t_ns)
+        margins = robust(t_ns) if robust is not None else []
         if args.json:
-            print_json({"t": t_ns / 1e9, "t_ns": t_ns, "verdict": verdict, "why": why})
+            print_json({"t": t_ns / 1e9, "t_ns": t_ns, "verdict": verdict, "why": why, **({"robustness": margins} if robust is not None else {})})
             continue
         print(shown(f"t={t_ns / 1e9:.3f} s  {'unknown' if verdict is None else 'true' if verdict else 'false'}"))
         for atom in why:
             print(shown(f"  {atom}"))
+        for margin in margins:
+            print(shown(f"  robustness of {margin}"))
     if not args.json:
         print(f"{len(rows)} changes", flush=True)
     return 0
@@ -730,6 +740,8 @@ def add_commands(cmds: Commands) -> None:
                        help="print a verdict only when it differs from the last one (per object); with --mcap, each change "
                        "with the values of the formula's comparisons at it")  # fmt: skip
         p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
+        p.add_argument("--robustness", action="store_true",
+                       help="with --mcap --changes-only: also the robustness of each subformula at each change (how far it is from flipping)")  # fmt: skip
         p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
                        help="with --mcap, a formula with forall or exists: the ontologies whose individuals it ranges over")  # fmt: skip
         p.add_argument("--idle-ms", type=float, default=10_000.0, metavar="MS",  # (dyknow.reasoning.objects.DEFAULT_IDLE_NS: not imported to parse)

@@ -13,11 +13,33 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 
 from dyknow.errors import DyKnowError
-from dyknow.reasoning.semantics import evaluate_values_ns
-from dyknow.reasoning.syntax import Atom, Const, Formula, Num, Quantifier, Str, Stream, Var, walk
+from dyknow.reasoning.semantics import evaluate_ns, evaluate_values_ns
+from dyknow.reasoning.syntax import (
+    Always,
+    And,
+    Atom,
+    Const,
+    Eventually,
+    Fall,
+    Formula,
+    Historically,
+    Implies,
+    Not,
+    Num,
+    Once,
+    Or,
+    Quantifier,
+    Rise,
+    Since,
+    Str,
+    Stream,
+    Until,
+    Var,
+    walk,
+)
 from dyknow.reasoning.values import object_key, read
 
-__all__ = ["MAX_ATOMS", "explainer", "object_explainer"]
+__all__ = ["MAX_ATOMS", "explainer", "object_explainer", "robustness_explainer"]
 
 #: Atoms shown per explanation.
 MAX_ATOMS = 8
@@ -71,6 +93,35 @@ def explainer(
     return at
 
 
+#: The condition nodes whose robustness :func:`robustness_explainer` says: atoms, connectives,
+#: temporal operators (values and quantifiers are not conditions of their own).
+_CONDITIONS = (Atom, Not, And, Or, Implies, Always, Eventually, Historically, Once, Until, Since, Rise, Fall)
+
+
+def robustness_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]]) -> Callable[[int], list[str]]:
+    """``at(t_ns)``: the robustness of each subformula of ``formula`` that is a condition (the
+    first :data:`MAX_ATOMS`, the whole formula first), at the state ``t_ns``, as
+    :func:`~dyknow.reasoning.semantics.evaluate_ns` gives it for that subformula alone over the
+    same samples (the quantitative semantics: how far from flipping; ``unknown`` when it has none):
+    ``historically[0, 300ms] Seen(floor).speed < 1.5: -0.2``."""
+    rows: list[tuple[str, list[tuple[int, object]] | str]] = []
+    for node in walk(formula.root):
+        if not isinstance(node, _CONDITIONS) or len(rows) >= MAX_ATOMS:
+            continue
+        own = Formula.of(node)
+        alone = Formula(own.text, own.root, formula.terms)  # at the whole formula's states: every term's samples make them
+        try:
+            series: list[tuple[int, object]] | str = [(row[0], row[2]) for row in evaluate_ns(alone, {str(t): samples[str(t)] for t in alone.terms}, robustness=True)]
+        except (DyKnowError, KeyError):  # (a foreach's variable, say: not a condition alone)
+            series = "?"
+        rows.append((str(node), series))
+
+    def at(t_ns: int) -> list[str]:
+        return [f"{text}: {series if isinstance(series, str) else _value_at(series, t_ns, exact=True)}" for text, series in rows]
+
+    return at
+
+
 def object_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]]) -> Callable[[str, int], list[str]]:
     """``at(object, t_ns)``: as :func:`explainer`, for one object of a ``foreach`` formula: its
     body's atoms over the object's own samples of the domain's term (as its monitor reads them),
@@ -99,10 +150,11 @@ def object_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int,
     return at
 
 
-def _value_at(series: Sequence[tuple[int, object]], t_ns: int) -> str:
-    """The latest value of ``series`` at ``t_ns``, as JSON writes it (``unknown``: none)."""
+def _value_at(series: Sequence[tuple[int, object]], t_ns: int, *, exact: bool = False) -> str:
+    """The latest value of ``series`` at ``t_ns`` (``exact``: the one at ``t_ns`` itself), as
+    JSON writes it (``unknown``: none)."""
     k = bisect.bisect_right(series, t_ns, key=lambda row: row[0])
-    value = series[k - 1][1] if k else None
+    value = series[k - 1][1] if k and (not exact or series[k - 1][0] == t_ns) else None
     if value is None:
         return "unknown"
     if isinstance(value, float):
