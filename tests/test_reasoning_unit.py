@@ -46,6 +46,26 @@ def test_a_monitor_unit_in_ten_lines() -> None:
     assert [v.get("why") for v in got] == [["Battery(robot) > 0.2: 0.9 > 0.2"], None, ["Battery(robot) > 0.2: 0.1 > 0.2"], None]
 
 
+def test_a_foreach_monitor_unit_explains_each_objects_changes_over_its_own_samples() -> None:
+    """Two robots on one stream: each object's first verdict and each change carry ``why``, its
+    body's comparison over that object's own latest sample and its variable as the object (never
+    the other robot's speed, sent between them); a verdict that repeats carries none."""
+    spec = monitor_spec('foreach r in Seen(floor).id: Seen(floor).speed < 1.5 or r == "r9"')
+    sent = [("r1", 0.2), ("r2", 1.8), ("r1", 1.7), ("r2", 1.9), ("r1", 0.3), ("r2", 0.4)]
+    with UnitHarness(spec, name="seen-ok") as harness:
+        for k, (robot, speed) in enumerate(sent):
+            harness.send("t0", {"id": robot, "speed": speed}, origin_ns=T0 + k * 10 * MS)
+        got = [m.payload for m in harness.wait_for(VERDICTS_PORT, 6)]
+    by_hand = []
+    last: dict[str, bool] = {}
+    for k, (robot, speed) in enumerate(sent):  # each object's changes, from its own samples
+        verdict = speed < 1.5
+        why = [f"Seen(floor).speed < 1.5: {speed:.6g} < 1.5", f'r == "r9": "{robot}" == "r9"'] if last.get(robot) is not verdict else None
+        last[robot] = verdict
+        by_hand.append((T0 + k * 10 * MS, robot, verdict, why))
+    assert sorted((v["t_ns"], v["object"], v["verdict"], v.get("why")) for v in got) == by_hand
+
+
 def test_the_spec_has_a_port_per_term_tagged_with_it_and_survives_xml() -> None:
     spec = monitor_spec("BallTrack(field).speed < 3 since[0, inf] not Stalled(robot) or BallTrack(field).seen", reorder_ms=5, flush_ms=100)
     assert [(p.name, p.direction) for p in spec.ports] == [("t0", "in"), ("t1", "in"), ("verdicts", "out")]

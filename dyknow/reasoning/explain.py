@@ -122,10 +122,12 @@ def robustness_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[
     return at
 
 
-def object_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]]) -> Callable[[str, int], list[str]]:
-    """``at(object, t_ns)``: as :func:`explainer`, for one object of a ``foreach`` formula: its
-    body's atoms over the object's own samples of the domain's term (as its monitor reads them),
-    the variable bound to the object's value."""
+def object_explainer(
+    formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]], *, current_only: bool = False
+) -> Callable[[str, int], list[str]]:
+    """``at(object, t_ns)``: as :func:`explainer` (``current_only`` too), for one object of a
+    ``foreach`` formula: its body's atoms over the object's own samples of the domain's term (as
+    its monitor reads them), the variable bound to the object's value."""
     root = formula.root
     if not isinstance(root, Quantifier) or root.kind != "foreach" or not isinstance(root.domain, Stream):
         raise DyKnowError("object_explainer takes a foreach formula", where="formula", expected="foreach x in Stream.field: ...")
@@ -144,7 +146,7 @@ def object_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int,
 
     def at(obj: str, t_ns: int) -> list[str]:
         if obj not in made:
-            made[obj] = explainer(body, {**samples, str(domain.term): own.get(obj, [])}, bound={root.var: values.get(obj)})
+            made[obj] = explainer(body, {**samples, str(domain.term): own.get(obj, [])}, current_only=current_only, bound={root.var: values.get(obj)})
         return made[obj](t_ns)
 
     return at

@@ -82,11 +82,13 @@ Params:
   formula's object lifetime and cap;
 - ``changes_only`` (bool, default false): publish a verdict only when it differs from the last
   one published (an object's, with ``foreach``);
-- ``explain`` (bool, default true): a verdict of a formula without ``foreach`` that differs from
-  the last one published carries ``"why"``: each comparison of the formula as written and with
-  its sides' values at the verdict's state, from each term's latest :data:`RECENT_SAMPLES`
-  samples (``"Battery(r1) > 0.2: 0.1 > 0.2"``; a side that reads a window is ``?``, and ``unknown``
-  when no kept sample is as old as the state); at most 8 at once and then one per 50 ms of sample time per formula (:data:`EXPLAIN_BURST`, :data:`EXPLAIN_GAP_NS`);
+- ``explain`` (bool, default true): a verdict that differs from the last one published (of its
+  object, with ``foreach``: its first too) carries ``"why"``: each comparison of the formula as
+  written and with its sides' values at the verdict's state, from each term's latest
+  :data:`RECENT_SAMPLES` samples (``"Battery(r1) > 0.2: 0.1 > 0.2"``; a side that reads a window is
+  ``?``, and ``unknown`` when no kept sample is as old as the state; an object's: its body's, over
+  its own among them, its variable as the object); at most 8 at once and then one per 50 ms of
+  sample time per formula (:data:`EXPLAIN_BURST`, :data:`EXPLAIN_GAP_NS`);
 - ``bound`` (string): the terms bound to what exists, a JSON object of terms and their sources
   (:mod:`dyknow.reasoning.bindings`): their text samples are read as JSON values, and
 - ``quiet_ms`` (float, default 5,000): a bound term without a sample this long after the unit
@@ -117,7 +119,7 @@ from dyknow.clocks import CLOCKS
 from dyknow.errors import AccessError, FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.bindings import sample_value
-from dyknow.reasoning.explain import explainer
+from dyknow.reasoning.explain import explainer, object_explainer
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
@@ -489,7 +491,9 @@ class _Served:
     """One formula a monitor unit serves: its monitor, which of the unit's terms it reads, what it
     published last (per object)."""
 
-    __slots__ = ("explain_tokens", "explained_ns", "given_up_logged", "horizon", "last_published", "last_verdict", "monitor", "name", "reach")
+    __slots__ = (
+        "explain_tokens", "explained_ns", "given_up_logged", "horizon", "last_published", "last_verdict", "monitor", "name", "object_verdicts", "reach"
+    )  # fmt: skip
 
     def __init__(self, name: str | None, monitor: Monitor | ObjectMonitor) -> None:
         self.name = name
@@ -499,6 +503,7 @@ class _Served:
         self.given_up_logged = 0
         self.last_published: dict[str | None, bool] = {}
         self.last_verdict: bool | None = None  # the last verdict published (a formula without foreach): its changes are explained
+        self.object_verdicts: dict[str, bool | None] = {}  # a foreach formula's: each live object's
         self.explained_ns = 0  # the state whose change was last explained (sample time), and the
         self.explain_tokens = float(EXPLAIN_BURST)  # explanations it may give at once (refilled with sample time)
 
@@ -885,6 +890,15 @@ class FormulaMonitor(Unit):
             served.last_verdict = verdict.verdict
             if self._explain and self._may_explain(served, verdict.t_ns):
                 out["why"] = self._why(served, verdict.t_ns)
+        elif key is not None and self._explain and isinstance(served.monitor, ObjectMonitor):
+            seen = served.object_verdicts
+            if key not in seen or seen[key] is not verdict.verdict:  # an object's change: its own samples explain it
+                seen[key] = verdict.verdict
+                if len(seen) > 2 * served.monitor.max_objects + 16:
+                    live = set(served.monitor.objects)  # (as last_published: ids of objects gone for good are dropped)
+                    served.object_verdicts = {k: v for k, v in seen.items() if k in live}
+                if self._may_explain(served, verdict.t_ns):
+                    out["why"] = self._why(served, verdict.t_ns, key)
         self.latest[served.name or served.monitor.formula.text] = out
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
         self._tell(served, verdict)
@@ -910,12 +924,15 @@ class FormulaMonitor(Unit):
         served.explain_tokens = tokens - 1
         return True
 
-    def _why(self, served: _Served, t_ns: int) -> list[str]:
+    def _why(self, served: _Served, t_ns: int, key: str | None = None) -> list[str]:
         """Each comparison of the formula with its sides' values at ``t_ns``, from the terms'
-        latest samples (a side that reads a window is ``?``: they are not all kept)."""
+        latest samples (a side that reads a window is ``?``: they are not all kept); for the
+        object ``key`` of a ``foreach``, its body's, over the object's own among them."""
         formula = served.monitor.formula
         samples = {term: [row for row in self._recent[self.terms.index(term)] if row[0] <= t_ns] for term in map(str, formula.terms)}
         try:
+            if key is not None:
+                return object_explainer(formula, samples, current_only=True)(key, t_ns)
             return explainer(formula, samples, current_only=True)(t_ns)
         except Exception:  # (an explanation never stops a verdict)
             self.log.debug("cannot explain a verdict of %s", formula.text, exc_info=True)
