@@ -350,6 +350,108 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
         assert {v["verdict"] for v in judged} == {True, False}, name
 
 
+def _relay(label: str, key: str, tag: str) -> str:
+    """A spec bringing the stream on ``key`` to the planner as ``tag`` (a robot's driver's output)."""
+    return f"""<transformation><label>{label}</label><source>transformations.generic:RemoteStream</source>
+  <params><param name="key">{key}</param><param name="grace_s" type="float">5</param></params>
+  <ports><port type="in">in</port><port type="out">out</port></ports><tags><tag port="out">{tag}</tag></tags></transformation>"""
+
+
+def test_live_forall_monitors_recorded_then_checked_give_the_same_verdicts(make_manager: Any, tmp_path: Path) -> None:
+    """``forall`` and nested ``forall`` over an ontology, live: their terms planned by meaning
+    (each robot's state and the limits relayed from the keys their drivers publish on), a monitor
+    per individual and per pair; the keys recorded meanwhile, then checked as a requirements file
+    with ``--ontology`` and a template binding: every instance's verdicts equal the live ones, at
+    the same times."""
+    import time
+
+    from dyknow.ontology import Ontology
+    from dyknow.recording import Player
+    from dyknow.testing import Sink, Source
+    from tests.conftest import wait_until
+
+    (tmp_path / "floor.ttl").write_text(ONTOLOGY)
+    robots = ("r1", "r2", "r3")
+    manager = make_manager(ontology=[tmp_path / "floor.ttl"], listen=["tcp/127.0.0.1:0"])
+    relays = [_relay(f"state-{r}", f"floor/{r}/state", f"State({r})") for r in robots] + [_relay("limits", "floor/limits", "Limits(floor)")]
+    manager.add_transformation(f"<transformations>{''.join(relays)}</transformations>")
+    drivers: dict[str, Source] = {}
+    for key in [*(f"floor/{r}/state" for r in robots), "floor/limits"]:
+        manager.spawn("publisher", key.replace("/", "-"), bindings={"out": key})
+        driver = manager.unit(key.replace("/", "-"))
+        assert isinstance(driver, Source)
+        drivers[key] = driver
+        driver.emit({"id": key, "zone": "dock", "speed": 0.3, "x": 0.0, "dock": 0.5, "aisle": 2.0})  # (a producer for the relays to find)
+    formulas = {"speed": "forall r in ex:Robot: historically[0, 300ms] State(r).speed <= Limits(floor)[State(r).zone]",
+                "apart": "forall a in ex:Robot: forall b in ex:Robot: State(a).id == State(b).id or abs(State(a).x - State(b).x) > 0.5"}  # fmt: skip
+    watched: dict[str, tuple[str, Sink]] = {}
+    for name, formula in formulas.items():  # (the relays run side by side: a reorder delay takes their samples in time order,
+        key = manager.monitor(formula, reorder_ms=1000)  # however far one falls behind on a loaded machine)
+        manager.spawn("sink", name, bindings={"in": key})
+        sink = manager.unit(name)
+        assert isinstance(sink, Sink)
+        watched[name] = (key.split("/*")[0] + "/", sink)
+
+    def verdicts(name: str) -> dict[str, list[dict[str, Any]]]:
+        prefix, sink = watched[name]
+        out: dict[str, list[dict[str, Any]]] = {}
+        for m in list(sink.messages):
+            if isinstance(m.payload, dict) and "verdict" in m.payload:
+                out.setdefault(m.key.removeprefix(prefix), []).append(m.payload)
+        return out
+
+    def publish(i: int) -> None:
+        now = time.time_ns()
+        drivers["floor/limits"].emit({"dock": 0.5, "aisle": 2.0}, origin_ns=now)
+        for k, r in enumerate(robots):
+            state = {"id": r, "zone": "dock" if (i + k) % 5 else "aisle", "speed": 0.9 if (i + k) % 17 == 3 else 0.3, "x": 2.0 * k}
+            if r == "r3" and i % 23 < 3:
+                state["x"] = 0.2  # next to r1
+            drivers[f"floor/{r}/state"].emit(state, origin_ns=now + k + 1)
+
+    live = tmp_path / "live.mcap"
+    with Recorder(["floor/**"], live, connect=manager.endpoints) as recorder:
+        i = 0
+        while not (len(verdicts("speed")) == 3 and len(verdicts("apart")) == 9 and len(recorder.topics) == 4 and min(recorder.topics.values()) >= 5):
+            publish(i)
+            i += 1
+            time.sleep(0.02)
+            assert i < 1500, "the monitors and the recorder to receive every key"
+        start_ns, recorded = time.time_ns(), recorder.count
+        for _ in range(250):
+            publish(i)
+            i += 1
+            time.sleep(0.01)
+        end_ns = time.time_ns()
+        while not all(v[-1]["t_ns"] >= end_ns - 100_000_000 for name in formulas for v in verdicts(name).values()):
+            publish(i)  # later samples close the reorder window over the last ones
+            i += 1
+            time.sleep(0.01)
+            assert time.time_ns() - end_ns < 30e9, "the last samples judged"
+        wait_until(lambda: recorder.count >= recorded + 4 * 250, "the last samples recorded")
+    trimmed = tmp_path / "trimmed.mcap"
+    with Player(live, rate=float("inf")) as player, Recorder((), trimmed) as writer:
+        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
+    (tmp_path / "live.toml").write_text(
+        '[bindings]\n"State(r)" = "floor/{r}/state"\n"Limits(floor)" = "floor/limits"\n'
+        + "".join(f'\n[[requirement]]\nname = "{name}"\nformula = "{formula}"\n' for name, formula in formulas.items())
+    )  # fmt: skip
+    checked = check_recording(load_requirements(tmp_path / "live.toml"), trimmed, individuals=Ontology.load([tmp_path / "floor.ttl"]).individuals)
+    results = {r.requirement.name: r for r in checked}
+    settled = start_ns + 500_000_000  # past the longest window (300 ms) and a lookup's first sample
+    for name, instances in (("speed", 3), ("apart", 9)):
+        assert results[name].error is None, results[name].error
+        live_verdicts = verdicts(name)
+        assert sorted(live_verdicts) == sorted(results[name].verdicts) and len(live_verdicts) == instances, (sorted(live_verdicts), sorted(results[name].verdicts))
+        for instance, series in results[name].verdicts.items():
+            judged = [v for v in live_verdicts[instance] if v["t_ns"] >= settled]
+            assert len(judged) > 100, (name, instance)
+            offline = {t: v for t, v in series if settled <= t <= judged[-1]["t_ns"] and v is not None}
+            assert {v["t_ns"]: v["verdict"] for v in judged} == offline, (name, instance)
+    assert {v["verdict"] for v in verdicts("speed")["r2"]} == {True, False}
+    assert {v["verdict"] for v in verdicts("apart")["r1/r3"]} == {True, False}
+
+
 @pytest.mark.process
 def test_the_how_to_pages_requirements_give_the_lines_it_shows(floor: tuple[Path, Path, Path, Any], tmp_path: Path) -> None:
     """docs/howto/requirements-in-ci.md: its requirements file, checked over this module's floor
