@@ -100,6 +100,33 @@ def test_an_object_monitor_counts_the_outages_before_an_objects_first_sample(bod
     assert {k: sorted(v) for k, v in got.items()} == {k: sorted(v) for k, v in want.items() if v}, (str(formula), max_age)
 
 
+@settings(max_examples=100, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(body=formulas((TRACK,), max_depth=3, rich=True, future=False) | formulas((TRACK,), max_depth=3), seed=st.integers(0, 10**6))
+def test_one_objects_samples_change_no_other_objects_verdicts(body: Formula, seed: int) -> None:
+    """Issue 54 item 11: every object's monitor is made from one plan of the body, worked out once
+    per formula, and shares no state with the others: two objects' samples interleaved give each
+    object the verdicts it gets alone."""
+    formula = Formula.of(Quantifier("foreach", "t", Stream(TRACK, ("id",)), body.root))
+    rng = random.Random(seed)
+    samples, t = [], 0
+    for _ in range(200):
+        t += rng.choice([1, 1, 2, 3, 9]) * MS
+        samples.append((t, rng.choice("ab"), rng.choice([0, 1, 2, 3, 2.5, None, "x"])))
+
+    def verdicts(objects: str) -> list[tuple[str, int, int, bool, int]]:
+        monitor = ObjectMonitor(formula, idle_ns=10**12)
+        pairs = []
+        for t, key, v in samples:
+            if key in objects:
+                pairs += monitor.push("Track(f)", t, {"id": key, "v": v})
+        pairs += monitor.close()
+        return sorted((key, v.state, v.t_ns, v.verdict, v.decided_ns) for key, v in pairs)
+
+    both = verdicts("ab")
+    assert [v for v in both if v[0] == "a"] == verdicts("a"), str(formula)
+    assert [v for v in both if v[0] == "b"] == verdicts("b"), str(formula)
+
+
 def test_an_objects_identity_is_its_json_type_and_value() -> None:
     """Issue 54 item 5: ``1`` and ``"1"`` were one object, ``1`` and ``1.0`` two. Identity is
     JSON's (the semantics page): a number is one value however written, a string is never a

@@ -183,6 +183,27 @@ def test_long_traces_agree_while_old_states_are_dropped(formula: Formula, seed: 
         assert monitor.retained() < monitor.states // 2, (monitor.retained(), monitor.states)
 
 
+@cases(100)
+@given(formula=formulas(max_depth=4, rich=True), seed=st.integers(0, 10**6))
+def test_monitors_of_one_formula_share_nothing_that_changes(formula: Formula, seed: int) -> None:
+    """Monitors of one Formula share what is worked out once from its tree (the plan of their
+    nodes: a foreach monitor makes a monitor per object, issue 54 item 11), and nothing that
+    changes: two fed different traces, their samples interleaved, return what each returns alone."""
+    traces_ = [long_trace(formula.terms, seed + k, samples=200) for k in (0, 1)]
+    orders = [_in_time_order(trace, random.Random(seed)) for trace in traces_]
+    alone = [_run(Monitor(formula), order)[0] for order in orders]
+    monitors = [Monitor(formula), Monitor(formula)]
+    together: list[list[Verdict]] = [[], []]
+    for i in range(max(len(order) for order in orders)):
+        for k in (0, 1):
+            if i < len(orders[k]):
+                term, t, value = orders[k][i]
+                together[k] += monitors[k].push(str(term), t, value)
+    for k in (0, 1):
+        together[k] += monitors[k].flush()
+    assert together == alone, str(formula)
+
+
 @cases(300)
 @given(formula=formulas(max_depth=4), data=st.data(), seed=st.integers(0, 1000), delay=st.integers(1, 4))
 def test_samples_out_of_order_within_the_reorder_delay_change_nothing(formula: Formula, data: st.DataObject, seed: int, delay: int) -> None:

@@ -239,10 +239,11 @@ class ObjectMonitor:
             if name in monitor.terms:
                 for start, end in periods:
                     monitor.outage(name, start, end)
-        for k, (t, held) in sorted(self._latest.items(), key=lambda item: item[1][0]):
-            name = self.terms[k]
-            if k != self._domain_k and name in monitor.terms:
-                monitor.push(name, t, held)  # (before the object's first sample: no state yet)
+        if len(self._latest) > 1:  # (the quantified stream's own is always there, and not pushed)
+            for k, (t, held) in sorted(self._latest.items(), key=lambda item: item[1][0]):
+                name = self.terms[k]
+                if k != self._domain_k and name in monitor.terms:
+                    monitor.push(name, t, held)  # (before the object's first sample: no state yet)
         self._live[key] = monitor
         self.made += 1
         self._reshare()

@@ -27,7 +27,8 @@ with delay 0 has the second counted late (:func:`~dyknow.reasoning.evaluate` wou
 ``flush()`` closes every buffered state (the end of the input).
 
 **How it stays fast and small.** The formula becomes a tree of nodes evaluated bottom-up at each
-state. A node without future operators below it is *synchronous*: its verdict is decided at its
+state (what to make is worked out once per formula and kept with it, so that a ``foreach``
+monitor makes each object's monitor, nodes of its own, in a few microseconds). A node without future operators below it is *synchronous*: its verdict is decided at its
 state. Past operators over synchronous operands keep O(1) summaries (the last state where the
 operand was true, the last where it was not false, the last break of the ``since`` chain, and a
 queue of the states still younger than the interval's lower bound), so ``once[0, inf]`` costs the
@@ -129,7 +130,6 @@ from dyknow.reasoning.syntax import (
     walk,
 )
 from dyknow.reasoning.timeline import NEVER, Clock, Held
-from dyknow.reasoning.tree import raw_reads
 from dyknow.reasoning.values import FALSE, TRUE, UNKNOWN
 from dyknow.tags import parse_term
 
@@ -195,6 +195,147 @@ def _negated(node: Node) -> bool:
     return isinstance(node, Always | Historically)
 
 
+class _Entry:
+    """One node of a formula's tree as every monitor of it makes it: its operands' entries, how
+    far ahead it and they read, the terms it reads (itself or below); a stream's term and
+    rawness, or the entry of the same stream made already (one node per term, fields and
+    rawness, however often written)."""
+
+    def __init__(self, node: Node, kids: list[int], below: int, horizon: int, reads: list[int]) -> None:
+        self.node = node
+        self.kids = kids
+        self.below = below
+        self.horizon = horizon
+        self.reads = reads  # (sorted; the windows made from it share the list and never change it)
+        self.k = -1
+        self.raw = False
+        self.same = -1
+        self.robustness = False  # robustness(F): a robustness tree of F's own
+        # what Monitor._make makes (_describe): a kind, and what the node says of it
+        self.op = _VALUE
+        self.value: Any = None
+        self.lo = 0
+        self.hi: int | None = None
+        self.two = False  # until, since: with a left operand
+        self.negate = False  # always, historically
+
+
+# the kinds of node an entry makes (_Entry.op)
+_VALUE: Final = 0
+_VAR: Final = 1
+_INDEX: Final = 2
+_ARITH: Final = 3
+_CALL: Final = 4
+_AGGREGATE: Final = 5
+_PREV: Final = 6
+_EDGE: Final = 7
+_ATOM: Final = 8
+_CONST: Final = 9
+_NOT: Final = 10
+_BINARY: Final = 11
+_FUTURE: Final = 12
+_PAST: Final = 13
+
+
+def _describe(entry: _Entry, node: Node, raw: set[int]) -> None:
+    """Say in ``entry`` what node the syntax ``node`` makes (besides streams and robustness()),
+    so that a monitor makes it without looking at the syntax again."""
+    if isinstance(node, Num | Str):
+        entry.op, entry.value = _VALUE, node.value
+    elif isinstance(node, Var):
+        entry.op, entry.value = _VAR, node.name
+    elif isinstance(node, Index):
+        entry.op, entry.raw = _INDEX, id(node) in raw
+    elif isinstance(node, Neg):
+        entry.op, entry.value = _CALL, "neg"
+    elif isinstance(node, Arith):
+        entry.op, entry.value = _ARITH, node.op
+    elif isinstance(node, Call):
+        entry.op, entry.value = _CALL, node.fn
+    elif isinstance(node, Aggregate):
+        entry.op, entry.value, entry.lo, entry.hi = _AGGREGATE, node.kind, node.interval.lo_ns, node.interval.hi_ns
+    elif isinstance(node, Prev):
+        entry.op = _PREV
+    elif isinstance(node, Rise | Fall):
+        entry.op, entry.value = _EDGE, isinstance(node, Rise)
+    elif isinstance(node, Atom):
+        entry.op, entry.value = _ATOM, node.op
+    elif isinstance(node, Const):
+        entry.op, entry.value = _CONST, TRUE if node.value else FALSE
+    elif isinstance(node, Not):
+        entry.op = _NOT
+    elif isinstance(node, And | Or | Implies):
+        entry.op, entry.value = _BINARY, AND if isinstance(node, And) else OR if isinstance(node, Or) else IMPLIES
+    else:
+        assert isinstance(node, Eventually | Always | Until | Once | Historically | Since)
+        entry.op = _FUTURE if isinstance(node, Eventually | Always | Until) else _PAST
+        entry.two = isinstance(node, Until | Since)
+        entry.lo, entry.hi, entry.negate = node.interval.lo_ns, node.interval.hi_ns, _negated(node)
+
+
+class _Plan:
+    """What every monitor of one formula works out alike from its tree, once (kept with the
+    formula: :meth:`Formula.memo`): the terms, the nodes to make operands first, and the sum of
+    the windows' widths. A foreach monitor makes one monitor of its body per object, and walking
+    the tree for each was most of what an object cost; each monitor still makes nodes of its own
+    (they hold its states), so monitors of one formula share nothing that changes."""
+
+    def __init__(self, formula: Formula) -> None:
+        for part in formula.walked:
+            if isinstance(part, Quantifier):
+                raise FormulaError(
+                    f"the formula holds the quantifier '{part.kind} {part.var} in {part.domain}'",
+                    where=f"monitor of {str(formula)!r}",
+                    expected="a formula whose forall/exists are expanded (dyknow.reasoning.expand); foreach: an ObjectMonitor",
+                )
+        self.terms: tuple[str, ...] = tuple(str(term) for term in formula.terms)
+        self.index = {term: k for k, term in enumerate(self.terms)}
+        self.raw = formula.raw
+        self.horizon_ns = formula.horizon_ns
+        self.widths = sum(
+            (n.interval.hi_ns or n.interval.lo_ns) for n in formula.walked if isinstance(n, Historically | Once | Since | Aggregate | Always | Eventually | Until)
+        )
+        self.entries: list[_Entry] = []
+        self.positions: dict[int, int] = {}  # id of a node of the tree -> its entry
+        # iterative post-order: formulas may nest deeper than Python's recursion allows
+        streams: dict[tuple[int, tuple[str, ...], bool], int] = {}
+        stack: list[tuple[Node, bool]] = [(formula.root, False)]
+        while stack:
+            current, expanded = stack.pop()
+            if id(current) in self.positions:
+                continue
+            kids = children(current)
+            if not expanded and kids:
+                stack.append((current, True))
+                stack.extend((kid, False) for kid in kids)
+                continue
+            operands = [self.entries[self.positions[id(kid)]] for kid in kids]
+            below = max((kid.horizon for kid in operands), default=0)
+            own = current.interval.hi_ns or 0 if isinstance(current, Always | Eventually | Until) else 0
+            reads: set[int] = set()
+            for kid in operands:
+                reads.update(kid.reads)
+            entry = _Entry(current, [self.positions[id(kid)] for kid in kids], below, below + own, [])
+            if isinstance(current, Stream):
+                entry.k = self.index[str(current.term)]
+                entry.raw = id(current) in self.raw
+                reads.add(entry.k)
+                entry.same = streams.setdefault((entry.k, current.fields, entry.raw), len(self.entries))
+                if entry.same == len(self.entries):
+                    entry.same = -1
+            elif isinstance(current, Call) and current.fn == "robustness":
+                entry.robustness = True
+            else:
+                _describe(entry, current, self.raw)
+            entry.reads = sorted(reads)
+            self.positions[id(current)] = len(self.entries)
+            self.entries.append(entry)
+
+
+def _plan(formula: Formula) -> _Plan:
+    return _Plan(formula)
+
+
 class Monitor:
     """Monitors one formula over streams of samples, incrementally (see the module documentation).
 
@@ -219,38 +360,35 @@ class Monitor:
             raise FormulaError(f"reorder_ns is {reorder_ns}", where="Monitor(reorder_ns=...)", expected="0 or more nanoseconds")
         if max_cells < 1:
             raise FormulaError(f"max_cells is {max_cells}", where="Monitor(max_cells=...)", expected="1 or more cells")
-        for part in self.formula.walked:
-            if isinstance(part, Quantifier):
-                raise FormulaError(
-                    f"the formula holds the quantifier '{part.kind} {part.var} in {part.domain}'",
-                    where=f"monitor of {str(self.formula)!r}",
-                    expected="a formula whose forall/exists are expanded (dyknow.reasoning.expand); foreach: an ObjectMonitor",
-                )
+        plan = self.formula.memo("monitor plan", _plan)
+        assert isinstance(plan, _Plan)
         self.reorder_ns = int(reorder_ns)
         #: the terms as the formula writes them, in order of first appearance (push's ``term``)
-        self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
-        self._index = {term: k for k, term in enumerate(self.terms)}
+        self.terms: tuple[str, ...] = plan.terms
+        self._index = dict(plan.index)  # (its own: _term_index adds the other spellings it is pushed)
         self._variables: dict[str, Any] = dict(variables or {})
         self._times = Held(len(self.terms))
         self._clock = Clock()
         self._nodes: list[Condition] = []
         self._values: list[Value] = []
         self._steps: list[Step] = []  # every node, operands first: what a state steps through
-        self._raw: set[int] = set()  # the ids of the nodes read as they are (tree.raw_reads)
+        self._raw: set[int] = plan.raw  # the ids of the nodes read as they are (tree.raw_reads)
         # the robustness tree beside the verdict nodes, when asked for (dyknow.reasoning.robustness)
         self._robust: RobustnessTree | None = RobustnessTree(0) if robustness else None
         self._rob_wait: list[tuple[int, int, bool, int]] = []  # verdicts decided before their robustness
-        root = self._build(self.formula.root)
+        root = self._build(plan)
         if not isinstance(root, Condition):  # (the parser makes the root a condition)
             raise FormulaError("the formula is a value, not a condition", where=f"monitor of {str(self.formula)!r}", expected="a condition")
         self._root = root
-        self._span_ns = max([node.need_ns for node in self._nodes] + [self.formula.horizon_ns])
+        span = plan.horizon_ns
+        for node in self._nodes:
+            if node.need_ns > span:
+                span = node.need_ns
+        self._span_ns = span
         # stale spans are kept as far back as any bounded window may read, all windows at once
-        self._times.keep_ns = self._span_ns + sum(
-            (n.interval.hi_ns or n.interval.lo_ns) for n in self.formula.walked if isinstance(n, Historically | Once | Since | Aggregate | Always | Eventually | Until)
-        )
+        self._times.keep_ns = self._span_ns + plan.widths
         if self._robust is not None:
-            self._robust.keep_ns = self._times.keep_ns + self.formula.horizon_ns
+            self._robust.keep_ns = self._times.keep_ns + plan.horizon_ns
         # with a future operator somewhere, nodes read their operands' verdicts at older states:
         # every asynchronous node keeps them, and a synchronous one only if an asynchronous
         # and/or/implies reads it at the states its other operand decides later (the temporal
@@ -280,9 +418,10 @@ class Monitor:
         self._closed = False
         self._trim_from = 0
         self._given_up = 0
-        self._waiting: list[SinceSync | AggregateValue] = [
-            node for node in self._steps if isinstance(node, SinceSync | AggregateValue)
-        ]  # their own count
+        self._waiting: list[SinceSync | AggregateValue] = []  # their own count
+        for each in self._steps:
+            if isinstance(each, SinceSync) or isinstance(each, AggregateValue):
+                self._waiting.append(each)
         self._max_states = 0
         self.set_max_cells(max_cells)
         for term, age in (max_age_ns or {}).items():
@@ -340,66 +479,55 @@ class Monitor:
 
     # -- building
 
-    def _build(self, node: Node) -> Condition | Value:
-        # iterative post-order: formulas may nest deeper than Python's recursion allows
-        built: dict[int, Condition | Value] = {}
-        horizons: dict[int, int] = {}
-        terms: dict[int, set[int]] = {}  # the terms each node reads, itself or below
-        robs: dict[int, RNode] = {}  # a condition's robustness node (when asked for)
-        streams: dict[tuple[int, tuple[str, ...], bool], Value] = {}  # one per term, fields and rawness, however often written
-        self._raw = self.formula.raw if node is self.formula.root else raw_reads(node)
-        stack: list[tuple[Node, bool]] = [(node, False)]
-        while stack:
-            current, expanded = stack.pop()
-            if id(current) in built:
+    def _build(self, plan: _Plan) -> Condition | Value:
+        """Make the formula's nodes, operands first, as ``plan`` lists them; the root is the last."""
+        built: list[Condition | Value] = []
+        robs: list[RNode | None] = []  # a condition's robustness node (when asked for)
+        robust = self._robust is not None
+        for entry in plan.entries:
+            if entry.same >= 0:
+                built.append(built[entry.same])  # (stepped already)
+                robs.append(None)
                 continue
-            kids = children(current)
-            if not expanded and kids:
-                stack.append((current, True))
-                stack.extend((kid, False) for kid in kids)
-                continue
-            args = [built[id(kid)] for kid in kids]
-            below = max((horizons[id(kid)] for kid in kids), default=0)
-            own = current.interval.hi_ns or 0 if isinstance(current, Always | Eventually | Until) else 0
-            horizons[id(current)] = below + own
-            reads: set[int] = set()
-            for kid in kids:
-                reads |= terms[id(kid)]
-            if isinstance(current, Stream):
-                reads.add(self._index[str(current.term)])
-            terms[id(current)] = reads
+            node = entry.node
             made: Condition | Value
-            if isinstance(current, Call) and current.fn == "robustness":
-                made = self._robustness_value(current.args[0], built, terms)
-            elif isinstance(current, Stream) and (self._index[str(current.term)], current.fields, id(current) in self._raw) in streams:
-                built[id(current)] = streams[(self._index[str(current.term)], current.fields, id(current) in self._raw)]  # (stepped already)
-                continue
+            if entry.k >= 0:
+                stream = node
+                assert isinstance(stream, Stream)
+                made = RawStreamValue(entry.k, stream.fields, self._times) if entry.raw else StreamValue(entry.k, stream.fields, self._times)
+            elif entry.robustness:
+                call = node
+                assert isinstance(call, Call)
+                made = self._robustness_value(call.args[0], plan, built)
             else:
-                made = self._make(current, args, below, below + own)
-            if isinstance(made, StreamValue):
-                streams[(made.k, made.fields, isinstance(made, RawStreamValue))] = made
-            if isinstance(made, UntilNode | UntilSync | SinceNode | SinceSync | AggregateValue):
+                made = self._make(entry, [built[p] for p in entry.kids])
+            if isinstance(made, UntilNode) or isinstance(made, UntilSync) or isinstance(made, SinceNode) or isinstance(made, SinceSync) or isinstance(made, AggregateValue):
                 made.held = self._times  # its windows ask whether a term below was stale in them
-                made.below = sorted(reads)
-            if self._robust is not None and isinstance(made, Condition):
-                robs[id(current)] = self._rob_node(current, made, [robs[id(k)] for k in kids if id(k) in robs], sorted(reads))
+                made.below = entry.reads
             if isinstance(made, Condition):
+                if robust:
+                    kids = [r for r in (robs[p] for p in entry.kids) if r is not None]
+                    robs.append(self._rob_node(node, made, kids, entry.reads))
+                else:
+                    robs.append(None)
                 self._nodes.append(made)
             else:
+                robs.append(None)
                 self._values.append(made)
             if not isinstance(made, ConstValue):  # (a constant has nothing to step)
                 self._steps.append(made)
-            built[id(current)] = made
-        return built[id(node)]
+            built.append(made)
+        return built[-1]
 
-    def _robustness_value(self, root: Node, built: Mapping[int, Condition | Value], terms: Mapping[int, set[int]]) -> Value:
+    def _robustness_value(self, root: Node, plan: _Plan, built: list[Condition | Value]) -> Value:
         """``robustness(F)``: a robustness tree of F's own, over its verdict nodes (built already)."""
         tree = RobustnessTree(0)
         robs: dict[int, RNode] = {}
         for node in reversed(walk(root)):  # children before parents
-            made = built[id(node)]
+            entry = plan.positions[id(node)]
+            made = built[entry]
             if isinstance(made, Condition):
-                robs[id(node)] = self._rob_node(node, made, [robs[id(k)] for k in children(node) if id(k) in robs], sorted(terms[id(node)]), tree)
+                robs[id(node)] = self._rob_node(node, made, [robs[id(k)] for k in children(node) if id(k) in robs], plan.entries[entry].reads, tree)
         tree.keep_ns = sum((n.interval.hi_ns or n.interval.lo_ns) for n in walk(root) if isinstance(n, Historically | Once | Since | Aggregate))
         return RobustnessValue(tree)
 
@@ -441,68 +569,63 @@ class Monitor:
         self._steps.append(made)
         return made
 
-    def _make(self, node: Node, args: list[Condition | Value], below: int, horizon: int) -> Condition | Value:
+    def _make(self, entry: _Entry, args: list[Condition | Value]) -> Condition | Value:
+        """The node of ``entry`` over its operands' nodes ``args`` (what it makes: ``_describe``)."""
         clock = self._clock
-        if isinstance(node, Num | Str):
-            return ConstValue(node.value)
-        if isinstance(node, Var):
-            if node.name not in self._variables:
-                raise FormulaError(f"the variable {node.name!r} has no value", where=f"monitor of {str(self.formula)!r}",
+        op = entry.op
+        if op == _VALUE:
+            return ConstValue(entry.value)
+        if op == _VAR:
+            if entry.value not in self._variables:
+                raise FormulaError(f"the variable {entry.value!r} has no value", where=f"monitor of {str(self.formula)!r}",
                                    expected="Monitor(variables={...}) for a quantifier's body")  # fmt: skip
-            return ConstValue(self._variables[node.name])
-        if isinstance(node, Stream):
-            if id(node) in self._raw:
-                return RawStreamValue(self._index[str(node.term)], node.fields, self._times)
-            return StreamValue(self._index[str(node.term)], node.fields, self._times)
-        if isinstance(node, Index):
-            return IndexValue(self._value(args[0]), [self._value(a) for a in args[1:]], id(node) in self._raw)
-        if isinstance(node, Neg):
-            return CallValue("neg", [self._value(args[0])])
-        if isinstance(node, Arith):
-            return ArithValue(node.op, self._value(args[0]), self._value(args[1]))
-        if isinstance(node, Call):
-            return CallValue(node.fn, [self._value(a) for a in args])
-        if isinstance(node, Aggregate):
+            return ConstValue(self._variables[entry.value])
+        if op == _INDEX:
+            return IndexValue(self._value(args[0]), [self._value(a) for a in args[1:]], entry.raw)
+        if op == _ARITH:
+            return ArithValue(entry.value, self._value(args[0]), self._value(args[1]))
+        if op == _CALL:  # (a negation too: the call "neg")
+            return CallValue(entry.value, [self._value(a) for a in args])
+        if op == _AGGREGATE:
             arg = args[0]
-            if node.kind == "count":
+            if entry.value == "count":
                 assert isinstance(arg, Condition)
-                return AggregateValue(node.kind, node.interval.lo_ns, node.interval.hi_ns, None, arg)
-            return AggregateValue(node.kind, node.interval.lo_ns, node.interval.hi_ns, self._value(arg), None)
-        if isinstance(node, Prev):
+                return AggregateValue(entry.value, entry.lo, entry.hi, None, arg)
+            return AggregateValue(entry.value, entry.lo, entry.hi, self._value(arg), None)
+        if op == _PREV:
             arg = args[0]
             if isinstance(arg, Condition):
                 return PrevNode(clock, arg)
             return PrevValue(arg)
-        if isinstance(node, Rise | Fall):
+        if op == _EDGE:
             arg = args[0]
             assert isinstance(arg, Condition)
-            return EdgeNode(clock, isinstance(node, Rise), arg)
-        if isinstance(node, Atom):
-            return AtomNode(clock, node.op, self._value(args[0]), self._value(args[1]) if len(args) > 1 else None)
-        if isinstance(node, Const):
-            return ConstNode(clock, TRUE if node.value else FALSE)
-        conds = [a for a in args if isinstance(a, Condition)]
-        assert len(conds) == len(args), "the parser makes every operand of a connective a condition"
-        if isinstance(node, Not):
+            return EdgeNode(clock, entry.value, arg)
+        if op == _ATOM:
+            return AtomNode(clock, entry.value, self._value(args[0]), self._value(args[1]) if len(args) > 1 else None)
+        if op == _CONST:
+            return ConstNode(clock, entry.value)
+        conds: list[Condition] = []
+        for a in args:
+            assert isinstance(a, Condition), "the parser makes every operand of a connective a condition"
+            conds.append(a)
+        if op == _NOT:
             return NotNode(clock, conds[0])
-        if isinstance(node, And | Or | Implies):
-            kind = AND if isinstance(node, And) else OR if isinstance(node, Or) else IMPLIES
-            return BinaryNode(clock, kind, conds[0], conds[1], horizon)
-        if isinstance(node, Eventually | Always | Until):
-            left, right = (conds[0], conds[1]) if isinstance(node, Until) else (None, conds[0])
-            hi = node.interval.hi_ns
+        if op == _BINARY:
+            return BinaryNode(clock, entry.value, conds[0], conds[1], entry.horizon)
+        left, right = (conds[0], conds[1]) if entry.two else (None, conds[0])
+        sync = right.sync and (left is None or left.sync)
+        hi = entry.hi
+        if op == _FUTURE:
             assert hi is not None
-            if all(arg.sync for arg in conds):
-                return UntilSync(clock, left, right, node.interval.lo_ns, hi, _negated(node), horizon)
-            return UntilNode(clock, left, right, node.interval.lo_ns, hi, _negated(node), horizon, horizon)
-        assert isinstance(node, Once | Historically | Since)
-        left, right = (conds[0], conds[1]) if isinstance(node, Since) else (None, conds[0])
-        hi = node.interval.hi_ns
-        if all(arg.sync for arg in conds):
-            return SinceSync(clock, left, right, node.interval.lo_ns, hi, _negated(node))
+            if sync:
+                return UntilSync(clock, left, right, entry.lo, hi, entry.negate, entry.horizon)
+            return UntilNode(clock, left, right, entry.lo, hi, entry.negate, entry.horizon, entry.horizon)
+        if sync:
+            return SinceSync(clock, left, right, entry.lo, hi, entry.negate)
         # it reads back to the window's start (or, unbounded, its end: older states count as one)
-        reach = hi if hi is not None else node.interval.lo_ns
-        return SinceNode(clock, left, right, node.interval.lo_ns, hi, _negated(node), below + reach, below)
+        reach = hi if hi is not None else entry.lo
+        return SinceNode(clock, left, right, entry.lo, hi, entry.negate, entry.below + reach, entry.below)
 
     # -- input
 

@@ -220,6 +220,15 @@ class Formula:
             self._known[name] = compute(self.root)
         return self._known[name]
 
+    def memo(self, name: str, compute: Callable[[Formula], object]) -> object:
+        """``compute(formula)``, computed on first use and kept with the formula under ``name``
+        (the tree never changes): what a reader works out once from it, as a monitor the plan of
+        its nodes (a foreach monitor makes one monitor of its body per object). A ``compute``
+        that raises keeps nothing."""
+        if name not in self._known:
+            self._known[name] = compute(self)
+        return self._known[name]
+
     @property
     def walked(self) -> list[Node]:
         """Every node of the tree, parents before children (:func:`walk`), computed once; do not change it."""
