@@ -286,7 +286,7 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
     from dyknow.transport import Session, make_config
     from tests.conftest import free_port, wait_until
 
-    manager = make_manager(listen=[f"tcp/127.0.0.1:{free_port()}"])
+    manager = make_manager(listen=[f"tcp/127.0.0.1:{free_port()}"], queue_depth=100_000)  # (the sinks keep every verdict, however slow)
     plain = "historically[0, 300ms] State(r1).speed <= Limits(floor)[State(r1).zone]"
     objects = "foreach r in Seen(floor).id: historically[0, 200ms] Seen(floor).speed < 1.5"
     keys = {"State(r1)": "floor/r1/state", "Limits(floor)": "floor/limits", "Seen(floor)": "floor/seen"}
@@ -372,7 +372,8 @@ def test_live_forall_monitors_recorded_then_checked_give_the_same_verdicts(make_
 
     (tmp_path / "floor.ttl").write_text(ONTOLOGY)
     robots = ("r1", "r2", "r3")
-    manager = make_manager(ontology=[tmp_path / "floor.ttl"], listen=["tcp/127.0.0.1:0"])
+    # (900 verdicts a second reach one sink: its queue holds every one, however long it waits for the CPU)
+    manager = make_manager(ontology=[tmp_path / "floor.ttl"], listen=["tcp/127.0.0.1:0"], queue_depth=100_000)
     relays = [_relay(f"state-{r}", f"floor/{r}/state", f"State({r})") for r in robots] + [_relay("limits", "floor/limits", "Limits(floor)")]
     manager.add_transformation(f"<transformations>{''.join(relays)}</transformations>")
     drivers: dict[str, Source] = {}
