@@ -92,6 +92,8 @@ def _switches(manager: Manager) -> list[AdaptationEvent]:
 
 
 def run(folder: Path, damping: Damping, minutes: float, fail_after_s: float, fix: bool) -> dict[str, Any]:
+    """One manager with ``damping``: the request's switches in ``minutes``; with ``fix``, then
+    level-a fixed for good and the time until the request is back on it."""
     fixed = folder / "fixed"
     fixed.unlink(missing_ok=True)
     (folder / "relapsing.py").write_text(UNIT)
@@ -125,6 +127,7 @@ def run(folder: Path, damping: Damping, minutes: float, fail_after_s: float, fix
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the undamped baseline, then the damped run, and print each figure beside its target."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--minutes", type=float, default=10.0, help="how long the damped run watches the switches (default 10)")
     parser.add_argument("--baseline-minutes", type=float, default=3.0, help="how long the undamped baseline runs (default 3; 0: none)")
