@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 import time
@@ -120,7 +121,9 @@ def run(scenario: str, seconds: float, tmp: Path) -> dict[str, Any]:
                     "--listen", f"tcp/{hosts.address(name)}:{NETNS_PORT}", *(["--connect", station] if name != "station" else []),
                     "--host", f"{name}-host", "--lease-ms", str(LEASE_MS), "--json", *(["--dwell", str(DWELL_S)] if name == "station" else []),
                 ]  # fmt: skip
-                procs[name] = Proc(argv, popen=lambda a, n=name, **kw: hosts.popen(n, a, **kw))
+                # (the station logs its adaptations and peers at INFO: what it planned, and why, when the robot's camera never comes)
+                env = {**os.environ, "DYKNOW_LOG": "INFO"} if name == "station" else None
+                procs[name] = Proc(argv, popen=lambda a, n=name, **kw: hosts.popen(n, a, **kw), env=env)
                 procs[name].next_json(30, event="ready")
             window = 2.0
             observer = Proc([sys.executable, __file__, "--observe", station, str(window)], popen=lambda a, **kw: hosts.popen("station", a, **kw))
@@ -130,6 +133,9 @@ def run(scenario: str, seconds: float, tmp: Path) -> dict[str, Any]:
             while (stats := observer.next_json(30, event="stats"))["camera"] != BOTTOM:  # the robot's camera feeds the key
                 if time.monotonic() > deadline:
                     said = "".join(f"\n{n}'s log, its end: {procs[n].error_tail()}" for n in ("station", "robot"))
+                    said += "\nthe station's adaptation and peer lines:\n" + "\n".join(
+                        line for line in procs["station"].error_text().splitlines() if " dyknow.adaptation: " in line or " dyknow.manager" in line
+                    )[-6000:]
                     raise RuntimeError(f"the robot's camera never fed the key within 60 s; the last window: {stats}{said}")
             observer.next_json(30, event="stats")  # a full window on the preferred camera
             before = {n: rss_mib(procs[n]) for n in ("station", "robot")}

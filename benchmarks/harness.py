@@ -196,6 +196,13 @@ class Proc:
         self.stderr.seek(0)
         return self.stderr.read()[-2000:]
 
+    def error_text(self) -> str:
+        """Everything the process wrote on stderr so far."""
+        self.stderr.seek(0)
+        text = self.stderr.read()
+        self.stderr.seek(0, 2)
+        return text
+
     def kill(self) -> None:
         """Kill the process (SIGKILL) if it still runs and reap it."""
         if self.proc.poll() is None:
