@@ -273,6 +273,15 @@ def test_a_junit_report_escapes_what_the_file_says() -> None:
     assert failure is not None and "x < 1 and y > 2" in (failure.text or "")
 
 
+def _from(recording: Path, start_ns: int, out: Path) -> Path:
+    """The messages of ``recording`` from ``start_ns`` on, as recorded, in ``out``."""
+    from dyknow.recording import Player
+
+    with Player(recording, rate=float("inf")) as player, Recorder((), out) as writer:
+        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
+    return out
+
+
 def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_manager: Any, tmp_path: Path) -> None:
     """Two monitors run live on a manager (a window over a lookup, and a foreach) while a
     recorder records the keys they read; the recording checked afterwards as a requirements
@@ -281,7 +290,6 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
     reach one and not the other), and past the longest window after it."""
     import time
 
-    from dyknow.recording import Player
     from dyknow.testing import Sink
     from dyknow.transport import Session, make_config
     from tests.conftest import free_port, wait_until
@@ -331,9 +339,7 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
         wait_until(lambda: recorder.count >= recorded + 3 * 150 and all(v and v[-1]["t_ns"] >= end_ns - 100_000_000 for v in map(verdicts, watched)),
                    "the last samples recorded and judged")  # fmt: skip
     # the samples from start_ns on, as they were recorded
-    trimmed = tmp_path / "trimmed.mcap"
-    with Player(live, rate=float("inf")) as player, Recorder((), trimmed) as writer:
-        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
+    trimmed = _from(live, start_ns, tmp_path / "trimmed.mcap")
     (tmp_path / "live.toml").write_text(
         "[bindings]\n" + "".join(f'"{t}" = "{k}"\n' for t, k in keys.items())
         + f'\n[[requirement]]\nname = "plain"\nformula = "{plain}"\n\n[[requirement]]\nname = "objects"\nformula = "{objects}"\n'
@@ -366,7 +372,6 @@ def test_live_forall_monitors_recorded_then_checked_give_the_same_verdicts(make_
     import time
 
     from dyknow.ontology import Ontology
-    from dyknow.recording import Player
     from dyknow.testing import Sink, Source
     from tests.conftest import wait_until
 
@@ -430,9 +435,7 @@ def test_live_forall_monitors_recorded_then_checked_give_the_same_verdicts(make_
             time.sleep(0.01)
             assert time.time_ns() - end_ns < 30e9, "the last samples judged"
         wait_until(lambda: recorder.count >= recorded + 4 * 250, "the last samples recorded")
-    trimmed = tmp_path / "trimmed.mcap"
-    with Player(live, rate=float("inf")) as player, Recorder((), trimmed) as writer:
-        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
+    trimmed = _from(live, start_ns, tmp_path / "trimmed.mcap")
     (tmp_path / "live.toml").write_text(
         '[bindings]\n"State(r)" = "floor/{r}/state"\n"Limits(floor)" = "floor/limits"\n'
         + "".join(f'\n[[requirement]]\nname = "{name}"\nformula = "{formula}"\n' for name, formula in formulas.items())
