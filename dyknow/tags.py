@@ -22,11 +22,13 @@ from dataclasses import dataclass
 
 from dyknow.errors import TagError
 
-__all__ = ["Term", "local_name", "parse_term"]
+__all__ = ["NAME", "Term", "local_name", "parse_term"]
 
 _EXPECTED = "Functor or Functor(arg, ...)"
 _LOCAL = r"[A-Za-z_][A-Za-z0-9_.\-]*"
 _NAME = re.compile(rf"<[^<>\"{{}}|^`\\\s]+>|(?:{_LOCAL})?:{_LOCAL}|{_LOCAL}")
+NAME: re.Pattern[str] = _NAME
+"""A functor's or an arg's name, as a tag writes it (a local name, a prefixed name or an IRI in angle brackets)."""
 _SPACE = re.compile(r"\s*")
 _HINTS = {
     "$": " (a template variable ${...} left unexpanded?)",

@@ -47,6 +47,7 @@ from dyknow.reasoning.syntax import (
     Until,
     Var,
 )
+from dyknow.reasoning.tree import family_term, is_family, member_arg
 from dyknow.tags import Term
 
 Verdict = bool | None
@@ -234,14 +235,19 @@ def naive_evaluate_ns(
 ) -> list[Any]:
     """Every state's (t_ns, verdict), or (t_ns, verdict, robustness), straight from the definitions."""
     terms = list(formula.terms)
-    times, held, when = naive_states(terms, [streams[t] for t in terms])
+    given = dict(streams)
+    for term in terms:  # a parameterized term's family: a sample at each of its members' (their values are read below)
+        if is_family(term) and term not in given:
+            given[term] = sorted(((t, None) for member, samples in streams.items() if member_arg(term, member) is not None for t, _ in samples),
+                                 key=lambda s: s[0])  # fmt: skip
+    times, held, when = naive_states(terms, [given[t] for t in terms])
     if start_ns is not None:
         keep = [i for i, t in enumerate(times) if t >= start_ns]
         times, held, when = [times[i] for i in keep], [held[i] for i in keep], [when[i] for i in keep]
     n = len(times)
     ages = dict(max_age or {})
     names = dict(variables or {})
-    sample_times = {term: sorted({t for t, _ in streams[term]}) for term in terms}
+    sample_times = {term: sorted({t for t, _ in given[term]}) for term in terms}
 
     def terms_below(node: Node) -> set[Term]:
         found: set[Term] = set()
@@ -370,6 +376,20 @@ def naive_evaluate_ns(
             if node.term in ages and times[i] - when[i][k] > ages[node.term]:
                 return U
             return naive_read_raw(held[i][k], node.fields)
+        if isinstance(node, Index) and node.param >= 0:  # SpeedLimit(State(r).zone): the member its argument names, held then
+            family = node.stream.term
+            if family in ages and times[i] - when[i][terms.index(family)] > ages[family]:
+                return U
+            latest: dict[str, Any] = {}
+            for member, samples in streams.items():
+                arg = member_arg(family, member)
+                before = [v for t, v in samples if t <= times[i]]
+                if arg is not None and before:
+                    latest[arg] = before[-1]
+            found = naive_lookup(latest, value(node.keys[0], i))
+            for key in node.keys[1:]:
+                found = naive_lookup(found, value(key, i))
+            return found
         if isinstance(node, Index):
             found = raw(node.stream, i)
             for key in node.keys:
@@ -835,6 +855,57 @@ def lookup_formulas(*, future: bool = True) -> st.SearchStrategy[Formula]:
         st.builds(Once, intervals(future=False), atom),
         st.builds(lambda kind, iv, v, c: Atom(Aggregate(kind, iv, v), ">", Num(c)), st.sampled_from(["max", "avg", "sum"]),
                   intervals(future=False), values_, st.sampled_from([0, 1, 2])),  # fmt: skip
+    ]
+    ahead = [st.builds(Always, intervals(future=True), atom), st.builds(Eventually, intervals(future=True), atom)] if future else []
+    tree = st.one_of(atom, atom, st.builds(Not, atom), st.builds(And, atom, atom), st.builds(Or, atom, atom), *past, *ahead)
+    return tree.map(Formula.of)
+
+
+# -- parameterized terms: Limit(Zone(r)), Limit(Zone(r).v).speed (a family of members Limit(a), Limit(b), ...)
+
+LIMIT = family_term("Limit", ("*",))
+MEMBERS = (Term("Limit", ("a",)), Term("Limit", ("b",)), Term("Limit", ("home",)), Term("Limit", ("speed",)))
+_MEMBER_VALUES = [1.0, 0.5, 2, 3, 0, 1.5] * 3 + [{"speed": 1.5}, {"speed": 1}, {"speed": 0.5, "x": 1, "y": 1}, {"x": 0, "y": 4}, True, "fast", None, [1, 2]]
+_MEMBER_ZONES = ["a", "b", "home", "speed"] * 3 + [{"v": "a"}, {"v": "b"}, {"v": "home"}, "zz", 3, None]
+_ARGUMENTS: st.SearchStrategy[Node] = st.sampled_from([Stream(ZONE), Stream(ZONE), Stream(ZONE, ("v",))])
+
+
+@st.composite
+def family_traces(draw: st.DrawFn, *, max_samples: int = 15) -> dict[Term, list[tuple[int, Any]]]:
+    """Irregular samples of Zone(r), P(a) and some of Limit's members (none, at times: then
+    every lookup is unknown), each member's values from a pool of numbers, objects and junk."""
+    out: dict[Term, list[tuple[int, Any]]] = {}
+    chosen = [m for m in MEMBERS if draw(st.sampled_from([True, True, True, False]))]
+    for term in [ZONE, P, *chosen]:  # (no member at all, sometimes: every lookup unknown)
+        t = draw(st.integers(0, 4))
+        samples = []
+        for _ in range(draw(st.integers(1 if term in MEMBERS else 3, max_samples))):
+            pool = _MEMBER_ZONES if term == ZONE else _POOLS[term] if term in _POOLS else _MEMBER_VALUES
+            samples.append((t * MS, draw(st.sampled_from(pool))))
+            t += draw(st.sampled_from([0, 1, 1, 2, 3]))
+        out[term] = samples
+    return out
+
+
+def family_formulas(*, future: bool = True) -> st.SearchStrategy[Formula]:
+    """Atoms over a parameterized term (alone, with a field after it, as a point of dist, beside
+    another stream), alone or under one connective, temporal operator or aggregate."""
+    ops = st.sampled_from(["<", "<=", ">", ">=", "==", "!="])
+    member = st.builds(lambda k: Index(Stream(LIMIT), (k,), 0), _ARGUMENTS)
+    field = st.builds(lambda k: Index(Stream(LIMIT), (k, Str("speed")), 0), _ARGUMENTS)
+    value = st.one_of(member, member, field)
+    atom = st.one_of(
+        st.builds(Atom, value, ops, st.builds(Num, st.sampled_from([0, 0.5, 1, 2]))),
+        st.builds(Atom, value, ops, st.just(Stream(P, ("x",)))),
+        st.builds(lambda v: Atom(v, "==", Str("fast")), value),
+        st.builds(Atom, member),  # a bare boolean member
+        st.builds(lambda v: Atom(Call("dist", (v, Stream(P))), "<", Num(3)), member),
+    )
+    past = [
+        st.builds(Historically, intervals(future=False), atom),
+        st.builds(Once, intervals(future=False), atom),
+        st.builds(lambda kind, iv, v: Atom(Aggregate(kind, iv, v), ">", Num(1)), st.sampled_from(["max", "avg", "min"]),
+                  intervals(future=False), value),  # fmt: skip
     ]
     ahead = [st.builds(Always, intervals(future=True), atom), st.builds(Eventually, intervals(future=True), atom)] if future else []
     tree = st.one_of(atom, atom, st.builds(Not, atom), st.builds(And, atom, atom), st.builds(Or, atom, atom), *past, *ahead)

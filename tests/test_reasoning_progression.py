@@ -32,7 +32,7 @@ from dyknow.reasoning.syntax import (
     children,
 )
 from dyknow.tags import Term
-from tests.reasoning_support import MS, formulas, long_trace, lookup_formulas, lookup_traces, traces
+from tests.reasoning_support import LIMIT, MS, family_formulas, family_traces, formulas, long_trace, lookup_formulas, lookup_traces, traces
 
 
 def cases(count: int) -> settings:
@@ -521,3 +521,17 @@ def test_an_unbounded_past_window_keeps_an_outage_it_no_longer_stores() -> None:
         monitor = Monitor(parse(text), max_age_ns={"p": MS})
         got = [(v.state, v.verdict) for t, value in samples for v in monitor.push("p", t, value)]
         assert got == [(0, False), (1, False)], text
+
+
+@cases(400)
+@given(formula=family_formulas(), data=st.data(), seed=st.integers(0, 1000))
+def test_monitors_of_parameterized_terms_pushed_their_members_return_evaluates_verdicts(formula: Formula, data: st.DataObject, seed: int) -> None:
+    """A monitor of ``Limit(Zone(r))`` pushed each member's samples by the member's name
+    (``Limit(a)``), streams interleaved at random at equal times: the verdicts evaluate() gives
+    over the samples it took, each at its state."""
+    trace = {term: samples for term, samples in data.draw(family_traces()).items() if term in formula.terms or term.functor == LIMIT.functor}
+    monitor = Monitor(formula)
+    verdicts, accepted = _run(monitor, _in_time_order(trace, random.Random(seed)))
+    streams = {str(term): sorted(samples, key=lambda s: s[0]) for term, samples in accepted.items()}
+    expected = {i: (t, v) for i, (t, v) in enumerate(evaluate_ns(formula, streams)) if v is not None}
+    assert {v.state: (v.t_ns, v.verdict) for v in verdicts} == expected, str(formula)

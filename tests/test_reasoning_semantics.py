@@ -30,7 +30,17 @@ from dyknow.errors import FormulaError
 from dyknow.reasoning import evaluate, parse
 from dyknow.reasoning.semantics import evaluate_ns, evaluate_values_ns
 from dyknow.reasoning.syntax import Formula
-from tests.reasoning_support import TERMS, formulas, lookup_formulas, lookup_traces, naive_evaluate_ns, seconds, traces
+from tests.reasoning_support import (
+    TERMS,
+    family_formulas,
+    family_traces,
+    formulas,
+    lookup_formulas,
+    lookup_traces,
+    naive_evaluate_ns,
+    seconds,
+    traces,
+)
 
 
 def cases(count: int) -> settings:
@@ -556,3 +566,17 @@ def test_an_outage_before_the_first_state_is_reached_by_the_windows_that_reach_b
     pushed = sorted([(t, 0, "Limit(f)", v) for t, v in limit] + [(t, 1, "Robots(f)", v) for t, v in robots])
     out = [pair for t, _, term, value in pushed for pair in objects.push(term, t, value)] + objects.close()
     assert [(key, v.t_ns, v.verdict) for key, v in out] == [("r1", 15 * s, False), ("r1", 16 * s, False)]
+
+
+@cases(1000)
+@given(formula=family_formulas(), data=st.data())
+def test_parameterized_terms_agree_with_the_naive_evaluator(formula: Formula, data: st.DataObject) -> None:
+    """``Limit(Zone(r))``: at each state the member the argument names, as the naive evaluator
+    reads it from the members' own samples (not from a family's value made of them); members
+    missing, junk arguments, a field after the term, some terms stale; verdicts and robustness."""
+    trace = data.draw(family_traces())
+    ages = {term: data.draw(st.sampled_from([0, 1, 2])) * 1_000_000 for term in formula.terms if data.draw(st.sampled_from([False, False, True]))}
+    expected = naive_evaluate_ns(formula, trace, max_age=ages, robustness=True)
+    got = evaluate_ns(formula, {str(term): samples for term, samples in trace.items()}, max_age_ns={str(t): a for t, a in ages.items()}, robustness=True)
+    assert got == expected, (str(formula), ages)
+    assert parse(str(formula)).root == formula.root

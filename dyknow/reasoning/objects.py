@@ -35,6 +35,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
+from dyknow.reasoning.families import Members
 from dyknow.reasoning.progression import DEFAULT_MAX_CELLS, MIN_STATES, Monitor, Verdict
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, parse
 from dyknow.reasoning.values import object_key, read
@@ -89,6 +90,7 @@ class ObjectMonitor:
         #: the terms as the formula writes them (the quantified stream's first)
         self.terms: tuple[str, ...] = tuple(str(term) for term in self.formula.terms)
         self._index = {term: k for k, term in enumerate(self.terms)}
+        self._members: Members | None = None  # a parameterized term's families, once a member is pushed by name
         self._domain_k = self._index[str(domain.term)]
         #: the position of the quantified stream in :attr:`terms`
         self.domain_index = self._domain_k
@@ -119,6 +121,11 @@ class ObjectMonitor:
         """Hand over one sample of ``term`` at ``t_ns``; the ``(object, verdict)`` pairs it decided."""
         k = self._index.get(term)
         if k is None:
+            if self._members is None:
+                self._members = Members(self.formula.terms)
+            member = self._members.find(term)
+            if member is not None:  # SpeedLimit(z1) of SpeedLimit(State(r).zone): its family's value then
+                return self.push_index(member[0], t_ns, self._members.value(member[0], member[1], t_ns, value))
             k = self._term_index(term)
         return self.push_index(k, t_ns, value)
 

@@ -19,6 +19,7 @@ from dyknow.reasoning.tree import (
     ANY,
     ARITY,
     BOOL,
+    FAMILY_ARG,
     FUNCTIONS,
     FUTURE,
     KEYWORDS,
@@ -55,10 +56,11 @@ from dyknow.reasoning.tree import (
     Var,
     children,
     duration_text,
+    family_term,
     kind_of,
     walk,
 )
-from dyknow.tags import Term, parse_term
+from dyknow.tags import NAME, Term, parse_term
 
 __all__ = ["MAX_DEPTH", "MAX_FORMULA_CHARS", "parse_tree"]
 
@@ -87,6 +89,8 @@ _FIELD = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _VARIABLE = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _CLASS = re.compile(r"<[^>\s]+>|[A-Za-z_][\w.-]*(?::[\w.-]+)?")
 _OPERATOR = re.compile(r"<=|>=|==|!=|<|>")
+_NAME_ARGS = re.compile(rf"\(\s*(?:{NAME.pattern})\s*(?:,\s*(?:{NAME.pattern})\s*)*\)")  # a tag's args: names only
+_ARGUMENT_WINDOWS = (Always, Eventually, Until, Historically, Once, Since, Aggregate, Prev, Rise, Fall)
 _HINT_OPERATORS = {"=": "== (equality is written ==)", "!": "!= (inequality is written !=)"}
 _FORMULA_START = (
     "a condition: a comparison such as Battery(robot) > 0.2, a stream of boolean value, 'not', a temporal operator, "
@@ -527,10 +531,16 @@ class _Parser:
             return self.made(Var(chunk), at)
         if chunk in KEYWORDS:
             raise self.fail(f"unexpected keyword '{chunk}'", _VALUE_START if chunk not in ("not", "always") else _FORMULA_START)
-        stream = self.made(self.stream(), at)
-        if not self.text.startswith("[", _SPACE.match(self.text, self.pos).end()):  # type: ignore[union-attr]  # \s* always matches
-            return stream
+        param = self.parameterized(depth, at)
         keys: list[Node] = []
+        if param is not None:  # SpeedLimit(State(r).zone): a lookup into the term's family by its argument
+            stream, argument, position = param
+            keys.append(argument)
+        else:
+            position = -1
+            stream = self.made(self.stream(), at)
+            if not self.text.startswith("[", _SPACE.match(self.text, self.pos).end()):  # type: ignore[union-attr]  # \s* always matches
+                return stream
         while True:  # stream[key] {[key] | .field}
             if self.char("["):
                 key = self.formula(depth + 1)
@@ -547,7 +557,70 @@ class _Parser:
                 keys.append(self.made(Str(match.group()), self.pos + 1))
                 self.pos = match.end()
             else:
-                return self.made(Index(stream, tuple(keys)), at)
+                return self.made(Index(stream, tuple(keys), position), at)
+
+    def parameterized(self, depth: int, at: int) -> tuple[Stream, Node, int] | None:
+        """A parameterized term at ``at`` (``SpeedLimit(State(r).zone)``: one argument an expression
+        computed at each state, the others names): its family stream (``SpeedLimit(*)``), the
+        expression and its position; None (nothing read) for a term whose args are all names."""
+        text = self.text
+        if text.startswith(("`", "<"), at):
+            return None  # a backquoted tag or an IRI functor: a tag as it is
+        end = at
+        while end < len(text) and text[end] not in _DELIMITERS:
+            end += 1
+        opening = _SPACE.match(text, end).end()  # type: ignore[union-attr]  # \s* always matches
+        if end == at or not text.startswith("(", opening) or _NAME_ARGS.match(text, opening) or ")" not in text[opening:]:
+            return None  # (a '(' never closed: the tag's own reading says so)
+        functor = self.tag(text[at:end], at).functor
+        self.pos = opening + 1
+        args: list[str] = []
+        found: tuple[Node, int] | None = None
+        expected = "a name (Speed(r1)) or one expression over streams (SpeedLimit(State(r1).zone))"
+        while True:
+            self.skip()
+            start = self.pos
+            name = NAME.match(text, start)
+            follows = _SPACE.match(text, name.end()).end() if name is not None else start  # type: ignore[union-attr]
+            if name is not None and text.startswith((",", ")"), follows) and self.variables.get(name.group()) != ANY:  # (forall's stand in args; foreach's never)
+                args.append(name.group())
+                self.pos = follows
+            else:
+                argument = self.formula(depth + 1)
+                if found is not None:
+                    raise self.fail(f"a second computed argument of {functor}(...)", f"one argument computed at each state, the others names ({expected})",
+                                    column=start)  # fmt: skip
+                found = (self.argument(argument, functor, start), len(args))
+                args.append(FAMILY_ARG)
+            if self.char(")"):
+                break
+            if not self.char(","):
+                raise self.unexpected(f"',' or ')' after argument {len(args)} of {functor}(...)")
+        if found is None:  # names only, spelled so the quick check missed it: the tag's own reading says what is wrong
+            self.tag(text[at : self.pos], at)
+            return None
+        family = self.made(Stream(family_term(functor, tuple(args))), at)
+        return family, found[0], found[1]
+
+    def argument(self, node: Node, functor: str, column: int) -> Node:
+        """The computed argument of a parameterized term, checked: a value read from the streams'
+        values at the state (the monitor plans a member per value it sees)."""
+        where = f"an argument of {functor}(...)"
+        if self.kind(node) == BOOL:
+            raise self.fail(f"{_quote(str(node))} is a condition, and {where} is a value", "a string naming the member, such as State(r1).zone",
+                            column=column)  # fmt: skip
+        nodes = walk(node)
+        for inner in nodes:
+            if isinstance(inner, _ARGUMENT_WINDOWS) or (isinstance(inner, Call) and inner.fn == "robustness"):
+                raise self.fail(f"{where} reads {_quote(str(inner))}, more than the state",
+                                "an expression of the streams' values at the state (no windows, aggregates, prev, rise, fall or robustness)",
+                                column=self.column_of(inner))  # fmt: skip
+            if isinstance(inner, Index) and inner.param >= 0:
+                raise self.fail(f"{where} is itself a parameterized term", "an argument over plain streams (State(r1).zone)", column=self.column_of(inner))
+        if not any(isinstance(inner, Stream | Var) for inner in nodes):
+            raise self.fail(f"{where} is the constant {_quote(str(node))}", f"a name, written as it is ({functor}(z1)), or an expression over streams",
+                            column=column)  # fmt: skip
+        return node
 
     def interval_ahead(self, word: str) -> bool:
         """Whether the ``[`` after ``word`` opens an interval (a comma outside parentheses and

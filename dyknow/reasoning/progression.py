@@ -71,6 +71,7 @@ from typing import Any, Final
 
 from dyknow.errors import ClosedError, FormulaError, TagError, did_you_mean
 from dyknow.reasoning.aggregates import AggregateValue
+from dyknow.reasoning.families import Members
 from dyknow.reasoning.future import UntilNode, UntilSync
 from dyknow.reasoning.nodes import (
     AND,
@@ -366,6 +367,7 @@ class Monitor:
         #: the terms as the formula writes them, in order of first appearance (push's ``term``)
         self.terms: tuple[str, ...] = plan.terms
         self._index = dict(plan.index)  # (its own: _term_index adds the other spellings it is pushed)
+        self._members: Members | None = None  # a parameterized term's families, once a member is pushed by name
         self._variables: dict[str, Any] = dict(variables or {})
         self._times = Held(len(self.terms))
         self._clock = Clock()
@@ -634,6 +636,14 @@ class Monitor:
         verdicts decided by the states it closed (often none, or the one of its own state)."""
         k = self._index.get(term)
         if k is None:
+            if self._members is None:
+                self._members = Members(self.formula.terms)
+            member = self._members.find(term)
+            if member is not None:  # SpeedLimit(z1) of SpeedLimit(State(r).zone): its family's value then
+                if t_ns <= self._closed_t and not self._closed:  # late: dropped, and its family never holds it
+                    self.late += 1
+                    return []
+                return self.push_index(member[0], t_ns, self._members.value(member[0], member[1], t_ns, value))
             k = self._term_index(term)
         return self.push_index(k, t_ns, value)
 

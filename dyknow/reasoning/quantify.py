@@ -61,6 +61,7 @@ from dyknow.reasoning.syntax import (
     children,
     walk,
 )
+from dyknow.reasoning.tree import family_term, is_family
 from dyknow.security import Limits
 from dyknow.tags import Term
 
@@ -220,7 +221,9 @@ def _rebuild(node: Node, args: list[Node], env: dict[str, str]) -> Node:
     """``node`` with new operands ``args`` and the variables of ``env`` replaced."""
     if isinstance(node, Stream):
         if any(a in env for a in node.term.args):
-            return Stream(Term(node.term.functor, tuple(env.get(a, a) for a in node.term.args)), node.fields)
+            names = tuple(env.get(a, a) for a in node.term.args)
+            term = family_term(node.term.functor, names) if is_family(node.term) else Term(node.term.functor, names)
+            return Stream(term, node.fields)
         return node
     if isinstance(node, Var):
         return Str(env[node.name]) if node.name in env else node
@@ -234,7 +237,7 @@ def _rebuild(node: Node, args: list[Node], env: dict[str, str]) -> Node:
         return Call(node.fn, tuple(args))
     if isinstance(node, Index):
         assert isinstance(args[0], Stream)  # (a stream rebuilt is a stream)
-        return Index(args[0], tuple(args[1:]))
+        return Index(args[0], tuple(args[1:]), node.param)
     if isinstance(node, Aggregate):
         return Aggregate(node.kind, node.interval, args[0])
     if isinstance(node, Quantifier):  # foreach: its stream's args too

@@ -75,6 +75,19 @@ its individual, a string; a ``foreach`` variable is its object's value.
   found is read as above (a number, a string or a boolean; an object is unknown, except as an
   operand of ``dist`` or of the next key). Unknown when the key is unknown or of another kind
   (a boolean), when the member is missing or the index out of range, and while ``S`` is stale.
+- **Parameterized terms.** ``F(e)`` (``SpeedLimit(State(r).zone)``, other args names) is the
+  lookup ``F(*)[e]``: its *family* ``F(*)`` is one stream, with a sample at each sample of each
+  of its *members* (the streams ``F(a)``, ``a`` any name, the other args as written), whose value
+  then is an object of each member's latest value by its argument (``{"z1": 1.5, "z2": 0.5}``);
+  ``e`` at the state is the key, so a string names the member (a number, by its canonical text,
+  finds none: no tag's arg is a number) and a field after the term is a key after it
+  (``F(e).value`` is ``F(*)[e]["value"]``). The family is a mentioned stream: the states start
+  once some member has a sample, and its freshness is the family's (stale while no member has a
+  sample within ``max_age``: a member silent while others speak holds its value). Unknown when
+  ``e`` is unknown or no string, and when the member named has no sample yet. Live, a monitor
+  plans a member the first time its argument is seen, so the member's samples count from then
+  on; a recording of the members' keys gives the same verdicts offline
+  (:mod:`dyknow.reasoning.families`).
 - ``prev(X)`` is X's value (or verdict) at the previous state; unknown at the first state.
 - ``robustness(F)`` is F's robustness at the state (below), unknown where it is undefined; its
   infinities (``true``, a boolean atom) are numbers here.
@@ -186,8 +199,10 @@ from typing import Any
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.evaluator import Evaluator, is_condition
+from dyknow.reasoning.families import family_samples
 from dyknow.reasoning.quantify import expand_quantifiers, rename
 from dyknow.reasoning.syntax import Aggregate, Call, Formula, Historically, Node, Once, Quantifier, Since, Stream, parse, parse_value, walk
+from dyknow.reasoning.tree import is_family
 from dyknow.reasoning.values import (  # re-exported (__all__): the monitor, and older code, import them from here
     FALSE,
     TRUE,
@@ -293,7 +308,7 @@ def evaluate(
             seconds.setdefault(t_ns, t)
             converted.append((t_ns, value))
         as_ns.append(converted)
-    ages = {str(parse_term(k)): round(v * 1_000_000_000) for k, v in (max_age or {}).items()}
+    ages = {_named(k): round(v * 1_000_000_000) for k, v in (max_age or {}).items()}
     out = _evaluate_ns(parsed, as_ns, [str(term) for term in parsed.terms], ages, robustness)
     return [(seconds[row[0]], *row[1:]) for row in out]
 
@@ -310,7 +325,7 @@ def evaluate_ns(
     every state's ``(t_ns, verdict)``, or ``(t_ns, verdict, robustness)`` with ``robustness``."""
     parsed = expand_quantifiers(parse(formula) if isinstance(formula, str) else formula, individuals)
     _no_foreach(parsed)
-    ages = {str(parse_term(k)): int(v) for k, v in (max_age_ns or {}).items()}
+    ages = {_named(k): int(v) for k, v in (max_age_ns or {}).items()}
     return _evaluate_ns(parsed, [list(samples) for samples in _choose(parsed, streams)], [str(term) for term in parsed.terms], ages, robustness)
 
 
@@ -349,7 +364,7 @@ def evaluate_objects_ns(
     assert isinstance(domain, Stream)
     inner = Formula.of(rename(root.body, root.var, _OBJECT))
     body = Formula(inner.text, inner.root, (domain.term, *(t for t in inner.terms if t != domain.term)))  # the object's samples are states
-    ages = {str(parse_term(k)): int(v) for k, v in (max_age_ns or {}).items()}
+    ages = {_named(k): int(v) for k, v in (max_age_ns or {}).items()}
     chosen = dict(zip([str(t) for t in body.terms], _choose(body, streams), strict=True))
     own = chosen[str(domain.term)]
     lives: dict[str, list[list[tuple[int, Any]]]] = {}
@@ -386,6 +401,15 @@ def evaluate_objects_ns(
     return out
 
 
+def _named(term: str) -> str:
+    """A term as the formula writes it (``dk:Battery( r )`` is ``Battery(r)``); a family
+    (``SpeedLimit(*)``), which no tag reads, as given."""
+    try:
+        return str(parse_term(term))
+    except TagError:
+        return term.replace(" ", "")
+
+
 _OBJECT = "\x00object"  # the foreach variable, once its body is read alone
 
 
@@ -412,8 +436,12 @@ def _choose(formula: Formula, streams: Mapping[str, Sequence[tuple[Any, Any]]]) 
             by_term[parse_term(key)] = samples
         except TagError:
             continue  # not a term: cannot be one the formula mentions
-    chosen = []
+    chosen: list[Sequence[tuple[Any, Any]]] = []
     for term in formula.terms:
+        if is_family(term):  # a parameterized term's: its members' samples, as one stream
+            given_family = streams.get(str(term))
+            chosen.append(given_family if given_family is not None else family_samples(term, streams))
+            continue
         if term not in by_term:
             given = [str(key) for key in streams]
             raise FormulaError(

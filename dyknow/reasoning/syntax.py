@@ -6,6 +6,7 @@ A formula is text::
     Speed(robot) < SpeedLimit(zone)
     abs(Pose(robot).x - Goal(robot).x) < 0.1
     Speed(r1) < Limits(floor)[State(r1).zone]
+    Speed(r1) < SpeedLimit(State(r1).zone)
     dist(Pose(r1).position, Pose(r2).position) > 1.5
     rise(Door(hall).open) implies eventually[0, 2s] Alarm(hall)
     avg[0, 5s] Speed(robot) < 0.5 and count[0, 60s] rise(Bump(robot)) <= 3
@@ -37,7 +38,9 @@ Grammar (keywords are lowercase; whitespace is free)::
                 | '(' formula ')'
                 | VAR                                                    a quantifier's variable, in its body
                 | stream ['[' formula ']' {'[' formula ']' | '.' FIELD}]  a lookup: Limits(floor)[State(r).zone]
+                | FUNCTOR '(' args ')' {'[' formula ']' | '.' FIELD}     a parameterized term: SpeedLimit(State(r).zone)
     stream     := TERM {'.' FIELD}                                       Battery(robot), BallTrack(field).speed
+    args       := (NAME | sum) {',' (NAME | sum)}                        one of them an expression, the others names
     interval   := '[' duration ',' duration ']'                          a <= b
     duration   := NUMBER ('s' | 'ms') | '0' | 'inf'                      inf: upper bound of past windows only
 
@@ -63,7 +66,18 @@ reaches as far right as it can (``forall c in C: p and q`` quantifies both).
   (``Limits(floor)[z]["speed"]``), and a field after a key is a key (``Limits(floor)[z].speed``).
   A key is a string or a number (an array's index), never a condition. ``dist(p, q)`` is the
   distance of two points: streams (or lookups) whose values are ``{x, y}`` or ``{x, y, z}``
-  objects, or arrays of numbers. **Conditions** (what ``and``, ``or``,
+  objects, or arrays of numbers.
+- **Parameterized terms** compute an argument at each state: ``SpeedLimit(State(r).zone)`` is the
+  stream ``SpeedLimit(z)`` of the zone ``z`` the robot is in then, one of the streams
+  ``SpeedLimit(z1)``, ``SpeedLimit(z2)``, ... (its *members*), so a limit per zone needs no map
+  of them all in one stream. One argument is an expression over the streams' values at the state
+  (streams, fields, lookups, arithmetic, functions but ``robustness``: no window, aggregate,
+  ``prev``, ``rise`` or ``fall``, no other parameterized term), the others names
+  (``SpeedLimit(floor, State(r).zone)``; a ``forall`` variable stands in them as in any term).
+  Fields and keys may follow (``SpeedLimit(State(r).zone).value``). A monitor plans a member the
+  first time its argument is seen, as it makes a ``foreach`` object's instance
+  (:mod:`dyknow.reasoning.monitors`); the semantics reads it as a lookup into the members'
+  latest values (:mod:`dyknow.reasoning.semantics`). **Conditions** (what ``and``, ``or``,
   ``not``, the temporal operators, ``rise``, ``fall`` and ``count`` take) are comparisons, ``true``
   and ``false``, ``rise(F)``/``fall(F)``, and bare expressions of boolean value (``Stalled(robot)``,
   ``Door(hall).open``, ``prev(p)``). A mistake of kinds that can be seen in the text is refused at

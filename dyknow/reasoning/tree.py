@@ -21,6 +21,7 @@ __all__ = [
     "ANY",
     "ARITHMETIC",
     "BOOL",
+    "FAMILY_ARG",
     "COMPARISONS",
     "FUNCTIONS",
     "FUTURE",
@@ -58,6 +59,10 @@ __all__ = [
     "Var",
     "children",
     "duration_text",
+    "family_term",
+    "is_family",
+    "member_arg",
+    "member_term",
     "kind_of",
     "raw_reads",
     "walk",
@@ -257,6 +262,49 @@ class Index(_Operator):
 
     stream: Stream
     keys: tuple[Node, ...]
+    #: a **parameterized term** when 0 or more (``SpeedLimit(State(r).zone)``): the position of
+    #: the argument computed at each state, ``keys[0]``; ``stream`` is then the term's family
+    #: (:func:`family_term`: ``SpeedLimit(*)``), whose value is an object of each member's latest
+    #: value by its argument, so the term is a lookup into it (:mod:`dyknow.reasoning.semantics`)
+    param: int = -1
+
+
+FAMILY_ARG = "*"
+"""The argument a family term has in place of a parameterized term's computed one: ``SpeedLimit(*)``."""
+
+
+def family_term(functor: str, args: tuple[str, ...]) -> Term:
+    """The family of a parameterized term: ``functor`` with ``args``, one of them :data:`FAMILY_ARG`
+    (no tag can be written so: only a formula's parser makes one). Its members are the terms with
+    a name in that place (``SpeedLimit(z1)``, :func:`member_arg`)."""
+    term = object.__new__(Term)
+    object.__setattr__(term, "functor", functor)
+    object.__setattr__(term, "args", args)
+    return term
+
+
+def is_family(term: Term) -> bool:
+    """Whether ``term`` is a parameterized term's family (:func:`family_term`)."""
+    return FAMILY_ARG in term.args
+
+
+def member_arg(family: Term, term: Term) -> str | None:
+    """The argument that makes ``term`` a member of ``family`` (``z1`` for ``SpeedLimit(z1)`` of
+    ``SpeedLimit(*)``); None when it is none of its members."""
+    if term.functor != family.functor or len(term.args) != len(family.args):
+        return None
+    found = None
+    for mine, theirs in zip(family.args, term.args, strict=True):
+        if mine == FAMILY_ARG:
+            found = theirs
+        elif mine != theirs:
+            return None
+    return found
+
+
+def member_term(family: Term, arg: str) -> Term:
+    """The member of ``family`` whose argument is ``arg`` (a name: :class:`~dyknow.errors.TagError` otherwise)."""
+    return Term(family.functor, tuple(arg if a == FAMILY_ARG else a for a in family.args))
 
 
 @dataclass(frozen=True, slots=True, eq=False, repr=False)
@@ -453,7 +501,15 @@ def _pieces(node: Node) -> list[_Piece]:
         return [*pieces, ")"]
     if isinstance(node, Index):
         looked: list[_Piece] = [(node.stream, _PRIMARY)]
+        if node.param >= 0:  # SpeedLimit(State(r).zone): the family's args, the computed one in its place
+            looked = [f"{node.stream.term.functor}("]
+            for k, name in enumerate(node.stream.term.args):
+                looked.append(", " if k else "")
+                looked.append((node.keys[0], _QUANT) if name == FAMILY_ARG else name)
+            looked.append(")")
         for k, key in enumerate(node.keys):
+            if node.param >= 0 and k == 0:
+                continue
             if k and isinstance(key, Str) and _FIELD_NAME.fullmatch(key.value):
                 looked.append("." + key.value)
             else:
@@ -507,7 +563,7 @@ def _own(node: Node) -> object:
     if isinstance(node, Call):
         return (node.fn, len(node.args))
     if isinstance(node, Index):
-        return len(node.keys)
+        return (len(node.keys), node.param)
     if isinstance(node, Aggregate):
         return (node.kind, node.interval)
     if isinstance(node, Quantifier):
