@@ -252,6 +252,12 @@ def request_key(manager: str, tag: str) -> str:
     return f"{DATA_ROOT}/{manager}/requests/{chunk}"
 
 
+def members_key(manager: str, n: int, k: int) -> str:
+    """Where the members of a parameterized term of the ``n``-th monitor are relayed to it (its
+    ``k``-th family): ``dyknow/<manager>/members/<n>/<k>`` (:mod:`dyknow.reasoning.members`)."""
+    return f"{DATA_ROOT}/{manager}/members/{n}/{k}"
+
+
 def monitor_key(manager: str, n: int) -> str:
     """Where the verdicts of the ``n``-th formula a manager monitors are published:
     ``dyknow/<manager>/monitors/<n>`` (see :mod:`dyknow.reasoning.monitors`)."""

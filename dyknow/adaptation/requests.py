@@ -21,6 +21,7 @@ from dyknow.adaptation.requirements import Requirements
 from dyknow.adaptation.runtime import Runtime
 from dyknow.errors import AccessError, PlanningError, UnitError
 from dyknow.model import LOCAL, Owner, RequestInfo, check_standby
+from dyknow.reasoning.families import refuse_families
 from dyknow.reasoning.unit import term_ports
 from dyknow.tags import parse_term
 
@@ -96,6 +97,8 @@ class Requests:
         canonical = str(parse_term(tag))
         key = keys.request_key(runtime.name, canonical)
         formulas = [runtime.check_formula(text) for text in require]  # (bounded before anything is requested)
+        for formula in formulas:
+            refuse_families(formula, "a request's requirement")
         texts = tuple(dict.fromkeys(str(f) for f in formulas))
         if readable is not None:
             readable(canonical)

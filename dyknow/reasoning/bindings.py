@@ -30,6 +30,9 @@ a recording of the same samples gives the same verdicts.
 scheme that is not ``ros2:`` or ``ros2dds:`` (``ros:/x``), a ROS 2 topic name or option that is not
 valid, a key with an empty chunk, a ``#``, ``?`` or space, or a chunk starting with ``@``; any
 other key Zenoh refuses is refused by the manager's check of it. A binding with ``forall``/``exists`` is refused (its terms are the expansion's). A
+parameterized term's member may be bound (``SpeedLimit(z1)=limits/z1`` for
+``SpeedLimit(State(r).zone)``): it is read from the start, and never planned
+(:mod:`dyknow.reasoning.members`). A
 term bound to a source that never publishes gives no verdict from its samples (its values are
 unknown, never false), and the monitor says so once: a ``{"warning": ...}`` on its verdicts naming
 the binding, ``quiet_ms`` after it started (:class:`~dyknow.reasoning.unit.FormulaMonitor`).
@@ -45,6 +48,7 @@ from typing import Any
 from dyknow.errors import BindingError, DyKnowError, FormulaError, TagError, did_you_mean
 from dyknow.keys import ROS2_SCHEMES, check_data_key
 from dyknow.reasoning.syntax import Formula, Quantifier, walk
+from dyknow.reasoning.tree import is_family, member_arg
 from dyknow.tags import parse_term
 
 __all__ = ["MAX_TEXT_VALUE", "check_bindings", "check_source", "is_ros2_source", "sample_value", "topic_of"]
@@ -87,7 +91,7 @@ def check_bindings(
             term = str(parse_term(written))
         except TagError as exc:
             raise FormulaError(f"the term does not read: {exc.what}", where=where, expected="TERM=SOURCE, such as Odom(r1)=ros2:/r1/odom") from None
-        if term not in terms:
+        if term not in terms and not any(member_arg(f, parse_term(term)) is not None for f in formula.terms if is_family(f)):
             raise FormulaError(
                 f"{term!r} is no term of the formula",
                 where=where,

@@ -17,11 +17,12 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from dyknow.errors import TagError
+from dyknow.errors import FormulaError, TagError
+from dyknow.reasoning.syntax import Formula
 from dyknow.reasoning.tree import is_family, member_arg
 from dyknow.tags import Term, parse_term
 
-__all__ = ["MAX_MEMBERS", "Family", "family_samples", "members"]
+__all__ = ["MAX_MEMBERS", "Family", "Members", "family_samples", "members", "refuse_families"]
 
 MAX_MEMBERS: int = 256
 """The most members a live monitor plans for one family (the values its argument takes): past
@@ -129,3 +130,17 @@ class Members:
     def value(self, k: int, arg: str, t_ns: int, value: Any) -> dict[str, Any]:
         """The value of the family at position ``k`` at ``t_ns``, with member ``arg``'s sample ``value`` then."""
         return self._families[k].push(arg, t_ns, value)
+
+
+def refuse_families(formula: Formula, what: str) -> None:
+    """Refuse ``formula`` when it has a parameterized term: ``what`` (a request's or a spec's
+    requirement) reads fixed terms in this version; a monitor plans members
+    (:mod:`dyknow.reasoning.members`)."""
+    found = next((term for term in formula.terms if is_family(term)), None)
+    if found is not None:
+        raise FormulaError(
+            f"{what} has the parameterized term {found} (its argument computed at each state)",
+            where=f"formula {formula.text[:200]!r}",
+            expected="a requirement over fixed terms (Limits(floor)[State(r).zone] looks a limit up in one stream); "
+            "a monitor (dyknow monitor, Manager.monitor) plans a member per value",
+        )

@@ -34,6 +34,7 @@ from __future__ import annotations
 import itertools
 import re
 import threading
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -42,10 +43,13 @@ from dyknow import keys
 from dyknow.errors import AccessError, DyKnowError, FormulaError, UnitError
 from dyknow.model import LOCAL, Owner, UnitInfo
 from dyknow.reasoning.bindings import check_bindings
+from dyknow.reasoning.members import RELAY_SPEC
 from dyknow.reasoning.quantify import expand
+from dyknow.reasoning.tree import is_family, member_arg, member_term
 from dyknow.reasoning.unit import VERDICTS_PORT, FormulaMonitor, monitor_spec, term_ports
 from dyknow.security import Limits
-from dyknow.spec import TransformationSpec
+from dyknow.spec import Param, TransformationSpec
+from dyknow.tags import parse_term
 
 __all__ = ["MonitorInfo", "Monitors"]
 
@@ -123,6 +127,11 @@ class Monitors:
         self._lock = threading.Lock()
         self._by_key: dict[str, MonitorInfo] = {}
         self._serial = itertools.count(1)
+        # a monitor's base key -> its members planned: (member, request key or "" when bound, relay unit, source)
+        self._members: dict[str, list[tuple[str, str, str, str]]] = {}
+        self._relays = itertools.count(1)
+        self._jobs: deque[tuple[Any, ...]] = deque()  # members to plan, in the order their arguments were seen
+        self._worker: threading.Thread | None = None
 
     def add(
         self,
@@ -165,8 +174,8 @@ class Monitors:
         if readable_source is not None:
             for bound_term, source in bound.items():
                 readable_source(source, bound_term)
-        if readable is not None:
-            for text in dict.fromkeys(str(term) for _, parsed in expansions for term in parsed.terms):
+        if readable is not None:  # (a parameterized term's members: each as it is planned)
+            for text in dict.fromkeys(str(term) for _, parsed in expansions for term in parsed.terms if not is_family(term)):
                 if text not in bound:
                     readable(text)
         n = next(self._serial)
@@ -178,13 +187,20 @@ class Monitors:
         try:
             for individual, parsed in expansions:
                 for term in parsed.terms:
-                    if str(term) not in requested and str(term) not in bound:
+                    if str(term) not in requested and str(term) not in bound and not is_family(term):
                         requested[str(term)] = self._request(str(term))
                 chunks = [_UNSAFE.sub("_", part) for part in individual.split("/")] if individual is not None else []
                 key = "/".join([base, *chunks])
                 name = "-".join([f"monitor-{n}", *chunks])
-                spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms, bound=bound)
-                ports = {port: bound.get(term) or requested[term] for term, port in term_ports(parsed).items()}
+                own = {text: source for text, source in bound.items() if text in map(str, parsed.terms)}
+                spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms, bound=own)
+                families: dict[str, str] = {}  # a parameterized term's family -> the key its members are relayed to
+                ports: dict[str, str] = {}
+                for text, port in term_ports(parsed).items():
+                    if text in requested or text in bound:
+                        ports[port] = bound.get(text) or requested[text]
+                    else:
+                        families[text] = ports[port] = keys.members_key(self.manager, n, next(self._relays))
                 ports[VERDICTS_PORT] = key
                 started = self._spawn(spec, name, ports, owner)
                 spawned.append(name)
@@ -195,7 +211,12 @@ class Monitors:
                         expected="a monitor that can start; nothing of this call was kept",
                     )
                 made.append((individual, str(parsed), name, key))
+                if families:
+                    self._relay_bound(base, name, families, bound, owner, spawned)
+                    self._watch(base, name, families, owner, readable)
         except BaseException:
+            with self._lock:
+                self._members.pop(base, None)
             self._undo(spawned, list(requested.values()))
             raise
         depth = len(expansions[0][0].split("/")) if quantified and expansions[0][0] is not None else 0
@@ -219,7 +240,8 @@ class Monitors:
                     expected="a release by the client or caller that asked for it; an admin may force it (release with force)",
                 )
             del self._by_key[key]
-        self._undo(list(info.units), [key for term, key in info.terms.items() if term not in info.bound])
+            members = self._members.pop(_base(key), [])
+        self._undo(list(info.units) + [m[2] for m in members], [key for term, key in info.terms.items() if term not in info.bound] + [m[1] for m in members if m[1]])
         return True
 
     def owner(self, key: str) -> Owner | None:
@@ -250,6 +272,10 @@ class Monitors:
             found = list(self._by_key.values())
         out = []
         for info in found:
+            with self._lock:
+                members = {m[0]: m[3] for m in self._members.get(_base(info.key), [])}
+            if members:
+                info = replace(info, terms={**info.terms, **members})
             warnings: list[str] = []
             for name in info.units:
                 try:
@@ -260,6 +286,89 @@ class Monitors:
                     warnings.extend(unit.warnings)
             out.append(replace(info, warnings=tuple(warnings)) if warnings else info)
         return out
+
+    # -- parameterized terms: a member per argument seen (dyknow.reasoning.members)
+
+    def _relay_bound(self, base: str, name: str, families: Mapping[str, str], bound: Mapping[str, str], owner: Owner, spawned: list[str]) -> None:
+        """Relay the members bound to what exists to their families' keys, from the start."""
+        unit = self._unit(name)
+        assert isinstance(unit, FormulaMonitor)
+        for family, family_key in families.items():
+            for term, source in bound.items():
+                arg = member_arg(unit.families.ports[unit.terms.index(family)].family, parse_term(term))
+                if arg is None:
+                    continue
+                relay = f"{name}-member-{next(self._relays)}"
+                self._spawn(replace(RELAY_SPEC, params=_relay_params(arg, textual=True)), relay, {"in": source, "out": family_key}, owner)
+                spawned.append(relay)
+                unit.families.seen[family].add(arg)
+                with self._lock:
+                    self._members.setdefault(base, []).append((term, "", relay, source))
+
+    def _watch(self, base: str, name: str, families: Mapping[str, str], owner: Owner, readable: Callable[[str], None] | None) -> None:
+        """Plan a member for each argument the monitor ``name`` sees (on a thread of the
+        monitors': planning may spawn units, which the monitor's own thread must not wait for)."""
+        unit = self._unit(name)
+        assert isinstance(unit, FormulaMonitor)
+        with self._lock:
+            self._members.setdefault(base, [])
+
+        def found(family: str, arg: str) -> None:
+            self._later((base, name, family, families[family], arg, owner, readable))
+
+        unit.families.watch(found)
+
+    def _later(self, job: tuple[Any, ...]) -> None:
+        with self._lock:
+            self._jobs.append(job)
+            if self._worker is not None:
+                return
+            self._worker = threading.Thread(target=self._work, name=f"dyknow-members-{self.manager}", daemon=True)
+        self._worker.start()
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                if not self._jobs:
+                    self._worker = None
+                    return
+                job = self._jobs.popleft()
+            self._plan_member(*job)
+
+    def _plan_member(self, base: str, name: str, family: str, family_key: str, arg: str, owner: Owner, readable: Callable[[str], None] | None) -> None:
+        """Request member ``arg`` of ``family`` and relay it to ``family_key``; a member that
+        cannot be (planned, read by ``owner``) is warned of by the monitor ``name``."""
+        with self._lock:
+            if base not in self._members:
+                return  # released meanwhile
+        try:
+            unit = self._unit(name)
+        except DyKnowError:
+            return
+        assert isinstance(unit, FormulaMonitor)
+        try:
+            member = str(member_term(unit.families.ports[unit.terms.index(family)].family, arg))
+        except DyKnowError:
+            return  # (the unit hands on names only)
+        relay = f"{name}-member-{next(self._relays)}"
+        key = ""
+        try:
+            if readable is not None:
+                readable(member)
+            key = self._request(member)
+            self._spawn(replace(RELAY_SPEC, params=_relay_params(arg, textual=False)), relay, {"in": key, "out": family_key}, owner)
+        except DyKnowError as exc:
+            if key:
+                self._undo([relay], [key])
+            warning = f"no stream for {member}, the member of {family} its argument named: {exc}; the term stays unknown there"
+            unit.call_soon(lambda: unit.warn(warning, term=member))
+            return
+        with self._lock:
+            kept = base in self._members
+            if kept:
+                self._members[base].append((member, key, relay, key))
+        if not kept:  # released while it was planned
+            self._undo([relay], [key])
 
     def _undo(self, units: list[str], requests: list[str]) -> None:
         for name in reversed(units):
@@ -272,3 +381,14 @@ class Monitors:
                 self._release(key)
             except DyKnowError:
                 pass
+
+
+def _base(key: str) -> str:
+    """A monitor's base key: its key without the ``/*`` of a quantified one."""
+    while key.endswith("/*"):
+        key = key[:-2]
+    return key
+
+
+def _relay_params(arg: str, *, textual: bool) -> tuple[Param, ...]:
+    return (Param("arg", "string", arg), Param("textual", "bool", textual))

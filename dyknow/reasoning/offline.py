@@ -16,13 +16,15 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
 
 from dyknow.errors import FormulaError, TagError, did_you_mean
 from dyknow.reasoning.bindings import sample_value, topic_of
 from dyknow.reasoning.explain import MAX_ATOMS, explainer
+from dyknow.reasoning.families import family_samples, members
 from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns
 from dyknow.reasoning.syntax import Formula, parse
+from dyknow.reasoning.tree import is_family
 from dyknow.recording import Player, ReadLimits
 from dyknow.tags import parse_term
 
@@ -73,13 +75,17 @@ def changes(series: list[tuple[int, bool | None]]) -> list[tuple[int, bool | Non
 
 
 def read_topics(
-    path: str | os.PathLike[str], wanted: Collection[str], limits: ReadLimits | None = None
+    path: str | os.PathLike[str], wanted: Collection[str], limits: ReadLimits | None = None, *, also: Callable[[str], bool] | None = None
 ) -> tuple[dict[str, list[tuple[int, object]]], list[str]]:
     """The samples ``(origin_ns, value)`` of each topic in ``wanted`` the recording holds (a topic
     as written in the file, or its key), in one pass over the file; and every topic it holds,
-    sorted (to name the close ones when a topic is missing). A topic the file lacks is left out."""
+    sorted (to name the close ones when a topic is missing). A topic the file lacks is left out.
+    ``also(topic)``: read the topics (as written in the file) it says yes to as well (the members
+    of a parameterized term a template binds)."""
     with Player(path, rate=math.inf, limits=limits) as player:
         names = {c.topic: c.topic for c in player.channels} | {key: topic for topic, key in player.keys.items()}
+        if also is not None:
+            wanted = [*wanted, *(c.topic for c in player.channels if c.topic not in wanted and also(c.topic))]
         found = {names[t]: t for t in wanted if t in names}
         samples: dict[str, list[tuple[int, object]]] = {t: [] for t in found.values()}
         by_topic = {topic: samples[asked] for topic, asked in found.items()}
@@ -99,15 +105,17 @@ def _samples(
     parsed: Formula, path: str | os.PathLike[str], bindings: Mapping[str, str], limits: ReadLimits | None
 ) -> dict[str, list[tuple[int, object]]]:
     """Each term's samples from the topic it is bound to."""
-    terms = [str(t) for t in parsed.terms]
+    families = [t for t in parsed.terms if is_family(t)]
+    terms = [str(t) for t in parsed.terms if not is_family(t)]
     try:
         bindings = {str(parse_term(term)): topic_of(topic) for term, topic in bindings.items()}
     except TagError as exc:
         raise FormulaError(f"a binding's term does not read: {exc.what}", where="--bind", expected="TERM=TOPIC, such as Battery(robot)=robot/battery") from exc
-    unbound = [t for t in terms if t not in bindings]
+    unbound = [t for t in terms if t not in bindings] + [f"a member of {f}" for f in families if not members(f, list(bindings))]
     if unbound:
-        raise FormulaError(f"no topic for {', '.join(unbound)}", where="--bind", expected="TERM=TOPIC for every term of the formula")
-    extra = [t for t in bindings if t not in terms]
+        raise FormulaError(f"no topic for {', '.join(unbound)}", where="--bind", expected="TERM=TOPIC for every term of the formula, and each member "
+                           "of a parameterized term read (SpeedLimit(z1)=limits/z1 for SpeedLimit(State(r).zone))")  # fmt: skip
+    extra = [t for t in bindings if t not in terms and not any(members(f, [t]) for f in families)]
     if extra:
         raise FormulaError(f"{extra[0]!r} is no term of the formula", where="--bind", expected=f"one of {', '.join(terms)}{did_you_mean(extra[0], terms)}")
     read, held = read_topics(path, set(bindings.values()), limits)
@@ -117,4 +125,7 @@ def _samples(
                 f"the recording has no topic {topic!r} (for {term})", where=f"--bind {term}={topic}",
                 expected=f"one of {', '.join(held)}{did_you_mean(topic, held)}",
             )  # fmt: skip
-    return {term: list(read[topic]) for term, topic in bindings.items()}
+    out = {term: list(read[topic]) for term, topic in bindings.items()}
+    for family in families:  # a parameterized term's: its members' samples as one stream
+        out[str(family)] = family_samples(family, out)  # type: ignore[assignment]  # (its values: objects of the members')
+    return out

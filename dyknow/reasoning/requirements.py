@@ -16,7 +16,10 @@ carries it in the recording), then one ``[[requirement]]`` table per requirement
 
 A binding whose topic names an argument in braces (``{r}``) is a template: it binds every term
 of its functor whose other arguments match, the braces replaced by that term's argument (the
-exact binding of a term first, then the template with the fewest braces).
+exact binding of a term first, then the template with the fewest braces). A parameterized
+term's members (``SpeedLimit(z1)``, ... of ``SpeedLimit(State(r).zone)``) are bound one by one,
+or by a template of its functor: ``"SpeedLimit(z)" = "floor/limits/{z}"`` makes every recorded
+topic it matches a member (``floor/limits/z7`` is ``SpeedLimit(z7)``).
 
 Each requirement is evaluated over the recording as :mod:`dyknow.reasoning.semantics` states
 it, as a live monitor evaluates it over the same samples: a ``forall`` the formula starts with
@@ -46,11 +49,13 @@ from dyknow.errors import DyKnowError, FormulaError, did_you_mean
 from dyknow.message import Message
 from dyknow.reasoning.bindings import topic_of
 from dyknow.reasoning.explain import object_explainer
+from dyknow.reasoning.families import family_samples, members
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS
 from dyknow.reasoning.offline import changes, explainer, read_topics
 from dyknow.reasoning.quantify import expand
 from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns
 from dyknow.reasoning.syntax import Formula, Quantifier
+from dyknow.reasoning.tree import FAMILY_ARG, is_family, member_term
 from dyknow.recording import ReadLimits, Recorder
 from dyknow.security import Limits
 from dyknow.tags import Term, parse_term
@@ -241,6 +246,38 @@ def topic_for(term: Term, bindings: Mapping[str, str]) -> str | None:
     return None if best is None else best[1]
 
 
+def _members_bound(family: Term, bindings: Mapping[str, str]) -> tuple[dict[str, str], re.Pattern[str] | None] | None:
+    """A parameterized term's members bound one by one (member -> topic), and the topics a
+    template of its functor binds (a pattern whose group is the argument); None when neither."""
+    exact = {name: bindings[name] for name in members(family, list(bindings)) if "{" not in bindings[name]}  # (not a template)
+    pattern: re.Pattern[str] | None = None
+    for text, topic in bindings.items():
+        try:
+            template = parse_term(text)
+        except DyKnowError:
+            continue
+        braced = set(_BRACED.findall(topic))
+        if "{" not in topic or template.functor != family.functor or len(template.args) != len(family.args):
+            continue
+        position = family.args.index(FAMILY_ARG)
+        if template.args[position] not in braced or not all(a == b or a in braced for a, b in zip(template.args, family.args, strict=True) if b != FAMILY_ARG):
+            continue
+        values = {a: b for a, b in zip(template.args, family.args, strict=True) if b != FAMILY_ARG}
+        argument, regex, seen = template.args[position], "", False
+        for piece in re.split(r"(\{[^{}]*\})", topic):
+            name = piece[1:-1] if piece.startswith("{") and piece.endswith("}") else None
+            if name == argument:
+                regex += "(?P=arg)" if seen else "(?P<arg>[^/]+)"
+                seen = True
+            else:
+                regex += re.escape(values[name] if name is not None and name in values else piece)
+        pattern = re.compile(regex)
+        break
+    if not exact and pattern is None:
+        return None
+    return exact, pattern
+
+
 def check_recording(
     requirements: Sequence[Requirement],
     path: str | os.PathLike[str],
@@ -258,6 +295,7 @@ def check_recording(
     """
     formula_limits = formula_limits if formula_limits is not None else Limits()
     plans: list[tuple[Result, list[tuple[str, Formula]], dict[str, str]]] = []
+    families: list[tuple[Term, re.Pattern[str]]] = []  # parameterized terms bound by a template: its members are the topics it matches
     for requirement in requirements:
         result = Result(requirement)
         try:
@@ -265,6 +303,16 @@ def check_recording(
             terms: dict[str, str] = {}
             for _, formula in expanded:
                 for term in formula.terms:
+                    if is_family(term):  # a parameterized term: its members bound one by one, or by a template
+                        bound = _members_bound(term, requirement.bindings)
+                        if bound is None:
+                            raise FormulaError(f"no topic for the members of {term}", where=f"{requirement.where}: requirement {requirement.name!r}",
+                                               expected=f"a binding of each member (\"{member_term(term, 'z1')}\" = \"TOPIC\") or a template "
+                                                        f"(\"{member_term(term, 'x')}\" = \"a/{{x}}/b\")")  # fmt: skip
+                        terms.update(bound[0])
+                        if bound[1] is not None:
+                            families.append((term, bound[1]))
+                        continue
                     topic = topic_for(term, requirement.bindings)
                     if topic is None:
                         known = sorted(requirement.bindings)
@@ -277,10 +325,20 @@ def check_recording(
             result.error = _located(exc, requirement)
             plans.append((result, [], {}))
     wanted = {topic for _, _, terms in plans for topic in terms.values()}
-    read, held = read_topics(path, wanted, limits)
+    read, held = read_topics(path, wanted, limits, also=lambda topic: any(p.fullmatch(topic) for _, p in families))
     for result, cases, terms in plans:
         if result.error is not None:
             continue
+        for family, pattern in families:  # the members its template binds: the topics recorded
+            if any(family in formula.terms for _, formula in cases):
+                for topic in read:
+                    match = pattern.fullmatch(topic)
+                    try:
+                        member = str(member_term(family, match.group("arg"))) if match else None
+                    except DyKnowError:
+                        member = None  # (no name: no member)
+                    if member is not None:
+                        terms.setdefault(member, topic)
         missing = sorted({(t, topic) for t, topic in terms.items() if topic not in read})
         if missing:
             absent, topic = missing[0]
@@ -290,6 +348,10 @@ def check_recording(
             )  # fmt: skip
             continue
         samples = {t: read[topic] for t, topic in terms.items()}
+        for _, formula in cases:
+            for term in formula.terms:
+                if is_family(term):
+                    samples[str(term)] = family_samples(term, samples)  # type: ignore[assignment]  # (objects of the members' values)
         try:
             result.verdicts = _evaluate(cases, samples, result.requirement.idle_ns)
         except DyKnowError as exc:

@@ -120,9 +120,12 @@ from dyknow.errors import AccessError, FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.bindings import sample_value
 from dyknow.reasoning.explain import explainer, object_explainer
+from dyknow.reasoning.families import MAX_MEMBERS
+from dyknow.reasoning.members import LiveFamilies
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
+from dyknow.reasoning.tree import is_family
 from dyknow.reasoning.values import object_key, read
 from dyknow.security import Limits
 from dyknow.spec import Param, Port, Tag, TransformationSpec
@@ -305,6 +308,7 @@ def monitor_spec(
             expected="a formula over at least one term, such as Battery(robot) > 0.2",
         )
     ports = {term: f"t{k}" for k, term in enumerate(terms)}
+    families = {str(t) for _, parsed in named for t in parsed.terms if is_family(t)}
     if named[0][0] is None:
         what = Param("formula", "string", named[0][1].text)
         described = str(named[0][1])
@@ -326,7 +330,7 @@ def monitor_spec(
             *((Param("bound", "string", json.dumps(dict(bound))), Param("quiet_ms", "float", float(quiet_ms))) if bound else ()),
         ),
         ports=(*(Port(port, "in", queue=queue) for port in ports.values()), Port(VERDICTS_PORT, "out")),
-        tags=tuple(Tag(port, term) for term, port in ports.items()),
+        tags=tuple(Tag(port, term) for term, port in ports.items() if term not in families),  # (a family is no tag)
         description=f"Monitors {described}: publishes each state's verdict on {VERDICTS_PORT} as soon as it is decided.",
     )
 
@@ -525,6 +529,7 @@ class FormulaMonitor(Unit):
     _budget: MonitorBudget | None = None
     _account: str | None = None  # whose share of the budget's nodes its formulas take (None: the manager's own)
     _seen_share = -1  # the budget's generation when the monitors last took their shares
+    _full_warned = 0  # the families past MAX_MEMBERS warned of
     _textual: frozenset[int] = frozenset()  # the bound terms' ports (their text samples are read as JSON)
     #: the latest verdict published of each formula (by name; by its text for a unit of one
     #: formula), as published on ``verdicts``: what its ``/diagnostics`` status says (:mod:`dyknow.ros2.diagnostics`)
@@ -649,6 +654,8 @@ class FormulaMonitor(Unit):
         #: the terms bound to what exists and their sources (:mod:`dyknow.reasoning.bindings`)
         self.bound: dict[str, str] = _bound_param(params.get("bound"), terms, where)
         self._textual = frozenset(terms.index(term) for term in self.bound)
+        #: the parameterized terms' families and the arguments seen (:mod:`dyknow.reasoning.members`)
+        self.families = LiveFamilies([f for _, f in checked], terms)
         quiet_ms = float(params.get("quiet_ms", DEFAULT_QUIET_MS))
         if self.bound and quiet_ms > 0:
             self._quiet_timer = self.create_timer(quiet_ms / 1000, self._warn_quiet)
@@ -732,6 +739,16 @@ class FormulaMonitor(Unit):
         elif 2 * behind > self._reorder_ns and self._reorder_ns < self._max_reorder_ns:
             self._widen(port, behind)
         payload = msg.payload if k not in self._textual else sample_value(msg.payload)
+        if k in self.families.ports:  # a member's sample, relayed: the family's value then
+            payload = self.families.value(k, t_ns, payload)
+            if payload is None:
+                self.reject(port, "not a member's sample: {\"arg\": NAME, \"value\": ...} expected on a family's port")
+                return
+        if k in self.families.reads:  # an argument reads it: a new value plans a member
+            self.families.observe(k, payload)
+            if len(self.families.full) > self._full_warned:
+                self._full_warned += 1
+                self.warn(f"{self.families.full[-1]} has {MAX_MEMBERS} members planned, the most: the values past them stay unknown")
         if k in self._domains and type(payload) is list:
             for item in payload:  # a frame: a sample per element (what the fields and the rate are judged on)
                 self._observe(k, t_ns, item)
@@ -829,9 +846,16 @@ class FormulaMonitor(Unit):
                     f"none of the first {_DERIVE_AFTER} samples of {term} holds the field {field!r} the formula reads"
                     f" (they hold {', '.join(seen) if seen else 'no fields: not JSON objects'}): its atoms stay unknown"
                 )
-                self.warnings.append(warning)
-                self.log.warning("%s", warning)
-                self.publish(VERDICTS_PORT, {"warning": warning, "term": term, "field": field, "fields_seen": seen})
+                self.warn(warning, term=term, field=field, fields_seen=seen)
+
+    def warn(self, warning: str, **about: Any) -> None:
+        """Say once what is wrong with the monitor's data or plan: in the log, in :attr:`warnings`
+        (its model) and as ``{"warning": ...}`` on ``verdicts`` (on the unit's thread)."""
+        if warning in self.warnings:
+            return
+        self.warnings.append(warning)
+        self.log.warning("%s", warning)
+        self.publish(VERDICTS_PORT, {"warning": warning, **about})
 
     def _warn_quiet(self) -> None:
         """Once, ``quiet_ms`` after the start: warn of each bound term no sample came from yet."""
@@ -844,9 +868,7 @@ class FormulaMonitor(Unit):
                 f"no sample of {term} from its binding {term}={source} in {self._quiet_s:g} s: its values are unknown"
                 " (is anything publishing there? a ROS 2 topic's name, type and domain must match)"
             )
-            self.warnings.append(warning)
-            self.log.warning("%s", warning)
-            self.publish(VERDICTS_PORT, {"warning": warning, "term": term, "binding": source})
+            self.warn(warning, term=term, binding=source)
 
     def _set_age(self, k: int, age_ns: int) -> None:
         """Term ``k``'s maximum age, for every formula that reads it."""

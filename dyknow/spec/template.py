@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 from dyknow.errors import DyKnowError, FormulaError, SpecError, SpecIssue, TagError, compose, did_you_mean
 from dyknow.keys import label_problem
 from dyknow.reasoning.bindings import check_source
+from dyknow.reasoning.families import refuse_families
 from dyknow.reasoning.syntax import check_formula, parse
 from dyknow.security import Limits
 from dyknow.spec.model import (
@@ -230,6 +231,11 @@ class Template:
                 formula = parse(formula_text) if limits is None else check_formula(formula_text, limits)
             except FormulaError as exc:
                 problems.append((line, "<requirement>", compose(exc.what, exc.where), exc.expected or ""))
+                continue
+            try:
+                refuse_families(formula, "a transformation's requirement")
+            except FormulaError as exc:
+                problems.append((line, "<requirement>", exc.what, exc.expected or ""))
                 continue
             if not {str(term) for term in formula.terms} & outputs:
                 expected = f"a term that is one of its output tags ({', '.join(sorted(outputs)) or 'it has none'})"

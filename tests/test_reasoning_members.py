@@ -1,0 +1,212 @@
+"""Parameterized terms live (issue 54 item 2): ``SpeedLimit(State(r1).zone)`` plans the speed
+limit of a zone the first time the robot is seen in it (dyknow.reasoning.members), a member
+bound to what exists is read from the start, and a zone no spec serves is said once."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from dyknow import Manager
+from dyknow.reasoning import FormulaMonitor
+from dyknow.testing import Sink
+from dyknow.transport import open_session
+from tests.conftest import GENERIC_SPECS, UNIT_SPECS, wait_until
+
+FORMULA = "Speed(r1) < SpeedLimit(State(r1).zone).value"
+ROBOT = {"State(r1)": "robot/r1/state", "Speed(r1)": "robot/r1/speed"}
+LIMITS = {"z1": 1.5, "z2": 0.5, "z3": 1.0}
+
+
+def _limits_spec(tmp_path: Path) -> Path:
+    """A limit per zone, each its own source (none for z9)."""
+    units = "".join(
+        f"""<transformation type="unit"><label>limit-{zone}</label><source>tests.units:Level</source>
+             <params><param name="value" type="float">{value}</param><param name="rate_hz" type="float">20</param></params>
+             <ports><port type="out">out</port></ports><tags><tag port="out">SpeedLimit({zone})</tag></tags></transformation>"""
+        for zone, value in LIMITS.items()
+    )
+    path = tmp_path / "limits.xml"
+    path.write_text(f"<transformations>{units}</transformations>")
+    return path
+
+
+class _Robot:
+    """What the robot runs already: its zone and speed on two keys, 20 times a second."""
+
+    def __init__(self, manager: Manager) -> None:
+        self.zone, self.speed = "z1", 1.0
+        self._stop = threading.Event()
+        self._session = open_session(connect=manager.endpoints)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.05):
+            self._session.put(ROBOT["State(r1)"], f'{{"zone": "{self.zone}"}}')
+            self._session.put(ROBOT["Speed(r1)"], str(self.speed))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._session.close()
+
+
+@pytest.fixture
+def robot_manager(make_manager: Callable[..., Manager], tmp_path: Path) -> Manager:
+    return make_manager(specs=[GENERIC_SPECS, UNIT_SPECS, _limits_spec(tmp_path)], listen=["tcp/127.0.0.1:0"], queue_depth=10_000)
+
+
+def _planned(manager: Manager) -> set[str]:
+    return {info.tag for info in manager.requests()}
+
+
+def test_a_zone_s_limit_is_planned_when_the_robot_is_first_seen_in_it(robot_manager: Manager) -> None:
+    """Nothing is planned before the robot says where it is; in z1 its limit (1.5) is planned and
+    1.0 < 1.5 holds; in z2 (0.5) it does not; z9, which no spec serves, is warned about once and
+    gives no verdict; z1 again plans nothing new. Released, the limits and their relays go."""
+    manager = robot_manager
+    key = manager.monitor(FORMULA, bindings=ROBOT)
+    assert _planned(manager) == set()  # no zone seen yet: nothing planned
+    manager.spawn("sink", "verdicts", bindings={"in": key})
+    sink = manager.unit("verdicts")
+    assert isinstance(sink, Sink)
+    robot = _Robot(manager)
+    try:
+        sink.wait_until(lambda msg: msg.payload.get("verdict") is True, timeout_s=30)
+        assert _planned(manager) == {"SpeedLimit(z1)"}
+        robot.zone = "z2"
+        sink.wait_until(lambda msg: msg.payload.get("verdict") is False, timeout_s=30)
+        assert _planned(manager) == {"SpeedLimit(z1)", "SpeedLimit(z2)"}
+        false = next(msg for msg in sink.messages if msg.payload.get("verdict") is False)
+        assert "SpeedLimit(State(r1).zone).value" in " ".join(false.payload.get("why", []))
+        robot.zone = "z9"
+        sink.wait_until(lambda msg: "SpeedLimit(z9)" in msg.payload.get("warning", ""), timeout_s=30)
+        (info,) = manager.monitors()
+        assert any("no stream for SpeedLimit(z9)" in w for w in info.warnings)
+        assert set(info.terms) == {*ROBOT, "SpeedLimit(z1)", "SpeedLimit(z2)"}  # (each member's key: its request)
+        robot.zone = "z1"
+        before = len(sink.messages)
+        sink.wait_until(lambda msg: len(sink.messages) > before + 3 and msg.payload.get("verdict") is True, timeout_s=30)
+        assert _planned(manager) == {"SpeedLimit(z1)", "SpeedLimit(z2)"}
+    finally:
+        robot.close()
+    relays = [u for u in manager.units() if u.label == "member-relay"]
+    assert len(relays) == 2
+    manager.release(key)
+    assert _planned(manager) == set()
+    wait_until(lambda: not [u for u in manager.units() if u.label in ("member-relay", "formula-monitor")], "the monitor and its relays to go")
+
+
+def test_a_member_bound_to_what_exists_is_read_from_the_start_and_never_planned(robot_manager: Manager) -> None:
+    """``SpeedLimit(z1)`` bound to a key the floor publishes: no request for it, its samples
+    relayed from the start; z2, not bound, planned as it is seen."""
+    manager = robot_manager
+    key = manager.monitor(FORMULA, bindings={**ROBOT, "SpeedLimit(z1)": "floor/limits/z1"})
+    manager.spawn("sink", "verdicts", bindings={"in": key})
+    sink = manager.unit("verdicts")
+    assert isinstance(sink, Sink)
+    robot = _Robot(manager)
+    stop = threading.Event()
+
+    def floor() -> None:
+        with open_session(connect=manager.endpoints) as session:
+            while not stop.wait(0.05):
+                session.put("floor/limits/z1", '{"value": 0.8}')
+
+    thread = threading.Thread(target=floor, daemon=True)
+    thread.start()
+    try:
+        sink.wait_until(lambda msg: msg.payload.get("verdict") is False, timeout_s=30)  # 1.0 < 0.8: the floor's limit, not the spec's 1.5
+        assert _planned(manager) == set()
+        robot.zone, robot.speed = "z2", 0.2
+        sink.wait_until(lambda msg: msg.payload.get("verdict") is True, timeout_s=30)
+        assert _planned(manager) == {"SpeedLimit(z2)"}
+    finally:
+        stop.set()
+        thread.join()
+        robot.close()
+    monitor = next(manager.unit(u) for u in manager.monitors()[0].units)
+    assert isinstance(monitor, FormulaMonitor) and monitor.families.seen == {"SpeedLimit(*)": {"z1", "z2"}}
+    manager.release(key)
+
+
+def test_a_live_run_recorded_then_checked_gives_the_same_verdicts_as_its_members_planned(make_manager: Callable[..., Manager], tmp_path: Path) -> None:
+    """Live, the zones' limits are planned as the robot enters them (each relayed from the key its
+    driver publishes on); the keys recorded meanwhile are checked as a requirements file whose
+    template binds every recorded limit (``"SpeedLimit(z)" = "floor/limits/{z}"``): the verdicts
+    equal the live ones, at the same times."""
+    import time
+
+    from dyknow.reasoning import check_recording, load_requirements
+    from dyknow.recording import Player, Recorder
+    from dyknow.testing import Source
+
+    def relay(label: str, key: str, tag: str) -> str:
+        return f"""<transformation><label>{label}</label><source>transformations.generic:RemoteStream</source>
+          <params><param name="key">{key}</param><param name="grace_s" type="float">5</param></params>
+          <ports><port type="in">in</port><port type="out">out</port></ports><tags><tag port="out">{tag}</tag></tags></transformation>"""
+
+    manager = make_manager(listen=["tcp/127.0.0.1:0"], queue_depth=100_000)
+    zones = {"dock": 0.5, "aisle": 2.0}
+    keys = {"floor/r1/state": "State(r1)", **{f"floor/limits/{z}": f"SpeedLimit({z})" for z in zones}}
+    relays = "".join(relay("relay-" + k.replace("/", "-"), k, tag) for k, tag in keys.items())
+    manager.add_transformation(f"<transformations>{relays}</transformations>")
+    drivers: dict[str, Source] = {}
+    for key in keys:
+        manager.spawn("publisher", key.replace("/", "-"), bindings={"out": key})
+        driver = manager.unit(key.replace("/", "-"))
+        assert isinstance(driver, Source)
+        drivers[key] = driver
+    formula = "historically[0, 300ms] State(r1).speed <= SpeedLimit(State(r1).zone)"
+    key = manager.monitor(formula, reorder_ms=1000)  # (the relays run side by side: the delay takes their samples in time order)
+    manager.spawn("sink", "verdicts", bindings={"in": key})
+    sink = manager.unit("verdicts")
+    assert isinstance(sink, Sink)
+
+    def verdicts() -> list[dict[str, object]]:
+        return [m.payload for m in list(sink.messages) if isinstance(m.payload, dict) and "verdict" in m.payload]
+
+    def publish(i: int) -> None:
+        now = time.time_ns()
+        for zone, limit in zones.items():
+            drivers[f"floor/limits/{zone}"].emit(limit, origin_ns=now)
+        drivers["floor/r1/state"].emit({"zone": "dock" if i % 5 else "aisle", "speed": 0.9 if i % 17 == 3 else 0.3}, origin_ns=now + 1)
+
+    live = tmp_path / "live.mcap"
+    with Recorder(["floor/**"], live, connect=manager.endpoints) as recorder:
+        i = 0
+        while not (len({info.tag for info in manager.requests()}) == 3 and len(verdicts()) > 20 and len(recorder.topics) == 3 and min(recorder.topics.values()) >= 5):
+            publish(i)
+            i += 1
+            time.sleep(0.02)
+            assert i < 1500, "the members planned, and the monitor and the recorder to receive every key"
+        start_ns, recorded = time.time_ns(), recorder.count
+        for _ in range(250):
+            publish(i)
+            i += 1
+            time.sleep(0.01)
+        end_ns = time.time_ns()
+        while not verdicts()[-1]["t_ns"] >= end_ns - 100_000_000:  # type: ignore[operator]
+            publish(i)  # later samples close the reorder window over the last ones
+            i += 1
+            time.sleep(0.01)
+            assert time.time_ns() - end_ns < 30e9, "the last samples judged"
+        wait_until(lambda: recorder.count >= recorded + 3 * 250, "the last samples recorded")
+    trimmed = tmp_path / "trimmed.mcap"
+    with Player(live, rate=float("inf")) as player, Recorder((), trimmed) as writer:
+        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
+    (tmp_path / "live.toml").write_text(
+        f'[bindings]\n"State(r)" = "floor/{{r}}/state"\n"SpeedLimit(z)" = "floor/limits/{{z}}"\n\n[[requirement]]\nname = "limit"\nformula = "{formula}"\n'
+    )
+    (result,) = check_recording(load_requirements(tmp_path / "live.toml"), trimmed)
+    assert result.error is None, result.error
+    settled = start_ns + 500_000_000  # past the window (300 ms) and each limit's first sample
+    judged = [v for v in verdicts() if v["t_ns"] >= settled]  # type: ignore[operator]
+    assert len(judged) > 100
+    offline = {t: v for t, v in result.verdicts[""] if settled <= t <= judged[-1]["t_ns"] and v is not None}  # type: ignore[operator]
+    assert {v["t_ns"]: v["verdict"] for v in judged} == offline
+    assert {v["verdict"] for v in judged} == {True, False}
