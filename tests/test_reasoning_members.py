@@ -19,6 +19,7 @@ from tests.conftest import GENERIC_SPECS, UNIT_SPECS, wait_until
 FORMULA = "Speed(r1) < SpeedLimit(State(r1).zone).value"
 ROBOT = {"State(r1)": "robot/r1/state", "Speed(r1)": "robot/r1/speed"}
 LIMITS = {"z1": 1.5, "z2": 0.5, "z3": 1.0}
+S = 1_000_000_000
 
 
 def _limits_spec(tmp_path: Path) -> Path:
@@ -210,3 +211,94 @@ def test_a_live_run_recorded_then_checked_gives_the_same_verdicts_as_its_members
     offline = {t: v for t, v in result.verdicts[""] if settled <= t <= judged[-1]["t_ns"] and v is not None}  # type: ignore[operator]
     assert {v["t_ns"]: v["verdict"] for v in judged} == offline
     assert {v["verdict"] for v in judged} == {True, False}
+
+
+@pytest.mark.process
+def test_dyknow_monitor_reads_a_parameterized_term_s_members_from_a_recording(tmp_path: Path) -> None:
+    """``dyknow monitor`` over an MCAP file: the members bound one by one, or by a template of
+    the functor (every recorded topic it matches a member); the naive evaluator's verdicts; no
+    member bound at all is said, naming the term."""
+    import json
+
+    from dyknow import Message
+    from dyknow.reasoning.tree import family_term
+    from dyknow.recording import Recorder
+    from dyknow.tags import Term
+    from tests.conftest import run_cli
+    from tests.reasoning_support import naive_evaluate_ns
+
+    series = {
+        "floor/limits/dock": [(0, 0.5), (3 * S, 0.4)],
+        "floor/limits/aisle": [(S // 2, 2.0)],
+        "floor/r1/state": [(i * S, {"zone": ["aisle", "dock", "yard", "dock"][i % 4], "speed": [1.5, 0.45, 0.1, 0.45][i % 4]}) for i in range(1, 9)],
+    }
+    recording = tmp_path / "floor.mcap"
+    with Recorder((), recording) as recorder:
+        for key, samples in series.items():
+            for seq, (t_ns, payload) in enumerate(samples, start=1):
+                recorder.write(Message(payload, seq, t_ns, t_ns, key))
+    formula = "State(r1).speed < SpeedLimit(State(r1).zone)"
+    from dyknow.reasoning import parse
+
+    members = {Term("SpeedLimit", (z,)): series[f"floor/limits/{z}"] for z in ("dock", "aisle")}
+    expected = naive_evaluate_ns(parse(formula), {Term("State", ("r1",)): series["floor/r1/state"], **members})
+    assert family_term("SpeedLimit", ("*",)) in parse(formula).terms
+    assert {v for _, v in expected} == {True, False, None}  # the yard has no limit: unknown
+    one_by_one = ["--bind", "State(r1)=floor/r1/state", "--bind", "SpeedLimit(dock)=floor/limits/dock", "--bind", "SpeedLimit(aisle)=floor/limits/aisle"]
+    by_template = ["--bind", "State(r)=floor/{r}/state", "--bind", "SpeedLimit(z)=floor/limits/{z}"]
+    for binds in (one_by_one, by_template):
+        done = run_cli("monitor", formula, "--mcap", str(recording), *binds, "--json")
+        assert done.returncode == 0, done.stderr
+        assert [(row["t_ns"], row["verdict"]) for row in map(json.loads, done.stdout.splitlines())] == expected, binds
+    missing = run_cli("monitor", formula, "--mcap", str(recording), "--bind", "State(r1)=floor/r1/state")
+    assert missing.returncode == 1 and "no topic for a member of SpeedLimit(*)" in missing.stderr, missing.stderr
+
+
+def test_the_arguments_a_monitor_sees_are_handed_on_once_each_names_only_and_at_most_max_members() -> None:
+    """What the unit hands the manager: each new value of an argument once (those seen before a
+    watcher, when it comes), of a frame each element's, never a value that is no name (a
+    number, a string with a space, an object), and at most MAX_MEMBERS a family."""
+    from dyknow.reasoning import parse
+    from dyknow.reasoning.families import MAX_MEMBERS
+    from dyknow.reasoning.members import LiveFamilies
+
+    formula = parse("foreach r in Seen(floor).id: Seen(floor).speed < SpeedLimit(Seen(floor).zone) and Speed(x) < SpeedLimit(Zone(x))")
+    terms = [str(t) for t in formula.terms]
+    families = LiveFamilies([formula], terms)
+    assert set(families.ports) == {terms.index("SpeedLimit(*)")}
+    seen_k, zone_k = terms.index("Seen(floor)"), terms.index("Zone(x)")
+    assert set(families.reads) == {seen_k, zone_k}
+    families.observe(seen_k, [{"id": 1, "zone": "dock"}, {"id": 2, "zone": "aisle"}, {"id": 3, "zone": "dock"}])  # a frame
+    families.observe(zone_k, "ramp")
+    families.observe(zone_k, 3)
+    families.observe(zone_k, "no name")
+    families.observe(zone_k, {"zone": "dock"})
+    handed: list[tuple[str, str]] = []
+    families.watch(lambda family, arg: handed.append((family, arg)))
+    assert handed == [("SpeedLimit(*)", "dock"), ("SpeedLimit(*)", "aisle"), ("SpeedLimit(*)", "ramp")]
+    for n in range(MAX_MEMBERS + 10):
+        families.observe(zone_k, f"z{n}")
+    assert len(handed) == MAX_MEMBERS and families.full == ["SpeedLimit(*)"]
+    value = families.value(next(iter(families.ports)), 5 * S, {"arg": "dock", "value": 0.5})
+    assert value == {"dock": 0.5}
+    assert families.value(next(iter(families.ports)), 4 * S, {"arg": "aisle", "value": 2.0}) == {"aisle": 2.0}  # dock's sample came after 4 s
+    assert families.value(next(iter(families.ports)), 6 * S, "0.5") is None  # no relay's
+
+
+def test_requirements_of_requests_and_specs_refuse_a_parameterized_term(manager: Manager) -> None:
+    """A request's requirement, and a transformation's, read fixed terms: a parameterized one is
+    refused, named, and nothing is requested."""
+    from dyknow import SpecError
+    from dyknow.errors import FormulaError
+    from dyknow.spec import parse_specs
+
+    with pytest.raises(FormulaError, match=r"a request's requirement has the parameterized term SpeedLimit\(\*\)"):
+        manager.request("Ticks", require=["Ticks.count < SpeedLimit(State(r1).zone)"])
+    assert manager.requests() == []
+    xml = (
+        "<transformation>\n  <label>t</label><source>a:B</source>\n"
+        '  <ports><port type="out">out</port></ports><tags><tag port="out">Track(x)</tag></tags>\n'
+        "  <requirements>\n    <requirement>Track(x).v &lt; SpeedLimit(State(r1).zone)</requirement>\n  </requirements>\n</transformation>\n"
+    )
+    with pytest.raises(SpecError, match=r"t\.xml:5: <requirement>: a transformation's requirement has the parameterized term SpeedLimit\(\*\)"):
+        parse_specs(xml, "t.xml")

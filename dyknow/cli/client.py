@@ -541,8 +541,9 @@ def _monitor_recording(args: argparse.Namespace) -> int:
     root = parsed.root
     if args.robustness and any(isinstance(node, Quantifier) for node in walk(root)):
         raise UsageError("--robustness: a formula without quantifiers (each subformula's robustness is said of one series)")
-    if any(isinstance(node, Quantifier) and node.kind in ("forall", "exists") for node in walk(root)):
-        return _quantified_recording(args, bindings)
+    quantified = any(isinstance(node, Quantifier) and node.kind in ("forall", "exists") for node in walk(root))
+    if quantified or (not isinstance(root, Quantifier) and any("{" in topic for topic in bindings.values())):
+        return _quantified_recording(args, bindings, quantified=quantified)  # (a template binding: read as a requirement is)
     if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
         parsed, samples = recording_samples(args.formula, args.mcap, bindings, read_limits(args))
         objects = evaluate_objects_ns(parsed, samples, idle_ns=round(args.idle_ms * 1e6))
@@ -581,24 +582,25 @@ def _monitor_recording(args: argparse.Namespace) -> int:
     return 0
 
 
-def _quantified_recording(args: argparse.Namespace, bindings: dict[str, str]) -> int:
+def _quantified_recording(args: argparse.Namespace, bindings: dict[str, str], *, quantified: bool = True) -> int:
     """``--mcap`` with ``forall``/``exists``: expanded over ``--ontology`` as a manager expands it,
     each term bound by ``--bind`` (a template such as ``State(r)=floor/{r}/state`` binds them all),
-    a verdict series per individual (per tuple) as :func:`dyknow.reasoning.check_recording` gives it."""
+    a verdict series per individual (per tuple) as :func:`dyknow.reasoning.check_recording` gives it;
+    a formula without them, bound by a template (a parameterized term's members, say), one series."""
     from dyknow.errors import DyKnowError
     from dyknow.ontology import Ontology
     from dyknow.reasoning.offline import changes
     from dyknow.reasoning.requirements import Requirement, check_recording
     from dyknow.tags import parse_term
 
-    if not args.ontology:
+    if quantified and not args.ontology:
         raise UsageError("a formula with forall or exists over a recording needs --ontology FILE (the individuals it ranges over)")
     try:
         given = {str(parse_term(term)): topic for term, topic in bindings.items()}
     except DyKnowError as exc:
         raise UsageError(f"--bind: {exc}") from None
     (result,) = check_recording([Requirement("formula", args.formula, given, where="--bind")], args.mcap,
-                                individuals=Ontology.load(args.ontology).individuals, limits=read_limits(args))  # fmt: skip
+                                individuals=Ontology.load(args.ontology).individuals if args.ontology else None, limits=read_limits(args))  # fmt: skip
     if result.error is not None:
         raise result.error
     series = {key: changes(rows) if args.changes_only else rows for key, rows in result.verdicts.items()}
