@@ -596,17 +596,22 @@ class Client:
         when the manager has roles)."""
         self._manager("destroy", {"name": name, "force": True} if force else {"name": name})
 
-    def monitor(self, formula: str, *, reorder_ms: float = 0.0, keep: bool = False, bindings: Mapping[str, str] | None = None) -> str:
+    def monitor(
+        self, formula: str, *, reorder_ms: float = 0.0, keep: bool = False, bindings: Mapping[str, str] | None = None, robustness: bool = False
+    ) -> str:
         """Ask the manager to monitor a temporal formula; the key of its verdicts (see
         :meth:`dyknow.manager.Manager.monitor`). :meth:`release` of the key takes it down.
         ``bindings`` bind terms to what exists, with no spec: ``{"Odom(r1)": "ros2:/r1/odom"}``,
-        ``ros2dds:/TOPIC`` or a Zenoh key (:mod:`dyknow.reasoning.bindings`).
+        ``ros2dds:/TOPIC`` or a Zenoh key (:mod:`dyknow.reasoning.bindings`). ``robustness``: each
+        change of the verdict also says each subformula's robustness (``"robustness_of"``).
 
         The client holds the monitor as it holds a request: once the client is gone, the manager
         releases it a grace period later (``keep=True``: it runs until released)."""
         request: dict[str, Any] = {"formula": formula, "reorder_ms": reorder_ms}
         if bindings:
             request["bindings"] = dict(bindings)
+        if robustness:
+            request["robustness"] = True
         if not keep:
             request["holder"] = self._holder
         key = str(self._manager("monitor", request)["key"])

@@ -13,7 +13,7 @@ Keys (built by :mod:`dyknow.keys`; ``@dyknow`` is a verbatim chunk, so data subs
   that holds it, see :mod:`dyknow.holders`); ``release`` ``{"key", "holder", "force"}`` ->
   ``{"released", "references"}`` (the references that remain; a caller gives back only what it
   took, and ``force``, an admin's on a manager with roles, every reference); ``monitor``
-  ``{"formula", "reorder_ms", "holder"}`` -> ``{"key", "kept"}``;
+  ``{"formula", "reorder_ms", "holder", "bindings", "robustness"}`` -> ``{"key", "kept"}``;
   ``measure`` ``{"name", "value"}``; ``get_adaptations`` ``{}``; ``get_load`` ``{}`` (its lanes and
   overload state: :meth:`~dyknow.manager.Manager.load`); ``get_summary`` ``{}`` (for
   the other managers: see :mod:`dyknow.federation`; ``{"brief": true}`` counts only, for a
@@ -247,6 +247,7 @@ SCHEMAS: Mapping[str, Mapping[str, tuple[bool, Check]]] = {
         "reorder_ms": (False, _milliseconds),
         "holder": (False, _holder),
         "bindings": (False, _mapping(_text(512), _key, max_items=64)),
+        "robustness": (False, _flag),
     },
     "release": {"key": (True, _key), "holder": (False, _holder), "force": (False, _flag)},
     "measure": {"name": (True, _name("measurement name")), "value": (True, _number_or_text)},

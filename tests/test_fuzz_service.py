@@ -48,6 +48,7 @@ VALID: dict[str, Any] = {
     "name": "r1",
     "protected": True,
     "force": True,
+    "robustness": True,
     "params": {},
     "bindings": {},
     "owner": "m1",
@@ -87,6 +88,7 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("monitor", "formula"): TEXT,
     ("monitor", "reorder_ms"): {"0", "1.5"},
     ("monitor", "bindings"): {"{}"},
+    ("monitor", "robustness"): {"true"},
     ("request", "require"): {"[]"},
     ("request", "holder"): set(),  # only hexadecimal client ids, none of the probes
     ("release", "holder"): set(),

@@ -333,7 +333,7 @@ def test_dyknow_monitor_over_a_recording_is_evaluate_over_its_samples(tmp_path: 
         assert row["robustness"][0].startswith(f"{formula}: ")  # the whole formula first, then its subformulas
     assert len(changed_rows) == len(rows) >= 2
     refused = run_cli("monitor", formula, "--mcap", str(path), *binds, "--robustness")
-    assert refused.returncode == 2 and "--robustness goes with --mcap FILE and --changes-only" in refused.stderr, refused.stderr
+    assert refused.returncode == 2 and "--robustness goes with --changes-only over a recording" in refused.stderr, refused.stderr
 
 
 @pytest.mark.process

@@ -530,3 +530,85 @@ def test_foreach_monitors_give_their_memory_back_when_they_go(make_manager: Call
     # instances and ids; the resident figures depend on what ran before in the process (a
     # benchmark's job), the units going does not
     wait_until(lambda: gc.collect() >= 0 and all(ref() is None for ref in held), "nothing to hold the monitors that went", 10)
+
+
+def test_a_monitor_asked_for_robustness_says_each_subformula_s_at_each_change() -> None:
+    """Issue 54 item 7, live: with ``robustness`` each change of the verdict carries each
+    condition subformula's robustness, from the samples the unit keeps: an atom's is its margin
+    at the state (by hand: ``Battery(r) - 0.3``), a window's what the whole trace gives it
+    offline, and ``?`` only where a window reaches before the samples kept."""
+    from dyknow.reasoning import parse
+    from dyknow.reasoning.explain import robustness_explainer
+
+    formula = "historically[0, 40ms] Battery(r) > 0.3 and Speed(r) < 1"
+    spec = monitor_spec(formula, robustness=True)
+    ports = term_ports(spec)
+    rng = random.Random(7)
+    battery = [(T0 + k * 10 * MS, round(rng.choice([0.9, 0.8, 0.6, 0.2]), 2)) for k in range(120)]
+    speed = [(T0 + k * 10 * MS + MS, rng.choice([0.2, 0.5, 1.4])) for k in range(120)]
+    with UnitHarness(spec, name="robust") as harness:
+        for (tb, b), (ts, v) in zip(battery, speed, strict=True):
+            harness.send(ports["Battery(r)"], b, origin_ns=tb)
+            harness.send(ports["Speed(r)"], v, origin_ns=ts)
+        got = [m.payload for m in harness.wait_for(VERDICTS_PORT, 238)]  # (every state but the last: a sample after it closes it)
+    changes = [v for v in got if "robustness_of" in v]
+    assert len(changes) >= 10 and all("why" in v for v in changes)
+    offline = robustness_explainer(parse(formula), {"Battery(r)": battery, "Speed(r)": speed})
+    held = {t: b for t, b in battery}
+    covered = 0
+    for verdict in changes:
+        t = verdict["t_ns"]
+        live, whole = verdict["robustness_of"], offline(t)
+        assert [row.rsplit(": ", 1)[0] for row in live] == [row.rsplit(": ", 1)[0] for row in whole]
+        for mine, theirs in zip(live, whole, strict=True):
+            assert mine.endswith(": ?") or mine == theirs, (t, mine, theirs)
+        atom = next(row for row in live if row.startswith("Battery(r) > 0.3: "))
+        value = held[max(tb for tb in held if tb <= t)]
+        assert float(atom.rsplit(": ", 1)[1]) == pytest.approx(value - 0.3)  # (an atom needs only its state: never ?)
+        covered += not live[1].endswith(": ?")  # the window's
+    assert covered == len(changes)  # (64 samples a term kept: a 40 ms window always covered)
+
+
+def test_a_window_longer_than_the_samples_kept_is_said_unknown_not_guessed() -> None:
+    """``historically[0, 1s]`` at 100 Hz reads 100 states, and a unit keeps 64 samples a term:
+    once it has dropped some, the window's robustness (and the whole formula's, which holds it)
+    is ``?``; the atoms' stay their margins."""
+    spec = monitor_spec("Battery(r) > 0.3 and historically[0, 1s] Battery(r) > 0.1", robustness=True)
+    levels = [0.9 if (k // 7) % 2 else 0.2 for k in range(150)]
+    with UnitHarness(spec, name="long") as harness:
+        for k, level in enumerate(levels):
+            harness.send("t0", level, origin_ns=T0 + k * 10 * MS)
+        got = [m.payload for m in harness.wait_for(VERDICTS_PORT, 150)]
+    said = {v["state"]: v["robustness_of"] for v in got if "robustness_of" in v}
+    assert len([s for s in said if s >= 64]) >= 5 and len([s for s in said if s < 63]) >= 5
+    for state, (whole, atom, window, inner) in said.items():
+        level = levels[state]
+        assert atom == f"Battery(r) > 0.3: {level - 0.3:.6g}" and inner == f"Battery(r) > 0.1: {level - 0.1:.6g}"
+        assert window.endswith(": ?") == whole.endswith(": ?") == (state >= 63), (state, whole, window)  # (64 kept: full, maybe dropped)
+
+
+def test_a_client_asks_a_monitor_for_robustness(make_manager: Callable[..., Manager]) -> None:
+    """``Client.monitor(..., robustness=True)`` (``dyknow monitor --robustness``): through the
+    manager's services, each change carries ``robustness_of``; asked for without it, none."""
+    from dyknow import Client
+    from dyknow.transport import open_session
+
+    manager = make_manager(listen=["tcp/127.0.0.1:0"], queue_depth=10_000)
+    with Client(manager.name, connect=manager.endpoints, timeout_s=30) as client, open_session(connect=manager.endpoints) as robot:
+        robust = client.monitor("Battery(r1) > 0.2", bindings={"Battery(r1)": "robots/r1/battery"}, robustness=True)
+        plain = client.monitor("Battery(r1) > 0.3", bindings={"Battery(r1)": "robots/r1/battery"})
+        sinks = {}
+        for name, key in (("robust", robust), ("plain", plain)):
+            manager.spawn("sink", name, bindings={"in": key})
+            sinks[name] = manager.unit(name)
+        level = iter(itertools.cycle(["0.5", "0.1"]))
+
+        def changed(sink: Any) -> bool:
+            robot.put("robots/r1/battery", next(level))
+            time.sleep(0.02)
+            return len([m for m in sink.messages if "why" in m.payload]) >= 2
+
+        wait_until(lambda: changed(sinks["robust"]) and changed(sinks["plain"]), "changes of both verdicts")
+        explained = [m.payload for m in sinks["robust"].messages if "why" in m.payload]
+        assert all(p["robustness_of"] == [f"Battery(r1) > 0.2: {0.3 if p['verdict'] else -0.1:.6g}"] for p in explained)
+        assert not any("robustness_of" in m.payload for m in sinks["plain"].messages)

@@ -461,9 +461,10 @@ def cmd_monitor(args: argparse.Namespace) -> int:
       dyknow monitor 'Odom(r1).twist.twist.linear.x < 1.5' --bind 'Odom(r1)=ros2:/r1/odom' --manager robot
       dyknow monitor 'Battery(r1) > 0.2' --bind 'Battery(r1)=robots/r1/battery'
       dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x
-      dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x --changes-only --robustness"""
-    if args.robustness and (args.mcap is None or not args.changes_only):
-        raise UsageError("--robustness goes with --mcap FILE and --changes-only: each change over the recording, with each subformula's robustness")
+      dyknow monitor 'always x > 0' --mcap run.mcap --bind x=sensors/x --changes-only --robustness
+      dyknow monitor 'Battery(r1) > 0.2' --bind 'Battery(r1)=robots/r1/battery' --changes-only --robustness"""
+    if args.robustness and args.mcap is not None and not args.changes_only:
+        raise UsageError("--robustness goes with --changes-only over a recording (--mcap FILE): each change, with each subformula's robustness")
     if args.mcap is not None:
         return _monitor_recording(args)
     bindings = parse_pairs(args.bind, "--bind")
@@ -510,12 +511,13 @@ def cmd_monitor(args: argparse.Namespace) -> int:
             text = f"{msg.key}  {when(verdict.get('t'))}{who}  {said}{rob}" + (
                 f"  (a gap: {gap.get('term')} re-planned: {gap.get('cause')})" if isinstance(gap, dict) else ""
             )
-            why = verdict.get("why")
+            why, margins = verdict.get("why"), verdict.get("robustness_of")
             shown_why = [f"  {atom}" for atom in why if isinstance(atom, str)] if isinstance(why, list) else []
+            shown_why += [f"  robustness of {m}" for m in margins if isinstance(m, str)] if isinstance(margins, list) else []
             report_result(args, {"key": msg.key, **verdict}, [text, *shown_why[:16]])
 
     with open_client(args) as client:
-        key = client.monitor(args.formula, reorder_ms=args.reorder_ms, bindings=bindings)
+        key = client.monitor(args.formula, reorder_ms=args.reorder_ms, bindings=bindings, robustness=args.robustness)
         if not args.json:
             bound = "".join(f", {term} from {source}" for term, source in bindings.items())
             print(shown(f"monitoring {args.formula} on {key}{bound} (Ctrl-C to stop)"), flush=True)
@@ -743,7 +745,8 @@ def add_commands(cmds: Commands) -> None:
                        "with the values of the formula's comparisons at it")  # fmt: skip
         p.add_argument("--mcap", metavar="FILE", help="evaluate over this recording instead, offline, with the same semantics")
         p.add_argument("--robustness", action="store_true",
-                       help="with --mcap --changes-only: also the robustness of each subformula at each change (how far it is from flipping)")  # fmt: skip
+                       help="at each change of the verdict, also the robustness of each subformula (how far it is from flipping); "
+                            "over a recording with --changes-only")  # fmt: skip
         p.add_argument("--ontology", action="extend", nargs="+", default=[], type=shipped, metavar="FILE",
                        help="with --mcap, a formula with forall or exists: the ontologies whose individuals it ranges over")  # fmt: skip
         p.add_argument("--idle-ms", type=float, default=10_000.0, metavar="MS",  # (dyknow.reasoning.objects.DEFAULT_IDLE_NS: not imported to parse)

@@ -630,7 +630,7 @@ class Manager:
             self._holders.forget(key)
 
     def monitor(
-        self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, bindings: Mapping[str, str] | None = None
+        self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, bindings: Mapping[str, str] | None = None, robustness: bool = False
     ) -> str:
         """Monitor a temporal formula over the streams its terms name; returns the key of its
         verdicts (see :mod:`dyknow.reasoning.monitors`; ``forall c in Class: ...`` gives one
@@ -641,6 +641,8 @@ class Manager:
         delay. ``bindings`` bind terms to what exists instead, with no spec: a term -> a Zenoh
         key, ``ros2:/TOPIC`` (rmw_zenoh, on this manager's node) or ``ros2dds:/TOPIC`` (DDS, on
         its participant), as in ``{"Odom(r1)": "ros2:/r1/odom"}`` (:mod:`dyknow.reasoning.bindings`).
+        ``robustness``: each change of a verdict also says each subformula's robustness
+        (``"robustness_of"``, :class:`~dyknow.reasoning.unit.FormulaMonitor`).
         :meth:`release` of the key takes it down (only by ``owner``, or forced). Raises
         :class:`~dyknow.errors.FormulaError`, :class:`~dyknow.errors.BindingError` (a binding
         that is not valid, named), :class:`~dyknow.planner.PlanningError`, or
@@ -655,6 +657,7 @@ class Manager:
             bindings=bindings,
             check_key=lambda key, where: check_key_expr(key, what=where),
             readable_source=self._source_reader(owner),
+            robustness=robustness,
         )
         self.changed()
         return info.key

@@ -92,7 +92,9 @@ class Served(Protocol):
         """Give back a request or a monitor; returns the references that remain."""
         ...
 
-    def monitor(self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, bindings: Mapping[str, str] | None = None) -> str:
+    def monitor(
+        self, formula: str, *, reorder_ms: float = 0.0, owner: Owner = LOCAL, bindings: Mapping[str, str] | None = None, robustness: bool = False
+    ) -> str:
         """Monitor a temporal formula; returns the key of its verdicts."""
         ...
 
@@ -244,8 +246,9 @@ class Services:
         holder = self._holder(request, caller)
         owner = _owner(caller, holder)
         key = self._manager.monitor(
-            str(request["formula"]), reorder_ms=float(request.get("reorder_ms", 0.0)), owner=owner, bindings=request.get("bindings") or None
-        )
+            str(request["formula"]), reorder_ms=float(request.get("reorder_ms", 0.0)), owner=owner, bindings=request.get("bindings") or None,
+            robustness=request.get("robustness") is True,
+        )  # fmt: skip
         self._held(key, holder, owner)
         return {"key": key, "kept": holder is None}
 

@@ -28,6 +28,7 @@ from dyknow.reasoning.syntax import (
     Num,
     Once,
     Or,
+    Prev,
     Quantifier,
     Rise,
     Since,
@@ -98,13 +99,21 @@ def explainer(
 _CONDITIONS = (Atom, Not, And, Or, Implies, Always, Eventually, Historically, Once, Until, Since, Rise, Fall)
 
 
-def robustness_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]]) -> Callable[[int], list[str]]:
+def robustness_explainer(
+    formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]], *, kept: bool = False
+) -> Callable[[int], list[str]]:
     """``at(t_ns)``: the robustness of each subformula of ``formula`` that is a condition (the
     first :data:`MAX_ATOMS`, the whole formula first), at the state ``t_ns``, as
     :func:`~dyknow.reasoning.semantics.evaluate_ns` gives it for that subformula alone over the
     same samples (the quantitative semantics: how far from flipping; ``unknown`` when it has none):
-    ``historically[0, 300ms] Seen(floor).speed < 1.5: -0.2``."""
-    rows: list[tuple[str, list[tuple[int, object]] | str]] = []
+    ``historically[0, 300ms] Seen(floor).speed < 1.5: -0.2``.
+
+    ``kept``: the samples are the latest a live monitor kept, not a whole trace: a subformula
+    whose windows at ``t_ns`` reach back before the first state they make (its past reach, and
+    a state before for ``prev``), or ahead past the newest sample (its horizon), is ``?``: what it
+    reads is not all kept. The others are what the whole trace gives them (without the terms'
+    freshness)."""
+    rows: list[tuple[str, list[tuple[int, object]] | str, int | None, int]] = []
     for node in walk(formula.root):
         if not isinstance(node, _CONDITIONS) or len(rows) >= MAX_ATOMS:
             continue
@@ -114,10 +123,24 @@ def robustness_explainer(formula: Formula, samples: Mapping[str, Sequence[tuple[
             series: list[tuple[int, object]] | str = [(row[0], row[2]) for row in evaluate_ns(alone, {str(t): samples[str(t)] for t in alone.terms}, robustness=True)]
         except (DyKnowError, KeyError):  # (a foreach's variable, say: not a condition alone)
             series = "?"
-        rows.append((str(node), series))
+        reach = own.reach_ns
+        if reach is not None and any(isinstance(n, Prev | Rise | Fall) for n in walk(node)):
+            reach += 1  # (a state before the first it reads)
+        rows.append((str(node), series, reach, own.horizon_ns))
+    given = [rows_ for rows_ in (samples.get(str(t), ()) for t in formula.terms)]
+    first = max((r[0][0] for r in given), default=None) if all(given) else None  # the first state the kept samples make
+    newest = max((r[-1][0] for r in given if r), default=None)
+
+    def covered(reach: int | None, horizon: int, t_ns: int) -> bool:
+        if not kept:
+            return True
+        return first is not None and newest is not None and reach is not None and first <= t_ns - reach and newest >= t_ns + horizon
 
     def at(t_ns: int) -> list[str]:
-        return [f"{text}: {series if isinstance(series, str) else _value_at(series, t_ns, exact=True)}" for text, series in rows]
+        return [
+            f"{text}: {'?' if isinstance(series, str) or not covered(reach, horizon, t_ns) else _value_at(series, t_ns, exact=True)}"
+            for text, series, reach, horizon in rows
+        ]
 
     return at
 

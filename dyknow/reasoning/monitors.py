@@ -143,6 +143,7 @@ class Monitors:
         bindings: Mapping[str, str] | None = None,
         check_key: Callable[[str, str], object] | None = None,
         readable_source: Callable[[str, str], None] | None = None,
+        robustness: bool = False,
     ) -> MonitorInfo:
         """Monitor ``formula`` (see the module documentation) for ``owner``; its :class:`MonitorInfo`.
 
@@ -193,7 +194,7 @@ class Monitors:
                 key = "/".join([base, *chunks])
                 name = "-".join([f"monitor-{n}", *chunks])
                 own = {text: source for text, source in bound.items() if text in map(str, parsed.terms)}
-                spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms, bound=own)
+                spec = monitor_spec(parsed, label="formula-monitor", reorder_ms=reorder_ms, bound=own, robustness=robustness)
                 families: dict[str, str] = {}  # a parameterized term's family -> the key its members are relayed to
                 ports: dict[str, str] = {}
                 for text, port in term_ports(parsed).items():

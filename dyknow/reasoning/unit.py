@@ -88,7 +88,10 @@ Params:
   :data:`RECENT_SAMPLES` samples (``"Battery(r1) > 0.2: 0.1 > 0.2"``; a side that reads a window is
   ``?``, and ``unknown`` when no kept sample is as old as the state; an object's: its body's, over
   its own among them, its variable as the object); at most 8 at once and then one per 50 ms of
-  sample time per formula (:data:`EXPLAIN_BURST`, :data:`EXPLAIN_GAP_NS`);
+  sample time per formula (:data:`EXPLAIN_BURST`, :data:`EXPLAIN_GAP_NS`); with ``robustness``
+  (bool, default false) a formula's change also carries ``"robustness_of"``: each condition
+  subformula's robustness (:func:`~dyknow.reasoning.explain.robustness_explainer`, over the
+  latest :data:`ROBUST_SAMPLES` samples of each term: ``?`` where its windows reach past them);
 - ``bound`` (string): the terms bound to what exists, a JSON object of terms and their sources
   (:mod:`dyknow.reasoning.bindings`): their text samples are read as JSON values, and
 - ``quiet_ms`` (float, default 5,000): a bound term without a sample this long after the unit
@@ -109,17 +112,17 @@ from __future__ import annotations
 
 import json
 import statistics
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 from dyknow.clocks import CLOCKS
-from dyknow.errors import AccessError, FormulaError
+from dyknow.errors import FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.bindings import sample_value
-from dyknow.reasoning.explain import explainer, object_explainer
+from dyknow.reasoning.budget import MonitorBudget
+from dyknow.reasoning.explain import explainer, object_explainer, robustness_explainer
 from dyknow.reasoning.families import MAX_MEMBERS
 from dyknow.reasoning.members import LiveFamilies
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
@@ -284,6 +287,7 @@ def monitor_spec(
     idle_ms: float = DEFAULT_IDLE_NS / 1e6,
     max_objects: int = DEFAULT_MAX_OBJECTS,
     changes_only: bool = False,
+    robustness: bool = False,
     bound: Mapping[str, str] | None = None,
     quiet_ms: float = DEFAULT_QUIET_MS,
 ) -> TransformationSpec:
@@ -294,7 +298,7 @@ def monitor_spec(
     once for all of them; each verdict carries the name of its formula (``"formula": "slow"``).
     The settings hold for every formula. ``bound``: the terms bound to what exists and their
     sources (:mod:`dyknow.reasoning.bindings`), warned about ``quiet_ms`` after the start when
-    silent.
+    silent; ``robustness``: each change also says each subformula's robustness (``robustness_of``).
 
     Raises :class:`~dyknow.errors.FormulaError` when a formula does not parse or they mention no term.
     """
@@ -327,6 +331,7 @@ def monitor_spec(
             Param("idle_ms", "float", float(idle_ms)),
             Param("max_objects", "int", int(max_objects)),
             Param("changes_only", "bool", bool(changes_only)),
+            *((Param("robustness", "bool", True),) if robustness else ()),
             *((Param("bound", "string", json.dumps(dict(bound))), Param("quiet_ms", "float", float(quiet_ms))) if bound else ()),
         ),
         ports=(*(Port(port, "in", queue=queue) for port in ports.values()), Port(VERDICTS_PORT, "out")),
@@ -335,156 +340,12 @@ def monitor_spec(
     )
 
 
-class _Shared(Protocol):
-    """What a budget shares cells with: a monitor, or an object monitor."""
-
-    formula: Formula
-
-    def set_max_cells(self, max_cells: int) -> None: ...
-
-
-class MonitorBudget:
-    """What the monitor units of one manager share: its :class:`~dyknow.security.Limits`; the
-    cells ``limits.max_monitor_cells``, divided evenly among the monitors running; and at most
-    ``limits.max_monitor_nodes`` formula nodes in all, which bounds what every sample costs the
-    manager. Thread-safe. The manager hands its budget to each :class:`FormulaMonitor` before
-    ``setup()``.
-
-    **Per caller.** A monitor joins for an *account*: None for the manager's own (its Python API,
-    the requirements of its specs, the trials of its adaptations), else the caller's
-    (:meth:`dyknow.model.Owner.account`: its certificate's name when its calls are signed, else
-    its client). One caller's monitors and requirements hold at most
-    ``limits.monitor_nodes_caller_share`` of the nodes, and the callers together at most what
-    ``limits.monitor_nodes_reserved_share`` leaves: that reserve stays for the manager's own
-    watches, so no caller, nor all of them, can leave a spec's requirement unwatched. Past a
-    caller's bound, :class:`~dyknow.errors.AccessError` names the account, what it holds and
-    the bound; past the manager's, :class:`~dyknow.errors.FormulaError` as before.
-
-    A monitor takes its share of cells itself (:meth:`take_share`) before each sample and each
-    flush: a share only bounds the states a monitor stores next, and it stores states only then.
-    Joining and leaving touch no other monitor, so they cost the same beside 10 monitors or 10,000
-    (telling every monitor its new share on each join made spawning N monitors cost N²/2 calls:
-    7.5 s of the 17 s that 1,000 spawns took beside 2,300 monitors, ``benchmarks/overload.py``)."""
-
-    def __init__(self, limits: Limits) -> None:
-        self.limits = limits
-        self._lock = threading.Lock()
-        self._monitors: dict[_Shared, tuple[int, str | None]] = {}  # -> its formula's nodes, its account
-        self._accounts: dict[str, int] = {}  # a caller's account -> the nodes of its monitors
-        #: the formula nodes of the monitors running
-        self.nodes = 0
-        #: of those, the nodes that callers' monitors hold (the manager's own hold the rest)
-        self.caller_nodes = 0
-        #: counts the joins and leaves: a monitor whose last look saw another takes its share again
-        self.generation = 0
-
-    def check(self, *formulas: Formula, account: str | None = None) -> None:
-        """Raise when monitors of ``formulas`` for ``account`` would take the manager's monitors
-        past ``limits.max_monitor_nodes`` (:class:`~dyknow.errors.FormulaError`), or the
-        caller's past its share (:class:`~dyknow.errors.AccessError`): what :meth:`join` checks."""
-        with self._lock:
-            self._check(sum(f.nodes for f in formulas), account, len(formulas))
-
-    def join(self, monitor: _Shared, account: str | None = None) -> None:
-        """Count ``monitor`` in for ``account`` (None: the manager's own), or raise as
-        :meth:`check` does; every monitor's share of cells shrinks to fit it, from its next
-        sample on. Costs the same however many monitors run."""
-        nodes = monitor.formula.nodes
-        with self._lock:
-            self._check(nodes, account)
-            self._monitors[monitor] = (nodes, account)
-            self.nodes += nodes
-            if account is not None:
-                self._accounts[account] = self._accounts.get(account, 0) + nodes
-                self.caller_nodes += nodes
-            self.generation += 1
-
-    def leave(self, monitor: _Shared) -> None:
-        """Count ``monitor`` out (safe twice); the others' shares grow, from their next sample on."""
-        with self._lock:
-            entry = self._monitors.pop(monitor, None)
-            if entry is None:
-                return
-            nodes, account = entry
-            self.nodes -= nodes
-            if account is not None:
-                left = self._accounts.get(account, 0) - nodes
-                if left > 0:
-                    self._accounts[account] = left
-                else:
-                    self._accounts.pop(account, None)  # (an account without monitors costs nothing)
-                self.caller_nodes -= nodes
-            self.generation += 1
-
-    def held(self, account: str) -> int:
-        """The formula nodes the monitors of ``account`` hold now."""
-        with self._lock:
-            return self._accounts.get(account, 0)
-
-    @property
-    def caller_bounds(self) -> tuple[int, int]:
-        """``(per caller, all callers)``: the nodes one caller's monitors may hold, and those
-        all callers' may hold together (the rest of ``limits.max_monitor_nodes`` is reserved)."""
-        limits = self.limits
-        bound = limits.max_monitor_nodes
-        callers = bound - min(bound, max(0, int(bound * limits.monitor_nodes_reserved_share)))
-        return min(callers, max(0, int(bound * limits.monitor_nodes_caller_share))), callers
-
-    def take_share(self, monitor: _Shared, seen: int) -> int:
-        """Give ``monitor`` its share of cells now when monitors joined or left since it last
-        looked (``seen``: the :attr:`generation` it saw then, -1 at first); returns the generation
-        to pass next time. One comparison when nothing changed: monitors call it per sample."""
-        generation = self.generation
-        if generation != seen:
-            # read after the generation: a join in between makes the next call look again
-            monitor.set_max_cells(self.share)
-        return generation
-
-    def _check(self, nodes: int, account: str | None, count: int = 1) -> None:
-        """(under the lock) A caller's own bound first, then all callers', then the manager's."""
-        bound = self.limits.max_monitor_nodes
-        these = "this formula has" if count == 1 else "these formulas have"
-        if account is not None:
-            per_caller, callers = self.caller_bounds
-            own = self._accounts.get(account, 0)
-            if own + nodes > per_caller:
-                raise AccessError(
-                    f"the monitors and requirements of {account} hold {own:,} formula nodes, and {these} {nodes:,}",
-                    where="monitor",
-                    expected=f"at most {per_caller:,} nodes a caller (Limits.monitor_nodes_caller_share of the manager's "
-                    f"{bound:,}): release some of the caller's monitors or requirements first",
-                )
-            if self.caller_nodes + nodes > callers:
-                raise AccessError(
-                    f"the callers' monitors and requirements hold {self.caller_nodes:,} formula nodes, and {these} {nodes:,}",
-                    where="monitor",
-                    expected=f"at most {callers:,} nodes for all callers together: the other {bound - callers:,} of the "
-                    f"manager's {bound:,} are kept for its own requirements (Limits.monitor_nodes_reserved_share); "
-                    "try again once monitors are released",
-                )
-        if self.nodes + nodes > bound:
-            raise FormulaError(
-                f"the manager's monitors hold {self.nodes:,} formula nodes, and {these} {nodes:,}",
-                where="monitor",
-                expected=f"at most {bound:,} nodes in all (Limits.max_monitor_nodes): release monitors or requirements first",
-            )
-
-    @property
-    def share(self) -> int:
-        """The cells each monitor running may keep now (all of them, when none runs)."""
-        return self.limits.max_monitor_cells // max(1, len(self._monitors))
-
-    @property
-    def running(self) -> int:
-        """How many monitors share the cells."""
-        return len(self._monitors)
-
-
 _DERIVE_AFTER = 20  # samples a term's freshness and fields are judged from
 #: Each term's latest samples a monitor unit keeps to explain a change of a verdict ("why"); and
 #: how many changes of one formula it explains: 8 at once, then one per 50 ms of sample time (a
 #: verdict that flips at every sample would otherwise cost an evaluation of each comparison per sample).
 RECENT_SAMPLES = 8
+ROBUST_SAMPLES = 64  # (with the param robustness: enough for the windows of a few seconds at 20 Hz)
 EXPLAIN_BURST = 8
 EXPLAIN_GAP_NS = 50_000_000
 _MIN_AGE_NS = 20_000_000
@@ -649,8 +510,8 @@ class FormulaMonitor(Unit):
         self._changes_only = bool(params.get("changes_only", False))
         # each term's latest samples, which explain a change of a verdict ("why": each comparison
         # with its sides' values at its state); a few only: payloads may be large
-        self._explain = bool(params.get("explain", True))
-        self._recent: list[deque[tuple[int, Any]]] = [deque(maxlen=RECENT_SAMPLES) for _ in terms]
+        self._explain, self._robust = bool(params.get("explain", True)), bool(params.get("robustness", False))
+        self._recent: list[deque[tuple[int, Any]]] = [deque(maxlen=ROBUST_SAMPLES if self._robust else RECENT_SAMPLES) for _ in terms]
         #: the terms bound to what exists and their sources (:mod:`dyknow.reasoning.bindings`)
         self.bound: dict[str, str] = _bound_param(params.get("bound"), terms, where)
         self._textual = frozenset(terms.index(term) for term in self.bound)
@@ -912,6 +773,8 @@ class FormulaMonitor(Unit):
             served.last_verdict = verdict.verdict
             if self._explain and self._may_explain(served, verdict.t_ns):
                 out["why"] = self._why(served, verdict.t_ns)
+                if self._robust:
+                    out["robustness_of"] = self._why(served, verdict.t_ns, robustness=True)
         elif key is not None and self._explain and isinstance(served.monitor, ObjectMonitor):
             seen = served.object_verdicts
             if key not in seen or seen[key] is not verdict.verdict:  # an object's change: its own samples explain it
@@ -946,13 +809,17 @@ class FormulaMonitor(Unit):
         served.explain_tokens = tokens - 1
         return True
 
-    def _why(self, served: _Served, t_ns: int, key: str | None = None) -> list[str]:
+    def _why(self, served: _Served, t_ns: int, key: str | None = None, *, robustness: bool = False) -> list[str]:
         """Each comparison of the formula with its sides' values at ``t_ns``, from the terms'
         latest samples (a side that reads a window is ``?``: they are not all kept); for the
-        object ``key`` of a ``foreach``, its body's, over the object's own among them."""
+        object ``key`` of a ``foreach``, its body's, over the object's own among them;
+        ``robustness``: each condition subformula's robustness then, over them all."""
         formula = served.monitor.formula
-        samples = {term: [row for row in self._recent[self.terms.index(term)] if row[0] <= t_ns] for term in map(str, formula.terms)}
+        samples = {term: [row for row in self._recent[self.terms.index(term)] if robustness or row[0] <= t_ns] for term in map(str, formula.terms)}
         try:
+            if robustness:  # (while no term's kept samples dropped one, they are the whole trace the unit saw)
+                dropped = any(len(self._recent[self.terms.index(term)]) == ROBUST_SAMPLES for term in samples)
+                return robustness_explainer(formula, samples, kept=dropped)(t_ns)
             if key is not None:
                 return object_explainer(formula, samples, current_only=True)(key, t_ns)
             return explainer(formula, samples, current_only=True)(t_ns)
