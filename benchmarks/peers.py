@@ -113,11 +113,14 @@ def missing(variant: str) -> str | None:
     return None
 
 
-def run_peer(variant: str, hops: int, total: int, rate_hz: float | None, domain: int | None = None) -> tuple[list[int], float]:
+def run_peer(
+    variant: str, hops: int, total: int, rate_hz: float | None, domain: int | None = None, idle_s: float = IDLE_S
+) -> tuple[list[int], float]:
     """Run one chain; returns (every last-hop latency in ns of the `total` messages that arrived,
     in order, warm-up NOT dropped; CPU seconds per message of every process involved, NaN when the
     run ended before the up file was seen). ``domain``: the DDS domain of ``dds-process`` (default:
-    one whose discovery port is free now)."""
+    one whose discovery port is free now); ``idle_s``: the sink ends this long after the latest
+    message (a test on a loaded machine waits longer: a process may stall seconds there)."""
     why = missing(variant)
     if why:
         raise RuntimeError(why)
@@ -129,7 +132,7 @@ def run_peer(variant: str, hops: int, total: int, rate_hz: float | None, domain:
         result, up = folder / "latencies.json", folder / "up"
         common = [
             "--hops", str(hops), "--messages", str(total), "--rate", repr(rate), "--result", str(result),
-            "--up-file", str(up), "--dir", str(folder),
+            "--up-file", str(up), "--dir", str(folder), "--idle", repr(float(idle_s)),
         ]  # fmt: skip
         procs: list[_Child] = []
         try:
@@ -207,7 +210,7 @@ def _session(sid: int) -> list[int]:
 
 def _deadline_s(total: int, rate: float) -> float:
     """As long as chain.py's process variants may take."""
-    return 120 + total * (1.0 / rate if rate else 0.05)
+    return 120 + total * (1.0 / rate if rate else 0.05)  # (more than a sink's idle end a test asks for)
 
 
 def _wait(variant: str, hops: int, total: int, rate: float, procs: list[_Child], result: Path, up: Path) -> tuple[list[int], float]:
@@ -289,6 +292,7 @@ class _Sink:
     def __init__(self, args: argparse.Namespace, ack: Callable[[bytes], None]) -> None:
         self.expected = args.messages
         self.back_to_back = not args.rate
+        self.idle_s = float(getattr(args, "idle", IDLE_S))
         self.ack = ack
         self.latencies: list[int] = []
         self.last_ns = 0
@@ -308,7 +312,7 @@ class _Sink:
 
     def idle(self) -> bool:
         """True (and done) when no message came for ``IDLE_S`` after the first."""
-        if self.last_ns and time.time_ns() - self.last_ns > IDLE_S * 1e9:
+        if self.last_ns and time.time_ns() - self.last_ns > self.idle_s * 1e9:
             self.done.set()
         return self.done.is_set()
 
@@ -607,6 +611,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--result", help=argparse.SUPPRESS)
     parser.add_argument("--up-file", help=argparse.SUPPRESS)
     parser.add_argument("--dir", help=argparse.SUPPRESS)
+    parser.add_argument("--idle", type=float, default=IDLE_S, help=argparse.SUPPRESS)
     parser.add_argument("--domain", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:

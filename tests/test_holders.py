@@ -61,8 +61,8 @@ def wait_until_false(condition: Callable[[], bool], seconds: float) -> bool:
 
 
 def test_one_client_gone_leaves_the_others_reference(manager: Manager) -> None:
-    with Client(manager.name, connect=manager.endpoints) as staying:
-        with Client(manager.name, connect=manager.endpoints) as leaving:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as staying:  # (the first request plans and spawns)
+        with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as leaving:
             key = staying.request(TAG)
             assert leaving.request(TAG) == key
             assert _request(manager)["references"] == 2  # type: ignore[index]
@@ -138,7 +138,7 @@ def test_a_client_may_not_release_another_clients_request(manager: Manager) -> N
     """Another client (no roles here, so no certificate to tell callers apart: the client id
     does) cannot give back the first one's reference, with its own id or none; forcing it can
     (without roles every caller may what an admin may), and takes every reference."""
-    with Client(manager.name, connect=manager.endpoints) as holder, Client(manager.name, connect=manager.endpoints) as other:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as holder, Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as other:
         key = holder.request(TAG)
         units = {u.name for u in manager.units()}
         for attempt in (lambda: other.release(key), lambda: other.call_manager(manager.name, "release", {"key": key, "holder": "0123456789abcdef"})):
@@ -157,7 +157,7 @@ def test_a_requirement_goes_with_the_reference_that_added_it(manager: Manager) -
     reference the requirement and its monitor go, and the first client's request runs on
     without it. A requirement both references added stays until both are gone."""
     formula = f"{TAG}.x < -1000"
-    with Client(manager.name, connect=manager.endpoints) as first, Client(manager.name, connect=manager.endpoints) as second:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as first, Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as second:
         key = first.request(TAG)
         second.request(TAG, require=[formula])
         held = _request(manager)
@@ -202,8 +202,8 @@ def test_a_monitor_has_a_holder_too(manager: Manager) -> None:
     """A client's monitor is its own: another client cannot release it by its key, and it ends
     a grace period after its client is gone; a kept one stays until released."""
     formula = f"historically[0, 1s] {TAG}.x > 0"
-    with Client(manager.name, connect=manager.endpoints) as other:
-        with Client(manager.name, connect=manager.endpoints) as owner:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as other:
+        with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as owner:
             key = owner.monitor(formula)
             with pytest.raises(AccessError, match=f"may not release the monitor on '{key}'"):
                 other.release(key)
@@ -222,7 +222,7 @@ def test_a_client_takes_at_most_its_share_of_a_request(make_manager: Callable[..
     bounded (here 3), refused past it naming the bound, and the others still share the request;
     references kept without a client id count as one caller's."""
     manager = make_manager("share", specs=[SCENARIO_SPECS], ontology=[ONTOLOGY], limits=Limits(max_references_per_caller=3))
-    with Client(manager.name, connect=manager.endpoints) as greedy, Client(manager.name, connect=manager.endpoints) as other:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as greedy, Client(manager.name, connect=manager.endpoints, timeout_s=CALL_S) as other:
         key = greedy.request(TAG)
         assert greedy.request(TAG) == key and greedy.request(TAG) == key
         said = rf"client [0-9a-f]+ holds 3 references to the request on '{re.escape(key)}' already, its most; expected at most 3 references per caller"

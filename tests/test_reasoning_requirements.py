@@ -300,7 +300,9 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
     keys = {"State(r1)": "floor/r1/state", "Limits(floor)": "floor/limits", "Seen(floor)": "floor/seen"}
     watched = {}
     for name, formula in (("plain", plain), ("objects", objects)):
-        key = manager.monitor(formula, bindings={t: k for t, k in keys.items() if t.split("(")[0] in formula})
+        # (three keys from one session: on a loaded machine their samples reach the monitor out of time
+        # order by more than a first reorder delay of 0 allows; what it would drop, the recording keeps)
+        key = manager.monitor(formula, bindings={t: k for t, k in keys.items() if t.split("(")[0] in formula}, reorder_ms=1000)
         manager.spawn("sink", name, bindings={"in": key})
         sink = manager.unit(name)
         assert isinstance(sink, Sink)
@@ -336,8 +338,12 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
             i += 1
             time.sleep(0.01)
         end_ns = time.time_ns()
-        wait_until(lambda: recorder.count >= recorded + 3 * 150 and all(v and v[-1]["t_ns"] >= end_ns - 100_000_000 for v in map(verdicts, watched)),
-                   "the last samples recorded and judged")  # fmt: skip
+        while not all(v and v[-1]["t_ns"] >= end_ns - 100_000_000 for v in map(verdicts, watched)):
+            publish(i)  # later samples close the reorder window over the last ones
+            i += 1
+            time.sleep(0.01)
+            assert time.time_ns() - end_ns < 30e9, "the last samples judged"
+        wait_until(lambda: recorder.count >= recorded + 3 * 150, "the last samples recorded")
     # the samples from start_ns on, as they were recorded
     trimmed = _from(live, start_ns, tmp_path / "trimmed.mcap")
     (tmp_path / "live.toml").write_text(
@@ -349,7 +355,7 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
     for name in ("plain", "objects"):
         offline = {(key, t): v for key, series in results[name].verdicts.items() for t, v in series if t >= settled}
         judged = [v for v in verdicts(name) if v["t_ns"] >= settled]
-        assert len(judged) > 100, name
+        assert len(judged) > 50, name  # (about 100: a state every 10 ms of sleep, fewer on a loaded machine)
         assert {(v.get("object", ""), v["t_ns"]): v["verdict"] for v in judged} == {
             k: v for k, v in offline.items() if v is not None and k[1] <= judged[-1]["t_ns"]
         }, name
