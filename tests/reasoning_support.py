@@ -763,6 +763,9 @@ def naive_evaluate_objects(
             start, end = life[0][0], life[-1][0] + idle_ns
             picked: dict[Term, list[tuple[int, Any]]] = {domain.term: life}
             for term in terms[1:]:  # every sample before the life too: their outages there count
+                if is_family(term):  # a parameterized term's members, each as a stream
+                    picked.update({m: [s for s in samples if s[0] <= end] for m, samples in streams.items() if member_arg(term, m) is not None})
+                    continue
                 picked[term] = [s for s in streams[term] if s[0] <= end]
             value = naive_read(life[0][1], domain.fields)
             out.setdefault(key, []).append(naive_evaluate_ns(formula, picked, variables={var: value}, start_ns=start, max_age=max_age))

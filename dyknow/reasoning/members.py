@@ -30,8 +30,9 @@ from dyknow.clocks import CLOCKS
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.bindings import sample_value
 from dyknow.reasoning.families import MAX_MEMBERS, Family
+from dyknow.reasoning.quantify import replace_var
 from dyknow.reasoning.semantics import evaluate_values_ns
-from dyknow.reasoning.syntax import Formula, Index, walk
+from dyknow.reasoning.syntax import Formula, Index, Quantifier, Stream, walk
 from dyknow.reasoning.tree import is_family
 from dyknow.spec import Param, Port, TransformationSpec
 from dyknow.tags import NAME
@@ -90,9 +91,13 @@ class LiveFamilies:
             for term in formula.terms:
                 if is_family(term):
                     self.ports.setdefault(terms.index(str(term)), Family(term))
-            for node in walk(formula.root):
+            root = formula.root
+            for node in walk(root):
                 if isinstance(node, Index) and node.param >= 0:
                     argument = Formula.of(node.keys[0])
+                    if isinstance(root, Quantifier) and root.kind == "foreach" and isinstance(root.domain, Stream):
+                        # the object's value: its stream's field, read from each of its samples
+                        argument = Formula.of(replace_var(node.keys[0], root.var, root.domain))
                     if any(text == str(node.stream.term) and str(a) == str(argument) for text, a, _ in self._arguments):
                         continue
                     ports = [terms.index(str(t)) for t in argument.terms]

@@ -570,8 +570,11 @@ class _Parser:
         while end < len(text) and text[end] not in _DELIMITERS:
             end += 1
         opening = _SPACE.match(text, end).end()  # type: ignore[union-attr]  # \s* always matches
-        if end == at or not text.startswith("(", opening) or _NAME_ARGS.match(text, opening) or ")" not in text[opening:]:
+        names = _NAME_ARGS.match(text, opening)
+        if end == at or not text.startswith("(", opening) or ")" not in text[opening:]:
             return None  # (a '(' never closed: the tag's own reading says so)
+        if names is not None and not any(self.variables.get(n) == ANY for n in NAME.findall(names.group())):
+            return None  # names only (a foreach variable among them is the object's value: computed)
         functor = self.tag(text[at:end], at).functor
         self.pos = opening + 1
         args: list[str] = []

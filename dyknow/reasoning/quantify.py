@@ -65,7 +65,7 @@ from dyknow.reasoning.tree import family_term, is_family
 from dyknow.security import Limits
 from dyknow.tags import Term
 
-__all__ = ["expand", "expand_quantifiers", "rename"]
+__all__ = ["expand", "expand_quantifiers", "rename", "replace_var"]
 
 
 def expand(
@@ -252,6 +252,19 @@ def _rebuild(node: Node, args: list[Node], env: dict[str, str]) -> Node:
     if isinstance(node, And | Or | Implies):
         return type(node)(args[0], args[1])
     return type(node)(args[0])  # type: ignore[call-arg]  # Not, Neg, Prev, Rise, Fall
+
+
+def replace_var(root: Node, var: str, node: Node) -> Node:
+    """``root`` with the variable ``var``, where it is a value, replaced by ``node`` (a
+    ``foreach`` variable by its stream's field, to compute it from the object's samples)."""
+    memo: dict[int, Node] = {}
+    for here in reversed(walk(root)):
+        args = [memo[id(kid)] for kid in children(here)]
+        if isinstance(here, Var) and here.name == var:
+            memo[id(here)] = node
+        else:
+            memo[id(here)] = _rebuild(here, args, {}) if args else here
+    return memo[id(root)]
 
 
 def rename(root: Node, var: str, name: str) -> Node:
