@@ -74,7 +74,9 @@ reaches as far right as it can (``forall c in C: p and q`` quantifies both).
   (streams, fields, lookups, arithmetic, functions but ``robustness``: no window, aggregate,
   ``prev``, ``rise`` or ``fall``, no other parameterized term), the others names
   (``SpeedLimit(floor, State(r).zone)``; a ``forall`` variable stands in them as in any term).
-  Fields and keys may follow (``SpeedLimit(State(r).zone).value``). A monitor plans a member the
+  Fields and keys may follow (``SpeedLimit(State(r).zone).value``). A ``foreach`` variable as an
+  argument is one computed (its object's value): ``foreach r in Seen(floor).id: Speed(r) < 1``
+  reads, for each robot seen, its own ``Speed(r1)``, ``Speed(r2)``, .... A monitor plans a member the
   first time its argument is seen, as it makes a ``foreach`` object's instance
   (:mod:`dyknow.reasoning.monitors`); the semantics reads it as a lookup into the members'
   latest values (:mod:`dyknow.reasoning.semantics`). **Conditions** (what ``and``, ``or``,
