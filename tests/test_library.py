@@ -71,7 +71,7 @@ def test_repeated_adds_cannot_grow_the_summary_beyond_what_peers_take(make_manag
     manager = make_manager(listen=["tcp/127.0.0.1:0"])
     xml = LARGE.format(text="y" * 3000, values="; ".join(f"v{k}" for k in range(1000)), round="{round}")
     refused = None
-    with Client(manager.name, connect=manager.endpoints) as client:
+    with Client(manager.name, connect=manager.endpoints, timeout_s=60) as client:  # (an add of 1,000 specs of 3.4 MB takes seconds on a loaded machine)
         for n in range(6):  # about 3.4 MB of XML each
             try:
                 client.add_transformation(xml.replace("{round}", str(n)))

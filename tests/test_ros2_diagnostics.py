@@ -185,7 +185,8 @@ def test_the_managers_health_reaches_rclpy_over_dds_and_its_levels_follow(
     # the managed node fails: ERROR, kept while the fallback serves its request
     camera.send("fail")
     failed = statuses.wait("robot_1: node /camera_top", ERROR)
-    assert "/camera_top went from active to" in failed["message"], failed
+    # (the transition seen, or, when the manager's look at the node's state comes first on a loaded machine, its state)
+    assert "/camera_top went from active to" in failed["message"] or "/camera_top is unconfigured, not active" in failed["message"], failed
     assert statuses.wait("robot_1: request Frames(top)", OK)["values"]["transformations"] == "frames-fallback"
     # repaired: the requirement holds again
     device.id = 2
