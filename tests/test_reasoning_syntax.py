@@ -166,7 +166,7 @@ ERRORS = [
     ("p and forall c in C: Fresh(c)", 7, "'forall' inside an operator", "parentheses around the quantified formula"),
     ("always[0, 1s] (foreach t in T.id: t == 1)", 16, "'foreach' inside the formula", "foreach first"),
     ("foreach t in T: t == 1", 14, "foreach over the stream T itself", "a field that names the object"),
-    ("foreach t in T(x).id: Speed(t) > 1", 23, "foreach's variable 't' stands in the args of Speed(t)", "as a value"),
+    ("foreach t in T(x).id: Speed(t, t) > 1", 32, "a second computed argument of Speed(...)", "one argument computed at each state"),
     ("forall c in C: c.x > 1", 17, "a field of the variable 'c'", "the variable alone"),
     ("x = 3", 3, "unexpected '='", "=="),
     ("x => 3", 3, "unexpected '='", "=="),
@@ -359,3 +359,15 @@ def test_the_bounds_are_the_operators_to_set() -> None:
     assert nodes.value.column == 19  # at q, the third node read
     assert check_formula(parse("p or q")).text == "p or q"  # a parsed formula is checked by its text
     assert check_formula("historically[0, inf] p").horizon_ns == 0  # inf: no bound to exceed
+
+
+def test_a_foreach_variable_in_a_term_s_args_is_its_object_s_value() -> None:
+    """``Speed(t)`` in the body of ``foreach t in ...`` is a parameterized term: the member its
+    object's value names (it was refused before parameterized terms)."""
+    from dyknow.reasoning.syntax import Index, Var
+
+    formula = parse("foreach t in T(x).id: Speed(t) > 1")
+    body = formula.root.body  # type: ignore[attr-defined]
+    assert isinstance(body.left, Index) and body.left.param == 0 and body.left.keys == (Var("t"),)
+    assert [str(t) for t in formula.terms] == ["T(x)", "Speed(*)"]
+    assert parse(str(formula)).root == formula.root
