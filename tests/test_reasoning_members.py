@@ -142,10 +142,10 @@ def test_a_live_run_recorded_then_checked_gives_the_same_verdicts_as_its_members
     equal the live ones, at the same times."""
     import time
 
-    from dyknow.reasoning import check_recording, evaluate_ns, load_requirements
-    from dyknow.reasoning.offline import read_topics
-    from dyknow.recording import Player, Recorder
+    from dyknow.reasoning import check_recording, load_requirements
+    from dyknow.recording import Recorder
     from dyknow.testing import Source
+    from tests.live_support import fresh_verdicts, from_start, publish_recorded
 
     def relay(label: str, key: str, tag: str) -> str:
         return f"""<transformation><label>{label}</label><source>transformations.generic:RemoteStream</source>
@@ -182,27 +182,16 @@ def test_a_live_run_recorded_then_checked_gives_the_same_verdicts_as_its_members
 
     live = tmp_path / "live.mcap"
     with Recorder(["floor/**"], live, connect=manager.endpoints) as recorder:
-        i = 0
-        while not (len({info.tag for info in manager.requests()}) == 3 and len(verdicts()) > 20 and len(recorder.topics) == 3 and min(recorder.topics.values()) >= 5):
-            publish(i)
-            i += 1
-            time.sleep(0.02)
-            assert i < 1500, "the members planned, and the monitor and the recorder to receive every key"
-        start_ns, recorded = time.time_ns(), recorder.count
-        for _ in range(250):
-            publish(i)
-            i += 1
-            time.sleep(0.01)
-        end_ns = time.time_ns()
-        while not verdicts()[-1]["t_ns"] >= end_ns - 100_000_000:  # type: ignore[operator]
-            publish(i)  # later samples close the reorder window over the last ones
-            i += 1
-            time.sleep(0.01)
-            assert time.time_ns() - end_ns < 30e9, "the last samples judged"
-        wait_until(lambda: recorder.count >= recorded + 3 * 250, "the last samples recorded")
-    trimmed = tmp_path / "trimmed.mcap"
-    with Player(live, rate=float("inf")) as player, Recorder((), trimmed) as writer:
-        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
+        start_ns = publish_recorded(
+            recorder,
+            publish,
+            lambda: len({info.tag for info in manager.requests()}) == 3 and len(verdicts()) > 20,
+            lambda t_ns: verdicts()[-1]["t_ns"] >= t_ns,  # type: ignore[operator]
+            lambda: [manager.unit(manager.monitors()[0].units[0])],
+            topics=3,
+            count=250,
+        )
+    trimmed = from_start(live, start_ns, tmp_path / "trimmed.mcap")
     (tmp_path / "live.toml").write_text(
         f'[bindings]\n"State(r)" = "floor/{{r}}/state"\n"SpeedLimit(z)" = "floor/limits/{{z}}"\n\n[[requirement]]\nname = "limit"\nformula = "{formula}"\n'
     )
@@ -216,9 +205,8 @@ def test_a_live_run_recorded_then_checked_gives_the_same_verdicts_as_its_members
     # the live monitor's terms have the freshness it derived from their rates (a publisher starved
     # for longer makes its states unknown there); over the same samples with the same ages, the
     # semantics gives every verdict it published
-    read, _ = read_topics(trimmed, set(keys))
-    fresh = evaluate_ns(formula, {keys[k]: read[k] for k in keys}, max_age_ns=unit.ages)
-    expected = {t: v for t, v in fresh if settled <= t <= judged[-1]["t_ns"] and v is not None}  # type: ignore[operator]
+    fresh = fresh_verdicts(formula, trimmed, {term: k for k, term in keys.items()}, unit.ages)
+    expected = {t: v for (_, t), v in fresh.items() if settled <= t <= judged[-1]["t_ns"] and v is not None}  # type: ignore[operator]
     assert {v["t_ns"]: v["verdict"] for v in judged} == expected, unit.ages
     assert {v["verdict"] for v in judged} == {True, False}
     # and the requirements file (no freshness asked) decides each of them the same

@@ -273,40 +273,37 @@ def test_a_junit_report_escapes_what_the_file_says() -> None:
     assert failure is not None and "x < 1 and y > 2" in (failure.text or "")
 
 
-def _from(recording: Path, start_ns: int, out: Path) -> Path:
-    """The messages of ``recording`` from ``start_ns`` on, as recorded, in ``out``."""
-    from dyknow.recording import Player
-
-    with Player(recording, rate=float("inf")) as player, Recorder((), out) as writer:
-        player.play(lambda message, record: writer.write(message) if message.origin_ns >= start_ns else None)
-    return out
-
-
 def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_manager: Any, tmp_path: Path) -> None:
     """Two monitors run live on a manager (a window over a lookup, and a foreach) while a
     recorder records the keys they read; the recording checked afterwards as a requirements
     file gives every verdict the live monitors published, at the same times. The comparison
     starts once both the monitors and the recorder receive every key (the samples before may
-    reach one and not the other), and past the longest window after it."""
+    reach one and not the other), and past the longest window after it; it is made with the
+    freshness each live monitor derived (tests/live_support.py)."""
     import time
 
+    from dyknow.reasoning.objects import DEFAULT_IDLE_NS
     from dyknow.testing import Sink
     from dyknow.transport import Session, make_config
-    from tests.conftest import free_port, wait_until
+    from tests.conftest import free_port
+    from tests.live_support import fresh_verdicts, from_start, publish_recorded
 
     manager = make_manager(listen=[f"tcp/127.0.0.1:{free_port()}"], queue_depth=100_000)  # (the sinks keep every verdict, however slow)
     plain = "historically[0, 300ms] State(r1).speed <= Limits(floor)[State(r1).zone]"
     objects = "foreach r in Seen(floor).id: historically[0, 200ms] Seen(floor).speed < 1.5"
     keys = {"State(r1)": "floor/r1/state", "Limits(floor)": "floor/limits", "Seen(floor)": "floor/seen"}
-    watched = {}
+    watched, units, topics = {}, {}, {}
     for name, formula in (("plain", plain), ("objects", objects)):
+        topics[name] = {t: k for t, k in keys.items() if t.split("(")[0] in formula}
         # (three keys from one session: on a loaded machine their samples reach the monitor out of time
         # order by more than a first reorder delay of 0 allows; what it would drop, the recording keeps)
-        key = manager.monitor(formula, bindings={t: k for t, k in keys.items() if t.split("(")[0] in formula}, reorder_ms=1000)
+        key = manager.monitor(formula, bindings=topics[name], reorder_ms=1000)
         manager.spawn("sink", name, bindings={"in": key})
         sink = manager.unit(name)
         assert isinstance(sink, Sink)
         watched[name] = sink
+        (info,) = [m for m in manager.monitors() if m.key == key]
+        units[name] = manager.unit(info.units[0])
 
     def verdicts(name: str) -> list[dict[str, Any]]:
         return [m.payload for m in list(watched[name].messages) if isinstance(m.payload, dict) and "verdict" in m.payload]
@@ -326,40 +323,33 @@ def test_a_live_run_recorded_then_checked_gives_the_live_monitors_verdicts(make_
             put("floor/r1/state", {"zone": "dock" if i % 7 < 4 else "aisle", "speed": 0.9 if i % 40 == 3 else 0.3})
             put("floor/seen", {"id": f"r{i % 3}", "speed": 1.7 if i % 13 == 6 else 0.4})
 
-        i = 0
-        while not (verdicts("plain") and verdicts("objects") and len(recorder.topics) == 3 and min(recorder.topics.values()) >= 5):  # every path up
-            publish(i)
-            i += 1
-            time.sleep(0.02)
-            assert i < 1000, "the monitors and the recorder to receive the keys"
-        start_ns, recorded = time.time_ns(), recorder.count
-        for _ in range(150):
-            publish(i)
-            i += 1
-            time.sleep(0.01)
-        end_ns = time.time_ns()
-        while not all(v and v[-1]["t_ns"] >= end_ns - 100_000_000 for v in map(verdicts, watched)):
-            publish(i)  # later samples close the reorder window over the last ones
-            i += 1
-            time.sleep(0.01)
-            assert time.time_ns() - end_ns < 30e9, "the last samples judged"
-        wait_until(lambda: recorder.count >= recorded + 3 * 150, "the last samples recorded")
-    # the samples from start_ns on, as they were recorded
-    trimmed = _from(live, start_ns, tmp_path / "trimmed.mcap")
+        start_ns = publish_recorded(
+            recorder,
+            publish,
+            lambda: bool(verdicts("plain") and verdicts("objects")),
+            lambda t_ns: all(v and v[-1]["t_ns"] >= t_ns for v in map(verdicts, watched)),
+            units.values,
+            topics=3,
+            count=150,
+        )
+    trimmed = from_start(live, start_ns, tmp_path / "trimmed.mcap")
     (tmp_path / "live.toml").write_text(
         "[bindings]\n" + "".join(f'"{t}" = "{k}"\n' for t, k in keys.items())
         + f'\n[[requirement]]\nname = "plain"\nformula = "{plain}"\n\n[[requirement]]\nname = "objects"\nformula = "{objects}"\n'
     )  # fmt: skip
     results = {r.requirement.name: r for r in check_recording(load_requirements(tmp_path / "live.toml"), trimmed)}
     settled = start_ns + 500_000_000  # past the longest window (300 ms) and a lookup's first sample
-    for name in ("plain", "objects"):
-        offline = {(key, t): v for key, series in results[name].verdicts.items() for t, v in series if t >= settled}
+    for name, formula in (("plain", plain), ("objects", objects)):
         judged = [v for v in verdicts(name) if v["t_ns"] >= settled]
         assert len(judged) > 50, name  # (about 100: a state every 10 ms of sleep, fewer on a loaded machine)
-        assert {(v.get("object", ""), v["t_ns"]): v["verdict"] for v in judged} == {
-            k: v for k, v in offline.items() if v is not None and k[1] <= judged[-1]["t_ns"]
-        }, name
+        ages = units[name].ages
+        fresh = fresh_verdicts(formula, trimmed, topics[name], ages, idle_ns=DEFAULT_IDLE_NS if name == "objects" else None)
+        expected = {k: v for k, v in fresh.items() if settled <= k[1] <= judged[-1]["t_ns"] and v is not None}
+        assert {(v.get("object", ""), v["t_ns"]): v["verdict"] for v in judged} == expected, (name, ages)
         assert {v["verdict"] for v in judged} == {True, False}, name
+        # and the requirements file (no freshness asked) decides each of them the same
+        offline = {(key, t): v for key, series in results[name].verdicts.items() for t, v in series}
+        assert all(offline[k] is v for k, v in expected.items()), name
 
 
 def _relay(label: str, key: str, tag: str) -> str:
@@ -379,7 +369,7 @@ def test_live_forall_monitors_recorded_then_checked_give_the_same_verdicts(make_
 
     from dyknow.ontology import Ontology
     from dyknow.testing import Sink, Source
-    from tests.conftest import wait_until
+    from tests.live_support import fresh_verdicts, from_start, publish_recorded
 
     (tmp_path / "floor.ttl").write_text(ONTOLOGY)
     robots = ("r1", "r2", "r3")
@@ -423,25 +413,16 @@ def test_live_forall_monitors_recorded_then_checked_give_the_same_verdicts(make_
 
     live = tmp_path / "live.mcap"
     with Recorder(["floor/**"], live, connect=manager.endpoints) as recorder:
-        i = 0
-        while not (len(verdicts("speed")) == 3 and len(verdicts("apart")) == 9 and len(recorder.topics) == 4 and min(recorder.topics.values()) >= 5):
-            publish(i)
-            i += 1
-            time.sleep(0.02)
-            assert i < 1500, "the monitors and the recorder to receive every key"
-        start_ns, recorded = time.time_ns(), recorder.count
-        for _ in range(250):
-            publish(i)
-            i += 1
-            time.sleep(0.01)
-        end_ns = time.time_ns()
-        while not all(v[-1]["t_ns"] >= end_ns - 100_000_000 for name in formulas for v in verdicts(name).values()):
-            publish(i)  # later samples close the reorder window over the last ones
-            i += 1
-            time.sleep(0.01)
-            assert time.time_ns() - end_ns < 30e9, "the last samples judged"
-        wait_until(lambda: recorder.count >= recorded + 4 * 250, "the last samples recorded")
-    trimmed = _from(live, start_ns, tmp_path / "trimmed.mcap")
+        start_ns = publish_recorded(
+            recorder,
+            publish,
+            lambda: len(verdicts("speed")) == 3 and len(verdicts("apart")) == 9,
+            lambda t_ns: all(v[-1]["t_ns"] >= t_ns for name in formulas for v in verdicts(name).values()),
+            lambda: [manager.unit(unit) for info in manager.monitors() for unit in info.units],
+            topics=4,
+            count=250,
+        )
+    trimmed = from_start(live, start_ns, tmp_path / "trimmed.mcap")
     (tmp_path / "live.toml").write_text(
         '[bindings]\n"State(r)" = "floor/{r}/state"\n"Limits(floor)" = "floor/limits"\n'
         + "".join(f'\n[[requirement]]\nname = "{name}"\nformula = "{formula}"\n' for name, formula in formulas.items())
@@ -449,15 +430,23 @@ def test_live_forall_monitors_recorded_then_checked_give_the_same_verdicts(make_
     checked = check_recording(load_requirements(tmp_path / "live.toml"), trimmed, individuals=Ontology.load([tmp_path / "floor.ttl"]).individuals)
     results = {r.requirement.name: r for r in checked}
     settled = start_ns + 500_000_000  # past the longest window (300 ms) and a lookup's first sample
+    topics = {**{f"State({r})": f"floor/{r}/state" for r in robots}, "Limits(floor)": "floor/limits"}
     for name, instances in (("speed", 3), ("apart", 9)):
         assert results[name].error is None, results[name].error
         live_verdicts = verdicts(name)
         assert sorted(live_verdicts) == sorted(results[name].verdicts) and len(live_verdicts) == instances, (sorted(live_verdicts), sorted(results[name].verdicts))
-        for instance, series in results[name].verdicts.items():
+        (info,) = [m for m in manager.monitors() if m.formula == formulas[name]]
+        for _individual, formula, unit_name, verdict_key in info.expansions:
+            instance = verdict_key.removeprefix(watched[name][0])
             judged = [v for v in live_verdicts[instance] if v["t_ns"] >= settled]
             assert len(judged) > 100, (name, instance)
-            offline = {t: v for t, v in series if settled <= t <= judged[-1]["t_ns"] and v is not None}
-            assert {v["t_ns"]: v["verdict"] for v in judged} == offline, (name, instance)
+            # with the freshness the live monitor derived (tests/live_support.py)
+            ages = manager.unit(unit_name).ages
+            fresh = fresh_verdicts(formula, trimmed, topics, ages)
+            expected = {t: v for (_, t), v in fresh.items() if settled <= t <= judged[-1]["t_ns"] and v is not None}
+            assert {v["t_ns"]: v["verdict"] for v in judged} == expected, (name, instance, ages)
+            offline = dict(results[name].verdicts[instance])
+            assert all(offline[t] is v for t, v in expected.items()), (name, instance)
     assert {v["verdict"] for v in verdicts("speed")["r2"]} == {True, False}
     assert {v["verdict"] for v in verdicts("apart")["r1/r3"]} == {True, False}
 
