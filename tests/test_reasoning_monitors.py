@@ -367,6 +367,20 @@ def test_dyknow_monitor_explains_each_change_of_a_foreach_object_over_its_own_sa
                 last = verdict
     assert sorted((r["t_ns"], r["object"], r["verdict"], r["why"]) for r in rows) == sorted(by_hand)
     assert {r["object"] for r in rows if r["verdict"] is False} == {"r1", "r2"}
+    # --robustness: each object's subformulas over its own samples, by hand: the atom is
+    # 1.5 - its latest speed, the window the least of that over its own samples 100 ms back
+    windowed = "foreach r in Seen(floor).id: historically[0, 100ms] Seen(floor).speed < 1.5"
+    robust = run_cli("monitor", windowed, "--mcap", str(path), "--bind", "Seen(floor)=floor/seen", "--json", "--changes-only", "--robustness")
+    assert robust.returncode == 0, robust.stderr
+    robust_rows = [json.loads(line) for line in robust.stdout.splitlines()]
+    assert {r["object"] for r in robust_rows if r["verdict"] is False} == {"r1", "r2"}
+    for row in robust_rows:
+        own = [(t, p["speed"]) for t, p in seen if p["id"] == row["object"] and t <= row["t_ns"]]
+        window = min(1.5 - v for t, v in own if t >= row["t_ns"] - 100_000_000)
+        said = [float(line.rsplit(": ", 1)[1]) for line in row["robustness"]]
+        assert said == pytest.approx([window, 1.5 - own[-1][1]], abs=1e-6), row
+    refused = run_cli("monitor", "forall r in ex:Robot: Battery(r) > 0", "--mcap", str(path), "--bind", "Battery(r)=floor/seen", "--changes-only", "--robustness")
+    assert refused.returncode == 2 and "--robustness: a formula without forall or exists" in refused.stderr, refused.stderr
 
 
 # ---------------------------------------------------------------------------- requirements close the loop

@@ -569,6 +569,53 @@ def test_a_monitor_asked_for_robustness_says_each_subformula_s_at_each_change() 
     assert covered == len(changes)  # (64 samples a term kept: a 40 ms window always covered)
 
 
+def test_a_foreach_monitor_asked_for_robustness_says_each_object_s_at_its_changes() -> None:
+    """Issue 54 item 7, live and per object: with ``robustness`` each change of an object's
+    verdict carries its body's subformulas' robustness over the object's own samples: an atom
+    over the object's stream is its margin at the state (by hand: ``1 - speed`` of its latest
+    sample), an atom over another term that term's; the body's sign is the verdict's; a window's
+    is what the whole trace gives the object offline, and ``?`` only where it reaches before
+    the object's samples kept (64 of the stream's, about 21 of each of three objects)."""
+    from dyknow.reasoning import parse
+    from dyknow.reasoning.explain import object_robustness_explainer
+    from dyknow.reasoning.objects import DEFAULT_IDLE_NS
+
+    formula = "foreach r in Seen(floor).id: historically[0, 60ms] Seen(floor).speed < 1 and Battery(floor) > 0.3"
+    spec = monitor_spec(formula, robustness=True)
+    ports = term_ports(spec)
+    rng = random.Random(11)
+    seen = [(T0 + k * 10 * MS, {"id": f"r{k % 3}", "speed": rng.choice([0.2, 0.5, 0.9, 1.4])}) for k in range(150)]
+    battery = [(T0 + k * 10 * MS + MS, rng.choice([0.9, 0.6, 0.2])) for k in range(150)]
+    with UnitHarness(spec, name="robust-objects") as harness:
+        for (ts, s), (tb, b) in zip(seen, battery, strict=True):
+            harness.send(ports["Seen(floor)"], s, origin_ns=ts)
+            harness.send(ports["Battery(floor)"], b, origin_ns=tb)
+        last = seen[-4][0]  # (the latest states wait for a sample after them)
+
+        def got() -> list[dict[str, Any]]:
+            return [m.payload for m in harness.wait_for(VERDICTS_PORT, 1, 30)]
+
+        wait_until(lambda: {v["object"] for v in got() if v["t_ns"] >= last} == {"r0", "r1", "r2"}, "every object judged to the end", 30)
+        changes = [v for v in got() if "robustness_of" in v]
+    assert {v["object"] for v in changes} == {"r0", "r1", "r2"} and all("why" in v for v in changes)
+    offline = object_robustness_explainer(parse(formula), {"Seen(floor)": seen, "Battery(floor)": battery}, idle_ns=DEFAULT_IDLE_NS)
+    covered = 0
+    for verdict in changes:
+        t, obj = verdict["t_ns"], verdict["object"]
+        live, whole = verdict["robustness_of"], offline(obj, t)
+        assert [row.rsplit(": ", 1)[0] for row in live] == [row.rsplit(": ", 1)[0] for row in whole]
+        for mine, theirs in zip(live, whole, strict=True):
+            assert mine.endswith(": ?") or mine == theirs, (obj, t, mine, theirs)
+        body, window, speed, level = (row.rsplit(": ", 1)[1] for row in live)
+        own = max((ts, s["speed"]) for ts, s in seen if s["id"] == obj and ts <= t)[1]
+        assert float(speed) == pytest.approx(1 - own)
+        assert float(level) == pytest.approx(max((tb, b) for tb, b in battery if tb <= t)[1] - 0.3)
+        if body != "?" and float(body) != 0:
+            assert (float(body) > 0) is verdict["verdict"], verdict
+        covered += window != "?"
+    assert covered >= len(changes) - 3  # (the window reaches back 60 ms: 2 of an object's samples, kept but for its first few states)
+
+
 def test_a_window_longer_than_the_samples_kept_is_said_unknown_not_guessed() -> None:
     """``historically[0, 1s]`` at 100 Hz reads 100 states, and a unit keeps 64 samples a term:
     once it has dropped some, the window's robustness (and the whole formula's, which holds it)

@@ -533,7 +533,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def _monitor_recording(args: argparse.Namespace) -> int:
-    from dyknow.reasoning.explain import object_explainer
+    from dyknow.reasoning.explain import object_explainer, object_robustness_explainer
     from dyknow.reasoning.offline import changes, evaluate_recording, recording_samples
     from dyknow.reasoning.semantics import evaluate_objects_ns
     from dyknow.reasoning.syntax import Quantifier, parse, walk
@@ -541,22 +541,26 @@ def _monitor_recording(args: argparse.Namespace) -> int:
     bindings = parse_pairs(args.bind, "--bind")
     parsed = parse(args.formula)
     root = parsed.root
-    if args.robustness and any(isinstance(node, Quantifier) for node in walk(root)):
-        raise UsageError("--robustness: a formula without quantifiers (each subformula's robustness is said of one series)")
+    if args.robustness and any(isinstance(node, Quantifier) and node.kind != "foreach" for node in walk(root)):
+        raise UsageError("--robustness: a formula without forall or exists (each subformula's robustness is said of one series, or of each object's)")
     quantified = any(isinstance(node, Quantifier) and node.kind in ("forall", "exists") for node in walk(root))
     if quantified or (not isinstance(root, Quantifier) and any("{" in topic for topic in bindings.values())):
         return _quantified_recording(args, bindings, quantified=quantified)  # (a template binding: read as a requirement is)
     if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
         parsed, samples = recording_samples(args.formula, args.mcap, bindings, read_limits(args))
         objects = evaluate_objects_ns(parsed, samples, idle_ns=round(args.idle_ms * 1e6))
-        explain = None
+        explain = robust = None
         if args.changes_only:  # each object's changes, with its body's atoms over its own samples
             objects = {key: [changes(sorted(v for life in lives for v in life))] for key, lives in objects.items()}
             explain = object_explainer(parsed, samples)
+            robust = object_robustness_explainer(parsed, samples, idle_ns=round(args.idle_ms * 1e6)) if args.robustness else None
         rows = sorted((t_ns, key, verdict) for key, lives in objects.items() for life in lives for t_ns, verdict in life)
         if args.json:
             for t_ns, key, verdict in rows:
-                print_json({"t": t_ns / 1e9, "t_ns": t_ns, "object": key, "verdict": verdict, **({"why": explain(key, t_ns)} if explain else {})})
+                said = {"why": explain(key, t_ns)} if explain else {}
+                if robust is not None:
+                    said["robustness"] = robust(key, t_ns)
+                print_json({"t": t_ns / 1e9, "t_ns": t_ns, "object": key, "verdict": verdict, **said})
             return 0
         counted = {True: 0, False: 0, None: 0}
         for t_ns, key, verdict in rows:
@@ -564,6 +568,8 @@ def _monitor_recording(args: argparse.Namespace) -> int:
             print(f"t={t_ns / 1e9:.3f} s  {shown(key)}  {'unknown' if verdict is None else 'true' if verdict else 'false'}")
             for atom in explain(key, t_ns) if explain is not None else ():
                 print(shown(f"  {atom}"))
+            for margin in robust(key, t_ns) if robust is not None else ():
+                print(shown(f"  robustness of {margin}"))
         false = sorted({key for _, key, verdict in rows if verdict is False})
         named = f"; false for {', '.join(shown(k) for k in false[:10])}{', ...' if len(false) > 10 else ''}" if false else ""
         what = "changes" if args.changes_only else "states"

@@ -13,7 +13,7 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 
 from dyknow.errors import DyKnowError
-from dyknow.reasoning.semantics import evaluate_ns, evaluate_values_ns
+from dyknow.reasoning.semantics import evaluate_ns, evaluate_objects_ns, evaluate_values_ns
 from dyknow.reasoning.syntax import (
     Always,
     And,
@@ -24,6 +24,7 @@ from dyknow.reasoning.syntax import (
     Formula,
     Historically,
     Implies,
+    Node,
     Not,
     Num,
     Once,
@@ -40,7 +41,7 @@ from dyknow.reasoning.syntax import (
 )
 from dyknow.reasoning.values import object_key, read
 
-__all__ = ["MAX_ATOMS", "explainer", "object_explainer", "robustness_explainer"]
+__all__ = ["MAX_ATOMS", "explainer", "object_explainer", "object_robustness_explainer", "robustness_explainer"]
 
 #: Atoms shown per explanation.
 MAX_ATOMS = 8
@@ -113,21 +114,64 @@ def robustness_explainer(
     a state before for ``prev``), or ahead past the newest sample (its horizon), is ``?``: what it
     reads is not all kept. The others are what the whole trace gives them (without the terms'
     freshness)."""
-    rows: list[tuple[str, list[tuple[int, object]] | str, int | None, int]] = []
-    for node in walk(formula.root):
-        if not isinstance(node, _CONDITIONS) or len(rows) >= MAX_ATOMS:
-            continue
+
+    def series(node: Node) -> list[tuple[int, object]]:
         own = Formula.of(node)
         alone = Formula(own.text, own.root, formula.terms)  # at the whole formula's states: every term's samples make them
+        return [(row[0], row[2]) for row in evaluate_ns(alone, {str(t): samples[str(t)] for t in alone.terms}, robustness=True)]
+
+    return _robustness_rows(formula.root, [samples.get(str(t), ()) for t in formula.terms], series, kept)
+
+
+def object_robustness_explainer(
+    formula: Formula, samples: Mapping[str, Sequence[tuple[int, object]]], *, idle_ns: int, kept: bool = False
+) -> Callable[[str, int], list[str]]:
+    """``at(object, t_ns)``: as :func:`robustness_explainer`, for one object of a ``foreach``
+    formula: each condition subformula of its body (the body first), as
+    :func:`~dyknow.reasoning.semantics.evaluate_objects_ns` gives ``foreach x in S: sub`` (at the
+    whole formula's states, lives ending ``idle_ns`` after an object's last sample) to the object
+    over the same samples. ``kept``: as there, the windows measured from the object's own kept
+    samples of the domain's term and the other terms' kept samples."""
+    root = _foreach(formula)
+    domain = root.domain
+    assert isinstance(domain, Stream)
+    own, _ = _objects(samples, domain)
+    made: dict[str, Callable[[int], list[str]]] = {}
+
+    def at(obj: str, t_ns: int) -> list[str]:
+        if obj not in made:
+            mine = {**samples, str(domain.term): own.get(obj, [])}
+
+            def series(node: Node) -> list[tuple[int, object]]:
+                alone = Formula(str(node), Quantifier("foreach", root.var, domain, node), formula.terms)
+                lives = evaluate_objects_ns(alone, mine, idle_ns=idle_ns, robustness=True).get(obj, [])
+                return [(row[0], row[2]) for life in lives for row in life]
+
+            made[obj] = _robustness_rows(root.body, [mine.get(str(t), ()) for t in formula.terms], series, kept)
+        return made[obj](t_ns)
+
+    return at
+
+
+def _robustness_rows(
+    root: Node, given: Sequence[Sequence[tuple[int, object]]], series_of: Callable[[Node], list[tuple[int, object]]], kept: bool
+) -> Callable[[int], list[str]]:
+    """``at(t_ns)`` of the robustness explainers: each condition under ``root`` (the first
+    :data:`MAX_ATOMS`) with ``series_of(node)``, its robustness at each state; ``given``: each
+    term's samples (with ``kept``, the windows they cover)."""
+    rows: list[tuple[str, list[tuple[int, object]] | str, int | None, int]] = []
+    for node in walk(root):
+        if not isinstance(node, _CONDITIONS) or len(rows) >= MAX_ATOMS:
+            continue
         try:
-            series: list[tuple[int, object]] | str = [(row[0], row[2]) for row in evaluate_ns(alone, {str(t): samples[str(t)] for t in alone.terms}, robustness=True)]
+            series: list[tuple[int, object]] | str = series_of(node)
         except (DyKnowError, KeyError):  # (a foreach's variable, say: not a condition alone)
             series = "?"
+        own = Formula.of(node)
         reach = own.reach_ns
         if reach is not None and any(isinstance(n, Prev | Rise | Fall) for n in walk(node)):
             reach += 1  # (a state before the first it reads)
         rows.append((str(node), series, reach, own.horizon_ns))
-    given = [rows_ for rows_ in (samples.get(str(t), ()) for t in formula.terms)]
     first = max((r[0][0] for r in given), default=None) if all(given) else None  # the first state the kept samples make
     newest = max((r[-1][0] for r in given if r), default=None)
 
@@ -151,11 +195,30 @@ def object_explainer(
     """``at(object, t_ns)``: as :func:`explainer` (``current_only`` too), for one object of a
     ``foreach`` formula: its body's atoms over the object's own samples of the domain's term (as
     its monitor reads them), the variable bound to the object's value."""
+    root = _foreach(formula)
+    domain = root.domain
+    assert isinstance(domain, Stream)
+    body = Formula.of(root.body)
+    own, values = _objects(samples, domain)
+    made: dict[str, Callable[[int], list[str]]] = {}
+
+    def at(obj: str, t_ns: int) -> list[str]:
+        if obj not in made:
+            made[obj] = explainer(body, {**samples, str(domain.term): own.get(obj, [])}, current_only=current_only, bound={root.var: values.get(obj)})
+        return made[obj](t_ns)
+
+    return at
+
+
+def _foreach(formula: Formula) -> Quantifier:
     root = formula.root
     if not isinstance(root, Quantifier) or root.kind != "foreach" or not isinstance(root.domain, Stream):
-        raise DyKnowError("object_explainer takes a foreach formula", where="formula", expected="foreach x in Stream.field: ...")
-    domain = root.domain
-    body = Formula.of(root.body)
+        raise DyKnowError("an object's explanation takes a foreach formula", where="formula", expected="foreach x in Stream.field: ...")
+    return root
+
+
+def _objects(samples: Mapping[str, Sequence[tuple[int, object]]], domain: Stream) -> tuple[dict[str, list[tuple[int, object]]], dict[str, object]]:
+    """Each object's own samples of the domain's term (a frame's elements apart), and its value."""
     own: dict[str, list[tuple[int, object]]] = {}
     values: dict[str, object] = {}
     for t, sample in samples.get(str(domain.term), ()):
@@ -165,14 +228,7 @@ def object_explainer(
             if key is not None:
                 own.setdefault(key, []).append((t, payload))
                 values.setdefault(key, value)
-    made: dict[str, Callable[[int], list[str]]] = {}
-
-    def at(obj: str, t_ns: int) -> list[str]:
-        if obj not in made:
-            made[obj] = explainer(body, {**samples, str(domain.term): own.get(obj, [])}, current_only=current_only, bound={root.var: values.get(obj)})
-        return made[obj](t_ns)
-
-    return at
+    return own, values
 
 
 def _value_at(series: Sequence[tuple[int, object]], t_ns: int, *, exact: bool = False) -> str:

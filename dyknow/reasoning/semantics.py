@@ -363,7 +363,9 @@ def evaluate_objects_ns(
     domain = root.domain
     assert isinstance(domain, Stream)
     inner = Formula.of(rename(root.body, root.var, _OBJECT))
-    body = Formula(inner.text, inner.root, (domain.term, *(t for t in inner.terms if t != domain.term)))  # the object's samples are states
+    # the object's samples are states, and every other term's the formula reads (as given: a
+    # subformula read alone at the whole formula's states keeps the whole formula's terms)
+    body = Formula(inner.text, inner.root, (domain.term, *(t for t in dict.fromkeys((*parsed.terms, *inner.terms)) if t != domain.term)))
     ages = {_named(k): int(v) for k, v in (max_age_ns or {}).items()}
     chosen = dict(zip([str(t) for t in body.terms], _choose(body, streams), strict=True))
     own = chosen[str(domain.term)]

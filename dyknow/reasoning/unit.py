@@ -92,6 +92,9 @@ Params:
   (bool, default false) a formula's change also carries ``"robustness_of"``: each condition
   subformula's robustness (:func:`~dyknow.reasoning.explain.robustness_explainer`, over the
   latest :data:`ROBUST_SAMPLES` samples of each term: ``?`` where its windows reach past them);
+  an object's change, its body's over the object's own among them
+  (:func:`~dyknow.reasoning.explain.object_robustness_explainer`: with many objects on one
+  stream, few are kept, so a window over more than the object's latest samples is often ``?``);
 - ``bound`` (string): the terms bound to what exists, a JSON object of terms and their sources
   (:mod:`dyknow.reasoning.bindings`): their text samples are read as JSON values, and
 - ``quiet_ms`` (float, default 5,000): a bound term without a sample this long after the unit
@@ -122,7 +125,7 @@ from dyknow.errors import FormulaError
 from dyknow.message import CLOCK_ID
 from dyknow.reasoning.bindings import sample_value
 from dyknow.reasoning.budget import MonitorBudget
-from dyknow.reasoning.explain import explainer, object_explainer, robustness_explainer
+from dyknow.reasoning.explain import explainer, object_explainer, object_robustness_explainer, robustness_explainer
 from dyknow.reasoning.families import MAX_MEMBERS
 from dyknow.reasoning.members import LiveFamilies
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
@@ -785,6 +788,8 @@ class FormulaMonitor(Unit):
                     served.object_verdicts = {k: v for k, v in seen.items() if k in live}
                 if self._may_explain(served, verdict.t_ns):
                     out["why"] = self._why(served, verdict.t_ns, key)
+                    if self._robust:
+                        out["robustness_of"] = self._why(served, verdict.t_ns, key, robustness=True)
         self.latest[served.name or served.monitor.formula.text] = out
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
         self._tell(served, verdict)
@@ -820,6 +825,9 @@ class FormulaMonitor(Unit):
         try:
             if robustness:  # (while no term's kept samples dropped one, they are the whole trace the unit saw)
                 dropped = any(len(self._recent[self.terms.index(term)]) == ROBUST_SAMPLES for term in samples)
+                monitor = served.monitor
+                if key is not None and isinstance(monitor, ObjectMonitor):
+                    return object_robustness_explainer(formula, samples, idle_ns=monitor.idle_ns, kept=dropped)(key, t_ns)
                 return robustness_explainer(formula, samples, kept=dropped)(t_ns)
             if key is not None:
                 return object_explainer(formula, samples, current_only=True)(key, t_ns)
