@@ -621,12 +621,16 @@ class FormulaMonitor(Unit):
             if self._explain:
                 self._recent[k].append((t_ns, payload))
         late: Monitor | ObjectMonitor | None = None
+        quiet = self._changes_only and not (self._listeners or self._formula_listeners)
         for served, local in self._readers[k]:
             monitor = served.monitor
             before = monitor.late
             if isinstance(monitor, ObjectMonitor):
+                last = served.last_published
                 for key, verdict in monitor.push_index(local, t_ns, payload):
-                    self._publish(served, verdict, key)
+                    if not quiet or last.get(key) is not verdict.verdict:  # (an object's repeated verdict: nothing to do, 10,000s a second)
+                        self._publish(served, verdict, key)
+                        last = served.last_published  # (_publish may trim it to the live objects: a new dict)
             else:
                 for verdict in monitor.push_index(local, t_ns, payload):
                     self._publish(served, verdict)
