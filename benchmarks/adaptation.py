@@ -111,7 +111,10 @@ class Watcher:
         (other causes) are counted as spurious. None when a retry recovered the request after the
         fault (made at ``since_ns``) instead of the fault's own adaptation: after a stall, the way the
         fault called for was in back-off, and the retry at its end took it (or the fault's own
-        adaptation did not recover and the retry did). That fault's time is not the one measured.
+        adaptation did not recover and the retry did); or another cause's adaptation wired after
+        the fault took it (a re-plan for a change of the library, waiting for the dwell time,
+        that a loaded machine ran just after the fault, seeing it). That fault's time is not the
+        one measured.
         RuntimeError after ``timeout_s`` seconds."""
 
         def found() -> AdaptationEvent | bool | None:
@@ -123,6 +126,8 @@ class Watcher:
                 self.spurious += 1
                 if event.cause.startswith("retry: ") and event.fault_ns >= since_ns:
                     return False
+                if event.fault_ns + (event.adaptation_ms or 0.0) * 1e6 >= since_ns:
+                    return False  # another cause's adaptation, wired after the fault, took the fault's way (see below)
             return None
 
         deadline = time.monotonic() + timeout_s

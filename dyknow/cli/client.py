@@ -148,6 +148,8 @@ def cmd_managers(args: argparse.Namespace) -> int:
         if why is not None and why.details.get("reason") in DEFINITE:
             raise why
         page = client.managers_page(timeout_s=min(args.timeout, 2.0), match=args.match or "*", limit=args.limit, after=args.after)
+        if page["total"] == 0 and args.timeout > 2.0:  # (a loaded host, or a router with thousands of tokens, answers late: once more, as long as --timeout)
+            page = client.managers_page(timeout_s=args.timeout, match=args.match or "*", limit=args.limit, after=args.after)
         managers = page["managers"]
         if not managers and page["total"] == 0:
             why = client.unreachable()
