@@ -60,6 +60,7 @@ accepted too: their header is synthesised at arrival.
 from __future__ import annotations
 
 import json
+import json.scanner
 import os
 import struct
 import sys
@@ -377,7 +378,7 @@ def _decode_parts(raw: bytes, attachment: bytes, at: int, key: str) -> Any:
         raise PayloadError(f"arrays of {total} bytes in {len(raw)}", where=where, expected="the arrays' bytes at the payload's end")
     text_end = len(raw) - total
     try:
-        value = json.loads(raw[:text_end])
+        value = json_text(raw[:text_end])
     except (ValueError, RecursionError) as exc:
         raise PayloadError(f"JSON text that does not parse ({exc})", where=where, expected="JSON") from exc
     offset = text_end
@@ -416,6 +417,36 @@ def decode(
     return decode_dyknow(data, attachment, key)
 
 
+_SCAN: Final[Any] = json.scanner.make_scanner(json.JSONDecoder())  # type: ignore[arg-type]  # (json's C scanner, where there is one)
+
+
+def json_text(raw: bytes) -> Any:
+    """``json.loads(raw)``, the same value or the same error for any bytes, quicker for the JSON
+    text of a message (UTF-8, as the wire format says): json's own scanner reads it without the
+    Python steps of ``json.loads`` (guessing the encoding, a decoder's ``raw_decode``), 1.1 us
+    instead of 2.6 for a small object. Text that may be in another encoding json.loads guesses
+    (a byte order mark, a zero byte among the first two) goes to ``json.loads``."""
+    if len(raw) < 2 or raw[0] in (0, 0xEF, 0xFE, 0xFF) or raw[1] == 0:
+        return json.loads(raw)
+    text = raw.decode("utf-8", "surrogatepass")
+    try:
+        value, end = _SCAN(text, _space(text, 0))
+    except StopIteration as exc:
+        raise json.JSONDecodeError("Expecting value", text, exc.value) from None
+    end = _space(text, end)
+    if end != len(text):
+        raise json.JSONDecodeError("Extra data", text, end)
+    return value
+
+
+def _space(text: str, at: int) -> int:
+    """Past the JSON whitespace from ``at``."""
+    n = len(text)
+    while at < n and text[at] in " \t\n\r":
+        at += 1
+    return at
+
+
 def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     """:func:`decode` for a sample known to carry a dyknow header (the transport checked)."""
     raw = data if type(data) is bytes else data.to_bytes()
@@ -439,7 +470,7 @@ def decode_dyknow(data: Any, attachment: bytes, key: str) -> Message:
     elif kind == _TEXT:
         payload = raw.decode()
     elif kind == _JSON:  # mutable: no wire reuse
-        return Message(json.loads(raw), mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock, forwards)
+        return Message(json_text(raw), mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock, forwards)
     elif kind == _PARTS:  # mutable too
         value = _decode_parts(raw, attachment, size, key)
         return Message(value, mseq, origin_ns, send_ns, key, len(raw), None, source, origin_clock, send_clock, forwards)

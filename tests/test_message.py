@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dyknow.message import CLOCK_ID, HEADER, HEADER_V1, HEADER_V2, Message, PayloadError, check_payload, decode, encode, reheader
 
@@ -240,3 +243,36 @@ def test_json_with_arrays_from_the_network_is_checked(change: object, problem: s
     bad_data, bad_attachment = change(bytes(data), attachment)  # type: ignore[operator]
     with pytest.raises(PayloadError, match=problem):
         decode(bad_data, bad_attachment, "k")
+
+
+def _loaded(load: Any, raw: bytes) -> tuple[str, Any]:
+    try:
+        value = load(raw)
+    except (ValueError, RecursionError) as exc:  # (JSONDecodeError and UnicodeDecodeError are ValueErrors)
+        return type(exc).__name__, str(exc)
+    return "value", json.dumps(value, sort_keys=True)  # (NaN == NaN is false: compare the texts)
+
+
+_JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=5), inner, max_size=4),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=600, deadline=None)
+@given(
+    st.one_of(
+        st.binary(max_size=40),  # anything a peer may send
+        st.builds(lambda v, a, b: (a + json.dumps(v, ensure_ascii=False) + b).encode(), _JSON_VALUES, st.sampled_from(["", " ", "\n\t"]), st.sampled_from(["", " ", "x", " 1", "\r\n"])),
+        st.builds(lambda v, enc: json.dumps(v).encode(enc), _JSON_VALUES, st.sampled_from(["utf-8-sig", "utf-16", "utf-16-le", "utf-32-be"])),
+    )
+)
+def test_a_message_s_json_text_reads_as_json_loads_reads_it(raw: bytes) -> None:
+    """The decoder's quicker JSON reading (json's scanner without json.loads' Python steps) gives
+    what json.loads gives, value or error, for any bytes: valid texts with spaces around and
+    trailing data, the encodings json.loads guesses (byte order marks, UTF-16 and 32), and random
+    bytes (invalid UTF-8, lone surrogates, NaN)."""
+    from dyknow.message import json_text
+
+    assert _loaded(json_text, raw) == _loaded(json.loads, raw)
