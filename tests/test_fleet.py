@@ -201,7 +201,9 @@ def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_w
         try:
             tokens = start(two)
             wait_until(lambda: "ghost" in a.alive(), "the ghost's token")
-            assert not a.discover([("Ghostly", ())]) and "ghost" in a.followed()  # (no summary came)
+            # (no summary came; it was followed and asked: it may be let go already, 0.5 s after
+            # its first failure, when this thread comes back late on a loaded host)
+            assert not a.discover([("Ghostly", ())]) and asked[:1] == ["ghost"]
             wait_until(lambda: "ghost" not in a.followed(), "the ghost let go")
             assert a.refused().get("silent") == 1 and len(asked) >= 2
             before = len(asked)

@@ -40,6 +40,7 @@ class _Robot:
 
     def __init__(self, manager: Manager) -> None:
         self.zone, self.speed = "z1", 1.0
+        self._lock = threading.Lock()  # (a move is whole between two samples: never a new speed in the old zone)
         self._stop = threading.Event()
         self._session = open_session(connect=manager.endpoints)
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -47,8 +48,15 @@ class _Robot:
 
     def _run(self) -> None:
         while not self._stop.wait(0.05):
-            self._session.put(ROBOT["State(r1)"], f'{{"zone": "{self.zone}"}}')
-            self._session.put(ROBOT["Speed(r1)"], str(self.speed))
+            with self._lock:
+                self._session.put(ROBOT["State(r1)"], f'{{"zone": "{self.zone}"}}')
+                self._session.put(ROBOT["Speed(r1)"], str(self.speed))
+
+    def move(self, zone: str, speed: float | None = None) -> None:
+        with self._lock:
+            self.zone = zone
+            if speed is not None:
+                self.speed = speed
 
     def close(self) -> None:
         self._stop.set()
@@ -79,17 +87,17 @@ def test_a_zone_s_limit_is_planned_when_the_robot_is_first_seen_in_it(robot_mana
     try:
         sink.wait_until(lambda msg: msg.payload.get("verdict") is True, timeout_s=30)
         assert _planned(manager) == {"SpeedLimit(z1)"}
-        robot.zone = "z2"
+        robot.move("z2")
         sink.wait_until(lambda msg: msg.payload.get("verdict") is False, timeout_s=30)
         assert _planned(manager) == {"SpeedLimit(z1)", "SpeedLimit(z2)"}
         false = next(msg for msg in sink.messages if msg.payload.get("verdict") is False)
         assert "SpeedLimit(State(r1).zone).value" in " ".join(false.payload.get("why", []))
-        robot.zone = "z9"
+        robot.move("z9")
         sink.wait_until(lambda msg: "SpeedLimit(z9)" in msg.payload.get("warning", ""), timeout_s=30)
         (info,) = manager.monitors()
         assert any("no stream for SpeedLimit(z9)" in w for w in info.warnings)
         assert set(info.terms) == {*ROBOT, "SpeedLimit(z1)", "SpeedLimit(z2)"}  # (each member's key: its request)
-        robot.zone = "z1"
+        robot.move("z1")
         before = len(sink.messages)
         sink.wait_until(lambda msg: len(sink.messages) > before + 3 and msg.payload.get("verdict") is True, timeout_s=30)
         assert _planned(manager) == {"SpeedLimit(z1)", "SpeedLimit(z2)"}
@@ -123,7 +131,7 @@ def test_a_member_bound_to_what_exists_is_read_from_the_start_and_never_planned(
     try:
         sink.wait_until(lambda msg: msg.payload.get("verdict") is False, timeout_s=30)  # 1.0 < 0.8: the floor's limit, not the spec's 1.5
         assert _planned(manager) == set()
-        robot.zone, robot.speed = "z2", 0.2
+        robot.move("z2", 0.2)
         sink.wait_until(lambda msg: msg.payload.get("verdict") is True, timeout_s=30)
         assert _planned(manager) == {"SpeedLimit(z2)"}
     finally:
