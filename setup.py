@@ -49,6 +49,7 @@ COMPILED = [
     "dyknow/reasoning/pending.py",
     "dyknow/reasoning/progression.py",
     "dyknow/reasoning/semantics.py",
+    "dyknow/reasoning/served.py",
     "dyknow/reasoning/timeline.py",
     "dyknow/reasoning/values.py",
     "dyknow/reasoning/windows.py",

@@ -130,6 +130,7 @@ from dyknow.reasoning.families import MAX_MEMBERS
 from dyknow.reasoning.members import LiveFamilies
 from dyknow.reasoning.objects import DEFAULT_IDLE_NS, DEFAULT_MAX_OBJECTS, ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
+from dyknow.reasoning.served import EXPLAIN_BURST, Served, push_sample
 from dyknow.reasoning.syntax import Formula, Quantifier, Stream, check_formula, parse, walk
 from dyknow.reasoning.tree import is_family
 from dyknow.reasoning.values import object_key, read
@@ -349,31 +350,9 @@ _DERIVE_AFTER = 20  # samples a term's freshness and fields are judged from
 #: verdict that flips at every sample would otherwise cost an evaluation of each comparison per sample).
 RECENT_SAMPLES = 8
 ROBUST_SAMPLES = 64  # (with the param robustness: enough for the windows of a few seconds at 20 Hz)
-EXPLAIN_BURST = 8
 EXPLAIN_GAP_NS = 50_000_000
 _MIN_AGE_NS = 20_000_000
 _MAX_GAPS = 64
-
-
-class _Served:
-    """One formula a monitor unit serves: its monitor, which of the unit's terms it reads, what it
-    published last (per object)."""
-
-    __slots__ = (
-        "explain_tokens", "explained_ns", "given_up_logged", "horizon", "last_published", "last_verdict", "monitor", "name", "object_verdicts", "reach"
-    )  # fmt: skip
-
-    def __init__(self, name: str | None, monitor: Monitor | ObjectMonitor) -> None:
-        self.name = name
-        self.monitor = monitor
-        self.reach = monitor.formula.reach_ns
-        self.horizon = monitor.formula.horizon_ns
-        self.given_up_logged = 0
-        self.last_published: dict[str | None, bool] = {}
-        self.last_verdict: bool | None = None  # the last verdict published (a formula without foreach): its changes are explained
-        self.object_verdicts: dict[str, bool | None] = {}  # a foreach formula's: each live object's
-        self.explained_ns = 0  # the state whose change was last explained (sample time), and the
-        self.explain_tokens = float(EXPLAIN_BURST)  # explanations it may give at once (refilled with sample time)
 
 
 class FormulaMonitor(Unit):
@@ -389,7 +368,7 @@ class FormulaMonitor(Unit):
     """
 
     monitor: Monitor | ObjectMonitor
-    _served: Sequence[_Served] = ()  # (set up by setup(); none when it failed first)
+    _served: Sequence[Served] = ()  # (set up by setup(); none when it failed first)
     _budget: MonitorBudget | None = None
     _account: str | None = None  # whose share of the budget's nodes its formulas take (None: the manager's own)
     _seen_share = -1  # the budget's generation when the monitors last took their shares
@@ -436,7 +415,7 @@ class FormulaMonitor(Unit):
             raise FormulaError(f"idle_ms {idle_ms}, max_objects {max_objects}", where=where,
                                expected="idle_ms in (0, 86,400,000] and max_objects in [1, 1,000,000]")  # fmt: skip
         cells = budget.share if budget is not None else limits.max_monitor_cells
-        served: list[_Served] = []
+        served: list[Served] = []
         for name, formula in checked:
             root = formula.root
             if isinstance(root, Quantifier) and root.kind == "foreach":
@@ -445,7 +424,7 @@ class FormulaMonitor(Unit):
                 )
             else:
                 monitor = Monitor(formula, reorder_ns=self._reorder_ns, max_cells=cells)
-            served.append(_Served(name, monitor))
+            served.append(Served(name, monitor))
         self._served = served
         self.monitor = served[0].monitor
         self.latest = {}
@@ -455,7 +434,7 @@ class FormulaMonitor(Unit):
         self.terms: tuple[str, ...] = tuple(_terms(checked))
         terms = self.terms
         # which monitors read each of the unit's terms, and as which of theirs
-        self._readers: list[list[tuple[_Served, int]]] = [[] for _ in terms]
+        self._readers: list[list[tuple[Served, int]]] = [[] for _ in terms]
         for s in served:
             for local, term in enumerate(s.monitor.terms):
                 self._readers[terms.index(term)].append((s, local))
@@ -620,22 +599,10 @@ class FormulaMonitor(Unit):
             self._observe(k, t_ns, payload)
             if self._explain:
                 self._recent[k].append((t_ns, payload))
-        late: Monitor | ObjectMonitor | None = None
         quiet = self._changes_only and not (self._listeners or self._formula_listeners)
-        for served, local in self._readers[k]:
-            monitor = served.monitor
-            before = monitor.late
-            if isinstance(monitor, ObjectMonitor):
-                last = served.last_published
-                for key, verdict in monitor.push_index(local, t_ns, payload):
-                    if not quiet or last.get(key) is not verdict.verdict:  # (an object's repeated verdict: nothing to do, 10,000s a second)
-                        self._publish(served, verdict, key)
-                        last = served.last_published  # (_publish may trim it to the live objects: a new dict)
-            else:
-                for verdict in monitor.push_index(local, t_ns, payload):
-                    self._publish(served, verdict)
-            if monitor.late != before:
-                late = monitor
+        decided, late = push_sample(self._readers[k], t_ns, payload, quiet)
+        for served, verdict, key in decided:
+            self._publish(served, verdict, key)
         if late is not None:  # (expected when a term's producer was switched, or hosts interleave)
             closed = late.closed_ns if isinstance(late, Monitor) else None
             reason = f"late: a sample at {t_ns} ns, at or before the last state closed ({closed} ns; reorder delay {late.reorder_ns / 1e6:g} ms)"
@@ -757,7 +724,7 @@ class FormulaMonitor(Unit):
                     "the formula" if served.name is None else f"the formula {served.name!r}",
                 )
 
-    def _publish(self, served: _Served, verdict: Verdict, key: str | None = None, origin_ns: int | None = None) -> None:
+    def _publish(self, served: Served, verdict: Verdict, key: str | None = None, origin_ns: int | None = None) -> None:
         if self._changes_only:
             last = served.last_published
             if last.get(key) is verdict.verdict:
@@ -798,7 +765,7 @@ class FormulaMonitor(Unit):
         self.publish(VERDICTS_PORT, out, origin_ns=origin_ns)
         self._tell(served, verdict)
 
-    def _tell(self, served: _Served, verdict: Verdict) -> None:
+    def _tell(self, served: Served, verdict: Verdict) -> None:
         for listener in self._listeners:
             listener(verdict)
         if self._formula_listeners:
@@ -807,7 +774,7 @@ class FormulaMonitor(Unit):
                 named(formula, verdict)
 
     @staticmethod
-    def _may_explain(served: _Served, t_ns: int) -> bool:
+    def _may_explain(served: Served, t_ns: int) -> bool:
         """A token bucket over sample time: :data:`EXPLAIN_BURST` explanations at once, then one
         per :data:`EXPLAIN_GAP_NS` (a verdict that flips at every sample costs no more)."""
         gained = max(0, t_ns - served.explained_ns) / EXPLAIN_GAP_NS if served.explained_ns else 0.0
@@ -819,7 +786,7 @@ class FormulaMonitor(Unit):
         served.explain_tokens = tokens - 1
         return True
 
-    def _why(self, served: _Served, t_ns: int, key: str | None = None, *, robustness: bool = False) -> list[str]:
+    def _why(self, served: Served, t_ns: int, key: str | None = None, *, robustness: bool = False) -> list[str]:
         """Each comparison of the formula with its sides' values at ``t_ns``, from the terms'
         latest samples (a side that reads a window is ``?``: they are not all kept); for the
         object ``key`` of a ``foreach``, its body's, over the object's own among them;
@@ -840,7 +807,7 @@ class FormulaMonitor(Unit):
             self.log.debug("cannot explain a verdict of %s", formula.text, exc_info=True)
             return []
 
-    def _gap_for(self, served: _Served, t_ns: int) -> dict[str, str] | None:
+    def _gap_for(self, served: Served, t_ns: int) -> dict[str, str] | None:
         """The gap a verdict at ``t_ns`` reads into, if any: its window runs from ``t_ns`` back by
         its formula's past reach and forward by its horizon (a gap of a term the formula does not
         read counts too: the unit's terms were re-planned together)."""
