@@ -130,6 +130,32 @@ def test_a_foreach_formula_beside_a_plain_one_publishes_changes_per_formula_and_
     ]
 
 
+def test_foreach_formulas_over_one_stream_each_read_their_own_objects() -> None:
+    """Three foreach formulas over one stream in one unit, two naming objects by ``id`` and one
+    by ``name``: each sample's object is read once for the formulas of the same field (the unit
+    reads it once, dyknow.reasoning.served), and each formula's objects are its own field's."""
+    named = {
+        "by_id": "foreach t in Track(field).id: Track(field).speed < 3",
+        "by_name": "foreach t in Track(field).name: Track(field).speed < 3",
+        "fast_id": "foreach t in Track(field).id: Track(field).speed > 1",
+    }
+    spec = monitor_spec(named, max_age_ms=-1)
+    samples = [{"id": 1, "name": "a", "speed": 2}, {"id": 2, "name": "a", "speed": 4}, {"id": 1, "name": "b", "speed": 0.5}]
+    with UnitHarness(spec, name="m") as harness:
+        for k, sample in enumerate(samples):
+            harness.send("t0", sample, origin_ns=T0 + k * 50 * MS)
+        harness.wait_for(VERDICTS_PORT, 9)
+        time.sleep(0.2)  # (nothing more comes)
+    seen = sorted(
+        (v["formula"], v["object"], (v["t_ns"] - T0) // MS, v["verdict"]) for v in harness.received(VERDICTS_PORT) for v in [v.payload]
+    )
+    assert seen == [
+        ("by_id", "1", 0, True), ("by_id", "1", 100, True), ("by_id", "2", 50, False),
+        ("by_name", "a", 0, True), ("by_name", "a", 50, False), ("by_name", "b", 100, True),
+        ("fast_id", "1", 0, True), ("fast_id", "1", 100, False), ("fast_id", "2", 50, True),
+    ]  # fmt: skip
+
+
 def test_the_formulas_of_a_unit_join_the_managers_budget_together(make_manager: Callable[..., Manager]) -> None:
     """The nodes of every formula a unit serves count against Limits.max_monitor_nodes, and are
     given back together when it ends (or fails to start)."""

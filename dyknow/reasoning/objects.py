@@ -135,7 +135,6 @@ class ObjectMonitor:
         if t_ns > self._newest:
             self._newest = t_ns
             self._retire(out)
-        name = self.terms[k]
         if k == self._domain_k:
             if type(value) is list:  # a frame (a tracker's tracks): a sample per element, all at its time
                 for item in value:
@@ -144,32 +143,9 @@ class ObjectMonitor:
                     else:
                         out.extend(self.push_index(k, t_ns, item))
                 return out
-            self._latest[k] = (t_ns, value)
-            key = object_key(read(value, self.domain.fields))
-            if key is None:
-                self.unassigned += 1
-                self._others(k, name, t_ns, value, out)  # the body may read the stream's other samples too: not when it is the domain
-                return out
-            monitor = self._live.get(key)
-            if monitor is not None and t_ns - self._last[key] > self.idle_ns:
-                self._end(key, out)
-                monitor = None
-            last = self._last
-            if monitor is None:
-                if len(self._live) >= self.max_objects or len(self._live) >= self.capacity:
-                    self.refused += 1
-                    return out
-                monitor = self._start(key, read(value, self.domain.fields))
-                last[key] = t_ns
-                heapq.heappush(self._deadlines, (t_ns + self.idle_ns, key))  # (moved on when it comes up: _retire)
-            elif t_ns > last[key]:
-                last[key] = t_ns
-            late = monitor.late
-            for verdict in monitor.push_index(0, t_ns, value):  # (the body's terms start with the quantified stream)
-                out.append((key, verdict))
-            if monitor.late != late:
-                self._late += monitor.late - late
+            self._object_sample(t_ns, value, object_key(read(value, self.domain.fields)), out)
             return out
+        name = self.terms[k]
         before = self._latest.get(k)
         if before is None or t_ns >= before[0]:
             age = self._max_age.get(name)
@@ -178,6 +154,44 @@ class ObjectMonitor:
             self._latest[k] = (t_ns, value)
         self._others(k, name, t_ns, value, out)
         return out
+
+    def push_object(self, t_ns: int, value: Any, key: str | None) -> list[tuple[str, Verdict]]:
+        """:meth:`push_index` of one sample of the quantified stream (not a frame) whose object
+        the caller read already: ``key`` is ``object_key(read(value, self.domain.fields))`` (a
+        unit serving several formulas over one stream reads it once for all of them)."""
+        out: list[tuple[str, Verdict]] = []
+        if t_ns > self._newest:
+            self._newest = t_ns
+            self._retire(out)
+        self._object_sample(t_ns, value, key, out)
+        return out
+
+    def _object_sample(self, t_ns: int, value: Any, key: str | None, out: list[tuple[str, Verdict]]) -> None:
+        """A sample of the quantified stream, of the object ``key`` (None: it names none), to its instance."""
+        k = self._domain_k
+        self._latest[k] = (t_ns, value)
+        if key is None:
+            self.unassigned += 1  # (no instance takes it: those of the objects read the quantified stream's samples of their own)
+            return
+        monitor = self._live.get(key)
+        if monitor is not None and t_ns - self._last[key] > self.idle_ns:
+            self._end(key, out)
+            monitor = None
+        last = self._last
+        if monitor is None:
+            if len(self._live) >= self.max_objects or len(self._live) >= self.capacity:
+                self.refused += 1
+                return
+            monitor = self._start(key, read(value, self.domain.fields))
+            last[key] = t_ns
+            heapq.heappush(self._deadlines, (t_ns + self.idle_ns, key))  # (moved on when it comes up: _retire)
+        elif t_ns > last[key]:
+            last[key] = t_ns
+        late = monitor.late
+        for verdict in monitor.push_index(0, t_ns, value):  # (the body's terms start with the quantified stream)
+            out.append((key, verdict))
+        if monitor.late != late:
+            self._late += monitor.late - late
 
     def _outage(self, k: int, start: int, end: int) -> None:
         """Note that term ``k`` was stale in ``(start, end)``; forget what no new instance can reach."""

@@ -14,6 +14,7 @@ from typing import Any
 
 from dyknow.reasoning.objects import ObjectMonitor
 from dyknow.reasoning.progression import Monitor, Verdict
+from dyknow.reasoning.values import object_key, read
 
 __all__ = ["EXPLAIN_BURST", "Served", "push_sample"]
 
@@ -45,16 +46,27 @@ def push_sample(
     the sample's term among its monitor's terms); the verdicts to publish, in order, and the
     last monitor that dropped the sample as late (None when none did).
 
+    The object a sample of a ``foreach`` formula's quantified stream names is read once for
+    every formula that reads it down the same fields.
+
     ``quiet`` (only changes are published, and nobody listens to every verdict): an object's
     verdict equal to the one it last published is left out here, as publishing would leave it
     out (an object's repeated verdict: 10,000s a second); the others are all returned."""
     out: list[tuple[Served, Verdict, str | None]] = []
     late: Monitor | ObjectMonitor | None = None
+    fields: tuple[str, ...] | None = None  # the fields the sample's object was read down, once
+    key: str | None = None
     for served, local in readers:
         monitor = served.monitor
         if isinstance(monitor, ObjectMonitor):
             before = monitor.late
-            pairs = monitor.push_index(local, t_ns, value)
+            if local == monitor.domain_index and type(value) is not list:  # (a frame: its elements' objects, in push_index)
+                domain = monitor.domain.fields
+                if domain != fields:
+                    fields, key = domain, object_key(read(value, domain))
+                pairs = monitor.push_object(t_ns, value, key)
+            else:
+                pairs = monitor.push_index(local, t_ns, value)
             if pairs:
                 if quiet:
                     _changes(served, pairs, out)
