@@ -550,12 +550,13 @@ def _monitor_recording(args: argparse.Namespace) -> int:
         return _quantified_recording(args, bindings, quantified=quantified)  # (a template binding: read as a requirement is)
     if isinstance(root, Quantifier) and root.kind == "foreach":  # verdicts per object and life
         parsed, samples = recording_samples(args.formula, args.mcap, bindings, read_limits(args))
-        objects = evaluate_objects_ns(parsed, samples, idle_ns=round(args.idle_ms * 1e6))
+        idle_ns = round(args.idle_ms * 1e6)
+        objects = evaluate_objects_ns(parsed, samples, idle_ns=idle_ns)
         explain = robust = None
         if args.changes_only:  # each object's changes, with its body's atoms over its own samples
             objects = {key: [changes(sorted(v for life in lives for v in life))] for key, lives in objects.items()}
             explain = object_explainer(parsed, samples)
-            robust = object_robustness_explainer(parsed, samples, idle_ns=round(args.idle_ms * 1e6)) if args.robustness else None
+            robust = object_robustness_explainer(parsed, samples, idle_ns=idle_ns) if args.robustness else None
         rows = sorted((t_ns, key, verdict) for key, lives in objects.items() for life in lives for t_ns, verdict in life)
         if args.json:
             for t_ns, key, verdict in rows:
