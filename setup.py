@@ -7,7 +7,8 @@ monitor (``dyknow/reasoning/progression.py`` and its nodes: ``nodes``, ``aggrega
 state: compiled it costs a quarter to a third of its interpreted time (0.21 against 0.71 us per
 state for ``once[0, 100ms] x > 0.9``, 3.9 against 8.5 us for a future formula of 5 operators).
 ``objects.py`` runs a ``foreach`` formula's samples to their objects' monitors, and makes and
-ends a monitor per object (``python benchmarks/reasoning.py --churn 20000``). They stay plain,
+ends a monitor per object (``python benchmarks/reasoning.py --churn 20000``); ``served.py`` hands
+each sample to the formulas a monitor unit serves. They stay plain,
 type-checked Python: the same source runs interpreted when
 
 - ``DYKNOW_PURE_PYTHON=1`` is set at install time (to debug or profile them as Python), or

@@ -22,6 +22,7 @@ monitors' ``verdicts`` keys (a sink unit in the same manager), p50 and p99 besid
     python benchmarks/reasoning.py --json benchmarks/results/reasoning.json
     python benchmarks/reasoning.py --quick
     python benchmarks/reasoning.py --monitors 1000 --seconds 20
+    python benchmarks/reasoning.py --step 1000 --formulas 10   # the monitor unit's own step, no transport
 """
 
 from __future__ import annotations
@@ -861,6 +862,51 @@ def object_churn(count: int, repeat: int = 3) -> dict[str, float]:
             "target_us": CHURN_TARGET_US, "objects": count}  # fmt: skip
 
 
+def unit_step(count: int, formulas: int, rounds: int, per_round: int = 10_000) -> dict[str, Any]:
+    """The monitor unit's own step per message, without any transport: ``formulas`` foreach
+    formulas (:func:`objects_formula`) over ``count`` objects served by one unit, changes only,
+    each message one object's sample 50 us after the last (20 Hz per object at 1,000), handed to
+    the unit's ``on_message`` directly on this thread. Process CPU per message, the best of
+    ``rounds`` rounds of ``per_round`` messages (a loaded machine's waits are not counted); what
+    the end-to-end runs cost beyond it is receiving, decoding and handing the message over."""
+    from dyknow.testing import UnitHarness
+
+    named = {f"f{k}": objects_formula(k) for k in range(formulas)}
+    spec = monitor_spec(named, label="shared-monitor", queue=1 << 17, max_objects=count, changes_only=True)
+    rng = random.Random(3)
+    speeds = [3.5 if rng.random() < 1 / 500 else rng.random() for _ in range(4096)]
+    start = time.time_ns() - 10**12  # (in the past: no sample is ahead of the clock)
+    with UnitHarness(spec, name="m0") as harness:
+        warm = 2 * count  # every object made, its freshness derived, through the unit's lane
+        for i in range(warm):
+            harness.send("t0", {"id": i % count, "speed": speeds[i % 4096]}, origin_ns=start + i * 50_000)
+        unit: Any = harness.unit
+        deadline = time.monotonic() + 60
+        while sum(m.states for m in unit.monitors.values()) < warm * formulas:
+            if time.monotonic() > deadline:
+                raise RuntimeError("the monitor unit did not take the warm-up samples within 60 s")
+            time.sleep(0.05)
+        best, i = float("inf"), warm
+        for _ in range(rounds):
+            messages = []
+            for _ in range(per_round):
+                t_ns = start + i * 50_000
+                messages.append(Message({"id": i % count, "speed": speeds[i % 4096]}, i + 1, t_ns, t_ns, "bench/track"))
+                i += 1
+            on_message = unit.on_message
+            cpu = time.process_time()
+            for message in messages:
+                on_message("t0", message)
+            best = min(best, (time.process_time() - cpu) / per_round * 1e6)
+        decided = sum(m.states for m in unit.monitors.values())
+    if decided != i * formulas:
+        raise RuntimeError(f"{decided} instance states decided of {i * formulas}")
+    print(f"the monitor unit's step ({formulas} foreach formulas of {count} objects, one sample a message, changes only; "
+          f"on_message called directly): {best:.1f} us CPU per message, {best / formulas:.2f} us per formula "
+          f"(best of {rounds} rounds of {per_round:,}); load {_load()}")  # fmt: skip
+    return {"objects": count, "formulas": formulas, "rounds": rounds, "per_message_us": round(best, 2), "load": _load()}
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the per-state comparison (default) or the end-to-end runs (``--monitors``, ``--objects``)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -894,6 +940,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--remote", action="store_true", help="end to end: sources and sink in another process, over Zenoh")
     parser.add_argument("--feeder", metavar="ENDPOINT", help=argparse.SUPPRESS)  # the other process of --remote
     parser.add_argument("--churn", type=int, metavar="N", help="instead: the CPU an object's monitor costs to make, over N objects")
+    parser.add_argument("--step", type=int, metavar="N",
+                        help="instead: the monitor unit's own step per message, --formulas foreach formulas over N objects, no transport")  # fmt: skip
     parser.add_argument("--json", type=Path, help="write the results here")
     args = parser.parse_args(argv)
     if args.feeder:
@@ -909,6 +957,11 @@ def main(argv: list[str] | None = None) -> int:
         )
     info = machine()
     print(f"machine: {info['cpu']}, {info['cores']} cores, Python {info['python']}; load {_load()}")
+    if args.step:
+        step = unit_step(args.step, args.formulas, 3 if args.smoke else args.repeat * 2 - 1)
+        if args.json:
+            write_json(args.json, {"machine": info, "step": step})
+        return 0
     if args.churn:
         churn = object_churn(args.churn)
         if args.json:

@@ -393,6 +393,17 @@ def test_reasoning_benchmark_churn_smoke(tmp_path: Path) -> None:
 
 
 @pytest.mark.process
+def test_reasoning_benchmark_step_smoke(tmp_path: Path) -> None:
+    """--step: the monitor unit's own step per message, every sample decided by every formula."""
+    out = tmp_path / "step.json"
+    result = _run("reasoning.py", "--step", "50", "--formulas", "3", "--smoke", "--json", str(out))
+    assert result.returncode == 0, result.stderr[-3000:]
+    step = json.loads(out.read_text())["step"]
+    assert step["objects"] == 50 and step["formulas"] == 3 and step["rounds"] == 3 and step["per_message_us"] > 0
+    assert "us CPU per message" in result.stdout
+
+
+@pytest.mark.process
 def test_reasoning_benchmark_smoke(tmp_path: Path) -> None:
     out = tmp_path / "reasoning.json"
     result = _run("reasoning.py", "--smoke", "--windows", "10ms,1s", "--json", str(out))
