@@ -100,7 +100,7 @@ class ObjectMonitor:
         self._outages: dict[int, list[tuple[int, int]]] = {}
         self._reach = Monitor(self.body, variables={self.var: ""}).reach_ns  # (a probe: the variable's value does not matter)
         self._live: dict[str, Monitor] = {}
-        self._last: dict[str, int] = {}  # object -> its latest sample's time
+        self._lives: dict[str, _Life] = {}  # object -> its instance and its latest sample's time (one lookup a sample)
         self._deadlines: list[tuple[int, str]] = []  # (last + idle, object): looked at as time goes on
         self._newest = -(2**62)
         #: samples of the quantified stream whose field names no object
@@ -173,20 +173,21 @@ class ObjectMonitor:
         if key is None:
             self.unassigned += 1  # (no instance takes it: those of the objects read the quantified stream's samples of their own)
             return
-        monitor = self._live.get(key)
-        if monitor is not None and t_ns - self._last[key] > self.idle_ns:
+        life = self._lives.get(key)
+        if life is not None and t_ns - life.last_ns > self.idle_ns:
             self._end(key, out)
-            monitor = None
-        last = self._last
-        if monitor is None:
+            life = None
+        if life is None:
             if len(self._live) >= self.max_objects or len(self._live) >= self.capacity:
                 self.refused += 1
                 return
             monitor = self._start(key, read(value, self.domain.fields))
-            last[key] = t_ns
+            self._lives[key] = _Life(monitor, t_ns)
             heapq.heappush(self._deadlines, (t_ns + self.idle_ns, key))  # (moved on when it comes up: _retire)
-        elif t_ns > last[key]:
-            last[key] = t_ns
+        else:
+            monitor = life.monitor
+            if t_ns > life.last_ns:
+                life.last_ns = t_ns
         late = monitor.late
         for verdict in monitor.push_index(0, t_ns, value):  # (the body's terms start with the quantified stream)
             out.append((key, verdict))
@@ -241,7 +242,7 @@ class ObjectMonitor:
         whoever still holds the monitor. It starts anew if pushed to again."""
         self._given_up_retired += sum(m.given_up for m in self._live.values())
         self._live = {}
-        self._last = {}
+        self._lives = {}
         self._deadlines = []
         self._latest = {}
         self._outages = {}
@@ -274,7 +275,7 @@ class ObjectMonitor:
         monitor = self._live.pop(key)
         out.extend((key, v) for v in monitor.close())
         self._given_up_retired += monitor.given_up
-        del self._last[key]
+        del self._lives[key]
         self._reshare()
 
     def _retire(self, out: list[tuple[str, Verdict]]) -> None:
@@ -283,10 +284,10 @@ class ObjectMonitor:
         deadlines = self._deadlines
         while deadlines and deadlines[0][0] < now:
             _deadline, key = heapq.heappop(deadlines)
-            last = self._last.get(key)
-            if last is None:
+            life = self._lives.get(key)
+            if life is None:
                 continue  # (that life ended)
-            due = last + self.idle_ns
+            due = life.last_ns + self.idle_ns
             if due < now:
                 self._end(key, out)
             else:  # a later sample moved it on: one entry per object, not one per sample
@@ -381,3 +382,11 @@ class ObjectMonitor:
     def retained(self) -> int:
         """States (and buffered samples) the instances alive keep."""
         return sum(m.retained() for m in self._live.values())
+
+
+class _Life:
+    """An object's instance and the time of its latest sample (of the quantified stream)."""
+
+    def __init__(self, monitor: Monitor, last_ns: int) -> None:
+        self.monitor = monitor
+        self.last_ns = last_ns
