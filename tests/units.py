@@ -133,7 +133,8 @@ class Picky(Unit):
 
 
 class SlowSetup(Unit):
-    """Takes ``setup_s`` seconds to set up (a detector building its model, say); records when."""
+    """Takes ``setup_s`` seconds to set up (a detector building its model, say); records when.
+    With the param ``fail``, its setup then fails (a device that times out)."""
 
     log_lock = threading.Lock()
     setups: ClassVar[list[tuple[str, str]]] = []  # (unit, "begin" | "end"), in order
@@ -144,6 +145,8 @@ class SlowSetup(Unit):
         time.sleep(float(self.params.get("setup_s", 1.0)))
         with SlowSetup.log_lock:
             SlowSetup.setups.append((self.name, "end"))
+        if self.params.get("fail"):
+            raise RuntimeError("the device did not answer")
 
     def on_message(self, port: str, msg: Message) -> None:
         self.publish("out", msg.payload)

@@ -6,6 +6,7 @@ serving it, and of a trial in the shadow) and turns their false verdicts into sy
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import replace
@@ -72,6 +73,10 @@ class Requirements:
         self._report = report
         self._dwell_ns = dwell_ns
         self._judges: dict[str, Judge] = {}  # request key -> the judge of a request degraded in place
+        # (request key, formula) -> its first false verdict while the call of require() that adds
+        # it has not ended: reported once the call took every requirement, dropped when it failed
+        self._holding: dict[tuple[str, str], Symptom | None] = {}
+        self._holding_lock = threading.Lock()
 
     # -- a request's own requirements
 
@@ -81,8 +86,10 @@ class Requirements:
         a monitor unit each, whose false verdicts become "requirement" symptoms. A term that is
         the request's tag reads its stream, any other is requested in turn. All or nothing: when
         one cannot be watched (its monitor fails to start, too), those this call set up are taken
-        down again before it raises."""
+        down again before it raises, and what they found changes nothing: a false verdict of one
+        of them counts (a symptom) only once the call took every requirement."""
         added: list[str] = []
+        held: list[tuple[str, str]] = []
         try:
             for formula in formulas:
                 text = str(formula)
@@ -90,6 +97,9 @@ class Requirements:
                     continue
                 bindings: dict[str, str] = {}
                 needs: list[str] = []
+                with self._holding_lock:
+                    self._holding[(request.key, text)] = None
+                held.append((request.key, text))
                 try:
                     for term, port in term_ports(formula).items():
                         if term == request.tag:
@@ -113,7 +123,14 @@ class Requirements:
                     watcher.listen(lambda verdict, text=text, key=key: self._verdict(key, text, verdict))  # type: ignore[misc]
         except BaseException:
             self.unrequire(request, added)
+            with self._holding_lock:
+                for watch in held:
+                    self._holding.pop(watch, None)
             raise
+        with self._holding_lock:
+            found = [symptom for symptom in (self._holding.pop(watch, None) for watch in held) if symptom is not None]
+        for symptom in found:  # (false while the call went on: a fault of the stream as it is now required)
+            self._report(symptom)
 
     def _start(self, spec: TransformationSpec, name: str, bindings: dict[str, str], formula: str, owner: Owner = LOCAL) -> None:
         """Spawn the monitor unit ``name`` of a requirement; one that fails to start (its formula's
@@ -164,6 +181,11 @@ class Requirements:
             judge.verdict(formula, verdict)
         if verdict.verdict is False:
             symptom = Symptom("requirement", time.time_ns(), unit=unit, label=label, detail=formula, request=key, state_ns=verdict.t_ns)
+            with self._holding_lock:
+                if (key, formula) in self._holding:  # (its require() call goes on: held until it ends)
+                    if self._holding[(key, formula)] is None:
+                        self._holding[(key, formula)] = symptom
+                    return
             self._report(symptom)
 
     # -- the requirements of the transformations serving a request
