@@ -99,8 +99,7 @@ class ObjectMonitor:
         # may reach back into: at most MAX_OUTAGES each, none older than the body's reach
         self._outages: dict[int, list[tuple[int, int]]] = {}
         self._reach = Monitor(self.body, variables={self.var: ""}).reach_ns  # (a probe: the variable's value does not matter)
-        self._live: dict[str, Monitor] = {}
-        self._lives: dict[str, _Life] = {}  # object -> its instance and its latest sample's time (one lookup a sample)
+        self._live: dict[str, _Life] = {}  # object -> its instance and its latest sample's time (one lookup a sample)
         self._deadlines: list[tuple[int, str]] = []  # (last + idle, object): looked at as time goes on
         self._newest = -(2**62)
         #: samples of the quantified stream whose field names no object
@@ -173,7 +172,7 @@ class ObjectMonitor:
         if key is None:
             self.unassigned += 1  # (no instance takes it: those of the objects read the quantified stream's samples of their own)
             return
-        life = self._lives.get(key)
+        life = self._live.get(key)
         if life is not None and t_ns - life.last_ns > self.idle_ns:
             self._end(key, out)
             life = None
@@ -181,8 +180,7 @@ class ObjectMonitor:
             if len(self._live) >= self.max_objects or len(self._live) >= self.capacity:
                 self.refused += 1
                 return
-            monitor = self._start(key, read(value, self.domain.fields))
-            self._lives[key] = _Life(monitor, t_ns)
+            monitor = self._start(key, read(value, self.domain.fields), t_ns)
             heapq.heappush(self._deadlines, (t_ns + self.idle_ns, key))  # (moved on when it comes up: _retire)
         else:
             monitor = life.monitor
@@ -208,7 +206,8 @@ class ObjectMonitor:
     def _others(self, k: int, name: str, t_ns: int, value: Any, out: list[tuple[str, Verdict]]) -> None:
         if k == self._domain_k:
             return
-        for key, monitor in self._live.items():
+        for key, life in self._live.items():
+            monitor = life.monitor
             if name in monitor.terms:
                 late = monitor.late
                 out.extend((key, v) for v in monitor.push(name, t_ns, value))
@@ -217,8 +216,8 @@ class ObjectMonitor:
     def flush(self) -> list[tuple[str, Verdict]]:
         """Close every instance's buffered states (the input ended); the pairs that decided."""
         out: list[tuple[str, Verdict]] = []
-        for key, monitor in self._live.items():
-            out.extend((key, v) for v in monitor.flush())
+        for key, life in self._live.items():
+            out.extend((key, v) for v in life.monitor.flush())
         return out
 
     def close(self) -> list[tuple[str, Verdict]]:
@@ -233,16 +232,15 @@ class ObjectMonitor:
         (:meth:`~dyknow.reasoning.Monitor.widen`)."""
         if reorder_ns > self.reorder_ns:
             self.reorder_ns = int(reorder_ns)
-            for monitor in self._live.values():
-                monitor.widen(self.reorder_ns)
+            for life in self._live.values():
+                life.monitor.widen(self.reorder_ns)
 
     def discard(self) -> None:
         """Let go of every instance and what it keeps (states, object ids, the latest samples)
         at once, deciding nothing: the monitor is going, and its memory is free from now on
         whoever still holds the monitor. It starts anew if pushed to again."""
-        self._given_up_retired += sum(m.given_up for m in self._live.values())
+        self._given_up_retired += sum(life.monitor.given_up for life in self._live.values())
         self._live = {}
-        self._lives = {}
         self._deadlines = []
         self._latest = {}
         self._outages = {}
@@ -250,7 +248,7 @@ class ObjectMonitor:
 
     # -- instances
 
-    def _start(self, key: str, value: Any) -> Monitor:
+    def _start(self, key: str, value: Any, t_ns: int) -> Monitor:
         cells = max(1, self._max_cells // self._slots_for(len(self._live) + 1))
         monitor = Monitor(self.body, reorder_ns=self.reorder_ns, max_cells=cells, variables={self.var: value})
         for term, age in self._max_age.items():
@@ -266,16 +264,15 @@ class ObjectMonitor:
                 name = self.terms[k]
                 if k != self._domain_k and name in monitor.terms:
                     monitor.push(name, t, held)  # (before the object's first sample: no state yet)
-        self._live[key] = monitor
+        self._live[key] = _Life(monitor, t_ns)
         self.made += 1
         self._reshare()
         return monitor
 
     def _end(self, key: str, out: list[tuple[str, Verdict]]) -> None:
-        monitor = self._live.pop(key)
+        monitor = self._live.pop(key).monitor
         out.extend((key, v) for v in monitor.close())
         self._given_up_retired += monitor.given_up
-        del self._lives[key]
         self._reshare()
 
     def _retire(self, out: list[tuple[str, Verdict]]) -> None:
@@ -284,7 +281,7 @@ class ObjectMonitor:
         deadlines = self._deadlines
         while deadlines and deadlines[0][0] < now:
             _deadline, key = heapq.heappop(deadlines)
-            life = self._lives.get(key)
+            life = self._live.get(key)
             if life is None:
                 continue  # (that life ended)
             due = life.last_ns + self.idle_ns
@@ -309,8 +306,8 @@ class ObjectMonitor:
             return  # (every instance's share is still max_cells // slots)
         self._slots = slots
         cells = max(1, self._max_cells // slots)
-        for monitor in self._live.values():
-            monitor.set_max_cells(cells)
+        for life in self._live.values():
+            life.monitor.set_max_cells(cells)
 
     def set_max_age(self, term: str, max_age_ns: int | None) -> None:
         """Every instance's (and every later one's) maximum age of ``term`` (see :meth:`Monitor.set_max_age`)."""
@@ -322,9 +319,9 @@ class ObjectMonitor:
             self._max_age.pop(name, None)
         else:
             self._max_age[name] = int(max_age_ns)
-        for monitor in self._live.values():
-            if name in monitor.terms:
-                monitor.set_max_age(name, max_age_ns)
+        for life in self._live.values():
+            if name in life.monitor.terms:
+                life.monitor.set_max_age(name, max_age_ns)
 
     def set_max_cells(self, max_cells: int) -> None:
         """Keep at most ``max_cells`` cells in all from now on, shared among the instances
@@ -362,7 +359,7 @@ class ObjectMonitor:
 
     def instance(self, key: str) -> Monitor:
         """The monitor of object ``key`` (one of :attr:`objects`); KeyError when it has none alive."""
-        return self._live[key]
+        return self._live[key].monitor
 
     @property
     def late(self) -> int:
@@ -372,16 +369,16 @@ class ObjectMonitor:
     @property
     def given_up(self) -> int:
         """States the memory bound gave up, over every instance so far."""
-        return self._given_up_retired + sum(m.given_up for m in self._live.values())
+        return self._given_up_retired + sum(life.monitor.given_up for life in self._live.values())
 
     @property
     def states(self) -> int:
         """States closed by the instances alive."""
-        return sum(m.states for m in self._live.values())
+        return sum(life.monitor.states for life in self._live.values())
 
     def retained(self) -> int:
         """States (and buffered samples) the instances alive keep."""
-        return sum(m.retained() for m in self._live.values())
+        return sum(life.monitor.retained() for life in self._live.values())
 
 
 class _Life:
