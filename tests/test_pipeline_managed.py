@@ -94,5 +94,10 @@ def test_the_managed_demo_runs_the_mission_and_the_baseline_and_prints_both(doma
     assert managed["time_to_find_s"] is not None and managed["time_to_find_s"] < baseline["time_to_find_s"]  # searched higher
     assert managed["thruster_faults"] == 2 and managed["thruster_recoveries"] == 2 and managed["time_stopped_s"] < 30
     assert managed["distance_inspected_m"] > baseline["distance_inspected_m"]
-    # one switch to the recovery per fault (its cause is the measurement that made the loop look: often the thruster's)
-    assert [s["new"] for s in out["switches"] if "motion.fd_recover_thrusters" in s["new"]] == [["motion.fd_recover_thrusters"]] * 2, out["switches"]
+    # one switch to the recovery per fault that struck in normal motion (its cause is the
+    # measurement that made the loop look: often the thruster's); a fault that struck while
+    # recovery was still active (at --speed 20 the faults are 3.5 s apart: the switch back may not
+    # have come yet under load) recovers with no switch, or with one if the loop saw it
+    recoveries = [s["new"] for s in out["switches"] if "motion.fd_recover_thrusters" in s["new"]]
+    assert set(map(tuple, recoveries)) <= {("motion.fd_recover_thrusters",)}, json.dumps(out["switches"])
+    assert 2 - managed["faults_while_recovering"] <= len(recoveries) <= 2, json.dumps(out)

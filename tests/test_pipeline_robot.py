@@ -69,7 +69,20 @@ def test_a_failed_thruster_stops_the_robot_unless_degraded_and_recovers_only_whi
     world.advance(Controls(motion=True, search=True, degraded=True), 6.0)
     assert world.x_m != x and world.failed == {4}  # thrust reallocated: it moves, the thruster still failed
     assert world.advance(Controls(motion=True, search=True, recover=True), 8.0) == [(4, False)]
-    assert world.measures().thruster_recoveries == 1
+    assert world.measures().thruster_recoveries == 1 and world.measures().faults_while_recovering == 0
+
+
+def test_a_fault_while_recovery_is_active_recovers_with_no_switch_and_is_counted() -> None:
+    """What the managed demo's test tells apart: a fault that strikes while recovery is still
+    active (the managing system has not switched back yet) needs no switch of its own."""
+    world = World(Script(faults=((1.0, 4), (3.0, 2)), recovery_s=0.5))
+    assert world.advance(Controls(motion=True, search=True, recover=True), 2.0) == [(4, True), (4, False)]
+    assert world.advance(Controls(motion=True, search=True, recover=True), 4.0) == [(2, True), (2, False)]
+    assert world.faults_while_recovering == 2 and world.measures().thruster_recoveries == 2
+    world = World(Script(faults=((1.0, 4),)))
+    world.advance(Controls(motion=True, search=True), 2.0)
+    assert world.fail(2, recovering=True) and not world.fail(2, recovering=True)  # asked twice: one fault
+    assert (world.faults, world.faults_while_recovering) == (2, 1)
 
 
 def test_a_script_file_is_read_and_a_bad_one_names_the_file_and_field(tmp_path: Path) -> None:
@@ -232,6 +245,7 @@ def test_the_robots_lifecycle_nodes_answer_a_managing_client_and_it_prints_measu
         "time_stopped_s": 0.0,
         "mission_s": 0.0,
         "seed": 0,
+        "faults_while_recovering": 0,
     }
 
 

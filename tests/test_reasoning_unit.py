@@ -115,6 +115,36 @@ def test_late_samples_are_rejections_of_their_port_warned_about_once(caplog: pyt
     assert len(counted) == 2 and all(r.levelno == logging.INFO for r in counted)
 
 
+def test_a_stream_that_stops_is_judged_to_its_last_sample_once_idle_for_the_reorder_delay() -> None:
+    """The ball demo's track, predicted for about a second and then silent: its requirement turns
+    false half a second in. With a reorder delay of 800 ms (grown so by disorder beside CPU hogs),
+    a monitor judges only the states 800 ms older than its newest sample, so the false ones waited
+    for the track's next sample, seconds later (a 5.4 s stall of the demo's stream). With
+    ``close_idle`` (the requirements' monitors) the buffered states close once the stream has been
+    idle for the delay, with evaluate()'s verdicts over the same samples; a sample that comes
+    after that is late, as it would be had the stream gone on."""
+    formula = "not historically[0, 500ms] Track(x).predicted"
+    sent = [(T0 + k * 50 * MS, {"predicted": k >= 10}) for k in range(30)]  # predicted from 500 ms to 1,450 ms
+    expected = [(t, v) for t, v in evaluate_ns(formula, {"Track(x)": sent}) if v is not None]
+    assert [v for _, v in expected].count(False) == 10  # from 1,000 ms on
+    with UnitHarness(monitor_spec(formula, reorder_ms=800, max_age_ms=-1), name="waits") as harness:
+        for t, value in sent:
+            harness.send("t0", value, origin_ns=t)
+        got = harness.wait_for(VERDICTS_PORT, 14)  # the states up to 650 ms: 800 ms before the newest
+        time.sleep(1.0)  # idle for longer than the delay: nothing closes without a sample
+        assert len(harness.received(VERDICTS_PORT)) == 14 and all(m.payload["verdict"] for m in got)
+    with UnitHarness(monitor_spec(formula, reorder_ms=800, max_age_ms=-1, close_idle=True), name="closes") as harness:
+        for t, value in sent:
+            harness.send("t0", value, origin_ns=t)
+        got = harness.wait_for(VERDICTS_PORT, 30, timeout_s=20)
+        assert [(m.payload["t_ns"], m.payload["verdict"]) for m in got] == expected
+        harness.send("t0", {"predicted": False}, origin_ns=T0 + 1_400 * MS)  # within the delay of the newest, but after the close
+        unit = harness.unit
+        assert isinstance(unit, FormulaMonitor)
+        wait_until(lambda: unit.monitor.late == 1, "the sample after the close to be late")
+        assert len(harness.received(VERDICTS_PORT)) == 30
+
+
 def test_the_reorder_delay_grows_with_the_disorder_between_ports(caplog: pytest.LogCaptureFixture) -> None:
     """Issue 54 item 4: q's samples come two of p's behind. The first is late (the delay was 0,
     and p's sample at 20 ms closed the state at 10 ms) and warned about; the delay grows to twice

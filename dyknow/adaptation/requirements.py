@@ -1,6 +1,8 @@
 """The watches of requirements, the monitor's sensors for temporal formulas: :class:`Requirements`
 spawns a monitor unit per formula a request requires (and per requirement of the transformations
-serving it, and of a trial in the shadow) and turns their false verdicts into symptoms.
+serving it, and of a trial in the shadow) and turns their false verdicts into symptoms. A watch
+closes its states once its stream has been idle for the reorder delay (``close_idle``), so a
+stream that stops just as its requirement turns false is found false then, not at its next sample.
 """
 
 from __future__ import annotations
@@ -110,7 +112,7 @@ class Requirements:
                     request.watch_count += 1
                     name = f"{request.anchor}-require-{request.watch_count}"
                     bindings[VERDICTS_PORT] = f"{request.key}/requirements/{request.watch_count}"
-                    self._start(monitor_spec(formula, label="requirement"), name, bindings, text, owner)
+                    self._start(monitor_spec(formula, label="requirement", close_idle=True), name, bindings, text, owner)
                 except BaseException:
                     self.give_back(needs)
                     raise
@@ -317,7 +319,7 @@ class Requirements:
             n = request.spec_watch_count
             name = f"{request.anchor}-spec-require-{n}"
             key = bindings[VERDICTS_PORT] = f"{request.key}/requirements/spec-{n}"
-            self._start(monitor_spec(formula, label="requirement", bound=self._bound(label, formula)), name, bindings, str(formula))
+            self._start(monitor_spec(formula, label="requirement", close_idle=True, bound=self._bound(label, formula)), name, bindings, str(formula))
         except DyKnowError:
             self.give_back(needs)
             raise
@@ -368,7 +370,7 @@ class Requirements:
         for k, (name, formula, bindings, bound) in enumerate(watched, start=1):
             monitor = f"{request.anchor}-trial-{serial}-{k}"
             bindings[VERDICTS_PORT] = f"{request.key}/trials/{serial}/{k}"
-            self._start(monitor_spec(formula, label="requirement", bound=bound), monitor, bindings, name)  # (one that fails to start is gone)
+            self._start(monitor_spec(formula, label="requirement", close_idle=True, bound=bound), monitor, bindings, name)  # (one that fails to start is gone)
             self._knowledge.managed.add(monitor)
             trial.monitors.append(monitor)
             watcher = self._runtime.unit(monitor)

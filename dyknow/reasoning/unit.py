@@ -77,6 +77,14 @@ Params:
   out of order there);
 - ``flush_ms`` (float, default 0: never): close the buffered states after this much wall time
   without a sample (the end of a replay, a stream that stopped), so their verdicts come out;
+- ``close_idle`` (bool, default false): close the buffered states once no sample came for the
+  reorder delay, in wall time, and at least :data:`IDLE_CLOSE_MIN_S` (checked every
+  :data:`IDLE_CHECK_S`): a live stream that stops is
+  judged up to its last sample however far the delay grew, as if its time had gone on without
+  it (a sample that comes later still is late, as it would be had the stream gone on). The
+  requirements of requests are watched so (:mod:`dyknow.adaptation.requirements`): a stream
+  that falls silent just as its requirement turns false is found false then, not at its next
+  sample;
 - ``max_age_ms`` (float, default 0: derived): the terms' freshness (see above);
 - ``idle_ms`` (float, default 10,000) and ``max_objects`` (int, default 1,000): a ``foreach``
   formula's object lifetime and cap;
@@ -141,7 +149,7 @@ from dyknow.unit import Unit
 if TYPE_CHECKING:
     from dyknow.message import Message
 
-__all__ = ["DEFAULT_MAX_REORDER_MS", "DEFAULT_QUEUE", "DEFAULT_QUIET_MS", "MAX_FORMULAS", "VERDICTS_PORT", "FormulaMonitor", "Formulas", "MonitorBudget", "monitor_spec", "term_ports"]
+__all__ = ["DEFAULT_MAX_REORDER_MS", "DEFAULT_QUEUE", "DEFAULT_QUIET_MS", "IDLE_CHECK_S", "IDLE_CLOSE_MIN_S", "MAX_FORMULAS", "VERDICTS_PORT", "FormulaMonitor", "Formulas", "MonitorBudget", "monitor_spec", "term_ports"]
 
 VERDICTS_PORT: str = "verdicts"
 """The output port on which a monitor unit publishes its verdicts."""
@@ -168,6 +176,13 @@ DEFAULT_QUIET_MS: float = 5000.0
 DEFAULT_MAX_REORDER_MS: float = 1000.0
 """The most a monitor's reorder delay grows to with the disorder it sees (milliseconds): the
 most its verdicts may come late for it."""
+
+IDLE_CHECK_S: float = 0.05
+"""How often a monitor with ``close_idle`` looks whether its input went idle (seconds)."""
+
+IDLE_CLOSE_MIN_S: float = 0.1
+"""The least idle time after which a monitor with ``close_idle`` closes its buffered states
+(seconds): another term's sample at the same time (two outputs of one source) may still come."""
 
 
 def _named(formulas: Formulas, where: str, limits: Limits | None = None) -> list[tuple[str | None, Formula]]:
@@ -286,6 +301,7 @@ def monitor_spec(
     reorder_ms: float = 0.0,
     max_reorder_ms: float = DEFAULT_MAX_REORDER_MS,
     flush_ms: float = 0.0,
+    close_idle: bool = False,
     queue: int = DEFAULT_QUEUE,
     max_age_ms: float = 0.0,
     idle_ms: float = DEFAULT_IDLE_NS / 1e6,
@@ -336,6 +352,7 @@ def monitor_spec(
             Param("max_objects", "int", int(max_objects)),
             Param("changes_only", "bool", bool(changes_only)),
             *((Param("robustness", "bool", True),) if robustness else ()),
+            *((Param("close_idle", "bool", True),) if close_idle else ()),
             *((Param("bound", "string", json.dumps(dict(bound))), Param("quiet_ms", "float", float(quiet_ms))) if bound else ()),
         ),
         ports=(*(Port(port, "in", queue=queue) for port in ports.values()), Port(VERDICTS_PORT, "out")),
@@ -505,8 +522,11 @@ class FormulaMonitor(Unit):
         self._quiet_s = quiet_ms / 1000
         flush_ms = float(params.get("flush_ms", 0.0))
         self._flush_s = flush_ms / 1000
-        if flush_ms > 0:
-            self.create_timer(max(self._flush_s / 2, 0.001), self._flush_if_idle)
+        self._close_idle = bool(params.get("close_idle", False))
+        self._flushed = True  # nothing buffered since the last flush (no sample yet)
+        if flush_ms > 0 or self._close_idle:
+            period = max(self._flush_s / 2, 0.001) if flush_ms > 0 else IDLE_CHECK_S
+            self.create_timer(min(period, IDLE_CHECK_S) if self._close_idle else period, self._flush_if_idle)
         if budget is not None:  # last: a failed setup() has nothing to give back
             budget.check(*(s.monitor.formula for s in served), account=self._account)
             joined: list[Monitor | ObjectMonitor] = []
@@ -613,6 +633,7 @@ class FormulaMonitor(Unit):
                                  self._max_reorder_ns / 1e6)  # fmt: skip
             self.reject(port, reason, expected=True)
         self._last_sample = time.monotonic()
+        self._flushed = False
         self._received += 1
         if self._received & 16383 == 0:  # (not monitor.states: an object monitor's sums its instances')
             self._report_given_up()
@@ -833,7 +854,11 @@ class FormulaMonitor(Unit):
                     del gaps[0]
 
     def _flush_if_idle(self) -> None:
-        if time.monotonic() - self._last_sample >= self._flush_s:
+        if self._flushed:
+            return
+        idle = time.monotonic() - self._last_sample
+        if (self._flush_s > 0 and idle >= self._flush_s) or (self._close_idle and idle >= max(self._reorder_ns / 1e9, IDLE_CLOSE_MIN_S)):
+            self._flushed = True
             self._take_shares()
             for served in self._served:
                 monitor = served.monitor

@@ -285,10 +285,11 @@ def _nodes(mission: _Mission, context: Any) -> list[Any]:
         if not request.data:
             response.success, response.message = False, "a thruster recovers only while /recover_thrusters is active"
             return response
+        recovering = recover.active
         with lock:
             working = [n for n in range(1, THRUSTERS + 1) if n not in world.failed]
             if working:
-                world.fail(working[0])
+                world.fail(working[0], recovering=recovering)
         if not working:
             response.success, response.message = False, "every thruster has failed already"
             return response

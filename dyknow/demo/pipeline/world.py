@@ -176,6 +176,8 @@ class Measures:
     time_stopped_s: float
     mission_s: float
     seed: int
+    #: faults that struck while thruster recovery was active already: they recover with no switch
+    faults_while_recovering: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """The measures as JSON (rounded to the millimetre and the millisecond)."""
@@ -200,6 +202,7 @@ class World:
     stopped_s: float = 0.0
     failed: set[int] = field(default_factory=set)
     faults: int = 0
+    faults_while_recovering: int = 0
     recoveries: int = 0
     recovering_s: float = 0.0
 
@@ -213,12 +216,14 @@ class World:
         """Whether the pipeline was found."""
         return self.found_at_s is not None
 
-    def fail(self, thruster: int) -> bool:
-        """Thruster ``thruster`` fails now; False if it had failed already."""
+    def fail(self, thruster: int, *, recovering: bool = False) -> bool:
+        """Thruster ``thruster`` fails now (``recovering``: while thruster recovery is active);
+        False if it had failed already."""
         if thruster in self.failed:
             return False
         self.failed.add(thruster)
         self.faults += 1
+        self.faults_while_recovering += recovering
         return True
 
     def advance(self, controls: Controls, to_s: float) -> list[tuple[int, bool]]:
@@ -233,7 +238,7 @@ class World:
         """One step of :data:`STEP_S`; returns the thrusters' changes, ``(thruster, failed)``."""
         before, dt = self.t_s, STEP_S
         self.t_s = round(before + dt, 9)
-        changes = [(n, True) for at, n in self.script.faults if before <= at < self.t_s and self.fail(n)]  # from its time on
+        changes = [(n, True) for at, n in self.script.faults if before <= at < self.t_s and self.fail(n, recovering=c.recover)]  # from its time on
         if self.failed and c.recover:
             self.recovering_s += dt
             if self.recovering_s >= self.script.recovery_s - 1e-9:
@@ -274,4 +279,6 @@ class World:
 
     def measures(self) -> Measures:
         """The mission's measures so far."""
-        return Measures(self.found_at_s, self.inspected_m, self.faults, self.recoveries, self.stopped_s, self.t_s, self.script.seed)
+        return Measures(
+            self.found_at_s, self.inspected_m, self.faults, self.recoveries, self.stopped_s, self.t_s, self.script.seed, self.faults_while_recovering
+        )
