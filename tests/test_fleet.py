@@ -201,9 +201,12 @@ def test_a_candidate_that_never_gives_its_summary_is_let_go_and_followed_again_w
         try:
             tokens = start(two)
             wait_until(lambda: "ghost" in a.alive(), "the ghost's token")
-            # (no summary came; it was followed and asked: it may be let go already, 0.5 s after
-            # its first failure, when this thread comes back late on a loaded host)
-            assert not a.discover([("Ghostly", ())]) and asked[:1] == ["ghost"]
+            # No summary came. The ghost is followed and asked: by the query, or by the tag's watch
+            # a moment later when the query ran before its offer token reached this session (its
+            # manager token came first: beside CPU hogs the query found no provider). It may be
+            # let go already, 0.5 s after its first failure, when this thread comes back late.
+            assert not a.discover([("Ghostly", ())])
+            wait_until(lambda: asked[:1] == ["ghost"], "the ghost asked for its summary")
             wait_until(lambda: "ghost" not in a.followed(), "the ghost let go")
             assert a.refused().get("silent") == 1 and len(asked) >= 2
             before = len(asked)

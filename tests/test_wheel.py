@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -29,21 +30,35 @@ def _clean_env(**extra: str) -> dict[str, str]:
     return {**env, **extra}
 
 
+def _source(to: Path) -> Path:
+    """The checkout's tracked files, copied to ``to``: what a clean clone holds. The wheel is built
+    from them, never in the checkout, whose ``build/`` may hold what an interrupted build left
+    (setuptools then fails on a directory that exists) or files of modules since removed."""
+    tracked = subprocess.run(["git", "ls-files", "-z"], capture_output=True, check=True, timeout=60, cwd=REPO).stdout.decode()
+    for name in filter(None, tracked.split("\0")):
+        if (REPO / name).is_file():  # (a file deleted but not yet committed is listed too)
+            (to / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(REPO / name, to / name)
+    return to
+
+
 def test_the_wheel_installs_in_a_fresh_venv_and_runs_the_demo_outside_the_checkout(tmp_path: Path) -> None:
     dist, venv, elsewhere = tmp_path / "dist", tmp_path / "venv", tmp_path / "elsewhere"
     elsewhere.mkdir()
-    compiled = {path: path.stat().st_mtime_ns for path in (REPO / "dyknow").rglob("*.so")}  # the checkout's own install's
+    source = _source(tmp_path / "source")
     build = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", str(dist), str(REPO)],
+        [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--wheel-dir", str(dist), str(source)],
         capture_output=True, text=True, timeout=600, env=_clean_env(DYKNOW_PURE_PYTHON="1"), cwd=elsewhere,
     )  # fmt: skip
     assert build.returncode == 0, build.stderr[-3000:]
     (wheel,) = dist.glob("dyknow-*.whl")
     assert wheel.name == f"dyknow-{__version__}-py3-none-any.whl"
     with zipfile.ZipFile(wheel) as built:
-        assert not [name for name in built.namelist() if name.endswith(".so")]  # pure: no compiled copy of the checkout's
-    # building a pure wheel leaves the checkout's compiled modules alone (an editable install's)
-    assert {path: path.stat().st_mtime_ns for path in (REPO / "dyknow").rglob("*.so")} == compiled
+        names = built.namelist()
+    assert not [name for name in names if name.endswith(".so")]  # pure Python, as asked
+    # every module of the package is the checkout's, and no other (a stale build/ adds none here)
+    modules = {name for name in names if name.endswith(".py") and name.startswith(("dyknow/", "transformations/"))}
+    assert modules == {str(path.relative_to(source)) for path in source.glob("*/**/*.py") if path.parts[len(source.parts)] in ("dyknow", "transformations")}
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120, env=_clean_env())
     python, dyknow = venv / "bin" / "python", venv / "bin" / "dyknow"
     install = subprocess.run(
