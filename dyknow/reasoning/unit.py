@@ -524,9 +524,9 @@ class FormulaMonitor(Unit):
         self._flush_s = flush_ms / 1000
         self._close_idle = bool(params.get("close_idle", False))
         self._flushed = True  # nothing buffered since the last flush (no sample yet)
-        if flush_ms > 0 or self._close_idle:
-            period = max(self._flush_s / 2, 0.001) if flush_ms > 0 else IDLE_CHECK_S
-            self.create_timer(min(period, IDLE_CHECK_S) if self._close_idle else period, self._flush_if_idle)
+        periods = ([max(self._flush_s / 2, 0.001)] if flush_ms > 0 else []) + ([IDLE_CHECK_S] if self._close_idle else [])
+        if periods:
+            self.create_timer(min(periods), self._flush_if_idle)
         if budget is not None:  # last: a failed setup() has nothing to give back
             budget.check(*(s.monitor.formula for s in served), account=self._account)
             joined: list[Monitor | ObjectMonitor] = []
